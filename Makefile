@@ -1,0 +1,35 @@
+# One command sets up and measures, one sets up and tests (README quick start).
+PYTHON ?= python3.11
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+APT_PACKAGES := libusb-1.0-0 libgl1 libgomp1
+
+.PHONY: measure test system-deps clean
+
+measure: $(STAMP)
+	$(VENV)/bin/tandemscan measure
+
+test: $(STAMP)
+	$(PY) -m pytest -q -p no:cacheprovider
+
+# System libraries Open3D needs at import time; installed through apt only where missing.
+system-deps:
+	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing system packages:$$missing"; \
+	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq $$missing; \
+	fi
+
+# torch is pinned first to the CPU build so that the generic requirement does not pull a CUDA build.
+$(STAMP): pyproject.toml | system-deps
+	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "$(PYTHON) not found: install Python 3.11"; exit 2; }
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q torch==2.13.0
+	$(PY) -m pip install -q -e '.[dev]'
+	touch $(STAMP)
+
+clean:
+	rm -rf $(VENV) out

@@ -1,0 +1,1 @@
+"""Supervisor, job runner, store, REST API and CLI."""

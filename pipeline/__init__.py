@@ -1,0 +1,1 @@
+"""Pure computation: frames, stitching, calibration, planning, DeepMerge, refinement, inspection, cloud I/O."""

@@ -1,0 +1,1 @@
+"""The simulated cell: the world (ground truth), device twins and protocol emulators."""

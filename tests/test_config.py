@@ -1,0 +1,45 @@
+"""Configuration loading: defaults run the sim cell; bad files name the file, key and reason."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tandemscan.config import ConfigError, load_config
+
+
+def test_default_config_is_the_sim_cell(sim_config):
+    assert sim_config.scanner.driver == "sim" and sim_config.tracker.driver == "sim"
+    assert sim_config.scanner.range_min_mm == 384 and sim_config.scanner.range_max_mm == 520
+    T = sim_config.installation.T_V1_C.matrix()
+    np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-12)
+
+
+def test_bad_value_names_file_key_and_reason(tmp_path):
+    bad = tmp_path / "cell.toml"
+    bad.write_text('[scanner]\nnoise_sigma_mm = -1.0\n')
+    with pytest.raises(ConfigError) as e:
+        load_config(bad)
+    msg = str(e.value)
+    assert str(bad) in msg and "scanner.noise_sigma_mm" in msg and "greater than or equal to 0" in msg
+
+
+def test_unknown_key_is_an_error(tmp_path):
+    bad = tmp_path / "cell.toml"
+    bad.write_text('[tracker]\nrange_mx_mm = 3.0\n')
+    with pytest.raises(ConfigError, match="tracker.range_mx_mm"):
+        load_config(bad)
+
+
+def test_missing_and_malformed_files(tmp_path):
+    with pytest.raises(ConfigError, match="file not found"):
+        load_config(tmp_path / "nope.toml")
+    broken = tmp_path / "broken.toml"
+    broken.write_text("[scanner\n")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(broken)
+
+
+def test_relative_mesh_path_resolves_against_the_file(tmp_path):
+    (tmp_path / "c.toml").write_text('[part]\nmesh = "part.stl"\n')
+    assert load_config(tmp_path / "c.toml").part.mesh == tmp_path / "part.stl"
