@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 import pytest
-
 from tandemscan.config.models import PartConfig
 from tandemscan.pipeline.kinematics import ArmKinematics
 from tandemscan.pipeline.part import (

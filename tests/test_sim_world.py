@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from tandemscan.drivers import ChassisPose, NotConnected, OutOfReach, SafetyStop, TargetNotVisible
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.scoring import cloud_to_mesh_distances

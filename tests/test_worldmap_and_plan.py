@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.pipeline.plan import MoveTracker, Plan, PlanError, Scan
 from tandemscan.pipeline.worldmap import VoxelMap
