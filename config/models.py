@@ -159,6 +159,7 @@ class ChassisCanConfig(_Strict):
     dbc: Path | None = Field(None, description="CAN database; empty = the shipped AgileX-Scout-style v2 DBC")
     command_period_s: float = Field(0.02, gt=0, description="motion command period (protocol: 20 ms)")
     feedback_timeout_s: float = Field(0.5, gt=0, description="no status frame for this long = link lost")
+    odometry_track_mm: float = Field(582.0, gt=0, description="effective skid-steer track for wheel odometry")
     position_tolerance_mm: float = Field(5.0, gt=0)
     heading_tolerance_deg: float = Field(0.5, gt=0)
     gain_linear_per_s: float = Field(1.5, gt=0, description="linear speed = gain x distance error")
