@@ -185,6 +185,7 @@ class InspectionResult:
 
     points_mm: np.ndarray = field(repr=False)
     deviations_mm: np.ndarray = field(repr=False)
+    cad_normals: np.ndarray = field(repr=False)  # (N, 3) outward normal of the closest CAD triangle
     stats: DeviationStats
     tolerance: ToleranceResult
     regions: tuple[RegionResult, ...]
@@ -203,19 +204,24 @@ def best_fit(
     max_distance_mm: float,
     iterations: int = 30,
     tolerance_mm: float = 1e-7,
+    max_points: int = 50_000,
 ) -> tuple[np.ndarray, int, bool, int]:
     """Point-to-plane ICP of ``points_mm`` onto the CAD surface itself (no sampling of the mesh).
 
     Each iteration pairs every point with its closest surface point and keeps the pairs closer than
     ``max_distance_mm``, so outliers and real form errors beyond it do not pull the fit. Returns
     ``(T_F_M, iterations run, converged, pairs used in the last iteration)``; converged means the last
-    update moved no point of the cloud's extent by more than ``tolerance_mm``.
+    update moved no point of the cloud's extent by more than ``tolerance_mm``, or stopped lowering the
+    RMS residual (a shape with a symmetry leaves the fit free along it). At most ``max_points`` points,
+    an even subsample, take part.
     """
     p = as_points(points_mm)
+    p = p[:: max(1, int(np.ceil(len(p) / max_points)))]
     T = np.eye(4)
     centre = p.mean(axis=0)
     extent = max(float(np.linalg.norm(p - centre, axis=1).max()), 1.0)
     used = 0
+    rms_before = np.inf
     for it in range(1, iterations + 1):
         q = transform_points(T, p)
         cp = surface.closest(q)
@@ -227,6 +233,10 @@ def best_fit(
             )
         qc, n = q[keep] - centre, cp.normals[keep]
         r = cp.signed_mm[keep]
+        rms = float(np.sqrt(np.mean(r * r)))
+        if rms_before - rms < 1e-3 * tolerance_mm:
+            return T, it, True, used
+        rms_before = rms
         A = np.hstack([np.cross(qc, n), n])  # d(residual)/d(omega, t) for small rotations about `centre`
         x, *_ = np.linalg.lstsq(A, -r, rcond=None)
         omega, t = x[:3], x[3:]
@@ -247,7 +257,8 @@ def inspect_cloud(
     cfg = cfg or InspectionConfig()
     p = as_points(points_mm)
     surface = mesh if isinstance(mesh, CadSurface) else CadSurface(mesh)
-    d = surface.signed_distance(p)
+    closest = surface.closest(p)
+    d = closest.signed_mm
     lo, hi = cfg.tolerance_lower_mm, cfg.tolerance_upper_mm
     regions = []
     for region in cfg.regions:
@@ -277,4 +288,4 @@ def inspect_cloud(
         "inspected %d points: mean %.4f mm, sigma %.4f mm, %.1f %% in tolerance",
         stats.count, stats.mean_mm, stats.sigma_mm, tol.in_pct,
     )
-    return InspectionResult(p, d, stats, tol, tuple(regions), fit)
+    return InspectionResult(p, d, closest.normals, stats, tol, tuple(regions), fit)
