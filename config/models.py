@@ -195,6 +195,9 @@ class InspectionConfig(_Strict):
         None, gt=0, description="colour-map saturates at +/- this, mm; default 3x the wider tolerance"
     )
     map_width_px: int = Field(900, ge=100, le=4000, description="width of each rendered colour-map view")
+    views: tuple[Literal["isometric", "front", "left", "right", "top", "back"], ...] = (
+        "isometric", "front", "left", "right", "top", "back",
+    )
 
 
 class CellConfig(_Strict):

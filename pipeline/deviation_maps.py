@@ -37,14 +37,14 @@ class View:
     up: tuple[float, float, float] = (0.0, 0.0, 1.0)
 
 
-STANDARD_VIEWS = (
-    View("isometric", (-1.0, 1.0, -0.8)),
-    View("front (from +x)", (-1.0, 0.0, 0.0)),
-    View("left (from -y)", (0.0, 1.0, 0.0)),
-    View("right (from +y)", (0.0, -1.0, 0.0)),
-    View("top (from +z)", (0.0, 0.0, -1.0), up=(0.0, 1.0, 0.0)),
-    View("back (from -x)", (1.0, 0.0, 0.0)),
-)
+STANDARD_VIEWS = {  # keys as in InspectionConfig.views
+    "isometric": View("isometric", (-1.0, 1.0, -0.8)),
+    "front": View("front (from +x)", (-1.0, 0.0, 0.0)),
+    "left": View("left (from -y)", (0.0, 1.0, 0.0)),
+    "right": View("right (from +y)", (0.0, -1.0, 0.0)),
+    "top": View("top (from +z)", (0.0, 0.0, -1.0), up=(0.0, 1.0, 0.0)),
+    "back": View("back (from -x)", (1.0, 0.0, 0.0)),
+}
 
 
 def png_bytes(fig: Figure) -> bytes:

@@ -89,15 +89,17 @@ def build_report(
     accuracy: Mapping[str, float | int | str] | None = None,
     scans_before: Sequence[np.ndarray] | None = None,
     scans_after: Sequence[np.ndarray] | None = None,
-    views: Sequence[View] = STANDARD_VIEWS,
+    views: Sequence[View] | None = None,
 ) -> Report:
     """Render the figures and collect the numbers of one inspection.
 
     ``meta`` names the job, cloud and CAD files; ``accuracy`` carries figures computed elsewhere (pose
     errors against ground truth, calibration residuals). ``scans_before``/``scans_after`` are the world
     points (mm) of each scan in measuring order before/after correction, for the stitching-quality view.
+    ``views`` default to the config's.
     """
     cfg = cfg or InspectionConfig()
+    views = list(views) if views is not None else [STANDARD_VIEWS[k] for k in cfg.views]
     tol = result.tolerance
     norm = deviation_norm(tol.lower_mm, tol.upper_mm, cfg.colour_limit_mm)
     p, d, n = result.points_mm, result.deviations_mm, result.cad_normals
