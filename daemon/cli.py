@@ -101,6 +101,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resolution", choices=["coarse", "full"], help="simulated scanner resolution")
     p.add_argument("--out", type=Path, help="output folder (default: job.out_dir of the config)")
     p.set_defaults(func=cmd_measure)
+
+    from tandemscan.daemon.inspect_cmd import register as register_inspect
+
+    register_inspect(sub)
     return parser
 
 

@@ -36,7 +36,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=None, metavar="DIR", help="output folder (default: out/inspect)")
     p.add_argument("--config", type=Path, default=None, help="cell configuration TOML (default: the sim cell)")
     p.add_argument("--no-best-fit", action="store_true", help="skip the best-fit alignment")
-    p.set_defaults(handler=run)
+    p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:

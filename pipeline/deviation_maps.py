@@ -47,6 +47,17 @@ STANDARD_VIEWS = {  # keys as in InspectionConfig.views
 }
 
 
+def facing_isometric(normals: np.ndarray, name: str = "isometric") -> View:
+    """An isometric view from above, on the side the measured surface mostly faces (mean of ``normals``,
+    horizontal part); the standard isometric when the normals cancel out."""
+    h = np.asarray(normals, float).mean(axis=0) if len(normals) else np.zeros(3)
+    h[2] = 0.0
+    if np.linalg.norm(h) < 0.1:
+        return STANDARD_VIEWS["isometric"]
+    h /= np.linalg.norm(h)
+    return View(name, tuple(-(h + [0.0, 0.0, 0.8 / np.sqrt(2)])))
+
+
 def png_bytes(fig: Figure) -> bytes:
     """The figure as PNG bytes (Agg canvas)."""
     buf = io.BytesIO()

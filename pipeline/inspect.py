@@ -62,6 +62,10 @@ class CadSurface:
         self.mesh = mesh
         self.origin_mm = 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
         local = (vertices - self.origin_mm).astype(np.float32)
+        self.flipped = _is_closed(triangles) and _signed_volume(local, triangles) < 0.0
+        if self.flipped:  # a closed mesh wound inside out: its normals would point into the material
+            log.warning("CAD mesh is wound inside out (negative volume); using its triangles reversed")
+            triangles = triangles[:, ::-1].copy()
         self._scene = o3d.t.geometry.RaycastingScene()
         self._scene.add_triangles(o3d.core.Tensor(local), o3d.core.Tensor(triangles.astype(np.uint32)))
 
@@ -90,6 +94,20 @@ class CadSurface:
     def signed_distance(self, points_mm: np.ndarray) -> np.ndarray:
         """(N,) signed distance of every point to the surface, mm (+ outside along the outward normal)."""
         return self.closest(points_mm).signed_mm
+
+
+def _is_closed(triangles: np.ndarray) -> bool:
+    """Every edge shared by exactly two triangles (a closed surface, whose volume sign means something)."""
+    edges = np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    return bool(np.all(counts == 2))
+
+
+def _signed_volume(vertices: np.ndarray, triangles: np.ndarray) -> float:
+    """Enclosed volume, positive when the triangles are wound counter-clockwise seen from outside (mm^3)."""
+    v = vertices.astype(np.float64)
+    a, b, c = v[triangles[:, 0]], v[triangles[:, 1]], v[triangles[:, 2]]
+    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
 
 
 def signed_distances(points_mm: np.ndarray, mesh: o3d.geometry.TriangleMesh) -> np.ndarray:

@@ -29,8 +29,9 @@ class InspectionOutputs:
     """What :func:`run_inspection` wrote, and the result behind it."""
 
     result: InspectionResult
+    data: dict
     html: Path
-    json: Path
+    json: Path | None
     ply: Path
 
 
@@ -79,9 +80,11 @@ def run_inspection(
     accuracy: Mapping[str, float | int | str] | None = None,
     scans_before: Sequence[np.ndarray] | None = None,
     scans_after: Sequence[np.ndarray] | None = None,
+    json_name: str | None = "report.json",
 ) -> InspectionOutputs:
     """Inspect ``points_mm`` (frame F) against the CAD mesh and write the report and the deviation PLY
-    into ``out_dir``. The PLY carries the cloud's normals when given, else the closest CAD normals."""
+    into ``out_dir``. The PLY carries the cloud's normals when given, else the closest CAD normals.
+    ``json_name=None`` leaves the JSON to the caller (it gets the same numbers as ``data``)."""
     cfg = cfg or InspectionConfig()
     surface = mesh if isinstance(mesh, CadSurface) else CadSurface(mesh)
     result = inspect_cloud(points_mm, surface, cfg)
@@ -89,14 +92,14 @@ def run_inspection(
         result, surface, cfg, title=title, meta=meta, accuracy=accuracy,
         scans_before=scans_before, scans_after=scans_after,
     )
-    html, js = write_report(report, out_dir)
+    html, js = write_report(report, out_dir, json_name)
     ply = write_ply(
         Path(out_dir) / DEVIATION_PLY,
         result.points_mm,
         normals if normals is not None else result.cad_normals,
         {"deviation_mm": result.deviations_mm},
     )
-    return InspectionOutputs(result, html, js, ply)
+    return InspectionOutputs(result, report.data, html, js, ply)
 
 
 def inspect_files(

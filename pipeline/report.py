@@ -24,6 +24,7 @@ from tandemscan.pipeline.deviation_maps import (
     View,
     deviation_map_png,
     deviation_norm,
+    facing_isometric,
     histogram_png,
 )
 from tandemscan.pipeline.inspect import CadSurface, InspectionResult
@@ -99,10 +100,12 @@ def build_report(
     ``views`` default to the config's.
     """
     cfg = cfg or InspectionConfig()
-    views = list(views) if views is not None else [STANDARD_VIEWS[k] for k in cfg.views]
     tol = result.tolerance
     norm = deviation_norm(tol.lower_mm, tol.upper_mm, cfg.colour_limit_mm)
-    p, d, n = result.points_mm, result.deviations_mm, result.cad_normals
+    every = max(1, int(np.ceil(len(result.points_mm) / cfg.map_max_points)))  # pictures only; numbers use all
+    p, d, n = result.points_mm[::every], result.deviations_mm[::every], result.cad_normals[::every]
+    if views is None:  # the isometric view looks at the side that was measured
+        views = [facing_isometric(n) if k == "isometric" else STANDARD_VIEWS[k] for k in cfg.views]
     figures = []
     for i, view in enumerate(views):
         png = deviation_map_png(surface, p, d, view, tol, norm, cfg.map_width_px, normals=n)
@@ -112,7 +115,7 @@ def build_report(
             title_ = f"{label.capitalize()} deviation (points {'above' if sign > 0 else 'below'} CAD), {views[0].name}"
             png = deviation_map_png(surface, p[keep], d[keep], views[0], tol, norm, cfg.map_width_px, title_, n[keep])
             figures.append(ReportFigure(f"{label}-deviation", title_, png))
-    figures.append(ReportFigure("histogram", "Deviation histogram with the tolerance band", histogram_png(d, result.stats, tol, norm)))
+    figures.append(ReportFigure("histogram", "Deviation histogram with the tolerance band", histogram_png(result.deviations_mm, result.stats, tol, norm)))
     pairs = []
     if scans_before is not None:
         pairs = overlap_quality(scans_before, scans_after)
@@ -140,15 +143,18 @@ def render_html(report: Report) -> str:
     return env.from_string(source).render(r=report.data, figures=report.figures)
 
 
-def write_report(report: Report, out_dir: Path | str) -> tuple[Path, Path]:
-    """Write ``report.html``, ``report.json`` and ``figures/*.png`` into ``out_dir``; returns (html, json)."""
+def write_report(report: Report, out_dir: Path | str, json_name: str | None = "report.json") -> tuple[Path, Path | None]:
+    """Write ``report.html``, ``figures/*.png`` and (unless ``json_name`` is None, for a caller that merges
+    ``report.data`` into its own JSON) the JSON into ``out_dir``; returns (html, json or None)."""
     out = Path(out_dir)
     (out / "figures").mkdir(parents=True, exist_ok=True)
     for f in report.figures:
         (out / "figures" / f"{f.name}.png").write_bytes(f.png)
     html = out / "report.html"
     html.write_text(render_html(report), encoding="utf-8")
-    js = out / "report.json"
-    js.write_text(json.dumps(report.data, indent=2) + "\n", encoding="utf-8")
-    log.info("wrote %s and %s", html, js)
+    js = None
+    if json_name is not None:
+        js = out / json_name
+        js.write_text(json.dumps(report.data, indent=2) + "\n", encoding="utf-8")
+    log.info("wrote %s%s", html, f" and {js}" if js else "")
     return html, js

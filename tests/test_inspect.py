@@ -156,6 +156,16 @@ def test_box_known_offsets_faces_edges_corners_and_inside():
     assert np.max(np.abs(d[:-3] - ref)) < UM
 
 
+def test_inside_out_closed_mesh_gives_the_same_signs():
+    mesh = box_mesh()
+    flipped = o3d.geometry.TriangleMesh(mesh.vertices, o3d.utility.Vector3iVector(np.asarray(mesh.triangles)[:, ::-1]))
+    pts = CENTRE + np.array([[200.0, 100.0, 101.0], [200.0, 100.0, 99.0], [-2.0, 50.0, 50.0]])
+    surface = CadSurface(flipped)
+    assert surface.flipped and not CadSurface(mesh).flipped
+    np.testing.assert_allclose(surface.signed_distance(pts), [1.0, -1.0, 2.0], atol=UM)
+    np.testing.assert_allclose(surface.closest(pts).normals[0], [0, 0, 1], atol=1e-6)  # outward
+
+
 def test_tolerance_shares_and_stats_by_hand():
     d = np.array([-0.3, -0.1, 0.0, 0.05, 0.1, 0.2, 0.25, -0.05])
     tol = ToleranceResult.of(d, -0.1, 0.1)

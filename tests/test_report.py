@@ -5,7 +5,10 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
+import subprocess
 
+import cv2
 import numpy as np
 import open3d as o3d
 import pytest
@@ -103,3 +106,30 @@ def test_report_html_self_contained_and_json_same_numbers(box, tmp_path):
     assert np.asarray(data["best_fit"]["T_F_M"]).shape == (4, 4)
     for f in data["figures"]:
         assert (tmp_path / f["file"]).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+CHROMIUM_FLAGS = [
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+    "--hide-scrollbars", "--enable-logging=stderr", "--window-size=1280,2200",
+]
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed (make system-deps installs it)")
+def test_report_renders_in_headless_chromium(box, tmp_path):
+    _, _, (html_path, _) = make_report(box, tmp_path / "report")
+    shot = tmp_path / "shot.png"
+    proc = subprocess.run(
+        [CHROMIUM, *CHROMIUM_FLAGS, f"--user-data-dir={tmp_path / 'profile'}", f"--screenshot={shot}",
+         html_path.as_uri()],
+        capture_output=True, text=True, timeout=180,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "CONSOLE" not in proc.stderr and "Uncaught" not in proc.stderr  # no page errors
+    img = cv2.imread(str(shot), cv2.IMREAD_COLOR)
+    assert img is not None and img.shape[0] >= 1000 and img.shape[1] == 1280
+    not_white = np.any(img < 245, axis=2).mean()
+    hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV)
+    colourful = ((hsv[..., 1] > 120) & (hsv[..., 2] > 80)).mean()  # the colour maps decoded and drawn
+    assert not_white > 0.05 and colourful > 0.01 and img.std() > 20
