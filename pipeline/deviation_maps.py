@@ -157,6 +157,15 @@ def _typical_spacing(points_mm: np.ndarray, sample: int = 2000) -> float:
     return float(np.median(d[:, 1]))
 
 
+def _axis_label(direction: np.ndarray) -> tuple[str, float]:
+    """(label, sign) of an image axis: the part axis it runs along when it is one, so ticks read as part
+    coordinates (mm, frame F); else a view-plane axis."""
+    k = int(np.argmax(np.abs(direction)))
+    if abs(direction[k]) > 1 - 1e-9:
+        return f"{'xyz'[k]}, mm", float(np.sign(direction[k]))
+    return "view plane, mm", 1.0
+
+
 def deviation_norm(lower_mm: float, upper_mm: float, limit_mm: float | None = None) -> Normalize:
     """Symmetric colour scale: +/- ``limit_mm``, default three times the wider tolerance."""
     lim = limit_mm or 3.0 * max(abs(lower_mm), abs(upper_mm), 1e-6)
@@ -179,10 +188,13 @@ def deviation_map_png(
     h, w = img.rgb.shape[:2]
     fig = Figure(figsize=(8.0, max(3.0, 8.0 * h / w * 0.92)), dpi=110, layout="constrained")
     ax = fig.add_subplot()
-    ax.imshow(img.rgb, extent=img.extent_mm, interpolation="nearest")
+    _, r, u = _camera(view)
+    (xl, x_sign), (yl, y_sign) = _axis_label(r), _axis_label(u)
+    x0, x1, y0, y1 = img.extent_mm
+    ax.imshow(img.rgb, extent=(x_sign * x0, x_sign * x1, y_sign * y0, y_sign * y1), interpolation="nearest")
     ax.set_title(title or f"Deviation from CAD, {view.name}")
-    ax.set_xlabel("mm")
-    ax.set_ylabel("mm")
+    ax.set_xlabel(xl)
+    ax.set_ylabel(yl)
     bar = fig.colorbar(ScalarMappable(norm, DEVIATION_CMAP), ax=ax, shrink=0.85, label="deviation, mm")
     for v in (tolerance.lower_mm, tolerance.upper_mm):
         bar.ax.axhline(v, color="black", lw=1.2)
