@@ -12,7 +12,6 @@ import tempfile
 import time
 
 import numpy as np
-
 from tandemscan.config.models import InspectionConfig, PartConfig
 from tandemscan.pipeline.inspect import CadSurface, inspect_cloud
 from tandemscan.pipeline.part import train_nose_mesh

@@ -12,7 +12,6 @@ import logging
 from typing import TYPE_CHECKING
 
 import numpy as np
-
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.export import PosedScan, write_e57, write_pose_log
 from tandemscan.pipeline.inspection_job import run_inspection
@@ -34,6 +33,10 @@ def _posed_scans(runner: JobRunner) -> list[PosedScan]:
                 **{f"joint{i + 1}_deg": float(np.degrees(q)) for i, q in enumerate(s.joints_rad)}}
         scans.append(PosedScan(s.file.stem, s.T_W_S, points, meta))
     return scans
+
+
+def _thin(points: np.ndarray) -> np.ndarray:
+    return points[:: max(1, len(points) // STITCH_VIEW_POINTS)]
 
 
 def _accuracy(report: dict) -> dict:
@@ -79,8 +82,7 @@ def write_job_outputs(runner: JobRunner, report: dict) -> dict:
         meta={"job": job_dir.name, "plan": runner.plan.name, "cell": runner.config.name,
               "registration to CAD": "simulation ground truth T_W_F", "points": str(len(cloud_W))},
         accuracy=_accuracy(report),
-        scans_before=[F.transform_points(T_F_W @ s.T_W_S, s.points_S_mm[:: max(1, len(s.points_S_mm) // STITCH_VIEW_POINTS)])
-                      for s in scans],
+        scans_before=[F.transform_points(T_F_W @ s.T_W_S, _thin(s.points_S_mm)) for s in scans],
         json_name=None,
     )
     files |= {"html": out.html.name, "deviation_ply": out.ply.name}

@@ -18,7 +18,6 @@ from matplotlib.cm import ScalarMappable
 from matplotlib.colors import LinearSegmentedColormap, Normalize
 from matplotlib.figure import Figure
 from scipy.spatial import cKDTree
-
 from tandemscan.pipeline.inspect import CadSurface, DeviationStats, ToleranceResult
 
 # Blue (below) - cyan - green (on CAD) - yellow - red (above): what GOM and PolyWorks users read at a glance.
@@ -201,7 +200,9 @@ def deviation_map_png(
     return png_bytes(fig)
 
 
-def histogram_png(deviations_mm: np.ndarray, stats: DeviationStats, tolerance: ToleranceResult, norm: Normalize) -> bytes:
+def histogram_png(
+    deviations_mm: np.ndarray, stats: DeviationStats, tolerance: ToleranceResult, norm: Normalize
+) -> bytes:
     """Histogram of deviations (percent of points per bin) with the tolerance band and the shares in/out."""
     d = np.asarray(deviations_mm, float)
     lo = min(float(np.percentile(d, 0.1)), 1.5 * tolerance.lower_mm)
@@ -211,7 +212,8 @@ def histogram_png(deviations_mm: np.ndarray, stats: DeviationStats, tolerance: T
     fig = Figure(figsize=(8.0, 4.2), dpi=110, layout="constrained")
     ax = fig.add_subplot()
     ax.axvspan(tolerance.lower_mm, tolerance.upper_mm, color="#2fbf4a", alpha=0.12, label="tolerance band")
-    ax.bar(centres, 100.0 * counts / d.size, width=np.diff(edges), color=DEVIATION_CMAP(norm(centres)), edgecolor="none")
+    ax.bar(centres, 100.0 * counts / d.size, width=np.diff(edges), color=DEVIATION_CMAP(norm(centres)),
+           edgecolor="none")
     for v in (tolerance.lower_mm, tolerance.upper_mm):
         ax.axvline(v, color="black", lw=1.0, ls="--")
     ax.axvline(stats.mean_mm, color="#444444", lw=1.0, label=f"mean {stats.mean_mm:+.4f} mm")

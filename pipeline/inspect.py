@@ -16,7 +16,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import open3d as o3d
-
 from tandemscan.config.models import InspectionConfig, RegionConfig
 from tandemscan.pipeline.frames import from_rotvec, rotation_angle, transform_points
 

@@ -13,15 +13,14 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
-
 from tandemscan.config.models import InspectionConfig
 from tandemscan.pipeline.export import write_ply
 from tandemscan.pipeline.inspect import CadSurface, InspectionError, InspectionResult, inspect_cloud
 from tandemscan.pipeline.report import build_report, write_report
 
-log = logging.getLogger(__name__)
+DEVIATION_PLY = "cloud_deviation.ply"  # written next to report.html
 
-DEVIATION_PLY = "cloud_deviation.ply"
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)

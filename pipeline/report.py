@@ -17,7 +17,6 @@ from pathlib import Path
 
 import jinja2
 import numpy as np
-
 from tandemscan.config.models import InspectionConfig
 from tandemscan.pipeline.deviation_maps import (
     STANDARD_VIEWS,
@@ -115,7 +114,8 @@ def build_report(
             title_ = f"{label.capitalize()} deviation (points {'above' if sign > 0 else 'below'} CAD), {views[0].name}"
             png = deviation_map_png(surface, p[keep], d[keep], views[0], tol, norm, cfg.map_width_px, title_, n[keep])
             figures.append(ReportFigure(f"{label}-deviation", title_, png))
-    figures.append(ReportFigure("histogram", "Deviation histogram with the tolerance band", histogram_png(result.deviations_mm, result.stats, tol, norm)))
+    hist = histogram_png(result.deviations_mm, result.stats, tol, norm)
+    figures.append(ReportFigure("histogram", "Deviation histogram with the tolerance band", hist))
     pairs = []
     if scans_before is not None:
         pairs = overlap_quality(scans_before, scans_after)
@@ -143,7 +143,9 @@ def render_html(report: Report) -> str:
     return env.from_string(source).render(r=report.data, figures=report.figures)
 
 
-def write_report(report: Report, out_dir: Path | str, json_name: str | None = "report.json") -> tuple[Path, Path | None]:
+def write_report(
+    report: Report, out_dir: Path | str, json_name: str | None = "report.json"
+) -> tuple[Path, Path | None]:
     """Write ``report.html``, ``figures/*.png`` and (unless ``json_name`` is None, for a caller that merges
     ``report.data`` into its own JSON) the JSON into ``out_dir``; returns (html, json or None)."""
     out = Path(out_dir)

@@ -15,7 +15,6 @@ from dataclasses import dataclass
 import numpy as np
 from matplotlib.figure import Figure
 from scipy.spatial import cKDTree
-
 from tandemscan.pipeline.deviation_maps import png_bytes
 
 

@@ -8,7 +8,6 @@ import numpy as np
 import open3d as o3d
 import pye57
 import pytest
-
 from tandemscan.pipeline.export import ExportError, PosedScan, write_e57, write_ply, write_pose_log
 from tandemscan.pipeline.frames import from_quaternion, from_rpy, pose_error
 
@@ -81,7 +80,8 @@ def test_pose_log_csv(tmp_path):
         rows = list(csv.DictReader(f))
     assert [r["name"] for r in rows] == [s.name for s in scans]
     for r, s in zip(rows, scans, strict=True):
-        T = from_quaternion([float(r[k]) for k in ("x_mm", "y_mm", "z_mm")], [float(r[k]) for k in "qx qy qz qw".split()])
+        xyz = [float(r[k]) for k in ("x_mm", "y_mm", "z_mm")]
+        T = from_quaternion(xyz, [float(r[k]) for k in ("qx", "qy", "qz", "qw")])
         dt, dr = pose_error(T, s.T_W_S)
         assert dt < 1e-5 and dr < 1e-8
         assert int(r["points"]) == len(s.points_S_mm) and float(r["t_s"]) == s.meta["t_s"]

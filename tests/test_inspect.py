@@ -7,7 +7,6 @@ import numpy as np
 import open3d as o3d
 import pytest
 from scipy.spatial import cKDTree
-
 from tandemscan.config.models import InspectionConfig, RegionConfig
 from tandemscan.pipeline.frames import from_rotvec, invert, transform_points
 from tandemscan.pipeline.inspect import (

@@ -9,7 +9,6 @@ import sys
 import numpy as np
 import open3d as o3d
 import pytest
-
 from tandemscan.daemon.inspect_cmd import main
 
 

@@ -8,7 +8,6 @@ import json
 
 import numpy as np
 import pye57
-
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.runner import JobRunner
 from tandemscan.pipeline.plan import Plan, Scan

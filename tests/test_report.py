@@ -12,7 +12,6 @@ import cv2
 import numpy as np
 import open3d as o3d
 import pytest
-
 from tandemscan.config.models import InspectionConfig
 from tandemscan.pipeline.deviation_maps import DEVIATION_CMAP, View, deviation_norm, render_view
 from tandemscan.pipeline.inspect import CadSurface, inspect_cloud
@@ -88,8 +87,15 @@ def make_report(box, tmp_path):
     return result, report, write_report(report, tmp_path)
 
 
-def test_report_html_self_contained_and_json_same_numbers(box, tmp_path):
-    result, report, (html_path, json_path) = make_report(box, tmp_path)
+@pytest.fixture(scope="module")
+def written(box, tmp_path_factory):
+    """One report, shared by the content test and the browser test (rendering takes seconds)."""
+    out = tmp_path_factory.mktemp("report")
+    return (out, *make_report(box, out))
+
+
+def test_report_html_self_contained_and_json_same_numbers(written):
+    tmp_path, result, report, (html_path, json_path) = written
     html = html_path.read_text()
     assert "Box &lt;test&gt;" in html  # escaped
     assert not re.search(r"""(src|href)=["'](https?:|//|file:)""", html)  # nothing fetched from outside
@@ -117,8 +123,8 @@ CHROMIUM_FLAGS = [
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed (make system-deps installs it)")
-def test_report_renders_in_headless_chromium(box, tmp_path):
-    _, _, (html_path, _) = make_report(box, tmp_path / "report")
+def test_report_renders_in_headless_chromium(written, tmp_path):
+    html_path = written[3][0]
     shot = tmp_path / "shot.png"
     proc = subprocess.run(
         [CHROMIUM, *CHROMIUM_FLAGS, f"--user-data-dir={tmp_path / 'profile'}", f"--screenshot={shot}",
