@@ -76,3 +76,14 @@ def test_unreadable_file_gives_only_our_line_from_a_real_process(files, tmp_path
     lines = [ln for ln in (proc.stdout + proc.stderr).splitlines() if ln.strip()]
     assert proc.returncode == 2 and len(lines) == 1, lines
     assert lines[0].startswith("tandemscan inspect: error:") and "no points could be read" in lines[0]
+
+
+def test_registered_in_the_main_cli(files, tmp_path, capsys):
+    from tandemscan.daemon.cli import main as tandemscan
+
+    cloud, cad, cfg = files
+    assert tandemscan(["inspect", str(tmp_path / "nope.ply"), "--cad", str(cad)]) == 2
+    assert "cloud file not found" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:  # argparse: --cad is required
+        tandemscan(["inspect", str(cloud)])
+    assert e.value.code == 2
