@@ -197,6 +197,9 @@ class InspectionConfig(_Strict):
         RegionConfig(name="body", min_mm=(-1e5, -1e5, -1e5), max_mm=(-500.0, 1e5, 1e5)),
         RegionConfig(name="nose", min_mm=(-500.0, -1e5, -1e5), max_mm=(1e5, 1e5, 1e5)),
     )
+    mesh_group_regions: bool = Field(
+        True, description="also one region per material group of the CAD mesh (OBJ usemtl), by closest triangle"
+    )
     best_fit: bool = True
     best_fit_max_distance_mm: float = Field(
         1.0, gt=0, description="best-fit ICP uses only points deviating less than this, mm"

@@ -90,6 +90,15 @@ class CadSurface:
             signed_mm=sign * dist,
         )
 
+    def group_masks(self, triangle_ids: np.ndarray) -> list[tuple[str, np.ndarray]]:
+        """(name, bool mask) per material group of the mesh, for points whose closest triangles are given;
+        empty when the mesh has fewer than two groups. Names are ``mesh group <material id>``."""
+        groups = np.asarray(self.mesh.triangle_material_ids)
+        if len(groups) != len(self.mesh.triangles) or len(np.unique(groups)) < 2:
+            return []
+        of_point = groups[triangle_ids]
+        return [(f"mesh group {g}", of_point == g) for g in np.unique(groups)]
+
     def signed_distance(self, points_mm: np.ndarray) -> np.ndarray:
         """(N,) signed distance of every point to the surface, mm (+ outside along the outward normal)."""
         return self.closest(points_mm).signed_mm
@@ -277,10 +286,10 @@ def inspect_cloud(
     closest = surface.closest(p)
     d = closest.signed_mm
     lo, hi = cfg.tolerance_lower_mm, cfg.tolerance_upper_mm
-    regions = []
-    for region in cfg.regions:
-        mask = region_mask(p, region)
-        regions.append(RegionResult(region.name, DeviationStats.of(d[mask]), ToleranceResult.of(d[mask], lo, hi)))
+    masks = [(region.name, region_mask(p, region)) for region in cfg.regions]
+    if cfg.mesh_group_regions:
+        masks += surface.group_masks(closest.triangle_ids)
+    regions = [RegionResult(name, DeviationStats.of(d[m]), ToleranceResult.of(d[m], lo, hi)) for name, m in masks]
     fit = None
     if cfg.best_fit:
         T, its, converged, used = best_fit(surface, p, cfg.best_fit_max_distance_mm, cfg.best_fit_iterations)

@@ -222,3 +222,24 @@ def test_bad_input_is_a_clear_error():
         CadSurface(o3d.geometry.TriangleMesh())
     with pytest.raises(InspectionError, match="best fit"):
         inspect_cloud(CENTRE + [[1e4, 0, 0]] * 10, mesh, InspectionConfig(best_fit_max_distance_mm=1.0))
+
+
+def test_regions_from_mesh_material_groups(tmp_path):
+    """An OBJ with two materials (two faces of a plate): one region per group, by closest triangle."""
+    (tmp_path / "plate.mtl").write_text("newmtl left\nKd 1 0 0\nnewmtl right\nKd 0 1 0\n")
+    (tmp_path / "plate.obj").write_text(
+        "mtllib plate.mtl\nv 0 0 0\nv 100 0 0\nv 100 100 0\nv 0 100 0\nv 200 0 0\nv 200 100 0\n"
+        "usemtl left\nf 1 2 3\nf 1 3 4\nusemtl right\nf 2 5 6\nf 2 6 3\n"
+    )
+    mesh = o3d.io.read_triangle_mesh(str(tmp_path / "plate.obj"))
+    rng = np.random.default_rng(0)
+    left = np.c_[rng.uniform(1, 99, 300), rng.uniform(1, 99, 300), np.full(300, 0.05)]
+    right = np.c_[rng.uniform(101, 199, 500), rng.uniform(1, 99, 500), np.full(500, -0.2)]
+    res = inspect_cloud(np.vstack([left, right]), mesh, InspectionConfig(regions=(), best_fit=False))
+    assert len(res.regions) == 2
+    by_count = sorted(res.regions, key=lambda r: r.stats.count)
+    assert by_count[0].stats.count == 300 and by_count[0].stats.mean_mm == pytest.approx(0.05, abs=UM)
+    assert by_count[1].stats.count == 500 and by_count[1].stats.mean_mm == pytest.approx(-0.2, abs=UM)
+    assert all(r.name.startswith("mesh group") for r in res.regions)
+    off = inspect_cloud(left, mesh, InspectionConfig(regions=(), best_fit=False, mesh_group_regions=False))
+    assert off.regions == ()
