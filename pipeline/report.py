@@ -115,7 +115,7 @@ def build_report(
             png = deviation_map_png(surface, p[keep], d[keep], views[0], tol, norm, cfg.map_width_px, title_, n[keep])
             figures.append(ReportFigure(f"{label}-deviation", title_, png))
     hist = histogram_png(result.deviations_mm, result.stats, tol, norm)
-    figures.append(ReportFigure("histogram", "Deviation histogram with the tolerance band", hist))
+    figures.append(ReportFigure("histogram", "Deviation histogram with the tolerance band (the outer bins collect the 0.1 % tails)", hist))
     pairs = []
     if scans_before is not None:
         pairs = overlap_quality(scans_before, scans_after)
