@@ -255,6 +255,50 @@ class JobConfig(_Strict):
     calibration_file: Path | None = None
 
 
+class RegionConfig(_Strict):
+    """A named inspection region: an axis-aligned box in the CAD/part frame F (mm), bounds inclusive."""
+
+    name: str = Field(min_length=1)
+    min_mm: tuple[float, float, float]
+    max_mm: tuple[float, float, float]
+
+    @field_validator("max_mm")
+    @classmethod
+    def _ordered(cls, v: tuple[float, float, float], info) -> tuple[float, float, float]:
+        lo = info.data.get("min_mm")
+        if lo is not None and any(b < a for a, b in zip(lo, v, strict=True)):
+            raise ValueError(f"max_mm {v} must be >= min_mm {lo} on every axis")
+        return v
+
+
+class InspectionConfig(_Strict):
+    """Deviation-from-CAD inspection: tolerance band (mm, signed: + = material outside the CAD surface),
+    named regions, optional best-fit alignment and the colour-map scale."""
+
+    tolerance_lower_mm: float = Field(-0.1, le=0)
+    tolerance_upper_mm: float = Field(0.1, ge=0)
+    regions: tuple[RegionConfig, ...] = (
+        RegionConfig(name="body", min_mm=(-1e5, -1e5, -1e5), max_mm=(-500.0, 1e5, 1e5)),
+        RegionConfig(name="nose", min_mm=(-500.0, -1e5, -1e5), max_mm=(1e5, 1e5, 1e5)),
+    )
+    mesh_group_regions: bool = Field(
+        True, description="also one region per material group of the CAD mesh (OBJ usemtl), by closest triangle"
+    )
+    best_fit: bool = True
+    best_fit_max_distance_mm: float = Field(
+        1.0, gt=0, description="best-fit ICP uses only points deviating less than this, mm"
+    )
+    best_fit_iterations: int = Field(30, ge=1)
+    colour_limit_mm: float | None = Field(
+        None, gt=0, description="colour-map saturates at +/- this, mm; default 3x the wider tolerance"
+    )
+    map_width_px: int = Field(900, ge=100, le=4000, description="width of each rendered colour-map view")
+    map_max_points: int = Field(300_000, ge=1000, description="colour maps draw an even subsample of this size")
+    views: tuple[Literal["isometric", "front", "left", "right", "top", "back"], ...] = (
+        "isometric", "front", "left", "right", "top", "back",
+    )
+
+
 class CellConfig(_Strict):
     """The whole cell."""
 
@@ -269,3 +313,4 @@ class CellConfig(_Strict):
     installation: InstallationConfig = InstallationConfig()
     sim: SimWorldConfig = SimWorldConfig()
     job: JobConfig = JobConfig()
+    inspection: InspectionConfig = InspectionConfig()
