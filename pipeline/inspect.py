@@ -291,8 +291,13 @@ def inspect_cloud(
         masks += surface.group_masks(closest.triangle_ids)
     regions = [RegionResult(name, DeviationStats.of(d[m]), ToleranceResult.of(d[m], lo, hi)) for name, m in masks]
     fit = None
-    if cfg.best_fit:
-        T, its, converged, used = best_fit(surface, p, cfg.best_fit_max_distance_mm, cfg.best_fit_iterations)
+    try:
+        fitted = best_fit(surface, p, cfg.best_fit_max_distance_mm, cfg.best_fit_iterations) if cfg.best_fit else None
+    except InspectionError as e:  # a cloud far off its CAD still gets its as-measured deviation
+        log.warning("best fit skipped: %s", e)
+        fitted = None
+    if fitted is not None:
+        T, its, converged, used = fitted
         d_fit = surface.signed_distance(transform_points(T, p))
         fit = BestFit(
             T_F_M=T,
