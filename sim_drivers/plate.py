@@ -1,0 +1,104 @@
+"""A simulated calibration plate: its mesh for the sim world and an exact analytic scan of it.
+
+The plate frame ``P`` is that of :mod:`tandemscan.pipeline.calibration.plate`: sphere centres at z = 0,
+the plate top at ``z = -(radius + stem)``. The analytic scan intersects a pinhole grid of rays from the
+scanner origin (frame S: z along the view, x right, y down) with the spheres and the plate top exactly, so
+tests know the true centres to machine precision.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+from numpy.typing import ArrayLike
+
+from tandemscan.config.models import CalibrationConfig, ScannerConfig
+from tandemscan.pipeline.calibration.plate import nominal_centres_P
+from tandemscan.pipeline.frames import invert, transform_points
+
+
+def plate_top_z_mm(cfg: CalibrationConfig) -> float:
+    """z of the plate's top face in frame P (mm)."""
+    return -(cfg.sphere_diameter_mm / 2.0 + cfg.stem_mm)
+
+
+def plate_mesh(cfg: CalibrationConfig, thickness_mm: float = 20.0) -> o3d.geometry.TriangleMesh:
+    """Watertight-enough mesh of the plate (box + stems + spheres) in frame P (mm)."""
+    r = cfg.sphere_diameter_mm / 2.0
+    top = plate_top_z_mm(cfg)
+    w, h = cfg.plate_size_mm
+    mesh = o3d.geometry.TriangleMesh.create_box(w, h, thickness_mm)
+    mesh.translate((-w / 2.0, -h / 2.0 + 40.0, top - thickness_mm))
+    for c in nominal_centres_P(cfg):
+        s = o3d.geometry.TriangleMesh.create_sphere(radius=r, resolution=60)
+        s.translate(c)
+        stem = o3d.geometry.TriangleMesh.create_cylinder(radius=r / 3.0, height=cfg.stem_mm + r)
+        stem.translate((c[0], c[1], top + (cfg.stem_mm + r) / 2.0))
+        mesh += s + stem
+    mesh.compute_vertex_normals()
+    return mesh
+
+
+def _ray_grid(scanner: ScannerConfig) -> np.ndarray:
+    """(N, 3) unit ray directions of the scanner's pixel grid in frame S."""
+    cols, rows = scanner.pixels
+    hx = scanner.width_at_sweet_spot_mm / 2.0 / scanner.sweet_spot_mm
+    hy = scanner.height_at_sweet_spot_mm / 2.0 / scanner.sweet_spot_mm
+    u, v = np.meshgrid(np.linspace(-hx, hx, cols), np.linspace(-hy, hy, rows))
+    d = np.column_stack([u.ravel(), v.ravel(), np.ones(u.size)])
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def scan_plate(
+    cfg: CalibrationConfig,
+    scanner: ScannerConfig,
+    T_S_P: ArrayLike,
+    *,
+    rng: np.random.Generator | None = None,
+    noise_mm: float | None = None,
+    hidden: tuple[str, ...] = (),
+) -> tuple[np.ndarray, np.ndarray]:
+    """Exact scan of the plate seen at ``T_S_P``: (points_S (N, 3) mm, normals_S (N, 3)).
+
+    Gaussian noise along the ray (``noise_mm``, default the scanner's) when ``rng`` is given; spheres named
+    in ``hidden`` are left out (a plate with a missing sphere). Range and grazing filters as the scanner's.
+    """
+    T = np.asarray(T_S_P, dtype=float)
+    r = cfg.sphere_diameter_mm / 2.0
+    D = _ray_grid(scanner)
+    n = len(D)
+    depth = np.full(n, np.inf)
+    normal = np.zeros((n, 3))
+    centres = transform_points(T, nominal_centres_P(cfg))
+    for name, c in zip(("A", "X", "Y"), centres, strict=True):
+        if name in hidden:
+            continue
+        b = D @ c
+        disc = b * b - (c @ c - r * r)
+        hit = disc >= 0
+        t = np.where(hit, b - np.sqrt(np.where(hit, disc, 0.0)), np.inf)
+        closer = (t > 0) & (t < depth)
+        depth[closer] = t[closer]
+        p = D[closer] * t[closer, None]
+        normal[closer] = (p - c) / r
+    # plate top: plane z_P = top within the plate rectangle
+    nz = T[:3, 2]
+    p0 = transform_points(T, [[0.0, 0.0, plate_top_z_mm(cfg)]])[0]
+    denom = D @ nz
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (p0 @ nz) / denom
+    q = transform_points(invert(T), D * t[:, None])
+    w, h = cfg.plate_size_mm
+    inside = (np.abs(q[:, 0]) <= w / 2.0) & (q[:, 1] >= -h / 2.0 + 40.0) & (q[:, 1] <= h / 2.0 + 40.0)
+    closer = inside & (t > 0) & (t < depth)
+    depth[closer] = t[closer]
+    normal[closer] = np.sign(-denom[closer])[:, None] * nz
+    ok = np.isfinite(depth)
+    cos_inc = -np.einsum("ij,ij->i", D, normal)
+    ok &= cos_inc > np.cos(np.radians(scanner.max_incidence_deg))
+    ok &= (depth * D[:, 2] >= scanner.range_min_mm) & (depth * D[:, 2] <= scanner.range_max_mm)
+    d = depth[ok]
+    if rng is not None:
+        sigma = scanner.noise_sigma_mm if noise_mm is None else noise_mm
+        d = d + rng.normal(0.0, sigma, d.shape)
+    return D[ok] * d[:, None], normal[ok]
