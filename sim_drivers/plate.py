@@ -8,13 +8,16 @@ tests know the true centres to machine precision.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
+
 import numpy as np
 import open3d as o3d
 from numpy.typing import ArrayLike
 
-from tandemscan.config.models import CalibrationConfig, ScannerConfig
+from tandemscan.config.models import CalibrationConfig, ScannerConfig, TrackerConfig
 from tandemscan.pipeline.calibration.plate import nominal_centres_P
-from tandemscan.pipeline.frames import invert, transform_points
+from tandemscan.pipeline.frames import from_rotvec, invert, transform_points
 
 
 def plate_top_z_mm(cfg: CalibrationConfig) -> float:
@@ -102,3 +105,52 @@ def scan_plate(
         sigma = scanner.noise_sigma_mm if noise_mm is None else noise_mm
         d = d + rng.normal(0.0, sigma, d.shape)
     return D[ok] * d[:, None], normal[ok]
+
+
+def tracker_sigma(tracker: TrackerConfig, distance_mm: float) -> tuple[float, float]:
+    """1-sigma (rotation rad, translation mm) per axis of a reading at ``distance_mm``, from the config."""
+    d_m = distance_mm / 1000.0
+    rot = np.radians(tracker.angle_noise_deg + tracker.angle_noise_deg_per_m * d_m)
+    return float(rot), tracker.position_noise_mm + tracker.position_noise_mm_per_m * d_m
+
+
+@dataclass(frozen=True)
+class HandEyeData:
+    """Simulated hand-eye data: noisy ``T_C_T`` and ``T_S_P`` per pose, and the truth they come from."""
+
+    T_C_T: np.ndarray
+    T_S_P: np.ndarray
+    T_T_S: np.ndarray
+    T_C_P: np.ndarray
+    tracker_sigma: tuple[float, float]
+
+
+def _perturb(T: np.ndarray, rng: np.random.Generator, sigma_rad: float, sigma_mm: float) -> np.ndarray:
+    """``T @ exp(noise)``: Gaussian rotation (rad) and translation (mm) noise in T's own frame."""
+    return T @ from_rotvec(rng.normal(0.0, sigma_mm, 3), rng.normal(0.0, sigma_rad, 3))
+
+
+def hand_eye_dataset(
+    rng: np.random.Generator,
+    views_T_P_S: list[np.ndarray],
+    T_T_S: np.ndarray,
+    T_C_P: np.ndarray,
+    tracker: TrackerConfig,
+    *,
+    plate_sigma: tuple[float, float] = (float(np.radians(0.002)), 0.005),
+    plate_fit: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> HandEyeData:
+    """Tracker and plate readings for scanner views ``T_P_S`` of a plate standing at ``T_C_P``.
+
+    Tracker noise follows the config's distance model, applied in the target frame. Plate poses get
+    ``plate_sigma`` = (rad, mm) noise, or come from ``plate_fit(true T_S_P)`` (e.g. scan + sphere fit).
+    """
+    T_C_T, T_S_P = [], []
+    sig = (0.0, 0.0)
+    for T_P_S in views_T_P_S:
+        true_T_C_T = T_C_P @ T_P_S @ invert(T_T_S)
+        sig = tracker_sigma(tracker, float(np.linalg.norm(true_T_C_T[:3, 3])))
+        T_C_T.append(_perturb(true_T_C_T, rng, *sig))
+        true_T_S_P = invert(T_P_S)
+        T_S_P.append(plate_fit(true_T_S_P) if plate_fit is not None else _perturb(true_T_S_P, rng, *plate_sigma))
+    return HandEyeData(np.array(T_C_T), np.array(T_S_P), T_T_S, T_C_P, sig)

@@ -1,0 +1,57 @@
+"""Well-conditioned scanner views of the calibration plate for hand-eye data collection.
+
+The views sit on a cone around the plate normal at the scanner's sweet-spot distance, at evenly spread
+azimuths, each rolled about its own view axis by a different amount, so the relative rotations between
+views turn about many different axes (what ``A X = X B`` needs to be observable).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from tandemscan.pipeline.frames import make_transform
+
+
+def look_at(eye_mm: ArrayLike, target_mm: ArrayLike, roll_rad: float = 0.0) -> np.ndarray:
+    """Scanner pose ``T_P_S`` (mm) at ``eye`` with its z axis through ``target`` (both in frame P).
+
+    Scanner frame: z along the view, x right, y down. With zero roll, x is perpendicular to the plate's y
+    axis (or to its x axis when looking almost along y); ``roll_rad`` turns x and y about the view axis.
+    """
+    eye = np.asarray(eye_mm, dtype=float)
+    z = np.asarray(target_mm, dtype=float) - eye
+    z /= np.linalg.norm(z)
+    ref = np.array([0.0, 1.0, 0.0]) if abs(z[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    x = np.cross(ref, z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    c, s = np.cos(roll_rad), np.sin(roll_rad)
+    x, y = c * x + s * y, -s * x + c * y
+    return make_transform(np.column_stack([x, y, z]), eye)
+
+
+def plate_view_poses(
+    n: int,
+    centre_P_mm: ArrayLike,
+    distance_mm: float,
+    tilt_deg: float,
+    roll_span_deg: float = 60.0,
+) -> list[np.ndarray]:
+    """``n`` scanner poses ``T_P_S`` looking at ``centre_P_mm`` from ``distance_mm`` along the plate's +z side.
+
+    The first view looks straight down the plate normal; the others are tilted by ``tilt_deg`` (alternating
+    full and half tilt) at golden-angle azimuths, with rolls spread over +-``roll_span_deg / 2``.
+    """
+    if n < 1:
+        raise ValueError("need at least one view")
+    centre = np.asarray(centre_P_mm, dtype=float)
+    golden = np.pi * (3.0 - np.sqrt(5.0))
+    poses = []
+    for i in range(n):
+        tilt = 0.0 if i == 0 else np.radians(tilt_deg) * (1.0 if i % 2 else 0.5)
+        az = i * golden
+        v = np.array([np.sin(tilt) * np.cos(az), np.sin(tilt) * np.sin(az), np.cos(tilt)])
+        roll = np.radians(roll_span_deg) * (((i * 0.618034) % 1.0) - 0.5)
+        poses.append(look_at(centre + distance_mm * v, centre, roll))
+    return poses
