@@ -108,10 +108,10 @@ def scan_plate(
 
 
 def tracker_sigma(tracker: TrackerConfig, distance_mm: float) -> tuple[float, float]:
-    """1-sigma (rotation rad, translation mm) per axis of a reading at ``distance_mm``, from the config."""
+    """1-sigma (translation mm, rotation rad) per axis of a reading at ``distance_mm``, from the config."""
     d_m = distance_mm / 1000.0
     rot = np.radians(tracker.angle_noise_deg + tracker.angle_noise_deg_per_m * d_m)
-    return float(rot), tracker.position_noise_mm + tracker.position_noise_mm_per_m * d_m
+    return tracker.position_noise_mm + tracker.position_noise_mm_per_m * d_m, float(rot)
 
 
 @dataclass(frozen=True)
@@ -125,9 +125,12 @@ class HandEyeData:
     tracker_sigma: tuple[float, float]
 
 
-def _perturb(T: np.ndarray, rng: np.random.Generator, sigma_rad: float, sigma_mm: float) -> np.ndarray:
-    """``T @ exp(noise)``: Gaussian rotation (rad) and translation (mm) noise in T's own frame."""
-    return T @ from_rotvec(rng.normal(0.0, sigma_mm, 3), rng.normal(0.0, sigma_rad, 3))
+def _perturb(T: np.ndarray, rng: np.random.Generator, sigma_mm: float, sigma_rad: float) -> np.ndarray:
+    """Noise as the sim tracker makes it: rotation (rad) about T's origin in the outer frame, translation (mm)
+    added in the outer frame."""
+    out = from_rotvec(np.zeros(3), rng.normal(0.0, sigma_rad, 3)) @ T
+    out[:3, 3] = T[:3, 3] + rng.normal(0.0, sigma_mm, 3)
+    return out
 
 
 def hand_eye_dataset(
@@ -137,13 +140,14 @@ def hand_eye_dataset(
     T_C_P: np.ndarray,
     tracker: TrackerConfig,
     *,
-    plate_sigma: tuple[float, float] = (float(np.radians(0.002)), 0.005),
+    plate_sigma: tuple[float, float] = (0.005, float(np.radians(0.002))),
     plate_fit: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> HandEyeData:
     """Tracker and plate readings for scanner views ``T_P_S`` of a plate standing at ``T_C_P``.
 
-    Tracker noise follows the config's distance model, applied in the target frame. Plate poses get
-    ``plate_sigma`` = (rad, mm) noise, or come from ``plate_fit(true T_S_P)`` (e.g. scan + sphere fit).
+    Tracker noise follows the config's distance model, in the camera frame as the sim tracker applies it.
+    Plate poses get ``plate_sigma`` = (mm, rad) noise, or come from ``plate_fit(true T_S_P)`` (e.g. scan +
+    sphere fit). ``tracker_sigma`` of the result is (mm, rad) of the last reading.
     """
     T_C_T, T_S_P = [], []
     sig = (0.0, 0.0)

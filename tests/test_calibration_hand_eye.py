@@ -22,7 +22,7 @@ def _data(sim_config, seed, scale=1.0, views=VIEWS):
     )
     return hand_eye_dataset(
         np.random.default_rng(seed), views, X_TRUE, T_C_P, tracker,
-        plate_sigma=(float(np.radians(0.002)) * scale, 0.005 * scale),
+        plate_sigma=(0.005 * scale, float(np.radians(0.002)) * scale),
     )
 
 

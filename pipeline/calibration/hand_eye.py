@@ -33,8 +33,8 @@ CLOSED_FORM: tuple[str, ...] = ("tsai", "park", "daniilidis")
 METHODS: tuple[str, ...] = (*CLOSED_FORM, "refine")
 
 #: plate points (frame P, mm) used when the caller gives none: a tetrahedron the size of the plate
-#: 1-sigma (rotation rad, translation mm) per axis of a tracker reading about 3 m away (TrackerConfig defaults)
-DEFAULT_TRACKER_SIGMA = (float(np.radians(0.0025)), 0.025)
+#: 1-sigma (translation mm, rotation rad) per axis of a tracker reading about 3 m away (TrackerConfig defaults)
+DEFAULT_TRACKER_SIGMA = (0.025, float(np.radians(0.0025)))
 DEFAULT_PLATE_POINTS_P = np.array([[-100.0, 0.0, 0.0], [100.0, 0.0, 0.0], [0.0, 100.0, 0.0], [0.0, 0.0, 100.0]])
 
 
@@ -268,22 +268,23 @@ class _Bundle:
     """Residuals ``T_C_T[i] X p_ik - m_k`` (frame C, mm) with X = X0 exp(dx) and the K points m_k free.
 
     Each pose's 3K residual vector is whitened by its covariance: the tracker's 6-DoF noise carried to the
-    points (``dq_k = R_C_T (dtheta x u_k + dt)`` with ``u_k`` the point in frame T) plus the plate points'
-    own isotropic noise. This is what makes the point refinement better than the pair solvers: tracker
-    translation noise moves the whole point set and must not be read as a rotation of X.
+    points (``dq_k = dt + dtheta x (R_C_T u_k)`` in frame C, with ``u_k`` the point in frame T) plus the plate
+    points' own isotropic noise. This is what makes the point refinement better than the pair solvers:
+    tracker translation noise moves the whole point set and must not be read as a rotation of X.
     """
 
     def __init__(
-        self, T_C_T: np.ndarray, pts_S: np.ndarray, X0: np.ndarray, cov_T: np.ndarray, plate_sigma_mm: float
+        self, T_C_T: np.ndarray, pts_S: np.ndarray, X0: np.ndarray, cov_C: np.ndarray, plate_sigma_mm: float
     ) -> None:
         self.T_C_T, self.pts_S, self.X0 = T_C_T, pts_S, X0
         self.K = pts_S.shape[1]
         u = np.einsum("ij,nkj->nki", X0[:3, :3], pts_S) + X0[:3, 3]  # points in frame T
+        lever = np.einsum("nij,nkj->nki", T_C_T[:, :3, :3], u)  # from the target origin, in frame C
         J = np.zeros((len(T_C_T), self.K, 3, 6))
-        J[..., :3] = -_skew(u)
-        J[..., 3:] = np.eye(3)
-        J = np.einsum("nij,nkjl->nkil", T_C_T[:, :3, :3], J).reshape(len(T_C_T), 3 * self.K, 6)
-        cov = J @ cov_T @ np.swapaxes(J, 1, 2) + max(plate_sigma_mm, 1e-6) ** 2 * np.eye(3 * self.K)
+        J[..., :3] = np.eye(3)
+        J[..., 3:] = -_skew(lever)
+        J = J.reshape(len(T_C_T), 3 * self.K, 6)
+        cov = J @ cov_C @ np.swapaxes(J, 1, 2) + max(plate_sigma_mm, 1e-6) ** 2 * np.eye(3 * self.K)
         # whitening W with W^T W = inv(cov): W = inv(L) for cov = L L^T
         self.W = np.linalg.inv(np.linalg.cholesky(cov))
 
@@ -353,9 +354,10 @@ def solve_hand_eye(
     below ``min_pair_rotation_deg`` are dropped; :class:`HandEyeError` is raised when fewer than two remain
     or when all rotations share one axis.
 
-    Noise model of the refinement and the covariance: ``tracker_covariances`` (N, 6, 6) of each reading in
-    the target frame T, order (rotation vector rad, translation mm); without them ``tracker_sigma`` =
-    (rad, mm) per axis for every reading. ``plate_sigma_mm``: 1-sigma of a plate point from the scan fit.
+    Noise model of the refinement and the covariance: ``tracker_covariances`` (N, 6, 6) of each reading as
+    the tracker driver gives them (``TrackerReading.covariance``: translation mm then rotation vector rad,
+    in the camera frame C); without them ``tracker_sigma`` = (mm, rad) per axis for every reading.
+    ``plate_sigma_mm``: 1-sigma of a plate point from the scan fit.
     """
     if method not in METHODS:
         raise HandEyeError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
@@ -372,10 +374,10 @@ def solve_hand_eye(
     _check_conditioning(A, min_axis_spread_deg)
     pts_S = np.einsum("nij,kj->nki", T_S_P[:, :3, :3], pts_P) + T_S_P[:, None, :3, 3]
     if tracker_covariances is None:
-        cov_T = np.broadcast_to(np.diag(np.repeat(np.square(tracker_sigma), 3)), (len(T_C_T), 6, 6))
+        cov_C = np.broadcast_to(np.diag(np.repeat(np.square(tracker_sigma), 3)), (len(T_C_T), 6, 6))
     else:
-        cov_T = np.asarray(tracker_covariances, dtype=float)
-        if cov_T.shape != (len(T_C_T), 6, 6):
+        cov_C = np.asarray(tracker_covariances, dtype=float)
+        if cov_C.shape != (len(T_C_T), 6, 6):
             raise HandEyeError(f"tracker_covariances must be ({len(T_C_T)}, 6, 6), got {cov_T.shape}")
 
     def spread(X: np.ndarray) -> float:
@@ -389,10 +391,10 @@ def solve_hand_eye(
                 starts[name] = solver(A, B)
             except (HandEyeError, np.linalg.LinAlgError) as e:
                 log.info("hand-eye start %s failed: %s", name, e)
-        bundle = _Bundle(T_C_T, pts_S, min(starts.values(), key=spread), cov_T, plate_sigma_mm)
+        bundle = _Bundle(T_C_T, pts_S, min(starts.values(), key=spread), cov_C, plate_sigma_mm)
         x = _refine(bundle)
     else:
-        bundle = _Bundle(T_C_T, pts_S, _SOLVERS[method](A, B), cov_T, plate_sigma_mm)
+        bundle = _Bundle(T_C_T, pts_S, _SOLVERS[method](A, B), cov_C, plate_sigma_mm)
         x = bundle.start()
     X, m = bundle.unpack(x)
     cov = bundle.covariance(x)
