@@ -180,17 +180,17 @@ class CalibrationConfig(_Strict):
     """
 
     sphere_diameter_mm: float = Field(38.1, gt=0, description="calibrated diameter of the three spheres, mm")
-    centre_A_mm: tuple[float, float, float] = (-110.0, 0.0, 0.0)
-    centre_X_mm: tuple[float, float, float] = (140.0, 0.0, 0.0)
-    centre_Y_mm: tuple[float, float, float] = (0.0, 100.0, 0.0)
+    centre_A_mm: tuple[float, float, float] = (-100.0, 0.0, 0.0)
+    centre_X_mm: tuple[float, float, float] = (120.0, 0.0, 0.0)
+    centre_Y_mm: tuple[float, float, float] = (0.0, 90.0, 0.0)
     stem_mm: float = Field(15.0, ge=0, description="sphere surface to plate top along -z, mm (sim mesh)")
-    plate_size_mm: tuple[float, float] = (340.0, 230.0)
+    plate_size_mm: tuple[float, float] = (300.0, 210.0)
     radius_tolerance_mm: float = Field(0.3, gt=0, description="reject a sphere fit off the nominal radius by more")
     layout_tolerance_mm: float = Field(2.0, gt=0, description="max error of a centre-to-centre distance, mm")
     fit_fixed_radius: bool = Field(True, description="final centre fit with the calibrated radius fixed")
     min_pair_rotation_deg: float = Field(5.0, ge=0, description="hand-eye pose pairs rotating less are dropped")
     poses: int = Field(16, ge=3, description="arm poses of the calibration job")
-    tilt_deg: float = Field(25.0, gt=0, lt=60, description="scanner tilt over the plate in the calibration job")
+    tilt_deg: float = Field(22.0, gt=0, lt=60, description="scanner tilt over the plate in the calibration job")
     method: Literal["tsai", "park", "daniilidis", "refine"] = "refine"
     sim_T_F_P: TransformConfig = Field(
         TransformConfig(xyz_mm=(-2400.0, -1500.0, 800.0)),

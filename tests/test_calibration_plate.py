@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from tandemscan.config import load_config
 from tandemscan.config.models import CalibrationConfig
 from tandemscan.pipeline.calibration.plate import (
     PlateError,
@@ -14,12 +15,9 @@ from tandemscan.pipeline.calibration.plate import (
     nominal_centres_P,
     plate_frame,
 )
-from tandemscan.pipeline.calibration.poses import plate_view_poses
+from tandemscan.pipeline.calibration.poses import calibration_views
 from tandemscan.pipeline.frames import invert, pose_error, transform_points
 from tandemscan.sim_drivers.plate import plate_mesh, scan_plate
-
-CENTRE_P = (10.0, 33.0, 0.0)
-
 
 @pytest.fixture
 def cal(sim_config):
@@ -28,7 +26,7 @@ def cal(sim_config):
 
 def _view(i: int, cfg) -> np.ndarray:
     """True ``T_S_P`` of view i of the calibration job's pattern."""
-    return invert(plate_view_poses(6, CENTRE_P, 442.0, 25.0)[i])
+    return invert(calibration_views(cfg, load_config().scanner)[i])
 
 
 def _sphere_points(rng, centre, r, n=400):
@@ -79,7 +77,8 @@ def test_noisy_plate_centres_within_three_sigma(cal, sim_config, seed):
     err = np.linalg.norm(fit.centres_S - transform_points(T, nominal_centres_P(cal)), axis=1)
     assert err.max() < 3 * 0.05
     assert err.max() < 0.03  # hundreds of points per sphere: far below the single-point noise
-    assert all(s.rms_mm == pytest.approx(0.05, rel=0.3) for s in fit.spheres.values())
+    # noise is along the ray; the radial residual is its projection on the sphere normal
+    assert all(0.02 < s.rms_mm < 0.06 for s in fit.spheres.values())
     assert 0 < fit.centre_sigma_mm < 0.02
 
 

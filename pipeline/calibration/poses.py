@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
+from tandemscan.config.models import CalibrationConfig, ScannerConfig
 from tandemscan.pipeline.frames import make_transform
 
 
@@ -55,3 +56,15 @@ def plate_view_poses(
         roll = np.radians(roll_span_deg) * (((i * 0.618034) % 1.0) - 0.5)
         poses.append(look_at(centre + distance_mm * v, centre, roll))
     return poses
+
+
+def plate_view_distance(range_min_mm: float, range_max_mm: float, sphere_radius_mm: float) -> float:
+    """Scanner-to-plate-centre distance (mm) that keeps the spheres' visible caps mid-range under tilt."""
+    return 0.5 * (range_min_mm + range_max_mm) + 0.5 * sphere_radius_mm
+
+
+def calibration_views(cal: CalibrationConfig, scanner: ScannerConfig) -> list[np.ndarray]:
+    """The calibration job's scanner poses ``T_P_S`` over the configured plate."""
+    centre = np.array([cal.centre_A_mm, cal.centre_X_mm, cal.centre_Y_mm]).mean(axis=0)
+    d = plate_view_distance(scanner.range_min_mm, scanner.range_max_mm, cal.sphere_diameter_mm / 2.0)
+    return plate_view_poses(cal.poses, centre, d, cal.tilt_deg)
