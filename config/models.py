@@ -192,10 +192,12 @@ class CalibrationConfig(_Strict):
     poses: int = Field(16, ge=3, description="arm poses of the calibration job")
     tilt_deg: float = Field(22.0, gt=0, lt=60, description="scanner tilt over the plate in the calibration job")
     method: Literal["tsai", "park", "daniilidis", "refine"] = "refine"
-    sim_T_F_P: TransformConfig = Field(
-        TransformConfig(xyz_mm=(-2400.0, -1500.0, 800.0)),
-        description="sim only: where the plate stands in the floor frame F",
+    T_V2_P: TransformConfig = Field(
+        TransformConfig(xyz_mm=(550.0, 0.0, 250.0)),
+        description="where the plate stands relative to the measurement chassis at its start (nominal for "
+        "planning; the sim cell puts it exactly there)",
     )
+    output_file: Path = Field(Path("out/calibration.json"), description="where `tandemscan calibrate` writes")
 
     @field_validator("centre_A_mm", "centre_X_mm")
     @classmethod

@@ -18,6 +18,8 @@ from numpy.typing import ArrayLike
 from tandemscan.config.models import CalibrationConfig, ScannerConfig, TrackerConfig
 from tandemscan.pipeline.calibration.plate import nominal_centres_P
 from tandemscan.pipeline.frames import from_rotvec, invert, transform_points
+from tandemscan.pipeline.raycast import make_scene
+from tandemscan.sim_drivers.world import SimWorld
 
 
 def plate_top_z_mm(cfg: CalibrationConfig) -> float:
@@ -158,3 +160,16 @@ def hand_eye_dataset(
         true_T_S_P = invert(T_P_S)
         T_S_P.append(plate_fit(true_T_S_P) if plate_fit is not None else _perturb(true_T_S_P, rng, *plate_sigma))
     return HandEyeData(np.array(T_C_T), np.array(T_S_P), T_T_S, T_C_P, sig)
+
+
+def install_calibration_plate(world: SimWorld, cfg: CalibrationConfig) -> np.ndarray:
+    """Put the plate into the sim world's scene at the measurement chassis' true pose times ``cfg.T_V2_P``.
+
+    Returns the true ``T_F_P`` (mm). The part stays in the scene; scans then see both.
+    """
+    T_F_P = world.T_F_V2 @ cfg.T_V2_P.matrix()
+    plate = plate_mesh(cfg)
+    plate.transform(T_F_P)
+    world.scene = make_scene(world.mesh + plate)
+    world.T_F_P = T_F_P
+    return T_F_P

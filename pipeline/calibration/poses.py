@@ -11,7 +11,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from tandemscan.config.models import CalibrationConfig, ScannerConfig
-from tandemscan.pipeline.frames import make_transform
+from tandemscan.pipeline.frames import invert, make_transform
+from tandemscan.pipeline.kinematics import ArmKinematics
 
 
 def look_at(eye_mm: ArrayLike, target_mm: ArrayLike, roll_rad: float = 0.0) -> np.ndarray:
@@ -68,3 +69,27 @@ def calibration_views(cal: CalibrationConfig, scanner: ScannerConfig) -> list[np
     centre = np.array([cal.centre_A_mm, cal.centre_X_mm, cal.centre_Y_mm]).mean(axis=0)
     d = plate_view_distance(scanner.range_min_mm, scanner.range_max_mm, cal.sphere_diameter_mm / 2.0)
     return plate_view_poses(cal.poses, centre, d, cal.tilt_deg)
+
+
+def arm_joints_for_views(
+    views_T_P_S: list[np.ndarray],
+    T_V2_P: np.ndarray,
+    T_V2_B: np.ndarray,
+    T_E_S: np.ndarray,
+    kinematics: ArmKinematics,
+    seed_rad: np.ndarray,
+    restarts: int = 2,
+) -> list[tuple[int, np.ndarray]]:
+    """(view index, joints rad) for every view the arm reaches, each IK seeded by the previous solution.
+
+    Uses the nominal mounts: a view off by their error (mm) still shows the plate.
+    """
+    out = []
+    seed = np.asarray(seed_rad, dtype=float)
+    T_B_P = invert(T_V2_B) @ T_V2_P
+    for i, T_P_S in enumerate(views_T_P_S):
+        q = kinematics.inverse(T_B_P @ T_P_S @ invert(T_E_S), seed, restarts=restarts)
+        if q is not None:
+            out.append((i, q))
+            seed = q
+    return out
