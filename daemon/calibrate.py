@@ -21,7 +21,15 @@ import numpy as np
 from tandemscan.config.models import CellConfig
 from tandemscan.drivers.errors import TargetNotVisible
 from tandemscan.pipeline import frames as F
+from tandemscan.drivers.interfaces import Chassis, ChassisPose
 from tandemscan.pipeline.calibration.hand_eye import HandEyeError, HandEyeResult, solve_hand_eye
+from tandemscan.pipeline.calibration.mounts import (
+    MountError,
+    arm_base_motions,
+    mount_from_turns,
+    relative_motions,
+    solve_flange_mount,
+)
 from tandemscan.pipeline.calibration.plate import PlateError, fit_plate, nominal_centres_P
 from tandemscan.pipeline.calibration.poses import arm_joints_for_views, plate_view_distance, plate_view_poses
 from tandemscan.pipeline.installation import Installation
@@ -32,6 +40,8 @@ log = logging.getLogger(__name__)
 
 #: candidate views planned per pose wanted: some are unreachable or hide the target from the tracker
 _CANDIDATES_PER_POSE = 1.5
+#: chassis turns in place (deg, relative to the start heading) for the mount calibrations
+_TURNS_DEG = (-8.0, -4.0, 4.0, 8.0)
 
 
 class CalibrationJobError(Exception):
@@ -48,13 +58,13 @@ class CalibrationRun:
     poses_used: int
     skipped: list[str] = field(default_factory=list)
     truth_error: dict[str, float] | None = None
+    sources: dict[str, str] = field(default_factory=dict)
 
     def to_json(self) -> dict:
         """The calibration file's content: the four mounts and how they were obtained."""
         return {
             **self.installation.to_json(),
-            "sources": {"T_T_S": f"hand-eye ({self.hand_eye.method})", "T_V1_C": "nominal", "T_V2_B": "nominal",
-                        "T_E_S": "nominal"},
+            "sources": self.sources,
             "hand_eye": self.hand_eye.summary(),
             "poses_used": self.poses_used,
             "skipped": self.skipped,
@@ -85,14 +95,14 @@ async def run_calibration(
     plan = await asyncio.to_thread(arm_joints_for_views, views, cal.T_V2_P.matrix(), nominal.T_V2_B,
                                    nominal.T_E_S, kinematics, seed)
     skipped = [f"view {i}: out of reach" for i in range(len(views)) if i not in {j for j, _ in plan}]
-    tracker_poses, covariances, plate_poses, centre_sigma = [], [], [], []
+    tracker_poses, covariances, plate_poses, centre_sigma, joints = [], [], [], [], []
     for i, q in plan:
         if len(tracker_poses) >= cal.poses:
             break
         progress(len(tracker_poses), cal.poses, f"view {i}: scanning the plate")
         await cell.arm.move_joints(q, config.arm.timeout_s)
         try:
-            reading = await cell.tracker.read_pose(config.tracker.timeout_s)
+            T_C_T, cov = await _read_at_rest(cell, config)
         except TargetNotVisible as e:
             skipped.append(f"view {i}: {e}")
             continue
@@ -103,8 +113,9 @@ async def run_calibration(
         except PlateError as e:
             skipped.append(f"view {i}: {e}")
             continue
-        tracker_poses.append(reading.T_C_T)
-        covariances.append(reading.covariance)
+        tracker_poses.append(T_C_T)
+        joints.append(q)
+        covariances.append(cov)
         plate_poses.append(fit.T_S_P)
         centre_sigma.append(fit.centre_sigma_mm)
     for s in skipped:
@@ -119,17 +130,74 @@ async def run_calibration(
         )
     except HandEyeError as e:
         raise CalibrationJobError(f"hand-eye calibration failed: {e}") from e
-    installation = Installation(nominal.T_V1_C, nominal.T_V2_B, nominal.T_E_S, result.T_T_S)
-    truth = None
-    if cell.world is not None:
-        mm, rad = F.pose_error(result.T_T_S, cell.world.truth.T_T_S)
-        nmm, nrad = F.pose_error(nominal.T_T_S, cell.world.truth.T_T_S)
-        truth = {"T_T_S_err_mm": mm, "T_T_S_err_deg": float(np.degrees(rad)),
-                 "nominal_T_T_S_err_mm": nmm, "nominal_T_T_S_err_deg": float(np.degrees(nrad))}
-    run = CalibrationRun(installation, result, out_file, len(tracker_poses), skipped, truth)
+    sources = {"T_T_S": f"hand-eye ({result.method}, {len(tracker_poses)} poses)"}
+    T_E_S, T_V1_C, T_V2_B = nominal.T_E_S, nominal.T_V1_C, nominal.T_V2_B
+    try:
+        flange = solve_flange_mount([kinematics.forward(q) for q in joints], tracker_poses, result.T_T_S)
+        T_E_S = flange.T_T_S
+        sources["T_E_S"] = f"arm hand-eye (park), point RMS {flange.point_rms_mm:.3f} mm"
+    except HandEyeError as e:
+        skipped.append(f"T_E_S stays nominal: {e}")
+    progress(cal.poses, cal.poses, "turning the tracking chassis in place")
+    turns = await _turn_readings(cell, cell.tracking_chassis, config, skipped)
+    if turns is not None:
+        try:
+            T_V1_C, axis = mount_from_turns(relative_motions(F.invert(turns)), nominal.T_V1_C)
+            sources["T_V1_C"] = f"turns in place: roll, pitch, axis distance (axis RMS {axis.line_rms_mm:.3f} mm)"
+        except MountError as e:
+            skipped.append(f"T_V1_C stays nominal: {e}")
+    progress(cal.poses, cal.poses, "turning the measurement chassis in place")
+    turns = await _turn_readings(cell, cell.measure_chassis, config, skipped)
+    if turns is not None:
+        T_B_T = kinematics.forward(await cell.arm.joints()) @ T_E_S @ F.invert(result.T_T_S)
+        try:
+            T_V2_B, axis = mount_from_turns(arm_base_motions(turns, T_B_T), nominal.T_V2_B)
+            sources["T_V2_B"] = f"turns in place: roll, pitch, axis distance (axis RMS {axis.line_rms_mm:.3f} mm)"
+        except MountError as e:
+            skipped.append(f"T_V2_B stays nominal: {e}")
+    for k in ("T_V1_C", "T_V2_B", "T_E_S"):
+        sources.setdefault(k, "nominal")
+    installation = Installation(T_V1_C, T_V2_B, T_E_S, result.T_T_S)
+    truth = _truth_errors(cell, nominal, installation) if cell.world is not None else None
+    run = CalibrationRun(installation, result, out_file, len(tracker_poses), skipped, truth, sources)
     _write_json(out_file, run.to_json())
     progress(cal.poses, cal.poses, "done")
     return run
+
+
+async def _read_at_rest(cell: Cell, config: CellConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Mean ``T_C_T`` of ``calibration.tracker_samples`` readings at rest and its covariance (driver order)."""
+    n = config.calibration.tracker_samples
+    readings = [await cell.tracker.read_pose(config.tracker.timeout_s) for _ in range(n)]
+    return F.mean_pose([r.T_C_T for r in readings]), np.mean([r.covariance for r in readings], axis=0) / n
+
+
+async def _turn_readings(cell: Cell, chassis: Chassis, config: CellConfig, skipped: list[str]) -> np.ndarray | None:
+    """Tracker readings with ``chassis`` turned in place by each of ``_TURNS_DEG`` (then back); None if the
+    target was lost at fewer than two headings."""
+    start = await chassis.odometry()
+    readings = []
+    for d in (0.0, *_TURNS_DEG):
+        await chassis.move_to(ChassisPose(start.x_mm, start.y_mm, start.heading_rad + np.radians(d)),
+                              config.measure_chassis.timeout_s)
+        try:
+            readings.append((await _read_at_rest(cell, config))[0])
+        except TargetNotVisible as e:
+            skipped.append(f"turn {d:+.0f} deg: {e}")
+    await chassis.move_to(start, config.measure_chassis.timeout_s)
+    return np.array(readings) if len(readings) >= 2 else None
+
+
+def _truth_errors(cell: Cell, nominal: Installation, calibrated: Installation) -> dict[str, float]:
+    """Sim only: each mount's error (mm, deg) against the world's truth, calibrated and nominal."""
+    out: dict[str, float] = {}
+    for k in ("T_T_S", "T_E_S", "T_V1_C", "T_V2_B"):
+        truth = getattr(cell.world.truth, k)
+        for label, inst in (("", calibrated), ("nominal_", nominal)):
+            mm, rad = F.pose_error(getattr(inst, k), truth)
+            out[f"{label}{k}_err_mm"] = mm
+            out[f"{label}{k}_err_deg"] = float(np.degrees(rad))
+    return out
 
 
 def _write_json(path: Path, data: dict) -> None:

@@ -35,7 +35,8 @@ def plate_mesh(cfg: CalibrationConfig, thickness_mm: float = 20.0) -> o3d.geomet
     mesh = o3d.geometry.TriangleMesh.create_box(w, h, thickness_mm)
     mesh.translate((-w / 2.0, -h / 2.0 + 40.0, top - thickness_mm))
     for c in nominal_centres_P(cfg):
-        s = o3d.geometry.TriangleMesh.create_sphere(radius=r, resolution=60)
+        # fine tessellation: a coarse polyhedron would bias the sphere fits by hundredths of a mm
+        s = o3d.geometry.TriangleMesh.create_sphere(radius=r, resolution=200)
         s.translate(c)
         stem = o3d.geometry.TriangleMesh.create_cylinder(radius=r / 3.0, height=cfg.stem_mm + r)
         stem.translate((c[0], c[1], top + (cfg.stem_mm + r) / 2.0))

@@ -30,7 +30,15 @@ async def test_calibration_job_recovers_the_true_scanner_mount(sim_config, tmp_p
     assert run.poses_used == 5 and run.hand_eye.point_rms_mm < 0.2
 
     data = json.loads((tmp_path / "calibration.json").read_text())
-    assert data["sources"]["T_T_S"].startswith("hand-eye") and data["sources"]["T_V2_B"] == "nominal"
+    assert data["sources"]["T_T_S"].startswith("hand-eye")
+    assert data["sources"]["T_V1_C"].startswith("turns") and data["sources"]["T_V2_B"].startswith("turns")
+    # mounts: the chassis axis (roll, pitch) is now within hundredths of a degree; the nominal was tenths
+    for k in ("T_V1_C", "T_V2_B"):
+        calibrated, nominal, truth = (getattr(i, k) for i in (run.installation, Installation.nominal(
+            config.installation), cell.world.truth))
+        tilt = [np.degrees(np.arccos(np.clip(T[2, :3] @ truth[2, :3], -1, 1))) for T in (calibrated, nominal)]
+        assert tilt[0] < 0.05 < tilt[1]
+    assert F.pose_error(run.installation.T_E_S, cell.world.truth.T_E_S)[0] < 0.2
     job = config.job.model_copy(update={"installation_source": "calibration",
                                         "calibration_file": tmp_path / "calibration.json"})
     used = installation_for_job(config.model_copy(update={"job": job}), cell)

@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
+from tandemscan.pipeline.calibration.hand_eye import HandEyeResult, solve_hand_eye
 from tandemscan.pipeline.frames import invert, make_transform
 
 log = logging.getLogger(__name__)
@@ -101,3 +102,23 @@ def mount_from_turns(motions_M: ArrayLike, T_V_M_nominal: ArrayLike) -> tuple[np
     Rp = R @ ax.point_mm
     t = np.array([-Rp[0], -Rp[1], T_nom[2, 3]])
     return make_transform(R, t), TurnAxis(a, ax.point_mm, ax.line_rms_mm, ax.axis_rms_rad)
+
+
+def solve_flange_mount(T_B_E: ArrayLike, T_C_T: ArrayLike, T_T_S: ArrayLike) -> HandEyeResult:
+    """``T_E_S`` (scanner on the flange) from arm poses and tracker readings, with ``T_T_S`` known.
+
+    ``T_C_T[i] T_T_S = T_C_B T_B_E[i] T_E_S`` with the camera and the arm base still: a second ``A X = X B``
+    whose "plate" is the tracker camera (``T_S_C = inv(T_C_T T_T_S)``). Its accuracy is that of the arm's
+    kinematic model.
+    """
+    T_S_C = invert(np.asarray(T_C_T, dtype=float) @ np.asarray(T_T_S, dtype=float))
+    return solve_hand_eye(np.asarray(T_B_E, dtype=float), T_S_C, method="park")
+
+
+def arm_base_motions(T_C_T: ArrayLike, T_B_T: ArrayLike) -> np.ndarray:
+    """Motions of the arm base B in its own frame while its chassis turns with the arm still.
+
+    ``T_B_T`` is the target in the base frame at the arm's pose (``T_B_E T_E_S inv(T_T_S)``).
+    """
+    T_B_T = np.asarray(T_B_T, dtype=float)
+    return T_B_T[None] @ relative_motions(T_C_T) @ invert(T_B_T)[None]
