@@ -23,7 +23,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-
 from tandemscan.config import load_config
 from tandemscan.pipeline.calibration.hand_eye import METHODS, solve_hand_eye
 from tandemscan.pipeline.calibration.plate import fit_plate, nominal_centres_P
@@ -85,18 +84,13 @@ def trial(cfg, rng: np.random.Generator, scale: float, centre_errs: list[float])
 
 async def _calibrate_and_measure(cfg, out: Path) -> dict:
     """Sim cell: calibration job, then the default job with each installation source; cloud RMS (mm)."""
-    from tandemscan.daemon.calibrate import run_calibration
+    from tandemscan.daemon.calibrate import calibrate_cell
     from tandemscan.daemon.cli import default_plan_path
     from tandemscan.daemon.runner import JobRunner
     from tandemscan.pipeline.plan import Plan
     from tandemscan.sim_drivers.cell import build_cell
 
-    cell = build_cell(cfg)
-    await cell.connect()
-    try:
-        run = await run_calibration(cell, cfg, out / "calibration.json")
-    finally:
-        await cell.close()
+    run = await calibrate_cell(build_cell(cfg), cfg, out / "calibration.json")
     result = {"calibration_truth_error": run.truth_error, "cloud_rms_mm": {}}
     plan = Plan.load(default_plan_path())
     for source in ("nominal", "calibration", "truth"):

@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 from tandemscan.config.models import CellConfig
 from tandemscan.drivers.errors import TargetNotVisible
-from tandemscan.pipeline import frames as F
 from tandemscan.drivers.interfaces import Chassis, ChassisPose
+from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.calibration.hand_eye import HandEyeError, HandEyeResult, solve_hand_eye
 from tandemscan.pipeline.calibration.mounts import (
     MountError,
@@ -73,7 +73,10 @@ class CalibrationRun:
 
 
 async def run_calibration(
-    cell: Cell, config: CellConfig, out_file: Path | None = None, progress: Callable[[int, int, str], None] | None = None
+    cell: Cell,
+    config: CellConfig,
+    out_file: Path | None = None,
+    progress: Callable[[int, int, str], None] | None = None,
 ) -> CalibrationRun:
     """Run the calibration job on a connected cell; writes and returns the calibration."""
     cal = config.calibration
@@ -138,23 +141,23 @@ async def run_calibration(
         sources["T_E_S"] = f"arm hand-eye (park), point RMS {flange.point_rms_mm:.3f} mm"
     except HandEyeError as e:
         skipped.append(f"T_E_S stays nominal: {e}")
-    progress(cal.poses, cal.poses, "turning the tracking chassis in place")
-    turns = await _turn_readings(cell, cell.tracking_chassis, config, skipped)
-    if turns is not None:
+    # the arm stands still from here: both chassis turn in place in turn
+    T_B_T = kinematics.forward(await cell.arm.joints()) @ T_E_S @ F.invert(result.T_T_S)
+    mounts = {"T_V1_C": T_V1_C, "T_V2_B": T_V2_B}
+    for name, chassis, motions_of in (
+        ("T_V1_C", cell.tracking_chassis, lambda turns: relative_motions(F.invert(turns))),
+        ("T_V2_B", cell.measure_chassis, lambda turns: arm_base_motions(turns, T_B_T)),
+    ):
+        progress(cal.poses, cal.poses, f"{name}: turning its chassis in place")
+        turns = await _turn_readings(cell, chassis, config, skipped)
         try:
-            T_V1_C, axis = mount_from_turns(relative_motions(F.invert(turns)), nominal.T_V1_C)
-            sources["T_V1_C"] = f"turns in place: roll, pitch, axis distance (axis RMS {axis.line_rms_mm:.3f} mm)"
+            if turns is None:
+                raise MountError("the target was not visible at two headings")
+            mounts[name], axis = mount_from_turns(motions_of(turns), mounts[name])
+            sources[name] = f"turns in place: roll, pitch, axis distance (axis RMS {axis.line_rms_mm:.3f} mm)"
         except MountError as e:
-            skipped.append(f"T_V1_C stays nominal: {e}")
-    progress(cal.poses, cal.poses, "turning the measurement chassis in place")
-    turns = await _turn_readings(cell, cell.measure_chassis, config, skipped)
-    if turns is not None:
-        T_B_T = kinematics.forward(await cell.arm.joints()) @ T_E_S @ F.invert(result.T_T_S)
-        try:
-            T_V2_B, axis = mount_from_turns(arm_base_motions(turns, T_B_T), nominal.T_V2_B)
-            sources["T_V2_B"] = f"turns in place: roll, pitch, axis distance (axis RMS {axis.line_rms_mm:.3f} mm)"
-        except MountError as e:
-            skipped.append(f"T_V2_B stays nominal: {e}")
+            skipped.append(f"{name} stays nominal: {e}")
+    T_V1_C, T_V2_B = mounts["T_V1_C"], mounts["T_V2_B"]
     for k in ("T_V1_C", "T_V2_B", "T_E_S"):
         sources.setdefault(k, "nominal")
     installation = Installation(T_V1_C, T_V2_B, T_E_S, result.T_T_S)
@@ -163,6 +166,20 @@ async def run_calibration(
     _write_json(out_file, run.to_json())
     progress(cal.poses, cal.poses, "done")
     return run
+
+
+async def calibrate_cell(
+    cell: Cell,
+    config: CellConfig,
+    out_file: Path | None = None,
+    progress: Callable[[int, int, str], None] | None = None,
+) -> CalibrationRun:
+    """Connect the cell, run the calibration job, close the cell."""
+    await cell.connect()
+    try:
+        return await run_calibration(cell, config, out_file, progress)
+    finally:
+        await cell.close()
 
 
 async def _read_at_rest(cell: Cell, config: CellConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -211,4 +228,4 @@ def _write_json(path: Path, data: dict) -> None:
     os.replace(tmp, path)
 
 
-__all__ = ["CalibrationJobError", "CalibrationRun", "run_calibration"]
+__all__ = ["CalibrationJobError", "CalibrationRun", "calibrate_cell", "run_calibration"]

@@ -47,6 +47,12 @@ def _load_config_with_overrides(args: argparse.Namespace) -> CellConfig:
     return config
 
 
+def _progress_bar() -> Progress:
+    """The progress bar of long commands (on stderr)."""
+    return Progress(TextColumn("{task.description:<48}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                    TimeElapsedColumn(), console=console)
+
+
 def cmd_measure(args: argparse.Namespace) -> int:
     """Run a complete measurement job on the configured cell (the simulated cell by default)."""
     from tandemscan.daemon.runner import JobError, JobRunner
@@ -66,8 +72,7 @@ def cmd_measure(args: argparse.Namespace) -> int:
     async def run():
         await cell.connect()
         try:
-            with Progress(TextColumn("{task.description:<48}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                          TimeElapsedColumn(), console=console) as bar:
+            with _progress_bar() as bar:
                 task = bar.add_task("starting", total=len(plan.steps) + 1)
                 runner = JobRunner(cell, plan, config, job_dir,
                                    lambda p: bar.update(task, completed=p.done, total=p.total, description=p.message))
@@ -85,7 +90,7 @@ def cmd_measure(args: argparse.Namespace) -> int:
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """Calibrate the scanner on its target (hand-eye) from plate scans; writes the calibration file."""
-    from tandemscan.daemon.calibrate import CalibrationJobError, run_calibration
+    from tandemscan.daemon.calibrate import CalibrationJobError, calibrate_cell
     from tandemscan.pipeline.part import PartMeshError
     from tandemscan.sim_drivers.cell import CellBuildError, build_cell
 
@@ -97,15 +102,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     out_file = Path(args.out) if args.out else config.calibration.output_file
 
     async def run():
-        await cell.connect()
-        try:
-            with Progress(TextColumn("{task.description:<48}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                          TimeElapsedColumn(), console=console) as bar:
-                task = bar.add_task("starting", total=config.calibration.poses)
-                return await run_calibration(
-                    cell, config, out_file, lambda d, t, m: bar.update(task, completed=d, total=t, description=m))
-        finally:
-            await cell.close()
+        with _progress_bar() as bar:
+            task = bar.add_task("starting", total=config.calibration.poses)
+            return await calibrate_cell(
+                cell, config, out_file, lambda d, t, m: bar.update(task, completed=d, total=t, description=m))
 
     try:
         run = asyncio.run(run())

@@ -14,7 +14,6 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 from numpy.typing import ArrayLike
-
 from tandemscan.config.models import CalibrationConfig, ScannerConfig, TrackerConfig
 from tandemscan.pipeline.calibration.plate import nominal_centres_P
 from tandemscan.pipeline.frames import from_rotvec, invert, transform_points

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from tandemscan.pipeline.calibration.hand_eye import METHODS, HandEyeError, solve_hand_eye
 from tandemscan.pipeline.calibration.poses import plate_view_poses
 from tandemscan.pipeline.frames import from_rotvec, from_rpy, invert, pose_error
@@ -86,6 +85,8 @@ def test_bad_input_is_reported(sim_config):
     bad[4, :3, :3] *= 1.01
     with pytest.raises(HandEyeError, match=r"plate_poses\[4\] is not a rigid"):
         solve_hand_eye(d.T_C_T, bad)
+    with pytest.raises(HandEyeError, match=r"tracker_covariances must be \(14, 6, 6\)"):
+        solve_hand_eye(d.T_C_T, d.T_S_P, tracker_covariances=np.eye(6))
     with pytest.raises(HandEyeError, match="unknown method"):
         solve_hand_eye(d.T_C_T, d.T_S_P, method="magic")
 

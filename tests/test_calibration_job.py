@@ -5,8 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
-
-from tandemscan.daemon.calibrate import run_calibration
+from tandemscan.daemon.calibrate import calibrate_cell
 from tandemscan.daemon.runner import installation_for_job
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.installation import Installation
@@ -17,11 +16,7 @@ async def test_calibration_job_recovers_the_true_scanner_mount(sim_config, tmp_p
     cal = sim_config.calibration.model_copy(update={"poses": 5})
     config = sim_config.model_copy(update={"calibration": cal})
     cell = build_cell(config)
-    await cell.connect()
-    try:
-        run = await run_calibration(cell, config, tmp_path / "calibration.json")
-    finally:
-        await cell.close()
+    run = await calibrate_cell(cell, config, tmp_path / "calibration.json")
     truth = cell.world.truth.T_T_S
     err_mm, err_rad = F.pose_error(run.installation.T_T_S, truth)
     nominal_mm, _ = F.pose_error(Installation.nominal(config.installation).T_T_S, truth)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from tandemscan.pipeline.calibration.mounts import MountError, mount_from_turns, relative_motions, turn_axis
 from tandemscan.pipeline.frames import from_rotvec, from_rpy, invert, planar_pose
 
@@ -15,7 +14,10 @@ T_F_V = planar_pose(-1400.0, 4600.0, np.radians(-90.0))
 T_F_T = from_rpy([-1500.0, 2300.0, 900.0], np.radians([180.0, 0.0, 30.0]))
 
 
-def _readings(turns_deg, rng=None, sigma=(0.025, np.radians(0.0025))):
+SIGMA = (0.025, float(np.radians(0.0025)))  # tracker 1-sigma (mm, rad)
+
+
+def _readings(turns_deg, rng=None, sigma=SIGMA):
     """``T_C_T`` while the tracking chassis turns in place and the target stands still."""
     out = []
     for th in np.radians(turns_deg):

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from tandemscan.config import load_config
 from tandemscan.config.models import CalibrationConfig
 from tandemscan.pipeline.calibration.plate import (
@@ -18,6 +17,7 @@ from tandemscan.pipeline.calibration.plate import (
 from tandemscan.pipeline.calibration.poses import calibration_views
 from tandemscan.pipeline.frames import invert, pose_error, transform_points
 from tandemscan.sim_drivers.plate import plate_mesh, scan_plate
+
 
 @pytest.fixture
 def cal(sim_config):

@@ -23,7 +23,6 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
-
 from tandemscan.pipeline.frames import invert, make_transform
 
 log = logging.getLogger(__name__)
@@ -378,7 +377,7 @@ def solve_hand_eye(
     else:
         cov_C = np.asarray(tracker_covariances, dtype=float)
         if cov_C.shape != (len(T_C_T), 6, 6):
-            raise HandEyeError(f"tracker_covariances must be ({len(T_C_T)}, 6, 6), got {cov_T.shape}")
+            raise HandEyeError(f"tracker_covariances must be ({len(T_C_T)}, 6, 6), got {cov_C.shape}")
 
     def spread(X: np.ndarray) -> float:
         p = _points_C(T_C_T, X, pts_S)

@@ -17,7 +17,6 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
-
 from tandemscan.pipeline.calibration.hand_eye import HandEyeResult, solve_hand_eye
 from tandemscan.pipeline.frames import invert, make_transform
 

@@ -20,7 +20,6 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
-
 from tandemscan.config.models import CalibrationConfig
 from tandemscan.pipeline.frames import make_transform
 

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike
-
 from tandemscan.config.models import CalibrationConfig, ScannerConfig
 from tandemscan.pipeline.frames import invert, make_transform
 from tandemscan.pipeline.kinematics import ArmKinematics
