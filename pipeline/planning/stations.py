@@ -77,17 +77,33 @@ def footprint_height_mm(scanner: ScannerConfig, planning: PlanningConfig) -> flo
 
 
 def floor_contour(mesh: o3d.geometry.TriangleMesh) -> Polygon:
-    """The part's shadow on the floor (F xy, mm): union of the projected triangles, holes filled."""
-    v = np.asarray(mesh.vertices)[:, :2]
+    """The part's shadow on the floor (F xy, mm), holes filled.
+
+    For a closed mesh the shadow is the union of the shadows of its upward-facing triangles; its outline is
+    made of the projected boundary edges of the upward-facing region, which are noded and polygonized. This
+    stays fast for meshes of many triangles.
+    """
+    v = np.asarray(mesh.vertices)
     tri = np.asarray(mesh.triangles)
     if len(tri) == 0:
         raise StationPlanningError("the part mesh has no triangles")
-    xy = v[tri]  # (T, 3, 2)
-    e1, e2 = xy[:, 1] - xy[:, 0], xy[:, 2] - xy[:, 0]
-    area2 = np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
-    xy = xy[area2 > 1e-6 * max(float(area2.max()), 1e-12)]
-    polys = shapely.polygons(np.concatenate([xy, xy[:, :1]], axis=1))
-    shadow = unary_union(polys).buffer(0.5).buffer(-0.5)  # close slivers between neighbouring shadows
+    p = v[tri]
+    nz = (p[:, 1, 0] - p[:, 0, 0]) * (p[:, 2, 1] - p[:, 0, 1]) - (p[:, 1, 1] - p[:, 0, 1]) * (p[:, 2, 0] - p[:, 0, 0])
+    scale = float(np.abs(nz).max())
+    faces_up = tri[nz > 1e-9 * scale]
+    faces_down = tri[nz < -1e-9 * scale]
+    if len(faces_up) < len(faces_down):  # inward winding: the other side casts the same shadow
+        faces_up = faces_down
+    if len(faces_up) == 0:
+        raise StationPlanningError("the part mesh casts no shadow on the floor")
+    edges = np.sort(np.concatenate([faces_up[:, [0, 1]], faces_up[:, [1, 2]], faces_up[:, [2, 0]]]), axis=1)
+    uniq, counts = np.unique(edges, axis=0, return_counts=True)
+    boundary = v[uniq[counts == 1]][:, :, :2]
+    lines = shapely.multilinestrings(boundary)
+    faces = list(shapely.polygonize([shapely.union_all(lines)]).geoms)
+    if not faces:
+        raise StationPlanningError("the part's floor outline does not close")
+    shadow = unary_union(faces).buffer(0.5).buffer(-0.5)  # close slivers between neighbouring faces
     if shadow.geom_type == "MultiPolygon":
         shadow = max(shadow.geoms, key=lambda g: g.area)
         log.warning("part shadow falls apart on the floor; planning around its largest piece")
