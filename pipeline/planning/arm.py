@@ -1,7 +1,8 @@
 """Scanner poses at one measurement-AGV station: a boustrophedon raster on the part surface (paper Eq. 15).
 
-At a station (frame F, mm) the raster has ``j = ceil(s / m) + 1`` columns ``m`` apart along the contour
-(``s`` the station step, ``m`` the useful scan width) and, per column, ``i = ceil(h / n)`` rows ``n`` apart
+At a station (frame F, mm) the raster has ``j = ceil(s / m) + 1`` columns along the contour (``s`` the
+station step, ``m`` the useful scan width), evenly from ``-s/2`` to ``+s/2`` so no more than ``m`` apart; the
+edge columns coincide with the neighbouring stations' (the scans that overlap across stations) and, per column, ``i = ceil(h / n)`` rows ``n`` apart
 along the surface profile on the station's side of the part (``h`` its length: the height for a vertical
 wall, plus the roof up to the part's middle). Each cell is a surface point with its normal; the scanner
 looks along the negative normal from the sweet spot, tilted towards the arm by at most the incidence limit
@@ -87,7 +88,7 @@ def default_ik(arm: ArmConfig) -> IkSolver:
 
 
 def column_count(step_mm: float, m_mm: float) -> int:
-    """``j = ceil(s / m) + 1`` columns: they span at least ``s + m`` so neighbouring stations overlap (Eq. 15)."""
+    """``j = ceil(s / m) + 1`` columns, fence posts over the step ``s`` at most ``m`` apart (Eq. 15)."""
     return int(math.ceil(step_mm / m_mm - 1e-9)) + 1
 
 
@@ -172,7 +173,7 @@ def raster_cells(
     cols = column_count(step_mm, m)
     cells, rows = [], 0
     for c in range(cols):
-        offset = (c - 0.5 * (cols - 1)) * m
+        offset = (c / (cols - 1) - 0.5) * step_mm
         base = station.xy + offset * station.tangent
         pts, nrm = surface_profile(scene, base, station.towards_part, z_range, reach_mm)
         if len(pts) < 2:
@@ -183,20 +184,35 @@ def raster_cells(
     return cells, rows, cols
 
 
-def scanner_pose(point_F: np.ndarray, view_F: np.ndarray, sweet_spot_mm: float, inward: np.ndarray,
-                 roll_half_turn: bool = False) -> np.ndarray:
-    """``T_F_S`` looking along ``view_F`` at ``point_F`` from ``sweet_spot_mm``; image y as near "down" as can be."""
-    z = view_F / np.linalg.norm(view_F)
-    down = np.array([0.0, 0.0, -1.0])
-    if abs(z @ down) > 0.95:  # looking (almost) straight down or up: image down points away from the station
-        down = np.array([inward[0], inward[1], 0.0])
-    y = down - (down @ z) * z
-    y /= np.linalg.norm(y)
-    x = np.cross(y, z)
-    R = np.c_[x, y, z]
-    if roll_half_turn:
-        R = R @ np.diag([-1.0, -1.0, 1.0])
-    return F.make_transform(R, point_F - sweet_spot_mm * z)
+def scanner_poses(points_F: np.ndarray, views_F: np.ndarray, sweet_spot_mm: float, inward: np.ndarray,
+                  roll_half_turn: np.ndarray | bool = False) -> np.ndarray:
+    """``T_F_S`` stack ``(K, 4, 4)`` looking along ``views_F`` at ``points_F`` from the sweet spot (mm).
+
+    Image y (S y) points as near "down" as it can; when the view is (almost) vertical it points away from the
+    station (``inward``). A half-turn roll about the view flips x and y (same footprint, other wrist pose).
+    """
+    pts = np.atleast_2d(np.asarray(points_F, float))
+    z = np.atleast_2d(np.asarray(views_F, float))
+    z = z / np.linalg.norm(z, axis=1, keepdims=True)
+    down = np.tile([0.0, 0.0, -1.0], (len(z), 1))
+    vertical = np.abs(z[:, 2]) > 0.95
+    down[vertical] = [inward[0], inward[1], 0.0]
+    y = down - np.sum(down * z, axis=1, keepdims=True) * z
+    y /= np.linalg.norm(y, axis=1, keepdims=True)
+    x = np.c_[y[:, 1] * z[:, 2] - y[:, 2] * z[:, 1], y[:, 2] * z[:, 0] - y[:, 0] * z[:, 2],
+              y[:, 0] * z[:, 1] - y[:, 1] * z[:, 0]]
+    flip = np.where(np.broadcast_to(np.asarray(roll_half_turn), (len(z),)), -1.0, 1.0)[:, None]
+    T = np.tile(np.eye(4), (len(z), 1, 1))
+    T[:, :3, 0] = flip * x
+    T[:, :3, 1] = flip * y
+    T[:, :3, 2] = z
+    T[:, :3, 3] = pts - sweet_spot_mm * z
+    return T
+
+
+def reach_bound_mm(arm: ArmConfig) -> float:
+    """No flange pose is farther than this from the shoulder (base z = d1): the sum of the other links (mm)."""
+    return float(np.sum(np.abs(arm.dh_a_mm)) + np.sum(np.abs(arm.dh_d_mm[1:])))
 
 
 def _views(cell: RasterCell, base_F: np.ndarray, limit_rad: float) -> list[tuple[float, np.ndarray]]:
@@ -238,40 +254,56 @@ def plan_station(
     rows: int,
     cols: int,
     ik: IkSolver,
+    arm: ArmConfig,
     T_V2_B: np.ndarray,
     T_E_S: np.ndarray,
     scanner: ScannerConfig,
     planning: PlanningConfig,
     seed_rad: np.ndarray,
 ) -> StationRaster:
-    """Reachable scanner poses for the cells of one station, ordered to move the joints least."""
+    """Reachable scanner poses for the cells of one station, ordered to move the joints least.
+
+    Per cell the views are tried square on first, then tilted towards the arm, each with both rolls; poses
+    whose flange lies beyond the arm's reach bound skip the IK.
+    """
     T_F_B = F.planar_pose(station.x_mm, station.y_mm, station.heading_rad) @ T_V2_B
     T_B_F = F.invert(T_F_B)
     T_S_E = F.invert(T_E_S)
     limit = math.radians(min(planning.incidence_limit_deg, scanner.max_incidence_deg))
     base_F = T_F_B[:3, 3]
     order = _snake([(c.row, c.col) for c in cells], column_major=True)
+    owner, tilts, pts, views, rolls = [], [], [], [], []
+    for i in order:
+        for tilt, view in _views(cells[i], base_F, limit):
+            for roll in (False, True):
+                owner.append(i)
+                tilts.append(tilt)
+                pts.append(cells[i].point_F)
+                views.append(view)
+                rolls.append(roll)
     found: list[ScanPose] = []
     unreached: list[Unreached] = []
-    seed = np.asarray(seed_rad, float)
-    for i in order:
-        cell = cells[i]
-        pose = None
-        for tilt, view in _views(cell, base_F, limit):
-            for roll in (False, True):
-                T_F_S = scanner_pose(cell.point_F, view, scanner.sweet_spot_mm, station.towards_part, roll)
-                q = ik(T_B_F @ T_F_S @ T_S_E, seed)
+    if owner:
+        T_F_S = scanner_poses(np.array(pts), np.array(views), scanner.sweet_spot_mm, station.towards_part,
+                              np.array(rolls))
+        T_B_E = T_B_F @ T_F_S @ T_S_E
+        shoulder = np.array([0.0, 0.0, arm.dh_d_mm[0]])
+        in_reach = np.linalg.norm(T_B_E[:, :3, 3] - shoulder, axis=1) <= reach_bound_mm(arm)
+        owner_arr = np.array(owner)
+        seed = np.asarray(seed_rad, float)
+        for i in order:
+            pose = None
+            for k in np.flatnonzero((owner_arr == i) & in_reach):
+                q = ik(T_B_E[k], seed)
                 if q is not None:
-                    pose = ScanPose(station.index, cell, T_F_S, np.asarray(q, float), tilt)
+                    pose = ScanPose(station.index, cells[i], T_F_S[k], np.asarray(q, float), tilts[k])
                     break
-            if pose is not None:
-                break
-        if pose is None:
-            unreached.append(Unreached(station.index, cell, "no joint solution within the limits for any view "
-                                       f"within {math.degrees(limit):.0f} deg of the surface normal"))
-        else:
-            found.append(pose)
-            seed = pose.joints_rad
+            if pose is None:
+                unreached.append(Unreached(station.index, cells[i], "no joint solution within the limits for any "
+                                           f"view within {math.degrees(limit):.0f} deg of the surface normal"))
+            else:
+                found.append(pose)
+                seed = pose.joints_rad
     best, best_travel = found, _travel([p.joints_rad for p in found])
     if len(found) > 2:
         alt = [found[k] for k in _snake([(p.cell.row, p.cell.col) for p in found], column_major=False)]
@@ -288,6 +320,7 @@ def plan_arm(
     stations: tuple[AgvStation, ...],
     step_mm: float,
     ik: IkSolver,
+    arm: ArmConfig,
     T_V2_B: np.ndarray,
     T_E_S: np.ndarray,
     scanner: ScannerConfig,
@@ -301,7 +334,7 @@ def plan_arm(
     seed = np.asarray(home_rad, float)
     for st in stations:
         cells, rows, cols = raster_cells(scene, st, step_mm, (float(lo[2]), float(hi[2])), reach, scanner, planning)
-        raster = plan_station(st, cells, rows, cols, ik, T_V2_B, T_E_S, scanner, planning, seed)
+        raster = plan_station(st, cells, rows, cols, ik, arm, T_V2_B, T_E_S, scanner, planning, seed)
         if raster.poses:
             seed = raster.poses[-1].joints_rad
         out.append(raster)
