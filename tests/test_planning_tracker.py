@@ -22,14 +22,17 @@ from tandemscan.pipeline.planning.tracker import (
 from tandemscan.pipeline.raycast import make_scene
 
 
-def brute_force_optimum(cover: np.ndarray) -> int:
+def brute_force_optimum(cover: np.ndarray, first: int | None = None) -> int:
     """Fewest stations whose union covers all coverable points and that can be ordered into a chain."""
     need = cover.any(axis=0)
     for k in range(1, len(cover) + 1):
         for subset in itertools.combinations(range(len(cover)), k):
             if np.any(need & ~cover[list(subset)].any(axis=0)):
                 continue
-            if any(is_valid_chain(cover, perm) for perm in itertools.permutations(subset)):
+            if first is not None and first not in subset:
+                continue
+            if any(is_valid_chain(cover, perm) and (first is None or perm[0] == first)
+                   for perm in itertools.permutations(subset)):
                 return k
     raise AssertionError("unreachable: the full set is always a candidate")
 
@@ -52,6 +55,18 @@ def test_exact_equals_brute_force_on_small_instances(seed):
     assert is_valid_chain(cover, sol.chain)
     assert sol.count == brute_force_optimum(cover)
     assert sol.lower_bound == sol.count
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_exact_with_a_fixed_first_station_equals_brute_force(seed):
+    rng = np.random.default_rng(50 + seed)
+    cover = random_instance(rng, K=7, M=12, density=0.25)
+    first = int(rng.integers(7))
+    sol = solve_exact(cover, time_limit_s=10.0, first=first)
+    assert sol is not None and sol.chain[0] == first and is_valid_chain(cover, sol.chain)
+    assert sol.count == brute_force_optimum(cover, first)
+    greedy = solve_greedy(cover, first=first)
+    assert greedy.chain[0] == first and is_valid_chain(cover, greedy.chain)
 
 
 def test_chain_condition_forces_more_stations_than_plain_set_cover():

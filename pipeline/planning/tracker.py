@@ -138,19 +138,20 @@ def chain_transfer_points(cover: np.ndarray, chain: tuple[int, ...]) -> list[np.
 # ------------------------------------------------------------------ reductions (exact: keep the optimum)
 
 
-def _reduce(cover: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _reduce(cover: np.ndarray, first: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(kept station indices, witness columns, columns that must be covered) of an equivalent smaller problem.
 
     Stations whose cover is inside another's are dropped (swapping one for a superset keeps coverage and every
     intersection). Identical point columns are merged. A column whose covering stations include all those of
     another column is covered whenever that one is, so only the minimal columns need a coverage constraint;
-    every distinct column stays as a possible transfer witness.
+    every distinct column stays as a possible transfer witness. A fixed ``first`` station is always kept.
     """
     cov = cover[:, cover.any(axis=0)]
-    _, first = np.unique(cov, axis=0, return_index=True)
-    stations = np.sort(first)
-    cov_s = cov[stations]
-    stations = stations[~_strictly_inside_another(cov_s)]
+    _, firsts = np.unique(cov, axis=0, return_index=True)
+    stations = np.sort(firsts)
+    stations = stations[~_strictly_inside_another(cov[stations])]
+    if first is not None and first not in stations:
+        stations = np.sort(np.r_[stations, first])
     cols = np.unique(cov[stations].T, axis=0)  # (P, K') distinct point columns (as rows)
     minimal = ~_strictly_contains_another(cols)
     return stations, cols.T, cols[minimal].T
@@ -228,8 +229,11 @@ def _shortest_path(adjacency: np.ndarray, source: int, goal: np.ndarray) -> list
     return None
 
 
-def solve_greedy(cover: np.ndarray, starts: int = 8) -> TrackerSolution:
-    """A valid chain by greedy growth from several start stations (largest covers, rarest point); bound by LP."""
+def solve_greedy(cover: np.ndarray, starts: int = 8, first: int | None = None) -> TrackerSolution:
+    """A valid chain by greedy growth from several start stations (largest covers, rarest point); bound by LP.
+
+    With ``first`` the chain starts at that station (where the tracking robot stands when the job begins).
+    """
     t0 = time.perf_counter()
     cover = np.asarray(cover, bool)
     uncovered = tuple(np.flatnonzero(~cover.any(axis=0)).tolist())
@@ -240,6 +244,10 @@ def solve_greedy(cover: np.ndarray, starts: int = 8) -> TrackerSolution:
     counts = cover.sum(axis=0)
     rare = int(np.argmin(np.where(counts > 0, counts, np.iinfo(np.int64).max)))
     tries += list(np.flatnonzero(cover[:, rare])[np.argsort(-sizes[cover[:, rare]])][:starts])
+    if first is not None:
+        if not cover[first].any():
+            raise TrackerPlanningError("the tracker's start station sees none of the measuring points")
+        tries = [first]
     best = None
     for s in dict.fromkeys(int(t) for t in tries):
         chain = _greedy_from(cover, s)
@@ -254,20 +262,23 @@ def solve_greedy(cover: np.ndarray, starts: int = 8) -> TrackerSolution:
 # ------------------------------------------------------------------ exact integer program
 
 
-def solve_exact(cover: np.ndarray, time_limit_s: float = 5.0, max_variables: int = 20000) -> TrackerSolution | None:
+def solve_exact(
+    cover: np.ndarray, time_limit_s: float = 5.0, max_variables: int = 20000, first: int | None = None
+) -> TrackerSolution | None:
     """The fewest chained stations by an integer program; None when the instance is too large or times out.
 
     Slots ``s = 0..S-1`` (S = the greedy count). Binary ``x[t, s]``: station t in slot s; binary ``u[s]``:
     slot used, ``u[s] >= u[s+1]``, ``sum_t x[t, s] = u[s]``; every required point covered by some slot; a
     witness ``y[c, s] in [0, 1]`` per distinct point column and slot pair with ``y <= cover of slot s``,
-    ``y <= cover of slot s+1`` and ``sum_c y[c, s] >= u[s+1]`` (consecutive covers intersect).
+    ``y <= cover of slot s+1`` and ``sum_c y[c, s] >= u[s+1]`` (consecutive covers intersect). A fixed
+    ``first`` station occupies slot 0.
     """
     t0 = time.perf_counter()
     cover = np.asarray(cover, bool)
-    greedy = solve_greedy(cover)
+    greedy = solve_greedy(cover, first=first)
     if greedy.optimal:
         return TrackerSolution(greedy.chain, "milp", True, greedy.count, time.perf_counter() - t0, greedy.uncovered)
-    stations, witness, required = _reduce(cover)
+    stations, witness, required = _reduce(cover, first)
     K, C, R, S = len(stations), witness.shape[1], required.shape[1], greedy.count
     n_x, n_u, n_y = K * S, S, C * (S - 1)
     if n_x + n_u + n_y > max_variables:
@@ -306,7 +317,10 @@ def solve_exact(cover: np.ndarray, time_limit_s: float = 5.0, max_variables: int
     cost = np.zeros(n)
     cost[n_x:n_x + n_u] = 1.0
     integrality = np.r_[np.ones(n_x + n_u), np.zeros(n_y)]
-    res = milp(cost, constraints=LinearConstraint(A, lo, hi), integrality=integrality, bounds=Bounds(0, 1),
+    lower = np.zeros(n)
+    if first is not None:
+        lower[ix(int(np.flatnonzero(stations == first)[0]), 0)] = 1.0
+    res = milp(cost, constraints=LinearConstraint(A, lo, hi), integrality=integrality, bounds=Bounds(lower, 1),
                options={"time_limit": time_limit_s, "disp": False})
     if res.status != 0 or res.x is None:
         log.info("tracker integer program stopped (%s); using the greedy chain", res.message)
@@ -319,12 +333,12 @@ def solve_exact(cover: np.ndarray, time_limit_s: float = 5.0, max_variables: int
     return TrackerSolution(chain, "milp", True, len(chain), time.perf_counter() - t0, greedy.uncovered)
 
 
-def choose_stations(cover: np.ndarray, planning: PlanningConfig) -> TrackerSolution:
+def choose_stations(cover: np.ndarray, planning: PlanningConfig, first: int | None = None) -> TrackerSolution:
     """The exact solver where it finishes within the configured limits, else the greedy chain."""
-    exact = solve_exact(cover, planning.exact_time_limit_s, planning.exact_max_variables)
+    exact = solve_exact(cover, planning.exact_time_limit_s, planning.exact_max_variables, first)
     if exact is not None:
         return exact
-    return solve_greedy(cover)
+    return solve_greedy(cover, first=first)
 
 
 __all__ = [
