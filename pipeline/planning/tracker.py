@@ -82,9 +82,10 @@ def cover_matrix(
     out = np.zeros((K, M), bool)
     if K == 0 or M == 0:
         return out
-    tan_h = np.tan(np.radians(tracker.fov_horizontal_deg) / 2)
-    tan_v = np.tan(np.radians(tracker.fov_vertical_deg) / 2)
-    cos_cone = np.cos(np.radians(tracker.target_view_cone_deg))
+    margin = planning.tracker_margin_deg  # chassis slip must not push a target out of view
+    tan_h = np.tan(np.radians(tracker.fov_horizontal_deg / 2 - margin))
+    tan_v = np.tan(np.radians(tracker.fov_vertical_deg / 2 - margin))
+    cos_cone = np.cos(np.radians(tracker.target_view_cone_deg - margin))
     far = min(planning.tracker_best_range_mm, tracker.range_max_mm)
     origins, dirs, where = [], [], []
     for k, (x, y, h) in enumerate(candidates):
