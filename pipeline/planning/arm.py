@@ -166,13 +166,17 @@ def raster_cells(
     reach_mm: float,
     scanner: ScannerConfig,
     planning: PlanningConfig,
+    shared_last_column: bool = False,
 ) -> tuple[list[RasterCell], int, int]:
-    """The raster's surface cells at ``station`` with its (rows, columns); rows is the largest column's count."""
+    """The raster's surface cells at ``station`` with its (rows, columns); rows is the largest column's count.
+
+    With ``shared_last_column`` the last column is left to the next station, whose first column is the same.
+    """
     m = footprint_width_mm(scanner, planning)
     n = footprint_height_mm(scanner, planning)
     cols = column_count(step_mm, m)
     cells, rows = [], 0
-    for c in range(cols):
+    for c in range(cols - 1 if shared_last_column else cols):
         offset = (c / (cols - 1) - 0.5) * step_mm
         base = station.xy + offset * station.tangent
         pts, nrm = surface_profile(scene, base, station.towards_part, z_range, reach_mm)
@@ -319,6 +323,7 @@ def plan_arm(
     mesh_bounds: tuple[np.ndarray, np.ndarray],
     stations: tuple[AgvStation, ...],
     step_mm: float,
+    path_length_mm: float,
     ik: IkSolver,
     arm: ArmConfig,
     T_V2_B: np.ndarray,
@@ -327,13 +332,22 @@ def plan_arm(
     planning: PlanningConfig,
     home_rad: np.ndarray,
 ) -> list[StationRaster]:
-    """The raster of every station, the joint seed carried from one station to the next."""
+    """The raster of every station, the joint seed carried from one station to the next.
+
+    Stations sit ``step_mm`` apart on a closed path of ``path_length_mm``; a station whose successor on the path
+    is planned leaves their shared fence-post column to it.
+    """
     lo, hi = (np.asarray(b, float) for b in mesh_bounds)
     reach = float(np.linalg.norm(hi - lo)) + 4.0 * planning.arm_standoff_max_mm + planning.agv_width_mm
     out = []
     seed = np.asarray(home_rad, float)
+    arcs = np.array([st.arc_mm for st in stations])
     for st in stations:
-        cells, rows, cols = raster_cells(scene, st, step_mm, (float(lo[2]), float(hi[2])), reach, scanner, planning)
+        after = (st.arc_mm + step_mm) % path_length_mm if path_length_mm > 0 else np.inf
+        shared = len(stations) > 1 and bool(np.any(np.abs(arcs - after) < 1.0) or (
+            abs(after - path_length_mm) < 1.0 and np.any(arcs < 1.0)))
+        cells, rows, cols = raster_cells(scene, st, step_mm, (float(lo[2]), float(hi[2])), reach, scanner, planning,
+                                         shared)
         raster = plan_station(st, cells, rows, cols, ik, arm, T_V2_B, T_E_S, scanner, planning, seed)
         if raster.poses:
             seed = raster.poses[-1].joints_rad
