@@ -166,8 +166,8 @@ class PlanningConfig(_Strict):
     tracker_candidate_step_mm: float = Field(700.0, gt=0, description="spacing of tracker candidates, mm")
     tracker_heading_offsets_deg: tuple[float, ...] = (-30.0, -15.0, 0.0, 15.0, 30.0)
     tracker_margin_deg: float = Field(3.0, ge=0, description="kept off the edges of the field of view and cone")
-    exact_time_limit_s: float = Field(5.0, gt=0, description="integer-program time limit, s")
-    exact_max_variables: int = Field(20000, gt=0, description="larger tracker instances go to the heuristic")
+    exact_time_limit_s: float = Field(2.0, gt=0, description="integer-program time limit, s")
+    exact_max_variables: int = Field(6000, gt=0, description="larger tracker instances go to the heuristic")
     floor_xy_mm: tuple[float, float, float, float] = Field(
         (-20000.0, -12000.0, 20000.0, 12000.0), description="cell floor rectangle: x min, y min, x max, y max"
     )

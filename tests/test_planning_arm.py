@@ -172,3 +172,14 @@ def test_closed_form_ik_agrees_with_the_numerical_one():
 def test_closed_form_ik_refuses_other_geometry():
     with pytest.raises(ValueError, match="UR-style"):
         AnalyticIK(ArmConfig(dh_alpha_rad=(0.0,) * 6))
+
+
+def test_reach_prefilter_never_rejects_a_reachable_pose():
+    ik = AnalyticIK(ArmConfig())
+    rng = np.random.default_rng(9)
+    qs = np.clip(rng.uniform(ik.kin.q_min, ik.kin.q_max, (300, 6)), -3.0, 3.0)
+    T = np.stack([ik.kin.forward(q) for q in qs])
+    assert ik.maybe_reachable(T).all()
+    far = T.copy()
+    far[:, 0, 3] += 3000.0
+    assert not ik.maybe_reachable(far).any()

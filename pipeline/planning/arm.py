@@ -293,6 +293,9 @@ def plan_station(
         T_B_E = T_B_F @ T_F_S @ T_S_E
         shoulder = np.array([0.0, 0.0, arm.dh_d_mm[0]])
         in_reach = np.linalg.norm(T_B_E[:, :3, 3] - shoulder, axis=1) <= reach_bound_mm(arm)
+        prefilter = getattr(ik, "maybe_reachable", None)
+        if prefilter is not None:
+            in_reach &= prefilter(T_B_E)
         owner_arr = np.array(owner)
         seed = np.asarray(seed_rad, float)
         for i in order:

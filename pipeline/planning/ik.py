@@ -29,6 +29,20 @@ class AnalyticIK:
             raise ValueError("closed-form IK needs UR-style DH parameters (joints 2-4 parallel)")
         self.tol_mm, self.tol_rad = tol_mm, tol_rad
 
+    def maybe_reachable(self, T_B_E: np.ndarray) -> np.ndarray:
+        """Necessary condition, vectorised over ``(N, 4, 4)``: the wrist point lies inside the arm's shell.
+
+        The wrist point ``p05 = p - d6 z`` sits at ``p13 + d4 z1 + d5 z4`` from the shoulder with ``p13, z4``
+        orthogonal to ``z1`` and ``|p13| <= a2 + a3``; poses failing this have no solution, so IK can skip them.
+        """
+        d1, d4, d5, d6 = self.kin.d[0], self.kin.d[3], self.kin.d[4], self.kin.d[5]
+        a2, a3 = self.kin.a[1], self.kin.a[2]
+        T = np.asarray(T_B_E, float).reshape(-1, 4, 4)
+        p05 = T[:, :3, 3] - d6 * T[:, :3, 2]
+        p05[:, 2] -= d1
+        far = np.sum(p05**2, axis=1) <= (abs(a2) + abs(a3) + abs(d5)) ** 2 + d4**2 + 1e-6
+        return far & (np.hypot(p05[:, 0], p05[:, 1]) >= abs(d4) - 1e-9)
+
     def solutions(self, T_B_E: np.ndarray) -> list[np.ndarray]:
         """Every closed-form solution (rad, not yet moved into the limits, not yet verified)."""
         d1, d4, d5, d6 = self.kin.d[0], self.kin.d[3], self.kin.d[4], self.kin.d[5]
@@ -71,47 +85,31 @@ class AnalyticIK:
                     out.append(np.array([q1, q2, q3, q4, q5, q6]))
         return out
 
-    def _into_limits(self, q: np.ndarray, seed: np.ndarray) -> np.ndarray | None:
-        """Each joint moved by whole turns into its limits, nearest the seed; None when a joint cannot fit."""
-        res = np.empty(6)
-        for i in range(6):
-            base = q[i] + 2 * np.pi * np.round((seed[i] - q[i]) / (2 * np.pi))
-            options = [base + 2 * np.pi * k for k in (-1, 0, 1)]
-            inside = [o for o in options if self.kin.q_min[i] - 1e-9 <= o <= self.kin.q_max[i] + 1e-9]
-            if not inside:
-                return None
-            res[i] = min(inside, key=lambda o: abs(o - seed[i]))
-        return res
+    def _into_limits(self, q: np.ndarray, seed: np.ndarray) -> np.ndarray:
+        """Solutions ``(N, 6)`` moved by whole turns into the limits, nearest the seed; NaN rows cannot fit."""
+        q = np.atleast_2d(q)
+        base = q + 2 * np.pi * np.round((seed - q) / (2 * np.pi))
+        options = base[:, :, None] + 2 * np.pi * np.array([-1.0, 0.0, 1.0])  # (N, 6, 3)
+        inside = (options >= self.kin.q_min[None, :, None] - 1e-9) & (options <= self.kin.q_max[None, :, None] + 1e-9)
+        dist = np.where(inside, np.abs(options - seed[None, :, None]), np.inf)
+        pick = np.take_along_axis(options, np.argmin(dist, axis=2)[:, :, None], axis=2)[:, :, 0]
+        pick[~inside.any(axis=2).all(axis=1)] = np.nan
+        return pick
 
     def __call__(self, T_B_E: np.ndarray, seed_rad: np.ndarray | None = None) -> np.ndarray | None:
         """Joint angles (rad) reaching ``T_B_E`` within the limits, nearest the seed; None if unreachable."""
         T = np.asarray(T_B_E, float)
         seed = np.zeros(6) if seed_rad is None else np.asarray(seed_rad, float)
-        best, best_d = None, np.inf
-        for q in self.solutions(T):
-            q = self._into_limits(q, seed)
-            if q is None:
-                continue
+        sols = self.solutions(T)
+        if not sols:
+            return None
+        qs = self._into_limits(np.array(sols), seed)
+        qs = qs[~np.isnan(qs).any(axis=1)]
+        for q in qs[np.argsort(np.max(np.abs(qs - seed), axis=1))]:  # nearest first; check until one holds
             F_ = self.kin.forward(q)
             if np.linalg.norm(F_[:3, 3] - T[:3, 3]) > self.tol_mm:
                 continue
             c = np.clip((np.trace(F_[:3, :3].T @ T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-            if np.arccos(c) > self.tol_rad:
-                continue
-            d = float(np.max(np.abs(q - seed)))
-            if d < best_d:
-                best, best_d = q, d
-        return best
-
-
-def all_branches(ik: AnalyticIK, T_B_E: np.ndarray) -> int:
-    """How many distinct verified solutions reach ``T_B_E`` (for diagnostics and tests)."""
-    found = []
-    for q in ik.solutions(T_B_E):
-        q = ik._into_limits(q, q)
-        if q is not None and np.allclose(ik.kin.forward(q), T_B_E, atol=1e-6) and not any(
-            np.allclose(q, f, atol=1e-6) for f in found
-        ):
-            found.append(q)
-    return len(found)
-
+            if np.arccos(c) <= self.tol_rad:
+                return q
+        return None

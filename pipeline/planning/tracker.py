@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 from scipy.optimize import Bounds, LinearConstraint, linprog, milp
-from scipy.sparse import coo_matrix, csr_matrix
+from scipy.sparse import bmat, csr_matrix, identity, kron, vstack
 
 from tandemscan.config.models import PlanningConfig, TrackerConfig
 from tandemscan.pipeline import frames as F
@@ -187,12 +187,10 @@ def lp_lower_bound(cover: np.ndarray) -> int:
 # ------------------------------------------------------------------ greedy chain
 
 
-def _greedy_from(cover: np.ndarray, start: int) -> list[int] | None:
+def _greedy_from(cover: np.ndarray, adjacency: np.ndarray, start: int) -> list[int] | None:
     need = cover.any(axis=0)
     uncovered = need & ~cover[start]
     chain = [start]
-    c32 = cover.astype(np.float32)
-    adjacency = (c32 @ c32.T) > 0.5
     while uncovered.any():
         gain = cover[:, uncovered].sum(axis=1)
         last = chain[-1]
@@ -206,6 +204,20 @@ def _greedy_from(cover: np.ndarray, start: int) -> list[int] | None:
                 return None
             chain.extend(path)
         uncovered &= ~cover[chain[-1]]
+    return chain
+
+
+def _prune(cover: np.ndarray, chain: list[int], keep_first: bool) -> list[int]:
+    """Drop stations one at a time while the chain stays valid (greedy growth leaves some redundant)."""
+    need = cover.any(axis=0)
+    changed = True
+    while changed and len(chain) > 1:
+        changed = False
+        for i in sorted(range(1 if keep_first else 0, len(chain)), key=lambda i: cover[chain[i]].sum()):
+            trial = chain[:i] + chain[i + 1:]
+            if is_valid_chain(cover, trial, need):
+                chain, changed = trial, True
+                break
     return chain
 
 
@@ -249,9 +261,13 @@ def solve_greedy(cover: np.ndarray, starts: int = 8, first: int | None = None) -
         if not cover[first].any():
             raise TrackerPlanningError("the tracker's start station sees none of the measuring points")
         tries = [first]
+    c32 = cover.astype(np.float32)
+    adjacency = (c32 @ c32.T) > 0.5  # stations whose covers intersect
     best = None
     for s in dict.fromkeys(int(t) for t in tries):
-        chain = _greedy_from(cover, s)
+        chain = _greedy_from(cover, adjacency, s)
+        if chain is not None:
+            chain = _prune(cover, chain, keep_first=first is not None)
         if chain is not None and (best is None or len(chain) < len(best)):
             best = chain
     if best is None:
@@ -284,50 +300,42 @@ def solve_exact(
     n_x, n_u, n_y = K * S, S, C * (S - 1)
     if n_x + n_u + n_y > max_variables:
         return None
-    ix = lambda t, s: s * K + t  # noqa: E731 - local index helpers keep the matrix assembly readable
-    iu = lambda s: n_x + s  # noqa: E731
-    iy = lambda c, s: n_x + n_u + s * C + c  # noqa: E731
     n = n_x + n_u + n_y
-    rows, cols, vals, lo, hi = [], [], [], [], []
-    r = 0
-
-    def add(entries: list[tuple[int, float]], lower: float, upper: float) -> None:
-        nonlocal r
-        for c_, v_ in entries:
-            rows.append(r)
-            cols.append(c_)
-            vals.append(v_)
-        lo.append(lower)
-        hi.append(upper)
-        r += 1
-
-    for s in range(S):
-        add([(ix(t, s), 1.0) for t in range(K)] + [(iu(s), -1.0)], 0.0, 0.0)
-        if s + 1 < S:
-            add([(iu(s), 1.0), (iu(s + 1), -1.0)], 0.0, np.inf)
-    for c in range(R):
-        ts = np.flatnonzero(required[:, c])
-        add([(ix(t, s), 1.0) for s in range(S) for t in ts], 1.0, np.inf)
-    for s in range(S - 1):
-        for c in range(C):
-            ts = np.flatnonzero(witness[:, c])
-            for slot in (s, s + 1):
-                add([(iy(c, s), 1.0)] + [(ix(t, slot), -1.0) for t in ts], -np.inf, 0.0)
-        add([(iy(c, s), 1.0) for c in range(C)] + [(iu(s + 1), -1.0)], 0.0, np.inf)
-    A = csr_matrix(coo_matrix((vals, (rows, cols)), shape=(r, n)))
+    W = csr_matrix(witness.astype(float))  # (K, C)
+    I_S = identity(S, format="csr")
+    shift = lambda k: csr_matrix(np.eye(S - 1, S, k))  # noqa: E731 - picks slot s (k=0) or s+1 (k=1)
+    Z = lambda r, c: csr_matrix((r, c))  # noqa: E731
+    blocks = [
+        # one station per used slot: sum_t x[t, s] - u[s] = 0
+        ([kron(I_S, np.ones((1, K))), -I_S, Z(S, n_y)], 0.0, 0.0),
+        # used slots first: u[s] - u[s+1] >= 0
+        ([Z(S - 1, n_x), shift(0) - shift(1), Z(S - 1, n_y)], 0.0, np.inf),
+        # every required point covered: sum_{s, t} R[t, c] x[t, s] >= 1
+        ([kron(np.ones((1, S)), csr_matrix(required.T.astype(float))), Z(R, n_u), Z(R, n_y)], 1.0, np.inf),
+        # witness only where slot s sees it: y[c, s] - sum_t W[t, c] x[t, s] <= 0
+        ([-kron(shift(0), W.T), Z(n_y, n_u), identity(n_y)], -np.inf, 0.0),
+        # ... and slot s+1 sees it
+        ([-kron(shift(1), W.T), Z(n_y, n_u), identity(n_y)], -np.inf, 0.0),
+        # consecutive used slots share a witness: sum_c y[c, s] - u[s+1] >= 0
+        ([Z(S - 1, n_x), -shift(1), kron(identity(S - 1), np.ones((1, C)))], 0.0, np.inf),
+    ]
+    rows = [bmat([parts]) for parts, _, _ in blocks]
+    A = vstack(rows, format="csr")
+    lo = np.concatenate([np.full(r.shape[0], low) for r, (_, low, _) in zip(rows, blocks, strict=True)])
+    hi = np.concatenate([np.full(r.shape[0], high) for r, (_, _, high) in zip(rows, blocks, strict=True)])
     cost = np.zeros(n)
     cost[n_x:n_x + n_u] = 1.0
     integrality = np.r_[np.ones(n_x + n_u), np.zeros(n_y)]
     lower = np.zeros(n)
     if first is not None:
-        lower[ix(int(np.flatnonzero(stations == first)[0]), 0)] = 1.0
+        lower[int(np.flatnonzero(stations == first)[0])] = 1.0  # x[first, slot 0]
     res = milp(cost, constraints=LinearConstraint(A, lo, hi), integrality=integrality, bounds=Bounds(lower, 1),
                options={"time_limit": time_limit_s, "disp": False})
     if res.status != 0 or res.x is None:
         log.info("tracker integer program stopped (%s); using the greedy chain", res.message)
         return None
     x = res.x[:n_x].reshape(S, K)
-    chain = tuple(int(stations[np.argmax(x[s])]) for s in range(S) if res.x[iu(s)] > 0.5)
+    chain = tuple(int(stations[np.argmax(x[s])]) for s in range(S) if res.x[n_x + s] > 0.5)
     if not is_valid_chain(cover, chain):  # numerical safety: never hand out an invalid chain
         log.warning("tracker integer program returned an invalid chain; using the greedy chain")
         return None
