@@ -12,7 +12,6 @@ import sys
 import time
 
 import numpy as np
-
 from tandemscan.config import load_config
 from tandemscan.config.models import PartConfig
 from tandemscan.pipeline.part import load_part_mesh

@@ -7,7 +7,6 @@ import math
 import numpy as np
 import open3d as o3d
 import pytest
-
 from tandemscan.config.models import ArmConfig, InstallationConfig, PlanningConfig, ScannerConfig
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.kinematics import ArmKinematics

@@ -20,7 +20,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import open3d as o3d
-
 from tandemscan.config.models import ArmConfig, PlanningConfig, ScannerConfig
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.planning.stations import AgvStation, footprint_height_mm, footprint_width_mm

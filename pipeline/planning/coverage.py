@@ -14,7 +14,6 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
-
 from tandemscan.config.models import ScannerConfig
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.planning.arm import StationRaster

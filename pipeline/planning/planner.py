@@ -13,7 +13,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import open3d as o3d
 from shapely.geometry import Point
-
 from tandemscan.config.models import CellConfig
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.planning.arm import IkSolver, ScanPose, StationRaster, default_ik, plan_arm

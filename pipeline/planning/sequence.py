@@ -14,7 +14,6 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-
 from tandemscan.pipeline.plan import MoveArm, MoveMeasure, MoveTracker, Plan, Scan
 
 log = logging.getLogger(__name__)
