@@ -173,7 +173,7 @@ class DeepMergeConfig(_Strict):
     overlap_min_delta_mm: float = Field(1.0, gt=0, description="lower bound of delta (point spacing and noise), mm")
     min_overlap_points: int = Field(200, ge=10, description="pairs with fewer overlap points get no edge")
     num_points: int = Field(2048, ge=64, description="overlap points per cloud fed to the network")
-    neighbours: int = Field(16, ge=4, description="k of the k x 14 point structure")
+    neighbours: int = Field(10, ge=4, description="k of the k x 14 point structure")
     icp_max_distance_mm: float = Field(2.0, gt=0, description="point-to-plane ICP correspondence distance, mm")
     icp_iterations: int = Field(50, ge=1)
     edge_effective_points: float = Field(
