@@ -81,7 +81,7 @@ class DeepMerge(nn.Module):
         # per iteration: log of the feature-similarity gain and of the squared-distance penalty
         self.log_gain = nn.Parameter(torch.full((iterations,), math.log(10.0)))
         self.log_dist = nn.Parameter(torch.log(torch.logspace(1, 3, iterations)))
-        self.confidence = nn.Sequential(nn.Conv1d(WIDTHS[4] + 1, 64, 1), nn.LeakyReLU(0.2), nn.Conv1d(64, 1, 1))
+        self.confidence = nn.Sequential(nn.Conv1d(widths[4] + 1, 64, 1), nn.LeakyReLU(0.2), nn.Conv1d(64, 1, 1))
 
     def embed(self, structure: torch.Tensor) -> torch.Tensor:
         """L2-normalised per-point embeddings ``(B, N, 512)``."""
@@ -118,7 +118,11 @@ class DeepMerge(nn.Module):
 
 
 def rigid_loss(R: torch.Tensor, t: torch.Tensor, R_true: torch.Tensor, t_true: torch.Tensor) -> torch.Tensor:
-    """Mean of ``|R^T R_true - I|_F^2 + |t - t_true|^2`` over the batch (normalised units)."""
+    """Mean over the batch of ``|R^T R_true - I|_F / sqrt(2) + |t - t_true|`` (about angle + distance).
+
+    Not squared, so small errors keep a useful gradient and the fit keeps improving at the fine end.
+    """
     eye = torch.eye(3, dtype=R.dtype, device=R.device)
-    rot = (R.transpose(1, 2) @ R_true - eye).square().sum(dim=(1, 2))
-    return (rot + (t - t_true).square().sum(dim=1)).mean()
+    rot = ((R.transpose(1, 2) @ R_true - eye).square().sum(dim=(1, 2)) / 2.0 + 1e-12).sqrt()
+    trans = ((t - t_true).square().sum(dim=1) + 1e-12).sqrt()
+    return (rot + trans).mean()
