@@ -2,9 +2,10 @@
 
 Pose graph: every scan ``i`` has a tracker pose ``P_i = T_W_S_i`` (prior) with a 6x6 covariance; every
 corrected overlap gives a relative-pose edge. Scans are grouped by tracker station; a coordinate transfer
-gives the whole next station a common error, modelled as a random walk of per-station corrections
-(``transfer_covariance`` per transfer), so edges between stations pull back the accumulated drift while the
-priors keep every scan near its tracker reading. The solution minimises the sum of squared, whitened
+gives the whole next station an error on top of the previous station's, so station ``k`` carries the
+product of the transfer errors ``1..k`` (each with ``transfer_covariance``, a world motion about the centroid
+of station ``k``'s scans); edges between stations pull back that accumulated drift while the priors keep
+every scan near its tracker reading. The solution minimises the sum of squared, whitened
 residuals (scipy least squares with a sparse Jacobian).
 
 Conventions: a pose perturbation is ``(t mm, rotation vector rad)`` of a world-frame motion about a stated
@@ -23,6 +24,7 @@ import open3d as o3d
 from numpy.typing import ArrayLike
 from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from tandemscan.pipeline.frames import invert
@@ -77,13 +79,29 @@ def icp_point_to_plane(
         reg.TransformationEstimationPointToPlane(),
         reg.ICPConvergenceCriteria(relative_fitness=1e-9, relative_rmse=1e-9, max_iteration=iterations),
     )
-    M = np.asarray(res.transformation).copy()
-    pairs = np.asarray(res.correspondence_set).reshape(-1, 2)
-    moved = S[pairs[:, 0]] @ M[:3, :3].T + M[:3, 3]
-    normals = np.asarray(tgt.normals)[pairs[:, 1]]
-    d = np.einsum("ij,ij->i", moved - T[pairs[:, 1]], normals)
-    rmse = float(np.sqrt(np.mean(d**2))) if len(d) else float("inf")
-    return IcpResult(M, float(res.fitness), rmse, moved, normals)
+    return evaluate_point_to_plane(S, tgt, np.asarray(res.transformation), max_distance_mm)
+
+
+def evaluate_point_to_plane(
+    source_mm: ArrayLike, target: ArrayLike | o3d.geometry.PointCloud, T: ArrayLike, max_distance_mm: float,
+    normal_neighbours: int = 20,
+) -> IcpResult:
+    """Score ``T_target_source`` without moving it: nearest-neighbour inliers within ``max_distance_mm``."""
+    S = np.asarray(source_mm, float)
+    if isinstance(target, o3d.geometry.PointCloud):
+        tgt = target
+    else:
+        tgt = _pcd(np.asarray(target, float))
+        tgt.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(normal_neighbours))
+    M = np.asarray(T, float).copy()
+    Tp = np.asarray(tgt.points)
+    moved = S @ M[:3, :3].T + M[:3, 3]
+    d, idx = cKDTree(Tp).query(moved, k=1, distance_upper_bound=max_distance_mm)
+    ok = np.isfinite(d)
+    normals = np.asarray(tgt.normals)[idx[ok]]
+    r = np.einsum("ij,ij->i", moved[ok] - Tp[idx[ok]], normals)
+    rmse = float(np.sqrt(np.mean(r**2))) if ok.any() else float("inf")
+    return IcpResult(M, float(ok.mean()) if len(S) else 0.0, rmse, moved[ok], normals)
 
 
 def point_to_plane_information(
@@ -205,22 +223,24 @@ def refine_poses(
     We = np.stack([_whitener(e.information, False, f"edge ({e.i}, {e.j})") for e in edges]) if edges else None
     ec = np.stack([np.asarray(e.centre_mm, float) for e in edges]) if edges else np.zeros((0, 3))
 
+    def station_corrections(X: np.ndarray) -> dict[int, np.ndarray]:
+        A, out = np.eye(4), {}
+        for k in movable:                           # transfer k on top of all earlier ones
+            A = _about(-centres[k], _exp(X[col[k]][None]))[0] @ A
+            out[k] = A
+        return out
+
     def poses(x: np.ndarray) -> np.ndarray:
         X = x.reshape(-1, 6)
-        D = _about(-origins, _exp(X[:n]))            # Tr(o) Exp(d) Tr(-o)
-        out = D @ P
-        for k in movable:
-            A = _about(-centres[k], _exp(X[col[k]][None]))[0]
+        out = _about(-origins, _exp(X[:n])) @ P     # Tr(o) Exp(d) Tr(-o) P
+        for k, A in station_corrections(X).items():
             out[sid == k] = A @ out[sid == k]
         return out
 
     def residuals(x: np.ndarray) -> np.ndarray:
         X = x.reshape(-1, 6)
         r = [np.einsum("nij,nj->ni", Wp, X[:n]).ravel()]
-        prev = np.zeros(6)
-        for k in movable:
-            r.append(Wt @ (X[col[k]] - prev))
-            prev = X[col[k]]
+        r += [Wt @ X[col[k]] for k in movable]
         if len(edges):
             Xp = poses(x)
             E = Xp[ei] @ Z @ np.linalg.inv(Xp[ej])
@@ -232,16 +252,15 @@ def refine_poses(
     for i in range(n):
         sparsity[6 * i:6 * i + 6, 6 * i:6 * i + 6] = 1
     row = 6 * n
-    for m, k in enumerate(movable):
+    for k in movable:
         sparsity[row:row + 6, 6 * col[k]:6 * col[k] + 6] = 1
-        if m:
-            sparsity[row:row + 6, 6 * col[movable[m - 1]]:6 * col[movable[m - 1]] + 6] = 1
         row += 6
     for a, b in zip(ei, ej, strict=True):
         for s in (a, b):
             sparsity[row:row + 6, 6 * s:6 * s + 6] = 1
-            if sid[s] in col:
-                sparsity[row:row + 6, 6 * col[sid[s]]:6 * col[sid[s]] + 6] = 1
+            for k in movable:
+                if k <= sid[s]:
+                    sparsity[row:row + 6, 6 * col[k]:6 * col[k] + 6] = 1
         row += 6
     x0 = np.zeros(n_par)
     cost0 = 0.5 * float(np.sum(residuals(x0) ** 2))
@@ -249,7 +268,7 @@ def refine_poses(
                         xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
     out = poses(sol.x)
     X = sol.x.reshape(-1, 6)
-    corr = {k: _about(-centres[k], _exp(X[col[k]][None]))[0] for k in movable}
+    corr = station_corrections(X)
     log.info("pose graph: %d scans, %d edges, %d transfers; cost %.3g -> %.3g", n, len(edges), len(movable),
              cost0, sol.cost)
     return RefineResult([T for T in out], corr, cost0, float(sol.cost), bool(sol.success))

@@ -53,17 +53,16 @@ def _strip(n_scans: int = 12, per_station: int = 3, seed: int = 2):
     truth = [from_rotvec([250.0 * i, 0, 500.0], [0, np.pi, 0.02 * i]) for i in range(n_scans)]
     station = [i // per_station for i in range(n_scans)]
     drift = [np.eye(4)]
-    for _ in range(max(station)):
+    for k in range(1, max(station) + 1):                  # each transfer about its station's centroid
+        c = np.array([250.0 * (per_station * k + (per_station - 1) / 2), 0, 500.0])
         step = from_rotvec(rng.normal(0, 0.3, 3), rng.normal(0, np.radians(0.05), 3))
-        drift.append(step @ drift[-1])
+        drift.append(from_rotvec(c, [0, 0, 0]) @ step @ from_rotvec(-c, [0, 0, 0]) @ drift[-1])
     sig_t, sig_r = 0.02, np.radians(0.002)
     cov = np.diag([sig_t**2] * 3 + [sig_r**2] * 3)
     priors = []
     for X, k in zip(truth, station, strict=True):
         noise = from_rotvec(rng.normal(0, sig_t, 3), rng.normal(0, sig_r, 3))
-        c = drift[k][:3, 3] * 0 + np.array([250.0 * per_station * k, 0, 0])
-        D = compose(from_rotvec(c, [0, 0, 0]), drift[k], from_rotvec(-c, [0, 0, 0]))
-        priors.append(ScanPrior(D @ noise @ X, cov, k))
+        priors.append(ScanPrior(compose(drift[k], X, noise), cov, k))
     return truth, priors, rng
 
 
