@@ -236,7 +236,7 @@ def train(s: TrainSettings, out_path: Path | None = None, progress=None) -> tupl
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
         opt.step()
         sched.step()
-        losses.append(float(loss))
+        losses.append(float(loss.detach()))
         if step % 25 == 0:
             log.info("step %d loss %.4f", step, np.mean(losses[-25:]))
             if progress is not None:
@@ -249,7 +249,12 @@ def train(s: TrainSettings, out_path: Path | None = None, progress=None) -> tupl
                "loss_first_25": float(np.mean(losses[:25])), "loss_last_25": float(np.mean(losses[-25:])),
                "validation": validation}
     if out_path is not None:
-        out_path.parent.mkdir(parents=True, exist_ok=True)
-        torch.save({"state_dict": model.state_dict(), "settings": asdict(s), "summary": summary}, out_path)
-        log.info("wrote %s", out_path)
+        save_weights(model, s, summary, out_path)
     return model, summary
+
+
+def save_weights(model: DeepMerge, s: TrainSettings, summary: dict, path: Path) -> None:
+    """Write the weights with the settings the registrar needs and the training summary."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({"state_dict": model.state_dict(), "settings": asdict(s), "summary": summary}, path)
+    log.info("wrote %s", path)
