@@ -168,15 +168,42 @@ def _log(T: np.ndarray) -> np.ndarray:
 
 
 def _whitener(matrix: np.ndarray, inverse: bool, what: str) -> np.ndarray:
-    """``L^T`` with ``L L^T`` = the information (``inverse``: of a covariance)."""
+    """``W`` with ``W^T W`` = the information (``inverse``: of a covariance, which must be positive
+    definite; an information matrix may be singular in directions it does not constrain)."""
     M = np.asarray(matrix, float)
     if M.shape != (6, 6) or not np.all(np.isfinite(M)):
         raise RefineError(f"{what}: expected a finite 6x6 matrix, got shape {M.shape}")
-    try:
-        info = np.linalg.inv(M) if inverse else M
-        return np.linalg.cholesky(0.5 * (info + info.T)).T
-    except np.linalg.LinAlgError as e:
-        raise RefineError(f"{what}: not positive definite") from e
+    if inverse:
+        try:
+            return np.linalg.cholesky(np.linalg.inv(0.5 * (M + M.T))).T
+        except np.linalg.LinAlgError as e:
+            raise RefineError(f"{what}: not positive definite") from e
+    w, V = np.linalg.eigh(0.5 * (M + M.T))
+    if w.min() < -1e-9 * max(w.max(), 1e-300):
+        raise RefineError(f"{what}: not positive semi-definite")
+    return np.sqrt(np.clip(w, 0.0, None))[:, None] * V.T
+
+
+def constrained_edge(
+    correction: ArrayLike, information: ArrayLike, centre_mm: ArrayLike, length_mm: float, min_ratio: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Keep only what an overlap really measures (degeneracy-aware edge).
+
+    A smooth overlap (plane, cylinder, extrusion) leaves directions in which the registration slides
+    freely. With rotations scaled by ``length_mm`` (the overlap's size) so that both kinds of direction
+    compare, the eigen-directions of ``information`` weaker than ``min_ratio`` of the strongest are dropped:
+    the correction is projected onto the rest and the information there is zero. Returns
+    ``(correction, information)``.
+    """
+    c = np.asarray(centre_mm, float)
+    S = np.diag([1.0, 1.0, 1.0, 1.0 / length_mm, 1.0 / length_mm, 1.0 / length_mm])
+    info_s = S @ np.asarray(information, float) @ S          # information in (mm, mm-at-length) units
+    w, V = np.linalg.eigh(0.5 * (info_s + info_s.T))
+    keep = w >= min_ratio * w.max()
+    P = V[:, keep] @ V[:, keep].T
+    e = S @ P @ np.linalg.solve(S, _log(_about(c, np.asarray(correction, float)[None]))[0])
+    info = np.linalg.inv(S) @ (V[:, keep] * w[keep]) @ V[:, keep].T @ np.linalg.inv(S)
+    return _about(-c, _exp(e[None]))[0], info
 
 
 @dataclass(frozen=True)

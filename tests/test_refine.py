@@ -111,3 +111,20 @@ def test_pose_graph_rejects_bad_edges_and_covariances():
     bad = [ScanPrior(priors[0].T_W_S, -np.eye(6), 0)]
     with pytest.raises(RefineError, match="positive definite"):
         refine_poses(bad, [])
+
+
+def test_scan_covariance_carries_target_rotation_to_the_scan_origin():
+    from tandemscan.pipeline.uncertainty import scan_pose_covariance, transfer_covariance
+
+    reading = np.diag([0.01**2] * 3 + [1e-5**2] * 3)
+    T_T_S = from_rotvec([0, 0, 100.0], [0, 0, 0])      # scanner 100 mm along the target's z
+    C = scan_pose_covariance(np.eye(4), np.eye(4), T_T_S, reading)
+    # x and y of the scan origin pick up (1e-5 rad * 100 mm)^2; z (along the lever) does not
+    np.testing.assert_allclose(np.diag(C)[:3], [1e-4 + 1e-6, 1e-4 + 1e-6, 1e-4])
+    np.testing.assert_allclose(np.diag(C)[3:], [1e-10] * 3)
+    # a world frame turned 90 deg about z swaps the x and y axes of a non-isotropic covariance
+    reading2 = np.diag([1.0, 4.0, 9.0, 1e-8, 1e-8, 1e-8])
+    C2 = scan_pose_covariance(from_rotvec([0, 0, 0], [0, 0, np.pi / 2]), np.eye(4), np.eye(4), reading2)
+    np.testing.assert_allclose(np.diag(C2)[:3], [4.0, 1.0, 9.0], atol=1e-12)
+    T = transfer_covariance(reading, 1000.0)
+    np.testing.assert_allclose(np.diag(T), [2e-4 + 2e-10 * 1e6] * 3 + [2e-10] * 3)
