@@ -188,7 +188,10 @@ class DeepMergeConfig(_Strict):
     icp_max_distance_mm: float = Field(2.0, gt=0, description="point-to-plane ICP correspondence distance, mm")
     icp_iterations: int = Field(50, ge=1)
     edge_effective_points: float = Field(
-        100.0, gt=0, description="independent points an overlap is worth when weighting a pose-graph edge"
+        1000.0, gt=0, description="independent points an overlap is worth when weighting a pose-graph edge"
+    )
+    edge_min_eigen_ratio: float = Field(
+        0.01, ge=0, lt=1, description="edge directions weaker than this share of the strongest are dropped"
     )
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from tandemscan.pipeline.frames import compose, from_rotvec, invert, pose_error
 from tandemscan.pipeline.refine import (
@@ -128,3 +129,18 @@ def test_scan_covariance_carries_target_rotation_to_the_scan_origin():
     np.testing.assert_allclose(np.diag(C2)[:3], [4.0, 1.0, 9.0], atol=1e-12)
     T = transfer_covariance(reading, 1000.0)
     np.testing.assert_allclose(np.diag(T), [2e-4 + 2e-10 * 1e6] * 3 + [2e-10] * 3)
+
+
+def test_constrained_edge_drops_the_sliding_directions_of_a_plane():
+    from tandemscan.pipeline.refine import constrained_edge
+
+    rng = np.random.default_rng(3)
+    P = np.c_[rng.uniform(-50, 50, (500, 2)), np.zeros(500)]
+    info = point_to_plane_information(P, np.tile([0, 0, 1.0], (500, 1)), np.zeros(3), 0.05, 100)
+    slide = from_rotvec([3.0, -2.0, 0.1], [0.001, -0.002, 0.05])   # mostly in-plane motion
+    C, I = constrained_edge(slide, info, np.zeros(3), 40.0, 0.01)
+    # what a plane measures (z, rx, ry) is kept; the in-plane slide (x, y, rz) is gone
+    t, r = C[:3, 3], Rotation.from_matrix(C[:3, :3]).as_rotvec()
+    np.testing.assert_allclose([t[0], t[1], r[2]], 0.0, atol=1e-9)
+    assert t[2] == pytest.approx(0.1, abs=1e-3) and r[0] == pytest.approx(0.001, rel=0.05)
+    assert np.linalg.matrix_rank(I, tol=1e-6 * np.abs(I).max()) == 3

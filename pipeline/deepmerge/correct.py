@@ -22,6 +22,7 @@ from tandemscan.pipeline.refine import (
     IcpResult,
     PairEdge,
     ScanPrior,
+    constrained_edge,
     evaluate_point_to_plane,
     icp_point_to_plane,
     point_to_plane_information,
@@ -57,6 +58,13 @@ def register_overlap(
         if registrar is None:
             raise ValueError(f"method {method!r} needs a DeepMerge registrar")
         T = registrar.register(source_mm, target_mm)
+        # keep the network's answer only where it fits the overlap better than the initial stitch
+        fit = evaluate_point_to_plane(source_mm, target_mm, T, coarse_distance_mm)
+        start = evaluate_point_to_plane(source_mm, target_mm, np.eye(4), coarse_distance_mm)
+        if (fit.fitness, -fit.rmse_mm) < (start.fitness, -start.rmse_mm):
+            log.debug("DeepMerge fit (%.3f, %.4f mm) worse than the stitch; kept the stitch", fit.fitness,
+                      fit.rmse_mm)
+            T = np.eye(4)
     if method == "icp":
         T = icp_point_to_plane(source_mm, target_mm, T, max(coarse_distance_mm, cfg.icp_max_distance_mm),
                                cfg.icp_iterations).transformation
@@ -118,6 +126,15 @@ def _overlap_rms(clouds: list[np.ndarray], edges, poses_before, poses_after, cfg
     return out[0], out[1]
 
 
+def _edge(i: int, j: int, pc: PairCorrection, cfg: DeepMergeConfig) -> PairEdge:
+    """Pose-graph edge of a pair correction, keeping only the directions the overlap constrains."""
+    info = point_to_plane_information(pc.fit.points_mm, pc.fit.normals, pc.centre_mm, max(pc.fit.rmse_mm, 0.005),
+                                      cfg.edge_effective_points)
+    size = float(np.sqrt(((pc.fit.points_mm - pc.centre_mm) ** 2).sum(axis=1).mean()))
+    T, info = constrained_edge(pc.transformation, info, pc.centre_mm, max(size, 1.0), cfg.edge_min_eigen_ratio)
+    return PairEdge(i, j, T, info, pc.centre_mm)
+
+
 def correct_scans(
     scans: Sequence[StitchedScan], cfg: DeepMergeConfig, registrar: DeepMergeRegistrar | None = None,
     transfer_covariance: np.ndarray | None = None, voxel_mm: float = 1.0,
@@ -145,13 +162,7 @@ def correct_scans(
             pc = correct_pair(world[j], world[i], cfg, registrar, cov)
             if pc is not None:
                 edges.append((i, j, pc))
-    graph_edges = [
-        PairEdge(i, j, pc.transformation,
-                 point_to_plane_information(pc.fit.points_mm, pc.fit.normals, pc.centre_mm,
-                                            max(pc.fit.rmse_mm, 0.005), cfg.edge_effective_points),
-                 pc.centre_mm)
-        for i, j, pc in edges if pc.fit.inliers >= 6
-    ]
+    graph_edges = [_edge(i, j, pc, cfg) for i, j, pc in edges if pc.fit.inliers >= 6]
     if transfer_covariance is None and len({s.station for s in scans}) > 1:
         transfer_covariance = 2.0 * np.mean([s.covariance for s in scans], axis=0)
     priors = [ScanPrior(s.T_W_S, s.covariance, s.station) for s in scans]
