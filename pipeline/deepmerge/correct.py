@@ -73,6 +73,29 @@ def register_overlap(
     return T
 
 
+def register_clouds(
+    source_mm: np.ndarray, target_mm: np.ndarray, cfg: DeepMergeConfig, method: str | None = None,
+    init: np.ndarray | None = None, delta_mm: float = 5.0, registrar: DeepMergeRegistrar | None = None,
+) -> tuple[np.ndarray, IcpResult]:
+    """``T_target_source`` (mm) of any two clouds from ``init`` and its fit (at ``cfg.icp_max_distance_mm``).
+
+    The overlap within ``delta_mm`` after ``init`` is registered; with fewer than ``cfg.min_overlap_points``
+    there, the whole clouds are.
+    """
+    method = method or cfg.method
+    if method != "icp" and registrar is None:
+        registrar = DeepMergeRegistrar.load(cfg.weights, num_points=cfg.num_points)
+    T0 = np.eye(4) if init is None else np.asarray(init, float)
+    S, T = transform_points(T0, np.asarray(source_mm, float)), np.asarray(target_mm, float)
+    ov = extract_overlap(S, T, delta_mm)
+    if ov.size >= cfg.min_overlap_points:
+        S_ov, T_ov = S[ov.source_idx], T[ov.target_idx]
+    else:
+        S_ov, T_ov = S, T
+    M = register_overlap(S_ov, T_ov, method, cfg, registrar, delta_mm) @ T0
+    return M, evaluate_point_to_plane(np.asarray(source_mm, float), T, M, cfg.icp_max_distance_mm)
+
+
 def correct_pair(
     source_W: np.ndarray, target_W: np.ndarray, cfg: DeepMergeConfig, registrar: DeepMergeRegistrar | None,
     pair_covariance: np.ndarray | None = None,

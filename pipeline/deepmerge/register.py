@@ -102,8 +102,11 @@ class DeepMergeRegistrar:
         except (OSError, RuntimeError) as e:
             raise RegistrationError(f"{path}: cannot load DeepMerge weights: {e}") from e
         s = ckpt["settings"]
-        model = DeepMerge(iterations=int(s["iterations"]))
-        model.load_state_dict(ckpt["state_dict"])
+        model = DeepMerge(iterations=int(s["iterations"]), widths=tuple(s["widths"]))
+        try:
+            model.load_state_dict(ckpt["state_dict"])
+        except RuntimeError as e:
+            raise RegistrationError(f"{path}: weights do not fit the network: {e}") from e
         return cls(model, num_points=num_points or int(s["num_points_inference"]), k=int(s["k"]),
                    voxel=float(s["voxel"]), iterations=int(s["iterations"]))
 
