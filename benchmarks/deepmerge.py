@@ -27,7 +27,6 @@ import numpy as np
 import open3d as o3d
 import torch
 from scipy.spatial.transform import Rotation
-
 from tandemscan.config.models import DeepMergeConfig
 from tandemscan.pipeline.deepmerge.correct import register_overlap
 from tandemscan.pipeline.deepmerge.overlap import extract_overlap

@@ -26,7 +26,6 @@ from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
-
 from tandemscan.pipeline.frames import invert
 
 log = logging.getLogger(__name__)

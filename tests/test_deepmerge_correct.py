@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from tandemscan.config.models import DeepMergeConfig
 from tandemscan.pipeline.deepmerge.correct import StitchedScan, correct_pair, correct_scans
 from tandemscan.pipeline.frames import compose, from_rotvec, invert, pose_error, transform_points

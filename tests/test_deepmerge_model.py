@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 import torch
 from scipy.spatial.transform import Rotation
-
 from tandemscan.pipeline.deepmerge.model import DeepMerge, PointFeatureExtractor, rigid_loss, weighted_procrustes
 
 

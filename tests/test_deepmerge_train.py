@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-
 from tandemscan.daemon.cli import main
 from tandemscan.pipeline.cloud_io import write_ply
 from tandemscan.pipeline.deepmerge.register import DeepMergeRegistrar, RegistrationError, shipped_weights_path

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-
 from tandemscan.pipeline.frames import compose, from_rotvec, invert, pose_error
 from tandemscan.pipeline.refine import (
     PairEdge,
@@ -67,7 +66,7 @@ def _strip(n_scans: int = 12, per_station: int = 3, seed: int = 2):
     return truth, priors, rng
 
 
-def _edges(truth, priors, rng, pairs, noise_mm=0.005, noise_rad=np.radians(0.0005)):
+def _edges(truth, priors, rng, pairs, noise_mm=0.005, noise_rad=8.7e-6):
     edges = []
     info = np.diag([1 / noise_mm**2] * 3 + [1 / noise_rad**2] * 3)
     for i, j in pairs:
@@ -138,9 +137,9 @@ def test_constrained_edge_drops_the_sliding_directions_of_a_plane():
     P = np.c_[rng.uniform(-50, 50, (500, 2)), np.zeros(500)]
     info = point_to_plane_information(P, np.tile([0, 0, 1.0], (500, 1)), np.zeros(3), 0.05, 100)
     slide = from_rotvec([3.0, -2.0, 0.1], [0.001, -0.002, 0.05])   # mostly in-plane motion
-    C, I = constrained_edge(slide, info, np.zeros(3), 40.0, 0.01)
+    C, info_kept = constrained_edge(slide, info, np.zeros(3), 40.0, 0.01)
     # what a plane measures (z, rx, ry) is kept; the in-plane slide (x, y, rz) is gone
     t, r = C[:3, 3], Rotation.from_matrix(C[:3, :3]).as_rotvec()
     np.testing.assert_allclose([t[0], t[1], r[2]], 0.0, atol=1e-9)
     assert t[2] == pytest.approx(0.1, abs=1e-3) and r[0] == pytest.approx(0.001, rel=0.05)
-    assert np.linalg.matrix_rank(I, tol=1e-6 * np.abs(I).max()) == 3
+    assert np.linalg.matrix_rank(info_kept, tol=1e-6 * np.abs(info_kept).max()) == 3

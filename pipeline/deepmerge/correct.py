@@ -13,7 +13,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-
 from tandemscan.config.models import DeepMergeConfig
 from tandemscan.pipeline.deepmerge.overlap import delta_from_covariance, extract_overlap, relative_covariance
 from tandemscan.pipeline.deepmerge.register import DeepMergeRegistrar, voxel_downsample

@@ -16,7 +16,6 @@ from pathlib import Path
 import numpy as np
 import torch
 from numpy.typing import ArrayLike
-
 from tandemscan.pipeline.deepmerge.features import plane_normals, point_structure, reference_direction
 from tandemscan.pipeline.deepmerge.model import DeepMerge
 from tandemscan.pipeline.frames import make_transform

@@ -47,8 +47,8 @@ def panel(rng: np.random.Generator, size_mm: float, n: int = 90) -> o3d.geometry
     Z += rng.uniform(0, 0.08) * np.sin(rng.uniform(2, 8) * (X * np.cos(a := rng.uniform(0, 3.2)) + Y * np.sin(a)))
     V = np.c_[X.ravel(), Y.ravel(), Z.ravel()] * size_mm / 2.0
     i = np.arange(n - 1)
-    I, J = np.meshgrid(i, i)
-    a0 = (I * n + J).ravel()
+    rows, cols = np.meshgrid(i, i)
+    a0 = (rows * n + cols).ravel()
     tri = np.r_[np.c_[a0, a0 + n, a0 + 1], np.c_[a0 + 1, a0 + n, a0 + n + 1]]
     return _mesh(V, tri)
 

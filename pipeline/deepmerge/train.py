@@ -20,7 +20,6 @@ from pathlib import Path
 import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
-
 from tandemscan.pipeline.deepmerge.features import reference_direction
 from tandemscan.pipeline.deepmerge.model import WIDTHS, DeepMerge, rigid_loss
 from tandemscan.pipeline.deepmerge.overlap import extract_overlap
@@ -39,26 +38,31 @@ class TrainSettings:
     """Everything that defines a training run (stored in the weights file)."""
 
     seed: int = 0
+    # data: pairs in the pools, distinct generated shapes per pool
     train_pairs: int = 600
     val_pairs: int = 60
     shapes_per_pool: int = 40
+    # network input: points per cloud (training, inference), neighbours k, voxel edge and iterations
     num_points: int = 384
     num_points_inference: int = 2048
     k: int = 10
-    voxel: float = 0.04
+    voxel: float = 0.04          # of the target's RMS radius
     iterations: int = 3
     widths: tuple[int, ...] = WIDTHS
+    # optimisation: batch, Adam steps (cosine decay), learning rate, wall-clock budget including the data
     batch_size: int = 8
     steps: int = 3000
     lr: float = 1e-3
     max_minutes: float = 110.0
+    # pose errors: tracker-like rotation (deg, 2 sigma) and translation (RMS radii, 2 sigma); a share of
+    # arbitrary errors up to arbitrary_deg
     tracker_deg: float = 2.0
     tracker_trans: float = 0.04
     arbitrary_fraction: float = 0.2
     arbitrary_deg: float = 45.0
-    noise_fraction: float = 0.003
-    overlap_delta: float = 0.08
-    use_part: bool = True
+    noise_fraction: float = 0.003  # largest scanner noise, of the crop radius
+    overlap_delta: float = 0.08    # overlap threshold of the aligned pair, of the crop radius
+    use_part: bool = True          # add the simulated part to the shapes
     iteration_weights: tuple[float, ...] = field(default=(0.5, 0.75, 1.0))
 
 
