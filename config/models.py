@@ -373,6 +373,30 @@ class CalibrationConfig(_Strict):
         return v
 
 
+class DeepMergeConfig(_Strict):
+    """Stitching correction (DeepMerge + point-to-plane ICP) and the global pose-graph refinement."""
+
+    enabled: bool = True
+    method: Literal["deepmerge", "icp", "deepmerge+icp"] = "deepmerge+icp"
+    weights: Path | None = Field(None, description="trained weights (.pt); empty = the ones shipped in the package")
+    overlap_delta_mm: float | None = Field(
+        None, gt=0, description="overlap = points whose nearest neighbour is closer; empty = from tracker covariance"
+    )
+    overlap_sigmas: float = Field(3.0, gt=0, description="delta = this many sigmas of the pair's pose uncertainty")
+    overlap_min_delta_mm: float = Field(1.0, gt=0, description="lower bound of delta (point spacing and noise), mm")
+    min_overlap_points: int = Field(200, ge=10, description="pairs with fewer overlap points get no edge")
+    num_points: int = Field(2048, ge=64, description="overlap points per cloud fed to the network")
+    neighbours: int = Field(10, ge=4, description="k of the k x 14 point structure")
+    icp_max_distance_mm: float = Field(2.0, gt=0, description="point-to-plane ICP correspondence distance, mm")
+    icp_iterations: int = Field(50, ge=1)
+    edge_effective_points: float = Field(
+        1000.0, gt=0, description="independent points an overlap is worth when weighting a pose-graph edge"
+    )
+    edge_min_eigen_ratio: float = Field(
+        0.01, ge=0, lt=1, description="edge directions weaker than this share of the strongest are dropped"
+    )
+
+
 class CellConfig(_Strict):
     """The whole cell."""
 
@@ -390,3 +414,4 @@ class CellConfig(_Strict):
     inspection: InspectionConfig = InspectionConfig()
     calibration: CalibrationConfig = CalibrationConfig()
     planning: PlanningConfig = PlanningConfig()
+    deepmerge: DeepMergeConfig = DeepMergeConfig()

@@ -25,6 +25,7 @@ def build_report(runner: JobRunner, seconds: float) -> dict:
         "installation_source": runner.config.job.installation_source,
         "seconds": round(seconds, 3),
         "transfer_log": runner.transfers,
+        "correction": runner.correction,
         "scan_log": [
             {"index": s.index, "tracker_station": s.tracker_station, "points": s.point_count,
              "file": s.file.name, "T_W_S": s.T_W_S.tolist()}

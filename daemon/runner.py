@@ -121,6 +121,7 @@ class JobRunner:
         self.tracker_station = 0
         self.scans: list[ScanRecord] = []
         self.transfers: list[dict] = []
+        self.correction: dict = {"enabled": False}
 
     async def read_target(self) -> TrackerReading:
         """The target pose at rest, averaged over ``tracker.samples_per_reading`` readings."""
@@ -152,6 +153,11 @@ class JobRunner:
                 await self.cell.arm.move_joints(np.array(step.joints_rad), self.config.arm.timeout_s)
             elif isinstance(step, Scan):
                 await self._scan()
+        if self.config.deepmerge.enabled and len(self.scans) > 1:
+            from tandemscan.daemon.correction import correct_job
+
+            self.progress(JobProgress(total - 1, total, "correcting the stitch (DeepMerge, pose graph)"))
+            self.correction = await asyncio.to_thread(correct_job, self)
         self.progress(JobProgress(total - 1, total, "writing cloud and report"))
         result = await asyncio.to_thread(self._export, time.monotonic() - started)
         self.progress(JobProgress(total, total, "done"))

@@ -1,0 +1,128 @@
+"""The DeepMerge network (PyTorch): point-feature extractor, soft correspondences, differentiable SVD.
+
+- Extractor: five 1x1 convolutions of widths 64, 64, 128, 256, 512. The first four run on the ``k x 14``
+  point structure of every point; after each, a max-pool over the k neighbours gives a per-point feature,
+  and the concatenation of those four pooled features (64+64+128+256 = 512 channels) feeds the last
+  convolution, which gives a 512-dimensional embedding per point.
+- Matching: the cosine similarity of source and target embeddings (times a learned gain), minus a learned
+  multiple of the squared distance between the currently aligned source point and each target point, gives
+  a similarity matrix; a softmax over the target points makes soft correspondences (a weighted target point
+  per source point) and a confidence weight per source point.
+- Head: weighted Kabsch/Umeyama by SVD with the reflection fix, composed with the running estimate; the
+  head is iterated ``iterations`` times (the embeddings are computed once, the distance term follows the
+  current estimate).
+
+Coordinates are normalised (see ``register``); the output maps source coordinates into target coordinates.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+WIDTHS = (64, 64, 128, 256, 512)
+
+
+def _block(cin: int, cout: int, conv: type[nn.Module]) -> nn.Sequential:
+    return nn.Sequential(conv(cin, cout, 1), nn.LeakyReLU(0.2))
+
+
+class PointFeatureExtractor(nn.Module):
+    """``(B, N, k, 14)`` point structures -> ``(B, N, 512)`` embeddings."""
+
+    def __init__(self, in_dim: int = 14, widths: tuple[int, ...] = WIDTHS) -> None:
+        super().__init__()
+        if len(widths) != 5:
+            raise ValueError(f"the extractor has five convolutions, got widths {widths}")
+        chans = (in_dim, *widths[:4])
+        self.local = nn.ModuleList(_block(chans[i], chans[i + 1], nn.Conv2d) for i in range(4))
+        self.last = _block(sum(widths[:4]), widths[4], nn.Conv1d)
+
+    def forward(self, structure: torch.Tensor) -> torch.Tensor:
+        x = structure.permute(0, 3, 1, 2)               # (B, 14, N, k)
+        pooled = []
+        for layer in self.local:
+            x = layer(x)
+            pooled.append(x.max(dim=3).values)          # (B, C, N)
+        return self.last(torch.cat(pooled, dim=1)).transpose(1, 2)
+
+
+def weighted_procrustes(
+    source: torch.Tensor, target: torch.Tensor, weights: torch.Tensor, eps: float = 1e-9
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rigid ``(R, t)`` minimising ``sum w_i |R s_i + t - t_i|^2`` by SVD, with the reflection fix.
+
+    ``source``, ``target``: ``(B, N, 3)``; ``weights``: ``(B, N)`` non-negative. Returns ``R (B, 3, 3)``
+    with det +1 and ``t (B, 3)``. Differentiable.
+    """
+    w = weights / weights.sum(dim=1, keepdim=True).clamp_min(eps)
+    cs = (w[..., None] * source).sum(dim=1)
+    ct = (w[..., None] * target).sum(dim=1)
+    H = (source - cs[:, None]).transpose(1, 2) @ (w[..., None] * (target - ct[:, None]))
+    U, _, Vh = torch.linalg.svd(H)
+    V = Vh.transpose(1, 2)
+    d = torch.sign(torch.linalg.det(V @ U.transpose(1, 2)))
+    d = torch.where(d == 0, torch.ones_like(d), d)
+    D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], dim=1))
+    R = V @ D @ U.transpose(1, 2)
+    t = ct - (R @ cs[..., None]).squeeze(-1)
+    return R, t
+
+
+class DeepMerge(nn.Module):
+    """Registration network. ``forward`` returns the running ``(R, t)`` after each head iteration."""
+
+    def __init__(self, iterations: int = 3, widths: tuple[int, ...] = WIDTHS) -> None:
+        super().__init__()
+        self.iterations = iterations
+        self.extractor = PointFeatureExtractor(widths=widths)
+        # per iteration: log of the feature-similarity gain and of the squared-distance penalty
+        self.log_gain = nn.Parameter(torch.full((iterations,), math.log(10.0)))
+        self.log_dist = nn.Parameter(torch.log(torch.logspace(1, 3, iterations)))
+        self.confidence = nn.Sequential(nn.Conv1d(widths[4] + 1, 64, 1), nn.LeakyReLU(0.2), nn.Conv1d(64, 1, 1))
+
+    def embed(self, structure: torch.Tensor) -> torch.Tensor:
+        """L2-normalised per-point embeddings ``(B, N, 512)``."""
+        return nn.functional.normalize(self.extractor(structure), dim=2)
+
+    def forward(
+        self,
+        src_structure: torch.Tensor,
+        tgt_structure: torch.Tensor,
+        src_xyz: torch.Tensor,
+        tgt_xyz: torch.Tensor,
+        iterations: int | None = None,
+    ) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        fs, ft = self.embed(src_structure), self.embed(tgt_structure)
+        feat_sim = fs @ ft.transpose(1, 2)              # (B, N, M) cosine similarity
+        B = src_xyz.shape[0]
+        R = torch.eye(3, dtype=src_xyz.dtype, device=src_xyz.device).expand(B, 3, 3)
+        t = torch.zeros(B, 3, dtype=src_xyz.dtype, device=src_xyz.device)
+        out = []
+        for it in range(iterations or self.iterations):
+            j = min(it, self.iterations - 1)
+            cur = src_xyz @ R.transpose(1, 2) + t[:, None]
+            d2 = torch.cdist(cur, tgt_xyz).square()
+            logits = self.log_gain[j].exp() * feat_sim - self.log_dist[j].exp() * d2
+            P = torch.softmax(logits, dim=2)
+            matched = P @ tgt_xyz
+            peak = P.max(dim=2).values
+            w = torch.sigmoid(self.confidence(torch.cat([fs, peak[..., None]], dim=2).transpose(1, 2)))[:, 0]
+            dR, dt = weighted_procrustes(cur, matched, w)
+            R = dR @ R
+            t = (dR @ t[..., None]).squeeze(-1) + dt
+            out.append((R, t))
+        return out
+
+
+def rigid_loss(R: torch.Tensor, t: torch.Tensor, R_true: torch.Tensor, t_true: torch.Tensor) -> torch.Tensor:
+    """Mean over the batch of ``|R^T R_true - I|_F / sqrt(2) + |t - t_true|`` (about angle + distance).
+
+    Not squared, so small errors keep a useful gradient and the fit keeps improving at the fine end.
+    """
+    eye = torch.eye(3, dtype=R.dtype, device=R.device)
+    rot = ((R.transpose(1, 2) @ R_true - eye).square().sum(dim=(1, 2)) / 2.0 + 1e-12).sqrt()
+    trans = ((t - t_true).square().sum(dim=1) + 1e-12).sqrt()
+    return (rot + trans).mean()

@@ -1,0 +1,85 @@
+"""Overlap of two stitched scans: the points whose nearest neighbour in the other scan is closer than delta.
+
+Both clouds are in one frame (the world, after the tracker stitch), in millimetres. ``delta`` is either
+configured or derived from the pose uncertainty of the pair: a pose error of translation ``dt`` and rotation
+``dr`` moves a point at lever arm ``r`` from the rotation centre by at most ``|dt| + |dr| r``.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+from scipy.spatial import cKDTree
+
+log = logging.getLogger(__name__)
+
+
+class OverlapError(ValueError):
+    """Bad input to the overlap extraction (shapes, non-finite values, non-positive delta)."""
+
+
+@dataclass(frozen=True)
+class Overlap:
+    """Indices of the overlapping points of each cloud and the threshold used (mm)."""
+
+    source_idx: np.ndarray
+    target_idx: np.ndarray
+    delta_mm: float
+
+    @property
+    def size(self) -> int:
+        """The smaller of the two overlap point counts."""
+        return int(min(len(self.source_idx), len(self.target_idx)))
+
+
+def _cloud(points: ArrayLike, name: str) -> np.ndarray:
+    P = np.asarray(points, dtype=float)
+    if P.ndim != 2 or P.shape[1] != 3:
+        raise OverlapError(f"{name}: expected an (N, 3) array, got shape {P.shape}")
+    if not np.all(np.isfinite(P)):
+        raise OverlapError(f"{name}: contains NaN or infinite coordinates")
+    return P
+
+
+def delta_from_covariance(
+    covariance: ArrayLike, lever_arm_mm: float, sigmas: float = 3.0, min_delta_mm: float = 1.0
+) -> float:
+    """Overlap threshold (mm) from the 6x6 covariance of the pair's relative pose error.
+
+    ``covariance`` is ordered (tx, ty, tz in mm^2, rx, ry, rz in rad^2) about the overlap's centre;
+    ``lever_arm_mm`` is the largest distance of an overlap point from that centre. The result is
+    ``sigmas`` times the 1-sigma worst-direction displacement, never below ``min_delta_mm`` (point spacing
+    and scanner noise still separate perfectly placed scans).
+    """
+    C = np.asarray(covariance, dtype=float)
+    if C.shape != (6, 6) or not np.all(np.isfinite(C)):
+        raise OverlapError(f"covariance must be a finite 6x6 matrix, got shape {C.shape}")
+    if lever_arm_mm < 0 or sigmas <= 0 or min_delta_mm <= 0:
+        raise OverlapError("lever_arm_mm must be >= 0, sigmas and min_delta_mm > 0")
+    sigma_t = float(np.sqrt(max(np.linalg.eigvalsh(C[:3, :3]).max(), 0.0)))
+    sigma_r = float(np.sqrt(max(np.linalg.eigvalsh(C[3:, 3:]).max(), 0.0)))
+    return max(sigmas * (sigma_t + sigma_r * lever_arm_mm), min_delta_mm)
+
+
+def relative_covariance(cov_a: ArrayLike, cov_b: ArrayLike) -> np.ndarray:
+    """Covariance of the relative pose of two independently measured poses (first-order: the sum)."""
+    return np.asarray(cov_a, dtype=float) + np.asarray(cov_b, dtype=float)
+
+
+def extract_overlap(source_mm: ArrayLike, target_mm: ArrayLike, delta_mm: float) -> Overlap:
+    """Points of each cloud whose nearest neighbour in the other cloud is closer than ``delta_mm``."""
+    S = _cloud(source_mm, "source")
+    T = _cloud(target_mm, "target")
+    if not delta_mm > 0:
+        raise OverlapError(f"delta_mm must be > 0, got {delta_mm}")
+    if len(S) == 0 or len(T) == 0:
+        return Overlap(np.empty(0, int), np.empty(0, int), float(delta_mm))
+    d_s, _ = cKDTree(T).query(S, k=1, distance_upper_bound=delta_mm)
+    d_t, _ = cKDTree(S).query(T, k=1, distance_upper_bound=delta_mm)
+    ov = Overlap(np.flatnonzero(d_s < delta_mm), np.flatnonzero(d_t < delta_mm), float(delta_mm))
+    log.debug("overlap at delta %.3f mm: %d source, %d target points", delta_mm, len(ov.source_idx),
+              len(ov.target_idx))
+    return ov

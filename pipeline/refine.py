@@ -1,0 +1,301 @@
+"""Refinement after DeepMerge: point-to-plane ICP (the fine stage) and the global pose graph (DESIGN.md 5.6).
+
+Pose graph: every scan ``i`` has a tracker pose ``P_i = T_W_S_i`` (prior) with a 6x6 covariance; every
+corrected overlap gives a relative-pose edge. Scans are grouped by tracker station; a coordinate transfer
+gives the whole next station an error on top of the previous station's, so station ``k`` carries the
+product of the transfer errors ``1..k`` (each with ``transfer_covariance``, a world motion about the centroid
+of station ``k``'s scans); edges between stations pull back that accumulated drift while the priors keep
+every scan near its tracker reading. The solution minimises the sum of squared, whitened
+residuals (scipy least squares with a sparse Jacobian).
+
+Conventions: a pose perturbation is ``(t mm, rotation vector rad)`` of a world-frame motion about a stated
+centre (the scan origin for priors, the overlap centre for edges, the station's scans' centroid for station
+corrections); covariances use the same order (translation first).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+from numpy.typing import ArrayLike
+from scipy.optimize import least_squares
+from scipy.sparse import lil_matrix
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+from tandemscan.pipeline.frames import invert
+
+log = logging.getLogger(__name__)
+
+
+class RefineError(ValueError):
+    """Bad input to ICP or the pose graph (shapes, indices, covariances that are not positive definite)."""
+
+
+# ---------------------------------------------------------------- point-to-plane ICP
+
+
+@dataclass(frozen=True)
+class IcpResult:
+    """``T_target_source`` (4x4 mm); inlier fraction of the source; point-to-plane RMS of the inliers (mm);
+    the inlier source points moved by the result and their target normals (for the edge information)."""
+
+    transformation: np.ndarray
+    fitness: float
+    rmse_mm: float
+    points_mm: np.ndarray
+    normals: np.ndarray
+
+    @property
+    def inliers(self) -> int:
+        return len(self.points_mm)
+
+
+def _pcd(points: np.ndarray) -> o3d.geometry.PointCloud:
+    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=float)))
+
+
+def icp_point_to_plane(
+    source_mm: ArrayLike,
+    target_mm: ArrayLike,
+    init: ArrayLike | None = None,
+    max_distance_mm: float = 2.0,
+    iterations: int = 50,
+    normal_neighbours: int = 20,
+) -> IcpResult:
+    """Point-to-plane ICP (Open3D) of ``source`` onto ``target`` from ``init`` (default identity)."""
+    S, T = np.asarray(source_mm, float), np.asarray(target_mm, float)
+    if S.ndim != 2 or S.shape[1] != 3 or T.ndim != 2 or T.shape[1] != 3 or len(T) < normal_neighbours:
+        raise RefineError(f"ICP needs (N, 3) clouds with N >= {normal_neighbours}; got {S.shape}, {T.shape}")
+    tgt = _pcd(T)
+    tgt.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(normal_neighbours))
+    reg = o3d.pipelines.registration
+    res = reg.registration_icp(
+        _pcd(S), tgt, max_distance_mm, np.eye(4) if init is None else np.asarray(init, float),
+        reg.TransformationEstimationPointToPlane(),
+        reg.ICPConvergenceCriteria(relative_fitness=1e-9, relative_rmse=1e-9, max_iteration=iterations),
+    )
+    return evaluate_point_to_plane(S, tgt, np.asarray(res.transformation), max_distance_mm)
+
+
+def evaluate_point_to_plane(
+    source_mm: ArrayLike, target: ArrayLike | o3d.geometry.PointCloud, T: ArrayLike, max_distance_mm: float,
+    normal_neighbours: int = 20,
+) -> IcpResult:
+    """Score ``T_target_source`` without moving it: nearest-neighbour inliers within ``max_distance_mm``."""
+    S = np.asarray(source_mm, float)
+    if isinstance(target, o3d.geometry.PointCloud):
+        tgt = target
+    else:
+        tgt = _pcd(np.asarray(target, float))
+        tgt.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(normal_neighbours))
+    M = np.asarray(T, float).copy()
+    Tp = np.asarray(tgt.points)
+    moved = S @ M[:3, :3].T + M[:3, 3]
+    d, idx = cKDTree(Tp).query(moved, k=1, distance_upper_bound=max_distance_mm)
+    ok = np.isfinite(d)
+    normals = np.asarray(tgt.normals)[idx[ok]]
+    r = np.einsum("ij,ij->i", moved[ok] - Tp[idx[ok]], normals)
+    rmse = float(np.sqrt(np.mean(r**2))) if ok.any() else float("inf")
+    return IcpResult(M, float(ok.mean()) if len(S) else 0.0, rmse, moved[ok], normals)
+
+
+def point_to_plane_information(
+    points_mm: ArrayLike, normals: ArrayLike, centre_mm: ArrayLike, sigma_mm: float, effective_points: float
+) -> np.ndarray:
+    """6x6 information (t, r order, about ``centre_mm``) of a rigid fit to points on planes with normals.
+
+    Each point constrains ``n . (dt + dr x (p - c))``; the sum of ``J^T J`` is scaled to ``effective_points``
+    independent points of 1-sigma ``sigma_mm`` (neighbouring scan points are far from independent).
+    """
+    P = np.asarray(points_mm, float) - np.asarray(centre_mm, float)
+    N = np.asarray(normals, float)
+    J = np.c_[N, np.cross(P, N)]
+    return (J.T @ J) / len(P) * effective_points / sigma_mm**2
+
+
+# ---------------------------------------------------------------- pose graph
+
+
+@dataclass(frozen=True)
+class ScanPrior:
+    """A scan's tracker pose ``T_W_S`` (4x4 mm), its covariance (6x6, t mm^2 then r rad^2, about the scan
+    origin, world axes) and the tracker station it was measured from."""
+
+    T_W_S: np.ndarray
+    covariance: np.ndarray
+    station: int = 0
+
+
+@dataclass(frozen=True)
+class PairEdge:
+    """A relative-pose measurement between scans ``i`` (fixed) and ``j`` (moved).
+
+    ``correction`` is the world-frame 4x4 that moved scan ``j``, placed at its prior pose, onto scan ``i`` at
+    its prior pose; ``information`` is 6x6 (t, r) about ``centre_mm`` (the overlap's centre, world).
+    """
+
+    i: int
+    j: int
+    correction: np.ndarray
+    information: np.ndarray
+    centre_mm: np.ndarray
+
+
+def _about(centre: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """``Tr(-c) T Tr(c)``: the same motion written about ``centre``. Works on stacks."""
+    out = np.array(T, dtype=float)
+    R = out[..., :3, :3]
+    out[..., :3, 3] = out[..., :3, 3] + np.einsum("...ij,...j->...i", R, centre) - centre
+    return out
+
+
+def _exp(x: np.ndarray) -> np.ndarray:
+    """Stack of 4x4 from ``(n, 6)`` (t, rotvec)."""
+    T = np.tile(np.eye(4), (len(x), 1, 1))
+    T[:, :3, :3] = Rotation.from_rotvec(x[:, 3:]).as_matrix()
+    T[:, :3, 3] = x[:, :3]
+    return T
+
+
+def _log(T: np.ndarray) -> np.ndarray:
+    """``(n, 6)`` (t, rotvec) of a stack of 4x4."""
+    return np.c_[T[:, :3, 3], Rotation.from_matrix(T[:, :3, :3]).as_rotvec()]
+
+
+def _whitener(matrix: np.ndarray, inverse: bool, what: str) -> np.ndarray:
+    """``W`` with ``W^T W`` = the information (``inverse``: of a covariance, which must be positive
+    definite; an information matrix may be singular in directions it does not constrain)."""
+    M = np.asarray(matrix, float)
+    if M.shape != (6, 6) or not np.all(np.isfinite(M)):
+        raise RefineError(f"{what}: expected a finite 6x6 matrix, got shape {M.shape}")
+    if inverse:
+        try:
+            return np.linalg.cholesky(np.linalg.inv(0.5 * (M + M.T))).T
+        except np.linalg.LinAlgError as e:
+            raise RefineError(f"{what}: not positive definite") from e
+    w, V = np.linalg.eigh(0.5 * (M + M.T))
+    if w.min() < -1e-9 * max(w.max(), 1e-300):
+        raise RefineError(f"{what}: not positive semi-definite")
+    return np.sqrt(np.clip(w, 0.0, None))[:, None] * V.T
+
+
+def constrained_edge(
+    correction: ArrayLike, information: ArrayLike, centre_mm: ArrayLike, length_mm: float, min_ratio: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Keep only what an overlap really measures (degeneracy-aware edge).
+
+    A smooth overlap (plane, cylinder, extrusion) leaves directions in which the registration slides
+    freely. With rotations scaled by ``length_mm`` (the overlap's size) so that both kinds of direction
+    compare, the eigen-directions of ``information`` weaker than ``min_ratio`` of the strongest are dropped:
+    the correction is projected onto the rest and the information there is zero. Returns
+    ``(correction, information)``.
+    """
+    c = np.asarray(centre_mm, float)
+    S = np.diag([1.0, 1.0, 1.0, 1.0 / length_mm, 1.0 / length_mm, 1.0 / length_mm])
+    info_s = S @ np.asarray(information, float) @ S          # information in (mm, mm-at-length) units
+    w, V = np.linalg.eigh(0.5 * (info_s + info_s.T))
+    keep = w >= min_ratio * w.max()
+    P = V[:, keep] @ V[:, keep].T
+    e = S @ P @ np.linalg.solve(S, _log(_about(c, np.asarray(correction, float)[None]))[0])
+    info = np.linalg.inv(S) @ (V[:, keep] * w[keep]) @ V[:, keep].T @ np.linalg.inv(S)
+    return _about(-c, _exp(e[None]))[0], info
+
+
+@dataclass(frozen=True)
+class RefineResult:
+    """Refined ``T_W_S`` per scan, the per-station world corrections, and residual figures."""
+
+    poses: list[np.ndarray]
+    station_corrections: dict[int, np.ndarray]
+    cost_before: float
+    cost_after: float
+    success: bool
+
+
+def refine_poses(
+    scans: Sequence[ScanPrior],
+    edges: Sequence[PairEdge],
+    transfer_covariance: ArrayLike | None = None,
+) -> RefineResult:
+    """Solve the pose graph; returns refined ``T_W_S`` for every scan.
+
+    ``transfer_covariance`` (6x6, t mm^2 then r rad^2, about the station's scans' centroid) is the error
+    one coordinate transfer adds; stations are numbered in transfer order and station 0 defines the world.
+    Without it (or with a single station) only per-scan corrections are solved.
+    """
+    n = len(scans)
+    if n == 0:
+        return RefineResult([], {}, 0.0, 0.0, True)
+    P = np.stack([np.asarray(s.T_W_S, float) for s in scans])
+    origins = P[:, :3, 3]
+    Wp = np.stack([_whitener(s.covariance, True, f"scan {i} covariance") for i, s in enumerate(scans)])
+    stations = sorted({s.station for s in scans})
+    movable = [k for k in stations if k != stations[0]] if transfer_covariance is not None else []
+    col = {k: n + m for m, k in enumerate(movable)}
+    sid = np.array([s.station for s in scans])
+    centres = {k: origins[sid == k].mean(axis=0) for k in stations}
+    Wt = _whitener(transfer_covariance, True, "transfer covariance") if movable else None
+    for e in edges:
+        if not (0 <= e.i < n and 0 <= e.j < n) or e.i == e.j:
+            raise RefineError(f"edge ({e.i}, {e.j}) does not join two different scans of {n}")
+    ei = np.array([e.i for e in edges], dtype=int)
+    ej = np.array([e.j for e in edges], dtype=int)
+    # relative measurement Z_ij = P_i^-1 C P_j, and edge whiteners
+    Z = np.stack([invert(P[e.i]) @ e.correction @ P[e.j] for e in edges]) if edges else np.zeros((0, 4, 4))
+    We = np.stack([_whitener(e.information, False, f"edge ({e.i}, {e.j})") for e in edges]) if edges else None
+    ec = np.stack([np.asarray(e.centre_mm, float) for e in edges]) if edges else np.zeros((0, 3))
+
+    def station_corrections(X: np.ndarray) -> dict[int, np.ndarray]:
+        A, out = np.eye(4), {}
+        for k in movable:                           # transfer k on top of all earlier ones
+            A = _about(-centres[k], _exp(X[col[k]][None]))[0] @ A
+            out[k] = A
+        return out
+
+    def poses(x: np.ndarray) -> np.ndarray:
+        X = x.reshape(-1, 6)
+        out = _about(-origins, _exp(X[:n])) @ P     # Tr(o) Exp(d) Tr(-o) P
+        for k, A in station_corrections(X).items():
+            out[sid == k] = A @ out[sid == k]
+        return out
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        X = x.reshape(-1, 6)
+        r = [np.einsum("nij,nj->ni", Wp, X[:n]).ravel()]
+        r += [Wt @ X[col[k]] for k in movable]
+        if len(edges):
+            Xp = poses(x)
+            E = Xp[ei] @ Z @ np.linalg.inv(Xp[ej])
+            r.append(np.einsum("nij,nj->ni", We, _log(_about(ec, E))).ravel())
+        return np.concatenate(r)
+
+    n_par = 6 * (n + len(movable))
+    sparsity = lil_matrix((6 * n + 6 * len(movable) + 6 * len(edges), n_par), dtype=int)
+    for i in range(n):
+        sparsity[6 * i:6 * i + 6, 6 * i:6 * i + 6] = 1
+    row = 6 * n
+    for k in movable:
+        sparsity[row:row + 6, 6 * col[k]:6 * col[k] + 6] = 1
+        row += 6
+    for a, b in zip(ei, ej, strict=True):
+        for s in (a, b):
+            sparsity[row:row + 6, 6 * s:6 * s + 6] = 1
+            for k in movable:
+                if k <= sid[s]:
+                    sparsity[row:row + 6, 6 * col[k]:6 * col[k] + 6] = 1
+        row += 6
+    x0 = np.zeros(n_par)
+    cost0 = 0.5 * float(np.sum(residuals(x0) ** 2))
+    sol = least_squares(residuals, x0, jac_sparsity=sparsity, method="trf", x_scale="jac",
+                        xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
+    out = poses(sol.x)
+    X = sol.x.reshape(-1, 6)
+    corr = station_corrections(X)
+    log.info("pose graph: %d scans, %d edges, %d transfers; cost %.3g -> %.3g", n, len(edges), len(movable),
+             cost0, sol.cost)
+    return RefineResult([T for T in out], corr, cost0, float(sol.cost), bool(sol.success))
+

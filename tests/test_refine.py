@@ -1,0 +1,145 @@
+"""Fine ICP and the pose graph on synthetic scans with known drift across coordinate transfers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from tandemscan.pipeline.frames import compose, from_rotvec, invert, pose_error
+from tandemscan.pipeline.refine import (
+    PairEdge,
+    RefineError,
+    ScanPrior,
+    icp_point_to_plane,
+    point_to_plane_information,
+    refine_poses,
+)
+
+
+def bumpy_surface(rng: np.random.Generator, n: int = 6000, size: float = 200.0) -> np.ndarray:
+    xy = rng.uniform(-size / 2, size / 2, (n, 2))
+    z = 8 * np.sin(xy[:, 0] / 23.0) * np.cos(xy[:, 1] / 17.0) + 5 * np.exp(-(xy**2).sum(1) / 2000.0)
+    return np.c_[xy, z]
+
+
+def test_point_to_plane_icp_recovers_a_small_transform():
+    rng = np.random.default_rng(0)
+    target = bumpy_surface(rng)
+    source_true = bumpy_surface(rng)                       # independent sampling of the same surface
+    T = from_rotvec([0.8, -0.5, 0.3], np.radians([0.3, -0.2, 0.4]))
+    source = (source_true - T[:3, 3]) @ T[:3, :3]          # = inv(T) applied
+    res = icp_point_to_plane(source, target, max_distance_mm=3.0)
+    dt, dr = pose_error(res.transformation, T)
+    assert dt < 0.02 and np.degrees(dr) < 0.005
+    assert res.fitness > 0.95 and res.rmse_mm < 0.3 and res.inliers > 5000
+    with pytest.raises(RefineError):
+        icp_point_to_plane(source[:, :2], target)
+
+
+def test_point_to_plane_information_of_a_plane_leaves_sliding_free():
+    rng = np.random.default_rng(1)
+    P = np.c_[rng.uniform(-50, 50, (500, 2)), np.zeros(500)]
+    N = np.tile([0, 0, 1.0], (500, 1))
+    info = point_to_plane_information(P, N, P.mean(0), sigma_mm=0.1, effective_points=100)
+    w = np.linalg.eigvalsh(info)
+    # a plane fixes z, rx, ry; x, y and rz are free
+    assert np.sum(w < 1e-9 * w.max()) == 3
+    assert info[2, 2] == pytest.approx(100 / 0.01)
+
+
+def _strip(n_scans: int = 12, per_station: int = 3, seed: int = 2):
+    """True scan poses along x, tracker priors with a random-walk error per transfer plus reading noise."""
+    rng = np.random.default_rng(seed)
+    truth = [from_rotvec([250.0 * i, 0, 500.0], [0, np.pi, 0.02 * i]) for i in range(n_scans)]
+    station = [i // per_station for i in range(n_scans)]
+    drift = [np.eye(4)]
+    for k in range(1, max(station) + 1):                  # each transfer about its station's centroid
+        c = np.array([250.0 * (per_station * k + (per_station - 1) / 2), 0, 500.0])
+        step = from_rotvec(rng.normal(0, 0.3, 3), rng.normal(0, np.radians(0.05), 3))
+        drift.append(from_rotvec(c, [0, 0, 0]) @ step @ from_rotvec(-c, [0, 0, 0]) @ drift[-1])
+    sig_t, sig_r = 0.02, np.radians(0.002)
+    cov = np.diag([sig_t**2] * 3 + [sig_r**2] * 3)
+    priors = []
+    for X, k in zip(truth, station, strict=True):
+        noise = from_rotvec(rng.normal(0, sig_t, 3), rng.normal(0, sig_r, 3))
+        priors.append(ScanPrior(compose(drift[k], X, noise), cov, k))
+    return truth, priors, rng
+
+
+def _edges(truth, priors, rng, pairs, noise_mm=0.005, noise_rad=8.7e-6):
+    edges = []
+    info = np.diag([1 / noise_mm**2] * 3 + [1 / noise_rad**2] * 3)
+    for i, j in pairs:
+        P_i, P_j = priors[i].T_W_S, priors[j].T_W_S
+        C = P_i @ invert(truth[i]) @ truth[j] @ invert(P_j)
+        centre = (P_i[:3, 3] + P_j[:3, 3]) / 2
+        # noise about the overlap centre
+        e = from_rotvec(rng.normal(0, noise_mm, 3), rng.normal(0, noise_rad, 3))
+        C = from_rotvec(centre, [0, 0, 0]) @ e @ from_rotvec(-centre, [0, 0, 0]) @ C
+        edges.append(PairEdge(i, j, C, info, centre))
+    return edges
+
+
+def test_pose_graph_removes_drift_accumulated_across_transfers():
+    truth, priors, rng = _strip()
+    n = len(truth)
+    edges = _edges(truth, priors, rng, [(i, i + 1) for i in range(n - 1)])
+    transfer = np.diag([0.3**2] * 3 + [np.radians(0.05) ** 2] * 3)
+    res = refine_poses(priors, edges, transfer_covariance=transfer)
+    assert res.success and res.cost_after < res.cost_before
+    before = np.array([pose_error(p.T_W_S, X) for p, X in zip(priors, truth, strict=True)])
+    after = np.array([pose_error(T, X) for T, X in zip(res.poses, truth, strict=True)])
+    drifted = np.array([p.station > 0 for p in priors])
+    assert np.median(after[drifted, 0]) * 5 < np.median(before[drifted, 0])
+    assert np.median(after[drifted, 1]) * 5 < np.median(before[drifted, 1])
+    assert np.median(after[:, 0]) < 0.05
+    assert set(res.station_corrections) == {1, 2, 3}
+
+
+def test_pose_graph_without_edges_keeps_the_tracker_poses():
+    truth, priors, _ = _strip(n_scans=4)
+    res = refine_poses(priors, [])
+    for T, p in zip(res.poses, priors, strict=True):
+        np.testing.assert_allclose(T, p.T_W_S, atol=1e-9)
+    assert refine_poses([], []).poses == []
+
+
+def test_pose_graph_rejects_bad_edges_and_covariances():
+    truth, priors, rng = _strip(n_scans=3)
+    with pytest.raises(RefineError, match="does not join"):
+        refine_poses(priors, [PairEdge(0, 0, np.eye(4), np.eye(6), np.zeros(3))])
+    bad = [ScanPrior(priors[0].T_W_S, -np.eye(6), 0)]
+    with pytest.raises(RefineError, match="positive definite"):
+        refine_poses(bad, [])
+
+
+def test_scan_covariance_carries_target_rotation_to_the_scan_origin():
+    from tandemscan.pipeline.uncertainty import scan_pose_covariance, transfer_covariance
+
+    reading = np.diag([0.01**2] * 3 + [1e-5**2] * 3)
+    T_T_S = from_rotvec([0, 0, 100.0], [0, 0, 0])      # scanner 100 mm along the target's z
+    C = scan_pose_covariance(np.eye(4), np.eye(4), T_T_S, reading)
+    # x and y of the scan origin pick up (1e-5 rad * 100 mm)^2; z (along the lever) does not
+    np.testing.assert_allclose(np.diag(C)[:3], [1e-4 + 1e-6, 1e-4 + 1e-6, 1e-4])
+    np.testing.assert_allclose(np.diag(C)[3:], [1e-10] * 3)
+    # a world frame turned 90 deg about z swaps the x and y axes of a non-isotropic covariance
+    reading2 = np.diag([1.0, 4.0, 9.0, 1e-8, 1e-8, 1e-8])
+    C2 = scan_pose_covariance(from_rotvec([0, 0, 0], [0, 0, np.pi / 2]), np.eye(4), np.eye(4), reading2)
+    np.testing.assert_allclose(np.diag(C2)[:3], [4.0, 1.0, 9.0], atol=1e-12)
+    T = transfer_covariance(reading, 1000.0)
+    np.testing.assert_allclose(np.diag(T), [2e-4 + 2e-10 * 1e6] * 3 + [2e-10] * 3)
+
+
+def test_constrained_edge_drops_the_sliding_directions_of_a_plane():
+    from tandemscan.pipeline.refine import constrained_edge
+
+    rng = np.random.default_rng(3)
+    P = np.c_[rng.uniform(-50, 50, (500, 2)), np.zeros(500)]
+    info = point_to_plane_information(P, np.tile([0, 0, 1.0], (500, 1)), np.zeros(3), 0.05, 100)
+    slide = from_rotvec([3.0, -2.0, 0.1], [0.001, -0.002, 0.05])   # mostly in-plane motion
+    C, info_kept = constrained_edge(slide, info, np.zeros(3), 40.0, 0.01)
+    # what a plane measures (z, rx, ry) is kept; the in-plane slide (x, y, rz) is gone
+    t, r = C[:3, 3], Rotation.from_matrix(C[:3, :3]).as_rotvec()
+    np.testing.assert_allclose([t[0], t[1], r[2]], 0.0, atol=1e-9)
+    assert t[2] == pytest.approx(0.1, abs=1e-3) and r[0] == pytest.approx(0.001, rel=0.05)
+    assert np.linalg.matrix_rank(info_kept, tol=1e-6 * np.abs(info_kept).max()) == 3
