@@ -208,10 +208,10 @@ class InspectionConfig(_Strict):
     colour_limit_mm: float | None = Field(
         None, gt=0, description="colour-map saturates at +/- this, mm; default 3x the wider tolerance"
     )
-    map_width_px: int = Field(900, ge=100, le=4000, description="width of each rendered colour-map view")
+    map_width_px: int = Field(800, ge=100, le=4000, description="width of each rendered colour-map view")
     map_max_points: int = Field(300_000, ge=1000, description="colour maps draw an even subsample of this size")
     views: tuple[Literal["isometric", "front", "left", "right", "top", "back"], ...] = (
-        "isometric", "front", "left", "right", "top", "back",
+        "isometric", "front", "left", "right", "top",
     )
 
 

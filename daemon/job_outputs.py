@@ -14,7 +14,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.export import PosedScan, write_e57, write_pose_log
-from tandemscan.pipeline.inspection_job import run_inspection
+from tandemscan.pipeline.inspect import InspectionError
+from tandemscan.pipeline.inspection_job import InspectionOutputs, run_inspection
 
 if TYPE_CHECKING:
     from tandemscan.daemon.runner import JobRunner
@@ -72,7 +73,20 @@ def write_job_outputs(runner: JobRunner, report: dict) -> dict:
         return {"skipped": reason, "files": files}
     T_F_W = F.invert(world.T_W_F)
     normals_W = runner.worldmap.normals()
-    out = run_inspection(
+    try:
+        out = _inspect(runner, report, scans, cloud_W, normals_W, T_F_W)
+    except InspectionError as e:  # the measurement stands; the report says why it has no inspection
+        log.warning("inspection failed: %s", e)
+        return {"failed": str(e), "files": files}
+    files |= {"html": out.html.name, "deviation_ply": out.ply.name}
+    return out.data | {"T_F_W": T_F_W.tolist(), "files": files}
+
+
+def _inspect(runner: JobRunner, report: dict, scans: list[PosedScan], cloud_W: np.ndarray,
+             normals_W: np.ndarray | None, T_F_W: np.ndarray) -> InspectionOutputs:
+    """The inspection of the job's cloud in the CAD frame, written into the job folder."""
+    job_dir, world = runner.job_dir, runner.cell.world
+    return run_inspection(
         F.transform_points(T_F_W, cloud_W),
         world.mesh,
         job_dir,
@@ -85,5 +99,3 @@ def write_job_outputs(runner: JobRunner, report: dict) -> dict:
         scans_before=[F.transform_points(T_F_W @ s.T_W_S, _thin(s.points_S_mm)) for s in scans],
         json_name=None,
     )
-    files |= {"html": out.html.name, "deviation_ply": out.ply.name}
-    return out.data | {"T_F_W": T_F_W.tolist(), "files": files}
