@@ -191,6 +191,7 @@ class InspectionConfig(_Strict):
     """Deviation-from-CAD inspection: tolerance band (mm, signed: + = material outside the CAD surface),
     named regions, optional best-fit alignment and the colour-map scale."""
 
+    in_job: bool = Field(True, description="a measurement job writes report.html; off: E57 and pose log only")
     tolerance_lower_mm: float = Field(-0.1, le=0)
     tolerance_upper_mm: float = Field(0.1, ge=0)
     regions: tuple[RegionConfig, ...] = (

@@ -67,8 +67,13 @@ def write_job_outputs(runner: JobRunner, report: dict) -> dict:
         write_e57(job_dir / files["e57"], scans, cloud_W if len(cloud_W) else None)
     write_pose_log(job_dir / files["pose_log"], scans)
     world = runner.cell.world
-    if world is None or len(cloud_W) == 0:
-        reason = "no registration of the world frame to the CAD frame" if world is None else "empty cloud"
+    reason = (
+        "inspection.in_job is off" if not runner.config.inspection.in_job
+        else "no registration of the world frame to the CAD frame" if world is None
+        else "empty cloud" if len(cloud_W) == 0
+        else ""
+    )
+    if reason:
         log.warning("inspection skipped: %s", reason)
         return {"skipped": reason, "files": files}
     T_F_W = F.invert(world.T_W_F)

@@ -50,3 +50,21 @@ async def test_job_writes_report_and_exports_next_to_cloud(sim_config, tmp_path)
     with (job / "poses.csv").open() as f:
         rows = list(csv.DictReader(f))
     assert [int(r["points"]) for r in rows] == [e["points"] for e in report["scan_log"]]
+
+
+def test_inspection_skipped_with_reason(sim_config, tmp_path):
+    from types import SimpleNamespace
+
+    from tandemscan.daemon.job_outputs import write_job_outputs
+
+    def runner(config, world):
+        worldmap = SimpleNamespace(points=lambda: np.zeros((0, 3)), normals=lambda: None)
+        return SimpleNamespace(job_dir=tmp_path, scans=[], worldmap=worldmap, cell=SimpleNamespace(world=world),
+                               config=config)
+
+    off = sim_config.model_copy(update={"inspection": sim_config.inspection.model_copy(update={"in_job": False})})
+    assert write_job_outputs(runner(off, object()), {})["skipped"] == "inspection.in_job is off"
+    real_cell = write_job_outputs(runner(sim_config, None), {})
+    assert real_cell["skipped"] == "no registration of the world frame to the CAD frame"
+    assert (tmp_path / "poses.csv").read_text().startswith("index,name,points")
+    assert not (tmp_path / "report.html").exists()
