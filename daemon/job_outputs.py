@@ -91,6 +91,11 @@ def _inspect(runner: JobRunner, report: dict, scans: list[PosedScan], cloud_W: n
              normals_W: np.ndarray | None, T_F_W: np.ndarray) -> InspectionOutputs:
     """The inspection of the job's cloud in the CAD frame, written into the job folder."""
     job_dir, world = runner.job_dir, runner.cell.world
+    # the tracker-only stitch (Eq. 1) against the poses the job ended with, which a correction step may change
+    tracker_only = [F.compose(s.T_W_C, s.reading.T_C_T, runner.installation.T_T_S) for s in runner.scans]
+    corrected = any(not np.allclose(T, s.T_W_S, rtol=0, atol=1e-9) for T, s in zip(tracker_only, scans, strict=True))
+    before = [F.transform_points(T_F_W @ T, _thin(s.points_S_mm)) for T, s in zip(tracker_only, scans, strict=True)]
+    after = [F.transform_points(T_F_W @ s.T_W_S, _thin(s.points_S_mm)) for s in scans] if corrected else None
     return run_inspection(
         F.transform_points(T_F_W, cloud_W),
         world.mesh,
@@ -101,6 +106,7 @@ def _inspect(runner: JobRunner, report: dict, scans: list[PosedScan], cloud_W: n
         meta={"job": job_dir.name, "plan": runner.plan.name, "cell": runner.config.name,
               "registration to CAD": "simulation ground truth T_W_F", "points": str(len(cloud_W))},
         accuracy=_accuracy(report),
-        scans_before=[F.transform_points(T_F_W @ s.T_W_S, _thin(s.points_S_mm)) for s in scans],
+        scans_before=before,
+        scans_after=after,
         json_name=None,
     )
