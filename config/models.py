@@ -299,6 +299,13 @@ class InspectionConfig(_Strict):
         "isometric", "front", "left", "right", "top",
     )
 
+    @field_validator("tolerance_upper_mm")
+    @classmethod
+    def _band_not_empty(cls, v: float, info) -> float:
+        if v <= info.data.get("tolerance_lower_mm", -math.inf):
+            raise ValueError("the tolerance band is empty: tolerance_upper_mm must be above tolerance_lower_mm")
+        return v
+
 
 class CalibrationConfig(_Strict):
     """Calibration plate (three reference spheres A, X, Y) and the hand-eye calibration job.

@@ -245,3 +245,12 @@ def test_regions_from_mesh_material_groups(tmp_path):
     assert all(r.name.startswith("mesh group") for r in res.regions)
     off = inspect_cloud(left, mesh, InspectionConfig(regions=(), best_fit=False, mesh_group_regions=False))
     assert off.regions == ()
+
+
+def test_config_refuses_an_empty_band_and_bad_regions():
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="tolerance band is empty"):
+        InspectionConfig(tolerance_lower_mm=0.0, tolerance_upper_mm=0.0)
+    with pytest.raises(ValidationError, match="must be >= min_mm"):
+        RegionConfig(name="r", min_mm=(0, 0, 0), max_mm=(1, -1, 1))
