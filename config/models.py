@@ -305,6 +305,7 @@ class InspectionConfig(_Strict):
     """Deviation-from-CAD inspection: tolerance band (mm, signed: + = material outside the CAD surface),
     named regions, optional best-fit alignment and the colour-map scale."""
 
+    in_job: bool = Field(True, description="a measurement job writes report.html; off: E57 and pose log only")
     tolerance_lower_mm: float = Field(-0.1, le=0)
     tolerance_upper_mm: float = Field(0.1, ge=0)
     regions: tuple[RegionConfig, ...] = (
@@ -322,11 +323,18 @@ class InspectionConfig(_Strict):
     colour_limit_mm: float | None = Field(
         None, gt=0, description="colour-map saturates at +/- this, mm; default 3x the wider tolerance"
     )
-    map_width_px: int = Field(900, ge=100, le=4000, description="width of each rendered colour-map view")
+    map_width_px: int = Field(800, ge=100, le=4000, description="width of each rendered colour-map view")
     map_max_points: int = Field(300_000, ge=1000, description="colour maps draw an even subsample of this size")
     views: tuple[Literal["isometric", "front", "left", "right", "top", "back"], ...] = (
-        "isometric", "front", "left", "right", "top", "back",
+        "isometric", "front", "left", "right", "top",
     )
+
+    @field_validator("tolerance_upper_mm")
+    @classmethod
+    def _band_not_empty(cls, v: float, info) -> float:
+        if v <= info.data.get("tolerance_lower_mm", -math.inf):
+            raise ValueError("the tolerance band is empty: tolerance_upper_mm must be above tolerance_lower_mm")
+        return v
 
 
 class CalibrationConfig(_Strict):

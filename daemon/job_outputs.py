@@ -14,7 +14,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.export import PosedScan, write_e57, write_pose_log
-from tandemscan.pipeline.inspection_job import run_inspection
+from tandemscan.pipeline.inspect import InspectionError
+from tandemscan.pipeline.inspection_job import InspectionOutputs, run_inspection
 
 if TYPE_CHECKING:
     from tandemscan.daemon.runner import JobRunner
@@ -66,13 +67,36 @@ def write_job_outputs(runner: JobRunner, report: dict) -> dict:
         write_e57(job_dir / files["e57"], scans, cloud_W if len(cloud_W) else None)
     write_pose_log(job_dir / files["pose_log"], scans)
     world = runner.cell.world
-    if world is None or len(cloud_W) == 0:
-        reason = "no registration of the world frame to the CAD frame" if world is None else "empty cloud"
+    reason = (
+        "inspection.in_job is off" if not runner.config.inspection.in_job
+        else "no registration of the world frame to the CAD frame" if world is None
+        else "empty cloud" if len(cloud_W) == 0
+        else ""
+    )
+    if reason:
         log.warning("inspection skipped: %s", reason)
         return {"skipped": reason, "files": files}
     T_F_W = F.invert(world.T_W_F)
     normals_W = runner.worldmap.normals()
-    out = run_inspection(
+    try:
+        out = _inspect(runner, report, scans, cloud_W, normals_W, T_F_W)
+    except InspectionError as e:  # the measurement stands; the report says why it has no inspection
+        log.warning("inspection failed: %s", e)
+        return {"failed": str(e), "files": files}
+    files |= {"html": out.html.name, "deviation_ply": out.ply.name}
+    return out.data | {"T_F_W": T_F_W.tolist(), "files": files}
+
+
+def _inspect(runner: JobRunner, report: dict, scans: list[PosedScan], cloud_W: np.ndarray,
+             normals_W: np.ndarray | None, T_F_W: np.ndarray) -> InspectionOutputs:
+    """The inspection of the job's cloud in the CAD frame, written into the job folder."""
+    job_dir, world = runner.job_dir, runner.cell.world
+    # the tracker-only stitch (Eq. 1) against the poses the job ended with, which a correction step may change
+    tracker_only = [F.compose(s.T_W_C, s.reading.T_C_T, runner.installation.T_T_S) for s in runner.scans]
+    corrected = any(not np.allclose(T, s.T_W_S, rtol=0, atol=1e-9) for T, s in zip(tracker_only, scans, strict=True))
+    before = [F.transform_points(T_F_W @ T, _thin(s.points_S_mm)) for T, s in zip(tracker_only, scans, strict=True)]
+    after = [F.transform_points(T_F_W @ s.T_W_S, _thin(s.points_S_mm)) for s in scans] if corrected else None
+    return run_inspection(
         F.transform_points(T_F_W, cloud_W),
         world.mesh,
         job_dir,
@@ -82,8 +106,7 @@ def write_job_outputs(runner: JobRunner, report: dict) -> dict:
         meta={"job": job_dir.name, "plan": runner.plan.name, "cell": runner.config.name,
               "registration to CAD": "simulation ground truth T_W_F", "points": str(len(cloud_W))},
         accuracy=_accuracy(report),
-        scans_before=[F.transform_points(T_F_W @ s.T_W_S, _thin(s.points_S_mm)) for s in scans],
+        scans_before=before,
+        scans_after=after,
         json_name=None,
     )
-    files |= {"html": out.html.name, "deviation_ply": out.ply.name}
-    return out.data | {"T_F_W": T_F_W.tolist(), "files": files}

@@ -8,6 +8,7 @@ directions assume the part convention (length along x, nose towards +x, z up).
 
 from __future__ import annotations
 
+import functools
 import io
 from dataclasses import dataclass
 
@@ -81,6 +82,43 @@ class Rendering:
     coloured_px: int
 
 
+@dataclass(frozen=True)
+class _Background:
+    """The ray-cast CAD picture of one view: grey shading, depth of the first hit (mm along ``f`` from the
+    plane ``depth0``, inf where the ray misses) and the pixel grid (top-left origin ``x0, y1``, pixel ``px``)."""
+
+    f: np.ndarray
+    r: np.ndarray
+    u: np.ndarray
+    rgb: np.ndarray
+    t_hit: np.ndarray
+    extent_mm: tuple[float, float, float, float]
+    px: float
+    depth0: float
+
+
+@functools.lru_cache(maxsize=1)  # the upper/lower maps reuse the first view's background
+def _background(surface: CadSurface, view: View, width_px: int) -> _Background:
+    f, r, u = _camera(view)
+    corners = np.asarray(surface.mesh.get_axis_aligned_bounding_box().get_box_points())
+    sx, sy = corners @ r, corners @ u
+    pad = 0.04 * max(np.ptp(sx), np.ptp(sy))
+    x0, x1, y0, y1 = sx.min() - pad, sx.max() + pad, sy.min() - pad, sy.max() + pad
+    px = (x1 - x0) / width_px
+    height_px = max(1, int(np.ceil((y1 - y0) / px)))
+    depth0 = float((corners @ f).min()) - 10.0
+    rays = np.empty((height_px, width_px, 6), np.float32)
+    top_left = (x0 + 0.5 * px) * r + (y1 - 0.5 * px) * u + depth0 * f - surface.origin_mm
+    rays[..., :3] = (top_left + np.arange(width_px)[:, None] * (px * r))[None].astype(np.float32)
+    rays[..., :3] -= (np.arange(height_px)[:, None] * (px * u))[:, None].astype(np.float32)
+    rays[..., 3:] = f.astype(np.float32)
+    hit = surface.scene.cast_rays(o3d.core.Tensor(rays))
+    t_hit = hit["t_hit"].numpy()
+    shade = 0.35 + 0.55 * np.abs(hit["primitive_normals"].numpy() @ f.astype(np.float32))
+    rgb = np.where(np.isfinite(t_hit)[..., None], shade[..., None] * np.float32([0.82, 0.82, 0.85]), NO_MESH_RGB)
+    return _Background(f, r, u, rgb.astype(np.float32), t_hit, (x0, x1, y0, y1), px, depth0)
+
+
 def render_view(
     surface: CadSurface,
     points_mm: np.ndarray,
@@ -91,41 +129,29 @@ def render_view(
     cmap=DEVIATION_CMAP,
     depth_margin_mm: float | None = None,
     normals: np.ndarray | None = None,
+    spacing_mm: float | None = None,
 ) -> Rendering:
     """Ray-cast the CAD mesh along ``view`` and paint the visible points coloured by ``values``.
 
     A point is visible when it lies no more than ``depth_margin_mm`` (default: three pixels plus the colour
     range) behind the first CAD surface on its pixel; among visible points the nearest wins each pixel, and
-    points are splatted over as many pixels as their typical spacing needs, so gaps in the data stay grey.
-    With ``normals`` (outward, e.g. of the closest CAD triangle) points on faces turned away are not drawn.
+    points are splatted over as many pixels as their spacing (``spacing_mm``, default: measured) needs, so
+    gaps in the data stay grey. With ``normals`` (outward, e.g. of the closest CAD triangle) points on faces
+    turned away are not drawn.
     """
-    f, r, u = _camera(view)
-    corners = np.asarray(surface.mesh.get_axis_aligned_bounding_box().get_box_points())
-    sx, sy = corners @ r, corners @ u
-    pad = 0.04 * max(np.ptp(sx), np.ptp(sy))
-    x0, x1, y0, y1 = sx.min() - pad, sx.max() + pad, sy.min() - pad, sy.max() + pad
-    px = (x1 - x0) / width_px
-    height_px = max(1, int(np.ceil((y1 - y0) / px)))
-    depth0 = float((corners @ f).min()) - 10.0
-    cols, rows = np.meshgrid(np.arange(width_px), np.arange(height_px))
-    gx, gy = x0 + (cols + 0.5) * px, y1 - (rows + 0.5) * px
-    origins = gx[..., None] * r + gy[..., None] * u + depth0 * f - surface.origin_mm
-    rays = np.concatenate([origins, np.broadcast_to(f, origins.shape)], axis=-1).astype(np.float32)
-    hit = surface.scene.cast_rays(o3d.core.Tensor(rays))
-    t_hit = hit["t_hit"].numpy().astype(np.float64)
-    n = hit["primitive_normals"].numpy()
-    shade = 0.35 + 0.55 * np.abs(n @ f)
-    rgb = np.where(np.isfinite(t_hit)[..., None], shade[..., None] * [0.82, 0.82, 0.85], NO_MESH_RGB)
-
+    bg = _background(surface, view, width_px)
+    f, r, u, px = bg.f, bg.r, bg.u, bg.px
+    x0, x1, y0, y1 = bg.extent_mm
+    height_px = bg.t_hit.shape[0]
     p = np.asarray(points_mm, float)
     values = np.asarray(values, float)
+    spacing = typical_spacing(p) if spacing_mm is None else spacing_mm
     if normals is not None:
         front = np.asarray(normals, float) @ f < 0.0
         p, values = p[front], values[front]
     c = np.floor((p @ r - x0) / px).astype(np.int64)
     rr = np.floor((y1 - p @ u) / px).astype(np.int64)
-    depth = p @ f - depth0
-    spacing = _typical_spacing(p)
+    depth = p @ f - bg.depth0
     splat = int(min(6, max(1, np.ceil(1.5 * spacing / px))))
     margin = depth_margin_mm if depth_margin_mm is not None else 3 * px + 2.0 * max(abs(norm.vmin), abs(norm.vmax))
     colours = cmap(norm(values))[:, :3]
@@ -134,7 +160,7 @@ def render_view(
         for dc in range(splat):
             cc, r2 = c + dc - splat // 2, rr + dr - splat // 2
             ok = (cc >= 0) & (cc < width_px) & (r2 >= 0) & (r2 < height_px)
-            ok[ok] &= depth[ok] <= t_hit[r2[ok], cc[ok]] + margin
+            ok[ok] &= depth[ok] <= bg.t_hit[r2[ok], cc[ok]] + margin
             pixel_all.append(r2[ok] * width_px + cc[ok])
             depth_all.append(depth[ok])
             idx_all.append(np.nonzero(ok)[0])
@@ -142,12 +168,12 @@ def render_view(
     order = np.lexsort((dep, pix))
     first = np.unique(pix[order], return_index=True)[1]
     win_pix, win_idx = pix[order][first], idx[order][first]
-    flat = rgb.reshape(-1, 3)
+    flat = bg.rgb.reshape(-1, 3).copy()
     flat[win_pix] = colours[win_idx]
-    return Rendering(flat.reshape(height_px, width_px, 3), (x0, x1, y0, y1), len(win_pix))
+    return Rendering(flat.reshape(height_px, width_px, 3), bg.extent_mm, len(win_pix))
 
 
-def _typical_spacing(points_mm: np.ndarray, sample: int = 2000) -> float:
+def typical_spacing(points_mm: np.ndarray, sample: int = 2000) -> float:
     """Median nearest-neighbour distance of the cloud, mm (on a subsample of the queries)."""
     if len(points_mm) < 2:
         return 0.0
@@ -181,12 +207,18 @@ def deviation_map_png(
     width_px: int = 900,
     title: str | None = None,
     normals: np.ndarray | None = None,
+    spacing_mm: float | None = None,
 ) -> bytes:
-    """One deviation colour map as PNG: the view, mm axes on the view plane, a colour bar with the band."""
-    img = render_view(surface, points_mm, deviations_mm, view, norm, width_px, normals=normals)
+    """One deviation colour map as PNG: the view, mm axes on the view plane, a colour bar with the band.
+    Fixed axes positions (no layout engine: text measuring would cost more than the picture)."""
+    img = render_view(surface, points_mm, deviations_mm, view, norm, width_px, normals=normals,
+                      spacing_mm=spacing_mm)
     h, w = img.rgb.shape[:2]
-    fig = Figure(figsize=(8.0, max(3.0, 8.0 * h / w * 0.92)), dpi=110, layout="constrained")
-    ax = fig.add_subplot()
+    fig_w, left, right, bottom, top = 8.0, 0.85, 1.3, 0.6, 0.45  # inches
+    fig_h = bottom + top + (fig_w - left - right) * h / w
+    fig = Figure(figsize=(fig_w, fig_h), dpi=110)
+    ax = fig.add_axes((left / fig_w, bottom / fig_h, 1 - (left + right) / fig_w, 1 - (bottom + top) / fig_h))
+    cax = fig.add_axes((1 - 0.95 / fig_w, bottom / fig_h, 0.18 / fig_w, 1 - (bottom + top) / fig_h))
     _, r, u = _camera(view)
     (xl, x_sign), (yl, y_sign) = _axis_label(r), _axis_label(u)
     x0, x1, y0, y1 = img.extent_mm
@@ -194,7 +226,7 @@ def deviation_map_png(
     ax.set_title(title or f"Deviation from CAD, {view.name}")
     ax.set_xlabel(xl)
     ax.set_ylabel(yl)
-    bar = fig.colorbar(ScalarMappable(norm, DEVIATION_CMAP), ax=ax, shrink=0.85, label="deviation, mm")
+    bar = fig.colorbar(ScalarMappable(norm, DEVIATION_CMAP), cax=cax, label="deviation, mm")
     for v in (tolerance.lower_mm, tolerance.upper_mm):
         bar.ax.axhline(v, color="black", lw=1.2)
     return png_bytes(fig)

@@ -216,6 +216,7 @@ class InspectionResult:
     tolerance: ToleranceResult
     regions: tuple[RegionResult, ...]
     best_fit: BestFit | None
+    best_fit_note: str = ""  # why there is no best fit when one was asked for
 
 
 def region_mask(points_mm: np.ndarray, region: RegionConfig) -> np.ndarray:
@@ -274,6 +275,32 @@ def best_fit(
     return T, iterations, False, used
 
 
+def _best_fit_result(surface: CadSurface, p: np.ndarray, cfg: InspectionConfig) -> tuple[BestFit | None, str]:
+    """The best fit and its deviations, or (None, why) when it cannot be made; the as-measured result
+    stands on its own either way."""
+    try:
+        T, its, converged, used = best_fit(surface, p, cfg.best_fit_max_distance_mm, cfg.best_fit_iterations)
+    except InspectionError as e:
+        log.warning("%s", e)
+        return None, str(e)
+    if not converged:
+        log.warning("best fit did not converge in %d iterations", its)
+    d_fit = surface.signed_distance(transform_points(T, p))
+    lo, hi = cfg.tolerance_lower_mm, cfg.tolerance_upper_mm
+    fit = BestFit(
+        T_F_M=T,
+        translation_mm=float(np.linalg.norm(T[:3, 3])),
+        rotation_deg=float(np.degrees(rotation_angle(T))),
+        iterations=its,
+        converged=converged,
+        used_points=used,
+        deviations_mm=d_fit,
+        stats=DeviationStats.of(d_fit),
+        tolerance=ToleranceResult.of(d_fit, lo, hi),
+    )
+    return fit, ""
+
+
 def inspect_cloud(
     points_mm: np.ndarray,
     mesh: o3d.geometry.TriangleMesh | CadSurface,
@@ -290,28 +317,7 @@ def inspect_cloud(
     if cfg.mesh_group_regions:
         masks += surface.group_masks(closest.triangle_ids)
     regions = [RegionResult(name, DeviationStats.of(d[m]), ToleranceResult.of(d[m], lo, hi)) for name, m in masks]
-    fit = None
-    try:
-        fitted = best_fit(surface, p, cfg.best_fit_max_distance_mm, cfg.best_fit_iterations) if cfg.best_fit else None
-    except InspectionError as e:  # a cloud far off its CAD still gets its as-measured deviation
-        log.warning("best fit skipped: %s", e)
-        fitted = None
-    if fitted is not None:
-        T, its, converged, used = fitted
-        d_fit = surface.signed_distance(transform_points(T, p))
-        fit = BestFit(
-            T_F_M=T,
-            translation_mm=float(np.linalg.norm(T[:3, 3])),
-            rotation_deg=float(np.degrees(rotation_angle(T))),
-            iterations=its,
-            converged=converged,
-            used_points=used,
-            deviations_mm=d_fit,
-            stats=DeviationStats.of(d_fit),
-            tolerance=ToleranceResult.of(d_fit, lo, hi),
-        )
-        if not converged:
-            log.warning("best fit did not converge in %d iterations", its)
+    fit, note = _best_fit_result(surface, p, cfg) if cfg.best_fit else (None, "")
     stats = DeviationStats.of(d)
     tol = ToleranceResult.of(d, lo, hi)
     assert stats is not None and tol is not None  # p has at least one point
@@ -319,4 +325,4 @@ def inspect_cloud(
         "inspected %d points: mean %.4f mm, sigma %.4f mm, %.1f %% in tolerance",
         stats.count, stats.mean_mm, stats.sigma_mm, tol.in_pct,
     )
-    return InspectionResult(p, d, closest.normals, stats, tol, tuple(regions), fit)
+    return InspectionResult(p, d, closest.normals, stats, tol, tuple(regions), fit, note)

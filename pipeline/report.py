@@ -25,6 +25,7 @@ from tandemscan.pipeline.deviation_maps import (
     deviation_norm,
     facing_isometric,
     histogram_png,
+    typical_spacing,
 )
 from tandemscan.pipeline.inspect import CadSurface, InspectionResult
 from tandemscan.pipeline.stitch_quality import overlap_quality, stitching_png
@@ -76,6 +77,7 @@ def inspection_summary(result: InspectionResult) -> dict:
         "as_measured": {"stats": _plain(result.stats), "tolerance": _plain(result.tolerance)},
         "regions": [_plain(r) for r in result.regions],
         "best_fit": _plain(result.best_fit),
+        "best_fit_note": result.best_fit_note,
     }
 
 
@@ -105,17 +107,23 @@ def build_report(
     p, d, n = result.points_mm[::every], result.deviations_mm[::every], result.cad_normals[::every]
     if views is None:  # the isometric view looks at the side that was measured
         views = [facing_isometric(n) if k == "isometric" else STANDARD_VIEWS[k] for k in cfg.views]
-    figures = []
+    spacing = typical_spacing(p)
+    maps, split = [], []
     for i, view in enumerate(views):
-        png = deviation_map_png(surface, p, d, view, tol, norm, cfg.map_width_px, normals=n)
-        figures.append(ReportFigure(f"map-{i}", f"Deviation colour map, {view.name}", png))
-    for sign, label, keep in ((1, "upper", d > 0), (-1, "lower", d < 0)):
-        if keep.any() and views:
-            title_ = f"{label.capitalize()} deviation (points {'above' if sign > 0 else 'below'} CAD), {views[0].name}"
-            png = deviation_map_png(surface, p[keep], d[keep], views[0], tol, norm, cfg.map_width_px, title_, n[keep])
-            figures.append(ReportFigure(f"{label}-deviation", title_, png))
+        png = deviation_map_png(surface, p, d, view, tol, norm, cfg.map_width_px, normals=n, spacing_mm=spacing)
+        maps.append(ReportFigure(f"map-{i}", f"Deviation colour map, {view.name}", png))
+        if i > 0:
+            continue
+        for label, side, keep in (("upper", "above", d > 0), ("lower", "below", d < 0)):  # first view only
+            if keep.any():
+                title_ = f"{label.capitalize()} deviation (points {side} CAD), {view.name}"
+                png = deviation_map_png(surface, p[keep], d[keep], view, tol, norm, cfg.map_width_px, title_,
+                                        n[keep], spacing)
+                split.append(ReportFigure(f"{label}-deviation", title_, png))
+    figures = maps + split
     hist = histogram_png(result.deviations_mm, result.stats, tol, norm)
-    figures.append(ReportFigure("histogram", "Deviation histogram with the tolerance band (the outer bins collect the 0.1 % tails)", hist))
+    caption = "Deviation histogram with the tolerance band (the outer bins collect the 0.1 % tails)"
+    figures.append(ReportFigure("histogram", caption, hist))
     pairs = []
     if scans_before is not None:
         pairs = overlap_quality(scans_before, scans_after)

@@ -220,9 +220,10 @@ def test_bad_input_is_a_clear_error():
         signed_distances(np.zeros((4, 2)), mesh)
     with pytest.raises(InspectionError, match="no triangles"):
         CadSurface(o3d.geometry.TriangleMesh())
-    # a cloud far from its CAD keeps its as-measured deviation; only the best fit is skipped
+    # a cloud too far off for the best fit still gets its as-measured result, with the reason noted
     far = inspect_cloud(CENTRE + [[1e4, 0, 0]] * 10, mesh, InspectionConfig(best_fit_max_distance_mm=1.0))
-    assert far.best_fit is None and far.stats.mean_mm > 9000
+    assert far.best_fit is None and "only 0 points within 1.0 mm" in far.best_fit_note
+    assert far.stats.min_mm == pytest.approx(1e4 - 400.0) and far.stats.mean_mm > 9000
 
 
 def test_regions_from_mesh_material_groups(tmp_path):
@@ -244,3 +245,12 @@ def test_regions_from_mesh_material_groups(tmp_path):
     assert all(r.name.startswith("mesh group") for r in res.regions)
     off = inspect_cloud(left, mesh, InspectionConfig(regions=(), best_fit=False, mesh_group_regions=False))
     assert off.regions == ()
+
+
+def test_config_refuses_an_empty_band_and_bad_regions():
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="tolerance band is empty"):
+        InspectionConfig(tolerance_lower_mm=0.0, tolerance_upper_mm=0.0)
+    with pytest.raises(ValidationError, match="must be >= min_mm"):
+        RegionConfig(name="r", min_mm=(0, 0, 0), max_mm=(1, -1, 1))

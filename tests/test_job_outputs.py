@@ -11,7 +11,20 @@ import pye57
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.runner import JobRunner
 from tandemscan.pipeline.plan import Plan, Scan
+from tandemscan.pipeline.worldmap import VoxelMap
 from tandemscan.sim_drivers.cell import build_cell
+
+
+class PerfectlyCorrectedRunner(JobRunner):
+    """Stands in for the correction step: every scan gets its true pose before the export."""
+
+    def _export(self, seconds):
+        self.worldmap = VoxelMap(self.config.job.voxel_mm)
+        for s in self.scans:
+            s.T_W_S = s.T_W_S_true
+            with np.load(s.file) as raw:
+                self._stitch(s.T_W_S, raw["points_S_mm"].astype(float), None)
+        return super()._export(seconds)
 
 
 async def test_job_writes_report_and_exports_next_to_cloud(sim_config, tmp_path):
@@ -23,7 +36,7 @@ async def test_job_writes_report_and_exports_next_to_cloud(sim_config, tmp_path)
     cell = build_cell(config)
     await cell.connect()
     try:
-        result = await JobRunner(cell, plan, config, tmp_path / "job").run()
+        result = await PerfectlyCorrectedRunner(cell, plan, config, tmp_path / "job").run()
     finally:
         await cell.close()
     job = result.job_dir
@@ -35,6 +48,9 @@ async def test_job_writes_report_and_exports_next_to_cloud(sim_config, tmp_path)
     # the sim cell stitches with true mounts: the cloud lies on the part to a fraction of a millimetre
     assert abs(ins["as_measured"]["stats"]["mean_mm"]) < 0.2 and ins["as_measured"]["stats"]["rms_mm"] < 0.3
     assert abs(ins["as_measured"]["stats"]["rms_mm"] - report["ground_truth"]["cloud_rms_mm"]) < 1e-3
+    (pair,) = ins["stitching"]  # tracker-only stitch before, the (perfect) correction after
+    assert pair["points"] > 100 and pair["rms_after_mm"] < pair["rms_before_mm"]
+    assert pair["rms_after_mm"] < 0.1  # scanner noise only
     html = (job / "report.html").read_text()
     assert f'{ins["as_measured"]["stats"]["rms_mm"]:.4f}' in html and html.count("data:image/png") >= 3
     e57 = pye57.E57(str(job / "cloud.e57"))
@@ -50,3 +66,21 @@ async def test_job_writes_report_and_exports_next_to_cloud(sim_config, tmp_path)
     with (job / "poses.csv").open() as f:
         rows = list(csv.DictReader(f))
     assert [int(r["points"]) for r in rows] == [e["points"] for e in report["scan_log"]]
+
+
+def test_inspection_skipped_with_reason(sim_config, tmp_path):
+    from types import SimpleNamespace
+
+    from tandemscan.daemon.job_outputs import write_job_outputs
+
+    def runner(config, world):
+        worldmap = SimpleNamespace(points=lambda: np.zeros((0, 3)), normals=lambda: None)
+        return SimpleNamespace(job_dir=tmp_path, scans=[], worldmap=worldmap, cell=SimpleNamespace(world=world),
+                               config=config)
+
+    off = sim_config.model_copy(update={"inspection": sim_config.inspection.model_copy(update={"in_job": False})})
+    assert write_job_outputs(runner(off, object()), {})["skipped"] == "inspection.in_job is off"
+    real_cell = write_job_outputs(runner(sim_config, None), {})
+    assert real_cell["skipped"] == "no registration of the world frame to the CAD frame"
+    assert (tmp_path / "poses.csv").read_text().startswith("index,name,points")
+    assert not (tmp_path / "report.html").exists()

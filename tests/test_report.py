@@ -139,3 +139,11 @@ def test_report_renders_in_headless_chromium(written, tmp_path):
     hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV)
     colourful = ((hsv[..., 1] > 120) & (hsv[..., 2] > 80)).mean()  # the colour maps decoded and drawn
     assert not_white > 0.05 and colourful > 0.01 and img.std() > 20
+
+
+def test_isometric_view_looks_at_the_measured_side():
+    from tandemscan.pipeline.deviation_maps import STANDARD_VIEWS, facing_isometric
+
+    v = facing_isometric(np.tile([0.0, 1.0, 0.2], (50, 1)))  # surface facing +y (and a little up)
+    assert v.forward[1] < 0 and v.forward[2] < 0 and abs(v.forward[0]) < 1e-12  # eye at +y, above
+    assert facing_isometric(np.array([[1.0, 0, 0], [-1.0, 0, 0]])) == STANDARD_VIEWS["isometric"]
