@@ -28,6 +28,15 @@ def short_plan() -> Plan:
     return Plan(name="short", steps=steps)
 
 
+@pytest.fixture
+def stitch_only_config(sim_config):
+    """The sim cell with the tracker-only stitch: no correction, no HTML report (their own tests cover them)."""
+    return sim_config.model_copy(update={
+        "deepmerge": sim_config.deepmerge.model_copy(update={"enabled": False}),
+        "inspection": sim_config.inspection.model_copy(update={"in_job": False}),
+    })
+
+
 async def run(config, plan, job_dir):
     cell = build_cell(config)
     await cell.connect()
@@ -37,9 +46,9 @@ async def run(config, plan, job_dir):
         await cell.close()
 
 
-async def test_short_job_writes_cloud_scans_and_a_report_within_noise_bounds(sim_config, tmp_path):
+async def test_short_job_writes_cloud_scans_and_a_report_within_noise_bounds(stitch_only_config, tmp_path):
     plan = short_plan()
-    result = await run(sim_config, plan, tmp_path / "job")
+    result = await run(stitch_only_config, plan, tmp_path / "job")
     report = result.report
     assert report["scans"] == plan.scan_count and report["transfers"] == 1
 
@@ -61,11 +70,11 @@ async def test_short_job_writes_cloud_scans_and_a_report_within_noise_bounds(sim
     assert report["transfer_log"][0]["tracker_pose_err_mm"] < 0.5
 
 
-async def test_nominal_installation_stitches_visibly_worse_than_calibrated(sim_config, tmp_path):
+async def test_nominal_installation_stitches_visibly_worse_than_calibrated(stitch_only_config, tmp_path):
     plan = short_plan()
-    truth_cfg = sim_config
-    nominal_cfg = sim_config.model_copy(
-        update={"job": sim_config.job.model_copy(update={"installation_source": "nominal"})}
+    truth_cfg = stitch_only_config
+    nominal_cfg = truth_cfg.model_copy(
+        update={"job": truth_cfg.job.model_copy(update={"installation_source": "nominal"})}
     )
     good = (await run(truth_cfg, plan, tmp_path / "a")).report["ground_truth"]
     bad = (await run(nominal_cfg, plan, tmp_path / "b")).report["ground_truth"]
