@@ -138,10 +138,21 @@ class InstallationConfig(_Strict):
     T_T_S: TransformConfig = TransformConfig(xyz_mm=(0.0, -90.0, 40.0), rpy_deg=(180.0, 0.0, 0.0))
 
 
+class FloorPoseConfig(_Strict):
+    """A chassis pose on the floor (part frame F): position mm and heading in degrees about +z."""
+
+    x_mm: float = 0.0
+    y_mm: float = 0.0
+    heading_deg: float = 0.0
+
+
 class SimWorldConfig(_Strict):
     """Ground truth of the simulated cell: how far the real installation is from nominal, time scale."""
 
     seed: int = 7
+    tracking_start: FloorPoseConfig = FloorPoseConfig(x_mm=-1400.0, y_mm=4600.0, heading_deg=-90.0)
+    measure_start: FloorPoseConfig = FloorPoseConfig(x_mm=-1800.0, y_mm=2300.0, heading_deg=0.0)
+    arm_home_deg: tuple[float, ...] = (0.0, 90.0, 0.0, 90.0, 0.0, 0.0)
     install_error_mm: float = Field(2.0, ge=0, description="1-sigma per axis of true vs nominal mounts")
     install_error_deg: float = Field(0.3, ge=0, description="1-sigma per axis of true vs nominal mounts")
     time_scale: float = Field(0.0, ge=0, description="simulated motion time x this = wall time; 0 = instant")

@@ -1,0 +1,104 @@
+"""The measured part as a CAD triangle mesh (mm): loaded from a file or the parametric train nose.
+
+Part frame F (the floor frame of the simulated cell): floor at z = 0, part centred on x = y = 0, length
+along x with the nose towards +x.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+
+from tandemscan.config.models import PartConfig
+
+MESH_SUFFIXES = (".stl", ".ply", ".obj", ".off", ".gltf", ".glb")
+
+
+class PartMeshError(Exception):
+    """The part mesh is missing, unreadable or empty."""
+
+
+def load_part_mesh(part: PartConfig) -> o3d.geometry.TriangleMesh:
+    """The CAD mesh of ``part``: the file ``part.mesh`` (mm) or, when unset, :func:`train_nose_mesh`."""
+    if part.mesh is None:
+        return train_nose_mesh(part)
+    return read_mesh_file(part.mesh)
+
+
+def read_mesh_file(path: Path) -> o3d.geometry.TriangleMesh:
+    """Read an STL/PLY/OBJ mesh in millimetres, with vertex normals; raises :class:`PartMeshError`."""
+    path = Path(path)
+    if not path.is_file():
+        raise PartMeshError(f"{path}: mesh file not found")
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        raise PartMeshError(f"{path}: unsupported mesh format (use one of {', '.join(MESH_SUFFIXES)})")
+    mesh = o3d.io.read_triangle_mesh(str(path))
+    if len(mesh.triangles) == 0:
+        raise PartMeshError(f"{path}: no triangles could be read")
+    mesh.compute_vertex_normals()
+    return mesh
+
+
+def _section_profile(s: np.ndarray, part: PartConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Half-width, bottom height and top height (mm) of the cross-section at nose progress ``s`` in [0, 1]."""
+    half_width = 0.5 * part.width_mm * np.sqrt(np.clip(1.0 - s**2, 0.0, None))
+    bottom = 0.15 * part.height_mm * s**2
+    top = bottom + (part.height_mm - bottom) * np.clip(1.0 - s**1.8, 0.0, None) ** 0.6
+    return half_width, bottom, top
+
+
+def train_nose_mesh(
+    part: PartConfig, n_along: int = 140, n_around: int = 180, exponent: float = 3.0
+) -> o3d.geometry.TriangleMesh:
+    """A watertight parametric high-speed-train nose (mm), outward normals.
+
+    A constant rounded-box section (superellipse of ``exponent``) for ``body_length_mm``, then a nose
+    whose width and height shrink smoothly to a blunt tip at x = +length/2; both ends are capped.
+    """
+    L = part.length_mm
+    x0 = -0.5 * L
+    nose_start = x0 + min(part.body_length_mm, 0.9 * L)
+    s_tip = 0.97
+    x = np.linspace(x0, 0.5 * L, n_along)
+    s = np.clip((x - nose_start) / (0.5 * L - nose_start), 0.0, 1.0) * s_tip
+    half_width, bottom, top = _section_profile(s, part)
+
+    phi = np.linspace(0.0, 2 * np.pi, n_around, endpoint=False)
+    c, si = np.cos(phi), np.sin(phi)
+    ey = np.sign(c) * np.abs(c) ** (2.0 / exponent)
+    ez = np.sign(si) * np.abs(si) ** (2.0 / exponent)
+    zc = 0.5 * (top + bottom)
+    half_h = 0.5 * (top - bottom)
+    vx = np.repeat(x, n_around)
+    vy = (half_width[:, None] * ey[None, :]).ravel()
+    vz = (zc[:, None] + half_h[:, None] * ez[None, :]).ravel()
+    vertices = [np.c_[vx, vy, vz]]
+
+    tris = []
+    idx = np.arange(n_along * n_around).reshape(n_along, n_around)
+    a = idx[:-1, :]
+    b = np.roll(idx[:-1, :], -1, axis=1)
+    cc = idx[1:, :]
+    d = np.roll(idx[1:, :], -1, axis=1)
+    tris.append(np.c_[a.ravel(), cc.ravel(), b.ravel()])
+    tris.append(np.c_[b.ravel(), cc.ravel(), d.ravel()])
+
+    # caps: a fan to a centre vertex at each end (the tip one slightly forward: a rounded nose)
+    n = n_along * n_around
+    back_centre = [x0, 0.0, zc[0]]
+    tip_centre = [0.5 * L + 0.25 * half_h[-1], 0.0, zc[-1]]
+    vertices.append(np.array([back_centre, tip_centre]))
+    ring0, ring1 = idx[0], idx[-1]
+    tris.append(np.c_[np.full(n_around, n), np.roll(ring0, -1), ring0])
+    tris.append(np.c_[np.full(n_around, n + 1), ring1, np.roll(ring1, -1)])
+
+    mesh = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(np.vstack(vertices)), o3d.utility.Vector3iVector(np.vstack(tris))
+    )
+    if mesh.get_volume() < 0:  # make normals point outward whatever the winding above produced
+        mesh.triangles = o3d.utility.Vector3iVector(np.asarray(mesh.triangles)[:, ::-1])
+    mesh.compute_vertex_normals()
+    mesh.compute_triangle_normals()
+    return mesh

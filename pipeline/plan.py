@@ -1,0 +1,111 @@
+"""The plan format: the paper's unified command sequence, as data that can be dry-run or executed.
+
+Chassis targets are in each chassis's odometry frame (which starts as the floor frame F), mm and rad.
+A ``move_tracker`` step is a coordinate transfer: the measurement robot stands still while the tracking
+robot moves, and the target is read before and after (Eq. 2). Stored as TOML or JSON by file suffix.
+"""
+
+from __future__ import annotations
+
+import json
+import tomllib
+from pathlib import Path
+from typing import Annotated, Literal
+
+import tomli_w
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from tandemscan.config.loader import format_validation_error
+
+
+class PlanError(Exception):
+    """A plan file is missing, unreadable or invalid."""
+
+
+class _Step(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class MoveTracker(_Step):
+    """Move the tracking AGV (a coordinate transfer)."""
+
+    kind: Literal["move_tracker"] = "move_tracker"
+    x_mm: float
+    y_mm: float
+    heading_rad: float
+
+
+class MoveMeasure(_Step):
+    """Move the measurement AGV (the tracker stands still)."""
+
+    kind: Literal["move_measure"] = "move_measure"
+    x_mm: float
+    y_mm: float
+    heading_rad: float
+
+
+class MoveArm(_Step):
+    """Joint move of the arm on the measurement AGV."""
+
+    kind: Literal["move_arm"] = "move_arm"
+    joints_rad: tuple[float, float, float, float, float, float]
+
+
+class Scan(_Step):
+    """Capture a scan and read the tracker, both at rest."""
+
+    kind: Literal["scan"] = "scan"
+    label: str = ""
+
+
+Step = Annotated[MoveTracker | MoveMeasure | MoveArm | Scan, Field(discriminator="kind")]
+
+
+class Plan(BaseModel):
+    """A named sequence of steps for one part."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str
+    part: str = Field("", description="the part the plan was made for (informative)")
+    steps: list[Step]
+
+    @field_validator("steps")
+    @classmethod
+    def _has_a_scan(cls, steps: list[Step]) -> list[Step]:
+        if not any(isinstance(s, Scan) for s in steps):
+            raise ValueError("a plan needs at least one scan step")
+        return steps
+
+    @property
+    def scan_count(self) -> int:
+        return sum(isinstance(s, Scan) for s in self.steps)
+
+    @property
+    def transfer_count(self) -> int:
+        return sum(isinstance(s, MoveTracker) for s in self.steps)
+
+    def save(self, path: Path) -> None:
+        """Write as TOML (``.toml``) or JSON (anything else)."""
+        data = self.model_dump(mode="json")
+        path = Path(path)
+        text = tomli_w.dumps(data) if path.suffix == ".toml" else json.dumps(data, indent=1)
+        path.write_text(text, encoding="utf-8")
+
+    @classmethod
+    def load(cls, path: Path) -> Plan:
+        """Read a TOML or JSON plan; raises :class:`PlanError` naming the file, key and reason."""
+        path = Path(path)
+        try:
+            text = path.read_text(encoding="utf-8")
+            raw = tomllib.loads(text) if path.suffix == ".toml" else json.loads(text)
+        except FileNotFoundError as e:
+            raise PlanError(f"{path}: file not found") from e
+        except OSError as e:
+            raise PlanError(f"{path}: cannot read: {e.strerror}") from e
+        except (tomllib.TOMLDecodeError, json.JSONDecodeError, UnicodeDecodeError) as e:
+            raise PlanError(f"{path}: not valid {'TOML' if path.suffix == '.toml' else 'JSON'}: {e}") from e
+        try:
+            return cls.model_validate(raw)
+        except ValidationError as e:
+            raise PlanError(f"{path}: {format_validation_error(e)}") from e

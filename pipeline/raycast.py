@@ -1,0 +1,80 @@
+"""Structured-light scanner geometry (PhoXi 3D Scanner S) by ray casting on a triangle mesh.
+
+Scanner optical frame S: origin at the optical centre, z along the view, x right, y down. A pixel grid of
+rays spans the field of view given at the sweet spot; a point is kept when its depth (S z, mm) is inside
+the working range and the surface is not seen more grazing than the incidence limit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+
+from tandemscan.config.models import ScannerConfig
+
+
+def make_scene(mesh: o3d.geometry.TriangleMesh) -> o3d.t.geometry.RaycastingScene:
+    """A ray-casting scene holding one legacy triangle mesh (mm)."""
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    return scene
+
+
+@dataclass(frozen=True)
+class ScanHits:
+    """Surface hits of one scan in frame S: points (N, 3) mm, unit normals facing the scanner, incidence rad."""
+
+    points_mm: np.ndarray
+    normals: np.ndarray
+    incidence_rad: np.ndarray
+
+
+class ScannerModel:
+    """Ray geometry, working range and noise of the configured scanner."""
+
+    def __init__(self, scanner: ScannerConfig):
+        self.cfg = scanner
+        cols, rows = scanner.pixels
+        tan_x = 0.5 * scanner.width_at_sweet_spot_mm / scanner.sweet_spot_mm
+        tan_y = 0.5 * scanner.height_at_sweet_spot_mm / scanner.sweet_spot_mm
+        u, v = np.meshgrid(np.linspace(-tan_x, tan_x, cols), np.linspace(-tan_y, tan_y, rows))
+        d = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], axis=1)
+        self.directions_S = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+        self.half_angles_rad = (float(np.arctan(tan_x)), float(np.arctan(tan_y)))
+
+    def cast(self, scene: o3d.t.geometry.RaycastingScene, T_F_S: np.ndarray) -> ScanHits:
+        """Noise-free hits of the scanner at pose ``T_F_S`` (scene in frame F), returned in frame S."""
+        R = np.asarray(T_F_S, float)[:3, :3]
+        dirs_F = self.directions_S @ R.T.astype(np.float32)
+        origins = np.broadcast_to(np.asarray(T_F_S, float)[:3, 3].astype(np.float32), dirs_F.shape)
+        ans = scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(np.c_[origins, dirs_F])))
+        t = ans["t_hit"].numpy().astype(float)
+        hit = np.isfinite(t)
+        n_F = ans["primitive_normals"].numpy()[hit].astype(float)
+        d_S = self.directions_S[hit].astype(float)
+        t = t[hit]
+        n_S = n_F @ R  # = (R^T n_F^T)^T
+        cos_inc = -np.sum(n_S * d_S, axis=1)
+        n_S[cos_inc < 0] *= -1  # face the scanner whatever the mesh winding
+        cos_inc = np.abs(cos_inc)
+        points = d_S * t[:, None]
+        depth = points[:, 2]
+        keep = (
+            (depth >= self.cfg.range_min_mm)
+            & (depth <= self.cfg.range_max_mm)
+            & (cos_inc >= np.cos(np.radians(self.cfg.max_incidence_deg)))
+        )
+        return ScanHits(points[keep], n_S[keep], np.arccos(np.clip(cos_inc[keep], -1, 1)))
+
+    def scan(
+        self, scene: o3d.t.geometry.RaycastingScene, T_F_S: np.ndarray, rng: np.random.Generator | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(points_S mm, normals_S) of a scan; with ``rng``, Gaussian noise of ``noise_sigma_mm`` along each ray."""
+        hits = self.cast(scene, T_F_S)
+        points = hits.points_mm
+        if rng is not None and len(points):
+            ranges = np.linalg.norm(points, axis=1, keepdims=True)
+            points = points * (1.0 + rng.normal(0.0, self.cfg.noise_sigma_mm, (len(points), 1)) / ranges)
+        return points, hits.normals

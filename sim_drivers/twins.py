@@ -1,0 +1,182 @@
+"""Simulated twins of every device, all acting on one :class:`SimWorld`.
+
+Each twin implements its Protocol from :mod:`tandemscan.drivers.interfaces`. Motion takes simulated time
+(``sim.time_scale`` x the physical duration in wall time; 0 makes it instant). Injected faults come from
+``[sim]`` settings: scanner timeouts and an e-stop after a number of chassis moves.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import numpy as np
+
+from tandemscan.drivers.errors import DeviceTimeout, NotConnected, SafetyStop
+from tandemscan.drivers.interfaces import (
+    ChassisPose,
+    DeviceStatus,
+    SafetyState,
+    ScanFrame,
+    TrackerReading,
+)
+from tandemscan.sim_drivers.world import SimWorld
+
+# Time (s) a PhoXi S takes for one capture at full quality (simulated).
+_SCAN_TIME_S = 0.5
+# Time (s) between two tracker frames (simulated).
+_TRACKER_FRAME_S = 0.02
+
+
+class _SimDevice:
+    """Common lifecycle of a twin: a name, a connected flag and a state string."""
+
+    def __init__(self, name: str, world: SimWorld):
+        self.name = name
+        self.world = world
+        self._connected = False
+        self._state = "disconnected"
+
+    async def connect(self) -> None:
+        self._connected = True
+        self._state = "idle"
+
+    async def close(self) -> None:
+        self._connected = False
+        self._state = "disconnected"
+
+    async def status(self) -> DeviceStatus:
+        return DeviceStatus(self.name, self._connected, self._state, self._detail())
+
+    def _detail(self) -> dict[str, object]:
+        return {}
+
+    def _require_connected(self) -> None:
+        if not self._connected:
+            raise NotConnected(self.name, "not connected")
+
+    def _require_motion_allowed(self) -> None:
+        s = self.world.safety
+        if s.estop or s.light_curtain_broken:
+            raise SafetyStop(self.name, "motion refused: " + ("e-stop" if s.estop else "light curtain broken"))
+
+    async def _elapse(self, seconds: float) -> None:
+        await asyncio.sleep(seconds * self.world.config.sim.time_scale)
+
+
+class SimChassis(_SimDevice):
+    """An AGV twin: closed loop on its odometry, lands with slip; the true pose stays in the world."""
+
+    def __init__(self, name: str, world: SimWorld, robot: str):
+        super().__init__(name, world)
+        self.robot = robot
+
+    @property
+    def _truth(self):
+        return self.world.chassis[self.name]
+
+    async def move_to(self, target: ChassisPose, timeout_s: float | None = None) -> ChassisPose:
+        self._require_connected()
+        self._require_motion_allowed()
+        cfg = self._truth.cfg
+        self._state = "moving"
+        self.world.motion.start(self.robot)
+        try:
+            distance, turn = self._truth.apply_move(target, self.world.rng)
+            duration = distance / cfg.speed_mm_s + np.degrees(turn) / cfg.turn_rate_deg_s
+            limit = cfg.timeout_s if timeout_s is None else timeout_s
+            if duration > limit:
+                raise DeviceTimeout(self.name, f"move needs {duration:.0f} s, over the {limit:.0f} s timeout")
+            await self._elapse(duration)
+            n = self.world.config.sim.fault_estop_after_moves
+            if n and sum(c.moves for c in self.world.chassis.values()) >= n:
+                self.world.safety.estop = True
+        finally:
+            self.world.motion.stop(self.robot)
+            self._state = "idle"
+        return self._truth.odometry
+
+    async def odometry(self) -> ChassisPose:
+        self._require_connected()
+        return self._truth.odometry
+
+    async def stop(self) -> None:
+        self._state = "idle"
+
+    def _detail(self) -> dict[str, object]:
+        o = self._truth.odometry
+        return {"x_mm": o.x_mm, "y_mm": o.y_mm, "heading_rad": o.heading_rad, "moves": self._truth.moves}
+
+
+class SimArm(_SimDevice):
+    """A JAKA Zu twin: joint moves within limits at the configured joint speed."""
+
+    async def enable(self) -> None:
+        self._require_connected()
+
+    async def move_joints(self, joints_rad: np.ndarray, timeout_s: float | None = None) -> None:
+        self._require_connected()
+        self._require_motion_allowed()
+        self._state = "moving"
+        self.world.motion.start(SimWorld.MEASURE_ROBOT)
+        try:
+            travel = self.world.move_arm(joints_rad)
+            await self._elapse(np.degrees(travel) / self.world.config.arm.joint_speed_deg_s)
+        finally:
+            self.world.motion.stop(SimWorld.MEASURE_ROBOT)
+            self._state = "idle"
+
+    async def joints(self) -> np.ndarray:
+        self._require_connected()
+        return self.world.joints_rad.copy()
+
+    async def flange_pose(self) -> np.ndarray:
+        self._require_connected()
+        return self.world.kinematics.forward(self.world.joints_rad)
+
+    async def stop(self) -> None:
+        self._state = "idle"
+
+    def _detail(self) -> dict[str, object]:
+        return {"joints_deg": np.degrees(self.world.joints_rad).round(3).tolist()}
+
+
+class SimScanner(_SimDevice):
+    """A PhoXi S twin: ray casting on the part mesh, 0.05 mm noise along the ray."""
+
+    async def capture(self, timeout_s: float | None = None) -> ScanFrame:
+        self._require_connected()
+        n = self.world.config.sim.fault_scanner_timeout_every
+        if n and (self.world.captures + 1) % n == 0:
+            self.world.captures += 1
+            raise DeviceTimeout(self.name, "no frame within the capture timeout (injected fault)")
+        self._state = "busy"
+        try:
+            await self._elapse(_SCAN_TIME_S)
+            points, normals = await asyncio.to_thread(self.world.scan)
+        finally:
+            self._state = "idle"
+        return ScanFrame(points, normals, None, time.time())
+
+
+class SimTracker(_SimDevice):
+    """A Metronor twin: noisy ``T_C_T`` with field of view, range and occlusion by the part."""
+
+    async def read_pose(self, timeout_s: float | None = None) -> TrackerReading:
+        self._require_connected()
+        await self._elapse(_TRACKER_FRAME_S)
+        T_C_T, cov = self.world.measure_target()
+        return TrackerReading(T_C_T, cov, time.time(), self.world.tracker_frames)
+
+
+class SimSafetyIO(_SimDevice):
+    """Cell safety I/O twin: reads the world's e-stop and light curtain, drives the target light."""
+
+    async def read(self) -> SafetyState:
+        self._require_connected()
+        s = self.world.safety
+        return SafetyState(s.estop, s.light_curtain_broken, s.target_light_on)
+
+    async def set_target_light(self, on: bool) -> None:
+        self._require_connected()
+        self.world.safety.target_light_on = on

@@ -1,0 +1,243 @@
+"""The simulated cell: one object owns the ground truth that every twin reads and moves.
+
+Frames (DESIGN.md section 2): F is the floor/part frame (the part mesh's frame); W is the tracker camera
+frame at its first station (fixed when the world is made). All mm, rad, 4x4 float64. The pipeline never sees
+the truth held here; only the scoring of a simulated job does.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tandemscan.config.models import CellConfig, ChassisConfig, FloorPoseConfig, InstallationConfig
+from tandemscan.drivers.errors import OutOfReach, TargetNotVisible
+from tandemscan.drivers.interfaces import ChassisPose
+from tandemscan.pipeline import frames as F
+from tandemscan.pipeline.kinematics import ArmKinematics
+from tandemscan.pipeline.part import load_part_mesh
+from tandemscan.pipeline.raycast import ScannerModel, make_scene
+
+log = logging.getLogger(__name__)
+
+# The target counts as occluded when the part is hit this much (mm) before the target along the sight line.
+_OCCLUSION_MARGIN_MM = 5.0
+
+
+@dataclass(frozen=True)
+class Installation:
+    """Mount transforms of the cell (mm): tracker on its chassis, arm base on its chassis, scanner and target."""
+
+    T_V1_C: np.ndarray
+    T_V2_B: np.ndarray
+    T_E_S: np.ndarray
+    T_T_S: np.ndarray
+
+    @property
+    def T_E_T(self) -> np.ndarray:
+        """Flange to target, through the scanner: ``T_E_S inv(T_T_S)``."""
+        return self.T_E_S @ F.invert(self.T_T_S)
+
+    @classmethod
+    def nominal(cls, cfg: InstallationConfig) -> Installation:
+        """The CAD values of the configuration."""
+        return cls(cfg.T_V1_C.matrix(), cfg.T_V2_B.matrix(), cfg.T_E_S.matrix(), cfg.T_T_S.matrix())
+
+    def perturbed(self, rng: np.random.Generator, sigma_mm: float, sigma_rad: float) -> Installation:
+        """A copy with every mount off by Gaussian errors (per axis, mm and rad), as a real build is."""
+
+        def jitter(T: np.ndarray) -> np.ndarray:
+            return T @ F.from_rotvec(rng.normal(0, sigma_mm, 3), rng.normal(0, sigma_rad, 3))
+
+        return Installation(jitter(self.T_V1_C), jitter(self.T_V2_B), jitter(self.T_E_S), jitter(self.T_T_S))
+
+
+@dataclass
+class ChassisTruth:
+    """One AGV: its true floor pose, what its odometry believes, and its slip/drift model.
+
+    The odometry frame is F at the start (the start pose is surveyed); it drifts from there on.
+    """
+
+    name: str
+    cfg: ChassisConfig
+    true_pose: np.ndarray  # T_F_V, mm
+    odometry: ChassisPose
+    scale_bias: float  # systematic odometry scale error (drift), drawn once
+    moves: int = 0
+
+    def apply_move(self, target: ChassisPose, rng: np.random.Generator) -> tuple[float, float]:
+        """Drive from the odometry pose to ``target``: the odometry lands exactly on it (closed loop on the
+        wheels), the true chassis lands with slip and drift. Returns (path length mm, turn rad)."""
+        T_odo_now = F.planar_pose(self.odometry.x_mm, self.odometry.y_mm, self.odometry.heading_rad)
+        T_odo_target = F.planar_pose(target.x_mm, target.y_mm, target.heading_rad)
+        delta = F.invert(T_odo_now) @ T_odo_target  # commanded motion in the chassis frame
+        distance = float(np.linalg.norm(delta[:2, 3]))
+        turn = float(np.arctan2(delta[1, 0], delta[0, 0]))
+        scale = 1.0 + self.scale_bias + rng.normal(0.0, self.cfg.slip_distance_fraction)
+        heading_error = rng.normal(0.0, np.radians(self.cfg.slip_heading_deg)) * (1.0 if distance > 1 else 0.2)
+        actual = F.planar_pose(delta[0, 3] * scale, delta[1, 3] * scale, turn + heading_error)
+        self.true_pose = self.true_pose @ actual
+        self.odometry = target
+        self.moves += 1
+        return distance, abs(turn)
+
+
+@dataclass
+class SafetyTruth:
+    """The cell's safety inputs and signal outputs."""
+
+    estop: bool = False
+    light_curtain_broken: bool = False
+    target_light_on: bool = False
+
+
+@dataclass
+class MotionLog:
+    """Which robots are moving now, and any time both moved at once (a violation of the cell's rule)."""
+
+    moving: set[str] = field(default_factory=set)
+    violations: list[str] = field(default_factory=list)
+
+    def start(self, robot: str) -> None:
+        others = self.moving - {robot}
+        if others:
+            self.violations.append(f"{robot} moved while {sorted(others)} moving")
+            log.error("both robots moving: %s while %s", robot, sorted(others))
+        self.moving.add(robot)
+
+    def stop(self, robot: str) -> None:
+        self.moving.discard(robot)
+
+
+def _floor_pose(p: FloorPoseConfig) -> np.ndarray:
+    return F.planar_pose(p.x_mm, p.y_mm, np.radians(p.heading_deg))
+
+
+class SimWorld:
+    """Ground truth of the simulated cell, seeded: the same config gives the same run."""
+
+    MEASURE_ROBOT = "measurement robot"
+    TRACKING_ROBOT = "tracking robot"
+
+    def __init__(self, config: CellConfig):
+        self.config = config
+        self.rng = np.random.default_rng(config.sim.seed)
+        self.mesh = load_part_mesh(config.part)
+        self.scene = make_scene(self.mesh)
+        self.kinematics = ArmKinematics(config.arm)
+        self.scanner_model = ScannerModel(config.scanner)
+        self.nominal = Installation.nominal(config.installation)
+        self.truth = self.nominal.perturbed(
+            self.rng, config.sim.install_error_mm, np.radians(config.sim.install_error_deg)
+        )
+        self.chassis = {
+            "tracking_chassis": self._make_chassis("tracking_chassis", config.tracking_chassis,
+                                                   config.sim.tracking_start),
+            "measure_chassis": self._make_chassis("measure_chassis", config.measure_chassis,
+                                                  config.sim.measure_start),
+        }
+        self.joints_rad = np.radians(np.array(config.sim.arm_home_deg, float))
+        self.safety = SafetyTruth()
+        self.motion = MotionLog()
+        self.captures = 0
+        self.tracker_frames = 0
+        self.T_W_F = F.invert(self.T_F_C())  # W = the tracker camera frame at its first station
+
+    def _make_chassis(self, name: str, cfg: ChassisConfig, start: FloorPoseConfig) -> ChassisTruth:
+        pose = ChassisPose(start.x_mm, start.y_mm, np.radians(start.heading_deg))
+        bias = self.rng.normal(0.0, cfg.odometry_drift_fraction)
+        return ChassisTruth(name, cfg, _floor_pose(start), pose, bias)
+
+    # ------------------------------------------------------------ true poses in F
+
+    @property
+    def T_F_V1(self) -> np.ndarray:
+        return self.chassis["tracking_chassis"].true_pose
+
+    @property
+    def T_F_V2(self) -> np.ndarray:
+        return self.chassis["measure_chassis"].true_pose
+
+    def T_F_C(self) -> np.ndarray:
+        """Tracker camera in the floor frame."""
+        return self.T_F_V1 @ self.truth.T_V1_C
+
+    def T_F_E(self) -> np.ndarray:
+        """Arm flange in the floor frame."""
+        return self.T_F_V2 @ self.truth.T_V2_B @ self.kinematics.forward(self.joints_rad)
+
+    def T_F_S(self) -> np.ndarray:
+        """Scanner optical frame in the floor frame."""
+        return self.T_F_E() @ self.truth.T_E_S
+
+    def T_F_T(self) -> np.ndarray:
+        """Target in the floor frame."""
+        return self.T_F_S() @ F.invert(self.truth.T_T_S)
+
+    def T_W_S(self) -> np.ndarray:
+        """True scanner pose in the world frame W (what a perfect stitch would use)."""
+        return self.T_W_F @ self.T_F_S()
+
+    # ------------------------------------------------------------ physics of each device
+
+    def move_arm(self, joints_rad: np.ndarray) -> float:
+        """Set the joints; returns the largest joint travel (rad). Raises OutOfReach outside the limits."""
+        q = np.asarray(joints_rad, float)
+        if q.shape != (6,) or not self.kinematics.within_limits(q):
+            raise OutOfReach("arm", f"joint target {np.degrees(q).round(2).tolist()} deg outside the joint limits")
+        travel = float(np.max(np.abs(q - self.joints_rad)))
+        self.joints_rad = q
+        return travel
+
+    def scan(self) -> tuple[np.ndarray, np.ndarray]:
+        """A noisy capture at the true scanner pose: (points_S mm, normals_S)."""
+        self.captures += 1
+        return self.scanner_model.scan(self.scene, self.T_F_S(), self.rng)
+
+    def target_visibility(self) -> str | None:
+        """Why the tracker cannot see the target now, or None when it can."""
+        cfg = self.config.tracker
+        T_C_T = F.invert(self.T_F_C()) @ self.T_F_T()
+        p = T_C_T[:3, 3]
+        distance = float(np.linalg.norm(p))
+        if distance > cfg.range_max_mm:
+            return f"target {distance / 1000:.1f} m away, beyond the {cfg.range_max_mm / 1000:.0f} m range"
+        if p[2] <= 0 or abs(np.degrees(np.arctan2(p[0], p[2]))) > cfg.fov_horizontal_deg / 2 or abs(
+            np.degrees(np.arctan2(p[1], p[2]))
+        ) > cfg.fov_vertical_deg / 2:
+            return "target outside the field of view"
+        facing = float(np.degrees(np.arccos(np.clip(-T_C_T[:3, 2] @ p / distance, -1, 1))))
+        if facing > cfg.target_view_cone_deg:
+            return f"target turned {facing:.0f} deg away from the camera"
+        origin = self.T_F_C()[:3, 3]
+        to_target = self.T_F_T()[:3, 3] - origin
+        import open3d as o3d  # only here: the sight line is one ray
+
+        ray = np.r_[origin, to_target / distance][None, :].astype(np.float32)
+        t_hit = float(self.scene.cast_rays(o3d.core.Tensor(ray))["t_hit"].numpy()[0])
+        if t_hit < distance - _OCCLUSION_MARGIN_MM:
+            return f"target hidden behind the part ({t_hit:.0f} mm along the {distance:.0f} mm sight line)"
+        return None
+
+    def tracker_sigmas(self, distance_mm: float) -> tuple[float, float]:
+        """1-sigma (position mm, angle rad) of one tracker reading at ``distance_mm``."""
+        cfg = self.config.tracker
+        d_m = distance_mm / 1000.0
+        return (cfg.position_noise_mm + cfg.position_noise_mm_per_m * d_m,
+                np.radians(cfg.angle_noise_deg + cfg.angle_noise_deg_per_m * d_m))
+
+    def measure_target(self) -> tuple[np.ndarray, np.ndarray]:
+        """One noisy ``T_C_T`` and its 6x6 covariance; raises TargetNotVisible with the reason."""
+        reason = self.target_visibility()
+        if reason is not None:
+            raise TargetNotVisible("tracker", reason)
+        T_true = F.invert(self.T_F_C()) @ self.T_F_T()
+        sigma_p, sigma_r = self.tracker_sigmas(float(np.linalg.norm(T_true[:3, 3])))
+        noise = F.from_rotvec(np.zeros(3), self.rng.normal(0, sigma_r, 3))
+        T_meas = noise @ T_true
+        T_meas[:3, 3] = T_true[:3, 3] + self.rng.normal(0, sigma_p, 3)
+        self.tracker_frames += 1
+        return T_meas, np.diag([sigma_p**2] * 3 + [sigma_r**2] * 3)
