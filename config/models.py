@@ -171,6 +171,19 @@ class JobConfig(_Strict):
     calibration_file: Path | None = None
 
 
+class DaemonConfig(_Strict):
+    """The daemon: REST bind address, API token, device health polling and reconnect backoff (seconds)."""
+
+    host: str = "127.0.0.1"
+    port: int = Field(8470, ge=0, le=65535, description="0 = any free port")
+    api_token: str | None = Field(None, description="bearer token of mutating calls; TANDEMSCAN_API_TOKEN wins")
+    health_period_s: float = Field(1.0, gt=0)
+    device_timeout_s: float = Field(2.0, gt=0, description="limit of one status() or connect() call")
+    reconnect_initial_s: float = Field(0.5, gt=0)
+    reconnect_max_s: float = Field(30.0, gt=0)
+    default_plan: str = Field("default", description="plan of a job posted without one")
+
+
 class CellConfig(_Strict):
     """The whole cell."""
 
@@ -185,3 +198,4 @@ class CellConfig(_Strict):
     installation: InstallationConfig = InstallationConfig()
     sim: SimWorldConfig = SimWorldConfig()
     job: JobConfig = JobConfig()
+    daemon: DaemonConfig = DaemonConfig()

@@ -243,11 +243,11 @@ class JobStore:
     def create_job(
         self, plan_name: str, plan: dict, n_steps: int, idempotency_key: str | None = None,
         request_hash: str | None = None,
-    ) -> tuple[JobRecord, bool]:
-        """Queue a new job; returns ``(job, created)``.
+    ) -> tuple[JobRecord, Event | None]:
+        """Queue a new job; returns ``(job, its "queued" event)``.
 
         With an ``idempotency_key`` already used for the same ``request_hash`` the existing job comes back
-        with ``created=False``; with a different hash :class:`IdempotencyConflict` is raised.
+        with no event; with a different hash :class:`IdempotencyConflict` is raised.
         """
         now = time.time()
         job_id = uuid.uuid4().hex[:16]
@@ -258,15 +258,15 @@ class JobStore:
                     if row["request_hash"] != request_hash:
                         raise IdempotencyConflict(
                             f"Idempotency-Key {idempotency_key!r} was used for a different request")
-                    return _job_from_row(row), False
+                    return _job_from_row(row), None
             conn.execute(
                 "INSERT INTO jobs (id, state, plan_name, plan_json, n_steps, idempotency_key, request_hash,"
                 " created_s, updated_s) VALUES (?, 'queued', ?, ?, ?, ?, ?, ?, ?)",
                 (job_id, plan_name, json.dumps(plan), n_steps, idempotency_key, request_hash, now, now),
             )
-            self._event(conn, job_id, "state", {"state": "queued"}, now)
+            event = self._event(conn, job_id, "state", {"state": "queued"}, now)
         self.job_dir(job_id).mkdir(parents=True, exist_ok=True)
-        return self.get_job(job_id), True
+        return self.get_job(job_id), event
 
     def get_job(self, job_id: str) -> JobRecord:
         """The job, or :class:`StoreError` when unknown."""
@@ -303,13 +303,13 @@ class JobStore:
         row = self._conn().execute("SELECT * FROM jobs WHERE state = 'queued' ORDER BY seq LIMIT 1").fetchone()
         return None if row is None else _job_from_row(row)
 
-    def set_state(self, job_id: str, state: str, error: str | None = None) -> JobRecord:
-        """Change a job's state (journaled as an event); final states are never left."""
+    def set_state(self, job_id: str, state: str, error: str | None = None) -> tuple[JobRecord, Event]:
+        """Change a job's state; returns the job and the journaled event. Final states are never left."""
         if state not in JOB_STATES:
             raise StoreError(f"unknown job state {state!r}")
         now = time.time()
         with self._tx() as conn:
-            row = conn.execute("SELECT state, started_s FROM jobs WHERE id = ?", (job_id,)).fetchone()
+            row = conn.execute("SELECT state, started_s, error FROM jobs WHERE id = ?", (job_id,)).fetchone()
             if row is None:
                 raise StoreError(f"no job {job_id!r}")
             if row["state"] in FINAL_STATES and state != row["state"]:
@@ -317,14 +317,16 @@ class JobStore:
             started = row["started_s"] if row["started_s"] is not None or state != "running" else now
             finished = now if state in FINAL_STATES else None
             attempts_inc = 1 if state == "running" and row["state"] != "running" else 0
+            if error is None and state not in ("queued", "running", "succeeded"):
+                error = row["error"]  # a pause or failure keeps the reason it had; a fresh run clears it
             conn.execute(
-                "UPDATE jobs SET state = ?, error = COALESCE(?, error), started_s = ?, finished_s = ?,"
+                "UPDATE jobs SET state = ?, error = ?, started_s = ?, finished_s = ?,"
                 " updated_s = ?, attempts = attempts + ? WHERE id = ?",
                 (state, error, started, finished, now, attempts_inc, job_id),
             )
             data = {"state": state} if error is None else {"state": state, "error": error}
-            self._event(conn, job_id, "state", data, now)
-        return self.get_job(job_id)
+            event = self._event(conn, job_id, "state", data, now)
+        return self.get_job(job_id), event
 
     def set_progress(self, job_id: str, progress: float, current_step: int | None,
                      figures: dict | None = None) -> Event:

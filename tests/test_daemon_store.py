@@ -23,8 +23,8 @@ def store(tmp_path):
 
 
 def test_journal_is_wal_and_job_has_its_own_directory(store):
-    job, created = store.create_job("default", {"steps": [1, 2]}, n_steps=2)
-    assert created and job.state == "queued" and job.n_steps == 2
+    job, event = store.create_job("default", {"steps": [1, 2]}, n_steps=2)
+    assert event.data == {"state": "queued"} and job.state == "queued" and job.n_steps == 2
     assert store.job_dir(job.id).is_dir()
     mode = sqlite3.connect(store.db_path).execute("PRAGMA journal_mode").fetchone()[0]
     assert mode == "wal"
@@ -33,7 +33,7 @@ def test_journal_is_wal_and_job_has_its_own_directory(store):
 def test_idempotency_key_never_creates_two_jobs(store):
     a, created_a = store.create_job("p", {}, 1, idempotency_key="k1", request_hash="h")
     b, created_b = store.create_job("p", {}, 1, idempotency_key="k1", request_hash="h")
-    assert created_a and not created_b and a.id == b.id
+    assert created_a is not None and created_b is None and a.id == b.id
     with pytest.raises(IdempotencyConflict):
         store.create_job("p", {}, 1, idempotency_key="k1", request_hash="other")
     assert store.list_jobs()[1] == 1
