@@ -7,7 +7,6 @@ from importlib import resources
 from pathlib import Path
 
 from pydantic import ValidationError
-
 from tandemscan.config.models import CellConfig
 
 DEFAULT_CONFIG_NAME = "sim-cell.toml"

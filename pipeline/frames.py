@@ -149,3 +149,9 @@ def measurement_agv_in_world(
 def tracking_agv_in_world(T_W_T: ArrayLike, T_V1_C: ArrayLike, T_C_T: ArrayLike) -> np.ndarray:
     """Eq. 6: ``T_W_V1 = T_W_T inv(T_V1_C T_C_T)``."""
     return compose(T_W_T, invert(compose(T_V1_C, T_C_T)))
+
+
+def mean_pose(transforms: list[np.ndarray]) -> np.ndarray:
+    """Average of nearby poses: mean translation (mm) and the chordal L2 mean rotation."""
+    Ts = np.asarray(transforms, dtype=float)
+    return make_transform(Rotation.from_matrix(Ts[:, :3, :3]).mean().as_matrix(), Ts[:, :3, 3].mean(axis=0))

@@ -8,7 +8,6 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
-
 from tandemscan.config.models import ArmConfig
 
 # Weight of orientation against position in the IK residual: 1 rad counts as this many mm.
@@ -46,7 +45,7 @@ class ArmKinematics:
         seed_rad: np.ndarray | None = None,
         tol_mm: float = 0.01,
         tol_rad: float = 1e-5,
-        restarts: int = 6,
+        restarts: int = 16,
     ) -> np.ndarray | None:
         """Joint angles (rad) reaching ``T_B_E`` within the limits, nearest the seed; None if unreachable.
 

@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
-
 from tandemscan.config.models import PartConfig
 
 MESH_SUFFIXES = (".stl", ".ply", ".obj", ".off", ".gltf", ".glb")

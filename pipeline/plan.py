@@ -14,7 +14,6 @@ from typing import Annotated, Literal
 
 import tomli_w
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
-
 from tandemscan.config.loader import format_validation_error
 
 

@@ -11,7 +11,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import open3d as o3d
-
 from tandemscan.config.models import ScannerConfig
 
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import open3d as o3d
-
 from tandemscan.pipeline import frames as F
 
 

@@ -11,7 +11,6 @@ import asyncio
 import time
 
 import numpy as np
-
 from tandemscan.drivers.errors import DeviceTimeout, NotConnected, SafetyStop
 from tandemscan.drivers.interfaces import (
     ChassisPose,

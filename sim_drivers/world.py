@@ -11,11 +11,11 @@ import logging
 from dataclasses import dataclass, field
 
 import numpy as np
-
-from tandemscan.config.models import CellConfig, ChassisConfig, FloorPoseConfig, InstallationConfig
+from tandemscan.config.models import CellConfig, ChassisConfig, FloorPoseConfig
 from tandemscan.drivers.errors import OutOfReach, TargetNotVisible
 from tandemscan.drivers.interfaces import ChassisPose
 from tandemscan.pipeline import frames as F
+from tandemscan.pipeline.installation import Installation
 from tandemscan.pipeline.kinematics import ArmKinematics
 from tandemscan.pipeline.part import load_part_mesh
 from tandemscan.pipeline.raycast import ScannerModel, make_scene
@@ -24,34 +24,6 @@ log = logging.getLogger(__name__)
 
 # The target counts as occluded when the part is hit this much (mm) before the target along the sight line.
 _OCCLUSION_MARGIN_MM = 5.0
-
-
-@dataclass(frozen=True)
-class Installation:
-    """Mount transforms of the cell (mm): tracker on its chassis, arm base on its chassis, scanner and target."""
-
-    T_V1_C: np.ndarray
-    T_V2_B: np.ndarray
-    T_E_S: np.ndarray
-    T_T_S: np.ndarray
-
-    @property
-    def T_E_T(self) -> np.ndarray:
-        """Flange to target, through the scanner: ``T_E_S inv(T_T_S)``."""
-        return self.T_E_S @ F.invert(self.T_T_S)
-
-    @classmethod
-    def nominal(cls, cfg: InstallationConfig) -> Installation:
-        """The CAD values of the configuration."""
-        return cls(cfg.T_V1_C.matrix(), cfg.T_V2_B.matrix(), cfg.T_E_S.matrix(), cfg.T_T_S.matrix())
-
-    def perturbed(self, rng: np.random.Generator, sigma_mm: float, sigma_rad: float) -> Installation:
-        """A copy with every mount off by Gaussian errors (per axis, mm and rad), as a real build is."""
-
-        def jitter(T: np.ndarray) -> np.ndarray:
-            return T @ F.from_rotvec(rng.normal(0, sigma_mm, 3), rng.normal(0, sigma_rad, 3))
-
-        return Installation(jitter(self.T_V1_C), jitter(self.T_V2_B), jitter(self.T_E_S), jitter(self.T_T_S))
 
 
 @dataclass

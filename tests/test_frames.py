@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
 from tandemscan.pipeline import frames as F
 
 finite = st.floats(-5000, 5000, allow_nan=False)

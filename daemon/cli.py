@@ -1,0 +1,124 @@
+"""The operator's command line: ``tandemscan <command>``.
+
+Each command is a function taking the parsed arguments and returning an exit status. Bad input (a missing
+or invalid config, plan or mesh) prints one clear error line and exits with status 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import sys
+from datetime import datetime
+from importlib import resources
+from pathlib import Path
+
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+from tandemscan.config import CellConfig, ConfigError, load_config
+
+EXIT_USAGE = 2
+console = Console(stderr=True)
+
+
+class UsageError(Exception):
+    """Bad input from the operator: reported as one line, exit status 2."""
+
+
+def default_plan_path() -> Path:
+    """The shipped plan for the default part."""
+    return Path(str(resources.files("tandemscan.config").joinpath("plans/default-band.toml")))
+
+
+def _load_config_with_overrides(args: argparse.Namespace) -> CellConfig:
+    config = load_config(args.config)
+    part_mesh = getattr(args, "part", None)
+    if part_mesh is not None:
+        config = config.model_copy(update={"part": config.part.model_copy(update={"mesh": Path(part_mesh)})})
+    resolution = getattr(args, "resolution", None)
+    if resolution is not None:
+        scanner = config.scanner.model_copy(update={"resolution": resolution})
+        config = config.model_copy(update={"scanner": scanner})
+    return config
+
+
+def cmd_measure(args: argparse.Namespace) -> int:
+    """Run a complete measurement job on the configured cell (the simulated cell by default)."""
+    from tandemscan.daemon.runner import JobError, JobRunner
+    from tandemscan.pipeline.part import PartMeshError
+    from tandemscan.pipeline.plan import Plan, PlanError
+    from tandemscan.sim_drivers.cell import CellBuildError, build_cell
+
+    config = _load_config_with_overrides(args)
+    try:
+        plan = Plan.load(Path(args.plan) if args.plan else default_plan_path())
+        cell = build_cell(config)
+    except (PlanError, PartMeshError, CellBuildError) as e:
+        raise UsageError(str(e)) from e
+    out = Path(args.out) if args.out else config.job.out_dir
+    job_dir = out / datetime.now().strftime("job-%Y%m%d-%H%M%S")
+
+    async def run():
+        await cell.connect()
+        try:
+            with Progress(TextColumn("{task.description:<48}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                          TimeElapsedColumn(), console=console) as bar:
+                task = bar.add_task("starting", total=len(plan.steps) + 1)
+                runner = JobRunner(cell, plan, config, job_dir,
+                                   lambda p: bar.update(task, completed=p.done, total=p.total, description=p.message))
+                return await runner.run()
+        finally:
+            await cell.close()
+
+    try:
+        result = asyncio.run(run())
+    except JobError as e:
+        raise UsageError(str(e)) from e
+    _print_summary(result.report, result.job_dir)
+    return 0
+
+
+def _print_summary(report: dict, job_dir: Path) -> None:
+    out = Console()
+    out.print(f"[bold]job[/bold] {job_dir}: {report['scans']} scans, {report['transfers']} coordinate transfers, "
+              f"{report['points_cloud']} points in cloud.ply")
+    truth = report.get("ground_truth")
+    if truth:
+        out.print(f"  pose error median {truth['pose_err_mm_median']:.3f} mm / {truth['pose_err_deg_median']:.4f} deg, "
+                  f"cloud to part RMS {truth['cloud_rms_mm']:.3f} mm (P95 {truth['cloud_p95_mm']:.3f} mm)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="tandemscan", description="Two-robot 3D measurement cell")
+    parser.add_argument("-v", "--verbose", action="store_true", help="log at debug level")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("measure", help="run a measurement job (simulated cell by default)")
+    p.add_argument("--config", type=Path, help="cell configuration TOML (default: the simulated cell)")
+    p.add_argument("--plan", type=Path, help="plan TOML/JSON (default: the shipped band plan)")
+    p.add_argument("--part", type=Path, help="part mesh STL/PLY/OBJ in mm (default: the parametric train nose)")
+    p.add_argument("--resolution", choices=["coarse", "full"], help="simulated scanner resolution")
+    p.add_argument("--out", type=Path, help="output folder (default: job.out_dir of the config)")
+    p.set_defaults(func=cmd_measure)
+    return parser
+
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``tandemscan`` console script."""
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        return args.func(args)
+    except (UsageError, ConfigError) as e:
+        console.print(f"[red]error:[/red] {e}", highlight=False)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        console.print("[yellow]interrupted[/yellow]")
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

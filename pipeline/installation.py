@@ -1,0 +1,53 @@
+"""The cell's mount transforms (mm): tracker on its chassis, arm base on its chassis, scanner, target."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tandemscan.config.models import InstallationConfig
+from tandemscan.pipeline import frames as F
+
+
+@dataclass(frozen=True)
+class Installation:
+    """Mount transforms of the cell (mm): tracker on its chassis, arm base on its chassis, scanner and target."""
+
+    T_V1_C: np.ndarray
+    T_V2_B: np.ndarray
+    T_E_S: np.ndarray
+    T_T_S: np.ndarray
+
+    @property
+    def T_E_T(self) -> np.ndarray:
+        """Flange to target, through the scanner: ``T_E_S inv(T_T_S)``."""
+        return self.T_E_S @ F.invert(self.T_T_S)
+
+    @classmethod
+    def nominal(cls, cfg: InstallationConfig) -> Installation:
+        """The CAD values of the configuration."""
+        return cls(cfg.T_V1_C.matrix(), cfg.T_V2_B.matrix(), cfg.T_E_S.matrix(), cfg.T_T_S.matrix())
+
+    def perturbed(self, rng: np.random.Generator, sigma_mm: float, sigma_rad: float) -> Installation:
+        """A copy with every mount off by Gaussian errors (per axis, mm and rad), as a real build is."""
+
+        def jitter(T: np.ndarray) -> np.ndarray:
+            return T @ F.from_rotvec(rng.normal(0, sigma_mm, 3), rng.normal(0, sigma_rad, 3))
+
+        return Installation(jitter(self.T_V1_C), jitter(self.T_V2_B), jitter(self.T_E_S), jitter(self.T_T_S))
+
+    def to_json(self) -> dict[str, list[list[float]]]:
+        """The four matrices as nested lists (mm)."""
+        return {k: getattr(self, k).tolist() for k in ("T_V1_C", "T_V2_B", "T_E_S", "T_T_S")}
+
+    @classmethod
+    def from_json(cls, data: dict[str, list[list[float]]]) -> Installation:
+        """Inverse of :meth:`to_json`."""
+        return cls(*(np.array(data[k], float) for k in ("T_V1_C", "T_V2_B", "T_E_S", "T_T_S")))
+
+    @classmethod
+    def load(cls, path: Path) -> Installation:
+        """Read an installation (calibration) JSON file with the four matrices."""
+        return cls.from_json(json.loads(Path(path).read_text(encoding="utf-8")))
