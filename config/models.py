@@ -181,7 +181,7 @@ class DaemonConfig(_Strict):
     device_timeout_s: float = Field(2.0, gt=0, description="limit of one status() or connect() call")
     reconnect_initial_s: float = Field(0.5, gt=0)
     reconnect_max_s: float = Field(30.0, gt=0)
-    default_plan: str = Field("default", description="plan of a job posted without one")
+    default_plan: str = Field("default-band", description="plan of a job posted without one")
 
 
 class CellConfig(_Strict):

@@ -257,7 +257,7 @@ def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
             raise ApiProblem(422, "Unknown or invalid plan", str(e)) from e
         stored = {"plan": plan.model_dump(mode="json"), "label": req.label}
         try:
-            job, created = await mgr.submit(plan.name if req.plan is None else req.plan, stored, len(plan.steps),
+            job, created = await mgr.submit(req.plan or daemon.plans.default_name, stored, len(plan.steps),
                                             idempotency_key, request_hash(req.model_dump(mode="json")))
         except IdempotencyConflict as e:
             raise ApiProblem(422, "Idempotency-Key reused", str(e)) from e

@@ -20,7 +20,7 @@ class PlanCatalog:
     """Named plans. ``default_name`` is what an empty job request gets; ``default_factory()`` makes it
     when no file of that name exists (cached after the first call)."""
 
-    def __init__(self, folders: Iterable[Path], default_name: str = "default",
+    def __init__(self, folders: Iterable[Path], default_name: str = "default-band",
                  default_factory: Callable[[], Plan] | None = None):
         self.folders = [Path(f) for f in folders]
         self.default_name = default_name

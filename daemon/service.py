@@ -26,11 +26,13 @@ from prometheus_client import CollectorRegistry
 from tandemscan.config import CellConfig, load_config
 from tandemscan.daemon.events import EventBus
 from tandemscan.daemon.jobs import JobManager, Runner
+from tandemscan.daemon.journal import WORLD_STATE_FILE, run_journaled
 from tandemscan.daemon.metrics import DaemonCollector
 from tandemscan.daemon.notify import Notifier
 from tandemscan.daemon.plans import PlanCatalog
 from tandemscan.daemon.store import JOB_STATES, JobStore
 from tandemscan.daemon.supervisor import Supervisor
+from tandemscan.sim_drivers.persist import load_world_state
 
 log = logging.getLogger(__name__)
 
@@ -85,7 +87,7 @@ def _p99(values) -> float:
 class Daemon:
     """Everything the service runs, without the HTTP server (tests drive it directly)."""
 
-    def __init__(self, config: CellConfig, state_dir: Path, runner: Runner, token: str | None = None,
+    def __init__(self, config: CellConfig, state_dir: Path, runner: Runner | None = None, token: str | None = None,
                  cell=None, notifier: Notifier | None = None, connect_timeout_s: float = 60.0):
         from tandemscan.sim_drivers.cell import build_cell
 
@@ -97,9 +99,8 @@ class Daemon:
         self.bus = EventBus()
         self.cell = cell if cell is not None else build_cell(config)
         self.supervisor = Supervisor.for_cell(self.cell, config, on_event=self._device_event)
-        self.manager = JobManager(self.store, self.bus, self.supervisor, runner, self.cell, config)
-        self.plans = PlanCatalog([PlanCatalog.shipped_folder(), self.state_dir / "plans"],
-                                 config.daemon.default_plan, self._default_plan)
+        self.manager = JobManager(self.store, self.bus, self.supervisor, runner or run_journaled, self.cell, config)
+        self.plans = PlanCatalog([PlanCatalog.shipped_folder(), self.state_dir / "plans"], config.daemon.default_plan)
         self.notifier = notifier or Notifier()
         self.connect_timeout_s = connect_timeout_s
         self.sse_heartbeat_s = 15.0
@@ -109,17 +110,15 @@ class Daemon:
         self._tasks: list[asyncio.Task] = []
         self._journal_tasks: set[asyncio.Task] = set()
 
-    def _default_plan(self):
-        from tandemscan.daemon.runner import default_plan
-
-        return default_plan(self.config, self.cell)
-
     # ------------------------------------------------------------ lifecycle
 
     async def start(self) -> None:
         """Connect the devices, resume an interrupted job, tell systemd we are ready."""
         self._tasks.append(asyncio.create_task(self.notifier.watchdog_loop(), name="sd-watchdog"))
         self._tasks.append(asyncio.create_task(self._lag_monitor(), name="loop-lag"))
+        world = getattr(self.cell, "world", None)
+        if world is not None and load_world_state(world, self.state_dir / WORLD_STATE_FILE):
+            log.info("simulated world restored from %s", self.state_dir / WORLD_STATE_FILE)
         self.notifier.status("connecting devices")
         await self.supervisor.start()
         try:
@@ -209,14 +208,13 @@ def serve(config_path: Path | str | None = None, host: str | None = None, port: 
     import uvicorn
 
     from tandemscan.daemon.api import create_app
-    from tandemscan.daemon.runner import run_journaled
 
     config = load_config(config_path)
     token = resolve_token(config, environ)
     host = host or config.daemon.host
     port = config.daemon.port if port is None else port
     check_bind(host, token)
-    daemon = Daemon(config, resolve_state_dir(environ), run_journaled, token=token)
+    daemon = Daemon(config, resolve_state_dir(environ), token=token)
     app = create_app(daemon, manage_lifecycle=True)
     uvicorn.Server(uvicorn.Config(app, host=host, port=port, log_config=None, access_log=False,
                                   timeout_graceful_shutdown=10)).run()

@@ -82,6 +82,14 @@ CREATE TABLE IF NOT EXISTS scans (
     t_s REAL NOT NULL,
     PRIMARY KEY (job_id, step_idx)
 );
+CREATE TABLE IF NOT EXISTS notes (
+    job_id TEXT NOT NULL REFERENCES jobs(id),
+    step_idx INTEGER NOT NULL,
+    kind TEXT NOT NULL,
+    value_json TEXT NOT NULL,
+    t_s REAL NOT NULL,
+    PRIMARY KEY (job_id, step_idx, kind)
+);
 CREATE TABLE IF NOT EXISTS events (
     seq INTEGER PRIMARY KEY AUTOINCREMENT,
     job_id TEXT,
@@ -361,6 +369,25 @@ class JobStore:
         path = self.job_dir(job_id) / "scans" / f"step_{step_idx:04d}.npz"
         size = write_durably(path, lambda f: np.savez(f, **arrays))
         return PendingScan(step_idx, path, int(points_mm.shape[0]), size)
+
+    def register_scan_file(self, job_id: str, step_idx: int, path: Path, n_points: int) -> PendingScan:
+        """A scan file some other writer made durable in the job's folder, to pass to :meth:`commit_step`."""
+        path = Path(path)
+        if not path.is_file() or self.job_dir(job_id) not in path.parents:
+            raise StoreError(f"scan file {path} is not a file in the folder of job {job_id}")
+        return PendingScan(step_idx, path, int(n_points), path.stat().st_size)
+
+    def note(self, job_id: str, step_idx: int, kind: str, value: dict) -> None:
+        """Durably record something about a step under way (kept whether or not the step commits)."""
+        with self._tx() as conn:
+            conn.execute("INSERT OR REPLACE INTO notes (job_id, step_idx, kind, value_json, t_s) VALUES (?, ?, ?, ?, ?)",
+                         (job_id, step_idx, kind, json.dumps(_jsonable(value)), time.time()))
+
+    def notes(self, job_id: str, step_idx: int) -> dict[str, dict]:
+        """``{kind: value}`` noted for one step."""
+        rows = self._conn().execute("SELECT kind, value_json FROM notes WHERE job_id = ? AND step_idx = ?",
+                                    (job_id, step_idx)).fetchall()
+        return {r["kind"]: json.loads(r["value_json"]) for r in rows}
 
     def commit_step(self, job_id: str, step_idx: int, kind: str, result: dict | None = None,
                     poses: dict[str, object] | None = None, scan: PendingScan | None = None) -> bool:

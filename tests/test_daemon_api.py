@@ -63,7 +63,7 @@ async def api(tmp_path, sim_config, world):
     state = tmp_path / "state"
     (state / "plans").mkdir(parents=True)
     home = tuple(np.radians(sim_config.sim.arm_home_deg))
-    Plan(name="default", steps=[MoveArm(joints_rad=home), Scan(), Scan()]).save(state / "plans" / "default.json")
+    Plan(name="site", steps=[MoveArm(joints_rad=home), Scan(), Scan()]).save(state / "plans" / "default-band.json")
     Plan(name="short", steps=[Scan()]).save(state / "plans" / "short.toml")
     world.safety.estop = False
     runner = GatedRunner()
@@ -106,7 +106,7 @@ async def test_empty_body_runs_the_default_plan_to_success(api):
     assert r.status_code == 202
     job = r.json()
     assert r.headers["location"] == f"/v1/jobs/{job['id']}"
-    assert job["plan"] == "default" and job["steps_total"] == 3 and job["state"] in ("queued", "running")
+    assert job["plan"] == "default-band" and job["steps_total"] == 3 and job["state"] in ("queued", "running")
     api.runner.open()
     done = await wait_state(api, job["id"], "succeeded")
     assert done["progress"] == 100 and done["steps_done"] == 3 and done["figures"] == {"steps": 3}
@@ -120,7 +120,7 @@ async def test_idempotency_key_never_creates_two_jobs(api):
     b = await api.post("/v1/jobs", json={"plan": "short"}, headers=h)
     assert a.status_code == 202 and b.status_code == 200 and b.headers["idempotent-replayed"] == "true"
     assert a.json()["id"] == b.json()["id"]
-    c = await api.post("/v1/jobs", json={"plan": "default"}, headers=h)
+    c = await api.post("/v1/jobs", json={"plan": "default-band"}, headers=h)
     assert "Idempotency-Key" in assert_problem(c, 422)["detail"]
     assert (await api.get("/v1/jobs")).json()["total"] == 1
 
@@ -229,7 +229,8 @@ async def test_cell_endpoints(api):
     health = (await api.get("/v1/health")).json()
     assert health["status"] == "ok" and health["queued_jobs"] == 0
     plans = {p["name"]: p for p in (await api.get("/v1/plans")).json()}
-    assert plans["default"]["default"] and plans["default"]["scans"] == 2 and plans["short"]["steps"] == 1
+    assert plans["default-band"]["default"] and plans["default-band"]["scans"] == 2  # the site file wins
+    assert plans["short"]["steps"] == 1 and not plans["short"]["default"]
     calib = (await api.get("/v1/calibration")).json()
     assert calib["source"] == "truth" and np.allclose(calib["transforms"]["T_T_S"], api.daemon.cell.world.truth.T_T_S)
     metrics = (await api.get("/metrics")).text
