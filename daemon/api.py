@@ -63,7 +63,7 @@ class Job(BaseModel):
     steps_done: int
     figures: dict[str, Any]
     error: str | None
-    attempts: int = Field(description="runs started (a resume after a crash or pause counts)")
+    attempts: int = Field(description="runner starts: 1, plus one per daemon restart while the job was active")
     created: datetime
     started: datetime | None
     finished: datetime | None

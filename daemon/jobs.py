@@ -227,9 +227,9 @@ class JobManager:
 
     async def _run(self, job_id: str) -> None:
         try:
+            job = await asyncio.to_thread(self.store.begin_attempt, job_id)
             committed = await asyncio.to_thread(self.store.committed_steps, job_id)
-            ctx = JobContext(self.store.get_job(job_id), self.store, self.supervisor, self, self.cell,
-                             self.config, committed)
+            ctx = JobContext(job, self.store, self.supervisor, self, self.cell, self.config, committed)
             figures = await self.runner(ctx)
         except (JobCancelled, asyncio.CancelledError):
             if job_id in self._cancelled:

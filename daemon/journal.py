@@ -17,6 +17,7 @@ from typing import TypeVar
 
 from tandemscan.daemon.jobs import JobContext
 from tandemscan.daemon.runner import JobProgress, JobRunner
+from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.plan import Plan
 from tandemscan.sim_drivers.persist import save_world_state
 
@@ -87,6 +88,12 @@ async def run_journaled(ctx: JobContext) -> dict:
     if ctx.resumed:
         log.info("job %s resumes at step %d of %d", ctx.job.id, min(set(range(len(plan.steps))) - set(ctx.committed),
                                                                       default=len(plan.steps)), len(plan.steps))
+    world = getattr(ctx.cell, "world", None)
+    if world is not None and ctx.job.attempts == 1:
+        # W is the tracker camera frame at the job's first station: a later job on the same simulated cell
+        # starts where the previous one left the tracker, and is scored in its own W
+        world.T_W_F = F.invert(world.T_F_C())
+        await asyncio.to_thread(save_world_state, world, journal.world_state_path)
     runner = JobRunner(ctx.cell, plan, ctx.config, job_dir, journal.on_progress, journal)
     try:
         result = await runner.run()

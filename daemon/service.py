@@ -70,7 +70,7 @@ def check_bind(host: str, token: str | None) -> None:
         loopback = False
     if not loopback:
         raise BindRefused(f"refusing to listen on {host} without an API token: set {TOKEN_ENV} "
-                          f"or [daemon] api_token, or bind to 127.0.0.1")
+                          f"or daemon.api_token in the config, or bind to 127.0.0.1")
 
 
 def _package_version() -> str:

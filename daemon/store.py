@@ -324,17 +324,21 @@ class JobStore:
                 raise StoreError(f"job {job_id} is {row['state']}; cannot become {state}")
             started = row["started_s"] if row["started_s"] is not None or state != "running" else now
             finished = now if state in FINAL_STATES else None
-            attempts_inc = 1 if state == "running" and row["state"] != "running" else 0
             if error is None and state not in ("queued", "running", "succeeded"):
                 error = row["error"]  # a pause or failure keeps the reason it had; a fresh run clears it
             conn.execute(
-                "UPDATE jobs SET state = ?, error = ?, started_s = ?, finished_s = ?,"
-                " updated_s = ?, attempts = attempts + ? WHERE id = ?",
-                (state, error, started, finished, now, attempts_inc, job_id),
+                "UPDATE jobs SET state = ?, error = ?, started_s = ?, finished_s = ?, updated_s = ? WHERE id = ?",
+                (state, error, started, finished, now, job_id),
             )
             data = {"state": state} if error is None else {"state": state, "error": error}
             event = self._event(conn, job_id, "state", data, now)
         return self.get_job(job_id), event
+
+    def begin_attempt(self, job_id: str) -> JobRecord:
+        """Count one more start of the job's runner (the first run, then each daemon restart during it)."""
+        with self._tx() as conn:
+            conn.execute("UPDATE jobs SET attempts = attempts + 1, updated_s = ? WHERE id = ?", (time.time(), job_id))
+        return self.get_job(job_id)
 
     def set_progress(self, job_id: str, progress: float, current_step: int | None,
                      figures: dict | None = None) -> Event:

@@ -2,7 +2,8 @@
 
 Without this a restarted daemon would rebuild the world at its start poses, teleporting both robots; with it,
 a crash test sees what a real cell shows. Saved: the true and odometry pose of each chassis, the arm joints,
-counters and the random generator's state (so the run goes on with the same noise model). mm, rad.
+counters, the random generator's state (so the run goes on with the same noise model) and the world frame W
+of the job under way. mm, rad.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ def world_state(world: SimWorld) -> dict:
         "captures": world.captures,
         "tracker_frames": world.tracker_frames,
         "rng": world.rng.bit_generator.state,
+        "T_W_F": world.T_W_F.tolist(),
     }
 
 
@@ -50,6 +52,7 @@ def restore_world_state(world: SimWorld, state: dict) -> None:
     world.captures = int(state["captures"])
     world.tracker_frames = int(state["tracker_frames"])
     world.rng.bit_generator.state = state["rng"]
+    world.T_W_F = np.array(state["T_W_F"], float)
 
 
 def save_world_state(world: SimWorld, path: Path) -> None:
