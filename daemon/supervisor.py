@@ -243,11 +243,11 @@ class Supervisor:
             if not m.tripped:
                 m.tripped = True
                 m.task.cancel(f"safety stop: {reason}")
-        await self.halt()
-        if first:
+        if first:  # both only schedule work: the halt below is not delayed
             self.on_event("safety", {"latched": True, "reason": reason})
             for listener in list(self.safety_listeners):
                 listener(reason)
+        await self.halt()
 
     async def halt(self) -> None:
         """``stop()`` every motion device at once (no latch): the end of a cancelled or stopped motion."""
