@@ -23,6 +23,7 @@ from fastapi.responses import FileResponse, JSONResponse, Response, StreamingRes
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel, ConfigDict, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
 
 from tandemscan.daemon.jobs import JobError, request_hash
 from tandemscan.daemon.metrics import RequestTimer
@@ -200,8 +201,16 @@ def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
-        return problem(exc.status_code, _title(exc.status_code), str(exc.detail), request.url.path,
-                       headers=getattr(exc, "headers", None))
+        headers = getattr(exc, "headers", None)
+        if exc.status_code == 405:  # Allow: every method of every route on this path, not only the first
+            methods = set()
+            for route in app.routes:
+                if route.matches(request.scope)[0] != Match.NONE:
+                    methods |= set(getattr(route, "methods", None) or ())
+            headers = {"Allow": ", ".join(sorted(methods))}
+        # FastAPI answers a body it cannot decode (not UTF-8) with 400: a malformed body like any other, 422
+        status = 422 if exc.status_code == 400 else exc.status_code
+        return problem(status, _title(status), str(exc.detail), request.url.path, headers=headers)
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
@@ -250,17 +259,20 @@ def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
         idempotency_key: Annotated[str | None, Header(max_length=200)] = None,
     ) -> Response:
         """Queue a job (202 with its URL in ``Location``). A retry with the same ``Idempotency-Key`` and
-        body returns the same job; the same key with another body is refused (422)."""
+        body returns the same job (200); the same key with another body is refused (409); an unknown plan
+        is 404."""
+        if req.plan is not None and req.plan not in daemon.plans.names():
+            raise ApiProblem(404, "Unknown plan", f"no plan named {req.plan!r}; see /v1/plans")
         try:
             plan = daemon.plans.get(req.plan)
         except PlanError as e:
-            raise ApiProblem(422, "Unknown or invalid plan", str(e)) from e
+            raise ApiProblem(409, "Plan is invalid", str(e)) from e
         stored = {"plan": plan.model_dump(mode="json"), "label": req.label}
         try:
             job, created = await mgr.submit(req.plan or daemon.plans.default_name, stored, len(plan.steps),
                                             idempotency_key, request_hash(req.model_dump(mode="json")))
         except IdempotencyConflict as e:
-            raise ApiProblem(422, "Idempotency-Key reused", str(e)) from e
+            raise ApiProblem(409, "Idempotency-Key reused", str(e)) from e
         headers = {"Location": f"/v1/jobs/{job.id}"}
         if not created:
             headers["Idempotent-Replayed"] = "true"
@@ -379,7 +391,7 @@ def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
         return Response(generate_latest(daemon.registry), media_type=CONTENT_TYPE_LATEST)
 
     @app.get("/v1/events", tags=["service"], response_class=StreamingResponse,
-             responses={200: {"content": {"text/event-stream": {}}}})
+             responses={**PROBLEM_RESPONSES, 200: {"content": {"text/event-stream": {}}}})
     async def events(
         request: Request,
         job: Annotated[str | None, Query(max_length=64, description="only this job's events")] = None,
