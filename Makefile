@@ -11,7 +11,7 @@ measure: $(STAMP)
 	$(VENV)/bin/tandemscan measure
 
 test: $(STAMP)
-	$(PY) -m pytest -q -p no:cacheprovider
+	$(PY) -m pytest -q
 
 # System libraries Open3D needs at import time; installed through apt only where missing.
 system-deps:

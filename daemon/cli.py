@@ -63,7 +63,8 @@ def cmd_measure(args: argparse.Namespace) -> int:
     async def run():
         await cell.connect()
         try:
-            with Progress(TextColumn("{task.description:<48}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+            columns = (TextColumn("{task.description:<48}"), BarColumn(), TextColumn("{task.completed}/{task.total}"))
+            with Progress(*columns,
                           TimeElapsedColumn(), console=console) as bar:
                 task = bar.add_task("starting", total=len(plan.steps) + 1)
                 runner = JobRunner(cell, plan, config, job_dir,
