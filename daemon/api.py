@@ -24,7 +24,6 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel, ConfigDict, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
-
 from tandemscan.daemon.jobs import JobError, request_hash
 from tandemscan.daemon.metrics import RequestTimer
 from tandemscan.daemon.store import IdempotencyConflict, JobRecord

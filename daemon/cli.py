@@ -149,7 +149,8 @@ def _watch(client, job_id: str) -> int:
     columns = (TextColumn("{task.description:<24}"), BarColumn(), TextColumn("{task.percentage:5.1f} %"))
     with Progress(*columns, TimeElapsedColumn(), console=console) as bar:
         task = bar.add_task(job_id, total=100)
-        job = client.watch(job_id, lambda pct, j: bar.update(task, completed=pct, description=f"{j['id']} {j['state']}"))
+        job = client.watch(
+            job_id, lambda pct, j: bar.update(task, completed=pct, description=f"{j['id']} {j['state']}"))
     Console().print(f"{job['id']} {job['state']}" + (f": {job['error']}" if job.get("error") else ""))
     if job["state"] == "succeeded":
         Console().print(json.dumps(job["figures"]))

@@ -13,7 +13,6 @@ from collections.abc import Callable
 from prometheus_client import CollectorRegistry, Histogram
 from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.registry import Collector
-
 from tandemscan.daemon.store import JOB_STATES
 
 

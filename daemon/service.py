@@ -22,7 +22,6 @@ from pathlib import Path
 
 import numpy as np
 from prometheus_client import CollectorRegistry
-
 from tandemscan.config import CellConfig, load_config
 from tandemscan.daemon.events import EventBus
 from tandemscan.daemon.jobs import JobManager, Runner
@@ -206,7 +205,6 @@ def serve(config_path: Path | str | None = None, host: str | None = None, port: 
           environ: Mapping[str, str] | None = None) -> None:
     """Run the daemon and its REST API until SIGTERM/SIGINT (``tandemscan serve``)."""
     import uvicorn
-
     from tandemscan.daemon.api import create_app
 
     config = load_config(config_path)

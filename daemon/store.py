@@ -384,8 +384,8 @@ class JobStore:
     def note(self, job_id: str, step_idx: int, kind: str, value: dict) -> None:
         """Durably record something about a step under way (kept whether or not the step commits)."""
         with self._tx() as conn:
-            conn.execute("INSERT OR REPLACE INTO notes (job_id, step_idx, kind, value_json, t_s) VALUES (?, ?, ?, ?, ?)",
-                         (job_id, step_idx, kind, json.dumps(_jsonable(value)), time.time()))
+            conn.execute("INSERT OR REPLACE INTO notes (job_id, step_idx, kind, value_json, t_s)"
+                         " VALUES (?, ?, ?, ?, ?)", (job_id, step_idx, kind, json.dumps(_jsonable(value)), time.time()))
 
     def notes(self, job_id: str, step_idx: int) -> dict[str, dict]:
         """``{kind: value}`` noted for one step."""

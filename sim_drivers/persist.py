@@ -13,7 +13,6 @@ import os
 from pathlib import Path
 
 import numpy as np
-
 from tandemscan.drivers.interfaces import ChassisPose
 from tandemscan.sim_drivers.world import SimWorld
 

@@ -13,7 +13,6 @@ import httpx
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, settings
-
 from tandemscan.daemon.api import create_app
 from tandemscan.daemon.service import BindRefused, Daemon, check_bind, resolve_state_dir, resolve_token, running_server
 from tandemscan.pipeline.plan import MoveArm, Plan, Scan

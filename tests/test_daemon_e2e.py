@@ -21,7 +21,6 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-
 from tandemscan.config import load_config
 from tandemscan.daemon.api import create_app
 from tandemscan.daemon.service import Daemon, running_server

@@ -11,7 +11,6 @@ import textwrap
 
 import numpy as np
 import pytest
-
 from tandemscan.daemon.store import IdempotencyConflict, JobStore, StoreError
 
 

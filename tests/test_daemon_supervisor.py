@@ -8,7 +8,6 @@ import time
 
 import numpy as np
 import pytest
-
 from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT, MotionInterlock, Supervisor, backoff_delays
 from tandemscan.drivers.errors import SafetyStop
 from tandemscan.drivers.interfaces import ChassisPose

@@ -13,7 +13,6 @@ import time
 from pathlib import Path
 
 import pytest
-
 from tandemscan.daemon.notify import Notifier
 
 SYSTEMD = Path(__file__).resolve().parent.parent / "systemd"
