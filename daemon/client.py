@@ -20,6 +20,20 @@ class ClientError(Exception):
     """The daemon refused a call or cannot be reached; the message is the problem's detail."""
 
 
+class SseParser:
+    """Server-sent events, one line at a time: :meth:`feed` returns ``(kind, data)`` at each ``data:`` line."""
+
+    def __init__(self) -> None:
+        self.kind = "message"
+
+    def feed(self, line: str) -> tuple[str, dict] | None:
+        if line.startswith("event: "):
+            self.kind = line[7:]
+        elif line.startswith("data: "):
+            return self.kind, json.loads(line[6:])
+        return None
+
+
 class DaemonClient:
     """Blocking client; one method per REST call used by the CLI."""
 
@@ -66,12 +80,10 @@ class DaemonClient:
         params = {"after": after} | ({"job": job_id} if job_id else {})
         try:
             with self.http.stream("GET", "/v1/events", params=params, timeout=None) as r:
-                kind = "message"
+                parser = SseParser()
                 for line in r.iter_lines():
-                    if line.startswith("event: "):
-                        kind = line[7:]
-                    elif line.startswith("data: "):
-                        yield kind, json.loads(line[6:])
+                    if (event := parser.feed(line)) is not None:
+                        yield event
         except httpx.HTTPError as e:
             raise ClientError(f"event stream from {self.url} broke: {e}") from e
 

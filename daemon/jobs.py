@@ -86,24 +86,25 @@ def request_hash(body: dict) -> str:
     return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
+@dataclass(eq=False)
 class JobManager:
-    """Queue and state machine of jobs; runs one at a time through ``runner``."""
+    """Queue and state machine of jobs; runs one at a time through ``runner`` on ``cell``."""
 
-    def __init__(self, store: JobStore, bus: EventBus, supervisor: Supervisor, runner: Runner,
-                 cell: Any = None, config: Any = None):
-        self.store = store
-        self.bus = bus
-        self.supervisor = supervisor
-        self.runner = runner
-        self.cell = cell
-        self.config = config
-        self.active_id: str | None = None
-        self._wake = asyncio.Event()
-        self._resume: dict[str, asyncio.Event] = {}
-        self._cancelled: set[str] = set()
-        self._run_task: asyncio.Task | None = None
-        self._scheduler: asyncio.Task | None = None
-        supervisor.safety_listeners.append(self._on_safety_stop)
+    store: JobStore
+    bus: EventBus
+    supervisor: Supervisor
+    runner: Runner
+    cell: Any = None
+    config: Any = None
+    active_id: str | None = None
+    _wake: asyncio.Event = field(default_factory=asyncio.Event)
+    _resume: dict[str, asyncio.Event] = field(default_factory=dict)
+    _cancelled: set[str] = field(default_factory=set)
+    _run_task: asyncio.Task | None = None
+    _scheduler: asyncio.Task | None = None
+
+    def __post_init__(self) -> None:
+        self.supervisor.safety_listeners.append(self._on_safety_stop)
 
     # ------------------------------------------------------------ lifecycle
 

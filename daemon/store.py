@@ -36,7 +36,15 @@ JOB_STATES = ("queued", "running", "paused", "paused_safety", "succeeded", "fail
 FINAL_STATES = frozenset({"succeeded", "failed", "cancelled"})
 ACTIVE_STATES = frozenset({"running", "paused", "paused_safety"})
 
-_SCHEMA = """
+# poses: raw poses of committed steps; notes: what a step under way recorded before it committed
+_STEP_VALUES = """
+CREATE TABLE IF NOT EXISTS {table} (
+    job_id TEXT NOT NULL REFERENCES jobs(id), step_idx INTEGER NOT NULL, kind TEXT NOT NULL,
+    value_json TEXT NOT NULL, t_s REAL NOT NULL, PRIMARY KEY (job_id, step_idx, kind)
+);
+"""
+
+_SCHEMA = _STEP_VALUES.format(table="poses") + _STEP_VALUES.format(table="notes") + """
 CREATE TABLE IF NOT EXISTS jobs (
     seq INTEGER PRIMARY KEY AUTOINCREMENT,
     id TEXT NOT NULL UNIQUE,
@@ -65,14 +73,6 @@ CREATE TABLE IF NOT EXISTS steps (
     committed_s REAL NOT NULL,
     PRIMARY KEY (job_id, idx)
 );
-CREATE TABLE IF NOT EXISTS poses (
-    job_id TEXT NOT NULL REFERENCES jobs(id),
-    step_idx INTEGER NOT NULL,
-    kind TEXT NOT NULL,
-    value_json TEXT NOT NULL,
-    t_s REAL NOT NULL,
-    PRIMARY KEY (job_id, step_idx, kind)
-);
 CREATE TABLE IF NOT EXISTS scans (
     job_id TEXT NOT NULL REFERENCES jobs(id),
     step_idx INTEGER NOT NULL,
@@ -81,14 +81,6 @@ CREATE TABLE IF NOT EXISTS scans (
     bytes INTEGER NOT NULL,
     t_s REAL NOT NULL,
     PRIMARY KEY (job_id, step_idx)
-);
-CREATE TABLE IF NOT EXISTS notes (
-    job_id TEXT NOT NULL REFERENCES jobs(id),
-    step_idx INTEGER NOT NULL,
-    kind TEXT NOT NULL,
-    value_json TEXT NOT NULL,
-    t_s REAL NOT NULL,
-    PRIMARY KEY (job_id, step_idx, kind)
 );
 CREATE TABLE IF NOT EXISTS events (
     seq INTEGER PRIMARY KEY AUTOINCREMENT,

@@ -7,13 +7,13 @@ and waits on a gate the test opens, so queueing, pause, cancel and safety stops 
 from __future__ import annotations
 
 import asyncio
-import json
 
 import httpx
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, settings
 from tandemscan.daemon.api import create_app
+from tandemscan.daemon.client import SseParser
 from tandemscan.daemon.service import BindRefused, Daemon, check_bind, resolve_state_dir, resolve_token, running_server
 from tandemscan.pipeline.plan import MoveArm, Plan, Scan
 from tandemscan.sim_drivers.cell import build_cell
@@ -205,16 +205,15 @@ async def test_event_stream_follows_a_job_to_completion(api):
         job = (await api.post("/v1/jobs", json={}, headers=AUTH)).json()
         api.runner.open()
         seen = []
-        event = None
+        parser = SseParser()
         async for line in stream.aiter_lines():
-            if line.startswith("event: "):
-                event = line[7:]
-            elif line.startswith("data: "):
-                data = json.loads(line[6:])
-                if data["job_id"] == job["id"]:
-                    seen.append((event, data.get("state"), data.get("progress")))
-                if event == "state" and data.get("state") == "succeeded":
-                    break
+            if (ev := parser.feed(line)) is None:
+                continue
+            event, data = ev
+            if data["job_id"] == job["id"]:
+                seen.append((event, data.get("state"), data.get("progress")))
+            if event == "state" and data.get("state") == "succeeded":
+                break
     states = [s for e, s, _ in seen if e == "state"]
     assert states == ["queued", "running", "succeeded"]
     progress = [p for e, _, p in seen if e == "progress"]

@@ -8,7 +8,6 @@ checks that the job completes with every scan present exactly once and the accur
 from __future__ import annotations
 
 import asyncio
-import json
 import os
 import signal
 import socket
@@ -23,6 +22,7 @@ import numpy as np
 import pytest
 from tandemscan.config import load_config
 from tandemscan.daemon.api import create_app
+from tandemscan.daemon.client import SseParser
 from tandemscan.daemon.service import Daemon, running_server
 from tandemscan.pipeline.cloud_io import read_ply
 
@@ -38,15 +38,14 @@ async def _uninterrupted_run(state: Path, download: Path) -> dict:
             events = []
             async with client.stream("GET", "/v1/events", params={"after": 0}) as stream:
                 job = (await client.post("/v1/jobs", json={}, headers=AUTH)).json()
-                kind = None
+                parser = SseParser()
                 async for line in stream.aiter_lines():
-                    if line.startswith("event: "):
-                        kind = line[7:]
-                    elif line.startswith("data: "):
-                        data = json.loads(line[6:])
-                        events.append((kind, data))
-                        if kind == "state" and data["job_id"] == job["id"] and data["state"] in FINAL:
-                            break
+                    if (event := parser.feed(line)) is None:
+                        continue
+                    events.append(event)
+                    kind, data = event
+                    if kind == "state" and data["job_id"] == job["id"] and data["state"] in FINAL:
+                        break
             final = (await client.get(f"/v1/jobs/{job['id']}")).json()
             async with client.stream("GET", f"/v1/jobs/{job['id']}/cloud") as r:
                 assert r.status_code == 200

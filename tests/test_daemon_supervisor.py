@@ -39,8 +39,16 @@ async def sup(slow_world):
     await s.close()
 
 
-def far(chassis_odometry: ChassisPose) -> ChassisPose:
-    return ChassisPose(chassis_odometry.x_mm + 3000.0, chassis_odometry.y_mm, chassis_odometry.heading_rad)
+def start_long_tracker_move(sup) -> asyncio.Task:
+    """The tracking chassis driving 3 m (10 s) through the motion gate, as a task."""
+    chassis = sup.cell.tracking_chassis
+
+    async def move():
+        async with sup.motion(TRACKING_ROBOT):
+            o = await chassis.odometry()
+            await chassis.move_to(ChassisPose(o.x_mm + 3000.0, o.y_mm, o.heading_rad))
+
+    return asyncio.create_task(move())
 
 
 async def test_connects_every_device(sup):
@@ -51,13 +59,7 @@ async def test_connects_every_device(sup):
 
 
 async def test_estop_halts_motion_within_a_control_period(sup, slow_world):
-    chassis = sup.cell.tracking_chassis
-
-    async def move():
-        async with sup.motion(TRACKING_ROBOT):
-            await chassis.move_to(far(await chassis.odometry()))
-
-    task = asyncio.create_task(move())
+    task = start_long_tracker_move(sup)
     await asyncio.sleep(0.1)
     assert sup.moving_robots == [TRACKING_ROBOT]
     t0 = time.monotonic()
@@ -91,13 +93,7 @@ async def test_motion_refused_while_latched_and_reset_needs_clear_inputs(sup, sl
 
 
 async def test_never_both_robots_moving(sup, slow_world):
-    chassis = sup.cell.tracking_chassis
-
-    async def move():
-        async with sup.motion(TRACKING_ROBOT):
-            await chassis.move_to(far(await chassis.odometry()))
-
-    task = asyncio.create_task(move())
+    task = start_long_tracker_move(sup)
     await asyncio.sleep(0.05)
     with pytest.raises(MotionInterlock, match="measure robot may not move while tracking robot is moving"):
         async with sup.motion(MEASURE_ROBOT):
