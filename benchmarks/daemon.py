@@ -79,7 +79,7 @@ def main() -> None:
                         "NOTIFY_SOCKET": str(notify_path), "WATCHDOG_USEC": str(WATCHDOG_USEC)}
     env.pop("WATCHDOG_PID", None)
     log = open(tmp / "daemon.log", "wb")  # noqa: SIM115 - closed below
-    proc = subprocess.Popen([sys.executable, "-m", "tandemscan.daemon.cli", "-v", "serve", "--port", str(port),
+    proc = subprocess.Popen([sys.executable, "-m", "tandemscan.daemon.cli", "serve", "--port", str(port),
                              "--config", str(cfg)], env=env, stdout=log, stderr=subprocess.STDOUT)
     receiver = threading.Thread(target=receive, daemon=True)
     receiver.start()

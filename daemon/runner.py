@@ -146,9 +146,13 @@ def installation_for_job(config: CellConfig, cell: Cell) -> Installation:
     return Installation.load(path)
 
 
+_FLOAT32_ARRAYS = ("points_S_mm", "normals_S")  # stored as float32 (mm, unit vectors)
+
+
 def _fsync_write_npz(path: Path, **arrays: np.ndarray) -> None:
     """Write an .npz and make it durable before returning."""
     tmp = path.with_suffix(".tmp")
+    arrays = {k: v.astype(np.float32) if k in _FLOAT32_ARRAYS else v for k, v in arrays.items()}
     with open(tmp, "wb") as fh:
         np.savez(fh, **arrays)
         fh.flush()
@@ -254,9 +258,7 @@ class JobRunner:
             record = _scan_from_result(result, self.job_dir)
             self.scans.append(record)
             self.last_still_T_C_T = record.reading.T_C_T
-            with np.load(record.file) as data:
-                points, normals = data["points_S_mm"], data["normals_S"] if "normals_S" in data.files else None
-            await asyncio.to_thread(self._stitch, record.T_W_S, points, normals)
+            await asyncio.to_thread(self._restitch, record)
 
     async def _reestablish(self, i: int, step) -> None:
         """After a restart, before moving anything: a fresh target reading. Where the target has not moved
@@ -328,8 +330,8 @@ class JobRunner:
         joints = await self.cell.arm.joints()
         index = len(self.scans)
         file = self.job_dir / "scans" / f"scan-{index:04d}.npz"
-        arrays = {
-            "points_S_mm": frame.points_mm.astype(np.float32),
+        arrays = {  # point arrays go to float32 in the writer thread: a full-resolution copy takes ~0.1 s
+            "points_S_mm": frame.points_mm,
             "T_C_T": reading.T_C_T,
             "tracker_covariance": reading.covariance,
             "joints_rad": joints,
@@ -338,7 +340,7 @@ class JobRunner:
             "T_W_C": self.T_W_C,
         }
         if frame.normals is not None:
-            arrays["normals_S"] = frame.normals.astype(np.float32)
+            arrays["normals_S"] = frame.normals
         await asyncio.to_thread(_fsync_write_npz, file, **arrays)
         T_W_S = F.compose(self.T_W_C, reading.T_C_T, self.installation.T_T_S)
         truth = self.cell.world.T_W_S() if self.cell.world is not None else None
@@ -348,6 +350,12 @@ class JobRunner:
         self.last_still_T_C_T = reading.T_C_T
         await asyncio.to_thread(self._stitch, T_W_S, frame.points_mm, frame.normals)
         return record
+
+    def _restitch(self, record: ScanRecord) -> None:
+        """Stitch a scan again from its file (a resumed job rebuilding its world map)."""
+        with np.load(record.file) as data:
+            normals = data["normals_S"] if "normals_S" in data.files else None
+            self._stitch(record.T_W_S, data["points_S_mm"], normals)
 
     def _stitch(self, T_W_S: np.ndarray, points_S: np.ndarray, normals_S: np.ndarray | None) -> None:
         """Eq. 1 into the world map."""
