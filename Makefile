@@ -3,7 +3,7 @@ PYTHON ?= python3.11
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
-APT_PACKAGES := libusb-1.0-0 libgl1 libgomp1
+APT_PACKAGES := libusb-1.0-0 libgl1 libgomp1 chromium
 
 .PHONY: measure test system-deps clean
 
