@@ -164,7 +164,8 @@ def cmd_jobs(args: argparse.Namespace) -> int:
     from tandemscan.daemon.client import ClientError
 
     try:
-        page = _client(args).jobs(args.state, args.limit)
+        with _client(args) as client:
+            page = client.jobs(args.state, args.limit)
     except ClientError as e:
         raise UsageError(str(e)) from e
     out = Console()
@@ -178,17 +179,17 @@ def cmd_job(args: argparse.Namespace) -> int:
     """``job submit|watch|cancel|pause|resume``: one job on a running daemon."""
     from tandemscan.daemon.client import ClientError
 
-    client = _client(args)
     try:
-        if args.verb == "submit":
-            job = client.submit(args.plan, args.label, args.idempotency_key)
-            Console().print(job["id"])
-            return _watch(client, job["id"]) if args.watch else 0
-        if args.verb == "watch":
-            return _watch(client, args.job_id)
-        job = client.action(args.job_id, args.verb)
-        Console().print(f"{job['id']} {job['state']}")
-        return 0
+        with _client(args) as client:
+            if args.verb == "submit":
+                job = client.submit(args.plan, args.label, args.idempotency_key)
+                Console().print(job["id"])
+                return _watch(client, job["id"]) if args.watch else 0
+            if args.verb == "watch":
+                return _watch(client, args.job_id)
+            job = client.action(args.job_id, args.verb)
+            Console().print(f"{job['id']} {job['state']}")
+            return 0
     except ClientError as e:
         raise UsageError(str(e)) from e
 

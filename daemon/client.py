@@ -46,6 +46,12 @@ class DaemonClient:
     def close(self) -> None:
         self.http.close()
 
+    def __enter__(self) -> DaemonClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
     def _call(self, method: str, path: str, **kw) -> dict:
         try:
             r = self.http.request(method, path, **kw)

@@ -245,6 +245,22 @@ async def test_operator_stop_and_reset(api):
     assert not (await api.post("/v1/safety/reset", headers=AUTH)).json()["safety"]["latched"]
 
 
+async def test_cli_submits_watches_and_lists(api, monkeypatch, capsys):
+    from tandemscan.daemon import cli
+
+    monkeypatch.setenv("TANDEMSCAN_API_TOKEN", TOKEN)
+    url = str(api.base_url)
+    api.runner.open()
+    rc = await asyncio.to_thread(cli.main, ["job", "--url", url, "submit", "--plan", "short", "--watch"])
+    out = capsys.readouterr().out
+    assert rc == 0 and " succeeded" in out and '"steps": 1' in out
+    job_id = out.split()[0]
+    assert await asyncio.to_thread(cli.main, ["jobs", "--url", url, "--state", "succeeded"]) == 0
+    assert job_id in capsys.readouterr().out
+    assert await asyncio.to_thread(cli.main, ["job", "--url", url, "cancel", job_id]) == 2  # already final
+    assert "409" in capsys.readouterr().err
+
+
 def test_bind_rules_token_and_state_dir(sim_config):
     check_bind("127.0.0.1", None)
     check_bind("localhost", None)
