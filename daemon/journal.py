@@ -17,6 +17,7 @@ from typing import TypeVar
 
 from tandemscan.daemon.jobs import JobContext
 from tandemscan.daemon.runner import JobProgress, JobRunner
+from tandemscan.daemon.stitcher import ProcessWorldMap
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.plan import Plan
 from tandemscan.sim_drivers.persist import save_world_state
@@ -94,11 +95,13 @@ async def run_journaled(ctx: JobContext) -> dict:
         # starts where the previous one left the tracker, and is scored in its own W
         world.T_W_F = F.invert(world.T_F_C())
         await asyncio.to_thread(save_world_state, world, journal.world_state_path)
-    runner = JobRunner(ctx.cell, plan, ctx.config, job_dir, journal.on_progress, journal)
+    worldmap = await asyncio.to_thread(ProcessWorldMap, ctx.config.job.voxel_mm)
+    runner = JobRunner(ctx.cell, plan, ctx.config, job_dir, journal.on_progress, journal, worldmap)
     try:
         result = await runner.run()
     finally:
         await journal.drain()
+        await asyncio.to_thread(worldmap.close)
     report = dict(result.report) | {"job": ctx.job.id, "resumes": runner.resume_log,
                                     "attempts": ctx.store.get_job(ctx.job.id).attempts}
     await asyncio.to_thread(ctx.store.write_artifact, ctx.job.id, "report.json",

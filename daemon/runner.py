@@ -176,6 +176,7 @@ class JobRunner:
         job_dir: Path,
         progress: Callable[[JobProgress], None] | None = None,
         journal: StepJournal | None = None,
+        worldmap=None,
     ):
         self.cell = cell
         self.plan = plan
@@ -184,7 +185,8 @@ class JobRunner:
         self.progress = progress or (lambda p: None)
         self.journal = journal or _NoJournal()
         self.installation = installation_for_job(config, cell)
-        self.worldmap = VoxelMap(config.job.voxel_mm)
+        # a VoxelMap, or anything with its read interface and ``add_file(path, T_W_S)`` (a worker process)
+        self.worldmap = worldmap if worldmap is not None else VoxelMap(config.job.voxel_mm)
         self.T_W_C = np.eye(4)  # W is the tracker camera frame at its first station
         self.tracker_station = 0
         self.scans: list[ScanRecord] = []
@@ -258,7 +260,7 @@ class JobRunner:
             record = _scan_from_result(result, self.job_dir)
             self.scans.append(record)
             self.last_still_T_C_T = record.reading.T_C_T
-            await asyncio.to_thread(self._restitch, record)
+            await asyncio.to_thread(self._stitch_record, record)
 
     async def _reestablish(self, i: int, step) -> None:
         """After a restart, before moving anything: a fresh target reading. Where the target has not moved
@@ -348,14 +350,21 @@ class JobRunner:
                             len(frame.points_mm), truth)
         self.scans.append(record)
         self.last_still_T_C_T = reading.T_C_T
-        await asyncio.to_thread(self._stitch, T_W_S, frame.points_mm, frame.normals)
+        await asyncio.to_thread(self._stitch_record, record, frame.points_mm, frame.normals)
         return record
 
-    def _restitch(self, record: ScanRecord) -> None:
-        """Stitch a scan again from its file (a resumed job rebuilding its world map)."""
-        with np.load(record.file) as data:
-            normals = data["normals_S"] if "normals_S" in data.files else None
-            self._stitch(record.T_W_S, data["points_S_mm"], normals)
+    def _stitch_record(self, record: ScanRecord, points_S: np.ndarray | None = None,
+                       normals_S: np.ndarray | None = None) -> None:
+        """Eq. 1 of one scan into the world map: by its file where the map takes files (a worker process),
+        else from the arrays given, else from its file (a resumed job rebuilding its map)."""
+        if hasattr(self.worldmap, "add_file"):
+            self.worldmap.add_file(record.file, record.T_W_S)
+        elif points_S is not None:
+            self._stitch(record.T_W_S, points_S, normals_S)
+        else:
+            with np.load(record.file) as data:
+                normals = data["normals_S"] if "normals_S" in data.files else None
+                self._stitch(record.T_W_S, data["points_S_mm"], normals)
 
     def _stitch(self, T_W_S: np.ndarray, points_S: np.ndarray, normals_S: np.ndarray | None) -> None:
         """Eq. 1 into the world map."""
