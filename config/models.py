@@ -380,6 +380,18 @@ class CalibrationConfig(_Strict):
             raise ValueError("Y lies on the plate +y axis: x = z = 0, y > 0")
         return v
 
+class DaemonConfig(_Strict):
+    """The daemon: REST bind address, API token, device health polling and reconnect backoff (seconds)."""
+
+    host: str = "127.0.0.1"
+    port: int = Field(8470, ge=0, le=65535, description="0 = any free port")
+    api_token: str | None = Field(None, description="bearer token of mutating calls; TANDEMSCAN_API_TOKEN wins")
+    health_period_s: float = Field(1.0, gt=0)
+    device_timeout_s: float = Field(2.0, gt=0, description="limit of one status() or connect() call")
+    reconnect_initial_s: float = Field(0.5, gt=0)
+    reconnect_max_s: float = Field(30.0, gt=0)
+    default_plan: str = Field("default-band", description="plan of a job posted without one")
+
 
 class DeepMergeConfig(_Strict):
     """Stitching correction (DeepMerge + point-to-plane ICP) and the global pose-graph refinement."""
@@ -423,3 +435,4 @@ class CellConfig(_Strict):
     calibration: CalibrationConfig = CalibrationConfig()
     planning: PlanningConfig = PlanningConfig()
     deepmerge: DeepMergeConfig = DeepMergeConfig()
+    daemon: DaemonConfig = DaemonConfig()

@@ -13,12 +13,15 @@ import json
 import logging
 import os
 import time
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
+from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Protocol, TypeVar
 
 import numpy as np
 from tandemscan.config.models import CellConfig
+from tandemscan.drivers.errors import TargetNotVisible
 from tandemscan.drivers.interfaces import ChassisPose, TrackerReading
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.cloud_io import write_ply
@@ -28,6 +31,14 @@ from tandemscan.pipeline.worldmap import VoxelMap
 from tandemscan.sim_drivers.cell import Cell
 
 log = logging.getLogger(__name__)
+
+MEASURE_ROBOT = "measure"  # the measurement AGV and its arm
+TRACKING_ROBOT = "tracking"  # the tracking AGV
+# A fresh reading at resume that differs more than this from the journaled one (target still) means the
+# tracker was moved while the daemon was down: its frame is then re-established from the fresh reading.
+RESUME_TOLERANCE_MM = 0.5
+RESUME_TOLERANCE_DEG = 0.05
+T = TypeVar("T")
 
 
 class JobError(Exception):
@@ -69,6 +80,57 @@ class JobResult:
     scans: list[ScanRecord] = field(default_factory=list)
 
 
+class StepJournal(Protocol):
+    """Where a resumable run commits its steps (the daemon's store). ``committed`` maps a step index to
+    the result committed for it; a run skips those steps and rebuilds its state from their results."""
+
+    committed: dict[int, dict]
+
+    def motion(self, robot: str) -> AsyncIterator[None]:
+        """Async context every motion of ``robot`` runs in (the supervisor's gate)."""
+        ...
+
+    async def run_step(self, idx: int, fn: Callable[[], Awaitable[T]]) -> T:
+        """Run one step (pause, cancel and safety stops are handled here)."""
+        ...
+
+    async def note(self, idx: int, kind: str, value: dict) -> None:
+        """Durably record something of a step under way (the still target's reading before a transfer)."""
+        ...
+
+    def notes(self, idx: int) -> dict[str, dict]:
+        """What :meth:`note` recorded for a step, by kind."""
+        ...
+
+    async def commit(self, idx: int, kind: str, result: dict, scan_file: Path | None = None,
+                     scan_points: int = 0) -> None:
+        """Commit a step's result (and its fsynced scan file) atomically."""
+        ...
+
+
+class _NoJournal:
+    """The journal of a run outside the daemon: nothing is kept, nothing is resumed."""
+
+    committed: dict[int, dict] = {}
+
+    @asynccontextmanager
+    async def motion(self, robot: str) -> AsyncIterator[None]:
+        yield
+
+    async def run_step(self, idx: int, fn: Callable[[], Awaitable[T]]) -> T:
+        return await fn()
+
+    async def note(self, idx: int, kind: str, value: dict) -> None:
+        return None
+
+    def notes(self, idx: int) -> dict[str, dict]:
+        return {}
+
+    async def commit(self, idx: int, kind: str, result: dict, scan_file: Path | None = None,
+                     scan_points: int = 0) -> None:
+        return None
+
+
 def installation_for_job(config: CellConfig, cell: Cell) -> Installation:
     """The mount transforms the stitch uses, per ``job.installation_source``."""
     source = config.job.installation_source
@@ -84,9 +146,13 @@ def installation_for_job(config: CellConfig, cell: Cell) -> Installation:
     return Installation.load(path)
 
 
+_FLOAT32_ARRAYS = ("points_S_mm", "normals_S")  # stored as float32 (mm, unit vectors)
+
+
 def _fsync_write_npz(path: Path, **arrays: np.ndarray) -> None:
     """Write an .npz and make it durable before returning."""
     tmp = path.with_suffix(".tmp")
+    arrays = {k: v.astype(np.float32) if k in _FLOAT32_ARRAYS else v for k, v in arrays.items()}
     with open(tmp, "wb") as fh:
         np.savez(fh, **arrays)
         fh.flush()
@@ -109,19 +175,25 @@ class JobRunner:
         config: CellConfig,
         job_dir: Path,
         progress: Callable[[JobProgress], None] | None = None,
+        journal: StepJournal | None = None,
+        worldmap=None,
     ):
         self.cell = cell
         self.plan = plan
         self.config = config
         self.job_dir = Path(job_dir)
         self.progress = progress or (lambda p: None)
+        self.journal = journal or _NoJournal()
         self.installation = installation_for_job(config, cell)
-        self.worldmap = VoxelMap(config.job.voxel_mm)
+        # a VoxelMap, or anything with its read interface and ``add_file(path, T_W_S)`` (a worker process)
+        self.worldmap = worldmap if worldmap is not None else VoxelMap(config.job.voxel_mm)
         self.T_W_C = np.eye(4)  # W is the tracker camera frame at its first station
         self.tracker_station = 0
         self.scans: list[ScanRecord] = []
         self.transfers: list[dict] = []
         self.correction: dict = {"enabled": False}
+        self.last_still_T_C_T: np.ndarray | None = None  # last reading while the target has not moved since
+        self.resume_log: list[dict] = []
 
     async def read_target(self) -> TrackerReading:
         """The target pose at rest, averaged over ``tracker.samples_per_reading`` readings."""
@@ -142,17 +214,17 @@ class JobRunner:
         (self.job_dir / "scans").mkdir(parents=True, exist_ok=True)
         total = len(self.plan.steps) + 1
         await self.cell.arm.enable()
+        resuming = bool(self.journal.committed)
         for i, step in enumerate(self.plan.steps):
+            if i in self.journal.committed:
+                await self._replay(step, self.journal.committed[i])
+                continue
+            if resuming:
+                await self._reestablish(i, step)
+                resuming = False
             self.progress(JobProgress(i, total, self._describe(step)))
-            if isinstance(step, MoveTracker):
-                await self._transfer(step)
-            elif isinstance(step, MoveMeasure):
-                pose = ChassisPose(step.x_mm, step.y_mm, step.heading_rad)
-                await self.cell.measure_chassis.move_to(pose, self.config.measure_chassis.timeout_s)
-            elif isinstance(step, MoveArm):
-                await self.cell.arm.move_joints(np.array(step.joints_rad), self.config.arm.timeout_s)
-            elif isinstance(step, Scan):
-                await self._scan()
+            result, scan = await self.journal.run_step(i, lambda i=i, step=step: self._execute(i, step))
+            await self.journal.commit(i, step.kind, result, *(scan or ()))
         if self.config.deepmerge.enabled and len(self.scans) > 1:
             from tandemscan.daemon.correction import correct_job
 
@@ -163,6 +235,64 @@ class JobRunner:
         self.progress(JobProgress(total, total, "done"))
         return result
 
+    async def _execute(self, i: int, step) -> tuple[dict, tuple[Path, int] | None]:
+        """One step on the devices; returns its journal result and its scan file (path, points) if any."""
+        if isinstance(step, MoveTracker):
+            return await self._transfer(step, i), None
+        if isinstance(step, MoveMeasure):
+            pose = ChassisPose(step.x_mm, step.y_mm, step.heading_rad)
+            self.last_still_T_C_T = None
+            async with self.journal.motion(MEASURE_ROBOT):
+                odo = await self.cell.measure_chassis.move_to(pose, self.config.measure_chassis.timeout_s)
+            return {"odometry": [odo.x_mm, odo.y_mm, odo.heading_rad]}, None
+        if isinstance(step, MoveArm):
+            self.last_still_T_C_T = None
+            async with self.journal.motion(MEASURE_ROBOT):
+                await self.cell.arm.move_joints(np.array(step.joints_rad), self.config.arm.timeout_s)
+            return {"joints_rad": list(step.joints_rad)}, None
+        record = await self._scan()
+        return _scan_result(record), (record.file, record.point_count)
+
+    async def _replay(self, step, result: dict) -> None:
+        """Rebuild the run's state from a step committed before a restart (no device is touched)."""
+        if isinstance(step, MoveTracker):
+            self.T_W_C = np.array(result["T_W_C"])
+            self.tracker_station = result["station"]
+            self.transfers.append(result["transfer"])
+            self.last_still_T_C_T = np.array(result["after"])
+        elif isinstance(step, (MoveMeasure, MoveArm)):
+            self.last_still_T_C_T = None
+        elif isinstance(step, Scan):
+            record = _scan_from_result(result, self.job_dir)
+            self.scans.append(record)
+            self.last_still_T_C_T = record.reading.T_C_T
+            await asyncio.to_thread(self._stitch_record, record)
+
+    async def _reestablish(self, i: int, step) -> None:
+        """After a restart, before moving anything: a fresh target reading. Where the target has not moved
+        since the last journaled reading and the tracker is not mid-transfer, the two must agree; if not,
+        the tracker was moved while the daemon was down and its frame is re-established from the fresh one."""
+        entry: dict = {"step": i, "kind": step.kind}
+        try:
+            fresh = await self.read_target()
+        except TargetNotVisible as e:
+            entry["fresh_reading"] = f"target not visible: {e.reason}"
+            self.resume_log.append(entry)
+            log.warning("resume at step %d: %s", i, entry["fresh_reading"])
+            return
+        entry["T_C_T"] = fresh.T_C_T.tolist()
+        if self.last_still_T_C_T is not None and not isinstance(step, MoveTracker):
+            d_mm, d_rad = F.pose_error(fresh.T_C_T, self.last_still_T_C_T)
+            entry |= {"deviation_mm": d_mm, "deviation_deg": float(np.degrees(d_rad))}
+            if d_mm > RESUME_TOLERANCE_MM or np.degrees(d_rad) > RESUME_TOLERANCE_DEG:
+                T_W_T = self.T_W_C @ self.last_still_T_C_T
+                self.T_W_C = F.coordinate_transfer(self.T_W_C, self.last_still_T_C_T, fresh.T_C_T)
+                entry["reestablished"] = True
+                log.warning("resume at step %d: tracker moved while down (%.3f mm); frame re-established from "
+                            "the still target at %s", i, d_mm, T_W_T[:3, 3].round(3).tolist())
+        self.resume_log.append(entry)
+        await self.journal.note(i, "resume", entry)
+
     @staticmethod
     def _describe(step) -> str:
         return {
@@ -172,14 +302,24 @@ class JobRunner:
             "scan": "scanning",
         }[step.kind]
 
-    async def _transfer(self, step: MoveTracker) -> None:
-        """Eq. 2: read the still target, move the tracker, read it again, re-place the tracker in W."""
-        before = await self.read_target()
-        await self.cell.tracking_chassis.move_to(
-            ChassisPose(step.x_mm, step.y_mm, step.heading_rad), self.config.tracking_chassis.timeout_s
-        )
+    async def _transfer(self, step: MoveTracker, i: int = -1) -> dict:
+        """Eq. 2: read the still target, move the tracker, read it again, re-place the tracker in W.
+
+        The reading before the move is journaled before the tracker moves, so a transfer interrupted by a
+        crash or a safety stop completes from it (the target stays still meanwhile)."""
+        noted = self.journal.notes(i).get("before")
+        if noted is not None:
+            before_T_C_T = np.array(noted["T_C_T"])
+        else:
+            before_T_C_T = (await self.read_target()).T_C_T
+            await self.journal.note(i, "before", {"T_C_T": before_T_C_T.tolist()})
+        async with self.journal.motion(TRACKING_ROBOT):
+            odo = await self.cell.tracking_chassis.move_to(
+                ChassisPose(step.x_mm, step.y_mm, step.heading_rad), self.config.tracking_chassis.timeout_s
+            )
         after = await self.read_target()
-        self.T_W_C = F.coordinate_transfer(self.T_W_C, before.T_C_T, after.T_C_T)
+        self.T_W_C = F.coordinate_transfer(self.T_W_C, before_T_C_T, after.T_C_T)
+        self.last_still_T_C_T = after.T_C_T
         self.tracker_station += 1
         entry = {"station": self.tracker_station, "after_scan": len(self.scans)}
         if self.cell.world is not None:
@@ -187,16 +327,19 @@ class JobRunner:
             entry |= {"tracker_pose_err_mm": err_mm, "tracker_pose_err_deg": float(np.degrees(err_rad))}
         self.transfers.append(entry)
         log.info("coordinate transfer", extra={"station": self.tracker_station})
+        return {"T_W_C": self.T_W_C.tolist(), "station": self.tracker_station, "transfer": entry,
+                "before": before_T_C_T.tolist(), "after": after.T_C_T.tolist(),
+                "odometry": [odo.x_mm, odo.y_mm, odo.heading_rad]}
 
-    async def _scan(self) -> None:
+    async def _scan(self) -> ScanRecord:
         """Capture and read at rest, persist raw data first, then stitch into the world map."""
         frame = await self.cell.scanner.capture(self.config.scanner.timeout_s)
         reading = await self.read_target()
         joints = await self.cell.arm.joints()
         index = len(self.scans)
         file = self.job_dir / "scans" / f"scan-{index:04d}.npz"
-        arrays = {
-            "points_S_mm": frame.points_mm.astype(np.float32),
+        arrays = {  # point arrays go to float32 in the writer thread: a full-resolution copy takes ~0.1 s
+            "points_S_mm": frame.points_mm,
             "T_C_T": reading.T_C_T,
             "tracker_covariance": reading.covariance,
             "joints_rad": joints,
@@ -205,14 +348,29 @@ class JobRunner:
             "T_W_C": self.T_W_C,
         }
         if frame.normals is not None:
-            arrays["normals_S"] = frame.normals.astype(np.float32)
+            arrays["normals_S"] = frame.normals
         await asyncio.to_thread(_fsync_write_npz, file, **arrays)
         T_W_S = F.compose(self.T_W_C, reading.T_C_T, self.installation.T_T_S)
         truth = self.cell.world.T_W_S() if self.cell.world is not None else None
         record = ScanRecord(index, self.tracker_station, file, reading, joints, self.T_W_C.copy(), T_W_S,
                             len(frame.points_mm), truth)
         self.scans.append(record)
-        await asyncio.to_thread(self._stitch, T_W_S, frame.points_mm, frame.normals)
+        self.last_still_T_C_T = reading.T_C_T
+        await asyncio.to_thread(self._stitch_record, record, frame.points_mm, frame.normals)
+        return record
+
+    def _stitch_record(self, record: ScanRecord, points_S: np.ndarray | None = None,
+                       normals_S: np.ndarray | None = None) -> None:
+        """Eq. 1 of one scan into the world map: by its file where the map takes files (a worker process),
+        else from the arrays given, else from its file (a resumed job rebuilding its map)."""
+        if hasattr(self.worldmap, "add_file"):
+            self.worldmap.add_file(record.file, record.T_W_S)
+        elif points_S is not None:
+            self._stitch(record.T_W_S, points_S, normals_S)
+        else:
+            with np.load(record.file) as data:
+                normals = data["normals_S"] if "normals_S" in data.files else None
+                self._stitch(record.T_W_S, data["points_S_mm"], normals)
 
     def _stitch(self, T_W_S: np.ndarray, points_S: np.ndarray, normals_S: np.ndarray | None) -> None:
         """Eq. 1 into the world map."""
@@ -230,3 +388,22 @@ class JobRunner:
         report_file = self.job_dir / "report.json"
         report_file.write_text(json.dumps(report, indent=1), encoding="utf-8")
         return JobResult(self.job_dir, cloud_file, report_file, report, self.scans)
+
+
+def _scan_result(r: ScanRecord) -> dict:
+    """A scan's journal entry: everything :class:`ScanRecord` holds except the points (in its file)."""
+    return {
+        "index": r.index, "station": r.tracker_station, "file": r.file.name, "points": r.point_count,
+        "T_C_T": r.reading.T_C_T.tolist(), "covariance": r.reading.covariance.tolist(),
+        "timestamp_s": r.reading.timestamp_s, "frame_number": r.reading.frame_number,
+        "joints_rad": np.asarray(r.joints_rad).tolist(), "T_W_C": r.T_W_C.tolist(), "T_W_S": r.T_W_S.tolist(),
+        "T_W_S_true": None if r.T_W_S_true is None else r.T_W_S_true.tolist(),
+    }
+
+
+def _scan_from_result(d: dict, job_dir: Path) -> ScanRecord:
+    """Inverse of :func:`_scan_result`."""
+    reading = TrackerReading(np.array(d["T_C_T"]), np.array(d["covariance"]), d["timestamp_s"], d["frame_number"])
+    true = None if d["T_W_S_true"] is None else np.array(d["T_W_S_true"])
+    return ScanRecord(d["index"], d["station"], job_dir / "scans" / d["file"], reading, np.array(d["joints_rad"]),
+                      np.array(d["T_W_C"]), np.array(d["T_W_S"]), d["points"], true)

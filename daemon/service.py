@@ -1,0 +1,240 @@
+"""The daemon process: store, devices' supervisor, job manager, events and systemd notification in one
+object, and ``serve()`` that puts the REST API in front of it with uvicorn.
+
+Environment: ``TANDEMSCAN_API_TOKEN`` (bearer token of mutating calls; overrides ``[daemon] api_token``),
+``TANDEMSCAN_STATE_DIR`` (default: systemd's ``$STATE_DIRECTORY``, else ``./state``), ``NOTIFY_SOCKET`` and
+``WATCHDOG_USEC`` (set by systemd).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import ipaddress
+import json
+import logging
+import os
+import time
+from collections import deque
+from collections.abc import AsyncIterator, Mapping
+from contextlib import asynccontextmanager
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+
+import numpy as np
+from prometheus_client import CollectorRegistry
+from tandemscan.config import CellConfig, load_config
+from tandemscan.daemon.events import EventBus
+from tandemscan.daemon.jobs import JobManager, Runner
+from tandemscan.daemon.journal import WORLD_STATE_FILE, run_journaled
+from tandemscan.daemon.metrics import DaemonCollector
+from tandemscan.daemon.notify import Notifier
+from tandemscan.daemon.plans import PlanCatalog
+from tandemscan.daemon.store import JOB_STATES, JobStore
+from tandemscan.daemon.supervisor import Supervisor
+from tandemscan.sim_drivers.persist import load_world_state
+
+log = logging.getLogger(__name__)
+
+TOKEN_ENV = "TANDEMSCAN_API_TOKEN"
+STATE_DIR_ENV = "TANDEMSCAN_STATE_DIR"
+
+
+class BindRefused(Exception):
+    """The daemon was asked to listen beyond loopback without an API token."""
+
+
+def resolve_state_dir(environ: Mapping[str, str] | None = None) -> Path:
+    """``$TANDEMSCAN_STATE_DIR``, else the first of systemd's ``$STATE_DIRECTORY``, else ``./state``."""
+    env = os.environ if environ is None else environ
+    if env.get(STATE_DIR_ENV):
+        return Path(env[STATE_DIR_ENV])
+    if env.get("STATE_DIRECTORY"):
+        return Path(env["STATE_DIRECTORY"].split(":")[0])
+    return Path("state")
+
+
+def resolve_token(config: CellConfig, environ: Mapping[str, str] | None = None) -> str | None:
+    """The API token: the environment wins over the config; empty means none."""
+    env = os.environ if environ is None else environ
+    return env.get(TOKEN_ENV) or config.daemon.api_token or None
+
+
+def check_bind(host: str, token: str | None) -> None:
+    """Refuse (:class:`BindRefused`) to listen beyond loopback without a token."""
+    if token:
+        return
+    try:
+        loopback = host == "localhost" or ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        loopback = False
+    if not loopback:
+        raise BindRefused(f"refusing to listen on {host} without an API token: set {TOKEN_ENV} "
+                          f"or daemon.api_token in the config, or bind to 127.0.0.1")
+
+
+def _package_version() -> str:
+    try:
+        return version("tandemscan")
+    except PackageNotFoundError:
+        return "0"
+
+
+def _p99(values) -> float:
+    return float(np.percentile(np.fromiter(values, float), 99)) if len(values) else 0.0
+
+
+class Daemon:
+    """Everything the service runs, without the HTTP server (tests drive it directly)."""
+
+    def __init__(self, config: CellConfig, state_dir: Path, runner: Runner | None = None, token: str | None = None,
+                 cell=None, notifier: Notifier | None = None, connect_timeout_s: float = 60.0):
+        from tandemscan.sim_drivers.cell import build_cell
+
+        self.config = config
+        self.token = token
+        self.version = _package_version()
+        self.state_dir = Path(state_dir)
+        self.store = JobStore(self.state_dir)
+        self.bus = EventBus()
+        self.cell = cell if cell is not None else build_cell(config)
+        self.supervisor = Supervisor.for_cell(self.cell, config, on_event=self._device_event)
+        self.manager = JobManager(self.store, self.bus, self.supervisor, runner or run_journaled, self.cell, config)
+        self.plans = PlanCatalog([PlanCatalog.shipped_folder(), self.state_dir / "plans"], config.daemon.default_plan)
+        self.notifier = notifier or Notifier()
+        self.connect_timeout_s = connect_timeout_s
+        self.sse_heartbeat_s = 15.0
+        self.loop_lag_s: deque[float] = deque(maxlen=5000)
+        self.registry = CollectorRegistry()
+        self.registry.register(DaemonCollector(self.metrics_snapshot))
+        self._tasks: list[asyncio.Task] = []
+        self._journal_tasks: set[asyncio.Task] = set()
+
+    # ------------------------------------------------------------ lifecycle
+
+    async def start(self) -> None:
+        """Connect the devices, resume an interrupted job, tell systemd we are ready."""
+        self._tasks.append(asyncio.create_task(self.notifier.watchdog_loop(), name="sd-watchdog"))
+        self._tasks.append(asyncio.create_task(self._lag_monitor(), name="loop-lag"))
+        world = getattr(self.cell, "world", None)
+        if world is not None and load_world_state(world, self.state_dir / WORLD_STATE_FILE):
+            log.info("simulated world restored from %s", self.state_dir / WORLD_STATE_FILE)
+        self.notifier.status("connecting devices")
+        await self.supervisor.start()
+        try:
+            await self.supervisor.wait_connected(self.connect_timeout_s)
+            status = "ready: all devices connected"
+        except TimeoutError:
+            missing = [h.name for h in self.supervisor.health.values() if not h.connected]
+            status = f"degraded: not connected: {', '.join(missing)} (retrying)"
+            log.warning(status)
+        await self.manager.start()
+        self.notifier.ready(status)
+        log.info("tandemscan daemon %s: %s; state in %s", self.version, status, self.state_dir)
+
+    async def close(self) -> None:
+        """Stop jobs (they stay resumable), devices and background tasks."""
+        self.notifier.stopping()
+        await self.manager.close()
+        await self.supervisor.close()
+        tasks = self._tasks + list(self._journal_tasks)
+        for t in self._tasks:
+            t.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        self._tasks.clear()
+        await asyncio.to_thread(self.store.close)
+
+    async def _lag_monitor(self, period_s: float = 0.05) -> None:
+        """Record how late the event loop wakes a sleeper (s): a blocked loop shows here first."""
+        while True:
+            t0 = time.perf_counter()
+            await asyncio.sleep(period_s)
+            self.loop_lag_s.append(max(0.0, time.perf_counter() - t0 - period_s))
+
+    def _device_event(self, kind: str, data: dict) -> None:
+        task = asyncio.get_running_loop().create_task(self._journal(kind, data))
+        self._journal_tasks.add(task)
+        task.add_done_callback(self._journal_tasks.discard)
+
+    async def _journal(self, kind: str, data: dict) -> None:
+        ev = await asyncio.to_thread(self.store.add_event, None, kind, data)
+        self.bus.publish(ev)
+        if kind == "safety":
+            self.notifier.status(f"safety stop: {data['reason']}" if data["latched"] else "safety stop reset")
+
+    # ------------------------------------------------------------ read models
+
+    def metrics_snapshot(self) -> dict:
+        counts = {}
+        for state in JOB_STATES:
+            counts[state] = self.store.list_jobs([state], limit=1)[1]
+        snap = self.supervisor.snapshot()
+        return {"jobs": counts, "devices": snap["devices"], "safety": snap["safety"],
+                "loop_lag_p99_s": _p99(self.loop_lag_s),
+                "control_lateness_p99_s": _p99(self.supervisor.control_lateness_s)}
+
+    def calibration(self) -> dict:
+        """The installation transforms the stitch uses and their source (4x4 lists, mm)."""
+        job = self.config.job
+        names = ("T_V1_C", "T_V2_B", "T_E_S", "T_T_S")
+        if job.installation_source == "truth" and getattr(self.cell, "world", None) is not None:
+            transforms = {n: getattr(self.cell.world.truth, n).tolist() for n in names}
+        elif job.installation_source == "calibration" and job.calibration_file is not None:
+            transforms = _read_calibration_file(Path(job.calibration_file))
+        else:
+            transforms = {n: getattr(self.config.installation, n).matrix().tolist() for n in names}
+        return {"source": job.installation_source,
+                "file": str(job.calibration_file) if job.calibration_file else None, "transforms": transforms}
+
+
+def _read_calibration_file(path: Path) -> dict[str, list[list[float]]]:
+    """4x4 entries of a JSON calibration file (other keys are skipped); empty when unreadable."""
+    try:
+        raw = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as e:
+        log.warning("calibration file %s unreadable: %s", path, e)
+        return {}
+    out = {}
+    for k, v in raw.items() if isinstance(raw, dict) else ():
+        arr = np.asarray(v, dtype=object)
+        if arr.shape == (4, 4):
+            out[k] = np.asarray(v, float).tolist()
+    return out
+
+
+def serve(config_path: Path | str | None = None, host: str | None = None, port: int | None = None,
+          environ: Mapping[str, str] | None = None) -> None:
+    """Run the daemon and its REST API until SIGTERM/SIGINT (``tandemscan serve``)."""
+    import uvicorn
+    from tandemscan.daemon.api import create_app
+
+    config = load_config(config_path)
+    token = resolve_token(config, environ)
+    host = host or config.daemon.host
+    port = config.daemon.port if port is None else port
+    check_bind(host, token)
+    daemon = Daemon(config, resolve_state_dir(environ), token=token)
+    app = create_app(daemon, manage_lifecycle=True)
+    uvicorn.Server(uvicorn.Config(app, host=host, port=port, log_config=None, access_log=False,
+                                  timeout_graceful_shutdown=10)).run()
+
+
+@asynccontextmanager
+async def running_server(app, host: str = "127.0.0.1", port: int = 0) -> AsyncIterator[str]:
+    """Serve ``app`` with uvicorn inside the running event loop; yields the base URL (tests, benchmarks)."""
+    import uvicorn
+
+    server = uvicorn.Server(uvicorn.Config(app, host=host, port=port, log_config=None, access_log=False,
+                                           lifespan="on"))
+    # _serve: serve() without taking over SIGINT/SIGTERM, which belong to the embedding program
+    task = asyncio.create_task(server._serve(), name="uvicorn")
+    try:
+        while not server.started:
+            if task.done():
+                task.result()
+                raise RuntimeError("uvicorn stopped during start-up")
+            await asyncio.sleep(0.01)
+        bound = server.servers[0].sockets[0].getsockname()
+        yield f"http://{bound[0]}:{bound[1]}"
+    finally:
+        server.should_exit = True
+        await task

@@ -1,0 +1,524 @@
+"""The job store: one directory per job and a SQLite journal (WAL) of jobs, steps, poses, scans and events.
+
+Layout under the state directory::
+
+    journal.sqlite            jobs, steps, poses, scans, events (WAL mode, synchronous=FULL)
+    jobs/<job id>/scans/      one raw scan file per scan step (``step_0007.npz``: points_mm, normals)
+    jobs/<job id>/            artifacts: cloud.ply, report.json, ...
+
+Durability rules: a scan file is written to a temporary name, fsynced, renamed and its directory fsynced
+*before* the transaction that records it commits; the same transaction marks its step done. A crash
+between the two leaves an orphan file that :meth:`JobStore.recover` removes, and the step is run again.
+Every step commits at most once (primary key ``(job_id, idx)``), so a resumed job has every scan exactly once.
+
+Units: mm, rad, 4x4 float64 matrices stored as nested JSON lists; times are Unix seconds.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import sqlite3
+import threading
+import time
+import uuid
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+JOB_STATES = ("queued", "running", "paused", "paused_safety", "succeeded", "failed", "cancelled")
+FINAL_STATES = frozenset({"succeeded", "failed", "cancelled"})
+ACTIVE_STATES = frozenset({"running", "paused", "paused_safety"})
+
+# poses: raw poses of committed steps; notes: what a step under way recorded before it committed
+_STEP_VALUES = """
+CREATE TABLE IF NOT EXISTS {table} (
+    job_id TEXT NOT NULL REFERENCES jobs(id), step_idx INTEGER NOT NULL, kind TEXT NOT NULL,
+    value_json TEXT NOT NULL, t_s REAL NOT NULL, PRIMARY KEY (job_id, step_idx, kind)
+);
+"""
+
+_SCHEMA = _STEP_VALUES.format(table="poses") + _STEP_VALUES.format(table="notes") + """
+CREATE TABLE IF NOT EXISTS jobs (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT,
+    id TEXT NOT NULL UNIQUE,
+    state TEXT NOT NULL,
+    plan_name TEXT NOT NULL,
+    plan_json TEXT NOT NULL,
+    n_steps INTEGER NOT NULL,
+    idempotency_key TEXT UNIQUE,
+    request_hash TEXT,
+    created_s REAL NOT NULL,
+    started_s REAL,
+    finished_s REAL,
+    updated_s REAL NOT NULL,
+    progress REAL NOT NULL DEFAULT 0,
+    current_step INTEGER,
+    error TEXT,
+    figures_json TEXT NOT NULL DEFAULT '{}',
+    attempts INTEGER NOT NULL DEFAULT 0
+);
+CREATE INDEX IF NOT EXISTS jobs_state ON jobs(state);
+CREATE TABLE IF NOT EXISTS steps (
+    job_id TEXT NOT NULL REFERENCES jobs(id),
+    idx INTEGER NOT NULL,
+    kind TEXT NOT NULL,
+    result_json TEXT NOT NULL,
+    committed_s REAL NOT NULL,
+    PRIMARY KEY (job_id, idx)
+);
+CREATE TABLE IF NOT EXISTS scans (
+    job_id TEXT NOT NULL REFERENCES jobs(id),
+    step_idx INTEGER NOT NULL,
+    file TEXT NOT NULL,
+    n_points INTEGER NOT NULL,
+    bytes INTEGER NOT NULL,
+    t_s REAL NOT NULL,
+    PRIMARY KEY (job_id, step_idx)
+);
+CREATE TABLE IF NOT EXISTS events (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT,
+    job_id TEXT,
+    kind TEXT NOT NULL,
+    data_json TEXT NOT NULL,
+    t_s REAL NOT NULL
+);
+"""
+
+
+class StoreError(Exception):
+    """The store cannot do what was asked (unknown job, bad state change, corrupt file)."""
+
+
+class IdempotencyConflict(StoreError):
+    """An ``Idempotency-Key`` was reused with a different request body."""
+
+
+@dataclass(frozen=True)
+class JobRecord:
+    """One row of ``jobs``: ``progress`` is 0-100, ``current_step`` the index of the step under way."""
+
+    id: str
+    seq: int
+    state: str
+    plan_name: str
+    plan: dict
+    n_steps: int
+    created_s: float
+    updated_s: float
+    started_s: float | None = None
+    finished_s: float | None = None
+    progress: float = 0.0
+    current_step: int | None = None
+    error: str | None = None
+    figures: dict = field(default_factory=dict)
+    attempts: int = 0
+    idempotency_key: str | None = None
+
+
+@dataclass(frozen=True)
+class ScanRecord:
+    """One committed raw scan: the file path is relative to the job directory."""
+
+    job_id: str
+    step_idx: int
+    file: str
+    n_points: int
+    bytes: int
+    t_s: float
+
+
+@dataclass(frozen=True)
+class PendingScan:
+    """A scan file that is on disk and fsynced but not yet committed."""
+
+    step_idx: int
+    path: Path
+    n_points: int
+    bytes: int
+
+
+@dataclass(frozen=True)
+class Event:
+    """A journaled state change or progress event; ``seq`` grows monotonically."""
+
+    seq: int
+    job_id: str | None
+    kind: str
+    data: dict
+    t_s: float
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def write_durably(path: Path, write) -> int:
+    """Write a file through ``write(fileobj)`` to a temporary name, fsync, rename, fsync the folder.
+
+    Returns the size in bytes. Readers never see a half-written file at ``path``.
+    """
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".part")
+    with open(tmp, "wb") as f:
+        write(f)
+        f.flush()
+        os.fsync(f.fileno())
+        size = f.tell()
+    os.replace(tmp, path)
+    _fsync_dir(path.parent)
+    return size
+
+
+class JobStore:
+    """The journal and the job directories under ``state_dir``. Thread-safe: one SQLite connection per
+    thread (WAL lets readers run beside the writer), writes serialised by a lock."""
+
+    def __init__(self, state_dir: Path | str):
+        self.state_dir = Path(state_dir)
+        self.jobs_dir = self.state_dir / "jobs"
+        self.jobs_dir.mkdir(parents=True, exist_ok=True)
+        self.db_path = self.state_dir / "journal.sqlite"
+        self._local = threading.local()
+        self._write_lock = threading.Lock()
+        self._connections: list[sqlite3.Connection] = []
+        self._conn_lock = threading.Lock()
+        with self._write_lock:
+            self._conn().executescript(_SCHEMA)
+
+    # ------------------------------------------------------------ connections
+
+    def _conn(self) -> sqlite3.Connection:
+        conn = getattr(self._local, "conn", None)
+        if conn is None:
+            conn = sqlite3.connect(self.db_path, isolation_level=None, check_same_thread=False, timeout=30.0)
+            conn.row_factory = sqlite3.Row
+            conn.execute("PRAGMA journal_mode=WAL")
+            conn.execute("PRAGMA synchronous=FULL")
+            conn.execute("PRAGMA foreign_keys=ON")
+            self._local.conn = conn
+            with self._conn_lock:
+                self._connections.append(conn)
+        return conn
+
+    @contextmanager
+    def _tx(self) -> Iterator[sqlite3.Connection]:
+        """One write transaction: BEGIN IMMEDIATE ... COMMIT, rolled back on any error."""
+        with self._write_lock:
+            conn = self._conn()
+            conn.execute("BEGIN IMMEDIATE")
+            try:
+                yield conn
+            except BaseException:
+                conn.execute("ROLLBACK")
+                raise
+            conn.execute("COMMIT")
+
+    def close(self) -> None:
+        """Close every connection this store opened (any thread)."""
+        with self._conn_lock:
+            for conn in self._connections:
+                conn.close()
+            self._connections.clear()
+        self._local = threading.local()
+
+    # ------------------------------------------------------------ jobs
+
+    def job_dir(self, job_id: str) -> Path:
+        """The folder of one job (artifacts and raw scans)."""
+        if not job_id or "/" in job_id or job_id.startswith("."):
+            raise StoreError(f"invalid job id {job_id!r}")
+        return self.jobs_dir / job_id
+
+    def create_job(
+        self, plan_name: str, plan: dict, n_steps: int, idempotency_key: str | None = None,
+        request_hash: str | None = None,
+    ) -> tuple[JobRecord, Event | None]:
+        """Queue a new job; returns ``(job, its "queued" event)``.
+
+        With an ``idempotency_key`` already used for the same ``request_hash`` the existing job comes back
+        with no event; with a different hash :class:`IdempotencyConflict` is raised.
+        """
+        now = time.time()
+        job_id = uuid.uuid4().hex[:16]
+        with self._tx() as conn:
+            if idempotency_key is not None:
+                row = conn.execute("SELECT * FROM jobs WHERE idempotency_key = ?", (idempotency_key,)).fetchone()
+                if row is not None:
+                    if row["request_hash"] != request_hash:
+                        raise IdempotencyConflict(
+                            f"Idempotency-Key {idempotency_key!r} was used for a different request")
+                    return _job_from_row(row), None
+            conn.execute(
+                "INSERT INTO jobs (id, state, plan_name, plan_json, n_steps, idempotency_key, request_hash,"
+                " created_s, updated_s) VALUES (?, 'queued', ?, ?, ?, ?, ?, ?, ?)",
+                (job_id, plan_name, json.dumps(plan), n_steps, idempotency_key, request_hash, now, now),
+            )
+            event = self._event(conn, job_id, "state", {"state": "queued"}, now)
+        self.job_dir(job_id).mkdir(parents=True, exist_ok=True)
+        return self.get_job(job_id), event
+
+    def get_job(self, job_id: str) -> JobRecord:
+        """The job, or :class:`StoreError` when unknown."""
+        row = self._conn().execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        if row is None:
+            raise StoreError(f"no job {job_id!r}")
+        return _job_from_row(row)
+
+    def list_jobs(
+        self, states: Iterable[str] | None = None, plan_name: str | None = None,
+        created_after_s: float | None = None, limit: int = 50, offset: int = 0,
+    ) -> tuple[list[JobRecord], int]:
+        """Jobs newest first, filtered; returns ``(page, total matching)``."""
+        where, args = [], []
+        states = list(states or [])
+        if states:
+            where.append(f"state IN ({','.join('?' * len(states))})")
+            args.extend(states)
+        if plan_name is not None:
+            where.append("plan_name = ?")
+            args.append(plan_name)
+        if created_after_s is not None:
+            where.append("created_s > ?")
+            args.append(created_after_s)
+        clause = f" WHERE {' AND '.join(where)}" if where else ""
+        conn = self._conn()
+        total = conn.execute(f"SELECT COUNT(*) FROM jobs{clause}", args).fetchone()[0]
+        rows = conn.execute(
+            f"SELECT * FROM jobs{clause} ORDER BY seq DESC LIMIT ? OFFSET ?", [*args, limit, offset]).fetchall()
+        return [_job_from_row(r) for r in rows], total
+
+    def next_queued(self) -> JobRecord | None:
+        """The oldest queued job."""
+        row = self._conn().execute("SELECT * FROM jobs WHERE state = 'queued' ORDER BY seq LIMIT 1").fetchone()
+        return None if row is None else _job_from_row(row)
+
+    def set_state(self, job_id: str, state: str, error: str | None = None) -> tuple[JobRecord, Event]:
+        """Change a job's state; returns the job and the journaled event. Final states are never left."""
+        if state not in JOB_STATES:
+            raise StoreError(f"unknown job state {state!r}")
+        now = time.time()
+        with self._tx() as conn:
+            row = conn.execute("SELECT state, started_s, error FROM jobs WHERE id = ?", (job_id,)).fetchone()
+            if row is None:
+                raise StoreError(f"no job {job_id!r}")
+            if row["state"] in FINAL_STATES and state != row["state"]:
+                raise StoreError(f"job {job_id} is {row['state']}; cannot become {state}")
+            started = row["started_s"] if row["started_s"] is not None or state != "running" else now
+            finished = now if state in FINAL_STATES else None
+            if error is None and state not in ("queued", "running", "succeeded"):
+                error = row["error"]  # a pause or failure keeps the reason it had; a fresh run clears it
+            conn.execute(
+                "UPDATE jobs SET state = ?, error = ?, started_s = ?, finished_s = ?, updated_s = ? WHERE id = ?",
+                (state, error, started, finished, now, job_id),
+            )
+            data = {"state": state} if error is None else {"state": state, "error": error}
+            event = self._event(conn, job_id, "state", data, now)
+        return self.get_job(job_id), event
+
+    def begin_attempt(self, job_id: str) -> JobRecord:
+        """Count one more start of the job's runner (the first run, then each daemon restart during it)."""
+        with self._tx() as conn:
+            conn.execute("UPDATE jobs SET attempts = attempts + 1, updated_s = ? WHERE id = ?", (time.time(), job_id))
+        return self.get_job(job_id)
+
+    def set_progress(self, job_id: str, progress: float, current_step: int | None,
+                     figures: dict | None = None) -> Event:
+        """Record progress (0-100), the step under way and optional figures so far; journaled as an event."""
+        now = time.time()
+        data = {"progress": round(float(progress), 3), "current_step": current_step}
+        with self._tx() as conn:
+            if figures is None:
+                conn.execute("UPDATE jobs SET progress = ?, current_step = ?, updated_s = ? WHERE id = ?",
+                             (progress, current_step, now, job_id))
+            else:
+                conn.execute(
+                    "UPDATE jobs SET progress = ?, current_step = ?, figures_json = ?, updated_s = ? WHERE id = ?",
+                    (progress, current_step, json.dumps(figures), now, job_id))
+                data["figures"] = figures
+            return self._event(conn, job_id, "progress", data, now)
+
+    # ------------------------------------------------------------ steps, poses, scans
+
+    def write_scan_file(self, job_id: str, step_idx: int, points_mm: np.ndarray,
+                        normals: np.ndarray | None = None) -> PendingScan:
+        """Write one raw scan (points (N, 3) mm in the scanner frame S, optional normals) and fsync it.
+
+        Nothing is committed: pass the result to :meth:`commit_step`.
+        """
+        points_mm = np.asarray(points_mm)
+        if points_mm.ndim != 2 or points_mm.shape[1] != 3:
+            raise StoreError(f"scan points must be (N, 3), got {points_mm.shape}")
+        arrays = {"points_mm": points_mm}
+        if normals is not None:
+            arrays["normals"] = np.asarray(normals)
+        path = self.job_dir(job_id) / "scans" / f"step_{step_idx:04d}.npz"
+        size = write_durably(path, lambda f: np.savez(f, **arrays))
+        return PendingScan(step_idx, path, int(points_mm.shape[0]), size)
+
+    def register_scan_file(self, job_id: str, step_idx: int, path: Path, n_points: int) -> PendingScan:
+        """A scan file some other writer made durable in the job's folder, to pass to :meth:`commit_step`."""
+        path = Path(path)
+        if not path.is_file() or self.job_dir(job_id) not in path.parents:
+            raise StoreError(f"scan file {path} is not a file in the folder of job {job_id}")
+        return PendingScan(step_idx, path, int(n_points), path.stat().st_size)
+
+    def note(self, job_id: str, step_idx: int, kind: str, value: dict) -> None:
+        """Durably record something about a step under way (kept whether or not the step commits)."""
+        with self._tx() as conn:
+            conn.execute("INSERT OR REPLACE INTO notes (job_id, step_idx, kind, value_json, t_s)"
+                         " VALUES (?, ?, ?, ?, ?)", (job_id, step_idx, kind, json.dumps(_jsonable(value)), time.time()))
+
+    def notes(self, job_id: str, step_idx: int) -> dict[str, dict]:
+        """``{kind: value}`` noted for one step."""
+        rows = self._conn().execute("SELECT kind, value_json FROM notes WHERE job_id = ? AND step_idx = ?",
+                                    (job_id, step_idx)).fetchall()
+        return {r["kind"]: json.loads(r["value_json"]) for r in rows}
+
+    def commit_step(self, job_id: str, step_idx: int, kind: str, result: dict | None = None,
+                    poses: dict[str, object] | None = None, scan: PendingScan | None = None) -> bool:
+        """Commit one step atomically with its raw poses (``{kind: JSON-able value}``) and scan file.
+
+        Returns False (and changes nothing) when the step was already committed.
+        """
+        now = time.time()
+        with self._tx() as conn:
+            exists = conn.execute("SELECT 1 FROM steps WHERE job_id = ? AND idx = ?", (job_id, step_idx)).fetchone()
+            if exists:
+                return False
+            conn.execute("INSERT INTO steps (job_id, idx, kind, result_json, committed_s) VALUES (?, ?, ?, ?, ?)",
+                         (job_id, step_idx, kind, json.dumps(result or {}), now))
+            for pose_kind, value in (poses or {}).items():
+                conn.execute("INSERT INTO poses (job_id, step_idx, kind, value_json, t_s) VALUES (?, ?, ?, ?, ?)",
+                             (job_id, step_idx, pose_kind, json.dumps(_jsonable(value)), now))
+            if scan is not None:
+                if scan.step_idx != step_idx:
+                    raise StoreError(f"scan of step {scan.step_idx} committed with step {step_idx}")
+                rel = scan.path.relative_to(self.job_dir(job_id)).as_posix()
+                conn.execute(
+                    "INSERT INTO scans (job_id, step_idx, file, n_points, bytes, t_s) VALUES (?, ?, ?, ?, ?, ?)",
+                    (job_id, step_idx, rel, scan.n_points, scan.bytes, now))
+        return True
+
+    def committed_steps(self, job_id: str) -> dict[int, dict]:
+        """``{step index: result}`` of every committed step."""
+        rows = self._conn().execute("SELECT idx, result_json FROM steps WHERE job_id = ? ORDER BY idx",
+                                    (job_id,)).fetchall()
+        return {r["idx"]: json.loads(r["result_json"]) for r in rows}
+
+    def first_uncommitted_step(self, job_id: str) -> int:
+        """Index of the first step whose result is not committed (``n_steps`` when all are)."""
+        job = self.get_job(job_id)
+        done = self.committed_steps(job_id)
+        return next((i for i in range(job.n_steps) if i not in done), job.n_steps)
+
+    def poses(self, job_id: str, kind: str | None = None) -> list[tuple[int, str, object]]:
+        """Committed raw poses as ``(step index, kind, value)`` in step order."""
+        sql = "SELECT step_idx, kind, value_json FROM poses WHERE job_id = ?"
+        args: list = [job_id]
+        if kind is not None:
+            sql += " AND kind = ?"
+            args.append(kind)
+        rows = self._conn().execute(sql + " ORDER BY step_idx, kind", args).fetchall()
+        return [(r["step_idx"], r["kind"], json.loads(r["value_json"])) for r in rows]
+
+    def scans(self, job_id: str) -> list[ScanRecord]:
+        """Committed scans in step order."""
+        rows = self._conn().execute("SELECT * FROM scans WHERE job_id = ? ORDER BY step_idx", (job_id,)).fetchall()
+        return [ScanRecord(r["job_id"], r["step_idx"], r["file"], r["n_points"], r["bytes"], r["t_s"]) for r in rows]
+
+    def load_scan(self, job_id: str, step_idx: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """``(points_mm, normals or None)`` of a committed scan."""
+        row = self._conn().execute("SELECT file FROM scans WHERE job_id = ? AND step_idx = ?",
+                                   (job_id, step_idx)).fetchone()
+        if row is None:
+            raise StoreError(f"job {job_id} has no committed scan at step {step_idx}")
+        with np.load(self.job_dir(job_id) / row["file"]) as data:
+            return data["points_mm"], (data["normals"] if "normals" in data.files else None)
+
+    def write_artifact(self, job_id: str, name: str, data: bytes) -> Path:
+        """Write a result file (``cloud.ply``, ``report.json``) durably into the job directory."""
+        path = self.job_dir(job_id) / name
+        write_durably(path, lambda f: f.write(data))
+        return path
+
+    # ------------------------------------------------------------ events
+
+    @staticmethod
+    def _event(conn: sqlite3.Connection, job_id: str | None, kind: str, data: dict, now: float) -> Event:
+        cur = conn.execute("INSERT INTO events (job_id, kind, data_json, t_s) VALUES (?, ?, ?, ?)",
+                           (job_id, kind, json.dumps(data), now))
+        return Event(cur.lastrowid, job_id, kind, data, now)
+
+    def add_event(self, job_id: str | None, kind: str, data: dict) -> Event:
+        """Journal one event (device state, safety, log line)."""
+        with self._tx() as conn:
+            return self._event(conn, job_id, kind, data, time.time())
+
+    def events(self, after_seq: int = 0, job_id: str | None = None, limit: int = 1000) -> list[Event]:
+        """Journaled events with ``seq > after_seq``, oldest first."""
+        sql, args = "SELECT * FROM events WHERE seq > ?", [after_seq]
+        if job_id is not None:
+            sql += " AND job_id = ?"
+            args.append(job_id)
+        rows = self._conn().execute(sql + " ORDER BY seq LIMIT ?", [*args, limit]).fetchall()
+        return [Event(r["seq"], r["job_id"], r["kind"], json.loads(r["data_json"]), r["t_s"]) for r in rows]
+
+    def last_event_seq(self) -> int:
+        row = self._conn().execute("SELECT MAX(seq) FROM events").fetchone()
+        return int(row[0] or 0)
+
+    # ------------------------------------------------------------ crash recovery
+
+    def recover(self) -> list[str]:
+        """After a restart: remove scan files no committed row points to (a crash between write and
+        commit) and half-written ``.part`` files; return the ids of jobs that were active (to resume)."""
+        committed = {(r["job_id"], r["file"]) for r in self._conn().execute("SELECT job_id, file FROM scans")}
+        removed = 0
+        for job_path in self.jobs_dir.iterdir() if self.jobs_dir.exists() else ():
+            scans_dir = job_path / "scans"
+            if not scans_dir.is_dir():
+                continue
+            for f in scans_dir.iterdir():
+                rel = f.relative_to(job_path).as_posix()
+                if f.name.endswith(".part") or (job_path.name, rel) not in committed:
+                    f.unlink()
+                    removed += 1
+        if removed:
+            log.warning("recovery removed %d uncommitted scan file(s)", removed)
+        rows = self._conn().execute(
+            f"SELECT id FROM jobs WHERE state IN ({','.join('?' * len(ACTIVE_STATES))}) ORDER BY seq",
+            sorted(ACTIVE_STATES)).fetchall()
+        return [r["id"] for r in rows]
+
+
+def _jsonable(value: object) -> object:
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    return value
+
+
+def _job_from_row(row: sqlite3.Row) -> JobRecord:
+    return JobRecord(
+        id=row["id"], seq=row["seq"], state=row["state"], plan_name=row["plan_name"],
+        plan=json.loads(row["plan_json"]), n_steps=row["n_steps"], created_s=row["created_s"],
+        updated_s=row["updated_s"], started_s=row["started_s"], finished_s=row["finished_s"],
+        progress=row["progress"], current_step=row["current_step"], error=row["error"],
+        figures=json.loads(row["figures_json"]), attempts=row["attempts"], idempotency_key=row["idempotency_key"],
+    )

@@ -1,0 +1,319 @@
+"""The supervisor: device connections and health, reconnect with backoff, and the cell's safety.
+
+Safety rules enforced here (not only in plans):
+
+- A safety stop from any source (safety I/O polled every control period, a device raising
+  :class:`SafetyStop`, an operator) is *latched*: every motion device gets ``stop()`` and every motion in
+  flight is interrupted with :class:`SafetyStop` within one control period. Motion is refused while latched;
+  :meth:`Supervisor.reset_safety` clears the latch only when the inputs allow motion again.
+- Never both robots moving: every motion goes through :meth:`Supervisor.motion`, which refuses to start a
+  robot while another one is moving (:class:`MotionInterlock`).
+
+Times are seconds (monotonic clock).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import random
+import time
+from collections import deque
+from collections.abc import AsyncIterator, Callable, Iterator, Mapping, Sequence
+from contextlib import asynccontextmanager
+from dataclasses import dataclass, field
+
+from tandemscan.config.models import CellConfig
+from tandemscan.drivers.errors import DeviceError, SafetyStop
+from tandemscan.drivers.interfaces import Device, SafetyIO
+
+log = logging.getLogger(__name__)
+
+MEASURE_ROBOT = "measure"
+TRACKING_ROBOT = "tracking"
+
+
+class MotionInterlock(DeviceError):
+    """A robot was asked to move while the other one is moving."""
+
+
+@dataclass
+class DeviceHealth:
+    """What the supervisor knows about one device (published on every change)."""
+
+    name: str
+    connected: bool = False
+    state: str = "disconnected"
+    detail: dict = field(default_factory=dict)
+    last_error: str | None = None
+    reconnects: int = 0
+    next_retry_s: float | None = None
+
+    def as_dict(self) -> dict:
+        return {"name": self.name, "connected": self.connected, "state": self.state, "detail": self.detail,
+                "last_error": self.last_error, "reconnects": self.reconnects}
+
+
+@dataclass
+class _Motion:
+    robot: str
+    task: asyncio.Task
+    tripped: bool = False
+
+
+def backoff_delays(initial_s: float, max_s: float, jitter: float = 0.1,
+                   rng: random.Random | None = None) -> Iterator[float]:
+    """Exponential backoff: ``initial_s, 2 initial_s, ...`` capped at ``max_s``, each +- ``jitter`` fraction."""
+    rng = rng or random.Random()
+    delay = initial_s
+    while True:
+        yield min(delay, max_s) * (1.0 + rng.uniform(-jitter, jitter))
+        delay = min(delay * 2.0, max_s)
+
+
+EventSink = Callable[[str, dict], None]
+
+
+class Supervisor:
+    """Owns the devices of one cell: connection, health, safety latch and the motion gate.
+
+    ``robots`` maps a robot name to its motion devices (each has an async ``stop()``); ``safety`` is the
+    cell's safety I/O, polled every ``control_period_s``. ``on_event(kind, data)`` receives device and
+    safety changes (kinds ``device`` and ``safety``).
+    """
+
+    def __init__(
+        self, devices: Sequence[Device], robots: Mapping[str, Sequence[Device]], safety: SafetyIO | None,
+        *, control_period_s: float = 0.02, health_period_s: float = 1.0, device_timeout_s: float = 2.0,
+        reconnect_initial_s: float = 0.5, reconnect_max_s: float = 30.0, on_event: EventSink | None = None,
+    ):
+        self.devices = {d.name: d for d in devices}
+        self.robots = {r: list(ds) for r, ds in robots.items()}
+        self.safety_io = safety
+        self.control_period_s = control_period_s
+        self.health_period_s = health_period_s
+        self.device_timeout_s = device_timeout_s
+        self.reconnect_initial_s = reconnect_initial_s
+        self.reconnect_max_s = reconnect_max_s
+        self.on_event = on_event or (lambda kind, data: None)
+        self.health = {name: DeviceHealth(name) for name in self.devices}
+        self.latched_reason: str | None = None
+        self.safety_listeners: list[Callable[[str], None]] = []
+        self.control_lateness_s: deque[float] = deque(maxlen=5000)
+        self._motions: list[_Motion] = []
+        self._tasks: list[asyncio.Task] = []
+        self._reconnecting: dict[str, asyncio.Task] = {}
+        self._all_connected = asyncio.Event()
+
+    @classmethod
+    def for_cell(cls, cell, config: CellConfig, on_event: EventSink | None = None) -> Supervisor:
+        """A supervisor of a :class:`tandemscan.sim_drivers.cell.Cell` (twins or real drivers)."""
+        d = config.daemon
+        return cls(
+            cell.devices(), {MEASURE_ROBOT: [cell.measure_chassis, cell.arm], TRACKING_ROBOT: [cell.tracking_chassis]},
+            cell.safety, control_period_s=config.safety.poll_period_s, health_period_s=d.health_period_s,
+            device_timeout_s=d.device_timeout_s, reconnect_initial_s=d.reconnect_initial_s,
+            reconnect_max_s=d.reconnect_max_s, on_event=on_event,
+        )
+
+    # ------------------------------------------------------------ lifecycle
+
+    async def start(self) -> None:
+        """Connect every device (failures retry in the background) and start health and safety loops."""
+        await asyncio.gather(*(self._connect_once(name) for name in self.devices))
+        for name, h in self.health.items():
+            if not h.connected:
+                self._schedule_reconnect(name)
+        self._update_all_connected()
+        self._tasks.append(asyncio.create_task(self._health_loop(), name="supervisor-health"))
+        if self.safety_io is not None:
+            self._tasks.append(asyncio.create_task(self._safety_loop(), name="supervisor-safety"))
+
+    async def wait_connected(self, timeout_s: float | None = None) -> None:
+        """Return once every device is connected (raises TimeoutError after ``timeout_s``)."""
+        await asyncio.wait_for(self._all_connected.wait(), timeout_s)
+
+    @property
+    def all_connected(self) -> bool:
+        return self._all_connected.is_set()
+
+    async def close(self) -> None:
+        """Stop the loops and close every device."""
+        tasks = self._tasks + list(self._reconnecting.values())
+        for t in tasks:
+            t.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        self._tasks.clear()
+        self._reconnecting.clear()
+        for d in self.devices.values():
+            try:
+                await asyncio.wait_for(d.close(), self.device_timeout_s)
+            except (DeviceError, TimeoutError, OSError) as e:
+                log.warning("closing %s: %s", d.name, e)
+
+    # ------------------------------------------------------------ connection and health
+
+    async def _connect_once(self, name: str) -> bool:
+        h = self.health[name]
+        try:
+            await asyncio.wait_for(self.devices[name].connect(), self.device_timeout_s)
+            status = await asyncio.wait_for(self.devices[name].status(), self.device_timeout_s)
+        except (DeviceError, TimeoutError, OSError) as e:
+            self._set_health(name, connected=False, state="disconnected", last_error=str(e) or type(e).__name__)
+            return False
+        self._set_health(name, connected=status.connected, state=status.state, detail=dict(status.detail),
+                         last_error=None if status.connected else h.last_error)
+        return status.connected
+
+    def _schedule_reconnect(self, name: str) -> None:
+        if name not in self._reconnecting or self._reconnecting[name].done():
+            self._reconnecting[name] = asyncio.create_task(self._reconnect(name), name=f"reconnect-{name}")
+
+    async def _reconnect(self, name: str) -> None:
+        for delay in backoff_delays(self.reconnect_initial_s, self.reconnect_max_s):
+            self.health[name].next_retry_s = time.monotonic() + delay
+            await asyncio.sleep(delay)
+            self.health[name].reconnects += 1
+            log.info("reconnecting %s (attempt %d)", name, self.health[name].reconnects)
+            if await self._connect_once(name):
+                self.health[name].next_retry_s = None
+                self._update_all_connected()
+                return
+
+    async def _health_loop(self) -> None:
+        while True:
+            await asyncio.sleep(self.health_period_s)
+            await asyncio.gather(*(self.poll_device(n) for n in self.devices if n not in self._busy_reconnects()))
+
+    def _busy_reconnects(self) -> set[str]:
+        return {n for n, t in self._reconnecting.items() if not t.done()}
+
+    async def poll_device(self, name: str) -> DeviceHealth:
+        """Read one device's status now; a failure or a dropped link starts a reconnect with backoff."""
+        try:
+            s = await asyncio.wait_for(self.devices[name].status(), self.device_timeout_s)
+        except (DeviceError, TimeoutError, OSError) as e:
+            self._set_health(name, connected=False, state="fault", last_error=str(e) or type(e).__name__)
+        else:
+            self._set_health(name, connected=s.connected, state=s.state, detail=dict(s.detail))
+        if not self.health[name].connected:
+            self._schedule_reconnect(name)
+        self._update_all_connected()
+        return self.health[name]
+
+    def _set_health(self, name: str, **changes: object) -> None:
+        h = self.health[name]
+        before = (h.connected, h.state, h.last_error)
+        for k, v in changes.items():
+            setattr(h, k, v)
+        if (h.connected, h.state, h.last_error) != before:
+            self.on_event("device", h.as_dict())
+
+    def _update_all_connected(self) -> None:
+        if all(h.connected for h in self.health.values()):
+            self._all_connected.set()
+        else:
+            self._all_connected.clear()
+
+    # ------------------------------------------------------------ safety
+
+    async def _safety_loop(self) -> None:
+        period = self.control_period_s
+        next_t = time.monotonic() + period
+        while True:
+            await asyncio.sleep(max(0.0, next_t - time.monotonic()))
+            now = time.monotonic()
+            self.control_lateness_s.append(max(0.0, now - next_t))
+            next_t = max(next_t + period, now)
+            try:
+                state = await asyncio.wait_for(self.safety_io.read(), period * 5)
+            except (DeviceError, TimeoutError, OSError) as e:
+                await self.trip(f"safety I/O unreadable: {e or type(e).__name__}")
+                continue
+            if not state.motion_allowed:
+                await self.trip("e-stop pressed" if state.estop else "light curtain broken")
+
+    async def trip(self, reason: str) -> None:
+        """Latch a safety stop: stop every motion device and interrupt every motion in flight."""
+        first = self.latched_reason is None
+        if first:
+            self.latched_reason = reason
+            log.error("safety stop latched: %s", reason)
+        for m in self._motions:
+            if not m.tripped:
+                m.tripped = True
+                m.task.cancel(f"safety stop: {reason}")
+        if first:  # both only schedule work: the halt below is not delayed
+            self.on_event("safety", {"latched": True, "reason": reason})
+            for listener in list(self.safety_listeners):
+                listener(reason)
+        await self.halt()
+
+    async def halt(self) -> None:
+        """``stop()`` every motion device at once (no latch): the end of a cancelled or stopped motion."""
+        stops = [d.stop() for ds in self.robots.values() for d in ds]
+        results = await asyncio.gather(*(asyncio.wait_for(s, self.control_period_s * 5) for s in stops),
+                                       return_exceptions=True)
+        for r in results:
+            if isinstance(r, BaseException):
+                log.error("stop failed: %r", r)
+
+    async def reset_safety(self) -> None:
+        """Clear the latch; raises :class:`SafetyStop` while the safety inputs still forbid motion."""
+        if self.safety_io is not None:
+            state = await asyncio.wait_for(self.safety_io.read(), self.device_timeout_s)
+            if not state.motion_allowed:
+                raise SafetyStop("safety", "cannot reset: " + ("e-stop pressed" if state.estop
+                                                                else "light curtain broken"))
+        if self.latched_reason is not None:
+            log.warning("safety stop reset (was: %s)", self.latched_reason)
+            self.latched_reason = None
+            self.on_event("safety", {"latched": False, "reason": None})
+
+    # ------------------------------------------------------------ motion gate
+
+    @property
+    def moving_robots(self) -> list[str]:
+        return sorted({m.robot for m in self._motions})
+
+    @asynccontextmanager
+    async def motion(self, robot: str) -> AsyncIterator[None]:
+        """The gate every motion passes: refuses while latched or while another robot moves.
+
+        A safety stop during the block interrupts it and raises :class:`SafetyStop`; a
+        :class:`SafetyStop` from a device inside the block latches the stop for the whole cell.
+        """
+        if robot not in self.robots:
+            raise ValueError(f"unknown robot {robot!r}; known: {sorted(self.robots)}")
+        if self.latched_reason is not None:
+            raise SafetyStop("supervisor", f"motion refused, safety stop latched: {self.latched_reason}")
+        others = [m.robot for m in self._motions if m.robot != robot]
+        if others:
+            raise MotionInterlock("supervisor", f"{robot} robot may not move while {others[0]} robot is moving")
+        entry = _Motion(robot, asyncio.current_task())
+        self._motions.append(entry)
+        try:
+            yield
+            if entry.tripped:
+                await asyncio.sleep(0)  # take delivery of the pending cancel of a stop that came at the end
+        except asyncio.CancelledError:
+            if entry.tripped:
+                entry.task.uncancel()
+                raise SafetyStop("supervisor", f"motion halted: {self.latched_reason}") from None
+            raise
+        except SafetyStop as e:
+            self._motions.remove(entry)
+            await self.trip(str(e))
+            raise
+        finally:
+            if entry in self._motions:
+                self._motions.remove(entry)
+
+    def snapshot(self) -> dict:
+        """Devices, safety and motion now (JSON-able)."""
+        return {
+            "devices": [h.as_dict() for h in self.health.values()],
+            "safety": {"latched": self.latched_reason is not None, "reason": self.latched_reason},
+            "moving": self.moving_robots,
+            "all_connected": self.all_connected,
+        }

@@ -1,0 +1,78 @@
+"""Keep the simulated world's state across a daemon restart, as a real cell keeps its robots where they stopped.
+
+Without this a restarted daemon would rebuild the world at its start poses, teleporting both robots; with it,
+a crash test sees what a real cell shows. Saved: the true and odometry pose of each chassis, the arm joints,
+counters, the random generator's state (so the run goes on with the same noise model) and the world frame W
+of the job under way. mm, rad.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+from tandemscan.drivers.interfaces import ChassisPose
+from tandemscan.sim_drivers.world import SimWorld
+
+
+class WorldStateError(Exception):
+    """A saved world state does not fit this world (different chassis or a corrupt file)."""
+
+
+def world_state(world: SimWorld) -> dict:
+    """The mutable state of ``world`` as JSON-able data."""
+    return {
+        "seed": world.config.sim.seed,
+        "chassis": {
+            name: {"true_pose": c.true_pose.tolist(), "moves": c.moves,
+                   "odometry": [c.odometry.x_mm, c.odometry.y_mm, c.odometry.heading_rad]}
+            for name, c in world.chassis.items()
+        },
+        "joints_rad": world.joints_rad.tolist(),
+        "captures": world.captures,
+        "tracker_frames": world.tracker_frames,
+        "rng": world.rng.bit_generator.state,
+        "T_W_F": world.T_W_F.tolist(),
+    }
+
+
+def restore_world_state(world: SimWorld, state: dict) -> None:
+    """Put ``world`` back into ``state`` (from :func:`world_state` of a world made from the same config)."""
+    if set(state.get("chassis", {})) != set(world.chassis) or state.get("seed") != world.config.sim.seed:
+        raise WorldStateError("saved world state is from another cell configuration")
+    for name, c in state["chassis"].items():
+        truth = world.chassis[name]
+        truth.true_pose = np.array(c["true_pose"], float)
+        truth.odometry = ChassisPose(*c["odometry"])
+        truth.moves = int(c["moves"])
+    world.joints_rad = np.array(state["joints_rad"], float)
+    world.captures = int(state["captures"])
+    world.tracker_frames = int(state["tracker_frames"])
+    world.rng.bit_generator.state = state["rng"]
+    world.T_W_F = np.array(state["T_W_F"], float)
+
+
+def save_world_state(world: SimWorld, path: Path) -> None:
+    """Write the state durably (temporary file, fsync, rename)."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".part")
+    with open(tmp, "w", encoding="utf-8") as f:
+        json.dump(world_state(world), f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def load_world_state(world: SimWorld, path: Path) -> bool:
+    """Restore from ``path`` when it exists; returns whether it did."""
+    path = Path(path)
+    if not path.is_file():
+        return False
+    try:
+        state = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as e:
+        raise WorldStateError(f"{path}: unreadable world state: {e}") from e
+    restore_world_state(world, state)
+    return True

@@ -1,0 +1,138 @@
+"""The job store: journal, idempotency, exactly-once steps, durable scan files and crash recovery."""
+
+from __future__ import annotations
+
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+from tandemscan.daemon.store import IdempotencyConflict, JobStore, StoreError
+
+
+@pytest.fixture
+def store(tmp_path):
+    s = JobStore(tmp_path / "state")
+    yield s
+    s.close()
+
+
+def test_journal_is_wal_and_job_has_its_own_directory(store):
+    job, event = store.create_job("default", {"steps": [1, 2]}, n_steps=2)
+    assert event.data == {"state": "queued"} and job.state == "queued" and job.n_steps == 2
+    assert store.job_dir(job.id).is_dir()
+    mode = sqlite3.connect(store.db_path).execute("PRAGMA journal_mode").fetchone()[0]
+    assert mode == "wal"
+
+
+def test_idempotency_key_never_creates_two_jobs(store):
+    a, created_a = store.create_job("p", {}, 1, idempotency_key="k1", request_hash="h")
+    b, created_b = store.create_job("p", {}, 1, idempotency_key="k1", request_hash="h")
+    assert created_a is not None and created_b is None and a.id == b.id
+    with pytest.raises(IdempotencyConflict):
+        store.create_job("p", {}, 1, idempotency_key="k1", request_hash="other")
+    assert store.list_jobs()[1] == 1
+
+
+def test_list_filters_and_pages_newest_first(store):
+    ids = [store.create_job("a" if i % 2 else "b", {}, 1)[0].id for i in range(5)]
+    store.set_state(ids[0], "running")
+    page, total = store.list_jobs(limit=2, offset=1)
+    assert total == 5 and [j.id for j in page] == [ids[3], ids[2]]
+    running, n = store.list_jobs(states=["running"])
+    assert n == 1 and running[0].id == ids[0] and running[0].started_s is not None
+    assert store.list_jobs(plan_name="a")[1] == 2
+
+
+def test_final_state_is_never_left(store):
+    job, _ = store.create_job("p", {}, 1)
+    store.set_state(job.id, "cancelled")
+    with pytest.raises(StoreError, match="cancelled"):
+        store.set_state(job.id, "running")
+    with pytest.raises(StoreError):
+        store.get_job("nope")
+
+
+def test_step_commits_once_with_poses_and_scan(store):
+    job, _ = store.create_job("p", {}, 3)
+    pts = np.random.default_rng(0).normal(size=(100, 3))
+    pending = store.write_scan_file(job.id, 1, pts, -pts)
+    T = np.eye(4)
+    assert store.commit_step(job.id, 0, "move_arm", {"ok": True})
+    assert store.commit_step(job.id, 1, "scan", {"n": 100}, poses={"T_C_T": T, "joints_rad": np.zeros(6)},
+                             scan=pending)
+    assert not store.commit_step(job.id, 1, "scan", {"n": 100})
+    assert store.first_uncommitted_step(job.id) == 2
+    assert [s.step_idx for s in store.scans(job.id)] == [1]
+    p, n = store.load_scan(job.id, 1)
+    np.testing.assert_array_equal(p, pts)
+    np.testing.assert_array_equal(n, -pts)
+    kinds = {k: v for _, k, v in store.poses(job.id)}
+    assert kinds["T_C_T"] == T.tolist() and kinds["joints_rad"] == [0.0] * 6
+
+
+def test_events_are_journaled_in_order(store):
+    job, _ = store.create_job("p", {}, 4)
+    store.set_state(job.id, "running")
+    store.set_progress(job.id, 25.0, 1, {"rms_mm": 0.1})
+    ev = store.events(job_id=job.id)
+    assert [e.kind for e in ev] == ["state", "state", "progress"]
+    assert ev[-1].data["figures"] == {"rms_mm": 0.1}
+    assert store.events(after_seq=ev[1].seq)[0].seq == ev[2].seq == store.last_event_seq()
+    assert store.get_job(job.id).progress == 25.0
+
+
+_CRASHER = textwrap.dedent("""
+    import os, signal, sys
+    import numpy as np
+    from tandemscan.daemon.store import JobStore
+    store = JobStore(sys.argv[1])
+    job, _ = store.create_job("p", {}, 3)
+    store.set_state(job.id, "running")
+    store.commit_step(job.id, 0, "scan", {}, scan=store.write_scan_file(job.id, 0, np.ones((10, 3))))
+    store.write_scan_file(job.id, 1, np.ones((20, 3)))  # on disk and fsynced, never committed
+    print(job.id, flush=True)
+    os.kill(os.getpid(), signal.SIGKILL)
+""")
+
+
+def test_kill_between_scan_write_and_commit_then_reopen(tmp_path):
+    state = tmp_path / "state"
+    proc = subprocess.run([sys.executable, "-c", _CRASHER, str(state)], capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr
+    job_id = proc.stdout.split()[0]
+    orphan = state / "jobs" / job_id / "scans" / "step_0001.npz"
+    assert orphan.exists()
+    store = JobStore(state)
+    try:
+        assert store.recover() == [job_id]
+        assert not orphan.exists()
+        assert store.first_uncommitted_step(job_id) == 1
+        assert [s.step_idx for s in store.scans(job_id)] == [0]
+        assert store.load_scan(job_id, 0)[0].shape == (10, 3)
+        # the resumed run commits step 1 exactly once
+        store.commit_step(job_id, 1, "scan", {}, scan=store.write_scan_file(job_id, 1, np.ones((20, 3))))
+        assert [s.step_idx for s in store.scans(job_id)] == [0, 1]
+        assert sorted(os.listdir(state / "jobs" / job_id / "scans")) == ["step_0000.npz", "step_0001.npz"]
+    finally:
+        store.close()
+
+
+def test_half_written_part_file_is_removed(store):
+    job, _ = store.create_job("p", {}, 1)
+    part = store.job_dir(job.id) / "scans" / "step_0000.npz.part"
+    part.parent.mkdir(parents=True)
+    part.write_bytes(b"half")
+    store.recover()
+    assert not part.exists()
+
+
+def test_bad_scan_shape_is_a_clear_error(store):
+    job, _ = store.create_job("p", {}, 1)
+    with pytest.raises(StoreError, match=r"\(N, 3\)"):
+        store.write_scan_file(job.id, 0, np.ones((4, 2)))

@@ -1,0 +1,133 @@
+"""The supervisor on the simulated cell: connection and health, reconnects, the safety latch, the motion gate."""
+
+from __future__ import annotations
+
+import asyncio
+import random
+import time
+
+import numpy as np
+import pytest
+from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT, MotionInterlock, Supervisor, backoff_delays
+from tandemscan.drivers.errors import SafetyStop
+from tandemscan.drivers.interfaces import ChassisPose
+from tandemscan.sim_drivers.cell import build_cell
+from tandemscan.sim_drivers.world import SimWorld
+
+
+@pytest.fixture(scope="module")
+def slow_world():
+    """Motion in real time (time_scale 1): a 3 m chassis move takes 10 s."""
+    from tandemscan.config import load_config
+
+    cfg = load_config()
+    return SimWorld(cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"time_scale": 1.0})}))
+
+
+@pytest.fixture
+async def sup(slow_world):
+    slow_world.safety.estop = False
+    slow_world.motion.violations.clear()
+    events = []
+    cell = build_cell(slow_world.config, slow_world)
+    s = Supervisor.for_cell(cell, slow_world.config, on_event=lambda k, d: events.append((k, d)))
+    s.reconnect_initial_s = 0.05
+    s.health_period_s = 0.05
+    await s.start()
+    s.cell, s.events = cell, events
+    yield s
+    await s.close()
+
+
+def start_long_tracker_move(sup) -> asyncio.Task:
+    """The tracking chassis driving 3 m (10 s) through the motion gate, as a task."""
+    chassis = sup.cell.tracking_chassis
+
+    async def move():
+        async with sup.motion(TRACKING_ROBOT):
+            o = await chassis.odometry()
+            await chassis.move_to(ChassisPose(o.x_mm + 3000.0, o.y_mm, o.heading_rad))
+
+    return asyncio.create_task(move())
+
+
+async def test_connects_every_device(sup):
+    await sup.wait_connected(1.0)
+    snap = sup.snapshot()
+    assert snap["all_connected"] and len(snap["devices"]) == 6 and snap["moving"] == []
+    assert not snap["safety"]["latched"]
+
+
+async def test_estop_halts_motion_within_a_control_period(sup, slow_world):
+    task = start_long_tracker_move(sup)
+    await asyncio.sleep(0.1)
+    assert sup.moving_robots == [TRACKING_ROBOT]
+    t0 = time.monotonic()
+    slow_world.safety.estop = True
+    with pytest.raises(SafetyStop, match="e-stop"):
+        await task
+    halted_s = time.monotonic() - t0
+    assert halted_s < 0.5  # a 10 s move, stopped at the next safety poll (20 ms period) rather than finished
+    assert sup.moving_robots == [] and sup.latched_reason == "e-stop pressed"
+    assert ("safety", {"latched": True, "reason": "e-stop pressed"}) in sup.events
+
+
+async def test_motion_refused_while_latched_and_reset_needs_clear_inputs(sup, slow_world):
+    slow_world.safety.light_curtain_broken = True
+    try:
+        for _ in range(50):
+            if sup.latched_reason:
+                break
+            await asyncio.sleep(0.01)
+        assert sup.latched_reason == "light curtain broken"
+        with pytest.raises(SafetyStop, match="latched"):
+            async with sup.motion(MEASURE_ROBOT):
+                pass
+        with pytest.raises(SafetyStop, match="cannot reset"):
+            await sup.reset_safety()
+    finally:
+        slow_world.safety.light_curtain_broken = False
+    await sup.reset_safety()
+    async with sup.motion(MEASURE_ROBOT):
+        assert sup.moving_robots == [MEASURE_ROBOT]
+
+
+async def test_never_both_robots_moving(sup, slow_world):
+    task = start_long_tracker_move(sup)
+    await asyncio.sleep(0.05)
+    with pytest.raises(MotionInterlock, match="measure robot may not move while tracking robot is moving"):
+        async with sup.motion(MEASURE_ROBOT):
+            await sup.cell.arm.move_joints(await sup.cell.arm.joints())
+    async with sup.motion(TRACKING_ROBOT):  # the same robot's other devices may go on
+        pass
+    task.cancel()
+    await asyncio.gather(task, return_exceptions=True)
+    assert slow_world.motion.violations == []
+    with pytest.raises(ValueError, match="unknown robot"):
+        async with sup.motion("crane"):
+            pass
+
+
+async def test_device_safety_stop_latches_the_cell(sup, slow_world):
+    slow_world.safety.estop = True  # the twin refuses before the poll notices
+    with pytest.raises(SafetyStop):
+        async with sup.motion(MEASURE_ROBOT):
+            await sup.cell.arm.move_joints(np.zeros(6))
+    assert sup.latched_reason is not None
+
+
+async def test_dropped_device_is_reconnected(sup):
+    await sup.cell.tracker.close()
+    h = await sup.poll_device("tracker")
+    assert not h.connected and not sup.all_connected
+    assert ("device", h.as_dict()) in sup.events or any(k == "device" and not d["connected"] for k, d in sup.events)
+    await sup.wait_connected(2.0)
+    assert sup.health["tracker"].connected and sup.health["tracker"].reconnects >= 1
+
+
+def test_backoff_doubles_to_a_cap():
+    delays = backoff_delays(0.5, 4.0, jitter=0.0)
+    assert [next(delays) for _ in range(6)] == [0.5, 1.0, 2.0, 4.0, 4.0, 4.0]
+    jittered = backoff_delays(1.0, 8.0, jitter=0.1, rng=random.Random(1))
+    first = [next(jittered) for _ in range(4)]
+    assert all(0.9 * b <= d <= 1.1 * b for d, b in zip(first, [1, 2, 4, 8], strict=True))

@@ -1,0 +1,151 @@
+"""systemd integration: the unit verifies cleanly and is hardened; sd_notify READY/STATUS/WATCHDOG over a fake
+``$NOTIFY_SOCKET``; the watchdog pings come from the event loop (a blocked loop stops them)."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from tandemscan.daemon.notify import Notifier
+
+SYSTEMD = Path(__file__).resolve().parent.parent / "systemd"
+UNIT = SYSTEMD / "tandemscan.service"
+
+
+def unit_settings() -> dict[str, list[str]]:
+    out: dict[str, list[str]] = {}
+    for line in UNIT.read_text().splitlines():
+        if line and not line.startswith(("#", "[")) and "=" in line:
+            key, value = line.split("=", 1)
+            out.setdefault(key, []).append(value)
+    return out
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze not installed")
+def test_unit_verifies_without_any_output(tmp_path):
+    # verify checks that ExecStart exists: point it at this checkout's console script
+    exe = Path(sys.executable).parent / "tandemscan"
+    assert exe.exists(), "install the package (pip install -e .) first"
+    unit = tmp_path / "tandemscan.service"
+    unit.write_text(UNIT.read_text().replace("/opt/tandemscan/bin/tandemscan", str(exe)))
+    r = subprocess.run(["systemd-analyze", "verify", str(unit)], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and r.stdout == "" and r.stderr == "", r.stdout + r.stderr
+    sec = subprocess.run(["systemd-analyze", "security", "--offline=true", "--threshold=30", str(unit)],
+                         capture_output=True, text=True, timeout=60)
+    assert sec.returncode == 0, sec.stdout[-2000:]  # exposure <= 3.0 on systemd's 0-10 display scale
+
+
+def test_unit_is_a_hardened_notify_service():
+    s = unit_settings()
+    assert s["Type"] == ["notify"] and s["Restart"] == ["on-failure"] and s["StateDirectory"] == ["tandemscan"]
+    assert float(s["WatchdogSec"][0].rstrip("s")) > 0
+    for key in ("NoNewPrivileges", "PrivateTmp", "ProtectHome"):
+        assert s[key] == ["yes"], key
+    assert s["ProtectSystem"] == ["strict"]
+    assert set(s["RestrictAddressFamilies"][0].split()) == {"AF_UNIX", "AF_INET", "AF_INET6", "AF_CAN"}
+    assert any("ttyUSB" in d for d in s["DeviceAllow"]) and s["DevicePolicy"] == ["closed"]
+    assert "PrivateNetwork" not in s  # CAN is a network interface
+
+
+@pytest.mark.skipif(shutil.which("systemd-sysusers") is None or shutil.which("systemd-tmpfiles") is None,
+                    reason="systemd-sysusers/systemd-tmpfiles not installed")
+def test_sysusers_and_tmpfiles_apply_to_an_empty_root(tmp_path):
+    (tmp_path / "etc").mkdir()
+    subprocess.run(["systemd-sysusers", f"--root={tmp_path}", str(SYSTEMD / "tandemscan.sysusers")], check=True,
+                   capture_output=True, timeout=60)
+    passwd = (tmp_path / "etc" / "passwd").read_text()
+    assert passwd.startswith("tandemscan:") and "/var/lib/tandemscan" in passwd
+    assert "dialout:x:" in (tmp_path / "etc" / "group").read_text()
+    subprocess.run(["systemd-tmpfiles", "--create", f"--root={tmp_path}", str(SYSTEMD / "tandemscan.tmpfiles")],
+                   check=True, capture_output=True, timeout=60)
+    env = tmp_path / "etc" / "tandemscan" / "tandemscan.env"
+    assert env.is_file() and (env.stat().st_mode & 0o777) == 0o600
+
+
+@pytest.fixture
+def notify_socket(tmp_path):
+    path = tmp_path / "notify.sock"
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(str(path))
+    sock.setblocking(False)
+    yield sock, str(path)
+    sock.close()
+
+
+def received(sock) -> list[tuple[float, str]]:
+    out = []
+    while True:
+        try:
+            out.append((time.monotonic(), sock.recv(4096).decode()))
+        except BlockingIOError:
+            return out
+
+
+async def test_ready_status_and_watchdog_reach_the_socket(notify_socket):
+    sock, path = notify_socket
+    env = {"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "100000", "WATCHDOG_PID": str(os.getpid())}
+    n = Notifier(env)
+    assert n.enabled and n.watchdog_s == pytest.approx(0.1)
+    assert n.ready("all devices connected")
+    task = asyncio.create_task(n.watchdog_loop())
+    await asyncio.sleep(0.18)
+    task.cancel()
+    await asyncio.gather(task, return_exceptions=True)
+    msgs = [m for _, m in received(sock)]
+    assert msgs[0] == "READY=1\nSTATUS=all devices connected"
+    assert msgs[1:].count("WATCHDOG=1") >= 3  # every 50 ms (half the interval)
+
+
+async def test_a_blocked_event_loop_stops_the_watchdog(notify_socket):
+    sock, path = notify_socket
+    n = Notifier({"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "40000"})
+    task = asyncio.create_task(n.watchdog_loop())
+    await asyncio.sleep(0.1)
+    time.sleep(0.3)  # the loop is stuck: no ping may go out meanwhile
+    await asyncio.sleep(0.05)
+    task.cancel()
+    await asyncio.gather(task, return_exceptions=True)
+    assert set(m for _, m in received(sock)) == {"WATCHDOG=1"}
+    times = list(n.ping_times_s)  # when the loop sent each ping
+    gaps = [b - a for a, b in zip(times, times[1:], strict=False)]
+    assert max(gaps) >= 0.28 and sorted(gaps)[len(gaps) // 2] < 0.1
+
+
+def test_outside_systemd_nothing_is_sent():
+    n = Notifier({})
+    assert not n.enabled and not n.ready() and n.watchdog_s is None
+    assert Notifier({"NOTIFY_SOCKET": "/x", "WATCHDOG_USEC": "1000", "WATCHDOG_PID": "1"}).watchdog_s is None
+    assert not Notifier({"NOTIFY_SOCKET": "/nonexistent/notify.sock"}).status("x")
+
+
+async def test_abstract_socket_address():
+    name = f"tandemscan-test-{os.getpid()}"
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind("\0" + name)
+    try:
+        assert Notifier({"NOTIFY_SOCKET": "@" + name}).status("hello")
+        assert sock.recv(100) == b"STATUS=hello"
+    finally:
+        sock.close()
+
+
+async def test_daemon_says_ready_once_devices_are_connected(notify_socket, tmp_path, sim_config):
+    from tandemscan.daemon.service import Daemon
+
+    sock, path = notify_socket
+    daemon = Daemon(sim_config, tmp_path / "state", notifier=Notifier({"NOTIFY_SOCKET": path}))
+    await daemon.start()
+    try:
+        msgs = [m for _, m in received(sock)]
+        assert daemon.supervisor.all_connected
+        assert msgs == ["STATUS=connecting devices", "READY=1\nSTATUS=ready: all devices connected"]
+    finally:
+        await daemon.close()
+    assert [m for _, m in received(sock)] == ["STOPPING=1"]
