@@ -16,11 +16,11 @@ import time
 
 import numpy as np
 import serial
-
 from tandemscan.config.models import TrackerConfig
 from tandemscan.drivers.errors import DeviceError, DeviceFault, DeviceTimeout, NotConnected, TargetNotVisible
 from tandemscan.drivers.interfaces import DeviceStatus, TrackerReading
 from tandemscan.drivers.pose_stream import PoseFrameError, PoseSample, PoseStreamAdapter
+from tandemscan.drivers.tasks import cancel_and_wait
 from tandemscan.pipeline.frames import make_transform, orthonormalize
 
 log = logging.getLogger(__name__)
@@ -50,8 +50,8 @@ class MetronorTracker:
         self._link_error = None
         if s.transport == "tcp":
             try:
-                reader, self._writer = await asyncio.wait_for(asyncio.open_connection(s.host, s.port),
-                                                              self._cfg.timeout_s)
+                async with asyncio.timeout(self._cfg.timeout_s):
+                    reader, self._writer = await asyncio.open_connection(s.host, s.port)
             except TimeoutError as e:
                 raise DeviceTimeout(self.name, f"no connection to {s.host}:{s.port}") from e
             except OSError as e:
@@ -69,10 +69,7 @@ class MetronorTracker:
     async def close(self) -> None:
         self._connected = False
         task, self._task = self._task, None
-        if task is not None:
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
+        await cancel_and_wait(task)
         writer, self._writer = self._writer, None
         if writer is not None:
             writer.close()
@@ -109,7 +106,8 @@ class MetronorTracker:
                     raise self._link_error
                 event = self._arrived
                 try:
-                    await asyncio.wait_for(event.wait(), max(deadline - loop.time(), 0.0))
+                    async with asyncio.timeout_at(deadline):
+                        await event.wait()
                 except TimeoutError as e:
                     raise DeviceTimeout(self.name, f"no pose frame within {timeout} s") from e
             host_t, frame = self._frames.pop(0)
