@@ -232,6 +232,36 @@ class FloorPoseConfig(_Strict):
     heading_deg: float = 0.0
 
 
+class PlanningConfig(_Strict):
+    """Motion planning (DESIGN.md 5.1, paper Eq. 13-18). Floor polygons are in the part frame F, mm.
+
+    Measurement AGV: centre ``distance in (d3 + w/2, d4 + w/2)`` from the part's floor contour, ``step in
+    (p, p + m)`` along it, with ``m`` the scan footprint width less the overlap. Tracker: candidate stations
+    at ``d1`` from the contour; a measuring point is covered within ``d2`` and the field of view.
+    """
+
+    agv_width_mm: float = Field(800.0, gt=0, description="w: measurement AGV width, mm")
+    arm_standoff_min_mm: float = Field(300.0, ge=0, description="d3: AGV side to part contour, least, mm")
+    arm_standoff_max_mm: float = Field(500.0, gt=0, description="d4: AGV side to part contour, most, mm")
+    station_step_mm: float = Field(600.0, gt=0, description="p: least step between AGV stations, mm")
+    scan_overlap_fraction: float = Field(0.2, ge=0, lt=1, description="overlap of neighbouring scans")
+    incidence_limit_deg: float = Field(45.0, ge=0, lt=90, description="most tilt of the view off the normal")
+    tracker_distance_mm: float = Field(3500.0, gt=0, description="d1: tracker candidates to part contour, mm")
+    tracker_best_range_mm: float = Field(9000.0, gt=0, description="d2: best-accuracy tracker range, mm")
+    tracker_min_range_mm: float = Field(1500.0, ge=0, description="nearest usable target distance, mm")
+    tracker_candidate_step_mm: float = Field(700.0, gt=0, description="spacing of tracker candidates, mm")
+    tracker_heading_offsets_deg: tuple[float, ...] = (-30.0, -15.0, 0.0, 15.0, 30.0)
+    tracker_margin_deg: float = Field(3.0, ge=0, description="kept off the edges of the field of view and cone")
+    exact_time_limit_s: float = Field(2.0, gt=0, description="integer-program time limit, s")
+    exact_max_variables: int = Field(6000, gt=0, description="larger tracker instances go to the heuristic")
+    floor_xy_mm: tuple[float, float, float, float] = Field(
+        (-20000.0, -12000.0, 20000.0, 12000.0), description="cell floor rectangle: x min, y min, x max, y max"
+    )
+    keep_out_xy_mm: tuple[tuple[tuple[float, float], ...], ...] = Field(
+        (), description="floor polygons no robot may stand in, each a list of (x, y) mm"
+    )
+
+
 class SimWorldConfig(_Strict):
     """Ground truth of the simulated cell: how far the real installation is from nominal, time scale."""
 
@@ -267,6 +297,94 @@ class JobConfig(_Strict):
     calibration_file: Path | None = None
 
 
+class RegionConfig(_Strict):
+    """A named inspection region: an axis-aligned box in the CAD/part frame F (mm), bounds inclusive."""
+
+    name: str = Field(min_length=1)
+    min_mm: tuple[float, float, float]
+    max_mm: tuple[float, float, float]
+
+    @field_validator("max_mm")
+    @classmethod
+    def _ordered(cls, v: tuple[float, float, float], info) -> tuple[float, float, float]:
+        lo = info.data.get("min_mm")
+        if lo is not None and any(b < a for a, b in zip(lo, v, strict=True)):
+            raise ValueError(f"max_mm {v} must be >= min_mm {lo} on every axis")
+        return v
+
+
+class InspectionConfig(_Strict):
+    """Deviation-from-CAD inspection: tolerance band (mm, signed: + = material outside the CAD surface),
+    named regions, optional best-fit alignment and the colour-map scale."""
+
+    tolerance_lower_mm: float = Field(-0.1, le=0)
+    tolerance_upper_mm: float = Field(0.1, ge=0)
+    regions: tuple[RegionConfig, ...] = (
+        RegionConfig(name="body", min_mm=(-1e5, -1e5, -1e5), max_mm=(-500.0, 1e5, 1e5)),
+        RegionConfig(name="nose", min_mm=(-500.0, -1e5, -1e5), max_mm=(1e5, 1e5, 1e5)),
+    )
+    mesh_group_regions: bool = Field(
+        True, description="also one region per material group of the CAD mesh (OBJ usemtl), by closest triangle"
+    )
+    best_fit: bool = True
+    best_fit_max_distance_mm: float = Field(
+        1.0, gt=0, description="best-fit ICP uses only points deviating less than this, mm"
+    )
+    best_fit_iterations: int = Field(30, ge=1)
+    colour_limit_mm: float | None = Field(
+        None, gt=0, description="colour-map saturates at +/- this, mm; default 3x the wider tolerance"
+    )
+    map_width_px: int = Field(900, ge=100, le=4000, description="width of each rendered colour-map view")
+    map_max_points: int = Field(300_000, ge=1000, description="colour maps draw an even subsample of this size")
+    views: tuple[Literal["isometric", "front", "left", "right", "top", "back"], ...] = (
+        "isometric", "front", "left", "right", "top", "back",
+    )
+
+
+class CalibrationConfig(_Strict):
+    """Calibration plate (three reference spheres A, X, Y) and the hand-eye calibration job.
+
+    Plate frame ``P`` (Eq. 7-8): x along A->X, origin at the foot of the perpendicular from Y onto the line
+    A-X, y towards Y, z = x cross y. Sphere centres are given in ``P`` (mm), so A and X lie on the x axis and
+    Y on the y axis.
+    """
+
+    sphere_diameter_mm: float = Field(38.1, gt=0, description="calibrated diameter of the three spheres, mm")
+    centre_A_mm: tuple[float, float, float] = (-100.0, 0.0, 0.0)
+    centre_X_mm: tuple[float, float, float] = (120.0, 0.0, 0.0)
+    centre_Y_mm: tuple[float, float, float] = (0.0, 90.0, 0.0)
+    stem_mm: float = Field(15.0, ge=0, description="sphere surface to plate top along -z, mm (sim mesh)")
+    plate_size_mm: tuple[float, float] = (300.0, 210.0)
+    radius_tolerance_mm: float = Field(0.3, gt=0, description="reject a sphere fit off the nominal radius by more")
+    layout_tolerance_mm: float = Field(2.0, gt=0, description="max error of a centre-to-centre distance, mm")
+    fit_fixed_radius: bool = Field(True, description="final centre fit with the calibrated radius fixed")
+    min_pair_rotation_deg: float = Field(5.0, ge=0, description="hand-eye pose pairs rotating less are dropped")
+    poses: int = Field(16, ge=3, description="arm poses of the calibration job")
+    tracker_samples: int = Field(10, ge=1, description="tracker readings averaged at rest per calibration pose")
+    tilt_deg: float = Field(22.0, gt=0, lt=60, description="scanner tilt over the plate in the calibration job")
+    method: Literal["tsai", "park", "daniilidis", "refine"] = "refine"
+    T_V2_P: TransformConfig = Field(
+        TransformConfig(xyz_mm=(550.0, 0.0, 250.0)),
+        description="where the plate stands relative to the measurement chassis at its start (nominal for "
+        "planning; the sim cell puts it exactly there)",
+    )
+    output_file: Path = Field(Path("out/calibration.json"), description="where `tandemscan calibrate` writes")
+
+    @field_validator("centre_A_mm", "centre_X_mm")
+    @classmethod
+    def _on_x_axis(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        if abs(v[1]) > 1e-9 or abs(v[2]) > 1e-9:
+            raise ValueError("A and X lie on the plate x axis: y = z = 0")
+        return v
+
+    @field_validator("centre_Y_mm")
+    @classmethod
+    def _on_y_axis(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        if abs(v[0]) > 1e-9 or abs(v[2]) > 1e-9 or v[1] <= 0:
+            raise ValueError("Y lies on the plate +y axis: x = z = 0, y > 0")
+        return v
+
+
 class CellConfig(_Strict):
     """The whole cell."""
 
@@ -281,4 +399,7 @@ class CellConfig(_Strict):
     installation: InstallationConfig = InstallationConfig()
     sim: SimWorldConfig = SimWorldConfig()
     job: JobConfig = JobConfig()
+    inspection: InspectionConfig = InspectionConfig()
+    calibration: CalibrationConfig = CalibrationConfig()
+    planning: PlanningConfig = PlanningConfig()
     hil: HilConfig = HilConfig()
