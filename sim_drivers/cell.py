@@ -33,10 +33,15 @@ class Cell:
         return [self.measure_chassis, self.tracking_chassis, self.arm, self.scanner, self.tracker, self.safety]
 
     async def connect(self) -> None:
-        if self.emulators is not None:
-            await self.emulators.start()
-        for d in self.devices():
-            await d.connect()
+        """Start the emulators (hardware-in-the-loop), then connect every device; on failure close them all."""
+        try:
+            if self.emulators is not None:
+                await self.emulators.start()
+            for d in self.devices():
+                await d.connect()
+        except BaseException:
+            await self.close()
+            raise
 
     async def close(self) -> None:
         for d in self.devices():

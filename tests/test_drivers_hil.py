@@ -13,7 +13,7 @@ import pytest
 from tandemscan.config import load_config
 from tandemscan.config.loader import default_config_path
 from tandemscan.config.models import CellConfig
-from tandemscan.drivers import ChassisPose
+from tandemscan.drivers import ChassisPose, NotConnected
 from tandemscan.drivers.agv_can import AgvCanChassis
 from tandemscan.drivers.factory import ROLES, build_real_device
 from tandemscan.drivers.jaka_tcp import JakaTcpArm
@@ -137,3 +137,14 @@ async def test_hil_tracker_and_safety_read_the_world(box_part):
         assert (await cell.safety.read()).estop
     finally:
         await cell.close()
+
+
+async def test_failed_connect_closes_everything(box_part):
+    cfg = hil_config(box_part)
+    cfg = cfg.model_copy(update={"scanner": cfg.scanner.model_copy(
+        update={"phoxi": cfg.scanner.phoxi.model_copy(update={"harvesters_module": "no_such_module"})})})
+    cell = build_cell(cfg)
+    with pytest.raises(NotConnected, match="scanner: no_such_module"):
+        await cell.connect()
+    assert not cell.emulators.running
+    assert not (await cell.arm.status()).connected
