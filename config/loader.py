@@ -60,4 +60,10 @@ def _resolve_relative_paths(config: CellConfig, base: Path) -> CellConfig:
 
     part = config.part.model_copy(update={"mesh": fix(config.part.mesh)})
     job = config.job.model_copy(update={"calibration_file": fix(config.job.calibration_file)})
-    return config.model_copy(update={"part": part, "job": job})
+    phoxi = config.scanner.phoxi.model_copy(update={"producer_path": fix(config.scanner.phoxi.producer_path)})
+    update = {"part": part, "job": job, "scanner": config.scanner.model_copy(update={"phoxi": phoxi})}
+    for role in ("measure_chassis", "tracking_chassis"):
+        section = getattr(config, role)
+        can = section.can.model_copy(update={"dbc": fix(section.can.dbc)})
+        update[role] = section.model_copy(update={"can": can})
+    return config.model_copy(update=update)

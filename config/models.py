@@ -96,7 +96,6 @@ class TrackerStreamConfig(_Strict):
         "sx_mm", "sy_mm", "sz_mm", "srx_rad", "sry_rad", "srz_rad",
     )
     checksum: bool = True
-    stale_after_s: float = Field(0.5, gt=0, description="a reading older than this is not returned")
 
 
 class TrackerConfig(_Strict):
@@ -163,6 +162,9 @@ class ChassisCanConfig(_Strict):
     command_period_s: float = Field(0.02, gt=0, description="motion command period (protocol: 20 ms)")
     feedback_timeout_s: float = Field(0.5, gt=0, description="no status frame for this long = link lost")
     odometry_track_mm: float = Field(582.0, gt=0, description="effective skid-steer track for wheel odometry")
+    odometry_start_x_mm: float = Field(0.0, description="surveyed pose (floor frame F) the odometry starts from")
+    odometry_start_y_mm: float = 0.0
+    odometry_start_heading_deg: float = 0.0
     position_tolerance_mm: float = Field(5.0, gt=0)
     heading_tolerance_deg: float = Field(0.5, gt=0)
     gain_linear_per_s: float = Field(1.5, gt=0, description="linear speed = gain x distance error")
@@ -272,6 +274,16 @@ class SimWorldConfig(_Strict):
     time_scale: float = Field(0.0, ge=0, description="simulated motion time x this = wall time; 0 = instant")
     fault_scanner_timeout_every: int = Field(0, ge=0, description="every n-th capture times out; 0 = never")
     fault_estop_after_moves: int = Field(0, ge=0, description="e-stop after n chassis moves; 0 = never")
+
+
+class HilConfig(_Strict):
+    """Hardware-in-the-loop: run the protocol emulators, backed by the simulated world, in the daemon's process
+    so that the ``driver = "real"`` devices talk to them over real transports (127.0.0.1, virtual CAN)."""
+
+    enabled: bool = False
+    arm_time_scale: float = Field(0.01, ge=0, description="emulated arm: wall s per simulated s; 0 = instant")
+    chassis_time_scale: float = Field(0.05, gt=0, description="emulated chassis: wall s per simulated s")
+    tracker_rate_hz: float = Field(60.0, gt=0)
 
 
 class JobConfig(_Strict):
@@ -436,3 +448,4 @@ class CellConfig(_Strict):
     planning: PlanningConfig = PlanningConfig()
     deepmerge: DeepMergeConfig = DeepMergeConfig()
     daemon: DaemonConfig = DaemonConfig()
+    hil: HilConfig = HilConfig()

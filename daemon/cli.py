@@ -57,6 +57,7 @@ def _progress_bar() -> Progress:
 def cmd_measure(args: argparse.Namespace) -> int:
     """Run a complete measurement job on the configured cell (the simulated cell by default)."""
     from tandemscan.daemon.runner import JobError, JobRunner
+    from tandemscan.drivers.errors import DeviceError
     from tandemscan.pipeline.part import PartMeshError
     from tandemscan.pipeline.plan import Plan, PlanError
     from tandemscan.sim_drivers.cell import CellBuildError, build_cell
@@ -83,7 +84,7 @@ def cmd_measure(args: argparse.Namespace) -> int:
 
     try:
         result = asyncio.run(run())
-    except JobError as e:
+    except (JobError, DeviceError) as e:
         raise UsageError(str(e)) from e
     _print_summary(result.report, result.job_dir)
     return 0

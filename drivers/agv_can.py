@@ -20,6 +20,7 @@ from tandemscan.config.models import ChassisConfig
 from tandemscan.drivers.can_link import CanFrameError, CanLink, load_dbc
 from tandemscan.drivers.errors import DeviceError, DeviceFault, DeviceTimeout, NotConnected, SafetyStop
 from tandemscan.drivers.interfaces import ChassisPose, DeviceStatus
+from tandemscan.drivers.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +62,9 @@ class AgvCanChassis:
         self._link: CanLink | None = None
         self._tasks: list[asyncio.Task] = []
         self._setpoint = (0.0, 0.0)  # linear mm/s, angular rad/s
-        self._pose = ChassisPose(0.0, 0.0, 0.0)  # kept across reconnects: the odometry frame stays put
+        # the odometry frame is F: it starts at the surveyed start pose and is kept across reconnects
+        self._pose = ChassisPose(config.can.odometry_start_x_mm, config.can.odometry_start_y_mm,
+                                 math.radians(config.can.odometry_start_heading_deg))
         self._wheels: tuple[float, float] | None = None  # last wheel odometry (mm), None until the first frame
         self._system: dict[str, float] = {}
         self._motion: dict[str, float] = {}
@@ -98,10 +101,7 @@ class AgvCanChassis:
         """Zero the velocity, stop the heartbeat and release the bus; safe to call twice."""
         tasks, self._tasks = self._tasks, []
         for t in tasks:
-            t.cancel()
-        for t in tasks:
-            with contextlib.suppress(asyncio.CancelledError):
-                await t
+            await cancel_and_wait(t)
         link, self._link = self._link, None
         self._setpoint, self._commanding = (0.0, 0.0), False
         if link is not None:
@@ -117,7 +117,7 @@ class AgvCanChassis:
         elif self._fault is not None:
             state = "fault"
         else:
-            moving = abs(self._motion.get("LinearVelocity", 0.0)) > 0 or abs(self._motion.get("AngularVelocity", 0.0)) > 0
+            moving = self._motion.get("LinearVelocity", 0.0) != 0 or self._motion.get("AngularVelocity", 0.0) != 0
             state = "moving" if moving else "idle"
         detail = {
             "pose": self._pose, "battery_V": self._system.get("BatteryVoltage"),
@@ -167,8 +167,10 @@ class AgvCanChassis:
                 else:
                     err = wrap_angle(target.heading_rad - pose.heading_rad)
                     if abs(err) <= math.radians(self._can.heading_tolerance_deg):
-                        self._setpoint = (0.0, 0.0)
-                        return pose
+                        rest = await self._come_to_rest()
+                        if self._arrived(rest, target):
+                            return rest
+                        positioning = True  # drifted out while stopping: approach again
                     self._setpoint = (0.0, self._turn_rate(err))
                 if loop.time() > deadline:
                     raise DeviceTimeout(self.name, f"move to {target} not finished within {timeout} s (at {pose})")
@@ -176,6 +178,24 @@ class AgvCanChassis:
         except BaseException:
             self._zero_now()
             raise
+
+    def _arrived(self, pose: ChassisPose, target: ChassisPose) -> bool:
+        return (math.hypot(target.x_mm - pose.x_mm, target.y_mm - pose.y_mm) <= self._can.position_tolerance_mm
+                and abs(wrap_angle(target.heading_rad - pose.heading_rad))
+                <= math.radians(self._can.heading_tolerance_deg))
+
+    async def _come_to_rest(self) -> ChassisPose:
+        """Zero the set-point now and wait until the chassis reports standstill; the pose at rest."""
+        self._zero_now()
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + self._can.feedback_timeout_s
+        while self._motion.get("LinearVelocity", 0.0) != 0 or self._motion.get("AngularVelocity", 0.0) != 0:
+            if self._fault is not None:
+                raise self._fault
+            if loop.time() > deadline:
+                raise DeviceTimeout(self.name, f"chassis still moving {self._can.feedback_timeout_s} s after stop")
+            await self._next_feedback(self._can.feedback_timeout_s)
+        return self._pose
 
     # ------------------------------------------------------------------ control law
 
@@ -218,11 +238,13 @@ class AgvCanChassis:
                                                f"{self._can.feedback_timeout_s} s ({seen})")
             self._fault = None
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._feedback.wait(), 0.1)
+                async with asyncio.timeout(0.1):
+                    await self._feedback.wait()
 
     async def _next_feedback(self, timeout_s: float) -> None:
         try:
-            await asyncio.wait_for(self._feedback.wait(), timeout_s)
+            async with asyncio.timeout(timeout_s):
+                await self._feedback.wait()
         except TimeoutError:
             self._latch(DeviceTimeout(self.name, f"no feedback from the chassis for {timeout_s} s"))
 

@@ -26,6 +26,7 @@ from tandemscan.drivers.errors import (
 )
 from tandemscan.drivers.interfaces import DeviceStatus
 from tandemscan.drivers.json_stream import JsonFramingError, JsonObjectFramer, encode
+from tandemscan.drivers.tasks import cancel_and_wait
 from tandemscan.pipeline.frames import from_rpy, to_rpy
 
 log = logging.getLogger(__name__)
@@ -81,10 +82,7 @@ class JakaTcpArm:
     async def close(self) -> None:
         """Drop both connections; safe to call twice or after the peer vanished."""
         task, self._status_task = self._status_task, None
-        if task is not None:
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
+        await cancel_and_wait(task)
         writers = [w for w in (self._cmd[1] if self._cmd else None, self._status_writer) if w is not None]
         self._cmd, self._status_writer, self._status = None, None, None
         self._cmd_framer, self._cmd_backlog = JsonObjectFramer(), []
@@ -142,7 +140,7 @@ class JakaTcpArm:
         await self._await_motion(arrived, timeout_s, "joint move")
 
     async def move_linear(self, T_B_E: np.ndarray, timeout_s: float | None = None) -> None:
-        """Straight-line flange move to ``T_B_E`` (mm) at ``jaka.linear_speed_mm_s``; :class:`OutOfReach` if IK fails."""
+        """Straight-line flange move to ``T_B_E`` (mm) at ``jaka.linear_speed_mm_s``; OutOfReach if IK fails."""
         T = np.asarray(T_B_E, dtype=float)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise ValueError("T_B_E must be a finite 4x4 matrix")
@@ -180,7 +178,8 @@ class JakaTcpArm:
 
     async def _open(self, host: str, port: int, timeout: float) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
         try:
-            return await asyncio.wait_for(asyncio.open_connection(host, port), timeout)
+            async with asyncio.timeout(timeout):
+                return await asyncio.open_connection(host, port)
         except TimeoutError as e:
             await self.close()
             raise DeviceTimeout(self.name, f"no connection to {host}:{port} within {timeout} s") from e
@@ -196,8 +195,9 @@ class JakaTcpArm:
             reader, writer = self._cmd
             try:
                 writer.write(encode({"cmdName": cmd, **params}))
-                await asyncio.wait_for(writer.drain(), self._net.reply_timeout_s)
-                reply = await asyncio.wait_for(self._read_reply(reader, cmd), self._net.reply_timeout_s)
+                async with asyncio.timeout(self._net.reply_timeout_s):
+                    await writer.drain()
+                    reply = await self._read_reply(reader, cmd)
             except TimeoutError as e:
                 await self._drop_command_link()  # a late reply would be taken for the next command's
                 raise DeviceTimeout(self.name, f"{cmd}: no reply within {self._net.reply_timeout_s} s") from e
@@ -253,15 +253,19 @@ class JakaTcpArm:
                     raise NotConnected(self.name, "status stream closed by the controller")
                 for obj in framer.feed(data):
                     self._status = obj
-                    self._status_event.set()
-                    self._status_event = asyncio.Event()
+                    self._wake_status_waiters()
         except JsonFramingError as e:
             self._status_error = DeviceFault(self.name, f"malformed status message: {e}")
         except DeviceError as e:
             self._status_error = e
         except (ConnectionError, OSError) as e:
             self._status_error = NotConnected(self.name, f"status stream lost: {e}")
+        self._wake_status_waiters()
+
+    def _wake_status_waiters(self) -> None:
+        """Wake everyone waiting for a status message; later waiters wait for the next one."""
         self._status_event.set()
+        self._status_event = asyncio.Event()
 
     def _check_safety(self, st: dict) -> None:
         if st.get("emergency_stop"):
@@ -289,7 +293,8 @@ class JakaTcpArm:
             try:
                 if remaining <= 0:
                     raise TimeoutError
-                await asyncio.wait_for(event.wait(), remaining)
+                async with asyncio.timeout(remaining):
+                    await event.wait()
             except TimeoutError as e:
                 raise DeviceTimeout(self.name, f"{what} not seen within {timeout_s} s") from e
 
@@ -307,6 +312,6 @@ class JakaTcpArm:
         except BaseException:
             if self._cmd is not None:
                 with contextlib.suppress(DeviceError):
-                    await asyncio.wait_for(self.stop(), self._net.reply_timeout_s)
+                    await self.stop()  # bounded by the reply timeout
             raise
 

@@ -2,7 +2,7 @@
 
 The vendor protocol is not public, so the framing lives in one configurable adapter
 (:class:`~tandemscan.drivers.pose_stream.PoseStreamAdapter`). :meth:`MetronorTracker.read_pose` waits for
-frames that arrive after the call (never a stale one), averages ``samples_per_reading`` of them, and raises
+the first frame that arrives after the call (never a stale one), and raises
 :class:`TargetNotVisible` when the tracker reports the target missing or :class:`DeviceFault` for a frame it
 cannot trust (checksum, NaN, non-unit rotation).
 """
@@ -14,13 +14,12 @@ import contextlib
 import logging
 import time
 
-import numpy as np
 import serial
 from tandemscan.config.models import TrackerConfig
 from tandemscan.drivers.errors import DeviceError, DeviceFault, DeviceTimeout, NotConnected, TargetNotVisible
 from tandemscan.drivers.interfaces import DeviceStatus, TrackerReading
 from tandemscan.drivers.pose_stream import PoseFrameError, PoseSample, PoseStreamAdapter
-from tandemscan.pipeline.frames import make_transform, orthonormalize
+from tandemscan.drivers.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
 
@@ -49,8 +48,8 @@ class MetronorTracker:
         self._link_error = None
         if s.transport == "tcp":
             try:
-                reader, self._writer = await asyncio.wait_for(asyncio.open_connection(s.host, s.port),
-                                                              self._cfg.timeout_s)
+                async with asyncio.timeout(self._cfg.timeout_s):
+                    reader, self._writer = await asyncio.open_connection(s.host, s.port)
             except TimeoutError as e:
                 raise DeviceTimeout(self.name, f"no connection to {s.host}:{s.port}") from e
             except OSError as e:
@@ -68,10 +67,7 @@ class MetronorTracker:
     async def close(self) -> None:
         self._connected = False
         task, self._task = self._task, None
-        if task is not None:
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
+        await cancel_and_wait(task)
         writer, self._writer = self._writer, None
         if writer is not None:
             writer.close()
@@ -94,38 +90,30 @@ class MetronorTracker:
         return DeviceStatus(self.name, True, "idle", detail)
 
     async def read_pose(self, timeout_s: float | None = None) -> TrackerReading:
-        """The mean of ``samples_per_reading`` fresh frames: ``T_C_T`` (mm), covariance, host time, frame number."""
+        """The first frame that arrives after the call: ``T_C_T`` (mm), covariance, host time, frame number.
+
+        One frame per call, as the twin: averaging over ``samples_per_reading`` is the job runner's.
+        """
         if not self._connected:
             raise NotConnected(self.name, "not connected")
         timeout = self._cfg.timeout_s if timeout_s is None else timeout_s
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + timeout
+        deadline = asyncio.get_running_loop().time() + timeout
         self._frames.clear()
-        samples: list[tuple[float, PoseSample]] = []
-        while len(samples) < self._cfg.samples_per_reading:
-            while not self._frames:
-                if self._link_error is not None:
-                    raise self._link_error
-                event = self._arrived
-                try:
-                    await asyncio.wait_for(event.wait(), max(deadline - loop.time(), 0.0))
-                except TimeoutError as e:
-                    raise DeviceTimeout(self.name, f"no pose frame within {timeout} s") from e
-            host_t, frame = self._frames.pop(0)
-            if isinstance(frame, PoseFrameError):
-                raise DeviceFault(self.name, f"bad pose frame: {frame}")
-            if not frame.visible:
-                raise TargetNotVisible(self.name, f"target not visible (frame {frame.frame}, {frame.status})")
-            samples.append((host_t, frame))
-        return self._average(samples)
-
-    def _average(self, samples: list[tuple[float, PoseSample]]) -> TrackerReading:
-        n = len(samples)
-        Ts = np.array([s.T_C_T for _, s in samples])
-        R = orthonormalize(make_transform(Ts[:, :3, :3].mean(axis=0), Ts[:, :3, 3].mean(axis=0)))
-        cov = np.mean([s.covariance for _, s in samples], axis=0) / n
-        return TrackerReading(T_C_T=R, covariance=cov, timestamp_s=float(np.mean([t for t, _ in samples])),
-                              frame_number=samples[-1][1].frame)
+        while not self._frames:
+            if self._link_error is not None:
+                raise self._link_error
+            try:
+                async with asyncio.timeout_at(deadline):
+                    await self._arrived.wait()
+            except TimeoutError as e:
+                raise DeviceTimeout(self.name, f"no pose frame within {timeout} s") from e
+        host_t, frame = self._frames.pop(0)
+        if isinstance(frame, PoseFrameError):
+            raise DeviceFault(self.name, f"bad pose frame: {frame}")
+        if not frame.visible:
+            raise TargetNotVisible(self.name, f"target not visible (frame {frame.frame}, {frame.status})")
+        return TrackerReading(T_C_T=frame.T_C_T, covariance=frame.covariance, timestamp_s=host_t,
+                              frame_number=frame.frame)
 
     # ------------------------------------------------------------------ receive paths
 

@@ -77,7 +77,8 @@ class PhoxiScanner:
             raise self._broken
         async with self._lock:
             try:
-                return await asyncio.wait_for(asyncio.to_thread(self._capture, timeout), timeout + _THREAD_MARGIN_S)
+                async with asyncio.timeout(timeout + _THREAD_MARGIN_S):
+                    return await asyncio.to_thread(self._capture, timeout)
             except TimeoutError as e:
                 # the GenTL call is stuck past its own timeout: the acquirer cannot be trusted until reconnect
                 self._broken = DeviceTimeout(self.name, f"producer stuck in fetch for {timeout + _THREAD_MARGIN_S} s")
@@ -154,7 +155,8 @@ class PhoxiScanner:
     def _decode(self, comps: list[Any]) -> ScanFrame:
         i_xyz, i_n, i_c = _COMPONENTS[self._px.interface]
         if len(comps) <= max(i_xyz, i_n, i_c):
-            raise DeviceFault(self.name, f"buffer has {len(comps)} components, expected at least {max(i_xyz, i_n, i_c) + 1}")
+            needed = max(i_xyz, i_n, i_c) + 1
+            raise DeviceFault(self.name, f"buffer has {len(comps)} components, expected at least {needed}")
         xyz = _pixels(comps[i_xyz], 3)
         if xyz is None or len(xyz) == 0:
             raise DeviceFault(self.name, "buffer has no point cloud (SendPointCloud off?)")
@@ -180,7 +182,8 @@ def _pixels(component: Any, channels: int) -> np.ndarray | None:
 
 
 def _release(acquirer: Any, harvester: Any) -> None:
-    for step in (getattr(acquirer, "stop", None), getattr(acquirer, "destroy", None), getattr(harvester, "reset", None)):
+    steps = (getattr(acquirer, "stop", None), getattr(acquirer, "destroy", None), getattr(harvester, "reset", None))
+    for step in steps:
         if step is not None:
             with contextlib.suppress(Exception):  # best effort while tearing down a vendor stack
                 step()

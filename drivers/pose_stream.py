@@ -6,9 +6,9 @@ Default frame (configurable through :class:`~tandemscan.config.models.TrackerStr
           <sx_mm>,<sy_mm>,<sz_mm>,<srx_rad>,<sry_rad>,<srz_rad>*<XOR checksum, 2 hex digits>\\r\\n
 
 ``status`` is ``OK`` or ``MISSING`` (target not visible); the checksum is the XOR of every byte after the
-marker's first character up to ``*`` (NMEA style). Position in mm, rotation as a unit quaternion (x, y, z, w) or as a row-major
-matrix (fields ``r00``..``r22``), 1-sigma translation (mm) and rotation-vector (rad) uncertainty, or an
-``rms_mm`` quality used for all three translation axes. A field named ``_`` is ignored.
+marker's first character up to ``*`` (NMEA style). Position in mm, rotation as a unit quaternion (x, y, z, w)
+or as a row-major matrix (fields ``r00``..``r22``), 1-sigma translation (mm) and rotation-vector (rad)
+uncertainty, or an ``rms_mm`` quality used for all three translation axes. A field named ``_`` is ignored.
 """
 
 from __future__ import annotations
@@ -142,7 +142,9 @@ class PoseStreamAdapter:
 
     # ------------------------------------------------------------------ samples -> bytes
 
-    def encode(self, frame: int, device_time_s: float, T_C_T: np.ndarray | None, covariance: np.ndarray | None) -> bytes:
+    def encode(
+        self, frame: int, device_time_s: float, T_C_T: np.ndarray | None, covariance: np.ndarray | None
+    ) -> bytes:
         """One frame as bytes; ``T_C_T=None`` encodes the target as not visible (numbers zero)."""
         values: dict[str, str] = {"frame": str(frame), "device_time_s": f"{device_time_s:.6f}", "_": ""}
         if T_C_T is None:

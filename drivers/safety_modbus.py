@@ -9,7 +9,6 @@ link is back (``connect()`` again).
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 from collections.abc import Callable
 
@@ -18,6 +17,7 @@ from pymodbus.exceptions import ModbusException
 from tandemscan.config.models import SafetyConfig
 from tandemscan.drivers.errors import DeviceError, DeviceFault, DeviceTimeout, NotConnected, SafetyStop
 from tandemscan.drivers.interfaces import DeviceStatus, SafetyState
+from tandemscan.drivers.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
 
@@ -48,7 +48,8 @@ class ModbusSafetyIO:
         client = AsyncModbusTcpClient(self._mb.host, port=self._mb.port, timeout=self._mb.timeout_s, retries=0,
                                       reconnect_delay=0, trace_connect=self._on_connection_change)
         try:
-            ok = await asyncio.wait_for(client.connect(), self._mb.timeout_s)
+            async with asyncio.timeout(self._mb.timeout_s):
+                ok = await client.connect()
         except TimeoutError:
             ok = False
         if not ok:
@@ -57,7 +58,8 @@ class ModbusSafetyIO:
         self._client, self._link_error = client, None
         try:
             await self._poll_once()
-            self._light = (await self._request("read target light", client.read_coils, self._mb.target_light_coil)).bits[0]
+            light = await self._request("read target light", client.read_coils, self._mb.target_light_coil)
+            self._light = bool(light.bits[0])
         except DeviceError:
             await self.close()
             raise
@@ -65,10 +67,7 @@ class ModbusSafetyIO:
 
     async def close(self) -> None:
         task, self._task = self._task, None
-        if task is not None:
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
+        await cancel_and_wait(task)
         client, self._client = self._client, None
         if client is not None:
             client.close()
@@ -113,8 +112,8 @@ class ModbusSafetyIO:
             if self._client is None or not self._client.connected:
                 raise NotConnected(self.name, f"{what}: connection to the I/O module lost")
             try:
-                rr = await asyncio.wait_for(call(address, *args, device_id=self._mb.device_id, **kw),
-                                            self._mb.timeout_s)
+                async with asyncio.timeout(self._mb.timeout_s):  # not wait_for: it can swallow a cancel in 3.11
+                    rr = await call(address, *args, device_id=self._mb.device_id, **kw)
             except TimeoutError as e:
                 raise DeviceTimeout(self.name, f"{what}: no reply within {self._mb.timeout_s} s") from e
             except (ModbusException, ConnectionError, OSError) as e:

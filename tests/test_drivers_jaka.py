@@ -91,7 +91,8 @@ async def test_unreachable_linear_target_is_out_of_reach(arm):
 async def test_estop_during_move_is_safety_stop_and_sends_stop(emulator, arm):
     emulator.time_scale = 1.0  # a slow move
     move = asyncio.create_task(arm.move_joints(Q_TARGET))
-    await asyncio.sleep(0.05)
+    while emulator.motion.in_position(emulator.sim_time()):  # the move has started
+        await asyncio.sleep(0.005)
     emulator.faults.estop = True
     t0 = time.monotonic()
     with pytest.raises(SafetyStop, match="emergency stop"):

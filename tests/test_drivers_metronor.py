@@ -51,16 +51,6 @@ async def test_tcp_happy_path_pose_covariance_frame_number(tcp_pair):
     assert (await tracker.status()).state == "idle"
 
 
-async def test_averaging_samples_divides_covariance(tcp_pair):
-    emu, _ = tcp_pair
-    tracker = tracker_for(TrackerStreamConfig(host="127.0.0.1", port=emu._tcp.port), samples_per_reading=4)
-    await tracker.connect()
-    r = await tracker.read_pose()
-    assert r.covariance[0, 0] == pytest.approx(1e-4 / 4, rel=1e-3)
-    assert pose_error(r.T_C_T, T_TRUE)[0] < 1e-5
-    await tracker.close()
-
-
 async def test_target_not_visible_is_typed(tcp_pair):
     emu, tracker = tcp_pair
 

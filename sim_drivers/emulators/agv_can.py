@@ -21,6 +21,7 @@ import numpy as np
 from tandemscan.config.models import ChassisConfig
 from tandemscan.drivers.can_link import CanFrameError, CanLink, load_dbc
 from tandemscan.drivers.interfaces import ChassisPose
+from tandemscan.drivers.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
 
@@ -88,14 +89,19 @@ class ChassisEmulator:
         watchdog_s: float = 0.5,
         time_scale: float = 1.0,
         seed: int = 0,
-        on_pose: Callable[[ChassisPose], None] | None = None,
+        start_pose: ChassisPose | None = None,
+        on_pose: Callable[[ChassisPose, bool], None] | None = None,
     ):
+        """``on_pose(true pose, moving)`` is called every period (e.g. to move the simulated world's chassis)."""
         self.config = config
         self.faults = ChassisFaults()
         self.period_s, self.watchdog_s, self.time_scale = period_s, watchdog_s, time_scale
         self.on_pose = on_pose
         self.rng = np.random.default_rng(seed)
         self.body = SkidSteerBody(config, config.can.odometry_track_mm, self.rng)
+        if start_pose is not None:
+            p = start_pose
+            self.body.x_mm, self.body.y_mm, self.body.heading_rad = p.x_mm, p.y_mm, p.heading_rad
         self.mode = 0
         self.command = (0.0, 0.0)
         self.velocity = (0.0, 0.0)  # what the chassis actually does (mm/s, rad/s)
@@ -116,10 +122,7 @@ class ChassisEmulator:
 
     async def stop(self) -> None:
         for t in self._tasks:
-            t.cancel()
-        for t in self._tasks:
-            with contextlib.suppress(asyncio.CancelledError):
-                await t
+            await cancel_and_wait(t)
         self._tasks = []
         await self._link.close()
 
@@ -162,7 +165,7 @@ class ChassisEmulator:
             self.body.step(*self.velocity, dt_sim)  # the velocity held over the period that just ended
             self.velocity = self._effective_velocity(now)
             if self.on_pose is not None:
-                self.on_pose(self.true_pose)
+                self.on_pose(self.true_pose, self.velocity != (0.0, 0.0))
             if not self.faults.silent:
                 with contextlib.suppress(can.CanError):
                     self._send_feedback()
@@ -174,8 +177,9 @@ class ChassisEmulator:
             self._link.send_raw(self._link.db.get_message_by_name("SystemStatus").frame_id, b"\x00\x01\x00")
         else:
             state = 1 if self.faults.estop else (2 if self.faults.error_code & ~0x0002 else 0)
-            self._maybe_send("SystemStatus", VehicleState=state, ControlMode=3 if self.faults.rc_override else self.mode,
-                             BatteryVoltage=25.2, ErrorCode=self.faults.error_code, Counter=self._counter)
+            mode = 3 if self.faults.rc_override else self.mode
+            self._maybe_send("SystemStatus", VehicleState=state, ControlMode=mode, BatteryVoltage=25.2,
+                             ErrorCode=self.faults.error_code, Counter=self._counter)
         v, w = self.velocity
         self._maybe_send("MotionState", LinearVelocity=round(v), AngularVelocity=round(w, 3),
                          LateralVelocity=0, SteeringAngle=0)

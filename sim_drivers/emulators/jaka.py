@@ -1,9 +1,9 @@
 """JAKA controller emulator: the JSON command port and the status stream over real TCP sockets.
 
 Motion runs in simulated time (``time_scale`` wall seconds per simulated second) through a swappable motion
-model; poses come from :class:`tandemscan.pipeline.kinematics.ArmKinematics`. ``on_joints`` is called with
-every new joint vector (rad), so the emulator can move the simulated world's arm. Faults are injected through
-:class:`JakaFaults`, which may be changed while the emulator runs.
+model; poses come from :class:`tandemscan.pipeline.kinematics.ArmKinematics`. ``on_joints(q_rad, moving)``
+is called with every joint vector the controller reports, so the emulator can move the simulated world's arm.
+Faults are injected through :class:`JakaFaults`, which may be changed while the emulator runs.
 """
 
 from __future__ import annotations
@@ -78,7 +78,7 @@ class JakaEmulator:
         status_period_s: float = 0.008,
         time_scale: float = 0.01,
         initial_joints_rad: np.ndarray | None = None,
-        on_joints: Callable[[np.ndarray], None] | None = None,
+        on_joints: Callable[[np.ndarray, bool], None] | None = None,
         kinematics: ArmKinematics | None = None,
     ):
         self.config = config
@@ -124,9 +124,10 @@ class JakaEmulator:
         return self._sim_s
 
     def joints_deg(self) -> np.ndarray:
-        q = self.motion.position(self.sim_time())
+        now = self.sim_time()
+        q = self.motion.position(now)
         if self.on_joints is not None:
-            self.on_joints(np.radians(q))
+            self.on_joints(np.radians(q), not self.motion.in_position(now))
         return q
 
     def tcp_pose(self, q_deg: np.ndarray) -> list[float]:

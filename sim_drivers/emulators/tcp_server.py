@@ -8,6 +8,8 @@ import contextlib
 import logging
 from collections.abc import Awaitable, Callable
 
+from tandemscan.drivers.tasks import cancel_and_wait
+
 log = logging.getLogger(__name__)
 
 Handler = Callable[[asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]]
@@ -51,17 +53,17 @@ class TcpService:
         except (ConnectionError, OSError) as e:
             log.debug("client on port %d went away: %s", self.port, e)
         finally:
-            self._clients.pop(task, None)
             writer.close()
-            with contextlib.suppress(OSError, ConnectionError):
-                await writer.wait_closed()
+            with contextlib.suppress(OSError, ConnectionError, TimeoutError):
+                await asyncio.wait_for(writer.wait_closed(), 1.0)
+            self._clients.pop(task, None)  # only now: drop_clients() and stop() wait for this task
 
     async def drop_clients(self) -> None:
         """Close every client connection at once (a disconnect fault) and wait for their handlers to end."""
         serving = list(self._clients.items())
         for _, (handler, writer) in serving:
-            writer.close()
-            handler.cancel()
+            writer.transport.abort()  # at once, even with unsent data queued for a peer that stopped reading
+            await cancel_and_wait(handler)
         for task, _ in serving:
             with contextlib.suppress(ConnectionError, OSError):
                 await task

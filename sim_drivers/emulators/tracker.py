@@ -18,6 +18,7 @@ import numpy as np
 from tandemscan.config.models import TrackerStreamConfig
 from tandemscan.drivers.errors import TargetNotVisible
 from tandemscan.drivers.pose_stream import PoseStreamAdapter
+from tandemscan.drivers.tasks import cancel_and_wait
 from tandemscan.sim_drivers.emulators.tcp_server import TcpService
 
 log = logging.getLogger(__name__)
@@ -80,11 +81,8 @@ class TrackerStreamEmulator:
             await self._tcp.drop_clients()
 
     async def stop(self) -> None:
-        if self._task is not None:
-            self._task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._task
-            self._task = None
+        await cancel_and_wait(self._task)
+        self._task = None
         if self._tcp is not None:
             await self._tcp.stop()
             self._tcp = None

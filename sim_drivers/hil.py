@@ -1,0 +1,129 @@
+"""Hardware-in-the-loop: every protocol emulator a ``driver = "real"`` device needs, backed by one SimWorld.
+
+Started before the real drivers connect (``[hil] enabled = true``): the JAKA controller and the tracker stream
+on their configured 127.0.0.1 ports, one chassis per configured CAN channel, the Modbus I/O module, and the
+fake harvesters camera. Each emulator moves or reads the world, so a job run through the real drivers can be
+scored against the same ground truth as one run on the twins.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from typing import Protocol
+
+import numpy as np
+from tandemscan.config.models import CellConfig
+from tandemscan.drivers.interfaces import ChassisPose
+from tandemscan.drivers.tasks import cancel_and_wait
+from tandemscan.pipeline import frames as F
+from tandemscan.sim_drivers.emulators.agv_can import ChassisEmulator
+from tandemscan.sim_drivers.emulators.jaka import JakaEmulator
+from tandemscan.sim_drivers.emulators.safety_modbus import SafetyIoEmulator
+from tandemscan.sim_drivers.emulators.tracker import TrackerStreamEmulator
+from tandemscan.sim_drivers.fake_harvesters import core as fake_harvesters
+from tandemscan.sim_drivers.world import SimWorld
+
+log = logging.getLogger(__name__)
+
+
+class _Emulator(Protocol):
+    async def stop(self) -> None: ...
+
+
+def start_pose_of(world: SimWorld, role: str) -> ChassisPose:
+    """The true floor pose of chassis ``role`` now, as (x, y, heading)."""
+    T = world.chassis[role].true_pose
+    return ChassisPose(float(T[0, 3]), float(T[1, 3]), float(np.arctan2(T[1, 0], T[0, 0])))
+
+
+class HilEmulators:
+    """``start()`` the emulators for the real devices of ``config``; ``stop()`` them after the drivers closed."""
+
+    def __init__(self, config: CellConfig, world: SimWorld):
+        self.config, self.world = config, world
+        self.running: dict[str, _Emulator] = {}
+        self._sync_task: asyncio.Task | None = None
+
+    def _real(self, role: str) -> bool:
+        return getattr(self.config, role).driver == "real"
+
+    async def start(self) -> None:
+        try:
+            await self._start_all()
+        except BaseException:
+            await self.stop()
+            raise
+
+    async def _start_all(self) -> None:
+        cfg, world, hil = self.config, self.world, self.config.hil
+        if self._real("arm"):
+            jaka = cfg.arm.jaka
+            arm = JakaEmulator(cfg.arm, host=jaka.host, command_port=jaka.command_port, status_port=jaka.status_port,
+                               time_scale=hil.arm_time_scale, initial_joints_rad=world.joints_rad,
+                               on_joints=self._arm_moved, kinematics=world.kinematics)
+            await arm.start()
+            self.running["arm"] = arm
+        for role in ("measure_chassis", "tracking_chassis"):
+            if self._real(role):
+                can_cfg = getattr(cfg, role).can
+                chassis = ChassisEmulator(getattr(cfg, role), can_cfg.channel, can_cfg.interface,
+                                          time_scale=hil.chassis_time_scale, seed=cfg.sim.seed,
+                                          start_pose=start_pose_of(world, role), on_pose=self._chassis_mover(role))
+                await chassis.start()
+                self.running[role] = chassis
+        if self._real("tracker"):
+            stream = cfg.tracker.stream
+            tracker = TrackerStreamEmulator(stream, world.measure_target, rate_hz=hil.tracker_rate_hz)
+            await tracker.start_tcp(stream.host, stream.port)
+            self.running["tracker"] = tracker
+        if self._real("safety"):
+            safety = SafetyIoEmulator(cfg.safety.modbus, cfg.safety.modbus.host, cfg.safety.modbus.port)
+            await safety.start()
+            self.running["safety"] = safety
+            self._sync_task = asyncio.create_task(self._sync_safety(safety))
+        if self._real("scanner"):
+            fake_harvesters.CAMERA.reset()
+            fake_harvesters.CAMERA.scene = self._scan_as_buffer
+        log.info("hil: emulators running for %s", ", ".join(self.running) or "no device")
+
+    async def stop(self) -> None:
+        await cancel_and_wait(self._sync_task)
+        self._sync_task = None
+        for emulator in reversed(list(self.running.values())):
+            await emulator.stop()
+        self.running.clear()
+
+    # ------------------------------------------------------------------ world hooks
+
+    def _arm_moved(self, q_rad: np.ndarray, moving: bool) -> None:
+        (self.world.motion.start if moving else self.world.motion.stop)(SimWorld.MEASURE_ROBOT)
+        self.world.joints_rad = np.asarray(q_rad, float)
+
+    def _chassis_mover(self, role: str):
+        robot = SimWorld.MEASURE_ROBOT if role == "measure_chassis" else SimWorld.TRACKING_ROBOT
+
+        def moved(pose: ChassisPose, moving: bool) -> None:
+            self.world.chassis[role].true_pose = F.planar_pose(pose.x_mm, pose.y_mm, pose.heading_rad)
+            (self.world.motion.start if moving else self.world.motion.stop)(robot)
+
+        return moved
+
+    def _scan_as_buffer(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The world's scan laid out as a one-row image (the fake camera's buffer shape); an empty scan is one
+        invalid (zero) pixel, as a real frame where nothing was in range."""
+        points, normals = self.world.scan()
+        if len(points) == 0:
+            points, normals = np.zeros((1, 3)), np.zeros((1, 3))
+        n = len(points)
+        return (points.reshape(1, n, 3).astype(np.float32), normals.reshape(1, n, 3).astype(np.float32),
+                np.ones((1, n), np.float32))
+
+    async def _sync_safety(self, safety: SafetyIoEmulator) -> None:
+        """Mirror the world's e-stop and light curtain onto the inputs, and the target-light coil back."""
+        truth, mb = self.world.safety, self.config.safety.modbus
+        while True:
+            await safety.press_estop(truth.estop)
+            await safety.break_light_curtain(truth.light_curtain_broken)
+            truth.target_light_on = await safety.coil(mb.target_light_coil)
+            await asyncio.sleep(self.config.safety.poll_period_s / 2)

@@ -1,0 +1,150 @@
+"""The hardware-in-the-loop cell: real drivers built from the config, talking to emulators that move the world."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import socket
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import pytest
+from tandemscan.config import load_config
+from tandemscan.config.loader import default_config_path
+from tandemscan.config.models import CellConfig
+from tandemscan.drivers import ChassisPose, NotConnected
+from tandemscan.drivers.agv_can import AgvCanChassis
+from tandemscan.drivers.factory import ROLES, build_real_device
+from tandemscan.drivers.jaka_tcp import JakaTcpArm
+from tandemscan.drivers.metronor import MetronorTracker
+from tandemscan.drivers.phoxi import PhoxiScanner
+from tandemscan.drivers.safety_modbus import ModbusSafetyIO
+from tandemscan.pipeline import frames as F
+from tandemscan.sim_drivers.cell import build_cell
+from tandemscan.sim_drivers.twins import SimArm
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def box_part(tmp_path_factory) -> Path:
+    """A 3 x 2 x 1.6 m box as the part (mm, floor z = 0, centred): the world builds in a second, not the nose's
+    tens of seconds on a loaded machine."""
+    mesh = o3d.geometry.TriangleMesh.create_box(3000.0, 2000.0, 1600.0).translate((-1500.0, -1000.0, 0.0))
+    path = tmp_path_factory.mktemp("part") / "box.stl"
+    mesh.compute_triangle_normals()
+    o3d.io.write_triangle_mesh(str(path), mesh)
+    return path
+
+
+def hil_config(part_mesh: Path) -> CellConfig:
+    """The shipped hil-cell.toml with free ports, so that tests never collide with a running cell."""
+    cfg = load_config(default_config_path().parent / "hil-cell.toml")
+
+    def section(name: str, sub: str, **update):
+        s = getattr(cfg, name)
+        return s.model_copy(update={sub: getattr(s, sub).model_copy(update=update)})
+
+    return cfg.model_copy(update={
+        "part": cfg.part.model_copy(update={"mesh": part_mesh}),
+        "arm": section("arm", "jaka", command_port=free_port(), status_port=free_port()),
+        "tracker": section("tracker", "stream", port=free_port()),
+        "safety": section("safety", "modbus", port=free_port()),
+        "measure_chassis": section("measure_chassis", "can", channel=f"hil-m-{free_port()}"),
+        "tracking_chassis": section("tracking_chassis", "can", channel=f"hil-t-{free_port()}"),
+    })
+
+
+def test_factory_builds_every_real_driver_named_by_role():
+    cfg = load_config()
+    kinds = {role: type(build_real_device(role, cfg)) for role in ROLES}
+    assert kinds == {"measure_chassis": AgvCanChassis, "tracking_chassis": AgvCanChassis, "arm": JakaTcpArm,
+                     "scanner": PhoxiScanner, "tracker": MetronorTracker, "safety": ModbusSafetyIO}
+    assert build_real_device("tracking_chassis", cfg).name == "tracking_chassis"
+    with pytest.raises(ValueError, match="unknown device role"):
+        build_real_device("gripper", cfg)
+
+
+def test_shipped_cell_configs_load():
+    folder = default_config_path().parent
+    example = load_config(folder / "cell.example.toml")
+    assert all(getattr(example, role).driver == "real" for role in ROLES)
+    assert not example.hil.enabled
+    hil = load_config(folder / "hil-cell.toml")
+    assert hil.hil.enabled and hil.scanner.phoxi.producer_path.is_file()
+    sim = load_config()
+    assert all(getattr(sim, role).driver == "sim" for role in ROLES) and not sim.hil.enabled
+
+
+def test_mixed_cell_keeps_twins_for_sim_roles(box_part):
+    cfg = load_config()
+    cfg = cfg.model_copy(update={"safety": cfg.safety.model_copy(update={"driver": "real"}),
+                                 "part": cfg.part.model_copy(update={"mesh": box_part})})
+    cell = build_cell(cfg)
+    assert isinstance(cell.safety, ModbusSafetyIO) and isinstance(cell.arm, SimArm)
+    assert cell.world is not None and cell.emulators is None
+
+
+async def test_hil_cell_moves_the_world_through_real_transports(box_part):
+    cell = build_cell(hil_config(box_part))
+    world = cell.world
+    await cell.connect()
+    try:
+        # chassis: odometry starts at the simulated start pose and the world's chassis follows the emulator
+        start = await cell.measure_chassis.odometry()
+        assert (start.x_mm, start.y_mm) == (world.config.sim.measure_start.x_mm, world.config.sim.measure_start.y_mm)
+        target = ChassisPose(start.x_mm + 150.0, start.y_mm, start.heading_rad)
+        arrived = await cell.measure_chassis.move_to(target, timeout_s=30.0)
+        assert math.hypot(arrived.x_mm - target.x_mm, arrived.y_mm - target.y_mm) <= 5.0
+        true_xy = world.T_F_V2[:2, 3]
+        assert 100.0 < true_xy[0] - start.x_mm < 200.0  # moved, with slip
+        # arm: the world's joints follow the controller
+        await cell.arm.enable()
+        q = world.joints_rad + np.radians([5.0, -3.0, 4.0, 0.0, 2.0, 0.0])
+        await cell.arm.move_joints(q, timeout_s=10.0)
+        np.testing.assert_allclose(world.joints_rad, q, atol=1e-9)
+        np.testing.assert_allclose(await cell.arm.flange_pose(), world.kinematics.forward(q), atol=1e-6)
+        # scanner: the world's ray-cast scan through the GenTL-style buffer
+        captures = world.captures
+        frame = await cell.scanner.capture(timeout_s=5.0)
+        assert world.captures == captures + 1 and frame.points_mm.ndim == 2
+        # safety: the world's e-stop reaches the driver over Modbus
+        assert (await cell.safety.read()).motion_allowed
+        assert not world.motion.violations
+    finally:
+        await cell.close()
+
+
+async def test_hil_tracker_and_safety_read_the_world(box_part):
+    cell = build_cell(hil_config(box_part))
+    world = cell.world
+    await cell.connect()
+    try:
+        assert world.target_visibility() is None  # the default start: the tracker sees the target
+        reading = await cell.tracker.read_pose(timeout_s=2.0)
+        truth = F.invert(world.T_F_C()) @ world.T_F_T()
+        assert F.pose_error(reading.T_C_T, truth)[0] < 0.5  # mm: tracker noise only
+        world.safety.estop = True  # and the world's e-stop reaches the safety driver over Modbus
+        for _ in range(100):
+            if not (await cell.safety.read()).motion_allowed:
+                break
+            await asyncio.sleep(0.01)
+        assert (await cell.safety.read()).estop
+    finally:
+        await cell.close()
+
+
+async def test_failed_connect_closes_everything(box_part):
+    cfg = hil_config(box_part)
+    cfg = cfg.model_copy(update={"scanner": cfg.scanner.model_copy(
+        update={"phoxi": cfg.scanner.phoxi.model_copy(update={"harvesters_module": "no_such_module"})})})
+    cell = build_cell(cfg)
+    with pytest.raises(NotConnected, match="scanner: no_such_module"):
+        await cell.connect()
+    assert not cell.emulators.running
+    assert not (await cell.arm.status()).connected
