@@ -132,6 +132,11 @@ def _print_summary(report: dict, job_dir: Path) -> None:
     if truth:
         out.print(f"  pose error median {truth['pose_err_mm_median']:.3f} mm / {truth['pose_err_deg_median']:.4f} deg, "
                   f"cloud to part RMS {truth['cloud_rms_mm']:.3f} mm (P95 {truth['cloud_p95_mm']:.3f} mm)")
+    inspection = report.get("inspection", {})
+    if "as_measured" in inspection:
+        tol = inspection["as_measured"]["tolerance"]
+        out.print(f"  {tol['in_pct']:.1f} % within [{tol['lower_mm']:+.3f}, {tol['upper_mm']:+.3f}] mm of CAD: "
+                  f"{job_dir / inspection['files']['html']}")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -153,6 +158,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", type=Path, help="cell configuration TOML (default: the simulated cell)")
     p.add_argument("--out", type=Path, help="calibration file to write (default: calibration.output_file)")
     p.set_defaults(func=cmd_calibrate)
+
+    from tandemscan.daemon.inspect_cmd import register as register_inspect
+
+    register_inspect(sub)
     return parser
 
 
