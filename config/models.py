@@ -255,50 +255,6 @@ class JobConfig(_Strict):
     calibration_file: Path | None = None
 
 
-class CalibrationConfig(_Strict):
-    """Calibration plate (three reference spheres A, X, Y) and the hand-eye calibration job.
-
-    Plate frame ``P`` (Eq. 7-8): x along A->X, origin at the foot of the perpendicular from Y onto the line
-    A-X, y towards Y, z = x cross y. Sphere centres are given in ``P`` (mm), so A and X lie on the x axis and
-    Y on the y axis.
-    """
-
-    sphere_diameter_mm: float = Field(38.1, gt=0, description="calibrated diameter of the three spheres, mm")
-    centre_A_mm: tuple[float, float, float] = (-100.0, 0.0, 0.0)
-    centre_X_mm: tuple[float, float, float] = (120.0, 0.0, 0.0)
-    centre_Y_mm: tuple[float, float, float] = (0.0, 90.0, 0.0)
-    stem_mm: float = Field(15.0, ge=0, description="sphere surface to plate top along -z, mm (sim mesh)")
-    plate_size_mm: tuple[float, float] = (300.0, 210.0)
-    radius_tolerance_mm: float = Field(0.3, gt=0, description="reject a sphere fit off the nominal radius by more")
-    layout_tolerance_mm: float = Field(2.0, gt=0, description="max error of a centre-to-centre distance, mm")
-    fit_fixed_radius: bool = Field(True, description="final centre fit with the calibrated radius fixed")
-    min_pair_rotation_deg: float = Field(5.0, ge=0, description="hand-eye pose pairs rotating less are dropped")
-    poses: int = Field(16, ge=3, description="arm poses of the calibration job")
-    tracker_samples: int = Field(10, ge=1, description="tracker readings averaged at rest per calibration pose")
-    tilt_deg: float = Field(22.0, gt=0, lt=60, description="scanner tilt over the plate in the calibration job")
-    method: Literal["tsai", "park", "daniilidis", "refine"] = "refine"
-    T_V2_P: TransformConfig = Field(
-        TransformConfig(xyz_mm=(550.0, 0.0, 250.0)),
-        description="where the plate stands relative to the measurement chassis at its start (nominal for "
-        "planning; the sim cell puts it exactly there)",
-    )
-    output_file: Path = Field(Path("out/calibration.json"), description="where `tandemscan calibrate` writes")
-
-    @field_validator("centre_A_mm", "centre_X_mm")
-    @classmethod
-    def _on_x_axis(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
-        if abs(v[1]) > 1e-9 or abs(v[2]) > 1e-9:
-            raise ValueError("A and X lie on the plate x axis: y = z = 0")
-        return v
-
-    @field_validator("centre_Y_mm")
-    @classmethod
-    def _on_y_axis(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
-        if abs(v[0]) > 1e-9 or abs(v[2]) > 1e-9 or v[1] <= 0:
-            raise ValueError("Y lies on the plate +y axis: x = z = 0, y > 0")
-        return v
-
-
 class RegionConfig(_Strict):
     """A named inspection region: an axis-aligned box in the CAD/part frame F (mm), bounds inclusive."""
 
@@ -343,6 +299,50 @@ class InspectionConfig(_Strict):
     )
 
 
+class CalibrationConfig(_Strict):
+    """Calibration plate (three reference spheres A, X, Y) and the hand-eye calibration job.
+
+    Plate frame ``P`` (Eq. 7-8): x along A->X, origin at the foot of the perpendicular from Y onto the line
+    A-X, y towards Y, z = x cross y. Sphere centres are given in ``P`` (mm), so A and X lie on the x axis and
+    Y on the y axis.
+    """
+
+    sphere_diameter_mm: float = Field(38.1, gt=0, description="calibrated diameter of the three spheres, mm")
+    centre_A_mm: tuple[float, float, float] = (-100.0, 0.0, 0.0)
+    centre_X_mm: tuple[float, float, float] = (120.0, 0.0, 0.0)
+    centre_Y_mm: tuple[float, float, float] = (0.0, 90.0, 0.0)
+    stem_mm: float = Field(15.0, ge=0, description="sphere surface to plate top along -z, mm (sim mesh)")
+    plate_size_mm: tuple[float, float] = (300.0, 210.0)
+    radius_tolerance_mm: float = Field(0.3, gt=0, description="reject a sphere fit off the nominal radius by more")
+    layout_tolerance_mm: float = Field(2.0, gt=0, description="max error of a centre-to-centre distance, mm")
+    fit_fixed_radius: bool = Field(True, description="final centre fit with the calibrated radius fixed")
+    min_pair_rotation_deg: float = Field(5.0, ge=0, description="hand-eye pose pairs rotating less are dropped")
+    poses: int = Field(16, ge=3, description="arm poses of the calibration job")
+    tracker_samples: int = Field(10, ge=1, description="tracker readings averaged at rest per calibration pose")
+    tilt_deg: float = Field(22.0, gt=0, lt=60, description="scanner tilt over the plate in the calibration job")
+    method: Literal["tsai", "park", "daniilidis", "refine"] = "refine"
+    T_V2_P: TransformConfig = Field(
+        TransformConfig(xyz_mm=(550.0, 0.0, 250.0)),
+        description="where the plate stands relative to the measurement chassis at its start (nominal for "
+        "planning; the sim cell puts it exactly there)",
+    )
+    output_file: Path = Field(Path("out/calibration.json"), description="where `tandemscan calibrate` writes")
+
+    @field_validator("centre_A_mm", "centre_X_mm")
+    @classmethod
+    def _on_x_axis(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        if abs(v[1]) > 1e-9 or abs(v[2]) > 1e-9:
+            raise ValueError("A and X lie on the plate x axis: y = z = 0")
+        return v
+
+    @field_validator("centre_Y_mm")
+    @classmethod
+    def _on_y_axis(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        if abs(v[0]) > 1e-9 or abs(v[2]) > 1e-9 or v[1] <= 0:
+            raise ValueError("Y lies on the plate +y axis: x = z = 0, y > 0")
+        return v
+
+
 class CellConfig(_Strict):
     """The whole cell."""
 
@@ -357,5 +357,5 @@ class CellConfig(_Strict):
     installation: InstallationConfig = InstallationConfig()
     sim: SimWorldConfig = SimWorldConfig()
     job: JobConfig = JobConfig()
-    calibration: CalibrationConfig = CalibrationConfig()
     inspection: InspectionConfig = InspectionConfig()
+    calibration: CalibrationConfig = CalibrationConfig()

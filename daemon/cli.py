@@ -154,14 +154,14 @@ def build_parser() -> argparse.ArgumentParser:
                    "job.installation_source = calibration)")
     p.set_defaults(func=cmd_measure)
 
+    from tandemscan.daemon.inspect_cmd import register as register_inspect
+
+    register_inspect(sub)
+
     p = sub.add_parser("calibrate", help="hand-eye calibration from plate scans (simulated cell by default)")
     p.add_argument("--config", type=Path, help="cell configuration TOML (default: the simulated cell)")
     p.add_argument("--out", type=Path, help="calibration file to write (default: calibration.output_file)")
     p.set_defaults(func=cmd_calibrate)
-
-    from tandemscan.daemon.inspect_cmd import register as register_inspect
-
-    register_inspect(sub)
     return parser
 
 
