@@ -65,9 +65,12 @@ def trial(cfg, rng: np.random.Generator, scale: float, centre_errs: list[float])
     views = calibration_views(cal, scanner)
     truth_P = nominal_centres_P(cal)
 
+    plate_covs = []
+
     def plate_fit(T_S_P_true: np.ndarray) -> np.ndarray:
         pts, _ = scan_plate(cal, scanner, T_S_P_true, rng=rng)
         fit = fit_plate(pts, cal, noise_mm=scanner.noise_sigma_mm, rng=rng)
+        plate_covs.append(fit.covariance)
         centre_errs.extend(np.linalg.norm(fit.centres_S - transform_points(T_S_P_true, truth_P), axis=1))
         return fit.T_S_P
 
@@ -75,6 +78,7 @@ def trial(cfg, rng: np.random.Generator, scale: float, centre_errs: list[float])
     out = {}
     for m in METHODS:
         r = solve_hand_eye(d.T_C_T, d.T_S_P, method=m, plate_points_P=truth_P, tracker_sigma=d.tracker_sigma,
+                           plate_covariances=np.array(plate_covs), plate_sigma_mm=0.001,
                            min_pair_rotation_deg=cal.min_pair_rotation_deg)
         dt, dr = pose_error(r.T_T_S, X)
         out[m] = (dt, float(np.degrees(dr)))
@@ -113,7 +117,7 @@ async def _calibrate_and_measure(cfg, out: Path) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--trials", type=int, default=8, help="calibrations per noise level")
+    parser.add_argument("--trials", type=int, default=12, help="calibrations per noise level")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--no-job", action="store_true", help="skip the sim calibration and measurement jobs")
     args = parser.parse_args(argv)
