@@ -189,11 +189,15 @@ def _solve_park(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """Park-Martin: ``log R_A = R_X log R_B`` solved as an orthogonal Procrustes problem."""
     alpha = Rotation.from_matrix(A[:, :3, :3]).as_rotvec()
     beta = Rotation.from_matrix(B[:, :3, :3]).as_rotvec()
-    H = beta.T @ alpha
+    R_X = _procrustes(beta.T @ alpha)
+    return make_transform(R_X, _translation_ls(A, B, R_X))
+
+
+def _procrustes(H: np.ndarray) -> np.ndarray:
+    """Rotation R maximising ``trace(R H)`` (H = sum of ``src dst^T``): the best ``dst ~ R src``."""
     U, _, Vt = np.linalg.svd(H)
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R_X = Vt.T @ D @ U.T
-    return make_transform(R_X, _translation_ls(A, B, R_X))
+    return Vt.T @ D @ U.T
 
 
 def _dual_quaternion(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -443,10 +447,7 @@ def solve_hand_eye(
 def _rigid_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """Least-squares rigid transform mapping ``src`` points onto ``dst`` (Kabsch)."""
     cs, cd = src.mean(axis=0), dst.mean(axis=0)
-    H = (src - cs).T @ (dst - cd)
-    U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
+    R = _procrustes((src - cs).T @ (dst - cd))
     return make_transform(R, cd - R @ cs)
 
 
