@@ -144,6 +144,8 @@ def main(argv: list[str] | None = None) -> int:
         by_noise[f"x{scale:g}"] = {
             "trans_err_mm": trans, "rot_err_deg": rot, "surface_err_mm": surface,
             "ours_best": ours, "opencv_best": cv_best, "ours_no_worse": ok,
+            "ours_over_opencv": surface[ours] / surface[cv_best],
+            "refine_over_opencv": surface["refine"] / surface[cv_best],
         }
         print(f"noise x{scale:g}: ours {ours} {trans[ours]:.4f} mm / {rot[ours]:.5f} deg, opencv {cv_best} "
               f"{trans[cv_best]:.4f} mm / {rot[cv_best]:.5f} deg", file=sys.stderr)
