@@ -98,7 +98,7 @@ async def run_calibration(
     plan = await asyncio.to_thread(arm_joints_for_views, views, cal.T_V2_P.matrix(), nominal.T_V2_B,
                                    nominal.T_E_S, kinematics, seed)
     skipped = [f"view {i}: out of reach" for i in range(len(views)) if i not in {j for j, _ in plan}]
-    tracker_poses, covariances, plate_poses, centre_sigma, joints = [], [], [], [], []
+    tracker_poses, covariances, plate_poses, plate_covs, joints = [], [], [], [], []
     for i, q in plan:
         if len(tracker_poses) >= cal.poses:
             break
@@ -120,7 +120,7 @@ async def run_calibration(
         joints.append(q)
         covariances.append(cov)
         plate_poses.append(fit.T_S_P)
-        centre_sigma.append(fit.centre_sigma_mm)
+        plate_covs.append(fit.covariance)
     for s in skipped:
         log.info("calibration: %s", s)
     if len(tracker_poses) < 3:
@@ -129,7 +129,8 @@ async def run_calibration(
         result = await asyncio.to_thread(
             solve_hand_eye, np.array(tracker_poses), np.array(plate_poses), cal.method,
             plate_points_P=nominal_centres_P(cal), tracker_covariances=np.array(covariances),
-            plate_sigma_mm=float(np.median(centre_sigma)), min_pair_rotation_deg=cal.min_pair_rotation_deg,
+            plate_covariances=np.array(plate_covs), plate_sigma_mm=0.001,
+            min_pair_rotation_deg=cal.min_pair_rotation_deg,
         )
     except HandEyeError as e:
         raise CalibrationJobError(f"hand-eye calibration failed: {e}") from e

@@ -91,6 +91,15 @@ def test_bad_input_is_reported(sim_config):
         solve_hand_eye(d.T_C_T, d.T_S_P, method="magic")
 
 
+def test_plate_covariances_weight_the_refinement(sim_config):
+    d = _data(sim_config, 5)
+    cov = np.broadcast_to(np.diag([0.005**2] * 3 + [np.radians(0.002) ** 2] * 3), (14, 6, 6))
+    r = solve_hand_eye(d.T_C_T, d.T_S_P, plate_covariances=cov, plate_sigma_mm=0.001)
+    assert pose_error(r.T_T_S, X_TRUE)[0] < 0.1
+    with pytest.raises(HandEyeError, match="plate_covariances must be"):
+        solve_hand_eye(d.T_C_T, d.T_S_P, plate_covariances=cov[:3])
+
+
 def test_uses_the_plate_points_given(sim_config):
     d = _data(sim_config, 4)
     spheres = np.array([[-110.0, 0, 0], [140.0, 0, 0], [0, 100.0, 0]])

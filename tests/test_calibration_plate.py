@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 from tandemscan.config import load_config
 from tandemscan.config.models import CalibrationConfig
 from tandemscan.pipeline.calibration.plate import (
@@ -13,6 +14,7 @@ from tandemscan.pipeline.calibration.plate import (
     fit_sphere_algebraic,
     nominal_centres_P,
     plate_frame,
+    plate_frame_covariance,
 )
 from tandemscan.pipeline.calibration.poses import calibration_views
 from tandemscan.pipeline.frames import invert, pose_error, transform_points
@@ -80,6 +82,7 @@ def test_noisy_plate_centres_within_three_sigma(cal, sim_config, seed):
     # noise is along the ray; the radial residual is its projection on the sphere normal
     assert all(0.02 < s.rms_mm < 0.06 for s in fit.spheres.values())
     assert 0 < fit.centre_sigma_mm < 0.02
+    assert fit.covariance.shape == (6, 6) and 0 < np.sqrt(fit.covariance[0, 0]) < 0.02
 
 
 @pytest.mark.parametrize("missing", ["A", "X", "Y"])
@@ -107,6 +110,22 @@ def test_plate_frame_follows_eq_7_8():
     assert transform_points(np.linalg.inv(T), [y])[0][1] > 0  # Y on +y
     with pytest.raises(PlateError, match="line A-X"):
         plate_frame(a, x, (a + x) / 2)
+
+
+def test_plate_frame_covariance_matches_monte_carlo():
+    rng = np.random.default_rng(5)
+    C = np.array([[-100.0, 0, 450], [120.0, 0, 450], [0, 90.0, 455]])
+    T0 = plate_frame(*C)
+    cov = plate_frame_covariance(C, [0.01, 0.01, 0.01])
+    samples = []
+    for _ in range(2000):
+        T = plate_frame(*(C + rng.normal(0, 0.01, C.shape)))
+        dR = T[:3, :3] @ T0[:3, :3].T
+        samples.append(np.r_[T[:3, 3] - dR @ T0[:3, 3], Rotation.from_matrix(dR).as_rotvec()])
+    mc = np.cov(np.array(samples).T)
+    np.testing.assert_allclose(np.sqrt(np.diag(cov)), np.sqrt(np.diag(mc)), rtol=0.1)
+    # Y is only 90 mm off the A-X line: the tilt about the plate x axis is the least certain rotation
+    assert np.sqrt(cov[3, 3]) > np.sqrt(cov[5, 5])
 
 
 def test_layout_in_config_must_follow_the_frame():

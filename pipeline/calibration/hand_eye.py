@@ -189,11 +189,15 @@ def _solve_park(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """Park-Martin: ``log R_A = R_X log R_B`` solved as an orthogonal Procrustes problem."""
     alpha = Rotation.from_matrix(A[:, :3, :3]).as_rotvec()
     beta = Rotation.from_matrix(B[:, :3, :3]).as_rotvec()
-    H = beta.T @ alpha
+    R_X = _procrustes(beta.T @ alpha)
+    return make_transform(R_X, _translation_ls(A, B, R_X))
+
+
+def _procrustes(H: np.ndarray) -> np.ndarray:
+    """Rotation R maximising ``trace(R H)`` (H = sum of ``src dst^T``): the best ``dst ~ R src``."""
     U, _, Vt = np.linalg.svd(H)
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R_X = Vt.T @ D @ U.T
-    return make_transform(R_X, _translation_ls(A, B, R_X))
+    return Vt.T @ D @ U.T
 
 
 def _dual_quaternion(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -273,7 +277,13 @@ class _Bundle:
     """
 
     def __init__(
-        self, T_C_T: np.ndarray, pts_S: np.ndarray, X0: np.ndarray, cov_C: np.ndarray, plate_sigma_mm: float
+        self,
+        T_C_T: np.ndarray,
+        pts_S: np.ndarray,
+        X0: np.ndarray,
+        cov_C: np.ndarray,
+        plate_sigma_mm: float,
+        cov_S: np.ndarray | None = None,
     ) -> None:
         self.T_C_T, self.pts_S, self.X0 = T_C_T, pts_S, X0
         self.K = pts_S.shape[1]
@@ -284,6 +294,13 @@ class _Bundle:
         J[..., 3:] = -_skew(lever)
         J = J.reshape(len(T_C_T), 3 * self.K, 6)
         cov = J @ cov_C @ np.swapaxes(J, 1, 2) + max(plate_sigma_mm, 1e-6) ** 2 * np.eye(3 * self.K)
+        if cov_S is not None:  # plate pose noise moves the points rigidly: dp_S = dt + dtheta x p_S
+            Jp = np.zeros((len(T_C_T), self.K, 3, 6))
+            Jp[..., :3] = np.eye(3)
+            Jp[..., 3:] = -_skew(pts_S)
+            R_C_S = T_C_T[:, :3, :3] @ X0[:3, :3]
+            Jp = np.einsum("nij,nkjl->nkil", R_C_S, Jp).reshape(len(T_C_T), 3 * self.K, 6)
+            cov = cov + Jp @ cov_S @ np.swapaxes(Jp, 1, 2)
         # whitening W with W^T W = inv(cov): W = inv(L) for cov = L L^T
         self.W = np.linalg.inv(np.linalg.cholesky(cov))
 
@@ -344,6 +361,7 @@ def solve_hand_eye(
     tracker_covariances: ArrayLike | None = None,
     tracker_sigma: tuple[float, float] = DEFAULT_TRACKER_SIGMA,
     plate_sigma_mm: float = 0.005,
+    plate_covariances: ArrayLike | None = None,
 ) -> HandEyeResult:
     """Solve ``A X = X B`` for ``X = T_T_S`` (4x4, mm).
 
@@ -356,7 +374,9 @@ def solve_hand_eye(
     Noise model of the refinement and the covariance: ``tracker_covariances`` (N, 6, 6) of each reading as
     the tracker driver gives them (``TrackerReading.covariance``: translation mm then rotation vector rad,
     in the camera frame C); without them ``tracker_sigma`` = (mm, rad) per axis for every reading.
-    ``plate_sigma_mm``: 1-sigma of a plate point from the scan fit.
+    ``plate_sigma_mm``: 1-sigma of a plate point from the scan fit; ``plate_covariances`` (N, 6, 6), when
+    given, the covariance of each ``T_S_P`` as :attr:`PlateFit.covariance` gives it (translation mm, rotation
+    rad, left perturbation in frame S); the isotropic term then only keeps the weighting well conditioned.
     """
     if method not in METHODS:
         raise HandEyeError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
@@ -379,6 +399,12 @@ def solve_hand_eye(
         if cov_C.shape != (len(T_C_T), 6, 6):
             raise HandEyeError(f"tracker_covariances must be ({len(T_C_T)}, 6, 6), got {cov_C.shape}")
 
+    cov_S = None
+    if plate_covariances is not None:
+        cov_S = np.asarray(plate_covariances, dtype=float)
+        if cov_S.shape != (len(T_C_T), 6, 6):
+            raise HandEyeError(f"plate_covariances must be ({len(T_C_T)}, 6, 6), got {cov_S.shape}")
+
     def spread(X: np.ndarray) -> float:
         p = _points_C(T_C_T, X, pts_S)
         return float(np.mean(np.sum((p - p.mean(axis=0)) ** 2, axis=2)))
@@ -390,10 +416,10 @@ def solve_hand_eye(
                 starts[name] = solver(A, B)
             except (HandEyeError, np.linalg.LinAlgError) as e:
                 log.info("hand-eye start %s failed: %s", name, e)
-        bundle = _Bundle(T_C_T, pts_S, min(starts.values(), key=spread), cov_C, plate_sigma_mm)
+        bundle = _Bundle(T_C_T, pts_S, min(starts.values(), key=spread), cov_C, plate_sigma_mm, cov_S)
         x = _refine(bundle)
     else:
-        bundle = _Bundle(T_C_T, pts_S, _SOLVERS[method](A, B), cov_C, plate_sigma_mm)
+        bundle = _Bundle(T_C_T, pts_S, _SOLVERS[method](A, B), cov_C, plate_sigma_mm, cov_S)
         x = bundle.start()
     X, m = bundle.unpack(x)
     cov = bundle.covariance(x)
@@ -421,10 +447,7 @@ def solve_hand_eye(
 def _rigid_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """Least-squares rigid transform mapping ``src`` points onto ``dst`` (Kabsch)."""
     cs, cd = src.mean(axis=0), dst.mean(axis=0)
-    H = (src - cs).T @ (dst - cd)
-    U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
+    R = _procrustes((src - cs).T @ (dst - cd))
     return make_transform(R, cd - R @ cs)
 
 

@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 from tandemscan.config.models import CalibrationConfig
 from tandemscan.pipeline.frames import make_transform
 
@@ -50,12 +51,14 @@ class PlateFit:
     """The plate seen from the scanner: ``T_S_P`` (mm) and its residuals.
 
     ``layout_residuals_mm`` holds measured minus nominal centre-to-centre distances (AX, AY, XY);
-    ``spheres`` the fits by name.
+    ``spheres`` the fits by name; ``covariance`` the 6x6 of ``T_S_P`` propagated from the centre fits
+    (translation mm then rotation vector rad, a perturbation applied on the left, in frame S).
     """
 
     T_S_P: np.ndarray
     spheres: dict[str, SphereFit]
     layout_residuals_mm: dict[str, float] = field(default_factory=dict)
+    covariance: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
 
     @property
     def centres_S(self) -> np.ndarray:
@@ -335,5 +338,26 @@ def fit_plate(
         )
     names, residuals = match
     spheres = {n: fits[i] for n, i in names.items()}
-    T = plate_frame(spheres["A"].centre, spheres["X"].centre, spheres["Y"].centre)
-    return PlateFit(T_S_P=T, spheres=spheres, layout_residuals_mm=residuals)
+    centres = np.stack([spheres[n].centre for n in SPHERE_NAMES])
+    T = plate_frame(*centres)
+    cov = plate_frame_covariance(centres, [spheres[n].centre_sigma_mm for n in SPHERE_NAMES])
+    return PlateFit(T_S_P=T, spheres=spheres, layout_residuals_mm=residuals, covariance=cov)
+
+
+def plate_frame_covariance(centres: ArrayLike, sigmas_mm: ArrayLike, step_mm: float = 1e-4) -> np.ndarray:
+    """6x6 covariance of Eq. 7-8's ``T_S_P`` (translation mm, rotation rad; left perturbation in S) for
+    isotropic centre errors of ``sigmas_mm`` (one per sphere A, X, Y)."""
+    C = np.asarray(centres, dtype=float)
+    T0 = plate_frame(*C)
+    J = np.empty((6, 9))
+    for j in range(9):
+        cols = []
+        for h in (step_mm, -step_mm):
+            Cp = C.copy()
+            Cp[j // 3, j % 3] += h
+            T = plate_frame(*Cp)
+            dR = T[:3, :3] @ T0[:3, :3].T
+            cols.append(np.r_[T[:3, 3] - dR @ T0[:3, 3], Rotation.from_matrix(dR).as_rotvec()])
+        J[:, j] = (cols[0] - cols[1]) / (2 * step_mm)
+    var = np.repeat(np.square(np.asarray(sigmas_mm, dtype=float)), 3)
+    return (J * var) @ J.T
