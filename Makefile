@@ -7,8 +7,10 @@ APT_PACKAGES := libusb-1.0-0 libgl1 libgomp1
 
 .PHONY: measure test system-deps clean
 
+# The plan for the whole default part is generated first (docs/planning.md), then measured.
 measure: $(STAMP)
-	$(VENV)/bin/tandemscan measure
+	$(VENV)/bin/tandemscan plan --out out/plan.toml --png out/plan.png
+	$(VENV)/bin/tandemscan measure --plan out/plan.toml
 
 test: $(STAMP)
 	$(PY) -m pytest -q -p no:cacheprovider
