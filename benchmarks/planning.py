@@ -1,7 +1,8 @@
 """Planning benchmark: the default part and a 20 m x 3 m x 4 m train car; one JSON object on the last line.
 
 For each part: scans, AGV stations, tracker stations (and the solver used), the exact optimum where the integer
-program finishes within a generous limit, coverage by mesh area (dry run), and the planning time (s, wall and CPU of this process incl. solver threads).
+program finishes within a generous limit, coverage by mesh area (dry run), and the planning time (s, wall and
+CPU of this process including solver threads).
 Run: ``nice .venv/bin/python benchmarks/planning.py``.
 """
 
@@ -12,7 +13,6 @@ import sys
 import time
 
 import numpy as np
-
 from tandemscan.config import load_config
 from tandemscan.config.models import PartConfig
 from tandemscan.pipeline.part import load_part_mesh

@@ -9,7 +9,6 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402 - the backend is chosen first
 import numpy as np  # noqa: E402
-
 from tandemscan.pipeline.planning.planner import PartPlan, target_poses  # noqa: E402
 
 

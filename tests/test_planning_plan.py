@@ -7,7 +7,6 @@ import json
 
 import numpy as np
 import pytest
-
 from tandemscan.config import load_config
 from tandemscan.daemon.cli import main
 from tandemscan.pipeline import frames as F

@@ -8,7 +8,6 @@ import numpy as np
 import open3d as o3d
 import pytest
 from shapely.geometry import Point
-
 from tandemscan.config.models import PlanningConfig, ScannerConfig
 from tandemscan.pipeline.planning.stations import (
     StationPlanningError,

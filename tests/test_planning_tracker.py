@@ -7,7 +7,6 @@ import itertools
 import numpy as np
 import open3d as o3d
 import pytest
-
 from tandemscan.config.models import PlanningConfig, TrackerConfig
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.planning.tracker import (

@@ -11,7 +11,6 @@ into the joint limits by whole turns, and the one nearest the seed is returned.
 from __future__ import annotations
 
 import numpy as np
-
 from tandemscan.config.models import ArmConfig
 from tandemscan.pipeline.kinematics import ArmKinematics
 

@@ -14,7 +14,6 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-
 from tandemscan.pipeline.plan import MoveArm, MoveMeasure, MoveTracker, Plan, Scan
 
 log = logging.getLogger(__name__)
@@ -80,7 +79,8 @@ def build_sequence(
     """
     cover = np.asarray(chain_cover, bool)
     if cover.shape != (len(chain_poses), len(poses)):
-        raise SequenceError(f"cover shape {cover.shape} does not match {len(chain_poses)} stations x {len(poses)} poses")
+        raise SequenceError(
+            f"cover shape {cover.shape} does not match {len(chain_poses)} stations x {len(poses)} poses")
     b = _Builder(home_rad)
     todo = cover.any(axis=0)
     order, station_of, transfers = [], [], []

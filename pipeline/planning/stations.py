@@ -18,7 +18,6 @@ import open3d as o3d
 import shapely
 from shapely.geometry import LinearRing, Point, Polygon, box
 from shapely.ops import unary_union
-
 from tandemscan.config.models import PlanningConfig, ScannerConfig
 
 log = logging.getLogger(__name__)

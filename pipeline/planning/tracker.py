@@ -22,7 +22,6 @@ import numpy as np
 import open3d as o3d
 from scipy.optimize import Bounds, LinearConstraint, linprog, milp
 from scipy.sparse import bmat, csr_matrix, identity, kron, vstack
-
 from tandemscan.config.models import PlanningConfig, TrackerConfig
 from tandemscan.pipeline import frames as F
 
