@@ -146,3 +146,16 @@ def test_candidate_headings_face_the_part():
     assert cand.shape == (4, 3)
     np.testing.assert_allclose(cand[:2, 2], [-np.pi / 2, np.pi])
     np.testing.assert_allclose(cand[2:, 2], [-np.pi / 2 + np.radians(30), np.pi + np.radians(30)])
+
+
+def test_heuristic_matches_the_exact_optimum_on_stations_along_a_loop():
+    """Stations seeing arcs of a loop of measuring points (the shape of a real part): the sweep is optimal."""
+    M, width = 16, 4
+    cover = np.zeros((M, M), bool)
+    for k in range(M):
+        cover[k, [(k + i) % M for i in range(width)]] = True
+    greedy = solve_greedy(cover)
+    exact = solve_exact(cover, time_limit_s=20.0)
+    assert exact is not None and exact.optimal
+    assert is_valid_chain(cover, greedy.chain)
+    assert greedy.count == exact.count == 5  # each further arc adds 3 new points: 4 + 4 * 3 >= 16

@@ -52,7 +52,7 @@ class _Builder:
 
     def go(self, pose: PoseRef) -> None:
         if self.agv != pose.agv_pose:
-            if self.joints is not None and self.joints != self.home:
+            if self.joints != self.home:  # unknown at the start: fold anyway
                 self.steps.append(MoveArm(joints_rad=self.home))
                 self.joints = self.home
             self.steps.append(MoveMeasure(x_mm=pose.agv_pose[0], y_mm=pose.agv_pose[1], heading_rad=pose.agv_pose[2]))

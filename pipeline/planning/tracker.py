@@ -238,16 +238,36 @@ def _sweep_from(cover: np.ndarray, adjacency: np.ndarray, start: int) -> list[in
     return chain
 
 
-def _prune(cover: np.ndarray, chain: list[int], keep_first: bool) -> list[int]:
-    """Drop stations one at a time while the chain stays valid (greedy growth leaves some redundant)."""
+def _sweep_back_from(cover: np.ndarray, adjacency: np.ndarray, start: int) -> list[int] | None:
+    """The sweep against the measuring order."""
+    return _sweep_from(cover[:, ::-1], adjacency, start)
+
+
+def _prune(cover: np.ndarray, adjacency: np.ndarray, chain: list[int], keep_first: bool) -> list[int]:
+    """Local search: drop a station, or swap two neighbours for one, while the chain stays valid."""
     need = cover.any(axis=0)
-    changed = True
-    while changed and len(chain) > 1:
-        changed = False
-        for i in sorted(range(1 if keep_first else 0, len(chain)), key=lambda i: cover[chain[i]].sum()):
+    lo = 1 if keep_first else 0
+    improved = True
+    while improved and len(chain) > 1:
+        improved = False
+        for i in sorted(range(lo, len(chain)), key=lambda i: cover[chain[i]].sum()):
             trial = chain[:i] + chain[i + 1:]
             if is_valid_chain(cover, trial, need):
-                chain, changed = trial, True
+                chain, improved = trial, True
+                break
+        if improved:
+            continue
+        for i in range(lo, len(chain) - 1):
+            rest = chain[:i] + chain[i + 2:]
+            missing = need & ~(cover[rest].any(axis=0) if rest else np.zeros_like(need))
+            ok = cover[:, missing].all(axis=1)
+            if i > 0:
+                ok &= adjacency[chain[i - 1]]
+            if i + 2 < len(chain):
+                ok &= adjacency[chain[i + 2]]
+            if ok.any():
+                t = int(np.argmax(np.where(ok, cover.sum(axis=1), -1)))
+                chain, improved = chain[:i] + [t] + chain[i + 2:], True
                 break
     return chain
 
@@ -276,8 +296,8 @@ def _shortest_path(adjacency: np.ndarray, source: int, goal: np.ndarray) -> list
 def solve_greedy(cover: np.ndarray, starts: int = 8, first: int | None = None) -> TrackerSolution:
     """A valid chain grown from several start stations (largest covers, rarest point); bound by LP.
 
-    Two growth rules are tried from each start, most new points next and farthest reach along the measuring
-    order (the columns' order), and the shortest chain after pruning wins.
+    Three growth rules are tried from each start, most new points next and farthest reach along or against
+    the measuring order (the columns' order); after a local search the shortest chain wins.
 
     With ``first`` the chain starts at that station (where the tracking robot stands when the job begins).
     """
@@ -297,17 +317,21 @@ def solve_greedy(cover: np.ndarray, starts: int = 8, first: int | None = None) -
         tries = [first]
     c32 = cover.astype(np.float32)
     adjacency = (c32 @ c32.T) > 0.5  # stations whose covers intersect
+    bound = lp_lower_bound(cover)
     best = None
     for s in dict.fromkeys(int(t) for t in tries):
-        for grow in (_greedy_from, _sweep_from):
+        for grow in (_sweep_from, _sweep_back_from, _greedy_from):
             chain = grow(cover, adjacency, s)
             if chain is not None:
-                chain = _prune(cover, chain, keep_first=first is not None)
+                chain = _prune(cover, adjacency, chain, keep_first=first is not None)
             if chain is not None and (best is None or len(chain) < len(best)):
                 best = chain
+            if best is not None and len(best) <= bound:  # cannot do better than the LP bound
+                break
+        if best is not None and len(best) <= bound:
+            break
     if best is None:
         raise TrackerPlanningError("the covers of the candidate tracker stations cannot be chained")
-    bound = lp_lower_bound(cover)
     return TrackerSolution(tuple(best), "greedy", len(best) == bound, bound, time.perf_counter() - t0, uncovered)
 
 
