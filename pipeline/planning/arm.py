@@ -4,9 +4,9 @@ At a station (frame F, mm) the raster has ``j = ceil(s / m) + 1`` columns along 
 station step, ``m`` the useful scan width), evenly from ``-s/2`` to ``+s/2`` so no more than ``m`` apart; the
 edge columns coincide with the neighbouring stations' (each is scanned once, by the later station) and, per
 column, ``i = ceil(h / n)`` rows ``n`` apart along the surface profile on the station's side of the part
-(``h`` its length: the height for a vertical wall, plus the roof up to the part's middle). Each cell is a surface point with its normal; the scanner
-looks along the negative normal from the sweet spot, tilted towards the arm by at most the incidence limit
-when the square-on pose is out of reach. A cell is kept only where the inverse kinematics finds joint angles
+(``h`` its length: the height for a vertical wall, plus the roof up to the part's middle). Each cell is a
+surface point with its normal; the scanner looks along the negative normal from the sweet spot, tilted
+towards the arm by at most the incidence limit when the square-on pose is out of reach. A cell is kept only where the inverse kinematics finds joint angles
 inside the limits; the others are reported with their reason. The kept poses are ordered (column- or
 row-wise snake, whichever moves the joints less).
 """
