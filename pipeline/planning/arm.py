@@ -6,9 +6,9 @@ edge columns coincide with the neighbouring stations' (each is scanned once, by 
 column, ``i = ceil(h / n)`` rows ``n`` apart along the surface profile on the station's side of the part
 (``h`` its length: the height for a vertical wall, plus the roof up to the part's middle). Each cell is a
 surface point with its normal; the scanner looks along the negative normal from the sweet spot, tilted
-towards the arm by at most the incidence limit when the square-on pose is out of reach. A cell is kept only where the inverse kinematics finds joint angles
-inside the limits; the others are reported with their reason. The kept poses are ordered (column- or
-row-wise snake, whichever moves the joints less).
+towards the arm by at most the incidence limit when the square-on pose is out of reach. A cell is kept only
+where the inverse kinematics finds joint angles inside the limits; the others are reported with their
+reason. The kept poses are ordered (column- or row-wise snake, whichever moves the joints less).
 """
 
 from __future__ import annotations
