@@ -130,11 +130,6 @@ def is_valid_chain(cover: np.ndarray, chain: tuple[int, ...] | list[int], requir
     return all(np.any(cover[a] & cover[b]) for a, b in itertools.pairwise(chain))
 
 
-def chain_transfer_points(cover: np.ndarray, chain: tuple[int, ...]) -> list[np.ndarray]:
-    """For each consecutive pair of the chain, the measuring points seen from both stations."""
-    return [np.flatnonzero(cover[a] & cover[b]) for a, b in itertools.pairwise(chain)]
-
-
 # ------------------------------------------------------------------ reductions (exact: keep the optimum)
 
 
@@ -414,7 +409,6 @@ __all__ = [
     "TrackerPlanningError",
     "TrackerSolution",
     "candidate_poses",
-    "chain_transfer_points",
     "choose_stations",
     "cover_matrix",
     "is_valid_chain",
