@@ -7,6 +7,7 @@ APT_PACKAGES := libusb-1.0-0 libgl1 libgomp1 chromium
 
 .PHONY: measure test system-deps clean
 
+# The shipped band plan of the default part. A plan of the whole part: `tandemscan plan` (docs/planning.md).
 measure: $(STAMP)
 	$(VENV)/bin/tandemscan measure
 

@@ -63,8 +63,11 @@ def write_job_outputs(runner: JobRunner, report: dict) -> dict:
     scans = _posed_scans(runner)
     cloud_W = runner.worldmap.points()
     files = {"e57": "cloud.e57", "pose_log": "poses.csv"}
-    if scans:
-        write_e57(job_dir / files["e57"], scans, cloud_W if len(cloud_W) else None)
+    with_points = [s for s in scans if len(s.points_S_mm)]  # E57 has no empty scans; the pose log keeps them
+    if len(with_points) < len(scans):
+        log.warning("%d scans saw nothing and are left out of the E57", len(scans) - len(with_points))
+    if with_points:
+        write_e57(job_dir / files["e57"], with_points, cloud_W if len(cloud_W) else None)
     write_pose_log(job_dir / files["pose_log"], scans)
     world = runner.cell.world
     reason = (

@@ -11,6 +11,7 @@ from tandemscan.config.models import ArmConfig, InstallationConfig, PlanningConf
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.kinematics import ArmKinematics
 from tandemscan.pipeline.planning.arm import (
+    ArmSetup,
     _snake,
     _travel,
     column_count,
@@ -25,6 +26,10 @@ from tandemscan.pipeline.raycast import make_scene
 SCANNER = ScannerConfig()
 PLANNING = PlanningConfig()
 INSTALL = InstallationConfig()
+
+
+def setup(ik) -> ArmSetup:
+    return ArmSetup(ik, ArmConfig(), INSTALL.T_V2_B.matrix(), INSTALL.T_E_S.matrix(), SCANNER, PLANNING)
 
 
 def box(lx: float, ly: float, lz: float) -> o3d.geometry.TriangleMesh:
@@ -89,8 +94,7 @@ def test_scanner_poses_face_the_surface_at_the_sweet_spot():
     st = station_below(-1300.0)
     cells, rows, cols = raster_cells(scene, st, 848.2, (0.0, 1000.0), 6000.0, SCANNER, PLANNING)
     ik = AnalyticIK(ArmConfig())
-    raster = plan_station(st, cells, rows, cols, ik, ArmConfig(), INSTALL.T_V2_B.matrix(), INSTALL.T_E_S.matrix(),
-                          SCANNER, PLANNING, np.radians([0.0, 90.0, 0.0, 90.0, 0.0, 0.0]))
+    raster = plan_station(st, cells, rows, cols, setup(ik), np.radians([0.0, 90.0, 0.0, 90.0, 0.0, 0.0]))
     assert raster.poses, "the wall of a 1 m box is within reach"
     assert len(raster.poses) + len(raster.unreached) == len(cells)
     kin = ArmKinematics(ArmConfig())
@@ -115,8 +119,7 @@ def test_unreachable_region_is_reported_not_skipped():
     scene = make_scene(box(2000.0, 1000.0, 4000.0))  # a 4 m wall: the arm on its AGV cannot reach the top
     st = station_below(-1300.0)
     cells, rows, cols = raster_cells(scene, st, 848.2, (0.0, 4000.0), 8000.0, SCANNER, PLANNING)
-    raster = plan_station(st, cells, rows, cols, AnalyticIK(ArmConfig()), ArmConfig(), INSTALL.T_V2_B.matrix(),
-                          INSTALL.T_E_S.matrix(), SCANNER, PLANNING, np.radians([0, 90, 0, 90, 0, 0]))
+    raster = plan_station(st, cells, rows, cols, setup(AnalyticIK(ArmConfig())), np.radians([0, 90, 0, 90, 0, 0]))
     assert raster.unreached and raster.poses
     assert len(raster.poses) + len(raster.unreached) == len(cells)
     assert all("no joint solution" in u.reason for u in raster.unreached)
@@ -128,8 +131,7 @@ def test_order_moves_the_joints_no_more_than_the_plain_snake():
     scene = make_scene(box(2000.0, 1000.0, 1000.0))
     st = station_below(-1300.0)
     cells, rows, cols = raster_cells(scene, st, 848.2, (0.0, 1000.0), 6000.0, SCANNER, PLANNING)
-    raster = plan_station(st, cells, rows, cols, AnalyticIK(ArmConfig()), ArmConfig(), INSTALL.T_V2_B.matrix(),
-                          INSTALL.T_E_S.matrix(), SCANNER, PLANNING, np.radians([0, 90, 0, 90, 0, 0]))
+    raster = plan_station(st, cells, rows, cols, setup(AnalyticIK(ArmConfig())), np.radians([0, 90, 0, 90, 0, 0]))
     poses = list(raster.poses)
     snake = [poses[k] for k in _snake([(p.cell.row, p.cell.col) for p in poses], column_major=True)]
     assert raster.joint_travel_rad == pytest.approx(_travel([p.joints_rad for p in poses]))

@@ -2,13 +2,13 @@
 
 At a station (frame F, mm) the raster has ``j = ceil(s / m) + 1`` columns along the contour (``s`` the
 station step, ``m`` the useful scan width), evenly from ``-s/2`` to ``+s/2`` so no more than ``m`` apart; the
-edge columns coincide with the neighbouring stations' (the scans that overlap across stations) and, per column, ``i = ceil(h / n)`` rows ``n`` apart
-along the surface profile on the station's side of the part (``h`` its length: the height for a vertical
-wall, plus the roof up to the part's middle). Each cell is a surface point with its normal; the scanner
-looks along the negative normal from the sweet spot, tilted towards the arm by at most the incidence limit
-when the square-on pose is out of reach. A cell is kept only where the inverse kinematics finds joint angles
-inside the limits; the others are reported with their reason. The kept poses are ordered (column- or
-row-wise snake, whichever moves the joints less).
+edge columns coincide with the neighbouring stations' (each is scanned once, by the later station) and, per
+column, ``i = ceil(h / n)`` rows ``n`` apart along the surface profile on the station's side of the part
+(``h`` its length: the height for a vertical wall, plus the roof up to the part's middle). Each cell is a
+surface point with its normal; the scanner looks along the negative normal from the sweet spot, tilted
+towards the arm by at most the incidence limit when the square-on pose is out of reach. A cell is kept only
+where the inverse kinematics finds joint angles inside the limits; the others are reported with their
+reason. The kept poses are ordered (column- or row-wise snake, whichever moves the joints less).
 """
 
 from __future__ import annotations
@@ -73,6 +73,18 @@ class StationRaster:
     poses: tuple[ScanPose, ...]
     unreached: tuple[Unreached, ...]
     joint_travel_rad: float
+
+
+@dataclass(frozen=True)
+class ArmSetup:
+    """The robot as the raster sees it: IK, arm (limits, DH), mounts ``T_V2_B`` and ``T_E_S`` (mm), settings."""
+
+    ik: IkSolver
+    arm: ArmConfig
+    T_V2_B: np.ndarray
+    T_E_S: np.ndarray
+    scanner: ScannerConfig
+    planning: PlanningConfig
 
 
 def default_ik(arm: ArmConfig) -> IkSolver:
@@ -256,12 +268,7 @@ def plan_station(
     cells: list[RasterCell],
     rows: int,
     cols: int,
-    ik: IkSolver,
-    arm: ArmConfig,
-    T_V2_B: np.ndarray,
-    T_E_S: np.ndarray,
-    scanner: ScannerConfig,
-    planning: PlanningConfig,
+    setup: ArmSetup,
     seed_rad: np.ndarray,
 ) -> StationRaster:
     """Reachable scanner poses for the cells of one station, ordered to move the joints least.
@@ -269,6 +276,8 @@ def plan_station(
     Per cell the views are tried square on first, then tilted towards the arm, each with both rolls; poses
     whose flange lies beyond the arm's reach bound skip the IK.
     """
+    ik, arm, scanner, planning = setup.ik, setup.arm, setup.scanner, setup.planning
+    T_V2_B, T_E_S = setup.T_V2_B, setup.T_E_S
     T_F_B = F.planar_pose(station.x_mm, station.y_mm, station.heading_rad) @ T_V2_B
     T_B_F = F.invert(T_F_B)
     T_S_E = F.invert(T_E_S)
@@ -326,12 +335,7 @@ def plan_arm(
     stations: tuple[AgvStation, ...],
     step_mm: float,
     path_length_mm: float,
-    ik: IkSolver,
-    arm: ArmConfig,
-    T_V2_B: np.ndarray,
-    T_E_S: np.ndarray,
-    scanner: ScannerConfig,
-    planning: PlanningConfig,
+    setup: ArmSetup,
     home_rad: np.ndarray,
 ) -> list[StationRaster]:
     """The raster of every station, the joint seed carried from one station to the next.
@@ -339,6 +343,7 @@ def plan_arm(
     Stations sit ``step_mm`` apart on a closed path of ``path_length_mm``; a station whose successor on the path
     is planned leaves their shared fence-post column to it.
     """
+    planning = setup.planning
     lo, hi = (np.asarray(b, float) for b in mesh_bounds)
     reach = float(np.linalg.norm(hi - lo)) + 4.0 * planning.arm_standoff_max_mm + planning.agv_width_mm
     out = []
@@ -348,9 +353,9 @@ def plan_arm(
         after = (st.arc_mm + step_mm) % path_length_mm if path_length_mm > 0 else np.inf
         shared = len(stations) > 1 and bool(np.any(np.abs(arcs - after) < 1.0) or (
             abs(after - path_length_mm) < 1.0 and np.any(arcs < 1.0)))
-        cells, rows, cols = raster_cells(scene, st, step_mm, (float(lo[2]), float(hi[2])), reach, scanner, planning,
-                                         shared)
-        raster = plan_station(st, cells, rows, cols, ik, arm, T_V2_B, T_E_S, scanner, planning, seed)
+        cells, rows, cols = raster_cells(scene, st, step_mm, (float(lo[2]), float(hi[2])), reach, setup.scanner,
+                                         planning, shared)
+        raster = plan_station(st, cells, rows, cols, setup, seed)
         if raster.poses:
             seed = raster.poses[-1].joints_rad
         out.append(raster)

@@ -155,6 +155,7 @@ def dry_run(
     left.sort(key=lambda lo: -lo.area_mm2)
     return CoverageReport(
         float(area.sum()), float(area[floor].sum()), float(area[seen].sum()),
-        float(area[reason == "out of the arm's reach"].sum()), float(area[reason == "missed between scans or occluded"].sum()),
+        float(area[reason == "out of the arm's reach"].sum()),
+        float(area[reason == "missed between scans or occluded"].sum()),
         tuple(left),
     )

@@ -15,7 +15,7 @@ import open3d as o3d
 from shapely.geometry import Point
 from tandemscan.config.models import CellConfig
 from tandemscan.pipeline import frames as F
-from tandemscan.pipeline.planning.arm import IkSolver, ScanPose, StationRaster, default_ik, plan_arm
+from tandemscan.pipeline.planning.arm import ArmSetup, IkSolver, ScanPose, StationRaster, default_ik, plan_arm
 from tandemscan.pipeline.planning.sequence import PoseRef, Sequence, build_sequence
 from tandemscan.pipeline.planning.stations import StationLayout, free_floor, offset_ring, place_stations
 from tandemscan.pipeline.planning.tracker import TrackerSolution, candidate_poses, choose_stations, cover_matrix
@@ -112,8 +112,8 @@ def plan_part(
     home = np.radians(config.sim.arm_home_deg)
     rasters = plan_arm(scene, (bb.min_bound, bb.max_bound), layout.stations, layout.step_mm,
                        layout.path.exterior.length,
-                       ik or default_ik(config.arm), config.arm, inst.T_V2_B.matrix(), inst.T_E_S.matrix(),
-                       config.scanner, config.planning, home)
+                       ArmSetup(ik or default_ik(config.arm), config.arm, inst.T_V2_B.matrix(), inst.T_E_S.matrix(),
+                                config.scanner, config.planning), home)
     poses = [p for r in rasters for p in r.poses]
     seconds["arm"] = time.perf_counter() - t
 

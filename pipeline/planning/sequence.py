@@ -52,7 +52,7 @@ class _Builder:
 
     def go(self, pose: PoseRef) -> None:
         if self.agv != pose.agv_pose:
-            if self.joints is not None and self.joints != self.home:
+            if self.joints != self.home:  # unknown at the start: fold anyway
                 self.steps.append(MoveArm(joints_rad=self.home))
                 self.joints = self.home
             self.steps.append(MoveMeasure(x_mm=pose.agv_pose[0], y_mm=pose.agv_pose[1], heading_rad=pose.agv_pose[2]))
@@ -79,7 +79,8 @@ def build_sequence(
     """
     cover = np.asarray(chain_cover, bool)
     if cover.shape != (len(chain_poses), len(poses)):
-        raise SequenceError(f"cover shape {cover.shape} does not match {len(chain_poses)} stations x {len(poses)} poses")
+        raise SequenceError(
+            f"cover shape {cover.shape} does not match {len(chain_poses)} stations x {len(poses)} poses")
     b = _Builder(home_rad)
     todo = cover.any(axis=0)
     order, station_of, transfers = [], [], []

@@ -130,11 +130,6 @@ def is_valid_chain(cover: np.ndarray, chain: tuple[int, ...] | list[int], requir
     return all(np.any(cover[a] & cover[b]) for a, b in itertools.pairwise(chain))
 
 
-def chain_transfer_points(cover: np.ndarray, chain: tuple[int, ...]) -> list[np.ndarray]:
-    """For each consecutive pair of the chain, the measuring points seen from both stations."""
-    return [np.flatnonzero(cover[a] & cover[b]) for a, b in itertools.pairwise(chain)]
-
-
 # ------------------------------------------------------------------ reductions (exact: keep the optimum)
 
 
@@ -206,16 +201,68 @@ def _greedy_from(cover: np.ndarray, adjacency: np.ndarray, start: int) -> list[i
     return chain
 
 
-def _prune(cover: np.ndarray, chain: list[int], keep_first: bool) -> list[int]:
-    """Drop stations one at a time while the chain stays valid (greedy growth leaves some redundant)."""
+def _run_length(covered_by: np.ndarray, f: int) -> np.ndarray:
+    """Per station: how many consecutive points from ``f`` on (cyclic) it covers or are already covered."""
+    rolled = np.roll(covered_by, -f, axis=1)
+    misses = ~rolled
+    first_miss = np.where(misses.any(axis=1), np.argmax(misses, axis=1), rolled.shape[1])
+    return first_miss
+
+
+def _sweep_from(cover: np.ndarray, adjacency: np.ndarray, start: int) -> list[int] | None:
+    """Farthest-reach chain along the measuring order (columns are in measuring order, cyclic).
+
+    From the first uncovered point, the next station is the one sharing a point with the last that covers
+    that point and reaches farthest along the order; a bridge through the intersection graph when none does.
+    """
     need = cover.any(axis=0)
-    changed = True
-    while changed and len(chain) > 1:
-        changed = False
-        for i in sorted(range(1 if keep_first else 0, len(chain)), key=lambda i: cover[chain[i]].sum()):
+    covered = ~need | cover[start]
+    chain = [start]
+    while not covered.all():
+        f = int(np.argmin(covered))
+        ok = adjacency[chain[-1]] & cover[:, f]
+        if not ok.any():
+            path = _shortest_path(adjacency, chain[-1], cover[:, f])
+            if path is None:
+                return None
+            chain.extend(path)
+        else:
+            reach = _run_length(cover | covered[None, :], f)
+            chain.append(int(np.argmax(np.where(ok, reach, -1))))
+        covered |= cover[chain[-1]]
+    return chain
+
+
+def _sweep_back_from(cover: np.ndarray, adjacency: np.ndarray, start: int) -> list[int] | None:
+    """The sweep against the measuring order."""
+    return _sweep_from(cover[:, ::-1], adjacency, start)
+
+
+def _prune(cover: np.ndarray, adjacency: np.ndarray, chain: list[int], keep_first: bool) -> list[int]:
+    """Local search: drop a station, or swap two neighbours for one, while the chain stays valid."""
+    need = cover.any(axis=0)
+    lo = 1 if keep_first else 0
+    improved = True
+    while improved and len(chain) > 1:
+        improved = False
+        for i in sorted(range(lo, len(chain)), key=lambda i: cover[chain[i]].sum()):
             trial = chain[:i] + chain[i + 1:]
             if is_valid_chain(cover, trial, need):
-                chain, changed = trial, True
+                chain, improved = trial, True
+                break
+        if improved:
+            continue
+        for i in range(lo, len(chain) - 1):
+            rest = chain[:i] + chain[i + 2:]
+            missing = need & ~(cover[rest].any(axis=0) if rest else np.zeros_like(need))
+            ok = cover[:, missing].all(axis=1)
+            if i > 0:
+                ok &= adjacency[chain[i - 1]]
+            if i + 2 < len(chain):
+                ok &= adjacency[chain[i + 2]]
+            if ok.any():
+                t = int(np.argmax(np.where(ok, cover.sum(axis=1), -1)))
+                chain, improved = chain[:i] + [t] + chain[i + 2:], True
                 break
     return chain
 
@@ -242,7 +289,10 @@ def _shortest_path(adjacency: np.ndarray, source: int, goal: np.ndarray) -> list
 
 
 def solve_greedy(cover: np.ndarray, starts: int = 8, first: int | None = None) -> TrackerSolution:
-    """A valid chain by greedy growth from several start stations (largest covers, rarest point); bound by LP.
+    """A valid chain grown from several start stations (largest covers, rarest point); bound by LP.
+
+    Three growth rules are tried from each start, most new points next and farthest reach along or against
+    the measuring order (the columns' order); after a local search the shortest chain wins.
 
     With ``first`` the chain starts at that station (where the tracking robot stands when the job begins).
     """
@@ -262,16 +312,21 @@ def solve_greedy(cover: np.ndarray, starts: int = 8, first: int | None = None) -
         tries = [first]
     c32 = cover.astype(np.float32)
     adjacency = (c32 @ c32.T) > 0.5  # stations whose covers intersect
+    bound = lp_lower_bound(cover)
     best = None
     for s in dict.fromkeys(int(t) for t in tries):
-        chain = _greedy_from(cover, adjacency, s)
-        if chain is not None:
-            chain = _prune(cover, chain, keep_first=first is not None)
-        if chain is not None and (best is None or len(chain) < len(best)):
-            best = chain
+        for grow in (_sweep_from, _sweep_back_from, _greedy_from):
+            chain = grow(cover, adjacency, s)
+            if chain is not None:
+                chain = _prune(cover, adjacency, chain, keep_first=first is not None)
+            if chain is not None and (best is None or len(chain) < len(best)):
+                best = chain
+            if best is not None and len(best) <= bound:  # cannot do better than the LP bound
+                break
+        if best is not None and len(best) <= bound:
+            break
     if best is None:
         raise TrackerPlanningError("the covers of the candidate tracker stations cannot be chained")
-    bound = lp_lower_bound(cover)
     return TrackerSolution(tuple(best), "greedy", len(best) == bound, bound, time.perf_counter() - t0, uncovered)
 
 
@@ -283,7 +338,8 @@ def solve_exact(
 ) -> TrackerSolution | None:
     """The fewest chained stations by an integer program; None when the instance is too large or times out.
 
-    Slots ``s = 0..S-1`` (S = the greedy count). Binary ``x[t, s]``: station t in slot s; binary ``u[s]``:
+    When the heuristic chain already meets the LP lower bound it is optimal and returned as is. Otherwise:
+    slots ``s = 0..S-1`` (S = the heuristic count). Binary ``x[t, s]``: station t in slot s; binary ``u[s]``:
     slot used, ``u[s] >= u[s+1]``, ``sum_t x[t, s] = u[s]``; every required point covered by some slot; a
     witness ``y[c, s] in [0, 1]`` per distinct point column and slot pair with ``y <= cover of slot s``,
     ``y <= cover of slot s+1`` and ``sum_c y[c, s] >= u[s+1]`` (consecutive covers intersect). A fixed
@@ -292,8 +348,8 @@ def solve_exact(
     t0 = time.perf_counter()
     cover = np.asarray(cover, bool)
     greedy = solve_greedy(cover, first=first)
-    if greedy.optimal:
-        return TrackerSolution(greedy.chain, "milp", True, greedy.count, time.perf_counter() - t0, greedy.uncovered)
+    if greedy.optimal:  # the heuristic met the LP bound: proven optimal, no integer program needed
+        return greedy
     stations, witness, required = _reduce(cover, first)
     K, C, R, S = len(stations), witness.shape[1], required.shape[1], greedy.count
     n_x, n_u, n_y = K * S, S, C * (S - 1)
@@ -353,7 +409,6 @@ __all__ = [
     "TrackerPlanningError",
     "TrackerSolution",
     "candidate_poses",
-    "chain_transfer_points",
     "choose_stations",
     "cover_matrix",
     "is_valid_chain",
