@@ -59,7 +59,8 @@ async def test_target_not_visible_is_typed(tcp_pair):
 
     emu.source = hidden
     with pytest.raises(TargetNotVisible, match="tracker: target not visible.*MISSING"):
-        await tracker.read_pose()
+        for _ in range(5):  # frames already in flight when the target disappeared may still arrive
+            await tracker.read_pose()
 
 
 @pytest.mark.parametrize("fault", ["corrupt_next", "nan_next", "truncate_next"])
