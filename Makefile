@@ -3,7 +3,7 @@ PYTHON ?= python3.11
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
-APT_PACKAGES := libusb-1.0-0 libgl1 libgomp1
+APT_PACKAGES := libusb-1.0-0 libgl1 libgomp1 chromium
 
 .PHONY: measure test system-deps clean
 
@@ -11,7 +11,7 @@ measure: $(STAMP)
 	$(VENV)/bin/tandemscan measure
 
 test: $(STAMP)
-	$(PY) -m pytest -q -p no:cacheprovider
+	$(PY) -m pytest -q
 
 # System libraries Open3D needs at import time; installed through apt only where missing.
 system-deps:

@@ -45,6 +45,17 @@ class PartConfig(_Strict):
     body_length_mm: float = Field(1000.0, ge=0, description="constant-section length before the nose, mm")
 
 
+class PhoxiConfig(_Strict):
+    """Real PhoXi over harvesters + a GenTL producer (``driver = "real"``)."""
+
+    producer_path: Path | None = Field(None, description="GenTL producer (.cti), e.g. PhoXi Control's photoneo.cti")
+    interface: Literal["photoneo_gentl", "gige_vision"] = "photoneo_gentl"
+    serial_number: str = Field("", description="device serial/ID to open; empty = the first device found")
+    harvesters_module: str = Field(
+        "harvesters.core", description="module providing Harvester (the fake one for hardware-in-the-loop runs)"
+    )
+
+
 class ScannerConfig(_Strict):
     """PhoXi 3D Scanner S: working range along the optical axis (mm), field of view and noise."""
 
@@ -60,11 +71,32 @@ class ScannerConfig(_Strict):
     coarse_pixels: tuple[int, int] = (230, 180)
     full_pixels: tuple[int, int] = (2064, 1544)
     timeout_s: float = 10.0
+    phoxi: PhoxiConfig = PhoxiConfig()
 
     @property
     def pixels(self) -> tuple[int, int]:
         """(columns, rows) of the active resolution."""
         return self.full_pixels if self.resolution == "full" else self.coarse_pixels
+
+
+class TrackerStreamConfig(_Strict):
+    """Real tracker pose stream (``driver = "real"``): TCP ``host:port`` or a serial device, and its framing.
+
+    ``fields`` names the comma-separated fields of one text frame, in order (see docs/drivers.md).
+    """
+
+    transport: Literal["tcp", "serial"] = "tcp"
+    host: str = "127.0.0.1"
+    port: int = Field(8765, ge=0, le=65535)
+    serial_device: str = "/dev/ttyUSB0"
+    baudrate: int = Field(115200, gt=0)
+    start_marker: str = "$POSE"
+    fields: tuple[str, ...] = (
+        "frame", "device_time_s", "status", "x_mm", "y_mm", "z_mm", "qx", "qy", "qz", "qw",
+        "sx_mm", "sy_mm", "sz_mm", "srx_rad", "sry_rad", "srz_rad",
+    )
+    checksum: bool = True
+    stale_after_s: float = Field(0.5, gt=0, description="a reading older than this is not returned")
 
 
 class TrackerConfig(_Strict):
@@ -81,6 +113,21 @@ class TrackerConfig(_Strict):
     angle_noise_deg_per_m: float = Field(0.0005, ge=0, description="growth with distance")
     samples_per_reading: int = Field(1, ge=1, description="readings averaged at rest per pose")
     timeout_s: float = 5.0
+    stream: TrackerStreamConfig = TrackerStreamConfig()
+
+
+class JakaTcpConfig(_Strict):
+    """Real JAKA controller (``driver = "real"``): command and status ports, motion speeds at the edge."""
+
+    host: str = "10.5.5.100"
+    command_port: int = Field(10001, ge=0, le=65535)
+    status_port: int = Field(10000, ge=0, le=65535)
+    reply_timeout_s: float = Field(3.0, gt=0)
+    joint_accel_deg_s2: float = Field(180.0, gt=0, le=720.0)
+    linear_speed_mm_s: float = Field(100.0, gt=0)
+    linear_accel_mm_s2: float = Field(500.0, gt=0)
+    inpos_tolerance_deg: float = Field(0.05, gt=0, description="joint target reached when all joints are this close")
+    inpos_tolerance_mm: float = Field(0.2, gt=0, description="linear target reached when this close")
 
 
 class ArmConfig(_Strict):
@@ -96,6 +143,7 @@ class ArmConfig(_Strict):
     joint_max_deg: tuple[float, ...] = (360.0, 265.0, 175.0, 265.0, 360.0, 360.0)
     joint_speed_deg_s: float = Field(60.0, gt=0)
     timeout_s: float = 60.0
+    jaka: JakaTcpConfig = JakaTcpConfig()
 
     @field_validator("dh_d_mm", "dh_a_mm", "dh_alpha_rad", "joint_min_deg", "joint_max_deg")
     @classmethod
@@ -103,6 +151,22 @@ class ArmConfig(_Strict):
         if len(v) != 6:
             raise ValueError(f"needs 6 values, got {len(v)}")
         return v
+
+
+class ChassisCanConfig(_Strict):
+    """Real chassis on CAN (``driver = "real"``): python-can bus, the DBC, and the closed-loop move gains."""
+
+    interface: str = "socketcan"
+    channel: str = "can0"
+    bitrate: int = Field(500000, gt=0)
+    dbc: Path | None = Field(None, description="CAN database; empty = the shipped AgileX-Scout-style v2 DBC")
+    command_period_s: float = Field(0.02, gt=0, description="motion command period (protocol: 20 ms)")
+    feedback_timeout_s: float = Field(0.5, gt=0, description="no status frame for this long = link lost")
+    odometry_track_mm: float = Field(582.0, gt=0, description="effective skid-steer track for wheel odometry")
+    position_tolerance_mm: float = Field(5.0, gt=0)
+    heading_tolerance_deg: float = Field(0.5, gt=0)
+    gain_linear_per_s: float = Field(1.5, gt=0, description="linear speed = gain x distance error")
+    gain_angular_per_s: float = Field(2.0, gt=0, description="angular speed = gain x heading error")
 
 
 class ChassisConfig(_Strict):
@@ -115,6 +179,25 @@ class ChassisConfig(_Strict):
     slip_heading_deg: float = Field(0.3, ge=0, description="1-sigma heading error per move")
     odometry_drift_fraction: float = Field(0.005, ge=0, description="1-sigma odometry scale error")
     timeout_s: float = 120.0
+    can: ChassisCanConfig = ChassisCanConfig()
+
+
+class SafetyModbusConfig(_Strict):
+    """Real safety I/O on Modbus TCP (``driver = "real"``): addresses are wire addresses (0-based).
+
+    Inputs are discrete inputs, true = tripped (``*_active_high = false`` inverts a normally-closed wiring).
+    """
+
+    host: str = "192.168.127.254"
+    port: int = Field(502, ge=0, le=65535)
+    device_id: int = Field(1, ge=0, le=255)
+    estop_input: int = Field(0, ge=0)
+    estop_active_high: bool = True
+    light_curtain_input: int = Field(1, ge=0)
+    light_curtain_active_high: bool = True
+    target_light_coil: int = Field(0, ge=0)
+    beacon_coil: int = Field(1, ge=0)
+    timeout_s: float = Field(1.0, gt=0)
 
 
 class SafetyConfig(_Strict):
@@ -122,6 +205,7 @@ class SafetyConfig(_Strict):
 
     driver: DriverKind = "sim"
     poll_period_s: float = Field(0.02, gt=0)
+    modbus: SafetyModbusConfig = SafetyModbusConfig()
 
 
 class InstallationConfig(_Strict):
@@ -144,6 +228,36 @@ class FloorPoseConfig(_Strict):
     x_mm: float = 0.0
     y_mm: float = 0.0
     heading_deg: float = 0.0
+
+
+class PlanningConfig(_Strict):
+    """Motion planning (DESIGN.md 5.1, paper Eq. 13-18). Floor polygons are in the part frame F, mm.
+
+    Measurement AGV: centre ``distance in (d3 + w/2, d4 + w/2)`` from the part's floor contour, ``step in
+    (p, p + m)`` along it, with ``m`` the scan footprint width less the overlap. Tracker: candidate stations
+    at ``d1`` from the contour; a measuring point is covered within ``d2`` and the field of view.
+    """
+
+    agv_width_mm: float = Field(800.0, gt=0, description="w: measurement AGV width, mm")
+    arm_standoff_min_mm: float = Field(300.0, ge=0, description="d3: AGV side to part contour, least, mm")
+    arm_standoff_max_mm: float = Field(500.0, gt=0, description="d4: AGV side to part contour, most, mm")
+    station_step_mm: float = Field(600.0, gt=0, description="p: least step between AGV stations, mm")
+    scan_overlap_fraction: float = Field(0.2, ge=0, lt=1, description="overlap of neighbouring scans")
+    incidence_limit_deg: float = Field(45.0, ge=0, lt=90, description="most tilt of the view off the normal")
+    tracker_distance_mm: float = Field(3500.0, gt=0, description="d1: tracker candidates to part contour, mm")
+    tracker_best_range_mm: float = Field(9000.0, gt=0, description="d2: best-accuracy tracker range, mm")
+    tracker_min_range_mm: float = Field(1500.0, ge=0, description="nearest usable target distance, mm")
+    tracker_candidate_step_mm: float = Field(700.0, gt=0, description="spacing of tracker candidates, mm")
+    tracker_heading_offsets_deg: tuple[float, ...] = (-30.0, -15.0, 0.0, 15.0, 30.0)
+    tracker_margin_deg: float = Field(3.0, ge=0, description="kept off the edges of the field of view and cone")
+    exact_time_limit_s: float = Field(2.0, gt=0, description="integer-program time limit, s")
+    exact_max_variables: int = Field(6000, gt=0, description="larger tracker instances go to the heuristic")
+    floor_xy_mm: tuple[float, float, float, float] = Field(
+        (-20000.0, -12000.0, 20000.0, 12000.0), description="cell floor rectangle: x min, y min, x max, y max"
+    )
+    keep_out_xy_mm: tuple[tuple[tuple[float, float], ...], ...] = Field(
+        (), description="floor polygons no robot may stand in, each a list of (x, y) mm"
+    )
 
 
 class SimWorldConfig(_Strict):
@@ -195,6 +309,94 @@ class DeepMergeConfig(_Strict):
     )
 
 
+class RegionConfig(_Strict):
+    """A named inspection region: an axis-aligned box in the CAD/part frame F (mm), bounds inclusive."""
+
+    name: str = Field(min_length=1)
+    min_mm: tuple[float, float, float]
+    max_mm: tuple[float, float, float]
+
+    @field_validator("max_mm")
+    @classmethod
+    def _ordered(cls, v: tuple[float, float, float], info) -> tuple[float, float, float]:
+        lo = info.data.get("min_mm")
+        if lo is not None and any(b < a for a, b in zip(lo, v, strict=True)):
+            raise ValueError(f"max_mm {v} must be >= min_mm {lo} on every axis")
+        return v
+
+
+class InspectionConfig(_Strict):
+    """Deviation-from-CAD inspection: tolerance band (mm, signed: + = material outside the CAD surface),
+    named regions, optional best-fit alignment and the colour-map scale."""
+
+    tolerance_lower_mm: float = Field(-0.1, le=0)
+    tolerance_upper_mm: float = Field(0.1, ge=0)
+    regions: tuple[RegionConfig, ...] = (
+        RegionConfig(name="body", min_mm=(-1e5, -1e5, -1e5), max_mm=(-500.0, 1e5, 1e5)),
+        RegionConfig(name="nose", min_mm=(-500.0, -1e5, -1e5), max_mm=(1e5, 1e5, 1e5)),
+    )
+    mesh_group_regions: bool = Field(
+        True, description="also one region per material group of the CAD mesh (OBJ usemtl), by closest triangle"
+    )
+    best_fit: bool = True
+    best_fit_max_distance_mm: float = Field(
+        1.0, gt=0, description="best-fit ICP uses only points deviating less than this, mm"
+    )
+    best_fit_iterations: int = Field(30, ge=1)
+    colour_limit_mm: float | None = Field(
+        None, gt=0, description="colour-map saturates at +/- this, mm; default 3x the wider tolerance"
+    )
+    map_width_px: int = Field(900, ge=100, le=4000, description="width of each rendered colour-map view")
+    map_max_points: int = Field(300_000, ge=1000, description="colour maps draw an even subsample of this size")
+    views: tuple[Literal["isometric", "front", "left", "right", "top", "back"], ...] = (
+        "isometric", "front", "left", "right", "top", "back",
+    )
+
+
+class CalibrationConfig(_Strict):
+    """Calibration plate (three reference spheres A, X, Y) and the hand-eye calibration job.
+
+    Plate frame ``P`` (Eq. 7-8): x along A->X, origin at the foot of the perpendicular from Y onto the line
+    A-X, y towards Y, z = x cross y. Sphere centres are given in ``P`` (mm), so A and X lie on the x axis and
+    Y on the y axis.
+    """
+
+    sphere_diameter_mm: float = Field(38.1, gt=0, description="calibrated diameter of the three spheres, mm")
+    centre_A_mm: tuple[float, float, float] = (-100.0, 0.0, 0.0)
+    centre_X_mm: tuple[float, float, float] = (120.0, 0.0, 0.0)
+    centre_Y_mm: tuple[float, float, float] = (0.0, 90.0, 0.0)
+    stem_mm: float = Field(15.0, ge=0, description="sphere surface to plate top along -z, mm (sim mesh)")
+    plate_size_mm: tuple[float, float] = (300.0, 210.0)
+    radius_tolerance_mm: float = Field(0.3, gt=0, description="reject a sphere fit off the nominal radius by more")
+    layout_tolerance_mm: float = Field(2.0, gt=0, description="max error of a centre-to-centre distance, mm")
+    fit_fixed_radius: bool = Field(True, description="final centre fit with the calibrated radius fixed")
+    min_pair_rotation_deg: float = Field(5.0, ge=0, description="hand-eye pose pairs rotating less are dropped")
+    poses: int = Field(16, ge=3, description="arm poses of the calibration job")
+    tracker_samples: int = Field(10, ge=1, description="tracker readings averaged at rest per calibration pose")
+    tilt_deg: float = Field(22.0, gt=0, lt=60, description="scanner tilt over the plate in the calibration job")
+    method: Literal["tsai", "park", "daniilidis", "refine"] = "refine"
+    T_V2_P: TransformConfig = Field(
+        TransformConfig(xyz_mm=(550.0, 0.0, 250.0)),
+        description="where the plate stands relative to the measurement chassis at its start (nominal for "
+        "planning; the sim cell puts it exactly there)",
+    )
+    output_file: Path = Field(Path("out/calibration.json"), description="where `tandemscan calibrate` writes")
+
+    @field_validator("centre_A_mm", "centre_X_mm")
+    @classmethod
+    def _on_x_axis(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        if abs(v[1]) > 1e-9 or abs(v[2]) > 1e-9:
+            raise ValueError("A and X lie on the plate x axis: y = z = 0")
+        return v
+
+    @field_validator("centre_Y_mm")
+    @classmethod
+    def _on_y_axis(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        if abs(v[0]) > 1e-9 or abs(v[2]) > 1e-9 or v[1] <= 0:
+            raise ValueError("Y lies on the plate +y axis: x = z = 0, y > 0")
+        return v
+
+
 class CellConfig(_Strict):
     """The whole cell."""
 
@@ -210,3 +412,6 @@ class CellConfig(_Strict):
     sim: SimWorldConfig = SimWorldConfig()
     job: JobConfig = JobConfig()
     deepmerge: DeepMergeConfig = DeepMergeConfig()
+    inspection: InspectionConfig = InspectionConfig()
+    calibration: CalibrationConfig = CalibrationConfig()
+    planning: PlanningConfig = PlanningConfig()

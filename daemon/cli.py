@@ -36,11 +36,21 @@ def _load_config_with_overrides(args: argparse.Namespace) -> CellConfig:
     part_mesh = getattr(args, "part", None)
     if part_mesh is not None:
         config = config.model_copy(update={"part": config.part.model_copy(update={"mesh": Path(part_mesh)})})
+    calibration = getattr(args, "calibration", None)
+    if calibration is not None:
+        job = config.job.model_copy(update={"installation_source": "calibration", "calibration_file": calibration})
+        config = config.model_copy(update={"job": job})
     resolution = getattr(args, "resolution", None)
     if resolution is not None:
         scanner = config.scanner.model_copy(update={"resolution": resolution})
         config = config.model_copy(update={"scanner": scanner})
     return config
+
+
+def _progress_bar() -> Progress:
+    """The progress bar of long commands (on stderr)."""
+    return Progress(TextColumn("{task.description:<48}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                    TimeElapsedColumn(), console=console)
 
 
 def cmd_measure(args: argparse.Namespace) -> int:
@@ -62,8 +72,7 @@ def cmd_measure(args: argparse.Namespace) -> int:
     async def run():
         await cell.connect()
         try:
-            with Progress(TextColumn("{task.description:<48}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                          TimeElapsedColumn(), console=console) as bar:
+            with _progress_bar() as bar:
                 task = bar.add_task("starting", total=len(plan.steps) + 1)
                 runner = JobRunner(cell, plan, config, job_dir,
                                    lambda p: bar.update(task, completed=p.done, total=p.total, description=p.message))
@@ -79,6 +88,88 @@ def cmd_measure(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    """Calibrate the scanner on its target (hand-eye) from plate scans; writes the calibration file."""
+    from tandemscan.daemon.calibrate import CalibrationJobError, calibrate_cell
+    from tandemscan.pipeline.part import PartMeshError
+    from tandemscan.sim_drivers.cell import CellBuildError, build_cell
+
+    config = _load_config_with_overrides(args)
+    try:
+        cell = build_cell(config)
+    except (PartMeshError, CellBuildError) as e:
+        raise UsageError(str(e)) from e
+    out_file = Path(args.out) if args.out else config.calibration.output_file
+
+    async def run():
+        with _progress_bar() as bar:
+            task = bar.add_task("starting", total=config.calibration.poses)
+            return await calibrate_cell(
+                cell, config, out_file, lambda d, t, m: bar.update(task, completed=d, total=t, description=m))
+
+    try:
+        run = asyncio.run(run())
+    except CalibrationJobError as e:
+        raise UsageError(str(e)) from e
+    s = run.hand_eye.summary()
+    out = Console()
+    out.print(f"[bold]calibration[/bold] {run.file}: T_T_S from {run.poses_used} poses ({s['method']}), "
+              f"plate-point RMS {s['point_rms_mm']:.4f} mm, 1-sigma {s['sigma_trans_mm']:.4f} mm / "
+              f"{s['sigma_rot_deg']:.5f} deg; {len(run.skipped)} views skipped")
+    if run.truth_error:
+        t = run.truth_error
+        out.print(f"  sim truth: calibrated {t['T_T_S_err_mm']:.4f} mm / {t['T_T_S_err_deg']:.5f} deg, "
+                  f"nominal was {t['nominal_T_T_S_err_mm']:.3f} mm / {t['nominal_T_T_S_err_deg']:.4f} deg")
+    out.print(f"  use it: tandemscan measure --calibration {run.file}")
+    return 0
+
+
+def cmd_plan(args: argparse.Namespace) -> int:
+    """Plan the measurement of the configured part: plan file, coverage report and optional top view."""
+    import json
+
+    import numpy as np
+    from tandemscan.pipeline.part import PartMeshError, load_part_mesh
+    from tandemscan.pipeline.planning.coverage import dry_run
+    from tandemscan.pipeline.planning.planner import plan_part
+    from tandemscan.pipeline.planning.sequence import SequenceError
+    from tandemscan.pipeline.planning.stations import StationPlanningError
+    from tandemscan.pipeline.planning.tracker import TrackerPlanningError
+    from tandemscan.pipeline.raycast import make_scene
+
+    config = _load_config_with_overrides(args)
+    out = Path(args.out) if args.out else config.job.out_dir / "plan.toml"
+    part_name = str(config.part.mesh) if config.part.mesh else "parametric train nose"
+    start = config.sim.tracking_start
+    try:
+        mesh = load_part_mesh(config.part)
+        plan = plan_part(mesh, config, tracker_start=(start.x_mm, start.y_mm, np.radians(start.heading_deg)),
+                         name=out.stem, part=part_name)
+    except (PartMeshError, StationPlanningError, TrackerPlanningError, SequenceError) as e:
+        raise UsageError(str(e)) from e
+    coverage = dry_run(mesh, make_scene(mesh), plan.rasters, config.scanner,
+                       np.radians(config.planning.incidence_limit_deg))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    plan.sequence.plan.save(out)
+    report_file = out.with_name(out.stem + "-report.json")
+    report = {"plan": str(out), "part": part_name, **plan.summary(), "coverage": coverage.as_dict(),
+              "tracker_stations_xy_heading": [[round(x, 1), round(y, 1), round(float(np.degrees(h)), 2)]
+                                              for x, y, h in plan.tracker_poses]}
+    report_file.write_text(json.dumps(report, indent=1), encoding="utf-8")
+    if args.png:
+        from tandemscan.daemon.plan_figure import draw_plan
+
+        draw_plan(plan, config.installation.T_T_S.matrix(), Path(args.png))
+    s = plan.summary()
+    Console().print(
+        f"[bold]plan[/bold] {out}: {s['scans']} scans at {s['agv_stations']} AGV stations, {s['tracker_stations']} "
+        f"tracker stations ({s['tracker_solver']}, lower bound {s['tracker_lower_bound']}), {s['transfers']} "
+        f"transfers; coverage {coverage.coverage_pct:.1f} % of the surface a pose fits "
+        f"({coverage.coverage_of_reachable_pct:.1f} % of what the arm reaches); planned in {s['plan_seconds']:.1f} s; "
+        f"report {report_file}")
+    return 0
+
+
 def _print_summary(report: dict, job_dir: Path) -> None:
     out = Console()
     out.print(f"[bold]job[/bold] {job_dir}: {report['scans']} scans, {report['transfers']} coordinate transfers, "
@@ -87,50 +178,11 @@ def _print_summary(report: dict, job_dir: Path) -> None:
     if truth:
         out.print(f"  pose error median {truth['pose_err_mm_median']:.3f} mm / {truth['pose_err_deg_median']:.4f} deg, "
                   f"cloud to part RMS {truth['cloud_rms_mm']:.3f} mm (P95 {truth['cloud_p95_mm']:.3f} mm)")
-
-
-def cmd_train_deepmerge(args: argparse.Namespace) -> int:
-    """Train DeepMerge weights on generated data (CPU; see docs/deepmerge.md)."""
-    import json
-
-    import torch
-    from tandemscan.pipeline.deepmerge.train import TrainSettings, train
-
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    settings = TrainSettings(seed=args.seed, steps=args.steps, max_minutes=args.max_minutes,
-                             train_pairs=args.train_pairs, val_pairs=args.val_pairs, batch_size=args.batch_size)
-    with Progress(TextColumn("{task.description:<32}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                  TimeElapsedColumn(), console=console) as bar:
-        task = bar.add_task("making data, then training", total=settings.steps)
-        _, summary = train(settings, Path(args.out),
-                           lambda step, loss: bar.update(task, completed=step, description=f"loss {loss:.4f}"))
-    Console().print_json(json.dumps(summary))
-    return 0
-
-
-def cmd_register(args: argparse.Namespace) -> int:
-    """Register SOURCE onto TARGET; print the 4x4 that maps SOURCE into TARGET and the fitness."""
-    import numpy as np
-    from tandemscan.pipeline.cloud_io import CloudIOError, read_ply
-    from tandemscan.pipeline.deepmerge.correct import register_clouds
-    from tandemscan.pipeline.deepmerge.register import RegistrationError
-
-    config = load_config(args.config)
-    try:
-        source, _ = read_ply(Path(args.source))
-        target, _ = read_ply(Path(args.target))
-        init = np.loadtxt(args.init).reshape(4, 4) if args.init else None
-        T, fit = register_clouds(source, target, config.deepmerge, args.method, init, args.delta_mm)
-    except (CloudIOError, RegistrationError, OSError, ValueError) as e:
-        raise UsageError(str(e)) from e
-    text = "\n".join(" ".join(f"{v:.9g}" for v in row) for row in T)
-    if args.out:
-        Path(args.out).write_text(text + "\n", encoding="utf-8")
-    out = Console()
-    out.print(text, highlight=False)
-    out.print(f"fitness {fit.fitness:.4f}  point-to-plane RMS {fit.rmse_mm:.4f} mm  ({args.method})", highlight=False)
-    return 0
+    inspection = report.get("inspection", {})
+    if "as_measured" in inspection:
+        tol = inspection["as_measured"]["tolerance"]
+        out.print(f"  {tol['in_pct']:.1f} % within [{tol['lower_mm']:+.3f}, {tol['upper_mm']:+.3f}] mm of CAD: "
+                  f"{job_dir / inspection['files']['html']}")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -144,28 +196,29 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--part", type=Path, help="part mesh STL/PLY/OBJ in mm (default: the parametric train nose)")
     p.add_argument("--resolution", choices=["coarse", "full"], help="simulated scanner resolution")
     p.add_argument("--out", type=Path, help="output folder (default: job.out_dir of the config)")
+    p.add_argument("--calibration", type=Path, help="calibration file from `tandemscan calibrate` (sets "
+                   "job.installation_source = calibration)")
     p.set_defaults(func=cmd_measure)
 
-    p = sub.add_parser("train-deepmerge", help="train DeepMerge weights on generated data (CPU)")
-    p.add_argument("--out", type=Path, default=Path("deepmerge.pt"), help="weights file to write")
-    p.add_argument("--steps", type=int, default=3000)
-    p.add_argument("--max-minutes", type=float, default=110.0, help="stop after this long (data included)")
-    p.add_argument("--train-pairs", type=int, default=600)
-    p.add_argument("--val-pairs", type=int, default=60)
-    p.add_argument("--batch-size", type=int, default=8)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
-    p.set_defaults(func=cmd_train_deepmerge)
+    from tandemscan.daemon.inspect_cmd import register as register_inspect
 
-    p = sub.add_parser("register", help="register two clouds (PLY/PCD/XYZ, mm)")
-    p.add_argument("source", type=Path)
-    p.add_argument("target", type=Path)
-    p.add_argument("--init", type=Path, help="text file with the initial 4x4 (source into target)")
-    p.add_argument("--method", choices=["deepmerge", "icp", "deepmerge+icp"], default="deepmerge+icp")
-    p.add_argument("--delta-mm", type=float, default=5.0, help="overlap threshold after --init, mm")
-    p.add_argument("--config", type=Path, help="cell configuration TOML ([deepmerge] settings)")
-    p.add_argument("--out", type=Path, help="also write the 4x4 to this file")
-    p.set_defaults(func=cmd_register)
+    register_inspect(sub)
+
+    p = sub.add_parser("calibrate", help="hand-eye calibration from plate scans (simulated cell by default)")
+    p.add_argument("--config", type=Path, help="cell configuration TOML (default: the simulated cell)")
+    p.add_argument("--out", type=Path, help="calibration file to write (default: calibration.output_file)")
+    p.set_defaults(func=cmd_calibrate)
+
+    p = sub.add_parser("plan", help="plan stations, scans and tracker transfers for a part")
+    p.add_argument("--config", type=Path, help="cell configuration TOML (default: the simulated cell)")
+    p.add_argument("--part", type=Path, help="part mesh STL/PLY/OBJ in mm (default: the parametric train nose)")
+    p.add_argument("--out", type=Path, help="plan file .toml/.json (default: <job.out_dir>/plan.toml)")
+    p.add_argument("--png", type=Path, help="also draw the plan's top view to this PNG")
+    p.set_defaults(func=cmd_plan)
+
+    from tandemscan.daemon.deepmerge_cmd import register as register_deepmerge
+
+    register_deepmerge(sub)
     return parser
 
 

@@ -220,11 +220,13 @@ class JobRunner:
         self.worldmap.add(F.transform_points(T_W_S, points_S), normals)
 
     def _export(self, seconds: float) -> JobResult:
+        from tandemscan.daemon.job_outputs import write_job_outputs
         from tandemscan.daemon.report import build_report  # report knows the scoring; runner knows the job
 
         cloud_file = self.job_dir / "cloud.ply"
         write_ply(cloud_file, self.worldmap.points(), self.worldmap.normals())
         report = build_report(self, seconds)
+        report["inspection"] = write_job_outputs(self, report)  # report.html, E57, pose log
         report_file = self.job_dir / "report.json"
         report_file.write_text(json.dumps(report, indent=1), encoding="utf-8")
         return JobResult(self.job_dir, cloud_file, report_file, report, self.scans)

@@ -40,6 +40,23 @@ def read_mesh_file(path: Path) -> o3d.geometry.TriangleMesh:
     return mesh
 
 
+def signed_volume_mm3(mesh: o3d.geometry.TriangleMesh) -> float:
+    """Signed enclosed volume (mm^3): positive when a closed mesh's normals point outward."""
+    v = np.asarray(mesh.vertices)
+    t = np.asarray(mesh.triangles)
+    return float(np.einsum("ij,ij->i", v[t[:, 0]], np.cross(v[t[:, 1]], v[t[:, 2]])).sum() / 6.0)
+
+
+def is_closed(mesh: o3d.geometry.TriangleMesh) -> bool:
+    """True when every edge is shared by exactly two triangles that traverse it in opposite directions."""
+    t = np.asarray(mesh.triangles)
+    directed = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
+    n = len(mesh.vertices)
+    forward = np.unique(directed[:, 0] * n + directed[:, 1], return_counts=True)
+    backward = np.unique(directed[:, 1] * n + directed[:, 0])
+    return bool(np.all(forward[1] == 1) and len(forward[0]) == len(backward) and np.array_equal(forward[0], backward))
+
+
 def _section_profile(s: np.ndarray, part: PartConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Half-width, bottom height and top height (mm) of the cross-section at nose progress ``s`` in [0, 1]."""
     half_width = 0.5 * part.width_mm * np.sqrt(np.clip(1.0 - s**2, 0.0, None))
@@ -90,13 +107,13 @@ def train_nose_mesh(
     tip_centre = [0.5 * L + 0.25 * half_h[-1], 0.0, zc[-1]]
     vertices.append(np.array([back_centre, tip_centre]))
     ring0, ring1 = idx[0], idx[-1]
-    tris.append(np.c_[np.full(n_around, n), np.roll(ring0, -1), ring0])
-    tris.append(np.c_[np.full(n_around, n + 1), ring1, np.roll(ring1, -1)])
+    tris.append(np.c_[np.full(n_around, n), ring0, np.roll(ring0, -1)])
+    tris.append(np.c_[np.full(n_around, n + 1), np.roll(ring1, -1), ring1])
 
     mesh = o3d.geometry.TriangleMesh(
         o3d.utility.Vector3dVector(np.vstack(vertices)), o3d.utility.Vector3iVector(np.vstack(tris))
     )
-    if mesh.get_volume() < 0:  # make normals point outward whatever the winding above produced
+    if signed_volume_mm3(mesh) < 0:  # make normals point outward whatever the winding above produced
         mesh.triangles = o3d.utility.Vector3iVector(np.asarray(mesh.triangles)[:, ::-1])
     mesh.compute_vertex_normals()
     mesh.compute_triangle_normals()

@@ -1,0 +1,231 @@
+"""The calibration job: scan the plate from well-conditioned arm poses, read the tracker, solve ``T_T_S``.
+
+Plan (nominal mounts): views on a cone over the plate (rotations about different axes), each turned into
+joints by IK; a view the arm cannot reach, where the tracker cannot see the target, or where the plate fit
+fails is skipped with a logged reason. Then ``solve_hand_eye`` (config ``calibration.method``) and a JSON
+calibration file that ``measure`` reads when ``job.installation_source = "calibration"``: the four mounts
+(``T_T_S`` calibrated, the others nominal, see docs/calibration.md) plus the solver's residuals.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import os
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from tandemscan.config.models import CellConfig
+from tandemscan.drivers.errors import TargetNotVisible
+from tandemscan.drivers.interfaces import Chassis, ChassisPose
+from tandemscan.pipeline import frames as F
+from tandemscan.pipeline.calibration.hand_eye import HandEyeError, HandEyeResult, solve_hand_eye
+from tandemscan.pipeline.calibration.mounts import (
+    MountError,
+    arm_base_motions,
+    mount_from_turns,
+    relative_motions,
+    solve_flange_mount,
+)
+from tandemscan.pipeline.calibration.plate import PlateError, fit_plate, nominal_centres_P
+from tandemscan.pipeline.calibration.poses import arm_joints_for_views, plate_view_distance, plate_view_poses
+from tandemscan.pipeline.installation import Installation
+from tandemscan.pipeline.kinematics import ArmKinematics
+from tandemscan.sim_drivers.cell import Cell
+
+log = logging.getLogger(__name__)
+
+#: candidate views planned per pose wanted: some are unreachable or hide the target from the tracker
+_CANDIDATES_PER_POSE = 1.5
+#: chassis turns in place (deg, relative to the start heading) for the mount calibrations
+_TURNS_DEG = (-8.0, -4.0, 4.0, 8.0)
+
+
+class CalibrationJobError(Exception):
+    """The calibration job could not produce a calibration; the message says why."""
+
+
+@dataclass
+class CalibrationRun:
+    """What a calibration job found (mm, deg)."""
+
+    installation: Installation
+    hand_eye: HandEyeResult
+    file: Path
+    poses_used: int
+    skipped: list[str] = field(default_factory=list)
+    truth_error: dict[str, float] | None = None
+    sources: dict[str, str] = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        """The calibration file's content: the four mounts and how they were obtained."""
+        return {
+            **self.installation.to_json(),
+            "sources": self.sources,
+            "hand_eye": self.hand_eye.summary(),
+            "poses_used": self.poses_used,
+            "skipped": self.skipped,
+            **({"sim_truth_error": self.truth_error} if self.truth_error else {}),
+        }
+
+
+async def run_calibration(
+    cell: Cell,
+    config: CellConfig,
+    out_file: Path | None = None,
+    progress: Callable[[int, int, str], None] | None = None,
+) -> CalibrationRun:
+    """Run the calibration job on a connected cell; writes and returns the calibration."""
+    cal = config.calibration
+    progress = progress or (lambda done, total, msg: None)
+    out_file = Path(out_file or cal.output_file)
+    nominal = Installation.nominal(config.installation)
+    if cell.world is not None:
+        from tandemscan.sim_drivers.plate import install_calibration_plate  # sim only: the plate is physical
+
+        install_calibration_plate(cell.world, cal)
+    centre = nominal_centres_P(cal).mean(axis=0)
+    distance = plate_view_distance(config.scanner.range_min_mm, config.scanner.range_max_mm,
+                                   cal.sphere_diameter_mm / 2.0)
+    views = plate_view_poses(int(np.ceil(cal.poses * _CANDIDATES_PER_POSE)), centre, distance, cal.tilt_deg)
+    await cell.arm.enable()
+    seed = await cell.arm.joints()
+    kinematics = ArmKinematics(config.arm)
+    progress(0, cal.poses, "planning arm poses over the plate")
+    plan = await asyncio.to_thread(arm_joints_for_views, views, cal.T_V2_P.matrix(), nominal.T_V2_B,
+                                   nominal.T_E_S, kinematics, seed)
+    skipped = [f"view {i}: out of reach" for i in range(len(views)) if i not in {j for j, _ in plan}]
+    tracker_poses, covariances, plate_poses, centre_sigma, joints = [], [], [], [], []
+    for i, q in plan:
+        if len(tracker_poses) >= cal.poses:
+            break
+        progress(len(tracker_poses), cal.poses, f"view {i}: scanning the plate")
+        await cell.arm.move_joints(q, config.arm.timeout_s)
+        try:
+            T_C_T, cov = await _read_at_rest(cell, config)
+        except TargetNotVisible as e:
+            skipped.append(f"view {i}: {e}")
+            continue
+        frame = await cell.scanner.capture(config.scanner.timeout_s)
+        try:
+            fit = await asyncio.to_thread(fit_plate, frame.points_mm, cal, normals_S=frame.normals,
+                                          noise_mm=config.scanner.noise_sigma_mm)
+        except PlateError as e:
+            skipped.append(f"view {i}: {e}")
+            continue
+        tracker_poses.append(T_C_T)
+        joints.append(q)
+        covariances.append(cov)
+        plate_poses.append(fit.T_S_P)
+        centre_sigma.append(fit.centre_sigma_mm)
+    for s in skipped:
+        log.info("calibration: %s", s)
+    if len(tracker_poses) < 3:
+        raise CalibrationJobError(f"only {len(tracker_poses)} usable plate views: {'; '.join(skipped)}")
+    try:
+        result = await asyncio.to_thread(
+            solve_hand_eye, np.array(tracker_poses), np.array(plate_poses), cal.method,
+            plate_points_P=nominal_centres_P(cal), tracker_covariances=np.array(covariances),
+            plate_sigma_mm=float(np.median(centre_sigma)), min_pair_rotation_deg=cal.min_pair_rotation_deg,
+        )
+    except HandEyeError as e:
+        raise CalibrationJobError(f"hand-eye calibration failed: {e}") from e
+    sources = {"T_T_S": f"hand-eye ({result.method}, {len(tracker_poses)} poses)"}
+    T_E_S, T_V1_C, T_V2_B = nominal.T_E_S, nominal.T_V1_C, nominal.T_V2_B
+    try:
+        flange = solve_flange_mount([kinematics.forward(q) for q in joints], tracker_poses, result.T_T_S)
+        T_E_S = flange.T_T_S
+        sources["T_E_S"] = f"arm hand-eye (park), point RMS {flange.point_rms_mm:.3f} mm"
+    except HandEyeError as e:
+        skipped.append(f"T_E_S stays nominal: {e}")
+    # the arm stands still from here: both chassis turn in place in turn
+    T_B_T = kinematics.forward(await cell.arm.joints()) @ T_E_S @ F.invert(result.T_T_S)
+    mounts = {"T_V1_C": T_V1_C, "T_V2_B": T_V2_B}
+    for name, chassis, motions_of in (
+        ("T_V1_C", cell.tracking_chassis, lambda turns: relative_motions(F.invert(turns))),
+        ("T_V2_B", cell.measure_chassis, lambda turns: arm_base_motions(turns, T_B_T)),
+    ):
+        progress(cal.poses, cal.poses, f"{name}: turning its chassis in place")
+        turns = await _turn_readings(cell, chassis, config, skipped)
+        try:
+            if turns is None:
+                raise MountError("the target was not visible at two headings")
+            mounts[name], axis = mount_from_turns(motions_of(turns), mounts[name])
+            sources[name] = f"turns in place: roll, pitch, axis distance (axis RMS {axis.line_rms_mm:.3f} mm)"
+        except MountError as e:
+            skipped.append(f"{name} stays nominal: {e}")
+    T_V1_C, T_V2_B = mounts["T_V1_C"], mounts["T_V2_B"]
+    for k in ("T_V1_C", "T_V2_B", "T_E_S"):
+        sources.setdefault(k, "nominal")
+    installation = Installation(T_V1_C, T_V2_B, T_E_S, result.T_T_S)
+    truth = _truth_errors(cell, nominal, installation) if cell.world is not None else None
+    run = CalibrationRun(installation, result, out_file, len(tracker_poses), skipped, truth, sources)
+    _write_json(out_file, run.to_json())
+    progress(cal.poses, cal.poses, "done")
+    return run
+
+
+async def calibrate_cell(
+    cell: Cell,
+    config: CellConfig,
+    out_file: Path | None = None,
+    progress: Callable[[int, int, str], None] | None = None,
+) -> CalibrationRun:
+    """Connect the cell, run the calibration job, close the cell."""
+    await cell.connect()
+    try:
+        return await run_calibration(cell, config, out_file, progress)
+    finally:
+        await cell.close()
+
+
+async def _read_at_rest(cell: Cell, config: CellConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Mean ``T_C_T`` of ``calibration.tracker_samples`` readings at rest and its covariance (driver order)."""
+    n = config.calibration.tracker_samples
+    readings = [await cell.tracker.read_pose(config.tracker.timeout_s) for _ in range(n)]
+    return F.mean_pose([r.T_C_T for r in readings]), np.mean([r.covariance for r in readings], axis=0) / n
+
+
+async def _turn_readings(cell: Cell, chassis: Chassis, config: CellConfig, skipped: list[str]) -> np.ndarray | None:
+    """Tracker readings with ``chassis`` turned in place by each of ``_TURNS_DEG`` (then back); None if the
+    target was lost at fewer than two headings."""
+    start = await chassis.odometry()
+    readings = []
+    for d in (0.0, *_TURNS_DEG):
+        await chassis.move_to(ChassisPose(start.x_mm, start.y_mm, start.heading_rad + np.radians(d)),
+                              config.measure_chassis.timeout_s)
+        try:
+            readings.append((await _read_at_rest(cell, config))[0])
+        except TargetNotVisible as e:
+            skipped.append(f"turn {d:+.0f} deg: {e}")
+    await chassis.move_to(start, config.measure_chassis.timeout_s)
+    return np.array(readings) if len(readings) >= 2 else None
+
+
+def _truth_errors(cell: Cell, nominal: Installation, calibrated: Installation) -> dict[str, float]:
+    """Sim only: each mount's error (mm, deg) against the world's truth, calibrated and nominal."""
+    out: dict[str, float] = {}
+    for k in ("T_T_S", "T_E_S", "T_V1_C", "T_V2_B"):
+        truth = getattr(cell.world.truth, k)
+        for label, inst in (("", calibrated), ("nominal_", nominal)):
+            mm, rad = F.pose_error(getattr(inst, k), truth)
+            out[f"{label}{k}_err_mm"] = mm
+            out[f"{label}{k}_err_deg"] = float(np.degrees(rad))
+    return out
+
+
+def _write_json(path: Path, data: dict) -> None:
+    """Write atomically and durably."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    with open(tmp, "w", encoding="utf-8") as fh:
+        json.dump(data, fh, indent=1)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+__all__ = ["CalibrationJobError", "CalibrationRun", "calibrate_cell", "run_calibration"]

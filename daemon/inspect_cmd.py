@@ -1,0 +1,81 @@
+"""``tandemscan inspect CLOUD --cad MESH [--tolerance 0.1] [--out DIR]``: deviation report for any cloud.
+
+``register(subparsers)`` adds the sub-command to the main CLI; ``main(argv)`` runs it on its own.
+Bad input ends with one clear error line on stderr and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from tandemscan.config import ConfigError, load_config
+
+EXIT_BAD_INPUT = 2
+
+
+def register(subparsers) -> argparse.ArgumentParser:
+    """Add the ``inspect`` sub-command to an argparse sub-parser collection."""
+    p = subparsers.add_parser(
+        "inspect",
+        help="deviation of a point cloud from its CAD mesh: report.html, report.json, PLY with deviations",
+        description="Signed deviation of CLOUD (mm, CAD frame) from MESH, with statistics, tolerance shares, "
+        "colour maps and a best fit; writes report.html, report.json, figures/ and cloud_deviation.ply.",
+    )
+    configure(p)
+    return p
+
+
+def configure(p: argparse.ArgumentParser) -> None:
+    """The sub-command's arguments."""
+    p.add_argument("cloud", type=Path, help="point cloud file (.ply .pcd .xyz), millimetres, CAD frame")
+    p.add_argument("--cad", type=Path, required=True, help="CAD mesh file (.stl .ply .obj), millimetres")
+    p.add_argument("--tolerance", type=float, default=None, metavar="MM",
+                   help="symmetric tolerance band +/- MM (default: the config's inspection band)")
+    p.add_argument("--out", type=Path, default=None, metavar="DIR", help="output folder (default: out/inspect)")
+    p.add_argument("--config", type=Path, default=None, help="cell configuration TOML (default: the sim cell)")
+    p.add_argument("--no-best-fit", action="store_true", help="skip the best-fit alignment")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the inspection for parsed ``args``; 0 on success, 2 with one error line on bad input."""
+    from tandemscan.pipeline.inspect import InspectionError  # local: keep `tandemscan --help` fast
+    from tandemscan.pipeline.inspection_job import inspect_files
+
+    prog = "tandemscan inspect"
+    try:
+        cell = load_config(args.config)
+        cfg = cell.inspection
+        update = {}
+        if args.tolerance is not None:
+            if not args.tolerance > 0:
+                raise InspectionError(f"--tolerance must be > 0 mm, got {args.tolerance}")
+            update |= {"tolerance_lower_mm": -args.tolerance, "tolerance_upper_mm": args.tolerance}
+        if args.no_best_fit:
+            update["best_fit"] = False
+        cfg = cfg.model_copy(update=update)
+        out = args.out if args.out is not None else cell.job.out_dir / "inspect"
+        outputs = inspect_files(args.cloud, args.cad, out, cfg)
+    except (InspectionError, ConfigError, OSError) as e:
+        print(f"{prog}: error: {e}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    s, t = outputs.result.stats, outputs.result.tolerance
+    print(
+        f"{s.count} points: mean {s.mean_mm:+.4f} mm, sigma {s.sigma_mm:.4f} mm, RMS {s.rms_mm:.4f} mm, "
+        f"{t.in_pct:.2f} % within [{t.lower_mm:+.3f}, {t.upper_mm:+.3f}] mm\n"
+        f"report: {outputs.html}\ndata:   {outputs.json}\ncloud:  {outputs.ply}"
+    )
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Stand-alone entry: ``python -m tandemscan.daemon.inspect_cmd CLOUD --cad MESH``."""
+    parser = argparse.ArgumentParser(prog="tandemscan inspect")
+    configure(parser)
+    return run(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,89 @@
+"""What a finished job leaves for the quality engineer besides ``cloud.ply``: ``cloud.e57`` (one scan per
+pose with its world pose, plus the merged cloud) and ``poses.csv`` in the job's world frame W, and, where W
+is registered to the CAD frame F, ``report.html`` with ``figures/`` and ``cloud_deviation.ply`` in frame F.
+
+On the simulated cell the registration is the ground truth ``T_W_F``; a real cell has none yet, and the
+inspection is then skipped with the reason recorded.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import TYPE_CHECKING
+
+import numpy as np
+from tandemscan.pipeline import frames as F
+from tandemscan.pipeline.export import PosedScan, write_e57, write_pose_log
+from tandemscan.pipeline.inspection_job import run_inspection
+
+if TYPE_CHECKING:
+    from tandemscan.daemon.runner import JobRunner
+
+log = logging.getLogger(__name__)
+
+STITCH_VIEW_POINTS = 20_000  # per scan, for the overlap figure
+
+
+def _posed_scans(runner: JobRunner) -> list[PosedScan]:
+    scans = []
+    for s in runner.scans:
+        with np.load(s.file) as raw:
+            points = raw["points_S_mm"].astype(np.float64)
+        meta = {"tracker_station": s.tracker_station, "timestamp_s": s.reading.timestamp_s,
+                **{f"joint{i + 1}_deg": float(np.degrees(q)) for i, q in enumerate(s.joints_rad)}}
+        scans.append(PosedScan(s.file.stem, s.T_W_S, points, meta))
+    return scans
+
+
+def _thin(points: np.ndarray) -> np.ndarray:
+    return points[:: max(1, len(points) // STITCH_VIEW_POINTS)]
+
+
+def _accuracy(report: dict) -> dict:
+    truth = report.get("ground_truth") or {}
+    keys = {
+        "pose_err_mm_median": "scan pose error vs truth, median, mm",
+        "pose_err_mm_max": "scan pose error vs truth, max, mm",
+        "pose_err_deg_median": "scan pose error vs truth, median, deg",
+        "pose_err_deg_max": "scan pose error vs truth, max, deg",
+        "cloud_rms_mm": "stitched cloud to part (unsigned), RMS, mm",
+        "cloud_p95_mm": "stitched cloud to part (unsigned), P95, mm",
+    }
+    out: dict = {"scans": report.get("scans"), "coordinate transfers": report.get("transfers")}
+    return out | {label: truth[k] for k, label in keys.items() if k in truth}
+
+
+def write_job_outputs(runner: JobRunner, report: dict) -> dict:
+    """Write the E57, the pose log and (when registered to CAD) the inspection report of a finished job.
+
+    Returns the inspection section for the job's ``report.json``: the same numbers as report.html.
+    """
+    job_dir = runner.job_dir
+    scans = _posed_scans(runner)
+    cloud_W = runner.worldmap.points()
+    files = {"e57": "cloud.e57", "pose_log": "poses.csv"}
+    if scans:
+        write_e57(job_dir / files["e57"], scans, cloud_W if len(cloud_W) else None)
+    write_pose_log(job_dir / files["pose_log"], scans)
+    world = runner.cell.world
+    if world is None or len(cloud_W) == 0:
+        reason = "no registration of the world frame to the CAD frame" if world is None else "empty cloud"
+        log.warning("inspection skipped: %s", reason)
+        return {"skipped": reason, "files": files}
+    T_F_W = F.invert(world.T_W_F)
+    normals_W = runner.worldmap.normals()
+    out = run_inspection(
+        F.transform_points(T_F_W, cloud_W),
+        world.mesh,
+        job_dir,
+        runner.config.inspection,
+        normals=None if normals_W is None else F.rotate_vectors(T_F_W, normals_W),
+        title=f"Inspection report, {job_dir.name}",
+        meta={"job": job_dir.name, "plan": runner.plan.name, "cell": runner.config.name,
+              "registration to CAD": "simulation ground truth T_W_F", "points": str(len(cloud_W))},
+        accuracy=_accuracy(report),
+        scans_before=[F.transform_points(T_F_W @ s.T_W_S, _thin(s.points_S_mm)) for s in scans],
+        json_name=None,
+    )
+    files |= {"html": out.html.name, "deviation_ply": out.ply.name}
+    return out.data | {"T_F_W": T_F_W.tolist(), "files": files}

@@ -1,0 +1,322 @@
+"""AGV chassis over CAN (AgileX-Scout-style protocol v2; frames from the DBC in ``ChassisCanConfig.dbc``).
+
+The driver puts the chassis in CAN command mode, sends the motion command every ``command_period_s`` (the
+chassis stops by itself after 500 ms without one), integrates the wheel odometry into a pose in its odometry
+frame (mm, rad) and closes the loop on it in :meth:`AgvCanChassis.move_to`. Every fault (e-stop, error bits,
+motor-driver state, RC override, malformed frame, silent bus) zeroes the velocity set-point at once and is
+raised as a typed error naming the chassis.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import logging
+import math
+
+import can
+from tandemscan.config.models import ChassisConfig
+from tandemscan.drivers.can_link import CanFrameError, CanLink, load_dbc
+from tandemscan.drivers.errors import DeviceError, DeviceFault, DeviceTimeout, NotConnected, SafetyStop
+from tandemscan.drivers.interfaces import ChassisPose, DeviceStatus
+
+log = logging.getLogger(__name__)
+
+CONTROL_MODES = {0: "standby", 1: "CAN", 2: "app", 3: "RC"}
+MODE_CAN = 1
+# SystemStatus.ErrorCode bits (generic; vary per model). Warnings do not stop a move.
+ERROR_BITS = {
+    0x0001: "battery fault", 0x0004: "RC signal lost", 0x0008: "motor 1 communication",
+    0x0010: "motor 2 communication", 0x0020: "motor 3 communication", 0x0040: "motor 4 communication",
+    0x0100: "motor driver", 0x0200: "host communication",
+}
+WARNING_BITS = {0x0002: "battery warning"}
+DRIVER_STATE_BITS = {
+    0x01: "supply voltage low", 0x02: "motor overheat", 0x04: "overload", 0x08: "driver overheat",
+    0x10: "sensor fault", 0x20: "driver fault",
+}
+_MIN_LINEAR_MM_S = 10.0
+_MIN_ANGULAR_RAD_S = 0.01
+_TURN_IN_PLACE_RAD = math.radians(15.0)
+
+
+def wrap_angle(a: float) -> float:
+    """``a`` wrapped to [-pi, pi)."""
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def bit_names(value: int, table: dict[int, str]) -> list[str]:
+    return [name for bit, name in table.items() if value & bit]
+
+
+class AgvCanChassis:
+    """The :class:`~tandemscan.drivers.interfaces.Chassis` on a CAN bus (settings in ``ChassisConfig.can``)."""
+
+    def __init__(self, config: ChassisConfig, name: str = "chassis"):
+        self.name = name
+        self._cfg = config
+        self._can = config.can
+        self._db = load_dbc(config.can.dbc)
+        self._link: CanLink | None = None
+        self._tasks: list[asyncio.Task] = []
+        self._setpoint = (0.0, 0.0)  # linear mm/s, angular rad/s
+        self._pose = ChassisPose(0.0, 0.0, 0.0)  # kept across reconnects: the odometry frame stays put
+        self._wheels: tuple[float, float] | None = None  # last wheel odometry (mm), None until the first frame
+        self._system: dict[str, float] = {}
+        self._motion: dict[str, float] = {}
+        self._last_status_t = 0.0
+        self._fault: DeviceError | None = None
+        self._commanding = False  # True once the chassis took CAN mode: leaving it is then a fault
+        self._warned = 0
+        self._feedback = asyncio.Event()
+        self.command_times: collections.deque[float] = collections.deque(maxlen=2000)  # loop time of each 0x111
+
+    # ------------------------------------------------------------------ lifecycle
+
+    async def connect(self) -> None:
+        """Open the bus, switch the chassis to CAN command mode and start the command heartbeat."""
+        await self.close()
+        link = CanLink(self._can.interface, self._can.channel, self._can.bitrate, self._db)
+        try:
+            link.open()
+        except (can.CanError, OSError, ValueError) as e:
+            raise NotConnected(self.name, f"cannot open CAN {self._can.interface}:{self._can.channel}: {e}") from e
+        self._link, self._wheels, self._fault, self._system = link, None, None, {}
+        self._last_status_t = asyncio.get_running_loop().time()
+        self._tasks = [asyncio.create_task(self._receive(), name=f"{self.name}-rx")]
+        try:
+            await self._enter_can_mode()
+        except BaseException:
+            await self.close()
+            raise
+        self._commanding = True
+        self._tasks.append(asyncio.create_task(self._command_loop(), name=f"{self.name}-tx"))
+        log.info("%s: CAN command mode on %s", self.name, self._can.channel)
+
+    async def close(self) -> None:
+        """Zero the velocity, stop the heartbeat and release the bus; safe to call twice."""
+        tasks, self._tasks = self._tasks, []
+        for t in tasks:
+            t.cancel()
+        for t in tasks:
+            with contextlib.suppress(asyncio.CancelledError):
+                await t
+        link, self._link = self._link, None
+        self._setpoint, self._commanding = (0.0, 0.0), False
+        if link is not None:
+            with contextlib.suppress(can.CanError, CanFrameError):
+                link.send("MotionCommand", LinearVelocity=0, AngularVelocity=0, LateralVelocity=0, SteeringAngle=0)
+            await link.close()
+
+    async def status(self) -> DeviceStatus:
+        if self._link is None:
+            return DeviceStatus(self.name, False, "disconnected")
+        if isinstance(self._fault, SafetyStop):
+            state = "stopped"
+        elif self._fault is not None:
+            state = "fault"
+        else:
+            moving = abs(self._motion.get("LinearVelocity", 0.0)) > 0 or abs(self._motion.get("AngularVelocity", 0.0)) > 0
+            state = "moving" if moving else "idle"
+        detail = {
+            "pose": self._pose, "battery_V": self._system.get("BatteryVoltage"),
+            "error_code": self._system.get("ErrorCode"), "control_mode": self._system.get("ControlMode"),
+            "fault": str(self._fault) if self._fault else None,
+        }
+        return DeviceStatus(self.name, True, state, detail)
+
+    # ------------------------------------------------------------------ verbs
+
+    async def odometry(self) -> ChassisPose:
+        """The pose integrated from wheel odometry (mm, rad) in the odometry frame."""
+        self._require_link()
+        return self._pose
+
+    async def stop(self) -> None:
+        """Zero the velocity now (not at the next period) and abort a running :meth:`move_to`."""
+        self._latch(SafetyStop(self.name, "stop requested"))
+
+    async def clear_errors(self) -> None:
+        """Ask the chassis to clear its latched errors (0x441) and forget the driver's latched fault."""
+        self._require_link().send("ErrorClear", ClearCode=0)
+        self._fault = None
+
+    async def move_to(self, target: ChassisPose, timeout_s: float | None = None) -> ChassisPose:
+        """Drive to ``target`` closed-loop on odometry: turn, drive (forwards or backwards), turn to heading."""
+        self._require_link()
+        loop = asyncio.get_running_loop()
+        timeout = self._cfg.timeout_s if timeout_s is None else timeout_s
+        deadline = loop.time() + timeout
+        self._fault = None
+        await self._next_feedback(min(timeout, self._can.feedback_timeout_s))  # re-latches a standing fault
+        positioning = True
+        try:
+            while True:
+                if self._fault is not None:
+                    raise self._fault
+                pose = self._pose
+                dx, dy = target.x_mm - pose.x_mm, target.y_mm - pose.y_mm
+                dist = math.hypot(dx, dy)
+                if positioning and dist <= self._can.position_tolerance_mm:
+                    positioning = False
+                elif not positioning and dist > 2 * self._can.position_tolerance_mm:
+                    positioning = True
+                if positioning:
+                    self._setpoint = self._drive_command(dist, math.atan2(dy, dx) - pose.heading_rad)
+                else:
+                    err = wrap_angle(target.heading_rad - pose.heading_rad)
+                    if abs(err) <= math.radians(self._can.heading_tolerance_deg):
+                        self._setpoint = (0.0, 0.0)
+                        return pose
+                    self._setpoint = (0.0, self._turn_rate(err))
+                if loop.time() > deadline:
+                    raise DeviceTimeout(self.name, f"move to {target} not finished within {timeout} s (at {pose})")
+                await self._next_feedback(self._can.feedback_timeout_s)
+        except BaseException:
+            self._zero_now()
+            raise
+
+    # ------------------------------------------------------------------ control law
+
+    def _turn_rate(self, err_rad: float) -> float:
+        w_max = math.radians(self._cfg.turn_rate_deg_s)
+        w = min(max(self._can.gain_angular_per_s * err_rad, -w_max), w_max)
+        return math.copysign(max(abs(w), _MIN_ANGULAR_RAD_S), err_rad)
+
+    def _drive_command(self, dist_mm: float, bearing_rad: float) -> tuple[float, float]:
+        """(linear mm/s, angular rad/s) towards a point ``dist_mm`` away at ``bearing_rad`` from the heading."""
+        direction = 1.0
+        err = wrap_angle(bearing_rad)
+        if abs(err) > math.pi / 2:  # behind: reverse instead of turning around
+            direction, err = -1.0, wrap_angle(err - math.pi)
+        w = self._turn_rate(err) if abs(err) > 1e-4 else 0.0
+        if abs(err) > _TURN_IN_PLACE_RAD:
+            return 0.0, w
+        v = min(max(self._can.gain_linear_per_s * dist_mm, _MIN_LINEAR_MM_S), self._cfg.speed_mm_s)
+        return direction * v * math.cos(err), w
+
+    # ------------------------------------------------------------------ bus side
+
+    def _require_link(self) -> CanLink:
+        if self._link is None:
+            raise NotConnected(self.name, "not connected")
+        return self._link
+
+    async def _enter_can_mode(self) -> None:
+        """Send the control-mode frame until a status frame reports CAN mode."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + self._can.feedback_timeout_s
+        while self._system.get("ControlMode") != MODE_CAN or self._fault is not None:
+            if isinstance(self._fault, (SafetyStop, DeviceFault)):
+                raise self._fault
+            self._require_link().send("ControlModeSet", ControlMode=MODE_CAN)
+            if loop.time() > deadline:
+                mode = self._system.get("ControlMode")
+                seen = f"mode {CONTROL_MODES.get(int(mode), mode)}" if mode is not None else "no status frame"
+                raise DeviceTimeout(self.name, f"chassis did not enter CAN mode within "
+                                               f"{self._can.feedback_timeout_s} s ({seen})")
+            self._fault = None
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._feedback.wait(), 0.1)
+
+    async def _next_feedback(self, timeout_s: float) -> None:
+        try:
+            await asyncio.wait_for(self._feedback.wait(), timeout_s)
+        except TimeoutError:
+            self._latch(DeviceTimeout(self.name, f"no feedback from the chassis for {timeout_s} s"))
+
+    def _zero_now(self) -> None:
+        self._setpoint = (0.0, 0.0)
+        if self._link is not None:
+            with contextlib.suppress(can.CanError, CanFrameError):
+                self._send_setpoint()
+
+    def _latch(self, error: DeviceError) -> None:
+        """Record the first fault, zero the velocity at once and wake a waiting move."""
+        if self._fault is None:
+            log.warning("%s", error)
+            self._fault = error
+        self._zero_now()
+        self._wake()
+
+    def _wake(self) -> None:
+        self._feedback.set()
+        self._feedback = asyncio.Event()
+
+    def _send_setpoint(self) -> None:
+        v, w = self._setpoint
+        assert self._link is not None
+        self._link.send("MotionCommand", LinearVelocity=round(v), AngularVelocity=round(w, 3),
+                        LateralVelocity=0, SteeringAngle=0)
+
+    async def _command_loop(self) -> None:
+        """The heartbeat: the motion command every period on an absolute schedule, and the feedback watchdog."""
+        loop = asyncio.get_running_loop()
+        period = self._can.command_period_s
+        next_t = loop.time()
+        while True:
+            try:
+                self._send_setpoint()
+            except (can.CanError, CanFrameError) as e:
+                self._latch(NotConnected(self.name, f"cannot send on CAN: {e}"))
+            self.command_times.append(loop.time())
+            silent_s = loop.time() - self._last_status_t
+            if silent_s > self._can.feedback_timeout_s:
+                self._latch(DeviceTimeout(self.name, f"no status frame for {silent_s:.3f} s (link lost)"))
+            next_t += period
+            now = loop.time()
+            if next_t < now - period:  # fell far behind (stalled loop): restart the schedule
+                next_t = now
+            await asyncio.sleep(max(0.0, next_t - now))
+
+    async def _receive(self) -> None:
+        assert self._link is not None
+        link = self._link
+        while True:
+            try:
+                name, sig, _ = await link.recv()
+            except CanFrameError as e:
+                self._latch(DeviceFault(self.name, f"malformed CAN frame: {e}"))
+                continue
+            except can.CanError as e:
+                self._latch(NotConnected(self.name, f"CAN receive failed: {e}"))
+                return
+            if name == "SystemStatus":
+                self._on_system_status(sig)
+            elif name == "MotionState":
+                self._motion = sig
+            elif name == "Odometry":
+                self._on_odometry(sig["LeftWheelOdometry"], sig["RightWheelOdometry"])
+                self._wake()
+            elif name.startswith("MotorLowRate") and int(sig["DriverState"]):
+                problems = ", ".join(bit_names(int(sig["DriverState"]), DRIVER_STATE_BITS))
+                self._latch(DeviceFault(self.name, f"motor {name[-1]} driver: {problems}"))
+
+    def _on_system_status(self, sig: dict[str, float]) -> None:
+        self._system = sig
+        self._last_status_t = asyncio.get_running_loop().time()
+        state, code, mode = int(sig["VehicleState"]), int(sig["ErrorCode"]), int(sig["ControlMode"])
+        errors = bit_names(code, ERROR_BITS)
+        if state == 1:
+            self._latch(SafetyStop(self.name, "chassis emergency stop"))
+        elif errors or state == 2:
+            self._latch(DeviceFault(self.name, f"chassis error 0x{code:04X}: {', '.join(errors) or 'exception'}"))
+        elif mode != MODE_CAN and self._commanding:
+            self._latch(DeviceFault(self.name, f"chassis left CAN mode ({CONTROL_MODES.get(mode, mode)} has control)"))
+        warnings = code & sum(WARNING_BITS)
+        if warnings != self._warned:
+            self._warned = warnings
+            if warnings:
+                log.warning("%s: %s", self.name, ", ".join(bit_names(code, WARNING_BITS)))
+
+    def _on_odometry(self, left_mm: float, right_mm: float) -> None:
+        """Dead-reckon the wheel travel into the pose (midpoint rule; effective skid-steer track)."""
+        if self._wheels is not None:
+            dl, dr = left_mm - self._wheels[0], right_mm - self._wheels[1]
+            ds, dth = (dl + dr) / 2, (dr - dl) / self._can.odometry_track_mm
+            p = self._pose
+            mid = p.heading_rad + dth / 2
+            self._pose = ChassisPose(p.x_mm + ds * math.cos(mid), p.y_mm + ds * math.sin(mid),
+                                     wrap_angle(p.heading_rad + dth))
+        self._wheels = (left_mm, right_mm)

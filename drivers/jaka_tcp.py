@@ -1,0 +1,312 @@
+"""JAKA Zu arm over its TCP/IP protocol: JSON commands on one port, a pushed status stream on another.
+
+Protocol facts (shared/protocols/README.md): requests ``{"cmdName": ..., ...}``; replies carry ``errorCode``
+as a string (``"0"`` success, ``"2"`` kinematics failure); a reply only means "accepted", so a move is
+complete when the status stream shows ``inpos`` at the target. Degrees and JAKA's fixed x-y-z Euler angles
+exist only inside this module; the interface speaks radians, millimetres and 4x4 ``T_B_E``. The tool offset
+on the controller must be zero, so that its TCP pose is the flange pose ``T_B_E``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import Callable
+
+import numpy as np
+from tandemscan.config.models import ArmConfig
+from tandemscan.drivers.errors import (
+    DeviceError,
+    DeviceFault,
+    DeviceTimeout,
+    NotConnected,
+    OutOfReach,
+    SafetyStop,
+)
+from tandemscan.drivers.interfaces import DeviceStatus
+from tandemscan.drivers.json_stream import JsonFramingError, JsonObjectFramer, encode
+from tandemscan.pipeline.frames import from_rpy, to_rpy
+
+log = logging.getLogger(__name__)
+
+_READ_CHUNK = 65536
+# Commands whose errorCode "2" means the pose cannot be reached (inverse kinematics failed).
+_KINEMATIC_COMMANDS = {"moveL", "end_move", "kine_inverse"}
+
+
+def six_finite(value: object, what: str, device: str) -> np.ndarray:
+    """``value`` as a float array of 6 finite numbers, else :class:`DeviceFault`."""
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError) as e:
+        raise DeviceFault(device, f"{what} is not numeric: {value!r}") from e
+    if arr.shape != (6,) or not np.all(np.isfinite(arr)):
+        raise DeviceFault(device, f"{what} must be 6 finite numbers, got {value!r}")
+    return arr
+
+
+class JakaTcpArm:
+    """The :class:`~tandemscan.drivers.interfaces.Arm` on a JAKA controller (settings in ``ArmConfig.jaka``)."""
+
+    def __init__(self, config: ArmConfig, name: str = "arm"):
+        self.name = name
+        self._cfg = config
+        self._net = config.jaka
+        self._q_min = np.radians(config.joint_min_deg)
+        self._q_max = np.radians(config.joint_max_deg)
+        self._lock = asyncio.Lock()
+        self._cmd: tuple[asyncio.StreamReader, asyncio.StreamWriter] | None = None
+        self._cmd_framer = JsonObjectFramer()
+        self._cmd_backlog: list[dict] = []
+        self._status_writer: asyncio.StreamWriter | None = None
+        self._status_task: asyncio.Task | None = None
+        self._status: dict | None = None
+        self._status_event = asyncio.Event()
+        self._status_error: DeviceError | None = None
+
+    # ------------------------------------------------------------------ lifecycle
+
+    async def connect(self) -> None:
+        """Open the command and status connections and wait for the first status message."""
+        await self.close()
+        host, timeout = self._net.host, self._net.reply_timeout_s
+        self._cmd = await self._open(host, self._net.command_port, timeout)
+        status_reader, self._status_writer = await self._open(host, self._net.status_port, timeout)
+        self._status_error = None
+        self._status_task = asyncio.create_task(self._read_status(status_reader), name=f"{self.name}-status")
+        await self._wait_status(lambda st: True, timeout, "the first status message", check_safety=False)
+        log.info("%s: connected to %s:%d/%d", self.name, host, self._net.command_port, self._net.status_port)
+
+    async def close(self) -> None:
+        """Drop both connections; safe to call twice or after the peer vanished."""
+        task, self._status_task = self._status_task, None
+        if task is not None:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        writers = [w for w in (self._cmd[1] if self._cmd else None, self._status_writer) if w is not None]
+        self._cmd, self._status_writer, self._status = None, None, None
+        self._cmd_framer, self._cmd_backlog = JsonObjectFramer(), []
+        for w in writers:
+            w.close()
+            with contextlib.suppress(OSError, TimeoutError):
+                await asyncio.wait_for(w.wait_closed(), 1.0)
+
+    async def status(self) -> DeviceStatus:
+        st = self._status
+        if self._cmd is None or st is None:
+            return DeviceStatus(self.name, False, "disconnected")
+        if st.get("emergency_stop") or st.get("protective_stop"):
+            state = "stopped"
+        elif str(st.get("errcode", "0x0")) not in ("0", "0x0"):
+            state = "fault"
+        else:
+            state = "idle" if st.get("inpos", True) else "moving"
+        detail = {k: st.get(k) for k in ("joint_actual_position", "enabled", "powered_on", "inpos", "errcode")}
+        return DeviceStatus(self.name, True, state, detail)
+
+    # ------------------------------------------------------------------ verbs
+
+    async def enable(self) -> None:
+        """Power on and enable the servos; verified with ``get_robot_state``."""
+        await self._call("power_on")
+        await self._call("enable_robot")
+        state = await self._call("get_robot_state")
+        if state.get("enable") not in ("robot_enabled", True, 1):
+            raise DeviceFault(self.name, f"robot not enabled after enable_robot: {state.get('enable')!r}")
+
+    async def disable(self) -> None:
+        """Disable the servos and power off."""
+        await self._call("disable_robot")
+        await self._call("power_off")
+
+    async def move_joints(self, joints_rad: np.ndarray, timeout_s: float | None = None) -> None:
+        """Joint move at ``ArmConfig.joint_speed_deg_s``; returns when the status stream shows it in position."""
+        q = np.asarray(joints_rad, dtype=float)
+        if q.shape != (6,) or not np.all(np.isfinite(q)):
+            raise ValueError(f"joints_rad must be 6 finite angles (rad), got {joints_rad!r}")
+        if np.any(q < self._q_min - 1e-9) or np.any(q > self._q_max + 1e-9):
+            raise OutOfReach(self.name, f"joint target {np.round(np.degrees(q), 3).tolist()} deg outside limits")
+        target_deg = np.degrees(q)
+        await self._start_move(
+            "joint_move", jointPosition=target_deg.tolist(), speed=self._cfg.joint_speed_deg_s,
+            accel=self._net.joint_accel_deg_s2, relFlag=0,
+        )
+        tol = self._net.inpos_tolerance_deg
+
+        def arrived(st: dict) -> bool:
+            actual = six_finite(st.get("joint_actual_position"), "joint_actual_position", self.name)
+            return bool(st.get("inpos")) and float(np.max(np.abs(actual - target_deg))) <= tol
+
+        await self._await_motion(arrived, timeout_s, "joint move")
+
+    async def move_linear(self, T_B_E: np.ndarray, timeout_s: float | None = None) -> None:
+        """Straight-line flange move to ``T_B_E`` (mm) at ``jaka.linear_speed_mm_s``; :class:`OutOfReach` if IK fails."""
+        T = np.asarray(T_B_E, dtype=float)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise ValueError("T_B_E must be a finite 4x4 matrix")
+        xyz, rpy = to_rpy(T)
+        await self._start_move(
+            "moveL", cartPosition=[*xyz.tolist(), *np.degrees(rpy).tolist()], speed=self._net.linear_speed_mm_s,
+            accel=self._net.linear_accel_mm_s2, relFlag=0, tol=0,
+        )
+        tol = self._net.inpos_tolerance_mm
+
+        def arrived(st: dict) -> bool:
+            actual = six_finite(st.get("actual_position"), "actual_position", self.name)
+            return bool(st.get("inpos")) and float(np.linalg.norm(actual[:3] - xyz)) <= tol
+
+        await self._await_motion(arrived, timeout_s, "linear move")
+
+    async def joints(self) -> np.ndarray:
+        """Joint angles (rad) as the controller reports them."""
+        reply = await self._call("get_joint_pos")
+        return np.radians(six_finite(reply.get("joint_pos"), "joint_pos", self.name))
+
+    async def flange_pose(self) -> np.ndarray:
+        """``T_B_E`` (mm) from ``get_tcp_pos`` (x, y, z mm; rx, ry, rz deg, fixed x-y-z)."""
+        pose = six_finite((await self._call("get_tcp_pos")).get("tcp_pos"), "tcp_pos", self.name)
+        return from_rpy(pose[:3], np.radians(pose[3:]))
+
+    async def stop(self) -> None:
+        """Stop the running motion (``stop_program``)."""
+        await self._call("stop_program")
+
+    async def clear_error(self) -> None:
+        await self._call("clear_error")
+
+    # ------------------------------------------------------------------ command port
+
+    async def _open(self, host: str, port: int, timeout: float) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+        try:
+            return await asyncio.wait_for(asyncio.open_connection(host, port), timeout)
+        except TimeoutError as e:
+            await self.close()
+            raise DeviceTimeout(self.name, f"no connection to {host}:{port} within {timeout} s") from e
+        except OSError as e:
+            await self.close()
+            raise NotConnected(self.name, f"cannot connect to {host}:{port}: {e}") from e
+
+    async def _call(self, cmd: str, **params: object) -> dict:
+        """Send one command, return its reply; a reply with a non-zero ``errorCode`` raises."""
+        async with self._lock:
+            if self._cmd is None:
+                raise NotConnected(self.name, f"{cmd}: not connected")
+            reader, writer = self._cmd
+            try:
+                writer.write(encode({"cmdName": cmd, **params}))
+                await asyncio.wait_for(writer.drain(), self._net.reply_timeout_s)
+                reply = await asyncio.wait_for(self._read_reply(reader, cmd), self._net.reply_timeout_s)
+            except TimeoutError as e:
+                await self._drop_command_link()  # a late reply would be taken for the next command's
+                raise DeviceTimeout(self.name, f"{cmd}: no reply within {self._net.reply_timeout_s} s") from e
+            except JsonFramingError as e:
+                await self._drop_command_link()
+                raise DeviceFault(self.name, f"{cmd}: malformed reply: {e}") from e
+            except (ConnectionError, OSError) as e:
+                await self._drop_command_link()
+                raise NotConnected(self.name, f"{cmd}: connection lost: {e}") from e
+            except DeviceError:
+                await self._drop_command_link()
+                raise
+        code = reply.get("errorCode")
+        if code is None:
+            raise DeviceFault(self.name, f"{cmd}: reply without errorCode: {reply!r}")
+        if str(code) != "0":
+            message = f"{cmd}: error {code}: {reply.get('errorMsg', '')}"
+            if str(code) == "2" and cmd in _KINEMATIC_COMMANDS:
+                raise OutOfReach(self.name, message)
+            raise DeviceFault(self.name, message)
+        return reply
+
+    async def _read_reply(self, reader: asyncio.StreamReader, cmd: str) -> dict:
+        while True:
+            while self._cmd_backlog:
+                obj = self._cmd_backlog.pop(0)
+                if obj.get("cmdName") == cmd:
+                    return obj
+                log.warning("%s: ignoring reply to %r while waiting for %r", self.name, obj.get("cmdName"), cmd)
+            data = await reader.read(_READ_CHUNK)
+            if not data:
+                if self._cmd_framer.pending:
+                    raise DeviceFault(self.name, f"{cmd}: connection closed inside a reply (truncated JSON)")
+                raise NotConnected(self.name, f"{cmd}: controller closed the command connection")
+            self._cmd_backlog.extend(self._cmd_framer.feed(data))
+
+    async def _drop_command_link(self) -> None:
+        if self._cmd is not None:
+            writer = self._cmd[1]
+            self._cmd = None
+            writer.close()
+            with contextlib.suppress(OSError, TimeoutError):
+                await asyncio.wait_for(writer.wait_closed(), 1.0)
+
+    # ------------------------------------------------------------------ status stream
+
+    async def _read_status(self, reader: asyncio.StreamReader) -> None:
+        framer = JsonObjectFramer()
+        try:
+            while True:
+                data = await reader.read(_READ_CHUNK)
+                if not data:
+                    raise NotConnected(self.name, "status stream closed by the controller")
+                for obj in framer.feed(data):
+                    self._status = obj
+                    self._status_event.set()
+                    self._status_event = asyncio.Event()
+        except JsonFramingError as e:
+            self._status_error = DeviceFault(self.name, f"malformed status message: {e}")
+        except DeviceError as e:
+            self._status_error = e
+        except (ConnectionError, OSError) as e:
+            self._status_error = NotConnected(self.name, f"status stream lost: {e}")
+        self._status_event.set()
+
+    def _check_safety(self, st: dict) -> None:
+        if st.get("emergency_stop"):
+            raise SafetyStop(self.name, "emergency stop")
+        if st.get("protective_stop"):
+            raise SafetyStop(self.name, "protective stop")
+        if str(st.get("errcode", "0x0")) not in ("0", "0x0"):
+            raise DeviceFault(self.name, f"controller error {st.get('errcode')}: {st.get('errmsg', '')}")
+
+    async def _wait_status(
+        self, done: Callable[[dict], bool], timeout_s: float, what: str, check_safety: bool = True
+    ) -> dict:
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout_s
+        while True:
+            if self._status_error is not None:
+                raise self._status_error
+            event, st = self._status_event, self._status
+            if st is not None:
+                if check_safety:
+                    self._check_safety(st)
+                if done(st):
+                    return st
+            remaining = deadline - loop.time()
+            try:
+                if remaining <= 0:
+                    raise TimeoutError
+                await asyncio.wait_for(event.wait(), remaining)
+            except TimeoutError as e:
+                raise DeviceTimeout(self.name, f"{what} not seen within {timeout_s} s") from e
+
+    async def _start_move(self, cmd: str, **params: object) -> None:
+        """Refuse a move while the last status shows a stop or fault; else send it."""
+        if self._status is not None:
+            self._check_safety(self._status)
+        await self._call(cmd, **params)
+
+    async def _await_motion(self, arrived: Callable[[dict], bool], timeout_s: float | None, what: str) -> None:
+        """Wait for ``arrived`` on the status stream; on any failure try to stop the arm, then re-raise."""
+        timeout = self._cfg.timeout_s if timeout_s is None else timeout_s
+        try:
+            await self._wait_status(arrived, timeout, f"{what} completion")
+        except BaseException:
+            if self._cmd is not None:
+                with contextlib.suppress(DeviceError):
+                    await asyncio.wait_for(self.stop(), self._net.reply_timeout_s)
+            raise
+

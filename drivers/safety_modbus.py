@@ -1,0 +1,174 @@
+"""Cell safety I/O over Modbus TCP (pymodbus): e-stop and light-curtain inputs, target light and beacon coils.
+
+The safety functions themselves stay hard-wired; this driver reports their state. Inputs are polled every
+``SafetyConfig.poll_period_s`` in a background task; listeners hear every change at once. A lost or
+misbehaving link counts as a safety stop: :meth:`ModbusSafetyIO.read` raises :class:`SafetyStop` until the
+link is back (``connect()`` again).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import Callable
+
+from pymodbus.client import AsyncModbusTcpClient
+from pymodbus.exceptions import ModbusException
+from tandemscan.config.models import SafetyConfig
+from tandemscan.drivers.errors import DeviceError, DeviceFault, DeviceTimeout, NotConnected, SafetyStop
+from tandemscan.drivers.interfaces import DeviceStatus, SafetyState
+
+log = logging.getLogger(__name__)
+
+Listener = Callable[[SafetyState], None]
+
+
+class ModbusSafetyIO:
+    """The :class:`~tandemscan.drivers.interfaces.SafetyIO` on a Modbus TCP I/O module (``SafetyConfig.modbus``)."""
+
+    def __init__(self, config: SafetyConfig, name: str = "safety"):
+        self.name = name
+        self._cfg = config
+        self._mb = config.modbus
+        self._client: AsyncModbusTcpClient | None = None
+        self._task: asyncio.Task | None = None
+        self._lock = asyncio.Lock()
+        self._state: SafetyState | None = None
+        self._light = False
+        self._link_error: DeviceError | None = None
+        self._listeners: list[Listener] = []
+
+    def add_listener(self, listener: Listener) -> None:
+        """Call ``listener(state)`` whenever the polled state changes (a lost link reads as e-stop)."""
+        self._listeners.append(listener)
+
+    async def connect(self) -> None:
+        await self.close()
+        client = AsyncModbusTcpClient(self._mb.host, port=self._mb.port, timeout=self._mb.timeout_s, retries=0,
+                                      reconnect_delay=0, trace_connect=self._on_connection_change)
+        try:
+            ok = await asyncio.wait_for(client.connect(), self._mb.timeout_s)
+        except TimeoutError:
+            ok = False
+        if not ok:
+            client.close()
+            raise NotConnected(self.name, f"cannot connect to Modbus {self._mb.host}:{self._mb.port}")
+        self._client, self._link_error = client, None
+        try:
+            await self._poll_once()
+            self._light = (await self._request("read target light", client.read_coils, self._mb.target_light_coil)).bits[0]
+        except DeviceError:
+            await self.close()
+            raise
+        self._task = asyncio.create_task(self._poll_loop(), name=f"{self.name}-poll")
+
+    async def close(self) -> None:
+        task, self._task = self._task, None
+        if task is not None:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        client, self._client = self._client, None
+        if client is not None:
+            client.close()
+        self._state = None
+
+    async def status(self) -> DeviceStatus:
+        if self._client is None:
+            return DeviceStatus(self.name, False, "disconnected")
+        if self._link_error is not None:
+            return DeviceStatus(self.name, True, "fault", {"error": str(self._link_error)})
+        st = self._state
+        state = "idle" if st is not None and st.motion_allowed else "stopped"
+        return DeviceStatus(self.name, True, state, {"state": st})
+
+    async def read(self) -> SafetyState:
+        """The latest polled state; :class:`SafetyStop` while the link is lost."""
+        if self._client is None:
+            raise NotConnected(self.name, "not connected")
+        if self._link_error is not None:
+            raise SafetyStop(self.name, f"safety I/O link lost ({self._link_error.reason})")
+        assert self._state is not None
+        return self._state
+
+    async def set_target_light(self, on: bool) -> None:
+        await self._write_coil("target light", self._mb.target_light_coil, on)
+        self._light = on
+
+    async def set_beacon(self, on: bool) -> None:
+        await self._write_coil("beacon", self._mb.beacon_coil, on)
+
+    # ------------------------------------------------------------------ Modbus side
+
+    async def _write_coil(self, what: str, address: int, on: bool) -> None:
+        client = self._client
+        if client is None:
+            raise NotConnected(self.name, "not connected")
+        await self._request(f"write {what}", client.write_coil, address, bool(on))
+
+    async def _request(self, what: str, call: Callable, address: int, *args: object, **kw: object):
+        """One Modbus request with the configured timeout; an exception response is a :class:`DeviceFault`."""
+        async with self._lock:
+            if self._client is None or not self._client.connected:
+                raise NotConnected(self.name, f"{what}: connection to the I/O module lost")
+            try:
+                rr = await asyncio.wait_for(call(address, *args, device_id=self._mb.device_id, **kw),
+                                            self._mb.timeout_s)
+            except TimeoutError as e:
+                raise DeviceTimeout(self.name, f"{what}: no reply within {self._mb.timeout_s} s") from e
+            except (ModbusException, ConnectionError, OSError) as e:
+                raise NotConnected(self.name, f"{what}: {e}") from e
+        if rr.isError():
+            raise DeviceFault(self.name, f"{what}: exception response {getattr(rr, 'exception_code', rr)}")
+        return rr
+
+    async def _poll_once(self) -> SafetyState:
+        client = self._client
+        if client is None:
+            raise NotConnected(self.name, "not connected")
+        first = min(self._mb.estop_input, self._mb.light_curtain_input)
+        count = max(self._mb.estop_input, self._mb.light_curtain_input) - first + 1
+        rr = await self._request("read inputs", client.read_discrete_inputs, first, count=count)
+        bits = list(rr.bits)
+        if len(bits) < count:
+            raise DeviceFault(self.name, f"read inputs: {len(bits)} bits for {count} requested")
+        estop = bool(bits[self._mb.estop_input - first]) == self._mb.estop_active_high
+        curtain = bool(bits[self._mb.light_curtain_input - first]) == self._mb.light_curtain_active_high
+        state = SafetyState(estop=estop, light_curtain_broken=curtain, target_light_on=self._light)
+        self._publish(state)
+        return state
+
+    def _publish(self, state: SafetyState) -> None:
+        if state != self._state:
+            self._state = state
+            if not state.motion_allowed:
+                log.warning("%s: %s", self.name, state)
+            for listener in self._listeners:
+                listener(state)
+
+    def _lost(self, error: DeviceError) -> None:
+        """The link is gone: remember why and tell listeners to stop motion."""
+        if self._link_error is None:
+            self._link_error = error
+            log.error("%s: link lost, counted as a safety stop: %s", self.name, error)
+            self._publish(SafetyState(estop=True, light_curtain_broken=True, target_light_on=self._light))
+
+    def _on_connection_change(self, connected: bool) -> None:
+        """pymodbus reports a dropped socket here at once, while a request in flight would wait for its timeout."""
+        if not connected and self._client is not None:
+            self._lost(NotConnected(self.name, "connection to the I/O module closed"))
+            if self._task is not None:
+                self._task.cancel()
+
+    async def _poll_loop(self) -> None:
+        loop = asyncio.get_running_loop()
+        next_t = loop.time()
+        while True:
+            try:
+                await self._poll_once()
+            except DeviceError as e:
+                self._lost(e)
+                return
+            next_t += self._cfg.poll_period_s
+            await asyncio.sleep(max(0.0, next_t - loop.time()))

@@ -1,0 +1,431 @@
+"""Hand-eye calibration ``A X = X B`` (Eq. 9-12): the scanner on the tracker target, ``X = T_T_S``.
+
+At arm pose i the tracker reads ``T_C_T[i]`` and a plate scan gives ``T_S_P[i]``. Camera and plate stand
+still, so ``T_C_T[i] X T_S_P[i] = T_C_P`` for every i, and for a pair (i, j)::
+
+    A = inv(T_C_T[j]) T_C_T[i],   B = T_S_P[j] inv(T_S_P[i]),   A X = X B.
+
+Closed-form solvers: ``tsai`` (Tsai-Lenz, modified Rodrigues parameters), ``park`` (Park-Martin, rotation
+logarithms aligned in the least-squares sense), ``daniilidis`` (dual quaternions, rotation and translation at
+once). ``refine`` starts from the closed-form answer with the smallest plate-point spread and minimises the
+distance of every plate point, carried into the tracker frame C through its pose's chain, to that point's
+common position (a bundle over X and the plate points in C). All in mm and radians; residuals also in deg.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from numpy.typing import ArrayLike
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+from tandemscan.pipeline.frames import invert, make_transform
+
+log = logging.getLogger(__name__)
+
+Method = Literal["tsai", "park", "daniilidis", "refine"]
+CLOSED_FORM: tuple[str, ...] = ("tsai", "park", "daniilidis")
+METHODS: tuple[str, ...] = (*CLOSED_FORM, "refine")
+
+#: plate points (frame P, mm) used when the caller gives none: a tetrahedron the size of the plate
+#: 1-sigma (translation mm, rotation rad) per axis of a tracker reading about 3 m away (TrackerConfig defaults)
+DEFAULT_TRACKER_SIGMA = (0.025, float(np.radians(0.0025)))
+DEFAULT_PLATE_POINTS_P = np.array([[-100.0, 0.0, 0.0], [100.0, 0.0, 0.0], [0.0, 100.0, 0.0], [0.0, 0.0, 100.0]])
+
+
+class HandEyeError(ValueError):
+    """Bad or degenerate hand-eye input; the message says what is wrong with the data."""
+
+
+@dataclass(frozen=True)
+class HandEyeResult:
+    """Solution ``T_T_S`` (4x4, mm) of ``A X = X B`` with its residuals and uncertainty.
+
+    - ``pairs``: the (i, j) pose pairs used; ``rot_residuals_deg`` / ``trans_residuals_mm`` per pair:
+      angle and translation of ``inv(A X) X B``'s mismatch.
+    - ``point_residuals_mm``: per pose, RMS distance of its plate points in frame C from their common
+      position (the reprojection error in the world).
+    - ``T_C_P``: the plate in the tracker camera frame implied by the solution.
+    - ``covariance``: 6x6 of ``X`` in its own frame, order (rotation vector rad, translation mm), from the
+      refinement's Jacobian scaled by the residual variance; ``sigma_rot_deg`` / ``sigma_trans_mm`` its
+      1-sigma per axis.
+    """
+
+    T_T_S: np.ndarray
+    method: str
+    pairs: list[tuple[int, int]]
+    rot_residuals_deg: np.ndarray
+    trans_residuals_mm: np.ndarray
+    point_residuals_mm: np.ndarray
+    T_C_P: np.ndarray
+    covariance: np.ndarray
+    rejected_pairs: int
+
+    @property
+    def sigma_rot_deg(self) -> np.ndarray:
+        """1-sigma rotation uncertainty per axis of frame T (deg)."""
+        return np.degrees(np.sqrt(np.clip(np.diag(self.covariance)[:3], 0.0, None)))
+
+    @property
+    def sigma_trans_mm(self) -> np.ndarray:
+        """1-sigma translation uncertainty per axis (mm)."""
+        return np.sqrt(np.clip(np.diag(self.covariance)[3:], 0.0, None))
+
+    @property
+    def point_rms_mm(self) -> float:
+        """RMS of all plate-point residuals in frame C (mm)."""
+        return float(np.sqrt(np.mean(self.point_residuals_mm**2)))
+
+    def summary(self) -> dict[str, float | str | int]:
+        """Plain numbers for reports and JSON."""
+        return {
+            "method": self.method,
+            "pairs": len(self.pairs),
+            "rejected_pairs": self.rejected_pairs,
+            "rot_residual_rms_deg": float(np.sqrt(np.mean(self.rot_residuals_deg**2))),
+            "trans_residual_rms_mm": float(np.sqrt(np.mean(self.trans_residuals_mm**2))),
+            "point_rms_mm": self.point_rms_mm,
+            "sigma_rot_deg": float(np.linalg.norm(self.sigma_rot_deg)),
+            "sigma_trans_mm": float(np.linalg.norm(self.sigma_trans_mm)),
+        }
+
+
+# ---------------------------------------------------------------- input and pairs
+
+
+def _as_poses(poses: ArrayLike, name: str) -> np.ndarray:
+    T = np.asarray(poses, dtype=float)
+    if T.ndim != 3 or T.shape[1:] != (4, 4):
+        raise HandEyeError(f"{name} must be a sequence of 4x4 matrices, got shape {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise HandEyeError(f"{name} contains NaN or inf")
+    R = T[:, :3, :3]
+    err = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2))
+    bad = np.flatnonzero((err > 1e-6) | (np.linalg.det(R) < 0))
+    if len(bad):
+        raise HandEyeError(f"{name}[{int(bad[0])}] is not a rigid transform (rotation not orthonormal)")
+    return T
+
+
+def _relative_motions(
+    T_C_T: np.ndarray, T_S_P: np.ndarray, min_rot_rad: float
+) -> tuple[list[tuple[int, int]], np.ndarray, np.ndarray, int]:
+    """All pose pairs whose tracker-side rotation is at least ``min_rot_rad``: (pairs, A, B, n_rejected)."""
+    pairs, As, Bs = [], [], []
+    rejected = 0
+    for i, j in itertools.combinations(range(len(T_C_T)), 2):
+        A = invert(T_C_T[j]) @ T_C_T[i]
+        B = T_S_P[j] @ invert(T_S_P[i])
+        if np.linalg.norm(Rotation.from_matrix(A[:3, :3]).as_rotvec()) < min_rot_rad:
+            rejected += 1
+            continue
+        pairs.append((i, j))
+        As.append(A)
+        Bs.append(B)
+    return pairs, np.array(As).reshape(-1, 4, 4), np.array(Bs).reshape(-1, 4, 4), rejected
+
+
+def _check_conditioning(A: np.ndarray, min_axis_spread_deg: float) -> None:
+    """Raise when the relative rotations do not span at least two axes."""
+    if len(A) < 2:
+        raise HandEyeError(
+            f"only {len(A)} pose pair(s) rotate enough: move the arm through larger rotations about different axes"
+        )
+    rv = Rotation.from_matrix(A[:, :3, :3]).as_rotvec()
+    ang = np.linalg.norm(rv, axis=1)
+    axes = rv / ang[:, None]
+    M = np.einsum("n,ni,nj->ij", ang, axes, axes) / ang.sum()
+    ev = np.linalg.eigvalsh(M)
+    spread_deg = float(np.degrees(np.arcsin(np.sqrt(max(ev[1], 0.0) / max(ev[2], 1e-300)))))
+    if spread_deg < min_axis_spread_deg:
+        raise HandEyeError(
+            f"degenerate poses: all relative rotations are about one axis (spread {spread_deg:.2f} deg < "
+            f"{min_axis_spread_deg} deg); X is unobservable along it: add rotations about other axes"
+        )
+
+
+# ---------------------------------------------------------------- closed-form solvers
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """(..., 3) -> (..., 3, 3) cross-product matrices."""
+    v = np.asarray(v, dtype=float)
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    S[..., 1, 0], S[..., 2, 0], S[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
+    return S
+
+
+def _translation_ls(A: np.ndarray, B: np.ndarray, R_X: np.ndarray) -> np.ndarray:
+    """Least squares of ``(R_A - I) t_X = R_X t_B - t_A`` (mm)."""
+    M = (A[:, :3, :3] - np.eye(3)).reshape(-1, 3)
+    rhs = (np.einsum("ij,nj->ni", R_X, B[:, :3, 3]) - A[:, :3, 3]).reshape(-1)
+    t, *_ = np.linalg.lstsq(M, rhs, rcond=None)
+    return t
+
+
+def _solve_tsai(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """Tsai-Lenz: ``skew(Pa + Pb) Px' = Pb - Pa`` with ``P = 2 sin(theta/2) axis``, ``Px' = tan(theta/2) axis``."""
+    ra = Rotation.from_matrix(A[:, :3, :3]).as_rotvec()
+    rb = Rotation.from_matrix(B[:, :3, :3]).as_rotvec()
+
+    def mrp(rv: np.ndarray) -> np.ndarray:
+        th = np.linalg.norm(rv, axis=1, keepdims=True)
+        return 2.0 * np.sin(th / 2.0) * rv / np.maximum(th, 1e-300)
+
+    pa, pb = mrp(ra), mrp(rb)
+    px_, *_ = np.linalg.lstsq(_skew(pa + pb).reshape(-1, 3), (pb - pa).reshape(-1), rcond=None)
+    # Px' = tan(theta/2) axis  ->  quaternion (cos, sin axis) proportional to (1, Px')
+    q = np.append(px_, 1.0)
+    R_X = Rotation.from_quat(q / np.linalg.norm(q)).as_matrix()
+    return make_transform(R_X, _translation_ls(A, B, R_X))
+
+
+def _solve_park(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """Park-Martin: ``log R_A = R_X log R_B`` solved as an orthogonal Procrustes problem."""
+    alpha = Rotation.from_matrix(A[:, :3, :3]).as_rotvec()
+    beta = Rotation.from_matrix(B[:, :3, :3]).as_rotvec()
+    H = beta.T @ alpha
+    U, _, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R_X = Vt.T @ D @ U.T
+    return make_transform(R_X, _translation_ls(A, B, R_X))
+
+
+def _dual_quaternion(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(real, dual) quaternions, scalar first, of a stack of 4x4 (real part with scalar >= 0)."""
+    q = Rotation.from_matrix(T[:, :3, :3]).as_quat()[:, [3, 0, 1, 2]]
+    q[q[:, 0] < 0] *= -1
+    t = np.column_stack([np.zeros(len(T)), T[:, :3, 3]])
+    return q, 0.5 * _qmul(t, q)
+
+
+def _qmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Hamilton product of (..., 4) quaternions, scalar first."""
+    p0, pv = p[..., :1], p[..., 1:]
+    q0, qv = q[..., :1], q[..., 1:]
+    return np.concatenate(
+        [p0 * q0 - np.sum(pv * qv, axis=-1, keepdims=True), p0 * qv + q0 * pv + np.cross(pv, qv)], axis=-1
+    )
+
+
+def _solve_daniilidis(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """Daniilidis: dual quaternions ``a q = q b``; the 2-D null space of the stacked 6x8 system, scaled so
+    that ``q`` is a unit quaternion orthogonal to its dual part."""
+    a, ad = _dual_quaternion(A)
+    b, bd = _dual_quaternion(B)
+    n = len(A)
+    S = np.zeros((n, 6, 8))
+    S[:, :3, 0] = a[:, 1:] - b[:, 1:]
+    S[:, :3, 1:4] = _skew(a[:, 1:] + b[:, 1:])
+    S[:, 3:, 0] = ad[:, 1:] - bd[:, 1:]
+    S[:, 3:, 1:4] = _skew(ad[:, 1:] + bd[:, 1:])
+    S[:, 3:, 4] = a[:, 1:] - b[:, 1:]
+    S[:, 3:, 5:8] = _skew(a[:, 1:] + b[:, 1:])
+    _, _, Vt = np.linalg.svd(S.reshape(-1, 8))
+    v1, v2 = Vt[-2], Vt[-1]
+    u1, w1, u2, w2 = v1[:4], v1[4:], v2[:4], v2[4:]
+    # q = l1 u1 + l2 u2 with q . q' = 0: quadratic in s = l1 / l2 (or its inverse when l2 ~ 0)
+    c2, c1, c0 = u1 @ w1, u1 @ w2 + u2 @ w1, u2 @ w2
+    best = None
+    for s in np.roots([c2, c1, c0]) if abs(c2) > 1e-12 else [-c0 / c1]:
+        if abs(np.imag(s)) > 1e-9:
+            continue
+        s = float(np.real(s))
+        norm2 = s * s * (u1 @ u1) + 2 * s * (u1 @ u2) + u2 @ u2
+        if best is None or norm2 > best[0]:
+            best = (norm2, s)
+    if best is None:
+        raise HandEyeError("dual-quaternion solver found no real solution: poses too noisy or degenerate")
+    norm2, s = best
+    l2 = 1.0 / np.sqrt(norm2)
+    l1 = s * l2
+    q = l1 * u1 + l2 * u2
+    qd = l1 * w1 + l2 * w2
+    t = 2.0 * _qmul(qd, q * np.array([1.0, -1.0, -1.0, -1.0]))[1:]
+    R_X = Rotation.from_quat(q[[1, 2, 3, 0]]).as_matrix()
+    return make_transform(R_X, t)
+
+
+_SOLVERS = {"tsai": _solve_tsai, "park": _solve_park, "daniilidis": _solve_daniilidis}
+
+
+# ---------------------------------------------------------------- refinement in the world
+
+
+def _points_C(T_C_T: np.ndarray, X: np.ndarray, pts_S: np.ndarray) -> np.ndarray:
+    """(N, K, 3) plate points carried into frame C through each pose's chain ``T_C_T X``."""
+    M = T_C_T @ X
+    return np.einsum("nij,nkj->nki", M[:, :3, :3], pts_S) + M[:, None, :3, 3]
+
+
+class _Bundle:
+    """Residuals ``T_C_T[i] X p_ik - m_k`` (frame C, mm) with X = X0 exp(dx) and the K points m_k free.
+
+    Each pose's 3K residual vector is whitened by its covariance: the tracker's 6-DoF noise carried to the
+    points (``dq_k = dt + dtheta x (R_C_T u_k)`` in frame C, with ``u_k`` the point in frame T) plus the plate
+    points' own isotropic noise. This is what makes the point refinement better than the pair solvers:
+    tracker translation noise moves the whole point set and must not be read as a rotation of X.
+    """
+
+    def __init__(
+        self, T_C_T: np.ndarray, pts_S: np.ndarray, X0: np.ndarray, cov_C: np.ndarray, plate_sigma_mm: float
+    ) -> None:
+        self.T_C_T, self.pts_S, self.X0 = T_C_T, pts_S, X0
+        self.K = pts_S.shape[1]
+        u = np.einsum("ij,nkj->nki", X0[:3, :3], pts_S) + X0[:3, 3]  # points in frame T
+        lever = np.einsum("nij,nkj->nki", T_C_T[:, :3, :3], u)  # from the target origin, in frame C
+        J = np.zeros((len(T_C_T), self.K, 3, 6))
+        J[..., :3] = np.eye(3)
+        J[..., 3:] = -_skew(lever)
+        J = J.reshape(len(T_C_T), 3 * self.K, 6)
+        cov = J @ cov_C @ np.swapaxes(J, 1, 2) + max(plate_sigma_mm, 1e-6) ** 2 * np.eye(3 * self.K)
+        # whitening W with W^T W = inv(cov): W = inv(L) for cov = L L^T
+        self.W = np.linalg.inv(np.linalg.cholesky(cov))
+
+    def unpack(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        dX = make_transform(Rotation.from_rotvec(x[:3]).as_matrix(), x[3:6])
+        return self.X0 @ dX, x[6:].reshape(self.K, 3)
+
+    def start(self) -> np.ndarray:
+        m0 = _points_C(self.T_C_T, self.X0, self.pts_S).mean(axis=0)
+        return np.concatenate([np.zeros(6), m0.reshape(-1)])
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        X, m = self.unpack(x)
+        r = (_points_C(self.T_C_T, X, self.pts_S) - m[None]).reshape(len(self.T_C_T), -1)
+        return np.einsum("nij,nj->ni", self.W, r).reshape(-1)
+
+    def covariance(self, x: np.ndarray) -> np.ndarray:
+        """6x6 covariance of X's local parameters (rotvec rad, translation mm) at ``x``: s^2 inv(J^T J)."""
+        f0 = self(x)
+        steps = np.r_[np.full(3, 1e-6), np.full(len(x) - 3, 1e-4)]
+        J = np.empty((len(f0), len(x)))
+        for k, h in enumerate(steps):
+            e = np.zeros_like(x)
+            e[k] = h
+            J[:, k] = (self(x + e) - self(x - e)) / (2 * h)
+        s2 = float(f0 @ f0) / max(J.shape[0] - J.shape[1], 1)
+        try:
+            return s2 * np.linalg.inv(J.T @ J)[:6, :6]
+        except np.linalg.LinAlgError:
+            return np.full((6, 6), np.inf)
+
+
+def _refine(bundle: _Bundle) -> np.ndarray:
+    """Least-squares solution vector of the bundle (X local 6-vector, then the K points)."""
+    return least_squares(bundle, bundle.start(), method="lm", x_scale="jac").x
+
+
+# ---------------------------------------------------------------- the public solver
+
+
+def pair_residuals(A: np.ndarray, B: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per pair: (rotation residual deg, translation residual mm) of ``A X`` against ``X B``."""
+    L = A @ X
+    Rr = X @ B
+    D = np.einsum("nji,njk->nik", L[:, :3, :3], Rr[:, :3, :3])
+    ang = np.degrees(np.linalg.norm(Rotation.from_matrix(D).as_rotvec(), axis=1))
+    return ang, np.linalg.norm(L[:, :3, 3] - Rr[:, :3, 3], axis=1)
+
+
+def solve_hand_eye(
+    tracker_poses: ArrayLike,
+    plate_poses: ArrayLike,
+    method: Method = "refine",
+    *,
+    plate_points_P: ArrayLike | None = None,
+    min_pair_rotation_deg: float = 5.0,
+    min_axis_spread_deg: float = 3.0,
+    tracker_covariances: ArrayLike | None = None,
+    tracker_sigma: tuple[float, float] = DEFAULT_TRACKER_SIGMA,
+    plate_sigma_mm: float = 0.005,
+) -> HandEyeResult:
+    """Solve ``A X = X B`` for ``X = T_T_S`` (4x4, mm).
+
+    ``tracker_poses[i]`` is ``T_C_T`` and ``plate_poses[i]`` is ``T_S_P`` at arm pose i (N >= 3).
+    ``plate_points_P`` (K, 3 mm, frame P) are the points the refinement and the point residuals use
+    (for example the sphere centres); default a plate-sized tetrahedron. Pairs whose relative rotation is
+    below ``min_pair_rotation_deg`` are dropped; :class:`HandEyeError` is raised when fewer than two remain
+    or when all rotations share one axis.
+
+    Noise model of the refinement and the covariance: ``tracker_covariances`` (N, 6, 6) of each reading as
+    the tracker driver gives them (``TrackerReading.covariance``: translation mm then rotation vector rad,
+    in the camera frame C); without them ``tracker_sigma`` = (mm, rad) per axis for every reading.
+    ``plate_sigma_mm``: 1-sigma of a plate point from the scan fit.
+    """
+    if method not in METHODS:
+        raise HandEyeError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    T_C_T = _as_poses(tracker_poses, "tracker_poses")
+    T_S_P = _as_poses(plate_poses, "plate_poses")
+    if len(T_C_T) != len(T_S_P):
+        raise HandEyeError(f"{len(T_C_T)} tracker poses but {len(T_S_P)} plate poses")
+    if len(T_C_T) < 3:
+        raise HandEyeError(f"hand-eye calibration needs at least 3 poses, got {len(T_C_T)}")
+    pts_P = DEFAULT_PLATE_POINTS_P if plate_points_P is None else np.asarray(plate_points_P, dtype=float)
+    if pts_P.ndim != 2 or pts_P.shape[1] != 3 or len(pts_P) < 3:
+        raise HandEyeError(f"plate_points_P must be (K >= 3, 3), got {pts_P.shape}")
+    pairs, A, B, rejected = _relative_motions(T_C_T, T_S_P, np.radians(min_pair_rotation_deg))
+    _check_conditioning(A, min_axis_spread_deg)
+    pts_S = np.einsum("nij,kj->nki", T_S_P[:, :3, :3], pts_P) + T_S_P[:, None, :3, 3]
+    if tracker_covariances is None:
+        cov_C = np.broadcast_to(np.diag(np.repeat(np.square(tracker_sigma), 3)), (len(T_C_T), 6, 6))
+    else:
+        cov_C = np.asarray(tracker_covariances, dtype=float)
+        if cov_C.shape != (len(T_C_T), 6, 6):
+            raise HandEyeError(f"tracker_covariances must be ({len(T_C_T)}, 6, 6), got {cov_C.shape}")
+
+    def spread(X: np.ndarray) -> float:
+        p = _points_C(T_C_T, X, pts_S)
+        return float(np.mean(np.sum((p - p.mean(axis=0)) ** 2, axis=2)))
+
+    if method == "refine":
+        starts = {}
+        for name, solver in _SOLVERS.items():
+            try:
+                starts[name] = solver(A, B)
+            except (HandEyeError, np.linalg.LinAlgError) as e:
+                log.info("hand-eye start %s failed: %s", name, e)
+        bundle = _Bundle(T_C_T, pts_S, min(starts.values(), key=spread), cov_C, plate_sigma_mm)
+        x = _refine(bundle)
+    else:
+        bundle = _Bundle(T_C_T, pts_S, _SOLVERS[method](A, B), cov_C, plate_sigma_mm)
+        x = bundle.start()
+    X, m = bundle.unpack(x)
+    cov = bundle.covariance(x)
+    p = _points_C(T_C_T, X, pts_S)
+    point_res = np.sqrt(np.mean(np.sum((p - m[None]) ** 2, axis=2), axis=1))
+    T_C_P = _rigid_fit(pts_P, m)
+    rot_res, trans_res = pair_residuals(A, B, X)
+    log.info(
+        "hand-eye %s: %d pairs (%d dropped), point RMS %.4f mm", method, len(pairs), rejected,
+        float(np.sqrt(np.mean(point_res**2))),
+    )
+    return HandEyeResult(
+        T_T_S=X,
+        method=method,
+        pairs=pairs,
+        rot_residuals_deg=rot_res,
+        trans_residuals_mm=trans_res,
+        point_residuals_mm=point_res,
+        T_C_P=T_C_P,
+        covariance=cov,
+        rejected_pairs=rejected,
+    )
+
+
+def _rigid_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Least-squares rigid transform mapping ``src`` points onto ``dst`` (Kabsch)."""
+    cs, cd = src.mean(axis=0), dst.mean(axis=0)
+    H = (src - cs).T @ (dst - cd)
+    U, _, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return make_transform(R, cd - R @ cs)
+
+
+__all__ = ["METHODS", "HandEyeError", "HandEyeResult", "pair_residuals", "solve_hand_eye"]

@@ -1,0 +1,227 @@
+"""Headless pictures of an inspection: deviation colour maps from standard views and the histogram.
+
+Rendering is done without a display: the CAD mesh is ray cast orthographically with Open3D (grey, lit from
+the viewer), measured points are z-buffered on the same pixel grid and coloured by their deviation, and
+matplotlib (Agg canvas, no pyplot state) adds axes, scale and colour bar. Frame F, millimetres; the view
+directions assume the part convention (length along x, nose towards +x, z up).
+"""
+
+from __future__ import annotations
+
+import io
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.cm import ScalarMappable
+from matplotlib.colors import LinearSegmentedColormap, Normalize
+from matplotlib.figure import Figure
+from scipy.spatial import cKDTree
+from tandemscan.pipeline.inspect import CadSurface, DeviationStats, ToleranceResult
+
+# Blue (below) - cyan - green (on CAD) - yellow - red (above): what GOM and PolyWorks users read at a glance.
+DEVIATION_CMAP = LinearSegmentedColormap.from_list(
+    "deviation", ["#1d3fbf", "#20b7e0", "#2fbf4a", "#f2e02a", "#d7261e"]
+)
+NO_MESH_RGB = np.array([1.0, 1.0, 1.0])
+
+
+@dataclass(frozen=True)
+class View:
+    """An orthographic view: ``forward`` is the viewing direction (from the eye into the scene), frame F."""
+
+    name: str
+    forward: tuple[float, float, float]
+    up: tuple[float, float, float] = (0.0, 0.0, 1.0)
+
+
+STANDARD_VIEWS = {  # keys as in InspectionConfig.views
+    "isometric": View("isometric", (-1.0, 1.0, -0.8)),
+    "front": View("front (from +x)", (-1.0, 0.0, 0.0)),
+    "left": View("left (from -y)", (0.0, 1.0, 0.0)),
+    "right": View("right (from +y)", (0.0, -1.0, 0.0)),
+    "top": View("top (from +z)", (0.0, 0.0, -1.0), up=(0.0, 1.0, 0.0)),
+    "back": View("back (from -x)", (1.0, 0.0, 0.0)),
+}
+
+
+def facing_isometric(normals: np.ndarray, name: str = "isometric") -> View:
+    """An isometric view from above, on the side the measured surface mostly faces (mean of ``normals``,
+    horizontal part); the standard isometric when the normals cancel out."""
+    h = np.asarray(normals, float).mean(axis=0) if len(normals) else np.zeros(3)
+    h[2] = 0.0
+    if np.linalg.norm(h) < 0.1:
+        return STANDARD_VIEWS["isometric"]
+    h /= np.linalg.norm(h)
+    return View(name, tuple(-(h + [0.0, 0.0, 0.8 / np.sqrt(2)])))
+
+
+def png_bytes(fig: Figure) -> bytes:
+    """The figure as PNG bytes (Agg canvas)."""
+    buf = io.BytesIO()
+    FigureCanvasAgg(fig).print_png(buf)
+    return buf.getvalue()
+
+
+def _camera(view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    f = np.asarray(view.forward, float)
+    f /= np.linalg.norm(f)
+    r = np.cross(f, np.asarray(view.up, float))
+    r /= np.linalg.norm(r)
+    return f, r, np.cross(r, f)
+
+
+@dataclass(frozen=True)
+class Rendering:
+    """An RGB image (rows top-down, float 0-1) and its extent on the view plane, mm (left, right, bottom, top)."""
+
+    rgb: np.ndarray
+    extent_mm: tuple[float, float, float, float]
+    coloured_px: int
+
+
+def render_view(
+    surface: CadSurface,
+    points_mm: np.ndarray,
+    values: np.ndarray,
+    view: View,
+    norm: Normalize,
+    width_px: int = 900,
+    cmap=DEVIATION_CMAP,
+    depth_margin_mm: float | None = None,
+    normals: np.ndarray | None = None,
+) -> Rendering:
+    """Ray-cast the CAD mesh along ``view`` and paint the visible points coloured by ``values``.
+
+    A point is visible when it lies no more than ``depth_margin_mm`` (default: three pixels plus the colour
+    range) behind the first CAD surface on its pixel; among visible points the nearest wins each pixel, and
+    points are splatted over as many pixels as their typical spacing needs, so gaps in the data stay grey.
+    With ``normals`` (outward, e.g. of the closest CAD triangle) points on faces turned away are not drawn.
+    """
+    f, r, u = _camera(view)
+    corners = np.asarray(surface.mesh.get_axis_aligned_bounding_box().get_box_points())
+    sx, sy = corners @ r, corners @ u
+    pad = 0.04 * max(np.ptp(sx), np.ptp(sy))
+    x0, x1, y0, y1 = sx.min() - pad, sx.max() + pad, sy.min() - pad, sy.max() + pad
+    px = (x1 - x0) / width_px
+    height_px = max(1, int(np.ceil((y1 - y0) / px)))
+    depth0 = float((corners @ f).min()) - 10.0
+    cols, rows = np.meshgrid(np.arange(width_px), np.arange(height_px))
+    gx, gy = x0 + (cols + 0.5) * px, y1 - (rows + 0.5) * px
+    origins = gx[..., None] * r + gy[..., None] * u + depth0 * f - surface.origin_mm
+    rays = np.concatenate([origins, np.broadcast_to(f, origins.shape)], axis=-1).astype(np.float32)
+    hit = surface.scene.cast_rays(o3d.core.Tensor(rays))
+    t_hit = hit["t_hit"].numpy().astype(np.float64)
+    n = hit["primitive_normals"].numpy()
+    shade = 0.35 + 0.55 * np.abs(n @ f)
+    rgb = np.where(np.isfinite(t_hit)[..., None], shade[..., None] * [0.82, 0.82, 0.85], NO_MESH_RGB)
+
+    p = np.asarray(points_mm, float)
+    values = np.asarray(values, float)
+    if normals is not None:
+        front = np.asarray(normals, float) @ f < 0.0
+        p, values = p[front], values[front]
+    c = np.floor((p @ r - x0) / px).astype(np.int64)
+    rr = np.floor((y1 - p @ u) / px).astype(np.int64)
+    depth = p @ f - depth0
+    spacing = _typical_spacing(p)
+    splat = int(min(6, max(1, np.ceil(1.5 * spacing / px))))
+    margin = depth_margin_mm if depth_margin_mm is not None else 3 * px + 2.0 * max(abs(norm.vmin), abs(norm.vmax))
+    colours = cmap(norm(values))[:, :3]
+    pixel_all, depth_all, idx_all = [], [], []
+    for dr in range(splat):
+        for dc in range(splat):
+            cc, r2 = c + dc - splat // 2, rr + dr - splat // 2
+            ok = (cc >= 0) & (cc < width_px) & (r2 >= 0) & (r2 < height_px)
+            ok[ok] &= depth[ok] <= t_hit[r2[ok], cc[ok]] + margin
+            pixel_all.append(r2[ok] * width_px + cc[ok])
+            depth_all.append(depth[ok])
+            idx_all.append(np.nonzero(ok)[0])
+    pix, dep, idx = np.concatenate(pixel_all), np.concatenate(depth_all), np.concatenate(idx_all)
+    order = np.lexsort((dep, pix))
+    first = np.unique(pix[order], return_index=True)[1]
+    win_pix, win_idx = pix[order][first], idx[order][first]
+    flat = rgb.reshape(-1, 3)
+    flat[win_pix] = colours[win_idx]
+    return Rendering(flat.reshape(height_px, width_px, 3), (x0, x1, y0, y1), len(win_pix))
+
+
+def _typical_spacing(points_mm: np.ndarray, sample: int = 2000) -> float:
+    """Median nearest-neighbour distance of the cloud, mm (on a subsample of the queries)."""
+    if len(points_mm) < 2:
+        return 0.0
+    step = max(1, len(points_mm) // sample)
+    d, _ = cKDTree(points_mm).query(points_mm[::step], k=2)
+    return float(np.median(d[:, 1]))
+
+
+def _axis_label(direction: np.ndarray) -> tuple[str, float]:
+    """(label, sign) of an image axis: the part axis it runs along when it is one, so ticks read as part
+    coordinates (mm, frame F); else a view-plane axis."""
+    k = int(np.argmax(np.abs(direction)))
+    if abs(direction[k]) > 1 - 1e-9:
+        return f"{'xyz'[k]}, mm", float(np.sign(direction[k]))
+    return "view plane, mm", 1.0
+
+
+def deviation_norm(lower_mm: float, upper_mm: float, limit_mm: float | None = None) -> Normalize:
+    """Symmetric colour scale: +/- ``limit_mm``, default three times the wider tolerance."""
+    lim = limit_mm or 3.0 * max(abs(lower_mm), abs(upper_mm), 1e-6)
+    return Normalize(-lim, lim, clip=True)
+
+
+def deviation_map_png(
+    surface: CadSurface,
+    points_mm: np.ndarray,
+    deviations_mm: np.ndarray,
+    view: View,
+    tolerance: ToleranceResult,
+    norm: Normalize,
+    width_px: int = 900,
+    title: str | None = None,
+    normals: np.ndarray | None = None,
+) -> bytes:
+    """One deviation colour map as PNG: the view, mm axes on the view plane, a colour bar with the band."""
+    img = render_view(surface, points_mm, deviations_mm, view, norm, width_px, normals=normals)
+    h, w = img.rgb.shape[:2]
+    fig = Figure(figsize=(8.0, max(3.0, 8.0 * h / w * 0.92)), dpi=110, layout="constrained")
+    ax = fig.add_subplot()
+    _, r, u = _camera(view)
+    (xl, x_sign), (yl, y_sign) = _axis_label(r), _axis_label(u)
+    x0, x1, y0, y1 = img.extent_mm
+    ax.imshow(img.rgb, extent=(x_sign * x0, x_sign * x1, y_sign * y0, y_sign * y1), interpolation="nearest")
+    ax.set_title(title or f"Deviation from CAD, {view.name}")
+    ax.set_xlabel(xl)
+    ax.set_ylabel(yl)
+    bar = fig.colorbar(ScalarMappable(norm, DEVIATION_CMAP), ax=ax, shrink=0.85, label="deviation, mm")
+    for v in (tolerance.lower_mm, tolerance.upper_mm):
+        bar.ax.axhline(v, color="black", lw=1.2)
+    return png_bytes(fig)
+
+
+def histogram_png(
+    deviations_mm: np.ndarray, stats: DeviationStats, tolerance: ToleranceResult, norm: Normalize
+) -> bytes:
+    """Histogram of deviations (percent of points per bin) with the tolerance band and the shares in/out."""
+    d = np.asarray(deviations_mm, float)
+    lo = min(float(np.percentile(d, 0.1)), 1.5 * tolerance.lower_mm)
+    hi = max(float(np.percentile(d, 99.9)), 1.5 * tolerance.upper_mm)
+    counts, edges = np.histogram(np.clip(d, lo, hi), bins=80, range=(lo, hi))
+    centres = 0.5 * (edges[:-1] + edges[1:])
+    fig = Figure(figsize=(8.0, 4.2), dpi=110, layout="constrained")
+    ax = fig.add_subplot()
+    ax.axvspan(tolerance.lower_mm, tolerance.upper_mm, color="#2fbf4a", alpha=0.12, label="tolerance band")
+    ax.bar(centres, 100.0 * counts / d.size, width=np.diff(edges), color=DEVIATION_CMAP(norm(centres)),
+           edgecolor="none")
+    for v in (tolerance.lower_mm, tolerance.upper_mm):
+        ax.axvline(v, color="black", lw=1.0, ls="--")
+    ax.axvline(stats.mean_mm, color="#444444", lw=1.0, label=f"mean {stats.mean_mm:+.4f} mm")
+    ax.set_xlabel("deviation from CAD, mm (+ = material above the surface)")
+    ax.set_ylabel("points, %")
+    ax.set_title(
+        f"{tolerance.in_pct:.2f} % in [{tolerance.lower_mm:+.3f}, {tolerance.upper_mm:+.3f}] mm, "
+        f"{tolerance.above_pct:.2f} % above, {tolerance.below_pct:.2f} % below"
+    )
+    ax.legend(loc="upper right", fontsize=8)
+    return png_bytes(fig)

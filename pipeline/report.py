@@ -1,0 +1,162 @@
+"""The inspection report: figures and numbers of an :class:`InspectionResult`, written as a self-contained
+``report.html`` (images embedded as data URIs, jinja2 template shipped with the package) and a
+``report.json`` with the same figures (numbers, plus the PNGs under ``figures/``). Millimetres, degrees.
+"""
+
+from __future__ import annotations
+
+import base64
+import dataclasses
+import datetime as dt
+import json
+import logging
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import jinja2
+import numpy as np
+from tandemscan.config.models import InspectionConfig
+from tandemscan.pipeline.deviation_maps import (
+    STANDARD_VIEWS,
+    View,
+    deviation_map_png,
+    deviation_norm,
+    facing_isometric,
+    histogram_png,
+)
+from tandemscan.pipeline.inspect import CadSurface, InspectionResult
+from tandemscan.pipeline.stitch_quality import overlap_quality, stitching_png
+
+log = logging.getLogger(__name__)
+
+TEMPLATE = "report.html.j2"
+
+
+@dataclass(frozen=True)
+class ReportFigure:
+    """One picture of the report: a file-safe name, a caption and the PNG bytes."""
+
+    name: str
+    caption: str
+    png: bytes = field(repr=False)
+
+    def data_uri(self) -> str:
+        """The PNG as a ``data:`` URI for embedding."""
+        return "data:image/png;base64," + base64.b64encode(self.png).decode("ascii")
+
+
+@dataclass(frozen=True)
+class Report:
+    """Everything that goes into report.html and report.json."""
+
+    data: dict
+    figures: tuple[ReportFigure, ...]
+
+
+def _plain(obj):
+    """Dataclasses and numpy values as JSON-ready Python values."""
+    if dataclasses.is_dataclass(obj):
+        return {f.name: _plain(getattr(obj, f.name)) for f in dataclasses.fields(obj) if f.repr}
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, Mapping):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_plain(v) for v in obj]
+    return obj
+
+
+def inspection_summary(result: InspectionResult) -> dict:
+    """The numbers of an inspection as JSON-ready dicts (as measured, per region, best fit), mm / deg."""
+    return {
+        "as_measured": {"stats": _plain(result.stats), "tolerance": _plain(result.tolerance)},
+        "regions": [_plain(r) for r in result.regions],
+        "best_fit": _plain(result.best_fit),
+    }
+
+
+def build_report(
+    result: InspectionResult,
+    surface: CadSurface,
+    cfg: InspectionConfig | None = None,
+    *,
+    title: str = "Inspection report",
+    meta: Mapping[str, str] | None = None,
+    accuracy: Mapping[str, float | int | str] | None = None,
+    scans_before: Sequence[np.ndarray] | None = None,
+    scans_after: Sequence[np.ndarray] | None = None,
+    views: Sequence[View] | None = None,
+) -> Report:
+    """Render the figures and collect the numbers of one inspection.
+
+    ``meta`` names the job, cloud and CAD files; ``accuracy`` carries figures computed elsewhere (pose
+    errors against ground truth, calibration residuals). ``scans_before``/``scans_after`` are the world
+    points (mm) of each scan in measuring order before/after correction, for the stitching-quality view.
+    ``views`` default to the config's.
+    """
+    cfg = cfg or InspectionConfig()
+    tol = result.tolerance
+    norm = deviation_norm(tol.lower_mm, tol.upper_mm, cfg.colour_limit_mm)
+    every = max(1, int(np.ceil(len(result.points_mm) / cfg.map_max_points)))  # pictures only; numbers use all
+    p, d, n = result.points_mm[::every], result.deviations_mm[::every], result.cad_normals[::every]
+    if views is None:  # the isometric view looks at the side that was measured
+        views = [facing_isometric(n) if k == "isometric" else STANDARD_VIEWS[k] for k in cfg.views]
+    figures = []
+    for i, view in enumerate(views):
+        png = deviation_map_png(surface, p, d, view, tol, norm, cfg.map_width_px, normals=n)
+        figures.append(ReportFigure(f"map-{i}", f"Deviation colour map, {view.name}", png))
+    for sign, label, keep in ((1, "upper", d > 0), (-1, "lower", d < 0)):
+        if keep.any() and views:
+            title_ = f"{label.capitalize()} deviation (points {'above' if sign > 0 else 'below'} CAD), {views[0].name}"
+            png = deviation_map_png(surface, p[keep], d[keep], views[0], tol, norm, cfg.map_width_px, title_, n[keep])
+            figures.append(ReportFigure(f"{label}-deviation", title_, png))
+    hist = histogram_png(result.deviations_mm, result.stats, tol, norm)
+    figures.append(ReportFigure("histogram", "Deviation histogram with the tolerance band (the outer bins collect the 0.1 % tails)", hist))
+    pairs = []
+    if scans_before is not None:
+        pairs = overlap_quality(scans_before, scans_after)
+        png = stitching_png(scans_before, scans_after, pairs)
+        if png is not None:
+            figures.append(ReportFigure("stitching", "Overlap of neighbouring scans before and after correction", png))
+    data = {
+        "title": title,
+        "created_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "units": {"length": "mm", "angle": "deg", "deviation_sign": "+ = above the CAD surface (outward normal)"},
+        "meta": dict(meta or {}),
+        "colour_scale_mm": [norm.vmin, norm.vmax],
+        **inspection_summary(result),
+        "accuracy": _plain(dict(accuracy or {})),
+        "stitching": [_plain(pr) for pr in pairs],
+        "figures": [{"name": f.name, "caption": f.caption, "file": f"figures/{f.name}.png"} for f in figures],
+    }
+    return Report(data, tuple(figures))
+
+
+def render_html(report: Report) -> str:
+    """The report as one self-contained HTML page."""
+    source = resources.files("tandemscan.pipeline").joinpath("templates", TEMPLATE).read_text(encoding="utf-8")
+    env = jinja2.Environment(autoescape=True, undefined=jinja2.StrictUndefined, trim_blocks=True, lstrip_blocks=True)
+    return env.from_string(source).render(r=report.data, figures=report.figures)
+
+
+def write_report(
+    report: Report, out_dir: Path | str, json_name: str | None = "report.json"
+) -> tuple[Path, Path | None]:
+    """Write ``report.html``, ``figures/*.png`` and (unless ``json_name`` is None, for a caller that merges
+    ``report.data`` into its own JSON) the JSON into ``out_dir``; returns (html, json or None)."""
+    out = Path(out_dir)
+    (out / "figures").mkdir(parents=True, exist_ok=True)
+    for f in report.figures:
+        (out / "figures" / f"{f.name}.png").write_bytes(f.png)
+    html = out / "report.html"
+    html.write_text(render_html(report), encoding="utf-8")
+    js = None
+    if json_name is not None:
+        js = out / json_name
+        js.write_text(json.dumps(report.data, indent=2) + "\n", encoding="utf-8")
+    log.info("wrote %s%s", html, f" and {js}" if js else "")
+    return html, js

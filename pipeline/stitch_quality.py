@@ -1,0 +1,154 @@
+"""Stitching quality: how well neighbouring scans lie on each other before and after correction.
+
+For each pair of consecutive scans (world frame, mm) the overlap is the points of the later scan whose
+nearest neighbour in the earlier one is closer than ``overlap_mm``; their distance to the earlier scan's
+local plane (PCA of its k nearest points) measures the layering that a stitching error leaves. The picture
+is the paper's cross-section view: a thin slice across the seam of the pair with the most overlap, each
+scan's profile drawn relative to a quadratic fitted through the corrected points, before and after.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from matplotlib.figure import Figure
+from scipy.spatial import cKDTree
+from tandemscan.pipeline.deviation_maps import png_bytes
+
+
+@dataclass(frozen=True)
+class PairOverlap:
+    """Overlap of scan ``j`` onto scan ``i``: point count and RMS point-to-plane distance (mm)."""
+
+    i: int
+    j: int
+    points: int
+    rms_before_mm: float
+    rms_after_mm: float | None
+
+
+def _plane_distances(points: np.ndarray, reference: np.ndarray, tree: cKDTree, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """(nearest-neighbour distance, point-to-local-plane distance) of ``points`` to ``reference``."""
+    nn, idx = tree.query(points, k=max(3, min(k, len(reference))))
+    nb = reference[idx]  # (N, k, 3)
+    centre = nb.mean(axis=1)
+    centred = nb - centre[:, None]
+    _, vecs = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred))
+    return nn[:, 0], np.abs(np.einsum("ni,ni->n", points - centre, vecs[:, :, 0]))
+
+
+def overlap_quality(
+    scans_before: Sequence[np.ndarray],
+    scans_after: Sequence[np.ndarray] | None = None,
+    overlap_mm: float = 2.0,
+    k: int = 10,
+    max_points: int = 20_000,
+) -> list[PairOverlap]:
+    """Per consecutive pair (i, i+1): overlap size and RMS point-to-plane distance, before and after.
+
+    ``scans_after`` holds the same scans (same order and point order) after correction. The overlap is
+    chosen on the corrected scans when given, so both columns compare the same points.
+    """
+    if scans_after is not None and len(scans_after) != len(scans_before):
+        raise ValueError(f"{len(scans_before)} scans before correction but {len(scans_after)} after")
+    pairs = []
+    for i in range(len(scans_before) - 1):
+        select = scans_after if scans_after is not None else scans_before
+        a, b = np.asarray(select[i], float), np.asarray(select[i + 1], float)
+        if len(a) < 3 or len(b) == 0:
+            continue
+        b_idx = np.arange(len(b))[:: max(1, len(b) // max_points)]
+        tree_a = cKDTree(a)
+        nn, dist = _plane_distances(b[b_idx], a, tree_a, k)
+        inside = nn < overlap_mm
+        if not inside.any():
+            continue
+        rms_after = None
+        if scans_after is not None:
+            rms_after = float(np.sqrt(np.mean(dist[inside] ** 2)))
+            a0, b0 = np.asarray(scans_before[i], float), np.asarray(scans_before[i + 1], float)
+            _, dist0 = _plane_distances(b0[b_idx][inside], a0, cKDTree(a0), k)
+            rms_before = float(np.sqrt(np.mean(dist0**2)))
+        else:
+            rms_before = float(np.sqrt(np.mean(dist[inside] ** 2)))
+        pairs.append(PairOverlap(i, i + 1, int(inside.sum()), rms_before, rms_after))
+    return pairs
+
+
+def _section(a: np.ndarray, b: np.ndarray, overlap_mm: float):
+    """Frame of a slice across the seam of scans a and b: (centre, along-seam-normal u, surface normal n,
+    slice normal w), or None when they do not overlap."""
+    nn, _ = cKDTree(a).query(b)
+    ov = b[nn < overlap_mm]
+    if len(ov) < 10:
+        return None
+    c = ov.mean(axis=0)
+    _, vecs = np.linalg.eigh(np.cov((ov - c).T))
+    n = vecs[:, 0]
+    u = b.mean(axis=0) - a.mean(axis=0)
+    u -= (u @ n) * n
+    if np.linalg.norm(u) < 1e-9:
+        u = vecs[:, 2]
+    u /= np.linalg.norm(u)
+    return c, u, n, np.cross(u, n)
+
+
+def stitching_png(
+    scans_before: Sequence[np.ndarray],
+    scans_after: Sequence[np.ndarray] | None,
+    pairs: Sequence[PairOverlap],
+    overlap_mm: float = 2.0,
+    slab_mm: float = 1.5,
+) -> bytes | None:
+    """Bar chart of per-pair overlap RMS (before/after) and a cross-section of the pair with the most overlap.
+
+    None when no pair overlaps.
+    """
+    if not pairs:
+        return None
+    best = max(pairs, key=lambda p: p.points)
+    final = scans_after if scans_after is not None else scans_before
+    frame = _section(np.asarray(final[best.i], float), np.asarray(final[best.j], float), overlap_mm)
+    fig = Figure(figsize=(9.0, 6.5), dpi=110, layout="constrained")
+    grid = fig.add_gridspec(2, 2, height_ratios=[1.0, 1.2])
+    bar = fig.add_subplot(grid[0, :])
+    axes = [fig.add_subplot(grid[1, 0]), fig.add_subplot(grid[1, 1])]
+    x = np.arange(len(pairs))
+    bar.bar(x - 0.2, [p.rms_before_mm * 1000 for p in pairs], 0.4, label="before correction", color="#d7261e")
+    if scans_after is not None:
+        bar.bar(x + 0.2, [p.rms_after_mm * 1000 for p in pairs], 0.4, label="after correction", color="#2fbf4a")
+    bar.set_xticks(x, [f"{p.i}-{p.j}" for p in pairs], fontsize=7, rotation=90 if len(pairs) > 20 else 0)
+    bar.set_ylabel("overlap RMS, um")
+    bar.set_xlabel("neighbouring scans")
+    bar.set_title("Distance between neighbouring scans in their overlap")
+    bar.legend(fontsize=8)
+    if frame is None:
+        for ax in axes:
+            ax.set_axis_off()
+        return png_bytes(fig)
+    c, u, n, w = frame
+
+    def section(scans, idx):
+        p = np.asarray(scans[idx], float) - c
+        sl = p[np.abs(p @ w) < slab_mm]
+        return sl @ u, sl @ n
+
+    ref = [section(final, best.i), section(final, best.j)]
+    s_all, h_all = np.concatenate([s for s, _ in ref]), np.concatenate([h for _, h in ref])
+    fit = np.polyfit(s_all, h_all, 2) if len(s_all) > 3 else np.zeros(3)  # through the corrected points
+    panels = [("before correction", scans_before)]
+    if scans_after is not None:
+        panels.append(("after correction", scans_after))
+    for ax, (label, scans) in zip(axes, panels, strict=False):
+        curves = [(idx, colour, *section(scans, idx)) for idx, colour in ((best.i, "#1d3fbf"), (best.j, "#d7261e"))]
+        for idx, colour, s, h in curves:
+            ax.scatter(s, (h - np.polyval(fit, s)) * 1000, s=2, color=colour, label=f"scan {idx}")
+        ax.set_title(f"section across seam {best.i}-{best.j}, {label}", fontsize=9)
+        ax.set_xlabel("along the section, mm")
+        ax.set_ylabel("height about the fit, um")
+        ax.legend(fontsize=7, markerscale=4)
+    if scans_after is None:
+        axes[1].set_axis_off()
+    return png_bytes(fig)

@@ -1,0 +1,74 @@
+"""A small asyncio TCP server that tracks its client connections, so an emulator can drop them on demand
+(fault injection) and shut down without leaving tasks behind."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import Awaitable, Callable
+
+log = logging.getLogger(__name__)
+
+Handler = Callable[[asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]]
+
+
+class TcpService:
+    """One listening socket; ``handler(reader, writer)`` runs per client. ``port`` is known after ``start``."""
+
+    def __init__(self, handler: Handler, host: str = "127.0.0.1", port: int = 0, exclusive: bool = False):
+        """``exclusive``: a new client replaces the previous one (JAKA's command port allows one client)."""
+        self._handler = handler
+        self.host = host
+        self.port = port
+        self._exclusive = exclusive
+        self._server: asyncio.Server | None = None
+        # serving task -> (handler task, writer); the handler runs in its own task so that dropping a client
+        # cancels the handler while the serving task that asyncio.start_server watches ends normally
+        self._clients: dict[asyncio.Task, tuple[asyncio.Task, asyncio.StreamWriter]] = {}
+
+    async def start(self) -> int:
+        self._server = await asyncio.start_server(self._serve, self.host, self.port)
+        self.port = self._server.sockets[0].getsockname()[1]
+        return self.port
+
+    @property
+    def client_count(self) -> int:
+        return len(self._clients)
+
+    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        task = asyncio.current_task()
+        assert task is not None
+        if self._exclusive:
+            await self.drop_clients()
+        handler = asyncio.create_task(self._handler(reader, writer))
+        self._clients[task] = (handler, writer)
+        try:
+            await handler
+        except asyncio.CancelledError:
+            if not handler.cancelled():
+                raise
+        except (ConnectionError, OSError) as e:
+            log.debug("client on port %d went away: %s", self.port, e)
+        finally:
+            self._clients.pop(task, None)
+            writer.close()
+            with contextlib.suppress(OSError, ConnectionError):
+                await writer.wait_closed()
+
+    async def drop_clients(self) -> None:
+        """Close every client connection at once (a disconnect fault) and wait for their handlers to end."""
+        serving = list(self._clients.items())
+        for _, (handler, writer) in serving:
+            writer.close()
+            handler.cancel()
+        for task, _ in serving:
+            with contextlib.suppress(ConnectionError, OSError):
+                await task
+
+    async def stop(self) -> None:
+        if self._server is not None:
+            self._server.close()
+            await self.drop_clients()
+            await self._server.wait_closed()
+            self._server = None

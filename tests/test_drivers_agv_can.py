@@ -1,0 +1,180 @@
+"""Hardware-in-the-loop: the CAN chassis driver against the chassis emulator on a python-can virtual bus."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+import uuid
+
+import numpy as np
+import pytest
+from tandemscan.config.models import ChassisCanConfig, ChassisConfig
+from tandemscan.drivers import Chassis, ChassisPose, DeviceFault, DeviceTimeout, NotConnected, SafetyStop
+from tandemscan.drivers.agv_can import AgvCanChassis
+from tandemscan.drivers.can_link import load_dbc
+from tandemscan.sim_drivers.emulators.agv_can import ChassisEmulator
+
+
+def chassis_config(channel: str, **can_kw) -> ChassisConfig:
+    return ChassisConfig(can=ChassisCanConfig(interface="virtual", channel=channel, **can_kw), timeout_s=10.0)
+
+
+@pytest.fixture
+async def emulator():
+    channel = f"agv-{uuid.uuid4().hex[:8]}"
+    emu = ChassisEmulator(chassis_config(channel), channel, time_scale=0.1, seed=3)
+    await emu.start()
+    yield emu
+    await emu.stop()
+
+
+@pytest.fixture
+async def chassis(emulator):
+    drv = AgvCanChassis(chassis_config(emulator._link.channel), name="measure_chassis")
+    await drv.connect()
+    yield drv
+    await drv.close()
+
+
+def test_dbc_is_big_endian_agilex_v2_layout():
+    db = load_dbc()
+    cmd = db.get_message_by_frame_id(0x111)
+    data = cmd.encode({"LinearVelocity": -300, "AngularVelocity": 0.5, "LateralVelocity": 0, "SteeringAngle": 0})
+    assert data == bytes.fromhex("fed401f400000000")
+    assert db.get_message_by_frame_id(0x421).name == "ControlModeSet"
+    odo = db.get_message_by_frame_id(0x311).decode(bytes.fromhex("0000 1000 ffff fff0"))
+    assert odo == {"LeftWheelOdometry": 4096, "RightWheelOdometry": -16}
+
+
+async def test_connect_enters_can_mode_and_heartbeat_runs(emulator, chassis):
+    assert isinstance(chassis, Chassis)
+    assert emulator.mode == 1
+    before = emulator.commands_received
+    await asyncio.sleep(0.2)
+    assert emulator.commands_received - before >= 6  # 20 ms period: ~10 expected, loaded CI allowed for
+    assert not emulator.watchdog_tripped
+    assert (await chassis.status()).state == "idle"
+
+
+async def test_move_to_pose_closed_loop_on_odometry(emulator, chassis):
+    target = ChassisPose(400.0, -150.0, math.radians(30.0))
+    pose = await chassis.move_to(target)
+    assert math.hypot(pose.x_mm - target.x_mm, pose.y_mm - target.y_mm) <= 5.0
+    assert abs(pose.heading_rad - target.heading_rad) <= math.radians(0.5)
+    assert await chassis.odometry() == pose
+    # the body slipped: the truth is near the target but not on it
+    truth = emulator.true_pose
+    err = math.hypot(truth.x_mm - target.x_mm, truth.y_mm - target.y_mm)
+    assert 0.0 < err < 40.0
+    await asyncio.sleep(0.1)
+    assert emulator.velocity == (0.0, 0.0)
+    back = await chassis.move_to(ChassisPose(0.0, 0.0, 0.0))  # behind the chassis: it reverses
+    assert math.hypot(back.x_mm, back.y_mm) <= 5.0
+
+
+async def test_estop_during_move_zeroes_velocity_and_raises(emulator, chassis):
+    move = asyncio.create_task(chassis.move_to(ChassisPose(3000.0, 0.0, 0.0)))
+    await asyncio.sleep(0.15)
+    assert emulator.velocity[0] > 0
+    emulator.faults.estop = True
+    t0 = time.monotonic()
+    with pytest.raises(SafetyStop, match="measure_chassis.*emergency stop"):
+        await move
+    assert time.monotonic() - t0 < 0.5
+    assert chassis._setpoint == (0.0, 0.0)
+    await asyncio.sleep(0.06)
+    assert emulator.command == (0.0, 0.0)
+    with pytest.raises(SafetyStop):  # a standing e-stop refuses the next move
+        await chassis.move_to(ChassisPose(100.0, 0.0, 0.0))
+    emulator.faults.estop = False
+    await chassis.move_to(ChassisPose(100.0, 0.0, 0.0))
+
+
+async def test_stop_aborts_a_move_at_once(emulator, chassis):
+    move = asyncio.create_task(chassis.move_to(ChassisPose(3000.0, 0.0, 0.0)))
+    await asyncio.sleep(0.15)
+    await chassis.stop()
+    with pytest.raises(SafetyStop, match="stop requested"):
+        await move
+    await asyncio.sleep(0.05)
+    assert emulator.command == (0.0, 0.0)
+
+
+@pytest.mark.parametrize(
+    ("fault", "value", "match"),
+    [
+        ("error_code", 0x0100, "0x0100: motor driver"),
+        ("driver_state", 0x02, "motor 1 driver: motor overheat"),
+        ("rc_override", True, "left CAN mode"),
+        ("bad_dlc_next", True, "DLC 3, expected 8"),
+    ],
+)
+async def test_chassis_faults_become_typed_errors(emulator, chassis, fault, value, match):
+    move = asyncio.create_task(chassis.move_to(ChassisPose(3000.0, 0.0, 0.0)))
+    await asyncio.sleep(0.1)
+    setattr(emulator.faults, fault, value)
+    with pytest.raises(DeviceFault, match=match):
+        await asyncio.wait_for(move, 1.0)
+    assert chassis._setpoint == (0.0, 0.0)
+    assert (await chassis.status()).state == "fault"
+
+
+async def test_silent_chassis_is_link_loss_within_feedback_timeout(emulator, chassis):
+    move = asyncio.create_task(chassis.move_to(ChassisPose(3000.0, 0.0, 0.0)))
+    await asyncio.sleep(0.1)
+    emulator.faults.silent = True
+    t0 = time.monotonic()
+    with pytest.raises(DeviceTimeout, match="no (feedback|status frame)"):
+        await move
+    assert time.monotonic() - t0 < 1.0
+    emulator.faults.silent = False
+    await chassis.close()
+    await chassis.connect()  # reconnect after the link came back
+    await chassis.move_to(ChassisPose(50.0, 0.0, 0.0))
+
+
+async def test_chassis_watchdog_stops_when_host_goes_quiet(emulator, chassis):
+    move = asyncio.create_task(chassis.move_to(ChassisPose(5000.0, 0.0, 0.0)))
+    await asyncio.sleep(0.1)
+    assert emulator.velocity[0] > 0
+    emulator.faults.ignore_commands = True  # as if the host's frames stopped arriving
+    await asyncio.sleep(0.7)
+    assert emulator.watchdog_tripped and emulator.velocity == (0.0, 0.0)
+    move.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await move
+    assert chassis._setpoint == (0.0, 0.0)
+
+
+async def test_dropped_feedback_frames_still_arrive(emulator, chassis):
+    emulator.faults.drop_feedback_fraction = 0.3
+    pose = await chassis.move_to(ChassisPose(200.0, 0.0, 0.0))
+    assert abs(pose.x_mm - 200.0) <= 5.0
+
+
+async def test_move_timeout_stops(emulator, chassis):
+    with pytest.raises(DeviceTimeout, match="not finished within 0.2 s"):
+        await chassis.move_to(ChassisPose(10000.0, 0.0, 0.0), timeout_s=0.2)
+    await asyncio.sleep(0.05)
+    assert emulator.command == (0.0, 0.0)
+
+
+async def test_no_chassis_on_the_bus_times_out_and_calls_need_a_link():
+    drv = AgvCanChassis(chassis_config(f"empty-{uuid.uuid4().hex[:8]}", feedback_timeout_s=0.2))
+    with pytest.raises(NotConnected):
+        await drv.odometry()
+    with pytest.raises(DeviceTimeout, match="did not enter CAN mode.*no status frame"):
+        await drv.connect()
+    assert (await drv.status()).state == "disconnected"
+    await drv.close()
+
+
+async def test_odometry_frame_survives_reconnect(emulator, chassis):
+    await chassis.move_to(ChassisPose(150.0, 0.0, 0.0))
+    before = await chassis.odometry()
+    await chassis.close()
+    await chassis.connect()
+    await asyncio.sleep(0.1)
+    after = await chassis.odometry()
+    assert np.allclose([after.x_mm, after.y_mm, after.heading_rad], [before.x_mm, before.y_mm, before.heading_rad])

@@ -1,0 +1,200 @@
+"""Hardware-in-the-loop: the JAKA TCP driver against the controller emulator over 127.0.0.1."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import numpy as np
+import pytest
+from tandemscan.config.models import ArmConfig, JakaTcpConfig
+from tandemscan.drivers import Arm, DeviceFault, DeviceTimeout, NotConnected, OutOfReach, SafetyStop
+from tandemscan.drivers.jaka_tcp import JakaTcpArm
+from tandemscan.drivers.json_stream import JsonFramingError, JsonObjectFramer
+from tandemscan.pipeline.frames import pose_error
+from tandemscan.pipeline.kinematics import ArmKinematics
+from tandemscan.sim_drivers.emulators.jaka import JakaEmulator
+
+Q_HOME = np.radians([0.0, 90.0, -60.0, 90.0, 90.0, 0.0])
+Q_TARGET = np.radians([20.0, 100.0, -70.0, 80.0, 95.0, 10.0])
+
+
+@pytest.fixture
+async def emulator():
+    emu = JakaEmulator(ArmConfig(), time_scale=0.005, initial_joints_rad=Q_HOME)
+    await emu.start()
+    yield emu
+    await emu.stop()
+
+
+def arm_for(emu: JakaEmulator, reply_timeout_s: float = 0.5) -> JakaTcpArm:
+    jaka = JakaTcpConfig(host="127.0.0.1", command_port=emu._commands.port, status_port=emu._status.port,
+                         reply_timeout_s=reply_timeout_s)
+    return JakaTcpArm(ArmConfig(jaka=jaka, timeout_s=5.0))
+
+
+@pytest.fixture
+async def arm(emulator):
+    arm = arm_for(emulator)
+    await arm.connect()
+    await arm.enable()
+    yield arm
+    await arm.close()
+
+
+async def test_happy_path_joint_and_linear_moves(emulator, arm):
+    assert isinstance(arm, Arm)
+    np.testing.assert_allclose(await arm.joints(), Q_HOME, atol=1e-9)
+    await arm.move_joints(Q_TARGET)
+    # completion comes from the status stream: the emulator's motion is over when the call returns
+    assert emulator.motion.in_position(emulator.sim_time())
+    np.testing.assert_allclose(await arm.joints(), Q_TARGET, atol=1e-9)
+    kin = ArmKinematics(ArmConfig())
+    dt, dr = pose_error(await arm.flange_pose(), kin.forward(Q_TARGET))
+    assert dt < 1e-6 and dr < 1e-9
+
+    goal = kin.forward(Q_TARGET)
+    goal[:3, 3] += [30.0, -20.0, 15.0]
+    await arm.move_linear(goal)
+    dt, dr = pose_error(await arm.flange_pose(), goal)
+    assert dt < 0.05 and dr < 1e-4
+    assert (await arm.status()).state == "idle"
+    assert emulator.commands[:3] == ["power_on", "enable_robot", "get_robot_state"]
+
+
+async def test_move_waits_for_motion_in_simulated_time(emulator, arm):
+    emulator.time_scale = 0.01  # a 20 deg move at 60 deg/s = 1/3 s simulated = 3.3 ms wall
+    await arm.move_joints(Q_TARGET)
+    emulator.time_scale = 0.5  # now 1/3 s simulated = 170 ms wall
+    t0 = time.monotonic()
+    await arm.move_joints(Q_HOME)
+    assert time.monotonic() - t0 >= 0.12
+    np.testing.assert_allclose(await arm.joints(), Q_HOME, atol=1e-9)
+
+
+async def test_joint_target_outside_limits_is_refused_before_sending(emulator, arm):
+    bad = Q_TARGET.copy()
+    bad[1] = np.radians(-100.0)
+    sent = len(emulator.commands)
+    with pytest.raises(OutOfReach, match="arm"):
+        await arm.move_joints(bad)
+    assert len(emulator.commands) == sent
+
+
+async def test_unreachable_linear_target_is_out_of_reach(arm):
+    far = np.eye(4)
+    far[:3, 3] = [3000.0, 0.0, 0.0]
+    with pytest.raises(OutOfReach, match="error 2"):
+        await arm.move_linear(far)
+
+
+async def test_estop_during_move_is_safety_stop_and_sends_stop(emulator, arm):
+    emulator.time_scale = 1.0  # a slow move
+    move = asyncio.create_task(arm.move_joints(Q_TARGET))
+    await asyncio.sleep(0.05)
+    emulator.faults.estop = True
+    t0 = time.monotonic()
+    with pytest.raises(SafetyStop, match="emergency stop"):
+        await move
+    assert time.monotonic() - t0 < 0.5
+    assert emulator.commands[-1] == "stop_program"
+    with pytest.raises(SafetyStop):
+        await arm.move_joints(Q_HOME)
+
+
+async def test_move_timeout_stops_the_arm(emulator, arm):
+    emulator.time_scale = 1.0
+    t0 = time.monotonic()
+    with pytest.raises(DeviceTimeout, match="joint move completion"):
+        await arm.move_joints(Q_TARGET, timeout_s=0.1)
+    assert time.monotonic() - t0 < 1.0
+    assert emulator.commands[-1] == "stop_program"
+    assert not emulator.motion.in_position(emulator.sim_time()) or np.allclose(
+        emulator.joints_deg(), emulator.motion.position(emulator.sim_time())
+    )
+    q_after = emulator.joints_deg()
+    await asyncio.sleep(0.05)
+    np.testing.assert_allclose(emulator.joints_deg(), q_after)  # halted, not still moving
+
+
+@pytest.mark.parametrize("fault", ["reply_delay_s", "silent"])
+async def test_slow_or_silent_controller_times_out_then_reconnects(emulator, arm, fault):
+    setattr(emulator.faults, fault, 1.0 if fault == "reply_delay_s" else True)
+    t0 = time.monotonic()
+    with pytest.raises(DeviceTimeout, match="get_joint_pos"):
+        await arm.joints()
+    assert time.monotonic() - t0 < 1.0
+    with pytest.raises(NotConnected):  # the link is dropped: a late reply must not answer the next call
+        await arm.joints()
+    setattr(emulator.faults, fault, 0.0 if fault == "reply_delay_s" else False)
+    await arm.connect()
+    np.testing.assert_allclose(await arm.joints(), Q_HOME, atol=1e-9)
+
+
+async def test_truncated_reply_is_a_fault_then_reconnects(emulator, arm):
+    emulator.faults.truncate_next_reply = True
+    with pytest.raises(DeviceFault, match="truncated"):
+        await arm.joints()
+    await arm.connect()
+    await arm.move_joints(Q_TARGET)
+
+
+async def test_disconnect_mid_move_then_reconnect(emulator, arm):
+    emulator.time_scale = 1.0
+    emulator.faults.disconnect_on_move = True
+    with pytest.raises(NotConnected, match="status stream"):
+        await arm.move_joints(Q_TARGET)
+    assert (await arm.status()).state == "disconnected"  # the stop attempt found the command link gone too
+    emulator.faults.disconnect_on_move = False
+    emulator.time_scale = 0.005
+    await arm.connect()
+    await arm.move_joints(Q_TARGET)
+    np.testing.assert_allclose(await arm.joints(), Q_TARGET, atol=1e-9)
+
+
+async def test_nan_in_status_is_a_fault_and_stops(emulator, arm):
+    emulator.time_scale = 1.0
+    emulator.faults.nan_in_status = True
+    with pytest.raises(DeviceFault, match="malformed status"):
+        await arm.move_joints(Q_TARGET)
+    assert emulator.commands[-1] == "stop_program"
+
+
+async def test_calls_before_connect_and_refused_connection():
+    arm = JakaTcpArm(ArmConfig(jaka=JakaTcpConfig(host="127.0.0.1", command_port=1, status_port=1)))
+    with pytest.raises(NotConnected, match="arm"):
+        await arm.joints()
+    with pytest.raises(NotConnected, match="cannot connect"):
+        await arm.connect()
+    await arm.close()
+    await arm.close()
+
+
+async def test_second_client_replaces_the_first(emulator, arm):
+    other = arm_for(emulator)
+    await other.connect()
+    assert np.allclose(await other.joints(), Q_HOME)
+    with pytest.raises(NotConnected):
+        await arm.joints()
+    await other.close()
+
+
+def test_framer_splits_objects_at_any_byte_boundary():
+    stream = b'{"a":"}{\\"","b":[1,{"c":2}]} \n{"cmdName":"x","errorCode":"0"}'
+    for cut in range(len(stream) + 1):
+        framer = JsonObjectFramer()
+        objs = framer.feed(stream[:cut]) + framer.feed(stream[cut:])
+        assert objs == [{"a": '}{"', "b": [1, {"c": 2}]}, {"cmdName": "x", "errorCode": "0"}]
+        assert not framer.pending
+
+
+@pytest.mark.parametrize("bad", [b"[1,2]", b"hello", b'{"a":NaN}', b'{"a":1,}'])
+def test_framer_rejects_garbage(bad):
+    with pytest.raises(JsonFramingError):
+        JsonObjectFramer().feed(bad)
+
+
+def test_framer_bounds_memory():
+    framer = JsonObjectFramer(max_object_bytes=100)
+    with pytest.raises(JsonFramingError, match="larger"):
+        framer.feed(b'{"a":"' + b"x" * 200)

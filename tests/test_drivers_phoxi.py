@@ -1,0 +1,97 @@
+"""The PhoXi driver through the fake harvesters module (no GenTL producer can run here)."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from tandemscan.config.models import PhoxiConfig, ScannerConfig
+from tandemscan.drivers import DeviceFault, DeviceTimeout, NotConnected, Scanner
+from tandemscan.drivers.phoxi import PhoxiScanner
+from tandemscan.sim_drivers.fake_harvesters import core as fake
+
+FAKE = "tandemscan.sim_drivers.fake_harvesters.core"
+
+
+@pytest.fixture
+def producer(tmp_path):
+    cti = tmp_path / "photoneo.cti"
+    cti.write_bytes(b"\x7fELF fake producer")
+    fake.CAMERA.reset()
+    yield cti
+    fake.CAMERA.reset()
+
+
+def scanner_for(producer, **phoxi) -> PhoxiScanner:
+    cfg = PhoxiConfig(producer_path=producer, **{"harvesters_module": FAKE, **phoxi})
+    return PhoxiScanner(ScannerConfig(driver="real", phoxi=cfg, timeout_s=0.5))
+
+
+async def test_capture_photoneo_path(producer):
+    scanner = scanner_for(producer)
+    assert isinstance(scanner, Scanner)
+    await scanner.connect()
+    assert fake.CAMERA.node_values["PhotoneoTriggerMode"] == "Software"
+    assert fake.CAMERA.node_values["SendPointCloud"] is True
+    frame = await scanner.capture()
+    xyz_grid, n_grid, conf_grid = fake.CAMERA.scene()
+    valid = np.any(xyz_grid.reshape(-1, 3) != 0, axis=1)
+    assert frame.points_mm.shape == (valid.sum(), 3) and frame.points_mm.dtype == np.float64
+    assert not np.any(np.all(frame.points_mm == 0, axis=1))  # invalid pixels dropped
+    np.testing.assert_allclose(frame.points_mm, xyz_grid.reshape(-1, 3)[valid])
+    assert 440.0 <= frame.points_mm[:, 2].min() and frame.points_mm[:, 2].max() < 460.0  # mm at the sweet spot
+    np.testing.assert_allclose(np.linalg.norm(frame.normals, axis=1), 1.0, atol=1e-5)
+    assert frame.confidence.shape == (valid.sum(),)
+    assert fake.CAMERA.triggers == 1
+    await scanner.close()
+    assert fake.CAMERA.open_acquirers == 0
+    assert (await scanner.status()).state == "disconnected"
+
+
+async def test_gige_vision_path_uses_standard_nodes(producer):
+    scanner = scanner_for(producer, interface="gige_vision")
+    await scanner.connect()
+    assert fake.CAMERA.node_values["TriggerSource"] == "Software"
+    assert fake.CAMERA.node_values["Scan3dOutputMode"] == "CalibratedABC_Grid"
+    # the fake sends Photoneo's layout: in the GigE order slot 0 is empty, which the driver reports
+    with pytest.raises(DeviceFault, match="no point cloud"):
+        await scanner.capture()
+    await scanner.close()
+
+
+async def test_slow_scan_times_out_then_recovers(producer):
+    scanner = scanner_for(producer)
+    await scanner.connect()
+    fake.CAMERA.fetch_delay_s = 5.0
+    t0 = time.monotonic()
+    with pytest.raises(DeviceTimeout, match="scanner: no scan within 0.2 s"):
+        await scanner.capture(timeout_s=0.2)
+    assert time.monotonic() - t0 < 1.0
+    fake.CAMERA.fetch_delay_s = 0.0
+    assert len((await scanner.capture()).points_mm) > 0
+    await scanner.close()
+
+
+async def test_malformed_buffer_is_a_fault(producer):
+    scanner = scanner_for(producer)
+    await scanner.connect()
+    fake.CAMERA.scene = lambda: (np.zeros((4, 5, 3), np.float32), np.zeros((4, 5, 3), np.float32),
+                                 np.zeros((3, 5), np.float32))  # confidence disagrees with the image size
+    with pytest.raises(DeviceFault, match="capture failed"):
+        await scanner.capture()
+    await scanner.close()
+
+
+async def test_missing_pieces_are_named(producer, tmp_path):
+    with pytest.raises(NotConnected, match="not_a_module.*pip install harvesters"):
+        await scanner_for(producer, harvesters_module="not_a_module").connect()
+    with pytest.raises(NotConnected, match="no GenTL producer configured"):
+        await scanner_for(None).connect()
+    with pytest.raises(NotConnected, match="producer not found.*missing.cti"):
+        await scanner_for(tmp_path / "missing.cti").connect()
+    with pytest.raises(NotConnected, match="cannot open"):
+        await scanner_for(producer, serial_number="OTHER").connect()
+    with pytest.raises(NotConnected):
+        await scanner_for(producer).capture()
+    assert fake.CAMERA.open_acquirers == 0

@@ -1,0 +1,111 @@
+"""Hardware-in-the-loop: the Modbus safety I/O driver against pymodbus' server on 127.0.0.1."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import pytest
+from tandemscan.config.models import SafetyConfig, SafetyModbusConfig
+from tandemscan.drivers import DeviceFault, DeviceTimeout, NotConnected, SafetyIO, SafetyState, SafetyStop
+from tandemscan.drivers.safety_modbus import ModbusSafetyIO
+from tandemscan.sim_drivers.emulators.safety_modbus import SafetyIoEmulator
+
+# normally-closed e-stop chain on input 4, light curtain on input 2, light on coil 3
+WIRING = dict(estop_input=4, estop_active_high=False, light_curtain_input=2, target_light_coil=3, beacon_coil=5,
+              device_id=2, timeout_s=0.3)
+
+
+@pytest.fixture
+async def emulator():
+    emu = SafetyIoEmulator(SafetyModbusConfig(**WIRING))
+    await emu.start()
+    await emu.press_estop(False)
+    yield emu
+    await emu.stop()
+
+
+@pytest.fixture
+async def io(emulator):
+    drv = ModbusSafetyIO(SafetyConfig(poll_period_s=0.02,
+                                      modbus=SafetyModbusConfig(host="127.0.0.1", port=emulator.port, **WIRING)))
+    await drv.connect()
+    yield drv
+    await drv.close()
+
+
+async def wait_for_state(io: ModbusSafetyIO, predicate, timeout_s: float = 1.0) -> SafetyState:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        state = await io.read()
+        if predicate(state) or time.monotonic() > deadline:
+            return state
+        await asyncio.sleep(0.01)
+
+
+async def test_inputs_polled_and_listeners_hear_changes(emulator, io):
+    assert isinstance(io, SafetyIO)
+    heard: list[SafetyState] = []
+    io.add_listener(heard.append)
+    assert (await io.read()).motion_allowed
+    t0 = time.monotonic()
+    await emulator.press_estop()
+    state = await wait_for_state(io, lambda s: s.estop)
+    assert state.estop and not state.motion_allowed
+    assert time.monotonic() - t0 < 0.5  # polled at 50 Hz
+    await emulator.press_estop(False)
+    await emulator.break_light_curtain()
+    state = await wait_for_state(io, lambda s: s.light_curtain_broken and not s.estop)
+    assert state.light_curtain_broken and not state.estop
+    assert heard[0].estop and heard[-1].light_curtain_broken
+    assert (await io.status()).state == "stopped"
+
+
+async def test_target_light_and_beacon_outputs(emulator, io):
+    await io.set_target_light(True)
+    assert await emulator.coil(3)
+    await io.set_beacon(True)
+    assert await emulator.coil(5)
+    assert (await wait_for_state(io, lambda s: s.target_light_on)).target_light_on
+    await io.set_target_light(False)
+    assert not await emulator.coil(3)
+
+
+async def test_exception_reply_is_fault_and_counts_as_safety_stop(emulator, io):
+    emulator.faults.exception_replies = True
+    with pytest.raises(DeviceFault, match="safety: write target light: exception response"):
+        await io.set_target_light(True)
+    await asyncio.sleep(0.1)
+    with pytest.raises(SafetyStop, match="link lost.*exception response"):
+        await io.read()
+    assert (await io.status()).state == "fault"
+
+
+async def test_silent_module_times_out_and_reads_as_safety_stop(emulator, io):
+    heard: list[SafetyState] = []
+    io.add_listener(heard.append)
+    emulator.faults.silent = True
+    with pytest.raises(DeviceTimeout, match="no reply within 0.3 s"):
+        await io.set_beacon(True)
+    await asyncio.sleep(0.4)
+    with pytest.raises(SafetyStop):
+        await io.read()
+    assert heard and heard[-1].estop  # listeners were told to stop motion
+
+
+async def test_lost_connection_is_safety_stop_then_reconnect(emulator, io):
+    await emulator.restart()
+    await asyncio.sleep(0.2)
+    with pytest.raises(SafetyStop, match="link lost"):
+        await io.read()
+    await io.connect()
+    assert (await io.read()).motion_allowed
+
+
+async def test_no_module_and_not_connected():
+    drv = ModbusSafetyIO(SafetyConfig(modbus=SafetyModbusConfig(host="127.0.0.1", port=1, timeout_s=0.3)))
+    with pytest.raises(NotConnected):
+        await drv.read()
+    with pytest.raises(NotConnected, match="cannot connect"):
+        await drv.connect()
+    await drv.close()

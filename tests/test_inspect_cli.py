@@ -1,0 +1,89 @@
+"""``tandemscan inspect``: a report for any cloud; bad input is one clear error line and exit status 2."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import open3d as o3d
+import pytest
+from tandemscan.daemon.inspect_cmd import main
+
+
+@pytest.fixture
+def files(tmp_path):
+    mesh = o3d.geometry.TriangleMesh.create_box(400.0, 200.0, 100.0)
+    mesh.compute_triangle_normals()
+    cad = tmp_path / "box.stl"
+    o3d.io.write_triangle_mesh(str(cad), mesh)
+    rng = np.random.default_rng(0)
+    pts = np.c_[rng.uniform(0, 400, 4000), rng.uniform(0, 200, 4000), 100.0 + rng.normal(0.02, 0.03, 4000)]
+    cloud = tmp_path / "cloud.ply"
+    o3d.io.write_point_cloud(str(cloud), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)))
+    cfg = tmp_path / "cell.toml"
+    cfg.write_text("[inspection]\nmap_width_px = 250\nregions = []\nviews = ['top']\n")
+    return cloud, cad, cfg
+
+
+def test_inspect_writes_report_and_deviation_cloud(files, tmp_path, capsys):
+    cloud, cad, cfg = files
+    out = tmp_path / "out"
+    assert main([str(cloud), "--cad", str(cad), "--tolerance", "0.05", "--out", str(out), "--config", str(cfg)]) == 0
+    said = capsys.readouterr().out
+    assert "4000 points" in said and str(out / "report.html") in said
+    data = json.loads((out / "report.json").read_text())
+    assert data["as_measured"]["tolerance"]["upper_mm"] == 0.05
+    assert data["as_measured"]["stats"]["mean_mm"] == pytest.approx(0.02, abs=0.003)
+    assert "<img" in (out / "report.html").read_text()
+    dev = o3d.t.io.read_point_cloud(str(out / "cloud_deviation.ply")).point.deviation_mm.numpy().ravel()
+    assert len(dev) == 4000 and abs(dev.mean() - 0.02) < 0.003
+
+
+@pytest.mark.parametrize(
+    "case, needle",
+    [("missing cloud", "cloud file not found"), ("missing cad", "CAD mesh file not found"),
+     ("garbage cloud", "not a PLY file"), ("cloud as cad", "no triangles"),
+     ("bad tolerance", "--tolerance must be > 0")],
+)
+def test_bad_input_is_one_error_line_and_exit_2(files, tmp_path, capsys, case, needle):
+    cloud, cad, cfg = files
+    garbage = tmp_path / "garbage.ply"
+    garbage.write_bytes(b"this is not a point cloud\n")
+    args = {
+        "missing cloud": [str(tmp_path / "nope.ply"), "--cad", str(cad)],
+        "missing cad": [str(cloud), "--cad", str(tmp_path / "nope.stl")],
+        "garbage cloud": [str(garbage), "--cad", str(cad)],
+        "cloud as cad": [str(cloud), "--cad", str(cloud)],
+        "bad tolerance": [str(cloud), "--cad", str(cad), "--tolerance", "-1"],
+    }[case]
+    assert main([*args, "--out", str(tmp_path / "o")]) == 2
+    said = capsys.readouterr()
+    assert said.out == "" and said.err.startswith("tandemscan inspect: error:") and needle in said.err
+    assert len(said.err.strip().splitlines()) == 1
+
+
+def test_unreadable_file_gives_only_our_line_from_a_real_process(files, tmp_path):
+    """Open3D's own warnings (printed by C++, not via Python) must not add lines around ours."""
+    _, cad, _ = files
+    garbage = tmp_path / "garbage.pcd"
+    garbage.write_bytes(b"this is not a point cloud\n")
+    proc = subprocess.run(
+        [sys.executable, "-m", "tandemscan.daemon.inspect_cmd", str(garbage), "--cad", str(cad)],
+        capture_output=True, text=True, timeout=120,
+    )
+    lines = [ln for ln in (proc.stdout + proc.stderr).splitlines() if ln.strip()]
+    assert proc.returncode == 2 and len(lines) == 1, lines
+    assert lines[0].startswith("tandemscan inspect: error:") and "no points could be read" in lines[0]
+
+
+def test_registered_in_the_main_cli(files, tmp_path, capsys):
+    from tandemscan.daemon.cli import main as tandemscan
+
+    cloud, cad, cfg = files
+    assert tandemscan(["inspect", str(tmp_path / "nope.ply"), "--cad", str(cad)]) == 2
+    assert "cloud file not found" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:  # argparse: --cad is required
+        tandemscan(["inspect", str(cloud)])
+    assert e.value.code == 2

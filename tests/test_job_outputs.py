@@ -1,0 +1,52 @@
+"""A job on the simulated cell leaves report.html, the deviation PLY, the E57 and the pose log next to
+cloud.ply, and report.json carries the same inspection numbers."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pye57
+from tandemscan.daemon.cli import default_plan_path
+from tandemscan.daemon.runner import JobRunner
+from tandemscan.pipeline.plan import Plan, Scan
+from tandemscan.sim_drivers.cell import build_cell
+
+
+async def test_job_writes_report_and_exports_next_to_cloud(sim_config, tmp_path):
+    plan = Plan.load(default_plan_path())
+    scans = [i for i, s in enumerate(plan.steps) if isinstance(s, Scan)]
+    plan = plan.model_copy(update={"steps": plan.steps[: scans[1] + 1]})  # the first two scans only
+    inspection = sim_config.inspection.model_copy(update={"views": ("isometric",), "map_width_px": 300})
+    config = sim_config.model_copy(update={"inspection": inspection})
+    cell = build_cell(config)
+    await cell.connect()
+    try:
+        result = await JobRunner(cell, plan, config, tmp_path / "job").run()
+    finally:
+        await cell.close()
+    job = result.job_dir
+    for name in ("cloud.ply", "report.html", "report.json", "cloud_deviation.ply", "cloud.e57", "poses.csv"):
+        assert (job / name).is_file(), name
+    report = json.loads((job / "report.json").read_text())
+    ins = report["inspection"]
+    assert ins["as_measured"]["stats"]["count"] == report["points_cloud"] > 1000
+    # the sim cell stitches with true mounts: the cloud lies on the part to a fraction of a millimetre
+    assert abs(ins["as_measured"]["stats"]["mean_mm"]) < 0.2 and ins["as_measured"]["stats"]["rms_mm"] < 0.3
+    assert abs(ins["as_measured"]["stats"]["rms_mm"] - report["ground_truth"]["cloud_rms_mm"]) < 1e-3
+    html = (job / "report.html").read_text()
+    assert f'{ins["as_measured"]["stats"]["rms_mm"]:.4f}' in html and html.count("data:image/png") >= 3
+    e57 = pye57.E57(str(job / "cloud.e57"))
+    try:
+        assert e57.scan_count == 3  # two poses and the merged cloud
+        assert e57.get_header(2).point_count == report["points_cloud"]
+        for i, entry in enumerate(report["scan_log"]):
+            header = e57.get_header(i)
+            assert header.point_count == entry["points"]
+            np.testing.assert_allclose(header.translation * 1000.0, np.asarray(entry["T_W_S"])[:3, 3], atol=1e-6)
+    finally:
+        e57.close()
+    with (job / "poses.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert [int(r["points"]) for r in rows] == [e["points"] for e in report["scan_log"]]

@@ -1,0 +1,141 @@
+"""Report: colour maps show the right colours where the part is seen, the stitching view measures layering,
+report.html is self-contained and report.json carries the same numbers."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+
+import cv2
+import numpy as np
+import open3d as o3d
+import pytest
+from tandemscan.config.models import InspectionConfig
+from tandemscan.pipeline.deviation_maps import DEVIATION_CMAP, View, deviation_norm, render_view
+from tandemscan.pipeline.inspect import CadSurface, inspect_cloud
+from tandemscan.pipeline.report import build_report, write_report
+from tandemscan.pipeline.stitch_quality import overlap_quality
+
+
+def grid_on_face(z_mm, size=(400.0, 200.0), step=2.0):
+    x, y = np.meshgrid(np.arange(1, size[0], step), np.arange(1, size[1], step))
+    return np.c_[x.ravel(), y.ravel(), np.full(x.size, z_mm)]
+
+
+@pytest.fixture(scope="module")
+def box():
+    return CadSurface(o3d.geometry.TriangleMesh.create_box(400.0, 200.0, 100.0))
+
+
+def test_colour_map_paints_visible_points_only(box):
+    top = grid_on_face(100.3)  # 0.3 mm above the top face: saturated red
+    bottom = grid_on_face(-0.3)  # 0.3 mm below the bottom face, hidden from above: would be blue
+    pts = np.vstack([top, bottom])
+    vals = np.r_[np.full(len(top), 0.3), np.full(len(bottom), -0.3)]
+    norm = deviation_norm(-0.1, 0.1)
+    img = render_view(box, pts, vals, View("top", (0, 0, -1), up=(0, 1, 0)), norm, width_px=300)
+    red, blue = DEVIATION_CMAP(norm(0.3))[:3], DEVIATION_CMAP(norm(-0.3))[:3]
+    flat = img.rgb.reshape(-1, 3)
+    n_red = np.all(np.isclose(flat, red, atol=1e-6), axis=1).sum()
+    px_mm = (img.extent_mm[1] - img.extent_mm[0]) / 300
+    assert n_red == img.coloured_px > 0.9 * (400 * 200) / px_mm**2  # the top face is covered, in red
+    assert not np.all(np.isclose(flat, blue, atol=1e-6), axis=1).any()
+    # seen from below, the same cloud is blue and the red layer is hidden
+    img = render_view(box, pts, vals, View("bottom", (0, 0, 1), up=(0, 1, 0)), norm, width_px=300)
+    flat = img.rgb.reshape(-1, 3)
+    assert np.all(np.isclose(flat, blue, atol=1e-6), axis=1).sum() == img.coloured_px > 0
+    assert not np.all(np.isclose(flat, red, atol=1e-6), axis=1).any()
+
+
+def layered_scans(offset_mm):
+    """Three overlapping patches of the top face; the middle one lifted by ``offset_mm``."""
+    rng = np.random.default_rng(0)
+    scans = []
+    for k in range(3):
+        p = np.c_[rng.uniform(100 * k, 100 * k + 150, 3000), rng.uniform(0, 150, 3000), np.full(3000, 100.0)]
+        p[:, 2] += rng.normal(0, 0.01, 3000) + (offset_mm if k == 1 else 0.0)
+        scans.append(p)
+    return scans
+
+
+def test_overlap_quality_sees_the_layering_before_and_not_after():
+    before, after = layered_scans(0.2), layered_scans(0.0)
+    pairs = overlap_quality(before, after)
+    assert [(p.i, p.j) for p in pairs] == [(0, 1), (1, 2)]
+    for p in pairs:
+        assert p.points > 500
+        assert p.rms_before_mm == pytest.approx(0.2, abs=0.02)
+        assert p.rms_after_mm < 0.03
+    with pytest.raises(ValueError, match="3 scans before"):
+        overlap_quality(before, after[:2])
+
+
+def make_report(box, tmp_path):
+    rng = np.random.default_rng(3)
+    pts = np.vstack([grid_on_face(100.0, step=3.0), grid_on_face(0.0, step=3.0)])
+    pts[:, 2] += 0.08 * np.sin(pts[:, 0] / 40.0) + rng.normal(0, 0.01, len(pts))
+    cfg = InspectionConfig(map_width_px=400)
+    result = inspect_cloud(pts, box, cfg)
+    views = (View("isometric", (-1.0, 1.0, -0.8)), View("top (from +z)", (0, 0, -1), up=(0, 1, 0)))
+    report = build_report(
+        result, box, cfg, title="Box <test>", meta={"cloud": "cloud.ply", "cad": "box.stl"},
+        accuracy={"stitched RMS vs CAD, mm": 0.0123, "scans": 3},
+        scans_before=layered_scans(0.2), scans_after=layered_scans(0.0), views=views,
+    )
+    return result, report, write_report(report, tmp_path)
+
+
+@pytest.fixture(scope="module")
+def written(box, tmp_path_factory):
+    """One report, shared by the content test and the browser test (rendering takes seconds)."""
+    out = tmp_path_factory.mktemp("report")
+    return (out, *make_report(box, out))
+
+
+def test_report_html_self_contained_and_json_same_numbers(written):
+    tmp_path, result, report, (html_path, json_path) = written
+    html = html_path.read_text()
+    assert "Box &lt;test&gt;" in html  # escaped
+    assert not re.search(r"""(src|href)=["'](https?:|//|file:)""", html)  # nothing fetched from outside
+    images = re.findall(r'src="data:image/png;base64,', html)
+    names = [f["name"] for f in report.data["figures"]]
+    assert len(images) == len(names) == 2 + 2 + 1 + 1  # views, upper/lower, histogram, stitching
+    for table in ("stats", "tolerance", "bestfit", "accuracy", "stitching", "meta"):
+        assert f'id="{table}"' in html
+    assert f"{result.stats.mean_mm:+.4f}" in html and f"{result.tolerance.in_pct:.2f}" in html
+    data = json.loads(json_path.read_text())
+    assert data["as_measured"]["stats"]["rms_mm"] == result.stats.rms_mm
+    assert data["as_measured"]["tolerance"]["in_pct"] == result.tolerance.in_pct
+    assert data["accuracy"]["scans"] == 3 and len(data["stitching"]) == 2
+    assert np.asarray(data["best_fit"]["T_F_M"]).shape == (4, 4)
+    for f in data["figures"]:
+        assert (tmp_path / f["file"]).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+CHROMIUM_FLAGS = [
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+    "--hide-scrollbars", "--enable-logging=stderr", "--window-size=1280,2200",
+]
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed (make system-deps installs it)")
+def test_report_renders_in_headless_chromium(written, tmp_path):
+    html_path = written[3][0]
+    shot = tmp_path / "shot.png"
+    proc = subprocess.run(
+        [CHROMIUM, *CHROMIUM_FLAGS, f"--user-data-dir={tmp_path / 'profile'}", f"--screenshot={shot}",
+         html_path.as_uri()],
+        capture_output=True, text=True, timeout=180,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "CONSOLE" not in proc.stderr and "Uncaught" not in proc.stderr  # no page errors
+    img = cv2.imread(str(shot), cv2.IMREAD_COLOR)
+    assert img is not None and img.shape[0] >= 1000 and img.shape[1] == 1280
+    not_white = np.any(img < 245, axis=2).mean()
+    hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV)
+    colourful = ((hsv[..., 1] > 120) & (hsv[..., 2] > 80)).mean()  # the colour maps decoded and drawn
+    assert not_white > 0.05 and colourful > 0.01 and img.std() > 20

@@ -1,0 +1,111 @@
+"""The simulated cell's twins against the physics they model (DESIGN.md section 4)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from tandemscan.drivers import ChassisPose, NotConnected, OutOfReach, SafetyStop, TargetNotVisible
+from tandemscan.pipeline import frames as F
+from tandemscan.pipeline.scoring import cloud_to_mesh_distances
+from tandemscan.sim_drivers.cell import build_cell
+
+
+@pytest.fixture
+async def cell(sim_config):
+    c = build_cell(sim_config)
+    await c.connect()
+    yield c
+    await c.close()
+
+
+async def _face_the_side(cell):
+    """Arm pose of the shipped plan's first scan: the scanner faces the part's side at the sweet spot."""
+    from tandemscan.daemon.cli import default_plan_path
+    from tandemscan.pipeline.plan import MoveArm, MoveMeasure, Plan
+
+    plan = Plan.load(default_plan_path())
+    move = next(s for s in plan.steps if isinstance(s, MoveMeasure))
+    arm = next(s for s in plan.steps if isinstance(s, MoveArm))
+    await cell.measure_chassis.move_to(ChassisPose(move.x_mm, move.y_mm, move.heading_rad))
+    await cell.arm.move_joints(np.array(arm.joints_rad))
+
+
+async def test_scanned_points_lie_on_the_mesh_within_the_noise(cell):
+    await _face_the_side(cell)
+    frame = await cell.scanner.capture()
+    world = cell.world
+    assert len(frame.points_mm) > 10_000
+    depth = frame.points_mm[:, 2]
+    assert depth.min() >= 384 - 0.5 and depth.max() <= 520 + 0.5
+    d = cloud_to_mesh_distances(world.scene, F.transform_points(world.T_F_S(), frame.points_mm))
+    rms = np.sqrt(np.mean(d**2))
+    # noise is 0.05 mm along the ray; the distance to the surface is its projection on the normal
+    assert 0.03 < rms < 0.06
+    assert np.all(np.sum(frame.normals * frame.points_mm, axis=1) < 0)  # normals face the scanner
+
+
+async def test_tracker_noise_matches_its_model(cell):
+    await _face_the_side(cell)
+    world = cell.world
+    T_true = F.invert(world.T_F_C()) @ world.T_F_T()
+    readings = [await cell.tracker.read_pose() for _ in range(200)]
+    errors = np.array([r.T_C_T[:3, 3] - T_true[:3, 3] for r in readings])
+    sigma_p, _ = world.tracker_sigmas(float(np.linalg.norm(T_true[:3, 3])))
+    assert np.std(errors) == pytest.approx(sigma_p, rel=0.15)
+    assert np.abs(errors.mean(axis=0)).max() < 4 * sigma_p / np.sqrt(200)
+    assert readings[0].covariance[0, 0] == pytest.approx(sigma_p**2)
+
+
+async def test_tracker_raises_when_the_target_is_hidden_behind_the_part(cell):
+    await _face_the_side(cell)
+    # drive the tracker round to the far side of the part, looking back at it
+    await cell.tracking_chassis.move_to(ChassisPose(-700.0, -4600.0, np.pi / 2))
+    with pytest.raises(TargetNotVisible, match="tracker: .*(hidden|turned)"):
+        await cell.tracker.read_pose()
+
+
+async def test_tracker_raises_beyond_range_and_outside_the_view(cell):
+    await _face_the_side(cell)
+    await cell.tracking_chassis.move_to(ChassisPose(-700.0, 36000.0, -np.pi / 2))
+    with pytest.raises(TargetNotVisible, match="beyond the 30 m range"):
+        await cell.tracker.read_pose()
+    await cell.tracking_chassis.move_to(ChassisPose(-700.0, 4600.0, 0.0))  # looking along the part
+    with pytest.raises(TargetNotVisible, match="field of view"):
+        await cell.tracker.read_pose()
+
+
+async def test_an_agv_never_lands_exactly_where_commanded(cell):
+    world = cell.world
+    target = ChassisPose(-1800.0 + 2000.0, 2300.0, 0.0)
+    odo = await cell.measure_chassis.move_to(target)
+    assert odo == target  # closed loop on odometry: it believes it arrived
+    true_xy = world.T_F_V2[:2, 3]
+    miss_mm = np.linalg.norm(true_xy - (target.x_mm, target.y_mm))
+    assert 0.01 < miss_mm < 2000 * 0.06  # percent-level slip on a 2 m move
+    assert abs(np.arctan2(world.T_F_V2[1, 0], world.T_F_V2[0, 0])) > 1e-6
+
+
+async def test_safety_stop_refuses_motion_and_arm_limits_are_enforced(cell):
+    with pytest.raises(OutOfReach):
+        await cell.arm.move_joints(np.radians([0, -120, 0, 0, 0, 0]))
+    cell.world.safety.estop = True
+    assert not (await cell.safety.read()).motion_allowed
+    with pytest.raises(SafetyStop, match="e-stop"):
+        await cell.measure_chassis.move_to(ChassisPose(0.0, 0.0, 0.0))
+    with pytest.raises(SafetyStop):
+        await cell.arm.move_joints(np.radians([0, 90, 0, 90, 0, 0]))
+
+
+async def test_twins_refuse_verbs_before_connect(sim_config):
+    cell = build_cell(sim_config)
+    with pytest.raises(NotConnected, match="scanner"):
+        await cell.scanner.capture()
+
+
+def test_installation_truth_differs_from_nominal(sim_config):
+    world = build_cell(sim_config).world
+    for name in ("T_V1_C", "T_V2_B", "T_E_S", "T_T_S"):
+        err_mm, err_rad = F.pose_error(getattr(world.truth, name), getattr(world.nominal, name))
+        assert 0.1 < err_mm < 15 and 1e-4 < err_rad < 0.03
+    world2 = build_cell(sim_config).world
+    np.testing.assert_array_equal(world.truth.T_T_S, world2.truth.T_T_S)  # seeded: reproducible

@@ -1,0 +1,62 @@
+"""The voxel world map and the plan format."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from tandemscan.daemon.cli import default_plan_path
+from tandemscan.pipeline.plan import MoveTracker, Plan, PlanError, Scan
+from tandemscan.pipeline.worldmap import VoxelMap
+
+
+def test_voxel_map_merges_points_per_voxel():
+    vm = VoxelMap(voxel_mm=1.0)
+    vm.add(np.array([[0.2, 0.2, 0.2], [0.4, 0.4, 0.4], [5.5, 0.5, 0.5]]))
+    vm.add(np.array([[0.6, 0.6, 0.6], [-3.5, 0.5, 0.5]]))
+    pts = vm.points()
+    order = np.argsort(pts[:, 0])
+    np.testing.assert_allclose(pts[order], [[-3.5, 0.5, 0.5], [0.4, 0.4, 0.4], [5.5, 0.5, 0.5]])
+    assert sorted(vm.counts()) == [1, 1, 3]
+
+
+def test_voxel_map_memory_is_bounded_by_the_surface_not_the_scans():
+    rng = np.random.default_rng(0)
+    scan = rng.uniform(0, 100, (20_000, 3)) * [1, 1, 0]
+    vm = VoxelMap(2.0)
+    vm.add(scan)
+    size = len(vm)
+    for _ in range(5):
+        vm.add(scan + rng.normal(0, 0.01, scan.shape) * [1, 1, 0])
+    assert len(vm) <= size * 1.01
+    assert vm.counts().sum() == 6 * len(scan)
+
+
+def test_voxel_map_keeps_normals_unit_length():
+    vm = VoxelMap(1.0)
+    vm.add(np.zeros((2, 3)) + 0.5, np.array([[0, 0, 1.0], [0, 0.1, 0.99]]))
+    assert np.linalg.norm(vm.normals()[0]) == pytest.approx(1.0)
+
+
+def test_shipped_plan_covers_a_band_with_two_transfers():
+    plan = Plan.load(default_plan_path())
+    assert plan.transfer_count >= 2 and plan.scan_count >= 12
+    assert sum(s.kind == "move_measure" for s in plan.steps) >= 2
+
+
+@pytest.mark.parametrize("suffix", [".toml", ".json"])
+def test_plan_round_trips(tmp_path, suffix):
+    plan = Plan(name="p", steps=[MoveTracker(x_mm=1, y_mm=2, heading_rad=0.5), Scan(label="a")])
+    plan.save(tmp_path / f"plan{suffix}")
+    assert Plan.load(tmp_path / f"plan{suffix}") == plan
+
+
+def test_bad_plans_name_the_problem(tmp_path):
+    bad = tmp_path / "p.toml"
+    bad.write_text('name = "p"\n[[steps]]\nkind = "move_arm"\njoints_rad = [0, 1]\n')
+    with pytest.raises(PlanError, match=r"p.toml: steps.0.move_arm.joints_rad"):
+        Plan.load(bad)
+    bad.write_text('name = "p"\nsteps = []\n')
+    with pytest.raises(PlanError, match="at least one scan"):
+        Plan.load(bad)
+    with pytest.raises(PlanError, match="not found"):
+        Plan.load(tmp_path / "nope.json")
