@@ -2,7 +2,8 @@
 
 Usage: python benchmarks/sim_accuracy.py [--resolution coarse|full] [--plan FILE] [--config FILE]
 The last line of output is one JSON object with keys scans, transfers, pose_err_mm_median, pose_err_mm_max,
-pose_err_deg_median, cloud_rms_mm, cloud_p95_mm, seconds (tracker-only stitch: no correction).
+pose_err_deg_median, cloud_rms_mm, cloud_p95_mm, seconds (after correct + refine when ``[deepmerge] enabled``),
+and ``correction``: the method, pairs, seconds and the tracker-only figures (``before``).
 """
 
 from __future__ import annotations
@@ -43,6 +44,8 @@ async def run(args: argparse.Namespace) -> dict:
         "cloud_rms_mm": round(g["cloud_rms_mm"], 4),
         "cloud_p95_mm": round(g["cloud_p95_mm"], 4),
         "seconds": round(time.perf_counter() - started, 2),
+        "correction": {k: r["correction"][k] for k in ("enabled", "method", "pairs", "seconds", "before")
+                       if k in r["correction"]},
     }
 
 
