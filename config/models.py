@@ -289,7 +289,9 @@ class DeepMergeConfig(_Strict):
     """Stitching correction (DeepMerge + point-to-plane ICP) and the global pose-graph refinement."""
 
     enabled: bool = True
-    method: Literal["deepmerge", "icp", "deepmerge+icp"] = "deepmerge+icp"
+    method: Literal["deepmerge", "icp", "deepmerge+icp"] = Field(
+        "icp", description="icp until retrained DeepMerge weights beat the stitch (docs/deepmerge.md)"
+    )
     weights: Path | None = Field(None, description="trained weights (.pt); empty = the ones shipped in the package")
     overlap_delta_mm: float | None = Field(
         None, gt=0, description="overlap = points whose nearest neighbour is closer; empty = from tracker covariance"
