@@ -297,6 +297,32 @@ class JobConfig(_Strict):
     calibration_file: Path | None = None
 
 
+class DeepMergeConfig(_Strict):
+    """Stitching correction (DeepMerge + point-to-plane ICP) and the global pose-graph refinement."""
+
+    enabled: bool = True
+    method: Literal["deepmerge", "icp", "deepmerge+icp"] = Field(
+        "icp", description="icp until retrained DeepMerge weights beat the stitch (docs/deepmerge.md)"
+    )
+    weights: Path | None = Field(None, description="trained weights (.pt); empty = the ones shipped in the package")
+    overlap_delta_mm: float | None = Field(
+        None, gt=0, description="overlap = points whose nearest neighbour is closer; empty = from tracker covariance"
+    )
+    overlap_sigmas: float = Field(3.0, gt=0, description="delta = this many sigmas of the pair's pose uncertainty")
+    overlap_min_delta_mm: float = Field(1.0, gt=0, description="lower bound of delta (point spacing and noise), mm")
+    min_overlap_points: int = Field(200, ge=10, description="pairs with fewer overlap points get no edge")
+    num_points: int = Field(2048, ge=64, description="overlap points per cloud fed to the network")
+    neighbours: int = Field(10, ge=4, description="k of the k x 14 point structure")
+    icp_max_distance_mm: float = Field(2.0, gt=0, description="point-to-plane ICP correspondence distance, mm")
+    icp_iterations: int = Field(50, ge=1)
+    edge_effective_points: float = Field(
+        1000.0, gt=0, description="independent points an overlap is worth when weighting a pose-graph edge"
+    )
+    edge_min_eigen_ratio: float = Field(
+        0.01, ge=0, lt=1, description="edge directions weaker than this share of the strongest are dropped"
+    )
+
+
 class RegionConfig(_Strict):
     """A named inspection region: an axis-aligned box in the CAD/part frame F (mm), bounds inclusive."""
 
@@ -403,30 +429,6 @@ class DaemonConfig(_Strict):
     reconnect_initial_s: float = Field(0.5, gt=0)
     reconnect_max_s: float = Field(30.0, gt=0)
     default_plan: str = Field("default-band", description="plan of a job posted without one")
-
-
-class DeepMergeConfig(_Strict):
-    """Stitching correction (DeepMerge + point-to-plane ICP) and the global pose-graph refinement."""
-
-    enabled: bool = True
-    method: Literal["deepmerge", "icp", "deepmerge+icp"] = "deepmerge+icp"
-    weights: Path | None = Field(None, description="trained weights (.pt); empty = the ones shipped in the package")
-    overlap_delta_mm: float | None = Field(
-        None, gt=0, description="overlap = points whose nearest neighbour is closer; empty = from tracker covariance"
-    )
-    overlap_sigmas: float = Field(3.0, gt=0, description="delta = this many sigmas of the pair's pose uncertainty")
-    overlap_min_delta_mm: float = Field(1.0, gt=0, description="lower bound of delta (point spacing and noise), mm")
-    min_overlap_points: int = Field(200, ge=10, description="pairs with fewer overlap points get no edge")
-    num_points: int = Field(2048, ge=64, description="overlap points per cloud fed to the network")
-    neighbours: int = Field(10, ge=4, description="k of the k x 14 point structure")
-    icp_max_distance_mm: float = Field(2.0, gt=0, description="point-to-plane ICP correspondence distance, mm")
-    icp_iterations: int = Field(50, ge=1)
-    edge_effective_points: float = Field(
-        1000.0, gt=0, description="independent points an overlap is worth when weighting a pose-graph edge"
-    )
-    edge_min_eigen_ratio: float = Field(
-        0.01, ge=0, lt=1, description="edge directions weaker than this share of the strongest are dropped"
-    )
 
 
 class CellConfig(_Strict):

@@ -141,50 +141,6 @@ def _print_summary(report: dict, job_dir: Path) -> None:
                   f"{job_dir / inspection['files']['html']}")
 
 
-def cmd_train_deepmerge(args: argparse.Namespace) -> int:
-    """Train DeepMerge weights on generated data (CPU; see docs/deepmerge.md)."""
-    import json
-
-    import torch
-    from tandemscan.pipeline.deepmerge.train import TrainSettings, train
-
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    settings = TrainSettings(seed=args.seed, steps=args.steps, max_minutes=args.max_minutes,
-                             train_pairs=args.train_pairs, val_pairs=args.val_pairs, batch_size=args.batch_size)
-    with Progress(TextColumn("{task.description:<32}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                  TimeElapsedColumn(), console=console) as bar:
-        task = bar.add_task("making data, then training", total=settings.steps)
-        _, summary = train(settings, Path(args.out),
-                           lambda step, loss: bar.update(task, completed=step, description=f"loss {loss:.4f}"))
-    Console().print_json(json.dumps(summary))
-    return 0
-
-
-def cmd_register(args: argparse.Namespace) -> int:
-    """Register SOURCE onto TARGET; print the 4x4 that maps SOURCE into TARGET and the fitness."""
-    import numpy as np
-    from tandemscan.pipeline.cloud_io import CloudIOError, read_ply
-    from tandemscan.pipeline.deepmerge.correct import register_clouds
-    from tandemscan.pipeline.deepmerge.register import RegistrationError
-
-    config = load_config(args.config)
-    try:
-        source, _ = read_ply(Path(args.source))
-        target, _ = read_ply(Path(args.target))
-        init = np.loadtxt(args.init).reshape(4, 4) if args.init else None
-        T, fit = register_clouds(source, target, config.deepmerge, args.method, init, args.delta_mm)
-    except (CloudIOError, RegistrationError, OSError, ValueError) as e:
-        raise UsageError(str(e)) from e
-    text = "\n".join(" ".join(f"{v:.9g}" for v in row) for row in T)
-    if args.out:
-        Path(args.out).write_text(text + "\n", encoding="utf-8")
-    out = Console()
-    out.print(text, highlight=False)
-    out.print(f"fitness {fit.fitness:.4f}  point-to-plane RMS {fit.rmse_mm:.4f} mm  ({args.method})", highlight=False)
-    return 0
-
-
 def cmd_serve(args: argparse.Namespace) -> int:
     """Run the daemon: devices, job queue and the REST API (``docs/daemon.md``)."""
     from tandemscan.daemon.service import BindRefused, serve
@@ -302,26 +258,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, help="calibration file to write (default: calibration.output_file)")
     p.set_defaults(func=cmd_calibrate)
 
-    p = sub.add_parser("train-deepmerge", help="train DeepMerge weights on generated data (CPU)")
-    p.add_argument("--out", type=Path, default=Path("deepmerge.pt"), help="weights file to write")
-    p.add_argument("--steps", type=int, default=3000)
-    p.add_argument("--max-minutes", type=float, default=110.0, help="stop after this long (data included)")
-    p.add_argument("--train-pairs", type=int, default=600)
-    p.add_argument("--val-pairs", type=int, default=60)
-    p.add_argument("--batch-size", type=int, default=8)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
-    p.set_defaults(func=cmd_train_deepmerge)
+    from tandemscan.daemon.deepmerge_cmd import register as register_deepmerge
 
-    p = sub.add_parser("register", help="register two clouds (PLY/PCD/XYZ, mm)")
-    p.add_argument("source", type=Path)
-    p.add_argument("target", type=Path)
-    p.add_argument("--init", type=Path, help="text file with the initial 4x4 (source into target)")
-    p.add_argument("--method", choices=["deepmerge", "icp", "deepmerge+icp"], default="deepmerge+icp")
-    p.add_argument("--delta-mm", type=float, default=5.0, help="overlap threshold after --init, mm")
-    p.add_argument("--config", type=Path, help="cell configuration TOML ([deepmerge] settings)")
-    p.add_argument("--out", type=Path, help="also write the 4x4 to this file")
-    p.set_defaults(func=cmd_register)
+    register_deepmerge(sub)
 
     from tandemscan.daemon.plan_cmd import register as register_plan
 

@@ -58,20 +58,32 @@ def _pcd(points: np.ndarray) -> o3d.geometry.PointCloud:
     return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=float)))
 
 
+def target_with_normals(target_mm: ArrayLike | o3d.geometry.PointCloud, normal_neighbours: int = 20
+                        ) -> o3d.geometry.PointCloud:
+    """The target of a point-to-plane fit, with normals (k nearest neighbours); prepare it once per pair."""
+    if isinstance(target_mm, o3d.geometry.PointCloud):
+        return target_mm
+    T = np.asarray(target_mm, float)
+    if T.ndim != 2 or T.shape[1] != 3 or len(T) < normal_neighbours:
+        raise RefineError(f"a point-to-plane target needs an (N, 3) cloud with N >= {normal_neighbours}; got {T.shape}")
+    tgt = _pcd(T)
+    tgt.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(normal_neighbours))
+    return tgt
+
+
 def icp_point_to_plane(
     source_mm: ArrayLike,
-    target_mm: ArrayLike,
+    target_mm: ArrayLike | o3d.geometry.PointCloud,
     init: ArrayLike | None = None,
     max_distance_mm: float = 2.0,
     iterations: int = 50,
     normal_neighbours: int = 20,
 ) -> IcpResult:
     """Point-to-plane ICP (Open3D) of ``source`` onto ``target`` from ``init`` (default identity)."""
-    S, T = np.asarray(source_mm, float), np.asarray(target_mm, float)
-    if S.ndim != 2 or S.shape[1] != 3 or T.ndim != 2 or T.shape[1] != 3 or len(T) < normal_neighbours:
-        raise RefineError(f"ICP needs (N, 3) clouds with N >= {normal_neighbours}; got {S.shape}, {T.shape}")
-    tgt = _pcd(T)
-    tgt.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(normal_neighbours))
+    S = np.asarray(source_mm, float)
+    if S.ndim != 2 or S.shape[1] != 3:
+        raise RefineError(f"ICP needs an (N, 3) source cloud; got {S.shape}")
+    tgt = target_with_normals(target_mm, normal_neighbours)
     reg = o3d.pipelines.registration
     res = reg.registration_icp(
         _pcd(S), tgt, max_distance_mm, np.eye(4) if init is None else np.asarray(init, float),
@@ -87,11 +99,7 @@ def evaluate_point_to_plane(
 ) -> IcpResult:
     """Score ``T_target_source`` without moving it: nearest-neighbour inliers within ``max_distance_mm``."""
     S = np.asarray(source_mm, float)
-    if isinstance(target, o3d.geometry.PointCloud):
-        tgt = target
-    else:
-        tgt = _pcd(np.asarray(target, float))
-        tgt.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(normal_neighbours))
+    tgt = target_with_normals(target, normal_neighbours)
     M = np.asarray(T, float).copy()
     Tp = np.asarray(tgt.points)
     moved = S @ M[:3, :3].T + M[:3, 3]

@@ -62,3 +62,21 @@ def test_correct_pair_needs_overlap_and_a_delta():
     assert correct_pair(far, a, cfg, None) is None
     with pytest.raises(ValueError, match="overlap_delta_mm"):
         correct_pair(b, a, DeepMergeConfig(method="icp"), None)
+
+
+def test_deepmerge_then_icp_on_a_pair_recovers_the_correction():
+    from tandemscan.pipeline.deepmerge.correct import register_overlap
+    from tandemscan.pipeline.deepmerge.register import DeepMergeRegistrar
+
+    rng = np.random.default_rng(4)
+    xy = rng.uniform(-80, 80, (6000, 2))
+    P = np.c_[xy, surface(xy[:, 0], xy[:, 1])]
+    T_true = from_rotvec([0.5, -0.3, 0.2], np.radians([0.2, 0.1, -0.3]))
+    source = transform_points(invert(T_true), P[::2])
+    cfg = DeepMergeConfig(method="deepmerge+icp")
+    reg = DeepMergeRegistrar.load(num_points=256)
+    T = register_overlap(source, P[1::2], "deepmerge+icp", cfg, reg, coarse_distance_mm=3.0)
+    dt, dr = pose_error(T, T_true)
+    assert dt < 0.05 and np.degrees(dr) < 0.02
+    with pytest.raises(ValueError, match="registrar"):
+        register_overlap(source, P[1::2], "deepmerge", cfg, None, 3.0)

@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+import open3d as o3d
 from tandemscan.config.models import DeepMergeConfig
 from tandemscan.pipeline.deepmerge.overlap import delta_from_covariance, extract_overlap, relative_covariance
 from tandemscan.pipeline.deepmerge.register import DeepMergeRegistrar, voxel_downsample
@@ -26,6 +27,7 @@ from tandemscan.pipeline.refine import (
     icp_point_to_plane,
     point_to_plane_information,
     refine_poses,
+    target_with_normals,
 )
 
 log = logging.getLogger(__name__)
@@ -44,10 +46,10 @@ class PairCorrection:
 
 
 def register_overlap(
-    source_mm: np.ndarray, target_mm: np.ndarray, method: str, cfg: DeepMergeConfig,
+    source_mm: np.ndarray, target_mm: np.ndarray | o3d.geometry.PointCloud, method: str, cfg: DeepMergeConfig,
     registrar: DeepMergeRegistrar | None, coarse_distance_mm: float,
 ) -> np.ndarray:
-    """``T_target_source`` of two overlap clouds by ``method``.
+    """``T_target_source`` of two overlap clouds by ``method`` (the target may come with its normals).
 
     ``icp`` runs point-to-plane ICP coarse (``coarse_distance_mm``, the overlap threshold) then fine
     (``cfg.icp_max_distance_mm``), the fair baseline; ``deepmerge+icp`` runs only the fine ICP after DeepMerge.
@@ -56,7 +58,8 @@ def register_overlap(
     if method in ("deepmerge", "deepmerge+icp"):
         if registrar is None:
             raise ValueError(f"method {method!r} needs a DeepMerge registrar")
-        T = registrar.register(source_mm, target_mm)
+        target_mm = target_with_normals(target_mm)
+        T = registrar.register(source_mm, np.asarray(target_mm.points))
         # keep the network's answer only where it fits the overlap better than the initial stitch
         fit = evaluate_point_to_plane(source_mm, target_mm, T, coarse_distance_mm)
         start = evaluate_point_to_plane(source_mm, target_mm, np.eye(4), coarse_distance_mm)
@@ -111,9 +114,10 @@ def correct_pair(
     if ov.size < cfg.min_overlap_points:
         return None
     S, T = source_W[ov.source_idx], target_W[ov.target_idx]
-    M = register_overlap(S, T, cfg.method, cfg, registrar, delta)
-    fit = evaluate_point_to_plane(S, T, M, cfg.icp_max_distance_mm)
-    before = evaluate_point_to_plane(S, T, np.eye(4), cfg.icp_max_distance_mm)
+    tgt = target_with_normals(T)
+    M = register_overlap(S, tgt, cfg.method, cfg, registrar, delta)
+    fit = evaluate_point_to_plane(S, tgt, M, cfg.icp_max_distance_mm)
+    before = evaluate_point_to_plane(S, tgt, np.eye(4), cfg.icp_max_distance_mm)
     return PairCorrection(M, fit, before.rmse_mm, ov.size, delta, T.mean(axis=0))
 
 
@@ -139,11 +143,12 @@ class CorrectionResult:
 def _overlap_rms(clouds: list[np.ndarray], edges, poses_before, poses_after, cfg) -> tuple[float, float]:
     """Median over edges of the point-to-plane RMS (mm) of the overlaps, with the poses before and after."""
     out = []
+    targets = {i: target_with_normals(clouds[i]) for i in {e[0] for e in edges}}
     for poses in (poses_before, poses_after):
         vals = []
         for i, j, _ in edges:
             Tij = invert(poses[i]) @ poses[j]
-            vals.append(evaluate_point_to_plane(clouds[j], clouds[i], Tij, cfg.icp_max_distance_mm).rmse_mm)
+            vals.append(evaluate_point_to_plane(clouds[j], targets[i], Tij, cfg.icp_max_distance_mm).rmse_mm)
         out.append(float(np.median(vals)) if vals else float("nan"))
     return out[0], out[1]
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.spatial import cKDTree
+from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 LOCAL_DIM = 7
 POINT_DIM = 14
@@ -82,13 +82,21 @@ def local_structure(points: np.ndarray, normals: np.ndarray, centres: np.ndarray
 
 
 def farthest_points(points: np.ndarray, centres: np.ndarray, chunk: int = 512) -> np.ndarray:
-    """Index of the cloud point farthest from each centre (exact, chunked brute force over the cloud)."""
+    """Index of the cloud point farthest from each centre (exact).
+
+    The farthest point of a set always lies on its convex hull, so only hull vertices are searched; a flat
+    or degenerate cloud (no 3D hull) falls back to every point. Chunked brute force over the candidates.
+    """
+    try:
+        cand = ConvexHull(points).vertices
+    except QhullError:
+        cand = np.arange(len(points))
+    Q = points[cand]
+    sq = np.einsum("ij,ij->i", Q, Q)
     out = np.empty(len(centres), dtype=int)
-    sq = np.einsum("ij,ij->i", points, points)
     for s in range(0, len(centres), chunk):
         c = points[centres[s:s + chunk]]
-        d2 = sq[None, :] - 2.0 * c @ points.T
-        out[s:s + chunk] = np.argmax(d2, axis=1)
+        out[s:s + chunk] = cand[np.argmax(sq[None, :] - 2.0 * c @ Q.T, axis=1)]
     return out
 
 

@@ -41,11 +41,11 @@ class PointFeatureExtractor(nn.Module):
         self.last = _block(sum(widths[:4]), widths[4], nn.Conv1d)
 
     def forward(self, structure: torch.Tensor) -> torch.Tensor:
-        x = structure.permute(0, 3, 1, 2)               # (B, 14, N, k)
-        pooled = []
+        x = structure.permute(0, 3, 2, 1)               # (B, 14, k, N): pooling over k is then a max of
+        pooled = []                                     # k contiguous slices, fast on a CPU
         for layer in self.local:
             x = layer(x)
-            pooled.append(x.max(dim=3).values)          # (B, C, N)
+            pooled.append(x.amax(dim=2))                # (B, C, N)
         return self.last(torch.cat(pooled, dim=1)).transpose(1, 2)
 
 

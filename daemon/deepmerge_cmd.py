@@ -1,0 +1,83 @@
+"""``tandemscan train-deepmerge`` and ``tandemscan register``: DeepMerge training and pairwise registration.
+
+``register(subparsers)`` adds both sub-commands to the main CLI. Bad input (a missing cloud, an unreadable
+transform or weights file) raises the CLI's ``UsageError``: one error line, exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+from tandemscan.config import load_config
+
+
+def cmd_train_deepmerge(args: argparse.Namespace) -> int:
+    """Train DeepMerge weights on generated data (CPU; see docs/deepmerge.md)."""
+    import torch
+    from tandemscan.daemon.cli import console
+    from tandemscan.pipeline.deepmerge.train import TrainSettings, train
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    settings = TrainSettings(seed=args.seed, steps=args.steps, max_minutes=args.max_minutes,
+                             train_pairs=args.train_pairs, val_pairs=args.val_pairs, batch_size=args.batch_size)
+    with Progress(TextColumn("{task.description:<32}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                  TimeElapsedColumn(), console=console) as bar:
+        task = bar.add_task("making data, then training", total=settings.steps)
+        _, summary = train(settings, Path(args.out),
+                           lambda step, loss: bar.update(task, completed=step, description=f"loss {loss:.4f}"))
+    Console().print_json(json.dumps(summary))
+    return 0
+
+
+def cmd_register(args: argparse.Namespace) -> int:
+    """Register SOURCE onto TARGET; print the 4x4 that maps SOURCE into TARGET and the fitness."""
+    import numpy as np
+    from tandemscan.daemon.cli import UsageError
+    from tandemscan.pipeline.cloud_io import CloudIOError, read_ply
+    from tandemscan.pipeline.deepmerge.correct import register_clouds
+    from tandemscan.pipeline.deepmerge.register import RegistrationError
+
+    config = load_config(args.config)
+    try:
+        source, _ = read_ply(Path(args.source))
+        target, _ = read_ply(Path(args.target))
+        init = np.loadtxt(args.init).reshape(4, 4) if args.init else None
+        T, fit = register_clouds(source, target, config.deepmerge, args.method, init, args.delta_mm)
+    except (CloudIOError, RegistrationError, OSError, ValueError) as e:
+        raise UsageError(str(e)) from e
+    text = "\n".join(" ".join(f"{v:.9g}" for v in row) for row in T)
+    if args.out:
+        Path(args.out).write_text(text + "\n", encoding="utf-8")
+    out = Console()
+    out.print(text, highlight=False)
+    out.print(f"fitness {fit.fitness:.4f}  point-to-plane RMS {fit.rmse_mm:.4f} mm  ({args.method})", highlight=False)
+    return 0
+
+
+def register(sub) -> None:
+    """Add ``train-deepmerge`` and ``register`` to an argparse sub-parser collection."""
+    p = sub.add_parser("train-deepmerge", help="train DeepMerge weights on generated data (CPU)")
+    p.add_argument("--out", type=Path, default=Path("deepmerge.pt"), help="weights file to write")
+    p.add_argument("--steps", type=int, default=3000)
+    p.add_argument("--max-minutes", type=float, default=110.0, help="stop after this long (data included)")
+    p.add_argument("--train-pairs", type=int, default=600)
+    p.add_argument("--val-pairs", type=int, default=60)
+    p.add_argument("--batch-size", type=int, default=8)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    p.set_defaults(func=cmd_train_deepmerge)
+
+    p = sub.add_parser("register", help="register two clouds (PLY/PCD/XYZ, mm)")
+    p.add_argument("source", type=Path)
+    p.add_argument("target", type=Path)
+    p.add_argument("--init", type=Path, help="text file with the initial 4x4 (source into target)")
+    p.add_argument("--method", choices=["deepmerge", "icp", "deepmerge+icp"], default="deepmerge+icp")
+    p.add_argument("--delta-mm", type=float, default=5.0, help="overlap threshold after --init, mm")
+    p.add_argument("--config", type=Path, help="cell configuration TOML ([deepmerge] settings)")
+    p.add_argument("--out", type=Path, help="also write the 4x4 to this file")
+    p.set_defaults(func=cmd_register)

@@ -1,0 +1,37 @@
+"""The job runner applies correct + refine after stitching and reports the figures before and after."""
+
+from __future__ import annotations
+
+import pytest
+from tandemscan.daemon.cli import default_plan_path
+from tandemscan.daemon.runner import JobRunner
+from tandemscan.pipeline.plan import Plan, Scan
+from tandemscan.sim_drivers.cell import build_cell
+
+
+def _first_scans(plan: Plan, n: int) -> Plan:
+    """The plan up to and including its n-th scan."""
+    seen = 0
+    for i, step in enumerate(plan.steps):
+        seen += isinstance(step, Scan)
+        if seen == n:
+            return plan.model_copy(update={"steps": plan.steps[: i + 1]})
+    return plan
+
+
+@pytest.mark.slow
+async def test_runner_corrects_the_stitch_and_reports_before_and_after(sim_config, tmp_path):
+    cfg = sim_config.model_copy(update={"deepmerge": sim_config.deepmerge.model_copy(update={"method": "icp"})})
+    cell = build_cell(cfg)
+    await cell.connect()
+    try:
+        result = await JobRunner(cell, _first_scans(Plan.load(default_plan_path()), 2), cfg, tmp_path).run()
+    finally:
+        await cell.close()
+    corr = result.report["correction"]
+    assert corr["enabled"] and corr["method"] == "icp" and corr["pairs"] == 1
+    before, after = corr["before"], result.report["ground_truth"]
+    assert after["cloud_rms_mm"] < before["cloud_rms_mm"]
+    assert corr["overlap_rms_mm_median_after"] < corr["overlap_rms_mm_median_before"]
+    # the scan log carries the refined poses
+    assert result.report["scan_log"][1]["T_W_S"] == result.scans[1].T_W_S.tolist()
