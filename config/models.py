@@ -230,6 +230,36 @@ class FloorPoseConfig(_Strict):
     heading_deg: float = 0.0
 
 
+class PlanningConfig(_Strict):
+    """Motion planning (DESIGN.md 5.1, paper Eq. 13-18). Floor polygons are in the part frame F, mm.
+
+    Measurement AGV: centre ``distance in (d3 + w/2, d4 + w/2)`` from the part's floor contour, ``step in
+    (p, p + m)`` along it, with ``m`` the scan footprint width less the overlap. Tracker: candidate stations
+    at ``d1`` from the contour; a measuring point is covered within ``d2`` and the field of view.
+    """
+
+    agv_width_mm: float = Field(800.0, gt=0, description="w: measurement AGV width, mm")
+    arm_standoff_min_mm: float = Field(300.0, ge=0, description="d3: AGV side to part contour, least, mm")
+    arm_standoff_max_mm: float = Field(500.0, gt=0, description="d4: AGV side to part contour, most, mm")
+    station_step_mm: float = Field(600.0, gt=0, description="p: least step between AGV stations, mm")
+    scan_overlap_fraction: float = Field(0.2, ge=0, lt=1, description="overlap of neighbouring scans")
+    incidence_limit_deg: float = Field(45.0, ge=0, lt=90, description="most tilt of the view off the normal")
+    tracker_distance_mm: float = Field(3500.0, gt=0, description="d1: tracker candidates to part contour, mm")
+    tracker_best_range_mm: float = Field(9000.0, gt=0, description="d2: best-accuracy tracker range, mm")
+    tracker_min_range_mm: float = Field(1500.0, ge=0, description="nearest usable target distance, mm")
+    tracker_candidate_step_mm: float = Field(700.0, gt=0, description="spacing of tracker candidates, mm")
+    tracker_heading_offsets_deg: tuple[float, ...] = (-30.0, -15.0, 0.0, 15.0, 30.0)
+    tracker_margin_deg: float = Field(3.0, ge=0, description="kept off the edges of the field of view and cone")
+    exact_time_limit_s: float = Field(2.0, gt=0, description="integer-program time limit, s")
+    exact_max_variables: int = Field(6000, gt=0, description="larger tracker instances go to the heuristic")
+    floor_xy_mm: tuple[float, float, float, float] = Field(
+        (-20000.0, -12000.0, 20000.0, 12000.0), description="cell floor rectangle: x min, y min, x max, y max"
+    )
+    keep_out_xy_mm: tuple[tuple[tuple[float, float], ...], ...] = Field(
+        (), description="floor polygons no robot may stand in, each a list of (x, y) mm"
+    )
+
+
 class SimWorldConfig(_Strict):
     """Ground truth of the simulated cell: how far the real installation is from nominal, time scale."""
 
@@ -371,4 +401,5 @@ class CellConfig(_Strict):
     job: JobConfig = JobConfig()
     inspection: InspectionConfig = InspectionConfig()
     calibration: CalibrationConfig = CalibrationConfig()
+    planning: PlanningConfig = PlanningConfig()
     daemon: DaemonConfig = DaemonConfig()

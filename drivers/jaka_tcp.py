@@ -15,7 +15,6 @@ import logging
 from collections.abc import Callable
 
 import numpy as np
-
 from tandemscan.config.models import ArmConfig
 from tandemscan.drivers.errors import (
     DeviceError,

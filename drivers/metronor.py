@@ -16,7 +16,6 @@ import time
 
 import numpy as np
 import serial
-
 from tandemscan.config.models import TrackerConfig
 from tandemscan.drivers.errors import DeviceError, DeviceFault, DeviceTimeout, NotConnected, TargetNotVisible
 from tandemscan.drivers.interfaces import DeviceStatus, TrackerReading

@@ -23,7 +23,6 @@ from types import ModuleType
 from typing import Any
 
 import numpy as np
-
 from tandemscan.config.models import ScannerConfig
 from tandemscan.drivers.errors import DeviceError, DeviceFault, DeviceTimeout, NotConnected
 from tandemscan.drivers.interfaces import DeviceStatus, ScanFrame

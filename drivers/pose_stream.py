@@ -16,7 +16,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
 from tandemscan.config.models import TrackerStreamConfig
 from tandemscan.pipeline.frames import from_quaternion, make_transform, orthonormalize, to_quaternion
 

@@ -15,7 +15,6 @@ from collections.abc import Callable
 
 from pymodbus.client import AsyncModbusTcpClient
 from pymodbus.exceptions import ModbusException
-
 from tandemscan.config.models import SafetyConfig
 from tandemscan.drivers.errors import DeviceError, DeviceFault, DeviceTimeout, NotConnected, SafetyStop
 from tandemscan.drivers.interfaces import DeviceStatus, SafetyState

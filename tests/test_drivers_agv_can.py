@@ -9,7 +9,6 @@ import uuid
 
 import numpy as np
 import pytest
-
 from tandemscan.config.models import ChassisCanConfig, ChassisConfig
 from tandemscan.drivers import Chassis, ChassisPose, DeviceFault, DeviceTimeout, NotConnected, SafetyStop
 from tandemscan.drivers.agv_can import AgvCanChassis

@@ -7,7 +7,6 @@ import time
 
 import numpy as np
 import pytest
-
 from tandemscan.config.models import ArmConfig, JakaTcpConfig
 from tandemscan.drivers import Arm, DeviceFault, DeviceTimeout, NotConnected, OutOfReach, SafetyStop
 from tandemscan.drivers.jaka_tcp import JakaTcpArm

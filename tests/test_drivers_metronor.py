@@ -8,7 +8,6 @@ import time
 
 import numpy as np
 import pytest
-
 from tandemscan.config.models import TrackerConfig, TrackerStreamConfig
 from tandemscan.drivers import DeviceFault, DeviceTimeout, NotConnected, TargetNotVisible, Tracker
 from tandemscan.drivers.metronor import MetronorTracker

@@ -6,7 +6,6 @@ import time
 
 import numpy as np
 import pytest
-
 from tandemscan.config.models import PhoxiConfig, ScannerConfig
 from tandemscan.drivers import DeviceFault, DeviceTimeout, NotConnected, Scanner
 from tandemscan.drivers.phoxi import PhoxiScanner

@@ -6,7 +6,6 @@ import asyncio
 import time
 
 import pytest
-
 from tandemscan.config.models import SafetyConfig, SafetyModbusConfig
 from tandemscan.drivers import DeviceFault, DeviceTimeout, NotConnected, SafetyIO, SafetyState, SafetyStop
 from tandemscan.drivers.safety_modbus import ModbusSafetyIO

@@ -6,7 +6,6 @@ import json
 
 import numpy as np
 import pytest
-
 from tandemscan.daemon.cli import default_plan_path, main
 from tandemscan.daemon.runner import JobRunner
 from tandemscan.pipeline.cloud_io import read_ply

@@ -18,7 +18,6 @@ from dataclasses import dataclass
 
 import can
 import numpy as np
-
 from tandemscan.config.models import ChassisConfig
 from tandemscan.drivers.can_link import CanFrameError, CanLink, load_dbc
 from tandemscan.drivers.interfaces import ChassisPose

@@ -16,7 +16,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-
 from tandemscan.config.models import ArmConfig
 from tandemscan.drivers.json_stream import JsonFramingError, JsonObjectFramer, encode
 from tandemscan.pipeline.frames import from_rpy, to_rpy

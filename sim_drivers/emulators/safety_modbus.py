@@ -14,7 +14,6 @@ from pymodbus.constants import ExcCodes
 from pymodbus.pdu import ExceptionResponse, ModbusPDU
 from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
-
 from tandemscan.config.models import SafetyModbusConfig
 
 log = logging.getLogger(__name__)

@@ -15,7 +15,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-
 from tandemscan.config.models import TrackerStreamConfig
 from tandemscan.drivers.errors import TargetNotVisible
 from tandemscan.drivers.pose_stream import PoseStreamAdapter

@@ -1,0 +1,160 @@
+"""Coverage dry run: which part of the surface (by mesh area) the plan's scans would see, and what it leaves out.
+
+Each planned scanner pose is ray cast with the scanner model (working range and incidence limit, no noise) at
+a reduced pixel grid; a triangle counts as seen when a kept ray lands on it. Unseen area is sorted by reason:
+it rests on the floor (faces down at floor height), the arm cannot reach it (nearest raster cell unreachable),
+no scanner pose fits (it faces the floor so steeply that the sweet spot lies under the floor clearance), the
+arm cannot reach it (nearest raster cell unreachable), or it is missed (between scans or occluded).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
+from tandemscan.config.models import ScannerConfig
+from tandemscan.pipeline import frames as F
+from tandemscan.pipeline.planning.arm import StationRaster
+from tandemscan.pipeline.raycast import ScannerModel
+
+_FLOOR_CLEARANCE_MM = 150.0  # the scanner body needs this much room above the floor
+_DRY_RUN_PIXELS = (64, 50)
+
+
+@dataclass(frozen=True)
+class LeftOut:
+    """Unseen surface of one kind near one AGV station: area (mm^2), height range (mm), centroid (F, mm)."""
+
+    reason: str
+    station: int
+    area_mm2: float
+    z_range_mm: tuple[float, float]
+    centroid_mm: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class CoverageReport:
+    """Areas in mm^2; ``coverage_pct`` of the whole surface less what faces the floor with no room for a pose."""
+
+    total_area_mm2: float
+    floor_contact_mm2: float
+    seen_area_mm2: float
+    unreachable_mm2: float
+    missed_mm2: float
+    left_out: tuple[LeftOut, ...]
+
+    @property
+    def coverage_pct(self) -> float:
+        """Seen share of the surface where a scanner pose fits at all (%)."""
+        visible = self.total_area_mm2 - self.floor_contact_mm2
+        return 100.0 * self.seen_area_mm2 / visible if visible > 0 else 0.0
+
+    @property
+    def coverage_of_reachable_pct(self) -> float:
+        """Seen share of the surface a scanner on the arm can reach (not on the floor, not out of reach) (%)."""
+        reach = self.seen_area_mm2 + self.missed_mm2
+        return 100.0 * self.seen_area_mm2 / reach if reach > 0 else 0.0
+
+    def as_dict(self) -> dict:
+        return {
+            "coverage_pct": round(self.coverage_pct, 2),
+            "coverage_of_reachable_pct": round(self.coverage_of_reachable_pct, 2),
+            "total_area_m2": round(self.total_area_mm2 / 1e6, 3),
+            "seen_area_m2": round(self.seen_area_mm2 / 1e6, 3),
+            "floor_contact_m2": round(self.floor_contact_mm2 / 1e6, 3),
+            "unreachable_m2": round(self.unreachable_mm2 / 1e6, 3),
+            "missed_m2": round(self.missed_mm2 / 1e6, 3),
+            "left_out": [
+                {"reason": lo.reason, "station": lo.station, "area_m2": round(lo.area_mm2 / 1e6, 4),
+                 "z_range_mm": [round(v) for v in lo.z_range_mm], "centroid_mm": [round(v) for v in lo.centroid_mm]}
+                for lo in self.left_out
+            ],
+        }
+
+
+def seen_triangles(
+    mesh: o3d.geometry.TriangleMesh,
+    scene: o3d.t.geometry.RaycastingScene,
+    poses_T_F_S: list[np.ndarray],
+    scanner: ScannerConfig,
+) -> np.ndarray:
+    """Boolean per triangle: some planned scan sees it (reduced pixel grid, range and incidence limits)."""
+    model = ScannerModel(scanner.model_copy(update={"resolution": "coarse", "coarse_pixels": _DRY_RUN_PIXELS}))
+    seen = np.zeros(len(mesh.triangles), bool)
+    rays = []
+    for T_F_S in poses_T_F_S:
+        hits = model.cast(scene, T_F_S)
+        if len(hits.points_mm):  # the kept hits, cast again to learn which triangle each landed on
+            d = F.rotate_vectors(T_F_S, hits.points_mm / np.linalg.norm(hits.points_mm, axis=1, keepdims=True))
+            rays.append(np.c_[np.broadcast_to(T_F_S[:3, 3], d.shape), d])
+    if rays:
+        ans = scene.cast_rays(o3d.core.Tensor(np.vstack(rays).astype(np.float32)))
+        ids = ans["primitive_ids"].numpy()
+        seen[np.unique(ids[ids != o3d.t.geometry.RaycastingScene.INVALID_ID])] = True
+    return seen
+
+
+def no_pose_fits(centroid: np.ndarray, normal: np.ndarray, zmin: float, sweet_spot_mm: float,
+                 incidence_limit_rad: float) -> np.ndarray:
+    """Per triangle: even the most upward view within the incidence limit puts the scanner under the clearance."""
+    elevation = np.arcsin(np.clip(normal[:, 2], -1.0, 1.0))
+    best = np.minimum(elevation + incidence_limit_rad, np.pi / 2)
+    return centroid[:, 2] + sweet_spot_mm * np.sin(best) < zmin + _FLOOR_CLEARANCE_MM
+
+
+def dry_run(
+    mesh: o3d.geometry.TriangleMesh,
+    scene: o3d.t.geometry.RaycastingScene,
+    rasters: list[StationRaster],
+    scanner: ScannerConfig,
+    incidence_limit_rad: float,
+) -> CoverageReport:
+    """Coverage of the plan's scans by mesh area, with the unseen area attributed to a reason and a station."""
+    v = np.asarray(mesh.vertices)
+    tri = np.asarray(mesh.triangles)
+    p = v[tri]
+    cross = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    if np.einsum("ij,ij->i", p[:, 0], cross).sum() < 0:  # inward winding: turn the normals outward
+        cross = -cross
+    area = 0.5 * np.linalg.norm(cross, axis=1)
+    normal = cross / np.maximum(2 * area, 1e-12)[:, None]
+    centroid = p.mean(axis=1)
+    zmin = float(v[:, 2].min())
+    seen = seen_triangles(mesh, scene, [ps.T_F_S for r in rasters for ps in r.poses], scanner)
+    floor = no_pose_fits(centroid, normal, zmin, scanner.sweet_spot_mm, incidence_limit_rad) & ~seen
+
+    cell_pts, cell_ok, cell_station = [], [], []
+    for r in rasters:
+        for ps in r.poses:
+            cell_pts.append(ps.cell.point_F)
+            cell_ok.append(True)
+            cell_station.append(r.station.index)
+        for u in r.unreached:
+            cell_pts.append(u.cell.point_F)
+            cell_ok.append(False)
+            cell_station.append(r.station.index)
+    unseen = ~seen & ~floor
+    reason = np.full(len(tri), "", dtype=object)
+    station = np.full(len(tri), -1)
+    if cell_pts and unseen.any():
+        _, nearest = cKDTree(np.array(cell_pts)).query(centroid[unseen])
+        ok = np.array(cell_ok)[nearest]
+        reason[unseen] = np.where(ok, "missed between scans or occluded", "out of the arm's reach")
+        station[unseen] = np.array(cell_station)[nearest]
+    elif unseen.any():
+        reason[unseen] = "out of the arm's reach"
+    left = []
+    for why in ("out of the arm's reach", "missed between scans or occluded"):
+        for st in np.unique(station[reason == why]):
+            sel = (reason == why) & (station == st)
+            a = float(area[sel].sum())
+            left.append(LeftOut(why, int(st), a, (float(p[sel][:, :, 2].min()), float(p[sel][:, :, 2].max())),
+                                tuple(float(c) for c in (area[sel] @ centroid[sel]) / a)))
+    left.sort(key=lambda lo: -lo.area_mm2)
+    return CoverageReport(
+        float(area.sum()), float(area[floor].sum()), float(area[seen].sum()),
+        float(area[reason == "out of the arm's reach"].sum()), float(area[reason == "missed between scans or occluded"].sum()),
+        tuple(left),
+    )

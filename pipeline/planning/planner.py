@@ -1,0 +1,148 @@
+"""Plan a whole part: AGV stations, arm rasters, tracker stations and the command sequence (DESIGN.md 5.1).
+
+Everything is in the part frame F (mm, rad). The installation transforms are the nominal (or calibrated)
+ones from the configuration; the plan never sees the simulator's truth.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import open3d as o3d
+from shapely.geometry import Point
+from tandemscan.config.models import CellConfig
+from tandemscan.pipeline import frames as F
+from tandemscan.pipeline.planning.arm import IkSolver, ScanPose, StationRaster, default_ik, plan_arm
+from tandemscan.pipeline.planning.sequence import PoseRef, Sequence, build_sequence
+from tandemscan.pipeline.planning.stations import StationLayout, free_floor, offset_ring, place_stations
+from tandemscan.pipeline.planning.tracker import TrackerSolution, candidate_poses, choose_stations, cover_matrix
+from tandemscan.pipeline.raycast import make_scene
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class PartPlan:
+    """Everything the planner decided, for the plan file, the picture, the coverage check and the benchmark."""
+
+    layout: StationLayout
+    rasters: list[StationRaster]
+    poses: list[ScanPose]
+    candidates: np.ndarray  # (K, 3) tracker candidates: x mm, y mm, heading rad
+    cover: np.ndarray  # (K, M) candidate k sees the target at pose m
+    tracker: TrackerSolution
+    sequence: Sequence
+    start_candidate: int | None
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def tracker_poses(self) -> list[tuple[float, float, float]]:
+        return [tuple(float(v) for v in self.candidates[k]) for k in self.tracker.chain]
+
+    @property
+    def cells(self) -> int:
+        return sum(len(r.poses) + len(r.unreached) for r in self.rasters)
+
+    def summary(self) -> dict:
+        """Counts, solver and timings (JSON-ready)."""
+        return {
+            "agv_stations": len(self.layout.stations),
+            "agv_stations_skipped": len(self.layout.skipped),
+            "agv_step_mm": round(self.layout.step_mm, 1),
+            "raster_cells": self.cells,
+            "scans": self.sequence.plan.scan_count,
+            "unreachable_cells": sum(len(r.unreached) for r in self.rasters),
+            "poses_unseen_by_tracker": len(self.tracker.uncovered),
+            "tracker_candidates": len(self.candidates),
+            "tracker_stations": self.tracker.count,
+            "tracker_solver": self.tracker.solver,
+            "tracker_optimal": self.tracker.optimal,
+            "tracker_lower_bound": self.tracker.lower_bound,
+            "transfers": self.sequence.plan.transfer_count,
+            "joint_travel_rad": round(sum(r.joint_travel_rad for r in self.rasters), 2),
+            "plan_seconds": round(sum(self.seconds.values()), 3),
+            "seconds": {k: round(v, 3) for k, v in self.seconds.items()},
+        }
+
+
+def target_poses(poses: list[ScanPose], T_T_S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Target positions (F, mm) and visible normals (its z axis) at each scan pose."""
+    if not poses:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    T_F_T = np.stack([p.T_F_S for p in poses]) @ F.invert(T_T_S)
+    return T_F_T[:, :3, 3], T_F_T[:, :3, 2]
+
+
+def tracker_candidates(layout: StationLayout, config: CellConfig) -> np.ndarray:
+    """Candidate tracking-AGV poses at ``d1`` around the part, on free floor only."""
+    pl = config.planning
+    ring, inward = offset_ring(layout.contour, pl.tracker_distance_mm, pl.tracker_candidate_step_mm)
+    cand = candidate_poses(ring, inward, pl.tracker_heading_offsets_deg)
+    floor = free_floor(pl)
+    half = 0.5 * pl.agv_width_mm
+    ok = [floor.contains(Point(x, y).buffer(half, quad_segs=8)) for x, y, _ in cand]
+    return cand[np.array(ok, bool)] if len(cand) else cand
+
+
+def plan_part(
+    mesh: o3d.geometry.TriangleMesh,
+    config: CellConfig,
+    ik: IkSolver | None = None,
+    tracker_start: tuple[float, float, float] | None = None,
+    name: str = "generated",
+    part: str = "",
+) -> PartPlan:
+    """Plan the measurement of ``mesh`` on the configured cell.
+
+    ``tracker_start`` (x mm, y mm, heading rad): where the tracking robot stands when the job begins; the
+    chain starts there when it sees any measuring point.
+    """
+    seconds: dict[str, float] = {}
+    t = time.perf_counter()
+    inst = config.installation
+    layout = place_stations(mesh, config.scanner, config.planning)
+    seconds["stations"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    scene = make_scene(mesh)
+    bb = mesh.get_axis_aligned_bounding_box()
+    home = np.radians(config.sim.arm_home_deg)
+    rasters = plan_arm(scene, (bb.min_bound, bb.max_bound), layout.stations, layout.step_mm,
+                       layout.path.exterior.length,
+                       ik or default_ik(config.arm), config.arm, inst.T_V2_B.matrix(), inst.T_E_S.matrix(),
+                       config.scanner, config.planning, home)
+    poses = [p for r in rasters for p in r.poses]
+    seconds["arm"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    candidates = tracker_candidates(layout, config)
+    start = None
+    if tracker_start is not None:
+        candidates = np.vstack([candidates, np.asarray(tracker_start, float)[None, :]])
+        start = len(candidates) - 1
+    pts, nrm = target_poses(poses, inst.T_T_S.matrix())
+    cover = cover_matrix(candidates, inst.T_V1_C.matrix(), pts, nrm, scene, config.tracker, config.planning)
+    if start is not None and not cover[start].any():
+        log.warning("the tracker's start pose sees none of the planned scans; the plan moves it first")
+        start = None
+    seconds["tracker_cover"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    solution = choose_stations(cover, config.planning, first=start)
+    seconds["tracker_solve"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    refs = [PoseRef(p.station, (layout.stations[p.station].x_mm, layout.stations[p.station].y_mm,
+                                layout.stations[p.station].heading_rad),
+                    tuple(float(v) for v in p.joints_rad), f"station {p.station} row {p.cell.row} col {p.cell.col}")
+            for p in poses]
+    chain_poses = [tuple(float(v) for v in candidates[k]) for k in solution.chain]
+    sequence = build_sequence(refs, chain_poses, cover[list(solution.chain)], home, name, part,
+                              tracker_starts_at_first=start is not None)
+    seconds["sequence"] = time.perf_counter() - t
+    plan = PartPlan(layout, rasters, poses, candidates, cover, solution, sequence, start, seconds)
+    log.info("plan: %s", plan.summary())
+    return plan

@@ -1,0 +1,116 @@
+"""The unified command sequence: one robot moves while the other stands still (DESIGN.md 5.1).
+
+Input: the scan poses in their measuring order (station by station, each raster ordered), the tracker chain
+and its covers. While the tracker stands at chain station ``k``, the measurement robot scans every pose not
+yet scanned that station ``k`` sees, starting from where it stands and going on around the part. Then it
+goes to a pose that both station ``k`` and ``k + 1`` see (the last scan when it qualifies) and the tracker
+moves: a ``move_tracker`` step, which the job runner executes as a coordinate transfer (Eq. 2). Before the
+measurement AGV drives, the arm folds to its travel pose.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from tandemscan.pipeline.plan import MoveArm, MoveMeasure, MoveTracker, Plan, Scan
+
+log = logging.getLogger(__name__)
+
+
+class SequenceError(ValueError):
+    """The chain and the covers do not allow a sequence (a transfer with no shared measuring point)."""
+
+
+@dataclass(frozen=True)
+class PoseRef:
+    """One scan pose as the sequencer sees it: its AGV station pose (x mm, y mm, heading rad) and joints (rad)."""
+
+    station: int
+    agv_pose: tuple[float, float, float]
+    joints_rad: tuple[float, ...]
+    label: str
+
+
+@dataclass(frozen=True)
+class Sequence:
+    """The plan, which tracker station each scan was read from, and the transfer poses (indices into poses)."""
+
+    plan: Plan
+    scan_order: tuple[int, ...]
+    scan_tracker_station: tuple[int, ...]
+    transfer_poses: tuple[int, ...]
+
+
+class _Builder:
+    def __init__(self, home_rad: np.ndarray):
+        self.steps: list = []
+        self.home = tuple(float(v) for v in home_rad)
+        self.agv: tuple[float, float, float] | None = None
+        self.joints: tuple[float, ...] | None = None
+
+    def go(self, pose: PoseRef) -> None:
+        if self.agv != pose.agv_pose:
+            if self.joints is not None and self.joints != self.home:
+                self.steps.append(MoveArm(joints_rad=self.home))
+                self.joints = self.home
+            self.steps.append(MoveMeasure(x_mm=pose.agv_pose[0], y_mm=pose.agv_pose[1], heading_rad=pose.agv_pose[2]))
+            self.agv = pose.agv_pose
+        if self.joints != pose.joints_rad:
+            self.steps.append(MoveArm(joints_rad=pose.joints_rad))
+            self.joints = pose.joints_rad
+
+
+def build_sequence(
+    poses: list[PoseRef],
+    chain_poses: list[tuple[float, float, float]],
+    chain_cover: np.ndarray,
+    home_rad: np.ndarray,
+    name: str,
+    part: str = "",
+    tracker_starts_at_first: bool = True,
+) -> Sequence:
+    """The step list for ``poses`` (in measuring order) under the tracker chain.
+
+    ``chain_cover[k, i]``: chain station ``k`` sees pose ``i``. Poses no station sees are left out (the caller
+    reports them). With ``tracker_starts_at_first`` the tracker already stands at chain station 0; otherwise
+    the plan first moves it there (a transfer at the measurement robot's start pose).
+    """
+    cover = np.asarray(chain_cover, bool)
+    if cover.shape != (len(chain_poses), len(poses)):
+        raise SequenceError(f"cover shape {cover.shape} does not match {len(chain_poses)} stations x {len(poses)} poses")
+    b = _Builder(home_rad)
+    todo = cover.any(axis=0)
+    order, station_of, transfers = [], [], []
+    cursor = 0
+    if not tracker_starts_at_first:
+        x, y, h = chain_poses[0]
+        b.steps.append(MoveTracker(x_mm=x, y_mm=y, heading_rad=h))
+    for k in range(len(chain_poses)):
+        n = len(poses)
+        for i in [(cursor + j) % n for j in range(n)]:
+            if todo[i] and cover[k, i]:
+                b.go(poses[i])
+                b.steps.append(Scan(label=poses[i].label))
+                order.append(i)
+                station_of.append(k)
+                todo[i] = False
+                cursor = i
+        if k + 1 == len(chain_poses):
+            break
+        shared = np.flatnonzero(cover[k] & cover[k + 1])
+        if len(shared) == 0:
+            raise SequenceError(f"tracker stations {k} and {k + 1} share no measuring point")
+        if cursor in shared:
+            t = cursor
+        else:  # the shared pose nearest in measuring order from where the robot stands
+            t = int(shared[np.argmin((shared - cursor) % len(poses))])
+        b.go(poses[t])
+        x, y, h = chain_poses[k + 1]
+        b.steps.append(MoveTracker(x_mm=x, y_mm=y, heading_rad=h))
+        transfers.append(t)
+        cursor = t
+    if b.joints is not None and b.joints != b.home:
+        b.steps.append(MoveArm(joints_rad=b.home))
+    return Sequence(Plan(name=name, part=part, steps=b.steps), tuple(order), tuple(station_of), tuple(transfers))
