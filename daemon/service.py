@@ -31,6 +31,7 @@ from tandemscan.daemon.notify import Notifier
 from tandemscan.daemon.plans import PlanCatalog
 from tandemscan.daemon.store import JOB_STATES, JobStore
 from tandemscan.daemon.supervisor import Supervisor
+from tandemscan.daemon.tasks import cancel_and_wait
 from tandemscan.sim_drivers.persist import load_world_state
 
 log = logging.getLogger(__name__)
@@ -136,10 +137,8 @@ class Daemon:
         self.notifier.stopping()
         await self.manager.close()
         await self.supervisor.close()
-        tasks = self._tasks + list(self._journal_tasks)
-        for t in self._tasks:
-            t.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
+        await asyncio.gather(*self._journal_tasks, return_exceptions=True)
+        await cancel_and_wait(self._tasks)
         self._tasks.clear()
         await asyncio.to_thread(self.store.close)
 

@@ -24,6 +24,7 @@ from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
 
 from tandemscan.config.models import CellConfig
+from tandemscan.daemon.tasks import cancel_and_wait
 from tandemscan.drivers.errors import DeviceError, SafetyStop
 from tandemscan.drivers.interfaces import Device, SafetyIO
 
@@ -139,10 +140,7 @@ class Supervisor:
 
     async def close(self) -> None:
         """Stop the loops and close every device."""
-        tasks = self._tasks + list(self._reconnecting.values())
-        for t in tasks:
-            t.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
+        await cancel_and_wait(self._tasks + list(self._reconnecting.values()))
         self._tasks.clear()
         self._reconnecting.clear()
         for d in self.devices.values():

@@ -131,3 +131,24 @@ def test_backoff_doubles_to_a_cap():
     jittered = backoff_delays(1.0, 8.0, jitter=0.1, rng=random.Random(1))
     first = [next(jittered) for _ in range(4)]
     assert all(0.9 * b <= d <= 1.1 * b for d, b in zip(first, [1, 2, 4, 8], strict=True))
+
+
+async def test_a_task_that_swallows_one_cancel_is_still_stopped():
+    from tandemscan.daemon.tasks import cancel_and_wait
+
+    swallowed = []
+
+    async def stubborn():  # what a wait_for race in Python 3.11 does to a loop task
+        while True:
+            try:
+                await asyncio.sleep(0.01)
+            except asyncio.CancelledError:
+                if swallowed:
+                    raise
+                swallowed.append(True)
+                asyncio.current_task().uncancel()
+
+    task = asyncio.create_task(stubborn())
+    await asyncio.sleep(0.02)
+    await asyncio.wait_for(cancel_and_wait([task, None], retry_s=0.05), 5)
+    assert task.cancelled() and swallowed == [True]
