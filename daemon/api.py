@@ -142,6 +142,14 @@ PROBLEM_RESPONSES: dict[int | str, dict[str, Any]] = {
     code: {"model": Problem, "content": {PROBLEM: {}}} for code in (401, 404, 409, 422)
 }
 
+# Exports a finished job serves besides cloud.ply and report.json, with their media types.
+JOB_FILES = {
+    "report.html": "text/html",
+    "cloud.e57": "application/octet-stream",
+    "poses.csv": "text/csv",
+    "cloud_deviation.ply": "application/octet-stream",
+}
+
 # ---------------------------------------------------------------- helpers
 
 
@@ -153,7 +161,7 @@ def job_body(job: JobRecord, steps_done: int) -> Job:
     base = f"/v1/jobs/{job.id}"
     links = {"self": base, "events": f"/v1/events?job={job.id}"}
     if job.state == "succeeded":
-        links.update(cloud=f"{base}/cloud", report=f"{base}/report")
+        links.update(cloud=f"{base}/cloud", report=f"{base}/report", report_html=f"{base}/files/report.html")
     return Job(id=job.id, state=job.state, plan=job.plan_name, label=job.plan.get("label"),
                progress=job.progress, current_step=job.current_step, steps_total=job.n_steps,
                steps_done=steps_done, figures=job.figures, error=job.error, attempts=job.attempts,
@@ -337,6 +345,15 @@ def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
     async def get_report(job_id: JobId) -> Response:
         """The job's report (JSON: accuracy figures, per-scan poses, timings)."""
         return Response(artifact(job_id, "report.json").read_bytes(), media_type="application/json")
+
+    @app.get("/v1/jobs/{job_id}/files/{name}", response_class=FileResponse, tags=["jobs"],
+             responses={**PROBLEM_RESPONSES, 200: {"description": "the file, streamed"}})
+    async def get_job_file(job_id: JobId, name: str) -> FileResponse:
+        """One of the job's exports: ``report.html``, ``cloud.e57``, ``poses.csv``, ``cloud_deviation.ply``."""
+        media_type = JOB_FILES.get(name)
+        if media_type is None:
+            raise ApiProblem(404, "No such job file", f"{name!r} is not one of {', '.join(JOB_FILES)}")
+        return FileResponse(artifact(job_id, name), media_type=media_type, filename=f"{job_id}-{name}")
 
     # -------------------------------------------------------- cell
 

@@ -114,6 +114,19 @@ async def test_empty_body_runs_the_default_plan_to_success(api):
     assert done["attempts"] == 1 and done["started"] and done["finished"]
 
 
+async def test_job_files_are_served_by_name_only_from_the_list(api):
+    job = (await api.post("/v1/jobs", json={}, headers=AUTH)).json()
+    api.runner.open()
+    done = await wait_state(api, job["id"], "succeeded")
+    job_dir = api.daemon.store.job_dir(job["id"])
+    (job_dir / "report.html").write_text("<html><body>deviation</body></html>")
+    r = await api.get(done["links"]["report_html"])
+    assert r.status_code == 200 and r.headers["content-type"].startswith("text/html") and b"deviation" in r.content
+    assert_problem(await api.get(f"/v1/jobs/{job['id']}/files/poses.csv"), 404)  # listed, not written
+    assert_problem(await api.get(f"/v1/jobs/{job['id']}/files/secrets.txt"), 404)
+    assert_problem(await api.get(f"/v1/jobs/{job['id']}/files/..%2F..%2Fjournal.sqlite"), 404)
+
+
 async def test_idempotency_key_never_creates_two_jobs(api):
     h = {**AUTH, "Idempotency-Key": "order-42"}
     a = await api.post("/v1/jobs", json={"plan": "short"}, headers=h)
