@@ -84,6 +84,7 @@ def main() -> None:
     receiver = threading.Thread(target=receive, daemon=True)
     receiver.start()
     lat = {"job": [], "devices": []}
+    request_errors = 0
     try:
         with httpx.Client(base_url=url, timeout=10) as client:
             deadline = time.monotonic() + 120
@@ -102,7 +103,11 @@ def main() -> None:
             while time.monotonic() < t_end and state not in ("succeeded", "failed", "cancelled"):
                 for kind, path in (("job", f"/v1/jobs/{job['id']}"), ("devices", "/v1/devices")):
                     t0 = time.perf_counter()
-                    r = client.get(path)
+                    try:
+                        r = client.get(path)
+                    except httpx.TransportError:  # a reset connection is a failed request, reported below
+                        request_errors += 1
+                        continue
                     lat[kind].append((time.perf_counter() - t0) * 1000)
                     if kind == "job":
                         state = r.json()["state"]
@@ -127,6 +132,7 @@ def main() -> None:
         "steps_done": final["steps_done"],
         "job_state": final["state"],
         "requests": len(lat["job"]) + len(lat["devices"]),
+        "request_errors": request_errors,
         "rest_get_job_p50_ms": _pct(lat["job"], 50),
         "rest_get_job_p99_ms": _pct(lat["job"], 99),
         "rest_get_devices_p50_ms": _pct(lat["devices"], 50),
