@@ -24,8 +24,8 @@ from typing import Any
 from tandemscan.daemon.events import EventBus
 from tandemscan.daemon.store import FINAL_STATES, Event, JobRecord, JobStore, StoreError
 from tandemscan.daemon.supervisor import Supervisor
-from tandemscan.daemon.tasks import cancel_and_wait
 from tandemscan.drivers.errors import SafetyStop
+from tandemscan.drivers.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
 
@@ -122,7 +122,7 @@ class JobManager:
 
     async def close(self) -> None:
         """Stop scheduling; a job under way is interrupted and stays resumable (state kept)."""
-        await cancel_and_wait([self._scheduler, self._run_task])
+        await cancel_and_wait(self._scheduler, self._run_task)
 
     # ------------------------------------------------------------ requests
 
@@ -152,7 +152,7 @@ class JobManager:
         self._resume_event(job_id).set()
         if self._run_task is not None and self.active_id == job_id:
             # a long retry period: the run task's own clean-up (halt, state change) must not be interrupted
-            await cancel_and_wait([self._run_task], retry_s=10.0)
+            await cancel_and_wait(self._run_task, retry_s=10.0)
         else:  # an active job whose runner is not up (recovered paused job)
             await self._finish(job_id, "cancelled")
         return self.get(job_id)

@@ -31,7 +31,7 @@ from tandemscan.daemon.notify import Notifier
 from tandemscan.daemon.plans import PlanCatalog
 from tandemscan.daemon.store import JOB_STATES, JobStore
 from tandemscan.daemon.supervisor import Supervisor
-from tandemscan.daemon.tasks import cancel_and_wait
+from tandemscan.drivers.tasks import cancel_and_wait
 from tandemscan.sim_drivers.persist import load_world_state
 
 log = logging.getLogger(__name__)
@@ -138,7 +138,7 @@ class Daemon:
         await self.manager.close()
         await self.supervisor.close()
         await asyncio.gather(*self._journal_tasks, return_exceptions=True)
-        await cancel_and_wait(self._tasks)
+        await cancel_and_wait(*self._tasks)
         self._tasks.clear()
         await asyncio.to_thread(self.store.close)
 

@@ -24,9 +24,9 @@ from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
 
 from tandemscan.config.models import CellConfig
-from tandemscan.daemon.tasks import cancel_and_wait
 from tandemscan.drivers.errors import DeviceError, SafetyStop
 from tandemscan.drivers.interfaces import Device, SafetyIO
+from tandemscan.drivers.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
 
@@ -140,7 +140,7 @@ class Supervisor:
 
     async def close(self) -> None:
         """Stop the loops and close every device."""
-        await cancel_and_wait(self._tasks + list(self._reconnecting.values()))
+        await cancel_and_wait(*self._tasks, *self._reconnecting.values())
         self._tasks.clear()
         self._reconnecting.clear()
         for d in self.devices.values():

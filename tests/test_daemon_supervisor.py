@@ -134,7 +134,7 @@ def test_backoff_doubles_to_a_cap():
 
 
 async def test_a_task_that_swallows_one_cancel_is_still_stopped():
-    from tandemscan.daemon.tasks import cancel_and_wait
+    from tandemscan.drivers.tasks import cancel_and_wait
 
     swallowed = []
 
@@ -150,5 +150,5 @@ async def test_a_task_that_swallows_one_cancel_is_still_stopped():
 
     task = asyncio.create_task(stubborn())
     await asyncio.sleep(0.02)
-    await asyncio.wait_for(cancel_and_wait([task, None], retry_s=0.05), 5)
+    await asyncio.wait_for(cancel_and_wait(task, None, retry_s=0.05), 5)
     assert task.cancelled() and swallowed == [True]
