@@ -13,6 +13,8 @@ import time
 from typing import TYPE_CHECKING
 
 import numpy as np
+from tandemscan.daemon.report import ground_truth_scores
+from tandemscan.pipeline.cloud_io import read_raw_scan
 from tandemscan.pipeline.deepmerge.correct import StitchedScan, correct_scans
 from tandemscan.pipeline.uncertainty import scan_pose_covariance, transfer_covariance
 from tandemscan.pipeline.worldmap import VoxelMap
@@ -32,17 +34,14 @@ def correct_job(runner: JobRunner) -> dict:
     Returns the ``correction`` section of the report: the settings, pair and graph figures, and on the
     simulated cell the ground-truth figures of the tracker-only stitch (``before``).
     """
-    from tandemscan.daemon.report import _ground_truth_scores
-
     started = time.monotonic()
     cfg = runner.config.deepmerge
     before = None
     if runner.cell.world is not None:
-        before = {k: v for k, v in _ground_truth_scores(runner).items() if k in _GROUND_TRUTH_KEYS}
+        before = {k: v for k, v in ground_truth_scores(runner).items() if k in _GROUND_TRUTH_KEYS}
     raw, scans = [], []
     for s in runner.scans:
-        with np.load(s.file) as z:
-            raw.append((z["points_S_mm"].astype(float), z["normals_S"].astype(float) if "normals_S" in z else None))
+        raw.append(read_raw_scan(s.file))
         cov = scan_pose_covariance(s.T_W_C, s.reading.T_C_T, runner.installation.T_T_S, s.reading.covariance)
         scans.append(StitchedScan(raw[-1][0], s.T_W_S, cov, s.tracker_station))
     origins = np.array([s.T_W_S[:3, 3] for s in runner.scans])
@@ -54,7 +53,7 @@ def correct_job(runner: JobRunner) -> dict:
     runner.worldmap = VoxelMap(runner.config.job.voxel_mm)
     for s, T, (points, normals) in zip(runner.scans, result.poses, raw, strict=True):
         s.T_W_S = T
-        runner._stitch(T, points, normals)
+        runner.worldmap.add_scan(T, points, normals)
     section = {"enabled": True, **result.report, "seconds": round(time.monotonic() - started, 3)}
     if before is not None:
         section["before"] = before

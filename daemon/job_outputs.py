@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from tandemscan.pipeline import frames as F
+from tandemscan.pipeline.cloud_io import read_raw_scan
 from tandemscan.pipeline.export import PosedScan, write_e57, write_pose_log
 from tandemscan.pipeline.inspect import InspectionError
 from tandemscan.pipeline.inspection_job import InspectionOutputs, run_inspection
@@ -28,8 +29,7 @@ STITCH_VIEW_POINTS = 20_000  # per scan, for the overlap figure
 def _posed_scans(runner: JobRunner) -> list[PosedScan]:
     scans = []
     for s in runner.scans:
-        with np.load(s.file) as raw:
-            points = raw["points_S_mm"].astype(np.float64)
+        points, _ = read_raw_scan(s.file)
         meta = {"tracker_station": s.tracker_station, "timestamp_s": s.reading.timestamp_s,
                 **{f"joint{i + 1}_deg": float(np.degrees(q)) for i, q in enumerate(s.joints_rad)}}
         scans.append(PosedScan(s.file.stem, s.T_W_S, points, meta))

@@ -34,11 +34,11 @@ def build_report(runner: JobRunner, seconds: float) -> dict:
     }
     world = runner.cell.world
     if world is not None and runner.scans:
-        report["ground_truth"] = _ground_truth_scores(runner)
+        report["ground_truth"] = ground_truth_scores(runner)
     return report
 
 
-def _ground_truth_scores(runner: JobRunner) -> dict:
+def ground_truth_scores(runner: JobRunner) -> dict:
     """Pose errors per scan and per tracker station, and the stitched cloud's distance to the part."""
     world = runner.cell.world
     mm, deg = pose_errors([s.T_W_S for s in runner.scans], [s.T_W_S_true for s in runner.scans])

@@ -11,7 +11,6 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
-import os
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
@@ -21,10 +20,12 @@ from typing import Protocol, TypeVar
 
 import numpy as np
 from tandemscan.config.models import CellConfig
+from tandemscan.daemon.store import write_durably
 from tandemscan.drivers.errors import TargetNotVisible
 from tandemscan.drivers.interfaces import ChassisPose, TrackerReading
 from tandemscan.pipeline import frames as F
-from tandemscan.pipeline.cloud_io import write_ply
+from tandemscan.pipeline.cloud_io import read_raw_scan
+from tandemscan.pipeline.export import write_ply
 from tandemscan.pipeline.installation import Installation
 from tandemscan.pipeline.plan import MoveArm, MoveMeasure, MoveTracker, Plan, Scan
 from tandemscan.pipeline.worldmap import VoxelMap
@@ -149,20 +150,10 @@ def installation_for_job(config: CellConfig, cell: Cell) -> Installation:
 _FLOAT32_ARRAYS = ("points_S_mm", "normals_S")  # stored as float32 (mm, unit vectors)
 
 
-def _fsync_write_npz(path: Path, **arrays: np.ndarray) -> None:
-    """Write an .npz and make it durable before returning."""
-    tmp = path.with_suffix(".tmp")
+def _write_raw_scan(path: Path, **arrays: np.ndarray) -> None:
+    """Write a raw scan ``.npz`` and make it durable before returning."""
     arrays = {k: v.astype(np.float32) if k in _FLOAT32_ARRAYS else v for k, v in arrays.items()}
-    with open(tmp, "wb") as fh:
-        np.savez(fh, **arrays)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
-    dir_fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(dir_fd)
-    finally:
-        os.close(dir_fd)
+    write_durably(path, lambda f: np.savez(f, **arrays))
 
 
 class JobRunner:
@@ -349,7 +340,7 @@ class JobRunner:
         }
         if frame.normals is not None:
             arrays["normals_S"] = frame.normals
-        await asyncio.to_thread(_fsync_write_npz, file, **arrays)
+        await asyncio.to_thread(_write_raw_scan, file, **arrays)
         T_W_S = F.compose(self.T_W_C, reading.T_C_T, self.installation.T_T_S)
         truth = self.cell.world.T_W_S() if self.cell.world is not None else None
         record = ScanRecord(index, self.tracker_station, file, reading, joints, self.T_W_C.copy(), T_W_S,
@@ -366,16 +357,9 @@ class JobRunner:
         if hasattr(self.worldmap, "add_file"):
             self.worldmap.add_file(record.file, record.T_W_S)
         elif points_S is not None:
-            self._stitch(record.T_W_S, points_S, normals_S)
+            self.worldmap.add_scan(record.T_W_S, points_S, normals_S)
         else:
-            with np.load(record.file) as data:
-                normals = data["normals_S"] if "normals_S" in data.files else None
-                self._stitch(record.T_W_S, data["points_S_mm"], normals)
-
-    def _stitch(self, T_W_S: np.ndarray, points_S: np.ndarray, normals_S: np.ndarray | None) -> None:
-        """Eq. 1 into the world map."""
-        normals = None if normals_S is None else F.rotate_vectors(T_W_S, normals_S)
-        self.worldmap.add(F.transform_points(T_W_S, points_S), normals)
+            self.worldmap.add_scan(record.T_W_S, *read_raw_scan(record.file))
 
     def _export(self, seconds: float) -> JobResult:
         from tandemscan.daemon.job_outputs import write_job_outputs

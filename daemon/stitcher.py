@@ -26,12 +26,9 @@ def _init(voxel_mm: float) -> None:
 
 
 def _add_file(path: str, T_W_S: np.ndarray) -> int:
-    from tandemscan.pipeline import frames as F
+    from tandemscan.pipeline.cloud_io import read_raw_scan
 
-    with np.load(path) as data:
-        points = data["points_S_mm"].astype(np.float64)
-        normals = data["normals_S"].astype(np.float64) if "normals_S" in data.files else None
-    _MAP.add(F.transform_points(T_W_S, points), None if normals is None else F.rotate_vectors(T_W_S, normals))
+    _MAP.add_scan(T_W_S, *read_raw_scan(path))
     return len(_MAP)
 
 

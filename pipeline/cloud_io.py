@@ -1,4 +1,7 @@
-"""Point-cloud files: PLY read and write (binary), mm, with optional normals."""
+"""Reading point-cloud files and the job's raw scan files (mm).
+
+Writing PLY is :func:`tandemscan.pipeline.export.write_ply`.
+"""
 
 from __future__ import annotations
 
@@ -9,25 +12,35 @@ import open3d as o3d
 
 
 class CloudIOError(Exception):
-    """A cloud file is missing, unreadable or empty."""
+    """A cloud file is missing, unreadable or empty; the message names the file."""
 
 
-def write_ply(path: Path, points_mm: np.ndarray, normals: np.ndarray | None = None) -> None:
-    """Write a binary PLY (mm)."""
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points_mm, np.float64)))
-    if normals is not None:
-        pcd.normals = o3d.utility.Vector3dVector(np.asarray(normals, np.float64))
-    if not o3d.io.write_point_cloud(str(path), pcd, write_ascii=False):
-        raise CloudIOError(f"{path}: could not write the cloud")
+def has_ply_magic(path: Path) -> bool:
+    """False for a ``.ply`` file that does not start with the PLY magic (Open3D would print its own error)."""
+    if path.suffix.lower() != ".ply":
+        return True
+    with path.open("rb") as f:
+        return f.read(4).rstrip(b"\r\n") == b"ply"
 
 
-def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """(points (N, 3) mm, normals or None) of a PLY/PCD/XYZ cloud."""
+def read_ply(path: Path | str) -> tuple[np.ndarray, np.ndarray | None]:
+    """(points (N, 3) mm, normals or None) of a PLY/PCD/XYZ cloud; raises :class:`CloudIOError`."""
     path = Path(path)
     if not path.is_file():
         raise CloudIOError(f"{path}: cloud file not found")
-    pcd = o3d.io.read_point_cloud(str(path))
-    if len(pcd.points) == 0:
-        raise CloudIOError(f"{path}: no points could be read")
-    normals = np.asarray(pcd.normals) if pcd.has_normals() else None
-    return np.asarray(pcd.points), normals
+    if not has_ply_magic(path):
+        raise CloudIOError(f"{path}: not a PLY file (no 'ply' magic at the start)")
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):  # we raise our own error
+        pcd = o3d.io.read_point_cloud(str(path))
+    if not pcd.has_points():
+        raise CloudIOError(f"{path}: no points could be read (formats: .ply .pcd .xyz .xyzn .pts)")
+    normals = np.asarray(pcd.normals, dtype=np.float64) if pcd.has_normals() else None
+    return np.asarray(pcd.points, dtype=np.float64), normals
+
+
+def read_raw_scan(path: Path | str) -> tuple[np.ndarray, np.ndarray | None]:
+    """(points_S (N, 3) mm, normals_S or None) of a job's raw scan file (``.npz``, scanner frame S), float64."""
+    with np.load(path) as data:
+        points = data["points_S_mm"].astype(np.float64)
+        normals = data["normals_S"].astype(np.float64) if "normals_S" in data.files else None
+    return points, normals

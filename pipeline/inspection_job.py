@@ -14,8 +14,10 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 from tandemscan.config.models import InspectionConfig
+from tandemscan.pipeline.cloud_io import CloudIOError, read_ply
 from tandemscan.pipeline.export import write_ply
 from tandemscan.pipeline.inspect import CadSurface, InspectionError, InspectionResult, inspect_cloud
+from tandemscan.pipeline.part import PartMeshError, read_mesh_file
 from tandemscan.pipeline.report import build_report, write_report
 
 DEVIATION_PLY = "cloud_deviation.ply"  # written next to report.html
@@ -32,39 +34,6 @@ class InspectionOutputs:
     html: Path
     json: Path | None
     ply: Path
-
-
-def _check_readable(path: Path, what: str) -> None:
-    """Missing files, and PLY files without the PLY magic (whose parser would print to stderr itself)."""
-    if not path.is_file():
-        raise InspectionError(f"{path}: {what} file not found")
-    if path.suffix.lower() == ".ply":
-        with path.open("rb") as f:
-            if f.read(4).rstrip(b"\r\n") != b"ply":
-                raise InspectionError(f"{path}: not a PLY file (no 'ply' magic at the start)")
-
-
-def load_cloud(path: Path | str) -> tuple[np.ndarray, np.ndarray | None]:
-    """(points mm, normals or None) of a point-cloud file, or :class:`InspectionError` naming the file."""
-    path = Path(path)
-    _check_readable(path, "cloud")
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):  # we raise our own error
-        cloud = o3d.io.read_point_cloud(str(path))
-    if not cloud.has_points():
-        raise InspectionError(f"{path}: no points could be read (formats: .ply .pcd .xyz .xyzn .pts)")
-    normals = np.asarray(cloud.normals, dtype=np.float64) if cloud.has_normals() else None
-    return np.asarray(cloud.points, dtype=np.float64), normals
-
-
-def load_mesh(path: Path | str) -> o3d.geometry.TriangleMesh:
-    """A CAD triangle mesh (mm), or :class:`InspectionError` naming the file."""
-    path = Path(path)
-    _check_readable(path, "CAD mesh")
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        mesh = o3d.io.read_triangle_mesh(str(path))
-    if not mesh.has_triangles():
-        raise InspectionError(f"{path}: no triangles could be read (formats: .stl .ply .obj .off)")
-    return mesh
 
 
 def run_inspection(
@@ -105,7 +74,10 @@ def inspect_files(
     cloud_path: Path | str, cad_path: Path | str, out_dir: Path | str, cfg: InspectionConfig | None = None
 ) -> InspectionOutputs:
     """Inspect a cloud file against a CAD mesh file; writes into ``out_dir``."""
-    points, normals = load_cloud(cloud_path)
-    mesh = load_mesh(cad_path)
+    try:
+        points, normals = read_ply(cloud_path)
+        mesh = read_mesh_file(Path(cad_path), what="CAD mesh")
+    except (CloudIOError, PartMeshError) as e:
+        raise InspectionError(str(e)) from e
     meta = {"cloud": str(cloud_path), "CAD mesh": str(cad_path), "points": str(len(points))}
     return run_inspection(points, mesh, out_dir, cfg, normals=normals, meta=meta)

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 from tandemscan.config.models import PartConfig
+from tandemscan.pipeline.cloud_io import has_ply_magic
 
 MESH_SUFFIXES = (".stl", ".ply", ".obj", ".off", ".gltf", ".glb")
 
@@ -26,16 +27,20 @@ def load_part_mesh(part: PartConfig) -> o3d.geometry.TriangleMesh:
     return read_mesh_file(part.mesh)
 
 
-def read_mesh_file(path: Path) -> o3d.geometry.TriangleMesh:
-    """Read an STL/PLY/OBJ mesh in millimetres, with vertex normals; raises :class:`PartMeshError`."""
+def read_mesh_file(path: Path, what: str = "mesh") -> o3d.geometry.TriangleMesh:
+    """Read an STL/PLY/OBJ mesh in millimetres, with vertex normals; raises :class:`PartMeshError`
+    whose message names the file and calls it ``what`` (e.g. ``"CAD mesh"``)."""
     path = Path(path)
     if not path.is_file():
-        raise PartMeshError(f"{path}: mesh file not found")
+        raise PartMeshError(f"{path}: {what} file not found")
     if path.suffix.lower() not in MESH_SUFFIXES:
         raise PartMeshError(f"{path}: unsupported mesh format (use one of {', '.join(MESH_SUFFIXES)})")
-    mesh = o3d.io.read_triangle_mesh(str(path))
+    if not has_ply_magic(path):
+        raise PartMeshError(f"{path}: not a PLY file (no 'ply' magic at the start)")
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):  # we raise our own error
+        mesh = o3d.io.read_triangle_mesh(str(path))
     if len(mesh.triangles) == 0:
-        raise PartMeshError(f"{path}: no triangles could be read")
+        raise PartMeshError(f"{path}: no triangles could be read (formats: {' '.join(MESH_SUFFIXES)})")
     mesh.compute_vertex_normals()
     return mesh
 

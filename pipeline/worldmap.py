@@ -9,6 +9,7 @@ Keys are the voxel indices packed in one int64 (21 bits per axis: +-1,048,575 vo
 from __future__ import annotations
 
 import numpy as np
+from tandemscan.pipeline import frames as F
 
 _BITS = 21
 _OFFSET = 1 << (_BITS - 1)
@@ -60,6 +61,11 @@ class VoxelMap:
             self._keys = np.insert(self._keys, pos[new], uniq[new])
             self._sums = np.insert(self._sums, pos[new], sums[new], axis=0)
             self._counts = np.insert(self._counts, pos[new], counts[new])
+
+    def add_scan(self, T_W_S: np.ndarray, points_S_mm: np.ndarray, normals_S: np.ndarray | None = None) -> None:
+        """Eq. 1: merge a scan given in the scanner frame S, placed in the world by ``T_W_S`` (mm)."""
+        normals = None if normals_S is None else F.rotate_vectors(T_W_S, normals_S)
+        self.add(F.transform_points(T_W_S, points_S_mm), normals)
 
     def points(self) -> np.ndarray:
         """Mean point of every occupied voxel, (M, 3) mm."""

@@ -11,6 +11,7 @@ import logging
 from dataclasses import dataclass, field
 
 import numpy as np
+import open3d as o3d
 from tandemscan.config.models import CellConfig, ChassisConfig, FloorPoseConfig
 from tandemscan.drivers.errors import OutOfReach, TargetNotVisible
 from tandemscan.drivers.interfaces import ChassisPose
@@ -186,8 +187,6 @@ class SimWorld:
             return f"target turned {facing:.0f} deg away from the camera"
         origin = self.T_F_C()[:3, 3]
         to_target = self.T_F_T()[:3, 3] - origin
-        import open3d as o3d  # only here: the sight line is one ray
-
         ray = np.r_[origin, to_target / distance][None, :].astype(np.float32)
         t_hit = float(self.scene.cast_rays(o3d.core.Tensor(ray))["t_hit"].numpy()[0])
         if t_hit < distance - _OCCLUSION_MARGIN_MM:

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 from tandemscan.daemon.cli import main
-from tandemscan.pipeline.cloud_io import write_ply
 from tandemscan.pipeline.deepmerge.register import DeepMergeRegistrar, RegistrationError, shipped_weights_path
 from tandemscan.pipeline.deepmerge.train import TrainSettings, make_pool, perturb, train
+from tandemscan.pipeline.export import write_ply
 from tandemscan.pipeline.frames import from_rotvec, invert, pose_error, transform_points
 
 TINY = TrainSettings(seed=3, train_pairs=6, val_pairs=2, shapes_per_pool=3, num_points=64, k=8,
