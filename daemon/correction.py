@@ -20,7 +20,7 @@ from tandemscan.pipeline.uncertainty import scan_pose_covariance, transfer_covar
 from tandemscan.pipeline.worldmap import VoxelMap
 
 if TYPE_CHECKING:
-    from tandemscan.daemon.runner import JobRunner
+    from tandemscan.daemon.snapshot import JobSnapshot
 
 log = logging.getLogger(__name__)
 
@@ -28,34 +28,35 @@ _GROUND_TRUTH_KEYS = ("pose_err_mm_median", "pose_err_mm_max", "pose_err_deg_med
                       "cloud_rms_mm", "cloud_p95_mm")
 
 
-def correct_job(runner: JobRunner) -> dict:
-    """Replace every ``runner.scans[i].T_W_S`` by its refined pose and re-stitch ``runner.worldmap``.
+def correct_job(job: JobSnapshot) -> tuple[dict, list[np.ndarray]]:
+    """Replace every ``job.scans[i].T_W_S`` by its refined pose and re-stitch ``job.worldmap``.
 
-    Returns the ``correction`` section of the report: the settings, pair and graph figures, and on the
-    simulated cell the ground-truth figures of the tracker-only stitch (``before``).
+    Returns the ``correction`` section of the report (the settings, pair and graph figures, and on the
+    simulated cell the ground-truth figures of the tracker-only stitch, ``before``) and the refined poses
+    ``T_W_S`` (mm) in scan order.
     """
     started = time.monotonic()
-    cfg = runner.config.deepmerge
+    cfg = job.config.deepmerge
     before = None
-    if runner.cell.world is not None:
-        before = {k: v for k, v in ground_truth_scores(runner).items() if k in _GROUND_TRUTH_KEYS}
+    if job.world is not None:
+        before = {k: v for k, v in ground_truth_scores(job).items() if k in _GROUND_TRUTH_KEYS}
     raw, scans = [], []
-    for s in runner.scans:
+    for s in job.scans:
         raw.append(read_raw_scan(s.file))
-        cov = scan_pose_covariance(s.T_W_C, s.reading.T_C_T, runner.installation.T_T_S, s.reading.covariance)
+        cov = scan_pose_covariance(s.T_W_C, s.reading.T_C_T, job.installation.T_T_S, s.reading.covariance)
         scans.append(StitchedScan(raw[-1][0], s.T_W_S, cov, s.tracker_station))
-    origins = np.array([s.T_W_S[:3, 3] for s in runner.scans])
-    stations = np.array([s.tracker_station for s in runner.scans])
+    origins = np.array([s.T_W_S[:3, 3] for s in job.scans])
+    stations = np.array([s.tracker_station for s in job.scans])
     lever = max(float(np.max(np.linalg.norm(origins[stations == k] - origins[stations == k].mean(0), axis=1)))
                 for k in np.unique(stations))
-    transfer = transfer_covariance(np.mean([s.reading.covariance for s in runner.scans], axis=0), lever)
-    result = correct_scans(scans, cfg, transfer_covariance=transfer, voxel_mm=runner.config.job.voxel_mm)
-    runner.worldmap = VoxelMap(runner.config.job.voxel_mm)
-    for s, T, (points, normals) in zip(runner.scans, result.poses, raw, strict=True):
+    transfer = transfer_covariance(np.mean([s.reading.covariance for s in job.scans], axis=0), lever)
+    result = correct_scans(scans, cfg, transfer_covariance=transfer, voxel_mm=job.config.job.voxel_mm)
+    job.worldmap = VoxelMap(job.config.job.voxel_mm)
+    for s, T, (points, normals) in zip(job.scans, result.poses, raw, strict=True):
         s.T_W_S = T
-        runner.worldmap.add_scan(T, points, normals)
+        job.worldmap.add_scan(T, points, normals)
     section = {"enabled": True, **result.report, "seconds": round(time.monotonic() - started, 3)}
     if before is not None:
         section["before"] = before
     log.info("stitch corrected in %.1f s", section["seconds"])
-    return section
+    return section, list(result.poses)

@@ -8,27 +8,29 @@ inspection is then skipped with the reason recorded.
 
 from __future__ import annotations
 
+import json
 import logging
 from typing import TYPE_CHECKING
 
 import numpy as np
+from tandemscan.daemon.report import build_report
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.cloud_io import read_raw_scan
-from tandemscan.pipeline.export import PosedScan, write_e57, write_pose_log
+from tandemscan.pipeline.export import PosedScan, write_e57, write_ply, write_pose_log
 from tandemscan.pipeline.inspect import InspectionError
 from tandemscan.pipeline.inspection_job import InspectionOutputs, run_inspection
 
 if TYPE_CHECKING:
-    from tandemscan.daemon.runner import JobRunner
+    from tandemscan.daemon.snapshot import JobSnapshot
 
 log = logging.getLogger(__name__)
 
 STITCH_VIEW_POINTS = 20_000  # per scan, for the overlap figure
 
 
-def _posed_scans(runner: JobRunner) -> list[PosedScan]:
+def _posed_scans(job: JobSnapshot) -> list[PosedScan]:
     scans = []
-    for s in runner.scans:
+    for s in job.scans:
         points, _ = read_raw_scan(s.file)
         meta = {"tracker_station": s.tracker_station, "timestamp_s": s.reading.timestamp_s,
                 **{f"joint{i + 1}_deg": float(np.degrees(q)) for i, q in enumerate(s.joints_rad)}}
@@ -54,14 +56,24 @@ def _accuracy(report: dict) -> dict:
     return out | {label: truth[k] for k, label in keys.items() if k in truth}
 
 
-def write_job_outputs(runner: JobRunner, report: dict) -> dict:
+def export_job(job: JobSnapshot, seconds: float) -> dict:
+    """Write ``cloud.ply`` (W, mm), the report (returned and written as ``report.json``) and the inspection
+    exports of a finished job into its folder; runs where ``job.worldmap`` lives."""
+    write_ply(job.job_dir / "cloud.ply", job.worldmap.points(), job.worldmap.normals())
+    report = build_report(job, seconds)
+    report["inspection"] = write_job_outputs(job, report)  # report.html, E57, pose log
+    (job.job_dir / "report.json").write_text(json.dumps(report, indent=1), encoding="utf-8")
+    return report
+
+
+def write_job_outputs(job: JobSnapshot, report: dict) -> dict:
     """Write the E57, the pose log and (when registered to CAD) the inspection report of a finished job.
 
     Returns the inspection section for the job's ``report.json``: the same numbers as report.html.
     """
-    job_dir = runner.job_dir
-    scans = _posed_scans(runner)
-    cloud_W = runner.worldmap.points()
+    job_dir = job.job_dir
+    scans = _posed_scans(job)
+    cloud_W = job.worldmap.points()
     files = {"e57": "cloud.e57", "pose_log": "poses.csv"}
     with_points = [s for s in scans if len(s.points_S_mm)]  # E57 has no empty scans; the pose log keeps them
     if len(with_points) < len(scans):
@@ -69,9 +81,9 @@ def write_job_outputs(runner: JobRunner, report: dict) -> dict:
     if with_points:
         write_e57(job_dir / files["e57"], with_points, cloud_W if len(cloud_W) else None)
     write_pose_log(job_dir / files["pose_log"], scans)
-    world = runner.cell.world
+    world = job.world
     reason = (
-        "inspection.in_job is off" if not runner.config.inspection.in_job
+        "inspection.in_job is off" if not job.config.inspection.in_job
         else "no registration of the world frame to the CAD frame" if world is None
         else "empty cloud" if len(cloud_W) == 0
         else ""
@@ -80,9 +92,9 @@ def write_job_outputs(runner: JobRunner, report: dict) -> dict:
         log.warning("inspection skipped: %s", reason)
         return {"skipped": reason, "files": files}
     T_F_W = F.invert(world.T_W_F)
-    normals_W = runner.worldmap.normals()
+    normals_W = job.worldmap.normals()
     try:
-        out = _inspect(runner, report, scans, cloud_W, normals_W, T_F_W)
+        out = _inspect(job, report, scans, cloud_W, normals_W, T_F_W)
     except InspectionError as e:  # the measurement stands; the report says why it has no inspection
         log.warning("inspection failed: %s", e)
         return {"failed": str(e), "files": files}
@@ -90,12 +102,12 @@ def write_job_outputs(runner: JobRunner, report: dict) -> dict:
     return out.data | {"T_F_W": T_F_W.tolist(), "files": files}
 
 
-def _inspect(runner: JobRunner, report: dict, scans: list[PosedScan], cloud_W: np.ndarray,
+def _inspect(job: JobSnapshot, report: dict, scans: list[PosedScan], cloud_W: np.ndarray,
              normals_W: np.ndarray | None, T_F_W: np.ndarray) -> InspectionOutputs:
     """The inspection of the job's cloud in the CAD frame, written into the job folder."""
-    job_dir, world = runner.job_dir, runner.cell.world
+    job_dir, world = job.job_dir, job.world
     # the tracker-only stitch (Eq. 1) against the poses the job ended with, which a correction step may change
-    tracker_only = [F.compose(s.T_W_C, s.reading.T_C_T, runner.installation.T_T_S) for s in runner.scans]
+    tracker_only = [F.compose(s.T_W_C, s.reading.T_C_T, job.installation.T_T_S) for s in job.scans]
     corrected = any(not np.allclose(T, s.T_W_S, rtol=0, atol=1e-9) for T, s in zip(tracker_only, scans, strict=True))
     before = [F.transform_points(T_F_W @ T, _thin(s.points_S_mm)) for T, s in zip(tracker_only, scans, strict=True)]
     after = [F.transform_points(T_F_W @ s.T_W_S, _thin(s.points_S_mm)) for s in scans] if corrected else None
@@ -103,10 +115,10 @@ def _inspect(runner: JobRunner, report: dict, scans: list[PosedScan], cloud_W: n
         F.transform_points(T_F_W, cloud_W),
         world.mesh,
         job_dir,
-        runner.config.inspection,
+        job.config.inspection,
         normals=None if normals_W is None else F.rotate_vectors(T_F_W, normals_W),
         title=f"Inspection report, {job_dir.name}",
-        meta={"job": job_dir.name, "plan": runner.plan.name, "cell": runner.config.name,
+        meta={"job": job_dir.name, "plan": job.plan.name, "cell": job.config.name,
               "registration to CAD": "simulation ground truth T_W_F", "points": str(len(cloud_W))},
         accuracy=_accuracy(report),
         scans_before=before,

@@ -3,13 +3,13 @@
 Order per DESIGN.md section 5: measure (persist the raw scan, ``T_C_T``, joints and timestamps before anything
 else) -> stitch (Eq. 1 into a voxel world map) -> export (``cloud.ply``, ``report.json``). A ``move_tracker``
 step is a coordinate transfer (Eq. 2) with the measurement robot standing still. Steps run one at a time, so
-the two robots never move together. Heavy numeric work runs in a worker thread, off the event loop.
+the two robots never move together. Heavy numeric work (scan writing, stitching, correction, report and
+exports) runs where the world map lives (:mod:`tandemscan.daemon.stitcher`): a worker process in the daemon,
+threads otherwise; the event loop only passes small records and file names.
 """
 
 from __future__ import annotations
 
-import asyncio
-import json
 import logging
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
@@ -20,15 +20,13 @@ from typing import Protocol, TypeVar
 
 import numpy as np
 from tandemscan.config.models import CellConfig
-from tandemscan.daemon.store import write_durably
+from tandemscan.daemon.snapshot import JobSnapshot
+from tandemscan.daemon.stitcher import LocalWorldMap, ProcessWorldMap
 from tandemscan.drivers.errors import TargetNotVisible
 from tandemscan.drivers.interfaces import ChassisPose, TrackerReading
 from tandemscan.pipeline import frames as F
-from tandemscan.pipeline.cloud_io import read_raw_scan
-from tandemscan.pipeline.export import write_ply
 from tandemscan.pipeline.installation import Installation
 from tandemscan.pipeline.plan import MoveArm, MoveMeasure, MoveTracker, Plan, Scan
-from tandemscan.pipeline.worldmap import VoxelMap
 from tandemscan.sim_drivers.cell import Cell
 
 log = logging.getLogger(__name__)
@@ -147,15 +145,6 @@ def installation_for_job(config: CellConfig, cell: Cell) -> Installation:
     return Installation.load(path)
 
 
-_FLOAT32_ARRAYS = ("points_S_mm", "normals_S")  # stored as float32 (mm, unit vectors)
-
-
-def _write_raw_scan(path: Path, **arrays: np.ndarray) -> None:
-    """Write a raw scan ``.npz`` and make it durable before returning."""
-    arrays = {k: v.astype(np.float32) if k in _FLOAT32_ARRAYS else v for k, v in arrays.items()}
-    write_durably(path, lambda f: np.savez(f, **arrays))
-
-
 class JobRunner:
     """Runs one plan on one cell into ``job_dir``."""
 
@@ -167,7 +156,7 @@ class JobRunner:
         job_dir: Path,
         progress: Callable[[JobProgress], None] | None = None,
         journal: StepJournal | None = None,
-        worldmap=None,
+        worldmap: LocalWorldMap | ProcessWorldMap | None = None,
     ):
         self.cell = cell
         self.plan = plan
@@ -176,8 +165,7 @@ class JobRunner:
         self.progress = progress or (lambda p: None)
         self.journal = journal or _NoJournal()
         self.installation = installation_for_job(config, cell)
-        # a VoxelMap, or anything with its read interface and ``add_file(path, T_W_S)`` (a worker process)
-        self.worldmap = worldmap if worldmap is not None else VoxelMap(config.job.voxel_mm)
+        self.worldmap = worldmap if worldmap is not None else LocalWorldMap(config.job.voxel_mm)
         self.T_W_C = np.eye(4)  # W is the tracker camera frame at its first station
         self.tracker_station = 0
         self.scans: list[ScanRecord] = []
@@ -220,9 +208,11 @@ class JobRunner:
             from tandemscan.daemon.correction import correct_job
 
             self.progress(JobProgress(total - 1, total, "correcting the stitch (DeepMerge, pose graph)"))
-            self.correction = await asyncio.to_thread(correct_job, self)
+            self.correction, poses = await self.worldmap.run(correct_job, self.snapshot())
+            for s, T_W_S in zip(self.scans, poses, strict=True):
+                s.T_W_S = T_W_S
         self.progress(JobProgress(total - 1, total, "writing cloud and report"))
-        result = await asyncio.to_thread(self._export, time.monotonic() - started)
+        result = await self._export(time.monotonic() - started)
         self.progress(JobProgress(total, total, "done"))
         return result
 
@@ -257,7 +247,7 @@ class JobRunner:
             record = _scan_from_result(result, self.job_dir)
             self.scans.append(record)
             self.last_still_T_C_T = record.reading.T_C_T
-            await asyncio.to_thread(self._stitch_record, record)
+            await self.worldmap.add_scan(record.file, record.T_W_S)
 
     async def _reestablish(self, i: int, step) -> None:
         """After a restart, before moving anything: a fresh target reading. Where the target has not moved
@@ -329,7 +319,7 @@ class JobRunner:
         joints = await self.cell.arm.joints()
         index = len(self.scans)
         file = self.job_dir / "scans" / f"scan-{index:04d}.npz"
-        arrays = {  # point arrays go to float32 in the writer thread: a full-resolution copy takes ~0.1 s
+        arrays = {  # written (points as float32) and stitched where the map lives, not on the event loop
             "points_S_mm": frame.points_mm,
             "T_C_T": reading.T_C_T,
             "tracker_covariance": reading.covariance,
@@ -340,38 +330,27 @@ class JobRunner:
         }
         if frame.normals is not None:
             arrays["normals_S"] = frame.normals
-        await asyncio.to_thread(_write_raw_scan, file, **arrays)
         T_W_S = F.compose(self.T_W_C, reading.T_C_T, self.installation.T_T_S)
+        await self.worldmap.add_scan(file, T_W_S, arrays)  # the file is durable before this returns
         truth = self.cell.world.T_W_S() if self.cell.world is not None else None
         record = ScanRecord(index, self.tracker_station, file, reading, joints, self.T_W_C.copy(), T_W_S,
                             len(frame.points_mm), truth)
         self.scans.append(record)
         self.last_still_T_C_T = reading.T_C_T
-        await asyncio.to_thread(self._stitch_record, record, frame.points_mm, frame.normals)
         return record
 
-    def _stitch_record(self, record: ScanRecord, points_S: np.ndarray | None = None,
-                       normals_S: np.ndarray | None = None) -> None:
-        """Eq. 1 of one scan into the world map: by its file where the map takes files (a worker process),
-        else from the arrays given, else from its file (a resumed job rebuilding its map)."""
-        if hasattr(self.worldmap, "add_file"):
-            self.worldmap.add_file(record.file, record.T_W_S)
-        elif points_S is not None:
-            self.worldmap.add_scan(record.T_W_S, points_S, normals_S)
-        else:
-            self.worldmap.add_scan(record.T_W_S, *read_raw_scan(record.file))
+    def snapshot(self) -> JobSnapshot:
+        """The job's state for its end-of-job work (correction, report, exports) where the map lives."""
+        world = self.cell.world.ground_truth() if self.cell.world is not None else None
+        return JobSnapshot(self.job_dir, self.plan, self.config, self.installation, list(self.scans),
+                           list(self.transfers), dict(self.correction), world)
 
-    def _export(self, seconds: float) -> JobResult:
-        from tandemscan.daemon.job_outputs import write_job_outputs
-        from tandemscan.daemon.report import build_report  # report knows the scoring; runner knows the job
+    async def _export(self, seconds: float) -> JobResult:
+        """``cloud.ply``, ``report.json`` and the inspection exports, written where the map lives."""
+        from tandemscan.daemon.job_outputs import export_job
 
-        cloud_file = self.job_dir / "cloud.ply"
-        write_ply(cloud_file, self.worldmap.points(), self.worldmap.normals())
-        report = build_report(self, seconds)
-        report["inspection"] = write_job_outputs(self, report)  # report.html, E57, pose log
-        report_file = self.job_dir / "report.json"
-        report_file.write_text(json.dumps(report, indent=1), encoding="utf-8")
-        return JobResult(self.job_dir, cloud_file, report_file, report, self.scans)
+        report = await self.worldmap.run(export_job, self.snapshot(), seconds)
+        return JobResult(self.job_dir, self.job_dir / "cloud.ply", self.job_dir / "report.json", report, self.scans)
 
 
 def _scan_result(r: ScanRecord) -> dict:

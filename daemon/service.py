@@ -31,6 +31,7 @@ from tandemscan.daemon.notify import Notifier
 from tandemscan.daemon.plans import PlanCatalog
 from tandemscan.daemon.store import JOB_STATES, JobStore
 from tandemscan.daemon.supervisor import Supervisor
+from tandemscan.drivers.shared_array import remove_stale_blocks
 from tandemscan.drivers.tasks import cancel_and_wait
 from tandemscan.sim_drivers.persist import load_world_state
 
@@ -97,7 +98,7 @@ class Daemon:
         self.state_dir = Path(state_dir)
         self.store = JobStore(self.state_dir)
         self.bus = EventBus()
-        self.cell = cell if cell is not None else build_cell(config)
+        self.cell = cell if cell is not None else build_cell(config, scan_process=True)
         self.supervisor = Supervisor.for_cell(self.cell, config, on_event=self._device_event)
         self.manager = JobManager(self.store, self.bus, self.supervisor, runner or run_journaled, self.cell, config)
         self.plans = PlanCatalog([PlanCatalog.shipped_folder(), self.state_dir / "plans"], config.daemon.default_plan)
@@ -116,6 +117,7 @@ class Daemon:
         """Connect the devices, resume an interrupted job, tell systemd we are ready."""
         self._tasks.append(asyncio.create_task(self.notifier.watchdog_loop(), name="sd-watchdog"))
         self._tasks.append(asyncio.create_task(self._lag_monitor(), name="loop-lag"))
+        await asyncio.to_thread(remove_stale_blocks)  # scan arrays a killed daemon left in shared memory
         world = getattr(self.cell, "world", None)
         if world is not None and load_world_state(world, self.state_dir / WORLD_STATE_FILE):
             log.info("simulated world restored from %s", self.state_dir / WORLD_STATE_FILE)

@@ -1,70 +1,114 @@
-"""The world map in a worker process, so that stitching never holds the daemon's GIL.
+"""The job's world map and its end-of-job work, in a worker process for the daemon or in this one.
 
-:class:`ProcessWorldMap` has the read interface of :class:`tandemscan.pipeline.worldmap.VoxelMap`
-(``points()``, ``normals()``, ``len()``, ``voxel_mm``) but its voxel grid lives in a one-process pool: a scan
-is added by its file and world pose (Eq. 1 is applied there), so no point array crosses the pipe on the way in.
-A full-resolution scan (3.2 M points) merged in a thread held the GIL long enough to stall the event loop for
-over half a second; in the worker it costs the loop nothing. Frames: points in S in the file, map in W (mm).
+Both maps have one interface: ``await add_scan(file, T_W_S, arrays)`` persists a raw scan (when ``arrays`` is
+given: written and fsynced first) and merges it into the voxel grid (Eq. 1, points in S, map in W, mm);
+``await run(fn, job, *args)`` runs ``fn(job, *args)`` where the map lives, with ``job.worldmap`` set to it
+(correction, report, exports), and adopts the map ``fn`` leaves there.
+
+:class:`ProcessWorldMap` (the daemon) keeps its grid in a one-process pool, so no stitch, scan write or export
+holds the daemon's GIL: a full-resolution scan (3.2 M points) merged or written in a thread stalled the event
+loop for over half a second. Scan arrays go to it as shared memory (:mod:`tandemscan.drivers.shared_array`),
+never pickled by value. :class:`LocalWorldMap` (``tandemscan measure``) does the same work in threads.
 """
 
 from __future__ import annotations
 
+import asyncio
 import multiprocessing
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+from tandemscan.daemon.snapshot import JobSnapshot
+from tandemscan.daemon.store import write_raw_scan
+from tandemscan.drivers.shared_array import share
+from tandemscan.drivers.worker import die_with_parent
+from tandemscan.pipeline.cloud_io import read_raw_scan
+from tandemscan.pipeline.worldmap import VoxelMap
 
-_MAP = None  # the worker's VoxelMap
+_MAP: VoxelMap | None = None  # the worker's map
 
 
 def _init(voxel_mm: float) -> None:
     global _MAP
-    from tandemscan.pipeline.worldmap import VoxelMap
-
+    die_with_parent()
     _MAP = VoxelMap(voxel_mm)
 
 
-def _add_file(path: str, T_W_S: np.ndarray) -> int:
-    from tandemscan.pipeline.cloud_io import read_raw_scan
-
-    _MAP.add_scan(T_W_S, *read_raw_scan(path))
+def _add(path: str, T_W_S: np.ndarray, arrays: dict[str, np.ndarray] | None) -> int:
+    if arrays is not None:
+        write_raw_scan(Path(path), **arrays)
+    _MAP.add_scan(T_W_S, *read_raw_scan(path))  # from the file, as a resumed job rebuilds it
     return len(_MAP)
 
 
-def _cloud() -> tuple[np.ndarray, np.ndarray]:
-    return _MAP.points(), _MAP.normals()
+def _run(fn: Callable[..., Any], job: JobSnapshot, args: tuple) -> tuple[Any, int]:
+    global _MAP
+    job.worldmap = _MAP
+    out = fn(job, *args)
+    _MAP = job.worldmap
+    return out, len(_MAP)
+
+
+def _share_big(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    return {k: share(v) for k, v in arrays.items()}
 
 
 class ProcessWorldMap:
-    """A :class:`VoxelMap` in its own process; call :meth:`close` when the job is done."""
+    """The job's :class:`VoxelMap` in its own process; call :meth:`close` when the job is done."""
 
     def __init__(self, voxel_mm: float):
         self.voxel_mm = float(voxel_mm)
         self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
                                          initializer=_init, initargs=(self.voxel_mm,))
         self._len = 0
-        self._cloud: tuple[np.ndarray, np.ndarray] | None = None
 
-    def add_file(self, path: Path, T_W_S: np.ndarray) -> None:
-        """Merge the scan stored in ``path`` (``points_S_mm``, ``normals_S``) placed at ``T_W_S``; blocks the
-        calling thread (not the GIL) until merged."""
-        self._len = self._pool.submit(_add_file, str(path), np.asarray(T_W_S, float)).result()
-        self._cloud = None
+    async def add_scan(self, file: Path, T_W_S: np.ndarray, arrays: dict[str, np.ndarray] | None = None) -> None:
+        """Write ``arrays`` (if given) durably to ``file``, then merge the scan in ``file`` placed at ``T_W_S``.
+        The caller keeps ``arrays`` until this returns (the worker maps their shared memory)."""
+        if arrays is not None:
+            arrays = await asyncio.to_thread(_share_big, arrays)
+        self._len = await asyncio.wrap_future(
+            self._pool.submit(_add, str(file), np.asarray(T_W_S, float), arrays))
 
-    def _fetch(self) -> tuple[np.ndarray, np.ndarray]:
-        if self._cloud is None:
-            self._cloud = self._pool.submit(_cloud).result()
-        return self._cloud
-
-    def points(self) -> np.ndarray:
-        return self._fetch()[0]
-
-    def normals(self) -> np.ndarray:
-        return self._fetch()[1]
+    async def run(self, fn: Callable[..., Any], job: JobSnapshot, *args: Any) -> Any:
+        """``fn(job, *args)`` in the worker with ``job.worldmap`` = its map; ``fn`` and its result pickle."""
+        out, self._len = await asyncio.wrap_future(self._pool.submit(_run, fn, job, args))
+        return out
 
     def __len__(self) -> int:
         return self._len
 
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+class LocalWorldMap:
+    """The job's :class:`VoxelMap` in this process, its work in threads (``tandemscan measure``)."""
+
+    def __init__(self, voxel_mm: float):
+        self.voxel_mm = float(voxel_mm)
+        self.map = VoxelMap(self.voxel_mm)
+
+    async def add_scan(self, file: Path, T_W_S: np.ndarray, arrays: dict[str, np.ndarray] | None = None) -> None:
+        """As :meth:`ProcessWorldMap.add_scan`; given arrays are merged as they are (float64)."""
+        if arrays is None:
+            await asyncio.to_thread(lambda: self.map.add_scan(T_W_S, *read_raw_scan(file)))
+            return
+        await asyncio.to_thread(write_raw_scan, Path(file), **arrays)
+        await asyncio.to_thread(self.map.add_scan, T_W_S, arrays["points_S_mm"], arrays.get("normals_S"))
+
+    async def run(self, fn: Callable[..., Any], job: JobSnapshot, *args: Any) -> Any:
+        """``fn(job, *args)`` in a thread with ``job.worldmap`` = this map."""
+        job.worldmap = self.map
+        out = await asyncio.to_thread(fn, job, *args)
+        self.map = job.worldmap
+        return out
+
+    def __len__(self) -> int:
+        return len(self.map)
+
+    def close(self) -> None:
+        return None

@@ -180,6 +180,16 @@ def write_durably(path: Path, write) -> int:
     return size
 
 
+_FLOAT32_ARRAYS = ("points_S_mm", "normals_S")  # raw scans store these as float32 (mm, unit vectors)
+
+
+def write_raw_scan(path: Path, **arrays: np.ndarray) -> int:
+    """Write a job's raw scan ``.npz`` (``points_S_mm``, ``normals_S``, the tracker reading, joints,
+    timestamps; frame S, mm) durably before returning; returns its size in bytes."""
+    arrays = {k: v.astype(np.float32) if k in _FLOAT32_ARRAYS else v for k, v in arrays.items()}
+    return write_durably(path, lambda f: np.savez(f, **arrays))
+
+
 class JobStore:
     """The journal and the job directories under ``state_dir``. Thread-safe: one SQLite connection per
     thread (WAL lets readers run beside the writer), writes serialised by a lock."""

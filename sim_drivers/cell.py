@@ -50,9 +50,10 @@ class Cell:
             await self.emulators.stop()
 
 
-def build_cell(config: CellConfig, world: SimWorld | None = None) -> Cell:
+def build_cell(config: CellConfig, world: SimWorld | None = None, *, scan_process: bool = False) -> Cell:
     """Devices per ``config``: a twin or the real driver per role (``driver``); twins and hardware-in-the-loop
-    emulators share ``world`` (made from the config when needed and not given)."""
+    emulators share ``world`` (made from the config when needed and not given). ``scan_process``: the scanner
+    twin casts its rays in a worker process (the daemon, whose event loop must not block)."""
     real = {role for role in ROLES if getattr(config, role).driver == "real"}
     if config.hil.enabled and real:
         config = _odometry_from_sim_start(config, real)
@@ -62,7 +63,7 @@ def build_cell(config: CellConfig, world: SimWorld | None = None) -> Cell:
         "measure_chassis": lambda: SimChassis("measure_chassis", world, SimWorld.MEASURE_ROBOT),
         "tracking_chassis": lambda: SimChassis("tracking_chassis", world, SimWorld.TRACKING_ROBOT),
         "arm": lambda: SimArm("arm", world),
-        "scanner": lambda: SimScanner("scanner", world),
+        "scanner": lambda: SimScanner("scanner", world, out_of_process=scan_process),
         "tracker": lambda: SimTracker("tracker", world),
         "safety": lambda: SimSafetyIO("safety", world),
     }

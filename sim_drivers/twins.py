@@ -19,6 +19,7 @@ from tandemscan.drivers.interfaces import (
     ScanFrame,
     TrackerReading,
 )
+from tandemscan.sim_drivers.scan_process import ScanProcess
 from tandemscan.sim_drivers.world import SimWorld
 
 # Time (s) a PhoXi S takes for one capture at full quality (simulated).
@@ -141,7 +142,26 @@ class SimArm(_SimDevice):
 
 
 class SimScanner(_SimDevice):
-    """A PhoXi S twin: ray casting on the part mesh, 0.05 mm noise along the ray."""
+    """A PhoXi S twin: ray casting on the part mesh, 0.05 mm noise along the ray.
+
+    With ``out_of_process`` the rays are cast in a worker process (:class:`ScanProcess`, started at connect),
+    as the daemon needs; otherwise in a thread. Both give the same capture for the same world state."""
+
+    def __init__(self, name: str, world: SimWorld, out_of_process: bool = False):
+        super().__init__(name, world)
+        self.out_of_process = out_of_process
+        self._process: ScanProcess | None = None
+
+    async def connect(self) -> None:
+        if self.out_of_process and self._process is None:
+            self._process = ScanProcess(self.world.config.part, self.world.config.scanner)
+        await super().connect()
+
+    async def close(self) -> None:
+        await super().close()
+        if self._process is not None:
+            process, self._process = self._process, None
+            await asyncio.to_thread(process.close)
 
     async def capture(self, timeout_s: float | None = None) -> ScanFrame:
         self._require_connected()
@@ -152,7 +172,11 @@ class SimScanner(_SimDevice):
         self._state = "busy"
         try:
             await self._elapse(_SCAN_TIME_S)
-            points, normals = await asyncio.to_thread(self.world.scan)
+            if self._process is not None:
+                self.world.captures += 1
+                points, normals = await self._process.scan(self.world.T_F_S(), self.world.rng)
+            else:
+                points, normals = await asyncio.to_thread(self.world.scan)
         finally:
             self._state = "idle"
         return ScanFrame(points, normals, None, time.time())

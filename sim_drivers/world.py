@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import open3d as o3d
-from tandemscan.config.models import CellConfig, ChassisConfig, FloorPoseConfig
+from tandemscan.config.models import CellConfig, ChassisConfig, FloorPoseConfig, PartConfig
 from tandemscan.drivers.errors import OutOfReach, TargetNotVisible
 from tandemscan.drivers.interfaces import ChassisPose
 from tandemscan.pipeline import frames as F
@@ -85,6 +85,35 @@ class MotionLog:
         self.moving.discard(robot)
 
 
+@dataclass
+class GroundTruth:
+    """What scoring a simulated job needs of the world: the world frame W in the part frame F (``T_W_F``,
+    mm), the part mesh and its ray-casting scene, and every moment both robots moved.
+
+    Pickles without the mesh and scene: a worker process rebuilds them from ``part`` on first use."""
+
+    part: PartConfig
+    T_W_F: np.ndarray
+    robots_moved_together: list[str]
+    _mesh: o3d.geometry.TriangleMesh | None = None
+    _scene: o3d.t.geometry.RaycastingScene | None = None
+
+    @property
+    def mesh(self) -> o3d.geometry.TriangleMesh:
+        if self._mesh is None:
+            self._mesh = load_part_mesh(self.part)
+        return self._mesh
+
+    @property
+    def scene(self) -> o3d.t.geometry.RaycastingScene:
+        if self._scene is None:
+            self._scene = make_scene(self.mesh)
+        return self._scene
+
+    def __getstate__(self) -> dict:
+        return self.__dict__ | {"_mesh": None, "_scene": None}
+
+
 def _floor_pose(p: FloorPoseConfig) -> np.ndarray:
     return F.planar_pose(p.x_mm, p.y_mm, np.radians(p.heading_deg))
 
@@ -123,6 +152,10 @@ class SimWorld:
         pose = ChassisPose(start.x_mm, start.y_mm, np.radians(start.heading_deg))
         bias = self.rng.normal(0.0, cfg.odometry_drift_fraction)
         return ChassisTruth(name, cfg, _floor_pose(start), pose, bias)
+
+    def ground_truth(self) -> GroundTruth:
+        """The scoring view of the world now (shares this world's mesh and scene)."""
+        return GroundTruth(self.config.part, self.T_W_F.copy(), list(self.motion.violations), self.mesh, self.scene)
 
     # ------------------------------------------------------------ true poses in F
 

@@ -10,21 +10,20 @@ import numpy as np
 import pye57
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.runner import JobRunner
+from tandemscan.daemon.stitcher import LocalWorldMap
 from tandemscan.pipeline.plan import Plan, Scan
-from tandemscan.pipeline.worldmap import VoxelMap
 from tandemscan.sim_drivers.cell import build_cell
 
 
 class PerfectlyCorrectedRunner(JobRunner):
     """Stands in for the correction step: every scan gets its true pose before the export."""
 
-    def _export(self, seconds):
-        self.worldmap = VoxelMap(self.config.job.voxel_mm)
+    async def _export(self, seconds):
+        self.worldmap = LocalWorldMap(self.config.job.voxel_mm)
         for s in self.scans:
             s.T_W_S = s.T_W_S_true
-            with np.load(s.file) as raw:
-                self.worldmap.add_scan(s.T_W_S, raw["points_S_mm"].astype(float))
-        return super()._export(seconds)
+            await self.worldmap.add_scan(s.file, s.T_W_S)
+        return await super()._export(seconds)
 
 
 async def test_job_writes_report_and_exports_next_to_cloud(sim_config, tmp_path):
@@ -75,8 +74,7 @@ def test_inspection_skipped_with_reason(sim_config, tmp_path):
 
     def runner(config, world):
         worldmap = SimpleNamespace(points=lambda: np.zeros((0, 3)), normals=lambda: None)
-        return SimpleNamespace(job_dir=tmp_path, scans=[], worldmap=worldmap, cell=SimpleNamespace(world=world),
-                               config=config)
+        return SimpleNamespace(job_dir=tmp_path, scans=[], worldmap=worldmap, world=world, config=config)
 
     off = sim_config.model_copy(update={"inspection": sim_config.inspection.model_copy(update={"in_job": False})})
     assert write_job_outputs(runner(off, object()), {})["skipped"] == "inspection.in_job is off"
