@@ -254,7 +254,7 @@ def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
     mgr = daemon.manager
 
     def body_of(job: JobRecord) -> Job:
-        return job_body(job, len(daemon.store.committed_steps(job.id)))
+        return job_body(job, daemon.store.steps_done(job.id))
 
     # -------------------------------------------------------- jobs
 

@@ -426,6 +426,10 @@ class JobStore:
                                     (job_id,)).fetchall()
         return {r["idx"]: json.loads(r["result_json"]) for r in rows}
 
+    def steps_done(self, job_id: str) -> int:
+        """How many steps of the job are committed (one indexed count, no result is read)."""
+        return self._conn().execute("SELECT COUNT(*) FROM steps WHERE job_id = ?", (job_id,)).fetchone()[0]
+
     def first_uncommitted_step(self, job_id: str) -> int:
         """Index of the first step whose result is not committed (``n_steps`` when all are)."""
         job = self.get_job(job_id)

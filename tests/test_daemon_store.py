@@ -66,7 +66,7 @@ def test_step_commits_once_with_poses_and_scan(store):
     assert store.commit_step(job.id, 1, "scan", {"n": 100}, poses={"T_C_T": T, "joints_rad": np.zeros(6)},
                              scan=pending)
     assert not store.commit_step(job.id, 1, "scan", {"n": 100})
-    assert store.first_uncommitted_step(job.id) == 2
+    assert store.first_uncommitted_step(job.id) == 2 and store.steps_done(job.id) == 2
     assert [s.step_idx for s in store.scans(job.id)] == [1]
     p, n = store.load_scan(job.id, 1)
     np.testing.assert_array_equal(p, pts)
