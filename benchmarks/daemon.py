@@ -3,8 +3,9 @@
 Starts ``tandemscan serve`` as a child process on the simulated cell with the scanner at full resolution
 (about 3.2 M points a scan) and a fake systemd notify socket (``WATCHDOG_USEC`` = 200 ms, so a ping is due
 every 100 ms), submits the default job, and meanwhile times ``GET /v1/jobs/{id}`` and ``GET /v1/devices``
-from this process. The daemon's own event-loop lag and 50 Hz safety-loop lateness come from ``/metrics``: the control-loop jitter is how late each 50 Hz safety tick starts against its schedule.
-Prints one JSON object (ms) on its last line, with the machine's load average before and after.
+from this process, until the job ends (correction and exports included). The daemon's own event-loop lag
+and 50 Hz control-loop jitter (how late each safety tick starts against its schedule) come from
+``/metrics``. Prints one JSON object (ms) on its last line, with the machine's load average before and after.
 
     nice python benchmarks/daemon.py [--seconds 600] [--resolution full|coarse]
 """
