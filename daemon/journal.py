@@ -102,10 +102,12 @@ async def run_journaled(ctx: JobContext) -> dict:
     finally:
         await journal.drain()
         await asyncio.to_thread(worldmap.close)
-    report = dict(result.report) | {"job": ctx.job.id, "resumes": runner.resume_log,
+    # every attempt's resumes, not only this one's (a restart after the last step resumes with nothing to redo)
+    resumes = await asyncio.to_thread(ctx.store.notes_of_kind, ctx.job.id, "resume")
+    report = dict(result.report) | {"job": ctx.job.id, "resumes": resumes,
                                     "attempts": ctx.store.get_job(ctx.job.id).attempts}
-    await asyncio.to_thread(ctx.store.write_artifact, ctx.job.id, "report.json",
-                            json.dumps(report, indent=1).encode())
+    await asyncio.to_thread(lambda: ctx.store.write_artifact(ctx.job.id, "report.json",
+                                                             json.dumps(report, indent=1).encode()))
     figures = {k: report[k] for k in _FIGURE_KEYS if k in report}
     truth = report.get("ground_truth") or {}
     figures |= {k: truth[k] for k in _TRUTH_KEYS if k in truth}

@@ -21,7 +21,7 @@ from typing import Protocol, TypeVar
 import numpy as np
 from tandemscan.config.models import CellConfig
 from tandemscan.daemon.snapshot import JobSnapshot
-from tandemscan.daemon.stitcher import LocalWorldMap, ProcessWorldMap
+from tandemscan.daemon.stitcher import LocalWorldMap, ProcessWorldMap, correct, export
 from tandemscan.drivers.errors import TargetNotVisible
 from tandemscan.drivers.interfaces import ChassisPose, TrackerReading
 from tandemscan.pipeline import frames as F
@@ -205,10 +205,8 @@ class JobRunner:
             result, scan = await self.journal.run_step(i, lambda i=i, step=step: self._execute(i, step))
             await self.journal.commit(i, step.kind, result, *(scan or ()))
         if self.config.deepmerge.enabled and len(self.scans) > 1:
-            from tandemscan.daemon.correction import correct_job
-
             self.progress(JobProgress(total - 1, total, "correcting the stitch (DeepMerge, pose graph)"))
-            self.correction, poses = await self.worldmap.run(correct_job, self.snapshot())
+            self.correction, poses = await self.worldmap.run(correct, self.snapshot())
             for s, T_W_S in zip(self.scans, poses, strict=True):
                 s.T_W_S = T_W_S
         self.progress(JobProgress(total - 1, total, "writing cloud and report"))
@@ -260,6 +258,7 @@ class JobRunner:
             entry["fresh_reading"] = f"target not visible: {e.reason}"
             self.resume_log.append(entry)
             log.warning("resume at step %d: %s", i, entry["fresh_reading"])
+            await self.journal.note(i, "resume", entry)
             return
         entry["T_C_T"] = fresh.T_C_T.tolist()
         if self.last_still_T_C_T is not None and not isinstance(step, MoveTracker):
@@ -347,9 +346,7 @@ class JobRunner:
 
     async def _export(self, seconds: float) -> JobResult:
         """``cloud.ply``, ``report.json`` and the inspection exports, written where the map lives."""
-        from tandemscan.daemon.job_outputs import export_job
-
-        report = await self.worldmap.run(export_job, self.snapshot(), seconds)
+        report = await self.worldmap.run(export, self.snapshot(), seconds)
         return JobResult(self.job_dir, self.job_dir / "cloud.ply", self.job_dir / "report.json", report, self.scans)
 
 

@@ -24,7 +24,7 @@ import numpy as np
 from tandemscan.daemon.snapshot import JobSnapshot
 from tandemscan.daemon.store import write_raw_scan
 from tandemscan.drivers.shared_array import share
-from tandemscan.drivers.worker import die_with_parent
+from tandemscan.drivers.worker import die_with_parent, stop_pool
 from tandemscan.pipeline.cloud_io import read_raw_scan
 from tandemscan.pipeline.worldmap import VoxelMap
 
@@ -50,6 +50,21 @@ def _run(fn: Callable[..., Any], job: JobSnapshot, args: tuple) -> tuple[Any, in
     out = fn(job, *args)
     _MAP = job.worldmap
     return out, len(_MAP)
+
+
+def correct(job: JobSnapshot) -> tuple[dict, list[np.ndarray]]:
+    """:func:`tandemscan.daemon.correction.correct_job`, imported where it runs: torch takes seconds to
+    import, which must not happen on the daemon's event loop."""
+    from tandemscan.daemon.correction import correct_job
+
+    return correct_job(job)
+
+
+def export(job: JobSnapshot, seconds: float) -> dict:
+    """:func:`tandemscan.daemon.job_outputs.export_job` (E57, Open3D I/O, matplotlib), imported where it runs."""
+    from tandemscan.daemon.job_outputs import export_job
+
+    return export_job(job, seconds)
 
 
 def _share_big(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -82,7 +97,8 @@ class ProcessWorldMap:
         return self._len
 
     def close(self) -> None:
-        self._pool.shutdown(wait=True, cancel_futures=True)
+        """Stop the worker; work still under way (a job interrupted by shutdown) is abandoned, not awaited."""
+        stop_pool(self._pool)
 
 
 class LocalWorldMap:

@@ -395,6 +395,12 @@ class JobStore:
                                     (job_id, step_idx)).fetchall()
         return {r["kind"]: json.loads(r["value_json"]) for r in rows}
 
+    def notes_of_kind(self, job_id: str, kind: str) -> list[dict]:
+        """Every value noted under ``kind`` for the job, in step order (e.g. each resume of every attempt)."""
+        rows = self._conn().execute("SELECT value_json FROM notes WHERE job_id = ? AND kind = ? ORDER BY step_idx",
+                                    (job_id, kind)).fetchall()
+        return [json.loads(r["value_json"]) for r in rows]
+
     def commit_step(self, job_id: str, step_idx: int, kind: str, result: dict | None = None,
                     poses: dict[str, object] | None = None, scan: PendingScan | None = None) -> bool:
         """Commit one step atomically with its raw poses (``{kind: JSON-able value}``) and scan file.

@@ -1,4 +1,4 @@
-"""Set-up shared by the worker processes of the daemon and its twins: a worker dies with its parent.
+"""Worker processes of the daemon and its twins: a worker dies with its parent, and stops without waiting.
 
 A daemon killed with SIGKILL (a crash, systemd's watchdog) cannot shut its process pools down; without this
 their workers would live on as orphans, holding memory and CPU, and pile up with every restart.
@@ -12,6 +12,7 @@ import os
 import signal
 import threading
 import time
+from concurrent.futures import ProcessPoolExecutor
 
 log = logging.getLogger(__name__)
 
@@ -37,3 +38,15 @@ def die_with_parent(poll_s: float = 1.0) -> None:
         os._exit(1)
 
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+def stop_pool(pool: ProcessPoolExecutor) -> None:
+    """Shut ``pool`` down without waiting for a task in flight: its workers are terminated (a correction
+    of a full-resolution job can run for minutes; a daemon stopping must not wait for it)."""
+    workers = list((getattr(pool, "_processes", None) or {}).values())  # its own handles (CPython 3.8-3.13)
+    pool.shutdown(wait=False, cancel_futures=True)
+    for worker in workers:
+        if worker.is_alive():
+            worker.terminate()
+    for worker in workers:
+        worker.join(5)

@@ -18,7 +18,7 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 from tandemscan.config.models import PartConfig, ScannerConfig
 from tandemscan.drivers.shared_array import hand_over, take
-from tandemscan.drivers.worker import die_with_parent
+from tandemscan.drivers.worker import die_with_parent, stop_pool
 
 _SCENE = None
 _MODEL = None
@@ -68,4 +68,4 @@ class ScanProcess:
         return take(points), take(normals)
 
     def close(self) -> None:
-        self._pool.shutdown(wait=True, cancel_futures=True)
+        stop_pool(self._pool)
