@@ -197,7 +197,9 @@ def test_sigkill_mid_job_resumes_with_every_scan_once(tmp_path, reference):
     export; each time the daemon restarts and the job completes as if uninterrupted."""
     state = tmp_path / "state"
     config = tmp_path / "cell.toml"
-    config.write_text("[sim]\ntime_scale = 0.02\n")  # motion takes wall time: a transfer lasts ~0.1 s
+    # motion takes wall time (a transfer lasts ~0.1 s); no correction step, so the export is all that is left
+    # at the last kill and the test stays short: the figures compare with the reference's tracker-only ones
+    config.write_text("[sim]\ntime_scale = 0.02\n[deepmerge]\nenabled = false\n")
     daemon = DaemonProcess(state, config)
     hits = []
     try:
@@ -233,12 +235,12 @@ def test_sigkill_mid_job_resumes_with_every_scan_once(tmp_path, reference):
     assert len(rows) == len({r[0] for r in rows}) == len({r[1] for r in rows}) == 17
     assert db.execute("SELECT COUNT(*) FROM steps WHERE job_id = ?", (job_id,)).fetchone()[0] == 39
     assert report["scans"] == 17 and [s["index"] for s in report["scan_log"]] == list(range(17))
-    truth, ref = report["ground_truth"], reference["report"]["ground_truth"]
+    truth, ref = report["ground_truth"], reference["report"]["correction"]["before"]
     assert truth["robots_moved_together"] == []
-    # a resume takes one fresh target reading, which draws other tracker noise for the scans after it:
-    # as accurate as the reference, not bit-identical
-    assert truth["cloud_rms_mm"] == pytest.approx(ref["cloud_rms_mm"], rel=0.1)
-    assert truth["pose_err_mm_median"] < max(1.5 * ref["pose_err_mm_median"], 0.1)
+    # a resume takes one fresh target reading, so the scans after it see other tracker noise than the
+    # reference: as accurate (the tracker-only stitch varies by a third between noise draws), not bit-identical
+    assert truth["cloud_rms_mm"] < 1.5 * ref["cloud_rms_mm"]
+    assert truth["pose_err_mm_median"] < 1.5 * ref["pose_err_mm_median"]
     assert np.isclose(report["points_raw"], reference["report"]["points_raw"], rtol=0.05)
     leftover = [p for pid in daemon.pids for p in Path("/dev/shm").glob(f"tandemscan-{pid}-*")]
     assert leftover == []  # a restart removes the scan arrays a killed daemon left in shared memory
