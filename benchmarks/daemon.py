@@ -3,11 +3,13 @@
 Starts ``tandemscan serve`` as a child process on the simulated cell with the scanner at full resolution
 (about 3.2 M points a scan) and a fake systemd notify socket (``WATCHDOG_USEC`` = 200 ms, so a ping is due
 every 100 ms), submits the default job, and meanwhile times ``GET /v1/jobs/{id}`` and ``GET /v1/devices``
-from this process, until the job ends (correction and exports included). The daemon's own event-loop lag
-and 50 Hz control-loop jitter (how late each safety tick starts against its schedule) come from
-``/metrics``. Prints one JSON object (ms) on its last line, with the machine's load average before and after.
+from this process, until the job ends (correction and exports included) or ``--seconds`` pass. The daemon's
+own event-loop lag and 50 Hz control-loop jitter (how late each safety tick starts against its schedule) come
+from the histograms in ``/metrics``, differenced between scrapes. Before the job an idle phase measures the
+same figures with no job running: on a shared machine that is the floor the load alone sets. Prints one
+JSON object (ms) on its last line, with the machine's 1-minute load average before and after.
 
-    nice python benchmarks/daemon.py [--seconds 600] [--resolution full|coarse]
+    nice python benchmarks/daemon.py [--seconds 600] [--idle-seconds 30] [--resolution full|coarse]
 """
 
 from __future__ import annotations
@@ -37,20 +39,54 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _metric(text: str, name: str) -> float:
+def _buckets(text: str, name: str) -> list[tuple[float, float]]:
+    """(upper bound s, cumulative count) of a Prometheus histogram in ``text``, in bound order."""
+    out = []
     for line in text.splitlines():
-        if line.startswith(name + " "):
-            return float(line.split()[1])
-    raise KeyError(name)
+        if line.startswith(name + "_bucket{"):
+            le = line.split('le="', 1)[1].split('"', 1)[0]
+            out.append((float("inf") if le == "+Inf" else float(le), float(line.rsplit(" ", 1)[1])))
+    return sorted(out)
+
+
+def _hist_p99_ms(before: str, after: str, name: str) -> float:
+    """p99 (ms) of the observations between two scrapes, interpolated within its bucket (as Prometheus'
+    ``histogram_quantile``); past the last finite bound it is that bound."""
+    a, b = _buckets(before, name), _buckets(after, name)
+    counts = [(le, cb - ca) for (le, cb), (_, ca) in zip(b, a, strict=True)]
+    total = counts[-1][1]
+    if total == 0:
+        return float("nan")
+    rank, lower, below = 0.99 * total, 0.0, 0.0
+    for le, cum in counts:
+        if cum >= rank:
+            if le == float("inf"):
+                return round(lower * 1000, 3)
+            return round((lower + (le - lower) * (rank - below) / max(cum - below, 1e-12)) * 1000, 3)
+        lower, below = le, cum
+    return round(lower * 1000, 3)
 
 
 def _pct(values, q) -> float:
     return round(float(np.percentile(values, q)), 3) if len(values) else float("nan")
 
 
+def _figures(lat: dict[str, list[float]], before: str, after: str, pings: list[float]) -> dict:
+    """The figures (ms) of one phase: REST p50/p99 per call, loop lag, control jitter, watchdog period."""
+    out = {}
+    for kind, values in lat.items():
+        out |= {f"rest_get_{kind}_p50_ms": _pct(values, 50), f"rest_get_{kind}_p99_ms": _pct(values, 99)}
+    return out | {
+        "event_loop_lag_p99_ms": _hist_p99_ms(before, after, "tandemscan_event_loop_lag_seconds"),
+        "control_loop_50hz_jitter_p99_ms": _hist_p99_ms(before, after, "tandemscan_control_lateness_seconds"),
+        "watchdog_ping_period_p99_ms": _pct(np.diff(pings) * 1000, 99),
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--seconds", type=float, default=600.0, help="measure at most this long (s)")
+    ap.add_argument("--seconds", type=float, default=600.0, help="measure the job at most this long (s)")
+    ap.add_argument("--idle-seconds", type=float, default=30.0, help="idle baseline before the job (s)")
     ap.add_argument("--resolution", choices=["full", "coarse"], default="full")
     ap.add_argument("--rate-hz", type=float, default=20.0, help="client request rate")
     args = ap.parse_args()
@@ -85,8 +121,22 @@ def main() -> None:
                              "--config", str(cfg)], env=env, stdout=log, stderr=subprocess.STDOUT)
     receiver = threading.Thread(target=receive, daemon=True)
     receiver.start()
-    lat = {"job": [], "devices": []}
     request_errors = 0
+
+    def sample(client: httpx.Client, calls: dict[str, str], lat: dict[str, list[float]]) -> dict:
+        nonlocal request_errors
+        answers = {}
+        for kind, path in calls.items():
+            t0 = time.perf_counter()
+            try:
+                r = client.get(path)
+            except httpx.TransportError:  # a reset connection is a failed request, reported below
+                request_errors += 1
+                continue
+            lat[kind].append((time.perf_counter() - t0) * 1000)
+            answers[kind] = r
+        return answers
+
     try:
         with httpx.Client(base_url=url, timeout=10) as client:
             deadline = time.monotonic() + 120
@@ -98,26 +148,26 @@ def main() -> None:
                     if proc.poll() is not None or time.monotonic() > deadline:
                         raise SystemExit("daemon did not start; see " + str(tmp / "daemon.log")) from None
                 time.sleep(0.1)
+            period = 1.0 / args.rate_hz
+            time.sleep(5.0)  # the scan worker builds its scene; first requests build their schemas
+            idle_lat: dict[str, list[float]] = {"devices": []}
+            m0, t_idle = client.get("/metrics").text, time.monotonic()
+            while time.monotonic() < t_idle + args.idle_seconds:
+                sample(client, {"devices": "/v1/devices"}, idle_lat)
+                time.sleep(period)
+            m1, idle_pings = client.get("/metrics").text, [t for t in pings if t >= t_idle]
             job = client.post("/v1/jobs", json={}, headers={"Authorization": f"Bearer {TOKEN}"}).json()
             t_start = time.monotonic()
-            t_end = t_start + args.seconds
-            period = 1.0 / args.rate_hz
+            lat: dict[str, list[float]] = {"job": [], "devices": []}
             state = job["state"]
-            while time.monotonic() < t_end and state not in ("succeeded", "failed", "cancelled"):
-                for kind, path in (("job", f"/v1/jobs/{job['id']}"), ("devices", "/v1/devices")):
-                    t0 = time.perf_counter()
-                    try:
-                        r = client.get(path)
-                    except httpx.TransportError:  # a reset connection is a failed request, reported below
-                        request_errors += 1
-                        continue
-                    lat[kind].append((time.perf_counter() - t0) * 1000)
-                    if kind == "job":
-                        state = r.json()["state"]
+            while time.monotonic() < t_start + args.seconds and state not in ("succeeded", "failed", "cancelled"):
+                answers = sample(client, {"job": f"/v1/jobs/{job['id']}", "devices": "/v1/devices"}, lat)
+                if "job" in answers:
+                    state = answers["job"].json()["state"]
                 time.sleep(period)
             seconds = time.monotonic() - t_start
+            m2 = client.get("/metrics").text
             final = client.get(f"/v1/jobs/{job['id']}").json()
-            metrics = client.get("/metrics").text
             if final["state"] not in ("succeeded", "failed", "cancelled"):
                 client.post(f"/v1/jobs/{job['id']}/cancel", headers={"Authorization": f"Bearer {TOKEN}"})
     finally:
@@ -126,7 +176,7 @@ def main() -> None:
         stop.set()
         receiver.join(2)
         log.close()
-    gaps = np.diff(pings) * 1000
+    job_pings = [t for t in pings if t_start <= t <= t_start + seconds]
     with sqlite3.connect(tmp / "state" / "journal.sqlite") as db:
         scans = db.execute("SELECT COUNT(*) FROM scans").fetchone()[0]
     print(json.dumps({
@@ -138,16 +188,9 @@ def main() -> None:
         "seconds": round(seconds, 1),
         "requests": len(lat["job"]) + len(lat["devices"]),
         "request_errors": request_errors,
-        "rest_get_job_p50_ms": _pct(lat["job"], 50),
-        "rest_get_job_p99_ms": _pct(lat["job"], 99),
-        "rest_get_devices_p50_ms": _pct(lat["devices"], 50),
-        "rest_get_devices_p99_ms": _pct(lat["devices"], 99),
-        "event_loop_lag_p99_ms": round(_metric(metrics, "tandemscan_event_loop_lag_p99_seconds") * 1000, 3),
-        "control_loop_50hz_jitter_p99_ms":
-            round(_metric(metrics, "tandemscan_control_lateness_p99_seconds") * 1000, 3),
+        **_figures(lat, m1, m2, job_pings),
         "watchdog_ping_period_target_ms": WATCHDOG_USEC / 2000,
-        "watchdog_ping_period_p99_ms": _pct(gaps, 99),
-        "watchdog_pings": len(pings),
+        "idle_baseline": {"seconds": args.idle_seconds, **_figures(idle_lat, m0, m1, idle_pings)},
         "cpu_cores": os.cpu_count(),
         "load_average_1min_before_after": [round(load_before[0], 2), round(os.getloadavg()[0], 2)],
     }))

@@ -15,6 +15,19 @@ from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.registry import Collector
 from tandemscan.daemon.store import JOB_STATES
 
+# Buckets (s) of the loop-timing histograms: fine around the 5 ms control-jitter target and the 20 ms period.
+TIMING_BUCKETS = (0.0005, 0.001, 0.002, 0.003, 0.004, 0.005, 0.0075, 0.01, 0.015, 0.02, 0.03, 0.05, 0.075, 0.1,
+                  0.25, 0.5, 1.0, 2.5)
+
+
+def timing_histograms(registry: CollectorRegistry) -> tuple[Histogram, Histogram]:
+    """(event-loop lag, 50 Hz control-loop lateness) histograms (s): cumulative, so a scraper can take the
+    p99 of any interval from two scrapes, where the p99 gauges only cover the recent window."""
+    lag = Histogram("tandemscan_event_loop_lag_seconds", "How late the event loop wakes a sleeper",
+                    registry=registry, buckets=TIMING_BUCKETS)
+    lateness = Histogram("tandemscan_control_lateness_seconds", "How late each safety control tick starts",
+                         registry=registry, buckets=TIMING_BUCKETS)
+    return lag, lateness
 
 class DaemonCollector(Collector):
     """Gauges computed from ``snapshot()``: ``{"jobs": {state: n}, "devices": [...], "safety": {...},

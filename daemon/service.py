@@ -26,7 +26,7 @@ from tandemscan.config import CellConfig, load_config
 from tandemscan.daemon.events import EventBus
 from tandemscan.daemon.jobs import JobManager, Runner
 from tandemscan.daemon.journal import WORLD_STATE_FILE, run_journaled
-from tandemscan.daemon.metrics import DaemonCollector
+from tandemscan.daemon.metrics import DaemonCollector, timing_histograms
 from tandemscan.daemon.notify import Notifier
 from tandemscan.daemon.plans import PlanCatalog
 from tandemscan.daemon.store import JOB_STATES, JobStore
@@ -99,14 +99,16 @@ class Daemon:
         self.store = JobStore(self.state_dir)
         self.bus = EventBus()
         self.cell = cell if cell is not None else build_cell(config, scan_process=True)
-        self.supervisor = Supervisor.for_cell(self.cell, config, on_event=self._device_event)
+        self.registry = CollectorRegistry()
+        self.lag_histogram, lateness_histogram = timing_histograms(self.registry)
+        self.supervisor = Supervisor.for_cell(self.cell, config, on_event=self._device_event,
+                                              on_tick_lateness=lateness_histogram.observe)
         self.manager = JobManager(self.store, self.bus, self.supervisor, runner or run_journaled, self.cell, config)
         self.plans = PlanCatalog([PlanCatalog.shipped_folder(), self.state_dir / "plans"], config.daemon.default_plan)
         self.notifier = notifier or Notifier()
         self.connect_timeout_s = connect_timeout_s
         self.sse_heartbeat_s = 15.0
         self.loop_lag_s: deque[float] = deque(maxlen=5000)
-        self.registry = CollectorRegistry()
         self.registry.register(DaemonCollector(self.metrics_snapshot))
         self._tasks: list[asyncio.Task] = []
         self._journal_tasks: set[asyncio.Task] = set()
@@ -150,6 +152,7 @@ class Daemon:
             t0 = time.perf_counter()
             await asyncio.sleep(period_s)
             self.loop_lag_s.append(max(0.0, time.perf_counter() - t0 - period_s))
+            self.lag_histogram.observe(self.loop_lag_s[-1])
 
     def _device_event(self, kind: str, data: dict) -> None:
         task = asyncio.get_running_loop().create_task(self._journal(kind, data))

@@ -87,6 +87,7 @@ class Supervisor:
         self, devices: Sequence[Device], robots: Mapping[str, Sequence[Device]], safety: SafetyIO | None,
         *, control_period_s: float = 0.02, health_period_s: float = 1.0, device_timeout_s: float = 2.0,
         reconnect_initial_s: float = 0.5, reconnect_max_s: float = 30.0, on_event: EventSink | None = None,
+        on_tick_lateness: Callable[[float], None] | None = None,
     ):
         self.devices = {d.name: d for d in devices}
         self.robots = {r: list(ds) for r, ds in robots.items()}
@@ -101,20 +102,22 @@ class Supervisor:
         self.latched_reason: str | None = None
         self.safety_listeners: list[Callable[[str], None]] = []
         self.control_lateness_s: deque[float] = deque(maxlen=5000)
+        self.on_tick_lateness = on_tick_lateness or (lambda s: None)  # each control tick's lateness (s)
         self._motions: list[_Motion] = []
         self._tasks: list[asyncio.Task] = []
         self._reconnecting: dict[str, asyncio.Task] = {}
         self._all_connected = asyncio.Event()
 
     @classmethod
-    def for_cell(cls, cell, config: CellConfig, on_event: EventSink | None = None) -> Supervisor:
+    def for_cell(cls, cell, config: CellConfig, on_event: EventSink | None = None,
+                 on_tick_lateness: Callable[[float], None] | None = None) -> Supervisor:
         """A supervisor of a :class:`tandemscan.sim_drivers.cell.Cell` (twins or real drivers)."""
         d = config.daemon
         return cls(
             cell.devices(), {MEASURE_ROBOT: [cell.measure_chassis, cell.arm], TRACKING_ROBOT: [cell.tracking_chassis]},
             cell.safety, control_period_s=config.safety.poll_period_s, health_period_s=d.health_period_s,
             device_timeout_s=d.device_timeout_s, reconnect_initial_s=d.reconnect_initial_s,
-            reconnect_max_s=d.reconnect_max_s, on_event=on_event,
+            reconnect_max_s=d.reconnect_max_s, on_event=on_event, on_tick_lateness=on_tick_lateness,
         )
 
     # ------------------------------------------------------------ lifecycle
@@ -222,6 +225,7 @@ class Supervisor:
             await asyncio.sleep(max(0.0, next_t - time.monotonic()))
             now = time.monotonic()
             self.control_lateness_s.append(max(0.0, now - next_t))
+            self.on_tick_lateness(self.control_lateness_s[-1])
             next_t = max(next_t + period, now)
             try:
                 state = await asyncio.wait_for(self.safety_io.read(), period * 5)

@@ -248,6 +248,8 @@ async def test_cell_endpoints(api):
     metrics = (await api.get("/metrics")).text
     assert 'tandemscan_device_connected{device="arm"} 1.0' in metrics
     assert "tandemscan_http_request_seconds_bucket" in metrics and 'tandemscan_jobs{state="queued"} 0.0' in metrics
+    assert 'tandemscan_control_lateness_seconds_bucket{le="0.005"}' in metrics  # the safety loop ticks
+    assert "tandemscan_event_loop_lag_seconds_count" in metrics
     spec = (await api.get("/openapi.json")).json()
     assert {"/v1/jobs", "/v1/jobs/{job_id}", "/v1/jobs/{job_id}/cloud", "/v1/events", "/metrics"} <= set(spec["paths"])
 
