@@ -429,6 +429,8 @@ class DaemonConfig(_Strict):
     reconnect_initial_s: float = Field(0.5, gt=0)
     reconnect_max_s: float = Field(30.0, gt=0)
     default_plan: str = Field("default-band", description="plan of a job posted without one")
+    worker_niceness: int = Field(5, ge=0, le=19, description="added niceness of worker processes (ray casting, "
+                                 "stitching, exports): the event loop and its 50 Hz safety loop come first")
 
 
 class CellConfig(_Strict):

@@ -95,7 +95,7 @@ async def run_journaled(ctx: JobContext) -> dict:
         # starts where the previous one left the tracker, and is scored in its own W
         world.T_W_F = F.invert(world.T_F_C())
         await asyncio.to_thread(save_world_state, world, journal.world_state_path)
-    worldmap = await asyncio.to_thread(ProcessWorldMap, ctx.config.job.voxel_mm)
+    worldmap = await asyncio.to_thread(ProcessWorldMap, ctx.config.job.voxel_mm, ctx.config.daemon.worker_niceness)
     runner = JobRunner(ctx.cell, plan, ctx.config, job_dir, journal.on_progress, journal, worldmap)
     try:
         result = await runner.run()

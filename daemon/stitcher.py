@@ -24,16 +24,16 @@ import numpy as np
 from tandemscan.daemon.snapshot import JobSnapshot
 from tandemscan.daemon.store import write_raw_scan
 from tandemscan.drivers.shared_array import share
-from tandemscan.drivers.worker import die_with_parent, stop_pool
+from tandemscan.drivers.worker import init_worker, stop_pool
 from tandemscan.pipeline.cloud_io import read_raw_scan
 from tandemscan.pipeline.worldmap import VoxelMap
 
 _MAP: VoxelMap | None = None  # the worker's map
 
 
-def _init(voxel_mm: float) -> None:
+def _init(voxel_mm: float, niceness: int) -> None:
     global _MAP
-    die_with_parent()
+    init_worker(niceness)
     _MAP = VoxelMap(voxel_mm)
 
 
@@ -74,10 +74,10 @@ def _share_big(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 class ProcessWorldMap:
     """The job's :class:`VoxelMap` in its own process; call :meth:`close` when the job is done."""
 
-    def __init__(self, voxel_mm: float):
+    def __init__(self, voxel_mm: float, niceness: int = 0):
         self.voxel_mm = float(voxel_mm)
         self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
-                                         initializer=_init, initargs=(self.voxel_mm,))
+                                         initializer=_init, initargs=(self.voxel_mm, niceness))
         self._len = 0
 
     async def add_scan(self, file: Path, T_W_S: np.ndarray, arrays: dict[str, np.ndarray] | None = None) -> None:

@@ -1,4 +1,5 @@
-"""Worker processes of the daemon and its twins: a worker dies with its parent, and stops without waiting.
+"""Worker processes of the daemon and its twins: a worker runs below the daemon's priority, dies with its
+parent, and stops without waiting.
 
 A daemon killed with SIGKILL (a crash, systemd's watchdog) cannot shut its process pools down; without this
 their workers would live on as orphans, holding memory and CPU, and pile up with every restart.
@@ -17,6 +18,14 @@ from concurrent.futures import ProcessPoolExecutor
 log = logging.getLogger(__name__)
 
 _PR_SET_PDEATHSIG = 1
+
+
+def init_worker(niceness: int = 0) -> None:
+    """A worker's set-up: ``niceness`` added (bulk work yields the CPU to the daemon's event loop), and
+    :func:`die_with_parent`."""
+    if niceness:
+        os.nice(niceness)
+    die_with_parent()
 
 
 def die_with_parent(poll_s: float = 1.0) -> None:

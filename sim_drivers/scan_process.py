@@ -18,18 +18,18 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 from tandemscan.config.models import PartConfig, ScannerConfig
 from tandemscan.drivers.shared_array import hand_over, take
-from tandemscan.drivers.worker import die_with_parent, stop_pool
+from tandemscan.drivers.worker import init_worker, stop_pool
 
 _SCENE = None
 _MODEL = None
 
 
-def _init(part: PartConfig, scanner: ScannerConfig) -> None:
+def _init(part: PartConfig, scanner: ScannerConfig, niceness: int) -> None:
     global _SCENE, _MODEL
     from tandemscan.pipeline.part import load_part_mesh
     from tandemscan.pipeline.raycast import ScannerModel, make_scene
 
-    die_with_parent()
+    init_worker(niceness)
     _SCENE = make_scene(load_part_mesh(part))
     _MODEL = ScannerModel(scanner)
 
@@ -54,9 +54,9 @@ def _scan(T_F_S: np.ndarray, rng_state: dict) -> tuple:
 class ScanProcess:
     """One worker process casting the scanner's rays on its own copy of the part (close it when done)."""
 
-    def __init__(self, part: PartConfig, scanner: ScannerConfig):
+    def __init__(self, part: PartConfig, scanner: ScannerConfig, niceness: int = 0):
         self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
-                                         initializer=_init, initargs=(part, scanner))
+                                         initializer=_init, initargs=(part, scanner, niceness))
         self._warm = self._pool.submit(_ready)  # start building the scene now, not at the first capture
 
     async def scan(self, T_F_S: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:

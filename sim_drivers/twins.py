@@ -154,7 +154,8 @@ class SimScanner(_SimDevice):
 
     async def connect(self) -> None:
         if self.out_of_process and self._process is None:
-            self._process = ScanProcess(self.world.config.part, self.world.config.scanner)
+            config = self.world.config
+            self._process = ScanProcess(config.part, config.scanner, config.daemon.worker_niceness)
         await super().connect()
 
     async def close(self) -> None:
