@@ -98,7 +98,7 @@ async def run_calibration(
     plan = await asyncio.to_thread(arm_joints_for_views, views, cal.T_V2_P.matrix(), nominal.T_V2_B,
                                    nominal.T_E_S, kinematics, seed)
     skipped = [f"view {i}: out of reach" for i in range(len(views)) if i not in {j for j, _ in plan}]
-    tracker_poses, covariances, plate_poses, plate_covs, joints = [], [], [], [], []
+    tracker_poses, covariances, plate_poses, centres, centre_covs, joints = [], [], [], [], [], []
     for i, q in plan:
         if len(tracker_poses) >= cal.poses:
             break
@@ -120,7 +120,8 @@ async def run_calibration(
         joints.append(q)
         covariances.append(cov)
         plate_poses.append(fit.T_S_P)
-        plate_covs.append(fit.covariance)
+        centres.append(fit.centres_S)
+        centre_covs.append(fit.centre_covariances)
     for s in skipped:
         log.info("calibration: %s", s)
     if len(tracker_poses) < 3:
@@ -128,8 +129,8 @@ async def run_calibration(
     try:
         result = await asyncio.to_thread(
             solve_hand_eye, np.array(tracker_poses), np.array(plate_poses), cal.method,
-            plate_points_P=nominal_centres_P(cal), tracker_covariances=np.array(covariances),
-            plate_covariances=np.array(plate_covs), plate_sigma_mm=0.001,
+            plate_points_P=nominal_centres_P(cal), plate_points_S=np.array(centres),
+            tracker_covariances=np.array(covariances), plate_point_covariances=np.array(centre_covs),
             min_pair_rotation_deg=cal.min_pair_rotation_deg,
         )
     except HandEyeError as e:

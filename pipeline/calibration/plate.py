@@ -69,6 +69,11 @@ class PlateFit:
         return np.stack([self.spheres[n].centre for n in SPHERE_NAMES])
 
     @property
+    def centre_covariances(self) -> np.ndarray:
+        """(3, 3, 3) covariances of the centres A, X, Y (mm^2, frame S)."""
+        return np.stack([self.spheres[n].centre_covariance for n in SPHERE_NAMES])
+
+    @property
     def centre_sigma_mm(self) -> float:
         """Largest 1-sigma centre uncertainty of the three fits (mm)."""
         return max(s.centre_sigma_mm for s in self.spheres.values())
