@@ -118,18 +118,12 @@ def _relative_motions(
     T_C_T: np.ndarray, T_S_P: np.ndarray, min_rot_rad: float
 ) -> tuple[list[tuple[int, int]], np.ndarray, np.ndarray, int]:
     """All pose pairs whose tracker-side rotation is at least ``min_rot_rad``: (pairs, A, B, n_rejected)."""
-    pairs, As, Bs = [], [], []
-    rejected = 0
-    for i, j in itertools.combinations(range(len(T_C_T)), 2):
-        A = invert(T_C_T[j]) @ T_C_T[i]
-        B = T_S_P[j] @ invert(T_S_P[i])
-        if np.linalg.norm(Rotation.from_matrix(A[:3, :3]).as_rotvec()) < min_rot_rad:
-            rejected += 1
-            continue
-        pairs.append((i, j))
-        As.append(A)
-        Bs.append(B)
-    return pairs, np.array(As).reshape(-1, 4, 4), np.array(Bs).reshape(-1, 4, 4), rejected
+    ij = np.array(list(itertools.combinations(range(len(T_C_T)), 2))).reshape(-1, 2)
+    A = invert(T_C_T)[ij[:, 1]] @ T_C_T[ij[:, 0]]
+    B = T_S_P[ij[:, 1]] @ invert(T_S_P)[ij[:, 0]]
+    keep = np.linalg.norm(Rotation.from_matrix(A[:, :3, :3]).as_rotvec(), axis=1) >= min_rot_rad
+    pairs = [(int(i), int(j)) for i, j in ij[keep]]
+    return pairs, A[keep], B[keep], int(np.sum(~keep))
 
 
 def _check_conditioning(A: np.ndarray, min_axis_spread_deg: float) -> None:
@@ -257,7 +251,7 @@ def _solve_daniilidis(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     S[:, 3:, 1:4] = _skew(ad[:, 1:] + bd[:, 1:])
     S[:, 3:, 4] = a[:, 1:] - b[:, 1:]
     S[:, 3:, 5:8] = _skew(a[:, 1:] + b[:, 1:])
-    _, _, Vt = np.linalg.svd(S.reshape(-1, 8))
+    _, _, Vt = np.linalg.svd(S.reshape(-1, 8), full_matrices=False)
     v1, v2 = Vt[-2], Vt[-1]
     u1, w1, u2, w2 = v1[:4], v1[4:], v2[:4], v2[4:]
     # q = l1 u1 + l2 u2 with q . q' = 0: quadratic in s = l1 / l2 (or its inverse when l2 ~ 0)
