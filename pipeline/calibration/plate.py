@@ -20,7 +20,6 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 from tandemscan.config.models import CalibrationConfig
 from tandemscan.pipeline.frames import make_transform
 
@@ -128,8 +127,7 @@ def _ransac_sphere(
 ) -> np.ndarray:
     """Boolean inlier mask of the best 4-point sphere whose radius is near ``radius_mm``."""
     n = len(P)
-    idx = np.array([rng.choice(n, 4, replace=False) for _ in range(iterations)])
-    S = P[idx]  # (it, 4, 3)
+    S = P[rng.integers(0, n, (iterations, 4))]  # (it, 4, 3); a repeated point makes D singular: skipped
     base = S[:, 0, :]
     D = S[:, 1:, :] - base[:, None, :]  # (it, 3, 3)
     rhs = 0.5 * np.einsum("kij,kij->ki", D, D)
@@ -387,6 +385,8 @@ def plate_frame_jacobian(centres: ArrayLike, step_mm: float = 1e-4) -> np.ndarra
             Cp[j // 3, j % 3] += h
             T = plate_frame(*Cp)
             dR = T[:3, :3] @ T0[:3, :3].T
-            cols.append(np.r_[T[:3, 3] - dR @ T0[:3, 3], Rotation.from_matrix(dR).as_rotvec()])
+            # rotation vector of the tiny dR: its skew part (exact to third order in the step)
+            rv = 0.5 * np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]])
+            cols.append(np.r_[T[:3, 3] - dR @ T0[:3, 3], rv])
         J[:, j] = (cols[0] - cols[1]) / (2 * step_mm)
     return J
