@@ -1,6 +1,6 @@
 """Hand-eye calibration accuracy: our solvers against OpenCV's ``calibrateHandEye`` on the same pose pairs.
 
-Simulated data with the cell's noise levels: per calibration a random true ``T_T_S`` and plate pose, 16
+Simulated data with the cell's noise levels: per calibration (100 by default) a random true ``T_T_S`` and plate pose, 16
 views, plate poses from exact scans of the plate with the scanner's 0.05 mm noise fitted by ``fit_plate``
 (so ``T_S_P`` carries the real sphere-fit error), tracker readings with ``TrackerConfig``'s noise scaled by
 0.5, 1 and 2. Every method gets the same readings; the plate scans and the tracker's unit noise draws are
@@ -195,7 +195,7 @@ async def _calibrate_and_measure(cfg, out: Path) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--trials", type=int, default=50, help="calibrations per noise level")
+    parser.add_argument("--trials", type=int, default=100, help="calibrations per noise level")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--no-job", action="store_true", help="skip the sim calibration and measurement jobs")
     args = parser.parse_args(argv)
