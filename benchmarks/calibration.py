@@ -1,8 +1,8 @@
 """Hand-eye calibration accuracy: our solvers against OpenCV's ``calibrateHandEye`` on the same pose pairs.
 
-Simulated data with the cell's noise levels: per calibration (100 by default) a random true ``T_T_S`` and plate pose, 16
-views, plate poses from exact scans of the plate with the scanner's 0.05 mm noise fitted by ``fit_plate``
-(so ``T_S_P`` carries the real sphere-fit error), tracker readings with ``TrackerConfig``'s noise scaled by
+Simulated data with the cell's noise levels: per calibration (100 by default) a random true ``T_T_S`` and
+plate pose, 16 views, plate poses from exact scans of the plate with the scanner's 0.05 mm noise fitted by
+``fit_plate`` (so ``T_S_P`` carries the real sphere-fit error), tracker readings with ``TrackerConfig``'s noise scaled by
 0.5, 1 and 2. Every method gets the same readings; the plate scans and the tracker's unit noise draws are
 shared by the three levels, so the levels differ only in the tracker noise scale. Our ``refine`` gets the
 fitted sphere centres with their fit covariances and the tracker covariances, as the calibration job does;
@@ -121,7 +121,7 @@ def trial(cfg, rng: np.random.Generator, plate: PlateStats) -> dict[float, dict[
         })
         shared = iter(T_S_P)
         d = hand_eye_dataset(np.random.default_rng(noise_seed), views, X, T_C_P, tracker,
-                             plate_fit=lambda _T: next(shared))
+                             plate_fit=lambda _T, fitted=shared: next(fitted))
         common = {"plate_points_P": truth_P, "tracker_covariances": d.tracker_covariances,
                   "min_pair_rotation_deg": cal.min_pair_rotation_deg}
         solved = {m: solve_hand_eye(d.T_C_T, d.T_S_P, method=m, plate_points_S=centres,
