@@ -4,8 +4,9 @@ Simulated data with the cell's noise levels: per calibration (100 by default) a 
 plate pose, 16 views, plate poses from exact scans of the plate with the scanner's 0.05 mm noise fitted by
 ``fit_plate`` (so ``T_S_P`` carries the real sphere-fit error), tracker readings with ``TrackerConfig``'s
 noise scaled by 0.5, 1 and 2. Every method gets the same readings; the plate scans and the tracker's unit
-noise draws are shared by the three levels, so the levels differ only in the tracker noise scale. Our ``refine`` gets the
-fitted sphere centres with their fit covariances and the tracker covariances, as the calibration job does;
+noise draws are shared by the three levels, so the levels differ only in the tracker noise scale. Our
+``refine`` gets the fitted sphere centres with their fit covariances and the tracker covariances, as the
+calibration job does;
 ``refine_poses`` gets only what OpenCV gets (the poses) plus their covariances. Then (unless ``--no-job``)
 runs the calibration job on the sim cell and the default measurement job with nominal, calibrated and true
 mounts, and reports each cloud's RMS to the part (``cloud_rms_mm``).
