@@ -395,6 +395,7 @@ class CalibrationConfig(_Strict):
     min_pair_rotation_deg: float = Field(5.0, ge=0, description="hand-eye pose pairs rotating less are dropped")
     poses: int = Field(16, ge=3, description="arm poses of the calibration job")
     tracker_samples: int = Field(10, ge=1, description="tracker readings averaged at rest per calibration pose")
+    scans_per_pose: int = Field(1, ge=1, description="plate scans whose sphere centres are averaged per pose")
     tilt_deg: float = Field(22.0, gt=0, lt=60, description="scanner tilt over the plate in the calibration job")
     method: Literal["tsai", "park", "horaud", "daniilidis", "refine"] = "refine"
     T_V2_P: TransformConfig = Field(

@@ -30,7 +30,7 @@ from tandemscan.pipeline.calibration.mounts import (
     relative_motions,
     solve_flange_mount,
 )
-from tandemscan.pipeline.calibration.plate import PlateError, fit_plate, nominal_centres_P
+from tandemscan.pipeline.calibration.plate import PlateError, PlateFit, fit_plate, nominal_centres_P, plate_frame
 from tandemscan.pipeline.calibration.poses import arm_joints_for_views, plate_view_distance, plate_view_poses
 from tandemscan.pipeline.installation import Installation
 from tandemscan.pipeline.kinematics import ArmKinematics
@@ -109,19 +109,18 @@ async def run_calibration(
         except TargetNotVisible as e:
             skipped.append(f"view {i}: {e}")
             continue
-        frame = await cell.scanner.capture(config.scanner.timeout_s)
         try:
-            fit = await asyncio.to_thread(fit_plate, frame.points_mm, cal, normals_S=frame.normals,
-                                          noise_mm=config.scanner.noise_sigma_mm)
+            fits = [await _scan_plate(cell, config) for _ in range(cal.scans_per_pose)]
         except PlateError as e:
             skipped.append(f"view {i}: {e}")
             continue
         tracker_poses.append(T_C_T)
         joints.append(q)
         covariances.append(cov)
-        plate_poses.append(fit.T_S_P)
-        centres.append(fit.centres_S)
-        centre_covs.append(fit.centre_covariances)
+        # the arm stands still: the scans' centres are averaged, their covariance shrinks with the count
+        centres.append(np.mean([f.centres_S for f in fits], axis=0))
+        centre_covs.append(np.mean([f.centre_covariances for f in fits], axis=0) / len(fits))
+        plate_poses.append(plate_frame(*centres[-1]))
     for s in skipped:
         log.info("calibration: %s", s)
     if len(tracker_poses) < 3:
@@ -217,6 +216,13 @@ def _truth_errors(cell: Cell, nominal: Installation, calibrated: Installation) -
             out[f"{label}{k}_err_mm"] = mm
             out[f"{label}{k}_err_deg"] = float(np.degrees(rad))
     return out
+
+
+async def _scan_plate(cell: Cell, config: CellConfig) -> PlateFit:
+    """One plate scan and its sphere fit (raises :class:`PlateError`)."""
+    frame = await cell.scanner.capture(config.scanner.timeout_s)
+    return await asyncio.to_thread(fit_plate, frame.points_mm, config.calibration, normals_S=frame.normals,
+                                   noise_mm=config.scanner.noise_sigma_mm)
 
 
 def _write_json(path: Path, data: dict) -> None:
