@@ -474,6 +474,8 @@ def solve_hand_eye(
                 starts.append((_Bundle(T_C_T, pts_S, solver(A, B), cov_C, cov_S), name))
             except (HandEyeError, np.linalg.LinAlgError) as e:
                 log.info("hand-eye start %s failed: %s", name, e)
+        if not starts:
+            raise HandEyeError("no closed-form solver gave a start for the refinement: data degenerate or too noisy")
         first, name = min(starts, key=lambda b: b[0].cost())
         log.debug("hand-eye refinement starts from %s", name)
         bundle, x = _refine(T_C_T, pts_S, first.X0, cov_C, cov_S)
