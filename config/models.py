@@ -395,8 +395,9 @@ class CalibrationConfig(_Strict):
     min_pair_rotation_deg: float = Field(5.0, ge=0, description="hand-eye pose pairs rotating less are dropped")
     poses: int = Field(16, ge=3, description="arm poses of the calibration job")
     tracker_samples: int = Field(10, ge=1, description="tracker readings averaged at rest per calibration pose")
+    scans_per_pose: int = Field(1, ge=1, description="plate scans whose sphere centres are averaged per pose")
     tilt_deg: float = Field(22.0, gt=0, lt=60, description="scanner tilt over the plate in the calibration job")
-    method: Literal["tsai", "park", "daniilidis", "refine"] = "refine"
+    method: Literal["tsai", "park", "horaud", "daniilidis", "refine"] = "refine"
     T_V2_P: TransformConfig = Field(
         TransformConfig(xyz_mm=(550.0, 0.0, 250.0)),
         description="where the plate stands relative to the measurement chassis at its start (nominal for "

@@ -30,7 +30,7 @@ from tandemscan.pipeline.calibration.mounts import (
     relative_motions,
     solve_flange_mount,
 )
-from tandemscan.pipeline.calibration.plate import PlateError, fit_plate, nominal_centres_P
+from tandemscan.pipeline.calibration.plate import PlateError, PlateFit, fit_plate, nominal_centres_P, plate_frame
 from tandemscan.pipeline.calibration.poses import arm_joints_for_views, plate_view_distance, plate_view_poses
 from tandemscan.pipeline.installation import Installation
 from tandemscan.pipeline.kinematics import ArmKinematics
@@ -98,7 +98,7 @@ async def run_calibration(
     plan = await asyncio.to_thread(arm_joints_for_views, views, cal.T_V2_P.matrix(), nominal.T_V2_B,
                                    nominal.T_E_S, kinematics, seed)
     skipped = [f"view {i}: out of reach" for i in range(len(views)) if i not in {j for j, _ in plan}]
-    tracker_poses, covariances, plate_poses, plate_covs, joints = [], [], [], [], []
+    tracker_poses, covariances, plate_poses, centres, centre_covs, joints = [], [], [], [], [], []
     for i, q in plan:
         if len(tracker_poses) >= cal.poses:
             break
@@ -109,18 +109,18 @@ async def run_calibration(
         except TargetNotVisible as e:
             skipped.append(f"view {i}: {e}")
             continue
-        frame = await cell.scanner.capture(config.scanner.timeout_s)
         try:
-            fit = await asyncio.to_thread(fit_plate, frame.points_mm, cal, normals_S=frame.normals,
-                                          noise_mm=config.scanner.noise_sigma_mm)
+            fits = [await _scan_plate(cell, config) for _ in range(cal.scans_per_pose)]
         except PlateError as e:
             skipped.append(f"view {i}: {e}")
             continue
         tracker_poses.append(T_C_T)
         joints.append(q)
         covariances.append(cov)
-        plate_poses.append(fit.T_S_P)
-        plate_covs.append(fit.covariance)
+        # the arm stands still: the scans' centres are averaged, their covariance shrinks with the count
+        centres.append(np.mean([f.centres_S for f in fits], axis=0))
+        centre_covs.append(np.mean([f.centre_covariances for f in fits], axis=0) / len(fits))
+        plate_poses.append(plate_frame(*centres[-1]))
     for s in skipped:
         log.info("calibration: %s", s)
     if len(tracker_poses) < 3:
@@ -128,8 +128,8 @@ async def run_calibration(
     try:
         result = await asyncio.to_thread(
             solve_hand_eye, np.array(tracker_poses), np.array(plate_poses), cal.method,
-            plate_points_P=nominal_centres_P(cal), tracker_covariances=np.array(covariances),
-            plate_covariances=np.array(plate_covs), plate_sigma_mm=0.001,
+            plate_points_P=nominal_centres_P(cal), plate_points_S=np.array(centres),
+            tracker_covariances=np.array(covariances), plate_point_covariances=np.array(centre_covs),
             min_pair_rotation_deg=cal.min_pair_rotation_deg,
         )
     except HandEyeError as e:
@@ -216,6 +216,13 @@ def _truth_errors(cell: Cell, nominal: Installation, calibrated: Installation) -
             out[f"{label}{k}_err_mm"] = mm
             out[f"{label}{k}_err_deg"] = float(np.degrees(rad))
     return out
+
+
+async def _scan_plate(cell: Cell, config: CellConfig) -> PlateFit:
+    """One plate scan and its sphere fit (raises :class:`PlateError`)."""
+    frame = await cell.scanner.capture(config.scanner.timeout_s)
+    return await asyncio.to_thread(fit_plate, frame.points_mm, config.calibration, normals_S=frame.normals,
+                                   noise_mm=config.scanner.noise_sigma_mm)
 
 
 def _write_json(path: Path, data: dict) -> None:

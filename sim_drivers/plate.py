@@ -125,6 +125,8 @@ class HandEyeData:
     T_T_S: np.ndarray
     T_C_P: np.ndarray
     tracker_sigma: tuple[float, float]
+    #: (N, 6, 6) per reading, as the tracker driver reports it (translation mm then rotation rad, frame C)
+    tracker_covariances: np.ndarray
 
 
 def _perturb(T: np.ndarray, rng: np.random.Generator, sigma_mm: float, sigma_rad: float) -> np.ndarray:
@@ -151,15 +153,16 @@ def hand_eye_dataset(
     Plate poses get ``plate_sigma`` = (mm, rad) noise, or come from ``plate_fit(true T_S_P)`` (e.g. scan +
     sphere fit). ``tracker_sigma`` of the result is (mm, rad) of the last reading.
     """
-    T_C_T, T_S_P = [], []
+    T_C_T, T_S_P, covs = [], [], []
     sig = (0.0, 0.0)
     for T_P_S in views_T_P_S:
         true_T_C_T = T_C_P @ T_P_S @ invert(T_T_S)
         sig = tracker_sigma(tracker, float(np.linalg.norm(true_T_C_T[:3, 3])))
+        covs.append(np.diag(np.repeat(np.square(sig), 3)))
         T_C_T.append(_perturb(true_T_C_T, rng, *sig))
         true_T_S_P = invert(T_P_S)
         T_S_P.append(plate_fit(true_T_S_P) if plate_fit is not None else _perturb(true_T_S_P, rng, *plate_sigma))
-    return HandEyeData(np.array(T_C_T), np.array(T_S_P), T_T_S, T_C_P, sig)
+    return HandEyeData(np.array(T_C_T), np.array(T_S_P), T_T_S, T_C_P, sig, np.array(covs))
 
 
 def install_calibration_plate(world: SimWorld, cfg: CalibrationConfig) -> np.ndarray:

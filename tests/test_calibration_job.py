@@ -13,7 +13,7 @@ from tandemscan.sim_drivers.cell import build_cell
 
 
 async def test_calibration_job_recovers_the_true_scanner_mount(sim_config, tmp_path):
-    cal = sim_config.calibration.model_copy(update={"poses": 5})
+    cal = sim_config.calibration.model_copy(update={"poses": 5, "scans_per_pose": 2})
     config = sim_config.model_copy(update={"calibration": cal})
     cell = build_cell(config)
     run = await calibrate_cell(cell, config, tmp_path / "calibration.json")
@@ -23,6 +23,7 @@ async def test_calibration_job_recovers_the_true_scanner_mount(sim_config, tmp_p
     assert nominal_mm > 1.0  # the sim's nominal mount is visibly off
     assert err_mm < 0.2 and np.degrees(err_rad) < 0.02
     assert run.poses_used == 5 and run.hand_eye.point_rms_mm < 0.2
+    assert cell.world.captures >= 2 * 5  # two plate scans averaged at every pose used
 
     data = json.loads((tmp_path / "calibration.json").read_text())
     assert data["sources"]["T_T_S"].startswith("hand-eye")

@@ -128,6 +128,45 @@ def test_plate_frame_covariance_matches_monte_carlo():
     assert np.sqrt(cov[3, 3]) > np.sqrt(cov[5, 5])
 
 
+def test_plate_frame_covariance_takes_full_centre_covariances():
+    rng = np.random.default_rng(6)
+    C = np.array([[-100.0, 0, 450], [120.0, 0, 450], [0, 90.0, 455]])
+    T0 = plate_frame(*C)
+    L = np.diag([0.012, 0.008, 0.003])  # each centre: poorest across the view, best along it
+    cov = plate_frame_covariance(C, [L @ L.T] * 3)
+    samples = []
+    for _ in range(2000):
+        T = plate_frame(*(C + rng.normal(size=C.shape) @ L.T))
+        dR = T[:3, :3] @ T0[:3, :3].T
+        samples.append(np.r_[T[:3, 3] - dR @ T0[:3, 3], Rotation.from_matrix(dR).as_rotvec()])
+    mc = np.cov(np.array(samples).T)
+    np.testing.assert_allclose(np.sqrt(np.diag(cov)), np.sqrt(np.diag(mc)), rtol=0.1)
+    iso = plate_frame_covariance(C, [0.003] * 3)
+    np.testing.assert_allclose(plate_frame_covariance(C, [0.003**2 * np.eye(3)] * 3), iso, rtol=1e-12)
+    with pytest.raises(ValueError, match="3 sigmas or 3 3x3"):
+        plate_frame_covariance(C, [0.01, 0.01])
+
+
+def test_sphere_fit_covariance_is_anisotropic_and_right(sim_config):
+    # a 60 deg cap seen from the scanner at the origin: the centre is pinned better along the view (z)
+    c, r = np.array([10.0, -5.0, 450.0]), 20.0
+    errs, covs = [], []
+    for seed in range(40):
+        rng = np.random.default_rng(seed)
+        d = rng.normal(size=(1500, 3))
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        P = c + r * d[d[:, 2] < -0.5][:400]
+        P += rng.normal(0, 0.05, P.shape)
+        f = fit_sphere(P, r, noise_mm=0.05, rng=rng)
+        errs.append(f.centre - c)
+        covs.append(f.centre_covariance)
+    cov = np.mean(covs, axis=0)
+    assert cov[2, 2] < 0.5 * min(cov[0, 0], cov[1, 1])
+    e = np.array(errs)
+    np.testing.assert_allclose(np.sqrt(np.mean(e**2, axis=0)), np.sqrt(np.diag(cov)), rtol=0.35)
+    assert f.centre_sigma_mm == pytest.approx(np.sqrt(np.linalg.eigvalsh(f.centre_covariance).max()))
+
+
 def test_layout_in_config_must_follow_the_frame():
     with pytest.raises(ValueError, match="plate x axis"):
         CalibrationConfig(centre_A_mm=(-100.0, 5.0, 0.0))

@@ -6,10 +6,13 @@ still, so ``T_C_T[i] X T_S_P[i] = T_C_P`` for every i, and for a pair (i, j)::
     A = inv(T_C_T[j]) T_C_T[i],   B = T_S_P[j] inv(T_S_P[i]),   A X = X B.
 
 Closed-form solvers: ``tsai`` (Tsai-Lenz, modified Rodrigues parameters), ``park`` (Park-Martin, rotation
-logarithms aligned in the least-squares sense), ``daniilidis`` (dual quaternions, rotation and translation at
-once). ``refine`` starts from the closed-form answer with the smallest plate-point spread and minimises the
-distance of every plate point, carried into the tracker frame C through its pose's chain, to that point's
-common position (a bundle over X and the plate points in C). All in mm and radians; residuals also in deg.
+logarithms aligned in the least-squares sense), ``horaud`` (Horaud-Dornaika, unit quaternion as the smallest
+eigenvector of a 4x4 quadratic form), ``daniilidis`` (dual quaternions, rotation and translation at once).
+``refine`` is the maximum-likelihood estimate: starting from the closed-form answer that fits the data best,
+it minimises the distance of every plate point, carried into the tracker frame C through its pose's chain,
+to that point's common position, jointly over X and the plate's fixed points in C, each pose's residual
+whitened by the covariance both noise sources give it (tracker reading and plate fit). All in mm and
+radians; residuals also in deg.
 """
 
 from __future__ import annotations
@@ -27,8 +30,8 @@ from tandemscan.pipeline.frames import invert, make_transform
 
 log = logging.getLogger(__name__)
 
-Method = Literal["tsai", "park", "daniilidis", "refine"]
-CLOSED_FORM: tuple[str, ...] = ("tsai", "park", "daniilidis")
+Method = Literal["tsai", "park", "horaud", "daniilidis", "refine"]
+CLOSED_FORM: tuple[str, ...] = ("tsai", "park", "horaud", "daniilidis")
 METHODS: tuple[str, ...] = (*CLOSED_FORM, "refine")
 
 #: plate points (frame P, mm) used when the caller gives none: a tetrahedron the size of the plate
@@ -115,18 +118,12 @@ def _relative_motions(
     T_C_T: np.ndarray, T_S_P: np.ndarray, min_rot_rad: float
 ) -> tuple[list[tuple[int, int]], np.ndarray, np.ndarray, int]:
     """All pose pairs whose tracker-side rotation is at least ``min_rot_rad``: (pairs, A, B, n_rejected)."""
-    pairs, As, Bs = [], [], []
-    rejected = 0
-    for i, j in itertools.combinations(range(len(T_C_T)), 2):
-        A = invert(T_C_T[j]) @ T_C_T[i]
-        B = T_S_P[j] @ invert(T_S_P[i])
-        if np.linalg.norm(Rotation.from_matrix(A[:3, :3]).as_rotvec()) < min_rot_rad:
-            rejected += 1
-            continue
-        pairs.append((i, j))
-        As.append(A)
-        Bs.append(B)
-    return pairs, np.array(As).reshape(-1, 4, 4), np.array(Bs).reshape(-1, 4, 4), rejected
+    ij = np.array(list(itertools.combinations(range(len(T_C_T)), 2))).reshape(-1, 2)
+    A = invert(T_C_T)[ij[:, 1]] @ T_C_T[ij[:, 0]]
+    B = T_S_P[ij[:, 1]] @ invert(T_S_P)[ij[:, 0]]
+    keep = np.linalg.norm(Rotation.from_matrix(A[:, :3, :3]).as_rotvec(), axis=1) >= min_rot_rad
+    pairs = [(int(i), int(j)) for i, j in ij[keep]]
+    return pairs, A[keep], B[keep], int(np.sum(~keep))
 
 
 def _check_conditioning(A: np.ndarray, min_axis_spread_deg: float) -> None:
@@ -200,10 +197,34 @@ def _procrustes(H: np.ndarray) -> np.ndarray:
     return Vt.T @ D @ U.T
 
 
+def _quaternions(R: np.ndarray) -> np.ndarray:
+    """(N, 4) unit quaternions, scalar first and >= 0, of a stack of rotation matrices."""
+    q = Rotation.from_matrix(R).as_quat()[:, [3, 0, 1, 2]]
+    q[q[:, 0] < 0] *= -1
+    return q
+
+
+def _solve_horaud(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """Horaud-Dornaika: the unit quaternion x minimising ``sum |a x - x b|^2`` is the eigenvector of the
+    smallest eigenvalue of ``sum (L(a) - R(b))^T (L(a) - R(b))``; then translation by least squares."""
+    a, b = _quaternions(A[:, :3, :3]), _quaternions(B[:, :3, :3])
+    # a x = L(a) x and x b = R(b) x with L, R the left and right multiplication matrices
+    L = np.zeros((len(a), 4, 4))
+    L[:, 0, 0], L[:, 0, 1:], L[:, 1:, 0] = a[:, 0], -a[:, 1:], a[:, 1:]
+    L[:, 1:, 1:] = a[:, 0, None, None] * np.eye(3) + _skew(a[:, 1:])
+    Rm = np.zeros((len(b), 4, 4))
+    Rm[:, 0, 0], Rm[:, 0, 1:], Rm[:, 1:, 0] = b[:, 0], -b[:, 1:], b[:, 1:]
+    Rm[:, 1:, 1:] = b[:, 0, None, None] * np.eye(3) - _skew(b[:, 1:])
+    D = L - Rm
+    _, V = np.linalg.eigh(np.einsum("nji,njk->ik", D, D))
+    q = V[:, 0]
+    R_X = Rotation.from_quat(q[[1, 2, 3, 0]]).as_matrix()
+    return make_transform(R_X, _translation_ls(A, B, R_X))
+
+
 def _dual_quaternion(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(real, dual) quaternions, scalar first, of a stack of 4x4 (real part with scalar >= 0)."""
-    q = Rotation.from_matrix(T[:, :3, :3]).as_quat()[:, [3, 0, 1, 2]]
-    q[q[:, 0] < 0] *= -1
+    q = _quaternions(T[:, :3, :3])
     t = np.column_stack([np.zeros(len(T)), T[:, :3, 3]])
     return q, 0.5 * _qmul(t, q)
 
@@ -230,7 +251,7 @@ def _solve_daniilidis(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     S[:, 3:, 1:4] = _skew(ad[:, 1:] + bd[:, 1:])
     S[:, 3:, 4] = a[:, 1:] - b[:, 1:]
     S[:, 3:, 5:8] = _skew(a[:, 1:] + b[:, 1:])
-    _, _, Vt = np.linalg.svd(S.reshape(-1, 8))
+    _, _, Vt = np.linalg.svd(S.reshape(-1, 8), full_matrices=False)
     v1, v2 = Vt[-2], Vt[-1]
     u1, w1, u2, w2 = v1[:4], v1[4:], v2[:4], v2[4:]
     # q = l1 u1 + l2 u2 with q . q' = 0: quadratic in s = l1 / l2 (or its inverse when l2 ~ 0)
@@ -255,7 +276,7 @@ def _solve_daniilidis(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return make_transform(R_X, t)
 
 
-_SOLVERS = {"tsai": _solve_tsai, "park": _solve_park, "daniilidis": _solve_daniilidis}
+_SOLVERS = {"tsai": _solve_tsai, "park": _solve_park, "horaud": _solve_horaud, "daniilidis": _solve_daniilidis}
 
 
 # ---------------------------------------------------------------- refinement in the world
@@ -268,49 +289,47 @@ def _points_C(T_C_T: np.ndarray, X: np.ndarray, pts_S: np.ndarray) -> np.ndarray
 
 
 class _Bundle:
-    """Residuals ``T_C_T[i] X p_ik - m_k`` (frame C, mm) with X = X0 exp(dx) and the K points m_k free.
+    """Whitened residuals ``T_C_T[i] X p_ik - m_k`` (frame C, mm), X = X0 exp(dx), the K points m_k free.
 
-    Each pose's 3K residual vector is whitened by its covariance: the tracker's 6-DoF noise carried to the
-    points (``dq_k = dt + dtheta x (R_C_T u_k)`` in frame C, with ``u_k`` the point in frame T) plus the plate
-    points' own isotropic noise. This is what makes the point refinement better than the pair solvers:
-    tracker translation noise moves the whole point set and must not be read as a rotation of X.
+    The plate stands still, so its points m_k in C are unknowns estimated jointly with X (not eliminated
+    by averaging, which would weight every pose alike). Each pose's 3K residual vector is whitened by its
+    covariance from both noise sources: the tracker's 6-DoF noise carried to the points
+    (``dq_k = dt + dtheta x (R_C_T u_k)`` in frame C, ``u_k`` the point in frame T) and the plate points'
+    own covariance in frame S (``cov_S``, (N, 3K, 3K)) turned into C. Minimising the whitened sum is the
+    maximum-likelihood estimate for Gaussian noise; the weights are evaluated at ``X0``.
     """
 
-    def __init__(
-        self,
-        T_C_T: np.ndarray,
-        pts_S: np.ndarray,
-        X0: np.ndarray,
-        cov_C: np.ndarray,
-        plate_sigma_mm: float,
-        cov_S: np.ndarray | None = None,
-    ) -> None:
+    def __init__(self, T_C_T: np.ndarray, pts_S: np.ndarray, X0: np.ndarray, cov_C: np.ndarray,
+                 cov_S: np.ndarray) -> None:
         self.T_C_T, self.pts_S, self.X0 = T_C_T, pts_S, X0
-        self.K = pts_S.shape[1]
+        n, self.K = pts_S.shape[:2]
         u = np.einsum("ij,nkj->nki", X0[:3, :3], pts_S) + X0[:3, 3]  # points in frame T
         lever = np.einsum("nij,nkj->nki", T_C_T[:, :3, :3], u)  # from the target origin, in frame C
-        J = np.zeros((len(T_C_T), self.K, 3, 6))
+        J = np.zeros((n, self.K, 3, 6))
         J[..., :3] = np.eye(3)
         J[..., 3:] = -_skew(lever)
-        J = J.reshape(len(T_C_T), 3 * self.K, 6)
-        cov = J @ cov_C @ np.swapaxes(J, 1, 2) + max(plate_sigma_mm, 1e-6) ** 2 * np.eye(3 * self.K)
-        if cov_S is not None:  # plate pose noise moves the points rigidly: dp_S = dt + dtheta x p_S
-            Jp = np.zeros((len(T_C_T), self.K, 3, 6))
-            Jp[..., :3] = np.eye(3)
-            Jp[..., 3:] = -_skew(pts_S)
-            R_C_S = T_C_T[:, :3, :3] @ X0[:3, :3]
-            Jp = np.einsum("nij,nkjl->nkil", R_C_S, Jp).reshape(len(T_C_T), 3 * self.K, 6)
-            cov = cov + Jp @ cov_S @ np.swapaxes(Jp, 1, 2)
+        J = J.reshape(n, 3 * self.K, 6)
+        R_C_S = T_C_T[:, :3, :3] @ X0[:3, :3]
+        plate = np.einsum("nai,nkilj,nbj->nkalb", R_C_S, cov_S.reshape(n, self.K, 3, self.K, 3), R_C_S)
+        cov = J @ cov_C @ np.swapaxes(J, 1, 2) + plate.reshape(n, 3 * self.K, 3 * self.K)
         # whitening W with W^T W = inv(cov): W = inv(L) for cov = L L^T
         self.W = np.linalg.inv(np.linalg.cholesky(cov))
+        self.info = np.swapaxes(self.W, 1, 2) @ self.W
 
     def unpack(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         dX = make_transform(Rotation.from_rotvec(x[:3]).as_matrix(), x[3:6])
         return self.X0 @ dX, x[6:].reshape(self.K, 3)
 
     def start(self) -> np.ndarray:
-        m0 = _points_C(self.T_C_T, self.X0, self.pts_S).mean(axis=0)
-        return np.concatenate([np.zeros(6), m0.reshape(-1)])
+        """Parameters at ``X0`` with the points m that the weights put best for it (linear least squares)."""
+        q = _points_C(self.T_C_T, self.X0, self.pts_S).reshape(len(self.T_C_T), -1)
+        m0 = np.linalg.solve(self.info.sum(axis=0), np.einsum("nij,nj->i", self.info, q))
+        return np.concatenate([np.zeros(6), m0])
+
+    def cost(self) -> float:
+        """Whitened sum of squares at ``X0`` (with the best points)."""
+        f = self(self.start())
+        return float(f @ f)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         X, m = self.unpack(x)
@@ -318,7 +337,9 @@ class _Bundle:
         return np.einsum("nij,nj->ni", self.W, r).reshape(-1)
 
     def covariance(self, x: np.ndarray) -> np.ndarray:
-        """6x6 covariance of X's local parameters (rotvec rad, translation mm) at ``x``: s^2 inv(J^T J)."""
+        """6x6 covariance of X's local parameters (rotvec rad, translation mm) at ``x``: ``inv(J^T J)`` of
+        the whitened problem, scaled up by the residual variance when the data scatter more than the noise
+        model says."""
         f0 = self(x)
         steps = np.r_[np.full(3, 1e-6), np.full(len(x) - 3, 1e-4)]
         J = np.empty((len(f0), len(x)))
@@ -328,14 +349,46 @@ class _Bundle:
             J[:, k] = (self(x + e) - self(x - e)) / (2 * h)
         s2 = float(f0 @ f0) / max(J.shape[0] - J.shape[1], 1)
         try:
-            return s2 * np.linalg.inv(J.T @ J)[:6, :6]
+            return max(s2, 1.0) * np.linalg.inv(J.T @ J)[:6, :6]
         except np.linalg.LinAlgError:
             return np.full((6, 6), np.inf)
 
 
-def _refine(bundle: _Bundle) -> np.ndarray:
-    """Least-squares solution vector of the bundle (X local 6-vector, then the K points)."""
-    return least_squares(bundle, bundle.start(), method="lm", x_scale="jac").x
+def _refine(T_C_T: np.ndarray, pts_S: np.ndarray, X0: np.ndarray, cov_C: np.ndarray, cov_S: np.ndarray,
+            passes: int = 2) -> tuple[_Bundle, np.ndarray]:
+    """Maximum-likelihood X: Levenberg-Marquardt on the bundle, the weights re-evaluated at each pass's
+    answer. Returns the last bundle and its solution vector (X local 6-vector, then the K points)."""
+    bundle = _Bundle(T_C_T, pts_S, X0, cov_C, cov_S)
+    for k in range(passes):
+        x = least_squares(bundle, bundle.start(), method="lm", x_scale="jac").x
+        if k + 1 < passes:
+            bundle = _Bundle(T_C_T, pts_S, bundle.unpack(x)[0], cov_C, cov_S)
+    return bundle, x
+
+
+def _plate_side_covariance(
+    pts_S: np.ndarray, plate_covariances: np.ndarray | None, point_covariances: np.ndarray | None,
+    sigma_mm: float,
+) -> np.ndarray:
+    """(N, 3K, 3K) covariance of each pose's plate points in frame S (mm^2).
+
+    From the plate poses' 6x6 (a rigid motion of the points: ``dp = dt + dtheta x p``), or the points' own
+    3x3 blocks, or else isotropic ``sigma_mm``; a 0.1 um floor keeps the rigid-only case invertible.
+    """
+    n, K = pts_S.shape[:2]
+    if plate_covariances is None and point_covariances is None:
+        return np.broadcast_to(sigma_mm**2 * np.eye(3 * K), (n, 3 * K, 3 * K)).copy()
+    cov = np.broadcast_to(1e-8 * np.eye(3 * K), (n, 3 * K, 3 * K)).copy()
+    if point_covariances is not None:
+        for k in range(K):
+            cov[:, 3 * k : 3 * k + 3, 3 * k : 3 * k + 3] += point_covariances[:, k]
+    if plate_covariances is not None:
+        Jp = np.zeros((n, K, 3, 6))
+        Jp[..., :3] = np.eye(3)
+        Jp[..., 3:] = -_skew(pts_S)
+        Jp = Jp.reshape(n, 3 * K, 6)
+        cov += Jp @ plate_covariances @ np.swapaxes(Jp, 1, 2)
+    return cov
 
 
 # ---------------------------------------------------------------- the public solver
@@ -356,70 +409,78 @@ def solve_hand_eye(
     method: Method = "refine",
     *,
     plate_points_P: ArrayLike | None = None,
+    plate_points_S: ArrayLike | None = None,
     min_pair_rotation_deg: float = 5.0,
     min_axis_spread_deg: float = 3.0,
     tracker_covariances: ArrayLike | None = None,
     tracker_sigma: tuple[float, float] = DEFAULT_TRACKER_SIGMA,
     plate_sigma_mm: float = 0.005,
     plate_covariances: ArrayLike | None = None,
+    plate_point_covariances: ArrayLike | None = None,
 ) -> HandEyeResult:
     """Solve ``A X = X B`` for ``X = T_T_S`` (4x4, mm).
 
     ``tracker_poses[i]`` is ``T_C_T`` and ``plate_poses[i]`` is ``T_S_P`` at arm pose i (N >= 3).
     ``plate_points_P`` (K, 3 mm, frame P) are the points the refinement and the point residuals use
-    (for example the sphere centres); default a plate-sized tetrahedron. Pairs whose relative rotation is
-    below ``min_pair_rotation_deg`` are dropped; :class:`HandEyeError` is raised when fewer than two remain
-    or when all rotations share one axis.
+    (for example the sphere centres); default a plate-sized tetrahedron. ``plate_points_S`` (N, K, 3 mm),
+    when given, are those points as measured in each scan (the fitted sphere centres): the refinement then
+    uses them instead of ``T_S_P[i] plate_points_P``, which carry only the plate pose's 6 DoF. Pairs whose
+    relative rotation is below ``min_pair_rotation_deg`` are dropped; :class:`HandEyeError` is raised when
+    fewer than two remain or when all rotations share one axis.
 
     Noise model of the refinement and the covariance: ``tracker_covariances`` (N, 6, 6) of each reading as
     the tracker driver gives them (``TrackerReading.covariance``: translation mm then rotation vector rad,
-    in the camera frame C); without them ``tracker_sigma`` = (mm, rad) per axis for every reading.
-    ``plate_sigma_mm``: 1-sigma of a plate point from the scan fit; ``plate_covariances`` (N, 6, 6), when
-    given, the covariance of each ``T_S_P`` as :attr:`PlateFit.covariance` gives it (translation mm, rotation
-    rad, left perturbation in frame S); the isotropic term then only keeps the weighting well conditioned.
+    in the camera frame C); without them ``tracker_sigma`` = (mm, rad) per axis for every reading. Plate
+    side, one of: ``plate_covariances`` (N, 6, 6), the covariance of each ``T_S_P`` as
+    :attr:`PlateFit.covariance` gives it (translation mm, rotation rad, left perturbation in frame S);
+    ``plate_point_covariances`` (N, K, 3, 3 mm^2, frame S) of the measured ``plate_points_S``
+    (:attr:`SphereFit.centre_covariance`); or else ``plate_sigma_mm``, the 1-sigma per axis of a plate point.
     """
     if method not in METHODS:
         raise HandEyeError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
     T_C_T = _as_poses(tracker_poses, "tracker_poses")
     T_S_P = _as_poses(plate_poses, "plate_poses")
-    if len(T_C_T) != len(T_S_P):
-        raise HandEyeError(f"{len(T_C_T)} tracker poses but {len(T_S_P)} plate poses")
-    if len(T_C_T) < 3:
-        raise HandEyeError(f"hand-eye calibration needs at least 3 poses, got {len(T_C_T)}")
+    n = len(T_C_T)
+    if n != len(T_S_P):
+        raise HandEyeError(f"{n} tracker poses but {len(T_S_P)} plate poses")
+    if n < 3:
+        raise HandEyeError(f"hand-eye calibration needs at least 3 poses, got {n}")
     pts_P = DEFAULT_PLATE_POINTS_P if plate_points_P is None else np.asarray(plate_points_P, dtype=float)
     if pts_P.ndim != 2 or pts_P.shape[1] != 3 or len(pts_P) < 3:
         raise HandEyeError(f"plate_points_P must be (K >= 3, 3), got {pts_P.shape}")
+    K = len(pts_P)
     pairs, A, B, rejected = _relative_motions(T_C_T, T_S_P, np.radians(min_pair_rotation_deg))
     _check_conditioning(A, min_axis_spread_deg)
-    pts_S = np.einsum("nij,kj->nki", T_S_P[:, :3, :3], pts_P) + T_S_P[:, None, :3, 3]
-    if tracker_covariances is None:
-        cov_C = np.broadcast_to(np.diag(np.repeat(np.square(tracker_sigma), 3)), (len(T_C_T), 6, 6))
+    if plate_points_S is None:
+        pts_S = np.einsum("nij,kj->nki", T_S_P[:, :3, :3], pts_P) + T_S_P[:, None, :3, 3]
     else:
-        cov_C = np.asarray(tracker_covariances, dtype=float)
-        if cov_C.shape != (len(T_C_T), 6, 6):
-            raise HandEyeError(f"tracker_covariances must be ({len(T_C_T)}, 6, 6), got {cov_C.shape}")
-
-    cov_S = None
-    if plate_covariances is not None:
-        cov_S = np.asarray(plate_covariances, dtype=float)
-        if cov_S.shape != (len(T_C_T), 6, 6):
-            raise HandEyeError(f"plate_covariances must be ({len(T_C_T)}, 6, 6), got {cov_S.shape}")
-
-    def spread(X: np.ndarray) -> float:
-        p = _points_C(T_C_T, X, pts_S)
-        return float(np.mean(np.sum((p - p.mean(axis=0)) ** 2, axis=2)))
+        pts_S = _as_array(plate_points_S, "plate_points_S", (n, K, 3))
+    if tracker_covariances is None:
+        cov_C = np.broadcast_to(np.diag(np.repeat(np.square(tracker_sigma), 3)), (n, 6, 6))
+    else:
+        cov_C = _as_array(tracker_covariances, "tracker_covariances", (n, 6, 6))
+    cov_pose = None if plate_covariances is None else _as_array(plate_covariances, "plate_covariances", (n, 6, 6))
+    cov_pts = None
+    if plate_point_covariances is not None:
+        if plate_points_S is None or cov_pose is not None:
+            raise HandEyeError("plate_point_covariances go with plate_points_S and without plate_covariances")
+        cov_pts = _as_array(plate_point_covariances, "plate_point_covariances", (n, K, 3, 3))
+    cov_S = _plate_side_covariance(pts_S, cov_pose, cov_pts, plate_sigma_mm)
 
     if method == "refine":
-        starts = {}
+        starts = []
         for name, solver in _SOLVERS.items():
             try:
-                starts[name] = solver(A, B)
+                starts.append((_Bundle(T_C_T, pts_S, solver(A, B), cov_C, cov_S), name))
             except (HandEyeError, np.linalg.LinAlgError) as e:
                 log.info("hand-eye start %s failed: %s", name, e)
-        bundle = _Bundle(T_C_T, pts_S, min(starts.values(), key=spread), cov_C, plate_sigma_mm, cov_S)
-        x = _refine(bundle)
+        if not starts:
+            raise HandEyeError("no closed-form solver gave a start for the refinement: data degenerate or too noisy")
+        first, name = min(starts, key=lambda b: b[0].cost())
+        log.debug("hand-eye refinement starts from %s", name)
+        bundle, x = _refine(T_C_T, pts_S, first.X0, cov_C, cov_S)
     else:
-        bundle = _Bundle(T_C_T, pts_S, _SOLVERS[method](A, B), cov_C, plate_sigma_mm, cov_S)
+        bundle = _Bundle(T_C_T, pts_S, _SOLVERS[method](A, B), cov_C, cov_S)
         x = bundle.start()
     X, m = bundle.unpack(x)
     cov = bundle.covariance(x)
@@ -442,6 +503,16 @@ def solve_hand_eye(
         covariance=cov,
         rejected_pairs=rejected,
     )
+
+
+def _as_array(values: ArrayLike, name: str, shape: tuple[int, ...]) -> np.ndarray:
+    """Float array of exactly ``shape``, finite, else :class:`HandEyeError` naming ``name``."""
+    a = np.asarray(values, dtype=float)
+    if a.shape != shape:
+        raise HandEyeError(f"{name} must be {shape}, got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise HandEyeError(f"{name} contains NaN or inf")
+    return a
 
 
 def _rigid_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:

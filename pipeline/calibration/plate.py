@@ -20,7 +20,6 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 from tandemscan.config.models import CalibrationConfig
 from tandemscan.pipeline.frames import make_transform
 
@@ -44,6 +43,9 @@ class SphereFit:
     n_points: int
     n_inliers: int
     centre_sigma_mm: float
+    #: 3x3 covariance of ``centre`` (mm^2, frame S) from the fit's Jacobian: a cap seen from one side is
+    #: pinned better along the view than across it
+    centre_covariance: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
 
 
 @dataclass(frozen=True)
@@ -64,6 +66,11 @@ class PlateFit:
     def centres_S(self) -> np.ndarray:
         """(3, 3) sphere centres A, X, Y in the scanner frame (mm)."""
         return np.stack([self.spheres[n].centre for n in SPHERE_NAMES])
+
+    @property
+    def centre_covariances(self) -> np.ndarray:
+        """(3, 3, 3) covariances of the centres A, X, Y (mm^2, frame S)."""
+        return np.stack([self.spheres[n].centre_covariance for n in SPHERE_NAMES])
 
     @property
     def centre_sigma_mm(self) -> float:
@@ -120,8 +127,7 @@ def _ransac_sphere(
 ) -> np.ndarray:
     """Boolean inlier mask of the best 4-point sphere whose radius is near ``radius_mm``."""
     n = len(P)
-    idx = np.array([rng.choice(n, 4, replace=False) for _ in range(iterations)])
-    S = P[idx]  # (it, 4, 3)
+    S = P[rng.integers(0, n, (iterations, 4))]  # (it, 4, 3); a repeated point makes D singular: skipped
     base = S[:, 0, :]
     D = S[:, 1:, :] - base[:, None, :]  # (it, 3, 3)
     rhs = 0.5 * np.einsum("kij,kij->ki", D, D)
@@ -139,8 +145,11 @@ def _ransac_sphere(
     return dist[int(np.argmax(counts))] < tol_mm
 
 
-def _geometric_fit(P: np.ndarray, centre: np.ndarray, radius_mm: float | None) -> tuple[np.ndarray, float, float]:
-    """Orthogonal-distance fit; radius free when ``radius_mm`` is None. Returns (centre, radius, sigma_c)."""
+def _geometric_fit(
+    P: np.ndarray, centre: np.ndarray, radius_mm: float | None
+) -> tuple[np.ndarray, float, np.ndarray]:
+    """Orthogonal-distance fit; radius free when ``radius_mm`` is None. Returns (centre, radius, centre
+    covariance 3x3 mm^2)."""
     fixed = radius_mm is not None
 
     def resid(x: np.ndarray) -> np.ndarray:
@@ -158,12 +167,11 @@ def _geometric_fit(P: np.ndarray, centre: np.ndarray, radius_mm: float | None) -
     dof = max(len(P) - J.shape[1], 1)
     s2 = float(sol.fun @ sol.fun) / dof
     try:
-        cov = s2 * np.linalg.inv(J.T @ J)
-        sigma = float(np.sqrt(max(np.max(np.linalg.eigvalsh(cov[:3, :3])), 0.0)))
+        cov = s2 * np.linalg.inv(J.T @ J)[:3, :3]
     except np.linalg.LinAlgError:
-        sigma = float("inf")
+        cov = np.full((3, 3), np.inf)
     r = float(radius_mm) if fixed else float(sol.x[3])
-    return sol.x[:3].copy(), r, sigma
+    return sol.x[:3].copy(), r, cov
 
 
 def fit_sphere(
@@ -194,9 +202,9 @@ def fit_sphere(
     d = np.abs(np.linalg.norm(P - c, axis=1) - r_free)
     sig = max(1.4826 * float(np.median(d[inl])), 0.25 * noise_mm, 1e-4)
     inl = d < max(4.0 * sig, 3.0 * noise_mm)
-    c, r_free, sigma = _geometric_fit(P[inl], c, None)
+    c, r_free, cov = _geometric_fit(P[inl], c, None)
     if fixed_radius:
-        c, r, sigma = _geometric_fit(P[inl], c, radius_mm)
+        c, r, cov = _geometric_fit(P[inl], c, radius_mm)
     else:
         r = r_free
     res = np.linalg.norm(P[inl] - c, axis=1) - r
@@ -207,7 +215,9 @@ def fit_sphere(
         rms_mm=float(np.sqrt(np.mean(res**2))),
         n_points=len(P),
         n_inliers=int(inl.sum()),
-        centre_sigma_mm=sigma,
+        centre_sigma_mm=float(np.sqrt(max(np.max(np.linalg.eigvalsh(cov)), 0.0))) if np.all(np.isfinite(cov))
+        else float("inf"),
+        centre_covariance=cov,
     )
 
 
@@ -340,13 +350,31 @@ def fit_plate(
     spheres = {n: fits[i] for n, i in names.items()}
     centres = np.stack([spheres[n].centre for n in SPHERE_NAMES])
     T = plate_frame(*centres)
-    cov = plate_frame_covariance(centres, [spheres[n].centre_sigma_mm for n in SPHERE_NAMES])
+    cov = plate_frame_covariance(centres, [spheres[n].centre_covariance for n in SPHERE_NAMES])
     return PlateFit(T_S_P=T, spheres=spheres, layout_residuals_mm=residuals, covariance=cov)
 
 
-def plate_frame_covariance(centres: ArrayLike, sigmas_mm: ArrayLike, step_mm: float = 1e-4) -> np.ndarray:
-    """6x6 covariance of Eq. 7-8's ``T_S_P`` (translation mm, rotation rad; left perturbation in S) for
-    isotropic centre errors of ``sigmas_mm`` (one per sphere A, X, Y)."""
+def plate_frame_covariance(centres: ArrayLike, centre_errors: ArrayLike, step_mm: float = 1e-4) -> np.ndarray:
+    """6x6 covariance of Eq. 7-8's ``T_S_P`` (translation mm, rotation rad; left perturbation in S).
+
+    ``centre_errors``: per sphere A, X, Y either a 1-sigma (mm, isotropic) or a 3x3 covariance (mm^2, frame S).
+    """
+    C = np.asarray(centres, dtype=float)
+    E = np.asarray(centre_errors, dtype=float)
+    if E.shape == (3,):
+        E = np.square(E)[:, None, None] * np.eye(3)
+    if E.shape != (3, 3, 3):
+        raise ValueError(f"centre_errors must be 3 sigmas or 3 3x3 covariances, got shape {E.shape}")
+    J = plate_frame_jacobian(C, step_mm)
+    cov_c = np.zeros((9, 9))
+    for k in range(3):
+        cov_c[3 * k : 3 * k + 3, 3 * k : 3 * k + 3] = E[k]
+    return J @ cov_c @ J.T
+
+
+def plate_frame_jacobian(centres: ArrayLike, step_mm: float = 1e-4) -> np.ndarray:
+    """6x9 derivative of Eq. 7-8's ``T_S_P`` (translation mm, rotation rad; left perturbation in S) by the
+    centres A, X, Y (frame S, mm), by central differences."""
     C = np.asarray(centres, dtype=float)
     T0 = plate_frame(*C)
     J = np.empty((6, 9))
@@ -357,7 +385,8 @@ def plate_frame_covariance(centres: ArrayLike, sigmas_mm: ArrayLike, step_mm: fl
             Cp[j // 3, j % 3] += h
             T = plate_frame(*Cp)
             dR = T[:3, :3] @ T0[:3, :3].T
-            cols.append(np.r_[T[:3, 3] - dR @ T0[:3, 3], Rotation.from_matrix(dR).as_rotvec()])
+            # rotation vector of the tiny dR: its skew part (exact to third order in the step)
+            rv = 0.5 * np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]])
+            cols.append(np.r_[T[:3, 3] - dR @ T0[:3, 3], rv])
         J[:, j] = (cols[0] - cols[1]) / (2 * step_mm)
-    var = np.repeat(np.square(np.asarray(sigmas_mm, dtype=float)), 3)
-    return (J * var) @ J.T
+    return J
