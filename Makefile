@@ -3,7 +3,7 @@ PYTHON ?= python3.11
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
-APT_PACKAGES := libusb-1.0-0 libgl1 libgomp1 chromium
+APT_PACKAGES := libusb-1.0-0 libgl1 libgomp1 chromium systemd
 
 .PHONY: measure test system-deps clean
 
@@ -14,7 +14,8 @@ measure: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q
 
-# System libraries Open3D needs at import time; installed through apt only where missing.
+# System packages, installed through apt only where missing: what Open3D needs at import time, Chromium for the
+# report screenshot, systemd for the unit tests (systemd-analyze verify, sysusers, tmpfiles).
 system-deps:
 	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
 	if [ -n "$$missing" ]; then \
