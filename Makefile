@@ -15,7 +15,7 @@ test: $(STAMP)
 	$(PY) -m pytest -q
 
 # System packages, installed through apt only where missing: what Open3D needs at import time, Chromium for the
-# report screenshot, systemd for the unit tests (systemd-analyze verify, sysusers, tmpfiles).
+# report rendering test, systemd for the unit tests (systemd-analyze verify, sysusers, tmpfiles).
 system-deps:
 	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
 	if [ -n "$$missing" ]; then \
