@@ -185,7 +185,15 @@ _FLOAT32_ARRAYS = ("points_S_mm", "normals_S")  # raw scans store these as float
 
 def write_raw_scan(path: Path, **arrays: np.ndarray) -> int:
     """Write a job's raw scan ``.npz`` (``points_S_mm``, ``normals_S``, the tracker reading, joints,
-    timestamps; frame S, mm) durably before returning; returns its size in bytes."""
+    timestamps; frame S, mm) durably before returning; returns its size in bytes.
+
+    Raises :class:`StoreError` when ``points_S_mm`` is missing or not ``(N, 3)``, or ``normals_S`` does not match it.
+    """
+    points = np.asarray(arrays.get("points_S_mm", np.empty((0, 0))))
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise StoreError(f"{path.name}: scan points must be (N, 3) mm, got {points.shape}")
+    if "normals_S" in arrays and np.shape(arrays["normals_S"]) != points.shape:
+        raise StoreError(f"{path.name}: normals {np.shape(arrays['normals_S'])} do not match points {points.shape}")
     arrays = {k: v.astype(np.float32) if k in _FLOAT32_ARRAYS else v for k, v in arrays.items()}
     return write_durably(path, lambda f: np.savez(f, **arrays))
 
@@ -360,22 +368,6 @@ class JobStore:
 
     # ------------------------------------------------------------ steps, poses, scans
 
-    def write_scan_file(self, job_id: str, step_idx: int, points_mm: np.ndarray,
-                        normals: np.ndarray | None = None) -> PendingScan:
-        """Write one raw scan (points (N, 3) mm in the scanner frame S, optional normals) and fsync it.
-
-        Nothing is committed: pass the result to :meth:`commit_step`.
-        """
-        points_mm = np.asarray(points_mm)
-        if points_mm.ndim != 2 or points_mm.shape[1] != 3:
-            raise StoreError(f"scan points must be (N, 3), got {points_mm.shape}")
-        arrays = {"points_mm": points_mm}
-        if normals is not None:
-            arrays["normals"] = np.asarray(normals)
-        path = self.job_dir(job_id) / "scans" / f"step_{step_idx:04d}.npz"
-        size = write_durably(path, lambda f: np.savez(f, **arrays))
-        return PendingScan(step_idx, path, int(points_mm.shape[0]), size)
-
     def register_scan_file(self, job_id: str, step_idx: int, path: Path, n_points: int) -> PendingScan:
         """A scan file some other writer made durable in the job's folder, to pass to :meth:`commit_step`."""
         path = Path(path)
@@ -456,15 +448,6 @@ class JobStore:
         """Committed scans in step order."""
         rows = self._conn().execute("SELECT * FROM scans WHERE job_id = ? ORDER BY step_idx", (job_id,)).fetchall()
         return [ScanRecord(r["job_id"], r["step_idx"], r["file"], r["n_points"], r["bytes"], r["t_s"]) for r in rows]
-
-    def load_scan(self, job_id: str, step_idx: int) -> tuple[np.ndarray, np.ndarray | None]:
-        """``(points_mm, normals or None)`` of a committed scan."""
-        row = self._conn().execute("SELECT file FROM scans WHERE job_id = ? AND step_idx = ?",
-                                   (job_id, step_idx)).fetchone()
-        if row is None:
-            raise StoreError(f"job {job_id} has no committed scan at step {step_idx}")
-        with np.load(self.job_dir(job_id) / row["file"]) as data:
-            return data["points_mm"], (data["normals"] if "normals" in data.files else None)
 
     def write_artifact(self, job_id: str, name: str, data: bytes) -> Path:
         """Write a result file (``cloud.ply``, ``report.json``) durably into the job directory."""

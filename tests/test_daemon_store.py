@@ -11,7 +11,16 @@ import textwrap
 
 import numpy as np
 import pytest
-from tandemscan.daemon.store import IdempotencyConflict, JobStore, StoreError
+from tandemscan.daemon.store import IdempotencyConflict, JobStore, StoreError, write_raw_scan
+from tandemscan.pipeline.cloud_io import read_raw_scan
+
+
+def _write_scan(store, job_id, step_idx, points, normals=None):
+    """A raw scan written as the runner writes it, registered for ``commit_step``."""
+    path = store.job_dir(job_id) / "scans" / f"scan-{step_idx:04d}.npz"
+    arrays = {"points_S_mm": points} if normals is None else {"points_S_mm": points, "normals_S": normals}
+    write_raw_scan(path, **arrays)
+    return store.register_scan_file(job_id, step_idx, path, len(points))
 
 
 @pytest.fixture
@@ -59,16 +68,17 @@ def test_final_state_is_never_left(store):
 
 def test_step_commits_once_with_poses_and_scan(store):
     job, _ = store.create_job("p", {}, 3)
-    pts = np.random.default_rng(0).normal(size=(100, 3))
-    pending = store.write_scan_file(job.id, 1, pts, -pts)
+    pts = np.random.default_rng(0).normal(size=(100, 3)).astype(np.float32)
+    pending = _write_scan(store, job.id, 1, pts, -pts)
     T = np.eye(4)
     assert store.commit_step(job.id, 0, "move_arm", {"ok": True})
     assert store.commit_step(job.id, 1, "scan", {"n": 100}, poses={"T_C_T": T, "joints_rad": np.zeros(6)},
                              scan=pending)
     assert not store.commit_step(job.id, 1, "scan", {"n": 100})
     assert store.first_uncommitted_step(job.id) == 2 and store.steps_done(job.id) == 2
-    assert [s.step_idx for s in store.scans(job.id)] == [1]
-    p, n = store.load_scan(job.id, 1)
+    [scan] = store.scans(job.id)
+    assert scan.step_idx == 1
+    p, n = read_raw_scan(store.job_dir(job.id) / scan.file)
     np.testing.assert_array_equal(p, pts)
     np.testing.assert_array_equal(n, -pts)
     kinds = {k: v for _, k, v in store.poses(job.id)}
@@ -89,12 +99,14 @@ def test_events_are_journaled_in_order(store):
 _CRASHER = textwrap.dedent("""
     import os, signal, sys
     import numpy as np
-    from tandemscan.daemon.store import JobStore
+    from tandemscan.daemon.store import JobStore, write_raw_scan
     store = JobStore(sys.argv[1])
     job, _ = store.create_job("p", {}, 3)
     store.set_state(job.id, "running")
-    store.commit_step(job.id, 0, "scan", {}, scan=store.write_scan_file(job.id, 0, np.ones((10, 3))))
-    store.write_scan_file(job.id, 1, np.ones((20, 3)))  # on disk and fsynced, never committed
+    scans = store.job_dir(job.id) / "scans"
+    write_raw_scan(scans / "scan-0000.npz", points_S_mm=np.ones((10, 3)))
+    store.commit_step(job.id, 0, "scan", {}, scan=store.register_scan_file(job.id, 0, scans / "scan-0000.npz", 10))
+    write_raw_scan(scans / "scan-0001.npz", points_S_mm=np.ones((20, 3)))  # on disk and fsynced, never committed
     print(job.id, flush=True)
     os.kill(os.getpid(), signal.SIGKILL)
 """)
@@ -106,7 +118,7 @@ def test_kill_between_scan_write_and_commit_then_reopen(tmp_path):
                           timeout=60)
     assert proc.returncode == -signal.SIGKILL, proc.stderr
     job_id = proc.stdout.split()[0]
-    orphan = state / "jobs" / job_id / "scans" / "step_0001.npz"
+    orphan = state / "jobs" / job_id / "scans" / "scan-0001.npz"
     assert orphan.exists()
     store = JobStore(state)
     try:
@@ -114,18 +126,18 @@ def test_kill_between_scan_write_and_commit_then_reopen(tmp_path):
         assert not orphan.exists()
         assert store.first_uncommitted_step(job_id) == 1
         assert [s.step_idx for s in store.scans(job_id)] == [0]
-        assert store.load_scan(job_id, 0)[0].shape == (10, 3)
+        assert read_raw_scan(state / "jobs" / job_id / store.scans(job_id)[0].file)[0].shape == (10, 3)
         # the resumed run commits step 1 exactly once
-        store.commit_step(job_id, 1, "scan", {}, scan=store.write_scan_file(job_id, 1, np.ones((20, 3))))
+        store.commit_step(job_id, 1, "scan", {}, scan=_write_scan(store, job_id, 1, np.ones((20, 3))))
         assert [s.step_idx for s in store.scans(job_id)] == [0, 1]
-        assert sorted(os.listdir(state / "jobs" / job_id / "scans")) == ["step_0000.npz", "step_0001.npz"]
+        assert sorted(os.listdir(state / "jobs" / job_id / "scans")) == ["scan-0000.npz", "scan-0001.npz"]
     finally:
         store.close()
 
 
 def test_half_written_part_file_is_removed(store):
     job, _ = store.create_job("p", {}, 1)
-    part = store.job_dir(job.id) / "scans" / "step_0000.npz.part"
+    part = store.job_dir(job.id) / "scans" / "scan-0000.npz.part"
     part.parent.mkdir(parents=True)
     part.write_bytes(b"half")
     store.recover()
@@ -135,4 +147,7 @@ def test_half_written_part_file_is_removed(store):
 def test_bad_scan_shape_is_a_clear_error(store):
     job, _ = store.create_job("p", {}, 1)
     with pytest.raises(StoreError, match=r"\(N, 3\)"):
-        store.write_scan_file(job.id, 0, np.ones((4, 2)))
+        _write_scan(store, job.id, 0, np.ones((4, 2)))
+    with pytest.raises(StoreError, match="do not match"):
+        _write_scan(store, job.id, 0, np.ones((4, 3)), np.ones((3, 3)))
+    assert not (store.job_dir(job.id) / "scans" / "scan-0000.npz").exists()
