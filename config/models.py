@@ -321,6 +321,18 @@ class DeepMergeConfig(_Strict):
     edge_min_eigen_ratio: float = Field(
         0.01, ge=0, lt=1, description="edge directions weaker than this share of the strongest are dropped"
     )
+    estimate_mount: bool = Field(
+        True, description="the pose graph also estimates one shared correction of T_T_S (self-calibration)"
+    )
+    mount_nominal_sigma_mm: float = Field(
+        2.0, gt=0, description="1-sigma per axis of the CAD nominal T_T_S (build tolerance), mm: the mount "
+        "prior when the job stitches with nominal mounts"
+    )
+    mount_nominal_sigma_deg: float = Field(0.3, gt=0, description="the same for its rotation, deg per axis")
+    mount_min_information_ratio: float = Field(
+        1.0, ge=0, description="a direction of the T_T_S correction is estimated only where the overlaps give "
+        "at least this times the prior's information; the others stay at the prior"
+    )
 
 
 class RegionConfig(_Strict):

@@ -66,10 +66,18 @@ class CalibrationRun:
             **self.installation.to_json(),
             "sources": self.sources,
             "hand_eye": self.hand_eye.summary(),
+            "T_T_S_covariance": {"order": "translation mm, rotation vector rad; T_T_S -> T_T_S [R(r), t]",
+                                 "matrix": _translation_first(self.hand_eye.covariance).tolist()},
             "poses_used": self.poses_used,
             "skipped": self.skipped,
             **({"sim_truth_error": self.truth_error} if self.truth_error else {}),
         }
+
+
+def _translation_first(covariance: np.ndarray) -> np.ndarray:
+    """A hand-eye covariance (rotation, translation) in the pose graph's order (translation, rotation)."""
+    order = [3, 4, 5, 0, 1, 2]
+    return np.asarray(covariance, float)[np.ix_(order, order)]
 
 
 async def run_calibration(
