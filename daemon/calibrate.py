@@ -98,7 +98,8 @@ async def run_calibration(
     centre = nominal_centres_P(cal).mean(axis=0)
     distance = plate_view_distance(config.scanner.range_min_mm, config.scanner.range_max_mm,
                                    cal.sphere_diameter_mm / 2.0)
-    views = plate_view_poses(int(np.ceil(cal.poses * _CANDIDATES_PER_POSE)), centre, distance, cal.tilt_deg)
+    views = plate_view_poses(int(np.ceil(cal.poses * _CANDIDATES_PER_POSE)), centre, distance, cal.tilt_deg,
+                             cal.roll_span_deg)
     await cell.arm.enable()
     seed = await cell.arm.joints()
     kinematics = ArmKinematics(config.arm)
