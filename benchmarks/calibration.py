@@ -1,15 +1,17 @@
 """Hand-eye calibration accuracy: our solvers against OpenCV's ``calibrateHandEye`` on the same pose pairs.
 
 Simulated data with the cell's noise levels: per calibration (100 by default) a random true ``T_T_S`` and
-plate pose, 16 views, plate poses from exact scans of the plate with the scanner's 0.05 mm noise fitted by
-``fit_plate`` (so ``T_S_P`` carries the real sphere-fit error), tracker readings with ``TrackerConfig``'s
-noise scaled by 0.5, 1 and 2. Every method gets the same readings; the plate scans and the tracker's unit
-noise draws are shared by the three levels, so the levels differ only in the tracker noise scale. Our
-``refine`` gets the fitted sphere centres with their fit covariances and the tracker covariances, as the
-calibration job does;
-``refine_poses`` gets only what OpenCV gets (the poses) plus their covariances. Then (unless ``--no-job``)
-runs the calibration job on the sim cell and the default measurement job with nominal, calibrated and true
-mounts, and reports each cloud's RMS to the part (``cloud_rms_mm``).
+plate pose, the calibration job's views (``calibration.poses``), plate poses from exact scans of the plate
+with the scanner's 0.05 mm noise fitted by ``fit_plate`` (so ``T_S_P`` carries the real sphere-fit error),
+tracker readings with ``TrackerConfig``'s noise scaled by 0.5, 1 and 2. Every method gets the same readings;
+the plate scans and the tracker's unit noise draws are shared by the three levels, so the levels differ only
+in the tracker noise scale. Our ``refine`` gets the fitted sphere centres with their fit covariances and the
+tracker covariances, as the calibration job does; ``refine_poses`` gets only what OpenCV gets (the poses) plus
+their covariances. Then (unless ``--no-job``; ``--job-only`` runs just this part) runs the calibration job on
+the sim cell and the default measurement job (with its correction and pose graph, including the shared
+``T_T_S`` unknown) with nominal, calibrated and true mounts, and reports each cloud's RMS to the part
+(``cloud_rms_mm``), the tracker-only stitch's (``tracker_only_cloud_rms_mm``),
+``calibrated_within_10pct_of_truth`` and the job's mount estimate.
 
 Prints one JSON object on its last line: ``rot_err_deg`` / ``trans_err_mm`` per method (RMS over trials at
 the nominal noise), per noise level under ``by_noise`` the same with ``surface_err_mm`` (translation error
@@ -17,7 +19,7 @@ plus rotation error times the sweet-spot distance: what a method does to a scann
 OpenCV's best by that measure, ``ours_best_le_opencv_best``, the paired win rate of our best over OpenCV's
 best and a bootstrap 95 % interval of their ratio; the plate-side uncertainty (``sphere_centre_err_mm``,
 the fits' reported ``sphere_centre_sigma_mm`` and ``plate_pose_sigma``), the load average, and the jobs'
-``cloud_rms_mm``.
+figures.
 """
 
 from __future__ import annotations
@@ -212,8 +214,9 @@ async def _calibrate_and_measure(cfg, out: Path) -> dict:
                 "T_T_S_err_before": _surface(used, truth_X, lever),
                 "T_T_S_err_after": _surface(np.array(mount["T_T_S_refined"]), truth_X, lever),
                 "sigma_mm": mount["sigma_mm"], "sigma_deg": mount["sigma_deg"],
-                "data_sigma_mm_eigen": mount["data_sigma_mm_eigen"],
-                "prior_sigma_mm_eigen": mount["prior_sigma_mm_eigen"],
+                "correction_mm": mount["correction_mm"], "correction_deg": mount["correction_deg"],
+                "information_ratio": mount["information_ratio"],
+                "estimated_directions": mount["estimated_directions"],
             }
         print(f"default job, {source} mounts: cloud RMS {result['cloud_rms_mm'][source]:.4f} mm "
               f"(tracker only {result['tracker_only_cloud_rms_mm'][source]:.4f} mm)", file=sys.stderr)
