@@ -313,15 +313,29 @@ def refine_poses(
     prior = np.asarray(mount_prior.covariance, float)
     _whitener(prior, True, "mount prior covariance")
     L = np.linalg.cholesky(0.5 * (prior + prior.T))            # D = L u, u ~ N(0, I) a priori
-    sol, x0 = graph.solve(L)
+    sol, x0 = graph.solve(L)                                    # all six directions
     data_u = _schur(graph.data_jacobian(sol.jac, 6), graph.n_blocks)   # data information on u
     ratio, U = np.linalg.eigh(0.5 * (data_u + data_u.T))
-    keep = ratio >= mount_prior.min_information_ratio
-    if not keep.all():
-        sol, x0 = graph.solve(L @ U[:, keep]) if keep.any() else graph.solve(None)
+    observed = ratio >= mount_prior.min_information_ratio
+    basis = np.eye(6)                                           # directions of u estimated (orthonormal)
+    if not observed.all():
+        basis = U[:, observed]
+        sol, x0 = graph.solve(L @ basis if observed.any() else None)
     Linv = np.linalg.inv(L)
-    data = Linv.T @ data_u @ Linv
-    return graph.result(sol, x0, (L, U, keep, ratio, data, prior))
+    return graph.result(sol, x0, _MountSolve(L, basis, ratio, U, Linv.T @ data_u @ Linv, prior))
+
+
+@dataclass(frozen=True)
+class _MountSolve:
+    """How the mount was solved: ``D = L u`` with the prior ``u ~ N(0, I)``, ``u = basis z`` estimated;
+    the data's information ratios and eigen-directions in u; the data information on D; the prior."""
+
+    L: np.ndarray
+    basis: np.ndarray
+    ratio: np.ndarray
+    directions: np.ndarray
+    data_information: np.ndarray
+    prior: np.ndarray
 
 
 def _schur(J: np.ndarray, first: int) -> np.ndarray:
@@ -333,8 +347,8 @@ def _schur(J: np.ndarray, first: int) -> np.ndarray:
 
 class _Graph:
     """The pose graph's residuals (see :func:`refine_poses`). Unknowns: a 6-vector per scan, one per movable
-    station, then optionally ``k`` coefficients ``z`` of the shared mount correction ``D = B z``
-    (``B`` 6 x k, chosen per solve: the prior whitened as ``||z||^2`` when ``B = L U_k``)."""
+    station, then optionally ``k`` coefficients ``z`` of the shared mount correction ``D = B z`` (``B`` 6 x k,
+    chosen per solve as ``L`` times orthonormal columns, so that the whitened prior is ``z`` itself)."""
 
     def __init__(self, scans: Sequence[ScanPrior], edges: Sequence[PairEdge], transfer_covariance) -> None:
         n = self.n = len(scans)
@@ -420,24 +434,24 @@ class _Graph:
                             xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
         return sol, x0
 
-    def result(self, sol, x0: np.ndarray, mount) -> RefineResult:
+    def result(self, sol, x0: np.ndarray, mount: _MountSolve | None) -> RefineResult:
         cost0 = 0.5 * float(np.sum(self.residuals(x0) ** 2))
         out = self.poses(sol.x)
         corr = self.station_corrections(sol.x[:self.n_blocks].reshape(-1, 6))
         estimate = None
         if mount is not None:
-            L, U, keep, ratio, data, prior = mount
-            k = 0 if self.B is None else self.B.shape[1]
-            # posterior: what was estimated from the solution's Jacobian, the rest the prior's
-            Hz = self.data_jacobian(sol.jac, 0)
-            cov_u = U[:, ~keep] @ U[:, ~keep].T
+            k = mount.basis.shape[1] if self.B is not None else 0
+            # posterior: what was estimated from the solution's Jacobian, the rest keeps the prior's variance
+            cov_u = np.eye(6)
             if k:
-                cov_z = np.linalg.inv(Hz.T @ Hz)[self.n_blocks:, self.n_blocks:]
-                cov_u = cov_u + U[:, keep] @ cov_z @ U[:, keep].T if not keep.all() else cov_z
+                J = self.data_jacobian(sol.jac, 0)
+                cov_z = np.linalg.inv(J.T @ J)[self.n_blocks:, self.n_blocks:]
+                cov_u = mount.basis @ cov_z @ mount.basis.T + cov_u - mount.basis @ mount.basis.T
+            cov = mount.L @ cov_u @ mount.L.T
             d = self.mount(sol.x)
-            cov = L @ cov_u @ L.T
-            estimate = MountEstimate(_exp(d[None])[0], 0.5 * (cov + cov.T), prior, 0.5 * (data + data.T),
-                                     ratio, U, int(k))
+            estimate = MountEstimate(_exp(d[None])[0], 0.5 * (cov + cov.T), mount.prior,
+                                     0.5 * (mount.data_information + mount.data_information.T), mount.ratio,
+                                     mount.directions, k)
             log.info("pose graph: mount correction %s mm, %s deg (%d of 6 directions observed)",
                      np.round(d[:3], 4), np.round(np.degrees(d[3:]), 5), k)
         log.info("pose graph: %d scans, %d edges, %d transfers; cost %.3g -> %.3g", self.n, len(self.ei),
