@@ -239,10 +239,10 @@ class MountEstimate:
 
     ``correction``: the 4x4 ``D`` (refined ``T_T_S = T_T_S D``); ``covariance``: its 6x6 posterior (t mm^2,
     r rad^2; scanner frame S); ``data_information``: the 6x6 information the overlaps alone give on it, the
-    other unknowns marginalised (same order); ``information_ratio``: per direction (ascending) the data's
-    information over the prior's, with ``directions`` (rows: unit 6-vectors, rotations in mm at the lever
-    the caller gives to :meth:`observability`, see there) in the prior-whitened eigenbasis; ``estimated``:
-    how many of them were estimated (the rest were held at the prior)."""
+    other unknowns marginalised (same order); ``information_ratio``: per eigen-direction of that information
+    in prior-whitened coordinates (ascending) the data's information over the prior's, the directions being
+    the columns of ``whitened_directions`` (:meth:`observability` turns them into directions of D);
+    ``estimated``: how many of them were estimated (the rest were held at the prior)."""
 
     correction: np.ndarray
     covariance: np.ndarray
