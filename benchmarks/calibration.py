@@ -1,15 +1,17 @@
 """Hand-eye calibration accuracy: our solvers against OpenCV's ``calibrateHandEye`` on the same pose pairs.
 
 Simulated data with the cell's noise levels: per calibration (100 by default) a random true ``T_T_S`` and
-plate pose, 16 views, plate poses from exact scans of the plate with the scanner's 0.05 mm noise fitted by
-``fit_plate`` (so ``T_S_P`` carries the real sphere-fit error), tracker readings with ``TrackerConfig``'s
-noise scaled by 0.5, 1 and 2. Every method gets the same readings; the plate scans and the tracker's unit
-noise draws are shared by the three levels, so the levels differ only in the tracker noise scale. Our
-``refine`` gets the fitted sphere centres with their fit covariances and the tracker covariances, as the
-calibration job does;
-``refine_poses`` gets only what OpenCV gets (the poses) plus their covariances. Then (unless ``--no-job``)
-runs the calibration job on the sim cell and the default measurement job with nominal, calibrated and true
-mounts, and reports each cloud's RMS to the part (``cloud_rms_mm``).
+plate pose, the calibration job's views (``calibration.poses``), plate poses from exact scans of the plate
+with the scanner's 0.05 mm noise fitted by ``fit_plate`` (so ``T_S_P`` carries the real sphere-fit error),
+tracker readings with ``TrackerConfig``'s noise scaled by 0.5, 1 and 2. Every method gets the same readings;
+the plate scans and the tracker's unit noise draws are shared by the three levels, so the levels differ only
+in the tracker noise scale. Our ``refine`` gets the fitted sphere centres with their fit covariances and the
+tracker covariances, as the calibration job does; ``refine_poses`` gets only what OpenCV gets (the poses) plus
+their covariances. Then (unless ``--no-job``; ``--job-only`` runs just this part) runs the calibration job on
+the sim cell and the default measurement job (with its correction and pose graph, including the shared
+``T_T_S`` unknown) with nominal, calibrated and true mounts, and reports each cloud's RMS to the part
+(``cloud_rms_mm``), the tracker-only stitch's (``tracker_only_cloud_rms_mm``),
+``calibrated_within_10pct_of_truth`` and the job's mount estimate.
 
 Prints one JSON object on its last line: ``rot_err_deg`` / ``trans_err_mm`` per method (RMS over trials at
 the nominal noise), per noise level under ``by_noise`` the same with ``surface_err_mm`` (translation error
@@ -17,7 +19,7 @@ plus rotation error times the sweet-spot distance: what a method does to a scann
 OpenCV's best by that measure, ``ours_best_le_opencv_best``, the paired win rate of our best over OpenCV's
 best and a bootstrap 95 % interval of their ratio; the plate-side uncertainty (``sphere_centre_err_mm``,
 the fits' reported ``sphere_centre_sigma_mm`` and ``plate_pose_sigma``), the load average, and the jobs'
-``cloud_rms_mm``.
+figures.
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ from tandemscan.pipeline.calibration.hand_eye import METHODS, solve_hand_eye
 from tandemscan.pipeline.calibration.plate import PlateFit, fit_plate, nominal_centres_P
 from tandemscan.pipeline.calibration.poses import calibration_views
 from tandemscan.pipeline.frames import from_rotvec, from_rpy, invert, pose_error, transform_points
+from tandemscan.pipeline.installation import Installation
 from tandemscan.sim_drivers.plate import hand_eye_dataset, scan_plate
 
 LEVELS = (0.5, 1.0, 2.0)
@@ -168,15 +171,26 @@ def compare(runs: list[dict[str, tuple[float, float]]], lever_mm: float, rng: np
 
 
 async def _calibrate_and_measure(cfg, out: Path) -> dict:
-    """Sim cell: calibration job, then the default job with each installation source; cloud RMS (mm)."""
+    """Sim cell: calibration job, then the default job (tracker stitch, correction and pose graph with the
+    shared ``T_T_S`` unknown, as configured) with each installation source. Cloud RMS (mm) of the default
+    job and of its tracker-only stitch, and the ``T_T_S`` error (mm, deg, surface mm) the job's mount
+    estimate leaves against the truth."""
     from tandemscan.daemon.calibrate import calibrate_cell
     from tandemscan.daemon.cli import default_plan_path
     from tandemscan.daemon.runner import JobRunner
     from tandemscan.pipeline.plan import Plan
     from tandemscan.sim_drivers.cell import build_cell
 
-    run = await calibrate_cell(build_cell(cfg), cfg, out / "calibration.json")
-    result = {"calibration_truth_error": run.truth_error, "cloud_rms_mm": {}}
+    started = time.monotonic()
+    calibration_cell = build_cell(cfg)
+    run = await calibrate_cell(calibration_cell, cfg, out / "calibration.json")
+    truth_X = calibration_cell.world.truth.T_T_S
+    lever = cfg.scanner.sweet_spot_mm
+    summary = run.hand_eye.summary()
+    result = {"calibration_truth_error": run.truth_error,
+              "calibration_job_seconds": round(time.monotonic() - started, 1),
+              "calibration_sigma": {"trans_mm": summary["sigma_trans_mm"], "rot_deg": summary["sigma_rot_deg"]},
+              "cloud_rms_mm": {}, "tracker_only_cloud_rms_mm": {}, "mount_estimate": {}}
     plan = Plan.load(default_plan_path())
     for source in ("nominal", "calibration", "truth"):
         job = cfg.job.model_copy(update={"installation_source": source, "calibration_file": run.file})
@@ -187,11 +201,37 @@ async def _calibrate_and_measure(cfg, out: Path) -> dict:
             res = await JobRunner(cell, plan, config, out / source).run()
         finally:
             await cell.close()
+        correction = res.report["correction"]
         result["cloud_rms_mm"][source] = res.report["ground_truth"]["cloud_rms_mm"]
-        print(f"default job, {source} mounts: cloud RMS {result['cloud_rms_mm'][source]:.4f} mm", file=sys.stderr)
+        tracker_only = correction.get("before", res.report["ground_truth"])
+        result["tracker_only_cloud_rms_mm"][source] = tracker_only["cloud_rms_mm"]
+        mount = correction.get("mount", {})
+        if mount.get("estimated"):
+            used = {"nominal": Installation.nominal(cfg.installation).T_T_S, "truth": truth_X,
+                    "calibration": run.installation.T_T_S}[source]
+            result["mount_estimate"][source] = {
+                "prior": mount["prior"],
+                "T_T_S_err_before": _surface(used, truth_X, lever),
+                "T_T_S_err_after": _surface(np.array(mount["T_T_S_refined"]), truth_X, lever),
+                "sigma_mm": mount["sigma_mm"], "sigma_deg": mount["sigma_deg"],
+                "correction_mm": mount["correction_mm"], "correction_deg": mount["correction_deg"],
+                "information_ratio": mount["information_ratio"],
+                "estimated_directions": mount["estimated_directions"],
+            }
+        print(f"default job, {source} mounts: cloud RMS {result['cloud_rms_mm'][source]:.4f} mm "
+              f"(tracker only {result['tracker_only_cloud_rms_mm'][source]:.4f} mm)", file=sys.stderr)
     rms = result["cloud_rms_mm"]
     result["calibrated_within_10pct_of_truth"] = rms["calibration"] <= 1.1 * rms["truth"]
+    result["calibrated_over_truth"] = rms["calibration"] / rms["truth"]
+    result["job_seconds"] = round(time.monotonic() - started, 1)
     return result
+
+
+def _surface(T: np.ndarray, truth: np.ndarray, lever_mm: float) -> dict[str, float]:
+    """Error of a ``T_T_S`` against the truth: translation mm, rotation deg, and their effect on a point
+    ``lever_mm`` out (surface mm)."""
+    mm, rad = pose_error(T, truth)
+    return {"mm": mm, "deg": float(np.degrees(rad)), "surface_mm": mm + rad * lever_mm}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -199,11 +239,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--trials", type=int, default=100, help="calibrations per noise level")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--no-job", action="store_true", help="skip the sim calibration and measurement jobs")
+    parser.add_argument("--job-only", action="store_true", help="only the sim calibration and measurement jobs")
     args = parser.parse_args(argv)
     cfg = load_config()
     rng = np.random.default_rng(args.seed)
     started = time.monotonic()
     load_before = os.getloadavg()[0]
+    if args.job_only:
+        result = {"benchmark": "calibration", "poses": cfg.calibration.poses}
+        with tempfile.TemporaryDirectory() as tmp:
+            result |= asyncio.run(_calibrate_and_measure(cfg, Path(tmp)))
+        return _finish(result, started, load_before)
     plate = PlateStats([], [], [], [])
     runs = [trial(cfg, rng, plate) for _ in range(args.trials)]
     by_noise: dict[str, dict] = {}
@@ -230,6 +276,11 @@ def main(argv: list[str] | None = None) -> int:
     if not args.no_job:
         with tempfile.TemporaryDirectory() as tmp:
             result |= asyncio.run(_calibrate_and_measure(cfg, Path(tmp)))
+    return _finish(result, started, load_before)
+
+
+def _finish(result: dict, started: float, load_before: float) -> int:
+    """Add time and load, print the JSON line."""
     result["seconds"] = round(time.monotonic() - started, 1)
     result["load_avg_1min"] = [round(load_before, 2), round(os.getloadavg()[0], 2)]
     result["cpus"] = os.cpu_count()

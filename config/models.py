@@ -321,6 +321,18 @@ class DeepMergeConfig(_Strict):
     edge_min_eigen_ratio: float = Field(
         0.01, ge=0, lt=1, description="edge directions weaker than this share of the strongest are dropped"
     )
+    estimate_mount: bool = Field(
+        True, description="the pose graph also estimates one shared correction of T_T_S (self-calibration)"
+    )
+    mount_nominal_sigma_mm: float = Field(
+        2.0, gt=0, description="1-sigma per axis of the CAD nominal T_T_S (build tolerance), mm: the mount "
+        "prior when the job stitches with nominal mounts"
+    )
+    mount_nominal_sigma_deg: float = Field(0.3, gt=0, description="the same for its rotation, deg per axis")
+    mount_min_information_ratio: float = Field(
+        1.0, ge=0, description="a direction of the T_T_S correction is estimated only where the overlaps give "
+        "at least this times the prior's information; the others stay at the prior"
+    )
 
 
 class RegionConfig(_Strict):
@@ -393,10 +405,13 @@ class CalibrationConfig(_Strict):
     layout_tolerance_mm: float = Field(2.0, gt=0, description="max error of a centre-to-centre distance, mm")
     fit_fixed_radius: bool = Field(True, description="final centre fit with the calibrated radius fixed")
     min_pair_rotation_deg: float = Field(5.0, ge=0, description="hand-eye pose pairs rotating less are dropped")
-    poses: int = Field(16, ge=3, description="arm poses of the calibration job")
-    tracker_samples: int = Field(10, ge=1, description="tracker readings averaged at rest per calibration pose")
-    scans_per_pose: int = Field(1, ge=1, description="plate scans whose sphere centres are averaged per pose")
-    tilt_deg: float = Field(22.0, gt=0, lt=60, description="scanner tilt over the plate in the calibration job")
+    poses: int = Field(32, ge=3, description="arm poses of the calibration job")
+    tracker_samples: int = Field(30, ge=1, description="tracker readings averaged at rest per calibration pose")
+    scans_per_pose: int = Field(2, ge=1, description="plate scans whose sphere centres are averaged per pose")
+    tilt_deg: float = Field(30.0, gt=0, lt=60, description="scanner tilt over the plate in the calibration job")
+    roll_span_deg: float = Field(
+        150.0, ge=0, le=360, description="the views' rolls about their view axes spread over +- half this, deg"
+    )
     method: Literal["tsai", "park", "horaud", "daniilidis", "refine"] = "refine"
     T_V2_P: TransformConfig = Field(
         TransformConfig(xyz_mm=(550.0, 0.0, 250.0)),

@@ -66,10 +66,18 @@ class CalibrationRun:
             **self.installation.to_json(),
             "sources": self.sources,
             "hand_eye": self.hand_eye.summary(),
+            "T_T_S_covariance": {"order": "translation mm, rotation vector rad; T_T_S -> T_T_S [R(r), t]",
+                                 "matrix": _translation_first(self.hand_eye.covariance).tolist()},
             "poses_used": self.poses_used,
             "skipped": self.skipped,
             **({"sim_truth_error": self.truth_error} if self.truth_error else {}),
         }
+
+
+def _translation_first(covariance: np.ndarray) -> np.ndarray:
+    """A hand-eye covariance (rotation, translation) in the pose graph's order (translation, rotation)."""
+    order = [3, 4, 5, 0, 1, 2]
+    return np.asarray(covariance, float)[np.ix_(order, order)]
 
 
 async def run_calibration(
@@ -90,7 +98,8 @@ async def run_calibration(
     centre = nominal_centres_P(cal).mean(axis=0)
     distance = plate_view_distance(config.scanner.range_min_mm, config.scanner.range_max_mm,
                                    cal.sphere_diameter_mm / 2.0)
-    views = plate_view_poses(int(np.ceil(cal.poses * _CANDIDATES_PER_POSE)), centre, distance, cal.tilt_deg)
+    views = plate_view_poses(int(np.ceil(cal.poses * _CANDIDATES_PER_POSE)), centre, distance, cal.tilt_deg,
+                             cal.roll_span_deg)
     await cell.arm.enable()
     seed = await cell.arm.joints()
     kinematics = ArmKinematics(config.arm)

@@ -4,18 +4,26 @@ Reads every persisted raw scan back, carries each tracker reading's covariance t
 ``pipeline.deepmerge.correct.correct_scans`` (pairwise DeepMerge/ICP corrections and the pose graph over all
 scans and tracker stations), then rebuilds the world map with the refined poses. Report figures before and
 after are returned for ``report.json``.
+
+With ``deepmerge.estimate_mount`` the graph also estimates the shared correction of the scanner mount
+``T_T_S`` (``refine.MountPrior``), with a prior per ``job.installation_source``: the calibration file's
+hand-eye covariance, the CAD tolerance ``deepmerge.mount_nominal_sigma_*`` for nominal mounts, and a tight
+one for the simulator's ground truth.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import time
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 from tandemscan.daemon.report import ground_truth_scores
 from tandemscan.pipeline.cloud_io import read_raw_scan
 from tandemscan.pipeline.deepmerge.correct import StitchedScan, correct_scans
+from tandemscan.pipeline.refine import MountPrior
 from tandemscan.pipeline.uncertainty import scan_pose_covariance, transfer_covariance
 from tandemscan.pipeline.worldmap import VoxelMap
 
@@ -26,6 +34,37 @@ log = logging.getLogger(__name__)
 
 _GROUND_TRUTH_KEYS = ("pose_err_mm_median", "pose_err_mm_max", "pose_err_deg_median", "pose_err_deg_max",
                       "cloud_rms_mm", "cloud_p95_mm")
+#: 1-sigma per axis (mm, rad) of the simulator's true mounts: exact, the prior only keeps the graph regular
+_TRUTH_SIGMA = (1e-4, 1e-7)
+
+
+def _diagonal(sigma_mm: float, sigma_rad: float) -> np.ndarray:
+    return np.diag([sigma_mm**2] * 3 + [sigma_rad**2] * 3)
+
+
+def calibration_covariance(path: Path) -> np.ndarray | None:
+    """The 6x6 ``T_T_S`` covariance of a calibration file (t mm^2, r rad^2, scanner frame), None if absent."""
+    data = json.loads(Path(path).read_text(encoding="utf-8")).get("T_T_S_covariance")
+    return None if data is None else np.asarray(data["matrix"], float)
+
+
+def mount_prior(job: JobSnapshot) -> tuple[MountPrior | None, str]:
+    """The prior of the shared ``T_T_S`` correction for this job and where it came from."""
+    cfg, dm = job.config, job.config.deepmerge
+    if not dm.estimate_mount:
+        return None, "off"
+    source = cfg.job.installation_source
+    cov, label = _diagonal(dm.mount_nominal_sigma_mm, np.radians(dm.mount_nominal_sigma_deg)), "CAD tolerance"
+    if source == "truth":
+        cov, label = _diagonal(*_TRUTH_SIGMA), "truth (exact)"
+    elif source == "calibration":
+        calibrated = calibration_covariance(cfg.job.calibration_file)
+        if calibrated is not None:
+            cov, label = calibrated, "calibration file"
+        else:
+            log.warning("calibration file %s has no T_T_S covariance; the mount prior is the CAD tolerance",
+                        cfg.job.calibration_file)
+    return MountPrior(cov, dm.mount_min_information_ratio), label
 
 
 def correct_job(job: JobSnapshot) -> tuple[dict, list[np.ndarray]]:
@@ -50,12 +89,18 @@ def correct_job(job: JobSnapshot) -> tuple[dict, list[np.ndarray]]:
     lever = max(float(np.max(np.linalg.norm(origins[stations == k] - origins[stations == k].mean(0), axis=1)))
                 for k in np.unique(stations))
     transfer = transfer_covariance(np.mean([s.reading.covariance for s in job.scans], axis=0), lever)
-    result = correct_scans(scans, cfg, transfer_covariance=transfer, voxel_mm=job.config.job.voxel_mm)
+    prior, prior_source = mount_prior(job)
+    result = correct_scans(scans, cfg, transfer_covariance=transfer, voxel_mm=job.config.job.voxel_mm,
+                           mount_prior=prior)
     job.worldmap = VoxelMap(job.config.job.voxel_mm)
     for s, T, (points, normals) in zip(job.scans, result.poses, raw, strict=True):
         s.T_W_S = T
         job.worldmap.add_scan(T, points, normals)
     section = {"enabled": True, **result.report, "seconds": round(time.monotonic() - started, 3)}
+    section["mount"] = {"estimated": result.mount is not None, "prior": prior_source}
+    if result.mount is not None:
+        section["mount"] |= result.mount.observability(job.config.scanner.sweet_spot_mm)
+        section["mount"]["T_T_S_refined"] = (job.installation.T_T_S @ result.mount.correction).tolist()
     if before is not None:
         section["before"] = before
     log.info("stitch corrected in %.1f s", section["seconds"])

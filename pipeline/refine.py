@@ -8,6 +8,13 @@ of station ``k``'s scans); edges between stations pull back that accumulated dri
 every scan near its tracker reading. The solution minimises the sum of squared, whitened
 residuals (scipy least squares with a sparse Jacobian).
 
+Self-calibration of the scanner mount (optional ``MountPrior``): every scan is placed by
+``T_W_S_i = T_W_C T_C_T_i X`` with one shared ``X = T_T_S``, so an error of X is the same right-perturbation
+``D`` (a motion in the scanner frame S) of every scan, ``T_W_S_i -> T_W_S_i D``. In the world it shows
+differently for each target orientation, so overlaps between scans taken at different orientations measure
+it. ``D`` is then one more unknown with the calibration's covariance as its prior, and the result reports
+its estimate, its posterior covariance and the information the scans alone give on it.
+
 Conventions: a pose perturbation is ``(t mm, rotation vector rad)`` of a world-frame motion about a stated
 centre (the scan origin for priors, the overlap centre for edges, the station's scans' centroid for station
 corrections); covariances use the same order (translation first).
@@ -214,96 +221,239 @@ def constrained_edge(
 
 
 @dataclass(frozen=True)
+class MountPrior:
+    """Prior of the shared scanner-mount correction ``D`` (``X = T_T_S -> X D``): 6x6 covariance, order
+    (t mm^2, rotation vector rad^2), a motion in the scanner frame S about its origin.
+
+    Only the directions the overlaps observe are estimated: those whose data information is at least
+    ``min_information_ratio`` times the prior's (eigen-directions of the data information in prior-whitened
+    coordinates); the others stay at the prior (zero correction, prior variance)."""
+
+    covariance: np.ndarray
+    min_information_ratio: float = 1.0
+
+
+@dataclass(frozen=True)
+class MountEstimate:
+    """The estimated shared mount correction.
+
+    ``correction``: the 4x4 ``D`` (refined ``T_T_S = T_T_S D``); ``covariance``: its 6x6 posterior (t mm^2,
+    r rad^2; scanner frame S); ``data_information``: the 6x6 information the overlaps alone give on it, the
+    other unknowns marginalised (same order); ``information_ratio``: per eigen-direction of that information
+    in prior-whitened coordinates (ascending) the data's information over the prior's, the directions being
+    the columns of ``whitened_directions`` (:meth:`observability` turns them into directions of D);
+    ``estimated``: how many of them were estimated (the rest were held at the prior)."""
+
+    correction: np.ndarray
+    covariance: np.ndarray
+    prior_covariance: np.ndarray
+    data_information: np.ndarray
+    information_ratio: np.ndarray
+    whitened_directions: np.ndarray
+    estimated: int
+
+    def observability(self, lever_mm: float) -> dict:
+        """Figures for a report (mm, deg): the correction, its prior and posterior 1-sigma per axis of S,
+        and per prior-whitened eigen-direction (weakest first) the ratio of data to prior information with
+        the direction as a unit 6-vector (t mm, rotation as mm at ``lever_mm``)."""
+        L = np.linalg.cholesky(self.prior_covariance)
+        dirs = (L @ self.whitened_directions).T * np.r_[[1.0] * 3, [lever_mm] * 3]
+        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+        t, r = self.correction[:3, 3], Rotation.from_matrix(self.correction[:3, :3]).as_rotvec()
+        sig = np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
+        sig0 = np.sqrt(np.clip(np.diag(self.prior_covariance), 0.0, None))
+        return {
+            "correction_mm": t.tolist(),
+            "correction_deg": np.degrees(r).tolist(),
+            "prior_sigma_mm": sig0[:3].tolist(),
+            "prior_sigma_deg": np.degrees(sig0[3:]).tolist(),
+            "sigma_mm": sig[:3].tolist(),
+            "sigma_deg": np.degrees(sig[3:]).tolist(),
+            "information_ratio": self.information_ratio.tolist(),
+            "directions": dirs.tolist(),
+            "lever_mm": lever_mm,
+            "estimated_directions": self.estimated,
+        }
+
+
+@dataclass(frozen=True)
 class RefineResult:
-    """Refined ``T_W_S`` per scan, the per-station world corrections, and residual figures."""
+    """Refined ``T_W_S`` per scan, the per-station world corrections, residual figures, and the shared
+    mount correction when one was estimated."""
 
     poses: list[np.ndarray]
     station_corrections: dict[int, np.ndarray]
     cost_before: float
     cost_after: float
     success: bool
+    mount: MountEstimate | None = None
 
 
 def refine_poses(
     scans: Sequence[ScanPrior],
     edges: Sequence[PairEdge],
     transfer_covariance: ArrayLike | None = None,
+    mount_prior: MountPrior | None = None,
 ) -> RefineResult:
     """Solve the pose graph; returns refined ``T_W_S`` for every scan.
 
     ``transfer_covariance`` (6x6, t mm^2 then r rad^2, about the station's scans' centroid) is the error
     one coordinate transfer adds; stations are numbered in transfer order and station 0 defines the world.
-    Without it (or with a single station) only per-scan corrections are solved.
+    Without it (or with a single station) only per-scan corrections are solved. With ``mount_prior`` one
+    shared scanner-mount correction ``D`` (``T_W_S_i -> T_W_S_i D``) is solved as well: first in all six
+    directions, then, if the overlaps leave some unobserved, again with those held at the prior.
     """
     n = len(scans)
     if n == 0:
         return RefineResult([], {}, 0.0, 0.0, True)
-    P = np.stack([np.asarray(s.T_W_S, float) for s in scans])
-    origins = P[:, :3, 3]
-    Wp = np.stack([_whitener(s.covariance, True, f"scan {i} covariance") for i, s in enumerate(scans)])
-    stations = sorted({s.station for s in scans})
-    movable = [k for k in stations if k != stations[0]] if transfer_covariance is not None else []
-    col = {k: n + m for m, k in enumerate(movable)}
-    sid = np.array([s.station for s in scans])
-    centres = {k: origins[sid == k].mean(axis=0) for k in stations}
-    Wt = _whitener(transfer_covariance, True, "transfer covariance") if movable else None
-    for e in edges:
-        if not (0 <= e.i < n and 0 <= e.j < n) or e.i == e.j:
-            raise RefineError(f"edge ({e.i}, {e.j}) does not join two different scans of {n}")
-    ei = np.array([e.i for e in edges], dtype=int)
-    ej = np.array([e.j for e in edges], dtype=int)
-    # relative measurement Z_ij = P_i^-1 C P_j, and edge whiteners
-    Z = np.stack([invert(P[e.i]) @ e.correction @ P[e.j] for e in edges]) if edges else np.zeros((0, 4, 4))
-    We = np.stack([_whitener(e.information, False, f"edge ({e.i}, {e.j})") for e in edges]) if edges else None
-    ec = np.stack([np.asarray(e.centre_mm, float) for e in edges]) if edges else np.zeros((0, 3))
+    graph = _Graph(scans, edges, transfer_covariance)
+    if mount_prior is None:
+        sol, x0 = graph.solve(None)
+        return graph.result(sol, x0, None)
+    prior = np.asarray(mount_prior.covariance, float)
+    _whitener(prior, True, "mount prior covariance")
+    L = np.linalg.cholesky(0.5 * (prior + prior.T))            # D = L u, u ~ N(0, I) a priori
+    sol, x0 = graph.solve(L)                                    # all six directions
+    data_u = _schur(graph.data_jacobian(sol.jac, 6), graph.n_blocks)   # data information on u
+    ratio, U = np.linalg.eigh(0.5 * (data_u + data_u.T))
+    observed = ratio >= mount_prior.min_information_ratio
+    basis = np.eye(6)                                           # directions of u estimated (orthonormal)
+    if not observed.all():
+        basis = U[:, observed]
+        sol, x0 = graph.solve(L @ basis if observed.any() else None)
+    Linv = np.linalg.inv(L)
+    return graph.result(sol, x0, _MountSolve(L, basis, ratio, U, Linv.T @ data_u @ Linv, prior))
 
-    def station_corrections(X: np.ndarray) -> dict[int, np.ndarray]:
+
+@dataclass(frozen=True)
+class _MountSolve:
+    """How the mount was solved: ``D = L u`` with the prior ``u ~ N(0, I)``, ``u = basis z`` estimated;
+    the data's information ratios and eigen-directions in u; the data information on D; the prior."""
+
+    L: np.ndarray
+    basis: np.ndarray
+    ratio: np.ndarray
+    directions: np.ndarray
+    data_information: np.ndarray
+    prior: np.ndarray
+
+
+def _schur(J: np.ndarray, first: int) -> np.ndarray:
+    """Information ``J^T J`` of the columns from ``first`` on, the columns before them marginalised."""
+    H = J.T @ J
+    A, B, C = H[:first, :first], H[:first, first:], H[first:, first:]
+    return C - B.T @ np.linalg.solve(A, B)
+
+
+class _Graph:
+    """The pose graph's residuals (see :func:`refine_poses`). Unknowns: a 6-vector per scan, one per movable
+    station, then optionally ``k`` coefficients ``z`` of the shared mount correction ``D = B z`` (``B`` 6 x k,
+    chosen per solve as ``L`` times orthonormal columns, so that the whitened prior is ``z`` itself)."""
+
+    def __init__(self, scans: Sequence[ScanPrior], edges: Sequence[PairEdge], transfer_covariance) -> None:
+        n = self.n = len(scans)
+        self.P = np.stack([np.asarray(s.T_W_S, float) for s in scans])
+        self.origins = self.P[:, :3, 3]
+        self.Wp = np.stack([_whitener(s.covariance, True, f"scan {i} covariance") for i, s in enumerate(scans)])
+        stations = sorted({s.station for s in scans})
+        self.movable = [k for k in stations if k != stations[0]] if transfer_covariance is not None else []
+        self.col = {k: n + m for m, k in enumerate(self.movable)}
+        self.n_blocks = 6 * (n + len(self.movable))
+        self.sid = np.array([s.station for s in scans])
+        self.centres = {k: self.origins[self.sid == k].mean(axis=0) for k in stations}
+        self.Wt = _whitener(transfer_covariance, True, "transfer covariance") if self.movable else None
+        for e in edges:
+            if not (0 <= e.i < n and 0 <= e.j < n) or e.i == e.j:
+                raise RefineError(f"edge ({e.i}, {e.j}) does not join two different scans of {n}")
+        self.ei = np.array([e.i for e in edges], dtype=int)
+        self.ej = np.array([e.j for e in edges], dtype=int)
+        # relative measurement Z_ij = P_i^-1 C P_j, and edge whiteners
+        P = self.P
+        self.Z = np.stack([invert(P[e.i]) @ e.correction @ P[e.j] for e in edges]) if edges else np.zeros((0, 4, 4))
+        self.We = np.stack([_whitener(e.information, False, f"edge ({e.i}, {e.j})") for e in edges]) if edges else None
+        self.ec = np.stack([np.asarray(e.centre_mm, float) for e in edges]) if edges else np.zeros((0, 3))
+        self.B: np.ndarray | None = None
+
+    def station_corrections(self, X: np.ndarray) -> dict[int, np.ndarray]:
         A, out = np.eye(4), {}
-        for k in movable:                           # transfer k on top of all earlier ones
-            A = _about(-centres[k], _exp(X[col[k]][None]))[0] @ A
+        for k in self.movable:                      # transfer k on top of all earlier ones
+            A = _about(-self.centres[k], _exp(X[self.col[k]][None]))[0] @ A
             out[k] = A
         return out
 
-    def poses(x: np.ndarray) -> np.ndarray:
-        X = x.reshape(-1, 6)
-        out = _about(-origins, _exp(X[:n])) @ P     # Tr(o) Exp(d) Tr(-o) P
-        for k, A in station_corrections(X).items():
-            out[sid == k] = A @ out[sid == k]
+    def mount(self, x: np.ndarray) -> np.ndarray:
+        """The 6-vector of ``D`` (t mm, rotvec rad) at ``x`` (zero without a mount unknown)."""
+        return np.zeros(6) if self.B is None else self.B @ x[self.n_blocks:]
+
+    def poses(self, x: np.ndarray) -> np.ndarray:
+        X = x[:self.n_blocks].reshape(-1, 6)
+        Pm = self.P @ _exp(self.mount(x)[None])[0]                  # the shared mount: P_i D
+        out = _about(-self.origins, _exp(X[:self.n])) @ Pm          # Tr(o) Exp(d) Tr(-o) P D
+        for k, A in self.station_corrections(X).items():
+            out[self.sid == k] = A @ out[self.sid == k]
         return out
 
-    def residuals(x: np.ndarray) -> np.ndarray:
-        X = x.reshape(-1, 6)
-        r = [np.einsum("nij,nj->ni", Wp, X[:n]).ravel()]
-        r += [Wt @ X[col[k]] for k in movable]
-        if len(edges):
-            Xp = poses(x)
-            E = Xp[ei] @ Z @ np.linalg.inv(Xp[ej])
-            r.append(np.einsum("nij,nj->ni", We, _log(_about(ec, E))).ravel())
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        X = x[:self.n_blocks].reshape(-1, 6)
+        r = [np.einsum("nij,nj->ni", self.Wp, X[:self.n]).ravel()]
+        r += [self.Wt @ X[self.col[k]] for k in self.movable]
+        if len(self.ei):
+            Xp = self.poses(x)
+            E = Xp[self.ei] @ self.Z @ np.linalg.inv(Xp[self.ej])
+            r.append(np.einsum("nij,nj->ni", self.We, _log(_about(self.ec, E))).ravel())
+        r.append(x[self.n_blocks:])                                 # the mount prior, whitened
         return np.concatenate(r)
 
-    n_par = 6 * (n + len(movable))
-    sparsity = lil_matrix((6 * n + 6 * len(movable) + 6 * len(edges), n_par), dtype=int)
-    for i in range(n):
-        sparsity[6 * i:6 * i + 6, 6 * i:6 * i + 6] = 1
-    row = 6 * n
-    for k in movable:
-        sparsity[row:row + 6, 6 * col[k]:6 * col[k] + 6] = 1
-        row += 6
-    for a, b in zip(ei, ej, strict=True):
-        for s in (a, b):
-            sparsity[row:row + 6, 6 * s:6 * s + 6] = 1
-            for k in movable:
-                if k <= sid[s]:
-                    sparsity[row:row + 6, 6 * col[k]:6 * col[k] + 6] = 1
-        row += 6
-    x0 = np.zeros(n_par)
-    cost0 = 0.5 * float(np.sum(residuals(x0) ** 2))
-    sol = least_squares(residuals, x0, jac_sparsity=sparsity, method="trf", x_scale="jac",
-                        xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
-    out = poses(sol.x)
-    X = sol.x.reshape(-1, 6)
-    corr = station_corrections(X)
-    log.info("pose graph: %d scans, %d edges, %d transfers; cost %.3g -> %.3g", n, len(edges), len(movable),
-             cost0, sol.cost)
-    return RefineResult([T for T in out], corr, cost0, float(sol.cost), bool(sol.success))
+    def data_jacobian(self, jac, k: int) -> np.ndarray:
+        """Dense Jacobian without the mount prior's ``k`` rows (the last ones)."""
+        J = jac.toarray() if hasattr(jac, "toarray") else np.asarray(jac)
+        return J[:-k] if k else J
 
+    def solve(self, B: np.ndarray | None):
+        """Least squares with the mount correction ``D = B z`` (None: no mount unknown)."""
+        self.B = B
+        n, k = self.n, 0 if B is None else B.shape[1]
+        rows_edges = 6 * n + 6 * len(self.movable)
+        sparsity = lil_matrix((rows_edges + 6 * len(self.ei) + k, self.n_blocks + k), dtype=int)
+        for i in range(n):
+            sparsity[6 * i:6 * i + 6, 6 * i:6 * i + 6] = 1
+        for m, c in enumerate(self.col[s] for s in self.movable):
+            sparsity[6 * n + 6 * m:6 * n + 6 * m + 6, 6 * c:6 * c + 6] = 1
+        row = rows_edges
+        for a, b in zip(self.ei, self.ej, strict=True):
+            for s in (a, b):
+                sparsity[row:row + 6, 6 * s:6 * s + 6] = 1
+                for c in [self.col[q] for q in self.movable if q <= self.sid[s]]:
+                    sparsity[row:row + 6, 6 * c:6 * c + 6] = 1
+            sparsity[row:row + 6, self.n_blocks:] = 1               # every edge sees the mount
+            row += 6
+        for m in range(k):
+            sparsity[row + m, self.n_blocks + m] = 1
+        x0 = np.zeros(self.n_blocks + k)
+        sol = least_squares(self.residuals, x0, jac_sparsity=sparsity, method="trf", x_scale="jac",
+                            xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
+        return sol, x0
+
+    def result(self, sol, x0: np.ndarray, mount: _MountSolve | None) -> RefineResult:
+        cost0 = 0.5 * float(np.sum(self.residuals(x0) ** 2))
+        out = self.poses(sol.x)
+        corr = self.station_corrections(sol.x[:self.n_blocks].reshape(-1, 6))
+        estimate = None
+        if mount is not None:
+            k = mount.basis.shape[1] if self.B is not None else 0
+            # posterior: what was estimated from the solution's Jacobian, the rest keeps the prior's variance
+            cov_u = np.eye(6)
+            if k:
+                J = self.data_jacobian(sol.jac, 0)
+                cov_z = np.linalg.inv(J.T @ J)[self.n_blocks:, self.n_blocks:]
+                cov_u = mount.basis @ cov_z @ mount.basis.T + cov_u - mount.basis @ mount.basis.T
+            cov = mount.L @ cov_u @ mount.L.T
+            d = self.mount(sol.x)
+            estimate = MountEstimate(_exp(d[None])[0], 0.5 * (cov + cov.T), mount.prior,
+                                     0.5 * (mount.data_information + mount.data_information.T), mount.ratio,
+                                     mount.directions, k)
+            log.info("pose graph: mount correction %s mm, %s deg (%d of 6 directions observed)",
+                     np.round(d[:3], 4), np.round(np.degrees(d[3:]), 5), k)
+        log.info("pose graph: %d scans, %d edges, %d transfers; cost %.3g -> %.3g", self.n, len(self.ei),
+                 len(self.movable), cost0, sol.cost)
+        return RefineResult([T for T in out], corr, cost0, float(sol.cost), bool(sol.success), estimate)

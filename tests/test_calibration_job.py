@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 from tandemscan.daemon.calibrate import calibrate_cell
+from tandemscan.daemon.correction import mount_prior
 from tandemscan.daemon.runner import installation_for_job
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.installation import Installation
@@ -39,3 +41,19 @@ async def test_calibration_job_recovers_the_true_scanner_mount(sim_config, tmp_p
                                         "calibration_file": tmp_path / "calibration.json"})
     used = installation_for_job(config.model_copy(update={"job": job}), cell)
     np.testing.assert_allclose(used.T_T_S, run.installation.T_T_S)
+
+    # the file carries T_T_S's covariance, which the job's pose graph takes as the prior of its mount unknown
+    cov = np.array(data["T_T_S_covariance"]["matrix"])
+    np.testing.assert_allclose(cov[:3, :3], run.hand_eye.covariance[3:, 3:])       # translation first
+    np.testing.assert_allclose(cov[3:, 3:], run.hand_eye.covariance[:3, :3])
+    priors = {}
+    labels = {"calibration": "calibration file", "nominal": "CAD tolerance", "truth": "truth (exact)"}
+    for source, expected in labels.items():
+        cfg = config.model_copy(update={"job": job.model_copy(update={"installation_source": source})})
+        priors[source], label = mount_prior(SimpleNamespace(config=cfg))
+        assert label == expected
+    np.testing.assert_allclose(priors["calibration"].covariance, cov)
+    assert np.sqrt(priors["nominal"].covariance[0, 0]) == config.deepmerge.mount_nominal_sigma_mm
+    assert np.all(np.diag(priors["truth"].covariance) < np.diag(cov) * 1e-3)
+    off = config.model_copy(update={"deepmerge": config.deepmerge.model_copy(update={"estimate_mount": False})})
+    assert mount_prior(SimpleNamespace(config=off)) == (None, "off")

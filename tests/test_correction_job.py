@@ -33,5 +33,8 @@ async def test_runner_corrects_the_stitch_and_reports_before_and_after(sim_confi
     before, after = corr["before"], result.report["ground_truth"]
     assert after["cloud_rms_mm"] < before["cloud_rms_mm"]
     assert corr["overlap_rms_mm_median_after"] < corr["overlap_rms_mm_median_before"]
+    # the shared mount unknown is reported; the simulator's true mount has a tight prior and stays put
+    assert corr["mount"]["estimated"] and corr["mount"]["prior"] == "truth (exact)"
+    assert len(corr["mount"]["information_ratio"]) == 6 and max(map(abs, corr["mount"]["correction_mm"])) < 1e-3
     # the scan log carries the refined poses
     assert result.report["scan_log"][1]["T_W_S"] == result.scans[1].T_W_S.tolist()

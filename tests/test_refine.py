@@ -143,3 +143,105 @@ def test_constrained_edge_drops_the_sliding_directions_of_a_plane():
     np.testing.assert_allclose([t[0], t[1], r[2]], 0.0, atol=1e-9)
     assert t[2] == pytest.approx(0.1, abs=1e-3) and r[0] == pytest.approx(0.001, rel=0.05)
     assert np.linalg.matrix_rank(info_kept, tol=1e-6 * np.abs(info_kept).max()) == 3
+
+
+# ---------------------------------------------------------------- shared scanner-mount correction
+
+
+def _relief(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    return 10 * np.sin(x / 37.0) * np.cos(y / 29.0) + 6 * np.cos(x / 61.0 + y / 45.0)
+
+
+def _mount_scans(D_true: np.ndarray, tilt_deg: float, seed: int = 5):
+    """Nine scans of a relief on a 3x3 grid (100 mm apart, 130 mm radius: neighbours overlap), each from
+    its own scanner orientation (tilts up to ``tilt_deg`` about x and y, any yaw), stitched through the
+    tracker (reading noise) and a mount ``X_used`` off the true one: ``X_true = X_used D_true``."""
+    from tandemscan.pipeline.deepmerge.correct import StitchedScan
+    from tandemscan.pipeline.frames import from_rpy, transform_points
+    from tandemscan.pipeline.uncertainty import scan_pose_covariance
+
+    rng = np.random.default_rng(seed)
+    X_true = from_rpy([0.0, -90.0, 40.0], [np.pi, 0.0, 0.0])
+    X_used = X_true @ invert(D_true)
+    reading_cov = np.diag([0.01**2] * 3 + [np.radians(0.001) ** 2] * 3)
+    truth, scans = [], []
+    for cx, cy in ((x, y) for x in (-100.0, 0.0, 100.0) for y in (-100.0, 0.0, 100.0)):
+        tilt = np.radians(rng.uniform(-tilt_deg, tilt_deg, 2)) if tilt_deg else np.zeros(2)
+        yaw = rng.uniform(-np.pi, np.pi) if tilt_deg else 0.0
+        R = (Rotation.from_euler("z", yaw) * Rotation.from_euler("xy", tilt) * Rotation.from_euler("x", np.pi))
+        c = np.array([cx, cy, _relief(cx, cy)])
+        T_W_S = from_rotvec(c - 442.0 * R.as_matrix()[:, 2], R.as_rotvec())     # looking along its +z
+        xy = np.array([cx, cy]) + 130.0 * np.sqrt(rng.uniform(0, 1, 6000))[:, None] * np.c_[
+            np.cos(a := rng.uniform(0, 2 * np.pi, 6000)), np.sin(a)]
+        P_S = transform_points(invert(T_W_S), np.c_[xy, _relief(xy[:, 0], xy[:, 1])])
+        P_S[:, 2] += rng.normal(0, 0.02, len(P_S))
+        T_C_T = T_W_S @ invert(X_true)                                  # W = C: one tracker station
+        noisy = from_rotvec(rng.normal(0, 0.01, 3), [0, 0, 0]) @ _turned(T_C_T, rng.normal(0, np.radians(0.001), 3))
+        truth.append(T_W_S)
+        cov = scan_pose_covariance(np.eye(4), noisy, X_used, reading_cov)
+        scans.append(StitchedScan(P_S, noisy @ X_used, cov, 0))
+    return truth, scans
+
+
+def _turned(T: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
+    """``T`` turned about its own origin by a world-axes rotation vector (a tracker's orientation noise)."""
+    out = T.copy()
+    out[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix() @ T[:3, :3]
+    return out
+
+
+def _mount_run(D_true: np.ndarray, tilt_deg: float, prior_sigma=(0.3, 8.7e-4)):
+    """Correct the scans with and without the mount unknown (prior 1-sigma mm, rad per axis)."""
+    from tandemscan.config.models import DeepMergeConfig
+    from tandemscan.pipeline.deepmerge.correct import correct_scans
+    from tandemscan.pipeline.refine import MountPrior
+
+    truth, scans = _mount_scans(D_true, tilt_deg)
+    cfg = DeepMergeConfig(method="icp", min_overlap_points=100)
+    prior = MountPrior(np.diag([prior_sigma[0] ** 2] * 3 + [prior_sigma[1] ** 2] * 3))
+    with_mount = correct_scans(scans, cfg, mount_prior=prior)
+    without = correct_scans(scans, cfg)
+
+    def errors(poses):
+        return np.array([pose_error(T, X)[0] for T, X in zip(poses, truth, strict=True)])
+
+    return with_mount, errors(with_mount.poses), errors(without.poses), errors([s.T_W_S for s in scans])
+
+
+def test_pose_graph_recovers_a_scanner_mount_error_from_overlaps_at_different_orientations():
+    D = from_rotvec([0.25, -0.15, 0.2], np.radians([0.02, -0.03, 0.025]))
+    res, after, without, before = _mount_run(D, tilt_deg=25.0)
+    dt, dr = pose_error(res.mount.correction, D)
+    assert dt < 0.05 and np.degrees(dr) < 0.005                       # from 0.36 mm and 0.043 deg
+    assert np.median(after) * 3 < np.median(without) < np.median(before)
+    # the posterior is tighter than the prior in every axis, and it covers the error
+    sig = np.sqrt(np.diag(res.mount.covariance))
+    assert np.all(sig < np.sqrt(np.diag(res.mount.prior_covariance)))
+    assert dt < 4 * np.linalg.norm(sig[:3])
+    assert res.mount.estimated == 6 and np.all(res.mount.information_ratio > 1.0)
+
+
+def test_pose_graph_leaves_a_correct_scanner_mount_alone():
+    res, after, without, _ = _mount_run(np.eye(4), tilt_deg=25.0)
+    dt, dr = pose_error(res.mount.correction, np.eye(4))
+    assert dt < 0.03 and np.degrees(dr) < 0.003                       # prior: 0.3 mm, 0.05 deg per axis
+    # what it finds is the estimate's own noise: within its posterior (chi-square, 6 DoF, 99.9 %) ...
+    d = np.r_[res.mount.correction[:3, 3], Rotation.from_matrix(res.mount.correction[:3, :3]).as_rotvec()]
+    assert d @ np.linalg.solve(res.mount.covariance, d) < 22.5
+    # ... and that is all it adds to the poses
+    sigma_t = np.linalg.norm(np.sqrt(np.diag(res.mount.covariance))[:3])
+    assert np.median(after) <= np.median(without) + 2 * sigma_t
+
+
+def test_scanner_mount_translation_is_unobservable_when_every_scan_has_the_same_orientation():
+    # relative poses between scans of one orientation are translations, which a mount translation
+    # leaves unchanged (D^-1 Tr(u) D = Tr(R_D^T u)): the data say nothing about it and the prior holds it
+    D = from_rotvec([0.25, -0.15, 0.2], [0, 0, 0])
+    res, *_ = _mount_run(D, tilt_deg=0.0)
+    w, V = np.linalg.eigh(res.mount.data_information)
+    weak = w < 1e-6 * w.max()
+    assert weak.sum() == 3
+    np.testing.assert_allclose(np.linalg.norm(V[:3, weak], axis=0), 1.0, atol=1e-3)    # translations
+    assert res.mount.estimated == 3 and np.sum(res.mount.information_ratio < 1.0) == 3
+    assert np.linalg.norm(res.mount.correction[:3, 3]) < 1e-3                # held at the prior: 0
+    np.testing.assert_allclose(np.sqrt(np.diag(res.mount.covariance)[:3]), 0.3, rtol=0.05)

@@ -67,7 +67,7 @@ def calibration_views(cal: CalibrationConfig, scanner: ScannerConfig) -> list[np
     """The calibration job's scanner poses ``T_P_S`` over the configured plate."""
     centre = np.array([cal.centre_A_mm, cal.centre_X_mm, cal.centre_Y_mm]).mean(axis=0)
     d = plate_view_distance(scanner.range_min_mm, scanner.range_max_mm, cal.sphere_diameter_mm / 2.0)
-    return plate_view_poses(cal.poses, centre, d, cal.tilt_deg)
+    return plate_view_poses(cal.poses, centre, d, cal.tilt_deg, cal.roll_span_deg)
 
 
 def arm_joints_for_views(

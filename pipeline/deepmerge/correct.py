@@ -20,6 +20,8 @@ from tandemscan.pipeline.deepmerge.register import DeepMergeRegistrar, voxel_dow
 from tandemscan.pipeline.frames import invert, pose_error, transform_points
 from tandemscan.pipeline.refine import (
     IcpResult,
+    MountEstimate,
+    MountPrior,
     PairEdge,
     ScanPrior,
     constrained_edge,
@@ -133,11 +135,12 @@ class StitchedScan:
 
 @dataclass
 class CorrectionResult:
-    """Refined poses and the figures a report needs (mm, deg)."""
+    """Refined poses and the figures a report needs (mm, deg); the shared mount correction if estimated."""
 
     poses: list[np.ndarray]
     edges: list[tuple[int, int, PairCorrection]] = field(default_factory=list)
     report: dict = field(default_factory=dict)
+    mount: MountEstimate | None = None
 
 
 def _overlap_rms(clouds: list[np.ndarray], edges, poses_before, poses_after, cfg) -> tuple[float, float]:
@@ -164,12 +167,13 @@ def _edge(i: int, j: int, pc: PairCorrection, cfg: DeepMergeConfig) -> PairEdge:
 
 def correct_scans(
     scans: Sequence[StitchedScan], cfg: DeepMergeConfig, registrar: DeepMergeRegistrar | None = None,
-    transfer_covariance: np.ndarray | None = None, voxel_mm: float = 1.0,
+    transfer_covariance: np.ndarray | None = None, voxel_mm: float = 1.0, mount_prior: MountPrior | None = None,
 ) -> CorrectionResult:
     """Correct every overlapping pair and refine all poses; ``voxel_mm`` thins the scans first.
 
     ``transfer_covariance`` (see ``refine.refine_poses``) defaults to twice the mean scan covariance (a
-    transfer adds the error of two tracker readings).
+    transfer adds the error of two tracker readings); ``mount_prior`` makes the graph estimate the shared
+    scanner-mount correction too (``refine.MountPrior``).
     """
     if cfg.method != "icp" and registrar is None:
         registrar = DeepMergeRegistrar.load(cfg.weights, num_points=cfg.num_points)
@@ -193,7 +197,7 @@ def correct_scans(
     if transfer_covariance is None and len({s.station for s in scans}) > 1:
         transfer_covariance = 2.0 * np.mean([s.covariance for s in scans], axis=0)
     priors = [ScanPrior(s.T_W_S, s.covariance, s.station) for s in scans]
-    res = refine_poses(priors, graph_edges, transfer_covariance)
+    res = refine_poses(priors, graph_edges, transfer_covariance, mount_prior)
     before = [s.T_W_S for s in scans]
     rms_b, rms_a = _overlap_rms(local, edges, before, res.poses, cfg)
     moves = [pose_error(a, b) for a, b in zip(res.poses, before, strict=True)]
@@ -209,4 +213,4 @@ def correct_scans(
         "graph_cost_after": res.cost_after,
     }
     log.info("correction: %d scans, %d pairs, overlap RMS %.4f -> %.4f mm", len(scans), len(edges), rms_b, rms_a)
-    return CorrectionResult(res.poses, edges, report)
+    return CorrectionResult(res.poses, edges, report, res.mount)
