@@ -295,6 +295,10 @@ class JobConfig(_Strict):
         "truth", description="which T_T_S etc. the stitch uses: sim ground truth, CAD nominal or calibration_file"
     )
     calibration_file: Path | None = None
+    relocalise: bool = Field(
+        True, description="after each measurement-AGV drive, measure where it stands (tracker, Eq. 5) and re-solve "
+        "the arm for the plan's scanner poses (T_F_S); off = the plan's joint targets as they are"
+    )
 
 
 class DeepMergeConfig(_Strict):

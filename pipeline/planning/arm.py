@@ -87,17 +87,6 @@ class ArmSetup:
     planning: PlanningConfig
 
 
-def default_ik(arm: ArmConfig) -> IkSolver:
-    """The closed-form IK where the arm's DH allows it, else the numerical ``ArmKinematics.inverse``."""
-    from tandemscan.pipeline.kinematics import ArmKinematics
-    from tandemscan.pipeline.planning.ik import AnalyticIK
-
-    try:
-        return AnalyticIK(arm)
-    except ValueError:
-        return ArmKinematics(arm).inverse
-
-
 def column_count(step_mm: float, m_mm: float) -> int:
     """``j = ceil(s / m) + 1`` columns, fence posts over the step ``s`` at most ``m`` apart (Eq. 15)."""
     return int(math.ceil(step_mm / m_mm - 1e-9)) + 1
