@@ -42,10 +42,12 @@ def build_report(job: JobSnapshot, seconds: float) -> dict:
 
 
 def relocalisation_summary(log: dict) -> dict:
-    """The runner's relocalisation log with its figures: AGV stations located, how far off plan they stood and,
-    on the simulated cell, how far the located pose is from the true one (mm, deg, maxima)."""
+    """The runner's relocalisation log with its figures: AGV stations located, poses scanned with a nearby view
+    or not re-solved, how far off plan the AGV stood and, on the simulated cell, how far the located pose is from
+    the true one (mm, deg, maxima)."""
     located = log.get("located", [])
-    out = dict(log) | {"stations_located": len(located), "unresolved_count": len(log.get("unresolved", []))}
+    out = dict(log) | {"stations_located": len(located), "unresolved_count": len(log.get("unresolved", [])),
+                       "adjusted_count": len(log.get("adjusted", []))}
     for key in ("off_plan_mm", "off_plan_deg", "err_to_truth_mm", "err_to_truth_deg"):
         values = [e[key] for e in located if key in e]
         if values:

@@ -181,13 +181,14 @@ class JobRunner:
         self.correction: dict = {"enabled": False}
         self.last_still_T_C_T: np.ndarray | None = None  # last reading while the target has not moved since
         self.resume_log: list[dict] = []
-        poses = any(isinstance(s, MoveArm) and s.T_F_S is not None for s in plan.steps)  # else nothing to re-solve
-        self.relocaliser = Relocaliser(config.arm, self.installation) if config.job.relocalise and poses else None
+        self.relocaliser = None  # only where relocalisation is on and the plan has scanner poses to re-solve
+        if config.job.relocalise and any(isinstance(s, MoveArm) and s.T_F_S is not None for s in plan.steps):
+            self.relocaliser = Relocaliser(config.arm, config.scanner, self.installation)
         self.T_F_W: np.ndarray | None = None  # W in the plan's frame F (mm): None until measured
         self.T_F_V2: np.ndarray | None = None  # the measurement AGV in F as measured; None since it drove unmeasured
         self.planned_T_F_V2: np.ndarray | None = None  # where the plan (or, at the start, the odometry) puts it
         self.relocalisation: dict = {"enabled": self.relocaliser is not None, "anchor": None, "located": [],
-                                     "unresolved": []}
+                                     "unresolved": [], "adjusted": []}
 
     async def read_target(self) -> TrackerReading:
         """The target pose at rest, averaged over ``tracker.samples_per_reading`` readings."""
@@ -376,11 +377,17 @@ class JobRunner:
         if self.T_F_V2 is None:
             return planned, self._relocalisation_state(located, self._unresolved(
                 i, "measurement AGV not located: the tracker sees the target from none of its poses since it drove"))
-        q = self.relocaliser.joints_for(self.T_F_V2, np.array(step.T_F_S), planned)
+        q, changed = self.relocaliser.resolve(self.T_F_V2, np.array(step.T_F_S), planned)
         if q is None:
             return planned, self._relocalisation_state(located, self._unresolved(
-                i, "planned scanner pose out of the arm's reach from where the AGV stands; the plan's joints used"))
-        return q, self._relocalisation_state(located)
+                i, "planned scanner pose and its nearby views out of the arm's reach from where the AGV stands; "
+                "the plan's joints used"))
+        adjusted = None
+        if changed:
+            adjusted = {"step": i, "scan": len(self.scans), "view": changed}
+            log.info("step %d (scan %d): planned pose out of reach from where the AGV stands; view %s", i,
+                     len(self.scans), changed)
+        return q, self._relocalisation_state(located, adjusted=adjusted)
 
     def _unresolved(self, i: int, reason: str) -> dict:
         """A report entry for a scan pose not re-solved: the step, the scan it serves and why."""
@@ -388,16 +395,16 @@ class JobRunner:
         log.warning("step %d (scan %d, %s): %s", i, len(self.scans), label, reason)
         return {"step": i, "scan": len(self.scans), "label": label, "reason": reason}
 
-    def _relocalisation_state(self, located: dict | None = None, unresolved: dict | None = None) -> dict:
+    def _relocalisation_state(self, located: dict | None = None, unresolved: dict | None = None,
+                              adjusted: dict | None = None) -> dict:
         """The step's journal fields that let a resumed job rebuild the relocalisation state and report."""
-        if located is not None:
-            self.relocalisation["located"].append(located)
-        if unresolved is not None:
-            self.relocalisation["unresolved"].append(unresolved)
+        entries = {"located": located, "unresolved": unresolved, "adjusted": adjusted}
+        for key, entry in entries.items():
+            if entry is not None:
+                self.relocalisation[key].append(entry)
         matrix = {k: None if v is None else v.tolist()
                   for k, v in (("T_F_W", self.T_F_W), ("T_F_V2", self.T_F_V2), ("planned_T_F_V2", self.planned_T_F_V2))}
-        return {"relocalisation": {**matrix, "anchor": self.relocalisation["anchor"], "located": located,
-                                   "unresolved": unresolved}}
+        return {"relocalisation": {**matrix, "anchor": self.relocalisation["anchor"], **entries}}
 
     def _restore_relocalisation(self, result: dict) -> None:
         """Inverse of :meth:`_relocalisation_state` for a replayed step."""
@@ -407,8 +414,8 @@ class JobRunner:
         self.T_F_W, self.T_F_V2, self.planned_T_F_V2 = (None if state[k] is None else np.array(state[k])
                                                          for k in ("T_F_W", "T_F_V2", "planned_T_F_V2"))
         self.relocalisation["anchor"] = state["anchor"]
-        for key in ("located", "unresolved"):
-            if state[key] is not None:
+        for key in ("located", "unresolved", "adjusted"):
+            if state.get(key) is not None:
                 self.relocalisation[key].append(state[key])
 
     async def _relocate_tracker(self, step: MoveTracker, i: int) -> dict:

@@ -12,7 +12,7 @@ from tandemscan.daemon.runner import JobRunner
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.plan import MoveArm, MoveMeasure, MoveTracker, Plan, Scan
 from tandemscan.pipeline.planning.planner import plan_part
-from tandemscan.pipeline.relocalise import Relocaliser
+from tandemscan.pipeline.relocalise import Relocaliser, nearby_views
 from tandemscan.sim_drivers.cell import build_cell
 from tandemscan.sim_drivers.world import SimWorld
 
@@ -94,7 +94,7 @@ def test_eq5_recovers_the_true_agv_pose_and_the_resolved_joints_reach_the_planne
     station = generated.layout.stations[0]
     measuring.true_pose = F.planar_pose(station.x_mm + 37.0, station.y_mm - 21.0, station.heading_rad + 0.014)
     world.joints_rad = generated.poses[0].joints_rad
-    reloc = Relocaliser(sim_config.arm, world.truth)
+    reloc = Relocaliser(sim_config.arm, sim_config.scanner, world.truth)
     T_W_T = world.T_W_F @ world.T_F_T()
     T_F_V2 = F.invert(world.T_W_F) @ reloc.agv_in_world(T_W_T, world.joints_rad)
     np.testing.assert_allclose(T_F_V2, world.T_F_V2, atol=1e-6)
@@ -107,6 +107,18 @@ def test_eq5_recovers_the_true_agv_pose_and_the_resolved_joints_reach_the_planne
     far = target.copy()
     far[:3, 3] += [0.0, 0.0, 3000.0]
     assert reloc.joints_for(world.T_F_V2, far, world.joints_rad) is None
+
+
+def test_nearby_views_look_at_the_same_surface_point(generated):
+    T = generated.poses[0].T_F_S
+    point = T @ np.array([0.0, 0.0, 442.0, 1.0])
+    views = nearby_views(T, 442.0)
+    assert len({what for what, _ in views}) == len(views) > 4
+    for what, V in views:
+        along = F.invert(V) @ point  # the planned point in the new scanner frame: on the view axis
+        np.testing.assert_allclose(along[:2], 0.0, atol=1e-6)
+        assert 400.0 <= along[2] <= 484.0, what
+        assert np.degrees(np.arccos(np.clip(V[:3, 2] @ T[:3, 2], -1, 1))) <= 10.0 + 1e-9, what
 
 
 @pytest.mark.slow

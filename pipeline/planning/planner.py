@@ -56,6 +56,7 @@ class PartPlan:
             "raster_cells": self.cells,
             "scans": self.sequence.plan.scan_count,
             "unreachable_cells": sum(len(r.unreached) for r in self.rasters),
+            "poses_without_margin": sum(not p.robust for p in self.poses),
             "poses_unseen_by_tracker": len(self.tracker.uncovered),
             "tracker_candidates": len(self.candidates),
             "tracker_stations": self.tracker.count,
