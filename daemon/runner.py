@@ -223,10 +223,11 @@ class JobRunner:
             self.progress(JobProgress(i, total, self._describe(step)))
             result, scan = await self.journal.run_step(i, lambda i=i, step=step: self._execute(i, step))
             await self.journal.commit(i, step.kind, result, *(scan or ()))
-        if self.config.deepmerge.enabled and len(self.scans) > 1:
+        measured = [s for s in self.scans if s.point_count > 0]  # a scan that saw nothing has nothing to correct
+        if self.config.deepmerge.enabled and len(measured) > 1:
             self.progress(JobProgress(total - 1, total, "correcting the stitch (DeepMerge, pose graph)"))
-            self.correction, poses = await self.worldmap.run(correct, self.snapshot())
-            for s, T_W_S in zip(self.scans, poses, strict=True):
+            self.correction, poses = await self.worldmap.run(correct, self.snapshot(measured))
+            for s, T_W_S in zip(measured, poses, strict=True):
                 s.T_W_S = T_W_S
         self.progress(JobProgress(total - 1, total, "writing cloud and report"))
         result = await self._export(time.monotonic() - started)
@@ -491,10 +492,11 @@ class JobRunner:
         self.last_still_T_C_T = reading.T_C_T
         return record
 
-    def snapshot(self) -> JobSnapshot:
-        """The job's state for its end-of-job work (correction, report, exports) where the map lives."""
+    def snapshot(self, scans: list[ScanRecord] | None = None) -> JobSnapshot:
+        """The job's state for its end-of-job work (correction, report, exports) where the map lives; ``scans``
+        (default: all) are the ones that work sees."""
         world = self.cell.world.ground_truth() if self.cell.world is not None else None
-        return JobSnapshot(self.job_dir, self.plan, self.config, self.installation, list(self.scans),
+        return JobSnapshot(self.job_dir, self.plan, self.config, self.installation, list(scans or self.scans),
                            list(self.transfers), dict(self.correction), world,
                            relocalisation=dict(self.relocalisation))
 

@@ -167,3 +167,20 @@ async def test_an_opening_tracker_move_is_a_plain_relocation(generated, drifting
     np.testing.assert_allclose(world.T_W_F @ world.T_F_C(), np.eye(4), atol=1e-9)
     assert result.report["ground_truth"]["pose_err_mm_max"] < 0.5
     assert result.report["relocalisation"]["anchor"]["step"] == 0
+
+
+@pytest.mark.slow
+async def test_a_scan_that_saw_nothing_is_left_out_of_the_correction(sim_config, tmp_path):
+    from tandemscan.daemon.cli import default_plan_path
+
+    band = Plan.load(default_plan_path())
+    two = [i for i, s in enumerate(band.steps) if isinstance(s, Scan)][1]
+    home = tuple(np.radians(sim_config.sim.arm_home_deg))
+    plan = Plan(name="one empty", steps=[*band.steps[: two + 1], MoveArm(joints_rad=home), Scan(label="sky")])
+    config = sim_config.model_copy(update={
+        "deepmerge": sim_config.deepmerge.model_copy(update={"method": "icp"}),
+        "inspection": sim_config.inspection.model_copy(update={"in_job": False}),
+    })
+    result, _ = await run(config, plan, tmp_path)
+    assert result.report["scans_empty"] == [2]
+    assert result.report["correction"]["enabled"] and result.report["correction"]["scans"] == 2
