@@ -4,6 +4,9 @@ opens with a tracker move relocates it without a transfer. The plan format carri
 
 from __future__ import annotations
 
+import json
+from contextlib import asynccontextmanager
+
 import numpy as np
 import pytest
 from pydantic import ValidationError
@@ -184,3 +187,50 @@ async def test_a_scan_that_saw_nothing_is_left_out_of_the_correction(sim_config,
     result, _ = await run(config, plan, tmp_path)
     assert result.report["scans_empty"] == [2]
     assert result.report["correction"]["enabled"] and result.report["correction"]["scans"] == 2
+
+
+class MemoryJournal:
+    """A step journal in memory (the runner's ``StepJournal``): commits and notes kept as JSON, as the store."""
+
+    def __init__(self, committed: dict[int, dict] | None = None, notes: dict[int, dict] | None = None):
+        self.committed = dict(committed or {})
+        self.results: dict[int, dict] = {}
+        self._notes = {k: dict(v) for k, v in (notes or {}).items()}
+
+    @asynccontextmanager
+    async def motion(self, robot: str):
+        yield
+
+    async def run_step(self, idx: int, fn):
+        return await fn()
+
+    async def note(self, idx: int, kind: str, value: dict) -> None:
+        self._notes.setdefault(idx, {})[kind] = json.loads(json.dumps(value))
+
+    def notes(self, idx: int) -> dict[str, dict]:
+        return self._notes.get(idx, {})
+
+    async def commit(self, idx: int, kind: str, result: dict, scan_file=None, scan_points: int = 0) -> None:
+        self.results[idx] = json.loads(json.dumps(result))
+
+
+async def test_a_resumed_job_keeps_the_anchor_and_the_located_stations(generated, drifting, tmp_path):
+    """Restart just before the last scan (where the sim's robots still stand): the anchor and every located
+    station come back from the journal; a station lost on replay would be re-anchored or missing."""
+    plan = first_scan_per_station(generated.sequence.plan, 3)
+    cell = build_cell(drifting)
+    await cell.connect()
+    try:
+        first = MemoryJournal()
+        full = await JobRunner(cell, plan, drifting, tmp_path, journal=first).run()
+        a = full.report["relocalisation"]
+        cut = a["located"][-1]["step"] + 1
+        assert isinstance(plan.steps[cut], Scan)
+        again = MemoryJournal({i: first.results[i] for i in range(cut)}, first._notes)
+        resumed = await JobRunner(cell, plan, drifting, tmp_path, journal=again).run()  # reads its scan files
+    finally:
+        await cell.close()
+    b = resumed.report["relocalisation"]
+    assert b["anchor"] == a["anchor"] and b["anchor"]["source"] == "measurement AGV where its odometry says"
+    assert b["located"] == a["located"] and len(b["located"]) == plan.scan_count
+    assert resumed.report["scans_empty"] == [] and resumed.report["scans"] == plan.scan_count
