@@ -3,10 +3,11 @@
 Usage: python benchmarks/sim_accuracy.py [--resolution coarse|full] [--plan FILE|generated] [--config FILE]
 ``--plan generated`` plans the whole configured part first (``tandemscan plan``; ``plan_seconds``).
 The last line of output is one JSON object with keys scans (measured), scans_planned, scans_empty (no point in
-the depth window), relocalisation figures (AGV stations located, unresolved poses, located-vs-true AGV pose,
-largest drift off plan), transfers, pose_err_mm_median, pose_err_mm_max, pose_err_deg_median, cloud_rms_mm,
-cloud_p95_mm for the tracker-only stitch, ``corrected_*`` after DeepMerge correction and pose-graph refinement
-(when ``[deepmerge] enabled``), and seconds (the job; ``job_cpu_seconds`` of this process).
+the depth window), relocalisation figures (AGV stations located, poses scanned with a nearby view, unresolved
+poses, located-vs-true AGV pose, largest drift off plan), transfers, pose_err_mm_median, pose_err_mm_max,
+pose_err_deg_median, cloud_rms_mm, cloud_p95_mm for the tracker-only stitch, ``corrected_*`` after DeepMerge
+correction and pose-graph refinement (when ``[deepmerge] enabled``), and seconds (the job; ``job_cpu_seconds``
+of this process).
 """
 
 from __future__ import annotations
@@ -63,6 +64,7 @@ async def run(args: argparse.Namespace) -> dict:
         "scans_empty": len(r["scans_empty"]),
         "relocalise": reloc["enabled"],
         "agv_stations_located": reloc["stations_located"],
+        "poses_adjusted": reloc["adjusted_count"],
         "poses_unresolved": reloc["unresolved_count"],
         "agv_off_plan_mm_max": _rounded(reloc.get("off_plan_mm_max"), 1),
         "agv_located_err_mm_max": _rounded(reloc.get("err_to_truth_mm_max"), 4),
