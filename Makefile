@@ -7,9 +7,10 @@ APT_PACKAGES := libusb-1.0-0 libgl1 libgomp1 chromium systemd
 
 .PHONY: measure test system-deps clean
 
-# The shipped band plan of the default part. A plan of the whole part: `tandemscan plan` (docs/planning.md).
+# Plans the whole default part (docs/planning.md) into out/plan.toml, then measures it on the simulated cell.
 measure: $(STAMP)
-	$(VENV)/bin/tandemscan measure
+	$(VENV)/bin/tandemscan plan --out out/plan.toml --png out/plan.png
+	$(VENV)/bin/tandemscan measure --plan out/plan.toml
 
 test: $(STAMP)
 	$(PY) -m pytest -q

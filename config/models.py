@@ -246,6 +246,10 @@ class PlanningConfig(_Strict):
     station_step_mm: float = Field(600.0, gt=0, description="p: least step between AGV stations, mm")
     scan_overlap_fraction: float = Field(0.2, ge=0, lt=1, description="overlap of neighbouring scans")
     incidence_limit_deg: float = Field(45.0, ge=0, lt=90, description="most tilt of the view off the normal")
+    agv_margin_mm: float = Field(
+        60.0, ge=0, description="prefer scan poses still reachable with the AGV this far off its station (drift)"
+    )
+    agv_margin_deg: float = Field(1.0, ge=0, description="and turned this much off its heading")
     tracker_distance_mm: float = Field(3500.0, gt=0, description="d1: tracker candidates to part contour, mm")
     tracker_best_range_mm: float = Field(9000.0, gt=0, description="d2: best-accuracy tracker range, mm")
     tracker_min_range_mm: float = Field(1500.0, ge=0, description="nearest usable target distance, mm")
@@ -295,6 +299,10 @@ class JobConfig(_Strict):
         "truth", description="which T_T_S etc. the stitch uses: sim ground truth, CAD nominal or calibration_file"
     )
     calibration_file: Path | None = None
+    relocalise: bool = Field(
+        True, description="after each measurement-AGV drive, measure where it stands (tracker, Eq. 5) and re-solve "
+        "the arm for the plan's scanner poses (T_F_S); off = the plan's joint targets as they are"
+    )
 
 
 class DeepMergeConfig(_Strict):

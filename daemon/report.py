@@ -24,7 +24,10 @@ def build_report(job: JobSnapshot, seconds: float) -> dict:
         "voxel_mm": job.worldmap.voxel_mm,
         "installation_source": job.config.job.installation_source,
         "seconds": round(seconds, 3),
+        "scans_planned": job.plan.scan_count,
+        "scans_empty": [s.index for s in job.scans if s.point_count == 0],
         "transfer_log": job.transfers,
+        "relocalisation": relocalisation_summary(job.relocalisation),
         "correction": job.correction,
         "scan_log": [
             {"index": s.index, "tracker_station": s.tracker_station, "points": s.point_count,
@@ -36,6 +39,20 @@ def build_report(job: JobSnapshot, seconds: float) -> dict:
     if world is not None and job.scans:
         report["ground_truth"] = ground_truth_scores(job)
     return report
+
+
+def relocalisation_summary(log: dict) -> dict:
+    """The runner's relocalisation log with its figures: AGV stations located, poses scanned with a nearby view
+    or not re-solved, how far off plan the AGV stood and, on the simulated cell, how far the located pose is from
+    the true one (mm, deg, maxima)."""
+    located = log.get("located", [])
+    out = dict(log) | {"stations_located": len(located), "unresolved_count": len(log.get("unresolved", [])),
+                       "adjusted_count": len(log.get("adjusted", []))}
+    for key in ("off_plan_mm", "off_plan_deg", "err_to_truth_mm", "err_to_truth_deg"):
+        values = [e[key] for e in located if key in e]
+        if values:
+            out[f"{key}_max"] = float(np.max(values))
+    return out
 
 
 def ground_truth_scores(job: JobSnapshot) -> dict:

@@ -6,6 +6,13 @@ step is a coordinate transfer (Eq. 2) with the measurement robot standing still.
 the two robots never move together. Heavy numeric work (scan writing, stitching, correction, report and
 exports) runs where the world map lives (:mod:`tandemscan.daemon.stitcher`): a worker process in the daemon,
 threads otherwise; the event loop only passes small records and file names.
+
+A ``move_tracker`` before the job's first scan is a plain relocation: nothing is placed in W yet, so W becomes
+the tracker camera frame where it then stands. With ``job.relocalise`` the runner measures where the
+measurement AGV stands after each drive (a target reading, Eq. 5, :mod:`tandemscan.pipeline.relocalise`) and
+re-solves the arm for each ``move_arm`` step's planned scanner pose ``T_F_S``, so a drifting chassis still scans
+where the plan meant; a pose out of reach from there is scanned with the plan's joints and listed in the
+report (``relocalisation.unresolved``).
 """
 
 from __future__ import annotations
@@ -27,6 +34,7 @@ from tandemscan.drivers.interfaces import ChassisPose, TrackerReading
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.installation import Installation
 from tandemscan.pipeline.plan import MoveArm, MoveMeasure, MoveTracker, Plan, Scan
+from tandemscan.pipeline.relocalise import Relocaliser
 from tandemscan.sim_drivers.cell import Cell
 
 log = logging.getLogger(__name__)
@@ -173,6 +181,14 @@ class JobRunner:
         self.correction: dict = {"enabled": False}
         self.last_still_T_C_T: np.ndarray | None = None  # last reading while the target has not moved since
         self.resume_log: list[dict] = []
+        self.relocaliser = None  # only where relocalisation is on and the plan has scanner poses to re-solve
+        if config.job.relocalise and any(isinstance(s, MoveArm) and s.T_F_S is not None for s in plan.steps):
+            self.relocaliser = Relocaliser(config.arm, config.scanner, self.installation)
+        self.T_F_W: np.ndarray | None = None  # W in the plan's frame F (mm): None until measured
+        self.T_F_V2: np.ndarray | None = None  # the measurement AGV in F as measured; None since it drove unmeasured
+        self.planned_T_F_V2: np.ndarray | None = None  # where the plan (or, at the start, the odometry) puts it
+        self.relocalisation: dict = {"enabled": self.relocaliser is not None, "anchor": None, "located": [],
+                                     "unresolved": [], "adjusted": []}
 
     async def read_target(self) -> TrackerReading:
         """The target pose at rest, averaged over ``tracker.samples_per_reading`` readings."""
@@ -194,6 +210,9 @@ class JobRunner:
         total = len(self.plan.steps) + 1
         await self.cell.arm.enable()
         resuming = bool(self.journal.committed)
+        if self.relocaliser is not None and 0 not in self.journal.committed and not isinstance(
+                self.plan.steps[0], MoveTracker):  # an opening tracker move redefines W: anchor after it
+            await self._anchor(0)
         for i, step in enumerate(self.plan.steps):
             if i in self.journal.committed:
                 await self._replay(step, self.journal.committed[i])
@@ -204,10 +223,11 @@ class JobRunner:
             self.progress(JobProgress(i, total, self._describe(step)))
             result, scan = await self.journal.run_step(i, lambda i=i, step=step: self._execute(i, step))
             await self.journal.commit(i, step.kind, result, *(scan or ()))
-        if self.config.deepmerge.enabled and len(self.scans) > 1:
+        measured = [s for s in self.scans if s.point_count > 0]  # a scan that saw nothing has nothing to correct
+        if self.config.deepmerge.enabled and len(measured) > 1:
             self.progress(JobProgress(total - 1, total, "correcting the stitch (DeepMerge, pose graph)"))
-            self.correction, poses = await self.worldmap.run(correct, self.snapshot())
-            for s, T_W_S in zip(self.scans, poses, strict=True):
+            self.correction, poses = await self.worldmap.run(correct, self.snapshot(measured))
+            for s, T_W_S in zip(measured, poses, strict=True):
                 s.T_W_S = T_W_S
         self.progress(JobProgress(total - 1, total, "writing cloud and report"))
         result = await self._export(time.monotonic() - started)
@@ -217,30 +237,43 @@ class JobRunner:
     async def _execute(self, i: int, step) -> tuple[dict, tuple[Path, int] | None]:
         """One step on the devices; returns its journal result and its scan file (path, points) if any."""
         if isinstance(step, MoveTracker):
+            if not self.scans:
+                return await self._relocate_tracker(step, i), None
             return await self._transfer(step, i), None
         if isinstance(step, MoveMeasure):
             pose = ChassisPose(step.x_mm, step.y_mm, step.heading_rad)
             self.last_still_T_C_T = None
             async with self.journal.motion(MEASURE_ROBOT):
                 odo = await self.cell.measure_chassis.move_to(pose, self.config.measure_chassis.timeout_s)
-            return {"odometry": [odo.x_mm, odo.y_mm, odo.heading_rad]}, None
+            result = {"odometry": [odo.x_mm, odo.y_mm, odo.heading_rad]}
+            if self.relocaliser is not None:
+                self.planned_T_F_V2 = F.planar_pose(step.x_mm, step.y_mm, step.heading_rad)
+                self.T_F_V2 = None
+                result |= self._relocalisation_state(located=await self._locate(i))
+            return result, None
         if isinstance(step, MoveArm):
             self.last_still_T_C_T = None
+            joints, extra = await self._arm_target(i, step)
             async with self.journal.motion(MEASURE_ROBOT):
-                await self.cell.arm.move_joints(np.array(step.joints_rad), self.config.arm.timeout_s)
-            return {"joints_rad": list(step.joints_rad)}, None
+                await self.cell.arm.move_joints(joints, self.config.arm.timeout_s)
+            return {"joints_rad": joints.tolist(), **extra}, None
         record = await self._scan()
         return _scan_result(record), (record.file, record.point_count)
 
     async def _replay(self, step, result: dict) -> None:
         """Rebuild the run's state from a step committed before a restart (no device is touched)."""
-        if isinstance(step, MoveTracker):
+        if isinstance(step, MoveTracker) and result.get("relocation"):
+            self.T_W_C = np.eye(4)
+            self.last_still_T_C_T = None
+            self._restore_relocalisation(result)
+        elif isinstance(step, MoveTracker):
             self.T_W_C = np.array(result["T_W_C"])
             self.tracker_station = result["station"]
             self.transfers.append(result["transfer"])
             self.last_still_T_C_T = np.array(result["after"])
         elif isinstance(step, (MoveMeasure, MoveArm)):
             self.last_still_T_C_T = None
+            self._restore_relocalisation(result)
         elif isinstance(step, Scan):
             record = _scan_from_result(result, self.job_dir)
             self.scans.append(record)
@@ -281,6 +314,127 @@ class JobRunner:
             "move_arm": "moving the arm",
             "scan": "scanning",
         }[step.kind]
+
+    async def _anchor(self, i: int) -> None:
+        """Place W in the plan's frame F from one target reading (Eq. 5), the measurement AGV standing where it
+        was last measured or, before that, where its odometry says (the plan's frame is the odometry frame).
+        Journaled as a note of step ``i``, so a resumed job keeps it; the target unseen leaves W unplaced (the
+        first AGV station measured then places it, taken as planned)."""
+        if self.planned_T_F_V2 is None:
+            odo = await self.cell.measure_chassis.odometry()
+            self.planned_T_F_V2 = F.planar_pose(odo.x_mm, odo.y_mm, odo.heading_rad)
+        noted = self.journal.notes(i).get("anchor")
+        if noted is None:
+            try:
+                reading = await self.read_target()
+            except TargetNotVisible as e:
+                self.T_F_W = None
+                self.relocalisation["anchor"] = {"step": i, "placed": False, "reason": e.reason}
+                log.info("world not placed in the plan's frame at step %d: %s", i, e.reason)
+                return
+            T_F_V2 = self.planned_T_F_V2 if self.T_F_V2 is None else self.T_F_V2
+            T_W_V2 = self.relocaliser.agv_in_world(self.T_W_C @ reading.T_C_T, await self.cell.arm.joints())
+            noted = {"step": i, "placed": True, "source": "measurement AGV where its odometry says"
+                     if self.T_F_V2 is None else "measurement AGV where last measured",
+                     "T_F_W": (T_F_V2 @ F.invert(T_W_V2)).tolist(), "T_F_V2": T_F_V2.tolist()}
+            await self.journal.note(i, "anchor", noted)
+        self.T_F_W, self.T_F_V2 = np.array(noted["T_F_W"]), np.array(noted["T_F_V2"])
+        self.relocalisation["anchor"] = {k: noted[k] for k in ("step", "placed", "source")}
+
+    async def _locate(self, i: int) -> dict | None:
+        """Where the measurement AGV stands now (``self.T_F_V2``, Eq. 5), from a reading at the arm's current
+        pose; None (and ``T_F_V2`` unknown) when the tracker cannot see the target from there."""
+        try:
+            reading = await self.read_target()
+        except TargetNotVisible as e:
+            log.debug("step %d: measurement AGV not located from this arm pose: %s", i, e.reason)
+            return None
+        T_W_V2 = self.relocaliser.agv_in_world(self.T_W_C @ reading.T_C_T, await self.cell.arm.joints())
+        planned = self.planned_T_F_V2
+        if self.T_F_W is None:
+            self.T_F_W = planned @ F.invert(T_W_V2)
+            self.relocalisation["anchor"] = {"step": i, "placed": True,
+                                             "source": "first measured AGV station, taken as planned"}
+        self.T_F_V2 = self.T_F_W @ T_W_V2
+        off_mm, off_rad = F.pose_error(self.T_F_V2, planned)
+        entry = {"step": i, "off_plan_mm": off_mm, "off_plan_deg": float(np.degrees(off_rad))}
+        if self.cell.world is not None:
+            err_mm, err_rad = F.pose_error(self.T_F_V2, self.cell.world.T_F_V2)
+            entry |= {"err_to_truth_mm": err_mm, "err_to_truth_deg": float(np.degrees(err_rad))}
+        log.info("measurement AGV located %.1f mm / %.2f deg off its planned station", off_mm, entry["off_plan_deg"])
+        return entry
+
+    async def _arm_target(self, i: int, step: MoveArm) -> tuple[np.ndarray, dict]:
+        """The joints of a ``move_arm`` step: re-solved for its planned scanner pose where the AGV was measured
+        to stand, else (no ``T_F_S``, relocalisation off) the plan's. The journal result's extra fields."""
+        planned = np.array(step.joints_rad)
+        if self.relocaliser is None or step.T_F_S is None:
+            return planned, {}
+        located = None
+        if self.T_F_V2 is None and self.planned_T_F_V2 is not None:  # not seen from the travel pose: from here
+            async with self.journal.motion(MEASURE_ROBOT):
+                await self.cell.arm.move_joints(planned, self.config.arm.timeout_s)
+            located = await self._locate(i)
+        if self.T_F_V2 is None:
+            return planned, self._relocalisation_state(located, self._unresolved(
+                i, "measurement AGV not located: the tracker sees the target from none of its poses since it drove"))
+        q, changed = self.relocaliser.resolve(self.T_F_V2, np.array(step.T_F_S), planned)
+        if q is None:
+            return planned, self._relocalisation_state(located, self._unresolved(
+                i, "planned scanner pose and its nearby views out of the arm's reach from where the AGV stands; "
+                "the plan's joints used"))
+        adjusted = None
+        if changed:
+            adjusted = {"step": i, "scan": len(self.scans), "view": changed}
+            log.info("step %d (scan %d): planned pose out of reach from where the AGV stands; view %s", i,
+                     len(self.scans), changed)
+        return q, self._relocalisation_state(located, adjusted=adjusted)
+
+    def _unresolved(self, i: int, reason: str) -> dict:
+        """A report entry for a scan pose not re-solved: the step, the scan it serves and why."""
+        label = next((s.label for s in self.plan.steps[i + 1:] if isinstance(s, Scan)), "")
+        log.warning("step %d (scan %d, %s): %s", i, len(self.scans), label, reason)
+        return {"step": i, "scan": len(self.scans), "label": label, "reason": reason}
+
+    def _relocalisation_state(self, located: dict | None = None, unresolved: dict | None = None,
+                              adjusted: dict | None = None) -> dict:
+        """The step's journal fields that let a resumed job rebuild the relocalisation state and report."""
+        entries = {"located": located, "unresolved": unresolved, "adjusted": adjusted}
+        for key, entry in entries.items():
+            if entry is not None:
+                self.relocalisation[key].append(entry)
+        matrix = {k: None if v is None else v.tolist()
+                  for k, v in (("T_F_W", self.T_F_W), ("T_F_V2", self.T_F_V2), ("planned_T_F_V2", self.planned_T_F_V2))}
+        return {"relocalisation": {**matrix, "anchor": self.relocalisation["anchor"], **entries}}
+
+    def _restore_relocalisation(self, result: dict) -> None:
+        """Inverse of :meth:`_relocalisation_state` for a replayed step."""
+        state = result.get("relocalisation")
+        if state is None:
+            return
+        self.T_F_W, self.T_F_V2, self.planned_T_F_V2 = (None if state[k] is None else np.array(state[k])
+                                                         for k in ("T_F_W", "T_F_V2", "planned_T_F_V2"))
+        self.relocalisation["anchor"] = state["anchor"]
+        for key in ("located", "unresolved", "adjusted"):
+            if state.get(key) is not None:
+                self.relocalisation[key].append(state[key])
+
+    async def _relocate_tracker(self, step: MoveTracker, i: int) -> dict:
+        """A tracker move before the first scan: no transfer, W becomes the camera frame where it now stands."""
+        async with self.journal.motion(TRACKING_ROBOT):
+            odo = await self.cell.tracking_chassis.move_to(
+                ChassisPose(step.x_mm, step.y_mm, step.heading_rad), self.config.tracking_chassis.timeout_s
+            )
+        self.T_W_C = np.eye(4)
+        self.last_still_T_C_T = None
+        if self.cell.world is not None:
+            self.cell.world.define_world()
+        log.info("tracker relocated before the first scan: the world frame is its camera frame there")
+        result = {"relocation": True, "odometry": [odo.x_mm, odo.y_mm, odo.heading_rad]}
+        if self.relocaliser is not None:
+            await self._anchor(i)
+            result |= self._relocalisation_state()
+        return result
 
     async def _transfer(self, step: MoveTracker, i: int = -1) -> dict:
         """Eq. 2: read the still target, move the tracker, read it again, re-place the tracker in W.
@@ -338,11 +492,13 @@ class JobRunner:
         self.last_still_T_C_T = reading.T_C_T
         return record
 
-    def snapshot(self) -> JobSnapshot:
-        """The job's state for its end-of-job work (correction, report, exports) where the map lives."""
+    def snapshot(self, scans: list[ScanRecord] | None = None) -> JobSnapshot:
+        """The job's state for its end-of-job work (correction, report, exports) where the map lives; ``scans``
+        (default: all) are the ones that work sees."""
         world = self.cell.world.ground_truth() if self.cell.world is not None else None
-        return JobSnapshot(self.job_dir, self.plan, self.config, self.installation, list(self.scans),
-                           list(self.transfers), dict(self.correction), world)
+        return JobSnapshot(self.job_dir, self.plan, self.config, self.installation, list(scans or self.scans),
+                           list(self.transfers), dict(self.correction), world,
+                           relocalisation=dict(self.relocalisation))
 
     async def _export(self, seconds: float) -> JobResult:
         """``cloud.ply``, ``report.json`` and the inspection exports, written where the map lives."""

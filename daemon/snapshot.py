@@ -35,6 +35,7 @@ class JobSnapshot:
     correction: dict
     world: GroundTruth | None
     worldmap: Any = field(default=None, repr=False)  # the VoxelMap where the work runs
+    relocalisation: dict = field(default_factory=dict)  # the runner's AGV relocalisation log (report section)
 
     def __getstate__(self) -> dict:
         return self.__dict__ | {"worldmap": None}

@@ -1,6 +1,9 @@
 """The plan format: the paper's unified command sequence, as data that can be dry-run or executed.
 
 Chassis targets are in each chassis's odometry frame (which starts as the floor frame F), mm and rad.
+A ``move_arm`` step may also carry the scanner pose it is meant to reach, ``T_F_S`` in the part frame F (mm):
+the runner then re-solves the joints from the measurement AGV's pose as the tracker sees it, so the scan lands
+where it was planned even when the chassis has drifted; without it the joint targets are used as they are.
 A ``move_tracker`` step is a coordinate transfer: the measurement robot stands still while the tracking
 robot moves, and the target is read before and after (Eq. 2). Stored as TOML or JSON by file suffix.
 """
@@ -12,6 +15,7 @@ import tomllib
 from pathlib import Path
 from typing import Annotated, Literal
 
+import numpy as np
 import tomli_w
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 from tandemscan.config.loader import format_validation_error
@@ -43,11 +47,29 @@ class MoveMeasure(_Step):
     heading_rad: float
 
 
+Matrix4 = tuple[tuple[float, float, float, float], tuple[float, float, float, float],
+                tuple[float, float, float, float], tuple[float, float, float, float]]
+
+
 class MoveArm(_Step):
-    """Joint move of the arm on the measurement AGV."""
+    """Joint move of the arm on the measurement AGV; ``T_F_S`` (optional): the planned scanner pose, part frame
+    F, mm, row-major 4x4, which ``joints_rad`` reach when the AGV stands exactly at its planned pose."""
 
     kind: Literal["move_arm"] = "move_arm"
     joints_rad: tuple[float, float, float, float, float, float]
+    T_F_S: Matrix4 | None = None
+
+    @field_validator("T_F_S")
+    @classmethod
+    def _rigid(cls, T: Matrix4 | None) -> Matrix4 | None:
+        if T is None:
+            return T
+        M = np.array(T, float)
+        R = M[:3, :3]
+        if not np.allclose(M[3], [0.0, 0.0, 0.0, 1.0]) or not np.allclose(R.T @ R, np.eye(3), atol=1e-5) or (
+                np.linalg.det(R) < 0):
+            raise ValueError("T_F_S must be a rigid 4x4 transform (orthonormal rotation, last row 0 0 0 1)")
+        return T
 
 
 class Scan(_Step):
@@ -86,7 +108,7 @@ class Plan(BaseModel):
 
     def save(self, path: Path) -> None:
         """Write as TOML (``.toml``) or JSON (anything else)."""
-        data = self.model_dump(mode="json")
+        data = self.model_dump(mode="json", exclude_none=True)  # TOML has no null: a missing T_F_S is absent
         path = Path(path)
         text = tomli_w.dumps(data) if path.suffix == ".toml" else json.dumps(data, indent=1)
         path.write_text(text, encoding="utf-8")

@@ -146,7 +146,12 @@ class SimWorld:
         self.motion = MotionLog()
         self.captures = 0
         self.tracker_frames = 0
-        self.T_W_F = F.invert(self.T_F_C())  # W = the tracker camera frame at its first station
+        self.define_world()  # W = the tracker camera frame at its first station
+
+    def define_world(self) -> None:
+        """W becomes the tracker camera frame where it stands now: a job that moves the tracker before its first
+        scan (a plain relocation) defines its world there, and the truth follows."""
+        self.T_W_F = F.invert(self.T_F_C())
 
     def _make_chassis(self, name: str, cfg: ChassisConfig, start: FloorPoseConfig) -> ChassisTruth:
         pose = ChassisPose(start.x_mm, start.y_mm, np.radians(start.heading_deg))

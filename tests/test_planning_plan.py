@@ -68,6 +68,12 @@ def test_one_robot_moves_at_a_time_and_the_arm_folds_before_driving(planned):
             assert isinstance(prev, MoveArm) and np.allclose(prev.joints_rad, home)
 
 
+def test_no_pose_is_scanned_twice(planned):
+    """Two raster rows falling on one profile sample (a shallow slope) give one scan, not two of one pose."""
+    steps = planned[2].sequence.plan.steps
+    assert all(isinstance(a, MoveArm) for a, b in zip(steps[:-1], steps[1:], strict=True) if isinstance(b, Scan))
+
+
 def test_coverage_of_the_reachable_surface_and_left_out_areas_reported(planned):
     config, world, plan = planned
     report = dry_run(world.mesh, world.scene, plan.rasters, config.scanner,

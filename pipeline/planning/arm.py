@@ -45,13 +45,15 @@ class RasterCell:
 
 @dataclass(frozen=True)
 class ScanPose:
-    """A reachable scanner pose: ``T_F_S`` (mm), the joints that reach it (rad), the view tilt off the normal."""
+    """A reachable scanner pose: ``T_F_S`` (mm), the joints that reach it (rad), the view tilt off the normal;
+    ``robust``: still reachable with the AGV off its station by the planning margin (``agv_margin_*``)."""
 
     station: int
     cell: RasterCell
     T_F_S: np.ndarray
     joints_rad: np.ndarray
     tilt_rad: float
+    robust: bool = True
 
 
 @dataclass(frozen=True)
@@ -85,17 +87,6 @@ class ArmSetup:
     T_E_S: np.ndarray
     scanner: ScannerConfig
     planning: PlanningConfig
-
-
-def default_ik(arm: ArmConfig) -> IkSolver:
-    """The closed-form IK where the arm's DH allows it, else the numerical ``ArmKinematics.inverse``."""
-    from tandemscan.pipeline.kinematics import ArmKinematics
-    from tandemscan.pipeline.planning.ik import AnalyticIK
-
-    try:
-        return AnalyticIK(arm)
-    except ValueError:
-        return ArmKinematics(arm).inverse
 
 
 def column_count(step_mm: float, m_mm: float) -> int:
@@ -153,15 +144,22 @@ def surface_profile(
 
 
 def _sample_profile(pts: np.ndarray, nrm: np.ndarray, n_mm: float) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """Rows ``n`` apart along the ordered profile: (points, smoothed unit normals)."""
+    """Rows ``n`` apart along the ordered profile: (points, smoothed unit normals).
+
+    Where the profile's samples lie farther apart than ``n`` (a shallow slope met by the horizontal rays) two
+    rows can fall on the same sample; it is scanned once.
+    """
     seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
     arc = np.r_[0.0, np.cumsum(seg)]
     h = float(arc[-1])
     rows = row_count(h, n_mm)
-    out_p, out_n = [], []
+    out_p, out_n, used = [], [], set()
     for r in range(rows):
         s = (r + 0.5) * h / rows
         k = int(np.argmin(np.abs(arc - s)))
+        if k in used:
+            continue
+        used.add(k)
         near = np.abs(arc - arc[k]) <= 0.25 * n_mm
         normal = nrm[near].sum(axis=0)
         out_p.append(pts[k])
@@ -246,6 +244,22 @@ def _views(cell: RasterCell, base_F: np.ndarray, limit_rad: float) -> list[tuple
     return out
 
 
+def margin_moves(T_V2_B: np.ndarray, planning: PlanningConfig) -> np.ndarray:
+    """``(K, 4, 4)`` maps ``M`` with ``T_B'_E = M T_B_E``: the flange target seen from the arm base when the AGV
+    stands off its station by the planning margin (forward, back, left, right, each way round; mm, rad); none
+    when the margin is zero."""
+    m, h = planning.agv_margin_mm, math.radians(planning.agv_margin_deg)
+    offsets = [o for o in ((m, 0.0, 0.0), (-m, 0.0, 0.0), (0.0, m, 0.0), (0.0, -m, 0.0), (0.0, 0.0, h), (0.0, 0.0, -h))
+               if any(o)]
+    T_B_V2 = F.invert(T_V2_B)
+    return np.array([T_B_V2 @ F.invert(F.planar_pose(x, y, a)) @ T_V2_B for x, y, a in offsets]).reshape(-1, 4, 4)
+
+
+def _robust(ik: IkSolver, T_B_E: np.ndarray, q: np.ndarray, moves: np.ndarray) -> bool:
+    """Whether ``T_B_E`` stays reachable (seeded from ``q``) under every AGV offset in ``moves``."""
+    return all(ik(M @ T_B_E, q) is not None for M in moves)
+
+
 def _travel(qs: list[np.ndarray]) -> float:
     """Joint travel of a sequence: sum over moves of the largest joint change (rad), a proxy for motion time."""
     return float(sum(np.max(np.abs(b - a)) for a, b in zip(qs[:-1], qs[1:], strict=True)))
@@ -274,7 +288,9 @@ def plan_station(
     """Reachable scanner poses for the cells of one station, ordered to move the joints least.
 
     Per cell the views are tried square on first, then tilted towards the arm, each with both rolls; poses
-    whose flange lies beyond the arm's reach bound skip the IK.
+    whose flange lies beyond the arm's reach bound skip the IK. The first view that stays reachable with the
+    AGV off its station by the planning margin wins (the runner re-solves the joints where the AGV really
+    stands); a cell with no such view keeps its first reachable one, marked not robust.
     """
     ik, arm, scanner, planning = setup.ik, setup.arm, setup.scanner, setup.planning
     T_V2_B, T_E_S = setup.T_V2_B, setup.T_E_S
@@ -306,12 +322,17 @@ def plan_station(
             in_reach &= prefilter(T_B_E)
         owner_arr = np.array(owner)
         seed = np.asarray(seed_rad, float)
+        moves = margin_moves(T_V2_B, planning)
         for i in order:
             pose = None
             for k in np.flatnonzero((owner_arr == i) & in_reach):
                 q = ik(T_B_E[k], seed)
-                if q is not None:
-                    pose = ScanPose(station.index, cells[i], T_F_S[k], np.asarray(q, float), tilts[k])
+                if q is None:
+                    continue
+                robust = _robust(ik, T_B_E[k], q, moves)
+                if pose is None or robust:
+                    pose = ScanPose(station.index, cells[i], T_F_S[k], np.asarray(q, float), tilts[k], robust)
+                if robust:
                     break
             if pose is None:
                 unreached.append(Unreached(station.index, cells[i], "no joint solution within the limits for any "

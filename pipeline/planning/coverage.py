@@ -57,10 +57,16 @@ class CoverageReport:
         reach = self.seen_area_mm2 + self.missed_mm2
         return 100.0 * self.seen_area_mm2 / reach if reach > 0 else 0.0
 
+    @property
+    def coverage_of_all_pct(self) -> float:
+        """Seen share of the whole mesh surface, the floor-facing underside included (%)."""
+        return 100.0 * self.seen_area_mm2 / self.total_area_mm2 if self.total_area_mm2 > 0 else 0.0
+
     def as_dict(self) -> dict:
         return {
             "coverage_pct": round(self.coverage_pct, 2),
             "coverage_of_reachable_pct": round(self.coverage_of_reachable_pct, 2),
+            "coverage_of_all_pct": round(self.coverage_of_all_pct, 2),
             "total_area_m2": round(self.total_area_mm2 / 1e6, 3),
             "seen_area_m2": round(self.seen_area_mm2 / 1e6, 3),
             "floor_contact_m2": round(self.floor_contact_mm2 / 1e6, 3),

@@ -112,3 +112,12 @@ class AnalyticIK:
             if np.arccos(c) <= self.tol_rad:
                 return q
         return None
+
+
+def default_ik(arm: ArmConfig):
+    """``(T_B_E, seed_rad) -> q_rad | None``: the closed-form IK where the arm's DH allows it, else the numerical
+    ``ArmKinematics.inverse``."""
+    try:
+        return AnalyticIK(arm)
+    except ValueError:
+        return ArmKinematics(arm).inverse

@@ -15,7 +15,8 @@ import open3d as o3d
 from shapely.geometry import Point
 from tandemscan.config.models import CellConfig
 from tandemscan.pipeline import frames as F
-from tandemscan.pipeline.planning.arm import ArmSetup, IkSolver, ScanPose, StationRaster, default_ik, plan_arm
+from tandemscan.pipeline.planning.arm import ArmSetup, IkSolver, ScanPose, StationRaster, plan_arm
+from tandemscan.pipeline.planning.ik import default_ik
 from tandemscan.pipeline.planning.sequence import PoseRef, Sequence, build_sequence
 from tandemscan.pipeline.planning.stations import StationLayout, free_floor, offset_ring, place_stations
 from tandemscan.pipeline.planning.tracker import TrackerSolution, candidate_poses, choose_stations, cover_matrix
@@ -55,6 +56,7 @@ class PartPlan:
             "raster_cells": self.cells,
             "scans": self.sequence.plan.scan_count,
             "unreachable_cells": sum(len(r.unreached) for r in self.rasters),
+            "poses_without_margin": sum(not p.robust for p in self.poses),
             "poses_unseen_by_tracker": len(self.tracker.uncovered),
             "tracker_candidates": len(self.candidates),
             "tracker_stations": self.tracker.count,
@@ -137,7 +139,8 @@ def plan_part(
     t = time.perf_counter()
     refs = [PoseRef(p.station, (layout.stations[p.station].x_mm, layout.stations[p.station].y_mm,
                                 layout.stations[p.station].heading_rad),
-                    tuple(float(v) for v in p.joints_rad), f"station {p.station} row {p.cell.row} col {p.cell.col}")
+                    tuple(float(v) for v in p.joints_rad), f"station {p.station} row {p.cell.row} col {p.cell.col}",
+                    p.T_F_S)
             for p in poses]
     chain_poses = [tuple(float(v) for v in candidates[k]) for k in solution.chain]
     sequence = build_sequence(refs, chain_poses, cover[list(solution.chain)], home, name, part,

@@ -5,7 +5,8 @@ and its covers. While the tracker stands at chain station ``k``, the measurement
 yet scanned that station ``k`` sees, starting from where it stands and going on around the part. Then it
 goes to a pose that both station ``k`` and ``k + 1`` see (the last scan when it qualifies) and the tracker
 moves: a ``move_tracker`` step, which the job runner executes as a coordinate transfer (Eq. 2). Before the
-measurement AGV drives, the arm folds to its travel pose.
+measurement AGV drives, the arm folds to its travel pose. Each scan's arm move carries its planned scanner
+pose, so the runner can re-solve the joints where the AGV really stands.
 """
 
 from __future__ import annotations
@@ -25,12 +26,14 @@ class SequenceError(ValueError):
 
 @dataclass(frozen=True)
 class PoseRef:
-    """One scan pose as the sequencer sees it: its AGV station pose (x mm, y mm, heading rad) and joints (rad)."""
+    """One scan pose as the sequencer sees it: its AGV station pose (x mm, y mm, heading rad), joints (rad)
+    and, when known, the scanner pose ``T_F_S`` (part frame, mm) those joints reach from that station."""
 
     station: int
     agv_pose: tuple[float, float, float]
     joints_rad: tuple[float, ...]
     label: str
+    T_F_S: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -58,7 +61,8 @@ class _Builder:
             self.steps.append(MoveMeasure(x_mm=pose.agv_pose[0], y_mm=pose.agv_pose[1], heading_rad=pose.agv_pose[2]))
             self.agv = pose.agv_pose
         if self.joints != pose.joints_rad:
-            self.steps.append(MoveArm(joints_rad=pose.joints_rad))
+            T = None if pose.T_F_S is None else tuple(tuple(float(v) for v in row) for row in pose.T_F_S)
+            self.steps.append(MoveArm(joints_rad=pose.joints_rad, T_F_S=T))
             self.joints = pose.joints_rad
 
 
