@@ -319,6 +319,12 @@ class DeepMergeConfig(_Strict):
     overlap_sigmas: float = Field(3.0, gt=0, description="delta = this many sigmas of the pair's pose uncertainty")
     overlap_min_delta_mm: float = Field(1.0, gt=0, description="lower bound of delta (point spacing and noise), mm")
     min_overlap_points: int = Field(200, ge=10, description="pairs with fewer overlap points get no edge")
+    pair_cell_mm: float = Field(10.0, gt=0, description="grid cell (mm) by which scans are found to overlap")
+    max_partners_per_scan: int = Field(
+        6, ge=1, description="each scan is registered with at most this many scans of its own tracker station "
+        "and as many of the others, those sharing the most grid cells with it"
+    )
+    icp_max_points: int = Field(8000, ge=100, description="overlaps are thinned evenly to this many points per cloud")
     num_points: int = Field(2048, ge=64, description="overlap points per cloud fed to the network")
     neighbours: int = Field(10, ge=4, description="k of the k x 14 point structure")
     icp_max_distance_mm: float = Field(2.0, gt=0, description="point-to-plane ICP correspondence distance, mm")

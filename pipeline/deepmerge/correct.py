@@ -15,7 +15,13 @@ from dataclasses import dataclass, field
 import numpy as np
 import open3d as o3d
 from tandemscan.config.models import DeepMergeConfig
-from tandemscan.pipeline.deepmerge.overlap import delta_from_covariance, extract_overlap, relative_covariance
+from tandemscan.pipeline.deepmerge.overlap import (
+    delta_from_covariance,
+    extract_overlap,
+    overlapping_pairs,
+    relative_covariance,
+    thin_evenly,
+)
 from tandemscan.pipeline.deepmerge.register import DeepMergeRegistrar, voxel_downsample
 from tandemscan.pipeline.frames import invert, pose_error, transform_points
 from tandemscan.pipeline.refine import (
@@ -104,7 +110,11 @@ def correct_pair(
     source_W: np.ndarray, target_W: np.ndarray, cfg: DeepMergeConfig, registrar: DeepMergeRegistrar | None,
     pair_covariance: np.ndarray | None = None,
 ) -> PairCorrection | None:
-    """Correct a stitched pair (both in the world, mm); None when the overlap is below ``min_overlap_points``."""
+    """Correct a stitched pair (both in the world, mm); None when the overlap is below ``min_overlap_points``.
+
+    A source overlap larger than ``cfg.icp_max_points`` is thinned evenly before registration (the target
+    keeps every point, so its normals and the point-to-plane distances stay as fine as the scan).
+    """
     if cfg.overlap_delta_mm is not None:
         delta = cfg.overlap_delta_mm
     else:
@@ -115,7 +125,7 @@ def correct_pair(
     ov = extract_overlap(source_W, target_W, delta)
     if ov.size < cfg.min_overlap_points:
         return None
-    S, T = source_W[ov.source_idx], target_W[ov.target_idx]
+    S, T = source_W[thin_evenly(ov.source_idx, cfg.icp_max_points)], target_W[ov.target_idx]
     tgt = target_with_normals(T)
     M = register_overlap(S, tgt, cfg.method, cfg, registrar, delta)
     fit = evaluate_point_to_plane(S, tgt, M, cfg.icp_max_distance_mm)
@@ -179,20 +189,14 @@ def correct_scans(
         registrar = DeepMergeRegistrar.load(cfg.weights, num_points=cfg.num_points)
     local = [voxel_downsample(np.asarray(s.points_S, float), voxel_mm) for s in scans]
     world = [transform_points(s.T_W_S, P) for s, P in zip(scans, local, strict=True)]
-    lo = np.array([P.min(axis=0) for P in world])
-    hi = np.array([P.max(axis=0) for P in world])
     edges: list[tuple[int, int, PairCorrection]] = []
-    for i in range(len(scans)):
-        for j in range(i + 1, len(scans)):
-            cov = relative_covariance(scans[i].covariance, scans[j].covariance)
-            if scans[i].station != scans[j].station and transfer_covariance is not None:
-                cov = cov + abs(scans[i].station - scans[j].station) * np.asarray(transfer_covariance)
-            margin = cfg.overlap_delta_mm or 10.0 * cfg.overlap_min_delta_mm
-            if np.any(lo[i] > hi[j] + margin) or np.any(lo[j] > hi[i] + margin):
-                continue
-            pc = correct_pair(world[j], world[i], cfg, registrar, cov)
-            if pc is not None:
-                edges.append((i, j, pc))
+    for i, j in overlapping_pairs(world, [s.station for s in scans], cfg.pair_cell_mm, cfg.max_partners_per_scan):
+        cov = relative_covariance(scans[i].covariance, scans[j].covariance)
+        if scans[i].station != scans[j].station and transfer_covariance is not None:
+            cov = cov + abs(scans[i].station - scans[j].station) * np.asarray(transfer_covariance)
+        pc = correct_pair(world[j], world[i], cfg, registrar, cov)
+        if pc is not None:
+            edges.append((i, j, pc))
     graph_edges = [_edge(i, j, pc, cfg) for i, j, pc in edges if pc.fit.inliers >= 6]
     if transfer_covariance is None and len({s.station for s in scans}) > 1:
         transfer_covariance = 2.0 * np.mean([s.covariance for s in scans], axis=0)

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike
+from scipy import sparse
 from scipy.spatial import cKDTree
 
 log = logging.getLogger(__name__)
@@ -83,3 +84,48 @@ def extract_overlap(source_mm: ArrayLike, target_mm: ArrayLike, delta_mm: float)
     log.debug("overlap at delta %.3f mm: %d source, %d target points", delta_mm, len(ov.source_idx),
               len(ov.target_idx))
     return ov
+
+
+def _cells(points: np.ndarray, cell_mm: float) -> np.ndarray:
+    """Sorted unique ids of the ``cell_mm`` grid cells the points occupy (one int64 per cell)."""
+    keys = np.floor(points / cell_mm).astype(np.int64) + (1 << 20)  # non-negative within +-1 km at 1 mm cells
+    return np.unique((keys[:, 0] << 42) | (keys[:, 1] << 21) | keys[:, 2])
+
+
+def overlapping_pairs(
+    clouds: list[np.ndarray], stations: ArrayLike, cell_mm: float, max_partners: int,
+) -> list[tuple[int, int]]:
+    """Pairs ``(i, j)``, ``i < j``, of world-frame clouds (mm) worth registering, in index order.
+
+    Two clouds are candidates when they share a cell of the ``cell_mm`` grid. Each cloud keeps its
+    ``max_partners`` candidates with the most shared cells among the clouds of its own tracker station, and
+    as many among the other stations (the links that carry a coordinate transfer); a pair is kept when either
+    of its clouds keeps it. On a plan of hundreds of scans this keeps the raster neighbours and drops the
+    pairs that only touch at a corner.
+    """
+    if cell_mm <= 0 or max_partners < 1:
+        raise OverlapError(f"cell_mm must be > 0 and max_partners >= 1, got {cell_mm}, {max_partners}")
+    stations = np.asarray(stations)
+    cells = [_cells(_cloud(c, f"cloud {i}"), cell_mm) for i, c in enumerate(clouds)]
+    if not cells:
+        return []
+    _, column = np.unique(np.concatenate(cells), return_inverse=True)
+    row = np.repeat(np.arange(len(cells)), [len(c) for c in cells])
+    incidence = sparse.csr_matrix((np.ones(len(row), np.int64), (row, column.ravel())))
+    shared = (incidence @ incidence.T).toarray()       # shared[i, j] = cells clouds i and j both occupy
+    np.fill_diagonal(shared, 0)
+    keep = set()
+    for i in range(len(clouds)):
+        for same in (True, False):
+            mask = (stations == stations[i]) == same
+            partners = np.flatnonzero(mask & (shared[i] > 0))
+            best = partners[np.argsort(-shared[i, partners], kind="stable")[:max_partners]]
+            keep.update((min(i, j), max(i, j)) for j in best)
+    return sorted(keep)
+
+
+def thin_evenly(indices: np.ndarray, max_points: int) -> np.ndarray:
+    """At most ``max_points`` of ``indices``, evenly spaced along them (scan order: evenly over the overlap)."""
+    if len(indices) <= max_points:
+        return indices
+    return indices[np.linspace(0, len(indices) - 1, max_points).round().astype(int)]
