@@ -9,7 +9,7 @@ from the histograms in ``/metrics``, differenced between scrapes. Before the job
 same figures with no job running: on a shared machine that is the floor the load alone sets. Prints one
 JSON object (ms) on its last line, with the machine's 1-minute load average before and after.
 
-    nice python benchmarks/daemon.py [--seconds 600] [--idle-seconds 30] [--resolution full|coarse]
+    nice python benchmarks/daemon.py [--seconds 600] [--idle-seconds 30] [--resolution full|coarse] [--keep-state]
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import socket
 import sqlite3
 import subprocess
@@ -89,6 +90,7 @@ def main() -> None:
     ap.add_argument("--idle-seconds", type=float, default=30.0, help="idle baseline before the job (s)")
     ap.add_argument("--resolution", choices=["full", "coarse"], default="full")
     ap.add_argument("--rate-hz", type=float, default=20.0, help="client request rate")
+    ap.add_argument("--keep-state", action="store_true", help="keep the daemon's state folder (GBs of scans)")
     args = ap.parse_args()
 
     load_before = os.getloadavg()
@@ -179,6 +181,8 @@ def main() -> None:
     job_pings = [t for t in pings if t_start <= t <= t_start + seconds]
     with sqlite3.connect(tmp / "state" / "journal.sqlite") as db:
         scans = db.execute("SELECT COUNT(*) FROM scans").fetchone()[0]
+    if not args.keep_state:
+        shutil.rmtree(tmp, ignore_errors=True)
     print(json.dumps({
         "benchmark": "daemon",
         "scanner_resolution": args.resolution,
