@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 from pathlib import Path
 
 from rich.console import Console
@@ -23,6 +24,12 @@ def cmd_train_deepmerge(args: argparse.Namespace) -> int:
 
     if args.threads:
         torch.set_num_threads(args.threads)
+    if args.log:
+        handler = logging.FileHandler(args.log, encoding="utf-8")
+        handler.setFormatter(logging.Formatter("%(asctime)s %(message)s"))
+        train_log = logging.getLogger("tandemscan.pipeline.deepmerge.train")
+        train_log.addHandler(handler)
+        train_log.setLevel(logging.INFO)
     settings = TrainSettings(seed=args.seed, steps=args.steps, max_minutes=args.max_minutes,
                              train_pairs=args.train_pairs, val_pairs=args.val_pairs, batch_size=args.batch_size)
     with Progress(TextColumn("{task.description:<32}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
@@ -70,6 +77,7 @@ def register(sub) -> None:
     p.add_argument("--batch-size", type=int, default=8)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    p.add_argument("--log", type=Path, help="append the loss and validation log to this file")
     p.set_defaults(func=cmd_train_deepmerge)
 
     p = sub.add_parser("register", help="register two clouds (PLY/PCD/XYZ, mm)")

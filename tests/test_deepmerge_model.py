@@ -73,3 +73,30 @@ def test_network_returns_one_rigid_estimate_per_iteration_and_gradients_reach_ev
     for name, p in net.named_parameters():
         assert p.grad is not None and torch.isfinite(p.grad).all(), name
         assert p.grad.abs().sum() > 0, f"no gradient reaches {name}"
+
+
+def test_the_untrained_head_is_a_soft_nearest_neighbour_registration_that_iterations_sharpen():
+    """With the distance term in residual units, more head iterations keep improving a small error."""
+    from tandemscan.pipeline.deepmerge.features import reference_direction
+    from tandemscan.pipeline.deepmerge.register import prepare_cloud
+
+    torch.manual_seed(4)
+    rng = np.random.default_rng(4)
+    xy = rng.uniform(-1.0, 1.0, (8000, 2))
+    P = np.c_[xy, 0.3 * np.sin(2.5 * xy[:, 0]) * np.cos(2.0 * xy[:, 1])]
+    R_err = Rotation.from_rotvec(np.radians([1.5, -1.0, 2.0])).as_matrix()
+    src = P[::2] @ R_err.T + [0.02, -0.01, 0.015]
+    ref = reference_direction(P[1::2])
+    s_st, s_xyz = prepare_cloud(src, 512, 10, 0.04, ref, rng)
+    t_st, t_xyz = prepare_cloud(P[1::2], 512, 10, 0.04, ref, rng)
+    net = DeepMerge(iterations=3).eval()
+    args = [torch.from_numpy(a)[None] for a in (s_st, t_st, s_xyz, t_xyz)]
+    errors = []
+    with torch.no_grad():
+        for R, t in net(*args, iterations=8):
+            # the truth maps src back: R_true = R_err^T, t_true = -R_err^T t_err
+            M = R[0].double().numpy() @ R_err
+            errors.append(np.degrees(Rotation.from_matrix(M).magnitude()))
+    before = np.degrees(Rotation.from_matrix(R_err).magnitude())
+    assert errors[0] < before and errors[-1] < errors[2] < errors[0]
+    assert errors[-1] < 0.25 * before

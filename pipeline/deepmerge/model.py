@@ -7,17 +7,21 @@
 - Matching: the cosine similarity of source and target embeddings (times a learned gain), minus a learned
   multiple of the squared distance between the currently aligned source point and each target point, gives
   a similarity matrix; a softmax over the target points makes soft correspondences (a weighted target point
-  per source point) and a confidence weight per source point.
+  per source point). The distance term is measured in units of the current residual (the median squared
+  distance of the aligned source points to their nearest target point), so it sharpens by itself as the
+  estimate improves and behaves alike at coarse and fine errors and at any point density.
+- Confidence: a small per-point network on the source embedding, the correspondence peak and the point's
+  nearest-neighbour distance (in residual units) weights each correspondence.
 - Head: weighted Kabsch/Umeyama by SVD with the reflection fix, composed with the running estimate; the
   head is iterated ``iterations`` times (the embeddings are computed once, the distance term follows the
-  current estimate).
+  current estimate, the running estimate is not differentiated through, so each iteration learns to improve
+  on the one before). At inference more iterations than trained may be run: the last iteration's parameters
+  are repeated.
 
 Coordinates are normalised (see ``register``); the output maps source coordinates into target coordinates.
 """
 
 from __future__ import annotations
-
-import math
 
 import torch
 from torch import nn
@@ -78,10 +82,11 @@ class DeepMerge(nn.Module):
         super().__init__()
         self.iterations = iterations
         self.extractor = PointFeatureExtractor(widths=widths)
-        # per iteration: log of the feature-similarity gain and of the squared-distance penalty
-        self.log_gain = nn.Parameter(torch.full((iterations,), math.log(10.0)))
-        self.log_dist = nn.Parameter(torch.log(torch.logspace(1, 3, iterations)))
-        self.confidence = nn.Sequential(nn.Conv1d(widths[4] + 1, 64, 1), nn.LeakyReLU(0.2), nn.Conv1d(64, 1, 1))
+        # per iteration: log of the feature-similarity gain and of the distance penalty (in residual units);
+        # the gain starts small so that the untrained head is a soft nearest-neighbour registration
+        self.log_gain = nn.Parameter(torch.zeros(iterations))
+        self.log_dist = nn.Parameter(torch.log(torch.logspace(-0.5, 0.0, iterations)))
+        self.confidence = nn.Sequential(nn.Conv1d(widths[4] + 2, 64, 1), nn.LeakyReLU(0.2), nn.Conv1d(64, 1, 1))
 
     def embed(self, structure: torch.Tensor) -> torch.Tensor:
         """L2-normalised per-point embeddings ``(B, N, 512)``."""
@@ -103,13 +108,19 @@ class DeepMerge(nn.Module):
         out = []
         for it in range(iterations or self.iterations):
             j = min(it, self.iterations - 1)
+            R, t = R.detach(), t.detach()
             cur = src_xyz @ R.transpose(1, 2) + t[:, None]
             d2 = torch.cdist(cur, tgt_xyz).square()
-            logits = self.log_gain[j].exp() * feat_sim - self.log_dist[j].exp() * d2
+            nn2 = d2.min(dim=2).values                  # (B, N) squared nearest-neighbour distance
+            scale = nn2.median(dim=1).values.clamp_min(1e-8)[:, None, None]
+            rel = d2 / scale
+            logits = self.log_gain[j].exp() * feat_sim - self.log_dist[j].exp() * rel
             P = torch.softmax(logits, dim=2)
             matched = P @ tgt_xyz
             peak = P.max(dim=2).values
-            w = torch.sigmoid(self.confidence(torch.cat([fs, peak[..., None]], dim=2).transpose(1, 2)))[:, 0]
+            near = (nn2 / scale[..., 0]).clamp_max(100.0).log1p()
+            conf_in = torch.cat([fs, peak[..., None], near[..., None]], dim=2).transpose(1, 2)
+            w = torch.sigmoid(self.confidence(conf_in))[:, 0]
             dR, dt = weighted_procrustes(cur, matched, w)
             R = dR @ R
             t = (dR @ t[..., None]).squeeze(-1) + dt
@@ -117,12 +128,17 @@ class DeepMerge(nn.Module):
         return out
 
 
-def rigid_loss(R: torch.Tensor, t: torch.Tensor, R_true: torch.Tensor, t_true: torch.Tensor) -> torch.Tensor:
-    """Mean over the batch of ``|R^T R_true - I|_F / sqrt(2) + |t - t_true|`` (about angle + distance).
+def rigid_errors(R: torch.Tensor, t: torch.Tensor, R_true: torch.Tensor, t_true: torch.Tensor) -> torch.Tensor:
+    """Per pair ``|R^T R_true - I|_F / sqrt(2) + |t - t_true|`` (about angle in rad + distance), ``(B,)``.
 
     Not squared, so small errors keep a useful gradient and the fit keeps improving at the fine end.
     """
     eye = torch.eye(3, dtype=R.dtype, device=R.device)
     rot = ((R.transpose(1, 2) @ R_true - eye).square().sum(dim=(1, 2)) / 2.0 + 1e-12).sqrt()
     trans = ((t - t_true).square().sum(dim=1) + 1e-12).sqrt()
-    return (rot + trans).mean()
+    return rot + trans
+
+
+def rigid_loss(R: torch.Tensor, t: torch.Tensor, R_true: torch.Tensor, t_true: torch.Tensor) -> torch.Tensor:
+    """Mean over the batch of :func:`rigid_errors`."""
+    return rigid_errors(R, t, R_true, t_true).mean()

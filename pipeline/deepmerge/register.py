@@ -94,7 +94,8 @@ class DeepMergeRegistrar:
 
     @classmethod
     def load(cls, path: Path | str | None = None, num_points: int | None = None) -> DeepMergeRegistrar:
-        """Weights from ``path`` (default: shipped); settings (k, voxel, iterations) come from the file."""
+        """Weights from ``path`` (default: shipped); settings (k, voxel, head iterations at inference) come
+        from the file."""
         path = Path(path) if path is not None else shipped_weights_path()
         try:
             ckpt = torch.load(path, map_location="cpu", weights_only=True)
@@ -107,7 +108,7 @@ class DeepMergeRegistrar:
         except RuntimeError as e:
             raise RegistrationError(f"{path}: weights do not fit the network: {e}") from e
         return cls(model, num_points=num_points or int(s["num_points_inference"]), k=int(s["k"]),
-                   voxel=float(s["voxel"]), iterations=int(s["iterations"]))
+                   voxel=float(s["voxel"]), iterations=int(s.get("iterations_inference", s["iterations"])))
 
     def register(self, source_mm: ArrayLike, target_mm: ArrayLike, seed: int = 0) -> np.ndarray:
         """``T_target_source`` (4x4, mm) that aligns ``source_mm`` onto ``target_mm`` (both (N, 3), mm)."""
