@@ -143,6 +143,7 @@ def summarise(results: list[dict[str, tuple]], prefix: str) -> tuple[dict[str, f
         out[f"{prefix}.{m}.success_rate"] = float(np.mean(ok[m]))
         out[f"{prefix}.{m}.seconds_median"] = float(np.median(r[:, 2]))
     out[f"{prefix}.rot_err_deg_median_before"] = float(np.median([res["before"][0] for res in results]))
+    out[f"{prefix}.trans_err_mm_median_before"] = float(np.median([res["before"][1] for res in results]))
     return out, ok
 
 

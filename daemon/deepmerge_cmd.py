@@ -31,7 +31,8 @@ def cmd_train_deepmerge(args: argparse.Namespace) -> int:
         train_log.addHandler(handler)
         train_log.setLevel(logging.INFO)
     settings = TrainSettings(seed=args.seed, steps=args.steps, max_minutes=args.max_minutes,
-                             train_pairs=args.train_pairs, val_pairs=args.val_pairs, batch_size=args.batch_size)
+                             train_pairs=args.train_pairs, val_pairs=args.val_pairs, batch_size=args.batch_size,
+                             checkpoint_every=args.checkpoint_every)
     with Progress(TextColumn("{task.description:<32}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                   TimeElapsedColumn(), console=console) as bar:
         task = bar.add_task("making data, then training", total=settings.steps)
@@ -70,9 +71,10 @@ def register(sub) -> None:
     """Add ``train-deepmerge`` and ``register`` to an argparse sub-parser collection."""
     p = sub.add_parser("train-deepmerge", help="train DeepMerge weights on generated data (CPU)")
     p.add_argument("--out", type=Path, default=Path("deepmerge.pt"), help="weights file to write")
-    p.add_argument("--steps", type=int, default=3000)
+    p.add_argument("--steps", type=int, default=6000, help="at most this many steps (the time budget may end it first)")
     p.add_argument("--max-minutes", type=float, default=110.0, help="stop after this long (data included)")
-    p.add_argument("--train-pairs", type=int, default=600)
+    p.add_argument("--train-pairs", type=int, default=800)
+    p.add_argument("--checkpoint-every", type=int, default=100, help="steps between checkpoints and validations")
     p.add_argument("--val-pairs", type=int, default=60)
     p.add_argument("--batch-size", type=int, default=8)
     p.add_argument("--seed", type=int, default=0)

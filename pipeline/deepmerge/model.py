@@ -7,7 +7,9 @@
 - Matching: the cosine similarity of source and target embeddings (times a learned gain), minus a learned
   multiple of the squared distance between the currently aligned source point and each target point, gives
   a similarity matrix; a softmax over the target points makes soft correspondences (a weighted target point
-  per source point). The distance term is measured in units of the current residual (the median squared
+  per source point), shot along the matched normal with a learned share of its tangential part kept (two
+  independent samplings of one surface carry no tangential information, and keeping all of it lets the
+  estimate drift). The distance term is measured in units of the current residual (the median squared
   distance of the aligned source points to their nearest target point), so it sharpens by itself as the
   estimate improves and behaves alike at coarse and fine errors and at any point density.
 - Confidence: a small per-point network on the source embedding, the correspondence peak and the point's
@@ -85,7 +87,9 @@ class DeepMerge(nn.Module):
         # per iteration: log of the feature-similarity gain and of the distance penalty (in residual units);
         # the gain starts small so that the untrained head is a soft nearest-neighbour registration
         self.log_gain = nn.Parameter(torch.zeros(iterations))
-        self.log_dist = nn.Parameter(torch.log(torch.logspace(-0.5, 0.0, iterations)))
+        self.log_dist = nn.Parameter(torch.log(torch.logspace(0.0, 0.3, iterations)))
+        # per iteration: share (logit) of the tangential part of a soft correspondence that is kept
+        self.tangential_logit = nn.Parameter(torch.full((iterations,), -2.0))
         self.confidence = nn.Sequential(nn.Conv1d(widths[4] + 2, 64, 1), nn.LeakyReLU(0.2), nn.Conv1d(64, 1, 1))
 
     def embed(self, structure: torch.Tensor) -> torch.Tensor:
@@ -101,6 +105,9 @@ class DeepMerge(nn.Module):
         iterations: int | None = None,
     ) -> list[tuple[torch.Tensor, torch.Tensor]]:
         fs, ft = self.embed(src_structure), self.embed(tgt_structure)
+        # target points with their own normals (a point's first neighbour is itself), matched in one product
+        tgt_xyzn = torch.cat([tgt_xyz, tgt_structure[:, :, 0, 3:6]], dim=2)
+        tgt_sq = tgt_xyz.square().sum(dim=2)[:, None, :]
         feat_sim = fs @ ft.transpose(1, 2)              # (B, N, M) cosine similarity
         B = src_xyz.shape[0]
         R = torch.eye(3, dtype=src_xyz.dtype, device=src_xyz.device).expand(B, 3, 3)
@@ -110,13 +117,21 @@ class DeepMerge(nn.Module):
             j = min(it, self.iterations - 1)
             R, t = R.detach(), t.detach()
             cur = src_xyz @ R.transpose(1, 2) + t[:, None]
-            d2 = torch.cdist(cur, tgt_xyz).square()
+            d2 = torch.baddbmm(tgt_sq + cur.square().sum(dim=2, keepdim=True), cur, tgt_xyz.transpose(1, 2),
+                               alpha=-2.0).clamp_min_(0.0)
             nn2 = d2.min(dim=2).values                  # (B, N) squared nearest-neighbour distance
             scale = nn2.median(dim=1).values.clamp_min(1e-8)[:, None, None]
             rel = d2 / scale
             logits = self.log_gain[j].exp() * feat_sim - self.log_dist[j].exp() * rel
             P = torch.softmax(logits, dim=2)
-            matched = P @ tgt_xyz
+            mx = P @ tgt_xyzn
+            matched = mx[..., :3]
+            # normal shooting: the offset to the soft match along the matched normal, plus a learned share of
+            # its tangential part (two independent samplings of a surface give no tangential information)
+            n = nn.functional.normalize(mx[..., 3:], dim=2)
+            off = matched - cur
+            along = (off * n).sum(dim=2, keepdim=True) * n
+            matched = cur + along + torch.sigmoid(self.tangential_logit[j]) * (off - along)
             peak = P.max(dim=2).values
             near = (nn2 / scale[..., 0]).clamp_max(100.0).log1p()
             conf_in = torch.cat([fs, peak[..., None], near[..., None]], dim=2).transpose(1, 2)

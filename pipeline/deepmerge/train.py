@@ -45,7 +45,7 @@ class TrainSettings:
 
     seed: int = 0
     # data: pairs in the pools, distinct generated shapes per pool
-    train_pairs: int = 600
+    train_pairs: int = 800
     val_pairs: int = 60
     shapes_per_pool: int = 40
     # network input: points per cloud (training, inference), neighbours k, voxel edge and iterations
@@ -54,11 +54,11 @@ class TrainSettings:
     k: int = 10
     voxel: float = 0.04          # of the target's RMS radius
     iterations: int = 4
-    iterations_inference: int = 4  # head iterations at inference (the last one's parameters repeated)
+    iterations_inference: int = 8  # head iterations at inference (the last one's parameters repeated)
     widths: tuple[int, ...] = WIDTHS
     # optimisation: batch, Adam steps (cosine decay), learning rate, wall-clock budget including the data
     batch_size: int = 8
-    steps: int = 3000
+    steps: int = 6000
     lr: float = 1e-3
     max_minutes: float = 110.0
     checkpoint_every: int = 100    # steps between checkpoints (and validations) when writing weights
