@@ -49,11 +49,18 @@ def keep_if_better(
     source_mm: np.ndarray, target: o3d.geometry.PointCloud, T: np.ndarray, distance_mm: float
 ) -> np.ndarray:
     """``T`` when it fits the source onto the target (with normals) better than the identity (the initial
-    stitch) does, by fitness at ``distance_mm`` and then point-to-plane RMS; else the identity."""
-    fit = evaluate_point_to_plane(source_mm, target, T, distance_mm)
-    start = evaluate_point_to_plane(source_mm, target, np.eye(4), distance_mm)
-    if (fit.fitness, -fit.rmse_mm) < (start.fitness, -start.rmse_mm):
-        log.debug("DeepMerge fit (%.3f, %.4f mm) worse than the stitch; kept the stitch", fit.fitness, fit.rmse_mm)
+    stitch) does, else the identity.
+
+    The score is the truncated point-to-plane cost per source point: squared distance for the points with a
+    correspondence within ``distance_mm``, ``distance_mm`` squared for the others, so a slightly smaller
+    overlap does not outweigh a much closer fit.
+    """
+    def cost(M: np.ndarray) -> float:
+        fit = evaluate_point_to_plane(source_mm, target, M, distance_mm)
+        return fit.fitness * fit.rmse_mm**2 + (1.0 - fit.fitness) * distance_mm**2
+
+    if cost(T) > cost(np.eye(4)):
+        log.debug("DeepMerge fit worse than the stitch; kept the stitch")
         return np.eye(4)
     return T
 
