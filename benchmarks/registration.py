@@ -257,6 +257,7 @@ def main() -> None:
     ap.add_argument("--data", default=None)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--iterations", type=int, default=None, help="head iterations (default: the weights' own)")
+    ap.add_argument("--points", type=int, default=None, help="network points per cloud (default: the weights' own)")
     ap.add_argument("--sets", default=",".join(SETS), help=f"comma-separated subset of {', '.join(SETS)}")
     args = ap.parse_args()
     sets = set(args.sets.split(","))
@@ -265,7 +266,7 @@ def main() -> None:
     torch.set_num_threads(1)
     rng = np.random.default_rng(args.seed)
     cfg = DeepMergeConfig(icp_max_distance_mm=1.5)
-    registrar = DeepMergeRegistrar.load(args.weights)
+    registrar = DeepMergeRegistrar.load(args.weights, num_points=args.points)
     if args.iterations:
         registrar.iterations = args.iterations
     out: dict[str, float] = {"threads": 1, "iterations": registrar.iterations}
