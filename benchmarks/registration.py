@@ -41,7 +41,7 @@ from tandemscan.config.models import DeepMergeConfig
 from tandemscan.pipeline.deepmerge.correct import keep_if_better, register_overlap
 from tandemscan.pipeline.deepmerge.overlap import extract_overlap
 from tandemscan.pipeline.deepmerge.register import DeepMergeRegistrar
-from tandemscan.pipeline.frames import from_quaternion, invert, make_transform, rotation_angle, transform_points
+from tandemscan.pipeline.frames import from_quaternion, invert, make_transform, transform_points
 from tandemscan.pipeline.refine import icp_point_to_plane, target_with_normals
 
 METHODS = ("icp", "deepmerge", "deepmerge_guarded", "deepmerge+icp")
@@ -78,8 +78,12 @@ def load_scans(folder: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
 
 
 def error_of(M: np.ndarray, M_true: np.ndarray, centre: np.ndarray) -> tuple[float, float]:
-    """(rotation deg, translation mm at ``centre``) of an estimated vs true source->target transform."""
-    rot = np.degrees(rotation_angle(M @ invert(M_true)))
+    """(rotation deg, translation mm at ``centre``) of an estimated vs true source->target transform.
+
+    The angle comes from the nearest rotation matrix (scipy), not from the trace alone, which rounds
+    errors below about 0.01 deg of a not exactly orthonormal matrix to zero.
+    """
+    rot = np.degrees(Rotation.from_matrix((M @ invert(M_true))[:3, :3]).magnitude())
     return float(rot), float(np.linalg.norm(transform_points(M, centre[None]) - transform_points(M_true, centre[None])))
 
 
@@ -247,7 +251,9 @@ def timing(scans, registrar, rng) -> dict[str, float]:
     return {"inference_2048.seconds_median": float(np.median(times)),
             "inference_2048.thread_cpu_seconds_median": float(np.median(cpu)),
             "inference_2048.network_points": int(min(registrar.num_points, 2048)),
-            "inference_2048.iterations": registrar.iterations}
+            "inference_2048.iterations": registrar.iterations,
+            "inference_2048.coarse_iterations": registrar.coarse_iterations,
+            "inference_2048.coarse_points": registrar.coarse_points}
 
 
 def main() -> None:
@@ -257,6 +263,8 @@ def main() -> None:
     ap.add_argument("--data", default=None)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--iterations", type=int, default=None, help="head iterations (default: the weights' own)")
+    ap.add_argument("--coarse-iterations", type=int, default=None, help="head iterations on a point subset first")
+    ap.add_argument("--coarse-points", type=int, default=None, help="points of that subset")
     ap.add_argument("--points", type=int, default=None, help="network points per cloud (default: the weights' own)")
     ap.add_argument("--sets", default=",".join(SETS), help=f"comma-separated subset of {', '.join(SETS)}")
     args = ap.parse_args()
@@ -269,6 +277,10 @@ def main() -> None:
     registrar = DeepMergeRegistrar.load(args.weights, num_points=args.points)
     if args.iterations:
         registrar.iterations = args.iterations
+    if args.coarse_iterations is not None:
+        registrar.coarse_iterations = args.coarse_iterations
+    if args.coarse_points:
+        registrar.coarse_points = args.coarse_points
     out: dict[str, float] = {"threads": 1, "iterations": registrar.iterations}
     if sets & {"real", "real_arbitrary", "real_conf"}:
         scans = load_scans(find_data(args.data))

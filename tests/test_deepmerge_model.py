@@ -100,3 +100,24 @@ def test_the_untrained_head_is_a_soft_nearest_neighbour_registration_that_iterat
     before = np.degrees(Rotation.from_matrix(R_err).magnitude())
     assert errors[0] < before and np.all(np.diff(errors) < 0)
     assert errors[-1] < 0.5 * before
+
+
+def test_inference_schedule_with_cheap_coarse_iterations_beats_the_fine_iterations_alone():
+    from tandemscan.pipeline.deepmerge.features import reference_direction
+    from tandemscan.pipeline.deepmerge.register import prepare_cloud
+
+    torch.manual_seed(5)
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(-1.0, 1.0, (8000, 2))
+    P = np.c_[xy, 0.3 * np.sin(2.5 * xy[:, 0]) * np.cos(2.0 * xy[:, 1])]
+    R_err = Rotation.from_rotvec(np.radians([1.0, -1.5, 1.5])).as_matrix()
+    ref = reference_direction(P[1::2])
+    s_st, s_xyz = prepare_cloud(P[::2] @ R_err.T, 1024, 10, 0.04, ref, rng)
+    t_st, t_xyz = prepare_cloud(P[1::2], 1024, 10, 0.04, ref, rng)
+    net = DeepMerge(iterations=3).eval()
+    args = [torch.from_numpy(a)[None] for a in (s_st, t_st, s_xyz, t_xyz)]
+    with torch.no_grad():
+        R_fine, _ = net.infer(*args, iterations=2)
+        R_sched, _ = net.infer(*args, iterations=2, coarse_iterations=24, coarse_points=256)
+    err = [np.degrees(Rotation.from_matrix(R[0].double().numpy() @ R_err).magnitude()) for R in (R_fine, R_sched)]
+    assert err[1] < 0.5 * err[0]

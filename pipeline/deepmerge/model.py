@@ -104,16 +104,62 @@ class DeepMerge(nn.Module):
         tgt_xyz: torch.Tensor,
         iterations: int | None = None,
     ) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """Embed both clouds and run ``iterations`` head iterations (default the trained number)."""
         fs, ft = self.embed(src_structure), self.embed(tgt_structure)
-        # target points with their own normals (a point's first neighbour is itself), matched in one product
-        tgt_xyzn = torch.cat([tgt_xyz, tgt_structure[:, :, 0, 3:6]], dim=2)
+        return self.iterate(fs, ft, src_xyz, tgt_xyz, tgt_structure[:, :, 0, 3:6], iterations or self.iterations)
+
+    def infer(
+        self,
+        src_structure: torch.Tensor,
+        tgt_structure: torch.Tensor,
+        src_xyz: torch.Tensor,
+        tgt_xyz: torch.Tensor,
+        iterations: int,
+        coarse_iterations: int = 0,
+        coarse_points: int = 512,
+        seed: int = 0,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Inference schedule: embed once, ``coarse_iterations`` head iterations on a random subset of
+        ``coarse_points`` points of each cloud (the head costs the product of the point counts), then
+        ``iterations`` at all points. Returns the final ``(R, t)``."""
+        fs, ft, nt = self.embed(src_structure), self.embed(tgt_structure), tgt_structure[:, :, 0, 3:6]
+        start, first = None, 0
+        if coarse_iterations:
+            g = torch.Generator().manual_seed(seed)
+            i = torch.randperm(src_xyz.shape[1], generator=g)[:coarse_points].sort().values
+            j = torch.randperm(tgt_xyz.shape[1], generator=g)[:coarse_points].sort().values
+            start = self.iterate(fs[:, i], ft[:, j], src_xyz[:, i], tgt_xyz[:, j], nt[:, j], coarse_iterations)[-1]
+            first = coarse_iterations
+        return self.iterate(fs, ft, src_xyz, tgt_xyz, nt, iterations, start, first)[-1]
+
+    def iterate(
+        self,
+        fs: torch.Tensor,
+        ft: torch.Tensor,
+        src_xyz: torch.Tensor,
+        tgt_xyz: torch.Tensor,
+        tgt_normals: torch.Tensor,
+        iterations: int,
+        start: tuple[torch.Tensor, torch.Tensor] | None = None,
+        first: int = 0,
+    ) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """Head iterations on embedded clouds: ``(R, t)`` after each.
+
+        ``tgt_normals``: each target point's own normal (a point's first neighbour in its structure is
+        itself). ``start``: the running estimate to begin from (default identity); ``first``: the index of
+        the first iteration, whose parameters it uses (iterations past the trained ones repeat the last).
+        """
+        tgt_xyzn = torch.cat([tgt_xyz, tgt_normals], dim=2)  # matched points and normals in one product
         tgt_sq = tgt_xyz.square().sum(dim=2)[:, None, :]
         feat_sim = fs @ ft.transpose(1, 2)              # (B, N, M) cosine similarity
         B = src_xyz.shape[0]
-        R = torch.eye(3, dtype=src_xyz.dtype, device=src_xyz.device).expand(B, 3, 3)
-        t = torch.zeros(B, 3, dtype=src_xyz.dtype, device=src_xyz.device)
+        if start is None:
+            R = torch.eye(3, dtype=src_xyz.dtype, device=src_xyz.device).expand(B, 3, 3)
+            t = torch.zeros(B, 3, dtype=src_xyz.dtype, device=src_xyz.device)
+        else:
+            R, t = start
         out = []
-        for it in range(iterations or self.iterations):
+        for it in range(first, first + iterations):
             j = min(it, self.iterations - 1)
             R, t = R.detach(), t.detach()
             cur = src_xyz @ R.transpose(1, 2) + t[:, None]
@@ -121,8 +167,7 @@ class DeepMerge(nn.Module):
                                alpha=-2.0).clamp_min_(0.0)
             nn2 = d2.min(dim=2).values                  # (B, N) squared nearest-neighbour distance
             scale = nn2.median(dim=1).values.clamp_min(1e-8)[:, None, None]
-            rel = d2 / scale
-            logits = self.log_gain[j].exp() * feat_sim - self.log_dist[j].exp() * rel
+            logits = self.log_gain[j].exp() * feat_sim - self.log_dist[j].exp() * (d2 / scale)
             P = torch.softmax(logits, dim=2)
             mx = P @ tgt_xyzn
             matched = mx[..., :3]

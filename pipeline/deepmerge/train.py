@@ -29,7 +29,14 @@ from scipy.spatial.transform import Rotation
 from tandemscan.pipeline.deepmerge.features import reference_direction
 from tandemscan.pipeline.deepmerge.model import WIDTHS, DeepMerge, rigid_errors
 from tandemscan.pipeline.deepmerge.overlap import extract_overlap
-from tandemscan.pipeline.deepmerge.register import Normalisation, RegistrationError, prepare_cloud
+from tandemscan.pipeline.deepmerge.register import (
+    COARSE_ITERATIONS,
+    COARSE_POINTS,
+    FINE_ITERATIONS,
+    Normalisation,
+    RegistrationError,
+    prepare_cloud,
+)
 from tandemscan.pipeline.deepmerge.shapes import random_shape, simulated_part_mesh
 
 log = logging.getLogger(__name__)
@@ -54,7 +61,11 @@ class TrainSettings:
     k: int = 10
     voxel: float = 0.04          # of the target's RMS radius
     iterations: int = 4
-    iterations_inference: int = 8  # head iterations at inference (the last one's parameters repeated)
+    # inference (see ``register``): head iterations on a subset of points, then at all points (the last
+    # trained iteration's parameters repeated)
+    coarse_iterations: int = COARSE_ITERATIONS
+    coarse_points: int = COARSE_POINTS
+    iterations_inference: int = FINE_ITERATIONS
     widths: tuple[int, ...] = WIDTHS
     # optimisation: batch, Adam steps (cosine decay), learning rate, wall-clock budget including the data
     batch_size: int = 8
@@ -234,10 +245,11 @@ def _batch(pool: PairPool, idx: np.ndarray, rng: np.random.Generator, s: TrainSe
 
 
 def evaluate(model: DeepMerge, pool: PairPool, s: TrainSettings, seed: int,
-             iterations: int | None = None) -> dict[str, float]:
+             inference: bool = False) -> dict[str, float]:
     """Median rotation (deg) and translation (percent of the RMS radius) errors, before and after.
 
-    ``iterations``: head iterations (default the trained number). The errors drawn depend only on ``seed``.
+    ``inference``: run the inference schedule of ``s`` (coarse iterations on a subset, then
+    ``s.iterations_inference``) instead of the trained iterations. The errors drawn depend only on ``seed``.
     """
     rng = np.random.default_rng(seed)
     model.eval()
@@ -246,7 +258,10 @@ def evaluate(model: DeepMerge, pool: PairPool, s: TrainSettings, seed: int,
         for start in range(0, len(pool), s.batch_size):
             idx = np.arange(start, min(start + s.batch_size, len(pool)))
             st, tt, xs, xt, R_true, t_true = _batch(pool, idx, rng, s)
-            R, t = model(st, tt, xs, xt, iterations=iterations)[-1]
+            if inference:
+                R, t = model.infer(st, tt, xs, xt, s.iterations_inference, s.coarse_iterations, s.coarse_points)
+            else:
+                R, t = model(st, tt, xs, xt)[-1]
             for i in range(len(idx)):
                 rot_in = Rotation.from_matrix(R_true[i].double().numpy()).magnitude()
                 res["rot_in"].append(math.degrees(rot_in))
@@ -259,7 +274,7 @@ def evaluate(model: DeepMerge, pool: PairPool, s: TrainSettings, seed: int,
     rin, rout = np.array(res["rot_in"]), np.array(res["rot_out"])
     tin, tout = np.array(res["tr_in"]), np.array(res["tr_out"])
     tracker = rin < s.tracker_deg * 2
-    out = {"pairs": len(rin), "tracker_pairs": int(tracker.sum()), "iterations": iterations or model.iterations}
+    out = {"pairs": len(rin), "tracker_pairs": int(tracker.sum())}
     for name, mask in (("tracker", tracker), ("arbitrary", ~tracker)):
         if mask.any():
             out[f"{name}.rot_err_deg_median_before"] = float(np.median(rin[mask]))
@@ -268,6 +283,12 @@ def evaluate(model: DeepMerge, pool: PairPool, s: TrainSettings, seed: int,
             out[f"{name}.trans_err_pct_median_after"] = float(np.median(tout[mask]))
             out[f"{name}.success_rate"] = float(np.mean((rout[mask] < 1.0) & (tout[mask] < 1.0)))
     return out
+
+
+def validate(model: DeepMerge, pool: PairPool, s: TrainSettings) -> dict[str, dict[str, float]]:
+    """Validation figures with the trained iterations and with the inference schedule (same errors)."""
+    return {"trained_iterations": evaluate(model, pool, s, s.seed + 1),
+            "inference": evaluate(model, pool, s, s.seed + 1, inference=True)}
 
 
 def pair_loss(model: DeepMerge, batch, s: TrainSettings) -> torch.Tensor:
@@ -303,9 +324,7 @@ def train(s: TrainSettings, out_path: Path | None = None, progress=None) -> tupl
     step = 0
 
     def summary(final: bool) -> dict:
-        val = {"trained_iterations": evaluate(model, val_pool, s, seed=s.seed + 1)}
-        if s.iterations_inference != s.iterations:
-            val["inference_iterations"] = evaluate(model, val_pool, s, s.seed + 1, s.iterations_inference)
+        val = validate(model, val_pool, s)
         out = {"steps": step, "final": final, "train_seconds": time.monotonic() - t0, "data_seconds": data_s,
                "loss_first_25": float(np.mean(losses[:25])), "loss_last_25": float(np.mean(losses[-25:])),
                "validation": val}
