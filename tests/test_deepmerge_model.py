@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 from scipy.spatial.transform import Rotation
-from tandemscan.pipeline.deepmerge.model import DeepMerge, PointFeatureExtractor, rigid_loss, weighted_procrustes
+from tandemscan.pipeline.deepmerge.model import DeepMerge, PointFeatureExtractor, rigid_errors, weighted_procrustes
 
 
 def _rt(seed: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -68,7 +68,7 @@ def test_network_returns_one_rigid_estimate_per_iteration_and_gradients_reach_ev
     for R, t in outs:
         assert R.shape == (2, 3, 3) and t.shape == (2, 3)
         torch.testing.assert_close(R @ R.transpose(1, 2), torch.eye(3).expand(2, 3, 3), atol=1e-5, rtol=0)
-    loss = sum(rigid_loss(R, t, torch.eye(3).expand(2, 3, 3), torch.full((2, 3), 0.01)) for R, t in outs)
+    loss = sum(rigid_errors(R, t, torch.eye(3).expand(2, 3, 3), torch.full((2, 3), 0.01)).mean() for R, t in outs)
     loss.backward()
     for name, p in net.named_parameters():
         assert p.grad is not None and torch.isfinite(p.grad).all(), name

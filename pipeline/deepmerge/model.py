@@ -197,8 +197,3 @@ def rigid_errors(R: torch.Tensor, t: torch.Tensor, R_true: torch.Tensor, t_true:
     rot = ((R.transpose(1, 2) @ R_true - eye).square().sum(dim=(1, 2)) / 2.0 + 1e-12).sqrt()
     trans = ((t - t_true).square().sum(dim=1) + 1e-12).sqrt()
     return rot + trans
-
-
-def rigid_loss(R: torch.Tensor, t: torch.Tensor, R_true: torch.Tensor, t_true: torch.Tensor) -> torch.Tensor:
-    """Mean over the batch of :func:`rigid_errors`."""
-    return rigid_errors(R, t, R_true, t_true).mean()
