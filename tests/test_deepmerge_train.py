@@ -15,7 +15,8 @@ from tandemscan.pipeline.frames import from_rotvec, invert, pose_error, transfor
 
 TINY = TrainSettings(seed=3, train_pairs=6, val_pairs=2, shapes_per_pool=3, num_points=64, k=8,
                      widths=(8, 8, 16, 16, 32), batch_size=6, steps=50, lr=3e-3, use_part=False,
-                     arbitrary_fraction=0.0, iterations=2, iterations_inference=3, iteration_weights=(0.5, 1.0))
+                     arbitrary_fraction=0.0, iterations=2, iterations_inference=3, iteration_weights=(0.5, 1.0),
+                     val_points=64)
 
 
 def test_a_tiny_model_trains_and_its_loss_falls(tmp_path):

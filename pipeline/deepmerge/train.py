@@ -20,10 +20,11 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
+import open3d as o3d
 import torch
 from scipy.spatial.transform import Rotation
 from tandemscan.pipeline.deepmerge.features import reference_direction
@@ -57,6 +58,7 @@ class TrainSettings:
     shapes_per_pool: int = 40
     # network input: points per cloud (training, inference), neighbours k, voxel edge and iterations
     num_points: int = 256
+    val_points: int = 1024       # validation pairs are cut at this many points, nearer the inference density
     num_points_inference: int = 2048
     k: int = 10
     voxel: float = 0.04          # of the target's RMS radius
@@ -186,6 +188,7 @@ def make_pool(n_pairs: int, seed: int, s: TrainSettings) -> PairPool:
     """``n_pairs`` pairs from ``s.shapes_per_pool`` shapes drawn from ``seed``, ``s.part_fraction`` of them
     from the simulated part (when ``s.use_part`` and the part generator is available)."""
     rng = np.random.default_rng(seed)
+    o3d.utility.random.seed(seed % 2**31)           # Open3D's surface sampling has its own generator
     meshes = [MeshSampler(random_shape(rng)) for _ in range(s.shapes_per_pool)]
     part_mesh = simulated_part_mesh() if s.use_part else None
     part = MeshSampler(part_mesh, PART_SAMPLES) if part_mesh is not None else None
@@ -314,7 +317,7 @@ def train(s: TrainSettings, out_path: Path | None = None, progress=None) -> tupl
     rng = np.random.default_rng(s.seed)
     t0 = time.monotonic()
     train_pool = make_pool(s.train_pairs, s.seed, s)
-    val_pool = make_pool(s.val_pairs, s.seed + VAL_SEED_OFFSET, s)
+    val_pool = make_pool(s.val_pairs, s.seed + VAL_SEED_OFFSET, replace(s, num_points=s.val_points))
     data_s = time.monotonic() - t0
     log.info("made %d training and %d validation pairs in %.0f s", len(train_pool), len(val_pool), data_s)
     model = DeepMerge(iterations=s.iterations, widths=s.widths)
