@@ -141,4 +141,6 @@ class DeepMergeRegistrar:
         with torch.no_grad():
             R, t = self.model.infer(*(torch.from_numpy(a)[None] for a in (s_struct, t_struct, s_xyz, t_xyz)),
                                     self.iterations, self.coarse_iterations, self.coarse_points, seed)
-        return norm.to_mm(R[0].double().numpy(), t[0].double().numpy())
+        # the network runs in float32: project onto the nearest rotation in float64 before it becomes a pose
+        U, _, Vt = np.linalg.svd(R[0].double().numpy())
+        return norm.to_mm(U @ Vt, t[0].double().numpy())
