@@ -310,7 +310,7 @@ class DeepMergeConfig(_Strict):
 
     enabled: bool = True
     method: Literal["deepmerge", "icp", "deepmerge+icp"] = Field(
-        "icp", description="icp until retrained DeepMerge weights beat the stitch (docs/deepmerge.md)"
+        "icp", description="icp: DeepMerge is coarser than the tracker stitch of the cell (docs/deepmerge.md)"
     )
     weights: Path | None = Field(None, description="trained weights (.pt); empty = the ones shipped in the package")
     overlap_delta_mm: float | None = Field(

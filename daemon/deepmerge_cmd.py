@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 from pathlib import Path
 
 from rich.console import Console
@@ -23,8 +24,15 @@ def cmd_train_deepmerge(args: argparse.Namespace) -> int:
 
     if args.threads:
         torch.set_num_threads(args.threads)
+    if args.log:
+        handler = logging.FileHandler(args.log, encoding="utf-8")
+        handler.setFormatter(logging.Formatter("%(asctime)s %(message)s"))
+        train_log = logging.getLogger("tandemscan.pipeline.deepmerge.train")
+        train_log.addHandler(handler)
+        train_log.setLevel(logging.INFO)
     settings = TrainSettings(seed=args.seed, steps=args.steps, max_minutes=args.max_minutes,
-                             train_pairs=args.train_pairs, val_pairs=args.val_pairs, batch_size=args.batch_size)
+                             train_pairs=args.train_pairs, val_pairs=args.val_pairs, batch_size=args.batch_size,
+                             checkpoint_every=args.checkpoint_every)
     with Progress(TextColumn("{task.description:<32}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                   TimeElapsedColumn(), console=console) as bar:
         task = bar.add_task("making data, then training", total=settings.steps)
@@ -63,13 +71,15 @@ def register(sub) -> None:
     """Add ``train-deepmerge`` and ``register`` to an argparse sub-parser collection."""
     p = sub.add_parser("train-deepmerge", help="train DeepMerge weights on generated data (CPU)")
     p.add_argument("--out", type=Path, default=Path("deepmerge.pt"), help="weights file to write")
-    p.add_argument("--steps", type=int, default=3000)
+    p.add_argument("--steps", type=int, default=6000, help="at most this many steps (the time budget may end it first)")
     p.add_argument("--max-minutes", type=float, default=110.0, help="stop after this long (data included)")
-    p.add_argument("--train-pairs", type=int, default=600)
+    p.add_argument("--train-pairs", type=int, default=800)
+    p.add_argument("--checkpoint-every", type=int, default=100, help="steps between checkpoints and validations")
     p.add_argument("--val-pairs", type=int, default=60)
     p.add_argument("--batch-size", type=int, default=8)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    p.add_argument("--log", type=Path, help="append the loss and validation log to this file")
     p.set_defaults(func=cmd_train_deepmerge)
 
     p = sub.add_parser("register", help="register two clouds (PLY/PCD/XYZ, mm)")

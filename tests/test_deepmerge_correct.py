@@ -64,13 +64,33 @@ def test_correct_pair_needs_overlap_and_a_delta():
         correct_pair(b, a, DeepMergeConfig(method="icp"), None)
 
 
+def bumpy(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """A surface curved enough to fix all six degrees of freedom of a 160 mm patch."""
+    return 10 * np.sin(x / 17.0) * np.cos(y / 13.0) + 6 * np.cos(x / 23.0 + y / 19.0)
+
+
+def test_the_guard_keeps_a_closer_fit_and_rejects_a_worse_one():
+    from tandemscan.pipeline.deepmerge.correct import keep_if_better
+    from tandemscan.pipeline.refine import target_with_normals
+
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(-80, 80, (6000, 2))
+    P = np.c_[xy, bumpy(xy[:, 0], xy[:, 1])]
+    T_true = from_rotvec([0.8, -0.5, 0.3], np.radians([0.3, -0.2, 0.2]))
+    source, target = transform_points(invert(T_true), P[::2]), target_with_normals(P[1::2])
+    # the true transform moves boundary points out of the overlap but fits much closer: kept
+    np.testing.assert_array_equal(keep_if_better(source, target, T_true, 3.0), T_true)
+    worse = from_rotvec([-1.0, 0.5, 0.0], np.radians([0.0, 0.5, -0.4])) @ invert(T_true)
+    np.testing.assert_array_equal(keep_if_better(source, target, worse, 3.0), np.eye(4))
+
+
 def test_deepmerge_then_icp_on_a_pair_recovers_the_correction():
     from tandemscan.pipeline.deepmerge.correct import register_overlap
     from tandemscan.pipeline.deepmerge.register import DeepMergeRegistrar
 
     rng = np.random.default_rng(4)
     xy = rng.uniform(-80, 80, (6000, 2))
-    P = np.c_[xy, surface(xy[:, 0], xy[:, 1])]
+    P = np.c_[xy, bumpy(xy[:, 0], xy[:, 1])]
     T_true = from_rotvec([0.5, -0.3, 0.2], np.radians([0.2, 0.1, -0.3]))
     source = transform_points(invert(T_true), P[::2])
     cfg = DeepMergeConfig(method="deepmerge+icp")

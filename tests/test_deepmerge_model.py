@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 from scipy.spatial.transform import Rotation
-from tandemscan.pipeline.deepmerge.model import DeepMerge, PointFeatureExtractor, rigid_loss, weighted_procrustes
+from tandemscan.pipeline.deepmerge.model import DeepMerge, PointFeatureExtractor, rigid_errors, weighted_procrustes
 
 
 def _rt(seed: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -68,8 +68,56 @@ def test_network_returns_one_rigid_estimate_per_iteration_and_gradients_reach_ev
     for R, t in outs:
         assert R.shape == (2, 3, 3) and t.shape == (2, 3)
         torch.testing.assert_close(R @ R.transpose(1, 2), torch.eye(3).expand(2, 3, 3), atol=1e-5, rtol=0)
-    loss = sum(rigid_loss(R, t, torch.eye(3).expand(2, 3, 3), torch.full((2, 3), 0.01)) for R, t in outs)
+    loss = sum(rigid_errors(R, t, torch.eye(3).expand(2, 3, 3), torch.full((2, 3), 0.01)).mean() for R, t in outs)
     loss.backward()
     for name, p in net.named_parameters():
         assert p.grad is not None and torch.isfinite(p.grad).all(), name
         assert p.grad.abs().sum() > 0, f"no gradient reaches {name}"
+
+
+def test_the_untrained_head_is_a_soft_nearest_neighbour_registration_that_iterations_sharpen():
+    """With the distance term in residual units, more head iterations keep improving a small error."""
+    from tandemscan.pipeline.deepmerge.features import reference_direction
+    from tandemscan.pipeline.deepmerge.register import prepare_cloud
+
+    torch.manual_seed(4)
+    rng = np.random.default_rng(4)
+    xy = rng.uniform(-1.0, 1.0, (8000, 2))
+    P = np.c_[xy, 0.3 * np.sin(2.5 * xy[:, 0]) * np.cos(2.0 * xy[:, 1])]
+    R_err = Rotation.from_rotvec(np.radians([1.5, -1.0, 2.0])).as_matrix()
+    src = P[::2] @ R_err.T + [0.02, -0.01, 0.015]
+    ref = reference_direction(P[1::2])
+    s_st, s_xyz = prepare_cloud(src, 512, 10, 0.04, ref, rng)
+    t_st, t_xyz = prepare_cloud(P[1::2], 512, 10, 0.04, ref, rng)
+    net = DeepMerge(iterations=3).eval()
+    args = [torch.from_numpy(a)[None] for a in (s_st, t_st, s_xyz, t_xyz)]
+    errors = []
+    with torch.no_grad():
+        for R, _t in net(*args, iterations=8):
+            # the truth maps src back: R_true = R_err^T, t_true = -R_err^T t_err
+            M = R[0].double().numpy() @ R_err
+            errors.append(np.degrees(Rotation.from_matrix(M).magnitude()))
+    before = np.degrees(Rotation.from_matrix(R_err).magnitude())
+    assert errors[0] < before and np.all(np.diff(errors) < 0)
+    assert errors[-1] < 0.5 * before
+
+
+def test_inference_schedule_with_cheap_coarse_iterations_beats_the_fine_iterations_alone():
+    from tandemscan.pipeline.deepmerge.features import reference_direction
+    from tandemscan.pipeline.deepmerge.register import prepare_cloud
+
+    torch.manual_seed(5)
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(-1.0, 1.0, (8000, 2))
+    P = np.c_[xy, 0.3 * np.sin(2.5 * xy[:, 0]) * np.cos(2.0 * xy[:, 1])]
+    R_err = Rotation.from_rotvec(np.radians([1.0, -1.5, 1.5])).as_matrix()
+    ref = reference_direction(P[1::2])
+    s_st, s_xyz = prepare_cloud(P[::2] @ R_err.T, 1024, 10, 0.04, ref, rng)
+    t_st, t_xyz = prepare_cloud(P[1::2], 1024, 10, 0.04, ref, rng)
+    net = DeepMerge(iterations=3).eval()
+    args = [torch.from_numpy(a)[None] for a in (s_st, t_st, s_xyz, t_xyz)]
+    with torch.no_grad():
+        R_fine, _ = net.infer(*args, iterations=2)
+        R_sched, _ = net.infer(*args, iterations=2, coarse_iterations=24, coarse_points=256)
+    err = [np.degrees(Rotation.from_matrix(R[0].double().numpy() @ R_err).magnitude()) for R in (R_fine, R_sched)]
+    assert err[1] < 0.5 * err[0]

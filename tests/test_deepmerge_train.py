@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -13,7 +15,8 @@ from tandemscan.pipeline.frames import from_rotvec, invert, pose_error, transfor
 
 TINY = TrainSettings(seed=3, train_pairs=6, val_pairs=2, shapes_per_pool=3, num_points=64, k=8,
                      widths=(8, 8, 16, 16, 32), batch_size=6, steps=50, lr=3e-3, use_part=False,
-                     arbitrary_fraction=0.0)
+                     arbitrary_fraction=0.0, iterations=2, iterations_inference=3, iteration_weights=(0.5, 1.0),
+                     val_points=64)
 
 
 def test_a_tiny_model_trains_and_its_loss_falls(tmp_path):
@@ -22,9 +25,20 @@ def test_a_tiny_model_trains_and_its_loss_falls(tmp_path):
     _, summary = train(TINY, out)
     assert summary["steps"] == 50
     assert summary["loss_last_25"] < summary["loss_first_25"]
-    assert {"tracker.rot_err_deg_median_after", "tracker.success_rate"} <= set(summary["validation"])
+    val = summary["validation"]["trained_iterations"]
+    assert {"tracker.rot_err_deg_median_after", "tracker.success_rate"} <= set(val)
     reg = DeepMergeRegistrar.load(out)
     assert reg.k == 8 and reg.model.extractor.last[0].out_channels == 32
+    assert reg.iterations == TINY.iterations_inference
+
+
+def test_a_run_cut_off_by_its_budget_leaves_a_checkpoint(tmp_path):
+    torch.set_num_threads(1)
+    out = tmp_path / "cut.pt"
+    s = replace(TINY, steps=10_000, max_minutes=0.0, checkpoint_every=1)
+    _, summary = train(s, out)
+    assert summary["steps"] < 10_000 and summary["final"]
+    assert torch.load(out, weights_only=True)["summary"]["steps"] == summary["steps"]
 
 
 def test_pool_pairs_are_aligned_and_perturb_gives_the_inverse():
@@ -47,7 +61,7 @@ def test_shipped_weights_load_and_register_two_clouds():
     xy = rng.uniform(-60, 60, (3000, 2))
     P = np.c_[xy, 10 * np.sin(xy[:, 0] / 20) * np.cos(xy[:, 1] / 15)]
     T = reg.register(P[::2] + [0.5, 0, 0], P[1::2])
-    assert T.shape == (4, 4) and np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6)
+    assert T.shape == (4, 4) and np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-13, rtol=0)
     with pytest.raises(RegistrationError):
         DeepMergeRegistrar.load("/nonexistent/weights.pt")
 

@@ -53,6 +53,26 @@ class PairCorrection:
     centre_mm: np.ndarray
 
 
+def keep_if_better(
+    source_mm: np.ndarray, target: o3d.geometry.PointCloud, T: np.ndarray, distance_mm: float
+) -> np.ndarray:
+    """``T`` when it fits the source onto the target (with normals) better than the identity (the initial
+    stitch) does, else the identity.
+
+    The score is the truncated point-to-plane cost per source point: squared distance for the points with a
+    correspondence within ``distance_mm``, ``distance_mm`` squared for the others, so a slightly smaller
+    overlap does not outweigh a much closer fit.
+    """
+    def cost(M: np.ndarray) -> float:
+        fit = evaluate_point_to_plane(source_mm, target, M, distance_mm)
+        return fit.fitness * fit.rmse_mm**2 + (1.0 - fit.fitness) * distance_mm**2
+
+    if cost(T) > cost(np.eye(4)):
+        log.debug("DeepMerge fit worse than the stitch; kept the stitch")
+        return np.eye(4)
+    return T
+
+
 def register_overlap(
     source_mm: np.ndarray, target_mm: np.ndarray | o3d.geometry.PointCloud, method: str, cfg: DeepMergeConfig,
     registrar: DeepMergeRegistrar | None, coarse_distance_mm: float,
@@ -60,21 +80,17 @@ def register_overlap(
     """``T_target_source`` of two overlap clouds by ``method`` (the target may come with its normals).
 
     ``icp`` runs point-to-plane ICP coarse (``coarse_distance_mm``, the overlap threshold) then fine
-    (``cfg.icp_max_distance_mm``), the fair baseline; ``deepmerge+icp`` runs only the fine ICP after DeepMerge.
+    (``cfg.icp_max_distance_mm``), the fair baseline; ``deepmerge`` keeps the network's answer only where
+    it fits the overlap better than the initial stitch (:func:`keep_if_better`); ``deepmerge+icp`` runs the
+    fine ICP after that.
     """
     T = np.eye(4)
     if method in ("deepmerge", "deepmerge+icp"):
         if registrar is None:
             raise ValueError(f"method {method!r} needs a DeepMerge registrar")
         target_mm = target_with_normals(target_mm)
-        T = registrar.register(source_mm, np.asarray(target_mm.points))
-        # keep the network's answer only where it fits the overlap better than the initial stitch
-        fit = evaluate_point_to_plane(source_mm, target_mm, T, coarse_distance_mm)
-        start = evaluate_point_to_plane(source_mm, target_mm, np.eye(4), coarse_distance_mm)
-        if (fit.fitness, -fit.rmse_mm) < (start.fitness, -start.rmse_mm):
-            log.debug("DeepMerge fit (%.3f, %.4f mm) worse than the stitch; kept the stitch", fit.fitness,
-                      fit.rmse_mm)
-            T = np.eye(4)
+        T = keep_if_better(source_mm, target_mm, registrar.register(source_mm, np.asarray(target_mm.points)),
+                           coarse_distance_mm)
     if method == "icp":
         T = icp_point_to_plane(source_mm, target_mm, T, max(coarse_distance_mm, cfg.icp_max_distance_mm),
                                cfg.icp_iterations).transformation

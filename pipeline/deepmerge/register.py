@@ -23,6 +23,10 @@ from tandemscan.pipeline.frames import make_transform
 log = logging.getLogger(__name__)
 
 WEIGHTS_NAME = "deepmerge.pt"
+#: inference defaults: head iterations on a subset of points first, then at all points (docs/deepmerge.md)
+COARSE_ITERATIONS = 48
+COARSE_POINTS = 512
+FINE_ITERATIONS = 2
 
 
 class RegistrationError(ValueError):
@@ -82,19 +86,29 @@ def prepare_cloud(
 
 
 class DeepMergeRegistrar:
-    """A trained :class:`DeepMerge` with its preprocessing settings."""
+    """A trained :class:`DeepMerge` with its preprocessing and inference settings.
+
+    Inference embeds up to ``num_points`` points per cloud once, runs ``coarse_iterations`` head iterations
+    on a random ``coarse_points`` subset of them (cheap: the head costs the product of the two point
+    counts), then ``iterations`` at all points. The head converges linearly along the weakly constrained
+    directions of a patch (a tangential slide against a rotation), so many cheap iterations pay.
+    """
 
     def __init__(self, model: DeepMerge, num_points: int = 2048, k: int = 10, voxel: float = 0.04,
-                 iterations: int | None = None) -> None:
+                 iterations: int | None = None, coarse_iterations: int = 0,
+                 coarse_points: int = COARSE_POINTS) -> None:
         self.model = model.eval()
         self.num_points = num_points
         self.k = k
         self.voxel = voxel
         self.iterations = iterations or model.iterations
+        self.coarse_iterations = coarse_iterations
+        self.coarse_points = coarse_points
 
     @classmethod
     def load(cls, path: Path | str | None = None, num_points: int | None = None) -> DeepMergeRegistrar:
-        """Weights from ``path`` (default: shipped); settings (k, voxel, iterations) come from the file."""
+        """Weights from ``path`` (default: shipped); settings (k, voxel, head iterations at inference) come
+        from the file."""
         path = Path(path) if path is not None else shipped_weights_path()
         try:
             ckpt = torch.load(path, map_location="cpu", weights_only=True)
@@ -107,7 +121,9 @@ class DeepMergeRegistrar:
         except RuntimeError as e:
             raise RegistrationError(f"{path}: weights do not fit the network: {e}") from e
         return cls(model, num_points=num_points or int(s["num_points_inference"]), k=int(s["k"]),
-                   voxel=float(s["voxel"]), iterations=int(s["iterations"]))
+                   voxel=float(s["voxel"]), iterations=int(s.get("iterations_inference", s["iterations"])),
+                   coarse_iterations=int(s.get("coarse_iterations", 0)),
+                   coarse_points=int(s.get("coarse_points", COARSE_POINTS)))
 
     def register(self, source_mm: ArrayLike, target_mm: ArrayLike, seed: int = 0) -> np.ndarray:
         """``T_target_source`` (4x4, mm) that aligns ``source_mm`` onto ``target_mm`` (both (N, 3), mm)."""
@@ -123,7 +139,8 @@ class DeepMergeRegistrar:
         s_struct, s_xyz = prepare_cloud(Sn, self.num_points, self.k, self.voxel, ref, rng)
         t_struct, t_xyz = prepare_cloud(Tn, self.num_points, self.k, self.voxel, ref, rng)
         with torch.no_grad():
-            R, t = self.model(torch.from_numpy(s_struct)[None], torch.from_numpy(t_struct)[None],
-                              torch.from_numpy(s_xyz)[None], torch.from_numpy(t_xyz)[None],
-                              iterations=self.iterations)[-1]
-        return norm.to_mm(R[0].double().numpy(), t[0].double().numpy())
+            R, t = self.model.infer(*(torch.from_numpy(a)[None] for a in (s_struct, t_struct, s_xyz, t_xyz)),
+                                    self.iterations, self.coarse_iterations, self.coarse_points, seed)
+        # the network runs in float32: project onto the nearest rotation in float64 before it becomes a pose
+        U, _, Vt = np.linalg.svd(R[0].double().numpy())
+        return norm.to_mm(U @ Vt, t[0].double().numpy())
