@@ -75,22 +75,29 @@ def test_network_returns_one_rigid_estimate_per_iteration_and_gradients_reach_ev
         assert p.grad.abs().sum() > 0, f"no gradient reaches {name}"
 
 
-def test_the_untrained_head_is_a_soft_nearest_neighbour_registration_that_iterations_sharpen():
-    """With the distance term in residual units, more head iterations keep improving a small error."""
+def _wavy_pair(
+    seed: int, rotvec_deg: list[float], t: list[float], points: int
+) -> tuple[list[torch.Tensor], np.ndarray]:
+    """Network inputs of two disjoint samplings of a wavy unit-size surface, the source turned by
+    ``rotvec_deg`` and moved by ``t``; returns the inputs and the source's rotation error."""
     from tandemscan.pipeline.deepmerge.features import reference_direction
     from tandemscan.pipeline.deepmerge.register import prepare_cloud
 
-    torch.manual_seed(4)
-    rng = np.random.default_rng(4)
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
     xy = rng.uniform(-1.0, 1.0, (8000, 2))
     P = np.c_[xy, 0.3 * np.sin(2.5 * xy[:, 0]) * np.cos(2.0 * xy[:, 1])]
-    R_err = Rotation.from_rotvec(np.radians([1.5, -1.0, 2.0])).as_matrix()
-    src = P[::2] @ R_err.T + [0.02, -0.01, 0.015]
+    R_err = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix()
     ref = reference_direction(P[1::2])
-    s_st, s_xyz = prepare_cloud(src, 512, 10, 0.04, ref, rng)
-    t_st, t_xyz = prepare_cloud(P[1::2], 512, 10, 0.04, ref, rng)
+    s_st, s_xyz = prepare_cloud(P[::2] @ R_err.T + t, points, 10, 0.04, ref, rng)
+    t_st, t_xyz = prepare_cloud(P[1::2], points, 10, 0.04, ref, rng)
+    return [torch.from_numpy(a)[None] for a in (s_st, t_st, s_xyz, t_xyz)], R_err
+
+
+def test_the_untrained_head_is_a_soft_nearest_neighbour_registration_that_iterations_sharpen():
+    """With the distance term in residual units, more head iterations keep improving a small error."""
+    args, R_err = _wavy_pair(4, [1.5, -1.0, 2.0], [0.02, -0.01, 0.015], 512)
     net = DeepMerge(iterations=3).eval()
-    args = [torch.from_numpy(a)[None] for a in (s_st, t_st, s_xyz, t_xyz)]
     errors = []
     with torch.no_grad():
         for R, _t in net(*args, iterations=8):
@@ -103,19 +110,8 @@ def test_the_untrained_head_is_a_soft_nearest_neighbour_registration_that_iterat
 
 
 def test_inference_schedule_with_cheap_coarse_iterations_beats_the_fine_iterations_alone():
-    from tandemscan.pipeline.deepmerge.features import reference_direction
-    from tandemscan.pipeline.deepmerge.register import prepare_cloud
-
-    torch.manual_seed(5)
-    rng = np.random.default_rng(5)
-    xy = rng.uniform(-1.0, 1.0, (8000, 2))
-    P = np.c_[xy, 0.3 * np.sin(2.5 * xy[:, 0]) * np.cos(2.0 * xy[:, 1])]
-    R_err = Rotation.from_rotvec(np.radians([1.0, -1.5, 1.5])).as_matrix()
-    ref = reference_direction(P[1::2])
-    s_st, s_xyz = prepare_cloud(P[::2] @ R_err.T, 1024, 10, 0.04, ref, rng)
-    t_st, t_xyz = prepare_cloud(P[1::2], 1024, 10, 0.04, ref, rng)
+    args, R_err = _wavy_pair(5, [1.0, -1.5, 1.5], [0.0, 0.0, 0.0], 1024)
     net = DeepMerge(iterations=3).eval()
-    args = [torch.from_numpy(a)[None] for a in (s_st, t_st, s_xyz, t_xyz)]
     with torch.no_grad():
         R_fine, _ = net.infer(*args, iterations=2)
         R_sched, _ = net.infer(*args, iterations=2, coarse_iterations=24, coarse_points=256)
