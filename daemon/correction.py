@@ -13,10 +13,8 @@ one for the simulator's ground truth.
 
 from __future__ import annotations
 
-import json
 import logging
 import time
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -42,12 +40,6 @@ def _diagonal(sigma_mm: float, sigma_rad: float) -> np.ndarray:
     return np.diag([sigma_mm**2] * 3 + [sigma_rad**2] * 3)
 
 
-def calibration_covariance(path: Path) -> np.ndarray | None:
-    """The 6x6 ``T_T_S`` covariance of a calibration file (t mm^2, r rad^2, scanner frame), None if absent."""
-    data = json.loads(Path(path).read_text(encoding="utf-8")).get("T_T_S_covariance")
-    return None if data is None else np.asarray(data["matrix"], float)
-
-
 def mount_prior(job: JobSnapshot) -> tuple[MountPrior | None, str]:
     """The prior of the shared ``T_T_S`` correction for this job and where it came from."""
     cfg, dm = job.config, job.config.deepmerge
@@ -58,9 +50,8 @@ def mount_prior(job: JobSnapshot) -> tuple[MountPrior | None, str]:
     if source == "truth":
         cov, label = _diagonal(*_TRUTH_SIGMA), "truth (exact)"
     elif source == "calibration":
-        calibrated = calibration_covariance(cfg.job.calibration_file)
-        if calibrated is not None:
-            cov, label = calibrated, "calibration file"
+        if job.installation.T_T_S_covariance is not None:
+            cov, label = job.installation.T_T_S_covariance, "calibration file"
         else:
             log.warning("calibration file %s has no T_T_S covariance; the mount prior is the CAD tolerance",
                         cfg.job.calibration_file)

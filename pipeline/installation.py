@@ -13,12 +13,17 @@ from tandemscan.pipeline import frames as F
 
 @dataclass(frozen=True)
 class Installation:
-    """Mount transforms of the cell (mm): tracker on its chassis, arm base on its chassis, scanner and target."""
+    """Mount transforms of the cell (mm): tracker on its chassis, arm base on its chassis, scanner and target.
+
+    ``T_T_S_covariance``: the 6x6 covariance of ``T_T_S`` where a calibration measured it (translation mm^2,
+    then rotation vector rad^2, of ``T_T_S -> T_T_S [R(r), t]``), else None.
+    """
 
     T_V1_C: np.ndarray
     T_V2_B: np.ndarray
     T_E_S: np.ndarray
     T_T_S: np.ndarray
+    T_T_S_covariance: np.ndarray | None = None
 
     @property
     def T_E_T(self) -> np.ndarray:
@@ -43,11 +48,13 @@ class Installation:
         return {k: getattr(self, k).tolist() for k in ("T_V1_C", "T_V2_B", "T_E_S", "T_T_S")}
 
     @classmethod
-    def from_json(cls, data: dict[str, list[list[float]]]) -> Installation:
-        """Inverse of :meth:`to_json`."""
-        return cls(*(np.array(data[k], float) for k in ("T_V1_C", "T_V2_B", "T_E_S", "T_T_S")))
+    def from_json(cls, data: dict) -> Installation:
+        """Inverse of :meth:`to_json`; a calibration file's ``T_T_S_covariance`` (``{"matrix": 6x6}``) is read too."""
+        covariance = data.get("T_T_S_covariance")
+        return cls(*(np.array(data[k], float) for k in ("T_V1_C", "T_V2_B", "T_E_S", "T_T_S")),
+                   T_T_S_covariance=None if covariance is None else np.array(covariance["matrix"], float))
 
     @classmethod
     def load(cls, path: Path) -> Installation:
-        """Read an installation (calibration) JSON file with the four matrices."""
+        """Read an installation (calibration) JSON file with the four matrices and, if given, the covariance."""
         return cls.from_json(json.loads(Path(path).read_text(encoding="utf-8")))

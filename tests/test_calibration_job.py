@@ -42,7 +42,7 @@ async def test_calibration_job_recovers_the_true_scanner_mount(sim_config, tmp_p
     used = installation_for_job(config.model_copy(update={"job": job}), cell)
     np.testing.assert_allclose(used.T_T_S, run.installation.T_T_S)
 
-    # the file carries T_T_S's covariance, which the job's pose graph takes as the prior of its mount unknown
+    # the file carries T_T_S's covariance; the job loads it with the mounts and its pose graph takes it as the prior
     cov = np.array(data["T_T_S_covariance"]["matrix"])
     np.testing.assert_allclose(cov[:3, :3], run.hand_eye.covariance[3:, 3:])       # translation first
     np.testing.assert_allclose(cov[3:, 3:], run.hand_eye.covariance[:3, :3])
@@ -50,10 +50,10 @@ async def test_calibration_job_recovers_the_true_scanner_mount(sim_config, tmp_p
     labels = {"calibration": "calibration file", "nominal": "CAD tolerance", "truth": "truth (exact)"}
     for source, expected in labels.items():
         cfg = config.model_copy(update={"job": job.model_copy(update={"installation_source": source})})
-        priors[source], label = mount_prior(SimpleNamespace(config=cfg))
+        priors[source], label = mount_prior(SimpleNamespace(config=cfg, installation=used))
         assert label == expected
     np.testing.assert_allclose(priors["calibration"].covariance, cov)
     assert np.sqrt(priors["nominal"].covariance[0, 0]) == config.deepmerge.mount_nominal_sigma_mm
     assert np.all(np.diag(priors["truth"].covariance) < np.diag(cov) * 1e-3)
     off = config.model_copy(update={"deepmerge": config.deepmerge.model_copy(update={"estimate_mount": False})})
-    assert mount_prior(SimpleNamespace(config=off)) == (None, "off")
+    assert mount_prior(SimpleNamespace(config=off, installation=used)) == (None, "off")
