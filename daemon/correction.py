@@ -1,6 +1,7 @@
 """Correct + refine step of a job (DESIGN.md 5.5-5.6): the runner's scans in, refined poses and a new stitch out.
 
-Reads every persisted raw scan back, carries each tracker reading's covariance to its scan pose, runs
+Reads every persisted raw scan back, carries each tracker reading's covariance to its scan pose, takes each
+coordinate transfer's error prior from its journaled entry, runs
 ``pipeline.deepmerge.correct.correct_scans`` (pairwise DeepMerge/ICP corrections and the pose graph over all
 scans and tracker stations), then rebuilds the world map with the refined poses. Report figures before and
 after are returned for ``report.json``.
@@ -21,8 +22,8 @@ import numpy as np
 from tandemscan.daemon.report import ground_truth_scores
 from tandemscan.pipeline.cloud_io import read_raw_scan
 from tandemscan.pipeline.deepmerge.correct import StitchedScan, correct_scans
-from tandemscan.pipeline.refine import MountPrior
-from tandemscan.pipeline.uncertainty import scan_pose_covariance, transfer_covariance
+from tandemscan.pipeline.refine import MountPrior, TransferPrior
+from tandemscan.pipeline.uncertainty import scan_pose_covariance
 from tandemscan.pipeline.worldmap import VoxelMap
 
 if TYPE_CHECKING:
@@ -75,13 +76,10 @@ def correct_job(job: JobSnapshot) -> tuple[dict, list[np.ndarray]]:
         raw.append(read_raw_scan(s.file))
         cov = scan_pose_covariance(s.T_W_C, s.reading.T_C_T, job.installation.T_T_S, s.reading.covariance)
         scans.append(StitchedScan(raw[-1][0], s.T_W_S, cov, s.tracker_station))
-    origins = np.array([s.T_W_S[:3, 3] for s in job.scans])
-    stations = np.array([s.tracker_station for s in job.scans])
-    lever = max(float(np.max(np.linalg.norm(origins[stations == k] - origins[stations == k].mean(0), axis=1)))
-                for k in np.unique(stations))
-    transfer = transfer_covariance(np.mean([s.reading.covariance for s in job.scans], axis=0), lever)
+    transfers = [TransferPrior(t["station"], np.array(t["target_W_mm"]), np.array(t["covariance"]))
+                 for t in job.transfers]
     prior, prior_source = mount_prior(job)
-    result = correct_scans(scans, cfg, transfer_covariance=transfer, voxel_mm=job.config.job.voxel_mm,
+    result = correct_scans(scans, cfg, transfers=transfers, voxel_mm=job.config.job.voxel_mm,
                            mount_prior=prior)
     job.worldmap = VoxelMap(job.config.job.voxel_mm)
     for s, T, (points, normals) in zip(job.scans, result.poses, raw, strict=True):

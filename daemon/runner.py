@@ -35,6 +35,7 @@ from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.installation import Installation
 from tandemscan.pipeline.plan import MoveArm, MoveMeasure, MoveTracker, Plan, Scan
 from tandemscan.pipeline.relocalise import Relocaliser
+from tandemscan.pipeline.uncertainty import transfer_covariance
 from tandemscan.sim_drivers.cell import Cell
 
 log = logging.getLogger(__name__)
@@ -440,22 +441,28 @@ class JobRunner:
         """Eq. 2: read the still target, move the tracker, read it again, re-place the tracker in W.
 
         The reading before the move is journaled before the tracker moves, so a transfer interrupted by a
-        crash or a safety stop completes from it (the target stays still meanwhile)."""
+        crash or a safety stop completes from it (the target stays still meanwhile). The transfer's entry carries
+        its error prior for the pose graph: the still target's origin in W and the covariance of both readings
+        (``uncertainty.transfer_covariance``)."""
         noted = self.journal.notes(i).get("before")
         if noted is not None:
-            before_T_C_T = np.array(noted["T_C_T"])
+            before_T_C_T, before_cov = np.array(noted["T_C_T"]), np.array(noted["covariance"])
         else:
-            before_T_C_T = (await self.read_target()).T_C_T
-            await self.journal.note(i, "before", {"T_C_T": before_T_C_T.tolist()})
+            before = await self.read_target()
+            before_T_C_T, before_cov = before.T_C_T, before.covariance
+            await self.journal.note(i, "before", {"T_C_T": before_T_C_T.tolist(), "covariance": before_cov.tolist()})
         async with self.journal.motion(TRACKING_ROBOT):
             odo = await self.cell.tracking_chassis.move_to(
                 ChassisPose(step.x_mm, step.y_mm, step.heading_rad), self.config.tracking_chassis.timeout_s
             )
         after = await self.read_target()
+        T_W_C_before = self.T_W_C
         self.T_W_C = F.coordinate_transfer(self.T_W_C, before_T_C_T, after.T_C_T)
         self.last_still_T_C_T = after.T_C_T
         self.tracker_station += 1
-        entry = {"station": self.tracker_station, "after_scan": len(self.scans)}
+        entry = {"station": self.tracker_station, "after_scan": len(self.scans),
+                 "target_W_mm": (T_W_C_before @ before_T_C_T)[:3, 3].tolist(),
+                 "covariance": transfer_covariance(T_W_C_before, before_cov, self.T_W_C, after.covariance).tolist()}
         if self.cell.world is not None:
             err_mm, err_rad = F.pose_error(self.T_W_C, self.cell.world.T_W_F @ self.cell.world.T_F_C())
             entry |= {"tracker_pose_err_mm": err_mm, "tracker_pose_err_deg": float(np.degrees(err_rad))}

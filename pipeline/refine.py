@@ -3,9 +3,9 @@
 Pose graph: every scan ``i`` has a tracker pose ``P_i = T_W_S_i`` (prior) with a 6x6 covariance; every
 corrected overlap gives a relative-pose edge. Scans are grouped by tracker station; a coordinate transfer
 gives the whole next station an error on top of the previous station's, so station ``k`` carries the
-product of the transfer errors ``1..k`` (each with ``transfer_covariance``, a world motion about the centroid
-of station ``k``'s scans); edges between stations pull back that accumulated drift while the priors keep
-every scan near its tracker reading. The solution minimises the sum of squared, whitened
+product of the transfer errors ``1..k`` (each a ``TransferPrior``: a world motion about the still target's
+origin, with the two readings' covariance); edges between stations pull back that accumulated drift while
+the priors keep every scan near its tracker reading. The solution minimises the sum of squared, whitened
 residuals (scipy least squares with a sparse Jacobian).
 
 Self-calibration of the scanner mount (optional ``MountPrior``): every scan is placed by
@@ -30,7 +30,8 @@ import numpy as np
 import open3d as o3d
 from numpy.typing import ArrayLike
 from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
+from scipy.sparse import csc_matrix, lil_matrix
+from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 from tandemscan.pipeline.frames import invert
@@ -143,6 +144,17 @@ class ScanPrior:
     T_W_S: np.ndarray
     covariance: np.ndarray
     station: int = 0
+
+
+@dataclass(frozen=True)
+class TransferPrior:
+    """The error a coordinate transfer gives tracker station ``station`` (and, composed, every later one): a
+    world motion about ``centre_mm`` (the still target's origin in W) with ``covariance`` (6x6, t mm^2 of that
+    point, then r rad^2; world axes), see ``uncertainty.transfer_covariance``."""
+
+    station: int
+    centre_mm: np.ndarray
+    covariance: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -287,33 +299,44 @@ class RefineResult:
     cost_after: float
     success: bool
     mount: MountEstimate | None = None
+    edge_information_scale: float = 1.0
 
 
 def refine_poses(
     scans: Sequence[ScanPrior],
     edges: Sequence[PairEdge],
-    transfer_covariance: ArrayLike | None = None,
+    transfers: Sequence[TransferPrior] = (),
     mount_prior: MountPrior | None = None,
+    edge_scale_iterations: int = 0,
 ) -> RefineResult:
     """Solve the pose graph; returns refined ``T_W_S`` for every scan.
 
-    ``transfer_covariance`` (6x6, t mm^2 then r rad^2, about the station's scans' centroid) is the error
-    one coordinate transfer adds; stations are numbered in transfer order and station 0 defines the world.
-    Without it (or with a single station) only per-scan corrections are solved. With ``mount_prior`` one
+    ``edge_scale_iterations`` > 0 re-weights the edges that many times by variance component estimation
+    (:meth:`_Graph.edge_variance_factor`): the edges' stated information is only a guess of how independent
+    an overlap's points are, while the tracker priors' covariances are known, so the edges' common scale is
+    taken from their own residuals (``RefineResult.edge_information_scale``).
+
+    ``transfers``: the prior of each coordinate transfer, one for every station after the first (a station
+    without scans may have one too: its drift still reaches the later ones); stations are numbered in transfer
+    order and the first defines the world. Without them only per-scan corrections are solved. With ``mount_prior`` one
     shared scanner-mount correction ``D`` (``T_W_S_i -> T_W_S_i D``) is solved as well: first in all six
     directions, then, if the overlaps leave some unobserved, again with those held at the prior.
     """
     n = len(scans)
     if n == 0:
         return RefineResult([], {}, 0.0, 0.0, True)
-    graph = _Graph(scans, edges, transfer_covariance)
+    graph = _Graph(scans, edges, transfers)
+    L = None
+    if mount_prior is not None:
+        prior = np.asarray(mount_prior.covariance, float)
+        _whitener(prior, True, "mount prior covariance")
+        L = np.linalg.cholesky(0.5 * (prior + prior.T))        # D = L u, u ~ N(0, I) a priori
+    sol, x0 = graph.solve(L)                                    # with a mount: all six directions
+    for _ in range(edge_scale_iterations if len(graph.ei) else 0):
+        graph.edge_scale *= graph.edge_variance_factor(sol)
+        sol, x0 = graph.solve(L)
     if mount_prior is None:
-        sol, x0 = graph.solve(None)
         return graph.result(sol, x0, None)
-    prior = np.asarray(mount_prior.covariance, float)
-    _whitener(prior, True, "mount prior covariance")
-    L = np.linalg.cholesky(0.5 * (prior + prior.T))            # D = L u, u ~ N(0, I) a priori
-    sol, x0 = graph.solve(L)                                    # all six directions
     data_u = _schur(graph.data_jacobian(sol.jac, 6), graph.n_blocks)   # data information on u
     ratio, U = np.linalg.eigh(0.5 * (data_u + data_u.T))
     observed = ratio >= mount_prior.min_information_ratio
@@ -350,18 +373,24 @@ class _Graph:
     station, then optionally ``k`` coefficients ``z`` of the shared mount correction ``D = B z`` (``B`` 6 x k,
     chosen per solve as ``L`` times orthonormal columns, so that the whitened prior is ``z`` itself)."""
 
-    def __init__(self, scans: Sequence[ScanPrior], edges: Sequence[PairEdge], transfer_covariance) -> None:
+    def __init__(self, scans: Sequence[ScanPrior], edges: Sequence[PairEdge], transfers: Sequence[TransferPrior]
+                 ) -> None:
         n = self.n = len(scans)
         self.P = np.stack([np.asarray(s.T_W_S, float) for s in scans])
         self.origins = self.P[:, :3, 3]
         self.Wp = np.stack([_whitener(s.covariance, True, f"scan {i} covariance") for i, s in enumerate(scans)])
         stations = sorted({s.station for s in scans})
-        self.movable = [k for k in stations if k != stations[0]] if transfer_covariance is not None else []
+        by_station = {t.station: t for t in transfers}
+        if transfers and (len(by_station) != len(transfers) or min(by_station) <= stations[0]
+                          or not set(stations[1:]) <= set(by_station)):
+            raise RefineError(f"transfer priors for stations {[t.station for t in transfers]}: need one for each "
+                              f"station after the first of {stations}, or none")
+        self.movable = sorted(by_station)
         self.col = {k: n + m for m, k in enumerate(self.movable)}
         self.n_blocks = 6 * (n + len(self.movable))
         self.sid = np.array([s.station for s in scans])
-        self.centres = {k: self.origins[self.sid == k].mean(axis=0) for k in stations}
-        self.Wt = _whitener(transfer_covariance, True, "transfer covariance") if self.movable else None
+        self.centres = {k: np.asarray(by_station[k].centre_mm, float) for k in self.movable}
+        self.Wt = {k: _whitener(by_station[k].covariance, True, f"transfer {k} covariance") for k in self.movable}
         for e in edges:
             if not (0 <= e.i < n and 0 <= e.j < n) or e.i == e.j:
                 raise RefineError(f"edge ({e.i}, {e.j}) does not join two different scans of {n}")
@@ -372,6 +401,8 @@ class _Graph:
         self.Z = np.stack([invert(P[e.i]) @ e.correction @ P[e.j] for e in edges]) if edges else np.zeros((0, 4, 4))
         self.We = np.stack([_whitener(e.information, False, f"edge ({e.i}, {e.j})") for e in edges]) if edges else None
         self.ec = np.stack([np.asarray(e.centre_mm, float) for e in edges]) if edges else np.zeros((0, 3))
+        self.edge_rank = sum(int(np.count_nonzero(np.any(W != 0, axis=1))) for W in self.We) if edges else 0
+        self.edge_scale = 1.0                       # common factor of every edge's information
         self.B: np.ndarray | None = None
 
     def station_corrections(self, X: np.ndarray) -> dict[int, np.ndarray]:
@@ -380,6 +411,7 @@ class _Graph:
             A = _about(-self.centres[k], _exp(X[self.col[k]][None]))[0] @ A
             out[k] = A
         return out
+
 
     def mount(self, x: np.ndarray) -> np.ndarray:
         """The 6-vector of ``D`` (t mm, rotvec rad) at ``x`` (zero without a mount unknown)."""
@@ -396,13 +428,31 @@ class _Graph:
     def residuals(self, x: np.ndarray) -> np.ndarray:
         X = x[:self.n_blocks].reshape(-1, 6)
         r = [np.einsum("nij,nj->ni", self.Wp, X[:self.n]).ravel()]
-        r += [self.Wt @ X[self.col[k]] for k in self.movable]
+        r += [self.Wt[k] @ X[self.col[k]] for k in self.movable]
         if len(self.ei):
             Xp = self.poses(x)
             E = Xp[self.ei] @ self.Z @ np.linalg.inv(Xp[self.ej])
-            r.append(np.einsum("nij,nj->ni", self.We, _log(_about(self.ec, E))).ravel())
+            r.append(np.sqrt(self.edge_scale) * np.einsum("nij,nj->ni", self.We, _log(_about(self.ec, E))).ravel())
         r.append(x[self.n_blocks:])                                 # the mount prior, whitened
         return np.concatenate(r)
+
+    def edge_variance_factor(self, sol, probes: int = 32) -> float:
+        """How much to multiply the edges' information by so that their whitened residuals have unit
+        variance at the solution ``sol``: redundancy / sum of squared edge residuals (Helmert's variance
+        component estimate). The redundancy is the edges' rank less their share of the unknowns, the trace of
+        their hat matrix ``J_e N^-1 J_e^T`` (eigenvalues in [0, 1]), estimated with ``probes`` random sign
+        vectors (fixed seed)."""
+        rows = slice(6 * self.n + 6 * len(self.movable), 6 * self.n + 6 * len(self.movable) + 6 * len(self.ei))
+        J = csc_matrix(sol.jac)
+        Je = J[rows]
+        N = (J.T @ J).tocsc()
+        Z = np.random.default_rng(0).choice([-1.0, 1.0], (Je.shape[0], probes))
+        share = float(np.mean(np.sum(Z * (Je @ splu(N).solve(Je.T @ Z)), axis=0)))
+        redundancy = self.edge_rank - share
+        sq = float(np.sum(sol.fun[rows] ** 2))
+        if redundancy <= 0 or sq <= 0:
+            return 1.0
+        return redundancy / sq
 
     def data_jacobian(self, jac, k: int) -> np.ndarray:
         """Dense Jacobian without the mount prior's ``k`` rows (the last ones)."""
@@ -456,4 +506,5 @@ class _Graph:
                      np.round(d[:3], 4), np.round(np.degrees(d[3:]), 5), k)
         log.info("pose graph: %d scans, %d edges, %d transfers; cost %.3g -> %.3g", self.n, len(self.ei),
                  len(self.movable), cost0, sol.cost)
-        return RefineResult([T for T in out], corr, cost0, float(sol.cost), bool(sol.success), estimate)
+        return RefineResult([T for T in out], corr, cost0, float(sol.cost), bool(sol.success), estimate,
+                            self.edge_scale)

@@ -31,10 +31,31 @@ def scan_pose_covariance(T_W_C: ArrayLike, T_C_T: ArrayLike, T_T_S: ArrayLike, r
     return R @ J @ C @ J.T @ R.T
 
 
-def transfer_covariance(reading_cov: ArrayLike, lever_mm: float) -> np.ndarray:
-    """6x6 error of one coordinate transfer (two readings of the still target), about a point ``lever_mm``
-    from the target, isotropic in direction (t mm^2, r rad^2)."""
-    C = np.asarray(reading_cov, float)
-    var_t = 2.0 * float(np.trace(C[:3, :3])) / 3.0
-    var_r = 2.0 * float(np.trace(C[3:, 3:])) / 3.0
-    return np.diag([var_t + var_r * lever_mm**2] * 3 + [var_r] * 3)
+def transfer_covariance(T_W_C_before: ArrayLike, cov_before: ArrayLike, T_W_C_after: ArrayLike, cov_after: ArrayLike
+                        ) -> np.ndarray:
+    """6x6 error of one coordinate transfer (Eq. 2) as a world motion of the new station about the still
+    target's origin (t mm^2, r rad^2; world axes).
+
+    The reading before the move misplaces the target in W by its own error (camera axes of the old station);
+    the reading after it misplaces the new camera about the target by the opposite of its error (camera
+    axes of the new station). Both are independent, so their covariances, turned into world axes, add.
+    """
+    out = np.zeros((6, 6))
+    for T_W_C, C in ((T_W_C_before, cov_before), (T_W_C_after, cov_after)):
+        R = np.kron(np.eye(2), np.asarray(T_W_C, float)[:3, :3])
+        out += R @ np.asarray(C, float) @ R.T
+    return out
+
+
+def recentre(centre_mm: ArrayLike, new_centre_mm: ArrayLike) -> np.ndarray:
+    """6x6 map of a small world motion (t mm, r rad) about ``centre_mm`` to the same motion about
+    ``new_centre_mm`` (a rotation ``r`` moves the new centre by ``r x (new - old)``)."""
+    J = np.eye(6)
+    J[:3, 3:] = -_skew(np.asarray(new_centre_mm, float) - np.asarray(centre_mm, float))
+    return J
+
+
+def covariance_about(covariance: ArrayLike, centre_mm: ArrayLike, new_centre_mm: ArrayLike) -> np.ndarray:
+    """The 6x6 covariance of a small world motion about ``centre_mm``, stated about ``new_centre_mm``."""
+    J = recentre(centre_mm, new_centre_mm)
+    return J @ np.asarray(covariance, float) @ J.T

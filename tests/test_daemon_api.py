@@ -36,6 +36,7 @@ class GatedRunner:
     def __init__(self):
         self.gate = asyncio.Semaphore(0)
         self.free = False
+        self.step_started = asyncio.Event()    # a step is under way (waiting at the gate)
 
     def open(self, steps: int = 1000) -> None:
         for _ in range(steps):
@@ -47,6 +48,7 @@ class GatedRunner:
                 continue
 
             async def step(i=i):
+                self.step_started.set()
                 await self.gate.acquire()
                 async with ctx.supervisor.motion("measure"):
                     q = await ctx.cell.arm.joints()
@@ -183,9 +185,14 @@ async def test_list_filters_and_pages(api):
 async def test_pause_resume_and_cancel(api):
     job = (await api.post("/v1/jobs", json={}, headers=AUTH)).json()
     await wait_state(api, job["id"], "running")
+    await asyncio.wait_for(api.runner.step_started.wait(), 10)   # pause while step 0 is under way
     assert (await api.post(f"/v1/jobs/{job['id']}/pause", headers=AUTH)).json()["state"] == "paused"
     api.runner.open(1)  # the step under way finishes; the next one waits for resume
-    await asyncio.sleep(0.2)
+    for _ in range(250):                               # the step's arm move and commit, however loaded the machine
+        if (await api.get(f"/v1/jobs/{job['id']}")).json()["steps_done"] == 1:
+            break
+        await asyncio.sleep(0.02)
+    await asyncio.sleep(0.2)                           # ... and then nothing more while paused
     paused = (await api.get(f"/v1/jobs/{job['id']}")).json()
     assert paused["state"] == "paused" and paused["steps_done"] == 1
     assert_problem(await api.post(f"/v1/jobs/{job['id']}/pause", headers=AUTH), 409)

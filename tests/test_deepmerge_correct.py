@@ -7,25 +7,31 @@ import pytest
 from tandemscan.config.models import DeepMergeConfig
 from tandemscan.pipeline.deepmerge.correct import StitchedScan, correct_pair, correct_scans
 from tandemscan.pipeline.frames import compose, from_rotvec, invert, pose_error, transform_points
+from tandemscan.pipeline.refine import TransferPrior
 
 
 def surface(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return 10 * np.sin(x / 37.0) * np.cos(y / 29.0) + 6 * np.cos(x / 61.0 + y / 45.0)
 
 
+TRANSFER_COV = np.diag([0.25**2] * 3 + [np.radians(0.04) ** 2] * 3)
+
+
 def scans_with_drift(n: int = 6, per_station: int = 2, seed: int = 0):
-    """Scans 300 mm wide every 150 mm along x (half overlap); each later station carries a transfer drift."""
+    """Scans 300 mm wide every 150 mm along x (half overlap); each later station carries a transfer drift
+    about the still target (at the station's first scan). Returns the truth, the scans, the transfer priors."""
     rng = np.random.default_rng(seed)
-    truth, scans = [], []
+    truth, scans, transfers = [], [], []
     drift = np.eye(4)
     sig_t, sig_r = 0.01, np.radians(0.001)
     cov = np.diag([sig_t**2] * 3 + [sig_r**2] * 3)
     for i in range(n):
         k = i // per_station
-        if i and k != (i - 1) // per_station:                          # a transfer, about the station
-            c = np.array([150.0 * (i + (per_station - 1) / 2), 0, 440.0])
+        if i and k != (i - 1) // per_station:                          # a transfer, about the target
+            c = np.array([150.0 * i, 0, 440.0])
             step = from_rotvec(rng.normal(0, 0.25, 3), rng.normal(0, np.radians(0.04), 3))
             drift = from_rotvec(c, [0, 0, 0]) @ step @ from_rotvec(-c, [0, 0, 0]) @ drift
+            transfers.append(TransferPrior(k, c, TRANSFER_COV))
         xy = np.c_[rng.uniform(150 * i - 150, 150 * i + 150, 9000), rng.uniform(-100, 100, 9000)]
         P_W = np.c_[xy, surface(xy[:, 0], xy[:, 1])]
         T_W_S = from_rotvec([150.0 * i, 0, 440.0], [np.pi, 0, 0])
@@ -34,14 +40,13 @@ def scans_with_drift(n: int = 6, per_station: int = 2, seed: int = 0):
         noise = from_rotvec(rng.normal(0, sig_t, 3), rng.normal(0, sig_r, 3))
         truth.append(T_W_S)
         scans.append(StitchedScan(P_S, compose(drift, noise, T_W_S), cov, k))
-    return truth, scans
+    return truth, scans, transfers
 
 
 def test_icp_correction_and_pose_graph_remove_transfer_drift():
-    truth, scans = scans_with_drift()
+    truth, scans, transfers = scans_with_drift()
     cfg = DeepMergeConfig(method="icp", min_overlap_points=100)
-    transfer = np.diag([0.25**2] * 3 + [np.radians(0.04) ** 2] * 3)
-    res = correct_scans(scans, cfg, transfer_covariance=transfer)
+    res = correct_scans(scans, cfg, transfers=transfers)
     assert res.report["pairs"] >= 5
     before = np.array([pose_error(s.T_W_S, X)[0] for s, X in zip(scans, truth, strict=True)])
     after = np.array([pose_error(T, X)[0] for T, X in zip(res.poses, truth, strict=True)])
@@ -51,7 +56,7 @@ def test_icp_correction_and_pose_graph_remove_transfer_drift():
 
 
 def test_correct_pair_needs_overlap_and_a_delta():
-    truth, scans = scans_with_drift(n=2, per_station=1)
+    truth, scans, _ = scans_with_drift(n=2, per_station=1)
     a = transform_points(scans[0].T_W_S, scans[0].points_S)
     b = transform_points(scans[1].T_W_S, scans[1].points_S)
     cfg = DeepMergeConfig(method="icp", overlap_delta_mm=3.0)

@@ -10,6 +10,7 @@ from tandemscan.pipeline.refine import (
     PairEdge,
     RefineError,
     ScanPrior,
+    TransferPrior,
     icp_point_to_plane,
     point_to_plane_information,
     refine_poses,
@@ -47,28 +48,35 @@ def test_point_to_plane_information_of_a_plane_leaves_sliding_free():
     assert info[2, 2] == pytest.approx(100 / 0.01)
 
 
+TRANSFER_COV = np.diag([0.3**2] * 3 + [np.radians(0.05) ** 2] * 3)
+
+
 def _strip(n_scans: int = 12, per_station: int = 3, seed: int = 2):
-    """True scan poses along x, tracker priors with a random-walk error per transfer plus reading noise."""
+    """True scan poses along x, tracker priors with a random-walk error per transfer plus reading noise;
+    returns the truth, the priors, the transfers' priors and the generator."""
     rng = np.random.default_rng(seed)
     truth = [from_rotvec([250.0 * i, 0, 500.0], [0, np.pi, 0.02 * i]) for i in range(n_scans)]
     station = [i // per_station for i in range(n_scans)]
-    drift = [np.eye(4)]
-    for k in range(1, max(station) + 1):                  # each transfer about its station's centroid
-        c = np.array([250.0 * (per_station * k + (per_station - 1) / 2), 0, 500.0])
+    drift, transfers = [np.eye(4)], []
+    for k in range(1, max(station) + 1):                  # each transfer about the target, at its first scan
+        c = np.array([250.0 * per_station * k, 0, 500.0])
         step = from_rotvec(rng.normal(0, 0.3, 3), rng.normal(0, np.radians(0.05), 3))
         drift.append(from_rotvec(c, [0, 0, 0]) @ step @ from_rotvec(-c, [0, 0, 0]) @ drift[-1])
+        transfers.append(TransferPrior(k, c, TRANSFER_COV))
     sig_t, sig_r = 0.02, np.radians(0.002)
     cov = np.diag([sig_t**2] * 3 + [sig_r**2] * 3)
     priors = []
     for X, k in zip(truth, station, strict=True):
         noise = from_rotvec(rng.normal(0, sig_t, 3), rng.normal(0, sig_r, 3))
         priors.append(ScanPrior(compose(drift[k], X, noise), cov, k))
-    return truth, priors, rng
+    return truth, priors, transfers, rng
 
 
-def _edges(truth, priors, rng, pairs, noise_mm=0.005, noise_rad=8.7e-6):
+def _edges(truth, priors, rng, pairs, noise_mm=0.005, noise_rad=8.7e-6, stated=1.0):
+    """Relative-pose edges with noise of the given 1-sigma; their information is stated ``stated`` times
+    the true one."""
     edges = []
-    info = np.diag([1 / noise_mm**2] * 3 + [1 / noise_rad**2] * 3)
+    info = stated * np.diag([1 / noise_mm**2] * 3 + [1 / noise_rad**2] * 3)
     for i, j in pairs:
         P_i, P_j = priors[i].T_W_S, priors[j].T_W_S
         C = P_i @ invert(truth[i]) @ truth[j] @ invert(P_j)
@@ -81,11 +89,10 @@ def _edges(truth, priors, rng, pairs, noise_mm=0.005, noise_rad=8.7e-6):
 
 
 def test_pose_graph_removes_drift_accumulated_across_transfers():
-    truth, priors, rng = _strip()
+    truth, priors, transfers, rng = _strip()
     n = len(truth)
     edges = _edges(truth, priors, rng, [(i, i + 1) for i in range(n - 1)])
-    transfer = np.diag([0.3**2] * 3 + [np.radians(0.05) ** 2] * 3)
-    res = refine_poses(priors, edges, transfer_covariance=transfer)
+    res = refine_poses(priors, edges, transfers)
     assert res.success and res.cost_after < res.cost_before
     before = np.array([pose_error(p.T_W_S, X) for p, X in zip(priors, truth, strict=True)])
     after = np.array([pose_error(T, X) for T, X in zip(res.poses, truth, strict=True)])
@@ -96,8 +103,24 @@ def test_pose_graph_removes_drift_accumulated_across_transfers():
     assert set(res.station_corrections) == {1, 2, 3}
 
 
+@pytest.mark.parametrize("stated", [0.1, 1.0])
+def test_variance_component_estimation_finds_the_edges_true_weight(stated):
+    """Edges whose information is stated 10x too weak get it back from their residuals; right ones stay."""
+    truth, priors, transfers, rng = _strip(n_scans=18, per_station=6)
+    n = len(truth)
+    pairs = [(i, i + 1) for i in range(n - 1)] + [(i, i + 2) for i in range(n - 2)]   # loops: redundancy
+    edges = _edges(truth, priors, rng, pairs, noise_mm=0.002, noise_rad=4e-6, stated=stated)
+    fixed = refine_poses(priors, edges, transfers)
+    res = refine_poses(priors, edges, transfers, edge_scale_iterations=3)
+    assert fixed.edge_information_scale == 1.0
+    assert 0.6 / stated < res.edge_information_scale < 1.6 / stated
+    err = {name: np.median([pose_error(T, X)[0] for T, X in zip(r.poses, truth, strict=True)])
+           for name, r in (("fixed", fixed), ("estimated", res))}
+    assert err["estimated"] <= err["fixed"] * (0.9 if stated < 1 else 1.05), err
+
+
 def test_pose_graph_without_edges_keeps_the_tracker_poses():
-    truth, priors, _ = _strip(n_scans=4)
+    truth, priors, _, _ = _strip(n_scans=4)
     res = refine_poses(priors, [])
     for T, p in zip(res.poses, priors, strict=True):
         np.testing.assert_allclose(T, p.T_W_S, atol=1e-9)
@@ -105,16 +128,20 @@ def test_pose_graph_without_edges_keeps_the_tracker_poses():
 
 
 def test_pose_graph_rejects_bad_edges_and_covariances():
-    truth, priors, rng = _strip(n_scans=3)
+    truth, priors, transfers, rng = _strip(n_scans=6)
     with pytest.raises(RefineError, match="does not join"):
         refine_poses(priors, [PairEdge(0, 0, np.eye(4), np.eye(6), np.zeros(3))])
+    with pytest.raises(RefineError, match="one for each station after the first"):
+        refine_poses(priors, [], [TransferPrior(0, np.zeros(3), TRANSFER_COV)])     # station 0 defines W
+    with pytest.raises(RefineError, match="one for each station after the first"):
+        refine_poses(priors, [], [transfers[0], transfers[0]])
     bad = [ScanPrior(priors[0].T_W_S, -np.eye(6), 0)]
     with pytest.raises(RefineError, match="positive definite"):
         refine_poses(bad, [])
 
 
 def test_scan_covariance_carries_target_rotation_to_the_scan_origin():
-    from tandemscan.pipeline.uncertainty import scan_pose_covariance, transfer_covariance
+    from tandemscan.pipeline.uncertainty import scan_pose_covariance
 
     reading = np.diag([0.01**2] * 3 + [1e-5**2] * 3)
     T_T_S = from_rotvec([0, 0, 100.0], [0, 0, 0])      # scanner 100 mm along the target's z
@@ -126,8 +153,36 @@ def test_scan_covariance_carries_target_rotation_to_the_scan_origin():
     reading2 = np.diag([1.0, 4.0, 9.0, 1e-8, 1e-8, 1e-8])
     C2 = scan_pose_covariance(from_rotvec([0, 0, 0], [0, 0, np.pi / 2]), np.eye(4), np.eye(4), reading2)
     np.testing.assert_allclose(np.diag(C2)[:3], [4.0, 1.0, 9.0], atol=1e-12)
-    T = transfer_covariance(reading, 1000.0)
-    np.testing.assert_allclose(np.diag(T), [2e-4 + 2e-10 * 1e6] * 3 + [2e-10] * 3)
+
+
+def test_transfer_covariance_adds_both_readings_in_world_axes():
+    from tandemscan.pipeline.uncertainty import transfer_covariance
+
+    before = np.diag([1.0, 4.0, 9.0, 1e-8, 2e-8, 3e-8])
+    after = np.diag([0.5, 0.5, 0.5, 1e-8, 1e-8, 1e-8])
+    turned = from_rotvec([5000.0, 0, 0], [0, 0, np.pi / 2])         # the new camera, turned 90 deg about z
+    C = transfer_covariance(np.eye(4), before, turned, after)
+    np.testing.assert_allclose(np.diag(C), [1.5, 4.5, 9.5, 2e-8, 3e-8, 4e-8], atol=1e-12)
+    C2 = transfer_covariance(np.eye(4), after, turned, before)       # the second reading's x, y swap in W
+    np.testing.assert_allclose(np.diag(C2), [4.5, 1.5, 9.5, 3e-8, 2e-8, 4e-8], atol=1e-12)
+
+
+def test_covariance_about_another_centre_adds_the_rotation_lever():
+    from tandemscan.pipeline.uncertainty import covariance_about
+
+    rng = np.random.default_rng(4)
+    C = np.diag([0.01, 0.02, 0.03, 1e-6, 2e-6, 3e-6])
+    c, c2 = np.array([100.0, 0, 0]), np.array([100.0, 0, 1000.0])   # 1 m along z
+    D = covariance_about(C, c, c2)
+    # a rotation about x or y moves the new centre sideways by r * 1000 mm; about z it does not
+    np.testing.assert_allclose(np.diag(D)[:3], [0.01 + 2e-6 * 1e6, 0.02 + 1e-6 * 1e6, 0.03])
+    # the same by sampling motions about c and looking where they move c2
+    x = rng.multivariate_normal(np.zeros(6), C, 20000)
+    moved = np.array([from_rotvec(c, [0, 0, 0]) @ from_rotvec(t, r) @ from_rotvec(-c, [0, 0, 0]) @ np.r_[c2, 1]
+                      for t, r in zip(x[:, :3], x[:, 3:], strict=True)])[:, :3] - c2
+    S = np.cov(moved.T)
+    np.testing.assert_allclose(np.diag(S), np.diag(D)[:3], rtol=0.05)
+    np.testing.assert_allclose(S, D[:3, :3], atol=0.05)
 
 
 def test_constrained_edge_drops_the_sliding_directions_of_a_plane():

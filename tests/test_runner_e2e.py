@@ -67,7 +67,15 @@ async def test_short_job_writes_cloud_scans_and_a_report_within_noise_bounds(sti
     station0 = truth["per_tracker_station"][0]
     assert station0["pose_err_mm_median"] < 0.15
     assert 0.01 < truth["cloud_rms_mm"] < 0.3
-    assert report["transfer_log"][0]["tracker_pose_err_mm"] < 0.5
+    transfer = report["transfer_log"][0]
+    assert transfer["tracker_pose_err_mm"] < 0.5
+    # the transfer's error prior: where the still target stood (the last scan of station 0 read it there too)
+    last = result.scans[transfer["after_scan"] - 1]
+    target_W = (last.T_W_C @ last.reading.T_C_T)[:3, 3]
+    assert np.linalg.norm(np.array(transfer["target_W_mm"]) - target_W) < 0.2
+    C = np.array(transfer["covariance"])
+    np.testing.assert_allclose(C, C.T, atol=1e-15)
+    assert np.all(np.linalg.eigvalsh(C) > 0) and np.trace(C[:3, :3]) > np.trace(last.reading.covariance[:3, :3])
 
 
 async def test_nominal_installation_stitches_visibly_worse_than_calibrated(stitch_only_config, tmp_path):

@@ -30,6 +30,7 @@ from tandemscan.pipeline.refine import (
     MountPrior,
     PairEdge,
     ScanPrior,
+    TransferPrior,
     constrained_edge,
     evaluate_point_to_plane,
     icp_point_to_plane,
@@ -37,6 +38,7 @@ from tandemscan.pipeline.refine import (
     refine_poses,
     target_with_normals,
 )
+from tandemscan.pipeline.uncertainty import covariance_about
 
 log = logging.getLogger(__name__)
 
@@ -193,13 +195,13 @@ def _edge(i: int, j: int, pc: PairCorrection, cfg: DeepMergeConfig) -> PairEdge:
 
 def correct_scans(
     scans: Sequence[StitchedScan], cfg: DeepMergeConfig, registrar: DeepMergeRegistrar | None = None,
-    transfer_covariance: np.ndarray | None = None, voxel_mm: float = 1.0, mount_prior: MountPrior | None = None,
+    transfers: Sequence[TransferPrior] = (), voxel_mm: float = 1.0, mount_prior: MountPrior | None = None,
 ) -> CorrectionResult:
     """Correct every overlapping pair and refine all poses; ``voxel_mm`` thins the scans first.
 
-    ``transfer_covariance`` (see ``refine.refine_poses``) defaults to twice the mean scan covariance (a
-    transfer adds the error of two tracker readings); ``mount_prior`` makes the graph estimate the shared
-    scanner-mount correction too (``refine.MountPrior``).
+    ``transfers`` (one per tracker station after the first, see ``refine.refine_poses``) let the graph
+    remove the drift of the coordinate transfers and widen the overlap threshold of pairs across stations;
+    ``mount_prior`` makes the graph estimate the shared scanner-mount correction too (``refine.MountPrior``).
     """
     if cfg.method != "icp" and registrar is None:
         registrar = DeepMergeRegistrar.load(cfg.weights, num_points=cfg.num_points)
@@ -208,16 +210,16 @@ def correct_scans(
     edges: list[tuple[int, int, PairCorrection]] = []
     for i, j in overlapping_pairs(world, [s.station for s in scans], cfg.pair_cell_mm, cfg.max_partners_per_scan):
         cov = relative_covariance(scans[i].covariance, scans[j].covariance)
-        if scans[i].station != scans[j].station and transfer_covariance is not None:
-            cov = cov + abs(scans[i].station - scans[j].station) * np.asarray(transfer_covariance)
+        low, high = sorted((scans[i].station, scans[j].station))
+        for t in transfers:                          # the drift between the two stations, at the target scan
+            if low < t.station <= high:
+                cov = cov + covariance_about(t.covariance, t.centre_mm, scans[i].T_W_S[:3, 3])
         pc = correct_pair(world[j], world[i], cfg, registrar, cov)
         if pc is not None:
             edges.append((i, j, pc))
     graph_edges = [_edge(i, j, pc, cfg) for i, j, pc in edges if pc.fit.inliers >= 6]
-    if transfer_covariance is None and len({s.station for s in scans}) > 1:
-        transfer_covariance = 2.0 * np.mean([s.covariance for s in scans], axis=0)
     priors = [ScanPrior(s.T_W_S, s.covariance, s.station) for s in scans]
-    res = refine_poses(priors, graph_edges, transfer_covariance, mount_prior)
+    res = refine_poses(priors, graph_edges, transfers, mount_prior, cfg.edge_scale_iterations)
     before = [s.T_W_S for s in scans]
     rms_b, rms_a = _overlap_rms(local, edges, before, res.poses, cfg)
     moves = [pose_error(a, b) for a, b in zip(res.poses, before, strict=True)]
@@ -231,6 +233,8 @@ def correct_scans(
         "pose_change_deg_median": float(np.degrees(np.median([m[1] for m in moves]))) if moves else 0.0,
         "graph_cost_before": res.cost_before,
         "graph_cost_after": res.cost_after,
+        "edge_information_scale": res.edge_information_scale,
+        "edge_effective_points": cfg.edge_effective_points * res.edge_information_scale,
     }
     log.info("correction: %d scans, %d pairs, overlap RMS %.4f -> %.4f mm", len(scans), len(edges), rms_b, rms_a)
     return CorrectionResult(res.poses, edges, report, res.mount)

@@ -1,0 +1,168 @@
+"""How well could any correction place the scans? The Cramer-Rao bound of the simulated job's per-scan pose error.
+
+Usage: python benchmarks/pose_bound.py [--plan FILE|generated] [--seeds 7 8 9] [--resolution coarse|full]
+
+For each seed the default job runs on the simulated cell with its correction (``[deepmerge]``), and the
+realised figures (tracker-only and corrected median pose error, mm) are put beside the bound of the same
+job: the posterior covariance of every scan pose given everything the job measured, under the simulator's
+own noise models, for an ideal estimator.
+
+- Unknowns: each scan's tracker-reading error, carried to the scan origin (``scan_pose_covariance``), and each
+  coordinate transfer's error about the still target (``transfer_covariance``, from the journaled entry);
+  scan ``i`` errs by its own error plus every transfer up to its station (first order, world motions).
+- Data: every overlapping pair (not only those the correction registers), points placed at their true poses
+  and within 1 mm of the other scan, target normals, each point an independent point-to-plane measurement of
+  the pair's relative error with variance 2 sigma^2 (sigma = the scanner's noise along the ray; the sim's
+  noise is independent per point). No method that uses these scans and tracker readings can do better in
+  expectation.
+- Figures: expected median over the scans of the translation error (mm) at the scan origin, tracker-only and
+  at the bound, by sampling (2,000 draws), and their ratio; ``bound_pose_err_mm_median`` is their median
+  over seeds.
+
+The last line of output is one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
+from tandemscan.config import load_config
+from tandemscan.daemon.cli import default_plan_path
+from tandemscan.daemon.runner import JobResult, JobRunner
+from tandemscan.pipeline.cloud_io import read_raw_scan
+from tandemscan.pipeline.deepmerge.overlap import extract_overlap, overlapping_pairs
+from tandemscan.pipeline.deepmerge.register import voxel_downsample
+from tandemscan.pipeline.frames import transform_points
+from tandemscan.pipeline.plan import Plan
+from tandemscan.pipeline.uncertainty import recentre, scan_pose_covariance
+from tandemscan.sim_drivers.cell import build_cell
+
+OVERLAP_MM = 1.0
+DRAWS = 2000
+
+
+def error_model(result: JobResult, T_T_S: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(A, prior, origins)``: scan errors ``e = A theta`` (6 per scan, world, about its origin) from the
+    unknowns ``theta`` (6 per scan reading, then 6 per transfer) with prior covariance ``prior``."""
+    scans, transfers = result.scans, result.report["transfer_log"]
+    n, k = len(scans), len(transfers)
+    origins = np.array([s.T_W_S_true[:3, 3] for s in scans])
+    A = np.zeros((6 * n, 6 * (n + k)))
+    prior = np.zeros((6 * (n + k), 6 * (n + k)))
+    for i, s in enumerate(scans):
+        A[6 * i:6 * i + 6, 6 * i:6 * i + 6] = np.eye(6)
+        prior[6 * i:6 * i + 6, 6 * i:6 * i + 6] = scan_pose_covariance(s.T_W_C, s.reading.T_C_T, T_T_S,
+                                                                       s.reading.covariance)
+    for m, t in enumerate(transfers):
+        col = 6 * (n + m)
+        prior[col:col + 6, col:col + 6] = np.array(t["covariance"])
+        for i, s in enumerate(scans):
+            if s.tracker_station >= t["station"]:
+                A[6 * i:6 * i + 6, col:col + 6] = recentre(t["target_W_mm"], origins[i])
+    return A, prior, origins
+
+
+def overlap_information(result: JobResult, voxel_mm: float, sigma_mm: float, cell_mm: float
+                        ) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+    """``(i, j, centre, information)`` of every overlapping pair at the true poses (t, r about the centre)."""
+    clouds = [transform_points(s.T_W_S_true, voxel_downsample(read_raw_scan(s.file)[0], voxel_mm))
+              for s in result.scans]
+    stations = [s.tracker_station for s in result.scans]
+    out = []
+    for i, j in overlapping_pairs(clouds, stations, cell_mm, len(clouds)):
+        ov = extract_overlap(clouds[j], clouds[i], OVERLAP_MM)
+        if ov.size < 20:
+            continue
+        target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(clouds[i][ov.target_idx]))
+        target.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(20))
+        P = clouds[j][ov.source_idx]
+        _, nearest = cKDTree(np.asarray(target.points)).query(P)
+        N = np.asarray(target.normals)[nearest]
+        c = P.mean(axis=0)
+        J = np.c_[N, np.cross(P - c, N)]
+        out.append((i, j, c, J.T @ J / (2.0 * sigma_mm**2)))
+    return out
+
+
+def expected_median(A: np.ndarray, cov: np.ndarray, n: int, rng: np.random.Generator) -> float:
+    """Expected median over the scans of the translation error norm (mm), ``theta ~ N(0, cov)``."""
+    w, V = np.linalg.eigh(0.5 * (cov + cov.T))
+    theta = rng.standard_normal((DRAWS, len(w))) * np.sqrt(np.clip(w, 0, None)) @ V.T
+    t = (theta @ A.T).reshape(DRAWS, n, 6)[:, :, :3]
+    return float(np.mean(np.median(np.linalg.norm(t, axis=2), axis=1)))
+
+
+def bound(result: JobResult, T_T_S: np.ndarray, config) -> dict:
+    """Tracker-only and best-possible expected median pose error (mm) of the job ``result``."""
+    A, prior, origins = error_model(result, T_T_S)
+    n = len(result.scans)
+    info = np.linalg.inv(prior)
+    pairs = overlap_information(result, config.job.voxel_mm, config.scanner.noise_sigma_mm,
+                                config.deepmerge.pair_cell_mm)
+    for i, j, c, I_ij in pairs:
+        H = recentre(origins[j], c) @ A[6 * j:6 * j + 6] - recentre(origins[i], c) @ A[6 * i:6 * i + 6]
+        info += H.T @ I_ij @ H
+    posterior = np.linalg.inv(info)
+    rng = np.random.default_rng(0)
+    tracker_only = expected_median(A, prior, n, rng)
+    best = expected_median(A, posterior, n, rng)
+    return {"pairs_in_bound": len(pairs), "expected_tracker_only_mm": round(tracker_only, 4),
+            "bound_mm": round(best, 4), "bound_ratio": round(tracker_only / best, 2)}
+
+
+async def one_seed(config, plan: Plan, seed: int) -> dict:
+    config = config.model_copy(update={"sim": config.sim.model_copy(update={"seed": seed})})
+    cell = build_cell(config)
+    await cell.connect()
+    with tempfile.TemporaryDirectory() as tmp:
+        runner = JobRunner(cell, plan, config, Path(tmp) / "job")
+        result = await runner.run()
+        await cell.close()
+        r = result.report
+        before, after = r["correction"].get("before", r["ground_truth"]), r["ground_truth"]
+        figures = {"seed": seed, "scans": r["scans"], "transfers": r["transfers"],
+                   "tracker_only_mm": round(before["pose_err_mm_median"], 4),
+                   "corrected_mm": round(after["pose_err_mm_median"], 4),
+                   "ratio": round(before["pose_err_mm_median"] / after["pose_err_mm_median"], 2)}
+        return figures | bound(result, runner.installation.T_T_S, config)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--plan", help="plan file, or 'generated' to plan the whole part (default: the band plan)")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[7])
+    parser.add_argument("--resolution", choices=["coarse", "full"], default="coarse")
+    args = parser.parse_args()
+    config = load_config(None)
+    config = config.model_copy(update={"scanner": config.scanner.model_copy(update={"resolution": args.resolution})})
+    if args.plan == "generated":
+        from tandemscan.pipeline.part import load_part_mesh
+        from tandemscan.pipeline.planning.planner import plan_part
+
+        start = config.sim.tracking_start
+        plan = plan_part(load_part_mesh(config.part), config, name="generated",
+                         tracker_start=(start.x_mm, start.y_mm, np.radians(start.heading_deg))).sequence.plan
+    else:
+        plan = Plan.load(Path(args.plan) if args.plan else default_plan_path())
+    runs = []
+    for seed in args.seeds:
+        runs.append(asyncio.run(one_seed(config, plan, seed)))
+        print(json.dumps(runs[-1]), flush=True)
+    med = {k: float(np.median([r[k] for r in runs])) for k in
+           ("tracker_only_mm", "corrected_mm", "ratio", "expected_tracker_only_mm", "bound_mm", "bound_ratio")}
+    print(json.dumps({"plan": plan.name, "seeds": args.seeds, "runs": runs,
+                      "pose_err_mm_median": med["tracker_only_mm"], "corrected_pose_err_mm_median": med["corrected_mm"],
+                      "ratio_median": med["ratio"], "bound_pose_err_mm_median": med["bound_mm"],
+                      "expected_tracker_only_mm_median": med["expected_tracker_only_mm"],
+                      "bound_ratio_median": med["bound_ratio"], "five_x_within_bound": med["bound_ratio"] >= 5.0}))
+
+
+if __name__ == "__main__":
+    main()
