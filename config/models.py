@@ -332,10 +332,6 @@ class DeepMergeConfig(_Strict):
     edge_effective_points: float = Field(
         1000.0, gt=0, description="independent points an overlap is worth when weighting a pose-graph edge"
     )
-    edge_scale_iterations: int = Field(
-        3, ge=0, description="re-weight all edges this many times by variance component estimation (their common "
-        "information scale from their residuals against the tracker priors); 0 = edge_effective_points as given"
-    )
     edge_min_eigen_ratio: float = Field(
         0.01, ge=0, lt=1, description="edge directions weaker than this share of the strongest are dropped"
     )

@@ -30,8 +30,7 @@ import numpy as np
 import open3d as o3d
 from numpy.typing import ArrayLike
 from scipy.optimize import least_squares
-from scipy.sparse import csc_matrix, lil_matrix
-from scipy.sparse.linalg import splu
+from scipy.sparse import lil_matrix
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 from tandemscan.pipeline.frames import invert
@@ -299,7 +298,6 @@ class RefineResult:
     cost_after: float
     success: bool
     mount: MountEstimate | None = None
-    edge_information_scale: float = 1.0
 
 
 def refine_poses(
@@ -307,14 +305,8 @@ def refine_poses(
     edges: Sequence[PairEdge],
     transfers: Sequence[TransferPrior] = (),
     mount_prior: MountPrior | None = None,
-    edge_scale_iterations: int = 0,
 ) -> RefineResult:
     """Solve the pose graph; returns refined ``T_W_S`` for every scan.
-
-    ``edge_scale_iterations`` > 0 re-weights the edges that many times by variance component estimation
-    (:meth:`_Graph.edge_variance_factor`): the edges' stated information is only a guess of how independent
-    an overlap's points are, while the tracker priors' covariances are known, so the edges' common scale is
-    taken from their own residuals (``RefineResult.edge_information_scale``).
 
     ``transfers``: the prior of each coordinate transfer, one for every station after the first (a station
     without scans may have one too: its drift still reaches the later ones); stations are numbered in transfer
@@ -326,17 +318,13 @@ def refine_poses(
     if n == 0:
         return RefineResult([], {}, 0.0, 0.0, True)
     graph = _Graph(scans, edges, transfers)
-    L = None
-    if mount_prior is not None:
-        prior = np.asarray(mount_prior.covariance, float)
-        _whitener(prior, True, "mount prior covariance")
-        L = np.linalg.cholesky(0.5 * (prior + prior.T))        # D = L u, u ~ N(0, I) a priori
-    sol, x0 = graph.solve(L)                                    # with a mount: all six directions
-    for _ in range(edge_scale_iterations if len(graph.ei) else 0):
-        graph.edge_scale *= graph.edge_variance_factor(sol)
-        sol, x0 = graph.solve(L)
     if mount_prior is None:
+        sol, x0 = graph.solve(None)
         return graph.result(sol, x0, None)
+    prior = np.asarray(mount_prior.covariance, float)
+    _whitener(prior, True, "mount prior covariance")
+    L = np.linalg.cholesky(0.5 * (prior + prior.T))            # D = L u, u ~ N(0, I) a priori
+    sol, x0 = graph.solve(L)                                    # all six directions
     data_u = _schur(graph.data_jacobian(sol.jac, 6), graph.n_blocks)   # data information on u
     ratio, U = np.linalg.eigh(0.5 * (data_u + data_u.T))
     observed = ratio >= mount_prior.min_information_ratio
@@ -401,8 +389,6 @@ class _Graph:
         self.Z = np.stack([invert(P[e.i]) @ e.correction @ P[e.j] for e in edges]) if edges else np.zeros((0, 4, 4))
         self.We = np.stack([_whitener(e.information, False, f"edge ({e.i}, {e.j})") for e in edges]) if edges else None
         self.ec = np.stack([np.asarray(e.centre_mm, float) for e in edges]) if edges else np.zeros((0, 3))
-        self.edge_rank = sum(int(np.count_nonzero(np.any(W != 0, axis=1))) for W in self.We) if edges else 0
-        self.edge_scale = 1.0                       # common factor of every edge's information
         self.B: np.ndarray | None = None
 
     def station_corrections(self, X: np.ndarray) -> dict[int, np.ndarray]:
@@ -411,7 +397,6 @@ class _Graph:
             A = _about(-self.centres[k], _exp(X[self.col[k]][None]))[0] @ A
             out[k] = A
         return out
-
 
     def mount(self, x: np.ndarray) -> np.ndarray:
         """The 6-vector of ``D`` (t mm, rotvec rad) at ``x`` (zero without a mount unknown)."""
@@ -432,27 +417,9 @@ class _Graph:
         if len(self.ei):
             Xp = self.poses(x)
             E = Xp[self.ei] @ self.Z @ np.linalg.inv(Xp[self.ej])
-            r.append(np.sqrt(self.edge_scale) * np.einsum("nij,nj->ni", self.We, _log(_about(self.ec, E))).ravel())
+            r.append(np.einsum("nij,nj->ni", self.We, _log(_about(self.ec, E))).ravel())
         r.append(x[self.n_blocks:])                                 # the mount prior, whitened
         return np.concatenate(r)
-
-    def edge_variance_factor(self, sol, probes: int = 32) -> float:
-        """How much to multiply the edges' information by so that their whitened residuals have unit
-        variance at the solution ``sol``: redundancy / sum of squared edge residuals (Helmert's variance
-        component estimate). The redundancy is the edges' rank less their share of the unknowns, the trace of
-        their hat matrix ``J_e N^-1 J_e^T`` (eigenvalues in [0, 1]), estimated with ``probes`` random sign
-        vectors (fixed seed)."""
-        rows = slice(6 * self.n + 6 * len(self.movable), 6 * self.n + 6 * len(self.movable) + 6 * len(self.ei))
-        J = csc_matrix(sol.jac)
-        Je = J[rows]
-        N = (J.T @ J).tocsc()
-        Z = np.random.default_rng(0).choice([-1.0, 1.0], (Je.shape[0], probes))
-        share = float(np.mean(np.sum(Z * (Je @ splu(N).solve(Je.T @ Z)), axis=0)))
-        redundancy = self.edge_rank - share
-        sq = float(np.sum(sol.fun[rows] ** 2))
-        if redundancy <= 0 or sq <= 0:
-            return 1.0
-        return redundancy / sq
 
     def data_jacobian(self, jac, k: int) -> np.ndarray:
         """Dense Jacobian without the mount prior's ``k`` rows (the last ones)."""
@@ -506,5 +473,4 @@ class _Graph:
                      np.round(d[:3], 4), np.round(np.degrees(d[3:]), 5), k)
         log.info("pose graph: %d scans, %d edges, %d transfers; cost %.3g -> %.3g", self.n, len(self.ei),
                  len(self.movable), cost0, sol.cost)
-        return RefineResult([T for T in out], corr, cost0, float(sol.cost), bool(sol.success), estimate,
-                            self.edge_scale)
+        return RefineResult([T for T in out], corr, cost0, float(sol.cost), bool(sol.success), estimate)

@@ -72,11 +72,9 @@ def _strip(n_scans: int = 12, per_station: int = 3, seed: int = 2):
     return truth, priors, transfers, rng
 
 
-def _edges(truth, priors, rng, pairs, noise_mm=0.005, noise_rad=8.7e-6, stated=1.0):
-    """Relative-pose edges with noise of the given 1-sigma; their information is stated ``stated`` times
-    the true one."""
+def _edges(truth, priors, rng, pairs, noise_mm=0.005, noise_rad=8.7e-6):
     edges = []
-    info = stated * np.diag([1 / noise_mm**2] * 3 + [1 / noise_rad**2] * 3)
+    info = np.diag([1 / noise_mm**2] * 3 + [1 / noise_rad**2] * 3)
     for i, j in pairs:
         P_i, P_j = priors[i].T_W_S, priors[j].T_W_S
         C = P_i @ invert(truth[i]) @ truth[j] @ invert(P_j)
@@ -101,22 +99,6 @@ def test_pose_graph_removes_drift_accumulated_across_transfers():
     assert np.median(after[drifted, 1]) * 5 < np.median(before[drifted, 1])
     assert np.median(after[:, 0]) < 0.05
     assert set(res.station_corrections) == {1, 2, 3}
-
-
-@pytest.mark.parametrize("stated", [0.1, 1.0])
-def test_variance_component_estimation_finds_the_edges_true_weight(stated):
-    """Edges whose information is stated 10x too weak get it back from their residuals; right ones stay."""
-    truth, priors, transfers, rng = _strip(n_scans=18, per_station=6)
-    n = len(truth)
-    pairs = [(i, i + 1) for i in range(n - 1)] + [(i, i + 2) for i in range(n - 2)]   # loops: redundancy
-    edges = _edges(truth, priors, rng, pairs, noise_mm=0.002, noise_rad=4e-6, stated=stated)
-    fixed = refine_poses(priors, edges, transfers)
-    res = refine_poses(priors, edges, transfers, edge_scale_iterations=3)
-    assert fixed.edge_information_scale == 1.0
-    assert 0.6 / stated < res.edge_information_scale < 1.6 / stated
-    err = {name: np.median([pose_error(T, X)[0] for T, X in zip(r.poses, truth, strict=True)])
-           for name, r in (("fixed", fixed), ("estimated", res))}
-    assert err["estimated"] <= err["fixed"] * (0.9 if stated < 1 else 1.05), err
 
 
 def test_pose_graph_without_edges_keeps_the_tracker_poses():

@@ -219,7 +219,7 @@ def correct_scans(
             edges.append((i, j, pc))
     graph_edges = [_edge(i, j, pc, cfg) for i, j, pc in edges if pc.fit.inliers >= 6]
     priors = [ScanPrior(s.T_W_S, s.covariance, s.station) for s in scans]
-    res = refine_poses(priors, graph_edges, transfers, mount_prior, cfg.edge_scale_iterations)
+    res = refine_poses(priors, graph_edges, transfers, mount_prior)
     before = [s.T_W_S for s in scans]
     rms_b, rms_a = _overlap_rms(local, edges, before, res.poses, cfg)
     moves = [pose_error(a, b) for a, b in zip(res.poses, before, strict=True)]
@@ -233,8 +233,6 @@ def correct_scans(
         "pose_change_deg_median": float(np.degrees(np.median([m[1] for m in moves]))) if moves else 0.0,
         "graph_cost_before": res.cost_before,
         "graph_cost_after": res.cost_after,
-        "edge_information_scale": res.edge_information_scale,
-        "edge_effective_points": cfg.edge_effective_points * res.edge_information_scale,
     }
     log.info("correction: %d scans, %d pairs, overlap RMS %.4f -> %.4f mm", len(scans), len(edges), rms_b, rms_a)
     return CorrectionResult(res.poses, edges, report, res.mount)
