@@ -21,14 +21,14 @@ def scan_pose_covariance(T_W_C: ArrayLike, T_C_T: ArrayLike, T_T_S: ArrayLike, r
     First order: a target rotation ``dr`` moves the scan origin by ``dr x (R_C_T t_T_S)``.
     """
     T_W_C, T_C_T, T_T_S = (np.asarray(a, float) for a in (T_W_C, T_C_T, T_T_S))
-    C = np.asarray(reading_cov, float)
-    lever_C = T_C_T[:3, :3] @ T_T_S[:3, 3]
-    J = np.zeros((6, 6))
-    J[:3, :3] = np.eye(3)
-    J[:3, 3:] = -_skew(lever_C)
-    J[3:, 3:] = np.eye(3)
-    R = np.kron(np.eye(2), T_W_C[:3, :3])
-    return R @ J @ C @ J.T @ R.T
+    C_C = covariance_about(reading_cov, np.zeros(3), T_C_T[:3, :3] @ T_T_S[:3, 3])   # target -> scan origin
+    return _to_world(T_W_C, C_C)
+
+
+def _to_world(T_W_C: ArrayLike, covariance: ArrayLike) -> np.ndarray:
+    """A 6x6 (t, r) covariance in camera axes, turned into world axes."""
+    R = np.kron(np.eye(2), np.asarray(T_W_C, float)[:3, :3])
+    return R @ np.asarray(covariance, float) @ R.T
 
 
 def transfer_covariance(T_W_C_before: ArrayLike, cov_before: ArrayLike, T_W_C_after: ArrayLike, cov_after: ArrayLike
@@ -40,11 +40,7 @@ def transfer_covariance(T_W_C_before: ArrayLike, cov_before: ArrayLike, T_W_C_af
     the reading after it misplaces the new camera about the target by the opposite of its error (camera
     axes of the new station). Both are independent, so their covariances, turned into world axes, add.
     """
-    out = np.zeros((6, 6))
-    for T_W_C, C in ((T_W_C_before, cov_before), (T_W_C_after, cov_after)):
-        R = np.kron(np.eye(2), np.asarray(T_W_C, float)[:3, :3])
-        out += R @ np.asarray(C, float) @ R.T
-    return out
+    return _to_world(T_W_C_before, cov_before) + _to_world(T_W_C_after, cov_after)
 
 
 def recentre(centre_mm: ArrayLike, new_centre_mm: ArrayLike) -> np.ndarray:
