@@ -3,7 +3,7 @@
 Usage: python benchmarks/pose_bound.py [--plan FILE|generated] [--seeds 7 8 9] [--resolution coarse|full]
 (band plan: about 1 min a seed on the 2-core machine; the whole part, --plan generated: about 25 min)
 
-For each seed the default job runs on the simulated cell with its correction (``[deepmerge]``), and the
+For each seed the default job runs on the simulated cell with its correction (``[correction]``), and the
 realised figures (tracker-only and corrected median pose error, mm) are put beside the bound of the same
 job: the posterior covariance of every scan pose given everything the job measured, under the simulator's
 own noise models, for an ideal estimator.
@@ -40,10 +40,10 @@ from tandemscan.config import load_config
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.runner import JobResult, JobRunner
 from tandemscan.pipeline.cloud_io import read_raw_scan
-from tandemscan.pipeline.deepmerge.overlap import extract_overlap, overlapping_pairs
-from tandemscan.pipeline.deepmerge.register import voxel_downsample
 from tandemscan.pipeline.frames import transform_points
 from tandemscan.pipeline.plan import Plan
+from tandemscan.pipeline.registration.overlap import extract_overlap, overlapping_pairs
+from tandemscan.pipeline.registration.sampling import voxel_downsample
 from tandemscan.pipeline.uncertainty import recentre, scan_pose_covariance
 from tandemscan.sim_drivers.cell import build_cell
 
@@ -108,7 +108,7 @@ def bound(result: JobResult, T_T_S: np.ndarray, config) -> dict:
     n = len(result.scans)
     info = np.linalg.inv(prior)
     pairs = overlap_information(result, config.job.voxel_mm, config.scanner.noise_sigma_mm,
-                                config.deepmerge.pair_cell_mm)
+                                config.correction.pair_cell_mm)
     for i, j, c, I_ij in pairs:
         H = recentre(origins[j], c) @ A[6 * j:6 * j + 6] - recentre(origins[i], c) @ A[6 * i:6 * i + 6]
         info += H.T @ I_ij @ H

@@ -37,12 +37,12 @@ import numpy as np
 import open3d as o3d
 import torch
 from scipy.spatial.transform import Rotation
-from tandemscan.config.models import DeepMergeConfig
-from tandemscan.pipeline.deepmerge.correct import keep_if_better, register_overlap
-from tandemscan.pipeline.deepmerge.overlap import extract_overlap
+from tandemscan.config.models import CorrectionConfig
 from tandemscan.pipeline.deepmerge.register import DeepMergeRegistrar
 from tandemscan.pipeline.frames import from_quaternion, invert, make_transform, transform_points
-from tandemscan.pipeline.refine import icp_point_to_plane, target_with_normals
+from tandemscan.pipeline.registration.icp import icp_point_to_plane, target_with_normals
+from tandemscan.pipeline.registration.overlap import extract_overlap
+from tandemscan.pipeline.registration.pairs import keep_if_better, register_overlap
 
 METHODS = ("icp", "deepmerge", "deepmerge_guarded", "deepmerge+icp")
 SETS = ("real", "real_arbitrary", "real_conf", "sim")
@@ -203,14 +203,14 @@ def sim_pairs(min_overlap: int = 200, delta_mm: float = 3.0):
     from tandemscan.daemon.cli import default_plan_path
     from tandemscan.daemon.runner import JobRunner
     from tandemscan.pipeline.cloud_io import read_raw_scan
-    from tandemscan.pipeline.deepmerge.register import voxel_downsample
     from tandemscan.pipeline.plan import Plan
+    from tandemscan.pipeline.registration.sampling import voxel_downsample
     from tandemscan.sim_drivers.cell import build_cell
 
     config = load_config(None)
     config = config.model_copy(update={
         "scanner": config.scanner.model_copy(update={"resolution": "coarse"}),
-        "deepmerge": config.deepmerge.model_copy(update={"enabled": False})})
+        "correction": config.correction.model_copy(update={"enabled": False})})
 
     async def job():
         cell = build_cell(config)
@@ -273,7 +273,7 @@ def main() -> None:
         raise SystemExit(f"unknown sets {sorted(sets - set(SETS))}")
     torch.set_num_threads(1)
     rng = np.random.default_rng(args.seed)
-    cfg = DeepMergeConfig(icp_max_distance_mm=1.5)
+    cfg = CorrectionConfig(icp_max_distance_mm=1.5)
     registrar = DeepMergeRegistrar.load(args.weights, num_points=args.points)
     if args.iterations:
         registrar.iterations = args.iterations
@@ -287,7 +287,7 @@ def main() -> None:
         out |= real_sets(scans, sets, args, cfg, registrar, rng) | timing(scans, registrar, rng)
     if "sim" in sets:
         pairs, delta = sim_pairs()
-        sim_cfg = DeepMergeConfig()
+        sim_cfg = CorrectionConfig()
         out |= summarise([scored(s, t, M, delta, sim_cfg, registrar) for s, t, M in pairs], "sim")[0]
     out["load_average_1min"] = os.getloadavg()[0]
     print(json.dumps(out))

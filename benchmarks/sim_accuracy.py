@@ -6,7 +6,7 @@ The last line of output is one JSON object with keys scans (measured), scans_pla
 the depth window), relocalisation figures (AGV stations located, poses scanned with a nearby view, unresolved
 poses, located-vs-true AGV pose, largest drift off plan), transfers, pose_err_mm_median, pose_err_mm_max,
 pose_err_deg_median, cloud_rms_mm, cloud_p95_mm for the tracker-only stitch, ``corrected_*`` after DeepMerge
-correction and pose-graph refinement (when ``[deepmerge] enabled``), and seconds (the job; ``job_cpu_seconds``
+correction and pose-graph refinement (when ``[correction] enabled``), and seconds (the job; ``job_cpu_seconds``
 of this process).
 """
 

@@ -6,12 +6,15 @@ Units: millimetres, radians inside. Where a TOML key is a human-facing angle it 
 
 from __future__ import annotations
 
+import logging
 import math
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+log = logging.getLogger(__name__)
 
 DriverKind = Literal["sim", "real"]
 
@@ -305,14 +308,14 @@ class JobConfig(_Strict):
     )
 
 
-class DeepMergeConfig(_Strict):
-    """Stitching correction (DeepMerge + point-to-plane ICP) and the global pose-graph refinement."""
+class CorrectionConfig(_Strict):
+    """Whole-job stitching correction (docs/registration.md): which pairs, the pair registration method, the
+    fine ICP, the pose-graph edges and the shared scanner-mount unknown."""
 
     enabled: bool = True
     method: Literal["deepmerge", "icp", "deepmerge+icp"] = Field(
-        "icp", description="icp: DeepMerge is coarser than the tracker stitch of the cell (docs/deepmerge.md)"
+        "icp", description="icp: DeepMerge is coarser than the tracker stitch of the cell (docs/registration.md)"
     )
-    weights: Path | None = Field(None, description="trained weights (.pt); empty = the ones shipped in the package")
     overlap_delta_mm: float | None = Field(
         None, gt=0, description="overlap = points whose nearest neighbour is closer; empty = from tracker covariance"
     )
@@ -325,8 +328,6 @@ class DeepMergeConfig(_Strict):
         "and as many of the others, those sharing the most grid cells with it"
     )
     icp_max_points: int = Field(8000, ge=100, description="overlaps are thinned evenly to this many points per cloud")
-    num_points: int = Field(2048, ge=64, description="overlap points per cloud fed to the network")
-    neighbours: int = Field(10, ge=4, description="k of the k x 14 point structure")
     icp_max_distance_mm: float = Field(2.0, gt=0, description="point-to-plane ICP correspondence distance, mm")
     icp_iterations: int = Field(50, ge=1)
     edge_effective_points: float = Field(
@@ -347,6 +348,35 @@ class DeepMergeConfig(_Strict):
         1.0, ge=0, description="a direction of the T_T_S correction is estimated only where the overlaps give "
         "at least this times the prior's information; the others stay at the prior"
     )
+
+
+class DeepMergeConfig(_Strict):
+    """The DeepMerge registration network (docs/deepmerge.md): its weights and inference size."""
+
+    weights: Path | None = Field(None, description="trained weights (.pt); empty = the ones shipped in the package")
+    num_points: int = Field(2048, ge=64, description="overlap points per cloud fed to the network")
+    neighbours: int = Field(10, ge=4, description="k of the k x 14 point structure")
+
+
+#: keys that moved from ``[deepmerge]`` to ``[correction]``; the old place is read, with a warning, for one release
+MOVED_TO_CORRECTION = tuple(k for k in CorrectionConfig.model_fields if k not in DeepMergeConfig.model_fields)
+
+
+def move_deprecated_correction_keys(raw: dict) -> dict:
+    """``raw`` (a cell configuration as read from TOML) with the correction keys found under ``[deepmerge]``
+    moved to ``[correction]``, each move logged as a deprecation warning; a key set in both places is an
+    error."""
+    old = raw.get("deepmerge")
+    if not isinstance(old, dict) or not set(old) & set(MOVED_TO_CORRECTION):
+        return raw
+    new = dict(raw.get("correction") or {})
+    for key in [k for k in old if k in MOVED_TO_CORRECTION]:
+        if key in new:
+            raise ValueError(f"deepmerge.{key} is set in [deepmerge] and [correction]: keep [correction] only")
+        log.warning("config: [deepmerge] %s is deprecated and will be removed in the next release; "
+                    "set it in [correction]", key)
+        new[key] = old[key]
+    return {**raw, "deepmerge": {k: v for k, v in old.items() if k not in MOVED_TO_CORRECTION}, "correction": new}
 
 
 class RegionConfig(_Strict):
@@ -480,6 +510,12 @@ class CellConfig(_Strict):
     inspection: InspectionConfig = InspectionConfig()
     calibration: CalibrationConfig = CalibrationConfig()
     planning: PlanningConfig = PlanningConfig()
+    correction: CorrectionConfig = CorrectionConfig()
     deepmerge: DeepMergeConfig = DeepMergeConfig()
     daemon: DaemonConfig = DaemonConfig()
     hil: HilConfig = HilConfig()
+
+    @model_validator(mode="before")
+    @classmethod
+    def _deprecated_correction_keys(cls, data):
+        return move_deprecated_correction_keys(data) if isinstance(data, dict) else data

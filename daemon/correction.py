@@ -1,14 +1,14 @@
-"""Correct + refine step of a job (DESIGN.md 5.5-5.6): the runner's scans in, refined poses and a new stitch out.
+"""Correct + refine step of a job (docs/registration.md): the runner's scans in, refined poses and a new stitch out.
 
 Reads every persisted raw scan back, carries each tracker reading's covariance to its scan pose, takes each
 coordinate transfer's error prior from its journaled entry, runs
-``pipeline.deepmerge.correct.correct_scans`` (pairwise DeepMerge/ICP corrections and the pose graph over all
+``pipeline.registration.correction.correct_scans`` (pairwise DeepMerge/ICP corrections and the pose graph over all
 scans and tracker stations), then rebuilds the world map with the refined poses. Report figures before and
 after are returned for ``report.json``.
 
-With ``deepmerge.estimate_mount`` the graph also estimates the shared correction of the scanner mount
-``T_T_S`` (``refine.MountPrior``), with a prior per ``job.installation_source``: the calibration file's
-hand-eye covariance, the CAD tolerance ``deepmerge.mount_nominal_sigma_*`` for nominal mounts, and a tight
+With ``correction.estimate_mount`` the graph also estimates the shared correction of the scanner mount
+``T_T_S`` (``registration.mounts.MountPrior``), with a prior per ``job.installation_source``: the calibration file's
+hand-eye covariance, the CAD tolerance ``correction.mount_nominal_sigma_*`` for nominal mounts, and a tight
 one for the simulator's ground truth.
 """
 
@@ -21,8 +21,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 from tandemscan.daemon.report import ground_truth_scores
 from tandemscan.pipeline.cloud_io import read_raw_scan
-from tandemscan.pipeline.deepmerge.correct import StitchedScan, correct_scans
-from tandemscan.pipeline.refine import MountPrior, TransferPrior
+from tandemscan.pipeline.registration.correction import StitchedScan, correct_scans
+from tandemscan.pipeline.registration.mounts import MountPrior
+from tandemscan.pipeline.registration.pairs import NETWORK_METHODS, load_registrar
+from tandemscan.pipeline.registration.pose_graph import TransferPrior
 from tandemscan.pipeline.uncertainty import scan_pose_covariance
 from tandemscan.pipeline.worldmap import VoxelMap
 
@@ -43,7 +45,7 @@ def _diagonal(sigma_mm: float, sigma_rad: float) -> np.ndarray:
 
 def mount_prior(job: JobSnapshot) -> tuple[MountPrior | None, str]:
     """The prior of the shared ``T_T_S`` correction for this job and where it came from."""
-    cfg, dm = job.config, job.config.deepmerge
+    cfg, dm = job.config, job.config.correction
     if not dm.estimate_mount:
         return None, "off"
     source = cfg.job.installation_source
@@ -67,7 +69,7 @@ def correct_job(job: JobSnapshot) -> tuple[dict, list[np.ndarray]]:
     ``T_W_S`` (mm) in scan order.
     """
     started = time.monotonic()
-    cfg = job.config.deepmerge
+    cfg = job.config.correction
     before = None
     if job.world is not None:
         before = {k: v for k, v in ground_truth_scores(job).items() if k in _GROUND_TRUTH_KEYS}
@@ -79,7 +81,8 @@ def correct_job(job: JobSnapshot) -> tuple[dict, list[np.ndarray]]:
     transfers = [TransferPrior(t["station"], np.array(t["target_W_mm"]), np.array(t["covariance"]))
                  for t in job.transfers]
     prior, prior_source = mount_prior(job)
-    result = correct_scans(scans, cfg, transfers=transfers, voxel_mm=job.config.job.voxel_mm,
+    registrar = load_registrar(job.config.deepmerge) if cfg.method in NETWORK_METHODS else None
+    result = correct_scans(scans, cfg, registrar, transfers=transfers, voxel_mm=job.config.job.voxel_mm,
                            mount_prior=prior)
     job.worldmap = VoxelMap(job.config.job.voxel_mm)
     for s, T, (points, normals) in zip(job.scans, result.poses, raw, strict=True):

@@ -47,15 +47,16 @@ def cmd_register(args: argparse.Namespace) -> int:
     import numpy as np
     from tandemscan.daemon.cli import UsageError
     from tandemscan.pipeline.cloud_io import CloudIOError, read_ply
-    from tandemscan.pipeline.deepmerge.correct import register_clouds
     from tandemscan.pipeline.deepmerge.register import RegistrationError
+    from tandemscan.pipeline.registration.pairs import NETWORK_METHODS, load_registrar, register_clouds
 
     config = load_config(args.config)
     try:
         source, _ = read_ply(Path(args.source))
         target, _ = read_ply(Path(args.target))
         init = np.loadtxt(args.init).reshape(4, 4) if args.init else None
-        T, fit = register_clouds(source, target, config.deepmerge, args.method, init, args.delta_mm)
+        registrar = load_registrar(config.deepmerge) if args.method in NETWORK_METHODS else None
+        T, fit = register_clouds(source, target, config.correction, args.method, init, args.delta_mm, registrar)
     except (CloudIOError, RegistrationError, OSError, ValueError) as e:
         raise UsageError(str(e)) from e
     text = "\n".join(" ".join(f"{v:.9g}" for v in row) for row in T)
@@ -88,6 +89,6 @@ def register(sub) -> None:
     p.add_argument("--init", type=Path, help="text file with the initial 4x4 (source into target)")
     p.add_argument("--method", choices=["deepmerge", "icp", "deepmerge+icp"], default="deepmerge+icp")
     p.add_argument("--delta-mm", type=float, default=5.0, help="overlap threshold after --init, mm")
-    p.add_argument("--config", type=Path, help="cell configuration TOML ([deepmerge] settings)")
+    p.add_argument("--config", type=Path, help="cell configuration TOML ([correction] and [deepmerge] settings)")
     p.add_argument("--out", type=Path, help="also write the 4x4 to this file")
     p.set_defaults(func=cmd_register)

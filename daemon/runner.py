@@ -225,7 +225,7 @@ class JobRunner:
             result, scan = await self.journal.run_step(i, lambda i=i, step=step: self._execute(i, step))
             await self.journal.commit(i, step.kind, result, *(scan or ()))
         measured = [s for s in self.scans if s.point_count > 0]  # a scan that saw nothing has nothing to correct
-        if self.config.deepmerge.enabled and len(measured) > 1:
+        if self.config.correction.enabled and len(measured) > 1:
             self.progress(JobProgress(total - 1, total, "correcting the stitch (DeepMerge, pose graph)"))
             self.correction, poses = await self.worldmap.run(correct, self.snapshot(measured))
             for s, T_W_S in zip(measured, poses, strict=True):

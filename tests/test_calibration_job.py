@@ -53,7 +53,7 @@ async def test_calibration_job_recovers_the_true_scanner_mount(sim_config, tmp_p
         priors[source], label = mount_prior(SimpleNamespace(config=cfg, installation=used))
         assert label == expected
     np.testing.assert_allclose(priors["calibration"].covariance, cov)
-    assert np.sqrt(priors["nominal"].covariance[0, 0]) == config.deepmerge.mount_nominal_sigma_mm
+    assert np.sqrt(priors["nominal"].covariance[0, 0]) == config.correction.mount_nominal_sigma_mm
     assert np.all(np.diag(priors["truth"].covariance) < np.diag(cov) * 1e-3)
-    off = config.model_copy(update={"deepmerge": config.deepmerge.model_copy(update={"estimate_mount": False})})
+    off = config.model_copy(update={"correction": config.correction.model_copy(update={"estimate_mount": False})})
     assert mount_prior(SimpleNamespace(config=off, installation=used)) == (None, "off")

@@ -42,3 +42,28 @@ def test_missing_and_malformed_files(tmp_path):
 def test_relative_mesh_path_resolves_against_the_file(tmp_path):
     (tmp_path / "c.toml").write_text('[part]\nmesh = "part.stl"\n')
     assert load_config(tmp_path / "c.toml").part.mesh == tmp_path / "part.stl"
+
+
+def test_correction_keys_under_deepmerge_still_work_with_a_deprecation_warning(tmp_path, caplog):
+    old = tmp_path / "old.toml"
+    old.write_text('[deepmerge]\nenabled = false\nmethod = "deepmerge+icp"\nnum_points = 512\n')
+    with caplog.at_level("WARNING", logger="tandemscan.config.models"):
+        config = load_config(old)
+    assert not config.correction.enabled and config.correction.method == "deepmerge+icp"
+    assert config.deepmerge.num_points == 512
+    warned = [r.getMessage() for r in caplog.records if "deprecated" in r.getMessage()]
+    assert len(warned) == 2 and any("enabled" in w for w in warned) and all("[correction]" in w for w in warned)
+
+
+def test_a_correction_key_in_both_sections_is_an_error(tmp_path):
+    both = tmp_path / "both.toml"
+    both.write_text('[deepmerge]\nmethod = "icp"\n[correction]\nmethod = "deepmerge"\n')
+    with pytest.raises(ConfigError, match=r"deepmerge\.method is set in \[deepmerge\] and \[correction\]"):
+        load_config(both)
+
+
+def test_the_network_section_rejects_what_is_no_correction_key(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[deepmerge]\nicp_max_distanse_mm = 2.0\n')
+    with pytest.raises(ConfigError, match="deepmerge.icp_max_distanse_mm"):
+        load_config(bad)

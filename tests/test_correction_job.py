@@ -21,7 +21,7 @@ def _first_scans(plan: Plan, n: int) -> Plan:
 
 @pytest.mark.slow
 async def test_runner_corrects_the_stitch_and_reports_before_and_after(sim_config, tmp_path):
-    cfg = sim_config.model_copy(update={"deepmerge": sim_config.deepmerge.model_copy(update={"method": "icp"})})
+    cfg = sim_config.model_copy(update={"correction": sim_config.correction.model_copy(update={"method": "icp"})})
     cell = build_cell(cfg)
     await cell.connect()
     try:

@@ -199,7 +199,7 @@ def test_sigkill_mid_job_resumes_with_every_scan_once(tmp_path, reference):
     config = tmp_path / "cell.toml"
     # motion takes wall time (a transfer lasts ~0.1 s); no correction step, so the export is all that is left
     # at the last kill and the test stays short: the figures compare with the reference's tracker-only ones
-    config.write_text("[sim]\ntime_scale = 0.02\n[deepmerge]\nenabled = false\n")
+    config.write_text("[sim]\ntime_scale = 0.02\n[correction]\nenabled = false\n")
     daemon = DaemonProcess(state, config)
     hits = []
     try:

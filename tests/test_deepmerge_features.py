@@ -10,7 +10,7 @@ from tandemscan.pipeline.deepmerge.features import (
     plane_normals,
     point_structure,
 )
-from tandemscan.pipeline.deepmerge.overlap import (
+from tandemscan.pipeline.registration.overlap import (
     OverlapError,
     delta_from_covariance,
     extract_overlap,

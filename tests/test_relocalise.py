@@ -36,7 +36,7 @@ def drifting(sim_config):
     chassis = sim_config.measure_chassis.model_copy(update={"slip_distance_fraction": 0.05, "slip_heading_deg": 2.0})
     return sim_config.model_copy(update={
         "measure_chassis": chassis,
-        "deepmerge": sim_config.deepmerge.model_copy(update={"enabled": False}),
+        "correction": sim_config.correction.model_copy(update={"enabled": False}),
         "inspection": sim_config.inspection.model_copy(update={"in_job": False}),
     })
 
@@ -181,7 +181,7 @@ async def test_a_scan_that_saw_nothing_is_left_out_of_the_correction(sim_config,
     home = tuple(np.radians(sim_config.sim.arm_home_deg))
     plan = Plan(name="one empty", steps=[*band.steps[: two + 1], MoveArm(joints_rad=home), Scan(label="sky")])
     config = sim_config.model_copy(update={
-        "deepmerge": sim_config.deepmerge.model_copy(update={"method": "icp"}),
+        "correction": sim_config.correction.model_copy(update={"method": "icp"}),
         "inspection": sim_config.inspection.model_copy(update={"in_job": False}),
     })
     result, _ = await run(config, plan, tmp_path)

@@ -32,7 +32,7 @@ def short_plan() -> Plan:
 def stitch_only_config(sim_config):
     """The sim cell with the tracker-only stitch: no correction, no HTML report (their own tests cover them)."""
     return sim_config.model_copy(update={
-        "deepmerge": sim_config.deepmerge.model_copy(update={"enabled": False}),
+        "correction": sim_config.correction.model_copy(update={"enabled": False}),
         "inspection": sim_config.inspection.model_copy(update={"in_job": False}),
     })
 

@@ -1,6 +1,6 @@
-"""DeepMerge: learned correction of the tracker stitch from the overlap of scan pairs (DESIGN.md 5.5).
+"""DeepMerge: the learned registration network of scan pairs (docs/deepmerge.md).
 
-``overlap`` finds the overlap after the initial stitch, ``features`` builds the ``k x 14`` point
-structure, ``model`` is the network (PyTorch), ``register`` runs it on two clouds in millimetres and
-``train`` makes the training data and fits the shipped weights.
+``features`` builds the ``k x 14`` point structure, ``model`` is the network (PyTorch), ``register`` runs it on
+two clouds in millimetres, ``shapes`` and ``train`` make the training data and fit the shipped weights. The
+overlap, ICP, pose graph and whole-job correction it feeds are in ``pipeline.registration``.
 """

@@ -1,4 +1,4 @@
-"""Per-point structure fed to DeepMerge (DESIGN.md 5.5): ``k x 7`` local and ``k x 14`` with the global part.
+"""Per-point structure fed to DeepMerge (docs/deepmerge.md): ``k x 7`` local and ``k x 14`` with the global part.
 
 For a centre point ``p`` with k nearest neighbours ``q_1..q_k`` (the first is ``p`` itself):
 

@@ -19,6 +19,7 @@ from numpy.typing import ArrayLike
 from tandemscan.pipeline.deepmerge.features import plane_normals, point_structure, reference_direction
 from tandemscan.pipeline.deepmerge.model import DeepMerge
 from tandemscan.pipeline.frames import make_transform
+from tandemscan.pipeline.registration.sampling import voxel_downsample
 
 log = logging.getLogger(__name__)
 
@@ -61,16 +62,6 @@ class Normalisation:
         """4x4 (mm) of a transform estimated between normalised clouds."""
         c = self.centre_mm
         return make_transform(R, self.scale_mm * t_normalised + c - R @ c)
-
-
-def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
-    """Centroid of the points in each occupied voxel of edge ``voxel``."""
-    keys = np.floor(points / voxel).astype(np.int64)
-    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.ravel()
-    out = np.zeros((len(counts), 3))
-    np.add.at(out, inverse, points)
-    return out / counts[:, None]
 
 
 def prepare_cloud(

@@ -29,7 +29,6 @@ import torch
 from scipy.spatial.transform import Rotation
 from tandemscan.pipeline.deepmerge.features import reference_direction
 from tandemscan.pipeline.deepmerge.model import WIDTHS, DeepMerge, rigid_errors
-from tandemscan.pipeline.deepmerge.overlap import extract_overlap
 from tandemscan.pipeline.deepmerge.register import (
     COARSE_ITERATIONS,
     COARSE_POINTS,
@@ -39,6 +38,7 @@ from tandemscan.pipeline.deepmerge.register import (
     prepare_cloud,
 )
 from tandemscan.pipeline.deepmerge.shapes import random_shape, simulated_part_mesh
+from tandemscan.pipeline.registration.overlap import extract_overlap
 
 log = logging.getLogger(__name__)
 

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from tandemscan.config.models import DeepMergeConfig
-from tandemscan.pipeline.deepmerge.correct import StitchedScan, correct_pair, correct_scans
+from tandemscan.config.models import CorrectionConfig
 from tandemscan.pipeline.frames import compose, from_rotvec, invert, pose_error, transform_points
-from tandemscan.pipeline.refine import TransferPrior
+from tandemscan.pipeline.registration.correction import StitchedScan, correct_scans
+from tandemscan.pipeline.registration.pairs import correct_pair
+from tandemscan.pipeline.registration.pose_graph import TransferPrior
 
 
 def surface(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -45,7 +46,7 @@ def scans_with_drift(n: int = 6, per_station: int = 2, seed: int = 0):
 
 def test_icp_correction_and_pose_graph_remove_transfer_drift():
     truth, scans, transfers = scans_with_drift()
-    cfg = DeepMergeConfig(method="icp", min_overlap_points=100)
+    cfg = CorrectionConfig(method="icp", min_overlap_points=100)
     res = correct_scans(scans, cfg, transfers=transfers)
     assert res.report["pairs"] >= 5
     before = np.array([pose_error(s.T_W_S, X)[0] for s, X in zip(scans, truth, strict=True)])
@@ -59,14 +60,14 @@ def test_correct_pair_needs_overlap_and_a_delta():
     truth, scans, _ = scans_with_drift(n=2, per_station=1)
     a = transform_points(scans[0].T_W_S, scans[0].points_S)
     b = transform_points(scans[1].T_W_S, scans[1].points_S)
-    cfg = DeepMergeConfig(method="icp", overlap_delta_mm=3.0)
+    cfg = CorrectionConfig(method="icp", overlap_delta_mm=3.0)
     pc = correct_pair(b, a, cfg, None)
     assert pc is not None and pc.overlap_points > 1000 and pc.delta_mm == 3.0
     assert pc.fit.rmse_mm < pc.rmse_before_mm
     far = b + [5000.0, 0, 0]
     assert correct_pair(far, a, cfg, None) is None
     with pytest.raises(ValueError, match="overlap_delta_mm"):
-        correct_pair(b, a, DeepMergeConfig(method="icp"), None)
+        correct_pair(b, a, CorrectionConfig(method="icp"), None)
 
 
 def bumpy(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -75,8 +76,8 @@ def bumpy(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def test_the_guard_keeps_a_closer_fit_and_rejects_a_worse_one():
-    from tandemscan.pipeline.deepmerge.correct import keep_if_better
-    from tandemscan.pipeline.refine import target_with_normals
+    from tandemscan.pipeline.registration.icp import target_with_normals
+    from tandemscan.pipeline.registration.pairs import keep_if_better
 
     rng = np.random.default_rng(5)
     xy = rng.uniform(-80, 80, (6000, 2))
@@ -90,15 +91,15 @@ def test_the_guard_keeps_a_closer_fit_and_rejects_a_worse_one():
 
 
 def test_deepmerge_then_icp_on_a_pair_recovers_the_correction():
-    from tandemscan.pipeline.deepmerge.correct import register_overlap
     from tandemscan.pipeline.deepmerge.register import DeepMergeRegistrar
+    from tandemscan.pipeline.registration.pairs import register_overlap
 
     rng = np.random.default_rng(4)
     xy = rng.uniform(-80, 80, (6000, 2))
     P = np.c_[xy, bumpy(xy[:, 0], xy[:, 1])]
     T_true = from_rotvec([0.5, -0.3, 0.2], np.radians([0.2, 0.1, -0.3]))
     source = transform_points(invert(T_true), P[::2])
-    cfg = DeepMergeConfig(method="deepmerge+icp")
+    cfg = CorrectionConfig(method="deepmerge+icp")
     reg = DeepMergeRegistrar.load(num_points=256)
     T = register_overlap(source, P[1::2], "deepmerge+icp", cfg, reg, coarse_distance_mm=3.0)
     dt, dr = pose_error(T, T_true)

@@ -1,19 +1,13 @@
-"""Refinement after DeepMerge: point-to-plane ICP (the fine stage) and the global pose graph (DESIGN.md 5.6).
+"""The global pose graph over all scans of a job (docs/registration.md, "Pose graph").
 
-Pose graph: every scan ``i`` has a tracker pose ``P_i = T_W_S_i`` (prior) with a 6x6 covariance; every
+Every scan ``i`` has a tracker pose ``P_i = T_W_S_i`` (prior) with a 6x6 covariance; every
 corrected overlap gives a relative-pose edge. Scans are grouped by tracker station; a coordinate transfer
 gives the whole next station an error on top of the previous station's, so station ``k`` carries the
 product of the transfer errors ``1..k`` (each a ``TransferPrior``: a world motion about the still target's
 origin, with the two readings' covariance); edges between stations pull back that accumulated drift while
 the priors keep every scan near its tracker reading. The solution minimises the sum of squared, whitened
-residuals (scipy least squares with a sparse Jacobian).
-
-Self-calibration of the scanner mount (optional ``MountPrior``): every scan is placed by
-``T_W_S_i = T_W_C T_C_T_i X`` with one shared ``X = T_T_S``, so an error of X is the same right-perturbation
-``D`` (a motion in the scanner frame S) of every scan, ``T_W_S_i -> T_W_S_i D``. In the world it shows
-differently for each target orientation, so overlaps between scans taken at different orientations measure
-it. ``D`` is then one more unknown with the calibration's covariance as its prior, and the result reports
-its estimate, its posterior covariance and the information the scans alone give on it.
+residuals (scipy least squares with a sparse Jacobian). With a ``mounts.MountPrior`` the shared
+scanner-mount correction is one more unknown (see ``mounts``).
 
 Conventions: a pose perturbation is ``(t mm, rotation vector rad)`` of a world-frame motion about a stated
 centre (the scan origin for priors, the overlap centre for edges, the station's scans' centroid for station
@@ -27,112 +21,15 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 from numpy.typing import ArrayLike
 from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
-from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 from tandemscan.pipeline.frames import invert
+from tandemscan.pipeline.registration.icp import RefineError
+from tandemscan.pipeline.registration.mounts import MountEstimate, MountPrior, MountSolve, schur
 
 log = logging.getLogger(__name__)
-
-
-class RefineError(ValueError):
-    """Bad input to ICP or the pose graph (shapes, indices, covariances that are not positive definite)."""
-
-
-# ---------------------------------------------------------------- point-to-plane ICP
-
-
-@dataclass(frozen=True)
-class IcpResult:
-    """``T_target_source`` (4x4 mm); inlier fraction of the source; point-to-plane RMS of the inliers (mm);
-    the inlier source points moved by the result and their target normals (for the edge information)."""
-
-    transformation: np.ndarray
-    fitness: float
-    rmse_mm: float
-    points_mm: np.ndarray
-    normals: np.ndarray
-
-    @property
-    def inliers(self) -> int:
-        return len(self.points_mm)
-
-
-def _pcd(points: np.ndarray) -> o3d.geometry.PointCloud:
-    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=float)))
-
-
-def target_with_normals(target_mm: ArrayLike | o3d.geometry.PointCloud, normal_neighbours: int = 20
-                        ) -> o3d.geometry.PointCloud:
-    """The target of a point-to-plane fit, with normals (k nearest neighbours); prepare it once per pair."""
-    if isinstance(target_mm, o3d.geometry.PointCloud):
-        return target_mm
-    T = np.asarray(target_mm, float)
-    if T.ndim != 2 or T.shape[1] != 3 or len(T) < normal_neighbours:
-        raise RefineError(f"a point-to-plane target needs an (N, 3) cloud with N >= {normal_neighbours}; got {T.shape}")
-    tgt = _pcd(T)
-    tgt.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(normal_neighbours))
-    return tgt
-
-
-def icp_point_to_plane(
-    source_mm: ArrayLike,
-    target_mm: ArrayLike | o3d.geometry.PointCloud,
-    init: ArrayLike | None = None,
-    max_distance_mm: float = 2.0,
-    iterations: int = 50,
-    normal_neighbours: int = 20,
-) -> IcpResult:
-    """Point-to-plane ICP (Open3D) of ``source`` onto ``target`` from ``init`` (default identity)."""
-    S = np.asarray(source_mm, float)
-    if S.ndim != 2 or S.shape[1] != 3:
-        raise RefineError(f"ICP needs an (N, 3) source cloud; got {S.shape}")
-    tgt = target_with_normals(target_mm, normal_neighbours)
-    reg = o3d.pipelines.registration
-    res = reg.registration_icp(
-        _pcd(S), tgt, max_distance_mm, np.eye(4) if init is None else np.asarray(init, float),
-        reg.TransformationEstimationPointToPlane(),
-        reg.ICPConvergenceCriteria(relative_fitness=1e-9, relative_rmse=1e-9, max_iteration=iterations),
-    )
-    return evaluate_point_to_plane(S, tgt, np.asarray(res.transformation), max_distance_mm)
-
-
-def evaluate_point_to_plane(
-    source_mm: ArrayLike, target: ArrayLike | o3d.geometry.PointCloud, T: ArrayLike, max_distance_mm: float,
-    normal_neighbours: int = 20,
-) -> IcpResult:
-    """Score ``T_target_source`` without moving it: nearest-neighbour inliers within ``max_distance_mm``."""
-    S = np.asarray(source_mm, float)
-    tgt = target_with_normals(target, normal_neighbours)
-    M = np.asarray(T, float).copy()
-    Tp = np.asarray(tgt.points)
-    moved = S @ M[:3, :3].T + M[:3, 3]
-    d, idx = cKDTree(Tp).query(moved, k=1, distance_upper_bound=max_distance_mm)
-    ok = np.isfinite(d)
-    normals = np.asarray(tgt.normals)[idx[ok]]
-    r = np.einsum("ij,ij->i", moved[ok] - Tp[idx[ok]], normals)
-    rmse = float(np.sqrt(np.mean(r**2))) if ok.any() else float("inf")
-    return IcpResult(M, float(ok.mean()) if len(S) else 0.0, rmse, moved[ok], normals)
-
-
-def point_to_plane_information(
-    points_mm: ArrayLike, normals: ArrayLike, centre_mm: ArrayLike, sigma_mm: float, effective_points: float
-) -> np.ndarray:
-    """6x6 information (t, r order, about ``centre_mm``) of a rigid fit to points on planes with normals.
-
-    Each point constrains ``n . (dt + dr x (p - c))``; the sum of ``J^T J`` is scaled to ``effective_points``
-    independent points of 1-sigma ``sigma_mm`` (neighbouring scan points are far from independent).
-    """
-    P = np.asarray(points_mm, float) - np.asarray(centre_mm, float)
-    N = np.asarray(normals, float)
-    J = np.c_[N, np.cross(P, N)]
-    return (J.T @ J) / len(P) * effective_points / sigma_mm**2
-
-
-# ---------------------------------------------------------------- pose graph
 
 
 @dataclass(frozen=True)
@@ -232,62 +129,6 @@ def constrained_edge(
 
 
 @dataclass(frozen=True)
-class MountPrior:
-    """Prior of the shared scanner-mount correction ``D`` (``X = T_T_S -> X D``): 6x6 covariance, order
-    (t mm^2, rotation vector rad^2), a motion in the scanner frame S about its origin.
-
-    Only the directions the overlaps observe are estimated: those whose data information is at least
-    ``min_information_ratio`` times the prior's (eigen-directions of the data information in prior-whitened
-    coordinates); the others stay at the prior (zero correction, prior variance)."""
-
-    covariance: np.ndarray
-    min_information_ratio: float = 1.0
-
-
-@dataclass(frozen=True)
-class MountEstimate:
-    """The estimated shared mount correction.
-
-    ``correction``: the 4x4 ``D`` (refined ``T_T_S = T_T_S D``); ``covariance``: its 6x6 posterior (t mm^2,
-    r rad^2; scanner frame S); ``data_information``: the 6x6 information the overlaps alone give on it, the
-    other unknowns marginalised (same order); ``information_ratio``: per eigen-direction of that information
-    in prior-whitened coordinates (ascending) the data's information over the prior's, the directions being
-    the columns of ``whitened_directions`` (:meth:`observability` turns them into directions of D);
-    ``estimated``: how many of them were estimated (the rest were held at the prior)."""
-
-    correction: np.ndarray
-    covariance: np.ndarray
-    prior_covariance: np.ndarray
-    data_information: np.ndarray
-    information_ratio: np.ndarray
-    whitened_directions: np.ndarray
-    estimated: int
-
-    def observability(self, lever_mm: float) -> dict:
-        """Figures for a report (mm, deg): the correction, its prior and posterior 1-sigma per axis of S,
-        and per prior-whitened eigen-direction (weakest first) the ratio of data to prior information with
-        the direction as a unit 6-vector (t mm, rotation as mm at ``lever_mm``)."""
-        L = np.linalg.cholesky(self.prior_covariance)
-        dirs = (L @ self.whitened_directions).T * np.r_[[1.0] * 3, [lever_mm] * 3]
-        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-        t, r = self.correction[:3, 3], Rotation.from_matrix(self.correction[:3, :3]).as_rotvec()
-        sig = np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
-        sig0 = np.sqrt(np.clip(np.diag(self.prior_covariance), 0.0, None))
-        return {
-            "correction_mm": t.tolist(),
-            "correction_deg": np.degrees(r).tolist(),
-            "prior_sigma_mm": sig0[:3].tolist(),
-            "prior_sigma_deg": np.degrees(sig0[3:]).tolist(),
-            "sigma_mm": sig[:3].tolist(),
-            "sigma_deg": np.degrees(sig[3:]).tolist(),
-            "information_ratio": self.information_ratio.tolist(),
-            "directions": dirs.tolist(),
-            "lever_mm": lever_mm,
-            "estimated_directions": self.estimated,
-        }
-
-
-@dataclass(frozen=True)
 class RefineResult:
     """Refined ``T_W_S`` per scan, the per-station world corrections, residual figures, and the shared
     mount correction when one was estimated."""
@@ -325,7 +166,7 @@ def refine_poses(
     _whitener(prior, True, "mount prior covariance")
     L = np.linalg.cholesky(0.5 * (prior + prior.T))            # D = L u, u ~ N(0, I) a priori
     sol, x0 = graph.solve(L)                                    # all six directions
-    data_u = _schur(graph.data_jacobian(sol.jac, 6), graph.n_blocks)   # data information on u
+    data_u = schur(graph.data_jacobian(sol.jac, 6), graph.n_blocks)   # data information on u
     ratio, U = np.linalg.eigh(0.5 * (data_u + data_u.T))
     observed = ratio >= mount_prior.min_information_ratio
     basis = np.eye(6)                                           # directions of u estimated (orthonormal)
@@ -333,27 +174,7 @@ def refine_poses(
         basis = U[:, observed]
         sol, x0 = graph.solve(L @ basis if observed.any() else None)
     Linv = np.linalg.inv(L)
-    return graph.result(sol, x0, _MountSolve(L, basis, ratio, U, Linv.T @ data_u @ Linv, prior))
-
-
-@dataclass(frozen=True)
-class _MountSolve:
-    """How the mount was solved: ``D = L u`` with the prior ``u ~ N(0, I)``, ``u = basis z`` estimated;
-    the data's information ratios and eigen-directions in u; the data information on D; the prior."""
-
-    L: np.ndarray
-    basis: np.ndarray
-    ratio: np.ndarray
-    directions: np.ndarray
-    data_information: np.ndarray
-    prior: np.ndarray
-
-
-def _schur(J: np.ndarray, first: int) -> np.ndarray:
-    """Information ``J^T J`` of the columns from ``first`` on, the columns before them marginalised."""
-    H = J.T @ J
-    A, B, C = H[:first, :first], H[:first, first:], H[first:, first:]
-    return C - B.T @ np.linalg.solve(A, B)
+    return graph.result(sol, x0, MountSolve(L, basis, ratio, U, Linv.T @ data_u @ Linv, prior))
 
 
 class _Graph:
@@ -451,7 +272,7 @@ class _Graph:
                             xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
         return sol, x0
 
-    def result(self, sol, x0: np.ndarray, mount: _MountSolve | None) -> RefineResult:
+    def result(self, sol, x0: np.ndarray, mount: MountSolve | None) -> RefineResult:
         cost0 = 0.5 * float(np.sum(self.residuals(x0) ** 2))
         out = self.poses(sol.x)
         corr = self.station_corrections(sol.x[:self.n_blocks].reshape(-1, 6))

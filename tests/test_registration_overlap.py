@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from tandemscan.pipeline.deepmerge.overlap import OverlapError, overlapping_pairs, thin_evenly
+from tandemscan.pipeline.registration.overlap import OverlapError, overlapping_pairs
+from tandemscan.pipeline.registration.sampling import thin_evenly
 
 
 def _patch(x0_mm: float, y0_mm: float = 0.0, size_mm: float = 100.0, step_mm: float = 2.0) -> np.ndarray:

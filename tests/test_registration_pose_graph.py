@@ -6,15 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 from tandemscan.pipeline.frames import compose, from_rotvec, invert, pose_error
-from tandemscan.pipeline.refine import (
-    PairEdge,
-    RefineError,
-    ScanPrior,
-    TransferPrior,
-    icp_point_to_plane,
-    point_to_plane_information,
-    refine_poses,
-)
+from tandemscan.pipeline.registration.icp import RefineError, icp_point_to_plane, point_to_plane_information
+from tandemscan.pipeline.registration.pose_graph import PairEdge, ScanPrior, TransferPrior, refine_poses
 
 
 def bumpy_surface(rng: np.random.Generator, n: int = 6000, size: float = 200.0) -> np.ndarray:
@@ -168,7 +161,7 @@ def test_covariance_about_another_centre_adds_the_rotation_lever():
 
 
 def test_constrained_edge_drops_the_sliding_directions_of_a_plane():
-    from tandemscan.pipeline.refine import constrained_edge
+    from tandemscan.pipeline.registration.pose_graph import constrained_edge
 
     rng = np.random.default_rng(3)
     P = np.c_[rng.uniform(-50, 50, (500, 2)), np.zeros(500)]
@@ -193,8 +186,8 @@ def _mount_scans(D_true: np.ndarray, tilt_deg: float, seed: int = 5):
     """Nine scans of a relief on a 3x3 grid (100 mm apart, 130 mm radius: neighbours overlap), each from
     its own scanner orientation (tilts up to ``tilt_deg`` about x and y, any yaw), stitched through the
     tracker (reading noise) and a mount ``X_used`` off the true one: ``X_true = X_used D_true``."""
-    from tandemscan.pipeline.deepmerge.correct import StitchedScan
     from tandemscan.pipeline.frames import from_rpy, transform_points
+    from tandemscan.pipeline.registration.correction import StitchedScan
     from tandemscan.pipeline.uncertainty import scan_pose_covariance
 
     rng = np.random.default_rng(seed)
@@ -229,12 +222,12 @@ def _turned(T: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
 
 def _mount_run(D_true: np.ndarray, tilt_deg: float, prior_sigma=(0.3, 8.7e-4)):
     """Correct the scans with and without the mount unknown (prior 1-sigma mm, rad per axis)."""
-    from tandemscan.config.models import DeepMergeConfig
-    from tandemscan.pipeline.deepmerge.correct import correct_scans
-    from tandemscan.pipeline.refine import MountPrior
+    from tandemscan.config.models import CorrectionConfig
+    from tandemscan.pipeline.registration.correction import correct_scans
+    from tandemscan.pipeline.registration.mounts import MountPrior
 
     truth, scans = _mount_scans(D_true, tilt_deg)
-    cfg = DeepMergeConfig(method="icp", min_overlap_points=100)
+    cfg = CorrectionConfig(method="icp", min_overlap_points=100)
     prior = MountPrior(np.diag([prior_sigma[0] ** 2] * 3 + [prior_sigma[1] ** 2] * 3))
     with_mount = correct_scans(scans, cfg, mount_prior=prior)
     without = correct_scans(scans, cfg)

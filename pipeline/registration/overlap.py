@@ -1,4 +1,5 @@
-"""Overlap of two stitched scans: the points whose nearest neighbour in the other scan is closer than delta.
+"""Overlap and pair selection (docs/registration.md, "Overlap"): the points of two stitched scans whose nearest
+neighbour in the other scan is closer than delta, and which scan pairs of a job are worth registering.
 
 Both clouds are in one frame (the world, after the tracker stitch), in millimetres. ``delta`` is either
 configured or derived from the pose uncertainty of the pair: a pose error of translation ``dt`` and rotation
@@ -122,10 +123,3 @@ def overlapping_pairs(
             best = partners[np.argsort(-shared[i, partners], kind="stable")[:max_partners]]
             keep.update((min(i, j), max(i, j)) for j in best)
     return sorted(keep)
-
-
-def thin_evenly(indices: np.ndarray, max_points: int) -> np.ndarray:
-    """At most ``max_points`` of ``indices``, evenly spaced along them (scan order: evenly over the overlap)."""
-    if len(indices) <= max_points:
-        return indices
-    return indices[np.linspace(0, len(indices) - 1, max_points).round().astype(int)]

@@ -1,0 +1,128 @@
+"""Stitching correction of a whole job: overlapping scan pairs -> corrections -> pose graph
+(docs/registration.md, "Whole-job correction").
+
+Input: every scan's points in its scanner frame S, its tracker-stitched pose ``T_W_S`` with covariance and
+its tracker station. For each overlapping pair (``overlap.overlapping_pairs``) the overlap is registered by
+the configured method (``pairs.correct_pair``), each correction becomes a pose-graph edge, and
+``pose_graph.refine_poses`` spreads the corrections over all scans.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+from tandemscan.config.models import CorrectionConfig
+from tandemscan.pipeline.frames import invert, pose_error, transform_points
+from tandemscan.pipeline.registration.icp import (
+    evaluate_point_to_plane,
+    point_to_plane_information,
+    target_with_normals,
+)
+from tandemscan.pipeline.registration.mounts import MountEstimate, MountPrior
+from tandemscan.pipeline.registration.overlap import overlapping_pairs, relative_covariance
+from tandemscan.pipeline.registration.pairs import NETWORK_METHODS, PairCorrection, correct_pair
+from tandemscan.pipeline.registration.pose_graph import (
+    PairEdge,
+    ScanPrior,
+    TransferPrior,
+    constrained_edge,
+    refine_poses,
+)
+from tandemscan.pipeline.registration.sampling import voxel_downsample
+from tandemscan.pipeline.uncertainty import covariance_about
+
+if TYPE_CHECKING:
+    from tandemscan.pipeline.deepmerge.register import DeepMergeRegistrar
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class StitchedScan:
+    """One scan: points in the scanner frame (mm), tracker pose ``T_W_S``, its covariance, its station."""
+
+    points_S: np.ndarray
+    T_W_S: np.ndarray
+    covariance: np.ndarray
+    station: int = 0
+
+
+@dataclass
+class CorrectionResult:
+    """Refined poses and the figures a report needs (mm, deg); the shared mount correction if estimated."""
+
+    poses: list[np.ndarray]
+    edges: list[tuple[int, int, PairCorrection]] = field(default_factory=list)
+    report: dict = field(default_factory=dict)
+    mount: MountEstimate | None = None
+
+
+def _overlap_rms(clouds: list[np.ndarray], edges, poses_before, poses_after, cfg) -> tuple[float, float]:
+    """Median over edges of the point-to-plane RMS (mm) of the overlaps, with the poses before and after."""
+    out = []
+    targets = {i: target_with_normals(clouds[i]) for i in {e[0] for e in edges}}
+    for poses in (poses_before, poses_after):
+        vals = []
+        for i, j, _ in edges:
+            Tij = invert(poses[i]) @ poses[j]
+            vals.append(evaluate_point_to_plane(clouds[j], targets[i], Tij, cfg.icp_max_distance_mm).rmse_mm)
+        out.append(float(np.median(vals)) if vals else float("nan"))
+    return out[0], out[1]
+
+
+def _edge(i: int, j: int, pc: PairCorrection, cfg: CorrectionConfig) -> PairEdge:
+    """Pose-graph edge of a pair correction, keeping only the directions the overlap constrains."""
+    info = point_to_plane_information(pc.fit.points_mm, pc.fit.normals, pc.centre_mm, max(pc.fit.rmse_mm, 0.005),
+                                      cfg.edge_effective_points)
+    size = float(np.sqrt(((pc.fit.points_mm - pc.centre_mm) ** 2).sum(axis=1).mean()))
+    T, info = constrained_edge(pc.transformation, info, pc.centre_mm, max(size, 1.0), cfg.edge_min_eigen_ratio)
+    return PairEdge(i, j, T, info, pc.centre_mm)
+
+
+def correct_scans(
+    scans: Sequence[StitchedScan], cfg: CorrectionConfig, registrar: DeepMergeRegistrar | None = None,
+    transfers: Sequence[TransferPrior] = (), voxel_mm: float = 1.0, mount_prior: MountPrior | None = None,
+) -> CorrectionResult:
+    """Correct every overlapping pair and refine all poses; ``voxel_mm`` thins the scans first.
+
+    ``transfers`` (one per tracker station after the first, see ``pose_graph.refine_poses``) let the graph
+    remove the drift of the coordinate transfers and widen the overlap threshold of pairs across stations;
+    ``mount_prior`` makes the graph estimate the shared scanner-mount correction too (``mounts.MountPrior``).
+    """
+    if cfg.method in NETWORK_METHODS and registrar is None:
+        raise ValueError(f"method {cfg.method!r} needs a DeepMerge registrar (pairs.load_registrar)")
+    local = [voxel_downsample(np.asarray(s.points_S, float), voxel_mm) for s in scans]
+    world = [transform_points(s.T_W_S, P) for s, P in zip(scans, local, strict=True)]
+    edges: list[tuple[int, int, PairCorrection]] = []
+    for i, j in overlapping_pairs(world, [s.station for s in scans], cfg.pair_cell_mm, cfg.max_partners_per_scan):
+        cov = relative_covariance(scans[i].covariance, scans[j].covariance)
+        low, high = sorted((scans[i].station, scans[j].station))
+        for t in transfers:                          # the drift between the two stations, at the target scan
+            if low < t.station <= high:
+                cov = cov + covariance_about(t.covariance, t.centre_mm, scans[i].T_W_S[:3, 3])
+        pc = correct_pair(world[j], world[i], cfg, registrar, cov)
+        if pc is not None:
+            edges.append((i, j, pc))
+    graph_edges = [_edge(i, j, pc, cfg) for i, j, pc in edges if pc.fit.inliers >= 6]
+    priors = [ScanPrior(s.T_W_S, s.covariance, s.station) for s in scans]
+    res = refine_poses(priors, graph_edges, transfers, mount_prior)
+    before = [s.T_W_S for s in scans]
+    rms_b, rms_a = _overlap_rms(local, edges, before, res.poses, cfg)
+    moves = [pose_error(a, b) for a, b in zip(res.poses, before, strict=True)]
+    report = {
+        "method": cfg.method,
+        "scans": len(scans),
+        "pairs": len(edges),
+        "overlap_rms_mm_median_before": rms_b,
+        "overlap_rms_mm_median_after": rms_a,
+        "pose_change_mm_median": float(np.median([m[0] for m in moves])) if moves else 0.0,
+        "pose_change_deg_median": float(np.degrees(np.median([m[1] for m in moves]))) if moves else 0.0,
+        "graph_cost_before": res.cost_before,
+        "graph_cost_after": res.cost_after,
+    }
+    log.info("correction: %d scans, %d pairs, overlap RMS %.4f -> %.4f mm", len(scans), len(edges), rms_b, rms_a)
+    return CorrectionResult(res.poses, edges, report, res.mount)
