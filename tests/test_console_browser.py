@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import asyncio
 import io
+import json
 import shutil
+import socket
 import threading
 import time
 from pathlib import Path
@@ -77,10 +79,65 @@ class CellDaemon:
         return httpx.get(self.url + path, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=10).json()
 
 
+class DroppingProxy:
+    """A TCP relay in front of the daemon whose :meth:`drop` cuts every open connection (a dropped link)."""
+
+    def __init__(self, upstream_port: int):
+        self.upstream_port = upstream_port
+        self.listener = socket.create_server(("127.0.0.1", 0))
+        self.port = self.listener.getsockname()[1]
+        self.open: set[socket.socket] = set()
+        self.lock = threading.Lock()
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                client, _ = self.listener.accept()
+            except OSError:
+                return
+            upstream = socket.create_connection(("127.0.0.1", self.upstream_port))
+            with self.lock:
+                self.open |= {client, upstream}
+            for a, b in ((client, upstream), (upstream, client)):
+                threading.Thread(target=self._pipe, args=(a, b), daemon=True).start()
+
+    def _pipe(self, src: socket.socket, dst: socket.socket) -> None:
+        try:
+            while data := src.recv(65536):
+                dst.sendall(data)
+        except OSError:
+            pass
+        for s in (src, dst):
+            self._close(s)
+
+    def _close(self, s: socket.socket) -> None:
+        with self.lock:
+            self.open.discard(s)
+        try:
+            s.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+        s.close()
+
+    def drop(self) -> None:
+        with self.lock:
+            sockets = list(self.open)
+        for s in sockets:
+            self._close(s)
+
+    def close(self) -> None:
+        self.listener.close()
+        self.drop()
+
+
 @pytest.fixture(scope="module")
 def cell(tmp_path_factory):
     with CellDaemon(tmp_path_factory.mktemp("console") / "state") as d:
+        proxy = DroppingProxy(int(d.url.rsplit(":", 1)[1]))
+        d.browser_url, d.proxy = f"http://127.0.0.1:{proxy.port}", proxy
         yield d
+        proxy.close()
 
 
 @pytest.fixture(scope="module")
@@ -90,6 +147,7 @@ def browser():
 
     options = Options()
     options.binary_location = CHROMIUM
+    options.set_capability("goog:loggingPrefs", {"performance": "ALL"})  # requests, to see Last-Event-ID
     for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--use-angle=swiftshader",
                 "--enable-unsafe-swiftshader", "--window-size=1280,800", "--hide-scrollbars"):
         options.add_argument(arg)
@@ -145,10 +203,10 @@ def canvas_pixels(driver) -> np.ndarray:
 
 
 def test_sign_in_keeps_the_token_for_the_tab_and_401_returns_to_it(cell, browser):
-    sign_in(browser, cell.url, "wrong-token")
+    sign_in(browser, cell.browser_url, "wrong-token")
     wait(browser, lambda d: "not accepted" in text(d, "signin-error"))
     assert not visible(browser, "app")
-    sign_in(browser, cell.url)
+    sign_in(browser, cell.browser_url)
     wait(browser, lambda d: visible(d, "app"))
     assert browser.execute_script("return sessionStorage.getItem('tandemscan.token')") == TOKEN
     assert browser.execute_script("return localStorage.length") == 0
@@ -158,12 +216,12 @@ def test_sign_in_keeps_the_token_for_the_tab_and_401_returns_to_it(cell, browser
     browser.execute_script("sessionStorage.setItem('tandemscan.token', 'revoked')")
     wait(browser, lambda d: visible(d, "signin"), 10)
     assert "401" in text(browser, "signin-error")
-    sign_in(browser, cell.url)
+    sign_in(browser, cell.browser_url)
     wait(browser, lambda d: visible(d, "app"))
 
 
 def test_devices_panel_follows_an_injected_device_fault(cell, browser):
-    sign_in(browser, cell.url)
+    sign_in(browser, cell.browser_url)
     row = "#devices tr[data-device='tracker']"
     wait(browser, lambda d: len(d.find_elements(By.CSS_SELECTOR, "#devices tbody tr")) == 6)
     wait(browser, lambda d: d.find_element(By.CSS_SELECTOR, row + " td").text == "connected")
@@ -185,8 +243,18 @@ def test_devices_panel_follows_an_injected_device_fault(cell, browser):
     wait(browser, lambda d: d.find_element(By.CSS_SELECTOR, row + " td").text == "connected", 40)
 
 
+def event_stream_requests(driver) -> list[dict]:
+    """Headers of the requests for /v1/events the page made since the last call (performance log)."""
+    found = []
+    for entry in driver.get_log("performance"):
+        msg = json.loads(entry["message"])["message"]
+        if msg["method"] == "Network.requestWillBeSent" and "/v1/events" in msg["params"]["request"]["url"]:
+            found.append(msg["params"]["request"]["headers"])
+    return found
+
+
 def test_job_is_stopped_reset_resumed_and_followed_to_100_percent(cell, browser):
-    sign_in(browser, cell.url)
+    sign_in(browser, cell.browser_url)
     wait(browser, lambda d: d.find_elements(By.CSS_SELECTOR, "#plan-select option[value='default-band']"))
     browser.find_element(By.ID, "label-input").send_keys("order 17")
     click(browser, "submit-button")
@@ -199,6 +267,16 @@ def test_job_is_stopped_reset_resumed_and_followed_to_100_percent(cell, browser)
     assert len(browser.find_elements(By.CSS_SELECTOR, "#plan-svg circle")) == 2  # the tracking AGV's
     assert " of 39" in text(browser, "job-step")
     browser.save_screenshot(str(DOCS / "console-running-job.png"))
+
+    # a dropped connection: the console reconnects and resumes from the last event it saw
+    wait(browser, lambda d: text(d, "stream-status") == "event stream: live")
+    event_stream_requests(browser)
+    cell.proxy.drop()
+    last_seq = cell.daemon.store.last_event_seq()
+    wait(browser, lambda d: "reconnecting" in text(d, "stream-status"), 10)
+    wait(browser, lambda d: text(d, "stream-status") == "event stream: live", 20)
+    resumed = [h.get("Last-Event-ID") for h in event_stream_requests(browser)]
+    assert resumed and resumed[-1] is not None and 0 < int(resumed[-1]) <= last_seq
 
     assert browser.find_element(By.ID, "stop-button").is_enabled()
     click(browser, "stop-button")
@@ -237,7 +315,7 @@ def _finished_job(cell) -> str:
 
 def test_finished_job_shows_verdict_links_and_a_3d_view_that_draws(cell, browser):
     job_id = _finished_job(cell)
-    sign_in(browser, cell.url)
+    sign_in(browser, cell.browser_url)
     button = f"#history button[data-job='{job_id}']"
     wait(browser, lambda d: d.find_elements(By.CSS_SELECTOR, button), 20)
     browser.find_element(By.CSS_SELECTOR, button).click()
@@ -267,7 +345,7 @@ def test_finished_job_shows_verdict_links_and_a_3d_view_that_draws(cell, browser
 
 
 def test_problem_json_shows_as_a_readable_message(cell, browser):
-    sign_in(browser, cell.url)
+    sign_in(browser, cell.browser_url)
     wait(browser, lambda d: d.find_elements(By.CSS_SELECTOR, "#plan-select option"))
     browser.execute_script("document.querySelector('#plan-select option').value = 'no-such-plan'")
     browser.execute_script("document.getElementById('plan-select').selectedIndex = 0")
@@ -280,7 +358,7 @@ def test_problem_json_shows_as_a_readable_message(cell, browser):
 def test_layout_fits_and_every_control_has_a_text_label(cell, browser, width, height, mobile):
     metrics(browser, width, height, mobile)
     try:
-        sign_in(browser, cell.url)
+        sign_in(browser, cell.browser_url)
         wait(browser, lambda d: visible(d, "app"))
         overflow = browser.execute_script("return document.documentElement.scrollWidth - window.innerWidth")
         assert overflow <= 0, f"{overflow} px wider than the {width} px viewport"
