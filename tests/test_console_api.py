@@ -21,7 +21,7 @@ from tandemscan.daemon.console.router import ASSETS, plan_view
 from tandemscan.daemon.plans import PlanCatalog
 from tandemscan.daemon.service import Daemon, running_server
 from tandemscan.pipeline.export import write_ply
-from tandemscan.pipeline.plan import MoveMeasure, MoveTracker, Plan, Scan
+from tandemscan.pipeline.plan import MoveMeasure, MoveTracker, Scan
 from tandemscan.sim_drivers.cell import build_cell
 from tandemscan.sim_drivers.world import SimWorld
 

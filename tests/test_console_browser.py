@@ -321,7 +321,8 @@ def test_finished_job_shows_verdict_links_and_a_3d_view_that_draws(cell, browser
     browser.find_element(By.CSS_SELECTOR, button).click()
     wait(browser, lambda d: d.find_element(By.ID, "cloud-canvas").get_attribute("data-points"), 60)
     assert "Succeeded" in text(browser, "verdict") and "within [-0.100, 0.100] mm" in text(browser, "verdict")
-    for link, href in (("link-report", "/files/report.html"), ("link-e57", "/files/cloud.e57"), ("link-cloud", "/cloud")):
+    links = (("link-report", "/files/report.html"), ("link-e57", "/files/cloud.e57"), ("link-cloud", "/cloud"))
+    for link, href in links:
         assert browser.find_element(By.ID, link).get_attribute("href").endswith(f"/v1/jobs/{job_id}{href}")
     report = httpx.get(cell.url + f"/v1/jobs/{job_id}/files/report.html")
     assert report.status_code == 200 and "Inspection report" in report.text
