@@ -26,6 +26,7 @@ from tandemscan.drivers.errors import DeviceError
 
 webdriver = pytest.importorskip("selenium.webdriver", reason="selenium not installed (pip install -e '.[dev]')")
 from PIL import Image  # noqa: E402 - after the skip: selenium is what the module needs first
+from selenium.common.exceptions import StaleElementReferenceException  # noqa: E402
 from selenium.webdriver.common.action_chains import ActionChains  # noqa: E402
 from selenium.webdriver.common.by import By  # noqa: E402
 from selenium.webdriver.support.ui import WebDriverWait  # noqa: E402
@@ -166,7 +167,17 @@ def metrics(driver, width: int, height: int, mobile: bool = False) -> None:
 
 
 def wait(driver, what, timeout_s: float = 60.0, message: str = ""):
-    return WebDriverWait(driver, timeout_s, poll_frequency=0.1).until(lambda d: what(d), message)
+    # tables are rebuilt each second: an element found a moment ago may be gone, so look again
+    return WebDriverWait(driver, timeout_s, poll_frequency=0.1, ignored_exceptions=(StaleElementReferenceException,)) \
+        .until(lambda d: what(d), message)
+
+
+def device_row(driver, name: str) -> dict | None:
+    """The devices panel's row of ``name`` as the page shows it now: link, state, detail, class."""
+    return driver.execute_script("""
+        const tr = document.querySelector(`#devices tr[data-device="${arguments[0]}"]`);
+        return tr && {link: tr.children[1].innerText, state: tr.children[2].innerText,
+                      detail: tr.children[3].innerText, cls: tr.className};""", name)
 
 
 def text(driver, element_id: str) -> str:
@@ -222,9 +233,8 @@ def test_sign_in_keeps_the_token_for_the_tab_and_401_returns_to_it(cell, browser
 
 def test_devices_panel_follows_an_injected_device_fault(cell, browser):
     sign_in(browser, cell.browser_url)
-    row = "#devices tr[data-device='tracker']"
     wait(browser, lambda d: len(d.find_elements(By.CSS_SELECTOR, "#devices tbody tr")) == 6)
-    wait(browser, lambda d: d.find_element(By.CSS_SELECTOR, row + " td").text == "connected")
+    wait(browser, lambda d: device_row(d, "tracker")["link"] == "connected")
     browser.save_screenshot(str(DOCS / "console-cell.png"))
     tracker = cell.daemon.cell.tracker
     reconnect = tracker.connect
@@ -235,12 +245,14 @@ def test_devices_panel_follows_an_injected_device_fault(cell, browser):
     tracker.connect = link_down  # reconnects fail until the fault is cleared
     cell.call(tracker.close())
     try:
-        wait(browser, lambda d: d.find_element(By.CSS_SELECTOR, row + " td").text == "disconnected", 20)
-        assert "device-fault" in browser.find_element(By.CSS_SELECTOR, row).get_attribute("class")
-        wait(browser, lambda d: "injected fault" in d.find_element(By.CSS_SELECTOR, row + " td.detail").text, 20)
+        wait(browser, lambda d: "injected fault" in device_row(d, "tracker")["detail"], 20)
+        row = device_row(browser, "tracker")
+        assert row["link"] == "disconnected" and "device-fault" in row["cls"]
+        assert device_row(browser, "scanner")["link"] == "connected"
     finally:
         tracker.connect = reconnect
-    wait(browser, lambda d: d.find_element(By.CSS_SELECTOR, row + " td").text == "connected", 40)
+    wait(browser, lambda d: device_row(d, "tracker")["link"] == "connected", 40)
+    assert "device-fault" not in device_row(browser, "tracker")["cls"]
 
 
 def event_stream_requests(driver) -> list[dict]:
@@ -318,7 +330,7 @@ def test_finished_job_shows_verdict_links_and_a_3d_view_that_draws(cell, browser
     sign_in(browser, cell.browser_url)
     button = f"#history button[data-job='{job_id}']"
     wait(browser, lambda d: d.find_elements(By.CSS_SELECTOR, button), 20)
-    browser.find_element(By.CSS_SELECTOR, button).click()
+    browser.execute_script("document.querySelector(arguments[0]).click()", button)  # the row may be rebuilt
     wait(browser, lambda d: d.find_element(By.ID, "cloud-canvas").get_attribute("data-points"), 60)
     assert "Succeeded" in text(browser, "verdict") and "within [-0.100, 0.100] mm" in text(browser, "verdict")
     links = (("link-report", "/files/report.html"), ("link-e57", "/files/cloud.e57"), ("link-cloud", "/cloud"))
