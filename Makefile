@@ -3,7 +3,7 @@ PYTHON ?= python3.11
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
-APT_PACKAGES := libusb-1.0-0 libgl1 libgomp1 chromium systemd
+APT_PACKAGES := libusb-1.0-0 libgl1 libgomp1 chromium chromium-driver systemd
 
 .PHONY: measure test system-deps clean
 
@@ -16,7 +16,8 @@ test: $(STAMP)
 	$(PY) -m pytest -q
 
 # System packages, installed through apt only where missing: what Open3D needs at import time, Chromium for the
-# report rendering test, systemd for the unit tests (systemd-analyze verify, sysusers, tmpfiles).
+# report rendering test and, with chromium-driver, the console's browser tests; systemd for the unit tests
+# (systemd-analyze verify, sysusers, tmpfiles).
 system-deps:
 	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
 	if [ -n "$$missing" ]; then \

@@ -422,6 +422,9 @@ def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
         return StreamingResponse(_event_stream(daemon, request, job, start), media_type="text/event-stream",
                                  headers={"Cache-Control": "no-store", "X-Accel-Buffering": "no"})
 
+    from tandemscan.daemon.console.router import console_router  # it imports this module's bodies
+
+    app.include_router(console_router(daemon, require_token))
     return app
 
 
