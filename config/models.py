@@ -168,10 +168,15 @@ class ChassisCanConfig(_Strict):
     command_period_s: float = Field(0.02, gt=0, description="motion command period (protocol: 20 ms)")
     feedback_timeout_s: float = Field(0.5, gt=0, description="no status frame for this long = link lost")
     odometry_track_mm: float = Field(582.0, gt=0, description="effective skid-steer track for wheel odometry")
+    odometry_mm_per_count: float = Field(
+        1.0, gt=0, description="wheel travel per unit of the 0x311 odometry int32 (ugv_sdk passes the raw value; "
+                               "mm on the chassis documented so far, unverified per model)")
     odometry_start_x_mm: float = Field(0.0, description="surveyed pose (floor frame F) the odometry starts from")
     odometry_start_y_mm: float = 0.0
     odometry_start_heading_deg: float = 0.0
-    position_tolerance_mm: float = Field(5.0, gt=0)
+    position_tolerance_mm: float = Field(5.0, gt=0, description="arrived when the odometry is this close, mm")
+    approach_deadband_mm: float = Field(
+        0.5, gt=0, description="final approach along the heading ends this close to the target (or when past it)")
     heading_tolerance_deg: float = Field(0.5, gt=0)
     gain_linear_per_s: float = Field(1.5, gt=0, description="linear speed = gain x distance error")
     gain_angular_per_s: float = Field(2.0, gt=0, description="angular speed = gain x heading error")
