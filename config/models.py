@@ -54,6 +54,14 @@ class PhoxiConfig(_Strict):
     harvesters_module: str = Field(
         "harvesters.core", description="module providing Harvester (the fake one for hardware-in-the-loop runs)"
     )
+    range_pixel_format: str = Field("Coord3D_ABC32f", description="gige_vision: PixelFormat of Range (XYZ mm)")
+    normal_pixel_format: str = Field("Coord3D_ABC32f", description="gige_vision: PixelFormat of Normal")
+    confidence_pixel_format: str = Field("Confidence8", description="gige_vision: PixelFormat of Confidence")
+    normals_estimation_radius: int = Field(
+        2, ge=1, description="gige_vision: NormalsEstimationRadius, pixels (0 would send no normals)")
+    confidence_best: float | None = Field(
+        None, gt=0, description="raw confidence of the best pixel, mapped to 1 (0 stays invalid); empty = 255 "
+                                "for gige_vision (Confidence8), 1 for photoneo_gentl (unverified)")
 
 
 class ScannerConfig(_Strict):
