@@ -14,6 +14,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 DriverKind = Literal["sim", "real"]
+OutputKind = Literal["coil", "holding_register"]
 
 
 class _Strict(BaseModel):
@@ -207,6 +208,8 @@ class SafetyModbusConfig(_Strict):
     """Real safety I/O on Modbus TCP (``driver = "real"``): addresses are wire addresses (0-based).
 
     Inputs are discrete inputs, true = tripped (``*_active_high = false`` inverts a normally-closed wiring).
+    Outputs (target light, beacon) are coils of an I/O module, or holding registers of a stack light
+    (PATLITE-style: one register per tier, ``*_on_value`` written for on, 0 for off).
     """
 
     host: str = "192.168.127.254"
@@ -216,8 +219,12 @@ class SafetyModbusConfig(_Strict):
     estop_active_high: bool = True
     light_curtain_input: int = Field(1, ge=0)
     light_curtain_active_high: bool = True
-    target_light_coil: int = Field(0, ge=0)
-    beacon_coil: int = Field(1, ge=0)
+    target_light_coil: int = Field(0, ge=0, description="wire address of the target light's coil or register")
+    target_light_output: OutputKind = "coil"
+    target_light_on_value: int = Field(1, ge=1, le=0xFFFF, description="register value for on (registers only)")
+    beacon_coil: int = Field(1, ge=0, description="wire address of the beacon's coil or register")
+    beacon_output: OutputKind = "coil"
+    beacon_on_value: int = Field(1, ge=1, le=0xFFFF, description="register value for on (registers only)")
     timeout_s: float = Field(1.0, gt=0)
 
 
