@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 DriverKind = Literal["sim", "real"]
 OutputKind = Literal["coil", "holding_register"]
@@ -89,22 +89,39 @@ class ScannerConfig(_Strict):
 
 
 class TrackerStreamConfig(_Strict):
-    """Real tracker pose stream (``driver = "real"``): TCP ``host:port`` or a serial device, and its framing.
+    """Real tracker pose stream (``driver = "real"``): transport, framing, record layout and commands.
 
-    ``fields`` names the comma-separated fields of one text frame, in order (see docs/drivers.md).
+    ``transport``: TCP ``host:port`` (the tracker's), a serial device, or UDP datagrams arriving on the local
+    ``host:port`` (ART DTrack style). ``framing``: one text line per frame, or a length prefix before each
+    frame. ``record``: comma-separated text fields, or a packed binary record of the same ``fields``.
+    ``start_command`` is sent once after connecting (NDI ``TSTART``), ``poll_command`` before every reading
+    (NDI ``BX``). See docs/drivers.md.
     """
 
-    transport: Literal["tcp", "serial"] = "tcp"
+    transport: Literal["tcp", "serial", "udp"] = "tcp"
     host: str = "127.0.0.1"
     port: int = Field(8765, ge=0, le=65535)
     serial_device: str = "/dev/ttyUSB0"
     baudrate: int = Field(115200, gt=0)
-    start_marker: str = "$POSE"
+    framing: Literal["line", "length_prefixed"] = "line"
+    length_prefix: Literal["u16le", "u16be", "u32le", "u32be"] = Field(
+        "u32le", description="length_prefixed: the prefix, counting the record's bytes after it")
+    record: Literal["text", "binary"] = "text"
+    binary_byte_order: Literal["little", "big"] = "little"
+    start_marker: str = Field("$POSE", description="text records: the first field of every frame")
     fields: tuple[str, ...] = (
         "frame", "device_time_s", "status", "x_mm", "y_mm", "z_mm", "qx", "qy", "qz", "qw",
         "sx_mm", "sy_mm", "sz_mm", "srx_rad", "sry_rad", "srz_rad",
     )
     checksum: bool = True
+    start_command: str = Field("", description="sent once after connecting (tcp, serial), e.g. \"TSTART\\r\"")
+    poll_command: str = Field("", description="sent before every reading (tcp, serial), e.g. \"BX 0801\\r\"")
+
+    @model_validator(mode="after")
+    def _commands_need_a_stream(self) -> TrackerStreamConfig:
+        if (self.start_command or self.poll_command) and self.transport == "udp":
+            raise ValueError("start_command / poll_command need transport tcp or serial")
+        return self
 
 
 class TrackerConfig(_Strict):
