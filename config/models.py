@@ -331,6 +331,15 @@ class HilConfig(_Strict):
     arm_time_scale: float = Field(0.01, ge=0, description="emulated arm: wall s per simulated s; 0 = instant")
     chassis_time_scale: float = Field(0.05, gt=0, description="emulated chassis: wall s per simulated s")
     tracker_rate_hz: float = Field(60.0, gt=0)
+    # how closely the emulators follow the vendors' behaviour (docs/drivers.md); the defaults are forgiving
+    arm_power_on_delay_s: float = Field(0.0, ge=0, description="power_on completes this long after its reply")
+    arm_enable_delay_s: float = Field(0.0, ge=0, description="enable_robot completes this long after its reply")
+    arm_segment_bytes: int = Field(0, ge=0, description="replies and status cut into TCP segments this size; 0 = whole")
+    arm_numeric_error_codes: bool = Field(False, description="errorCode as a number instead of a string")
+    arm_status_bytes: int = Field(0, ge=0, description="status objects padded to about this size (real: 5-9 kB)")
+    chassis_driver_state_flags: int = Field(0, ge=0, le=0xC0, description="motor DriverState in normal running "
+                                                                             "(0x40 driver enabled)")
+    tracker_requires_start: bool = Field(False, description="the stream starts only after tracker.stream.start_command")
 
 
 class JobConfig(_Strict):
