@@ -106,6 +106,8 @@ class JakaTcpArm:
         st = self._status
         if self._cmd is None or st is None:
             return DeviceStatus(self.name, False, "disconnected")
+        if self._status_error is not None:
+            return DeviceStatus(self.name, True, "fault", {"error": str(self._status_error)})
         if st.get("emergency_stop") or st.get("protective_stop"):
             state = "stopped"
         elif str(st.get("errcode", "0x0")) not in ("0", "0x0"):

@@ -270,20 +270,25 @@ async def test_protective_stop_refuses_moves_as_safety_stop(emulator, arm):
         await arm.move_joints(Q_TARGET)
 
 
-async def test_silent_controller_is_a_lost_link_after_a_status_gap(emulator, arm):
-    """A pulled cable: neither status nor replies. The move fails on the status watchdog, not its timeout."""
+@pytest.mark.parametrize(("faults", "state"), [(("status_silent",), "fault"),
+                                               (("status_silent", "silent"), "disconnected")])
+async def test_silent_controller_is_a_lost_link_after_a_status_gap(emulator, arm, faults, state):
+    """The status push stops (a hung controller), or nothing comes back at all (a pulled cable): the move
+    fails on the status watchdog, not after its timeout."""
     emulator.time_scale = 1.0
     move = asyncio.create_task(arm.move_joints(Q_TARGET, timeout_s=4.0))
     while emulator.motion.in_position(emulator.sim_time()):
         await asyncio.sleep(0.005)
-    emulator.faults.status_silent = True
-    emulator.faults.silent = True
+    for fault in faults:
+        setattr(emulator.faults, fault, True)
     with pytest.raises(NotConnected, match="no status message for 0.3 s"):
         await move
-    assert not move.cancelled()
+    assert emulator.commands[-1] == "stop_program"  # tried, bounded by the same gap
+    assert (await arm.status()).state == state  # the stop's reply timed out on a pulled cable: link dropped
     with pytest.raises(NotConnected):  # later waits fail at once, until reconnect
         await arm.move_joints(Q_HOME)
-    emulator.faults.status_silent = emulator.faults.silent = False
+    for fault in faults:
+        setattr(emulator.faults, fault, False)
     emulator.time_scale = 0.005
     await arm.connect()
     await arm.move_joints(Q_TARGET)
