@@ -1,8 +1,8 @@
 """Safety I/O emulator: a Modbus TCP I/O module served by pymodbus' own server on 127.0.0.1.
 
 Discrete inputs carry the e-stop and light-curtain contacts, coils or holding registers (a stack light) the
-target light and beacon, at the addresses of :class:`~tandemscan.config.models.SafetyModbusConfig`. Faults: exception replies, silence
-(no reply), and a restart that drops every connection.
+target light and beacon, at the addresses of :class:`~tandemscan.config.models.SafetyModbusConfig`. Faults:
+exception replies, silence (no reply), and a restart that drops every connection.
 """
 
 from __future__ import annotations
