@@ -1,10 +1,10 @@
 """Split a TCP byte stream into JSON objects (JAKA sends objects back to back with no length prefix).
 
 The framer tracks brace depth outside string literals, so an object is complete exactly when its closing
-brace arrives, however the bytes were split or coalesced by the network. The scan runs at C speed: one
-regular expression jumps from structural byte to structural byte and skips whole string literals, so the
-Python loop runs once per brace, bracket or string, not once per byte (a 6 kB JAKA status object has a few
-hundred of them); each complete object is then decoded by ``json.loads``.
+brace arrives, however the bytes were split or coalesced by the network. The scan runs at C speed: a
+regular expression jumps to the next brace, bracket or quote, ``bytes.find`` to the end of a string literal,
+so the Python loop runs once per brace, bracket or string, not once per byte (a 6 kB JAKA status object has a
+few hundred of them); each complete object is then decoded by ``json.loads``.
 """
 
 from __future__ import annotations
@@ -12,9 +12,9 @@ from __future__ import annotations
 import json
 import re
 
-# a whole string literal (or one cut off at the end of the buffer), or one brace or bracket
-_TOKEN = re.compile(rb'"(?:[^"\\]|\\.)*(?:"|\\?\Z)|[{}\[\]]', re.DOTALL)
+_STRUCTURAL = re.compile(rb'["{}\[\]]')
 _WHITESPACE = b" \t\r\n"
+_QUOTE, _BACKSLASH, _OPENING = ord('"'), ord("\\"), (ord("{"), ord("["))
 
 
 class JsonFramingError(ValueError):
@@ -49,19 +49,20 @@ class JsonObjectFramer:
         if depth == 0:
             pos = start = self._object_start(buf, 0)
         while pos < len(buf):
-            m = _TOKEN.search(buf, pos)
+            m = _STRUCTURAL.search(buf, pos)
             if m is None:
                 pos = len(buf)
                 break
-            token = m.group()
-            if token[0] == ord('"'):
-                if len(token) < 2 or not token.endswith(b'"') or _escaped_quote_at_end(token):
-                    pos = m.start()  # a string cut off by the end of the buffer: rescan it with more bytes
+            i = m.start()
+            if buf[i] == _QUOTE:
+                end = _string_end(buf, i)
+                if end < 0:
+                    pos = i  # a string cut off by the end of the buffer: rescan it with more bytes
                     break
-                pos = m.end()
+                pos = end + 1
                 continue
-            depth += 1 if token in (b"{", b"[") else -1
-            pos = m.end()
+            depth += 1 if buf[i] in _OPENING else -1
+            pos = i + 1
             if depth == 0:
                 out.append(self._decode(bytes(buf[start:pos])))
                 pos = start = self._object_start(buf, pos)
@@ -101,10 +102,18 @@ class JsonObjectFramer:
         self._scan = 0
 
 
-def _escaped_quote_at_end(token: bytes) -> bool:
-    """True when the closing quote of ``token`` is itself escaped (an odd run of backslashes before it)."""
-    run = len(token) - 1 - len(token[:-1].rstrip(b"\\"))
-    return run % 2 == 1
+def _string_end(buf: bytearray, start: int) -> int:
+    """Index of the quote that closes the string literal opening at ``start``, or -1 if it is not in ``buf``
+    yet. A quote after an odd run of backslashes is escaped."""
+    end = buf.find(b'"', start + 1)
+    while end >= 0:
+        k = end - 1
+        while buf[k] == _BACKSLASH:  # stops at the opening quote at the latest
+            k -= 1
+        if (end - 1 - k) % 2 == 0:
+            return end
+        end = buf.find(b'"', end + 1)
+    return -1
 
 
 def _reject_constant(name: str) -> float:

@@ -313,3 +313,11 @@ def json_bytes(obj: dict) -> bytes:
     import json
 
     return json.dumps(obj).encode() + b"\r\n"
+
+
+def test_framer_string_ends_after_backslash_runs_at_any_cut():
+    stream = b'{"p":"c:\\\\","q":"\\\\\\"}","r":[{"s":"\\\\\\\\"}]}{"n":1}'
+    expected = [{"p": "c:\\", "q": '\\"}', "r": [{"s": "\\\\"}]}, {"n": 1}]
+    for cut in range(len(stream) + 1):
+        framer = JsonObjectFramer()
+        assert framer.feed(stream[:cut]) + framer.feed(stream[cut:]) == expected
