@@ -341,6 +341,13 @@ class HilConfig(_Strict):
                                                                              "(0x40 driver enabled)")
     tracker_requires_start: bool = Field(False, description="the stream starts only after tracker.stream.start_command")
 
+    @field_validator("chassis_driver_state_flags")
+    @classmethod
+    def _state_flags_only(cls, v: int) -> int:
+        if v & 0x3F:
+            raise ValueError("only the state flags 0x40 (driver enabled) and 0x80 (driver reset); 0x01-0x20 are faults")
+        return v
+
 
 class JobConfig(_Strict):
     """Measurement job settings."""
