@@ -17,6 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 log = logging.getLogger(__name__)
 
 DriverKind = Literal["sim", "real"]
+OutputKind = Literal["coil", "holding_register"]
 
 
 class _Strict(BaseModel):
@@ -57,6 +58,14 @@ class PhoxiConfig(_Strict):
     harvesters_module: str = Field(
         "harvesters.core", description="module providing Harvester (the fake one for hardware-in-the-loop runs)"
     )
+    range_pixel_format: str = Field("Coord3D_ABC32f", description="gige_vision: PixelFormat of Range (XYZ mm)")
+    normal_pixel_format: str = Field("Coord3D_ABC32f", description="gige_vision: PixelFormat of Normal")
+    confidence_pixel_format: str = Field("Confidence8", description="gige_vision: PixelFormat of Confidence")
+    normals_estimation_radius: int = Field(
+        2, ge=1, description="gige_vision: NormalsEstimationRadius, pixels (0 would send no normals)")
+    confidence_best: float | None = Field(
+        None, gt=0, description="raw confidence of the best pixel, mapped to 1 (0 stays invalid); empty = 255 "
+                                "for gige_vision (Confidence8), 1 for photoneo_gentl (unverified)")
 
 
 class ScannerConfig(_Strict):
@@ -83,22 +92,39 @@ class ScannerConfig(_Strict):
 
 
 class TrackerStreamConfig(_Strict):
-    """Real tracker pose stream (``driver = "real"``): TCP ``host:port`` or a serial device, and its framing.
+    """Real tracker pose stream (``driver = "real"``): transport, framing, record layout and commands.
 
-    ``fields`` names the comma-separated fields of one text frame, in order (see docs/drivers.md).
+    ``transport``: TCP ``host:port`` (the tracker's), a serial device, or UDP datagrams arriving on the local
+    ``host:port`` (ART DTrack style). ``framing``: one text line per frame, or a length prefix before each
+    frame. ``record``: comma-separated text fields, or a packed binary record of the same ``fields``.
+    ``start_command`` is sent once after connecting (NDI ``TSTART``), ``poll_command`` before every reading
+    (NDI ``BX``). See docs/drivers.md.
     """
 
-    transport: Literal["tcp", "serial"] = "tcp"
+    transport: Literal["tcp", "serial", "udp"] = "tcp"
     host: str = "127.0.0.1"
     port: int = Field(8765, ge=0, le=65535)
     serial_device: str = "/dev/ttyUSB0"
     baudrate: int = Field(115200, gt=0)
-    start_marker: str = "$POSE"
+    framing: Literal["line", "length_prefixed"] = "line"
+    length_prefix: Literal["u16le", "u16be", "u32le", "u32be"] = Field(
+        "u32le", description="length_prefixed: the prefix, counting the record's bytes after it")
+    record: Literal["text", "binary"] = "text"
+    binary_byte_order: Literal["little", "big"] = "little"
+    start_marker: str = Field("$POSE", description="text records: the first field of every frame")
     fields: tuple[str, ...] = (
         "frame", "device_time_s", "status", "x_mm", "y_mm", "z_mm", "qx", "qy", "qz", "qw",
         "sx_mm", "sy_mm", "sz_mm", "srx_rad", "sry_rad", "srz_rad",
     )
     checksum: bool = True
+    start_command: str = Field("", description="sent once after connecting (tcp, serial), e.g. \"TSTART\\r\"")
+    poll_command: str = Field("", description="sent before every reading (tcp, serial), e.g. \"BX 0801\\r\"")
+
+    @model_validator(mode="after")
+    def _commands_need_a_stream(self) -> TrackerStreamConfig:
+        if (self.start_command or self.poll_command) and self.transport == "udp":
+            raise ValueError("start_command / poll_command need transport tcp or serial")
+        return self
 
 
 class TrackerConfig(_Strict):
@@ -130,6 +156,12 @@ class JakaTcpConfig(_Strict):
     linear_accel_mm_s2: float = Field(500.0, gt=0)
     inpos_tolerance_deg: float = Field(0.05, gt=0, description="joint target reached when all joints are this close")
     inpos_tolerance_mm: float = Field(0.2, gt=0, description="linear target reached when this close")
+    status_gap_timeout_s: float = Field(
+        0.3, gt=0, description="no status message for this long while waiting on the stream = link lost "
+                               "(a few periods of the controller's status push)")
+    power_on_timeout_s: float = Field(15.0, gt=0, description="power_on is asynchronous: wait this long for it")
+    enable_timeout_s: float = Field(15.0, gt=0, description="enable_robot is asynchronous: wait this long for it")
+    state_poll_period_s: float = Field(0.1, gt=0, description="get_robot_state polling period while waiting")
 
 
 class ArmConfig(_Strict):
@@ -165,10 +197,15 @@ class ChassisCanConfig(_Strict):
     command_period_s: float = Field(0.02, gt=0, description="motion command period (protocol: 20 ms)")
     feedback_timeout_s: float = Field(0.5, gt=0, description="no status frame for this long = link lost")
     odometry_track_mm: float = Field(582.0, gt=0, description="effective skid-steer track for wheel odometry")
+    odometry_mm_per_count: float = Field(
+        1.0, gt=0, description="wheel travel per unit of the 0x311 odometry int32 (ugv_sdk passes the raw value; "
+                               "mm on the chassis documented so far, unverified per model)")
     odometry_start_x_mm: float = Field(0.0, description="surveyed pose (floor frame F) the odometry starts from")
     odometry_start_y_mm: float = 0.0
     odometry_start_heading_deg: float = 0.0
-    position_tolerance_mm: float = Field(5.0, gt=0)
+    position_tolerance_mm: float = Field(5.0, gt=0, description="arrived when the odometry is this close, mm")
+    approach_deadband_mm: float = Field(
+        0.5, gt=0, description="final approach along the heading ends this close to the target (or when past it)")
     heading_tolerance_deg: float = Field(0.5, gt=0)
     gain_linear_per_s: float = Field(1.5, gt=0, description="linear speed = gain x distance error")
     gain_angular_per_s: float = Field(2.0, gt=0, description="angular speed = gain x heading error")
@@ -191,6 +228,8 @@ class SafetyModbusConfig(_Strict):
     """Real safety I/O on Modbus TCP (``driver = "real"``): addresses are wire addresses (0-based).
 
     Inputs are discrete inputs, true = tripped (``*_active_high = false`` inverts a normally-closed wiring).
+    Outputs (target light, beacon) are coils of an I/O module, or holding registers of a stack light
+    (PATLITE-style: one register per tier, ``*_on_value`` written for on, 0 for off).
     """
 
     host: str = "192.168.127.254"
@@ -200,8 +239,12 @@ class SafetyModbusConfig(_Strict):
     estop_active_high: bool = True
     light_curtain_input: int = Field(1, ge=0)
     light_curtain_active_high: bool = True
-    target_light_coil: int = Field(0, ge=0)
-    beacon_coil: int = Field(1, ge=0)
+    target_light_coil: int = Field(0, ge=0, description="wire address of the target light's coil or register")
+    target_light_output: OutputKind = "coil"
+    target_light_on_value: int = Field(1, ge=1, le=0xFFFF, description="register value for on (registers only)")
+    beacon_coil: int = Field(1, ge=0, description="wire address of the beacon's coil or register")
+    beacon_output: OutputKind = "coil"
+    beacon_on_value: int = Field(1, ge=1, le=0xFFFF, description="register value for on (registers only)")
     timeout_s: float = Field(1.0, gt=0)
 
 
@@ -291,6 +334,22 @@ class HilConfig(_Strict):
     arm_time_scale: float = Field(0.01, ge=0, description="emulated arm: wall s per simulated s; 0 = instant")
     chassis_time_scale: float = Field(0.05, gt=0, description="emulated chassis: wall s per simulated s")
     tracker_rate_hz: float = Field(60.0, gt=0)
+    # how closely the emulators follow the vendors' behaviour (docs/drivers.md); the defaults are forgiving
+    arm_power_on_delay_s: float = Field(0.0, ge=0, description="power_on completes this long after its reply")
+    arm_enable_delay_s: float = Field(0.0, ge=0, description="enable_robot completes this long after its reply")
+    arm_segment_bytes: int = Field(0, ge=0, description="replies and status cut into TCP segments this size; 0 = whole")
+    arm_numeric_error_codes: bool = Field(False, description="errorCode as a number instead of a string")
+    arm_status_bytes: int = Field(0, ge=0, description="status objects padded to about this size (real: 5-9 kB)")
+    chassis_driver_state_flags: int = Field(0, ge=0, le=0xC0, description="motor DriverState in normal running "
+                                                                             "(0x40 driver enabled)")
+    tracker_requires_start: bool = Field(False, description="the stream starts only after tracker.stream.start_command")
+
+    @field_validator("chassis_driver_state_flags")
+    @classmethod
+    def _state_flags_only(cls, v: int) -> int:
+        if v & 0x3F:
+            raise ValueError("only the state flags 0x40 (driver enabled) and 0x80 (driver reset); 0x01-0x20 are faults")
+        return v
 
 
 class JobConfig(_Strict):

@@ -24,7 +24,8 @@ from tandemscan.drivers.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
 
-CONTROL_MODES = {0: "standby", 1: "CAN", 2: "app", 3: "RC"}
+# ugv_sdk protocol v2: 0 standby (RC on some firmware), 1 CAN, 2 UART; 3 RC as this DBC's chassis reports it
+CONTROL_MODES = {0: "standby", 1: "CAN", 2: "UART", 3: "RC"}
 MODE_CAN = 1
 # SystemStatus.ErrorCode bits (generic; vary per model). Warnings do not stop a move.
 ERROR_BITS = {
@@ -33,10 +34,13 @@ ERROR_BITS = {
     0x0100: "motor driver", 0x0200: "host communication",
 }
 WARNING_BITS = {0x0002: "battery warning"}
+# Motor driver state (0x261-0x264, ugv_sdk DRIVER_STATE_*_MASK): bits 0x01-0x20 are faults, 0x40 and 0x80
+# report the driver enabled and reset (normal running shows 0x40), never a fault.
 DRIVER_STATE_BITS = {
     0x01: "supply voltage low", 0x02: "motor overheat", 0x04: "overload", 0x08: "driver overheat",
     0x10: "sensor fault", 0x20: "driver fault",
 }
+DRIVER_FAULT_MASK = sum(DRIVER_STATE_BITS)
 _MIN_LINEAR_MM_S = 10.0
 _MIN_ANGULAR_RAD_S = 0.01
 _TURN_IN_PLACE_RAD = math.radians(15.0)
@@ -72,6 +76,7 @@ class AgvCanChassis:
         self._fault: DeviceError | None = None
         self._commanding = False  # True once the chassis took CAN mode: leaving it is then a fault
         self._warned = 0
+        self.last_residual_mm: float | None = None  # distance from the target (odometry) after the last move
         self._feedback = asyncio.Event()
         self.command_times: collections.deque[float] = collections.deque(maxlen=2000)  # loop time of each 0x111
 
@@ -122,7 +127,7 @@ class AgvCanChassis:
         detail = {
             "pose": self._pose, "battery_V": self._system.get("BatteryVoltage"),
             "error_code": self._system.get("ErrorCode"), "control_mode": self._system.get("ControlMode"),
-            "fault": str(self._fault) if self._fault else None,
+            "fault": str(self._fault) if self._fault else None, "last_residual_mm": self.last_residual_mm,
         }
         return DeviceStatus(self.name, True, state, detail)
 
@@ -143,7 +148,9 @@ class AgvCanChassis:
         self._fault = None
 
     async def move_to(self, target: ChassisPose, timeout_s: float | None = None) -> ChassisPose:
-        """Drive to ``target`` closed-loop on odometry: turn, drive (forwards or backwards), turn to heading."""
+        """Drive to ``target`` closed-loop on odometry: turn, drive (forwards or backwards), creep along the
+        heading until the target is reached or passed (so the residual is centred, not at the tolerance's
+        edge), turn to the heading. The residual distance is kept in ``last_residual_mm`` and logged."""
         self._require_link()
         loop = asyncio.get_running_loop()
         timeout = self._cfg.timeout_s if timeout_s is None else timeout_s
@@ -151,6 +158,8 @@ class AgvCanChassis:
         self._fault = None
         await self._next_feedback(min(timeout, self._can.feedback_timeout_s))  # re-latches a standing fault
         positioning = True
+        creep_direction = 0.0  # sign of the last final-approach command; 0 before the final approach
+        tol = self._can.position_tolerance_mm
         try:
             while True:
                 if self._fault is not None:
@@ -158,17 +167,25 @@ class AgvCanChassis:
                 pose = self._pose
                 dx, dy = target.x_mm - pose.x_mm, target.y_mm - pose.y_mm
                 dist = math.hypot(dx, dy)
-                if positioning and dist <= self._can.position_tolerance_mm:
-                    positioning = False
-                elif not positioning and dist > 2 * self._can.position_tolerance_mm:
+                along = dx * math.cos(pose.heading_rad) + dy * math.sin(pose.heading_rad)
+                if positioning and dist <= tol and (abs(along) <= self._can.approach_deadband_mm
+                                                    or along * creep_direction < 0):
+                    positioning, creep_direction = False, 0.0  # on the target, or just past it
+                    self._zero_now()  # now, not at the next heartbeat: no creeping on while the turn starts
+                elif not positioning and dist > 2 * tol:
                     positioning = True
-                if positioning:
+                if positioning and dist > tol:
                     self._setpoint = self._drive_command(dist, math.atan2(dy, dx) - pose.heading_rad)
+                elif positioning:
+                    creep_direction = math.copysign(1.0, along)
+                    self._setpoint = (creep_direction * self._creep_speed(abs(along)), 0.0)
                 else:
                     err = wrap_angle(target.heading_rad - pose.heading_rad)
                     if abs(err) <= math.radians(self._can.heading_tolerance_deg):
                         rest = await self._come_to_rest()
                         if self._arrived(rest, target):
+                            self.last_residual_mm = math.hypot(target.x_mm - rest.x_mm, target.y_mm - rest.y_mm)
+                            log.info("%s: at %s, %.2f mm from the target", self.name, rest, self.last_residual_mm)
                             return rest
                         positioning = True  # drifted out while stopping: approach again
                     self._setpoint = (0.0, self._turn_rate(err))
@@ -204,6 +221,10 @@ class AgvCanChassis:
         w = min(max(self._can.gain_angular_per_s * err_rad, -w_max), w_max)
         return math.copysign(max(abs(w), _MIN_ANGULAR_RAD_S), err_rad)
 
+    def _creep_speed(self, along_mm: float) -> float:
+        """Final-approach speed (mm/s) ``along_mm`` short of the target: proportional, at least the least speed."""
+        return min(max(self._can.gain_linear_per_s * along_mm, _MIN_LINEAR_MM_S), self._cfg.speed_mm_s)
+
     def _drive_command(self, dist_mm: float, bearing_rad: float) -> tuple[float, float]:
         """(linear mm/s, angular rad/s) towards a point ``dist_mm`` away at ``bearing_rad`` from the heading."""
         direction = 1.0
@@ -213,8 +234,7 @@ class AgvCanChassis:
         w = self._turn_rate(err) if abs(err) > 1e-4 else 0.0
         if abs(err) > _TURN_IN_PLACE_RAD:
             return 0.0, w
-        v = min(max(self._can.gain_linear_per_s * dist_mm, _MIN_LINEAR_MM_S), self._cfg.speed_mm_s)
-        return direction * v * math.cos(err), w
+        return direction * self._creep_speed(dist_mm) * math.cos(err), w
 
     # ------------------------------------------------------------------ bus side
 
@@ -309,9 +329,10 @@ class AgvCanChassis:
             elif name == "MotionState":
                 self._motion = sig
             elif name == "Odometry":
-                self._on_odometry(sig["LeftWheelOdometry"], sig["RightWheelOdometry"])
+                scale = self._can.odometry_mm_per_count
+                self._on_odometry(sig["LeftWheelOdometry"] * scale, sig["RightWheelOdometry"] * scale)
                 self._wake()
-            elif name.startswith("MotorLowRate") and int(sig["DriverState"]):
+            elif name.startswith("MotorLowRate") and int(sig["DriverState"]) & DRIVER_FAULT_MASK:
                 problems = ", ".join(bit_names(int(sig["DriverState"]), DRIVER_STATE_BITS))
                 self._latch(DeviceFault(self.name, f"motor {name[-1]} driver: {problems}"))
 

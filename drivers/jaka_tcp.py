@@ -1,8 +1,11 @@
 """JAKA Zu arm over its TCP/IP protocol: JSON commands on one port, a pushed status stream on another.
 
-Protocol facts (shared/protocols/README.md): requests ``{"cmdName": ..., ...}``; replies carry ``errorCode``
-as a string (``"0"`` success, ``"2"`` kinematics failure); a reply only means "accepted", so a move is
-complete when the status stream shows ``inpos`` at the target. Degrees and JAKA's fixed x-y-z Euler angles
+Protocol facts (docs/drivers.md): requests ``{"cmdName": ..., ...}``; replies carry ``errorCode`` (``"0"``
+success; a string, some firmware sends a number) and ``errorMsg``; a reply only means "received", so
+``power_on``/``enable_robot`` are polled with ``get_robot_state`` until done and a move is complete when the
+status stream shows ``inpos`` at the target. An error code is no reason: whether a Cartesian target is
+reachable is asked of ``kine_inverse``. The status stream is the link watchdog: a gap of
+``status_gap_timeout_s`` while waiting on it is a lost link. Degrees and JAKA's fixed x-y-z Euler angles
 exist only inside this module; the interface speaks radians, millimetres and 4x4 ``T_B_E``. The tool offset
 on the controller must be zero, so that its TCP pose is the flange pose ``T_B_E``.
 """
@@ -12,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 from collections.abc import Callable
 
 import numpy as np
@@ -32,8 +36,13 @@ from tandemscan.pipeline.frames import from_rpy, to_rpy
 log = logging.getLogger(__name__)
 
 _READ_CHUNK = 65536
-# Commands whose errorCode "2" means the pose cannot be reached (inverse kinematics failed).
-_KINEMATIC_COMMANDS = {"moveL", "end_move", "kine_inverse"}
+_POWERED = ("powered_on", 1, True)
+_ENABLED = ("robot_enabled", 1, True)
+
+
+def succeeded(reply: dict) -> bool:
+    """True when ``errorCode`` means success: ``"0"`` or ``0`` (string or number, as firmware differs)."""
+    return str(reply.get("errorCode")).strip() == "0"
 
 
 def six_finite(value: object, what: str, device: str) -> np.ndarray:
@@ -65,6 +74,7 @@ class JakaTcpArm:
         self._status: dict | None = None
         self._status_event = asyncio.Event()
         self._status_error: DeviceError | None = None
+        self._status_count = 0  # status messages received on this connection
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -74,9 +84,10 @@ class JakaTcpArm:
         host, timeout = self._net.host, self._net.reply_timeout_s
         self._cmd = await self._open(host, self._net.command_port, timeout)
         status_reader, self._status_writer = await self._open(host, self._net.status_port, timeout)
-        self._status_error = None
+        self._status_error, self._status_count = None, 0
         self._status_task = asyncio.create_task(self._read_status(status_reader), name=f"{self.name}-status")
-        await self._wait_status(lambda st: True, timeout, "the first status message", check_safety=False)
+        await self._wait_status(lambda st: True, timeout, "the first status message", check_safety=False,
+                                watchdog=False)
         log.info("%s: connected to %s:%d/%d", self.name, host, self._net.command_port, self._net.status_port)
 
     async def close(self) -> None:
@@ -95,6 +106,8 @@ class JakaTcpArm:
         st = self._status
         if self._cmd is None or st is None:
             return DeviceStatus(self.name, False, "disconnected")
+        if self._status_error is not None:
+            return DeviceStatus(self.name, True, "fault", {"error": str(self._status_error)})
         if st.get("emergency_stop") or st.get("protective_stop"):
             state = "stopped"
         elif str(st.get("errcode", "0x0")) not in ("0", "0x0"):
@@ -107,12 +120,26 @@ class JakaTcpArm:
     # ------------------------------------------------------------------ verbs
 
     async def enable(self) -> None:
-        """Power on and enable the servos; verified with ``get_robot_state``."""
-        await self._call("power_on")
-        await self._call("enable_robot")
-        state = await self._call("get_robot_state")
-        if state.get("enable") not in ("robot_enabled", True, 1):
-            raise DeviceFault(self.name, f"robot not enabled after enable_robot: {state.get('enable')!r}")
+        """Power on, wait until powered, enable, wait until enabled (both polled with ``get_robot_state``)."""
+        net = self._net
+        if (await self._call("get_robot_state")).get("power") not in _POWERED:
+            await self._call("power_on")
+            await self._poll_robot_state("power", _POWERED, net.power_on_timeout_s)
+        if (await self._call("get_robot_state")).get("enable") not in _ENABLED:
+            await self._call("enable_robot")
+            await self._poll_robot_state("enable", _ENABLED, net.enable_timeout_s)
+
+    async def _poll_robot_state(self, key: str, done: tuple[object, ...], timeout_s: float) -> None:
+        """Poll ``get_robot_state`` until ``key`` shows one of ``done``; :class:`DeviceTimeout` after ``timeout_s``."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout_s
+        while True:
+            value = (await self._call("get_robot_state")).get(key)
+            if value in done:
+                return
+            if loop.time() > deadline:
+                raise DeviceTimeout(self.name, f"robot state {key!r} still {value!r} after {timeout_s} s")
+            await asyncio.sleep(self._net.state_poll_period_s)
 
     async def disable(self) -> None:
         """Disable the servos and power off."""
@@ -145,9 +172,10 @@ class JakaTcpArm:
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise ValueError("T_B_E must be a finite 4x4 matrix")
         xyz, rpy = to_rpy(T)
+        cart = [*xyz.tolist(), *np.degrees(rpy).tolist()]
         await self._start_move(
-            "moveL", cartPosition=[*xyz.tolist(), *np.degrees(rpy).tolist()], speed=self._net.linear_speed_mm_s,
-            accel=self._net.linear_accel_mm_s2, relFlag=0, tol=0,
+            "moveL", cart, cartPosition=cart, speed=self._net.linear_speed_mm_s, accel=self._net.linear_accel_mm_s2,
+            relFlag=0, tol=0,
         )
         tol = self._net.inpos_tolerance_mm
 
@@ -188,19 +216,26 @@ class JakaTcpArm:
             raise NotConnected(self.name, f"cannot connect to {host}:{port}: {e}") from e
 
     async def _call(self, cmd: str, **params: object) -> dict:
-        """Send one command, return its reply; a reply with a non-zero ``errorCode`` raises."""
+        """Send one command, return its reply; a reply with a non-zero ``errorCode`` is a :class:`DeviceFault`."""
+        reply = await self._request(cmd, self._net.reply_timeout_s, **params)
+        if not succeeded(reply):
+            raise DeviceFault(self.name, _error_text(cmd, reply))
+        return reply
+
+    async def _request(self, cmd: str, timeout_s: float, **params: object) -> dict:
+        """Send one command and return its reply as it is (``errorCode`` unchecked); link errors raise."""
         async with self._lock:
             if self._cmd is None:
                 raise NotConnected(self.name, f"{cmd}: not connected")
             reader, writer = self._cmd
             try:
                 writer.write(encode({"cmdName": cmd, **params}))
-                async with asyncio.timeout(self._net.reply_timeout_s):
+                async with asyncio.timeout(timeout_s):
                     await writer.drain()
                     reply = await self._read_reply(reader, cmd)
             except TimeoutError as e:
                 await self._drop_command_link()  # a late reply would be taken for the next command's
-                raise DeviceTimeout(self.name, f"{cmd}: no reply within {self._net.reply_timeout_s} s") from e
+                raise DeviceTimeout(self.name, f"{cmd}: no reply within {timeout_s} s") from e
             except JsonFramingError as e:
                 await self._drop_command_link()
                 raise DeviceFault(self.name, f"{cmd}: malformed reply: {e}") from e
@@ -210,14 +245,8 @@ class JakaTcpArm:
             except DeviceError:
                 await self._drop_command_link()
                 raise
-        code = reply.get("errorCode")
-        if code is None:
+        if "errorCode" not in reply:
             raise DeviceFault(self.name, f"{cmd}: reply without errorCode: {reply!r}")
-        if str(code) != "0":
-            message = f"{cmd}: error {code}: {reply.get('errorMsg', '')}"
-            if str(code) == "2" and cmd in _KINEMATIC_COMMANDS:
-                raise OutOfReach(self.name, message)
-            raise DeviceFault(self.name, message)
         return reply
 
     async def _read_reply(self, reader: asyncio.StreamReader, cmd: str) -> dict:
@@ -253,6 +282,7 @@ class JakaTcpArm:
                     raise NotConnected(self.name, "status stream closed by the controller")
                 for obj in framer.feed(data):
                     self._status = obj
+                    self._status_count += 1
                     self._wake_status_waiters()
         except JsonFramingError as e:
             self._status_error = DeviceFault(self.name, f"malformed status message: {e}")
@@ -276,14 +306,18 @@ class JakaTcpArm:
             raise DeviceFault(self.name, f"controller error {st.get('errcode')}: {st.get('errmsg', '')}")
 
     async def _wait_status(
-        self, done: Callable[[dict], bool], timeout_s: float, what: str, check_safety: bool = True
+        self, done: Callable[[dict], bool], timeout_s: float, what: str, check_safety: bool = True,
+        watchdog: bool = True,
     ) -> dict:
+        """The first status message for which ``done`` holds. With ``watchdog``, a gap of
+        ``status_gap_timeout_s`` without any status message is a lost link (:class:`NotConnected`)."""
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout_s
+        gap = self._net.status_gap_timeout_s if watchdog else math.inf
         while True:
             if self._status_error is not None:
                 raise self._status_error
-            event, st = self._status_event, self._status
+            event, st, count = self._status_event, self._status, self._status_count
             if st is not None:
                 if check_safety:
                     self._check_safety(st)
@@ -293,25 +327,58 @@ class JakaTcpArm:
             try:
                 if remaining <= 0:
                     raise TimeoutError
-                async with asyncio.timeout(remaining):
+                async with asyncio.timeout(min(remaining, gap)):
                     await event.wait()
             except TimeoutError as e:
-                raise DeviceTimeout(self.name, f"{what} not seen within {timeout_s} s") from e
+                if loop.time() >= deadline:
+                    raise DeviceTimeout(self.name, f"{what} not seen within {timeout_s} s") from e
+                await self._check_status_gap(count, gap)
 
-    async def _start_move(self, cmd: str, **params: object) -> None:
-        """Refuse a move while the last status shows a stop or fault; else send it."""
+    async def _check_status_gap(self, count: int, gap_s: float) -> None:
+        """After a wait of ``gap_s`` without a message: unless one arrived meanwhile (the event loop may have
+        been late to run the reader), the status link is lost, which later calls see too."""
+        for _ in range(3):  # let a reader that was woken in the same loop turn deliver its message
+            await asyncio.sleep(0)
+        if self._status_count == count and self._status_error is None:
+            self._status_error = NotConnected(self.name, f"no status message for {gap_s} s: controller silent "
+                                                         f"or link lost")
+            log.error("%s", self._status_error)
+
+    async def _start_move(self, cmd: str, cart: list[float] | None = None, **params: object) -> None:
+        """Refuse a move while the last status shows a stop or fault; else send it. A refused Cartesian move
+        is :class:`OutOfReach` only when ``kine_inverse`` cannot solve the target ``cart`` either."""
         if self._status is not None:
             self._check_safety(self._status)
-        await self._call(cmd, **params)
+        reply = await self._request(cmd, self._net.reply_timeout_s, **params)
+        if succeeded(reply):
+            return
+        message = _error_text(cmd, reply)
+        if cart is not None:
+            ik = await self._request("kine_inverse", self._net.reply_timeout_s, cartPosition=cart,
+                                     jointPosition=self._reference_joints_deg())
+            if not succeeded(ik):
+                raise OutOfReach(self.name, f"{message}; {_error_text('kine_inverse', ik)}")
+        raise DeviceFault(self.name, message)
+
+    def _reference_joints_deg(self) -> list[float]:
+        """The joints of the last status message (deg): the reference solution for ``kine_inverse``."""
+        st = self._status or {}
+        return six_finite(st.get("joint_actual_position"), "joint_actual_position", self.name).tolist()
 
     async def _await_motion(self, arrived: Callable[[dict], bool], timeout_s: float | None, what: str) -> None:
         """Wait for ``arrived`` on the status stream; on any failure try to stop the arm, then re-raise."""
         timeout = self._cfg.timeout_s if timeout_s is None else timeout_s
         try:
             await self._wait_status(arrived, timeout, f"{what} completion")
-        except BaseException:
+        except BaseException as e:
             if self._cmd is not None:
+                # a silent link would not answer either: then the attempt is bounded by the watchdog gap
+                bound = self._net.status_gap_timeout_s if isinstance(e, NotConnected) else self._net.reply_timeout_s
                 with contextlib.suppress(DeviceError):
-                    await self.stop()  # bounded by the reply timeout
+                    await self._request("stop_program", bound)
             raise
+
+
+def _error_text(cmd: str, reply: dict) -> str:
+    return f"{cmd}: error {reply.get('errorCode')}: {reply.get('errorMsg', '')}"
 

@@ -1,10 +1,13 @@
-"""Metronor optical tracker: a framed 6-DoF pose stream over TCP or serial (settings in ``TrackerConfig.stream``).
+"""Metronor optical tracker: a framed 6-DoF pose stream over TCP, serial or UDP (``TrackerConfig.stream``).
 
-The vendor protocol is not public, so the framing lives in one configurable adapter
-(:class:`~tandemscan.drivers.pose_stream.PoseStreamAdapter`). :meth:`MetronorTracker.read_pose` waits for
-the first frame that arrives after the call (never a stale one), and raises
-:class:`TargetNotVisible` when the tracker reports the target missing or :class:`DeviceFault` for a frame it
-cannot trust (checksum, NaN, non-unit rotation).
+The vendor protocol is not public, so framing and record layout live in one configurable adapter
+(:class:`~tandemscan.drivers.pose_stream.PoseStreamAdapter`). A tracker that must be asked gets its
+``start_command`` once after connecting and its ``poll_command`` before every reading. Every frame is
+timestamped on its own: frames that arrive together in one read (a stalled network delivers several at
+once) are dated back by their device-time differences to the newest. :meth:`MetronorTracker.read_pose`
+returns the first frame dated after the call (never a stale one), and raises :class:`TargetNotVisible` when
+the tracker reports the target missing or :class:`DeviceFault` for a frame it cannot trust (checksum, NaN,
+non-unit rotation).
 """
 
 from __future__ import annotations
@@ -12,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import time
 
 import serial
@@ -35,6 +39,7 @@ class MetronorTracker:
         self._writer: asyncio.StreamWriter | None = None
         self._task: asyncio.Task | None = None
         self._serial: serial.Serial | None = None
+        self._udp: asyncio.DatagramTransport | None = None
         self._connected = False
         self._link_error: DeviceError | None = None
         self._frames: list[tuple[float, PoseSample | PoseFrameError]] = []  # (host time s, frame) since last read
@@ -55,6 +60,12 @@ class MetronorTracker:
             except OSError as e:
                 raise NotConnected(self.name, f"cannot connect to {s.host}:{s.port}: {e}") from e
             self._task = asyncio.create_task(self._read_tcp(reader), name=f"{self.name}-stream")
+        elif s.transport == "udp":
+            try:
+                self._udp, _ = await asyncio.get_running_loop().create_datagram_endpoint(
+                    lambda: _DatagramReceiver(self), local_addr=(s.host, s.port))
+            except OSError as e:
+                raise NotConnected(self.name, f"cannot listen on UDP {s.host}:{s.port}: {e}") from e
         else:
             try:
                 self._serial = serial.Serial(s.serial_device, s.baudrate, timeout=0)
@@ -62,6 +73,8 @@ class MetronorTracker:
                 raise NotConnected(self.name, f"cannot open {s.serial_device}: {e}") from e
             asyncio.get_running_loop().add_reader(self._serial.fileno(), self._read_serial)
         self._connected = True
+        if s.start_command:
+            self._send(s.start_command)
         log.info("%s: pose stream connected (%s)", self.name, s.transport)
 
     async def close(self) -> None:
@@ -73,6 +86,9 @@ class MetronorTracker:
             writer.close()
             with contextlib.suppress(OSError, TimeoutError):
                 await asyncio.wait_for(writer.wait_closed(), 1.0)
+        udp, self._udp = self._udp, None
+        if udp is not None:
+            udp.close()
         port, self._serial = self._serial, None
         if port is not None:
             with contextlib.suppress(OSError, ValueError):
@@ -99,7 +115,10 @@ class MetronorTracker:
         timeout = self._cfg.timeout_s if timeout_s is None else timeout_s
         deadline = asyncio.get_running_loop().time() + timeout
         self._frames.clear()
-        while not self._frames:
+        called_at = time.time()
+        if self._stream.poll_command:
+            self._send(self._stream.poll_command)
+        while not (fresh := [f for f in self._frames if f[0] >= called_at]):
             if self._link_error is not None:
                 raise self._link_error
             try:
@@ -107,7 +126,7 @@ class MetronorTracker:
                     await self._arrived.wait()
             except TimeoutError as e:
                 raise DeviceTimeout(self.name, f"no pose frame within {timeout} s") from e
-        host_t, frame = self._frames.pop(0)
+        host_t, frame = fresh[0]
         if isinstance(frame, PoseFrameError):
             raise DeviceFault(self.name, f"bad pose frame: {frame}")
         if not frame.visible:
@@ -117,12 +136,29 @@ class MetronorTracker:
 
     # ------------------------------------------------------------------ receive paths
 
-    def _accept(self, data: bytes) -> None:
+    def _send(self, command: str) -> None:
+        """Write a command to the tracker (start or poll); a failing link shows up on the receive side."""
+        data = command.encode("ascii")
+        if self._writer is not None:
+            self._writer.write(data)
+        elif self._serial is not None:
+            with contextlib.suppress(serial.SerialException, OSError):
+                self._serial.write(data)
+
+    def _accept(self, data: bytes, datagram: bool = False) -> None:
+        """Take the frames in ``data``, each with its own host time (s): the newest frame with a device time
+        gets the arrival time, earlier ones are dated back by their device-time difference to it."""
         now = time.time()
-        for item in self._adapter.feed(data):
+        items = self._adapter.feed_datagram(data) if datagram else self._adapter.feed(data)
+        times = [i.device_time_s for i in items if isinstance(i, PoseSample) and math.isfinite(i.device_time_s)]
+        newest = max(times, default=math.nan)
+        for item in items:
+            host_t = now
             if isinstance(item, PoseSample):
                 self.last_sample = item
-            self._frames.append((now, item))
+                if math.isfinite(item.device_time_s) and math.isfinite(newest):
+                    host_t = now - (newest - item.device_time_s)
+            self._frames.append((host_t, item))
         del self._frames[:-1000]  # bounded when nobody reads
         self._arrived.set()
         self._arrived = asyncio.Event()
@@ -154,3 +190,16 @@ class MetronorTracker:
             self._lost(NotConnected(self.name, f"serial read failed: {e}"))
             return
         self._accept(data)
+
+
+class _DatagramReceiver(asyncio.DatagramProtocol):
+    """Hands every datagram to the tracker as one whole batch of frames."""
+
+    def __init__(self, tracker: MetronorTracker):
+        self._tracker = tracker
+
+    def datagram_received(self, data: bytes, addr: tuple) -> None:
+        self._tracker._accept(data, datagram=True)
+
+    def error_received(self, exc: Exception) -> None:
+        log.warning("%s: UDP receive error: %s", self._tracker.name, exc)

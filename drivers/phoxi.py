@@ -5,9 +5,12 @@ Two producer paths (shared/protocols/README.md):
   switch components, ``TriggerFrame`` fires a scan; components arrive in a fixed order (point cloud third,
   normal map fourth, confidence map sixth).
 - ``gige_vision``: firmware >= 1.13 with a standard producer; ``TriggerMode/TriggerSource`` software trigger,
-  ``ComponentSelector/ComponentEnable`` for Range, Normal, Confidence (taken to arrive in that order [U]),
-  ``Scan3dOutputMode = CalibratedABC_Grid`` for XYZ per pixel.
-Point clouds are in mm in the scanner frame S; invalid pixels (all zeros or non-finite) are dropped. harvesters
+  ``Scan3dOutputMode = CalibratedABC_Grid`` for XYZ per pixel. Every entry of ``ComponentSelector`` is
+  switched: Range, Normal and Confidence on (with their pixel formats), all others off; the parts of a buffer
+  come in increasing ``ComponentIDValue`` of the enabled components (as Photoneo's examples match them).
+  ``NormalsEstimationRadius`` is set (0 would send no normals); confidence is ``Confidence8`` (0 invalid).
+Point clouds are in mm in the scanner frame S; invalid pixels (all zeros, non-finite, or confidence 0) are
+dropped. Confidence is normalised to one meaning on both paths: 0 invalid, 1 best. harvesters
 and the producer are optional at install time: ``connect()`` names whichever is missing. GenTL calls block, so
 they run in a worker thread, one at a time.
 """
@@ -29,8 +32,9 @@ from tandemscan.drivers.interfaces import DeviceStatus, ScanFrame
 
 log = logging.getLogger(__name__)
 
-# (point cloud, normals, confidence) component indices per producer path
-_COMPONENTS = {"photoneo_gentl": (2, 3, 5), "gige_vision": (0, 1, 2)}
+# (point cloud, normals, confidence) component indices of PhoXi Control's producer
+_PHOTONEO_COMPONENTS = (2, 3, 5)
+_GIGE_CONFIDENCE_BEST = 255.0  # Confidence8
 _PHOTONEO_SEND = {"SendPointCloud": True, "SendNormalMap": True, "SendConfidenceMap": True,
                   "SendTexture": False, "SendDepthMap": False}
 _THREAD_MARGIN_S = 2.0
@@ -47,6 +51,11 @@ class PhoxiScanner:
         self._acquirer: Any = None
         self._lock = asyncio.Lock()
         self._broken: DeviceError | None = None
+        self._gige_order: tuple[str, ...] = ()  # enabled GigE components in increasing ComponentIDValue
+        default_best = _GIGE_CONFIDENCE_BEST if self._px.interface == "gige_vision" else 1.0
+        self._confidence_best = self._px.confidence_best or default_best
+        self._gige_formats = {"Range": self._px.range_pixel_format, "Normal": self._px.normal_pixel_format,
+                              "Confidence": self._px.confidence_pixel_format}
 
     async def connect(self) -> None:
         await self.close()
@@ -134,9 +143,26 @@ class PhoxiScanner:
             nodes.TriggerMode.value = "On"
             nodes.TriggerSource.value = "Software"
             nodes.Scan3dOutputMode.value = "CalibratedABC_Grid"
-            for component in ("Range", "Normal", "Confidence"):
-                nodes.ComponentSelector.value = component
-                nodes.ComponentEnable.value = True
+            self._gige_order = self._select_components(nodes)
+            nodes.NormalsEstimationRadius.value = self._px.normals_estimation_radius
+
+    def _select_components(self, nodes: Any) -> tuple[str, ...]:
+        """Enable Range, Normal, Confidence with their pixel formats and disable every other component; the
+        wanted components in the order their parts arrive (increasing ``ComponentIDValue``)."""
+        formats = self._gige_formats
+        offered = list(nodes.ComponentSelector.symbolics)
+        missing = [c for c in formats if c not in offered]
+        if missing:
+            raise DeviceFault(self.name, f"the scanner offers no {', '.join(missing)} component ({offered})")
+        ids: dict[str, int] = {}
+        for component in offered:
+            nodes.ComponentSelector.value = component
+            wanted = component in formats
+            nodes.ComponentEnable.value = wanted
+            if wanted:
+                nodes.PixelFormat.value = formats[component]
+                ids[component] = int(nodes.ComponentIDValue.value)
+        return tuple(sorted(ids, key=ids.__getitem__))
 
     def _capture(self, timeout: float) -> ScanFrame:
         nodes = self._acquirer.remote_device.node_map
@@ -153,21 +179,45 @@ class PhoxiScanner:
             raise DeviceFault(self.name, f"capture failed: {type(e).__name__}: {e}") from e
 
     def _decode(self, comps: list[Any]) -> ScanFrame:
-        i_xyz, i_n, i_c = _COMPONENTS[self._px.interface]
-        if len(comps) <= max(i_xyz, i_n, i_c):
-            needed = max(i_xyz, i_n, i_c) + 1
-            raise DeviceFault(self.name, f"buffer has {len(comps)} components, expected at least {needed}")
-        xyz = _pixels(comps[i_xyz], 3)
+        if self._px.interface == "gige_vision":
+            if len(comps) != len(self._gige_order):
+                raise DeviceFault(self.name, f"buffer has {len(comps)} parts for the {len(self._gige_order)} "
+                                             f"enabled components {self._gige_order}")
+            parts = dict(zip(self._gige_order, comps, strict=True))
+            self._check_formats(parts)
+            xyz_c, n_c, conf_c = parts["Range"], parts["Normal"], parts["Confidence"]
+        else:
+            needed = max(_PHOTONEO_COMPONENTS) + 1
+            if len(comps) < needed:
+                raise DeviceFault(self.name, f"buffer has {len(comps)} components, expected at least {needed}")
+            xyz_c, n_c, conf_c = (comps[i] for i in _PHOTONEO_COMPONENTS)
+        xyz = _pixels(xyz_c, 3)
         if xyz is None or len(xyz) == 0:
-            raise DeviceFault(self.name, "buffer has no point cloud (SendPointCloud off?)")
-        normals, conf = _pixels(comps[i_n], 3), _pixels(comps[i_c], 1)
+            raise DeviceFault(self.name, "buffer has no point cloud (SendPointCloud / Range off?)")
+        normals, conf = _pixels(n_c, 3), _pixels(conf_c, 1)
+        if conf is not None and len(conf) == len(xyz):
+            conf = np.clip(conf[:, 0] / self._confidence_best, 0.0, 1.0)
+        else:
+            conf = None
         valid = np.all(np.isfinite(xyz), axis=1) & np.any(xyz != 0, axis=1)
+        if conf is not None:
+            valid &= conf > 0
+        if normals is not None and (len(normals) != len(xyz) or not np.any(normals[valid])):
+            normals = None  # no normal map, or an all-zero one (NormalsEstimationRadius 0)
         return ScanFrame(
             points_mm=xyz[valid].astype(np.float64),
-            normals=normals[valid].astype(np.float64) if normals is not None and len(normals) == len(xyz) else None,
-            confidence=conf[valid, 0].astype(np.float64) if conf is not None and len(conf) == len(xyz) else None,
+            normals=normals[valid].astype(np.float64) if normals is not None else None,
+            confidence=conf[valid].astype(np.float64) if conf is not None else None,
             timestamp_s=time.time(),
         )
+
+    def _check_formats(self, parts: dict[str, Any]) -> None:
+        """Each GigE part's pixel format (where the producer reports it) must be the configured one."""
+        formats = self._gige_formats
+        for name, part in parts.items():
+            got = getattr(part, "data_format", None)
+            if got is not None and got != formats[name]:
+                raise DeviceFault(self.name, f"{name} part is {got}, expected {formats[name]}")
 
 
 def _pixels(component: Any, channels: int) -> np.ndarray | None:

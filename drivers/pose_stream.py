@@ -1,18 +1,27 @@
-"""The framed 6-DoF pose stream of the tracker: one adapter class owns the framing, both directions.
+"""The framed 6-DoF pose stream of the tracker: framing and record layout are pluggable, both directions.
 
-Default frame (configurable through :class:`~tandemscan.config.models.TrackerStreamConfig`), one ASCII line::
+A frame is found in the byte stream by its framing (:class:`~tandemscan.config.models.TrackerStreamConfig`):
+
+- ``line``: one record per line, starting at the start marker (resynchronises on the next marker);
+- ``length_prefixed``: a 2- or 4-byte length (``length_prefix``) before each record;
+- UDP: each datagram holds whole frames in one of the framings above (:meth:`PoseStreamAdapter.feed_datagram`).
+
+A record holds ``fields`` in order, as ``text`` (the default, one ASCII line)::
 
     $POSE,<frame>,<device_time_s>,<status>,<x_mm>,<y_mm>,<z_mm>,<qx>,<qy>,<qz>,<qw>,
           <sx_mm>,<sy_mm>,<sz_mm>,<srx_rad>,<sry_rad>,<srz_rad>*<XOR checksum, 2 hex digits>\\r\\n
 
-``status`` is ``OK`` or ``MISSING`` (target not visible); the checksum is the XOR of every byte after the
-marker's first character up to ``*`` (NMEA style). Position in mm, rotation as a unit quaternion (x, y, z, w)
-or as a row-major matrix (fields ``r00``..``r22``), 1-sigma translation (mm) and rotation-vector (rad)
-uncertainty, or an ``rms_mm`` quality used for all three translation axes. A field named ``_`` is ignored.
+or ``binary``: the same fields packed, ``frame`` as uint32, ``status`` as uint8 (0 = OK), the others as
+float64, in ``binary_byte_order``. ``status`` is ``OK`` or e.g. ``MISSING`` (target not visible); the text
+checksum is the XOR of every byte after the marker's first character up to ``*`` (NMEA style). Position in
+mm, rotation as a unit quaternion (x, y, z, w) or a row-major matrix (``r00``..``r22``), 1-sigma translation
+(mm) and rotation-vector (rad) uncertainty, or an ``rms_mm`` quality used for all three translation axes. A
+field named ``_`` is ignored.
 """
 
 from __future__ import annotations
 
+import struct
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,8 +33,10 @@ KNOWN_FIELDS = {
     *(f"r{i}{j}" for i in range(3) for j in range(3)),
     "sx_mm", "sy_mm", "sz_mm", "srx_rad", "sry_rad", "srz_rad", "rms_mm", "_",
 }
-_MAX_LINE = 4096
+_MAX_FRAME = 4096
 _DEFAULT_SIGMA_RAD = 1e-5
+_PREFIX_FORMATS = {"u16le": "<H", "u16be": ">H", "u32le": "<I", "u32be": ">I"}
+_BINARY_STATUS = {"OK": 0, "MISSING": 1}
 
 
 class PoseFrameError(ValueError):
@@ -44,28 +55,19 @@ class PoseSample:
     covariance: np.ndarray | None
 
 
-class PoseStreamAdapter:
-    """Splits bytes into frames and decodes them (``feed``), and encodes frames (``encode``, for emulators)."""
+# ---------------------------------------------------------------- framings: bytes <-> records
 
-    def __init__(self, cfg: TrackerStreamConfig):
-        unknown = set(cfg.fields) - KNOWN_FIELDS
-        if unknown:
-            raise ValueError(f"tracker stream: unknown field names {sorted(unknown)}")
-        has_quat = {"qx", "qy", "qz", "qw"} <= set(cfg.fields)
-        has_matrix = {f"r{i}{j}" for i in range(3) for j in range(3)} <= set(cfg.fields)
-        if not ({"frame", "status", "x_mm", "y_mm", "z_mm"} <= set(cfg.fields) and (has_quat or has_matrix)):
-            raise ValueError("tracker stream: fields need frame, status, x_mm, y_mm, z_mm and a rotation")
-        self.cfg = cfg
-        self._quat = has_quat
-        self._marker = cfg.start_marker.encode()
+
+class LineFraming:
+    """Records as lines that begin with the start marker; garbage before a marker is skipped."""
+
+    def __init__(self, marker: bytes):
+        self._marker = marker
         self._buf = bytearray()
 
-    # ------------------------------------------------------------------ bytes -> samples
-
-    def feed(self, data: bytes) -> list[PoseSample | PoseFrameError]:
-        """Complete frames in ``data`` (with what was buffered), each decoded or the error it raised."""
+    def split(self, data: bytes) -> list[bytes | PoseFrameError]:
         self._buf += data
-        out: list[PoseSample | PoseFrameError] = []
+        out: list[bytes | PoseFrameError] = []
         while True:
             start = self._buf.find(self._marker)
             if start < 0:
@@ -74,26 +76,72 @@ class PoseStreamAdapter:
             end = self._buf.find(b"\n", start)
             if end < 0:
                 del self._buf[:start]
-                if len(self._buf) > _MAX_LINE:
+                if len(self._buf) > _MAX_FRAME:
                     self._buf.clear()
-                    out.append(PoseFrameError(f"frame longer than {_MAX_LINE} bytes"))
+                    out.append(PoseFrameError(f"frame longer than {_MAX_FRAME} bytes"))
                 return out
             restart = self._buf.rfind(self._marker, start + 1, end)
             if restart > 0:  # a frame began before the previous one ended: that one was cut short
                 del self._buf[:restart]
                 out.append(PoseFrameError("truncated frame"))
                 continue
-            line = bytes(self._buf[start:end]).rstrip(b"\r")
+            out.append(bytes(self._buf[start:end]).rstrip(b"\r"))
             del self._buf[: end + 1]
-            try:
-                out.append(self.decode(line))
-            except PoseFrameError as e:
-                out.append(e)
 
-    def decode(self, line: bytes) -> PoseSample:
-        """One frame (without the line end) -> :class:`PoseSample`; :class:`PoseFrameError` if untrustworthy."""
+    def flush(self) -> bool:
+        """Drop a partial record (end of a datagram); True if there was one."""
+        partial = self._buf.find(self._marker) >= 0
+        self._buf.clear()
+        return partial
+
+    def frame(self, record: bytes) -> bytes:
+        return record + b"\r\n"
+
+
+class LengthPrefixedFraming:
+    """Records each preceded by their length (``struct`` format ``prefix``)."""
+
+    def __init__(self, prefix: str):
+        self._prefix = struct.Struct(prefix)
+        self._buf = bytearray()
+
+    def split(self, data: bytes) -> list[bytes | PoseFrameError]:
+        self._buf += data
+        out: list[bytes | PoseFrameError] = []
+        size = self._prefix.size
+        while len(self._buf) >= size:
+            (n,) = self._prefix.unpack_from(self._buf)
+            if n == 0 or n > _MAX_FRAME:
+                self._buf.clear()  # no way to find the next frame: start over with the next bytes
+                out.append(PoseFrameError(f"frame length {n} outside 1..{_MAX_FRAME} (stream out of step)"))
+                break
+            if len(self._buf) < size + n:
+                break
+            out.append(bytes(self._buf[size : size + n]))
+            del self._buf[: size + n]
+        return out
+
+    def flush(self) -> bool:
+        partial = bool(self._buf)
+        self._buf.clear()
+        return partial
+
+    def frame(self, record: bytes) -> bytes:
+        return self._prefix.pack(len(record)) + record
+
+
+# ---------------------------------------------------------------- records: bytes <-> field values
+
+
+class TextRecord:
+    """Comma-separated ASCII fields after the start marker, with an optional XOR checksum."""
+
+    def __init__(self, cfg: TrackerStreamConfig):
+        self.cfg = cfg
+
+    def values(self, record: bytes) -> dict[str, str | float]:
         try:
-            text = line.decode("ascii")
+            text = record.decode("ascii")
         except UnicodeDecodeError as e:
             raise PoseFrameError("non-ASCII bytes in frame") from e
         if self.cfg.checksum:
@@ -106,8 +154,91 @@ class PoseStreamAdapter:
         parts = text.split(",")
         if parts[0] != self.cfg.start_marker or len(parts) - 1 != len(self.cfg.fields):
             raise PoseFrameError(f"expected {len(self.cfg.fields)} fields, got {len(parts) - 1}")
-        raw = dict(zip(self.cfg.fields, parts[1:], strict=True))
-        status = raw["status"].strip().upper()
+        return dict(zip(self.cfg.fields, parts[1:], strict=True))
+
+    def record(self, values: dict[str, str]) -> bytes:
+        body = ",".join([self.cfg.start_marker, *(values[f] for f in self.cfg.fields)])
+        if self.cfg.checksum:
+            body += f"*{_xor(body[1:].encode()):02X}"
+        return body.encode("ascii")
+
+
+class BinaryRecord:
+    """The fields packed: ``frame`` uint32, ``status`` uint8 (0 OK, 1 MISSING), the rest float64."""
+
+    def __init__(self, cfg: TrackerStreamConfig):
+        self.cfg = cfg
+        codes = {"frame": "I", "status": "B", "_": "d"}
+        order = "<" if cfg.binary_byte_order == "little" else ">"
+        self._struct = struct.Struct(order + "".join(codes.get(f, "d") for f in cfg.fields))
+
+    def values(self, record: bytes) -> dict[str, str | float]:
+        if len(record) != self._struct.size:
+            raise PoseFrameError(f"binary frame of {len(record)} bytes, expected {self._struct.size}")
+        raw = dict(zip(self.cfg.fields, self._struct.unpack(record), strict=True))
+        code = int(raw["status"])
+        raw["status"] = next((name for name, c in _BINARY_STATUS.items() if c == code), f"STATUS{code}")
+        return raw
+
+    def record(self, values: dict[str, str]) -> bytes:
+        packed = []
+        for f in self.cfg.fields:
+            if f == "status":
+                packed.append(_BINARY_STATUS[values[f]])
+            elif f == "frame":
+                packed.append(int(values[f]))
+            else:
+                packed.append(float(values[f] or 0.0))
+        return self._struct.pack(*packed)
+
+
+# ---------------------------------------------------------------- the adapter
+
+
+class PoseStreamAdapter:
+    """Splits bytes into frames and decodes them (``feed``, ``feed_datagram``), and encodes frames
+    (``encode``, for emulators), as ``cfg`` says."""
+
+    def __init__(self, cfg: TrackerStreamConfig):
+        unknown = set(cfg.fields) - KNOWN_FIELDS
+        if unknown:
+            raise ValueError(f"tracker stream: unknown field names {sorted(unknown)}")
+        has_quat = {"qx", "qy", "qz", "qw"} <= set(cfg.fields)
+        has_matrix = {f"r{i}{j}" for i in range(3) for j in range(3)} <= set(cfg.fields)
+        if not ({"frame", "status", "x_mm", "y_mm", "z_mm"} <= set(cfg.fields) and (has_quat or has_matrix)):
+            raise ValueError("tracker stream: fields need frame, status, x_mm, y_mm, z_mm and a rotation")
+        self.cfg = cfg
+        self._quat = has_quat
+        self._framing = (LineFraming(cfg.start_marker.encode()) if cfg.framing == "line"
+                         else LengthPrefixedFraming(_PREFIX_FORMATS[cfg.length_prefix]))
+        self._record = TextRecord(cfg) if cfg.record == "text" else BinaryRecord(cfg)
+
+    # ------------------------------------------------------------------ bytes -> samples
+
+    def feed(self, data: bytes) -> list[PoseSample | PoseFrameError]:
+        """Complete frames in ``data`` (with what was buffered), each decoded or the error it raised."""
+        out: list[PoseSample | PoseFrameError] = []
+        for record in self._framing.split(data):
+            if isinstance(record, PoseFrameError):
+                out.append(record)
+                continue
+            try:
+                out.append(self.decode(record))
+            except PoseFrameError as e:
+                out.append(e)
+        return out
+
+    def feed_datagram(self, data: bytes) -> list[PoseSample | PoseFrameError]:
+        """Frames of one datagram; a frame cut off at its end is an error (the next datagram starts afresh)."""
+        out = self.feed(data)
+        if self._framing.flush():
+            out.append(PoseFrameError("truncated frame at the end of a datagram"))
+        return out
+
+    def decode(self, record: bytes) -> PoseSample:
+        """One record (without framing) -> :class:`PoseSample`; :class:`PoseFrameError` if untrustworthy."""
+        raw = self._record.values(record)
+        status = str(raw["status"]).strip().upper()
         try:
             frame = int(raw["frame"])
             device_time = float(raw["device_time_s"]) if "device_time_s" in raw else float("nan")
@@ -145,7 +276,7 @@ class PoseStreamAdapter:
     def encode(
         self, frame: int, device_time_s: float, T_C_T: np.ndarray | None, covariance: np.ndarray | None
     ) -> bytes:
-        """One frame as bytes; ``T_C_T=None`` encodes the target as not visible (numbers zero)."""
+        """One framed frame as bytes; ``T_C_T=None`` encodes the target as not visible (numbers zero)."""
         values: dict[str, str] = {"frame": str(frame), "device_time_s": f"{device_time_s:.6f}", "_": ""}
         if T_C_T is None:
             values["status"] = "MISSING"
@@ -166,20 +297,17 @@ class PoseStreamAdapter:
         for key, val in zip(("sx_mm", "sy_mm", "sz_mm", "srx_rad", "sry_rad", "srz_rad"), sig, strict=True):
             values[key] = f"{val:.3e}"
         values["rms_mm"] = f"{float(np.sqrt(np.mean(sig[:3] ** 2))):.3e}"
-        body = ",".join([self.cfg.start_marker, *(values[f] for f in self.cfg.fields)])
-        if self.cfg.checksum:
-            body += f"*{_xor(body[1:].encode()):02X}"
-        return (body + "\r\n").encode("ascii")
+        return self._framing.frame(self._record.record(values))
 
 
-def _number(key: str, text: str) -> float:
+def _number(key: str, value: str | float) -> float:
     try:
-        value = float(text)
+        number = float(value)
     except ValueError as e:
-        raise PoseFrameError(f"field {key}={text!r} is not a number") from e
-    if not np.isfinite(value):
-        raise PoseFrameError(f"field {key} is {text}")
-    return value
+        raise PoseFrameError(f"field {key}={value!r} is not a number") from e
+    if not np.isfinite(number):
+        raise PoseFrameError(f"field {key} is {value}")
+    return number
 
 
 def _xor(data: bytes) -> int:

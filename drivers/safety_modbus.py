@@ -1,4 +1,7 @@
-"""Cell safety I/O over Modbus TCP (pymodbus): e-stop and light-curtain inputs, target light and beacon coils.
+"""Cell safety I/O over Modbus TCP (pymodbus): e-stop and light-curtain inputs, target light and beacon outputs.
+
+Outputs are coils (I/O modules) or holding registers (PATLITE-style stack lights: ``*_on_value`` for on, 0 for
+off), as configured per output.
 
 The safety functions themselves stay hard-wired; this driver reports their state. Inputs are polled every
 ``SafetyConfig.poll_period_s`` in a background task; listeners hear every change at once. A lost or
@@ -58,8 +61,8 @@ class ModbusSafetyIO:
         self._client, self._link_error = client, None
         try:
             await self._poll_once()
-            light = await self._request("read target light", client.read_coils, self._mb.target_light_coil)
-            self._light = bool(light.bits[0])
+            self._light = await self._read_output("target light", self._mb.target_light_coil,
+                                                  self._mb.target_light_output, self._mb.target_light_on_value)
         except DeviceError:
             await self.close()
             raise
@@ -92,19 +95,36 @@ class ModbusSafetyIO:
         return self._state
 
     async def set_target_light(self, on: bool) -> None:
-        await self._write_coil("target light", self._mb.target_light_coil, on)
+        mb = self._mb
+        await self._write_output("target light", mb.target_light_coil, mb.target_light_output,
+                                 mb.target_light_on_value, on)
         self._light = on
 
     async def set_beacon(self, on: bool) -> None:
-        await self._write_coil("beacon", self._mb.beacon_coil, on)
+        mb = self._mb
+        await self._write_output("beacon", mb.beacon_coil, mb.beacon_output, mb.beacon_on_value, on)
 
     # ------------------------------------------------------------------ Modbus side
 
-    async def _write_coil(self, what: str, address: int, on: bool) -> None:
+    async def _write_output(self, what: str, address: int, kind: str, on_value: int, on: bool) -> None:
+        """Switch one output: a coil, or a holding register written ``on_value`` / 0."""
         client = self._client
         if client is None:
             raise NotConnected(self.name, "not connected")
-        await self._request(f"write {what}", client.write_coil, address, bool(on))
+        if kind == "coil":
+            await self._request(f"write {what}", client.write_coil, address, bool(on))
+        else:
+            await self._request(f"write {what}", client.write_register, address, on_value if on else 0)
+
+    async def _read_output(self, what: str, address: int, kind: str, on_value: int) -> bool:
+        """Whether one output is on now (a set coil, or a register holding ``on_value``)."""
+        client = self._client
+        if client is None:
+            raise NotConnected(self.name, "not connected")
+        if kind == "coil":
+            return bool((await self._request(f"read {what}", client.read_coils, address)).bits[0])
+        rr = await self._request(f"read {what}", client.read_holding_registers, address, count=1)
+        return int(rr.registers[0]) == on_value
 
     async def _request(self, what: str, call: Callable, address: int, *args: object, **kw: object):
         """One Modbus request with the configured timeout; an exception response is a :class:`DeviceFault`."""

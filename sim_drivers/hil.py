@@ -18,7 +18,7 @@ from tandemscan.drivers.interfaces import ChassisPose
 from tandemscan.drivers.tasks import cancel_and_wait
 from tandemscan.pipeline import frames as F
 from tandemscan.sim_drivers.emulators.agv_can import ChassisEmulator
-from tandemscan.sim_drivers.emulators.jaka import JakaEmulator
+from tandemscan.sim_drivers.emulators.jaka import JakaBehaviour, JakaEmulator
 from tandemscan.sim_drivers.emulators.safety_modbus import SafetyIoEmulator
 from tandemscan.sim_drivers.emulators.tracker import TrackerStreamEmulator
 from tandemscan.sim_drivers.fake_harvesters import core as fake_harvesters
@@ -61,7 +61,12 @@ class HilEmulators:
             jaka = cfg.arm.jaka
             arm = JakaEmulator(cfg.arm, host=jaka.host, command_port=jaka.command_port, status_port=jaka.status_port,
                                time_scale=hil.arm_time_scale, initial_joints_rad=world.joints_rad,
-                               on_joints=self._arm_moved, kinematics=world.kinematics)
+                               on_joints=self._arm_moved, kinematics=world.kinematics,
+                               behaviour=JakaBehaviour(
+                                   power_on_delay_s=hil.arm_power_on_delay_s, enable_delay_s=hil.arm_enable_delay_s,
+                                   segment_bytes=hil.arm_segment_bytes,
+                                   numeric_error_codes=hil.arm_numeric_error_codes,
+                                   status_bytes=hil.arm_status_bytes))
             await arm.start()
             self.running["arm"] = arm
         for role in ("measure_chassis", "tracking_chassis"):
@@ -69,12 +74,14 @@ class HilEmulators:
                 can_cfg = getattr(cfg, role).can
                 chassis = ChassisEmulator(getattr(cfg, role), can_cfg.channel, can_cfg.interface,
                                           time_scale=hil.chassis_time_scale, seed=cfg.sim.seed,
-                                          start_pose=start_pose_of(world, role), on_pose=self._chassis_mover(role))
+                                          start_pose=start_pose_of(world, role), on_pose=self._chassis_mover(role),
+                                          driver_state_flags=hil.chassis_driver_state_flags)
                 await chassis.start()
                 self.running[role] = chassis
         if self._real("tracker"):
             stream = cfg.tracker.stream
-            tracker = TrackerStreamEmulator(stream, world.measure_target, rate_hz=hil.tracker_rate_hz)
+            tracker = TrackerStreamEmulator(stream, world.measure_target, rate_hz=hil.tracker_rate_hz,
+                                            requires_start=hil.tracker_requires_start)
             await tracker.start_tcp(stream.host, stream.port)
             self.running["tracker"] = tracker
         if self._real("safety"):
@@ -84,6 +91,7 @@ class HilEmulators:
             self._sync_task = asyncio.create_task(self._sync_safety(safety))
         if self._real("scanner"):
             fake_harvesters.CAMERA.reset()
+            fake_harvesters.CAMERA.interface = cfg.scanner.phoxi.interface
             fake_harvesters.CAMERA.scene = self._scan_as_buffer
         log.info("hil: emulators running for %s", ", ".join(self.running) or "no device")
 

@@ -183,3 +183,73 @@ async def test_odometry_frame_survives_reconnect(emulator, chassis):
     await asyncio.sleep(0.1)
     after = await chassis.odometry()
     assert np.allclose([after.x_mm, after.y_mm, after.heading_rad], [before.x_mm, before.y_mm, before.heading_rad])
+
+
+# ---------------------------------------------------------------- vendor behaviour (issue 15)
+
+
+async def vendor_pair(channel: str, **emu_kw):
+    """An emulator whose motor drivers report 0x40 ("driver enabled") in normal running, and its driver."""
+    emu = ChassisEmulator(chassis_config(channel), channel, time_scale=0.1, seed=3, driver_state_flags=0x40, **emu_kw)
+    await emu.start()
+    return emu
+
+
+async def test_driver_enabled_flag_is_state_not_a_fault():
+    channel = f"agv-{uuid.uuid4().hex[:8]}"
+    emu = await vendor_pair(channel)
+    drv = AgvCanChassis(chassis_config(channel))
+    try:
+        await drv.connect()
+        await drv.move_to(ChassisPose(200.0, 0.0, 0.0))  # 0x40 on every motor, all the way
+        assert (await drv.status()).state == "idle"
+        move = asyncio.create_task(drv.move_to(ChassisPose(3000.0, 0.0, 0.0)))
+        await asyncio.sleep(0.1)
+        emu.faults.driver_state = 0x04  # a real fault beside the state flag
+        with pytest.raises(DeviceFault, match="motor 1 driver: overload$"):
+            await asyncio.wait_for(move, 1.0)
+    finally:
+        await drv.close()
+        await emu.stop()
+
+
+async def test_odometry_counts_are_scaled_by_the_configured_unit():
+    channel = f"agv-{uuid.uuid4().hex[:8]}"
+    emu = await vendor_pair(channel, odometry_mm_per_count=0.1)  # counts of 0.1 mm
+    drv = AgvCanChassis(chassis_config(channel, odometry_mm_per_count=0.1))
+    try:
+        await drv.connect()
+        pose = await drv.move_to(ChassisPose(300.0, 0.0, 0.0))
+        assert abs(pose.x_mm - 300.0) <= 5.0
+        assert abs(emu.true_pose.x_mm - 300.0) < 20.0  # the body went 300 mm, not 30 or 3000
+    finally:
+        await drv.close()
+        await emu.stop()
+
+
+async def test_uart_control_mode_is_named(emulator, chassis):
+    emulator.mode = 2
+    with pytest.raises(DeviceFault, match=r"left CAN mode \(UART has control\)"):
+        await chassis.move_to(ChassisPose(100.0, 0.0, 0.0))
+
+
+async def test_approach_decelerates_to_the_target_and_reports_the_residual():
+    """The move does not stop at the edge of the tolerance (5 mm short every time before): the residual is
+    well inside it. Emulated time runs at 2x here; much faster, one 20 ms control period covers more travel
+    than on a real chassis and overshoot hides where the approach stops."""
+    channel = f"agv-{uuid.uuid4().hex[:8]}"
+    emu = ChassisEmulator(chassis_config(channel), channel, time_scale=0.5, seed=3, driver_state_flags=0x40)
+    await emu.start()
+    drv = AgvCanChassis(chassis_config(channel))
+    tol = drv._can.position_tolerance_mm
+    try:
+        await drv.connect()
+        for target in (ChassisPose(60.0, 0.0, 0.0), ChassisPose(0.0, 0.0, 0.0)):
+            pose = await drv.move_to(target)
+            residual = math.hypot(pose.x_mm - target.x_mm, pose.y_mm - target.y_mm)
+            assert drv.last_residual_mm == pytest.approx(residual)
+            assert residual < 0.5 * tol
+            assert (await drv.status()).detail["last_residual_mm"] == pytest.approx(residual)
+    finally:
+        await drv.close()
+        await emu.stop()

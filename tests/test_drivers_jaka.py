@@ -13,7 +13,7 @@ from tandemscan.drivers.jaka_tcp import JakaTcpArm
 from tandemscan.drivers.json_stream import JsonFramingError, JsonObjectFramer
 from tandemscan.pipeline.frames import pose_error
 from tandemscan.pipeline.kinematics import ArmKinematics
-from tandemscan.sim_drivers.emulators.jaka import JakaEmulator
+from tandemscan.sim_drivers.emulators.jaka import JakaBehaviour, JakaEmulator
 
 Q_HOME = np.radians([0.0, 90.0, -60.0, 90.0, 90.0, 0.0])
 Q_TARGET = np.radians([20.0, 100.0, -70.0, 80.0, 95.0, 10.0])
@@ -59,7 +59,7 @@ async def test_happy_path_joint_and_linear_moves(emulator, arm):
     dt, dr = pose_error(await arm.flange_pose(), goal)
     assert dt < 0.05 and dr < 1e-4
     assert (await arm.status()).state == "idle"
-    assert emulator.commands[:3] == ["power_on", "enable_robot", "get_robot_state"]
+    assert [c for c in emulator.commands[:6] if c != "get_robot_state"] == ["power_on", "enable_robot"]
 
 
 async def test_move_waits_for_motion_in_simulated_time(emulator, arm):
@@ -199,3 +199,125 @@ def test_framer_bounds_memory():
     framer = JsonObjectFramer(max_object_bytes=100)
     with pytest.raises(JsonFramingError, match="larger"):
         framer.feed(b'{"a":"' + b"x" * 200)
+
+
+# ---------------------------------------------------------------- vendor behaviour (issue 15)
+
+VENDOR_LIKE = JakaBehaviour(power_on_delay_s=0.3, enable_delay_s=0.1, segment_bytes=500, numeric_error_codes=True,
+                            status_bytes=6000)
+
+
+@pytest.fixture
+async def vendor_emulator():
+    emu = JakaEmulator(ArmConfig(), time_scale=0.005, initial_joints_rad=Q_HOME, behaviour=VENDOR_LIKE)
+    await emu.start()
+    yield emu
+    await emu.stop()
+
+
+async def test_enable_waits_for_asynchronous_power_on_and_enable(vendor_emulator):
+    """A reply means "received": power_on takes 0.3 s, enable_robot 0.1 s after their replies."""
+    arm = arm_for(vendor_emulator)
+    await arm.connect()
+    try:
+        await arm.enable()  # one call, no "not powered on" on the way
+        assert vendor_emulator.powered and vendor_emulator.enabled
+        assert vendor_emulator.commands.count("power_on") == 1
+        assert vendor_emulator.commands.count("enable_robot") == 1
+        await arm.move_joints(Q_TARGET)  # status objects of 6 kB in 500-byte segments, numeric error codes
+        np.testing.assert_allclose(await arm.joints(), Q_TARGET, atol=1e-9)
+        await arm.enable()  # already enabled: nothing is sent again
+        assert vendor_emulator.commands.count("power_on") == 1
+    finally:
+        await arm.close()
+
+
+async def test_enable_that_never_completes_times_out(emulator):
+    emulator.behaviour = JakaBehaviour(power_on_delay_s=10.0)
+    arm = JakaTcpArm(ArmConfig(jaka=JakaTcpConfig(host="127.0.0.1", command_port=emulator._commands.port,
+                                                  status_port=emulator._status.port, power_on_timeout_s=0.3)))
+    await arm.connect()
+    try:
+        with pytest.raises(DeviceTimeout, match="'power' still 'powered_off'"):
+            await arm.enable()
+    finally:
+        await arm.close()
+
+
+@pytest.mark.parametrize("numeric", [False, True])
+async def test_refused_move_is_a_fault_with_the_reason_not_out_of_reach(emulator, arm, numeric):
+    """The controller answers errorCode 2 for any refused move; only kine_inverse tells unreachable apart."""
+    emulator.behaviour = JakaBehaviour(numeric_error_codes=numeric)
+    kin = ArmKinematics(ArmConfig())
+    reachable = kin.forward(Q_TARGET)
+    emulator.set_power(True, False)  # powered, servos disabled
+    with pytest.raises(DeviceFault, match="moveL: error 2: robot is not enabled") as info:
+        await arm.move_linear(reachable)
+    assert not isinstance(info.value, OutOfReach)
+    assert emulator.commands[-1] == "kine_inverse"
+    far = np.eye(4)
+    far[:3, 3] = [3000.0, 0.0, 0.0]
+    with pytest.raises(OutOfReach, match="kine_inverse: error 2: inverse kinematics failed"):
+        await arm.move_linear(far)
+    emulator.set_power(True, True)
+    await arm.move_linear(reachable)
+
+
+async def test_protective_stop_refuses_moves_as_safety_stop(emulator, arm):
+    emulator.faults.protective_stop = True
+    await asyncio.sleep(0.05)  # the stop reaches the driver through the status stream
+    with pytest.raises(SafetyStop, match="protective stop"):
+        await arm.move_joints(Q_TARGET)
+
+
+@pytest.mark.parametrize(("faults", "state"), [(("status_silent",), "fault"),
+                                               (("status_silent", "silent"), "disconnected")])
+async def test_silent_controller_is_a_lost_link_after_a_status_gap(emulator, arm, faults, state):
+    """The status push stops (a hung controller), or nothing comes back at all (a pulled cable): the move
+    fails on the status watchdog, not after its timeout."""
+    emulator.time_scale = 1.0
+    move = asyncio.create_task(arm.move_joints(Q_TARGET, timeout_s=4.0))
+    while emulator.motion.in_position(emulator.sim_time()):
+        await asyncio.sleep(0.005)
+    for fault in faults:
+        setattr(emulator.faults, fault, True)
+    with pytest.raises(NotConnected, match="no status message for 0.3 s"):
+        await move
+    assert emulator.commands[-1] == "stop_program"  # tried, bounded by the same gap
+    assert (await arm.status()).state == state  # the stop's reply timed out on a pulled cable: link dropped
+    with pytest.raises(NotConnected):  # later waits fail at once, until reconnect
+        await arm.move_joints(Q_HOME)
+    for fault in faults:
+        setattr(emulator.faults, fault, False)
+    emulator.time_scale = 0.005
+    await arm.connect()
+    await arm.move_joints(Q_TARGET)
+
+
+def test_framer_handles_split_and_coalesced_status_objects():
+    """6 kB status objects back to back, cut into segments that end anywhere, strings with escapes."""
+    emu_msg = {"joint_actual_position": [1.5] * 6, "errmsg": 'a "quoted" \\ text {', "din": [0] * 144,
+               "extio": {"setup": [{"name": "x}", "v": [1, 2]}]}}
+    raw = b"".join(json_bytes(emu_msg | {"n": i}) for i in range(5))
+    for segment in (1, 7, 1448, len(raw)):
+        framer = JsonObjectFramer()
+        objs = []
+        for i in range(0, len(raw), segment):
+            objs += framer.feed(raw[i : i + segment])
+        assert [o["n"] for o in objs] == list(range(5))
+        assert objs[3]["errmsg"] == emu_msg["errmsg"]
+        assert not framer.pending
+
+
+def json_bytes(obj: dict) -> bytes:
+    import json
+
+    return json.dumps(obj).encode() + b"\r\n"
+
+
+def test_framer_string_ends_after_backslash_runs_at_any_cut():
+    stream = b'{"p":"c:\\\\","q":"\\\\\\"}","r":[{"s":"\\\\\\\\"}]}{"n":1}'
+    expected = [{"p": "c:\\", "q": '\\"}', "r": [{"s": "\\\\"}]}, {"n": 1}]
+    for cut in range(len(stream) + 1):
+        framer = JsonObjectFramer()
+        assert framer.feed(stream[:cut]) + framer.feed(stream[cut:]) == expected

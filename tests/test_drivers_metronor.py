@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
+import socket
 import time
 
 import numpy as np
@@ -164,3 +166,105 @@ def test_adapter_rejects_non_unit_quaternion_and_bad_config():
     assert isinstance(out, PoseFrameError) and "quaternion" in str(out)
     with pytest.raises(ValueError, match="unknown field"):
         PoseStreamAdapter(TrackerStreamConfig(fields=("frame", "status", "speed")))
+
+
+# ---------------------------------------------------------------- trackers that must be asked (issue 15)
+
+
+async def pair_for(stream: TrackerStreamConfig, **emu_kw):
+    emu = TrackerStreamEmulator(stream, fixed_pose_source(T_TRUE), rate_hz=200, **emu_kw)
+    port = await emu.start_tcp()
+    tracker = tracker_for(stream.model_copy(update={"port": port}))
+    await tracker.connect()
+    return emu, tracker
+
+
+async def test_tracker_that_needs_a_start_command():
+    stream = TrackerStreamConfig(host="127.0.0.1", port=0, start_command="TSTART\r")
+    emu, tracker = await pair_for(stream, requires_start=True)
+    try:
+        r = await tracker.read_pose()
+        assert pose_error(r.T_C_T, T_TRUE)[0] < 1e-5
+    finally:
+        await tracker.close()
+        await emu.stop()
+
+
+async def test_polled_tracker_answers_one_frame_per_poll():
+    stream = TrackerStreamConfig(host="127.0.0.1", port=0, start_command="TSTART\r", poll_command="BX 0801\r")
+    emu, tracker = await pair_for(stream, requires_start=True)
+    try:
+        numbers = [(await tracker.read_pose()).frame_number for _ in range(3)]
+        assert numbers == sorted(set(numbers))
+        await asyncio.sleep(0.05)  # no poll, no frame: nothing arrived after the third polled one
+        assert tracker.last_sample.frame == numbers[-1]
+    finally:
+        await tracker.close()
+        await emu.stop()
+
+
+async def test_length_prefixed_binary_frames_over_tcp():
+    stream = TrackerStreamConfig(host="127.0.0.1", port=0, framing="length_prefixed", length_prefix="u16be",
+                                 record="binary", binary_byte_order="big", fields=MATRIX_FIELDS)
+    emu, tracker = await pair_for(stream)
+    try:
+        r = await tracker.read_pose()
+        assert pose_error(r.T_C_T, T_TRUE)[0] < 1e-5
+        assert r.covariance[0, 0] == pytest.approx(1e-4, rel=1e-3)
+        emu.faults.truncate_next = True  # the stream is out of step after a cut frame, then resynchronises
+        for _ in range(5):
+            with contextlib.suppress(DeviceFault):
+                r = await tracker.read_pose()
+        assert pose_error(r.T_C_T, T_TRUE)[0] < 1e-5
+    finally:
+        await tracker.close()
+        await emu.stop()
+
+
+async def test_udp_datagrams():
+    stream = TrackerStreamConfig(transport="udp", host="127.0.0.1", port=free_udp_port())
+    emu = TrackerStreamEmulator(stream, fixed_pose_source(T_TRUE), rate_hz=200)
+    tracker = tracker_for(stream)
+    await tracker.connect()
+    await emu.start_udp(stream.host, stream.port)
+    try:
+        r = await tracker.read_pose()
+        assert pose_error(r.T_C_T, T_TRUE)[0] < 1e-5
+    finally:
+        await tracker.close()
+        await emu.stop()
+
+
+async def test_frames_arriving_together_are_timestamped_each_and_stale_ones_skipped():
+    """Three frames per write: the reading is never one generated before the call, and each frame has its
+    own time (dated back from the newest by the device-time difference)."""
+    stream = TrackerStreamConfig(host="127.0.0.1", port=0)
+    emu, tracker = await pair_for(stream)
+    emu.period_s = 0.02
+    emu.faults.burst = 3
+    loop = asyncio.get_running_loop()
+    try:
+        await tracker.read_pose()
+        readings = []
+        for _ in range(6):
+            await asyncio.sleep(0.03)  # the call lands in the middle of a burst's frames
+            called = loop.time()
+            r = await tracker.read_pose()
+            assert emu.device_times[r.frame_number] >= called - 1e-3
+            readings.append(r)
+        stamps = [r.timestamp_s for r in readings]
+        assert stamps == sorted(stamps)
+    finally:
+        await tracker.close()
+        await emu.stop()
+
+
+def test_udp_with_a_command_is_a_config_error():
+    with pytest.raises(ValueError, match="need transport tcp or serial"):
+        TrackerStreamConfig(transport="udp", start_command="TSTART\r")
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]

@@ -49,13 +49,47 @@ async def test_capture_photoneo_path(producer):
     assert (await scanner.status()).state == "disconnected"
 
 
-async def test_gige_vision_path_uses_standard_nodes(producer):
+async def test_gige_vision_selects_components_and_matches_parts_by_component_id(producer):
+    """The device boots with Intensity and Range on; Normal's ID is above Confidence's, so the parts arrive
+    Range, Confidence, Normal. The driver switches every component and matches parts by ID."""
+    fake.CAMERA.interface = "gige_vision"
     scanner = scanner_for(producer, interface="gige_vision")
     await scanner.connect()
-    assert fake.CAMERA.node_values["TriggerSource"] == "Software"
-    assert fake.CAMERA.node_values["Scan3dOutputMode"] == "CalibratedABC_Grid"
-    # the fake sends Photoneo's layout: in the GigE order slot 0 is empty, which the driver reports
-    with pytest.raises(DeviceFault, match="no point cloud"):
+    values = fake.CAMERA.node_values
+    assert values["TriggerSource"] == "Software"
+    assert values["Scan3dOutputMode"] == "CalibratedABC_Grid"
+    assert values["ComponentEnable[Intensity]"] is False and values["ComponentEnable[Event]"] is False
+    assert values["ComponentEnable[Range]"] is True and values["ComponentEnable[Normal]"] is True
+    assert values["PixelFormat[Confidence]"] == "Confidence8"
+    assert values["NormalsEstimationRadius"] == 2
+    frame = await scanner.capture()
+    xyz_grid, n_grid, conf_grid = fake.CAMERA.scene()
+    valid = np.any(xyz_grid.reshape(-1, 3) != 0, axis=1)
+    np.testing.assert_allclose(frame.points_mm, xyz_grid.reshape(-1, 3)[valid])
+    np.testing.assert_allclose(frame.normals, n_grid.reshape(-1, 3)[valid], atol=1e-6)
+    # Confidence8 (0..255) and PhoXi Control's map mean the same after normalising: 0 invalid, 1 best
+    np.testing.assert_allclose(frame.confidence, np.round(0.9 * 255) / 255)
+    await scanner.close()
+
+
+async def test_confidence_has_one_meaning_on_both_interfaces(producer):
+    frames = {}
+    for interface in ("photoneo_gentl", "gige_vision"):
+        fake.CAMERA.interface = interface
+        scanner = scanner_for(producer, interface=interface)
+        await scanner.connect()
+        frames[interface] = await scanner.capture()
+        await scanner.close()
+    np.testing.assert_allclose(frames["gige_vision"].confidence, frames["photoneo_gentl"].confidence, atol=1 / 255)
+    assert 0.0 < frames["gige_vision"].confidence.min() <= frames["gige_vision"].confidence.max() <= 1.0
+
+
+async def test_gige_part_in_an_unexpected_pixel_format_is_a_fault(producer):
+    fake.CAMERA.interface = "gige_vision"
+    scanner = scanner_for(producer, interface="gige_vision")
+    await scanner.connect()
+    fake.CAMERA.node_values["PixelFormat[Confidence]"] = "Confidence16"  # changed behind the driver's back
+    with pytest.raises(DeviceFault, match="Confidence part is Confidence16, expected Confidence8"):
         await scanner.capture()
     await scanner.close()
 

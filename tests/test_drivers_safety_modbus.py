@@ -109,3 +109,29 @@ async def test_no_module_and_not_connected():
     with pytest.raises(NotConnected, match="cannot connect"):
         await drv.connect()
     await drv.close()
+
+
+async def test_stack_light_outputs_are_holding_registers():
+    """PATLITE-style: one holding register per tier, the configured value for on, 0 for off."""
+    wiring = dict(WIRING, target_light_output="holding_register", target_light_coil=0, target_light_on_value=0x0101,
+                  beacon_output="holding_register", beacon_coil=2, beacon_on_value=0x0102)
+    emu = SafetyIoEmulator(SafetyModbusConfig(**wiring))
+    await emu.start()
+    await emu.press_estop(False)
+    drv = ModbusSafetyIO(SafetyConfig(poll_period_s=0.02,
+                                      modbus=SafetyModbusConfig(host="127.0.0.1", port=emu.port, **wiring)))
+    try:
+        await drv.connect()
+        assert not (await drv.read()).target_light_on
+        await drv.set_target_light(True)
+        await drv.set_beacon(True)
+        assert await emu.register(0) == 0x0101 and await emu.register(2) == 0x0102
+        assert not await emu.coil(0)  # nothing went to the coils
+        await drv.set_target_light(False)
+        assert await emu.register(0) == 0
+        await drv.set_target_light(True)
+        await drv.connect()  # the light's state is read back from its register
+        assert (await drv.read()).target_light_on
+    finally:
+        await drv.close()
+        await emu.stop()

@@ -5,6 +5,10 @@ It boots in standby, takes motion commands only in CAN mode, stops by itself whe
 (motor low-rate frames every fifth period). The body moves in simulated time (``time_scale`` wall seconds
 per simulated second) with wheel slip: the true pose (``true_pose``, reported through ``on_pose``) drifts
 away from what the wheel odometry says. Faults are injected through :class:`ChassisFaults`.
+
+As a real chassis (ugv_sdk protocol v2), every motor driver may report state bits that are not faults in normal
+running (``driver_state_flags``, e.g. 0x40 "driver enabled"), and the odometry frame carries raw counts of
+``odometry_mm_per_count`` mm.
 """
 
 from __future__ import annotations
@@ -91,8 +95,13 @@ class ChassisEmulator:
         seed: int = 0,
         start_pose: ChassisPose | None = None,
         on_pose: Callable[[ChassisPose, bool], None] | None = None,
+        driver_state_flags: int = 0,
+        odometry_mm_per_count: float = 1.0,
     ):
-        """``on_pose(true pose, moving)`` is called every period (e.g. to move the simulated world's chassis)."""
+        """``on_pose(true pose, moving)`` is called every period (e.g. to move the simulated world's chassis);
+        ``driver_state_flags``: DriverState bits every motor reports in normal running (0x40, 0x80)."""
+        self.driver_state_flags = driver_state_flags
+        self.odometry_mm_per_count = odometry_mm_per_count
         self.config = config
         self.faults = ChassisFaults()
         self.period_s, self.watchdog_s, self.time_scale = period_s, watchdog_s, time_scale
@@ -183,12 +192,13 @@ class ChassisEmulator:
         v, w = self.velocity
         self._maybe_send("MotionState", LinearVelocity=round(v), AngularVelocity=round(w, 3),
                          LateralVelocity=0, SteeringAngle=0)
-        self._maybe_send("Odometry", LeftWheelOdometry=round(self.body.left_mm),
-                         RightWheelOdometry=round(self.body.right_mm))
+        self._maybe_send("Odometry", LeftWheelOdometry=round(self.body.left_mm / self.odometry_mm_per_count),
+                         RightWheelOdometry=round(self.body.right_mm / self.odometry_mm_per_count))
         if self._counter % 5 == 0:
             for i in range(1, 5):
+                faults = self.faults.driver_state if i == 1 else 0
                 self._maybe_send(f"MotorLowRate{i}", DriverVoltage=25.0, DriverTemperature=35, MotorTemperature=30,
-                                 DriverState=self.faults.driver_state if i == 1 else 0)
+                                 DriverState=faults | self.driver_state_flags)
 
     def _maybe_send(self, name: str, **signals: float) -> None:
         if self.faults.drop_feedback_fraction and self.rng.random() < self.faults.drop_feedback_fraction:

@@ -4,6 +4,12 @@ Motion runs in simulated time (``time_scale`` wall seconds per simulated second)
 model; poses come from :class:`tandemscan.pipeline.kinematics.ArmKinematics`. ``on_joints(q_rad, moving)``
 is called with every joint vector the controller reports, so the emulator can move the simulated world's arm.
 Faults are injected through :class:`JakaFaults`, which may be changed while the emulator runs.
+
+Vendor behaviour it can be told to show (:class:`JakaBehaviour`, docs/drivers.md): ``power_on`` and
+``enable_robot`` that complete seconds after their reply, replies and status objects cut into small TCP
+segments (and status objects coalesced across segments), ``errorCode`` as a number, status objects padded to
+the size of a real controller's (5-9 kB). Refused motion commands answer ``errorCode`` 2 whatever the reason,
+as the controller's generic "call failed" code.
 """
 
 from __future__ import annotations
@@ -34,7 +40,20 @@ class JakaFaults:
     truncate_next_reply: bool = False  # half a reply, then the command connection closes
     disconnect_on_move: bool = False  # every connection drops as soon as a move starts
     estop: bool = False  # emergency stop pressed: motion halts, status reports it, moves are refused
+    protective_stop: bool = False  # protective stop (collision): as estop, reported as protective_stop
     nan_in_status: bool = False  # status stream sends a NaN joint angle
+    status_silent: bool = False  # the status stream stops pushing while its connection stays open
+
+
+@dataclass(frozen=True)
+class JakaBehaviour:
+    """How closely the emulator follows a real controller; the defaults are the quick, forgiving peer."""
+
+    power_on_delay_s: float = 0.0  # wall seconds from power_on to powered (real: about 2 s)
+    enable_delay_s: float = 0.0  # wall seconds from enable_robot to enabled (real: about 0.5 s)
+    segment_bytes: int = 0  # > 0: every write goes out in TCP segments of at most this many bytes
+    numeric_error_codes: bool = False  # errorCode as a number (0, 2) instead of a string
+    status_bytes: int = 0  # > 0: status objects padded with vendor keys (din, dout, ain, ...) to about this size
 
 
 class JointMotion:
@@ -80,17 +99,19 @@ class JakaEmulator:
         initial_joints_rad: np.ndarray | None = None,
         on_joints: Callable[[np.ndarray, bool], None] | None = None,
         kinematics: ArmKinematics | None = None,
+        behaviour: JakaBehaviour | None = None,
     ):
         self.config = config
         self.kinematics = kinematics or ArmKinematics(config)
         self.faults = JakaFaults()
+        self.behaviour = behaviour or JakaBehaviour()
         self.status_period_s = status_period_s
         self.time_scale = time_scale
         self.on_joints = on_joints
         q0 = np.zeros(6) if initial_joints_rad is None else np.asarray(initial_joints_rad, float)
         self.motion = JointMotion(np.degrees(q0))
-        self.powered = False
-        self.enabled = False
+        self._powered_at = math.inf  # loop time at which power_on / enable_robot take effect
+        self._enabled_at = math.inf
         self.commands: list[str] = []  # every command name received, in order
         self._commands = TcpService(self._serve_commands, host, command_port, exclusive=True)
         self._status = TcpService(self._serve_status, host, status_port)
@@ -115,6 +136,20 @@ class JakaEmulator:
 
     # ------------------------------------------------------------------ state
 
+    @property
+    def powered(self) -> bool:
+        return asyncio.get_running_loop().time() >= self._powered_at
+
+    @property
+    def enabled(self) -> bool:
+        return self.powered and asyncio.get_running_loop().time() >= self._enabled_at
+
+    def set_power(self, powered: bool, enabled: bool) -> None:
+        """Power and enable the arm at once (tests), or switch it off."""
+        now = asyncio.get_running_loop().time()
+        self._powered_at = now if powered else math.inf
+        self._enabled_at = now if enabled else math.inf
+
     def sim_time(self) -> float:
         """Simulated seconds since start: wall time / ``time_scale``, integrated so the scale may change while
         running; a zero scale makes motion instant."""
@@ -135,35 +170,52 @@ class JakaEmulator:
         return [*xyz.tolist(), *np.degrees(rpy).tolist()]
 
     def status_message(self) -> dict:
-        if self.faults.estop:
+        if self.faults.estop or self.faults.protective_stop:
             self.motion.halt(self.sim_time())
         q = self.joints_deg()
         joints: list[object] = q.tolist()
         if self.faults.nan_in_status:
             joints[0] = float("nan")
-        return {
+        msg = {
             "joint_actual_position": joints,
             "actual_position": self.tcp_pose(q),
             "enabled": self.enabled,
             "powered_on": int(self.powered),
             "inpos": self.motion.in_position(self.sim_time()),
             "emergency_stop": int(self.faults.estop),
-            "protective_stop": 0,
+            "protective_stop": int(self.faults.protective_stop),
             "on_soft_limit": 0,
             "errcode": "0x0",
             "errmsg": "",
             "task_state": 4 if self.enabled else 1,
             "paused": False,
         }
+        if self.behaviour.status_bytes > 0:
+            msg.update(vendor_padding(self.behaviour.status_bytes - len(encode(msg))))
+        return msg
 
     # ------------------------------------------------------------------ status port
 
     async def _serve_status(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        pending = b""  # with segments, a message's tail goes out together with the next message's head
         while True:
-            msg = self.status_message()
-            writer.write(json.dumps(msg).encode() if self.faults.nan_in_status else encode(msg))
-            await writer.drain()
+            if not self.faults.status_silent:
+                msg = self.status_message()
+                pending += json.dumps(msg).encode() if self.faults.nan_in_status else encode(msg)
+                size = self.behaviour.segment_bytes
+                cut = len(pending) if size <= 0 else len(pending) - len(pending) % size
+                await self._send(writer, pending[:cut])
+                pending = pending[cut:]
             await asyncio.sleep(self.status_period_s)
+
+    async def _send(self, writer: asyncio.StreamWriter, data: bytes) -> None:
+        """Write ``data`` in segments of ``behaviour.segment_bytes`` (each drained apart), or at once."""
+        size = self.behaviour.segment_bytes if self.behaviour.segment_bytes > 0 else max(len(data), 1)
+        for i in range(0, len(data), size):
+            writer.write(data[i : i + size])
+            await writer.drain()
+            if size < len(data):
+                await asyncio.sleep(0)
 
     # ------------------------------------------------------------------ command port
 
@@ -182,6 +234,8 @@ class JakaEmulator:
                 name = str(req.get("cmdName", ""))
                 self.commands.append(name)
                 reply = {"cmdName": name, "errorCode": "0", "errorMsg": "", **await self._execute(name, req)}
+                if self.behaviour.numeric_error_codes:
+                    reply["errorCode"] = int(reply["errorCode"])
                 if self.faults.silent:
                     continue
                 if self.faults.reply_delay_s:
@@ -192,8 +246,7 @@ class JakaEmulator:
                     writer.write(raw[: len(raw) // 2])
                     await writer.drain()
                     return
-                writer.write(raw)
-                await writer.drain()
+                await self._send(writer, raw)
                 if name in ("joint_move", "moveL", "end_move") and self.faults.disconnect_on_move:
                     await self._status.drop_clients()
                     return  # ends this handler, which closes the command connection
@@ -201,16 +254,19 @@ class JakaEmulator:
     async def _execute(self, name: str, req: dict) -> dict:
         """Apply one command; returns the reply's data, with ``errorCode``/``errorMsg`` on failure."""
         now = self.sim_time()
+        loop_now = asyncio.get_running_loop().time()
         if name == "power_on":
-            self.powered = True
+            if not self.powered:
+                self._powered_at = min(self._powered_at, loop_now + self.behaviour.power_on_delay_s)
         elif name == "power_off":
-            self.powered = self.enabled = False
+            self.set_power(False, False)
         elif name == "enable_robot":
             if not self.powered:
                 return _error("1", "robot is not powered on")
-            self.enabled = True
+            if not self.enabled:
+                self._enabled_at = min(self._enabled_at, loop_now + self.behaviour.enable_delay_s)
         elif name == "disable_robot":
-            self.enabled = False
+            self._enabled_at = math.inf
         elif name == "get_robot_state":
             return {"power": "powered_on" if self.powered else "powered_off",
                     "enable": "robot_enabled" if self.enabled else "robot_disabled"}
@@ -220,6 +276,8 @@ class JakaEmulator:
             return {"tcp_pos": self.tcp_pose(self.joints_deg())}
         elif name == "get_data":
             return self.status_message()
+        elif name == "kine_inverse":
+            return await self._kine_inverse(req)
         elif name in ("stop_program", "clear_error", "quit"):
             self.motion.halt(now)
         elif name in ("joint_move", "moveL", "end_move"):
@@ -228,11 +286,31 @@ class JakaEmulator:
             return _error("1", f"unknown command {name!r}")
         return {}
 
+    async def _kine_inverse(self, req: dict) -> dict:
+        try:
+            pose = np.asarray(req["cartPosition"], float)
+            ref = np.radians(np.asarray(req["jointPosition"], float))
+        except (KeyError, TypeError, ValueError) as e:
+            return _error("1", f"bad parameters: {e}")
+        q = await self._solve(pose, ref)
+        if q is None or not self.kinematics.within_limits(q):
+            return _error("2", "inverse kinematics failed")
+        return {"jointPosition": np.degrees(q).tolist()}
+
+    async def _solve(self, pose: np.ndarray, ref_rad: np.ndarray) -> np.ndarray | None:
+        """Joints (rad) for the flange pose ``[x, y, z mm, rx, ry, rz deg]`` near ``ref_rad``; None if none."""
+        reach_mm = float(np.sum(np.abs(self.config.dh_a_mm)) + np.sum(np.abs(self.config.dh_d_mm)))
+        if np.linalg.norm(pose[:3]) > reach_mm:
+            return None
+        return await asyncio.to_thread(self.kinematics.inverse, from_rpy(pose[:3], np.radians(pose[3:])), ref_rad)
+
     async def _move(self, name: str, req: dict, now: float) -> dict:
         if self.faults.estop:
-            return _error("1", "emergency stop active")
+            return _error("2", "emergency stop active")
+        if self.faults.protective_stop:
+            return _error("2", "protective stop active")
         if not self.enabled:
-            return _error("1", "robot is not enabled")
+            return _error("2", "robot is not enabled")
         current = self.motion.position(now)
         try:
             if name == "joint_move":
@@ -242,25 +320,36 @@ class JakaEmulator:
                 pose = np.asarray(req["cartPosition" if name == "moveL" else "endPosition"], float)
                 if req.get("relFlag"):
                     pose = pose + np.asarray(self.tcp_pose(current))
-                reach_mm = float(np.sum(np.abs(self.config.dh_a_mm)) + np.sum(np.abs(self.config.dh_d_mm)))
-                if np.linalg.norm(pose[:3]) > reach_mm:
-                    return _error("2", "target beyond the arm's reach")
-                q = await asyncio.to_thread(
-                    self.kinematics.inverse, from_rpy(pose[:3], np.radians(pose[3:])), np.radians(current)
-                )
+                q = await self._solve(pose, np.radians(current))
                 if q is None:
                     return _error("2", "inverse kinematics failed")
                 target = np.degrees(q)
                 speed = self.config.joint_speed_deg_s
         except (KeyError, TypeError, ValueError) as e:
-            return _error("1", f"bad parameters: {e}")
+            return _error("2", f"bad parameters: {e}")
         if target.shape != (6,) or not np.all(np.isfinite(target)):
-            return _error("1", "bad target")
+            return _error("2", "bad target")
         if not self.kinematics.within_limits(np.radians(target)):
-            return _error("1", "joint target outside limits")
+            return _error("2", "joint target outside limits")
         self.motion.command(target, speed if self.time_scale > 0 else math.inf, now)
         return {}
 
 
 def _error(code: str, message: str) -> dict:
     return {"errorCode": code, "errorMsg": message}
+
+
+def vendor_padding(n_bytes: int) -> dict:
+    """Status keys a real controller also pushes (I/O images and diagnostics, zeros here), about ``n_bytes``
+    of JSON in all; empty for ``n_bytes <= 0``."""
+    pad: dict[str, object] = {}
+    tiers = (("din", 144), ("dout", 144), ("ain", 66), ("aout", 66), ("tio_din", 8), ("tio_dout", 8))
+    i = 0
+    while n_bytes > 0:
+        key, count = tiers[i % len(tiers)]
+        name = key if i < len(tiers) else f"{key}_{i // len(tiers)}"
+        values = [0.0 if key.startswith("a") else 0] * count
+        pad[name] = values
+        n_bytes -= len(encode({name: values}))
+        i += 1
+    return pad

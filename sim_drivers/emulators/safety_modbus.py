@@ -1,8 +1,8 @@
 """Safety I/O emulator: a Modbus TCP I/O module served by pymodbus' own server on 127.0.0.1.
 
-Discrete inputs carry the e-stop and light-curtain contacts, coils the target light and beacon, at the
-addresses of :class:`~tandemscan.config.models.SafetyModbusConfig`. Faults: exception replies, silence
-(no reply), and a restart that drops every connection.
+Discrete inputs carry the e-stop and light-curtain contacts, coils or holding registers (a stack light) the
+target light and beacon, at the addresses of :class:`~tandemscan.config.models.SafetyModbusConfig`. Faults:
+exception replies, silence (no reply), and a restart that drops every connection.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from tandemscan.config.models import SafetyModbusConfig
 
 log = logging.getLogger(__name__)
 
-_FC_COILS, _FC_DISCRETE_INPUTS = 1, 2
+_FC_COILS, _FC_DISCRETE_INPUTS, _FC_HOLDING_REGISTERS = 1, 2, 3
 _BLOCK = 32
 
 
@@ -40,6 +40,7 @@ class SafetyIoEmulator:
         self._server: ModbusTcpServer | None = None
         self._inputs: dict[int, bool] = {}
         self._coils: dict[int, bool] = {}
+        self._registers: dict[int, int] = {}
 
     async def start(self) -> int:
         """Listen (again, on the same port after a restart); returns the port."""
@@ -54,12 +55,19 @@ class SafetyIoEmulator:
             await self.set_input(address, value)
         for address, value in self._coils.items():
             await self._server.async_setValues(self.cfg.device_id, _FC_COILS, address, [value])
+        for address, value in self._registers.items():
+            await self._server.async_setValues(self.cfg.device_id, _FC_HOLDING_REGISTERS, address, [value])
         return self.port
 
     async def stop(self) -> None:
         if self._server is not None:
-            for address in (self.cfg.target_light_coil, self.cfg.beacon_coil):
-                self._coils[address] = await self.coil(address)
+            outputs = ((self.cfg.target_light_coil, self.cfg.target_light_output),
+                       (self.cfg.beacon_coil, self.cfg.beacon_output))
+            for address, kind in outputs:
+                if kind == "coil":
+                    self._coils[address] = await self.coil(address)
+                else:
+                    self._registers[address] = await self.register(address)
             await self._server.shutdown()
             self._server = None
 
@@ -83,6 +91,11 @@ class SafetyIoEmulator:
     async def coil(self, address: int) -> bool:
         assert self._server is not None
         return bool((await self._server.async_getValues(self.cfg.device_id, _FC_COILS, address, 1))[0])
+
+    async def register(self, address: int) -> int:
+        """A holding register's value (a stack-light tier)."""
+        assert self._server is not None
+        return int((await self._server.async_getValues(self.cfg.device_id, _FC_HOLDING_REGISTERS, address, 1))[0])
 
     def _trace_pdu(self, sending: bool, pdu: ModbusPDU) -> ModbusPDU:
         if sending and self.faults.exception_replies:

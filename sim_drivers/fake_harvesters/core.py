@@ -1,4 +1,11 @@
-"""The fake ``harvesters.core``: one simulated PhoXi camera (``CAMERA``) behind a GenTL-like API."""
+"""The fake ``harvesters.core``: one simulated PhoXi camera (``CAMERA``) behind a GenTL-like API.
+
+``CAMERA.interface`` picks the buffer layout: ``photoneo_gentl`` (PhoXi Control's eight components in a fixed
+order, switched by ``Send*`` nodes) or ``gige_vision`` (GenICam component selection: ``ComponentSelector``
+with ``ComponentEnable``, ``PixelFormat`` and ``ComponentIDValue`` per component; a buffer has one part per
+enabled component in increasing ID; Intensity and Range are enabled at power-up, as on a device fresh from
+the factory; Confidence is ``Confidence8``, 0 invalid, 255 best; ``NormalsEstimationRadius`` 0 sends zeros).
+"""
 
 from __future__ import annotations
 
@@ -16,6 +23,14 @@ PHOTONEO_COMPONENTS = ("Texture", "TextureRGB", "PointCloud", "NormalMap", "Dept
 # Photoneo nodes that switch each component on, in the same order.
 PHOTONEO_SEND_NODES = ("SendTexture", "SendTextureRGB", "SendPointCloud", "SendNormalMap", "SendDepthMap",
                        "SendConfidenceMap", "SendEventMap", "SendColorCameraImage")
+
+# GigE Vision components of the fake: ComponentIDValue, enabled at power-up. Intensity, Range and Confidence
+# carry their GenICam SFNC IDs; the others stand for vendor-specific ones above them.
+GIGE_COMPONENTS = {"Intensity": (1, True), "Range": (4, True), "Confidence": (6, False), "Normal": (0x8001, False),
+                   "Event": (0x8002, False), "ColorCamera": (0x8003, False)}
+_PER_COMPONENT_NODES = ("ComponentEnable", "PixelFormat")
+_DEFAULT_PIXEL_FORMATS = {"Intensity": "Mono16", "Range": "Coord3D_ABC32f", "Confidence": "Confidence8",
+                          "Normal": "Coord3D_ABC32f", "Event": "Mono8", "ColorCamera": "RGB8"}
 
 Scene = Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray]]
 
@@ -49,6 +64,7 @@ class FakeCamera:
     """The camera state tests and the hil cell set: scene, a fetch delay (slow scan), and what was written."""
 
     serial_number: str = "PHOXI-FAKE-1"
+    interface: str = "photoneo_gentl"  # or "gige_vision": which producer the fake stands for
     scene: Scene = field(default_factory=recorded_style_scene)
     fetch_delay_s: float = 0.0
     node_values: dict[str, object] = field(default_factory=dict)
@@ -63,16 +79,39 @@ CAMERA = FakeCamera()
 
 
 class _Node:
+    """One GenICam node; ``ComponentEnable`` and ``PixelFormat`` hold a value per selected component."""
+
     def __init__(self, name: str, camera: FakeCamera):
         self._name, self._camera = name, camera
 
     @property
+    def _key(self) -> str:
+        if self._name in _PER_COMPONENT_NODES:
+            return f"{self._name}[{self._camera.node_values.get('ComponentSelector')}]"
+        return self._name
+
+    @property
     def value(self) -> object:
-        return self._camera.node_values.get(self._name)
+        selected = str(self._camera.node_values.get("ComponentSelector"))
+        if self._name == "ComponentIDValue":
+            return GIGE_COMPONENTS[selected][0]
+        if self._key not in self._camera.node_values:
+            if self._name == "ComponentEnable":
+                return GIGE_COMPONENTS.get(selected, (0, False))[1]
+            if self._name == "PixelFormat":
+                return _DEFAULT_PIXEL_FORMATS.get(selected)
+        return self._camera.node_values.get(self._key)
 
     @value.setter
     def value(self, v: object) -> None:
-        self._camera.node_values[self._name] = v
+        if self._name == "ComponentSelector" and v not in GIGE_COMPONENTS:
+            raise ValueError(f"ComponentSelector has no entry {v!r}")
+        self._camera.node_values[self._key] = v
+
+    @property
+    def symbolics(self) -> tuple[str, ...]:
+        """The entries of an enumeration node (only ComponentSelector has them here)."""
+        return tuple(GIGE_COMPONENTS) if self._name == "ComponentSelector" else ()
 
     def execute(self) -> None:
         self._camera.node_values[self._name] = "executed"
@@ -92,6 +131,7 @@ class _Component:
     data: np.ndarray
     width: int
     height: int
+    data_format: str | None = None
 
 
 @dataclass
@@ -148,16 +188,40 @@ class ImageAcquirer:
         with self._lock:
             self._pending = cam.triggers
         xyz, normals, conf = cam.scene()
-        h, w = conf.shape
-        comps = []
-        for name, send in zip(PHOTONEO_COMPONENTS, PHOTONEO_SEND_NODES, strict=True):
-            enabled = cam.node_values.get(send) is True
-            data = {"PointCloud": xyz, "NormalMap": normals, "ConfidenceMap": conf}.get(name)
-            if enabled and data is not None:
-                comps.append(_Component(np.ascontiguousarray(data).reshape(-1), w, h))
-            else:
-                comps.append(_Component(np.zeros(0, np.float32), 0, 0))
-        return _Buffer(comps)
+        return _Buffer(_gige_parts(cam, xyz, normals, conf) if cam.interface == "gige_vision"
+                       else _photoneo_components(cam, xyz, normals, conf))
+
+
+def _photoneo_components(cam: FakeCamera, xyz: np.ndarray, normals: np.ndarray, conf: np.ndarray) -> list[_Component]:
+    """PhoXi Control's layout: all eight components, those not sent empty."""
+    h, w = conf.shape
+    comps = []
+    for name, send in zip(PHOTONEO_COMPONENTS, PHOTONEO_SEND_NODES, strict=True):
+        enabled = cam.node_values.get(send) is True
+        data = {"PointCloud": xyz, "NormalMap": normals, "ConfidenceMap": conf}.get(name)
+        if enabled and data is not None:
+            comps.append(_Component(np.ascontiguousarray(data).reshape(-1), w, h))
+        else:
+            comps.append(_Component(np.zeros(0, np.float32), 0, 0))
+    return comps
+
+
+def _gige_parts(cam: FakeCamera, xyz: np.ndarray, normals: np.ndarray, conf: np.ndarray) -> list[_Component]:
+    """One part per enabled GigE component, in increasing ComponentIDValue, in its pixel format."""
+    h, w = conf.shape
+    if cam.node_values.get("NormalsEstimationRadius", 2) == 0:
+        normals = np.zeros_like(normals)
+    data = {
+        "Intensity": np.full((h, w), 1000, np.uint16), "Range": xyz.astype(np.float32),
+        "Confidence": np.round(np.clip(conf, 0, 1) * 255).astype(np.uint8), "Normal": normals.astype(np.float32),
+        "Event": np.zeros((h, w), np.uint8), "ColorCamera": np.zeros((h, w, 3), np.uint8),
+    }
+    parts = []
+    for name, (_, enabled_at_boot) in sorted(GIGE_COMPONENTS.items(), key=lambda item: item[1][0]):
+        if cam.node_values.get(f"ComponentEnable[{name}]", enabled_at_boot) is True:
+            fmt = cam.node_values.get(f"PixelFormat[{name}]", _DEFAULT_PIXEL_FORMATS[name])
+            parts.append(_Component(np.ascontiguousarray(data[name]).reshape(-1), w, h, str(fmt)))
+    return parts
 
 
 class Harvester:
