@@ -1,0 +1,298 @@
+"""Registration of a measured cloud's frame W (the job's world, or whatever frame a cloud file is in) to
+the CAD frame F, from what was measured: no ground truth (docs/inspection.md, "Alignment").
+
+- **Stations** (coarse, to centimetres): the plan places the measurement AGV's stations in F; the job
+  measures where the AGV stood in W (Eq. 5). A least-squares rigid fit of the two gives ``T_F_W``.
+- **Global start** (a cloud from anywhere): FPFH features of the cloud and of the CAD surface matched by
+  RANSAC (Open3D), good to a few of its voxels.
+- **Best fit** (fine): trimmed point-to-plane ICP against the mesh itself from coarse to fine trim
+  distances, then a Huber-weighted pass, optionally with the points of named datum regions only.
+- **RPS**: reference spheres with calibrated CAD centres are fitted in the cloud (the calibration's sphere
+  fit) near where the start places them; ``T_F_W`` is the least-squares fit of the centres, with a residual
+  per sphere. A best fit spreads a warp over the whole part; RPS leaves it where it is.
+
+All mm, 4x4 float64 ``T_a_b`` (frame b into frame a); angles in radians except the report's ``*_deg``.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
+from tandemscan.config.models import InspectionConfig
+from tandemscan.pipeline import frames as F
+from tandemscan.pipeline.calibration.plate import PlateError, fit_sphere
+from tandemscan.pipeline.inspect import CadSurface, InspectionError, as_points, best_fit, region_mask
+from tandemscan.pipeline.plan import MoveMeasure, Plan, Scan
+
+log = logging.getLogger(__name__)
+
+STATION_ARM_MM = 1000.0  # a station pose enters the fit as its origin and points this far along its x and y
+
+
+@dataclass(frozen=True)
+class StationFit:
+    """``T_F_W`` from the measurement AGV's planned stations (F) and where the job measured it (W).
+
+    ``residuals_mm`` are the distances between each planned station origin and its measured one mapped
+    into F by the fit (the chassis' drift off its plan, centimetres)."""
+
+    T_F_W: np.ndarray
+    residuals_mm: tuple[float, ...]
+
+    @property
+    def residual_mm(self) -> float:
+        """RMS of the station residuals, mm."""
+        return float(np.sqrt(np.mean(np.square(self.residuals_mm))))
+
+
+@dataclass(frozen=True)
+class SphereResidual:
+    """One reference sphere: its CAD centre (F), the fitted centre (W) and, after the RPS fit, the
+    distance between the CAD centre and the fitted one mapped into F (mm)."""
+
+    name: str
+    centre_F_mm: tuple[float, float, float]
+    centre_W_mm: tuple[float, float, float]
+    radius_mm: float  # free radius of the fit
+    points: int
+    residual_mm: float
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """How the cloud was placed in the CAD frame: the method, ``T_F_W``, its residual and the details.
+
+    ``residual_mm`` is the robust RMS point-to-plane residual of the best fit's last pass, the RMS of the
+    sphere residuals for RPS, and 0 for none. ``spheres`` are the reference spheres fitted (RPS);
+    ``excluded`` is a bool mask of the cloud's points on them, which the inspection leaves out."""
+
+    method: str  # "best-fit", "rps" or "none"
+    T_F_W: np.ndarray
+    residual_mm: float
+    start: str  # where the fit started from
+    used_points: int = 0
+    iterations: int = 0
+    converged: bool = True
+    spheres: tuple[SphereResidual, ...] = ()
+    missing_spheres: tuple[str, ...] = ()  # "name: why"
+    excluded: np.ndarray | None = field(default=None, repr=False)
+
+    def summary(self) -> dict:
+        """JSON-ready: method, residual_mm, start, T_F_W, translation and rotation of ``T_F_W`` and the
+        per-sphere residuals (report.json ``inspection.alignment``)."""
+        out = {
+            "method": self.method,
+            "residual_mm": self.residual_mm,
+            "start": self.start,
+            "T_F_W": self.T_F_W.tolist(),
+            "translation_mm": float(np.linalg.norm(self.T_F_W[:3, 3])),
+            "rotation_deg": float(np.degrees(F.rotation_angle(self.T_F_W))),
+        }
+        if self.method == "best-fit":
+            out |= {"used_points": self.used_points, "iterations": self.iterations, "converged": self.converged}
+        if self.method == "rps":
+            out |= {"spheres": [{"name": s.name, "centre_F_mm": list(s.centre_F_mm),
+                                 "centre_W_mm": list(s.centre_W_mm), "radius_mm": s.radius_mm,
+                                 "points": s.points, "residual_mm": s.residual_mm} for s in self.spheres],
+                    "missing_spheres": list(self.missing_spheres)}
+        return out
+
+
+def fit_rigid(src_mm: np.ndarray, dst_mm: np.ndarray) -> np.ndarray:
+    """Least-squares rigid transform ``T_dst_src`` mapping the (N, 3) points ``src_mm`` onto ``dst_mm``
+    (Kabsch; N >= 3 not all on a line)."""
+    src, dst = np.asarray(src_mm, float), np.asarray(dst_mm, float)
+    cs, cd = src.mean(axis=0), dst.mean(axis=0)
+    U, _, Vt = np.linalg.svd((src - cs).T @ (dst - cd))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return F.make_transform(R, cd - R @ cs)
+
+
+def _pose_points(T: np.ndarray) -> np.ndarray:
+    """A pose as three points: its origin and ``STATION_ARM_MM`` along its x and its y axis (mm)."""
+    return F.transform_points(T, np.array([[0.0, 0.0, 0.0], [STATION_ARM_MM, 0.0, 0.0], [0.0, STATION_ARM_MM, 0.0]]))
+
+
+def align_stations(planned_T_F_V2: Sequence[np.ndarray], measured_T_W_V2: Sequence[np.ndarray]) -> StationFit:
+    """``T_F_W`` by least squares from the measurement AGV's planned stations (F) and the poses the job
+    measured there (W), each pose taken as three points (:data:`STATION_ARM_MM`), so one station gives
+    the exact ``T_F_V2 inv(T_W_V2)`` and more average the chassis' drift off the plan."""
+    if len(planned_T_F_V2) != len(measured_T_W_V2) or not planned_T_F_V2:
+        raise InspectionError(
+            f"station alignment needs matching stations, got {len(planned_T_F_V2)} planned and "
+            f"{len(measured_T_W_V2)} measured"
+        )
+    src = np.vstack([_pose_points(T) for T in measured_T_W_V2])
+    dst = np.vstack([_pose_points(T) for T in planned_T_F_V2])
+    T_F_W = fit_rigid(src, dst)
+    origins = F.transform_points(T_F_W, src[::3]) - dst[::3]
+    return StationFit(T_F_W, tuple(float(v) for v in np.linalg.norm(origins, axis=1)))
+
+
+def planned_stations(plan: Plan) -> list[np.ndarray | None]:
+    """Per scan step of ``plan``, in order: the measurement AGV's planned station ``T_F_V2`` (mm) it is
+    taken from, the pose of the last ``move_measure`` before it (None before any)."""
+    out, station = [], None
+    for step in plan.steps:
+        if isinstance(step, MoveMeasure):
+            station = F.planar_pose(step.x_mm, step.y_mm, step.heading_rad)
+        elif isinstance(step, Scan):
+            out.append(station)
+    return out
+
+
+def align_plan_stations(plan: Plan, scan_T_W_V2: Sequence[np.ndarray]) -> StationFit:
+    """:func:`align_stations` from a job's scans: ``scan_T_W_V2`` is where the measurement AGV stood in W
+    at each scan of ``plan`` (Eq. 5 from the scan's target reading and joints), averaged per station."""
+    stations = planned_stations(plan)
+    if len(stations) != len(scan_T_W_V2):
+        raise InspectionError(f"the plan has {len(stations)} scans, the job measured {len(scan_T_W_V2)}")
+    groups: dict[int, tuple[np.ndarray, list[np.ndarray]]] = {}
+    for T_F_V2, T_W_V2 in zip(stations, scan_T_W_V2, strict=True):
+        if T_F_V2 is not None:
+            groups.setdefault(id(T_F_V2), (T_F_V2, []))[1].append(np.asarray(T_W_V2, float))
+    if not groups:
+        raise InspectionError("no scan of the plan follows a planned measurement-AGV station")
+    return align_stations([g[0] for g in groups.values()], [F.mean_pose(g[1]) for g in groups.values()])
+
+
+def global_start(surface: CadSurface, points_mm: np.ndarray, voxel_mm: float = 20.0, seed: int = 0) -> np.ndarray:
+    """``T_F_W`` of a cloud anywhere, to a few ``voxel_mm``: FPFH features of the cloud and of points
+    sampled on the CAD surface, matched by RANSAC (Open3D, seeded: the same input gives the same start)."""
+    o3d.utility.random.seed(seed)
+
+    def features(pcd: o3d.geometry.PointCloud) -> tuple[o3d.geometry.PointCloud, o3d.pipelines.registration.Feature]:
+        down = pcd.voxel_down_sample(voxel_mm)
+        down.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.5 * voxel_mm, max_nn=30))
+        fpfh = o3d.pipelines.registration.compute_fpfh_feature(
+            down, o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * voxel_mm, max_nn=100))
+        return down, fpfh
+
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(as_points(points_mm)))
+    area = surface.mesh.get_surface_area()
+    cad = surface.mesh.sample_points_uniformly(int(min(2_000_000, max(10_000, 4.0 * area / voxel_mm**2))))
+    (src, f_src), (dst, f_dst) = features(cloud), features(cad)
+    reg = o3d.pipelines.registration
+    result = reg.registration_ransac_based_on_feature_matching(
+        src, dst, f_src, f_dst, True, 1.5 * voxel_mm,
+        reg.TransformationEstimationPointToPoint(False), 3,
+        [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * voxel_mm)],
+        reg.RANSACConvergenceCriteria(200_000, 0.999),
+    )
+    log.info("global start: fitness %.3f, inlier RMS %.1f mm", result.fitness, result.inlier_rmse)
+    if result.fitness == 0.0:
+        raise InspectionError("global alignment found no match of the cloud on the CAD surface")
+    return np.array(result.transformation, dtype=np.float64)
+
+
+def _datum_points(points_mm: np.ndarray, T_F_W: np.ndarray, cfg: InspectionConfig) -> np.ndarray:
+    """The points (W) inside the named datum regions where ``T_F_W`` places them; all without datums."""
+    if not cfg.datum_regions:
+        return points_mm
+    regions = {r.name: r for r in cfg.regions}
+    unknown = [n for n in cfg.datum_regions if n not in regions]
+    if unknown:
+        raise InspectionError(f"datum regions {unknown} are not among the inspection regions {sorted(regions)}")
+    q = F.transform_points(T_F_W, points_mm)
+    inside = np.zeros(len(points_mm), bool)
+    for name in cfg.datum_regions:
+        inside |= region_mask(q, regions[name])
+    if inside.sum() < 6:
+        raise InspectionError(f"only {int(inside.sum())} points in the datum regions {list(cfg.datum_regions)}")
+    return points_mm[inside]
+
+
+def fit_to_surface(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.ndarray, cfg: InspectionConfig,
+                   start: str) -> Alignment:
+    """Robust best fit of the cloud (frame W, mm) to the CAD surface from ``start_T_F_W``: trimmed
+    point-to-plane passes at ``cfg.alignment_distances_mm`` then ``best_fit_max_distance_mm``, the last
+    one Huber-weighted beyond ``alignment_huber_sigmas`` robust sigmas (1.4826 MAD) of its residuals."""
+    p = as_points(points_mm)
+    T = np.array(start_T_F_W, dtype=np.float64)
+    its, converged, used = 0, True, 0
+    for distance in (*cfg.alignment_distances_mm, cfg.best_fit_max_distance_mm):
+        datum = _datum_points(p, T, cfg)
+        huber = None
+        if distance == cfg.best_fit_max_distance_mm:
+            r = surface.signed_distance(F.transform_points(T, datum[:: max(1, len(datum) // 50_000)]))
+            r = r[np.abs(r) <= distance]
+            huber = max(cfg.alignment_huber_sigmas * 1.4826 * float(np.median(np.abs(r - np.median(r)))), 1e-4) \
+                if len(r) else None
+        T, its, converged, used = best_fit(surface, datum, distance, cfg.best_fit_iterations, start=T, huber_mm=huber)
+    datum = _datum_points(p, T, cfg)
+    r = surface.signed_distance(F.transform_points(T, datum[:: max(1, len(datum) // 50_000)]))
+    r = r[np.abs(r) <= cfg.best_fit_max_distance_mm]
+    residual = 1.4826 * float(np.median(np.abs(r))) if len(r) else float("nan")
+    if not converged:
+        log.warning("best-fit alignment did not converge in %d iterations", its)
+    return Alignment("best-fit", T, residual, start, used, its, converged)
+
+
+def locate_spheres(points_mm: np.ndarray, start_T_F_W: np.ndarray, cfg: InspectionConfig,
+                   noise_mm: float = 0.05) -> tuple[list[tuple[str, np.ndarray, np.ndarray, float, int]], list[str]]:
+    """Fit each configured reference sphere in the cloud (W) among the points within
+    ``reference_sphere_search_mm`` of where ``start_T_F_W`` expects its centre. Returns the found ones as
+    (name, CAD centre F, fitted centre W, free radius mm, points) and the missing ones as "name: why"."""
+    r = 0.5 * cfg.reference_sphere_diameter_mm
+    tree = cKDTree(points_mm)
+    T_W_F = F.invert(start_T_F_W)
+    found, missing = [], []
+    for sphere in cfg.reference_spheres:
+        centre_F = np.array(sphere.centre_mm, float)
+        guess = F.transform_points(T_W_F, centre_F[None])[0]
+        near = points_mm[tree.query_ball_point(guess, cfg.reference_sphere_search_mm)]
+        try:
+            fit = fit_sphere(near, r, noise_mm=noise_mm, fixed_radius=True)
+            shell = points_mm[tree.query_ball_point(fit.centre, r + 4.0 * noise_mm + 0.5)]
+            shell = shell[np.abs(np.linalg.norm(shell - fit.centre, axis=1) - r) < 4.0 * noise_mm + 0.1]
+            fit = fit_sphere(shell, r, noise_mm=noise_mm, fixed_radius=True)
+        except PlateError as e:
+            missing.append(f"{sphere.name}: {e}")
+            continue
+        if abs(fit.free_radius_mm - r) > max(0.3, 0.02 * r):
+            missing.append(f"{sphere.name}: fitted radius {fit.free_radius_mm:.3f} mm, expected {r:.3f} mm")
+            continue
+        found.append((sphere.name, centre_F, fit.centre, fit.free_radius_mm, fit.n_inliers))
+    return found, missing
+
+
+def align_rps(points_mm: np.ndarray, start_T_F_W: np.ndarray, cfg: InspectionConfig, start: str) -> Alignment:
+    """``T_F_W`` from the reference spheres: their fitted centres (W) onto their CAD centres (F) by least
+    squares, twice (the second search around the first fit's centres); at least three spheres."""
+    p = as_points(points_mm)
+    T = np.array(start_T_F_W, dtype=np.float64)
+    for _ in range(2):
+        found, missing = locate_spheres(p, T, cfg)
+        if len(found) < 3:
+            raise InspectionError(f"RPS alignment needs 3 reference spheres, found {len(found)}: "
+                                  + "; ".join(missing))
+        T = fit_rigid(np.array([f[2] for f in found]), np.array([f[1] for f in found]))
+    res = np.linalg.norm(F.transform_points(T, np.array([f[2] for f in found])) - np.array([f[1] for f in found]),
+                         axis=1)
+    spheres = tuple(SphereResidual(name, tuple(map(float, cF)), tuple(map(float, cW)), float(rad), int(n), float(e))
+                    for (name, cF, cW, rad, n), e in zip(found, res, strict=True))
+    margin = 0.5 * cfg.reference_sphere_diameter_mm + 3.0  # the sphere and what its base hides
+    excluded = np.zeros(len(p), bool)
+    tree = cKDTree(p)
+    for s in spheres:
+        excluded[tree.query_ball_point(s.centre_W_mm, margin)] = True
+    return Alignment("rps", T, float(np.sqrt(np.mean(res**2))), start, spheres=spheres,
+                     missing_spheres=tuple(missing), excluded=excluded)
+
+
+def align(surface: CadSurface, points_mm: np.ndarray, cfg: InspectionConfig, start_T_F_W: np.ndarray | None = None,
+          start: str = "as given") -> Alignment:
+    """Place the cloud (frame W, mm) in the CAD frame F by ``cfg.alignment`` from ``start_T_F_W`` (default
+    identity: the cloud is roughly in F already)."""
+    T0 = np.eye(4) if start_T_F_W is None else np.asarray(start_T_F_W, float)
+    if cfg.alignment == "none":
+        return Alignment("none", T0, 0.0, start)
+    if cfg.alignment == "rps":
+        return align_rps(points_mm, T0, cfg, start)
+    return fit_to_surface(surface, points_mm, T0, cfg, start)
