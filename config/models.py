@@ -470,9 +470,9 @@ class InspectionConfig(_Strict):
         60.0, gt=0, description="RPS: points this close to a sphere's expected centre are fitted, mm"
     )
     area_smoothing_mm: float = Field(
-        5.0, gt=0, description="deviation areas: each point's deviation is the mean over this radius, mm"
+        4.0, gt=0, description="deviation areas: each point's deviation is the mean over this radius, mm"
     )
-    area_min_mm2: float = Field(20.0, ge=0, description="deviation areas smaller than this are not reported, mm^2")
+    area_min_mm2: float = Field(50.0, ge=0, description="deviation areas smaller than this are not reported, mm^2")
     colour_limit_mm: float | None = Field(
         None, gt=0, description="colour-map saturates at +/- this, mm; default 3x the wider tolerance"
     )

@@ -8,8 +8,9 @@ the CAD frame F, from what was measured: no ground truth (docs/inspection.md, "A
 - **Best fit** (fine): trimmed point-to-plane ICP against the mesh itself from coarse to fine trim
   distances, then a Huber-weighted pass, optionally with the points of named datum regions only.
 - **RPS**: reference spheres with calibrated CAD centres are fitted in the cloud (the calibration's sphere
-  fit) near where the start places them; ``T_F_W`` is the least-squares fit of the centres, with a residual
-  per sphere. A best fit spreads a warp over the whole part; RPS leaves it where it is.
+  fit) where a best fit (the pre-alignment) places them; ``T_F_W`` is the least-squares fit of the centres
+  alone, with a residual per sphere. A best fit spreads a warp over the whole part; RPS leaves it where
+  it is.
 
 All mm, 4x4 float64 ``T_a_b`` (frame b into frame a); angles in radians except the report's ``*_deg``.
 """
@@ -18,7 +19,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import open3d as o3d
@@ -31,6 +32,7 @@ from tandemscan.pipeline.plan import MoveMeasure, Plan, Scan
 
 log = logging.getLogger(__name__)
 
+OFF_SURFACE_MM = 1.0  # a point this far off the CAD surface near a sphere's place may lie on the sphere
 STATION_ARM_MM = 1000.0  # a station pose enters the fit as its origin and points this far along its x and y
 
 
@@ -95,11 +97,10 @@ class Alignment:
         }
         if self.method == "best-fit":
             out |= {"used_points": self.used_points, "iterations": self.iterations, "converged": self.converged}
-        if self.method == "rps":
-            out |= {"spheres": [{"name": s.name, "centre_F_mm": list(s.centre_F_mm),
-                                 "centre_W_mm": list(s.centre_W_mm), "radius_mm": s.radius_mm,
-                                 "points": s.points, "residual_mm": s.residual_mm} for s in self.spheres],
-                    "missing_spheres": list(self.missing_spheres)}
+        out |= {"spheres": [{"name": s.name, "centre_F_mm": list(s.centre_F_mm),
+                             "centre_W_mm": list(s.centre_W_mm), "radius_mm": s.radius_mm,
+                             "points": s.points, "residual_mm": s.residual_mm} for s in self.spheres],
+                "missing_spheres": list(self.missing_spheres)}  # RPS: the fit's; best fit: how far it leaves them
         return out
 
 
@@ -234,11 +235,13 @@ def fit_to_surface(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.n
     return Alignment("best-fit", T, residual, start, used, its, converged)
 
 
-def locate_spheres(points_mm: np.ndarray, start_T_F_W: np.ndarray, cfg: InspectionConfig,
+def locate_spheres(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.ndarray, cfg: InspectionConfig,
                    noise_mm: float = 0.05) -> tuple[list[tuple[str, np.ndarray, np.ndarray, float, int]], list[str]]:
     """Fit each configured reference sphere in the cloud (W) among the points within
-    ``reference_sphere_search_mm`` of where ``start_T_F_W`` expects its centre. Returns the found ones as
-    (name, CAD centre F, fitted centre W, free radius mm, points) and the missing ones as "name: why"."""
+    ``reference_sphere_search_mm`` of where ``start_T_F_W`` (a best fit: to a fraction of a millimetre)
+    expects its centre and off the CAD surface by more than :data:`OFF_SURFACE_MM` there (the sphere
+    stands out of the part). Returns the found ones as (name, CAD centre F, fitted centre W, free radius
+    mm, points) and the missing ones as "name: why"."""
     r = 0.5 * cfg.reference_sphere_diameter_mm
     tree = cKDTree(points_mm)
     T_W_F = F.invert(start_T_F_W)
@@ -247,6 +250,8 @@ def locate_spheres(points_mm: np.ndarray, start_T_F_W: np.ndarray, cfg: Inspecti
         centre_F = np.array(sphere.centre_mm, float)
         guess = F.transform_points(T_W_F, centre_F[None])[0]
         near = points_mm[tree.query_ball_point(guess, cfg.reference_sphere_search_mm)]
+        if len(near):
+            near = near[np.abs(surface.signed_distance(F.transform_points(start_T_F_W, near))) > OFF_SURFACE_MM]
         try:
             fit = fit_sphere(near, r, noise_mm=noise_mm, fixed_radius=True)
             shell = points_mm[tree.query_ball_point(fit.centre, r + 4.0 * noise_mm + 0.5)]
@@ -262,28 +267,43 @@ def locate_spheres(points_mm: np.ndarray, start_T_F_W: np.ndarray, cfg: Inspecti
     return found, missing
 
 
-def align_rps(points_mm: np.ndarray, start_T_F_W: np.ndarray, cfg: InspectionConfig, start: str) -> Alignment:
-    """``T_F_W`` from the reference spheres: their fitted centres (W) onto their CAD centres (F) by least
-    squares, twice (the second search around the first fit's centres); at least three spheres."""
+def align_rps(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.ndarray, cfg: InspectionConfig,
+              start: str) -> Alignment:
+    """``T_F_W`` from the reference spheres, searched for where ``start_T_F_W`` (a best fit) puts them:
+    their fitted centres (W) onto their CAD centres (F) by least squares, twice (the second search where
+    the first RPS fit puts them); at least three spheres."""
     p = as_points(points_mm)
     T = np.array(start_T_F_W, dtype=np.float64)
     for _ in range(2):
-        found, missing = locate_spheres(p, T, cfg)
+        found, missing = locate_spheres(surface, p, T, cfg)
         if len(found) < 3:
             raise InspectionError(f"RPS alignment needs 3 reference spheres, found {len(found)}: "
                                   + "; ".join(missing))
         T = fit_rigid(np.array([f[2] for f in found]), np.array([f[1] for f in found]))
-    res = np.linalg.norm(F.transform_points(T, np.array([f[2] for f in found])) - np.array([f[1] for f in found]),
+    spheres = sphere_residuals(found, T)
+    return Alignment("rps", T, float(np.sqrt(np.mean([s.residual_mm**2 for s in spheres]))), start, spheres=spheres,
+                     missing_spheres=tuple(missing), excluded=sphere_points(p, spheres, cfg))
+
+
+def sphere_residuals(found: list[tuple[str, np.ndarray, np.ndarray, float, int]], T_F_W: np.ndarray
+                     ) -> tuple[SphereResidual, ...]:
+    """The spheres of :func:`locate_spheres` with their residuals under ``T_F_W`` (mm)."""
+    if not found:
+        return ()
+    res = np.linalg.norm(F.transform_points(T_F_W, np.array([f[2] for f in found])) - np.array([f[1] for f in found]),
                          axis=1)
-    spheres = tuple(SphereResidual(name, tuple(map(float, cF)), tuple(map(float, cW)), float(rad), int(n), float(e))
-                    for (name, cF, cW, rad, n), e in zip(found, res, strict=True))
-    margin = 0.5 * cfg.reference_sphere_diameter_mm + 3.0  # the sphere and what its base hides
-    excluded = np.zeros(len(p), bool)
-    tree = cKDTree(p)
-    for s in spheres:
-        excluded[tree.query_ball_point(s.centre_W_mm, margin)] = True
-    return Alignment("rps", T, float(np.sqrt(np.mean(res**2))), start, spheres=spheres,
-                     missing_spheres=tuple(missing), excluded=excluded)
+    return tuple(SphereResidual(name, tuple(map(float, cF)), tuple(map(float, cW)), float(rad), int(n), float(e))
+                 for (name, cF, cW, rad, n), e in zip(found, res, strict=True))
+
+
+def sphere_points(points_mm: np.ndarray, spheres: tuple[SphereResidual, ...], cfg: InspectionConfig) -> np.ndarray:
+    """(N,) bool: the points on the fitted spheres or within 3 mm of them (their bases): no part surface."""
+    excluded = np.zeros(len(points_mm), bool)
+    if spheres:
+        tree = cKDTree(points_mm)
+        for s in spheres:
+            excluded[tree.query_ball_point(s.centre_W_mm, 0.5 * cfg.reference_sphere_diameter_mm + 3.0)] = True
+    return excluded
 
 
 def align(surface: CadSurface, points_mm: np.ndarray, cfg: InspectionConfig, start_T_F_W: np.ndarray | None = None,
@@ -293,6 +313,11 @@ def align(surface: CadSurface, points_mm: np.ndarray, cfg: InspectionConfig, sta
     T0 = np.eye(4) if start_T_F_W is None else np.asarray(start_T_F_W, float)
     if cfg.alignment == "none":
         return Alignment("none", T0, 0.0, start)
+    fit = fit_to_surface(surface, points_mm, T0, cfg, start)  # for RPS the pre-alignment that finds the spheres
     if cfg.alignment == "rps":
-        return align_rps(points_mm, T0, cfg, start)
-    return fit_to_surface(surface, points_mm, T0, cfg, start)
+        return align_rps(surface, points_mm, fit.T_F_W, cfg, f"{start}, then a best fit")
+    if not cfg.reference_spheres:
+        return fit
+    found, _ = locate_spheres(surface, as_points(points_mm), fit.T_F_W, cfg)  # spheres where there are: not part
+    spheres = sphere_residuals(found, fit.T_F_W)
+    return replace(fit, spheres=spheres, excluded=sphere_points(as_points(points_mm), spheres, cfg))

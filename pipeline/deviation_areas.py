@@ -74,7 +74,7 @@ def find_deviation_areas(
     lower_mm: float,
     upper_mm: float,
     smoothing_mm: float = 5.0,
-    min_area_mm2: float = 20.0,
+    min_area_mm2: float = 50.0,
     local: LocalDeviation | None = None,
 ) -> tuple[DeviationArea, ...]:
     """The areas beyond ``[lower_mm, upper_mm]`` of the cloud (frame F), largest |extreme| first, with ids

@@ -73,7 +73,8 @@ def _plain(obj):
     return obj
 
 
-NO_ALIGNMENT = {"method": "none", "residual_mm": 0.0, "start": "the cloud as given, in the CAD frame"}
+NO_ALIGNMENT = {"method": "none", "residual_mm": 0.0, "start": "the cloud as given, in the CAD frame",
+                "spheres": [], "missing_spheres": []}
 SIDE_COLOURS = {"upper": "#b3140d", "lower": "#1d3fbf"}
 
 

@@ -31,7 +31,7 @@ def test_inspect_writes_report_and_deviation_cloud(files, tmp_path, capsys):
     assert main([str(cloud), "--cad", str(cad), "--tolerance", "0.05", "--out", str(out), "--config", str(cfg)]) == 0
     said = capsys.readouterr().out
     assert "4000 points" in said and str(out / "report.html") in said
-    data = json.loads((out / "report.json").read_text())
+    data = json.loads((out / "report.json").read_text())["inspection"]
     assert data["as_measured"]["tolerance"]["upper_mm"] == 0.05
     assert data["as_measured"]["stats"]["mean_mm"] == pytest.approx(0.02, abs=0.003)
     assert "<img" in (out / "report.html").read_text()
