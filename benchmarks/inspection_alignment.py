@@ -7,7 +7,7 @@ Runs the default job twice with the fixture's reference spheres: on the defect-f
 given) and on the part of ``config/as-built-example.toml``. Per run: ``T_F_W`` from the AGV stations
 (coarse), the robust best fit and RPS, each against the truth at the part's centre (mm, deg); the areas
 beyond the default band (found, missed, false regions, centroid and extreme errors). Then ``tandemscan
-inspect``'s path on the defect-free cloud turned 20 deg and moved 200 mm: a global start and the best fit.
+inspect``'s path on the defect-free cloud turned 20 deg and moved 200 mm: the best fit from there.
 """
 
 from __future__ import annotations
@@ -119,7 +119,7 @@ def main() -> None:
         mesh_file = tmp / "cad.ply"
         o3d.io.write_triangle_mesh(str(mesh_file), cad)
         t0 = time.perf_counter()
-        res = inspect_files(cloud_file, mesh_file, tmp / "moved", base.inspection, start="global")
+        res = inspect_files(cloud_file, mesh_file, tmp / "moved", base.inspection)
         T = np.array(res.data["alignment"]["T_F_W"]) @ offset @ T_F_W_true  # back to the job's W
         figures["inspect_moved_20deg_200mm"] = {
             "T_F_W_err_at_part_centre": rounded(alignment_error(T, T_F_W_true, centre)),

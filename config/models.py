@@ -455,8 +455,9 @@ class InspectionConfig(_Strict):
         "reference spheres (RPS), or none (the cloud is in the CAD frame already)"
     )
     alignment_distances_mm: tuple[float, ...] = Field(
-        (64.0, 16.0, 4.0), description="coarse-to-fine trim distances of the best-fit alignment before its "
-        "final pass at best_fit_max_distance_mm, mm"
+        (400.0, 200.0, 100.0, 50.0, 16.0, 4.0), description="coarse-to-fine trim distances of the best-fit "
+        "alignment before its final pass at best_fit_max_distance_mm, mm: the first bounds how far off CAD the "
+        "cloud may start"
     )
     alignment_huber_sigmas: float = Field(
         2.0, gt=0, description="final best-fit pass: Huber weights beyond this many robust sigmas of the residual"

@@ -3,10 +3,9 @@ the CAD frame F, from what was measured: no ground truth (docs/inspection.md, "A
 
 - **Stations** (coarse, to centimetres): the plan places the measurement AGV's stations in F; the job
   measures where the AGV stood in W (Eq. 5). A least-squares rigid fit of the two gives ``T_F_W``.
-- **Global start** (a cloud from anywhere): FPFH features of the cloud and of the CAD surface matched by
-  RANSAC (Open3D), good to a few of its voxels.
-- **Best fit** (fine): trimmed point-to-plane ICP against the mesh itself from coarse to fine trim
-  distances, then a Huber-weighted pass, optionally with the points of named datum regions only.
+- **Best fit**: trimmed point-to-plane ICP against the mesh itself from coarse to fine trim distances (from
+  400 mm: a cloud given 20 deg and 200 mm off CAD reaches the same fit), then a Huber-weighted pass,
+  optionally with the points of named datum regions only.
 - **RPS**: reference spheres with calibrated CAD centres are fitted in the cloud (the calibration's sphere
   fit) where a best fit (the pre-alignment) places them; ``T_F_W`` is the least-squares fit of the centres
   alone, with a residual per sphere. A best fit spreads a warp over the whole part; RPS leaves it where
@@ -22,7 +21,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-import open3d as o3d
 from scipy.spatial import cKDTree
 from tandemscan.config.models import InspectionConfig
 from tandemscan.pipeline import frames as F
@@ -161,35 +159,6 @@ def align_plan_stations(plan: Plan, scan_T_W_V2: Sequence[np.ndarray]) -> Statio
     if not groups:
         raise InspectionError("no scan of the plan follows a planned measurement-AGV station")
     return align_stations([g[0] for g in groups.values()], [F.mean_pose(g[1]) for g in groups.values()])
-
-
-def global_start(surface: CadSurface, points_mm: np.ndarray, voxel_mm: float = 20.0, seed: int = 0) -> np.ndarray:
-    """``T_F_W`` of a cloud anywhere, to a few ``voxel_mm``: FPFH features of the cloud and of points
-    sampled on the CAD surface, matched by RANSAC (Open3D, seeded: the same input gives the same start)."""
-    o3d.utility.random.seed(seed)
-
-    def features(pcd: o3d.geometry.PointCloud) -> tuple[o3d.geometry.PointCloud, o3d.pipelines.registration.Feature]:
-        down = pcd.voxel_down_sample(voxel_mm)
-        down.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.5 * voxel_mm, max_nn=30))
-        fpfh = o3d.pipelines.registration.compute_fpfh_feature(
-            down, o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * voxel_mm, max_nn=100))
-        return down, fpfh
-
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(as_points(points_mm)))
-    area = surface.mesh.get_surface_area()
-    cad = surface.mesh.sample_points_uniformly(int(min(2_000_000, max(10_000, 4.0 * area / voxel_mm**2))))
-    (src, f_src), (dst, f_dst) = features(cloud), features(cad)
-    reg = o3d.pipelines.registration
-    result = reg.registration_ransac_based_on_feature_matching(
-        src, dst, f_src, f_dst, True, 1.5 * voxel_mm,
-        reg.TransformationEstimationPointToPoint(False), 3,
-        [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * voxel_mm)],
-        reg.RANSACConvergenceCriteria(200_000, 0.999),
-    )
-    log.info("global start: fitness %.3f, inlier RMS %.1f mm", result.fitness, result.inlier_rmse)
-    if result.fitness == 0.0:
-        raise InspectionError("global alignment found no match of the cloud on the CAD surface")
-    return np.array(result.transformation, dtype=np.float64)
 
 
 def _datum_points(points_mm: np.ndarray, T_F_W: np.ndarray, cfg: InspectionConfig) -> np.ndarray:

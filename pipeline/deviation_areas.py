@@ -4,9 +4,9 @@ engineer marks on the part (docs/inspection.md, "Deviation areas").
 Frame F (CAD), millimetres. Each point's deviation is first averaged over its neighbours within
 ``smoothing_mm`` (scanner noise of 0.05 mm per point would otherwise put a few percent of any surface outside
 a +-0.1 mm band); points whose averaged deviation is above the band (upper) or below it (lower) are linked
-to such neighbours of the same side within three point spacings, and every linked set at least
-``min_area_mm2`` large is one area. A point's share of the surface is ``pi d^2 / k`` from the distance
-``d`` to its k-th neighbour. Per area: the area-weighted centroid, the area, the extreme of the averaged
+to such neighbours of the same side within three point spacings (at least ``smoothing_mm``), and every linked set at least
+``min_area_mm2`` large is one area. A point's share of the surface is ``pi d^2 / (k + 1)``, ``d`` midway
+between its k-th and (k+1)-th neighbour (the disk holds the point and k neighbours; unbiased on a grid). Per area: the area-weighted centroid, the area, the extreme of the averaged
 deviation (a noise peak of one point is no defect) and the mean of the points' own deviations.
 """
 
@@ -62,8 +62,9 @@ def local_deviation(points_mm: np.ndarray, deviations_mm: np.ndarray, smoothing_
         dist, idx = dist.reshape(-1, k), idx.reshape(-1, k)
         inside = dist <= smoothing_mm
         smoothed[lo:lo + _CHUNK] = (d[idx] * inside).sum(axis=1) / inside.sum(axis=1)
-        kd = dist[:, min(DENSITY_K, k - 1)]
-        share[lo:lo + _CHUNK] = np.pi * kd**2 / max(min(DENSITY_K, k - 1), 1)
+        kk = min(DENSITY_K, k - 2)  # the disk between the kk-th and the next neighbour holds kk + 1 points
+        r_mid = 0.5 * (dist[:, kk] + dist[:, kk + 1]) if kk >= 1 else dist[:, -1]
+        share[lo:lo + _CHUNK] = np.pi * r_mid**2 / (max(kk, 0) + 1)
         nearest[lo:lo + _CHUNK] = dist[:, min(1, k - 1)]
     return LocalDeviation(smoothed, share, float(np.median(nearest)))
 
@@ -82,7 +83,7 @@ def find_deviation_areas(
     p = np.asarray(points_mm, dtype=np.float64)
     d = np.asarray(deviations_mm, dtype=np.float64)
     local = local or local_deviation(p, d, smoothing_mm)
-    link_mm = 3.0 * max(local.spacing_mm, 1e-3)
+    link_mm = max(3.0 * local.spacing_mm, smoothing_mm)
     found = []
     for side, beyond in (("upper", local.smoothed_mm > upper_mm), ("lower", local.smoothed_mm < lower_mm)):
         ids = np.nonzero(beyond)[0]

@@ -19,7 +19,7 @@ import open3d as o3d
 from tandemscan.config.models import InspectionConfig
 from tandemscan.pipeline.cloud_io import CloudIOError, read_ply
 from tandemscan.pipeline.export import write_ply
-from tandemscan.pipeline.alignment import Alignment, align, global_start
+from tandemscan.pipeline.alignment import Alignment, align
 from tandemscan.pipeline.frames import rotate_vectors, transform_points
 from tandemscan.pipeline.inspect import CadSurface, InspectionError, InspectionResult, as_points, inspect_cloud
 from tandemscan.pipeline.part import PartMeshError, read_mesh_file
@@ -91,7 +91,7 @@ def align_and_inspect(
     **report: Any,
 ) -> InspectionOutputs:
     """Register a cloud measured in frame W to the CAD frame F by ``cfg.alignment`` from ``start_T_F_W``
-    (where the job's AGV stations or a global match put it, described by ``start``), then inspect and write
+    (where the job's AGV stations put it, or the cloud as given; described by ``start``), then inspect and write
     as :func:`run_inspection` (``report`` passes its title, meta, accuracy and json_name). The points on
     reference spheres are left out of the inspection; the stitching views are mapped into F as well."""
     cfg = cfg or InspectionConfig()
@@ -114,22 +114,14 @@ def align_and_inspect(
 
 
 def inspect_files(
-    cloud_path: Path | str, cad_path: Path | str, out_dir: Path | str, cfg: InspectionConfig | None = None,
-    start: str = "as-given",
+    cloud_path: Path | str, cad_path: Path | str, out_dir: Path | str, cfg: InspectionConfig | None = None
 ) -> InspectionOutputs:
     """Inspect a cloud file against a CAD mesh file; writes into ``out_dir``. The cloud is registered by
-    ``cfg.alignment`` from where it lies (``start`` "as-given") or from a global feature match ("global",
-    for a cloud in a frame of its own)."""
+    ``cfg.alignment`` from where it lies (within the first trim distance of its place on CAD)."""
     try:
         points, normals = read_ply(cloud_path)
         mesh = read_mesh_file(Path(cad_path), what="CAD mesh")
     except (CloudIOError, PartMeshError) as e:
         raise InspectionError(str(e)) from e
     meta = {"cloud": str(cloud_path), "CAD mesh": str(cad_path), "points": str(len(points))}
-    surface = CadSurface(mesh)
-    cfg = cfg or InspectionConfig()
-    T0, how = np.eye(4), "the cloud as given"
-    if start == "global" and cfg.alignment != "none":
-        T0, how = global_start(surface, as_points(points)), "a global feature match (FPFH, RANSAC)"
-    return align_and_inspect(points, surface, out_dir, cfg, normals_W=normals, start_T_F_W=T0, start=how,
-                             meta=meta)
+    return align_and_inspect(points, mesh, out_dir, cfg, normals_W=normals, start="the cloud as given", meta=meta)
