@@ -101,10 +101,12 @@ def main() -> None:
     base = load_config(args.config)
     base = base.model_copy(update={
         "sim": base.sim.model_copy(update={"reference_spheres": True}),
-        "inspection": base.inspection.model_copy(update={"in_job": False, "views": ("isometric",), "map_width_px": 400}),
+        "inspection": base.inspection.model_copy(update={"in_job": False, "views": ("isometric",),
+                                                         "map_width_px": 400}),
     })
     plan = Plan.load(Path(args.plan) if args.plan else default_plan_path())
-    as_built = base.model_copy(update={"sim": base.sim.model_copy(update={"as_built": load_config(AS_BUILT).sim.as_built})})
+    deviations = load_config(AS_BUILT).sim.as_built
+    as_built = base.model_copy(update={"sim": base.sim.model_copy(update={"as_built": deviations})})
     figures: dict = {"benchmark": "inspection_alignment", "plan": plan.name}
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -123,7 +125,8 @@ def main() -> None:
         T = np.array(res.data["alignment"]["T_F_W"]) @ offset @ T_F_W_true  # back to the job's W
         figures["inspect_moved_20deg_200mm"] = {
             "T_F_W_err_at_part_centre": rounded(alignment_error(T, T_F_W_true, centre)),
-            "vs_job_best_fit": rounded(alignment_error(T, T_F_W_fit, centre)), "verdict": res.result.verdict, "areas": len(res.result.areas),
+            "vs_job_best_fit": rounded(alignment_error(T, T_F_W_fit, centre)), "verdict": res.result.verdict,
+            "areas": len(res.result.areas),
             "seconds": round(time.perf_counter() - t0, 1)}
     print(json.dumps(figures))
 

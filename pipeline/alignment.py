@@ -178,30 +178,35 @@ def _datum_points(points_mm: np.ndarray, T_F_W: np.ndarray, cfg: InspectionConfi
     return points_mm[inside]
 
 
+def _robust_sigma(surface: CadSurface, points_mm: np.ndarray, T_F_W: np.ndarray, trim_mm: float) -> float:
+    """1.4826 x the median absolute point-to-plane residual (mm) of at most 50 000 evenly chosen points,
+    placed by ``T_F_W``, among those within ``trim_mm`` of the surface; nan when none is."""
+    r = surface.signed_distance(F.transform_points(T_F_W, points_mm[:: max(1, len(points_mm) // 50_000)]))
+    r = r[np.abs(r) <= trim_mm]
+    return 1.4826 * float(np.median(np.abs(r - np.median(r)))) if len(r) else float("nan")
+
+
 def fit_to_surface(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.ndarray, cfg: InspectionConfig,
                    start: str) -> Alignment:
     """Robust best fit of the cloud (frame W, mm) to the CAD surface from ``start_T_F_W``: trimmed
     point-to-plane passes at ``cfg.alignment_distances_mm`` then ``best_fit_max_distance_mm``, the last
-    one Huber-weighted beyond ``alignment_huber_sigmas`` robust sigmas (1.4826 MAD) of its residuals."""
+    one Huber-weighted beyond ``alignment_huber_sigmas`` robust sigmas of its residuals. The alignment's
+    residual is that robust sigma after the fit."""
     p = as_points(points_mm)
     T = np.array(start_T_F_W, dtype=np.float64)
     its, converged, used = 0, True, 0
-    for distance in (*cfg.alignment_distances_mm, cfg.best_fit_max_distance_mm):
+    last = cfg.best_fit_max_distance_mm
+    for distance in (*cfg.alignment_distances_mm, last):
         datum = _datum_points(p, T, cfg)
         huber = None
-        if distance == cfg.best_fit_max_distance_mm:
-            r = surface.signed_distance(F.transform_points(T, datum[:: max(1, len(datum) // 50_000)]))
-            r = r[np.abs(r) <= distance]
-            huber = max(cfg.alignment_huber_sigmas * 1.4826 * float(np.median(np.abs(r - np.median(r)))), 1e-4) \
-                if len(r) else None
+        if distance == last:
+            sigma = _robust_sigma(surface, datum, T, last)
+            huber = max(cfg.alignment_huber_sigmas * sigma, 1e-4) if np.isfinite(sigma) else None
         T, its, converged, used = best_fit(surface, datum, distance, cfg.best_fit_iterations, start=T, huber_mm=huber)
-    datum = _datum_points(p, T, cfg)
-    r = surface.signed_distance(F.transform_points(T, datum[:: max(1, len(datum) // 50_000)]))
-    r = r[np.abs(r) <= cfg.best_fit_max_distance_mm]
-    residual = 1.4826 * float(np.median(np.abs(r))) if len(r) else float("nan")
     if not converged:
         log.warning("best-fit alignment did not converge in %d iterations", its)
-    return Alignment("best-fit", T, residual, start, used, its, converged)
+    return Alignment("best-fit", T, _robust_sigma(surface, _datum_points(p, T, cfg), T, last), start, used, its,
+                     converged)
 
 
 def locate_spheres(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.ndarray, cfg: InspectionConfig,

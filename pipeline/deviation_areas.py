@@ -2,12 +2,13 @@
 engineer marks on the part (docs/inspection.md, "Deviation areas").
 
 Frame F (CAD), millimetres. Each point's deviation is first averaged over its neighbours within
-``smoothing_mm`` (scanner noise of 0.05 mm per point would otherwise put a few percent of any surface outside
-a +-0.1 mm band); points whose averaged deviation is above the band (upper) or below it (lower) are linked
-to such neighbours of the same side within three point spacings (at least ``smoothing_mm``), and every linked set at least
-``min_area_mm2`` large is one area. A point's share of the surface is ``pi d^2 / (k + 1)``, ``d`` midway
-between its k-th and (k+1)-th neighbour (the disk holds the point and k neighbours; unbiased on a grid). Per area: the area-weighted centroid, the area, the extreme of the averaged
-deviation (a noise peak of one point is no defect) and the mean of the points' own deviations.
+``smoothing_mm`` (scanner noise of 0.05 mm per point would otherwise put a few percent of any surface
+outside a +-0.1 mm band); points whose averaged deviation is above the band (upper) or below it (lower) are
+linked to such neighbours of the same side within three point spacings (at least ``smoothing_mm``), and
+every linked set at least ``min_area_mm2`` large is one area. A point's share of the surface is
+``pi d^2 / (k + 1)``, ``d`` midway between its k-th and (k+1)-th neighbour (the disk holds the point and k
+neighbours; unbiased on a grid). Per area: the area-weighted centroid, the area, the extreme of the
+averaged deviation (a noise peak of one point is no defect) and the mean of the points' own deviations.
 """
 
 from __future__ import annotations

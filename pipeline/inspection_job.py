@@ -17,9 +17,9 @@ from typing import Any
 import numpy as np
 import open3d as o3d
 from tandemscan.config.models import InspectionConfig
+from tandemscan.pipeline.alignment import Alignment, align
 from tandemscan.pipeline.cloud_io import CloudIOError, read_ply
 from tandemscan.pipeline.export import write_ply
-from tandemscan.pipeline.alignment import Alignment, align
 from tandemscan.pipeline.frames import rotate_vectors, transform_points
 from tandemscan.pipeline.inspect import CadSurface, InspectionError, InspectionResult, as_points, inspect_cloud
 from tandemscan.pipeline.part import PartMeshError, read_mesh_file

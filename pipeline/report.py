@@ -18,6 +18,7 @@ from pathlib import Path
 import jinja2
 import numpy as np
 from tandemscan.config.models import InspectionConfig
+from tandemscan.pipeline.alignment import Alignment
 from tandemscan.pipeline.deviation_maps import (
     STANDARD_VIEWS,
     Callout,
@@ -28,7 +29,6 @@ from tandemscan.pipeline.deviation_maps import (
     histogram_png,
     typical_spacing,
 )
-from tandemscan.pipeline.alignment import Alignment
 from tandemscan.pipeline.inspect import CadSurface, InspectionResult
 from tandemscan.pipeline.stitch_quality import overlap_quality, stitching_png
 

@@ -43,7 +43,8 @@ def _ramp(x: np.ndarray, warp: WarpConfig) -> np.ndarray:
     return np.clip((x - warp.start_x_mm) / (warp.end_x_mm - warp.start_x_mm), 0.0, 1.0) ** 2
 
 
-def displacement(dev: Deviation, points_mm: np.ndarray, normals: np.ndarray, centre_mm: np.ndarray | None) -> np.ndarray:
+def displacement(dev: Deviation, points_mm: np.ndarray, normals: np.ndarray,
+                 centre_mm: np.ndarray | None) -> np.ndarray:
     """(N, 3) displacement (mm, frame F) of the CAD surface points with outward ``normals`` by one
     deviation; ``centre_mm`` is a dent's centre on the CAD surface (:func:`dent_centre_on_cad`)."""
     p, n = np.asarray(points_mm, float), np.asarray(normals, float)
@@ -72,7 +73,8 @@ def normal_deviation(dev: Deviation, surface: CadSurface, points_F_mm: np.ndarra
     return cp.points_mm, np.einsum("ij,ij->i", displacement(dev, cp.points_mm, cp.normals, centre), cp.normals)
 
 
-def _refinement_test(dev: Deviation, centre: np.ndarray | None) -> Callable[[np.ndarray, np.ndarray], np.ndarray] | None:
+def _refinement_test(dev: Deviation,
+                     centre: np.ndarray | None) -> Callable[[np.ndarray, np.ndarray], np.ndarray] | None:
     """For a local deviation, which triangles (centroids (N, 3), longest edges (N,)) still need splitting."""
     if isinstance(dev, DentConfig):
         target = _DENT_EDGE_FRACTION * dev.radius_mm

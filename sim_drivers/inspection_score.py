@@ -50,7 +50,7 @@ def deviation_truths(config: CellConfig, surface: CadSurface, points_F_mm: np.nd
         side = "upper" if abs(d.max()) >= abs(d.min()) else "lower"
         beyond = d > hi if side == "upper" else d < lo
         if not beyond.any():
-            out.append(DeviationTruth(i, dev.kind, side, (np.nan,) * 3, float(0.0), False))
+            out.append(DeviationTruth(i, dev.kind, side, (np.nan,) * 3, 0.0, False))
             continue
         extreme = float(d[beyond].max() if side == "upper" else d[beyond].min())
         out.append(DeviationTruth(i, dev.kind, side, tuple(map(float, cad_points[beyond].mean(axis=0))), extreme,
