@@ -214,8 +214,9 @@ def locate_spheres(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.n
     """Fit each configured reference sphere in the cloud (W) among the points within
     ``reference_sphere_search_mm`` of where ``start_T_F_W`` (a best fit: to a fraction of a millimetre)
     expects its centre and off the CAD surface by more than :data:`OFF_SURFACE_MM` there (the sphere
-    stands out of the part). Returns the found ones as (name, CAD centre F, fitted centre W, free radius
-    mm, points) and the missing ones as "name: why"."""
+    stands out of the part); ``noise_mm`` is the scanner's 1-sigma noise (the fit's inlier band). Returns
+    the found ones as (name, CAD centre F, fitted centre W, free radius mm, points) and the missing ones as
+    "name: why"."""
     r = 0.5 * cfg.reference_sphere_diameter_mm
     tree = cKDTree(points_mm)
     T_W_F = F.invert(start_T_F_W)
