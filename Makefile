@@ -7,10 +7,19 @@ APT_PACKAGES := libusb-1.0-0 libgl1 libgomp1 chromium chromium-driver systemd
 
 .PHONY: measure test system-deps clean
 
-# Plans the whole default part (docs/planning.md) into out/plan.toml, then measures it on the simulated cell.
-measure: $(STAMP)
+CELL_CONFIG := config/sim-cell.toml
+CALIBRATION := out/calibration.json
+
+# The paper's workflow: calibrate the scanner on its target (hand-eye, docs/calibration.md), plan the whole
+# default part (docs/planning.md) into out/plan.toml, then measure it on the simulated cell with the calibrated
+# mounts (job.installation_source = "calibration"). A calibration newer than the cell configuration and the
+# installed package is reused.
+measure: $(STAMP) $(CALIBRATION)
 	$(VENV)/bin/tandemscan plan --out out/plan.toml --png out/plan.png
-	$(VENV)/bin/tandemscan measure --plan out/plan.toml
+	$(VENV)/bin/tandemscan measure --plan out/plan.toml --calibration $(CALIBRATION)
+
+$(CALIBRATION): $(CELL_CONFIG) $(STAMP)
+	$(VENV)/bin/tandemscan calibrate --out $(CALIBRATION)
 
 test: $(STAMP)
 	$(PY) -m pytest -q

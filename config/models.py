@@ -9,7 +9,7 @@ from __future__ import annotations
 import logging
 import math
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -312,6 +312,52 @@ class PlanningConfig(_Strict):
     )
 
 
+class DentConfig(_Strict):
+    """A dent (material below CAD) or bulge (above): a cosine bell of ``depth_mm`` along the surface normal
+    within ``radius_mm`` of ``centre_mm`` (frame F; projected onto the CAD surface)."""
+
+    kind: Literal["dent", "bulge"]
+    centre_mm: tuple[float, float, float]
+    radius_mm: float = Field(gt=0)
+    depth_mm: float = Field(gt=0)
+
+
+class WarpConfig(_Strict):
+    """A bend (every point moved by ``amplitude_mm`` along ``direction``) or a twist (turned about the
+    part's length axis x through ``axis_yz_mm``, ``amplitude_mm`` at 1 m from it), growing as the square
+    of the way from ``start_x_mm`` (none) to ``end_x_mm`` (full), full beyond; frame F, mm."""
+
+    kind: Literal["bend", "twist"]
+    start_x_mm: float
+    end_x_mm: float
+    amplitude_mm: float
+    direction: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    axis_yz_mm: tuple[float, float] = (0.0, 800.0)
+
+    @field_validator("end_x_mm")
+    @classmethod
+    def _not_empty(cls, v: float, info) -> float:
+        if v == info.data.get("start_x_mm"):
+            raise ValueError("end_x_mm must differ from start_x_mm")
+        return v
+
+
+class StepConfig(_Strict):
+    """A patch of the surface inside a box (frame F, mm) offset by ``step_mm`` along its normal."""
+
+    kind: Literal["step"]
+    min_mm: tuple[float, float, float]
+    max_mm: tuple[float, float, float]
+    step_mm: float
+
+
+class AsBuiltConfig(_Strict):
+    """How the simulated part as built departs from its CAD model; the world scans this part while the
+    planner and the inspection use the CAD mesh. Empty: the part is its CAD model."""
+
+    deviations: tuple[Annotated[DentConfig | WarpConfig | StepConfig, Field(discriminator="kind")], ...] = ()
+
+
 class SimWorldConfig(_Strict):
     """Ground truth of the simulated cell: how far the real installation is from nominal, time scale."""
 
@@ -324,6 +370,10 @@ class SimWorldConfig(_Strict):
     time_scale: float = Field(0.0, ge=0, description="simulated motion time x this = wall time; 0 = instant")
     fault_scanner_timeout_every: int = Field(0, ge=0, description="every n-th capture times out; 0 = never")
     fault_estop_after_moves: int = Field(0, ge=0, description="e-stop after n chassis moves; 0 = never")
+    as_built: AsBuiltConfig = AsBuiltConfig()
+    reference_spheres: bool = Field(
+        False, description="the fixture carries the reference spheres of [inspection] (at their CAD centres)"
+    )
 
 
 class HilConfig(_Strict):
@@ -454,6 +504,22 @@ class RegionConfig(_Strict):
         return v
 
 
+class ReferenceSphereConfig(_Strict):
+    """A reference sphere of the part or its fixture: a name and its calibrated centre in the CAD frame F, mm."""
+
+    name: str = Field(min_length=1)
+    centre_mm: tuple[float, float, float]
+
+
+_DEFAULT_SPHERES = (  # 12 mm off the default part's +y side, inside the default band plan's scans
+    ReferenceSphereConfig(name="RPS1", centre_mm=(-1010.0, 1002.7, 558.7)),
+    ReferenceSphereConfig(name="RPS2", centre_mm=(-750.0, 1009.2, 960.6)),
+    ReferenceSphereConfig(name="RPS3", centre_mm=(51.5, 969.0, 558.7)),
+    ReferenceSphereConfig(name="RPS4", centre_mm=(312.8, 919.2, 961.7)),
+    ReferenceSphereConfig(name="RPS5", centre_mm=(804.3, 786.7, 559.7)),
+)
+
+
 class InspectionConfig(_Strict):
     """Deviation-from-CAD inspection: tolerance band (mm, signed: + = material outside the CAD surface),
     named regions, optional best-fit alignment and the colour-map scale."""
@@ -473,6 +539,30 @@ class InspectionConfig(_Strict):
         1.0, gt=0, description="best-fit ICP uses only points deviating less than this, mm"
     )
     best_fit_iterations: int = Field(30, ge=1)
+    alignment: Literal["best-fit", "rps", "none"] = Field(
+        "best-fit", description="registration of the measured cloud to CAD: robust best fit to the surface, "
+        "reference spheres (RPS), or none (the cloud is in the CAD frame already)"
+    )
+    alignment_distances_mm: tuple[float, ...] = Field(
+        (400.0, 200.0, 100.0, 50.0, 16.0, 4.0), description="coarse-to-fine trim distances of the best-fit "
+        "alignment before its final pass at best_fit_max_distance_mm, mm: the first bounds how far off CAD the "
+        "cloud may start"
+    )
+    alignment_huber_sigmas: float = Field(
+        2.0, gt=0, description="final best-fit pass: Huber weights beyond this many robust sigmas of the residual"
+    )
+    datum_regions: tuple[str, ...] = Field(
+        (), description="names of regions whose points alone take part in the best-fit alignment; empty = all"
+    )
+    reference_spheres: tuple[ReferenceSphereConfig, ...] = _DEFAULT_SPHERES
+    reference_sphere_diameter_mm: float = Field(38.1, gt=0, description="calibrated diameter of the spheres, mm")
+    reference_sphere_search_mm: float = Field(
+        60.0, gt=0, description="RPS: points this close to a sphere's expected centre are fitted, mm"
+    )
+    area_smoothing_mm: float = Field(
+        4.0, gt=0, description="deviation areas: each point's deviation is the mean over this radius, mm"
+    )
+    area_min_mm2: float = Field(50.0, ge=0, description="deviation areas smaller than this are not reported, mm^2")
     colour_limit_mm: float | None = Field(
         None, gt=0, description="colour-map saturates at +/- this, mm; default 3x the wider tolerance"
     )

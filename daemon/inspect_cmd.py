@@ -1,4 +1,5 @@
-"""``tandemscan inspect CLOUD --cad MESH [--tolerance 0.1] [--out DIR]``: deviation report for any cloud.
+"""``tandemscan inspect CLOUD --cad MESH [--tolerance 0.1] [--out DIR] [--alignment best-fit|rps|none]``:
+deviation report for any cloud, registered to CAD from where it lies.
 
 ``register(subparsers)`` adds the sub-command to the main CLI; ``main(argv)`` runs it on its own.
 Bad input ends with one clear error line on stderr and exit status 2.
@@ -20,8 +21,9 @@ def register(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "inspect",
         help="deviation of a point cloud from its CAD mesh: report.html, report.json, PLY with deviations",
-        description="Signed deviation of CLOUD (mm, CAD frame) from MESH, with statistics, tolerance shares, "
-        "colour maps and a best fit; writes report.html, report.json, figures/ and cloud_deviation.ply.",
+        description="Signed deviation of CLOUD (mm, near the CAD frame) from MESH after aligning it to CAD (robust "
+        "best fit, reference spheres or none), with the areas beyond the tolerance, a verdict, statistics, "
+        "colour maps; writes report.html, report.json, figures/ and cloud_deviation.ply.",
     )
     configure(p)
     return p
@@ -29,13 +31,19 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 def configure(p: argparse.ArgumentParser) -> None:
     """The sub-command's arguments."""
-    p.add_argument("cloud", type=Path, help="point cloud file (.ply .pcd .xyz), millimetres, CAD frame")
+    p.add_argument("cloud", type=Path, help="point cloud file (.ply .pcd .xyz), millimetres, near the CAD frame")
     p.add_argument("--cad", type=Path, required=True, help="CAD mesh file (.stl .ply .obj), millimetres")
     p.add_argument("--tolerance", type=float, default=None, metavar="MM",
                    help="symmetric tolerance band +/- MM (default: the config's inspection band)")
     p.add_argument("--out", type=Path, default=None, metavar="DIR", help="output folder (default: out/inspect)")
     p.add_argument("--config", type=Path, default=None, help="cell configuration TOML (default: the sim cell)")
-    p.add_argument("--no-best-fit", action="store_true", help="skip the best-fit alignment")
+    p.add_argument("--alignment", choices=("best-fit", "rps", "none"), default=None,
+                   help="registration to CAD: robust best fit, the reference spheres of [inspection] (RPS), or none "
+                   "(the cloud is in the CAD frame); default: the config's")
+    p.add_argument("--datum", action="append", default=None, metavar="REGION",
+                   help="best fit on the points of this [inspection] region only (repeatable)")
+    p.add_argument("--no-best-fit", action="store_true",
+                   help="skip the separate best-fit figures reported after the alignment")
     p.set_defaults(func=run)
 
 
@@ -55,14 +63,20 @@ def run(args: argparse.Namespace) -> int:
             update |= {"tolerance_lower_mm": -args.tolerance, "tolerance_upper_mm": args.tolerance}
         if args.no_best_fit:
             update["best_fit"] = False
+        if args.alignment is not None:
+            update["alignment"] = args.alignment
+        if args.datum:
+            update["datum_regions"] = tuple(args.datum)
         cfg = cfg.model_copy(update=update)
         out = args.out if args.out is not None else cell.job.out_dir / "inspect"
         outputs = inspect_files(args.cloud, args.cad, out, cfg)
     except (InspectionError, ConfigError, OSError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    s, t = outputs.result.stats, outputs.result.tolerance
+    s, t, a = outputs.result.stats, outputs.result.tolerance, outputs.data["alignment"]
     print(
+        f"{outputs.result.verdict.upper()}: {len(outputs.result.areas)} areas beyond the band; aligned by "
+        f"{a['method']} (residual {a['residual_mm']:.4f} mm)\n"
         f"{s.count} points: mean {s.mean_mm:+.4f} mm, sigma {s.sigma_mm:.4f} mm, RMS {s.rms_mm:.4f} mm, "
         f"{t.in_pct:.2f} % within [{t.lower_mm:+.3f}, {t.upper_mm:+.3f}] mm\n"
         f"report: {outputs.html}\ndata:   {outputs.json}\ncloud:  {outputs.ply}"

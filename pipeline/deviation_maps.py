@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import io
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -191,6 +192,33 @@ def _axis_label(direction: np.ndarray) -> tuple[str, float]:
     return "view plane, mm", 1.0
 
 
+@dataclass(frozen=True)
+class Callout:
+    """A label drawn with a leader at a point of the part (frame F, mm) on the colour maps."""
+
+    label: str
+    point_mm: tuple[float, float, float]
+    colour: str = "black"
+
+
+def visible_callouts(surface: CadSurface, view: View, width_px: int, callouts: Sequence[Callout],
+                     margin_mm: float = 5.0) -> list[Callout]:
+    """The callouts whose points the view sees: inside the picture and no more than ``margin_mm`` behind
+    the first CAD surface on their pixel."""
+    if not callouts:
+        return []
+    bg = _background(surface, view, width_px)
+    x0, _, _, y1 = bg.extent_mm
+    p = np.array([c.point_mm for c in callouts], float)
+    col = np.floor((p @ bg.r - x0) / bg.px).astype(np.int64)
+    row = np.floor((y1 - p @ bg.u) / bg.px).astype(np.int64)
+    h, w = bg.t_hit.shape
+    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    depth = p @ bg.f - bg.depth0
+    return [c for c, ok, cc, rr, dd in zip(callouts, inside, col, row, depth, strict=True)
+            if ok and dd <= bg.t_hit[rr, cc] + margin_mm]
+
+
 def deviation_norm(lower_mm: float, upper_mm: float, limit_mm: float | None = None) -> Normalize:
     """Symmetric colour scale: +/- ``limit_mm``, default three times the wider tolerance."""
     lim = limit_mm or 3.0 * max(abs(lower_mm), abs(upper_mm), 1e-6)
@@ -208,9 +236,11 @@ def deviation_map_png(
     title: str | None = None,
     normals: np.ndarray | None = None,
     spacing_mm: float | None = None,
+    callouts: Sequence[Callout] = (),
 ) -> bytes:
-    """One deviation colour map as PNG: the view, mm axes on the view plane, a colour bar with the band.
-    Fixed axes positions (no layout engine: text measuring would cost more than the picture)."""
+    """One deviation colour map as PNG: the view, mm axes on the view plane, a colour bar with the band,
+    and a labelled leader to each of ``callouts`` this view sees. Fixed axes positions (no layout engine:
+    text measuring would cost more than the picture)."""
     img = render_view(surface, points_mm, deviations_mm, view, norm, width_px, normals=normals,
                       spacing_mm=spacing_mm)
     h, w = img.rgb.shape[:2]
@@ -226,6 +256,12 @@ def deviation_map_png(
     ax.set_title(title or f"Deviation from CAD, {view.name}")
     ax.set_xlabel(xl)
     ax.set_ylabel(yl)
+    for c in visible_callouts(surface, view, width_px, callouts):
+        at = np.asarray(c.point_mm, float)
+        ax.annotate(c.label, (x_sign * float(at @ r), y_sign * float(at @ u)), xytext=(18, 18),
+                    textcoords="offset points", fontsize=9, fontweight="bold", color=c.colour,
+                    bbox={"boxstyle": "round,pad=0.2", "fc": "white", "ec": c.colour, "lw": 1.0},
+                    arrowprops={"arrowstyle": "-", "color": c.colour, "lw": 1.2})
     bar = fig.colorbar(ScalarMappable(norm, DEVIATION_CMAP), cax=cax, label="deviation, mm")
     for v in (tolerance.lower_mm, tolerance.upper_mm):
         bar.ax.axhline(v, color="black", lw=1.2)

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import open3d as o3d
 from tandemscan.config.models import InspectionConfig, RegionConfig
+from tandemscan.pipeline.deviation_areas import DeviationArea, find_deviation_areas
 from tandemscan.pipeline.frames import from_rotvec, rotation_angle, transform_points
 
 log = logging.getLogger(__name__)
@@ -217,6 +218,12 @@ class InspectionResult:
     regions: tuple[RegionResult, ...]
     best_fit: BestFit | None
     best_fit_note: str = ""  # why there is no best fit when one was asked for
+    areas: tuple[DeviationArea, ...] = ()  # beyond the band, largest |extreme| first
+
+    @property
+    def verdict(self) -> str:
+        """"pass" when no area of the surface lies beyond the tolerance band, else "fail"."""
+        return "fail" if self.areas else "pass"
 
 
 def region_mask(points_mm: np.ndarray, region: RegionConfig) -> np.ndarray:
@@ -232,25 +239,30 @@ def best_fit(
     iterations: int = 30,
     tolerance_mm: float = 1e-7,
     max_points: int = 50_000,
+    *,
+    start: np.ndarray | None = None,
+    huber_mm: float | None = None,
 ) -> tuple[np.ndarray, int, bool, int]:
     """Point-to-plane ICP of ``points_mm`` onto the CAD surface itself (no sampling of the mesh).
 
-    Each iteration pairs every point with its closest surface point and keeps the pairs closer than
-    ``max_distance_mm``, so outliers and real form errors beyond it do not pull the fit. Returns
-    ``(T_F_M, iterations run, converged, pairs used in the last iteration)``; converged means the last
-    update moved no point of the cloud's extent by more than ``tolerance_mm``, or stopped lowering the
-    RMS residual (a shape with a symmetry leaves the fit free along it). At most ``max_points`` points,
-    an even subsample, take part.
+    The points are in a frame M placed in F by ``start`` (``T_F_M``, default identity). Each iteration
+    pairs every point with its closest surface point and keeps the pairs closer than ``max_distance_mm``
+    (a trimmed fit), so outliers and real form errors beyond it do not pull the fit; with ``huber_mm`` the
+    residuals beyond it are weighted down as Huber's (weight ``huber_mm / |r|``), so a dent or a bulge
+    within the trim pulls little either. Returns ``(T_F_M, iterations run, converged, pairs used in the
+    last iteration)``; converged means the last update moved no point of the cloud's extent by more than
+    ``tolerance_mm``, or stopped lowering the (weighted) RMS residual (a shape with a symmetry leaves the
+    fit free along it). At most ``max_points`` points, an even subsample, take part.
     """
     p = as_points(points_mm)
     p = p[:: max(1, int(np.ceil(len(p) / max_points)))]
-    T = np.eye(4)
-    centre = p.mean(axis=0)
-    extent = max(float(np.linalg.norm(p - centre, axis=1).max()), 1.0)
+    T = np.eye(4) if start is None else np.array(start, dtype=np.float64)
     used = 0
     rms_before = np.inf
     for it in range(1, iterations + 1):
         q = transform_points(T, p)
+        centre = q.mean(axis=0)
+        extent = max(float(np.linalg.norm(q - centre, axis=1).max()), 1.0)
         cp = surface.closest(q)
         keep = np.abs(cp.signed_mm) <= max_distance_mm
         used = int(keep.sum())
@@ -260,12 +272,14 @@ def best_fit(
             )
         qc, n = q[keep] - centre, cp.normals[keep]
         r = cp.signed_mm[keep]
-        rms = float(np.sqrt(np.mean(r * r)))
+        w = np.ones_like(r) if huber_mm is None else np.minimum(1.0, huber_mm / np.maximum(np.abs(r), 1e-12))
+        rms = float(np.sqrt(np.sum(w * r * r) / np.sum(w)))
         if rms_before - rms < 1e-3 * tolerance_mm:
             return T, it, True, used
         rms_before = rms
+        sw = np.sqrt(w)[:, None]
         A = np.hstack([np.cross(qc, n), n])  # d(residual)/d(omega, t) for small rotations about `centre`
-        x, *_ = np.linalg.lstsq(A, -r, rcond=None)
+        x, *_ = np.linalg.lstsq(A * sw, -r * sw[:, 0], rcond=None)
         omega, t = x[:3], x[3:]
         step = from_rotvec(t, omega)
         step[:3, 3] += centre - step[:3, :3] @ centre
@@ -321,8 +335,9 @@ def inspect_cloud(
     stats = DeviationStats.of(d)
     tol = ToleranceResult.of(d, lo, hi)
     assert stats is not None and tol is not None  # p has at least one point
+    areas = find_deviation_areas(p, d, lo, hi, cfg.area_smoothing_mm, cfg.area_min_mm2)
     log.info(
-        "inspected %d points: mean %.4f mm, sigma %.4f mm, %.1f %% in tolerance",
-        stats.count, stats.mean_mm, stats.sigma_mm, tol.in_pct,
+        "inspected %d points: mean %.4f mm, sigma %.4f mm, %.1f %% in tolerance, %d areas beyond it",
+        stats.count, stats.mean_mm, stats.sigma_mm, tol.in_pct, len(areas),
     )
-    return InspectionResult(p, d, closest.normals, stats, tol, tuple(regions), fit, note)
+    return InspectionResult(p, d, closest.normals, stats, tol, tuple(regions), fit, note, areas)

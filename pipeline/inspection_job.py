@@ -1,7 +1,9 @@
 """One call that inspects a cloud and writes everything a quality engineer opens: report.html,
 report.json, figures/*.png and a PLY with the deviation field. Used by the job runner and the CLI.
 
-Files are read in millimetres in the CAD/part frame F (PLY, PCD, XYZ clouds; STL, PLY, OBJ meshes).
+:func:`run_inspection` takes a cloud in the CAD/part frame F; :func:`align_and_inspect` one in a frame W of
+its own (the job's world), registered to F first (:mod:`tandemscan.pipeline.alignment`). Files are read in
+millimetres (PLY, PCD, XYZ clouds; STL, PLY, OBJ meshes).
 """
 
 from __future__ import annotations
@@ -10,13 +12,16 @@ import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import open3d as o3d
 from tandemscan.config.models import InspectionConfig
+from tandemscan.pipeline.alignment import Alignment, align
 from tandemscan.pipeline.cloud_io import CloudIOError, read_ply
 from tandemscan.pipeline.export import write_ply
-from tandemscan.pipeline.inspect import CadSurface, InspectionError, InspectionResult, inspect_cloud
+from tandemscan.pipeline.frames import rotate_vectors, transform_points
+from tandemscan.pipeline.inspect import CadSurface, InspectionError, InspectionResult, as_points, inspect_cloud
 from tandemscan.pipeline.part import PartMeshError, read_mesh_file
 from tandemscan.pipeline.report import build_report, write_report
 
@@ -49,16 +54,18 @@ def run_inspection(
     scans_before: Sequence[np.ndarray] | None = None,
     scans_after: Sequence[np.ndarray] | None = None,
     json_name: str | None = "report.json",
+    alignment: Alignment | None = None,
 ) -> InspectionOutputs:
     """Inspect ``points_mm`` (frame F) against the CAD mesh and write the report and the deviation PLY
     into ``out_dir``. The PLY carries the cloud's normals when given, else the closest CAD normals.
-    ``json_name=None`` leaves the JSON to the caller (it gets the same numbers as ``data``)."""
+    ``json_name=None`` leaves the JSON to the caller (it gets the same numbers as ``data``);
+    ``alignment`` says how the points were placed in F (None: they came in F)."""
     cfg = cfg or InspectionConfig()
     surface = mesh if isinstance(mesh, CadSurface) else CadSurface(mesh)
     result = inspect_cloud(points_mm, surface, cfg)
     report = build_report(
         result, surface, cfg, title=title, meta=meta, accuracy=accuracy,
-        scans_before=scans_before, scans_after=scans_after,
+        scans_before=scans_before, scans_after=scans_after, alignment=alignment,
     )
     html, js = write_report(report, out_dir, json_name)
     ply = write_ply(
@@ -70,14 +77,51 @@ def run_inspection(
     return InspectionOutputs(result, report.data, html, js, ply)
 
 
+def align_and_inspect(
+    points_W_mm: np.ndarray,
+    mesh: o3d.geometry.TriangleMesh | CadSurface,
+    out_dir: Path | str,
+    cfg: InspectionConfig | None = None,
+    *,
+    normals_W: np.ndarray | None = None,
+    start_T_F_W: np.ndarray | None = None,
+    start: str = "as given",
+    scans_before_W: Sequence[np.ndarray] | None = None,
+    scans_after_W: Sequence[np.ndarray] | None = None,
+    **report: Any,
+) -> InspectionOutputs:
+    """Register a cloud measured in frame W to the CAD frame F by ``cfg.alignment`` from ``start_T_F_W``
+    (where the job's AGV stations put it, or the cloud as given; described by ``start``), then inspect and write
+    as :func:`run_inspection` (``report`` passes its title, meta, accuracy and json_name). The points on
+    reference spheres are left out of the inspection; the stitching views are mapped into F as well."""
+    cfg = cfg or InspectionConfig()
+    surface = mesh if isinstance(mesh, CadSurface) else CadSurface(mesh)
+    p = as_points(points_W_mm)
+    alignment = align(surface, p, cfg, start_T_F_W, start)
+    keep = np.ones(len(p), bool) if alignment.excluded is None else ~alignment.excluded
+    T = alignment.T_F_W
+    log.info("aligned to CAD by %s: residual %.4f mm, %d points on reference spheres left out",
+             alignment.method, alignment.residual_mm, int((~keep).sum()))
+
+    def into_F(scans: Sequence[np.ndarray] | None) -> list[np.ndarray] | None:
+        return None if scans is None else [transform_points(T, s) for s in scans]
+
+    return run_inspection(
+        transform_points(T, p[keep]), surface, out_dir, cfg,
+        normals=None if normals_W is None else rotate_vectors(T, np.asarray(normals_W)[keep]),
+        scans_before=into_F(scans_before_W), scans_after=into_F(scans_after_W), alignment=alignment, **report,
+    )
+
+
 def inspect_files(
     cloud_path: Path | str, cad_path: Path | str, out_dir: Path | str, cfg: InspectionConfig | None = None
 ) -> InspectionOutputs:
-    """Inspect a cloud file against a CAD mesh file; writes into ``out_dir``."""
+    """Inspect a cloud file against a CAD mesh file; writes into ``out_dir``. The cloud is registered by
+    ``cfg.alignment`` from where it lies (within the first trim distance of its place on CAD)."""
     try:
         points, normals = read_ply(cloud_path)
         mesh = read_mesh_file(Path(cad_path), what="CAD mesh")
     except (CloudIOError, PartMeshError) as e:
         raise InspectionError(str(e)) from e
     meta = {"cloud": str(cloud_path), "CAD mesh": str(cad_path), "points": str(len(points))}
-    return run_inspection(points, mesh, out_dir, cfg, normals=normals, meta=meta)
+    return align_and_inspect(points, mesh, out_dir, cfg, normals_W=normals, start="the cloud as given", meta=meta)

@@ -18,8 +18,10 @@ from pathlib import Path
 import jinja2
 import numpy as np
 from tandemscan.config.models import InspectionConfig
+from tandemscan.pipeline.alignment import Alignment
 from tandemscan.pipeline.deviation_maps import (
     STANDARD_VIEWS,
+    Callout,
     View,
     deviation_map_png,
     deviation_norm,
@@ -71,9 +73,18 @@ def _plain(obj):
     return obj
 
 
-def inspection_summary(result: InspectionResult) -> dict:
-    """The numbers of an inspection as JSON-ready dicts (as measured, per region, best fit), mm / deg."""
+NO_ALIGNMENT = {"method": "none", "residual_mm": 0.0, "start": "the cloud as given, in the CAD frame",
+                "spheres": [], "missing_spheres": []}
+SIDE_COLOURS = {"upper": "#b3140d", "lower": "#1d3fbf"}
+
+
+def inspection_summary(result: InspectionResult, alignment: Alignment | None = None) -> dict:
+    """The numbers of an inspection as JSON-ready dicts (verdict, alignment, deviation areas largest
+    extreme first, as measured, per region, best fit), mm / deg."""
     return {
+        "verdict": result.verdict,
+        "alignment": alignment.summary() if alignment is not None else dict(NO_ALIGNMENT),
+        "deviations": [_plain(a) for a in result.areas],
         "as_measured": {"stats": _plain(result.stats), "tolerance": _plain(result.tolerance)},
         "regions": [_plain(r) for r in result.regions],
         "best_fit": _plain(result.best_fit),
@@ -92,13 +103,15 @@ def build_report(
     scans_before: Sequence[np.ndarray] | None = None,
     scans_after: Sequence[np.ndarray] | None = None,
     views: Sequence[View] | None = None,
+    alignment: Alignment | None = None,
 ) -> Report:
     """Render the figures and collect the numbers of one inspection.
 
     ``meta`` names the job, cloud and CAD files; ``accuracy`` carries figures computed elsewhere (pose
     errors against ground truth, calibration residuals). ``scans_before``/``scans_after`` are the world
     points (mm) of each scan in measuring order before/after correction, for the stitching-quality view.
-    ``views`` default to the config's.
+    ``views`` default to the config's; ``alignment`` is how the cloud was placed in the CAD frame (none:
+    it came in that frame). The deviation areas are labelled on every map (``#id`` at the centroid).
     """
     cfg = cfg or InspectionConfig()
     tol = result.tolerance
@@ -108,17 +121,20 @@ def build_report(
     if views is None:  # the isometric view looks at the side that was measured
         views = [facing_isometric(n) if k == "isometric" else STANDARD_VIEWS[k] for k in cfg.views]
     spacing = typical_spacing(p)
+    callouts = [Callout(f"#{a.id}", a.centroid_mm, SIDE_COLOURS[a.side]) for a in result.areas]
     maps, split = [], []
     for i, view in enumerate(views):
-        png = deviation_map_png(surface, p, d, view, tol, norm, cfg.map_width_px, normals=n, spacing_mm=spacing)
+        png = deviation_map_png(surface, p, d, view, tol, norm, cfg.map_width_px, normals=n, spacing_mm=spacing,
+                                callouts=callouts)
         maps.append(ReportFigure(f"map-{i}", f"Deviation colour map, {view.name}", png))
         if i > 0:
             continue
         for label, side, keep in (("upper", "above", d > 0), ("lower", "below", d < 0)):  # first view only
             if keep.any():
                 title_ = f"{label.capitalize()} deviation (points {side} CAD), {view.name}"
+                ours = [c for c, a in zip(callouts, result.areas, strict=True) if a.side == label]
                 png = deviation_map_png(surface, p[keep], d[keep], view, tol, norm, cfg.map_width_px, title_,
-                                        n[keep], spacing)
+                                        n[keep], spacing, ours)
                 split.append(ReportFigure(f"{label}-deviation", title_, png))
     figures = maps + split
     hist = histogram_png(result.deviations_mm, result.stats, tol, norm)
@@ -136,7 +152,7 @@ def build_report(
         "units": {"length": "mm", "angle": "deg", "deviation_sign": "+ = above the CAD surface (outward normal)"},
         "meta": dict(meta or {}),
         "colour_scale_mm": [norm.vmin, norm.vmax],
-        **inspection_summary(result),
+        **inspection_summary(result, alignment),
         "accuracy": _plain(dict(accuracy or {})),
         "stitching": [_plain(pr) for pr in pairs],
         "figures": [{"name": f.name, "caption": f.caption, "file": f"figures/{f.name}.png"} for f in figures],
@@ -155,7 +171,8 @@ def write_report(
     report: Report, out_dir: Path | str, json_name: str | None = "report.json"
 ) -> tuple[Path, Path | None]:
     """Write ``report.html``, ``figures/*.png`` and (unless ``json_name`` is None, for a caller that merges
-    ``report.data`` into its own JSON) the JSON into ``out_dir``; returns (html, json or None)."""
+    ``report.data`` into its own JSON) the JSON, ``{"inspection": report.data}``, into ``out_dir``; returns
+    (html, json or None)."""
     out = Path(out_dir)
     (out / "figures").mkdir(parents=True, exist_ok=True)
     for f in report.figures:
@@ -163,8 +180,8 @@ def write_report(
     html = out / "report.html"
     html.write_text(render_html(report), encoding="utf-8")
     js = None
-    if json_name is not None:
+    if json_name is not None:  # the same layout as a job's report.json: the numbers under "inspection"
         js = out / json_name
-        js.write_text(json.dumps(report.data, indent=2) + "\n", encoding="utf-8")
+        js.write_text(json.dumps({"inspection": report.data}, indent=2) + "\n", encoding="utf-8")
     log.info("wrote %s%s", html, f" and {js}" if js else "")
     return html, js

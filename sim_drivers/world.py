@@ -20,6 +20,7 @@ from tandemscan.pipeline.installation import Installation
 from tandemscan.pipeline.kinematics import ArmKinematics
 from tandemscan.pipeline.part import load_part_mesh
 from tandemscan.pipeline.raycast import ScannerModel, make_scene
+from tandemscan.sim_drivers.as_built import scanned_part_mesh
 
 log = logging.getLogger(__name__)
 
@@ -127,7 +128,7 @@ class SimWorld:
     def __init__(self, config: CellConfig):
         self.config = config
         self.rng = np.random.default_rng(config.sim.seed)
-        self.mesh = load_part_mesh(config.part)
+        self.mesh = scanned_part_mesh(config)  # the part as built (and the fixture's spheres), not its CAD
         self.scene = make_scene(self.mesh)
         self.kinematics = ArmKinematics(config.arm)
         self.scanner_model = ScannerModel(config.scanner)

@@ -28,10 +28,11 @@ def files(tmp_path):
 def test_inspect_writes_report_and_deviation_cloud(files, tmp_path, capsys):
     cloud, cad, cfg = files
     out = tmp_path / "out"
-    assert main([str(cloud), "--cad", str(cad), "--tolerance", "0.05", "--out", str(out), "--config", str(cfg)]) == 0
+    assert main([str(cloud), "--cad", str(cad), "--tolerance", "0.05", "--out", str(out), "--config", str(cfg),
+                 "--alignment", "none"]) == 0
     said = capsys.readouterr().out
     assert "4000 points" in said and str(out / "report.html") in said
-    data = json.loads((out / "report.json").read_text())
+    data = json.loads((out / "report.json").read_text())["inspection"]
     assert data["as_measured"]["tolerance"]["upper_mm"] == 0.05
     assert data["as_measured"]["stats"]["mean_mm"] == pytest.approx(0.02, abs=0.003)
     assert "<img" in (out / "report.html").read_text()
@@ -55,11 +56,53 @@ def test_bad_input_is_one_error_line_and_exit_2(files, tmp_path, capsys, case, n
         "garbage cloud": [str(garbage), "--cad", str(cad)],
         "cloud as cad": [str(cloud), "--cad", str(cloud)],
         "bad tolerance": [str(cloud), "--cad", str(cad), "--tolerance", "-1"],
+        "rps without spheres": [str(cloud), "--cad", str(cad), "--alignment", "rps", "--config", str(cfg)],
+        "unknown datum": [str(cloud), "--cad", str(cad), "--datum", "wing", "--config", str(cfg)],
     }[case]
     assert main([*args, "--out", str(tmp_path / "o")]) == 2
     said = capsys.readouterr()
     assert said.out == "" and said.err.startswith("tandemscan inspect: error:") and needle in said.err
     assert len(said.err.strip().splitlines()) == 1
+
+
+def test_misplaced_cloud_is_aligned_and_its_dent_reported_in_cad_coordinates(tmp_path, capsys):
+    """A closed box scanned all round with a 0.3 mm dent, given 5 deg and 40 mm off CAD: the best fit puts
+    it back, the report fails it with one lower area at the dent (CAD mm)."""
+    from tandemscan.pipeline import frames as F
+
+    mesh = o3d.geometry.TriangleMesh.create_box(400.0, 200.0, 100.0)
+    cad = tmp_path / "box.stl"
+    mesh.compute_triangle_normals()
+    o3d.io.write_triangle_mesh(str(cad), mesh)
+    rng = np.random.default_rng(1)
+    faces = []
+    for axis, size in ((0, 400.0), (1, 200.0), (2, 100.0)):
+        for at in (0.0, size):
+            p = rng.uniform([0, 0, 0], [400.0, 200.0, 100.0], (15_000, 3))
+            p[:, axis] = at
+            faces.append(p)
+    pts = np.vstack(faces)
+    dent = np.linalg.norm(pts - [150.0, 80.0, 100.0], axis=1)
+    pts[:, 2] -= np.where(dent < 30.0, 0.15 * (1.0 + np.cos(np.pi * dent / 30.0)), 0.0)  # top face, 0.3 mm deep
+    pts += rng.normal(0, 0.01, pts.shape)
+    off = F.from_rotvec([25.0, -20.0, 25.0], np.radians([2.0, -3.0, 3.0]))
+    cloud = tmp_path / "moved.ply"
+    o3d.io.write_point_cloud(str(cloud), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(
+        F.transform_points(off, pts))))
+    cfg = tmp_path / "cell.toml"
+    cfg.write_text("[inspection]\nmap_width_px = 250\nregions = []\nviews = ['top']\nreference_spheres = []\n")
+    out = tmp_path / "out"
+    assert main([str(cloud), "--cad", str(cad), "--out", str(out), "--config", str(cfg)]) == 0
+    assert capsys.readouterr().out.startswith("FAIL: 1 areas beyond the band; aligned by best-fit")
+    ins = json.loads((out / "report.json").read_text())["inspection"]
+    assert ins["verdict"] == "fail" and ins["alignment"]["method"] == "best-fit"
+    np.testing.assert_allclose(np.array(ins["alignment"]["T_F_W"]) @ off, np.eye(4), atol=1e-3)
+    (area,) = ins["deviations"]
+    assert area["side"] == "lower" and area["id"] == 1 and area["points"] > 50
+    np.testing.assert_allclose(area["centroid_mm"], [150.0, 80.0, 100.0], atol=1.5)
+    assert area["extreme_mm"] == pytest.approx(-0.3, abs=0.03) and area["mean_mm"] < -0.1
+    html = (out / "report.html").read_text()
+    assert 'id="verdict" class="verdict fail"' in html and 'id="deviations"' in html
 
 
 def test_unreadable_file_gives_only_our_line_at_fd_level(files, tmp_path, capfd):

@@ -105,7 +105,7 @@ def test_report_html_self_contained_and_json_same_numbers(written):
     for table in ("stats", "tolerance", "bestfit", "accuracy", "stitching", "meta"):
         assert f'id="{table}"' in html
     assert f"{result.stats.mean_mm:+.4f}" in html and f"{result.tolerance.in_pct:.2f}" in html
-    data = json.loads(json_path.read_text())
+    data = json.loads(json_path.read_text())["inspection"]
     assert data["as_measured"]["stats"]["rms_mm"] == result.stats.rms_mm
     assert data["as_measured"]["tolerance"]["in_pct"] == result.tolerance.in_pct
     assert data["accuracy"]["scans"] == 3 and len(data["stitching"]) == 2
