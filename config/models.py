@@ -12,6 +12,7 @@ from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
+from scipy.spatial.transform import Rotation
 
 DriverKind = Literal["sim", "real"]
 
@@ -30,9 +31,10 @@ class TransformConfig(_Strict):
 
     def matrix(self) -> np.ndarray:
         """The 4x4 float64 matrix (mm)."""
-        from tandemscan.pipeline.frames import from_rpy  # local: config must not need the pipeline at import
-
-        return from_rpy(np.array(self.xyz_mm), np.radians(self.rpy_deg))
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_euler("xyz", np.radians(self.rpy_deg)).as_matrix()  # fixed axes x-y-z
+        T[:3, 3] = self.xyz_mm
+        return T
 
 
 class PartConfig(_Strict):

@@ -21,7 +21,8 @@ from tandemscan.drivers.metronor import MetronorTracker
 from tandemscan.drivers.phoxi import PhoxiScanner
 from tandemscan.drivers.safety_modbus import ModbusSafetyIO
 from tandemscan.pipeline import frames as F
-from tandemscan.sim_drivers.cell import build_cell
+from tandemscan.daemon.cell import build_cell
+from tandemscan.daemon.session import CellSession, DevicesNotConnected
 from tandemscan.sim_drivers.twins import SimArm
 
 
@@ -87,13 +88,13 @@ def test_mixed_cell_keeps_twins_for_sim_roles(box_part):
                                  "part": cfg.part.model_copy(update={"mesh": box_part})})
     cell = build_cell(cfg)
     assert isinstance(cell.safety, ModbusSafetyIO) and isinstance(cell.arm, SimArm)
-    assert cell.world is not None and cell.emulators is None
+    assert cell.simulation.world is not None and cell.simulation.emulators is None
 
 
 async def test_hil_cell_moves_the_world_through_real_transports(box_part):
-    cell = build_cell(hil_config(box_part))
-    world = cell.world
-    await cell.connect()
+    session = CellSession(hil_config(box_part), connect_timeout_s=30.0)
+    cell, world = session.cell, session.cell.simulation.world
+    await session.open()
     try:
         # chassis: odometry starts at the simulated start pose and the world's chassis follows the emulator
         start = await cell.measure_chassis.odometry()
@@ -117,13 +118,13 @@ async def test_hil_cell_moves_the_world_through_real_transports(box_part):
         assert (await cell.safety.read()).motion_allowed
         assert not world.motion.violations
     finally:
-        await cell.close()
+        await session.close()
 
 
 async def test_hil_tracker_and_safety_read_the_world(box_part):
-    cell = build_cell(hil_config(box_part))
-    world = cell.world
-    await cell.connect()
+    session = CellSession(hil_config(box_part), connect_timeout_s=30.0)
+    cell, world = session.cell, session.cell.simulation.world
+    await session.open()
     try:
         assert world.target_visibility() is None  # the default start: the tracker sees the target
         reading = await cell.tracker.read_pose(timeout_s=2.0)
@@ -136,15 +137,16 @@ async def test_hil_tracker_and_safety_read_the_world(box_part):
             await asyncio.sleep(0.01)
         assert (await cell.safety.read()).estop
     finally:
-        await cell.close()
+        await session.close()
 
 
 async def test_failed_connect_closes_everything(box_part):
     cfg = hil_config(box_part)
     cfg = cfg.model_copy(update={"scanner": cfg.scanner.model_copy(
         update={"phoxi": cfg.scanner.phoxi.model_copy(update={"harvesters_module": "no_such_module"})})})
-    cell = build_cell(cfg)
-    with pytest.raises(NotConnected, match="scanner: no_such_module"):
-        await cell.connect()
-    assert not cell.emulators.running
+    session = CellSession(cfg, connect_timeout_s=1.0)
+    cell = session.cell
+    with pytest.raises(DevicesNotConnected, match="not connected: scanner .*no_such_module"):
+        await session.open()
+    assert not cell.simulation.emulators.running
     assert not (await cell.arm.status()).connected

@@ -12,7 +12,7 @@ from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.stitcher import LocalWorldMap
 from tandemscan.pipeline.plan import Plan, Scan
-from tandemscan.sim_drivers.cell import build_cell
+from tandemscan.daemon.session import CellSession
 
 
 class PerfectlyCorrectedRunner(JobRunner):
@@ -20,8 +20,9 @@ class PerfectlyCorrectedRunner(JobRunner):
 
     async def _export(self, seconds):
         self.worldmap = LocalWorldMap(self.config.job.voxel_mm)
+        truth = self.observer.scorer().T_W_S_true
         for s in self.scans:
-            s.T_W_S = s.T_W_S_true
+            s.T_W_S = truth[s.index]
             await self.worldmap.add_scan(s.file, s.T_W_S)
         return await super()._export(seconds)
 
@@ -32,12 +33,8 @@ async def test_job_writes_report_and_exports_next_to_cloud(sim_config, tmp_path)
     plan = plan.model_copy(update={"steps": plan.steps[: scans[1] + 1]})  # the first two scans only
     inspection = sim_config.inspection.model_copy(update={"views": ("isometric",), "map_width_px": 300})
     config = sim_config.model_copy(update={"inspection": inspection})
-    cell = build_cell(config)
-    await cell.connect()
-    try:
-        result = await PerfectlyCorrectedRunner(cell, plan, config, tmp_path / "job").run()
-    finally:
-        await cell.close()
+    async with CellSession(config) as session:
+        result = await PerfectlyCorrectedRunner(session, plan, config, tmp_path / "job").run()
     job = result.job_dir
     for name in ("cloud.ply", "report.html", "report.json", "cloud_deviation.ply", "cloud.e57", "poses.csv"):
         assert (job / name).is_file(), name
