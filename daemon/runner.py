@@ -178,13 +178,15 @@ class JobRunner:
         self.correction: dict = {"enabled": False}
         self.last_still_T_C_T: np.ndarray | None = None  # last reading while the target has not moved since
         self.resume_log: list[dict] = []
-        self.relocaliser = None  # only where relocalisation is on and the plan has scanner poses to re-solve
-        if config.job.relocalise and any(isinstance(s, MoveArm) and s.T_F_S is not None for s in plan.steps):
-            self.relocaliser = Relocaliser(config.arm, config.scanner, self.installation)
+        # with relocalisation on, W is placed in the plan's frame F at the start (the anchor: the inspection's
+        # registration to CAD); the AGV is located after each drive where the plan has scanner poses to re-solve
+        self.relocaliser = Relocaliser(config.arm, config.scanner, self.installation) if config.job.relocalise else None
+        self.resolving = self.relocaliser is not None and any(
+            isinstance(s, MoveArm) and s.T_F_S is not None for s in plan.steps)
         self.T_F_W: np.ndarray | None = None  # W in the plan's frame F (mm): None until measured
         self.T_F_V2: np.ndarray | None = None  # the measurement AGV in F as measured; None since it drove unmeasured
         self.planned_T_F_V2: np.ndarray | None = None  # where the plan (or, at the start, the odometry) puts it
-        self.relocalisation: dict = {"enabled": self.relocaliser is not None, "anchor": None, "located": [],
+        self.relocalisation: dict = {"enabled": self.resolving, "anchor": None, "located": [],
                                      "unresolved": [], "adjusted": []}
 
     async def read_target(self) -> TrackerReading:
@@ -243,7 +245,7 @@ class JobRunner:
             async with self.gate.motion(MEASURE_ROBOT):
                 odo = await self.cell.measure_chassis.move_to(pose, self.config.measure_chassis.timeout_s)
             result = {"odometry": [odo.x_mm, odo.y_mm, odo.heading_rad]}
-            if self.relocaliser is not None:
+            if self.resolving:
                 self.planned_T_F_V2 = F.planar_pose(step.x_mm, step.y_mm, step.heading_rad)
                 self.T_F_V2 = None
                 result |= self._relocalisation_state(located=await self._locate(i))
@@ -364,7 +366,7 @@ class JobRunner:
         """The joints of a ``move_arm`` step: re-solved for its planned scanner pose where the AGV was measured
         to stand, else (no ``T_F_S``, relocalisation off) the plan's. The journal result's extra fields."""
         planned = np.array(step.joints_rad)
-        if self.relocaliser is None or step.T_F_S is None:
+        if not self.resolving or step.T_F_S is None:
             return planned, {}
         located = None
         if self.T_F_V2 is None and self.planned_T_F_V2 is not None:  # not seen from the travel pose: from here

@@ -41,9 +41,12 @@ async def test_job_writes_report_and_exports_next_to_cloud(sim_config, tmp_path)
     report = json.loads((job / "report.json").read_text())
     ins = report["inspection"]
     assert ins["as_measured"]["stats"]["count"] == report["points_cloud"] > 1000
-    # the sim cell stitches with true mounts: the cloud lies on the part to a fraction of a millimetre
+    # the sim cell stitches with true mounts: registered to CAD by the job's own anchor (one target reading at
+    # the start, Eq. 5, no truth) the cloud lies on the part to a fraction of a millimetre ...
     assert abs(ins["as_measured"]["stats"]["mean_mm"]) < 0.2 and ins["as_measured"]["stats"]["rms_mm"] < 0.3
-    assert abs(ins["as_measured"]["stats"]["rms_mm"] - report["ground_truth"]["cloud_rms_mm"]) < 1e-3
+    assert report["relocalisation"]["anchor"]["placed"] and np.asarray(ins["T_F_W"]).shape == (4, 4)
+    # ... and once best-fitted it is the cloud the ground-truth observer scored
+    assert abs(ins["best_fit"]["stats"]["rms_mm"] - report["ground_truth"]["cloud_rms_mm"]) < 1e-3
     (pair,) = ins["stitching"]  # tracker-only stitch before, the (perfect) correction after
     assert pair["points"] > 100 and pair["rms_after_mm"] < pair["rms_before_mm"]
     assert pair["rms_after_mm"] < 0.1  # scanner noise only
@@ -69,13 +72,14 @@ def test_inspection_skipped_with_reason(sim_config, tmp_path):
 
     from tandemscan.daemon.job_outputs import write_job_outputs
 
-    def runner(config, world):
+    def runner(config, T_F_W):
         worldmap = SimpleNamespace(points=lambda: np.zeros((0, 3)), normals=lambda: None)
-        return SimpleNamespace(job_dir=tmp_path, scans=[], worldmap=worldmap, world=world, config=config)
+        return SimpleNamespace(job_dir=tmp_path, scans=[], worldmap=worldmap, T_F_W=T_F_W, config=config)
 
     off = sim_config.model_copy(update={"inspection": sim_config.inspection.model_copy(update={"in_job": False})})
-    assert write_job_outputs(runner(off, object()), {})["skipped"] == "inspection.in_job is off"
-    real_cell = write_job_outputs(runner(sim_config, None), {})
-    assert real_cell["skipped"] == "no registration of the world frame to the CAD frame"
+    assert write_job_outputs(runner(off, np.eye(4)), {})["skipped"] == "inspection.in_job is off"
+    unplaced = write_job_outputs(runner(sim_config, None), {})  # relocalisation off or the target never seen
+    assert unplaced["skipped"] == "no registration of the world frame to the CAD frame"
+    assert write_job_outputs(runner(sim_config, np.eye(4)), {})["skipped"] == "empty cloud"
     assert (tmp_path / "poses.csv").read_text().startswith("index,name,points")
     assert not (tmp_path / "report.html").exists()
