@@ -46,16 +46,18 @@ class CellSimulation(Protocol):
         """After the devices closed."""
         ...
 
-    def job_observer(self, job_key: str, resumed: bool) -> JobObserver:
-        """The ground-truth observer of the job ``job_key`` (a resumed one keeps what it observed so far)."""
+    def job_observer(self, job_key: str, resumed: bool) -> JobObserver | None:
+        """The ground-truth observer of the job ``job_key`` (a resumed one keeps what it observed so far); None
+        where the cell's devices are all real drivers (hardware in the loop)."""
         ...
 
     def calibration_observer(self) -> CalibrationObserver:
         """The observer of a calibration job (it also sets up the simulated calibration plate)."""
         ...
 
-    def surveyed_installation(self) -> Installation:
-        """The mounts as a perfect survey would give them (``job.installation_source = "truth"``)."""
+    def surveyed_installation(self) -> Installation | None:
+        """The mounts as a perfect survey would give them (``job.installation_source = "truth"``); None where
+        the cell's devices are all real drivers."""
         ...
 
 

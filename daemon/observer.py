@@ -57,6 +57,6 @@ class CalibrationObserver(Protocol):
         """The calibration is about to scan its plate."""
         ...
 
-    def calibration_scored(self, nominal: Installation, calibrated: Installation) -> dict[str, float]:
-        """Each mount's error (mm, deg) of the nominal and calibrated installation."""
+    def calibration_scored(self, nominal: Installation, calibrated: Installation) -> dict[str, float] | None:
+        """Each mount's error (mm, deg) of the nominal and calibrated installation; None where not scored."""
         ...

@@ -137,9 +137,11 @@ def installation_for_job(config: CellConfig, session: CellSession) -> Installati
     if source == "nominal":
         return Installation.nominal(config.installation)
     if source == "truth":
-        if session.cell.simulation is None:
-            raise JobError("installation_source = 'truth' needs the simulated cell")
-        return session.cell.simulation.surveyed_installation()
+        sim = session.cell.simulation
+        surveyed = None if sim is None else sim.surveyed_installation()
+        if surveyed is None:
+            raise JobError("installation_source = 'truth' needs the simulated cell (twins, not real drivers)")
+        return surveyed
     path = config.job.calibration_file
     if path is None or not Path(path).is_file():
         raise JobError(f"installation_source = 'calibration' but no calibration file at {path}")

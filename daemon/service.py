@@ -174,8 +174,8 @@ class Daemon:
         """The installation transforms the stitch uses and their source (4x4 lists, mm)."""
         job = self.config.job
         names = ("T_V1_C", "T_V2_B", "T_E_S", "T_T_S")
-        if job.installation_source == "truth" and self.cell.simulation is not None:
-            surveyed = self.cell.simulation.surveyed_installation()
+        surveyed = None if self.cell.simulation is None else self.cell.simulation.surveyed_installation()
+        if job.installation_source == "truth" and surveyed is not None:
             transforms = {n: getattr(surveyed, n).tolist() for n in names}
         elif job.installation_source == "calibration" and job.calibration_file is not None:
             transforms = _read_calibration_file(Path(job.calibration_file))

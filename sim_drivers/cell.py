@@ -5,7 +5,9 @@ device registry (:data:`tandemscan.drivers.factory.SIMULATION`). It owns the :cl
 role's twin (the registry's ``"sim"`` class), runs the emulators for the real drivers with ``[hil] enabled``,
 keeps the world's state in ``state_file`` (the twins save it as they move, scan and read; it is restored when
 the session starts, as a real cell finds its robots where they stopped) and hands out the ground-truth
-observers (:mod:`tandemscan.sim_drivers.scoring`).
+observers (:mod:`tandemscan.sim_drivers.scoring`). A hardware-in-the-loop cell whose every device is a real
+driver is a real cell to the product: its jobs get no observer and no surveyed mounts (the world still moves
+under the emulators, and a calibration still finds its plate there).
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ class Simulation:
         real = {role for role in ROLES if getattr(config, role).driver == "real"}
         self.config = _odometry_from_sim_start(config, real) if config.hil.enabled and real else config
         self.scan_process = scan_process
+        self.scores = len(real) < len(ROLES)  # some device is a twin: jobs are scored against the truth
         self.emulators = HilEmulators(self.config, self.world) if config.hil.enabled else None
 
     def device(self, role: str) -> Device:
@@ -57,14 +60,16 @@ class Simulation:
         if self.emulators is not None:
             await self.emulators.stop()
 
-    def job_observer(self, job_key: str, resumed: bool) -> TruthObserver:
+    def job_observer(self, job_key: str, resumed: bool) -> TruthObserver | None:
+        if not self.scores:
+            return None
         return TruthObserver(self.world, job_key, resumed, partial(keep_world_state, self.world))
 
     def calibration_observer(self) -> CalibrationTruth:
-        return CalibrationTruth(self.world)
+        return CalibrationTruth(self.world, self.scores)
 
-    def surveyed_installation(self) -> Installation:
-        return self.world.truth
+    def surveyed_installation(self) -> Installation | None:
+        return self.world.truth if self.scores else None
 
 
 def _odometry_from_sim_start(config: CellConfig, real: set[str]) -> CellConfig:

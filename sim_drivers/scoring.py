@@ -111,17 +111,20 @@ class TruthScorer:
 
 
 class CalibrationTruth:
-    """The observer of a calibration job: sets up the plate, scores the mounts against the world's truth."""
+    """The observer of a calibration job: sets up the plate and, where ``scores``, scores the mounts against the
+    world's truth."""
 
-    def __init__(self, world: SimWorld) -> None:
-        self.world = world
+    def __init__(self, world: SimWorld, scores: bool) -> None:
+        self.world, self.scores = world, scores
 
     def calibration_started(self) -> None:
         from tandemscan.sim_drivers.plate import install_calibration_plate
 
         install_calibration_plate(self.world, self.world.config.calibration)
 
-    def calibration_scored(self, nominal: Installation, calibrated: Installation) -> dict[str, float]:
+    def calibration_scored(self, nominal: Installation, calibrated: Installation) -> dict[str, float] | None:
+        if not self.scores:
+            return None
         out: dict[str, float] = {}
         for k in ("T_T_S", "T_E_S", "T_V1_C", "T_V2_B"):
             truth = getattr(self.world.truth, k)
