@@ -96,8 +96,8 @@ async def run_calibration(
     out_file = Path(out_file or cal.output_file)
     nominal = Installation.nominal(config.installation)
     observer = session.calibration_observer()
-    if observer is not None:
-        observer.calibration_started()
+    if observer is not None:  # off the event loop: the supervisor's 50 Hz safety polling runs on it
+        await asyncio.to_thread(observer.calibration_started)
     centre = nominal_centres_P(cal).mean(axis=0)
     distance = plate_view_distance(config.scanner.range_min_mm, config.scanner.range_max_mm,
                                    cal.sphere_diameter_mm / 2.0)

@@ -294,10 +294,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.func(args)
     except (UsageError, ConfigError) as e:
-        console.print(f"[red]error:[/red] {e}", highlight=False)
+        console.print(f"[red]error:[/red] {e}", highlight=False, soft_wrap=True)
         return EXIT_USAGE
     except SafetyStopped as e:
-        console.print(f"[red]safety stop:[/red] {e}", highlight=False)
+        console.print(f"[red]safety stop:[/red] {e}", highlight=False, soft_wrap=True)
         return EXIT_SAFETY_STOP
     except KeyboardInterrupt:
         console.print("[yellow]interrupted[/yellow]")
