@@ -23,8 +23,8 @@ import numpy as np
 from tandemscan.config import load_config
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.runner import JobRunner
-from tandemscan.pipeline.plan import Plan
 from tandemscan.daemon.session import CellSession
+from tandemscan.pipeline.plan import Plan
 
 
 def _rounded(value: float | None, digits: int) -> float | None:

@@ -21,6 +21,9 @@ from pathlib import Path
 
 import numpy as np
 from tandemscan.config.models import CellConfig
+from tandemscan.daemon.cell import Cell
+from tandemscan.daemon.session import CellSession, MotionGate
+from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT
 from tandemscan.drivers.errors import TargetNotVisible
 from tandemscan.drivers.interfaces import Chassis, ChassisPose
 from tandemscan.pipeline import frames as F
@@ -36,9 +39,6 @@ from tandemscan.pipeline.calibration.plate import PlateError, PlateFit, fit_plat
 from tandemscan.pipeline.calibration.poses import arm_joints_for_views, plate_view_distance, plate_view_poses
 from tandemscan.pipeline.installation import Installation
 from tandemscan.pipeline.kinematics import ArmKinematics
-from tandemscan.daemon.cell import Cell
-from tandemscan.daemon.session import CellSession, MotionGate
-from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT
 
 log = logging.getLogger(__name__)
 
@@ -196,8 +196,8 @@ async def _turn_readings(session: CellSession, chassis: Chassis, robot: str, con
     start = await chassis.odometry()
     readings = []
     for d in (0.0, *_TURNS_DEG):
-        await _drive(session.gate, robot, chassis, ChassisPose(start.x_mm, start.y_mm, start.heading_rad + np.radians(d)),
-                     config.measure_chassis.timeout_s)
+        turned = ChassisPose(start.x_mm, start.y_mm, start.heading_rad + np.radians(d))
+        await _drive(session.gate, robot, chassis, turned, config.measure_chassis.timeout_s)
         try:
             readings.append((await _read_at_rest(session.cell, config))[0])
         except TargetNotVisible as e:

@@ -15,8 +15,8 @@ from pathlib import Path
 from typing import Protocol
 
 from tandemscan.config.models import CellConfig
-from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT
 from tandemscan.daemon.observer import CalibrationObserver, JobObserver
+from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT
 from tandemscan.drivers.factory import ROLES, SIMULATION, build_real_device, load_entry
 from tandemscan.drivers.interfaces import Arm, Chassis, Device, SafetyIO, Scanner, Tracker
 from tandemscan.pipeline.installation import Installation

@@ -19,8 +19,8 @@ from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.cloud_io import read_raw_scan
 from tandemscan.pipeline.export import PosedScan, write_e57, write_ply, write_pose_log
 from tandemscan.pipeline.inspect import InspectionError
-from tandemscan.pipeline.part import load_part_mesh
 from tandemscan.pipeline.inspection_job import InspectionOutputs, run_inspection
+from tandemscan.pipeline.part import load_part_mesh
 
 if TYPE_CHECKING:
     from tandemscan.daemon.snapshot import JobSnapshot
@@ -120,7 +120,7 @@ def _inspect(job: JobSnapshot, report: dict, scans: list[PosedScan], cloud_W: np
         normals=None if normals_W is None else F.rotate_vectors(T_F_W, normals_W),
         title=f"Inspection report, {job_dir.name}",
         meta={"job": job_dir.name, "plan": job.plan.name, "cell": job.config.name,
-              "registration to CAD": "world frame placed in the part frame from the measurement AGV (Eq. 5)", "points": str(len(cloud_W))},
+              "registration to CAD": "W placed in F by the anchor reading (Eq. 5)", "points": str(len(cloud_W))},
         accuracy=_accuracy(report),
         scans_before=before,
         scans_after=after,

@@ -23,15 +23,15 @@ from pathlib import Path
 import numpy as np
 from prometheus_client import CollectorRegistry
 from tandemscan.config import CellConfig, load_config
+from tandemscan.daemon.cell import Cell
 from tandemscan.daemon.events import EventBus
 from tandemscan.daemon.jobs import JobManager, Runner
-from tandemscan.daemon.cell import Cell
 from tandemscan.daemon.journal import run_journaled
 from tandemscan.daemon.metrics import DaemonCollector, timing_histograms
 from tandemscan.daemon.notify import Notifier
 from tandemscan.daemon.plans import PlanCatalog
-from tandemscan.daemon.store import JOB_STATES, JobStore
 from tandemscan.daemon.session import CellSession
+from tandemscan.daemon.store import JOB_STATES, JobStore
 from tandemscan.drivers.shared_array import remove_stale_blocks
 from tandemscan.drivers.tasks import cancel_and_wait
 

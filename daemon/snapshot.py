@@ -15,14 +15,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-
 from tandemscan.config.models import CellConfig
 from tandemscan.pipeline.installation import Installation
 from tandemscan.pipeline.plan import Plan
 
 if TYPE_CHECKING:
-    from tandemscan.daemon.runner import ScanRecord
     from tandemscan.daemon.observer import JobScorer
+    from tandemscan.daemon.runner import ScanRecord
 
 
 @dataclass

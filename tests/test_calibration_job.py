@@ -7,9 +7,9 @@ from types import SimpleNamespace
 
 import numpy as np
 from tandemscan.daemon.calibrate import run_calibration
-from tandemscan.daemon.session import CellSession
 from tandemscan.daemon.correction import mount_prior
 from tandemscan.daemon.runner import installation_for_job
+from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.installation import Installation
 

@@ -8,11 +8,11 @@ import time
 
 import numpy as np
 import pytest
-from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT, MotionInterlock, Supervisor, backoff_delays
-from tandemscan.drivers.errors import SafetyStop
-from tandemscan.drivers.interfaces import ChassisPose
 from tandemscan.daemon.cell import build_cell
 from tandemscan.daemon.session import CellSession
+from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT, MotionInterlock, backoff_delays
+from tandemscan.drivers.errors import SafetyStop
+from tandemscan.drivers.interfaces import ChassisPose
 from tandemscan.sim_drivers.cell import Simulation
 from tandemscan.sim_drivers.world import SimWorld
 

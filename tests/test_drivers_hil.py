@@ -13,7 +13,9 @@ import pytest
 from tandemscan.config import load_config
 from tandemscan.config.loader import default_config_path
 from tandemscan.config.models import CellConfig
-from tandemscan.drivers import ChassisPose, NotConnected
+from tandemscan.daemon.cell import build_cell
+from tandemscan.daemon.session import CellSession, DevicesNotConnected
+from tandemscan.drivers import ChassisPose
 from tandemscan.drivers.agv_can import AgvCanChassis
 from tandemscan.drivers.factory import ROLES, build_real_device
 from tandemscan.drivers.jaka_tcp import JakaTcpArm
@@ -21,8 +23,6 @@ from tandemscan.drivers.metronor import MetronorTracker
 from tandemscan.drivers.phoxi import PhoxiScanner
 from tandemscan.drivers.safety_modbus import ModbusSafetyIO
 from tandemscan.pipeline import frames as F
-from tandemscan.daemon.cell import build_cell
-from tandemscan.daemon.session import CellSession, DevicesNotConnected
 from tandemscan.sim_drivers.twins import SimArm
 
 

@@ -10,9 +10,9 @@ import numpy as np
 import pye57
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.runner import JobRunner
+from tandemscan.daemon.session import CellSession
 from tandemscan.daemon.stitcher import LocalWorldMap
 from tandemscan.pipeline.plan import Plan, Scan
-from tandemscan.daemon.session import CellSession
 
 
 class PerfectlyCorrectedRunner(JobRunner):

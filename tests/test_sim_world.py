@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from tandemscan.daemon.cell import build_cell
 from tandemscan.drivers import ChassisPose, NotConnected, OutOfReach, SafetyStop, TargetNotVisible
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.scoring import cloud_to_mesh_distances
-from tandemscan.daemon.cell import build_cell
 
 
 @pytest.fixture
