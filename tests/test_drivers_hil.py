@@ -150,3 +150,40 @@ async def test_failed_connect_closes_everything(box_part):
         await session.open()
     assert not cell.simulation.emulators.running
     assert not (await cell.arm.status()).connected
+
+
+async def test_a_job_on_the_hil_cell_needs_no_ground_truth_and_is_inspected(box_part, tmp_path):
+    """Every device a real driver: the product path alone, no observer; the inspection registers W to CAD by the
+    job's own anchor reading."""
+    from tandemscan.daemon.cli import default_plan_path
+    from tandemscan.daemon.runner import JobRunner
+    from tandemscan.pipeline.plan import Plan, Scan
+
+    cfg = hil_config(box_part)
+    cfg = cfg.model_copy(update={
+        "deepmerge": cfg.deepmerge.model_copy(update={"enabled": False}),
+        "inspection": cfg.inspection.model_copy(update={"views": ("isometric",), "map_width_px": 300})})
+    plan = Plan.load(default_plan_path())
+    scans = [i for i, s in enumerate(plan.steps) if isinstance(s, Scan)]
+    plan = plan.model_copy(update={"steps": plan.steps[: scans[1] + 1]})
+    async with CellSession(cfg, connect_timeout_s=30.0) as session:
+        assert session.job_observer("job") is None and session.cell.simulation.surveyed_installation() is None
+        result = await JobRunner(session, plan, cfg, tmp_path / "job").run()
+    report = result.report
+    assert "ground_truth" not in report and report["scans"] == 2 and report["installation_source"] == "nominal"
+    assert report["relocalisation"]["anchor"]["placed"] and (tmp_path / "job" / "report.html").is_file()
+    assert "as_measured" in report["inspection"]
+
+
+async def test_the_daemon_on_the_hil_cell_starts_its_emulators(box_part, tmp_path):
+    from tandemscan.daemon.service import Daemon
+
+    daemon = Daemon(hil_config(box_part), tmp_path / "state", connect_timeout_s=30.0)
+    await daemon.start()
+    try:
+        assert daemon.supervisor.all_connected
+        assert set(daemon.cell.simulation.emulators.running) == {"arm", "measure_chassis", "tracking_chassis",
+                                                                  "tracker", "safety"}
+    finally:
+        await daemon.close()
+    assert not daemon.cell.simulation.emulators.running
