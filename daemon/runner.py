@@ -8,11 +8,16 @@ exports) runs where the world map lives (:mod:`tandemscan.daemon.stitcher`): a w
 threads otherwise; the event loop only passes small records and file names.
 
 A ``move_tracker`` before the job's first scan is a plain relocation: nothing is placed in W yet, so W becomes
-the tracker camera frame where it then stands. With ``job.relocalise`` the runner measures where the
-measurement AGV stands after each drive (a target reading, Eq. 5, :mod:`tandemscan.pipeline.relocalise`) and
-re-solves the arm for each ``move_arm`` step's planned scanner pose ``T_F_S``, so a drifting chassis still scans
-where the plan meant; a pose out of reach from there is scanned with the plan's joints and listed in the
-report (``relocalisation.unresolved``).
+the tracker camera frame where it then stands. With ``job.relocalise`` the runner places W in the plan's frame F
+from one target reading at the start (the anchor, Eq. 5: the in-job inspection's registration to CAD) and,
+where the plan has scanner poses ``T_F_S``, measures where the measurement AGV stands after each drive
+(:mod:`tandemscan.pipeline.relocalise`) and re-solves the arm for each ``move_arm`` step's planned pose, so a
+drifting chassis still scans where the plan meant; a pose out of reach from there is scanned with the plan's
+joints and listed in the report (``relocalisation.unresolved``).
+
+Every motion goes through the session's gate (:mod:`tandemscan.daemon.session`); what the job measures is told
+to the session's observer (:mod:`tandemscan.daemon.observer`), which on the simulated cell scores it against the
+ground truth. Nothing here reads the truth.
 """
 
 from __future__ import annotations
