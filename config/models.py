@@ -302,8 +302,10 @@ class JobConfig(_Strict):
     )
     calibration_file: Path | None = None
     relocalise: bool = Field(
-        True, description="after each measurement-AGV drive, measure where it stands (tracker, Eq. 5) and re-solve "
-        "the arm for the plan's scanner poses (T_F_S); off = the plan's joint targets as they are"
+        True, description="place W in the plan's frame F from one target reading at the start (the inspection's "
+        "registration to CAD) and, after each measurement-AGV drive, measure where it stands (tracker, Eq. 5) and "
+        "re-solve the arm for the plan's scanner poses (T_F_S); off = the plan's joint targets as they are, no "
+        "in-job inspection"
     )
 
 

@@ -118,7 +118,7 @@ def test_estop_during_calibrate_stops_motion_and_writes_no_calibration(hil_toml,
     assert session.cell.simulation.world.motion.moving == set() and not out.exists()
 
 
-async def test_the_gate_refuses_motion_outside_an_open_session_and_one_robot_while_the_other_moves(sim_config):
+async def test_the_gate_refuses_motion_outside_an_open_session_and_one_robot_while_another_moves(sim_config, tmp_path):
     slow = sim_config.model_copy(update={"sim": sim_config.sim.model_copy(update={"time_scale": 1.0})})
     session = CellSession(slow)
     with pytest.raises(SafetyStop, match="session is not open"):
@@ -137,9 +137,10 @@ async def test_the_gate_refuses_motion_outside_an_open_session_and_one_robot_whi
             await asyncio.sleep(0.01)
         joints = await session.cell.arm.joints()
         # the runner as `tandemscan measure` runs it: its first arm move meets the interlock
-        plan = Plan.model_validate({"name": "arm", "steps": [{"kind": "move_arm", "joints_rad": joints.tolist()}]})
+        plan = Plan.model_validate({"name": "arm", "steps": [{"kind": "move_arm", "joints_rad": joints.tolist()},
+                                                            {"kind": "scan"}]})
         with pytest.raises(MotionInterlock, match="measure robot may not move while tracking robot is moving"):
-            await JobRunner(session, plan, slow, Path("unused")).run()
+            await JobRunner(session, plan, slow, tmp_path / "job").run()
         task.cancel()
         with pytest.raises(asyncio.CancelledError):
             await task
