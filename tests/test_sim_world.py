@@ -111,3 +111,29 @@ def test_installation_truth_differs_from_nominal(sim_config):
         assert 0.1 < err_mm < 15 and 1e-4 < err_rad < 0.03
     world2 = build_cell(sim_config).simulation.world
     np.testing.assert_array_equal(world.truth.T_T_S, world2.truth.T_T_S)  # seeded: reproducible
+
+
+async def test_the_twins_keep_the_world_state_and_a_new_simulation_restores_it(sim_config, tmp_path):
+    """As a real cell keeps its robots where they stopped: what the twins did is in the state file after each
+    move and reading, and a restarted simulation (a restarted daemon) goes on from there, observer log too."""
+    from tandemscan.sim_drivers.cell import Simulation
+
+    state = tmp_path / "sim_world.json"
+    first = Simulation(sim_config, state_file=state)
+    chassis, tracker = first.device("tracking_chassis"), first.device("tracker")
+    for d in (chassis, tracker):
+        await d.connect()
+    observer = first.job_observer("job-1", resumed=False)
+    o = await chassis.odometry()
+    await chassis.move_to(ChassisPose(o.x_mm + 200.0, o.y_mm, o.heading_rad))
+    observer.scan_measured(0)
+    await tracker.read_pose()
+    world = first.world
+    again = Simulation(sim_config, state_file=state)
+    assert not np.allclose(again.world.T_F_V1, world.T_F_V1)  # a fresh world stands at the start ...
+    await again.start()  # ... until the session starts it from the saved state
+    np.testing.assert_array_equal(again.world.T_F_V1, world.T_F_V1)
+    np.testing.assert_array_equal(again.world.T_W_F, world.T_W_F)
+    assert again.job_observer("job-1", resumed=True).scorer().T_W_S_true.keys() == {0}
+    np.testing.assert_array_equal(again.world.measure_target()[0], world.measure_target()[0])  # same noise next
+    await again.stop()
