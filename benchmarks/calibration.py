@@ -175,16 +175,16 @@ async def _calibrate_and_measure(cfg, out: Path) -> dict:
     shared ``T_T_S`` unknown, as configured) with each installation source. Cloud RMS (mm) of the default
     job and of its tracker-only stitch, and the ``T_T_S`` error (mm, deg, surface mm) the job's mount
     estimate leaves against the truth."""
-    from tandemscan.daemon.calibrate import calibrate_cell
+    from tandemscan.daemon.calibrate import run_calibration
     from tandemscan.daemon.cli import default_plan_path
     from tandemscan.daemon.runner import JobRunner
+    from tandemscan.daemon.session import CellSession
     from tandemscan.pipeline.plan import Plan
-    from tandemscan.sim_drivers.cell import build_cell
 
     started = time.monotonic()
-    calibration_cell = build_cell(cfg)
-    run = await calibrate_cell(calibration_cell, cfg, out / "calibration.json")
-    truth_X = calibration_cell.world.truth.T_T_S
+    async with CellSession(cfg) as session:
+        run = await run_calibration(session, cfg, out / "calibration.json")
+    truth_X = session.cell.simulation.surveyed_installation().T_T_S
     lever = cfg.scanner.sweet_spot_mm
     summary = run.hand_eye.summary()
     result = {"calibration_truth_error": run.truth_error,
@@ -195,12 +195,8 @@ async def _calibrate_and_measure(cfg, out: Path) -> dict:
     for source in ("nominal", "calibration", "truth"):
         job = cfg.job.model_copy(update={"installation_source": source, "calibration_file": run.file})
         config = cfg.model_copy(update={"job": job})
-        cell = build_cell(config)
-        await cell.connect()
-        try:
-            res = await JobRunner(cell, plan, config, out / source).run()
-        finally:
-            await cell.close()
+        async with CellSession(config) as session:
+            res = await JobRunner(session, plan, config, out / source).run()
         correction = res.report["correction"]
         result["cloud_rms_mm"][source] = res.report["ground_truth"]["cloud_rms_mm"]
         tracker_only = correction.get("before", res.report["ground_truth"])

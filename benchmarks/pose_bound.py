@@ -39,24 +39,25 @@ from scipy.spatial import cKDTree
 from tandemscan.config import load_config
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.runner import JobResult, JobRunner
+from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.cloud_io import read_raw_scan
 from tandemscan.pipeline.frames import transform_points
 from tandemscan.pipeline.plan import Plan
 from tandemscan.pipeline.registration.overlap import extract_overlap, overlapping_pairs
 from tandemscan.pipeline.registration.sampling import voxel_downsample
 from tandemscan.pipeline.uncertainty import recentre, scan_pose_covariance
-from tandemscan.sim_drivers.cell import build_cell
 
 OVERLAP_MM = 1.0
 DRAWS = 2000
 
 
-def error_model(result: JobResult, T_T_S: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def error_model(result: JobResult, T_T_S: np.ndarray,
+                true_T_W_S: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(A, prior, origins)``: scan errors ``e = A theta`` (6 per scan, world, about its origin) from the
     unknowns ``theta`` (6 per scan reading, then 6 per transfer) with prior covariance ``prior``."""
     scans, transfers = result.scans, result.report["transfer_log"]
     n, k = len(scans), len(transfers)
-    origins = np.array([s.T_W_S_true[:3, 3] for s in scans])
+    origins = np.array([true_T_W_S[s.index][:3, 3] for s in scans])
     A = np.zeros((6 * n, 6 * (n + k)))
     prior = np.zeros((6 * (n + k), 6 * (n + k)))
     for i, s in enumerate(scans):
@@ -72,10 +73,10 @@ def error_model(result: JobResult, T_T_S: np.ndarray) -> tuple[np.ndarray, np.nd
     return A, prior, origins
 
 
-def overlap_information(result: JobResult, voxel_mm: float, sigma_mm: float, cell_mm: float
-                        ) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+def overlap_information(result: JobResult, true_T_W_S: dict[int, np.ndarray], voxel_mm: float, sigma_mm: float,
+                        cell_mm: float) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
     """``(i, j, centre, information)`` of every overlapping pair at the true poses (t, r about the centre)."""
-    clouds = [transform_points(s.T_W_S_true, voxel_downsample(read_raw_scan(s.file)[0], voxel_mm))
+    clouds = [transform_points(true_T_W_S[s.index], voxel_downsample(read_raw_scan(s.file)[0], voxel_mm))
               for s in result.scans]
     stations = [s.tracker_station for s in result.scans]
     out = []
@@ -102,12 +103,13 @@ def expected_median(A: np.ndarray, cov: np.ndarray, n: int, rng: np.random.Gener
     return float(np.mean(np.median(np.linalg.norm(t, axis=2), axis=1)))
 
 
-def bound(result: JobResult, T_T_S: np.ndarray, config) -> dict:
-    """Tracker-only and best-possible expected median pose error (mm) of the job ``result``."""
-    A, prior, origins = error_model(result, T_T_S)
+def bound(result: JobResult, T_T_S: np.ndarray, config, true_T_W_S: dict[int, np.ndarray]) -> dict:
+    """Tracker-only and best-possible expected median pose error (mm) of the job ``result`` (``true_T_W_S``:
+    the scans' true poses, from the ground-truth observer)."""
+    A, prior, origins = error_model(result, T_T_S, true_T_W_S)
     n = len(result.scans)
     info = np.linalg.inv(prior)
-    pairs = overlap_information(result, config.job.voxel_mm, config.scanner.noise_sigma_mm,
+    pairs = overlap_information(result, true_T_W_S, config.job.voxel_mm, config.scanner.noise_sigma_mm,
                                 config.correction.pair_cell_mm)
     for i, j, c, I_ij in pairs:
         H = recentre(origins[j], c) @ A[6 * j:6 * j + 6] - recentre(origins[i], c) @ A[6 * i:6 * i + 6]
@@ -129,19 +131,17 @@ def bound(result: JobResult, T_T_S: np.ndarray, config) -> dict:
 
 async def one_seed(config, plan: Plan, seed: int) -> dict:
     config = config.model_copy(update={"sim": config.sim.model_copy(update={"seed": seed})})
-    cell = build_cell(config)
-    await cell.connect()
     with tempfile.TemporaryDirectory() as tmp:
-        runner = JobRunner(cell, plan, config, Path(tmp) / "job")
-        result = await runner.run()
-        await cell.close()
+        async with CellSession(config) as session:
+            runner = JobRunner(session, plan, config, Path(tmp) / "job")
+            result = await runner.run()
         r = result.report
         before, after = r["correction"].get("before", r["ground_truth"]), r["ground_truth"]
         figures = {"seed": seed, "scans": r["scans"], "transfers": r["transfers"],
                    "tracker_only_mm": round(before["pose_err_mm_median"], 4),
                    "corrected_mm": round(after["pose_err_mm_median"], 4),
                    "ratio": round(before["pose_err_mm_median"] / after["pose_err_mm_median"], 2)}
-        return figures | bound(result, runner.installation.T_T_S, config)
+        return figures | bound(result, runner.installation.T_T_S, config, runner.observer.scorer().T_W_S_true)
 
 
 def main() -> None:

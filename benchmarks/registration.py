@@ -202,10 +202,10 @@ def sim_pairs(min_overlap: int = 200, delta_mm: float = 3.0):
     from tandemscan.config import load_config
     from tandemscan.daemon.cli import default_plan_path
     from tandemscan.daemon.runner import JobRunner
+    from tandemscan.daemon.session import CellSession
     from tandemscan.pipeline.cloud_io import read_raw_scan
     from tandemscan.pipeline.plan import Plan
     from tandemscan.pipeline.registration.sampling import voxel_downsample
-    from tandemscan.sim_drivers.cell import build_cell
 
     config = load_config(None)
     config = config.model_copy(update={
@@ -213,17 +213,14 @@ def sim_pairs(min_overlap: int = 200, delta_mm: float = 3.0):
         "correction": config.correction.model_copy(update={"enabled": False})})
 
     async def job():
-        cell = build_cell(config)
-        await cell.connect()
-        try:
+        async with CellSession(config) as session:
             with tempfile.TemporaryDirectory() as tmp:
-                res = await JobRunner(cell, Plan.load(default_plan_path()), config, Path(tmp) / "job").run()
+                runner = JobRunner(session, Plan.load(default_plan_path()), config, Path(tmp) / "job")
+                res = await runner.run()
                 clouds = [voxel_downsample(read_raw_scan(s.file)[0], config.job.voxel_mm) for s in res.scans]
-        finally:
-            await cell.close()
-        return res.scans, clouds
+        return res.scans, clouds, runner.observer.scorer().T_W_S_true
 
-    scans, clouds = asyncio.run(job())
+    scans, clouds, true_T_W_S = asyncio.run(job())
     world = [transform_points(s.T_W_S, P) for s, P in zip(scans, clouds, strict=True)]
     pairs = []
     for i in range(len(scans)):
@@ -231,7 +228,7 @@ def sim_pairs(min_overlap: int = 200, delta_mm: float = 3.0):
             if extract_overlap(world[j], world[i], delta_mm).size < min_overlap:
                 continue
             Ti, Tj = scans[i].T_W_S, scans[j].T_W_S
-            M_true = Ti @ invert(scans[i].T_W_S_true) @ scans[j].T_W_S_true @ invert(Tj)
+            M_true = Ti @ invert(true_T_W_S[i]) @ true_T_W_S[j] @ invert(Tj)
             pairs.append((world[j], world[i], M_true))
     return pairs, delta_mm
 

@@ -23,8 +23,8 @@ import numpy as np
 from tandemscan.config import load_config
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.runner import JobRunner
+from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.plan import Plan
-from tandemscan.sim_drivers.cell import build_cell
 
 
 def _rounded(value: float | None, digits: int) -> float | None:
@@ -46,12 +46,10 @@ async def run(args: argparse.Namespace) -> dict:
         plan_seconds = round(time.perf_counter() - t, 2)
     else:
         plan = Plan.load(Path(args.plan) if args.plan else default_plan_path())
-    cell = build_cell(config)
-    await cell.connect()
-    started, cpu = time.perf_counter(), time.process_time()
-    with tempfile.TemporaryDirectory() as tmp:
-        result = await JobRunner(cell, plan, config, Path(tmp) / "job").run()
-    await cell.close()
+    async with CellSession(config) as session:
+        started, cpu = time.perf_counter(), time.process_time()
+        with tempfile.TemporaryDirectory() as tmp:
+            result = await JobRunner(session, plan, config, Path(tmp) / "job").run()
     r, g = result.report, result.report["ground_truth"]
     correction = r.get("correction", {})
     tracker_only = correction.get("before", g)  # without correction the final figures are tracker-only
@@ -67,7 +65,7 @@ async def run(args: argparse.Namespace) -> dict:
         "poses_adjusted": reloc["adjusted_count"],
         "poses_unresolved": reloc["unresolved_count"],
         "agv_off_plan_mm_max": _rounded(reloc.get("off_plan_mm_max"), 1),
-        "agv_located_err_mm_max": _rounded(reloc.get("err_to_truth_mm_max"), 4),
+        "agv_located_err_mm_max": _rounded(g["relocalisation"].get("err_to_truth_mm_max"), 4),
         "transfers": r["transfers"],
         "points_raw": r["points_raw"],
         "pose_err_mm_median": round(tracker_only["pose_err_mm_median"], 4),

@@ -13,6 +13,7 @@ from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from scipy.spatial.transform import Rotation
 
 log = logging.getLogger(__name__)
 
@@ -34,9 +35,10 @@ class TransformConfig(_Strict):
 
     def matrix(self) -> np.ndarray:
         """The 4x4 float64 matrix (mm)."""
-        from tandemscan.pipeline.frames import from_rpy  # local: config must not need the pipeline at import
-
-        return from_rpy(np.array(self.xyz_mm), np.radians(self.rpy_deg))
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_euler("xyz", np.radians(self.rpy_deg)).as_matrix()  # fixed axes x-y-z
+        T[:3, 3] = self.xyz_mm
+        return T
 
 
 class PartConfig(_Strict):
@@ -412,8 +414,10 @@ class JobConfig(_Strict):
     )
     calibration_file: Path | None = None
     relocalise: bool = Field(
-        True, description="after each measurement-AGV drive, measure where it stands (tracker, Eq. 5) and re-solve "
-        "the arm for the plan's scanner poses (T_F_S); off = the plan's joint targets as they are"
+        True, description="place W in the plan's frame F from one target reading at the start (the inspection's "
+        "registration to CAD) and, after each measurement-AGV drive, measure where it stands (tracker, Eq. 5) and "
+        "re-solve the arm for the plan's scanner poses (T_F_S); off = the plan's joint targets as they are, no "
+        "in-job inspection"
     )
 
 

@@ -4,7 +4,9 @@ Plan (nominal mounts): views on a cone over the plate (rotations about different
 joints by IK; a view the arm cannot reach, where the tracker cannot see the target, or where the plate fit
 fails is skipped with a logged reason. Then ``solve_hand_eye`` (config ``calibration.method``) and a JSON
 calibration file that ``measure`` reads when ``job.installation_source = "calibration"``: the four mounts
-(``T_T_S`` calibrated, the others nominal, see docs/calibration.md) plus the solver's residuals.
+(``T_T_S`` calibrated, the others nominal, see docs/calibration.md) plus the solver's residuals. Every motion
+goes through the open cell session's gate (supervisor: latch, interlock, 50 Hz safety polling); on the
+simulated cell the session's calibration observer sets up the plate and scores the mounts against the truth.
 """
 
 from __future__ import annotations
@@ -19,6 +21,9 @@ from pathlib import Path
 
 import numpy as np
 from tandemscan.config.models import CellConfig
+from tandemscan.daemon.cell import Cell
+from tandemscan.daemon.session import CellSession, MotionGate
+from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT
 from tandemscan.drivers.errors import TargetNotVisible
 from tandemscan.drivers.interfaces import Chassis, ChassisPose
 from tandemscan.pipeline import frames as F
@@ -34,7 +39,6 @@ from tandemscan.pipeline.calibration.plate import PlateError, PlateFit, fit_plat
 from tandemscan.pipeline.calibration.poses import arm_joints_for_views, plate_view_distance, plate_view_poses
 from tandemscan.pipeline.installation import Installation
 from tandemscan.pipeline.kinematics import ArmKinematics
-from tandemscan.sim_drivers.cell import Cell
 
 log = logging.getLogger(__name__)
 
@@ -81,20 +85,19 @@ def _translation_first(covariance: np.ndarray) -> np.ndarray:
 
 
 async def run_calibration(
-    cell: Cell,
+    session: CellSession,
     config: CellConfig,
     out_file: Path | None = None,
     progress: Callable[[int, int, str], None] | None = None,
 ) -> CalibrationRun:
-    """Run the calibration job on a connected cell; writes and returns the calibration."""
-    cal = config.calibration
+    """Run the calibration job on the cell of an open session; writes and returns the calibration."""
+    cal, cell, gate = config.calibration, session.cell, session.gate
     progress = progress or (lambda done, total, msg: None)
     out_file = Path(out_file or cal.output_file)
     nominal = Installation.nominal(config.installation)
-    if cell.world is not None:
-        from tandemscan.sim_drivers.plate import install_calibration_plate  # sim only: the plate is physical
-
-        install_calibration_plate(cell.world, cal)
+    observer = session.calibration_observer()
+    if observer is not None:  # off the event loop: the supervisor's 50 Hz safety polling runs on it
+        await asyncio.to_thread(observer.calibration_started)
     centre = nominal_centres_P(cal).mean(axis=0)
     distance = plate_view_distance(config.scanner.range_min_mm, config.scanner.range_max_mm,
                                    cal.sphere_diameter_mm / 2.0)
@@ -112,7 +115,8 @@ async def run_calibration(
         if len(tracker_poses) >= cal.poses:
             break
         progress(len(tracker_poses), cal.poses, f"view {i}: scanning the plate")
-        await cell.arm.move_joints(q, config.arm.timeout_s)
+        async with gate.motion(MEASURE_ROBOT):
+            await cell.arm.move_joints(q, config.arm.timeout_s)
         try:
             T_C_T, cov = await _read_at_rest(cell, config)
         except TargetNotVisible as e:
@@ -154,12 +158,12 @@ async def run_calibration(
     # the arm stands still from here: both chassis turn in place in turn
     T_B_T = kinematics.forward(await cell.arm.joints()) @ T_E_S @ F.invert(result.T_T_S)
     mounts = {"T_V1_C": T_V1_C, "T_V2_B": T_V2_B}
-    for name, chassis, motions_of in (
-        ("T_V1_C", cell.tracking_chassis, lambda turns: relative_motions(F.invert(turns))),
-        ("T_V2_B", cell.measure_chassis, lambda turns: arm_base_motions(turns, T_B_T)),
+    for name, chassis, robot, motions_of in (
+        ("T_V1_C", cell.tracking_chassis, TRACKING_ROBOT, lambda turns: relative_motions(F.invert(turns))),
+        ("T_V2_B", cell.measure_chassis, MEASURE_ROBOT, lambda turns: arm_base_motions(turns, T_B_T)),
     ):
         progress(cal.poses, cal.poses, f"{name}: turning its chassis in place")
-        turns = await _turn_readings(cell, chassis, config, skipped)
+        turns = await _turn_readings(session, chassis, robot, config, skipped)
         try:
             if turns is None:
                 raise MountError("the target was not visible at two headings")
@@ -171,25 +175,11 @@ async def run_calibration(
     for k in ("T_V1_C", "T_V2_B", "T_E_S"):
         sources.setdefault(k, "nominal")
     installation = Installation(T_V1_C, T_V2_B, T_E_S, result.T_T_S)
-    truth = _truth_errors(cell, nominal, installation) if cell.world is not None else None
+    truth = observer.calibration_scored(nominal, installation) if observer is not None else None
     run = CalibrationRun(installation, result, out_file, len(tracker_poses), skipped, truth, sources)
     _write_json(out_file, run.to_json())
     progress(cal.poses, cal.poses, "done")
     return run
-
-
-async def calibrate_cell(
-    cell: Cell,
-    config: CellConfig,
-    out_file: Path | None = None,
-    progress: Callable[[int, int, str], None] | None = None,
-) -> CalibrationRun:
-    """Connect the cell, run the calibration job, close the cell."""
-    await cell.connect()
-    try:
-        return await run_calibration(cell, config, out_file, progress)
-    finally:
-        await cell.close()
 
 
 async def _read_at_rest(cell: Cell, config: CellConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -199,32 +189,27 @@ async def _read_at_rest(cell: Cell, config: CellConfig) -> tuple[np.ndarray, np.
     return F.mean_pose([r.T_C_T for r in readings]), np.mean([r.covariance for r in readings], axis=0) / n
 
 
-async def _turn_readings(cell: Cell, chassis: Chassis, config: CellConfig, skipped: list[str]) -> np.ndarray | None:
-    """Tracker readings with ``chassis`` turned in place by each of ``_TURNS_DEG`` (then back); None if the
-    target was lost at fewer than two headings."""
+async def _turn_readings(session: CellSession, chassis: Chassis, robot: str, config: CellConfig,
+                         skipped: list[str]) -> np.ndarray | None:
+    """Tracker readings with ``chassis`` (of ``robot``) turned in place by each of ``_TURNS_DEG`` (then back);
+    None if the target was lost at fewer than two headings."""
     start = await chassis.odometry()
     readings = []
     for d in (0.0, *_TURNS_DEG):
-        await chassis.move_to(ChassisPose(start.x_mm, start.y_mm, start.heading_rad + np.radians(d)),
-                              config.measure_chassis.timeout_s)
+        turned = ChassisPose(start.x_mm, start.y_mm, start.heading_rad + np.radians(d))
+        await _drive(session.gate, robot, chassis, turned, config.measure_chassis.timeout_s)
         try:
-            readings.append((await _read_at_rest(cell, config))[0])
+            readings.append((await _read_at_rest(session.cell, config))[0])
         except TargetNotVisible as e:
             skipped.append(f"turn {d:+.0f} deg: {e}")
-    await chassis.move_to(start, config.measure_chassis.timeout_s)
+    await _drive(session.gate, robot, chassis, start, config.measure_chassis.timeout_s)
     return np.array(readings) if len(readings) >= 2 else None
 
 
-def _truth_errors(cell: Cell, nominal: Installation, calibrated: Installation) -> dict[str, float]:
-    """Sim only: each mount's error (mm, deg) against the world's truth, calibrated and nominal."""
-    out: dict[str, float] = {}
-    for k in ("T_T_S", "T_E_S", "T_V1_C", "T_V2_B"):
-        truth = getattr(cell.world.truth, k)
-        for label, inst in (("", calibrated), ("nominal_", nominal)):
-            mm, rad = F.pose_error(getattr(inst, k), truth)
-            out[f"{label}{k}_err_mm"] = mm
-            out[f"{label}{k}_err_deg"] = float(np.degrees(rad))
-    return out
+async def _drive(gate: MotionGate, robot: str, chassis: Chassis, pose: ChassisPose, timeout_s: float) -> None:
+    """One chassis move through the gate."""
+    async with gate.motion(robot):
+        await chassis.move_to(pose, timeout_s)
 
 
 async def _scan_plate(cell: Cell, config: CellConfig) -> PlateFit:
@@ -245,4 +230,4 @@ def _write_json(path: Path, data: dict) -> None:
     os.replace(tmp, path)
 
 
-__all__ = ["CalibrationJobError", "CalibrationRun", "calibrate_cell", "run_calibration"]
+__all__ = ["CalibrationJobError", "CalibrationRun", "run_calibration"]

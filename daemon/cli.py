@@ -2,6 +2,9 @@
 
 Each command is a function taking the parsed arguments and returning an exit status. Bad input (a missing
 or invalid config, plan or mesh) prints one clear error line and exits with status 2, never a traceback.
+Commands that move hardware (``measure``, ``calibrate``, ``serve``) open a cell session
+(:mod:`tandemscan.daemon.session`): the supervisor's safety polling, latch and interlock hold for each; a
+safety stop ends the command with one line and status 3.
 """
 
 from __future__ import annotations
@@ -20,11 +23,16 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from tandemscan.config import CellConfig, ConfigError, load_config
 
 EXIT_USAGE = 2
+EXIT_SAFETY_STOP = 3
 console = Console(stderr=True)
 
 
 class UsageError(Exception):
     """Bad input from the operator: reported as one line, exit status 2."""
+
+
+class SafetyStopped(Exception):
+    """A command was stopped by a safety stop: reported as one line, exit status 3."""
 
 
 def default_plan_path() -> Path:
@@ -57,62 +65,71 @@ def _progress_bar() -> Progress:
 def cmd_measure(args: argparse.Namespace) -> int:
     """Run a complete measurement job on the configured cell (the simulated cell by default)."""
     from tandemscan.daemon.runner import JobError, JobRunner
-    from tandemscan.drivers.errors import DeviceError
-    from tandemscan.pipeline.part import PartMeshError
     from tandemscan.pipeline.plan import Plan, PlanError
-    from tandemscan.sim_drivers.cell import CellBuildError, build_cell
 
     config = _load_config_with_overrides(args)
     try:
         plan = Plan.load(Path(args.plan) if args.plan else default_plan_path())
-        cell = build_cell(config)
-    except (PlanError, PartMeshError, CellBuildError) as e:
+    except PlanError as e:
         raise UsageError(str(e)) from e
+    session = _session(config)
     out = Path(args.out) if args.out else config.job.out_dir
     job_dir = out / datetime.now().strftime("job-%Y%m%d-%H%M%S")
 
     async def run():
-        await cell.connect()
-        try:
+        async with session:
             with _progress_bar() as bar:
                 task = bar.add_task("starting", total=len(plan.steps) + 1)
-                runner = JobRunner(cell, plan, config, job_dir,
+                runner = JobRunner(session, plan, config, job_dir,
                                    lambda p: bar.update(task, completed=p.done, total=p.total, description=p.message))
                 return await runner.run()
-        finally:
-            await cell.close()
 
-    try:
-        result = asyncio.run(run())
-    except (JobError, DeviceError) as e:
-        raise UsageError(str(e)) from e
+    result = _run_moving(run, JobError, f"scans measured so far are in {job_dir / 'scans'}")
     _print_summary(result.report, result.job_dir)
     return 0
 
 
-def cmd_calibrate(args: argparse.Namespace) -> int:
-    """Calibrate the scanner on its target (hand-eye) from plate scans; writes the calibration file."""
-    from tandemscan.daemon.calibrate import CalibrationJobError, calibrate_cell
+def _session(config: CellConfig):
+    """The cell session of a command (devices built, nothing connected yet); bad device config is usage."""
+    from tandemscan.daemon.cell import CellBuildError
+    from tandemscan.daemon.session import CellSession
     from tandemscan.pipeline.part import PartMeshError
-    from tandemscan.sim_drivers.cell import CellBuildError, build_cell
 
-    config = _load_config_with_overrides(args)
     try:
-        cell = build_cell(config)
+        return CellSession(config)
     except (PartMeshError, CellBuildError) as e:
         raise UsageError(str(e)) from e
+
+
+def _run_moving(run, job_error: type[Exception], kept: str):
+    """``asyncio.run(run())`` of a command that moves hardware: a safety stop becomes :class:`SafetyStopped`
+    (the line says what was kept), a device fault or ``job_error`` a :class:`UsageError`."""
+    from tandemscan.drivers.errors import DeviceError, SafetyStop
+
+    try:
+        return asyncio.run(run())
+    except SafetyStop as e:
+        raise SafetyStopped(f"{e}; {kept}") from e
+    except (job_error, DeviceError) as e:
+        raise UsageError(str(e)) from e
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    """Calibrate the scanner on its target (hand-eye) from plate scans; writes the calibration file."""
+    from tandemscan.daemon.calibrate import CalibrationJobError, run_calibration
+
+    config = _load_config_with_overrides(args)
+    session = _session(config)
     out_file = Path(args.out) if args.out else config.calibration.output_file
 
     async def run():
-        with _progress_bar() as bar:
-            task = bar.add_task("starting", total=config.calibration.poses)
-            return await calibrate_cell(
-                cell, config, out_file, lambda d, t, m: bar.update(task, completed=d, total=t, description=m))
+        async with session:
+            with _progress_bar() as bar:
+                task = bar.add_task("starting", total=config.calibration.poses)
+                return await run_calibration(
+                    session, config, out_file, lambda d, t, m: bar.update(task, completed=d, total=t, description=m))
 
-    try:
-        run = asyncio.run(run())
-    except CalibrationJobError as e:
-        raise UsageError(str(e)) from e
+    run = _run_moving(run, CalibrationJobError, f"no calibration written to {out_file}")
     s = run.hand_eye.summary()
     out = Console()
     out.print(f"[bold]calibration[/bold] {run.file}: T_T_S from {run.poses_used} poses ({s['method']}), "
@@ -277,8 +294,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.func(args)
     except (UsageError, ConfigError) as e:
-        console.print(f"[red]error:[/red] {e}", highlight=False)
+        console.print(f"[red]error:[/red] {e}", highlight=False, soft_wrap=True)
         return EXIT_USAGE
+    except SafetyStopped as e:
+        console.print(f"[red]safety stop:[/red] {e}", highlight=False, soft_wrap=True)
+        return EXIT_SAFETY_STOP
     except KeyboardInterrupt:
         console.print("[yellow]interrupted[/yellow]")
         return 130

@@ -19,7 +19,6 @@ import time
 from typing import TYPE_CHECKING
 
 import numpy as np
-from tandemscan.daemon.report import ground_truth_scores
 from tandemscan.pipeline.cloud_io import read_raw_scan
 from tandemscan.pipeline.registration.correction import StitchedScan, correct_scans
 from tandemscan.pipeline.registration.mounts import MountPrior
@@ -71,8 +70,8 @@ def correct_job(job: JobSnapshot) -> tuple[dict, list[np.ndarray]]:
     started = time.monotonic()
     cfg = job.config.correction
     before = None
-    if job.world is not None:
-        before = {k: v for k, v in ground_truth_scores(job).items() if k in _GROUND_TRUTH_KEYS}
+    if job.scorer is not None:
+        before = {k: v for k, v in job.scorer.score(job).items() if k in _GROUND_TRUTH_KEYS}
     raw, scans = [], []
     for s in job.scans:
         raw.append(read_raw_scan(s.file))

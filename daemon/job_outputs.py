@@ -2,8 +2,9 @@
 pose with its world pose, plus the merged cloud) and ``poses.csv`` in the job's world frame W, and, where W
 is registered to the CAD frame F, ``report.html`` with ``figures/`` and ``cloud_deviation.ply`` in frame F.
 
-On the simulated cell the registration is the ground truth ``T_W_F``; a real cell has none yet, and the
-inspection is then skipped with the reason recorded.
+The registration is the job's own: ``T_F_W`` where the runner placed W in the plan's frame F (the part frame,
+relocalisation's anchor, Eq. 5), the same on a real and a simulated cell; a job that did not place W (relocalisation
+off, the target never seen) skips the inspection with the reason recorded. The CAD is the configured part mesh.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from tandemscan.pipeline.cloud_io import read_raw_scan
 from tandemscan.pipeline.export import PosedScan, write_e57, write_ply, write_pose_log
 from tandemscan.pipeline.inspect import InspectionError
 from tandemscan.pipeline.inspection_job import InspectionOutputs, run_inspection
+from tandemscan.pipeline.part import load_part_mesh
 
 if TYPE_CHECKING:
     from tandemscan.daemon.snapshot import JobSnapshot
@@ -81,17 +83,16 @@ def write_job_outputs(job: JobSnapshot, report: dict) -> dict:
     if with_points:
         write_e57(job_dir / files["e57"], with_points, cloud_W if len(cloud_W) else None)
     write_pose_log(job_dir / files["pose_log"], scans)
-    world = job.world
     reason = (
         "inspection.in_job is off" if not job.config.inspection.in_job
-        else "no registration of the world frame to the CAD frame" if world is None
+        else "no registration of the world frame to the CAD frame" if job.T_F_W is None
         else "empty cloud" if len(cloud_W) == 0
         else ""
     )
     if reason:
         log.warning("inspection skipped: %s", reason)
         return {"skipped": reason, "files": files}
-    T_F_W = F.invert(world.T_W_F)
+    T_F_W = np.asarray(job.T_F_W, float)
     normals_W = job.worldmap.normals()
     try:
         out = _inspect(job, report, scans, cloud_W, normals_W, T_F_W)
@@ -105,7 +106,7 @@ def write_job_outputs(job: JobSnapshot, report: dict) -> dict:
 def _inspect(job: JobSnapshot, report: dict, scans: list[PosedScan], cloud_W: np.ndarray,
              normals_W: np.ndarray | None, T_F_W: np.ndarray) -> InspectionOutputs:
     """The inspection of the job's cloud in the CAD frame, written into the job folder."""
-    job_dir, world = job.job_dir, job.world
+    job_dir = job.job_dir
     # the tracker-only stitch (Eq. 1) against the poses the job ended with, which a correction step may change
     tracker_only = [F.compose(s.T_W_C, s.reading.T_C_T, job.installation.T_T_S) for s in job.scans]
     corrected = any(not np.allclose(T, s.T_W_S, rtol=0, atol=1e-9) for T, s in zip(tracker_only, scans, strict=True))
@@ -113,13 +114,13 @@ def _inspect(job: JobSnapshot, report: dict, scans: list[PosedScan], cloud_W: np
     after = [F.transform_points(T_F_W @ s.T_W_S, _thin(s.points_S_mm)) for s in scans] if corrected else None
     return run_inspection(
         F.transform_points(T_F_W, cloud_W),
-        world.mesh,
+        load_part_mesh(job.config.part),
         job_dir,
         job.config.inspection,
         normals=None if normals_W is None else F.rotate_vectors(T_F_W, normals_W),
         title=f"Inspection report, {job_dir.name}",
         meta={"job": job_dir.name, "plan": job.plan.name, "cell": job.config.name,
-              "registration to CAD": "simulation ground truth T_W_F", "points": str(len(cloud_W))},
+              "registration to CAD": "W placed in F by the anchor reading (Eq. 5)", "points": str(len(cloud_W))},
         accuracy=_accuracy(report),
         scans_before=before,
         scans_after=after,

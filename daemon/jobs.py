@@ -44,7 +44,8 @@ class JobCancelled(Exception):
 
 @dataclass
 class JobContext:
-    """What a runner gets: the job, the journal, the devices' supervisor and pause/cancel checkpoints."""
+    """What a runner gets: the job, the journal, the devices' supervisor, the cell session (its motion gate and
+    observers, :mod:`tandemscan.daemon.session`) and pause/cancel checkpoints."""
 
     job: JobRecord
     store: JobStore
@@ -53,6 +54,7 @@ class JobContext:
     cell: Any = None
     config: Any = None
     committed: dict[int, dict] = field(default_factory=dict)
+    session: Any = None
 
     @property
     def resumed(self) -> bool:
@@ -97,6 +99,7 @@ class JobManager:
     runner: Runner
     cell: Any = None
     config: Any = None
+    session: Any = None
     active_id: str | None = None
     _wake: asyncio.Event = field(default_factory=asyncio.Event)
     _resume: dict[str, asyncio.Event] = field(default_factory=dict)
@@ -228,7 +231,7 @@ class JobManager:
         try:
             job = await asyncio.to_thread(self.store.begin_attempt, job_id)
             committed = await asyncio.to_thread(self.store.committed_steps, job_id)
-            ctx = JobContext(job, self.store, self.supervisor, self, self.cell, self.config, committed)
+            ctx = JobContext(job, self.store, self.supervisor, self, self.cell, self.config, committed, self.session)
             figures = await self.runner(ctx)
         except (JobCancelled, asyncio.CancelledError):
             if job_id in self._cancelled:

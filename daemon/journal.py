@@ -1,8 +1,9 @@
 """The daemon's job runner: :class:`~tandemscan.daemon.runner.JobRunner` on the store's journal.
 
-:class:`StoreJournal` gives the runner the supervisor's motion gate, the manager's pause/cancel/safety
-handling and durable step commits; :func:`run_journaled` is the manager's runner. On the simulated cell the
-world's state is saved with every commit (before it), so a restarted daemon finds the robots where they were.
+:class:`StoreJournal` gives the runner the manager's pause/cancel/safety handling and durable step commits;
+the motion gate is the daemon's cell session's (:mod:`tandemscan.daemon.session`), not the journal's.
+:func:`run_journaled` is the manager's runner. The simulated world keeps its own state (its twins save it as
+they act), so the journal never touches it.
 """
 
 from __future__ import annotations
@@ -10,22 +11,18 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
-from collections.abc import AsyncIterator, Awaitable, Callable
-from contextlib import asynccontextmanager
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import TypeVar
 
 from tandemscan.daemon.jobs import JobContext
 from tandemscan.daemon.runner import JobProgress, JobRunner
 from tandemscan.daemon.stitcher import ProcessWorldMap
-from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.plan import Plan
-from tandemscan.sim_drivers.persist import save_world_state
 
 log = logging.getLogger(__name__)
 
 T = TypeVar("T")
-WORLD_STATE_FILE = "sim_world.json"
 
 # Figures of the report copied onto the job resource (mm, deg, s).
 _FIGURE_KEYS = ("scans", "transfers", "points_raw", "points_cloud", "seconds")
@@ -38,13 +35,7 @@ class StoreJournal:
     def __init__(self, ctx: JobContext):
         self.ctx = ctx
         self.committed = dict(ctx.committed)
-        self.world_state_path = ctx.store.state_dir / WORLD_STATE_FILE
         self._progress_tasks: set[asyncio.Task] = set()
-
-    @asynccontextmanager
-    async def motion(self, robot: str) -> AsyncIterator[None]:
-        async with self.ctx.supervisor.motion(robot):
-            yield
 
     async def run_step(self, idx: int, fn: Callable[[], Awaitable[T]]) -> T:
         return await self.ctx.run_step(idx, fn)
@@ -62,9 +53,6 @@ class StoreJournal:
 
     def _commit(self, idx: int, kind: str, result: dict, scan_file: Path | None, scan_points: int) -> None:
         store, job_id = self.ctx.store, self.ctx.job.id
-        world = getattr(self.ctx.cell, "world", None)
-        if world is not None:  # the world first: after a crash it must not be behind the journal
-            save_world_state(world, self.world_state_path)
         scan = None if scan_file is None else store.register_scan_file(job_id, idx, scan_file, scan_points)
         poses = {k: result[k] for k in ("T_C_T", "covariance", "joints_rad", "odometry", "T_W_C", "before", "after")
                  if k in result}
@@ -89,14 +77,8 @@ async def run_journaled(ctx: JobContext) -> dict:
     if ctx.resumed:
         log.info("job %s resumes at step %d of %d", ctx.job.id, min(set(range(len(plan.steps))) - set(ctx.committed),
                                                                       default=len(plan.steps)), len(plan.steps))
-    world = getattr(ctx.cell, "world", None)
-    if world is not None and ctx.job.attempts == 1:
-        # W is the tracker camera frame at the job's first station: a later job on the same simulated cell
-        # starts where the previous one left the tracker, and is scored in its own W
-        world.T_W_F = F.invert(world.T_F_C())
-        await asyncio.to_thread(save_world_state, world, journal.world_state_path)
     worldmap = await asyncio.to_thread(ProcessWorldMap, ctx.config.job.voxel_mm, ctx.config.daemon.worker_niceness)
-    runner = JobRunner(ctx.cell, plan, ctx.config, job_dir, journal.on_progress, journal, worldmap)
+    runner = JobRunner(ctx.session, plan, ctx.config, job_dir, journal.on_progress, journal, worldmap)
     try:
         result = await runner.run()
     finally:

@@ -1,12 +1,11 @@
-"""``report.json`` of a job: what was measured and, on the simulated cell, the ground-truth scores."""
+"""``report.json`` of a job: what was measured and, on the simulated cell, the ground-truth scores that the
+job's observer writes (:mod:`tandemscan.daemon.observer`)."""
 
 from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
 import numpy as np
-from tandemscan.pipeline import frames as F
-from tandemscan.pipeline.scoring import cloud_to_mesh_distances, distance_stats, pose_errors
 
 if TYPE_CHECKING:
     from tandemscan.daemon.snapshot import JobSnapshot
@@ -35,50 +34,19 @@ def build_report(job: JobSnapshot, seconds: float) -> dict:
             for s in job.scans
         ],
     }
-    world = job.world
-    if world is not None and job.scans:
-        report["ground_truth"] = ground_truth_scores(job)
+    if job.scorer is not None and job.scans:
+        report["ground_truth"] = job.scorer.score(job)
     return report
 
 
 def relocalisation_summary(log: dict) -> dict:
     """The runner's relocalisation log with its figures: AGV stations located, poses scanned with a nearby view
-    or not re-solved, how far off plan the AGV stood and, on the simulated cell, how far the located pose is from
-    the true one (mm, deg, maxima)."""
+    or not re-solved and how far off plan the AGV stood (mm, deg, maxima)."""
     located = log.get("located", [])
     out = dict(log) | {"stations_located": len(located), "unresolved_count": len(log.get("unresolved", [])),
                        "adjusted_count": len(log.get("adjusted", []))}
-    for key in ("off_plan_mm", "off_plan_deg", "err_to_truth_mm", "err_to_truth_deg"):
+    for key in ("off_plan_mm", "off_plan_deg"):
         values = [e[key] for e in located if key in e]
         if values:
             out[f"{key}_max"] = float(np.max(values))
     return out
-
-
-def ground_truth_scores(job: JobSnapshot) -> dict:
-    """Pose errors per scan and per tracker station, and the stitched cloud's distance to the part."""
-    world = job.world
-    mm, deg = pose_errors([s.T_W_S for s in job.scans], [s.T_W_S_true for s in job.scans])
-    stations = np.array([s.tracker_station for s in job.scans])
-    growth = [
-        {"tracker_station": int(k), "scans": int(np.sum(stations == k)),
-         "pose_err_mm_median": float(np.median(mm[stations == k])),
-         "pose_err_deg_median": float(np.median(deg[stations == k]))}
-        for k in np.unique(stations)
-    ]
-    cloud_F = F.transform_points(F.invert(world.T_W_F), job.worldmap.points())
-    d = cloud_to_mesh_distances(world.scene, cloud_F)
-    cloud = distance_stats(d)
-    return {
-        "pose_err_mm_median": float(np.median(mm)),
-        "pose_err_mm_max": float(np.max(mm)),
-        "pose_err_deg_median": float(np.median(deg)),
-        "pose_err_deg_max": float(np.max(deg)),
-        "per_scan": [{"index": s.index, "pose_err_mm": float(a), "pose_err_deg": float(b)}
-                     for s, a, b in zip(job.scans, mm, deg, strict=True)],
-        "per_tracker_station": growth,
-        "cloud_rms_mm": cloud["rms_mm"],
-        "cloud_p95_mm": cloud["p95_mm"],
-        "cloud_max_mm": cloud["max_mm"],
-        "robots_moved_together": list(world.robots_moved_together),
-    }

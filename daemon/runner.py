@@ -8,27 +8,34 @@ exports) runs where the world map lives (:mod:`tandemscan.daemon.stitcher`): a w
 threads otherwise; the event loop only passes small records and file names.
 
 A ``move_tracker`` before the job's first scan is a plain relocation: nothing is placed in W yet, so W becomes
-the tracker camera frame where it then stands. With ``job.relocalise`` the runner measures where the
-measurement AGV stands after each drive (a target reading, Eq. 5, :mod:`tandemscan.pipeline.relocalise`) and
-re-solves the arm for each ``move_arm`` step's planned scanner pose ``T_F_S``, so a drifting chassis still scans
-where the plan meant; a pose out of reach from there is scanned with the plan's joints and listed in the
-report (``relocalisation.unresolved``).
+the tracker camera frame where it then stands. With ``job.relocalise`` the runner places W in the plan's frame F
+from one target reading at the start (the anchor, Eq. 5: the in-job inspection's registration to CAD) and,
+where the plan has scanner poses ``T_F_S``, measures where the measurement AGV stands after each drive
+(:mod:`tandemscan.pipeline.relocalise`) and re-solves the arm for each ``move_arm`` step's planned pose, so a
+drifting chassis still scans where the plan meant; a pose out of reach from there is scanned with the plan's
+joints and listed in the report (``relocalisation.unresolved``).
+
+Every motion goes through the session's gate (:mod:`tandemscan.daemon.session`); what the job measures is told
+to the session's observer (:mod:`tandemscan.daemon.observer`), which on the simulated cell scores it against the
+ground truth. Nothing here reads the truth.
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from collections.abc import AsyncIterator, Awaitable, Callable
-from contextlib import asynccontextmanager
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol, TypeVar
 
 import numpy as np
 from tandemscan.config.models import CellConfig
+from tandemscan.daemon.observer import JobObserver
+from tandemscan.daemon.session import CellSession, MotionGate
 from tandemscan.daemon.snapshot import JobSnapshot
 from tandemscan.daemon.stitcher import LocalWorldMap, ProcessWorldMap, correct, export
+from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT
 from tandemscan.drivers.errors import TargetNotVisible
 from tandemscan.drivers.interfaces import ChassisPose, TrackerReading
 from tandemscan.pipeline import frames as F
@@ -36,12 +43,9 @@ from tandemscan.pipeline.installation import Installation
 from tandemscan.pipeline.plan import MoveArm, MoveMeasure, MoveTracker, Plan, Scan
 from tandemscan.pipeline.relocalise import Relocaliser
 from tandemscan.pipeline.uncertainty import transfer_covariance
-from tandemscan.sim_drivers.cell import Cell
 
 log = logging.getLogger(__name__)
 
-MEASURE_ROBOT = "measure"  # the measurement AGV and its arm
-TRACKING_ROBOT = "tracking"  # the tracking AGV
 # A fresh reading at resume that differs more than this from the journaled one (target still) means the
 # tracker was moved while the daemon was down: its frame is then re-established from the fresh reading.
 RESUME_TOLERANCE_MM = 0.5
@@ -64,7 +68,7 @@ class JobProgress:
 
 @dataclass
 class ScanRecord:
-    """One measured pose: the raw data and its world placement (mm). ``T_W_S_true`` only in simulation."""
+    """One measured pose: the raw data and its world placement (mm)."""
 
     index: int
     tracker_station: int
@@ -74,7 +78,6 @@ class ScanRecord:
     T_W_C: np.ndarray
     T_W_S: np.ndarray
     point_count: int
-    T_W_S_true: np.ndarray | None = None
 
 
 @dataclass
@@ -90,13 +93,10 @@ class JobResult:
 
 class StepJournal(Protocol):
     """Where a resumable run commits its steps (the daemon's store). ``committed`` maps a step index to
-    the result committed for it; a run skips those steps and rebuilds its state from their results."""
+    the result committed for it; a run skips those steps and rebuilds its state from their results. Motion
+    is not the journal's: it goes through the session's gate (:class:`~tandemscan.daemon.session.MotionGate`)."""
 
     committed: dict[int, dict]
-
-    def motion(self, robot: str) -> AsyncIterator[None]:
-        """Async context every motion of ``robot`` runs in (the supervisor's gate)."""
-        ...
 
     async def run_step(self, idx: int, fn: Callable[[], Awaitable[T]]) -> T:
         """Run one step (pause, cancel and safety stops are handled here)."""
@@ -117,13 +117,9 @@ class StepJournal(Protocol):
 
 
 class _NoJournal:
-    """The journal of a run outside the daemon: nothing is kept, nothing is resumed."""
+    """The journal of a run outside the daemon: nothing is resumed (its scans are still written as it goes)."""
 
     committed: dict[int, dict] = {}
-
-    @asynccontextmanager
-    async def motion(self, robot: str) -> AsyncIterator[None]:
-        yield
 
     async def run_step(self, idx: int, fn: Callable[[], Awaitable[T]]) -> T:
         return await fn()
@@ -139,15 +135,18 @@ class _NoJournal:
         return None
 
 
-def installation_for_job(config: CellConfig, cell: Cell) -> Installation:
-    """The mount transforms the stitch uses, per ``job.installation_source``."""
+def installation_for_job(config: CellConfig, session: CellSession) -> Installation:
+    """The mount transforms the stitch uses, per ``job.installation_source`` (``"truth"``: the simulation's
+    surveyed mounts, as a perfect calibration file would give them)."""
     source = config.job.installation_source
     if source == "nominal":
         return Installation.nominal(config.installation)
     if source == "truth":
-        if cell.world is None:
-            raise JobError("installation_source = 'truth' needs the simulated cell")
-        return cell.world.truth
+        sim = session.cell.simulation
+        surveyed = None if sim is None else sim.surveyed_installation()
+        if surveyed is None:
+            raise JobError("installation_source = 'truth' needs the simulated cell (twins, not real drivers)")
+        return surveyed
     path = config.job.calibration_file
     if path is None or not Path(path).is_file():
         raise JobError(f"installation_source = 'calibration' but no calibration file at {path}")
@@ -155,11 +154,13 @@ def installation_for_job(config: CellConfig, cell: Cell) -> Installation:
 
 
 class JobRunner:
-    """Runs one plan on one cell into ``job_dir``."""
+    """Runs one plan on the cell of an open ``session`` into ``job_dir``: every motion through the session's
+    gate, steps through ``journal`` (none: a run that cannot resume), what it measures told to the session's
+    observer (the simulated cell's ground truth; none on a real cell)."""
 
     def __init__(
         self,
-        cell: Cell,
+        session: CellSession,
         plan: Plan,
         config: CellConfig,
         job_dir: Path,
@@ -167,13 +168,15 @@ class JobRunner:
         journal: StepJournal | None = None,
         worldmap: LocalWorldMap | ProcessWorldMap | None = None,
     ):
-        self.cell = cell
+        self.cell = session.cell
+        self.gate: MotionGate = session.gate
         self.plan = plan
         self.config = config
         self.job_dir = Path(job_dir)
         self.progress = progress or (lambda p: None)
         self.journal = journal or _NoJournal()
-        self.installation = installation_for_job(config, cell)
+        self.observer: JobObserver | None = session.job_observer(self.job_dir.name, bool(self.journal.committed))
+        self.installation = installation_for_job(config, session)
         self.worldmap = worldmap if worldmap is not None else LocalWorldMap(config.job.voxel_mm)
         self.T_W_C = np.eye(4)  # W is the tracker camera frame at its first station
         self.tracker_station = 0
@@ -182,13 +185,15 @@ class JobRunner:
         self.correction: dict = {"enabled": False}
         self.last_still_T_C_T: np.ndarray | None = None  # last reading while the target has not moved since
         self.resume_log: list[dict] = []
-        self.relocaliser = None  # only where relocalisation is on and the plan has scanner poses to re-solve
-        if config.job.relocalise and any(isinstance(s, MoveArm) and s.T_F_S is not None for s in plan.steps):
-            self.relocaliser = Relocaliser(config.arm, config.scanner, self.installation)
+        # with relocalisation on, W is placed in the plan's frame F at the start (the anchor: the inspection's
+        # registration to CAD); the AGV is located after each drive where the plan has scanner poses to re-solve
+        self.relocaliser = Relocaliser(config.arm, config.scanner, self.installation) if config.job.relocalise else None
+        self.resolving = self.relocaliser is not None and any(
+            isinstance(s, MoveArm) and s.T_F_S is not None for s in plan.steps)
         self.T_F_W: np.ndarray | None = None  # W in the plan's frame F (mm): None until measured
         self.T_F_V2: np.ndarray | None = None  # the measurement AGV in F as measured; None since it drove unmeasured
         self.planned_T_F_V2: np.ndarray | None = None  # where the plan (or, at the start, the odometry) puts it
-        self.relocalisation: dict = {"enabled": self.relocaliser is not None, "anchor": None, "located": [],
+        self.relocalisation: dict = {"enabled": self.resolving, "anchor": None, "located": [],
                                      "unresolved": [], "adjusted": []}
 
     async def read_target(self) -> TrackerReading:
@@ -244,10 +249,10 @@ class JobRunner:
         if isinstance(step, MoveMeasure):
             pose = ChassisPose(step.x_mm, step.y_mm, step.heading_rad)
             self.last_still_T_C_T = None
-            async with self.journal.motion(MEASURE_ROBOT):
+            async with self.gate.motion(MEASURE_ROBOT):
                 odo = await self.cell.measure_chassis.move_to(pose, self.config.measure_chassis.timeout_s)
             result = {"odometry": [odo.x_mm, odo.y_mm, odo.heading_rad]}
-            if self.relocaliser is not None:
+            if self.resolving:
                 self.planned_T_F_V2 = F.planar_pose(step.x_mm, step.y_mm, step.heading_rad)
                 self.T_F_V2 = None
                 result |= self._relocalisation_state(located=await self._locate(i))
@@ -255,7 +260,7 @@ class JobRunner:
         if isinstance(step, MoveArm):
             self.last_still_T_C_T = None
             joints, extra = await self._arm_target(i, step)
-            async with self.journal.motion(MEASURE_ROBOT):
+            async with self.gate.motion(MEASURE_ROBOT):
                 await self.cell.arm.move_joints(joints, self.config.arm.timeout_s)
             return {"joints_rad": joints.tolist(), **extra}, None
         record = await self._scan()
@@ -359,9 +364,8 @@ class JobRunner:
         self.T_F_V2 = self.T_F_W @ T_W_V2
         off_mm, off_rad = F.pose_error(self.T_F_V2, planned)
         entry = {"step": i, "off_plan_mm": off_mm, "off_plan_deg": float(np.degrees(off_rad))}
-        if self.cell.world is not None:
-            err_mm, err_rad = F.pose_error(self.T_F_V2, self.cell.world.T_F_V2)
-            entry |= {"err_to_truth_mm": err_mm, "err_to_truth_deg": float(np.degrees(err_rad))}
+        if self.observer is not None:
+            self.observer.agv_located(i, self.T_F_V2)
         log.info("measurement AGV located %.1f mm / %.2f deg off its planned station", off_mm, entry["off_plan_deg"])
         return entry
 
@@ -369,11 +373,11 @@ class JobRunner:
         """The joints of a ``move_arm`` step: re-solved for its planned scanner pose where the AGV was measured
         to stand, else (no ``T_F_S``, relocalisation off) the plan's. The journal result's extra fields."""
         planned = np.array(step.joints_rad)
-        if self.relocaliser is None or step.T_F_S is None:
+        if not self.resolving or step.T_F_S is None:
             return planned, {}
         located = None
         if self.T_F_V2 is None and self.planned_T_F_V2 is not None:  # not seen from the travel pose: from here
-            async with self.journal.motion(MEASURE_ROBOT):
+            async with self.gate.motion(MEASURE_ROBOT):
                 await self.cell.arm.move_joints(planned, self.config.arm.timeout_s)
             located = await self._locate(i)
         if self.T_F_V2 is None:
@@ -422,14 +426,14 @@ class JobRunner:
 
     async def _relocate_tracker(self, step: MoveTracker, i: int) -> dict:
         """A tracker move before the first scan: no transfer, W becomes the camera frame where it now stands."""
-        async with self.journal.motion(TRACKING_ROBOT):
+        async with self.gate.motion(TRACKING_ROBOT):
             odo = await self.cell.tracking_chassis.move_to(
                 ChassisPose(step.x_mm, step.y_mm, step.heading_rad), self.config.tracking_chassis.timeout_s
             )
         self.T_W_C = np.eye(4)
         self.last_still_T_C_T = None
-        if self.cell.world is not None:
-            self.cell.world.define_world()
+        if self.observer is not None:
+            self.observer.world_defined()
         log.info("tracker relocated before the first scan: the world frame is its camera frame there")
         result = {"relocation": True, "odometry": [odo.x_mm, odo.y_mm, odo.heading_rad]}
         if self.relocaliser is not None:
@@ -451,7 +455,7 @@ class JobRunner:
             before = await self.read_target()
             before_T_C_T, before_cov = before.T_C_T, before.covariance
             await self.journal.note(i, "before", {"T_C_T": before_T_C_T.tolist(), "covariance": before_cov.tolist()})
-        async with self.journal.motion(TRACKING_ROBOT):
+        async with self.gate.motion(TRACKING_ROBOT):
             odo = await self.cell.tracking_chassis.move_to(
                 ChassisPose(step.x_mm, step.y_mm, step.heading_rad), self.config.tracking_chassis.timeout_s
             )
@@ -463,9 +467,8 @@ class JobRunner:
         entry = {"station": self.tracker_station, "after_scan": len(self.scans),
                  "target_W_mm": (T_W_C_before @ before_T_C_T)[:3, 3].tolist(),
                  "covariance": transfer_covariance(T_W_C_before, before_cov, self.T_W_C, after.covariance).tolist()}
-        if self.cell.world is not None:
-            err_mm, err_rad = F.pose_error(self.T_W_C, self.cell.world.T_W_F @ self.cell.world.T_F_C())
-            entry |= {"tracker_pose_err_mm": err_mm, "tracker_pose_err_deg": float(np.degrees(err_rad))}
+        if self.observer is not None:
+            self.observer.tracker_transferred(self.tracker_station, self.T_W_C)
         self.transfers.append(entry)
         log.info("coordinate transfer", extra={"station": self.tracker_station})
         return {"T_W_C": self.T_W_C.tolist(), "station": self.tracker_station, "transfer": entry,
@@ -492,9 +495,10 @@ class JobRunner:
             arrays["normals_S"] = frame.normals
         T_W_S = F.compose(self.T_W_C, reading.T_C_T, self.installation.T_T_S)
         await self.worldmap.add_scan(file, T_W_S, arrays)  # the file is durable before this returns
-        truth = self.cell.world.T_W_S() if self.cell.world is not None else None
+        if self.observer is not None:
+            self.observer.scan_measured(index)
         record = ScanRecord(index, self.tracker_station, file, reading, joints, self.T_W_C.copy(), T_W_S,
-                            len(frame.points_mm), truth)
+                            len(frame.points_mm))
         self.scans.append(record)
         self.last_still_T_C_T = reading.T_C_T
         return record
@@ -502,9 +506,9 @@ class JobRunner:
     def snapshot(self, scans: list[ScanRecord] | None = None) -> JobSnapshot:
         """The job's state for its end-of-job work (correction, report, exports) where the map lives; ``scans``
         (default: all) are the ones that work sees."""
-        world = self.cell.world.ground_truth() if self.cell.world is not None else None
+        scorer = self.observer.scorer() if self.observer is not None else None
         return JobSnapshot(self.job_dir, self.plan, self.config, self.installation, list(scans or self.scans),
-                           list(self.transfers), dict(self.correction), world,
+                           list(self.transfers), dict(self.correction), scorer, T_F_W=self.T_F_W,
                            relocalisation=dict(self.relocalisation))
 
     async def _export(self, seconds: float) -> JobResult:
@@ -520,13 +524,11 @@ def _scan_result(r: ScanRecord) -> dict:
         "T_C_T": r.reading.T_C_T.tolist(), "covariance": r.reading.covariance.tolist(),
         "timestamp_s": r.reading.timestamp_s, "frame_number": r.reading.frame_number,
         "joints_rad": np.asarray(r.joints_rad).tolist(), "T_W_C": r.T_W_C.tolist(), "T_W_S": r.T_W_S.tolist(),
-        "T_W_S_true": None if r.T_W_S_true is None else r.T_W_S_true.tolist(),
     }
 
 
 def _scan_from_result(d: dict, job_dir: Path) -> ScanRecord:
     """Inverse of :func:`_scan_result`."""
     reading = TrackerReading(np.array(d["T_C_T"]), np.array(d["covariance"]), d["timestamp_s"], d["frame_number"])
-    true = None if d["T_W_S_true"] is None else np.array(d["T_W_S_true"])
     return ScanRecord(d["index"], d["station"], job_dir / "scans" / d["file"], reading, np.array(d["joints_rad"]),
-                      np.array(d["T_W_C"]), np.array(d["T_W_S"]), d["points"], true)
+                      np.array(d["T_W_C"]), np.array(d["T_W_S"]), d["points"])

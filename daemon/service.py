@@ -1,5 +1,5 @@
-"""The daemon process: store, devices' supervisor, job manager, events and systemd notification in one
-object, and ``serve()`` that puts the REST API in front of it with uvicorn.
+"""The daemon process: store, the cell session (devices, supervisor, simulation), job manager, events and
+systemd notification in one object, and ``serve()`` that puts the REST API in front of it with uvicorn.
 
 Environment: ``TANDEMSCAN_API_TOKEN`` (bearer token of mutating calls; overrides ``[daemon] api_token``),
 ``TANDEMSCAN_STATE_DIR`` (default: systemd's ``$STATE_DIRECTORY``, else ``./state``), ``NOTIFY_SOCKET`` and
@@ -23,22 +23,24 @@ from pathlib import Path
 import numpy as np
 from prometheus_client import CollectorRegistry
 from tandemscan.config import CellConfig, load_config
+from tandemscan.daemon.cell import Cell
 from tandemscan.daemon.events import EventBus
 from tandemscan.daemon.jobs import JobManager, Runner
-from tandemscan.daemon.journal import WORLD_STATE_FILE, run_journaled
+from tandemscan.daemon.journal import run_journaled
 from tandemscan.daemon.metrics import DaemonCollector, timing_histograms
 from tandemscan.daemon.notify import Notifier
 from tandemscan.daemon.plans import PlanCatalog
+from tandemscan.daemon.session import CellSession
 from tandemscan.daemon.store import JOB_STATES, JobStore
-from tandemscan.daemon.supervisor import Supervisor
 from tandemscan.drivers.shared_array import remove_stale_blocks
 from tandemscan.drivers.tasks import cancel_and_wait
-from tandemscan.sim_drivers.persist import load_world_state
 
 log = logging.getLogger(__name__)
 
 TOKEN_ENV = "TANDEMSCAN_API_TOKEN"
 STATE_DIR_ENV = "TANDEMSCAN_STATE_DIR"
+#: where a simulated cell keeps its world's state in the state folder (its robots where they stopped)
+WORLD_STATE_FILE = "sim_world.json"
 
 
 class BindRefused(Exception):
@@ -89,24 +91,23 @@ class Daemon:
     """Everything the service runs, without the HTTP server (tests drive it directly)."""
 
     def __init__(self, config: CellConfig, state_dir: Path, runner: Runner | None = None, token: str | None = None,
-                 cell=None, notifier: Notifier | None = None, connect_timeout_s: float = 60.0):
-        from tandemscan.sim_drivers.cell import build_cell
-
+                 cell: Cell | None = None, notifier: Notifier | None = None, connect_timeout_s: float = 60.0):
         self.config = config
         self.token = token
         self.version = _package_version()
         self.state_dir = Path(state_dir)
         self.store = JobStore(self.state_dir)
         self.bus = EventBus()
-        self.cell = cell if cell is not None else build_cell(config, scan_process=True)
         self.registry = CollectorRegistry()
         self.lag_histogram, lateness_histogram = timing_histograms(self.registry)
-        self.supervisor = Supervisor.for_cell(self.cell, config, on_event=self._device_event,
-                                              on_tick_lateness=lateness_histogram.observe)
-        self.manager = JobManager(self.store, self.bus, self.supervisor, runner or run_journaled, self.cell, config)
+        self.session = CellSession(config, cell=cell, scan_process=True, state_file=self.state_dir / WORLD_STATE_FILE,
+                                   on_event=self._device_event, on_tick_lateness=lateness_histogram.observe,
+                                   connect_timeout_s=connect_timeout_s, require_connected=False)
+        self.cell, self.supervisor = self.session.cell, self.session.supervisor
+        self.manager = JobManager(self.store, self.bus, self.supervisor, runner or run_journaled, self.cell, config,
+                                  self.session)
         self.plans = PlanCatalog([PlanCatalog.shipped_folder(), self.state_dir / "plans"], config.daemon.default_plan)
         self.notifier = notifier or Notifier()
-        self.connect_timeout_s = connect_timeout_s
         self.sse_heartbeat_s = 15.0
         self.loop_lag_s: deque[float] = deque(maxlen=5000)
         self.registry.register(DaemonCollector(self.metrics_snapshot))
@@ -120,18 +121,11 @@ class Daemon:
         self._tasks.append(asyncio.create_task(self.notifier.watchdog_loop(), name="sd-watchdog"))
         self._tasks.append(asyncio.create_task(self._lag_monitor(), name="loop-lag"))
         await asyncio.to_thread(remove_stale_blocks)  # scan arrays a killed daemon left in shared memory
-        world = getattr(self.cell, "world", None)
-        if world is not None and load_world_state(world, self.state_dir / WORLD_STATE_FILE):
-            log.info("simulated world restored from %s", self.state_dir / WORLD_STATE_FILE)
         self.notifier.status("connecting devices")
-        await self.supervisor.start()
-        try:
-            await self.supervisor.wait_connected(self.connect_timeout_s)
+        if await self.session.open():
             status = "ready: all devices connected"
-        except TimeoutError:
-            missing = [h.name for h in self.supervisor.health.values() if not h.connected]
-            status = f"degraded: not connected: {', '.join(missing)} (retrying)"
-            log.warning(status)
+        else:
+            status = f"degraded: not connected: {', '.join(self.session.not_connected())} (retrying)"
         await self.manager.start()
         self.notifier.ready(status)
         log.info("tandemscan daemon %s: %s; state in %s", self.version, status, self.state_dir)
@@ -140,7 +134,7 @@ class Daemon:
         """Stop jobs (they stay resumable), devices and background tasks."""
         self.notifier.stopping()
         await self.manager.close()
-        await self.supervisor.close()
+        await self.session.close()
         await asyncio.gather(*self._journal_tasks, return_exceptions=True)
         await cancel_and_wait(*self._tasks)
         self._tasks.clear()
@@ -180,8 +174,9 @@ class Daemon:
         """The installation transforms the stitch uses and their source (4x4 lists, mm)."""
         job = self.config.job
         names = ("T_V1_C", "T_V2_B", "T_E_S", "T_T_S")
-        if job.installation_source == "truth" and getattr(self.cell, "world", None) is not None:
-            transforms = {n: getattr(self.cell.world.truth, n).tolist() for n in names}
+        surveyed = None if self.cell.simulation is None else self.cell.simulation.surveyed_installation()
+        if job.installation_source == "truth" and surveyed is not None:
+            transforms = {n: getattr(surveyed, n).tolist() for n in names}
         elif job.installation_source == "calibration" and job.calibration_file is not None:
             transforms = _read_calibration_file(Path(job.calibration_file))
         else:

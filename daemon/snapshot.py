@@ -3,7 +3,8 @@
 The runner's heavy end-of-job work runs where its world map lives: in a worker process in the daemon
 (:class:`tandemscan.daemon.stitcher.ProcessWorldMap`), in a thread for ``tandemscan measure``. A
 :class:`JobSnapshot` carries the job's small state there (scan records with their poses, transfers, config,
-plan, mounts and, on the simulated cell, the ground truth); ``worldmap`` is set to the map on that side.
+plan, mounts, the world frame W placed in the plan's frame F where it was measured, and on the simulated cell
+the ground-truth scorer, :mod:`tandemscan.daemon.observer`); ``worldmap`` is set to the map on that side.
 Frames: poses ``T_W_S`` in the job's world frame W (mm).
 """
 
@@ -13,18 +14,20 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
 from tandemscan.config.models import CellConfig
 from tandemscan.pipeline.installation import Installation
 from tandemscan.pipeline.plan import Plan
 
 if TYPE_CHECKING:
+    from tandemscan.daemon.observer import JobScorer
     from tandemscan.daemon.runner import ScanRecord
-    from tandemscan.sim_drivers.world import GroundTruth
 
 
 @dataclass
 class JobSnapshot:
-    """A job's state for its end-of-job work; ``world`` is None on a real cell."""
+    """A job's state for its end-of-job work; ``scorer`` is None on a real cell, ``T_F_W`` (mm) None where the
+    job did not place its world in the plan's frame (relocalisation off or the target never seen)."""
 
     job_dir: Path
     plan: Plan
@@ -33,7 +36,8 @@ class JobSnapshot:
     scans: list[ScanRecord]
     transfers: list[dict]
     correction: dict
-    world: GroundTruth | None
+    scorer: JobScorer | None
+    T_F_W: np.ndarray | None = None
     worldmap: Any = field(default=None, repr=False)  # the VoxelMap where the work runs
     relocalisation: dict = field(default_factory=dict)  # the runner's AGV relocalisation log (report section)
 

@@ -23,7 +23,6 @@ from collections.abc import AsyncIterator, Callable, Iterator, Mapping, Sequence
 from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
 
-from tandemscan.config.models import CellConfig
 from tandemscan.drivers.errors import DeviceError, SafetyStop
 from tandemscan.drivers.interfaces import Device, SafetyIO
 from tandemscan.drivers.tasks import cancel_and_wait
@@ -107,18 +106,6 @@ class Supervisor:
         self._tasks: list[asyncio.Task] = []
         self._reconnecting: dict[str, asyncio.Task] = {}
         self._all_connected = asyncio.Event()
-
-    @classmethod
-    def for_cell(cls, cell, config: CellConfig, on_event: EventSink | None = None,
-                 on_tick_lateness: Callable[[float], None] | None = None) -> Supervisor:
-        """A supervisor of a :class:`tandemscan.sim_drivers.cell.Cell` (twins or real drivers)."""
-        d = config.daemon
-        return cls(
-            cell.devices(), {MEASURE_ROBOT: [cell.measure_chassis, cell.arm], TRACKING_ROBOT: [cell.tracking_chassis]},
-            cell.safety, control_period_s=config.safety.poll_period_s, health_period_s=d.health_period_s,
-            device_timeout_s=d.device_timeout_s, reconnect_initial_s=d.reconnect_initial_s,
-            reconnect_max_s=d.reconnect_max_s, on_event=on_event, on_tick_lateness=on_tick_lateness,
-        )
 
     # ------------------------------------------------------------ lifecycle
 

@@ -1,75 +1,75 @@
-"""Build the cell's devices from the configuration: a twin or a real driver per device."""
+"""The simulated cell behind the twins and the hardware-in-the-loop emulators, as the product's cell layer sees it.
+
+:class:`Simulation` implements :class:`tandemscan.daemon.cell.CellSimulation` and is loaded lazily through the
+device registry (:data:`tandemscan.drivers.factory.SIMULATION`). It owns the :class:`SimWorld`, builds each
+role's twin (the registry's ``"sim"`` class), runs the emulators for the real drivers with ``[hil] enabled``,
+keeps the world's state in ``state_file`` (the twins save it as they move, scan and read; it is restored when
+the session starts, as a real cell finds its robots where they stopped) and hands out the ground-truth
+observers (:mod:`tandemscan.sim_drivers.scoring`). A hardware-in-the-loop cell whose every device is a real
+driver is a real cell to the product: its jobs get no observer and no surveyed mounts (the world still moves
+under the emulators, and a calibration still finds its plate there).
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import logging
+from functools import partial
+from pathlib import Path
 
 from tandemscan.config.models import CellConfig
-from tandemscan.drivers.factory import ROLES, build_real_device
-from tandemscan.drivers.interfaces import Arm, Chassis, Device, SafetyIO, Scanner, Tracker
+from tandemscan.drivers.factory import ROLES, device_class
+from tandemscan.drivers.interfaces import Device
+from tandemscan.pipeline.installation import Installation
 from tandemscan.sim_drivers.hil import HilEmulators
-from tandemscan.sim_drivers.twins import SimArm, SimChassis, SimSafetyIO, SimScanner, SimTracker
+from tandemscan.sim_drivers.persist import keep_world_state, load_world_state
+from tandemscan.sim_drivers.scoring import CalibrationTruth, TruthObserver
 from tandemscan.sim_drivers.world import SimWorld
 
-
-class CellBuildError(Exception):
-    """The configuration asks for a device that cannot be built."""
+log = logging.getLogger(__name__)
 
 
-@dataclass
-class Cell:
-    """The devices of one cell, and the simulated world when any device is a twin."""
+class Simulation:
+    """One simulated world and what hangs off it; ``world`` may be given (tests that prepare one)."""
 
-    measure_chassis: Chassis
-    tracking_chassis: Chassis
-    arm: Arm
-    scanner: Scanner
-    tracker: Tracker
-    safety: SafetyIO
-    world: SimWorld | None
-    emulators: HilEmulators | None = None
+    def __init__(self, config: CellConfig, *, scan_process: bool = False, state_file: Path | None = None,
+                 world: SimWorld | None = None):
+        self.world = world if world is not None else SimWorld(config)
+        self.world.state_file = state_file
+        real = {role for role in ROLES if getattr(config, role).driver == "real"}
+        self.config = _odometry_from_sim_start(config, real) if config.hil.enabled and real else config
+        self.scan_process = scan_process
+        self.scores = len(real) < len(ROLES)  # some device is a twin: jobs are scored against the truth
+        self.emulators = HilEmulators(self.config, self.world) if config.hil.enabled else None
 
-    def devices(self) -> list[Device]:
-        return [self.measure_chassis, self.tracking_chassis, self.arm, self.scanner, self.tracker, self.safety]
+    def device(self, role: str) -> Device:
+        """The twin of ``role`` on this world (the registry's ``"sim"`` class)."""
+        options = {"measure_chassis": {"robot": SimWorld.MEASURE_ROBOT},
+                   "tracking_chassis": {"robot": SimWorld.TRACKING_ROBOT},
+                   "scanner": {"out_of_process": self.scan_process}}.get(role, {})
+        return device_class(role, "sim")(role, self.world, **options)
 
-    async def connect(self) -> None:
-        """Start the emulators (hardware-in-the-loop), then connect every device; on failure close them all."""
-        try:
-            if self.emulators is not None:
-                await self.emulators.start()
-            for d in self.devices():
-                await d.connect()
-        except BaseException:
-            await self.close()
-            raise
+    async def start(self) -> None:
+        """Restore the saved world state (if any), then start the emulators."""
+        path = self.world.state_file
+        if path is not None and load_world_state(self.world, path):
+            log.info("simulated world restored from %s", path)
+        if self.emulators is not None:
+            await self.emulators.start()
 
-    async def close(self) -> None:
-        for d in self.devices():
-            await d.close()
+    async def stop(self) -> None:
         if self.emulators is not None:
             await self.emulators.stop()
 
+    def job_observer(self, job_key: str, resumed: bool) -> TruthObserver | None:
+        if not self.scores:
+            return None
+        return TruthObserver(self.world, job_key, resumed, partial(keep_world_state, self.world))
 
-def build_cell(config: CellConfig, world: SimWorld | None = None, *, scan_process: bool = False) -> Cell:
-    """Devices per ``config``: a twin or the real driver per role (``driver``); twins and hardware-in-the-loop
-    emulators share ``world`` (made from the config when needed and not given). ``scan_process``: the scanner
-    twin casts its rays in a worker process (the daemon, whose event loop must not block)."""
-    real = {role for role in ROLES if getattr(config, role).driver == "real"}
-    if config.hil.enabled and real:
-        config = _odometry_from_sim_start(config, real)
-    if world is None and (len(real) < len(ROLES) or config.hil.enabled):
-        world = SimWorld(config)
-    twins = {
-        "measure_chassis": lambda: SimChassis("measure_chassis", world, SimWorld.MEASURE_ROBOT),
-        "tracking_chassis": lambda: SimChassis("tracking_chassis", world, SimWorld.TRACKING_ROBOT),
-        "arm": lambda: SimArm("arm", world),
-        "scanner": lambda: SimScanner("scanner", world, out_of_process=scan_process),
-        "tracker": lambda: SimTracker("tracker", world),
-        "safety": lambda: SimSafetyIO("safety", world),
-    }
-    devices = {role: build_real_device(role, config) if role in real else twins[role]() for role in ROLES}
-    emulators = HilEmulators(config, world) if config.hil.enabled and world is not None else None
-    return Cell(**devices, world=world, emulators=emulators)
+    def calibration_observer(self) -> CalibrationTruth:
+        return CalibrationTruth(self.world, self.scores)
+
+    def surveyed_installation(self) -> Installation | None:
+        return self.world.truth if self.scores else None
 
 
 def _odometry_from_sim_start(config: CellConfig, real: set[str]) -> CellConfig:

@@ -2,8 +2,9 @@
 
 Without this a restarted daemon would rebuild the world at its start poses, teleporting both robots; with it,
 a crash test sees what a real cell shows. Saved: the true and odometry pose of each chassis, the arm joints,
-counters, the random generator's state (so the run goes on with the same noise model) and the world frame W
-of the job under way. mm, rad.
+counters, the random generator's state (so the run goes on with the same noise model), the world frame W
+of the job under way and the ground-truth observers' logs. mm, rad. The twins save it as they act
+(:func:`keep_world_state`); :class:`tandemscan.sim_drivers.cell.Simulation` restores it when a session starts.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ def world_state(world: SimWorld) -> dict:
         "tracker_frames": world.tracker_frames,
         "rng": world.rng.bit_generator.state,
         "T_W_F": world.T_W_F.tolist(),
+        "scoring": world.scoring,
     }
 
 
@@ -52,17 +54,26 @@ def restore_world_state(world: SimWorld, state: dict) -> None:
     world.tracker_frames = int(state["tracker_frames"])
     world.rng.bit_generator.state = state["rng"]
     world.T_W_F = np.array(state["T_W_F"], float)
+    world.scoring = state.get("scoring", {})
 
 
 def save_world_state(world: SimWorld, path: Path) -> None:
-    """Write the state durably (temporary file, fsync, rename)."""
+    """Write the state atomically (temporary file, rename): a killed process leaves the old or the new state,
+    never half of one. No fsync: the twins save on the event loop at every reading, and an fsync there would
+    stall the 50 Hz safety loop; after a power cut the simulated robots may be a reading behind, which a resumed
+    job's fresh target reading absorbs."""
     path = Path(path)
     tmp = path.with_name(path.name + ".part")
     with open(tmp, "w", encoding="utf-8") as f:
         json.dump(world_state(world), f)
-        f.flush()
-        os.fsync(f.fileno())
     os.replace(tmp, path)
+
+
+def keep_world_state(world: SimWorld) -> None:
+    """Save the state to ``world.state_file`` where the world has one (the twins call this after every move,
+    capture and reading, so the saved state is never behind what the job recorded)."""
+    if world.state_file is not None:
+        save_world_state(world, world.state_file)
 
 
 def load_world_state(world: SimWorld, path: Path) -> bool:

@@ -2,7 +2,9 @@
 
 Each twin implements its Protocol from :mod:`tandemscan.drivers.interfaces`. Motion takes simulated time
 (``sim.time_scale`` x the physical duration in wall time; 0 makes it instant). Injected faults come from
-``[sim]`` settings: scanner timeouts and an e-stop after a number of chassis moves.
+``[sim]`` settings: scanner timeouts and an e-stop after a number of chassis moves. Every move, capture and
+reading saves the world's state where it has a state file (``sim_drivers.persist``), as a real cell keeps
+its robots where they stopped.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from tandemscan.drivers.interfaces import (
     ScanFrame,
     TrackerReading,
 )
+from tandemscan.sim_drivers.persist import keep_world_state
 from tandemscan.sim_drivers.scan_process import ScanProcess
 from tandemscan.sim_drivers.world import SimWorld
 
@@ -94,6 +97,7 @@ class SimChassis(_SimDevice):
         finally:
             self.world.motion.stop(self.robot)
             self._state = "idle"
+            keep_world_state(self.world)
         return self._truth.odometry
 
     async def odometry(self) -> ChassisPose:
@@ -125,6 +129,7 @@ class SimArm(_SimDevice):
         finally:
             self.world.motion.stop(SimWorld.MEASURE_ROBOT)
             self._state = "idle"
+            keep_world_state(self.world)
 
     async def joints(self) -> np.ndarray:
         self._require_connected()
@@ -180,6 +185,7 @@ class SimScanner(_SimDevice):
                 points, normals = await asyncio.to_thread(self.world.scan)
         finally:
             self._state = "idle"
+            keep_world_state(self.world)
         return ScanFrame(points, normals, None, time.time())
 
 
@@ -189,7 +195,10 @@ class SimTracker(_SimDevice):
     async def read_pose(self, timeout_s: float | None = None) -> TrackerReading:
         self._require_connected()
         await self._elapse(_TRACKER_FRAME_S)
-        T_C_T, cov = self.world.measure_target()
+        try:
+            T_C_T, cov = self.world.measure_target()
+        finally:
+            keep_world_state(self.world)
         return TrackerReading(T_C_T, cov, time.time(), self.world.tracker_frames)
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import open3d as o3d
@@ -147,6 +148,8 @@ class SimWorld:
         self.motion = MotionLog()
         self.captures = 0
         self.tracker_frames = 0
+        self.scoring: dict[str, dict] = {}  # the ground-truth observers' logs, per job (sim_drivers.scoring)
+        self.state_file: Path | None = None  # where the twins keep this state (sim_drivers.persist)
         self.define_world()  # W = the tracker camera frame at its first station
 
     def define_world(self) -> None:

@@ -6,26 +6,27 @@ import json
 from types import SimpleNamespace
 
 import numpy as np
-from tandemscan.daemon.calibrate import calibrate_cell
+from tandemscan.daemon.calibrate import run_calibration
 from tandemscan.daemon.correction import mount_prior
 from tandemscan.daemon.runner import installation_for_job
+from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.installation import Installation
-from tandemscan.sim_drivers.cell import build_cell
 
 
 async def test_calibration_job_recovers_the_true_scanner_mount(sim_config, tmp_path):
     cal = sim_config.calibration.model_copy(update={"poses": 5, "scans_per_pose": 2})
     config = sim_config.model_copy(update={"calibration": cal})
-    cell = build_cell(config)
-    run = await calibrate_cell(cell, config, tmp_path / "calibration.json")
-    truth = cell.world.truth.T_T_S
+    async with CellSession(config) as session:
+        run = await run_calibration(session, config, tmp_path / "calibration.json")
+    cell = session.cell
+    truth = cell.simulation.world.truth.T_T_S
     err_mm, err_rad = F.pose_error(run.installation.T_T_S, truth)
     nominal_mm, _ = F.pose_error(Installation.nominal(config.installation).T_T_S, truth)
     assert nominal_mm > 1.0  # the sim's nominal mount is visibly off
     assert err_mm < 0.2 and np.degrees(err_rad) < 0.02
     assert run.poses_used == 5 and run.hand_eye.point_rms_mm < 0.2
-    assert cell.world.captures >= 2 * 5  # two plate scans averaged at every pose used
+    assert cell.simulation.world.captures >= 2 * 5  # two plate scans averaged at every pose used
 
     data = json.loads((tmp_path / "calibration.json").read_text())
     assert data["sources"]["T_T_S"].startswith("hand-eye")
@@ -33,10 +34,10 @@ async def test_calibration_job_recovers_the_true_scanner_mount(sim_config, tmp_p
     # mounts: the chassis axis (roll, pitch) is now within hundredths of a degree; the nominal was tenths
     for k in ("T_V1_C", "T_V2_B"):
         calibrated, nominal, truth = (getattr(i, k) for i in (run.installation, Installation.nominal(
-            config.installation), cell.world.truth))
+            config.installation), cell.simulation.world.truth))
         tilt = [np.degrees(np.arccos(np.clip(T[2, :3] @ truth[2, :3], -1, 1))) for T in (calibrated, nominal)]
         assert tilt[0] < 0.05 < tilt[1]
-    assert F.pose_error(run.installation.T_E_S, cell.world.truth.T_E_S)[0] < 0.2
+    assert F.pose_error(run.installation.T_E_S, cell.simulation.world.truth.T_E_S)[0] < 0.2
     job = config.job.model_copy(update={"installation_source": "calibration",
                                         "calibration_file": tmp_path / "calibration.json"})
     used = installation_for_job(config.model_copy(update={"job": job}), cell)

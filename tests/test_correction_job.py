@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.runner import JobRunner
+from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.plan import Plan, Scan
-from tandemscan.sim_drivers.cell import build_cell
 
 
 def _first_scans(plan: Plan, n: int) -> Plan:
@@ -22,12 +22,8 @@ def _first_scans(plan: Plan, n: int) -> Plan:
 @pytest.mark.slow
 async def test_runner_corrects_the_stitch_and_reports_before_and_after(sim_config, tmp_path):
     cfg = sim_config.model_copy(update={"correction": sim_config.correction.model_copy(update={"method": "icp"})})
-    cell = build_cell(cfg)
-    await cell.connect()
-    try:
-        result = await JobRunner(cell, _first_scans(Plan.load(default_plan_path()), 2), cfg, tmp_path).run()
-    finally:
-        await cell.close()
+    async with CellSession(cfg) as session:
+        result = await JobRunner(session, _first_scans(Plan.load(default_plan_path()), 2), cfg, tmp_path).run()
     corr = result.report["correction"]
     assert corr["enabled"] and corr["method"] == "icp" and corr["pairs"] == 1
     before, after = corr["before"], result.report["ground_truth"]

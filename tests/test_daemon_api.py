@@ -13,10 +13,11 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, settings
 from tandemscan.daemon.api import create_app
+from tandemscan.daemon.cell import build_cell
 from tandemscan.daemon.client import SseParser
 from tandemscan.daemon.service import BindRefused, Daemon, check_bind, resolve_state_dir, resolve_token, running_server
 from tandemscan.pipeline.plan import MoveArm, Plan, Scan
-from tandemscan.sim_drivers.cell import build_cell
+from tandemscan.sim_drivers.cell import Simulation
 from tandemscan.sim_drivers.world import SimWorld
 
 TOKEN = "s3cret-token"
@@ -50,7 +51,7 @@ class GatedRunner:
             async def step(i=i):
                 self.step_started.set()
                 await self.gate.acquire()
-                async with ctx.supervisor.motion("measure"):
+                async with ctx.session.gate.motion("measure"):
                     q = await ctx.cell.arm.joints()
                     await ctx.cell.arm.move_joints(q)
                 await asyncio.to_thread(ctx.store.commit_step, ctx.job.id, i, "move_arm", {"i": i})
@@ -58,6 +59,11 @@ class GatedRunner:
             await ctx.run_step(i, step)
             await ctx.progress(100.0 * (i + 1) / ctx.job.n_steps, i)
         return {"steps": ctx.job.n_steps}
+
+
+def sim_cell(config, world):
+    """The simulated cell's devices on ``world`` (shared by the tests of a module)."""
+    return build_cell(config, simulation=Simulation(config, world=world))
 
 
 @pytest.fixture
@@ -69,7 +75,7 @@ async def api(tmp_path, sim_config, world):
     Plan(name="short", steps=[Scan()]).save(state / "plans" / "short.toml")
     world.safety.estop = False
     runner = GatedRunner()
-    daemon = Daemon(sim_config, state, runner, token=TOKEN, cell=build_cell(sim_config, world))
+    daemon = Daemon(sim_config, state, runner, token=TOKEN, cell=sim_cell(sim_config, world))
     daemon.sse_heartbeat_s = 0.2
     async with running_server(create_app(daemon, manage_lifecycle=True)) as url:
         async with httpx.AsyncClient(base_url=url, timeout=10) as client:
@@ -251,7 +257,8 @@ async def test_cell_endpoints(api):
     assert plans["default-band"]["default"] and plans["default-band"]["scans"] == 2  # the site file wins
     assert plans["short"]["steps"] == 1 and not plans["short"]["default"]
     calib = (await api.get("/v1/calibration")).json()
-    assert calib["source"] == "truth" and np.allclose(calib["transforms"]["T_T_S"], api.daemon.cell.world.truth.T_T_S)
+    truth = api.daemon.cell.simulation.world.truth
+    assert calib["source"] == "truth" and np.allclose(calib["transforms"]["T_T_S"], truth.T_T_S)
     metrics = (await api.get("/metrics")).text
     assert 'tandemscan_device_connected{device="arm"} 1.0' in metrics
     assert "tandemscan_http_request_seconds_bucket" in metrics and 'tandemscan_jobs{state="queued"} 0.0' in metrics
@@ -319,7 +326,7 @@ def api_schema(world, tmp_path_factory):
     started, stop, box = threading.Event(), threading.Event(), {}
 
     async def serve():
-        daemon = Daemon(config, state, GatedRunner(), token=TOKEN, cell=build_cell(config, world))
+        daemon = Daemon(config, state, GatedRunner(), token=TOKEN, cell=sim_cell(config, world))
         async with running_server(create_app(daemon, manage_lifecycle=True)) as url:
             box["url"] = url
             started.set()

@@ -8,10 +8,12 @@ import time
 
 import numpy as np
 import pytest
-from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT, MotionInterlock, Supervisor, backoff_delays
+from tandemscan.daemon.cell import build_cell
+from tandemscan.daemon.session import CellSession
+from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT, MotionInterlock, backoff_delays
 from tandemscan.drivers.errors import SafetyStop
 from tandemscan.drivers.interfaces import ChassisPose
-from tandemscan.sim_drivers.cell import build_cell
+from tandemscan.sim_drivers.cell import Simulation
 from tandemscan.sim_drivers.world import SimWorld
 
 
@@ -29,8 +31,8 @@ async def sup(slow_world):
     slow_world.safety.estop = False
     slow_world.motion.violations.clear()
     events = []
-    cell = build_cell(slow_world.config, slow_world)
-    s = Supervisor.for_cell(cell, slow_world.config, on_event=lambda k, d: events.append((k, d)))
+    cell = build_cell(slow_world.config, simulation=Simulation(slow_world.config, world=slow_world))
+    s = CellSession(slow_world.config, cell=cell, on_event=lambda k, d: events.append((k, d))).supervisor
     s.reconnect_initial_s = 0.05
     s.health_period_s = 0.05
     await s.start()

@@ -13,7 +13,9 @@ import pytest
 from tandemscan.config import load_config
 from tandemscan.config.loader import default_config_path
 from tandemscan.config.models import CellConfig
-from tandemscan.drivers import ChassisPose, NotConnected
+from tandemscan.daemon.cell import build_cell
+from tandemscan.daemon.session import CellSession, DevicesNotConnected
+from tandemscan.drivers import ChassisPose
 from tandemscan.drivers.agv_can import AgvCanChassis
 from tandemscan.drivers.factory import ROLES, build_real_device
 from tandemscan.drivers.jaka_tcp import JakaTcpArm
@@ -21,7 +23,6 @@ from tandemscan.drivers.metronor import MetronorTracker
 from tandemscan.drivers.phoxi import PhoxiScanner
 from tandemscan.drivers.safety_modbus import ModbusSafetyIO
 from tandemscan.pipeline import frames as F
-from tandemscan.sim_drivers.cell import build_cell
 from tandemscan.sim_drivers.twins import SimArm
 
 
@@ -87,13 +88,13 @@ def test_mixed_cell_keeps_twins_for_sim_roles(box_part):
                                  "part": cfg.part.model_copy(update={"mesh": box_part})})
     cell = build_cell(cfg)
     assert isinstance(cell.safety, ModbusSafetyIO) and isinstance(cell.arm, SimArm)
-    assert cell.world is not None and cell.emulators is None
+    assert cell.simulation.world is not None and cell.simulation.emulators is None
 
 
 async def test_hil_cell_moves_the_world_through_real_transports(box_part):
-    cell = build_cell(hil_config(box_part))
-    world = cell.world
-    await cell.connect()
+    session = CellSession(hil_config(box_part), connect_timeout_s=30.0)
+    cell, world = session.cell, session.cell.simulation.world
+    await session.open()
     try:
         # chassis: odometry starts at the simulated start pose and the world's chassis follows the emulator
         start = await cell.measure_chassis.odometry()
@@ -117,13 +118,13 @@ async def test_hil_cell_moves_the_world_through_real_transports(box_part):
         assert (await cell.safety.read()).motion_allowed
         assert not world.motion.violations
     finally:
-        await cell.close()
+        await session.close()
 
 
 async def test_hil_tracker_and_safety_read_the_world(box_part):
-    cell = build_cell(hil_config(box_part))
-    world = cell.world
-    await cell.connect()
+    session = CellSession(hil_config(box_part), connect_timeout_s=30.0)
+    cell, world = session.cell, session.cell.simulation.world
+    await session.open()
     try:
         assert world.target_visibility() is None  # the default start: the tracker sees the target
         reading = await cell.tracker.read_pose(timeout_s=2.0)
@@ -136,15 +137,53 @@ async def test_hil_tracker_and_safety_read_the_world(box_part):
             await asyncio.sleep(0.01)
         assert (await cell.safety.read()).estop
     finally:
-        await cell.close()
+        await session.close()
 
 
 async def test_failed_connect_closes_everything(box_part):
     cfg = hil_config(box_part)
     cfg = cfg.model_copy(update={"scanner": cfg.scanner.model_copy(
         update={"phoxi": cfg.scanner.phoxi.model_copy(update={"harvesters_module": "no_such_module"})})})
-    cell = build_cell(cfg)
-    with pytest.raises(NotConnected, match="scanner: no_such_module"):
-        await cell.connect()
-    assert not cell.emulators.running
+    session = CellSession(cfg, connect_timeout_s=1.0)
+    cell = session.cell
+    with pytest.raises(DevicesNotConnected, match="not connected: scanner .*no_such_module"):
+        await session.open()
+    assert not cell.simulation.emulators.running
     assert not (await cell.arm.status()).connected
+
+
+async def test_a_job_on_the_hil_cell_needs_no_ground_truth_and_is_inspected(box_part, tmp_path):
+    """Every device a real driver: the product path alone, no observer; the inspection registers W to CAD by the
+    job's own anchor reading."""
+    from tandemscan.daemon.cli import default_plan_path
+    from tandemscan.daemon.runner import JobRunner
+    from tandemscan.pipeline.plan import Plan, Scan
+
+    cfg = hil_config(box_part)
+    cfg = cfg.model_copy(update={
+        "deepmerge": cfg.deepmerge.model_copy(update={"enabled": False}),
+        "inspection": cfg.inspection.model_copy(update={"views": ("isometric",), "map_width_px": 300})})
+    plan = Plan.load(default_plan_path())
+    scans = [i for i, s in enumerate(plan.steps) if isinstance(s, Scan)]
+    plan = plan.model_copy(update={"steps": plan.steps[: scans[1] + 1]})
+    async with CellSession(cfg, connect_timeout_s=30.0) as session:
+        assert session.job_observer("job") is None and session.cell.simulation.surveyed_installation() is None
+        result = await JobRunner(session, plan, cfg, tmp_path / "job").run()
+    report = result.report
+    assert "ground_truth" not in report and report["scans"] == 2 and report["installation_source"] == "nominal"
+    assert report["relocalisation"]["anchor"]["placed"] and (tmp_path / "job" / "report.html").is_file()
+    assert "as_measured" in report["inspection"]
+
+
+async def test_the_daemon_on_the_hil_cell_starts_its_emulators(box_part, tmp_path):
+    from tandemscan.daemon.service import Daemon
+
+    daemon = Daemon(hil_config(box_part), tmp_path / "state", connect_timeout_s=30.0)
+    await daemon.start()
+    try:
+        assert daemon.supervisor.all_connected
+        assert set(daemon.cell.simulation.emulators.running) == {"arm", "measure_chassis", "tracking_chassis",
+                                                                  "tracker", "safety"}
+    finally:
+        await daemon.close()
+    assert not daemon.cell.simulation.emulators.running

@@ -10,9 +10,9 @@ import numpy as np
 import pye57
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.runner import JobRunner
+from tandemscan.daemon.session import CellSession
 from tandemscan.daemon.stitcher import LocalWorldMap
 from tandemscan.pipeline.plan import Plan, Scan
-from tandemscan.sim_drivers.cell import build_cell
 
 
 class PerfectlyCorrectedRunner(JobRunner):
@@ -20,8 +20,9 @@ class PerfectlyCorrectedRunner(JobRunner):
 
     async def _export(self, seconds):
         self.worldmap = LocalWorldMap(self.config.job.voxel_mm)
+        truth = self.observer.scorer().T_W_S_true
         for s in self.scans:
-            s.T_W_S = s.T_W_S_true
+            s.T_W_S = truth[s.index]
             await self.worldmap.add_scan(s.file, s.T_W_S)
         return await super()._export(seconds)
 
@@ -32,21 +33,20 @@ async def test_job_writes_report_and_exports_next_to_cloud(sim_config, tmp_path)
     plan = plan.model_copy(update={"steps": plan.steps[: scans[1] + 1]})  # the first two scans only
     inspection = sim_config.inspection.model_copy(update={"views": ("isometric",), "map_width_px": 300})
     config = sim_config.model_copy(update={"inspection": inspection})
-    cell = build_cell(config)
-    await cell.connect()
-    try:
-        result = await PerfectlyCorrectedRunner(cell, plan, config, tmp_path / "job").run()
-    finally:
-        await cell.close()
+    async with CellSession(config) as session:
+        result = await PerfectlyCorrectedRunner(session, plan, config, tmp_path / "job").run()
     job = result.job_dir
     for name in ("cloud.ply", "report.html", "report.json", "cloud_deviation.ply", "cloud.e57", "poses.csv"):
         assert (job / name).is_file(), name
     report = json.loads((job / "report.json").read_text())
     ins = report["inspection"]
     assert ins["as_measured"]["stats"]["count"] == report["points_cloud"] > 1000
-    # the sim cell stitches with true mounts: the cloud lies on the part to a fraction of a millimetre
+    # the sim cell stitches with true mounts: registered to CAD by the job's own anchor (one target reading at
+    # the start, Eq. 5, no truth) the cloud lies on the part to a fraction of a millimetre ...
     assert abs(ins["as_measured"]["stats"]["mean_mm"]) < 0.2 and ins["as_measured"]["stats"]["rms_mm"] < 0.3
-    assert abs(ins["as_measured"]["stats"]["rms_mm"] - report["ground_truth"]["cloud_rms_mm"]) < 1e-3
+    assert report["relocalisation"]["anchor"]["placed"] and np.asarray(ins["T_F_W"]).shape == (4, 4)
+    # ... and once best-fitted it is the cloud the ground-truth observer scored
+    assert abs(ins["best_fit"]["stats"]["rms_mm"] - report["ground_truth"]["cloud_rms_mm"]) < 1e-3
     (pair,) = ins["stitching"]  # tracker-only stitch before, the (perfect) correction after
     assert pair["points"] > 100 and pair["rms_after_mm"] < pair["rms_before_mm"]
     assert pair["rms_after_mm"] < 0.1  # scanner noise only
@@ -72,13 +72,14 @@ def test_inspection_skipped_with_reason(sim_config, tmp_path):
 
     from tandemscan.daemon.job_outputs import write_job_outputs
 
-    def runner(config, world):
+    def runner(config, T_F_W):
         worldmap = SimpleNamespace(points=lambda: np.zeros((0, 3)), normals=lambda: None)
-        return SimpleNamespace(job_dir=tmp_path, scans=[], worldmap=worldmap, world=world, config=config)
+        return SimpleNamespace(job_dir=tmp_path, scans=[], worldmap=worldmap, T_F_W=T_F_W, config=config)
 
     off = sim_config.model_copy(update={"inspection": sim_config.inspection.model_copy(update={"in_job": False})})
-    assert write_job_outputs(runner(off, object()), {})["skipped"] == "inspection.in_job is off"
-    real_cell = write_job_outputs(runner(sim_config, None), {})
-    assert real_cell["skipped"] == "no registration of the world frame to the CAD frame"
+    assert write_job_outputs(runner(off, np.eye(4)), {})["skipped"] == "inspection.in_job is off"
+    unplaced = write_job_outputs(runner(sim_config, None), {})  # relocalisation off or the target never seen
+    assert unplaced["skipped"] == "no registration of the world frame to the CAD frame"
+    assert write_job_outputs(runner(sim_config, np.eye(4)), {})["skipped"] == "empty cloud"
     assert (tmp_path / "poses.csv").read_text().startswith("index,name,points")
     assert not (tmp_path / "report.html").exists()

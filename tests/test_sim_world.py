@@ -4,18 +4,20 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from tandemscan.daemon.cell import build_cell
 from tandemscan.drivers import ChassisPose, NotConnected, OutOfReach, SafetyStop, TargetNotVisible
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.scoring import cloud_to_mesh_distances
-from tandemscan.sim_drivers.cell import build_cell
 
 
 @pytest.fixture
 async def cell(sim_config):
     c = build_cell(sim_config)
-    await c.connect()
+    for d in c.devices():  # the twins themselves, without a session's supervisor
+        await d.connect()
     yield c
-    await c.close()
+    for d in c.devices():
+        await d.close()
 
 
 async def _face_the_side(cell):
@@ -33,7 +35,7 @@ async def _face_the_side(cell):
 async def test_scanned_points_lie_on_the_mesh_within_the_noise(cell):
     await _face_the_side(cell)
     frame = await cell.scanner.capture()
-    world = cell.world
+    world = cell.simulation.world
     assert len(frame.points_mm) > 10_000
     depth = frame.points_mm[:, 2]
     assert depth.min() >= 384 - 0.5 and depth.max() <= 520 + 0.5
@@ -46,7 +48,7 @@ async def test_scanned_points_lie_on_the_mesh_within_the_noise(cell):
 
 async def test_tracker_noise_matches_its_model(cell):
     await _face_the_side(cell)
-    world = cell.world
+    world = cell.simulation.world
     T_true = F.invert(world.T_F_C()) @ world.T_F_T()
     readings = [await cell.tracker.read_pose() for _ in range(200)]
     errors = np.array([r.T_C_T[:3, 3] - T_true[:3, 3] for r in readings])
@@ -75,7 +77,7 @@ async def test_tracker_raises_beyond_range_and_outside_the_view(cell):
 
 
 async def test_an_agv_never_lands_exactly_where_commanded(cell):
-    world = cell.world
+    world = cell.simulation.world
     target = ChassisPose(-1800.0 + 2000.0, 2300.0, 0.0)
     odo = await cell.measure_chassis.move_to(target)
     assert odo == target  # closed loop on odometry: it believes it arrived
@@ -88,7 +90,7 @@ async def test_an_agv_never_lands_exactly_where_commanded(cell):
 async def test_safety_stop_refuses_motion_and_arm_limits_are_enforced(cell):
     with pytest.raises(OutOfReach):
         await cell.arm.move_joints(np.radians([0, -120, 0, 0, 0, 0]))
-    cell.world.safety.estop = True
+    cell.simulation.world.safety.estop = True
     assert not (await cell.safety.read()).motion_allowed
     with pytest.raises(SafetyStop, match="e-stop"):
         await cell.measure_chassis.move_to(ChassisPose(0.0, 0.0, 0.0))
@@ -103,9 +105,35 @@ async def test_twins_refuse_verbs_before_connect(sim_config):
 
 
 def test_installation_truth_differs_from_nominal(sim_config):
-    world = build_cell(sim_config).world
+    world = build_cell(sim_config).simulation.world
     for name in ("T_V1_C", "T_V2_B", "T_E_S", "T_T_S"):
         err_mm, err_rad = F.pose_error(getattr(world.truth, name), getattr(world.nominal, name))
         assert 0.1 < err_mm < 15 and 1e-4 < err_rad < 0.03
-    world2 = build_cell(sim_config).world
+    world2 = build_cell(sim_config).simulation.world
     np.testing.assert_array_equal(world.truth.T_T_S, world2.truth.T_T_S)  # seeded: reproducible
+
+
+async def test_the_twins_keep_the_world_state_and_a_new_simulation_restores_it(sim_config, tmp_path):
+    """As a real cell keeps its robots where they stopped: what the twins did is in the state file after each
+    move and reading, and a restarted simulation (a restarted daemon) goes on from there, observer log too."""
+    from tandemscan.sim_drivers.cell import Simulation
+
+    state = tmp_path / "sim_world.json"
+    first = Simulation(sim_config, state_file=state)
+    chassis, tracker = first.device("tracking_chassis"), first.device("tracker")
+    for d in (chassis, tracker):
+        await d.connect()
+    observer = first.job_observer("job-1", resumed=False)
+    o = await chassis.odometry()
+    await chassis.move_to(ChassisPose(o.x_mm + 200.0, o.y_mm, o.heading_rad))
+    observer.scan_measured(0)
+    await tracker.read_pose()
+    world = first.world
+    again = Simulation(sim_config, state_file=state)
+    assert not np.allclose(again.world.T_F_V1, world.T_F_V1)  # a fresh world stands at the start ...
+    await again.start()  # ... until the session starts it from the saved state
+    np.testing.assert_array_equal(again.world.T_F_V1, world.T_F_V1)
+    np.testing.assert_array_equal(again.world.T_W_F, world.T_W_F)
+    assert again.job_observer("job-1", resumed=True).scorer().T_W_S_true.keys() == {0}
+    np.testing.assert_array_equal(again.world.measure_target()[0], world.measure_target()[0])  # same noise next
+    await again.stop()

@@ -1,0 +1,179 @@
+"""E-stop latency in the command-line path: ``tandemscan measure`` and ``tandemscan calibrate`` on the
+hardware-in-the-loop cell (config/hil-cell.toml, every real driver against its emulator, ports made free).
+
+For each command and each robot, the e-stop is raised (the world's safety input, which the hil glue mirrors
+onto the Modbus emulator) as that robot's first motion after the second capture starts. Measured on the
+emulators' side, from the Modbus discrete input's change: ``last_motion_command_ms``, the last motion command
+a moving device received (a chassis: a non-zero velocity CAN frame; the arm: ``joint_move``/``moveL``; negative
+= before the input changed) and ``stop_command_ms``, the first stop it received after (a zero-velocity frame,
+``stop_program``). The requirement is motion stopped within one control period (20 ms at 50 Hz).
+
+Usage: python benchmarks/estop_cli.py [--runs N]. The last line of output is one JSON object: per case
+(``measure.arm``, ``measure.tracking_chassis``, ``calibrate.arm``, ``calibrate.tracking_chassis``) the exit
+status, the latched reason and the two figures (median and max over the runs, ms).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import socket
+import tempfile
+import time
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import tomli_w
+from tandemscan.config import load_config
+from tandemscan.config.loader import default_config_path
+from tandemscan.daemon import cli
+from tandemscan.sim_drivers.world import SimWorld
+
+CASES = (("measure", "arm"), ("measure", "tracking_chassis"), ("calibrate", "arm"), ("calibrate", "tracking_chassis"))
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def hil_config_file(folder: Path) -> Path:
+    """The shipped hil-cell.toml with free ports, a 3 x 2 x 1.6 m box as the part and the arm at 1/20 of real
+    time (the shipped 1/500 ends most arm moves within a few ms)."""
+    mesh = o3d.geometry.TriangleMesh.create_box(3000.0, 2000.0, 1600.0).translate((-1500.0, -1000.0, 0.0))
+    mesh.compute_triangle_normals()
+    o3d.io.write_triangle_mesh(str(folder / "box.stl"), mesh)
+    shipped = default_config_path().parent / "hil-cell.toml"
+    data = tomllib.loads(shipped.read_text(encoding="utf-8"))
+    data["part"] = {"mesh": str(folder / "box.stl")}
+    data["scanner"]["phoxi"]["producer_path"] = str(load_config(shipped).scanner.phoxi.producer_path)
+    data["arm"]["jaka"] |= {"command_port": _free_port(), "status_port": _free_port()}
+    data["tracker"]["stream"]["port"] = _free_port()
+    data["safety"]["modbus"]["port"] = _free_port()
+    data["measure_chassis"]["can"]["channel"] = f"bench-m-{_free_port()}"
+    data["tracking_chassis"]["can"]["channel"] = f"bench-t-{_free_port()}"
+    data["calibration"] = {"poses": 6}
+    data["hil"]["arm_time_scale"] = 0.05  # arm moves of tens of ms: the e-stop lands while the arm moves
+    path = folder / "hil-cell.toml"
+    path.write_bytes(tomli_w.dumps(data).encode())
+    return path
+
+
+class EstopProbe:
+    """Raises the e-stop on ``device``'s first motion after the second capture and timestamps, on the emulators,
+    the input change and every motion and stop command (monotonic s)."""
+
+    def __init__(self, device: str):
+        self.device = device
+        self.input_changed_s: float | None = None
+        self.motion_s: list[float] = []
+        self.stop_s: list[float] = []
+        self.latched: str | None = None
+
+    def attach(self, session) -> None:
+        world = session.cell.simulation.world
+        emulators = session.cell.simulation.emulators
+        start = world.motion.start
+        self._instrumented = False
+
+        def started(robot: str) -> None:
+            start(robot)
+            if not self._instrumented:
+                self._instrument(emulators.running)
+            if world.captures >= 2 and not world.safety.estop and self._moving(robot, emulators.running):
+                world.safety.estop = True
+
+        world.motion.start = started
+        self.session = session
+
+    def _moving(self, robot: str, running: dict) -> bool:
+        if self.device == "tracking_chassis":
+            return robot == SimWorld.TRACKING_ROBOT
+        return robot == SimWorld.MEASURE_ROBOT and running["measure_chassis"].velocity == (0.0, 0.0)
+
+    def _instrument(self, running: dict) -> None:
+        self._instrumented = True
+        safety = running["safety"]
+        press = safety.press_estop
+
+        async def press_estop(pressed: bool = True) -> None:
+            await press(pressed)
+            if pressed and self.input_changed_s is None:
+                self.input_changed_s = time.monotonic()
+
+        safety.press_estop = press_estop
+        emulator = running[self.device]
+        if self.device == "arm":
+            execute = emulator._execute
+
+            async def traced(name: str, req: dict) -> dict:
+                (self.motion_s if name in ("joint_move", "moveL") else self.stop_s if name == "stop_program"
+                 else []).append(time.monotonic())
+                return await execute(name, req)
+
+            emulator._execute = traced
+            return
+        link = emulator._link
+        recv = link.recv
+
+        async def received():
+            name, signals, message = await recv()
+            if name == "MotionCommand":
+                moving = signals["LinearVelocity"] != 0 or signals["AngularVelocity"] != 0
+                (self.motion_s if moving else self.stop_s).append(time.monotonic())
+            return name, signals, message
+
+        link.recv = received
+
+    def figures(self) -> dict:
+        t0 = self.input_changed_s
+        if t0 is None:
+            return {"input_changed": False}
+        stops = [t for t in self.stop_s if t >= t0]
+        return {"last_motion_command_ms": round(1000 * (max(self.motion_s) - t0), 2) if self.motion_s else None,
+                "stop_command_ms": round(1000 * (min(stops) - t0), 2) if stops else None}
+
+
+def run_case(config_file: Path, command: str, device: str, out: Path) -> dict:
+    probe = EstopProbe(device)
+    build = cli._session
+
+    def spied(config):
+        session = build(config)
+        probe.attach(session)
+        return session
+
+    cli._session = spied
+    try:
+        target = ["--out", str(out / "calibration.json")] if command == "calibrate" else ["--out", str(out)]
+        status = cli.main([command, "--config", str(config_file), *target])
+    finally:
+        cli._session = build
+    return {"exit_status": status, "latched": probe.session.supervisor.latched_reason, **probe.figures()}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=3)
+    args = parser.parse_args()
+    result = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        for command, device in CASES:
+            runs = [run_case(hil_config_file(folder), command, device, folder / f"{command}-{device}-{i}")
+                    for i in range(args.runs)]
+            case = {"exit_status": sorted({r["exit_status"] for r in runs}),
+                    "latched": sorted({str(r["latched"]) for r in runs})}
+            for key in ("last_motion_command_ms", "stop_command_ms"):
+                values = [r[key] for r in runs if r.get(key) is not None]
+                if values:
+                    case[key] = {"median": float(np.median(values)), "max": float(np.max(values))}
+            result[f"{command}.{device}"] = case
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()
