@@ -6,8 +6,9 @@ from dataclasses import dataclass
 
 from tandemscan.config.models import CellConfig
 from tandemscan.drivers.factory import ROLES, build_real_device
-from tandemscan.drivers.interfaces import Arm, Chassis, Device, SafetyIO, Scanner, Tracker
+from tandemscan.drivers.interfaces import Arm, Chassis, Device, Lift, SafetyIO, Scanner, Tracker
 from tandemscan.sim_drivers.hil import HilEmulators
+from tandemscan.sim_drivers.lift import SimLift
 from tandemscan.sim_drivers.twins import SimArm, SimChassis, SimSafetyIO, SimScanner, SimTracker
 from tandemscan.sim_drivers.world import SimWorld
 
@@ -28,9 +29,11 @@ class Cell:
     safety: SafetyIO
     world: SimWorld | None
     emulators: HilEmulators | None = None
+    lift: Lift | None = None  # the measurement AGV's lifting column, where it has one
 
     def devices(self) -> list[Device]:
-        return [self.measure_chassis, self.tracking_chassis, self.arm, self.scanner, self.tracker, self.safety]
+        devices = [self.measure_chassis, self.tracking_chassis, self.arm, self.scanner, self.tracker, self.safety]
+        return devices + ([self.lift] if self.lift is not None else [])
 
     async def connect(self) -> None:
         """Start the emulators (hardware-in-the-loop), then connect every device; on failure close them all."""
@@ -69,7 +72,16 @@ def build_cell(config: CellConfig, world: SimWorld | None = None, *, scan_proces
     }
     devices = {role: build_real_device(role, config) if role in real else twins[role]() for role in ROLES}
     emulators = HilEmulators(config, world) if config.hil.enabled and world is not None else None
-    return Cell(**devices, world=world, emulators=emulators)
+    return Cell(**devices, world=world, emulators=emulators, lift=_lift(config, world))
+
+
+def _lift(config: CellConfig, world: SimWorld | None) -> Lift | None:
+    """The lifting column per ``[lift]``: none, or its twin (no real column driver exists yet)."""
+    if not config.lift.enabled:
+        return None
+    if config.lift.driver == "real" or world is None:
+        raise CellBuildError("[lift] driver = 'real': no driver for a real lifting column exists yet (use 'sim')")
+    return SimLift("lift", world)
 
 
 def _odometry_from_sim_start(config: CellConfig, real: set[str]) -> CellConfig:
