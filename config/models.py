@@ -7,14 +7,13 @@ Units: millimetres, radians inside. Where a TOML key is a human-facing angle it 
 from __future__ import annotations
 
 import math
+import tomllib
+from functools import cache
+from importlib import resources
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
-import tomllib
-from functools import cache
-from importlib import resources
-
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 DriverKind = Literal["sim", "real"]

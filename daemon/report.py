@@ -25,6 +25,7 @@ def build_report(job: JobSnapshot, seconds: float) -> dict:
         "installation_source": job.config.job.installation_source,
         "seconds": round(seconds, 3),
         "scans_planned": job.plan.scan_count,
+        "left_out_by_plan": [a.model_dump() for a in job.plan.left_out],  # what the plan could not measure, where
         "scans_empty": [s.index for s in job.scans if s.point_count == 0],
         "transfer_log": job.transfers,
         "relocalisation": relocalisation_summary(job.relocalisation),

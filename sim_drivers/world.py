@@ -179,7 +179,8 @@ class SimWorld:
 
     def T_F_E(self) -> np.ndarray:
         """Arm flange in the floor frame."""
-        return self.T_F_V2 @ arm_base_on_column(self.truth.T_V2_B, self.lift_mm) @ self.kinematics.forward(self.joints_rad)
+        T_V2_B = arm_base_on_column(self.truth.T_V2_B, self.lift_mm)  # the column raises the arm's mount
+        return self.T_F_V2 @ T_V2_B @ self.kinematics.forward(self.joints_rad)
 
     def T_F_S(self) -> np.ndarray:
         """Scanner optical frame in the floor frame."""

@@ -333,21 +333,21 @@ def plan_station(
         moves = margin_moves(setup.T_V2_B, planning)  # a column's lift commutes with the AGV's planar offsets
         for i in order:
             ks = np.flatnonzero(owner_arr == i)
-            pose = None
-            for level in np.argsort(to_shoulder[:, ks[0]], kind="stable"):
-                pose = _best_view(ik, T_B_E[level], T_F_S, ks[in_reach[level, ks]], seeds[level], moves, pose,
-                                  lambda k, q, robust, level=level: ScanPose(
-                                      station.index, cells[i], T_F_S[k], np.asarray(q, float), tilts[k], robust,
-                                      float(heights[level])))
-                if pose is not None and pose.robust:
+            best = None  # (level, k, q, robust)
+            for level in range(len(heights)):  # lowest first: fewer column moves, targets facing out
+                view = _best_view(ik, T_B_E[level], ks[in_reach[level, ks]], seeds[level], moves)
+                if view is not None and (best is None or (view[2] and not best[3])):
+                    best = (int(level), *view)
+                if best is not None and best[3]:
                     break
-            if pose is None:
+            if best is None:
                 column = f" at any column height {heights[0]:.0f}-{heights[-1]:.0f} mm" if len(heights) > 1 else ""
                 unreached.append(Unreached(station.index, cells[i], "no joint solution within the limits for any "
                                            f"view within {math.degrees(limit):.0f} deg of the surface normal{column}"))
             else:
-                found.append(pose)
-                seeds[int(np.flatnonzero(heights == pose.lift_mm)[0])] = pose.joints_rad
+                level, k, q, robust = best
+                found.append(ScanPose(station.index, cells[i], T_F_S[k], q, tilts[k], robust, float(heights[level])))
+                seeds[level] = q
     ordered, travel = [], 0.0
     for h in sorted({p.lift_mm for p in found}):
         group, group_travel = _least_travel_order([p for p in found if p.lift_mm == h])
@@ -356,22 +356,20 @@ def plan_station(
     return StationRaster(station, rows, cols, tuple(ordered), tuple(unreached), travel)
 
 
-def _best_view(ik: IkSolver, T_B_E: np.ndarray, T_F_S: np.ndarray, candidates: np.ndarray, seed: np.ndarray,
-               moves: np.ndarray, fallback: ScanPose | None, make) -> ScanPose | None:
-    """The first of ``candidates`` (indices into ``T_B_E``, in preference order) that IK reaches and that stays
-    reachable under the AGV ``moves``; else the first reachable one, or ``fallback`` when there is one already.
-    ``make(k, q, robust)`` builds the pose."""
-    pose = fallback
+def _best_view(ik: IkSolver, T_B_E: np.ndarray, candidates: np.ndarray, seed: np.ndarray,
+               moves: np.ndarray) -> tuple[int, np.ndarray, bool] | None:
+    """``(k, q, robust)`` of the first of ``candidates`` (indices into ``T_B_E``, in preference order) that IK
+    reaches and that stays reachable under the AGV ``moves``, else of the first reachable one; None if none is."""
+    first = None
     for k in candidates:
         q = ik(T_B_E[k], seed)
         if q is None:
             continue
-        robust = _robust(ik, T_B_E[k], q, moves)
-        if pose is None or robust:
-            pose = make(k, q, robust)
-        if robust:
-            break
-    return pose
+        if _robust(ik, T_B_E[k], q, moves):
+            return int(k), np.asarray(q, float), True
+        if first is None:
+            first = (int(k), np.asarray(q, float), False)
+    return first
 
 
 def _least_travel_order(found: list[ScanPose]) -> tuple[list[ScanPose], float]:

@@ -109,6 +109,24 @@ def seen_triangles(
     return seen
 
 
+def triangle_geometry(mesh: o3d.geometry.TriangleMesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per triangle: area (mm^2), outward unit normal and centroid (F, mm), whatever the mesh's winding."""
+    p = np.asarray(mesh.vertices)[np.asarray(mesh.triangles)]
+    cross = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    if np.einsum("ij,ij->i", p[:, 0], cross).sum() < 0:  # inward winding: turn the normals outward
+        cross = -cross
+    area = 0.5 * np.linalg.norm(cross, axis=1)
+    return area, cross / np.maximum(2 * area, 1e-12)[:, None], p.mean(axis=1)
+
+
+def pose_fits(mesh: o3d.geometry.TriangleMesh, sweet_spot_mm: float, incidence_limit_rad: float) -> np.ndarray:
+    """Per triangle: some scanner pose within the incidence limit fits above the floor clearance (the surface
+    the coverage figures count)."""
+    _, normal, centroid = triangle_geometry(mesh)
+    zmin = float(np.asarray(mesh.vertices)[:, 2].min())
+    return ~no_pose_fits(centroid, normal, zmin, sweet_spot_mm, incidence_limit_rad)
+
+
 def no_pose_fits(centroid: np.ndarray, normal: np.ndarray, zmin: float, sweet_spot_mm: float,
                  incidence_limit_rad: float) -> np.ndarray:
     """Per triangle: even the most upward view within the incidence limit puts the scanner under the clearance."""
@@ -136,16 +154,10 @@ def dry_run(
     ``tracked[i]`` (default: all): the tracker sees the target at the i-th pose of ``rasters`` (in raster
     order); the poses it does not see are not scanned and their surface is "outside the tracker's view".
     """
-    v = np.asarray(mesh.vertices)
     tri = np.asarray(mesh.triangles)
-    p = v[tri]
-    cross = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    if np.einsum("ij,ij->i", p[:, 0], cross).sum() < 0:  # inward winding: turn the normals outward
-        cross = -cross
-    area = 0.5 * np.linalg.norm(cross, axis=1)
-    normal = cross / np.maximum(2 * area, 1e-12)[:, None]
-    centroid = p.mean(axis=1)
-    zmin = float(v[:, 2].min())
+    p = np.asarray(mesh.vertices)[tri]
+    area, normal, centroid = triangle_geometry(mesh)
+    zmin = float(p[:, :, 2].min())
     poses = [ps for r in rasters for ps in r.poses]
     tracked = np.ones(len(poses), bool) if tracked is None else np.asarray(tracked, bool)
     seen = seen_triangles(mesh, scene, [ps.T_F_S for ps, ok in zip(poses, tracked, strict=True) if ok], scanner)
