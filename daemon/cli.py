@@ -108,7 +108,7 @@ def _plan_to_measure(args: argparse.Namespace, config: CellConfig, job_dir: Path
     job_dir.mkdir(parents=True, exist_ok=True)
     part_plan.sequence.plan.save(job_dir / "plan.toml")
     console.print(f"no --plan given: planned {args.part}: {describe(part_plan)}; plan {job_dir / 'plan.toml'}",
-                  highlight=False)
+                  highlight=False, soft_wrap=True)
     return part_plan.sequence.plan
 
 
@@ -300,7 +300,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.func(args)
     except (UsageError, ConfigError) as e:
-        console.print(f"[red]error:[/red] {e}", highlight=False)
+        console.print(f"[red]error:[/red] {e}", highlight=False, soft_wrap=True)  # one line, however long
         return EXIT_USAGE
     except KeyboardInterrupt:
         console.print("[yellow]interrupted[/yellow]")
