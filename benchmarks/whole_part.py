@@ -77,6 +77,7 @@ async def run(args: argparse.Namespace) -> dict:
         "scans": r["scans"], "scans_planned": r["scans_planned"], "scans_empty": len(r["scans_empty"]),
         "lift_moves": part_plan.summary()["lift_moves"], "transfers": r["transfers"],
         "unresolved_poses": r["relocalisation"]["unresolved_count"],
+        "scans_untracked": r["relocalisation"]["untracked_count"],
         "robots_moved_together": len(g.get("robots_moved_together", [])),
         "tracker_only_cloud_rms_mm": before.get("cloud_rms_mm"), "cloud_rms_mm": g["cloud_rms_mm"],
         "cloud_p95_mm": g["cloud_p95_mm"], "plan_seconds": round(plan_seconds, 1), "job_seconds": round(seconds, 1),

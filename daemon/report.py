@@ -48,6 +48,7 @@ def relocalisation_summary(log: dict) -> dict:
     the true one (mm, deg, maxima)."""
     located = log.get("located", [])
     out = dict(log) | {"stations_located": len(located), "unresolved_count": len(log.get("unresolved", [])),
+                       "untracked_count": len(log.get("untracked", [])),
                        "adjusted_count": len(log.get("adjusted", []))}
     for key in ("off_plan_mm", "off_plan_deg", "err_to_truth_mm", "err_to_truth_deg"):
         values = [e[key] for e in located if key in e]

@@ -189,7 +189,7 @@ class JobRunner:
         self.T_F_V2: np.ndarray | None = None  # the measurement AGV in F as measured; None since it drove unmeasured
         self.planned_T_F_V2: np.ndarray | None = None  # where the plan (or, at the start, the odometry) puts it
         self.relocalisation: dict = {"enabled": self.relocaliser is not None, "anchor": None, "located": [],
-                                     "unresolved": [], "adjusted": []}
+                                     "unresolved": [], "adjusted": [], "untracked": []}
         self.lift_mm = 0.0  # the lifting column's height (mm above the arm's mount) as last reported
 
     async def read_target(self) -> TrackerReading:
@@ -263,8 +263,19 @@ class JobRunner:
             async with self.journal.motion(MEASURE_ROBOT):
                 await self.cell.arm.move_joints(joints, self.config.arm.timeout_s)
             return {"joints_rad": joints.tolist(), **extra}, None
-        record = await self._scan()
+        try:
+            record = await self._scan()
+        except TargetNotVisible as e:  # e.g. a nearby view the plan's tracker cover did not check: go on
+            return {"untracked": self._untracked(i, e.reason)}, None
         return _scan_result(record), (record.file, record.point_count)
+
+    def _untracked(self, i: int, reason: str) -> dict:
+        """A scan left out because the tracker could not see the target: the report entry (step, label, why)."""
+        step = self.plan.steps[i]
+        entry = {"step": i, "label": step.label if isinstance(step, Scan) else "", "reason": reason}
+        log.warning("step %d (%s): scan left out, %s", i, entry["label"], reason)
+        self.relocalisation["untracked"].append(entry)
+        return entry
 
     async def _move_lift(self, step: MoveLift) -> dict:
         """Raise or lower the measurement AGV's lifting column, inside the measurement robot's motion gate."""
@@ -292,6 +303,8 @@ class JobRunner:
         elif isinstance(step, (MoveMeasure, MoveArm)):
             self.last_still_T_C_T = None
             self._restore_relocalisation(result)
+        elif isinstance(step, Scan) and "untracked" in result:
+            self.relocalisation["untracked"].append(result["untracked"])
         elif isinstance(step, Scan):
             record = _scan_from_result(result, self.job_dir)
             self.scans.append(record)

@@ -189,3 +189,24 @@ def test_measure_part_without_a_plan_plans_that_part_and_says_so(tmp_path, capsy
     plan = Plan.load(job_dir / "plan.toml")
     assert plan.part_identity.triangles == 12 and plan.scan_count > 0
     assert any(isinstance(s, MoveTracker) for s in plan.steps) or plan.transfer_count == 0
+
+
+async def test_a_scan_whose_target_the_tracker_cannot_see_is_left_out_and_reported(sim_config, tmp_path):
+    config = sim_config.model_copy(update={
+        "deepmerge": sim_config.deepmerge.model_copy(update={"enabled": False}),
+        "inspection": sim_config.inspection.model_copy(update={"in_job": False}),
+        "job": sim_config.job.model_copy(update={"relocalise": False})})
+    band = Plan.load(default_plan_path()).steps
+    drive, pose = next(s for s in band if isinstance(s, MoveMeasure)), next(s for s in band if isinstance(s, MoveArm))
+    away = np.array(pose.joints_rad) + np.radians([180.0, 0, 0, 0, 0, 0])  # the target turned from the camera
+    plan = Plan(name="hidden", steps=[drive, pose, Scan(label="seen"), MoveArm(joints_rad=tuple(away)),
+                                      Scan(label="hidden"), pose, Scan(label="seen again")])
+    cell = build_cell(config)
+    await cell.connect()
+    try:
+        report = (await JobRunner(cell, plan, config, tmp_path / "job").run()).report
+    finally:
+        await cell.close()
+    assert report["scans"] == 2 and report["scans_planned"] == 3
+    (entry,) = report["relocalisation"]["untracked"]
+    assert entry["label"] == "hidden" and "turned" in entry["reason"] and report["relocalisation"]["untracked_count"] == 1
