@@ -145,7 +145,7 @@ def arm_models() -> dict[str, dict]:
 class ArmConfig(_Strict):
     """The arm (JAKA Zu 7 by default): standard DH parameters (mm, rad) and joint limits (deg at this edge).
 
-    ``model`` names an entry of ``config/arm_models.toml`` (zu7, zu12, zu18); its DH and limits fill the keys
+    ``model`` names an entry of ``config/arm_models.toml`` (zu7, zu12, zu18, zu20); its DH and limits fill the keys
     this section leaves out (docs/planning.md, "Arm models and the lifting column")."""
 
     driver: DriverKind = "sim"
