@@ -19,8 +19,8 @@ from tandemscan.pipeline.part import barrel_panel_mesh, is_closed, load_part_mes
 from tandemscan.pipeline.plan import MoveArm, MoveLift, MoveMeasure, MoveTracker, Plan, Scan
 from tandemscan.pipeline.planning.coverage import REASON_REACH, REASON_TRACKER, dry_run
 from tandemscan.pipeline.planning.planner import plan_part
-from tandemscan.pipeline.relocalise import Relocaliser
 from tandemscan.pipeline.raycast import make_scene
+from tandemscan.pipeline.relocalise import Relocaliser
 from tandemscan.sim_drivers.cell import build_cell
 
 LARGE_CELL = default_plan_path().parents[1] / "large-cell.example.toml"
@@ -209,4 +209,5 @@ async def test_a_scan_whose_target_the_tracker_cannot_see_is_left_out_and_report
         await cell.close()
     assert report["scans"] == 2 and report["scans_planned"] == 3
     (entry,) = report["relocalisation"]["untracked"]
-    assert entry["label"] == "hidden" and "turned" in entry["reason"] and report["relocalisation"]["untracked_count"] == 1
+    assert entry["label"] == "hidden" and "turned" in entry["reason"]
+    assert report["relocalisation"]["untracked_count"] == 1
