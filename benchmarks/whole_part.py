@@ -1,6 +1,8 @@
 """Measure a whole part end to end on the simulated cell and print its coverage and accuracy as JSON.
 
-Usage: ``nice .venv/bin/python benchmarks/whole_part.py [--config CELL.toml] [--part default|barrel]``.
+Usage: ``nice .venv/bin/python benchmarks/whole_part.py [--config CELL.toml] [--part default|barrel]
+[--stitch-only]``; ``--stitch-only``: the tracker-only stitch (no correction step, no in-job inspection),
+which is most of the job's time.
 The part is planned as ``tandemscan measure --part`` does it (no plan given), the plan run on the simulated cell
 (coarse resolution, the config's correction settings), and the stitched cloud scored: ``coverage_pct`` is the
 share of the surface where a scanner pose fits (by mesh area, as the planner counts it) that has a cloud point
@@ -49,6 +51,9 @@ def measured_coverage_pct(mesh: o3d.geometry.TriangleMesh, cloud_F_mm: np.ndarra
 async def run(args: argparse.Namespace) -> dict:
     config = load_config(args.config)
     config = config.model_copy(update={"scanner": config.scanner.model_copy(update={"resolution": "coarse"})})
+    if args.stitch_only:
+        config = config.model_copy(update={"deepmerge": config.deepmerge.model_copy(update={"enabled": False}),
+                                           "inspection": config.inspection.model_copy(update={"in_job": False})})
     with tempfile.TemporaryDirectory() as tmp:
         if args.part == "barrel":
             mesh_file = Path(tmp) / "barrel-panel.ply"
@@ -71,7 +76,7 @@ async def run(args: argparse.Namespace) -> dict:
     before = r.get("correction", {}).get("before", g)
     limit = np.radians(config.planning.incidence_limit_deg)
     return {
-        "cell": config.name, "part": args.part,
+        "cell": config.name, "part": args.part, "correction": config.deepmerge.enabled,
         "coverage_pct": round(measured_coverage_pct(mesh, cloud_F, config.scanner.sweet_spot_mm, limit), 2),
         "planned_coverage_pct": round(part_plan.coverage.coverage_pct, 2),
         "scans": r["scans"], "scans_planned": r["scans_planned"], "scans_empty": len(r["scans_empty"]),
@@ -88,6 +93,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", type=Path, help="cell configuration (default: the simulated cell)")
     parser.add_argument("--part", choices=["default", "barrel"], default="default")
+    parser.add_argument("--stitch-only", action="store_true", help="tracker-only stitch: no correction step")
     print(json.dumps(asyncio.run(run(parser.parse_args()))))
 
 
