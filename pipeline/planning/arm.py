@@ -7,8 +7,9 @@ column, ``i = ceil(h / n)`` rows ``n`` apart along the surface profile on the st
 (``h`` its length: the height for a vertical wall, plus the roof up to the part's middle). Each cell is a
 surface point with its normal; the scanner looks along the negative normal from the sweet spot, tilted
 towards the arm by at most the incidence limit when the square-on pose is out of reach. A cell is kept only
-where the inverse kinematics finds joint angles inside the limits; the others are reported with their
-reason. The kept poses are ordered (column- or row-wise snake, whichever moves the joints less).
+where the inverse kinematics finds joint angles inside the limits, at one of the lifting column's heights
+where the AGV has one (docs/planning.md); the others are reported with their reason. The kept poses are
+grouped by column height and ordered (column- or row-wise snake, whichever moves the joints less).
 """
 
 from __future__ import annotations
@@ -293,9 +294,9 @@ def plan_station(
     """Reachable scanner poses for the cells of one station, ordered to move the joints (and the column) least.
 
     Per cell the views are tried square on first, then tilted towards the arm, each with both rolls; poses
-    whose flange lies beyond the arm's reach bound skip the IK. With a lifting column each column height is
-    tried, nearest the cell's height first (the shoulder closest to the square-on flange). The first view that
-    stays reachable with the AGV off its station by the planning margin wins (the runner re-solves the joints
+    whose flange lies beyond the arm's reach bound skip the IK. With a lifting column the column's heights are
+    tried lowest first (fewer column moves; the target faces out to the tracker). The first view that stays
+    reachable with the AGV off its station by the planning margin wins (the runner re-solves the joints
     where the AGV really stands); a cell with no such view keeps its first reachable one, marked not robust.
     The poses are grouped by column height, lowest first, each group in the order that moves the joints least.
     """
