@@ -3,6 +3,8 @@ panel, and plans that state their part and what they leave out."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import open3d as o3d
 import pytest
@@ -15,8 +17,8 @@ from tandemscan.drivers.interfaces import Lift
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.installation import Installation
 from tandemscan.pipeline.kinematics import ArmKinematics
-from tandemscan.pipeline.part import barrel_panel_mesh, is_closed, load_part_mesh, part_identity
-from tandemscan.pipeline.plan import MoveArm, MoveLift, MoveMeasure, MoveTracker, Plan, Scan
+from tandemscan.pipeline.part import barrel_panel_mesh, is_closed, load_part_mesh, part_identity, read_mesh_file
+from tandemscan.pipeline.plan import MoveArm, MoveLift, MoveMeasure, Plan, Scan
 from tandemscan.pipeline.planning.coverage import REASON_REACH, REASON_TRACKER, dry_run
 from tandemscan.pipeline.planning.planner import plan_part
 from tandemscan.pipeline.raycast import make_scene
@@ -187,8 +189,9 @@ def test_measure_part_without_a_plan_plans_that_part_and_says_so(tmp_path, capsy
     assert "no --plan given: planned" in capsys.readouterr().err
     (job_dir,) = (tmp_path / "out").iterdir()
     plan = Plan.load(job_dir / "plan.toml")
-    assert plan.part_identity.triangles == 12 and plan.scan_count > 0
-    assert any(isinstance(s, MoveTracker) for s in plan.steps) or plan.transfer_count == 0
+    assert plan.part == str(part) and plan.part_identity == part_identity(read_mesh_file(part))
+    report = json.loads((job_dir / "report.json").read_text())
+    assert report["scans_planned"] == plan.scan_count > 10 and report["scans"] > 0.9 * plan.scan_count
 
 
 async def test_a_scan_whose_target_the_tracker_cannot_see_is_left_out_and_reported(sim_config, tmp_path):
