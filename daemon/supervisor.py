@@ -113,8 +113,9 @@ class Supervisor:
                  on_tick_lateness: Callable[[float], None] | None = None) -> Supervisor:
         """A supervisor of a :class:`tandemscan.sim_drivers.cell.Cell` (twins or real drivers)."""
         d = config.daemon
+        measure = [cell.measure_chassis, cell.arm] + ([cell.lift] if cell.lift is not None else [])  # its column too
         return cls(
-            cell.devices(), {MEASURE_ROBOT: [cell.measure_chassis, cell.arm], TRACKING_ROBOT: [cell.tracking_chassis]},
+            cell.devices(), {MEASURE_ROBOT: measure, TRACKING_ROBOT: [cell.tracking_chassis]},
             cell.safety, control_period_s=config.safety.poll_period_s, health_period_s=d.health_period_s,
             device_timeout_s=d.device_timeout_s, reconnect_initial_s=d.reconnect_initial_s,
             reconnect_max_s=d.reconnect_max_s, on_event=on_event, on_tick_lateness=on_tick_lateness,

@@ -214,3 +214,18 @@ async def test_a_scan_whose_target_the_tracker_cannot_see_is_left_out_and_report
     (entry,) = report["relocalisation"]["untracked"]
     assert entry["label"] == "hidden" and "turned" in entry["reason"]
     assert report["relocalisation"]["untracked_count"] == 1
+
+
+async def test_the_supervisor_halts_the_column_with_the_measurement_robot(large_config):
+    from tandemscan.daemon.supervisor import MEASURE_ROBOT, Supervisor
+
+    cell = build_cell(large_config)
+    supervisor = Supervisor.for_cell(cell, large_config)
+    assert cell.lift in supervisor.robots[MEASURE_ROBOT]
+    await cell.connect()
+    try:
+        cell.lift._state = "moving"
+        await supervisor.halt()
+        assert (await cell.lift.status()).state == "idle"
+    finally:
+        await cell.close()
