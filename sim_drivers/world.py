@@ -18,7 +18,7 @@ from tandemscan.drivers.errors import OutOfReach, TargetNotVisible
 from tandemscan.drivers.interfaces import ChassisPose
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.installation import Installation
-from tandemscan.pipeline.kinematics import ArmKinematics
+from tandemscan.pipeline.kinematics import ArmKinematics, arm_base_on_column
 from tandemscan.pipeline.part import load_part_mesh
 from tandemscan.pipeline.raycast import ScannerModel, make_scene
 from tandemscan.sim_drivers.as_built import scanned_part_mesh
@@ -144,6 +144,7 @@ class SimWorld:
                                                   config.sim.measure_start),
         }
         self.joints_rad = np.radians(np.array(config.sim.arm_home_deg, float))
+        self.lift_mm = config.lift.min_mm if config.lift.enabled else 0.0  # lifting column height, mm
         self.safety = SafetyTruth()
         self.motion = MotionLog()
         self.captures = 0
@@ -182,7 +183,8 @@ class SimWorld:
 
     def T_F_E(self) -> np.ndarray:
         """Arm flange in the floor frame."""
-        return self.T_F_V2 @ self.truth.T_V2_B @ self.kinematics.forward(self.joints_rad)
+        T_V2_B = arm_base_on_column(self.truth.T_V2_B, self.lift_mm)  # the column raises the arm's mount
+        return self.T_F_V2 @ T_V2_B @ self.kinematics.forward(self.joints_rad)
 
     def T_F_S(self) -> np.ndarray:
         """Scanner optical frame in the floor frame."""

@@ -161,7 +161,7 @@ async def test_a_job_on_the_hil_cell_needs_no_ground_truth_and_is_inspected(box_
 
     cfg = hil_config(box_part)
     cfg = cfg.model_copy(update={
-        "deepmerge": cfg.deepmerge.model_copy(update={"enabled": False}),
+        "correction": cfg.correction.model_copy(update={"enabled": False}),
         "inspection": cfg.inspection.model_copy(update={"views": ("isometric",), "map_width_px": 300})})
     plan = Plan.load(default_plan_path())
     scans = [i for i, s in enumerate(plan.steps) if isinstance(s, Scan)]
