@@ -1,0 +1,124 @@
+"""Where the tracker-only stitch's error comes from, per scan, on a generated plan: print it as JSON.
+
+Usage: ``nice .venv/bin/python benchmarks/stitch_chain.py [--config CELL.toml] [--part default|barrel]
+[--runs N]``.
+
+A diagnostic on the simulator's ground truth (scoring only, never the product path): the part is planned as
+``tandemscan measure --part`` does it, then the plan's steps are walked on a :class:`SimWorld` without scanning:
+the chassis stand where the plan puts them (no slip: drift does not enter the tracker-only stitch, which is
+``T_W_S = T_W_C T_C_T T_T_S``), the column at its height, the arm at its joints; the tracker reads the target
+with the simulator's noise model at each scan and on both sides of each coordinate transfer (Eq. 2), exactly as
+the runner does. The error is taken where it matters for the cloud: at the scanner's sweet spot on the view
+axis (``p_S = (0, 0, sweet_spot_mm)``), its component along the view (the surface normal, which cloud-to-mesh
+distance measures) and its size. Three variants over ``--runs`` seeds split the total: ``readings`` (only the
+scan's own reading noisy: transfers exact), ``transfers`` (only the transfer readings noisy) and ``both``.
+Each is reported overall, by tracker station (transfer accumulation grows per station) and by column height
+(a chain error would grow with height), with the mean tracker-to-target distance.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+from tandemscan.config import load_config
+from tandemscan.daemon.plan_cmd import plan_configured_part
+from tandemscan.pipeline import frames as F
+from tandemscan.pipeline.part import barrel_panel_mesh
+from tandemscan.pipeline.plan import MoveArm, MoveLift, MoveMeasure, MoveTracker, Scan
+from tandemscan.sim_drivers.world import SimWorld
+
+VARIANTS = ("readings", "transfers", "both")
+
+
+def _reading(world: SimWorld, noisy: bool) -> np.ndarray:
+    """``T_C_T`` now: the simulator's noisy reading, or the truth."""
+    if noisy:
+        return world.measure_target()[0]
+    return F.invert(world.T_F_C()) @ world.T_F_T()
+
+
+def walk(config, plan, seed: int, variant: str) -> list[dict]:
+    """One run of ``plan``'s steps on a fresh world (seed ``seed``); per scan: station, column height (mm),
+    tracker distance (mm) and the error at the sweet spot (mm, along the view and its size)."""
+    world = SimWorld(config.model_copy(update={"sim": config.sim.model_copy(update={"seed": seed})}))
+    scan_noise, transfer_noise = variant in ("readings", "both"), variant in ("transfers", "both")
+    chassis = {"tracking": world.chassis["tracking_chassis"], "measure": world.chassis["measure_chassis"]}
+    p_S = np.array([0.0, 0.0, config.scanner.sweet_spot_mm, 1.0])
+    T_W_C, station, scanned, rows = None, 0, False, []
+    for step in plan.steps:
+        if isinstance(step, MoveTracker):
+            if not scanned:  # a plain relocation before the first scan: W is the camera frame where it stops
+                chassis["tracking"].true_pose = F.planar_pose(step.x_mm, step.y_mm, step.heading_rad)
+                continue
+            before = _reading(world, transfer_noise)
+            chassis["tracking"].true_pose = F.planar_pose(step.x_mm, step.y_mm, step.heading_rad)
+            T_W_C = F.coordinate_transfer(T_W_C, before, _reading(world, transfer_noise))
+            station += 1
+        elif isinstance(step, MoveMeasure):
+            chassis["measure"].true_pose = F.planar_pose(step.x_mm, step.y_mm, step.heading_rad)
+        elif isinstance(step, MoveLift):
+            world.lift_mm = step.height_mm
+        elif isinstance(step, MoveArm):
+            world.joints_rad = np.array(step.joints_rad, float)
+        elif isinstance(step, Scan):
+            if not scanned:
+                world.define_world()
+                T_W_C, scanned = world.T_W_F @ world.T_F_C(), True
+            T_C_T = _reading(world, scan_noise)
+            T_W_S = F.compose(T_W_C, T_C_T, world.truth.T_T_S)
+            T_W_S_true = world.T_W_S()
+            e = (T_W_S @ p_S - T_W_S_true @ p_S)[:3]
+            rows.append({"station": station, "lift_mm": world.lift_mm, "distance_mm": float(np.linalg.norm(T_C_T[:3, 3])),
+                         "along_view_mm": float(e @ T_W_S_true[:3, 2]), "size_mm": float(np.linalg.norm(e))})
+    return rows
+
+
+def _summary(rows: list[dict]) -> dict:
+    along = np.array([r["along_view_mm"] for r in rows])
+    size = np.array([r["size_mm"] for r in rows])
+    return {"scans": len(rows), "rms_along_view_mm": round(float(np.sqrt(np.mean(along**2))), 4),
+            "rms_size_mm": round(float(np.sqrt(np.mean(size**2))), 4),
+            "mean_tracker_distance_m": round(float(np.mean([r["distance_mm"] for r in rows])) / 1000, 2)}
+
+
+def _grouped(rows: list[dict], key) -> dict:
+    groups = defaultdict(list)
+    for r in rows:
+        groups[key(r)].append(r)
+    return {str(k): _summary(v) for k, v in sorted(groups.items())}
+
+
+def run(args: argparse.Namespace) -> dict:
+    config = load_config(args.config)
+    with tempfile.TemporaryDirectory() as tmp:  # the simulated world reads the mesh file too
+        if args.part == "barrel":
+            mesh_file = Path(tmp) / "barrel-panel.ply"
+            o3d.io.write_triangle_mesh(str(mesh_file), barrel_panel_mesh())
+            config = config.model_copy(update={"part": config.part.model_copy(update={"mesh": mesh_file})})
+        _, part_plan = plan_configured_part(config, f"chain {args.part}")
+        plan = part_plan.sequence.plan
+        out = {"cell": config.name, "part": args.part, "runs": args.runs,
+               "tracker_moves": sum(isinstance(s, MoveTracker) for s in plan.steps)}
+        for variant in VARIANTS:
+            rows = [r for seed in range(args.runs) for r in walk(config, plan, seed, variant)]
+            out[variant] = {"all": _summary(rows), "by_station": _grouped(rows, lambda r: r["station"]),
+                            "by_lift_mm": _grouped(rows, lambda r: int(round(r["lift_mm"])))}
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--config", type=Path, help="cell configuration (default: the simulated cell)")
+    parser.add_argument("--part", choices=["default", "barrel"], default="default")
+    parser.add_argument("--runs", type=int, default=10, help="seeds per variant")
+    print(json.dumps(run(parser.parse_args())))
+
+
+if __name__ == "__main__":
+    main()
