@@ -1,8 +1,10 @@
 """Measure a whole part end to end on the simulated cell and print its coverage and accuracy as JSON.
 
 Usage: ``nice .venv/bin/python benchmarks/whole_part.py [--config CELL.toml] [--part default|barrel]
-[--stitch-only]``; ``--stitch-only``: the tracker-only stitch (no correction step, no in-job inspection),
-which is most of the job's time.
+[--stitch-only] [--tracker-stations N]``; ``--stitch-only``: the tracker-only stitch (no correction step, no
+in-job inspection), which is most of the job's time; ``--tracker-stations N``: only the plan's steps while the
+tracker stands at its first N stations (a shorter job for the accuracy figures: the coverage is then that of
+the part of the plan run).
 The part is planned as ``tandemscan measure --part`` does it (no plan given), the plan run on the simulated cell
 (coarse resolution, the config's correction settings), and the stitched cloud scored: ``coverage_pct`` is the
 share of the surface where a scanner pose fits (by mesh area, as the planner counts it) that has a cloud point
@@ -28,6 +30,7 @@ from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.part import barrel_panel_mesh
+from tandemscan.pipeline.plan import MoveTracker, Plan, Scan
 from tandemscan.pipeline.planning.coverage import pose_fits, triangle_geometry
 from tandemscan.pipeline.raycast import make_scene
 
@@ -48,6 +51,19 @@ def measured_coverage_pct(mesh: o3d.geometry.TriangleMesh, cloud_F_mm: np.ndarra
     return 100.0 * float(area[hit & fits].sum() / area[fits].sum())
 
 
+def first_tracker_stations(plan: Plan, stations: int) -> Plan:
+    """``plan`` up to (without) its coordinate transfer to tracker station ``stations`` (a relocation of the
+    tracker before the first scan is no transfer)."""
+    transfers, scanned = 0, False
+    for i, step in enumerate(plan.steps):
+        scanned |= isinstance(step, Scan)
+        if isinstance(step, MoveTracker) and scanned:
+            transfers += 1
+            if transfers == stations:
+                return plan.model_copy(update={"steps": plan.steps[:i]})
+    return plan
+
+
 async def run(args: argparse.Namespace) -> dict:
     config = load_config(args.config)
     config = config.model_copy(update={"scanner": config.scanner.model_copy(update={"resolution": "coarse"})})
@@ -62,9 +78,12 @@ async def run(args: argparse.Namespace) -> dict:
         t = time.perf_counter()
         mesh, part_plan = plan_configured_part(config, f"whole {args.part}")
         plan_seconds = time.perf_counter() - t
+        plan = part_plan.sequence.plan
+        if args.tracker_stations:
+            plan = first_tracker_stations(plan, args.tracker_stations)
         started = time.perf_counter()
         async with CellSession(config) as session:
-            result = await JobRunner(session, part_plan.sequence.plan, config, Path(tmp) / "job").run()
+            result = await JobRunner(session, plan, config, Path(tmp) / "job").run()
             T_W_F = session.cell.simulation.world.T_W_F  # scoring only: the truth of where W lies
         seconds = time.perf_counter() - started
         cloud_W = np.asarray(o3d.io.read_point_cloud(str(result.cloud_file)).points)
@@ -74,6 +93,7 @@ async def run(args: argparse.Namespace) -> dict:
     limit = np.radians(config.planning.incidence_limit_deg)
     return {
         "cell": config.name, "part": args.part, "correction": config.correction.enabled,
+        "tracker_stations_run": args.tracker_stations or part_plan.summary()["tracker_stations"],
         "coverage_pct": round(measured_coverage_pct(mesh, cloud_F, config.scanner.sweet_spot_mm, limit), 2),
         "planned_coverage_pct": round(part_plan.coverage.coverage_pct, 2),
         "scans": r["scans"], "scans_planned": r["scans_planned"], "scans_empty": len(r["scans_empty"]),
@@ -91,6 +111,7 @@ def main() -> None:
     parser.add_argument("--config", type=Path, help="cell configuration (default: the simulated cell)")
     parser.add_argument("--part", choices=["default", "barrel"], default="default")
     parser.add_argument("--stitch-only", action="store_true", help="tracker-only stitch: no correction step")
+    parser.add_argument("--tracker-stations", type=int, default=0, help="run only the first N tracker stations")
     print(json.dumps(asyncio.run(run(parser.parse_args()))))
 
 

@@ -34,6 +34,20 @@ class ArmKinematics:
             )
         return T
 
+    def forward_many(self, q_rad: np.ndarray) -> np.ndarray:
+        """``(M, 4, 4)`` flange poses ``T_B_E`` (mm) for ``(M, 6)`` joint angles (rad), vectorised."""
+        q = np.asarray(q_rad, float).reshape(-1, 6)
+        T = np.broadcast_to(np.eye(4), (len(q), 4, 4))
+        ca, sa = np.cos(self.alpha), np.sin(self.alpha)
+        for j in range(6):
+            ct, st = np.cos(q[:, j]), np.sin(q[:, j])
+            z, o = np.zeros_like(ct), np.ones_like(ct)
+            A = np.stack([np.stack([ct, -st * ca[j], st * sa[j], self.a[j] * ct], -1),
+                          np.stack([st, ct * ca[j], -ct * sa[j], self.a[j] * st], -1),
+                          np.stack([z, z + sa[j], z + ca[j], z + self.d[j]], -1), np.stack([z, z, z, o], -1)], axis=-2)
+            T = T @ A
+        return T
+
     def within_limits(self, q_rad: np.ndarray) -> bool:
         """True when every joint is inside its limits."""
         q = np.asarray(q_rad, float)

@@ -59,13 +59,25 @@ class ScannerModel:
         n_S[cos_inc < 0] *= -1  # face the scanner whatever the mesh winding
         cos_inc = np.abs(cos_inc)
         points = d_S * t[:, None]
-        depth = points[:, 2]
-        keep = (
-            (depth >= self.cfg.range_min_mm)
-            & (depth <= self.cfg.range_max_mm)
-            & (cos_inc >= np.cos(np.radians(self.cfg.max_incidence_deg)))
-        )
+        keep = self._kept(points[:, 2], cos_inc)
         return ScanHits(points[keep], n_S[keep], np.arccos(np.clip(cos_inc[keep], -1, 1)))
+
+    def _kept(self, depth_mm: np.ndarray, cos_incidence: np.ndarray) -> np.ndarray:
+        """Which hits the scanner keeps: depth (S z, mm) inside the working range, incidence inside the limit."""
+        return ((depth_mm >= self.cfg.range_min_mm) & (depth_mm <= self.cfg.range_max_mm)
+                & (cos_incidence >= np.cos(np.radians(self.cfg.max_incidence_deg))))
+
+    def seen_primitives(self, scene: o3d.t.geometry.RaycastingScene, T_F_S: np.ndarray) -> np.ndarray:
+        """Ids of the scene's triangles that the scanner keeps a hit on from any of the ``(K, 4, 4)`` poses
+        ``T_F_S`` (frame F, mm): the hits of :meth:`cast`, all poses in one ray cast."""
+        T = np.asarray(T_F_S, float).reshape(-1, 4, 4)
+        dirs_F = np.einsum("pj,kij->kpi", self.directions_S, T[:, :3, :3]).astype(np.float32)  # (K, P, 3)
+        origins = np.broadcast_to(T[:, None, :3, 3].astype(np.float32), dirs_F.shape)
+        ans = scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(np.concatenate([origins, dirs_F], axis=2))))
+        t = ans["t_hit"].numpy()
+        cos_inc = np.abs(np.sum(ans["primitive_normals"].numpy() * dirs_F, axis=2))
+        keep = np.isfinite(t) & self._kept(t * self.directions_S[None, :, 2], cos_inc)
+        return np.unique(ans["primitive_ids"].numpy()[keep])
 
     def scan(
         self, scene: o3d.t.geometry.RaycastingScene, T_F_S: np.ndarray, rng: np.random.Generator | None = None

@@ -262,7 +262,11 @@ def margin_moves(T_V2_B: np.ndarray, planning: PlanningConfig) -> np.ndarray:
 
 
 def _robust(ik: IkSolver, T_B_E: np.ndarray, q: np.ndarray, moves: np.ndarray) -> bool:
-    """Whether ``T_B_E`` stays reachable (seeded from ``q``) under every AGV offset in ``moves``."""
+    """Whether ``T_B_E`` stays reachable (seeded from ``q``) under every AGV offset in ``moves``; all offsets at
+    once where the IK answers reachability for many poses (``AnalyticIK.reachable``)."""
+    reachable = getattr(ik, "reachable", None)
+    if reachable is not None:
+        return bool(np.all(reachable(moves @ T_B_E)))
     return all(ik(M @ T_B_E, q) is not None for M in moves)
 
 

@@ -16,13 +16,13 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 from tandemscan.config.models import ScannerConfig
-from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.plan import LeftOutArea
 from tandemscan.pipeline.planning.arm import StationRaster
 from tandemscan.pipeline.raycast import ScannerModel
 
 _FLOOR_CLEARANCE_MM = 150.0  # the scanner body needs this much room above the floor
 _DRY_RUN_PIXELS = (64, 50)
+_DRY_RUN_POSES_PER_CAST = 128  # poses ray cast together (128 x 3200 rays, about 40 MB)
 
 
 @dataclass(frozen=True)
@@ -96,16 +96,8 @@ def seen_triangles(
     """Boolean per triangle: some planned scan sees it (reduced pixel grid, range and incidence limits)."""
     model = ScannerModel(scanner.model_copy(update={"resolution": "coarse", "coarse_pixels": _DRY_RUN_PIXELS}))
     seen = np.zeros(len(mesh.triangles), bool)
-    rays = []
-    for T_F_S in poses_T_F_S:
-        hits = model.cast(scene, T_F_S)
-        if len(hits.points_mm):  # the kept hits, cast again to learn which triangle each landed on
-            d = F.rotate_vectors(T_F_S, hits.points_mm / np.linalg.norm(hits.points_mm, axis=1, keepdims=True))
-            rays.append(np.c_[np.broadcast_to(T_F_S[:3, 3], d.shape), d])
-    if rays:
-        ans = scene.cast_rays(o3d.core.Tensor(np.vstack(rays).astype(np.float32)))
-        ids = ans["primitive_ids"].numpy()
-        seen[np.unique(ids[ids != o3d.t.geometry.RaycastingScene.INVALID_ID])] = True
+    for start in range(0, len(poses_T_F_S), _DRY_RUN_POSES_PER_CAST):
+        seen[model.seen_primitives(scene, np.array(poses_T_F_S[start:start + _DRY_RUN_POSES_PER_CAST]))] = True
     return seen
 
 

@@ -44,45 +44,65 @@ class AnalyticIK:
 
     def solutions(self, T_B_E: np.ndarray) -> list[np.ndarray]:
         """Every closed-form solution (rad, not yet moved into the limits, not yet verified)."""
+        q = self.solution_array(np.asarray(T_B_E, float)[None])[0]
+        return list(q[~np.isnan(q).any(axis=1)])
+
+    def solution_array(self, T_B_E: np.ndarray) -> np.ndarray:
+        """The closed-form solutions of ``(N, 4, 4)`` flange poses as ``(N, 8, 6)`` joint angles (rad, not yet
+        moved into the limits, not yet verified): branches shoulder x wrist x elbow, NaN rows where a branch
+        has no solution."""
         d1, d4, d5, d6 = self.kin.d[0], self.kin.d[3], self.kin.d[4], self.kin.d[5]
         a2, a3 = self.kin.a[1], self.kin.a[2]
-        T = np.asarray(T_B_E, float)
-        p05 = T[:3, 3] - d6 * T[:3, 2]
-        r = np.hypot(p05[0], p05[1])
-        if r < abs(d4) or r < 1e-9:
-            return []
-        phi = np.arctan2(p05[1], p05[0])
-        s = np.arcsin(np.clip(d4 / r, -1.0, 1.0))
-        out = []
-        for q1 in (phi + s, phi + np.pi - s):
-            c1, s1 = np.cos(q1), np.sin(q1)
-            # frame 1: Rz(q1) Tz(d1) Rx(pi/2)
-            R01 = np.array([[c1, 0.0, s1], [s1, 0.0, -c1], [0.0, 1.0, 0.0]])
-            R16 = R01.T @ T[:3, :3]
-            p16 = R01.T @ (T[:3, 3] - np.array([0.0, 0.0, d1]))
-            cb = np.clip(R16[2, 2], -1.0, 1.0)
-            for sign in (1.0, -1.0):
-                beta = sign * np.arccos(cb)
-                sb = np.sin(beta)
-                if abs(sb) < 1e-9:  # wrist singular: q4 and q6 share one rotation; put it all on q6
-                    q234 = 0.0
-                    q6 = np.arctan2(R16[1, 0], R16[0, 0]) if cb > 0 else np.arctan2(-R16[1, 0], -R16[0, 0])
-                else:
-                    q234 = np.arctan2(R16[1, 2] / sb, R16[0, 2] / sb)
-                    q6 = np.arctan2(R16[2, 1] / sb, -R16[2, 0] / sb)
-                q5 = -beta
-                z4 = np.array([np.sin(q234), -np.cos(q234), 0.0])
-                p13 = p16 - d4 * np.array([0.0, 0.0, 1.0]) - d5 * z4 - d6 * R16[:, 2]
-                x, y = p13[0], p13[1]
-                c3 = (x * x + y * y - a2 * a2 - a3 * a3) / (2 * a2 * a3)
-                if abs(c3) > 1.0 + 1e-9:
-                    continue
-                for elbow in (1.0, -1.0):
-                    q3 = elbow * np.arccos(np.clip(c3, -1.0, 1.0))
-                    q2 = np.arctan2(y, x) - np.arctan2(a3 * np.sin(q3), a2 + a3 * np.cos(q3))
-                    q4 = q234 - q2 - q3
-                    out.append(np.array([q1, q2, q3, q4, q5, q6]))
-        return out
+        T = np.asarray(T_B_E, float).reshape(-1, 4, 4)
+        n = len(T)
+        p05 = T[:, :3, 3] - d6 * T[:, :3, 2]
+        r = np.hypot(p05[:, 0], p05[:, 1])
+        shell = (r >= abs(d4)) & (r >= 1e-9)
+        phi = np.arctan2(p05[:, 1], p05[:, 0])
+        s = np.arcsin(np.clip(d4 / np.where(shell, r, 1.0), -1.0, 1.0))
+        q1 = np.stack([phi + s, phi + np.pi - s], axis=1)  # (N, 2)
+        c1, s1 = np.cos(q1), np.sin(q1)
+        zero, one = np.zeros_like(c1), np.ones_like(c1)
+        # frame 1: Rz(q1) Tz(d1) Rx(pi/2)
+        R01 = np.stack([np.stack([c1, zero, s1], -1), np.stack([s1, zero, -c1], -1), np.stack([zero, one, zero], -1)],
+                       axis=-2)  # (N, 2, 3, 3)
+        R16 = np.swapaxes(R01, -1, -2) @ T[:, None, :3, :3]
+        p16 = np.einsum("nkji,nj->nki", R01, T[:, :3, 3] - np.array([0.0, 0.0, d1]))
+        R16, p16 = R16[:, :, None], p16[:, :, None]  # (N, 2, 1, 3, 3), (N, 2, 1, 3): a wrist axis next
+        cb = np.clip(R16[..., 2, 2], -1.0, 1.0)
+        beta = np.array([1.0, -1.0]) * np.arccos(cb)  # (N, 2, 2)
+        sb = np.sin(beta)
+        singular = np.abs(sb) < 1e-9  # wrist singular: q4 and q6 share one rotation; put it all on q6
+        sb_safe = np.where(singular, 1.0, sb)
+        flip = np.where(cb > 0, 1.0, -1.0)
+        q234 = np.where(singular, 0.0, np.arctan2(R16[..., 1, 2] / sb_safe, R16[..., 0, 2] / sb_safe))
+        q6 = np.where(singular, np.arctan2(flip * R16[..., 1, 0], flip * R16[..., 0, 0]),
+                      np.arctan2(R16[..., 2, 1] / sb_safe, -R16[..., 2, 0] / sb_safe))
+        z4 = np.stack([np.sin(q234), -np.cos(q234), np.zeros_like(q234)], axis=-1)
+        p13 = p16 - d4 * np.array([0.0, 0.0, 1.0]) - d5 * z4 - d6 * R16[..., :, 2]
+        x, y = p13[..., 0], p13[..., 1]
+        c3 = (x * x + y * y - a2 * a2 - a3 * a3) / (2 * a2 * a3)
+        ok = shell[:, None, None] & (np.abs(c3) <= 1.0 + 1e-9)
+        q3 = np.array([1.0, -1.0]) * np.arccos(np.clip(c3, -1.0, 1.0))[..., None]  # (N, 2, 2, 2): elbow last
+        q2 = np.arctan2(y, x)[..., None] - np.arctan2(a3 * np.sin(q3), a2 + a3 * np.cos(q3))
+        q4 = q234[..., None] - q2 - q3
+        full = lambda v: np.broadcast_to(v[..., None], q3.shape)  # noqa: E731 - one branch value per elbow
+        q = np.stack([full(np.broadcast_to(q1[:, :, None], beta.shape)), q2, q3, q4, full(-beta), full(q6)], axis=-1)
+        q[~np.broadcast_to(ok[..., None], q3.shape)] = np.nan
+        return q.reshape(n, 8, 6)
+
+    def reachable(self, T_B_E: np.ndarray) -> np.ndarray:
+        """``(N,)`` whether each of ``(N, 4, 4)`` flange poses has a joint solution within the limits (what
+        ``self(T, seed) is not None`` answers, for many poses at once; no seed is needed to say whether)."""
+        T = np.asarray(T_B_E, float).reshape(-1, 4, 4)
+        q = self.solution_array(T)  # (N, 8, 6)
+        turn = 2 * np.pi
+        fits = np.all(np.ceil((self.kin.q_min - 1e-9 - q) / turn) <= np.floor((self.kin.q_max + 1e-9 - q) / turn),
+                      axis=2)  # some whole-turn shift puts every joint inside its limits (False for NaN)
+        Tq = self.kin.forward_many(np.nan_to_num(q.reshape(-1, 6))).reshape(len(T), 8, 4, 4)
+        position = np.linalg.norm(Tq[..., :3, 3] - T[:, None, :3, 3], axis=-1) <= self.tol_mm
+        c = np.clip((np.einsum("nkij,nij->nk", Tq[..., :3, :3], T[:, :3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+        return np.any(fits & position & (np.arccos(c) <= self.tol_rad), axis=1)
 
     def _into_limits(self, q: np.ndarray, seed: np.ndarray) -> np.ndarray:
         """Solutions ``(N, 6)`` moved by whole turns into the limits, nearest the seed; NaN rows cannot fit."""
