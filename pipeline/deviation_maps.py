@@ -96,6 +96,7 @@ class _Background:
     extent_mm: tuple[float, float, float, float]
     px: float
     depth0: float
+    triangle_ids: np.ndarray  # (H, W) the CAD triangle each pixel shows, INVALID_ID where the ray misses
 
 
 @functools.lru_cache(maxsize=1)  # the upper/lower maps reuse the first view's background
@@ -117,7 +118,8 @@ def _background(surface: CadSurface, view: View, width_px: int) -> _Background:
     t_hit = hit["t_hit"].numpy()
     shade = 0.35 + 0.55 * np.abs(hit["primitive_normals"].numpy() @ f.astype(np.float32))
     rgb = np.where(np.isfinite(t_hit)[..., None], shade[..., None] * np.float32([0.82, 0.82, 0.85]), NO_MESH_RGB)
-    return _Background(f, r, u, rgb.astype(np.float32), t_hit, (x0, x1, y0, y1), px, depth0)
+    return _Background(f, r, u, rgb.astype(np.float32), t_hit, (x0, x1, y0, y1), px, depth0,
+                       hit["primitive_ids"].numpy())
 
 
 def render_view(
@@ -265,6 +267,50 @@ def deviation_map_png(
     bar = fig.colorbar(ScalarMappable(norm, DEVIATION_CMAP), cax=cax, label="deviation, mm")
     for v in (tolerance.lower_mm, tolerance.upper_mm):
         bar.ax.axhline(v, color="black", lw=1.2)
+    return png_bytes(fig)
+
+
+MEASURED_RGB = np.array([0.20, 0.62, 0.30])  # coverage map: CAD surface with a cloud point on it
+NOT_MEASURED_RGB = np.array([0.85, 0.25, 0.20])  # and without
+MEASURED_WITHIN_MM = 1.0  # a triangle counts as measured when a cloud point lies this close to it
+
+
+def measured_triangles(surface: CadSurface, points_mm: np.ndarray) -> np.ndarray:
+    """``(T,)`` bool per CAD triangle: some point of the cloud (frame F, mm) lies within
+    ``MEASURED_WITHIN_MM`` of it (closest triangle)."""
+    closest = surface.closest(np.asarray(points_mm, float))
+    measured = np.zeros(len(surface.mesh.triangles), bool)
+    measured[closest.triangle_ids[np.abs(closest.signed_mm) <= MEASURED_WITHIN_MM]] = True
+    return measured
+
+
+def coverage_map_png(surface: CadSurface, points_mm: np.ndarray, view: View, width_px: int = 900) -> bytes:
+    """The CAD surface seen along ``view``, each triangle green where the cloud (frame F, mm) measured it
+    (:func:`measured_triangles`) and red where it did not, shaded as the deviation maps; the title gives the
+    measured share of the mesh area (docs/inspection.md, "Colour maps")."""
+    measured = measured_triangles(surface, points_mm)
+    v = np.asarray(surface.mesh.vertices)[np.asarray(surface.mesh.triangles)]
+    area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+    share = 100.0 * float(area[measured].sum() / max(area.sum(), 1e-12))
+    bg = _background(surface, view, width_px)
+    ids = bg.triangle_ids
+    on_mesh = ids != o3d.t.geometry.RaycastingScene.INVALID_ID
+    shade = bg.rgb[..., :1] / 0.82  # the grey background's lighting, 0.35-0.9
+    colour = np.where(measured[np.where(on_mesh, ids, 0)][..., None], MEASURED_RGB, NOT_MEASURED_RGB)
+    rgb = np.where(on_mesh[..., None], np.clip(shade * colour, 0.0, 1.0), bg.rgb)
+    h, w = rgb.shape[:2]
+    fig_w, left, right, bottom, top = 8.0, 0.85, 0.3, 0.6, 0.45  # inches
+    fig = Figure(figsize=(fig_w, bottom + top + (fig_w - left - right) * h / w), dpi=110)
+    ax = fig.add_axes((left / fig_w, bottom / fig.get_figheight(), 1 - (left + right) / fig_w,
+                       1 - (bottom + top) / fig.get_figheight()))
+    _, r, u = _camera(view)
+    (xl, x_sign), (yl, y_sign) = _axis_label(r), _axis_label(u)
+    x0, x1, y0, y1 = bg.extent_mm
+    ax.imshow(rgb, extent=(x_sign * x0, x_sign * x1, y_sign * y0, y_sign * y1), interpolation="nearest")
+    ax.set_title(f"Coverage of the CAD surface, {view.name}: {share:.1f} % of its area measured "
+                 "(green measured, red not)")
+    ax.set_xlabel(xl)
+    ax.set_ylabel(yl)
     return png_bytes(fig)
 
 

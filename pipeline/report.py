@@ -23,6 +23,7 @@ from tandemscan.pipeline.deviation_maps import (
     STANDARD_VIEWS,
     Callout,
     View,
+    coverage_map_png,
     deviation_map_png,
     deviation_norm,
     facing_isometric,
@@ -136,7 +137,7 @@ def build_report(
                 png = deviation_map_png(surface, p[keep], d[keep], view, tol, norm, cfg.map_width_px, title_,
                                         n[keep], spacing, ours)
                 split.append(ReportFigure(f"{label}-deviation", title_, png))
-    figures = maps + split
+    figures = maps + [_coverage_figure(result, surface, views[0], cfg)] + split
     hist = histogram_png(result.deviations_mm, result.stats, tol, norm)
     caption = "Deviation histogram with the tolerance band (the outer bins collect the 0.1 % tails)"
     figures.append(ReportFigure("histogram", caption, hist))
@@ -158,6 +159,13 @@ def build_report(
         "figures": [{"name": f.name, "caption": f.caption, "file": f"figures/{f.name}.png"} for f in figures],
     }
     return Report(data, tuple(figures))
+
+
+def _coverage_figure(result: InspectionResult, surface: CadSurface, view: View,
+                     cfg: InspectionConfig) -> ReportFigure:
+    """The coverage map: measured vs not measured on the CAD surface, in the first view."""
+    png = coverage_map_png(surface, result.points_mm, view, cfg.map_width_px)
+    return ReportFigure("coverage", f"Coverage of the CAD surface (measured vs not measured), {view.name}", png)
 
 
 def render_html(report: Report) -> str:

@@ -13,7 +13,14 @@ import numpy as np
 import open3d as o3d
 import pytest
 from tandemscan.config.models import InspectionConfig
-from tandemscan.pipeline.deviation_maps import DEVIATION_CMAP, View, deviation_norm, render_view
+from tandemscan.pipeline.deviation_maps import (
+    DEVIATION_CMAP,
+    View,
+    coverage_map_png,
+    deviation_norm,
+    measured_triangles,
+    render_view,
+)
 from tandemscan.pipeline.inspect import CadSurface, inspect_cloud
 from tandemscan.pipeline.report import build_report, write_report
 from tandemscan.pipeline.stitch_quality import overlap_quality
@@ -47,6 +54,23 @@ def test_colour_map_paints_visible_points_only(box):
     flat = img.rgb.reshape(-1, 3)
     assert np.all(np.isclose(flat, blue, atol=1e-6), axis=1).sum() == img.coloured_px > 0
     assert not np.all(np.isclose(flat, red, atol=1e-6), axis=1).any()
+
+
+def test_coverage_map_tells_measured_from_not_measured():
+    box = CadSurface(o3d.geometry.TriangleMesh.create_box(400.0, 200.0, 100.0).subdivide_midpoint(3))
+    half = grid_on_face(100.2, size=(199.0, 200.0))  # the top face's left half (x < 200 mm), 0.2 mm above it
+    measured = measured_triangles(box, half)
+    v = np.asarray(box.mesh.vertices)[np.asarray(box.mesh.triangles)]
+    top = np.all(np.isclose(v[:, :, 2], 100.0), axis=1)
+    centre_x = v[:, :, 0].mean(axis=1)
+    assert np.array_equal(measured, top & (centre_x < 200.0))  # the top's left half, nothing else
+    assert not measured_triangles(box, half + [0.0, 0.0, 5.0]).any()  # 5 mm off the surface: not measured
+    png = coverage_map_png(box, half, View("top", (0, 0, -1), up=(0, 1, 0)), width_px=300)
+    rgb = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[..., ::-1].astype(int)
+    green = (rgb[..., 1] > rgb[..., 0] + 40) & (rgb[..., 1] > rgb[..., 2] + 40)
+    red = (rgb[..., 0] > rgb[..., 1] + 60) & (rgb[..., 0] > rgb[..., 2] + 60)
+    assert green.sum() > 1000 and red.sum() > 1000
+    assert abs(green.sum() - red.sum()) < 0.1 * green.sum()  # seen from above: half green, half red
 
 
 def layered_scans(offset_mm):
@@ -101,7 +125,8 @@ def test_report_html_self_contained_and_json_same_numbers(written):
     assert not re.search(r"""(src|href)=["'](https?:|//|file:)""", html)  # nothing fetched from outside
     images = re.findall(r'src="data:image/png;base64,', html)
     names = [f["name"] for f in report.data["figures"]]
-    assert len(images) == len(names) == 2 + 2 + 1 + 1  # views, upper/lower, histogram, stitching
+    assert len(images) == len(names) == 2 + 1 + 2 + 1 + 1  # views, coverage, upper/lower, histogram, stitching
+    assert "coverage" in names
     for table in ("stats", "tolerance", "bestfit", "accuracy", "stitching", "meta"):
         assert f'id="{table}"' in html
     assert f"{result.stats.mean_mm:+.4f}" in html and f"{result.tolerance.in_pct:.2f}" in html
