@@ -16,13 +16,13 @@ import httpx
 import numpy as np
 import pytest
 from tandemscan.daemon.api import create_app
+from tandemscan.daemon.cell import build_cell
 from tandemscan.daemon.console.cloud_view import DEVIATION_COLOURS, VIEW_FILE, view_file
 from tandemscan.daemon.console.router import ASSETS, plan_view
 from tandemscan.daemon.plans import PlanCatalog
 from tandemscan.daemon.service import Daemon, running_server
 from tandemscan.pipeline.export import write_ply
 from tandemscan.pipeline.plan import MoveMeasure, MoveTracker, Scan
-from tandemscan.daemon.cell import build_cell
 from tandemscan.sim_drivers.cell import Simulation
 from tandemscan.sim_drivers.world import SimWorld
 
@@ -81,7 +81,8 @@ class ReleasedRunner:
 async def api(tmp_path, sim_config):
     world = SimWorld(sim_config)
     runner = ReleasedRunner()
-    daemon = Daemon(sim_config, tmp_path / "state", runner, token=TOKEN, cell=build_cell(sim_config, simulation=Simulation(sim_config, world=world)))
+    cell = build_cell(sim_config, simulation=Simulation(sim_config, world=world))
+    daemon = Daemon(sim_config, tmp_path / "state", runner, token=TOKEN, cell=cell)
     async with running_server(create_app(daemon, manage_lifecycle=True)) as url:
         async with httpx.AsyncClient(base_url=url, timeout=10) as client:
             client.runner, client.world, client.daemon = runner, world, daemon
