@@ -344,8 +344,9 @@ class CorrectionConfig(_Strict):
     )
     agreement_mm: float = Field(1.0, gt=0, description="... and this translation at the source's centroid, mm")
     max_cost_increase: float = Field(
-        0.01, ge=0, description="a result whose truncated point-to-plane cost exceeds the start's by more than "
-        "this share is refused (a few points crossing the correspondence distance move the cost that much)"
+        0.01, ge=0, lt=1, description="a result whose truncated point-to-plane cost exceeds the start's by more "
+        "than this share of the final distance squared is refused: as if that share of the points had slid out "
+        "of reach (a fit that slides along a smooth overlap moves a few boundary points that far)"
     )
     edge_effective_points: float = Field(
         1000.0, gt=0, description="independent points an overlap is worth when weighting a pose-graph edge"

@@ -124,15 +124,16 @@ def agree(A: np.ndarray, B: np.ndarray, centre_mm: np.ndarray, cfg: CorrectionCo
     return np.degrees(rotation_angle(D)) <= cfg.agreement_deg and moved <= cfg.agreement_mm
 
 
-def verify(result: PairRegistration, max_cost_increase: float) -> PairRegistration:
+def verify(result: PairRegistration, distance_mm: float, max_cost_increase: float) -> PairRegistration:
     """``result`` if it may be used, else :class:`RegistrationFailed` saying why: no inliers, an infinite
-    RMS, or a truncated cost more than ``max_cost_increase`` (a share) above the start's."""
+    RMS, or a truncated cost (scored at ``distance_mm``) more than ``max_cost_increase`` times
+    ``distance_mm`` squared above the start's (as if that share of the points had moved out of reach)."""
     if result.fit.inliers == 0:
         raise RegistrationFailed(f"no inliers: no source point within the correspondence distance "
                                  f"(stage {result.stage})")
     if not np.isfinite(result.fit.rmse_mm):
         raise RegistrationFailed(f"infinite point-to-plane RMS (stage {result.stage})")
-    if result.cost_mm2 > result.start_cost_mm2 * (1.0 + max_cost_increase):
+    if result.cost_mm2 > result.start_cost_mm2 + max_cost_increase * distance_mm**2:
         raise RegistrationFailed(f"fit worse than the start: truncated cost {result.cost_mm2:.4g} mm^2 against "
                                  f"{result.start_cost_mm2:.4g} at the start (stage {result.stage})")
     return result
@@ -180,7 +181,7 @@ def register_pair(
     start = truncated_cost(evaluate_point_to_plane(S, target, np.eye(4), final), final)
     log.debug("pair registration %s: costs %s, start %.4g mm^2", method, costs, start)
     return verify(PairRegistration(candidates[stage].transformation, candidates[stage], stage, costs[stage], start,
-                                   tuple(candidates)), cfg.max_cost_increase)
+                                   tuple(candidates)), final, cfg.max_cost_increase)
 
 
 def register_clouds(
@@ -216,17 +217,17 @@ def correct_pair(
     """Correct a stitched pair (the source in the world, mm; the target with normals, world); None when the
     overlap is below ``min_overlap_points``; :class:`RegistrationFailed` for a result that must not be used.
 
-    The registration runs on the overlap at the stitch (within the pair's threshold: the true overlap lies
-    inside it) and re-selects the overlap within it as it converges; the edge's fit is scored on the source
-    overlap at the stitch, thinned evenly to ``cfg.icp_max_points``.
+    The whole clouds are registered, the overlap re-selected from them at each level as the fit converges
+    (registering only the overlap at the stitch, or onto only the target's overlap, measured worse on the
+    simulated job, docs/registration.md); the edge's fit is scored on the source overlap at the stitch,
+    thinned evenly to ``cfg.icp_max_points``.
     """
     target_W = np.asarray(target.points)
     delta = pair_delta(target_W, cfg, pair_covariance)
     ov = extract_overlap(source_W, target_W, delta)
     if ov.size < cfg.min_overlap_points:
         return None
-    reg = register_pair(source_W[ov.source_idx], target.select_by_index(ov.target_idx.tolist()), cfg.method, cfg,
-                        network, delta)
+    reg = register_pair(source_W, target, cfg.method, cfg, network, delta)
     S = source_W[thin_evenly(ov.source_idx, cfg.icp_max_points)]
     fit = evaluate_point_to_plane(S, target, reg.transformation, cfg.icp_max_distance_mm)
     before = evaluate_point_to_plane(S, target, np.eye(4), cfg.icp_max_distance_mm)
