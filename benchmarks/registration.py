@@ -23,8 +23,9 @@ Open3D point-to-plane ICP at 0.4 voxel, the Open3D tutorial's pipeline). Keys
 (below 1 deg and 1 % of the pair's extent; a failed verification is no success), ``.failed`` (verification
 failures: exit 3 in ``register``), ``.zero_inliers_exit0`` (results with no inlier that were not refused:
 must be 0), ``.seconds_median`` (wall clock per pair, one thread); ``<set>.auto.stage_wins.<stage>``.
-``inference_2048``: DeepMerge on a pair of 2,048-point overlaps, one thread. ``register_cli``: the wall clock
-of a ``tandemscan register`` call on two 30 k-point bunny scans (the process start included), per method.
+Set ``timing``: ``inference_2048``, DeepMerge on a pair of 2,048-point overlaps, one thread; ``register_cli``,
+the wall clock and CPU time (user + system) of a ``tandemscan register`` call on two 30 k-point bunny scans,
+the process start included, per method.
 
 Usage: python benchmarks/registration.py [--pairs-per-scan 3] [--weights FILE] [--data DIR] [--sets real,sim,...]
 """
@@ -35,6 +36,7 @@ import argparse
 import asyncio
 import json
 import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -57,7 +59,7 @@ from tandemscan.pipeline.registration.pairs import RegistrationFailed, register_
 VERIFIED = ("icp", "deepmerge+icp", "fpfh+icp", "auto")     # ours, verified as ``register`` runs them
 ANCHORS = ("open3d_icp", "open3d_fpfh_ransac_icp")
 METHODS = ("deepmerge", *VERIFIED, *ANCHORS)
-SETS = ("real", "real_arbitrary", "real_conf", "sim")
+SETS = ("real", "real_arbitrary", "real_conf", "sim", "timing")
 NEIGHBOURS = {"bun000": ("bun045", "bun315"), "bun045": ("bun090",), "bun315": ("bun270",),
               "bun270": ("bun180",), "bun180": ("bun090",), "top2": ("bun000",), "chin": ("bun000",)}
 
@@ -316,13 +318,16 @@ def register_cli(scans, repeats: int = 3) -> dict[str, float]:
             paths.append(str(Path(tmp) / f"{name}.ply"))
             o3d.io.write_point_cloud(paths[-1], o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P)))
         for method in ("icp", "auto"):
-            times, rc = [], None
+            times, cpu, rc = [], [], None
             for _ in range(repeats):
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), resource.getrusage(resource.RUSAGE_CHILDREN)
                 rc = subprocess.run([sys.executable, "-m", "tandemscan.daemon.cli", "register", *paths, "--method",
                                      method], capture_output=True, check=False).returncode
+                c1 = resource.getrusage(resource.RUSAGE_CHILDREN)
                 times.append(time.perf_counter() - t0)
+                cpu.append(c1.ru_utime - c0.ru_utime + c1.ru_stime - c0.ru_stime)
             out[f"register_cli.{method}.seconds_median"] = float(np.median(times))
+            out[f"register_cli.{method}.cpu_seconds_median"] = float(np.median(cpu))
             out[f"register_cli.{method}.exit_status"] = rc
     return out
 
@@ -346,9 +351,11 @@ def main() -> None:
     registrar = DeepMergeRegistrar.load(args.weights, num_points=args.points, rounds=args.rounds)
     network = MemoNetwork(registrar)
     out: dict[str, float] = {"threads": 1, "rounds": registrar.rounds}
-    if sets & {"real", "real_arbitrary", "real_conf"}:
+    if sets & {"real", "real_arbitrary", "real_conf", "timing"}:
         scans = load_scans(find_data(args.data))
-        out |= real_sets(scans, sets, args, cfg, network, rng) | timing(scans, registrar, rng) | register_cli(scans)
+        out |= real_sets(scans, sets, args, cfg, network, rng)
+        if "timing" in sets:
+            out |= timing(scans, registrar, rng) | register_cli(scans)
     if "sim" in sets:
         pairs, delta = sim_pairs()
         out |= summarise([scored(s, t, M, delta, CorrectionConfig(), network) for s, t, M in pairs], "sim")
