@@ -22,7 +22,6 @@ from tandemscan.pipeline.registration.icp import (
 )
 from tandemscan.pipeline.registration.pairs import LazyNetwork, RegistrationFailed, register_clouds
 
-
 _BUMPS = np.random.default_rng(11).uniform([-90, -90, 4, -15], [90, 90, 14, 15], (40, 4))
 
 
