@@ -7,8 +7,9 @@ stage, classical (``fpfh``: FPFH + RANSAC, ``global_registration``) or learned (
 each finished by the fine stage. Methods: ``icp`` (the fine stage alone), ``deepmerge`` (the network's
 answer, kept only where it fits better than the start), ``deepmerge+icp``, ``fpfh+icp``, and ``auto``: the
 fine stage and FPFH + RANSAC; when the two disagree, the network too; the candidate with the lowest
-truncated point-to-plane cost wins. Every result is verified (:func:`verify`): no inliers, an infinite RMS or
-a cost above the start's is a :class:`RegistrationFailed`. The network is loaded at its first use
+truncated point-to-plane cost wins, the fine stage from the start where the costs cannot tell them apart.
+Every result is verified (:func:`verify`): no inliers, an infinite RMS or a cost above the start's is a
+:class:`RegistrationFailed`. The network is loaded at its first use
 (:class:`LazyNetwork`), so a pair that does not need it never imports PyTorch.
 """
 
@@ -177,7 +178,11 @@ def register_pair(
     if not candidates:
         raise ValueError(f"unknown registration method {method!r}")
     costs = {stage: truncated_cost(fit, final) for stage, fit in candidates.items()}
-    stage = min(costs, key=costs.__getitem__)
+    # costs closer than the verification margin cannot tell candidates apart (a slide along a smooth or
+    # extruded surface fits as well): the first of them wins, so the start's own fit is kept unless a global
+    # candidate fits clearly better
+    tie = cfg.max_cost_increase * final**2
+    stage = next(s for s, c in costs.items() if c <= min(costs.values()) + tie)
     start = truncated_cost(evaluate_point_to_plane(S, target, np.eye(4), final), final)
     log.debug("pair registration %s: costs %s, start %.4g mm^2", method, costs, start)
     return verify(PairRegistration(candidates[stage].transformation, candidates[stage], stage, costs[stage], start,
