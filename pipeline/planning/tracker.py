@@ -334,9 +334,11 @@ def solve_greedy(cover: np.ndarray, starts: int = 8, first: int | None = None) -
 
 
 def solve_exact(
-    cover: np.ndarray, time_limit_s: float = 5.0, max_variables: int = 20000, first: int | None = None
+    cover: np.ndarray, time_limit_s: float = 5.0, max_variables: int = 20000, first: int | None = None,
+    greedy: TrackerSolution | None = None,
 ) -> TrackerSolution | None:
     """The fewest chained stations by an integer program; None when the instance is too large or times out.
+    ``greedy``: the heuristic's chain for this ``cover`` and ``first`` when the caller has it (else solved here).
 
     When the heuristic chain already meets the LP lower bound it is optimal and returned as is. Otherwise:
     slots ``s = 0..S-1`` (S = the heuristic count). Binary ``x[t, s]``: station t in slot s; binary ``u[s]``:
@@ -347,7 +349,7 @@ def solve_exact(
     """
     t0 = time.perf_counter()
     cover = np.asarray(cover, bool)
-    greedy = solve_greedy(cover, first=first)
+    greedy = greedy if greedy is not None else solve_greedy(cover, first=first)
     if greedy.optimal:  # the heuristic met the LP bound: proven optimal, no integer program needed
         return greedy
     stations, witness, required = _reduce(cover, first)
@@ -398,11 +400,10 @@ def solve_exact(
 
 
 def choose_stations(cover: np.ndarray, planning: PlanningConfig, first: int | None = None) -> TrackerSolution:
-    """The exact solver where it finishes within the configured limits, else the greedy chain."""
-    exact = solve_exact(cover, planning.exact_time_limit_s, planning.exact_max_variables, first)
-    if exact is not None:
-        return exact
-    return solve_greedy(cover, first=first)
+    """The exact solver where it finishes within the configured limits, else the greedy chain (solved once)."""
+    greedy = solve_greedy(cover, first=first)
+    exact = solve_exact(cover, planning.exact_time_limit_s, planning.exact_max_variables, first, greedy)
+    return exact if exact is not None else greedy
 
 
 __all__ = [
