@@ -644,6 +644,15 @@ class DaemonConfig(_Strict):
     default_plan: str = Field("default-band", description="plan of a job posted without one")
     worker_niceness: int = Field(5, ge=0, le=19, description="added niceness of worker processes (ray casting, "
                                  "stitching, exports): the event loop and its 50 Hz safety loop come first")
+    fault_retry_attempts: int = Field(3, ge=0, description="automatic resumes of a job paused by a recoverable "
+                                      "device fault, counted since its last committed step (0: the operator resumes)")
+    fault_retry_initial_s: float = Field(2.0, gt=0, description="wait before the first automatic resume; doubles")
+    fault_retry_max_s: float = Field(60.0, gt=0, description="cap of the wait between automatic resumes")
+    max_body_bytes: int = Field(1_048_576, ge=1024, description="request bodies over this are refused (413) unread")
+    scan_bytes_estimate: int = Field(8_000_000, ge=0, description="disk one raw scan and its share of the exports "
+                                     "take (bytes), for the low-space guard of a new job")
+    reserve_free_bytes: int = Field(50_000_000, ge=0, description="free space kept beyond a job's scans (bytes): "
+                                    "the journal, reports and logs")
 
 
 class CellConfig(_Strict):

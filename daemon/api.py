@@ -37,7 +37,10 @@ log = logging.getLogger(__name__)
 
 PROBLEM = "application/problem+json"
 JobId = Annotated[str, Path(pattern=r"^[A-Za-z0-9_-]{1,64}$", description="job id")]
-JobStateName = Literal["queued", "running", "paused", "paused_safety", "succeeded", "failed", "cancelled"]
+JobStateName = Literal["queued", "running", "paused", "paused_safety", "paused_fault", "succeeded", "failed",
+                       "cancelled"]
+#: ``Last-Event-ID`` / ``after``: an event sequence number (decimal digits, at most 2**62)
+MAX_EVENT_ID = 2**62
 
 # ---------------------------------------------------------------- bodies
 
@@ -130,16 +133,23 @@ class Calibration(BaseModel):
 
 
 class Health(BaseModel):
+    """``degraded`` while a device is down, the safety stop latched, free space under the reserve or a job's
+    state held in memory because the journal refuses writes."""
+
     status: Literal["ok", "degraded"]
-    devices_connected: bool
+    devices_connected: bool = Field(description="every device connected and none reporting a fault")
+    devices_down: list[str] = Field(description="devices not connected or reporting a fault")
     safety_latched: bool
     active_job: str | None
     queued_jobs: int
+    free_bytes: int = Field(description="free space of the state folder's file system (bytes)")
+    storage_low: bool = Field(description="free space under [daemon] reserve_free_bytes")
+    storage_error: str | None = Field(description="why a job's state is held in memory (the journal refuses writes)")
     version: str
 
 
 PROBLEM_RESPONSES: dict[int | str, dict[str, Any]] = {
-    code: {"model": Problem, "content": {PROBLEM: {}}} for code in (401, 404, 409, 422)
+    code: {"model": Problem, "content": {PROBLEM: {}}} for code in (400, 401, 404, 409, 413, 422, 507)
 }
 
 # Exports a finished job serves besides cloud.ply and report.json, with their media types.
@@ -202,6 +212,7 @@ def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
 
     app = FastAPI(title="tandemscan", version=daemon.version, lifespan=lifespan,
                   description="Two-robot 3D measurement cell: jobs, devices, calibration, events.")
+    app.add_middleware(GuardBody, token=daemon.token, max_body_bytes=daemon.config.daemon.max_body_bytes)
     app.add_middleware(RequestTimer, registry=daemon.registry)
 
     # -------------------------------------------------------- errors as problem details
@@ -245,8 +256,7 @@ def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
         token = daemon.token
         if token is None:
             return
-        scheme, _, given = (authorization or "").partition(" ")
-        if scheme.lower() != "bearer" or not hmac.compare_digest(given.strip().encode(), token.encode()):
+        if not _bearer_ok(authorization, token):
             raise StarletteHTTPException(401, "a valid bearer token is required for this call",
                                          headers={"WWW-Authenticate": 'Bearer realm="tandemscan"'})
 
@@ -274,6 +284,10 @@ def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
             plan = daemon.plans.get(req.plan)
         except PlanError as e:
             raise ApiProblem(409, "Plan is invalid", str(e)) from e
+        need, free = daemon.bytes_needed(sum(s.kind == "scan" for s in plan.steps)), daemon.free_bytes()
+        if free < need:
+            raise ApiProblem(507, "Insufficient storage", f"the job needs {need / 1e6:.0f} MB free for its scans and "
+                             f"exports; {free / 1e6:.0f} MB are free in the state folder")
         stored = {"plan": plan.model_dump(mode="json"), "label": req.label}
         try:
             job, created = await mgr.submit(req.plan or daemon.plans.default_name, stored, len(plan.steps),
@@ -299,7 +313,7 @@ def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
         nxt = None
         if offset + len(jobs) < total:
             nxt = str(request.url.include_query_params(offset=offset + len(jobs), limit=limit))
-        return JobPage(items=[body_of(j) for j in jobs], total=total, limit=limit, offset=offset, next=nxt)
+        return JobPage(items=[body_of(mgr.current(j)) for j in jobs], total=total, limit=limit, offset=offset, next=nxt)
 
     @app.get("/v1/jobs/{job_id}", response_model=Job, responses=PROBLEM_RESPONSES, tags=["jobs"])
     async def get_job(job_id: JobId) -> Job:
@@ -393,12 +407,7 @@ def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
     @app.get("/v1/health", response_model=Health, tags=["service"])
     async def health() -> Health:
         """Liveness and a one-line state of the cell."""
-        snap = daemon.supervisor.snapshot()
-        queued = daemon.store.list_jobs(["queued"], limit=1)[1]
-        ok = snap["all_connected"] and not snap["safety"]["latched"]
-        return Health(status="ok" if ok else "degraded", devices_connected=snap["all_connected"],
-                      safety_latched=snap["safety"]["latched"], active_job=mgr.active_id, queued_jobs=queued,
-                      version=daemon.version)
+        return Health.model_validate(daemon.health())
 
     @app.get("/metrics", tags=["service"], response_class=Response,
              responses={200: {"content": {CONTENT_TYPE_LATEST: {}}}})
@@ -412,13 +421,14 @@ def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
         request: Request,
         job: Annotated[str | None, Query(max_length=64, description="only this job's events")] = None,
         after: Annotated[int | None, Query(ge=0, le=2**62, description="replay events after this id")] = None,
-        last_event_id: Annotated[str | None, Header(max_length=32)] = None,
+        last_event_id: Annotated[str | None, Header()] = None,
     ) -> StreamingResponse:
         """Server-sent events (``state``, ``progress``, ``device``, ``safety``); reconnect with
-        ``Last-Event-ID`` (or ``after``) to replay what was missed from the journal."""
+        ``Last-Event-ID`` (or ``after``) to replay what was missed from the journal. A ``Last-Event-ID`` that
+        is not an event id (decimal digits, at most 2**62) is a 400 problem."""
         start = after
-        if start is None and last_event_id is not None and last_event_id.isdigit():
-            start = int(last_event_id)
+        if start is None and last_event_id is not None:
+            start = parse_event_id(last_event_id)
         return StreamingResponse(_event_stream(daemon, request, job, start), media_type="text/event-stream",
                                  headers={"Cache-Control": "no-store", "X-Accel-Buffering": "no"})
 
@@ -426,6 +436,64 @@ def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
 
     app.include_router(console_router(daemon, require_token))
     return app
+
+
+def parse_event_id(value: str) -> int:
+    """An SSE ``Last-Event-ID`` as an event sequence number; :class:`ApiProblem` 400 when it is not one."""
+    text = value.strip()
+    if not (text.isascii() and text.isdigit() and len(text) <= 19 and int(text) <= MAX_EVENT_ID):
+        raise ApiProblem(400, "Malformed Last-Event-ID", f"Last-Event-ID must be an event id (decimal digits up to "
+                         f"{MAX_EVENT_ID}); got {value[:40]!r}")
+    return int(text)
+
+
+class GuardBody:
+    """ASGI middleware in front of every handler: a mutating request without the bearer token is refused (401)
+    before its body is read, and a body over ``max_body_bytes`` (declared or streamed) is refused with 413."""
+
+    def __init__(self, app, token: str | None, max_body_bytes: int):
+        self.app, self.token, self.max_body_bytes = app, token, max_body_bytes
+
+    async def __call__(self, scope, receive, send) -> None:
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", ())}
+        if self.token is not None and scope["method"] not in ("GET", "HEAD", "OPTIONS") \
+                and not _bearer_ok(headers.get("authorization"), self.token):
+            return await problem(401, "Unauthorized", "a valid bearer token is required for this call", scope["path"],
+                                 headers={"WWW-Authenticate": 'Bearer realm="tandemscan"'})(scope, receive, send)
+        declared = headers.get("content-length", "")
+        if declared.isdigit() and int(declared) > self.max_body_bytes:
+            return await self._too_large(scope, receive, send)
+        seen = 0
+
+        async def counted():
+            nonlocal seen
+            message = await receive()
+            if message["type"] == "http.request":
+                seen += len(message.get("body", b""))
+                if seen > self.max_body_bytes:
+                    raise _BodyTooLarge()
+            return message
+
+        try:
+            await self.app(scope, counted, send)
+        except _BodyTooLarge:
+            await self._too_large(scope, receive, send)
+
+    async def _too_large(self, scope, receive, send) -> None:
+        await problem(413, "Content Too Large", f"request bodies are limited to {self.max_body_bytes} bytes",
+                      scope["path"], headers={"Connection": "close"})(scope, receive, send)
+
+
+class _BodyTooLarge(Exception):
+    """A streamed request body passed the limit."""
+
+
+def _bearer_ok(authorization: str | None, token: str) -> bool:
+    """Whether an ``Authorization`` header carries ``token`` as its bearer token (constant-time compare)."""
+    scheme, _, given = (authorization or "").partition(" ")
+    return scheme.lower() == "bearer" and hmac.compare_digest(given.strip().encode(), token.encode())
 
 
 async def _event_stream(daemon: Daemon, request: Request, job: str | None, after: int | None) -> AsyncIterator[str]:

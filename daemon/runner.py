@@ -110,6 +110,10 @@ class StepJournal(Protocol):
         """What :meth:`note` recorded for a step, by kind."""
         ...
 
+    async def record_resume(self, idx: int, entry: dict) -> None:
+        """Durably record how this run resumed at step ``idx`` (one entry per resume, however many there are)."""
+        ...
+
     async def commit(self, idx: int, kind: str, result: dict, scan_file: Path | None = None,
                      scan_points: int = 0) -> None:
         """Commit a step's result (and its fsynced scan file) atomically."""
@@ -129,6 +133,9 @@ class _NoJournal:
 
     def notes(self, idx: int) -> dict[str, dict]:
         return {}
+
+    async def record_resume(self, idx: int, entry: dict) -> None:
+        return None
 
     async def commit(self, idx: int, kind: str, result: dict, scan_file: Path | None = None,
                      scan_points: int = 0) -> None:
@@ -297,7 +304,7 @@ class JobRunner:
             entry["fresh_reading"] = f"target not visible: {e.reason}"
             self.resume_log.append(entry)
             log.warning("resume at step %d: %s", i, entry["fresh_reading"])
-            await self.journal.note(i, "resume", entry)
+            await self.journal.record_resume(i, entry)
             return
         entry["T_C_T"] = fresh.T_C_T.tolist()
         if self.last_still_T_C_T is not None and not isinstance(step, MoveTracker):
@@ -310,7 +317,7 @@ class JobRunner:
                 log.warning("resume at step %d: tracker moved while down (%.3f mm); frame re-established from "
                             "the still target at %s", i, d_mm, T_W_T[:3, 3].round(3).tolist())
         self.resume_log.append(entry)
-        await self.journal.note(i, "resume", entry)
+        await self.journal.record_resume(i, entry)
 
     @staticmethod
     def _describe(step) -> str:
@@ -444,8 +451,9 @@ class JobRunner:
     async def _transfer(self, step: MoveTracker, i: int = -1) -> dict:
         """Eq. 2: read the still target, move the tracker, read it again, re-place the tracker in W.
 
-        The reading before the move is journaled before the tracker moves, so a transfer interrupted by a
-        crash or a safety stop completes from it (the target stays still meanwhile). The transfer's entry carries
+        The reading before the move (and the tracking chassis' odometry) is journaled before the tracker moves,
+        so a transfer interrupted by a crash, a safety stop or a device fault completes from it (the target stays
+        still meanwhile), and one of a job that fails or is cancelled is undone (:func:`return_from_transfer`). The transfer's entry carries
         its error prior for the pose graph: the still target's origin in W and the covariance of both readings
         (``uncertainty.transfer_covariance``)."""
         noted = self.journal.notes(i).get("before")
@@ -454,7 +462,9 @@ class JobRunner:
         else:
             before = await self.read_target()
             before_T_C_T, before_cov = before.T_C_T, before.covariance
-            await self.journal.note(i, "before", {"T_C_T": before_T_C_T.tolist(), "covariance": before_cov.tolist()})
+            odo = await self.cell.tracking_chassis.odometry()  # where an abandoned transfer returns the tracker
+            await self.journal.note(i, "before", {"T_C_T": before_T_C_T.tolist(), "covariance": before_cov.tolist(),
+                                                  "odometry": [odo.x_mm, odo.y_mm, odo.heading_rad]})
         async with self.gate.motion(TRACKING_ROBOT):
             odo = await self.cell.tracking_chassis.move_to(
                 ChassisPose(step.x_mm, step.y_mm, step.heading_rad), self.config.tracking_chassis.timeout_s
@@ -532,3 +542,21 @@ def _scan_from_result(d: dict, job_dir: Path) -> ScanRecord:
     reading = TrackerReading(np.array(d["T_C_T"]), np.array(d["covariance"]), d["timestamp_s"], d["frame_number"])
     return ScanRecord(d["index"], d["station"], job_dir / "scans" / d["file"], reading, np.array(d["joints_rad"]),
                       np.array(d["T_W_C"]), np.array(d["T_W_S"]), d["points"])
+
+
+async def return_from_transfer(session: CellSession, plan: Plan, committed: set[int],
+                               notes: Callable[[int], dict[str, dict]], config: CellConfig) -> bool:
+    """Undo the half transfer of an abandoned (failed, cancelled) job: where its first uncommitted step is a
+    ``move_tracker`` whose reading before the move was noted, drive the tracking robot back to the odometry noted
+    with it, through the gate. Returns whether it drove; the next job then finds the tracker where it stood."""
+    i = next((k for k in range(len(plan.steps)) if k not in committed), None)
+    if i is None or not isinstance(plan.steps[i], MoveTracker):
+        return False
+    odo = notes(i).get("before", {}).get("odometry")
+    if odo is None:
+        return False
+    async with session.gate.motion(TRACKING_ROBOT):
+        await session.cell.tracking_chassis.move_to(ChassisPose(*odo), config.tracking_chassis.timeout_s)
+    log.warning("abandoned transfer of step %d undone: the tracking robot is back at %s", i, odo)
+    return True
+

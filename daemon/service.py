@@ -13,6 +13,7 @@ import ipaddress
 import json
 import logging
 import os
+import shutil
 import time
 from collections import deque
 from collections.abc import AsyncIterator, Mapping
@@ -25,8 +26,8 @@ from prometheus_client import CollectorRegistry
 from tandemscan.config import CellConfig, load_config
 from tandemscan.daemon.cell import Cell
 from tandemscan.daemon.events import EventBus
-from tandemscan.daemon.jobs import JobManager, Runner
-from tandemscan.daemon.journal import run_journaled
+from tandemscan.daemon.jobs import JobManager, RetryPolicy, Runner
+from tandemscan.daemon.journal import journaled_abandon, run_journaled
 from tandemscan.daemon.metrics import DaemonCollector, timing_histograms
 from tandemscan.daemon.notify import Notifier
 from tandemscan.daemon.plans import PlanCatalog
@@ -104,8 +105,11 @@ class Daemon:
                                    on_event=self._device_event, on_tick_lateness=lateness_histogram.observe,
                                    connect_timeout_s=connect_timeout_s, require_connected=False)
         self.cell, self.supervisor = self.session.cell, self.session.supervisor
+        d = config.daemon
         self.manager = JobManager(self.store, self.bus, self.supervisor, runner or run_journaled, self.cell, config,
-                                  self.session)
+                                  self.session, RetryPolicy(d.fault_retry_attempts, d.fault_retry_initial_s,
+                                                            d.fault_retry_max_s),
+                                  journaled_abandon(self.session, config))
         self.plans = PlanCatalog([PlanCatalog.shipped_folder(), self.state_dir / "plans"], config.daemon.default_plan)
         self.notifier = notifier or Notifier()
         self.sse_heartbeat_s = 15.0
@@ -169,6 +173,28 @@ class Daemon:
         return {"jobs": counts, "devices": snap["devices"], "safety": snap["safety"],
                 "loop_lag_p99_s": _p99(self.loop_lag_s),
                 "control_lateness_p99_s": _p99(self.supervisor.control_lateness_s)}
+
+    def free_bytes(self) -> int:
+        """Free space of the file system the state folder is on (bytes)."""
+        return shutil.disk_usage(self.state_dir).free
+
+    def bytes_needed(self, n_scans: int) -> int:
+        """Disk a job of ``n_scans`` scans needs before it may start: its scans and exports, and the reserve."""
+        d = self.config.daemon
+        return n_scans * d.scan_bytes_estimate + d.reserve_free_bytes
+
+    def health(self) -> dict:
+        """The cell in one line: devices down, the latch, storage; ``degraded`` unless all is well."""
+        snap = self.supervisor.snapshot()
+        free = self.free_bytes()
+        storage_error = self.manager.storage_error
+        low = free < self.config.daemon.reserve_free_bytes
+        down = self.supervisor.down_devices()
+        ok = not down and not snap["safety"]["latched"] and storage_error is None and not low
+        return {"status": "ok" if ok else "degraded", "devices_connected": not down, "devices_down": down,
+                "safety_latched": snap["safety"]["latched"], "active_job": self.manager.active_id,
+                "queued_jobs": self.store.list_jobs(["queued"], limit=1)[1], "free_bytes": free,
+                "storage_low": low, "storage_error": storage_error, "version": self.version}
 
     def calibration(self) -> dict:
         """The installation transforms the stitch uses and their source (4x4 lists, mm)."""

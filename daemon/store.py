@@ -29,12 +29,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from tandemscan.daemon.jsonable import jsonable
 
 log = logging.getLogger(__name__)
 
-JOB_STATES = ("queued", "running", "paused", "paused_safety", "succeeded", "failed", "cancelled")
+JOB_STATES = ("queued", "running", "paused", "paused_safety", "paused_fault", "succeeded", "failed", "cancelled")
 FINAL_STATES = frozenset({"succeeded", "failed", "cancelled"})
-ACTIVE_STATES = frozenset({"running", "paused", "paused_safety"})
+ACTIVE_STATES = frozenset({"running", "paused", "paused_safety", "paused_fault"})
+PAUSED_STATES = frozenset({"paused", "paused_safety", "paused_fault"})
 
 # poses: raw poses of committed steps; notes: what a step under way recorded before it committed
 _STEP_VALUES = """
@@ -81,6 +83,10 @@ CREATE TABLE IF NOT EXISTS scans (
     bytes INTEGER NOT NULL,
     t_s REAL NOT NULL,
     PRIMARY KEY (job_id, step_idx)
+);
+CREATE TABLE IF NOT EXISTS resumes (
+    job_id TEXT NOT NULL REFERENCES jobs(id), attempt INTEGER NOT NULL, step_idx INTEGER NOT NULL,
+    value_json TEXT NOT NULL, t_s REAL NOT NULL, PRIMARY KEY (job_id, attempt)
 );
 CREATE TABLE IF NOT EXISTS events (
     seq INTEGER PRIMARY KEY AUTOINCREMENT,
@@ -379,7 +385,7 @@ class JobStore:
         """Durably record something about a step under way (kept whether or not the step commits)."""
         with self._tx() as conn:
             conn.execute("INSERT OR REPLACE INTO notes (job_id, step_idx, kind, value_json, t_s)"
-                         " VALUES (?, ?, ?, ?, ?)", (job_id, step_idx, kind, json.dumps(_jsonable(value)), time.time()))
+                         " VALUES (?, ?, ?, ?, ?)", (job_id, step_idx, kind, json.dumps(jsonable(value)), time.time()))
 
     def notes(self, job_id: str, step_idx: int) -> dict[str, dict]:
         """``{kind: value}`` noted for one step."""
@@ -387,10 +393,17 @@ class JobStore:
                                     (job_id, step_idx)).fetchall()
         return {r["kind"]: json.loads(r["value_json"]) for r in rows}
 
-    def notes_of_kind(self, job_id: str, kind: str) -> list[dict]:
-        """Every value noted under ``kind`` for the job, in step order (e.g. each resume of every attempt)."""
-        rows = self._conn().execute("SELECT value_json FROM notes WHERE job_id = ? AND kind = ? ORDER BY step_idx",
-                                    (job_id, kind)).fetchall()
+    def add_resume(self, job_id: str, attempt: int, step_idx: int, value: dict) -> None:
+        """Durably record how attempt ``attempt`` of the job resumed at ``step_idx`` (one row per attempt, so two
+        restarts on the same step are two resumes)."""
+        with self._tx() as conn:
+            conn.execute("INSERT OR REPLACE INTO resumes (job_id, attempt, step_idx, value_json, t_s)"
+                         " VALUES (?, ?, ?, ?, ?)", (job_id, attempt, step_idx, json.dumps(jsonable(value)), time.time()))
+
+    def resumes(self, job_id: str) -> list[dict]:
+        """Every resume of the job, in attempt order."""
+        rows = self._conn().execute("SELECT value_json FROM resumes WHERE job_id = ? ORDER BY attempt",
+                                    (job_id,)).fetchall()
         return [json.loads(r["value_json"]) for r in rows]
 
     def commit_step(self, job_id: str, step_idx: int, kind: str, result: dict | None = None,
@@ -408,7 +421,7 @@ class JobStore:
                          (job_id, step_idx, kind, json.dumps(result or {}), now))
             for pose_kind, value in (poses or {}).items():
                 conn.execute("INSERT INTO poses (job_id, step_idx, kind, value_json, t_s) VALUES (?, ?, ?, ?, ?)",
-                             (job_id, step_idx, pose_kind, json.dumps(_jsonable(value)), now))
+                             (job_id, step_idx, pose_kind, json.dumps(jsonable(value)), now))
             if scan is not None:
                 if scan.step_idx != step_idx:
                     raise StoreError(f"scan of step {scan.step_idx} committed with step {step_idx}")
@@ -503,18 +516,6 @@ class JobStore:
             f"SELECT id FROM jobs WHERE state IN ({','.join('?' * len(ACTIVE_STATES))}) ORDER BY seq",
             sorted(ACTIVE_STATES)).fetchall()
         return [r["id"] for r in rows]
-
-
-def _jsonable(value: object) -> object:
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, dict):
-        return {k: _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    return value
 
 
 def _job_from_row(row: sqlite3.Row) -> JobRecord:
