@@ -255,6 +255,8 @@ class SafetyConfig(_Strict):
 
     driver: DriverKind = "sim"
     poll_period_s: float = Field(0.02, gt=0)
+    silent_after_periods: float = Field(2.0, ge=1, description="a Modbus poll unanswered this many poll periods "
+                                        "is a safety stop (a silent module), long before the request's timeout")
     modbus: SafetyModbusConfig = SafetyModbusConfig()
 
 
