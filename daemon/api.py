@@ -465,29 +465,28 @@ class GuardBody:
         declared = headers.get("content-length", "")
         if declared.isdigit() and int(declared) > self.max_body_bytes:
             return await self._too_large(scope, receive, send)
-        seen = 0
+        seen, refused = 0, False
 
         async def counted():
-            nonlocal seen
+            nonlocal seen, refused
             message = await receive()
             if message["type"] == "http.request":
                 seen += len(message.get("body", b""))
-                if seen > self.max_body_bytes:
-                    raise _BodyTooLarge()
+                if seen > self.max_body_bytes and not refused:
+                    refused = True
+                    await self._too_large(scope, receive, send)
+                    return {"type": "http.disconnect"}  # the handler stops reading; its answer is dropped
             return message
 
-        try:
-            await self.app(scope, counted, send)
-        except _BodyTooLarge:
-            await self._too_large(scope, receive, send)
+        async def unless_refused(message) -> None:
+            if not refused:
+                await send(message)
+
+        await self.app(scope, counted, unless_refused)
 
     async def _too_large(self, scope, receive, send) -> None:
         await problem(413, "Content Too Large", f"request bodies are limited to {self.max_body_bytes} bytes",
                       scope["path"], headers={"Connection": "close"})(scope, receive, send)
-
-
-class _BodyTooLarge(Exception):
-    """A streamed request body passed the limit."""
 
 
 def _bearer_ok(authorization: str | None, token: str) -> bool:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import os
 import signal
 import sqlite3
@@ -151,3 +152,18 @@ def test_bad_scan_shape_is_a_clear_error(store):
     with pytest.raises(StoreError, match="do not match"):
         _write_scan(store, job.id, 0, np.ones((4, 3)), np.ones((3, 3)))
     assert not (store.job_dir(job.id) / "scans" / "scan-0000.npz").exists()
+
+
+def test_two_restarts_on_the_same_step_are_two_resumes(tmp_path):
+    from tandemscan.daemon.journal import StoreJournal
+    from tandemscan.daemon.jobs import JobContext
+
+    store = JobStore(tmp_path)
+    job, _ = store.create_job("p", {"plan": {}}, 10)
+    for _ in range(3):  # the first run, then two restarts that both resume at step 4
+        attempt = store.begin_attempt(job.id)
+        if attempt.attempts > 1:
+            journal = StoreJournal(JobContext(attempt, store, None, None))
+            asyncio.run(journal.record_resume(4, {"step": 4, "kind": "scan", "attempt": attempt.attempts}))
+    assert [r["attempt"] for r in store.resumes(job.id)] == [2, 3]
+    store.close()
