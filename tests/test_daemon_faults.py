@@ -44,9 +44,6 @@ def fault_config(part: Path) -> CellConfig:
     """The hil cell, quick to reconnect and retry, without the in-job inspection and the correction."""
     cfg = hil_config(part)
     return cfg.model_copy(update={
-        # a silent module within 10 control periods (200 ms, the request's timeout is 1 s): the emulators share
-        # the test's event loop on a loaded machine, where a 40 ms late reply is no silence
-        "safety": cfg.safety.model_copy(update={"silent_after_periods": 10.0}),
         "inspection": cfg.inspection.model_copy(update={"in_job": False}),
         "correction": cfg.correction.model_copy(update={"enabled": False}),
         "daemon": cfg.daemon.model_copy(update={
