@@ -335,7 +335,7 @@ class JobManager:
         retries = 0 if done != done_before else retries  # a committed step since the last fault: a fresh budget
         auto = fault.kind == "device" and retries < self.retry.attempts
         plan = (f"; automatic resume {retries + 1} of {self.retry.attempts} in {self.retry.delay_s(retries + 1):.1f} s "
-                "once every device is up") if auto else "; resume to retry"
+                "once every device is up") if auto else ("; resume to retry" if fault.kind == "device" else "")
         log.warning("job %s paused at step %d: %s", job_id, done, fault.reason)
         await self._set_state(job_id, "paused_fault", fault.reason + plan)
         self._retries[job_id] = (retries + 1 if auto else retries, done)
