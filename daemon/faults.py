@@ -16,8 +16,14 @@ import sqlite3
 from dataclasses import dataclass
 from typing import Literal
 
-from tandemscan.drivers.errors import (DeviceError, DeviceFault, DeviceTimeout, NotConnected, OutOfReach,
-                                       TargetNotVisible)
+from tandemscan.drivers.errors import (
+    DeviceError,
+    DeviceFault,
+    DeviceTimeout,
+    NotConnected,
+    OutOfReach,
+    TargetNotVisible,
+)
 
 #: errno values of a file system that cannot take a write now
 STORAGE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EIO, errno.EROFS, errno.EFBIG})

@@ -19,8 +19,8 @@ from tandemscan.config.models import CellConfig
 from tandemscan.daemon.jobs import JobContext
 from tandemscan.daemon.runner import JobProgress, JobRunner, return_from_transfer
 from tandemscan.daemon.session import CellSession
-from tandemscan.daemon.store import JobRecord, JobStore
 from tandemscan.daemon.stitcher import ProcessWorldMap
+from tandemscan.daemon.store import JobRecord, JobStore
 from tandemscan.pipeline.plan import Plan
 
 log = logging.getLogger(__name__)

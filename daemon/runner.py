@@ -453,9 +453,9 @@ class JobRunner:
 
         The reading before the move (and the tracking chassis' odometry) is journaled before the tracker moves,
         so a transfer interrupted by a crash, a safety stop or a device fault completes from it (the target stays
-        still meanwhile), and one of a job that fails or is cancelled is undone (:func:`return_from_transfer`). The transfer's entry carries
-        its error prior for the pose graph: the still target's origin in W and the covariance of both readings
-        (``uncertainty.transfer_covariance``)."""
+        still meanwhile), and one of a job that fails or is cancelled is undone (:func:`return_from_transfer`).
+        The transfer's entry carries its error prior for the pose graph: the still target's origin in W and the
+        covariance of both readings (``uncertainty.transfer_covariance``)."""
         noted = self.journal.notes(i).get("before")
         if noted is not None:
             before_T_C_T, before_cov = np.array(noted["T_C_T"]), np.array(noted["covariance"])

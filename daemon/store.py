@@ -398,7 +398,8 @@ class JobStore:
         restarts on the same step are two resumes)."""
         with self._tx() as conn:
             conn.execute("INSERT OR REPLACE INTO resumes (job_id, attempt, step_idx, value_json, t_s)"
-                         " VALUES (?, ?, ?, ?, ?)", (job_id, attempt, step_idx, json.dumps(jsonable(value)), time.time()))
+                         " VALUES (?, ?, ?, ?, ?)",
+                         (job_id, attempt, step_idx, json.dumps(jsonable(value)), time.time()))
 
     def resumes(self, job_id: str) -> list[dict]:
         """Every resume of the job, in attempt order."""

@@ -26,7 +26,6 @@ from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
 
 from tandemscan.daemon.jsonable import jsonable
-
 from tandemscan.drivers.errors import DeviceError, SafetyStop
 from tandemscan.drivers.interfaces import Device, SafetyIO
 from tandemscan.drivers.tasks import cancel_and_wait

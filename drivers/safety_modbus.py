@@ -6,8 +6,9 @@ off), as configured per output.
 The safety functions themselves stay hard-wired; this driver reports their state. Inputs are polled every
 ``SafetyConfig.poll_period_s`` in a background task; listeners hear every change at once. A lost or
 misbehaving link counts as a safety stop: :meth:`ModbusSafetyIO.read` raises :class:`SafetyStop` until the
-link is back (``connect()`` again). So does a silent module: a poll left unanswered for more than ``SafetyConfig.silent_after_periods`` (2) poll periods
-makes :meth:`ModbusSafetyIO.read` raise :class:`SafetyStop` at once (``silent_after_periods``), long before the request's own timeout.
+link is back (``connect()`` again). So does a silent module: a poll left unanswered for more than
+``SafetyConfig.silent_after_periods`` (2) poll periods makes :meth:`ModbusSafetyIO.read` raise :class:`SafetyStop`
+at once, long before the request's own timeout.
 """
 
 from __future__ import annotations

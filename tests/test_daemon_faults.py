@@ -23,7 +23,6 @@ from tandemscan.daemon.service import Daemon
 from tandemscan.drivers.interfaces import ChassisPose
 from tandemscan.pipeline.plan import Plan
 from tandemscan.sim_drivers.fake_harvesters import core as fake_harvesters
-
 from test_drivers_hil import box_part, hil_config  # noqa: F401 (box_part is a fixture)
 
 #: the default plan's first two scans, its first transfer, and the scan after it (move_measure first)
@@ -176,41 +175,33 @@ async def ride_through(cell: Cell, step: int, inject, clear, device: str, exc: s
     return job_id
 
 
-async def test_can_silent_during_a_transfer_pauses_and_the_transfer_completes(cell, reference):
-    chassis = cell.emulators["tracking_chassis"]
+def flip(obj: object, attr: str, on: object, off: object):
+    """The inject and clear of a fault that is one flag of an emulator's fault dataclass."""
 
     async def inject():
-        chassis.faults.drop_feedback_fraction = 0.95
+        setattr(obj, attr, on)
 
     async def clear():
-        chassis.faults.drop_feedback_fraction = 0.0
+        setattr(obj, attr, off)
 
-    job_id = await ride_through(cell, TRANSFER_STEP, inject, clear, "tracking_chassis", "DeviceTimeout", reference)
+    return inject, clear
+
+
+async def test_can_silent_during_a_transfer_pauses_and_the_transfer_completes(cell, reference):
+    faults = cell.emulators["tracking_chassis"].faults
+    job_id = await ride_through(cell, TRANSFER_STEP, *flip(faults, "drop_feedback_fraction", 0.95, 0.0),
+                                "tracking_chassis", "DeviceTimeout", reference)
     assert cell.daemon.store.notes(job_id, TRANSFER_STEP)["before"]["odometry"]
 
 
 async def test_jaka_tcp_drop_during_an_arm_move(cell, reference):
-    arm = cell.emulators["arm"]
-
-    async def inject():
-        arm.faults.disconnect_on_move = True
-
-    async def clear():
-        arm.faults.disconnect_on_move = False
-
-    await ride_through(cell, 3, inject, clear, "arm", "NotConnected", reference)
+    faults = cell.emulators["arm"].faults
+    await ride_through(cell, 3, *flip(faults, "disconnect_on_move", True, False), "arm", "NotConnected", reference)
 
 
 async def test_tracker_stall_during_a_scan(cell, reference):
-    tracker = cell.emulators["tracker"]
-
-    async def inject():
-        tracker.faults.stall = True
-
-    async def clear():
-        tracker.faults.stall = False
-
-    await ride_through(cell, 4, inject, clear, "tracker", "DeviceTimeout", reference)
+    faults = cell.emulators["tracker"].faults
+    await ride_through(cell, 4, *flip(faults, "stall", True, False), "tracker", "DeviceTimeout", reference)
 
 
 async def test_tracker_occlusion_during_a_scan(cell, reference, monkeypatch):
@@ -224,13 +215,8 @@ async def test_tracker_occlusion_during_a_scan(cell, reference, monkeypatch):
 
 
 async def test_scanner_timeout(cell, reference):
-    async def inject():
-        fake_harvesters.CAMERA.fetch_delay_s = 1e3
-
-    async def clear():
-        fake_harvesters.CAMERA.fetch_delay_s = 0.0
-
-    await ride_through(cell, 2, inject, clear, "scanner", "DeviceTimeout", reference)
+    await ride_through(cell, 2, *flip(fake_harvesters.CAMERA, "fetch_delay_s", 1e3, 0.0), "scanner", "DeviceTimeout",
+                       reference)
 
 
 async def test_tracker_tcp_drop_is_reconnected_and_health_follows(cell, reference):

@@ -155,8 +155,8 @@ def test_bad_scan_shape_is_a_clear_error(store):
 
 
 def test_two_restarts_on_the_same_step_are_two_resumes(tmp_path):
-    from tandemscan.daemon.journal import StoreJournal
     from tandemscan.daemon.jobs import JobContext
+    from tandemscan.daemon.journal import StoreJournal
 
     store = JobStore(tmp_path)
     job, _ = store.create_job("p", {"plan": {}}, 10)
