@@ -29,6 +29,8 @@ import tomli_w
 from tandemscan.config import load_config
 from tandemscan.config.loader import default_config_path
 from tandemscan.daemon import cli
+from tandemscan.pipeline.part import part_identity, read_mesh_file
+from tandemscan.pipeline.plan import Plan
 from tandemscan.sim_drivers.world import SimWorld
 
 CASES = (("measure", "arm"), ("measure", "tracking_chassis"), ("calibrate", "arm"), ("calibrate", "tracking_chassis"))
@@ -59,6 +61,9 @@ def hil_config_file(folder: Path) -> Path:
     data["hil"]["arm_time_scale"] = 0.05  # arm moves of tens of ms: the e-stop lands while the arm moves
     path = folder / "hil-cell.toml"
     path.write_bytes(tomli_w.dumps(data).encode())
+    band = Plan.load(cli.default_plan_path())  # the band plan's steps, stated for the box they run on here
+    Plan(name="band on the box", part="box.stl", part_identity=part_identity(read_mesh_file(folder / "box.stl")),
+         steps=band.steps).save(folder / "box-band.toml")
     return path
 
 
@@ -148,7 +153,8 @@ def run_case(config_file: Path, command: str, device: str, out: Path) -> dict:
 
     cli._session = spied
     try:
-        target = ["--out", str(out / "calibration.json")] if command == "calibrate" else ["--out", str(out)]
+        target = (["--out", str(out / "calibration.json")] if command == "calibrate"
+                  else ["--plan", str(config_file.parent / "box-band.toml"), "--out", str(out)])
         status = cli.main([command, "--config", str(config_file), *target])
     finally:
         cli._session = build

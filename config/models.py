@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import logging
 import math
+import tomllib
+from functools import cache
+from importlib import resources
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -166,10 +169,24 @@ class JakaTcpConfig(_Strict):
     state_poll_period_s: float = Field(0.1, gt=0, description="get_robot_state polling period while waiting")
 
 
+_ARM_MODEL_KEYS = ("dh_d_mm", "dh_a_mm", "joint_min_deg", "joint_max_deg")
+
+
+@cache
+def arm_models() -> dict[str, dict]:
+    """The arm models of ``config/arm_models.toml`` by name: DH (mm), joint limits (deg), whether checked."""
+    text = resources.files("tandemscan.config").joinpath("arm_models.toml").read_text(encoding="utf-8")
+    return tomllib.loads(text)
+
+
 class ArmConfig(_Strict):
-    """JAKA Zu 7 arm: standard DH parameters (mm, rad) and joint limits (deg at this edge)."""
+    """The arm (JAKA Zu 7 by default): standard DH parameters (mm, rad) and joint limits (deg at this edge).
+
+    ``model`` names an entry of ``config/arm_models.toml`` (zu7, zu12, zu18, zu20); its DH and limits fill the keys
+    this section leaves out (docs/planning.md, "Arm models and the lifting column")."""
 
     driver: DriverKind = "sim"
+    model: str = Field("zu7", description="arm model of config/arm_models.toml whose DH and limits are the defaults")
     # Standard DH of the Zu 7 (shared/protocols/README.md: a public Rust JAKA client cross-checked with
     # JAKA's ROS 2 URDF). Alpha signs differ between sources; this is the UR-style reading.
     dh_d_mm: tuple[float, ...] = (120.15, 0.0, 0.0, 115.01, 113.5, 107.0)
@@ -187,6 +204,44 @@ class ArmConfig(_Strict):
         if len(v) != 6:
             raise ValueError(f"needs 6 values, got {len(v)}")
         return v
+
+    @model_validator(mode="before")
+    @classmethod
+    def _model_defaults(cls, data: object) -> object:
+        """Fill the DH and limit keys left out from the named model's entry."""
+        if not isinstance(data, dict):
+            return data
+        name = data.get("model", "zu7")
+        models = arm_models()
+        if name not in models:
+            raise ValueError(f"unknown arm model {name!r} (known: {', '.join(sorted(models))})")
+        return {**{k: tuple(models[name][k]) for k in _ARM_MODEL_KEYS}, **data}
+
+
+class LiftConfig(_Strict):
+    """An optional lifting column on the measurement AGV: a vertical axis that raises the arm base by
+    ``height_mm`` above its mount ``T_V2_B`` (mm, mm/s). The planner sets its height per AGV station."""
+
+    enabled: bool = False
+    driver: DriverKind = "sim"
+    min_mm: float = Field(0.0, ge=0, description="lowest column height above the mount, mm")
+    max_mm: float = Field(0.0, ge=0, description="highest column height above the mount, mm")
+    speed_mm_s: float = Field(50.0, gt=0)
+    planning_step_mm: float = Field(250.0, gt=0, description="spacing of the heights the planner tries, mm")
+    timeout_s: float = Field(60.0, gt=0)
+
+    @model_validator(mode="after")
+    def _range(self) -> LiftConfig:
+        if self.max_mm < self.min_mm:
+            raise ValueError(f"max_mm = {self.max_mm} is below min_mm = {self.min_mm}")
+        return self
+
+    def heights_mm(self) -> tuple[float, ...]:
+        """The column heights the planner tries, lowest first (mm); the mount alone when there is no column."""
+        if not self.enabled:
+            return (0.0,)
+        count = int(math.ceil((self.max_mm - self.min_mm) / self.planning_step_mm - 1e-9)) + 1
+        return tuple(float(h) for h in np.linspace(self.min_mm, self.max_mm, max(count, 1)))
 
 
 class ChassisCanConfig(_Strict):
@@ -665,6 +720,7 @@ class CellConfig(_Strict):
     scanner: ScannerConfig = ScannerConfig()
     tracker: TrackerConfig = TrackerConfig()
     arm: ArmConfig = ArmConfig()
+    lift: LiftConfig = LiftConfig()
     measure_chassis: ChassisConfig = ChassisConfig()
     tracking_chassis: ChassisConfig = ChassisConfig()
     safety: SafetyConfig = SafetyConfig()

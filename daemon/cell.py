@@ -18,7 +18,7 @@ from tandemscan.config.models import CellConfig
 from tandemscan.daemon.observer import CalibrationObserver, JobObserver
 from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT
 from tandemscan.drivers.factory import ROLES, SIMULATION, build_real_device, load_entry
-from tandemscan.drivers.interfaces import Arm, Chassis, Device, SafetyIO, Scanner, Tracker
+from tandemscan.drivers.interfaces import Arm, Chassis, Device, Lift, SafetyIO, Scanner, Tracker
 from tandemscan.pipeline.installation import Installation
 
 
@@ -72,18 +72,26 @@ class Cell:
     tracker: Tracker
     safety: SafetyIO
     simulation: CellSimulation | None = None
+    lift: Lift | None = None  # the measurement AGV's lifting column, where it has one
 
     def devices(self) -> list[Device]:
-        return [self.measure_chassis, self.tracking_chassis, self.arm, self.scanner, self.tracker, self.safety]
+        devices = [self.measure_chassis, self.tracking_chassis, self.arm, self.scanner, self.tracker, self.safety]
+        return devices + ([self.lift] if self.lift is not None else [])
 
     def motion_devices(self) -> dict[str, list[Device]]:
-        """The devices that move, per robot (the measurement robot: its chassis and arm)."""
-        return {MEASURE_ROBOT: [self.measure_chassis, self.arm], TRACKING_ROBOT: [self.tracking_chassis]}
+        """The devices that move, per robot (the measurement robot: its chassis, arm and column)."""
+        measure = [self.measure_chassis, self.arm] + ([self.lift] if self.lift is not None else [])
+        return {MEASURE_ROBOT: measure, TRACKING_ROBOT: [self.tracking_chassis]}
 
 
 def needs_simulation(config: CellConfig) -> bool:
     """Whether the cell of ``config`` has a simulated part: a twin, or emulators for the real drivers."""
-    return config.hil.enabled or any(getattr(config, role).driver == "sim" for role in ROLES)
+    return config.hil.enabled or any(getattr(config, role).driver == "sim" for role in _roles(config))
+
+
+def _roles(config: CellConfig) -> tuple[str, ...]:
+    """The device roles of ``config``'s cell: every cell's, and the lifting column where ``[lift] enabled``."""
+    return ROLES + (("lift",) if config.lift.enabled else ())
 
 
 def build_cell(config: CellConfig, *, scan_process: bool = False, state_file: Path | None = None,
@@ -99,7 +107,7 @@ def build_cell(config: CellConfig, *, scan_process: bool = False, state_file: Pa
         config = simulation.config
     try:
         devices = {role: build_real_device(role, config) if getattr(config, role).driver == "real"
-                   else simulation.device(role) for role in ROLES}
+                   else simulation.device(role) for role in _roles(config)}
     except ValueError as e:
         raise CellBuildError(str(e)) from e
     return Cell(**devices, simulation=simulation)

@@ -65,16 +65,17 @@ def _progress_bar() -> Progress:
 def cmd_measure(args: argparse.Namespace) -> int:
     """Run a complete measurement job on the configured cell (the simulated cell by default)."""
     from tandemscan.daemon.runner import JobError, JobRunner
-    from tandemscan.pipeline.plan import Plan, PlanError
+    from tandemscan.pipeline.part import PartMeshError
+    from tandemscan.pipeline.plan import PlanError
 
     config = _load_config_with_overrides(args)
-    try:
-        plan = Plan.load(Path(args.plan) if args.plan else default_plan_path())
-    except PlanError as e:
-        raise UsageError(str(e)) from e
-    session = _session(config)
     out = Path(args.out) if args.out else config.job.out_dir
     job_dir = out / datetime.now().strftime("job-%Y%m%d-%H%M%S")
+    try:
+        plan = _plan_to_measure(args, config, job_dir)
+    except (PlanError, PartMeshError) as e:
+        raise UsageError(str(e)) from e
+    session = _session(config)
 
     async def run():
         async with session:
@@ -87,6 +88,28 @@ def cmd_measure(args: argparse.Namespace) -> int:
     result = _run_moving(run, JobError, f"scans measured so far are in {job_dir / 'scans'}")
     _print_summary(result.report, result.job_dir)
     return 0
+
+
+def _plan_to_measure(args: argparse.Namespace, config: CellConfig, job_dir: Path):
+    """The plan of a ``measure``: ``--plan`` if given (refused when made for another part), else for ``--part``
+    a plan made now (saved as ``plan.toml`` in the job folder, and said so), else the shipped band plan."""
+    from tandemscan.daemon.plan_cmd import PlanPartError, check_plan_part, describe, plan_configured_part
+    from tandemscan.pipeline.plan import Plan
+
+    try:
+        if args.plan or args.part is None:
+            path = Path(args.plan) if args.plan else default_plan_path()
+            plan = Plan.load(path)
+            check_plan_part(plan, path, config)
+            return plan
+        _, part_plan = plan_configured_part(config, f"plan of {Path(args.part).name}")
+    except PlanPartError as e:
+        raise UsageError(str(e)) from e
+    job_dir.mkdir(parents=True, exist_ok=True)
+    part_plan.sequence.plan.save(job_dir / "plan.toml")
+    console.print(f"no --plan given: planned {args.part}: {describe(part_plan)}; plan {job_dir / 'plan.toml'}",
+                  highlight=False, soft_wrap=True)
+    return part_plan.sequence.plan
 
 
 def _session(config: CellConfig):
@@ -232,7 +255,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("measure", help="run a measurement job (simulated cell by default)")
     p.add_argument("--config", type=Path, help="cell configuration TOML (default: the simulated cell)")
-    p.add_argument("--plan", type=Path, help="plan TOML/JSON (default: the shipped band plan)")
+    p.add_argument("--plan", type=Path, help="plan TOML/JSON (default: planned now for --part, else the shipped band "
+                   "plan of the default part); refused when made for another part")
     p.add_argument("--part", type=Path, help="part mesh STL/PLY/OBJ in mm (default: the parametric train nose)")
     p.add_argument("--resolution", choices=["coarse", "full"], help="simulated scanner resolution")
     p.add_argument("--out", type=Path, help="output folder (default: job.out_dir of the config)")

@@ -2,9 +2,13 @@
 pose with its world pose, plus the merged cloud) and ``poses.csv`` in the job's world frame W, and, where W
 is registered to the CAD frame F, ``report.html`` with ``figures/`` and ``cloud_deviation.ply`` in frame F.
 
-The registration is the job's own: ``T_F_W`` where the runner placed W in the plan's frame F (the part frame,
-relocalisation's anchor, Eq. 5), the same on a real and a simulated cell; a job that did not place W (relocalisation
-off, the target never seen) skips the inspection with the reason recorded. The CAD is the configured part mesh.
+The registration is the job's own, the same on a real and a simulated cell: from where the runner placed W in
+the plan's frame F (the part frame, relocalisation's anchor, Eq. 5) the cloud is aligned to the CAD by
+``[inspection] alignment`` (best fit, RPS on reference spheres, or none: :mod:`tandemscan.pipeline.alignment`); a
+job that did not place W (relocalisation off, the target never seen) skips the inspection with the reason
+recorded. The CAD is the configured part mesh (``[part]``), never the mesh a simulator scans. On the simulated
+cell the job's scorer then scores the alignment and the deviation areas against the world's truth
+(``ground_truth.inspection``, docs/inspection.md).
 """
 
 from __future__ import annotations
@@ -19,7 +23,7 @@ from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.cloud_io import read_raw_scan
 from tandemscan.pipeline.export import PosedScan, write_e57, write_ply, write_pose_log
 from tandemscan.pipeline.inspect import InspectionError
-from tandemscan.pipeline.inspection_job import InspectionOutputs, run_inspection
+from tandemscan.pipeline.inspection_job import InspectionOutputs, align_and_inspect
 from tandemscan.pipeline.part import load_part_mesh
 
 if TYPE_CHECKING:
@@ -64,6 +68,8 @@ def export_job(job: JobSnapshot, seconds: float) -> dict:
     write_ply(job.job_dir / "cloud.ply", job.worldmap.points(), job.worldmap.normals())
     report = build_report(job, seconds)
     report["inspection"] = write_job_outputs(job, report)  # report.html, E57, pose log
+    if job.scorer is not None and "ground_truth" in report and "alignment" in report["inspection"]:
+        report["ground_truth"]["inspection"] = job.scorer.score_inspection(job, report["inspection"])
     (job.job_dir / "report.json").write_text(json.dumps(report, indent=1), encoding="utf-8")
     return report
 
@@ -100,29 +106,32 @@ def write_job_outputs(job: JobSnapshot, report: dict) -> dict:
         log.warning("inspection failed: %s", e)
         return {"failed": str(e), "files": files}
     files |= {"html": out.html.name, "deviation_ply": out.ply.name}
-    return out.data | {"T_F_W": T_F_W.tolist(), "files": files}
+    return out.data | {"T_F_W": out.data["alignment"]["T_F_W"], "T_F_W_anchor": T_F_W.tolist(), "files": files}
 
 
 def _inspect(job: JobSnapshot, report: dict, scans: list[PosedScan], cloud_W: np.ndarray,
              normals_W: np.ndarray | None, T_F_W: np.ndarray) -> InspectionOutputs:
-    """The inspection of the job's cloud in the CAD frame, written into the job folder."""
+    """The inspection of the job's cloud, aligned to the CAD from the anchor's ``T_F_W``, written into the job
+    folder."""
     job_dir = job.job_dir
     # the tracker-only stitch (Eq. 1) against the poses the job ended with, which a correction step may change
     tracker_only = [F.compose(s.T_W_C, s.reading.T_C_T, job.installation.T_T_S) for s in job.scans]
     corrected = any(not np.allclose(T, s.T_W_S, rtol=0, atol=1e-9) for T, s in zip(tracker_only, scans, strict=True))
-    before = [F.transform_points(T_F_W @ T, _thin(s.points_S_mm)) for T, s in zip(tracker_only, scans, strict=True)]
-    after = [F.transform_points(T_F_W @ s.T_W_S, _thin(s.points_S_mm)) for s in scans] if corrected else None
-    return run_inspection(
-        F.transform_points(T_F_W, cloud_W),
+    before = [F.transform_points(T, _thin(s.points_S_mm)) for T, s in zip(tracker_only, scans, strict=True)]
+    after = [F.transform_points(s.T_W_S, _thin(s.points_S_mm)) for s in scans] if corrected else None
+    return align_and_inspect(
+        cloud_W,
         load_part_mesh(job.config.part),
         job_dir,
         job.config.inspection,
-        normals=None if normals_W is None else F.rotate_vectors(T_F_W, normals_W),
+        normals_W=normals_W,
+        start_T_F_W=T_F_W,
+        start="W placed in F by the anchor reading (Eq. 5)",
+        scans_before_W=before,
+        scans_after_W=after,
         title=f"Inspection report, {job_dir.name}",
         meta={"job": job_dir.name, "plan": job.plan.name, "cell": job.config.name,
-              "registration to CAD": "W placed in F by the anchor reading (Eq. 5)", "points": str(len(cloud_W))},
+              "alignment to CAD": job.config.inspection.alignment, "points": str(len(cloud_W))},
         accuracy=_accuracy(report),
-        scans_before=before,
-        scans_after=after,
         json_name=None,
     )

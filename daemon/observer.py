@@ -25,6 +25,11 @@ class JobScorer(Protocol):
         """The ``ground_truth`` section for the job's scans at their poses ``T_W_S`` now and its cloud."""
         ...
 
+    def score_inspection(self, job: JobSnapshot, inspection: dict) -> dict:
+        """``ground_truth.inspection``: the report's ``inspection`` section (its alignment's ``T_F_W`` and its
+        deviation areas) against the truth."""
+        ...
+
 
 class JobObserver(Protocol):
     """Hooks the runner calls as it measures; none returns anything the job uses."""

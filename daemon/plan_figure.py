@@ -1,4 +1,5 @@
-"""Top view of a plan (matplotlib, PNG): part contour, AGV stations, tracker stations, covers, transfer order."""
+"""Top view of a plan (matplotlib, PNG): part contour, AGV stations, tracker stations, covers, transfer order,
+and the areas the plan leaves out (by reason, marker size by area, labelled with area and height range)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,12 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402 - the backend is chosen first
 import numpy as np  # noqa: E402
+from tandemscan.pipeline.planning.coverage import (  # noqa: E402
+    REASON_MISSED,
+    REASON_NO_POSE,
+    REASON_REACH,
+    REASON_TRACKER,
+)
 from tandemscan.pipeline.planning.planner import PartPlan, target_poses  # noqa: E402
 
 
@@ -48,6 +55,7 @@ def draw_plan(plan: PartPlan, T_T_S: np.ndarray, path: Path, title: str = "") ->
     for t in plan.sequence.transfer_poses:
         ax.scatter([targets[t, 0] * mm], [targets[t, 1] * mm], marker="*", s=120, color="tab:red", edgecolor="k",
                    zorder=6)
+    _draw_left_out(ax, plan)
     s = plan.summary()
     ax.set_title(title or (f"{s['scans']} scans at {s['agv_stations']} AGV stations, {s['tracker_stations']} tracker "
                            f"stations ({s['tracker_solver']}, bound {s['tracker_lower_bound']}), "
@@ -60,3 +68,32 @@ def draw_plan(plan: PartPlan, T_T_S: np.ndarray, path: Path, title: str = "") ->
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
+
+
+_LEFT_OUT_STYLE = {  # reason -> (colour, marker)
+    REASON_REACH: ("tab:red", "X"),
+    REASON_TRACKER: ("tab:purple", "D"),
+    REASON_MISSED: ("tab:orange", "s"),
+    REASON_NO_POSE: ("0.4", "v"),
+}
+
+
+def _draw_left_out(ax, plan: PartPlan) -> None:
+    """The left-out areas at their centroids (F, m): one marker per reason and station, area 0.01 m^2 or more;
+    those of 0.25 m^2 or more a scanner could see are labelled with their area and height range."""
+    mm = 1e-3
+    for reason, (colour, marker) in _LEFT_OUT_STYLE.items():
+        areas = [lo for lo in plan.coverage.left_out if lo.reason == reason and lo.area_mm2 >= 1e4]
+        if not areas:
+            continue
+        xy = np.array([lo.centroid_mm[:2] for lo in areas]) * mm
+        size = 20 + 200 * np.sqrt(np.array([lo.area_mm2 for lo in areas]) / 1e6)
+        total = sum(lo.area_mm2 for lo in areas) / 1e6
+        ax.scatter(xy[:, 0], xy[:, 1], s=size, marker=marker, color=colour, alpha=0.6, edgecolor="k", zorder=7,
+                   label=f"left out: {reason} ({total:.2f} m^2)")
+        for lo in areas:
+            if lo.area_mm2 >= 2.5e5 and reason != REASON_NO_POSE:
+                z0, z1 = (z / 1e3 for z in lo.z_range_mm)
+                ax.annotate(f"{lo.area_mm2 / 1e6:.2f} m^2, z {z0:.1f}-{z1:.1f} m",
+                            (lo.centroid_mm[0] * mm, lo.centroid_mm[1] * mm), fontsize=6, color=colour,
+                            xytext=(4, -8), textcoords="offset points")

@@ -24,6 +24,7 @@ def build_report(job: JobSnapshot, seconds: float) -> dict:
         "installation_source": job.config.job.installation_source,
         "seconds": round(seconds, 3),
         "scans_planned": job.plan.scan_count,
+        "left_out_by_plan": [a.model_dump() for a in job.plan.left_out],  # what the plan could not measure, where
         "scans_empty": [s.index for s in job.scans if s.point_count == 0],
         "transfer_log": job.transfers,
         "relocalisation": relocalisation_summary(job.relocalisation),
@@ -44,6 +45,7 @@ def relocalisation_summary(log: dict) -> dict:
     or not re-solved and how far off plan the AGV stood (mm, deg, maxima)."""
     located = log.get("located", [])
     out = dict(log) | {"stations_located": len(located), "unresolved_count": len(log.get("unresolved", [])),
+                       "untracked_count": len(log.get("untracked", [])),
                        "adjusted_count": len(log.get("adjusted", []))}
     for key in ("off_plan_mm", "off_plan_deg"):
         values = [e[key] for e in located if key in e]

@@ -40,7 +40,7 @@ from tandemscan.drivers.errors import TargetNotVisible
 from tandemscan.drivers.interfaces import ChassisPose, TrackerReading
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.installation import Installation
-from tandemscan.pipeline.plan import MoveArm, MoveMeasure, MoveTracker, Plan, Scan
+from tandemscan.pipeline.plan import MoveArm, MoveLift, MoveMeasure, MoveTracker, Plan, Scan
 from tandemscan.pipeline.relocalise import Relocaliser
 from tandemscan.pipeline.uncertainty import transfer_covariance
 
@@ -201,7 +201,8 @@ class JobRunner:
         self.T_F_V2: np.ndarray | None = None  # the measurement AGV in F as measured; None since it drove unmeasured
         self.planned_T_F_V2: np.ndarray | None = None  # where the plan (or, at the start, the odometry) puts it
         self.relocalisation: dict = {"enabled": self.resolving, "anchor": None, "located": [],
-                                     "unresolved": [], "adjusted": []}
+                                     "unresolved": [], "adjusted": [], "untracked": []}
+        self.lift_mm = 0.0  # the lifting column's height (mm above the arm's mount) as last reported
 
     async def read_target(self) -> TrackerReading:
         """The target pose at rest, averaged over ``tracker.samples_per_reading`` readings."""
@@ -222,6 +223,8 @@ class JobRunner:
         (self.job_dir / "scans").mkdir(parents=True, exist_ok=True)
         total = len(self.plan.steps) + 1
         await self.cell.arm.enable()
+        if self.cell.lift is not None:
+            self.lift_mm = await self.cell.lift.height()
         resuming = bool(self.journal.committed)
         if self.relocaliser is not None and 0 not in self.journal.committed and not isinstance(
                 self.plan.steps[0], MoveTracker):  # an opening tracker move redefines W: anchor after it
@@ -264,14 +267,36 @@ class JobRunner:
                 self.T_F_V2 = None
                 result |= self._relocalisation_state(located=await self._locate(i))
             return result, None
+        if isinstance(step, MoveLift):
+            return await self._move_lift(step), None
         if isinstance(step, MoveArm):
             self.last_still_T_C_T = None
             joints, extra = await self._arm_target(i, step)
             async with self.gate.motion(MEASURE_ROBOT):
                 await self.cell.arm.move_joints(joints, self.config.arm.timeout_s)
             return {"joints_rad": joints.tolist(), **extra}, None
-        record = await self._scan()
+        try:
+            record = await self._scan()
+        except TargetNotVisible as e:  # e.g. a nearby view the plan's tracker cover did not check: go on
+            return {"untracked": self._untracked(i, e.reason)}, None
         return _scan_result(record), (record.file, record.point_count)
+
+    def _untracked(self, i: int, reason: str) -> dict:
+        """A scan left out because the tracker could not see the target: the report entry (step, label, why)."""
+        step = self.plan.steps[i]
+        entry = {"step": i, "label": step.label if isinstance(step, Scan) else "", "reason": reason}
+        log.warning("step %d (%s): scan left out, %s", i, entry["label"], reason)
+        self.relocalisation["untracked"].append(entry)
+        return entry
+
+    async def _move_lift(self, step: MoveLift) -> dict:
+        """Raise or lower the measurement AGV's lifting column, inside the measurement robot's motion gate."""
+        if self.cell.lift is None:
+            raise JobError("the plan moves a lifting column but this cell has none ([lift] enabled = false)")
+        self.last_still_T_C_T = None
+        async with self.gate.motion(MEASURE_ROBOT):
+            self.lift_mm = await self.cell.lift.move_to(step.height_mm, self.config.lift.timeout_s)
+        return {"height_mm": self.lift_mm}
 
     async def _replay(self, step, result: dict) -> None:
         """Rebuild the run's state from a step committed before a restart (no device is touched)."""
@@ -284,9 +309,14 @@ class JobRunner:
             self.tracker_station = result["station"]
             self.transfers.append(result["transfer"])
             self.last_still_T_C_T = np.array(result["after"])
+        elif isinstance(step, MoveLift):
+            self.last_still_T_C_T = None
+            self.lift_mm = result["height_mm"]
         elif isinstance(step, (MoveMeasure, MoveArm)):
             self.last_still_T_C_T = None
             self._restore_relocalisation(result)
+        elif isinstance(step, Scan) and "untracked" in result:
+            self.relocalisation["untracked"].append(result["untracked"])
         elif isinstance(step, Scan):
             record = _scan_from_result(result, self.job_dir)
             self.scans.append(record)
@@ -324,6 +354,7 @@ class JobRunner:
         return {
             "move_tracker": "coordinate transfer: moving the tracking robot",
             "move_measure": "moving the measurement robot",
+            "move_lift": "moving the lifting column",
             "move_arm": "moving the arm",
             "scan": "scanning",
         }[step.kind]
@@ -346,7 +377,8 @@ class JobRunner:
                 log.info("world not placed in the plan's frame at step %d: %s", i, e.reason)
                 return
             T_F_V2 = self.planned_T_F_V2 if self.T_F_V2 is None else self.T_F_V2
-            T_W_V2 = self.relocaliser.agv_in_world(self.T_W_C @ reading.T_C_T, await self.cell.arm.joints())
+            T_W_V2 = self.relocaliser.agv_in_world(self.T_W_C @ reading.T_C_T, await self.cell.arm.joints(),
+                                                   self.lift_mm)
             noted = {"step": i, "placed": True, "source": "measurement AGV where its odometry says"
                      if self.T_F_V2 is None else "measurement AGV where last measured",
                      "T_F_W": (T_F_V2 @ F.invert(T_W_V2)).tolist(), "T_F_V2": T_F_V2.tolist()}
@@ -362,7 +394,8 @@ class JobRunner:
         except TargetNotVisible as e:
             log.debug("step %d: measurement AGV not located from this arm pose: %s", i, e.reason)
             return None
-        T_W_V2 = self.relocaliser.agv_in_world(self.T_W_C @ reading.T_C_T, await self.cell.arm.joints())
+        T_W_V2 = self.relocaliser.agv_in_world(self.T_W_C @ reading.T_C_T, await self.cell.arm.joints(),
+                                               self.lift_mm)
         planned = self.planned_T_F_V2
         if self.T_F_W is None:
             self.T_F_W = planned @ F.invert(T_W_V2)
@@ -390,7 +423,7 @@ class JobRunner:
         if self.T_F_V2 is None:
             return planned, self._relocalisation_state(located, self._unresolved(
                 i, "measurement AGV not located: the tracker sees the target from none of its poses since it drove"))
-        q, changed = self.relocaliser.resolve(self.T_F_V2, np.array(step.T_F_S), planned)
+        q, changed = self.relocaliser.resolve(self.T_F_V2, np.array(step.T_F_S), planned, self.lift_mm)
         if q is None:
             return planned, self._relocalisation_state(located, self._unresolved(
                 i, "planned scanner pose and its nearby views out of the arm's reach from where the AGV stands; "

@@ -29,8 +29,11 @@ DEVICE_REGISTRY: dict[str, dict[DriverKind, str]] = {
                 "sim": "tandemscan.sim_drivers.twins:SimTracker"},
     "safety": {"real": "tandemscan.drivers.safety_modbus:ModbusSafetyIO",
                "sim": "tandemscan.sim_drivers.twins:SimSafetyIO"},
+    # the measurement AGV's lifting column, built only where ``[lift] enabled``; no real column driver exists yet
+    "lift": {"sim": "tandemscan.sim_drivers.lift:SimLift"},
 }
-ROLES = tuple(DEVICE_REGISTRY)
+#: the roles every cell has; the lift is optional
+ROLES = tuple(role for role in DEVICE_REGISTRY if role != "lift")
 #: the simulated cell (world, twins' construction, emulators, ground-truth observer), where any role is "sim"
 #: or ``[hil] enabled``
 SIMULATION = "tandemscan.sim_drivers.cell:Simulation"
@@ -45,7 +48,9 @@ def load_entry(spec: str) -> type:
 def device_class(role: str, kind: DriverKind) -> type:
     """The class of ``kind`` registered for ``role``; ValueError for an unknown role."""
     if role not in DEVICE_REGISTRY:
-        raise ValueError(f"unknown device role {role!r}; expected one of {', '.join(ROLES)}")
+        raise ValueError(f"unknown device role {role!r}; expected one of {', '.join(DEVICE_REGISTRY)}")
+    if kind not in DEVICE_REGISTRY[role]:
+        raise ValueError(f"{role}: no {kind} driver exists (use driver = 'sim')")
     return load_entry(DEVICE_REGISTRY[role][kind])
 
 

@@ -145,3 +145,21 @@ class SafetyIO(Device, Protocol):
     async def read(self) -> SafetyState: ...
 
     async def set_target_light(self, on: bool) -> None: ...
+
+
+@runtime_checkable
+class Lift(Device, Protocol):
+    """A lifting column under the arm on the measurement AGV: one vertical axis, height in mm above the
+    arm's mount (``T_V2_B`` with z raised by the height, :func:`pipeline.kinematics.arm_base_on_column`)."""
+
+    async def move_to(self, height_mm: float, timeout_s: float | None = None) -> float:
+        """Drive to ``height_mm``; returns the height reached (mm). Raises :class:`OutOfReach` outside its range."""
+        ...
+
+    async def height(self) -> float:
+        """The column's height now (mm)."""
+        ...
+
+    async def stop(self) -> None:
+        """Stop the axis at once (emergency path)."""
+        ...

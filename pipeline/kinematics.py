@@ -74,3 +74,10 @@ class ArmKinematics:
                 if best is sol.x and np.linalg.norm(sol.x - seed) < 1.0:
                     break
         return best
+
+
+def arm_base_on_column(T_V2_B: np.ndarray, height_mm: float) -> np.ndarray:
+    """``T_V2_B`` of an arm on a lifting column raised ``height_mm`` (mm): the mount moved up the chassis z."""
+    T = np.array(T_V2_B, float)
+    T[2, 3] += height_mm
+    return T

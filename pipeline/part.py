@@ -6,12 +6,14 @@ along x with the nose towards +x.
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 
 import numpy as np
 import open3d as o3d
 from tandemscan.config.models import PartConfig
 from tandemscan.pipeline.cloud_io import has_ply_magic
+from tandemscan.pipeline.plan import PartIdentity
 
 MESH_SUFFIXES = (".stl", ".ply", ".obj", ".off", ".gltf", ".glb")
 
@@ -119,6 +121,47 @@ def train_nose_mesh(
         o3d.utility.Vector3dVector(np.vstack(vertices)), o3d.utility.Vector3iVector(np.vstack(tris))
     )
     if signed_volume_mm3(mesh) < 0:  # make normals point outward whatever the winding above produced
+        mesh.triangles = o3d.utility.Vector3iVector(np.asarray(mesh.triangles)[:, ::-1])
+    mesh.compute_vertex_normals()
+    mesh.compute_triangle_normals()
+    return mesh
+
+
+def part_identity(mesh: o3d.geometry.TriangleMesh) -> PartIdentity:
+    """What a plan records of the part it was made for: the mesh's SHA-256 (vertices rounded to 1 um, as int64,
+    then the triangles) and its bounding box (F, mm)."""
+    v = np.asarray(mesh.vertices)
+    t = np.asarray(mesh.triangles)
+    digest = hashlib.sha256(np.round(v * 1000.0).astype(np.int64).tobytes())
+    digest.update(t.astype(np.int64).tobytes())
+    return PartIdentity(sha256=digest.hexdigest(), bbox_min_mm=tuple(round(float(x), 3) for x in v.min(axis=0)),
+                        bbox_max_mm=tuple(round(float(x), 3) for x in v.max(axis=0)), triangles=len(t))
+
+
+def barrel_panel_mesh(length_mm: float = 4000.0, radius_mm: float = 2200.0, crown_mm: float = 1600.0,
+                      n_around: int = 121, n_along: int = 80) -> o3d.geometry.TriangleMesh:
+    """A fuselage barrel panel standing on the floor (mm, outward normals, watertight): the circular segment of
+    ``radius_mm`` whose crown stands ``crown_mm`` above the floor (z = 0), ``length_mm`` along x, centred on
+    x = y = 0, closed by the floor and two end faces."""
+    zc = crown_mm - radius_mm  # the barrel's axis height (below the floor for a panel lower than its radius)
+    half_angle = np.arccos(np.clip(-zc / radius_mm, -1.0, 1.0))  # from the crown to where the arc meets the floor
+    phi = np.linspace(-half_angle, half_angle, n_around)
+    y = radius_mm * np.sin(phi)
+    z = zc + radius_mm * np.cos(phi)
+    z[[0, -1]] = 0.0
+    x = np.linspace(-0.5 * length_mm, 0.5 * length_mm, n_along)
+    vertices = np.c_[np.repeat(x, n_around), np.tile(y, n_along), np.tile(z, n_along)]
+    idx = np.arange(n_along * n_around).reshape(n_along, n_around)
+    a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
+    tris = [np.c_[a.ravel(), b.ravel(), c.ravel()], np.c_[b.ravel(), d.ravel(), c.ravel()]]  # the skin
+    a, b, c, d = idx[:-1, 0], idx[1:, 0], idx[:-1, -1], idx[1:, -1]
+    tris += [np.c_[a, b, c], np.c_[c, b, d]]  # the floor face between the two floor edges
+    n = len(vertices)  # end faces: fans from a point inside each segment
+    vertices = np.vstack([vertices, [[x[0], 0.0, 0.3 * crown_mm], [x[-1], 0.0, 0.3 * crown_mm]]])
+    tris += [np.c_[np.full(n_around, n), np.roll(idx[0], -1), idx[0]],
+             np.c_[np.full(n_around, n + 1), idx[-1], np.roll(idx[-1], -1)]]
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(np.vstack(tris)))
+    if signed_volume_mm3(mesh) < 0:
         mesh.triangles = o3d.utility.Vector3iVector(np.asarray(mesh.triangles)[:, ::-1])
     mesh.compute_vertex_normals()
     mesh.compute_triangle_normals()

@@ -47,6 +47,13 @@ class MoveMeasure(_Step):
     heading_rad: float
 
 
+class MoveLift(_Step):
+    """Move the measurement AGV's lifting column to ``height_mm`` above the arm's mount (the arm folded)."""
+
+    kind: Literal["move_lift"] = "move_lift"
+    height_mm: float
+
+
 Matrix4 = tuple[tuple[float, float, float, float], tuple[float, float, float, float],
                 tuple[float, float, float, float], tuple[float, float, float, float]]
 
@@ -79,7 +86,32 @@ class Scan(_Step):
     label: str = ""
 
 
-Step = Annotated[MoveTracker | MoveMeasure | MoveArm | Scan, Field(discriminator="kind")]
+Step = Annotated[MoveTracker | MoveMeasure | MoveLift | MoveArm | Scan, Field(discriminator="kind")]
+
+
+class PartIdentity(BaseModel):
+    """The part a plan was made for: the SHA-256 of its mesh (vertices rounded to 1 um, then triangles) and its
+    bounding box in the part frame F (mm)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    sha256: str
+    bbox_min_mm: tuple[float, float, float]
+    bbox_max_mm: tuple[float, float, float]
+    triangles: int
+
+
+class LeftOutArea(BaseModel):
+    """Surface the plan does not measure, of one kind near one AGV station: why, its area (m^2), height range
+    and centroid (part frame F, mm)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    reason: str
+    station: int
+    area_m2: float
+    z_range_mm: tuple[float, float]
+    centroid_mm: tuple[float, float, float]
 
 
 class Plan(BaseModel):
@@ -89,6 +121,9 @@ class Plan(BaseModel):
 
     name: str
     part: str = Field("", description="the part the plan was made for (informative)")
+    part_identity: PartIdentity | None = Field(None, description="the mesh the plan was made for; a job refuses "
+                                               "a plan whose mesh differs")
+    left_out: list[LeftOutArea] = Field(default_factory=list, description="surface the plan does not measure")
     steps: list[Step]
 
     @field_validator("steps")

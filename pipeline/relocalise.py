@@ -18,7 +18,7 @@ import numpy as np
 from tandemscan.config.models import ArmConfig, ScannerConfig
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.installation import Installation
-from tandemscan.pipeline.kinematics import ArmKinematics
+from tandemscan.pipeline.kinematics import ArmKinematics, arm_base_on_column
 from tandemscan.pipeline.planning.ik import default_ik
 
 _STANDOFF_STEPS_MM = (20.0, 40.0)  # well inside the 384-520 mm window around the 442 mm sweet spot
@@ -52,28 +52,32 @@ class Relocaliser:
         self.ik = default_ik(arm)
         self.sweet_spot_mm = scanner.sweet_spot_mm
 
-    def agv_in_world(self, T_W_T: np.ndarray, joints_rad: np.ndarray) -> np.ndarray:
-        """``T_W_V2`` of the measurement chassis from the target's world pose and the arm's joints (Eq. 5)."""
+    def agv_in_world(self, T_W_T: np.ndarray, joints_rad: np.ndarray, lift_mm: float = 0.0) -> np.ndarray:
+        """``T_W_V2`` of the measurement chassis from the target's world pose, the arm's joints and the lifting
+        column's height (mm; 0 without a column) (Eq. 5)."""
         inst = self.installation
-        return F.measurement_agv_in_world(T_W_T, inst.T_V2_B, self.kinematics.forward(np.asarray(joints_rad, float)),
-                                          inst.T_E_T)
+        return F.measurement_agv_in_world(T_W_T, arm_base_on_column(inst.T_V2_B, lift_mm),
+                                          self.kinematics.forward(np.asarray(joints_rad, float)), inst.T_E_T)
 
-    def joints_for(self, T_F_V2: np.ndarray, T_F_S: np.ndarray, seed_rad: np.ndarray) -> np.ndarray | None:
+    def joints_for(self, T_F_V2: np.ndarray, T_F_S: np.ndarray, seed_rad: np.ndarray,
+                   lift_mm: float = 0.0) -> np.ndarray | None:
         """Joints (rad, inside the limits, nearest ``seed_rad``) putting the scanner at ``T_F_S`` with the
-        chassis at ``T_F_V2``; None when that pose is out of the arm's reach from there."""
+        chassis at ``T_F_V2`` and the column at ``lift_mm``; None when that pose is out of the arm's reach there."""
         inst = self.installation
-        T_B_E = F.compose(F.invert(T_F_V2 @ inst.T_V2_B), T_F_S, F.invert(inst.T_E_S))
+        T_B_E = F.compose(F.invert(T_F_V2 @ arm_base_on_column(inst.T_V2_B, lift_mm)), T_F_S, F.invert(inst.T_E_S))
         q = self.ik(T_B_E, np.asarray(seed_rad, float))
         return None if q is None else np.asarray(q, float)
 
-    def resolve(self, T_F_V2: np.ndarray, T_F_S: np.ndarray, seed_rad: np.ndarray) -> tuple[np.ndarray | None, str]:
-        """Joints for the planned scanner pose ``T_F_S`` from ``T_F_V2`` or else for the nearest reachable of
-        :func:`nearby_views`, and what was changed ("" for the planned pose); (None, "") when none is reachable."""
-        q = self.joints_for(T_F_V2, T_F_S, seed_rad)
+    def resolve(self, T_F_V2: np.ndarray, T_F_S: np.ndarray, seed_rad: np.ndarray,
+                lift_mm: float = 0.0) -> tuple[np.ndarray | None, str]:
+        """Joints for the planned scanner pose ``T_F_S`` from ``T_F_V2`` (column at ``lift_mm``) or else for the
+        nearest reachable of :func:`nearby_views`, and what was changed ("" for the planned pose); (None, "")
+        when none is reachable."""
+        q = self.joints_for(T_F_V2, T_F_S, seed_rad, lift_mm)
         if q is not None:
             return q, ""
         for what, T in nearby_views(T_F_S, self.sweet_spot_mm):
-            q = self.joints_for(T_F_V2, T, seed_rad)
+            q = self.joints_for(T_F_V2, T, seed_rad, lift_mm)
             if q is not None:
                 return q, what
         return None, ""

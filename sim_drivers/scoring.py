@@ -16,8 +16,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from tandemscan.pipeline import frames as F
+from tandemscan.pipeline.deviation_areas import DeviationArea
+from tandemscan.pipeline.inspect import CadSurface
 from tandemscan.pipeline.installation import Installation
+from tandemscan.pipeline.part import load_part_mesh
 from tandemscan.pipeline.scoring import cloud_to_mesh_distances, distance_stats, pose_errors
+from tandemscan.sim_drivers.inspection_score import alignment_error, deviation_truths, score_areas
 from tandemscan.sim_drivers.world import GroundTruth, SimWorld
 
 if TYPE_CHECKING:
@@ -108,6 +112,23 @@ class TruthScorer:
             "relocalisation": located,
             "robots_moved_together": list(self.world.robots_moved_together),
         }
+
+    def score_inspection(self, job: JobSnapshot, inspection: dict) -> dict:
+        """The alignment's ``T_F_W`` and the anchor's against the truth at the part's centre (the CAD's bounding
+        box centre; mm, deg), and the report's deviation areas against the ``[sim.as_built]`` deviations
+        (found, missed, false regions, errors: :func:`score_areas`; on a defect-free part every area is false)."""
+        cad = load_part_mesh(job.config.part)
+        vertices = np.asarray(cad.vertices)
+        centre = 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
+        T_F_W_true = F.invert(self.world.T_W_F)
+        out: dict = {"method": inspection["alignment"]["method"]}
+        for key, label in (("T_F_W", "T_F_W_err"), ("T_F_W_anchor", "anchor_T_F_W_err")):
+            mm, deg = alignment_error(np.asarray(inspection[key], float), T_F_W_true, centre)
+            out |= {f"{label}_mm": mm, f"{label}_deg": deg}
+        truths = deviation_truths(self.world.config, CadSurface(cad),
+                                  F.transform_points(T_F_W_true, job.worldmap.points()))
+        areas = tuple(DeviationArea(**{**a, "centroid_mm": tuple(a["centroid_mm"])}) for a in inspection["deviations"])
+        return out | score_areas(truths, areas)
 
 
 class CalibrationTruth:

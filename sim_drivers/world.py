@@ -13,13 +13,12 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
-from tandemscan.config.models import CellConfig, ChassisConfig, FloorPoseConfig, PartConfig
+from tandemscan.config.models import CellConfig, ChassisConfig, FloorPoseConfig
 from tandemscan.drivers.errors import OutOfReach, TargetNotVisible
 from tandemscan.drivers.interfaces import ChassisPose
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.installation import Installation
-from tandemscan.pipeline.kinematics import ArmKinematics
-from tandemscan.pipeline.part import load_part_mesh
+from tandemscan.pipeline.kinematics import ArmKinematics, arm_base_on_column
 from tandemscan.pipeline.raycast import ScannerModel, make_scene
 from tandemscan.sim_drivers.as_built import scanned_part_mesh
 
@@ -90,11 +89,13 @@ class MotionLog:
 @dataclass
 class GroundTruth:
     """What scoring a simulated job needs of the world: the world frame W in the part frame F (``T_W_F``,
-    mm), the part mesh and its ray-casting scene, and every moment both robots moved.
+    mm), the mesh the scanner saw (the part as built, with the fixture's spheres) and its ray-casting scene,
+    and every moment both robots moved.
 
-    Pickles without the mesh and scene: a worker process rebuilds them from ``part`` on first use."""
+    Pickles without the mesh and scene: a worker process rebuilds them from ``config`` on first use (the
+    as-built mesh, not the CAD)."""
 
-    part: PartConfig
+    config: CellConfig
     T_W_F: np.ndarray
     robots_moved_together: list[str]
     _mesh: o3d.geometry.TriangleMesh | None = None
@@ -103,7 +104,7 @@ class GroundTruth:
     @property
     def mesh(self) -> o3d.geometry.TriangleMesh:
         if self._mesh is None:
-            self._mesh = load_part_mesh(self.part)
+            self._mesh = scanned_part_mesh(self.config)
         return self._mesh
 
     @property
@@ -144,6 +145,7 @@ class SimWorld:
                                                   config.sim.measure_start),
         }
         self.joints_rad = np.radians(np.array(config.sim.arm_home_deg, float))
+        self.lift_mm = config.lift.min_mm if config.lift.enabled else 0.0  # lifting column height, mm
         self.safety = SafetyTruth()
         self.motion = MotionLog()
         self.captures = 0
@@ -164,7 +166,7 @@ class SimWorld:
 
     def ground_truth(self) -> GroundTruth:
         """The scoring view of the world now (shares this world's mesh and scene)."""
-        return GroundTruth(self.config.part, self.T_W_F.copy(), list(self.motion.violations), self.mesh, self.scene)
+        return GroundTruth(self.config, self.T_W_F.copy(), list(self.motion.violations), self.mesh, self.scene)
 
     # ------------------------------------------------------------ true poses in F
 
@@ -182,7 +184,8 @@ class SimWorld:
 
     def T_F_E(self) -> np.ndarray:
         """Arm flange in the floor frame."""
-        return self.T_F_V2 @ self.truth.T_V2_B @ self.kinematics.forward(self.joints_rad)
+        T_V2_B = arm_base_on_column(self.truth.T_V2_B, self.lift_mm)  # the column raises the arm's mount
+        return self.T_F_V2 @ T_V2_B @ self.kinematics.forward(self.joints_rad)
 
     def T_F_S(self) -> np.ndarray:
         """Scanner optical frame in the floor frame."""

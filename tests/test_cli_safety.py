@@ -26,6 +26,7 @@ from tandemscan.daemon.session import CellSession
 from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT, MotionInterlock
 from tandemscan.drivers.errors import SafetyStop
 from tandemscan.drivers.interfaces import ChassisPose
+from tandemscan.pipeline.part import part_identity, read_mesh_file
 from tandemscan.pipeline.plan import Plan
 
 
@@ -54,6 +55,9 @@ def hil_toml(tmp_path_factory) -> Path:
     data["calibration"] = {"poses": 6}
     path = folder / "hil-cell.toml"
     path.write_bytes(tomli_w.dumps(data).encode())
+    band = Plan.load(cli.default_plan_path())  # the band plan's steps, stated for the box they run on here
+    Plan(name="band on the box", part="box.stl", part_identity=part_identity(read_mesh_file(folder / "box.stl")),
+         steps=band.steps).save(folder / "box-band.toml")
     return path
 
 
@@ -88,7 +92,8 @@ def safety_lines(err: str) -> list[str]:
 
 def test_estop_during_measure_stops_motion_exits_nonzero_and_keeps_the_scans(hil_toml, estop_after_two_captures,
                                                                              tmp_path, capfd):
-    status = cli.main(["measure", "--config", str(hil_toml), "--out", str(tmp_path)])
+    status = cli.main(["measure", "--config", str(hil_toml), "--plan", str(hil_toml.parent / "box-band.toml"),
+                       "--out", str(tmp_path)])
     err = capfd.readouterr().err
     assert status == cli.EXIT_SAFETY_STOP and "Traceback" not in err
     (line,) = safety_lines(err)

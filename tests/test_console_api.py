@@ -16,13 +16,13 @@ import httpx
 import numpy as np
 import pytest
 from tandemscan.daemon.api import create_app
+from tandemscan.daemon.cell import build_cell
 from tandemscan.daemon.console.cloud_view import DEVIATION_COLOURS, VIEW_FILE, view_file
 from tandemscan.daemon.console.router import ASSETS, plan_view
 from tandemscan.daemon.plans import PlanCatalog
 from tandemscan.daemon.service import Daemon, running_server
 from tandemscan.pipeline.export import write_ply
 from tandemscan.pipeline.plan import MoveMeasure, MoveTracker, Scan
-from tandemscan.daemon.cell import build_cell
 from tandemscan.sim_drivers.cell import Simulation
 from tandemscan.sim_drivers.world import SimWorld
 
@@ -53,7 +53,11 @@ def write_inspected_job(job_dir, n: int, seed: int = 0) -> tuple[np.ndarray, np.
     write_ply(job_dir / "cloud.ply", points[::2] - 5.0)
     report = {"inspection": {"colour_scale_mm": list(SCALE_MM), "files": {"deviation_ply": "cloud_deviation.ply"},
                              "as_measured": {"tolerance": {"lower_mm": TOLERANCE_MM[0], "upper_mm": TOLERANCE_MM[1],
-                                                           "in_pct": 95.0, "above_pct": 2.5, "below_pct": 2.5}}}}
+                                                           "in_pct": 95.0, "above_pct": 2.5, "below_pct": 2.5}},
+                             "verdict": "fail", "alignment": {"method": "rps", "residual_mm": 0.004},
+                             "deviations": [{"id": 1, "side": "lower", "centroid_mm": [10.0, 20.0, 30.0],
+                                             "area_mm2": 1200.0, "extreme_mm": -0.31, "mean_mm": -0.18,
+                                             "points": 900}]}}
     (job_dir / "report.json").write_text(json.dumps(report), encoding="utf-8")
     return points, deviation
 
@@ -77,7 +81,8 @@ class ReleasedRunner:
 async def api(tmp_path, sim_config):
     world = SimWorld(sim_config)
     runner = ReleasedRunner()
-    daemon = Daemon(sim_config, tmp_path / "state", runner, token=TOKEN, cell=build_cell(sim_config, simulation=Simulation(sim_config, world=world)))
+    cell = build_cell(sim_config, simulation=Simulation(sim_config, world=world))
+    daemon = Daemon(sim_config, tmp_path / "state", runner, token=TOKEN, cell=cell)
     async with running_server(create_app(daemon, manage_lifecycle=True)) as url:
         async with httpx.AsyncClient(base_url=url, timeout=10) as client:
             client.runner, client.world, client.daemon = runner, world, daemon
@@ -208,6 +213,10 @@ async def test_view_and_plan_of_a_job_over_rest(api):
         return (await api.get(f"/v1/jobs/{job['id']}")).json()["state"] == "succeeded"
 
     await wait_for(succeeded)
+    # what the console's verdict reads: the inspection's verdict, its deviation areas and the alignment
+    inspection = (await api.get(f"/v1/jobs/{job['id']}/report", headers=AUTH)).json()["inspection"]
+    assert inspection["verdict"] == "fail" and inspection["alignment"]["method"] == "rps"
+    assert [(a["side"], a["extreme_mm"]) for a in inspection["deviations"]] == [("lower", -0.31)]
     r = await api.get(f"/v1/jobs/{job['id']}/view", headers=AUTH)
     assert r.status_code == 200 and r.headers["content-type"] == "application/octet-stream"
     header, xyz, dev = parse_view(r.content)

@@ -332,7 +332,9 @@ def test_finished_job_shows_verdict_links_and_a_3d_view_that_draws(cell, browser
     wait(browser, lambda d: d.find_elements(By.CSS_SELECTOR, button), 20)
     browser.execute_script("document.querySelector(arguments[0]).click()", button)  # the row may be rebuilt
     wait(browser, lambda d: d.find_element(By.ID, "cloud-canvas").get_attribute("data-points"), 60)
-    assert "Succeeded" in text(browser, "verdict") and "within [-0.100, 0.100] mm" in text(browser, "verdict")
+    verdict = text(browser, "verdict")  # the default part is its own CAD: no deviation area
+    assert "Inspection pass: no deviation area beyond [-0.100, 0.100] mm" in verdict
+    assert "aligned by best-fit" in verdict
     links = (("link-report", "/files/report.html"), ("link-e57", "/files/cloud.e57"), ("link-cloud", "/cloud"))
     for link, href in links:
         assert browser.find_element(By.ID, link).get_attribute("href").endswith(f"/v1/jobs/{job_id}{href}")

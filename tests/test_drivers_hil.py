@@ -153,15 +153,15 @@ async def test_failed_connect_closes_everything(box_part):
 
 
 async def test_a_job_on_the_hil_cell_needs_no_ground_truth_and_is_inspected(box_part, tmp_path):
-    """Every device a real driver: the product path alone, no observer; the inspection registers W to CAD by the
-    job's own anchor reading."""
+    """Every device a real driver: the product path alone, no observer; the inspection registers W to CAD from the
+    job's own anchor reading by a best fit to the configured CAD and reports its verdict."""
     from tandemscan.daemon.cli import default_plan_path
     from tandemscan.daemon.runner import JobRunner
     from tandemscan.pipeline.plan import Plan, Scan
 
     cfg = hil_config(box_part)
     cfg = cfg.model_copy(update={
-        "deepmerge": cfg.deepmerge.model_copy(update={"enabled": False}),
+        "correction": cfg.correction.model_copy(update={"enabled": False}),
         "inspection": cfg.inspection.model_copy(update={"views": ("isometric",), "map_width_px": 300})})
     plan = Plan.load(default_plan_path())
     scans = [i for i, s in enumerate(plan.steps) if isinstance(s, Scan)]
@@ -172,7 +172,9 @@ async def test_a_job_on_the_hil_cell_needs_no_ground_truth_and_is_inspected(box_
     report = result.report
     assert "ground_truth" not in report and report["scans"] == 2 and report["installation_source"] == "nominal"
     assert report["relocalisation"]["anchor"]["placed"] and (tmp_path / "job" / "report.html").is_file()
-    assert "as_measured" in report["inspection"]
+    ins = report["inspection"]
+    assert "as_measured" in ins and ins["alignment"]["method"] == "best-fit" and ins["alignment"]["converged"]
+    assert ins["verdict"] == ("fail" if ins["deviations"] else "pass") and ins["T_F_W"] != ins["T_F_W_anchor"]
 
 
 async def test_the_daemon_on_the_hil_cell_starts_its_emulators(box_part, tmp_path):

@@ -47,6 +47,12 @@ async def test_job_writes_report_and_exports_next_to_cloud(sim_config, tmp_path)
     assert report["relocalisation"]["anchor"]["placed"] and np.asarray(ins["T_F_W"]).shape == (4, 4)
     # ... and once best-fitted it is the cloud the ground-truth observer scored
     assert abs(ins["best_fit"]["stats"]["rms_mm"] - report["ground_truth"]["cloud_rms_mm"]) < 1e-3
+    # the job aligned its cloud to the CAD itself (a best fit from the anchor, no truth) and says so; the
+    # truth scorer finds the fit closer to the world's T_F_W than the anchor it started from
+    assert ins["alignment"]["method"] == "best-fit" and ins["alignment"]["T_F_W"] == ins["T_F_W"]
+    assert ins["verdict"] == "pass" and ins["deviations"] == []  # the defect-free part
+    scored = report["ground_truth"]["inspection"]
+    assert scored["T_F_W_err_mm"] < 0.5 * scored["anchor_T_F_W_err_mm"] and scored["false_regions"] == 0
     (pair,) = ins["stitching"]  # tracker-only stitch before, the (perfect) correction after
     assert pair["points"] > 100 and pair["rms_after_mm"] < pair["rms_before_mm"]
     assert pair["rms_after_mm"] < 0.1  # scanner noise only

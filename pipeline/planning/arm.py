@@ -7,8 +7,9 @@ column, ``i = ceil(h / n)`` rows ``n`` apart along the surface profile on the st
 (``h`` its length: the height for a vertical wall, plus the roof up to the part's middle). Each cell is a
 surface point with its normal; the scanner looks along the negative normal from the sweet spot, tilted
 towards the arm by at most the incidence limit when the square-on pose is out of reach. A cell is kept only
-where the inverse kinematics finds joint angles inside the limits; the others are reported with their
-reason. The kept poses are ordered (column- or row-wise snake, whichever moves the joints less).
+where the inverse kinematics finds joint angles inside the limits, at one of the lifting column's heights
+where the AGV has one (docs/planning.md); the others are reported with their reason. The kept poses are
+grouped by column height and ordered (column- or row-wise snake, whichever moves the joints less).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import numpy as np
 import open3d as o3d
 from tandemscan.config.models import ArmConfig, PlanningConfig, ScannerConfig
 from tandemscan.pipeline import frames as F
+from tandemscan.pipeline.kinematics import arm_base_on_column
 from tandemscan.pipeline.planning.stations import AgvStation, footprint_height_mm, footprint_width_mm
 
 log = logging.getLogger(__name__)
@@ -46,7 +48,8 @@ class RasterCell:
 @dataclass(frozen=True)
 class ScanPose:
     """A reachable scanner pose: ``T_F_S`` (mm), the joints that reach it (rad), the view tilt off the normal;
-    ``robust``: still reachable with the AGV off its station by the planning margin (``agv_margin_*``)."""
+    ``robust``: still reachable with the AGV off its station by the planning margin (``agv_margin_*``);
+    ``lift_mm``: the lifting column's height the joints assume (0 without a column)."""
 
     station: int
     cell: RasterCell
@@ -54,6 +57,7 @@ class ScanPose:
     joints_rad: np.ndarray
     tilt_rad: float
     robust: bool = True
+    lift_mm: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -79,7 +83,8 @@ class StationRaster:
 
 @dataclass(frozen=True)
 class ArmSetup:
-    """The robot as the raster sees it: IK, arm (limits, DH), mounts ``T_V2_B`` and ``T_E_S`` (mm), settings."""
+    """The robot as the raster sees it: IK, arm (limits, DH), mounts ``T_V2_B`` and ``T_E_S`` (mm), settings,
+    and the lifting column's heights to try (mm above the mount; ``(0,)`` without a column)."""
 
     ik: IkSolver
     arm: ArmConfig
@@ -87,6 +92,7 @@ class ArmSetup:
     T_E_S: np.ndarray
     scanner: ScannerConfig
     planning: PlanningConfig
+    lift_heights_mm: tuple[float, ...] = (0.0,)
 
 
 def column_count(step_mm: float, m_mm: float) -> int:
@@ -285,20 +291,22 @@ def plan_station(
     setup: ArmSetup,
     seed_rad: np.ndarray,
 ) -> StationRaster:
-    """Reachable scanner poses for the cells of one station, ordered to move the joints least.
+    """Reachable scanner poses for the cells of one station, ordered to move the joints (and the column) least.
 
     Per cell the views are tried square on first, then tilted towards the arm, each with both rolls; poses
-    whose flange lies beyond the arm's reach bound skip the IK. The first view that stays reachable with the
-    AGV off its station by the planning margin wins (the runner re-solves the joints where the AGV really
-    stands); a cell with no such view keeps its first reachable one, marked not robust.
+    whose flange lies beyond the arm's reach bound skip the IK. With a lifting column the column's heights are
+    tried lowest first (fewer column moves; the target faces out to the tracker). The first view that stays
+    reachable with the AGV off its station by the planning margin wins (the runner re-solves the joints
+    where the AGV really stands); a cell with no such view keeps its first reachable one, marked not robust.
+    The poses are grouped by column height, lowest first, each group in the order that moves the joints least.
     """
     ik, arm, scanner, planning = setup.ik, setup.arm, setup.scanner, setup.planning
-    T_V2_B, T_E_S = setup.T_V2_B, setup.T_E_S
-    T_F_B = F.planar_pose(station.x_mm, station.y_mm, station.heading_rad) @ T_V2_B
-    T_B_F = F.invert(T_F_B)
-    T_S_E = F.invert(T_E_S)
+    heights = np.asarray(setup.lift_heights_mm, float)
+    T_F_V2 = F.planar_pose(station.x_mm, station.y_mm, station.heading_rad)
+    T_B_F = np.array([F.invert(T_F_V2 @ arm_base_on_column(setup.T_V2_B, h)) for h in heights])  # (L, 4, 4)
+    T_S_E = F.invert(setup.T_E_S)
     limit = math.radians(min(planning.incidence_limit_deg, scanner.max_incidence_deg))
-    base_F = T_F_B[:3, 3]
+    base_F = (T_F_V2 @ arm_base_on_column(setup.T_V2_B, float(np.median(heights))))[:3, 3]
     order = _snake([(c.row, c.col) for c in cells], column_major=True)
     owner, tilts, pts, views, rolls = [], [], [], [], []
     for i in order:
@@ -314,32 +322,59 @@ def plan_station(
     if owner:
         T_F_S = scanner_poses(np.array(pts), np.array(views), scanner.sweet_spot_mm, station.towards_part,
                               np.array(rolls))
-        T_B_E = T_B_F @ T_F_S @ T_S_E
+        T_B_E = T_B_F[:, None] @ (T_F_S @ T_S_E)[None]  # (L, K, 4, 4)
         shoulder = np.array([0.0, 0.0, arm.dh_d_mm[0]])
-        in_reach = np.linalg.norm(T_B_E[:, :3, 3] - shoulder, axis=1) <= reach_bound_mm(arm)
+        to_shoulder = np.linalg.norm(T_B_E[:, :, :3, 3] - shoulder, axis=2)  # (L, K)
+        in_reach = to_shoulder <= reach_bound_mm(arm)
         prefilter = getattr(ik, "maybe_reachable", None)
         if prefilter is not None:
-            in_reach &= prefilter(T_B_E)
+            in_reach &= prefilter(T_B_E.reshape(-1, 4, 4)).reshape(in_reach.shape)
         owner_arr = np.array(owner)
-        seed = np.asarray(seed_rad, float)
-        moves = margin_moves(T_V2_B, planning)
+        seeds = [np.asarray(seed_rad, float)] * len(heights)
+        moves = margin_moves(setup.T_V2_B, planning)  # a column's lift commutes with the AGV's planar offsets
         for i in order:
-            pose = None
-            for k in np.flatnonzero((owner_arr == i) & in_reach):
-                q = ik(T_B_E[k], seed)
-                if q is None:
-                    continue
-                robust = _robust(ik, T_B_E[k], q, moves)
-                if pose is None or robust:
-                    pose = ScanPose(station.index, cells[i], T_F_S[k], np.asarray(q, float), tilts[k], robust)
-                if robust:
+            ks = np.flatnonzero(owner_arr == i)
+            best = None  # (level, k, q, robust)
+            for level in range(len(heights)):  # lowest first: fewer column moves, targets facing out
+                view = _best_view(ik, T_B_E[level], ks[in_reach[level, ks]], seeds[level], moves)
+                if view is not None and (best is None or (view[2] and not best[3])):
+                    best = (int(level), *view)
+                if best is not None and best[3]:
                     break
-            if pose is None:
+            if best is None:
+                column = f" at any column height {heights[0]:.0f}-{heights[-1]:.0f} mm" if len(heights) > 1 else ""
                 unreached.append(Unreached(station.index, cells[i], "no joint solution within the limits for any "
-                                           f"view within {math.degrees(limit):.0f} deg of the surface normal"))
+                                           f"view within {math.degrees(limit):.0f} deg of the surface normal{column}"))
             else:
-                found.append(pose)
-                seed = pose.joints_rad
+                level, k, q, robust = best
+                found.append(ScanPose(station.index, cells[i], T_F_S[k], q, tilts[k], robust, float(heights[level])))
+                seeds[level] = q
+    ordered, travel = [], 0.0
+    for h in sorted({p.lift_mm for p in found}):
+        group, group_travel = _least_travel_order([p for p in found if p.lift_mm == h])
+        ordered += group
+        travel += group_travel
+    return StationRaster(station, rows, cols, tuple(ordered), tuple(unreached), travel)
+
+
+def _best_view(ik: IkSolver, T_B_E: np.ndarray, candidates: np.ndarray, seed: np.ndarray,
+               moves: np.ndarray) -> tuple[int, np.ndarray, bool] | None:
+    """``(k, q, robust)`` of the first of ``candidates`` (indices into ``T_B_E``, in preference order) that IK
+    reaches and that stays reachable under the AGV ``moves``, else of the first reachable one; None if none is."""
+    first = None
+    for k in candidates:
+        q = ik(T_B_E[k], seed)
+        if q is None:
+            continue
+        if _robust(ik, T_B_E[k], q, moves):
+            return int(k), np.asarray(q, float), True
+        if first is None:
+            first = (int(k), np.asarray(q, float), False)
+    return first
+
+
+def _least_travel_order(found: list[ScanPose]) -> tuple[list[ScanPose], float]:
+    """The poses in the column snake, the row snake or either reversed, whichever moves the joints least."""
     best, best_travel = found, _travel([p.joints_rad for p in found])
     if len(found) > 2:
         alt = [found[k] for k in _snake([(p.cell.row, p.cell.col) for p in found], column_major=False)]
@@ -347,7 +382,7 @@ def plan_station(
             t = _travel([p.joints_rad for p in cand])
             if t < best_travel - 1e-9:
                 best, best_travel = cand, t
-    return StationRaster(station, rows, cols, tuple(best), tuple(unreached), best_travel)
+    return best, best_travel
 
 
 def plan_arm(

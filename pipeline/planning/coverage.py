@@ -1,10 +1,11 @@
 """Coverage dry run: which part of the surface (by mesh area) the plan's scans would see, and what it leaves out.
 
-Each planned scanner pose is ray cast with the scanner model (working range and incidence limit, no noise) at
-a reduced pixel grid; a triangle counts as seen when a kept ray lands on it. Unseen area is sorted by reason:
-it rests on the floor (faces down at floor height), the arm cannot reach it (nearest raster cell unreachable),
-no scanner pose fits (it faces the floor so steeply that the sweet spot lies under the floor clearance), the
-arm cannot reach it (nearest raster cell unreachable), or it is missed (between scans or occluded).
+Each planned scanner pose the tracker sees is ray cast with the scanner model (working range and incidence
+limit, no noise) at a reduced pixel grid; a triangle counts as seen when a kept ray lands on it. Unseen area is
+sorted by reason, after the nearest raster cell: no scanner pose fits (it faces the floor so steeply that the
+sweet spot lies under the floor clearance), out of the arm's reach (the cell has no joint solution), outside
+the tracker's view (the cell's pose is reachable but no tracker station sees its target), or missed (between
+scans or occluded). Each reason is listed per AGV station with its area, height range and centroid.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 from tandemscan.config.models import ScannerConfig
 from tandemscan.pipeline import frames as F
+from tandemscan.pipeline.plan import LeftOutArea
 from tandemscan.pipeline.planning.arm import StationRaster
 from tandemscan.pipeline.raycast import ScannerModel
 
@@ -25,7 +27,8 @@ _DRY_RUN_PIXELS = (64, 50)
 
 @dataclass(frozen=True)
 class LeftOut:
-    """Unseen surface of one kind near one AGV station: area (mm^2), height range (mm), centroid (F, mm)."""
+    """Unseen surface of one kind near one AGV station (-1: no station near): area (mm^2), height range (mm),
+    centroid (F, mm)."""
 
     reason: str
     station: int
@@ -42,6 +45,7 @@ class CoverageReport:
     floor_contact_mm2: float
     seen_area_mm2: float
     unreachable_mm2: float
+    untracked_mm2: float
     missed_mm2: float
     left_out: tuple[LeftOut, ...]
 
@@ -54,7 +58,7 @@ class CoverageReport:
     @property
     def coverage_of_reachable_pct(self) -> float:
         """Seen share of the surface a scanner on the arm can reach (not on the floor, not out of reach) (%)."""
-        reach = self.seen_area_mm2 + self.missed_mm2
+        reach = self.seen_area_mm2 + self.missed_mm2 + self.untracked_mm2
         return 100.0 * self.seen_area_mm2 / reach if reach > 0 else 0.0
 
     @property
@@ -71,13 +75,16 @@ class CoverageReport:
             "seen_area_m2": round(self.seen_area_mm2 / 1e6, 3),
             "floor_contact_m2": round(self.floor_contact_mm2 / 1e6, 3),
             "unreachable_m2": round(self.unreachable_mm2 / 1e6, 3),
+            "outside_tracker_view_m2": round(self.untracked_mm2 / 1e6, 3),
             "missed_m2": round(self.missed_mm2 / 1e6, 3),
-            "left_out": [
-                {"reason": lo.reason, "station": lo.station, "area_m2": round(lo.area_mm2 / 1e6, 4),
-                 "z_range_mm": [round(v) for v in lo.z_range_mm], "centroid_mm": [round(v) for v in lo.centroid_mm]}
-                for lo in self.left_out
-            ],
+            "left_out": [a.model_dump() for a in self.left_out_areas()],
         }
+
+    def left_out_areas(self) -> list[LeftOutArea]:
+        """The left-out areas as the plan file records them (m^2, mm)."""
+        return [LeftOutArea(reason=lo.reason, station=lo.station, area_m2=round(lo.area_mm2 / 1e6, 4),
+                            z_range_mm=tuple(round(v) for v in lo.z_range_mm),
+                            centroid_mm=tuple(round(v) for v in lo.centroid_mm)) for lo in self.left_out]
 
 
 def seen_triangles(
@@ -102,6 +109,24 @@ def seen_triangles(
     return seen
 
 
+def triangle_geometry(mesh: o3d.geometry.TriangleMesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per triangle: area (mm^2), outward unit normal and centroid (F, mm), whatever the mesh's winding."""
+    p = np.asarray(mesh.vertices)[np.asarray(mesh.triangles)]
+    cross = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    if np.einsum("ij,ij->i", p[:, 0], cross).sum() < 0:  # inward winding: turn the normals outward
+        cross = -cross
+    area = 0.5 * np.linalg.norm(cross, axis=1)
+    return area, cross / np.maximum(2 * area, 1e-12)[:, None], p.mean(axis=1)
+
+
+def pose_fits(mesh: o3d.geometry.TriangleMesh, sweet_spot_mm: float, incidence_limit_rad: float) -> np.ndarray:
+    """Per triangle: some scanner pose within the incidence limit fits above the floor clearance (the surface
+    the coverage figures count)."""
+    _, normal, centroid = triangle_geometry(mesh)
+    zmin = float(np.asarray(mesh.vertices)[:, 2].min())
+    return ~no_pose_fits(centroid, normal, zmin, sweet_spot_mm, incidence_limit_rad)
+
+
 def no_pose_fits(centroid: np.ndarray, normal: np.ndarray, zmin: float, sweet_spot_mm: float,
                  incidence_limit_rad: float) -> np.ndarray:
     """Per triangle: even the most upward view within the incidence limit puts the scanner under the clearance."""
@@ -110,49 +135,55 @@ def no_pose_fits(centroid: np.ndarray, normal: np.ndarray, zmin: float, sweet_sp
     return centroid[:, 2] + sweet_spot_mm * np.sin(best) < zmin + _FLOOR_CLEARANCE_MM
 
 
+REASON_NO_POSE = "faces the floor: no room for a scanner pose"
+REASON_REACH = "out of the arm's reach"
+REASON_TRACKER = "outside the tracker's view"
+REASON_MISSED = "missed between scans or occluded"
+
+
 def dry_run(
     mesh: o3d.geometry.TriangleMesh,
     scene: o3d.t.geometry.RaycastingScene,
     rasters: list[StationRaster],
     scanner: ScannerConfig,
     incidence_limit_rad: float,
+    tracked: np.ndarray | None = None,
 ) -> CoverageReport:
-    """Coverage of the plan's scans by mesh area, with the unseen area attributed to a reason and a station."""
-    v = np.asarray(mesh.vertices)
-    tri = np.asarray(mesh.triangles)
-    p = v[tri]
-    cross = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    if np.einsum("ij,ij->i", p[:, 0], cross).sum() < 0:  # inward winding: turn the normals outward
-        cross = -cross
-    area = 0.5 * np.linalg.norm(cross, axis=1)
-    normal = cross / np.maximum(2 * area, 1e-12)[:, None]
-    centroid = p.mean(axis=1)
-    zmin = float(v[:, 2].min())
-    seen = seen_triangles(mesh, scene, [ps.T_F_S for r in rasters for ps in r.poses], scanner)
-    floor = no_pose_fits(centroid, normal, zmin, scanner.sweet_spot_mm, incidence_limit_rad) & ~seen
+    """Coverage of the plan's scans by mesh area, with the unseen area attributed to a reason and a station.
 
-    cell_pts, cell_ok, cell_station = [], [], []
+    ``tracked[i]`` (default: all): the tracker sees the target at the i-th pose of ``rasters`` (in raster
+    order); the poses it does not see are not scanned and their surface is "outside the tracker's view".
+    """
+    tri = np.asarray(mesh.triangles)
+    p = np.asarray(mesh.vertices)[tri]
+    area, normal, centroid = triangle_geometry(mesh)
+    zmin = float(p[:, :, 2].min())
+    poses = [ps for r in rasters for ps in r.poses]
+    tracked = np.ones(len(poses), bool) if tracked is None else np.asarray(tracked, bool)
+    seen = seen_triangles(mesh, scene, [ps.T_F_S for ps, ok in zip(poses, tracked, strict=True) if ok], scanner)
+
+    cell_pts, cell_reason, cell_station = [], [], []
+    for ps, ok in zip(poses, tracked, strict=True):
+        cell_pts.append(ps.cell.point_F)
+        cell_reason.append(REASON_MISSED if ok else REASON_TRACKER)
+        cell_station.append(ps.station)
     for r in rasters:
-        for ps in r.poses:
-            cell_pts.append(ps.cell.point_F)
-            cell_ok.append(True)
-            cell_station.append(r.station.index)
         for u in r.unreached:
             cell_pts.append(u.cell.point_F)
-            cell_ok.append(False)
+            cell_reason.append(REASON_REACH)
             cell_station.append(r.station.index)
-    unseen = ~seen & ~floor
     reason = np.full(len(tri), "", dtype=object)
     station = np.full(len(tri), -1)
+    unseen = ~seen
     if cell_pts and unseen.any():
         _, nearest = cKDTree(np.array(cell_pts)).query(centroid[unseen])
-        ok = np.array(cell_ok)[nearest]
-        reason[unseen] = np.where(ok, "missed between scans or occluded", "out of the arm's reach")
+        reason[unseen] = np.array(cell_reason, dtype=object)[nearest]
         station[unseen] = np.array(cell_station)[nearest]
-    elif unseen.any():
-        reason[unseen] = "out of the arm's reach"
+    else:
+        reason[unseen] = REASON_REACH
+    reason[no_pose_fits(centroid, normal, zmin, scanner.sweet_spot_mm, incidence_limit_rad) & unseen] = REASON_NO_POSE
     left = []
-    for why in ("out of the arm's reach", "missed between scans or occluded"):
+    for why in (REASON_NO_POSE, REASON_REACH, REASON_TRACKER, REASON_MISSED):
         for st in np.unique(station[reason == why]):
             sel = (reason == why) & (station == st)
             a = float(area[sel].sum())
@@ -160,8 +191,7 @@ def dry_run(
                                 tuple(float(c) for c in (area[sel] @ centroid[sel]) / a)))
     left.sort(key=lambda lo: -lo.area_mm2)
     return CoverageReport(
-        float(area.sum()), float(area[floor].sum()), float(area[seen].sum()),
-        float(area[reason == "out of the arm's reach"].sum()),
-        float(area[reason == "missed between scans or occluded"].sum()),
-        tuple(left),
+        float(area.sum()), float(area[reason == REASON_NO_POSE].sum()), float(area[seen].sum()),
+        float(area[reason == REASON_REACH].sum()), float(area[reason == REASON_TRACKER].sum()),
+        float(area[reason == REASON_MISSED].sum()), tuple(left),
     )

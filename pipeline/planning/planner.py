@@ -6,7 +6,9 @@ ones from the configuration; the plan never sees the simulator's truth.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -15,7 +17,9 @@ import open3d as o3d
 from shapely.geometry import Point
 from tandemscan.config.models import CellConfig
 from tandemscan.pipeline import frames as F
+from tandemscan.pipeline.part import part_identity
 from tandemscan.pipeline.planning.arm import ArmSetup, IkSolver, ScanPose, StationRaster, plan_arm
+from tandemscan.pipeline.planning.coverage import CoverageReport, dry_run
 from tandemscan.pipeline.planning.ik import default_ik
 from tandemscan.pipeline.planning.sequence import PoseRef, Sequence, build_sequence
 from tandemscan.pipeline.planning.stations import StationLayout, free_floor, offset_ring, place_stations
@@ -37,6 +41,7 @@ class PartPlan:
     tracker: TrackerSolution
     sequence: Sequence
     start_candidate: int | None
+    coverage: CoverageReport
     seconds: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -64,6 +69,7 @@ class PartPlan:
             "tracker_optimal": self.tracker.optimal,
             "tracker_lower_bound": self.tracker.lower_bound,
             "transfers": self.sequence.plan.transfer_count,
+            "lift_moves": sum(s.kind == "move_lift" for s in self.sequence.plan.steps),
             "joint_travel_rad": round(sum(r.joint_travel_rad for r in self.rasters), 2),
             "plan_seconds": round(sum(self.seconds.values()), 3),
             "seconds": {k: round(v, 3) for k, v in self.seconds.items()},
@@ -115,7 +121,7 @@ def plan_part(
     rasters = plan_arm(scene, (bb.min_bound, bb.max_bound), layout.stations, layout.step_mm,
                        layout.path.exterior.length,
                        ArmSetup(ik or default_ik(config.arm), config.arm, inst.T_V2_B.matrix(), inst.T_E_S.matrix(),
-                                config.scanner, config.planning), home)
+                                config.scanner, config.planning, config.lift.heights_mm()), home)
     poses = [p for r in rasters for p in r.poses]
     seconds["arm"] = time.perf_counter() - t
 
@@ -140,12 +146,21 @@ def plan_part(
     refs = [PoseRef(p.station, (layout.stations[p.station].x_mm, layout.stations[p.station].y_mm,
                                 layout.stations[p.station].heading_rad),
                     tuple(float(v) for v in p.joints_rad), f"station {p.station} row {p.cell.row} col {p.cell.col}",
-                    p.T_F_S)
+                    p.T_F_S, p.lift_mm if config.lift.enabled else None)
             for p in poses]
     chain_poses = [tuple(float(v) for v in candidates[k]) for k in solution.chain]
     sequence = build_sequence(refs, chain_poses, cover[list(solution.chain)], home, name, part,
                               tracker_starts_at_first=start is not None)
     seconds["sequence"] = time.perf_counter() - t
-    plan = PartPlan(layout, rasters, poses, candidates, cover, solution, sequence, start, seconds)
+
+    t = time.perf_counter()
+    tracked = cover[list(solution.chain)].any(axis=0) if len(solution.chain) else np.zeros(len(poses), bool)
+    coverage = dry_run(mesh, scene, rasters, config.scanner, math.radians(config.planning.incidence_limit_deg),
+                       tracked)
+    stated = sequence.plan.model_copy(update={"part_identity": part_identity(mesh),
+                                              "left_out": coverage.left_out_areas()})
+    sequence = dataclasses.replace(sequence, plan=stated)
+    seconds["coverage"] = time.perf_counter() - t
+    plan = PartPlan(layout, rasters, poses, candidates, cover, solution, sequence, start, coverage, seconds)
     log.info("plan: %s", plan.summary())
     return plan

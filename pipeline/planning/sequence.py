@@ -5,8 +5,8 @@ and its covers. While the tracker stands at chain station ``k``, the measurement
 yet scanned that station ``k`` sees, starting from where it stands and going on around the part. Then it
 goes to a pose that both station ``k`` and ``k + 1`` see (the last scan when it qualifies) and the tracker
 moves: a ``move_tracker`` step, which the job runner executes as a coordinate transfer (Eq. 2). Before the
-measurement AGV drives, the arm folds to its travel pose. Each scan's arm move carries its planned scanner
-pose, so the runner can re-solve the joints where the AGV really stands.
+measurement AGV drives or its lifting column moves, the arm folds to its travel pose. Each scan's arm move
+carries its planned scanner pose, so the runner can re-solve the joints where the AGV really stands.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-from tandemscan.pipeline.plan import MoveArm, MoveMeasure, MoveTracker, Plan, Scan
+from tandemscan.pipeline.plan import MoveArm, MoveLift, MoveMeasure, MoveTracker, Plan, Scan
 
 log = logging.getLogger(__name__)
 
@@ -26,14 +26,16 @@ class SequenceError(ValueError):
 
 @dataclass(frozen=True)
 class PoseRef:
-    """One scan pose as the sequencer sees it: its AGV station pose (x mm, y mm, heading rad), joints (rad)
-    and, when known, the scanner pose ``T_F_S`` (part frame, mm) those joints reach from that station."""
+    """One scan pose as the sequencer sees it: its AGV station pose (x mm, y mm, heading rad), joints (rad),
+    when known the scanner pose ``T_F_S`` (part frame, mm) those joints reach from that station, and the
+    lifting column's height they assume."""
 
     station: int
     agv_pose: tuple[float, float, float]
     joints_rad: tuple[float, ...]
     label: str
     T_F_S: np.ndarray | None = None
+    lift_mm: float | None = None  # the lifting column's height (mm) the joints assume; None: the cell has none
 
 
 @dataclass(frozen=True)
@@ -52,14 +54,20 @@ class _Builder:
         self.home = tuple(float(v) for v in home_rad)
         self.agv: tuple[float, float, float] | None = None
         self.joints: tuple[float, ...] | None = None
+        self.lift: float | None = None
 
     def go(self, pose: PoseRef) -> None:
-        if self.agv != pose.agv_pose:
-            if self.joints != self.home:  # unknown at the start: fold anyway
-                self.steps.append(MoveArm(joints_rad=self.home))
-                self.joints = self.home
+        drive = self.agv != pose.agv_pose
+        lift = pose.lift_mm is not None and self.lift != pose.lift_mm
+        if (drive or lift) and self.joints != self.home:  # unknown at the start: fold anyway
+            self.steps.append(MoveArm(joints_rad=self.home))
+            self.joints = self.home
+        if drive:
             self.steps.append(MoveMeasure(x_mm=pose.agv_pose[0], y_mm=pose.agv_pose[1], heading_rad=pose.agv_pose[2]))
             self.agv = pose.agv_pose
+        if lift:
+            self.steps.append(MoveLift(height_mm=pose.lift_mm))
+            self.lift = pose.lift_mm
         if self.joints != pose.joints_rad:
             T = None if pose.T_F_S is None else tuple(tuple(float(v) for v in row) for row in pose.T_F_S)
             self.steps.append(MoveArm(joints_rad=pose.joints_rad, T_F_S=T))

@@ -301,15 +301,22 @@ async function jobAction(verb) {
 
 function verdictOf(job, report) {
   if (job.state !== "succeeded") return { pass: false, text: `Job ${job.state}${job.error ? ": " + job.error : ""}` };
-  const tol = report && report.inspection && report.inspection.as_measured && report.inspection.as_measured.tolerance;
-  if (!tol) {
-    const why = report && report.inspection && (report.inspection.skipped || report.inspection.failed);
+  const ins = report && report.inspection;
+  const tol = ins && ins.as_measured && ins.as_measured.tolerance;
+  if (!ins || !ins.verdict || !tol) {
+    const why = ins && (ins.skipped || ins.failed);
     return { pass: true, text: `Succeeded; no inspection${why ? ": " + why : ""}` };
   }
+  const band = `[${tol.lower_mm.toFixed(3)}, ${tol.upper_mm.toFixed(3)}] mm`;
+  const areas = ins.deviations || [];
+  const how = ins.alignment ? `, aligned by ${ins.alignment.method}` : "";
+  const share = `${tol.in_pct.toFixed(1)} % of the points within ${band}${how}`;
+  if (ins.verdict === "pass") return { pass: true, text: `Inspection pass: no deviation area beyond ${band}; ${share}` };
+  const worst = areas.length ? ` (largest: ${areas[0].side} ${areas[0].extreme_mm.toFixed(3)} mm, ` +
+    `${areas[0].area_mm2.toFixed(0)} mm^2)` : "";
   return {
-    pass: true,
-    text: `Succeeded: ${tol.in_pct.toFixed(1)} % of the points within [${tol.lower_mm.toFixed(3)}, ` +
-      `${tol.upper_mm.toFixed(3)}] mm of CAD (${tol.above_pct.toFixed(1)} % above, ${tol.below_pct.toFixed(1)} % below)`,
+    pass: false,
+    text: `Inspection fail: ${areas.length} deviation area${areas.length === 1 ? "" : "s"} beyond ${band}${worst}; ${share}`,
   };
 }
 

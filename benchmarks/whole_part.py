@@ -1,0 +1,98 @@
+"""Measure a whole part end to end on the simulated cell and print its coverage and accuracy as JSON.
+
+Usage: ``nice .venv/bin/python benchmarks/whole_part.py [--config CELL.toml] [--part default|barrel]
+[--stitch-only]``; ``--stitch-only``: the tracker-only stitch (no correction step, no in-job inspection),
+which is most of the job's time.
+The part is planned as ``tandemscan measure --part`` does it (no plan given), the plan run on the simulated cell
+(coarse resolution, the config's correction settings), and the stitched cloud scored: ``coverage_pct`` is the
+share of the surface where a scanner pose fits (by mesh area, as the planner counts it) that has a cloud point
+within 1 mm, ``planned_coverage_pct`` the planner's dry run; cloud to part RMS and P95 (mm), tracker-only and
+after correction, scans, column moves and seconds. ``barrel`` is the 4 m fuselage barrel panel standing on the
+floor (radius 2.2 m, crown 1.6 m, ``pipeline.part.barrel_panel_mesh``), written to a PLY for the job.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+from tandemscan.config import load_config
+from tandemscan.daemon.plan_cmd import plan_configured_part
+from tandemscan.daemon.runner import JobRunner
+from tandemscan.daemon.session import CellSession
+from tandemscan.pipeline import frames as F
+from tandemscan.pipeline.part import barrel_panel_mesh
+from tandemscan.pipeline.planning.coverage import pose_fits, triangle_geometry
+from tandemscan.pipeline.raycast import make_scene
+
+_ON_SURFACE_MM = 1.0
+
+
+def measured_coverage_pct(mesh: o3d.geometry.TriangleMesh, cloud_F_mm: np.ndarray, sweet_spot_mm: float,
+                          incidence_limit_rad: float) -> float:
+    """Share (%) of the surface where a pose fits whose triangles hold a cloud point within 1 mm."""
+    scene = make_scene(mesh)
+    ans = scene.compute_closest_points(o3d.core.Tensor(cloud_F_mm.astype(np.float32)))
+    d = np.linalg.norm(ans["points"].numpy() - cloud_F_mm, axis=1)
+    ids = ans["primitive_ids"].numpy()[d <= _ON_SURFACE_MM]
+    area, _, _ = triangle_geometry(mesh)
+    fits = pose_fits(mesh, sweet_spot_mm, incidence_limit_rad)
+    hit = np.zeros(len(area), bool)
+    hit[np.unique(ids)] = True
+    return 100.0 * float(area[hit & fits].sum() / area[fits].sum())
+
+
+async def run(args: argparse.Namespace) -> dict:
+    config = load_config(args.config)
+    config = config.model_copy(update={"scanner": config.scanner.model_copy(update={"resolution": "coarse"})})
+    if args.stitch_only:
+        config = config.model_copy(update={"correction": config.correction.model_copy(update={"enabled": False}),
+                                           "inspection": config.inspection.model_copy(update={"in_job": False})})
+    with tempfile.TemporaryDirectory() as tmp:
+        if args.part == "barrel":
+            mesh_file = Path(tmp) / "barrel-panel.ply"
+            o3d.io.write_triangle_mesh(str(mesh_file), barrel_panel_mesh())
+            config = config.model_copy(update={"part": config.part.model_copy(update={"mesh": mesh_file})})
+        t = time.perf_counter()
+        mesh, part_plan = plan_configured_part(config, f"whole {args.part}")
+        plan_seconds = time.perf_counter() - t
+        started = time.perf_counter()
+        async with CellSession(config) as session:
+            result = await JobRunner(session, part_plan.sequence.plan, config, Path(tmp) / "job").run()
+            T_W_F = session.cell.simulation.world.T_W_F  # scoring only: the truth of where W lies
+        seconds = time.perf_counter() - started
+        cloud_W = np.asarray(o3d.io.read_point_cloud(str(result.cloud_file)).points)
+        cloud_F = F.transform_points(F.invert(T_W_F), cloud_W)
+    r, g = result.report, result.report["ground_truth"]
+    before = r.get("correction", {}).get("before", g)
+    limit = np.radians(config.planning.incidence_limit_deg)
+    return {
+        "cell": config.name, "part": args.part, "correction": config.correction.enabled,
+        "coverage_pct": round(measured_coverage_pct(mesh, cloud_F, config.scanner.sweet_spot_mm, limit), 2),
+        "planned_coverage_pct": round(part_plan.coverage.coverage_pct, 2),
+        "scans": r["scans"], "scans_planned": r["scans_planned"], "scans_empty": len(r["scans_empty"]),
+        "lift_moves": part_plan.summary()["lift_moves"], "transfers": r["transfers"],
+        "unresolved_poses": r["relocalisation"]["unresolved_count"],
+        "scans_untracked": r["relocalisation"]["untracked_count"],
+        "robots_moved_together": len(g.get("robots_moved_together", [])),
+        "tracker_only_cloud_rms_mm": before.get("cloud_rms_mm"), "cloud_rms_mm": g["cloud_rms_mm"],
+        "cloud_p95_mm": g["cloud_p95_mm"], "plan_seconds": round(plan_seconds, 1), "job_seconds": round(seconds, 1),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--config", type=Path, help="cell configuration (default: the simulated cell)")
+    parser.add_argument("--part", choices=["default", "barrel"], default="default")
+    parser.add_argument("--stitch-only", action="store_true", help="tracker-only stitch: no correction step")
+    print(json.dumps(asyncio.run(run(parser.parse_args()))))
+
+
+if __name__ == "__main__":
+    main()
