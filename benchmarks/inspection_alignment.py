@@ -39,7 +39,8 @@ from tandemscan.daemon.runner import JobRunner, ScanRecord
 from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.alignment import align, align_plan_stations, fit_rigid
-from tandemscan.pipeline.cloud_io import read_ply, read_raw_scan
+from tandemscan.pipeline.cloud_io import read_ply
+from tandemscan.pipeline.raw_scan import read_raw_scan
 from tandemscan.pipeline.export import write_ply
 from tandemscan.pipeline.inspect import CadSurface
 from tandemscan.pipeline.inspection_job import align_and_inspect, inspect_files

@@ -24,6 +24,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel, ConfigDict, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
+from tandemscan.daemon.job_state import FINAL_STATES, JobState
 from tandemscan.daemon.jobs import JobError, request_hash
 from tandemscan.daemon.metrics import RequestTimer
 from tandemscan.daemon.store import IdempotencyConflict, JobRecord
@@ -37,8 +38,7 @@ log = logging.getLogger(__name__)
 
 PROBLEM = "application/problem+json"
 JobId = Annotated[str, Path(pattern=r"^[A-Za-z0-9_-]{1,64}$", description="job id")]
-JobStateName = Literal["queued", "running", "paused", "paused_safety", "paused_fault", "succeeded", "failed",
-                       "cancelled"]
+JobStateName = JobState
 #: ``Last-Event-ID`` / ``after``: an event sequence number (decimal digits, at most 2**62)
 MAX_EVENT_ID = 2**62
 
@@ -342,7 +342,7 @@ def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
         job = mgr.get(job_id)
         path = daemon.store.job_dir(job.id) / name
         if not path.is_file():
-            raise ApiProblem(409 if job.state not in ("failed", "cancelled", "succeeded") else 404,
+            raise ApiProblem(409 if job.state not in FINAL_STATES else 404,
                              "Result not available", f"job {job_id} is {job.state}; {name} is not there")
         return path
 

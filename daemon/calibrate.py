@@ -14,7 +14,6 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
-import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,6 +36,7 @@ from tandemscan.pipeline.calibration.mounts import (
 )
 from tandemscan.pipeline.calibration.plate import PlateError, PlateFit, fit_plate, nominal_centres_P, plate_frame
 from tandemscan.pipeline.calibration.poses import arm_joints_for_views, plate_view_distance, plate_view_poses
+from tandemscan.pipeline.durable import write_durably
 from tandemscan.pipeline.installation import Installation
 from tandemscan.pipeline.kinematics import ArmKinematics
 
@@ -220,14 +220,8 @@ async def _scan_plate(cell: Cell, config: CellConfig) -> PlateFit:
 
 
 def _write_json(path: Path, data: dict) -> None:
-    """Write atomically and durably."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    with open(tmp, "w", encoding="utf-8") as fh:
-        json.dump(data, fh, indent=1)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    """Write ``data`` as JSON atomically and durably."""
+    write_durably(path, lambda f: f.write(json.dumps(data, indent=1).encode("utf-8")))
 
 
 __all__ = ["CalibrationJobError", "CalibrationRun", "run_calibration"]

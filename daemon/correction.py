@@ -19,7 +19,7 @@ import time
 from typing import TYPE_CHECKING
 
 import numpy as np
-from tandemscan.pipeline.cloud_io import read_raw_scan
+from tandemscan.pipeline.raw_scan import read_raw_scan
 from tandemscan.pipeline.registration.correction import StitchedScan, correct_scans
 from tandemscan.pipeline.registration.mounts import MountPrior
 from tandemscan.pipeline.registration.pairs import NETWORK_METHODS, load_registrar

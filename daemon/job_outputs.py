@@ -20,11 +20,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 from tandemscan.daemon.report import build_report
 from tandemscan.pipeline import frames as F
-from tandemscan.pipeline.cloud_io import read_raw_scan
 from tandemscan.pipeline.export import PosedScan, write_e57, write_ply, write_pose_log
 from tandemscan.pipeline.inspect import InspectionError
 from tandemscan.pipeline.inspection_job import InspectionOutputs, align_and_inspect
 from tandemscan.pipeline.part import load_part_mesh
+from tandemscan.pipeline.raw_scan import read_raw_scan
 
 if TYPE_CHECKING:
     from tandemscan.daemon.snapshot import JobSnapshot

@@ -32,7 +32,9 @@ from typing import Any
 
 from tandemscan.daemon.events import EventBus
 from tandemscan.daemon.faults import STORAGE_ERRORS, JobFault, classify_fault
-from tandemscan.daemon.store import FINAL_STATES, PAUSED_STATES, Event, JobRecord, JobStore, StoreError
+from tandemscan.daemon.job_state import FINAL_STATES, PAUSED_STATES
+from tandemscan.daemon.recovery import recover
+from tandemscan.daemon.store import Event, JobRecord, JobStore, StoreError
 from tandemscan.daemon.supervisor import Supervisor, backoff_delays
 from tandemscan.drivers.errors import SafetyStop
 from tandemscan.drivers.tasks import cancel_and_wait
@@ -148,7 +150,7 @@ class JobManager:
 
     async def start(self) -> None:
         """Recover after a restart and start the scheduler."""
-        active = await asyncio.to_thread(self.store.recover)
+        active = await asyncio.to_thread(recover, self.store)
         if active:
             self.active_id = active[0]
             for extra in active[1:]:  # only one job can have held the cell; others go back to the queue

@@ -60,9 +60,7 @@ class StoreJournal:
     def _commit(self, idx: int, kind: str, result: dict, scan_file: Path | None, scan_points: int) -> None:
         store, job_id = self.ctx.store, self.ctx.job.id
         scan = None if scan_file is None else store.register_scan_file(job_id, idx, scan_file, scan_points)
-        poses = {k: result[k] for k in ("T_C_T", "covariance", "joints_rad", "odometry", "T_W_C", "before", "after")
-                 if k in result}
-        store.commit_step(job_id, idx, kind, result, poses=poses, scan=scan)
+        store.commit_step(job_id, idx, kind, result, scan=scan)
 
     def on_progress(self, p: JobProgress) -> None:
         """The runner's (synchronous) progress callback: journal and publish it in the background."""

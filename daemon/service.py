@@ -26,13 +26,14 @@ from prometheus_client import CollectorRegistry
 from tandemscan.config import CellConfig, load_config
 from tandemscan.daemon.cell import Cell
 from tandemscan.daemon.events import EventBus
+from tandemscan.daemon.job_state import JobState
 from tandemscan.daemon.jobs import JobManager, RetryPolicy, Runner
 from tandemscan.daemon.journal import journaled_abandon, run_journaled
 from tandemscan.daemon.metrics import DaemonCollector, timing_histograms
 from tandemscan.daemon.notify import Notifier
 from tandemscan.daemon.plans import PlanCatalog
 from tandemscan.daemon.session import CellSession
-from tandemscan.daemon.store import JOB_STATES, JobStore
+from tandemscan.daemon.store import JobStore
 from tandemscan.drivers.shared_array import remove_stale_blocks
 from tandemscan.drivers.tasks import cancel_and_wait
 
@@ -167,7 +168,7 @@ class Daemon:
 
     def metrics_snapshot(self) -> dict:
         counts = {}
-        for state in JOB_STATES:
+        for state in JobState:
             counts[state] = self.store.list_jobs([state], limit=1)[1]
         snap = self.supervisor.snapshot()
         return {"jobs": counts, "devices": snap["devices"], "safety": snap["safety"],

@@ -22,10 +22,9 @@ from typing import Any
 
 import numpy as np
 from tandemscan.daemon.snapshot import JobSnapshot
-from tandemscan.daemon.store import write_raw_scan
 from tandemscan.drivers.shared_array import share
 from tandemscan.drivers.worker import init_worker, stop_pool
-from tandemscan.pipeline.cloud_io import read_raw_scan
+from tandemscan.pipeline.raw_scan import read_raw_scan, write_raw_scan
 from tandemscan.pipeline.worldmap import VoxelMap
 
 _MAP: VoxelMap | None = None  # the worker's map
