@@ -36,6 +36,7 @@ from tandemscan.daemon.session import CellSession, MotionGate
 from tandemscan.daemon.snapshot import JobSnapshot
 from tandemscan.daemon.stitcher import LocalWorldMap, ProcessWorldMap, correct, export
 from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT
+from tandemscan.daemon.tracker_reading import read_at_rest
 from tandemscan.drivers.errors import TargetNotVisible
 from tandemscan.drivers.interfaces import ChassisPose, TrackerReading
 from tandemscan.pipeline import frames as F
@@ -206,16 +207,8 @@ class JobRunner:
 
     async def read_target(self) -> TrackerReading:
         """The target pose at rest, averaged over ``tracker.samples_per_reading`` readings."""
-        n = self.config.tracker.samples_per_reading
-        readings = [await self.cell.tracker.read_pose(self.config.tracker.timeout_s) for _ in range(n)]
-        if n == 1:
-            return readings[0]
-        return TrackerReading(
-            F.mean_pose([r.T_C_T for r in readings]),
-            np.mean([r.covariance for r in readings], axis=0) / n,
-            readings[-1].timestamp_s,
-            readings[-1].frame_number,
-        )
+        return await read_at_rest(self.cell.tracker, self.config.tracker.samples_per_reading,
+                                  self.config.tracker.timeout_s)
 
     async def run(self) -> JobResult:
         """Execute every step, then stitch and export. Raises :class:`JobError` on failure."""
