@@ -130,6 +130,7 @@ class Calibration(BaseModel):
     source: Literal["truth", "nominal", "calibration"]
     file: str | None
     transforms: dict[str, list[list[float]]]
+    error: str | None = Field(None, description="why the installation could not be resolved (no transforms then)")
 
 
 class Health(BaseModel):
@@ -263,8 +264,9 @@ def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
     Mutating = [Depends(require_token)]
     mgr = daemon.manager
 
-    def body_of(job: JobRecord) -> Job:
-        return job_body(job, daemon.store.steps_done(job.id))
+    async def body_of(job: JobRecord) -> Job:
+        """The job's resource; its step count read off the event loop."""
+        return job_body(job, await asyncio.to_thread(daemon.store.steps_done, job.id))
 
     # -------------------------------------------------------- jobs
 
@@ -297,7 +299,7 @@ def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
         headers = {"Location": f"/v1/jobs/{job.id}"}
         if not created:
             headers["Idempotent-Replayed"] = "true"
-        return JSONResponse(body_of(job).model_dump(mode="json"), status_code=202 if created else 200,
+        return JSONResponse((await body_of(job)).model_dump(mode="json"), status_code=202 if created else 200,
                             headers=headers)
 
     @app.get("/v1/jobs", response_model=JobPage, responses=PROBLEM_RESPONSES, tags=["jobs"])
@@ -309,34 +311,35 @@ def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
         offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
     ) -> JobPage:
         """Jobs newest first, filtered by state and plan, in pages."""
-        jobs, total = daemon.store.list_jobs(state, plan, None, limit, offset)
+        jobs, total = await asyncio.to_thread(daemon.store.list_jobs, state, plan, None, limit, offset)
         nxt = None
         if offset + len(jobs) < total:
             nxt = str(request.url.include_query_params(offset=offset + len(jobs), limit=limit))
-        return JobPage(items=[body_of(mgr.current(j)) for j in jobs], total=total, limit=limit, offset=offset, next=nxt)
+        return JobPage(items=[await body_of(mgr.current(j)) for j in jobs], total=total, limit=limit, offset=offset,
+                       next=nxt)
 
     @app.get("/v1/jobs/{job_id}", response_model=Job, responses=PROBLEM_RESPONSES, tags=["jobs"])
     async def get_job(job_id: JobId) -> Job:
         """State, progress, the step under way and figures so far."""
-        return body_of(mgr.get(job_id))
+        return await body_of(await asyncio.to_thread(mgr.get, job_id))
 
     @app.post("/v1/jobs/{job_id}/cancel", response_model=Job, dependencies=Mutating,
               responses=PROBLEM_RESPONSES, tags=["jobs"])
     async def cancel_job(job_id: JobId) -> Job:
         """Cancel a queued, running or paused job (motion stops at once)."""
-        return body_of(await mgr.cancel(job_id))
+        return await body_of(await mgr.cancel(job_id))
 
     @app.post("/v1/jobs/{job_id}/pause", response_model=Job, dependencies=Mutating,
               responses=PROBLEM_RESPONSES, tags=["jobs"])
     async def pause_job(job_id: JobId) -> Job:
         """Pause a running job at its next step boundary."""
-        return body_of(await mgr.pause(job_id))
+        return await body_of(await mgr.pause(job_id))
 
     @app.post("/v1/jobs/{job_id}/resume", response_model=Job, dependencies=Mutating,
               responses=PROBLEM_RESPONSES, tags=["jobs"])
     async def resume_job(job_id: JobId) -> Job:
         """Resume a paused job; after a safety stop this resets the latch, refused while inputs forbid motion."""
-        return body_of(await mgr.resume(job_id))
+        return await body_of(await mgr.resume(job_id))
 
     def artifact(job_id: str, name: str):
         job = mgr.get(job_id)
@@ -407,7 +410,7 @@ def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
     @app.get("/v1/health", response_model=Health, tags=["service"])
     async def health() -> Health:
         """Liveness and a one-line state of the cell."""
-        return Health.model_validate(daemon.health())
+        return Health.model_validate(await asyncio.to_thread(daemon.health))
 
     @app.get("/metrics", tags=["service"], response_class=Response,
              responses={200: {"content": {CONTENT_TYPE_LATEST: {}}}})
@@ -497,8 +500,10 @@ def _bearer_ok(authorization: str | None, token: str) -> bool:
 
 async def _event_stream(daemon: Daemon, request: Request, job: str | None, after: int | None) -> AsyncIterator[str]:
     with daemon.bus.subscribe() as sub:
-        seen = daemon.store.last_event_seq() if after is None else after  # live events up to here are old
-        for ev in daemon.store.events(after_seq=after, job_id=job, limit=10000) if after is not None else ():
+        # live events up to here are old
+        seen = await asyncio.to_thread(daemon.store.last_event_seq) if after is None else after
+        missed = [] if after is None else await asyncio.to_thread(daemon.store.events, after, job, 10000)
+        for ev in missed:
             seen = max(seen, ev.seq)
             yield _sse(ev)
         yield ": connected\n\n"

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import asyncio
 import ipaddress
-import json
 import logging
 import os
 import shutil
@@ -32,6 +31,7 @@ from tandemscan.daemon.journal import journaled_abandon, run_journaled
 from tandemscan.daemon.metrics import DaemonCollector, timing_histograms
 from tandemscan.daemon.notify import Notifier
 from tandemscan.daemon.plans import PlanCatalog
+from tandemscan.daemon.runner import JobError, installation_for_job
 from tandemscan.daemon.session import CellSession
 from tandemscan.daemon.store import JobStore
 from tandemscan.drivers.shared_array import remove_stale_blocks
@@ -198,33 +198,21 @@ class Daemon:
                 "storage_low": low, "storage_error": storage_error, "version": self.version}
 
     def calibration(self) -> dict:
-        """The installation transforms the stitch uses and their source (4x4 lists, mm)."""
+        """The installation transforms the stitch uses (4x4 lists, mm) and their source: what a job started now
+        would use (:func:`~tandemscan.daemon.runner.installation_for_job`); none, with the reason, when it could
+        not be resolved."""
         job = self.config.job
         names = ("T_V1_C", "T_V2_B", "T_E_S", "T_T_S")
-        surveyed = None if self.cell.simulation is None else self.cell.simulation.surveyed_installation()
-        if job.installation_source == "truth" and surveyed is not None:
-            transforms = {n: getattr(surveyed, n).tolist() for n in names}
-        elif job.installation_source == "calibration" and job.calibration_file is not None:
-            transforms = _read_calibration_file(Path(job.calibration_file))
+        try:
+            installation = installation_for_job(self.config, self.session)
+        except (JobError, OSError, ValueError, KeyError) as e:
+            log.warning("installation not resolved: %s", e)
+            transforms, error = {}, str(e)
         else:
-            transforms = {n: getattr(self.config.installation, n).matrix().tolist() for n in names}
+            transforms, error = {n: np.asarray(getattr(installation, n), float).tolist() for n in names}, None
         return {"source": job.installation_source,
-                "file": str(job.calibration_file) if job.calibration_file else None, "transforms": transforms}
-
-
-def _read_calibration_file(path: Path) -> dict[str, list[list[float]]]:
-    """4x4 entries of a JSON calibration file (other keys are skipped); empty when unreadable."""
-    try:
-        raw = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as e:
-        log.warning("calibration file %s unreadable: %s", path, e)
-        return {}
-    out = {}
-    for k, v in raw.items() if isinstance(raw, dict) else ():
-        arr = np.asarray(v, dtype=object)
-        if arr.shape == (4, 4):
-            out[k] = np.asarray(v, float).tolist()
-    return out
+                "file": str(job.calibration_file) if job.calibration_file else None, "transforms": transforms,
+                "error": error}
 
 
 def serve(config_path: Path | str | None = None, host: str | None = None, port: int | None = None,

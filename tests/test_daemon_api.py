@@ -409,3 +409,16 @@ async def test_health_reports_free_space_and_the_low_space_guard_refuses_a_job(a
     assert "MB free" in body["detail"] and "needs" in body["detail"]
     health = (await api.get("/v1/health")).json()
     assert health["status"] == "degraded" and health["storage_low"]
+
+
+async def test_calibration_is_what_a_job_would_use_or_why_not(api, tmp_path):
+    daemon = api.daemon
+    missing = tmp_path / "no-calibration.json"
+    job = daemon.config.job.model_copy(update={"installation_source": "calibration", "calibration_file": missing})
+    daemon.config = daemon.config.model_copy(update={"job": job})
+    calib = (await api.get("/v1/calibration")).json()
+    assert calib["source"] == "calibration" and calib["transforms"] == {} and str(missing) in calib["error"]
+    daemon.config = daemon.config.model_copy(update={"job": job.model_copy(update={"installation_source": "nominal"})})
+    calib = (await api.get("/v1/calibration")).json()
+    nominal = daemon.config.installation.T_T_S.matrix()
+    assert calib["error"] is None and np.allclose(calib["transforms"]["T_T_S"], nominal)
