@@ -204,14 +204,16 @@ async def test_tracker_stall_during_a_scan(cell, reference):
     await ride_through(cell, 4, *flip(faults, "stall", True, False), "tracker", "DeviceTimeout", reference)
 
 
-async def test_tracker_occlusion_during_a_scan(cell, reference, monkeypatch):
+async def test_tracker_occlusion_during_a_transfer(cell, reference, monkeypatch):
+    """A transfer must see the still target (a scan whose view the tracker cannot see is left out, by design)."""
+
     async def inject():  # a person steps into the sight line
         monkeypatch.setattr(cell.world, "target_visibility", lambda: "occluded: someone in the sight line")
 
     async def clear():
         monkeypatch.undo()
 
-    await ride_through(cell, 4, inject, clear, "tracker", "TargetNotVisible", reference)
+    await ride_through(cell, TRANSFER_STEP, inject, clear, "tracker", "TargetNotVisible", reference)
 
 
 async def test_scanner_timeout(cell, reference):
