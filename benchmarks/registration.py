@@ -1,24 +1,31 @@
-"""Registration of overlapping scan pairs: DeepMerge vs point-to-plane ICP; prints one JSON object (last line).
+"""Registration of overlapping scan pairs: our stages and methods beside Open3D's; prints one JSON object (last line).
 
 Sets:
 - ``real``: two overlapping crops (30-70 % overlap) of one real Stanford bunny scan (../shared/data, never
   copied into the repository), split into disjoint random halves so no point is shared, the source moved by
   a known tracker-like error (0.25-0.75 deg about a random axis, 1-3 mm): exact ground truth.
-- ``real_arbitrary``: the same pairs with 5-45 deg and 2-10 mm (the paper's Fig. 24), whole crops.
+- ``real_arbitrary``: the same pairs with 5-45 deg and 2-10 mm (the paper's Fig. 24), no usable start.
 - ``real_conf``: neighbouring bunny scans with Stanford's poses as reference (good to 0.1-0.6 deg and
   0.1-1.3 mm only), tracker-like error added; read it as a success rate.
 - ``sim``: the default job on the simulated cell (coarse resolution, correction off), every overlapping
   scan pair as the tracker and its coordinate transfers stitched it, scored against the simulator's truth.
-Methods, all from the same initial guess on the same overlap: ``icp`` (point-to-plane, coarse at the
-overlap threshold then fine), ``deepmerge`` (the network's own answer), ``deepmerge_guarded`` (the
-pipeline's: the network's answer kept only when it fits the overlap better than the initial guess),
-``deepmerge+icp`` (the pipeline's: guarded DeepMerge then fine ICP). Keys ``<set>.<method>.rot_err_deg_median``,
-``.trans_err_mm_median`` (at the source overlap's centroid), ``.success_rate`` (below 1 deg and 1 % of the
-pair's extent), ``.seconds_median`` (wall clock per pair, one thread); ``<set>.<method>.success_rate_where_icp_fails``
-on ``real_arbitrary``. ``inference_2048``: DeepMerge on a pair of 2,048-point overlaps, one thread (wall
-clock and the thread's CPU time, which a loaded machine inflates less). The ``icp`` baseline's coarse stage
-uses the overlap threshold as correspondence distance (5 mm; 10 m for ``real_arbitrary``, i.e. every point;
-3 mm for ``sim``).
+Every method gets the same two clouds (the whole moved source crop and the target crop) from the same start
+(the identity), as ``tandemscan register`` would: ``icp`` (our fine stage: coarse-to-fine point-to-plane ICP
+from the start, the overlap re-selected at each level, starting at the set's overlap threshold: 5 mm, 3 mm
+for ``sim``, 10 m for ``real_arbitrary``, i.e. every point), ``deepmerge`` (the network's own answer, no
+verification: DeepMerge alone),
+``deepmerge+icp``, ``fpfh+icp`` (our FPFH + RANSAC, then the fine stage) and ``auto`` (the default of
+``register``: the fine stage and FPFH + RANSAC, the network where they disagree, the best verified fit).
+Anchors, what a user would pick instead: ``open3d_icp`` (Open3D point-to-plane ICP at the overlap threshold,
+5 mm on ``real_arbitrary``) and ``open3d_fpfh_ransac_icp`` (FPFH + RANSAC as in ``global_registration``, then
+Open3D point-to-plane ICP at 0.4 voxel, the Open3D tutorial's pipeline). Keys
+``<set>.<method>.rot_err_deg_median``, ``.trans_err_mm_median`` (at the source's centroid), ``.success_rate``
+(below 1 deg and 1 % of the pair's extent; a failed verification is no success), ``.failed`` (verification
+failures: exit 3 in ``register``), ``.zero_inliers_exit0`` (results with no inlier that were not refused:
+must be 0), ``.seconds_median`` (wall clock per pair, one thread); ``<set>.auto.stage_wins.<stage>``.
+Set ``timing``: ``inference_2048``, DeepMerge on a pair of 2,048-point overlaps, one thread; ``register_cli``,
+the wall clock and CPU time (user + system) of a ``tandemscan register`` call on two 30 k-point bunny scans,
+the process start included, per method.
 
 Usage: python benchmarks/registration.py [--pairs-per-scan 3] [--weights FILE] [--data DIR] [--sets real,sim,...]
 """
@@ -29,23 +36,30 @@ import argparse
 import asyncio
 import json
 import os
+import resource
+import subprocess
+import sys
 import tempfile
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
 import open3d as o3d
 import torch
 from scipy.spatial.transform import Rotation
-from tandemscan.config.models import CorrectionConfig
+from tandemscan.config.models import CorrectionConfig, DeepMergeConfig
 from tandemscan.pipeline.deepmerge.register import DeepMergeRegistrar
 from tandemscan.pipeline.frames import from_quaternion, invert, make_transform, transform_points
-from tandemscan.pipeline.registration.icp import icp_point_to_plane, target_with_normals
+from tandemscan.pipeline.registration.global_registration import FeatureMatching, fpfh_ransac
+from tandemscan.pipeline.registration.icp import target_with_normals
 from tandemscan.pipeline.registration.overlap import extract_overlap
-from tandemscan.pipeline.registration.pairs import keep_if_better, register_overlap
+from tandemscan.pipeline.registration.pairs import RegistrationFailed, register_pair
 
-METHODS = ("icp", "deepmerge", "deepmerge_guarded", "deepmerge+icp")
-SETS = ("real", "real_arbitrary", "real_conf", "sim")
+VERIFIED = ("icp", "deepmerge+icp", "fpfh+icp", "auto")     # ours, verified as ``register`` runs them
+ANCHORS = ("open3d_icp", "open3d_fpfh_ransac_icp")
+METHODS = ("deepmerge", *VERIFIED, *ANCHORS)
+SETS = ("real", "real_arbitrary", "real_conf", "sim", "timing")
 NEIGHBOURS = {"bun000": ("bun045", "bun315"), "bun045": ("bun090",), "bun315": ("bun270",),
               "bun270": ("bun180",), "bun180": ("bun090",), "top2": ("bun000",), "chin": ("bun000",)}
 
@@ -110,64 +124,99 @@ def crop_pairs(scans, per_scan: int, rng) -> list[tuple[np.ndarray, np.ndarray]]
     return pairs
 
 
-def run_pair(source, target, M_true, delta, cfg, registrar) -> dict[str, tuple]:
-    """Register the moved source onto the target by each method: (rot deg, trans mm, seconds, extent).
+class MemoNetwork:
+    """The network with its last answer kept, so that the methods of one pair share one inference."""
 
-    The network runs once; the guarded and the fine-ICP results build on its answer and their times
-    include its time.
-    """
-    ov = extract_overlap(source, target, delta)
-    S, T = source[ov.source_idx], target[ov.target_idx]
-    extent = float(np.linalg.norm(np.ptp(np.r_[S, T], axis=0)))
-    tgt = target_with_normals(T)
-    c = S.mean(axis=0)
+    def __init__(self, registrar: DeepMergeRegistrar) -> None:
+        self.registrar = registrar
+        self.key: tuple | None = None
+        self.answer = np.eye(4)
+        self.seconds = 0.0
+
+    def register(self, source_mm: np.ndarray, target_mm: np.ndarray) -> np.ndarray:
+        key = (source_mm.shape, float(source_mm.sum()), target_mm.shape, float(target_mm.sum()))
+        if key != self.key:
+            t0 = time.perf_counter()
+            self.key, self.answer = key, self.registrar.register(source_mm, target_mm)
+            self.seconds = time.perf_counter() - t0
+        return self.answer
+
+
+def open3d_icp(source, target, init, distance_mm) -> np.ndarray:
+    """Open3D point-to-plane ICP as a user would call it (target normals from 30 neighbours)."""
+    reg = o3d.pipelines.registration
+    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(source))
+    tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(target))
+    tgt.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(30))
+    return np.asarray(reg.registration_icp(src, tgt, distance_mm, init, reg.TransformationEstimationPointToPlane(),
+                                           reg.ICPConvergenceCriteria(max_iteration=50)).transformation)
+
+
+def run_pair(source, target, M_true, delta, cfg, network) -> dict[str, tuple]:
+    """Register the moved source onto the target by each method: (rot deg, trans mm, seconds, extent, failed,
+    zero inliers, stage). The network runs once per pair; its time is added to each method that used it."""
+    extent = float(np.linalg.norm(np.ptp(np.r_[source, target], axis=0)))
+    c = source.mean(axis=0)
+    out = {}
+    network.key = None
     t0 = time.perf_counter()
-    M_icp = register_overlap(S, tgt, "icp", cfg, None, delta)
-    t1 = time.perf_counter()
-    M_net = registrar.register(S, T)
-    t2 = time.perf_counter()
-    M_guard = keep_if_better(S, tgt, M_net, delta)
-    t3 = time.perf_counter()
-    M_fine = icp_point_to_plane(S, tgt, M_guard, cfg.icp_max_distance_mm, cfg.icp_iterations).transformation
-    t4 = time.perf_counter()
-    results = {"icp": (M_icp, t1 - t0), "deepmerge": (M_net, t2 - t1), "deepmerge_guarded": (M_guard, t3 - t1),
-               "deepmerge+icp": (M_fine, t4 - t1)}
-    return {m: (*error_of(M, M_true, c), sec, extent) for m, (M, sec) in results.items()}
-
-
-def summarise(results: list[dict[str, tuple]], prefix: str) -> tuple[dict[str, float], dict[str, np.ndarray]]:
-    """Medians and success rates per method, and the per-pair success of each method."""
-    out: dict[str, float] = {f"{prefix}.pairs": len(results)}
-    ok = {}
-    for m in METHODS:
-        r = np.array([res[m] for res in results])
-        ok[m] = (r[:, 0] < 1.0) & (r[:, 1] < 0.01 * r[:, 3])
-        out[f"{prefix}.{m}.rot_err_deg_median"] = float(np.median(r[:, 0]))
-        out[f"{prefix}.{m}.trans_err_mm_median"] = float(np.median(r[:, 1]))
-        out[f"{prefix}.{m}.success_rate"] = float(np.mean(ok[m]))
-        out[f"{prefix}.{m}.seconds_median"] = float(np.median(r[:, 2]))
-    out[f"{prefix}.rot_err_deg_median_before"] = float(np.median([res["before"][0] for res in results]))
-    out[f"{prefix}.trans_err_mm_median_before"] = float(np.median([res["before"][1] for res in results]))
-    return out, ok
-
-
-def where_icp_fails(ok: dict[str, np.ndarray], prefix: str) -> dict[str, float]:
-    """Success rates of the DeepMerge methods on the pairs where ICP alone fails."""
-    fails = ~ok["icp"]
-    out: dict[str, float] = {f"{prefix}.icp_failures": int(fails.sum())}
-    for m in METHODS[1:]:
-        out[f"{prefix}.{m}.success_rate_where_icp_fails"] = float(np.mean(ok[m][fails])) if fails.any() else 1.0
+    M = network.register(source, target)
+    out["deepmerge"] = (*error_of(M, M_true, c), time.perf_counter() - t0, extent, False, False, "deepmerge")
+    for m in VERIFIED:
+        t0 = time.perf_counter()
+        try:
+            tgt = target_with_normals(target)
+            res = register_pair(source, tgt, m, cfg, network, delta)
+            rot, tr = error_of(res.transformation, M_true, c)
+            failed, zero, stage = False, res.fit.inliers == 0, res.stage
+        except RegistrationFailed:
+            rot, tr, failed, zero, stage = float("inf"), float("inf"), True, False, "failed"
+        sec = time.perf_counter() - t0 + (network.seconds if stage_used_network(m, stage) else 0.0)
+        out[m] = (rot, tr, sec, extent, failed, zero, stage)
+    anchor_icp = 5.0 if delta > 100 else delta
+    t0 = time.perf_counter()
+    M = open3d_icp(source, target, np.eye(4), anchor_icp)
+    out["open3d_icp"] = (*error_of(M, M_true, c), time.perf_counter() - t0, extent, False, False, "init")
+    t0 = time.perf_counter()
+    matching = FeatureMatching(cfg.global_voxel_fraction)
+    M = open3d_icp(source, target, fpfh_ransac(source, target, matching), 0.4 * matching.voxel_mm(target))
+    out["open3d_fpfh_ransac_icp"] = (*error_of(M, M_true, c), time.perf_counter() - t0, extent, False, False, "fpfh")
     return out
 
 
-def scored(source, target, M_true, delta, cfg, registrar) -> dict[str, tuple]:
+def stage_used_network(method: str, stage: str) -> bool:
+    """Whether the network ran for this method (its inference was shared with an earlier method)."""
+    return method == "deepmerge+icp" or (method == "auto" and stage == "deepmerge")
+
+
+def summarise(results: list[dict[str, tuple]], prefix: str) -> dict[str, float]:
+    """Medians, success and failure counts per method, and how often each stage won for ``auto``."""
+    out: dict[str, float] = {f"{prefix}.pairs": len(results)}
+    for m in METHODS:
+        r = np.array([res[m][:6] for res in results], dtype=float)
+        ok = (r[:, 0] < 1.0) & (r[:, 1] < 0.01 * r[:, 3])
+        out[f"{prefix}.{m}.rot_err_deg_median"] = float(np.median(r[:, 0]))
+        out[f"{prefix}.{m}.trans_err_mm_median"] = float(np.median(r[:, 1]))
+        out[f"{prefix}.{m}.success_rate"] = float(np.mean(ok))
+        out[f"{prefix}.{m}.seconds_median"] = float(np.median(r[:, 2]))
+        if m in VERIFIED:
+            out[f"{prefix}.{m}.failed"] = int(r[:, 4].sum())
+            out[f"{prefix}.{m}.zero_inliers_exit0"] = int(r[:, 5].sum())
+    for stage, n in sorted(Counter(res["auto"][6] for res in results).items()):
+        out[f"{prefix}.auto.stage_wins.{stage}"] = n
+    out[f"{prefix}.rot_err_deg_median_before"] = float(np.median([res["before"][0] for res in results]))
+    out[f"{prefix}.trans_err_mm_median_before"] = float(np.median([res["before"][1] for res in results]))
+    return out
+
+
+def scored(source, target, M_true, delta, cfg, network) -> dict[str, tuple]:
     """:func:`run_pair` plus the initial error (``before``)."""
-    res = run_pair(source, target, M_true, delta, cfg, registrar)
+    res = run_pair(source, target, M_true, delta, cfg, network)
     res["before"] = error_of(np.eye(4), M_true, source.mean(axis=0))
     return res
 
 
-def real_sets(scans, sets, args, cfg, registrar, rng) -> dict[str, float]:
+def real_sets(scans, sets, args, cfg, network, rng) -> dict[str, float]:
     out: dict[str, float] = {}
     tracker, arbitrary = [], []
     for src, tgt in crop_pairs(scans, args.pairs_per_scan, rng):
@@ -176,12 +225,11 @@ def real_sets(scans, sets, args, cfg, registrar, rng) -> dict[str, float]:
                                      (arbitrary, (5.0, 45.0), (2.0, 10.0), 1e4)):
             D = perturbation(rng, deg, mm, c)
             if rows is tracker and "real" in sets or rows is arbitrary and "real_arbitrary" in sets:
-                rows.append(scored(transform_points(D, src), tgt, invert(D), delta, cfg, registrar))
+                rows.append(scored(transform_points(D, src), tgt, invert(D), delta, cfg, network))
     if tracker:
-        out |= summarise(tracker, "real")[0]
+        out |= summarise(tracker, "real")
     if arbitrary:
-        summary, ok = summarise(arbitrary, "real_arbitrary")
-        out |= summary | where_icp_fails(ok, "real_arbitrary")
+        out |= summarise(arbitrary, "real_arbitrary")
     if "real_conf" in sets:
         conf = []
         for a, bs in NEIGHBOURS.items():
@@ -189,8 +237,8 @@ def real_sets(scans, sets, args, cfg, registrar, rng) -> dict[str, float]:
                 (Pa, Ta), (Pb, Tb) = scans[a], scans[b]
                 src, tgt = transform_points(Tb, Pb), transform_points(Ta, Pa)
                 D = perturbation(rng, (0.25, 0.75), (1.0, 3.0), src.mean(axis=0))
-                conf.append(scored(transform_points(D, src), tgt, invert(D), 5.0, cfg, registrar))
-        out |= summarise(conf, "real_conf")[0]
+                conf.append(scored(transform_points(D, src), tgt, invert(D), 5.0, cfg, network))
+        out |= summarise(conf, "real_conf")
     return out
 
 
@@ -250,7 +298,35 @@ def timing(scans, registrar, rng) -> dict[str, float]:
             "inference_2048.network_points": int(min(registrar.num_points, 2048)),
             "inference_2048.iterations": registrar.iterations,
             "inference_2048.coarse_iterations": registrar.coarse_iterations,
-            "inference_2048.coarse_points": registrar.coarse_points}
+            "inference_2048.coarse_points": registrar.coarse_points,
+            "inference_2048.rounds_at_most": registrar.rounds}
+
+
+def register_cli(scans, repeats: int = 3) -> dict[str, float]:
+    """Wall clock (s, median of ``repeats``) of ``tandemscan register`` on two neighbouring bunny scans cut to
+    30,000 points each (Stanford's poses as the start), per method, with the exit status of the last call."""
+    rng = np.random.default_rng(1)
+    out: dict[str, float] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        paths = []
+        for name in ("bun045", "bun000"):
+            P, T = scans[name]
+            P = transform_points(T, P[rng.choice(len(P), 30_000, replace=False)])
+            paths.append(str(Path(tmp) / f"{name}.ply"))
+            o3d.io.write_point_cloud(paths[-1], o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P)))
+        for method in ("icp", "auto"):
+            times, cpu, rc = [], [], None
+            for _ in range(repeats):
+                t0, c0 = time.perf_counter(), resource.getrusage(resource.RUSAGE_CHILDREN)
+                rc = subprocess.run([sys.executable, "-m", "tandemscan.daemon.cli", "register", *paths, "--method",
+                                     method], capture_output=True, check=False).returncode
+                c1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+                times.append(time.perf_counter() - t0)
+                cpu.append(c1.ru_utime - c0.ru_utime + c1.ru_stime - c0.ru_stime)
+            out[f"register_cli.{method}.seconds_median"] = float(np.median(times))
+            out[f"register_cli.{method}.cpu_seconds_median"] = float(np.median(cpu))
+            out[f"register_cli.{method}.exit_status"] = rc
+    return out
 
 
 def main() -> None:
@@ -259,9 +335,7 @@ def main() -> None:
     ap.add_argument("--weights", default=None)
     ap.add_argument("--data", default=None)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--iterations", type=int, default=None, help="head iterations (default: the weights' own)")
-    ap.add_argument("--coarse-iterations", type=int, default=None, help="head iterations on a point subset first")
-    ap.add_argument("--coarse-points", type=int, default=None, help="points of that subset")
+    ap.add_argument("--rounds", type=int, default=DeepMergeConfig().rounds, help="DeepMerge re-embedding rounds")
     ap.add_argument("--points", type=int, default=None, help="network points per cloud (default: the weights' own)")
     ap.add_argument("--sets", default=",".join(SETS), help=f"comma-separated subset of {', '.join(SETS)}")
     args = ap.parse_args()
@@ -271,21 +345,17 @@ def main() -> None:
     torch.set_num_threads(1)
     rng = np.random.default_rng(args.seed)
     cfg = CorrectionConfig(icp_max_distance_mm=1.5)
-    registrar = DeepMergeRegistrar.load(args.weights, num_points=args.points)
-    if args.iterations:
-        registrar.iterations = args.iterations
-    if args.coarse_iterations is not None:
-        registrar.coarse_iterations = args.coarse_iterations
-    if args.coarse_points:
-        registrar.coarse_points = args.coarse_points
-    out: dict[str, float] = {"threads": 1, "iterations": registrar.iterations}
-    if sets & {"real", "real_arbitrary", "real_conf"}:
+    registrar = DeepMergeRegistrar.load(args.weights, num_points=args.points, rounds=args.rounds)
+    network = MemoNetwork(registrar)
+    out: dict[str, float] = {"threads": 1, "rounds": registrar.rounds}
+    if sets & {"real", "real_arbitrary", "real_conf", "timing"}:
         scans = load_scans(find_data(args.data))
-        out |= real_sets(scans, sets, args, cfg, registrar, rng) | timing(scans, registrar, rng)
+        out |= real_sets(scans, sets, args, cfg, network, rng)
+        if "timing" in sets:
+            out |= timing(scans, registrar, rng) | register_cli(scans)
     if "sim" in sets:
         pairs, delta = sim_pairs()
-        sim_cfg = CorrectionConfig()
-        out |= summarise([scored(s, t, M, delta, sim_cfg, registrar) for s, t, M in pairs], "sim")[0]
+        out |= summarise([scored(s, t, M, delta, CorrectionConfig(), network) for s, t, M in pairs], "sim")
     out["load_average_1min"] = os.getloadavg()[0]
     print(json.dumps(out))
 

@@ -483,8 +483,9 @@ class CorrectionConfig(_Strict):
     fine ICP, the pose-graph edges and the shared scanner-mount unknown."""
 
     enabled: bool = True
-    method: Literal["deepmerge", "icp", "deepmerge+icp"] = Field(
-        "icp", description="icp: DeepMerge is coarser than the tracker stitch of the cell (docs/registration.md)"
+    method: Literal["icp", "auto", "fpfh+icp", "deepmerge", "deepmerge+icp"] = Field(
+        "icp", description="icp: the tracker stitch is finer than any global stage (docs/registration.md); auto: "
+        "the fine stage and FPFH + RANSAC, the network too where they disagree, the best verified fit kept"
     )
     overlap_delta_mm: float | None = Field(
         None, gt=0, description="overlap = points whose nearest neighbour is closer; empty = from tracker covariance"
@@ -499,7 +500,24 @@ class CorrectionConfig(_Strict):
     )
     icp_max_points: int = Field(8000, ge=100, description="overlaps are thinned evenly to this many points per cloud")
     icp_max_distance_mm: float = Field(2.0, gt=0, description="point-to-plane ICP correspondence distance, mm")
-    icp_iterations: int = Field(50, ge=1)
+    icp_iterations: int = Field(50, ge=1, description="ICP iterations per level of the coarse-to-fine schedule")
+    global_voxel_fraction: float = Field(
+        0.02, gt=0, lt=1, description="FPFH + RANSAC voxel edge, share of the target's bounding-box diagonal"
+    )
+    ransac_max_iterations: int = Field(100_000, ge=1, description="RANSAC draws of the FPFH global stage")
+    ransac_confidence: float = Field(0.999, gt=0, lt=1, description="RANSAC stops early at this confidence")
+    global_fine_start_mm: float = Field(
+        5.0, gt=0, description="correspondence distance at which the fine stage starts after a global stage, mm"
+    )
+    agreement_deg: float = Field(
+        0.5, gt=0, description="auto: the fine stage and FPFH + RANSAC agree within this rotation, deg ..."
+    )
+    agreement_mm: float = Field(1.0, gt=0, description="... and this translation at the source's centroid, mm")
+    max_cost_increase: float = Field(
+        0.01, ge=0, lt=1, description="a result whose truncated point-to-plane cost exceeds the start's by more "
+        "than this share of the final distance squared is refused: as if that share of the points had slid out "
+        "of reach (a fit that slides along a smooth overlap moves a few boundary points that far)"
+    )
     edge_effective_points: float = Field(
         1000.0, gt=0, description="independent points an overlap is worth when weighting a pose-graph edge"
     )
@@ -526,6 +544,9 @@ class DeepMergeConfig(_Strict):
     weights: Path | None = Field(None, description="trained weights (.pt); empty = the ones shipped in the package")
     num_points: int = Field(2048, ge=64, description="overlap points per cloud fed to the network")
     neighbours: int = Field(10, ge=4, description="k of the k x 14 point structure")
+    rounds: int = Field(
+        4, ge=1, description="re-embedding rounds: the source moved by the estimate so far and embedded afresh"
+    )
 
 
 #: keys that moved from ``[deepmerge]`` to ``[correction]``; the old place is read, with a warning, for one release

@@ -22,7 +22,7 @@ import numpy as np
 from tandemscan.pipeline.raw_scan import read_raw_scan
 from tandemscan.pipeline.registration.correction import StitchedScan, correct_scans
 from tandemscan.pipeline.registration.mounts import MountPrior
-from tandemscan.pipeline.registration.pairs import NETWORK_METHODS, load_registrar
+from tandemscan.pipeline.registration.pairs import LazyNetwork
 from tandemscan.pipeline.registration.pose_graph import TransferPrior
 from tandemscan.pipeline.uncertainty import scan_pose_covariance
 from tandemscan.pipeline.worldmap import VoxelMap
@@ -80,9 +80,8 @@ def correct_job(job: JobSnapshot) -> tuple[dict, list[np.ndarray]]:
     transfers = [TransferPrior(t["station"], np.array(t["target_W_mm"]), np.array(t["covariance"]))
                  for t in job.transfers]
     prior, prior_source = mount_prior(job)
-    registrar = load_registrar(job.config.deepmerge) if cfg.method in NETWORK_METHODS else None
-    result = correct_scans(scans, cfg, registrar, transfers=transfers, voxel_mm=job.config.job.voxel_mm,
-                           mount_prior=prior)
+    result = correct_scans(scans, cfg, LazyNetwork(job.config.deepmerge), transfers=transfers,
+                           voxel_mm=job.config.job.voxel_mm, mount_prior=prior)
     job.worldmap = VoxelMap(job.config.job.voxel_mm)
     for s, T, (points, normals) in zip(job.scans, result.poses, raw, strict=True):
         s.T_W_S = T

@@ -1,7 +1,8 @@
 """``tandemscan train-deepmerge`` and ``tandemscan register``: DeepMerge training and pairwise registration.
 
 ``register(subparsers)`` adds both sub-commands to the main CLI. Bad input (a missing cloud, an unreadable
-transform or weights file) raises the CLI's ``UsageError``: one error line, exit status 2.
+transform or weights file) raises the CLI's ``UsageError``: one error line, exit status 2; a registration
+that fails its verification is one line and exit status 3 (docs/registration.md).
 """
 
 from __future__ import annotations
@@ -43,28 +44,33 @@ def cmd_train_deepmerge(args: argparse.Namespace) -> int:
 
 
 def cmd_register(args: argparse.Namespace) -> int:
-    """Register SOURCE onto TARGET; print the 4x4 that maps SOURCE into TARGET and the fitness."""
+    """Register SOURCE onto TARGET; print the 4x4 that maps SOURCE into TARGET, the fit and the stage that
+    won. A result that fails its verification (no inliers, infinite RMS, worse than the start) prints one
+    line saying why and exits with status 3; the network (PyTorch) is loaded only if a stage needs it."""
     import numpy as np
-    from tandemscan.daemon.cli import UsageError
+    from tandemscan.daemon.cli import UsageError, console
     from tandemscan.pipeline.cloud_io import CloudIOError, read_ply
-    from tandemscan.pipeline.deepmerge.register import RegistrationError
-    from tandemscan.pipeline.registration.pairs import NETWORK_METHODS, load_registrar, register_clouds
+    from tandemscan.pipeline.registration.pairs import LazyNetwork, RegistrationFailed, register_clouds
 
     config = load_config(args.config)
     try:
         source, _ = read_ply(Path(args.source))
         target, _ = read_ply(Path(args.target))
         init = np.loadtxt(args.init).reshape(4, 4) if args.init else None
-        registrar = load_registrar(config.deepmerge) if args.method in NETWORK_METHODS else None
-        T, fit = register_clouds(source, target, config.correction, args.method, init, args.delta_mm, registrar)
-    except (CloudIOError, RegistrationError, OSError, ValueError) as e:
+        res = register_clouds(source, target, config.correction, args.method, init, args.delta_mm,
+                              LazyNetwork(config.deepmerge))
+    except RegistrationFailed as e:
+        console.print(f"registration failed: {e}", highlight=False, markup=False, soft_wrap=True)
+        return 3
+    except (CloudIOError, OSError, ValueError) as e:
         raise UsageError(str(e)) from e
-    text = "\n".join(" ".join(f"{v:.9g}" for v in row) for row in T)
+    text = "\n".join(" ".join(f"{v:.9g}" for v in row) for row in res.transformation)
     if args.out:
         Path(args.out).write_text(text + "\n", encoding="utf-8")
     out = Console()
     out.print(text, highlight=False)
-    out.print(f"fitness {fit.fitness:.4f}  point-to-plane RMS {fit.rmse_mm:.4f} mm  ({args.method})", highlight=False)
+    out.print(f"fitness {res.fit.fitness:.4f}  point-to-plane RMS {res.fit.rmse_mm:.4f} mm  ({args.method}: "
+              f"stage {res.stage} won of {', '.join(res.stages_run)})", highlight=False)
     return 0
 
 
@@ -87,7 +93,8 @@ def register(sub) -> None:
     p.add_argument("source", type=Path)
     p.add_argument("target", type=Path)
     p.add_argument("--init", type=Path, help="text file with the initial 4x4 (source into target)")
-    p.add_argument("--method", choices=["deepmerge", "icp", "deepmerge+icp"], default="deepmerge+icp")
+    p.add_argument("--method", choices=["auto", "icp", "fpfh+icp", "deepmerge", "deepmerge+icp"], default="auto",
+                   help="auto: fine stage and FPFH + RANSAC, the network where they disagree; best verified fit")
     p.add_argument("--delta-mm", type=float, default=5.0, help="overlap threshold after --init, mm")
     p.add_argument("--config", type=Path, help="cell configuration TOML ([correction] and [deepmerge] settings)")
     p.add_argument("--out", type=Path, help="also write the 4x4 to this file")

@@ -81,3 +81,13 @@ def test_register_command_prints_the_transform_and_fitness(tmp_path, capsys):
     assert dt < 0.05 and np.degrees(dr) < 0.01
     assert "fitness" in capsys.readouterr().out
     assert main(["register", str(tmp_path / "missing.ply"), str(tmp_path / "target.ply")]) == 2
+
+
+def test_re_embedding_rounds_bring_a_large_error_closer_than_one_pass():
+    from test_registration_stages import moved
+
+    T_true = from_rotvec([4.0, -3.0, 2.0], np.radians([15.0, 10.0, -10.0]))      # 20.6 deg, 5.4 mm
+    source, target = moved(T_true)
+    one = pose_error(DeepMergeRegistrar.load(num_points=512, rounds=1).register(source, target), T_true)
+    four = pose_error(DeepMergeRegistrar.load(num_points=512, rounds=4).register(source, target), T_true)
+    assert np.degrees(four[1]) < 0.5 and np.degrees(four[1]) * 5 < np.degrees(one[1]) and four[0] < one[0]

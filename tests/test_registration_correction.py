@@ -7,7 +7,8 @@ import pytest
 from tandemscan.config.models import CorrectionConfig
 from tandemscan.pipeline.frames import compose, from_rotvec, invert, pose_error, transform_points
 from tandemscan.pipeline.registration.correction import StitchedScan, correct_scans
-from tandemscan.pipeline.registration.pairs import correct_pair
+from tandemscan.pipeline.registration.icp import target_with_normals
+from tandemscan.pipeline.registration.pairs import correct_pair, register_pair
 from tandemscan.pipeline.registration.pose_graph import TransferPrior
 
 
@@ -61,13 +62,14 @@ def test_correct_pair_needs_overlap_and_a_delta():
     a = transform_points(scans[0].T_W_S, scans[0].points_S)
     b = transform_points(scans[1].T_W_S, scans[1].points_S)
     cfg = CorrectionConfig(method="icp", overlap_delta_mm=3.0)
-    pc = correct_pair(b, a, cfg, None)
-    assert pc is not None and pc.overlap_points > 1000 and pc.delta_mm == 3.0
+    target = target_with_normals(a)
+    pc = correct_pair(b, target, cfg, None)
+    assert pc is not None and pc.overlap_points > 1000 and pc.delta_mm == 3.0 and pc.stage == "init"
     assert pc.fit.rmse_mm < pc.rmse_before_mm
     far = b + [5000.0, 0, 0]
-    assert correct_pair(far, a, cfg, None) is None
+    assert correct_pair(far, target, cfg, None) is None
     with pytest.raises(ValueError, match="overlap_delta_mm"):
-        correct_pair(b, a, CorrectionConfig(method="icp"), None)
+        correct_pair(b, target, CorrectionConfig(method="icp"), None)
 
 
 def bumpy(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -76,7 +78,6 @@ def bumpy(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def test_the_guard_keeps_a_closer_fit_and_rejects_a_worse_one():
-    from tandemscan.pipeline.registration.icp import target_with_normals
     from tandemscan.pipeline.registration.pairs import keep_if_better
 
     rng = np.random.default_rng(5)
@@ -92,17 +93,41 @@ def test_the_guard_keeps_a_closer_fit_and_rejects_a_worse_one():
 
 def test_deepmerge_then_icp_on_a_pair_recovers_the_correction():
     from tandemscan.pipeline.deepmerge.register import DeepMergeRegistrar
-    from tandemscan.pipeline.registration.pairs import register_overlap
 
     rng = np.random.default_rng(4)
     xy = rng.uniform(-80, 80, (6000, 2))
     P = np.c_[xy, bumpy(xy[:, 0], xy[:, 1])]
     T_true = from_rotvec([0.5, -0.3, 0.2], np.radians([0.2, 0.1, -0.3]))
-    source = transform_points(invert(T_true), P[::2])
+    source, target = transform_points(invert(T_true), P[::2]), target_with_normals(P[1::2])
     cfg = CorrectionConfig(method="deepmerge+icp")
     reg = DeepMergeRegistrar.load(num_points=256)
-    T = register_overlap(source, P[1::2], "deepmerge+icp", cfg, reg, coarse_distance_mm=3.0)
-    dt, dr = pose_error(T, T_true)
-    assert dt < 0.05 and np.degrees(dr) < 0.02
+    res = register_pair(source, target, "deepmerge+icp", cfg, reg, start_distance_mm=3.0)
+    dt, dr = pose_error(res.transformation, T_true)
+    assert dt < 0.05 and np.degrees(dr) < 0.02 and res.stage == "deepmerge"
     with pytest.raises(ValueError, match="registrar"):
-        register_overlap(source, P[1::2], "deepmerge", cfg, None, 3.0)
+        register_pair(source, target, "deepmerge", cfg, None, 3.0)
+
+
+def test_a_pair_that_fails_its_verification_gets_no_edge_and_is_logged(monkeypatch, caplog):
+    from tandemscan.pipeline.registration import correction, pairs
+
+    truth, scans, transfers = scans_with_drift()
+    cfg = CorrectionConfig(method="icp", min_overlap_points=100)
+    real = pairs.correct_pair
+
+    def refuse_the_cross_station_pair(source_W, target, cfg_, network, cov=None):
+        pc = real(source_W, target, cfg_, network, cov)
+        if np.allclose(source_W.mean(axis=0)[0], 150.0 * 2, atol=60.0):   # scan 2, the first of station 1
+            raise pairs.RegistrationFailed("fit worse than the start (test)")
+        return pc
+
+    full = correct_scans(scans, cfg, transfers=transfers)
+    monkeypatch.setattr(correction, "correct_pair", refuse_the_cross_station_pair)
+    with caplog.at_level("WARNING", logger="tandemscan.pipeline.registration.correction"):
+        res = correct_scans(scans, cfg, transfers=transfers)
+    dropped = res.report["pairs_dropped"]
+    assert dropped and all(d["j"] == 2 and "worse than the start" in d["reason"] for d in dropped)
+    assert res.report["pairs"] == full.report["pairs"] - len(dropped)
+    assert all((i, j) != (d["i"], d["j"]) for i, j, _ in res.edges for d in dropped)
+    assert any("dropped" in r.getMessage() and "(1, 2)" in r.getMessage() for r in caplog.records)
+    assert full.report["pairs_dropped"] == [] and full.report["stages"] == {"init": full.report["pairs"]}

@@ -87,7 +87,8 @@ class DeepMergeRegistrar:
 
     def __init__(self, model: DeepMerge, num_points: int = 2048, k: int = 10, voxel: float = 0.04,
                  iterations: int | None = None, coarse_iterations: int = 0,
-                 coarse_points: int = COARSE_POINTS) -> None:
+                 coarse_points: int = COARSE_POINTS, rounds: int = 1, round_tolerance_deg: float = 0.05,
+                 round_tolerance: float = 5e-4) -> None:
         self.model = model.eval()
         self.num_points = num_points
         self.k = k
@@ -95,11 +96,15 @@ class DeepMergeRegistrar:
         self.iterations = iterations or model.iterations
         self.coarse_iterations = coarse_iterations
         self.coarse_points = coarse_points
+        self.rounds = rounds
+        self.round_tolerance_deg = round_tolerance_deg
+        self.round_tolerance = round_tolerance
 
     @classmethod
-    def load(cls, path: Path | str | None = None, num_points: int | None = None) -> DeepMergeRegistrar:
+    def load(cls, path: Path | str | None = None, num_points: int | None = None, rounds: int = 1
+             ) -> DeepMergeRegistrar:
         """Weights from ``path`` (default: shipped); settings (k, voxel, head iterations at inference) come
-        from the file."""
+        from the file; ``rounds`` re-embedding rounds (see :meth:`register`)."""
         path = Path(path) if path is not None else shipped_weights_path()
         try:
             ckpt = torch.load(path, map_location="cpu", weights_only=True)
@@ -114,16 +119,34 @@ class DeepMergeRegistrar:
         return cls(model, num_points=num_points or int(s["num_points_inference"]), k=int(s["k"]),
                    voxel=float(s["voxel"]), iterations=int(s.get("iterations_inference", s["iterations"])),
                    coarse_iterations=int(s.get("coarse_iterations", 0)),
-                   coarse_points=int(s.get("coarse_points", COARSE_POINTS)))
+                   coarse_points=int(s.get("coarse_points", COARSE_POINTS)), rounds=rounds)
 
     def register(self, source_mm: ArrayLike, target_mm: ArrayLike, seed: int = 0) -> np.ndarray:
-        """``T_target_source`` (4x4, mm) that aligns ``source_mm`` onto ``target_mm`` (both (N, 3), mm)."""
+        """``T_target_source`` (4x4, mm) that aligns ``source_mm`` onto ``target_mm`` (both (N, 3), mm).
+
+        Runs up to ``rounds`` rounds: each moves the source by the estimate so far and embeds it afresh (the
+        point structure is not rotation invariant, so its embedding matches the target's better the closer
+        the clouds are), and the rounds stop early once one changes the estimate by less than
+        ``round_tolerance_deg`` and ``round_tolerance`` RMS radii of the target.
+        """
         S = np.asarray(source_mm, dtype=float)
         T = np.asarray(target_mm, dtype=float)
         for name, P in (("source", S), ("target", T)):
             if P.ndim != 2 or P.shape[1] != 3 or len(P) < self.k:
                 raise RegistrationError(f"{name}: need an (N, 3) array with N >= {self.k}, got {P.shape}")
         norm = Normalisation.of(T)
+        M = np.eye(4)
+        for r in range(self.rounds):
+            step = self._register_once(S @ M[:3, :3].T + M[:3, 3], T, norm, seed + r)
+            M = step @ M
+            angle = np.degrees(np.arccos(np.clip((np.trace(step[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+            moved = np.linalg.norm(step[:3, :3] @ norm.centre_mm + step[:3, 3] - norm.centre_mm)
+            if angle < self.round_tolerance_deg and moved < self.round_tolerance * norm.scale_mm:
+                break
+        return M
+
+    def _register_once(self, S: np.ndarray, T: np.ndarray, norm: Normalisation, seed: int) -> np.ndarray:
+        """One round of :meth:`register`: the network's ``T_target_source`` (4x4 mm) of S onto T (mm)."""
         Sn, Tn = norm.apply(S), norm.apply(T)
         rng = np.random.default_rng(seed)
         ref = reference_direction(Tn)

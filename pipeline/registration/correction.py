@@ -10,9 +10,9 @@ the configured method (``pairs.correct_pair``), each correction becomes a pose-g
 from __future__ import annotations
 
 import logging
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 from tandemscan.config.models import CorrectionConfig
@@ -24,7 +24,13 @@ from tandemscan.pipeline.registration.icp import (
 )
 from tandemscan.pipeline.registration.mounts import MountEstimate, MountPrior
 from tandemscan.pipeline.registration.overlap import overlapping_pairs, relative_covariance
-from tandemscan.pipeline.registration.pairs import NETWORK_METHODS, PairCorrection, correct_pair
+from tandemscan.pipeline.registration.pairs import (
+    NETWORK_METHODS,
+    PairCorrection,
+    Registrar,
+    RegistrationFailed,
+    correct_pair,
+)
 from tandemscan.pipeline.registration.pose_graph import (
     PairEdge,
     ScanPrior,
@@ -34,9 +40,6 @@ from tandemscan.pipeline.registration.pose_graph import (
 )
 from tandemscan.pipeline.registration.sampling import voxel_downsample
 from tandemscan.pipeline.uncertainty import covariance_about
-
-if TYPE_CHECKING:
-    from tandemscan.pipeline.deepmerge.register import DeepMergeRegistrar
 
 log = logging.getLogger(__name__)
 
@@ -83,30 +86,51 @@ def _edge(i: int, j: int, pc: PairCorrection, cfg: CorrectionConfig) -> PairEdge
     return PairEdge(i, j, T, info, pc.centre_mm)
 
 
-def correct_scans(
-    scans: Sequence[StitchedScan], cfg: CorrectionConfig, registrar: DeepMergeRegistrar | None = None,
-    transfers: Sequence[TransferPrior] = (), voxel_mm: float = 1.0, mount_prior: MountPrior | None = None,
-) -> CorrectionResult:
-    """Correct every overlapping pair and refine all poses; ``voxel_mm`` thins the scans first.
-
-    ``transfers`` (one per tracker station after the first, see ``pose_graph.refine_poses``) let the graph
-    remove the drift of the coordinate transfers and widen the overlap threshold of pairs across stations;
-    ``mount_prior`` makes the graph estimate the shared scanner-mount correction too (``mounts.MountPrior``).
-    """
-    if cfg.method in NETWORK_METHODS and registrar is None:
-        raise ValueError(f"method {cfg.method!r} needs a DeepMerge registrar (pairs.load_registrar)")
-    local = [voxel_downsample(np.asarray(s.points_S, float), voxel_mm) for s in scans]
-    world = [transform_points(s.T_W_S, P) for s, P in zip(scans, local, strict=True)]
+def _pair_corrections(
+    scans: Sequence[StitchedScan], world: list[np.ndarray], cfg: CorrectionConfig, network: Registrar | None,
+    transfers: Sequence[TransferPrior],
+) -> tuple[list[tuple[int, int, PairCorrection]], list[tuple[int, int, str]]]:
+    """The correction of every overlapping pair (world clouds, mm), and the pairs whose registration failed
+    its verification (``pairs.verify``) with the reason: those get no edge."""
     edges: list[tuple[int, int, PairCorrection]] = []
+    dropped: list[tuple[int, int, str]] = []
+    target_index, target = -1, None
     for i, j in overlapping_pairs(world, [s.station for s in scans], cfg.pair_cell_mm, cfg.max_partners_per_scan):
         cov = relative_covariance(scans[i].covariance, scans[j].covariance)
         low, high = sorted((scans[i].station, scans[j].station))
         for t in transfers:                          # the drift between the two stations, at the target scan
             if low < t.station <= high:
                 cov = cov + covariance_about(t.covariance, t.centre_mm, scans[i].T_W_S[:3, 3])
-        pc = correct_pair(world[j], world[i], cfg, registrar, cov)
+        if i != target_index:                        # pairs come in target order: normals once per target
+            target_index, target = i, target_with_normals(world[i])
+        try:
+            pc = correct_pair(world[j], target, cfg, network, cov)
+        except RegistrationFailed as e:
+            log.warning("correction: pair (%d, %d) dropped: %s", i, j, e)
+            dropped.append((i, j, str(e)))
+            continue
         if pc is not None:
             edges.append((i, j, pc))
+    return edges, dropped
+
+
+def correct_scans(
+    scans: Sequence[StitchedScan], cfg: CorrectionConfig, network: Registrar | None = None,
+    transfers: Sequence[TransferPrior] = (), voxel_mm: float = 1.0, mount_prior: MountPrior | None = None,
+) -> CorrectionResult:
+    """Correct every overlapping pair and refine all poses; ``voxel_mm`` thins the scans first.
+
+    ``network`` registers pairs where the method asks for DeepMerge (``pairs.LazyNetwork`` loads it only
+    then). ``transfers`` (one per tracker station after the first, see ``pose_graph.refine_poses``) let the
+    graph remove the drift of the coordinate transfers and widen the overlap threshold of pairs across
+    stations; ``mount_prior`` makes the graph estimate the shared scanner-mount correction too
+    (``mounts.MountPrior``). A pair whose registration fails its verification is dropped and logged.
+    """
+    if cfg.method in NETWORK_METHODS and network is None:
+        raise ValueError(f"method {cfg.method!r} needs a DeepMerge registrar (pairs.LazyNetwork)")
+    local = [voxel_downsample(np.asarray(s.points_S, float), voxel_mm) for s in scans]
+    world = [transform_points(s.T_W_S, P) for s, P in zip(scans, local, strict=True)]
+    edges, dropped = _pair_corrections(scans, world, cfg, network, transfers)
     graph_edges = [_edge(i, j, pc, cfg) for i, j, pc in edges if pc.fit.inliers >= 6]
     priors = [ScanPrior(s.T_W_S, s.covariance, s.station) for s in scans]
     res = refine_poses(priors, graph_edges, transfers, mount_prior)
@@ -117,6 +141,8 @@ def correct_scans(
         "method": cfg.method,
         "scans": len(scans),
         "pairs": len(edges),
+        "pairs_dropped": [{"i": int(i), "j": int(j), "reason": why} for i, j, why in dropped],
+        "stages": dict(Counter(pc.stage for _, _, pc in edges)),
         "overlap_rms_mm_median_before": rms_b,
         "overlap_rms_mm_median_after": rms_a,
         "pose_change_mm_median": float(np.median([m[0] for m in moves])) if moves else 0.0,
@@ -124,5 +150,6 @@ def correct_scans(
         "graph_cost_before": res.cost_before,
         "graph_cost_after": res.cost_after,
     }
-    log.info("correction: %d scans, %d pairs, overlap RMS %.4f -> %.4f mm", len(scans), len(edges), rms_b, rms_a)
+    log.info("correction: %d scans, %d pairs (%d dropped), overlap RMS %.4f -> %.4f mm", len(scans), len(edges),
+             len(dropped), rms_b, rms_a)
     return CorrectionResult(res.poses, edges, report, res.mount)

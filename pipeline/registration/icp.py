@@ -1,7 +1,8 @@
-"""Point-to-plane ICP, its scoring and the information of a fit (docs/registration.md, "Fine stage").
+"""Point-to-plane ICP, its coarse-to-fine schedule, its scoring and the information of a fit
+(docs/registration.md, "Fine stage").
 
 All clouds are (N, 3) arrays in millimetres; a result's ``transformation`` is ``T_target_source`` (4x4 mm,
-maps source coordinates into the target's frame). The target carries normals (estimated once per pair by
+maps source coordinates into the target's frame). The target carries normals (estimated once per cloud by
 :func:`target_with_normals`); residuals are distances along the target normal (mm).
 """
 
@@ -13,6 +14,8 @@ import numpy as np
 import open3d as o3d
 from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
+from tandemscan.pipeline.registration.overlap import extract_overlap
+from tandemscan.pipeline.registration.sampling import thin_evenly
 
 
 class RefineError(ValueError):
@@ -72,6 +75,62 @@ def icp_point_to_plane(
         reg.ICPConvergenceCriteria(relative_fitness=1e-9, relative_rmse=1e-9, max_iteration=iterations),
     )
     return evaluate_point_to_plane(S, tgt, np.asarray(res.transformation), max_distance_mm)
+
+
+@dataclass(frozen=True)
+class FineSchedule:
+    """The coarse-to-fine schedule of :func:`icp_coarse_to_fine`: the correspondence distance starts at
+    ``start_mm`` and ends at ``final_mm``; after each level the next is ``shrink`` times the last, or
+    ``rms_multiple`` times the level's point-to-plane RMS if that is smaller (a converged fit jumps to the
+    end), never below ``final_mm``. ``iterations`` ICP iterations a level, at most ``max_points`` source
+    points (the overlap thinned evenly), at most ``max_levels`` levels."""
+
+    start_mm: float
+    final_mm: float
+    iterations: int = 50
+    max_points: int = 8000
+    shrink: float = 0.5
+    rms_multiple: float = 4.0
+    max_levels: int = 12
+
+
+#: fewer overlap points than this at a level: the level keeps the estimate (no ICP on a handful of points)
+MIN_LEVEL_POINTS = 10
+
+
+def icp_coarse_to_fine(
+    source_mm: ArrayLike, target: o3d.geometry.PointCloud, init: ArrayLike, schedule: FineSchedule
+) -> IcpResult:
+    """Point-to-plane ICP of ``source`` onto ``target`` (with normals) from ``init``, re-selecting the overlap
+    as the estimate improves: at each level of ``schedule`` the overlap within the level's distance is
+    extracted afresh at the current estimate (both clouds), and ICP runs on it with that correspondence
+    distance. Returns the fit of the whole source at ``schedule.final_mm``."""
+    S = np.asarray(source_mm, float)
+    Tp = np.asarray(target.points)
+    M = np.asarray(init, float).copy()
+    d = max(schedule.start_mm, schedule.final_mm)
+    for _ in range(schedule.max_levels):
+        ov = extract_overlap(S @ M[:3, :3].T + M[:3, 3], Tp, d)
+        if ov.size >= MIN_LEVEL_POINTS:
+            fit = icp_point_to_plane(S[thin_evenly(ov.source_idx, schedule.max_points)],
+                                     target.select_by_index(ov.target_idx.tolist()), M, d, schedule.iterations)
+            M = fit.transformation
+            d_next = min(d * schedule.shrink, schedule.rms_multiple * fit.rmse_mm)
+        else:
+            d_next = d * schedule.shrink
+        if d <= schedule.final_mm:
+            break
+        d = max(schedule.final_mm, d_next)
+    return evaluate_point_to_plane(S, target, M, schedule.final_mm)
+
+
+def truncated_cost(fit: IcpResult, distance_mm: float) -> float:
+    """Truncated point-to-plane cost per source point (mm^2) of a fit scored at ``distance_mm``: the squared
+    residual for the inliers, ``distance_mm`` squared for the others, so a slightly smaller overlap does not
+    outweigh a much closer fit. Lower is better; no inlier at all scores ``distance_mm`` squared."""
+    if fit.inliers == 0:
+        return distance_mm**2
+    return fit.fitness * fit.rmse_mm**2 + (1.0 - fit.fitness) * distance_mm**2
 
 
 def evaluate_point_to_plane(

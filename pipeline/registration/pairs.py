@@ -1,27 +1,36 @@
 """Registration of one scan pair by the configured method (docs/registration.md, "Pair registration").
 
 Both clouds are (N, 3) arrays in millimetres in one frame (the world after the tracker stitch, or the
-target's frame after an initial guess); every result is ``T_target_source`` (4x4 mm). Methods: ``icp``
-(point-to-plane, coarse at the overlap threshold then fine), ``deepmerge`` (the network, kept only where it
-fits better than the start), ``deepmerge+icp`` (that, then the fine ICP). The network is loaded only for the
-methods that use it (``load_registrar``), so the ICP path never imports PyTorch.
+target's frame after an initial guess); every result is ``T_target_source`` (4x4 mm). Stages: the fine stage
+from the start (``init``: coarse-to-fine point-to-plane ICP, ``icp.icp_coarse_to_fine``), and the global
+stage, classical (``fpfh``: FPFH + RANSAC, ``global_registration``) or learned (``deepmerge``: the network),
+each finished by the fine stage. Methods: ``icp`` (the fine stage alone), ``deepmerge`` (the network's
+answer, kept only where it fits better than the start), ``deepmerge+icp``, ``fpfh+icp``, and ``auto``: the
+fine stage and FPFH + RANSAC; when the two disagree, the network too; the candidate with the lowest
+truncated point-to-plane cost wins, the fine stage from the start where the costs cannot tell them apart.
+Every result is verified (:func:`verify`): no inliers, an infinite RMS or a cost above the start's is a
+:class:`RegistrationFailed`. The network is loaded at its first use
+(:class:`LazyNetwork`), so a pair that does not need it never imports PyTorch.
 """
 
 from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 import open3d as o3d
 from tandemscan.config.models import CorrectionConfig, DeepMergeConfig
-from tandemscan.pipeline.frames import transform_points
+from tandemscan.pipeline.frames import invert, rotation_angle, transform_points
+from tandemscan.pipeline.registration.global_registration import FeatureMatching, fpfh_ransac
 from tandemscan.pipeline.registration.icp import (
+    FineSchedule,
     IcpResult,
     evaluate_point_to_plane,
-    icp_point_to_plane,
+    icp_coarse_to_fine,
     target_with_normals,
+    truncated_cost,
 )
 from tandemscan.pipeline.registration.overlap import delta_from_covariance, extract_overlap
 from tandemscan.pipeline.registration.sampling import thin_evenly
@@ -31,15 +40,53 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-#: the methods that run the DeepMerge network
+#: the methods that always run the DeepMerge network (``auto`` runs it only when the others disagree)
 NETWORK_METHODS = ("deepmerge", "deepmerge+icp")
+
+
+class RegistrationFailed(RuntimeError):
+    """A registration that must not be used: no inliers, an infinite RMS, or a fit worse than the start."""
+
+
+class Registrar(Protocol):
+    """Anything that registers two clouds (mm) into ``T_target_source``: the DeepMerge network."""
+
+    def register(self, source_mm: np.ndarray, target_mm: np.ndarray) -> np.ndarray: ...
 
 
 def load_registrar(network: DeepMergeConfig) -> DeepMergeRegistrar:
     """The DeepMerge network of ``[deepmerge]`` (imports PyTorch: call it only for a method that needs it)."""
     from tandemscan.pipeline.deepmerge.register import DeepMergeRegistrar
 
-    return DeepMergeRegistrar.load(network.weights, num_points=network.num_points)
+    return DeepMergeRegistrar.load(network.weights, num_points=network.num_points, rounds=network.rounds)
+
+
+class LazyNetwork:
+    """The network of ``[deepmerge]``, loaded (and PyTorch imported) at its first :meth:`register`."""
+
+    def __init__(self, network: DeepMergeConfig) -> None:
+        self.network = network
+        self._registrar: DeepMergeRegistrar | None = None
+
+    def register(self, source_mm: np.ndarray, target_mm: np.ndarray) -> np.ndarray:
+        """``T_target_source`` (4x4 mm) by the network."""
+        if self._registrar is None:
+            self._registrar = load_registrar(self.network)
+        return self._registrar.register(source_mm, target_mm)
+
+
+@dataclass(frozen=True)
+class PairRegistration:
+    """``T_target_source`` (4x4 mm) of a pair, its fit at the final correspondence distance, the stage whose
+    candidate won (``init``, ``fpfh`` or ``deepmerge``), the truncated point-to-plane costs (mm^2 per source
+    point, :func:`icp.truncated_cost`) of the result and of the start, and the stages that ran."""
+
+    transformation: np.ndarray
+    fit: IcpResult
+    stage: str
+    cost_mm2: float
+    start_cost_mm2: float
+    stages_run: tuple[str, ...]
 
 
 @dataclass(frozen=True)
@@ -52,21 +99,17 @@ class PairCorrection:
     overlap_points: int
     delta_mm: float
     centre_mm: np.ndarray
+    stage: str
 
 
 def keep_if_better(
     source_mm: np.ndarray, target: o3d.geometry.PointCloud, T: np.ndarray, distance_mm: float
 ) -> np.ndarray:
     """``T`` when it fits the source onto the target (with normals) better than the identity (the initial
-    stitch) does, else the identity.
-
-    The score is the truncated point-to-plane cost per source point: squared distance for the points with a
-    correspondence within ``distance_mm``, ``distance_mm`` squared for the others, so a slightly smaller
-    overlap does not outweigh a much closer fit.
-    """
+    stitch) does by the truncated point-to-plane cost at ``distance_mm`` (:func:`icp.truncated_cost`), else
+    the identity."""
     def cost(M: np.ndarray) -> float:
-        fit = evaluate_point_to_plane(source_mm, target, M, distance_mm)
-        return fit.fitness * fit.rmse_mm**2 + (1.0 - fit.fitness) * distance_mm**2
+        return truncated_cost(evaluate_point_to_plane(source_mm, target, M, distance_mm), distance_mm)
 
     if cost(T) > cost(np.eye(4)):
         log.debug("DeepMerge fit worse than the stitch; kept the stitch")
@@ -74,77 +117,124 @@ def keep_if_better(
     return T
 
 
-def register_overlap(
-    source_mm: np.ndarray, target_mm: np.ndarray | o3d.geometry.PointCloud, method: str, cfg: CorrectionConfig,
-    registrar: DeepMergeRegistrar | None, coarse_distance_mm: float,
-) -> np.ndarray:
-    """``T_target_source`` of two overlap clouds by ``method`` (the target may come with its normals).
+def agree(A: np.ndarray, B: np.ndarray, centre_mm: np.ndarray, cfg: CorrectionConfig) -> bool:
+    """Whether two ``T_target_source`` estimates agree: within ``cfg.agreement_deg`` in rotation and
+    ``cfg.agreement_mm`` at ``centre_mm`` (a point of the source, mm)."""
+    D = A @ invert(B)
+    moved = float(np.linalg.norm(transform_points(D, centre_mm[None])[0] - centre_mm))
+    return np.degrees(rotation_angle(D)) <= cfg.agreement_deg and moved <= cfg.agreement_mm
 
-    ``icp`` runs point-to-plane ICP coarse (``coarse_distance_mm``, the overlap threshold) then fine
-    (``cfg.icp_max_distance_mm``), the fair baseline; ``deepmerge`` keeps the network's answer only where
-    it fits the overlap better than the initial stitch (:func:`keep_if_better`); ``deepmerge+icp`` runs the
-    fine ICP after that.
-    """
-    T = np.eye(4)
-    if method in NETWORK_METHODS:
-        if registrar is None:
+
+def verify(result: PairRegistration, distance_mm: float, max_cost_increase: float) -> PairRegistration:
+    """``result`` if it may be used, else :class:`RegistrationFailed` saying why: no inliers, an infinite
+    RMS, or a truncated cost (scored at ``distance_mm``) more than ``max_cost_increase`` times
+    ``distance_mm`` squared above the start's (as if that share of the points had moved out of reach)."""
+    if result.fit.inliers == 0:
+        raise RegistrationFailed(f"no inliers: no source point within the correspondence distance "
+                                 f"(stage {result.stage})")
+    if not np.isfinite(result.fit.rmse_mm):
+        raise RegistrationFailed(f"infinite point-to-plane RMS (stage {result.stage})")
+    if result.cost_mm2 > result.start_cost_mm2 + max_cost_increase * distance_mm**2:
+        raise RegistrationFailed(f"fit worse than the start: truncated cost {result.cost_mm2:.4g} mm^2 against "
+                                 f"{result.start_cost_mm2:.4g} at the start (stage {result.stage})")
+    return result
+
+
+def register_pair(
+    source_mm: np.ndarray, target: o3d.geometry.PointCloud, method: str, cfg: CorrectionConfig,
+    network: Registrar | None, start_distance_mm: float,
+) -> PairRegistration:
+    """``T_target_source`` of a source placed at its start (its pose so far) onto a target with normals, by
+    ``method``, verified (:func:`verify`); the fine stage from the start begins at ``start_distance_mm``
+    (the overlap threshold), after a global candidate at ``cfg.global_fine_start_mm``. ``auto`` without a
+    ``network`` compares the fine and the classical stage only."""
+    final = cfg.icp_max_distance_mm
+    S = np.asarray(source_mm, float)
+
+    def fine(M: np.ndarray, start_mm: float) -> IcpResult:
+        return icp_coarse_to_fine(S, target, M, FineSchedule(start_mm, final, cfg.icp_iterations,
+                                                             cfg.icp_max_points))
+
+    def network_answer() -> np.ndarray:
+        if network is None:
             raise ValueError(f"method {method!r} needs a DeepMerge registrar")
-        target_mm = target_with_normals(target_mm)
-        T = keep_if_better(source_mm, target_mm, registrar.register(source_mm, np.asarray(target_mm.points)),
-                           coarse_distance_mm)
-    if method == "icp":
-        T = icp_point_to_plane(source_mm, target_mm, T, max(coarse_distance_mm, cfg.icp_max_distance_mm),
-                               cfg.icp_iterations).transformation
-    if method in ("icp", "deepmerge+icp"):
-        T = icp_point_to_plane(source_mm, target_mm, T, cfg.icp_max_distance_mm, cfg.icp_iterations).transformation
-    return T
+        return network.register(S, np.asarray(target.points))
+
+    candidates: dict[str, IcpResult] = {}
+    if method in ("icp", "auto"):
+        candidates["init"] = fine(np.eye(4), start_distance_mm)
+    if method in ("fpfh+icp", "auto"):
+        matching = FeatureMatching(cfg.global_voxel_fraction, cfg.ransac_max_iterations, cfg.ransac_confidence)
+        candidates["fpfh"] = fine(fpfh_ransac(S, np.asarray(target.points), matching), cfg.global_fine_start_mm)
+    if method == "auto" and network is not None and not agree(
+            candidates["init"].transformation, candidates["fpfh"].transformation, S.mean(axis=0), cfg):
+        candidates["deepmerge"] = fine(network_answer(), cfg.global_fine_start_mm)
+    if method == "deepmerge":
+        candidates["deepmerge"] = evaluate_point_to_plane(
+            S, target, keep_if_better(S, target, network_answer(), start_distance_mm), final)
+    if method == "deepmerge+icp":
+        guarded = keep_if_better(S, target, network_answer(), start_distance_mm)
+        candidates["deepmerge"] = fine(guarded, final)
+    if not candidates:
+        raise ValueError(f"unknown registration method {method!r}")
+    costs = {stage: truncated_cost(fit, final) for stage, fit in candidates.items()}
+    # costs closer than the verification margin cannot tell candidates apart (a slide along a smooth or
+    # extruded surface fits as well): the first of them wins, so the start's own fit is kept unless a global
+    # candidate fits clearly better
+    tie = cfg.max_cost_increase * final**2
+    stage = next(s for s, c in costs.items() if c <= min(costs.values()) + tie)
+    start = truncated_cost(evaluate_point_to_plane(S, target, np.eye(4), final), final)
+    log.debug("pair registration %s: costs %s, start %.4g mm^2", method, costs, start)
+    return verify(PairRegistration(candidates[stage].transformation, candidates[stage], stage, costs[stage], start,
+                                   tuple(candidates)), final, cfg.max_cost_increase)
 
 
 def register_clouds(
     source_mm: np.ndarray, target_mm: np.ndarray, cfg: CorrectionConfig, method: str | None = None,
-    init: np.ndarray | None = None, delta_mm: float = 5.0, registrar: DeepMergeRegistrar | None = None,
-) -> tuple[np.ndarray, IcpResult]:
-    """``T_target_source`` (mm) of any two clouds from ``init`` and its fit (at ``cfg.icp_max_distance_mm``);
-    the network methods need ``registrar`` (:func:`load_registrar`).
-
-    The overlap within ``delta_mm`` after ``init`` is registered; with fewer than ``cfg.min_overlap_points``
-    there, the whole clouds are.
-    """
-    method = method or cfg.method
+    init: np.ndarray | None = None, delta_mm: float = 5.0, network: Registrar | None = None,
+) -> PairRegistration:
+    """``T_target_source`` (mm) of any two clouds from ``init`` (default identity), verified; the fine
+    stage starts at ``delta_mm``. Raises :class:`RegistrationFailed` for a result that must not be used."""
     T0 = np.eye(4) if init is None else np.asarray(init, float)
-    S, T = transform_points(T0, np.asarray(source_mm, float)), np.asarray(target_mm, float)
-    ov = extract_overlap(S, T, delta_mm)
-    if ov.size >= cfg.min_overlap_points:
-        S_ov, T_ov = S[ov.source_idx], T[ov.target_idx]
-    else:
-        S_ov, T_ov = S, T
-    M = register_overlap(S_ov, T_ov, method, cfg, registrar, delta_mm) @ T0
-    return M, evaluate_point_to_plane(np.asarray(source_mm, float), T, M, cfg.icp_max_distance_mm)
+    target = target_with_normals(np.asarray(target_mm, float))
+    res = register_pair(transform_points(T0, np.asarray(source_mm, float)), target, method or cfg.method, cfg,
+                        network, delta_mm)
+    M = res.transformation @ T0
+    return PairRegistration(M, evaluate_point_to_plane(np.asarray(source_mm, float), target, M,
+                                                       cfg.icp_max_distance_mm),
+                            res.stage, res.cost_mm2, res.start_cost_mm2, res.stages_run)
+
+
+def pair_delta(target_W: np.ndarray, cfg: CorrectionConfig, pair_covariance: np.ndarray | None) -> float:
+    """The overlap threshold (mm) of a stitched pair: configured, or from the pair's pose covariance."""
+    if cfg.overlap_delta_mm is not None:
+        return cfg.overlap_delta_mm
+    if pair_covariance is None:
+        raise ValueError("overlap_delta_mm is not configured and no pair covariance was given")
+    lever = 0.5 * float(np.linalg.norm(np.ptp(target_W, axis=0)))
+    return delta_from_covariance(pair_covariance, lever, cfg.overlap_sigmas, cfg.overlap_min_delta_mm)
 
 
 def correct_pair(
-    source_W: np.ndarray, target_W: np.ndarray, cfg: CorrectionConfig, registrar: DeepMergeRegistrar | None,
+    source_W: np.ndarray, target: o3d.geometry.PointCloud, cfg: CorrectionConfig, network: Registrar | None,
     pair_covariance: np.ndarray | None = None,
 ) -> PairCorrection | None:
-    """Correct a stitched pair (both in the world, mm); None when the overlap is below ``min_overlap_points``.
+    """Correct a stitched pair (the source in the world, mm; the target with normals, world); None when the
+    overlap is below ``min_overlap_points``; :class:`RegistrationFailed` for a result that must not be used.
 
-    A source overlap larger than ``cfg.icp_max_points`` is thinned evenly before registration (the target
-    keeps every point, so its normals and the point-to-plane distances stay as fine as the scan).
+    The whole clouds are registered, the overlap re-selected from them at each level as the fit converges
+    (registering only the overlap at the stitch, or onto only the target's overlap, measured worse on the
+    simulated job, docs/registration.md); the edge's fit is scored on the source overlap at the stitch,
+    thinned evenly to ``cfg.icp_max_points``.
     """
-    if cfg.overlap_delta_mm is not None:
-        delta = cfg.overlap_delta_mm
-    else:
-        if pair_covariance is None:
-            raise ValueError("overlap_delta_mm is not configured and no pair covariance was given")
-        lever = 0.5 * float(np.linalg.norm(np.ptp(target_W, axis=0)))
-        delta = delta_from_covariance(pair_covariance, lever, cfg.overlap_sigmas, cfg.overlap_min_delta_mm)
+    target_W = np.asarray(target.points)
+    delta = pair_delta(target_W, cfg, pair_covariance)
     ov = extract_overlap(source_W, target_W, delta)
     if ov.size < cfg.min_overlap_points:
         return None
-    S, T = source_W[thin_evenly(ov.source_idx, cfg.icp_max_points)], target_W[ov.target_idx]
-    tgt = target_with_normals(T)
-    M = register_overlap(S, tgt, cfg.method, cfg, registrar, delta)
-    fit = evaluate_point_to_plane(S, tgt, M, cfg.icp_max_distance_mm)
-    before = evaluate_point_to_plane(S, tgt, np.eye(4), cfg.icp_max_distance_mm)
-    return PairCorrection(M, fit, before.rmse_mm, ov.size, delta, T.mean(axis=0))
-
+    reg = register_pair(source_W, target, cfg.method, cfg, network, delta)
+    S = source_W[thin_evenly(ov.source_idx, cfg.icp_max_points)]
+    fit = evaluate_point_to_plane(S, target, reg.transformation, cfg.icp_max_distance_mm)
+    before = evaluate_point_to_plane(S, target, np.eye(4), cfg.icp_max_distance_mm)
+    return PairCorrection(reg.transformation, fit, before.rmse_mm, ov.size, delta,
+                          target_W[ov.target_idx].mean(axis=0), reg.stage)

@@ -1,0 +1,144 @@
+"""The fine stage re-selects the overlap, the global stages recover a pose with no usable start, every result
+is verified, and the ICP path never imports PyTorch."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import open3d as o3d
+import pytest
+from tandemscan.config.models import CorrectionConfig, DeepMergeConfig
+from tandemscan.daemon.cli import main
+from tandemscan.pipeline.frames import from_rotvec, invert, pose_error, transform_points
+from tandemscan.pipeline.registration.global_registration import FeatureMatching, fpfh_ransac
+from tandemscan.pipeline.registration.icp import (
+    FineSchedule,
+    icp_coarse_to_fine,
+    icp_point_to_plane,
+    target_with_normals,
+)
+from tandemscan.pipeline.registration.pairs import LazyNetwork, RegistrationFailed, register_clouds
+
+_BUMPS = np.random.default_rng(11).uniform([-90, -90, 4, -15], [90, 90, 14, 15], (40, 4))
+
+
+def relief(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """A terrain of 40 bumps of different sizes at fixed random places (mm): curved everywhere, no symmetry."""
+    z = np.zeros_like(x)
+    for cx, cy, r, h in _BUMPS:
+        z += h * np.exp(-((x - cx) ** 2 + (y - cy) ** 2) / (2 * r**2))
+    return z
+
+
+def crops(seed: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Two independently sampled, partly overlapping crops (mm) of :func:`relief`: x in [-80, 30] and
+    [-30, 80], y in [-80, 80]."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for lo, hi in ((-80.0, 30.0), (-30.0, 80.0)):
+        xy = np.c_[rng.uniform(lo, hi, 12000), rng.uniform(-80, 80, 12000)]
+        out.append(np.c_[xy, relief(xy[:, 0], xy[:, 1])] + rng.normal(0, 0.02, (12000, 3)))
+    return out[0], out[1]
+
+
+def moved(T_true: np.ndarray, seed: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """The first crop moved by ``T_true^-1`` (so ``T_true`` registers it back), and the second crop."""
+    src, tgt = crops(seed)
+    return transform_points(invert(T_true), src), tgt
+
+
+def test_the_fine_stage_reselects_the_overlap_and_reaches_what_one_level_does_not():
+    T_true = from_rotvec([3.0, -2.0, 1.5], np.radians([4.0, -3.0, 2.0]))
+    source, target_pts = moved(T_true)
+    target = target_with_normals(target_pts)
+    one_level = icp_point_to_plane(source, target, np.eye(4), 10.0, 50).transformation
+    fit = icp_coarse_to_fine(source, target, np.eye(4), FineSchedule(10.0, 1.0))
+    dt1, dr1 = pose_error(one_level, T_true)
+    dt, dr = pose_error(fit.transformation, T_true)
+    assert np.degrees(dr) < 0.01 and dt < 0.02
+    assert dt * 5 < dt1                        # the overlap at 10 mm drags a single level off
+    assert 0.4 < fit.fitness < 0.8 and fit.rmse_mm < 0.05
+
+
+def test_fpfh_ransac_finds_a_large_rotation_without_a_start():
+    T_true = from_rotvec([8.0, -6.0, 5.0], np.radians([10.0, -25.0, 30.0]))
+    source, target = moved(T_true)
+    dt, dr = pose_error(fpfh_ransac(source, target, FeatureMatching()), T_true)
+    assert np.degrees(dr) < 3.0 and dt < 5.0
+
+
+def test_auto_recovers_an_arbitrary_pose_and_says_which_stage_won():
+    T_true = from_rotvec([8.0, -6.0, 5.0], np.radians([10.0, -25.0, 30.0]))
+    source, target = moved(T_true)
+    res = register_clouds(source, target, CorrectionConfig(method="auto", icp_max_distance_mm=1.0), delta_mm=1e4,
+                          network=LazyNetwork(DeepMergeConfig()))
+    dt, dr = pose_error(res.transformation, T_true)
+    assert np.degrees(dr) < 0.02 and dt < 0.05
+    # from 40 deg the fine stage alone lands elsewhere, so the two disagree and the network runs as well
+    assert res.stage in ("fpfh", "deepmerge") and res.stages_run == ("init", "fpfh", "deepmerge")
+    assert res.cost_mm2 < res.start_cost_mm2 and res.fit.inliers > 1000
+
+
+def test_a_pair_without_overlap_is_refused_not_returned():
+    source, target = moved(from_rotvec([500.0, 0.0, 0.0], [0.0, 0.0, 0.0]))
+    with pytest.raises(RegistrationFailed, match="no inliers"):
+        register_clouds(source, target, CorrectionConfig(method="icp"), delta_mm=5.0)
+
+
+def _write(path, points: np.ndarray) -> str:
+    o3d.io.write_point_cloud(str(path), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)))
+    return str(path)
+
+
+def test_register_exits_3_with_one_line_when_the_fit_fails(tmp_path, capsys):
+    source, target = moved(from_rotvec([500.0, 0.0, 0.0], [0.0, 0.0, 0.0]))
+    a, b = _write(tmp_path / "a.ply", source), _write(tmp_path / "b.ply", target)
+    assert main(["register", a, b, "--method", "icp"]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("registration failed: no inliers")
+
+
+def test_register_prints_the_transform_and_the_winning_stage(tmp_path, capsys):
+    T_true = from_rotvec([1.0, -0.5, 0.5], np.radians([0.5, -0.3, 0.2]))
+    source, target = moved(T_true)
+    a, b = _write(tmp_path / "a.ply", source), _write(tmp_path / "b.ply", target)
+    assert main(["register", a, b, "--method", "icp", "--out", str(tmp_path / "T.txt")]) == 0
+    out = capsys.readouterr().out
+    assert "stage init won of init" in out
+    dt, dr = pose_error(np.loadtxt(tmp_path / "T.txt"), T_true)
+    assert dt < 0.02 and np.degrees(dr) < 0.03              # from 0.6 deg, at the default 2 mm distance
+
+
+def _modules_after(code: str) -> set[str]:
+    """The modules a fresh interpreter holds after running ``code``."""
+    probe = code + "\nimport sys\nprint(' '.join(sorted(sys.modules)))\n"
+    run = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True, timeout=240)
+    return set(run.stdout.split())
+
+
+def test_register_icp_does_not_import_torch(tmp_path):
+    T_true = from_rotvec([1.0, -0.5, 0.5], np.radians([0.5, -0.3, 0.2]))
+    source, target = moved(T_true)
+    a, b = _write(tmp_path / "a.ply", source), _write(tmp_path / "b.ply", target)
+    mods = _modules_after(f"from tandemscan.daemon.cli import main\nassert main(['register', {a!r}, {b!r}, "
+                          f"'--method', 'icp']) == 0")
+    assert "tandemscan.pipeline.registration.pairs" in mods and "torch" not in mods
+
+
+def test_the_jobs_icp_correction_does_not_import_torch():
+    mods = _modules_after(textwrap.dedent('''
+        import sys
+        sys.path.insert(0, "tests")
+        from test_registration_correction import scans_with_drift
+        from tandemscan.config.models import CorrectionConfig, DeepMergeConfig
+        from tandemscan.pipeline.registration.correction import correct_scans
+        from tandemscan.pipeline.registration.pairs import LazyNetwork
+        truth, scans, transfers = scans_with_drift(n=4)
+        res = correct_scans(scans, CorrectionConfig(method="icp", min_overlap_points=100),
+                            LazyNetwork(DeepMergeConfig()), transfers=transfers)
+        assert res.report["pairs"] >= 3
+    '''))
+    assert "tandemscan.pipeline.registration.correction" in mods and "torch" not in mods
