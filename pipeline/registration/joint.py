@@ -42,8 +42,9 @@ from tandemscan.pipeline.uncertainty import recentre
 
 log = logging.getLogger(__name__)
 
-#: a robust scale (mm) never below this: noiseless data would otherwise weight every point infinitely
-_MIN_SIGMA_MM = 1e-6
+#: a robust scale (mm) never below this (0.1 um, far below any scanner noise): noiseless data would otherwise
+#: weight every point without bound and make the normal equations singular in floating point
+_MIN_SIGMA_MM = 1e-4
 
 
 @dataclass(frozen=True)
@@ -179,12 +180,18 @@ class _Model:
 
 @dataclass(frozen=True)
 class _Match:
-    """The correspondences of one pair at the current poses: candidate indices kept, their nearest target
-    points' indices and the point-to-plane residuals (mm)."""
+    """The correspondences of one pair at the current poses: the source points in the target's frame S_i
+    (mm), the indices of their nearest target points and the point-to-plane residuals (mm)."""
 
-    source: np.ndarray
+    source_S_i: np.ndarray
     target: np.ndarray
     residual: np.ndarray
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross product of two (m, 3) arrays (np.cross is several times slower on short rows)."""
+    return np.c_[a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                 a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]]
 
 
 class _Pair:
@@ -197,23 +204,26 @@ class _Pair:
               ) -> _Match:
         rel = invert(poses[self.i]) @ poses[self.j]
         x = transform_points(rel, scans[self.j].points_S[self.candidates])   # in S_i
-        d, idx = trees[self.i].query(x, distance_upper_bound=max_mm)
+        d, idx = trees[self.i].query(x, distance_upper_bound=max_mm, workers=-1)
         ok = np.isfinite(d)
         t = idx[ok]
         r = np.einsum("ij,ij->i", x[ok] - scans[self.i].points_S[t], scans[self.i].normals_S[t])
-        return _Match(self.candidates[ok], t, r)
+        return _Match(x[ok], t, r)
 
     def normal_equations(self, scans: Sequence[JointScan], poses: np.ndarray, origins: np.ndarray, m: _Match,
                          weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(H, b)`` (12x12, 12) of the weighted residuals in ``(e_j, e_i)`` linearised at the current poses,
-        for the normal equations ``H delta = -b``."""
-        Pi, Pj = poses[self.i], poses[self.j]
-        n = scans[self.i].normals_S[m.target] @ Pi[:3, :3].T
-        w_j = transform_points(Pj, scans[self.j].points_S[m.source])
-        w_i = transform_points(Pi, scans[self.i].points_S[m.target])
-        J = np.c_[n, np.cross(w_j - origins[self.j], n), -n, -np.cross(w_i - origins[self.i], n)]
+        for the normal equations ``H delta = -b``. Worked in S_i: with ``R`` its rotation, a world row
+        ``[R n, R ((p - o) x n)]`` is the local row ``[n, (p - o) x n]`` turned by ``blockdiag(R, R)``."""
+        Pi = poses[self.i]
+        to_local = invert(Pi)
+        n = scans[self.i].normals_S[m.target]
+        q = scans[self.i].points_S[m.target]
+        o_j, o_i = (transform_points(to_local, origins[k][None])[0] for k in (self.j, self.i))
+        J = np.c_[n, _cross(m.source_S_i - o_j, n), -n, -_cross(q - o_i, n)]
         Jw = J * weights[:, None]
-        return Jw.T @ J, Jw.T @ m.residual
+        B = np.kron(np.eye(4), Pi[:3, :3])                      # local -> world for the four 3-blocks
+        return B @ (Jw.T @ J) @ B.T, B @ (Jw.T @ m.residual)
 
 
 def _huber(r: np.ndarray, sigma: float, k: float) -> np.ndarray:
