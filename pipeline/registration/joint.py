@@ -47,20 +47,63 @@ log = logging.getLogger(__name__)
 _MIN_SIGMA_MM = 1e-4
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross product of two (m, 3) arrays (np.cross is several times slower on short rows)."""
+    return np.c_[a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                 a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]]
+
+
 @dataclass(frozen=True)
 class JointScan:
-    """One scan for the joint solve: its (thinned) points and unit normals in the scanner frame S (mm)."""
+    """One scan for the joint solve: its (thinned) points and unit normals in the scanner frame S (mm), and
+    optionally the local surface at each point: a tangent ``tangents_S`` (N, 3; the second is normal x
+    tangent) and the coefficients ``surface`` (N, 5) of ``h = a u^2 + b u v + c v^2 + d u + e v`` (mm, the height
+    along the normal over the tangent offsets ``u, v`` from the point; through the point itself). With it a residual is measured
+    to that quadric instead of the point's tangent plane: a plane through a sampled point of a curved
+    surface puts every nearby point of another scan inside it by about ``curvature x offset^2 / 2``, a bias
+    that the many overlap points of a job would otherwise sum into millimetres over metres of lever arm."""
 
     points_S: np.ndarray
     normals_S: np.ndarray
+    tangents_S: np.ndarray | None = None
+    surface: np.ndarray | None = None
 
     @classmethod
-    def from_points(cls, points_S: np.ndarray, normal_neighbours: int = 20) -> JointScan:
-        """The scan with unit normals estimated from its ``normal_neighbours`` nearest points (Open3D)."""
+    def from_points(cls, points_S: np.ndarray, neighbours: int = 20) -> JointScan:
+        """The scan with normals and local quadrics (through each point) fitted to its ``neighbours``
+        nearest points."""
         P = np.asarray(points_S, float)
         cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P))
-        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(normal_neighbours))
-        return cls(P, np.asarray(cloud.normals))
+        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(neighbours))
+        N = np.asarray(cloud.normals)
+        helper = np.where(np.abs(N[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
+        t1 = _cross(N, helper)
+        t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+        t2 = _cross(N, t1)
+        _, idx = cKDTree(P).query(P, k=min(neighbours, len(P)))
+        D = P[idx] - P[:, None, :]                                  # (N, k, 3) offsets of the neighbours
+        u, v, h = (np.einsum("nkc,nc->nk", D, T) for T in (t1, t2, N))
+        M = np.stack([u * u, u * v, v * v, u, v], axis=2)
+        MtM = np.einsum("nki,nkj->nij", M, M) + 1e-9 * np.eye(5)
+        coef = np.linalg.solve(MtM, np.einsum("nki,nk->ni", M, h)[..., None])[..., 0]
+        return cls(P, N, t1, coef)
+
+    def to_surface(self, target: np.ndarray, x_S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Residuals (mm) of the points ``x_S`` (frame S) to the surface at the points ``target`` (indices)
+        and the surface normals there (the tangent plane without a quadric)."""
+        n = self.normals_S[target]
+        dx = x_S - self.points_S[target]
+        r = np.einsum("ij,ij->i", dx, n)
+        if self.surface is None:
+            return r, n
+        t1 = self.tangents_S[target]
+        t2 = _cross(n, t1)
+        c = self.surface[target]
+        u, v = np.einsum("ij,ij->i", dx, t1), np.einsum("ij,ij->i", dx, t2)
+        r = r - (c[:, 0] * u * u + c[:, 1] * u * v + c[:, 2] * v * v + c[:, 3] * u + c[:, 4] * v)
+        gu, gv = 2 * c[:, 0] * u + c[:, 1] * v + c[:, 3], c[:, 1] * u + 2 * c[:, 2] * v + c[:, 4]
+        g = n - gu[:, None] * t1 - gv[:, None] * t2
+        return r, g / np.linalg.norm(g, axis=1, keepdims=True)
 
 
 @dataclass(frozen=True)
@@ -181,17 +224,13 @@ class _Model:
 @dataclass(frozen=True)
 class _Match:
     """The correspondences of one pair at the current poses: the source points in the target's frame S_i
-    (mm), the indices of their nearest target points and the point-to-plane residuals (mm)."""
+    (mm), the indices of their nearest target points, the residuals to the target surface (mm) and its
+    normals there (S_i)."""
 
     source_S_i: np.ndarray
     target: np.ndarray
     residual: np.ndarray
-
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise cross product of two (m, 3) arrays (np.cross is several times slower on short rows)."""
-    return np.c_[a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-                 a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]]
+    normals: np.ndarray
 
 
 class _Pair:
@@ -207,8 +246,8 @@ class _Pair:
         d, idx = trees[self.i].query(x, distance_upper_bound=max_mm, workers=-1)
         ok = np.isfinite(d)
         t = idx[ok]
-        r = np.einsum("ij,ij->i", x[ok] - scans[self.i].points_S[t], scans[self.i].normals_S[t])
-        return _Match(x[ok], t, r)
+        r, n = scans[self.i].to_surface(t, x[ok])
+        return _Match(x[ok], t, r, n)
 
     def normal_equations(self, scans: Sequence[JointScan], poses: np.ndarray, origins: np.ndarray, m: _Match,
                          weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -217,7 +256,7 @@ class _Pair:
         ``[R n, R ((p - o) x n)]`` is the local row ``[n, (p - o) x n]`` turned by ``blockdiag(R, R)``."""
         Pi = poses[self.i]
         to_local = invert(Pi)
-        n = scans[self.i].normals_S[m.target]
+        n = m.normals
         q = scans[self.i].points_S[m.target]
         o_j, o_i = (transform_points(to_local, origins[k][None])[0] for k in (self.j, self.i))
         J = np.c_[n, _cross(m.source_S_i - o_j, n), -n, -_cross(q - o_i, n)]
