@@ -42,6 +42,10 @@ from tandemscan.pipeline.uncertainty import recentre
 
 log = logging.getLogger(__name__)
 
+#: a correspondence counts only where the two scans' normals agree within 30 deg: a point of one scan near
+#: the edge of the other's view of a crease or a silhouette would otherwise pull along the wrong normal
+_MIN_NORMAL_COSINE = float(np.cos(np.radians(30.0)))
+
 #: a robust scale (mm) never below this (0.1 um, far below any scanner noise): noiseless data would otherwise
 #: weight every point without bound and make the normal equations singular in floating point
 _MIN_SIGMA_MM = 1e-4
@@ -247,7 +251,9 @@ class _Pair:
         ok = np.isfinite(d)
         t = idx[ok]
         r, n = scans[self.i].to_surface(t, x[ok])
-        return _Match(x[ok], t, r, n)
+        source_n = scans[self.j].normals_S[self.candidates[ok]] @ rel[:3, :3].T
+        same = np.abs(np.einsum("ij,ij->i", source_n, n)) >= _MIN_NORMAL_COSINE  # not across a crease
+        return _Match(x[ok][same], t[same], r[same], n[same])
 
     def normal_equations(self, scans: Sequence[JointScan], poses: np.ndarray, origins: np.ndarray, m: _Match,
                          weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
