@@ -59,55 +59,18 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class JointScan:
-    """One scan for the joint solve: its (thinned) points and unit normals in the scanner frame S (mm), and
-    optionally the local surface at each point: a tangent ``tangents_S`` (N, 3; the second is normal x
-    tangent) and the coefficients ``surface`` (N, 5) of ``h = a u^2 + b u v + c v^2 + d u + e v`` (mm, the height
-    along the normal over the tangent offsets ``u, v`` from the point; through the point itself). With it a residual is measured
-    to that quadric instead of the point's tangent plane: a plane through a sampled point of a curved
-    surface puts every nearby point of another scan inside it by about ``curvature x offset^2 / 2``, a bias
-    that the many overlap points of a job would otherwise sum into millimetres over metres of lever arm."""
+    """One scan for the joint solve: its (thinned) points and unit normals in the scanner frame S (mm)."""
 
     points_S: np.ndarray
     normals_S: np.ndarray
-    tangents_S: np.ndarray | None = None
-    surface: np.ndarray | None = None
 
     @classmethod
-    def from_points(cls, points_S: np.ndarray, neighbours: int = 20) -> JointScan:
-        """The scan with normals and local quadrics (through each point) fitted to its ``neighbours``
-        nearest points."""
+    def from_points(cls, points_S: np.ndarray, normal_neighbours: int = 20) -> JointScan:
+        """The scan with unit normals estimated from its ``normal_neighbours`` nearest points (Open3D)."""
         P = np.asarray(points_S, float)
         cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P))
-        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(neighbours))
-        N = np.asarray(cloud.normals)
-        helper = np.where(np.abs(N[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
-        t1 = _cross(N, helper)
-        t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
-        t2 = _cross(N, t1)
-        _, idx = cKDTree(P).query(P, k=min(neighbours, len(P)))
-        D = P[idx] - P[:, None, :]                                  # (N, k, 3) offsets of the neighbours
-        u, v, h = (np.einsum("nkc,nc->nk", D, T) for T in (t1, t2, N))
-        M = np.stack([u * u, u * v, v * v, u, v], axis=2)
-        MtM = np.einsum("nki,nkj->nij", M, M) + 1e-9 * np.eye(5)
-        coef = np.linalg.solve(MtM, np.einsum("nki,nk->ni", M, h)[..., None])[..., 0]
-        return cls(P, N, t1, coef)
-
-    def to_surface(self, target: np.ndarray, x_S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Residuals (mm) of the points ``x_S`` (frame S) to the surface at the points ``target`` (indices)
-        and the surface normals there (the tangent plane without a quadric)."""
-        n = self.normals_S[target]
-        dx = x_S - self.points_S[target]
-        r = np.einsum("ij,ij->i", dx, n)
-        if self.surface is None:
-            return r, n
-        t1 = self.tangents_S[target]
-        t2 = _cross(n, t1)
-        c = self.surface[target]
-        u, v = np.einsum("ij,ij->i", dx, t1), np.einsum("ij,ij->i", dx, t2)
-        r = r - (c[:, 0] * u * u + c[:, 1] * u * v + c[:, 2] * v * v + c[:, 3] * u + c[:, 4] * v)
-        gu, gv = 2 * c[:, 0] * u + c[:, 1] * v + c[:, 3], c[:, 1] * u + 2 * c[:, 2] * v + c[:, 4]
-        g = n - gu[:, None] * t1 - gv[:, None] * t2
-        return r, g / np.linalg.norm(g, axis=1, keepdims=True)
+        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(normal_neighbours))
+        return cls(P, np.asarray(cloud.normals))
 
 
 @dataclass(frozen=True)
@@ -228,8 +191,8 @@ class _Model:
 @dataclass(frozen=True)
 class _Match:
     """The correspondences of one pair at the current poses: the source points in the target's frame S_i
-    (mm), the indices of their nearest target points, the residuals to the target surface (mm) and its
-    normals there (S_i)."""
+    (mm), the indices of their nearest target points, the point-to-plane residuals (mm) and the target
+    normals (S_i)."""
 
     source_S_i: np.ndarray
     target: np.ndarray
@@ -250,7 +213,8 @@ class _Pair:
         d, idx = trees[self.i].query(x, distance_upper_bound=max_mm, workers=-1)
         ok = np.isfinite(d)
         t = idx[ok]
-        r, n = scans[self.i].to_surface(t, x[ok])
+        n = scans[self.i].normals_S[t]
+        r = np.einsum("ij,ij->i", x[ok] - scans[self.i].points_S[t], n)
         source_n = scans[self.j].normals_S[self.candidates[ok]] @ rel[:3, :3].T
         same = np.abs(np.einsum("ij,ij->i", source_n, n)) >= _MIN_NORMAL_COSINE  # not across a crease
         return _Match(x[ok][same], t[same], r[same], n[same])
