@@ -341,8 +341,9 @@ def _mount_estimate(model: _Model, H_theta: np.ndarray, cov_theta: np.ndarray, t
     Linv = np.linalg.inv(L)
     data_D = Linv.T @ data_u @ Linv
     log.info("joint refinement: mount correction %s mm, %s deg", np.round(d[:3], 4), np.round(np.degrees(d[3:]), 5))
+    observed = int(np.sum(ratio >= model.mount_prior.min_information_ratio))   # the rest is the prior's
     return MountEstimate(from_rotvec(d[:3], d[3:]), 0.5 * (cov + cov.T), prior, 0.5 * (data_D + data_D.T),
-                         ratio, U, 6)
+                         ratio, U, observed)
 
 
 def _marginal_information(H: np.ndarray, first: int) -> np.ndarray:
