@@ -4,7 +4,8 @@
 Input: every scan's points in its scanner frame S, its tracker-stitched pose ``T_W_S`` with covariance and
 its tracker station. For each overlapping pair (``overlap.overlapping_pairs``) the overlap is registered by
 the configured method (``pairs.correct_pair``), each correction becomes a pose-graph edge, and
-``pose_graph.refine_poses`` spreads the corrections over all scans.
+``pose_graph.refine_poses`` spreads the corrections over all scans; with ``[correction] joint`` the poses are then
+refined jointly on the overlap points (``joint.refine_jointly``).
 """
 
 from __future__ import annotations
