@@ -524,6 +524,24 @@ class CorrectionConfig(_Strict):
     edge_min_eigen_ratio: float = Field(
         0.01, ge=0, lt=1, description="edge directions weaker than this share of the strongest are dropped"
     )
+    joint: bool = Field(
+        True, description="after the pose graph, refine all poses, transfers and the mount jointly on the overlap "
+        "points (docs/registration.md, Joint refinement)"
+    )
+    joint_voxel_mm: float = Field(2.0, gt=0,
+                                  description="the joint refinement works on scans thinned to this voxel, mm")
+    joint_max_distance_mm: float = Field(
+        1.0, gt=0, description="joint refinement: a point's nearest neighbour in the other scan counts within this, mm"
+    )
+    joint_iterations: int = Field(8, ge=1, description="joint refinement: at most this many re-associations")
+    joint_sigma_mm: float | None = Field(
+        None, gt=0, description="joint refinement: 1-sigma of a point-to-plane residual, mm; empty = the "
+        "residuals' robust scale in each iteration"
+    )
+    joint_max_partners_per_scan: int = Field(
+        1000, ge=1, description="joint refinement: overlapping partners a scan keeps per station group (as "
+        "max_partners_per_scan; the default keeps every pair sharing a grid cell)"
+    )
     estimate_mount: bool = Field(
         True, description="the pose graph also estimates one shared correction of T_T_S (self-calibration)"
     )

@@ -232,6 +232,7 @@ class JobRunner:
             self.progress(JobProgress(i, total, self._describe(step)))
             result, scan = await self.journal.run_step(i, lambda i=i, step=step: self._execute(i, step))
             await self.journal.commit(i, step.kind, result, *(scan or ()))
+        measured_at = time.monotonic()  # the last step committed: from here the operator waits for the report
         measured = [s for s in self.scans if s.point_count > 0]  # a scan that saw nothing has nothing to correct
         if self.config.correction.enabled and len(measured) > 1:
             self.progress(JobProgress(total - 1, total, "correcting the stitch (DeepMerge, pose graph)"))
@@ -239,7 +240,7 @@ class JobRunner:
             for s, T_W_S in zip(measured, poses, strict=True):
                 s.T_W_S = T_W_S
         self.progress(JobProgress(total - 1, total, "writing cloud and report"))
-        result = await self._export(time.monotonic() - started)
+        result = await self._export(time.monotonic() - started, measured_at)
         self.progress(JobProgress(total, total, "done"))
         return result
 
@@ -547,9 +548,10 @@ class JobRunner:
                            list(self.transfers), dict(self.correction), scorer, T_F_W=self.T_F_W,
                            relocalisation=dict(self.relocalisation))
 
-    async def _export(self, seconds: float) -> JobResult:
-        """``cloud.ply``, ``report.json`` and the inspection exports, written where the map lives."""
-        report = await self.worldmap.run(export, self.snapshot(), seconds)
+    async def _export(self, seconds: float, measured_at: float) -> JobResult:
+        """``cloud.ply``, ``report.json`` and the inspection exports, written where the map lives
+        (``measured_at``: ``time.monotonic()`` when the last step was committed)."""
+        report = await self.worldmap.run(export, self.snapshot(), seconds, measured_at)
         return JobResult(self.job_dir, self.job_dir / "cloud.ply", self.job_dir / "report.json", report, self.scans)
 
 

@@ -59,11 +59,11 @@ def correct(job: JobSnapshot) -> tuple[dict, list[np.ndarray]]:
     return correct_job(job)
 
 
-def export(job: JobSnapshot, seconds: float) -> dict:
+def export(job: JobSnapshot, seconds: float, measured_at: float) -> dict:
     """:func:`tandemscan.daemon.job_outputs.export_job` (E57, Open3D I/O, matplotlib), imported where it runs."""
     from tandemscan.daemon.job_outputs import export_job
 
-    return export_job(job, seconds)
+    return export_job(job, seconds, measured_at)
 
 
 def _share_big(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
