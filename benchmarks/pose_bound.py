@@ -43,9 +43,9 @@ from tandemscan.config import load_config
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.runner import JobResult, JobRunner
 from tandemscan.daemon.session import CellSession
-from tandemscan.pipeline.raw_scan import read_raw_scan
 from tandemscan.pipeline.frames import transform_points
 from tandemscan.pipeline.plan import Plan
+from tandemscan.pipeline.raw_scan import read_raw_scan
 from tandemscan.pipeline.registration.overlap import extract_overlap, overlapping_pairs
 from tandemscan.pipeline.registration.sampling import voxel_downsample
 from tandemscan.pipeline.uncertainty import recentre, scan_pose_covariance
