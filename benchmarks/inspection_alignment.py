@@ -39,13 +39,14 @@ from tandemscan.daemon.runner import JobRunner, ScanRecord
 from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.alignment import align, align_plan_stations, fit_rigid
-from tandemscan.pipeline.cloud_io import read_ply, read_raw_scan
+from tandemscan.pipeline.cloud_io import read_ply
 from tandemscan.pipeline.export import write_ply
 from tandemscan.pipeline.inspect import CadSurface
 from tandemscan.pipeline.inspection_job import align_and_inspect, inspect_files
 from tandemscan.pipeline.kinematics import ArmKinematics
 from tandemscan.pipeline.part import load_part_mesh
 from tandemscan.pipeline.plan import Plan
+from tandemscan.pipeline.raw_scan import read_raw_scan
 from tandemscan.sim_drivers.inspection_score import alignment_error, deviation_truths, score_areas
 
 AS_BUILT = Path(__file__).resolve().parents[1] / "config" / "as-built-example.toml"

@@ -251,8 +251,8 @@ def sim_pairs(min_overlap: int = 200, delta_mm: float = 3.0):
     from tandemscan.daemon.cli import default_plan_path
     from tandemscan.daemon.runner import JobRunner
     from tandemscan.daemon.session import CellSession
-    from tandemscan.pipeline.cloud_io import read_raw_scan
     from tandemscan.pipeline.plan import Plan
+    from tandemscan.pipeline.raw_scan import read_raw_scan
     from tandemscan.pipeline.registration.sampling import voxel_downsample
 
     config = load_config(None)

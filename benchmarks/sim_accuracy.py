@@ -6,8 +6,10 @@ The last line of output is one JSON object with keys scans (measured), scans_pla
 the depth window), relocalisation figures (AGV stations located, poses scanned with a nearby view, unresolved
 poses, located-vs-true AGV pose, largest drift off plan), transfers, pose_err_mm_median, pose_err_mm_max,
 pose_err_deg_median, cloud_rms_mm, cloud_p95_mm for the tracker-only stitch, ``corrected_*`` after DeepMerge
-correction and pose-graph refinement (when ``[correction] enabled``), and seconds (the job; ``job_cpu_seconds``
-of this process).
+correction, pose-graph and joint refinement (when ``[correction] enabled``; ``joint_sigma_xyz_mm_per_station``:
+the joint refinement's prior and posterior 1-sigma per tracker station), ``after_last_scan_s`` (last step committed
+-> report.html) and ``correction_cpu_s`` (report.json ``timings``), and seconds (the job; ``job_cpu_seconds`` of
+this process).
 """
 
 from __future__ import annotations
@@ -83,6 +85,11 @@ async def run(args: argparse.Namespace) -> dict:
             "corrected_cloud_p95_mm": round(g["cloud_p95_mm"], 4),
             "correction_seconds": round(correction.get("seconds", float("nan")), 2),
         }
+        joint = correction.get("joint")
+        if joint is not None:
+            figures["joint_sigma_xyz_mm_per_station"] = joint["sigma_xyz_mm_per_station"]
+    figures |= {"after_last_scan_s": r["timings"]["after_last_scan_s"],
+                "correction_cpu_s": r["timings"]["correction_cpu_s"]}
     figures |= {"seconds": round(time.perf_counter() - started, 2),
                 "job_cpu_seconds": round(time.process_time() - cpu, 2)}
     return figures if plan_seconds is None else figures | {"plan_seconds": plan_seconds}

@@ -310,6 +310,8 @@ class SafetyConfig(_Strict):
 
     driver: DriverKind = "sim"
     poll_period_s: float = Field(0.02, gt=0)
+    silent_after_periods: float = Field(2.0, ge=1, description="a Modbus poll unanswered this many poll periods "
+                                        "is a safety stop (a silent module), long before the request's timeout")
     modbus: SafetyModbusConfig = SafetyModbusConfig()
 
 
@@ -522,6 +524,24 @@ class CorrectionConfig(_Strict):
     edge_min_eigen_ratio: float = Field(
         0.01, ge=0, lt=1, description="edge directions weaker than this share of the strongest are dropped"
     )
+    joint: bool = Field(
+        True, description="after the pose graph, refine all poses, transfers and the mount jointly on the overlap "
+        "points (docs/registration.md, Joint refinement)"
+    )
+    joint_voxel_mm: float = Field(2.0, gt=0,
+                                  description="the joint refinement works on scans thinned to this voxel, mm")
+    joint_max_distance_mm: float = Field(
+        1.0, gt=0, description="joint refinement: a point's nearest neighbour in the other scan counts within this, mm"
+    )
+    joint_iterations: int = Field(8, ge=1, description="joint refinement: at most this many re-associations")
+    joint_sigma_mm: float | None = Field(
+        None, gt=0, description="joint refinement: 1-sigma of a point-to-plane residual, mm; empty = the "
+        "residuals' robust scale in each iteration"
+    )
+    joint_max_partners_per_scan: int = Field(
+        1000, ge=1, description="joint refinement: overlapping partners a scan keeps per station group (as "
+        "max_partners_per_scan; the default keeps every pair sharing a grid cell)"
+    )
     estimate_mount: bool = Field(
         True, description="the pose graph also estimates one shared correction of T_T_S (self-calibration)"
     )
@@ -720,6 +740,15 @@ class DaemonConfig(_Strict):
     default_plan: str = Field("default-band", description="plan of a job posted without one")
     worker_niceness: int = Field(5, ge=0, le=19, description="added niceness of worker processes (ray casting, "
                                  "stitching, exports): the event loop and its 50 Hz safety loop come first")
+    fault_retry_attempts: int = Field(3, ge=0, description="automatic resumes of a job paused by a recoverable "
+                                      "device fault, counted since its last committed step (0: the operator resumes)")
+    fault_retry_initial_s: float = Field(2.0, gt=0, description="wait before the first automatic resume; doubles")
+    fault_retry_max_s: float = Field(60.0, gt=0, description="cap of the wait between automatic resumes")
+    max_body_bytes: int = Field(1_048_576, ge=1024, description="request bodies over this are refused (413) unread")
+    scan_bytes_estimate: int = Field(8_000_000, ge=0, description="disk one raw scan and its share of the exports "
+                                     "take (bytes), for the low-space guard of a new job")
+    reserve_free_bytes: int = Field(50_000_000, ge=0, description="free space kept beyond a job's scans (bytes): "
+                                    "the journal, reports and logs")
 
 
 class CellConfig(_Strict):

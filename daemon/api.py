@@ -24,6 +24,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel, ConfigDict, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
+from tandemscan.daemon.job_state import FINAL_STATES, JobState
 from tandemscan.daemon.jobs import JobError, request_hash
 from tandemscan.daemon.metrics import RequestTimer
 from tandemscan.daemon.store import IdempotencyConflict, JobRecord
@@ -37,7 +38,9 @@ log = logging.getLogger(__name__)
 
 PROBLEM = "application/problem+json"
 JobId = Annotated[str, Path(pattern=r"^[A-Za-z0-9_-]{1,64}$", description="job id")]
-JobStateName = Literal["queued", "running", "paused", "paused_safety", "succeeded", "failed", "cancelled"]
+JobStateName = JobState
+#: ``Last-Event-ID`` / ``after``: an event sequence number (decimal digits, at most 2**62)
+MAX_EVENT_ID = 2**62
 
 # ---------------------------------------------------------------- bodies
 
@@ -127,19 +130,27 @@ class Calibration(BaseModel):
     source: Literal["truth", "nominal", "calibration"]
     file: str | None
     transforms: dict[str, list[list[float]]]
+    error: str | None = Field(None, description="why the installation could not be resolved (no transforms then)")
 
 
 class Health(BaseModel):
+    """``degraded`` while a device is down, the safety stop latched, free space under the reserve or a job's
+    state held in memory because the journal refuses writes."""
+
     status: Literal["ok", "degraded"]
-    devices_connected: bool
+    devices_connected: bool = Field(description="every device connected and none reporting a fault")
+    devices_down: list[str] = Field(description="devices not connected or reporting a fault")
     safety_latched: bool
     active_job: str | None
     queued_jobs: int
+    free_bytes: int = Field(description="free space of the state folder's file system (bytes)")
+    storage_low: bool = Field(description="free space under [daemon] reserve_free_bytes")
+    storage_error: str | None = Field(description="why a job's state is held in memory (the journal refuses writes)")
     version: str
 
 
 PROBLEM_RESPONSES: dict[int | str, dict[str, Any]] = {
-    code: {"model": Problem, "content": {PROBLEM: {}}} for code in (401, 404, 409, 422)
+    code: {"model": Problem, "content": {PROBLEM: {}}} for code in (400, 401, 404, 409, 413, 422, 507)
 }
 
 # Exports a finished job serves besides cloud.ply and report.json, with their media types.
@@ -202,6 +213,7 @@ def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
 
     app = FastAPI(title="tandemscan", version=daemon.version, lifespan=lifespan,
                   description="Two-robot 3D measurement cell: jobs, devices, calibration, events.")
+    app.add_middleware(GuardBody, token=daemon.token, max_body_bytes=daemon.config.daemon.max_body_bytes)
     app.add_middleware(RequestTimer, registry=daemon.registry)
 
     # -------------------------------------------------------- errors as problem details
@@ -245,16 +257,16 @@ def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
         token = daemon.token
         if token is None:
             return
-        scheme, _, given = (authorization or "").partition(" ")
-        if scheme.lower() != "bearer" or not hmac.compare_digest(given.strip().encode(), token.encode()):
+        if not _bearer_ok(authorization, token):
             raise StarletteHTTPException(401, "a valid bearer token is required for this call",
                                          headers={"WWW-Authenticate": 'Bearer realm="tandemscan"'})
 
     Mutating = [Depends(require_token)]
     mgr = daemon.manager
 
-    def body_of(job: JobRecord) -> Job:
-        return job_body(job, daemon.store.steps_done(job.id))
+    async def body_of(job: JobRecord) -> Job:
+        """The job's resource; its step count read off the event loop."""
+        return job_body(job, await asyncio.to_thread(daemon.store.steps_done, job.id))
 
     # -------------------------------------------------------- jobs
 
@@ -274,6 +286,10 @@ def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
             plan = daemon.plans.get(req.plan)
         except PlanError as e:
             raise ApiProblem(409, "Plan is invalid", str(e)) from e
+        need, free = daemon.bytes_needed(sum(s.kind == "scan" for s in plan.steps)), daemon.free_bytes()
+        if free < need:
+            raise ApiProblem(507, "Insufficient storage", f"the job needs {need / 1e6:.0f} MB free for its scans and "
+                             f"exports; {free / 1e6:.0f} MB are free in the state folder")
         stored = {"plan": plan.model_dump(mode="json"), "label": req.label}
         try:
             job, created = await mgr.submit(req.plan or daemon.plans.default_name, stored, len(plan.steps),
@@ -283,7 +299,7 @@ def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
         headers = {"Location": f"/v1/jobs/{job.id}"}
         if not created:
             headers["Idempotent-Replayed"] = "true"
-        return JSONResponse(body_of(job).model_dump(mode="json"), status_code=202 if created else 200,
+        return JSONResponse((await body_of(job)).model_dump(mode="json"), status_code=202 if created else 200,
                             headers=headers)
 
     @app.get("/v1/jobs", response_model=JobPage, responses=PROBLEM_RESPONSES, tags=["jobs"])
@@ -295,40 +311,41 @@ def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
         offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
     ) -> JobPage:
         """Jobs newest first, filtered by state and plan, in pages."""
-        jobs, total = daemon.store.list_jobs(state, plan, None, limit, offset)
+        jobs, total = await asyncio.to_thread(daemon.store.list_jobs, state, plan, None, limit, offset)
         nxt = None
         if offset + len(jobs) < total:
             nxt = str(request.url.include_query_params(offset=offset + len(jobs), limit=limit))
-        return JobPage(items=[body_of(j) for j in jobs], total=total, limit=limit, offset=offset, next=nxt)
+        return JobPage(items=[await body_of(mgr.current(j)) for j in jobs], total=total, limit=limit, offset=offset,
+                       next=nxt)
 
     @app.get("/v1/jobs/{job_id}", response_model=Job, responses=PROBLEM_RESPONSES, tags=["jobs"])
     async def get_job(job_id: JobId) -> Job:
         """State, progress, the step under way and figures so far."""
-        return body_of(mgr.get(job_id))
+        return await body_of(await asyncio.to_thread(mgr.get, job_id))
 
     @app.post("/v1/jobs/{job_id}/cancel", response_model=Job, dependencies=Mutating,
               responses=PROBLEM_RESPONSES, tags=["jobs"])
     async def cancel_job(job_id: JobId) -> Job:
         """Cancel a queued, running or paused job (motion stops at once)."""
-        return body_of(await mgr.cancel(job_id))
+        return await body_of(await mgr.cancel(job_id))
 
     @app.post("/v1/jobs/{job_id}/pause", response_model=Job, dependencies=Mutating,
               responses=PROBLEM_RESPONSES, tags=["jobs"])
     async def pause_job(job_id: JobId) -> Job:
         """Pause a running job at its next step boundary."""
-        return body_of(await mgr.pause(job_id))
+        return await body_of(await mgr.pause(job_id))
 
     @app.post("/v1/jobs/{job_id}/resume", response_model=Job, dependencies=Mutating,
               responses=PROBLEM_RESPONSES, tags=["jobs"])
     async def resume_job(job_id: JobId) -> Job:
         """Resume a paused job; after a safety stop this resets the latch, refused while inputs forbid motion."""
-        return body_of(await mgr.resume(job_id))
+        return await body_of(await mgr.resume(job_id))
 
     def artifact(job_id: str, name: str):
         job = mgr.get(job_id)
         path = daemon.store.job_dir(job.id) / name
         if not path.is_file():
-            raise ApiProblem(409 if job.state not in ("failed", "cancelled", "succeeded") else 404,
+            raise ApiProblem(409 if job.state not in FINAL_STATES else 404,
                              "Result not available", f"job {job_id} is {job.state}; {name} is not there")
         return path
 
@@ -393,12 +410,7 @@ def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
     @app.get("/v1/health", response_model=Health, tags=["service"])
     async def health() -> Health:
         """Liveness and a one-line state of the cell."""
-        snap = daemon.supervisor.snapshot()
-        queued = daemon.store.list_jobs(["queued"], limit=1)[1]
-        ok = snap["all_connected"] and not snap["safety"]["latched"]
-        return Health(status="ok" if ok else "degraded", devices_connected=snap["all_connected"],
-                      safety_latched=snap["safety"]["latched"], active_job=mgr.active_id, queued_jobs=queued,
-                      version=daemon.version)
+        return Health.model_validate(await asyncio.to_thread(daemon.health))
 
     @app.get("/metrics", tags=["service"], response_class=Response,
              responses={200: {"content": {CONTENT_TYPE_LATEST: {}}}})
@@ -412,13 +424,14 @@ def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
         request: Request,
         job: Annotated[str | None, Query(max_length=64, description="only this job's events")] = None,
         after: Annotated[int | None, Query(ge=0, le=2**62, description="replay events after this id")] = None,
-        last_event_id: Annotated[str | None, Header(max_length=32)] = None,
+        last_event_id: Annotated[str | None, Header()] = None,
     ) -> StreamingResponse:
         """Server-sent events (``state``, ``progress``, ``device``, ``safety``); reconnect with
-        ``Last-Event-ID`` (or ``after``) to replay what was missed from the journal."""
+        ``Last-Event-ID`` (or ``after``) to replay what was missed from the journal. A ``Last-Event-ID`` that
+        is not an event id (decimal digits, at most 2**62) is a 400 problem."""
         start = after
-        if start is None and last_event_id is not None and last_event_id.isdigit():
-            start = int(last_event_id)
+        if start is None and last_event_id is not None:
+            start = parse_event_id(last_event_id)
         return StreamingResponse(_event_stream(daemon, request, job, start), media_type="text/event-stream",
                                  headers={"Cache-Control": "no-store", "X-Accel-Buffering": "no"})
 
@@ -428,10 +441,69 @@ def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
     return app
 
 
+def parse_event_id(value: str) -> int:
+    """An SSE ``Last-Event-ID`` as an event sequence number; :class:`ApiProblem` 400 when it is not one."""
+    text = value.strip()
+    if not (text.isascii() and text.isdigit() and len(text) <= 19 and int(text) <= MAX_EVENT_ID):
+        raise ApiProblem(400, "Malformed Last-Event-ID", f"Last-Event-ID must be an event id (decimal digits up to "
+                         f"{MAX_EVENT_ID}); got {value[:40]!r}")
+    return int(text)
+
+
+class GuardBody:
+    """ASGI middleware in front of every handler: a mutating request without the bearer token is refused (401)
+    before its body is read, and a body over ``max_body_bytes`` (declared or streamed) is refused with 413."""
+
+    def __init__(self, app, token: str | None, max_body_bytes: int):
+        self.app, self.token, self.max_body_bytes = app, token, max_body_bytes
+
+    async def __call__(self, scope, receive, send) -> None:
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", ())}
+        if self.token is not None and scope["method"] not in ("GET", "HEAD", "OPTIONS") \
+                and not _bearer_ok(headers.get("authorization"), self.token):
+            return await problem(401, "Unauthorized", "a valid bearer token is required for this call", scope["path"],
+                                 headers={"WWW-Authenticate": 'Bearer realm="tandemscan"'})(scope, receive, send)
+        declared = headers.get("content-length", "")
+        if declared.isdigit() and int(declared) > self.max_body_bytes:
+            return await self._too_large(scope, receive, send)
+        seen, refused = 0, False
+
+        async def counted():
+            nonlocal seen, refused
+            message = await receive()
+            if message["type"] == "http.request":
+                seen += len(message.get("body", b""))
+                if seen > self.max_body_bytes and not refused:
+                    refused = True
+                    await self._too_large(scope, receive, send)
+                    return {"type": "http.disconnect"}  # the handler stops reading; its answer is dropped
+            return message
+
+        async def unless_refused(message) -> None:
+            if not refused:
+                await send(message)
+
+        await self.app(scope, counted, unless_refused)
+
+    async def _too_large(self, scope, receive, send) -> None:
+        await problem(413, "Content Too Large", f"request bodies are limited to {self.max_body_bytes} bytes",
+                      scope["path"], headers={"Connection": "close"})(scope, receive, send)
+
+
+def _bearer_ok(authorization: str | None, token: str) -> bool:
+    """Whether an ``Authorization`` header carries ``token`` as its bearer token (constant-time compare)."""
+    scheme, _, given = (authorization or "").partition(" ")
+    return scheme.lower() == "bearer" and hmac.compare_digest(given.strip().encode(), token.encode())
+
+
 async def _event_stream(daemon: Daemon, request: Request, job: str | None, after: int | None) -> AsyncIterator[str]:
     with daemon.bus.subscribe() as sub:
-        seen = daemon.store.last_event_seq() if after is None else after  # live events up to here are old
-        for ev in daemon.store.events(after_seq=after, job_id=job, limit=10000) if after is not None else ():
+        # live events up to here are old
+        seen = await asyncio.to_thread(daemon.store.last_event_seq) if after is None else after
+        missed = [] if after is None else await asyncio.to_thread(daemon.store.events, after, job, 10000)
+        for ev in missed:
             seen = max(seen, ev.seq)
             yield _sse(ev)
         yield ": connected\n\n"

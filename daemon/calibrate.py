@@ -14,7 +14,6 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
-import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,6 +23,7 @@ from tandemscan.config.models import CellConfig
 from tandemscan.daemon.cell import Cell
 from tandemscan.daemon.session import CellSession, MotionGate
 from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT
+from tandemscan.daemon.tracker_reading import read_at_rest
 from tandemscan.drivers.errors import TargetNotVisible
 from tandemscan.drivers.interfaces import Chassis, ChassisPose
 from tandemscan.pipeline import frames as F
@@ -37,6 +37,7 @@ from tandemscan.pipeline.calibration.mounts import (
 )
 from tandemscan.pipeline.calibration.plate import PlateError, PlateFit, fit_plate, nominal_centres_P, plate_frame
 from tandemscan.pipeline.calibration.poses import arm_joints_for_views, plate_view_distance, plate_view_poses
+from tandemscan.pipeline.durable import write_durably
 from tandemscan.pipeline.installation import Installation
 from tandemscan.pipeline.kinematics import ArmKinematics
 
@@ -71,17 +72,11 @@ class CalibrationRun:
             "sources": self.sources,
             "hand_eye": self.hand_eye.summary(),
             "T_T_S_covariance": {"order": "translation mm, rotation vector rad; T_T_S -> T_T_S [R(r), t]",
-                                 "matrix": _translation_first(self.hand_eye.covariance).tolist()},
+                                 "matrix": self.hand_eye.covariance.tolist()},
             "poses_used": self.poses_used,
             "skipped": self.skipped,
             **({"sim_truth_error": self.truth_error} if self.truth_error else {}),
         }
-
-
-def _translation_first(covariance: np.ndarray) -> np.ndarray:
-    """A hand-eye covariance (rotation, translation) in the pose graph's order (translation, rotation)."""
-    order = [3, 4, 5, 0, 1, 2]
-    return np.asarray(covariance, float)[np.ix_(order, order)]
 
 
 async def run_calibration(
@@ -184,9 +179,8 @@ async def run_calibration(
 
 async def _read_at_rest(cell: Cell, config: CellConfig) -> tuple[np.ndarray, np.ndarray]:
     """Mean ``T_C_T`` of ``calibration.tracker_samples`` readings at rest and its covariance (driver order)."""
-    n = config.calibration.tracker_samples
-    readings = [await cell.tracker.read_pose(config.tracker.timeout_s) for _ in range(n)]
-    return F.mean_pose([r.T_C_T for r in readings]), np.mean([r.covariance for r in readings], axis=0) / n
+    reading = await read_at_rest(cell.tracker, config.calibration.tracker_samples, config.tracker.timeout_s)
+    return reading.T_C_T, reading.covariance
 
 
 async def _turn_readings(session: CellSession, chassis: Chassis, robot: str, config: CellConfig,
@@ -220,14 +214,8 @@ async def _scan_plate(cell: Cell, config: CellConfig) -> PlateFit:
 
 
 def _write_json(path: Path, data: dict) -> None:
-    """Write atomically and durably."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    with open(tmp, "w", encoding="utf-8") as fh:
-        json.dump(data, fh, indent=1)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    """Write ``data`` as JSON atomically and durably."""
+    write_durably(path, lambda f: f.write(json.dumps(data, indent=1).encode("utf-8")))
 
 
 __all__ = ["CalibrationJobError", "CalibrationRun", "run_calibration"]

@@ -11,9 +11,10 @@ import os
 from collections.abc import Callable, Iterator
 
 import httpx
+from tandemscan.daemon.job_state import FINAL_STATES
 
 DEFAULT_URL = "http://127.0.0.1:8470"
-FINAL = ("succeeded", "failed", "cancelled")
+FINAL = FINAL_STATES
 
 
 class ClientError(Exception):

@@ -15,11 +15,12 @@ one for the simulator's ground truth.
 from __future__ import annotations
 
 import logging
+import os
 import time
 from typing import TYPE_CHECKING
 
 import numpy as np
-from tandemscan.pipeline.cloud_io import read_raw_scan
+from tandemscan.pipeline.raw_scan import read_raw_scan
 from tandemscan.pipeline.registration.correction import StitchedScan, correct_scans
 from tandemscan.pipeline.registration.mounts import MountPrior
 from tandemscan.pipeline.registration.pairs import LazyNetwork
@@ -60,6 +61,12 @@ def mount_prior(job: JobSnapshot) -> tuple[MountPrior | None, str]:
     return MountPrior(cov, dm.mount_min_information_ratio), label
 
 
+def _cpu_seconds() -> float:
+    """CPU time (user + system, s) of this process and its finished child processes."""
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
+
+
 def correct_job(job: JobSnapshot) -> tuple[dict, list[np.ndarray]]:
     """Replace every ``job.scans[i].T_W_S`` by its refined pose and re-stitch ``job.worldmap``.
 
@@ -67,7 +74,7 @@ def correct_job(job: JobSnapshot) -> tuple[dict, list[np.ndarray]]:
     simulated cell the ground-truth figures of the tracker-only stitch, ``before``) and the refined poses
     ``T_W_S`` (mm) in scan order.
     """
-    started = time.monotonic()
+    started, cpu = time.monotonic(), _cpu_seconds()
     cfg = job.config.correction
     before = None
     if job.scorer is not None:
@@ -86,7 +93,8 @@ def correct_job(job: JobSnapshot) -> tuple[dict, list[np.ndarray]]:
     for s, T, (points, normals) in zip(job.scans, result.poses, raw, strict=True):
         s.T_W_S = T
         job.worldmap.add_scan(T, points, normals)
-    section = {"enabled": True, **result.report, "seconds": round(time.monotonic() - started, 3)}
+    section = {"enabled": True, **result.report, "seconds": round(time.monotonic() - started, 3),
+               "cpu_seconds": round(_cpu_seconds() - cpu, 3)}
     section["mount"] = {"estimated": result.mount is not None, "prior": prior_source}
     if result.mount is not None:
         section["mount"] |= result.mount.observability(job.config.scanner.sweet_spot_mm)

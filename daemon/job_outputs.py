@@ -15,16 +15,17 @@ from __future__ import annotations
 
 import json
 import logging
+import time
 from typing import TYPE_CHECKING
 
 import numpy as np
 from tandemscan.daemon.report import build_report
 from tandemscan.pipeline import frames as F
-from tandemscan.pipeline.cloud_io import read_raw_scan
 from tandemscan.pipeline.export import PosedScan, write_e57, write_ply, write_pose_log
 from tandemscan.pipeline.inspect import InspectionError
 from tandemscan.pipeline.inspection_job import InspectionOutputs, align_and_inspect
 from tandemscan.pipeline.part import load_part_mesh
+from tandemscan.pipeline.raw_scan import read_raw_scan
 
 if TYPE_CHECKING:
     from tandemscan.daemon.snapshot import JobSnapshot
@@ -62,14 +63,18 @@ def _accuracy(report: dict) -> dict:
     return out | {label: truth[k] for k, label in keys.items() if k in truth}
 
 
-def export_job(job: JobSnapshot, seconds: float) -> dict:
+def export_job(job: JobSnapshot, seconds: float, measured_at: float) -> dict:
     """Write ``cloud.ply`` (W, mm), the report (returned and written as ``report.json``) and the inspection
-    exports of a finished job into its folder; runs where ``job.worldmap`` lives."""
+    exports of a finished job into its folder; runs where ``job.worldmap`` lives. ``measured_at`` is
+    ``time.monotonic()`` (system-wide) when the job's last step was committed: ``timings.after_last_scan_s``
+    is the time from there to report.html, ``timings.correction_cpu_s`` the correction's CPU time."""
     write_ply(job.job_dir / "cloud.ply", job.worldmap.points(), job.worldmap.normals())
     report = build_report(job, seconds)
     report["inspection"] = write_job_outputs(job, report)  # report.html, E57, pose log
     if job.scorer is not None and "ground_truth" in report and "alignment" in report["inspection"]:
         report["ground_truth"]["inspection"] = job.scorer.score_inspection(job, report["inspection"])
+    report["timings"] = {"after_last_scan_s": round(time.monotonic() - measured_at, 3),
+                         "correction_cpu_s": job.correction.get("cpu_seconds")}
     (job.job_dir / "report.json").write_text(json.dumps(report, indent=1), encoding="utf-8")
     return report
 

@@ -2,7 +2,15 @@
 
 States: ``queued -> running -> succeeded | failed | cancelled``; ``running <-> paused`` (operator, at
 the next step boundary); ``running -> paused_safety`` (a safety stop, at once) and back by ``resume`` once
-the safety latch can be reset. A paused job keeps the cell: queued jobs wait behind it.
+the safety latch can be reset; ``running -> paused_fault`` (a recoverable device or storage fault,
+:mod:`tandemscan.daemon.faults`: motion halted, the runner ended) and back by ``resume`` (the operator, or the
+retry policy ``[daemon] fault_retry_*`` for device faults once every device is up), which starts a new attempt
+from the committed steps. A paused job keeps the cell: queued jobs wait behind it. A queued job waits, with the
+reason in its ``error``, while a device is down. A failed or cancelled job first brings the cell back to a known
+state (``abandon``: no tracker left mid-transfer).
+
+A state change the journal cannot take (a full disk) is held in memory, served as the job's state and written
+as soon as the journal takes it again.
 
 On start the manager asks the store for jobs that were active when the daemon stopped: a ``running`` job
 is resumed by the runner from its first uncommitted step; a paused one stays paused.
@@ -14,6 +22,7 @@ The runner is ``async runner(ctx: JobContext) -> dict`` (figures of the finished
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import hashlib
 import json
 import logging
@@ -22,8 +31,11 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from tandemscan.daemon.events import EventBus
-from tandemscan.daemon.store import FINAL_STATES, Event, JobRecord, JobStore, StoreError
-from tandemscan.daemon.supervisor import Supervisor
+from tandemscan.daemon.faults import STORAGE_ERRORS, JobFault, classify_fault
+from tandemscan.daemon.job_state import FINAL_STATES, PAUSED_STATES
+from tandemscan.daemon.recovery import recover
+from tandemscan.daemon.store import Event, JobRecord, JobStore, StoreError
+from tandemscan.daemon.supervisor import Supervisor, backoff_delays
 from tandemscan.drivers.errors import SafetyStop
 from tandemscan.drivers.tasks import cancel_and_wait
 
@@ -82,6 +94,23 @@ class JobContext:
 
 
 Runner = Callable[[JobContext], Awaitable[dict]]
+#: brings the cell back to a known state after a job failed or was cancelled (the job's record, its store)
+Abandon = Callable[[JobRecord, JobStore], Awaitable[None]]
+
+
+@dataclass(frozen=True)
+class RetryPolicy:
+    """Automatic resumes of a job paused by a device fault: ``attempts`` since its last committed step, the first
+    after ``initial_s``, doubling to ``max_s`` (seconds)."""
+
+    attempts: int = 3
+    initial_s: float = 2.0
+    max_s: float = 60.0
+
+    def delay_s(self, attempt: int) -> float:
+        """The wait before automatic resume ``attempt`` (1-based), without jitter."""
+        delays = backoff_delays(self.initial_s, self.max_s, jitter=0.0)
+        return [next(delays) for _ in range(attempt)][-1]
 
 
 def request_hash(body: dict) -> str:
@@ -100,21 +129,28 @@ class JobManager:
     cell: Any = None
     config: Any = None
     session: Any = None
+    retry: RetryPolicy = RetryPolicy()
+    abandon: Abandon | None = None
     active_id: str | None = None
     _wake: asyncio.Event = field(default_factory=asyncio.Event)
     _resume: dict[str, asyncio.Event] = field(default_factory=dict)
     _cancelled: set[str] = field(default_factory=set)
     _run_task: asyncio.Task | None = None
     _scheduler: asyncio.Task | None = None
+    _retry_task: asyncio.Task | None = None
+    _retries: dict[str, tuple[int, int]] = field(default_factory=dict)  # job: (retries, steps done at the last)
+    _unsaved: dict[str, tuple[str, str | None]] = field(default_factory=dict)  # job: (state, error) not journaled
+    _flusher: asyncio.Task | None = None
 
     def __post_init__(self) -> None:
         self.supervisor.safety_listeners.append(self._on_safety_stop)
+        self.supervisor.connection_listeners.append(lambda whole: self._wake.set())
 
     # ------------------------------------------------------------ lifecycle
 
     async def start(self) -> None:
         """Recover after a restart and start the scheduler."""
-        active = await asyncio.to_thread(self.store.recover)
+        active = await asyncio.to_thread(recover, self.store)
         if active:
             self.active_id = active[0]
             for extra in active[1:]:  # only one job can have held the cell; others go back to the queue
@@ -125,7 +161,7 @@ class JobManager:
 
     async def close(self) -> None:
         """Stop scheduling; a job under way is interrupted and stays resumable (state kept)."""
-        await cancel_and_wait(self._scheduler, self._run_task)
+        await cancel_and_wait(self._scheduler, self._run_task, self._retry_task, self._flusher)
 
     # ------------------------------------------------------------ requests
 
@@ -140,10 +176,22 @@ class JobManager:
         return job, event is not None
 
     def get(self, job_id: str) -> JobRecord:
+        """The job as the manager knows it (a state change the journal could not take yet included)."""
         try:
-            return self.store.get_job(job_id)
+            return self.current(self.store.get_job(job_id))
         except StoreError as e:
             raise JobError(str(e), 404) from e
+
+    def current(self, job: JobRecord) -> JobRecord:
+        """``job`` (read from the store) with a state change held in memory applied."""
+        held = self._unsaved.get(job.id)
+        return job if held is None else dataclasses.replace(job, state=held[0], error=held[1])
+
+    @property
+    def storage_error(self) -> str | None:
+        """Why a state change is held in memory now (the journal refuses writes); None when all are written."""
+        return next((f"job {j} is {st} but the journal cannot record it" for j, (st, _) in self._unsaved.items()),
+                    None)
 
     async def cancel(self, job_id: str) -> JobRecord:
         job = self.get(job_id)
@@ -151,12 +199,14 @@ class JobManager:
             raise JobError(f"job {job_id} is already {job.state}")
         if job.state == "queued":
             return await self._set_state(job_id, "cancelled")
+        await cancel_and_wait(self._retry_task)
         self._cancelled.add(job_id)
         self._resume_event(job_id).set()
         if self._run_task is not None and self.active_id == job_id:
             # a long retry period: the run task's own clean-up (halt, state change) must not be interrupted
             await cancel_and_wait(self._run_task, retry_s=10.0)
-        else:  # an active job whose runner is not up (recovered paused job)
+        else:  # an active job whose runner is not up (recovered paused job, a job paused by a fault)
+            await self._abandon(job_id)
             await self._finish(job_id, "cancelled")
         return self.get(job_id)
 
@@ -168,9 +218,16 @@ class JobManager:
         return await self._set_state(job_id, "paused")
 
     async def resume(self, job_id: str) -> JobRecord:
+        """Resume a paused job; one paused by a fault starts a new attempt at the step that faulted."""
         job = self.get(job_id)
-        if job.state not in ("paused", "paused_safety"):
+        if job.state not in PAUSED_STATES:
             raise JobError(f"job {job_id} is {job.state}; only a paused job can be resumed")
+        down = self.supervisor.down_devices()
+        if job.state == "paused_fault" and down:
+            raise JobError(f"cannot resume: devices down: {', '.join(down)} (the job resumes once they are up)")
+        if self._retry_task is not None and self._retry_task is not asyncio.current_task():
+            await cancel_and_wait(self._retry_task)  # the operator resumes before the retry policy does
+        self._retry_task = None
         if job.state == "paused_safety" or self.supervisor.latched_reason is not None:
             try:
                 await self.supervisor.reset_safety()
@@ -193,18 +250,18 @@ class JobManager:
         while True:
             if job_id in self._cancelled:
                 raise JobCancelled(job_id)
-            if self.store.get_job(job_id).state == "running":
+            if self.get(job_id).state == "running":
                 return
             ev = self._resume_event(job_id)
             ev.clear()
             await ev.wait()
 
     async def _safety_pause(self, job_id: str, reason: str) -> None:
-        if self.store.get_job(job_id).state == "running":
+        if self.get(job_id).state == "running":
             await self._set_state(job_id, "paused_safety", error=reason)
 
     def _on_safety_stop(self, reason: str) -> None:
-        if self.active_id is not None and self.store.get_job(self.active_id).state == "running":
+        if self.active_id is not None and self.get(self.active_id).state == "running":
             asyncio.get_running_loop().create_task(self._safety_pause(self.active_id, reason))
 
     # ------------------------------------------------------------ scheduling
@@ -215,11 +272,13 @@ class JobManager:
             self._wake.clear()
             if self.active_id is None:
                 nxt = self.store.next_queued()
-                if nxt is None:
+                if nxt is None or await self._waits_for_cell(nxt):
                     continue
                 self.active_id = nxt.id
-            job = self.store.get_job(self.active_id)
-            if job.state in ("paused", "paused_safety") and self._run_task is None:
+            job = self.get(self.active_id)
+            if job.state == "paused_fault":
+                continue  # no runner until it is resumed
+            if job.state in PAUSED_STATES and self._run_task is None:
                 # recovered paused job: start its runner, which waits at its first checkpoint
                 self._resume_event(job.id).clear()
             elif job.state == "queued":
@@ -227,41 +286,121 @@ class JobManager:
             if self._run_task is None:
                 self._run_task = asyncio.create_task(self._run(job.id), name=f"job-{job.id}")
 
+    async def _waits_for_cell(self, job: JobRecord) -> bool:
+        """Whether the queued ``job`` must wait because a device is down; its ``error`` says which."""
+        down = self.supervisor.down_devices()
+        if not down:
+            return False
+        reason = f"waiting for the cell: devices down: {', '.join(down)}"
+        if job.error != reason:
+            await self._set_state(job.id, "queued", reason)
+        return True
+
     async def _run(self, job_id: str) -> None:
         try:
             job = await asyncio.to_thread(self.store.begin_attempt, job_id)
             committed = await asyncio.to_thread(self.store.committed_steps, job_id)
             ctx = JobContext(job, self.store, self.supervisor, self, self.cell, self.config, committed, self.session)
             figures = await self.runner(ctx)
+            ev = await asyncio.to_thread(self.store.set_progress, job_id, 100.0, None, figures)
         except (JobCancelled, asyncio.CancelledError):
             if job_id in self._cancelled:
+                task = asyncio.current_task()
+                while task.uncancel():  # the clean-up below moves the tracking robot: it must not be cut short
+                    pass
                 await self.supervisor.halt()
+                await self._abandon(job_id)
                 await self._finish(job_id, "cancelled")
             else:  # daemon shutting down: the job stays active and resumes on the next start
                 log.info("job %s interrupted by shutdown; it resumes on restart", job_id)
                 self._run_task = None
                 raise
         except Exception as e:
-            log.exception("job %s failed", job_id)
-            await self._finish(job_id, "failed", f"{type(e).__name__}: {e}")
+            fault = classify_fault(e)
+            if fault is None:
+                log.exception("job %s failed", job_id)
+                await self.supervisor.halt()
+                await self._abandon(job_id)
+                await self._finish(job_id, "failed", f"{type(e).__name__}: {e}")
+            else:
+                await self._fault_pause(job_id, fault)
         else:
-            ev = await asyncio.to_thread(self.store.set_progress, job_id, 100.0, None, figures)
             self.bus.publish(ev)
             await self._finish(job_id, "succeeded")
+
+    async def _fault_pause(self, job_id: str, fault: JobFault) -> None:
+        """A recoverable fault: motion halted, the job ``paused_fault`` with the reason, its runner ended; a device
+        fault is resumed by the retry policy while it has attempts left."""
+        await self.supervisor.halt()
+        retries, done_before = self._retries.get(job_id, (0, -1))
+        done = await asyncio.to_thread(self.store.steps_done, job_id)
+        retries = 0 if done != done_before else retries  # a committed step since the last fault: a fresh budget
+        auto = fault.kind == "device" and retries < self.retry.attempts
+        plan = (f"; automatic resume {retries + 1} of {self.retry.attempts} in {self.retry.delay_s(retries + 1):.1f} s "
+                "once every device is up") if auto else ("; resume to retry" if fault.kind == "device" else "")
+        log.warning("job %s paused at step %d: %s", job_id, done, fault.reason)
+        await self._set_state(job_id, "paused_fault", fault.reason + plan)
+        self._retries[job_id] = (retries + 1 if auto else retries, done)
+        self._run_task = None
+        if auto:
+            self._retry_task = asyncio.create_task(self._resume_later(job_id, self.retry.delay_s(retries + 1)),
+                                                   name=f"retry-{job_id}")
+
+    async def _resume_later(self, job_id: str, delay_s: float) -> None:
+        """The retry policy: after ``delay_s``, once every device is up and no safety stop is latched, resume."""
+        await asyncio.sleep(delay_s)
+        while self.supervisor.down_devices() or self.supervisor.latched_reason is not None:
+            await asyncio.sleep(self.supervisor.health_period_s)
+        if self.get(job_id).state == "paused_fault":
+            log.info("job %s: automatic resume after a device fault", job_id)
+            await self.resume(job_id)
+
+    async def _abandon(self, job_id: str) -> None:
+        """Bring the cell back to a known state after ``job_id`` failed or was cancelled; a failure is logged."""
+        if self.abandon is None:
+            return
+        try:
+            await self.abandon(self.get(job_id), self.store)
+        except Exception:
+            log.exception("job %s: the cell could not be brought back to a known state", job_id)
 
     async def _finish(self, job_id: str, state: str, error: str | None = None) -> None:
         await self._set_state(job_id, state, error)
         self._cancelled.discard(job_id)
         self._resume.pop(job_id, None)
+        self._retries.pop(job_id, None)
         if self.active_id == job_id:
             self.active_id = None
         self._run_task = None
         self._wake.set()
 
     async def _set_state(self, job_id: str, state: str, error: str | None = None) -> JobRecord:
-        job, event = await asyncio.to_thread(self.store.set_state, job_id, state, error)
+        """Journal a state change and publish it; one the journal cannot take is held and retried."""
+        try:
+            job, event = await asyncio.to_thread(self.store.set_state, job_id, state, error)
+        except STORAGE_ERRORS as e:
+            log.error("job %s: state %s held in memory, the journal refuses it: %s", job_id, state, e)
+            self._unsaved[job_id] = (state, error)
+            if self._flusher is None or self._flusher.done():
+                self._flusher = asyncio.create_task(self._flush_unsaved(), name="state-flusher")
+            return self.get(job_id)
+        self._unsaved.pop(job_id, None)
         self.bus.publish(event)
         return job
+
+    async def _flush_unsaved(self, period_s: float = 1.0) -> None:
+        """Write the held state changes as soon as the journal takes them."""
+        while self._unsaved:
+            await asyncio.sleep(period_s)
+            for job_id, (state, error) in list(self._unsaved.items()):
+                try:
+                    _, event = await asyncio.to_thread(self.store.set_state, job_id, state, error)
+                except STORAGE_ERRORS:
+                    continue
+                if self._unsaved.get(job_id) == (state, error):
+                    del self._unsaved[job_id]
+                self.bus.publish(event)
+                log.info("job %s: held state %s journaled", job_id, state)
 
     def publish(self, kind: str, data: dict, job_id: str | None = None) -> Event:
         """Journal and publish a non-job event (device, safety)."""

@@ -15,9 +15,12 @@ from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import TypeVar
 
+from tandemscan.config.models import CellConfig
 from tandemscan.daemon.jobs import JobContext
-from tandemscan.daemon.runner import JobProgress, JobRunner
+from tandemscan.daemon.runner import JobProgress, JobRunner, return_from_transfer
+from tandemscan.daemon.session import CellSession
 from tandemscan.daemon.stitcher import ProcessWorldMap
+from tandemscan.daemon.store import JobRecord, JobStore
 from tandemscan.pipeline.plan import Plan
 
 log = logging.getLogger(__name__)
@@ -46,6 +49,9 @@ class StoreJournal:
     def notes(self, idx: int) -> dict[str, dict]:
         return self.ctx.store.notes(self.ctx.job.id, idx)
 
+    async def record_resume(self, idx: int, entry: dict) -> None:
+        await asyncio.to_thread(self.ctx.store.add_resume, self.ctx.job.id, self.ctx.job.attempts, idx, entry)
+
     async def commit(self, idx: int, kind: str, result: dict, scan_file: Path | None = None,
                      scan_points: int = 0) -> None:
         await asyncio.to_thread(self._commit, idx, kind, result, scan_file, scan_points)
@@ -54,9 +60,7 @@ class StoreJournal:
     def _commit(self, idx: int, kind: str, result: dict, scan_file: Path | None, scan_points: int) -> None:
         store, job_id = self.ctx.store, self.ctx.job.id
         scan = None if scan_file is None else store.register_scan_file(job_id, idx, scan_file, scan_points)
-        poses = {k: result[k] for k in ("T_C_T", "covariance", "joints_rad", "odometry", "T_W_C", "before", "after")
-                 if k in result}
-        store.commit_step(job_id, idx, kind, result, poses=poses, scan=scan)
+        store.commit_step(job_id, idx, kind, result, scan=scan)
 
     def on_progress(self, p: JobProgress) -> None:
         """The runner's (synchronous) progress callback: journal and publish it in the background."""
@@ -85,7 +89,7 @@ async def run_journaled(ctx: JobContext) -> dict:
         await journal.drain()
         await asyncio.to_thread(worldmap.close)
     # every attempt's resumes, not only this one's (a restart after the last step resumes with nothing to redo)
-    resumes = await asyncio.to_thread(ctx.store.notes_of_kind, ctx.job.id, "resume")
+    resumes = await asyncio.to_thread(ctx.store.resumes, ctx.job.id)
     report = dict(result.report) | {"job": ctx.job.id, "resumes": resumes,
                                     "attempts": ctx.store.get_job(ctx.job.id).attempts}
     await asyncio.to_thread(lambda: ctx.store.write_artifact(ctx.job.id, "report.json",
@@ -94,3 +98,16 @@ async def run_journaled(ctx: JobContext) -> dict:
     truth = report.get("ground_truth") or {}
     figures |= {k: truth[k] for k in _TRUTH_KEYS if k in truth}
     return figures
+
+
+def journaled_abandon(session: CellSession, config: CellConfig):
+    """The manager's ``abandon`` for the daemon: a failed or cancelled job's half transfer undone
+    (:func:`~tandemscan.daemon.runner.return_from_transfer`) from its journal."""
+
+    async def abandon(job: JobRecord, store: JobStore) -> None:
+        plan = Plan.model_validate(job.plan["plan"])
+        committed = set(await asyncio.to_thread(store.committed_steps, job.id))
+        await return_from_transfer(session, plan, committed, lambda i: store.notes(job.id, i), config)
+
+    return abandon
+

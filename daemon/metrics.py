@@ -13,7 +13,7 @@ from collections.abc import Callable
 from prometheus_client import CollectorRegistry, Histogram
 from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.registry import Collector
-from tandemscan.daemon.store import JOB_STATES
+from tandemscan.daemon.job_state import JobState
 
 # Buckets (s) of the loop-timing histograms: fine around the 5 ms control-jitter target and the 20 ms period.
 TIMING_BUCKETS = (0.0005, 0.001, 0.002, 0.003, 0.004, 0.005, 0.0075, 0.01, 0.015, 0.02, 0.03, 0.05, 0.075, 0.1,
@@ -39,7 +39,7 @@ class DaemonCollector(Collector):
     def collect(self):
         s = self._snapshot()
         jobs = GaugeMetricFamily("tandemscan_jobs", "Jobs by state", labels=["state"])
-        for state in JOB_STATES:
+        for state in JobState:
             jobs.add_metric([state], s["jobs"].get(state, 0))
         yield jobs
         dev = GaugeMetricFamily("tandemscan_device_connected", "1 when the device is connected", labels=["device"])

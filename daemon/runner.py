@@ -36,6 +36,7 @@ from tandemscan.daemon.session import CellSession, MotionGate
 from tandemscan.daemon.snapshot import JobSnapshot
 from tandemscan.daemon.stitcher import LocalWorldMap, ProcessWorldMap, correct, export
 from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT
+from tandemscan.daemon.tracker_reading import read_at_rest
 from tandemscan.drivers.errors import TargetNotVisible
 from tandemscan.drivers.interfaces import ChassisPose, TrackerReading
 from tandemscan.pipeline import frames as F
@@ -110,6 +111,10 @@ class StepJournal(Protocol):
         """What :meth:`note` recorded for a step, by kind."""
         ...
 
+    async def record_resume(self, idx: int, entry: dict) -> None:
+        """Durably record how this run resumed at step ``idx`` (one entry per resume, however many there are)."""
+        ...
+
     async def commit(self, idx: int, kind: str, result: dict, scan_file: Path | None = None,
                      scan_points: int = 0) -> None:
         """Commit a step's result (and its fsynced scan file) atomically."""
@@ -129,6 +134,9 @@ class _NoJournal:
 
     def notes(self, idx: int) -> dict[str, dict]:
         return {}
+
+    async def record_resume(self, idx: int, entry: dict) -> None:
+        return None
 
     async def commit(self, idx: int, kind: str, result: dict, scan_file: Path | None = None,
                      scan_points: int = 0) -> None:
@@ -199,16 +207,8 @@ class JobRunner:
 
     async def read_target(self) -> TrackerReading:
         """The target pose at rest, averaged over ``tracker.samples_per_reading`` readings."""
-        n = self.config.tracker.samples_per_reading
-        readings = [await self.cell.tracker.read_pose(self.config.tracker.timeout_s) for _ in range(n)]
-        if n == 1:
-            return readings[0]
-        return TrackerReading(
-            F.mean_pose([r.T_C_T for r in readings]),
-            np.mean([r.covariance for r in readings], axis=0) / n,
-            readings[-1].timestamp_s,
-            readings[-1].frame_number,
-        )
+        return await read_at_rest(self.cell.tracker, self.config.tracker.samples_per_reading,
+                                  self.config.tracker.timeout_s)
 
     async def run(self) -> JobResult:
         """Execute every step, then stitch and export. Raises :class:`JobError` on failure."""
@@ -232,6 +232,7 @@ class JobRunner:
             self.progress(JobProgress(i, total, self._describe(step)))
             result, scan = await self.journal.run_step(i, lambda i=i, step=step: self._execute(i, step))
             await self.journal.commit(i, step.kind, result, *(scan or ()))
+        measured_at = time.monotonic()  # the last step committed: from here the operator waits for the report
         measured = [s for s in self.scans if s.point_count > 0]  # a scan that saw nothing has nothing to correct
         if self.config.correction.enabled and len(measured) > 1:
             self.progress(JobProgress(total - 1, total, "correcting the stitch (DeepMerge, pose graph)"))
@@ -239,7 +240,7 @@ class JobRunner:
             for s, T_W_S in zip(measured, poses, strict=True):
                 s.T_W_S = T_W_S
         self.progress(JobProgress(total - 1, total, "writing cloud and report"))
-        result = await self._export(time.monotonic() - started)
+        result = await self._export(time.monotonic() - started, measured_at)
         self.progress(JobProgress(total, total, "done"))
         return result
 
@@ -327,7 +328,7 @@ class JobRunner:
             entry["fresh_reading"] = f"target not visible: {e.reason}"
             self.resume_log.append(entry)
             log.warning("resume at step %d: %s", i, entry["fresh_reading"])
-            await self.journal.note(i, "resume", entry)
+            await self.journal.record_resume(i, entry)
             return
         entry["T_C_T"] = fresh.T_C_T.tolist()
         if self.last_still_T_C_T is not None and not isinstance(step, MoveTracker):
@@ -340,7 +341,7 @@ class JobRunner:
                 log.warning("resume at step %d: tracker moved while down (%.3f mm); frame re-established from "
                             "the still target at %s", i, d_mm, T_W_T[:3, 3].round(3).tolist())
         self.resume_log.append(entry)
-        await self.journal.note(i, "resume", entry)
+        await self.journal.record_resume(i, entry)
 
     @staticmethod
     def _describe(step) -> str:
@@ -477,17 +478,20 @@ class JobRunner:
     async def _transfer(self, step: MoveTracker, i: int = -1) -> dict:
         """Eq. 2: read the still target, move the tracker, read it again, re-place the tracker in W.
 
-        The reading before the move is journaled before the tracker moves, so a transfer interrupted by a
-        crash or a safety stop completes from it (the target stays still meanwhile). The transfer's entry carries
-        its error prior for the pose graph: the still target's origin in W and the covariance of both readings
-        (``uncertainty.transfer_covariance``)."""
+        The reading before the move (and the tracking chassis' odometry) is journaled before the tracker moves,
+        so a transfer interrupted by a crash, a safety stop or a device fault completes from it (the target stays
+        still meanwhile), and one of a job that fails or is cancelled is undone (:func:`return_from_transfer`).
+        The transfer's entry carries its error prior for the pose graph: the still target's origin in W and the
+        covariance of both readings (``uncertainty.transfer_covariance``)."""
         noted = self.journal.notes(i).get("before")
         if noted is not None:
             before_T_C_T, before_cov = np.array(noted["T_C_T"]), np.array(noted["covariance"])
         else:
             before = await self.read_target()
             before_T_C_T, before_cov = before.T_C_T, before.covariance
-            await self.journal.note(i, "before", {"T_C_T": before_T_C_T.tolist(), "covariance": before_cov.tolist()})
+            odo = await self.cell.tracking_chassis.odometry()  # where an abandoned transfer returns the tracker
+            await self.journal.note(i, "before", {"T_C_T": before_T_C_T.tolist(), "covariance": before_cov.tolist(),
+                                                  "odometry": [odo.x_mm, odo.y_mm, odo.heading_rad]})
         async with self.gate.motion(TRACKING_ROBOT):
             odo = await self.cell.tracking_chassis.move_to(
                 ChassisPose(step.x_mm, step.y_mm, step.heading_rad), self.config.tracking_chassis.timeout_s
@@ -544,9 +548,10 @@ class JobRunner:
                            list(self.transfers), dict(self.correction), scorer, T_F_W=self.T_F_W,
                            relocalisation=dict(self.relocalisation))
 
-    async def _export(self, seconds: float) -> JobResult:
-        """``cloud.ply``, ``report.json`` and the inspection exports, written where the map lives."""
-        report = await self.worldmap.run(export, self.snapshot(), seconds)
+    async def _export(self, seconds: float, measured_at: float) -> JobResult:
+        """``cloud.ply``, ``report.json`` and the inspection exports, written where the map lives
+        (``measured_at``: ``time.monotonic()`` when the last step was committed)."""
+        report = await self.worldmap.run(export, self.snapshot(), seconds, measured_at)
         return JobResult(self.job_dir, self.job_dir / "cloud.ply", self.job_dir / "report.json", report, self.scans)
 
 
@@ -565,3 +570,21 @@ def _scan_from_result(d: dict, job_dir: Path) -> ScanRecord:
     reading = TrackerReading(np.array(d["T_C_T"]), np.array(d["covariance"]), d["timestamp_s"], d["frame_number"])
     return ScanRecord(d["index"], d["station"], job_dir / "scans" / d["file"], reading, np.array(d["joints_rad"]),
                       np.array(d["T_W_C"]), np.array(d["T_W_S"]), d["points"])
+
+
+async def return_from_transfer(session: CellSession, plan: Plan, committed: set[int],
+                               notes: Callable[[int], dict[str, dict]], config: CellConfig) -> bool:
+    """Undo the half transfer of an abandoned (failed, cancelled) job: where its first uncommitted step is a
+    ``move_tracker`` whose reading before the move was noted, drive the tracking robot back to the odometry noted
+    with it, through the gate. Returns whether it drove; the next job then finds the tracker where it stood."""
+    i = next((k for k in range(len(plan.steps)) if k not in committed), None)
+    if i is None or not isinstance(plan.steps[i], MoveTracker):
+        return False
+    odo = notes(i).get("before", {}).get("odometry")
+    if odo is None:
+        return False
+    async with session.gate.motion(TRACKING_ROBOT):
+        await session.cell.tracking_chassis.move_to(ChassisPose(*odo), config.tracking_chassis.timeout_s)
+    log.warning("abandoned transfer of step %d undone: the tracking robot is back at %s", i, odo)
+    return True
+

@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import asyncio
 import ipaddress
-import json
 import logging
 import os
+import shutil
 import time
 from collections import deque
 from collections.abc import AsyncIterator, Mapping
@@ -25,13 +25,15 @@ from prometheus_client import CollectorRegistry
 from tandemscan.config import CellConfig, load_config
 from tandemscan.daemon.cell import Cell
 from tandemscan.daemon.events import EventBus
-from tandemscan.daemon.jobs import JobManager, Runner
-from tandemscan.daemon.journal import run_journaled
+from tandemscan.daemon.job_state import JobState
+from tandemscan.daemon.jobs import JobManager, RetryPolicy, Runner
+from tandemscan.daemon.journal import journaled_abandon, run_journaled
 from tandemscan.daemon.metrics import DaemonCollector, timing_histograms
 from tandemscan.daemon.notify import Notifier
 from tandemscan.daemon.plans import PlanCatalog
+from tandemscan.daemon.runner import JobError, installation_for_job
 from tandemscan.daemon.session import CellSession
-from tandemscan.daemon.store import JOB_STATES, JobStore
+from tandemscan.daemon.store import JobStore
 from tandemscan.drivers.shared_array import remove_stale_blocks
 from tandemscan.drivers.tasks import cancel_and_wait
 
@@ -104,8 +106,11 @@ class Daemon:
                                    on_event=self._device_event, on_tick_lateness=lateness_histogram.observe,
                                    connect_timeout_s=connect_timeout_s, require_connected=False)
         self.cell, self.supervisor = self.session.cell, self.session.supervisor
+        d = config.daemon
         self.manager = JobManager(self.store, self.bus, self.supervisor, runner or run_journaled, self.cell, config,
-                                  self.session)
+                                  self.session, RetryPolicy(d.fault_retry_attempts, d.fault_retry_initial_s,
+                                                            d.fault_retry_max_s),
+                                  journaled_abandon(self.session, config))
         self.plans = PlanCatalog([PlanCatalog.shipped_folder(), self.state_dir / "plans"], config.daemon.default_plan)
         self.notifier = notifier or Notifier()
         self.sse_heartbeat_s = 15.0
@@ -163,41 +168,51 @@ class Daemon:
 
     def metrics_snapshot(self) -> dict:
         counts = {}
-        for state in JOB_STATES:
+        for state in JobState:
             counts[state] = self.store.list_jobs([state], limit=1)[1]
         snap = self.supervisor.snapshot()
         return {"jobs": counts, "devices": snap["devices"], "safety": snap["safety"],
                 "loop_lag_p99_s": _p99(self.loop_lag_s),
                 "control_lateness_p99_s": _p99(self.supervisor.control_lateness_s)}
 
+    def free_bytes(self) -> int:
+        """Free space of the file system the state folder is on (bytes)."""
+        return shutil.disk_usage(self.state_dir).free
+
+    def bytes_needed(self, n_scans: int) -> int:
+        """Disk a job of ``n_scans`` scans needs before it may start: its scans and exports, and the reserve."""
+        d = self.config.daemon
+        return n_scans * d.scan_bytes_estimate + d.reserve_free_bytes
+
+    def health(self) -> dict:
+        """The cell in one line: devices down, the latch, storage; ``degraded`` unless all is well."""
+        snap = self.supervisor.snapshot()
+        free = self.free_bytes()
+        storage_error = self.manager.storage_error
+        low = free < self.config.daemon.reserve_free_bytes
+        down = self.supervisor.down_devices()
+        ok = not down and not snap["safety"]["latched"] and storage_error is None and not low
+        return {"status": "ok" if ok else "degraded", "devices_connected": not down, "devices_down": down,
+                "safety_latched": snap["safety"]["latched"], "active_job": self.manager.active_id,
+                "queued_jobs": self.store.list_jobs(["queued"], limit=1)[1], "free_bytes": free,
+                "storage_low": low, "storage_error": storage_error, "version": self.version}
+
     def calibration(self) -> dict:
-        """The installation transforms the stitch uses and their source (4x4 lists, mm)."""
+        """The installation transforms the stitch uses (4x4 lists, mm) and their source: what a job started now
+        would use (:func:`~tandemscan.daemon.runner.installation_for_job`); none, with the reason, when it could
+        not be resolved."""
         job = self.config.job
         names = ("T_V1_C", "T_V2_B", "T_E_S", "T_T_S")
-        surveyed = None if self.cell.simulation is None else self.cell.simulation.surveyed_installation()
-        if job.installation_source == "truth" and surveyed is not None:
-            transforms = {n: getattr(surveyed, n).tolist() for n in names}
-        elif job.installation_source == "calibration" and job.calibration_file is not None:
-            transforms = _read_calibration_file(Path(job.calibration_file))
+        try:
+            installation = installation_for_job(self.config, self.session)
+        except (JobError, OSError, ValueError, KeyError) as e:
+            log.warning("installation not resolved: %s", e)
+            transforms, error = {}, str(e)
         else:
-            transforms = {n: getattr(self.config.installation, n).matrix().tolist() for n in names}
+            transforms, error = {n: np.asarray(getattr(installation, n), float).tolist() for n in names}, None
         return {"source": job.installation_source,
-                "file": str(job.calibration_file) if job.calibration_file else None, "transforms": transforms}
-
-
-def _read_calibration_file(path: Path) -> dict[str, list[list[float]]]:
-    """4x4 entries of a JSON calibration file (other keys are skipped); empty when unreadable."""
-    try:
-        raw = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as e:
-        log.warning("calibration file %s unreadable: %s", path, e)
-        return {}
-    out = {}
-    for k, v in raw.items() if isinstance(raw, dict) else ():
-        arr = np.asarray(v, dtype=object)
-        if arr.shape == (4, 4):
-            out[k] = np.asarray(v, float).tolist()
-    return out
+                "file": str(job.calibration_file) if job.calibration_file else None, "transforms": transforms,
+                "error": error}
 
 
 def serve(config_path: Path | str | None = None, host: str | None = None, port: int | None = None,

@@ -22,10 +22,9 @@ from typing import Any
 
 import numpy as np
 from tandemscan.daemon.snapshot import JobSnapshot
-from tandemscan.daemon.store import write_raw_scan
 from tandemscan.drivers.shared_array import share
 from tandemscan.drivers.worker import init_worker, stop_pool
-from tandemscan.pipeline.cloud_io import read_raw_scan
+from tandemscan.pipeline.raw_scan import read_raw_scan, write_raw_scan
 from tandemscan.pipeline.worldmap import VoxelMap
 
 _MAP: VoxelMap | None = None  # the worker's map
@@ -60,11 +59,11 @@ def correct(job: JobSnapshot) -> tuple[dict, list[np.ndarray]]:
     return correct_job(job)
 
 
-def export(job: JobSnapshot, seconds: float) -> dict:
+def export(job: JobSnapshot, seconds: float, measured_at: float) -> dict:
     """:func:`tandemscan.daemon.job_outputs.export_job` (E57, Open3D I/O, matplotlib), imported where it runs."""
     from tandemscan.daemon.job_outputs import export_job
 
-    return export_job(job, seconds)
+    return export_job(job, seconds, measured_at)
 
 
 def _share_big(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:

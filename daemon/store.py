@@ -1,14 +1,15 @@
-"""The job store: one directory per job and a SQLite journal (WAL) of jobs, steps, poses, scans and events.
+"""The job store: one directory per job and a SQLite journal (WAL) of jobs, steps, notes, resumes, scans and events.
 
 Layout under the state directory::
 
-    journal.sqlite            jobs, steps, poses, scans, events (WAL mode, synchronous=FULL)
+    journal.sqlite            jobs, steps, notes, resumes, scans, events (WAL mode, synchronous=FULL)
     jobs/<job id>/scans/      one raw scan file per scan step (``step_0007.npz``: points_mm, normals)
     jobs/<job id>/            artifacts: cloud.ply, report.json, ...
 
 Durability rules: a scan file is written to a temporary name, fsynced, renamed and its directory fsynced
 *before* the transaction that records it commits; the same transaction marks its step done. A crash
-between the two leaves an orphan file that :meth:`JobStore.recover` removes, and the step is run again.
+between the two leaves an orphan file that :func:`tandemscan.daemon.recovery.recover` removes, and the step is
+run again.
 Every step commits at most once (primary key ``(job_id, idx)``), so a resumed job has every scan exactly once.
 
 Units: mm, rad, 4x4 float64 matrices stored as nested JSON lists; times are Unix seconds.
@@ -18,7 +19,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import sqlite3
 import threading
 import time
@@ -28,23 +28,19 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
+from tandemscan.daemon.job_state import ACTIVE_STATES, FINAL_STATES, TransitionError, check_transition
+from tandemscan.daemon.jsonable import jsonable
+from tandemscan.pipeline.durable import write_durably
 
 log = logging.getLogger(__name__)
 
-JOB_STATES = ("queued", "running", "paused", "paused_safety", "succeeded", "failed", "cancelled")
-FINAL_STATES = frozenset({"succeeded", "failed", "cancelled"})
-ACTIVE_STATES = frozenset({"running", "paused", "paused_safety"})
 
-# poses: raw poses of committed steps; notes: what a step under way recorded before it committed
-_STEP_VALUES = """
-CREATE TABLE IF NOT EXISTS {table} (
+# notes: what a step under way recorded before it committed; a step's result (its poses among it) is in steps
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS notes (
     job_id TEXT NOT NULL REFERENCES jobs(id), step_idx INTEGER NOT NULL, kind TEXT NOT NULL,
     value_json TEXT NOT NULL, t_s REAL NOT NULL, PRIMARY KEY (job_id, step_idx, kind)
 );
-"""
-
-_SCHEMA = _STEP_VALUES.format(table="poses") + _STEP_VALUES.format(table="notes") + """
 CREATE TABLE IF NOT EXISTS jobs (
     seq INTEGER PRIMARY KEY AUTOINCREMENT,
     id TEXT NOT NULL UNIQUE,
@@ -81,6 +77,10 @@ CREATE TABLE IF NOT EXISTS scans (
     bytes INTEGER NOT NULL,
     t_s REAL NOT NULL,
     PRIMARY KEY (job_id, step_idx)
+);
+CREATE TABLE IF NOT EXISTS resumes (
+    job_id TEXT NOT NULL REFERENCES jobs(id), attempt INTEGER NOT NULL, step_idx INTEGER NOT NULL,
+    value_json TEXT NOT NULL, t_s REAL NOT NULL, PRIMARY KEY (job_id, attempt)
 );
 CREATE TABLE IF NOT EXISTS events (
     seq INTEGER PRIMARY KEY AUTOINCREMENT,
@@ -153,49 +153,6 @@ class Event:
     kind: str
     data: dict
     t_s: float
-
-
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def write_durably(path: Path, write) -> int:
-    """Write a file through ``write(fileobj)`` to a temporary name, fsync, rename, fsync the folder.
-
-    Returns the size in bytes. Readers never see a half-written file at ``path``.
-    """
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".part")
-    with open(tmp, "wb") as f:
-        write(f)
-        f.flush()
-        os.fsync(f.fileno())
-        size = f.tell()
-    os.replace(tmp, path)
-    _fsync_dir(path.parent)
-    return size
-
-
-_FLOAT32_ARRAYS = ("points_S_mm", "normals_S")  # raw scans store these as float32 (mm, unit vectors)
-
-
-def write_raw_scan(path: Path, **arrays: np.ndarray) -> int:
-    """Write a job's raw scan ``.npz`` (``points_S_mm``, ``normals_S``, the tracker reading, joints,
-    timestamps; frame S, mm) durably before returning; returns its size in bytes.
-
-    Raises :class:`StoreError` when ``points_S_mm`` is missing or not ``(N, 3)``, or ``normals_S`` does not match it.
-    """
-    points = np.asarray(arrays.get("points_S_mm", np.empty((0, 0))))
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise StoreError(f"{path.name}: scan points must be (N, 3) mm, got {points.shape}")
-    if "normals_S" in arrays and np.shape(arrays["normals_S"]) != points.shape:
-        raise StoreError(f"{path.name}: normals {np.shape(arrays['normals_S'])} do not match points {points.shape}")
-    arrays = {k: v.astype(np.float32) if k in _FLOAT32_ARRAYS else v for k, v in arrays.items()}
-    return write_durably(path, lambda f: np.savez(f, **arrays))
 
 
 class JobStore:
@@ -322,16 +279,17 @@ class JobStore:
         return None if row is None else _job_from_row(row)
 
     def set_state(self, job_id: str, state: str, error: str | None = None) -> tuple[JobRecord, Event]:
-        """Change a job's state; returns the job and the journaled event. Final states are never left."""
-        if state not in JOB_STATES:
-            raise StoreError(f"unknown job state {state!r}")
+        """Change a job's state (:func:`~tandemscan.daemon.job_state.check_transition`); returns the job and the
+        journaled event."""
         now = time.time()
         with self._tx() as conn:
             row = conn.execute("SELECT state, started_s, error FROM jobs WHERE id = ?", (job_id,)).fetchone()
             if row is None:
                 raise StoreError(f"no job {job_id!r}")
-            if row["state"] in FINAL_STATES and state != row["state"]:
-                raise StoreError(f"job {job_id} is {row['state']}; cannot become {state}")
+            try:
+                state = str(check_transition(row["state"], state))
+            except TransitionError as e:
+                raise StoreError(f"job {job_id}: {e}") from e
             started = row["started_s"] if row["started_s"] is not None or state != "running" else now
             finished = now if state in FINAL_STATES else None
             if error is None and state not in ("queued", "running", "succeeded"):
@@ -379,7 +337,7 @@ class JobStore:
         """Durably record something about a step under way (kept whether or not the step commits)."""
         with self._tx() as conn:
             conn.execute("INSERT OR REPLACE INTO notes (job_id, step_idx, kind, value_json, t_s)"
-                         " VALUES (?, ?, ?, ?, ?)", (job_id, step_idx, kind, json.dumps(_jsonable(value)), time.time()))
+                         " VALUES (?, ?, ?, ?, ?)", (job_id, step_idx, kind, json.dumps(jsonable(value)), time.time()))
 
     def notes(self, job_id: str, step_idx: int) -> dict[str, dict]:
         """``{kind: value}`` noted for one step."""
@@ -387,15 +345,23 @@ class JobStore:
                                     (job_id, step_idx)).fetchall()
         return {r["kind"]: json.loads(r["value_json"]) for r in rows}
 
-    def notes_of_kind(self, job_id: str, kind: str) -> list[dict]:
-        """Every value noted under ``kind`` for the job, in step order (e.g. each resume of every attempt)."""
-        rows = self._conn().execute("SELECT value_json FROM notes WHERE job_id = ? AND kind = ? ORDER BY step_idx",
-                                    (job_id, kind)).fetchall()
+    def add_resume(self, job_id: str, attempt: int, step_idx: int, value: dict) -> None:
+        """Durably record how attempt ``attempt`` of the job resumed at ``step_idx`` (one row per attempt, so two
+        restarts on the same step are two resumes)."""
+        with self._tx() as conn:
+            conn.execute("INSERT OR REPLACE INTO resumes (job_id, attempt, step_idx, value_json, t_s)"
+                         " VALUES (?, ?, ?, ?, ?)",
+                         (job_id, attempt, step_idx, json.dumps(jsonable(value)), time.time()))
+
+    def resumes(self, job_id: str) -> list[dict]:
+        """Every resume of the job, in attempt order."""
+        rows = self._conn().execute("SELECT value_json FROM resumes WHERE job_id = ? ORDER BY attempt",
+                                    (job_id,)).fetchall()
         return [json.loads(r["value_json"]) for r in rows]
 
     def commit_step(self, job_id: str, step_idx: int, kind: str, result: dict | None = None,
-                    poses: dict[str, object] | None = None, scan: PendingScan | None = None) -> bool:
-        """Commit one step atomically with its raw poses (``{kind: JSON-able value}``) and scan file.
+                    scan: PendingScan | None = None) -> bool:
+        """Commit one step atomically: its result (JSON-able: the raw poses it measured) and its scan file.
 
         Returns False (and changes nothing) when the step was already committed.
         """
@@ -405,10 +371,7 @@ class JobStore:
             if exists:
                 return False
             conn.execute("INSERT INTO steps (job_id, idx, kind, result_json, committed_s) VALUES (?, ?, ?, ?, ?)",
-                         (job_id, step_idx, kind, json.dumps(result or {}), now))
-            for pose_kind, value in (poses or {}).items():
-                conn.execute("INSERT INTO poses (job_id, step_idx, kind, value_json, t_s) VALUES (?, ?, ?, ?, ?)",
-                             (job_id, step_idx, pose_kind, json.dumps(_jsonable(value)), now))
+                         (job_id, step_idx, kind, json.dumps(jsonable(result or {})), now))
             if scan is not None:
                 if scan.step_idx != step_idx:
                     raise StoreError(f"scan of step {scan.step_idx} committed with step {step_idx}")
@@ -427,22 +390,6 @@ class JobStore:
     def steps_done(self, job_id: str) -> int:
         """How many steps of the job are committed (one indexed count, no result is read)."""
         return self._conn().execute("SELECT COUNT(*) FROM steps WHERE job_id = ?", (job_id,)).fetchone()[0]
-
-    def first_uncommitted_step(self, job_id: str) -> int:
-        """Index of the first step whose result is not committed (``n_steps`` when all are)."""
-        job = self.get_job(job_id)
-        done = self.committed_steps(job_id)
-        return next((i for i in range(job.n_steps) if i not in done), job.n_steps)
-
-    def poses(self, job_id: str, kind: str | None = None) -> list[tuple[int, str, object]]:
-        """Committed raw poses as ``(step index, kind, value)`` in step order."""
-        sql = "SELECT step_idx, kind, value_json FROM poses WHERE job_id = ?"
-        args: list = [job_id]
-        if kind is not None:
-            sql += " AND kind = ?"
-            args.append(kind)
-        rows = self._conn().execute(sql + " ORDER BY step_idx, kind", args).fetchall()
-        return [(r["step_idx"], r["kind"], json.loads(r["value_json"])) for r in rows]
 
     def scans(self, job_id: str) -> list[ScanRecord]:
         """Committed scans in step order."""
@@ -483,38 +430,16 @@ class JobStore:
 
     # ------------------------------------------------------------ crash recovery
 
-    def recover(self) -> list[str]:
-        """After a restart: remove scan files no committed row points to (a crash between write and
-        commit) and half-written ``.part`` files; return the ids of jobs that were active (to resume)."""
-        committed = {(r["job_id"], r["file"]) for r in self._conn().execute("SELECT job_id, file FROM scans")}
-        removed = 0
-        for job_path in self.jobs_dir.iterdir() if self.jobs_dir.exists() else ():
-            scans_dir = job_path / "scans"
-            if not scans_dir.is_dir():
-                continue
-            for f in scans_dir.iterdir():
-                rel = f.relative_to(job_path).as_posix()
-                if f.name.endswith(".part") or (job_path.name, rel) not in committed:
-                    f.unlink()
-                    removed += 1
-        if removed:
-            log.warning("recovery removed %d uncommitted scan file(s)", removed)
+    def committed_scan_files(self) -> set[tuple[str, str]]:
+        """``(job id, file relative to its folder)`` of every committed scan."""
+        return {(r["job_id"], r["file"]) for r in self._conn().execute("SELECT job_id, file FROM scans")}
+
+    def active_jobs(self) -> list[str]:
+        """Ids of the jobs in an active state (running or paused), oldest first."""
         rows = self._conn().execute(
             f"SELECT id FROM jobs WHERE state IN ({','.join('?' * len(ACTIVE_STATES))}) ORDER BY seq",
             sorted(ACTIVE_STATES)).fetchall()
         return [r["id"] for r in rows]
-
-
-def _jsonable(value: object) -> object:
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, dict):
-        return {k: _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    return value
 
 
 def _job_from_row(row: sqlite3.Row) -> JobRecord:

@@ -6,6 +6,8 @@ Safety rules enforced here (not only in plans):
   :class:`SafetyStop`, an operator) is *latched*: every motion device gets ``stop()`` and every motion in
   flight is interrupted with :class:`SafetyStop` within one control period. Motion is refused while latched;
   :meth:`Supervisor.reset_safety` clears the latch only when the inputs allow motion again.
+- Health is the truth: a device counts as down when its link failed *or* its own status says ``fault``; a down
+  device is reconnected (closed and connected again) with exponential backoff until its status is clean.
 - Never both robots moving: every motion goes through :meth:`Supervisor.motion`, which refuses to start a
   robot while another one is moving (:class:`MotionInterlock`).
 
@@ -23,6 +25,7 @@ from collections.abc import AsyncIterator, Callable, Iterator, Mapping, Sequence
 from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
 
+from tandemscan.daemon.jsonable import jsonable
 from tandemscan.drivers.errors import DeviceError, SafetyStop
 from tandemscan.drivers.interfaces import Device, SafetyIO
 from tandemscan.drivers.tasks import cancel_and_wait
@@ -49,6 +52,11 @@ class DeviceHealth:
     reconnects: int = 0
     next_retry_s: float | None = None
 
+    @property
+    def up(self) -> bool:
+        """Connected and not reporting a fault: a device a job can use."""
+        return self.connected and self.state != "fault"
+
     def as_dict(self) -> dict:
         return {"name": self.name, "connected": self.connected, "state": self.state, "detail": self.detail,
                 "last_error": self.last_error, "reconnects": self.reconnects}
@@ -59,6 +67,11 @@ class _Motion:
     robot: str
     task: asyncio.Task
     tripped: bool = False
+
+
+def _status_error(detail: Mapping) -> str:
+    """The reason a device's own fault status gives (its ``error`` or ``fault`` detail)."""
+    return str(detail.get("error") or detail.get("fault") or "the device reports a fault")
 
 
 def backoff_delays(initial_s: float, max_s: float, jitter: float = 0.1,
@@ -100,6 +113,7 @@ class Supervisor:
         self.health = {name: DeviceHealth(name) for name in self.devices}
         self.latched_reason: str | None = None
         self.safety_listeners: list[Callable[[str], None]] = []
+        self.connection_listeners: list[Callable[[bool], None]] = []  # called with all_connected on each change
         self.control_lateness_s: deque[float] = deque(maxlen=5000)
         self.on_tick_lateness = on_tick_lateness or (lambda s: None)  # each control tick's lateness (s)
         self._motions: list[_Motion] = []
@@ -113,7 +127,7 @@ class Supervisor:
         """Connect every device (failures retry in the background) and start health and safety loops."""
         await asyncio.gather(*(self._connect_once(name) for name in self.devices))
         for name, h in self.health.items():
-            if not h.connected:
+            if not h.up:
                 self._schedule_reconnect(name)
         self._update_all_connected()
         self._tasks.append(asyncio.create_task(self._health_loop(), name="supervisor-health"))
@@ -149,9 +163,9 @@ class Supervisor:
         except (DeviceError, TimeoutError, OSError) as e:
             self._set_health(name, connected=False, state="disconnected", last_error=str(e) or type(e).__name__)
             return False
-        self._set_health(name, connected=status.connected, state=status.state, detail=dict(status.detail),
+        self._set_health(name, connected=status.connected, state=status.state, detail=jsonable(dict(status.detail)),
                          last_error=None if status.connected else h.last_error)
-        return status.connected
+        return h.up
 
     def _schedule_reconnect(self, name: str) -> None:
         if name not in self._reconnecting or self._reconnecting[name].done():
@@ -183,8 +197,9 @@ class Supervisor:
         except (DeviceError, TimeoutError, OSError) as e:
             self._set_health(name, connected=False, state="fault", last_error=str(e) or type(e).__name__)
         else:
-            self._set_health(name, connected=s.connected, state=s.state, detail=dict(s.detail))
-        if not self.health[name].connected:
+            self._set_health(name, connected=s.connected, state=s.state, detail=jsonable(dict(s.detail)),
+                             **({"last_error": _status_error(s.detail)} if s.state == "fault" else {}))
+        if not self.health[name].up:
             self._schedule_reconnect(name)
         self._update_all_connected()
         return self.health[name]
@@ -198,10 +213,19 @@ class Supervisor:
             self.on_event("device", h.as_dict())
 
     def _update_all_connected(self) -> None:
-        if all(h.connected for h in self.health.values()):
+        whole = all(h.up for h in self.health.values())
+        if whole == self._all_connected.is_set():
+            return
+        if whole:
             self._all_connected.set()
         else:
             self._all_connected.clear()
+        for listener in list(self.connection_listeners):
+            listener(whole)
+
+    def down_devices(self) -> list[str]:
+        """Names of the devices down now (not connected, or their status says fault)."""
+        return [h.name for h in self.health.values() if not h.up]
 
     # ------------------------------------------------------------ safety
 
@@ -228,10 +252,14 @@ class Supervisor:
         if first:
             self.latched_reason = reason
             log.error("safety stop latched: %s", reason)
+        tripped = False
         for m in self._motions:
             if not m.tripped:
                 m.tripped = True
                 m.task.cancel(f"safety stop: {reason}")
+                tripped = True
+        if not (first or tripped):
+            return  # latched, nothing moving: every motion device was stopped when it latched
         if first:  # both only schedule work: the halt below is not delayed
             self.on_event("safety", {"latched": True, "reason": reason})
             for listener in list(self.safety_listeners):

@@ -6,7 +6,9 @@ off), as configured per output.
 The safety functions themselves stay hard-wired; this driver reports their state. Inputs are polled every
 ``SafetyConfig.poll_period_s`` in a background task; listeners hear every change at once. A lost or
 misbehaving link counts as a safety stop: :meth:`ModbusSafetyIO.read` raises :class:`SafetyStop` until the
-link is back (``connect()`` again).
+link is back (``connect()`` again). So does a silent module: a poll left unanswered for more than
+``SafetyConfig.silent_after_periods`` (2) poll periods makes :meth:`ModbusSafetyIO.read` raise :class:`SafetyStop`
+at once, long before the request's own timeout.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ class ModbusSafetyIO:
         self._state: SafetyState | None = None
         self._light = False
         self._link_error: DeviceError | None = None
+        self._poll_sent_at: float | None = None  # loop time (s) of the poll request awaiting its reply
         self._listeners: list[Listener] = []
 
     def add_listener(self, listener: Listener) -> None:
@@ -75,6 +78,7 @@ class ModbusSafetyIO:
         if client is not None:
             client.close()
         self._state = None
+        self._poll_sent_at = None
 
     async def status(self) -> DeviceStatus:
         if self._client is None:
@@ -91,8 +95,23 @@ class ModbusSafetyIO:
             raise NotConnected(self.name, "not connected")
         if self._link_error is not None:
             raise SafetyStop(self.name, f"safety I/O link lost ({self._link_error.reason})")
+        if self._silent_s() is not None:
+            for _ in range(3):  # a reply already in the socket, not yet taken by a busy event loop, is no silence
+                await asyncio.sleep(0)
+            silent_s = self._silent_s()
+            if silent_s is not None:
+                raise SafetyStop(self.name, f"safety I/O silent: no reply to a poll for {1000.0 * silent_s:.0f} ms")
         assert self._state is not None
         return self._state
+
+    def _silent_s(self) -> float | None:
+        """How long the poll in flight has waited for its reply (s), once that is over ``silent_after_periods``
+        poll periods; None otherwise."""
+        sent = self._poll_sent_at
+        if sent is None:
+            return None
+        waited_s = asyncio.get_running_loop().time() - sent
+        return waited_s if waited_s > self._cfg.silent_after_periods * self._cfg.poll_period_s else None
 
     async def set_target_light(self, on: bool) -> None:
         mb = self._mb
@@ -148,7 +167,9 @@ class ModbusSafetyIO:
             raise NotConnected(self.name, "not connected")
         first = min(self._mb.estop_input, self._mb.light_curtain_input)
         count = max(self._mb.estop_input, self._mb.light_curtain_input) - first + 1
+        self._poll_sent_at = asyncio.get_running_loop().time()
         rr = await self._request("read inputs", client.read_discrete_inputs, first, count=count)
+        self._poll_sent_at = None
         bits = list(rr.bits)
         if len(bits) < count:
             raise DeviceFault(self.name, f"read inputs: {len(bits)} bits for {count} requested")

@@ -1,6 +1,7 @@
-"""Reading point-cloud files and the job's raw scan files (mm).
+"""Reading point-cloud files (mm).
 
-Writing PLY is :func:`tandemscan.pipeline.export.write_ply`.
+Writing PLY is :func:`tandemscan.pipeline.export.write_ply`; the job's raw scan files are
+:mod:`tandemscan.pipeline.raw_scan`.
 """
 
 from __future__ import annotations
@@ -36,11 +37,3 @@ def read_ply(path: Path | str) -> tuple[np.ndarray, np.ndarray | None]:
         raise CloudIOError(f"{path}: no points could be read (formats: .ply .pcd .xyz .xyzn .pts)")
     normals = np.asarray(pcd.normals, dtype=np.float64) if pcd.has_normals() else None
     return np.asarray(pcd.points, dtype=np.float64), normals
-
-
-def read_raw_scan(path: Path | str) -> tuple[np.ndarray, np.ndarray | None]:
-    """(points_S (N, 3) mm, normals_S or None) of a job's raw scan file (``.npz``, scanner frame S), float64."""
-    with np.load(path) as data:
-        points = data["points_S_mm"].astype(np.float64)
-        normals = data["normals_S"].astype(np.float64) if "normals_S" in data.files else None
-    return points, normals

@@ -126,11 +126,6 @@ def pose_error(T_estimate: ArrayLike, T_truth: ArrayLike) -> tuple[float, float]
 # ---------------------------------------------------------------- the cell's transform chain
 
 
-def scan_to_world(T_W_C: ArrayLike, T_C_T: ArrayLike, T_T_S: ArrayLike, points_S_mm: ArrayLike) -> np.ndarray:
-    """Eq. 1: scanner points into the world, ``P_W = T_W_C T_C_T T_T_S P_S``."""
-    return transform_points(compose(T_W_C, T_C_T, T_T_S), points_S_mm)
-
-
 def coordinate_transfer(T_W_C_old: ArrayLike, T_C_T_old: ArrayLike, T_C_T_new: ArrayLike) -> np.ndarray:
     """Eq. 2: the tracker's new world pose after it moved while the target stood still.
 

@@ -19,6 +19,7 @@ import open3d as o3d
 from tandemscan.config.models import InspectionConfig, RegionConfig
 from tandemscan.pipeline.deviation_areas import DeviationArea, find_deviation_areas
 from tandemscan.pipeline.frames import from_rotvec, rotation_angle, transform_points
+from tandemscan.pipeline.part import triangles_closed
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +63,7 @@ class CadSurface:
         self.mesh = mesh
         self.origin_mm = 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
         local = (vertices - self.origin_mm).astype(np.float32)
-        self.flipped = _is_closed(triangles) and _signed_volume(local, triangles) < 0.0
+        self.flipped = triangles_closed(triangles) and _signed_volume(local, triangles) < 0.0
         if self.flipped:  # a closed mesh wound inside out: its normals would point into the material
             log.warning("CAD mesh is wound inside out (negative volume); using its triangles reversed")
             triangles = triangles[:, ::-1].copy()
@@ -103,13 +104,6 @@ class CadSurface:
     def signed_distance(self, points_mm: np.ndarray) -> np.ndarray:
         """(N,) signed distance of every point to the surface, mm (+ outside along the outward normal)."""
         return self.closest(points_mm).signed_mm
-
-
-def _is_closed(triangles: np.ndarray) -> bool:
-    """Every edge shared by exactly two triangles (a closed surface, whose volume sign means something)."""
-    edges = np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    _, counts = np.unique(edges, axis=0, return_counts=True)
-    return bool(np.all(counts == 2))
 
 
 def _signed_volume(vertices: np.ndarray, triangles: np.ndarray) -> float:

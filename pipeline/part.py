@@ -55,10 +55,16 @@ def signed_volume_mm3(mesh: o3d.geometry.TriangleMesh) -> float:
 
 
 def is_closed(mesh: o3d.geometry.TriangleMesh) -> bool:
-    """True when every edge is shared by exactly two triangles that traverse it in opposite directions."""
-    t = np.asarray(mesh.triangles)
+    """True when the mesh is a closed, consistently oriented surface (:func:`triangles_closed`)."""
+    return triangles_closed(np.asarray(mesh.triangles))
+
+
+def triangles_closed(t: np.ndarray) -> bool:
+    """True when every edge of the (M, 3) vertex-index triangles is shared by exactly two triangles that traverse
+    it in opposite directions: a closed, consistently oriented surface, whose signed volume means something."""
+    t = np.asarray(t, dtype=np.int64)
     directed = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
-    n = len(mesh.vertices)
+    n = int(t.max()) + 1 if len(t) else 0
     forward = np.unique(directed[:, 0] * n + directed[:, 1], return_counts=True)
     backward = np.unique(directed[:, 1] * n + directed[:, 0])
     return bool(np.all(forward[1] == 1) and len(forward[0]) == len(backward) and np.array_equal(forward[0], backward))

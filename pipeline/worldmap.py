@@ -3,16 +3,18 @@
 Each occupied voxel (edge ``voxel_mm``) keeps the running sum of its points and normals and a count; the
 map's cloud is the per-voxel mean. Memory grows with the measured surface area, not with the scan count.
 Keys are the voxel indices packed in one int64 (21 bits per axis: +-1,048,575 voxels, over a kilometre at
-1 mm), kept sorted so that merging a scan is a vectorised search-and-insert.
+1 mm), kept sorted so that merging a scan is a vectorised search-and-insert; a scan is first reduced to its
+voxels by dense counting over its bounding box (no sort of its points).
 """
 
 from __future__ import annotations
 
 import numpy as np
-from tandemscan.pipeline import frames as F
 
 _BITS = 21
 _OFFSET = 1 << (_BITS - 1)
+#: a scan's bounding box of at most this many voxels is voxelised densely (int64 counts: 128 MB)
+_DENSE_BOX_VOXELS = 16_000_000
 
 
 class VoxelMap:
@@ -29,43 +31,72 @@ class VoxelMap:
     def __len__(self) -> int:
         return len(self._keys)
 
-    def _pack(self, points: np.ndarray) -> np.ndarray:
-        idx = np.floor(points / self.voxel_mm).astype(np.int64) + _OFFSET
-        if idx.min(initial=0) < 0 or idx.max(initial=0) >= (1 << _BITS):
-            raise ValueError("points outside the map's extent (about +-1 km at 1 mm voxels)")
-        return (idx[:, 0] << (2 * _BITS)) | (idx[:, 1] << _BITS) | idx[:, 2]
-
     def add(self, points_mm: np.ndarray, normals: np.ndarray | None = None) -> None:
-        """Merge one scan (world frame, mm) into the map."""
+        """Merge one scan (world frame, (N, 3) mm, unit normals (N, 3) or None) into the map."""
         points_mm = np.asarray(points_mm, np.float64)
         if len(points_mm) == 0:
             return
-        values = np.zeros((len(points_mm), 6))
-        values[:, :3] = points_mm
-        if normals is not None:
-            values[:, 3:] = normals
-        keys = self._pack(points_mm)
-        order = np.argsort(keys, kind="stable")
-        keys, values = keys[order], values[order]
-        uniq, start = np.unique(keys, return_index=True)
-        sums = np.add.reduceat(values, start, axis=0)
-        counts = np.diff(np.r_[start, len(keys)])
+        self._merge(points_mm.T.copy(), None if normals is None else np.asarray(normals, np.float64).T.copy())
 
+    def add_scan(self, T_W_S: np.ndarray, points_S_mm: np.ndarray, normals_S: np.ndarray | None = None) -> None:
+        """Eq. 1: merge a scan given in the scanner frame S, placed in the world by ``T_W_S`` (mm)."""
+        if len(points_S_mm) == 0:
+            return
+        T = np.asarray(T_W_S, np.float64)
+        rows = T[:3, :3] @ np.asarray(points_S_mm, np.float64).T + T[:3, 3:4]    # (3, N): x, y, z rows
+        self._merge(rows, None if normals_S is None else T[:3, :3] @ np.asarray(normals_S, np.float64).T)
+
+    def _merge(self, rows: np.ndarray, normal_rows: np.ndarray | None) -> None:
+        """Merge points given as (3, N) coordinate rows (W, mm) with (3, N) normal rows or None."""
+        uniq, sums, counts = self._voxelise(rows, normal_rows)
         pos = np.searchsorted(self._keys, uniq)
         found = pos < len(self._keys)
         found[found] = self._keys[pos[found]] == uniq[found]
-        np.add.at(self._sums, pos[found], sums[found])
-        np.add.at(self._counts, pos[found], counts[found])
+        hit = pos[found]                                   # distinct map voxels: plain fancy-index update
+        self._sums[hit] += sums[found]
+        self._counts[hit] += counts[found]
         new = ~found
         if new.any():
             self._keys = np.insert(self._keys, pos[new], uniq[new])
             self._sums = np.insert(self._sums, pos[new], sums[new], axis=0)
             self._counts = np.insert(self._counts, pos[new], counts[new])
 
-    def add_scan(self, T_W_S: np.ndarray, points_S_mm: np.ndarray, normals_S: np.ndarray | None = None) -> None:
-        """Eq. 1: merge a scan given in the scanner frame S, placed in the world by ``T_W_S`` (mm)."""
-        normals = None if normals_S is None else F.rotate_vectors(T_W_S, normals_S)
-        self.add(F.transform_points(T_W_S, points_S_mm), normals)
+    def _voxelise(self, rows: np.ndarray, normal_rows: np.ndarray | None
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The scan's occupied voxels: sorted packed keys, per-voxel sums (point xyz, normal xyz), counts.
+
+        The voxels are numbered densely within the scan's bounding box (x slowest, as in the packed key, so
+        that the order carries over) and summed with ``bincount``; a box too large for that (a scan far
+        from compact) falls back to sorting the keys."""
+        idx = [np.floor(r / self.voxel_mm).astype(np.int64) for r in rows]
+        lo = np.array([i.min() for i in idx])
+        hi = np.array([i.max() for i in idx])
+        if lo.min() + _OFFSET < 0 or hi.max() + _OFFSET >= (1 << _BITS):
+            raise ValueError("points outside the map's extent (about +-1 km at 1 mm voxels)")
+        shape = hi - lo + 1
+        volume = int(np.prod(shape))
+        if volume <= max(_DENSE_BOX_VOXELS, 4 * len(idx[0])):
+            local = ((idx[0] - lo[0]) * shape[1] + (idx[1] - lo[1])) * shape[2] + (idx[2] - lo[2])
+            counts = np.bincount(local, minlength=volume)
+            occupied = np.flatnonzero(counts)
+            lut = np.empty(volume, np.int64)
+            lut[occupied] = np.arange(len(occupied))
+            inverse = lut[local]
+            counts = counts[occupied]
+            cells = [occupied // (shape[1] * shape[2]) + lo[0], (occupied // shape[2]) % shape[1] + lo[1],
+                     occupied % shape[2] + lo[2]]
+        else:
+            keys, inverse, counts = np.unique(self._pack(idx), return_inverse=True, return_counts=True)
+            inverse, cells = inverse.ravel(), None
+        sums = np.zeros((len(counts), 6))
+        for k, column in enumerate(list(rows) + ([] if normal_rows is None else list(normal_rows))):
+            sums[:, k] = np.bincount(inverse, weights=column, minlength=len(counts))
+        return (keys if cells is None else self._pack(cells)), sums, counts
+
+    @staticmethod
+    def _pack(idx: list[np.ndarray]) -> np.ndarray:
+        """One int64 key per voxel from its x, y, z index arrays (see the module doc)."""
+        return ((idx[0] + _OFFSET) << (2 * _BITS)) | ((idx[1] + _OFFSET) << _BITS) | (idx[2] + _OFFSET)
 
     def points(self) -> np.ndarray:
         """Mean point of every occupied voxel, (M, 3) mm."""

@@ -45,8 +45,8 @@ async def test_calibration_job_recovers_the_true_scanner_mount(sim_config, tmp_p
 
     # the file carries T_T_S's covariance; the job loads it with the mounts and its pose graph takes it as the prior
     cov = np.array(data["T_T_S_covariance"]["matrix"])
-    np.testing.assert_allclose(cov[:3, :3], run.hand_eye.covariance[3:, 3:])       # translation first
-    np.testing.assert_allclose(cov[3:, 3:], run.hand_eye.covariance[:3, :3])
+    np.testing.assert_allclose(cov, run.hand_eye.covariance)  # translation first, as the hand-eye result gives it
+    assert np.sqrt(cov[0, 0]) == run.hand_eye.sigma_trans_mm[0]
     priors = {}
     labels = {"calibration": "calibration file", "nominal": "CAD tolerance", "truth": "truth (exact)"}
     for source, expected in labels.items():

@@ -7,6 +7,7 @@ and waits on a gate the test opens, so queueing, pause, cancel and safety stops 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 
 import httpx
 import numpy as np
@@ -356,3 +357,68 @@ else:
 
     def test_openapi_contract_holds_for_generated_requests():
         pytest.skip("schemathesis not installed (pip install -e '.[dev]')")
+
+
+async def raw_request(base_url: str, head: str, body: bytes = b"") -> tuple[int, bytes]:
+    """Send a request's head and ``body`` (which may be shorter than its Content-Length) over a plain socket and
+    read the answer: a server that read the whole declared body first would never answer."""
+    host, port = base_url.removeprefix("http://").split(":")
+    reader, writer = await asyncio.open_connection(host, int(port))
+    try:
+        writer.write(head.encode() + b"\r\n" + body)
+        with contextlib.suppress(ConnectionError):  # the server may answer and close before taking it all
+            await writer.drain()
+        status_line = await asyncio.wait_for(reader.readline(), 10)
+        rest = await asyncio.wait_for(reader.read(65536), 10)
+        return int(status_line.split()[1]), rest
+    finally:
+        writer.close()
+
+
+async def test_a_large_body_is_refused_unread_and_the_token_is_checked_before_it(api):
+    declared = 50 * 1024 * 1024
+    head = (f"POST /v1/jobs HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: {declared}\r\n")
+    status, rest = await raw_request(str(api.base_url), head, b'{"plan": ')
+    assert status == 401 and b"bearer token" in rest
+    status, rest = await raw_request(str(api.base_url), head + f"Authorization: Bearer {TOKEN}\r\n", b'{"plan": ')
+    assert status == 413 and b"limited to" in rest
+    chunk = b"10000\r\n" + b" " * 65536 + b"\r\n"  # a streamed (chunked) body just over 1 MiB, no declared length
+    status, rest = await raw_request(str(api.base_url), "POST /v1/jobs HTTP/1.1\r\nHost: x\r\nTransfer-Encoding: "
+                                     f"chunked\r\nAuthorization: Bearer {TOKEN}\r\n", chunk * 17)
+    assert status == 413 and b"limited to" in rest
+    assert (await api.get("/v1/jobs")).json()["total"] == 0
+
+
+async def test_a_malformed_last_event_id_is_a_400_problem(api):
+    for bad in ("²", "1" * 20, "12a", "-3", str(2**62 + 1)):
+        r = await api.get("/v1/events", headers={"Last-Event-ID": bad.encode("utf-8")})
+        assert_problem(r, 400)
+    job = (await api.post("/v1/jobs", json={"plan": "short"}, headers=AUTH)).json()
+    async with api.stream("GET", "/v1/events", headers={"Last-Event-ID": "0"}) as stream:
+        async for line in stream.aiter_lines():
+            if line.startswith("data:") and job["id"] in line:
+                break
+
+
+async def test_health_reports_free_space_and_the_low_space_guard_refuses_a_job(api, monkeypatch):
+    health = (await api.get("/v1/health")).json()
+    assert health["free_bytes"] > 0 and health["devices_down"] == [] and health["storage_error"] is None
+    monkeypatch.setattr(api.daemon, "free_bytes", lambda: 1000)
+    r = await api.post("/v1/jobs", json={}, headers=AUTH)
+    body = assert_problem(r, 507)
+    assert "MB free" in body["detail"] and "needs" in body["detail"]
+    health = (await api.get("/v1/health")).json()
+    assert health["status"] == "degraded" and health["storage_low"]
+
+
+async def test_calibration_is_what_a_job_would_use_or_why_not(api, tmp_path):
+    daemon = api.daemon
+    missing = tmp_path / "no-calibration.json"
+    job = daemon.config.job.model_copy(update={"installation_source": "calibration", "calibration_file": missing})
+    daemon.config = daemon.config.model_copy(update={"job": job})
+    calib = (await api.get("/v1/calibration")).json()
+    assert calib["source"] == "calibration" and calib["transforms"] == {} and str(missing) in calib["error"]
+    daemon.config = daemon.config.model_copy(update={"job": job.model_copy(update={"installation_source": "nominal"})})
+    calib = (await api.get("/v1/calibration")).json()
+    nominal = daemon.config.installation.T_T_S.matrix()
+    assert calib["error"] is None and np.allclose(calib["transforms"]["T_T_S"], nominal)

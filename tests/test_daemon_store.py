@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import os
 import signal
 import sqlite3
@@ -11,8 +12,9 @@ import textwrap
 
 import numpy as np
 import pytest
-from tandemscan.daemon.store import IdempotencyConflict, JobStore, StoreError, write_raw_scan
-from tandemscan.pipeline.cloud_io import read_raw_scan
+from tandemscan.daemon.recovery import recover
+from tandemscan.daemon.store import IdempotencyConflict, JobStore, StoreError
+from tandemscan.pipeline.raw_scan import RawScanError, read_raw_scan, write_raw_scan
 
 
 def _write_scan(store, job_id, step_idx, points, normals=None):
@@ -66,23 +68,22 @@ def test_final_state_is_never_left(store):
         store.get_job("nope")
 
 
-def test_step_commits_once_with_poses_and_scan(store):
+def test_step_commits_once_with_its_result_and_scan(store):
     job, _ = store.create_job("p", {}, 3)
     pts = np.random.default_rng(0).normal(size=(100, 3)).astype(np.float32)
     pending = _write_scan(store, job.id, 1, pts, -pts)
     T = np.eye(4)
     assert store.commit_step(job.id, 0, "move_arm", {"ok": True})
-    assert store.commit_step(job.id, 1, "scan", {"n": 100}, poses={"T_C_T": T, "joints_rad": np.zeros(6)},
-                             scan=pending)
+    assert store.commit_step(job.id, 1, "scan", {"T_C_T": T, "joints_rad": np.zeros(6)}, scan=pending)
     assert not store.commit_step(job.id, 1, "scan", {"n": 100})
-    assert store.first_uncommitted_step(job.id) == 2 and store.steps_done(job.id) == 2
+    assert sorted(store.committed_steps(job.id)) == [0, 1] and store.steps_done(job.id) == 2
     [scan] = store.scans(job.id)
     assert scan.step_idx == 1
     p, n = read_raw_scan(store.job_dir(job.id) / scan.file)
     np.testing.assert_array_equal(p, pts)
     np.testing.assert_array_equal(n, -pts)
-    kinds = {k: v for _, k, v in store.poses(job.id)}
-    assert kinds["T_C_T"] == T.tolist() and kinds["joints_rad"] == [0.0] * 6
+    result = store.committed_steps(job.id)[1]
+    assert result["T_C_T"] == T.tolist() and result["joints_rad"] == [0.0] * 6
 
 
 def test_events_are_journaled_in_order(store):
@@ -99,7 +100,8 @@ def test_events_are_journaled_in_order(store):
 _CRASHER = textwrap.dedent("""
     import os, signal, sys
     import numpy as np
-    from tandemscan.daemon.store import JobStore, write_raw_scan
+    from tandemscan.daemon.store import JobStore
+    from tandemscan.pipeline.raw_scan import write_raw_scan
     store = JobStore(sys.argv[1])
     job, _ = store.create_job("p", {}, 3)
     store.set_state(job.id, "running")
@@ -122,9 +124,9 @@ def test_kill_between_scan_write_and_commit_then_reopen(tmp_path):
     assert orphan.exists()
     store = JobStore(state)
     try:
-        assert store.recover() == [job_id]
+        assert recover(store) == [job_id]
         assert not orphan.exists()
-        assert store.first_uncommitted_step(job_id) == 1
+        assert sorted(store.committed_steps(job_id)) == [0]
         assert [s.step_idx for s in store.scans(job_id)] == [0]
         assert read_raw_scan(state / "jobs" / job_id / store.scans(job_id)[0].file)[0].shape == (10, 3)
         # the resumed run commits step 1 exactly once
@@ -140,14 +142,42 @@ def test_half_written_part_file_is_removed(store):
     part = store.job_dir(job.id) / "scans" / "scan-0000.npz.part"
     part.parent.mkdir(parents=True)
     part.write_bytes(b"half")
-    store.recover()
+    recover(store)
     assert not part.exists()
 
 
 def test_bad_scan_shape_is_a_clear_error(store):
     job, _ = store.create_job("p", {}, 1)
-    with pytest.raises(StoreError, match=r"\(N, 3\)"):
+    with pytest.raises(RawScanError, match=r"\(N, 3\)"):
         _write_scan(store, job.id, 0, np.ones((4, 2)))
-    with pytest.raises(StoreError, match="do not match"):
+    with pytest.raises(RawScanError, match="do not match"):
         _write_scan(store, job.id, 0, np.ones((4, 3)), np.ones((3, 3)))
     assert not (store.job_dir(job.id) / "scans" / "scan-0000.npz").exists()
+
+
+def test_two_restarts_on_the_same_step_are_two_resumes(tmp_path):
+    from tandemscan.daemon.jobs import JobContext
+    from tandemscan.daemon.journal import StoreJournal
+
+    store = JobStore(tmp_path)
+    job, _ = store.create_job("p", {"plan": {}}, 10)
+    for _ in range(3):  # the first run, then two restarts that both resume at step 4
+        attempt = store.begin_attempt(job.id)
+        if attempt.attempts > 1:
+            journal = StoreJournal(JobContext(attempt, store, None, None))
+            asyncio.run(journal.record_resume(4, {"step": 4, "kind": "scan", "attempt": attempt.attempts}))
+    assert [r["attempt"] for r in store.resumes(job.id)] == [2, 3]
+    store.close()
+
+
+def test_job_states_change_only_along_the_state_machine(store):
+    from tandemscan.daemon.job_state import JobState, TransitionError, check_transition
+
+    assert check_transition("paused_fault", "running") is JobState.RUNNING
+    assert check_transition("queued", "queued") is JobState.QUEUED  # a waiting reason written again
+    for current, new in (("queued", "paused"), ("succeeded", "running"), ("running", "nonsense")):
+        with pytest.raises(TransitionError):
+            check_transition(current, new)
+    job, _ = store.create_job("p", {}, 1)
+    with pytest.raises(StoreError, match="a queued job cannot become paused_safety"):
+        store.set_state(job.id, "paused_safety")

@@ -135,3 +135,21 @@ async def test_stack_light_outputs_are_holding_registers():
     finally:
         await drv.close()
         await emu.stop()
+
+
+async def test_a_silent_module_is_a_safety_stop_before_its_request_times_out(emulator, io):
+    """The poll in flight unanswered for two poll periods: read() stops, while the request still waits (0.3 s)."""
+    await io.read()
+    emulator.faults.silent = True
+    async with asyncio.timeout(5):
+        while True:
+            try:
+                await io.read()
+            except SafetyStop as e:
+                reason = e.reason
+                break
+            await asyncio.sleep(0.005)
+    assert reason.startswith("safety I/O silent")  # the stale poll, not the request timing out (link lost)
+    emulator.faults.silent = False
+    await io.connect()
+    assert (await io.read()).motion_allowed

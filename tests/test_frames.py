@@ -71,14 +71,6 @@ def test_agv_world_poses_close_the_chain(T_W_V2, T_V2_B, T_B_E, T_E_T):
     np.testing.assert_allclose(F.compose(T_W_V1, T_V1_C, T_C_T), T_W_T, atol=1e-5)
 
 
-def test_scan_to_world_matches_chain():
-    rng = np.random.default_rng(0)
-    T_W_C, T_C_T, T_T_S = (F.from_rotvec(rng.normal(0, 500, 3), rng.normal(0, 1, 3)) for _ in range(3))
-    P = rng.normal(0, 100, (50, 3))
-    expected = (T_W_C @ T_C_T @ T_T_S @ np.c_[P, np.ones(50)].T).T[:, :3]
-    np.testing.assert_allclose(F.scan_to_world(T_W_C, T_C_T, T_T_S, P), expected, atol=1e-9)
-
-
 def test_pose_error_reports_translation_and_angle():
     T = F.from_rotvec((10, 0, 0), (0, 0, 0.01))
     err_mm, err_rad = F.pose_error(T, np.eye(4))

@@ -18,13 +18,13 @@ from tandemscan.pipeline.plan import Plan, Scan
 class PerfectlyCorrectedRunner(JobRunner):
     """Stands in for the correction step: every scan gets its true pose before the export."""
 
-    async def _export(self, seconds):
+    async def _export(self, seconds, measured_at):
         self.worldmap = LocalWorldMap(self.config.job.voxel_mm)
         truth = self.observer.scorer().T_W_S_true
         for s in self.scans:
             s.T_W_S = truth[s.index]
             await self.worldmap.add_scan(s.file, s.T_W_S)
-        return await super()._export(seconds)
+        return await super()._export(seconds, measured_at)
 
 
 async def test_job_writes_report_and_exports_next_to_cloud(sim_config, tmp_path):
@@ -39,6 +39,9 @@ async def test_job_writes_report_and_exports_next_to_cloud(sim_config, tmp_path)
     for name in ("cloud.ply", "report.html", "report.json", "cloud_deviation.ply", "cloud.e57", "poses.csv"):
         assert (job / name).is_file(), name
     report = json.loads((job / "report.json").read_text())
+    # report.html is written after the last scan, before report.json
+    assert report["timings"]["after_last_scan_s"] > 0
+    assert report["timings"]["correction_cpu_s"] == report["correction"]["cpu_seconds"] > 0
     ins = report["inspection"]
     assert ins["as_measured"]["stats"]["count"] == report["points_cloud"] > 1000
     # the sim cell stitches with true mounts: registered to CAD by the job's own anchor (one target reading at

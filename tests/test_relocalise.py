@@ -192,6 +192,7 @@ class MemoryJournal:
         self.committed = dict(committed or {})
         self.results: dict[int, dict] = {}
         self._notes = {k: dict(v) for k, v in (notes or {}).items()}
+        self.resumes: list[dict] = []
 
     async def run_step(self, idx: int, fn):
         return await fn()
@@ -201,6 +202,9 @@ class MemoryJournal:
 
     def notes(self, idx: int) -> dict[str, dict]:
         return self._notes.get(idx, {})
+
+    async def record_resume(self, idx: int, entry: dict) -> None:
+        self.resumes.append(json.loads(json.dumps(entry)))
 
     async def commit(self, idx: int, kind: str, result: dict, scan_file=None, scan_points: int = 0) -> None:
         self.results[idx] = json.loads(json.dumps(result))

@@ -31,6 +31,26 @@ def test_voxel_map_memory_is_bounded_by_the_surface_not_the_scans():
     assert vm.counts().sum() == 6 * len(scan)
 
 
+def test_a_scan_spread_far_apart_merges_as_its_parts_do():
+    """A compact scan is voxelised by dense counting over its box; one whose box is huge (two patches 10 m
+    apart) is sorted instead: both must give the same map."""
+    rng = np.random.default_rng(1)
+    a = rng.uniform(0, 50, (5000, 3)) * [1, 1, 0.1]
+    b = a + [10_000.0, -3_000.0, 500.0]
+    n = rng.normal(size=(10_000, 3))
+    together, apart = VoxelMap(1.0), VoxelMap(1.0)
+    together.add(a[:100], n[:100])                                # an existing map to merge into
+    apart.add(a[:100], n[:100])
+    together.add(np.r_[a, b], n)
+    apart.add(b, n[5000:])
+    apart.add(a, n[:5000])
+    assert len(together) == len(apart) > 1000
+    order_t, order_a = np.lexsort(together.points().T), np.lexsort(apart.points().T)
+    np.testing.assert_allclose(together.points()[order_t], apart.points()[order_a])
+    np.testing.assert_allclose(together.normals()[order_t], apart.normals()[order_a], atol=1e-12)
+    np.testing.assert_array_equal(together.counts()[order_t], apart.counts()[order_a])
+
+
 def test_voxel_map_keeps_normals_unit_length():
     vm = VoxelMap(1.0)
     vm.add(np.zeros((2, 3)) + 0.5, np.array([[0, 0, 1.0], [0, 0.1, 0.99]]))

@@ -53,9 +53,9 @@ class HandEyeResult:
     - ``point_residuals_mm``: per pose, RMS distance of its plate points in frame C from their common
       position (the reprojection error in the world).
     - ``T_C_P``: the plate in the tracker camera frame implied by the solution.
-    - ``covariance``: 6x6 of ``X`` in its own frame, order (rotation vector rad, translation mm), from the
-      refinement's Jacobian scaled by the residual variance; ``sigma_rot_deg`` / ``sigma_trans_mm`` its
-      1-sigma per axis.
+    - ``covariance``: 6x6 of ``X`` in its own frame, order (translation mm, rotation vector rad) as every
+      covariance of the project (``X -> X [R(r), t]``), from the refinement's Jacobian scaled by the residual
+      variance; ``sigma_trans_mm`` / ``sigma_rot_deg`` its 1-sigma per axis.
     """
 
     T_T_S: np.ndarray
@@ -71,12 +71,12 @@ class HandEyeResult:
     @property
     def sigma_rot_deg(self) -> np.ndarray:
         """1-sigma rotation uncertainty per axis of frame T (deg)."""
-        return np.degrees(np.sqrt(np.clip(np.diag(self.covariance)[:3], 0.0, None)))
+        return np.degrees(np.sqrt(np.clip(np.diag(self.covariance)[3:], 0.0, None)))
 
     @property
     def sigma_trans_mm(self) -> np.ndarray:
         """1-sigma translation uncertainty per axis (mm)."""
-        return np.sqrt(np.clip(np.diag(self.covariance)[3:], 0.0, None))
+        return np.sqrt(np.clip(np.diag(self.covariance)[:3], 0.0, None))
 
     @property
     def point_rms_mm(self) -> float:
@@ -366,6 +366,12 @@ def _refine(T_C_T: np.ndarray, pts_S: np.ndarray, X0: np.ndarray, cov_C: np.ndar
     return bundle, x
 
 
+def _translation_first(covariance: np.ndarray) -> np.ndarray:
+    """The refinement's covariance (rotation vector, translation) in the project's order (translation, rotation)."""
+    order = [3, 4, 5, 0, 1, 2]
+    return np.asarray(covariance, float)[np.ix_(order, order)]
+
+
 def _plate_side_covariance(
     pts_S: np.ndarray, plate_covariances: np.ndarray | None, point_covariances: np.ndarray | None,
     sigma_mm: float,
@@ -483,7 +489,7 @@ def solve_hand_eye(
         bundle = _Bundle(T_C_T, pts_S, _SOLVERS[method](A, B), cov_C, cov_S)
         x = bundle.start()
     X, m = bundle.unpack(x)
-    cov = bundle.covariance(x)
+    cov = _translation_first(bundle.covariance(x))
     p = _points_C(T_C_T, X, pts_S)
     point_res = np.sqrt(np.mean(np.sum((p - m[None]) ** 2, axis=2), axis=1))
     T_C_P = _rigid_fit(pts_P, m)

@@ -4,7 +4,8 @@
 Input: every scan's points in its scanner frame S, its tracker-stitched pose ``T_W_S`` with covariance and
 its tracker station. For each overlapping pair (``overlap.overlapping_pairs``) the overlap is registered by
 the configured method (``pairs.correct_pair``), each correction becomes a pose-graph edge, and
-``pose_graph.refine_poses`` spreads the corrections over all scans.
+``pose_graph.refine_poses`` spreads the corrections over all scans; with ``[correction] joint`` the poses are then
+refined jointly on the overlap points (``joint.refine_jointly``).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from tandemscan.pipeline.registration.icp import (
     point_to_plane_information,
     target_with_normals,
 )
+from tandemscan.pipeline.registration.joint import JointResult, JointScan, JointSettings, refine_jointly
 from tandemscan.pipeline.registration.mounts import MountEstimate, MountPrior
 from tandemscan.pipeline.registration.overlap import overlapping_pairs, relative_covariance
 from tandemscan.pipeline.registration.pairs import (
@@ -134,9 +136,13 @@ def correct_scans(
     graph_edges = [_edge(i, j, pc, cfg) for i, j, pc in edges if pc.fit.inliers >= 6]
     priors = [ScanPrior(s.T_W_S, s.covariance, s.station) for s in scans]
     res = refine_poses(priors, graph_edges, transfers, mount_prior)
+    poses, mount, joint = res.poses, res.mount, None
+    if cfg.joint:
+        joint = _refine_jointly(scans, priors, res.poses, cfg, transfers, mount_prior)
+        poses, mount = joint.poses, joint.mount
     before = [s.T_W_S for s in scans]
-    rms_b, rms_a = _overlap_rms(local, edges, before, res.poses, cfg)
-    moves = [pose_error(a, b) for a, b in zip(res.poses, before, strict=True)]
+    rms_b, rms_a = _overlap_rms(local, edges, before, poses, cfg)
+    moves = [pose_error(a, b) for a, b in zip(poses, before, strict=True)]
     report = {
         "method": cfg.method,
         "scans": len(scans),
@@ -150,6 +156,38 @@ def correct_scans(
         "graph_cost_before": res.cost_before,
         "graph_cost_after": res.cost_after,
     }
+    if joint is not None:
+        report["joint"] = _joint_report(joint, [s.station for s in scans])
     log.info("correction: %d scans, %d pairs (%d dropped), overlap RMS %.4f -> %.4f mm", len(scans), len(edges),
              len(dropped), rms_b, rms_a)
-    return CorrectionResult(res.poses, edges, report, res.mount)
+    return CorrectionResult(poses, edges, report, mount)
+
+
+def _refine_jointly(scans: Sequence[StitchedScan], priors: list[ScanPrior], start: list[np.ndarray],
+                    cfg: CorrectionConfig, transfers: Sequence[TransferPrior], mount_prior: MountPrior | None
+                    ) -> JointResult:
+    """The joint refinement (``joint.refine_jointly``) from the pose graph's poses, on scans thinned to
+    ``cfg.joint_voxel_mm``, over every pair sharing a grid cell (``cfg.joint_max_partners_per_scan``)."""
+    thinned = [JointScan.from_points(voxel_downsample(np.asarray(s.points_S, float), cfg.joint_voxel_mm))
+               for s in scans]
+    world = [transform_points(s.T_W_S, j.points_S) for s, j in zip(scans, thinned, strict=True)]
+    pairs = overlapping_pairs(world, [s.station for s in scans], cfg.pair_cell_mm, cfg.joint_max_partners_per_scan)
+    settings = JointSettings(max_distance_mm=cfg.joint_max_distance_mm, iterations=cfg.joint_iterations,
+                             sigma_mm=cfg.joint_sigma_mm)
+    return refine_jointly(thinned, priors, pairs, start, transfers, mount_prior, settings)
+
+
+def _joint_report(joint: JointResult, stations: list[int]) -> dict:
+    """Figures of the joint refinement; per tracker station the mean 1-sigma (mm) of the scan origins along the
+    world axes, a priori (tracker and transfers) and a posteriori (the realised counterpart of the bound)."""
+    st = np.asarray(stations)
+
+    def per_station(cov: np.ndarray) -> dict:
+        sig = np.sqrt(np.clip(np.diagonal(cov[:, :3, :3], axis1=1, axis2=2), 0.0, None))
+        return {int(k): np.round(sig[st == k].mean(axis=0), 4).tolist() for k in np.unique(st)}
+
+    return {"iterations": joint.iterations, "pairs": joint.pairs, "correspondences": joint.correspondences,
+            "sigma_mm": round(joint.sigma_mm, 5), "rms_mm_before": round(joint.rms_mm_before, 5),
+            "rms_mm_after": round(joint.rms_mm_after, 5),
+            "sigma_xyz_mm_per_station": {"prior": per_station(joint.prior_covariances),
+                                         "posterior": per_station(joint.covariances)}}

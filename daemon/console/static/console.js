@@ -4,7 +4,7 @@
 
 const TOKEN_KEY = "tandemscan.token";
 const FINAL = ["succeeded", "failed", "cancelled"];
-const ACTIVE = ["running", "paused", "paused_safety"];
+const ACTIVE = ["running", "paused", "paused_safety", "paused_fault"];
 const $ = (id) => document.getElementById(id);
 
 const state = {
@@ -202,7 +202,7 @@ function jobRow(job, withFinished) {
 
 async function refreshJobs() {
   const [open, done] = await Promise.all([
-    api("GET", "/v1/jobs?state=queued&state=running&state=paused&state=paused_safety&limit=50"),
+    api("GET", "/v1/jobs?state=queued&state=running&state=paused&state=paused_safety&state=paused_fault&limit=50"),
     api("GET", "/v1/jobs?state=succeeded&state=failed&state=cancelled&limit=20"),
   ]);
   $("queue").tBodies[0].replaceChildren(...open.items.map((j) => jobRow(j, false)));
@@ -279,7 +279,7 @@ function renderJob(job) {
   $("job-error").textContent = job.error || "";
   renderFigures($("job-figures"), job.figures);
   $("pause-button").disabled = job.state !== "running";
-  $("resume-button").disabled = !["paused", "paused_safety"].includes(job.state);
+  $("resume-button").disabled = !["paused", "paused_safety", "paused_fault"].includes(job.state);
   $("cancel-button").disabled = FINAL.includes(job.state);
   $("open-result-button").hidden = !FINAL.includes(job.state);
   drawWatchedPlan();

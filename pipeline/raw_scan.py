@@ -1,0 +1,44 @@
+"""The job's raw scan file (``scans/scan-0007.npz``): one scanner capture with what placed it, read and written here.
+
+Arrays (frame S is the scanner's, mm, rad, s): ``points_S_mm`` (N, 3) and ``normals_S`` (N, 3, optional; both
+stored as float32), ``T_C_T`` and ``tracker_covariance`` (the tracker reading: 4x4 mm and 6x6 in the order
+translation then rotation), ``joints_rad`` (6), ``scan_timestamp_s``, ``tracker_timestamp_s``, ``T_W_C`` (the
+tracker camera in the world, 4x4 mm). Written durably (:func:`tandemscan.pipeline.durable.write_durably`) before
+the journal commits the scan (``docs/daemon.md``, how a job survives a crash).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from tandemscan.pipeline.durable import write_durably
+
+_FLOAT32_ARRAYS = ("points_S_mm", "normals_S")  # stored as float32 (mm, unit vectors)
+
+
+class RawScanError(ValueError):
+    """Arrays that do not make a raw scan (points not (N, 3), normals not matching them); names the file."""
+
+
+def write_raw_scan(path: Path, **arrays: np.ndarray) -> int:
+    """Write a raw scan ``.npz`` of ``arrays`` (the module's names) durably; returns its size in bytes.
+
+    Raises :class:`RawScanError` when ``points_S_mm`` is missing or not ``(N, 3)``, or ``normals_S`` does not
+    match it."""
+    points = np.asarray(arrays.get("points_S_mm", np.empty((0, 0))))
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise RawScanError(f"{Path(path).name}: scan points must be (N, 3) mm, got {points.shape}")
+    if "normals_S" in arrays and np.shape(arrays["normals_S"]) != points.shape:
+        raise RawScanError(f"{Path(path).name}: normals {np.shape(arrays['normals_S'])} do not match points "
+                           f"{points.shape}")
+    arrays = {k: v.astype(np.float32) if k in _FLOAT32_ARRAYS else v for k, v in arrays.items()}
+    return write_durably(Path(path), lambda f: np.savez(f, **arrays))
+
+
+def read_raw_scan(path: Path | str) -> tuple[np.ndarray, np.ndarray | None]:
+    """(points_S (N, 3) mm, normals_S or None) of a raw scan file, float64."""
+    with np.load(path) as data:
+        points = data["points_S_mm"].astype(np.float64)
+        normals = data["normals_S"].astype(np.float64) if "normals_S" in data.files else None
+    return points, normals

@@ -1,0 +1,354 @@
+"""Joint multi-view refinement: every scan pose, the transfer errors and the shared mount fitted together on the
+overlap points themselves (docs/registration.md, "Joint refinement").
+
+The pose graph (``pose_graph``) summarises each registered pair by one relative pose and a fixed information
+matrix; it inherits each pair's own bias. Here every overlap point is a point-to-plane measurement between its
+two scans, re-associated at the current poses in each outer iteration, so that the adjustment uses the same
+data the Cramer-Rao bound of the job (``benchmarks/pose_bound.py``) assumes.
+
+Model (first order in the small corrections, world axes, mm and rad; every 6-vector is (t, rotation vector)):
+the unknowns ``theta`` are a world motion ``x_i`` of each scan about its origin ``o_i`` (prior: the tracker
+covariance ``ScanPrior.covariance``), a world motion ``y_k`` of each coordinate transfer about the still target
+``c_k`` (prior ``TransferPrior.covariance``; station ``s`` carries every transfer ``k <= s``) and, with a
+``MountPrior``, the shared right-perturbation ``D = Exp(L u)`` of ``T_T_S`` (``u`` whitened by the prior's
+Cholesky factor ``L``). Scan ``i`` is corrected by the world motion about ``o_i``
+
+    e_i = x_i + sum_{k <= s_i} Ad(c_k -> o_i) y_k + blockdiag(R_i, R_i) L u,   T_W_S_i = Tr(o_i) Exp(e_i) Tr(-o_i) P_i
+
+(``P_i`` the tracker pose, ``R_i`` its rotation), i.e. ``e = A theta``, the error model of the bound. A point
+``p`` of scan ``j`` whose nearest neighbour in scan ``i`` (within ``max_distance_mm``) is ``q`` with normal ``n``
+gives the residual ``n . (T_W_S_j p - T_W_S_i q)``. Each outer iteration re-finds the correspondences, weights
+them (Huber at ``huber_k`` times the residuals' robust scale, which is also their sigma), linearises and
+solves the sparse normal equations ``(A^T H_e A + prior) theta = A^T b`` for ``theta`` itself (scipy.sparse);
+the posterior covariance of each scan's correction is ``A_i H^-1 A_i^T``.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+from scipy import sparse
+from scipy.sparse.linalg import splu
+from scipy.spatial import cKDTree
+from tandemscan.pipeline.frames import from_rotvec, invert, to_rotvec, transform_points
+from tandemscan.pipeline.registration.icp import RefineError
+from tandemscan.pipeline.registration.mounts import MountEstimate, MountPrior
+from tandemscan.pipeline.registration.pose_graph import ScanPrior, TransferPrior
+from tandemscan.pipeline.uncertainty import recentre
+
+log = logging.getLogger(__name__)
+
+#: a correspondence counts only where the two scans' normals agree within 30 deg: a point of one scan near
+#: the edge of the other's view of a crease or a silhouette would otherwise pull along the wrong normal
+_MIN_NORMAL_COSINE = float(np.cos(np.radians(30.0)))
+
+#: a robust scale (mm) never below this (0.1 um, far below any scanner noise): noiseless data would otherwise
+#: weight every point without bound and make the normal equations singular in floating point
+_MIN_SIGMA_MM = 1e-4
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross product of two (m, 3) arrays (np.cross is several times slower on short rows)."""
+    return np.c_[a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                 a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]]
+
+
+@dataclass(frozen=True)
+class JointScan:
+    """One scan for the joint solve: its (thinned) points and unit normals in the scanner frame S (mm)."""
+
+    points_S: np.ndarray
+    normals_S: np.ndarray
+
+    @classmethod
+    def from_points(cls, points_S: np.ndarray, normal_neighbours: int = 20) -> JointScan:
+        """The scan with unit normals estimated from its ``normal_neighbours`` nearest points (Open3D)."""
+        P = np.asarray(points_S, float)
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P))
+        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(normal_neighbours))
+        return cls(P, np.asarray(cloud.normals))
+
+
+@dataclass(frozen=True)
+class JointSettings:
+    """``max_distance_mm``: a correspondence is kept within this distance; ``candidate_margin_mm``: points
+    within ``max_distance_mm`` plus this of the other scan at the starting poses are the pair's candidates
+    (re-associated every iteration); ``huber_k``: Huber threshold in robust sigmas; ``iterations``: at most
+    this many outer iterations, fewer once no scan moves more than ``tolerance_mm`` (translation plus rotation
+    at ``lever_mm``); ``min_correspondences``: a pair with fewer contributes nothing in that iteration;
+    ``sigma_mm``: 1-sigma of one point-to-plane residual (None: the residuals' robust scale, re-estimated in
+    every iteration)."""
+
+    max_distance_mm: float = 1.0
+    candidate_margin_mm: float = 1.0
+    huber_k: float = 2.5
+    iterations: int = 8
+    tolerance_mm: float = 1e-3
+    lever_mm: float = 100.0
+    min_correspondences: int = 20
+    sigma_mm: float | None = None
+
+
+@dataclass(frozen=True)
+class JointResult:
+    """Refined ``T_W_S`` per scan; each scan's posterior covariance (6x6, t mm^2 at its origin then r rad^2,
+    world axes) and prior (tracker and transfers) covariance; the mount estimate (None without a mount
+    prior); figures: outer iterations, pairs and correspondences of the last one, the residuals' robust sigma
+    (mm) and point-to-plane RMS (mm) before and after."""
+
+    poses: list[np.ndarray]
+    covariances: np.ndarray
+    prior_covariances: np.ndarray
+    mount: MountEstimate | None
+    iterations: int
+    pairs: int
+    correspondences: int
+    sigma_mm: float
+    rms_mm_before: float
+    rms_mm_after: float
+
+
+def _adjoint_blocks(R: np.ndarray) -> np.ndarray:
+    """``blockdiag(R, R)``: a scanner-frame motion about the scan origin as a world motion about it."""
+    M = np.zeros((6, 6))
+    M[:3, :3] = M[3:, 3:] = R
+    return M
+
+
+class _Model:
+    """The linear error model ``e = A theta`` and the prior information on ``theta`` (see the module doc)."""
+
+    def __init__(self, priors: Sequence[ScanPrior], transfers: Sequence[TransferPrior],
+                 mount_prior: MountPrior | None) -> None:
+        n = self.n = len(priors)
+        self.P0 = np.stack([np.asarray(p.T_W_S, float) for p in priors])
+        self.origins = self.P0[:, :3, 3]
+        stations = np.array([p.station for p in priors])
+        known = {t.station for t in transfers}
+        if transfers and (len(known) != len(transfers) or min(known) <= stations.min()
+                          or not set(stations) - {stations.min()} <= known):
+            raise RefineError(f"transfer priors for stations {sorted(known)}: need one for each station after the "
+                              f"first of {sorted(set(stations.tolist()))}, or none")
+        self.transfers = sorted(transfers, key=lambda t: t.station)
+        self.L = None if mount_prior is None else np.linalg.cholesky(np.asarray(mount_prior.covariance, float))
+        self.mount_prior = mount_prior
+        k = len(self.transfers)
+        self.size = 6 * (n + k) + (0 if self.L is None else 6)
+        rows, cols, vals = [], [], []
+
+        def block(i: int, col: int, M: np.ndarray) -> None:
+            r, c = np.meshgrid(np.arange(6) + 6 * i, np.arange(6) + col, indexing="ij")
+            rows.append(r.ravel())
+            cols.append(c.ravel())
+            vals.append(M.ravel())
+
+        for i in range(n):
+            block(i, 6 * i, np.eye(6))
+            for m, t in enumerate(self.transfers):
+                if stations[i] >= t.station:
+                    block(i, 6 * (n + m), recentre(t.centre_mm, self.origins[i]))
+            if self.L is not None:
+                block(i, 6 * (n + k), _adjoint_blocks(self.P0[i, :3, :3]) @ self.L)
+        self.A = sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                                   shape=(6 * n, self.size))
+        info = [np.linalg.inv(np.asarray(p.covariance, float)) for p in priors]
+        info += [np.linalg.inv(np.asarray(t.covariance, float)) for t in self.transfers]
+        if self.L is not None:
+            info.append(np.eye(6))
+        self.prior_information = sparse.block_diag(info, format="csr")
+        prior_cov = [np.asarray(p.covariance, float) for p in priors] + [np.asarray(t.covariance, float)
+                                                                         for t in self.transfers]
+        if self.L is not None:
+            prior_cov.append(np.eye(6))
+        self.prior_covariance = sparse.block_diag(prior_cov, format="csr")
+
+    def poses(self, e: np.ndarray) -> np.ndarray:
+        """``T_W_S_i = Tr(o_i) Exp(e_i) Tr(-o_i) P_i`` for the stacked corrections ``e`` (n, 6)."""
+        out = np.empty_like(self.P0)
+        for i, (o, d) in enumerate(zip(self.origins, e, strict=True)):
+            out[i] = from_rotvec(o, [0, 0, 0]) @ from_rotvec(d[:3], d[3:]) @ from_rotvec(-o, [0, 0, 0]) @ self.P0[i]
+        return out
+
+    def corrections(self, poses: Sequence[np.ndarray]) -> np.ndarray:
+        """Inverse of :meth:`poses`: the (n, 6) corrections that give ``poses``."""
+        out = np.empty((self.n, 6))
+        for i, (o, T) in enumerate(zip(self.origins, poses, strict=True)):
+            t, r = to_rotvec(from_rotvec(-o, [0, 0, 0]) @ np.asarray(T, float) @ invert(self.P0[i])
+                             @ from_rotvec(o, [0, 0, 0]))
+            out[i] = np.r_[t, r]
+        return out
+
+    def scan_covariances(self, cov_theta: np.ndarray) -> np.ndarray:
+        """(n, 6, 6) covariance of every ``e_i`` from the covariance of ``theta`` (dense)."""
+        full = self.A @ (self.A @ cov_theta).T                      # (6n, 6n), A cov A^T
+        return np.stack([full[6 * i:6 * i + 6, 6 * i:6 * i + 6] for i in range(self.n)])
+
+
+@dataclass(frozen=True)
+class _Match:
+    """The correspondences of one pair at the current poses: the source points in the target's frame S_i
+    (mm), the indices of their nearest target points, the point-to-plane residuals (mm) and the target
+    normals (S_i)."""
+
+    source_S_i: np.ndarray
+    target: np.ndarray
+    residual: np.ndarray
+    normals: np.ndarray
+
+
+class _Pair:
+    """A scan pair ``(i, j)``: the candidate points of ``j`` (source) near scan ``i`` (target)."""
+
+    def __init__(self, i: int, j: int, candidates: np.ndarray) -> None:
+        self.i, self.j, self.candidates = i, j, candidates
+
+    def match(self, scans: Sequence[JointScan], trees: Sequence[cKDTree], poses: np.ndarray, max_mm: float
+              ) -> _Match:
+        rel = invert(poses[self.i]) @ poses[self.j]
+        x = transform_points(rel, scans[self.j].points_S[self.candidates])   # in S_i
+        d, idx = trees[self.i].query(x, distance_upper_bound=max_mm, workers=-1)
+        ok = np.isfinite(d)
+        t = idx[ok]
+        n = scans[self.i].normals_S[t]
+        r = np.einsum("ij,ij->i", x[ok] - scans[self.i].points_S[t], n)
+        source_n = scans[self.j].normals_S[self.candidates[ok]] @ rel[:3, :3].T
+        same = np.abs(np.einsum("ij,ij->i", source_n, n)) >= _MIN_NORMAL_COSINE  # not across a crease
+        return _Match(x[ok][same], t[same], r[same], n[same])
+
+    def normal_equations(self, scans: Sequence[JointScan], poses: np.ndarray, origins: np.ndarray, m: _Match,
+                         weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(H, b)`` (12x12, 12) of the weighted residuals in ``(e_j, e_i)`` linearised at the current poses,
+        for the normal equations ``H delta = -b``. Worked in S_i: with ``R`` its rotation, a world row
+        ``[R n, R ((p - o) x n)]`` is the local row ``[n, (p - o) x n]`` turned by ``blockdiag(R, R)``."""
+        Pi = poses[self.i]
+        to_local = invert(Pi)
+        n = m.normals
+        q = scans[self.i].points_S[m.target]
+        o_j, o_i = (transform_points(to_local, origins[k][None])[0] for k in (self.j, self.i))
+        J = np.c_[n, _cross(m.source_S_i - o_j, n), -n, -_cross(q - o_i, n)]
+        Jw = J * weights[:, None]
+        B = np.kron(np.eye(4), Pi[:3, :3])                      # local -> world for the four 3-blocks
+        return B @ (Jw.T @ J) @ B.T, B @ (Jw.T @ m.residual)
+
+
+def _huber(r: np.ndarray, sigma: float, k: float) -> np.ndarray:
+    """Huber weights times ``1 / sigma^2`` (the information of each residual)."""
+    a = np.abs(r) / sigma
+    return np.where(a <= k, 1.0, k / np.maximum(a, 1e-300)) / sigma**2
+
+
+def _robust_sigma(r: np.ndarray) -> float:
+    """1.4826 x the median absolute residual (mm), at least ``_MIN_SIGMA_MM``."""
+    return max(1.4826 * float(np.median(np.abs(r))), _MIN_SIGMA_MM) if len(r) else 1.0
+
+
+def _candidates(scans: Sequence[JointScan], trees: Sequence[cKDTree], poses: np.ndarray,
+                pairs: Sequence[tuple[int, int]], radius_mm: float) -> list[_Pair]:
+    out = []
+    for i, j in pairs:
+        x = transform_points(invert(poses[i]) @ poses[j], scans[j].points_S)
+        d, _ = trees[i].query(x, distance_upper_bound=radius_mm)
+        near = np.flatnonzero(np.isfinite(d))
+        if len(near):
+            out.append(_Pair(i, j, near))
+    return out
+
+
+def refine_jointly(
+    scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequence[tuple[int, int]],
+    start_poses: Sequence[np.ndarray], transfers: Sequence[TransferPrior] = (),
+    mount_prior: MountPrior | None = None, settings: JointSettings = JointSettings(),
+) -> JointResult:
+    """Refine every scan pose jointly from ``start_poses`` (e.g. the pose graph's) on the overlaps of ``pairs``
+    (``(i, j)``: points of ``j`` measured against the surface of ``i``); the priors are the tracker poses
+    ``priors`` (``T_W_S`` and covariance), ``transfers`` and ``mount_prior`` as in ``pose_graph.refine_poses``."""
+    if not (len(scans) == len(priors) == len(start_poses)):
+        raise RefineError(f"{len(scans)} scans, {len(priors)} priors and {len(start_poses)} start poses differ")
+    model = _Model(priors, transfers, mount_prior)
+    trees = [cKDTree(s.points_S) for s in scans]
+    poses = np.stack([np.asarray(T, float) for T in start_poses])
+    e = model.corrections(poses)
+    candidates = _candidates(scans, trees, poses, pairs, settings.max_distance_mm + settings.candidate_margin_mm)
+    H_prior = model.prior_information
+    rms_before, sigma, H, used, n_corr, it = float("nan"), 1.0, None, 0, 0, 0
+    for it in range(1, settings.iterations + 1):
+        matches = [p.match(scans, trees, poses, settings.max_distance_mm) for p in candidates]
+        kept = [(p, m) for p, m in zip(candidates, matches, strict=True)
+                if len(m.residual) >= settings.min_correspondences]
+        r_all = np.concatenate([m.residual for _, m in kept]) if kept else np.zeros(0)
+        sigma = settings.sigma_mm or _robust_sigma(r_all)
+        if it == 1:
+            rms_before = float(np.sqrt(np.mean(r_all**2))) if len(r_all) else float("nan")
+        H, b_e = _data_system(model, scans, poses, kept, sigma, settings.huber_k)
+        used, n_corr = len(kept), len(r_all)
+        # linearised at e: data term |r + J (A theta - e)|^2, prior |theta|^2_prior -> solve for theta
+        rhs = model.A.T @ (H @ e.ravel() - b_e)
+        H_theta = (model.A.T @ H @ model.A + H_prior).tocsc()
+        theta = splu(H_theta).solve(rhs)
+        e_new = (model.A @ theta).reshape(-1, 6)
+        step = np.abs(e_new - e)
+        move = float(np.max(np.linalg.norm(step[:, :3], axis=1)
+                            + settings.lever_mm * np.linalg.norm(step[:, 3:], axis=1)))
+        e, poses = e_new, model.poses(e_new)
+        log.debug("joint refinement iteration %d: %d pairs, %d points, sigma %.4f mm, largest move %.2e mm",
+                  it, used, n_corr, sigma, move)
+        if move < settings.tolerance_mm:
+            break
+    final = [p.match(scans, trees, poses, settings.max_distance_mm) for p in candidates]
+    r_fin = np.concatenate([m.residual for m in final]) if final else np.zeros(0)
+    rms_after = float(np.sqrt(np.mean(r_fin**2))) if len(r_fin) else float("nan")
+    H_theta = (model.A.T @ H @ model.A + H_prior).toarray()
+    cov_theta = np.linalg.inv(H_theta)
+    mount = _mount_estimate(model, H_theta, cov_theta, theta) if model.L is not None else None
+    prior_cov = model.scan_covariances(model.prior_covariance.toarray())
+    log.info("joint refinement: %d scans, %d pairs, %d points, %d iterations; sigma %.4f mm, RMS %.4f -> %.4f mm",
+             model.n, used, n_corr, it, sigma, rms_before, rms_after)
+    return JointResult([T for T in poses], model.scan_covariances(cov_theta), prior_cov, mount, it, used, n_corr,
+                       sigma, rms_before, rms_after)
+
+
+def _data_system(model: _Model, scans: Sequence[JointScan], poses: np.ndarray, kept: list, sigma: float,
+                 huber_k: float) -> tuple[sparse.csr_matrix, np.ndarray]:
+    """The data's normal equations in the stacked corrections ``e``: sparse ``H_e`` (6n x 6n) and ``b_e``."""
+    n = model.n
+    b = np.zeros(6 * n)
+    rows, cols, vals = [], [], []
+    for p, m in kept:
+        H, g = p.normal_equations(scans, poses, model.origins, m, _huber(m.residual, sigma, huber_k))
+        idx = np.r_[np.arange(6) + 6 * p.j, np.arange(6) + 6 * p.i]
+        r, c = np.meshgrid(idx, idx, indexing="ij")
+        rows.append(r.ravel())
+        cols.append(c.ravel())
+        vals.append(H.ravel())
+        b[idx] += g
+    if not rows:
+        return sparse.csr_matrix((6 * n, 6 * n)), b
+    H_e = sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(6 * n, 6 * n))
+    return H_e, b
+
+
+def _mount_estimate(model: _Model, H_theta: np.ndarray, cov_theta: np.ndarray, theta: np.ndarray) -> MountEstimate:
+    """The shared mount correction ``D = Exp(L u)``: its posterior and the data's information on it."""
+    L, prior = model.L, np.asarray(model.mount_prior.covariance, float)
+    H_data = H_theta.copy()
+    H_data[-6:, -6:] -= np.eye(6)                      # without the mount's own prior
+    data_u = _marginal_information(H_data, model.size - 6)
+    ratio, U = np.linalg.eigh(0.5 * (data_u + data_u.T))
+    d = L @ theta[-6:]
+    cov = L @ cov_theta[-6:, -6:] @ L.T
+    Linv = np.linalg.inv(L)
+    data_D = Linv.T @ data_u @ Linv
+    log.info("joint refinement: mount correction %s mm, %s deg", np.round(d[:3], 4), np.round(np.degrees(d[3:]), 5))
+    observed = int(np.sum(ratio >= model.mount_prior.min_information_ratio))   # the rest is the prior's
+    return MountEstimate(from_rotvec(d[:3], d[3:]), 0.5 * (cov + cov.T), prior, 0.5 * (data_D + data_D.T),
+                         ratio, U, observed)
+
+
+def _marginal_information(H: np.ndarray, first: int) -> np.ndarray:
+    """The information of the unknowns from ``first`` on with the earlier ones marginalised (``H`` dense)."""
+    A, B, C = H[:first, :first], H[:first, first:], H[first:, first:]
+    return C - B.T @ np.linalg.solve(A, B)

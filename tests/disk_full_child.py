@@ -1,0 +1,109 @@
+"""A daemon job on a full disk, run by ``tests/test_daemon_disk_full.py`` inside ``unshare --user --map-root-user
+--mount`` so that it can mount a small tmpfs as its state folder: the simulated cell (twins) on a box part, the
+trimmed default plan; the disk is filled after the first scan commits, freed after the job paused. Prints one JSON
+object (the outcome) as its last line. Usage: ``disk_full_child.py WORK_DIR``."""
+
+from __future__ import annotations
+
+import asyncio
+import errno
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import open3d as o3d
+from tandemscan.config import load_config
+from tandemscan.daemon.cli import default_plan_path
+from tandemscan.daemon.service import Daemon
+from tandemscan.pipeline.plan import Plan
+
+PLAN_STEPS = (0, 1, 2, 3, 4, 13, 14, 15, 16)
+TMPFS_MB = 64
+
+
+def box(path: Path) -> Path:
+    mesh = o3d.geometry.TriangleMesh.create_box(3000.0, 2000.0, 1600.0).translate((-1500.0, -1000.0, 0.0))
+    mesh.compute_triangle_normals()
+    o3d.io.write_triangle_mesh(str(path), mesh)
+    return path
+
+
+def fill(path: Path) -> int:
+    """Write zeros to ``path`` until the file system is full; returns the bytes written."""
+    written = 0
+    with open(path, "wb", buffering=0) as f:
+        chunk = b"\0" * (1 << 20)
+        while True:
+            try:
+                written += f.write(chunk)
+            except OSError as e:
+                if e.errno != errno.ENOSPC:
+                    raise
+                if len(chunk) == 1:
+                    return written
+                chunk = chunk[: len(chunk) // 2]
+
+
+async def wait_for(predicate, timeout_s: float, period_s: float = 0.02) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        if time.monotonic() > deadline:
+            return False
+        await asyncio.sleep(period_s)
+    return True
+
+
+async def main(work: Path) -> dict:
+    state = work / "state"
+    cfg = load_config()
+    cfg = cfg.model_copy(update={
+        "part": cfg.part.model_copy(update={"mesh": box(work / "box.stl")}),
+        "inspection": cfg.inspection.model_copy(update={"in_job": False}),
+        "correction": cfg.correction.model_copy(update={"enabled": False}),
+        "daemon": cfg.daemon.model_copy(update={"reserve_free_bytes": 4_000_000, "scan_bytes_estimate": 1_000_000}),
+    })
+    plan = Plan.load(default_plan_path())
+    plan = plan.model_copy(update={"steps": [plan.steps[i] for i in PLAN_STEPS]})
+    daemon = Daemon(cfg, state, connect_timeout_s=30.0)
+    await daemon.start()
+    out: dict = {}
+    try:
+        mgr, store = daemon.manager, daemon.store
+        job, _ = await mgr.submit("trimmed", {"plan": plan.model_dump(mode="json"), "label": None}, len(plan.steps),
+                                  None, None)
+        await wait_for(lambda: len(store.scans(job.id)) >= 1, 120)
+        t0 = time.monotonic()
+        filler = state / "filler.bin"
+        out["filled_bytes"] = fill(filler)
+        left = await wait_for(lambda: mgr.get(job.id).state != "running", 60)
+        out["left_running_s"] = round(time.monotonic() - t0, 3) if left else None
+        paused = mgr.get(job.id)
+        out |= {"state_on_full_disk": paused.state, "reason": paused.error}
+        out["committed_scans_on_full_disk"] = [s.step_idx for s in store.scans(job.id)]
+        out["health_on_full_disk"] = daemon.health()
+        out["guard_free_bytes"] = daemon.free_bytes()
+        out["guard_needs_bytes"] = daemon.bytes_needed(3)
+        filler.unlink()
+        await wait_for(lambda: mgr.storage_error is None, 30)
+        out["journaled_state_after_space_returned"] = store.get_job(job.id).state
+        out["health_after_space_returned"] = daemon.health()["status"]
+        await mgr.resume(job.id)
+        await wait_for(lambda: mgr.get(job.id).state in ("succeeded", "failed"), 180)
+        done = mgr.get(job.id)
+        out |= {"final_state": done.state, "final_error": done.error,
+                "scan_steps": [s.step_idx for s in store.scans(job.id)],
+                "scan_files": sorted(p.name for p in (store.job_dir(job.id) / "scans").iterdir())}
+        if done.state == "succeeded":
+            out["report_scans"] = json.loads((store.job_dir(job.id) / "report.json").read_text())["scans"]
+    finally:
+        await daemon.close()
+    return out
+
+
+if __name__ == "__main__":
+    work = Path(sys.argv[1])
+    (work / "state").mkdir(parents=True, exist_ok=True)
+    subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={TMPFS_MB}m", "tmpfs", str(work / "state")], check=True)
+    print(json.dumps(asyncio.run(main(work))))

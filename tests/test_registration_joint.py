@@ -1,0 +1,141 @@
+"""Joint multi-view refinement: noiseless overlapping scans sampled from one grid (so that at the true poses
+every overlap point has an exact partner), perturbed starts, and sliding surfaces (plane, cylinder)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from tandemscan.pipeline.frames import from_rotvec, invert, pose_error, transform_points
+from tandemscan.pipeline.registration.icp import RefineError
+from tandemscan.pipeline.registration.joint import JointScan, JointSettings, refine_jointly
+from tandemscan.pipeline.registration.mounts import MountPrior
+from tandemscan.pipeline.registration.pose_graph import ScanPrior, TransferPrior
+
+TIGHT = np.diag([1e-8] * 3 + [1e-12] * 3)
+#: the residuals' sigma of a real scanner, so that the second-order fit of a sampled curve does not count
+SCANNER_NOISE = JointSettings(iterations=20, tolerance_mm=1e-7, sigma_mm=0.05)
+LOOSE = np.diag([1.0] * 3 + [np.radians(0.5) ** 2] * 3)
+
+
+def bumpy(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """A surface curved enough to fix all six degrees of freedom of a 150 mm patch (mm)."""
+    return 10 * np.sin(x / 17.0) * np.cos(y / 13.0) + 6 * np.cos(x / 23.0 + y / 19.0)
+
+
+def grid_scans(surface_W: np.ndarray, windows: list[tuple[float, float]], axis: int = 0,
+               normals_W: np.ndarray | None = None):
+    """Scans of the world points ``surface_W`` (mm) whose coordinate ``axis`` lies in each window, each in its
+    own scanner frame (looking down -z from 400 mm above the window's centre), with the exact ``normals_W``
+    or, without them, normals estimated from the points. Returns (truth, scans)."""
+    truth, scans = [], []
+    for lo, hi in windows:
+        keep = (surface_W[:, axis] >= lo) & (surface_W[:, axis] <= hi)
+        centre = np.zeros(3)
+        centre[axis] = 0.5 * (lo + hi)
+        T = from_rotvec(centre + [0, 0, 400.0], [np.pi, 0, 0])
+        truth.append(T)
+        P_S = transform_points(invert(T), surface_W[keep])
+        scans.append(JointScan.from_points(P_S) if normals_W is None
+                     else JointScan(P_S, normals_W[keep] @ T[:3, :3]))
+    return truth, scans
+
+
+def perturbed(T: np.ndarray, rng: np.random.Generator, t_mm: float, r_deg: float) -> np.ndarray:
+    return from_rotvec(rng.normal(0, t_mm, 3), rng.normal(0, np.radians(r_deg), 3)) @ T
+
+
+def test_noiseless_overlaps_recover_exact_poses_from_perturbed_starts():
+    g = np.arange(0.0, 601.0, 2.0)
+    x, y = np.meshgrid(g, np.arange(-100.0, 101.0, 2.0))
+    surface = np.c_[x.ravel(), y.ravel(), bumpy(x.ravel(), y.ravel())]
+    truth, scans = grid_scans(surface, [(0, 300), (150, 450), (300, 600), (100, 500)])
+    rng = np.random.default_rng(3)
+    stations = [0, 0, 1, 1]
+    tracker = [truth[0]] + [perturbed(T, rng, 0.3, 0.05) for T in truth[1:]]
+    priors = [ScanPrior(tracker[0], TIGHT, 0)] + [ScanPrior(T, LOOSE, k) for T, k in zip(tracker[1:], stations[1:],
+                                                                                        strict=True)]
+    transfers = [TransferPrior(1, np.array([300.0, 0, 400]), LOOSE)]
+    start = [truth[0]] + [perturbed(T, rng, 0.3, 0.05) for T in truth[1:]]
+    pairs = [(0, 1), (1, 2), (0, 3), (1, 3), (2, 3)]
+    res = refine_jointly(scans, priors, pairs, start, transfers, settings=JointSettings(iterations=20,
+                                                                                       tolerance_mm=1e-7))
+    before = [pose_error(S, T)[0] for S, T in zip(start[1:], truth[1:], strict=True)]
+    errors = [pose_error(P, T) for P, T in zip(res.poses, truth, strict=True)]
+    assert min(before) > 0.1
+    assert max(e[0] for e in errors) < 1e-4
+    assert max(e[1] for e in errors) < np.radians(1e-5)
+    assert res.rms_mm_after < 1e-5 < res.rms_mm_before
+    assert res.pairs == len(pairs) and res.covariances.shape == (4, 6, 6)
+    # the posterior is far tighter than the loose priors wherever the overlaps see the scan
+    assert np.all(np.diagonal(res.covariances[1:], axis1=1, axis2=2)[:, :3] < 1e-3 * LOOSE[0, 0])
+
+
+def two_scans_of(surface_W: np.ndarray, normals_W: np.ndarray, slide: np.ndarray, seed: int):
+    """Two scans, x in 0-300 and 150-450 mm, with exact normals (estimated ones tilt at the scan's edges and
+    would observe a little of the slide). Scan 0 is fixed at the truth; scan 1's tracker pose errs by
+    ``slide`` (a world motion about its origin, t mm then rotation vector rad) and it starts elsewhere.
+    Returns truth, scans, priors, start."""
+    truth, scans = grid_scans(surface_W, [(0, 300), (150, 450)], 0, normals_W)
+    o = truth[1][:3, 3]
+    about = from_rotvec(o, [0, 0, 0]) @ from_rotvec(slide[:3], slide[3:]) @ from_rotvec(-o, [0, 0, 0])
+    tracker = about @ truth[1]
+    priors = [ScanPrior(truth[0], TIGHT, 0), ScanPrior(tracker, LOOSE, 0)]
+    start = [truth[0], perturbed(truth[1], np.random.default_rng(seed), 0.3, 0.05)]
+    return truth, scans, priors, start
+
+
+def world_error(P: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """``(t mm, rotation vector rad)`` of the world motion about ``T``'s origin that takes ``T`` to ``P``."""
+    o = T[:3, 3]
+    M = from_rotvec(-o, [0, 0, 0]) @ P @ invert(T) @ from_rotvec(o, [0, 0, 0])
+    from scipy.spatial.transform import Rotation
+
+    return np.r_[M[:3, 3], Rotation.from_matrix(M[:3, :3]).as_rotvec()]
+
+
+def test_a_sliding_plane_leaves_its_in_plane_directions_to_the_priors():
+    x, y = np.meshgrid(np.arange(0.0, 451.0, 2.0), np.arange(-100.0, 101.0, 2.0))
+    plane = np.c_[x.ravel(), y.ravel(), np.zeros(x.size)]
+    slide = np.r_[0.4, -0.3, 0.2, np.radians(0.02), -np.radians(0.03), np.radians(0.05)]
+    truth, scans, priors, start = two_scans_of(plane, np.tile([0.0, 0, 1], (len(plane), 1)), slide, seed=1)
+    res = refine_jointly(scans, priors, [(0, 1)], start, settings=SCANNER_NOISE)
+    err = world_error(res.poses[1], truth[1])
+    # the plane z = 0 fixes tz, rx, ry: back to the truth; tx, ty, rz stay where the tracker put them
+    np.testing.assert_allclose(err[[2, 3, 4]], 0.0, atol=1e-5)
+    np.testing.assert_allclose(err[[0, 1, 5]], slide[[0, 1, 5]], rtol=1e-3, atol=1e-6)
+    sigma = np.sqrt(np.diagonal(res.covariances[1]))
+    np.testing.assert_allclose(sigma[[0, 1, 5]], np.sqrt(np.diag(LOOSE))[[0, 1, 5]], rtol=1e-3)
+    assert np.all(sigma[[2, 3, 4]] < 1e-2 * np.sqrt(np.diag(LOOSE))[[2, 3, 4]])
+
+
+def test_a_sliding_cylinder_leaves_its_axis_to_the_priors():
+    radius = 120.0
+    x, a = np.meshgrid(np.arange(0.0, 451.0, 2.0), np.arange(-0.8, 0.8, 2.0 / radius))
+    cylinder = np.c_[x.ravel(), radius * np.sin(a.ravel()), radius * np.cos(a.ravel()) - radius]
+    slide = np.r_[0.5, 0.2, -0.3, np.radians(0.04), np.radians(0.02), -np.radians(0.03)]
+    normals = np.c_[np.zeros(a.size), np.sin(a.ravel()), np.cos(a.ravel())]
+    truth, scans, priors, start = two_scans_of(cylinder, normals, slide, seed=2)
+    res = refine_jointly(scans, priors, [(0, 1)], start, settings=SCANNER_NOISE)
+    # free: a slide along the axis and a turn about it (the axis runs along x, 520 mm below the scan origin)
+    free = np.array([[1.0, 0, 0, 0, 0, 0], [0, -(400.0 + radius), 0, 1, 0, 0]]).T
+    info = np.linalg.inv(LOOSE)
+    # the data fix the rest at the truth, so the answer is the prior's closest point on the free plane
+    expected = free @ np.linalg.solve(free.T @ info @ free, free.T @ info @ slide)
+    err = world_error(res.poses[1], truth[1])
+    np.testing.assert_allclose(err, expected, rtol=1e-3, atol=5e-5)   # first order: 520 mm x (3e-4 rad)^2 / 2
+    assert abs(expected[3]) > 1e-4 and abs(expected[0]) > 0.1
+
+
+def test_mount_estimate_and_input_checks():
+    x, y = np.meshgrid(np.arange(0.0, 451.0, 3.0), np.arange(-100.0, 101.0, 3.0))
+    surface = np.c_[x.ravel(), y.ravel(), bumpy(x.ravel(), y.ravel())]
+    truth, scans = grid_scans(surface, [(0, 300), (150, 450)])
+    priors = [ScanPrior(T, LOOSE, 0) for T in truth]
+    mount = MountPrior(np.diag([0.01] * 3 + [1e-6] * 3))
+    res = refine_jointly(scans, priors, [(0, 1)], truth, mount_prior=mount)
+    assert res.mount is not None and res.mount.estimated == int(np.sum(res.mount.information_ratio >= 1.0))
+    assert np.all(np.diag(res.mount.covariance) <= np.diag(mount.covariance) * (1 + 1e-6))
+    with pytest.raises(RefineError, match="differ"):
+        refine_jointly(scans, priors[:1], [(0, 1)], truth)
+    with pytest.raises(RefineError, match="transfer priors"):
+        refine_jointly(scans, priors, [(0, 1)], truth, [TransferPrior(0, np.zeros(3), LOOSE)])
