@@ -75,7 +75,8 @@ def walk(config, plan, seed: int, variant: str) -> list[dict]:
             T_W_S_true = world.T_W_S()
             e = (T_W_S @ p_S - T_W_S_true @ p_S)[:3]
             rows.append({"station": station, "lift_mm": world.lift_mm,
-                         "distance_mm": float(np.linalg.norm(T_C_T[:3, 3])), "along_view_mm": float(e @ T_W_S_true[:3, 2]), "size_mm": float(np.linalg.norm(e))})
+                         "distance_mm": float(np.linalg.norm(T_C_T[:3, 3])),
+                         "along_view_mm": float(e @ T_W_S_true[:3, 2]), "size_mm": float(np.linalg.norm(e))})
     return rows
 
 
