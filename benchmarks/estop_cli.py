@@ -17,54 +17,22 @@ from __future__ import annotations
 
 import argparse
 import json
-import socket
 import tempfile
 import time
-import tomllib
 from pathlib import Path
 
 import numpy as np
-import open3d as o3d
-import tomli_w
-from tandemscan.config import load_config
-from tandemscan.config.loader import default_config_path
 from tandemscan.daemon import cli
-from tandemscan.pipeline.part import part_identity, read_mesh_file
-from tandemscan.pipeline.plan import Plan
+from tandemscan.sim_drivers.hil_box import BOX_PLAN, write_hil_box_cell
 from tandemscan.sim_drivers.world import SimWorld
 
 CASES = (("measure", "arm"), ("measure", "tracking_chassis"), ("calibrate", "arm"), ("calibrate", "tracking_chassis"))
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def hil_config_file(folder: Path) -> Path:
-    """The shipped hil-cell.toml with free ports, a 3 x 2 x 1.6 m box as the part and the arm at 1/20 of real
-    time (the shipped 1/500 ends most arm moves within a few ms)."""
-    mesh = o3d.geometry.TriangleMesh.create_box(3000.0, 2000.0, 1600.0).translate((-1500.0, -1000.0, 0.0))
-    mesh.compute_triangle_normals()
-    o3d.io.write_triangle_mesh(str(folder / "box.stl"), mesh)
-    shipped = default_config_path().parent / "hil-cell.toml"
-    data = tomllib.loads(shipped.read_text(encoding="utf-8"))
-    data["part"] = {"mesh": str(folder / "box.stl")}
-    data["scanner"]["phoxi"]["producer_path"] = str(load_config(shipped).scanner.phoxi.producer_path)
-    data["arm"]["jaka"] |= {"command_port": _free_port(), "status_port": _free_port()}
-    data["tracker"]["stream"]["port"] = _free_port()
-    data["safety"]["modbus"]["port"] = _free_port()
-    data["measure_chassis"]["can"]["channel"] = f"bench-m-{_free_port()}"
-    data["tracking_chassis"]["can"]["channel"] = f"bench-t-{_free_port()}"
-    data["calibration"] = {"poses": 6}
-    data["hil"]["arm_time_scale"] = 0.05  # arm moves of tens of ms: the e-stop lands while the arm moves
-    path = folder / "hil-cell.toml"
-    path.write_bytes(tomli_w.dumps(data).encode())
-    band = Plan.load(cli.default_plan_path())  # the band plan's steps, stated for the box they run on here
-    Plan(name="band on the box", part="box.stl", part_identity=part_identity(read_mesh_file(folder / "box.stl")),
-         steps=band.steps).save(folder / "box-band.toml")
-    return path
+    """The box cell of ``sim_drivers.hil_box`` with the arm at 1/20 of real time (the shipped 1/500 ends most arm
+    moves within a few ms, before an e-stop could land while the arm moves)."""
+    return write_hil_box_cell(folder, cli.default_plan_path(), "bench", arm_time_scale=0.05)
 
 
 class EstopProbe:
@@ -154,7 +122,7 @@ def run_case(config_file: Path, command: str, device: str, out: Path) -> dict:
     cli._session = spied
     try:
         target = (["--out", str(out / "calibration.json")] if command == "calibrate"
-                  else ["--plan", str(config_file.parent / "box-band.toml"), "--out", str(out)])
+                  else ["--plan", str(config_file.parent / BOX_PLAN), "--out", str(out)])
         status = cli.main([command, "--config", str(config_file), *target])
     finally:
         cli._session = build

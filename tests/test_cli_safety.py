@@ -10,55 +10,24 @@ input change to the last motion command is a figure, measured by ``benchmarks/es
 from __future__ import annotations
 
 import asyncio
-import socket
-import tomllib
 from pathlib import Path
 
 import numpy as np
-import open3d as o3d
 import pytest
-import tomli_w
-from tandemscan.config import load_config
-from tandemscan.config.loader import default_config_path
 from tandemscan.daemon import cli
 from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.session import CellSession
 from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT, MotionInterlock
 from tandemscan.drivers.errors import SafetyStop
 from tandemscan.drivers.interfaces import ChassisPose
-from tandemscan.pipeline.part import part_identity, read_mesh_file
 from tandemscan.pipeline.plan import Plan
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from tandemscan.sim_drivers.hil_box import BOX_PLAN, write_hil_box_cell
 
 
 @pytest.fixture(scope="module")
 def hil_toml(tmp_path_factory) -> Path:
-    """config/hil-cell.toml with free ports and a 3 x 2 x 1.6 m box as the part (builds in a second)."""
-    folder = tmp_path_factory.mktemp("hil")
-    mesh = o3d.geometry.TriangleMesh.create_box(3000.0, 2000.0, 1600.0).translate((-1500.0, -1000.0, 0.0))
-    mesh.compute_triangle_normals()
-    o3d.io.write_triangle_mesh(str(folder / "box.stl"), mesh)
-    shipped = default_config_path().parent / "hil-cell.toml"
-    data = tomllib.loads(shipped.read_text(encoding="utf-8"))
-    data["part"] = {"mesh": str(folder / "box.stl")}
-    data["scanner"]["phoxi"]["producer_path"] = str(load_config(shipped).scanner.phoxi.producer_path)
-    data["arm"]["jaka"] |= {"command_port": free_port(), "status_port": free_port()}
-    data["tracker"]["stream"]["port"] = free_port()
-    data["safety"]["modbus"]["port"] = free_port()
-    data["measure_chassis"]["can"]["channel"] = f"cli-m-{free_port()}"
-    data["tracking_chassis"]["can"]["channel"] = f"cli-t-{free_port()}"
-    data["calibration"] = {"poses": 6}
-    path = folder / "hil-cell.toml"
-    path.write_bytes(tomli_w.dumps(data).encode())
-    band = Plan.load(cli.default_plan_path())  # the band plan's steps, stated for the box they run on here
-    Plan(name="band on the box", part="box.stl", part_identity=part_identity(read_mesh_file(folder / "box.stl")),
-         steps=band.steps).save(folder / "box-band.toml")
-    return path
+    """config/hil-cell.toml with free ports and a 3 x 2 x 1.6 m box as the part, and the band plan for the box."""
+    return write_hil_box_cell(tmp_path_factory.mktemp("hil"), cli.default_plan_path(), "cli")
 
 
 @pytest.fixture
@@ -92,7 +61,7 @@ def safety_lines(err: str) -> list[str]:
 
 def test_estop_during_measure_stops_motion_exits_nonzero_and_keeps_the_scans(hil_toml, estop_after_two_captures,
                                                                              tmp_path, capfd):
-    status = cli.main(["measure", "--config", str(hil_toml), "--plan", str(hil_toml.parent / "box-band.toml"),
+    status = cli.main(["measure", "--config", str(hil_toml), "--plan", str(hil_toml.parent / BOX_PLAN),
                        "--out", str(tmp_path)])
     err = capfd.readouterr().err
     assert status == cli.EXIT_SAFETY_STOP and "Traceback" not in err
