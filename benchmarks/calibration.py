@@ -40,8 +40,8 @@ from tandemscan.config import load_config
 from tandemscan.pipeline.calibration.hand_eye import METHODS, solve_hand_eye
 from tandemscan.pipeline.calibration.plate import PlateFit, fit_plate, nominal_centres_P
 from tandemscan.pipeline.calibration.poses import calibration_views
-from tandemscan.pipeline.frames import from_rotvec, from_rpy, invert, pose_error, transform_points
-from tandemscan.pipeline.installation import Installation
+from tandemscan.pipeline.geometry.frames import from_rotvec, from_rpy, invert, pose_error, transform_points
+from tandemscan.pipeline.stitching.installation import Installation
 from tandemscan.sim_drivers.plate import hand_eye_dataset, scan_plate
 
 LEVELS = (0.5, 1.0, 2.0)
@@ -179,7 +179,7 @@ async def _calibrate_and_measure(cfg, out: Path) -> dict:
     from tandemscan.daemon.cli import default_plan_path
     from tandemscan.daemon.runner import JobRunner
     from tandemscan.daemon.session import CellSession
-    from tandemscan.pipeline.plan import Plan
+    from tandemscan.pipeline.planning.plan import Plan
 
     started = time.monotonic()
     async with CellSession(cfg) as session:

@@ -34,8 +34,8 @@ from tandemscan.drivers.jaka_tcp import JakaTcpArm
 from tandemscan.drivers.metronor import MetronorTracker
 from tandemscan.drivers.phoxi import PhoxiScanner
 from tandemscan.drivers.safety_modbus import ModbusSafetyIO
-from tandemscan.pipeline.frames import from_rpy
-from tandemscan.pipeline.worldmap import VoxelMap
+from tandemscan.pipeline.geometry.frames import from_rpy
+from tandemscan.pipeline.stitching.worldmap import VoxelMap
 from tandemscan.sim_drivers.emulators.agv_can import ChassisEmulator
 from tandemscan.sim_drivers.emulators.jaka import JakaEmulator
 from tandemscan.sim_drivers.emulators.safety_modbus import SafetyIoEmulator

@@ -13,9 +13,9 @@ import time
 
 import numpy as np
 from tandemscan.config.models import InspectionConfig, PartConfig
-from tandemscan.pipeline.inspect import CadSurface, inspect_cloud
-from tandemscan.pipeline.part import train_nose_mesh
-from tandemscan.pipeline.report import build_report, write_report
+from tandemscan.pipeline.geometry.part import train_nose_mesh
+from tandemscan.pipeline.inspection.inspect import CadSurface, inspect_cloud
+from tandemscan.pipeline.inspection.report import build_report, write_report
 
 
 def main() -> None:

@@ -37,16 +37,16 @@ from tandemscan.config.models import CellConfig
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.runner import JobRunner, ScanRecord
 from tandemscan.daemon.session import CellSession
-from tandemscan.pipeline import frames as F
-from tandemscan.pipeline.alignment import align, align_plan_stations, fit_rigid
-from tandemscan.pipeline.cloud_io import read_ply
-from tandemscan.pipeline.export import write_ply
-from tandemscan.pipeline.inspect import CadSurface
-from tandemscan.pipeline.inspection_job import align_and_inspect, inspect_files
-from tandemscan.pipeline.kinematics import ArmKinematics
-from tandemscan.pipeline.part import load_part_mesh
-from tandemscan.pipeline.plan import Plan
-from tandemscan.pipeline.raw_scan import read_raw_scan
+from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.geometry.kinematics import ArmKinematics
+from tandemscan.pipeline.geometry.part import load_part_mesh
+from tandemscan.pipeline.inspection.alignment import align, align_plan_stations, fit_rigid
+from tandemscan.pipeline.inspection.inspect import CadSurface
+from tandemscan.pipeline.inspection.inspection_job import align_and_inspect, inspect_files
+from tandemscan.pipeline.io.cloud_io import read_ply
+from tandemscan.pipeline.io.export import write_ply
+from tandemscan.pipeline.io.raw_scan import read_raw_scan
+from tandemscan.pipeline.planning.plan import Plan
 from tandemscan.sim_drivers.inspection_score import alignment_error, deviation_truths, score_areas
 
 AS_BUILT = Path(__file__).resolve().parents[1] / "config" / "as-built-example.toml"

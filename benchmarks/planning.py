@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 from tandemscan.config import load_config
 from tandemscan.config.models import CellConfig, PartConfig
-from tandemscan.pipeline.part import barrel_panel_mesh, load_part_mesh
+from tandemscan.pipeline.geometry.part import barrel_panel_mesh, load_part_mesh
 from tandemscan.pipeline.planning.planner import plan_part
 from tandemscan.pipeline.planning.tracker import solve_exact
 

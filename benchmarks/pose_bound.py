@@ -43,12 +43,12 @@ from tandemscan.config import load_config
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.runner import JobResult, JobRunner
 from tandemscan.daemon.session import CellSession
-from tandemscan.pipeline.frames import transform_points
-from tandemscan.pipeline.plan import Plan
-from tandemscan.pipeline.raw_scan import read_raw_scan
+from tandemscan.pipeline.geometry.frames import transform_points
+from tandemscan.pipeline.geometry.uncertainty import recentre, scan_pose_covariance
+from tandemscan.pipeline.io.raw_scan import read_raw_scan
+from tandemscan.pipeline.planning.plan import Plan
 from tandemscan.pipeline.registration.overlap import extract_overlap, overlapping_pairs
 from tandemscan.pipeline.registration.sampling import voxel_downsample
-from tandemscan.pipeline.uncertainty import recentre, scan_pose_covariance
 
 OVERLAP_MM = 1.0
 DRAWS = 2000
@@ -164,7 +164,7 @@ def main() -> None:
     config = load_config(None)
     config = config.model_copy(update={"scanner": config.scanner.model_copy(update={"resolution": args.resolution})})
     if args.plan == "generated":
-        from tandemscan.pipeline.part import load_part_mesh
+        from tandemscan.pipeline.geometry.part import load_part_mesh
         from tandemscan.pipeline.planning.planner import plan_part
 
         start = config.sim.tracking_start

@@ -50,7 +50,7 @@ import torch
 from scipy.spatial.transform import Rotation
 from tandemscan.config.models import CorrectionConfig, DeepMergeConfig
 from tandemscan.pipeline.deepmerge.register import DeepMergeRegistrar
-from tandemscan.pipeline.frames import from_quaternion, invert, make_transform, transform_points
+from tandemscan.pipeline.geometry.frames import from_quaternion, invert, make_transform, transform_points
 from tandemscan.pipeline.registration.global_registration import FeatureMatching, fpfh_ransac
 from tandemscan.pipeline.registration.icp import target_with_normals
 from tandemscan.pipeline.registration.overlap import extract_overlap
@@ -251,8 +251,8 @@ def sim_pairs(min_overlap: int = 200, delta_mm: float = 3.0):
     from tandemscan.daemon.cli import default_plan_path
     from tandemscan.daemon.runner import JobRunner
     from tandemscan.daemon.session import CellSession
-    from tandemscan.pipeline.plan import Plan
-    from tandemscan.pipeline.raw_scan import read_raw_scan
+    from tandemscan.pipeline.io.raw_scan import read_raw_scan
+    from tandemscan.pipeline.planning.plan import Plan
     from tandemscan.pipeline.registration.sampling import voxel_downsample
 
     config = load_config(None)

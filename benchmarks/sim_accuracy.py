@@ -26,7 +26,7 @@ from tandemscan.config import load_config
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.session import CellSession
-from tandemscan.pipeline.plan import Plan
+from tandemscan.pipeline.planning.plan import Plan
 
 
 def _rounded(value: float | None, digits: int) -> float | None:
@@ -38,7 +38,7 @@ async def run(args: argparse.Namespace) -> dict:
     config = config.model_copy(update={"scanner": config.scanner.model_copy(update={"resolution": args.resolution})})
     plan_seconds = None
     if args.plan == "generated":
-        from tandemscan.pipeline.part import load_part_mesh
+        from tandemscan.pipeline.geometry.part import load_part_mesh
         from tandemscan.pipeline.planning.planner import plan_part
 
         t = time.perf_counter()

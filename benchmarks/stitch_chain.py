@@ -28,9 +28,9 @@ import numpy as np
 import open3d as o3d
 from tandemscan.config import load_config
 from tandemscan.daemon.plan_cmd import plan_configured_part
-from tandemscan.pipeline import frames as F
-from tandemscan.pipeline.part import barrel_panel_mesh
-from tandemscan.pipeline.plan import MoveArm, MoveLift, MoveMeasure, MoveTracker, Scan
+from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.geometry.part import barrel_panel_mesh
+from tandemscan.pipeline.planning.plan import MoveArm, MoveLift, MoveMeasure, MoveTracker, Scan
 from tandemscan.sim_drivers.world import SimWorld
 
 VARIANTS = ("readings", "transfers", "both")

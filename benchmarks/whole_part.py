@@ -28,11 +28,11 @@ from tandemscan.config import load_config
 from tandemscan.daemon.plan_cmd import plan_configured_part
 from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.session import CellSession
-from tandemscan.pipeline import frames as F
-from tandemscan.pipeline.part import barrel_panel_mesh
-from tandemscan.pipeline.plan import MoveTracker, Plan, Scan
+from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.geometry.part import barrel_panel_mesh
+from tandemscan.pipeline.geometry.raycast import make_scene
 from tandemscan.pipeline.planning.coverage import pose_fits, triangle_geometry
-from tandemscan.pipeline.raycast import make_scene
+from tandemscan.pipeline.planning.plan import MoveTracker, Plan, Scan
 
 _ON_SURFACE_MM = 1.0
 

@@ -25,8 +25,8 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 import open3d as o3d  # noqa: E402
-from tandemscan.pipeline.frames import from_rotvec, invert, transform_points  # noqa: E402
-from tandemscan.pipeline.worldmap import VoxelMap  # noqa: E402
+from tandemscan.pipeline.geometry.frames import from_rotvec, invert, transform_points  # noqa: E402
+from tandemscan.pipeline.stitching.worldmap import VoxelMap  # noqa: E402
 
 
 def patch(x0_mm: float, columns: int, rows: int, spacing_mm: float) -> tuple[np.ndarray, np.ndarray]:

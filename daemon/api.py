@@ -29,7 +29,7 @@ from tandemscan.daemon.jobs import JobError, request_hash
 from tandemscan.daemon.metrics import RequestTimer
 from tandemscan.daemon.store import IdempotencyConflict, JobRecord
 from tandemscan.drivers.errors import SafetyStop
-from tandemscan.pipeline.plan import PlanError
+from tandemscan.pipeline.planning.plan import PlanError
 
 if TYPE_CHECKING:
     from tandemscan.daemon.service import Daemon

@@ -26,7 +26,6 @@ from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT
 from tandemscan.daemon.tracker_reading import read_at_rest
 from tandemscan.drivers.errors import TargetNotVisible
 from tandemscan.drivers.interfaces import Chassis, ChassisPose
-from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.calibration.hand_eye import HandEyeError, HandEyeResult, solve_hand_eye
 from tandemscan.pipeline.calibration.mounts import (
     MountError,
@@ -37,9 +36,10 @@ from tandemscan.pipeline.calibration.mounts import (
 )
 from tandemscan.pipeline.calibration.plate import PlateError, PlateFit, fit_plate, nominal_centres_P, plate_frame
 from tandemscan.pipeline.calibration.poses import arm_joints_for_views, plate_view_distance, plate_view_poses
-from tandemscan.pipeline.durable import write_durably
-from tandemscan.pipeline.installation import Installation
-from tandemscan.pipeline.kinematics import ArmKinematics
+from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.geometry.kinematics import ArmKinematics
+from tandemscan.pipeline.io.durable import write_durably
+from tandemscan.pipeline.stitching.installation import Installation
 
 log = logging.getLogger(__name__)
 

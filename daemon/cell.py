@@ -19,7 +19,7 @@ from tandemscan.daemon.observer import CalibrationObserver, JobObserver
 from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT
 from tandemscan.drivers.factory import ROLES, SIMULATION, build_real_device, load_entry
 from tandemscan.drivers.interfaces import Arm, Chassis, Device, Lift, SafetyIO, Scanner, Tracker
-from tandemscan.pipeline.installation import Installation
+from tandemscan.pipeline.stitching.installation import Installation
 
 
 class CellBuildError(Exception):

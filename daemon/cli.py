@@ -65,8 +65,8 @@ def _progress_bar() -> Progress:
 def cmd_measure(args: argparse.Namespace) -> int:
     """Run a complete measurement job on the configured cell (the simulated cell by default)."""
     from tandemscan.daemon.runner import JobError, JobRunner
-    from tandemscan.pipeline.part import PartMeshError
-    from tandemscan.pipeline.plan import PlanError
+    from tandemscan.pipeline.geometry.part import PartMeshError
+    from tandemscan.pipeline.planning.plan import PlanError
 
     config = _load_config_with_overrides(args)
     out = Path(args.out) if args.out else config.job.out_dir
@@ -94,7 +94,7 @@ def _plan_to_measure(args: argparse.Namespace, config: CellConfig, job_dir: Path
     """The plan of a ``measure``: ``--plan`` if given (refused when made for another part), else for ``--part``
     a plan made now (saved as ``plan.toml`` in the job folder, and said so), else the shipped band plan."""
     from tandemscan.daemon.plan_cmd import PlanPartError, check_plan_part, describe, plan_configured_part
-    from tandemscan.pipeline.plan import Plan
+    from tandemscan.pipeline.planning.plan import Plan
 
     try:
         if args.plan or args.part is None:
@@ -116,7 +116,7 @@ def _session(config: CellConfig):
     """The cell session of a command (devices built, nothing connected yet); bad device config is usage."""
     from tandemscan.daemon.cell import CellBuildError
     from tandemscan.daemon.session import CellSession
-    from tandemscan.pipeline.part import PartMeshError
+    from tandemscan.pipeline.geometry.part import PartMeshError
 
     try:
         return CellSession(config)

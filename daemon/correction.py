@@ -20,13 +20,13 @@ import time
 from typing import TYPE_CHECKING
 
 import numpy as np
-from tandemscan.pipeline.raw_scan import read_raw_scan
+from tandemscan.pipeline.geometry.uncertainty import scan_pose_covariance
+from tandemscan.pipeline.io.raw_scan import read_raw_scan
 from tandemscan.pipeline.registration.correction import StitchedScan, correct_scans
 from tandemscan.pipeline.registration.mounts import MountPrior
 from tandemscan.pipeline.registration.pairs import LazyNetwork
 from tandemscan.pipeline.registration.pose_graph import TransferPrior
-from tandemscan.pipeline.uncertainty import scan_pose_covariance
-from tandemscan.pipeline.worldmap import VoxelMap
+from tandemscan.pipeline.stitching.worldmap import VoxelMap
 
 if TYPE_CHECKING:
     from tandemscan.daemon.snapshot import JobSnapshot

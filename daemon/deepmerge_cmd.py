@@ -49,7 +49,7 @@ def cmd_register(args: argparse.Namespace) -> int:
     line saying why and exits with status 3; the network (PyTorch) is loaded only if a stage needs it."""
     import numpy as np
     from tandemscan.daemon.cli import UsageError, console
-    from tandemscan.pipeline.cloud_io import CloudIOError, read_ply
+    from tandemscan.pipeline.io.cloud_io import CloudIOError, read_ply
     from tandemscan.pipeline.registration.pairs import LazyNetwork, RegistrationFailed, register_clouds
 
     config = load_config(args.config)

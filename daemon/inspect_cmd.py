@@ -49,8 +49,8 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the inspection for parsed ``args``; 0 on success, 2 with one error line on bad input."""
-    from tandemscan.pipeline.inspect import InspectionError  # local: keep `tandemscan --help` fast
-    from tandemscan.pipeline.inspection_job import inspect_files
+    from tandemscan.pipeline.inspection.inspect import InspectionError  # local: keep `tandemscan --help` fast
+    from tandemscan.pipeline.inspection.inspection_job import inspect_files
 
     prog = "tandemscan inspect"
     try:

@@ -4,9 +4,9 @@ is registered to the CAD frame F, ``report.html`` with ``figures/`` and ``cloud_
 
 The registration is the job's own, the same on a real and a simulated cell: from where the runner placed W in
 the plan's frame F (the part frame, relocalisation's anchor, Eq. 5) the cloud is aligned to the CAD by
-``[inspection] alignment`` (best fit, RPS on reference spheres, or none: :mod:`tandemscan.pipeline.alignment`); a
-job that did not place W (relocalisation off, the target never seen) skips the inspection with the reason
-recorded. The CAD is the configured part mesh (``[part]``), never the mesh a simulator scans. On the simulated
+``[inspection] alignment`` (best fit, RPS on reference spheres, or none:
+:mod:`tandemscan.pipeline.inspection.alignment`); a job that did not place W (relocalisation off, the target
+never seen) skips the inspection with the reason recorded. The CAD is the configured part mesh (``[part]``), never the mesh a simulator scans. On the simulated
 cell the job's scorer then scores the alignment and the deviation areas against the world's truth
 (``ground_truth.inspection``, docs/inspection.md).
 """
@@ -20,12 +20,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from tandemscan.daemon.report import build_report
-from tandemscan.pipeline import frames as F
-from tandemscan.pipeline.export import PosedScan, write_e57, write_ply, write_pose_log
-from tandemscan.pipeline.inspect import InspectionError
-from tandemscan.pipeline.inspection_job import InspectionOutputs, align_and_inspect
-from tandemscan.pipeline.part import load_part_mesh
-from tandemscan.pipeline.raw_scan import read_raw_scan
+from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.geometry.part import load_part_mesh
+from tandemscan.pipeline.inspection.inspect import InspectionError
+from tandemscan.pipeline.inspection.inspection_job import InspectionOutputs, align_and_inspect
+from tandemscan.pipeline.io.export import PosedScan, write_e57, write_ply, write_pose_log
+from tandemscan.pipeline.io.raw_scan import read_raw_scan
 
 if TYPE_CHECKING:
     from tandemscan.daemon.snapshot import JobSnapshot

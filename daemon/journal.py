@@ -21,7 +21,7 @@ from tandemscan.daemon.runner import JobProgress, JobRunner, return_from_transfe
 from tandemscan.daemon.session import CellSession
 from tandemscan.daemon.stitcher import ProcessWorldMap
 from tandemscan.daemon.store import JobRecord, JobStore
-from tandemscan.pipeline.plan import Plan
+from tandemscan.pipeline.planning.plan import Plan
 
 log = logging.getLogger(__name__)
 

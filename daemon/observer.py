@@ -15,7 +15,7 @@ import numpy as np
 
 if TYPE_CHECKING:
     from tandemscan.daemon.snapshot import JobSnapshot
-    from tandemscan.pipeline.installation import Installation
+    from tandemscan.pipeline.stitching.installation import Installation
 
 
 class JobScorer(Protocol):

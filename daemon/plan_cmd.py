@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from rich.console import Console
 from tandemscan.config.models import CellConfig
-from tandemscan.pipeline.plan import Plan
+from tandemscan.pipeline.planning.plan import Plan
 
 
 class PlanPartError(Exception):
@@ -41,7 +41,7 @@ def part_name(config: CellConfig) -> str:
 def plan_configured_part(config: CellConfig, name: str):
     """Plan the configured part (mesh file or parametric nose); the tracker chain starts where the tracking robot
     stands (``sim.tracking_start``). Returns the mesh and the :class:`PartPlan`; raises :class:`PlanPartError`."""
-    from tandemscan.pipeline.part import PartMeshError, load_part_mesh
+    from tandemscan.pipeline.geometry.part import PartMeshError, load_part_mesh
     from tandemscan.pipeline.planning.planner import plan_part
     from tandemscan.pipeline.planning.sequence import SequenceError
     from tandemscan.pipeline.planning.stations import StationPlanningError
@@ -59,7 +59,7 @@ def plan_configured_part(config: CellConfig, name: str):
 def check_plan_part(plan: Plan, plan_file: Path, config: CellConfig) -> None:
     """Refuse a plan made for another part than the configured mesh (raises :class:`PlanPartError`); a plan that
     does not state its part (older files) is taken as it is."""
-    from tandemscan.pipeline.part import PartMeshError, load_part_mesh, part_identity
+    from tandemscan.pipeline.geometry.part import PartMeshError, load_part_mesh, part_identity
 
     if plan.part_identity is None:
         return

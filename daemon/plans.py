@@ -1,5 +1,5 @@
 """The plans a job can name: files shipped in ``tandemscan.config/plans`` and site plans in
-``<state dir>/plans`` (TOML or JSON, :class:`tandemscan.pipeline.plan.Plan`), plus the cell's default plan
+``<state dir>/plans`` (TOML or JSON, :class:`tandemscan.pipeline.planning.plan.Plan`), plus the cell's default plan
 made on demand by a factory (the planner, for the configured part)."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from collections.abc import Callable, Iterable
 from importlib import resources
 from pathlib import Path
 
-from tandemscan.pipeline.plan import Plan, PlanError
+from tandemscan.pipeline.planning.plan import Plan, PlanError
 
 log = logging.getLogger(__name__)
 

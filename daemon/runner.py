@@ -11,7 +11,7 @@ A ``move_tracker`` before the job's first scan is a plain relocation: nothing is
 the tracker camera frame where it then stands. With ``job.relocalise`` the runner places W in the plan's frame F
 from one target reading at the start (the anchor, Eq. 5: the in-job inspection's registration to CAD) and,
 where the plan has scanner poses ``T_F_S``, measures where the measurement AGV stands after each drive
-(:mod:`tandemscan.pipeline.relocalise`) and re-solves the arm for each ``move_arm`` step's planned pose, so a
+(:mod:`tandemscan.pipeline.stitching.relocalise`) and re-solves the arm for each ``move_arm`` step's planned pose, so a
 drifting chassis still scans where the plan meant; a pose out of reach from there is scanned with the plan's
 joints and listed in the report (``relocalisation.unresolved``).
 
@@ -39,11 +39,11 @@ from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT
 from tandemscan.daemon.tracker_reading import read_at_rest
 from tandemscan.drivers.errors import TargetNotVisible
 from tandemscan.drivers.interfaces import ChassisPose, TrackerReading
-from tandemscan.pipeline import frames as F
-from tandemscan.pipeline.installation import Installation
-from tandemscan.pipeline.plan import MoveArm, MoveLift, MoveMeasure, MoveTracker, Plan, Scan
-from tandemscan.pipeline.relocalise import Relocaliser
-from tandemscan.pipeline.uncertainty import transfer_covariance
+from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.geometry.uncertainty import transfer_covariance
+from tandemscan.pipeline.planning.plan import MoveArm, MoveLift, MoveMeasure, MoveTracker, Plan, Scan
+from tandemscan.pipeline.stitching.installation import Installation
+from tandemscan.pipeline.stitching.relocalise import Relocaliser
 
 log = logging.getLogger(__name__)
 

@@ -16,8 +16,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from tandemscan.config.models import CellConfig
-from tandemscan.pipeline.installation import Installation
-from tandemscan.pipeline.plan import Plan
+from tandemscan.pipeline.planning.plan import Plan
+from tandemscan.pipeline.stitching.installation import Installation
 
 if TYPE_CHECKING:
     from tandemscan.daemon.observer import JobScorer

@@ -24,8 +24,8 @@ import numpy as np
 from tandemscan.daemon.snapshot import JobSnapshot
 from tandemscan.drivers.shared_array import share
 from tandemscan.drivers.worker import init_worker, stop_pool
-from tandemscan.pipeline.raw_scan import read_raw_scan, write_raw_scan
-from tandemscan.pipeline.worldmap import VoxelMap
+from tandemscan.pipeline.io.raw_scan import read_raw_scan, write_raw_scan
+from tandemscan.pipeline.stitching.worldmap import VoxelMap
 
 _MAP: VoxelMap | None = None  # the worker's map
 

@@ -30,7 +30,7 @@ from pathlib import Path
 
 from tandemscan.daemon.job_state import ACTIVE_STATES, FINAL_STATES, TransitionError, check_transition
 from tandemscan.daemon.jsonable import jsonable
-from tandemscan.pipeline.durable import write_durably
+from tandemscan.pipeline.io.durable import write_durably
 
 log = logging.getLogger(__name__)
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 from tandemscan.drivers.interfaces import Tracker, TrackerReading
-from tandemscan.pipeline import frames as F
+from tandemscan.pipeline.geometry import frames as F
 
 
 async def read_at_rest(tracker: Tracker, samples: int, timeout_s: float | None = None) -> TrackerReading:

@@ -31,7 +31,7 @@ from tandemscan.drivers.errors import (
 from tandemscan.drivers.interfaces import DeviceStatus
 from tandemscan.drivers.json_stream import JsonFramingError, JsonObjectFramer, encode
 from tandemscan.drivers.tasks import cancel_and_wait
-from tandemscan.pipeline.frames import from_rpy, to_rpy
+from tandemscan.pipeline.geometry.frames import from_rpy, to_rpy
 
 log = logging.getLogger(__name__)
 

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from tandemscan.config.models import TrackerStreamConfig
-from tandemscan.pipeline.frames import from_quaternion, make_transform, orthonormalize, to_quaternion
+from tandemscan.pipeline.geometry.frames import from_quaternion, make_transform, orthonormalize, to_quaternion
 
 KNOWN_FIELDS = {
     "frame", "device_time_s", "status", "x_mm", "y_mm", "z_mm", "qx", "qy", "qz", "qw",

@@ -18,8 +18,8 @@ from collections.abc import Callable
 import numpy as np
 import open3d as o3d
 from tandemscan.config.models import CellConfig, DentConfig, StepConfig, WarpConfig
-from tandemscan.pipeline.inspect import CadSurface
-from tandemscan.pipeline.part import load_part_mesh
+from tandemscan.pipeline.geometry.part import load_part_mesh
+from tandemscan.pipeline.inspection.inspect import CadSurface
 
 log = logging.getLogger(__name__)
 

@@ -19,7 +19,7 @@ from pathlib import Path
 from tandemscan.config.models import CellConfig
 from tandemscan.drivers.factory import ROLES, device_class
 from tandemscan.drivers.interfaces import Device
-from tandemscan.pipeline.installation import Installation
+from tandemscan.pipeline.stitching.installation import Installation
 from tandemscan.sim_drivers.hil import HilEmulators
 from tandemscan.sim_drivers.persist import keep_world_state, load_world_state
 from tandemscan.sim_drivers.scoring import CalibrationTruth, TruthObserver

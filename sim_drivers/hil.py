@@ -16,7 +16,7 @@ import numpy as np
 from tandemscan.config.models import CellConfig
 from tandemscan.drivers.interfaces import ChassisPose
 from tandemscan.drivers.tasks import cancel_and_wait
-from tandemscan.pipeline import frames as F
+from tandemscan.pipeline.geometry import frames as F
 from tandemscan.sim_drivers.emulators.agv_can import ChassisEmulator
 from tandemscan.sim_drivers.emulators.jaka import JakaBehaviour, JakaEmulator
 from tandemscan.sim_drivers.emulators.safety_modbus import SafetyIoEmulator

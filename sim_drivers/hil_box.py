@@ -14,8 +14,8 @@ import open3d as o3d
 import tomli_w
 from tandemscan.config import load_config
 from tandemscan.config.loader import default_config_path
-from tandemscan.pipeline.part import part_identity, read_mesh_file
-from tandemscan.pipeline.plan import Plan
+from tandemscan.pipeline.geometry.part import part_identity, read_mesh_file
+from tandemscan.pipeline.planning.plan import Plan
 
 BOX_PLAN = "box-band.toml"
 

@@ -12,9 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from tandemscan.config.models import CellConfig
-from tandemscan.pipeline import frames as F
-from tandemscan.pipeline.deviation_areas import DeviationArea
-from tandemscan.pipeline.inspect import CadSurface
+from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.inspection.deviation_areas import DeviationArea
+from tandemscan.pipeline.inspection.inspect import CadSurface
 from tandemscan.sim_drivers.as_built import normal_deviation
 
 CENTROID_MATCH_MM = 10.0  # a report area finds a deviation when its centroid is this close (same side)

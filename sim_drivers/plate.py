@@ -16,8 +16,8 @@ import open3d as o3d
 from numpy.typing import ArrayLike
 from tandemscan.config.models import CalibrationConfig, ScannerConfig, TrackerConfig
 from tandemscan.pipeline.calibration.plate import nominal_centres_P
-from tandemscan.pipeline.frames import from_rotvec, invert, transform_points
-from tandemscan.pipeline.raycast import make_scene
+from tandemscan.pipeline.geometry.frames import from_rotvec, invert, transform_points
+from tandemscan.pipeline.geometry.raycast import make_scene
 from tandemscan.sim_drivers.world import SimWorld
 
 

@@ -26,8 +26,8 @@ _MODEL = None
 
 def _init(part: PartConfig, scanner: ScannerConfig, niceness: int) -> None:
     global _SCENE, _MODEL
-    from tandemscan.pipeline.part import load_part_mesh
-    from tandemscan.pipeline.raycast import ScannerModel, make_scene
+    from tandemscan.pipeline.geometry.part import load_part_mesh
+    from tandemscan.pipeline.geometry.raycast import ScannerModel, make_scene
 
     init_worker(niceness)
     _SCENE = make_scene(load_part_mesh(part))

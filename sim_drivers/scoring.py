@@ -15,12 +15,12 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-from tandemscan.pipeline import frames as F
-from tandemscan.pipeline.deviation_areas import DeviationArea
-from tandemscan.pipeline.inspect import CadSurface
-from tandemscan.pipeline.installation import Installation
-from tandemscan.pipeline.part import load_part_mesh
-from tandemscan.pipeline.scoring import cloud_to_mesh_distances, distance_stats, pose_errors
+from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.geometry.part import load_part_mesh
+from tandemscan.pipeline.inspection.deviation_areas import DeviationArea
+from tandemscan.pipeline.inspection.inspect import CadSurface
+from tandemscan.pipeline.inspection.scoring import cloud_to_mesh_distances, distance_stats, pose_errors
+from tandemscan.pipeline.stitching.installation import Installation
 from tandemscan.sim_drivers.inspection_score import alignment_error, deviation_truths, score_areas
 from tandemscan.sim_drivers.world import GroundTruth, SimWorld
 

@@ -16,10 +16,10 @@ import open3d as o3d
 from tandemscan.config.models import CellConfig, ChassisConfig, FloorPoseConfig
 from tandemscan.drivers.errors import OutOfReach, TargetNotVisible
 from tandemscan.drivers.interfaces import ChassisPose
-from tandemscan.pipeline import frames as F
-from tandemscan.pipeline.installation import Installation
-from tandemscan.pipeline.kinematics import ArmKinematics, arm_base_on_column
-from tandemscan.pipeline.raycast import ScannerModel, make_scene
+from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.geometry.kinematics import ArmKinematics, arm_base_on_column
+from tandemscan.pipeline.geometry.raycast import ScannerModel, make_scene
+from tandemscan.pipeline.stitching.installation import Installation
 from tandemscan.sim_drivers.as_built import scanned_part_mesh
 
 log = logging.getLogger(__name__)

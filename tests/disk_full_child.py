@@ -17,7 +17,7 @@ import open3d as o3d
 from tandemscan.config import load_config
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.service import Daemon
-from tandemscan.pipeline.plan import Plan
+from tandemscan.pipeline.planning.plan import Plan
 
 PLAN_STEPS = (0, 1, 2, 3, 4, 13, 14, 15, 16)
 TMPFS_MB = 64

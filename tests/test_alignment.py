@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from tandemscan.config.models import InspectionConfig, PartConfig, ReferenceSphereConfig, RegionConfig
-from tandemscan.pipeline import frames as F
-from tandemscan.pipeline.alignment import align, align_plan_stations, align_stations, fit_to_surface
-from tandemscan.pipeline.inspect import CadSurface, InspectionError
-from tandemscan.pipeline.part import train_nose_mesh
-from tandemscan.pipeline.plan import Plan
+from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.geometry.part import train_nose_mesh
+from tandemscan.pipeline.inspection.alignment import align, align_plan_stations, align_stations, fit_to_surface
+from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionError
+from tandemscan.pipeline.planning.plan import Plan
 
 CENTRE_F = np.array([0.0, 0.0, 800.0])  # the default part's centre
 SPHERE_R = 19.05

@@ -7,7 +7,7 @@ import pytest
 from tandemscan.pipeline.calibration.hand_eye import CLOSED_FORM, METHODS, HandEyeError, _skew, solve_hand_eye
 from tandemscan.pipeline.calibration.plate import nominal_centres_P, plate_frame, plate_frame_covariance
 from tandemscan.pipeline.calibration.poses import plate_view_poses
-from tandemscan.pipeline.frames import from_rotvec, from_rpy, invert, pose_error, transform_points
+from tandemscan.pipeline.geometry.frames import from_rotvec, from_rpy, invert, pose_error, transform_points
 from tandemscan.sim_drivers.plate import hand_eye_dataset
 
 X_TRUE = from_rpy([3.0, -88.0, 42.0], np.radians([179.2, 0.4, -0.3]))

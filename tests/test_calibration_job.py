@@ -10,8 +10,8 @@ from tandemscan.daemon.calibrate import run_calibration
 from tandemscan.daemon.correction import mount_prior
 from tandemscan.daemon.runner import installation_for_job
 from tandemscan.daemon.session import CellSession
-from tandemscan.pipeline import frames as F
-from tandemscan.pipeline.installation import Installation
+from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.stitching.installation import Installation
 
 
 async def test_calibration_job_recovers_the_true_scanner_mount(sim_config, tmp_path):

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from tandemscan.pipeline.calibration.mounts import MountError, mount_from_turns, relative_motions, turn_axis
-from tandemscan.pipeline.frames import from_rotvec, from_rpy, invert, planar_pose
+from tandemscan.pipeline.geometry.frames import from_rotvec, from_rpy, invert, planar_pose
 
 T_V_C_NOMINAL = from_rpy([0.0, 0.0, 1900.0], np.radians([-100.0, 0.0, -90.0]))
 T_V_C_TRUE = T_V_C_NOMINAL @ from_rotvec([2.1, -1.7, 1.2], np.radians([0.3, -0.25, 0.2]))

@@ -17,7 +17,7 @@ from tandemscan.pipeline.calibration.plate import (
     plate_frame_covariance,
 )
 from tandemscan.pipeline.calibration.poses import calibration_views
-from tandemscan.pipeline.frames import invert, pose_error, transform_points
+from tandemscan.pipeline.geometry.frames import invert, pose_error, transform_points
 from tandemscan.sim_drivers.plate import plate_mesh, scan_plate
 
 

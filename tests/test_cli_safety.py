@@ -20,7 +20,7 @@ from tandemscan.daemon.session import CellSession
 from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT, MotionInterlock
 from tandemscan.drivers.errors import SafetyStop
 from tandemscan.drivers.interfaces import ChassisPose
-from tandemscan.pipeline.plan import Plan
+from tandemscan.pipeline.planning.plan import Plan
 from tandemscan.sim_drivers.hil_box import BOX_PLAN, write_hil_box_cell
 
 

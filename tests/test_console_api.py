@@ -21,8 +21,8 @@ from tandemscan.daemon.console.cloud_view import DEVIATION_COLOURS, VIEW_FILE, v
 from tandemscan.daemon.console.router import ASSETS, plan_view
 from tandemscan.daemon.plans import PlanCatalog
 from tandemscan.daemon.service import Daemon, running_server
-from tandemscan.pipeline.export import write_ply
-from tandemscan.pipeline.plan import MoveMeasure, MoveTracker, Scan
+from tandemscan.pipeline.io.export import write_ply
+from tandemscan.pipeline.planning.plan import MoveMeasure, MoveTracker, Scan
 from tandemscan.sim_drivers.cell import Simulation
 from tandemscan.sim_drivers.world import SimWorld
 
@@ -181,7 +181,7 @@ def test_cloud_view_thins_to_200k_keeps_deviations_and_the_report_scale(tmp_path
 
 def test_cloud_view_colours_are_the_reports_colour_map():
     from matplotlib.colors import to_rgb
-    from tandemscan.pipeline.deviation_maps import DEVIATION_CMAP
+    from tandemscan.pipeline.inspection.deviation_maps import DEVIATION_CMAP
 
     stops = DEVIATION_CMAP.resampled(len(DEVIATION_COLOURS))  # the map's colours at its evenly spaced stops
     for k, hex_colour in enumerate(DEVIATION_COLOURS):

@@ -6,7 +6,7 @@ import pytest
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.session import CellSession
-from tandemscan.pipeline.plan import Plan, Scan
+from tandemscan.pipeline.planning.plan import Plan, Scan
 
 
 def _first_scans(plan: Plan, n: int) -> Plan:

@@ -17,7 +17,7 @@ from tandemscan.daemon.api import create_app
 from tandemscan.daemon.cell import build_cell
 from tandemscan.daemon.client import SseParser
 from tandemscan.daemon.service import BindRefused, Daemon, check_bind, resolve_state_dir, resolve_token, running_server
-from tandemscan.pipeline.plan import MoveArm, Plan, Scan
+from tandemscan.pipeline.planning.plan import MoveArm, Plan, Scan
 from tandemscan.sim_drivers.cell import Simulation
 from tandemscan.sim_drivers.world import SimWorld
 

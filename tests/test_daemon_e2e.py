@@ -25,7 +25,7 @@ from tandemscan.config import load_config
 from tandemscan.daemon.api import create_app
 from tandemscan.daemon.client import SseParser
 from tandemscan.daemon.service import Daemon, running_server
-from tandemscan.pipeline.cloud_io import read_ply
+from tandemscan.pipeline.io.cloud_io import read_ply
 
 TOKEN = "e2e-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}

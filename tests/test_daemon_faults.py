@@ -21,7 +21,7 @@ from tandemscan.config.models import CellConfig
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.service import Daemon
 from tandemscan.drivers.interfaces import ChassisPose
-from tandemscan.pipeline.plan import Plan
+from tandemscan.pipeline.planning.plan import Plan
 from tandemscan.sim_drivers.fake_harvesters import core as fake_harvesters
 from test_drivers_hil import box_part, hil_config  # noqa: F401 (box_part is a fixture)
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from tandemscan.daemon.recovery import recover
 from tandemscan.daemon.store import IdempotencyConflict, JobStore, StoreError
-from tandemscan.pipeline.raw_scan import RawScanError, read_raw_scan, write_raw_scan
+from tandemscan.pipeline.io.raw_scan import RawScanError, read_raw_scan, write_raw_scan
 
 
 def _write_scan(store, job_id, step_idx, points, normals=None):
@@ -101,7 +101,7 @@ _CRASHER = textwrap.dedent("""
     import os, signal, sys
     import numpy as np
     from tandemscan.daemon.store import JobStore
-    from tandemscan.pipeline.raw_scan import write_raw_scan
+    from tandemscan.pipeline.io.raw_scan import write_raw_scan
     store = JobStore(sys.argv[1])
     job, _ = store.create_job("p", {}, 3)
     store.set_state(job.id, "running")

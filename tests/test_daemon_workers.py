@@ -18,7 +18,7 @@ import pytest
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.drivers.interfaces import ChassisPose
 from tandemscan.drivers.shared_array import PREFIX, SHM_DIR, SharedArray, hand_over, remove_stale_blocks, share, take
-from tandemscan.pipeline.plan import MoveArm, MoveMeasure, Plan
+from tandemscan.pipeline.planning.plan import MoveArm, MoveMeasure, Plan
 from tandemscan.sim_drivers.scan_process import ScanProcess
 from tandemscan.sim_drivers.world import SimWorld
 

@@ -10,8 +10,8 @@ import torch
 from tandemscan.daemon.cli import main
 from tandemscan.pipeline.deepmerge.register import DeepMergeRegistrar, RegistrationError, shipped_weights_path
 from tandemscan.pipeline.deepmerge.train import TrainSettings, make_pool, perturb, train
-from tandemscan.pipeline.export import write_ply
-from tandemscan.pipeline.frames import from_rotvec, invert, pose_error, transform_points
+from tandemscan.pipeline.geometry.frames import from_rotvec, invert, pose_error, transform_points
+from tandemscan.pipeline.io.export import write_ply
 
 TINY = TrainSettings(seed=3, train_pairs=6, val_pairs=2, shapes_per_pool=3, num_points=64, k=8,
                      widths=(8, 8, 16, 16, 32), batch_size=6, steps=50, lr=3e-3, use_part=False,

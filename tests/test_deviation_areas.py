@@ -7,9 +7,9 @@ import numpy as np
 import open3d as o3d
 import pytest
 from tandemscan.config.models import InspectionConfig
-from tandemscan.pipeline.deviation_areas import find_deviation_areas
-from tandemscan.pipeline.inspect import CadSurface, inspect_cloud
-from tandemscan.pipeline.report import build_report
+from tandemscan.pipeline.inspection.deviation_areas import find_deviation_areas
+from tandemscan.pipeline.inspection.inspect import CadSurface, inspect_cloud
+from tandemscan.pipeline.inspection.report import build_report
 
 
 def bell(points, centre, radius, depth):

@@ -22,7 +22,7 @@ from tandemscan.drivers.jaka_tcp import JakaTcpArm
 from tandemscan.drivers.metronor import MetronorTracker
 from tandemscan.drivers.phoxi import PhoxiScanner
 from tandemscan.drivers.safety_modbus import ModbusSafetyIO
-from tandemscan.pipeline import frames as F
+from tandemscan.pipeline.geometry import frames as F
 from tandemscan.sim_drivers.twins import SimArm
 
 
@@ -157,7 +157,7 @@ async def test_a_job_on_the_hil_cell_needs_no_ground_truth_and_is_inspected(box_
     job's own anchor reading by a best fit to the configured CAD and reports its verdict."""
     from tandemscan.daemon.cli import default_plan_path
     from tandemscan.daemon.runner import JobRunner
-    from tandemscan.pipeline.plan import Plan, Scan
+    from tandemscan.pipeline.planning.plan import Plan, Scan
 
     cfg = hil_config(box_part)
     cfg = cfg.model_copy(update={

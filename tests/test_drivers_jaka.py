@@ -11,8 +11,8 @@ from tandemscan.config.models import ArmConfig, JakaTcpConfig
 from tandemscan.drivers import Arm, DeviceFault, DeviceTimeout, NotConnected, OutOfReach, SafetyStop
 from tandemscan.drivers.jaka_tcp import JakaTcpArm
 from tandemscan.drivers.json_stream import JsonFramingError, JsonObjectFramer
-from tandemscan.pipeline.frames import pose_error
-from tandemscan.pipeline.kinematics import ArmKinematics
+from tandemscan.pipeline.geometry.frames import pose_error
+from tandemscan.pipeline.geometry.kinematics import ArmKinematics
 from tandemscan.sim_drivers.emulators.jaka import JakaBehaviour, JakaEmulator
 
 Q_HOME = np.radians([0.0, 90.0, -60.0, 90.0, 90.0, 0.0])

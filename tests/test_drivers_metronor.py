@@ -14,7 +14,7 @@ from tandemscan.config.models import TrackerConfig, TrackerStreamConfig
 from tandemscan.drivers import DeviceFault, DeviceTimeout, NotConnected, TargetNotVisible, Tracker
 from tandemscan.drivers.metronor import MetronorTracker
 from tandemscan.drivers.pose_stream import PoseFrameError, PoseSample, PoseStreamAdapter
-from tandemscan.pipeline.frames import from_rpy, pose_error
+from tandemscan.pipeline.geometry.frames import from_rpy, pose_error
 from tandemscan.sim_drivers.emulators.tracker import TrackerStreamEmulator, fixed_pose_source
 
 T_TRUE = from_rpy([120.0, -340.0, 2900.0], np.radians([170.0, 12.0, -35.0]))

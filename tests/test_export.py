@@ -8,8 +8,8 @@ import numpy as np
 import open3d as o3d
 import pye57
 import pytest
-from tandemscan.pipeline.export import ExportError, PosedScan, write_e57, write_ply, write_pose_log
-from tandemscan.pipeline.frames import from_quaternion, from_rpy, pose_error
+from tandemscan.pipeline.geometry.frames import from_quaternion, from_rpy, pose_error
+from tandemscan.pipeline.io.export import ExportError, PosedScan, write_e57, write_ply, write_pose_log
 
 
 def make_scans(n_scans=3, seed=0):

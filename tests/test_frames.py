@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from tandemscan.pipeline import frames as F
+from tandemscan.pipeline.geometry import frames as F
 
 finite = st.floats(-5000, 5000, allow_nan=False)
 angles = st.floats(-np.pi, np.pi, allow_nan=False)

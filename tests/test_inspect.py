@@ -8,8 +8,8 @@ import open3d as o3d
 import pytest
 from scipy.spatial import cKDTree
 from tandemscan.config.models import InspectionConfig, RegionConfig
-from tandemscan.pipeline.frames import from_rotvec, invert, transform_points
-from tandemscan.pipeline.inspect import (
+from tandemscan.pipeline.geometry.frames import from_rotvec, invert, transform_points
+from tandemscan.pipeline.inspection.inspect import (
     CadSurface,
     DeviationStats,
     InspectionError,

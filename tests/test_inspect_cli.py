@@ -68,7 +68,7 @@ def test_bad_input_is_one_error_line_and_exit_2(files, tmp_path, capsys, case, n
 def test_misplaced_cloud_is_aligned_and_its_dent_reported_in_cad_coordinates(tmp_path, capsys):
     """A closed box scanned all round with a 0.3 mm dent, given 5 deg and 40 mm off CAD: the best fit puts
     it back, the report fails it with one lower area at the dent (CAD mm)."""
-    from tandemscan.pipeline import frames as F
+    from tandemscan.pipeline.geometry import frames as F
 
     mesh = o3d.geometry.TriangleMesh.create_box(400.0, 200.0, 100.0)
     cad = tmp_path / "box.stl"

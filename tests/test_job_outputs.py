@@ -12,7 +12,7 @@ from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.session import CellSession
 from tandemscan.daemon.stitcher import LocalWorldMap
-from tandemscan.pipeline.plan import Plan, Scan
+from tandemscan.pipeline.planning.plan import Plan, Scan
 
 
 class PerfectlyCorrectedRunner(JobRunner):

@@ -6,8 +6,8 @@ import numpy as np
 import open3d as o3d
 import pytest
 from tandemscan.config.models import PartConfig
-from tandemscan.pipeline.kinematics import ArmKinematics
-from tandemscan.pipeline.part import (
+from tandemscan.pipeline.geometry.kinematics import ArmKinematics
+from tandemscan.pipeline.geometry.part import (
     PartMeshError,
     is_closed,
     load_part_mesh,

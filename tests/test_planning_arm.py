@@ -8,8 +8,9 @@ import numpy as np
 import open3d as o3d
 import pytest
 from tandemscan.config.models import ArmConfig, InstallationConfig, PlanningConfig, ScannerConfig
-from tandemscan.pipeline import frames as F
-from tandemscan.pipeline.kinematics import ArmKinematics
+from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.geometry.kinematics import ArmKinematics
+from tandemscan.pipeline.geometry.raycast import make_scene
 from tandemscan.pipeline.planning.arm import (
     ArmSetup,
     _snake,
@@ -21,7 +22,6 @@ from tandemscan.pipeline.planning.arm import (
 )
 from tandemscan.pipeline.planning.ik import AnalyticIK
 from tandemscan.pipeline.planning.stations import AgvStation
-from tandemscan.pipeline.raycast import make_scene
 
 SCANNER = ScannerConfig()
 PLANNING = PlanningConfig()

@@ -6,9 +6,9 @@ import numpy as np
 import open3d as o3d
 import pytest
 from tandemscan.config.models import CellConfig, ScannerConfig
-from tandemscan.pipeline import frames as F
+from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.geometry.raycast import ScannerModel, make_scene
 from tandemscan.pipeline.planning.ik import AnalyticIK
-from tandemscan.pipeline.raycast import ScannerModel, make_scene
 
 
 @pytest.mark.parametrize("model", ["zu7", "zu12"])

@@ -16,15 +16,21 @@ from tandemscan.daemon.runner import JobError, JobRunner
 from tandemscan.daemon.session import CellSession
 from tandemscan.drivers.errors import OutOfReach, SafetyStop
 from tandemscan.drivers.interfaces import Lift
-from tandemscan.pipeline import frames as F
-from tandemscan.pipeline.installation import Installation
-from tandemscan.pipeline.kinematics import ArmKinematics
-from tandemscan.pipeline.part import barrel_panel_mesh, is_closed, load_part_mesh, part_identity, read_mesh_file
-from tandemscan.pipeline.plan import MoveArm, MoveLift, MoveMeasure, Plan, Scan
+from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.geometry.kinematics import ArmKinematics
+from tandemscan.pipeline.geometry.part import (
+    barrel_panel_mesh,
+    is_closed,
+    load_part_mesh,
+    part_identity,
+    read_mesh_file,
+)
+from tandemscan.pipeline.geometry.raycast import make_scene
 from tandemscan.pipeline.planning.coverage import REASON_REACH, REASON_TRACKER, dry_run
+from tandemscan.pipeline.planning.plan import MoveArm, MoveLift, MoveMeasure, Plan, Scan
 from tandemscan.pipeline.planning.planner import plan_part
-from tandemscan.pipeline.raycast import make_scene
-from tandemscan.pipeline.relocalise import Relocaliser
+from tandemscan.pipeline.stitching.installation import Installation
+from tandemscan.pipeline.stitching.relocalise import Relocaliser
 
 LARGE_CELL = default_plan_path().parents[1] / "large-cell.example.toml"
 

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from tandemscan.config import load_config
 from tandemscan.daemon.cli import main
-from tandemscan.pipeline import frames as F
-from tandemscan.pipeline.plan import MoveArm, MoveMeasure, MoveTracker, Plan, Scan
+from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.planning.coverage import dry_run
+from tandemscan.pipeline.planning.plan import MoveArm, MoveMeasure, MoveTracker, Plan, Scan
 from tandemscan.pipeline.planning.planner import plan_part
 from tandemscan.pipeline.planning.tracker import is_valid_chain
 from tandemscan.sim_drivers.world import SimWorld

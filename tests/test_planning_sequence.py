@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from tandemscan.pipeline.plan import MoveArm, MoveMeasure, MoveTracker, Plan, Scan
+from tandemscan.pipeline.planning.plan import MoveArm, MoveMeasure, MoveTracker, Plan, Scan
 from tandemscan.pipeline.planning.sequence import PoseRef, SequenceError, build_sequence
 
 HOME = np.zeros(6)

@@ -8,7 +8,8 @@ import numpy as np
 import open3d as o3d
 import pytest
 from tandemscan.config.models import PlanningConfig, TrackerConfig
-from tandemscan.pipeline import frames as F
+from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.geometry.raycast import make_scene
 from tandemscan.pipeline.planning.tracker import (
     TrackerPlanningError,
     candidate_poses,
@@ -18,7 +19,6 @@ from tandemscan.pipeline.planning.tracker import (
     solve_exact,
     solve_greedy,
 )
-from tandemscan.pipeline.raycast import make_scene
 
 
 def brute_force_optimum(cover: np.ndarray, first: int | None = None) -> int:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from tandemscan.config.models import CorrectionConfig
-from tandemscan.pipeline.frames import compose, from_rotvec, invert, pose_error, transform_points
+from tandemscan.pipeline.geometry.frames import compose, from_rotvec, invert, pose_error, transform_points
 from tandemscan.pipeline.registration.correction import StitchedScan, correct_scans
 from tandemscan.pipeline.registration.icp import target_with_normals
 from tandemscan.pipeline.registration.pairs import correct_pair, register_pair

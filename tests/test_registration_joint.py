@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from tandemscan.pipeline.frames import from_rotvec, invert, pose_error, transform_points
+from tandemscan.pipeline.geometry.frames import from_rotvec, invert, pose_error, transform_points
 from tandemscan.pipeline.registration.icp import RefineError
 from tandemscan.pipeline.registration.joint import JointScan, JointSettings, refine_jointly
 from tandemscan.pipeline.registration.mounts import MountPrior

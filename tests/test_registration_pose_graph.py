@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from tandemscan.pipeline.frames import compose, from_rotvec, invert, pose_error
+from tandemscan.pipeline.geometry.frames import compose, from_rotvec, invert, pose_error
 from tandemscan.pipeline.registration.icp import RefineError, icp_point_to_plane, point_to_plane_information
 from tandemscan.pipeline.registration.pose_graph import PairEdge, ScanPrior, TransferPrior, refine_poses
 
@@ -116,7 +116,7 @@ def test_pose_graph_rejects_bad_edges_and_covariances():
 
 
 def test_scan_covariance_carries_target_rotation_to_the_scan_origin():
-    from tandemscan.pipeline.uncertainty import scan_pose_covariance
+    from tandemscan.pipeline.geometry.uncertainty import scan_pose_covariance
 
     reading = np.diag([0.01**2] * 3 + [1e-5**2] * 3)
     T_T_S = from_rotvec([0, 0, 100.0], [0, 0, 0])      # scanner 100 mm along the target's z
@@ -131,7 +131,7 @@ def test_scan_covariance_carries_target_rotation_to_the_scan_origin():
 
 
 def test_transfer_covariance_adds_both_readings_in_world_axes():
-    from tandemscan.pipeline.uncertainty import transfer_covariance
+    from tandemscan.pipeline.geometry.uncertainty import transfer_covariance
 
     before = np.diag([1.0, 4.0, 9.0, 1e-8, 2e-8, 3e-8])
     after = np.diag([0.5, 0.5, 0.5, 1e-8, 1e-8, 1e-8])
@@ -143,7 +143,7 @@ def test_transfer_covariance_adds_both_readings_in_world_axes():
 
 
 def test_covariance_about_another_centre_adds_the_rotation_lever():
-    from tandemscan.pipeline.uncertainty import covariance_about
+    from tandemscan.pipeline.geometry.uncertainty import covariance_about
 
     rng = np.random.default_rng(4)
     C = np.diag([0.01, 0.02, 0.03, 1e-6, 2e-6, 3e-6])
@@ -186,9 +186,9 @@ def _mount_scans(D_true: np.ndarray, tilt_deg: float, seed: int = 5):
     """Nine scans of a relief on a 3x3 grid (100 mm apart, 130 mm radius: neighbours overlap), each from
     its own scanner orientation (tilts up to ``tilt_deg`` about x and y, any yaw), stitched through the
     tracker (reading noise) and a mount ``X_used`` off the true one: ``X_true = X_used D_true``."""
-    from tandemscan.pipeline.frames import from_rpy, transform_points
+    from tandemscan.pipeline.geometry.frames import from_rpy, transform_points
+    from tandemscan.pipeline.geometry.uncertainty import scan_pose_covariance
     from tandemscan.pipeline.registration.correction import StitchedScan
-    from tandemscan.pipeline.uncertainty import scan_pose_covariance
 
     rng = np.random.default_rng(seed)
     X_true = from_rpy([0.0, -90.0, 40.0], [np.pi, 0.0, 0.0])

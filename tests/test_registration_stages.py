@@ -12,7 +12,7 @@ import open3d as o3d
 import pytest
 from tandemscan.config.models import CorrectionConfig, DeepMergeConfig
 from tandemscan.daemon.cli import main
-from tandemscan.pipeline.frames import from_rotvec, invert, pose_error, transform_points
+from tandemscan.pipeline.geometry.frames import from_rotvec, invert, pose_error, transform_points
 from tandemscan.pipeline.registration.global_registration import FeatureMatching, fpfh_ransac
 from tandemscan.pipeline.registration.icp import (
     FineSchedule,

@@ -12,10 +12,10 @@ from pydantic import ValidationError
 from tandemscan.config import load_config
 from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.session import CellSession
-from tandemscan.pipeline import frames as F
-from tandemscan.pipeline.plan import MoveArm, MoveMeasure, MoveTracker, Plan, Scan
+from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.planning.plan import MoveArm, MoveMeasure, MoveTracker, Plan, Scan
 from tandemscan.pipeline.planning.planner import plan_part
-from tandemscan.pipeline.relocalise import Relocaliser, nearby_views
+from tandemscan.pipeline.stitching.relocalise import Relocaliser, nearby_views
 from tandemscan.sim_drivers.world import SimWorld
 
 

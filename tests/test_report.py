@@ -13,7 +13,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 from tandemscan.config.models import InspectionConfig
-from tandemscan.pipeline.deviation_maps import (
+from tandemscan.pipeline.inspection.deviation_maps import (
     DEVIATION_CMAP,
     View,
     coverage_map_png,
@@ -21,9 +21,9 @@ from tandemscan.pipeline.deviation_maps import (
     measured_triangles,
     render_view,
 )
-from tandemscan.pipeline.inspect import CadSurface, inspect_cloud
-from tandemscan.pipeline.report import build_report, write_report
-from tandemscan.pipeline.stitch_quality import overlap_quality
+from tandemscan.pipeline.inspection.inspect import CadSurface, inspect_cloud
+from tandemscan.pipeline.inspection.report import build_report, write_report
+from tandemscan.pipeline.inspection.stitch_quality import overlap_quality
 
 
 def grid_on_face(z_mm, size=(400.0, 200.0), step=2.0):
@@ -167,7 +167,7 @@ def test_report_renders_in_headless_chromium(written, tmp_path):
 
 
 def test_isometric_view_looks_at_the_measured_side():
-    from tandemscan.pipeline.deviation_maps import STANDARD_VIEWS, facing_isometric
+    from tandemscan.pipeline.inspection.deviation_maps import STANDARD_VIEWS, facing_isometric
 
     v = facing_isometric(np.tile([0.0, 1.0, 0.2], (50, 1)))  # surface facing +y (and a little up)
     assert v.forward[1] < 0 and v.forward[2] < 0 and abs(v.forward[0]) < 1e-12  # eye at +y, above

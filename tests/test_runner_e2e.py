@@ -9,8 +9,8 @@ import pytest
 from tandemscan.daemon.cli import default_plan_path, main
 from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.session import CellSession
-from tandemscan.pipeline.cloud_io import read_ply
-from tandemscan.pipeline.plan import MoveTracker, Plan, Scan
+from tandemscan.pipeline.io.cloud_io import read_ply
+from tandemscan.pipeline.planning.plan import MoveTracker, Plan, Scan
 
 
 def short_plan() -> Plan:

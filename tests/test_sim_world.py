@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from tandemscan.daemon.cell import build_cell
 from tandemscan.drivers import ChassisPose, NotConnected, OutOfReach, SafetyStop, TargetNotVisible
-from tandemscan.pipeline import frames as F
-from tandemscan.pipeline.scoring import cloud_to_mesh_distances
+from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.inspection.scoring import cloud_to_mesh_distances
 
 
 @pytest.fixture
@@ -23,7 +23,7 @@ async def cell(sim_config):
 async def _face_the_side(cell):
     """Arm pose of the shipped plan's first scan: the scanner faces the part's side at the sweet spot."""
     from tandemscan.daemon.cli import default_plan_path
-    from tandemscan.pipeline.plan import MoveArm, MoveMeasure, Plan
+    from tandemscan.pipeline.planning.plan import MoveArm, MoveMeasure, Plan
 
     plan = Plan.load(default_plan_path())
     move = next(s for s in plan.steps if isinstance(s, MoveMeasure))

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from tandemscan.daemon.cli import default_plan_path
-from tandemscan.pipeline.plan import MoveTracker, Plan, PlanError, Scan
-from tandemscan.pipeline.worldmap import VoxelMap
+from tandemscan.pipeline.planning.plan import MoveTracker, Plan, PlanError, Scan
+from tandemscan.pipeline.stitching.worldmap import VoxelMap
 
 
 def test_voxel_map_merges_points_per_voxel():

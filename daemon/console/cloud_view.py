@@ -30,7 +30,7 @@ VIEW_POINTS = 200_000
 VIEW_FILE = "console-view.bin"  # cached in the job folder: a finished job's cloud does not change
 MEDIA_TYPE = "application/octet-stream"
 
-# The report's deviation colour map, below CAD to above (tandemscan.pipeline.deviation_maps.DEVIATION_CMAP,
+# The report's deviation colour map, below CAD to above (tandemscan.pipeline.inspection.deviation_maps.DEVIATION_CMAP,
 # which this module does not import: that pulls matplotlib and Open3D into the daemon's process).
 DEVIATION_COLOURS = ("#1d3fbf", "#20b7e0", "#2fbf4a", "#f2e02a", "#d7261e")
 
@@ -75,7 +75,7 @@ class CloudView:
 
 
 def read_binary_ply(path: Path) -> dict[str, np.ndarray]:
-    """The vertex properties of a binary little-endian PLY (what :func:`tandemscan.pipeline.export.write_ply`
+    """The vertex properties of a binary little-endian PLY (what :func:`tandemscan.pipeline.io.export.write_ply`
     writes) by name; raises :class:`CloudViewError` for any other layout."""
     try:
         with path.open("rb") as f:

@@ -22,7 +22,7 @@ from pydantic import BaseModel, Field
 from tandemscan.daemon.api import PROBLEM_RESPONSES, ApiProblem, JobId
 from tandemscan.daemon.console.cloud_view import MEDIA_TYPE, CloudViewError, view_file
 from tandemscan.drivers.errors import DeviceError
-from tandemscan.pipeline.plan import MoveMeasure, MoveTracker, Plan
+from tandemscan.pipeline.planning.plan import MoveMeasure, MoveTracker, Plan
 
 if TYPE_CHECKING:
     from tandemscan.daemon.service import Daemon

@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
-from tandemscan.pipeline.frames import invert, make_transform
+from tandemscan.pipeline.geometry.frames import invert, make_transform
 
 log = logging.getLogger(__name__)
 

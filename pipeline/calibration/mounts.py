@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 from tandemscan.pipeline.calibration.hand_eye import HandEyeResult, solve_hand_eye
-from tandemscan.pipeline.frames import invert, make_transform
+from tandemscan.pipeline.geometry.frames import invert, make_transform
 
 log = logging.getLogger(__name__)
 

@@ -21,7 +21,7 @@ from numpy.typing import ArrayLike
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 from tandemscan.config.models import CalibrationConfig
-from tandemscan.pipeline.frames import make_transform
+from tandemscan.pipeline.geometry.frames import make_transform
 
 log = logging.getLogger(__name__)
 

@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 from tandemscan.config.models import CalibrationConfig, ScannerConfig
-from tandemscan.pipeline.frames import invert, make_transform
-from tandemscan.pipeline.kinematics import ArmKinematics
+from tandemscan.pipeline.geometry.frames import invert, make_transform
+from tandemscan.pipeline.geometry.kinematics import ArmKinematics
 
 
 def look_at(eye_mm: ArrayLike, target_mm: ArrayLike, roll_rad: float = 0.0) -> np.ndarray:

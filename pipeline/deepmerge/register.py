@@ -18,7 +18,7 @@ import torch
 from numpy.typing import ArrayLike
 from tandemscan.pipeline.deepmerge.features import plane_normals, point_structure, reference_direction
 from tandemscan.pipeline.deepmerge.model import DeepMerge
-from tandemscan.pipeline.frames import make_transform
+from tandemscan.pipeline.geometry.frames import make_transform
 from tandemscan.pipeline.registration.sampling import voxel_downsample
 
 log = logging.getLogger(__name__)

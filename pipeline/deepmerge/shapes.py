@@ -3,7 +3,7 @@
 Families: smooth blobs (a sphere with random low-frequency radial relief and anisotropic scale), panels
 (height fields with bumps and waves, one-sided like a scanned skin), and assemblies of boxes, cylinders,
 cones and tori (sharp edges). When the project's part generator is importable the simulated part
-(``tandemscan.pipeline.part.load_part_mesh``) joins the pool.
+(``tandemscan.pipeline.geometry.part.load_part_mesh``) joins the pool.
 """
 
 from __future__ import annotations
@@ -81,7 +81,7 @@ def simulated_part_mesh() -> o3d.geometry.TriangleMesh | None:
     """The default simulated part, when the part generator is part of this install; else None."""
     try:
         from tandemscan.config.models import PartConfig
-        from tandemscan.pipeline.part import load_part_mesh
+        from tandemscan.pipeline.geometry.part import load_part_mesh
     except ImportError:
         return None
     return load_part_mesh(PartConfig())

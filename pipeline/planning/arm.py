@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 from tandemscan.config.models import ArmConfig, PlanningConfig, ScannerConfig
-from tandemscan.pipeline import frames as F
-from tandemscan.pipeline.kinematics import arm_base_on_column
+from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.geometry.kinematics import arm_base_on_column
 from tandemscan.pipeline.planning.stations import AgvStation, footprint_height_mm, footprint_width_mm
 
 log = logging.getLogger(__name__)

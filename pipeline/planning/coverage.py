@@ -16,9 +16,9 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 from tandemscan.config.models import ScannerConfig
-from tandemscan.pipeline.plan import LeftOutArea
+from tandemscan.pipeline.geometry.raycast import ScannerModel
 from tandemscan.pipeline.planning.arm import StationRaster
-from tandemscan.pipeline.raycast import ScannerModel
+from tandemscan.pipeline.planning.plan import LeftOutArea
 
 _FLOOR_CLEARANCE_MM = 150.0  # the scanner body needs this much room above the floor
 _DRY_RUN_PIXELS = (64, 50)

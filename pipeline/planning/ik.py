@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 from tandemscan.config.models import ArmConfig
-from tandemscan.pipeline.kinematics import ArmKinematics
+from tandemscan.pipeline.geometry.kinematics import ArmKinematics
 
 _ALPHA_PATTERN = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0])
 

@@ -16,15 +16,15 @@ import numpy as np
 import open3d as o3d
 from shapely.geometry import Point
 from tandemscan.config.models import CellConfig
-from tandemscan.pipeline import frames as F
-from tandemscan.pipeline.part import part_identity
+from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.geometry.part import part_identity
+from tandemscan.pipeline.geometry.raycast import make_scene
 from tandemscan.pipeline.planning.arm import ArmSetup, IkSolver, ScanPose, StationRaster, plan_arm
 from tandemscan.pipeline.planning.coverage import CoverageReport, dry_run
 from tandemscan.pipeline.planning.ik import default_ik
 from tandemscan.pipeline.planning.sequence import PoseRef, Sequence, build_sequence
 from tandemscan.pipeline.planning.stations import StationLayout, free_floor, offset_ring, place_stations
 from tandemscan.pipeline.planning.tracker import TrackerSolution, candidate_poses, choose_stations, cover_matrix
-from tandemscan.pipeline.raycast import make_scene
 
 log = logging.getLogger(__name__)
 

@@ -15,7 +15,7 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-from tandemscan.pipeline.plan import MoveArm, MoveLift, MoveMeasure, MoveTracker, Plan, Scan
+from tandemscan.pipeline.planning.plan import MoveArm, MoveLift, MoveMeasure, MoveTracker, Plan, Scan
 
 log = logging.getLogger(__name__)
 

@@ -23,7 +23,7 @@ import open3d as o3d
 from scipy.optimize import Bounds, LinearConstraint, linprog, milp
 from scipy.sparse import bmat, csr_matrix, identity, kron, vstack
 from tandemscan.config.models import PlanningConfig, TrackerConfig
-from tandemscan.pipeline import frames as F
+from tandemscan.pipeline.geometry import frames as F
 
 log = logging.getLogger(__name__)
 

@@ -17,7 +17,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from tandemscan.config.models import CorrectionConfig
-from tandemscan.pipeline.frames import invert, pose_error, transform_points
+from tandemscan.pipeline.geometry.frames import invert, pose_error, transform_points
+from tandemscan.pipeline.geometry.uncertainty import covariance_about
 from tandemscan.pipeline.registration.icp import (
     evaluate_point_to_plane,
     point_to_plane_information,
@@ -41,7 +42,6 @@ from tandemscan.pipeline.registration.pose_graph import (
     refine_poses,
 )
 from tandemscan.pipeline.registration.sampling import voxel_downsample
-from tandemscan.pipeline.uncertainty import covariance_about
 
 log = logging.getLogger(__name__)
 

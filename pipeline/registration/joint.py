@@ -34,11 +34,11 @@ import open3d as o3d
 from scipy import sparse
 from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
-from tandemscan.pipeline.frames import from_rotvec, invert, to_rotvec, transform_points
+from tandemscan.pipeline.geometry.frames import from_rotvec, invert, to_rotvec, transform_points
+from tandemscan.pipeline.geometry.uncertainty import recentre
 from tandemscan.pipeline.registration.icp import RefineError
 from tandemscan.pipeline.registration.mounts import MountEstimate, MountPrior
 from tandemscan.pipeline.registration.pose_graph import ScanPrior, TransferPrior
-from tandemscan.pipeline.uncertainty import recentre
 
 log = logging.getLogger(__name__)
 

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 import open3d as o3d
 from tandemscan.config.models import CorrectionConfig, DeepMergeConfig
-from tandemscan.pipeline.frames import invert, rotation_angle, transform_points
+from tandemscan.pipeline.geometry.frames import invert, rotation_angle, transform_points
 from tandemscan.pipeline.registration.global_registration import FeatureMatching, fpfh_ransac
 from tandemscan.pipeline.registration.icp import (
     FineSchedule,

@@ -25,7 +25,7 @@ from numpy.typing import ArrayLike
 from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 from scipy.spatial.transform import Rotation
-from tandemscan.pipeline.frames import invert
+from tandemscan.pipeline.geometry.frames import invert
 from tandemscan.pipeline.registration.icp import RefineError
 from tandemscan.pipeline.registration.mounts import MountEstimate, MountPrior, MountSolve, schur
 

@@ -1,7 +1,7 @@
 """JAKA controller emulator: the JSON command port and the status stream over real TCP sockets.
 
 Motion runs in simulated time (``time_scale`` wall seconds per simulated second) through a swappable motion
-model; poses come from :class:`tandemscan.pipeline.kinematics.ArmKinematics`. ``on_joints(q_rad, moving)``
+model; poses come from :class:`tandemscan.pipeline.geometry.kinematics.ArmKinematics`. ``on_joints(q_rad, moving)``
 is called with every joint vector the controller reports, so the emulator can move the simulated world's arm.
 Faults are injected through :class:`JakaFaults`, which may be changed while the emulator runs.
 
@@ -24,8 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 from tandemscan.config.models import ArmConfig
 from tandemscan.drivers.json_stream import JsonFramingError, JsonObjectFramer, encode
-from tandemscan.pipeline.frames import from_rpy, to_rpy
-from tandemscan.pipeline.kinematics import ArmKinematics
+from tandemscan.pipeline.geometry.frames import from_rpy, to_rpy
+from tandemscan.pipeline.geometry.kinematics import ArmKinematics
 from tandemscan.sim_drivers.emulators.tcp_server import TcpService
 
 log = logging.getLogger(__name__)

@@ -16,10 +16,10 @@ from __future__ import annotations
 
 import numpy as np
 from tandemscan.config.models import ArmConfig, ScannerConfig
-from tandemscan.pipeline import frames as F
-from tandemscan.pipeline.installation import Installation
-from tandemscan.pipeline.kinematics import ArmKinematics, arm_base_on_column
+from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.geometry.kinematics import ArmKinematics, arm_base_on_column
 from tandemscan.pipeline.planning.ik import default_ik
+from tandemscan.pipeline.stitching.installation import Installation
 
 _STANDOFF_STEPS_MM = (20.0, 40.0)  # well inside the 384-520 mm window around the 442 mm sweet spot
 _TILT_STEPS_DEG = (5.0, 10.0)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import open3d as o3d
-from tandemscan.pipeline import frames as F
+from tandemscan.pipeline.geometry import frames as F
 
 
 def pose_errors(estimates: list[np.ndarray], truths: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:

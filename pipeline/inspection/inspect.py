@@ -17,9 +17,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import open3d as o3d
 from tandemscan.config.models import InspectionConfig, RegionConfig
-from tandemscan.pipeline.deviation_areas import DeviationArea, find_deviation_areas
-from tandemscan.pipeline.frames import from_rotvec, rotation_angle, transform_points
-from tandemscan.pipeline.part import triangles_closed
+from tandemscan.pipeline.geometry.frames import from_rotvec, rotation_angle, transform_points
+from tandemscan.pipeline.geometry.part import triangles_closed
+from tandemscan.pipeline.inspection.deviation_areas import DeviationArea, find_deviation_areas
 
 log = logging.getLogger(__name__)
 

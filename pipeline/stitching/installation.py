@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 from tandemscan.config.models import InstallationConfig
-from tandemscan.pipeline import frames as F
+from tandemscan.pipeline.geometry import frames as F
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from matplotlib.figure import Figure
 from scipy.spatial import cKDTree
-from tandemscan.pipeline.deviation_maps import png_bytes
+from tandemscan.pipeline.inspection.deviation_maps import png_bytes
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ from matplotlib.cm import ScalarMappable
 from matplotlib.colors import LinearSegmentedColormap, Normalize
 from matplotlib.figure import Figure
 from scipy.spatial import cKDTree
-from tandemscan.pipeline.inspect import CadSurface, DeviationStats, ToleranceResult
+from tandemscan.pipeline.inspection.inspect import CadSurface, DeviationStats, ToleranceResult
 
 # Blue (below) - cyan - green (on CAD) - yellow - red (above): what GOM and PolyWorks users read at a glance.
 DEVIATION_CMAP = LinearSegmentedColormap.from_list(

@@ -2,7 +2,7 @@
 report.json, figures/*.png and a PLY with the deviation field. Used by the job runner and the CLI.
 
 :func:`run_inspection` takes a cloud in the CAD/part frame F; :func:`align_and_inspect` one in a frame W of
-its own (the job's world), registered to F first (:mod:`tandemscan.pipeline.alignment`). Files are read in
+its own (the job's world), registered to F first (:mod:`tandemscan.pipeline.inspection.alignment`). Files are read in
 millimetres (PLY, PCD, XYZ clouds; STL, PLY, OBJ meshes).
 """
 
@@ -17,13 +17,19 @@ from typing import Any
 import numpy as np
 import open3d as o3d
 from tandemscan.config.models import InspectionConfig
-from tandemscan.pipeline.alignment import Alignment, align
-from tandemscan.pipeline.cloud_io import CloudIOError, read_ply
-from tandemscan.pipeline.export import write_ply
-from tandemscan.pipeline.frames import rotate_vectors, transform_points
-from tandemscan.pipeline.inspect import CadSurface, InspectionError, InspectionResult, as_points, inspect_cloud
-from tandemscan.pipeline.part import PartMeshError, read_mesh_file
-from tandemscan.pipeline.report import build_report, write_report
+from tandemscan.pipeline.geometry.frames import rotate_vectors, transform_points
+from tandemscan.pipeline.geometry.part import PartMeshError, read_mesh_file
+from tandemscan.pipeline.inspection.alignment import Alignment, align
+from tandemscan.pipeline.inspection.inspect import (
+    CadSurface,
+    InspectionError,
+    InspectionResult,
+    as_points,
+    inspect_cloud,
+)
+from tandemscan.pipeline.inspection.report import build_report, write_report
+from tandemscan.pipeline.io.cloud_io import CloudIOError, read_ply
+from tandemscan.pipeline.io.export import write_ply
 
 DEVIATION_PLY = "cloud_deviation.ply"  # written next to report.html
 

@@ -1,7 +1,7 @@
 """Reading point-cloud files (mm).
 
-Writing PLY is :func:`tandemscan.pipeline.export.write_ply`; the job's raw scan files are
-:mod:`tandemscan.pipeline.raw_scan`.
+Writing PLY is :func:`tandemscan.pipeline.io.export.write_ply`; the job's raw scan files are
+:mod:`tandemscan.pipeline.io.raw_scan`.
 """
 
 from __future__ import annotations

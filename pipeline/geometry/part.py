@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 from tandemscan.config.models import PartConfig
-from tandemscan.pipeline.cloud_io import has_ply_magic
-from tandemscan.pipeline.plan import PartIdentity
+from tandemscan.pipeline.io.cloud_io import has_ply_magic
+from tandemscan.pipeline.planning.plan import PartIdentity
 
 MESH_SUFFIXES = (".stl", ".ply", ".obj", ".off", ".gltf", ".glb")
 

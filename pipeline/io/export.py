@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from tandemscan.pipeline.frames import to_quaternion, to_rpy, transform_points
+from tandemscan.pipeline.geometry.frames import to_quaternion, to_rpy, transform_points
 
 log = logging.getLogger(__name__)
 

@@ -23,10 +23,10 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.spatial import cKDTree
 from tandemscan.config.models import InspectionConfig
-from tandemscan.pipeline import frames as F
 from tandemscan.pipeline.calibration.plate import PlateError, fit_sphere
-from tandemscan.pipeline.inspect import CadSurface, InspectionError, as_points, best_fit, region_mask
-from tandemscan.pipeline.plan import MoveMeasure, Plan, Scan
+from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionError, as_points, best_fit, region_mask
+from tandemscan.pipeline.planning.plan import MoveMeasure, Plan, Scan
 
 log = logging.getLogger(__name__)
 

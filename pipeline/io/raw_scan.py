@@ -3,7 +3,7 @@
 Arrays (frame S is the scanner's, mm, rad, s): ``points_S_mm`` (N, 3) and ``normals_S`` (N, 3, optional; both
 stored as float32), ``T_C_T`` and ``tracker_covariance`` (the tracker reading: 4x4 mm and 6x6 in the order
 translation then rotation), ``joints_rad`` (6), ``scan_timestamp_s``, ``tracker_timestamp_s``, ``T_W_C`` (the
-tracker camera in the world, 4x4 mm). Written durably (:func:`tandemscan.pipeline.durable.write_durably`) before
+tracker camera in the world, 4x4 mm). Written durably (:func:`tandemscan.pipeline.io.durable.write_durably`) before
 the journal commits the scan (``docs/daemon.md``, how a job survives a crash).
 """
 
@@ -12,7 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from tandemscan.pipeline.durable import write_durably
+from tandemscan.pipeline.io.durable import write_durably
 
 _FLOAT32_ARRAYS = ("points_S_mm", "normals_S")  # stored as float32 (mm, unit vectors)
 

@@ -18,8 +18,8 @@ from pathlib import Path
 import jinja2
 import numpy as np
 from tandemscan.config.models import InspectionConfig
-from tandemscan.pipeline.alignment import Alignment
-from tandemscan.pipeline.deviation_maps import (
+from tandemscan.pipeline.inspection.alignment import Alignment
+from tandemscan.pipeline.inspection.deviation_maps import (
     STANDARD_VIEWS,
     Callout,
     View,
@@ -30,8 +30,8 @@ from tandemscan.pipeline.deviation_maps import (
     histogram_png,
     typical_spacing,
 )
-from tandemscan.pipeline.inspect import CadSurface, InspectionResult
-from tandemscan.pipeline.stitch_quality import overlap_quality, stitching_png
+from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionResult
+from tandemscan.pipeline.inspection.stitch_quality import overlap_quality, stitching_png
 
 log = logging.getLogger(__name__)
 
@@ -170,7 +170,7 @@ def _coverage_figure(result: InspectionResult, surface: CadSurface, view: View,
 
 def render_html(report: Report) -> str:
     """The report as one self-contained HTML page."""
-    source = resources.files("tandemscan.pipeline").joinpath("templates", TEMPLATE).read_text(encoding="utf-8")
+    source = (resources.files("tandemscan.pipeline.inspection") / "templates" / TEMPLATE).read_text(encoding="utf-8")
     env = jinja2.Environment(autoescape=True, undefined=jinja2.StrictUndefined, trim_blocks=True, lstrip_blocks=True)
     return env.from_string(source).render(r=report.data, figures=report.figures)
 

@@ -1,0 +1,1 @@
+"""Inspection: alignment to CAD, deviations, deviation areas, colour maps, reports, scores."""

@@ -1,0 +1,1 @@
+"""Cloud input and output: raw scans, PLY, E57 export."""
