@@ -7,8 +7,8 @@ the plan's frame F (the part frame, relocalisation's anchor, Eq. 5) the cloud is
 ``[inspection] alignment`` (best fit, RPS on reference spheres, or none:
 :mod:`tandemscan.pipeline.inspection.alignment`); a job that did not place W (relocalisation off, the target
 never seen) skips the inspection with the reason recorded. The CAD is the configured part mesh (``[part]``),
-never the mesh a simulator scans. On the simulated cell the job's scorer then scores the alignment and the deviation areas against the world's truth
-(``ground_truth.inspection``, docs/inspection.md).
+never the mesh a simulator scans. On the simulated cell the job's scorer then scores the alignment and the
+deviation areas against the world's truth (``ground_truth.inspection``, docs/inspection.md).
 """
 
 from __future__ import annotations
