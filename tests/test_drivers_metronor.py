@@ -171,43 +171,40 @@ def test_adapter_rejects_non_unit_quaternion_and_bad_config():
 # ---------------------------------------------------------------- trackers that must be asked (issue 15)
 
 
+@contextlib.asynccontextmanager
 async def pair_for(stream: TrackerStreamConfig, **emu_kw):
+    """A connected tracker driver on a TCP emulator of ``stream`` (fixed pose), closed after the block."""
     emu = TrackerStreamEmulator(stream, fixed_pose_source(T_TRUE), rate_hz=200, **emu_kw)
     port = await emu.start_tcp()
     tracker = tracker_for(stream.model_copy(update={"port": port}))
     await tracker.connect()
-    return emu, tracker
+    try:
+        yield emu, tracker
+    finally:
+        await tracker.close()
+        await emu.stop()
 
 
 async def test_tracker_that_needs_a_start_command():
     stream = TrackerStreamConfig(host="127.0.0.1", port=0, start_command="TSTART\r")
-    emu, tracker = await pair_for(stream, requires_start=True)
-    try:
+    async with pair_for(stream, requires_start=True) as (emu, tracker):
         r = await tracker.read_pose()
         assert pose_error(r.T_C_T, T_TRUE)[0] < 1e-5
-    finally:
-        await tracker.close()
-        await emu.stop()
 
 
 async def test_polled_tracker_answers_one_frame_per_poll():
     stream = TrackerStreamConfig(host="127.0.0.1", port=0, start_command="TSTART\r", poll_command="BX 0801\r")
-    emu, tracker = await pair_for(stream, requires_start=True)
-    try:
+    async with pair_for(stream, requires_start=True) as (emu, tracker):
         numbers = [(await tracker.read_pose()).frame_number for _ in range(3)]
         assert numbers == sorted(set(numbers))
         await asyncio.sleep(0.05)  # no poll, no frame: nothing arrived after the third polled one
         assert tracker.last_sample.frame == numbers[-1]
-    finally:
-        await tracker.close()
-        await emu.stop()
 
 
 async def test_length_prefixed_binary_frames_over_tcp():
     stream = TrackerStreamConfig(host="127.0.0.1", port=0, framing="length_prefixed", length_prefix="u16be",
                                  record="binary", binary_byte_order="big", fields=MATRIX_FIELDS)
-    emu, tracker = await pair_for(stream)
-    try:
+    async with pair_for(stream) as (emu, tracker):
         r = await tracker.read_pose()
         assert pose_error(r.T_C_T, T_TRUE)[0] < 1e-5
         assert r.covariance[0, 0] == pytest.approx(1e-4, rel=1e-3)
@@ -216,9 +213,6 @@ async def test_length_prefixed_binary_frames_over_tcp():
             with contextlib.suppress(DeviceFault):
                 r = await tracker.read_pose()
         assert pose_error(r.T_C_T, T_TRUE)[0] < 1e-5
-    finally:
-        await tracker.close()
-        await emu.stop()
 
 
 async def test_udp_datagrams():
@@ -239,11 +233,10 @@ async def test_frames_arriving_together_are_timestamped_each_and_stale_ones_skip
     """Three frames per write: the reading is never one generated before the call, and each frame has its
     own time (dated back from the newest by the device-time difference)."""
     stream = TrackerStreamConfig(host="127.0.0.1", port=0)
-    emu, tracker = await pair_for(stream)
-    emu.period_s = 0.02
-    emu.faults.burst = 3
-    loop = asyncio.get_running_loop()
-    try:
+    async with pair_for(stream) as (emu, tracker):
+        emu.period_s = 0.02
+        emu.faults.burst = 3
+        loop = asyncio.get_running_loop()
         await tracker.read_pose()
         readings = []
         for _ in range(6):
@@ -254,9 +247,6 @@ async def test_frames_arriving_together_are_timestamped_each_and_stale_ones_skip
             readings.append(r)
         stamps = [r.timestamp_s for r in readings]
         assert stamps == sorted(stamps)
-    finally:
-        await tracker.close()
-        await emu.stop()
 
 
 def test_udp_with_a_command_is_a_config_error():
