@@ -1,4 +1,4 @@
-"""SE(3) identities and the transform chain (DESIGN.md section 2)."""
+"""SE(3) identities and the transform chain (docs/architecture.md, "Frames")."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""SE(3) helpers and the transform chain of DESIGN.md section 2.
+"""SE(3) helpers and the transform chain of docs/architecture.md ("Frames").
 
 All transforms are 4x4 float64 homogeneous matrices in millimetres; ``T_a_b`` maps coordinates in frame
 ``b`` into frame ``a`` so that ``T_a_c = T_a_b @ T_b_c``. Angles are radians. Roll-pitch-yaw follows the
