@@ -141,11 +141,6 @@ def measurement_agv_in_world(
     return compose(T_W_T, invert(compose(T_V2_B, T_B_E, T_E_T)))
 
 
-def tracking_agv_in_world(T_W_T: ArrayLike, T_V1_C: ArrayLike, T_C_T: ArrayLike) -> np.ndarray:
-    """Eq. 6: ``T_W_V1 = T_W_T inv(T_V1_C T_C_T)``."""
-    return compose(T_W_T, invert(compose(T_V1_C, T_C_T)))
-
-
 def mean_pose(transforms: list[np.ndarray]) -> np.ndarray:
     """Average of nearby poses: mean translation (mm) and the chordal L2 mean rotation."""
     Ts = np.asarray(transforms, dtype=float)
