@@ -124,7 +124,7 @@ def bound_covariance(result: JobResult, T_T_S: np.ndarray, config, true_T_W_S: d
 def bound(result: JobResult, T_T_S: np.ndarray, config, true_T_W_S: dict[int, np.ndarray]) -> dict:
     """Tracker-only and best-possible expected median pose error (mm) of the job ``result`` (``true_T_W_S``:
     the scans' true poses, from the ground-truth observer)."""
-    A, prior, posterior, origins, pairs = bound_covariance(result, T_T_S, config, true_T_W_S)
+    A, prior, posterior, _, pairs = bound_covariance(result, T_T_S, config, true_T_W_S)
     n = len(result.scans)
     rng = np.random.default_rng(0)
     tracker_only = expected_median(A, prior, n, rng)
