@@ -11,7 +11,9 @@ their covariances. Then (unless ``--no-job``; ``--job-only`` runs just this part
 the sim cell and the default measurement job (with its correction and pose graph, including the shared
 ``T_T_S`` unknown) with nominal, calibrated and true mounts, and reports each cloud's RMS to the part
 (``cloud_rms_mm``), the tracker-only stitch's (``tracker_only_cloud_rms_mm``),
-``calibrated_within_10pct_of_truth`` and the job's mount estimate.
+``calibrated_within_10pct_of_truth`` and the job's mount estimate. ``--consistency SEED ...`` runs only the
+calibration job per sim seed and puts its ``T_T_S`` error against the covariance it reports (normalised squared
+error, mean 6 where honest; per axis in 1-sigma); ``--band`` adds the band job with calibrated and true mounts.
 
 Prints one JSON object on its last line: ``rot_err_deg`` / ``trans_err_mm`` per method (RMS over trials at
 the nominal noise), per noise level under ``by_noise`` the same with ``surface_err_mm`` (translation error
@@ -40,7 +42,14 @@ from tandemscan.config import load_config
 from tandemscan.pipeline.calibration.hand_eye import METHODS, solve_hand_eye
 from tandemscan.pipeline.calibration.plate import PlateFit, fit_plate, nominal_centres_P
 from tandemscan.pipeline.calibration.poses import calibration_views
-from tandemscan.pipeline.geometry.frames import from_rotvec, from_rpy, invert, pose_error, transform_points
+from tandemscan.pipeline.geometry.frames import (
+    from_rotvec,
+    from_rpy,
+    invert,
+    pose_error,
+    to_rotvec,
+    transform_points,
+)
 from tandemscan.pipeline.stitching.installation import Installation
 from tandemscan.sim_drivers.plate import hand_eye_dataset, scan_plate
 
@@ -223,6 +232,51 @@ async def _calibrate_and_measure(cfg, out: Path) -> dict:
     return result
 
 
+async def _consistency(cfg, seeds: list[int], out: Path, band: bool) -> dict:
+    """The calibration job per sim seed (each its own true mounts and noise): the ``T_T_S`` error against the
+    reported covariance, as normalised squared error ``v^T C^-1 v`` (``v`` in the file's order, ``T_T_S ->
+    T_T_S [R(r), t]``: chi-square with 6 degrees of freedom where the covariance is honest, mean 6) and per
+    axis in 1-sigma; with ``band`` the default band job with the calibrated and with the true mounts (cloud RMS
+    after the correction, mm; the job's mount estimate against the truth)."""
+    from tandemscan.daemon.calibrate import run_calibration
+    from tandemscan.daemon.cli import default_plan_path
+    from tandemscan.daemon.runner import JobRunner
+    from tandemscan.daemon.session import CellSession
+    from tandemscan.pipeline.planning.plan import Plan
+
+    runs, lever, plan = [], cfg.scanner.sweet_spot_mm, Plan.load(default_plan_path())
+    for seed in seeds:
+        config = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"seed": seed})})
+        async with CellSession(config) as session:
+            run = await run_calibration(session, config, out / f"calibration-{seed}.json")
+        truth = session.cell.simulation.surveyed_installation().T_T_S
+        t, r = to_rotvec(invert(run.installation.T_T_S) @ truth)
+        v, cov = np.r_[t, r], run.hand_eye.covariance
+        fig = {"seed": seed, "nees": float(v @ np.linalg.solve(cov, v)), "z": (v / np.sqrt(np.diag(cov))).tolist(),
+               "err": _surface(run.installation.T_T_S, truth, lever)}
+        for source in ("calibration", "truth") if band else ():
+            job = config.job.model_copy(update={"installation_source": source, "calibration_file": run.file})
+            job_config = config.model_copy(update={"job": job})
+            async with CellSession(job_config) as session:
+                res = await JobRunner(session, plan, job_config, out / f"{source}-{seed}").run()
+            fig[f"band_cloud_rms_mm_{source}"] = res.report["ground_truth"]["cloud_rms_mm"]
+            mount = res.report["correction"].get("mount", {})
+            if "T_T_S_refined" in mount:
+                fig[f"band_mount_err_after_{source}"] = _surface(np.array(mount["T_T_S_refined"]), truth, lever)
+        if band:
+            fig["band_calibrated_over_truth"] = fig["band_cloud_rms_mm_calibration"] / fig["band_cloud_rms_mm_truth"]
+        runs.append(fig)
+        print(json.dumps(_rounded(fig)), file=sys.stderr, flush=True)
+    nees = np.array([f["nees"] for f in runs])
+    z = np.array([f["z"] for f in runs])
+    result = {"seeds": seeds, "runs": runs, "nees_mean": float(nees.mean()), "nees_expected": 6.0,
+              "z_rms_per_axis": np.sqrt(np.mean(z**2, axis=0)).tolist(),
+              "surface_err_mm_rms": float(np.sqrt(np.mean([f["err"]["surface_mm"] ** 2 for f in runs])))}
+    if band:
+        result["band_calibrated_over_truth_max"] = max(f["band_calibrated_over_truth"] for f in runs)
+    return result
+
+
 def _surface(T: np.ndarray, truth: np.ndarray, lever_mm: float) -> dict[str, float]:
     """Error of a ``T_T_S`` against the truth: translation mm, rotation deg, and their effect on a point
     ``lever_mm`` out (surface mm)."""
@@ -236,11 +290,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--no-job", action="store_true", help="skip the sim calibration and measurement jobs")
     parser.add_argument("--job-only", action="store_true", help="only the sim calibration and measurement jobs")
+    parser.add_argument("--consistency", type=int, nargs="+", metavar="SEED",
+                        help="only the calibration job per sim seed: its error against its covariance")
+    parser.add_argument("--band", action="store_true", help="with --consistency: the band job with calibrated "
+                        "and true mounts per seed")
     args = parser.parse_args(argv)
     cfg = load_config()
     rng = np.random.default_rng(args.seed)
     started = time.monotonic()
     load_before = os.getloadavg()[0]
+    if args.consistency:
+        result = {"benchmark": "calibration_consistency", "poses": cfg.calibration.poses}
+        with tempfile.TemporaryDirectory() as tmp:
+            result |= asyncio.run(_consistency(cfg, args.consistency, Path(tmp), args.band))
+        return _finish(result, started, load_before)
     if args.job_only:
         result = {"benchmark": "calibration", "poses": cfg.calibration.poses}
         with tempfile.TemporaryDirectory() as tmp:

@@ -32,14 +32,16 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
+from pose_bound import bound_covariance  # benchmarks/pose_bound.py: the bound's error model
 from tandemscan.config import load_config
 from tandemscan.config.models import CellConfig
 from tandemscan.daemon.cli import default_plan_path
-from tandemscan.daemon.runner import JobRunner, ScanRecord
+from tandemscan.daemon.runner import JobResult, JobRunner, ScanRecord
 from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.kinematics import ArmKinematics
 from tandemscan.pipeline.geometry.part import load_part_mesh
+from tandemscan.pipeline.geometry.uncertainty import recentre
 from tandemscan.pipeline.inspection.alignment import align, align_plan_stations, fit_rigid
 from tandemscan.pipeline.inspection.inspect import CadSurface
 from tandemscan.pipeline.inspection.inspection_job import align_and_inspect, inspect_files
@@ -55,7 +57,7 @@ AS_BUILT = Path(__file__).resolve().parents[1] / "config" / "as-built-example.to
 @dataclass(frozen=True)
 class Measured:
     """One job: its cloud (W, mm), scans, the anchor's T_F_W, per-scan T_W_V2 (Eq. 5), the tracker-only scan
-    poses (Eq. 1) and, from the observer, the true scan poses and the true T_F_W."""
+    poses (Eq. 1), the job's result and ``T_T_S`` and, from the observer, the true scan poses and the true T_F_W."""
 
     cloud_W: np.ndarray
     scans: list[ScanRecord]
@@ -64,6 +66,8 @@ class Measured:
     tracker_only_T_W_S: list[np.ndarray]
     true_T_W_S: list[np.ndarray]
     T_F_W_true: np.ndarray
+    result: JobResult
+    T_T_S: np.ndarray
 
 
 async def measure(config: CellConfig, plan: Plan, job_dir: Path) -> Measured:
@@ -78,7 +82,8 @@ async def measure(config: CellConfig, plan: Plan, job_dir: Path) -> Measured:
     tracker_only = [F.compose(s.T_W_C, s.reading.T_C_T, inst.T_T_S) for s in result.scans]
     cloud, _ = read_ply(result.cloud_file)
     return Measured(cloud, list(result.scans), np.array(runner.T_F_W), T_W_V2, tracker_only,
-                    [scorer.T_W_S_true[s.index] for s in result.scans], F.invert(scorer.world.T_W_F))
+                    [scorer.T_W_S_true[s.index] for s in result.scans], F.invert(scorer.world.T_W_F), result,
+                    inst.T_T_S)
 
 
 def stitch(scans: list[ScanRecord], poses: list[np.ndarray], voxel_mm: float) -> np.ndarray:
@@ -116,6 +121,71 @@ def what_the_cloud_allows(config: CellConfig, m: Measured, surface: CadSurface, 
             fig[method] = {"vs_truth": rounded(alignment_error(T, m.T_F_W_true, centre)),
                            "vs_reachable": rounded(alignment_error(T, reachable, centre))}
         out[name] = fig
+    return out
+
+
+#: draws for the expected norms of the rigid error
+_DRAWS = 20000
+#: issue 19's target for T_F_W at the part's centre (mm, deg)
+_TARGET = (0.05, 0.005)
+
+
+def rigid_error_map(scans: list[ScanRecord], true_poses: list[np.ndarray], centre_W: np.ndarray) -> np.ndarray:
+    """(6, 6n): the scans' small pose errors (world motions, t mm and r rad about each scan's true origin,
+    stacked in scan order) to the least-squares rigid motion of every 20th scan point about ``centre_W`` (mm):
+    :func:`cloud_rigid_error`, linearised. It is the scans' errors restated about the centre and averaged,
+    each weighted by its points' 6x6 moment ``sum J^T J``, ``J = [I, -skew(p - centre)]``."""
+    moment, blocks = np.zeros((6, 6)), []
+    for s, T in zip(scans, true_poses, strict=True):
+        p = F.transform_points(T, read_raw_scan(s.file)[0][::20]) - centre_W
+        J = np.zeros((len(p), 3, 6))
+        J[:, :, :3] = np.eye(3)
+        J[:, 0, 4], J[:, 0, 5], J[:, 1, 3] = p[:, 2], -p[:, 1], -p[:, 2]   # r x p as -skew(p) r
+        J[:, 1, 5], J[:, 2, 3], J[:, 2, 4] = p[:, 0], p[:, 1], -p[:, 0]
+        M = np.einsum("kai,kaj->ij", J, J)
+        moment += M
+        blocks.append(M @ recentre(T[:3, 3], centre_W))
+    return np.linalg.solve(moment, np.hstack(blocks))
+
+
+def rigid_error_figures(cov: np.ndarray, rng: np.random.Generator) -> dict:
+    """Expected translation (mm) and rotation (deg) norms of a rigid error ``N(0, cov)`` (t mm, r rad), their
+    95th percentiles, and the chance that each and both are within issue 19's target."""
+    w, V = np.linalg.eigh(0.5 * (cov + cov.T))
+    x = rng.standard_normal((_DRAWS, 6)) * np.sqrt(np.clip(w, 0.0, None)) @ V.T
+    t, r = np.linalg.norm(x[:, :3], axis=1), np.degrees(np.linalg.norm(x[:, 3:], axis=1))
+    return {"mm_mean": round(float(t.mean()), 4), "mm_p95": round(float(np.percentile(t, 95)), 4),
+            "deg_mean": round(float(r.mean()), 5), "deg_p95": round(float(np.percentile(r, 95)), 5),
+            "sigma_xyz_mm": np.round(np.sqrt(np.diag(cov)[:3]), 4).tolist(),
+            "p_mm_within_target": round(float(np.mean(t <= _TARGET[0])), 3),
+            "p_deg_within_target": round(float(np.mean(r <= _TARGET[1])), 3),
+            "p_both_within_target": round(float(np.mean((t <= _TARGET[0]) & (r <= _TARGET[1]))), 3)}
+
+
+def rigid_error_bound(config: CellConfig, m: Measured, centre_F: np.ndarray) -> dict:
+    """What the bound (benchmarks/pose_bound.py's model) implies for the cloud's rigid error at the part's
+    centre: its distribution tracker-only and at the bound (no estimator from these scans and readings does
+    better in expectation), beside the job's realised rigid error (linearised, and as a point-weighted and a
+    plain mean of the scans' pose errors)."""
+    true = {s.index: T for s, T in zip(m.scans, m.true_T_W_S, strict=True)}
+    A, prior, posterior, origins, pairs = bound_covariance(m.result, m.T_T_S, config, true)
+    centre_W = F.transform_points(F.invert(m.T_F_W_true), centre_F[None])[0]
+    G = rigid_error_map(m.scans, m.true_T_W_S, centre_W)
+    mean = np.hstack([recentre(o, centre_W) for o in origins]) / len(origins)
+    rng = np.random.default_rng(0)
+    out: dict = {"target": {"mm": _TARGET[0], "deg": _TARGET[1]}, "pairs_in_bound": pairs}
+    for name, cov in (("tracker_only", prior), ("bound", posterior)):
+        out[name] = rigid_error_figures(G @ A @ cov @ A.T @ G.T, rng)
+        out[name]["plain_mean_mm_mean"] = rigid_error_figures(mean @ A @ cov @ A.T @ mean.T, rng)["mm_mean"]
+    errors = []   # the job's per-scan errors as world motions about each true origin
+    for s, T_true in zip(m.scans, m.true_T_W_S, strict=True):
+        D = s.T_W_S @ F.invert(T_true)
+        errors.append(np.r_[D[:3, :3] @ T_true[:3, 3] + D[:3, 3] - T_true[:3, 3], F.to_rotvec(D)[1]])
+    e = np.concatenate(errors)
+    for name, M in (("job_weighted", G), ("job_plain_mean", mean)):
+        x = M @ e
+        out[name] = {"mm": round(float(np.linalg.norm(x[:3])), 4),
+                     "deg": round(float(np.degrees(np.linalg.norm(x[3:]))), 5)}
     return out
 
 
@@ -157,6 +227,7 @@ def one_part(config: CellConfig, plan: Plan, tmp: Path, name: str) -> tuple[dict
         out[method] = fig
     if not config.sim.as_built.deviations:
         out["what_the_cloud_allows"] = what_the_cloud_allows(config, m, surface, centre)
+        out["rigid_error_bound"] = rigid_error_bound(config, m, centre)
     return out, m, found["best-fit"]
 
 

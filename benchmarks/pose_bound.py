@@ -106,18 +106,26 @@ def expected_median(A: np.ndarray, cov: np.ndarray, n: int, rng: np.random.Gener
     return float(np.mean(np.median(np.linalg.norm(t, axis=2), axis=1)))
 
 
-def bound(result: JobResult, T_T_S: np.ndarray, config, true_T_W_S: dict[int, np.ndarray]) -> dict:
-    """Tracker-only and best-possible expected median pose error (mm) of the job ``result`` (``true_T_W_S``:
-    the scans' true poses, from the ground-truth observer)."""
+def bound_covariance(result: JobResult, T_T_S: np.ndarray, config, true_T_W_S: dict[int, np.ndarray],
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """``(A, prior, posterior, origins, pairs)``: the error model of :func:`error_model`, the covariance of its
+    unknowns tracker-only (``prior``) and at the bound (``posterior``: every overlap point added), and the
+    number of overlapping pairs in the bound."""
     A, prior, origins = error_model(result, T_T_S, true_T_W_S)
-    n = len(result.scans)
     info = np.linalg.inv(prior)
     pairs = overlap_information(result, true_T_W_S, config.job.voxel_mm, config.scanner.noise_sigma_mm,
                                 config.correction.pair_cell_mm)
     for i, j, c, I_ij in pairs:
         H = recentre(origins[j], c) @ A[6 * j:6 * j + 6] - recentre(origins[i], c) @ A[6 * i:6 * i + 6]
         info += H.T @ I_ij @ H
-    posterior = np.linalg.inv(info)
+    return A, prior, np.linalg.inv(info), origins, len(pairs)
+
+
+def bound(result: JobResult, T_T_S: np.ndarray, config, true_T_W_S: dict[int, np.ndarray]) -> dict:
+    """Tracker-only and best-possible expected median pose error (mm) of the job ``result`` (``true_T_W_S``:
+    the scans' true poses, from the ground-truth observer)."""
+    A, prior, posterior, _, pairs = bound_covariance(result, T_T_S, config, true_T_W_S)
+    n = len(result.scans)
     rng = np.random.default_rng(0)
     tracker_only = expected_median(A, prior, n, rng)
     best = expected_median(A, posterior, n, rng)
@@ -127,7 +135,7 @@ def bound(result: JobResult, T_T_S: np.ndarray, config, true_T_W_S: dict[int, np
         A_t = A.reshape(n, 6, -1)[:, :3].reshape(3 * n, -1)             # the translation rows
         per_scan = np.sqrt(np.sum((A_t @ cov) * A_t, axis=1)).reshape(n, 3)
         sigma[name] = {int(k): np.round(per_scan[stations == k].mean(axis=0), 4).tolist() for k in np.unique(stations)}
-    return {"pairs_in_bound": len(pairs), "expected_tracker_only_mm": round(tracker_only, 4),
+    return {"pairs_in_bound": pairs, "expected_tracker_only_mm": round(tracker_only, 4),
             "bound_mm": round(best, 4), "bound_ratio": round(tracker_only / best, 2),
             "sigma_xyz_mm_per_station": sigma}
 

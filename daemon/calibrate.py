@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from tandemscan.config.models import CellConfig
+from tandemscan.config.models import CalibrationConfig, CellConfig
 from tandemscan.daemon.cell import Cell
 from tandemscan.daemon.session import CellSession, MotionGate
 from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT
@@ -79,6 +79,30 @@ class CalibrationRun:
         }
 
 
+@dataclass
+class PlateViews:
+    """What the plate views measured, one entry per usable view: the averaged tracker reading ``T_C_T`` (mm)
+    and its covariance (driver order), the mean sphere centres in S (mm, (3, 3)) with their covariances, the
+    plate pose ``T_S_P`` from them (Eq. 7-8) and the arm joints (rad)."""
+
+    tracker_poses: list[np.ndarray] = field(default_factory=list)
+    covariances: list[np.ndarray] = field(default_factory=list)
+    plate_poses: list[np.ndarray] = field(default_factory=list)
+    centres: list[np.ndarray] = field(default_factory=list)
+    centre_covariances: list[np.ndarray] = field(default_factory=list)
+    joints: list[np.ndarray] = field(default_factory=list)
+
+    def add(self, T_C_T: np.ndarray, cov: np.ndarray, fits: list[PlateFit], q: np.ndarray) -> None:
+        """One view: the arm stands still, so the scans' centres are averaged and their covariance shrinks
+        with the count."""
+        self.tracker_poses.append(T_C_T)
+        self.covariances.append(cov)
+        self.joints.append(q)
+        self.centres.append(np.mean([f.centres_S for f in fits], axis=0))
+        self.centre_covariances.append(np.mean([f.centre_covariances for f in fits], axis=0) / len(fits))
+        self.plate_poses.append(plate_frame(*self.centres[-1]))
+
+
 async def run_calibration(
     session: CellSession,
     config: CellConfig,
@@ -86,73 +110,109 @@ async def run_calibration(
     progress: Callable[[int, int, str], None] | None = None,
 ) -> CalibrationRun:
     """Run the calibration job on the cell of an open session; writes and returns the calibration."""
-    cal, cell, gate = config.calibration, session.cell, session.gate
+    cal = config.calibration
     progress = progress or (lambda done, total, msg: None)
     out_file = Path(out_file or cal.output_file)
     nominal = Installation.nominal(config.installation)
     observer = session.calibration_observer()
     if observer is not None:  # off the event loop: the supervisor's 50 Hz safety polling runs on it
         await asyncio.to_thread(observer.calibration_started)
+    kinematics = ArmKinematics(config.arm)
+    views, skipped = await _scan_plate_views(session, config, nominal, kinematics, progress)
+    result = await _solve_scanner_mount(views, cal)
+    sources = {"T_T_S": f"hand-eye ({result.method}, {len(views.tracker_poses)} poses)"}
+    T_E_S = _flange_mount(views, kinematics, result, nominal.T_E_S, sources, skipped)
+    mounts = await _chassis_mounts(session, config, kinematics, (T_E_S, result.T_T_S), nominal, sources, skipped,
+                                   progress)
+    for k in ("T_V1_C", "T_V2_B", "T_E_S"):
+        sources.setdefault(k, "nominal")
+    installation = Installation(mounts["T_V1_C"], mounts["T_V2_B"], T_E_S, result.T_T_S)
+    truth = observer.calibration_scored(nominal, installation) if observer is not None else None
+    run = CalibrationRun(installation, result, out_file, len(views.tracker_poses), skipped, truth, sources)
+    _write_json(out_file, run.to_json())
+    progress(cal.poses, cal.poses, "done")
+    return run
+
+
+async def _scan_plate_views(session: CellSession, config: CellConfig, nominal: Installation,
+                            kinematics: ArmKinematics, progress: Callable[[int, int, str], None],
+                            ) -> tuple[PlateViews, list[str]]:
+    """Plan the views over the plate (IK with the nominal mounts), then at each until ``calibration.poses``
+    are usable: arm move, tracker readings at rest, plate scans. Returns the views and the skipped ones' reasons;
+    :class:`CalibrationJobError` below three usable views."""
+    cal, cell, gate = config.calibration, session.cell, session.gate
     centre = nominal_centres_P(cal).mean(axis=0)
     distance = plate_view_distance(config.scanner.range_min_mm, config.scanner.range_max_mm,
                                    cal.sphere_diameter_mm / 2.0)
-    views = plate_view_poses(int(np.ceil(cal.poses * _CANDIDATES_PER_POSE)), centre, distance, cal.tilt_deg,
-                             cal.roll_span_deg)
+    candidates = plate_view_poses(int(np.ceil(cal.poses * _CANDIDATES_PER_POSE)), centre, distance, cal.tilt_deg,
+                                  cal.roll_span_deg)
     await cell.arm.enable()
     seed = await cell.arm.joints()
-    kinematics = ArmKinematics(config.arm)
     progress(0, cal.poses, "planning arm poses over the plate")
-    plan = await asyncio.to_thread(arm_joints_for_views, views, cal.T_V2_P.matrix(), nominal.T_V2_B,
+    plan = await asyncio.to_thread(arm_joints_for_views, candidates, cal.T_V2_P.matrix(), nominal.T_V2_B,
                                    nominal.T_E_S, kinematics, seed)
-    skipped = [f"view {i}: out of reach" for i in range(len(views)) if i not in {j for j, _ in plan}]
-    tracker_poses, covariances, plate_poses, centres, centre_covs, joints = [], [], [], [], [], []
+    skipped = [f"view {i}: out of reach" for i in range(len(candidates)) if i not in {j for j, _ in plan}]
+    views = PlateViews()
     for i, q in plan:
-        if len(tracker_poses) >= cal.poses:
+        if len(views.tracker_poses) >= cal.poses:
             break
-        progress(len(tracker_poses), cal.poses, f"view {i}: scanning the plate")
+        progress(len(views.tracker_poses), cal.poses, f"view {i}: scanning the plate")
         async with gate.motion(MEASURE_ROBOT):
             await cell.arm.move_joints(q, config.arm.timeout_s)
         try:
             T_C_T, cov = await _read_at_rest(cell, config)
-        except TargetNotVisible as e:
-            skipped.append(f"view {i}: {e}")
-            continue
-        try:
             fits = [await _scan_plate(cell, config) for _ in range(cal.scans_per_pose)]
-        except PlateError as e:
+        except (TargetNotVisible, PlateError) as e:
             skipped.append(f"view {i}: {e}")
             continue
-        tracker_poses.append(T_C_T)
-        joints.append(q)
-        covariances.append(cov)
-        # the arm stands still: the scans' centres are averaged, their covariance shrinks with the count
-        centres.append(np.mean([f.centres_S for f in fits], axis=0))
-        centre_covs.append(np.mean([f.centre_covariances for f in fits], axis=0) / len(fits))
-        plate_poses.append(plate_frame(*centres[-1]))
+        views.add(T_C_T, cov, fits, q)
     for s in skipped:
         log.info("calibration: %s", s)
-    if len(tracker_poses) < 3:
-        raise CalibrationJobError(f"only {len(tracker_poses)} usable plate views: {'; '.join(skipped)}")
+    if len(views.tracker_poses) < 3:
+        raise CalibrationJobError(f"only {len(views.tracker_poses)} usable plate views: {'; '.join(skipped)}")
+    return views, skipped
+
+
+async def _solve_scanner_mount(views: PlateViews, cal: CalibrationConfig) -> HandEyeResult:
+    """``T_T_S`` by ``solve_hand_eye`` (``calibration.method``) with the measured sphere centres and their fit
+    covariances as plate points and the averaged readings' covariances (docs/calibration.md)."""
     try:
-        result = await asyncio.to_thread(
-            solve_hand_eye, np.array(tracker_poses), np.array(plate_poses), cal.method,
-            plate_points_P=nominal_centres_P(cal), plate_points_S=np.array(centres),
-            tracker_covariances=np.array(covariances), plate_point_covariances=np.array(centre_covs),
+        return await asyncio.to_thread(
+            solve_hand_eye, np.array(views.tracker_poses), np.array(views.plate_poses), cal.method,
+            plate_points_P=nominal_centres_P(cal), plate_points_S=np.array(views.centres),
+            tracker_covariances=np.array(views.covariances),
+            plate_point_covariances=np.array(views.centre_covariances),
             min_pair_rotation_deg=cal.min_pair_rotation_deg,
         )
     except HandEyeError as e:
         raise CalibrationJobError(f"hand-eye calibration failed: {e}") from e
-    sources = {"T_T_S": f"hand-eye ({result.method}, {len(tracker_poses)} poses)"}
-    T_E_S, T_V1_C, T_V2_B = nominal.T_E_S, nominal.T_V1_C, nominal.T_V2_B
+
+
+def _flange_mount(views: PlateViews, kinematics: ArmKinematics, hand_eye: HandEyeResult, nominal_T_E_S: np.ndarray,
+                  sources: dict[str, str], skipped: list[str]) -> np.ndarray:
+    """``T_E_S`` from the arm's forward kinematics and the tracker readings (``solve_flange_mount``); the
+    nominal one, with the reason in ``skipped``, where that fails."""
     try:
-        flange = solve_flange_mount([kinematics.forward(q) for q in joints], tracker_poses, result.T_T_S)
-        T_E_S = flange.T_T_S
-        sources["T_E_S"] = f"arm hand-eye (park), point RMS {flange.point_rms_mm:.3f} mm"
+        flange = solve_flange_mount([kinematics.forward(q) for q in views.joints], views.tracker_poses,
+                                    hand_eye.T_T_S)
     except HandEyeError as e:
         skipped.append(f"T_E_S stays nominal: {e}")
-    # the arm stands still from here: both chassis turn in place in turn
-    T_B_T = kinematics.forward(await cell.arm.joints()) @ T_E_S @ F.invert(result.T_T_S)
-    mounts = {"T_V1_C": T_V1_C, "T_V2_B": T_V2_B}
+        return nominal_T_E_S
+    sources["T_E_S"] = f"arm hand-eye (park), point RMS {flange.point_rms_mm:.3f} mm"
+    return flange.T_T_S
+
+
+async def _chassis_mounts(session: CellSession, config: CellConfig, kinematics: ArmKinematics,
+                          arm_mounts: tuple[np.ndarray, np.ndarray], nominal: Installation,
+                          sources: dict[str, str], skipped: list[str],
+                          progress: Callable[[int, int, str], None]) -> dict[str, np.ndarray]:
+    """``T_V1_C`` and ``T_V2_B`` from turns in place of each chassis in turn, the arm standing still
+    (``mount_from_turns``; ``arm_mounts``: ``T_E_S`` and ``T_T_S``); a mount stays nominal where the turns
+    fail."""
+    cal, cell = config.calibration, session.cell
+    T_E_S, T_T_S = arm_mounts
+    T_B_T = kinematics.forward(await cell.arm.joints()) @ T_E_S @ F.invert(T_T_S)
+    mounts = {"T_V1_C": nominal.T_V1_C, "T_V2_B": nominal.T_V2_B}
     for name, chassis, robot, motions_of in (
         ("T_V1_C", cell.tracking_chassis, TRACKING_ROBOT, lambda turns: relative_motions(F.invert(turns))),
         ("T_V2_B", cell.measure_chassis, MEASURE_ROBOT, lambda turns: arm_base_motions(turns, T_B_T)),
@@ -166,15 +226,7 @@ async def run_calibration(
             sources[name] = f"turns in place: roll, pitch, axis distance (axis RMS {axis.line_rms_mm:.3f} mm)"
         except MountError as e:
             skipped.append(f"{name} stays nominal: {e}")
-    T_V1_C, T_V2_B = mounts["T_V1_C"], mounts["T_V2_B"]
-    for k in ("T_V1_C", "T_V2_B", "T_E_S"):
-        sources.setdefault(k, "nominal")
-    installation = Installation(T_V1_C, T_V2_B, T_E_S, result.T_T_S)
-    truth = observer.calibration_scored(nominal, installation) if observer is not None else None
-    run = CalibrationRun(installation, result, out_file, len(tracker_poses), skipped, truth, sources)
-    _write_json(out_file, run.to_json())
-    progress(cal.poses, cal.poses, "done")
-    return run
+    return mounts
 
 
 async def _read_at_rest(cell: Cell, config: CellConfig) -> tuple[np.ndarray, np.ndarray]:

@@ -58,3 +58,26 @@ async def test_calibration_job_recovers_the_true_scanner_mount(sim_config, tmp_p
     assert np.all(np.diag(priors["truth"].covariance) < np.diag(cov) * 1e-3)
     off = config.model_copy(update={"correction": config.correction.model_copy(update={"estimate_mount": False})})
     assert mount_prior(SimpleNamespace(config=off, installation=used)) == (None, "off")
+
+
+async def test_the_calibration_covariance_is_consistent_with_its_error_over_seeds(sim_config, tmp_path):
+    """The job's mount prior is the calibration's covariance, so it must be honest: over several sim seeds (each
+    its own true mounts and noise) the normalised squared error ``v^T C^-1 v`` of ``T_T_S`` (v in the file's
+    order: ``T_T_S -> T_T_S [R(r), t]``) averages the 6 of a chi-square with 6 degrees of freedom. An
+    optimistic covariance (1-sigma half the error) would average about 24, a pessimistic one (twice) 1.5."""
+    nees = []
+    for seed in range(1, 7):
+        config = sim_config.model_copy(update={
+            "sim": sim_config.sim.model_copy(update={"seed": seed}),
+            "calibration": sim_config.calibration.model_copy(update={"poses": 10, "scans_per_pose": 1,
+                                                                     "tracker_samples": 5}),
+        })
+        async with CellSession(config) as session:
+            run = await run_calibration(session, config, tmp_path / f"calibration-{seed}.json")
+        truth = session.cell.simulation.world.truth.T_T_S
+        t, r = F.to_rotvec(F.invert(run.installation.T_T_S) @ truth)
+        v = np.r_[t, r]
+        cov = np.array(json.loads((tmp_path / f"calibration-{seed}.json").read_text())["T_T_S_covariance"]["matrix"])
+        nees.append(float(v @ np.linalg.solve(cov, v)))
+    # mean of 6 chi-square(6) draws: 6 +- 1.4; [2.5, 12] holds with probability > 0.99
+    assert 2.5 < np.mean(nees) < 12.0, nees
