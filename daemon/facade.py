@@ -23,12 +23,12 @@ import numpy as np
 from fastapi import Depends, Request
 from prometheus_client import generate_latest
 from tandemscan.daemon.api_errors import ApiProblem
-from tandemscan.daemon.api_models import Job, JobRequest, job_body
-from tandemscan.daemon.events import Subscription
+from tandemscan.daemon.api_models import Job, JobPage, JobRequest, job_body
+from tandemscan.daemon.events import Subscription, sse_text
 from tandemscan.daemon.installation import InstallationError, installation_for_job
 from tandemscan.daemon.job_state import FINAL_STATES
 from tandemscan.daemon.jobs import request_hash
-from tandemscan.daemon.store import Event, IdempotencyConflict, JobRecord
+from tandemscan.daemon.store import IdempotencyConflict, JobRecord
 from tandemscan.drivers.errors import SafetyStop
 from tandemscan.pipeline.planning.plan import Plan, PlanError
 
@@ -76,14 +76,19 @@ class ServiceFacade:
         """The job as the manager knows it; 404 (:class:`~tandemscan.daemon.jobs.JobError`) when unknown."""
         return await self.read(self.daemon.manager.get, job_id)
 
-    async def job(self, job_id: str) -> Job:
-        return await self.read(lambda: self._body(self.daemon.manager.get(job_id)))
+    async def job_json(self, job_id: str) -> bytes:
+        """The job's JSON (a :class:`~tandemscan.daemon.api_models.Job`), read and encoded in the store thread."""
+        return await self.read(lambda: self._body(self.daemon.manager.get(job_id)).model_dump_json().encode())
 
-    async def jobs(self, states: list[str] | None, plan: str | None, limit: int, offset: int) -> tuple[list[Job], int]:
-        """One page of jobs, newest first, and how many match."""
-        def page() -> tuple[list[Job], int]:
+    async def jobs_json(self, states: list[str] | None, plan: str | None, limit: int, offset: int,
+                        next_url: Callable[[int], str]) -> bytes:
+        """One page of jobs, newest first, as the JSON of a :class:`~tandemscan.daemon.api_models.JobPage` (read
+        and encoded in the store thread); ``next_url(offset)`` links the next page when there is one."""
+        def page() -> bytes:
             jobs, total = self.daemon.store.list_jobs(states, plan, None, limit, offset)
-            return [self._body(self.daemon.manager.current(j)) for j in jobs], total
+            items = [self._body(self.daemon.manager.current(j)) for j in jobs]
+            nxt = next_url(offset + len(items)) if offset + len(items) < total else None
+            return JobPage(items=items, total=total, limit=limit, offset=offset, next=nxt).model_dump_json().encode()
 
         return await self.read(page)
 
@@ -194,12 +199,19 @@ class ServiceFacade:
     def heartbeat_s(self) -> float:
         return self.daemon.sse_heartbeat_s
 
-    async def missed_events(self, after: int | None, job_id: str | None) -> tuple[int, list[Event]]:
-        """``(last id seen, events to replay)``: after ``after`` from the journal, or nothing new when None."""
+    async def missed_events(self, after: int | None, job_id: str | None) -> tuple[int, str]:
+        """``(last id seen, the events to replay as one server-sent-events text)``: those after ``after`` (of
+        ``job_id``, when given) from the journal, or none when ``after`` is None; read and encoded in the store
+        thread, so that a long replay is one write for the loop."""
         store = self.daemon.store
         if after is None:
-            return await self.read(store.last_event_seq), []
-        return after, await self.read(store.events, after, job_id, MAX_REPLAYED_EVENTS)
+            return await self.read(store.last_event_seq), ""
+
+        def replay() -> tuple[int, str]:
+            events = store.events(after, job_id, MAX_REPLAYED_EVENTS)
+            return max((ev.seq for ev in events), default=after), "".join(sse_text(ev) for ev in events)
+
+        return await self.read(replay)
 
 
 def facade_of(request: Request) -> ServiceFacade:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import json
 from collections.abc import AsyncIterator
 from typing import Annotated
 
@@ -11,8 +10,8 @@ from fastapi import APIRouter, Header, Query, Request
 from fastapi.responses import StreamingResponse
 from tandemscan.daemon.api_errors import ApiProblem
 from tandemscan.daemon.api_models import MAX_EVENT_ID, PROBLEM_RESPONSES
+from tandemscan.daemon.events import sse_text
 from tandemscan.daemon.facade import Facade, ServiceFacade
-from tandemscan.daemon.store import Event
 
 router = APIRouter(tags=["service"])
 
@@ -48,10 +47,7 @@ async def _event_stream(facade: ServiceFacade, request: Request, job: str | None
                         after: int | None) -> AsyncIterator[str]:
     with facade.subscribe() as sub:  # subscribed first: live events up to the journal's last id are old
         seen, missed = await facade.missed_events(after, job)
-        for ev in missed:
-            seen = max(seen, ev.seq)
-            yield _sse(ev)
-        yield ": connected\n\n"
+        yield missed + ": connected\n\n"
         while True:
             try:
                 ev = await asyncio.wait_for(sub.get(), facade.heartbeat_s)
@@ -62,9 +58,4 @@ async def _event_stream(facade: ServiceFacade, request: Request, job: str | None
                 continue
             if ev.seq <= seen or (job is not None and ev.job_id != job):
                 continue
-            yield _sse(ev)
-
-
-def _sse(ev: Event) -> str:
-    data = {"job_id": ev.job_id, **ev.data, "t_s": ev.t_s}
-    return f"id: {ev.seq}\nevent: {ev.kind}\ndata: {json.dumps(data)}\n\n"
+            yield sse_text(ev)

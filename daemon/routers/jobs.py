@@ -37,19 +37,18 @@ async def list_jobs(
     plan: Annotated[str | None, Query(max_length=200)] = None,
     limit: Annotated[int, Query(ge=1, le=500)] = 50,
     offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
-) -> JobPage:
+) -> Response:
     """Jobs newest first, filtered by state and plan, in pages."""
-    jobs, total = await facade.jobs(state, plan, limit, offset)
-    nxt = None
-    if offset + len(jobs) < total:
-        nxt = str(request.url.include_query_params(offset=offset + len(jobs), limit=limit))
-    return JobPage(items=jobs, total=total, limit=limit, offset=offset, next=nxt)
+    url = request.url
+    page = await facade.jobs_json(state, plan, limit, offset,
+                                  lambda nxt: str(url.include_query_params(offset=nxt, limit=limit)))
+    return Response(page, media_type="application/json")
 
 
 @router.get("/v1/jobs/{job_id}", response_model=Job, responses=PROBLEM_RESPONSES)
-async def get_job(job_id: JobId, facade: Facade) -> Job:
+async def get_job(job_id: JobId, facade: Facade) -> Response:
     """State, progress, the step under way and figures so far."""
-    return await facade.job(job_id)
+    return Response(await facade.job_json(job_id), media_type="application/json")
 
 
 @router.post("/v1/jobs/{job_id}/cancel", response_model=Job, dependencies=MUTATING, responses=PROBLEM_RESPONSES)
