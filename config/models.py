@@ -187,7 +187,7 @@ class ArmConfig(_Strict):
 
     driver: DriverKind = "sim"
     model: str = Field("zu7", description="arm model of config/arm_models.toml whose DH and limits are the defaults")
-    # Standard DH of the Zu 7 (shared/protocols/README.md: a public Rust JAKA client cross-checked with
+    # Standard DH of the Zu 7 (docs/planning.md, arm models: a public JAKA client cross-checked with
     # JAKA's ROS 2 URDF). Alpha signs differ between sources; this is the UR-style reading.
     dh_d_mm: tuple[float, ...] = (120.15, 0.0, 0.0, 115.01, 113.5, 107.0)
     dh_a_mm: tuple[float, ...] = (0.0, 360.0, 303.5, 0.0, 0.0, 0.0)
@@ -318,7 +318,7 @@ class SafetyConfig(_Strict):
 class InstallationConfig(_Strict):
     """Nominal (CAD) installation transforms; the pipeline only ever uses calibrated estimates of them.
 
-    Frames (DESIGN.md section 2): ``V1`` tracking chassis, ``C`` tracker camera (z along the optical axis,
+    Frames (docs/architecture.md, "Frames"): ``V1`` tracking chassis, ``C`` tracker camera (z along the optical axis,
     x right, y down), ``V2`` measurement chassis, ``B`` arm base, ``E`` flange, ``S`` scanner optical frame
     (z along the view), ``T`` stereo target (z along its visible normal).
     """
@@ -338,7 +338,7 @@ class FloorPoseConfig(_Strict):
 
 
 class PlanningConfig(_Strict):
-    """Motion planning (DESIGN.md 5.1, paper Eq. 13-18). Floor polygons are in the part frame F, mm.
+    """Motion planning (docs/planning.md, paper Eq. 13-18). Floor polygons are in the part frame F, mm.
 
     Measurement AGV: centre ``distance in (d3 + w/2, d4 + w/2)`` from the part's floor contour, ``step in
     (p, p + m)`` along it, with ``m`` the scan footprint width less the overlap. Tracker: candidate stations

@@ -1,4 +1,4 @@
-"""The async interface of every device kind (DESIGN.md section 3).
+"""The async interface of every device kind (docs/architecture.md, "Layers"; docs/drivers.md).
 
 A real driver and its simulated twin implement the same Protocol; the configuration picks which one.
 Every verb takes or applies a timeout and raises the typed errors of :mod:`tandemscan.drivers.errors`.

@@ -1,6 +1,6 @@
 """Photoneo PhoXi 3D Scanner through harvesters and a GenTL producer (settings in ``ScannerConfig.phoxi``).
 
-Two producer paths (shared/protocols/README.md):
+Two producer paths (docs/drivers.md, "PhoXi"):
 - ``photoneo_gentl``: PhoXi Control's ``photoneo.cti``; ``PhotoneoTriggerMode = "Software"``, ``Send*`` booleans
   switch components, ``TriggerFrame`` fires a scan; components arrive in a fixed order (point cloud third,
   normal map fourth, confidence map sixth).

@@ -1,6 +1,6 @@
 """The simulated cell: one object owns the ground truth that every twin reads and moves.
 
-Frames (DESIGN.md section 2): F is the floor/part frame (the part mesh's frame); W is the tracker camera
+Frames (docs/architecture.md, "Frames"): F is the floor/part frame (the part mesh's frame); W is the tracker camera
 frame at its first station (fixed when the world is made). All mm, rad, 4x4 float64. The pipeline never sees
 the truth held here; only the scoring of a simulated job does.
 """

@@ -2,7 +2,9 @@
 ``chromium-driver``, against a daemon on the simulated cell (the real runner, the shipped ``default-band`` plan,
 coarse scans) served by uvicorn on 127.0.0.1 from a thread (docs/console.md).
 
-The run writes docs/console-cell.png, docs/console-running-job.png and docs/console-3d-view.png.
+The run writes console-cell.png, console-running-job.png and console-3d-view.png into the folder named by
+``TANDEMSCAN_SCREENSHOTS`` (``TANDEMSCAN_SCREENSHOTS=docs make test`` refreshes docs/'s pictures), else into a
+temporary folder, so a test run leaves the work tree as it was.
 """
 
 from __future__ import annotations
@@ -10,8 +12,10 @@ from __future__ import annotations
 import asyncio
 import io
 import json
+import os
 import shutil
 import socket
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -37,7 +41,7 @@ pytestmark = pytest.mark.skipif(CHROMIUM is None or CHROMEDRIVER is None,
                                 reason="Debian's chromium and chromium-driver are not installed (make system-deps)")
 
 TOKEN = "console-token"
-DOCS = Path(__file__).resolve().parents[1] / "docs"
+SCREENSHOTS = Path(os.environ.get("TANDEMSCAN_SCREENSHOTS") or tempfile.mkdtemp(prefix="console-screenshots-"))
 BACKGROUND_RGB = np.array([16, 21, 28])  # the 3D view's clear colour (view3d.js)
 
 
@@ -235,7 +239,7 @@ def test_devices_panel_follows_an_injected_device_fault(cell, browser):
     sign_in(browser, cell.browser_url)
     wait(browser, lambda d: len(d.find_elements(By.CSS_SELECTOR, "#devices tbody tr")) == 6)
     wait(browser, lambda d: device_row(d, "tracker")["link"] == "connected")
-    browser.save_screenshot(str(DOCS / "console-cell.png"))
+    browser.save_screenshot(str(SCREENSHOTS / "console-cell.png"))
     tracker = cell.daemon.cell.tracker
     reconnect = tracker.connect
 
@@ -278,7 +282,7 @@ def test_job_is_stopped_reset_resumed_and_followed_to_100_percent(cell, browser)
     assert len(browser.find_elements(By.CSS_SELECTOR, "#plan-svg rect")) == 3  # the measurement AGV's stations
     assert len(browser.find_elements(By.CSS_SELECTOR, "#plan-svg circle")) == 2  # the tracking AGV's
     assert " of 39" in text(browser, "job-step")
-    browser.save_screenshot(str(DOCS / "console-running-job.png"))
+    browser.save_screenshot(str(SCREENSHOTS / "console-running-job.png"))
 
     # a dropped connection: the console reconnects and resumes from the last event it saw
     wait(browser, lambda d: text(d, "stream-status") == "event stream: live")
@@ -352,7 +356,7 @@ def test_finished_job_shows_verdict_links_and_a_3d_view_that_draws(cell, browser
     # 96 % of the points are within the band: the in-band colours of the map (cyan-green-yellow) dominate
     assert np.mean((g >= r) & (g >= b)) > 0.6
     browser.execute_script("document.getElementById('result-panel').scrollIntoView({block: 'start'})")
-    browser.save_screenshot(str(DOCS / "console-3d-view.png"))
+    browser.save_screenshot(str(SCREENSHOTS / "console-3d-view.png"))
     ActionChains(browser).click_and_hold(browser.find_element(By.ID, "cloud-canvas")).move_by_offset(150, 40) \
         .release().perform()
     turned = np.abs(img - canvas_pixels(browser)).sum(axis=2) > 40

@@ -15,7 +15,6 @@ from tandemscan.pipeline.inspection.inspect import (
     InspectionError,
     ToleranceResult,
     inspect_cloud,
-    signed_distances,
 )
 
 # Far from the origin on purpose: part-scale coordinates are where float32 rounding would show.
@@ -103,7 +102,7 @@ def test_sphere_known_offsets_within_chord_sag():
     sag = R - plane_dist.min()  # the mesh lies between the sphere and this far inside it
     rng = np.random.default_rng(2)
     offsets = rng.uniform(-0.8, 0.8, 3000)
-    d = signed_distances(sphere_points(3000, R, offsets), mesh)
+    d = CadSurface(mesh).signed_distance(sphere_points(3000, R, offsets))
     assert np.all(d >= offsets - 1e-6) and np.all(d <= offsets + sag + 1e-6)
     # outside is positive and inside negative, on every point clearly off the mesh
     clear = np.abs(offsets) > sag + 0.01
@@ -114,7 +113,7 @@ def test_sphere_agrees_with_independent_kdtree_within_one_micrometre():
     mesh = sphere_mesh(50.0)
     offsets = np.random.default_rng(3).normal(0.0, 0.3, 4000)
     pts = sphere_points(4000, 50.0, offsets, seed=4)
-    ours = signed_distances(pts, mesh)
+    ours = CadSurface(mesh).signed_distance(pts)
     ref = kdtree_signed_distances(pts, mesh)
     assert np.max(np.abs(ours - ref)) < UM
     a, b = DeviationStats.of(ours), DeviationStats.of(ref)
@@ -148,7 +147,7 @@ def test_box_known_offsets_faces_edges_corners_and_inside():
         CENTRE + [200.0, -3.0, -4.0],  # off an edge: 5
         CENTRE + np.array(size) / 2,  # centre of the box: 50 below the top and bottom faces
     ])
-    d = signed_distances(np.vstack([pts, extra]), mesh)
+    d = CadSurface(mesh).signed_distance(np.vstack([pts, extra]))
     np.testing.assert_allclose(d[:-3], truth, atol=0.5 * UM)
     np.testing.assert_allclose(d[-3:], [13.0, 5.0, -50.0], atol=0.5 * UM)
     ref = kdtree_signed_distances(pts, mesh, spacing_mm=2.0)
@@ -213,11 +212,11 @@ def test_regions_and_best_fit_reported_apart():
 def test_bad_input_is_a_clear_error():
     mesh = box_mesh()
     with pytest.raises(InspectionError, match="no points"):
-        signed_distances(np.zeros((0, 3)), mesh)
+        CadSurface(mesh).signed_distance(np.zeros((0, 3)))
     with pytest.raises(InspectionError, match="not finite"):
-        signed_distances(np.array([[0.0, np.nan, 0.0]]), mesh)
+        CadSurface(mesh).signed_distance(np.array([[0.0, np.nan, 0.0]]))
     with pytest.raises(InspectionError, match=r"\(N, 3\)"):
-        signed_distances(np.zeros((4, 2)), mesh)
+        CadSurface(mesh).signed_distance(np.zeros((4, 2)))
     with pytest.raises(InspectionError, match="no triangles"):
         CadSurface(o3d.geometry.TriangleMesh())
     # a cloud too far off for the best fit still gets its as-measured result, with the reason noted

@@ -9,17 +9,17 @@ from tandemscan.config.models import PartConfig
 from tandemscan.pipeline.geometry.kinematics import ArmKinematics
 from tandemscan.pipeline.geometry.part import (
     PartMeshError,
-    is_closed,
     load_part_mesh,
     read_mesh_file,
     signed_volume_mm3,
     train_nose_mesh,
+    triangles_closed,
 )
 
 
 def test_train_nose_is_a_closed_part_of_the_configured_size():
     mesh = train_nose_mesh(PartConfig())
-    assert is_closed(mesh) and signed_volume_mm3(mesh) > 0  # closed, outward normals
+    assert triangles_closed(np.asarray(mesh.triangles)) and signed_volume_mm3(mesh) > 0  # closed, outward normals
     assert signed_volume_mm3(mesh) == pytest.approx(3.0e9 * 2.0 * 1.6 * 0.7, rel=0.3)
     lo, hi = mesh.get_min_bound(), mesh.get_max_bound()
     np.testing.assert_allclose(hi[:2] - lo[:2], [3000, 2000], rtol=0.03)
@@ -33,9 +33,9 @@ def test_train_nose_is_a_closed_part_of_the_configured_size():
 
 def test_closed_and_volume_checks_on_a_box():
     box = o3d.geometry.TriangleMesh.create_box(10, 20, 30)
-    assert is_closed(box) and signed_volume_mm3(box) == pytest.approx(6000.0)
+    assert triangles_closed(np.asarray(box.triangles)) and signed_volume_mm3(box) == pytest.approx(6000.0)
     open_box = o3d.geometry.TriangleMesh(box.vertices, o3d.utility.Vector3iVector(np.asarray(box.triangles)[1:]))
-    assert not is_closed(open_box)
+    assert not triangles_closed(np.asarray(open_box.triangles))
 
 
 def test_mesh_file_replaces_the_parametric_part(tmp_path):

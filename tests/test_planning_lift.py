@@ -20,10 +20,10 @@ from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.kinematics import ArmKinematics
 from tandemscan.pipeline.geometry.part import (
     barrel_panel_mesh,
-    is_closed,
     load_part_mesh,
     part_identity,
     read_mesh_file,
+    triangles_closed,
 )
 from tandemscan.pipeline.geometry.raycast import make_scene
 from tandemscan.pipeline.planning.coverage import REASON_REACH, REASON_TRACKER, dry_run
@@ -73,7 +73,7 @@ def test_lift_heights_and_range_validation():
 
 def test_barrel_panel_is_closed_with_its_crown_and_floor_width(barrel):
     v = np.asarray(barrel.vertices)
-    assert is_closed(barrel)
+    assert triangles_closed(np.asarray(barrel.triangles))
     assert v[:, 2].max() == pytest.approx(1600.0) and v[:, 2].min() == 0.0
     assert v[:, 1].max() == pytest.approx(np.sqrt(2200.0**2 - 600.0**2), rel=1e-9)
     assert np.ptp(v[:, 0]) == pytest.approx(4000.0)

@@ -1,4 +1,4 @@
-"""The simulated cell's twins against the physics they model (DESIGN.md section 4)."""
+"""The simulated cell's twins against the physics they model (docs/architecture.md, the cell layer; docs/drivers.md)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""SE(3) helpers and the transform chain of DESIGN.md section 2.
+"""SE(3) helpers and the transform chain of docs/architecture.md ("Frames").
 
 All transforms are 4x4 float64 homogeneous matrices in millimetres; ``T_a_b`` maps coordinates in frame
 ``b`` into frame ``a`` so that ``T_a_c = T_a_b @ T_b_c``. Angles are radians. Roll-pitch-yaw follows the
@@ -139,11 +139,6 @@ def measurement_agv_in_world(
 ) -> np.ndarray:
     """Eq. 3-5: ``T_W_V2 = T_W_T inv(T_V2_B T_B_E T_E_T)``."""
     return compose(T_W_T, invert(compose(T_V2_B, T_B_E, T_E_T)))
-
-
-def tracking_agv_in_world(T_W_T: ArrayLike, T_V1_C: ArrayLike, T_C_T: ArrayLike) -> np.ndarray:
-    """Eq. 6: ``T_W_V1 = T_W_T inv(T_V1_C T_C_T)``."""
-    return compose(T_W_T, invert(compose(T_V1_C, T_C_T)))
 
 
 def mean_pose(transforms: list[np.ndarray]) -> np.ndarray:

@@ -47,16 +47,16 @@ def read_mesh_file(path: Path, what: str = "mesh") -> o3d.geometry.TriangleMesh:
     return mesh
 
 
-def signed_volume_mm3(mesh: o3d.geometry.TriangleMesh) -> float:
-    """Signed enclosed volume (mm^3): positive when a closed mesh's normals point outward."""
-    v = np.asarray(mesh.vertices)
-    t = np.asarray(mesh.triangles)
+def enclosed_volume_mm3(vertices_mm: np.ndarray, triangles: np.ndarray) -> float:
+    """Signed volume (mm^3) enclosed by the (M, 3) vertex-index ``triangles``: positive when a closed surface
+    (:func:`triangles_closed`) is wound counter-clockwise seen from outside, i.e. its normals point outward."""
+    v, t = np.asarray(vertices_mm, dtype=np.float64), np.asarray(triangles, dtype=np.int64)
     return float(np.einsum("ij,ij->i", v[t[:, 0]], np.cross(v[t[:, 1]], v[t[:, 2]])).sum() / 6.0)
 
 
-def is_closed(mesh: o3d.geometry.TriangleMesh) -> bool:
-    """True when the mesh is a closed, consistently oriented surface (:func:`triangles_closed`)."""
-    return triangles_closed(np.asarray(mesh.triangles))
+def signed_volume_mm3(mesh: o3d.geometry.TriangleMesh) -> float:
+    """:func:`enclosed_volume_mm3` of an Open3D mesh (mm^3)."""
+    return enclosed_volume_mm3(np.asarray(mesh.vertices), np.asarray(mesh.triangles))
 
 
 def triangles_closed(t: np.ndarray) -> bool:

@@ -18,7 +18,7 @@ import numpy as np
 import open3d as o3d
 from tandemscan.config.models import InspectionConfig, RegionConfig
 from tandemscan.pipeline.geometry.frames import from_rotvec, rotation_angle, transform_points
-from tandemscan.pipeline.geometry.part import triangles_closed
+from tandemscan.pipeline.geometry.part import enclosed_volume_mm3, triangles_closed
 from tandemscan.pipeline.inspection.deviation_areas import DeviationArea, find_deviation_areas
 
 log = logging.getLogger(__name__)
@@ -63,7 +63,7 @@ class CadSurface:
         self.mesh = mesh
         self.origin_mm = 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
         local = (vertices - self.origin_mm).astype(np.float32)
-        self.flipped = triangles_closed(triangles) and _signed_volume(local, triangles) < 0.0
+        self.flipped = triangles_closed(triangles) and enclosed_volume_mm3(local, triangles) < 0.0
         if self.flipped:  # a closed mesh wound inside out: its normals would point into the material
             log.warning("CAD mesh is wound inside out (negative volume); using its triangles reversed")
             triangles = triangles[:, ::-1].copy()
@@ -104,18 +104,6 @@ class CadSurface:
     def signed_distance(self, points_mm: np.ndarray) -> np.ndarray:
         """(N,) signed distance of every point to the surface, mm (+ outside along the outward normal)."""
         return self.closest(points_mm).signed_mm
-
-
-def _signed_volume(vertices: np.ndarray, triangles: np.ndarray) -> float:
-    """Enclosed volume, positive when the triangles are wound counter-clockwise seen from outside (mm^3)."""
-    v = vertices.astype(np.float64)
-    a, b, c = v[triangles[:, 0]], v[triangles[:, 1]], v[triangles[:, 2]]
-    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
-
-
-def signed_distances(points_mm: np.ndarray, mesh: o3d.geometry.TriangleMesh) -> np.ndarray:
-    """(N,) signed deviation of each point (frame F, mm) from ``mesh``; + along its outward normal."""
-    return CadSurface(mesh).signed_distance(points_mm)
 
 
 @dataclass(frozen=True)

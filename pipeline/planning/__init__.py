@@ -1,1 +1,1 @@
-"""Motion planning (DESIGN.md 5.1): AGV stations, arm rasters, tracker stations and the command sequence."""
+"""Motion planning (docs/planning.md): AGV stations, arm rasters, tracker stations and the command sequence."""

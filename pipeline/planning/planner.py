@@ -1,4 +1,4 @@
-"""Plan a whole part: AGV stations, arm rasters, tracker stations and the command sequence (DESIGN.md 5.1).
+"""Plan a whole part: AGV stations, arm rasters, tracker stations and the command sequence (docs/planning.md).
 
 Everything is in the part frame F (mm, rad). The installation transforms are the nominal (or calibrated)
 ones from the configuration; the plan never sees the simulator's truth.

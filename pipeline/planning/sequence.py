@@ -1,4 +1,4 @@
-"""The unified command sequence: one robot moves while the other stands still (DESIGN.md 5.1).
+"""The unified command sequence: one robot moves while the other stands still (docs/planning.md).
 
 Input: the scan poses in their measuring order (station by station, each raster ordered), the tracker chain
 and its covers. While the tracker stands at chain station ``k``, the measurement robot scans every pose not

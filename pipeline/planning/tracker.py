@@ -58,7 +58,7 @@ def candidate_poses(ring_xy_mm: np.ndarray, inward_xy: np.ndarray, offsets_deg: 
     """Candidate tracking-AGV poses ``(K, 3)`` = x mm, y mm, heading rad: each ring point times each offset.
 
     ``inward_xy`` (unit, per ring point) points at the part; heading 0 means the chassis faces +x. The
-    camera looks along the chassis heading (DESIGN.md installation ``T_V1_C``).
+    camera looks along the chassis heading (installation ``T_V1_C``, docs/architecture.md "Frames").
     """
     base = np.arctan2(inward_xy[:, 1], inward_xy[:, 0])
     rows = [np.c_[ring_xy_mm, base + np.radians(o)] for o in offsets_deg]
