@@ -64,6 +64,7 @@ def _progress_bar() -> Progress:
 
 def cmd_measure(args: argparse.Namespace) -> int:
     """Run a complete measurement job on the configured cell (the simulated cell by default)."""
+    from tandemscan.daemon.installation import InstallationError
     from tandemscan.daemon.runner import JobError, JobRunner
     from tandemscan.pipeline.geometry.part import PartMeshError
     from tandemscan.pipeline.planning.plan import PlanError
@@ -85,7 +86,7 @@ def cmd_measure(args: argparse.Namespace) -> int:
                                    lambda p: bar.update(task, completed=p.done, total=p.total, description=p.message))
                 return await runner.run()
 
-    result = _run_moving(run, JobError, f"scans measured so far are in {job_dir / 'scans'}")
+    result = _run_moving(run, (JobError, InstallationError), f"scans measured so far are in {job_dir / 'scans'}")
     _print_summary(result.report, result.job_dir)
     return 0
 
@@ -124,7 +125,7 @@ def _session(config: CellConfig):
         raise UsageError(str(e)) from e
 
 
-def _run_moving(run, job_error: type[Exception], kept: str):
+def _run_moving(run, job_error: type[Exception] | tuple[type[Exception], ...], kept: str):
     """``asyncio.run(run())`` of a command that moves hardware: a safety stop becomes :class:`SafetyStopped`
     (the line says what was kept), a device fault or ``job_error`` a :class:`UsageError`."""
     from tandemscan.drivers.errors import DeviceError, SafetyStop
@@ -237,15 +238,17 @@ def cmd_job(args: argparse.Namespace) -> int:
 
 def _watch(client, job_id: str) -> int:
     """A live progress bar from the event stream; exit 0 when the job succeeds, 1 otherwise."""
+    from tandemscan.daemon.job_state import JobState
+
     columns = (TextColumn("{task.description:<24}"), BarColumn(), TextColumn("{task.percentage:5.1f} %"))
     with Progress(*columns, TimeElapsedColumn(), console=console) as bar:
         task = bar.add_task(job_id, total=100)
         job = client.watch(
             job_id, lambda pct, j: bar.update(task, completed=pct, description=f"{j['id']} {j['state']}"))
     Console().print(f"{job['id']} {job['state']}" + (f": {job['error']}" if job.get("error") else ""))
-    if job["state"] == "succeeded":
+    if job["state"] == JobState.SUCCEEDED:
         Console().print(json.dumps(job["figures"]))
-    return 0 if job["state"] == "succeeded" else 1
+    return 0 if job["state"] == JobState.SUCCEEDED else 1
 
 
 def build_parser() -> argparse.ArgumentParser:

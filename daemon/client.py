@@ -14,7 +14,6 @@ import httpx
 from tandemscan.daemon.job_state import FINAL_STATES
 
 DEFAULT_URL = "http://127.0.0.1:8470"
-FINAL = FINAL_STATES
 
 
 class ClientError(Exception):
@@ -98,7 +97,7 @@ class DaemonClient:
         """Follow a job's events until it ends; ``on_progress(percent, job)``; returns the final job."""
         job = self.job(job_id)
         on_progress(job["progress"], job)
-        if job["state"] in FINAL:
+        if job["state"] in FINAL_STATES:
             return job
         for kind, data in self.events(job_id):
             if kind == "progress":
@@ -106,6 +105,6 @@ class DaemonClient:
             elif kind == "state":
                 job = self.job(job_id)
                 on_progress(job["progress"], job)
-                if data["state"] in FINAL:
+                if data["state"] in FINAL_STATES:
                     return job
         return self.job(job_id)

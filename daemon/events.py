@@ -9,6 +9,7 @@ from the journal.
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 
 from tandemscan.daemon.store import Event
@@ -61,3 +62,10 @@ class EventBus:
     @property
     def subscribers(self) -> int:
         return len(self._subs)
+
+
+def sse_text(event: Event) -> str:
+    """``event`` as one server-sent event: its id (the journal's sequence number), kind and JSON data (the
+    event's fields, its job id and time, Unix s)."""
+    data = {"job_id": event.job_id, **event.data, "t_s": event.t_s}
+    return f"id: {event.seq}\nevent: {event.kind}\ndata: {json.dumps(data)}\n\n"

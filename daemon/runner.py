@@ -31,6 +31,7 @@ from typing import Protocol, TypeVar
 
 import numpy as np
 from tandemscan.config.models import CellConfig
+from tandemscan.daemon.installation import installation_for_job
 from tandemscan.daemon.observer import JobObserver
 from tandemscan.daemon.session import CellSession, MotionGate
 from tandemscan.daemon.snapshot import JobSnapshot
@@ -42,7 +43,6 @@ from tandemscan.drivers.interfaces import ChassisPose, TrackerReading
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.uncertainty import transfer_covariance
 from tandemscan.pipeline.planning.plan import MoveArm, MoveLift, MoveMeasure, MoveTracker, Plan, Scan
-from tandemscan.pipeline.stitching.installation import Installation
 from tandemscan.pipeline.stitching.relocalise import Relocaliser
 
 log = logging.getLogger(__name__)
@@ -141,24 +141,6 @@ class _NoJournal:
     async def commit(self, idx: int, kind: str, result: dict, scan_file: Path | None = None,
                      scan_points: int = 0) -> None:
         return None
-
-
-def installation_for_job(config: CellConfig, session: CellSession) -> Installation:
-    """The mount transforms the stitch uses, per ``job.installation_source`` (``"truth"``: the simulation's
-    surveyed mounts, as a perfect calibration file would give them)."""
-    source = config.job.installation_source
-    if source == "nominal":
-        return Installation.nominal(config.installation)
-    if source == "truth":
-        sim = session.cell.simulation
-        surveyed = None if sim is None else sim.surveyed_installation()
-        if surveyed is None:
-            raise JobError("installation_source = 'truth' needs the simulated cell (twins, not real drivers)")
-        return surveyed
-    path = config.job.calibration_file
-    if path is None or not Path(path).is_file():
-        raise JobError(f"installation_source = 'calibration' but no calibration file at {path}")
-    return Installation.load(path)
 
 
 class JobRunner:

@@ -31,7 +31,6 @@ from tandemscan.daemon.journal import journaled_abandon, run_journaled
 from tandemscan.daemon.metrics import DaemonCollector, timing_histograms
 from tandemscan.daemon.notify import Notifier
 from tandemscan.daemon.plans import PlanCatalog
-from tandemscan.daemon.runner import JobError, installation_for_job
 from tandemscan.daemon.session import CellSession
 from tandemscan.daemon.store import JobStore
 from tandemscan.drivers.shared_array import remove_stale_blocks
@@ -115,6 +114,7 @@ class Daemon:
         self.notifier = notifier or Notifier()
         self.sse_heartbeat_s = 15.0
         self.loop_lag_s: deque[float] = deque(maxlen=5000)
+        self.job_counts: dict[str, int] = {}  # jobs by state at the last scrape
         self.registry.register(DaemonCollector(self.metrics_snapshot))
         self._tasks: list[asyncio.Task] = []
         self._journal_tasks: set[asyncio.Task] = set()
@@ -167,11 +167,11 @@ class Daemon:
     # ------------------------------------------------------------ read models
 
     def metrics_snapshot(self) -> dict:
-        counts = {}
-        for state in JobState:
-            counts[state] = self.store.list_jobs([state], limit=1)[1]
+        """What the Prometheus collector reports; the job counts are those of the last ``/metrics`` scrape, which
+        reads them off the event loop (:meth:`~tandemscan.daemon.facade.ServiceFacade.metrics`)."""
         snap = self.supervisor.snapshot()
-        return {"jobs": counts, "devices": snap["devices"], "safety": snap["safety"],
+        return {"jobs": {state: self.job_counts.get(state, 0) for state in JobState}, "devices": snap["devices"],
+                "safety": snap["safety"],
                 "loop_lag_p99_s": _p99(self.loop_lag_s),
                 "control_lateness_p99_s": _p99(self.supervisor.control_lateness_s)}
 
@@ -194,25 +194,8 @@ class Daemon:
         ok = not down and not snap["safety"]["latched"] and storage_error is None and not low
         return {"status": "ok" if ok else "degraded", "devices_connected": not down, "devices_down": down,
                 "safety_latched": snap["safety"]["latched"], "active_job": self.manager.active_id,
-                "queued_jobs": self.store.list_jobs(["queued"], limit=1)[1], "free_bytes": free,
+                "queued_jobs": self.store.list_jobs([JobState.QUEUED], limit=1)[1], "free_bytes": free,
                 "storage_low": low, "storage_error": storage_error, "version": self.version}
-
-    def calibration(self) -> dict:
-        """The installation transforms the stitch uses (4x4 lists, mm) and their source: what a job started now
-        would use (:func:`~tandemscan.daemon.runner.installation_for_job`); none, with the reason, when it could
-        not be resolved."""
-        job = self.config.job
-        names = ("T_V1_C", "T_V2_B", "T_E_S", "T_T_S")
-        try:
-            installation = installation_for_job(self.config, self.session)
-        except (JobError, OSError, ValueError, KeyError) as e:
-            log.warning("installation not resolved: %s", e)
-            transforms, error = {}, str(e)
-        else:
-            transforms, error = {n: np.asarray(getattr(installation, n), float).tolist() for n in names}, None
-        return {"source": job.installation_source,
-                "file": str(job.calibration_file) if job.calibration_file else None, "transforms": transforms,
-                "error": error}
 
 
 def serve(config_path: Path | str | None = None, host: str | None = None, port: int | None = None,

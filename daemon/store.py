@@ -12,6 +12,9 @@ between the two leaves an orphan file that :func:`tandemscan.daemon.recovery.rec
 run again.
 Every step commits at most once (primary key ``(job_id, idx)``), so a resumed job has every scan exactly once.
 
+This module is the SQL: the folders are :mod:`.job_folders`, the rows it returns :mod:`.store_rows`, the
+per-thread connections :mod:`.sqlite_db`, the allowed state changes :mod:`.job_state`.
+
 Units: mm, rad, 4x4 float64 matrices stored as nested JSON lists; times are Unix seconds.
 """
 
@@ -20,17 +23,18 @@ from __future__ import annotations
 import json
 import logging
 import sqlite3
-import threading
 import time
 import uuid
-from collections.abc import Iterable, Iterator
-from contextlib import contextmanager
-from dataclasses import dataclass, field
+from collections.abc import Iterable
 from pathlib import Path
 
-from tandemscan.daemon.job_state import ACTIVE_STATES, FINAL_STATES, TransitionError, check_transition
+from tandemscan.daemon.job_folders import JobFolders
+from tandemscan.daemon.job_state import ACTIVE_STATES, FINAL_STATES, JobState, TransitionError, check_transition
 from tandemscan.daemon.jsonable import jsonable
-from tandemscan.pipeline.io.durable import write_durably
+from tandemscan.daemon.sqlite_db import SqliteDb
+from tandemscan.daemon.store_rows import Event, IdempotencyConflict, JobRecord, PendingScan, ScanRecord, StoreError
+
+__all__ = ["Event", "IdempotencyConflict", "JobRecord", "JobStore", "PendingScan", "ScanRecord", "StoreError"]
 
 log = logging.getLogger(__name__)
 
@@ -92,128 +96,21 @@ CREATE TABLE IF NOT EXISTS events (
 """
 
 
-class StoreError(Exception):
-    """The store cannot do what was asked (unknown job, bad state change, corrupt file)."""
-
-
-class IdempotencyConflict(StoreError):
-    """An ``Idempotency-Key`` was reused with a different request body."""
-
-
-@dataclass(frozen=True)
-class JobRecord:
-    """One row of ``jobs``: ``progress`` is 0-100, ``current_step`` the index of the step under way."""
-
-    id: str
-    seq: int
-    state: str
-    plan_name: str
-    plan: dict
-    n_steps: int
-    created_s: float
-    updated_s: float
-    started_s: float | None = None
-    finished_s: float | None = None
-    progress: float = 0.0
-    current_step: int | None = None
-    error: str | None = None
-    figures: dict = field(default_factory=dict)
-    attempts: int = 0
-    idempotency_key: str | None = None
-
-
-@dataclass(frozen=True)
-class ScanRecord:
-    """One committed raw scan: the file path is relative to the job directory."""
-
-    job_id: str
-    step_idx: int
-    file: str
-    n_points: int
-    bytes: int
-    t_s: float
-
-
-@dataclass(frozen=True)
-class PendingScan:
-    """A scan file that is on disk and fsynced but not yet committed."""
-
-    step_idx: int
-    path: Path
-    n_points: int
-    bytes: int
-
-
-@dataclass(frozen=True)
-class Event:
-    """A journaled state change or progress event; ``seq`` grows monotonically."""
-
-    seq: int
-    job_id: str | None
-    kind: str
-    data: dict
-    t_s: float
-
-
-class JobStore:
+class JobStore(JobFolders):
     """The journal and the job directories under ``state_dir``. Thread-safe: one SQLite connection per
-    thread (WAL lets readers run beside the writer), writes serialised by a lock."""
+    thread (WAL lets readers run beside the writer), writes serialised by a lock (:mod:`.sqlite_db`)."""
 
     def __init__(self, state_dir: Path | str):
-        self.state_dir = Path(state_dir)
-        self.jobs_dir = self.state_dir / "jobs"
-        self.jobs_dir.mkdir(parents=True, exist_ok=True)
+        super().__init__(state_dir)
         self.db_path = self.state_dir / "journal.sqlite"
-        self._local = threading.local()
-        self._write_lock = threading.Lock()
-        self._connections: list[sqlite3.Connection] = []
-        self._conn_lock = threading.Lock()
-        with self._write_lock:
-            self._conn().executescript(_SCHEMA)
-
-    # ------------------------------------------------------------ connections
-
-    def _conn(self) -> sqlite3.Connection:
-        conn = getattr(self._local, "conn", None)
-        if conn is None:
-            conn = sqlite3.connect(self.db_path, isolation_level=None, check_same_thread=False, timeout=30.0)
-            conn.row_factory = sqlite3.Row
-            conn.execute("PRAGMA journal_mode=WAL")
-            conn.execute("PRAGMA synchronous=FULL")
-            conn.execute("PRAGMA foreign_keys=ON")
-            self._local.conn = conn
-            with self._conn_lock:
-                self._connections.append(conn)
-        return conn
-
-    @contextmanager
-    def _tx(self) -> Iterator[sqlite3.Connection]:
-        """One write transaction: BEGIN IMMEDIATE ... COMMIT, rolled back on any error."""
-        with self._write_lock:
-            conn = self._conn()
-            conn.execute("BEGIN IMMEDIATE")
-            try:
-                yield conn
-            except BaseException:
-                conn.execute("ROLLBACK")
-                raise
-            conn.execute("COMMIT")
+        self._db = SqliteDb(self.db_path, _SCHEMA)
+        self._conn, self._tx = self._db.conn, self._db.tx
 
     def close(self) -> None:
         """Close every connection this store opened (any thread)."""
-        with self._conn_lock:
-            for conn in self._connections:
-                conn.close()
-            self._connections.clear()
-        self._local = threading.local()
+        self._db.close()
 
     # ------------------------------------------------------------ jobs
-
-    def job_dir(self, job_id: str) -> Path:
-        """The folder of one job (artifacts and raw scans)."""
-        if not job_id or "/" in job_id or job_id.startswith("."):
-            raise StoreError(f"invalid job id {job_id!r}")
-        return self.jobs_dir / job_id
 
     def create_job(
         self, plan_name: str, plan: dict, n_steps: int, idempotency_key: str | None = None,
@@ -236,10 +133,11 @@ class JobStore:
                     return _job_from_row(row), None
             conn.execute(
                 "INSERT INTO jobs (id, state, plan_name, plan_json, n_steps, idempotency_key, request_hash,"
-                " created_s, updated_s) VALUES (?, 'queued', ?, ?, ?, ?, ?, ?, ?)",
-                (job_id, plan_name, json.dumps(plan), n_steps, idempotency_key, request_hash, now, now),
+                " created_s, updated_s) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (job_id, JobState.QUEUED, plan_name, json.dumps(plan), n_steps, idempotency_key, request_hash, now,
+                 now),
             )
-            event = self._event(conn, job_id, "state", {"state": "queued"}, now)
+            event = self._event(conn, job_id, "state", {"state": JobState.QUEUED}, now)
         self.job_dir(job_id).mkdir(parents=True, exist_ok=True)
         return self.get_job(job_id), event
 
@@ -273,9 +171,15 @@ class JobStore:
             f"SELECT * FROM jobs{clause} ORDER BY seq DESC LIMIT ? OFFSET ?", [*args, limit, offset]).fetchall()
         return [_job_from_row(r) for r in rows], total
 
+    def count_by_state(self) -> dict[str, int]:
+        """``{state: number of jobs}`` of the states some job is in (one grouped count)."""
+        rows = self._conn().execute("SELECT state, COUNT(*) AS n FROM jobs GROUP BY state").fetchall()
+        return {r["state"]: r["n"] for r in rows}
+
     def next_queued(self) -> JobRecord | None:
         """The oldest queued job."""
-        row = self._conn().execute("SELECT * FROM jobs WHERE state = 'queued' ORDER BY seq LIMIT 1").fetchone()
+        row = self._conn().execute("SELECT * FROM jobs WHERE state = ? ORDER BY seq LIMIT 1",
+                                   (JobState.QUEUED,)).fetchone()
         return None if row is None else _job_from_row(row)
 
     def set_state(self, job_id: str, state: str, error: str | None = None) -> tuple[JobRecord, Event]:
@@ -290,9 +194,9 @@ class JobStore:
                 state = str(check_transition(row["state"], state))
             except TransitionError as e:
                 raise StoreError(f"job {job_id}: {e}") from e
-            started = row["started_s"] if row["started_s"] is not None or state != "running" else now
+            started = row["started_s"] if row["started_s"] is not None or state != JobState.RUNNING else now
             finished = now if state in FINAL_STATES else None
-            if error is None and state not in ("queued", "running", "succeeded"):
+            if error is None and state not in (JobState.QUEUED, JobState.RUNNING, JobState.SUCCEEDED):
                 error = row["error"]  # a pause or failure keeps the reason it had; a fresh run clears it
             conn.execute(
                 "UPDATE jobs SET state = ?, error = ?, started_s = ?, finished_s = ?, updated_s = ? WHERE id = ?",
@@ -325,13 +229,6 @@ class JobStore:
             return self._event(conn, job_id, "progress", data, now)
 
     # ------------------------------------------------------------ steps, poses, scans
-
-    def register_scan_file(self, job_id: str, step_idx: int, path: Path, n_points: int) -> PendingScan:
-        """A scan file some other writer made durable in the job's folder, to pass to :meth:`commit_step`."""
-        path = Path(path)
-        if not path.is_file() or self.job_dir(job_id) not in path.parents:
-            raise StoreError(f"scan file {path} is not a file in the folder of job {job_id}")
-        return PendingScan(step_idx, path, int(n_points), path.stat().st_size)
 
     def note(self, job_id: str, step_idx: int, kind: str, value: dict) -> None:
         """Durably record something about a step under way (kept whether or not the step commits)."""
@@ -395,12 +292,6 @@ class JobStore:
         """Committed scans in step order."""
         rows = self._conn().execute("SELECT * FROM scans WHERE job_id = ? ORDER BY step_idx", (job_id,)).fetchall()
         return [ScanRecord(r["job_id"], r["step_idx"], r["file"], r["n_points"], r["bytes"], r["t_s"]) for r in rows]
-
-    def write_artifact(self, job_id: str, name: str, data: bytes) -> Path:
-        """Write a result file (``cloud.ply``, ``report.json``) durably into the job directory."""
-        path = self.job_dir(job_id) / name
-        write_durably(path, lambda f: f.write(data))
-        return path
 
     # ------------------------------------------------------------ events
 

@@ -181,3 +181,12 @@ def test_job_states_change_only_along_the_state_machine(store):
     job, _ = store.create_job("p", {}, 1)
     with pytest.raises(StoreError, match="a queued job cannot become paused_safety"):
         store.set_state(job.id, "paused_safety")
+
+
+def test_jobs_are_counted_by_state_in_one_query(store):
+    a, _ = store.create_job("default", {}, n_steps=1)
+    b, _ = store.create_job("default", {}, n_steps=1)
+    store.create_job("default", {}, n_steps=1)
+    store.set_state(a.id, "running")
+    store.set_state(b.id, "cancelled")
+    assert store.count_by_state() == {"queued": 1, "running": 1, "cancelled": 1}

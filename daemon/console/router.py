@@ -12,20 +12,20 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Callable
 from importlib import resources
-from typing import TYPE_CHECKING, Literal
+from typing import Literal
 
 from fastapi import APIRouter, Depends, Path
 from fastapi.responses import FileResponse, HTMLResponse, Response
 from pydantic import BaseModel, Field
-from tandemscan.daemon.api import PROBLEM_RESPONSES, ApiProblem, JobId
+from tandemscan.daemon.api_errors import ApiProblem
+from tandemscan.daemon.api_guard import require_token
+from tandemscan.daemon.api_models import PROBLEM_RESPONSES, JobId
 from tandemscan.daemon.console.cloud_view import MEDIA_TYPE, CloudViewError, view_file
+from tandemscan.daemon.facade import Facade
+from tandemscan.daemon.job_state import FINAL_STATES
 from tandemscan.drivers.errors import DeviceError
 from tandemscan.pipeline.planning.plan import MoveMeasure, MoveTracker, Plan
-
-if TYPE_CHECKING:
-    from tandemscan.daemon.service import Daemon
 
 log = logging.getLogger(__name__)
 
@@ -36,7 +36,8 @@ ASSETS = {
     "plan.js": "text/javascript",
     "console.css": "text/css",
 }
-FINISHED = ("succeeded", "failed", "cancelled")
+router = APIRouter(tags=["console"])
+AUTHORISED = [Depends(require_token)]
 
 
 class Session(BaseModel):
@@ -101,69 +102,67 @@ def _asset_text(name: str) -> str:
     return resources.files("tandemscan.daemon.console").joinpath("static", name).read_text(encoding="utf-8")
 
 
-def console_router(daemon: Daemon, require_token: Callable[..., None]) -> APIRouter:
-    """The console's routes over ``daemon``; ``require_token`` is the API's bearer-token dependency."""
-    router = APIRouter(tags=["console"])
-    authorised = [Depends(require_token)]
+@router.get("/", response_class=HTMLResponse, responses={200: {"content": {"text/html": {}}}})
+async def console_page() -> HTMLResponse:
+    """The operator console (one page; it signs in with the API token and keeps it for the tab)."""
+    return HTMLResponse(await asyncio.to_thread(_asset_text, "index.html"), headers={"Cache-Control": "no-cache"})
 
-    @router.get("/", response_class=HTMLResponse, responses={200: {"content": {"text/html": {}}}})
-    async def console_page() -> HTMLResponse:
-        """The operator console (one page; it signs in with the API token and keeps it for the tab)."""
-        return HTMLResponse(_asset_text("index.html"), headers={"Cache-Control": "no-cache"})
 
-    @router.get("/console/{name}", response_class=Response, responses={
-        **PROBLEM_RESPONSES, 200: {"content": {t: {} for t in set(ASSETS.values())}}})
-    async def console_asset(name: str = Path(max_length=64)) -> Response:
-        """One of the console's script and style files (404 for any other name)."""
-        if name not in ASSETS:
-            raise ApiProblem(404, "No such console file", f"{name!r} is not one of {', '.join(ASSETS)}")
-        return Response(_asset_text(name), media_type=ASSETS[name], headers={"Cache-Control": "no-cache"})
+@router.get("/console/{name}", response_class=Response, responses={
+    **PROBLEM_RESPONSES, 200: {"content": {t: {} for t in set(ASSETS.values())}}})
+async def console_asset(name: str = Path(max_length=64)) -> Response:
+    """One of the console's script and style files (404 for any other name)."""
+    if name not in ASSETS:
+        raise ApiProblem(404, "No such console file", f"{name!r} is not one of {', '.join(ASSETS)}")
+    return Response(await asyncio.to_thread(_asset_text, name), media_type=ASSETS[name],
+                    headers={"Cache-Control": "no-cache"})
 
-    @router.get("/v1/session", response_model=Session, dependencies=authorised, responses=PROBLEM_RESPONSES)
-    async def session() -> Session:
-        """200 when the caller's bearer token is accepted (or the daemon needs none); 401 otherwise."""
-        return Session(token_required=daemon.token is not None, version=daemon.version)
 
-    @router.get("/v1/safety", response_model=SafetyNow, dependencies=authorised, responses=PROBLEM_RESPONSES)
-    async def safety_now() -> SafetyNow:
-        """The safety latch, the e-stop and light curtain as read now, and whether a reset would be accepted."""
-        sup = daemon.supervisor
-        state = None
-        if sup.safety_io is not None:
-            try:
-                state = await asyncio.wait_for(sup.safety_io.read(), sup.device_timeout_s)
-            except (DeviceError, TimeoutError, OSError) as e:
-                log.warning("safety inputs unreadable: %s", e)
-        readable = sup.safety_io is None or state is not None
-        return SafetyNow(latched=sup.latched_reason is not None, reason=sup.latched_reason,
-                         inputs_readable=readable, estop=None if state is None else state.estop,
-                         light_curtain_broken=None if state is None else state.light_curtain_broken,
-                         reset_allowed=readable and (state is None or state.motion_allowed))
+@router.get("/v1/session", response_model=Session, dependencies=AUTHORISED, responses=PROBLEM_RESPONSES)
+async def session(facade: Facade) -> Session:
+    """200 when the caller's bearer token is accepted (or the daemon needs none); 401 otherwise."""
+    return Session(token_required=facade.token is not None, version=facade.version)
 
-    @router.get("/v1/jobs/{job_id}/plan", response_model=PlanView, dependencies=authorised,
-                responses=PROBLEM_RESPONSES)
-    async def job_plan(job_id: JobId) -> PlanView:
-        """The job's plan as a top view: each AGV station (floor frame F, mm, rad) and its scan steps."""
-        job = daemon.manager.get(job_id)
-        plan = Plan.model_validate(job.plan["plan"])
-        cell = daemon.cell
-        return plan_view(plan, {"measure": cell.measure_chassis.name, "tracking": cell.tracking_chassis.name})
 
-    @router.get("/v1/jobs/{job_id}/view", response_class=FileResponse, dependencies=authorised, responses={
-        **PROBLEM_RESPONSES, 200: {"content": {MEDIA_TYPE: {}},
-                                   "description": "thinned cloud (about 200 k points), binary, mm"}})
-    async def job_cloud_view(job_id: JobId) -> FileResponse:
-        """A finished job's stitched cloud thinned to about 200 k points with its deviations from CAD, in the
-        compact binary form of docs/console.md (float32 mm, the report's colour scale and tolerance band)."""
-        job = daemon.manager.get(job_id)
-        job_dir = daemon.store.job_dir(job.id)
-        if job.state not in FINISHED or not (job_dir / "report.json").is_file():
-            raise ApiProblem(409 if job.state not in FINISHED else 404, "Result not available",
-                             f"job {job_id} is {job.state}; it has no stitched cloud")
+@router.get("/v1/safety", response_model=SafetyNow, dependencies=AUTHORISED, responses=PROBLEM_RESPONSES)
+async def safety_now(facade: Facade) -> SafetyNow:
+    """The safety latch, the e-stop and light curtain as read now, and whether a reset would be accepted."""
+    sup = facade.daemon.supervisor
+    state = None
+    if sup.safety_io is not None:
         try:
-            path = await asyncio.to_thread(view_file, job_dir)
-        except CloudViewError as e:
-            raise ApiProblem(404, "Result not available", str(e)) from e
-        return FileResponse(path, media_type=MEDIA_TYPE, filename=f"{job_id}-view.bin")
+            state = await asyncio.wait_for(sup.safety_io.read(), sup.device_timeout_s)
+        except (DeviceError, TimeoutError, OSError) as e:
+            log.warning("safety inputs unreadable: %s", e)
+    readable = sup.safety_io is None or state is not None
+    return SafetyNow(latched=sup.latched_reason is not None, reason=sup.latched_reason,
+                     inputs_readable=readable, estop=None if state is None else state.estop,
+                     light_curtain_broken=None if state is None else state.light_curtain_broken,
+                     reset_allowed=readable and (state is None or state.motion_allowed))
 
-    return router
+
+@router.get("/v1/jobs/{job_id}/plan", response_model=PlanView, dependencies=AUTHORISED, responses=PROBLEM_RESPONSES)
+async def job_plan(job_id: JobId, facade: Facade) -> PlanView:
+    """The job's plan as a top view: each AGV station (floor frame F, mm, rad) and its scan steps."""
+    job = await facade.job_record(job_id)
+    plan = await asyncio.to_thread(Plan.model_validate, job.plan["plan"])
+    cell = facade.daemon.cell
+    return plan_view(plan, {"measure": cell.measure_chassis.name, "tracking": cell.tracking_chassis.name})
+
+
+@router.get("/v1/jobs/{job_id}/view", response_class=FileResponse, dependencies=AUTHORISED, responses={
+    **PROBLEM_RESPONSES, 200: {"content": {MEDIA_TYPE: {}},
+                               "description": "thinned cloud (about 200 k points), binary, mm"}})
+async def job_cloud_view(job_id: JobId, facade: Facade) -> FileResponse:
+    """A finished job's stitched cloud thinned to about 200 k points with its deviations from CAD, in the
+    compact binary form of docs/console.md (float32 mm, the report's colour scale and tolerance band)."""
+    job = await facade.job_record(job_id)
+    job_dir = facade.job_dir(job.id)
+    if job.state not in FINAL_STATES or not await asyncio.to_thread((job_dir / "report.json").is_file):
+        raise ApiProblem(409 if job.state not in FINAL_STATES else 404, "Result not available",
+                         f"job {job_id} is {job.state}; it has no stitched cloud")
+    try:
+        path = await asyncio.to_thread(view_file, job_dir)
+    except CloudViewError as e:
+        raise ApiProblem(404, "Result not available", str(e)) from e
+    return FileResponse(path, media_type=MEDIA_TYPE, filename=f"{job_id}-view.bin")

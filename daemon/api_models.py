@@ -1,0 +1,154 @@
+"""The REST API's bodies (pydantic): what each route takes and answers, as ``/openapi.json`` publishes them.
+
+Times are ISO 8601 UTC on the wire; figures in mm and degrees as the job's report gives them; installation
+transforms as 4x4 nested lists (mm). Errors are RFC 9457 problem details (:class:`Problem`). See docs/daemon.md.
+"""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import Annotated, Any, Literal
+
+from fastapi import Path
+from pydantic import BaseModel, ConfigDict, Field
+from tandemscan.daemon.job_state import JobState
+from tandemscan.daemon.store import JobRecord
+
+PROBLEM = "application/problem+json"
+JobId = Annotated[str, Path(pattern=r"^[A-Za-z0-9_-]{1,64}$", description="job id")]
+JobStateName = JobState
+#: ``Last-Event-ID`` / ``after``: an event sequence number (decimal digits, at most 2**62)
+MAX_EVENT_ID = 2**62
+
+
+class JobRequest(BaseModel):
+    """A job to queue. ``{}`` runs the cell's default plan."""
+
+    model_config = ConfigDict(extra="forbid")
+    plan: str | None = Field(None, min_length=1, max_length=200, description="a name from /v1/plans")
+    label: str | None = Field(None, max_length=200, description="free text for the MES (order, serial)")
+
+
+class Job(BaseModel):
+    """A job: state, progress (0-100), the step under way and figures so far (mm, deg)."""
+
+    id: str
+    state: JobStateName
+    plan: str
+    label: str | None = None
+    progress: float = Field(ge=0, le=100)
+    current_step: int | None
+    steps_total: int
+    steps_done: int
+    figures: dict[str, Any]
+    error: str | None
+    attempts: int = Field(description="runner starts: 1, plus one per daemon restart while the job was active")
+    created: datetime
+    started: datetime | None
+    finished: datetime | None
+    links: dict[str, str]
+
+
+class JobPage(BaseModel):
+    items: list[Job]
+    total: int
+    limit: int
+    offset: int
+    next: str | None = Field(None, description="URL of the next page, when there is one")
+
+
+class Problem(BaseModel):
+    """RFC 9457 problem details."""
+
+    type: str = "about:blank"
+    title: str
+    status: int
+    detail: str | None = None
+    instance: str | None = None
+    errors: list[dict[str, Any]] | None = None
+
+
+class Device(BaseModel):
+    name: str
+    connected: bool
+    state: str
+    detail: dict[str, Any]
+    last_error: str | None
+    reconnects: int
+
+
+class Safety(BaseModel):
+    latched: bool
+    reason: str | None
+
+
+class Devices(BaseModel):
+    devices: list[Device]
+    safety: Safety
+    moving: list[str] = Field(description="robots moving now (never more than one)")
+    all_connected: bool
+
+
+class PlanSummary(BaseModel):
+    name: str
+    valid: bool
+    default: bool = False
+    part: str | None = None
+    steps: int | None = None
+    scans: int | None = None
+    transfers: int | None = None
+    error: str | None = None
+
+
+class Calibration(BaseModel):
+    """The installation transforms the stitch uses (4x4, mm) and where they come from."""
+
+    source: Literal["truth", "nominal", "calibration"]
+    file: str | None
+    transforms: dict[str, list[list[float]]]
+    error: str | None = Field(None, description="why the installation could not be resolved (no transforms then)")
+
+
+class Health(BaseModel):
+    """``degraded`` while a device is down, the safety stop latched, free space under the reserve or a job's
+    state held in memory because the journal refuses writes."""
+
+    status: Literal["ok", "degraded"]
+    devices_connected: bool = Field(description="every device connected and none reporting a fault")
+    devices_down: list[str] = Field(description="devices not connected or reporting a fault")
+    safety_latched: bool
+    active_job: str | None
+    queued_jobs: int
+    free_bytes: int = Field(description="free space of the state folder's file system (bytes)")
+    storage_low: bool = Field(description="free space under [daemon] reserve_free_bytes")
+    storage_error: str | None = Field(description="why a job's state is held in memory (the journal refuses writes)")
+    version: str
+
+
+PROBLEM_RESPONSES: dict[int | str, dict[str, Any]] = {
+    code: {"model": Problem, "content": {PROBLEM: {}}} for code in (400, 401, 404, 409, 413, 422, 507)
+}
+
+# Exports a finished job serves besides cloud.ply and report.json, with their media types.
+JOB_FILES = {
+    "report.html": "text/html",
+    "cloud.e57": "application/octet-stream",
+    "poses.csv": "text/csv",
+    "cloud_deviation.ply": "application/octet-stream",
+}
+
+
+def _ts(t: float | None) -> datetime | None:
+    return None if t is None else datetime.fromtimestamp(t, UTC)
+
+
+def job_body(job: JobRecord, steps_done: int) -> Job:
+    """The wire form of a job read from the store (``steps_done``: its committed steps)."""
+    base = f"/v1/jobs/{job.id}"
+    links = {"self": base, "events": f"/v1/events?job={job.id}"}
+    if job.state == JobState.SUCCEEDED:
+        links.update(cloud=f"{base}/cloud", report=f"{base}/report", report_html=f"{base}/files/report.html")
+    return Job(id=job.id, state=job.state, plan=job.plan_name, label=job.plan.get("label"),
+               progress=job.progress, current_step=job.current_step, steps_total=job.n_steps,
+               steps_done=steps_done, figures=job.figures, error=job.error, attempts=job.attempts,
+               created=_ts(job.created_s), started=_ts(job.started_s), finished=_ts(job.finished_s), links=links)
