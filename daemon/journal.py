@@ -17,7 +17,7 @@ from typing import TypeVar
 
 from tandemscan.config.models import CellConfig
 from tandemscan.daemon.coordinate_transfer import return_from_transfer
-from tandemscan.daemon.jobs import JobContext
+from tandemscan.daemon.job_context import JobContext
 from tandemscan.daemon.runner import JobProgress, JobRunner
 from tandemscan.daemon.session import CellSession
 from tandemscan.daemon.stitcher import ProcessWorldMap

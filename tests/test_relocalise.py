@@ -12,7 +12,8 @@ import pytest
 from pydantic import ValidationError
 from tandemscan.config import load_config
 from tandemscan.daemon.events import EventBus
-from tandemscan.daemon.jobs import JobContext, JobManager
+from tandemscan.daemon.job_context import JobContext
+from tandemscan.daemon.jobs import JobManager
 from tandemscan.daemon.journal import StoreJournal
 from tandemscan.daemon.run_state import (
     RelocalisationState,
