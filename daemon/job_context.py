@@ -1,5 +1,5 @@
 """What the job manager (:mod:`tandemscan.daemon.jobs`) gives a runner: the job, its journal, the cell, and the
-checkpoints where a pause, a cancel or a safety stop takes effect (``docs/daemon.md``, the job's states).
+checkpoints where a pause, a cancel or a safety stop takes effect (``docs/daemon.md``, faults).
 
 The runner is ``async runner(ctx: JobContext) -> dict`` (figures of the finished job). It calls
 ``ctx.run_step(i, fn)`` for each step not yet committed and ``ctx.progress(...)`` as it goes.

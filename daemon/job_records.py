@@ -73,23 +73,12 @@ class ScanRecord:
                    np.array(d["T_W_S"], dtype=float), d["points"])
 
 
-@dataclass
 class SnapshotScan:
     """A scan as the end-of-job work sees it (:class:`~tandemscan.daemon.snapshot.JobSnapshot` ``scans``): the
-    fields of its :class:`ScanRecord`, ``T_W_S`` (mm) replaced there by the correction."""
+    attributes of its :class:`ScanRecord`, ``T_W_S`` (mm) replaced there by the correction."""
 
-    index: int
-    tracker_station: int
-    file: Path
-    reading: TrackerReading
-    joints_rad: np.ndarray
-    T_W_C: np.ndarray
-    T_W_S: np.ndarray
-    point_count: int
-
-    @classmethod
-    def of(cls, record: ScanRecord) -> SnapshotScan:
-        return cls(**{f.name: getattr(record, f.name) for f in fields(record)})
+    def __init__(self, record: ScanRecord):
+        self.__dict__.update({f.name: getattr(record, f.name) for f in fields(record)})
 
 
 @dataclass(frozen=True)

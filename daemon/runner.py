@@ -1,9 +1,11 @@
 """The job runner: executes a plan on the cell's devices, stitches every scan into the world, writes results.
 
-Order per DESIGN.md section 5: measure (persist the raw scan, ``T_C_T``, joints and timestamps before anything
+Order (``docs/architecture.md``): measure (persist the raw scan, ``T_C_T``, joints and timestamps before anything
 else) -> stitch (Eq. 1 into a voxel world map) -> export (``cloud.ply``, ``report.json``). A ``move_tracker``
-step is a coordinate transfer (Eq. 2) with the measurement robot standing still. Steps run one at a time, so
-the two robots never move together. Heavy numeric work (scan writing, stitching, correction, report and
+step is a coordinate transfer (Eq. 2, :mod:`tandemscan.daemon.coordinate_transfer`) with the measurement robot
+standing still. Steps run one at a time, so the two robots never move together. Each is measured into a record
+(:mod:`tandemscan.daemon.job_records`), committed, and applied to the job's state (:mod:`tandemscan.daemon.run_state`),
+the way a resumed job replays it. Heavy numeric work (scan writing, stitching, correction, report and
 exports) runs where the world map lives (:mod:`tandemscan.daemon.stitcher`): a worker process in the daemon,
 threads otherwise; the event loop only passes small records and file names.
 
@@ -11,7 +13,7 @@ A ``move_tracker`` before the job's first scan is a plain relocation: nothing is
 the tracker camera frame where it then stands. With ``job.relocalise`` the runner places W in the plan's frame F
 from one target reading at the start (the anchor, Eq. 5: the in-job inspection's registration to CAD) and,
 where the plan has scanner poses ``T_F_S``, measures where the measurement AGV stands after each drive
-(:mod:`tandemscan.pipeline.stitching.relocalise`) and re-solves the arm for each ``move_arm`` step's planned pose, so a
+(:mod:`tandemscan.daemon.agv_relocalisation`) and re-solves the arm for each ``move_arm`` step's planned pose, so a
 drifting chassis still scans where the plan meant; a pose out of reach from there is scanned with the plan's
 joints and listed in the report (``relocalisation.unresolved``).
 
@@ -336,7 +338,7 @@ class JobRunner:
         scorer = self.observer.scorer() if self.observer is not None else None
         state = self.state
         return JobSnapshot(self.job_dir, self.plan, self.config, self.installation,
-                           [SnapshotScan.of(s) for s in (scans or state.scans)],
+                           [SnapshotScan(s) for s in (scans or state.scans)],
                            [t.entry() for t in state.transfers], dict(self.correction), scorer,
                            T_F_W=state.relocalisation.T_F_W, relocalisation=state.relocalisation.report())
 
