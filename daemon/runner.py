@@ -68,13 +68,8 @@ from tandemscan.pipeline.stitching.relocalise import Relocaliser
 
 log = logging.getLogger(__name__)
 
-_DESCRIBE = {
-    "move_tracker": "coordinate transfer: moving the tracking robot",
-    "move_measure": "moving the measurement robot",
-    "move_lift": "moving the lifting column",
-    "move_arm": "moving the arm",
-    "scan": "scanning",
-}
+_DESCRIBE = {"move_tracker": "coordinate transfer: moving the tracking robot", "move_measure": "moving the measurement "
+             "robot", "move_lift": "moving the lifting column", "move_arm": "moving the arm", "scan": "scanning"}
 
 
 class JobError(Exception):
