@@ -81,7 +81,7 @@ async def measure(config: CellConfig, plan: Plan, job_dir: Path) -> Measured:
               for s in result.scans]
     tracker_only = [F.compose(s.T_W_C, s.reading.T_C_T, inst.T_T_S) for s in result.scans]
     cloud, _ = read_ply(result.cloud_file)
-    return Measured(cloud, list(result.scans), np.array(runner.T_F_W), T_W_V2, tracker_only,
+    return Measured(cloud, list(result.scans), np.array(runner.state.relocalisation.T_F_W), T_W_V2, tracker_only,
                     [scorer.T_W_S_true[s.index] for s in result.scans], F.invert(scorer.world.T_W_F), result,
                     inst.T_T_S)
 

@@ -9,29 +9,27 @@ from the committed steps. A paused job keeps the cell: queued jobs wait behind i
 reason in its ``error``, while a device is down. A failed or cancelled job first brings the cell back to a known
 state (``abandon``: no tracker left mid-transfer).
 
-A state change the journal cannot take (a full disk) is held in memory, served as the job's state and written
-as soon as the journal takes it again.
+A state change the journal cannot take (a full disk) is held in memory (:mod:`tandemscan.daemon.held_states`).
 
 On start the manager asks the store for jobs that were active when the daemon stopped: a ``running`` job
 is resumed by the runner from its first uncommitted step; a paused one stays paused.
 
-The runner is ``async runner(ctx: JobContext) -> dict`` (figures of the finished job). It calls
-``ctx.run_step(i, kind, fn)`` for each step not yet committed and ``ctx.progress(...)`` as it goes.
+The runner and what it gets: :mod:`tandemscan.daemon.job_context`.
 """
 
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import hashlib
 import json
 import logging
-from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 from tandemscan.daemon.events import EventBus
 from tandemscan.daemon.faults import STORAGE_ERRORS, JobFault, classify_fault
+from tandemscan.daemon.held_states import HeldStates
+from tandemscan.daemon.job_context import Abandon, JobCancelled, JobContext, Runner
 from tandemscan.daemon.job_state import FINAL_STATES, PAUSED_STATES
 from tandemscan.daemon.recovery import recover
 from tandemscan.daemon.store import Event, JobRecord, JobStore, StoreError
@@ -48,54 +46,6 @@ class JobError(Exception):
     def __init__(self, message: str, status: int = 409):
         super().__init__(message)
         self.status = status
-
-
-class JobCancelled(Exception):
-    """Raised inside a runner when its job was cancelled."""
-
-
-@dataclass
-class JobContext:
-    """What a runner gets: the job, the journal, the devices' supervisor, the cell session (its motion gate and
-    observers, :mod:`tandemscan.daemon.session`) and pause/cancel checkpoints."""
-
-    job: JobRecord
-    store: JobStore
-    supervisor: Supervisor
-    manager: JobManager
-    cell: Any = None
-    config: Any = None
-    committed: dict[int, dict] = field(default_factory=dict)
-    session: Any = None
-
-    @property
-    def resumed(self) -> bool:
-        """True when this run continues a job that committed steps before (a restart or a crash)."""
-        return bool(self.committed)
-
-    async def checkpoint(self) -> None:
-        """Wait while the job is paused; raise :class:`JobCancelled` once it is cancelled."""
-        await self.manager._checkpoint(self.job.id)
-
-    async def run_step(self, idx: int, fn: Callable[[], Awaitable[Any]]) -> Any:
-        """Run one step: wait at the checkpoint, and after a safety stop pause and run it again on resume."""
-        while True:
-            await self.checkpoint()
-            try:
-                return await fn()
-            except SafetyStop as e:
-                log.warning("job %s step %d halted by safety stop: %s", self.job.id, idx, e)
-                await self.manager._safety_pause(self.job.id, str(e))
-
-    async def progress(self, percent: float, current_step: int | None, figures: dict | None = None) -> None:
-        """Publish progress (0-100), the step under way and optional figures so far."""
-        ev = await asyncio.to_thread(self.store.set_progress, self.job.id, percent, current_step, figures)
-        self.manager.bus.publish(ev)
-
-
-Runner = Callable[[JobContext], Awaitable[dict]]
-#: brings the cell back to a known state after a job failed or was cancelled (the job's record, its store)
-Abandon = Callable[[JobRecord, JobStore], Awaitable[None]]
 
 
 @dataclass(frozen=True)
@@ -139,10 +89,10 @@ class JobManager:
     _scheduler: asyncio.Task | None = None
     _retry_task: asyncio.Task | None = None
     _retries: dict[str, tuple[int, int]] = field(default_factory=dict)  # job: (retries, steps done at the last)
-    _unsaved: dict[str, tuple[str, str | None]] = field(default_factory=dict)  # job: (state, error) not journaled
-    _flusher: asyncio.Task | None = None
+    _held: HeldStates = field(init=False)  # state changes the journal refused, written once it takes them
 
     def __post_init__(self) -> None:
+        self._held = HeldStates(self.store, self.bus)
         self.supervisor.safety_listeners.append(self._on_safety_stop)
         self.supervisor.connection_listeners.append(lambda whole: self._wake.set())
 
@@ -161,7 +111,8 @@ class JobManager:
 
     async def close(self) -> None:
         """Stop scheduling; a job under way is interrupted and stays resumable (state kept)."""
-        await cancel_and_wait(self._scheduler, self._run_task, self._retry_task, self._flusher)
+        await cancel_and_wait(self._scheduler, self._run_task, self._retry_task)
+        await self._held.close()
 
     # ------------------------------------------------------------ requests
 
@@ -184,14 +135,12 @@ class JobManager:
 
     def current(self, job: JobRecord) -> JobRecord:
         """``job`` (read from the store) with a state change held in memory applied."""
-        held = self._unsaved.get(job.id)
-        return job if held is None else dataclasses.replace(job, state=held[0], error=held[1])
+        return self._held.current(job)
 
     @property
     def storage_error(self) -> str | None:
         """Why a state change is held in memory now (the journal refuses writes); None when all are written."""
-        return next((f"job {j} is {st} but the journal cannot record it" for j, (st, _) in self._unsaved.items()),
-                    None)
+        return self._held.error
 
     async def cancel(self, job_id: str) -> JobRecord:
         job = self.get(job_id)
@@ -380,27 +329,11 @@ class JobManager:
             job, event = await asyncio.to_thread(self.store.set_state, job_id, state, error)
         except STORAGE_ERRORS as e:
             log.error("job %s: state %s held in memory, the journal refuses it: %s", job_id, state, e)
-            self._unsaved[job_id] = (state, error)
-            if self._flusher is None or self._flusher.done():
-                self._flusher = asyncio.create_task(self._flush_unsaved(), name="state-flusher")
+            self._held.hold(job_id, state, error)
             return self.get(job_id)
-        self._unsaved.pop(job_id, None)
+        self._held.written(job_id)
         self.bus.publish(event)
         return job
-
-    async def _flush_unsaved(self, period_s: float = 1.0) -> None:
-        """Write the held state changes as soon as the journal takes them."""
-        while self._unsaved:
-            await asyncio.sleep(period_s)
-            for job_id, (state, error) in list(self._unsaved.items()):
-                try:
-                    _, event = await asyncio.to_thread(self.store.set_state, job_id, state, error)
-                except STORAGE_ERRORS:
-                    continue
-                if self._unsaved.get(job_id) == (state, error):
-                    del self._unsaved[job_id]
-                self.bus.publish(event)
-                log.info("job %s: held state %s journaled", job_id, state)
 
     def publish(self, kind: str, data: dict, job_id: str | None = None) -> Event:
         """Journal and publish a non-job event (device, safety)."""

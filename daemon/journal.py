@@ -16,8 +16,9 @@ from pathlib import Path
 from typing import TypeVar
 
 from tandemscan.config.models import CellConfig
-from tandemscan.daemon.jobs import JobContext
-from tandemscan.daemon.runner import JobProgress, JobRunner, return_from_transfer
+from tandemscan.daemon.coordinate_transfer import return_from_transfer
+from tandemscan.daemon.job_context import JobContext
+from tandemscan.daemon.runner import JobProgress, JobRunner
 from tandemscan.daemon.session import CellSession
 from tandemscan.daemon.stitcher import ProcessWorldMap
 from tandemscan.daemon.store import JobRecord, JobStore
@@ -33,7 +34,7 @@ _TRUTH_KEYS = ("pose_err_mm_median", "pose_err_mm_max", "pose_err_deg_median", "
 
 
 class StoreJournal:
-    """The :class:`~tandemscan.daemon.runner.StepJournal` of one job in the daemon."""
+    """The :class:`~tandemscan.daemon.step_journal.StepJournal` of one job in the daemon."""
 
     def __init__(self, ctx: JobContext):
         self.ctx = ctx
@@ -102,7 +103,7 @@ async def run_journaled(ctx: JobContext) -> dict:
 
 def journaled_abandon(session: CellSession, config: CellConfig):
     """The manager's ``abandon`` for the daemon: a failed or cancelled job's half transfer undone
-    (:func:`~tandemscan.daemon.runner.return_from_transfer`) from its journal."""
+    (:func:`~tandemscan.daemon.coordinate_transfer.return_from_transfer`) from its journal."""
 
     async def abandon(job: JobRecord, store: JobStore) -> None:
         plan = Plan.model_validate(job.plan["plan"])

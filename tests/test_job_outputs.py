@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+from dataclasses import replace
 
 import numpy as np
 import pye57
@@ -21,8 +22,8 @@ class PerfectlyCorrectedRunner(JobRunner):
     async def _export(self, seconds, measured_at):
         self.worldmap = LocalWorldMap(self.config.job.voxel_mm)
         truth = self.observer.scorer().T_W_S_true
-        for s in self.scans:
-            s.T_W_S = truth[s.index]
+        self.state = replace(self.state, scans=tuple(replace(s, T_W_S=truth[s.index]) for s in self.state.scans))
+        for s in self.state.scans:
             await self.worldmap.add_scan(s.file, s.T_W_S)
         return await super()._export(seconds, measured_at)
 

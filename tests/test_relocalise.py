@@ -4,14 +4,27 @@ opens with a tracker move relocates it without a transfer. The plan format carri
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
 import pytest
 from pydantic import ValidationError
 from tandemscan.config import load_config
+from tandemscan.daemon.events import EventBus
+from tandemscan.daemon.job_context import JobContext
+from tandemscan.daemon.jobs import JobManager
+from tandemscan.daemon.journal import StoreJournal
+from tandemscan.daemon.run_state import (
+    RelocalisationState,
+    RunState,
+    journal_records,
+    opens_with_anchor,
+    replay_journal,
+)
 from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.session import CellSession
+from tandemscan.daemon.store import JobStore
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.planning.plan import MoveArm, MoveMeasure, MoveTracker, Plan, Scan
 from tandemscan.pipeline.planning.planner import plan_part
@@ -226,3 +239,76 @@ async def test_a_resumed_job_keeps_the_anchor_and_the_located_stations(generated
     assert b["anchor"] == a["anchor"] and b["anchor"]["source"] == "measurement AGV where its odometry says"
     assert b["located"] == a["located"] and len(b["located"]) == plan.scan_count
     assert resumed.report["scans_empty"] == [] and resumed.report["scans"] == plan.scan_count
+
+
+def assert_same(a, b, where: str = "state") -> None:
+    """``a`` and ``b`` equal field by field, arrays exactly (values, shape and dtype)."""
+    if dataclasses.is_dataclass(a):
+        assert type(a) is type(b), where
+        for f in dataclasses.fields(a):
+            assert_same(getattr(a, f.name), getattr(b, f.name), f"{where}.{f.name}")
+    elif isinstance(a, np.ndarray):
+        assert isinstance(b, np.ndarray) and a.dtype == b.dtype and np.array_equal(a, b), where
+    elif isinstance(a, (tuple, list)):
+        assert type(a) is type(b) and len(a) == len(b), where
+        for k, (x, y) in enumerate(zip(a, b, strict=True)):
+            assert_same(x, y, f"{where}[{k}]")
+    elif isinstance(a, dict):
+        assert a.keys() == b.keys(), where
+        for k in a:
+            assert_same(a[k], b[k], f"{where}[{k!r}]")
+    else:
+        assert type(a) is type(b) and a == b, f"{where}: {a!r} != {b!r}"
+
+
+async def journaled_run(config, plan, root):
+    """The daemon's path without its HTTP layer: the job in a job store, each step committed through the
+    store's journal (:class:`StoreJournal`) under the job manager's checkpoints. Returns the runner and the
+    journal as the store keeps it (committed results, notes)."""
+    store = JobStore(root)
+    job, _ = store.create_job(plan.name, {"plan": plan.model_dump(mode="json")}, len(plan.steps))
+    store.set_state(job.id, "running")
+    try:
+        async with CellSession(config) as session:
+            manager = JobManager(store, EventBus(), session.supervisor, runner=None)
+            ctx = JobContext(store.begin_attempt(job.id), store, session.supervisor, manager, session.cell, config,
+                             {}, session)
+            runner = JobRunner(session, plan, config, store.job_dir(job.id), journal=StoreJournal(ctx))
+            await runner.run()
+        notes = {i: store.notes(job.id, i) for i in range(len(plan.steps))}
+        return runner, store.committed_steps(job.id), notes
+    finally:
+        store.close()
+
+
+async def test_a_journaled_job_replayed_through_apply_is_the_state_that_wrote_it(generated, drifting, tmp_path):
+    """Two journaled jobs: AGV stations located and arm poses re-solved (drifting chassis), and the shipped plan
+    with a coordinate transfer and the anchor noted before its first step. Their committed journals, replayed
+    through ``apply`` from the state a job starts with, give the state each run ended with (the tracker-only
+    stitch: the correction changes poses after the last step, not a step)."""
+    from tandemscan.daemon.cli import default_plan_path
+
+    band = Plan.load(default_plan_path())
+    second_scan = [i for i, s in enumerate(band.steps) if isinstance(s, Scan)][1]
+    transfer = next(i for i, s in enumerate(band.steps) if isinstance(s, MoveTracker))
+    after = next(i for i, s in enumerate(band.steps) if isinstance(s, Scan) and i > transfer)
+    cases = [
+        ("located", first_scan_per_station(generated.sequence.plan, 2)),
+        ("transfer", Plan(name="transfer", steps=[*band.steps[: second_scan + 1],
+                                                  *band.steps[transfer - 2: after + 1]])),
+    ]
+    config = drifting.model_copy(update={"job": drifting.job.model_copy(update={"relocalise": True})})
+    for name, plan in cases:
+        runner, committed, notes = await journaled_run(config, plan, tmp_path / name)
+        assert sorted(committed) == list(range(len(plan.steps)))
+        records = journal_records(plan, committed, notes.__getitem__, runner.job_dir,
+                                  opens_with_anchor(plan, relocalise=True))
+        start = RunState(relocalisation=RelocalisationState(enabled=runner.resolving))
+        replayed = replay_journal(start, records)
+        assert_same(replayed, runner.state)
+        state = runner.state
+        assert len(state.scans) == plan.scan_count and state.relocalisation.T_F_W is not None
+        if name == "located":
+            assert runner.resolving and len(state.relocalisation.located) == plan.scan_count
+        else:
+            assert not runner.resolving and len(state.transfers) == state.tracker_station == 1
