@@ -36,7 +36,7 @@ from tandemscan.daemon.session import CellSession, MotionGate
 from tandemscan.daemon.snapshot import JobSnapshot
 from tandemscan.daemon.stitcher import LocalWorldMap, ProcessWorldMap, correct, export
 from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT
-from tandemscan.daemon.tracker_reading import read_at_rest
+from tandemscan.daemon.tracker_reading import read_at_rest, read_for_transfer
 from tandemscan.drivers.errors import TargetNotVisible
 from tandemscan.drivers.interfaces import ChassisPose, TrackerReading
 from tandemscan.pipeline.geometry import frames as F
@@ -487,7 +487,7 @@ class JobRunner:
         if noted is not None:
             before_T_C_T, before_cov = np.array(noted["T_C_T"]), np.array(noted["covariance"])
         else:
-            before = await self.read_target()
+            before = await read_for_transfer(self.cell.tracker, self.config.tracker)
             before_T_C_T, before_cov = before.T_C_T, before.covariance
             odo = await self.cell.tracking_chassis.odometry()  # where an abandoned transfer returns the tracker
             await self.journal.note(i, "before", {"T_C_T": before_T_C_T.tolist(), "covariance": before_cov.tolist(),
@@ -496,7 +496,7 @@ class JobRunner:
             odo = await self.cell.tracking_chassis.move_to(
                 ChassisPose(step.x_mm, step.y_mm, step.heading_rad), self.config.tracking_chassis.timeout_s
             )
-        after = await self.read_target()
+        after = await read_for_transfer(self.cell.tracker, self.config.tracker)
         T_W_C_before = self.T_W_C
         self.T_W_C = F.coordinate_transfer(self.T_W_C, before_T_C_T, after.T_C_T)
         self.last_still_T_C_T = after.T_C_T
