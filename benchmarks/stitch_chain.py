@@ -12,7 +12,7 @@ the runner does (``tracker.transfer_samples`` readings averaged on each side, ``
 override; the simulator keeps ``tracker.still_noise_fraction`` of a reading's variance over a still period,
 ``--still-fraction`` to override). The error is taken where it matters for the cloud: at the scanner's sweet
 spot on the view axis (``p_S = (0, 0, sweet_spot_mm)``), its component along the view (the surface normal, which
-cloud-to-mesh distance measures) and its size. Three variants over ``--runs`` seeds split the total:
+cloud-to-mesh distance measures) and its size. Three variants over ``--runs`` seeds (``sim.seed`` on) split the total:
 ``readings`` (only the scan's own reading noisy: transfers exact), ``transfers`` (only the transfer readings
 noisy) and ``both``. Each is reported overall, by tracker station (transfer accumulation grows per station) and
 by column height (a chain error would grow with height), with the mean tracker-to-target distance.
@@ -111,12 +111,13 @@ def run(args: argparse.Namespace) -> dict:
             config = config.model_copy(update={"part": config.part.model_copy(update={"mesh": mesh_file})})
         _, part_plan = plan_configured_part(config, f"chain {args.part}")
         plan = part_plan.sequence.plan
-        out = {"cell": config.name, "part": args.part, "runs": args.runs,
+        seeds = range(config.sim.seed, config.sim.seed + args.runs)
+        out = {"cell": config.name, "part": args.part, "seeds": [seeds.start, seeds.stop - 1],
                "transfer_samples": config.tracker.transfer_samples,
                "still_noise_fraction": config.tracker.still_noise_fraction,
                "tracker_moves": sum(isinstance(s, MoveTracker) for s in plan.steps)}
         for variant in VARIANTS:
-            rows = [r for seed in range(args.runs) for r in walk(config, plan, seed, variant)]
+            rows = [r for seed in seeds for r in walk(config, plan, seed, variant)]
             out[variant] = {"all": _summary(rows), "by_station": _grouped(rows, lambda r: r["station"]),
                             "by_lift_mm": _grouped(rows, lambda r: int(round(r["lift_mm"])))}
     return out
@@ -126,7 +127,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", type=Path, help="cell configuration (default: the simulated cell)")
     parser.add_argument("--part", choices=["default", "barrel"], default="default")
-    parser.add_argument("--runs", type=int, default=10, help="seeds per variant")
+    parser.add_argument("--runs", type=int, default=10, help="seeds per variant, from the config's sim.seed on")
     parser.add_argument("--transfer-samples", type=int, help="readings averaged on each side of a transfer "
                                                              "(default: the config's tracker.transfer_samples)")
     parser.add_argument("--still-fraction", type=float, help="share of a reading's noise variance common to one "
