@@ -1,19 +1,23 @@
 """Where the tracker-only stitch's error comes from, per scan, on a generated plan: print it as JSON.
 
 Usage: ``nice .venv/bin/python benchmarks/stitch_chain.py [--config CELL.toml] [--part default|barrel]
-[--runs N]``.
+[--runs N] [--transfer-samples N] [--still-fraction F]``.
 
 A diagnostic on the simulator's ground truth (scoring only, never the product path): the part is planned as
 ``tandemscan measure --part`` does it, then the plan's steps are walked on a :class:`SimWorld` without scanning:
 the chassis stand where the plan puts them (no slip: drift does not enter the tracker-only stitch, which is
 ``T_W_S = T_W_C T_C_T T_T_S``), the column at its height, the arm at its joints; the tracker reads the target
 with the simulator's noise model at each scan and on both sides of each coordinate transfer (Eq. 2), exactly as
-the runner does. The error is taken where it matters for the cloud: at the scanner's sweet spot on the view
-axis (``p_S = (0, 0, sweet_spot_mm)``), its component along the view (the surface normal, which cloud-to-mesh
-distance measures) and its size. Three variants over ``--runs`` seeds split the total: ``readings`` (only the
-scan's own reading noisy: transfers exact), ``transfers`` (only the transfer readings noisy) and ``both``.
-Each is reported overall, by tracker station (transfer accumulation grows per station) and by column height
-(a chain error would grow with height), with the mean tracker-to-target distance.
+the runner does (``tracker.transfer_samples`` readings averaged on each side, ``--transfer-samples`` to
+override; the simulator keeps ``tracker.still_noise_fraction`` of a reading's variance over a still period,
+``--still-fraction`` to override). The error is taken where it matters for the cloud: at the scanner's sweet
+spot on the view axis (``p_S = (0, 0, sweet_spot_mm)``), its component along the view (the surface normal, which
+cloud-to-mesh distance measures) and its size. Three variants over ``--runs`` seeds (``sim.seed`` on; a seed
+whose installation hides a transfer's target is left out and named, as the job would pause there; a scan whose
+target is hidden is left out, as the runner does) split the total: ``readings`` (only the scan's own reading
+noisy: transfers exact), ``transfers`` (only the transfer readings noisy) and ``both``. Each is reported
+overall, by tracker station (transfer accumulation grows per station) and by column height (a chain error would
+grow with height), with the mean tracker-to-target distance.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ import numpy as np
 import open3d as o3d
 from tandemscan.config import load_config
 from tandemscan.daemon.plan_cmd import plan_configured_part
+from tandemscan.drivers.errors import TargetNotVisible
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.part import barrel_panel_mesh
 from tandemscan.pipeline.planning.plan import MoveArm, MoveLift, MoveMeasure, MoveTracker, Scan
@@ -36,10 +41,11 @@ from tandemscan.sim_drivers.world import SimWorld
 VARIANTS = ("readings", "transfers", "both")
 
 
-def _reading(world: SimWorld, noisy: bool) -> np.ndarray:
-    """``T_C_T`` now: the simulator's noisy reading, or the truth."""
+def _reading(world: SimWorld, noisy: bool, samples: int = 1) -> np.ndarray:
+    """``T_C_T`` now: the mean of ``samples`` of the simulator's noisy readings (as ``read_at_rest``), or the
+    truth."""
     if noisy:
-        return world.measure_target()[0]
+        return F.mean_pose([world.measure_target()[0] for _ in range(samples)])
     return F.invert(world.T_F_C()) @ world.T_F_T()
 
 
@@ -56,9 +62,10 @@ def walk(config, plan, seed: int, variant: str) -> list[dict]:
             if not scanned:  # a plain relocation before the first scan: W is the camera frame where it stops
                 chassis["tracking"].true_pose = F.planar_pose(step.x_mm, step.y_mm, step.heading_rad)
                 continue
-            before = _reading(world, transfer_noise)
+            samples = config.tracker.transfer_samples
+            before = _reading(world, transfer_noise, samples)
             chassis["tracking"].true_pose = F.planar_pose(step.x_mm, step.y_mm, step.heading_rad)
-            T_W_C = F.coordinate_transfer(T_W_C, before, _reading(world, transfer_noise))
+            T_W_C = F.coordinate_transfer(T_W_C, before, _reading(world, transfer_noise, samples))
             station += 1
         elif isinstance(step, MoveMeasure):
             chassis["measure"].true_pose = F.planar_pose(step.x_mm, step.y_mm, step.heading_rad)
@@ -70,6 +77,8 @@ def walk(config, plan, seed: int, variant: str) -> list[dict]:
             if not scanned:
                 world.define_world()
                 T_W_C, scanned = world.T_W_F @ world.T_F_C(), True
+            if world.target_visibility() is not None:  # the runner leaves such a scan out
+                continue
             T_C_T = _reading(world, scan_noise)
             T_W_S = F.compose(T_W_C, T_C_T, world.truth.T_T_S)
             T_W_S_true = world.T_W_S()
@@ -97,6 +106,9 @@ def _grouped(rows: list[dict], key) -> dict:
 
 def run(args: argparse.Namespace) -> dict:
     config = load_config(args.config)
+    tracker = {k: v for k, v in (("transfer_samples", args.transfer_samples),
+                                 ("still_noise_fraction", args.still_fraction)) if v is not None}
+    config = config.model_copy(update={"tracker": config.tracker.model_copy(update=tracker)})
     with tempfile.TemporaryDirectory() as tmp:  # the simulated world reads the mesh file too
         if args.part == "barrel":
             mesh_file = Path(tmp) / "barrel-panel.ply"
@@ -104,10 +116,20 @@ def run(args: argparse.Namespace) -> dict:
             config = config.model_copy(update={"part": config.part.model_copy(update={"mesh": mesh_file})})
         _, part_plan = plan_configured_part(config, f"chain {args.part}")
         plan = part_plan.sequence.plan
-        out = {"cell": config.name, "part": args.part, "runs": args.runs,
+        seeds = range(config.sim.seed, config.sim.seed + args.runs)
+        out = {"cell": config.name, "part": args.part, "seeds": [seeds.start, seeds.stop - 1],
+               "transfer_samples": config.tracker.transfer_samples,
+               "still_noise_fraction": config.tracker.still_noise_fraction,
                "tracker_moves": sum(isinstance(s, MoveTracker) for s in plan.steps)}
+        skipped = {}
+        for seed in seeds:  # a transfer whose target is hidden pauses a job: such a seed is left out
+            try:
+                walk(config, plan, seed, "transfers")
+            except TargetNotVisible as e:
+                skipped[seed] = e.reason
+        out["seeds_left_out"] = skipped
         for variant in VARIANTS:
-            rows = [r for seed in range(args.runs) for r in walk(config, plan, seed, variant)]
+            rows = [r for seed in seeds if seed not in skipped for r in walk(config, plan, seed, variant)]
             out[variant] = {"all": _summary(rows), "by_station": _grouped(rows, lambda r: r["station"]),
                             "by_lift_mm": _grouped(rows, lambda r: int(round(r["lift_mm"])))}
     return out
@@ -117,7 +139,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", type=Path, help="cell configuration (default: the simulated cell)")
     parser.add_argument("--part", choices=["default", "barrel"], default="default")
-    parser.add_argument("--runs", type=int, default=10, help="seeds per variant")
+    parser.add_argument("--runs", type=int, default=10, help="seeds per variant, from the config's sim.seed on")
+    parser.add_argument("--transfer-samples", type=int, help="readings averaged on each side of a transfer "
+                                                             "(default: the config's tracker.transfer_samples)")
+    parser.add_argument("--still-fraction", type=float, help="share of a reading's noise variance common to one "
+                                                             "still period (default: tracker.still_noise_fraction)")
     print(json.dumps(run(parser.parse_args())))
 
 

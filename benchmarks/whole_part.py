@@ -66,6 +66,9 @@ def first_tracker_stations(plan: Plan, stations: int) -> Plan:
 
 async def run(args: argparse.Namespace) -> dict:
     config = load_config(args.config)
+    if args.transfer_samples:
+        config = config.model_copy(update={"tracker": config.tracker.model_copy(
+            update={"transfer_samples": args.transfer_samples})})
     config = config.model_copy(update={"scanner": config.scanner.model_copy(update={"resolution": "coarse"})})
     if args.stitch_only:
         config = config.model_copy(update={"correction": config.correction.model_copy(update={"enabled": False}),
@@ -103,6 +106,11 @@ async def run(args: argparse.Namespace) -> dict:
         "robots_moved_together": len(g.get("robots_moved_together", [])),
         "tracker_only_cloud_rms_mm": before.get("cloud_rms_mm"), "cloud_rms_mm": g["cloud_rms_mm"],
         "cloud_p95_mm": g["cloud_p95_mm"], "plan_seconds": round(plan_seconds, 1), "job_seconds": round(seconds, 1),
+        "transfer_samples": config.tracker.transfer_samples,
+        "still_noise_fraction": config.tracker.still_noise_fraction,
+        "per_tracker_station": g.get("per_tracker_station"),
+        "per_tracker_station_tracker_only": before.get("per_tracker_station"),
+        "transfers_truth": g.get("transfers"),
     }
 
 
@@ -112,6 +120,8 @@ def main() -> None:
     parser.add_argument("--part", choices=["default", "barrel"], default="default")
     parser.add_argument("--stitch-only", action="store_true", help="tracker-only stitch: no correction step")
     parser.add_argument("--tracker-stations", type=int, default=0, help="run only the first N tracker stations")
+    parser.add_argument("--transfer-samples", type=int, default=0,
+                        help="readings averaged on each side of a transfer (default: the config's)")
     print(json.dumps(asyncio.run(run(parser.parse_args()))))
 
 

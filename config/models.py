@@ -145,6 +145,15 @@ class TrackerConfig(_Strict):
     angle_noise_deg: float = Field(0.0010, ge=0, description="at zero distance")
     angle_noise_deg_per_m: float = Field(0.0005, ge=0, description="growth with distance")
     samples_per_reading: int = Field(1, ge=1, description="readings averaged at rest per pose")
+    transfer_samples: int = Field(
+        30, ge=1, description="readings averaged at rest on each side of a coordinate transfer (Eq. 2): its error "
+                              "is carried to every later scan, and 30 frames are 0.5 s at the tracker's 60 Hz "
+                              "while the target stands still anyway (the tracking AGV drives for tens of seconds)")
+    still_noise_fraction: float = Field(
+        0.5, ge=0, le=1, description="share of one reading's noise variance that every reading of one still period "
+                                     "shares (air turbulence, refraction, the camera's calibration residual where "
+                                     "the target sits in the image): averaging does not reduce it; the simulated "
+                                     "tracker draws it so, the averaged reading's covariance counts it")
     timeout_s: float = 5.0
     stream: TrackerStreamConfig = TrackerStreamConfig()
 

@@ -231,7 +231,7 @@ async def _chassis_mounts(session: CellSession, config: CellConfig, kinematics: 
 
 async def _read_at_rest(cell: Cell, config: CellConfig) -> tuple[np.ndarray, np.ndarray]:
     """Mean ``T_C_T`` of ``calibration.tracker_samples`` readings at rest and its covariance (driver order)."""
-    reading = await read_at_rest(cell.tracker, config.calibration.tracker_samples, config.tracker.timeout_s)
+    reading = await read_at_rest(cell.tracker, config.calibration.tracker_samples, config.tracker)
     return reading.T_C_T, reading.covariance
 
 

@@ -59,7 +59,7 @@ from tandemscan.daemon.snapshot import JobSnapshot
 from tandemscan.daemon.step_journal import NoJournal, StepJournal
 from tandemscan.daemon.stitcher import LocalWorldMap, ProcessWorldMap, correct, export
 from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT
-from tandemscan.daemon.tracker_reading import read_at_rest
+from tandemscan.daemon.tracker_reading import read_at_rest, read_for_transfer
 from tandemscan.drivers.errors import TargetNotVisible
 from tandemscan.drivers.interfaces import ChassisPose, TrackerReading
 from tandemscan.pipeline.geometry import frames as F
@@ -138,8 +138,7 @@ class JobRunner:
 
     async def read_target(self) -> TrackerReading:
         """The target pose at rest, averaged over ``tracker.samples_per_reading`` readings."""
-        return await read_at_rest(self.cell.tracker, self.config.tracker.samples_per_reading,
-                                  self.config.tracker.timeout_s)
+        return await read_at_rest(self.cell.tracker, self.config.tracker.samples_per_reading, self.config.tracker)
 
     async def run(self) -> JobResult:
         """Execute every step, then stitch and export. Raises :class:`JobError` on failure."""
@@ -269,7 +268,7 @@ class JobRunner:
         if noted is not None:
             before_T_C_T, before_cov = np.array(noted["T_C_T"]), np.array(noted["covariance"])
         else:
-            before = await self.read_target()
+            before = await read_for_transfer(self.cell.tracker, self.config.tracker)
             before_T_C_T, before_cov = before.T_C_T, before.covariance
             odo = await self.cell.tracking_chassis.odometry()  # where an abandoned transfer returns the tracker
             await self.journal.note(i, "before", {"T_C_T": before_T_C_T.tolist(), "covariance": before_cov.tolist(),
@@ -278,7 +277,7 @@ class JobRunner:
             odo = await self.cell.tracking_chassis.move_to(
                 ChassisPose(step.x_mm, step.y_mm, step.heading_rad), self.config.tracking_chassis.timeout_s
             )
-        after = await self.read_target()
+        after = await read_for_transfer(self.cell.tracker, self.config.tracker)
         record = transfer_record(self.state, before_T_C_T, before_cov, after, (odo.x_mm, odo.y_mm, odo.heading_rad))
         if self.observer is not None:
             self.observer.tracker_transferred(record.station, record.T_W_C)
