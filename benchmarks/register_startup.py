@@ -49,7 +49,8 @@ def clouds(n: int, T_true: np.ndarray, seed: int = 0) -> tuple[np.ndarray, np.nd
     return transform_points(invert(T_true), out[0]), out[1]
 
 
-def call(paths: list[str], method: str, extra: tuple[str, ...] = ()) -> tuple[float, float, subprocess.CompletedProcess]:
+def call(paths: list[str], method: str, extra: tuple[str, ...] = ()
+         ) -> tuple[float, float, subprocess.CompletedProcess]:
     """(wall s, child CPU s, the finished process) of one ``register`` call."""
     t0, c0 = time.perf_counter(), resource.getrusage(resource.RUSAGE_CHILDREN)
     proc = subprocess.run([sys.executable, *extra, "-m", "tandemscan.daemon.cli", "register", *paths,
