@@ -11,7 +11,7 @@ not import Open3D.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -43,36 +43,50 @@ class IcpResult:
 
 @dataclass(frozen=True, eq=False)
 class TargetCloud:
-    """The target of a point-to-plane fit: points (N, 3) mm, their unit normals (N, 3) and a KD-tree of the
-    points (:func:`target_with_normals` makes one; prepare it once per cloud)."""
+    """The target of a point-to-plane fit: points (N, 3) mm and a KD-tree of them (:func:`target_with_normals`
+    makes one; prepare it once per cloud). Unit normals (PCA of the ``normal_neighbours`` nearest points) are
+    computed at first use, per point, and kept: a pair's fit needs them only in its overlap."""
 
     points: np.ndarray
-    normals: np.ndarray
     tree: cKDTree
+    normal_neighbours: int = 20
+    known: np.ndarray = field(default=None, repr=False)     # (N, 3) normals so far, NaN where not yet computed
 
-    @classmethod
-    def of(cls, points_mm: np.ndarray, normals: np.ndarray) -> TargetCloud:
-        """A target of these points and normals, with a fresh KD-tree."""
-        return cls(points_mm, normals, cKDTree(points_mm))
+    def __post_init__(self) -> None:
+        if self.known is None:
+            object.__setattr__(self, "known", np.full(self.points.shape, np.nan))
+
+    def normals_at(self, indices: np.ndarray) -> np.ndarray:
+        """The unit normals (len(indices), 3) of the points at ``indices``, computed where not yet known."""
+        todo = np.unique(indices[np.isnan(self.known[indices, 0])])
+        if len(todo):
+            self.known[todo] = estimate_normals(self.points, self.normal_neighbours, self.tree, at=todo)
+        return self.known[indices]
+
+    @property
+    def normals(self) -> np.ndarray:
+        """The unit normals (N, 3) of all points."""
+        return self.normals_at(np.arange(len(self.points)))
 
     def select(self, indices: np.ndarray) -> TargetCloud:
-        """The target restricted to the points at ``indices`` (their normals kept, a new KD-tree)."""
-        return TargetCloud.of(self.points[indices], self.normals[indices])
+        """The target restricted to the points at ``indices``: their normals (from their neighbours in the
+        whole cloud), a new KD-tree."""
+        P = self.points[indices]
+        return TargetCloud(P, cKDTree(P), self.normal_neighbours, self.normals_at(indices))
 
     def __len__(self) -> int:
         return len(self.points)
 
 
 def target_with_normals(target_mm: ArrayLike | TargetCloud, normal_neighbours: int = 20) -> TargetCloud:
-    """The target of a point-to-plane fit, with normals (PCA of the ``normal_neighbours`` nearest points,
-    :func:`normals.estimate_normals`); a :class:`TargetCloud` is returned as it is."""
+    """The target of a point-to-plane fit (its normals by PCA of the ``normal_neighbours`` nearest points,
+    :func:`normals.estimate_normals`, computed at first use); a :class:`TargetCloud` is returned as it is."""
     if isinstance(target_mm, TargetCloud):
         return target_mm
     T = np.asarray(target_mm, float)
     if T.ndim != 2 or T.shape[1] != 3 or len(T) < normal_neighbours:
         raise RefineError(f"a point-to-plane target needs an (N, 3) cloud with N >= {normal_neighbours}; got {T.shape}")
-    tree = cKDTree(T)
-    return TargetCloud(T, estimate_normals(T, normal_neighbours, tree), tree)
+    return TargetCloud(T, cKDTree(T), normal_neighbours)
 
 
 @dataclass(frozen=True)
@@ -134,7 +148,7 @@ def point_to_plane_icp(
     moved = source_mm @ M[:3, :3].T + M[:3, 3]
     ok, idx, fitness, rmse = _correspondences(moved, target, max_distance_mm)
     for _ in range(criteria.max_iterations):
-        U = _gauss_newton_step(moved[ok], target.points[idx], target.normals[idx])
+        U = _gauss_newton_step(moved[ok], target.points[idx], target.normals_at(idx))
         M = U @ M
         moved = moved @ U[:3, :3].T + U[:3, 3]
         last = fitness, rmse
@@ -229,7 +243,7 @@ def evaluate_point_to_plane(
     M = np.asarray(T, float).copy()
     moved = S @ M[:3, :3].T + M[:3, 3]
     ok, idx, _, _ = _correspondences(moved, tgt, max_distance_mm)
-    normals = tgt.normals[idx]
+    normals = tgt.normals_at(idx)
     r = np.einsum("ij,ij->i", moved[ok] - tgt.points[idx], normals)
     rmse = float(np.sqrt(np.mean(r**2))) if ok.any() else float("inf")
     return IcpResult(M, float(ok.mean()) if len(S) else 0.0, rmse, moved[ok], normals)

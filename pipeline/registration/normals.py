@@ -16,17 +16,20 @@ from scipy.spatial import cKDTree
 BLOCK_POINTS = 50_000
 
 
-def estimate_normals(points_mm: np.ndarray, neighbours: int, tree: cKDTree | None = None) -> np.ndarray:
-    """Unit normals (N, 3) of ``points_mm`` from their ``neighbours`` nearest points (``tree``: a KD-tree
-    of the same points, built if not given). A point whose neighbourhood has no spread gets (0, 0, 1)."""
+def estimate_normals(points_mm: np.ndarray, neighbours: int, tree: cKDTree | None = None,
+                     at: np.ndarray | None = None) -> np.ndarray:
+    """Unit normals of ``points_mm`` from their ``neighbours`` nearest points (``tree``: a KD-tree of the same
+    points, built if not given): of all points (N, 3), or of the points at the indices ``at`` only
+    (len(at), 3). A point whose neighbourhood has no spread gets (0, 0, 1)."""
     P = np.asarray(points_mm, float)
     tree = cKDTree(P) if tree is None else tree
+    Q = P if at is None else P[at]
     k = min(neighbours, len(P))
-    out = np.empty_like(P)
-    for lo in range(0, len(P), BLOCK_POINTS):
-        block = P[lo:lo + BLOCK_POINTS]
+    out = np.empty_like(Q)
+    for lo in range(0, len(Q), BLOCK_POINTS):
+        block = Q[lo:lo + BLOCK_POINTS]
         _, idx = tree.query(block, k=k, workers=1)
-        X = P[idx.reshape(len(block), k)]
+        X = np.take(P, idx.reshape(len(block), k), axis=0)
         X = X - X.mean(axis=1, keepdims=True)
         C = np.matmul(X.transpose(0, 2, 1), X) / k
         w, V = np.linalg.eigh(C)                   # ascending eigenvalues: column 0 is the normal
