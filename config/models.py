@@ -16,7 +16,6 @@ from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
-from scipy.spatial.transform import Rotation
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +37,8 @@ class TransformConfig(_Strict):
 
     def matrix(self) -> np.ndarray:
         """The 4x4 float64 matrix (mm)."""
+        from scipy.spatial.transform import Rotation  # here, not at import: SciPy's spatial package is ~0.3 s
+
         T = np.eye(4)
         T[:3, :3] = Rotation.from_euler("xyz", np.radians(self.rpy_deg)).as_matrix()  # fixed axes x-y-z
         T[:3, 3] = self.xyz_mm

@@ -119,13 +119,13 @@ def _modules_after(code: str) -> set[str]:
     return set(run.stdout.split())
 
 
-def test_register_icp_does_not_import_torch(tmp_path):
+def test_register_icp_imports_neither_torch_nor_open3d(tmp_path):
     T_true = from_rotvec([1.0, -0.5, 0.5], np.radians([0.5, -0.3, 0.2]))
     source, target = moved(T_true)
     a, b = _write(tmp_path / "a.ply", source), _write(tmp_path / "b.ply", target)
     mods = _modules_after(f"from tandemscan.daemon.cli import main\nassert main(['register', {a!r}, {b!r}, "
                           f"'--method', 'icp']) == 0")
-    assert "tandemscan.pipeline.registration.pairs" in mods and "torch" not in mods
+    assert "tandemscan.pipeline.registration.pairs" in mods and "torch" not in mods and "open3d" not in mods
 
 
 def test_the_jobs_icp_correction_does_not_import_torch():

@@ -5,7 +5,8 @@ For two clouds in millimetres without a usable initial pose. Both are thinned on
 Histogram (neighbours within 5 voxels); RANSAC draws three mutually matched feature correspondences at a
 time, rejects draws whose edge lengths disagree by more than 10 % or whose points land farther than 1.5
 voxels apart, and keeps the rigid fit with most inliers. The result ``T_target_source`` (4x4 mm) is good to
-about a voxel: the fine stage (``icp.icp_coarse_to_fine``) finishes it.
+about a voxel: the fine stage (``icp.icp_coarse_to_fine``) finishes it. Open3D is imported at the first call,
+so importing this module (as ``pairs`` does) costs nothing on a path that never runs the global stage.
 """
 
 from __future__ import annotations
@@ -13,7 +14,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 from numpy.typing import ArrayLike
 
 
@@ -33,6 +33,8 @@ class FeatureMatching:
 
 
 def _thinned_with_features(points_mm: np.ndarray, voxel_mm: float):
+    import open3d as o3d
+
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_mm)).voxel_down_sample(voxel_mm)
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.0 * voxel_mm, max_nn=30))
     fpfh = o3d.pipelines.registration.compute_fpfh_feature(
@@ -48,6 +50,8 @@ def fpfh_ransac(source_mm: ArrayLike, target_mm: ArrayLike, settings: FeatureMat
     voxel = settings.voxel_mm(T)
     if not voxel > 0:
         return np.eye(4)
+    import open3d as o3d
+
     (src, f_src), (tgt, f_tgt) = _thinned_with_features(S, voxel), _thinned_with_features(T, voxel)
     reg = o3d.pipelines.registration
     o3d.utility.random.seed(settings.seed)

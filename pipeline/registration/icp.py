@@ -2,18 +2,21 @@
 (docs/registration.md, "Fine stage").
 
 All clouds are (N, 3) arrays in millimetres; a result's ``transformation`` is ``T_target_source`` (4x4 mm,
-maps source coordinates into the target's frame). The target carries normals (estimated once per cloud by
-:func:`target_with_normals`); residuals are distances along the target normal (mm).
+maps source coordinates into the target's frame). The target carries normals and a KD-tree (a
+:class:`TargetCloud`, made once per cloud by :func:`target_with_normals`); residuals are distances along the
+target normal (mm). NumPy and SciPy only, the iteration and its stopping rule as Open3D's point-to-plane
+``registration_icp`` has them (checked against it in tests/test_registration_icp.py), so the fine stage does
+not import Open3D.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
-import open3d as o3d
 from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
+from tandemscan.pipeline.registration.normals import estimate_normals
 from tandemscan.pipeline.registration.overlap import extract_overlap
 from tandemscan.pipeline.registration.sampling import thin_evenly
 
@@ -38,43 +41,140 @@ class IcpResult:
         return len(self.points_mm)
 
 
-def _pcd(points: np.ndarray) -> o3d.geometry.PointCloud:
-    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=float)))
+@dataclass(frozen=True, eq=False)
+class TargetCloud:
+    """The target of a point-to-plane fit: points (N, 3) mm and a KD-tree of them (:func:`target_with_normals`
+    makes one; prepare it once per cloud). Unit normals (PCA of the ``normal_neighbours`` nearest points) are
+    computed at first use, per point, and kept: a pair's fit needs them only in its overlap."""
+
+    points: np.ndarray
+    tree: cKDTree
+    normal_neighbours: int = 20
+    known: np.ndarray = field(default=None, repr=False)     # (N, 3) normals so far, NaN where not yet computed
+
+    def __post_init__(self) -> None:
+        if self.known is None:
+            object.__setattr__(self, "known", np.full(self.points.shape, np.nan))
+
+    def normals_at(self, indices: np.ndarray) -> np.ndarray:
+        """The unit normals (len(indices), 3) of the points at ``indices``, computed where not yet known."""
+        todo = np.unique(indices[np.isnan(self.known[indices, 0])])
+        if len(todo):
+            self.known[todo] = estimate_normals(self.points, self.normal_neighbours, self.tree, at=todo)
+        return self.known[indices]
+
+    @property
+    def normals(self) -> np.ndarray:
+        """The unit normals (N, 3) of all points."""
+        return self.normals_at(np.arange(len(self.points)))
+
+    def select(self, indices: np.ndarray) -> TargetCloud:
+        """The target restricted to the points at ``indices``: their normals (from their neighbours in the
+        whole cloud), a new KD-tree."""
+        P = self.points[indices]
+        return TargetCloud(P, cKDTree(P), self.normal_neighbours, self.normals_at(indices))
+
+    def __len__(self) -> int:
+        return len(self.points)
 
 
-def target_with_normals(target_mm: ArrayLike | o3d.geometry.PointCloud, normal_neighbours: int = 20
-                        ) -> o3d.geometry.PointCloud:
-    """The target of a point-to-plane fit, with normals (k nearest neighbours); prepare it once per pair."""
-    if isinstance(target_mm, o3d.geometry.PointCloud):
+def target_with_normals(target_mm: ArrayLike | TargetCloud, normal_neighbours: int = 20) -> TargetCloud:
+    """The target of a point-to-plane fit (its normals by PCA of the ``normal_neighbours`` nearest points,
+    :func:`normals.estimate_normals`, computed at first use); a :class:`TargetCloud` is returned as it is."""
+    if isinstance(target_mm, TargetCloud):
         return target_mm
     T = np.asarray(target_mm, float)
     if T.ndim != 2 or T.shape[1] != 3 or len(T) < normal_neighbours:
         raise RefineError(f"a point-to-plane target needs an (N, 3) cloud with N >= {normal_neighbours}; got {T.shape}")
-    tgt = _pcd(T)
-    tgt.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(normal_neighbours))
-    return tgt
+    return TargetCloud(T, cKDTree(T), normal_neighbours)
+
+
+@dataclass(frozen=True)
+class Convergence:
+    """When ICP stops (Open3D's ``ICPConvergenceCriteria``): after an iteration that changed the fitness by
+    less than ``relative_fitness`` and the inlier RMS (point to point, mm) by less than ``relative_rmse``,
+    or after ``max_iterations``."""
+
+    relative_fitness: float = 1e-9
+    relative_rmse: float = 1e-9
+    max_iterations: int = 50
+
+
+def _correspondences(moved: np.ndarray, target: TargetCloud, max_distance_mm: float
+                     ) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """(inlier mask of ``moved``, their nearest target indices, fitness, inlier RMS point to point (mm, 0
+    without inliers)): each point's nearest target point closer than ``max_distance_mm``."""
+    d, idx = target.tree.query(moved, k=1, distance_upper_bound=max_distance_mm, workers=1)
+    ok = d < max_distance_mm
+    n = int(ok.sum())
+    rmse = float(np.sqrt(np.mean(d[ok] ** 2))) if n else 0.0
+    return ok, idx[ok], n / len(moved) if len(moved) else 0.0, rmse
+
+
+def _euler_xyz(x: np.ndarray) -> np.ndarray:
+    """4x4 of a Gauss-Newton step (rx, ry, rz rad, tx, ty, tz mm): ``Rz Ry Rx``, then the translation."""
+    (cx, cy, cz), (sx, sy, sz) = np.cos(x[:3]), np.sin(x[:3])
+    M = np.eye(4)
+    M[:3, :3] = [[cz * cy, cz * sy * sx - sz * cx, cz * sy * cx + sz * sx],
+                 [sz * cy, sz * sy * sx + cz * cx, sz * sy * cx - cz * sx],
+                 [-sy, cy * sx, cy * cx]]
+    M[:3, 3] = x[3:]
+    return M
+
+
+def _gauss_newton_step(points: np.ndarray, on_target: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """The 4x4 update minimising the linearised point-to-plane residuals ``n . (p - q)`` (one 6x6 solve;
+    the identity without points, the least-norm step for a singular system)."""
+    if len(points) == 0:
+        return np.eye(4)
+    r = np.einsum("ij,ij->i", points - on_target, normals)
+    J = np.c_[np.cross(points, normals), normals]
+    A, b = J.T @ J, -(J.T @ r)
+    try:
+        x = np.linalg.solve(A, b)
+    except np.linalg.LinAlgError:
+        x = np.linalg.lstsq(A, b, rcond=None)[0]
+    return _euler_xyz(x)
+
+
+def point_to_plane_icp(
+    source_mm: np.ndarray, target: TargetCloud, init: np.ndarray, max_distance_mm: float,
+    criteria: Convergence = Convergence(),
+) -> np.ndarray:
+    """``T_target_source`` (4x4 mm) by point-to-plane ICP from ``init``: each iteration pairs every moved
+    source point with its nearest target point closer than ``max_distance_mm`` and takes one Gauss-Newton
+    step on their point-to-plane residuals, until ``criteria`` (Open3D's ``registration_icp`` semantics)."""
+    M = np.asarray(init, float).copy()
+    moved = source_mm @ M[:3, :3].T + M[:3, 3]
+    ok, idx, fitness, rmse = _correspondences(moved, target, max_distance_mm)
+    for _ in range(criteria.max_iterations):
+        U = _gauss_newton_step(moved[ok], target.points[idx], target.normals_at(idx))
+        M = U @ M
+        moved = moved @ U[:3, :3].T + U[:3, 3]
+        last = fitness, rmse
+        ok, idx, fitness, rmse = _correspondences(moved, target, max_distance_mm)
+        if abs(last[0] - fitness) < criteria.relative_fitness and abs(last[1] - rmse) < criteria.relative_rmse:
+            break
+    return M
 
 
 def icp_point_to_plane(
     source_mm: ArrayLike,
-    target_mm: ArrayLike | o3d.geometry.PointCloud,
+    target_mm: ArrayLike | TargetCloud,
     init: ArrayLike | None = None,
     max_distance_mm: float = 2.0,
     iterations: int = 50,
     normal_neighbours: int = 20,
 ) -> IcpResult:
-    """Point-to-plane ICP (Open3D) of ``source`` onto ``target`` from ``init`` (default identity)."""
+    """Point-to-plane ICP of ``source`` onto ``target`` from ``init`` (default identity), scored at
+    ``max_distance_mm`` (:func:`evaluate_point_to_plane`)."""
     S = np.asarray(source_mm, float)
     if S.ndim != 2 or S.shape[1] != 3:
         raise RefineError(f"ICP needs an (N, 3) source cloud; got {S.shape}")
     tgt = target_with_normals(target_mm, normal_neighbours)
-    reg = o3d.pipelines.registration
-    res = reg.registration_icp(
-        _pcd(S), tgt, max_distance_mm, np.eye(4) if init is None else np.asarray(init, float),
-        reg.TransformationEstimationPointToPlane(),
-        reg.ICPConvergenceCriteria(relative_fitness=1e-9, relative_rmse=1e-9, max_iteration=iterations),
-    )
-    return evaluate_point_to_plane(S, tgt, np.asarray(res.transformation), max_distance_mm)
+    M = point_to_plane_icp(S, tgt, np.eye(4) if init is None else np.asarray(init, float), max_distance_mm,
+                           Convergence(max_iterations=iterations))
+    return evaluate_point_to_plane(S, tgt, M, max_distance_mm)
 
 
 @dataclass(frozen=True)
@@ -99,21 +199,21 @@ MIN_LEVEL_POINTS = 10
 
 
 def icp_coarse_to_fine(
-    source_mm: ArrayLike, target: o3d.geometry.PointCloud, init: ArrayLike, schedule: FineSchedule
+    source_mm: ArrayLike, target: TargetCloud, init: ArrayLike, schedule: FineSchedule
 ) -> IcpResult:
     """Point-to-plane ICP of ``source`` onto ``target`` (with normals) from ``init``, re-selecting the overlap
     as the estimate improves: at each level of ``schedule`` the overlap within the level's distance is
     extracted afresh at the current estimate (both clouds), and ICP runs on it with that correspondence
     distance. Returns the fit of the whole source at ``schedule.final_mm``."""
     S = np.asarray(source_mm, float)
-    Tp = np.asarray(target.points)
+    Tp = target.points
     M = np.asarray(init, float).copy()
     d = max(schedule.start_mm, schedule.final_mm)
     for _ in range(schedule.max_levels):
         ov = extract_overlap(S @ M[:3, :3].T + M[:3, 3], Tp, d)
         if ov.size >= MIN_LEVEL_POINTS:
             fit = icp_point_to_plane(S[thin_evenly(ov.source_idx, schedule.max_points)],
-                                     target.select_by_index(ov.target_idx.tolist()), M, d, schedule.iterations)
+                                     target.select(ov.target_idx), M, d, schedule.iterations)
             M = fit.transformation
             d_next = min(d * schedule.shrink, schedule.rms_multiple * fit.rmse_mm)
         else:
@@ -134,19 +234,17 @@ def truncated_cost(fit: IcpResult, distance_mm: float) -> float:
 
 
 def evaluate_point_to_plane(
-    source_mm: ArrayLike, target: ArrayLike | o3d.geometry.PointCloud, T: ArrayLike, max_distance_mm: float,
+    source_mm: ArrayLike, target: ArrayLike | TargetCloud, T: ArrayLike, max_distance_mm: float,
     normal_neighbours: int = 20,
 ) -> IcpResult:
     """Score ``T_target_source`` without moving it: nearest-neighbour inliers within ``max_distance_mm``."""
     S = np.asarray(source_mm, float)
     tgt = target_with_normals(target, normal_neighbours)
     M = np.asarray(T, float).copy()
-    Tp = np.asarray(tgt.points)
     moved = S @ M[:3, :3].T + M[:3, 3]
-    d, idx = cKDTree(Tp).query(moved, k=1, distance_upper_bound=max_distance_mm)
-    ok = np.isfinite(d)
-    normals = np.asarray(tgt.normals)[idx[ok]]
-    r = np.einsum("ij,ij->i", moved[ok] - Tp[idx[ok]], normals)
+    ok, idx, _, _ = _correspondences(moved, tgt, max_distance_mm)
+    normals = tgt.normals_at(idx)
+    r = np.einsum("ij,ij->i", moved[ok] - tgt.points[idx], normals)
     rmse = float(np.sqrt(np.mean(r**2))) if ok.any() else float("inf")
     return IcpResult(M, float(ok.mean()) if len(S) else 0.0, rmse, moved[ok], normals)
 

@@ -20,13 +20,13 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
-import open3d as o3d
 from tandemscan.config.models import CorrectionConfig, DeepMergeConfig
 from tandemscan.pipeline.geometry.frames import invert, rotation_angle, transform_points
 from tandemscan.pipeline.registration.global_registration import FeatureMatching, fpfh_ransac
 from tandemscan.pipeline.registration.icp import (
     FineSchedule,
     IcpResult,
+    TargetCloud,
     evaluate_point_to_plane,
     icp_coarse_to_fine,
     target_with_normals,
@@ -103,7 +103,7 @@ class PairCorrection:
 
 
 def keep_if_better(
-    source_mm: np.ndarray, target: o3d.geometry.PointCloud, T: np.ndarray, distance_mm: float
+    source_mm: np.ndarray, target: TargetCloud, T: np.ndarray, distance_mm: float
 ) -> np.ndarray:
     """``T`` when it fits the source onto the target (with normals) better than the identity (the initial
     stitch) does by the truncated point-to-plane cost at ``distance_mm`` (:func:`icp.truncated_cost`), else
@@ -141,7 +141,7 @@ def verify(result: PairRegistration, distance_mm: float, max_cost_increase: floa
 
 
 def register_pair(
-    source_mm: np.ndarray, target: o3d.geometry.PointCloud, method: str, cfg: CorrectionConfig,
+    source_mm: np.ndarray, target: TargetCloud, method: str, cfg: CorrectionConfig,
     network: Registrar | None, start_distance_mm: float,
 ) -> PairRegistration:
     """``T_target_source`` of a source placed at its start (its pose so far) onto a target with normals, by
@@ -216,7 +216,7 @@ def pair_delta(target_W: np.ndarray, cfg: CorrectionConfig, pair_covariance: np.
 
 
 def correct_pair(
-    source_W: np.ndarray, target: o3d.geometry.PointCloud, cfg: CorrectionConfig, network: Registrar | None,
+    source_W: np.ndarray, target: TargetCloud, cfg: CorrectionConfig, network: Registrar | None,
     pair_covariance: np.ndarray | None = None,
 ) -> PairCorrection | None:
     """Correct a stitched pair (the source in the world, mm; the target with normals, world); None when the
