@@ -102,7 +102,9 @@ async def run(args: argparse.Namespace) -> dict:
         "scans_untracked": r["relocalisation"]["untracked_count"],
         "robots_moved_together": len(g.get("robots_moved_together", [])),
         "tracker_only_cloud_rms_mm": before.get("cloud_rms_mm"), "cloud_rms_mm": g["cloud_rms_mm"],
-        "cloud_p95_mm": g["cloud_p95_mm"], "plan_seconds": round(plan_seconds, 1), "job_seconds": round(seconds, 1),
+        "cloud_p95_mm": g["cloud_p95_mm"], "tracker_only_pose_err_mm_median": before.get("pose_err_mm_median"),
+        "pose_err_mm_median": g["pose_err_mm_median"], "timings": r["timings"],
+        "plan_seconds": round(plan_seconds, 1), "job_seconds": round(seconds, 1),
     }
 
 

@@ -80,19 +80,23 @@ def correct_job(job: JobSnapshot) -> tuple[dict, list[np.ndarray]]:
     if job.scorer is not None:
         before = {k: v for k, v in job.scorer.score(job).items() if k in _GROUND_TRUTH_KEYS}
     raw, scans = [], []
+    t0 = time.perf_counter()
     for s in job.scans:
         raw.append(read_raw_scan(s.file))
         cov = scan_pose_covariance(s.T_W_C, s.reading.T_C_T, job.installation.T_T_S, s.reading.covariance)
         scans.append(StitchedScan(raw[-1][0], s.T_W_S, cov, s.tracker_station))
     transfers = [TransferPrior(t["station"], np.array(t["target_W_mm"]), np.array(t["covariance"]))
                  for t in job.transfers]
+    read_s = time.perf_counter() - t0
     prior, prior_source = mount_prior(job)
     result = correct_scans(scans, cfg, LazyNetwork(job.config.deepmerge), transfers=transfers,
                            voxel_mm=job.config.job.voxel_mm, mount_prior=prior)
+    t0 = time.perf_counter()
     job.worldmap = VoxelMap(job.config.job.voxel_mm)
     for s, T, (points, normals) in zip(job.scans, result.poses, raw, strict=True):
         s.T_W_S = T
         job.worldmap.add_scan(T, points, normals)
+    result.report["stage_seconds"] |= {"read_s": round(read_s, 3), "restitch_s": round(time.perf_counter() - t0, 3)}
     section = {"enabled": True, **result.report, "seconds": round(time.monotonic() - started, 3),
                "cpu_seconds": round(_cpu_seconds() - cpu, 3)}
     section["mount"] = {"estimated": result.mount is not None, "prior": prior_source}

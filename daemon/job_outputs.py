@@ -68,13 +68,20 @@ def export_job(job: JobSnapshot, seconds: float, measured_at: float) -> dict:
     exports of a finished job into its folder; runs where ``job.worldmap`` lives. ``measured_at`` is
     ``time.monotonic()`` (system-wide) when the job's last step was committed: ``timings.after_last_scan_s``
     is the time from there to report.html, ``timings.correction_cpu_s`` the correction's CPU time."""
+    t = [time.perf_counter()]
     write_ply(job.job_dir / "cloud.ply", job.worldmap.points(), job.worldmap.normals())
+    t.append(time.perf_counter())
     report = build_report(job, seconds)
+    t.append(time.perf_counter())
     report["inspection"] = write_job_outputs(job, report)  # report.html, E57, pose log
+    t.append(time.perf_counter())
     if job.scorer is not None and "ground_truth" in report and "alignment" in report["inspection"]:
         report["ground_truth"]["inspection"] = job.scorer.score_inspection(job, report["inspection"])
+    t.append(time.perf_counter())
+    stages = job.correction.get("stage_seconds", {}) | dict(zip(
+        ("cloud_ply_s", "report_s", "exports_and_inspection_s", "scoring_s"), np.round(np.diff(t), 3).tolist()))
     report["timings"] = {"after_last_scan_s": round(time.monotonic() - measured_at, 3),
-                         "correction_cpu_s": job.correction.get("cpu_seconds")}
+                         "correction_cpu_s": job.correction.get("cpu_seconds"), "stages_s": stages}
     (job.job_dir / "report.json").write_text(json.dumps(report, indent=1), encoding="utf-8")
     return report
 

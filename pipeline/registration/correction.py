@@ -11,6 +11,7 @@ refined jointly on the overlap points (``joint.refine_jointly``).
 from __future__ import annotations
 
 import logging
+import time
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -64,6 +65,19 @@ class CorrectionResult:
     edges: list[tuple[int, int, PairCorrection]] = field(default_factory=list)
     report: dict = field(default_factory=dict)
     mount: MountEstimate | None = None
+
+
+class _Clock:
+    """Wall seconds of consecutive stages (``lap(name)`` ends the stage begun at the last lap)."""
+
+    def __init__(self) -> None:
+        self.laps: dict[str, float] = {}
+        self._t = time.perf_counter()
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.laps[name] = round(now - self._t, 3)
+        self._t = now
 
 
 def _overlap_rms(clouds: list[np.ndarray], edges, poses_before, poses_after, cfg) -> tuple[float, float]:
@@ -130,18 +144,24 @@ def correct_scans(
     """
     if cfg.method in NETWORK_METHODS and network is None:
         raise ValueError(f"method {cfg.method!r} needs a DeepMerge registrar (pairs.LazyNetwork)")
+    clock = _Clock()
     local = [voxel_downsample(np.asarray(s.points_S, float), voxel_mm) for s in scans]
     world = [transform_points(s.T_W_S, P) for s, P in zip(scans, local, strict=True)]
+    clock.lap("thin_s")
     edges, dropped = _pair_corrections(scans, world, cfg, network, transfers)
+    clock.lap("pairs_s")
     graph_edges = [_edge(i, j, pc, cfg) for i, j, pc in edges if pc.fit.inliers >= 6]
     priors = [ScanPrior(s.T_W_S, s.covariance, s.station) for s in scans]
     res = refine_poses(priors, graph_edges, transfers, mount_prior)
     poses, mount, joint = res.poses, res.mount, None
+    clock.lap("graph_s")
     if cfg.joint:
         joint = _refine_jointly(scans, priors, res.poses, cfg, transfers, mount_prior)
         poses, mount = joint.poses, joint.mount
+        clock.lap("joint_s")
     before = [s.T_W_S for s in scans]
     rms_b, rms_a = _overlap_rms(local, edges, before, poses, cfg)
+    clock.lap("overlap_rms_s")
     moves = [pose_error(a, b) for a, b in zip(poses, before, strict=True)]
     report = {
         "method": cfg.method,
@@ -155,6 +175,7 @@ def correct_scans(
         "pose_change_deg_median": float(np.degrees(np.median([m[1] for m in moves]))) if moves else 0.0,
         "graph_cost_before": res.cost_before,
         "graph_cost_after": res.cost_after,
+        "stage_seconds": clock.laps,
     }
     if joint is not None:
         report["joint"] = _joint_report(joint, [s.station for s in scans])
