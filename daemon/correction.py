@@ -67,7 +67,12 @@ def _cpu_seconds() -> float:
     return t.user + t.system + t.children_user + t.children_system
 
 
-def correct_job(job: JobSnapshot) -> tuple[dict, list[np.ndarray]]:
+def transfer_priors(transfers: list[dict]) -> list[TransferPrior]:
+    """The pose graph's prior of each coordinate transfer, from the runner's transfer entries (W, mm)."""
+    return [TransferPrior(t["station"], np.array(t["target_W_mm"]), np.array(t["covariance"])) for t in transfers]
+
+
+def correct_job(job: JobSnapshot, pair_cache: dict | None = None) -> tuple[dict, list[np.ndarray]]:
     """Replace every ``job.scans[i].T_W_S`` by its refined pose and re-stitch ``job.worldmap``.
 
     Returns the ``correction`` section of the report (the settings, pair and graph figures, and on the
@@ -85,12 +90,11 @@ def correct_job(job: JobSnapshot) -> tuple[dict, list[np.ndarray]]:
         raw.append(read_raw_scan(s.file))
         cov = scan_pose_covariance(s.T_W_C, s.reading.T_C_T, job.installation.T_T_S, s.reading.covariance)
         scans.append(StitchedScan(raw[-1][0], s.T_W_S, cov, s.tracker_station))
-    transfers = [TransferPrior(t["station"], np.array(t["target_W_mm"]), np.array(t["covariance"]))
-                 for t in job.transfers]
+    transfers = transfer_priors(job.transfers)
     read_s = time.perf_counter() - t0
     prior, prior_source = mount_prior(job)
     result = correct_scans(scans, cfg, LazyNetwork(job.config.deepmerge), transfers=transfers,
-                           voxel_mm=job.config.job.voxel_mm, mount_prior=prior)
+                           voxel_mm=job.config.job.voxel_mm, mount_prior=prior, pair_cache=pair_cache)
     t0 = time.perf_counter()
     job.worldmap = VoxelMap(job.config.job.voxel_mm)
     for s, T, (points, normals) in zip(job.scans, result.poses, raw, strict=True):

@@ -78,8 +78,8 @@ def export_job(job: JobSnapshot, seconds: float, measured_at: float) -> dict:
     if job.scorer is not None and "ground_truth" in report and "alignment" in report["inspection"]:
         report["ground_truth"]["inspection"] = job.scorer.score_inspection(job, report["inspection"])
     t.append(time.perf_counter())
-    stages = job.correction.get("stage_seconds", {}) | dict(zip(
-        ("cloud_ply_s", "report_s", "exports_and_inspection_s", "scoring_s"), np.round(np.diff(t), 3).tolist()))
+    names = ("cloud_ply_s", "report_s", "exports_and_inspection_s", "scoring_s")
+    stages = job.correction.get("stage_seconds", {}) | dict(zip(names, np.round(np.diff(t), 3).tolist(), strict=True))
     report["timings"] = {"after_last_scan_s": round(time.monotonic() - measured_at, 3),
                          "correction_cpu_s": job.correction.get("cpu_seconds"), "stages_s": stages}
     (job.job_dir / "report.json").write_text(json.dumps(report, indent=1), encoding="utf-8")

@@ -236,7 +236,10 @@ class JobRunner:
         measured = [s for s in self.scans if s.point_count > 0]  # a scan that saw nothing has nothing to correct
         if self.config.correction.enabled and len(measured) > 1:
             self.progress(JobProgress(total - 1, total, "correcting the stitch (DeepMerge, pose graph)"))
-            self.correction, poses = await self.worldmap.run(correct, self.snapshot(measured))
+            pair_cache = await self.worldmap.pair_outcomes()  # waits for the pairs of the last scans
+            backlog_s = time.monotonic() - measured_at
+            self.correction, poses = await self.worldmap.run(correct, self.snapshot(measured), pair_cache)
+            self.correction["stage_seconds"] = {"pair_backlog_s": round(backlog_s, 3)} | self.correction["stage_seconds"]
             for s, T_W_S in zip(measured, poses, strict=True):
                 s.T_W_S = T_W_S
         self.progress(JobProgress(total - 1, total, "writing cloud and report"))
@@ -531,7 +534,9 @@ class JobRunner:
         if frame.normals is not None:
             arrays["normals_S"] = frame.normals
         T_W_S = F.compose(self.T_W_C, reading.T_C_T, self.installation.T_T_S)
-        await self.worldmap.add_scan(file, T_W_S, arrays)  # the file is durable before this returns
+        await self.worldmap.add_scan(  # the file is durable before this returns; its pairs registered meanwhile
+            file, T_W_S, arrays, pairs={"correction": self.config.correction, "station": self.tracker_station,
+                                        "transfers": list(self.transfers), "T_T_S": self.installation.T_T_S})
         if self.observer is not None:
             self.observer.scan_measured(index)
         record = ScanRecord(index, self.tracker_station, file, reading, joints, self.T_W_C.copy(), T_W_S,
