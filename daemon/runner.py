@@ -239,7 +239,8 @@ class JobRunner:
             pair_cache = await self.worldmap.pair_outcomes()  # waits for the pairs of the last scans
             backlog_s = time.monotonic() - measured_at
             self.correction, poses = await self.worldmap.run(correct, self.snapshot(measured), pair_cache)
-            self.correction["stage_seconds"] = {"pair_backlog_s": round(backlog_s, 3)} | self.correction["stage_seconds"]
+            self.correction["stage_seconds"] = {"pair_backlog_s": round(backlog_s, 3),
+                                                **self.correction["stage_seconds"]}
             for s, T_W_S in zip(measured, poses, strict=True):
                 s.T_W_S = T_W_S
         self.progress(JobProgress(total - 1, total, "writing cloud and report"))

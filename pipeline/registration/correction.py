@@ -43,7 +43,7 @@ from tandemscan.pipeline.registration.pose_graph import (
     constrained_edge,
     refine_poses,
 )
-from tandemscan.pipeline.registration.sampling import voxel_downsample
+from tandemscan.pipeline.registration.sampling import thin_evenly, voxel_downsample
 
 log = logging.getLogger(__name__)
 
@@ -82,14 +82,16 @@ class _Clock:
 
 
 def _overlap_rms(clouds: list[np.ndarray], edges, poses_before, poses_after, cfg) -> tuple[float, float]:
-    """Median over edges of the point-to-plane RMS (mm) of the overlaps, with the poses before and after."""
+    """Median over edges of the point-to-plane RMS (mm) of the overlaps, with the poses before and after; each
+    source scan is evaluated on at most ``cfg.icp_max_points`` of its points, evenly spread."""
     out = []
     targets = {i: target_with_normals(clouds[i]) for i in {e[0] for e in edges}}
+    sources = {j: clouds[j][thin_evenly(np.arange(len(clouds[j])), cfg.icp_max_points)] for j in {e[1] for e in edges}}
     for poses in (poses_before, poses_after):
         vals = []
         for i, j, _ in edges:
             Tij = invert(poses[i]) @ poses[j]
-            vals.append(evaluate_point_to_plane(clouds[j], targets[i], Tij, cfg.icp_max_distance_mm).rmse_mm)
+            vals.append(evaluate_point_to_plane(sources[j], targets[i], Tij, cfg.icp_max_distance_mm).rmse_mm)
         out.append(float(np.median(vals)) if vals else float("nan"))
     return out[0], out[1]
 
