@@ -34,7 +34,7 @@ from tandemscan.config.models import CellConfig
 from tandemscan.daemon.observer import JobObserver
 from tandemscan.daemon.session import CellSession, MotionGate
 from tandemscan.daemon.snapshot import JobSnapshot
-from tandemscan.daemon.stitcher import LocalWorldMap, ProcessWorldMap, correct, export
+from tandemscan.daemon.stitcher import LocalWorldMap, ProcessWorldMap, export
 from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT
 from tandemscan.daemon.tracker_reading import read_at_rest
 from tandemscan.drivers.errors import TargetNotVisible
@@ -233,20 +233,14 @@ class JobRunner:
             result, scan = await self.journal.run_step(i, lambda i=i, step=step: self._execute(i, step))
             await self.journal.commit(i, step.kind, result, *(scan or ()))
         measured_at = time.monotonic()  # the last step committed: from here the operator waits for the report
-        measured = [s for s in self.scans if s.point_count > 0]  # a scan that saw nothing has nothing to correct
-        if self.config.correction.enabled and len(measured) > 1:
-            self.progress(JobProgress(total - 1, total, "correcting the stitch (DeepMerge, pose graph)"))
-            pair_cache = await self.worldmap.pair_outcomes()  # waits for the pairs of the last scans
-            backlog_s = time.monotonic() - measured_at
-            self.correction, poses = await self.worldmap.run(correct, self.snapshot(measured), pair_cache)
-            self.correction["stage_seconds"] = {"pair_backlog_s": round(backlog_s, 3),
-                                                **self.correction["stage_seconds"]}
-            for s, T_W_S in zip(measured, poses, strict=True):
-                s.T_W_S = T_W_S
-        self.progress(JobProgress(total - 1, total, "writing cloud and report"))
-        result = await self._export(time.monotonic() - started, measured_at)
+        self.progress(JobProgress(total - 1, total, "correcting the stitch, writing cloud and report"))
+        finished = await self.worldmap.finish(self.snapshot(), started, measured_at)
+        self.correction = finished.correction.section
+        for s, T_W_S in zip(self.scans, finished.correction.poses, strict=True):
+            s.T_W_S = T_W_S  # JobResult's records carry the final poses; report.json has both (finish.FinishedJob)
         self.progress(JobProgress(total, total, "done"))
-        return result
+        return JobResult(self.job_dir, self.job_dir / "cloud.ply", self.job_dir / "report.json", finished.report,
+                         self.scans)
 
     async def _execute(self, i: int, step) -> tuple[dict, tuple[Path, int] | None]:
         """One step on the devices; returns its journal result and its scan file (path, points) if any."""

@@ -21,6 +21,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import multiprocessing
+import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -60,14 +61,6 @@ def _run(fn: Callable[..., Any], job: JobSnapshot, args: tuple) -> tuple[Any, in
     return out, len(_MAP)
 
 
-def correct(job: JobSnapshot, pair_cache: dict | None = None) -> tuple[dict, list[np.ndarray]]:
-    """:func:`tandemscan.daemon.correction.correct_job`, imported where it runs: torch takes seconds to
-    import, which must not happen on the daemon's event loop."""
-    from tandemscan.daemon.correction import correct_job
-
-    return correct_job(job, pair_cache)
-
-
 def _pairs_add(path: str, T_W_S: np.ndarray, T_T_S: np.ndarray, station: int, transfers: list[dict],
                cfg: CorrectionConfig, voxel_mm: float) -> int:
     """In the pair worker: register the pairs of the scan in ``path`` (durable by now) with the earlier ones."""
@@ -84,8 +77,16 @@ def _pairs_add(path: str, T_W_S: np.ndarray, T_T_S: np.ndarray, station: int, tr
     return _PAIRS.add(points, T_W_S, cov, station, transfer_priors(transfers))
 
 
-def _pairs_outcomes() -> dict:
-    return {} if _PAIRS is None else _PAIRS.outcomes
+def _pairs_outcomes() -> tuple[dict, float]:
+    return ({}, 0.0) if _PAIRS is None else (_PAIRS.outcomes, _PAIRS.cpu_s)
+
+
+def _finish(job: JobSnapshot, started: float, measured_at: float, pair_cache: dict, stages: dict) -> Any:
+    """:func:`tandemscan.daemon.finish.finish_job`, imported where it runs (the registration stack, E57, Open3D
+    I/O, matplotlib)."""
+    from tandemscan.daemon.finish import finish_job
+
+    return finish_job(job, started, measured_at, pair_cache, stages)
 
 
 class PairWorker:
@@ -104,9 +105,9 @@ class PairWorker:
                                                np.asarray(T_T_S, float), int(station), list(transfers), self.cfg,
                                                self.voxel_mm))
 
-    async def outcomes(self) -> dict:
+    async def outcomes(self) -> tuple[dict, float]:
         """Wait for the queued scans, then the pair outcomes by ``correction.pair_key`` (a failed task only
-        leaves its pairs to the end of the job)."""
+        leaves its pairs to the end of the job) and the worker's CPU seconds spent on them."""
         for future in self._pending:
             try:
                 await asyncio.wrap_future(future)
@@ -120,7 +121,8 @@ class PairWorker:
 
 
 class _Pairs:
-    """The pair registration both maps share: a :class:`PairWorker` started at the first scan that asks for it."""
+    """The pair registration and end of the job both maps share: a :class:`PairWorker` started at the first scan
+    that asks for it."""
 
     voxel_mm: float
     _pair_niceness: int = 0
@@ -138,16 +140,24 @@ class _Pairs:
             self._pairs = PairWorker(cfg, self.voxel_mm, self._pair_niceness)
         self._pairs.submit(file, T_W_S, pairs["T_T_S"], pairs["station"], pairs["transfers"])
 
-    async def pair_outcomes(self) -> dict:
-        """The outcomes of the pairs registered while the job measured (none without a pair worker); the
-        worker stops after handing them over."""
+    async def pair_outcomes(self) -> tuple[dict, float]:
+        """The outcomes of the pairs registered while the job measured (none without a pair worker) and the CPU
+        seconds spent on them; the worker stops after handing them over."""
         if self._pairs is None:
-            return {}
+            return {}, 0.0
         try:
             return await self._pairs.outcomes()
         finally:
             self._pairs.close()
             self._pairs = None
+
+    async def finish(self, job: JobSnapshot, started: float, measured_at: float) -> Any:
+        """The end of the job (``finish.finish_job``, a ``finish.FinishedJob``) where the map lives, once the
+        pairs of the last scans are registered; ``started`` and ``measured_at`` as ``time.monotonic()``."""
+        pair_cache, pair_cpu_s = await self.pair_outcomes()
+        stages = {"pair_backlog_s": round(time.monotonic() - measured_at, 3),
+                  "pairs_cpu_s_while_measuring": round(pair_cpu_s, 3)}
+        return await self.run(_finish, job, started, measured_at, pair_cache, stages)
 
     def _close_pairs(self) -> None:
         if self._pairs is not None:

@@ -29,8 +29,8 @@ def test_the_end_of_the_job_reuses_every_pair_and_gets_the_same_poses():
     assert fresh.report["pairs_registered_while_measuring"] == 0
     selected = fresh.report["pairs"] + sum(1 for _ in fresh.report["pairs_dropped"])
     assert reused.report["pairs_registered_while_measuring"] >= selected
-    for a, b in zip(fresh.poses, reused.poses, strict=True):
-        np.testing.assert_array_equal(a, b)
+    for a, b in zip(fresh.poses, reused.poses, strict=True):  # Open3D's threaded sums: not bit for bit
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)
 
 
 def test_a_scan_whose_pose_changed_is_registered_again_at_the_end():
@@ -46,7 +46,7 @@ def test_a_scan_whose_pose_changed_is_registered_again_at_the_end():
     assert pairs_with_3 > 0
     assert res.report["pairs_registered_while_measuring"] == fresh.report["pairs"] - pairs_with_3
     for a, b in zip(fresh.poses, res.poses, strict=True):
-        np.testing.assert_array_equal(a, b)
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)
 
 
 def test_methods_with_the_network_register_nothing_while_measuring():

@@ -12,6 +12,7 @@ whose pose changed), so its result never depends on what was registered here.
 from __future__ import annotations
 
 import logging
+import time
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -63,6 +64,7 @@ class OnlinePairs:
         self.scans: list[OnlineScan] = []
         self.outcomes: dict[str, PairOutcome] = {}
         self._targets: OrderedDict[int, object] = OrderedDict()
+        self.cpu_s = 0.0  # CPU time (s) of this process spent in add
 
     def add(self, points_S: np.ndarray, T_W_S: np.ndarray, covariance: np.ndarray, station: int,
             transfers: Sequence[TransferPrior]) -> int:
@@ -71,6 +73,7 @@ class OnlinePairs:
         known so far) and register its pairs; returns how many were registered."""
         if not self.enabled or len(points_S) == 0:
             return 0
+        cpu = time.process_time()
         scan = StitchedScan(np.empty((0, 3)), np.asarray(T_W_S, float), np.asarray(covariance, float), int(station))
         world = transform_points(scan.T_W_S, voxel_downsample(np.asarray(points_S, float), self.voxel_mm))
         new = OnlineScan(world, cloud_digest(world), scan)
@@ -82,6 +85,7 @@ class OnlinePairs:
             key = pair_key(old.digest, new.digest, cov, self.cfg)
             if key not in self.outcomes:
                 self.outcomes[key] = register_stitched_pair(world, self._target(i), cov, self.cfg)
+        self.cpu_s += time.process_time() - cpu
         log.debug("online pairs: scan %d, %d partners", len(self.scans) - 1, len(partners))
         return len(partners)
 
