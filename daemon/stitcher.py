@@ -49,7 +49,7 @@ def _init(voxel_mm: float, niceness: int) -> None:
 def _add(path: str, T_W_S: np.ndarray, arrays: dict[str, np.ndarray] | None) -> int:
     if arrays is not None:
         write_raw_scan(Path(path), **arrays)
-    _MAP.add_scan(T_W_S, *read_raw_scan(path))  # from the file, as a resumed job rebuilds it
+    _MAP.add_scan(T_W_S, *read_raw_scan(path, np.float32))  # from the file, as a resumed job rebuilds it
     return len(_MAP)
 
 
@@ -224,7 +224,7 @@ class LocalWorldMap(_Pairs):
                        pairs: dict | None = None) -> None:
         """As :meth:`ProcessWorldMap.add_scan`; given arrays are merged as they are (float64)."""
         if arrays is None:
-            await asyncio.to_thread(lambda: self.map.add_scan(T_W_S, *read_raw_scan(file)))
+            await asyncio.to_thread(lambda: self.map.add_scan(T_W_S, *read_raw_scan(file, np.float32)))
         else:
             await asyncio.to_thread(write_raw_scan, Path(file), **arrays)
             await asyncio.to_thread(self.map.add_scan, T_W_S, arrays["points_S_mm"], arrays.get("normals_S"))
