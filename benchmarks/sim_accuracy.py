@@ -89,7 +89,8 @@ async def run(args: argparse.Namespace) -> dict:
         if joint is not None:
             figures["joint_sigma_xyz_mm_per_station"] = joint["sigma_xyz_mm_per_station"]
     figures |= {"after_last_scan_s": r["timings"]["after_last_scan_s"],
-                "correction_cpu_s": r["timings"]["correction_cpu_s"]}
+                "correction_cpu_s": r["timings"]["correction_cpu_s"],
+                "stages_s": r["timings"].get("stages_s")}
     figures |= {"seconds": round(time.perf_counter() - started, 2),
                 "job_cpu_seconds": round(time.process_time() - cpu, 2)}
     return figures if plan_seconds is None else figures | {"plan_seconds": plan_seconds}

@@ -8,7 +8,8 @@ resolution) on a curved patch, with its normals, in the scanner frame 400 mm in 
 filled first with other patches of the same surface until it holds the requested voxel count (1 mm voxels),
 so that the scan's voxels partly hit existing ones. Figures: the median wall-clock seconds of
 ``VoxelMap.add_scan`` over ``--repeat`` merges (each into a copy of the same map) and its CPU seconds (the
-figure to read on a loaded machine), the scan's voxel count, and for comparison Open3D's one-shot
+figure to read on a loaded machine), also for the scan given as float32 (as the job's map reads a raw scan
+file), the scan's voxel count, and for comparison Open3D's one-shot
 ``voxel_down_sample`` of the same scan (1 mm), wall and CPU. The last line of output
 is one JSON object.
 """
@@ -56,13 +57,18 @@ def main() -> None:
         P, N = patch(x0, 300, 240, 1.0)
         base.add(P, N)
         x0 += 150.0
-    seconds, cpu = [], []
+    seconds, cpu, cpu32 = [], [], []
+    points32, normals32 = points_S.astype(np.float32), normals_S.astype(np.float32)  # as a raw scan file holds them
     for _ in range(args.repeat):
         m = copy.deepcopy(base)
         t, c = time.perf_counter(), time.process_time()
         m.add_scan(T_W_S, points_S, normals_S)
         seconds.append(time.perf_counter() - t)
         cpu.append(time.process_time() - c)
+        m32 = copy.deepcopy(base)
+        c = time.process_time()
+        m32.add_scan(T_W_S, points32, normals32)
+        cpu32.append(time.process_time() - c)
     t, c = time.perf_counter(), time.process_time()
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scan_W))
     pcd.normals = o3d.utility.Vector3dVector(normals_W)
@@ -72,6 +78,9 @@ def main() -> None:
                       "scan_voxels": o3d_voxels, "merge_s_median": round(float(np.median(seconds)), 3),
                       "merge_s_min": round(min(seconds), 3),
                       "merge_cpu_s_median": round(float(np.median(cpu)), 3),
+                      "merge_cpu_s_min": round(min(cpu), 3),
+                      "merge_float32_cpu_s_median": round(float(np.median(cpu32)), 3),
+                      "merge_float32_cpu_s_min": round(min(cpu32), 3),
                       "open3d_voxel_down_sample_s": round(o3d_s, 3), "open3d_cpu_s": round(o3d_cpu, 3),
                       "load_average_1min": round(os.getloadavg()[0], 2)}))
 

@@ -1,10 +1,10 @@
-"""Correct + refine step of a job (docs/registration.md): the runner's scans in, refined poses and a new stitch out.
+"""Correct + refine stage of the end of a job (docs/registration.md): the runner's scans in, refined poses out.
 
-Reads every persisted raw scan back, carries each tracker reading's covariance to its scan pose, takes each
-coordinate transfer's error prior from its journaled entry, runs
-``pipeline.registration.correction.correct_scans`` (pairwise DeepMerge/ICP corrections and the pose graph over all
-scans and tracker stations), then rebuilds the world map with the refined poses. Report figures before and
-after are returned for ``report.json``.
+Given the scans' points (read once by :mod:`tandemscan.daemon.finish`), carries each tracker reading's
+covariance to its scan pose, takes each coordinate transfer's error prior from its journaled entry and runs
+``pipeline.registration.correction.correct_scans`` (pairwise DeepMerge/ICP corrections, those registered while
+the job measured reused, the pose graph and the joint refinement over all scans and tracker stations). Report
+figures before and after are returned for ``report.json``.
 
 With ``correction.estimate_mount`` the graph also estimates the shared correction of the scanner mount
 ``T_T_S`` (``registration.mounts.MountPrior``), with a prior per ``job.installation_source``: the calibration file's
@@ -17,16 +17,15 @@ from __future__ import annotations
 import logging
 import os
 import time
+from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
 from tandemscan.pipeline.geometry.uncertainty import scan_pose_covariance
-from tandemscan.pipeline.io.raw_scan import read_raw_scan
 from tandemscan.pipeline.registration.correction import StitchedScan, correct_scans
 from tandemscan.pipeline.registration.mounts import MountPrior
 from tandemscan.pipeline.registration.pairs import LazyNetwork
 from tandemscan.pipeline.registration.pose_graph import TransferPrior
-from tandemscan.pipeline.stitching.worldmap import VoxelMap
 
 if TYPE_CHECKING:
     from tandemscan.daemon.snapshot import JobSnapshot
@@ -67,32 +66,32 @@ def _cpu_seconds() -> float:
     return t.user + t.system + t.children_user + t.children_system
 
 
-def correct_job(job: JobSnapshot) -> tuple[dict, list[np.ndarray]]:
-    """Replace every ``job.scans[i].T_W_S`` by its refined pose and re-stitch ``job.worldmap``.
+def transfer_priors(transfers: list[dict]) -> list[TransferPrior]:
+    """The pose graph's prior of each coordinate transfer, from the runner's transfer entries (W, mm)."""
+    return [TransferPrior(t["station"], np.array(t["target_W_mm"]), np.array(t["covariance"])) for t in transfers]
+
+
+def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray], pair_cache: dict | None = None
+                ) -> tuple[dict, list[np.ndarray]]:
+    """The refined pose ``T_W_S`` (W, mm) of every scan of ``job.scans``, whose points in the scanner frame S
+    (mm) are ``points_S``; ``job`` is not changed. ``pair_cache``: the pairs registered while the job measured
+    (``correction.correct_scans``).
 
     Returns the ``correction`` section of the report (the settings, pair and graph figures, and on the
     simulated cell the ground-truth figures of the tracker-only stitch, ``before``) and the refined poses
-    ``T_W_S`` (mm) in scan order.
+    in scan order.
     """
     started, cpu = time.monotonic(), _cpu_seconds()
     cfg = job.config.correction
     before = None
     if job.scorer is not None:
         before = {k: v for k, v in job.scorer.score(job).items() if k in _GROUND_TRUTH_KEYS}
-    raw, scans = [], []
-    for s in job.scans:
-        raw.append(read_raw_scan(s.file))
-        cov = scan_pose_covariance(s.T_W_C, s.reading.T_C_T, job.installation.T_T_S, s.reading.covariance)
-        scans.append(StitchedScan(raw[-1][0], s.T_W_S, cov, s.tracker_station))
-    transfers = [TransferPrior(t["station"], np.array(t["target_W_mm"]), np.array(t["covariance"]))
-                 for t in job.transfers]
+    scans = [StitchedScan(P, s.T_W_S, scan_pose_covariance(s.T_W_C, s.reading.T_C_T, job.installation.T_T_S,
+                                                            s.reading.covariance), s.tracker_station)
+             for s, P in zip(job.scans, points_S, strict=True)]
     prior, prior_source = mount_prior(job)
-    result = correct_scans(scans, cfg, LazyNetwork(job.config.deepmerge), transfers=transfers,
-                           voxel_mm=job.config.job.voxel_mm, mount_prior=prior)
-    job.worldmap = VoxelMap(job.config.job.voxel_mm)
-    for s, T, (points, normals) in zip(job.scans, result.poses, raw, strict=True):
-        s.T_W_S = T
-        job.worldmap.add_scan(T, points, normals)
+    result = correct_scans(scans, cfg, LazyNetwork(job.config.deepmerge), transfers=transfer_priors(job.transfers),
+                           voxel_mm=job.config.job.voxel_mm, mount_prior=prior, pair_cache=pair_cache)
     section = {"enabled": True, **result.report, "seconds": round(time.monotonic() - started, 3),
                "cpu_seconds": round(_cpu_seconds() - cpu, 3)}
     section["mount"] = {"estimated": result.mount is not None, "prior": prior_source}

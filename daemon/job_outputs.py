@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -35,10 +36,11 @@ log = logging.getLogger(__name__)
 STITCH_VIEW_POINTS = 20_000  # per scan, for the overlap figure
 
 
-def _posed_scans(job: JobSnapshot) -> list[PosedScan]:
+def _posed_scans(job: JobSnapshot, points_S: Sequence[np.ndarray] | None = None) -> list[PosedScan]:
+    """The job's scans at their poses, with ``points_S`` (S, mm) where the caller has read them already."""
     scans = []
-    for s in job.scans:
-        points, _ = read_raw_scan(s.file)
+    for k, s in enumerate(job.scans):
+        points = read_raw_scan(s.file)[0] if points_S is None else points_S[k]
         meta = {"tracker_station": s.tracker_station, "timestamp_s": s.reading.timestamp_s,
                 **{f"joint{i + 1}_deg": float(np.degrees(q)) for i, q in enumerate(s.joints_rad)}}
         scans.append(PosedScan(s.file.stem, s.T_W_S, points, meta))
@@ -63,29 +65,44 @@ def _accuracy(report: dict) -> dict:
     return out | {label: truth[k] for k, label in keys.items() if k in truth}
 
 
-def export_job(job: JobSnapshot, seconds: float, measured_at: float) -> dict:
-    """Write ``cloud.ply`` (W, mm), the report (returned and written as ``report.json``) and the inspection
-    exports of a finished job into its folder; runs where ``job.worldmap`` lives. ``measured_at`` is
-    ``time.monotonic()`` (system-wide) when the job's last step was committed: ``timings.after_last_scan_s``
-    is the time from there to report.html, ``timings.correction_cpu_s`` the correction's CPU time."""
+def export_job(job: JobSnapshot, seconds: float, measured_at: float, stages: Mapping[str, float] | None = None,
+               points_S: Sequence[np.ndarray] | None = None, tracker_poses: Sequence[np.ndarray] | None = None
+               ) -> dict:
+    """Write ``cloud.ply`` (W, mm), the report (returned and written once, as ``report.json``) and the
+    inspection exports of a finished job into its folder; runs where ``job.worldmap`` (the final cloud) lives.
+    ``measured_at`` is ``time.monotonic()`` (system-wide) when the job's last step was committed:
+    ``timings.after_last_scan_s`` is the time from there to report.html, ``timings.correction_cpu_s`` the
+    correction's CPU time after the last scan, ``timings.stages_s`` the seconds of each stage (``stages``: those
+    before this call). ``points_S``: the scans' points (S, mm) already read (else read here);
+    ``tracker_poses``: the tracker-stitched poses where the correction changed them (None: not corrected)."""
+    t = [time.perf_counter()]
     write_ply(job.job_dir / "cloud.ply", job.worldmap.points(), job.worldmap.normals())
-    report = build_report(job, seconds)
-    report["inspection"] = write_job_outputs(job, report)  # report.html, E57, pose log
+    t.append(time.perf_counter())
+    report = build_report(job, seconds, tracker_poses)
+    t.append(time.perf_counter())
+    report["inspection"] = write_job_outputs(job, report, points_S, tracker_poses)  # report.html, E57, pose log
+    t.append(time.perf_counter())
     if job.scorer is not None and "ground_truth" in report and "alignment" in report["inspection"]:
         report["ground_truth"]["inspection"] = job.scorer.score_inspection(job, report["inspection"])
+    t.append(time.perf_counter())
+    names = ("cloud_ply_s", "report_s", "exports_and_inspection_s", "scoring_s")
+    stages = {**(stages or {}), **job.correction.get("stage_seconds", {}),
+              **dict(zip(names, np.round(np.diff(t), 3).tolist(), strict=True))}
     report["timings"] = {"after_last_scan_s": round(time.monotonic() - measured_at, 3),
-                         "correction_cpu_s": job.correction.get("cpu_seconds")}
+                         "correction_cpu_s": job.correction.get("cpu_seconds"), "stages_s": stages}
     (job.job_dir / "report.json").write_text(json.dumps(report, indent=1), encoding="utf-8")
     return report
 
 
-def write_job_outputs(job: JobSnapshot, report: dict) -> dict:
-    """Write the E57, the pose log and (when registered to CAD) the inspection report of a finished job.
+def write_job_outputs(job: JobSnapshot, report: dict, points_S: Sequence[np.ndarray] | None = None,
+                      tracker_poses: Sequence[np.ndarray] | None = None) -> dict:
+    """Write the E57, the pose log and (when registered to CAD) the inspection report of a finished job
+    (``points_S`` and ``tracker_poses`` as for :func:`export_job`).
 
     Returns the inspection section for the job's ``report.json``: the same numbers as report.html.
     """
     job_dir = job.job_dir
-    scans = _posed_scans(job)
+    scans = _posed_scans(job, points_S)
     cloud_W = job.worldmap.points()
     files = {"e57": "cloud.e57", "pose_log": "poses.csv"}
     with_points = [s for s in scans if len(s.points_S_mm)]  # E57 has no empty scans; the pose log keeps them
@@ -106,7 +123,7 @@ def write_job_outputs(job: JobSnapshot, report: dict) -> dict:
     T_F_W = np.asarray(job.T_F_W, float)
     normals_W = job.worldmap.normals()
     try:
-        out = _inspect(job, report, scans, cloud_W, normals_W, T_F_W)
+        out = _inspect(job, report, scans, cloud_W, normals_W, T_F_W, tracker_poses)
     except InspectionError as e:  # the measurement stands; the report says why it has no inspection
         log.warning("inspection failed: %s", e)
         return {"failed": str(e), "files": files}
@@ -115,15 +132,14 @@ def write_job_outputs(job: JobSnapshot, report: dict) -> dict:
 
 
 def _inspect(job: JobSnapshot, report: dict, scans: list[PosedScan], cloud_W: np.ndarray,
-             normals_W: np.ndarray | None, T_F_W: np.ndarray) -> InspectionOutputs:
+             normals_W: np.ndarray | None, T_F_W: np.ndarray, tracker_poses: Sequence[np.ndarray] | None
+             ) -> InspectionOutputs:
     """The inspection of the job's cloud, aligned to the CAD from the anchor's ``T_F_W``, written into the job
-    folder."""
+    folder; the stitch view shows the tracker-only stitch (Eq. 1) and, where corrected, the final one."""
     job_dir = job.job_dir
-    # the tracker-only stitch (Eq. 1) against the poses the job ended with, which a correction step may change
-    tracker_only = [F.compose(s.T_W_C, s.reading.T_C_T, job.installation.T_T_S) for s in job.scans]
-    corrected = any(not np.allclose(T, s.T_W_S, rtol=0, atol=1e-9) for T, s in zip(tracker_only, scans, strict=True))
+    tracker_only = [s.T_W_S for s in scans] if tracker_poses is None else list(tracker_poses)
     before = [F.transform_points(T, _thin(s.points_S_mm)) for T, s in zip(tracker_only, scans, strict=True)]
-    after = [F.transform_points(s.T_W_S, _thin(s.points_S_mm)) for s in scans] if corrected else None
+    after = None if tracker_poses is None else [F.transform_points(s.T_W_S, _thin(s.points_S_mm)) for s in scans]
     return align_and_inspect(
         cloud_W,
         load_part_mesh(job.config.part),

@@ -16,7 +16,7 @@ joints in radians; odometry ``(x_mm, y_mm, heading_rad)`` in the chassis' odomet
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -71,14 +71,6 @@ class ScanRecord:
         return cls(d["index"], d["station"], job_dir / "scans" / d["file"], reading,
                    np.array(d["joints_rad"], dtype=float), np.array(d["T_W_C"], dtype=float),
                    np.array(d["T_W_S"], dtype=float), d["points"])
-
-
-class SnapshotScan:
-    """A scan as the end-of-job work sees it (:class:`~tandemscan.daemon.snapshot.JobSnapshot` ``scans``): the
-    attributes of its :class:`ScanRecord`, ``T_W_S`` (mm) replaced there by the correction."""
-
-    def __init__(self, record: ScanRecord):
-        self.__dict__.update({f.name: getattr(record, f.name) for f in fields(record)})
 
 
 @dataclass(frozen=True)

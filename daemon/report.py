@@ -3,6 +3,7 @@ job's observer writes (:mod:`tandemscan.daemon.observer`)."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -11,8 +12,9 @@ if TYPE_CHECKING:
     from tandemscan.daemon.snapshot import JobSnapshot
 
 
-def build_report(job: JobSnapshot, seconds: float) -> dict:
-    """The report of a finished run (mm, deg, s)."""
+def build_report(job: JobSnapshot, seconds: float, tracker_poses: Sequence[np.ndarray] | None = None) -> dict:
+    """The report of a finished run (mm, deg, s); each scan's final pose ``T_W_S`` (W, mm) and, where the
+    correction changed it, its tracker-stitched pose ``T_W_S_tracker`` (``tracker_poses``)."""
     report: dict = {
         "job": job.job_dir.name,
         "plan": job.plan.name,
@@ -35,6 +37,9 @@ def build_report(job: JobSnapshot, seconds: float) -> dict:
             for s in job.scans
         ],
     }
+    if tracker_poses is not None:
+        for entry, T in zip(report["scan_log"], tracker_poses, strict=True):
+            entry["T_W_S_tracker"] = np.asarray(T).tolist()
     if job.scorer is not None and job.scans:
         report["ground_truth"] = job.scorer.score(job)
     return report

@@ -40,7 +40,6 @@ from tandemscan.daemon.job_records import (
     LiftMove,
     MeasureMove,
     ScanRecord,
-    SnapshotScan,
     StepRecord,
     TrackerRelocation,
     UntrackedScan,
@@ -57,7 +56,7 @@ from tandemscan.daemon.run_state import (
 from tandemscan.daemon.session import CellSession, MotionGate
 from tandemscan.daemon.snapshot import JobSnapshot
 from tandemscan.daemon.step_journal import NoJournal, StepJournal
-from tandemscan.daemon.stitcher import LocalWorldMap, ProcessWorldMap, correct, export
+from tandemscan.daemon.stitcher import LocalWorldMap, ProcessWorldMap
 from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT
 from tandemscan.daemon.tracker_reading import read_at_rest, read_for_transfer
 from tandemscan.drivers.errors import TargetNotVisible
@@ -165,17 +164,15 @@ class JobRunner:
             await self.journal.commit(i, step.kind, record.to_json(), *scan)
             self.state = apply(self.state, record)
         measured_at = time.monotonic()  # the last step committed: from here the operator waits for the report
-        measured = [s for s in self.state.scans if s.point_count > 0]  # a scan that saw nothing: nothing to correct
-        if self.config.correction.enabled and len(measured) > 1:
-            self.progress(JobProgress(total - 1, total, "correcting the stitch (DeepMerge, pose graph)"))
-            self.correction, poses = await self.worldmap.run(correct, self.snapshot(measured))
-            refined = {s.index: T_W_S for s, T_W_S in zip(measured, poses, strict=True)}
-            self.state = replace(self.state, scans=tuple(replace(s, T_W_S=refined.get(s.index, s.T_W_S))
-                                                         for s in self.state.scans))
-        self.progress(JobProgress(total - 1, total, "writing cloud and report"))
-        result = await self._export(time.monotonic() - started, measured_at)
+        self.progress(JobProgress(total - 1, total, "correcting the stitch, writing cloud and report"))
+        finished = await self.worldmap.finish(self.snapshot(), started, measured_at)
+        self.correction = finished.correction.section
+        final = {s.index: T for s, T in zip(self.state.scans, finished.correction.poses, strict=True)}
+        # JobResult's records carry the final poses; report.json keeps both (finish.FinishedJob)
+        self.state = replace(self.state, scans=tuple(replace(s, T_W_S=final[s.index]) for s in self.state.scans))
         self.progress(JobProgress(total, total, "done"))
-        return result
+        return JobResult(self.job_dir, self.job_dir / "cloud.ply", self.job_dir / "report.json", finished.report,
+                         list(self.state.scans))
 
     async def _replay(self) -> None:
         """Rebuild the state from the steps committed before a restart (no device is touched) and the world map
@@ -304,7 +301,10 @@ class JobRunner:
         if frame.normals is not None:
             arrays["normals_S"] = frame.normals
         T_W_S = F.compose(T_W_C, reading.T_C_T, self.installation.T_T_S)
-        await self.worldmap.add_scan(file, T_W_S, arrays)  # the file is durable before this returns
+        await self.worldmap.add_scan(  # the file is durable before this returns; its pairs registered meanwhile
+            file, T_W_S, arrays, pairs={"correction": self.config.correction, "station": self.state.tracker_station,
+                                        "transfers": [t.entry() for t in self.state.transfers],
+                                        "T_T_S": self.installation.T_T_S})
         if self.observer is not None:
             self.observer.scan_measured(index)
         return ScanRecord(index, self.state.tracker_station, file, reading, joints, T_W_C.copy(), T_W_S,
@@ -316,13 +316,6 @@ class JobRunner:
         scorer = self.observer.scorer() if self.observer is not None else None
         state = self.state
         return JobSnapshot(self.job_dir, self.plan, self.config, self.installation,
-                           [SnapshotScan(s) for s in (scans or state.scans)],
+                           list(scans or state.scans),
                            [t.entry() for t in state.transfers], dict(self.correction), scorer,
                            T_F_W=state.relocalisation.T_F_W, relocalisation=state.relocalisation.report())
-
-    async def _export(self, seconds: float, measured_at: float) -> JobResult:
-        """``cloud.ply``, ``report.json`` and the inspection exports, written where the map lives
-        (``measured_at``: ``time.monotonic()`` when the last step was committed)."""
-        report = await self.worldmap.run(export, self.snapshot(), seconds, measured_at)
-        return JobResult(self.job_dir, self.job_dir / "cloud.ply", self.job_dir / "report.json", report,
-                         list(self.state.scans))

@@ -9,25 +9,35 @@ given: written and fsynced first) and merges it into the voxel grid (Eq. 1, poin
 holds the daemon's GIL: a full-resolution scan (3.2 M points) merged or written in a thread stalled the event
 loop for over half a second. Scan arrays go to it as shared memory (:mod:`tandemscan.drivers.shared_array`),
 never pickled by value. :class:`LocalWorldMap` (``tandemscan measure``) does the same work in threads.
+
+Both register each scan's overlapping pairs as it arrives when given the job's ``[correction]`` settings
+(:class:`PairWorker`: a second process at the map's priority, so both cores work and the event loop stays
+free; ``pipeline.registration.online_pairs``); :meth:`pair_outcomes` hands their outcomes to the correction
+after the last scan.
 """
 
 from __future__ import annotations
 
 import asyncio
+import logging
 import multiprocessing
+import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tandemscan.config.models import CorrectionConfig
 from tandemscan.daemon.snapshot import JobSnapshot
 from tandemscan.drivers.shared_array import share
 from tandemscan.drivers.worker import init_worker, stop_pool
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, write_raw_scan
 from tandemscan.pipeline.stitching.worldmap import VoxelMap
 
+log = logging.getLogger(__name__)
 _MAP: VoxelMap | None = None  # the worker's map
+_PAIRS: Any = None  # the pair worker's OnlinePairs
 
 
 def _init(voxel_mm: float, niceness: int) -> None:
@@ -39,7 +49,7 @@ def _init(voxel_mm: float, niceness: int) -> None:
 def _add(path: str, T_W_S: np.ndarray, arrays: dict[str, np.ndarray] | None) -> int:
     if arrays is not None:
         write_raw_scan(Path(path), **arrays)
-    _MAP.add_scan(T_W_S, *read_raw_scan(path))  # from the file, as a resumed job rebuilds it
+    _MAP.add_scan(T_W_S, *read_raw_scan(path, np.float32))  # from the file, as a resumed job rebuilds it
     return len(_MAP)
 
 
@@ -51,12 +61,108 @@ def _run(fn: Callable[..., Any], job: JobSnapshot, args: tuple) -> tuple[Any, in
     return out, len(_MAP)
 
 
-def correct(job: JobSnapshot) -> tuple[dict, list[np.ndarray]]:
-    """:func:`tandemscan.daemon.correction.correct_job`, imported where it runs: torch takes seconds to
-    import, which must not happen on the daemon's event loop."""
-    from tandemscan.daemon.correction import correct_job
+def _pairs_add(path: str, T_W_S: np.ndarray, T_T_S: np.ndarray, station: int, transfers: list[dict],
+               cfg: CorrectionConfig, voxel_mm: float) -> int:
+    """In the pair worker: register the pairs of the scan in ``path`` (durable by now) with the earlier ones."""
+    global _PAIRS
+    from tandemscan.daemon.correction import transfer_priors
+    from tandemscan.pipeline.geometry.uncertainty import scan_pose_covariance
+    from tandemscan.pipeline.registration.online_pairs import OnlinePairs
 
-    return correct_job(job)
+    if _PAIRS is None:
+        _PAIRS = OnlinePairs(cfg, voxel_mm)
+    points, _ = read_raw_scan(path)
+    with np.load(path) as f:
+        cov = scan_pose_covariance(f["T_W_C"], f["T_C_T"], T_T_S, f["tracker_covariance"])
+    return _PAIRS.add(points, T_W_S, cov, station, transfer_priors(transfers))
+
+
+def _pairs_outcomes() -> tuple[dict, float]:
+    return ({}, 0.0) if _PAIRS is None else (_PAIRS.outcomes, _PAIRS.cpu_s)
+
+
+def _finish(job: JobSnapshot, started: float, measured_at: float, pair_cache: dict, stages: dict) -> Any:
+    """:func:`tandemscan.daemon.finish.finish_job`, imported where it runs (the registration stack, E57, Open3D
+    I/O, matplotlib)."""
+    from tandemscan.daemon.finish import finish_job
+
+    return finish_job(job, started, measured_at, pair_cache, stages)
+
+
+class PairWorker:
+    """A process registering each scan's pairs as it arrives (``online_pairs.OnlinePairs``); tasks queue in
+    scan order and nobody waits for them until :meth:`outcomes`."""
+
+    def __init__(self, cfg: CorrectionConfig, voxel_mm: float, niceness: int):
+        self.cfg, self.voxel_mm = cfg, float(voxel_mm)
+        self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
+                                         initializer=init_worker, initargs=(niceness,))
+        self._pending: list[Any] = []
+
+    def submit(self, file: Path, T_W_S: np.ndarray, T_T_S: np.ndarray, station: int, transfers: list[dict]) -> None:
+        """Queue the pairs of the scan in ``file`` (written durably), placed at ``T_W_S`` (mm)."""
+        self._pending.append(self._pool.submit(_pairs_add, str(file), np.asarray(T_W_S, float),
+                                               np.asarray(T_T_S, float), int(station), list(transfers), self.cfg,
+                                               self.voxel_mm))
+
+    async def outcomes(self) -> tuple[dict, float]:
+        """Wait for the queued scans, then the pair outcomes by ``correction.pair_key`` (a failed task only
+        leaves its pairs to the end of the job) and the worker's CPU seconds spent on them."""
+        for future in self._pending:
+            try:
+                await asyncio.wrap_future(future)
+            except Exception as e:  # noqa: BLE001 - the correction registers what is missing
+                log.warning("pairs of a scan not registered while measuring: %s", e)
+        self._pending = []
+        return await asyncio.wrap_future(self._pool.submit(_pairs_outcomes))
+
+    def close(self) -> None:
+        stop_pool(self._pool)
+
+
+class _Pairs:
+    """The pair registration and end of the job both maps share: a :class:`PairWorker` started at the first scan
+    that asks for it."""
+
+    voxel_mm: float
+    _pair_niceness: int = 0
+    _pairs: PairWorker | None = None
+
+    def _queue_pairs(self, file: Path, T_W_S: np.ndarray, pairs: dict | None) -> None:
+        if not pairs:
+            return
+        cfg: CorrectionConfig = pairs["correction"]
+        if self._pairs is None:
+            from tandemscan.pipeline.registration.pairs import NETWORK_METHODS
+
+            if not cfg.enabled or cfg.method in NETWORK_METHODS:
+                return
+            self._pairs = PairWorker(cfg, self.voxel_mm, self._pair_niceness)
+        self._pairs.submit(file, T_W_S, pairs["T_T_S"], pairs["station"], pairs["transfers"])
+
+    async def pair_outcomes(self) -> tuple[dict, float]:
+        """The outcomes of the pairs registered while the job measured (none without a pair worker) and the CPU
+        seconds spent on them; the worker stops after handing them over."""
+        if self._pairs is None:
+            return {}, 0.0
+        try:
+            return await self._pairs.outcomes()
+        finally:
+            self._pairs.close()
+            self._pairs = None
+
+    async def finish(self, job: JobSnapshot, started: float, measured_at: float) -> Any:
+        """The end of the job (``finish.finish_job``, a ``finish.FinishedJob``) where the map lives, once the
+        pairs of the last scans are registered; ``started`` and ``measured_at`` as ``time.monotonic()``."""
+        pair_cache, pair_cpu_s = await self.pair_outcomes()
+        stages = {"pair_backlog_s": round(time.monotonic() - measured_at, 3),
+                  "pairs_cpu_s_while_measuring": round(pair_cpu_s, 3)}
+        return await self.run(_finish, job, started, measured_at, pair_cache, stages)
+
+    def _close_pairs(self) -> None:
+        if self._pairs is not None:
+            self._pairs.close()
+            self._pairs = None
 
 
 def export(job: JobSnapshot, seconds: float, measured_at: float) -> dict:
@@ -70,22 +176,27 @@ def _share_big(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return {k: share(v) for k, v in arrays.items()}
 
 
-class ProcessWorldMap:
+class ProcessWorldMap(_Pairs):
     """The job's :class:`VoxelMap` in its own process; call :meth:`close` when the job is done."""
 
     def __init__(self, voxel_mm: float, niceness: int = 0):
         self.voxel_mm = float(voxel_mm)
+        self._pair_niceness = niceness
         self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
                                          initializer=_init, initargs=(self.voxel_mm, niceness))
         self._len = 0
 
-    async def add_scan(self, file: Path, T_W_S: np.ndarray, arrays: dict[str, np.ndarray] | None = None) -> None:
+    async def add_scan(self, file: Path, T_W_S: np.ndarray, arrays: dict[str, np.ndarray] | None = None,
+                       pairs: dict | None = None) -> None:
         """Write ``arrays`` (if given) durably to ``file``, then merge the scan in ``file`` placed at ``T_W_S``.
-        The caller keeps ``arrays`` until this returns (the worker maps their shared memory)."""
+        The caller keeps ``arrays`` until this returns (the worker maps their shared memory). ``pairs``
+        (``correction``: the job's ``[correction]``, ``station``, ``transfers``: the runner's transfer entries
+        so far, ``T_T_S``: the mount, mm) queues the scan's pair registration."""
         if arrays is not None:
             arrays = await asyncio.to_thread(_share_big, arrays)
         self._len = await asyncio.wrap_future(
             self._pool.submit(_add, str(file), np.asarray(T_W_S, float), arrays))
+        self._queue_pairs(file, T_W_S, pairs)
 
     async def run(self, fn: Callable[..., Any], job: JobSnapshot, *args: Any) -> Any:
         """``fn(job, *args)`` in the worker with ``job.worldmap`` = its map; ``fn`` and its result pickle."""
@@ -98,22 +209,26 @@ class ProcessWorldMap:
     def close(self) -> None:
         """Stop the worker; work still under way (a job interrupted by shutdown) is abandoned, not awaited."""
         stop_pool(self._pool)
+        self._close_pairs()
 
 
-class LocalWorldMap:
-    """The job's :class:`VoxelMap` in this process, its work in threads (``tandemscan measure``)."""
+class LocalWorldMap(_Pairs):
+    """The job's :class:`VoxelMap` in this process, its work in threads (``tandemscan measure``); its pair
+    registration in a process."""
 
     def __init__(self, voxel_mm: float):
         self.voxel_mm = float(voxel_mm)
         self.map = VoxelMap(self.voxel_mm)
 
-    async def add_scan(self, file: Path, T_W_S: np.ndarray, arrays: dict[str, np.ndarray] | None = None) -> None:
+    async def add_scan(self, file: Path, T_W_S: np.ndarray, arrays: dict[str, np.ndarray] | None = None,
+                       pairs: dict | None = None) -> None:
         """As :meth:`ProcessWorldMap.add_scan`; given arrays are merged as they are (float64)."""
         if arrays is None:
-            await asyncio.to_thread(lambda: self.map.add_scan(T_W_S, *read_raw_scan(file)))
-            return
-        await asyncio.to_thread(write_raw_scan, Path(file), **arrays)
-        await asyncio.to_thread(self.map.add_scan, T_W_S, arrays["points_S_mm"], arrays.get("normals_S"))
+            await asyncio.to_thread(lambda: self.map.add_scan(T_W_S, *read_raw_scan(file, np.float32)))
+        else:
+            await asyncio.to_thread(write_raw_scan, Path(file), **arrays)
+            await asyncio.to_thread(self.map.add_scan, T_W_S, arrays["points_S_mm"], arrays.get("normals_S"))
+        self._queue_pairs(file, T_W_S, pairs)
 
     async def run(self, fn: Callable[..., Any], job: JobSnapshot, *args: Any) -> Any:
         """``fn(job, *args)`` in a thread with ``job.worldmap`` = this map."""
@@ -126,4 +241,4 @@ class LocalWorldMap:
         return len(self.map)
 
     def close(self) -> None:
-        return None
+        self._close_pairs()

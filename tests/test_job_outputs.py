@@ -5,37 +5,37 @@ from __future__ import annotations
 
 import csv
 import json
-from dataclasses import replace
 
 import numpy as np
 import pye57
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.session import CellSession
-from tandemscan.daemon.stitcher import LocalWorldMap
 from tandemscan.pipeline.planning.plan import Plan, Scan
 
 
-class PerfectlyCorrectedRunner(JobRunner):
-    """Stands in for the correction step: every scan gets its true pose before the export."""
+def perfect_correction(monkeypatch, truth_of):
+    """Stands in for the correction stage: every scan gets its true pose (``truth_of(job)``, by scan index)."""
+    from tandemscan.daemon import finish
 
-    async def _export(self, seconds, measured_at):
-        self.worldmap = LocalWorldMap(self.config.job.voxel_mm)
-        truth = self.observer.scorer().T_W_S_true
-        self.state = replace(self.state, scans=tuple(replace(s, T_W_S=truth[s.index]) for s in self.state.scans))
-        for s in self.state.scans:
-            await self.worldmap.add_scan(s.file, s.T_W_S)
-        return await super()._export(seconds, measured_at)
+    def correct_stage(job, loaded, pair_cache):
+        tracker = tuple(s.T_W_S for s in job.scans)
+        truth = truth_of(job)
+        return finish.CorrectionOutcome({"enabled": True, "cpu_seconds": 0.001}, tracker,
+                                        tuple(truth[s.index] for s in job.scans), True)
+
+    monkeypatch.setattr(finish, "correct_stage", correct_stage)
 
 
-async def test_job_writes_report_and_exports_next_to_cloud(sim_config, tmp_path):
+async def test_job_writes_report_and_exports_next_to_cloud(sim_config, tmp_path, monkeypatch):
     plan = Plan.load(default_plan_path())
     scans = [i for i, s in enumerate(plan.steps) if isinstance(s, Scan)]
     plan = plan.model_copy(update={"steps": plan.steps[: scans[1] + 1]})  # the first two scans only
     inspection = sim_config.inspection.model_copy(update={"views": ("isometric",), "map_width_px": 300})
     config = sim_config.model_copy(update={"inspection": inspection})
+    perfect_correction(monkeypatch, lambda job: job.scorer.T_W_S_true)
     async with CellSession(config) as session:
-        result = await PerfectlyCorrectedRunner(session, plan, config, tmp_path / "job").run()
+        result = await JobRunner(session, plan, config, tmp_path / "job").run()
     job = result.job_dir
     for name in ("cloud.ply", "report.html", "report.json", "cloud_deviation.ply", "cloud.e57", "poses.csv"):
         assert (job / name).is_file(), name
@@ -70,6 +70,7 @@ async def test_job_writes_report_and_exports_next_to_cloud(sim_config, tmp_path)
             header = e57.get_header(i)
             assert header.point_count == entry["points"]
             np.testing.assert_allclose(header.translation * 1000.0, np.asarray(entry["T_W_S"])[:3, 3], atol=1e-6)
+            assert entry["T_W_S"] != entry["T_W_S_tracker"]  # the final pose beside the tracker's
     finally:
         e57.close()
     with (job / "poses.csv").open() as f:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from tandemscan.pipeline.registration.overlap import OverlapError, overlapping_pairs
+from tandemscan.pipeline.registration.overlap import OverlapError, PairSelector, overlapping_pairs
 from tandemscan.pipeline.registration.sampling import thin_evenly
 
 
@@ -52,3 +52,23 @@ def test_thinning_keeps_the_ends_and_spreads_evenly():
     assert thin[0] == 100 and thin[-1] == 1099 and len(np.unique(thin)) == 11
     assert set(np.diff(thin)) <= {99, 100}
     np.testing.assert_array_equal(thin_evenly(idx[:5], 11), idx[:5])
+
+
+def test_pairs_selected_as_clouds_arrive_include_every_final_pair():
+    # a random walk of patches over three tracker stations: the pairs the incremental selector offers when
+    # each cloud arrives hold every pair of the selection over all clouds, with few extra
+    rng = np.random.default_rng(3)
+    corners = np.cumsum(rng.uniform(-60, 60, size=(40, 2)), axis=0)
+    clouds = [_patch(x, y, size_mm=80.0, step_mm=4.0) for x, y in corners]
+    stations = np.repeat([0, 1, 2], [15, 15, 10])
+    for partners in (1, 2, 4):
+        selector = PairSelector(10.0, partners)
+        offered = {(i, j) for j, c in enumerate(clouds) for i in selector.add(c, stations[j])}
+        final = set(overlapping_pairs(clouds, stations, cell_mm=10.0, max_partners=partners))
+        assert final <= offered
+        assert len(offered) <= 2 * len(final)
+    # a pair offered early and displaced later is in the offered set but not in the final selection
+    clouds = [_patch(0), _patch(40), _patch(10)]
+    selector = PairSelector(10.0, 1)
+    offered = {(i, j) for j, c in enumerate(clouds) for i in selector.add(c, 0)}
+    assert (0, 1) in offered and (0, 1) not in overlapping_pairs(clouds, [0, 0, 0], 10.0, 1)

@@ -10,9 +10,11 @@ refined jointly on the overlap points (``joint.refine_jointly``).
 
 from __future__ import annotations
 
+import hashlib
 import logging
+import time
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -41,7 +43,7 @@ from tandemscan.pipeline.registration.pose_graph import (
     constrained_edge,
     refine_poses,
 )
-from tandemscan.pipeline.registration.sampling import voxel_downsample
+from tandemscan.pipeline.registration.sampling import thin_evenly, voxel_downsample
 
 log = logging.getLogger(__name__)
 
@@ -61,64 +63,133 @@ class CorrectionResult:
     """Refined poses and the figures a report needs (mm, deg); the shared mount correction if estimated."""
 
     poses: list[np.ndarray]
-    edges: list[tuple[int, int, PairCorrection]] = field(default_factory=list)
+    edges: list[tuple[int, int, PairOutcome]] = field(default_factory=list)
     report: dict = field(default_factory=dict)
     mount: MountEstimate | None = None
 
 
+class _Clock:
+    """Wall seconds of consecutive stages (``lap(name)`` ends the stage begun at the last lap)."""
+
+    def __init__(self) -> None:
+        self.laps: dict[str, float] = {}
+        self._t = time.perf_counter()
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.laps[name] = round(now - self._t, 3)
+        self._t = now
+
+
 def _overlap_rms(clouds: list[np.ndarray], edges, poses_before, poses_after, cfg) -> tuple[float, float]:
-    """Median over edges of the point-to-plane RMS (mm) of the overlaps, with the poses before and after."""
+    """Median over edges of the point-to-plane RMS (mm) of the overlaps, with the poses before and after; each
+    source scan is evaluated on at most ``cfg.icp_max_points`` of its points, evenly spread."""
     out = []
     targets = {i: target_with_normals(clouds[i]) for i in {e[0] for e in edges}}
+    sources = {j: clouds[j][thin_evenly(np.arange(len(clouds[j])), cfg.icp_max_points)] for j in {e[1] for e in edges}}
     for poses in (poses_before, poses_after):
         vals = []
         for i, j, _ in edges:
             Tij = invert(poses[i]) @ poses[j]
-            vals.append(evaluate_point_to_plane(clouds[j], targets[i], Tij, cfg.icp_max_distance_mm).rmse_mm)
+            vals.append(evaluate_point_to_plane(sources[j], targets[i], Tij, cfg.icp_max_distance_mm).rmse_mm)
         out.append(float(np.median(vals)) if vals else float("nan"))
     return out[0], out[1]
 
 
-def _edge(i: int, j: int, pc: PairCorrection, cfg: CorrectionConfig) -> PairEdge:
-    """Pose-graph edge of a pair correction, keeping only the directions the overlap constrains."""
+@dataclass(frozen=True)
+class PairOutcome:
+    """What the pose graph and the report keep of one pair's registration (world frame W, mm, rad).
+
+    ``transformation`` (4x4, ``T`` moving the source onto the target) is None when the overlap was too small
+    or the registration failed its verification (``dropped`` says why); ``information`` (6x6, about
+    ``centre_mm``, only the directions the overlap constrains) is None for a fit of fewer than 6 inliers,
+    which makes no graph edge."""
+
+    transformation: np.ndarray | None = None
+    information: np.ndarray | None = None
+    centre_mm: np.ndarray | None = None
+    inliers: int = 0
+    stage: str = ""
+    dropped: str = ""
+
+
+def _outcome(pc: PairCorrection, cfg: CorrectionConfig) -> PairOutcome:
+    """The pose-graph edge of a pair correction, keeping only the directions the overlap constrains."""
+    if pc.fit.inliers < 6:
+        return PairOutcome(pc.transformation, None, pc.centre_mm, pc.fit.inliers, pc.stage)
     info = point_to_plane_information(pc.fit.points_mm, pc.fit.normals, pc.centre_mm, max(pc.fit.rmse_mm, 0.005),
                                       cfg.edge_effective_points)
     size = float(np.sqrt(((pc.fit.points_mm - pc.centre_mm) ** 2).sum(axis=1).mean()))
     T, info = constrained_edge(pc.transformation, info, pc.centre_mm, max(size, 1.0), cfg.edge_min_eigen_ratio)
-    return PairEdge(i, j, T, info, pc.centre_mm)
+    return PairOutcome(T, info, pc.centre_mm, pc.fit.inliers, pc.stage)
+
+
+def register_stitched_pair(source_W: np.ndarray, target: object, covariance: np.ndarray, cfg: CorrectionConfig,
+                           network: Registrar | None = None) -> PairOutcome:
+    """Register one stitched pair (``pairs.correct_pair``: the source's world cloud, mm, onto the target with
+    normals, ``icp.target_with_normals``; ``covariance`` of their relative pose, :func:`pair_covariance`)."""
+    try:
+        pc = correct_pair(source_W, target, cfg, network, covariance)
+    except RegistrationFailed as e:
+        return PairOutcome(dropped=str(e))
+    return PairOutcome() if pc is None else _outcome(pc, cfg)
+
+
+def pair_covariance(scan_i: StitchedScan, scan_j: StitchedScan, transfers: Sequence[TransferPrior]) -> np.ndarray:
+    """6x6 covariance (mm^2, rad^2) of the relative pose of two stitched scans: both tracker poses and the drift
+    of every coordinate transfer between their stations, about the target scan ``i``'s origin."""
+    cov = relative_covariance(scan_i.covariance, scan_j.covariance)
+    low, high = sorted((scan_i.station, scan_j.station))
+    for t in transfers:
+        if low < t.station <= high:
+            cov = cov + covariance_about(t.covariance, t.centre_mm, scan_i.T_W_S[:3, 3])
+    return cov
+
+
+def cloud_digest(world_mm: np.ndarray) -> bytes:
+    """A digest of a scan's thinned world cloud (mm): a pair's cached outcome is reused only for the same two
+    clouds (so the same poses and points)."""
+    return hashlib.blake2b(np.ascontiguousarray(world_mm, np.float64).tobytes(), digest_size=16).digest()
+
+
+def pair_key(digest_i: bytes, digest_j: bytes, covariance: np.ndarray, cfg: CorrectionConfig) -> str:
+    """The cache key of pair ``(i, j)``: everything its registration depends on (clouds, covariance, settings)."""
+    h = hashlib.blake2b(digest_i + digest_j, digest_size=16)
+    h.update(np.ascontiguousarray(covariance, np.float64).tobytes())
+    h.update(cfg.model_dump_json().encode())
+    return h.hexdigest()
 
 
 def _pair_corrections(
     scans: Sequence[StitchedScan], world: list[np.ndarray], cfg: CorrectionConfig, network: Registrar | None,
-    transfers: Sequence[TransferPrior],
-) -> tuple[list[tuple[int, int, PairCorrection]], list[tuple[int, int, str]]]:
-    """The correction of every overlapping pair (world clouds, mm), and the pairs whose registration failed
-    its verification (``pairs.verify``) with the reason: those get no edge."""
-    edges: list[tuple[int, int, PairCorrection]] = []
-    dropped: list[tuple[int, int, str]] = []
-    target_index, target = -1, None
+    transfers: Sequence[TransferPrior], cache: Mapping[str, PairOutcome],
+) -> tuple[list[tuple[int, int, PairOutcome]], int]:
+    """The outcome of every overlapping pair (world clouds, mm): from ``cache`` where the job registered the
+    pair while it measured (same clouds, covariance and settings), else registered here. Returns the
+    outcomes in pair order and how many came from the cache."""
+    out: list[tuple[int, int, PairOutcome]] = []
+    target_index, target, hits = -1, None, 0
+    digests = [cloud_digest(w) for w in world] if cache else []
     for i, j in overlapping_pairs(world, [s.station for s in scans], cfg.pair_cell_mm, cfg.max_partners_per_scan):
-        cov = relative_covariance(scans[i].covariance, scans[j].covariance)
-        low, high = sorted((scans[i].station, scans[j].station))
-        for t in transfers:                          # the drift between the two stations, at the target scan
-            if low < t.station <= high:
-                cov = cov + covariance_about(t.covariance, t.centre_mm, scans[i].T_W_S[:3, 3])
+        cov = pair_covariance(scans[i], scans[j], transfers)
+        cached = cache.get(pair_key(digests[i], digests[j], cov, cfg)) if cache else None
+        if cached is not None:
+            out.append((i, j, cached))
+            hits += 1
+            continue
         if i != target_index:                        # pairs come in target order: normals once per target
             target_index, target = i, target_with_normals(world[i])
-        try:
-            pc = correct_pair(world[j], target, cfg, network, cov)
-        except RegistrationFailed as e:
-            log.warning("correction: pair (%d, %d) dropped: %s", i, j, e)
-            dropped.append((i, j, str(e)))
-            continue
-        if pc is not None:
-            edges.append((i, j, pc))
-    return edges, dropped
+        out.append((i, j, register_stitched_pair(world[j], target, cov, cfg, network)))
+    for i, j, o in out:
+        if o.dropped:
+            log.warning("correction: pair (%d, %d) dropped: %s", i, j, o.dropped)
+    return out, hits
 
 
 def correct_scans(
     scans: Sequence[StitchedScan], cfg: CorrectionConfig, network: Registrar | None = None,
     transfers: Sequence[TransferPrior] = (), voxel_mm: float = 1.0, mount_prior: MountPrior | None = None,
+    pair_cache: Mapping[str, PairOutcome] | None = None,
 ) -> CorrectionResult:
     """Correct every overlapping pair and refine all poses; ``voxel_mm`` thins the scans first.
 
@@ -127,26 +198,38 @@ def correct_scans(
     graph remove the drift of the coordinate transfers and widen the overlap threshold of pairs across
     stations; ``mount_prior`` makes the graph estimate the shared scanner-mount correction too
     (``mounts.MountPrior``). A pair whose registration fails its verification is dropped and logged.
+    ``pair_cache`` holds the outcomes of pairs registered while the job measured (:class:`OnlinePairs`, keyed
+    by :func:`pair_key`); a pair not in it is registered here, so the result never depends on it.
     """
     if cfg.method in NETWORK_METHODS and network is None:
         raise ValueError(f"method {cfg.method!r} needs a DeepMerge registrar (pairs.LazyNetwork)")
+    clock = _Clock()
     local = [voxel_downsample(np.asarray(s.points_S, float), voxel_mm) for s in scans]
     world = [transform_points(s.T_W_S, P) for s, P in zip(scans, local, strict=True)]
-    edges, dropped = _pair_corrections(scans, world, cfg, network, transfers)
-    graph_edges = [_edge(i, j, pc, cfg) for i, j, pc in edges if pc.fit.inliers >= 6]
+    clock.lap("thin_s")
+    outcomes, cached = _pair_corrections(scans, world, cfg, network, transfers, pair_cache or {})
+    clock.lap("pairs_s")
+    edges = [(i, j, o) for i, j, o in outcomes if o.transformation is not None]
+    dropped = [(i, j, o.dropped) for i, j, o in outcomes if o.dropped]
+    graph_edges = [PairEdge(i, j, o.transformation, o.information, o.centre_mm) for i, j, o in edges
+                   if o.information is not None]
     priors = [ScanPrior(s.T_W_S, s.covariance, s.station) for s in scans]
     res = refine_poses(priors, graph_edges, transfers, mount_prior)
     poses, mount, joint = res.poses, res.mount, None
+    clock.lap("graph_s")
     if cfg.joint:
         joint = _refine_jointly(scans, priors, res.poses, cfg, transfers, mount_prior)
         poses, mount = joint.poses, joint.mount
+        clock.lap("joint_s")
     before = [s.T_W_S for s in scans]
     rms_b, rms_a = _overlap_rms(local, edges, before, poses, cfg)
+    clock.lap("overlap_rms_s")
     moves = [pose_error(a, b) for a, b in zip(poses, before, strict=True)]
     report = {
         "method": cfg.method,
         "scans": len(scans),
         "pairs": len(edges),
+        "pairs_registered_while_measuring": cached,
         "pairs_dropped": [{"i": int(i), "j": int(j), "reason": why} for i, j, why in dropped],
         "stages": dict(Counter(pc.stage for _, _, pc in edges)),
         "overlap_rms_mm_median_before": rms_b,
@@ -155,6 +238,7 @@ def correct_scans(
         "pose_change_deg_median": float(np.degrees(np.median([m[1] for m in moves]))) if moves else 0.0,
         "graph_cost_before": res.cost_before,
         "graph_cost_after": res.cost_after,
+        "stage_seconds": clock.laps,
     }
     if joint is not None:
         report["joint"] = _joint_report(joint, [s.station for s in scans])

@@ -93,6 +93,22 @@ def _cells(points: np.ndarray, cell_mm: float) -> np.ndarray:
     return np.unique((keys[:, 0] << 42) | (keys[:, 1] << 21) | keys[:, 2])
 
 
+def _best_partners(shared_row: np.ndarray, stations: np.ndarray, i: int, max_partners: int) -> list[int]:
+    """Cloud ``i``'s kept candidates: the ``max_partners`` clouds sharing the most cells with it among its own
+    tracker station, and as many among the others (ties: the lower index first)."""
+    best: list[int] = []
+    for same in (True, False):
+        mask = (stations == stations[i]) == same
+        partners = np.flatnonzero(mask & (shared_row > 0))
+        best.extend(partners[np.argsort(-shared_row[partners], kind="stable")[:max_partners]].tolist())
+    return best
+
+
+def _check_selection(cell_mm: float, max_partners: int) -> None:
+    if cell_mm <= 0 or max_partners < 1:
+        raise OverlapError(f"cell_mm must be > 0 and max_partners >= 1, got {cell_mm}, {max_partners}")
+
+
 def overlapping_pairs(
     clouds: list[np.ndarray], stations: ArrayLike, cell_mm: float, max_partners: int,
 ) -> list[tuple[int, int]]:
@@ -102,10 +118,10 @@ def overlapping_pairs(
     ``max_partners`` candidates with the most shared cells among the clouds of its own tracker station, and
     as many among the other stations (the links that carry a coordinate transfer); a pair is kept when either
     of its clouds keeps it. On a plan of hundreds of scans this keeps the raster neighbours and drops the
-    pairs that only touch at a corner.
+    pairs that only touch at a corner. :class:`PairSelector` finds a superset of these pairs as the clouds
+    arrive one by one.
     """
-    if cell_mm <= 0 or max_partners < 1:
-        raise OverlapError(f"cell_mm must be > 0 and max_partners >= 1, got {cell_mm}, {max_partners}")
+    _check_selection(cell_mm, max_partners)
     stations = np.asarray(stations)
     cells = [_cells(_cloud(c, f"cloud {i}"), cell_mm) for i, c in enumerate(clouds)]
     if not cells:
@@ -117,9 +133,43 @@ def overlapping_pairs(
     np.fill_diagonal(shared, 0)
     keep = set()
     for i in range(len(clouds)):
-        for same in (True, False):
-            mask = (stations == stations[i]) == same
-            partners = np.flatnonzero(mask & (shared[i] > 0))
-            best = partners[np.argsort(-shared[i, partners], kind="stable")[:max_partners]]
-            keep.update((min(i, j), max(i, j)) for j in best)
+        keep.update((min(i, j), max(i, j)) for j in _best_partners(shared[i], stations, i, max_partners))
     return sorted(keep)
+
+
+class PairSelector:
+    """:func:`overlapping_pairs` as the clouds of a job arrive, one at a time (docs/registration.md, "Pairs
+    while the job measures").
+
+    :meth:`add` returns the earlier clouds that the new one may be paired with in the end: those among its
+    kept candidates so far, and those that keep it among theirs so far. A cloud kept among all clouds is kept
+    among any subset that holds it (removing competitors never lowers its rank, and ties go by index), so
+    every pair :func:`overlapping_pairs` selects over all the clouds was returned when its later cloud
+    arrived; a few more may be (pairs a later cloud then displaces), never fewer.
+    """
+
+    def __init__(self, cell_mm: float, max_partners: int):
+        _check_selection(cell_mm, max_partners)
+        self.cell_mm, self.max_partners = float(cell_mm), int(max_partners)
+        self._cells: list[np.ndarray] = []
+        self._stations: list[int] = []
+        self._shared = np.zeros((0, 0), np.int64)
+
+    def __len__(self) -> int:
+        return len(self._cells)
+
+    def add(self, cloud_W: np.ndarray, station: int) -> list[int]:
+        """Take the next cloud (world frame, mm) of tracker station ``station``; returns its possible partners
+        (indices of earlier clouds, ascending)."""
+        cells = _cells(_cloud(cloud_W, f"cloud {len(self)}"), self.cell_mm)
+        row = np.array([len(np.intersect1d(c, cells, assume_unique=True)) for c in self._cells], np.int64)
+        n = len(self._cells)
+        shared = np.zeros((n + 1, n + 1), np.int64)
+        shared[:n, :n], shared[n, :n], shared[:n, n] = self._shared, row, row
+        self._shared, self._cells = shared, [*self._cells, cells]
+        self._stations.append(int(station))
+        stations = np.asarray(self._stations)
+        partners = set(_best_partners(shared[n], stations, n, self.max_partners))
+        partners.update(i for i in np.flatnonzero(row > 0).tolist()
+                        if n in _best_partners(shared[i], stations, i, self.max_partners))
+        return sorted(partners)

@@ -1,0 +1,113 @@
+"""The end of a job in one pass (docs/registration.md, "End of the job"), where the job's world map lives.
+
+After the last scan's commit: every scan file is read once (:func:`load_scans`), the stitch corrected
+(:func:`correct_stage`: the pairs registered while the job measured are reused, the pose graph and the joint
+refinement solved), the cloud merged once at the final poses (:func:`merge_stage`; the map built while
+measuring is kept when nothing was corrected), then ``cloud.ply``, the E57, the pose log and the inspection
+written and ``report.json`` written once (``job_outputs.export_job``). Each stage returns a frozen result;
+the tracker-stitched poses and the refined ones stay separate, and whether the poses were corrected is known
+from the correction stage. Frames: poses ``T_W_S`` in the job's world frame W, points in the scanner frame
+S, mm.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from tandemscan.daemon.job_outputs import export_job
+from tandemscan.pipeline.io.raw_scan import read_raw_scan
+from tandemscan.pipeline.stitching.worldmap import VoxelMap
+
+if TYPE_CHECKING:
+    from tandemscan.daemon.snapshot import JobSnapshot
+    from tandemscan.pipeline.registration.correction import PairOutcome
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class LoadedScans:
+    """Every scan's points and normals in its scanner frame S (float32, mm; normals None where not stored),
+    in the order of ``job.scans``."""
+
+    points_S: tuple[np.ndarray, ...]
+    normals_S: tuple[np.ndarray | None, ...]
+
+
+@dataclass(frozen=True)
+class CorrectionOutcome:
+    """The correction stage: the report's ``correction`` section, the tracker-stitched poses (Eq. 1) and the
+    final ones (refined where ``corrected``, else the same), one per scan of ``job.scans``."""
+
+    section: dict
+    tracker_poses: tuple[np.ndarray, ...]
+    poses: tuple[np.ndarray, ...]
+    corrected: bool
+
+
+@dataclass(frozen=True)
+class FinishedJob:
+    """What the end of a job produced: the report (as written to ``report.json``) and the correction stage."""
+
+    report: dict
+    correction: CorrectionOutcome
+
+
+def load_scans(job: JobSnapshot) -> LoadedScans:
+    """Read every scan file of ``job.scans`` once (float32, as stored)."""
+    loaded = [read_raw_scan(s.file, np.float32) for s in job.scans]
+    return LoadedScans(tuple(p for p, _ in loaded), tuple(n for _, n in loaded))
+
+
+def correct_stage(job: JobSnapshot, loaded: LoadedScans, pair_cache: Mapping[str, PairOutcome] | None
+                  ) -> CorrectionOutcome:
+    """The correction (``correction.correct_job``) of the scans that saw something, when ``[correction]`` is
+    enabled and there are two of them; otherwise the tracker stitch stands."""
+    tracker = tuple(np.asarray(s.T_W_S, float) for s in job.scans)
+    measured = [k for k, s in enumerate(job.scans) if s.point_count > 0]  # a scan that saw nothing: nothing to do
+    if not (job.config.correction.enabled and len(measured) > 1):
+        return CorrectionOutcome({"enabled": False}, tracker, tracker, False)
+    from tandemscan.daemon.correction import correct_job  # imports the registration stack where it runs
+
+    view = dataclasses.replace(job, scans=[job.scans[k] for k in measured])
+    section, refined = correct_job(view, [loaded.points_S[k] for k in measured], pair_cache)
+    poses = list(tracker)
+    for k, T in zip(measured, refined, strict=True):
+        poses[k] = T
+    return CorrectionOutcome(section, tracker, tuple(poses), True)
+
+
+def merge_stage(voxel_mm: float, loaded: LoadedScans, poses: Sequence[np.ndarray]) -> VoxelMap:
+    """The job's cloud: every scan merged into a voxel map at its pose (Eq. 1)."""
+    worldmap = VoxelMap(voxel_mm)
+    for T, points, normals in zip(poses, loaded.points_S, loaded.normals_S, strict=True):
+        worldmap.add_scan(T, points, normals)
+    return worldmap
+
+
+def finish_job(job: JobSnapshot, started: float, measured_at: float,
+               pair_cache: Mapping[str, PairOutcome] | None = None, stages: Mapping[str, float] | None = None
+               ) -> FinishedJob:
+    """Correct, merge, export and inspect a measured job; ``job.worldmap`` is the map stitched while it measured
+    (tracker poses) and is not changed. ``started`` and ``measured_at`` are ``time.monotonic()`` at the job's
+    start and at its last step's commit; ``stages`` (s) are timings of the work before this call."""
+    timings = dict(stages or {})
+    t = time.perf_counter()
+    loaded = load_scans(job)
+    timings["read_s"] = round(time.perf_counter() - t, 3)
+    outcome = correct_stage(job, loaded, pair_cache)
+    t = time.perf_counter()
+    worldmap = merge_stage(job.worldmap.voxel_mm, loaded, outcome.poses) if outcome.corrected else job.worldmap
+    timings["merge_s"] = round(time.perf_counter() - t, 3)
+    final = dataclasses.replace(
+        job, scans=[dataclasses.replace(s, T_W_S=T) for s, T in zip(job.scans, outcome.poses, strict=True)],
+        correction=outcome.section, worldmap=worldmap)
+    report = export_job(final, time.monotonic() - started, measured_at, timings, loaded.points_S,
+                        outcome.tracker_poses if outcome.corrected else None)
+    return FinishedJob(report, outcome)

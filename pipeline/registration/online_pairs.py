@@ -1,0 +1,100 @@
+"""Pair registration while the job measures (docs/registration.md, "Pairs while the job measures").
+
+As each scan is stitched (its points in the scanner frame S, its tracker pose ``T_W_S`` in the world W, mm),
+:class:`OnlinePairs` finds its possible partners among the scans already measured
+(``overlap.PairSelector``: a superset of the pairs ``overlap.overlapping_pairs`` selects over the whole job)
+and registers those pairs as the correction would (``correction.register_stitched_pair``), keeping each
+outcome under ``correction.pair_key``. After the last scan ``correction.correct_scans`` takes the outcomes of
+the pairs it selects from this cache and registers only the others (a job resumed after a restart, a scan
+whose pose changed), so its result never depends on what was registered here.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import OrderedDict
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from tandemscan.config.models import CorrectionConfig
+from tandemscan.pipeline.geometry.frames import transform_points
+from tandemscan.pipeline.registration.correction import (
+    PairOutcome,
+    StitchedScan,
+    cloud_digest,
+    pair_covariance,
+    pair_key,
+    register_stitched_pair,
+)
+from tandemscan.pipeline.registration.icp import target_with_normals
+from tandemscan.pipeline.registration.overlap import PairSelector
+from tandemscan.pipeline.registration.pairs import NETWORK_METHODS
+from tandemscan.pipeline.registration.pose_graph import TransferPrior
+from tandemscan.pipeline.registration.sampling import voxel_downsample
+
+log = logging.getLogger(__name__)
+
+#: targets with normals kept for the next scans' pairs (most partners are the last few scans)
+_TARGETS_KEPT = 24
+
+
+@dataclass(frozen=True)
+class OnlineScan:
+    """A scan's cloud as the correction sees it: thinned, in the world (mm), with its digest; ``scan`` holds
+    its pose, covariance and station (not its points)."""
+
+    world_mm: np.ndarray
+    digest: bytes
+    scan: StitchedScan
+
+
+class OnlinePairs:
+    """The pair outcomes of a job, registered as its scans arrive (one instance per job, where the work runs).
+
+    ``cfg`` and ``voxel_mm`` must be the job's ``[correction]`` settings and ``[job] voxel_mm``, as the end of
+    the job uses them; a method that needs the DeepMerge network registers nothing here (the network is loaded
+    at the end only)."""
+
+    def __init__(self, cfg: CorrectionConfig, voxel_mm: float):
+        self.cfg, self.voxel_mm = cfg, float(voxel_mm)
+        self.enabled = cfg.enabled and cfg.method not in NETWORK_METHODS
+        self.selector = PairSelector(cfg.pair_cell_mm, cfg.max_partners_per_scan)
+        self.scans: list[OnlineScan] = []
+        self.outcomes: dict[str, PairOutcome] = {}
+        self._targets: OrderedDict[int, object] = OrderedDict()
+        self.cpu_s = 0.0  # CPU time (s) of this process spent in add
+
+    def add(self, points_S: np.ndarray, T_W_S: np.ndarray, covariance: np.ndarray, station: int,
+            transfers: Sequence[TransferPrior]) -> int:
+        """Take the next scan with points (``points_S`` (N, 3) mm as the correction reads them, float64; its
+        6x6 pose covariance, ``uncertainty.scan_pose_covariance``; its tracker station; the transfer priors
+        known so far) and register its pairs; returns how many were registered."""
+        if not self.enabled or len(points_S) == 0:
+            return 0
+        cpu = time.process_time()
+        scan = StitchedScan(np.empty((0, 3)), np.asarray(T_W_S, float), np.asarray(covariance, float), int(station))
+        world = transform_points(scan.T_W_S, voxel_downsample(np.asarray(points_S, float), self.voxel_mm))
+        new = OnlineScan(world, cloud_digest(world), scan)
+        partners = self.selector.add(world, scan.station)
+        self.scans.append(new)
+        for i in partners:
+            old = self.scans[i]
+            cov = pair_covariance(old.scan, scan, transfers)
+            key = pair_key(old.digest, new.digest, cov, self.cfg)
+            if key not in self.outcomes:
+                self.outcomes[key] = register_stitched_pair(world, self._target(i), cov, self.cfg)
+        self.cpu_s += time.process_time() - cpu
+        log.debug("online pairs: scan %d, %d partners", len(self.scans) - 1, len(partners))
+        return len(partners)
+
+    def _target(self, i: int) -> object:
+        """Scan ``i``'s world cloud with normals (``icp.target_with_normals``), kept for the next few scans."""
+        if i in self._targets:
+            self._targets.move_to_end(i)
+        else:
+            self._targets[i] = target_with_normals(self.scans[i].world_mm)
+            if len(self._targets) > _TARGETS_KEPT:
+                self._targets.popitem(last=False)
+        return self._targets[i]

@@ -1,0 +1,55 @@
+"""Pairs registered while the job measures: the end of the job reuses them and gets the same result."""
+
+from __future__ import annotations
+
+import numpy as np
+from tandemscan.config.models import CorrectionConfig
+from tandemscan.pipeline.geometry.frames import from_rotvec
+from tandemscan.pipeline.registration.correction import StitchedScan, correct_scans
+from tandemscan.pipeline.registration.online_pairs import OnlinePairs
+
+from tests.test_registration_correction import scans_with_drift
+
+
+def _measure(scans, transfers, cfg, voxel_mm=1.0) -> OnlinePairs:
+    """The scans arriving one at a time, each with the transfers journaled before it."""
+    online = OnlinePairs(cfg, voxel_mm)
+    for s in scans:
+        online.add(s.points_S, s.T_W_S, s.covariance, s.station, [t for t in transfers if t.station <= s.station])
+    return online
+
+
+def test_the_end_of_the_job_reuses_every_pair_and_gets_the_same_poses():
+    _, scans, transfers = scans_with_drift(n=6, per_station=2)
+    cfg = CorrectionConfig(method="icp", min_overlap_points=100, joint=False)
+    online = _measure(scans, transfers, cfg)
+    assert online.outcomes
+    fresh = correct_scans(scans, cfg, transfers=transfers)
+    reused = correct_scans(scans, cfg, transfers=transfers, pair_cache=online.outcomes)
+    assert fresh.report["pairs_registered_while_measuring"] == 0
+    selected = fresh.report["pairs"] + sum(1 for _ in fresh.report["pairs_dropped"])
+    assert reused.report["pairs_registered_while_measuring"] >= selected
+    for a, b in zip(fresh.poses, reused.poses, strict=True):  # Open3D's threaded sums: not bit for bit
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)
+
+
+def test_a_scan_whose_pose_changed_is_registered_again_at_the_end():
+    _, scans, transfers = scans_with_drift(n=4, per_station=4)
+    cfg = CorrectionConfig(method="icp", min_overlap_points=100, joint=False)
+    online = _measure(scans, transfers, cfg)
+    moved = list(scans)
+    moved[3] = StitchedScan(scans[3].points_S, from_rotvec([0.3, 0, 0], [0, 0, 0]) @ scans[3].T_W_S,
+                            scans[3].covariance, scans[3].station)
+    res = correct_scans(moved, cfg, transfers=transfers, pair_cache=online.outcomes)
+    fresh = correct_scans(moved, cfg, transfers=transfers)
+    pairs_with_3 = sum(1 for i, j, _ in fresh.edges if 3 in (i, j))
+    assert pairs_with_3 > 0
+    assert res.report["pairs_registered_while_measuring"] == fresh.report["pairs"] - pairs_with_3
+    for a, b in zip(fresh.poses, res.poses, strict=True):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)
+
+
+def test_methods_with_the_network_register_nothing_while_measuring():
+    _, scans, transfers = scans_with_drift(n=3)
+    online = _measure(scans, transfers, CorrectionConfig(method="deepmerge+icp"))
+    assert online.outcomes == {}
