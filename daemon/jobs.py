@@ -30,7 +30,7 @@ from tandemscan.daemon.events import EventBus
 from tandemscan.daemon.faults import STORAGE_ERRORS, JobFault, classify_fault
 from tandemscan.daemon.held_states import HeldStates
 from tandemscan.daemon.job_context import Abandon, JobCancelled, JobContext, Runner
-from tandemscan.daemon.job_state import FINAL_STATES, PAUSED_STATES
+from tandemscan.daemon.job_state import FINAL_STATES, PAUSED_STATES, JobState
 from tandemscan.daemon.recovery import recover
 from tandemscan.daemon.store import Event, JobRecord, JobStore, StoreError
 from tandemscan.daemon.supervisor import Supervisor, backoff_delays
@@ -104,7 +104,7 @@ class JobManager:
         if active:
             self.active_id = active[0]
             for extra in active[1:]:  # only one job can have held the cell; others go back to the queue
-                await self._set_state(extra, "queued")
+                await self._set_state(extra, JobState.QUEUED)
             log.info("resuming job %s", self.active_id)
         self._scheduler = asyncio.create_task(self._schedule(), name="job-scheduler")
         self._wake.set()
@@ -146,8 +146,8 @@ class JobManager:
         job = self.get(job_id)
         if job.state in FINAL_STATES:
             raise JobError(f"job {job_id} is already {job.state}")
-        if job.state == "queued":
-            return await self._set_state(job_id, "cancelled")
+        if job.state == JobState.QUEUED:
+            return await self._set_state(job_id, JobState.CANCELLED)
         await cancel_and_wait(self._retry_task)
         self._cancelled.add(job_id)
         self._resume_event(job_id).set()
@@ -156,15 +156,15 @@ class JobManager:
             await cancel_and_wait(self._run_task, retry_s=10.0)
         else:  # an active job whose runner is not up (recovered paused job, a job paused by a fault)
             await self._abandon(job_id)
-            await self._finish(job_id, "cancelled")
+            await self._finish(job_id, JobState.CANCELLED)
         return self.get(job_id)
 
     async def pause(self, job_id: str) -> JobRecord:
         job = self.get(job_id)
-        if job.state != "running":
+        if job.state != JobState.RUNNING:
             raise JobError(f"job {job_id} is {job.state}; only a running job can be paused")
         self._resume_event(job_id).clear()
-        return await self._set_state(job_id, "paused")
+        return await self._set_state(job_id, JobState.PAUSED)
 
     async def resume(self, job_id: str) -> JobRecord:
         """Resume a paused job; one paused by a fault starts a new attempt at the step that faulted."""
@@ -172,17 +172,17 @@ class JobManager:
         if job.state not in PAUSED_STATES:
             raise JobError(f"job {job_id} is {job.state}; only a paused job can be resumed")
         down = self.supervisor.down_devices()
-        if job.state == "paused_fault" and down:
+        if job.state == JobState.PAUSED_FAULT and down:
             raise JobError(f"cannot resume: devices down: {', '.join(down)} (the job resumes once they are up)")
         if self._retry_task is not None and self._retry_task is not asyncio.current_task():
             await cancel_and_wait(self._retry_task)  # the operator resumes before the retry policy does
         self._retry_task = None
-        if job.state == "paused_safety" or self.supervisor.latched_reason is not None:
+        if job.state == JobState.PAUSED_SAFETY or self.supervisor.latched_reason is not None:
             try:
                 await self.supervisor.reset_safety()
             except SafetyStop as e:
                 raise JobError(f"cannot resume: {e.reason}") from e
-        job = await self._set_state(job_id, "running")
+        job = await self._set_state(job_id, JobState.RUNNING)
         self._resume_event(job_id).set()
         self._wake.set()
         return job
@@ -199,18 +199,18 @@ class JobManager:
         while True:
             if job_id in self._cancelled:
                 raise JobCancelled(job_id)
-            if self.get(job_id).state == "running":
+            if self.get(job_id).state == JobState.RUNNING:
                 return
             ev = self._resume_event(job_id)
             ev.clear()
             await ev.wait()
 
     async def _safety_pause(self, job_id: str, reason: str) -> None:
-        if self.get(job_id).state == "running":
-            await self._set_state(job_id, "paused_safety", error=reason)
+        if self.get(job_id).state == JobState.RUNNING:
+            await self._set_state(job_id, JobState.PAUSED_SAFETY, error=reason)
 
     def _on_safety_stop(self, reason: str) -> None:
-        if self.active_id is not None and self.get(self.active_id).state == "running":
+        if self.active_id is not None and self.get(self.active_id).state == JobState.RUNNING:
             asyncio.get_running_loop().create_task(self._safety_pause(self.active_id, reason))
 
     # ------------------------------------------------------------ scheduling
@@ -225,13 +225,13 @@ class JobManager:
                     continue
                 self.active_id = nxt.id
             job = self.get(self.active_id)
-            if job.state == "paused_fault":
+            if job.state == JobState.PAUSED_FAULT:
                 continue  # no runner until it is resumed
             if job.state in PAUSED_STATES and self._run_task is None:
                 # recovered paused job: start its runner, which waits at its first checkpoint
                 self._resume_event(job.id).clear()
-            elif job.state == "queued":
-                job = await self._set_state(job.id, "running")
+            elif job.state == JobState.QUEUED:
+                job = await self._set_state(job.id, JobState.RUNNING)
             if self._run_task is None:
                 self._run_task = asyncio.create_task(self._run(job.id), name=f"job-{job.id}")
 
@@ -242,7 +242,7 @@ class JobManager:
             return False
         reason = f"waiting for the cell: devices down: {', '.join(down)}"
         if job.error != reason:
-            await self._set_state(job.id, "queued", reason)
+            await self._set_state(job.id, JobState.QUEUED, reason)
         return True
 
     async def _run(self, job_id: str) -> None:
@@ -259,7 +259,7 @@ class JobManager:
                     pass
                 await self.supervisor.halt()
                 await self._abandon(job_id)
-                await self._finish(job_id, "cancelled")
+                await self._finish(job_id, JobState.CANCELLED)
             else:  # daemon shutting down: the job stays active and resumes on the next start
                 log.info("job %s interrupted by shutdown; it resumes on restart", job_id)
                 self._run_task = None
@@ -270,12 +270,12 @@ class JobManager:
                 log.exception("job %s failed", job_id)
                 await self.supervisor.halt()
                 await self._abandon(job_id)
-                await self._finish(job_id, "failed", f"{type(e).__name__}: {e}")
+                await self._finish(job_id, JobState.FAILED, f"{type(e).__name__}: {e}")
             else:
                 await self._fault_pause(job_id, fault)
         else:
             self.bus.publish(ev)
-            await self._finish(job_id, "succeeded")
+            await self._finish(job_id, JobState.SUCCEEDED)
 
     async def _fault_pause(self, job_id: str, fault: JobFault) -> None:
         """A recoverable fault: motion halted, the job ``paused_fault`` with the reason, its runner ended; a device
@@ -288,7 +288,7 @@ class JobManager:
         plan = (f"; automatic resume {retries + 1} of {self.retry.attempts} in {self.retry.delay_s(retries + 1):.1f} s "
                 "once every device is up") if auto else ("; resume to retry" if fault.kind == "device" else "")
         log.warning("job %s paused at step %d: %s", job_id, done, fault.reason)
-        await self._set_state(job_id, "paused_fault", fault.reason + plan)
+        await self._set_state(job_id, JobState.PAUSED_FAULT, fault.reason + plan)
         self._retries[job_id] = (retries + 1 if auto else retries, done)
         self._run_task = None
         if auto:
@@ -300,7 +300,7 @@ class JobManager:
         await asyncio.sleep(delay_s)
         while self.supervisor.down_devices() or self.supervisor.latched_reason is not None:
             await asyncio.sleep(self.supervisor.health_period_s)
-        if self.get(job_id).state == "paused_fault":
+        if self.get(job_id).state == JobState.PAUSED_FAULT:
             log.info("job %s: automatic resume after a device fault", job_id)
             await self.resume(job_id)
 
