@@ -128,8 +128,8 @@ def trial(cfg, rng: np.random.Generator, plate: PlateStats) -> dict[float, dict[
     noise_seed = int(rng.integers(2**31))
     out: dict[float, dict[str, tuple[float, float]]] = {}
     for scale in LEVELS:
-        tracker = cfg.tracker.model_copy(update={
-            k: getattr(cfg.tracker, k) * scale
+        tracker = cfg.sim.tracker_noise.model_copy(update={
+            k: getattr(cfg.sim.tracker_noise, k) * scale
             for k in ("position_noise_mm", "position_noise_mm_per_m", "angle_noise_deg", "angle_noise_deg_per_m")
         })
         shared = iter(T_S_P)

@@ -134,17 +134,15 @@ class TrackerStreamConfig(_Strict):
 
 
 class TrackerConfig(_Strict):
-    """Metronor optical tracker: field of view, range, and the pose noise model (1-sigma)."""
+    """Metronor optical tracker: field of view, range, how readings at rest are averaged. The simulated tracker's
+    noise is a simulation setting (``[sim.tracker_noise]``, :class:`TrackerNoiseConfig`); a real tracker reports
+    each reading's covariance itself."""
 
     driver: DriverKind = "sim"
     range_max_mm: float = 30000.0
     fov_horizontal_deg: float = 70.0
     fov_vertical_deg: float = 55.0
     target_view_cone_deg: float = Field(80.0, description="target visible while its normal is this close to the camera")
-    position_noise_mm: float = Field(0.010, ge=0, description="at zero distance")
-    position_noise_mm_per_m: float = Field(0.005, ge=0, description="growth with distance")
-    angle_noise_deg: float = Field(0.0010, ge=0, description="at zero distance")
-    angle_noise_deg_per_m: float = Field(0.0005, ge=0, description="growth with distance")
     samples_per_reading: int = Field(1, ge=1, description="readings averaged at rest per pose")
     transfer_samples: int = Field(
         30, ge=1, description="readings averaged at rest on each side of a coordinate transfer (Eq. 2): its error "
@@ -279,14 +277,12 @@ class ChassisCanConfig(_Strict):
 
 
 class ChassisConfig(_Strict):
-    """An AGV chassis (skid steering): speed and the simulated slip and odometry drift."""
+    """An AGV chassis (skid steering): driver and speeds. How the simulated chassis slips is a simulation setting
+    (``[sim.measure_chassis_slip]``, ``[sim.tracking_chassis_slip]``, :class:`ChassisSlipConfig`)."""
 
     driver: DriverKind = "sim"
     speed_mm_s: float = Field(300.0, gt=0)
     turn_rate_deg_s: float = Field(20.0, gt=0)
-    slip_distance_fraction: float = Field(0.01, ge=0, description="1-sigma relative distance error")
-    slip_heading_deg: float = Field(0.3, ge=0, description="1-sigma heading error per move")
-    odometry_drift_fraction: float = Field(0.005, ge=0, description="1-sigma odometry scale error")
     timeout_s: float = 120.0
     can: ChassisCanConfig = ChassisCanConfig()
 
@@ -427,10 +423,66 @@ class AsBuiltConfig(_Strict):
     deviations: tuple[Annotated[DentConfig | WarpConfig | StepConfig, Field(discriminator="kind")], ...] = ()
 
 
+class TrackerNoiseConfig(_Strict):
+    """The simulated tracker's reading noise, 1-sigma per axis, growing with the target's distance (simulation
+    only; the share that every reading of one still period shares is ``[tracker] still_noise_fraction``)."""
+
+    position_noise_mm: float = Field(0.010, ge=0, description="at zero distance")
+    position_noise_mm_per_m: float = Field(0.005, ge=0, description="growth with distance")
+    angle_noise_deg: float = Field(0.0010, ge=0, description="at zero distance")
+    angle_noise_deg_per_m: float = Field(0.0005, ge=0, description="growth with distance")
+
+    def sigma(self, distance_mm: float) -> tuple[float, float]:
+        """1-sigma per axis of one reading at ``distance_mm``: (translation mm, rotation rad)."""
+        d_m = distance_mm / 1000.0
+        return (self.position_noise_mm + self.position_noise_mm_per_m * d_m,
+                math.radians(self.angle_noise_deg + self.angle_noise_deg_per_m * d_m))
+
+
+class ChassisSlipConfig(_Strict):
+    """How a simulated chassis misses its commanded moves and how its odometry drifts (simulation only)."""
+
+    slip_distance_fraction: float = Field(0.01, ge=0, description="1-sigma relative distance error")
+    slip_heading_deg: float = Field(0.3, ge=0, description="1-sigma heading error per move")
+    odometry_drift_fraction: float = Field(0.005, ge=0, description="1-sigma odometry scale error")
+
+
+#: the simulation settings that used to live in a device section: (old section, key) -> new [sim] section
+MOVED_TO_SIM = {
+    **{("tracker", k): "tracker_noise" for k in TrackerNoiseConfig.model_fields},
+    **{(role, k): f"{role}_slip" for role in ("measure_chassis", "tracking_chassis")
+       for k in ChassisSlipConfig.model_fields},
+}
+
+
+def move_deprecated_sim_keys(raw: dict) -> dict:
+    """``raw`` (a cell configuration as read from TOML) with the simulation-only keys found in a device section
+    (``[tracker] position_noise_mm``, ``[measure_chassis] slip_heading_deg``, ...) moved under ``[sim]``, each
+    move logged as a deprecation warning; a key set in both places is an error."""
+    found = [(sec, key) for (sec, key) in MOVED_TO_SIM if isinstance(raw.get(sec), dict) and key in raw[sec]]
+    if not found:
+        return raw
+    raw = {**raw, "sim": dict(raw.get("sim") or {})}
+    for sec, key in found:
+        target = MOVED_TO_SIM[(sec, key)]
+        moved = dict(raw["sim"].get(target) or {})
+        if key in moved:
+            raise ValueError(f"{sec}.{key} is set in [{sec}] and [sim.{target}]: keep [sim.{target}] only")
+        log.warning("config: [%s] %s is deprecated and will be removed in the next release; set it in [sim.%s]",
+                    sec, key, target)
+        moved[key] = raw[sec][key]
+        raw[sec] = {k: v for k, v in raw[sec].items() if k != key}
+        raw["sim"][target] = moved
+    return raw
+
+
 class SimWorldConfig(_Strict):
     """Ground truth of the simulated cell: how far the real installation is from nominal, time scale."""
 
     seed: int = 7
+    tracker_noise: TrackerNoiseConfig = TrackerNoiseConfig()
+    measure_chassis_slip: ChassisSlipConfig = ChassisSlipConfig()
+    tracking_chassis_slip: ChassisSlipConfig = ChassisSlipConfig()
     tracking_start: FloorPoseConfig = FloorPoseConfig(x_mm=-1400.0, y_mm=4600.0, heading_deg=-90.0)
     measure_start: FloorPoseConfig = FloorPoseConfig(x_mm=-1800.0, y_mm=2300.0, heading_deg=0.0)
     arm_home_deg: tuple[float, ...] = (0.0, 90.0, 0.0, 90.0, 0.0, 0.0)
@@ -786,5 +838,5 @@ class CellConfig(_Strict):
 
     @model_validator(mode="before")
     @classmethod
-    def _deprecated_correction_keys(cls, data):
-        return move_deprecated_correction_keys(data) if isinstance(data, dict) else data
+    def _deprecated_keys(cls, data):
+        return move_deprecated_sim_keys(move_deprecated_correction_keys(data)) if isinstance(data, dict) else data

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 from numpy.typing import ArrayLike
-from tandemscan.config.models import CalibrationConfig, ScannerConfig, TrackerConfig
+from tandemscan.config.models import CalibrationConfig, ScannerConfig, TrackerNoiseConfig
 from tandemscan.pipeline.calibration.plate import nominal_centres_P
 from tandemscan.pipeline.geometry.frames import from_rotvec, invert, transform_points
 from tandemscan.pipeline.geometry.raycast import make_scene
@@ -109,13 +109,6 @@ def scan_plate(
     return D[ok] * d[:, None], normal[ok]
 
 
-def tracker_sigma(tracker: TrackerConfig, distance_mm: float) -> tuple[float, float]:
-    """1-sigma (translation mm, rotation rad) per axis of a reading at ``distance_mm``, from the config."""
-    d_m = distance_mm / 1000.0
-    rot = np.radians(tracker.angle_noise_deg + tracker.angle_noise_deg_per_m * d_m)
-    return tracker.position_noise_mm + tracker.position_noise_mm_per_m * d_m, float(rot)
-
-
 @dataclass(frozen=True)
 class HandEyeData:
     """Simulated hand-eye data: noisy ``T_C_T`` and ``T_S_P`` per pose, and the truth they come from."""
@@ -142,7 +135,7 @@ def hand_eye_dataset(
     views_T_P_S: list[np.ndarray],
     T_T_S: np.ndarray,
     T_C_P: np.ndarray,
-    tracker: TrackerConfig,
+    tracker: TrackerNoiseConfig,
     *,
     plate_sigma: tuple[float, float] = (0.005, float(np.radians(0.002))),
     plate_fit: Callable[[np.ndarray], np.ndarray] | None = None,
@@ -157,7 +150,7 @@ def hand_eye_dataset(
     sig = (0.0, 0.0)
     for T_P_S in views_T_P_S:
         true_T_C_T = T_C_P @ T_P_S @ invert(T_T_S)
-        sig = tracker_sigma(tracker, float(np.linalg.norm(true_T_C_T[:3, 3])))
+        sig = tracker.sigma(float(np.linalg.norm(true_T_C_T[:3, 3])))
         covs.append(np.diag(np.repeat(np.square(sig), 3)))
         T_C_T.append(_perturb(true_T_C_T, rng, *sig))
         true_T_S_P = invert(T_P_S)

@@ -81,7 +81,7 @@ class SimChassis(_SimDevice):
     async def move_to(self, target: ChassisPose, timeout_s: float | None = None) -> ChassisPose:
         self._require_connected()
         self._require_motion_allowed()
-        cfg = self._truth.cfg
+        cfg = getattr(self.world.config, self.name)  # the chassis' speeds and timeout (ChassisConfig)
         self._state = "moving"
         self.world.motion.start(self.robot)
         try:

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
-from tandemscan.config.models import CellConfig, ChassisConfig, FloorPoseConfig
+from tandemscan.config.models import CellConfig, ChassisSlipConfig, FloorPoseConfig
 from tandemscan.drivers.errors import OutOfReach, TargetNotVisible
 from tandemscan.drivers.interfaces import ChassisPose
 from tandemscan.pipeline.geometry import frames as F
@@ -36,7 +36,7 @@ class ChassisTruth:
     """
 
     name: str
-    cfg: ChassisConfig
+    cfg: ChassisSlipConfig
     true_pose: np.ndarray  # T_F_V, mm
     odometry: ChassisPose
     scale_bias: float  # systematic odometry scale error (drift), drawn once
@@ -139,9 +139,9 @@ class SimWorld:
             self.rng, config.sim.install_error_mm, np.radians(config.sim.install_error_deg)
         )
         self.chassis = {
-            "tracking_chassis": self._make_chassis("tracking_chassis", config.tracking_chassis,
+            "tracking_chassis": self._make_chassis("tracking_chassis", config.sim.tracking_chassis_slip,
                                                    config.sim.tracking_start),
-            "measure_chassis": self._make_chassis("measure_chassis", config.measure_chassis,
+            "measure_chassis": self._make_chassis("measure_chassis", config.sim.measure_chassis_slip,
                                                   config.sim.measure_start),
         }
         self.joints_rad = np.radians(np.array(config.sim.arm_home_deg, float))
@@ -163,7 +163,7 @@ class SimWorld:
         scan (a plain relocation) defines its world there, and the truth follows."""
         self.T_W_F = F.invert(self.T_F_C())
 
-    def _make_chassis(self, name: str, cfg: ChassisConfig, start: FloorPoseConfig) -> ChassisTruth:
+    def _make_chassis(self, name: str, cfg: ChassisSlipConfig, start: FloorPoseConfig) -> ChassisTruth:
         pose = ChassisPose(start.x_mm, start.y_mm, np.radians(start.heading_deg))
         bias = self.rng.normal(0.0, cfg.odometry_drift_fraction)
         return ChassisTruth(name, cfg, _floor_pose(start), pose, bias)
@@ -242,13 +242,6 @@ class SimWorld:
             return f"target hidden behind the part ({t_hit:.0f} mm along the {distance:.0f} mm sight line)"
         return None
 
-    def tracker_sigmas(self, distance_mm: float) -> tuple[float, float]:
-        """1-sigma (position mm, angle rad) of one tracker reading at ``distance_mm``."""
-        cfg = self.config.tracker
-        d_m = distance_mm / 1000.0
-        return (cfg.position_noise_mm + cfg.position_noise_mm_per_m * d_m,
-                np.radians(cfg.angle_noise_deg + cfg.angle_noise_deg_per_m * d_m))
-
     def measure_target(self) -> tuple[np.ndarray, np.ndarray]:
         """One noisy ``T_C_T`` and its 6x6 covariance (one reading's, the still share included); raises
         TargetNotVisible with the reason.
@@ -261,7 +254,7 @@ class SimWorld:
         if reason is not None:
             raise TargetNotVisible("tracker", reason)
         T_true = F.invert(self.T_F_C()) @ self.T_F_T()
-        sigma_p, sigma_r = self.tracker_sigmas(float(np.linalg.norm(T_true[:3, 3])))
+        sigma_p, sigma_r = self.config.sim.tracker_noise.sigma(float(np.linalg.norm(T_true[:3, 3])))
         if self._still_T_C_T is None or not np.array_equal(self._still_T_C_T, T_true):
             self._still_T_C_T, self._still_unit = T_true, self._still_rng.normal(0, 1, 6)
         f = self.config.tracker.still_noise_fraction

@@ -20,8 +20,8 @@ def _data(sim_config, seed, scale=1.0, views=VIEWS, plate_scale=None):
     """Tracker noise of the config times ``scale``; plate poses with ``PLATE_SIGMA`` times ``plate_scale``
     (default ``scale``)."""
     plate_scale = scale if plate_scale is None else plate_scale
-    tracker = sim_config.tracker.model_copy(
-        update={k: getattr(sim_config.tracker, k) * scale for k in
+    tracker = sim_config.sim.tracker_noise.model_copy(
+        update={k: getattr(sim_config.sim.tracker_noise, k) * scale for k in
                 ("position_noise_mm", "position_noise_mm_per_m", "angle_noise_deg", "angle_noise_deg_per_m")}
     )
     return hand_eye_dataset(
@@ -94,7 +94,7 @@ def _centre_data(sim_config, seed, L):
         centres.append(c)
         return plate_frame(*c)
 
-    d = hand_eye_dataset(rng, VIEWS, X_TRUE, T_C_P, sim_config.tracker, plate_fit=fit)
+    d = hand_eye_dataset(rng, VIEWS, X_TRUE, T_C_P, sim_config.sim.tracker_noise, plate_fit=fit)
     return d, layout, np.array(centres)
 
 

@@ -62,6 +62,28 @@ def test_a_correction_key_in_both_sections_is_an_error(tmp_path):
         load_config(both)
 
 
+def test_simulation_keys_in_a_device_section_move_under_sim_with_a_deprecation_warning(tmp_path, caplog):
+    old = tmp_path / "old.toml"
+    old.write_text("[tracker]\nposition_noise_mm = 0.02\nsamples_per_reading = 3\n"
+                   "[tracking_chassis]\nslip_heading_deg = 1.5\n[sim]\nseed = 3\n")
+    with caplog.at_level("WARNING", logger="tandemscan.config.models"):
+        config = load_config(old)
+    assert config.sim.tracker_noise.position_noise_mm == 0.02 and config.tracker.samples_per_reading == 3
+    assert config.sim.tracking_chassis_slip.slip_heading_deg == 1.5
+    assert config.sim.measure_chassis_slip.slip_heading_deg == 0.3 and config.sim.seed == 3
+    warned = [r.getMessage() for r in caplog.records if "deprecated" in r.getMessage()]
+    assert sorted(w.split("]")[0] for w in warned) == ["config: [tracker", "config: [tracking_chassis"]
+    assert any("[sim.tracker_noise]" in w for w in warned) and any("[sim.tracking_chassis_slip]" in w for w in warned)
+
+
+def test_a_simulation_key_in_both_places_is_an_error(tmp_path):
+    both = tmp_path / "both.toml"
+    both.write_text("[measure_chassis]\nslip_distance_fraction = 0.02\n"
+                    "[sim.measure_chassis_slip]\nslip_distance_fraction = 0.03\n")
+    with pytest.raises(ConfigError, match=r"measure_chassis\.slip_distance_fraction is set in \[measure_chassis\]"):
+        load_config(both)
+
+
 def test_the_network_section_rejects_what_is_no_correction_key(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text('[deepmerge]\nicp_max_distanse_mm = 2.0\n')

@@ -45,9 +45,10 @@ def generated():
 def drifting(sim_config):
     """The sim cell, tracker-only stitch, with a chassis that slips five times as much as the default: a few
     stations then drift as far as the whole part's 16 do by its far side (about 0.1 m)."""
-    chassis = sim_config.measure_chassis.model_copy(update={"slip_distance_fraction": 0.05, "slip_heading_deg": 2.0})
+    slip = sim_config.sim.measure_chassis_slip.model_copy(update={"slip_distance_fraction": 0.05,
+                                                                  "slip_heading_deg": 2.0})
     return sim_config.model_copy(update={
-        "measure_chassis": chassis,
+        "sim": sim_config.sim.model_copy(update={"measure_chassis_slip": slip}),
         "correction": sim_config.correction.model_copy(update={"enabled": False}),
         "inspection": sim_config.inspection.model_copy(update={"in_job": False}),
     })

@@ -52,7 +52,7 @@ async def test_tracker_noise_matches_its_model(cell):
     T_true = F.invert(world.T_F_C()) @ world.T_F_T()
     readings = [await cell.tracker.read_pose() for _ in range(200)]
     errors = np.array([r.T_C_T[:3, 3] - T_true[:3, 3] for r in readings])
-    sigma_p, _ = world.tracker_sigmas(float(np.linalg.norm(T_true[:3, 3])))
+    sigma_p, _ = world.config.sim.tracker_noise.sigma(float(np.linalg.norm(T_true[:3, 3])))
     # one still period: the frames scatter by the fresh share, their mean keeps the still share
     # (tests/test_transfer_averaging.py checks the whole sigma over many still periods)
     f = world.config.tracker.still_noise_fraction

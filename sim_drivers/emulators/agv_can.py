@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import can
 import numpy as np
-from tandemscan.config.models import ChassisConfig
+from tandemscan.config.models import ChassisConfig, ChassisSlipConfig
 from tandemscan.drivers.can_link import CanFrameError, CanLink, load_dbc
 from tandemscan.drivers.interfaces import ChassisPose
 from tandemscan.drivers.tasks import cancel_and_wait
@@ -55,11 +55,11 @@ class SkidSteerBody:
     wheel encoders see the commanded motion scaled by a fixed odometry error (``odometry_drift_fraction``).
     """
 
-    def __init__(self, config: ChassisConfig, track_mm: float, rng: np.random.Generator):
-        self.cfg, self.track_mm, self.rng = config, track_mm, rng
+    def __init__(self, slip: ChassisSlipConfig, track_mm: float, rng: np.random.Generator):
+        self.cfg, self.track_mm, self.rng = slip, track_mm, rng
         self.x_mm = self.y_mm = self.heading_rad = 0.0
         self.left_mm = self.right_mm = 0.0
-        self.odometry_scale = 1.0 + rng.normal(0.0, config.odometry_drift_fraction)
+        self.odometry_scale = 1.0 + rng.normal(0.0, slip.odometry_drift_fraction)
         self._moving = False
         self._slip = (1.0, 1.0, 0.0)
 
@@ -97,9 +97,11 @@ class ChassisEmulator:
         on_pose: Callable[[ChassisPose, bool], None] | None = None,
         driver_state_flags: int = 0,
         odometry_mm_per_count: float = 1.0,
+        slip: ChassisSlipConfig | None = None,
     ):
         """``on_pose(true pose, moving)`` is called every period (e.g. to move the simulated world's chassis);
-        ``driver_state_flags``: DriverState bits every motor reports in normal running (0x40, 0x80)."""
+        ``driver_state_flags``: DriverState bits every motor reports in normal running (0x40, 0x80); ``slip``: how
+        the body misses its commands (``[sim.<role>_slip]``; the default when not given)."""
         self.driver_state_flags = driver_state_flags
         self.odometry_mm_per_count = odometry_mm_per_count
         self.config = config
@@ -107,7 +109,7 @@ class ChassisEmulator:
         self.period_s, self.watchdog_s, self.time_scale = period_s, watchdog_s, time_scale
         self.on_pose = on_pose
         self.rng = np.random.default_rng(seed)
-        self.body = SkidSteerBody(config, config.can.odometry_track_mm, self.rng)
+        self.body = SkidSteerBody(slip or ChassisSlipConfig(), config.can.odometry_track_mm, self.rng)
         if start_pose is not None:
             p = start_pose
             self.body.x_mm, self.body.y_mm, self.body.heading_rad = p.x_mm, p.y_mm, p.heading_rad
