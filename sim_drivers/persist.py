@@ -2,7 +2,8 @@
 
 Without this a restarted daemon would rebuild the world at its start poses, teleporting both robots; with it,
 a crash test sees what a real cell shows. Saved: the true and odometry pose of each chassis, the arm joints,
-counters, the random generator's state (so the run goes on with the same noise model), the world frame W
+counters, the random generators' states and the tracker's still error of the still period under way (so the run
+goes on with the same noise model, not a replay of its first draws), the world frame W
 of the job under way and the ground-truth observers' logs. mm, rad. The twins save it as they act
 (:func:`keep_world_state`); :class:`tandemscan.sim_drivers.cell.Simulation` restores it when a session starts.
 """
@@ -35,6 +36,9 @@ def world_state(world: SimWorld) -> dict:
         "captures": world.captures,
         "tracker_frames": world.tracker_frames,
         "rng": world.rng.bit_generator.state,
+        "still_rng": world.still_rng.bit_generator.state,
+        "still_T_C_T": None if world.still_T_C_T is None else world.still_T_C_T.tolist(),
+        "still_unit": world.still_unit.tolist(),
         "T_W_F": world.T_W_F.tolist(),
         "scoring": world.scoring,
     }
@@ -53,6 +57,10 @@ def restore_world_state(world: SimWorld, state: dict) -> None:
     world.captures = int(state["captures"])
     world.tracker_frames = int(state["tracker_frames"])
     world.rng.bit_generator.state = state["rng"]
+    if "still_rng" in state:  # a state saved before the tracker's still error existed has none
+        world.still_rng.bit_generator.state = state["still_rng"]
+        world.still_T_C_T = None if state["still_T_C_T"] is None else np.array(state["still_T_C_T"], float)
+        world.still_unit = np.array(state["still_unit"], float)
     world.T_W_F = np.array(state["T_W_F"], float)
     world.scoring = state.get("scoring", {})
 

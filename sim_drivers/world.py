@@ -151,9 +151,9 @@ class SimWorld:
         self.captures = 0
         self.tracker_frames = 0
         # the tracker's still error: drawn once per still period (the true T_C_T unchanged), its own stream
-        self._still_rng = np.random.default_rng([config.sim.seed, 1])
-        self._still_T_C_T: np.ndarray | None = None
-        self._still_unit = np.zeros(6)
+        self.still_rng = np.random.default_rng([config.sim.seed, 1])
+        self.still_T_C_T: np.ndarray | None = None
+        self.still_unit = np.zeros(6)
         self.scoring: dict[str, dict] = {}  # the ground-truth observers' logs, per job (sim_drivers.scoring)
         self.state_file: Path | None = None  # where the twins keep this state (sim_drivers.persist)
         self.define_world()  # W = the tracker camera frame at its first station
@@ -255,12 +255,12 @@ class SimWorld:
             raise TargetNotVisible("tracker", reason)
         T_true = F.invert(self.T_F_C()) @ self.T_F_T()
         sigma_p, sigma_r = self.config.sim.tracker_noise.sigma(float(np.linalg.norm(T_true[:3, 3])))
-        if self._still_T_C_T is None or not np.array_equal(self._still_T_C_T, T_true):
-            self._still_T_C_T, self._still_unit = T_true, self._still_rng.normal(0, 1, 6)
+        if self.still_T_C_T is None or not np.array_equal(self.still_T_C_T, T_true):
+            self.still_T_C_T, self.still_unit = T_true, self.still_rng.normal(0, 1, 6)
         f = self.config.tracker.still_noise_fraction
         fresh, still = np.sqrt(1.0 - f), np.sqrt(f)
-        rotvec = self.rng.normal(0, sigma_r, 3) * fresh + self._still_unit[3:] * sigma_r * still
+        rotvec = self.rng.normal(0, sigma_r, 3) * fresh + self.still_unit[3:] * sigma_r * still
         T_meas = F.from_rotvec(np.zeros(3), rotvec) @ T_true
-        T_meas[:3, 3] = T_true[:3, 3] + self.rng.normal(0, sigma_p, 3) * fresh + self._still_unit[:3] * sigma_p * still
+        T_meas[:3, 3] = T_true[:3, 3] + self.rng.normal(0, sigma_p, 3) * fresh + self.still_unit[:3] * sigma_p * still
         self.tracker_frames += 1
         return T_meas, np.diag([sigma_p**2] * 3 + [sigma_r**2] * 3)

@@ -131,6 +131,8 @@ async def test_the_twins_keep_the_world_state_and_a_new_simulation_restores_it(s
     await chassis.move_to(ChassisPose(o.x_mm + 200.0, o.y_mm, o.heading_rad))
     observer.scan_measured(0)
     await tracker.read_pose()
+    await chassis.move_to(ChassisPose(o.x_mm + 400.0, o.y_mm, o.heading_rad))  # a second still period: the
+    await tracker.read_pose()  # tracker's still error of the period under way must be restored, not redrawn
     world = first.world
     again = Simulation(sim_config, state_file=state)
     assert not np.allclose(again.world.T_F_V1, world.T_F_V1)  # a fresh world stands at the start ...
