@@ -32,7 +32,7 @@ from tandemscan.daemon.held_states import HeldStates
 from tandemscan.daemon.job_context import Abandon, JobCancelled, JobContext, Runner
 from tandemscan.daemon.job_state import FINAL_STATES, PAUSED_STATES, JobState
 from tandemscan.daemon.recovery import recover
-from tandemscan.daemon.store import Event, JobRecord, JobStore, StoreError
+from tandemscan.daemon.store import JobRecord, JobStore, StoreError
 from tandemscan.daemon.supervisor import Supervisor, backoff_delays
 from tandemscan.drivers.errors import SafetyStop
 from tandemscan.drivers.tasks import cancel_and_wait
@@ -133,6 +133,10 @@ class JobManager:
         except StoreError as e:
             raise JobError(str(e), 404) from e
 
+    async def read(self, job_id: str) -> JobRecord:
+        """:meth:`get` in a worker thread: the manager's own reads keep SQLite off the event loop."""
+        return await asyncio.to_thread(self.get, job_id)
+
     def current(self, job: JobRecord) -> JobRecord:
         """``job`` (read from the store) with a state change held in memory applied."""
         return self._held.current(job)
@@ -143,7 +147,7 @@ class JobManager:
         return self._held.error
 
     async def cancel(self, job_id: str) -> JobRecord:
-        job = self.get(job_id)
+        job = await self.read(job_id)
         if job.state in FINAL_STATES:
             raise JobError(f"job {job_id} is already {job.state}")
         if job.state == JobState.QUEUED:
@@ -157,10 +161,10 @@ class JobManager:
         else:  # an active job whose runner is not up (recovered paused job, a job paused by a fault)
             await self._abandon(job_id)
             await self._finish(job_id, JobState.CANCELLED)
-        return self.get(job_id)
+        return await self.read(job_id)
 
     async def pause(self, job_id: str) -> JobRecord:
-        job = self.get(job_id)
+        job = await self.read(job_id)
         if job.state != JobState.RUNNING:
             raise JobError(f"job {job_id} is {job.state}; only a running job can be paused")
         self._resume_event(job_id).clear()
@@ -168,7 +172,7 @@ class JobManager:
 
     async def resume(self, job_id: str) -> JobRecord:
         """Resume a paused job; one paused by a fault starts a new attempt at the step that faulted."""
-        job = self.get(job_id)
+        job = await self.read(job_id)
         if job.state not in PAUSED_STATES:
             raise JobError(f"job {job_id} is {job.state}; only a paused job can be resumed")
         down = self.supervisor.down_devices()
@@ -199,18 +203,18 @@ class JobManager:
         while True:
             if job_id in self._cancelled:
                 raise JobCancelled(job_id)
-            if self.get(job_id).state == JobState.RUNNING:
+            if (await self.read(job_id)).state == JobState.RUNNING:
                 return
             ev = self._resume_event(job_id)
             ev.clear()
             await ev.wait()
 
     async def _safety_pause(self, job_id: str, reason: str) -> None:
-        if self.get(job_id).state == JobState.RUNNING:
+        if (await self.read(job_id)).state == JobState.RUNNING:
             await self._set_state(job_id, JobState.PAUSED_SAFETY, error=reason)
 
     def _on_safety_stop(self, reason: str) -> None:
-        if self.active_id is not None and self.get(self.active_id).state == JobState.RUNNING:
+        if self.active_id is not None:  # _safety_pause pauses it if it is running
             asyncio.get_running_loop().create_task(self._safety_pause(self.active_id, reason))
 
     # ------------------------------------------------------------ scheduling
@@ -220,11 +224,11 @@ class JobManager:
             await self._wake.wait()
             self._wake.clear()
             if self.active_id is None:
-                nxt = self.store.next_queued()
+                nxt = await asyncio.to_thread(self.store.next_queued)
                 if nxt is None or await self._waits_for_cell(nxt):
                     continue
                 self.active_id = nxt.id
-            job = self.get(self.active_id)
+            job = await self.read(self.active_id)
             if job.state == JobState.PAUSED_FAULT:
                 continue  # no runner until it is resumed
             if job.state in PAUSED_STATES and self._run_task is None:
@@ -300,7 +304,7 @@ class JobManager:
         await asyncio.sleep(delay_s)
         while self.supervisor.down_devices() or self.supervisor.latched_reason is not None:
             await asyncio.sleep(self.supervisor.health_period_s)
-        if self.get(job_id).state == JobState.PAUSED_FAULT:
+        if (await self.read(job_id)).state == JobState.PAUSED_FAULT:
             log.info("job %s: automatic resume after a device fault", job_id)
             await self.resume(job_id)
 
@@ -309,7 +313,7 @@ class JobManager:
         if self.abandon is None:
             return
         try:
-            await self.abandon(self.get(job_id), self.store)
+            await self.abandon(await self.read(job_id), self.store)
         except Exception:
             log.exception("job %s: the cell could not be brought back to a known state", job_id)
 
@@ -330,13 +334,7 @@ class JobManager:
         except STORAGE_ERRORS as e:
             log.error("job %s: state %s held in memory, the journal refuses it: %s", job_id, state, e)
             self._held.hold(job_id, state, error)
-            return self.get(job_id)
+            return await self.read(job_id)
         self._held.written(job_id)
         self.bus.publish(event)
         return job
-
-    def publish(self, kind: str, data: dict, job_id: str | None = None) -> Event:
-        """Journal and publish a non-job event (device, safety)."""
-        ev = self.store.add_event(job_id, kind, data)
-        self.bus.publish(ev)
-        return ev
