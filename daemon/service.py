@@ -15,8 +15,7 @@ import os
 import shutil
 import time
 from collections import deque
-from collections.abc import AsyncIterator, Mapping
-from contextlib import asynccontextmanager
+from collections.abc import Mapping
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
@@ -213,25 +212,3 @@ def serve(config_path: Path | str | None = None, host: str | None = None, port: 
     app = create_app(daemon, manage_lifecycle=True)
     uvicorn.Server(uvicorn.Config(app, host=host, port=port, log_config=None, access_log=False,
                                   timeout_graceful_shutdown=10)).run()
-
-
-@asynccontextmanager
-async def running_server(app, host: str = "127.0.0.1", port: int = 0) -> AsyncIterator[str]:
-    """Serve ``app`` with uvicorn inside the running event loop; yields the base URL (tests, benchmarks)."""
-    import uvicorn
-
-    server = uvicorn.Server(uvicorn.Config(app, host=host, port=port, log_config=None, access_log=False,
-                                           lifespan="on"))
-    # _serve: serve() without taking over SIGINT/SIGTERM, which belong to the embedding program
-    task = asyncio.create_task(server._serve(), name="uvicorn")
-    try:
-        while not server.started:
-            if task.done():
-                task.result()
-                raise RuntimeError("uvicorn stopped during start-up")
-            await asyncio.sleep(0.01)
-        bound = server.servers[0].sockets[0].getsockname()
-        yield f"http://{bound[0]}:{bound[1]}"
-    finally:
-        server.should_exit = True
-        await task

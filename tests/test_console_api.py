@@ -15,12 +15,13 @@ import struct
 import httpx
 import numpy as np
 import pytest
+from serving import running_server
 from tandemscan.daemon.api import create_app
 from tandemscan.daemon.cell import build_cell
 from tandemscan.daemon.console.cloud_view import DEVIATION_COLOURS, VIEW_FILE, view_file
 from tandemscan.daemon.console.router import ASSETS, plan_view
 from tandemscan.daemon.plans import PlanCatalog
-from tandemscan.daemon.service import Daemon, running_server
+from tandemscan.daemon.service import Daemon
 from tandemscan.pipeline.io.export import write_ply
 from tandemscan.pipeline.planning.plan import MoveMeasure, MoveTracker, Scan
 from tandemscan.sim_drivers.cell import Simulation

@@ -23,9 +23,10 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+from serving import running_server
 from tandemscan.config import load_config
 from tandemscan.daemon.api import create_app
-from tandemscan.daemon.service import Daemon, running_server
+from tandemscan.daemon.service import Daemon
 from tandemscan.drivers.errors import DeviceError
 
 webdriver = pytest.importorskip("selenium.webdriver", reason="selenium not installed (pip install -e '.[dev]')")

@@ -13,10 +13,11 @@ import httpx
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, settings
+from serving import running_server
 from tandemscan.daemon.api import create_app
 from tandemscan.daemon.cell import build_cell
 from tandemscan.daemon.client import SseParser
-from tandemscan.daemon.service import BindRefused, Daemon, check_bind, resolve_state_dir, resolve_token, running_server
+from tandemscan.daemon.service import BindRefused, Daemon, check_bind, resolve_state_dir, resolve_token
 from tandemscan.pipeline.planning.plan import MoveArm, Plan, Scan
 from tandemscan.sim_drivers.cell import Simulation
 from tandemscan.sim_drivers.world import SimWorld

@@ -21,10 +21,11 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+from serving import running_server
 from tandemscan.config import load_config
 from tandemscan.daemon.api import create_app
 from tandemscan.daemon.client import SseParser
-from tandemscan.daemon.service import Daemon, running_server
+from tandemscan.daemon.service import Daemon
 from tandemscan.pipeline.io.cloud_io import read_ply
 
 TOKEN = "e2e-token"
