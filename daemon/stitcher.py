@@ -165,13 +165,6 @@ class _Pairs:
             self._pairs = None
 
 
-def export(job: JobSnapshot, seconds: float, measured_at: float) -> dict:
-    """:func:`tandemscan.daemon.job_outputs.export_job` (E57, Open3D I/O, matplotlib), imported where it runs."""
-    from tandemscan.daemon.job_outputs import export_job
-
-    return export_job(job, seconds, measured_at)
-
-
 def _share_big(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return {k: share(v) for k, v in arrays.items()}
 
