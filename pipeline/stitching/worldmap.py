@@ -3,8 +3,9 @@
 Each occupied voxel (edge ``voxel_mm``) keeps the running sum of its points and normals and a count; the
 map's cloud is the per-voxel mean. Memory grows with the measured surface area, not with the scan count.
 Keys are the voxel indices packed in one int64 (21 bits per axis: +-1,048,575 voxels, over a kilometre at
-1 mm), kept sorted so that merging a scan is a vectorised search-and-insert; a scan is first reduced to its
-voxels by dense counting over its bounding box (no sort of its points).
+1 mm). A scan is first reduced to its voxels by dense counting over its bounding box (no sort of its points);
+its voxels wait in a batch that is merged into the map's sorted arrays in one sort-and-reduce when it holds
+as many voxels as the map (or the map is read), so each voxel is moved O(log scans) times, not once per scan.
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ _BITS = 21
 _OFFSET = 1 << (_BITS - 1)
 #: a scan's bounding box of at most this many voxels is voxelised densely (int64 counts: 128 MB)
 _DENSE_BOX_VOXELS = 16_000_000
+#: the batch of scans' voxels is merged into the map at this size at least (about 100 MB)
+_MIN_BATCH_VOXELS = 2_000_000
 
 
 class VoxelMap:
@@ -27,8 +30,11 @@ class VoxelMap:
         self._keys = np.empty(0, np.int64)
         self._sums = np.empty((0, 6), np.float64)  # point sum xyz, normal sum xyz
         self._counts = np.empty(0, np.int64)
+        self._batch: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []   # scans' voxels not yet merged
+        self._batch_voxels = 0
 
     def __len__(self) -> int:
+        self._flush()
         return len(self._keys)
 
     def add(self, points_mm: np.ndarray, normals: np.ndarray | None = None) -> None:
@@ -54,19 +60,27 @@ class VoxelMap:
 
     def _merge(self, rows: np.ndarray, normal_rows: np.ndarray | None, origin: np.ndarray | None = None) -> None:
         """Merge points given as (3, N) coordinate rows (W, mm; relative to ``origin`` if given) with (3, N)
-        normal rows or None."""
-        uniq, sums, counts = self._voxelise(rows, normal_rows, origin)
-        pos = np.searchsorted(self._keys, uniq)
-        found = pos < len(self._keys)
-        found[found] = self._keys[pos[found]] == uniq[found]
-        hit = pos[found]                                   # distinct map voxels: plain fancy-index update
-        self._sums[hit] += sums[found]
-        self._counts[hit] += counts[found]
-        new = ~found
-        if new.any():
-            self._keys = np.insert(self._keys, pos[new], uniq[new])
-            self._sums = np.insert(self._sums, pos[new], sums[new], axis=0)
-            self._counts = np.insert(self._counts, pos[new], counts[new])
+        normal rows or None: their voxels join the batch, merged once it is as large as the map."""
+        voxels = self._voxelise(rows, normal_rows, origin)
+        self._batch.append(voxels)
+        self._batch_voxels += len(voxels[0])
+        if self._batch_voxels >= max(len(self._keys), _MIN_BATCH_VOXELS):
+            self._flush()
+
+    def _flush(self) -> None:
+        """Merge the batch into the sorted map: one stable sort of map and batch keys, sums reduced per key."""
+        if not self._batch:
+            return
+        keys = np.concatenate([self._keys, *(k for k, _, _ in self._batch)])
+        sums = np.concatenate([self._sums, *(s for _, s, _ in self._batch)])
+        counts = np.concatenate([self._counts, *(c for _, _, c in self._batch)])
+        self._batch, self._batch_voxels = [], 0
+        order = np.argsort(keys, kind="stable")
+        keys = keys[order]
+        first = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+        self._keys = keys[first]
+        self._sums = np.add.reduceat(sums[order], first, axis=0)
+        self._counts = np.add.reduceat(counts[order], first)
 
     def _voxelise(self, rows: np.ndarray, normal_rows: np.ndarray | None, origin: np.ndarray | None = None
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -120,19 +134,23 @@ class VoxelMap:
 
     def points(self) -> np.ndarray:
         """Mean point of every occupied voxel, (M, 3) mm."""
+        self._flush()
         return self._sums[:, :3] / self._counts[:, None]
 
     def normals(self) -> np.ndarray:
         """Mean unit normal of every occupied voxel (zero where no normals were given)."""
+        self._flush()
         n = self._sums[:, 3:]
         norm = np.linalg.norm(n, axis=1, keepdims=True)
         return np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
 
     def counts(self) -> np.ndarray:
         """Points merged into each voxel."""
+        self._flush()
         return self._counts.copy()
 
     @property
     def nbytes(self) -> int:
-        """Memory held by the map (bytes)."""
+        """Memory held by the map (bytes), its batch included."""
+        self._flush()
         return self._keys.nbytes + self._sums.nbytes + self._counts.nbytes
