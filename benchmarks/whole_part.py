@@ -1,10 +1,13 @@
 """Measure a whole part end to end on the simulated cell and print its coverage and accuracy as JSON.
 
 Usage: ``nice .venv/bin/python benchmarks/whole_part.py [--config CELL.toml] [--part default|barrel]
-[--stitch-only] [--tracker-stations N]``; ``--stitch-only``: the tracker-only stitch (no correction step, no
-in-job inspection), which is most of the job's time; ``--tracker-stations N``: only the plan's steps while the
-tracker stands at its first N stations (a shorter job for the accuracy figures: the coverage is then that of
-the part of the plan run).
+[--stitch-only] [--tracker-stations N] [--time-scale S]``; ``--time-scale 1``: the simulated robots move, scan and
+read the tracker in real time (the vendors' speeds of the configuration), as a real cell does, so that
+``timings.after_last_scan_s`` is what an operator waits for after the last scan (with the default 0 every motion
+is instant and the pairs registered while measuring lag behind the simulator); ``--stitch-only``: the
+tracker-only stitch (no correction step, no in-job inspection), which is most of the job's time;
+``--tracker-stations N``: only the plan's steps while the tracker stands at its first N stations (a shorter
+job for the accuracy figures: the coverage is then that of the part of the plan run).
 The part is planned as ``tandemscan measure --part`` does it (no plan given), the plan run on the simulated cell
 (coarse resolution, the config's correction settings), and the stitched cloud scored: ``coverage_pct`` is the
 share of the surface where a scanner pose fits (by mesh area, as the planner counts it) that has a cloud point
@@ -69,7 +72,8 @@ async def run(args: argparse.Namespace) -> dict:
     if args.transfer_samples:
         config = config.model_copy(update={"tracker": config.tracker.model_copy(
             update={"transfer_samples": args.transfer_samples})})
-    config = config.model_copy(update={"scanner": config.scanner.model_copy(update={"resolution": "coarse"})})
+    config = config.model_copy(update={"scanner": config.scanner.model_copy(update={"resolution": "coarse"}),
+                                       "sim": config.sim.model_copy(update={"time_scale": args.time_scale})})
     if args.stitch_only:
         config = config.model_copy(update={"correction": config.correction.model_copy(update={"enabled": False}),
                                            "inspection": config.inspection.model_copy(update={"in_job": False})})
@@ -108,7 +112,7 @@ async def run(args: argparse.Namespace) -> dict:
         "cloud_p95_mm": g["cloud_p95_mm"], "tracker_only_pose_err_mm_median": before.get("pose_err_mm_median"),
         "pose_err_mm_median": g["pose_err_mm_median"], "timings": r["timings"],
         "plan_seconds": round(plan_seconds, 1), "job_seconds": round(seconds, 1),
-        "transfer_samples": config.tracker.transfer_samples,
+        "time_scale": args.time_scale, "transfer_samples": config.tracker.transfer_samples,
         "still_noise_fraction": config.tracker.still_noise_fraction,
         "per_tracker_station": g.get("per_tracker_station"),
         "per_tracker_station_tracker_only": before.get("per_tracker_station"),
@@ -122,6 +126,8 @@ def main() -> None:
     parser.add_argument("--part", choices=["default", "barrel"], default="default")
     parser.add_argument("--stitch-only", action="store_true", help="tracker-only stitch: no correction step")
     parser.add_argument("--tracker-stations", type=int, default=0, help="run only the first N tracker stations")
+    parser.add_argument("--time-scale", type=float, default=0.0,
+                        help="simulated motion time x this = wall time (1: real time; default 0: instant)")
     parser.add_argument("--transfer-samples", type=int, default=0,
                         help="readings averaged on each side of a transfer (default: the config's)")
     print(json.dumps(asyncio.run(run(parser.parse_args()))))

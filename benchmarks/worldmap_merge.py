@@ -8,9 +8,9 @@ resolution) on a curved patch, with its normals, in the scanner frame 400 mm in 
 filled first with other patches of the same surface until it holds the requested voxel count (1 mm voxels),
 so that the scan's voxels partly hit existing ones. Figures: the median wall-clock seconds of
 ``VoxelMap.add_scan`` followed by a read of the map's size (so the scan's batch is merged into the sorted map:
-the whole cost, not only the voxelisation) over ``--repeat`` merges (each into a copy of the same map) and its CPU seconds (the
-figure to read on a loaded machine), also for the scan given as float32 (as the job's map reads a raw scan
-file), the scan's voxel count, and for comparison Open3D's one-shot
+the whole cost, not only the voxelisation) over ``--repeat`` merges (each into a copy of the same map) and
+its CPU seconds (the figure to read on a loaded machine), also for the scan given as float32 (as the job's
+map reads a raw scan file), the scan's voxel count, and for comparison Open3D's one-shot
 ``voxel_down_sample`` of the same scan (1 mm), wall and CPU. The last line of output
 is one JSON object.
 """

@@ -275,3 +275,25 @@ def test_scanner_mount_translation_is_unobservable_when_every_scan_has_the_same_
     assert res.mount.estimated == 3 and np.sum(res.mount.information_ratio < 1.0) == 3
     assert np.linalg.norm(res.mount.correction[:3, 3]) < 1e-3                # held at the prior: 0
     np.testing.assert_allclose(np.sqrt(np.diag(res.mount.covariance)[:3]), 0.3, rtol=0.05)
+
+
+def test_graph_jacobian_matches_finite_differences_of_the_residuals():
+    """The Jacobian the solve uses (scans, transfers and a shared mount), at the tracker poses, against central
+    differences of the exact residuals: it is exact there (first order only in the corrections themselves),
+    so any wrong or missing block, or a term of the edges' own corrections left out, fails."""
+    from tandemscan.pipeline.registration.pose_graph import _Graph
+
+    truth, priors, transfers, rng = _strip(n_scans=9)
+    edges = _edges(truth, priors, rng, [(i, i + 1) for i in range(8)] + [(0, 4), (2, 7)])
+    graph = _Graph(priors, edges, transfers)
+    graph.B = np.linalg.cholesky(np.diag([0.5**2] * 3 + [np.radians(0.1) ** 2] * 3))
+    J = graph.jacobian(np.zeros(graph.n_blocks + 6)).toarray()
+    x0 = np.zeros(J.shape[1])
+    numeric = np.empty_like(J)
+    for c in range(len(x0)):
+        h = np.zeros_like(x0)
+        h[c] = 1e-6
+        numeric[:, c] = (graph.residuals(x0 + h) - graph.residuals(x0 - h)) / 2e-6
+    scale = np.abs(numeric).max(axis=0)
+    assert np.all(np.abs(J - numeric).max(axis=0) <= 1e-3 * scale + 1e-6)
+    assert J.shape == (6 * 9 + 6 * len(transfers) + 6 * len(edges) + 6, 6 * (9 + len(transfers)) + 6)

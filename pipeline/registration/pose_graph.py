@@ -6,8 +6,10 @@ gives the whole next station an error on top of the previous station's, so stati
 product of the transfer errors ``1..k`` (each a ``TransferPrior``: a world motion about the still target's
 origin, with the two readings' covariance); edges between stations pull back that accumulated drift while
 the priors keep every scan near its tracker reading. The solution minimises the sum of squared, whitened
-residuals (scipy least squares with a sparse Jacobian). With a ``mounts.MountPrior`` the shared
-scanner-mount correction is one more unknown (see ``mounts``).
+residuals by Gauss-Newton on the exact residuals with their first-order sparse Jacobian (every correction is a
+small world motion, so the Jacobian hardly depends on the estimate: :meth:`_Graph.jacobian`), each step a
+sparse LU solve of the normal equations (scipy.sparse), halved while it does not lower the cost. With a
+``mounts.MountPrior`` the shared scanner-mount correction is one more unknown (see ``mounts``).
 
 Conventions: a pose perturbation is ``(t mm, rotation vector rad)`` of a world-frame motion about a stated
 centre (the scan origin for priors, the overlap centre for edges, the station's scans' centroid for station
@@ -22,8 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
+from scipy import sparse
+from scipy.sparse.linalg import splu
 from scipy.spatial.transform import Rotation
 from tandemscan.pipeline.geometry.frames import invert
 from tandemscan.pipeline.registration.icp import RefineError
@@ -177,6 +179,65 @@ def refine_poses(
     return graph.result(sol, x0, MountSolve(L, basis, ratio, U, Linv.T @ data_u @ Linv, prior))
 
 
+@dataclass(frozen=True)
+class _Solution:
+    """A solved graph: the unknowns, the Jacobian (sparse, :meth:`_Graph.jacobian`), half the sum of squared
+    residuals, and whether the steps converged."""
+
+    x: np.ndarray
+    jac: sparse.csr_matrix
+    cost: float
+    success: bool
+
+
+def _motion_about(offset: np.ndarray) -> np.ndarray:
+    """``M(o) = [[I, [o]x], [0, I]]`` for (m, 3) offsets ``o``: a small motion (t, r) about a point ``o``
+    (relative to the reference point) as the same motion about the reference point."""
+    o = np.atleast_2d(offset)
+    M = np.tile(np.eye(6), (len(o), 1, 1))
+    M[:, 0, 4], M[:, 0, 5] = -o[:, 2], o[:, 1]
+    M[:, 1, 3], M[:, 1, 5] = o[:, 2], -o[:, 0]
+    M[:, 2, 3], M[:, 2, 4] = -o[:, 1], o[:, 0]
+    return M
+
+
+def _invert_stack(T: np.ndarray) -> np.ndarray:
+    """Inverses of a stack of rigid 4x4 transforms."""
+    T = np.asarray(T, dtype=float)
+    out = np.zeros_like(T)
+    R = np.swapaxes(T[:, :3, :3], 1, 2)
+    out[:, :3, :3] = R
+    out[:, :3, 3] = -np.einsum("nij,nj->ni", R, T[:, :3, 3])
+    out[:, 3, 3] = 1.0
+    return out
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """(m, 3, 3) cross-product matrices ``[v]x`` of (m, 3) vectors."""
+    return _motion_about(v)[:, :3, 3:]
+
+
+def _inverse_left_jacobian(phi: np.ndarray) -> np.ndarray:
+    """(m, 3, 3) inverse left Jacobians of SO(3) at rotation vectors ``phi`` (m, 3): a small rotation ``d``
+    applied on the left of ``Exp(phi)`` changes its rotation vector by ``Jl^-1(phi) d``."""
+    theta = np.linalg.norm(phi, axis=1)
+    K = _skew(phi)
+    small = theta < 1e-4
+    half = np.where(small, 1.0, 0.5 * theta)
+    coef = np.where(small, 1.0 / 12.0, (1.0 - half / np.tan(half)) / np.where(small, 1.0, theta) ** 2)
+    return np.eye(3) - 0.5 * K + coef[:, None, None] * (K @ K)
+
+
+def _adjoint(P: np.ndarray) -> np.ndarray:
+    """``Ad(P) = [[R, [t]x R], [0, R]]`` of a stack of poses: a small motion in the pose's own frame (right
+    perturbation) as a world motion about the world origin."""
+    R = P[:, :3, :3]
+    A = np.zeros((len(P), 6, 6))
+    A[:, :3, :3] = A[:, 3:, 3:] = R
+    A[:, :3, 3:] = _motion_about(P[:, :3, 3])[:, :3, 3:] @ R
+    return A
+
+
 class _Graph:
     """The pose graph's residuals (see :func:`refine_poses`). Unknowns: a 6-vector per scan, one per movable
     station, then optionally ``k`` coefficients ``z`` of the shared mount correction ``D = B z`` (``B`` 6 x k,
@@ -247,30 +308,85 @@ class _Graph:
         J = jac.toarray() if hasattr(jac, "toarray") else np.asarray(jac)
         return J[:-k] if k else J
 
-    def solve(self, B: np.ndarray | None):
-        """Least squares with the mount correction ``D = B z`` (None: no mount unknown)."""
+    def jacobian(self, x: np.ndarray) -> sparse.csr_matrix:
+        """The residuals' Jacobian at ``x`` (sparse; rows as :meth:`residuals`), to first order in the
+        corrections ``x`` themselves (each a small world motion) and exact in the edges' corrections.
+
+        Unknowns as world motions about the world origin: a scan's ``M(o) x`` (about its origin ``o``,
+        ``M(o) = [[I, [o]x], [0, I]]``), a transfer's ``M(c) y`` (about the still target ``c``), the mount's
+        ``Ad(Xp) D`` (a right perturbation of the pose ``Xp``, ``Ad(Xp) = [[R, [t]x R], [0, R]]``). An edge
+        residual ``We log(about(c_e, E))``, ``E = Xp_i Z Xp_j^-1`` (about ``c_e``: rotation ``R_0`` with rotation
+        vector ``phi``, translation ``t_0``), moves by ``We L (M(-c_e) xi_i - Ad(E) M(-c_e) xi_j)`` with
+        ``L = [[I, -[t_0]x], [0, Jl^-1(phi)]]`` (the rotation vector's inverse left Jacobian), where ``xi`` is
+        the sum of the motions of a scan's pose: a mount moves both scans of an edge nearly alike, so these
+        terms are what an edge measures of it."""
+        n, k = self.n, 0 if self.B is None else self.B.shape[1]
+        rows, cols, vals = [], [], []
+
+        def put(row0: np.ndarray, col0: np.ndarray, blocks: np.ndarray) -> None:
+            """(m, 6, c) blocks at rows ``row0 + 0..5`` and columns ``col0 + 0..c-1``."""
+            c = blocks.shape[2]
+            rows.append(np.repeat(row0[:, None] + np.arange(6), c, axis=1).ravel())
+            cols.append(np.tile(col0[:, None] + np.arange(c), (1, 6)).ravel())
+            vals.append(blocks.reshape(len(row0), -1).ravel())
+
+        put(6 * np.arange(n), 6 * np.arange(n), self.Wp)
+        for m, q in enumerate(self.movable):
+            put(np.array([6 * (n + m)]), np.array([6 * self.col[q]]), self.Wt[q][None])
+        n_rows = 6 * (n + len(self.movable)) + 6 * len(self.ei)
+        row0 = 6 * (n + len(self.movable)) + 6 * np.arange(len(self.ei))
+        if len(self.ei):
+            Xp = self.poses(x)
+            E = _about(self.ec, Xp[self.ei] @ self.Z @ _invert_stack(Xp[self.ej]))       # about c_e
+            L = np.tile(np.eye(6), (len(E), 1, 1))
+            L[:, :3, 3:] = -_skew(E[:, :3, 3])
+            L[:, 3:, 3:] = _inverse_left_jacobian(_log(E)[:, 3:])
+            to_edge = self.We @ L @ _motion_about(-self.ec)
+            side_i, side_j = to_edge, -self.We @ L @ _adjoint(E) @ _motion_about(-self.ec)
+            for side, rows_of in ((self.ei, side_i), (self.ej, side_j)):
+                put(row0, 6 * side, rows_of @ _motion_about(self.origins[side]))
+            for q in self.movable:
+                on_i, on_j = self.sid[self.ei] >= q, self.sid[self.ej] >= q
+                hit = on_i | on_j
+                if hit.any():
+                    M = _motion_about(self.centres[q])
+                    blocks = on_i[hit, None, None] * side_i[hit] @ M + on_j[hit, None, None] * side_j[hit] @ M
+                    put(row0[hit], np.full(hit.sum(), 6 * self.col[q]), blocks)
+            if k:
+                Ad = _adjoint(Xp)
+                put(row0, np.full(len(self.ei), self.n_blocks), (side_i @ Ad[self.ei] + side_j @ Ad[self.ej]) @ self.B)
+        J = sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                              shape=(n_rows, self.n_blocks + k))
+        if k:
+            J = sparse.vstack([J, sparse.hstack([sparse.csr_matrix((k, self.n_blocks)), sparse.identity(k)])])
+        return J.tocsr()
+
+    def solve(self, B: np.ndarray | None, max_steps: int = 50, tolerance: float = 1e-12
+              ) -> tuple[_Solution, np.ndarray]:
+        """Least squares with the mount correction ``D = B z`` (None: no mount unknown): Gauss-Newton steps with
+        :meth:`jacobian` at the current estimate, each halved while it does not lower the cost, until a step
+        lowers the cost by less than ``tolerance`` of it."""
         self.B = B
-        n, k = self.n, 0 if B is None else B.shape[1]
-        rows_edges = 6 * n + 6 * len(self.movable)
-        sparsity = lil_matrix((rows_edges + 6 * len(self.ei) + k, self.n_blocks + k), dtype=int)
-        for i in range(n):
-            sparsity[6 * i:6 * i + 6, 6 * i:6 * i + 6] = 1
-        for m, c in enumerate(self.col[s] for s in self.movable):
-            sparsity[6 * n + 6 * m:6 * n + 6 * m + 6, 6 * c:6 * c + 6] = 1
-        row = rows_edges
-        for a, b in zip(self.ei, self.ej, strict=True):
-            for s in (a, b):
-                sparsity[row:row + 6, 6 * s:6 * s + 6] = 1
-                for c in [self.col[q] for q in self.movable if q <= self.sid[s]]:
-                    sparsity[row:row + 6, 6 * c:6 * c + 6] = 1
-            sparsity[row:row + 6, self.n_blocks:] = 1               # every edge sees the mount
-            row += 6
-        for m in range(k):
-            sparsity[row + m, self.n_blocks + m] = 1
-        x0 = np.zeros(self.n_blocks + k)
-        sol = least_squares(self.residuals, x0, jac_sparsity=sparsity, method="trf", x_scale="jac",
-                            xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
-        return sol, x0
+        x0 = np.zeros(self.n_blocks + (0 if B is None else B.shape[1]))
+        x, r = x0, self.residuals(x0)
+        cost, success = 0.5 * float(r @ r), False
+        for _ in range(max_steps):
+            J = self.jacobian(x)
+            step = splu((J.T @ J).tocsc()).solve(-(J.T @ r))
+            for _halving in range(30):
+                r_new = self.residuals(x + step)
+                cost_new = 0.5 * float(r_new @ r_new)
+                if cost_new <= cost:
+                    break
+                step = 0.5 * step
+            else:                                   # no step lowers the cost: converged as far as it can
+                success = True
+                break
+            x, r, decrease, cost = x + step, r_new, cost - cost_new, cost_new
+            if decrease <= tolerance * max(cost, 1e-300):
+                success = True
+                break
+        return _Solution(x, self.jacobian(x), cost, success), x0
 
     def result(self, sol, x0: np.ndarray, mount: MountSolve | None) -> RefineResult:
         cost0 = 0.5 * float(np.sum(self.residuals(x0) ** 2))

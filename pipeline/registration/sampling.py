@@ -10,13 +10,18 @@ import numpy as np
 
 
 def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
-    """Centroid of the points in each occupied voxel of edge ``voxel``."""
-    keys = np.floor(points / voxel).astype(np.int64)
-    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.ravel()
-    out = np.zeros((len(counts), 3))
-    np.add.at(out, inverse, points)
-    return out / counts[:, None]
+    """Centroid of the points in each occupied voxel of edge ``voxel``, in lexicographic (x, y, z) order of
+    the voxel indices."""
+    P = np.asarray(points, float)
+    if len(P) == 0:
+        return np.zeros((0, 3))
+    cells = np.floor(P / voxel).astype(np.int64)
+    cells -= cells.min(axis=0)
+    span = cells.max(axis=0) + 1                 # one int64 key per voxel, ordered as the (x, y, z) rows
+    keys = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
+    _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    sums = np.stack([np.bincount(inverse, weights=P[:, k], minlength=len(counts)) for k in range(3)], axis=1)
+    return sums / counts[:, None]
 
 
 def thin_evenly(indices: np.ndarray, max_points: int) -> np.ndarray:
