@@ -93,11 +93,15 @@ def target_with_normals(target_mm: ArrayLike | TargetCloud, normal_neighbours: i
 class Convergence:
     """When ICP stops (Open3D's ``ICPConvergenceCriteria``): after an iteration that changed the fitness by
     less than ``relative_fitness`` and the inlier RMS (point to point, mm) by less than ``relative_rmse``,
-    or after ``max_iterations``."""
+    or after ``max_iterations``; with ``stop_on_repeat`` also after an iteration that gave a correspondence
+    set seen before (nearest-neighbour ICP is a discontinuous map that can cycle through a few sets,
+    changing the fitness by a point and the pose by about a micrometre a step: every further iteration
+    would repeat the cycle, so Open3D's rule alone runs to ``max_iterations`` there)."""
 
     relative_fitness: float = 1e-9
     relative_rmse: float = 1e-9
     max_iterations: int = 50
+    stop_on_repeat: bool = False
 
 
 def _correspondences(moved: np.ndarray, target: TargetCloud, max_distance_mm: float
@@ -147,6 +151,7 @@ def point_to_plane_icp(
     M = np.asarray(init, float).copy()
     moved = source_mm @ M[:3, :3].T + M[:3, 3]
     ok, idx, fitness, rmse = _correspondences(moved, target, max_distance_mm)
+    seen = {hash((ok.tobytes(), idx.tobytes()))} if criteria.stop_on_repeat else None
     for _ in range(criteria.max_iterations):
         U = _gauss_newton_step(moved[ok], target.points[idx], target.normals_at(idx))
         M = U @ M
@@ -155,6 +160,11 @@ def point_to_plane_icp(
         ok, idx, fitness, rmse = _correspondences(moved, target, max_distance_mm)
         if abs(last[0] - fitness) < criteria.relative_fitness and abs(last[1] - rmse) < criteria.relative_rmse:
             break
+        if seen is not None:
+            key = hash((ok.tobytes(), idx.tobytes()))
+            if key in seen:
+                break
+            seen.add(key)
     return M
 
 
@@ -222,6 +232,42 @@ def icp_coarse_to_fine(
             break
         d = max(schedule.final_mm, d_next)
     return evaluate_point_to_plane(S, target, M, schedule.final_mm)
+
+
+def gate_distance(distances_mm: np.ndarray, max_distance_mm: float, sigmas: float) -> float:
+    """The correspondence gate (mm) of a converged fit from its source points' distances to their nearest
+    target points: the mean plus ``sigmas`` standard deviations of those within ``max_distance_mm``
+    (Zhang's adaptive distance), never above ``max_distance_mm``; ``max_distance_mm`` itself with fewer
+    than ``MIN_LEVEL_POINTS`` of them."""
+    d = np.asarray(distances_mm, float)
+    d = d[d < max_distance_mm]
+    if len(d) < MIN_LEVEL_POINTS:
+        return max_distance_mm
+    return float(min(max_distance_mm, d.mean() + sigmas * d.std()))
+
+
+def refine_at_gate(source_mm: ArrayLike, target: TargetCloud, T: ArrayLike, max_distance_mm: float,
+                   sigmas: float = 3.0, iterations: int = 50, max_points: int = 8000) -> tuple[np.ndarray, float]:
+    """(``T_target_source`` 4x4 mm, the gate mm): a converged fit ``T`` refined by point-to-plane ICP at its
+    own correspondence gate (:func:`gate_distance` of its distances within ``max_distance_mm``) instead of
+    the schedule's fixed final distance.
+
+    The source points within ``max_distance_mm`` of the target at ``T`` (thinned evenly to ``max_points``)
+    are matched against the whole target, correspondences re-selected at every iteration (Open3D's
+    ``registration_icp``: the result is its fixed point, whichever level or stage the estimate came from),
+    until :class:`Convergence`'s 1e-9, a repeated correspondence set, or ``iterations``. A fixed final
+    distance sits above the tail of the true correspondences' distances, which the sampling of the surface
+    sets (about the point spacing), and lets points at the overlap's border and across creases pull the fit;
+    the gate follows that tail (docs/registration.md, "Fine stage")."""
+    S = np.asarray(source_mm, float)
+    M = np.asarray(T, float)
+    d, _ = target.tree.query(S @ M[:3, :3].T + M[:3, 3], k=1, distance_upper_bound=max_distance_mm, workers=1)
+    gate = gate_distance(d, max_distance_mm, sigmas)
+    near = np.flatnonzero(d < max_distance_mm)
+    if len(near) < MIN_LEVEL_POINTS:
+        return M.copy(), gate
+    return point_to_plane_icp(S[thin_evenly(near, max_points)], target, M, gate,
+                              Convergence(max_iterations=iterations, stop_on_repeat=True)), gate
 
 
 def truncated_cost(fit: IcpResult, distance_mm: float) -> float:
