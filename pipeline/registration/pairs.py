@@ -156,13 +156,15 @@ def register_pair(
     (the overlap threshold), after a global candidate at ``cfg.global_fine_start_mm``. ``auto`` without a
     ``network`` compares the fine and the classical stage only. With ``refine_sigmas`` the winner is refined
     at its own correspondence gate (:func:`icp.refine_at_gate`, that many sigmas), kept unless that raises
-    its truncated cost at the final distance by more than the tie margin; None (the job's pairs) skips it."""
+    its truncated cost at the final distance by more than the tie margin, and the fine stage's levels stop
+    at a repeated correspondence set (``FineSchedule.stop_on_repeat``); None (the job's pairs) does neither."""
     final = cfg.icp_max_distance_mm
     S = np.asarray(source_mm, float)
+    refining = refine_sigmas is not None     # the refinement settles the end, so the levels stop at a cycle
 
     def fine(M: np.ndarray, start_mm: float) -> IcpResult:
         return icp_coarse_to_fine(S, target, M, FineSchedule(start_mm, final, cfg.icp_iterations,
-                                                             cfg.icp_max_points))
+                                                             cfg.icp_max_points, stop_on_repeat=refining))
 
     def network_answer() -> np.ndarray:
         if network is None:
@@ -193,9 +195,8 @@ def register_pair(
     tie = cfg.max_cost_increase * final**2
     stage = next(s for s, c in costs.items() if c <= min(costs.values()) + tie)
     fit, cost, gate = candidates[stage], costs[stage], None
-    if refine_sigmas is not None:
-        M, gate = refine_at_gate(S, target, fit.transformation, final, refine_sigmas, cfg.icp_iterations,
-                                 cfg.icp_max_points)
+    if refining:
+        M, gate = refine_at_gate(S, target, fit.transformation, final, refine_sigmas, cfg.icp_iterations)
         refined = evaluate_point_to_plane(S, target, M, final)
         if truncated_cost(refined, final) <= cost + tie:
             fit, cost = refined, truncated_cost(refined, final)
