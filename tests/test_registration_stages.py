@@ -115,9 +115,13 @@ def test_the_final_refinement_at_the_gate_drops_what_the_fixed_distance_lets_pul
     cfg = CorrectionConfig(method="icp", icp_max_distance_mm=1.5)
     plain = register_pair(source, target, "icp", cfg, None, 5.0)
     assert plain.gate_mm is None and np.array_equal(plain.transformation, fit.transformation)
+    # asked (register's default), its levels stop at a repeated correspondence set, then it refines
+    stopped = icp_coarse_to_fine(source, target, np.eye(4), FineSchedule(5.0, 1.5, stop_on_repeat=True))
+    expected, expected_gate = refine_at_gate(source, target, stopped.transformation, 1.5, REFINE_SIGMAS)
     asked = register_pair(source, target, "icp", cfg, None, 5.0, REFINE_SIGMAS)
-    assert asked.gate_mm == pytest.approx(gate) and np.array_equal(asked.transformation, refined)
-    assert register_clouds(source, target_pts, cfg).gate_mm == pytest.approx(gate)   # register's default
+    assert asked.gate_mm == expected_gate and np.array_equal(asked.transformation, expected)
+    assert register_clouds(source, target_pts, cfg).gate_mm == pytest.approx(expected_gate)
+    assert np.degrees(pose_error(expected, T_true)[1]) < 0.04
 
 
 def test_stopping_at_a_repeated_correspondence_set_keeps_a_converging_fit():
