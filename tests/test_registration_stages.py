@@ -122,6 +122,20 @@ def test_the_final_refinement_at_the_gate_drops_what_the_fixed_distance_lets_pul
     assert asked.gate_mm == expected_gate and np.array_equal(asked.transformation, expected)
     assert register_clouds(source, target_pts, cfg).gate_mm == pytest.approx(expected_gate)
     assert np.degrees(pose_error(expected, T_true)[1]) < 0.04
+    # ``deepmerge`` stays the network's own answer: not refined
+    answer = from_rotvec([0.3, 0.0, 0.0], np.radians([0.05, 0.0, 0.0])) @ T_true
+    alone = register_pair(source, target, "deepmerge", cfg, FixedAnswer(answer), 5.0, REFINE_SIGMAS)
+    assert alone.gate_mm is None and np.array_equal(alone.transformation, answer)
+
+
+class FixedAnswer:
+    """A registrar that always answers the same ``T_target_source`` (stands in for the network)."""
+
+    def __init__(self, T: np.ndarray) -> None:
+        self.T = T
+
+    def register(self, source_mm: np.ndarray, target_mm: np.ndarray) -> np.ndarray:
+        return self.T
 
 
 def test_stopping_at_a_repeated_correspondence_set_keeps_a_converging_fit():

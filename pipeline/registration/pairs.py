@@ -154,13 +154,15 @@ def register_pair(
     """``T_target_source`` of a source placed at its start (its pose so far) onto a target with normals, by
     ``method``, verified (:func:`verify`); the fine stage from the start begins at ``start_distance_mm``
     (the overlap threshold), after a global candidate at ``cfg.global_fine_start_mm``. ``auto`` without a
-    ``network`` compares the fine and the classical stage only. With ``refine_sigmas`` the winner is refined
-    at its own correspondence gate (:func:`icp.refine_at_gate`, that many sigmas), kept unless that raises
-    its truncated cost at the final distance by more than the tie margin, and the fine stage's levels stop
-    at a repeated correspondence set (``FineSchedule.stop_on_repeat``); None (the job's pairs) does neither."""
+    ``network`` compares the fine and the classical stage only. With ``refine_sigmas`` the winner (of any
+    method but ``deepmerge``, the network's own answer) is refined at its own correspondence gate
+    (:func:`icp.refine_at_gate`, that many sigmas), kept unless that raises its truncated cost at the final
+    distance by more than the tie margin, and the fine stage's levels stop at a repeated correspondence set
+    (``FineSchedule.stop_on_repeat``); None (the job's pairs) does neither."""
     final = cfg.icp_max_distance_mm
     S = np.asarray(source_mm, float)
-    refining = refine_sigmas is not None     # the refinement settles the end, so the levels stop at a cycle
+    # the refinement settles the end, so the levels stop at a cycle; ``deepmerge`` stays the network's answer
+    refining = refine_sigmas is not None and method != "deepmerge"
 
     def fine(M: np.ndarray, start_mm: float) -> IcpResult:
         return icp_coarse_to_fine(S, target, M, FineSchedule(start_mm, final, cfg.icp_iterations,
