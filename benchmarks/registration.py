@@ -22,7 +22,13 @@ Open3D point-to-plane ICP at 0.4 voxel, the Open3D tutorial's pipeline). Keys
 ``<set>.<method>.rot_err_deg_median``, ``.trans_err_mm_median`` (at the source's centroid), ``.success_rate``
 (below 1 deg and 1 % of the pair's extent; a failed verification is no success), ``.failed`` (verification
 failures: exit 3 in ``register``), ``.zero_inliers_exit0`` (results with no inlier that were not refused:
-must be 0), ``.seconds_median`` (wall clock per pair, one thread); ``<set>.auto.stage_wins.<stage>``.
+must be 0), ``.seconds_median`` (wall clock per pair, one thread); ``<set>.auto.stage_wins.<stage>``,
+``<set>.auto.gate_mm_median`` (the correspondence gate of the final refinement).
+Our verified methods refine their winner at its gate as ``register`` does (``pairs.REFINE_SIGMAS``) on the
+real sets; on ``sim`` they run as the job's correction does, without it.
+Repeatable: every random draw is seeded and Open3D runs on one thread (``o3d.utility.set_max_threads(1)``;
+its RANSAC on several threads draws in the order its threads get to the generator, so the anchor moved
+by 0.0015 deg between runs before), so two runs print the same figures, the seconds apart.
 Set ``timing``: ``inference_2048``, DeepMerge on a pair of 2,048-point overlaps, one thread; ``register_cli``,
 the wall clock and CPU time (user + system) of a ``tandemscan register`` call on two 30 k-point bunny scans,
 the process start included, per method.
@@ -54,7 +60,7 @@ from tandemscan.pipeline.geometry.frames import from_quaternion, invert, make_tr
 from tandemscan.pipeline.registration.global_registration import FeatureMatching, fpfh_ransac
 from tandemscan.pipeline.registration.icp import target_with_normals
 from tandemscan.pipeline.registration.overlap import extract_overlap
-from tandemscan.pipeline.registration.pairs import RegistrationFailed, register_pair
+from tandemscan.pipeline.registration.pairs import REFINE_SIGMAS, RegistrationFailed, register_pair
 
 VERIFIED = ("icp", "deepmerge+icp", "fpfh+icp", "auto")     # ours, verified as ``register`` runs them
 ANCHORS = ("open3d_icp", "open3d_fpfh_ransac_icp")
@@ -152,35 +158,37 @@ def open3d_icp(source, target, init, distance_mm) -> np.ndarray:
                                            reg.ICPConvergenceCriteria(max_iteration=50)).transformation)
 
 
-def run_pair(source, target, M_true, delta, cfg, network) -> dict[str, tuple]:
+def run_pair(source, target, M_true, delta, cfg, network, refine_sigmas) -> dict[str, tuple]:
     """Register the moved source onto the target by each method: (rot deg, trans mm, seconds, extent, failed,
-    zero inliers, stage). The network runs once per pair; its time is added to each method that used it."""
+    zero inliers, stage, gate mm). The network runs once per pair; its time is added to each method that used
+    it."""
     extent = float(np.linalg.norm(np.ptp(np.r_[source, target], axis=0)))
     c = source.mean(axis=0)
     out = {}
     network.key = None
     t0 = time.perf_counter()
     M = network.register(source, target)
-    out["deepmerge"] = (*error_of(M, M_true, c), time.perf_counter() - t0, extent, False, False, "deepmerge")
+    out["deepmerge"] = (*error_of(M, M_true, c), time.perf_counter() - t0, extent, False, False, "deepmerge", 0.0)
     for m in VERIFIED:
         t0 = time.perf_counter()
         try:
             tgt = target_with_normals(target)
-            res = register_pair(source, tgt, m, cfg, network, delta)
+            res = register_pair(source, tgt, m, cfg, network, delta, refine_sigmas)
             rot, tr = error_of(res.transformation, M_true, c)
-            failed, zero, stage = False, res.fit.inliers == 0, res.stage
+            failed, zero, stage, gate = False, res.fit.inliers == 0, res.stage, res.gate_mm or float("nan")
         except RegistrationFailed:
-            rot, tr, failed, zero, stage = float("inf"), float("inf"), True, False, "failed"
+            rot, tr, failed, zero, stage, gate = float("inf"), float("inf"), True, False, "failed", float("nan")
         sec = time.perf_counter() - t0 + (network.seconds if stage_used_network(m, stage) else 0.0)
-        out[m] = (rot, tr, sec, extent, failed, zero, stage)
+        out[m] = (rot, tr, sec, extent, failed, zero, stage, gate)
     anchor_icp = 5.0 if delta > 100 else delta
     t0 = time.perf_counter()
     M = open3d_icp(source, target, np.eye(4), anchor_icp)
-    out["open3d_icp"] = (*error_of(M, M_true, c), time.perf_counter() - t0, extent, False, False, "init")
+    out["open3d_icp"] = (*error_of(M, M_true, c), time.perf_counter() - t0, extent, False, False, "init", 0.0)
     t0 = time.perf_counter()
     matching = FeatureMatching(cfg.global_voxel_fraction)
     M = open3d_icp(source, target, fpfh_ransac(source, target, matching), 0.4 * matching.voxel_mm(target))
-    out["open3d_fpfh_ransac_icp"] = (*error_of(M, M_true, c), time.perf_counter() - t0, extent, False, False, "fpfh")
+    out["open3d_fpfh_ransac_icp"] = (*error_of(M, M_true, c), time.perf_counter() - t0, extent, False, False, "fpfh",
+                                     0.0)
     return out
 
 
@@ -204,14 +212,17 @@ def summarise(results: list[dict[str, tuple]], prefix: str) -> dict[str, float]:
             out[f"{prefix}.{m}.zero_inliers_exit0"] = int(r[:, 5].sum())
     for stage, n in sorted(Counter(res["auto"][6] for res in results).items()):
         out[f"{prefix}.auto.stage_wins.{stage}"] = n
+    gates = [res["auto"][7] for res in results if np.isfinite(res["auto"][7])]
+    if gates:
+        out[f"{prefix}.auto.gate_mm_median"] = float(np.median(gates))
     out[f"{prefix}.rot_err_deg_median_before"] = float(np.median([res["before"][0] for res in results]))
     out[f"{prefix}.trans_err_mm_median_before"] = float(np.median([res["before"][1] for res in results]))
     return out
 
 
-def scored(source, target, M_true, delta, cfg, network) -> dict[str, tuple]:
+def scored(source, target, M_true, delta, cfg, network, refine_sigmas=REFINE_SIGMAS) -> dict[str, tuple]:
     """:func:`run_pair` plus the initial error (``before``)."""
-    res = run_pair(source, target, M_true, delta, cfg, network)
+    res = run_pair(source, target, M_true, delta, cfg, network, refine_sigmas)
     res["before"] = error_of(np.eye(4), M_true, source.mean(axis=0))
     return res
 
@@ -343,6 +354,7 @@ def main() -> None:
     if not sets <= set(SETS):
         raise SystemExit(f"unknown sets {sorted(sets - set(SETS))}")
     torch.set_num_threads(1)
+    o3d.utility.set_max_threads(1)
     rng = np.random.default_rng(args.seed)
     cfg = CorrectionConfig(icp_max_distance_mm=1.5)
     registrar = DeepMergeRegistrar.load(args.weights, num_points=args.points, rounds=args.rounds)
@@ -355,7 +367,7 @@ def main() -> None:
             out |= timing(scans, registrar, rng) | register_cli(scans)
     if "sim" in sets:
         pairs, delta = sim_pairs()
-        out |= summarise([scored(s, t, M, delta, CorrectionConfig(), network) for s, t, M in pairs], "sim")
+        out |= summarise([scored(s, t, M, delta, CorrectionConfig(), network, None) for s, t, M in pairs], "sim")
     out["load_average_1min"] = os.getloadavg()[0]
     print(json.dumps(out))
 

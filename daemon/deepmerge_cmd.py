@@ -69,8 +69,9 @@ def cmd_register(args: argparse.Namespace) -> int:
         Path(args.out).write_text(text + "\n", encoding="utf-8")
     out = Console()
     out.print(text, highlight=False)
+    gate = f", refined at {res.gate_mm:.3f} mm" if res.gate_mm is not None else ""
     out.print(f"fitness {res.fit.fitness:.4f}  point-to-plane RMS {res.fit.rmse_mm:.4f} mm  ({args.method}: "
-              f"stage {res.stage} won of {', '.join(res.stages_run)})", highlight=False)
+              f"stage {res.stage} won of {', '.join(res.stages_run)}{gate})", highlight=False)
     return 0
 
 

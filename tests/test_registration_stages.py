@@ -1,5 +1,6 @@
-"""The fine stage re-selects the overlap, the global stages recover a pose with no usable start, every result
-is verified, and the ICP path never imports PyTorch."""
+"""The fine stage re-selects the overlap, the final refinement follows the correspondences' own gate, the
+global stages recover a pose with no usable start (the classical one the same every run), every result is
+verified, and the ICP path never imports PyTorch."""
 
 from __future__ import annotations
 
@@ -15,12 +16,22 @@ from tandemscan.daemon.cli import main
 from tandemscan.pipeline.geometry.frames import from_rotvec, invert, pose_error, transform_points
 from tandemscan.pipeline.registration.global_registration import FeatureMatching, fpfh_ransac
 from tandemscan.pipeline.registration.icp import (
+    Convergence,
     FineSchedule,
+    gate_distance,
     icp_coarse_to_fine,
     icp_point_to_plane,
+    point_to_plane_icp,
+    refine_at_gate,
     target_with_normals,
 )
-from tandemscan.pipeline.registration.pairs import LazyNetwork, RegistrationFailed, register_clouds
+from tandemscan.pipeline.registration.pairs import (
+    REFINE_SIGMAS,
+    LazyNetwork,
+    RegistrationFailed,
+    register_clouds,
+    register_pair,
+)
 
 _BUMPS = np.random.default_rng(11).uniform([-90, -90, 4, -15], [90, 90, 14, 15], (40, 4))
 
@@ -61,6 +72,90 @@ def test_the_fine_stage_reselects_the_overlap_and_reaches_what_one_level_does_no
     assert np.degrees(dr) < 0.01 and dt < 0.02
     assert dt * 5 < dt1                        # the overlap at 10 mm drags a single level off
     assert 0.4 < fit.fitness < 0.8 and fit.rmse_mm < 0.05
+
+
+def test_the_gate_is_the_mean_plus_sigmas_of_the_distances_within_reach():
+    d = np.r_[np.random.default_rng(0).uniform(0.1, 0.9, 5000), [1.7, 2.5, np.inf]]   # beyond 1.5 mm: ignored
+    inside = d[d < 1.5]
+    assert gate_distance(d, 1.5, 3.0) == pytest.approx(inside.mean() + 3.0 * inside.std())
+    assert gate_distance(d, 1.5, 3.0) < 1.5 and gate_distance(d, 1.5, 2.0) < gate_distance(d, 1.5, 3.0)
+    assert gate_distance(d, 1.0, 3.0) == 1.0                    # never above the final distance
+    assert gate_distance(np.full(5, 0.3), 1.5, 3.0) == 1.5      # too few correspondences: the final distance
+
+
+def dense_crops_with_standoff(seed: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(source moved by ``T^-1``, target, ``T``): two 30,000-point crops of :func:`relief` (x in [-60, 20] and
+    [-20, 60], y in [-60, 60]) where 15 % of the source's points in one corner of the overlap stand 1.1-1.45
+    mm off the surface (mixed pixels at an edge): within a 1.5 mm correspondence distance, not within the
+    true correspondences' spread."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for lo, hi in ((-60.0, 20.0), (-20.0, 60.0)):
+        xy = np.c_[rng.uniform(lo, hi, 30000), rng.uniform(-60, 60, 30000)]
+        out.append(np.c_[xy, relief(xy[:, 0], xy[:, 1])] + rng.normal(0, 0.02, (30000, 3)))
+    src, tgt = out
+    corner = np.flatnonzero((src[:, 0] > -20) & (src[:, 1] > 20))
+    corner = corner[rng.random(len(corner)) < 0.15]
+    src[corner, 2] += rng.uniform(1.1, 1.45, len(corner))
+    T_true = from_rotvec([1.0, -0.5, 0.5], np.radians([0.5, -0.3, 0.2]))
+    return transform_points(invert(T_true), src), tgt, T_true
+
+
+def test_the_final_refinement_at_the_gate_drops_what_the_fixed_distance_lets_pull():
+    source, target_pts, T_true = dense_crops_with_standoff()
+    target = target_with_normals(target_pts)
+    fit = icp_coarse_to_fine(source, target, np.eye(4), FineSchedule(5.0, 1.5))
+    refined, gate = refine_at_gate(source, target, fit.transformation, 1.5)
+    _, dr_fixed = pose_error(fit.transformation, T_true)
+    dt, dr = pose_error(refined, T_true)
+    assert 0.5 < gate < 1.5
+    assert np.degrees(dr_fixed) > 0.08                       # the standoff points pull the fit at 1.5 mm
+    assert np.degrees(dr) < 0.04 and dt < 0.05 and dr < dr_fixed / 3
+    # register_pair refines only when asked (the job's pairs do not): without, it is the fine stage's answer
+    cfg = CorrectionConfig(method="icp", icp_max_distance_mm=1.5)
+    plain = register_pair(source, target, "icp", cfg, None, 5.0)
+    assert plain.gate_mm is None and np.array_equal(plain.transformation, fit.transformation)
+    # asked (register's default), its levels stop at a repeated correspondence set, then it refines
+    stopped = icp_coarse_to_fine(source, target, np.eye(4), FineSchedule(5.0, 1.5, stop_on_repeat=True))
+    expected, expected_gate = refine_at_gate(source, target, stopped.transformation, 1.5, REFINE_SIGMAS)
+    asked = register_pair(source, target, "icp", cfg, None, 5.0, REFINE_SIGMAS)
+    assert asked.gate_mm == expected_gate and np.array_equal(asked.transformation, expected)
+    assert register_clouds(source, target_pts, cfg).gate_mm == pytest.approx(expected_gate)
+    assert np.degrees(pose_error(expected, T_true)[1]) < 0.04
+    # ``deepmerge`` stays the network's own answer: not refined
+    answer = from_rotvec([0.3, 0.0, 0.0], np.radians([0.05, 0.0, 0.0])) @ T_true
+    alone = register_pair(source, target, "deepmerge", cfg, FixedAnswer(answer), 5.0, REFINE_SIGMAS)
+    assert alone.gate_mm is None and np.array_equal(alone.transformation, answer)
+
+
+class FixedAnswer:
+    """A registrar that always answers the same ``T_target_source`` (stands in for the network)."""
+
+    def __init__(self, T: np.ndarray) -> None:
+        self.T = T
+
+    def register(self, source_mm: np.ndarray, target_mm: np.ndarray) -> np.ndarray:
+        return self.T
+
+
+def test_stopping_at_a_repeated_correspondence_set_keeps_a_converging_fit():
+    T_true = from_rotvec([1.0, -0.5, 0.5], np.radians([0.5, -0.3, 0.2]))
+    source, target_pts = moved(T_true)
+    target = target_with_normals(target_pts)
+    start = from_rotvec([0.2, 0.1, -0.1], np.radians([0.05, 0.0, -0.05])) @ T_true
+    open3ds = point_to_plane_icp(source, target, start, 1.5, Convergence())
+    ours = point_to_plane_icp(source, target, start, 1.5, Convergence(stop_on_repeat=True))
+    dt, dr = pose_error(ours, open3ds)
+    assert np.degrees(dr) < 1e-5 and dt < 1e-5
+
+
+def test_fpfh_ransac_gives_the_same_answer_every_run_and_leaves_open3ds_threads_as_they_were():
+    T_true = from_rotvec([8.0, -6.0, 5.0], np.radians([10.0, -25.0, 30.0]))
+    source, target = moved(T_true)
+    threads = o3d.utility.get_max_threads()
+    answers = [fpfh_ransac(source, target, FeatureMatching()) for _ in range(3)]
+    assert all(np.array_equal(a, answers[0]) for a in answers)
+    assert o3d.utility.get_max_threads() == threads
 
 
 def test_fpfh_ransac_finds_a_large_rotation_without_a_start():

@@ -29,6 +29,7 @@ from tandemscan.pipeline.registration.icp import (
     TargetCloud,
     evaluate_point_to_plane,
     icp_coarse_to_fine,
+    refine_at_gate,
     target_with_normals,
     truncated_cost,
 )
@@ -39,6 +40,10 @@ if TYPE_CHECKING:
     from tandemscan.pipeline.deepmerge.register import DeepMergeRegistrar
 
 log = logging.getLogger(__name__)
+
+#: ``register``'s final refinement gate: the mean plus this many standard deviations of the correspondence
+#: distances (:func:`icp.refine_at_gate`; the job's pairs do not refine)
+REFINE_SIGMAS = 3.0
 
 #: the methods that always run the DeepMerge network (``auto`` runs it only when the others disagree)
 NETWORK_METHODS = ("deepmerge", "deepmerge+icp")
@@ -79,7 +84,8 @@ class LazyNetwork:
 class PairRegistration:
     """``T_target_source`` (4x4 mm) of a pair, its fit at the final correspondence distance, the stage whose
     candidate won (``init``, ``fpfh`` or ``deepmerge``), the truncated point-to-plane costs (mm^2 per source
-    point, :func:`icp.truncated_cost`) of the result and of the start, and the stages that ran."""
+    point, :func:`icp.truncated_cost`) of the result and of the start, the stages that ran, and the gate
+    (mm) of the final refinement where it ran (:func:`icp.refine_at_gate`; None where it did not)."""
 
     transformation: np.ndarray
     fit: IcpResult
@@ -87,6 +93,7 @@ class PairRegistration:
     cost_mm2: float
     start_cost_mm2: float
     stages_run: tuple[str, ...]
+    gate_mm: float | None = None
 
 
 @dataclass(frozen=True)
@@ -142,18 +149,24 @@ def verify(result: PairRegistration, distance_mm: float, max_cost_increase: floa
 
 def register_pair(
     source_mm: np.ndarray, target: TargetCloud, method: str, cfg: CorrectionConfig,
-    network: Registrar | None, start_distance_mm: float,
+    network: Registrar | None, start_distance_mm: float, refine_sigmas: float | None = None,
 ) -> PairRegistration:
     """``T_target_source`` of a source placed at its start (its pose so far) onto a target with normals, by
     ``method``, verified (:func:`verify`); the fine stage from the start begins at ``start_distance_mm``
     (the overlap threshold), after a global candidate at ``cfg.global_fine_start_mm``. ``auto`` without a
-    ``network`` compares the fine and the classical stage only."""
+    ``network`` compares the fine and the classical stage only. With ``refine_sigmas`` the winner (of any
+    method but ``deepmerge``, the network's own answer) is refined at its own correspondence gate
+    (:func:`icp.refine_at_gate`, that many sigmas), kept unless that raises its truncated cost at the final
+    distance by more than the tie margin, and the fine stage's levels stop at a repeated correspondence set
+    (``FineSchedule.stop_on_repeat``); None (the job's pairs) does neither."""
     final = cfg.icp_max_distance_mm
     S = np.asarray(source_mm, float)
+    # the refinement settles the end, so the levels stop at a cycle; ``deepmerge`` stays the network's answer
+    refining = refine_sigmas is not None and method != "deepmerge"
 
     def fine(M: np.ndarray, start_mm: float) -> IcpResult:
         return icp_coarse_to_fine(S, target, M, FineSchedule(start_mm, final, cfg.icp_iterations,
-                                                             cfg.icp_max_points))
+                                                             cfg.icp_max_points, stop_on_repeat=refining))
 
     def network_answer() -> np.ndarray:
         if network is None:
@@ -183,26 +196,36 @@ def register_pair(
     # candidate fits clearly better
     tie = cfg.max_cost_increase * final**2
     stage = next(s for s, c in costs.items() if c <= min(costs.values()) + tie)
+    fit, cost, gate = candidates[stage], costs[stage], None
+    if refining:
+        M, gate = refine_at_gate(S, target, fit.transformation, final, refine_sigmas, cfg.icp_iterations)
+        refined = evaluate_point_to_plane(S, target, M, final)
+        if truncated_cost(refined, final) <= cost + tie:
+            fit, cost = refined, truncated_cost(refined, final)
+        else:
+            gate = None
     start = truncated_cost(evaluate_point_to_plane(S, target, np.eye(4), final), final)
-    log.debug("pair registration %s: costs %s, start %.4g mm^2", method, costs, start)
-    return verify(PairRegistration(candidates[stage].transformation, candidates[stage], stage, costs[stage], start,
-                                   tuple(candidates)), final, cfg.max_cost_increase)
+    log.debug("pair registration %s: costs %s, start %.4g mm^2, gate %s mm", method, costs, start, gate)
+    return verify(PairRegistration(fit.transformation, fit, stage, cost, start, tuple(candidates), gate), final,
+                  cfg.max_cost_increase)
 
 
 def register_clouds(
     source_mm: np.ndarray, target_mm: np.ndarray, cfg: CorrectionConfig, method: str | None = None,
     init: np.ndarray | None = None, delta_mm: float = 5.0, network: Registrar | None = None,
+    refine_sigmas: float | None = REFINE_SIGMAS,
 ) -> PairRegistration:
     """``T_target_source`` (mm) of any two clouds from ``init`` (default identity), verified; the fine
-    stage starts at ``delta_mm``. Raises :class:`RegistrationFailed` for a result that must not be used."""
+    stage starts at ``delta_mm``, the winner is refined at its gate (``refine_sigmas``, :func:`register_pair`).
+    Raises :class:`RegistrationFailed` for a result that must not be used."""
     T0 = np.eye(4) if init is None else np.asarray(init, float)
     target = target_with_normals(np.asarray(target_mm, float))
     res = register_pair(transform_points(T0, np.asarray(source_mm, float)), target, method or cfg.method, cfg,
-                        network, delta_mm)
+                        network, delta_mm, refine_sigmas)
     M = res.transformation @ T0
     return PairRegistration(M, evaluate_point_to_plane(np.asarray(source_mm, float), target, M,
                                                        cfg.icp_max_distance_mm),
-                            res.stage, res.cost_mm2, res.start_cost_mm2, res.stages_run)
+                            res.stage, res.cost_mm2, res.start_cost_mm2, res.stages_run, res.gate_mm)
 
 
 def pair_delta(target_W: np.ndarray, cfg: CorrectionConfig, pair_covariance: np.ndarray | None) -> float:
