@@ -17,14 +17,10 @@ Cholesky factor ``L``). Scan ``i`` is corrected by the world motion about ``o_i`
 
 (``P_i`` the tracker pose, ``R_i`` its rotation), i.e. ``e = A theta``, the error model of the bound. A point
 ``p`` of scan ``j`` whose nearest neighbour in scan ``i`` (within ``max_distance_mm``) is ``q`` with normal ``n``
-gives the residual ``n . (T_W_S_j p - T_W_S_i q)``. Each outer iteration re-finds the correspondences and their
-robust scale; on those correspondences Gauss-Newton steps follow until no scan moves more than the tolerance
-(each re-evaluates the residuals at the current poses, weights them: Huber at ``huber_k`` times the robust
-scale, which is also their sigma, linearises and solves the sparse normal equations
-``(A^T H_e A + prior) theta = A^T b`` for ``theta`` itself, scipy.sparse). The outer iterations stop when the
-first step on fresh correspondences moves no scan beyond the tolerance: the nearest-neighbour search, the
-costly part, then runs a few times rather than once per step. The posterior covariance of each scan's
-correction is ``A_i H^-1 A_i^T``.
+gives the residual ``n . (T_W_S_j p - T_W_S_i q)``. Each outer iteration re-finds the correspondences, weights
+them (Huber at ``huber_k`` times the residuals' robust scale, which is also their sigma), linearises and
+solves the sparse normal equations ``(A^T H_e A + prior) theta = A^T b`` for ``theta`` itself (scipy.sparse);
+the posterior covariance of each scan's correction is ``A_i H^-1 A_i^T``.
 """
 
 from __future__ import annotations
@@ -57,8 +53,11 @@ _MIN_SIGMA_MM = 1e-4
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise cross product of two (m, 3) arrays (np.cross is several times slower on short rows)."""
-    return np.c_[a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-                 a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]]
+    out = np.empty((len(a), 3))
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
 
 
 @dataclass(frozen=True)
@@ -85,7 +84,7 @@ class JointSettings:
     this many outer iterations, fewer once no scan moves more than ``tolerance_mm`` (translation plus rotation
     at ``lever_mm``); ``min_correspondences``: a pair with fewer contributes nothing in that iteration;
     ``sigma_mm``: 1-sigma of one point-to-plane residual (None: the residuals' robust scale, re-estimated in
-    every outer iteration); ``steps``: at most this many Gauss-Newton steps on one set of correspondences."""
+    every iteration)."""
 
     max_distance_mm: float = 1.0
     candidate_margin_mm: float = 1.0
@@ -95,7 +94,6 @@ class JointSettings:
     lever_mm: float = 100.0
     min_correspondences: int = 20
     sigma_mm: float | None = None
-    steps: int = 5
 
 
 @dataclass(frozen=True)
@@ -195,13 +193,12 @@ class _Model:
 
 @dataclass(frozen=True)
 class _Match:
-    """The correspondences of one pair at the current poses: the indices of the source points (in scan ``j``)
-    and of their nearest target points (scan ``i``), the source points in the target's frame S_i (mm), the
-    point-to-plane residuals (mm) and the target normals (S_i)."""
+    """The correspondences of one pair at the current poses: the source points in the target's frame S_i
+    (mm), the indices of their nearest target points, the point-to-plane residuals (mm) and the target
+    normals (S_i)."""
 
-    source: np.ndarray
-    target: np.ndarray
     source_S_i: np.ndarray
+    target: np.ndarray
     residual: np.ndarray
     normals: np.ndarray
 
@@ -223,13 +220,7 @@ class _Pair:
         r = np.einsum("ij,ij->i", x[ok] - scans[self.i].points_S[t], n)
         source_n = scans[self.j].normals_S[self.candidates[ok]] @ rel[:3, :3].T
         same = np.abs(np.einsum("ij,ij->i", source_n, n)) >= _MIN_NORMAL_COSINE  # not across a crease
-        return _Match(self.candidates[ok][same], t[same], x[ok][same], r[same], n[same])
-
-    def rematch(self, scans: Sequence[JointScan], poses: np.ndarray, m: _Match) -> _Match:
-        """The same correspondences ``m`` with the source points and residuals at ``poses``."""
-        x = transform_points(invert(poses[self.i]) @ poses[self.j], scans[self.j].points_S[m.source])
-        r = np.einsum("ij,ij->i", x - scans[self.i].points_S[m.target], m.normals)
-        return _Match(m.source, m.target, x, r, m.normals)
+        return _Match(x[ok][same], t[same], r[same], n[same])
 
     def normal_equations(self, scans: Sequence[JointScan], poses: np.ndarray, origins: np.ndarray, m: _Match,
                          weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -241,7 +232,10 @@ class _Pair:
         n = m.normals
         q = scans[self.i].points_S[m.target]
         o_j, o_i = (transform_points(to_local, origins[k][None])[0] for k in (self.j, self.i))
-        J = np.c_[n, _cross(m.source_S_i - o_j, n), -n, -_cross(q - o_i, n)]
+        J = np.empty((len(n), 12))
+        J[:, :3], J[:, 6:9] = n, -n
+        J[:, 3:6] = _cross(m.source_S_i - o_j, n)
+        J[:, 9:] = _cross(n, q - o_i)
         Jw = J * weights[:, None]
         B = np.kron(np.eye(4), Pi[:3, :3])                      # local -> world for the four 3-blocks
         return B @ (Jw.T @ J) @ B.T, B @ (Jw.T @ m.residual)
@@ -270,7 +264,7 @@ def _candidates(scans: Sequence[JointScan], trees: Sequence[cKDTree], poses: np.
             continue
         x = transform_points(invert(poses[i]) @ poses[j], scans[j].points_S)
         inside = np.flatnonzero(np.all((x >= boxes[i][0]) & (x <= boxes[i][1]), axis=1))
-        d, _ = trees[i].query(x[inside], distance_upper_bound=radius_mm)
+        d, _ = trees[i].query(x[inside], distance_upper_bound=radius_mm, workers=-1)
         near = inside[np.isfinite(d)]
         if len(near):
             out.append(_Pair(i, j, near))
@@ -302,29 +296,22 @@ def refine_jointly(
         sigma = settings.sigma_mm or _robust_sigma(r_all)
         if it == 1:
             rms_before = float(np.sqrt(np.mean(r_all**2))) if len(r_all) else float("nan")
+        H, b_e = _data_system(model, scans, poses, kept, sigma, settings.huber_k)
         used, n_corr = len(kept), len(r_all)
-        for step in range(settings.steps):
-            if step:
-                kept = [(p, p.rematch(scans, poses, m)) for p, m in kept]
-            H, b_e = _data_system(model, scans, poses, kept, sigma, settings.huber_k)
-            # linearised at e: data term |r + J (A theta - e)|^2, prior |theta|^2_prior -> solve for theta
-            rhs = model.A.T @ (H @ e.ravel() - b_e)
-            H_theta = (model.A.T @ H @ model.A + H_prior).tocsc()
-            theta = splu(H_theta).solve(rhs)
-            e_new = (model.A @ theta).reshape(-1, 6)
-            delta = np.abs(e_new - e)
-            move = float(np.max(np.linalg.norm(delta[:, :3], axis=1)
-                                + settings.lever_mm * np.linalg.norm(delta[:, 3:], axis=1)))
-            e, poses = e_new, model.poses(e_new)
-            if step == 0:
-                first_move = move
-            log.debug("joint refinement iteration %d step %d: %d pairs, %d points, sigma %.4f mm, largest move "
-                      "%.2e mm", it, step, used, n_corr, sigma, move)
-            if move < settings.tolerance_mm:
-                break
-        if first_move < settings.tolerance_mm:
+        # linearised at e: data term |r + J (A theta - e)|^2, prior |theta|^2_prior -> solve for theta
+        rhs = model.A.T @ (H @ e.ravel() - b_e)
+        H_theta = (model.A.T @ H @ model.A + H_prior).tocsc()
+        theta = splu(H_theta).solve(rhs)
+        e_new = (model.A @ theta).reshape(-1, 6)
+        step = np.abs(e_new - e)
+        move = float(np.max(np.linalg.norm(step[:, :3], axis=1)
+                            + settings.lever_mm * np.linalg.norm(step[:, 3:], axis=1)))
+        e, poses = e_new, model.poses(e_new)
+        log.debug("joint refinement iteration %d: %d pairs, %d points, sigma %.4f mm, largest move %.2e mm",
+                  it, used, n_corr, sigma, move)
+        if move < settings.tolerance_mm:
             break
-    final = [p.rematch(scans, poses, m) for p, m in kept]   # the last correspondences, found within tolerance
+    final = [p.match(scans, trees, poses, settings.max_distance_mm) for p in candidates]
     r_fin = np.concatenate([m.residual for m in final]) if final else np.zeros(0)
     rms_after = float(np.sqrt(np.mean(r_fin**2))) if len(r_fin) else float("nan")
     H_theta = (model.A.T @ H @ model.A + H_prior).toarray()
