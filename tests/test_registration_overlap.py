@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from tandemscan.pipeline.registration.overlap import OverlapError, PairSelector, overlapping_pairs
+from tandemscan.pipeline.registration.overlap import OverlapError, PairSelector, extract_overlap, overlapping_pairs
 from tandemscan.pipeline.registration.sampling import thin_evenly
 
 
@@ -72,3 +72,20 @@ def test_pairs_selected_as_clouds_arrive_include_every_final_pair():
     selector = PairSelector(10.0, 1)
     offered = {(i, j) for j, c in enumerate(clouds) for i in selector.add(c, 0)}
     assert (0, 1) in offered and (0, 1) not in overlapping_pairs(clouds, [0, 0, 0], 10.0, 1)
+
+
+def test_overlap_from_prebuilt_trees_is_the_overlap_of_the_moved_source():
+    """``overlap_at`` (trees built once, the target moved into the source's frame) selects exactly what
+    ``extract_overlap`` selects on the moved source: a wrong direction of the transform would not."""
+    from scipy.spatial import cKDTree
+    from tandemscan.pipeline.geometry.frames import from_rotvec, transform_points
+    from tandemscan.pipeline.registration.overlap import overlap_at
+
+    rng = np.random.default_rng(3)
+    source, target = rng.uniform(0, 100, (4000, 3)), rng.uniform(30, 130, (4000, 3))
+    T = from_rotvec([5.0, -2.0, 3.0], [0.05, 0.1, -0.08])
+    expected = extract_overlap(transform_points(T, source), target, 3.0)
+    got = overlap_at(source, cKDTree(source), target, cKDTree(target), T, 3.0)
+    assert len(expected.source_idx) > 100
+    np.testing.assert_array_equal(got.source_idx, expected.source_idx)
+    np.testing.assert_array_equal(got.target_idx, expected.target_idx)

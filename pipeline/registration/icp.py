@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 from tandemscan.pipeline.registration.normals import estimate_normals
-from tandemscan.pipeline.registration.overlap import extract_overlap
+from tandemscan.pipeline.registration.overlap import overlap_at
 from tandemscan.pipeline.registration.sampling import thin_evenly
 
 
@@ -219,11 +219,11 @@ def icp_coarse_to_fine(
     extracted afresh at the current estimate (both clouds), and ICP runs on it with that correspondence
     distance. Returns the fit of the whole source at ``schedule.final_mm``."""
     S = np.asarray(source_mm, float)
-    Tp = target.points
+    source_tree = cKDTree(S)
     M = np.asarray(init, float).copy()
     d = max(schedule.start_mm, schedule.final_mm)
     for _ in range(schedule.max_levels):
-        ov = extract_overlap(S @ M[:3, :3].T + M[:3, 3], Tp, d)
+        ov = overlap_at(S, source_tree, target.points, target.tree, M, d)
         if ov.size >= MIN_LEVEL_POINTS:
             fit = icp_point_to_plane(S[thin_evenly(ov.source_idx, schedule.max_points)],
                                      target.select(ov.target_idx), M, d, schedule.iterations,

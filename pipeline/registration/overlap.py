@@ -87,6 +87,17 @@ def extract_overlap(source_mm: ArrayLike, target_mm: ArrayLike, delta_mm: float)
     return ov
 
 
+def overlap_at(source_mm: np.ndarray, source_tree: cKDTree, target_mm: np.ndarray, target_tree: cKDTree,
+               T: np.ndarray, delta_mm: float) -> Overlap:
+    """:func:`extract_overlap` of the source moved by ``T`` (4x4 mm) and the target, from KD-trees built once
+    per cloud (``source_tree`` of the unmoved source, ``target_tree`` of the target): the target is moved
+    into the source's frame for its half, distances being the same in either frame."""
+    M = np.asarray(T, float)
+    d_s, _ = target_tree.query(source_mm @ M[:3, :3].T + M[:3, 3], k=1, distance_upper_bound=delta_mm)
+    d_t, _ = source_tree.query((target_mm - M[:3, 3]) @ M[:3, :3], k=1, distance_upper_bound=delta_mm)
+    return Overlap(np.flatnonzero(d_s < delta_mm), np.flatnonzero(d_t < delta_mm), float(delta_mm))
+
+
 def _cells(points: np.ndarray, cell_mm: float) -> np.ndarray:
     """Sorted unique ids of the ``cell_mm`` grid cells the points occupy (one int64 per cell)."""
     keys = np.floor(points / cell_mm).astype(np.int64) + (1 << 20)  # non-negative within +-1 km at 1 mm cells
