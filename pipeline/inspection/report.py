@@ -28,10 +28,11 @@ from tandemscan.pipeline.inspection.deviation_maps import (
     deviation_norm,
     facing_isometric,
     histogram_png,
+    measured_triangles,
     typical_spacing,
 )
 from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionResult
-from tandemscan.pipeline.inspection.stitch_quality import overlap_quality, stitching_png
+from tandemscan.pipeline.inspection.stitch_quality import PAIR_SAMPLE, overlap_quality, stitching_png
 
 log = logging.getLogger(__name__)
 
@@ -146,7 +147,9 @@ def build_report(
         pairs = overlap_quality(scans_before, scans_after)
         png = stitching_png(scans_before, scans_after, pairs)
         if png is not None:
-            figures.append(ReportFigure("stitching", "Overlap of neighbouring scans before and after correction", png))
+            caption = ("Overlap of neighbouring scans before and after correction (RMS on an even subsample of "
+                       f"at most {PAIR_SAMPLE} points a pair)")
+            figures.append(ReportFigure("stitching", caption, png))
     data = {
         "title": title,
         "created_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
@@ -164,7 +167,9 @@ def build_report(
 def _coverage_figure(result: InspectionResult, surface: CadSurface, view: View,
                      cfg: InspectionConfig) -> ReportFigure:
     """The coverage map: measured vs not measured on the CAD surface, in the first view."""
-    png = coverage_map_png(surface, result.points_mm, view, cfg.map_width_px)
+    measured = None if result.triangle_ids is None else measured_triangles(
+        surface, triangle_ids=result.triangle_ids, signed_mm=result.deviations_mm)
+    png = coverage_map_png(surface, result.points_mm, view, cfg.map_width_px, measured)
     return ReportFigure("coverage", f"Coverage of the CAD surface (measured vs not measured), {view.name}", png)
 
 
