@@ -117,3 +117,13 @@ def test_coverage_from_the_inspections_closest_triangles_is_a_new_querys():
     c = box.closest(pts)
     np.testing.assert_array_equal(measured_triangles(box, triangle_ids=c.triangle_ids, signed_mm=c.signed_mm),
                                   measured_triangles(box, pts))
+
+
+def test_points_within_a_sphere_are_the_kd_trees():
+    from scipy.spatial import cKDTree
+    from tandemscan.pipeline.inspection.alignment import within
+
+    p = np.random.default_rng(6).uniform(-100, 100, (50_000, 3)) + [1400.0, -650.0, 900.0]
+    tree = cKDTree(p)
+    for centre, r in (([1400.0, -650.0, 900.0], 30.0), ([1490.0, -560.0, 990.0], 25.0), ([0.0, 0.0, 0.0], 5.0)):
+        np.testing.assert_array_equal(within(p, centre, r), sorted(tree.query_ball_point(centre, r)))
