@@ -15,6 +15,8 @@ import argparse
 import contextlib
 import functools
 import json
+import os
+import resource
 import tempfile
 import time
 from collections import defaultdict
@@ -56,6 +58,12 @@ def _timed(fn, name):
     return wrapper
 
 
+def _cpu_s() -> float:
+    """CPU seconds of this process, all its threads (a figure that holds on a machine shared with others)."""
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
 def load_job(job_dir: Path, config, out_dir: Path) -> tuple[SimpleNamespace, dict, list, list | None]:
     """A stand-in for the job snapshot with what ``write_job_outputs`` reads, the job's report, the scans'
     points (S, mm) and the tracker-stitched poses (None where the job was not corrected)."""
@@ -91,9 +99,9 @@ def main() -> None:
         t0 = time.perf_counter()
         job, rep, points_S, tracker = load_job(args.job_dir, load_config(args.config), out)
         t_load = time.perf_counter() - t0
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), _cpu_s()
         section = job_outputs.write_job_outputs(job, rep, points_S, tracker)
-        total = time.perf_counter() - t0
+        total, cpu = time.perf_counter() - t0, _cpu_s() - c0
         sizes = {f.name: f.stat().st_size for f in out.iterdir() if f.is_file()}
     if args.json:
         args.json.write_text(json.dumps(section, indent=1), encoding="utf-8")
@@ -105,6 +113,8 @@ def main() -> None:
         "scans": len(points_S),
         "load_s": round(t_load, 3),
         "exports_and_inspection_s": round(total, 3),
+        "exports_and_inspection_cpu_s": round(cpu, 3),
+        "load_avg_1min": round(os.getloadavg()[0], 2),
         "stages_s": {k: round(v, 3) for k, v in SECONDS.items()},
         "file_mb": {k: round(v / 1e6, 1) for k, v in sizes.items()},
         "verdict": section.get("verdict"),

@@ -60,15 +60,16 @@ def even_centres(points_mm: np.ndarray, cell_mm: float) -> np.ndarray:
 
 
 def local_deviation(points_mm: np.ndarray, deviations_mm: np.ndarray, smoothing_mm: float,
-                    at: np.ndarray | None = None, tree: cKDTree | None = None) -> LocalDeviation:
-    """Average each point's deviation over its neighbours within ``smoothing_mm`` (at most
-    :data:`NEIGHBOURS`, itself included) and estimate its share of the surface (mm^2); only of the points
-    ``at`` (indices) when given, their neighbours from the whole cloud (``tree``: its KD tree, if built)."""
+                    at: np.ndarray | None = None, tree: cKDTree | None = None, neighbours: int = NEIGHBOURS
+                    ) -> LocalDeviation:
+    """Average each point's deviation over its neighbours within ``smoothing_mm`` (at most ``neighbours``,
+    itself included) and estimate its share of the surface (mm^2); only of the points ``at`` (indices)
+    when given, their neighbours from the whole cloud (``tree``: its KD tree, if built)."""
     p = np.asarray(points_mm, dtype=np.float64)
     d = np.asarray(deviations_mm, dtype=np.float64)
     tree = tree or cKDTree(p)
     q = p if at is None else p[at]
-    k = min(NEIGHBOURS, len(p))
+    k = min(neighbours, len(p))
     smoothed = np.empty(len(q))
     share = np.empty(len(q))
     nearest = np.empty(len(q))
@@ -84,19 +85,23 @@ def local_deviation(points_mm: np.ndarray, deviations_mm: np.ndarray, smoothing_
     return LocalDeviation(smoothed, share, float(np.median(nearest)) if len(q) else 0.0, at)
 
 
-THIN_ABOVE_POINTS = 1_000_000  # larger clouds are screened on one point per cube of smoothing / 2 first
+THIN_ABOVE_POINTS = 1_000_000  # larger clouds are screened on an even thinning first (:func:`_screened`)
+SCREEN_CELL = 0.75  # the screening keeps one point per cube of this many smoothing radii
+SCREEN_NEIGHBOURS = 16  # and averages over this many neighbours (within the smoothing radius)
 
 
 def _screened(p: np.ndarray, d: np.ndarray, lower_mm: float, upper_mm: float, smoothing_mm: float
               ) -> LocalDeviation:
     """:func:`local_deviation` of the points that can be beyond the band: one point per cube of side
-    ``smoothing_mm / 2`` is averaged first; every point within that cube's diagonal of one whose average is
-    beyond the band narrowed by half its half-width is then averaged itself. The others (the surface
-    within the band by a margin) are left out; the spacing is that of the screening points."""
+    :data:`SCREEN_CELL` ``* smoothing_mm`` is averaged first, over its :data:`SCREEN_NEIGHBOURS` nearest
+    points within ``smoothing_mm`` (noise 1/4 of a point's, half the smoothing radius); every point within
+    that cube's diagonal of one whose average is beyond the band narrowed by half its half-width is then
+    averaged itself, as without the screening. The others (the surface within the band by that margin, five
+    times the screening's noise at 0.05 mm per point) are left out; the spacing is the screening points'."""
     tree = cKDTree(p)
-    cell = 0.5 * smoothing_mm
+    cell = SCREEN_CELL * smoothing_mm
     centres = even_centres(p, cell)
-    coarse = local_deviation(p, d, smoothing_mm, centres, tree)
+    coarse = local_deviation(p, d, smoothing_mm, centres, tree, SCREEN_NEIGHBOURS)
     margin = 0.25 * (upper_mm - lower_mm)
     near = centres[(coarse.smoothed_mm > upper_mm - margin) | (coarse.smoothed_mm < lower_mm + margin)]
     at = np.zeros(0, np.int64)
