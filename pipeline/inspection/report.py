@@ -147,8 +147,8 @@ def build_report(
         pairs = overlap_quality(scans_before, scans_after)
         png = stitching_png(scans_before, scans_after, pairs)
         if png is not None:
-            caption = ("Overlap of neighbouring scans before and after correction (RMS on an even subsample of "
-                       f"at most {PAIR_SAMPLE} points a pair)")
+            caption = ("Overlap of neighbouring scans before and after correction (RMS of an even subsample of "
+                       f"at most {PAIR_SAMPLE} overlap points a pair)")
             figures.append(ReportFigure("stitching", caption, png))
     data = {
         "title": title,

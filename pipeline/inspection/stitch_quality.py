@@ -3,7 +3,7 @@
 For each pair of consecutive scans (world frame, mm) the overlap is the points of the later scan whose
 nearest neighbour in the earlier one is closer than ``overlap_mm``; their distance to the earlier scan's
 local plane (PCA of its k nearest points, normal in closed form) measures the layering that a stitching
-error leaves; it is evaluated on an even subsample of the later scan (:data:`PAIR_SAMPLE` points). The picture
+error leaves; it is evaluated on an even subsample of the overlap (:data:`PAIR_SAMPLE` points). The picture
 is the paper's cross-section view: a thin slice across the seam of the pair with the most overlap, each
 scan's profile drawn relative to a quadratic fitted through the corrected points, before and after.
 """
@@ -18,13 +18,12 @@ from matplotlib.figure import Figure
 from scipy.spatial import cKDTree
 from tandemscan.pipeline.inspection.deviation_maps import png_bytes
 
-PAIR_SAMPLE = 4000  # points of the later scan of a pair the overlap RMS is evaluated on, at most
+PAIR_SAMPLE = 2000  # overlap points of a pair the RMS is evaluated on, at most (an even subsample)
 
 
 @dataclass(frozen=True)
 class PairOverlap:
-    """Overlap of scan ``j`` onto scan ``i``: point count (of the subsample evaluated) and RMS point-to-plane
-    distance (mm)."""
+    """Overlap of scan ``j`` onto scan ``i``: point count and RMS point-to-plane distance (mm)."""
 
     i: int
     j: int
@@ -86,14 +85,15 @@ def overlap_quality(
     scans_after: Sequence[np.ndarray] | None = None,
     overlap_mm: float = 2.0,
     k: int = 10,
-    max_points: int = PAIR_SAMPLE,
+    max_points: int = 20_000,
+    sample: int = PAIR_SAMPLE,
 ) -> list[PairOverlap]:
     """Per consecutive pair (i, i+1): overlap size and RMS point-to-plane distance, before and after.
 
     ``scans_after`` holds the same scans (same order and point order) after correction. The overlap is
-    chosen on the corrected scans when given, so both columns compare the same points. The RMS is a
-    statistic of an even subsample of scan i+1, at most ``max_points`` points (the overlap's ``points`` are
-    counted among them): a few thousand overlapping points put it within a few percent.
+    chosen on the corrected scans when given, so both columns compare the same points: the points of an even
+    subsample of scan i+1 (at most ``max_points``) within ``overlap_mm`` of scan i. The RMS is a statistic of
+    an even subsample of that overlap, at most ``sample`` points (2000 put it within about 2 %).
     """
     if scans_after is not None and len(scans_after) != len(scans_before):
         raise ValueError(f"{len(scans_before)} scans before correction but {len(scans_after)} after")
@@ -109,12 +109,14 @@ def overlap_quality(
         inside = nn < overlap_mm
         if not inside.any():
             continue
-        dist = _plane_distances(b[b_idx[inside]], a, tree_a, k)  # the planes only where they overlap
+        over = b_idx[inside]
+        over = over[:: max(1, len(over) // sample)]  # the planes of a sample of the overlap only
+        dist = _plane_distances(b[over], a, tree_a, k)
         rms_after = None
         if scans_after is not None:
             rms_after = float(np.sqrt(np.mean(dist**2)))
             a0, b0 = np.asarray(scans_before[i], float), np.asarray(scans_before[i + 1], float)
-            dist0 = _plane_distances(b0[b_idx[inside]], a0, cKDTree(a0), k)
+            dist0 = _plane_distances(b0[over], a0, cKDTree(a0), k)
             rms_before = float(np.sqrt(np.mean(dist0**2)))
         else:
             rms_before = float(np.sqrt(np.mean(dist**2)))
