@@ -11,6 +11,7 @@ import datetime as dt
 import json
 import logging
 from collections.abc import Mapping, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -116,6 +117,7 @@ def build_report(
     it came in that frame). The deviation areas are labelled on every map (``#id`` at the centroid).
     """
     cfg = cfg or InspectionConfig()
+    overlap = _in_background(overlap_quality, scans_before, scans_after) if scans_before is not None else None
     tol = result.tolerance
     norm = deviation_norm(tol.lower_mm, tol.upper_mm, cfg.colour_limit_mm)
     every = max(1, int(np.ceil(len(result.points_mm) / cfg.map_max_points)))  # pictures only; numbers use all
@@ -144,7 +146,7 @@ def build_report(
     figures.append(ReportFigure("histogram", caption, hist))
     pairs = []
     if scans_before is not None:
-        pairs = overlap_quality(scans_before, scans_after)
+        pairs = overlap.result()
         png = stitching_png(scans_before, scans_after, pairs)
         if png is not None:
             caption = ("Overlap of neighbouring scans before and after correction (RMS of an even subsample of "
@@ -162,6 +164,15 @@ def build_report(
         "figures": [{"name": f.name, "caption": f.caption, "file": f"figures/{f.name}.png"} for f in figures],
     }
     return Report(data, tuple(figures))
+
+
+def _in_background(fn, *args) -> Future:
+    """``fn(*args)`` on a thread of its own (KD-tree queries and numpy let the caller's figures draw)."""
+    pool = ThreadPoolExecutor(1, thread_name_prefix=fn.__name__)
+    try:
+        return pool.submit(fn, *args)
+    finally:
+        pool.shutdown(wait=False)  # the thread ends with its one task
 
 
 def _coverage_figure(result: InspectionResult, surface: CadSurface, view: View,

@@ -92,8 +92,10 @@ def overlap_quality(
 
     ``scans_after`` holds the same scans (same order and point order) after correction. The overlap is
     chosen on the corrected scans when given, so both columns compare the same points: the points of an even
-    subsample of scan i+1 (at most ``max_points``) within ``overlap_mm`` of scan i. The RMS is a statistic of
-    an even subsample of that overlap, at most ``sample`` points (2000 put it within about 2 %).
+    subsample of scan i+1 (at most ``max_points``) within ``overlap_mm`` of scan i, looked for among
+    ``2 * sample`` of them first and among all where fewer than ``sample / 4`` overlap (then ``points`` is
+    their count, else the count scaled up from the sample's). The RMS is a statistic of an even subsample of
+    the overlap found, at most ``sample`` points (2000 put it within about 2 %).
     """
     if scans_after is not None and len(scans_after) != len(scans_before):
         raise ValueError(f"{len(scans_before)} scans before correction but {len(scans_after)} after")
@@ -105,11 +107,14 @@ def overlap_quality(
             continue
         b_idx = np.arange(len(b))[:: max(1, len(b) // max_points)]
         tree_a = cKDTree(a)
-        nn, _ = tree_a.query(b[b_idx], workers=-1)
-        inside = nn < overlap_mm
-        if not inside.any():
+        look = b_idx[:: max(1, len(b_idx) // (2 * sample))]
+        over = look[tree_a.query(b[look])[0] < overlap_mm]
+        if len(over) < sample // 4 and len(look) < len(b_idx):  # a small overlap: look at every point
+            look = b_idx
+            over = look[tree_a.query(b[look])[0] < overlap_mm]
+        if not len(over):
             continue
-        over = b_idx[inside]
+        count = round(len(over) * len(b_idx) / len(look))
         over = over[:: max(1, len(over) // sample)]  # the planes of a sample of the overlap only
         dist = _plane_distances(b[over], a, tree_a, k)
         rms_after = None
@@ -120,7 +125,7 @@ def overlap_quality(
             rms_before = float(np.sqrt(np.mean(dist0**2)))
         else:
             rms_before = float(np.sqrt(np.mean(dist**2)))
-        pairs.append(PairOverlap(i, i + 1, int(inside.sum()), rms_before, rms_after))
+        pairs.append(PairOverlap(i, i + 1, count, rms_before, rms_after))
     return pairs
 
 
