@@ -17,6 +17,8 @@ import json
 import logging
 import time
 from collections.abc import Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -34,6 +36,7 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 STITCH_VIEW_POINTS = 20_000  # per scan, for the overlap figure
+EXPORT_FILES = {"e57": "cloud.e57", "pose_log": "poses.csv"}
 
 
 def _posed_scans(job: JobSnapshot, points_S: Sequence[np.ndarray] | None = None) -> list[PosedScan]:
@@ -99,18 +102,34 @@ def write_job_outputs(job: JobSnapshot, report: dict, points_S: Sequence[np.ndar
     """Write the E57, the pose log and (when registered to CAD) the inspection report of a finished job
     (``points_S`` and ``tracker_poses`` as for :func:`export_job`).
 
-    Returns the inspection section for the job's ``report.json``: the same numbers as report.html.
+    Returns the inspection section for the job's ``report.json``: the same numbers as report.html. The E57
+    and the pose log are written on a second thread while the inspection computes (both wait on files and
+    numpy, which let the other thread run).
     """
-    job_dir = job.job_dir
     scans = _posed_scans(job, points_S)
-    cloud_W = job.worldmap.points()
-    files = {"e57": "cloud.e57", "pose_log": "poses.csv"}
+    cloud_W = job.worldmap.points()  # once, on this thread
+    with ThreadPoolExecutor(1, thread_name_prefix="e57") as pool:
+        exports = pool.submit(_write_exports, job.job_dir, scans, cloud_W)
+        section = _inspection_section(job, report, scans, cloud_W, tracker_poses)
+        exports.result()  # its error, if any, is the job's
+    return section
+
+
+def _write_exports(job_dir: Path, scans: list[PosedScan], cloud_W: np.ndarray) -> None:
+    """``cloud.e57`` (the scans with points, and the merged cloud ``cloud_W``) and ``poses.csv`` (every scan),
+    frame W, mm."""
     with_points = [s for s in scans if len(s.points_S_mm)]  # E57 has no empty scans; the pose log keeps them
     if len(with_points) < len(scans):
         log.warning("%d scans saw nothing and are left out of the E57", len(scans) - len(with_points))
     if with_points:
-        write_e57(job_dir / files["e57"], with_points, cloud_W if len(cloud_W) else None)
-    write_pose_log(job_dir / files["pose_log"], scans)
+        write_e57(job_dir / EXPORT_FILES["e57"], with_points, cloud_W if len(cloud_W) else None)
+    write_pose_log(job_dir / EXPORT_FILES["pose_log"], scans)
+
+
+def _inspection_section(job: JobSnapshot, report: dict, scans: list[PosedScan], cloud_W: np.ndarray,
+                        tracker_poses: Sequence[np.ndarray] | None) -> dict:
+    """The inspection written into the job folder and its report.json section (or why there is none)."""
+    files = dict(EXPORT_FILES)
     reason = (
         "inspection.in_job is off" if not job.config.inspection.in_job
         else "no registration of the world frame to the CAD frame" if job.T_F_W is None

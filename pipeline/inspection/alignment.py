@@ -21,7 +21,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.spatial import cKDTree
 from tandemscan.config.models import InspectionConfig
 from tandemscan.pipeline.calibration.plate import PlateError, fit_sphere
 from tandemscan.pipeline.geometry import frames as F
@@ -209,6 +208,16 @@ def fit_to_surface(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.n
                      converged)
 
 
+def within(points_mm: np.ndarray, centre_mm, radius_mm: float) -> np.ndarray:
+    """Indices (ascending) of the points no further than ``radius_mm`` from ``centre_mm`` (same frame, mm): a
+    pass over the cloud, cheaper than a KD tree of millions of points asked about a few spheres."""
+    c = np.asarray(centre_mm, float)
+    box = np.flatnonzero(np.abs(points_mm[:, 0] - c[0]) <= radius_mm)
+    box = box[np.all(np.abs(points_mm[box, 1:] - c[1:]) <= radius_mm, axis=1)]
+    diff = points_mm[box] - c
+    return box[np.einsum("ij,ij->i", diff, diff) <= radius_mm * radius_mm]
+
+
 def locate_spheres(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.ndarray, cfg: InspectionConfig,
                    noise_mm: float = 0.05) -> tuple[list[tuple[str, np.ndarray, np.ndarray, float, int]], list[str]]:
     """Fit each configured reference sphere in the cloud (W) among the points within
@@ -218,18 +227,17 @@ def locate_spheres(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.n
     the found ones as (name, CAD centre F, fitted centre W, free radius mm, points) and the missing ones as
     "name: why"."""
     r = 0.5 * cfg.reference_sphere_diameter_mm
-    tree = cKDTree(points_mm)
     T_W_F = F.invert(start_T_F_W)
     found, missing = [], []
     for sphere in cfg.reference_spheres:
         centre_F = np.array(sphere.centre_mm, float)
         guess = F.transform_points(T_W_F, centre_F[None])[0]
-        near = points_mm[tree.query_ball_point(guess, cfg.reference_sphere_search_mm)]
+        near = points_mm[within(points_mm, guess, cfg.reference_sphere_search_mm)]
         if len(near):
             near = near[np.abs(surface.signed_distance(F.transform_points(start_T_F_W, near))) > OFF_SURFACE_MM]
         try:
             fit = fit_sphere(near, r, noise_mm=noise_mm, fixed_radius=True)
-            shell = points_mm[tree.query_ball_point(fit.centre, r + 4.0 * noise_mm + 0.5)]
+            shell = points_mm[within(points_mm, fit.centre, r + 4.0 * noise_mm + 0.5)]
             shell = shell[np.abs(np.linalg.norm(shell - fit.centre, axis=1) - r) < 4.0 * noise_mm + 0.1]
             fit = fit_sphere(shell, r, noise_mm=noise_mm, fixed_radius=True)
         except PlateError as e:
@@ -274,10 +282,8 @@ def sphere_residuals(found: list[tuple[str, np.ndarray, np.ndarray, float, int]]
 def sphere_points(points_mm: np.ndarray, spheres: tuple[SphereResidual, ...], cfg: InspectionConfig) -> np.ndarray:
     """(N,) bool: the points on the fitted spheres or within 3 mm of them (their bases): no part surface."""
     excluded = np.zeros(len(points_mm), bool)
-    if spheres:
-        tree = cKDTree(points_mm)
-        for s in spheres:
-            excluded[tree.query_ball_point(s.centre_W_mm, 0.5 * cfg.reference_sphere_diameter_mm + 3.0)] = True
+    for s in spheres:
+        excluded[within(points_mm, s.centre_W_mm, 0.5 * cfg.reference_sphere_diameter_mm + 3.0)] = True
     return excluded
 
 

@@ -41,25 +41,40 @@ class DeviationArea:
 
 @dataclass(frozen=True)
 class LocalDeviation:
-    """Per point (frame F): the deviation averaged over ``smoothing_mm`` and the point's surface share."""
+    """Per point (frame F): the deviation averaged over ``smoothing_mm`` and the point's surface share; of the
+    cloud's points ``at`` (indices) where only those were asked for."""
 
     smoothed_mm: np.ndarray
     area_mm2: np.ndarray
-    spacing_mm: float  # median nearest-neighbour distance
+    spacing_mm: float  # median nearest-neighbour distance (of the points asked for)
+    at: np.ndarray | None = None  # indices into the cloud; None: every point
 
 
-def local_deviation(points_mm: np.ndarray, deviations_mm: np.ndarray, smoothing_mm: float) -> LocalDeviation:
-    """Average each point's deviation over its neighbours within ``smoothing_mm`` (at most
-    :data:`NEIGHBOURS`, itself included) and estimate its share of the surface (mm^2)."""
+def even_centres(points_mm: np.ndarray, cell_mm: float) -> np.ndarray:
+    """Indices of one point per occupied cube of side ``cell_mm``: an even thinning of a cloud (frame F, mm)."""
+    cell = np.floor(np.asarray(points_mm, float) / cell_mm).astype(np.int64)
+    cell -= cell.min(axis=0)
+    size = cell.max(axis=0) + 1
+    keys = (cell[:, 0] * size[1] + cell[:, 1]) * size[2] + cell[:, 2]
+    return np.unique(keys, return_index=True)[1]
+
+
+def local_deviation(points_mm: np.ndarray, deviations_mm: np.ndarray, smoothing_mm: float,
+                    at: np.ndarray | None = None, tree: cKDTree | None = None, neighbours: int = NEIGHBOURS
+                    ) -> LocalDeviation:
+    """Average each point's deviation over its neighbours within ``smoothing_mm`` (at most ``neighbours``,
+    itself included) and estimate its share of the surface (mm^2); only of the points ``at`` (indices)
+    when given, their neighbours from the whole cloud (``tree``: its KD tree, if built)."""
     p = np.asarray(points_mm, dtype=np.float64)
     d = np.asarray(deviations_mm, dtype=np.float64)
-    tree = cKDTree(p)
-    k = min(NEIGHBOURS, len(p))
-    smoothed = np.empty(len(p))
-    share = np.empty(len(p))
-    nearest = np.empty(len(p))
-    for lo in range(0, len(p), _CHUNK):
-        dist, idx = tree.query(p[lo:lo + _CHUNK], k=k, workers=-1)
+    tree = tree or cKDTree(p)
+    q = p if at is None else p[at]
+    k = min(neighbours, len(p))
+    smoothed = np.empty(len(q))
+    share = np.empty(len(q))
+    nearest = np.empty(len(q))
+    for lo in range(0, len(q), _CHUNK):
+        dist, idx = tree.query(q[lo:lo + _CHUNK], k=k, workers=-1)
         dist, idx = dist.reshape(-1, k), idx.reshape(-1, k)
         inside = dist <= smoothing_mm
         smoothed[lo:lo + _CHUNK] = (d[idx] * inside).sum(axis=1) / inside.sum(axis=1)
@@ -67,7 +82,34 @@ def local_deviation(points_mm: np.ndarray, deviations_mm: np.ndarray, smoothing_
         r_mid = 0.5 * (dist[:, kk] + dist[:, kk + 1]) if kk >= 1 else dist[:, -1]
         share[lo:lo + _CHUNK] = np.pi * r_mid**2 / (max(kk, 0) + 1)
         nearest[lo:lo + _CHUNK] = dist[:, min(1, k - 1)]
-    return LocalDeviation(smoothed, share, float(np.median(nearest)))
+    return LocalDeviation(smoothed, share, float(np.median(nearest)) if len(q) else 0.0, at)
+
+
+THIN_ABOVE_POINTS = 1_000_000  # larger clouds are screened on an even thinning first (:func:`_screened`)
+SCREEN_CELL = 0.75  # the screening keeps one point per cube of this many smoothing radii
+SCREEN_NEIGHBOURS = 16  # and averages over this many neighbours (within the smoothing radius)
+
+
+def _screened(p: np.ndarray, d: np.ndarray, lower_mm: float, upper_mm: float, smoothing_mm: float
+              ) -> LocalDeviation:
+    """:func:`local_deviation` of the points that can be beyond the band: one point per cube of side
+    :data:`SCREEN_CELL` ``* smoothing_mm`` is averaged first, over its :data:`SCREEN_NEIGHBOURS` nearest
+    points within ``smoothing_mm`` (noise 1/4 of a point's, half the smoothing radius); every point within
+    that cube's diagonal of one whose average is beyond the band narrowed by half its half-width is then
+    averaged itself, as without the screening. The others (the surface within the band by that margin, five
+    times the screening's noise at 0.05 mm per point) are left out; the spacing is the screening points'."""
+    tree = cKDTree(p)
+    cell = SCREEN_CELL * smoothing_mm
+    centres = even_centres(p, cell)
+    coarse = local_deviation(p, d, smoothing_mm, centres, tree, SCREEN_NEIGHBOURS)
+    margin = 0.25 * (upper_mm - lower_mm)
+    near = centres[(coarse.smoothed_mm > upper_mm - margin) | (coarse.smoothed_mm < lower_mm + margin)]
+    at = np.zeros(0, np.int64)
+    if len(near):
+        hits = tree.query_ball_point(p[near], cell * np.sqrt(3.0), workers=-1, return_sorted=False)
+        at = np.unique(np.concatenate([np.asarray(h, np.int64) for h in hits]))
+    fine = local_deviation(p, d, smoothing_mm, at, tree)
+    return LocalDeviation(fine.smoothed_mm, fine.area_mm2, coarse.spacing_mm, at)
 
 
 def find_deviation_areas(
@@ -78,19 +120,26 @@ def find_deviation_areas(
     smoothing_mm: float = 5.0,
     min_area_mm2: float = 50.0,
     local: LocalDeviation | None = None,
+    screen: bool | None = None,
 ) -> tuple[DeviationArea, ...]:
     """The areas beyond ``[lower_mm, upper_mm]`` of the cloud (frame F), largest |extreme| first, with ids
-    1, 2, ... in that order; ``local`` may pass a :func:`local_deviation` already computed."""
+    1, 2, ... in that order; ``local`` may pass a :func:`local_deviation` already computed. ``screen``
+    (default: above :data:`THIN_ABOVE_POINTS` points) averages only the points near where an even thinning
+    of the cloud comes near the band (:func:`_screened`; docs/inspection.md, "Deviation areas")."""
     p = np.asarray(points_mm, dtype=np.float64)
     d = np.asarray(deviations_mm, dtype=np.float64)
-    local = local or local_deviation(p, d, smoothing_mm)
+    if screen is None:
+        screen = len(p) > THIN_ABOVE_POINTS
+    if local is None:
+        local = _screened(p, d, lower_mm, upper_mm, smoothing_mm) if screen else local_deviation(p, d, smoothing_mm)
     link_mm = max(3.0 * local.spacing_mm, smoothing_mm)
+    at = np.arange(len(p)) if local.at is None else local.at
     found = []
     for side, beyond in (("upper", local.smoothed_mm > upper_mm), ("lower", local.smoothed_mm < lower_mm)):
         ids = np.nonzero(beyond)[0]
         if len(ids) == 0:
             continue
-        pairs = cKDTree(p[ids]).query_pairs(link_mm, output_type="ndarray")
+        pairs = cKDTree(p[at[ids]]).query_pairs(link_mm, output_type="ndarray")
         graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(ids), len(ids)))
         n, labels = connected_components(graph, directed=False)
         for c in range(n):
@@ -101,8 +150,8 @@ def find_deviation_areas(
                 continue
             s = local.smoothed_mm[members]
             extreme = float(s.max() if side == "upper" else s.min())
-            centroid = (p[members] * w[:, None]).sum(axis=0) / area
-            found.append((side, tuple(float(v) for v in centroid), area, extreme, float(d[members].mean()),
+            centroid = (p[at[members]] * w[:, None]).sum(axis=0) / area
+            found.append((side, tuple(float(v) for v in centroid), area, extreme, float(d[at[members]].mean()),
                           len(members)))
     found.sort(key=lambda a: -abs(a[3]))
     return tuple(DeviationArea(i + 1, *a) for i, a in enumerate(found))

@@ -275,20 +275,26 @@ NOT_MEASURED_RGB = np.array([0.85, 0.25, 0.20])  # and without
 MEASURED_WITHIN_MM = 1.0  # a triangle counts as measured when a cloud point lies this close to it
 
 
-def measured_triangles(surface: CadSurface, points_mm: np.ndarray) -> np.ndarray:
+def measured_triangles(surface: CadSurface, points_mm: np.ndarray | None = None, *,
+                       triangle_ids: np.ndarray | None = None, signed_mm: np.ndarray | None = None) -> np.ndarray:
     """``(T,)`` bool per CAD triangle: some point of the cloud (frame F, mm) lies within
-    ``MEASURED_WITHIN_MM`` of it (closest triangle)."""
-    closest = surface.closest(np.asarray(points_mm, float))
+    ``MEASURED_WITHIN_MM`` of it (closest triangle). The points' closest triangles and signed distances
+    may be given instead (an inspection has them: no second query)."""
+    if triangle_ids is None or signed_mm is None:
+        closest = surface.closest(np.asarray(points_mm, float))
+        triangle_ids, signed_mm = closest.triangle_ids, closest.signed_mm
     measured = np.zeros(len(surface.mesh.triangles), bool)
-    measured[closest.triangle_ids[np.abs(closest.signed_mm) <= MEASURED_WITHIN_MM]] = True
+    measured[np.asarray(triangle_ids)[np.abs(signed_mm) <= MEASURED_WITHIN_MM]] = True
     return measured
 
 
-def coverage_map_png(surface: CadSurface, points_mm: np.ndarray, view: View, width_px: int = 900) -> bytes:
+def coverage_map_png(surface: CadSurface, points_mm: np.ndarray | None, view: View, width_px: int = 900,
+                     measured: np.ndarray | None = None) -> bytes:
     """The CAD surface seen along ``view``, each triangle green where the cloud (frame F, mm) measured it
-    (:func:`measured_triangles`) and red where it did not, shaded as the deviation maps; the title gives the
-    measured share of the mesh area (docs/inspection.md, "Colour maps")."""
-    measured = measured_triangles(surface, points_mm)
+    (:func:`measured_triangles`, or ``measured`` as it returns) and red where it did not, shaded as the
+    deviation maps; the title gives the measured share of the mesh area (docs/inspection.md, "Colour maps")."""
+    if measured is None:
+        measured = measured_triangles(surface, points_mm)
     v = np.asarray(surface.mesh.vertices)[np.asarray(surface.mesh.triangles)]
     area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
     share = 100.0 * float(area[measured].sum() / max(area.sum(), 1e-12))

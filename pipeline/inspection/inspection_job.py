@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -69,18 +70,20 @@ def run_inspection(
     cfg = cfg or InspectionConfig()
     surface = mesh if isinstance(mesh, CadSurface) else CadSurface(mesh)
     result = inspect_cloud(points_mm, surface, cfg)
-    report = build_report(
-        result, surface, cfg, title=title, meta=meta, accuracy=accuracy,
-        scans_before=scans_before, scans_after=scans_after, alignment=alignment,
-    )
-    html, js = write_report(report, out_dir, json_name)
-    ply = write_ply(
-        Path(out_dir) / DEVIATION_PLY,
-        result.points_mm,
-        normals if normals is not None else result.cad_normals,
-        {"deviation_mm": result.deviations_mm},
-    )
-    return InspectionOutputs(result, report.data, html, js, ply)
+    with ThreadPoolExecutor(1, thread_name_prefix="deviation-ply") as pool:  # the file while the figures draw
+        ply = pool.submit(
+            write_ply,
+            Path(out_dir) / DEVIATION_PLY,
+            result.points_mm,
+            normals if normals is not None else result.cad_normals,
+            {"deviation_mm": result.deviations_mm},
+        )
+        report = build_report(
+            result, surface, cfg, title=title, meta=meta, accuracy=accuracy,
+            scans_before=scans_before, scans_after=scans_after, alignment=alignment,
+        )
+        html, js = write_report(report, out_dir, json_name)
+    return InspectionOutputs(result, report.data, html, js, ply.result())
 
 
 def align_and_inspect(

@@ -11,6 +11,7 @@ import datetime as dt
 import json
 import logging
 from collections.abc import Mapping, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -28,10 +29,11 @@ from tandemscan.pipeline.inspection.deviation_maps import (
     deviation_norm,
     facing_isometric,
     histogram_png,
+    measured_triangles,
     typical_spacing,
 )
 from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionResult
-from tandemscan.pipeline.inspection.stitch_quality import overlap_quality, stitching_png
+from tandemscan.pipeline.inspection.stitch_quality import PAIR_SAMPLE, overlap_quality, stitching_png
 
 log = logging.getLogger(__name__)
 
@@ -115,6 +117,7 @@ def build_report(
     it came in that frame). The deviation areas are labelled on every map (``#id`` at the centroid).
     """
     cfg = cfg or InspectionConfig()
+    overlap = _in_background(overlap_quality, scans_before, scans_after) if scans_before is not None else None
     tol = result.tolerance
     norm = deviation_norm(tol.lower_mm, tol.upper_mm, cfg.colour_limit_mm)
     every = max(1, int(np.ceil(len(result.points_mm) / cfg.map_max_points)))  # pictures only; numbers use all
@@ -143,10 +146,12 @@ def build_report(
     figures.append(ReportFigure("histogram", caption, hist))
     pairs = []
     if scans_before is not None:
-        pairs = overlap_quality(scans_before, scans_after)
+        pairs = overlap.result()
         png = stitching_png(scans_before, scans_after, pairs)
         if png is not None:
-            figures.append(ReportFigure("stitching", "Overlap of neighbouring scans before and after correction", png))
+            caption = ("Overlap of neighbouring scans before and after correction (RMS of an even subsample of "
+                       f"at most {PAIR_SAMPLE} overlap points a pair)")
+            figures.append(ReportFigure("stitching", caption, png))
     data = {
         "title": title,
         "created_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
@@ -161,10 +166,21 @@ def build_report(
     return Report(data, tuple(figures))
 
 
+def _in_background(fn, *args) -> Future:
+    """``fn(*args)`` on a thread of its own (KD-tree queries and numpy let the caller's figures draw)."""
+    pool = ThreadPoolExecutor(1, thread_name_prefix=fn.__name__)
+    try:
+        return pool.submit(fn, *args)
+    finally:
+        pool.shutdown(wait=False)  # the thread ends with its one task
+
+
 def _coverage_figure(result: InspectionResult, surface: CadSurface, view: View,
                      cfg: InspectionConfig) -> ReportFigure:
     """The coverage map: measured vs not measured on the CAD surface, in the first view."""
-    png = coverage_map_png(surface, result.points_mm, view, cfg.map_width_px)
+    measured = None if result.triangle_ids is None else measured_triangles(
+        surface, triangle_ids=result.triangle_ids, signed_mm=result.deviations_mm)
+    png = coverage_map_png(surface, result.points_mm, view, cfg.map_width_px, measured)
     return ReportFigure("coverage", f"Coverage of the CAD surface (measured vs not measured), {view.name}", png)
 
 

@@ -2,7 +2,8 @@
 
 For each pair of consecutive scans (world frame, mm) the overlap is the points of the later scan whose
 nearest neighbour in the earlier one is closer than ``overlap_mm``; their distance to the earlier scan's
-local plane (PCA of its k nearest points) measures the layering that a stitching error leaves. The picture
+local plane (PCA of its k nearest points, normal in closed form) measures the layering that a stitching
+error leaves; it is evaluated on an even subsample of the overlap (:data:`PAIR_SAMPLE` points). The picture
 is the paper's cross-section view: a thin slice across the seam of the pair with the most overlap, each
 scan's profile drawn relative to a quadratic fitted through the corrected points, before and after.
 """
@@ -17,6 +18,8 @@ from matplotlib.figure import Figure
 from scipy.spatial import cKDTree
 from tandemscan.pipeline.inspection.deviation_maps import png_bytes
 
+PAIR_SAMPLE = 2000  # overlap points of a pair the RMS is evaluated on, at most (an even subsample)
+
 
 @dataclass(frozen=True)
 class PairOverlap:
@@ -29,14 +32,58 @@ class PairOverlap:
     rms_after_mm: float | None
 
 
-def _plane_distances(points: np.ndarray, reference: np.ndarray, tree: cKDTree, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """(nearest-neighbour distance, point-to-local-plane distance) of ``points`` to ``reference``."""
-    nn, idx = tree.query(points, k=max(3, min(k, len(reference))))
+def smallest_eigenvectors(cov: np.ndarray) -> np.ndarray:
+    """(N, 3) unit eigenvector of the smallest eigenvalue of each symmetric (N, 3, 3) matrix ``cov`` (a local
+    plane's normal from its scatter matrix), in closed form: the eigenvalue by the trigonometric solution of the
+    characteristic cubic, the vector as the largest cross product of two rows of ``cov - lambda I``. Where that
+    is ill-defined (the two smallest eigenvalues within about 1e-6 of the largest: no plane, any normal fits
+    as well) the matrices go to ``numpy.linalg.eigh``. The sign is arbitrary."""
+    c = np.asarray(cov, dtype=np.float64)
+    a, b, z = c[:, 0, 0], c[:, 1, 1], c[:, 2, 2]
+    d, e, f = c[:, 0, 1], c[:, 0, 2], c[:, 1, 2]
+    q = (a + b + z) / 3.0
+    off = d * d + e * e + f * f
+    p = np.sqrt(((a - q) ** 2 + (b - q) ** 2 + (z - q) ** 2 + 2.0 * off) / 6.0)
+    ps = np.where(p > 0.0, p, 1.0)
+    ba, bb, bz = (a - q) / ps, (b - q) / ps, (z - q) / ps
+    bd, be, bf = d / ps, e / ps, f / ps
+    det_b = ba * (bb * bz - bf * bf) - bd * (bd * bz - bf * be) + be * (bd * bf - bb * be)
+    phi = np.arccos(np.clip(0.5 * det_b, -1.0, 1.0)) / 3.0
+    lam = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)  # the smallest root
+    r0 = np.stack([a - lam, d, e], axis=1)
+    r1 = np.stack([d, b - lam, f], axis=1)
+    r2 = np.stack([e, f, z - lam], axis=1)
+    cands = np.stack([np.cross(r0, r1), np.cross(r0, r2), np.cross(r1, r2)], axis=1)  # (N, 3, 3)
+    norms = np.linalg.norm(cands, axis=2)
+    best = np.argmax(norms, axis=1)
+    rows = np.arange(len(c))
+    big = norms[rows, best]
+    out = cands[rows, best] / np.where(big > 0.0, big, 1.0)[:, None]
+    scale = np.maximum(q * 3.0, np.finfo(float).tiny)  # trace: the largest eigenvalue's size
+    bad = ~(big > 1e-12 * scale * scale) | ~np.isfinite(out).all(axis=1)
+    if bad.any():
+        out[bad] = np.linalg.eigh(c[bad])[1][:, :, 0]
+    return out
+
+
+def _tree(points: np.ndarray) -> cKDTree:
+    """A KD tree of one scan's points: built median-free and uncompacted, which builds twice and answers
+    nearest-neighbour queries three times as fast on scans of 20 000 to 35 000 points as the defaults."""
+    return cKDTree(points, balanced_tree=False, compact_nodes=False)
+
+
+def _plane_distances(points: np.ndarray, reference: np.ndarray, tree: cKDTree, k: int) -> np.ndarray:
+    """Point-to-local-plane distance of ``points`` to ``reference`` (``tree`` is its KD tree): the plane
+    through the mean of the k nearest reference points, normal to their least spread."""
+    _, idx = tree.query(points, k=max(3, min(k, len(reference))), workers=-1)
     nb = reference[idx]  # (N, k, 3)
     centre = nb.mean(axis=1)
     centred = nb - centre[:, None]
-    _, vecs = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred))
-    return nn[:, 0], np.abs(np.einsum("ni,ni->n", points - centre, vecs[:, :, 0]))
+    cov = np.empty((len(points), 3, 3))
+    for i in range(3):
+        for j in range(i, 3):
+            cov[:, i, j] = cov[:, j, i] = np.einsum("nk,nk->n", centred[:, :, i], centred[:, :, j])
+    return np.abs(np.einsum("ni,ni->n", points - centre, smallest_eigenvectors(cov)))
 
 
 def overlap_quality(
@@ -45,11 +92,16 @@ def overlap_quality(
     overlap_mm: float = 2.0,
     k: int = 10,
     max_points: int = 20_000,
+    sample: int = PAIR_SAMPLE,
 ) -> list[PairOverlap]:
     """Per consecutive pair (i, i+1): overlap size and RMS point-to-plane distance, before and after.
 
     ``scans_after`` holds the same scans (same order and point order) after correction. The overlap is
-    chosen on the corrected scans when given, so both columns compare the same points.
+    chosen on the corrected scans when given, so both columns compare the same points: the points of an even
+    subsample of scan i+1 (at most ``max_points``) within ``overlap_mm`` of scan i, looked for among
+    ``2 * sample`` of them first and among all where fewer than ``sample / 4`` overlap (then ``points`` is
+    their count, else the count scaled up from the sample's). The RMS is a statistic of an even subsample of
+    the overlap found, at most ``sample`` points (2000 put it within about 2 %).
     """
     if scans_after is not None and len(scans_after) != len(scans_before):
         raise ValueError(f"{len(scans_before)} scans before correction but {len(scans_after)} after")
@@ -60,27 +112,33 @@ def overlap_quality(
         if len(a) < 3 or len(b) == 0:
             continue
         b_idx = np.arange(len(b))[:: max(1, len(b) // max_points)]
-        tree_a = cKDTree(a)
-        nn, dist = _plane_distances(b[b_idx], a, tree_a, k)
-        inside = nn < overlap_mm
-        if not inside.any():
+        tree_a = _tree(a)
+        look = b_idx[:: max(1, len(b_idx) // (2 * sample))]
+        over = look[tree_a.query(b[look])[0] < overlap_mm]
+        if len(over) < sample // 4 and len(look) < len(b_idx):  # a small overlap: look at every point
+            look = b_idx
+            over = look[tree_a.query(b[look])[0] < overlap_mm]
+        if not len(over):
             continue
+        count = round(len(over) * len(b_idx) / len(look))
+        over = over[:: max(1, len(over) // sample)]  # the planes of a sample of the overlap only
+        dist = _plane_distances(b[over], a, tree_a, k)
         rms_after = None
         if scans_after is not None:
-            rms_after = float(np.sqrt(np.mean(dist[inside] ** 2)))
+            rms_after = float(np.sqrt(np.mean(dist**2)))
             a0, b0 = np.asarray(scans_before[i], float), np.asarray(scans_before[i + 1], float)
-            _, dist0 = _plane_distances(b0[b_idx][inside], a0, cKDTree(a0), k)
+            dist0 = _plane_distances(b0[over], a0, _tree(a0), k)
             rms_before = float(np.sqrt(np.mean(dist0**2)))
         else:
-            rms_before = float(np.sqrt(np.mean(dist[inside] ** 2)))
-        pairs.append(PairOverlap(i, i + 1, int(inside.sum()), rms_before, rms_after))
+            rms_before = float(np.sqrt(np.mean(dist**2)))
+        pairs.append(PairOverlap(i, i + 1, count, rms_before, rms_after))
     return pairs
 
 
 def _section(a: np.ndarray, b: np.ndarray, overlap_mm: float):
     """Frame of a slice across the seam of scans a and b: (centre, along-seam-normal u, surface normal n,
     slice normal w), or None when they do not overlap."""
-    nn, _ = cKDTree(a).query(b)
+    nn, _ = _tree(a).query(b)
     ov = b[nn < overlap_mm]
     if len(ov) < 10:
         return None

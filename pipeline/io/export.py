@@ -79,7 +79,7 @@ def write_ply(
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("wb") as f:
         f.write("\n".join(header).encode("ascii"))
-        f.write(data.tobytes())
+        data.tofile(f)  # no second copy of the records
     log.info("wrote %s (%d points, fields %s)", path, n, [f[0] for f in fields])
     return path
 

@@ -1,0 +1,129 @@
+"""The shortcuts that keep a whole part's inspection fast give the answers of the long way: the closed-form
+plane normal against numpy's eigh, the first-order best-fit deviations against a new query, the deviation
+areas found on thinned centres against every point, and the coverage from the inspection's own closest
+triangles against a new query."""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+import pytest
+from tandemscan.pipeline.geometry.frames import from_rotvec, transform_points
+from tandemscan.pipeline.inspection.deviation_areas import even_centres, find_deviation_areas
+from tandemscan.pipeline.inspection.deviation_maps import measured_triangles
+from tandemscan.pipeline.inspection.inspect import SMALL_MOVE_MM, CadSurface, signed_distance_moved
+from tandemscan.pipeline.inspection.stitch_quality import smallest_eigenvectors
+from test_deviation_areas import bell, plane
+
+
+def _scatter(nb: np.ndarray) -> np.ndarray:
+    c = nb - nb.mean(axis=1, keepdims=True)
+    return np.einsum("nki,nkj->nij", c, c)
+
+
+def _aligned(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    return np.abs(np.einsum("ni,ni->n", u, v))
+
+
+def test_closed_form_plane_normal_is_eighs_smallest_eigenvector():
+    rng = np.random.default_rng(0)
+    n = 5000
+    # noisy local planes in every orientation, far from the origin, with a shape from flat to nearly isotropic
+    spread = np.c_[rng.uniform(0.5, 3.0, n), rng.uniform(0.5, 3.0, n), rng.uniform(0.0, 0.4, n)]
+    local = rng.normal(size=(n, 10, 3)) * spread[:, None, :]
+    rot = np.linalg.qr(rng.normal(size=(n, 3, 3)))[0]
+    nb = np.einsum("nij,nkj->nki", rot, local) + rng.uniform(-2000, 2000, (n, 1, 3))
+    cov = _scatter(nb)
+    ours = smallest_eigenvectors(cov)
+    vals, vecs = np.linalg.eigh(cov)
+    np.testing.assert_allclose(np.linalg.norm(ours, axis=1), 1.0, atol=1e-12)
+    gap = (vals[:, 1] - vals[:, 0]) / vals[:, 2]
+    well = gap > 1e-3  # where the smallest eigenvalue is separated the vector is defined (up to sign)
+    assert well.mean() > 0.95
+    assert _aligned(ours[well], vecs[well, :, 0]).min() > 1 - 1e-8
+    # the residual of the eigen-equation holds everywhere, separated or not
+    lam = np.einsum("ni,nij,nj->n", ours, cov, ours)
+    assert np.abs(lam - vals[:, 0]).max() <= 1e-9 * vals[:, 2].max() + 1e-12 * np.abs(vals[:, 2]).max()
+
+
+def test_closed_form_plane_normal_on_degenerate_neighbourhoods():
+    line = np.c_[np.linspace(0, 5, 10), np.zeros(10), np.zeros(10)] + [100.0, 50.0, 3.0]
+    same = np.tile([[7.0, -3.0, 2.0]], (10, 1))
+    flat = np.c_[np.random.default_rng(1).uniform(0, 3, (10, 2)), np.zeros(10)]
+    cov = _scatter(np.stack([line, same, flat]))
+    ours = smallest_eigenvectors(cov)
+    assert np.isfinite(ours).all()
+    np.testing.assert_allclose(np.linalg.norm(ours, axis=1), 1.0, atol=1e-12)
+    assert abs(ours[0, 0]) < 1e-9  # any normal of a line is across it
+    assert abs(ours[2, 2]) == pytest.approx(1.0, abs=1e-12)
+
+
+def _on_surface(mesh, rng, n):
+    v = np.asarray(mesh.vertices)[np.asarray(mesh.triangles)]
+    area = np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+    t = rng.choice(len(v), n, p=area / area.sum())
+    r = rng.uniform(size=(n, 2))
+    r = np.where(r.sum(axis=1, keepdims=True) > 1, 1 - r, r)
+    return v[t, 0] + r[:, :1] * (v[t, 1] - v[t, 0]) + r[:, 1:] * (v[t, 2] - v[t, 0])
+
+
+def test_small_best_fit_move_updates_deviations_to_first_order():
+    mesh = o3d.geometry.TriangleMesh.create_sphere(radius=400.0, resolution=60)
+    mesh.translate([1400.0, -650.0, 900.0])
+    box = o3d.geometry.TriangleMesh.create_box(600.0, 300.0, 200.0)  # edges and corners as well as faces
+    box.translate([300.0, 200.0, -100.0])
+    rng = np.random.default_rng(2)
+    for m in (mesh, box):
+        surface = CadSurface(m)
+        pts = _on_surface(m, rng, 40_000) + rng.normal(0.0, 0.05, (40_000, 3))
+        before = surface.closest(pts)
+        T = from_rotvec([0.001, -0.0005, 0.0008], [2e-6, -1e-6, 1.5e-6])  # microns over the part
+        assert np.linalg.norm(transform_points(T, pts) - pts, axis=1).max() < SMALL_MOVE_MM
+        ours = signed_distance_moved(surface, pts, T, before)
+        truth = surface.signed_distance(transform_points(T, pts))
+        assert np.abs(ours - truth).max() < 2e-4  # float32 rounding of the scene: about 0.1 um
+        big = from_rotvec([0.5, 0.0, 0.0], [0.0, 0.0, 0.0])  # half a millimetre: queried anew
+        np.testing.assert_array_equal(signed_distance_moved(surface, pts, big, before),
+                                      surface.signed_distance(transform_points(big, pts)))
+
+
+def test_deviation_areas_screened_on_a_thinning_are_those_of_every_point():
+    rng = np.random.default_rng(0)
+    p, d = plane(rng, noise=0.04)
+    d += (-bell(p, (100.0, 100.0), 30.0, 0.3) + bell(p, (220.0, 200.0), 20.0, 0.2)
+          + bell(p, (60.0, 240.0), 9.0, 0.25) - bell(p, (250.0, 60.0), 7.0, 0.3))
+    full = find_deviation_areas(p, d, -0.1, 0.1, smoothing_mm=4.0, min_area_mm2=50.0, screen=False)
+    screened = find_deviation_areas(p, d, -0.1, 0.1, smoothing_mm=4.0, min_area_mm2=50.0, screen=True)
+    assert len(full) == 4
+    assert [(a.id, a.side, a.points) for a in screened] == [(a.id, a.side, a.points) for a in full]
+    for a, b in zip(full, screened, strict=True):
+        np.testing.assert_allclose(b.centroid_mm, a.centroid_mm, atol=1e-9)
+        assert (b.area_mm2, b.extreme_mm, b.mean_mm) == pytest.approx((a.area_mm2, a.extreme_mm, a.mean_mm), abs=1e-12)
+    assert find_deviation_areas(p, 0.5 * d, -0.1, 0.1, smoothing_mm=4.0, screen=True) == find_deviation_areas(
+        p, 0.5 * d, -0.1, 0.1, smoothing_mm=4.0, screen=False)
+
+
+def test_even_centres_keep_one_point_per_cube():
+    p = np.random.default_rng(4).uniform(-50, 50, (20_000, 3))
+    first = even_centres(p, 10.0)
+    keys = np.floor(p / 10.0)
+    assert len(first) == 1000 == len(np.unique(keys[first], axis=0))  # 10 x 10 x 10 cubes, all occupied
+
+
+def test_coverage_from_the_inspections_closest_triangles_is_a_new_querys():
+    box = CadSurface(o3d.geometry.TriangleMesh.create_box(300.0, 300.0, 50.0))
+    rng = np.random.default_rng(5)
+    pts = rng.uniform([0, 0, 49.0], [300, 150, 51.5], (20_000, 3))
+    c = box.closest(pts)
+    np.testing.assert_array_equal(measured_triangles(box, triangle_ids=c.triangle_ids, signed_mm=c.signed_mm),
+                                  measured_triangles(box, pts))
+
+
+def test_points_within_a_sphere_are_the_kd_trees():
+    from scipy.spatial import cKDTree
+    from tandemscan.pipeline.inspection.alignment import within
+
+    p = np.random.default_rng(6).uniform(-100, 100, (50_000, 3)) + [1400.0, -650.0, 900.0]
+    tree = cKDTree(p)
+    for centre, r in (([1400.0, -650.0, 900.0], 30.0), ([1490.0, -560.0, 990.0], 25.0), ([0.0, 0.0, 0.0], 5.0)):
+        np.testing.assert_array_equal(within(p, centre, r), sorted(tree.query_ball_point(centre, r)))
