@@ -153,6 +153,10 @@ class TrackerConfig(_Strict):
                              "joints replayed after the tracker moved): the new station follows from the target "
                              "positions over the arm's reach, not one target's orientation; 1 = the target where "
                              "the arm stands (docs/architecture.md, \"Coordinate transfers\")")
+    transfer_arm_reach_mm: float = Field(
+        300.0, gt=0, description="how far (mm) the extra arm poses of a transfer move the scanner across its view "
+                                 "from the transfer's own pose (a square around it), besides the plan's scan poses "
+                                 "there")
     still_noise_fraction: float = Field(
         0.5, ge=0, le=1, description="share of one reading's noise variance that every reading of one still period "
                                      "shares (air turbulence, refraction, the camera's calibration residual where "

@@ -33,6 +33,7 @@ from tandemscan.drivers.interfaces import ChassisPose, TrackerReading
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.kinematics import ArmKinematics
 from tandemscan.pipeline.geometry.uncertainty import arm_repeatability_covariance, transfer_covariance
+from tandemscan.pipeline.planning.ik import default_ik
 from tandemscan.pipeline.planning.plan import MoveArm, MoveLift, MoveMeasure, MoveTracker, Plan, Scan
 from tandemscan.pipeline.stitching.installation import Installation
 
@@ -132,43 +133,69 @@ def transfer_joints(plan: Plan, i: int, committed: Mapping[int, dict]) -> tuple[
     return q0, others
 
 
-def _visible(T_C_T: np.ndarray, tracker: TrackerConfig, margin_deg: float) -> bool:
-    """The tracker model's field of view, range and target cone, ``margin_deg`` inside their edges (mm, camera)."""
+# The target predicted this far (deg) inside the edges of the tracker's view and target cone: the prediction
+# (kinematics, installation, odometry) errs by far less, and the part's shadow is found when read.
+_VIEW_MARGIN_DEG = 1.0
+# An extra pose whose joints turn farther than this (rad) from the transfer's own is left out: a joint move that
+# large would swing the scanner through unplanned space.
+_MAX_JOINT_TRAVEL_RAD = np.radians(60.0)
+
+
+def _visible(T_C_T: np.ndarray, tracker: TrackerConfig) -> bool:
+    """The tracker model's field of view, range and target cone, ``_VIEW_MARGIN_DEG`` inside their edges (mm,
+    camera)."""
     p = T_C_T[:3, 3]
     d = float(np.linalg.norm(p))
     if d > tracker.range_max_mm or p[2] <= 0:
         return False
     h, v = np.degrees(np.arctan2(abs(p[0]), p[2])), np.degrees(np.arctan2(abs(p[1]), p[2]))
     facing = np.degrees(np.arccos(np.clip(-T_C_T[:3, 2] @ p / d, -1, 1)))
-    return bool(h <= tracker.fov_horizontal_deg / 2 - margin_deg and v <= tracker.fov_vertical_deg / 2 - margin_deg
-                and facing <= tracker.target_view_cone_deg - margin_deg)
+    m = _VIEW_MARGIN_DEG
+    return bool(h <= tracker.fov_horizontal_deg / 2 - m and v <= tracker.fov_vertical_deg / 2 - m
+                and facing <= tracker.target_view_cone_deg - m)
+
+
+def offset_poses(q0: np.ndarray, config: CellConfig, installation: Installation) -> list[np.ndarray]:
+    """Joints (rad) that move the scanner, from its pose at ``q0``, by ``tracker.transfer_arm_reach_mm`` across
+    its view (its own x and y, the view axis and orientation kept: the standoff to the part and the target's
+    facing stay), to the 8 points of a square around it; those the arm cannot reach near ``q0`` are left out."""
+    reach = config.tracker.transfer_arm_reach_mm
+    ik = default_ik(config.arm)
+    T_B_S = ArmKinematics(config.arm).forward(q0) @ installation.T_E_S
+    T_S_E = F.invert(installation.T_E_S)
+    out = []
+    for dx, dy in ((1, 1), (-1, -1), (1, -1), (-1, 1), (1, 0), (-1, 0), (0, 1), (0, -1)):
+        shift = F.make_transform(np.eye(3), (dx * reach, dy * reach, 0.0))
+        q = ik(T_B_S @ shift @ T_S_E, q0)
+        if q is not None and np.max(np.abs(q - q0)) <= _MAX_JOINT_TRAVEL_RAD:
+            out.append(np.asarray(q, float))
+    return out
 
 
 def choose_transfer_poses(q0: np.ndarray, others: list[np.ndarray], T_C_T0: np.ndarray, count: int,
                           config: CellConfig, installation: Installation, odometry: Odometry, step: MoveTracker
                           ) -> tuple[list[np.ndarray], list[dict]]:
-    """Up to ``count - 1`` of ``others`` (joints rad) to read the target at besides ``q0``, where the target
-    reads ``T_C_T0`` (mm) now: within the joint limits, the target predicted inside the tracker's view from the
-    station now and the one ``step`` drives to (from the arm's kinematics, the installation and the odometry
-    ``odometry`` of the tracking chassis; ``planning.tracker_margin_deg`` kept off the edges; the part's shadow is
-    found when read), chosen one by one farthest from those chosen (the widest baseline). Returns the poses in
-    reading order and the candidates left out (joints and why)."""
+    """Up to ``count - 1`` poses (joints rad) to read the target at besides ``q0``, where the target reads
+    ``T_C_T0`` (mm) now: of ``others`` (the plan's scan poses here) and :func:`offset_poses`, those within the
+    joint limits whose target is predicted inside the tracker's view from the station now and from the one
+    ``step`` drives to (the arm's kinematics, the installation and the tracking chassis' odometry ``odometry``;
+    the part's shadow is found when read), chosen one by one farthest from those chosen (the widest baseline).
+    Returns the poses in reading order and the candidates left out (joints and why)."""
     kin = ArmKinematics(config.arm)
     T_E_T = installation.T_E_T
     T_T0_B = F.invert(kin.forward(q0) @ T_E_T)
     T_V1_C = installation.T_V1_C
     T_C_Cn = F.compose(F.invert(T_V1_C), F.invert(F.planar_pose(*odometry)),
                        F.planar_pose(step.x_mm, step.y_mm, step.heading_rad), T_V1_C)
-    margin = config.planning.tracker_margin_deg
     left_out, usable, positions = [], [], []
-    for q in others:
+    for q in [*offset_poses(q0, config, installation), *others]:
         if not kin.within_limits(q):
             left_out.append({"joints_rad": q.tolist(), "reason": "outside the joint limits"})
             continue
         T_C_T = T_C_T0 @ T_T0_B @ kin.forward(q) @ T_E_T
-        if not _visible(T_C_T, config.tracker, margin):
+        if not _visible(T_C_T, config.tracker):
             left_out.append({"joints_rad": q.tolist(), "reason": "target predicted out of view before the move"})
-        elif not _visible(F.invert(T_C_Cn) @ T_C_T, config.tracker, margin):
+        elif not _visible(F.invert(T_C_Cn) @ T_C_T, config.tracker):
             left_out.append({"joints_rad": q.tolist(), "reason": "target predicted out of view after the move"})
         else:
             usable.append(q)
