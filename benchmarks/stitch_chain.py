@@ -1,7 +1,8 @@
 """Where the tracker-only stitch's error comes from, per scan, on a generated plan: print it as JSON.
 
 Usage: ``nice .venv/bin/python benchmarks/stitch_chain.py [--config CELL.toml] [--part default|barrel]
-[--runs N] [--transfer-samples N] [--still-fraction F] [--transfer-arm-poses K [K ...]]``.
+[--runs N] [--transfer-samples N] [--still-fraction F] [--transfer-arm-poses K [K ...]]
+[--transfer-arm-reach MM]``.
 
 A diagnostic on the simulator's ground truth (scoring only, never the product path): the part is planned as
 ``tandemscan measure --part`` does it, then the plan's steps are walked on a :class:`SimWorld` without scanning:
@@ -178,7 +179,8 @@ def _variants(config, plan, seeds, skipped) -> dict:
 def run(args: argparse.Namespace) -> dict:
     config = load_config(args.config)
     tracker = {k: v for k, v in (("transfer_samples", args.transfer_samples),
-                                 ("still_noise_fraction", args.still_fraction)) if v is not None}
+                                 ("still_noise_fraction", args.still_fraction),
+                                 ("transfer_arm_reach_mm", args.transfer_arm_reach)) if v is not None}
     config = config.model_copy(update={"tracker": config.tracker.model_copy(update=tracker)})
     counts = args.transfer_arm_poses or [config.tracker.transfer_arm_poses]
     with tempfile.TemporaryDirectory() as tmp:  # the simulated world reads the mesh file too
@@ -193,6 +195,7 @@ def run(args: argparse.Namespace) -> dict:
                "transfer_samples": config.tracker.transfer_samples,
                "still_noise_fraction": config.tracker.still_noise_fraction,
                "transfer_arm_poses": counts if len(counts) > 1 else counts[0],
+               "transfer_arm_reach_mm": config.tracker.transfer_arm_reach_mm,
                "arm_repeatability": config.sim.arm_repeatability.model_dump(),
                "tracker_moves": sum(isinstance(s, MoveTracker) for s in plan.steps)}
         skipped = {}
@@ -224,6 +227,8 @@ def main() -> None:
     parser.add_argument("--transfer-arm-poses", type=int, nargs="+",
                         help="arm poses the target is read at on each side of a transfer (default: "
                              "tracker.transfer_arm_poses); several: each compared on the same plan and seeds")
+    parser.add_argument("--transfer-arm-reach", type=float, help="mm the extra poses move the scanner across its "
+                                                                  "view (default: tracker.transfer_arm_reach_mm)")
     print(json.dumps(run(parser.parse_args())))
 
 
