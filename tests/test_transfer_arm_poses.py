@@ -8,7 +8,7 @@ import asyncio
 
 import numpy as np
 import pytest
-from tandemscan.daemon.coordinate_transfer import transfer_joints
+from tandemscan.daemon.coordinate_transfer import choose_transfer_poses, transfer_joints
 from tandemscan.daemon.job_records import TransferRecord, record_from_json
 from tandemscan.daemon.run_state import RelocalisationState, RunState, journal_records, replay_journal
 from tandemscan.daemon.runner import JobRunner
@@ -16,7 +16,7 @@ from tandemscan.daemon.session import CellSession
 from tandemscan.daemon.supervisor import MEASURE_ROBOT
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.uncertainty import transfer_covariance
-from tandemscan.pipeline.planning.plan import MoveTracker
+from tandemscan.pipeline.planning.plan import MoveArm, MoveMeasure, MoveTracker
 from tandemscan.sim_drivers.persist import restore_world_state, world_state
 from tandemscan.sim_drivers.world import SimWorld
 
@@ -180,3 +180,37 @@ def test_a_transfer_journaled_before_arm_poses_reads_as_one_pose():
     record = TransferRecord.from_json(old)
     assert record.arm_poses == () and record.arm_poses_requested == 1
     assert record.to_json() == old
+
+
+def test_poses_out_of_reach_or_out_of_view_are_left_out_with_the_reason(sim_config):
+    """Where the shipped plan's first transfer stands: the poses around the arm's are chosen spread out and seen
+    from both stations; a candidate beyond the joint limits, or one whose target the tracker would see from
+    behind after its move, is left out and named, and the transfer falls back to fewer poses."""
+    plan = through_first_transfer()
+    i = next(k for k, s in enumerate(plan.steps) if isinstance(s, MoveTracker) and k > 0)
+    world = SimWorld(sim_config)
+    for step in plan.steps[:i]:
+        if isinstance(step, MoveArm):
+            world.move_arm(np.array(step.joints_rad))
+        elif isinstance(step, MoveMeasure):
+            world.chassis["measure_chassis"].true_pose = F.planar_pose(step.x_mm, step.y_mm, step.heading_rad)
+    q0, others = transfer_joints(plan, i, {})
+    np.testing.assert_array_equal(q0, world.joints_rad)
+    T_C_T0 = F.invert(world.T_F_C()) @ world.T_F_T()
+    odo = world.chassis["tracking_chassis"].odometry
+    here = (odo.x_mm, odo.y_mm, odo.heading_rad)
+    beyond = q0.copy()
+    beyond[1] = np.radians(sim_config.arm.joint_max_deg[1]) + 0.5
+    chosen, left_out = choose_transfer_poses(q0, [*others, beyond], T_C_T0, 4, sim_config, world.truth, here,
+                                             plan.steps[i])
+    assert len(chosen) == 3 and all(np.max(np.abs(q - q0)) > 0 for q in chosen)
+    assert {"joints_rad": beyond.tolist(), "reason": "outside the joint limits"} in left_out
+    # each chosen target seen from the tracker where it stands (the part's shadow included: the truth)
+    for q in chosen:
+        world.move_arm(q)
+        assert world.target_visibility() is None
+    # the tracker turned half round: every pose's target would face away from it
+    away = MoveTracker(x_mm=odo.x_mm, y_mm=odo.y_mm, heading_rad=odo.heading_rad + np.pi)
+    none, left_out = choose_transfer_poses(q0, [], T_C_T0, 4, sim_config, world.truth, here, away)
+    assert none == [] and left_out
+    assert all(d["reason"] == "target predicted out of view after the move" for d in left_out)
