@@ -271,9 +271,9 @@ class JobRunner:
         still meanwhile), and one of a job that fails or is cancelled is undone (:func:`return_from_transfer`).
         The transfer's entry carries its error prior for the pose graph: the still target's origin in W and the
         covariance of both readings (``uncertainty.transfer_covariance``)."""
-        if self.config.tracker.transfer_arm_poses > 1:
-            return await self._transfer_poses(step, i)
         noted = self.journal.notes(i).get("before")
+        if self.config.tracker.transfer_arm_poses > 1 or (noted is not None and "poses" in noted):
+            return await self._transfer_poses(step, i)
         if noted is not None:
             before_T_C_T, before_cov = np.array(noted["T_C_T"]), np.array(noted["covariance"])
         else:
@@ -307,8 +307,8 @@ class JobRunner:
         the odometry are journaled before the tracker moves, as for one pose."""
         count = self.config.tracker.transfer_arm_poses
         noted = self.journal.notes(i).get("before")
-        if noted is not None:
-            before = [PoseReading.from_json(p) for p in noted["poses"]]
+        if noted is not None:  # one noted by a one-pose transfer: its reading, the arm not commanded
+            before = [PoseReading.from_json(p) for p in noted.get("poses", [noted])]
             dropped = list(noted.get("left_out", []))
         else:
             q0, others = transfer_joints(self.plan, i, self.journal.committed)

@@ -16,7 +16,7 @@ from tandemscan.daemon.session import CellSession
 from tandemscan.daemon.supervisor import MEASURE_ROBOT
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.uncertainty import transfer_covariance
-from tandemscan.pipeline.planning.plan import MoveArm, MoveMeasure, MoveTracker
+from tandemscan.pipeline.planning.plan import MoveArm, MoveMeasure, MoveTracker, Plan
 from tandemscan.sim_drivers.persist import restore_world_state, world_state
 from tandemscan.sim_drivers.world import SimWorld
 
@@ -129,10 +129,13 @@ def arm_poses_config(sim_config):
 async def test_the_runner_carries_the_target_through_the_poses_under_the_gate_and_replays_its_journal(
         arm_poses_config, tmp_path):
     """The transfer of the shipped plan's first tracker move, at 4 arm poses: the arm moves only inside the
-    measurement robot's motion gate (sampled while the simulated arm moves), it ends where the plan left it,
-    the record lists the pairs, its prior is the estimate's, and the journal replays to the same state."""
-    plan = through_first_transfer()
-    i = next(k for k, s in enumerate(plan.steps) if isinstance(s, MoveTracker) and k > 0)
+    measurement robot's motion gate (sampled while the simulated arm moves), the record lists the pairs, its
+    prior is the estimate's, the journal replays to the same state, and a restart after the noted readings
+    completes the transfer from them."""
+    shipped = through_first_transfer()
+    i = next(k for k, s in enumerate(shipped.steps) if isinstance(s, MoveTracker) and k > 0)
+    # ending with the transfer: after the first run the robots stand where a crash after it would leave them
+    plan = Plan(name="up to the first transfer", steps=shipped.steps[:i + 1])
     config = arm_poses_config.model_copy(update={"sim": arm_poses_config.sim.model_copy(update={"time_scale": 0.002})})
     samples: list[bool] = []
     async with CellSession(config) as session:
@@ -149,6 +152,9 @@ async def test_the_runner_carries_the_target_through_the_poses_under_the_gate_an
         runner = JobRunner(session, plan, config, tmp_path, journal=journal)
         try:
             await runner.run()
+            # a restart after the readings before the tracker's move were noted: the transfer completes from them
+            again = MemoryJournal({k: journal.results[k] for k in range(i)}, {i: journal.notes(i)})
+            await JobRunner(session, plan, config, tmp_path, journal=again).run()
         finally:
             watcher.cancel()
             await asyncio.gather(watcher, return_exceptions=True)
@@ -156,6 +162,11 @@ async def test_the_runner_carries_the_target_through_the_poses_under_the_gate_an
         assert world.motion.violations == []
     assert samples and all(samples)
     record = record_from_json(plan.steps[i], journal.results[i], tmp_path)
+    resumed = record_from_json(plan.steps[i], again.results[i], tmp_path)
+    np.testing.assert_array_equal(resumed.before_T_C_T, record.before_T_C_T)
+    assert [p["joints_rad"] for p in resumed.arm_poses] == [p["joints_rad"] for p in record.arm_poses]
+    assert [p["before"] for p in resumed.arm_poses] == [p["before"] for p in record.arm_poses]
+    assert F.pose_error(resumed.T_W_C, record.T_W_C)[0] < 0.5  # read again after the move: close, not equal
     assert isinstance(record, TransferRecord) and record.arm_poses_requested == 4
     assert len(record.arm_poses) >= 2, record.arm_poses_dropped
     np.testing.assert_allclose(record.arm_poses[0]["joints_rad"], q0)
