@@ -112,11 +112,13 @@ def _block(plan: Plan, i: int) -> range:
     return range(start, end)
 
 
-def transfer_joints(plan: Plan, i: int, committed: Mapping[int, dict]) -> tuple[np.ndarray | None, list[np.ndarray]]:
+def transfer_joints(plan: Plan, i: int, committed: Mapping[int, dict], current: np.ndarray | None = None
+                    ) -> tuple[np.ndarray | None, list[np.ndarray]]:
     """Where the arm stands at the transfer of step ``i`` (the last arm move before it: its committed joints,
-    re-solved where the job relocalises, else the plan's; None when the arm has not moved) and the other scan
-    poses of the plan at the same AGV station and column height (each a ``move_arm`` followed by a scan; rad):
-    the poses the transfer may carry the target through."""
+    re-solved where the job relocalises; else ``current``, the arm's joints now, else the plan's; None when the
+    arm has not moved) and the other scan poses of the plan at the same AGV station and column height (each a
+    ``move_arm`` followed by a scan; rad): the poses the transfer may carry the target through. The committed
+    joints come first: a transfer restarted after a crash between its poses finds the arm at one of them."""
     def joints(j: int) -> np.ndarray:
         done = committed.get(j)
         return np.array(done["joints_rad"] if done and "joints_rad" in done else plan.steps[j].joints_rad, float)
@@ -124,7 +126,10 @@ def transfer_joints(plan: Plan, i: int, committed: Mapping[int, dict]) -> tuple[
     block = _block(plan, i)
     moves = [j for j in block if isinstance(plan.steps[j], MoveArm)]
     before = [j for j in moves if j < i]
-    q0 = joints(before[-1]) if before else None
+    q0 = None
+    if before:
+        last = before[-1]
+        q0 = joints(last) if last in committed or current is None else np.asarray(current, float)
     scans = [joints(j) for j in moves if j + 1 < len(plan.steps) and isinstance(plan.steps[j + 1], Scan)]
     others: list[np.ndarray] = []
     for q in scans:

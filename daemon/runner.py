@@ -311,7 +311,7 @@ class JobRunner:
             before = [PoseReading.from_json(p) for p in noted.get("poses", [noted])]
             dropped = list(noted.get("left_out", []))
         else:
-            q0, others = transfer_joints(self.plan, i, self.journal.committed)
+            q0, others = transfer_joints(self.plan, i, self.journal.committed, await self.cell.arm.joints())
             first, _ = await read_at_poses(self.cell, self.gate, self.config, [q0], "before", required=0)
             odo = await self.cell.tracking_chassis.odometry()
             chosen, dropped = [], []

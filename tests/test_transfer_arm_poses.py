@@ -207,6 +207,11 @@ def test_poses_out_of_reach_or_out_of_view_are_left_out_with_the_reason(sim_conf
             world.chassis["measure_chassis"].true_pose = F.planar_pose(step.x_mm, step.y_mm, step.heading_rad)
     q0, others = transfer_joints(plan, i, {})
     np.testing.assert_array_equal(q0, world.joints_rad)
+    # where the arm stands: the committed joints of its last move (a restart), else its joints now (re-solved)
+    last = max(k for k in range(i) if isinstance(plan.steps[k], MoveArm))
+    np.testing.assert_array_equal(transfer_joints(plan, i, {}, q0 + 0.01)[0], q0 + 0.01)
+    committed = {last: {"joints_rad": (q0 + 0.02).tolist()}}
+    np.testing.assert_array_equal(transfer_joints(plan, i, committed, q0 + 0.01)[0], q0 + 0.02)
     T_C_T0 = F.invert(world.T_F_C()) @ world.T_F_T()
     odo = world.chassis["tracking_chassis"].odometry
     here = (odo.x_mm, odo.y_mm, odo.heading_rad)
