@@ -148,6 +148,15 @@ class TrackerConfig(_Strict):
         30, ge=1, description="readings averaged at rest on each side of a coordinate transfer (Eq. 2): its error "
                               "is carried to every later scan, and 30 frames are 0.5 s at the tracker's 60 Hz "
                               "while the target stands still anyway (the tracking AGV drives for tens of seconds)")
+    transfer_arm_poses: int = Field(
+        1, ge=1, description="arm poses the still target is read at on each side of a coordinate transfer (the same "
+                             "joints replayed after the tracker moved): the new station follows from the target "
+                             "positions over the arm's reach, not one target's orientation; 1 = the target where "
+                             "the arm stands (docs/architecture.md, \"Coordinate transfers\")")
+    transfer_arm_reach_mm: float = Field(
+        300.0, gt=0, description="how far (mm) the extra arm poses of a transfer move the scanner across its view "
+                                 "from the transfer's own pose (a square around it), besides the plan's scan poses "
+                                 "there")
     still_noise_fraction: float = Field(
         0.5, ge=0, le=1, description="share of one reading's noise variance that every reading of one still period "
                                      "shares (air turbulence, refraction, the camera's calibration residual where "
@@ -177,6 +186,23 @@ class JakaTcpConfig(_Strict):
     state_poll_period_s: float = Field(0.1, gt=0, description="get_robot_state polling period while waiting")
 
 
+class ArmRepeatabilityConfig(_Strict):
+    """How far the same joints land the flange from where they landed it before (an arm's pose repeatability,
+    ISO 9283 RP, as the vendor states it: JAKA Zu 3/5/7 +-0.02 mm, Zu 12/18/20 +-0.03 mm), and its orientation
+    share (no vendor figure). A coordinate transfer over several arm poses (``[tracker] transfer_arm_poses``)
+    replays the same joints on both sides; this is the error of that replay (absolute accuracy cancels)."""
+
+    pose_mm: float = Field(0.03, ge=0, description="ISO 9283 pose repeatability RP (+-mm): the distance from the "
+                                                   "mean pose stays within it at 3 sigma")
+    angle_deg: float = Field(0.003, ge=0, description="1-sigma per axis of the flange's orientation offset per "
+                                                      "move (the wrist joints' share of RP 150 mm out)")
+
+    def sigma(self) -> tuple[float, float]:
+        """1-sigma per axis of one move's flange offset: (translation mm, rotation rad). For an isotropic normal
+        offset of sigma s per axis, mean distance + 3 sigma of the distance is about 3.6 s (ISO 9283's RP)."""
+        return self.pose_mm / 3.6, math.radians(self.angle_deg)
+
+
 _ARM_MODEL_KEYS = ("dh_d_mm", "dh_a_mm", "joint_min_deg", "joint_max_deg")
 
 
@@ -204,6 +230,9 @@ class ArmConfig(_Strict):
     joint_max_deg: tuple[float, ...] = (360.0, 265.0, 175.0, 265.0, 360.0, 360.0)
     joint_speed_deg_s: float = Field(60.0, gt=0)
     timeout_s: float = 60.0
+    repeatability: ArmRepeatabilityConfig = Field(
+        ArmRepeatabilityConfig(), description="what a coordinate transfer over several arm poses assumes of the "
+                                              "arm's repeatability (its covariance)")
     jaka: JakaTcpConfig = JakaTcpConfig()
 
     @field_validator("dh_d_mm", "dh_a_mm", "dh_alpha_rad", "joint_min_deg", "joint_max_deg")
@@ -481,6 +510,9 @@ class SimWorldConfig(_Strict):
 
     seed: int = 7
     tracker_noise: TrackerNoiseConfig = TrackerNoiseConfig()
+    arm_repeatability: ArmRepeatabilityConfig = Field(
+        ArmRepeatabilityConfig(), description="the simulated arm: each move lands its flange off by a fresh "
+                                              "random offset of this size (a move of no travel keeps it)")
     measure_chassis_slip: ChassisSlipConfig = ChassisSlipConfig()
     tracking_chassis_slip: ChassisSlipConfig = ChassisSlipConfig()
     tracking_start: FloorPoseConfig = FloorPoseConfig(x_mm=-1400.0, y_mm=4600.0, heading_deg=-90.0)

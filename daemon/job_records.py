@@ -99,7 +99,13 @@ class TransferRecord:
     """A coordinate transfer (Eq. 2): the tracker's new station and camera pose ``T_W_C`` (mm), the still target
     read before (``before_T_C_T``) and after (``after_T_C_T``) the move, the tracking chassis' odometry there, and
     the pose graph's error prior: the target's origin in W (``target_W_mm``) and the 6x6 covariance of both
-    readings (translation mm^2 then rotation rad^2), with the number of scans before the transfer."""
+    readings (translation mm^2 then rotation rad^2), with the number of scans before the transfer.
+
+    A transfer over several arm poses (``[tracker] transfer_arm_poses``) lists the pairs it used
+    (``arm_poses``: joints rad, ``before`` and ``after`` ``T_C_T`` mm; the first the transfer's own pose, whose
+    readings are ``before_T_C_T`` and ``after_T_C_T``), how many it asked for and the poses left out (joints,
+    why); its prior is then the estimate's: the targets' centroid in W and the 6x6 covariance about it. A
+    record journaled before these existed reads as a one-pose transfer."""
 
     station: int
     after_scan: int
@@ -109,23 +115,35 @@ class TransferRecord:
     before_T_C_T: np.ndarray
     after_T_C_T: np.ndarray
     odometry: Odometry
+    arm_poses: tuple[dict, ...] = ()
+    arm_poses_requested: int = 1
+    arm_poses_dropped: tuple[dict, ...] = ()
 
     def entry(self) -> dict:
         """The transfer's entry in the report's ``transfer_log`` and the correction's prior (JSON lists)."""
-        return {"station": self.station, "after_scan": self.after_scan, "target_W_mm": self.target_W_mm.tolist(),
-                "covariance": self.covariance.tolist()}
+        entry = {"station": self.station, "after_scan": self.after_scan, "target_W_mm": self.target_W_mm.tolist(),
+                 "covariance": self.covariance.tolist()}
+        if self.arm_poses_requested > 1:
+            entry |= {"arm_poses": len(self.arm_poses), "arm_poses_requested": self.arm_poses_requested,
+                      "arm_poses_left_out": list(self.arm_poses_dropped)}
+        return entry
 
     def to_json(self) -> dict:
-        return {"T_W_C": self.T_W_C.tolist(), "station": self.station, "transfer": self.entry(),
-                "before": self.before_T_C_T.tolist(), "after": self.after_T_C_T.tolist(),
-                "odometry": list(self.odometry)}
+        out = {"T_W_C": self.T_W_C.tolist(), "station": self.station, "transfer": self.entry(),
+               "before": self.before_T_C_T.tolist(), "after": self.after_T_C_T.tolist(),
+               "odometry": list(self.odometry)}
+        if self.arm_poses_requested > 1:
+            out["arm_poses"] = list(self.arm_poses)
+        return out
 
     @classmethod
     def from_json(cls, d: dict) -> TransferRecord:
         t = d["transfer"]
         return cls(t["station"], t["after_scan"], np.array(t["target_W_mm"], dtype=float),
                    np.array(t["covariance"], dtype=float), np.array(d["T_W_C"], dtype=float),
-                   np.array(d["before"], dtype=float), np.array(d["after"], dtype=float), _odometry(d["odometry"]))
+                   np.array(d["before"], dtype=float), np.array(d["after"], dtype=float), _odometry(d["odometry"]),
+                   tuple(d.get("arm_poses", ())), t.get("arm_poses_requested", 1),
+                   tuple(t.get("arm_poses_left_out", ())))
 
 
 @dataclass(frozen=True)

@@ -33,7 +33,15 @@ from pathlib import Path
 import numpy as np
 from tandemscan.config.models import CellConfig
 from tandemscan.daemon.agv_relocalisation import AgvRelocalisation
-from tandemscan.daemon.coordinate_transfer import reestablish, transfer_record
+from tandemscan.daemon.coordinate_transfer import (
+    PoseReading,
+    choose_transfer_poses,
+    poses_transfer_record,
+    read_at_poses,
+    reestablish,
+    transfer_joints,
+    transfer_record,
+)
 from tandemscan.daemon.installation import installation_for_job
 from tandemscan.daemon.job_records import (
     ArmMove,
@@ -42,6 +50,7 @@ from tandemscan.daemon.job_records import (
     ScanRecord,
     StepRecord,
     TrackerRelocation,
+    TransferRecord,
     UntrackedScan,
 )
 from tandemscan.daemon.observer import JobObserver
@@ -254,7 +263,8 @@ class JobRunner:
         return record
 
     async def _transfer(self, step: MoveTracker, i: int = -1) -> StepRecord:
-        """Eq. 2: read the still target, move the tracker, read it again, re-place the tracker in W.
+        """Eq. 2: read the still target, move the tracker, read it again, re-place the tracker in W; with
+        ``tracker.transfer_arm_poses`` > 1, at several arm poses on each side (:meth:`_transfer_poses`).
 
         The reading before the move (and the tracking chassis' odometry) is journaled before the tracker moves,
         so a transfer interrupted by a crash, a safety stop or a device fault completes from it (the target stays
@@ -262,6 +272,8 @@ class JobRunner:
         The transfer's entry carries its error prior for the pose graph: the still target's origin in W and the
         covariance of both readings (``uncertainty.transfer_covariance``)."""
         noted = self.journal.notes(i).get("before")
+        if self.config.tracker.transfer_arm_poses > 1 or (noted is not None and "poses" in noted):
+            return await self._transfer_poses(step, i)
         if noted is not None:
             before_T_C_T, before_cov = np.array(noted["T_C_T"]), np.array(noted["covariance"])
         else:
@@ -270,16 +282,55 @@ class JobRunner:
             odo = await self.cell.tracking_chassis.odometry()  # where an abandoned transfer returns the tracker
             await self.journal.note(i, "before", {"T_C_T": before_T_C_T.tolist(), "covariance": before_cov.tolist(),
                                                   "odometry": [odo.x_mm, odo.y_mm, odo.heading_rad]})
+        odo = await self._move_tracker(step)
+        after = await read_for_transfer(self.cell.tracker, self.config.tracker)
+        return self._transferred(transfer_record(self.state, before_T_C_T, before_cov, after, odo))
+
+    async def _move_tracker(self, step: MoveTracker) -> tuple[float, float, float]:
         async with self.gate.motion(TRACKING_ROBOT):
             odo = await self.cell.tracking_chassis.move_to(
                 ChassisPose(step.x_mm, step.y_mm, step.heading_rad), self.config.tracking_chassis.timeout_s
             )
-        after = await read_for_transfer(self.cell.tracker, self.config.tracker)
-        record = transfer_record(self.state, before_T_C_T, before_cov, after, (odo.x_mm, odo.y_mm, odo.heading_rad))
+        return (odo.x_mm, odo.y_mm, odo.heading_rad)
+
+    def _transferred(self, record: TransferRecord) -> TransferRecord:
         if self.observer is not None:
             self.observer.tracker_transferred(record.station, record.T_W_C)
         log.info("coordinate transfer", extra={"station": record.station})
         return record
+
+    async def _transfer_poses(self, step: MoveTracker, i: int) -> TransferRecord:
+        """The transfer over ``tracker.transfer_arm_poses`` arm poses (docs/architecture.md, "Coordinate
+        transfers"): the target read where the arm stands, then at the other poses chosen
+        (:func:`choose_transfer_poses`); the tracker moves; the same joints read back in reverse order, so the arm
+        ends where it stood. Every arm move goes through the gate. The readings before the move, the poses and
+        the odometry are journaled before the tracker moves, as for one pose."""
+        count = self.config.tracker.transfer_arm_poses
+        noted = self.journal.notes(i).get("before")
+        if noted is not None:  # one noted by a one-pose transfer: its reading, the arm not commanded
+            before = [PoseReading.from_json(p) for p in noted.get("poses", [noted])]
+            dropped = list(noted.get("left_out", []))
+        else:
+            q0, others = transfer_joints(self.plan, i, self.journal.committed, await self.cell.arm.joints())
+            first, _ = await read_at_poses(self.cell, self.gate, self.config, [q0], "before", required=0)
+            odo = await self.cell.tracking_chassis.odometry()
+            chosen, dropped = [], []
+            if q0 is not None:
+                chosen, dropped = choose_transfer_poses(q0, others, first[0].T_C_T, count, self.config,
+                                                        self.installation, (odo.x_mm, odo.y_mm, odo.heading_rad),
+                                                        step)
+            rest, hidden = await read_at_poses(self.cell, self.gate, self.config, chosen, "before")
+            before = [first[0], *(r for r in rest if r is not None)]
+            dropped += hidden
+            await self.journal.note(i, "before", {
+                "T_C_T": before[0].T_C_T.tolist(), "covariance": before[0].covariance.tolist(),
+                "odometry": [odo.x_mm, odo.y_mm, odo.heading_rad], "poses": [p.to_json() for p in before],
+                "left_out": dropped})
+        odo = await self._move_tracker(step)
+        back = [p.joints_rad for p in reversed(before)]
+        after, hidden = await read_at_poses(self.cell, self.gate, self.config, back, "after", required=len(back) - 1)
+        return self._transferred(poses_transfer_record(self.state, before, after[::-1], odo, self.config,
+                                                       self.installation, count, dropped + hidden))
 
     async def _scan(self) -> ScanRecord:
         """Capture and read at rest, persist raw data first, then stitch into the world map."""

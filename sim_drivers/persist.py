@@ -2,9 +2,9 @@
 
 Without this a restarted daemon would rebuild the world at its start poses, teleporting both robots; with it,
 a crash test sees what a real cell shows. Saved: the true and odometry pose of each chassis, the arm joints,
-counters, the random generators' states and the tracker's still error of the still period under way (so the run
-goes on with the same noise model, not a replay of its first draws), the world frame W
-of the job under way and the ground-truth observers' logs. mm, rad. The twins save it as they act
+counters, the random generators' states, the tracker's still error of the still period under way and the arm's
+flange offset of its last move (so the run goes on with the same noise model, not a replay of its first draws),
+the world frame W of the job under way and the ground-truth observers' logs. mm, rad. The twins save it as they act
 (:func:`keep_world_state`); :class:`tandemscan.sim_drivers.cell.Simulation` restores it when a session starts.
 """
 
@@ -39,6 +39,8 @@ def world_state(world: SimWorld) -> dict:
         "still_rng": world.still_rng.bit_generator.state,
         "still_T_C_T": None if world.still_T_C_T is None else world.still_T_C_T.tolist(),
         "still_unit": world.still_unit.tolist(),
+        "arm_rng": world.arm_rng.bit_generator.state,
+        "flange_offset": world.flange_offset.tolist(),
         "T_W_F": world.T_W_F.tolist(),
         "scoring": world.scoring,
     }
@@ -61,6 +63,9 @@ def restore_world_state(world: SimWorld, state: dict) -> None:
         world.still_rng.bit_generator.state = state["still_rng"]
         world.still_T_C_T = None if state["still_T_C_T"] is None else np.array(state["still_T_C_T"], float)
         world.still_unit = np.array(state["still_unit"], float)
+    if "arm_rng" in state:  # a state saved before the arm's repeatability error existed has none
+        world.arm_rng.bit_generator.state = state["arm_rng"]
+        world.flange_offset = np.array(state["flange_offset"], float)
     world.T_W_F = np.array(state["T_W_F"], float)
     world.scoring = state.get("scoring", {})
 

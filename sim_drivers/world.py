@@ -154,6 +154,9 @@ class SimWorld:
         self.still_rng = np.random.default_rng([config.sim.seed, 1])
         self.still_T_C_T: np.ndarray | None = None
         self.still_unit = np.zeros(6)
+        # the arm's repeatability: each move lands the flange off by a fresh offset (flange axes), its own stream
+        self.arm_rng = np.random.default_rng([config.sim.seed, 2])
+        self.flange_offset = np.eye(4)
         self.scoring: dict[str, dict] = {}  # the ground-truth observers' logs, per job (sim_drivers.scoring)
         self.state_file: Path | None = None  # where the twins keep this state (sim_drivers.persist)
         self.define_world()  # W = the tracker camera frame at its first station
@@ -189,7 +192,7 @@ class SimWorld:
     def T_F_E(self) -> np.ndarray:
         """Arm flange in the floor frame."""
         T_V2_B = arm_base_on_column(self.truth.T_V2_B, self.lift_mm)  # the column raises the arm's mount
-        return self.T_F_V2 @ T_V2_B @ self.kinematics.forward(self.joints_rad)
+        return self.T_F_V2 @ T_V2_B @ self.kinematics.forward(self.joints_rad) @ self.flange_offset
 
     def T_F_S(self) -> np.ndarray:
         """Scanner optical frame in the floor frame."""
@@ -206,12 +209,18 @@ class SimWorld:
     # ------------------------------------------------------------ physics of each device
 
     def move_arm(self, joints_rad: np.ndarray) -> float:
-        """Set the joints; returns the largest joint travel (rad). Raises OutOfReach outside the limits."""
+        """Set the joints; returns the largest joint travel (rad). Raises OutOfReach outside the limits. A move
+        that travels lands the flange off its kinematic pose by a fresh offset (``sim.arm_repeatability``: the
+        same joints give the same flange pose only that closely); one of no travel keeps it."""
         q = np.asarray(joints_rad, float)
         if q.shape != (6,) or not self.kinematics.within_limits(q):
             raise OutOfReach("arm", f"joint target {np.degrees(q).round(2).tolist()} deg outside the joint limits")
         travel = float(np.max(np.abs(q - self.joints_rad)))
         self.joints_rad = q
+        if travel > 0:
+            sigma_mm, sigma_rad = self.config.sim.arm_repeatability.sigma()
+            self.flange_offset = F.from_rotvec(self.arm_rng.normal(0, sigma_mm, 3),
+                                               self.arm_rng.normal(0, sigma_rad, 3))
         return travel
 
     def scan(self) -> tuple[np.ndarray, np.ndarray]:

@@ -7,9 +7,12 @@ JAKA convention: fixed axes x, then y, then z, i.e. ``R = Rz(yaw) @ Ry(pitch) @ 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
+from tandemscan.pipeline.geometry.uncertainty import recentre
 
 # ---------------------------------------------------------------- building and taking apart
 
@@ -132,6 +135,55 @@ def coordinate_transfer(T_W_C_old: ArrayLike, T_C_T_old: ArrayLike, T_C_T_new: A
     ``T_W_T = T_W_C_old T_C_T_old`` and ``T_W_C_new = T_W_T inv(T_C_T_new)``.
     """
     return compose(T_W_C_old, T_C_T_old, invert(T_C_T_new))
+
+
+@dataclass(frozen=True)
+class PoseTransfer:
+    """A coordinate transfer's result: the tracker's new world pose ``T_W_C`` (4x4 mm) and its error, a world
+    motion about ``centre_mm`` (W, mm) with ``covariance`` (6x6, t mm^2 then r rad^2; world axes)."""
+
+    T_W_C: np.ndarray
+    centre_mm: np.ndarray
+    covariance: np.ndarray
+
+
+def _world_motion(translation_mm: np.ndarray, rotvec_rad: np.ndarray, centre_mm: np.ndarray) -> np.ndarray:
+    """4x4 of a small world motion: the rotation ``rotvec_rad`` about ``centre_mm``, then ``translation_mm``."""
+    M = from_rotvec(np.zeros(3), rotvec_rad)
+    M[:3, 3] = centre_mm - M[:3, :3] @ centre_mm + translation_mm
+    return M
+
+
+def coordinate_transfer_poses(T_W_C_old: ArrayLike, before_T_C_T: list[np.ndarray], after_T_C_T: list[np.ndarray],
+                              covariances: list[np.ndarray], iterations: int = 5) -> PoseTransfer:
+    """Eq. 2 over several target poses: the tracker's new world pose from the still target read at ``K`` poses
+    before (``before_T_C_T``, old camera) and after (``after_T_C_T``, new camera) it moved, pair ``j`` the same
+    pose. Each pair places the target in W twice (``T_W_C_old T_C_T_before`` and ``T_W_C_new T_C_T_after``); their
+    difference, a world motion about that target's origin (t mm, rotation vector rad), has the 6x6 covariance
+    ``covariances[j]`` (world axes: both readings' and, where the arm moved between them, its repeatability's).
+    The estimate minimises the whitened differences (Gauss-Newton from pair 0's Eq. 2), so the target positions,
+    spread over the arm's reach, fix the rotation where one target's orientation would; its covariance (the
+    inverse normal matrix) is stated about the targets' centroid. One pair gives Eq. 2 and its covariance exactly.
+    """
+    T_W_C_old = np.asarray(T_W_C_old, float)
+    X = [T_W_C_old @ np.asarray(b, float) for b in before_T_C_T]  # the target in W, read from the old station
+    B = [np.asarray(a, float) for a in after_T_C_T]
+    W = [np.linalg.inv(np.asarray(c, float)) for c in covariances]
+    centre = np.mean([x[:3, 3] for x in X], axis=0)
+    T = X[0] @ invert(B[0])
+    for _ in range(iterations):
+        N, g = np.zeros((6, 6)), np.zeros(6)
+        for Xj, Bj, Wj in zip(X, B, W, strict=True):
+            P = T @ Bj
+            delta = np.r_[Xj[:3, 3] - P[:3, 3], Rotation.from_matrix(Xj[:3, :3] @ P[:3, :3].T).as_rotvec()]
+            J = recentre(centre, P[:3, 3])
+            N += J.T @ Wj @ J
+            g += J.T @ Wj @ delta
+        xi = np.linalg.solve(N, g)
+        T = _world_motion(xi[:3], xi[3:], centre) @ T
+        if np.linalg.norm(xi[:3]) < 1e-9 and np.linalg.norm(xi[3:]) < 1e-12:
+            break
+    return PoseTransfer(orthonormalize(T), centre, np.linalg.inv(N))
 
 
 def measurement_agv_in_world(

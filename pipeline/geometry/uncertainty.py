@@ -43,6 +43,14 @@ def transfer_covariance(T_W_C_before: ArrayLike, cov_before: ArrayLike, T_W_C_af
     return _to_world(T_W_C_before, cov_before) + _to_world(T_W_C_after, cov_after)
 
 
+def arm_repeatability_covariance(sigma_mm: float, sigma_rad: float, flange_to_target_W_mm: ArrayLike) -> np.ndarray:
+    """6x6 covariance of the target's pose error one arm move's repeatability gives (t mm^2 of the target origin,
+    r rad^2; world axes): an isotropic flange offset (1-sigma ``sigma_mm`` per axis, ``sigma_rad`` per axis, any
+    axes alike) whose rotation moves the target origin, ``flange_to_target_W_mm`` (world axes) away, by its lever."""
+    C = np.diag([sigma_mm**2] * 3 + [sigma_rad**2] * 3)
+    return covariance_about(C, np.zeros(3), flange_to_target_W_mm)
+
+
 def recentre(centre_mm: ArrayLike, new_centre_mm: ArrayLike) -> np.ndarray:
     """6x6 map of a small world motion (t mm, r rad) about ``centre_mm`` to the same motion about
     ``new_centre_mm`` (a rotation ``r`` moves the new centre by ``r x (new - old)``)."""
