@@ -300,3 +300,30 @@ async def return_from_transfer(session: CellSession, plan: Plan, committed: set[
             await session.cell.arm.move_joints(np.array(q0, float), config.arm.timeout_s)
     log.warning("abandoned transfer of step %d undone: the tracking robot is back at %s", i, odo)
     return True
+
+
+async def readings_before_move(cell, gate: MotionGate, config: CellConfig, plan: Plan, journal, installation,
+                               step: MoveTracker, i: int) -> tuple[list[PoseReading], list[dict]]:
+    """The target's readings before the tracker moves in a transfer over ``tracker.transfer_arm_poses`` arm poses
+    (step ``i`` of ``plan``), and the poses left out with their reason: read where the arm stands, then at the
+    poses :func:`choose_transfer_poses` picks, and journaled (``journal.note``, with the tracking chassis'
+    odometry) before the tracker moves; or, at a resume, the ones journaled (a one-pose transfer's note: its
+    reading, the arm not commanded)."""
+    noted = journal.notes(i).get("before")
+    if noted is not None:
+        return [PoseReading.from_json(p) for p in noted.get("poses", [noted])], list(noted.get("left_out", []))
+    q0, others = transfer_joints(plan, i, journal.committed, await cell.arm.joints())
+    first, _ = await read_at_poses(cell, gate, config, [q0], "before", required=0)
+    odo = await cell.tracking_chassis.odometry()
+    chosen, dropped = [], []
+    if q0 is not None:
+        chosen, dropped = choose_transfer_poses(q0, others, first[0].T_C_T, config.tracker.transfer_arm_poses,
+                                                config, installation, (odo.x_mm, odo.y_mm, odo.heading_rad), step)
+    rest, hidden = await read_at_poses(cell, gate, config, chosen, "before")
+    before = [first[0], *(r for r in rest if r is not None)]
+    dropped += hidden
+    await journal.note(i, "before", {
+        "T_C_T": before[0].T_C_T.tolist(), "covariance": before[0].covariance.tolist(),
+        "odometry": [odo.x_mm, odo.y_mm, odo.heading_rad], "poses": [p.to_json() for p in before],
+        "left_out": dropped})
+    return before, dropped

@@ -34,12 +34,10 @@ import numpy as np
 from tandemscan.config.models import CellConfig
 from tandemscan.daemon.agv_relocalisation import AgvRelocalisation
 from tandemscan.daemon.coordinate_transfer import (
-    PoseReading,
-    choose_transfer_poses,
     poses_transfer_record,
     read_at_poses,
+    readings_before_move,
     reestablish,
-    transfer_joints,
     transfer_record,
 )
 from tandemscan.daemon.installation import installation_for_job
@@ -301,36 +299,16 @@ class JobRunner:
 
     async def _transfer_poses(self, step: MoveTracker, i: int) -> TransferRecord:
         """The transfer over ``tracker.transfer_arm_poses`` arm poses (docs/architecture.md, "Coordinate
-        transfers"): the target read where the arm stands, then at the other poses chosen
-        (:func:`choose_transfer_poses`); the tracker moves; the same joints read back in reverse order, so the arm
-        ends where it stood. Every arm move goes through the gate. The readings before the move, the poses and
-        the odometry are journaled before the tracker moves, as for one pose."""
-        count = self.config.tracker.transfer_arm_poses
-        noted = self.journal.notes(i).get("before")
-        if noted is not None:  # one noted by a one-pose transfer: its reading, the arm not commanded
-            before = [PoseReading.from_json(p) for p in noted.get("poses", [noted])]
-            dropped = list(noted.get("left_out", []))
-        else:
-            q0, others = transfer_joints(self.plan, i, self.journal.committed, await self.cell.arm.joints())
-            first, _ = await read_at_poses(self.cell, self.gate, self.config, [q0], "before", required=0)
-            odo = await self.cell.tracking_chassis.odometry()
-            chosen, dropped = [], []
-            if q0 is not None:
-                chosen, dropped = choose_transfer_poses(q0, others, first[0].T_C_T, count, self.config,
-                                                        self.installation, (odo.x_mm, odo.y_mm, odo.heading_rad),
-                                                        step)
-            rest, hidden = await read_at_poses(self.cell, self.gate, self.config, chosen, "before")
-            before = [first[0], *(r for r in rest if r is not None)]
-            dropped += hidden
-            await self.journal.note(i, "before", {
-                "T_C_T": before[0].T_C_T.tolist(), "covariance": before[0].covariance.tolist(),
-                "odometry": [odo.x_mm, odo.y_mm, odo.heading_rad], "poses": [p.to_json() for p in before],
-                "left_out": dropped})
+        transfers"): the readings before the move, journaled (:func:`readings_before_move`); the tracker moves;
+        the same joints read back in reverse order, so the arm ends where it stood; every arm move gated."""
+        before, dropped = await readings_before_move(self.cell, self.gate, self.config, self.plan, self.journal,
+                                                     self.installation, step, i)
         odo = await self._move_tracker(step)
         back = [p.joints_rad for p in reversed(before)]
         after, hidden = await read_at_poses(self.cell, self.gate, self.config, back, "after", required=len(back) - 1)
         return self._transferred(poses_transfer_record(self.state, before, after[::-1], odo, self.config,
-                                                       self.installation, count, dropped + hidden))
+                                                       self.installation, self.config.tracker.transfer_arm_poses,
+                                                       dropped + hidden))
 
     async def _scan(self) -> ScanRecord:
         """Capture and read at rest, persist raw data first, then stitch into the world map."""
