@@ -157,16 +157,16 @@ def register_pair(
     ``network`` compares the fine and the classical stage only. With ``refine_sigmas`` the winner (of any
     method but ``deepmerge``, the network's own answer) is refined at its own correspondence gate
     (:func:`icp.refine_at_gate`, that many sigmas), kept unless that raises its truncated cost at the final
-    distance by more than the tie margin; None (the job's pairs: the joint refinement settles them) is not. The
-    fine stage's levels stop at a repeated correspondence set (``FineSchedule.stop_on_repeat``): ICP cycling
-    through a few sets moves the pose by a micrometre a step, and every further step repeats the cycle."""
+    distance by more than the tie margin, and the fine stage's levels stop at a repeated correspondence set
+    (``FineSchedule.stop_on_repeat``); None (the job's pairs) does neither."""
     final = cfg.icp_max_distance_mm
     S = np.asarray(source_mm, float)
-    refining = refine_sigmas is not None and method != "deepmerge"   # ``deepmerge`` stays the network's answer
+    # the refinement settles the end, so the levels stop at a cycle; ``deepmerge`` stays the network's answer
+    refining = refine_sigmas is not None and method != "deepmerge"
 
     def fine(M: np.ndarray, start_mm: float) -> IcpResult:
         return icp_coarse_to_fine(S, target, M, FineSchedule(start_mm, final, cfg.icp_iterations,
-                                                             cfg.icp_max_points, stop_on_repeat=True))
+                                                             cfg.icp_max_points, stop_on_repeat=refining))
 
     def network_answer() -> np.ndarray:
         if network is None:
