@@ -79,9 +79,7 @@ def extract_overlap(source_mm: ArrayLike, target_mm: ArrayLike, delta_mm: float)
         raise OverlapError(f"delta_mm must be > 0, got {delta_mm}")
     if len(S) == 0 or len(T) == 0:
         return Overlap(np.empty(0, int), np.empty(0, int), float(delta_mm))
-    d_s, _ = cKDTree(T).query(S, k=1, distance_upper_bound=delta_mm)
-    d_t, _ = cKDTree(S).query(T, k=1, distance_upper_bound=delta_mm)
-    ov = Overlap(np.flatnonzero(d_s < delta_mm), np.flatnonzero(d_t < delta_mm), float(delta_mm))
+    ov = overlap_at(S, cKDTree(S), T, cKDTree(T), np.eye(4), delta_mm)
     log.debug("overlap at delta %.3f mm: %d source, %d target points", delta_mm, len(ov.source_idx),
               len(ov.target_idx))
     return ov

@@ -201,17 +201,6 @@ def _motion_about(offset: np.ndarray) -> np.ndarray:
     return M
 
 
-def _invert_stack(T: np.ndarray) -> np.ndarray:
-    """Inverses of a stack of rigid 4x4 transforms."""
-    T = np.asarray(T, dtype=float)
-    out = np.zeros_like(T)
-    R = np.swapaxes(T[:, :3, :3], 1, 2)
-    out[:, :3, :3] = R
-    out[:, :3, 3] = -np.einsum("nij,nj->ni", R, T[:, :3, 3])
-    out[:, 3, 3] = 1.0
-    return out
-
-
 def _skew(v: np.ndarray) -> np.ndarray:
     """(m, 3, 3) cross-product matrices ``[v]x`` of (m, 3) vectors."""
     return _motion_about(v)[:, :3, 3:]
@@ -234,7 +223,7 @@ def _adjoint(P: np.ndarray) -> np.ndarray:
     R = P[:, :3, :3]
     A = np.zeros((len(P), 6, 6))
     A[:, :3, :3] = A[:, 3:, 3:] = R
-    A[:, :3, 3:] = _motion_about(P[:, :3, 3])[:, :3, 3:] @ R
+    A[:, :3, 3:] = _skew(P[:, :3, 3]) @ R
     return A
 
 
@@ -337,7 +326,7 @@ class _Graph:
         row0 = 6 * (n + len(self.movable)) + 6 * np.arange(len(self.ei))
         if len(self.ei):
             Xp = self.poses(x)
-            E = _about(self.ec, Xp[self.ei] @ self.Z @ _invert_stack(Xp[self.ej]))       # about c_e
+            E = _about(self.ec, Xp[self.ei] @ self.Z @ invert(Xp[self.ej]))       # about c_e
             L = np.tile(np.eye(6), (len(E), 1, 1))
             L[:, :3, 3:] = -_skew(E[:, :3, 3])
             L[:, 3:, 3:] = _inverse_left_jacobian(_log(E)[:, 3:])
