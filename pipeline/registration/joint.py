@@ -26,10 +26,7 @@ the posterior covariance of each scan's correction is ``A_i H^-1 A_i^T``.
 from __future__ import annotations
 
 import logging
-import os
-from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,6 +38,7 @@ from tandemscan.pipeline.geometry.frames import from_rotvec, invert, to_rotvec, 
 from tandemscan.pipeline.geometry.uncertainty import recentre
 from tandemscan.pipeline.registration.icp import RefineError
 from tandemscan.pipeline.registration.mounts import MountEstimate, MountPrior
+from tandemscan.pipeline.registration.parallel import PairMap, pair_threads
 from tandemscan.pipeline.registration.pose_graph import ScanPrior, TransferPrior
 
 log = logging.getLogger(__name__)
@@ -52,14 +50,6 @@ _MIN_NORMAL_COSINE = float(np.cos(np.radians(30.0)))
 #: a robust scale (mm) never below this (0.1 um, far below any scanner noise): noiseless data would otherwise
 #: weight every point without bound and make the normal equations singular in floating point
 _MIN_SIGMA_MM = 1e-4
-
-
-@contextmanager
-def _pair_threads() -> Iterator[Callable]:
-    """``map(fn, pairs)`` over one thread per core: the per-pair work (KD-tree queries, numpy on thousands of
-    points) releases the GIL, so the pairs of an iteration share the cores."""
-    with ThreadPoolExecutor(os.cpu_count() or 1, thread_name_prefix="joint") as pool:
-        yield lambda fn, items: list(pool.map(fn, items))
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -264,10 +254,10 @@ def _robust_sigma(r: np.ndarray) -> float:
 
 
 def _candidates(scans: Sequence[JointScan], trees: Sequence[cKDTree], poses: np.ndarray,
-                pairs: Sequence[tuple[int, int]], radius_mm: float, pair_map: Callable) -> list[_Pair]:
+                pairs: Sequence[tuple[int, int]], radius_mm: float, pair_map: PairMap) -> list[_Pair]:
     """The pairs whose source points come within ``radius_mm`` of the target scan at ``poses``, with those points
     (only the points inside the target's bounding box widened by the radius are searched); ``pair_map`` maps a
-    function over the pairs (:func:`_pair_threads`)."""
+    function over the pairs (``parallel.pair_threads``)."""
     boxes = [(s.points_S.min(axis=0) - radius_mm, s.points_S.max(axis=0) + radius_mm) if len(s.points_S) else None
              for s in scans]
 
@@ -294,13 +284,13 @@ def refine_jointly(
     ``priors`` (``T_W_S`` and covariance), ``transfers`` and ``mount_prior`` as in ``pose_graph.refine_poses``."""
     if not (len(scans) == len(priors) == len(start_poses)):
         raise RefineError(f"{len(scans)} scans, {len(priors)} priors and {len(start_poses)} start poses differ")
-    with _pair_threads() as pair_map:
+    with pair_threads() as pair_map:
         return _refine(scans, priors, pairs, start_poses, transfers, mount_prior, settings, pair_map)
 
 
 def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequence[tuple[int, int]],
             start_poses: Sequence[np.ndarray], transfers: Sequence[TransferPrior], mount_prior: MountPrior | None,
-            settings: JointSettings, pair_map: Callable) -> JointResult:
+            settings: JointSettings, pair_map: PairMap) -> JointResult:
     """:func:`refine_jointly` with ``pair_map`` mapping a function over the pairs."""
     model = _Model(priors, transfers, mount_prior)
     trees = pair_map(lambda s: cKDTree(s.points_S), scans)
@@ -351,7 +341,7 @@ def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequ
 
 
 def _data_system(model: _Model, scans: Sequence[JointScan], poses: np.ndarray, kept: list, sigma: float,
-                 huber_k: float, pair_map: Callable) -> tuple[sparse.csr_matrix, np.ndarray]:
+                 huber_k: float, pair_map: PairMap) -> tuple[sparse.csr_matrix, np.ndarray]:
     """The data's normal equations in the stacked corrections ``e``: sparse ``H_e`` (6n x 6n) and ``b_e``."""
     n = model.n
     b = np.zeros(6 * n)
