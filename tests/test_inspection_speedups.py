@@ -127,3 +127,26 @@ def test_points_within_a_sphere_are_the_kd_trees():
     tree = cKDTree(p)
     for centre, r in (([1400.0, -650.0, 900.0], 30.0), ([1490.0, -560.0, 990.0], 25.0), ([0.0, 0.0, 0.0], 5.0)):
         np.testing.assert_array_equal(within(p, centre, r), sorted(tree.query_ball_point(centre, r)))
+
+
+def test_overlap_before_correction_on_the_corrected_scans_tree_is_its_own_trees():
+    from tandemscan.pipeline.inspection.stitch_quality import RIGID_TOLERANCE_MM, overlap_quality, rigid_motion
+
+    rng = np.random.default_rng(7)
+    after = []
+    for k in range(4):  # overlapping curved patches at part-scale coordinates
+        xy = rng.uniform([80.0 * k, 0.0], [80.0 * k + 130.0, 120.0], (6000, 2))
+        z = 2e-4 * (xy[:, 0] - 150.0) ** 2 + 1e-3 * xy[:, 1] ** 2 + rng.normal(0.0, 0.02, 6000)
+        after.append(np.c_[xy, z] + [1200.0, -600.0, 800.0])
+    moves = [from_rotvec(rng.normal(0.0, 1e-3, 3), rng.normal(0.0, 0.3, 3)) for _ in after]
+    before = [transform_points(T, a) for T, a in zip(moves, after, strict=True)]  # tracker-only: rigidly off
+    assert all(np.allclose(rigid_motion(a, b), np.linalg.inv(T), atol=1e-9)
+               for a, b, T in zip(after, before, moves, strict=True))
+    bent = [b + rng.normal(0.0, 20 * RIGID_TOLERANCE_MM, b.shape) for b in before]  # no rigid motion: own trees
+    assert all(rigid_motion(a, b) is None for a, b in zip(after, bent, strict=True))
+    ours, theirs = overlap_quality(before, after), overlap_quality(bent, after)
+    assert len(ours) == 3 and [(p.i, p.points) for p in ours] == [(p.i, p.points) for p in theirs]
+    for p, q in zip(ours, theirs, strict=True):
+        assert p.rms_before_mm > 5 * p.rms_after_mm  # the moves show before correction
+        assert p.rms_after_mm == q.rms_after_mm
+        assert p.rms_before_mm == pytest.approx(q.rms_before_mm, rel=1e-3)  # 20 nm noise apart

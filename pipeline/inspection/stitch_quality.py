@@ -16,6 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 from matplotlib.figure import Figure
 from scipy.spatial import cKDTree
+from tandemscan.pipeline.geometry.frames import transform_points
+from tandemscan.pipeline.inspection.alignment import fit_rigid
 from tandemscan.pipeline.inspection.deviation_maps import png_bytes
 
 PAIR_SAMPLE = 2000  # overlap points of a pair the RMS is evaluated on, at most (an even subsample)
@@ -74,8 +76,9 @@ def _tree(points: np.ndarray) -> cKDTree:
 
 def _plane_distances(points: np.ndarray, reference: np.ndarray, tree: cKDTree, k: int) -> np.ndarray:
     """Point-to-local-plane distance of ``points`` to ``reference`` (``tree`` is its KD tree): the plane
-    through the mean of the k nearest reference points, normal to their least spread."""
-    _, idx = tree.query(points, k=max(3, min(k, len(reference))), workers=-1)
+    through the mean of the k nearest reference points, normal to their least spread. One thread: a pair's
+    2000 queries cost less than starting threads for them."""
+    _, idx = tree.query(points, k=max(3, min(k, len(reference))))
     nb = reference[idx]  # (N, k, 3)
     centre = nb.mean(axis=1)
     centred = nb - centre[:, None]
@@ -84,6 +87,20 @@ def _plane_distances(points: np.ndarray, reference: np.ndarray, tree: cKDTree, k
         for j in range(i, 3):
             cov[:, i, j] = cov[:, j, i] = np.einsum("nk,nk->n", centred[:, :, i], centred[:, :, j])
     return np.abs(np.einsum("ni,ni->n", points - centre, smallest_eigenvectors(cov)))
+
+
+RIGID_TOLERANCE_MM = 1e-6  # a scan before and after correction is one rigid motion apart to this
+
+
+def rigid_motion(moved: np.ndarray, here: np.ndarray) -> np.ndarray | None:
+    """4x4 ``T`` with ``moved = T here`` (the same points, mm, after one rigid motion), or None where no
+    rigid motion maps every point to within :data:`RIGID_TOLERANCE_MM`."""
+    if len(here) != len(moved) or len(here) < 3:
+        return None
+    pick = np.unique(np.linspace(0, len(here) - 1, 64).astype(np.int64))
+    T = fit_rigid(here[pick], moved[pick])
+    off = transform_points(T, here) - moved
+    return T if float(np.einsum("ij,ij->i", off, off).max()) <= RIGID_TOLERANCE_MM**2 else None
 
 
 def overlap_quality(
@@ -114,10 +131,10 @@ def overlap_quality(
         b_idx = np.arange(len(b))[:: max(1, len(b) // max_points)]
         tree_a = _tree(a)
         look = b_idx[:: max(1, len(b_idx) // (2 * sample))]
-        over = look[tree_a.query(b[look])[0] < overlap_mm]
+        over = look[tree_a.query(b[look], distance_upper_bound=overlap_mm)[0] < overlap_mm]
         if len(over) < sample // 4 and len(look) < len(b_idx):  # a small overlap: look at every point
             look = b_idx
-            over = look[tree_a.query(b[look])[0] < overlap_mm]
+            over = look[tree_a.query(b[look], distance_upper_bound=overlap_mm)[0] < overlap_mm]
         if not len(over):
             continue
         count = round(len(over) * len(b_idx) / len(look))
@@ -127,7 +144,9 @@ def overlap_quality(
         if scans_after is not None:
             rms_after = float(np.sqrt(np.mean(dist**2)))
             a0, b0 = np.asarray(scans_before[i], float), np.asarray(scans_before[i + 1], float)
-            dist0 = _plane_distances(b0[over], a0, _tree(a0), k)
+            T = rigid_motion(a, a0)  # scan i moved by the correction: its tree serves before and after
+            dist0 = (_plane_distances(b0[over], a0, _tree(a0), k) if T is None
+                     else _plane_distances(transform_points(T, b0[over]), a, tree_a, k))
             rms_before = float(np.sqrt(np.mean(dist0**2)))
         else:
             rms_before = float(np.sqrt(np.mean(dist**2)))
