@@ -150,3 +150,68 @@ def test_overlap_before_correction_on_the_corrected_scans_tree_is_its_own_trees(
         assert p.rms_before_mm > 5 * p.rms_after_mm  # the moves show before correction
         assert p.rms_after_mm == q.rms_after_mm
         assert p.rms_before_mm == pytest.approx(q.rms_before_mm, rel=1e-3)  # 20 nm noise apart
+
+
+def _local_deviation_unbounded(p, d, smoothing_mm, at, k=48, kk=8):
+    """The average and surface share of every point of ``at`` from a plain k-nearest query (the long way)."""
+    from scipy.spatial import cKDTree
+
+    dist, idx = cKDTree(p).query(p[at], k=k)
+    inside = dist <= smoothing_mm
+    return (d[idx] * inside).sum(axis=1) / inside.sum(axis=1), np.pi * (0.5 * (dist[:, kk] + dist[:, kk + 1]))**2 / 9
+
+
+def test_local_deviation_searched_within_the_radius_is_the_plain_nearest_neighbours():
+    from tandemscan.pipeline.inspection.deviation_areas import local_deviation
+
+    rng = np.random.default_rng(8)
+    p, d = plane(rng, noise=0.05)
+    p = p + [1300.0, -700.0, 900.0] + np.c_[rng.uniform(-0.3, 0.3, (len(p), 2)), np.zeros(len(p))]  # no ties
+    lone = rng.uniform([1300.0, -700.0, 20.0], [1600.0, -400.0, 60.0], (300, 3))  # fewer than 10 within 4 mm
+    p, d = np.vstack([p, lone]), np.r_[d, rng.normal(0.0, 0.05, len(lone))]
+    at = np.r_[rng.choice(len(p) - len(lone), 3000, replace=False), np.arange(len(p) - len(lone), len(p))]
+    ours = local_deviation(p, d, 4.0, at)
+    smoothed, share = _local_deviation_unbounded(p, d, 4.0, at)
+    np.testing.assert_array_equal(ours.smoothed_mm, smoothed)
+    np.testing.assert_array_equal(ours.area_mm2, share)
+    assert np.isfinite(ours.area_mm2).all() and (ours.area_mm2[-len(lone):] > 10.0).all()
+
+
+def test_colour_map_z_buffer_picks_the_nearest_point_of_each_pixel_as_a_sort_would():
+    from tandemscan.pipeline.inspection.deviation_maps import (
+        DEVIATION_CMAP,
+        STANDARD_VIEWS,
+        _background,
+        deviation_norm,
+        render_view,
+    )
+
+    box = o3d.geometry.TriangleMesh.create_box(400.0, 200.0, 100.0).subdivide_midpoint(2)
+    box.translate([1200.0, -600.0, 800.0])
+    surface = CadSurface(box)
+    rng = np.random.default_rng(9)
+    p = _on_surface(box, rng, 60_000) + rng.normal(0.0, 0.05, (60_000, 3))
+    values = rng.normal(0.0, 0.2, len(p))
+    norm = deviation_norm(-0.1, 0.1)
+    for view in (STANDARD_VIEWS["isometric"], STANDARD_VIEWS["top"]):
+        ours = render_view(surface, p, values, view, norm, 300, spacing_mm=3.0, depth_margin_mm=400.0)
+        bg = _background(surface, view, 300)  # the same splats, resolved by sorting (pixel, depth)
+        x0, _, _, y1 = bg.extent_mm
+        c, r = np.floor((p @ bg.r - x0) / bg.px).astype(int), np.floor((y1 - p @ bg.u) / bg.px).astype(int)
+        depth = p @ bg.f - bg.depth0
+        h, w = bg.t_hit.shape
+        splat = int(min(6, max(1, np.ceil(1.5 * 3.0 / bg.px))))
+        pix, dep, idx = [], [], []
+        for dr in range(splat):
+            for dc in range(splat):
+                cc, rr = c + dc - splat // 2, r + dr - splat // 2
+                ok = (cc >= 0) & (cc < w) & (rr >= 0) & (rr < h)
+                ok[ok] &= depth[ok] <= bg.t_hit[rr[ok], cc[ok]] + 400.0
+                pix.append(rr[ok] * w + cc[ok]), dep.append(depth[ok]), idx.append(np.flatnonzero(ok))
+        pix, dep, idx = np.concatenate(pix), np.concatenate(dep), np.concatenate(idx)
+        order = np.lexsort((dep, pix))
+        first = np.unique(pix[order], return_index=True)[1]
+        flat = bg.rgb.reshape(-1, 3).copy()
+        flat[pix[order][first]] = DEVIATION_CMAP(norm(values))[:, :3][idx[order][first]]
+        assert ours.coloured_px == len(first) > 1000
+        np.testing.assert_array_equal(ours.rgb, flat.reshape(h, w, 3))

@@ -50,6 +50,9 @@ class ClosestPoints:
     signed_mm: np.ndarray  # (N,) signed distance, + along the outward normal
 
 
+CLOSEST_CHUNK = 262_144  # query points a chunk of :meth:`CadSurface.closest`
+
+
 class CadSurface:
     """The CAD mesh as a distance field: closest points and signed distances of queries, frame F, mm."""
 
@@ -76,22 +79,29 @@ class CadSurface:
         return self._scene
 
     def closest(self, points_mm: np.ndarray) -> ClosestPoints:
-        """Closest surface point, outward normal and signed distance of every query point."""
-        p = as_points(points_mm) - self.origin_mm
+        """Closest surface point, outward normal and signed distance of every query point. Asked in chunks of
+        :data:`CLOSEST_CHUNK` points, so the float64 work on each stays in the cache (the same numbers)."""
+        p = as_points(points_mm)
+        n = len(p)
+        out = ClosestPoints(np.empty((n, 3)), np.empty((n, 3)), np.empty(n, np.int64), np.empty(n))
+        for lo in range(0, n, CLOSEST_CHUNK):
+            self._closest_into(p[lo:lo + CLOSEST_CHUNK], out, slice(lo, lo + CLOSEST_CHUNK))
+        return out
+
+    def _closest_into(self, points_mm: np.ndarray, out: ClosestPoints, at: slice) -> None:
+        p = points_mm - self.origin_mm
         ans = self._scene.compute_closest_points(o3d.core.Tensor.from_numpy(p.astype(np.float32)))
-        closest = ans["points"].numpy().astype(np.float64)
-        normals = ans["primitive_normals"].numpy().astype(np.float64)
+        closest = out.points_mm[at]
+        closest[:] = ans["points"].numpy()
+        normals = out.normals[at]
+        normals[:] = ans["primitive_normals"].numpy()
         normals /= np.sqrt(np.einsum("ij,ij->i", normals, normals))[:, None]
         p -= closest  # p - closest from here on
-        signed = np.sqrt(np.einsum("ij,ij->i", p, p))
+        signed = out.signed_mm[at]
+        np.sqrt(np.einsum("ij,ij->i", p, p), out=signed)
         signed[np.einsum("ij,ij->i", p, normals) < 0.0] *= -1.0
         closest += self.origin_mm
-        return ClosestPoints(
-            points_mm=closest,
-            normals=normals,
-            triangle_ids=ans["primitive_ids"].numpy().astype(np.int64),
-            signed_mm=signed,
-        )
+        out.triangle_ids[at] = ans["primitive_ids"].numpy()
 
     def group_masks(self, triangle_ids: np.ndarray) -> list[tuple[str, np.ndarray]]:
         """(name, bool mask) per material group of the mesh, for points whose closest triangles are given;
