@@ -12,6 +12,7 @@ before it is handed over and every query is shifted the same way, which keeps th
 from __future__ import annotations
 
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -354,11 +355,13 @@ def inspect_cloud(
     if cfg.mesh_group_regions:
         masks += surface.group_masks(closest.triangle_ids)
     regions = [RegionResult(name, DeviationStats.of(d[m]), ToleranceResult.of(d[m], lo, hi)) for name, m in masks]
-    fit, note = _best_fit_result(surface, p, cfg, closest) if cfg.best_fit else (None, "")
-    stats = DeviationStats.of(d)
-    tol = ToleranceResult.of(d, lo, hi)
-    assert stats is not None and tol is not None  # p has at least one point
-    areas = find_deviation_areas(p, d, lo, hi, cfg.area_smoothing_mm, cfg.area_min_mm2)
+    with ThreadPoolExecutor(1, thread_name_prefix="best-fit") as pool:  # the fit while the areas are found
+        fit = pool.submit(_best_fit_result, surface, p, cfg, closest) if cfg.best_fit else None
+        stats = DeviationStats.of(d)
+        tol = ToleranceResult.of(d, lo, hi)
+        assert stats is not None and tol is not None  # p has at least one point
+        areas = find_deviation_areas(p, d, lo, hi, cfg.area_smoothing_mm, cfg.area_min_mm2)
+        fit, note = fit.result() if fit is not None else (None, "")
     log.info(
         "inspected %d points: mean %.4f mm, sigma %.4f mm, %.1f %% in tolerance, %d areas beyond it",
         stats.count, stats.mean_mm, stats.sigma_mm, tol.in_pct, len(areas),

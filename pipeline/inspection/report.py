@@ -107,6 +107,7 @@ def build_report(
     scans_after: Sequence[np.ndarray] | None = None,
     views: Sequence[View] | None = None,
     alignment: Alignment | None = None,
+    overlap: Future | None = None,
 ) -> Report:
     """Render the figures and collect the numbers of one inspection.
 
@@ -115,9 +116,11 @@ def build_report(
     points (mm) of each scan in measuring order before/after correction, for the stitching-quality view.
     ``views`` default to the config's; ``alignment`` is how the cloud was placed in the CAD frame (none:
     it came in that frame). The deviation areas are labelled on every map (``#id`` at the centroid).
+    ``overlap``: the scans' :func:`overlap_quality` where it is being computed already.
     """
     cfg = cfg or InspectionConfig()
-    overlap = _in_background(overlap_quality, scans_before, scans_after) if scans_before is not None else None
+    if overlap is None and scans_before is not None:
+        overlap = in_background(overlap_quality, scans_before, scans_after)
     tol = result.tolerance
     norm = deviation_norm(tol.lower_mm, tol.upper_mm, cfg.colour_limit_mm)
     every = max(1, int(np.ceil(len(result.points_mm) / cfg.map_max_points)))  # pictures only; numbers use all
@@ -146,6 +149,7 @@ def build_report(
     figures.append(ReportFigure("histogram", caption, hist))
     pairs = []
     if scans_before is not None:
+        assert overlap is not None
         pairs = overlap.result()
         png = stitching_png(scans_before, scans_after, pairs)
         if png is not None:
@@ -166,7 +170,7 @@ def build_report(
     return Report(data, tuple(figures))
 
 
-def _in_background(fn, *args) -> Future:
+def in_background(fn, *args) -> Future:
     """``fn(*args)`` on a thread of its own (KD-tree queries and numpy let the caller's figures draw)."""
     pool = ThreadPoolExecutor(1, thread_name_prefix=fn.__name__)
     try:
