@@ -215,3 +215,15 @@ def test_colour_map_z_buffer_picks_the_nearest_point_of_each_pixel_as_a_sort_wou
         flat[pix[order][first]] = DEVIATION_CMAP(norm(values))[:, :3][idx[order][first]]
         assert ours.coloured_px == len(first) > 1000
         np.testing.assert_array_equal(ours.rgb, flat.reshape(h, w, 3))
+
+
+def test_whether_a_fit_moves_a_point_further_than_a_limit_is_the_brute_forces():
+    from tandemscan.pipeline.inspection.inspect import _moves_further
+
+    rng = np.random.default_rng(10)
+    p = rng.uniform([-1500.0, -1000.0, 0.0], [1500.0, 1000.0, 1600.0], (50_000, 3))
+    for _ in range(40):
+        T = from_rotvec(rng.normal(0.0, 2e-6, 3), rng.normal(0.0, 2e-3, 3))
+        largest = np.linalg.norm(transform_points(T, p) - p, axis=1).max()
+        for limit in (0.5 * largest, 0.999 * largest, 1.001 * largest, 2.0 * largest):
+            assert _moves_further(T, p, limit) == (largest > limit)

@@ -298,16 +298,38 @@ def signed_distance_moved(surface: CadSurface, points_mm: np.ndarray, T: np.ndar
     ``2 |delta|`` off on the few points where the closest triangle changes at a concave crease. Larger moves
     are queried anew."""
     p = as_points(points_mm)
-    delta = transform_points(T, p) - p
-    if not len(p) or float(np.sqrt(np.einsum("ij,ij->i", delta, delta).max())) > SMALL_MOVE_MM:
-        return surface.signed_distance(p + delta)
-    d = before.signed_mm
-    grad = before.normals.copy()  # on a triangle's face (nearly every point): its normal, exactly
-    off = np.abs(d) > 1e-3
-    to_point = (p[off] - before.points_mm[off]) / d[off, None]
-    edge = np.einsum("ij,ij->i", to_point, grad[off]) < 0.9999  # closest on an edge or a corner
-    grad[np.flatnonzero(off)[edge]] = to_point[edge]
-    return d + np.einsum("ij,ij->i", grad, delta)
+    if not len(p) or _moves_further(T, p, SMALL_MOVE_MM):
+        return surface.signed_distance(transform_points(T, p))
+    out = np.empty(len(p))
+    for lo in range(0, len(p), CLOSEST_CHUNK):  # a chunk at a time: its float64 work stays in the cache
+        at = slice(lo, lo + CLOSEST_CHUNK)
+        q, d = p[at], before.signed_mm[at]
+        delta = transform_points(T, q) - q
+        grad = before.normals[at].copy()  # on a triangle's face (nearly every point): its normal, exactly
+        off = np.abs(d) > 1e-3
+        to_point = (q[off] - before.points_mm[at][off]) / d[off, None]
+        edge = np.einsum("ij,ij->i", to_point, grad[off]) < 0.9999  # closest on an edge or a corner
+        grad[np.flatnonzero(off)[edge]] = to_point[edge]
+        out[at] = d + np.einsum("ij,ij->i", grad, delta)
+    return out
+
+
+def _moves_further(T: np.ndarray, points_mm: np.ndarray, limit_mm: float) -> bool:
+    """Whether ``T`` moves some point of ``points_mm`` further than ``limit_mm`` (mm). A rigid motion's
+    displacement is affine in the point, so its length is largest at a corner of the points' bounding box:
+    where no corner moves further no point does; else the points are measured, a chunk at a time."""
+    lo, hi = points_mm.min(axis=0), points_mm.max(axis=0)
+    corners = np.array([[hi[i] if (k >> i) & 1 else lo[i] for i in range(3)] for k in range(8)])
+    for q in [corners] if _moved_mm(T, corners) <= limit_mm else (
+            points_mm[at:at + CLOSEST_CHUNK] for at in range(0, len(points_mm), CLOSEST_CHUNK)):
+        if _moved_mm(T, q) > limit_mm:
+            return True
+    return False
+
+
+def _moved_mm(T: np.ndarray, points_mm: np.ndarray) -> float:
+    delta = transform_points(T, points_mm) - points_mm
+    return float(np.sqrt(np.einsum("ij,ij->i", delta, delta).max()))
 
 
 def _best_fit_result(surface: CadSurface, p: np.ndarray, cfg: InspectionConfig, closest: ClosestPoints | None = None
