@@ -120,15 +120,32 @@ def align_and_inspect(
     log.info("aligned to CAD by %s: residual %.4f mm, %d points on reference spheres left out",
              alignment.method, alignment.residual_mm, int((~keep).sum()))
 
-    def into_F(scans: Sequence[np.ndarray] | None) -> list[np.ndarray] | None:
-        return None if scans is None else [transform_points(T, s) for s in scans]
+    def into_F(scans: Sequence[np.ndarray] | None) -> MovedScans | None:
+        return None if scans is None else MovedScans(scans, T)
 
+    every = bool(keep.all())  # no copy of the cloud where no point is left out
     return run_inspection(
-        transform_points(T, p[keep]), surface, out_dir, cfg,
-        normals=None if normals_W is None else rotate_vectors(T, np.asarray(normals_W)[keep]),
+        transform_points(T, p if every else p[keep]), surface, out_dir, cfg,
+        normals=None if normals_W is None else rotate_vectors(T, normals_W if every else np.asarray(normals_W)[keep]),
         scans_before=into_F(scans_before_W), scans_after=into_F(scans_after_W), alignment=alignment,
         overlap=overlap, **report,
     )
+
+
+class MovedScans(Sequence):
+    """Scans' points (frame W, mm) as ``T`` (``T_F_W``) places them, each mapped when it is asked for: the
+    stitching figure draws two of the hundreds of scans a job has (its numbers come from W)."""
+
+    def __init__(self, scans_W: Sequence[np.ndarray], T: np.ndarray):
+        self._scans, self._T = scans_W, np.asarray(T, float)
+
+    def __len__(self) -> int:
+        return len(self._scans)
+
+    def __getitem__(self, i):  # type: ignore[override]
+        if isinstance(i, slice):
+            return [self[k] for k in range(*i.indices(len(self)))]
+        return transform_points(self._T, self._scans[i])
 
 
 def inspect_files(
