@@ -21,6 +21,7 @@ from tandemscan.pipeline.inspection.alignment import fit_rigid
 from tandemscan.pipeline.inspection.deviation_maps import png_bytes
 
 PAIR_SAMPLE = 2000  # overlap points of a pair the RMS is evaluated on, at most (an even subsample)
+MAX_PAIR_LABELS = 60  # the stitching figure names at most this many pairs (evenly chosen) under its bars
 
 
 @dataclass(frozen=True)
@@ -188,19 +189,20 @@ def stitching_png(
     best = max(pairs, key=lambda p: p.points)
     final = scans_after if scans_after is not None else scans_before
     frame = _section(np.asarray(final[best.i], float), np.asarray(final[best.j], float), overlap_mm)
-    fig = Figure(figsize=(9.0, 6.5), dpi=110, layout="constrained")
-    grid = fig.add_gridspec(2, 2, height_ratios=[1.0, 1.2])
-    bar = fig.add_subplot(grid[0, :])
-    axes = [fig.add_subplot(grid[1, 0]), fig.add_subplot(grid[1, 1])]
+    fig = Figure(figsize=(9.0, 6.5), dpi=110)  # fixed axes, as the maps: no layout engine
+    bar = fig.add_axes((0.08, 0.64, 0.9, 0.3))
+    axes = [fig.add_axes((0.1, 0.08, 0.38, 0.38)), fig.add_axes((0.6, 0.08, 0.38, 0.38))]
     x = np.arange(len(pairs))
     bar.bar(x - 0.2, [p.rms_before_mm * 1000 for p in pairs], 0.4, label="before correction", color="#d7261e")
     if scans_after is not None:
         bar.bar(x + 0.2, [p.rms_after_mm * 1000 for p in pairs], 0.4, label="after correction", color="#2fbf4a")
-    bar.set_xticks(x, [f"{p.i}-{p.j}" for p in pairs], fontsize=7, rotation=90 if len(pairs) > 20 else 0)
+    every = max(1, int(np.ceil(len(pairs) / MAX_PAIR_LABELS)))  # more would overlap
+    bar.set_xticks(x[::every], [f"{p.i}-{p.j}" for p in pairs[::every]], fontsize=7,
+                   rotation=90 if len(pairs) > 20 else 0)
     bar.set_ylabel("overlap RMS, um")
     bar.set_xlabel("neighbouring scans")
     bar.set_title("Distance between neighbouring scans in their overlap")
-    bar.legend(fontsize=8)
+    bar.legend(fontsize=8, loc="upper right")
     if frame is None:
         for ax in axes:
             ax.set_axis_off()
