@@ -136,6 +136,7 @@ def build_report(
         maps.append(ReportFigure(f"map-{i}", f"Deviation colour map, {view.name}", png))
         if i > 0:
             continue
+        coverage = _coverage_figure(result, surface, view, cfg)  # while the first view's picture is cached
         for label, side, keep in (("upper", "above", d > 0), ("lower", "below", d < 0)):  # first view only
             if keep.any():
                 title_ = f"{label.capitalize()} deviation (points {side} CAD), {view.name}"
@@ -143,7 +144,7 @@ def build_report(
                 png = deviation_map_png(surface, p[keep], d[keep], view, tol, norm, cfg.map_width_px, title_,
                                         n[keep], spacing, ours)
                 split.append(ReportFigure(f"{label}-deviation", title_, png))
-    figures = maps + [_coverage_figure(result, surface, views[0], cfg)] + split
+    figures = maps + [coverage] + split
     hist = histogram_png(result.deviations_mm, result.stats, tol, norm)
     caption = "Deviation histogram with the tolerance band (the outer bins collect the 0.1 % tails)"
     figures.append(ReportFigure("histogram", caption, hist))
