@@ -249,8 +249,8 @@ def best_fit(
     ``tolerance_mm``, or stopped lowering the (weighted) RMS residual (a shape with a symmetry leaves the
     fit free along it). At most ``max_points`` points, an even subsample, take part.
     """
-    p = as_points(points_mm)
-    p = p[:: max(1, int(np.ceil(len(p) / max_points)))]
+    p = np.asarray(points_mm)
+    p = as_points(p[:: max(1, int(np.ceil(len(p) / max_points)))])  # the points that take part
     T = np.eye(4) if start is None else np.array(start, dtype=np.float64)
     used = 0
     rms_before = np.inf
