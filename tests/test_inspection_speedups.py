@@ -108,6 +108,12 @@ def test_even_centres_keep_one_point_per_cube():
     first = even_centres(p, 10.0)
     keys = np.floor(p / 10.0)
     assert len(first) == 1000 == len(np.unique(keys[first], axis=0))  # 10 x 10 x 10 cubes, all occupied
+    q = np.random.default_rng(11).normal(0.0, 300.0, (120_000, 3)) + [1400.0, -650.0, 900.0]  # many chunks
+    cell = np.floor(q / 3.0).astype(np.int64)
+    cell -= cell.min(axis=0)
+    size = cell.max(axis=0) + 1
+    plain = np.unique((cell[:, 0] * size[1] + cell[:, 1]) * size[2] + cell[:, 2], return_index=True)[1]
+    np.testing.assert_array_equal(even_centres(q, 3.0), plain)  # the first point of each cube, in cube order
 
 
 def test_coverage_from_the_inspections_closest_triangles_is_a_new_querys():
@@ -227,3 +233,23 @@ def test_whether_a_fit_moves_a_point_further_than_a_limit_is_the_brute_forces():
         largest = np.linalg.norm(transform_points(T, p) - p, axis=1).max()
         for limit in (0.5 * largest, 0.999 * largest, 1.001 * largest, 2.0 * largest):
             assert _moves_further(T, p, limit) == (largest > limit)
+
+
+def test_closest_points_and_the_mapping_into_f_in_chunks_are_those_of_one_pass():
+    from tandemscan.pipeline.geometry.frames import rotate_vectors
+    from tandemscan.pipeline.inspection.inspect import CLOSEST_CHUNK, in_chunks
+
+    mesh = o3d.geometry.TriangleMesh.create_sphere(radius=400.0, resolution=40)
+    mesh.translate([1400.0, -650.0, 900.0])
+    surface = CadSurface(mesh)
+    rng = np.random.default_rng(12)
+    n = CLOSEST_CHUNK + 12_345  # two chunks, the second a part one
+    pts = _on_surface(mesh, rng, n) + rng.normal(0.0, 0.5, (n, 3))
+    whole = surface.closest(pts)
+    for part in (slice(0, 1000), slice(CLOSEST_CHUNK - 500, CLOSEST_CHUNK + 500), slice(n - 1000, n)):
+        alone = surface.closest(pts[part])  # in one chunk of its own
+        for f in ("points_mm", "normals", "triangle_ids", "signed_mm"):
+            np.testing.assert_array_equal(getattr(whole, f)[part], getattr(alone, f))
+    T = from_rotvec([0.1, -0.2, 0.3], [10.0, -20.0, 30.0])
+    np.testing.assert_array_equal(in_chunks(transform_points, T, pts), transform_points(T, pts))
+    np.testing.assert_array_equal(in_chunks(rotate_vectors, T, whole.normals), rotate_vectors(T, whole.normals))
