@@ -117,7 +117,8 @@ def bound_covariance(result: JobResult, T_T_S: np.ndarray, config, true_T_W_S: d
                                 config.correction.pair_cell_mm)
     for i, j, c, I_ij in pairs:
         H = recentre(origins[j], c) @ A[6 * j:6 * j + 6] - recentre(origins[i], c) @ A[6 * i:6 * i + 6]
-        info += H.T @ I_ij @ H
+        cols = np.flatnonzero(np.any(H != 0.0, axis=0))  # the two scans' and their transfers' unknowns
+        info[np.ix_(cols, cols)] += H[:, cols].T @ I_ij @ H[:, cols]
     return A, prior, np.linalg.inv(info), origins, len(pairs)
 
 
