@@ -36,7 +36,8 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class LoadedScans:
     """Every scan's points in its scanner frame S thinned to one centroid per occupied voxel of edge
-    ``voxel_mm`` (float64, mm; ``registration.sampling.voxel_downsample``), in the order of ``job.scans``."""
+    ``voxel_mm`` (float64, mm; ``registration.sampling.voxel_downsample``), or the scan itself where that would
+    not halve it (float32, a coarse scan: ``raw_scan.read_thinned_scan``), in the order of ``job.scans``."""
 
     voxel_mm: float
     points_S: tuple[np.ndarray, ...]
@@ -63,8 +64,10 @@ class FinishedJob:
 
 def load_scans(job: JobSnapshot) -> LoadedScans:
     """Read every scan file of ``job.scans`` once, keeping only its copy thinned at ``[job] voxel_mm``: the
-    correction thins to that voxel first, and thinning a thinned copy again changes nothing, so its result is
-    that of the full scans."""
+    correction thins to that voxel first, and thinning a thinned copy again changes nothing (its pairs and
+    pose graph are those of the full scans; only its joint refinement, thinning the copy to its coarser
+    ``joint_voxel_mm``, weighs each finer voxel once). A coarse scan, not halved by the thinning, is kept
+    whole, so the correction at coarse resolution is that of the scans as stored."""
     voxel_mm = job.config.job.voxel_mm
     return LoadedScans(voxel_mm, tuple(read_thinned_scan(s.file, voxel_mm) for s in job.scans))
 

@@ -147,6 +147,13 @@ async def test_full_resolution_job_reports_as_a_coarse_one(sim_config, tmp_path)
         reports[resolution] = json.loads((result.job_dir / "report.json").read_text())
     coarse, full = reports["coarse"], reports["full"]
     assert _keys(full) == _keys(coarse)
+    for resolution, whole in (("coarse", True), ("full", False)):  # what the end of the job kept of each scan
+        for f in sorted((tmp_path / resolution / "scans").glob("*.npz")):
+            stored, kept = read_raw_scan(f, np.float32)[0], read_thinned_scan(f, sim_config.job.voxel_mm)
+            if whole:
+                assert kept.dtype == np.float32 and np.array_equal(kept, stored)
+            else:
+                assert len(kept) < len(stored) / 10
     points = [e["points"] for e in full["scan_log"]]
     assert min(points) > 30 * max(e["points"] for e in coarse["scan_log"]) / 2  # 3.2 M pixels vs 41 k
     assert full["correction"]["enabled"] and full["correction"]["pairs"] >= 1
@@ -156,3 +163,13 @@ async def test_full_resolution_job_reports_as_a_coarse_one(sim_config, tmp_path)
         assert [header.get_header(i).point_count for i in range(3)] == points
     finally:
         header.close()
+
+
+def test_a_coarse_scan_is_kept_whole(tmp_path):
+    """A scan whose points lie over a voxel apart is not halved by thinning: the end of the job keeps it as
+    stored, so the correction at coarse resolution sees what it saw before (its joint refinement included)."""
+    grid = np.stack(np.meshgrid(np.arange(100) * 1.56, np.arange(80) * 1.56), -1).reshape(-1, 2)
+    points = np.c_[grid, 440 + np.random.default_rng(3).normal(0, 0.05, len(grid))]
+    write_raw_scan(tmp_path / "coarse.npz", points_S_mm=points)
+    kept = read_thinned_scan(tmp_path / "coarse.npz", 1.0)
+    np.testing.assert_array_equal(kept, read_raw_scan(tmp_path / "coarse.npz", np.float32)[0])
