@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-from tandemscan.daemon.job_outputs import export_job
+from tandemscan.daemon.job_outputs import export_job, stitch_view_points
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan
 from tandemscan.pipeline.stitching.worldmap import VoxelMap
 
@@ -111,12 +111,14 @@ def finish_job(job: JobSnapshot, started: float, measured_at: float,
     loaded = load_scans(job)
     timings["read_s"] = round(time.perf_counter() - t, 3)
     outcome = correct_stage(job, loaded, pair_cache)
+    view_S = tuple(stitch_view_points(p) for p in loaded.points_S)  # all the exports need of the copies
+    del loaded
     t = time.perf_counter()
     worldmap = merge_stage(job.worldmap.voxel_mm, job, outcome.poses) if outcome.corrected else job.worldmap
     timings["merge_s"] = round(time.perf_counter() - t, 3)
     final = dataclasses.replace(
         job, scans=[dataclasses.replace(s, T_W_S=T) for s, T in zip(job.scans, outcome.poses, strict=True)],
         correction=outcome.section, worldmap=worldmap)
-    report = export_job(final, time.monotonic() - started, measured_at, timings, loaded.points_S,
+    report = export_job(final, time.monotonic() - started, measured_at, timings, view_S,
                         outcome.tracker_poses if outcome.corrected else None)
     return FinishedJob(report, outcome)

@@ -41,10 +41,12 @@ EXPORT_FILES = {"e57": "cloud.e57", "pose_log": "poses.csv"}
 
 def _posed_scans(job: JobSnapshot, points_S: Sequence[np.ndarray] | None = None) -> list[PosedScan]:
     """The job's scans at their poses with their thinned points (S, mm; ``points_S`` where the caller has
-    them, else read and thinned at ``[job] voxel_mm`` here, one file at a time) and their full point counts."""
+    them, else read, thinned at ``[job] voxel_mm`` and to :func:`stitch_view_points` here, one file at a
+    time) and their full point counts."""
     scans = []
     for k, s in enumerate(job.scans):
-        points = read_thinned_scan(s.file, job.config.job.voxel_mm) if points_S is None else points_S[k]
+        points = (stitch_view_points(read_thinned_scan(s.file, job.config.job.voxel_mm)) if points_S is None
+                  else points_S[k])
         meta = {"tracker_station": s.tracker_station, "timestamp_s": s.reading.timestamp_s,
                 **{f"joint{i + 1}_deg": float(np.degrees(q)) for i, q in enumerate(s.joints_rad)}}
         scans.append(PosedScan(s.file.stem, s.T_W_S, points, meta, s.point_count))
@@ -71,6 +73,13 @@ def _thin(points: np.ndarray) -> np.ndarray:
     return points[:: max(1, len(points) // STITCH_VIEW_POINTS)]
 
 
+def stitch_view_points(points_S: np.ndarray) -> np.ndarray:
+    """The points of a scan (S, mm) the inspection's stitch view takes (every k-th, under twice
+    ``STITCH_VIEW_POINTS``; thinning them again leaves them as they are): all the end of a job still needs of
+    a scan once its correction is done. A copy, so that the scan's array can be freed."""
+    return _thin(points_S).copy()
+
+
 def _accuracy(report: dict) -> dict:
     truth = report.get("ground_truth") or {}
     keys = {
@@ -93,8 +102,8 @@ def export_job(job: JobSnapshot, seconds: float, measured_at: float, stages: Map
     ``measured_at`` is ``time.monotonic()`` (system-wide) when the job's last step was committed:
     ``timings.after_last_scan_s`` is the time from there to report.html, ``timings.correction_cpu_s`` the
     correction's CPU time after the last scan, ``timings.stages_s`` the seconds of each stage (``stages``: those
-    before this call). ``points_S``: the scans' points (S, mm) thinned at ``[job] voxel_mm`` (else read and
-    thinned here; the E57 reads the full scans from their files);
+    before this call). ``points_S``: the scans' points (S, mm) thinned at ``[job] voxel_mm`` or to
+    :func:`stitch_view_points` (else read and thinned here; the E57 reads the full scans from their files);
     ``tracker_poses``: the tracker-stitched poses where the correction changed them (None: not corrected)."""
     t = [time.perf_counter()]
     write_ply(job.job_dir / "cloud.ply", job.worldmap.points(), job.worldmap.normals())
@@ -118,7 +127,8 @@ def export_job(job: JobSnapshot, seconds: float, measured_at: float, stages: Map
 def write_job_outputs(job: JobSnapshot, report: dict, points_S: Sequence[np.ndarray] | None = None,
                       tracker_poses: Sequence[np.ndarray] | None = None) -> dict:
     """Write the E57, the pose log and (when registered to CAD) the inspection report of a finished job
-    (``points_S``: the scans thinned at ``[job] voxel_mm``, and ``tracker_poses``, as for :func:`export_job`).
+    (``points_S``: the scans thinned at ``[job] voxel_mm`` or to :func:`stitch_view_points`, and
+    ``tracker_poses``, as for :func:`export_job`).
 
     Returns the inspection section for the job's ``report.json``: the same numbers as report.html. The E57
     (the full scans streamed from their files) and the pose log are written on a second thread while the

@@ -177,3 +177,15 @@ def test_a_coarse_scan_is_kept_whole(tmp_path):
     write_raw_scan(tmp_path / "coarse.npz", points_S_mm=points)
     kept = read_thinned_scan(tmp_path / "coarse.npz", 1.0)
     np.testing.assert_array_equal(kept, read_raw_scan(tmp_path / "coarse.npz", np.float32)[0])
+
+
+def test_the_stitch_view_takes_the_same_points_from_its_copy():
+    """The end of the job keeps only :func:`stitch_view_points` of a scan after its correction; the stitch
+    view, thinning those, shows what it showed of the whole scan."""
+    from tandemscan.daemon.job_outputs import _thin, stitch_view_points
+
+    for n in (0, 7, 19_999, 40_001, 143_118, 3_186_816):
+        points = np.arange(3 * n, dtype=np.float32).reshape(n, 3)
+        view = stitch_view_points(points)
+        np.testing.assert_array_equal(_thin(view), _thin(points))
+        assert view.base is None  # a copy: the scan itself can be freed
