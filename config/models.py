@@ -627,7 +627,9 @@ class CorrectionConfig(_Strict):
     joint_max_distance_mm: float = Field(
         1.0, gt=0, description="joint refinement: a point's nearest neighbour in the other scan counts within this, mm"
     )
-    joint_iterations: int = Field(8, ge=1, description="joint refinement: at most this many re-associations")
+    joint_iterations: int = Field(
+        3, ge=1, description="joint refinement: at most this many re-associations (more let a weakly held "
+        "station slide, docs/registration.md)")
     joint_sigma_mm: float | None = Field(
         None, gt=0, description="joint refinement: 1-sigma of a point-to-plane residual, mm; empty = the "
         "residuals' robust scale in each iteration"

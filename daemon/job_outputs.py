@@ -102,16 +102,20 @@ def export_job(job: JobSnapshot, seconds: float, measured_at: float, stages: Map
     ``measured_at`` is ``time.monotonic()`` (system-wide) when the job's last step was committed:
     ``timings.after_last_scan_s`` is the time from there to report.html, ``timings.correction_cpu_s`` the
     correction's CPU time after the last scan, ``timings.stages_s`` the seconds of each stage (``stages``: those
-    before this call). ``points_S``: the scans' points (S, mm) thinned at ``[job] voxel_mm`` or to
-    :func:`stitch_view_points` (else read and thinned here; the E57 reads the full scans from their files);
-    ``tracker_poses``: the tracker-stitched poses where the correction changed them (None: not corrected)."""
+    before this call; ``cloud.ply`` is written on a second thread, ``cloud_ply_s`` is the time to hand it
+    over, and ``exports_and_inspection_s`` includes waiting for it). ``points_S``: the scans' points (S, mm)
+    thinned at ``[job] voxel_mm`` or to :func:`stitch_view_points` (else read and thinned here; the E57 reads
+    the full scans from their files); ``tracker_poses``: the tracker-stitched poses where the correction
+    changed them (None: not corrected)."""
     t = [time.perf_counter()]
-    write_ply(job.job_dir / "cloud.ply", job.worldmap.points(), job.worldmap.normals())
-    t.append(time.perf_counter())
-    report = build_report(job, seconds, tracker_poses)
-    t.append(time.perf_counter())
-    report["inspection"] = write_job_outputs(job, report, points_S, tracker_poses)  # report.html, E57, pose log
-    t.append(time.perf_counter())
+    with ThreadPoolExecutor(1, thread_name_prefix="cloud-ply") as pool:  # written while the report computes
+        cloud_ply = pool.submit(write_ply, job.job_dir / "cloud.ply", job.worldmap.points(), job.worldmap.normals())
+        t.append(time.perf_counter())
+        report = build_report(job, seconds, tracker_poses)
+        t.append(time.perf_counter())
+        report["inspection"] = write_job_outputs(job, report, points_S, tracker_poses)  # report.html, E57, poses
+        cloud_ply.result()  # complete before the job is reported done; its error, if any, is the job's
+        t.append(time.perf_counter())
     if job.scorer is not None and "ground_truth" in report and "alignment" in report["inspection"]:
         report["ground_truth"]["inspection"] = job.scorer.score_inspection(job, report["inspection"])
     t.append(time.perf_counter())

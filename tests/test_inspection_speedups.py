@@ -108,6 +108,12 @@ def test_even_centres_keep_one_point_per_cube():
     first = even_centres(p, 10.0)
     keys = np.floor(p / 10.0)
     assert len(first) == 1000 == len(np.unique(keys[first], axis=0))  # 10 x 10 x 10 cubes, all occupied
+    q = np.random.default_rng(11).normal(0.0, 300.0, (120_000, 3)) + [1400.0, -650.0, 900.0]  # many chunks
+    cell = np.floor(q / 3.0).astype(np.int64)
+    cell -= cell.min(axis=0)
+    size = cell.max(axis=0) + 1
+    plain = np.unique((cell[:, 0] * size[1] + cell[:, 1]) * size[2] + cell[:, 2], return_index=True)[1]
+    np.testing.assert_array_equal(even_centres(q, 3.0), plain)  # the first point of each cube, in cube order
 
 
 def test_coverage_from_the_inspections_closest_triangles_is_a_new_querys():
@@ -127,3 +133,123 @@ def test_points_within_a_sphere_are_the_kd_trees():
     tree = cKDTree(p)
     for centre, r in (([1400.0, -650.0, 900.0], 30.0), ([1490.0, -560.0, 990.0], 25.0), ([0.0, 0.0, 0.0], 5.0)):
         np.testing.assert_array_equal(within(p, centre, r), sorted(tree.query_ball_point(centre, r)))
+
+
+def test_overlap_before_correction_on_the_corrected_scans_tree_is_its_own_trees():
+    from tandemscan.pipeline.inspection.stitch_quality import RIGID_TOLERANCE_MM, overlap_quality, rigid_motion
+
+    rng = np.random.default_rng(7)
+    after = []
+    for k in range(4):  # overlapping curved patches at part-scale coordinates
+        xy = rng.uniform([80.0 * k, 0.0], [80.0 * k + 130.0, 120.0], (6000, 2))
+        z = 2e-4 * (xy[:, 0] - 150.0) ** 2 + 1e-3 * xy[:, 1] ** 2 + rng.normal(0.0, 0.02, 6000)
+        after.append(np.c_[xy, z] + [1200.0, -600.0, 800.0])
+    moves = [from_rotvec(rng.normal(0.0, 1e-3, 3), rng.normal(0.0, 0.3, 3)) for _ in after]
+    before = [transform_points(T, a) for T, a in zip(moves, after, strict=True)]  # tracker-only: rigidly off
+    assert all(np.allclose(rigid_motion(a, b), np.linalg.inv(T), atol=1e-9)
+               for a, b, T in zip(after, before, moves, strict=True))
+    bent = [b + rng.normal(0.0, 20 * RIGID_TOLERANCE_MM, b.shape) for b in before]  # no rigid motion: own trees
+    assert all(rigid_motion(a, b) is None for a, b in zip(after, bent, strict=True))
+    ours, theirs = overlap_quality(before, after), overlap_quality(bent, after)
+    assert len(ours) == 3 and [(p.i, p.points) for p in ours] == [(p.i, p.points) for p in theirs]
+    for p, q in zip(ours, theirs, strict=True):
+        assert p.rms_before_mm > 5 * p.rms_after_mm  # the moves show before correction
+        assert p.rms_after_mm == q.rms_after_mm
+        assert p.rms_before_mm == pytest.approx(q.rms_before_mm, rel=1e-3)  # 20 nm noise apart
+
+
+def _local_deviation_unbounded(p, d, smoothing_mm, at, k=48, kk=8):
+    """The average and surface share of every point of ``at`` from a plain k-nearest query (the long way)."""
+    from scipy.spatial import cKDTree
+
+    dist, idx = cKDTree(p).query(p[at], k=k)
+    inside = dist <= smoothing_mm
+    return (d[idx] * inside).sum(axis=1) / inside.sum(axis=1), np.pi * (0.5 * (dist[:, kk] + dist[:, kk + 1]))**2 / 9
+
+
+def test_local_deviation_searched_within_the_radius_is_the_plain_nearest_neighbours():
+    from tandemscan.pipeline.inspection.deviation_areas import local_deviation
+
+    rng = np.random.default_rng(8)
+    p, d = plane(rng, noise=0.05)
+    p = p + [1300.0, -700.0, 900.0] + np.c_[rng.uniform(-0.3, 0.3, (len(p), 2)), np.zeros(len(p))]  # no ties
+    lone = rng.uniform([1300.0, -700.0, 20.0], [1600.0, -400.0, 60.0], (300, 3))  # fewer than 10 within 4 mm
+    p, d = np.vstack([p, lone]), np.r_[d, rng.normal(0.0, 0.05, len(lone))]
+    at = np.r_[rng.choice(len(p) - len(lone), 3000, replace=False), np.arange(len(p) - len(lone), len(p))]
+    ours = local_deviation(p, d, 4.0, at)
+    smoothed, share = _local_deviation_unbounded(p, d, 4.0, at)
+    np.testing.assert_array_equal(ours.smoothed_mm, smoothed)
+    np.testing.assert_array_equal(ours.area_mm2, share)
+    assert np.isfinite(ours.area_mm2).all() and (ours.area_mm2[-len(lone):] > 10.0).all()
+
+
+def test_colour_map_z_buffer_picks_the_nearest_point_of_each_pixel_as_a_sort_would():
+    from tandemscan.pipeline.inspection.deviation_maps import (
+        DEVIATION_CMAP,
+        STANDARD_VIEWS,
+        _background,
+        deviation_norm,
+        render_view,
+    )
+
+    box = o3d.geometry.TriangleMesh.create_box(400.0, 200.0, 100.0).subdivide_midpoint(2)
+    box.translate([1200.0, -600.0, 800.0])
+    surface = CadSurface(box)
+    rng = np.random.default_rng(9)
+    p = _on_surface(box, rng, 60_000) + rng.normal(0.0, 0.05, (60_000, 3))
+    values = rng.normal(0.0, 0.2, len(p))
+    norm = deviation_norm(-0.1, 0.1)
+    for view in (STANDARD_VIEWS["isometric"], STANDARD_VIEWS["top"]):
+        ours = render_view(surface, p, values, view, norm, 300, spacing_mm=3.0, depth_margin_mm=400.0)
+        bg = _background(surface, view, 300)  # the same splats, resolved by sorting (pixel, depth)
+        x0, _, _, y1 = bg.extent_mm
+        c, r = np.floor((p @ bg.r - x0) / bg.px).astype(int), np.floor((y1 - p @ bg.u) / bg.px).astype(int)
+        depth = p @ bg.f - bg.depth0
+        h, w = bg.t_hit.shape
+        splat = int(min(6, max(1, np.ceil(1.5 * 3.0 / bg.px))))
+        pix, dep, idx = [], [], []
+        for dr in range(splat):
+            for dc in range(splat):
+                cc, rr = c + dc - splat // 2, r + dr - splat // 2
+                ok = (cc >= 0) & (cc < w) & (rr >= 0) & (rr < h)
+                ok[ok] &= depth[ok] <= bg.t_hit[rr[ok], cc[ok]] + 400.0
+                pix.append(rr[ok] * w + cc[ok]), dep.append(depth[ok]), idx.append(np.flatnonzero(ok))
+        pix, dep, idx = np.concatenate(pix), np.concatenate(dep), np.concatenate(idx)
+        order = np.lexsort((dep, pix))
+        first = np.unique(pix[order], return_index=True)[1]
+        flat = bg.rgb.reshape(-1, 3).copy()
+        flat[pix[order][first]] = DEVIATION_CMAP(norm(values))[:, :3][idx[order][first]]
+        assert ours.coloured_px == len(first) > 1000
+        np.testing.assert_array_equal(ours.rgb, flat.reshape(h, w, 3))
+
+
+def test_whether_a_fit_moves_a_point_further_than_a_limit_is_the_brute_forces():
+    from tandemscan.pipeline.inspection.inspect import _moves_further
+
+    rng = np.random.default_rng(10)
+    p = rng.uniform([-1500.0, -1000.0, 0.0], [1500.0, 1000.0, 1600.0], (50_000, 3))
+    for _ in range(40):
+        T = from_rotvec(rng.normal(0.0, 2e-6, 3), rng.normal(0.0, 2e-3, 3))
+        largest = np.linalg.norm(transform_points(T, p) - p, axis=1).max()
+        for limit in (0.5 * largest, 0.999 * largest, 1.001 * largest, 2.0 * largest):
+            assert _moves_further(T, p, limit) == (largest > limit)
+
+
+def test_closest_points_and_the_mapping_into_f_in_chunks_are_those_of_one_pass():
+    from tandemscan.pipeline.geometry.frames import rotate_vectors
+    from tandemscan.pipeline.inspection.inspect import CLOSEST_CHUNK, in_chunks
+
+    mesh = o3d.geometry.TriangleMesh.create_sphere(radius=400.0, resolution=40)
+    mesh.translate([1400.0, -650.0, 900.0])
+    surface = CadSurface(mesh)
+    rng = np.random.default_rng(12)
+    n = CLOSEST_CHUNK + 12_345  # two chunks, the second a part one
+    pts = _on_surface(mesh, rng, n) + rng.normal(0.0, 0.5, (n, 3))
+    whole = surface.closest(pts)
+    for part in (slice(0, 1000), slice(CLOSEST_CHUNK - 500, CLOSEST_CHUNK + 500), slice(n - 1000, n)):
+        alone = surface.closest(pts[part])  # in one chunk of its own
+        for f in ("points_mm", "normals", "triangle_ids", "signed_mm"):
+            np.testing.assert_array_equal(getattr(whole, f)[part], getattr(alone, f))
+    T = from_rotvec([0.1, -0.2, 0.3], [10.0, -20.0, 30.0])
+    np.testing.assert_array_equal(in_chunks(transform_points, T, pts), transform_points(T, pts))
+    np.testing.assert_array_equal(in_chunks(rotate_vectors, T, whole.normals), rotate_vectors(T, whole.normals))

@@ -11,6 +11,7 @@ import pye57
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.session import CellSession
+from tandemscan.pipeline.io.cloud_io import read_ply
 from tandemscan.pipeline.planning.plan import Plan, Scan
 
 
@@ -40,6 +41,7 @@ async def test_job_writes_report_and_exports_next_to_cloud(sim_config, tmp_path,
     for name in ("cloud.ply", "report.html", "report.json", "cloud_deviation.ply", "cloud.e57", "poses.csv"):
         assert (job / name).is_file(), name
     report = json.loads((job / "report.json").read_text())
+    assert len(read_ply(job / "cloud.ply")[0]) == report["points_cloud"]  # written on a thread, complete
     # report.html is written after the last scan, before report.json
     assert report["timings"]["after_last_scan_s"] > 0
     assert report["timings"]["correction_cpu_s"] == report["correction"]["cpu_seconds"] > 0

@@ -212,8 +212,10 @@ def within(points_mm: np.ndarray, centre_mm, radius_mm: float) -> np.ndarray:
     """Indices (ascending) of the points no further than ``radius_mm`` from ``centre_mm`` (same frame, mm): a
     pass over the cloud, cheaper than a KD tree of millions of points asked about a few spheres."""
     c = np.asarray(centre_mm, float)
-    box = np.flatnonzero(np.abs(points_mm[:, 0] - c[0]) <= radius_mm)
-    box = box[np.all(np.abs(points_mm[box, 1:] - c[1:]) <= radius_mm, axis=1)]
+    pad = radius_mm + 1e-9 * (1.0 + np.abs(c))  # a box around the ball, wider by more than any rounding
+    x = points_mm[:, 0]
+    box = np.flatnonzero((x >= c[0] - pad[0]) & (x <= c[0] + pad[0]))
+    box = box[np.all(np.abs(points_mm[box, 1:] - c[1:]) <= pad[1:], axis=1)]
     diff = points_mm[box] - c
     return box[np.einsum("ij,ij->i", diff, diff) <= radius_mm * radius_mm]
 

@@ -51,12 +51,41 @@ class LocalDeviation:
 
 
 def even_centres(points_mm: np.ndarray, cell_mm: float) -> np.ndarray:
-    """Indices of one point per occupied cube of side ``cell_mm``: an even thinning of a cloud (frame F, mm)."""
-    cell = np.floor(np.asarray(points_mm, float) / cell_mm).astype(np.int64)
-    cell -= cell.min(axis=0)
-    size = cell.max(axis=0) + 1
-    keys = (cell[:, 0] * size[1] + cell[:, 1]) * size[2] + cell[:, 2]
-    return np.unique(keys, return_index=True)[1]
+    """Indices of one point per occupied cube of side ``cell_mm``, the first of its points, in the order of
+    the cubes: an even thinning of a cloud (frame F, mm). The cube keys are formed a chunk at a time."""
+    p = np.asarray(points_mm, float)
+    if not len(p):
+        return np.zeros(0, np.int64)
+    lo = np.floor(p.min(axis=0) / cell_mm)  # the smallest cube index (floor of a quotient is monotone)
+    size = (np.floor(p.max(axis=0) / cell_mm) - lo + 1).astype(np.int64)
+    keys = np.empty(len(p), np.int64)
+    for at in range(0, len(p), _CHUNK):
+        cell = (np.floor(p[at:at + _CHUNK] / cell_mm) - lo).astype(np.int64)
+        keys[at:at + _CHUNK] = (cell[:, 0] * size[1] + cell[:, 1]) * size[2] + cell[:, 2]
+    order = np.argsort(keys)
+    keys = keys[order]
+    return np.minimum.reduceat(order, np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]]))
+
+
+def kd_tree(points_mm: np.ndarray) -> cKDTree:
+    """A KD tree of a cloud for the bounded neighbour queries here: median-free with leaves of 32 points,
+    which builds in half the time of the defaults and answers them as fast (whole-part job, 8 M points)."""
+    return cKDTree(points_mm, leafsize=32, balanced_tree=False)
+
+
+def neighbours_within(tree: cKDTree, queries: np.ndarray, k: int, radius_mm: float, need: int
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """``tree.query(queries, k)``'s (distances, indices) where they are at most ``radius_mm``, and the
+    neighbours up to the ``need``-th (0-based column) for every query however far; the further entries are
+    inf (index ``tree.n``). The search stops at the radius (a surface point has about half its 48 nearest
+    within 4 mm); only the queries whose ``need``-th neighbour lies beyond it are searched again unbounded."""
+    dist, idx = tree.query(queries, k=k, workers=-1, distance_upper_bound=radius_mm * (1.0 + 1e-9))
+    dist, idx = dist.reshape(-1, k), idx.reshape(-1, k)
+    again = np.flatnonzero(np.isinf(dist[:, need]))
+    if len(again):
+        d2, i2 = tree.query(queries[again], k=need + 1, workers=-1)
+        dist[again, : need + 1], idx[again, : need + 1] = d2.reshape(-1, need + 1), i2.reshape(-1, need + 1)
+    return dist, idx
 
 
 def local_deviation(points_mm: np.ndarray, deviations_mm: np.ndarray, smoothing_mm: float,
@@ -67,18 +96,18 @@ def local_deviation(points_mm: np.ndarray, deviations_mm: np.ndarray, smoothing_
     when given, their neighbours from the whole cloud (``tree``: its KD tree, if built)."""
     p = np.asarray(points_mm, dtype=np.float64)
     d = np.asarray(deviations_mm, dtype=np.float64)
-    tree = tree or cKDTree(p)
+    tree = tree or kd_tree(p)
     q = p if at is None else p[at]
     k = min(neighbours, len(p))
+    kk = min(DENSITY_K, k - 2)  # the disk between the kk-th and the next neighbour holds kk + 1 points
+    need = kk + 1 if kk >= 1 else k - 1
     smoothed = np.empty(len(q))
     share = np.empty(len(q))
     nearest = np.empty(len(q))
     for lo in range(0, len(q), _CHUNK):
-        dist, idx = tree.query(q[lo:lo + _CHUNK], k=k, workers=-1)
-        dist, idx = dist.reshape(-1, k), idx.reshape(-1, k)
+        dist, idx = neighbours_within(tree, q[lo:lo + _CHUNK], k, smoothing_mm, max(need, min(1, k - 1)))
         inside = dist <= smoothing_mm
-        smoothed[lo:lo + _CHUNK] = (d[idx] * inside).sum(axis=1) / inside.sum(axis=1)
-        kk = min(DENSITY_K, k - 2)  # the disk between the kk-th and the next neighbour holds kk + 1 points
+        smoothed[lo:lo + _CHUNK] = (np.take(d, idx, mode="clip") * inside).sum(axis=1) / inside.sum(axis=1)
         r_mid = 0.5 * (dist[:, kk] + dist[:, kk + 1]) if kk >= 1 else dist[:, -1]
         share[lo:lo + _CHUNK] = np.pi * r_mid**2 / (max(kk, 0) + 1)
         nearest[lo:lo + _CHUNK] = dist[:, min(1, k - 1)]
@@ -98,7 +127,7 @@ def _screened(p: np.ndarray, d: np.ndarray, lower_mm: float, upper_mm: float, sm
     that cube's diagonal of one whose average is beyond the band narrowed by half its half-width is then
     averaged itself, as without the screening. The others (the surface within the band by that margin, five
     times the screening's noise at 0.05 mm per point) are left out; the spacing is the screening points'."""
-    tree = cKDTree(p)
+    tree = kd_tree(p)
     cell = SCREEN_CELL * smoothing_mm
     centres = even_centres(p, cell)
     coarse = local_deviation(p, d, smoothing_mm, centres, tree, SCREEN_NEIGHBOURS)

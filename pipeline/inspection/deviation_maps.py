@@ -59,10 +59,13 @@ def facing_isometric(normals: np.ndarray, name: str = "isometric") -> View:
     return View(name, tuple(-(h + [0.0, 0.0, 0.8 / np.sqrt(2)])))
 
 
+PNG_COMPRESS_LEVEL = 1  # zlib's fastest: a third of the encoding time of its default for 10 % more bytes
+
+
 def png_bytes(fig: Figure) -> bytes:
     """The figure as PNG bytes (Agg canvas)."""
     buf = io.BytesIO()
-    FigureCanvasAgg(fig).print_png(buf)
+    FigureCanvasAgg(fig).print_png(buf, pil_kwargs={"compress_level": PNG_COMPRESS_LEVEL})
     return buf.getvalue()
 
 
@@ -157,22 +160,20 @@ def render_view(
     depth = p @ f - bg.depth0
     splat = int(min(6, max(1, np.ceil(1.5 * spacing / px))))
     margin = depth_margin_mm if depth_margin_mm is not None else 3 * px + 2.0 * max(abs(norm.vmin), abs(norm.vmax))
-    colours = cmap(norm(values))[:, :3]
-    pixel_all, depth_all, idx_all = [], [], []
+    order = np.argsort(depth, kind="stable")  # z-buffer of ranks: each pixel keeps its nearest point
+    rank = np.empty(len(order), np.int64)
+    rank[order] = np.arange(len(order))
+    nearest = np.full(height_px * width_px, len(order), np.int64)
     for dr in range(splat):
         for dc in range(splat):
             cc, r2 = c + dc - splat // 2, rr + dr - splat // 2
             ok = (cc >= 0) & (cc < width_px) & (r2 >= 0) & (r2 < height_px)
             ok[ok] &= depth[ok] <= bg.t_hit[r2[ok], cc[ok]] + margin
-            pixel_all.append(r2[ok] * width_px + cc[ok])
-            depth_all.append(depth[ok])
-            idx_all.append(np.nonzero(ok)[0])
-    pix, dep, idx = np.concatenate(pixel_all), np.concatenate(depth_all), np.concatenate(idx_all)
-    order = np.lexsort((dep, pix))
-    first = np.unique(pix[order], return_index=True)[1]
-    win_pix, win_idx = pix[order][first], idx[order][first]
+            np.minimum.at(nearest, r2[ok] * width_px + cc[ok], rank[ok])
+    win_pix = np.flatnonzero(nearest < len(order))
+    win_idx = order[nearest[win_pix]]
     flat = bg.rgb.reshape(-1, 3).copy()
-    flat[win_pix] = colours[win_idx]
+    flat[win_pix] = cmap(norm(values[win_idx]))[:, :3]
     return Rendering(flat.reshape(height_px, width_px, 3), bg.extent_mm, len(win_pix))
 
 
@@ -325,12 +326,13 @@ def histogram_png(
 ) -> bytes:
     """Histogram of deviations (percent of points per bin) with the tolerance band and the shares in/out."""
     d = np.asarray(deviations_mm, float)
-    lo = min(float(np.percentile(d, 0.1)), 1.5 * tolerance.lower_mm)
-    hi = max(float(np.percentile(d, 99.9)), 1.5 * tolerance.upper_mm)
+    tails = np.percentile(d, [0.1, 99.9])
+    lo = min(float(tails[0]), 1.5 * tolerance.lower_mm)
+    hi = max(float(tails[1]), 1.5 * tolerance.upper_mm)
     counts, edges = np.histogram(np.clip(d, lo, hi), bins=80, range=(lo, hi))
     centres = 0.5 * (edges[:-1] + edges[1:])
-    fig = Figure(figsize=(8.0, 4.2), dpi=110, layout="constrained")
-    ax = fig.add_subplot()
+    fig = Figure(figsize=(8.0, 4.2), dpi=110)  # fixed axes, as the maps: no layout engine
+    ax = fig.add_axes((0.09, 0.12, 0.89, 0.8))
     ax.axvspan(tolerance.lower_mm, tolerance.upper_mm, color="#2fbf4a", alpha=0.12, label="tolerance band")
     ax.bar(centres, 100.0 * counts / d.size, width=np.diff(edges), color=DEVIATION_CMAP(norm(centres)),
            edgecolor="none")

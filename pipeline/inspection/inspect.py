@@ -12,6 +12,7 @@ before it is handed over and every query is shifted the same way, which keeps th
 from __future__ import annotations
 
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -50,6 +51,20 @@ class ClosestPoints:
     signed_mm: np.ndarray  # (N,) signed distance, + along the outward normal
 
 
+CLOSEST_CHUNK = 262_144  # query points a chunk of :meth:`CadSurface.closest` (and of the other chunked passes)
+
+
+def in_chunks(fn, T: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """``fn(T, rows)`` (``frames.transform_points`` or ``rotate_vectors``: row by row) a chunk of
+    :data:`CLOSEST_CHUNK` rows at a time: the same numbers, with the temporaries of a whole cloud's pass
+    kept in the cache (8 M points: 0.3 s CPU instead of 1.4 s)."""
+    rows = np.asarray(rows, float)
+    out = np.empty_like(rows)
+    for lo in range(0, len(rows), CLOSEST_CHUNK):
+        out[lo:lo + CLOSEST_CHUNK] = fn(T, rows[lo:lo + CLOSEST_CHUNK])
+    return out
+
+
 class CadSurface:
     """The CAD mesh as a distance field: closest points and signed distances of queries, frame F, mm."""
 
@@ -76,22 +91,29 @@ class CadSurface:
         return self._scene
 
     def closest(self, points_mm: np.ndarray) -> ClosestPoints:
-        """Closest surface point, outward normal and signed distance of every query point."""
-        p = as_points(points_mm) - self.origin_mm
+        """Closest surface point, outward normal and signed distance of every query point. Asked in chunks of
+        :data:`CLOSEST_CHUNK` points, so the float64 work on each stays in the cache (the same numbers)."""
+        p = as_points(points_mm)
+        n = len(p)
+        out = ClosestPoints(np.empty((n, 3)), np.empty((n, 3)), np.empty(n, np.int64), np.empty(n))
+        for lo in range(0, n, CLOSEST_CHUNK):
+            self._closest_into(p[lo:lo + CLOSEST_CHUNK], out, slice(lo, lo + CLOSEST_CHUNK))
+        return out
+
+    def _closest_into(self, points_mm: np.ndarray, out: ClosestPoints, at: slice) -> None:
+        p = points_mm - self.origin_mm
         ans = self._scene.compute_closest_points(o3d.core.Tensor.from_numpy(p.astype(np.float32)))
-        closest = ans["points"].numpy().astype(np.float64)
-        normals = ans["primitive_normals"].numpy().astype(np.float64)
+        closest = out.points_mm[at]
+        closest[:] = ans["points"].numpy()
+        normals = out.normals[at]
+        normals[:] = ans["primitive_normals"].numpy()
         normals /= np.sqrt(np.einsum("ij,ij->i", normals, normals))[:, None]
         p -= closest  # p - closest from here on
-        signed = np.sqrt(np.einsum("ij,ij->i", p, p))
+        signed = out.signed_mm[at]
+        np.sqrt(np.einsum("ij,ij->i", p, p), out=signed)
         signed[np.einsum("ij,ij->i", p, normals) < 0.0] *= -1.0
         closest += self.origin_mm
-        return ClosestPoints(
-            points_mm=closest,
-            normals=normals,
-            triangle_ids=ans["primitive_ids"].numpy().astype(np.int64),
-            signed_mm=signed,
-        )
+        out.triangle_ids[at] = ans["primitive_ids"].numpy()
 
     def group_masks(self, triangle_ids: np.ndarray) -> list[tuple[str, np.ndarray]]:
         """(name, bool mask) per material group of the mesh, for points whose closest triangles are given;
@@ -238,8 +260,8 @@ def best_fit(
     ``tolerance_mm``, or stopped lowering the (weighted) RMS residual (a shape with a symmetry leaves the
     fit free along it). At most ``max_points`` points, an even subsample, take part.
     """
-    p = as_points(points_mm)
-    p = p[:: max(1, int(np.ceil(len(p) / max_points)))]
+    p = np.asarray(points_mm)
+    p = as_points(p[:: max(1, int(np.ceil(len(p) / max_points)))])  # the points that take part
     T = np.eye(4) if start is None else np.array(start, dtype=np.float64)
     used = 0
     rms_before = np.inf
@@ -287,16 +309,38 @@ def signed_distance_moved(surface: CadSurface, points_mm: np.ndarray, T: np.ndar
     ``2 |delta|`` off on the few points where the closest triangle changes at a concave crease. Larger moves
     are queried anew."""
     p = as_points(points_mm)
-    delta = transform_points(T, p) - p
-    if not len(p) or float(np.sqrt(np.einsum("ij,ij->i", delta, delta).max())) > SMALL_MOVE_MM:
-        return surface.signed_distance(p + delta)
-    d = before.signed_mm
-    grad = before.normals.copy()  # on a triangle's face (nearly every point): its normal, exactly
-    off = np.abs(d) > 1e-3
-    to_point = (p[off] - before.points_mm[off]) / d[off, None]
-    edge = np.einsum("ij,ij->i", to_point, grad[off]) < 0.9999  # closest on an edge or a corner
-    grad[np.flatnonzero(off)[edge]] = to_point[edge]
-    return d + np.einsum("ij,ij->i", grad, delta)
+    if not len(p) or _moves_further(T, p, SMALL_MOVE_MM):
+        return surface.signed_distance(transform_points(T, p))
+    out = np.empty(len(p))
+    for lo in range(0, len(p), CLOSEST_CHUNK):  # a chunk at a time: its float64 work stays in the cache
+        at = slice(lo, lo + CLOSEST_CHUNK)
+        q, d = p[at], before.signed_mm[at]
+        delta = transform_points(T, q) - q
+        grad = before.normals[at].copy()  # on a triangle's face (nearly every point): its normal, exactly
+        off = np.abs(d) > 1e-3
+        to_point = (q[off] - before.points_mm[at][off]) / d[off, None]
+        edge = np.einsum("ij,ij->i", to_point, grad[off]) < 0.9999  # closest on an edge or a corner
+        grad[np.flatnonzero(off)[edge]] = to_point[edge]
+        out[at] = d + np.einsum("ij,ij->i", grad, delta)
+    return out
+
+
+def _moves_further(T: np.ndarray, points_mm: np.ndarray, limit_mm: float) -> bool:
+    """Whether ``T`` moves some point of ``points_mm`` further than ``limit_mm`` (mm). A rigid motion's
+    displacement is affine in the point, so its length is largest at a corner of the points' bounding box:
+    where no corner moves further no point does; else the points are measured, a chunk at a time."""
+    lo, hi = points_mm.min(axis=0), points_mm.max(axis=0)
+    corners = np.array([[hi[i] if (k >> i) & 1 else lo[i] for i in range(3)] for k in range(8)])
+    for q in [corners] if _moved_mm(T, corners) <= limit_mm else (
+            points_mm[at:at + CLOSEST_CHUNK] for at in range(0, len(points_mm), CLOSEST_CHUNK)):
+        if _moved_mm(T, q) > limit_mm:
+            return True
+    return False
+
+
+def _moved_mm(T: np.ndarray, points_mm: np.ndarray) -> float:
+    delta = transform_points(T, points_mm) - points_mm
+    return float(np.sqrt(np.einsum("ij,ij->i", delta, delta).max()))
 
 
 def _best_fit_result(surface: CadSurface, p: np.ndarray, cfg: InspectionConfig, closest: ClosestPoints | None = None
@@ -344,11 +388,13 @@ def inspect_cloud(
     if cfg.mesh_group_regions:
         masks += surface.group_masks(closest.triangle_ids)
     regions = [RegionResult(name, DeviationStats.of(d[m]), ToleranceResult.of(d[m], lo, hi)) for name, m in masks]
-    fit, note = _best_fit_result(surface, p, cfg, closest) if cfg.best_fit else (None, "")
-    stats = DeviationStats.of(d)
-    tol = ToleranceResult.of(d, lo, hi)
-    assert stats is not None and tol is not None  # p has at least one point
-    areas = find_deviation_areas(p, d, lo, hi, cfg.area_smoothing_mm, cfg.area_min_mm2)
+    with ThreadPoolExecutor(1, thread_name_prefix="best-fit") as pool:  # the fit while the areas are found
+        fit = pool.submit(_best_fit_result, surface, p, cfg, closest) if cfg.best_fit else None
+        stats = DeviationStats.of(d)
+        tol = ToleranceResult.of(d, lo, hi)
+        assert stats is not None and tol is not None  # p has at least one point
+        areas = find_deviation_areas(p, d, lo, hi, cfg.area_smoothing_mm, cfg.area_min_mm2)
+        fit, note = fit.result() if fit is not None else (None, "")
     log.info(
         "inspected %d points: mean %.4f mm, sigma %.4f mm, %.1f %% in tolerance, %d areas beyond it",
         stats.count, stats.mean_mm, stats.sigma_mm, tol.in_pct, len(areas),

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -26,9 +26,11 @@ from tandemscan.pipeline.inspection.inspect import (
     InspectionError,
     InspectionResult,
     as_points,
+    in_chunks,
     inspect_cloud,
 )
-from tandemscan.pipeline.inspection.report import build_report, write_report
+from tandemscan.pipeline.inspection.report import build_report, in_background, write_report
+from tandemscan.pipeline.inspection.stitch_quality import overlap_quality
 from tandemscan.pipeline.io.cloud_io import CloudIOError, read_ply
 from tandemscan.pipeline.io.export import write_ply
 
@@ -62,13 +64,17 @@ def run_inspection(
     scans_after: Sequence[np.ndarray] | None = None,
     json_name: str | None = "report.json",
     alignment: Alignment | None = None,
+    overlap: Future | None = None,
 ) -> InspectionOutputs:
     """Inspect ``points_mm`` (frame F) against the CAD mesh and write the report and the deviation PLY
     into ``out_dir``. The PLY carries the cloud's normals when given, else the closest CAD normals.
     ``json_name=None`` leaves the JSON to the caller (it gets the same numbers as ``data``);
-    ``alignment`` says how the points were placed in F (None: they came in F)."""
+    ``alignment`` says how the points were placed in F (None: they came in F); ``overlap``: the scans'
+    :func:`overlap_quality`, being computed (else it is started here, while the cloud is inspected)."""
     cfg = cfg or InspectionConfig()
     surface = mesh if isinstance(mesh, CadSurface) else CadSurface(mesh)
+    if overlap is None and scans_before is not None:
+        overlap = in_background(overlap_quality, scans_before, scans_after)
     result = inspect_cloud(points_mm, surface, cfg)
     with ThreadPoolExecutor(1, thread_name_prefix="deviation-ply") as pool:  # the file while the figures draw
         ply = pool.submit(
@@ -80,7 +86,7 @@ def run_inspection(
         )
         report = build_report(
             result, surface, cfg, title=title, meta=meta, accuracy=accuracy,
-            scans_before=scans_before, scans_after=scans_after, alignment=alignment,
+            scans_before=scans_before, scans_after=scans_after, alignment=alignment, overlap=overlap,
         )
         html, js = write_report(report, out_dir, json_name)
     return InspectionOutputs(result, report.data, html, js, ply.result())
@@ -106,20 +112,42 @@ def align_and_inspect(
     cfg = cfg or InspectionConfig()
     surface = mesh if isinstance(mesh, CadSurface) else CadSurface(mesh)
     p = as_points(points_W_mm)
+    overlap = None  # a rigid motion changes no overlap: computed in W while the cloud is aligned and inspected
+    if scans_before_W is not None:
+        overlap = in_background(overlap_quality, scans_before_W, scans_after_W)
     alignment = align(surface, p, cfg, start_T_F_W, start)
     keep = np.ones(len(p), bool) if alignment.excluded is None else ~alignment.excluded
     T = alignment.T_F_W
     log.info("aligned to CAD by %s: residual %.4f mm, %d points on reference spheres left out",
              alignment.method, alignment.residual_mm, int((~keep).sum()))
 
-    def into_F(scans: Sequence[np.ndarray] | None) -> list[np.ndarray] | None:
-        return None if scans is None else [transform_points(T, s) for s in scans]
+    def into_F(scans: Sequence[np.ndarray] | None) -> MovedScans | None:
+        return None if scans is None else MovedScans(scans, T)
 
+    every = bool(keep.all())  # no copy of the cloud where no point is left out
     return run_inspection(
-        transform_points(T, p[keep]), surface, out_dir, cfg,
-        normals=None if normals_W is None else rotate_vectors(T, np.asarray(normals_W)[keep]),
-        scans_before=into_F(scans_before_W), scans_after=into_F(scans_after_W), alignment=alignment, **report,
+        in_chunks(transform_points, T, p if every else p[keep]), surface, out_dir, cfg,
+        normals=None if normals_W is None else in_chunks(
+            rotate_vectors, T, normals_W if every else np.asarray(normals_W)[keep]),
+        scans_before=into_F(scans_before_W), scans_after=into_F(scans_after_W), alignment=alignment,
+        overlap=overlap, **report,
     )
+
+
+class MovedScans(Sequence):
+    """Scans' points (frame W, mm) as ``T`` (``T_F_W``) places them, each mapped when it is asked for: the
+    stitching figure draws two of the hundreds of scans a job has (its numbers come from W)."""
+
+    def __init__(self, scans_W: Sequence[np.ndarray], T: np.ndarray):
+        self._scans, self._T = scans_W, np.asarray(T, float)
+
+    def __len__(self) -> int:
+        return len(self._scans)
+
+    def __getitem__(self, i):  # type: ignore[override]
+        if isinstance(i, slice):
+            return [self[k] for k in range(*i.indices(len(self)))]
+        return transform_points(self._T, self._scans[i])
 
 
 def inspect_files(

@@ -107,6 +107,7 @@ def build_report(
     scans_after: Sequence[np.ndarray] | None = None,
     views: Sequence[View] | None = None,
     alignment: Alignment | None = None,
+    overlap: Future | None = None,
 ) -> Report:
     """Render the figures and collect the numbers of one inspection.
 
@@ -115,9 +116,11 @@ def build_report(
     points (mm) of each scan in measuring order before/after correction, for the stitching-quality view.
     ``views`` default to the config's; ``alignment`` is how the cloud was placed in the CAD frame (none:
     it came in that frame). The deviation areas are labelled on every map (``#id`` at the centroid).
+    ``overlap``: the scans' :func:`overlap_quality` where it is being computed already.
     """
     cfg = cfg or InspectionConfig()
-    overlap = _in_background(overlap_quality, scans_before, scans_after) if scans_before is not None else None
+    if overlap is None and scans_before is not None:
+        overlap = in_background(overlap_quality, scans_before, scans_after)
     tol = result.tolerance
     norm = deviation_norm(tol.lower_mm, tol.upper_mm, cfg.colour_limit_mm)
     every = max(1, int(np.ceil(len(result.points_mm) / cfg.map_max_points)))  # pictures only; numbers use all
@@ -133,6 +136,7 @@ def build_report(
         maps.append(ReportFigure(f"map-{i}", f"Deviation colour map, {view.name}", png))
         if i > 0:
             continue
+        coverage = _coverage_figure(result, surface, view, cfg)  # while the first view's picture is cached
         for label, side, keep in (("upper", "above", d > 0), ("lower", "below", d < 0)):  # first view only
             if keep.any():
                 title_ = f"{label.capitalize()} deviation (points {side} CAD), {view.name}"
@@ -140,12 +144,13 @@ def build_report(
                 png = deviation_map_png(surface, p[keep], d[keep], view, tol, norm, cfg.map_width_px, title_,
                                         n[keep], spacing, ours)
                 split.append(ReportFigure(f"{label}-deviation", title_, png))
-    figures = maps + [_coverage_figure(result, surface, views[0], cfg)] + split
+    figures = maps + [coverage] + split
     hist = histogram_png(result.deviations_mm, result.stats, tol, norm)
     caption = "Deviation histogram with the tolerance band (the outer bins collect the 0.1 % tails)"
     figures.append(ReportFigure("histogram", caption, hist))
     pairs = []
     if scans_before is not None:
+        assert overlap is not None
         pairs = overlap.result()
         png = stitching_png(scans_before, scans_after, pairs)
         if png is not None:
@@ -166,7 +171,7 @@ def build_report(
     return Report(data, tuple(figures))
 
 
-def _in_background(fn, *args) -> Future:
+def in_background(fn, *args) -> Future:
     """``fn(*args)`` on a thread of its own (KD-tree queries and numpy let the caller's figures draw)."""
     pool = ThreadPoolExecutor(1, thread_name_prefix=fn.__name__)
     try:

@@ -16,9 +16,12 @@ from dataclasses import dataclass
 import numpy as np
 from matplotlib.figure import Figure
 from scipy.spatial import cKDTree
+from tandemscan.pipeline.geometry.frames import transform_points
+from tandemscan.pipeline.inspection.alignment import fit_rigid
 from tandemscan.pipeline.inspection.deviation_maps import png_bytes
 
 PAIR_SAMPLE = 2000  # overlap points of a pair the RMS is evaluated on, at most (an even subsample)
+MAX_PAIR_LABELS = 60  # the stitching figure names at most this many pairs (evenly chosen) under its bars
 
 
 @dataclass(frozen=True)
@@ -74,8 +77,9 @@ def _tree(points: np.ndarray) -> cKDTree:
 
 def _plane_distances(points: np.ndarray, reference: np.ndarray, tree: cKDTree, k: int) -> np.ndarray:
     """Point-to-local-plane distance of ``points`` to ``reference`` (``tree`` is its KD tree): the plane
-    through the mean of the k nearest reference points, normal to their least spread."""
-    _, idx = tree.query(points, k=max(3, min(k, len(reference))), workers=-1)
+    through the mean of the k nearest reference points, normal to their least spread. One thread: a pair's
+    2000 queries cost less than starting threads for them."""
+    _, idx = tree.query(points, k=max(3, min(k, len(reference))))
     nb = reference[idx]  # (N, k, 3)
     centre = nb.mean(axis=1)
     centred = nb - centre[:, None]
@@ -84,6 +88,20 @@ def _plane_distances(points: np.ndarray, reference: np.ndarray, tree: cKDTree, k
         for j in range(i, 3):
             cov[:, i, j] = cov[:, j, i] = np.einsum("nk,nk->n", centred[:, :, i], centred[:, :, j])
     return np.abs(np.einsum("ni,ni->n", points - centre, smallest_eigenvectors(cov)))
+
+
+RIGID_TOLERANCE_MM = 1e-6  # a scan before and after correction is one rigid motion apart to this
+
+
+def rigid_motion(moved: np.ndarray, here: np.ndarray) -> np.ndarray | None:
+    """4x4 ``T`` with ``moved = T here`` (the same points, mm, after one rigid motion), or None where no
+    rigid motion maps every point to within :data:`RIGID_TOLERANCE_MM`."""
+    if len(here) != len(moved) or len(here) < 3:
+        return None
+    pick = np.unique(np.linspace(0, len(here) - 1, 64).astype(np.int64))
+    T = fit_rigid(here[pick], moved[pick])
+    off = transform_points(T, here) - moved
+    return T if float(np.einsum("ij,ij->i", off, off).max()) <= RIGID_TOLERANCE_MM**2 else None
 
 
 def overlap_quality(
@@ -114,10 +132,10 @@ def overlap_quality(
         b_idx = np.arange(len(b))[:: max(1, len(b) // max_points)]
         tree_a = _tree(a)
         look = b_idx[:: max(1, len(b_idx) // (2 * sample))]
-        over = look[tree_a.query(b[look])[0] < overlap_mm]
+        over = look[tree_a.query(b[look], distance_upper_bound=overlap_mm)[0] < overlap_mm]
         if len(over) < sample // 4 and len(look) < len(b_idx):  # a small overlap: look at every point
             look = b_idx
-            over = look[tree_a.query(b[look])[0] < overlap_mm]
+            over = look[tree_a.query(b[look], distance_upper_bound=overlap_mm)[0] < overlap_mm]
         if not len(over):
             continue
         count = round(len(over) * len(b_idx) / len(look))
@@ -127,7 +145,9 @@ def overlap_quality(
         if scans_after is not None:
             rms_after = float(np.sqrt(np.mean(dist**2)))
             a0, b0 = np.asarray(scans_before[i], float), np.asarray(scans_before[i + 1], float)
-            dist0 = _plane_distances(b0[over], a0, _tree(a0), k)
+            T = rigid_motion(a, a0)  # scan i moved by the correction: its tree serves before and after
+            dist0 = (_plane_distances(b0[over], a0, _tree(a0), k) if T is None
+                     else _plane_distances(transform_points(T, b0[over]), a, tree_a, k))
             rms_before = float(np.sqrt(np.mean(dist0**2)))
         else:
             rms_before = float(np.sqrt(np.mean(dist**2)))
@@ -169,19 +189,20 @@ def stitching_png(
     best = max(pairs, key=lambda p: p.points)
     final = scans_after if scans_after is not None else scans_before
     frame = _section(np.asarray(final[best.i], float), np.asarray(final[best.j], float), overlap_mm)
-    fig = Figure(figsize=(9.0, 6.5), dpi=110, layout="constrained")
-    grid = fig.add_gridspec(2, 2, height_ratios=[1.0, 1.2])
-    bar = fig.add_subplot(grid[0, :])
-    axes = [fig.add_subplot(grid[1, 0]), fig.add_subplot(grid[1, 1])]
+    fig = Figure(figsize=(9.0, 6.5), dpi=110)  # fixed axes, as the maps: no layout engine
+    bar = fig.add_axes((0.08, 0.64, 0.9, 0.3))
+    axes = [fig.add_axes((0.1, 0.08, 0.38, 0.38)), fig.add_axes((0.6, 0.08, 0.38, 0.38))]
     x = np.arange(len(pairs))
     bar.bar(x - 0.2, [p.rms_before_mm * 1000 for p in pairs], 0.4, label="before correction", color="#d7261e")
     if scans_after is not None:
         bar.bar(x + 0.2, [p.rms_after_mm * 1000 for p in pairs], 0.4, label="after correction", color="#2fbf4a")
-    bar.set_xticks(x, [f"{p.i}-{p.j}" for p in pairs], fontsize=7, rotation=90 if len(pairs) > 20 else 0)
+    every = max(1, int(np.ceil(len(pairs) / MAX_PAIR_LABELS)))  # more would overlap
+    bar.set_xticks(x[::every], [f"{p.i}-{p.j}" for p in pairs[::every]], fontsize=7,
+                   rotation=90 if len(pairs) > 20 else 0)
     bar.set_ylabel("overlap RMS, um")
     bar.set_xlabel("neighbouring scans")
     bar.set_title("Distance between neighbouring scans in their overlap")
-    bar.legend(fontsize=8)
+    bar.legend(fontsize=8, loc="upper right")
     if frame is None:
         for ax in axes:
             ax.set_axis_off()

@@ -36,6 +36,7 @@ from tandemscan.pipeline.registration.pairs import (
     RegistrationFailed,
     correct_pair,
 )
+from tandemscan.pipeline.registration.parallel import pair_threads
 from tandemscan.pipeline.registration.pose_graph import (
     PairEdge,
     ScanPrior,
@@ -88,17 +89,25 @@ OVERLAP_RMS_POINTS = 2000
 
 def _overlap_rms(clouds: list[np.ndarray], edges, poses_before, poses_after, cfg) -> tuple[float, float]:
     """Median over edges of the point-to-plane RMS (mm) of the overlaps, with the poses before and after; each
-    source scan is evaluated on at most :data:`OVERLAP_RMS_POINTS` of its points, evenly spread."""
-    out = []
-    targets = {i: target_with_normals(clouds[i]) for i in {e[0] for e in edges}}
+    source scan is evaluated on at most :data:`OVERLAP_RMS_POINTS` of its points, evenly spread. The edges of
+    one target run on one thread (its normals are computed once, where first needed), the targets on all."""
     sources = {j: clouds[j][thin_evenly(np.arange(len(clouds[j])), OVERLAP_RMS_POINTS)] for j in {e[1] for e in edges}}
-    for poses in (poses_before, poses_after):
-        vals = []
-        for i, j, _ in edges:
-            Tij = invert(poses[i]) @ poses[j]
-            vals.append(evaluate_point_to_plane(sources[j], targets[i], Tij, cfg.icp_max_distance_mm).rmse_mm)
-        out.append(float(np.median(vals)) if vals else float("nan"))
-    return out[0], out[1]
+    by_target: dict[int, list[int]] = {}
+    for i, j, _ in edges:
+        by_target.setdefault(i, []).append(j)
+
+    def rms_of_target(item: tuple[int, list[int]]) -> list[tuple[float, float]]:
+        i, partners = item
+        target = target_with_normals(clouds[i])
+        return [tuple(evaluate_point_to_plane(sources[j], target, invert(poses[i]) @ poses[j],
+                                              cfg.icp_max_distance_mm).rmse_mm for poses in (poses_before, poses_after))
+                for j in partners]
+
+    with pair_threads() as pair_map:
+        vals = np.array([v for group in pair_map(rms_of_target, by_target.items()) for v in group]).reshape(-1, 2)
+    if not len(vals):
+        return float("nan"), float("nan")
+    return float(np.median(vals[:, 0])), float(np.median(vals[:, 1]))
 
 
 @dataclass(frozen=True)
@@ -257,8 +266,9 @@ def _refine_jointly(scans: Sequence[StitchedScan], priors: list[ScanPrior], star
                     ) -> JointResult:
     """The joint refinement (``joint.refine_jointly``) from the pose graph's poses, on scans thinned to
     ``cfg.joint_voxel_mm``, over every pair sharing a grid cell (``cfg.joint_max_partners_per_scan``)."""
-    thinned = [JointScan.from_points(voxel_downsample(np.asarray(s.points_S, float), cfg.joint_voxel_mm))
-               for s in scans]
+    with pair_threads() as pair_map:
+        thinned = pair_map(lambda s: JointScan.from_points(voxel_downsample(np.asarray(s.points_S, float),
+                                                                            cfg.joint_voxel_mm)), scans)
     world = [transform_points(s.T_W_S, j.points_S) for s, j in zip(scans, thinned, strict=True)]
     pairs = overlapping_pairs(world, [s.station for s in scans], cfg.pair_cell_mm, cfg.joint_max_partners_per_scan)
     settings = JointSettings(max_distance_mm=cfg.joint_max_distance_mm, iterations=cfg.joint_iterations,

@@ -38,6 +38,7 @@ from tandemscan.pipeline.geometry.frames import from_rotvec, invert, to_rotvec, 
 from tandemscan.pipeline.geometry.uncertainty import recentre
 from tandemscan.pipeline.registration.icp import RefineError
 from tandemscan.pipeline.registration.mounts import MountEstimate, MountPrior
+from tandemscan.pipeline.registration.parallel import PairMap, pair_threads
 from tandemscan.pipeline.registration.pose_graph import ScanPrior, TransferPrior
 
 log = logging.getLogger(__name__)
@@ -45,6 +46,10 @@ log = logging.getLogger(__name__)
 #: a correspondence counts only where the two scans' normals agree within 30 deg: a point of one scan near
 #: the edge of the other's view of a crease or a silhouette would otherwise pull along the wrong normal
 _MIN_NORMAL_COSINE = float(np.cos(np.radians(30.0)))
+
+#: the RMS after the refinement (a report figure) is evaluated on every this-many-th candidate point of each
+#: pair: one figure over millions of correspondences does not need them all
+RMS_AFTER_STRIDE = 8
 
 #: a robust scale (mm) never below this (0.1 um, far below any scanner noise): noiseless data would otherwise
 #: weight every point without bound and make the normal equations singular in floating point
@@ -101,7 +106,7 @@ class JointResult:
     """Refined ``T_W_S`` per scan; each scan's posterior covariance (6x6, t mm^2 at its origin then r rad^2,
     world axes) and prior (tracker and transfers) covariance; the mount estimate (None without a mount
     prior); figures: outer iterations, pairs and correspondences of the last one, the residuals' robust sigma
-    (mm) and point-to-plane RMS (mm) before and after."""
+    (mm) and point-to-plane RMS (mm) before and after (after: on every ``RMS_AFTER_STRIDE``-th candidate)."""
 
     poses: list[np.ndarray]
     covariances: np.ndarray
@@ -213,7 +218,7 @@ class _Pair:
               ) -> _Match:
         rel = invert(poses[self.i]) @ poses[self.j]
         x = transform_points(rel, scans[self.j].points_S[self.candidates])   # in S_i
-        d, idx = trees[self.i].query(x, distance_upper_bound=max_mm, workers=-1)
+        d, idx = trees[self.i].query(x, distance_upper_bound=max_mm, workers=1)  # pairs run in threads
         ok = np.isfinite(d)
         t = idx[ok]
         n = scans[self.i].normals_S[t]
@@ -253,22 +258,24 @@ def _robust_sigma(r: np.ndarray) -> float:
 
 
 def _candidates(scans: Sequence[JointScan], trees: Sequence[cKDTree], poses: np.ndarray,
-                pairs: Sequence[tuple[int, int]], radius_mm: float) -> list[_Pair]:
+                pairs: Sequence[tuple[int, int]], radius_mm: float, pair_map: PairMap) -> list[_Pair]:
     """The pairs whose source points come within ``radius_mm`` of the target scan at ``poses``, with those points
-    (only the points inside the target's bounding box widened by the radius are searched)."""
+    (only the points inside the target's bounding box widened by the radius are searched); ``pair_map`` maps a
+    function over the pairs (``parallel.pair_threads``)."""
     boxes = [(s.points_S.min(axis=0) - radius_mm, s.points_S.max(axis=0) + radius_mm) if len(s.points_S) else None
              for s in scans]
-    out = []
-    for i, j in pairs:
+
+    def near(pair: tuple[int, int]) -> _Pair | None:
+        i, j = pair
         if boxes[i] is None:
-            continue
+            return None
         x = transform_points(invert(poses[i]) @ poses[j], scans[j].points_S)
         inside = np.flatnonzero(np.all((x >= boxes[i][0]) & (x <= boxes[i][1]), axis=1))
-        d, _ = trees[i].query(x[inside], distance_upper_bound=radius_mm, workers=-1)
-        near = inside[np.isfinite(d)]
-        if len(near):
-            out.append(_Pair(i, j, near))
-    return out
+        d, _ = trees[i].query(x[inside], distance_upper_bound=radius_mm, workers=1)
+        found = inside[np.isfinite(d)]
+        return _Pair(i, j, found) if len(found) else None
+
+    return [p for p in pair_map(near, pairs) if p is not None]
 
 
 def refine_jointly(
@@ -281,22 +288,35 @@ def refine_jointly(
     ``priors`` (``T_W_S`` and covariance), ``transfers`` and ``mount_prior`` as in ``pose_graph.refine_poses``."""
     if not (len(scans) == len(priors) == len(start_poses)):
         raise RefineError(f"{len(scans)} scans, {len(priors)} priors and {len(start_poses)} start poses differ")
+    with pair_threads() as pair_map:
+        return _refine(scans, priors, pairs, start_poses, transfers, mount_prior, settings, pair_map)
+
+
+def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequence[tuple[int, int]],
+            start_poses: Sequence[np.ndarray], transfers: Sequence[TransferPrior], mount_prior: MountPrior | None,
+            settings: JointSettings, pair_map: PairMap) -> JointResult:
+    """:func:`refine_jointly` with ``pair_map`` mapping a function over the pairs."""
     model = _Model(priors, transfers, mount_prior)
-    trees = [cKDTree(s.points_S) for s in scans]
+    trees = pair_map(lambda s: cKDTree(s.points_S), scans)
     poses = np.stack([np.asarray(T, float) for T in start_poses])
     e = model.corrections(poses)
-    candidates = _candidates(scans, trees, poses, pairs, settings.max_distance_mm + settings.candidate_margin_mm)
+    candidates = _candidates(scans, trees, poses, pairs, settings.max_distance_mm + settings.candidate_margin_mm,
+                             pair_map)
+
+    def match_all() -> list[_Match]:
+        return pair_map(lambda p: p.match(scans, trees, poses, settings.max_distance_mm), candidates)
+
     H_prior = model.prior_information
     rms_before, sigma, H, used, n_corr, it = float("nan"), 1.0, None, 0, 0, 0
     for it in range(1, settings.iterations + 1):
-        matches = [p.match(scans, trees, poses, settings.max_distance_mm) for p in candidates]
+        matches = match_all()
         kept = [(p, m) for p, m in zip(candidates, matches, strict=True)
                 if len(m.residual) >= settings.min_correspondences]
         r_all = np.concatenate([m.residual for _, m in kept]) if kept else np.zeros(0)
         sigma = settings.sigma_mm or _robust_sigma(r_all)
         if it == 1:
             rms_before = float(np.sqrt(np.mean(r_all**2))) if len(r_all) else float("nan")
-        H, b_e = _data_system(model, scans, poses, kept, sigma, settings.huber_k)
+        H, b_e = _data_system(model, scans, poses, kept, sigma, settings.huber_k, pair_map)
         used, n_corr = len(kept), len(r_all)
         # linearised at e: data term |r + J (A theta - e)|^2, prior |theta|^2_prior -> solve for theta
         rhs = model.A.T @ (H @ e.ravel() - b_e)
@@ -311,7 +331,9 @@ def refine_jointly(
                   it, used, n_corr, sigma, move)
         if move < settings.tolerance_mm:
             break
-    final = [p.match(scans, trees, poses, settings.max_distance_mm) for p in candidates]
+    # the RMS after: every RMS_AFTER_STRIDE-th candidate of each pair is plenty for one figure over millions
+    sampled = [_Pair(p.i, p.j, p.candidates[::RMS_AFTER_STRIDE]) for p in candidates]
+    final = pair_map(lambda p: p.match(scans, trees, poses, settings.max_distance_mm), sampled)
     r_fin = np.concatenate([m.residual for m in final]) if final else np.zeros(0)
     rms_after = float(np.sqrt(np.mean(r_fin**2))) if len(r_fin) else float("nan")
     H_theta = (model.A.T @ H @ model.A + H_prior).toarray()
@@ -325,21 +347,22 @@ def refine_jointly(
 
 
 def _data_system(model: _Model, scans: Sequence[JointScan], poses: np.ndarray, kept: list, sigma: float,
-                 huber_k: float) -> tuple[sparse.csr_matrix, np.ndarray]:
+                 huber_k: float, pair_map: PairMap) -> tuple[sparse.csr_matrix, np.ndarray]:
     """The data's normal equations in the stacked corrections ``e``: sparse ``H_e`` (6n x 6n) and ``b_e``."""
     n = model.n
     b = np.zeros(6 * n)
+    if not kept:
+        return sparse.csr_matrix((6 * n, 6 * n)), b
+    systems = pair_map(lambda pm: pm[0].normal_equations(scans, poses, model.origins, pm[1],
+                                                         _huber(pm[1].residual, sigma, huber_k)), kept)
     rows, cols, vals = [], [], []
-    for p, m in kept:
-        H, g = p.normal_equations(scans, poses, model.origins, m, _huber(m.residual, sigma, huber_k))
+    for (p, _), (H, g) in zip(kept, systems, strict=True):
         idx = np.r_[np.arange(6) + 6 * p.j, np.arange(6) + 6 * p.i]
         r, c = np.meshgrid(idx, idx, indexing="ij")
         rows.append(r.ravel())
         cols.append(c.ravel())
         vals.append(H.ravel())
         b[idx] += g
-    if not rows:
-        return sparse.csr_matrix((6 * n, 6 * n)), b
     H_e = sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(6 * n, 6 * n))
     return H_e, b
 
