@@ -1,13 +1,17 @@
 """Measure a whole part end to end on the simulated cell and print its coverage and accuracy as JSON.
 
 Usage: ``nice .venv/bin/python benchmarks/whole_part.py [--config CELL.toml] [--part default|barrel]
-[--stitch-only] [--tracker-stations N] [--time-scale S]``; ``--time-scale 1``: the simulated robots move, scan and
-read the tracker in real time (the vendors' speeds of the configuration), as a real cell does, so that
+[--stitch-only] [--tracker-stations N] [--time-scale S] [--resolution coarse|full]``; ``--time-scale 1``: the
+simulated robots move, scan and read the tracker in real time (the vendors' speeds of the configuration), as a
+real cell does, so that
 ``timings.after_last_scan_s`` is what an operator waits for after the last scan (with the default 0 every motion
 is instant and the pairs registered while measuring lag behind the simulator); ``--stitch-only``: the
 tracker-only stitch (no correction step, no in-job inspection), which is most of the job's time;
 ``--tracker-stations N``: only the plan's steps while the tracker stands at its first N stations (a shorter
-job for the accuracy figures: the coverage is then that of the part of the plan run).
+job for the accuracy figures: the coverage is then that of the part of the plan run); ``--resolution full``:
+the scanner's full resolution (3.2 M points a scan) instead of the coarse default. ``resources`` in the JSON:
+the peak resident memory (GiB) of this process and of the largest worker process (``getrusage``), the peak of
+their sum sampled every 2 s from ``/proc``, and the disk the job folder takes (GB, its raw scans apart).
 The part is planned as ``tandemscan measure --part`` does it (no plan given), the plan run on the simulated cell
 (coarse resolution, the config's correction settings), and the stitched cloud scored: ``coverage_pct`` is the
 share of the surface where a scanner pose fits (by mesh area, as the planner counts it) that has a cloud point
@@ -21,7 +25,10 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import os
+import resource
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -67,12 +74,79 @@ def first_tracker_stations(plan: Plan, stations: int) -> Plan:
     return plan
 
 
+def _tree_rss_bytes(root: int) -> int:
+    """Resident memory (bytes) of process ``root`` and all its descendants, from ``/proc``."""
+    parents: dict[int, int] = {}
+    for entry in os.scandir("/proc"):
+        if entry.name.isdigit():
+            try:
+                with open(f"/proc/{entry.name}/stat", "rb") as f:
+                    parents[int(entry.name)] = int(f.read().rsplit(b")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+    tree, grew = {root}, True
+    while grew:
+        grown = tree | {pid for pid, parent in parents.items() if parent in tree}
+        grew, tree = len(grown) > len(tree), grown
+    total = 0
+    for pid in tree:
+        try:
+            with open(f"/proc/{pid}/statm", "rb") as f:
+                total += int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+        except (OSError, IndexError, ValueError):
+            continue
+    return total
+
+
+class TreeRssSampler:
+    """Peak resident memory (bytes) of this process and its workers together, sampled every ``period_s``."""
+
+    def __init__(self, period_s: float = 2.0):
+        self.peak, self._period, self._stop = 0, period_s, threading.Event()
+        self._thread = threading.Thread(target=self._sample, daemon=True)
+
+    def _sample(self) -> None:
+        while not self._stop.is_set():
+            self.peak = max(self.peak, _tree_rss_bytes(os.getpid()))
+            self._stop.wait(self._period)
+
+    def __enter__(self) -> TreeRssSampler:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+def disk_bytes(folder: Path) -> dict[str, int]:
+    """Bytes the files under ``folder`` take on disk (allocated blocks), all and its ``scans/`` only."""
+    total = scans = 0
+    for path in folder.rglob("*"):
+        if path.is_file():
+            size = path.stat().st_blocks * 512
+            total += size
+            scans += size if "scans" in path.relative_to(folder).parts[:1] else 0
+    return {"all": total, "scans": scans}
+
+
+def resources(sampler: TreeRssSampler, disk: dict[str, int]) -> dict:
+    """The ``resources`` section: peak RSS (GiB; ``ru_maxrss`` is KiB on Linux) and disk (GB)."""
+    gib = 1 << 20
+    return {
+        "peak_rss_gib_self": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / gib, 2),
+        "peak_rss_gib_largest_worker": round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / gib, 2),
+        "peak_rss_gib_all_processes_sampled": round(sampler.peak / (1 << 30), 2),
+        "job_disk_gb": round(disk["all"] / 1e9, 2), "raw_scans_disk_gb": round(disk["scans"] / 1e9, 2),
+    }
+
+
 async def run(args: argparse.Namespace) -> dict:
     config = load_config(args.config)
     if args.transfer_samples:
         config = config.model_copy(update={"tracker": config.tracker.model_copy(
             update={"transfer_samples": args.transfer_samples})})
-    config = config.model_copy(update={"scanner": config.scanner.model_copy(update={"resolution": "coarse"}),
+    config = config.model_copy(update={"scanner": config.scanner.model_copy(update={"resolution": args.resolution}),
                                        "sim": config.sim.model_copy(update={"time_scale": args.time_scale})})
     if args.stitch_only:
         config = config.model_copy(update={"correction": config.correction.model_copy(update={"enabled": False}),
@@ -89,17 +163,20 @@ async def run(args: argparse.Namespace) -> dict:
         if args.tracker_stations:
             plan = first_tracker_stations(plan, args.tracker_stations)
         started = time.perf_counter()
-        async with CellSession(config) as session:
-            result = await JobRunner(session, plan, config, Path(tmp) / "job").run()
-            T_W_F = session.cell.simulation.world.T_W_F  # scoring only: the truth of where W lies
+        with TreeRssSampler() as sampler:
+            async with CellSession(config) as session:
+                result = await JobRunner(session, plan, config, Path(tmp) / "job").run()
+                T_W_F = session.cell.simulation.world.T_W_F  # scoring only: the truth of where W lies
         seconds = time.perf_counter() - started
+        disk = disk_bytes(result.job_dir)
         cloud_W = np.asarray(o3d.io.read_point_cloud(str(result.cloud_file)).points)
         cloud_F = F.transform_points(F.invert(T_W_F), cloud_W)
     r, g = result.report, result.report["ground_truth"]
     before = r.get("correction", {}).get("before", g)
     limit = np.radians(config.planning.incidence_limit_deg)
     return {
-        "cell": config.name, "part": args.part, "correction": config.correction.enabled,
+        "cell": config.name, "part": args.part, "resolution": args.resolution,
+        "correction": config.correction.enabled,
         "tracker_stations_run": args.tracker_stations or part_plan.summary()["tracker_stations"],
         "coverage_pct": round(measured_coverage_pct(mesh, cloud_F, config.scanner.sweet_spot_mm, limit), 2),
         "planned_coverage_pct": round(part_plan.coverage.coverage_pct, 2),
@@ -117,6 +194,7 @@ async def run(args: argparse.Namespace) -> dict:
         "per_tracker_station": g.get("per_tracker_station"),
         "per_tracker_station_tracker_only": before.get("per_tracker_station"),
         "transfers_truth": g.get("transfers"),
+        "resources": resources(sampler, disk), "load_average_1min": round(os.getloadavg()[0], 2),
     }
 
 
@@ -128,6 +206,8 @@ def main() -> None:
     parser.add_argument("--tracker-stations", type=int, default=0, help="run only the first N tracker stations")
     parser.add_argument("--time-scale", type=float, default=0.0,
                         help="simulated motion time x this = wall time (1: real time; default 0: instant)")
+    parser.add_argument("--resolution", choices=["coarse", "full"], default="coarse",
+                        help="scanner resolution (full: 3.2 M points a scan)")
     parser.add_argument("--transfer-samples", type=int, default=0,
                         help="readings averaged on each side of a transfer (default: the config's)")
     print(json.dumps(asyncio.run(run(parser.parse_args()))))

@@ -1,12 +1,14 @@
 """The end of a job in one pass (docs/registration.md, "End of the job"), where the job's world map lives.
 
-After the last scan's commit: every scan file is read once (:func:`load_scans`), the stitch corrected
-(:func:`correct_stage`: the pairs registered while the job measured are reused, the pose graph and the joint
-refinement solved), the cloud merged once at the final poses (:func:`merge_stage`; the map built while
-measuring is kept when nothing was corrected), then ``cloud.ply``, the E57, the pose log and the inspection
-written and ``report.json`` written once (``job_outputs.export_job``). Each stage returns a frozen result;
-the tracker-stitched poses and the refined ones stay separate, and whether the poses were corrected is known
-from the correction stage. Frames: poses ``T_W_S`` in the job's world frame W, points in the scanner frame
+After the last scan's commit: every scan file is read once and only its copy thinned at the job's
+``[job] voxel_mm`` kept (:func:`load_scans`: a full-resolution scan is 3.2 M points, 369 of them would not fit
+in memory), the stitch corrected on those copies (:func:`correct_stage`: the pairs registered while the job
+measured are reused, the pose graph and the joint refinement solved), the cloud merged once at the final poses
+from the scan files, one at a time (:func:`merge_stage`; the map built while measuring is kept when nothing
+was corrected), then ``cloud.ply``, the E57 (full scans streamed from their files), the pose log and the
+inspection written and ``report.json`` written once (``job_outputs.export_job``). Each stage returns a frozen
+result; the tracker-stitched poses and the refined ones stay separate, and whether the poses were corrected is
+known from the correction stage. Frames: poses ``T_W_S`` in the job's world frame W, points in the scanner frame
 S, mm.
 """
 
@@ -20,8 +22,8 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-from tandemscan.daemon.job_outputs import export_job
-from tandemscan.pipeline.io.raw_scan import read_raw_scan
+from tandemscan.daemon.job_outputs import export_job, stitch_view_points
+from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan
 from tandemscan.pipeline.stitching.worldmap import VoxelMap
 
 if TYPE_CHECKING:
@@ -33,11 +35,12 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class LoadedScans:
-    """Every scan's points and normals in its scanner frame S (float32, mm; normals None where not stored),
-    in the order of ``job.scans``."""
+    """Every scan's points in its scanner frame S thinned to one centroid per occupied voxel of edge
+    ``voxel_mm`` (float64, mm; ``registration.sampling.voxel_downsample``), or the scan itself where that would
+    not halve it (float32, a coarse scan: ``raw_scan.read_thinned_scan``), in the order of ``job.scans``."""
 
+    voxel_mm: float
     points_S: tuple[np.ndarray, ...]
-    normals_S: tuple[np.ndarray | None, ...]
 
 
 @dataclass(frozen=True)
@@ -60,9 +63,13 @@ class FinishedJob:
 
 
 def load_scans(job: JobSnapshot) -> LoadedScans:
-    """Read every scan file of ``job.scans`` once (float32, as stored)."""
-    loaded = [read_raw_scan(s.file, np.float32) for s in job.scans]
-    return LoadedScans(tuple(p for p, _ in loaded), tuple(n for _, n in loaded))
+    """Read every scan file of ``job.scans`` once, keeping only its copy thinned at ``[job] voxel_mm``: the
+    correction thins to that voxel first, and thinning a thinned copy again changes nothing (its pairs and
+    pose graph are those of the full scans; only its joint refinement, thinning the copy to its coarser
+    ``joint_voxel_mm``, weighs each finer voxel once). A coarse scan, not halved by the thinning, is kept
+    whole, so the correction at coarse resolution is that of the scans as stored."""
+    voxel_mm = job.config.job.voxel_mm
+    return LoadedScans(voxel_mm, tuple(read_thinned_scan(s.file, voxel_mm) for s in job.scans))
 
 
 def correct_stage(job: JobSnapshot, loaded: LoadedScans, pair_cache: Mapping[str, PairOutcome] | None
@@ -83,11 +90,12 @@ def correct_stage(job: JobSnapshot, loaded: LoadedScans, pair_cache: Mapping[str
     return CorrectionOutcome(section, tracker, tuple(poses), True)
 
 
-def merge_stage(voxel_mm: float, loaded: LoadedScans, poses: Sequence[np.ndarray]) -> VoxelMap:
-    """The job's cloud: every scan merged into a voxel map at its pose (Eq. 1)."""
+def merge_stage(voxel_mm: float, job: JobSnapshot, poses: Sequence[np.ndarray]) -> VoxelMap:
+    """The job's cloud: every scan of ``job.scans`` merged into a voxel map at its pose (Eq. 1), read from its
+    file (points and normals, float32 as stored) one at a time."""
     worldmap = VoxelMap(voxel_mm)
-    for T, points, normals in zip(poses, loaded.points_S, loaded.normals_S, strict=True):
-        worldmap.add_scan(T, points, normals)
+    for T, s in zip(poses, job.scans, strict=True):
+        worldmap.add_scan(T, *read_raw_scan(s.file, np.float32))
     return worldmap
 
 
@@ -95,19 +103,22 @@ def finish_job(job: JobSnapshot, started: float, measured_at: float,
                pair_cache: Mapping[str, PairOutcome] | None = None, stages: Mapping[str, float] | None = None
                ) -> FinishedJob:
     """Correct, merge, export and inspect a measured job; ``job.worldmap`` is the map stitched while it measured
-    (tracker poses) and is not changed. ``started`` and ``measured_at`` are ``time.monotonic()`` at the job's
-    start and at its last step's commit; ``stages`` (s) are timings of the work before this call."""
+    (tracker poses) and is not changed. Memory: the thinned scans, the maps and one full scan at a time.
+    ``started`` and ``measured_at`` are ``time.monotonic()`` at the job's start and at its last step's commit;
+    ``stages`` (s) are timings of the work before this call."""
     timings = dict(stages or {})
     t = time.perf_counter()
     loaded = load_scans(job)
     timings["read_s"] = round(time.perf_counter() - t, 3)
     outcome = correct_stage(job, loaded, pair_cache)
+    view_S = tuple(stitch_view_points(p) for p in loaded.points_S)  # all the exports need of the copies
+    del loaded
     t = time.perf_counter()
-    worldmap = merge_stage(job.worldmap.voxel_mm, loaded, outcome.poses) if outcome.corrected else job.worldmap
+    worldmap = merge_stage(job.worldmap.voxel_mm, job, outcome.poses) if outcome.corrected else job.worldmap
     timings["merge_s"] = round(time.perf_counter() - t, 3)
     final = dataclasses.replace(
         job, scans=[dataclasses.replace(s, T_W_S=T) for s, T in zip(job.scans, outcome.poses, strict=True)],
         correction=outcome.section, worldmap=worldmap)
-    report = export_job(final, time.monotonic() - started, measured_at, timings, loaded.points_S,
+    report = export_job(final, time.monotonic() - started, measured_at, timings, view_S,
                         outcome.tracker_poses if outcome.corrected else None)
     return FinishedJob(report, outcome)

@@ -13,12 +13,12 @@ deviation areas against the world's truth (``ground_truth.inspection``, docs/ins
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -28,7 +28,7 @@ from tandemscan.pipeline.geometry.part import load_part_mesh
 from tandemscan.pipeline.inspection.inspect import InspectionError
 from tandemscan.pipeline.inspection.inspection_job import InspectionOutputs, align_and_inspect
 from tandemscan.pipeline.io.export import PosedScan, write_e57, write_ply, write_pose_log
-from tandemscan.pipeline.io.raw_scan import read_raw_scan
+from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan
 
 if TYPE_CHECKING:
     from tandemscan.daemon.snapshot import JobSnapshot
@@ -40,18 +40,44 @@ EXPORT_FILES = {"e57": "cloud.e57", "pose_log": "poses.csv"}
 
 
 def _posed_scans(job: JobSnapshot, points_S: Sequence[np.ndarray] | None = None) -> list[PosedScan]:
-    """The job's scans at their poses, with ``points_S`` (S, mm) where the caller has read them already."""
+    """The job's scans at their poses with their thinned points (S, mm; ``points_S`` where the caller has
+    them, else read, thinned at ``[job] voxel_mm`` and to :func:`stitch_view_points` here, one file at a
+    time) and their full point counts."""
     scans = []
     for k, s in enumerate(job.scans):
-        points = read_raw_scan(s.file)[0] if points_S is None else points_S[k]
+        points = (stitch_view_points(read_thinned_scan(s.file, job.config.job.voxel_mm)) if points_S is None
+                  else points_S[k])
         meta = {"tracker_station": s.tracker_station, "timestamp_s": s.reading.timestamp_s,
                 **{f"joint{i + 1}_deg": float(np.degrees(q)) for i, q in enumerate(s.joints_rad)}}
-        scans.append(PosedScan(s.file.stem, s.T_W_S, points, meta))
+        scans.append(PosedScan(s.file.stem, s.T_W_S, points, meta, s.point_count))
     return scans
+
+
+def _full_scans(job: JobSnapshot, scans: Sequence[PosedScan]) -> Iterator[PosedScan]:
+    """``scans`` (:func:`_posed_scans`) with all their points (S, mm, float32 as stored), each read from its
+    file when the E57 writer asks for it: one full scan in memory at a time. Scans that saw nothing are left
+    out (E57 has no empty scans)."""
+    empty = 0
+    for record, scan in zip(job.scans, scans, strict=True):
+        points, _ = read_raw_scan(record.file, np.float32)
+        if len(points):
+            yield dataclasses.replace(scan, points_S_mm=points, point_count=None)
+        else:
+            empty += 1
+        del points
+    if empty:
+        log.warning("%d scans saw nothing and are left out of the E57", empty)
 
 
 def _thin(points: np.ndarray) -> np.ndarray:
     return points[:: max(1, len(points) // STITCH_VIEW_POINTS)]
+
+
+def stitch_view_points(points_S: np.ndarray) -> np.ndarray:
+    """The points of a scan (S, mm) the inspection's stitch view takes (every k-th, under twice
+    ``STITCH_VIEW_POINTS``; thinning them again leaves them as they are): all the end of a job still needs of
+    a scan once its correction is done. A copy, so that the scan's array can be freed."""
+    return _thin(points_S).copy()
 
 
 def _accuracy(report: dict) -> dict:
@@ -78,8 +104,9 @@ def export_job(job: JobSnapshot, seconds: float, measured_at: float, stages: Map
     correction's CPU time after the last scan, ``timings.stages_s`` the seconds of each stage (``stages``: those
     before this call; ``cloud.ply`` is written on a second thread, ``cloud_ply_s`` is the time to hand it
     over, and ``exports_and_inspection_s`` includes waiting for it). ``points_S``: the scans' points (S, mm)
-    already read (else read here); ``tracker_poses``: the tracker-stitched poses where the correction changed
-    them (None: not corrected)."""
+    thinned at ``[job] voxel_mm`` or to :func:`stitch_view_points` (else read and thinned here; the E57 reads
+    the full scans from their files); ``tracker_poses``: the tracker-stitched poses where the correction
+    changed them (None: not corrected)."""
     t = [time.perf_counter()]
     with ThreadPoolExecutor(1, thread_name_prefix="cloud-ply") as pool:  # written while the report computes
         cloud_ply = pool.submit(write_ply, job.job_dir / "cloud.ply", job.worldmap.points(), job.worldmap.normals())
@@ -104,30 +131,28 @@ def export_job(job: JobSnapshot, seconds: float, measured_at: float, stages: Map
 def write_job_outputs(job: JobSnapshot, report: dict, points_S: Sequence[np.ndarray] | None = None,
                       tracker_poses: Sequence[np.ndarray] | None = None) -> dict:
     """Write the E57, the pose log and (when registered to CAD) the inspection report of a finished job
-    (``points_S`` and ``tracker_poses`` as for :func:`export_job`).
+    (``points_S``: the scans thinned at ``[job] voxel_mm`` or to :func:`stitch_view_points`, and
+    ``tracker_poses``, as for :func:`export_job`).
 
     Returns the inspection section for the job's ``report.json``: the same numbers as report.html. The E57
-    and the pose log are written on a second thread while the inspection computes (both wait on files and
-    numpy, which let the other thread run).
+    (the full scans streamed from their files) and the pose log are written on a second thread while the
+    inspection computes on the thinned scans (both wait on files and numpy, which let the other thread run).
     """
     scans = _posed_scans(job, points_S)
     cloud_W = job.worldmap.points()  # once, on this thread
     with ThreadPoolExecutor(1, thread_name_prefix="e57") as pool:
-        exports = pool.submit(_write_exports, job.job_dir, scans, cloud_W)
+        exports = pool.submit(_write_exports, job, scans, cloud_W)
         section = _inspection_section(job, report, scans, cloud_W, tracker_poses)
         exports.result()  # its error, if any, is the job's
     return section
 
 
-def _write_exports(job_dir: Path, scans: list[PosedScan], cloud_W: np.ndarray) -> None:
-    """``cloud.e57`` (the scans with points, and the merged cloud ``cloud_W``) and ``poses.csv`` (every scan),
-    frame W, mm."""
-    with_points = [s for s in scans if len(s.points_S_mm)]  # E57 has no empty scans; the pose log keeps them
-    if len(with_points) < len(scans):
-        log.warning("%d scans saw nothing and are left out of the E57", len(scans) - len(with_points))
-    if with_points:
-        write_e57(job_dir / EXPORT_FILES["e57"], with_points, cloud_W if len(cloud_W) else None)
-    write_pose_log(job_dir / EXPORT_FILES["pose_log"], scans)
+def _write_exports(job: JobSnapshot, scans: list[PosedScan], cloud_W: np.ndarray) -> None:
+    """``cloud.e57`` (the scans with points, read from their files one at a time, and the merged cloud
+    ``cloud_W``) and ``poses.csv`` (every scan, ``scans``), frame W, mm."""
+    if any(s.size for s in scans):
+        write_e57(job.job_dir / EXPORT_FILES["e57"], _full_scans(job, scans), cloud_W if len(cloud_W) else None)
+    write_pose_log(job.job_dir / EXPORT_FILES["pose_log"], scans)
 
 
 def _inspection_section(job: JobSnapshot, report: dict, scans: list[PosedScan], cloud_W: np.ndarray,

@@ -80,3 +80,27 @@ def test_bad_plans_name_the_problem(tmp_path):
         Plan.load(bad)
     with pytest.raises(PlanError, match="not found"):
         Plan.load(tmp_path / "nope.json")
+
+
+def test_a_map_merged_scan_by_scan_equals_one_merged_at_once(monkeypatch):
+    """The batch merged into the map after every scan (its arrays freed as they are gathered) or once at the
+    end: the same voxels, counts and means."""
+    from tandemscan.pipeline.stitching import worldmap
+
+    rng = np.random.default_rng(4)
+    scans = [(rng.uniform(-40, 40, (3000, 3)) * [1, 1, 0.05] + [7 * k, 0, 0], rng.normal(size=(3000, 3)))
+             for k in range(6)]
+    monkeypatch.setattr(worldmap, "_MIN_BATCH_VOXELS", 10**9)  # no merge until the map is read
+    maps = []
+    for every_scan in (True, False):
+        vm = VoxelMap(1.0)
+        for points, normals in scans:
+            vm.add(points, normals)
+            if every_scan:
+                assert len(vm) > 0 and not vm._batch  # reading the map merges its batch
+        maps.append(vm)
+    each, once = maps
+    assert len(each) == len(once) > 5000
+    np.testing.assert_array_equal(each.counts(), once.counts())
+    np.testing.assert_allclose(each.points(), once.points(), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(each.normals(), once.normals(), rtol=0, atol=1e-9)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import csv
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -27,12 +27,19 @@ class ExportError(ValueError):
 
 @dataclass(frozen=True)
 class PosedScan:
-    """One scan in its own scanner frame S (mm) with its pose ``T_W_S`` and free-form log fields."""
+    """One scan in its own scanner frame S (mm) with its pose ``T_W_S`` and free-form log fields;
+    ``point_count`` is the scan's size where ``points_S_mm`` is a thinned copy of it (None: all of it)."""
 
     name: str
     T_W_S: np.ndarray
     points_S_mm: np.ndarray
     meta: Mapping[str, float | int | str] = field(default_factory=dict)
+    point_count: int | None = None
+
+    @property
+    def size(self) -> int:
+        """Points the scan measured."""
+        return len(self.points_S_mm) if self.point_count is None else int(self.point_count)
 
     def points_W_mm(self) -> np.ndarray:
         """The scan's points in the world/part frame, mm."""
@@ -97,19 +104,20 @@ def _e57_xyz(points_mm: np.ndarray) -> dict[str, np.ndarray]:
 
 def write_e57(
     path: Path | str,
-    scans: Sequence[PosedScan],
+    scans: Iterable[PosedScan],
     merged_points_mm: np.ndarray | None = None,
     merged_name: str = "merged",
 ) -> Path:
     """Write an E57 file: one data3D scan per pose (points in its scanner frame, pose = ``T_W_S``), then,
-    when given, the merged cloud in the world frame with an identity pose. Metres inside the file."""
+    when given, the merged cloud in the world frame with an identity pose. Metres inside the file (single
+    precision, as pye57 writes it). ``scans`` is consumed once, in order, and each scan written before the
+    next is taken: a generator reading them from their files holds one scan in memory at a time."""
     import pye57  # local: only the export needs it
 
-    if not scans and merged_points_mm is None:
-        raise ExportError("E57: nothing to write (no scans and no merged cloud)")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     e57 = pye57.E57(str(path), mode="w")
+    written = 0
     try:
         for scan in scans:
             pts = np.asarray(scan.points_S_mm, dtype=np.float64)
@@ -117,6 +125,10 @@ def write_e57(
                 raise ExportError(f"E57 scan {scan.name!r}: expected (N>0, 3) points, got shape {pts.shape}")
             rotation, translation = _e57_pose(scan.T_W_S)
             e57.write_scan_raw(_e57_xyz(pts), name=scan.name, rotation=rotation, translation=translation)
+            written += 1
+            del pts, scan
+        if not written and merged_points_mm is None:
+            raise ExportError("E57: nothing to write (no scans and no merged cloud)")
         if merged_points_mm is not None:
             merged = np.asarray(merged_points_mm, dtype=np.float64)
             if merged.ndim != 2 or merged.shape[1] != 3 or len(merged) == 0:
@@ -124,9 +136,12 @@ def write_e57(
             e57.write_scan_raw(
                 _e57_xyz(merged), name=merged_name, rotation=np.array([1.0, 0, 0, 0]), translation=np.zeros(3)
             )
-    finally:
+    except BaseException:
         e57.close()
-    log.info("wrote %s (%d scans%s)", path, len(scans), " + merged" if merged_points_mm is not None else "")
+        path.unlink(missing_ok=True)  # no half-written E57 left behind
+        raise
+    e57.close()
+    log.info("wrote %s (%d scans%s)", path, written, " + merged" if merged_points_mm is not None else "")
     return path
 
 
@@ -146,7 +161,7 @@ def write_pose_log(path: Path | str, scans: Sequence[PosedScan]) -> Path:
         for i, scan in enumerate(scans):
             t_mm, q = to_quaternion(scan.T_W_S)
             _, rpy = to_rpy(scan.T_W_S)
-            row = [i, scan.name, len(scan.points_S_mm), *(f"{v:.6f}" for v in t_mm), *(f"{v:.9f}" for v in q)]
+            row = [i, scan.name, scan.size, *(f"{v:.6f}" for v in t_mm), *(f"{v:.9f}" for v in q)]
             row += [f"{v:.6f}" for v in np.degrees(rpy)]
             w.writerow(row + [scan.meta.get(k, "") for k in extra])
     return path

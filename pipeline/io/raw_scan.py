@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 from tandemscan.pipeline.io.durable import write_durably
+from tandemscan.pipeline.registration.sampling import voxel_downsample
 
 _FLOAT32_ARRAYS = ("points_S_mm", "normals_S")  # stored as float32 (mm, unit vectors)
 
@@ -43,3 +44,15 @@ def read_raw_scan(path: Path | str, dtype: type = np.float64) -> tuple[np.ndarra
         points = data["points_S_mm"].astype(dtype, copy=False)
         normals = data["normals_S"].astype(dtype, copy=False) if "normals_S" in data.files else None
     return points, normals
+
+
+def read_thinned_scan(path: Path | str, voxel_mm: float) -> np.ndarray:
+    """The points of a raw scan file (S, mm) thinned to the centroid of each occupied voxel of edge
+    ``voxel_mm`` (float64; ``registration.sampling.voxel_downsample``, which leaves them as they are): the
+    small copy the end of a job keeps of a scan (docs/registration.md, "End of the job"). Where that would
+    not halve the scan (a coarse scan, points over a voxel apart) the scan itself is returned (float32, as
+    stored): it is hardly larger, and a thinning at a coarser voxel of it is that of the scan."""
+    with np.load(path) as data:
+        points = data["points_S_mm"]  # the normals stay on disk
+    thinned = voxel_downsample(points, voxel_mm)
+    return thinned if 2 * len(thinned) <= len(points) else points
