@@ -303,13 +303,13 @@ def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequ
     candidates = _candidates(scans, trees, poses, pairs, settings.max_distance_mm + settings.candidate_margin_mm,
                              pair_map)
 
-    def match_all() -> list[_Match]:
-        return pair_map(lambda p: p.match(scans, trees, poses, settings.max_distance_mm), candidates)
+    def match_all(pairs: Sequence[_Pair]) -> list[_Match]:
+        return pair_map(lambda p: p.match(scans, trees, poses, settings.max_distance_mm), pairs)
 
     H_prior = model.prior_information
     rms_before, sigma, H, used, n_corr, it = float("nan"), 1.0, None, 0, 0, 0
     for it in range(1, settings.iterations + 1):
-        matches = match_all()
+        matches = match_all(candidates)
         kept = [(p, m) for p, m in zip(candidates, matches, strict=True)
                 if len(m.residual) >= settings.min_correspondences]
         r_all = np.concatenate([m.residual for _, m in kept]) if kept else np.zeros(0)
@@ -332,8 +332,7 @@ def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequ
         if move < settings.tolerance_mm:
             break
     # the RMS after: every RMS_AFTER_STRIDE-th candidate of each pair is plenty for one figure over millions
-    sampled = [_Pair(p.i, p.j, p.candidates[::RMS_AFTER_STRIDE]) for p in candidates]
-    final = pair_map(lambda p: p.match(scans, trees, poses, settings.max_distance_mm), sampled)
+    final = match_all([_Pair(p.i, p.j, p.candidates[::RMS_AFTER_STRIDE]) for p in candidates])
     r_fin = np.concatenate([m.residual for m in final]) if final else np.zeros(0)
     rms_after = float(np.sqrt(np.mean(r_fin**2))) if len(r_fin) else float("nan")
     H_theta = (model.A.T @ H @ model.A + H_prior).toarray()
