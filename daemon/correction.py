@@ -32,8 +32,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-_GROUND_TRUTH_KEYS = ("pose_err_mm_median", "pose_err_mm_max", "pose_err_deg_median", "pose_err_deg_max",
-                      "cloud_rms_mm", "cloud_p95_mm")
 #: 1-sigma per axis (mm, rad) of the simulator's true mounts: exact, the prior only keeps the graph regular
 _TRUTH_SIGMA = (1e-4, 1e-7)
 
@@ -77,15 +75,12 @@ def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray], pair_cache: di
     (mm) are ``points_S``; ``job`` is not changed. ``pair_cache``: the pairs registered while the job measured
     (``correction.correct_scans``).
 
-    Returns the ``correction`` section of the report (the settings, pair and graph figures, and on the
-    simulated cell the ground-truth figures of the tracker-only stitch, ``before``) and the refined poses
-    in scan order.
+    Returns the ``correction`` section of the report (the settings, pair and graph figures; on the simulated
+    cell ``report.add_ground_truth`` adds those of the tracker-only stitch, ``before``, once the job's outputs
+    are written) and the refined poses in scan order.
     """
     started, cpu = time.monotonic(), _cpu_seconds()
     cfg = job.config.correction
-    before = None
-    if job.scorer is not None:
-        before = {k: v for k, v in job.scorer.score(job).items() if k in _GROUND_TRUTH_KEYS}
     scans = [StitchedScan(P, s.T_W_S, scan_pose_covariance(s.T_W_C, s.reading.T_C_T, job.installation.T_T_S,
                                                             s.reading.covariance), s.tracker_station)
              for s, P in zip(job.scans, points_S, strict=True)]
@@ -98,7 +93,5 @@ def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray], pair_cache: di
     if result.mount is not None:
         section["mount"] |= result.mount.observability(job.config.scanner.sweet_spot_mm)
         section["mount"]["T_T_S_refined"] = (job.installation.T_T_S @ result.mount.correction).tolist()
-    if before is not None:
-        section["before"] = before
     log.info("stitch corrected in %.1f s", section["seconds"])
     return section, list(result.poses)

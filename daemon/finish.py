@@ -7,9 +7,9 @@ measured are reused, the pose graph and the joint refinement solved), the cloud 
 from the scan files, one at a time (:func:`merge_stage`; the map built while measuring is kept when nothing
 was corrected), then ``cloud.ply``, the E57 (full scans streamed from their files), the pose log and the
 inspection written and ``report.json`` written once (``job_outputs.export_job``). Each stage returns a frozen
-result; the tracker-stitched poses and the refined ones stay separate, and whether the poses were corrected is
-known from the correction stage. Frames: poses ``T_W_S`` in the job's world frame W, points in the scanner frame
-S, mm.
+result; the tracker-stitched job (its poses and map) and the refined one stay separate, and whether the poses
+were corrected is known from the correction stage. Frames: poses ``T_W_S`` in the job's world frame W,
+points in the scanner frame S, mm.
 """
 
 from __future__ import annotations
@@ -45,11 +45,10 @@ class LoadedScans:
 
 @dataclass(frozen=True)
 class CorrectionOutcome:
-    """The correction stage: the report's ``correction`` section, the tracker-stitched poses (Eq. 1) and the
-    final ones (refined where ``corrected``, else the same), one per scan of ``job.scans``."""
+    """The correction stage: the report's ``correction`` section and the final poses ``T_W_S`` (W, mm; refined
+    where ``corrected``, else the tracker-stitched ones of Eq. 1), one per scan of ``job.scans``."""
 
     section: dict
-    tracker_poses: tuple[np.ndarray, ...]
     poses: tuple[np.ndarray, ...]
     corrected: bool
 
@@ -79,7 +78,7 @@ def correct_stage(job: JobSnapshot, loaded: LoadedScans, pair_cache: Mapping[str
     tracker = tuple(np.asarray(s.T_W_S, float) for s in job.scans)
     measured = [k for k, s in enumerate(job.scans) if s.point_count > 0]  # a scan that saw nothing: nothing to do
     if not (job.config.correction.enabled and len(measured) > 1):
-        return CorrectionOutcome({"enabled": False}, tracker, tracker, False)
+        return CorrectionOutcome({"enabled": False}, tracker, False)
     from tandemscan.daemon.correction import correct_job  # imports the registration stack where it runs
 
     view = dataclasses.replace(job, scans=[job.scans[k] for k in measured])
@@ -87,7 +86,7 @@ def correct_stage(job: JobSnapshot, loaded: LoadedScans, pair_cache: Mapping[str
     poses = list(tracker)
     for k, T in zip(measured, refined, strict=True):
         poses[k] = T
-    return CorrectionOutcome(section, tracker, tuple(poses), True)
+    return CorrectionOutcome(section, tuple(poses), True)
 
 
 def merge_stage(voxel_mm: float, job: JobSnapshot, poses: Sequence[np.ndarray]) -> VoxelMap:
@@ -120,5 +119,5 @@ def finish_job(job: JobSnapshot, started: float, measured_at: float,
         job, scans=[dataclasses.replace(s, T_W_S=T) for s, T in zip(job.scans, outcome.poses, strict=True)],
         correction=outcome.section, worldmap=worldmap)
     report = export_job(final, time.monotonic() - started, measured_at, timings, view_S,
-                        outcome.tracker_poses if outcome.corrected else None)
+                        job if outcome.corrected else None)
     return FinishedJob(report, outcome)

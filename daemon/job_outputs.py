@@ -8,7 +8,8 @@ the plan's frame F (the part frame, relocalisation's anchor, Eq. 5) the cloud is
 :mod:`tandemscan.pipeline.inspection.alignment`); a job that did not place W (relocalisation off, the target
 never seen) skips the inspection with the reason recorded. The CAD is the configured part mesh (``[part]``),
 never the mesh a simulator scans. On the simulated cell the job's scorer then scores the alignment and the
-deviation areas against the world's truth (``ground_truth.inspection``, docs/inspection.md).
+deviation areas against the world's truth (``ground_truth.inspection``, docs/inspection.md), once every
+output is written (``report.add_ground_truth``).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING
 
 import numpy as np
-from tandemscan.daemon.report import build_report
+from tandemscan.daemon.report import add_ground_truth, build_report
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.part import load_part_mesh
 from tandemscan.pipeline.inspection.inspect import InspectionError
@@ -95,18 +96,20 @@ def _accuracy(report: dict) -> dict:
 
 
 def export_job(job: JobSnapshot, seconds: float, measured_at: float, stages: Mapping[str, float] | None = None,
-               points_S: Sequence[np.ndarray] | None = None, tracker_poses: Sequence[np.ndarray] | None = None
-               ) -> dict:
+               points_S: Sequence[np.ndarray] | None = None, tracker_job: JobSnapshot | None = None) -> dict:
     """Write ``cloud.ply`` (W, mm), the report (returned and written once, as ``report.json``) and the
     inspection exports of a finished job into its folder; runs where ``job.worldmap`` (the final cloud) lives.
     ``measured_at`` is ``time.monotonic()`` (system-wide) when the job's last step was committed:
-    ``timings.after_last_scan_s`` is the time from there to report.html, ``timings.correction_cpu_s`` the
-    correction's CPU time after the last scan, ``timings.stages_s`` the seconds of each stage (``stages``: those
-    before this call; ``cloud.ply`` is written on a second thread, ``cloud_ply_s`` is the time to hand it
-    over, and ``exports_and_inspection_s`` includes waiting for it). ``points_S``: the scans' points (S, mm)
-    thinned at ``[job] voxel_mm`` or to :func:`stitch_view_points` (else read and thinned here; the E57 reads
-    the full scans from their files); ``tracker_poses``: the tracker-stitched poses where the correction
-    changed them (None: not corrected)."""
+    ``timings.after_last_scan_s`` is the time from there until report.html and every export are written (what
+    the operator waits for), ``timings.correction_cpu_s`` the correction's CPU time after the last scan,
+    ``timings.stages_s`` the seconds of each stage (``stages``: those before this call; ``cloud.ply`` is written
+    on a second thread, ``cloud_ply_s`` is the time to hand it over, and ``exports_and_inspection_s`` includes
+    waiting for it; ``scoring_s``: the simulator's ground-truth scoring, after the exports and outside
+    ``after_last_scan_s``, none on a real cell). ``points_S``: the scans' points (S, mm) thinned at ``[job]
+    voxel_mm`` or to :func:`stitch_view_points` (else read and thinned here; the E57 reads the full scans from
+    their files); ``tracker_job``: the job as the tracker stitched it (its poses and the map built while
+    measuring) where the correction changed the poses (None: not corrected)."""
+    tracker_poses = None if tracker_job is None else [s.T_W_S for s in tracker_job.scans]
     t = [time.perf_counter()]
     with ThreadPoolExecutor(1, thread_name_prefix="cloud-ply") as pool:  # written while the report computes
         cloud_ply = pool.submit(write_ply, job.job_dir / "cloud.ply", job.worldmap.points(), job.worldmap.normals())
@@ -116,13 +119,13 @@ def export_job(job: JobSnapshot, seconds: float, measured_at: float, stages: Map
         report["inspection"] = write_job_outputs(job, report, points_S, tracker_poses)  # report.html, E57, poses
         cloud_ply.result()  # complete before the job is reported done; its error, if any, is the job's
         t.append(time.perf_counter())
-    if job.scorer is not None and "ground_truth" in report and "alignment" in report["inspection"]:
-        report["ground_truth"]["inspection"] = job.scorer.score_inspection(job, report["inspection"])
+    after_last_scan_s = time.monotonic() - measured_at
+    add_ground_truth(report, job, tracker_job)
     t.append(time.perf_counter())
     names = ("cloud_ply_s", "report_s", "exports_and_inspection_s", "scoring_s")
     stages = {**(stages or {}), **job.correction.get("stage_seconds", {}),
               **dict(zip(names, np.round(np.diff(t), 3).tolist(), strict=True))}
-    report["timings"] = {"after_last_scan_s": round(time.monotonic() - measured_at, 3),
+    report["timings"] = {"after_last_scan_s": round(after_last_scan_s, 3),
                          "correction_cpu_s": job.correction.get("cpu_seconds"), "stages_s": stages}
     (job.job_dir / "report.json").write_text(json.dumps(report, indent=1), encoding="utf-8")
     return report
@@ -132,7 +135,7 @@ def write_job_outputs(job: JobSnapshot, report: dict, points_S: Sequence[np.ndar
                       tracker_poses: Sequence[np.ndarray] | None = None) -> dict:
     """Write the E57, the pose log and (when registered to CAD) the inspection report of a finished job
     (``points_S``: the scans thinned at ``[job] voxel_mm`` or to :func:`stitch_view_points`, and
-    ``tracker_poses``, as for :func:`export_job`).
+    ``tracker_poses``: the tracker-stitched poses where the correction changed them, None where not corrected).
 
     Returns the inspection section for the job's ``report.json``: the same numbers as report.html. The E57
     (the full scans streamed from their files) and the pose log are written on a second thread while the

@@ -1,5 +1,6 @@
 """``report.json`` of a job: what was measured and, on the simulated cell, the ground-truth scores that the
-job's observer writes (:mod:`tandemscan.daemon.observer`)."""
+job's observer writes (:mod:`tandemscan.daemon.observer`), added once report.html and the exports are written
+(:func:`add_ground_truth`): what the operator waits for is the product's work, not the simulator's scoring."""
 
 from __future__ import annotations
 
@@ -40,9 +41,28 @@ def build_report(job: JobSnapshot, seconds: float, tracker_poses: Sequence[np.nd
     if tracker_poses is not None:
         for entry, T in zip(report["scan_log"], tracker_poses, strict=True):
             entry["T_W_S_tracker"] = np.asarray(T).tolist()
-    if job.scorer is not None and job.scans:
-        report["ground_truth"] = job.scorer.score(job)
     return report
+
+
+#: the ground-truth figures of the tracker-only stitch kept in ``correction.before``
+_BEFORE_KEYS = ("pose_err_mm_median", "pose_err_mm_max", "pose_err_deg_median", "pose_err_deg_max",
+                "cloud_rms_mm", "cloud_p95_mm")
+
+
+def add_ground_truth(report: dict, job: JobSnapshot, tracker_job: JobSnapshot | None = None) -> None:
+    """On the simulated cell (``job.scorer`` set), add to ``report`` the scorer's ``ground_truth`` of the final
+    stitch ``job``, that of the tracker-only stitch ``tracker_job`` (its scans at the tracker poses and the map
+    stitched while measuring; where the correction changed the poses) as ``correction.before``, and the score
+    of the inspection (``ground_truth.inspection``, where the report has an alignment). A real cell's report
+    is left as it is."""
+    if job.scorer is None or not job.scans:
+        return
+    report["ground_truth"] = job.scorer.score(job)
+    if tracker_job is not None and report.get("correction", {}).get("enabled"):
+        before = job.scorer.score(tracker_job)
+        report["correction"] = {**report["correction"], "before": {k: before[k] for k in _BEFORE_KEYS}}
+    if "alignment" in report.get("inspection", {}):
+        report["ground_truth"]["inspection"] = job.scorer.score_inspection(job, report["inspection"])
 
 
 def relocalisation_summary(log: dict) -> dict:

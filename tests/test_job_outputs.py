@@ -20,9 +20,8 @@ def perfect_correction(monkeypatch, truth_of):
     from tandemscan.daemon import finish
 
     def correct_stage(job, loaded, pair_cache):
-        tracker = tuple(s.T_W_S for s in job.scans)
         truth = truth_of(job)
-        return finish.CorrectionOutcome({"enabled": True, "cpu_seconds": 0.001}, tracker,
+        return finish.CorrectionOutcome({"enabled": True, "cpu_seconds": 0.001},
                                         tuple(truth[s.index] for s in job.scans), True)
 
     monkeypatch.setattr(finish, "correct_stage", correct_stage)
@@ -45,6 +44,11 @@ async def test_job_writes_report_and_exports_next_to_cloud(sim_config, tmp_path,
     # report.html is written after the last scan, before report.json
     assert report["timings"]["after_last_scan_s"] > 0
     assert report["timings"]["correction_cpu_s"] == report["correction"]["cpu_seconds"] > 0
+    # the simulator scores after the outputs are written: the tracker-only stitch (its poses and the map built
+    # while measuring) as ``correction.before``, the (perfect) correction as ``ground_truth``
+    before, truth = report["correction"]["before"], report["ground_truth"]
+    assert truth["pose_err_mm_max"] < 1e-9 < before["pose_err_mm_median"]
+    assert "scoring_s" in report["timings"]["stages_s"]
     ins = report["inspection"]
     assert ins["as_measured"]["stats"]["count"] == report["points_cloud"] > 1000
     # the sim cell stitches with true mounts: registered to CAD by the job's own anchor (one target reading at
