@@ -29,6 +29,7 @@ from tandemscan.pipeline.registration.pose_graph import TransferPrior
 
 if TYPE_CHECKING:
     from tandemscan.daemon.snapshot import JobSnapshot
+    from tandemscan.pipeline.registration.online_pairs import OnlineWork
 
 log = logging.getLogger(__name__)
 
@@ -69,11 +70,12 @@ def transfer_priors(transfers: list[dict]) -> list[TransferPrior]:
     return [TransferPrior(t["station"], np.array(t["target_W_mm"]), np.array(t["covariance"])) for t in transfers]
 
 
-def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray], pair_cache: dict | None = None
+def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray], online: OnlineWork | None = None
                 ) -> tuple[dict, list[np.ndarray]]:
     """The refined pose ``T_W_S`` (W, mm) of every scan of ``job.scans``, whose points in the scanner frame S
-    (mm) are ``points_S``; ``job`` is not changed. ``pair_cache``: the pairs registered while the job measured
-    (``correction.correct_scans``).
+    (mm) are ``points_S``; ``job`` is not changed. ``online``: what the job computed while it
+    measured (``online_pairs.OnlineWork``: registered pairs and scans prepared for the joint refinement, reused
+    by ``correction.correct_scans`` where their keys match).
 
     Returns the ``correction`` section of the report (the settings, pair and graph figures; on the simulated
     cell ``report.add_ground_truth`` adds those of the tracker-only stitch, ``before``, once the job's outputs
@@ -86,7 +88,9 @@ def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray], pair_cache: di
              for s, P in zip(job.scans, points_S, strict=True)]
     prior, prior_source = mount_prior(job)
     result = correct_scans(scans, cfg, LazyNetwork(job.config.deepmerge), transfers=transfer_priors(job.transfers),
-                           voxel_mm=job.config.job.voxel_mm, mount_prior=prior, pair_cache=pair_cache)
+                           voxel_mm=job.config.job.voxel_mm, mount_prior=prior,
+                           pair_cache=None if online is None else online.pairs,
+                           joint_cache=None if online is None else online.joint_scans)
     section = {"enabled": True, **result.report, "seconds": round(time.monotonic() - started, 3),
                "cpu_seconds": round(_cpu_seconds() - cpu, 3)}
     section["mount"] = {"estimated": result.mount is not None, "prior": prior_source}

@@ -28,7 +28,7 @@ from tandemscan.pipeline.stitching.worldmap import VoxelMap
 
 if TYPE_CHECKING:
     from tandemscan.daemon.snapshot import JobSnapshot
-    from tandemscan.pipeline.registration.correction import PairOutcome
+    from tandemscan.pipeline.registration.online_pairs import OnlineWork
 
 log = logging.getLogger(__name__)
 
@@ -71,8 +71,7 @@ def load_scans(job: JobSnapshot) -> LoadedScans:
     return LoadedScans(voxel_mm, tuple(read_thinned_scan(s.file, voxel_mm) for s in job.scans))
 
 
-def correct_stage(job: JobSnapshot, loaded: LoadedScans, pair_cache: Mapping[str, PairOutcome] | None
-                  ) -> CorrectionOutcome:
+def correct_stage(job: JobSnapshot, loaded: LoadedScans, online: OnlineWork | None) -> CorrectionOutcome:
     """The correction (``correction.correct_job``) of the scans that saw something, when ``[correction]`` is
     enabled and there are two of them; otherwise the tracker stitch stands."""
     tracker = tuple(np.asarray(s.T_W_S, float) for s in job.scans)
@@ -82,7 +81,7 @@ def correct_stage(job: JobSnapshot, loaded: LoadedScans, pair_cache: Mapping[str
     from tandemscan.daemon.correction import correct_job  # imports the registration stack where it runs
 
     view = dataclasses.replace(job, scans=[job.scans[k] for k in measured])
-    section, refined = correct_job(view, [loaded.points_S[k] for k in measured], pair_cache)
+    section, refined = correct_job(view, [loaded.points_S[k] for k in measured], online)
     poses = list(tracker)
     for k, T in zip(measured, refined, strict=True):
         poses[k] = T
@@ -99,17 +98,18 @@ def merge_stage(voxel_mm: float, job: JobSnapshot, poses: Sequence[np.ndarray]) 
 
 
 def finish_job(job: JobSnapshot, started: float, measured_at: float,
-               pair_cache: Mapping[str, PairOutcome] | None = None, stages: Mapping[str, float] | None = None
+               online: OnlineWork | None = None, stages: Mapping[str, float] | None = None
                ) -> FinishedJob:
     """Correct, merge, export and inspect a measured job; ``job.worldmap`` is the map stitched while it measured
     (tracker poses) and is not changed. Memory: the thinned scans, the maps and one full scan at a time.
     ``started`` and ``measured_at`` are ``time.monotonic()`` at the job's start and at its last step's commit;
-    ``stages`` (s) are timings of the work before this call."""
+    ``online``: what the job computed while it measured (``online_pairs.OnlineWork``: registered pairs, scans
+    prepared for the joint refinement); ``stages`` (s) are timings of the work before this call."""
     timings = dict(stages or {})
     t = time.perf_counter()
     loaded = load_scans(job)
     timings["read_s"] = round(time.perf_counter() - t, 3)
-    outcome = correct_stage(job, loaded, pair_cache)
+    outcome = correct_stage(job, loaded, online)
     view_S = tuple(stitch_view_points(p) for p in loaded.points_S)  # all the exports need of the copies
     del loaded
     t = time.perf_counter()

@@ -25,15 +25,18 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from tandemscan.config.models import CorrectionConfig
 from tandemscan.daemon.snapshot import JobSnapshot
 from tandemscan.drivers.shared_array import share
 from tandemscan.drivers.worker import init_worker, stop_pool
-from tandemscan.pipeline.io.raw_scan import read_raw_scan, write_raw_scan
+from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan, write_raw_scan
 from tandemscan.pipeline.stitching.worldmap import VoxelMap
+
+if TYPE_CHECKING:
+    from tandemscan.pipeline.registration.online_pairs import OnlineWork
 
 log = logging.getLogger(__name__)
 _MAP: VoxelMap | None = None  # the worker's map
@@ -71,22 +74,22 @@ def _pairs_add(path: str, T_W_S: np.ndarray, T_T_S: np.ndarray, station: int, tr
 
     if _PAIRS is None:
         _PAIRS = OnlinePairs(cfg, voxel_mm)
-    points, _ = read_raw_scan(path)
+    points = read_thinned_scan(path, voxel_mm)  # the copy the end of the job loads (finish.load_scans)
     with np.load(path) as f:
         cov = scan_pose_covariance(f["T_W_C"], f["T_C_T"], T_T_S, f["tracker_covariance"])
     return _PAIRS.add(points, T_W_S, cov, station, transfer_priors(transfers))
 
 
-def _pairs_outcomes() -> tuple[dict, float]:
-    return ({}, 0.0) if _PAIRS is None else (_PAIRS.outcomes, _PAIRS.cpu_s)
+def _pairs_outcomes() -> tuple[OnlineWork | None, float]:
+    return (None, 0.0) if _PAIRS is None else (_PAIRS.work(), _PAIRS.cpu_s)
 
 
-def _finish(job: JobSnapshot, started: float, measured_at: float, pair_cache: dict, stages: dict) -> Any:
+def _finish(job: JobSnapshot, started: float, measured_at: float, online: OnlineWork | None, stages: dict) -> Any:
     """:func:`tandemscan.daemon.finish.finish_job`, imported where it runs (the registration stack, E57, Open3D
     I/O, matplotlib)."""
     from tandemscan.daemon.finish import finish_job
 
-    return finish_job(job, started, measured_at, pair_cache, stages)
+    return finish_job(job, started, measured_at, online, stages)
 
 
 class PairWorker:
@@ -105,9 +108,10 @@ class PairWorker:
                                                np.asarray(T_T_S, float), int(station), list(transfers), self.cfg,
                                                self.voxel_mm))
 
-    async def outcomes(self) -> tuple[dict, float]:
-        """Wait for the queued scans, then the pair outcomes by ``correction.pair_key`` (a failed task only
-        leaves its pairs to the end of the job) and the worker's CPU seconds spent on them."""
+    async def outcomes(self) -> tuple[OnlineWork | None, float]:
+        """Wait for the queued scans, then what the worker computed (``online_pairs.OnlineWork``: pair outcomes
+        and prepared joint scans; a failed task only leaves its work to the end of the job) and its CPU
+        seconds."""
         for future in self._pending:
             try:
                 await asyncio.wrap_future(future)
@@ -140,11 +144,11 @@ class _Pairs:
             self._pairs = PairWorker(cfg, self.voxel_mm, self._pair_niceness)
         self._pairs.submit(file, T_W_S, pairs["T_T_S"], pairs["station"], pairs["transfers"])
 
-    async def pair_outcomes(self) -> tuple[dict, float]:
-        """The outcomes of the pairs registered while the job measured (none without a pair worker) and the CPU
-        seconds spent on them; the worker stops after handing them over."""
+    async def pair_outcomes(self) -> tuple[OnlineWork | None, float]:
+        """What the pair worker computed while the job measured (``online_pairs.OnlineWork``; None without a
+        pair worker) and the CPU seconds spent on it; the worker stops after handing it over."""
         if self._pairs is None:
-            return {}, 0.0
+            return None, 0.0
         try:
             return await self._pairs.outcomes()
         finally:
@@ -154,10 +158,10 @@ class _Pairs:
     async def finish(self, job: JobSnapshot, started: float, measured_at: float) -> Any:
         """The end of the job (``finish.finish_job``, a ``finish.FinishedJob``) where the map lives, once the
         pairs of the last scans are registered; ``started`` and ``measured_at`` as ``time.monotonic()``."""
-        pair_cache, pair_cpu_s = await self.pair_outcomes()
+        online, pair_cpu_s = await self.pair_outcomes()
         stages = {"pair_backlog_s": round(time.monotonic() - measured_at, 3),
                   "pairs_cpu_s_while_measuring": round(pair_cpu_s, 3)}
-        return await self.run(_finish, job, started, measured_at, pair_cache, stages)
+        return await self.run(_finish, job, started, measured_at, online, stages)
 
     def _close_pairs(self) -> None:
         if self._pairs is not None:

@@ -19,7 +19,7 @@ def perfect_correction(monkeypatch, truth_of):
     """Stands in for the correction stage: every scan gets its true pose (``truth_of(job)``, by scan index)."""
     from tandemscan.daemon import finish
 
-    def correct_stage(job, loaded, pair_cache):
+    def correct_stage(job, loaded, online):
         truth = truth_of(job)
         return finish.CorrectionOutcome({"enabled": True, "cpu_seconds": 0.001},
                                         tuple(truth[s.index] for s in job.scans), True)

@@ -53,3 +53,27 @@ def test_methods_with_the_network_register_nothing_while_measuring():
     _, scans, transfers = scans_with_drift(n=3)
     online = _measure(scans, transfers, CorrectionConfig(method="deepmerge+icp"))
     assert online.outcomes == {}
+
+
+def test_scans_prepared_for_the_joint_refinement_while_measuring_give_the_same_poses(monkeypatch):
+    """With ``joint`` on, every scan is thinned and given normals as it arrives; the end of the job takes those
+    (none is prepared again) and refines to the poses it computes without them. A scan whose points differ
+    from what was prepared (another voxel) is prepared again."""
+    from tandemscan.pipeline.registration import correction
+
+    _, scans, transfers = scans_with_drift(n=4, per_station=2)
+    cfg = CorrectionConfig(method="icp", min_overlap_points=100, joint=True, joint_iterations=2)
+    online = _measure(scans, transfers, cfg)
+    work = online.work()
+    assert len(work.joint_scans) == len(scans)
+    fresh = correct_scans(scans, cfg, transfers=transfers)
+    prepared_at_end = []
+    real = correction.joint_scan
+    monkeypatch.setattr(correction, "joint_scan", lambda P, c: prepared_at_end.append(len(P)) or real(P, c))
+    reused = correct_scans(scans, cfg, transfers=transfers, pair_cache=work.pairs, joint_cache=work.joint_scans)
+    assert prepared_at_end == [] and reused.report["joint"]["pairs"] == fresh.report["joint"]["pairs"] > 0
+    for a, b in zip(fresh.poses, reused.poses, strict=True):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)
+    coarser = cfg.model_copy(update={"joint_voxel_mm": 3.0})
+    correct_scans(scans, coarser, transfers=transfers, pair_cache=work.pairs, joint_cache=work.joint_scans)
+    assert len(prepared_at_end) == len(scans)

@@ -174,6 +174,19 @@ def pair_key(digest_i: bytes, digest_j: bytes, covariance: np.ndarray, cfg: Corr
     return h.hexdigest()
 
 
+def joint_scan(points_S: np.ndarray, cfg: CorrectionConfig) -> JointScan:
+    """A scan as the joint refinement takes it: its points (S, mm; as the end of the job loads them) thinned to
+    ``cfg.joint_voxel_mm``, with normals (``joint.JointScan.from_points``)."""
+    return JointScan.from_points(voxel_downsample(np.asarray(points_S, float), cfg.joint_voxel_mm))
+
+
+def joint_scan_key(points_S: np.ndarray, cfg: CorrectionConfig) -> str:
+    """The cache key of :func:`joint_scan`: the points themselves and the joint voxel."""
+    h = hashlib.blake2b(cloud_digest(points_S), digest_size=16)
+    h.update(np.float64(cfg.joint_voxel_mm).tobytes())
+    return h.hexdigest()
+
+
 def _pair_corrections(
     scans: Sequence[StitchedScan], world: list[np.ndarray], cfg: CorrectionConfig, network: Registrar | None,
     transfers: Sequence[TransferPrior], cache: Mapping[str, PairOutcome],
@@ -203,7 +216,7 @@ def _pair_corrections(
 def correct_scans(
     scans: Sequence[StitchedScan], cfg: CorrectionConfig, network: Registrar | None = None,
     transfers: Sequence[TransferPrior] = (), voxel_mm: float = 1.0, mount_prior: MountPrior | None = None,
-    pair_cache: Mapping[str, PairOutcome] | None = None,
+    pair_cache: Mapping[str, PairOutcome] | None = None, joint_cache: Mapping[str, JointScan] | None = None,
 ) -> CorrectionResult:
     """Correct every overlapping pair and refine all poses; ``voxel_mm`` thins the scans first.
 
@@ -213,7 +226,9 @@ def correct_scans(
     stations; ``mount_prior`` makes the graph estimate the shared scanner-mount correction too
     (``mounts.MountPrior``). A pair whose registration fails its verification is dropped and logged.
     ``pair_cache`` holds the outcomes of pairs registered while the job measured (:class:`OnlinePairs`, keyed
-    by :func:`pair_key`); a pair not in it is registered here, so the result never depends on it.
+    by :func:`pair_key`); a pair not in it is registered here, so the result never depends on it. ``joint_cache``
+    likewise holds the scans prepared for the joint refinement while the job measured (:func:`joint_scan`, keyed
+    by :func:`joint_scan_key`).
     """
     if cfg.method in NETWORK_METHODS and network is None:
         raise ValueError(f"method {cfg.method!r} needs a DeepMerge registrar (pairs.LazyNetwork)")
@@ -232,7 +247,7 @@ def correct_scans(
     poses, mount, joint = res.poses, res.mount, None
     clock.lap("graph_s")
     if cfg.joint:
-        joint = _refine_jointly(scans, priors, res.poses, cfg, transfers, mount_prior)
+        joint = _refine_jointly(scans, priors, res.poses, cfg, transfers, mount_prior, joint_cache or {})
         poses, mount = joint.poses, joint.mount
         clock.lap("joint_s")
     before = [s.T_W_S for s in scans]
@@ -262,13 +277,17 @@ def correct_scans(
 
 
 def _refine_jointly(scans: Sequence[StitchedScan], priors: list[ScanPrior], start: list[np.ndarray],
-                    cfg: CorrectionConfig, transfers: Sequence[TransferPrior], mount_prior: MountPrior | None
-                    ) -> JointResult:
+                    cfg: CorrectionConfig, transfers: Sequence[TransferPrior], mount_prior: MountPrior | None,
+                    cache: Mapping[str, JointScan]) -> JointResult:
     """The joint refinement (``joint.refine_jointly``) from the pose graph's poses, on scans thinned to
-    ``cfg.joint_voxel_mm``, over every pair sharing a grid cell (``cfg.joint_max_partners_per_scan``)."""
+    ``cfg.joint_voxel_mm`` (:func:`joint_scan`, from ``cache`` where prepared while the job measured), over every
+    pair sharing a grid cell (``cfg.joint_max_partners_per_scan``)."""
+    def prepared(s: StitchedScan) -> JointScan:
+        found = cache.get(joint_scan_key(s.points_S, cfg)) if cache else None
+        return joint_scan(s.points_S, cfg) if found is None else found
+
     with pair_threads() as pair_map:
-        thinned = pair_map(lambda s: JointScan.from_points(voxel_downsample(np.asarray(s.points_S, float),
-                                                                            cfg.joint_voxel_mm)), scans)
+        thinned = pair_map(prepared, scans)
     world = [transform_points(s.T_W_S, j.points_S) for s, j in zip(scans, thinned, strict=True)]
     pairs = overlapping_pairs(world, [s.station for s in scans], cfg.pair_cell_mm, cfg.joint_max_partners_per_scan)
     settings = JointSettings(max_distance_mm=cfg.joint_max_distance_mm, iterations=cfg.joint_iterations,

@@ -4,9 +4,11 @@ As each scan is stitched (its points in the scanner frame S, its tracker pose ``
 :class:`OnlinePairs` finds its possible partners among the scans already measured
 (``overlap.PairSelector``: a superset of the pairs ``overlap.overlapping_pairs`` selects over the whole job)
 and registers those pairs as the correction would (``correction.register_stitched_pair``), keeping each
-outcome under ``correction.pair_key``. After the last scan ``correction.correct_scans`` takes the outcomes of
-the pairs it selects from this cache and registers only the others (a job resumed after a restart, a scan
-whose pose changed), so its result never depends on what was registered here.
+outcome under ``correction.pair_key``; with ``[correction] joint`` it also prepares each scan for the joint
+refinement (``correction.joint_scan``: thinned, with normals) under ``correction.joint_scan_key``. After the
+last scan ``correction.correct_scans`` takes the outcomes of the pairs it selects and the prepared scans from
+these caches and computes only the others (a job resumed after a restart, a scan whose pose changed), so its
+result never depends on what was done here.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import logging
 import time
 from collections import OrderedDict
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from tandemscan.config.models import CorrectionConfig
@@ -24,11 +26,14 @@ from tandemscan.pipeline.registration.correction import (
     PairOutcome,
     StitchedScan,
     cloud_digest,
+    joint_scan,
+    joint_scan_key,
     pair_covariance,
     pair_key,
     register_stitched_pair,
 )
 from tandemscan.pipeline.registration.icp import target_with_normals
+from tandemscan.pipeline.registration.joint import JointScan
 from tandemscan.pipeline.registration.overlap import PairSelector
 from tandemscan.pipeline.registration.pairs import NETWORK_METHODS
 from tandemscan.pipeline.registration.pose_graph import TransferPrior
@@ -50,6 +55,15 @@ class OnlineScan:
     scan: StitchedScan
 
 
+@dataclass(frozen=True)
+class OnlineWork:
+    """What a job computed while it measured, for ``correction.correct_scans``: pair outcomes by
+    ``correction.pair_key`` and scans prepared for the joint refinement by ``correction.joint_scan_key``."""
+
+    pairs: dict[str, PairOutcome] = field(default_factory=dict)
+    joint_scans: dict[str, JointScan] = field(default_factory=dict)
+
+
 class OnlinePairs:
     """The pair outcomes of a job, registered as its scans arrive (one instance per job, where the work runs).
 
@@ -63,14 +77,16 @@ class OnlinePairs:
         self.selector = PairSelector(cfg.pair_cell_mm, cfg.max_partners_per_scan)
         self.scans: list[OnlineScan] = []
         self.outcomes: dict[str, PairOutcome] = {}
+        self.joint_scans: dict[str, JointScan] = {}
         self._targets: OrderedDict[int, object] = OrderedDict()
         self.cpu_s = 0.0  # CPU time (s) of this process spent in add
 
     def add(self, points_S: np.ndarray, T_W_S: np.ndarray, covariance: np.ndarray, station: int,
             transfers: Sequence[TransferPrior]) -> int:
-        """Take the next scan with points (``points_S`` (N, 3) mm as the correction reads them, float64; its
-        6x6 pose covariance, ``uncertainty.scan_pose_covariance``; its tracker station; the transfer priors
-        known so far) and register its pairs; returns how many were registered."""
+        """Take the next scan with points (``points_S`` (N, 3) mm as the end of the job loads them,
+        ``finish.load_scans``; its 6x6 pose covariance, ``uncertainty.scan_pose_covariance``; its tracker
+        station; the transfer priors known so far), register its pairs and, with ``[correction] joint``, prepare
+        it for the joint refinement; returns how many pairs were registered."""
         if not self.enabled or len(points_S) == 0:
             return 0
         cpu = time.process_time()
@@ -85,9 +101,15 @@ class OnlinePairs:
             key = pair_key(old.digest, new.digest, cov, self.cfg)
             if key not in self.outcomes:
                 self.outcomes[key] = register_stitched_pair(world, self._target(i), cov, self.cfg)
+        if self.cfg.joint:
+            self.joint_scans[joint_scan_key(points_S, self.cfg)] = joint_scan(points_S, self.cfg)
         self.cpu_s += time.process_time() - cpu
         log.debug("online pairs: scan %d, %d partners", len(self.scans) - 1, len(partners))
         return len(partners)
+
+    def work(self) -> OnlineWork:
+        """The pair outcomes and prepared joint scans so far."""
+        return OnlineWork(self.outcomes, self.joint_scans)
 
     def _target(self, i: int) -> object:
         """Scan ``i``'s world cloud with normals (``icp.target_with_normals``), kept for the next few scans."""
