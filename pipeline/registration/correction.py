@@ -247,7 +247,7 @@ def correct_scans(
     poses, mount, joint = res.poses, res.mount, None
     clock.lap("graph_s")
     if cfg.joint:
-        joint = _refine_jointly(scans, priors, res.poses, cfg, transfers, mount_prior, joint_cache or {})
+        joint = _refine_jointly(scans, priors, cfg, transfers, mount_prior, joint_cache or {})
         poses, mount = joint.poses, joint.mount
         clock.lap("joint_s")
     before = [s.T_W_S for s in scans]
@@ -276,10 +276,11 @@ def correct_scans(
     return CorrectionResult(poses, edges, report, mount)
 
 
-def _refine_jointly(scans: Sequence[StitchedScan], priors: list[ScanPrior], start: list[np.ndarray],
-                    cfg: CorrectionConfig, transfers: Sequence[TransferPrior], mount_prior: MountPrior | None,
+def _refine_jointly(scans: Sequence[StitchedScan], priors: list[ScanPrior], cfg: CorrectionConfig,
+                    transfers: Sequence[TransferPrior], mount_prior: MountPrior | None,
                     cache: Mapping[str, JointScan]) -> JointResult:
-    """The joint refinement (``joint.refine_jointly``) from the pose graph's poses, on scans thinned to
+    """The joint refinement (``joint.refine_jointly``) from the tracker poses (its correspondences are found
+    there, not at the pose graph's, which are fitted to the same scans: ``joint`` module doc), on scans thinned to
     ``cfg.joint_voxel_mm`` (:func:`joint_scan`, from ``cache`` where prepared while the job measured), over every
     pair sharing a grid cell (``cfg.joint_max_partners_per_scan``)."""
     def prepared(s: StitchedScan) -> JointScan:
@@ -292,7 +293,7 @@ def _refine_jointly(scans: Sequence[StitchedScan], priors: list[ScanPrior], star
     pairs = overlapping_pairs(world, [s.station for s in scans], cfg.pair_cell_mm, cfg.joint_max_partners_per_scan)
     settings = JointSettings(max_distance_mm=cfg.joint_max_distance_mm, iterations=cfg.joint_iterations,
                              sigma_mm=cfg.joint_sigma_mm)
-    return refine_jointly(thinned, priors, pairs, start, transfers, mount_prior, settings)
+    return refine_jointly(thinned, priors, pairs, [s.T_W_S for s in scans], transfers, mount_prior, settings)
 
 
 def _joint_report(joint: JointResult, stations: list[int]) -> dict:
