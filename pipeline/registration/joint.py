@@ -97,7 +97,7 @@ class JointSettings:
 
     max_distance_mm: float = 1.0
     huber_k: float = 2.5
-    iterations: int = 8
+    iterations: int = 1
     tolerance_mm: float = 1e-3
     lever_mm: float = 100.0
     min_correspondences: int = 20
