@@ -4,8 +4,9 @@
 Input: every scan's points in its scanner frame S, its tracker-stitched pose ``T_W_S`` with covariance and
 its tracker station. For each overlapping pair (``overlap.overlapping_pairs``) the overlap is registered by
 the configured method (``pairs.correct_pair``), each correction becomes a pose-graph edge, and
-``pose_graph.refine_poses`` spreads the corrections over all scans; with ``[correction] joint`` the poses are then
-refined jointly on the overlap points (``joint.refine_jointly``).
+``pose_graph.refine_poses`` spreads the corrections over all scans; with ``[correction] joint`` the poses are
+instead refined jointly on the overlap points from the tracker poses (``joint.refine_jointly``; the graph's
+figures stay in the report).
 """
 
 from __future__ import annotations
