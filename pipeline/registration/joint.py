@@ -6,13 +6,13 @@ matrix; it inherits each pair's own bias. Here every overlap point is a point-to
 two scans, so that the adjustment uses the same data the Cramer-Rao bound of the job
 (``benchmarks/pose_bound.py``) assumes.
 
-The correspondences are found once, at the start poses, and kept: start from poses that do not depend on the
-scans' noise (the tracker poses). Poses fitted to the same scans (a pairwise ICP, the pose graph, an earlier
-iteration) pick, among neighbours within the noise, the points that agree with that fit, and correspondences
-re-found there pull the next solve towards it: on the whole default part (seed 8) one association at the
-tracker poses gives 0.043 mm median pose error against an expected 0.039 mm at the bound, one at the pose
-graph's 0.065 mm, and re-associating ten times drifts to 0.082 mm from either start, the truth included
-(docs/registration.md, "Joint refinement").
+The correspondences are found once, at the start poses (the tracker poses, which do not depend on the scans'
+noise), and kept. Measured on the whole default part (seed 8): one linearisation there, weighted there, lands
+at 0.043 mm median pose error against an expected 0.039 mm at the bound; re-associating at poses fitted to the
+same scans (the pose graph's, an earlier iteration's) drifts to 0.082 mm from any start, the truth included,
+and re-weighting the same correspondences at the corrected poses reaches 0.079 mm (docs/registration.md, "Why
+one association at the tracker poses": why a subset of the overlap points pulls beyond the truth when fully
+weighted is still open).
 
 Model (first order in the small corrections, world axes, mm and rad; every 6-vector is (t, rotation vector)):
 the unknowns ``theta`` are a world motion ``x_i`` of each scan about its origin ``o_i`` (prior: the tracker
