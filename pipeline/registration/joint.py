@@ -218,17 +218,16 @@ class _Pair:
     def __init__(self, i: int, j: int) -> None:
         self.i, self.j = i, j
 
-    def matched(self, scans: Sequence[JointScan], rel: np.ndarray, x: np.ndarray, idx: np.ndarray,
-                ok: np.ndarray, source: np.ndarray) -> _Match:
+    def matched(self, scans: Sequence[JointScan], rel: np.ndarray, x: np.ndarray, target: np.ndarray,
+                source: np.ndarray) -> _Match:
         """The correspondences of the source points ``source`` (indices in scan j), placed in S_i at ``x`` by
-        ``rel`` (``T_S_i_S_j``), whose nearest target points ``idx`` count where ``ok``, and whose normals agree
-        with those of their target points."""
-        t = idx[ok]
-        n = scans[self.i].normals_S[t]
-        r = np.einsum("ij,ij->i", x[ok] - scans[self.i].points_S[t], n)
-        source_n = scans[self.j].normals_S[source[ok]] @ rel[:3, :3].T
+        ``rel`` (``T_S_i_S_j``), with their nearest target points ``target`` (indices in scan i): those whose
+        normals agree."""
+        n = scans[self.i].normals_S[target]
+        r = np.einsum("ij,ij->i", x - scans[self.i].points_S[target], n)
+        source_n = scans[self.j].normals_S[source] @ rel[:3, :3].T
         same = np.abs(np.einsum("ij,ij->i", source_n, n)) >= _MIN_NORMAL_COSINE  # not across a crease
-        return _Match(source[ok][same], t[same], x[ok][same], r[same], n[same])
+        return _Match(source[same], target[same], x[same], r[same], n[same])
 
     def at(self, scans: Sequence[JointScan], poses: np.ndarray, m: _Match) -> _Match:
         """The same correspondences ``m`` at ``poses``: source points placed in S_i and residuals anew."""
@@ -287,7 +286,7 @@ def _associate(scans: Sequence[JointScan], trees: Sequence[cKDTree], poses: np.n
         if not found.any():
             return None
         p = _Pair(i, j)
-        return p, p.matched(scans, rel, x[inside[found]], idx[found], np.ones(int(found.sum()), bool), inside[found])
+        return p, p.matched(scans, rel, x[inside[found]], idx[found], inside[found])
 
     return [p for p in pair_map(near, pairs) if p is not None]
 
@@ -298,8 +297,7 @@ def refine_jointly(
     mount_prior: MountPrior | None = None, settings: JointSettings = JointSettings(),
 ) -> JointResult:
     """Refine every scan pose jointly from ``start_poses`` (the tracker poses: see the module doc) on the overlaps
-    of ``pairs``
-    (``(i, j)``: points of ``j`` measured against the surface of ``i``); the priors are the tracker poses
+    of ``pairs`` (``(i, j)``: points of ``j`` measured against the surface of ``i``); the priors are the tracker poses
     ``priors`` (``T_W_S`` and covariance), ``transfers`` and ``mount_prior`` as in ``pose_graph.refine_poses``."""
     if not (len(scans) == len(priors) == len(start_poses)):
         raise RefineError(f"{len(scans)} scans, {len(priors)} priors and {len(start_poses)} start poses differ")

@@ -17,7 +17,7 @@ import logging
 import time
 from collections import OrderedDict
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from tandemscan.config.models import CorrectionConfig
@@ -60,8 +60,8 @@ class OnlineWork:
     """What a job computed while it measured, for ``correction.correct_scans``: pair outcomes by
     ``correction.pair_key`` and scans prepared for the joint refinement by ``correction.joint_scan_key``."""
 
-    pairs: dict[str, PairOutcome] = field(default_factory=dict)
-    joint_scans: dict[str, JointScan] = field(default_factory=dict)
+    pairs: dict[str, PairOutcome]
+    joint_scans: dict[str, JointScan]
 
 
 class OnlinePairs:
