@@ -100,8 +100,11 @@ def merge_stage(voxel_mm: float, job: JobSnapshot, poses: Sequence[np.ndarray]) 
 def finish_job(job: JobSnapshot, started: float, measured_at: float,
                online: OnlineWork | None = None, stages: Mapping[str, float] | None = None
                ) -> FinishedJob:
-    """Correct, merge, export and inspect a measured job; ``job.worldmap`` is the map stitched while it measured
-    (tracker poses) and is not changed. Memory: the thinned scans, the maps and one full scan at a time.
+    """Correct, merge, export and inspect a measured job. It takes over ``job.worldmap``, the map stitched while
+    the job measured (tracker poses), and leaves there the finished job's cloud (``worldmap.MapCloud``), so that
+    the caller, holding no other reference, lets the end of the job free the map's sums. Memory: the thinned
+    scans, one map and one cloud at a time and one full scan; where the correction changed the poses, the
+    tracker stitch's cloud stays as float32 for the simulator's score of it (``correction.before``).
     ``started`` and ``measured_at`` are ``time.monotonic()`` at the job's start and at its last step's commit;
     ``online``: what the job computed while it measured (``online_pairs.OnlineWork``: registered pairs, scans
     prepared for the joint refinement); ``stages`` (s) are timings of the work before this call."""
@@ -113,11 +116,20 @@ def finish_job(job: JobSnapshot, started: float, measured_at: float,
     view_S = tuple(stitch_view_points(p) for p in loaded.points_S)  # all the exports need of the copies
     del loaded
     t = time.perf_counter()
-    worldmap = merge_stage(job.worldmap.voxel_mm, job, outcome.poses) if outcome.corrected else job.worldmap
+    tracker_map, job.worldmap = job.worldmap, None
+    tracker_job = None
+    if outcome.corrected:
+        tracker_job = dataclasses.replace(job, worldmap=tracker_map.frozen(np.float32))
+        del tracker_map
+        merged = merge_stage(tracker_job.worldmap.voxel_mm, job, outcome.poses)
+        job.worldmap = merged.frozen()
+        del merged
+    else:
+        job.worldmap = tracker_map.frozen()
+        del tracker_map
     timings["merge_s"] = round(time.perf_counter() - t, 3)
     final = dataclasses.replace(
         job, scans=[dataclasses.replace(s, T_W_S=T) for s, T in zip(job.scans, outcome.poses, strict=True)],
-        correction=outcome.section, worldmap=worldmap)
-    report = export_job(final, time.monotonic() - started, measured_at, timings, view_S,
-                        job if outcome.corrected else None)
+        correction=outcome.section)
+    report = export_job(final, time.monotonic() - started, measured_at, timings, view_S, tracker_job)
     return FinishedJob(report, outcome)

@@ -3,7 +3,8 @@
 Both maps have one interface: ``await add_scan(file, T_W_S, arrays)`` persists a raw scan (when ``arrays`` is
 given: written and fsynced first) and merges it into the voxel grid (Eq. 1, points in S, map in W, mm);
 ``await run(fn, job, *args)`` runs ``fn(job, *args)`` where the map lives, with ``job.worldmap`` set to it
-(correction, report, exports), and adopts the map ``fn`` leaves there.
+(correction, report, exports) and handed over: ``fn`` owns the map while it runs (no other reference to it is
+kept, so the end of a job can free it), and the map or cloud it leaves there is adopted.
 
 :class:`ProcessWorldMap` (the daemon) keeps its grid in a one-process pool, so no stitch, scan write or export
 holds the daemon's GIL: a full-resolution scan (3.2 M points) merged or written in a thread stalled the event
@@ -58,9 +59,11 @@ def _add(path: str, T_W_S: np.ndarray, arrays: dict[str, np.ndarray] | None) -> 
 
 def _run(fn: Callable[..., Any], job: JobSnapshot, args: tuple) -> tuple[Any, int]:
     global _MAP
-    job.worldmap = _MAP
-    out = fn(job, *args)
-    _MAP = job.worldmap
+    job.worldmap, _MAP = _MAP, None  # fn owns the map while it runs (it may replace it and free the old one)
+    try:
+        out = fn(job, *args)
+    finally:
+        _MAP = job.worldmap
     return out, len(_MAP)
 
 
@@ -228,11 +231,12 @@ class LocalWorldMap(_Pairs):
         self._queue_pairs(file, T_W_S, pairs)
 
     async def run(self, fn: Callable[..., Any], job: JobSnapshot, *args: Any) -> Any:
-        """``fn(job, *args)`` in a thread with ``job.worldmap`` = this map."""
-        job.worldmap = self.map
-        out = await asyncio.to_thread(fn, job, *args)
-        self.map = job.worldmap
-        return out
+        """``fn(job, *args)`` in a thread with ``job.worldmap`` = this map, which ``fn`` owns while it runs."""
+        job.worldmap, self.map = self.map, None
+        try:
+            return await asyncio.to_thread(fn, job, *args)
+        finally:
+            self.map = job.worldmap
 
     def __len__(self) -> int:
         return len(self.map)

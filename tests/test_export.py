@@ -9,6 +9,7 @@ import open3d as o3d
 import pye57
 import pytest
 from tandemscan.pipeline.geometry.frames import from_quaternion, from_rpy, pose_error
+from tandemscan.pipeline.io import export
 from tandemscan.pipeline.io.export import ExportError, PosedScan, write_e57, write_ply, write_pose_log
 
 
@@ -57,7 +58,9 @@ def test_e57_refuses_empty_input(tmp_path):
         write_e57(tmp_path / "x.e57", [bad])
 
 
-def test_ply_binary_with_normals_and_deviation(tmp_path):
+@pytest.mark.parametrize("chunk_points", [1_000_000, 7])  # one chunk; records formed a few at a time
+def test_ply_binary_with_normals_and_deviation(tmp_path, monkeypatch, chunk_points):
+    monkeypatch.setattr(export, "PLY_CHUNK_POINTS", chunk_points)
     rng = np.random.default_rng(1)
     pts = rng.uniform(-1500, 1500, (500, 3))
     nrm = rng.normal(size=(500, 3))

@@ -19,6 +19,8 @@ from tandemscan.pipeline.geometry.frames import to_quaternion, to_rpy, transform
 log = logging.getLogger(__name__)
 
 MM_PER_M = 1000.0
+#: a PLY's records are formed and written this many points at a time (about 40 MB)
+PLY_CHUNK_POINTS = 1_000_000
 
 
 class ExportError(ValueError):
@@ -75,9 +77,7 @@ def write_ply(
         if not name.isidentifier():
             raise ExportError(f"scalar field name {name!r} is not a plain identifier")
         fields.append((name, "f4", _columns(n, values, name, 1)))
-    data = np.empty(n, dtype=[(name, "<" + kind) for name, kind, _ in fields])
-    for name, _, values in fields:
-        data[name] = values
+    record = np.dtype([(name, "<" + kind) for name, kind, _ in fields])
     ply_type = {"f8": "double", "f4": "float"}
     header = ["ply", "format binary_little_endian 1.0", "comment units mm", f"element vertex {n}"]
     header += [f"property {ply_type[kind]} {name}" for name, kind, _ in fields]
@@ -86,7 +86,12 @@ def write_ply(
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("wb") as f:
         f.write("\n".join(header).encode("ascii"))
-        data.tofile(f)  # no second copy of the records
+        data = np.empty(min(n, PLY_CHUNK_POINTS), dtype=record)
+        for lo in range(0, n, PLY_CHUNK_POINTS):  # records a chunk at a time: no copy of a whole cloud
+            rows = data[: min(PLY_CHUNK_POINTS, n - lo)]
+            for name, _, values in fields:
+                rows[name] = values[lo:lo + len(rows)]
+            rows.tofile(f)
     log.info("wrote %s (%d points, fields %s)", path, n, [f[0] for f in fields])
     return path
 

@@ -11,6 +11,8 @@ map is read), so each voxel is moved O(log scans) times, not once per scan.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 _BITS = 21
@@ -161,8 +163,41 @@ class VoxelMap:
         self._flush()
         return self._counts.copy()
 
+    def frozen(self, dtype: type = np.float64) -> MapCloud:
+        """The map's cloud once nothing more is merged into it: its mean points and unit normals (W, mm) computed
+        once, as ``dtype`` (float32 halves them where only a score reads them). The map keeps its sums; the
+        caller drops it to free them."""
+        points, normals = self.points().astype(dtype, copy=False), self.normals().astype(dtype, copy=False)
+        for a in (points, normals):
+            a.setflags(write=False)  # shared by every reader
+        return MapCloud(self.voxel_mm, points, normals)
+
     @property
     def nbytes(self) -> int:
         """Memory held by the map (bytes), its batch included."""
         self._flush()
         return self._keys.nbytes + self._sums.nbytes + self._counts.nbytes
+
+
+@dataclass(frozen=True, eq=False)
+class MapCloud:
+    """A finished map's cloud (:meth:`VoxelMap.frozen`): one mean point and unit normal an occupied voxel of edge
+    ``voxel_mm`` (W, mm; normals zero where none were merged). It reads as the map does (``points()``,
+    ``normals()``, ``len``) and hands out the same arrays each time instead of computing them anew: the end of a
+    job reads the cloud for ``cloud.ply``, the E57, the inspection and the score, a 20 M-voxel map's 480 MB each.
+    48 bytes a voxel in float64, against the map's 64 and its sums' reductions."""
+
+    voxel_mm: float
+    points_mm: np.ndarray
+    normals_unit: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.points_mm)
+
+    def points(self) -> np.ndarray:
+        """Mean point of every occupied voxel, (M, 3) mm (the stored array: read, not written)."""
+        return self.points_mm
+
+    def normals(self) -> np.ndarray:
+        """Mean unit normal of every occupied voxel, (M, 3) (the stored array)."""
+        return self.normals_unit
