@@ -24,10 +24,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from tandemscan.daemon.report import add_ground_truth, build_report
-from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.part import load_part_mesh
 from tandemscan.pipeline.inspection.inspect import InspectionError
-from tandemscan.pipeline.inspection.inspection_job import InspectionOutputs, align_and_inspect
+from tandemscan.pipeline.inspection.inspection_job import InspectionOutputs, PlacedScans, align_and_inspect
 from tandemscan.pipeline.io.export import PosedScan, write_e57, write_ply, write_pose_log
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan
 
@@ -189,8 +188,9 @@ def _inspect(job: JobSnapshot, report: dict, scans: list[PosedScan], cloud_W: np
     folder; the stitch view shows the tracker-only stitch (Eq. 1) and, where corrected, the final one."""
     job_dir = job.job_dir
     tracker_only = [s.T_W_S for s in scans] if tracker_poses is None else list(tracker_poses)
-    before = [F.transform_points(T, _thin(s.points_S_mm)) for T, s in zip(tracker_only, scans, strict=True)]
-    after = None if tracker_poses is None else [F.transform_points(s.T_W_S, _thin(s.points_S_mm)) for s in scans]
+    view_S = [_thin(s.points_S_mm) for s in scans]
+    before = PlacedScans(view_S, tracker_only)
+    after = None if tracker_poses is None else PlacedScans(view_S, [s.T_W_S for s in scans])
     return align_and_inspect(
         cloud_W,
         load_part_mesh(job.config.part),

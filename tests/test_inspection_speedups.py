@@ -253,3 +253,23 @@ def test_closest_points_and_the_mapping_into_f_in_chunks_are_those_of_one_pass()
     T = from_rotvec([0.1, -0.2, 0.3], [10.0, -20.0, 30.0])
     np.testing.assert_array_equal(in_chunks(transform_points, T, pts), transform_points(T, pts))
     np.testing.assert_array_equal(in_chunks(rotate_vectors, T, whole.normals), rotate_vectors(T, whole.normals))
+
+
+def test_placed_scans_map_each_scan_by_its_pose_when_read():
+    """The stitch views' scans placed by one pose each (the tracker's, the corrected) or all by one (W into F):
+    the same points as placing them at once, a scan at a time, and a pose missing is refused."""
+    from tandemscan.pipeline.inspection.inspection_job import PlacedScans
+
+    rng = np.random.default_rng(3)
+    scans = [rng.normal(0, 100, (n, 3)) for n in (5, 0, 17)]
+    poses = [from_rotvec(rng.normal(0, 50, 3), rng.normal(0, 0.3, 3)) for _ in scans]
+    placed = PlacedScans(scans, poses)
+    assert len(placed) == 3
+    for k in range(3):
+        np.testing.assert_array_equal(placed[k], transform_points(poses[k], scans[k]))
+    T = from_rotvec([1.0, 2.0, 3.0], [0.1, 0.0, 0.2])
+    moved = PlacedScans(placed, T)  # one pose for all, over scans that are themselves placed when read
+    np.testing.assert_allclose(moved[2], transform_points(T @ poses[2], scans[2]), atol=1e-9)
+    assert [len(s) for s in moved[0:3]] == [5, 0, 17]
+    with pytest.raises(ValueError, match="3 scans but 2 poses"):
+        PlacedScans(scans, poses[:2])

@@ -57,8 +57,8 @@ def test_methods_with_the_network_register_nothing_while_measuring():
 
 def test_scans_prepared_for_the_joint_refinement_while_measuring_give_the_same_poses(monkeypatch):
     """With ``joint`` on, every scan is thinned and given normals as it arrives; the end of the job takes those
-    (none is prepared again) and refines to the poses it computes without them. A scan whose points differ
-    from what was prepared (another voxel) is prepared again."""
+    out of the cache (none is prepared again, none kept after) and refines to the poses it computes without
+    them. A scan whose points differ from what was prepared (another voxel) is prepared again."""
     from tandemscan.pipeline.registration import correction
 
     _, scans, transfers = scans_with_drift(n=4, per_station=2)
@@ -70,10 +70,12 @@ def test_scans_prepared_for_the_joint_refinement_while_measuring_give_the_same_p
     prepared_at_end = []
     real = correction.joint_scan
     monkeypatch.setattr(correction, "joint_scan", lambda P, c: prepared_at_end.append(len(P)) or real(P, c))
+    kept = dict(work.joint_scans)
     reused = correct_scans(scans, cfg, transfers=transfers, pair_cache=work.pairs, joint_cache=work.joint_scans)
     assert prepared_at_end == [] and reused.report["joint"]["pairs"] == fresh.report["joint"]["pairs"] > 0
+    assert work.joint_scans == {}  # taken out as used: none outlives the refinement
     for a, b in zip(fresh.poses, reused.poses, strict=True):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)
     coarser = cfg.model_copy(update={"joint_voxel_mm": 3.0})
-    correct_scans(scans, coarser, transfers=transfers, pair_cache=work.pairs, joint_cache=work.joint_scans)
+    correct_scans(scans, coarser, transfers=transfers, pair_cache=work.pairs, joint_cache=kept)
     assert len(prepared_at_end) == len(scans)

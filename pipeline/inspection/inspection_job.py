@@ -121,8 +121,8 @@ def align_and_inspect(
     log.info("aligned to CAD by %s: residual %.4f mm, %d points on reference spheres left out",
              alignment.method, alignment.residual_mm, int((~keep).sum()))
 
-    def into_F(scans: Sequence[np.ndarray] | None) -> MovedScans | None:
-        return None if scans is None else MovedScans(scans, T)
+    def into_F(scans: Sequence[np.ndarray] | None) -> PlacedScans | None:
+        return None if scans is None else PlacedScans(scans, T)
 
     every = bool(keep.all())  # no copy of the cloud where no point is left out
     return run_inspection(
@@ -134,12 +134,18 @@ def align_and_inspect(
     )
 
 
-class MovedScans(Sequence):
-    """Scans' points (frame W, mm) as ``T`` (``T_F_W``) places them, each mapped when it is asked for: the
-    stitching figure draws two of the hundreds of scans a job has (its numbers come from W)."""
+class PlacedScans(Sequence):
+    """Scans' points (mm) placed by a pose each, or all by one: scan ``k`` is ``poses[k]`` (or ``poses``, one
+    4x4) applied to ``scans[k]``, mapped each time it is asked for, never held. The stitching figure draws two of
+    the hundreds of scans a job has, and its overlap figures read each scan about twice: a whole part's scans
+    placed twice (before and after the correction) and moved into F would hold three copies of them."""
 
-    def __init__(self, scans_W: Sequence[np.ndarray], T: np.ndarray):
-        self._scans, self._T = scans_W, np.asarray(T, float)
+    def __init__(self, scans: Sequence[np.ndarray], poses: np.ndarray | Sequence[np.ndarray]):
+        self._scans = scans
+        one = isinstance(poses, np.ndarray) and poses.shape == (4, 4)
+        self._poses = [np.asarray(poses, float)] * len(scans) if one else [np.asarray(T, float) for T in poses]
+        if len(self._poses) != len(scans):
+            raise ValueError(f"{len(scans)} scans but {len(self._poses)} poses")
 
     def __len__(self) -> int:
         return len(self._scans)
@@ -147,7 +153,7 @@ class MovedScans(Sequence):
     def __getitem__(self, i):  # type: ignore[override]
         if isinstance(i, slice):
             return [self[k] for k in range(*i.indices(len(self)))]
-        return transform_points(self._T, self._scans[i])
+        return transform_points(self._poses[i], self._scans[i])
 
 
 def inspect_files(

@@ -15,7 +15,7 @@ import hashlib
 import logging
 import time
 from collections import Counter
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping, MutableMapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -217,7 +217,7 @@ def _pair_corrections(
 def correct_scans(
     scans: Sequence[StitchedScan], cfg: CorrectionConfig, network: Registrar | None = None,
     transfers: Sequence[TransferPrior] = (), voxel_mm: float = 1.0, mount_prior: MountPrior | None = None,
-    pair_cache: Mapping[str, PairOutcome] | None = None, joint_cache: Mapping[str, JointScan] | None = None,
+    pair_cache: Mapping[str, PairOutcome] | None = None, joint_cache: MutableMapping[str, JointScan] | None = None,
 ) -> CorrectionResult:
     """Correct every overlapping pair and refine all poses; ``voxel_mm`` thins the scans first.
 
@@ -229,7 +229,8 @@ def correct_scans(
     ``pair_cache`` holds the outcomes of pairs registered while the job measured (:class:`OnlinePairs`, keyed
     by :func:`pair_key`); a pair not in it is registered here, so the result never depends on it. ``joint_cache``
     likewise holds the scans prepared for the joint refinement while the job measured (:func:`joint_scan`, keyed
-    by :func:`joint_scan_key`).
+    by :func:`joint_scan_key`); each is taken out of it as the refinement takes it, so that none outlives the
+    refinement (the prepared scans of a whole part are about half a gigabyte).
     """
     if cfg.method in NETWORK_METHODS and network is None:
         raise ValueError(f"method {cfg.method!r} needs a DeepMerge registrar (pairs.LazyNetwork)")
@@ -279,13 +280,13 @@ def correct_scans(
 
 def _refine_jointly(scans: Sequence[StitchedScan], priors: list[ScanPrior], cfg: CorrectionConfig,
                     transfers: Sequence[TransferPrior], mount_prior: MountPrior | None,
-                    cache: Mapping[str, JointScan]) -> JointResult:
+                    cache: MutableMapping[str, JointScan]) -> JointResult:
     """The joint refinement (``joint.refine_jointly``) from the tracker poses (its correspondences are found
-    there, not at the pose graph's, which are fitted to the same scans: ``joint`` module doc), on scans thinned to
-    ``cfg.joint_voxel_mm`` (:func:`joint_scan`, from ``cache`` where prepared while the job measured), over every
-    pair sharing a grid cell (``cfg.joint_max_partners_per_scan``)."""
+    there, not at the pose graph's, which are fitted to the same scans: ``joint`` module doc), on scans thinned
+    to ``cfg.joint_voxel_mm`` (:func:`joint_scan`, taken out of ``cache`` where prepared while the job measured),
+    over every pair sharing a grid cell (``cfg.joint_max_partners_per_scan``)."""
     def prepared(s: StitchedScan) -> JointScan:
-        found = cache.get(joint_scan_key(s.points_S, cfg)) if cache else None
+        found = cache.pop(joint_scan_key(s.points_S, cfg), None) if cache else None
         return joint_scan(s.points_S, cfg) if found is None else found
 
     with pair_threads() as pair_map:
