@@ -765,6 +765,12 @@ class InspectionConfig(_Strict):
     )
     map_width_px: int = Field(800, ge=100, le=4000, description="width of each rendered colour-map view")
     map_max_points: int = Field(300_000, ge=1000, description="colour maps draw an even subsample of this size")
+    max_points: int = Field(
+        10_000_000, ge=1000, description="a job's inspection (deviations, areas, report, deviation PLY) takes at "
+        "most this many points of its cloud, every k-th voxel beyond it: a whole part's 1 mm map holds about 8 M "
+        "points at the coarse resolution and 18 M at the full one, whose inspection would otherwise need several "
+        "GB more; cloud.ply and the E57 keep every point"
+    )
     views: tuple[Literal["isometric", "front", "left", "right", "top", "back"], ...] = (
         "isometric", "front", "left", "right", "top",
     )

@@ -171,9 +171,12 @@ def _inspection_section(job: JobSnapshot, report: dict, scans: list[PosedScan], 
         log.warning("inspection skipped: %s", reason)
         return {"skipped": reason, "files": files}
     T_F_W = np.asarray(job.T_F_W, float)
-    normals_W = job.worldmap.normals()
+    step = -(-len(cloud_W) // job.config.inspection.max_points)  # ceil: every step-th voxel (map key order)
+    if step > 1:
+        log.info("inspecting every %d-th of the cloud's %d points ([inspection] max_points)", step, len(cloud_W))
     try:
-        out = _inspect(job, report, scans, cloud_W, normals_W, T_F_W, tracker_poses)
+        out = _inspect(job, report, scans, cloud_W[::step], job.worldmap.normals()[::step], T_F_W, tracker_poses,
+                       len(cloud_W))
     except InspectionError as e:  # the measurement stands; the report says why it has no inspection
         log.warning("inspection failed: %s", e)
         return {"failed": str(e), "files": files}
@@ -182,10 +185,11 @@ def _inspection_section(job: JobSnapshot, report: dict, scans: list[PosedScan], 
 
 
 def _inspect(job: JobSnapshot, report: dict, scans: list[PosedScan], cloud_W: np.ndarray,
-             normals_W: np.ndarray | None, T_F_W: np.ndarray, tracker_poses: Sequence[np.ndarray] | None
-             ) -> InspectionOutputs:
-    """The inspection of the job's cloud, aligned to the CAD from the anchor's ``T_F_W``, written into the job
-    folder; the stitch view shows the tracker-only stitch (Eq. 1) and, where corrected, the final one."""
+             normals_W: np.ndarray | None, T_F_W: np.ndarray, tracker_poses: Sequence[np.ndarray] | None,
+             cloud_points: int) -> InspectionOutputs:
+    """The inspection of the job's cloud (``cloud_W``: of its ``cloud_points`` points those inspected),
+    aligned to the CAD from the anchor's ``T_F_W``, written into the job folder; the stitch view shows the
+    tracker-only stitch (Eq. 1) and, where corrected, the final one."""
     job_dir = job.job_dir
     tracker_only = [s.T_W_S for s in scans] if tracker_poses is None else list(tracker_poses)
     view_S = [_thin(s.points_S_mm) for s in scans]
@@ -203,7 +207,9 @@ def _inspect(job: JobSnapshot, report: dict, scans: list[PosedScan], cloud_W: np
         scans_after_W=after,
         title=f"Inspection report, {job_dir.name}",
         meta={"job": job_dir.name, "plan": job.plan.name, "cell": job.config.name,
-              "alignment to CAD": job.config.inspection.alignment, "points": str(len(cloud_W))},
+              "alignment to CAD": job.config.inspection.alignment,
+              "points": str(len(cloud_W)) if len(cloud_W) == cloud_points
+              else f"{len(cloud_W)} of the cloud's {cloud_points} ([inspection] max_points)"},
         accuracy=_accuracy(report),
         json_name=None,
     )

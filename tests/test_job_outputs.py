@@ -100,3 +100,24 @@ def test_inspection_skipped_with_reason(sim_config, tmp_path):
     assert write_job_outputs(runner(sim_config, np.eye(4)), {})["skipped"] == "empty cloud"
     assert (tmp_path / "poses.csv").read_text().startswith("index,name,points")
     assert not (tmp_path / "report.html").exists()
+
+
+async def test_inspection_takes_at_most_max_points_of_the_cloud(sim_config, tmp_path):
+    """Beyond ``[inspection] max_points`` the inspection takes every k-th point of the cloud, and says so;
+    cloud.ply and the E57 keep every point."""
+    plan = Plan.load(default_plan_path())
+    scans = [i for i, s in enumerate(plan.steps) if isinstance(s, Scan)]
+    plan = plan.model_copy(update={"steps": plan.steps[: scans[0] + 1]})
+    inspection = sim_config.inspection.model_copy(update={"views": ("isometric",), "map_width_px": 300,
+                                                           "max_points": 1000})
+    config = sim_config.model_copy(update={"inspection": inspection})
+    async with CellSession(config) as session:
+        result = await JobRunner(session, plan, config, tmp_path / "job").run()
+    report = json.loads((result.job_dir / "report.json").read_text())
+    n = report["points_cloud"]
+    assert n > 10_000 and len(read_ply(result.job_dir / "cloud.ply")[0]) == n
+    step = -(-n // 1000)
+    inspected = report["inspection"]["as_measured"]["stats"]["count"]
+    assert inspected == len(range(0, n, step)) <= 1000
+    assert len(read_ply(result.job_dir / "cloud_deviation.ply")[0]) == inspected
+    assert report["inspection"]["meta"]["points"] == f"{inspected} of the cloud's {n} ([inspection] max_points)"
