@@ -181,6 +181,7 @@ async def run(args: argparse.Namespace) -> dict:
         "coverage_pct": round(measured_coverage_pct(mesh, cloud_F, config.scanner.sweet_spot_mm, limit), 2),
         "planned_coverage_pct": round(part_plan.coverage.coverage_pct, 2),
         "scans": r["scans"], "scans_planned": r["scans_planned"], "scans_empty": len(r["scans_empty"]),
+        "points_cloud": r["points_cloud"], "points_inspected": r.get("inspection", {}).get("meta", {}).get("points"),
         "lift_moves": part_plan.summary()["lift_moves"], "transfers": r["transfers"],
         "unresolved_poses": r["relocalisation"]["unresolved_count"],
         "scans_untracked": r["relocalisation"]["untracked_count"],
