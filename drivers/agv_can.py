@@ -95,8 +95,10 @@ class AgvCanChassis:
         self._tasks = [asyncio.create_task(self._receive(), name=f"{self.name}-rx")]
         try:
             await self._enter_can_mode()
-        except BaseException:
+        except BaseException as e:
             await self.close()
+            if isinstance(e, DeviceError):
+                self._fault = e  # why the link is down, for the verbs called until the next connect
             raise
         self._commanding = True
         self._tasks.append(asyncio.create_task(self._command_loop(), name=f"{self.name}-tx"))
@@ -239,8 +241,10 @@ class AgvCanChassis:
     # ------------------------------------------------------------------ bus side
 
     def _require_link(self) -> CanLink:
+        """The open link; without one, the fault that brought it down (a silent chassis stays a timeout) or
+        :class:`NotConnected`."""
         if self._link is None:
-            raise NotConnected(self.name, "not connected")
+            raise self._fault if self._fault is not None else NotConnected(self.name, "not connected")
         return self._link
 
     async def _enter_can_mode(self) -> None:

@@ -175,6 +175,22 @@ async def test_no_chassis_on_the_bus_times_out_and_calls_need_a_link():
     await drv.close()
 
 
+async def test_a_failed_reconnect_keeps_the_cause_for_the_next_call(emulator, chassis):
+    """The supervisor's reconnect of a silent chassis fails; the step's next call names the silence (a timeout),
+    not a bare "not connected", and a connect once the chassis talks again clears it."""
+    emulator.faults.silent = True
+    await chassis.close()
+    with pytest.raises(DeviceTimeout, match="did not enter CAN mode"):
+        await chassis.connect()
+    with pytest.raises(DeviceTimeout, match="did not enter CAN mode"):
+        await chassis.odometry()
+    with pytest.raises(DeviceTimeout):
+        await chassis.move_to(ChassisPose(50.0, 0.0, 0.0))
+    emulator.faults.silent = False
+    await chassis.connect()
+    await chassis.odometry()
+
+
 async def test_odometry_frame_survives_reconnect(emulator, chassis):
     await chassis.move_to(ChassisPose(150.0, 0.0, 0.0))
     before = await chassis.odometry()
