@@ -8,6 +8,8 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 import pytest
+from scipy.spatial import cKDTree
+from tandemscan.pipeline.inspection import deviation_areas
 from tandemscan.pipeline.geometry.frames import from_rotvec, transform_points
 from tandemscan.pipeline.inspection.deviation_areas import even_centres, find_deviation_areas
 from tandemscan.pipeline.inspection.deviation_maps import measured_triangles
@@ -273,3 +275,13 @@ def test_placed_scans_map_each_scan_by_its_pose_when_read():
     assert [len(s) for s in moved[0:3]] == [5, 0, 17]
     with pytest.raises(ValueError, match="3 scans but 2 poses"):
         PlacedScans(scans, poses[:2])
+
+
+def test_points_near_the_screening_centres_are_found_chunk_by_chunk():
+    rng = np.random.default_rng(5)
+    p = rng.uniform(0, 200, (30_000, 3))
+    centres = rng.uniform(0, 200, (2 * deviation_areas._BALL_CHUNK + 17, 3))  # three chunks, the last short
+    within = deviation_areas._within(deviation_areas.kd_tree(p), centres, 6.0)
+    nearest = cKDTree(centres).query(p)[0]
+    np.testing.assert_array_equal(within, np.flatnonzero(nearest <= 6.0))
+    assert 0 < len(within) < len(p)

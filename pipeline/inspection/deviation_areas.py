@@ -119,6 +119,21 @@ SCREEN_CELL = 0.75  # the screening keeps one point per cube of this many smooth
 SCREEN_NEIGHBOURS = 16  # and averages over this many neighbours (within the smoothing radius)
 
 
+_BALL_CHUNK = 4096  # centres a ball query of :func:`_within` takes at a time
+
+
+def _within(tree: cKDTree, centres_mm: np.ndarray, radius_mm: float) -> np.ndarray:
+    """Sorted indices of the tree's points within ``radius_mm`` of any of ``centres_mm`` (mm). The ball
+    queries run :data:`_BALL_CHUNK` centres at a time into one mask: their lists of Python integers, about
+    130 a centre at 1 mm spacing and each point found by about nine centres, would take several GB on a
+    whole part whose surface lies near the band."""
+    found = np.zeros(tree.n, bool)
+    for lo in range(0, len(centres_mm), _BALL_CHUNK):
+        hits = tree.query_ball_point(centres_mm[lo:lo + _BALL_CHUNK], radius_mm, workers=-1, return_sorted=False)
+        found[np.concatenate([np.asarray(h, np.int64) for h in hits])] = True
+    return np.flatnonzero(found)
+
+
 def _screened(p: np.ndarray, d: np.ndarray, lower_mm: float, upper_mm: float, smoothing_mm: float
               ) -> LocalDeviation:
     """:func:`local_deviation` of the points that can be beyond the band: one point per cube of side
@@ -133,10 +148,7 @@ def _screened(p: np.ndarray, d: np.ndarray, lower_mm: float, upper_mm: float, sm
     coarse = local_deviation(p, d, smoothing_mm, centres, tree, SCREEN_NEIGHBOURS)
     margin = 0.25 * (upper_mm - lower_mm)
     near = centres[(coarse.smoothed_mm > upper_mm - margin) | (coarse.smoothed_mm < lower_mm + margin)]
-    at = np.zeros(0, np.int64)
-    if len(near):
-        hits = tree.query_ball_point(p[near], cell * np.sqrt(3.0), workers=-1, return_sorted=False)
-        at = np.unique(np.concatenate([np.asarray(h, np.int64) for h in hits]))
+    at = _within(tree, p[near], cell * np.sqrt(3.0))
     fine = local_deviation(p, d, smoothing_mm, at, tree)
     return LocalDeviation(fine.smoothed_mm, fine.area_mm2, coarse.spacing_mm, at)
 
