@@ -10,7 +10,9 @@ tracker-only stitch (no correction step, no in-job inspection), which is most of
 ``--tracker-stations N``: only the plan's steps while the tracker stands at its first N stations (a shorter
 job for the accuracy figures: the coverage is then that of the part of the plan run); ``--resolution full``:
 the scanner's full resolution (3.2 M points a scan) instead of the coarse default. ``resources`` in the JSON:
-the peak resident memory (GiB) of this process and of the largest worker process (``getrusage``), the peak of
+the peak resident memory (GiB) of the job's process until report.html (``peak_rss_gib_until_report``: the
+product's work, before the simulator's scoring), of this process and of the largest worker process
+(``getrusage``: everything, scoring included), the peak of
 their sum sampled every 2 s from ``/proc``, and the disk the job folder takes (GB, its raw scans apart).
 The part is planned as ``tandemscan measure --part`` does it (no plan given), the plan run on the simulated cell
 (coarse resolution, the config's correction settings), and the stitched cloud scored: ``coverage_pct`` is the
@@ -41,23 +43,27 @@ from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.part import barrel_panel_mesh
 from tandemscan.pipeline.geometry.raycast import make_scene
+from tandemscan.pipeline.inspection.scoring import SCORE_CHUNK
 from tandemscan.pipeline.planning.coverage import pose_fits, triangle_geometry
 from tandemscan.pipeline.planning.plan import MoveTracker, Plan, Scan
 
 _ON_SURFACE_MM = 1.0
 
 
-def measured_coverage_pct(mesh: o3d.geometry.TriangleMesh, cloud_F_mm: np.ndarray, sweet_spot_mm: float,
-                          incidence_limit_rad: float) -> float:
-    """Share (%) of the surface where a pose fits whose triangles hold a cloud point within 1 mm."""
+def measured_coverage_pct(mesh: o3d.geometry.TriangleMesh, cloud_W_mm: np.ndarray, T_F_W: np.ndarray,
+                          sweet_spot_mm: float, incidence_limit_rad: float) -> float:
+    """Share (%) of the surface where a pose fits whose triangles hold a cloud point within 1 mm; the cloud
+    (W) placed in the part frame F by ``T_F_W`` and measured a chunk at a time (a full-resolution whole
+    part's 18 M points would take GBs of temporaries at once)."""
     scene = make_scene(mesh)
-    ans = scene.compute_closest_points(o3d.core.Tensor(cloud_F_mm.astype(np.float32)))
-    d = np.linalg.norm(ans["points"].numpy() - cloud_F_mm, axis=1)
-    ids = ans["primitive_ids"].numpy()[d <= _ON_SURFACE_MM]
     area, _, _ = triangle_geometry(mesh)
-    fits = pose_fits(mesh, sweet_spot_mm, incidence_limit_rad)
     hit = np.zeros(len(area), bool)
-    hit[np.unique(ids)] = True
+    for lo in range(0, len(cloud_W_mm), SCORE_CHUNK):
+        p = F.transform_points(T_F_W, cloud_W_mm[lo:lo + SCORE_CHUNK]).astype(np.float32)
+        ans = scene.compute_closest_points(o3d.core.Tensor(p))
+        near = np.linalg.norm(ans["points"].numpy() - p, axis=1) <= _ON_SURFACE_MM
+        hit[ans["primitive_ids"].numpy()[near]] = True
+    fits = pose_fits(mesh, sweet_spot_mm, incidence_limit_rad)
     return 100.0 * float(area[hit & fits].sum() / area[fits].sum())
 
 
@@ -130,10 +136,13 @@ def disk_bytes(folder: Path) -> dict[str, int]:
     return {"all": total, "scans": scans}
 
 
-def resources(sampler: TreeRssSampler, disk: dict[str, int]) -> dict:
-    """The ``resources`` section: peak RSS (GiB; ``ru_maxrss`` is KiB on Linux) and disk (GB)."""
+def resources(sampler: TreeRssSampler, disk: dict[str, int], report: dict) -> dict:
+    """The ``resources`` section: peak RSS (GiB; ``ru_maxrss`` is KiB on Linux) and disk (GB);
+    ``peak_rss_gib_until_report``: the job's process until report.html (``report.json`` ``resources``: before
+    the simulator's scoring and this script's coverage, which run in the same process here)."""
     gib = 1 << 20
     return {
+        "peak_rss_gib_until_report": report.get("resources", {}).get("peak_rss_gib"),
         "peak_rss_gib_self": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / gib, 2),
         "peak_rss_gib_largest_worker": round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / gib, 2),
         "peak_rss_gib_all_processes_sampled": round(sampler.peak / (1 << 30), 2),
@@ -170,7 +179,6 @@ async def run(args: argparse.Namespace) -> dict:
         seconds = time.perf_counter() - started
         disk = disk_bytes(result.job_dir)
         cloud_W = np.asarray(o3d.io.read_point_cloud(str(result.cloud_file)).points)
-        cloud_F = F.transform_points(F.invert(T_W_F), cloud_W)
     r, g = result.report, result.report["ground_truth"]
     before = r.get("correction", {}).get("before", g)
     limit = np.radians(config.planning.incidence_limit_deg)
@@ -178,7 +186,8 @@ async def run(args: argparse.Namespace) -> dict:
         "cell": config.name, "part": args.part, "resolution": args.resolution,
         "correction": config.correction.enabled,
         "tracker_stations_run": args.tracker_stations or part_plan.summary()["tracker_stations"],
-        "coverage_pct": round(measured_coverage_pct(mesh, cloud_F, config.scanner.sweet_spot_mm, limit), 2),
+        "coverage_pct": round(measured_coverage_pct(mesh, cloud_W, F.invert(T_W_F), config.scanner.sweet_spot_mm,
+                                                      limit), 2),
         "planned_coverage_pct": round(part_plan.coverage.coverage_pct, 2),
         "scans": r["scans"], "scans_planned": r["scans_planned"], "scans_empty": len(r["scans_empty"]),
         "points_cloud": r["points_cloud"], "points_inspected": r.get("inspection", {}).get("meta", {}).get("points"),
@@ -195,7 +204,7 @@ async def run(args: argparse.Namespace) -> dict:
         "per_tracker_station": g.get("per_tracker_station"),
         "per_tracker_station_tracker_only": before.get("per_tracker_station"),
         "transfers_truth": g.get("transfers"),
-        "resources": resources(sampler, disk), "load_average_1min": round(os.getloadavg()[0], 2),
+        "resources": resources(sampler, disk, r), "load_average_1min": round(os.getloadavg()[0], 2),
     }
 
 

@@ -104,7 +104,8 @@ def export_job(job: JobSnapshot, seconds: float, measured_at: float, stages: Map
     ``timings.stages_s`` the seconds of each stage (``stages``: those before this call; ``cloud.ply`` is written
     on a second thread, ``cloud_ply_s`` is the time to hand it over, and ``exports_and_inspection_s`` includes
     waiting for it; ``scoring_s``: the simulator's ground-truth scoring, after the exports and outside
-    ``after_last_scan_s``, none on a real cell). ``points_S``: the scans' points (S, mm) thinned at ``[job]
+    ``after_last_scan_s``, none on a real cell); ``resources.peak_rss_gib`` the peak memory of the process
+    until then (:func:`peak_rss_gib`). ``points_S``: the scans' points (S, mm) thinned at ``[job]
     voxel_mm`` or to :func:`stitch_view_points` (else read and thinned here; the E57 reads the full scans from
     their files); ``tracker_job``: the job as the tracker stitched it (its poses and the map built while
     measuring) where the correction changed the poses (None: not corrected)."""
@@ -119,6 +120,7 @@ def export_job(job: JobSnapshot, seconds: float, measured_at: float, stages: Map
         cloud_ply.result()  # complete before the job is reported done; its error, if any, is the job's
         t.append(time.perf_counter())
     after_last_scan_s = time.monotonic() - measured_at
+    report["resources"] = {"peak_rss_gib": peak_rss_gib()}  # the job's work, before the simulator's scoring
     add_ground_truth(report, job, tracker_job)
     t.append(time.perf_counter())
     names = ("cloud_ply_s", "report_s", "exports_and_inspection_s", "scoring_s")
@@ -128,6 +130,18 @@ def export_job(job: JobSnapshot, seconds: float, measured_at: float, stages: Map
                          "correction_cpu_s": job.correction.get("cpu_seconds"), "stages_s": stages}
     (job.job_dir / "report.json").write_text(json.dumps(report, indent=1), encoding="utf-8")
     return report
+
+
+def peak_rss_gib() -> float | None:
+    """Peak resident memory (GiB) of this process so far (``VmHWM``, Linux ``/proc/self/status``; None where
+    there is none): read when report.html is written, it is what the process that finished the job (the
+    daemon's map worker, one per job, or ``tandemscan measure``) needed for it."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            kib = next(int(line.split()[1]) for line in f if line.startswith("VmHWM:"))
+    except (OSError, StopIteration, ValueError, IndexError):
+        return None
+    return round(kib / (1 << 20), 3)
 
 
 def write_job_outputs(job: JobSnapshot, report: dict, points_S: Sequence[np.ndarray] | None = None,

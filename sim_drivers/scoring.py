@@ -91,8 +91,8 @@ class TruthScorer:
              "pose_err_deg_median": float(np.median(deg[stations == k]))}
             for k in np.unique(stations)
         ]
-        cloud_F = F.transform_points(F.invert(self.world.T_W_F), job.worldmap.points())
-        cloud = distance_stats(cloud_to_mesh_distances(self.world.scene, cloud_F))
+        cloud = distance_stats(cloud_to_mesh_distances(self.world.scene, job.worldmap.points(),
+                                                       F.invert(self.world.T_W_F)))
         located = {"located": self.located}
         for key in ("err_to_truth_mm", "err_to_truth_deg"):
             if self.located:

@@ -15,12 +15,21 @@ def pose_errors(estimates: list[np.ndarray], truths: list[np.ndarray]) -> tuple[
     return mm, deg
 
 
-def cloud_to_mesh_distances(scene: o3d.t.geometry.RaycastingScene, points_mm: np.ndarray) -> np.ndarray:
-    """Unsigned distance (mm) of every point to the mesh in ``scene`` (same frame as the points)."""
-    if len(points_mm) == 0:
-        return np.empty(0)
-    q = o3d.core.Tensor(np.asarray(points_mm, np.float32))
-    return scene.compute_distance(q).numpy().astype(float)
+SCORE_CHUNK = 1_000_000  # points placed and measured at a time by :func:`cloud_to_mesh_distances`
+
+
+def cloud_to_mesh_distances(scene: o3d.t.geometry.RaycastingScene, points_mm: np.ndarray,
+                            T_scene_points: np.ndarray | None = None) -> np.ndarray:
+    """Unsigned distance (mm) of every point to the mesh in ``scene``, the points first placed in the scene's
+    frame by ``T_scene_points`` (4x4, mm; None: they are in it). :data:`SCORE_CHUNK` points at a time, so a
+    whole part's cloud of 18 M points is scored with no float64 copies of it."""
+    out = np.empty(len(points_mm))
+    for lo in range(0, len(points_mm), SCORE_CHUNK):
+        chunk = points_mm[lo:lo + SCORE_CHUNK]
+        if T_scene_points is not None:
+            chunk = F.transform_points(T_scene_points, chunk)
+        out[lo:lo + SCORE_CHUNK] = scene.compute_distance(o3d.core.Tensor(np.asarray(chunk, np.float32))).numpy()
+    return out
 
 
 def distance_stats(d_mm: np.ndarray) -> dict[str, float]:
