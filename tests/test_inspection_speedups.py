@@ -9,8 +9,8 @@ import numpy as np
 import open3d as o3d
 import pytest
 from scipy.spatial import cKDTree
-from tandemscan.pipeline.inspection import deviation_areas
 from tandemscan.pipeline.geometry.frames import from_rotvec, transform_points
+from tandemscan.pipeline.inspection import deviation_areas
 from tandemscan.pipeline.inspection.deviation_areas import even_centres, find_deviation_areas
 from tandemscan.pipeline.inspection.deviation_maps import measured_triangles
 from tandemscan.pipeline.inspection.inspect import SMALL_MOVE_MM, CadSurface, signed_distance_moved
