@@ -38,6 +38,7 @@ import argparse
 import asyncio
 import json
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -47,7 +48,7 @@ from tandemscan.config import load_config
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.runner import JobResult, JobRunner
 from tandemscan.daemon.session import CellSession
-from tandemscan.pipeline.geometry.frames import transform_points
+from tandemscan.pipeline.geometry.frames import invert, to_rotvec, transform_points
 from tandemscan.pipeline.geometry.uncertainty import recentre, scan_pose_covariance
 from tandemscan.pipeline.io.raw_scan import read_raw_scan
 from tandemscan.pipeline.planning.plan import Plan
@@ -81,8 +82,10 @@ def error_model(result: JobResult, T_T_S: np.ndarray,
 
 
 def overlap_information(result: JobResult, true_T_W_S: dict[int, np.ndarray], voxel_mm: float, sigma_mm: float,
-                        cell_mm: float) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
-    """``(i, j, centre, information)`` of every overlapping pair at the true poses (t, r about the centre)."""
+                        cell_mm: float) -> list[tuple[int, int, np.ndarray, np.ndarray, np.ndarray]]:
+    """``(i, j, centre, information, gradient)`` of every overlapping pair at the true poses (t, r about the
+    centre): ``gradient`` is ``J^T r / (2 sigma^2)`` of the point-to-plane residuals ``r`` (mm) this draw's
+    points leave there, the data an estimator of the pair's relative error sees besides that error."""
     clouds = [transform_points(true_T_W_S[s.index], voxel_downsample(read_raw_scan(s.file)[0], voxel_mm))
               for s in result.scans]
     stations = [s.tracker_station for s in result.scans]
@@ -96,10 +99,17 @@ def overlap_information(result: JobResult, true_T_W_S: dict[int, np.ndarray], vo
         P = clouds[j][ov.source_idx]
         _, nearest = cKDTree(np.asarray(target.points)).query(P)
         N = np.asarray(target.normals)[nearest]
+        residual = np.einsum("ij,ij->i", N, P - np.asarray(target.points)[nearest])
         c = P.mean(axis=0)
         J = np.c_[N, np.cross(P - c, N)]
-        out.append((i, j, c, J.T @ J / (2.0 * sigma_mm**2)))
+        out.append((i, j, c, J.T @ J / (2.0 * sigma_mm**2), J.T @ residual / (2.0 * sigma_mm**2)))
     return out
+
+
+def world_error(T_estimate: np.ndarray, T_truth: np.ndarray) -> np.ndarray:
+    """The small world motion (t mm, r rad) about the true origin that takes ``T_truth`` to ``T_estimate``."""
+    _, r = to_rotvec(T_estimate @ invert(T_truth))
+    return np.r_[T_estimate[:3, 3] - T_truth[:3, 3], r]
 
 
 def median_draws(A: np.ndarray, cov: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -111,33 +121,59 @@ def median_draws(A: np.ndarray, cov: np.ndarray, n: int, rng: np.random.Generato
     return np.median(np.linalg.norm(t, axis=2), axis=1)
 
 
-def bound_covariance(result: JobResult, T_T_S: np.ndarray, config, true_T_W_S: dict[int, np.ndarray],
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
-    """``(A, prior, posterior, origins, pairs)``: the error model of :func:`error_model`, the covariance of its
-    unknowns tracker-only (``prior``) and at the bound (``posterior``: every overlap point added), and the
-    number of overlapping pairs in the bound."""
+@dataclass(frozen=True)
+class BoundModel:
+    """The linear error model of a job at its true poses: scan errors ``A theta`` (6 a scan, about its origin,
+    world; mm, rad), the unknowns' covariance tracker-only (``prior``) and at the bound (``posterior``: every
+    overlap point added), the pairs in it, and ``ideal_errors`` (n, 6): this draw's scan errors after the
+    efficient estimator (the posterior mean given this draw's tracker poses and overlap residuals,
+    linearised at the truth with the true correspondences)."""
+
+    A: np.ndarray
+    prior: np.ndarray
+    posterior: np.ndarray
+    pairs: int
+    ideal_errors: np.ndarray
+
+
+def bound_model(result: JobResult, T_T_S: np.ndarray, config, true_T_W_S: dict[int, np.ndarray],
+                tracker_T_W_S: list[np.ndarray]) -> BoundModel:
+    """The :class:`BoundModel` of the job ``result``, whose tracker-stitched poses are ``tracker_T_W_S``. The
+    efficient estimate ``theta_hat = posterior (sum H^T (g + I delta))`` weighs each pair's residuals at the
+    tracker poses (at the truth ``g``, plus the pair's relative error ``delta`` from the scans' tracker errors
+    ``e``) against the prior; what is left is ``e - A theta_hat``. Its median over the scans is what the data
+    of this draw allow; the bound is its expectation over draws."""
     A, prior, origins = error_model(result, T_T_S, true_T_W_S)
     info = np.linalg.inv(prior)
+    rhs = np.zeros(len(info))
+    errors = np.array([world_error(T, true_T_W_S[s.index]) for s, T in zip(result.scans, tracker_T_W_S, strict=True)])
     pairs = overlap_information(result, true_T_W_S, config.job.voxel_mm, config.scanner.noise_sigma_mm,
                                 config.correction.pair_cell_mm)
-    for i, j, c, I_ij in pairs:
-        H = recentre(origins[j], c) @ A[6 * j:6 * j + 6] - recentre(origins[i], c) @ A[6 * i:6 * i + 6]
+    for i, j, c, I_ij, g_ij in pairs:
+        to_j, to_i = recentre(origins[j], c), recentre(origins[i], c)
+        H = to_j @ A[6 * j:6 * j + 6] - to_i @ A[6 * i:6 * i + 6]
         cols = np.flatnonzero(np.any(H != 0.0, axis=0))  # the two scans' and their transfers' unknowns
         info[np.ix_(cols, cols)] += H[:, cols].T @ I_ij @ H[:, cols]
-    return A, prior, np.linalg.inv(info), origins, len(pairs)
+        rhs[cols] += H[:, cols].T @ (g_ij + I_ij @ (to_j @ errors[j] - to_i @ errors[i]))
+    posterior = np.linalg.inv(info)
+    ideal = errors - (A @ (posterior @ rhs)).reshape(-1, 6)
+    return BoundModel(A, prior, posterior, len(pairs), ideal)
 
 
 def bound(result: JobResult, T_T_S: np.ndarray, config, true_T_W_S: dict[int, np.ndarray],
-          corrected_mm: float | None = None) -> dict:
+          tracker_T_W_S: list[np.ndarray], corrected_mm: float | None = None) -> dict:
     """Tracker-only and best-possible expected median pose error (mm) of the job ``result`` (``true_T_W_S``:
-    the scans' true poses, from the ground-truth observer)."""
-    A, prior, posterior, _, pairs = bound_covariance(result, T_T_S, config, true_T_W_S)
+    the scans' true poses, from the ground-truth observer; ``tracker_T_W_S``: its tracker-stitched poses), and
+    the efficient estimator's median on this draw (``ideal_this_draw_mm``, per station as well)."""
+    model = bound_model(result, T_T_S, config, true_T_W_S, tracker_T_W_S)
+    A, prior, posterior, pairs = model.A, model.prior, model.posterior, model.pairs
     n = len(result.scans)
     rng = np.random.default_rng(0)
     tracker_only = float(np.mean(median_draws(A, prior, n, rng)))
     ideal = median_draws(A, posterior, n, rng)   # an efficient estimator's median, job by job
     best = float(np.mean(ideal))
     stations = np.array([s.tracker_station for s in result.scans])
+    ideal_mm = np.linalg.norm(model.ideal_errors[:, :3], axis=1)
     sigma = {}
     for name, cov in (("tracker_only", prior), ("bound", posterior)):
         A_t = A.reshape(n, 6, -1)[:, :3].reshape(3 * n, -1)             # the translation rows
@@ -147,6 +183,10 @@ def bound(result: JobResult, T_T_S: np.ndarray, config, true_T_W_S: dict[int, np
             "bound_mm": round(best, 4), "bound_ratio": round(tracker_only / best, 2),
             "bound_mm_p95": round(float(np.percentile(ideal, 95)), 4),
             "ideal_above_1_2x_bound_fraction": round(float(np.mean(ideal > 1.2 * best)), 3),
+            "ideal_this_draw_mm": round(float(np.median(ideal_mm)), 4),
+            "ideal_this_draw_over_bound": round(float(np.median(ideal_mm)) / best, 2),
+            "ideal_this_draw_mm_per_station": {int(k): round(float(np.median(ideal_mm[stations == k])), 4)
+                                               for k in np.unique(stations)},
             **({} if corrected_mm is None else
                {"corrected_above_ideal_fraction": round(float(np.mean(ideal >= corrected_mm)), 4)}),
             "sigma_xyz_mm_per_station": sigma}
@@ -167,8 +207,9 @@ async def one_seed(config, plan: Plan, seed: int) -> dict:
                    "cloud_rms_mm": round(before["cloud_rms_mm"], 4),
                    "corrected_cloud_rms_mm": round(after["cloud_rms_mm"], 4)}
         figures |= {k: r.get("timings", {}).get(k) for k in ("after_last_scan_s", "correction_cpu_s")}
+        tracker = [np.asarray(e.get("T_W_S_tracker", e["T_W_S"])) for e in r["scan_log"]]
         figures |= bound(result, runner.installation.T_T_S, config, runner.observer.scorer().T_W_S_true,
-                         after["pose_err_mm_median"])
+                         tracker, after["pose_err_mm_median"])
         joint = r["correction"].get("joint")
         if joint is not None:   # the joint refinement's own posterior, beside the bound's
             figures["sigma_xyz_mm_per_station"]["joint_posterior"] = joint["sigma_xyz_mm_per_station"]["posterior"]
