@@ -236,9 +236,11 @@ def correct_scans(
         raise ValueError(f"method {cfg.method!r} needs a DeepMerge registrar (pairs.LazyNetwork)")
     clock = _Clock()
     local = [voxel_downsample(np.asarray(s.points_S, float), voxel_mm) for s in scans]
-    world = [transform_points(s.T_W_S, P) for s, P in zip(scans, local, strict=True)]
     clock.lap("thin_s")
-    outcomes, cached = _pair_corrections(scans, world, cfg, network, transfers, pair_cache or {})
+    # the scans placed in W serve the pairs only: freed before the joint refinement (a whole part at full
+    # resolution: about 0.9 GB)
+    placed = (transform_points(s.T_W_S, P) for s, P in zip(scans, local, strict=True))
+    outcomes, cached = _pair_corrections(scans, list(placed), cfg, network, transfers, pair_cache or {})
     clock.lap("pairs_s")
     edges = [(i, j, o) for i, j, o in outcomes if o.transformation is not None]
     dropped = [(i, j, o.dropped) for i, j, o in outcomes if o.dropped]

@@ -11,7 +11,8 @@ import numpy as np
 
 def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
     """Centroid of the points in each occupied voxel of edge ``voxel``, in lexicographic (x, y, z) order of
-    the voxel indices."""
+    the voxel indices. A cloud that is its own thinning (one point a voxel, already in that order: a copy
+    thinned before, as the end of a job keeps them) is returned as it is (float64), not copied."""
     P = np.asarray(points, float)
     if len(P) == 0:
         return np.zeros((0, 3))
@@ -20,6 +21,8 @@ def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
     span = cells.max(axis=0) + 1                 # one int64 key per voxel, ordered as the (x, y, z) rows
     keys = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
     _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    if len(counts) == len(P) and np.array_equal(inverse.ravel(), np.arange(len(P))):
+        return P
     sums = np.stack([np.bincount(inverse, weights=P[:, k], minlength=len(counts)) for k in range(3)], axis=1)
     return sums / counts[:, None]
 
