@@ -174,6 +174,7 @@ def bound(result: JobResult, T_T_S: np.ndarray, config, true_T_W_S: dict[int, np
     best = float(np.mean(ideal))
     stations = np.array([s.tracker_station for s in result.scans])
     ideal_mm = np.linalg.norm(model.ideal_errors[:, :3], axis=1)
+    this_draw = float(np.median(ideal_mm))
     sigma = {}
     for name, cov in (("tracker_only", prior), ("bound", posterior)):
         A_t = A.reshape(n, 6, -1)[:, :3].reshape(3 * n, -1)             # the translation rows
@@ -183,8 +184,7 @@ def bound(result: JobResult, T_T_S: np.ndarray, config, true_T_W_S: dict[int, np
             "bound_mm": round(best, 4), "bound_ratio": round(tracker_only / best, 2),
             "bound_mm_p95": round(float(np.percentile(ideal, 95)), 4),
             "ideal_above_1_2x_bound_fraction": round(float(np.mean(ideal > 1.2 * best)), 3),
-            "ideal_this_draw_mm": round(float(np.median(ideal_mm)), 4),
-            "ideal_this_draw_over_bound": round(float(np.median(ideal_mm)) / best, 2),
+            "ideal_this_draw_mm": round(this_draw, 4), "ideal_this_draw_over_bound": round(this_draw / best, 2),
             "ideal_this_draw_mm_per_station": {int(k): round(float(np.median(ideal_mm[stations == k])), 4)
                                                for k in np.unique(stations)},
             **({} if corrected_mm is None else

@@ -189,12 +189,14 @@ def joint_scan_key(points_S: np.ndarray, cfg: CorrectionConfig) -> str:
 
 
 def _pair_corrections(
-    scans: Sequence[StitchedScan], world: list[np.ndarray], cfg: CorrectionConfig, network: Registrar | None,
+    scans: Sequence[StitchedScan], local: list[np.ndarray], cfg: CorrectionConfig, network: Registrar | None,
     transfers: Sequence[TransferPrior], cache: Mapping[str, PairOutcome],
 ) -> tuple[list[tuple[int, int, PairOutcome]], int]:
-    """The outcome of every overlapping pair (world clouds, mm): from ``cache`` where the job registered the
-    pair while it measured (same clouds, covariance and settings), else registered here. Returns the
-    outcomes in pair order and how many came from the cache."""
+    """The outcome of every overlapping pair of the thinned scans ``local`` (S, mm), placed in W at their poses
+    here (only the pairs need them placed: a whole part's at full resolution take about 0.9 GB, freed on
+    return): from ``cache`` where the job registered the pair while it measured (same clouds, covariance and
+    settings), else registered here. Returns the outcomes in pair order and how many came from the cache."""
+    world = [transform_points(s.T_W_S, P) for s, P in zip(scans, local, strict=True)]
     out: list[tuple[int, int, PairOutcome]] = []
     target_index, target, hits = -1, None, 0
     digests = [cloud_digest(w) for w in world] if cache else []
@@ -237,10 +239,7 @@ def correct_scans(
     clock = _Clock()
     local = [voxel_downsample(np.asarray(s.points_S, float), voxel_mm) for s in scans]
     clock.lap("thin_s")
-    # the scans placed in W serve the pairs only: freed before the joint refinement (a whole part at full
-    # resolution: about 0.9 GB)
-    placed = (transform_points(s.T_W_S, P) for s, P in zip(scans, local, strict=True))
-    outcomes, cached = _pair_corrections(scans, list(placed), cfg, network, transfers, pair_cache or {})
+    outcomes, cached = _pair_corrections(scans, local, cfg, network, transfers, pair_cache or {})
     clock.lap("pairs_s")
     edges = [(i, j, o) for i, j, o in outcomes if o.transformation is not None]
     dropped = [(i, j, o.dropped) for i, j, o in outcomes if o.dropped]
