@@ -28,6 +28,14 @@ own noise models, for an ideal estimator.
   percentile of that estimator's median over the draws and ``ideal_above_1_2x_bound_fraction`` the share of
   draws in which it exceeds 1.2 times the bound; ``corrected_above_ideal_fraction`` the share in which it
   exceeds this job's corrected median (small: the correction left error an ideal estimator would not).
+- The draw itself: ``corrected_from_truth_mm`` (per station as well) is the correction's joint refinement of
+  the job started at the true poses (correspondences, weights and linearisation at the truth, priors as in the
+  job): where it is above the bound, so is anything the correction can reach from any start on this draw.
+  ``overlap_chi2_per_dof`` checks its measurement model: the median over the pairs (within each station,
+  across stations, all) of how much of the correction's residuals at the truth a rigid motion of the pair
+  explains, per degree of freedom (1 for independent zero-mean noise): near 1, what the truth start leaves
+  is this draw's noise, not a bias another residual could remove (docs/registration.md, "The correction from
+  the truth").
 
 The last line of output is one JSON object.
 """
@@ -38,24 +46,34 @@ import argparse
 import asyncio
 import json
 import tempfile
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 from tandemscan.config import load_config
 from tandemscan.daemon.cli import default_plan_path
+from tandemscan.daemon.correction import mount_prior, transfer_priors
 from tandemscan.daemon.runner import JobResult, JobRunner
 from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.geometry.frames import invert, to_rotvec, transform_points
 from tandemscan.pipeline.geometry.uncertainty import recentre, scan_pose_covariance
 from tandemscan.pipeline.io.raw_scan import read_raw_scan
 from tandemscan.pipeline.planning.plan import Plan
+from tandemscan.pipeline.registration.correction import joint_scan
+from tandemscan.pipeline.registration.joint import MIN_NORMAL_COSINE, JointSettings, refine_jointly
+from tandemscan.pipeline.registration.mounts import MountPrior
+from tandemscan.pipeline.registration.normals import estimate_normals
 from tandemscan.pipeline.registration.overlap import extract_overlap, overlapping_pairs
+from tandemscan.pipeline.registration.pose_graph import ScanPrior
 from tandemscan.pipeline.registration.sampling import voxel_downsample
 
 OVERLAP_MM = 1.0
+#: neighbours of a point's normal, as the correction's (``joint.JointScan.from_points``)
+NORMAL_NEIGHBOURS = 20
 DRAWS = 2000
 
 
@@ -81,13 +99,32 @@ def error_model(result: JobResult, T_T_S: np.ndarray,
     return A, prior, origins
 
 
+@dataclass(frozen=True)
+class PairData:
+    """One overlapping pair ``(i, j)`` at the true poses (points of scan j against the surface of scan i):
+    ``centre`` (W, mm) and ``information`` (``J^T J / (2 sigma^2)``, t then r about the centre) of its
+    point-to-plane rows ``J`` along the target's normals, what the bound counts; ``chi2_per_dof``: how far the
+    correction's residuals ``r`` (mm) at the truth are from independent zero-mean noise, the share of their own
+    variance that a rigid motion of the pair explains, ``r^T J (J^T J)^-1 J^T r / (6 s^2)`` (``s^2`` their mean
+    square; about 1 for such noise, above where they hold structure that acts like a relative pose error)."""
+
+    i: int
+    j: int
+    centre: np.ndarray
+    information: np.ndarray
+    chi2_per_dof: float
+
+
 def overlap_information(result: JobResult, true_T_W_S: dict[int, np.ndarray], voxel_mm: float, sigma_mm: float,
-                        cell_mm: float) -> list[tuple[int, int, np.ndarray, np.ndarray, np.ndarray]]:
-    """``(i, j, centre, information, gradient)`` of every overlapping pair at the true poses (t, r about the
-    centre): ``gradient`` is ``J^T r / (2 sigma^2)`` of the point-to-plane residuals ``r`` (mm) this draw's
-    points leave there, the data an estimator of the pair's relative error sees besides that error."""
+                        cell_mm: float) -> list[PairData]:
+    """The :class:`PairData` of every overlapping pair at the true poses: the points of j within ``OVERLAP_MM`` of
+    scan i, each against its nearest point there. The bound's rows use the target's normals (estimated on its
+    overlap points); the check uses the correction's residual: along the mean of the two points' unit normals
+    (each from its own whole scan, ``NORMAL_NEIGHBOURS`` nearest points), where they agree within its gate
+    (``joint.MIN_NORMAL_COSINE``)."""
     clouds = [transform_points(true_T_W_S[s.index], voxel_downsample(read_raw_scan(s.file)[0], voxel_mm))
               for s in result.scans]
+    trees = [cKDTree(c) for c in clouds]
     stations = [s.tracker_station for s in result.scans]
     out = []
     for i, j in overlapping_pairs(clouds, stations, cell_mm, len(clouds)):
@@ -95,15 +132,36 @@ def overlap_information(result: JobResult, true_T_W_S: dict[int, np.ndarray], vo
         if ov.size < 20:
             continue
         target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(clouds[i][ov.target_idx]))
-        target.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(20))
+        target.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(NORMAL_NEIGHBOURS))
         P = clouds[j][ov.source_idx]
         _, nearest = cKDTree(np.asarray(target.points)).query(P)
         N = np.asarray(target.normals)[nearest]
-        residual = np.einsum("ij,ij->i", N, P - np.asarray(target.points)[nearest])
         c = P.mean(axis=0)
         J = np.c_[N, np.cross(P - c, N)]
-        out.append((i, j, c, J.T @ J / (2.0 * sigma_mm**2), J.T @ residual / (2.0 * sigma_mm**2)))
+        out.append(PairData(i, j, c, J.T @ J / (2.0 * sigma_mm**2),
+                            residual_chi2_per_dof(clouds[i], trees[i], clouds[j], trees[j], ov.source_idx)))
     return out
+
+
+def residual_chi2_per_dof(target: np.ndarray, target_tree: cKDTree, source: np.ndarray, source_tree: cKDTree,
+                          source_idx: np.ndarray) -> float:
+    """:class:`PairData` ``chi2_per_dof`` of the source points ``source_idx`` against the target (both W, mm, at
+    the true poses) with the correction's symmetric, gated residual; NaN with fewer than 20 points kept."""
+    P = source[source_idx]
+    _, nearest = target_tree.query(P)
+    n_i = estimate_normals(target, NORMAL_NEIGHBOURS, target_tree, at=nearest)
+    n_j = estimate_normals(source, NORMAL_NEIGHBOURS, source_tree, at=source_idx)
+    cosine = np.einsum("ij,ij->i", n_i, n_j)
+    keep = np.abs(cosine) >= MIN_NORMAL_COSINE
+    if keep.sum() < 20:
+        return float("nan")
+    N = n_i[keep] + np.sign(cosine[keep])[:, None] * n_j[keep]
+    N /= np.linalg.norm(N, axis=1, keepdims=True)
+    P = P[keep]
+    r = np.einsum("ij,ij->i", N, P - target[nearest[keep]])
+    J = np.c_[N, np.cross(P - P.mean(axis=0), N)]
+    Jtr = J.T @ r
+    return float(Jtr @ np.linalg.lstsq(J.T @ J, Jtr, rcond=None)[0]) / (6.0 * max(float(np.mean(r**2)), 1e-30))
 
 
 def world_error(T_estimate: np.ndarray, T_truth: np.ndarray) -> np.ndarray:
@@ -125,71 +183,94 @@ def median_draws(A: np.ndarray, cov: np.ndarray, n: int, rng: np.random.Generato
 class BoundModel:
     """The linear error model of a job at its true poses: scan errors ``A theta`` (6 a scan, about its origin,
     world; mm, rad), the unknowns' covariance tracker-only (``prior``) and at the bound (``posterior``: every
-    overlap point added), the pairs in it, and ``ideal_errors`` (n, 6): this draw's scan errors after the
-    efficient estimator (the posterior mean given this draw's tracker poses and overlap residuals,
-    linearised at the truth with the true correspondences)."""
+    overlap point added), and the pairs in it."""
 
     A: np.ndarray
     prior: np.ndarray
     posterior: np.ndarray
-    pairs: int
-    ideal_errors: np.ndarray
+    pairs: tuple[PairData, ...]
 
 
-def bound_model(result: JobResult, T_T_S: np.ndarray, config, true_T_W_S: dict[int, np.ndarray],
-                tracker_T_W_S: list[np.ndarray]) -> BoundModel:
-    """The :class:`BoundModel` of the job ``result``, whose tracker-stitched poses are ``tracker_T_W_S``. The
-    efficient estimate ``theta_hat = posterior (sum H^T (g + I delta))`` weighs each pair's residuals at the
-    tracker poses (at the truth ``g``, plus the pair's relative error ``delta`` from the scans' tracker errors
-    ``e``) against the prior; what is left is ``e - A theta_hat``. Its median over the scans is what the data
-    of this draw allow; the bound is its expectation over draws."""
+def bound_model(result: JobResult, T_T_S: np.ndarray, config, true_T_W_S: dict[int, np.ndarray]) -> BoundModel:
+    """The :class:`BoundModel` of the job ``result``."""
     A, prior, origins = error_model(result, T_T_S, true_T_W_S)
     info = np.linalg.inv(prior)
-    rhs = np.zeros(len(info))
-    errors = np.array([world_error(T, true_T_W_S[s.index]) for s, T in zip(result.scans, tracker_T_W_S, strict=True)])
     pairs = overlap_information(result, true_T_W_S, config.job.voxel_mm, config.scanner.noise_sigma_mm,
                                 config.correction.pair_cell_mm)
-    for i, j, c, I_ij, g_ij in pairs:
-        to_j, to_i = recentre(origins[j], c), recentre(origins[i], c)
+    for pair in pairs:
+        i, j = pair.i, pair.j
+        to_j, to_i = recentre(origins[j], pair.centre), recentre(origins[i], pair.centre)
         H = to_j @ A[6 * j:6 * j + 6] - to_i @ A[6 * i:6 * i + 6]
         cols = np.flatnonzero(np.any(H != 0.0, axis=0))  # the two scans' and their transfers' unknowns
-        info[np.ix_(cols, cols)] += H[:, cols].T @ I_ij @ H[:, cols]
-        rhs[cols] += H[:, cols].T @ (g_ij + I_ij @ (to_j @ errors[j] - to_i @ errors[i]))
-    posterior = np.linalg.inv(info)
-    ideal = errors - (A @ (posterior @ rhs)).reshape(-1, 6)
-    return BoundModel(A, prior, posterior, len(pairs), ideal)
+        info[np.ix_(cols, cols)] += H[:, cols].T @ pair.information @ H[:, cols]
+    return BoundModel(A, prior, np.linalg.inv(info), tuple(pairs))
+
+
+def chi2_summary(pairs: Sequence[PairData], stations: np.ndarray) -> dict:
+    """Median ``chi2_per_dof`` of the pairs within each tracker station, across stations and over all."""
+    groups = {"all": list(pairs), "across_stations": [p for p in pairs if stations[p.i] != stations[p.j]]}
+    groups |= {f"station_{k}": [p for p in pairs if stations[p.i] == stations[p.j] == k] for k in np.unique(stations)}
+    return {name: round(float(np.nanmedian([p.chi2_per_dof for p in group])), 3)
+            for name, group in groups.items() if group}
 
 
 def bound(result: JobResult, T_T_S: np.ndarray, config, true_T_W_S: dict[int, np.ndarray],
-          tracker_T_W_S: list[np.ndarray], corrected_mm: float | None = None) -> dict:
+          corrected_mm: float | None = None) -> dict:
     """Tracker-only and best-possible expected median pose error (mm) of the job ``result`` (``true_T_W_S``:
-    the scans' true poses, from the ground-truth observer; ``tracker_T_W_S``: its tracker-stitched poses), and
-    the efficient estimator's median on this draw (``ideal_this_draw_mm``, per station as well)."""
-    model = bound_model(result, T_T_S, config, true_T_W_S, tracker_T_W_S)
-    A, prior, posterior, pairs = model.A, model.prior, model.posterior, model.pairs
+    the scans' true poses, from the ground-truth observer), and the check of the correction's residual at the
+    truth (``overlap_chi2_per_dof``)."""
+    model = bound_model(result, T_T_S, config, true_T_W_S)
+    A, prior, posterior = model.A, model.prior, model.posterior
     n = len(result.scans)
     rng = np.random.default_rng(0)
     tracker_only = float(np.mean(median_draws(A, prior, n, rng)))
     ideal = median_draws(A, posterior, n, rng)   # an efficient estimator's median, job by job
     best = float(np.mean(ideal))
     stations = np.array([s.tracker_station for s in result.scans])
-    ideal_mm = np.linalg.norm(model.ideal_errors[:, :3], axis=1)
-    this_draw = float(np.median(ideal_mm))
     sigma = {}
     for name, cov in (("tracker_only", prior), ("bound", posterior)):
         A_t = A.reshape(n, 6, -1)[:, :3].reshape(3 * n, -1)             # the translation rows
         per_scan = np.sqrt(np.sum((A_t @ cov) * A_t, axis=1)).reshape(n, 3)
         sigma[name] = {int(k): np.round(per_scan[stations == k].mean(axis=0), 4).tolist() for k in np.unique(stations)}
-    return {"pairs_in_bound": pairs, "expected_tracker_only_mm": round(tracker_only, 4),
+    return {"pairs_in_bound": len(model.pairs), "expected_tracker_only_mm": round(tracker_only, 4),
             "bound_mm": round(best, 4), "bound_ratio": round(tracker_only / best, 2),
             "bound_mm_p95": round(float(np.percentile(ideal, 95)), 4),
             "ideal_above_1_2x_bound_fraction": round(float(np.mean(ideal > 1.2 * best)), 3),
-            "ideal_this_draw_mm": round(this_draw, 4), "ideal_this_draw_over_bound": round(this_draw / best, 2),
-            "ideal_this_draw_mm_per_station": {int(k): round(float(np.median(ideal_mm[stations == k])), 4)
-                                               for k in np.unique(stations)},
             **({} if corrected_mm is None else
                {"corrected_above_ideal_fraction": round(float(np.mean(ideal >= corrected_mm)), 4)}),
+            "overlap_chi2_per_dof": chi2_summary(model.pairs, stations),
             "sigma_xyz_mm_per_station": sigma}
+
+
+def corrected_from_truth(result: JobResult, T_T_S: np.ndarray, config, true_T_W_S: dict[int, np.ndarray],
+                         tracker_T_W_S: list[np.ndarray], mount: MountPrior | None) -> dict:
+    """The correction's joint refinement of the job (its settings, scans, tracker and transfer priors, ``mount``
+    prior) started at the true poses instead of the tracker poses: its correspondences found, its residuals
+    weighted and linearised at the truth. Its median pose error (mm, per station as well) is what the
+    correction's measurement model makes of this draw's data from a perfect start: no better start,
+    association or iteration brings the correction below it."""
+    cfg = config.correction
+    seen = [k for k, s in enumerate(result.scans) if s.point_count > 0]      # the scans the job corrects
+    scans = [result.scans[k] for k in seen]
+    thinned = [joint_scan(read_raw_scan(s.file)[0], cfg) for s in scans]
+    priors = [ScanPrior(tracker_T_W_S[k], scan_pose_covariance(s.T_W_C, s.reading.T_C_T, T_T_S, s.reading.covariance),
+                        s.tracker_station) for k, s in zip(seen, scans, strict=True)]
+    world = [transform_points(p.T_W_S, t.points_S) for p, t in zip(priors, thinned, strict=True)]
+    pairs = overlapping_pairs(world, [s.tracker_station for s in scans], cfg.pair_cell_mm,
+                              cfg.joint_max_partners_per_scan)
+    settings = JointSettings(max_distance_mm=cfg.joint_max_distance_mm, iterations=cfg.joint_iterations,
+                             sigma_mm=cfg.joint_sigma_mm)
+    joint = refine_jointly(thinned, priors, pairs, [true_T_W_S[s.index] for s in scans],
+                           transfer_priors(result.report["transfer_log"]), mount, settings)
+    poses = list(tracker_T_W_S)
+    for k, T in zip(seen, joint.poses, strict=True):
+        poses[k] = T
+    mm = np.array([np.linalg.norm(world_error(T, true_T_W_S[s.index])[:3]) for s, T in zip(result.scans, poses,
+                                                                                           strict=True)])
+    stations = np.array([s.tracker_station for s in result.scans])
+    return {"corrected_from_truth_mm": round(float(np.median(mm)), 4),
+            "corrected_from_truth_mm_per_station": {int(k): round(float(np.median(mm[stations == k])), 4)
+                                                    for k in np.unique(stations)}}
 
 
 async def one_seed(config, plan: Plan, seed: int) -> dict:
@@ -208,12 +289,15 @@ async def one_seed(config, plan: Plan, seed: int) -> dict:
                    "corrected_cloud_rms_mm": round(after["cloud_rms_mm"], 4)}
         figures |= {k: r.get("timings", {}).get(k) for k in ("after_last_scan_s", "correction_cpu_s")}
         tracker = [np.asarray(e.get("T_W_S_tracker", e["T_W_S"])) for e in r["scan_log"]]
-        figures |= bound(result, runner.installation.T_T_S, config, runner.observer.scorer().T_W_S_true,
-                         tracker, after["pose_err_mm_median"])
+        true_T_W_S, T_T_S = runner.observer.scorer().T_W_S_true, runner.installation.T_T_S
+        figures |= bound(result, T_T_S, config, true_T_W_S, after["pose_err_mm_median"])
+        mount, _ = mount_prior(SimpleNamespace(config=config, installation=runner.installation))
+        figures |= corrected_from_truth(result, T_T_S, config, true_T_W_S, tracker, mount)
         joint = r["correction"].get("joint")
         if joint is not None:   # the joint refinement's own posterior, beside the bound's
             figures["sigma_xyz_mm_per_station"]["joint_posterior"] = joint["sigma_xyz_mm_per_station"]["posterior"]
         figures["corrected_over_bound"] = round(figures["corrected_mm"] / figures["bound_mm"], 2)
+        figures["corrected_from_truth_over_bound"] = round(figures["corrected_from_truth_mm"] / figures["bound_mm"], 2)
         return figures
 
 

@@ -26,7 +26,7 @@ Cholesky factor ``L``). Scan ``i`` is corrected by the world motion about ``o_i`
 (``P_i`` the tracker pose, ``R_i`` its rotation), i.e. ``e = A theta``, the error model of the bound. A point
 ``p`` of scan ``j`` whose nearest neighbour in scan ``i`` (within ``max_distance_mm``) is ``q`` gives the residual
 ``n . (T_W_S_j p - T_W_S_i q)``, ``n`` the mean of the two points' unit normals (at the current poses; kept
-where they agree within ``_MIN_NORMAL_COSINE``): the symmetric point-to-plane residual, zero for two points of
+where they agree within ``MIN_NORMAL_COSINE``): the symmetric point-to-plane residual, zero for two points of
 one circular arc, where the plane of ``q`` alone leaves the arc's sagitta (curvature times the squared offset,
 halved). Each linearisation weights the residuals at the current poses (Huber at ``huber_k`` times their robust
 scale, which is also their sigma) and solves the sparse normal equations ``(A^T H_e A + prior) theta = A^T b``
@@ -59,7 +59,7 @@ log = logging.getLogger(__name__)
 #: thousand, but their residuals are biased alike and act through the lever arms of the weakly held
 #: transfers (whole part, seed 7: 0.061 -> 0.055 mm at 30 -> 5 deg, 0.05 % of the correspondences; the normal's
 #: own noise at 2 mm voxels is about 0.2 deg). docs/registration.md, "Symmetric residuals and the normal gate".
-_MIN_NORMAL_COSINE = float(np.cos(np.radians(5.0)))
+MIN_NORMAL_COSINE = float(np.cos(np.radians(5.0)))
 
 #: a robust scale (mm) never below this (0.1 um, far below any scanner noise): noiseless data would otherwise
 #: weight every point without bound and make the normal equations singular in floating point
@@ -230,7 +230,7 @@ class _Pair:
         ``rel`` (``T_S_i_S_j``), with their nearest target points ``target`` (indices in scan i): those whose
         normals agree."""
         n, cosine = self._normals(scans, rel, source, target)
-        same = np.abs(cosine) >= _MIN_NORMAL_COSINE  # not across a crease
+        same = np.abs(cosine) >= MIN_NORMAL_COSINE  # not across a crease
         r = np.einsum("ij,ij->i", x[same] - scans[self.i].points_S[target[same]], n[same])
         return _Match(source[same], target[same], x[same], r, n[same])
 
