@@ -57,10 +57,12 @@ from scipy.spatial import cKDTree
 from tandemscan.config import load_config
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.correction import mount_prior, transfer_priors
+from tandemscan.daemon.finish import merge_stage
 from tandemscan.daemon.runner import JobResult, JobRunner
 from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.geometry.frames import invert, to_rotvec, transform_points
 from tandemscan.pipeline.geometry.uncertainty import recentre, scan_pose_covariance
+from tandemscan.pipeline.inspection.scoring import cloud_to_mesh_distances, distance_stats
 from tandemscan.pipeline.io.raw_scan import read_raw_scan
 from tandemscan.pipeline.planning.plan import Plan
 from tandemscan.pipeline.registration.correction import joint_scan
@@ -70,6 +72,7 @@ from tandemscan.pipeline.registration.normals import estimate_normals
 from tandemscan.pipeline.registration.overlap import extract_overlap, overlapping_pairs
 from tandemscan.pipeline.registration.pose_graph import ScanPrior
 from tandemscan.pipeline.registration.sampling import voxel_downsample
+from tandemscan.sim_drivers.scoring import TruthScorer
 
 OVERLAP_MM = 1.0
 #: neighbours of a point's normal, as the correction's (``joint.JointScan.from_points``)
@@ -242,14 +245,15 @@ def bound(result: JobResult, T_T_S: np.ndarray, config, true_T_W_S: dict[int, np
             "sigma_xyz_mm_per_station": sigma}
 
 
-def corrected_from_truth(result: JobResult, T_T_S: np.ndarray, config, true_T_W_S: dict[int, np.ndarray],
+def corrected_from_truth(result: JobResult, T_T_S: np.ndarray, config, scorer: TruthScorer,
                          tracker_T_W_S: list[np.ndarray], mount: MountPrior | None) -> dict:
     """The correction's joint refinement of the job (its settings, scans, tracker and transfer priors, ``mount``
     prior) started at the true poses instead of the tracker poses: its correspondences found, its residuals
     weighted and linearised at the truth. Its median pose error (mm, per station as well) is what the
     correction's measurement model makes of this draw's data from a perfect start: no better start,
-    association or iteration brings the correction below it."""
-    cfg = config.correction
+    association or iteration brings the correction below it; ``corrected_from_truth_cloud_rms_mm`` is the RMS
+    distance to the part of the cloud merged at those poses, scored as the job's (``scorer``, the simulator's)."""
+    cfg, true_T_W_S = config.correction, scorer.T_W_S_true
     seen = [k for k, s in enumerate(result.scans) if s.point_count > 0]      # the scans the job corrects
     scans = [result.scans[k] for k in seen]
     thinned = [joint_scan(read_raw_scan(s.file)[0], cfg) for s in scans]
@@ -268,7 +272,10 @@ def corrected_from_truth(result: JobResult, T_T_S: np.ndarray, config, true_T_W_
     mm = np.array([np.linalg.norm(world_error(T, true_T_W_S[s.index])[:3]) for s, T in zip(result.scans, poses,
                                                                                            strict=True)])
     stations = np.array([s.tracker_station for s in result.scans])
+    cloud = merge_stage(config.job.voxel_mm, SimpleNamespace(scans=result.scans), poses).points()
+    rms = distance_stats(cloud_to_mesh_distances(scorer.world.scene, cloud, invert(scorer.world.T_W_F)))["rms_mm"]
     return {"corrected_from_truth_mm": round(float(np.median(mm)), 4),
+            "corrected_from_truth_cloud_rms_mm": round(float(rms), 4),
             "corrected_from_truth_mm_per_station": {int(k): round(float(np.median(mm[stations == k])), 4)
                                                     for k in np.unique(stations)}}
 
@@ -289,10 +296,10 @@ async def one_seed(config, plan: Plan, seed: int) -> dict:
                    "corrected_cloud_rms_mm": round(after["cloud_rms_mm"], 4)}
         figures |= {k: r.get("timings", {}).get(k) for k in ("after_last_scan_s", "correction_cpu_s")}
         tracker = [np.asarray(e.get("T_W_S_tracker", e["T_W_S"])) for e in r["scan_log"]]
-        true_T_W_S, T_T_S = runner.observer.scorer().T_W_S_true, runner.installation.T_T_S
-        figures |= bound(result, T_T_S, config, true_T_W_S, after["pose_err_mm_median"])
+        scorer, T_T_S = runner.observer.scorer(), runner.installation.T_T_S
+        figures |= bound(result, T_T_S, config, scorer.T_W_S_true, after["pose_err_mm_median"])
         mount, _ = mount_prior(SimpleNamespace(config=config, installation=runner.installation))
-        figures |= corrected_from_truth(result, T_T_S, config, true_T_W_S, tracker, mount)
+        figures |= corrected_from_truth(result, T_T_S, config, scorer, tracker, mount)
         joint = r["correction"].get("joint")
         if joint is not None:   # the joint refinement's own posterior, beside the bound's
             figures["sigma_xyz_mm_per_station"]["joint_posterior"] = joint["sigma_xyz_mm_per_station"]["posterior"]
