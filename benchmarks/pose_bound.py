@@ -30,7 +30,7 @@ own noise models, for an ideal estimator.
   exceeds this job's corrected median (small: the correction left error an ideal estimator would not).
 - The draw itself: ``corrected_from_truth_mm`` (per station as well) is the correction's joint refinement of
   the job started at the true poses (correspondences, weights and linearisation at the truth, priors as in the
-  job): where it is above the bound, so is anything the correction can reach from any start on this draw.
+  job): what its measurement model makes of this draw's data once the start contributes no error.
   ``overlap_chi2_per_dof`` checks its measurement model: the median over the pairs (within each station,
   across stations, all) of how much of the correction's residuals at the truth a rigid motion of the pair
   explains, per degree of freedom (1 for independent zero-mean noise): near 1, what the truth start leaves
@@ -249,10 +249,10 @@ def corrected_from_truth(result: JobResult, T_T_S: np.ndarray, config, scorer: T
                          tracker_T_W_S: list[np.ndarray], mount: MountPrior | None) -> dict:
     """The correction's joint refinement of the job (its settings, scans, tracker and transfer priors, ``mount``
     prior) started at the true poses instead of the tracker poses: its correspondences found, its residuals
-    weighted and linearised at the truth. Its median pose error (mm, per station as well) is what the
-    correction's measurement model makes of this draw's data from a perfect start: no better start,
-    association or iteration brings the correction below it; ``corrected_from_truth_cloud_rms_mm`` is the RMS
-    distance to the part of the cloud merged at those poses, scored as the job's (``scorer``, the simulator's)."""
+    weighted and linearised at the truth. It removes every error of the start (correspondences and weights at
+    poses that are off); its median pose error (mm, per station as well) is what the correction's measurement
+    model makes of this draw's data. ``corrected_from_truth_cloud_rms_mm``: the cloud merged at those poses,
+    scored as the job's (``scorer``, the simulator's)."""
     cfg, true_T_W_S = config.correction, scorer.T_W_S_true
     seen = [k for k, s in enumerate(result.scans) if s.point_count > 0]      # the scans the job corrects
     scans = [result.scans[k] for k in seen]
@@ -272,12 +272,18 @@ def corrected_from_truth(result: JobResult, T_T_S: np.ndarray, config, scorer: T
     mm = np.array([np.linalg.norm(world_error(T, true_T_W_S[s.index])[:3]) for s, T in zip(result.scans, poses,
                                                                                            strict=True)])
     stations = np.array([s.tracker_station for s in result.scans])
-    cloud = merge_stage(config.job.voxel_mm, SimpleNamespace(scans=result.scans), poses).points()
-    rms = distance_stats(cloud_to_mesh_distances(scorer.world.scene, cloud, invert(scorer.world.T_W_F)))["rms_mm"]
     return {"corrected_from_truth_mm": round(float(np.median(mm)), 4),
-            "corrected_from_truth_cloud_rms_mm": round(float(rms), 4),
+            "corrected_from_truth_cloud_rms_mm": round(cloud_rms_mm(result, poses, scorer, config.job.voxel_mm), 4),
             "corrected_from_truth_mm_per_station": {int(k): round(float(np.median(mm[stations == k])), 4)
                                                     for k in np.unique(stations)}}
+
+
+def cloud_rms_mm(result: JobResult, poses: list[np.ndarray], scorer: TruthScorer, voxel_mm: float) -> float:
+    """RMS distance (mm) to the part of the job's scans merged at ``poses`` (W) into a ``voxel_mm`` map, as the
+    job merges and the simulator scores its cloud."""
+    cloud = merge_stage(voxel_mm, SimpleNamespace(scans=result.scans), poses).points()
+    distances = cloud_to_mesh_distances(scorer.world.scene, cloud, invert(scorer.world.T_W_F))
+    return float(distance_stats(distances)["rms_mm"])
 
 
 async def one_seed(config, plan: Plan, seed: int) -> dict:
