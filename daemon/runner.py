@@ -102,8 +102,6 @@ class JobResult:
     scans: list[ScanRecord] = field(default_factory=list)
 
 
-
-
 class JobRunner:
     """Runs one plan on the cell of an open ``session`` into ``job_dir``: every motion through the session's
     gate, steps through ``journal`` (none: a run that cannot resume), what it measures told to the session's
