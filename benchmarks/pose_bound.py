@@ -65,8 +65,8 @@ from tandemscan.pipeline.geometry.uncertainty import recentre, scan_pose_covaria
 from tandemscan.pipeline.inspection.scoring import cloud_to_mesh_distances, distance_stats
 from tandemscan.pipeline.io.raw_scan import read_raw_scan
 from tandemscan.pipeline.planning.plan import Plan
-from tandemscan.pipeline.registration.correction import joint_scan
-from tandemscan.pipeline.registration.joint import MIN_NORMAL_COSINE, JointSettings, refine_jointly
+from tandemscan.pipeline.registration.correction import joint_scan, joint_settings
+from tandemscan.pipeline.registration.joint import MIN_NORMAL_COSINE, refine_jointly, symmetric_normals
 from tandemscan.pipeline.registration.mounts import MountPrior
 from tandemscan.pipeline.registration.normals import estimate_normals
 from tandemscan.pipeline.registration.overlap import extract_overlap, overlapping_pairs
@@ -128,6 +128,7 @@ def overlap_information(result: JobResult, true_T_W_S: dict[int, np.ndarray], vo
     clouds = [transform_points(true_T_W_S[s.index], voxel_downsample(read_raw_scan(s.file)[0], voxel_mm))
               for s in result.scans]
     trees = [cKDTree(c) for c in clouds]
+    normals = [estimate_normals(c, NORMAL_NEIGHBOURS, t) for c, t in zip(clouds, trees, strict=True)]
     stations = [s.tracker_station for s in result.scans]
     out = []
     for i, j in overlapping_pairs(clouds, stations, cell_mm, len(clouds)):
@@ -142,25 +143,21 @@ def overlap_information(result: JobResult, true_T_W_S: dict[int, np.ndarray], vo
         c = P.mean(axis=0)
         J = np.c_[N, np.cross(P - c, N)]
         out.append(PairData(i, j, c, J.T @ J / (2.0 * sigma_mm**2),
-                            residual_chi2_per_dof(clouds[i], trees[i], clouds[j], trees[j], ov.source_idx)))
+                            residual_chi2_per_dof(clouds[i], trees[i], normals[i], P, normals[j][ov.source_idx])))
     return out
 
 
-def residual_chi2_per_dof(target: np.ndarray, target_tree: cKDTree, source: np.ndarray, source_tree: cKDTree,
-                          source_idx: np.ndarray) -> float:
-    """:class:`PairData` ``chi2_per_dof`` of the source points ``source_idx`` against the target (both W, mm, at
-    the true poses) with the correction's symmetric, gated residual; NaN with fewer than 20 points kept."""
-    P = source[source_idx]
-    _, nearest = target_tree.query(P)
-    n_i = estimate_normals(target, NORMAL_NEIGHBOURS, target_tree, at=nearest)
-    n_j = estimate_normals(source, NORMAL_NEIGHBOURS, source_tree, at=source_idx)
-    cosine = np.einsum("ij,ij->i", n_i, n_j)
+def residual_chi2_per_dof(target: np.ndarray, target_tree: cKDTree, target_normals: np.ndarray, source: np.ndarray,
+                          source_normals: np.ndarray) -> float:
+    """:class:`PairData` ``chi2_per_dof`` of the ``source`` points (unit normals ``source_normals``) against the
+    ``target`` cloud (its KD-tree, its unit normals; all W, mm, at the true poses) with the correction's symmetric,
+    gated residual (``joint.symmetric_normals``); NaN with fewer than 20 points kept."""
+    _, nearest = target_tree.query(source)
+    N, cosine = symmetric_normals(target_normals[nearest], source_normals)
     keep = np.abs(cosine) >= MIN_NORMAL_COSINE
     if keep.sum() < 20:
         return float("nan")
-    N = n_i[keep] + np.sign(cosine[keep])[:, None] * n_j[keep]
-    N /= np.linalg.norm(N, axis=1, keepdims=True)
-    P = P[keep]
+    P, N = source[keep], N[keep]
     r = np.einsum("ij,ij->i", N, P - target[nearest[keep]])
     J = np.c_[N, np.cross(P - P.mean(axis=0), N)]
     Jtr = J.T @ r
@@ -262,10 +259,8 @@ def corrected_from_truth(result: JobResult, T_T_S: np.ndarray, config, scorer: T
     world = [transform_points(p.T_W_S, t.points_S) for p, t in zip(priors, thinned, strict=True)]
     pairs = overlapping_pairs(world, [s.tracker_station for s in scans], cfg.pair_cell_mm,
                               cfg.joint_max_partners_per_scan)
-    settings = JointSettings(max_distance_mm=cfg.joint_max_distance_mm, iterations=cfg.joint_iterations,
-                             sigma_mm=cfg.joint_sigma_mm)
     joint = refine_jointly(thinned, priors, pairs, [true_T_W_S[s.index] for s in scans],
-                           transfer_priors(result.report["transfer_log"]), mount, settings)
+                           transfer_priors(result.report["transfer_log"]), mount, joint_settings(cfg))
     poses = list(tracker_T_W_S)
     for k, T in zip(seen, joint.poses, strict=True):
         poses[k] = T

@@ -294,9 +294,14 @@ def _refine_jointly(scans: Sequence[StitchedScan], priors: list[ScanPrior], cfg:
         thinned = pair_map(prepared, scans)
     world = [transform_points(s.T_W_S, j.points_S) for s, j in zip(scans, thinned, strict=True)]
     pairs = overlapping_pairs(world, [s.station for s in scans], cfg.pair_cell_mm, cfg.joint_max_partners_per_scan)
-    settings = JointSettings(max_distance_mm=cfg.joint_max_distance_mm, iterations=cfg.joint_iterations,
-                             sigma_mm=cfg.joint_sigma_mm)
-    return refine_jointly(thinned, priors, pairs, [s.T_W_S for s in scans], transfers, mount_prior, settings)
+    return refine_jointly(thinned, priors, pairs, [s.T_W_S for s in scans], transfers, mount_prior,
+                          joint_settings(cfg))
+
+
+def joint_settings(cfg: CorrectionConfig) -> JointSettings:
+    """The joint refinement's settings from ``[correction]`` (``joint_*``)."""
+    return JointSettings(max_distance_mm=cfg.joint_max_distance_mm, iterations=cfg.joint_iterations,
+                         sigma_mm=cfg.joint_sigma_mm)
 
 
 def _joint_report(joint: JointResult, stations: list[int]) -> dict:

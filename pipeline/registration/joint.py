@@ -244,15 +244,9 @@ class _Pair:
 
     def _normals(self, scans: Sequence[JointScan], rel: np.ndarray, source: np.ndarray, target: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray]:
-        """The symmetric unit normals (S_i) of the source points ``source`` of scan j placed by ``rel`` against
-        their targets ``target`` in scan i (the mean of the two normals, turned to agree), and the cosine
-        between the two."""
-        target_n = scans[self.i].normals_S[target]
-        source_n = scans[self.j].normals_S[source] @ rel[:3, :3].T
-        cosine = np.einsum("ij,ij->i", source_n, target_n)
-        n = target_n + np.where(cosine < 0.0, -1.0, 1.0)[:, None] * source_n
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-        return n, cosine
+        """:func:`symmetric_normals` (S_i) of the source points ``source`` of scan j placed by ``rel`` against their
+        targets ``target`` in scan i."""
+        return symmetric_normals(scans[self.i].normals_S[target], scans[self.j].normals_S[source] @ rel[:3, :3].T)
 
     def normal_equations(self, scans: Sequence[JointScan], poses: np.ndarray, origins: np.ndarray, m: _Match,
                          weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -271,6 +265,16 @@ class _Pair:
         Jw = J * weights[:, None]
         B = np.kron(np.eye(4), Pi[:3, :3])                      # local -> world for the four 3-blocks
         return B @ (Jw.T @ J) @ B.T, B @ (Jw.T @ m.residual)
+
+
+def symmetric_normals(target_n: np.ndarray, source_n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The residual's direction for point pairs with unit normals ``target_n`` and ``source_n`` (m, 3, one frame):
+    the mean of the two, the source's turned to agree with the target's, unit length; and the cosine between
+    the two (a correspondence counts where ``|cosine| >= MIN_NORMAL_COSINE``)."""
+    cosine = np.einsum("ij,ij->i", source_n, target_n)
+    n = target_n + np.where(cosine < 0.0, -1.0, 1.0)[:, None] * source_n
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    return n, cosine
 
 
 def _huber(r: np.ndarray, sigma: float, k: float) -> np.ndarray:
