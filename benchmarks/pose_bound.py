@@ -12,10 +12,12 @@ own noise models, for an ideal estimator.
   coordinate transfer's error about the still target (``transfer_covariance``, from the journaled entry);
   scan ``i`` errs by its own error plus every transfer up to its station (first order, world motions).
 - Data: every overlapping pair (not only those the correction registers), points placed at their true poses
-  and within 1 mm of the other scan, target normals, each point an independent point-to-plane measurement of
-  the pair's relative error with variance 2 sigma^2 (sigma = the scanner's noise along the ray; the sim's
-  noise is independent per point). No method that uses these scans and tracker readings can do better in
-  expectation.
+  and within 1 mm of the other scan, target normals, each point a point-to-plane measurement of the pair's
+  relative error: the simulator's noise is independent per point and along its ray (sigma), so a row's
+  variance is sigma^2 times the sum of its two points' squared cosines between ray and normal; where k scans
+  cover a place, the surface there is unknown and its pairs share each scan's noise, so each row counts
+  2 / k of its information (``row_weights``). No method that uses these scans and tracker readings can do
+  better in expectation.
 - Figures: expected median over the scans of the translation error (mm) at the scan origin, tracker-only and
   at the bound, by sampling (2,000 draws), and their ratio; ``bound_pose_err_mm_median`` is their median
   over seeds; ``sigma_xyz_mm_per_station``: per tracker station the mean 1-sigma of the scan origins along
@@ -66,7 +68,7 @@ from tandemscan.pipeline.inspection.scoring import cloud_to_mesh_distances, dist
 from tandemscan.pipeline.io.raw_scan import read_raw_scan
 from tandemscan.pipeline.planning.plan import Plan
 from tandemscan.pipeline.registration.correction import joint_scan, joint_settings
-from tandemscan.pipeline.registration.joint import MIN_NORMAL_COSINE, refine_jointly, symmetric_normals
+from tandemscan.pipeline.registration.joint import MIN_NORMAL_COSINE, ray_variances, refine_jointly, symmetric_normals
 from tandemscan.pipeline.registration.mounts import MountPrior
 from tandemscan.pipeline.registration.normals import estimate_normals
 from tandemscan.pipeline.registration.overlap import extract_overlap, overlapping_pairs
@@ -105,8 +107,8 @@ def error_model(result: JobResult, T_T_S: np.ndarray,
 @dataclass(frozen=True)
 class PairData:
     """One overlapping pair ``(i, j)`` at the true poses (points of scan j against the surface of scan i):
-    ``centre`` (W, mm) and ``information`` (``J^T J / (2 sigma^2)``, t then r about the centre) of its
-    point-to-plane rows ``J`` along the target's normals, what the bound counts; ``chi2_per_dof``: how far the
+    ``centre`` (W, mm) and ``information`` (``J^T W J``, t then r about the centre, ``W`` the rows' weights,
+    :func:`row_weights`) of its point-to-plane rows ``J`` along the target's normals, what the bound counts; ``chi2_per_dof``: how far the
     correction's residuals ``r`` (mm) at the truth are from independent zero-mean noise, the share of their own
     variance that a rigid motion of the pair explains, ``r^T J (J^T J)^-1 J^T r / (6 s^2)`` (``s^2`` their mean
     square; about 1 for such noise, above where they hold structure that acts like a relative pose error)."""
@@ -122,29 +124,53 @@ def overlap_information(result: JobResult, true_T_W_S: dict[int, np.ndarray], vo
                         cell_mm: float) -> list[PairData]:
     """The :class:`PairData` of every overlapping pair at the true poses: the points of j within ``OVERLAP_MM`` of
     scan i, each against its nearest point there. The bound's rows use the target's normals (estimated on its
-    overlap points); the check uses the correction's residual: along the mean of the two points' unit normals
-    (each from its own whole scan, ``NORMAL_NEIGHBOURS`` nearest points), where they agree within its gate
-    (``joint.MIN_NORMAL_COSINE``)."""
-    clouds = [transform_points(true_T_W_S[s.index], voxel_downsample(read_raw_scan(s.file)[0], voxel_mm))
-              for s in result.scans]
+    overlap points), each weighted by :func:`row_weights`; the check uses the correction's residual: along the
+    mean of the two points' unit normals (each from its own whole scan, ``NORMAL_NEIGHBOURS`` nearest points),
+    where they agree within its gate (``joint.MIN_NORMAL_COSINE``)."""
+    points_S = [voxel_downsample(read_raw_scan(s.file)[0], voxel_mm) for s in result.scans]
+    poses = [true_T_W_S[s.index] for s in result.scans]
+    clouds = [transform_points(T, P) for T, P in zip(poses, points_S, strict=True)]
+    rays = [(P / np.linalg.norm(P, axis=1, keepdims=True)) @ T[:3, :3].T for T, P in zip(poses, points_S, strict=True)]
     trees = [cKDTree(c) for c in clouds]
     normals = [estimate_normals(c, NORMAL_NEIGHBOURS, t) for c, t in zip(clouds, trees, strict=True)]
     stations = [s.tracker_station for s in result.scans]
+    overlaps = [(i, j, extract_overlap(clouds[j], clouds[i], OVERLAP_MM))
+                for i, j in overlapping_pairs(clouds, stations, cell_mm, len(clouds))]
+    covering = [np.ones(len(c), np.int64) for c in clouds]
+    for i, j, ov in overlaps:
+        covering[j][ov.source_idx] += 1
+        covering[i][ov.target_idx] += 1
     out = []
-    for i, j in overlapping_pairs(clouds, stations, cell_mm, len(clouds)):
-        ov = extract_overlap(clouds[j], clouds[i], OVERLAP_MM)
+    for i, j, ov in overlaps:
         if ov.size < 20:
             continue
-        target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(clouds[i][ov.target_idx]))
+        target_idx = ov.target_idx
+        target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(clouds[i][target_idx]))
         target.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(NORMAL_NEIGHBOURS))
         P = clouds[j][ov.source_idx]
         _, nearest = cKDTree(np.asarray(target.points)).query(P)
         N = np.asarray(target.normals)[nearest]
+        w = row_weights(N, rays[j][ov.source_idx], rays[i][target_idx[nearest]], covering[j][ov.source_idx],
+                        sigma_mm)
         c = P.mean(axis=0)
         J = np.c_[N, np.cross(P - c, N)]
-        out.append(PairData(i, j, c, J.T @ J / (2.0 * sigma_mm**2),
+        out.append(PairData(i, j, c, (J * w[:, None]).T @ J,
                             residual_chi2_per_dof(clouds[i], trees[i], normals[i], P, normals[j][ov.source_idx])))
     return out
+
+
+def row_weights(normals: np.ndarray, source_rays: np.ndarray, target_rays: np.ndarray, covering: np.ndarray,
+                sigma_mm: float) -> np.ndarray:
+    """The information (1/mm^2) of each point-to-plane row of a pair: a source point against its nearest target
+    point, along the unit ``normals`` (W). Each point errs by ``sigma_mm`` along its ray (``*_rays``, W: the
+    simulator's noise, ``raycast.ScannerModel``), so by ``sigma_mm |n . ray|`` along the normal: the row's variance
+    is ``2 sigma_mm^2`` times the correction's ``joint.ray_variances`` (grazing rows floored alike). ``covering``:
+    how many scans cover the source point (its own and every other within ``OVERLAP_MM``); where ``k`` do, the
+    pairs there share each scan's noise and each row counts ``2 / k`` of its information (``joint.shares``: exact
+    for an unknown surface; counting each row at full weight counts every point's noise once per partner,
+    ``k / 2`` times too much). docs/registration.md, "Shared noise"."""
+    variance = 2.0 * sigma_mm**2 * ray_variances(normals, source_rays, target_rays)
+    return 2.0 / (np.maximum(covering, 2) * variance)
 
 
 def residual_chi2_per_dof(target: np.ndarray, target_tree: cKDTree, target_normals: np.ndarray, source: np.ndarray,

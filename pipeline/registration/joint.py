@@ -28,13 +28,16 @@ Cholesky factor ``L``). Scan ``i`` is corrected by the world motion about ``o_i`
 ``n . (T_W_S_j p - T_W_S_i q)``, ``n`` the mean of the two points' unit normals (at the current poses; kept
 where they agree within ``MIN_NORMAL_COSINE``): the symmetric point-to-plane residual, zero for two points of
 one circular arc, where the plane of ``q`` alone leaves the arc's sagitta (curvature times the squared offset,
-halved). Each linearisation weights the residuals at the current poses (Huber at ``huber_k`` times their robust
-scale, which is also their sigma) and solves the sparse normal equations ``(A^T H_e A + prior) theta = A^T b``
+halved). Its variance follows the scanner's noise along its rays (``ray_variances``), and where more than two
+scans cover a place their pairs share each scan's noise (``shares``): each residual weighs its share over its
+variance. Each linearisation weights the residuals at the current poses (Huber at ``huber_k`` times the robust
+scale of the residuals whitened by their variances, which is also their sigma) and solves the sparse normal equations ``(A^T H_e A + prior) theta = A^T b``
 for ``theta`` itself (scipy.sparse); the posterior covariance of each scan's correction is ``A_i H^-1 A_i^T``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -60,6 +63,12 @@ log = logging.getLogger(__name__)
 #: transfers (whole part, seed 7: 0.061 -> 0.055 mm at 30 -> 5 deg, 0.05 % of the correspondences; the normal's
 #: own noise at 2 mm voxels is about 0.2 deg). docs/registration.md, "Symmetric residuals and the normal gate".
 MIN_NORMAL_COSINE = float(np.cos(np.radians(5.0)))
+
+#: the scanner errs along its rays from the origin of S (the camera's optical centre: the PhoXi's camera space,
+#: the simulator's model), so a point errs along a residual's normal n by its noise times ``|n . ray|``; a
+#: residual's variance is the sum of its two points' (:func:`ray_variances`). The sum of the two squared cosines
+#: is taken as at least this: a grazing pair counts at most ten times a head-on one (each cosine 1, sum 2).
+MIN_RAY_COSINES_SQ = 0.2
 
 #: a robust scale (mm) never below this (0.1 um, far below any scanner noise): noiseless data would otherwise
 #: weight every point without bound and make the normal equations singular in floating point
@@ -209,13 +218,16 @@ class _Model:
 class _Match:
     """The correspondences of one pair: the indices of the source points (scan j) and of their target points
     (scan i), and at the current poses the source points in the target's frame S_i (mm), the point-to-plane
-    residuals (mm) and the symmetric normals (S_i)."""
+    residuals (mm) and the symmetric normals (S_i); found once, each residual's variance relative to that of
+    two points seen head-on (:func:`ray_variances`) and its share (``2 / k``, :func:`shares`)."""
 
     source: np.ndarray
     target: np.ndarray
     source_S_i: np.ndarray
     residual: np.ndarray
     normals: np.ndarray
+    variance: np.ndarray
+    share: np.ndarray
 
 
 class _Pair:
@@ -231,8 +243,10 @@ class _Pair:
         normals agree."""
         n, cosine = self._normals(scans, rel, source, target)
         same = np.abs(cosine) >= MIN_NORMAL_COSINE  # not across a crease
-        r = np.einsum("ij,ij->i", x[same] - scans[self.i].points_S[target[same]], n[same])
-        return _Match(source[same], target[same], x[same], r, n[same])
+        x, n, source, target = x[same], n[same], source[same], target[same]
+        q = scans[self.i].points_S[target]
+        r = np.einsum("ij,ij->i", x - q, n)
+        return _Match(source, target, x, r, n, ray_variances(n, x - rel[:3, 3], q), np.ones(len(r)))
 
     def at(self, scans: Sequence[JointScan], poses: np.ndarray, m: _Match) -> _Match:
         """The same correspondences ``m`` at ``poses``: source points placed in S_i, normals and residuals anew."""
@@ -240,7 +254,7 @@ class _Pair:
         x = transform_points(rel, scans[self.j].points_S[m.source])
         n, _ = self._normals(scans, rel, m.source, m.target)
         r = np.einsum("ij,ij->i", x - scans[self.i].points_S[m.target], n)
-        return _Match(m.source, m.target, x, r, n)
+        return _Match(m.source, m.target, x, r, n, m.variance, m.share)
 
     def _normals(self, scans: Sequence[JointScan], rel: np.ndarray, source: np.ndarray, target: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray]:
@@ -277,10 +291,48 @@ def symmetric_normals(target_n: np.ndarray, source_n: np.ndarray) -> tuple[np.nd
     return n, cosine
 
 
+def ray_variances(normals: np.ndarray, source_rays: np.ndarray, target_rays: np.ndarray) -> np.ndarray:
+    """The variance of point-to-plane residuals along unit ``normals`` between points whose rays from the scanner
+    origin are ``source_rays`` and ``target_rays`` (any length, the frame of the normals), relative to two points
+    seen head-on: ``(c_p^2 + c_q^2) / 2`` with ``c = n . ray / |ray|``, at least ``MIN_RAY_COSINES_SQ / 2``."""
+    def cos_sq(rays: np.ndarray) -> np.ndarray:
+        return np.einsum("ij,ij->i", normals, rays) ** 2 / np.maximum(np.einsum("ij,ij->i", rays, rays), 1e-300)
+
+    return np.maximum(cos_sq(source_rays) + cos_sq(target_rays), MIN_RAY_COSINES_SQ) / 2.0
+
+
+def shares(sizes: Sequence[int], associated: list[tuple[_Pair, _Match]]) -> list[tuple[_Pair, _Match]]:
+    """``associated`` with each correspondence's share of its information: ``2 / k``, ``k`` the scans covering its
+    points (the larger of the source's and the target's count: its own scan and every other it has a
+    correspondence with). Where ``k`` scans cover one place, its ``k (k - 1) / 2`` pairs share each scan's noise:
+    the surface there is unknown, and eliminating its height leaves ``(I - 1 1^T / k) / sigma^2`` of information
+    on the scans' offsets, which the pairs' residuals give at ``2 / k`` of their weight each (exact for two
+    scans; counting each at full weight counts every point's noise once per partner). ``sizes``: the points of
+    each scan. docs/registration.md, "Shared noise"."""
+    covered = [np.ones(n) for n in sizes]
+    for p, m in associated:
+        covered[p.j][m.source] += 1.0
+        covered[p.i][np.unique(m.target)] += 1.0
+    return [(p, dataclasses.replace(m, share=2.0 / np.maximum(np.maximum(covered[p.j][m.source],
+                                                                          covered[p.i][m.target]), 2.0)))
+            for p, m in associated]
+
+
 def _huber(r: np.ndarray, sigma: float, k: float) -> np.ndarray:
     """Huber weights times ``1 / sigma^2`` (the information of each residual)."""
     a = np.abs(r) / sigma
     return np.where(a <= k, 1.0, k / np.maximum(a, 1e-300)) / sigma**2
+
+
+def _whitened(m: _Match) -> np.ndarray:
+    """The residuals of ``m`` (mm) scaled to the variance of two points seen head-on (:func:`ray_variances`)."""
+    return m.residual / np.sqrt(m.variance)
+
+
+def _information(m: _Match, sigma: float, huber_k: float) -> np.ndarray:
+    """The weight (1/mm^2) of each residual of ``m``: Huber on its whitened value (:func:`_whitened`; ``sigma``
+    that of two points seen head-on), over its relative variance, times its share (:func:`shares`)."""
+    return _huber(_whitened(m), sigma, huber_k) / m.variance * m.share
 
 
 def _robust_sigma(r: np.ndarray) -> float:
@@ -311,7 +363,7 @@ def _associate(scans: Sequence[JointScan], trees: Sequence[cKDTree], poses: np.n
         p = _Pair(i, j)
         return p, p.matched(scans, rel, x[inside[found]], idx[found], inside[found])
 
-    return [p for p in pair_map(near, pairs) if p is not None]
+    return shares([len(s.points_S) for s in scans], [p for p in pair_map(near, pairs) if p is not None])
 
 
 def refine_jointly(
@@ -345,7 +397,7 @@ def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequ
             associated = pair_map(lambda pm, now=poses: (pm[0], pm[0].at(scans, now, pm[1])), associated)
         kept = [(p, m) for p, m in associated if len(m.residual) >= settings.min_correspondences]
         r_all = np.concatenate([m.residual for _, m in kept]) if kept else np.zeros(0)
-        sigma = settings.sigma_mm or _robust_sigma(r_all)
+        sigma = settings.sigma_mm or _robust_sigma(np.concatenate([_whitened(m) for _, m in kept]) if kept else r_all)
         if it == 1:
             rms_before = float(np.sqrt(np.mean(r_all**2))) if len(r_all) else float("nan")
         H, b_e = _data_system(model, scans, poses, kept, sigma, settings.huber_k, pair_map)
@@ -384,7 +436,7 @@ def _data_system(model: _Model, scans: Sequence[JointScan], poses: np.ndarray, k
     if not kept:
         return sparse.csr_matrix((6 * n, 6 * n)), b
     systems = pair_map(lambda pm: pm[0].normal_equations(scans, poses, model.origins, pm[1],
-                                                         _huber(pm[1].residual, sigma, huber_k)), kept)
+                                                         _information(pm[1], sigma, huber_k)), kept)
     rows, cols, vals = [], [], []
     for (p, _), (H, g) in zip(kept, systems, strict=True):
         idx = np.r_[np.arange(6) + 6 * p.j, np.arange(6) + 6 * p.i]
