@@ -7,7 +7,13 @@ import numpy as np
 import pytest
 from tandemscan.pipeline.geometry.frames import from_rotvec, invert, pose_error, transform_points
 from tandemscan.pipeline.registration.icp import RefineError
-from tandemscan.pipeline.registration.joint import JointScan, JointSettings, refine_jointly
+from tandemscan.pipeline.registration.joint import (
+    MIN_RAY_COSINES_SQ,
+    JointScan,
+    JointSettings,
+    ray_variances,
+    refine_jointly,
+)
 from tandemscan.pipeline.registration.mounts import MountPrior
 from tandemscan.pipeline.registration.pose_graph import ScanPrior, TransferPrior
 
@@ -139,3 +145,26 @@ def test_mount_estimate_and_input_checks():
         refine_jointly(scans, priors[:1], [(0, 1)], truth)
     with pytest.raises(RefineError, match="transfer priors"):
         refine_jointly(scans, priors, [(0, 1)], truth, [TransferPrior(0, np.zeros(3), LOOSE)])
+
+
+def test_ray_variances_follow_the_cosine_between_ray_and_normal():
+    n = np.tile([0.0, 0, 1], (3, 1))
+    head_on = np.array([[0.0, 0, -400]] * 3)
+    tilted = np.array([[0.0, np.sqrt(3.0), -1.0], [0.0, 1.0, -1.0], [1.0, 0, -1e-3]])  # 60 deg, 45 deg, grazing
+    np.testing.assert_allclose(ray_variances(n, head_on, head_on), 1.0)
+    np.testing.assert_allclose(ray_variances(n, tilted, head_on), [0.625, 0.75, 0.5], atol=1e-6)
+    np.testing.assert_allclose(ray_variances(n, tilted[2:], tilted[2:]), MIN_RAY_COSINES_SQ / 2.0)
+
+
+def test_a_third_scan_of_the_same_place_with_a_free_pose_adds_no_information_on_the_second():
+    """Scans 0 (fixed), 1 and 2 (loose priors) see the same surface points. Eliminating the unknown surface, scan
+    2's free offset tells nothing more about scan 1 than the pair (0, 1) alone: the three pairs share each scan's
+    noise and count 2 / 3 each. Counted at full weight they would make scan 1's posterior 1.5x too tight."""
+    x, y = np.meshgrid(np.arange(0.0, 301.0, 3.0), np.arange(-100.0, 101.0, 3.0))
+    surface = np.c_[x.ravel(), y.ravel(), bumpy(x.ravel(), y.ravel())]
+    truth, scans = grid_scans(surface, [(0, 300)] * 3)
+    priors = [ScanPrior(truth[0], TIGHT, 0)] + [ScanPrior(T, LOOSE, 0) for T in truth[1:]]
+    two = refine_jointly(scans[:2], priors[:2], [(0, 1)], truth[:2], settings=SCANNER_NOISE)
+    three = refine_jointly(scans, priors, [(0, 1), (0, 2), (1, 2)], truth, settings=SCANNER_NOISE)
+    np.testing.assert_allclose(three.covariances[1], two.covariances[1], rtol=1e-3, atol=1e-12)
+    assert np.all(np.diag(two.covariances[1]) < 1e-3 * np.diag(LOOSE))
