@@ -31,8 +31,8 @@ one circular arc, where the plane of ``q`` alone leaves the arc's sagitta (curva
 halved). Its variance follows the scanner's noise along its rays (``ray_variances``), and where more than two
 scans cover a place their pairs share each scan's noise (``shares``): each residual weighs its share over its
 variance. Each linearisation weights the residuals at the current poses (Huber at ``huber_k`` times the robust
-scale of the residuals whitened by their variances, which is also their sigma) and solves the sparse normal equations ``(A^T H_e A + prior) theta = A^T b``
-for ``theta`` itself (scipy.sparse); the posterior covariance of each scan's correction is ``A_i H^-1 A_i^T``.
+scale of the residuals whitened by their variances, which is also their sigma) and solves the sparse normal
+equations ``(A^T H_e A + prior) theta = A^T b`` for ``theta`` itself (scipy.sparse); the posterior covariance of each scan's correction is ``A_i H^-1 A_i^T``.
 """
 
 from __future__ import annotations
@@ -107,8 +107,8 @@ class JointSettings:
     correspondence (found once); ``huber_k``: Huber threshold in robust sigmas; ``iterations``: at most this
     many linearisations, fewer once no scan moves more than ``tolerance_mm`` (translation plus rotation
     at ``lever_mm``); ``min_correspondences``: a pair with fewer contributes nothing in that iteration;
-    ``sigma_mm``: 1-sigma of one point-to-plane residual (None: the residuals' robust scale, re-estimated in
-    every iteration)."""
+    ``sigma_mm``: 1-sigma of a point-to-plane residual between two points seen head-on (None: the robust scale of
+    the residuals whitened by :func:`ray_variances`, re-estimated in every iteration)."""
 
     max_distance_mm: float = 1.0
     huber_k: float = 2.5
@@ -123,8 +123,8 @@ class JointSettings:
 class JointResult:
     """Refined ``T_W_S`` per scan; each scan's posterior covariance (6x6, t mm^2 at its origin then r rad^2,
     world axes) and prior (tracker and transfers) covariance; the mount estimate (None without a mount
-    prior); figures: outer iterations, pairs and correspondences of the last one, the residuals' robust sigma
-    (mm) and point-to-plane RMS (mm) of the correspondences at the start and at the refined poses."""
+    prior); figures: outer iterations, pairs and correspondences of the last one, the residuals' sigma (mm, as
+    ``JointSettings.sigma_mm``) and point-to-plane RMS (mm) of the correspondences at the start and at the refined poses."""
 
     poses: list[np.ndarray]
     covariances: np.ndarray
@@ -308,7 +308,7 @@ def shares(sizes: Sequence[int], associated: list[tuple[_Pair, _Match]]) -> list
     the surface there is unknown, and eliminating its height leaves ``(I - 1 1^T / k) / sigma^2`` of information
     on the scans' offsets, which the pairs' residuals give at ``2 / k`` of their weight each (exact for two
     scans; counting each at full weight counts every point's noise once per partner). ``sizes``: the points of
-    each scan. docs/registration.md, "Shared noise"."""
+    each scan. docs/registration.md, "Shared noise and the scanner's rays"."""
     covered = [np.ones(n) for n in sizes]
     for p, m in associated:
         covered[p.j][m.source] += 1.0
@@ -397,7 +397,8 @@ def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequ
             associated = pair_map(lambda pm, now=poses: (pm[0], pm[0].at(scans, now, pm[1])), associated)
         kept = [(p, m) for p, m in associated if len(m.residual) >= settings.min_correspondences]
         r_all = np.concatenate([m.residual for _, m in kept]) if kept else np.zeros(0)
-        sigma = settings.sigma_mm or _robust_sigma(np.concatenate([_whitened(m) for _, m in kept]) if kept else r_all)
+        whitened = np.concatenate([_whitened(m) for _, m in kept]) if kept else r_all
+        sigma = settings.sigma_mm or _robust_sigma(whitened)
         if it == 1:
             rms_before = float(np.sqrt(np.mean(r_all**2))) if len(r_all) else float("nan")
         H, b_e = _data_system(model, scans, poses, kept, sigma, settings.huber_k, pair_map)
