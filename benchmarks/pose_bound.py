@@ -108,9 +108,9 @@ def error_model(result: JobResult, T_T_S: np.ndarray,
 class PairData:
     """One overlapping pair ``(i, j)`` at the true poses (points of scan j against the surface of scan i):
     ``centre`` (W, mm) and ``information`` (``J^T W J``, t then r about the centre, ``W`` the rows' weights,
-    :func:`row_weights`) of its point-to-plane rows ``J`` along the target's normals, what the bound counts; ``chi2_per_dof``: how far the
-    correction's residuals ``r`` (mm) at the truth are from independent zero-mean noise, the share of their own
-    variance that a rigid motion of the pair explains, ``r^T J (J^T J)^-1 J^T r / (6 s^2)`` (``s^2`` their mean
+    :func:`row_weights`) of its point-to-plane rows ``J`` along the target's normals, what the bound counts;
+    ``chi2_per_dof``: how far the correction's residuals ``r`` (mm) at the truth are from independent zero-mean
+    noise, the share of their own variance that a rigid motion of the pair explains, ``r^T J (J^T J)^-1 J^T r / (6 s^2)`` (``s^2`` their mean
     square; about 1 for such noise, above where they hold structure that acts like a relative pose error)."""
 
     i: int

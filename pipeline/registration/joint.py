@@ -32,7 +32,8 @@ halved). Its variance follows the scanner's noise along its rays (``ray_variance
 scans cover a place their pairs share each scan's noise (``shares``): each residual weighs its share over its
 variance. Each linearisation weights the residuals at the current poses (Huber at ``huber_k`` times the robust
 scale of the residuals whitened by their variances, which is also their sigma) and solves the sparse normal
-equations ``(A^T H_e A + prior) theta = A^T b`` for ``theta`` itself (scipy.sparse); the posterior covariance of each scan's correction is ``A_i H^-1 A_i^T``.
+equations ``(A^T H_e A + prior) theta = A^T b`` for ``theta`` itself (scipy.sparse); the posterior covariance of
+each scan's correction is ``A_i H^-1 A_i^T``.
 """
 
 from __future__ import annotations
@@ -124,7 +125,8 @@ class JointResult:
     """Refined ``T_W_S`` per scan; each scan's posterior covariance (6x6, t mm^2 at its origin then r rad^2,
     world axes) and prior (tracker and transfers) covariance; the mount estimate (None without a mount
     prior); figures: outer iterations, pairs and correspondences of the last one, the residuals' sigma (mm, as
-    ``JointSettings.sigma_mm``) and point-to-plane RMS (mm) of the correspondences at the start and at the refined poses."""
+    ``JointSettings.sigma_mm``) and point-to-plane RMS (mm) of the correspondences at the start and at the refined
+    poses."""
 
     poses: list[np.ndarray]
     covariances: np.ndarray
