@@ -110,8 +110,9 @@ class PairData:
     ``centre`` (W, mm) and ``information`` (``J^T W J``, t then r about the centre, ``W`` the rows' weights,
     :func:`row_weights`) of its point-to-plane rows ``J`` along the target's normals, what the bound counts;
     ``chi2_per_dof``: how far the correction's residuals ``r`` (mm) at the truth are from independent zero-mean
-    noise, the share of their own variance that a rigid motion of the pair explains, ``r^T J (J^T J)^-1 J^T r / (6 s^2)`` (``s^2`` their mean
-    square; about 1 for such noise, above where they hold structure that acts like a relative pose error)."""
+    noise, the share of their own variance that a rigid motion of the pair explains,
+    ``r^T J (J^T J)^-1 J^T r / (6 s^2)`` (``s^2`` their mean square; about 1 for such noise, above where they hold
+    structure that acts like a relative pose error)."""
 
     i: int
     j: int
