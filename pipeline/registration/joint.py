@@ -30,8 +30,8 @@ where they agree within ``MIN_NORMAL_COSINE``): the symmetric point-to-plane res
 one circular arc, where the plane of ``q`` alone leaves the arc's sagitta (curvature times the squared offset,
 halved). Its variance follows the scanner's noise along its rays (``ray_variances``), and where more than two
 scans cover a place their pairs share each scan's noise (``shares``): each residual weighs its share over its
-variance. Each linearisation weights the residuals at the current poses (Huber at ``huber_k`` times the robust
-scale of the residuals whitened by their variances, which is also their sigma) and solves the sparse normal
+variance. Each linearisation weights the residuals at the current poses (Huber at ``huber_k`` times their robust
+scale, which is also the sigma of two points seen head-on) and solves the sparse normal
 equations ``(A^T H_e A + prior) theta = A^T b`` for ``theta`` itself (scipy.sparse); the posterior covariance of
 each scan's correction is ``A_i H^-1 A_i^T``.
 """
@@ -108,8 +108,8 @@ class JointSettings:
     correspondence (found once); ``huber_k``: Huber threshold in robust sigmas; ``iterations``: at most this
     many linearisations, fewer once no scan moves more than ``tolerance_mm`` (translation plus rotation
     at ``lever_mm``); ``min_correspondences``: a pair with fewer contributes nothing in that iteration;
-    ``sigma_mm``: 1-sigma of a point-to-plane residual between two points seen head-on (None: the robust scale of
-    the residuals whitened by :func:`ray_variances`, re-estimated in every iteration)."""
+    ``sigma_mm``: 1-sigma of a point-to-plane residual between two points seen head-on (None: the residuals'
+    robust scale, re-estimated in every iteration)."""
 
     max_distance_mm: float = 1.0
     huber_k: float = 2.5
@@ -326,15 +326,11 @@ def _huber(r: np.ndarray, sigma: float, k: float) -> np.ndarray:
     return np.where(a <= k, 1.0, k / np.maximum(a, 1e-300)) / sigma**2
 
 
-def _whitened(m: _Match) -> np.ndarray:
-    """The residuals of ``m`` (mm) scaled to the variance of two points seen head-on (:func:`ray_variances`)."""
-    return m.residual / np.sqrt(m.variance)
-
-
 def _information(m: _Match, sigma: float, huber_k: float) -> np.ndarray:
-    """The weight (1/mm^2) of each residual of ``m``: Huber on its whitened value (:func:`_whitened`; ``sigma``
-    that of two points seen head-on), over its relative variance, times its share (:func:`shares`)."""
-    return _huber(_whitened(m), sigma, huber_k) / m.variance * m.share
+    """The weight (1/mm^2) of each residual of ``m``: its Huber weight (on the residual as it is: away from the
+    truth the residuals that stand out are the start's errors along the normal, not the rays' noise), over its
+    relative variance (:func:`ray_variances`), times its share (:func:`shares`)."""
+    return _huber(m.residual, sigma, huber_k) / m.variance * m.share
 
 
 def _robust_sigma(r: np.ndarray) -> float:
@@ -399,8 +395,7 @@ def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequ
             associated = pair_map(lambda pm, now=poses: (pm[0], pm[0].at(scans, now, pm[1])), associated)
         kept = [(p, m) for p, m in associated if len(m.residual) >= settings.min_correspondences]
         r_all = np.concatenate([m.residual for _, m in kept]) if kept else np.zeros(0)
-        whitened = np.concatenate([_whitened(m) for _, m in kept]) if kept else r_all
-        sigma = settings.sigma_mm or _robust_sigma(whitened)
+        sigma = settings.sigma_mm or _robust_sigma(r_all)
         if it == 1:
             rms_before = float(np.sqrt(np.mean(r_all**2))) if len(r_all) else float("nan")
         H, b_e = _data_system(model, scans, poses, kept, sigma, settings.huber_k, pair_map)
