@@ -131,7 +131,7 @@ def overlap_information(result: JobResult, true_T_W_S: dict[int, np.ndarray], vo
     points_S = [voxel_downsample(read_raw_scan(s.file)[0], voxel_mm) for s in result.scans]
     poses = [true_T_W_S[s.index] for s in result.scans]
     clouds = [transform_points(T, P) for T, P in zip(poses, points_S, strict=True)]
-    rays = [(P / np.linalg.norm(P, axis=1, keepdims=True)) @ T[:3, :3].T for T, P in zip(poses, points_S, strict=True)]
+    rays = [P @ T[:3, :3].T for T, P in zip(poses, points_S, strict=True)]      # from each scanner origin, W
     trees = [cKDTree(c) for c in clouds]
     normals = [estimate_normals(c, NORMAL_NEIGHBOURS, t) for c, t in zip(clouds, trees, strict=True)]
     stations = [s.tracker_station for s in result.scans]
@@ -163,7 +163,7 @@ def overlap_information(result: JobResult, true_T_W_S: dict[int, np.ndarray], vo
 def row_weights(normals: np.ndarray, source_rays: np.ndarray, target_rays: np.ndarray, covering: np.ndarray,
                 sigma_mm: float) -> np.ndarray:
     """The information (1/mm^2) of each point-to-plane row of a pair: a source point against its nearest target
-    point, along the unit ``normals`` (W). Each point errs by ``sigma_mm`` along its ray (``*_rays``, W: the
+    point, along the unit ``normals`` (W). Each point errs by ``sigma_mm`` along its ray (``*_rays``, any length, W: the
     simulator's noise, ``raycast.ScannerModel``), so by ``sigma_mm |n . ray|`` along the normal: the row's variance
     is ``2 sigma_mm^2`` times the correction's ``joint.ray_variances`` (grazing rows floored alike). ``covering``:
     how many scans cover the source point (its own and every other within ``OVERLAP_MM``); where ``k`` do, the
