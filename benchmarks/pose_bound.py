@@ -169,7 +169,7 @@ def row_weights(normals: np.ndarray, source_rays: np.ndarray, target_rays: np.nd
     how many scans cover the source point (its own and every other within ``OVERLAP_MM``); where ``k`` do, the
     pairs there share each scan's noise and each row counts ``2 / k`` of its information (``joint.shares``: exact
     for an unknown surface; counting each row at full weight counts every point's noise once per partner,
-    ``k / 2`` times too much). docs/registration.md, "Shared noise"."""
+    ``k / 2`` times too much). docs/registration.md, "Shared noise and the scanner's rays"."""
     variance = 2.0 * sigma_mm**2 * ray_variances(normals, source_rays, target_rays)
     return 2.0 / (np.maximum(covering, 2) * variance)
 
