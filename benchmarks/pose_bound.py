@@ -68,7 +68,13 @@ from tandemscan.pipeline.inspection.scoring import cloud_to_mesh_distances, dist
 from tandemscan.pipeline.io.raw_scan import read_raw_scan
 from tandemscan.pipeline.planning.plan import Plan
 from tandemscan.pipeline.registration.correction import joint_scan, joint_settings
-from tandemscan.pipeline.registration.joint import MIN_NORMAL_COSINE, ray_variances, refine_jointly, symmetric_normals
+from tandemscan.pipeline.registration.joint import (
+    MIN_NORMAL_COSINE,
+    noise_shares,
+    ray_variances,
+    refine_jointly,
+    symmetric_normals,
+)
 from tandemscan.pipeline.registration.mounts import MountPrior
 from tandemscan.pipeline.registration.normals import estimate_normals
 from tandemscan.pipeline.registration.overlap import extract_overlap, overlapping_pairs
@@ -167,11 +173,11 @@ def row_weights(normals: np.ndarray, source_rays: np.ndarray, target_rays: np.nd
     simulator's noise, ``raycast.ScannerModel``), so by ``sigma_mm |n . ray|`` along the normal: the row's variance
     is ``2 sigma_mm^2`` times the correction's ``joint.ray_variances`` (grazing rows floored alike). ``covering``:
     how many scans cover the source point (its own and every other within ``OVERLAP_MM``); where ``k`` do, the
-    pairs there share each scan's noise and each row counts ``2 / k`` of its information (``joint.shares``: exact
+    pairs there share each scan's noise and each row counts ``2 / k`` of its information (``joint.noise_shares``: exact
     for an unknown surface; counting each row at full weight counts every point's noise once per partner,
     ``k / 2`` times too much). docs/registration.md, "Shared noise and the scanner's rays"."""
     variance = 2.0 * sigma_mm**2 * ray_variances(normals, source_rays, target_rays)
-    return 2.0 / (np.maximum(covering, 2) * variance)
+    return noise_shares(covering) / variance
 
 
 def residual_chi2_per_dof(target: np.ndarray, target_tree: cKDTree, target_normals: np.ndarray, source: np.ndarray,

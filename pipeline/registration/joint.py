@@ -29,7 +29,7 @@ Cholesky factor ``L``). Scan ``i`` is corrected by the world motion about ``o_i`
 where they agree within ``MIN_NORMAL_COSINE``): the symmetric point-to-plane residual, zero for two points of
 one circular arc, where the plane of ``q`` alone leaves the arc's sagitta (curvature times the squared offset,
 halved). Its variance follows the scanner's noise along its rays (``ray_variances``), and where more than two
-scans cover a place their pairs share each scan's noise (``shares``): each residual weighs its share over its
+scans cover a place their pairs share each scan's noise (``noise_shares``): each residual weighs its share over its
 variance. Each linearisation weights the residuals at the current poses (Huber at ``huber_k`` times their robust
 scale, which is also the sigma of two points seen head-on) and solves the sparse normal
 equations ``(A^T H_e A + prior) theta = A^T b`` for ``theta`` itself (scipy.sparse); the posterior covariance of
@@ -221,7 +221,7 @@ class _Match:
     """The correspondences of one pair: the indices of the source points (scan j) and of their target points
     (scan i), and at the current poses the source points in the target's frame S_i (mm), the point-to-plane
     residuals (mm) and the symmetric normals (S_i); found once, each residual's variance relative to that of
-    two points seen head-on (:func:`ray_variances`) and its share (``2 / k``, :func:`shares`)."""
+    two points seen head-on (:func:`ray_variances`) and its share (``2 / k``, :func:`noise_shares`)."""
 
     source: np.ndarray
     target: np.ndarray
@@ -303,20 +303,25 @@ def ray_variances(normals: np.ndarray, source_rays: np.ndarray, target_rays: np.
     return np.maximum(cos_sq(source_rays) + cos_sq(target_rays), MIN_RAY_COSINES_SQ) / 2.0
 
 
-def shares(sizes: Sequence[int], associated: list[tuple[_Pair, _Match]]) -> list[tuple[_Pair, _Match]]:
-    """``associated`` with each correspondence's share of its information: ``2 / k``, ``k`` the scans covering its
-    points (the larger of the source's and the target's count: its own scan and every other it has a
-    correspondence with). Where ``k`` scans cover one place, its ``k (k - 1) / 2`` pairs share each scan's noise:
-    the surface there is unknown, and eliminating its height leaves ``(I - 1 1^T / k) / sigma^2`` of information
-    on the scans' offsets, which the pairs' residuals give at ``2 / k`` of their weight each (exact for two
-    scans; counting each at full weight counts every point's noise once per partner). ``sizes``: the points of
-    each scan. docs/registration.md, "Shared noise and the scanner's rays"."""
+def noise_shares(covering: np.ndarray) -> np.ndarray:
+    """The share of its information each residual keeps where ``covering`` scans cover its place (its own and
+    every other there): ``2 / k``, at most 1. Where ``k`` scans cover one place, its ``k (k - 1) / 2`` pairs share
+    each scan's noise: the surface there is unknown, and eliminating its height leaves ``(I - 1 1^T / k) /
+    sigma^2`` of information on the scans' offsets, which the pairs' residuals give at ``2 / k`` of their weight
+    each (exact for two scans; counting each at full weight counts every point's noise once per partner).
+    docs/registration.md, "Shared noise and the scanner's rays"."""
+    return 2.0 / np.maximum(covering, 2.0)
+
+
+def _with_shares(sizes: Sequence[int], associated: list[tuple[_Pair, _Match]]) -> list[tuple[_Pair, _Match]]:
+    """``associated`` with each correspondence's :func:`noise_shares`, ``k`` the larger of its source's and its
+    target's count of scans (its own and every other it has a correspondence with); ``sizes``: the points of
+    each scan."""
     covered = [np.ones(n) for n in sizes]
     for p, m in associated:
         covered[p.j][m.source] += 1.0
         covered[p.i][np.unique(m.target)] += 1.0
-    return [(p, dataclasses.replace(m, share=2.0 / np.maximum(np.maximum(covered[p.j][m.source],
-                                                                          covered[p.i][m.target]), 2.0)))
+    return [(p, dataclasses.replace(m, share=noise_shares(np.maximum(covered[p.j][m.source], covered[p.i][m.target]))))
             for p, m in associated]
 
 
@@ -329,7 +334,7 @@ def _huber(r: np.ndarray, sigma: float, k: float) -> np.ndarray:
 def _information(m: _Match, sigma: float, huber_k: float) -> np.ndarray:
     """The weight (1/mm^2) of each residual of ``m``: its Huber weight (on the residual as it is: away from the
     truth the residuals that stand out are the start's errors along the normal, not the rays' noise), over its
-    relative variance (:func:`ray_variances`), times its share (:func:`shares`)."""
+    relative variance (:func:`ray_variances`), times its share (:func:`noise_shares`)."""
     return _huber(m.residual, sigma, huber_k) / m.variance * m.share
 
 
@@ -361,7 +366,7 @@ def _associate(scans: Sequence[JointScan], trees: Sequence[cKDTree], poses: np.n
         p = _Pair(i, j)
         return p, p.matched(scans, rel, x[inside[found]], idx[found], inside[found])
 
-    return shares([len(s.points_S) for s in scans], [p for p in pair_map(near, pairs) if p is not None])
+    return _with_shares([len(s.points_S) for s in scans], [p for p in pair_map(near, pairs) if p is not None])
 
 
 def refine_jointly(
