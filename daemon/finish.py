@@ -7,7 +7,7 @@ measured are reused, the pose graph and the joint refinement solved), the cloud 
 from the scan files, one at a time (:func:`merge_stage`; the map built while measuring is kept when nothing
 was corrected), then ``cloud.ply``, the E57 (full scans streamed from their files), the pose log and the
 inspection written and ``report.json`` written once (``job_outputs.export_job``). Each stage returns a frozen
-result; the tracker-stitched job (its poses and map) and the refined one stay separate, and whether the poses
+result; the tracker-stitched poses and the refined ones stay separate, and whether the poses
 were corrected is known from the correction stage. Frames: poses ``T_W_S`` in the job's world frame W,
 points in the scanner frame S, mm.
 """
@@ -103,8 +103,10 @@ def finish_job(job: JobSnapshot, started: float, measured_at: float,
     """Correct, merge, export and inspect a measured job. It takes over ``job.worldmap``, the map stitched while
     the job measured (tracker poses), and leaves there the finished job's cloud (``worldmap.MapCloud``), so that
     the caller, holding no other reference, lets the end of the job free the map's sums. Memory: the thinned
-    scans, one map and one cloud at a time and one full scan; where the correction changed the poses, the
-    tracker stitch's cloud stays as float32 for the simulator's score of it (``correction.before``).
+    scans, one map and one cloud at a time and one full scan; where the correction changed the poses, the map
+    stitched while measuring is dropped before the merge at the corrected poses, and only the simulator's
+    score of the tracker stitch (``correction.before``, after report.html) merges the scans at the tracker
+    poses again.
     ``started`` and ``measured_at`` are ``time.monotonic()`` at the job's start and at its last step's commit;
     ``online``: what the job computed while it measured (``online_pairs.OnlineWork``: registered pairs, scans
     prepared for the joint refinement); ``stages`` (s) are timings of the work before this call."""
@@ -117,13 +119,14 @@ def finish_job(job: JobSnapshot, started: float, measured_at: float,
     del loaded
     t = time.perf_counter()
     tracker_map, job.worldmap = job.worldmap, None
-    tracker_job = None
+    tracker_poses = tracker_stitch = None
     if outcome.corrected:
-        tracker_job = dataclasses.replace(job, worldmap=tracker_map.frozen(np.float32))
-        del tracker_map
-        merged = merge_stage(tracker_job.worldmap.voxel_mm, job, outcome.poses)
-        job.worldmap = merged.frozen()
-        del merged
+        voxel_mm, tracker_poses = tracker_map.voxel_mm, [s.T_W_S for s in job.scans]
+        del tracker_map                              # the cloud is merged anew at the corrected poses
+        job.worldmap = merge_stage(voxel_mm, job, outcome.poses).frozen()
+
+        def tracker_stitch() -> JobSnapshot:
+            return dataclasses.replace(job, worldmap=merge_stage(voxel_mm, job, tracker_poses).frozen(np.float32))
     else:
         job.worldmap = tracker_map.frozen()
         del tracker_map
@@ -131,5 +134,6 @@ def finish_job(job: JobSnapshot, started: float, measured_at: float,
     final = dataclasses.replace(
         job, scans=[dataclasses.replace(s, T_W_S=T) for s, T in zip(job.scans, outcome.poses, strict=True)],
         correction=outcome.section)
-    report = export_job(final, time.monotonic() - started, measured_at, timings, view_S, tracker_job)
+    report = export_job(final, time.monotonic() - started, measured_at, timings, view_S, tracker_poses,
+                        tracker_stitch)
     return FinishedJob(report, outcome)

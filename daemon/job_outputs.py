@@ -18,7 +18,7 @@ import dataclasses
 import json
 import logging
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING
 
@@ -95,7 +95,8 @@ def _accuracy(report: dict) -> dict:
 
 
 def export_job(job: JobSnapshot, seconds: float, measured_at: float, stages: Mapping[str, float] | None = None,
-               points_S: Sequence[np.ndarray] | None = None, tracker_job: JobSnapshot | None = None) -> dict:
+               points_S: Sequence[np.ndarray] | None = None, tracker_poses: Sequence[np.ndarray] | None = None,
+               tracker_stitch: Callable[[], JobSnapshot] | None = None) -> dict:
     """Write ``cloud.ply`` (W, mm), the report (returned and written once, as ``report.json``) and the
     inspection exports of a finished job into its folder; runs where ``job.worldmap`` (the final cloud) lives.
     ``measured_at`` is ``time.monotonic()`` (system-wide) when the job's last step was committed:
@@ -107,9 +108,9 @@ def export_job(job: JobSnapshot, seconds: float, measured_at: float, stages: Map
     ``after_last_scan_s``, none on a real cell); ``resources.peak_rss_gib`` the peak memory of the process
     until then (:func:`peak_rss_gib`). ``points_S``: the scans' points (S, mm) thinned at ``[job]
     voxel_mm`` or to :func:`stitch_view_points` (else read and thinned here; the E57 reads the full scans from
-    their files); ``tracker_job``: the job as the tracker stitched it (its poses and the map built while
-    measuring) where the correction changed the poses (None: not corrected)."""
-    tracker_poses = None if tracker_job is None else [s.T_W_S for s in tracker_job.scans]
+    their files); ``tracker_poses``: the tracker-stitched poses ``T_W_S`` (W, mm) where the correction changed
+    them (None: not corrected); ``tracker_stitch``: the job as the tracker stitched it, its cloud merged when
+    called (only the simulator's scoring calls it, ``report.add_ground_truth``)."""
     t = [time.perf_counter()]
     with ThreadPoolExecutor(1, thread_name_prefix="cloud-ply") as pool:  # written while the report computes
         cloud_ply = pool.submit(write_ply, job.job_dir / "cloud.ply", job.worldmap.points(), job.worldmap.normals())
@@ -121,7 +122,7 @@ def export_job(job: JobSnapshot, seconds: float, measured_at: float, stages: Map
         t.append(time.perf_counter())
     after_last_scan_s = time.monotonic() - measured_at
     report["resources"] = {"peak_rss_gib": peak_rss_gib()}  # the job's work, before the simulator's scoring
-    add_ground_truth(report, job, tracker_job)
+    add_ground_truth(report, job, tracker_stitch)
     t.append(time.perf_counter())
     names = ("cloud_ply_s", "report_s", "exports_and_inspection_s", "scoring_s")
     stages = {**(stages or {}), **job.correction.get("stage_seconds", {}),

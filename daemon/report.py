@@ -4,7 +4,7 @@ job's observer writes (:mod:`tandemscan.daemon.observer`), added once report.htm
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -49,17 +49,18 @@ _BEFORE_KEYS = ("pose_err_mm_median", "pose_err_mm_max", "pose_err_deg_median", 
                 "cloud_rms_mm", "cloud_p95_mm")
 
 
-def add_ground_truth(report: dict, job: JobSnapshot, tracker_job: JobSnapshot | None = None) -> None:
+def add_ground_truth(report: dict, job: JobSnapshot, tracker_stitch: Callable[[], JobSnapshot] | None = None
+                     ) -> None:
     """On the simulated cell (``job.scorer`` set), add to ``report`` the scorer's ``ground_truth`` of the final
-    stitch ``job``, that of the tracker-only stitch ``tracker_job`` (its scans at the tracker poses and the map
-    stitched while measuring; where the correction changed the poses) as ``correction.before``, and the score
+    stitch ``job``, that of the tracker-only stitch (``tracker_stitch()``: its scans at the tracker poses and
+    their cloud, built when called; where the correction changed the poses) as ``correction.before``, and the score
     of the inspection (``ground_truth.inspection``, where the report has an alignment). A real cell's report
     is left as it is."""
     if job.scorer is None or not job.scans:
         return
     report["ground_truth"] = job.scorer.score(job)
-    if tracker_job is not None and report.get("correction", {}).get("enabled"):
-        before = job.scorer.score(tracker_job)
+    if tracker_stitch is not None and report.get("correction", {}).get("enabled"):
+        before = job.scorer.score(tracker_stitch())
         report["correction"] = {**report["correction"], "before": {k: before[k] for k in _BEFORE_KEYS}}
     if "alignment" in report.get("inspection", {}):
         report["ground_truth"]["inspection"] = job.scorer.score_inspection(job, report["inspection"])

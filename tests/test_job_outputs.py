@@ -45,8 +45,8 @@ async def test_job_writes_report_and_exports_next_to_cloud(sim_config, tmp_path,
     assert report["timings"]["after_last_scan_s"] > 0
     assert report["timings"]["correction_cpu_s"] == report["correction"]["cpu_seconds"] > 0
     assert 0.1 < report["resources"]["peak_rss_gib"] < 64  # this process's peak until then (VmHWM)
-    # the simulator scores after the outputs are written: the tracker-only stitch (its poses and the map built
-    # while measuring) as ``correction.before``, the (perfect) correction as ``ground_truth``
+    # the simulator scores after the outputs are written: the tracker-only stitch (its scans merged again at
+    # the tracker poses) as ``correction.before``, the (perfect) correction as ``ground_truth``
     before, truth = report["correction"]["before"], report["ground_truth"]
     assert truth["pose_err_mm_max"] < 1e-9 < before["pose_err_mm_median"]
     assert "scoring_s" in report["timings"]["stages_s"]
