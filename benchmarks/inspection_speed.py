@@ -74,9 +74,9 @@ def load_job(job_dir: Path, config, out_dir: Path) -> tuple[SimpleNamespace, dic
     for entry in rep["scan_log"]:
         raw = read_raw_scan(job_dir / "scans" / entry["file"])
         points_S.append(raw[0])
-        scans.append(SimpleNamespace(file=Path(entry["file"]), tracker_station=entry["tracker_station"],
+        scans.append(SimpleNamespace(file=job_dir / "scans" / entry["file"], tracker_station=entry["tracker_station"],
                                      reading=SimpleNamespace(timestamp_s=0.0), joints_rad=np.zeros(6),
-                                     T_W_S=np.asarray(entry["T_W_S"], float)))
+                                     T_W_S=np.asarray(entry["T_W_S"], float), point_count=len(raw[0])))
     tracker = [np.asarray(e["T_W_S_tracker"], float) for e in rep["scan_log"]] if all(
         "T_W_S_tracker" in e for e in rep["scan_log"]) else None
     cloud = SimpleNamespace(points=lambda: points, normals=lambda: normals)

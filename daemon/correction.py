@@ -73,9 +73,9 @@ def transfer_priors(transfers: list[dict]) -> list[TransferPrior]:
 def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray], online: OnlineWork | None = None
                 ) -> tuple[dict, list[np.ndarray]]:
     """The refined pose ``T_W_S`` (W, mm) of every scan of ``job.scans``, whose points in the scanner frame S
-    (mm) are ``points_S``; ``job`` is not changed. ``online``: what the job computed while it
-    measured (``online_pairs.OnlineWork``: registered pairs and scans prepared for the joint refinement, reused
-    by ``correction.correct_scans`` where their keys match).
+    (mm) are ``points_S``; ``job`` is not changed. ``online``: what the job computed while it measured
+    (``online_pairs.OnlineWork``: registered pairs, scans prepared for the joint refinement and their pairs'
+    nearest neighbours, reused by ``correction.correct_scans`` where their keys match).
 
     Returns the ``correction`` section of the report (the settings, pair and graph figures; on the simulated
     cell ``report.add_ground_truth`` adds those of the tracker-only stitch, ``before``, once the job's outputs
@@ -90,7 +90,8 @@ def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray], online: Online
     result = correct_scans(scans, cfg, LazyNetwork(job.config.deepmerge), transfers=transfer_priors(job.transfers),
                            voxel_mm=job.config.job.voxel_mm, mount_prior=prior,
                            pair_cache=None if online is None else online.pairs,
-                           joint_cache=None if online is None else online.joint_scans)
+                           joint_cache=None if online is None else online.joint_scans,
+                           association_cache=None if online is None else online.associations)
     section = {"enabled": True, **result.report, "seconds": round(time.monotonic() - started, 3),
                "cpu_seconds": round(_cpu_seconds() - cpu, 3)}
     section["mount"] = {"estimated": result.mount is not None, "prior": prior_source}

@@ -56,10 +56,12 @@ def test_methods_with_the_network_register_nothing_while_measuring():
 
 
 def test_scans_prepared_for_the_joint_refinement_while_measuring_give_the_same_poses(monkeypatch):
-    """With ``joint`` on, every scan is thinned and given normals as it arrives; the end of the job takes those
-    out of the cache (none is prepared again, none kept after) and refines to the poses it computes without
-    them. A scan whose points differ from what was prepared (another voxel) is prepared again."""
-    from tandemscan.pipeline.registration import correction
+    """With ``joint`` on, every scan is thinned and given normals as it arrives, and its pairs' nearest
+    neighbours are found at the tracker poses; the end of the job takes the scans out of the cache (none is
+    prepared again, none kept after), searches no pair's neighbours again and refines to the poses it computes
+    without them. A scan whose points differ from what was prepared (another voxel) is prepared again, and its
+    pairs searched again."""
+    from tandemscan.pipeline.registration import correction, joint
 
     _, scans, transfers = scans_with_drift(n=4, per_station=2)
     cfg = CorrectionConfig(method="icp", min_overlap_points=100, joint=True, joint_iterations=2)
@@ -67,15 +69,21 @@ def test_scans_prepared_for_the_joint_refinement_while_measuring_give_the_same_p
     work = online.work()
     assert len(work.joint_scans) == len(scans)
     fresh = correct_scans(scans, cfg, transfers=transfers)
-    prepared_at_end = []
-    real = correction.joint_scan
+    assert fresh.report["joint"]["pairs_associated_while_measuring"] == 0
+    prepared_at_end, searched_at_end = [], []
+    real, real_associate = correction.joint_scan, joint.associate
     monkeypatch.setattr(correction, "joint_scan", lambda P, c: prepared_at_end.append(len(P)) or real(P, c))
+    monkeypatch.setattr(joint, "associate", lambda *a: searched_at_end.append(1) or real_associate(*a))
     kept = dict(work.joint_scans)
-    reused = correct_scans(scans, cfg, transfers=transfers, pair_cache=work.pairs, joint_cache=work.joint_scans)
-    assert prepared_at_end == [] and reused.report["joint"]["pairs"] == fresh.report["joint"]["pairs"] > 0
+    reused = correct_scans(scans, cfg, transfers=transfers, pair_cache=work.pairs, joint_cache=work.joint_scans,
+                           association_cache=work.associations)
+    assert prepared_at_end == [] and searched_at_end == []
+    assert reused.report["joint"]["pairs"] == fresh.report["joint"]["pairs"] > 0
+    assert reused.report["joint"]["pairs_associated_while_measuring"] >= fresh.report["joint"]["pairs"]
     assert work.joint_scans == {}  # taken out as used: none outlives the refinement
     for a, b in zip(fresh.poses, reused.poses, strict=True):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)
     coarser = cfg.model_copy(update={"joint_voxel_mm": 3.0})
-    correct_scans(scans, coarser, transfers=transfers, pair_cache=work.pairs, joint_cache=kept)
-    assert len(prepared_at_end) == len(scans)
+    correct_scans(scans, coarser, transfers=transfers, pair_cache=work.pairs, joint_cache=kept,
+                  association_cache=work.associations)
+    assert len(prepared_at_end) == len(scans) and searched_at_end

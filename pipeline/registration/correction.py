@@ -27,7 +27,13 @@ from tandemscan.pipeline.registration.icp import (
     point_to_plane_information,
     target_with_normals,
 )
-from tandemscan.pipeline.registration.joint import JointResult, JointScan, JointSettings, refine_jointly
+from tandemscan.pipeline.registration.joint import (
+    Association,
+    JointResult,
+    JointScan,
+    JointSettings,
+    refine_jointly,
+)
 from tandemscan.pipeline.registration.mounts import MountEstimate, MountPrior
 from tandemscan.pipeline.registration.overlap import overlapping_pairs, relative_covariance
 from tandemscan.pipeline.registration.pairs import (
@@ -195,6 +201,16 @@ def joint_scan_key(points_S: np.ndarray, cfg: CorrectionConfig) -> str:
     return h.hexdigest()
 
 
+def association_key(scan_key_i: str, scan_key_j: str, T_W_S_i: np.ndarray, T_W_S_j: np.ndarray,
+                    cfg: CorrectionConfig) -> str:
+    """The cache key of a pair's nearest neighbours for the joint refinement (``joint.associate``): both
+    prepared scans (:func:`joint_scan_key`), both start poses (W, mm) and the distance they are searched within."""
+    h = hashlib.blake2b((scan_key_i + scan_key_j).encode(), digest_size=16)
+    h.update(np.ascontiguousarray(np.stack([T_W_S_i, T_W_S_j]), np.float64).tobytes())
+    h.update(np.float64(cfg.joint_max_distance_mm).tobytes())
+    return h.hexdigest()
+
+
 def _pair_corrections(
     scans: Sequence[StitchedScan], local: list[np.ndarray], cfg: CorrectionConfig, network: Registrar | None,
     transfers: Sequence[TransferPrior], cache: Mapping[str, PairOutcome],
@@ -227,6 +243,7 @@ def correct_scans(
     scans: Sequence[StitchedScan], cfg: CorrectionConfig, network: Registrar | None = None,
     transfers: Sequence[TransferPrior] = (), voxel_mm: float = 1.0, mount_prior: MountPrior | None = None,
     pair_cache: Mapping[str, PairOutcome] | None = None, joint_cache: MutableMapping[str, JointScan] | None = None,
+    association_cache: Mapping[str, Association] | None = None,
 ) -> CorrectionResult:
     """Correct every overlapping pair and refine all poses; ``voxel_mm`` thins the scans first.
 
@@ -239,7 +256,8 @@ def correct_scans(
     by :func:`pair_key`); a pair not in it is registered here, so the result never depends on it. ``joint_cache``
     likewise holds the scans prepared for the joint refinement while the job measured (:func:`joint_scan`, keyed
     by :func:`joint_scan_key`); each is taken out of it as the refinement takes it, so that none outlives the
-    refinement (the prepared scans of a whole part are about half a gigabyte).
+    refinement (the prepared scans of a whole part are about half a gigabyte); ``association_cache`` the pairs'
+    nearest neighbours found for it at the tracker poses (``joint.associate``, keyed by :func:`association_key`).
     """
     if cfg.method in NETWORK_METHODS and network is None:
         raise ValueError(f"method {cfg.method!r} needs a DeepMerge registrar (pairs.LazyNetwork)")
@@ -257,7 +275,8 @@ def correct_scans(
     poses, mount, joint = res.poses, res.mount, None
     clock.lap("graph_s")
     if cfg.joint:
-        joint = _refine_jointly(scans, priors, cfg, transfers, mount_prior, joint_cache or {})
+        joint, associated_while_measuring = _refine_jointly(scans, priors, cfg, transfers, mount_prior,
+                                                            joint_cache or {}, association_cache or {})
         poses, mount = joint.poses, joint.mount
         clock.lap("joint_s")
     before = [s.T_W_S for s in scans]
@@ -280,7 +299,8 @@ def correct_scans(
         "stage_seconds": clock.laps,
     }
     if joint is not None:
-        report["joint"] = _joint_report(joint, [s.station for s in scans])
+        report["joint"] = _joint_report(joint, [s.station for s in scans]) | {
+            "pairs_associated_while_measuring": associated_while_measuring}
     log.info("correction: %d scans, %d pairs (%d dropped), overlap RMS %.4f -> %.4f mm", len(scans), len(edges),
              len(dropped), rms_b, rms_a)
     return CorrectionResult(poses, edges, report, mount)
@@ -288,21 +308,31 @@ def correct_scans(
 
 def _refine_jointly(scans: Sequence[StitchedScan], priors: list[ScanPrior], cfg: CorrectionConfig,
                     transfers: Sequence[TransferPrior], mount_prior: MountPrior | None,
-                    cache: MutableMapping[str, JointScan]) -> JointResult:
+                    cache: MutableMapping[str, JointScan], associations: Mapping[str, Association]
+                    ) -> tuple[JointResult, int]:
     """The joint refinement (``joint.refine_jointly``) from the tracker poses (its correspondences are found
     there, not at the pose graph's, which are fitted to the same scans: ``joint`` module doc), on scans thinned
     to ``cfg.joint_voxel_mm`` (:func:`joint_scan`, taken out of ``cache`` where prepared while the job measured),
-    over every pair sharing a grid cell (``cfg.joint_max_partners_per_scan``)."""
-    def prepared(s: StitchedScan) -> JointScan:
-        found = cache.pop(joint_scan_key(s.points_S, cfg), None) if cache else None
-        return joint_scan(s.points_S, cfg) if found is None else found
+    over every pair sharing a grid cell (``cfg.joint_max_partners_per_scan``), with the pairs' nearest neighbours
+    from ``associations`` where found while the job measured. Returns it and the number of pairs whose
+    neighbours came from ``associations``."""
+    keys = [joint_scan_key(s.points_S, cfg) for s in scans]
+
+    def prepared(k: int) -> JointScan:
+        found = cache.pop(keys[k], None) if cache else None
+        return joint_scan(scans[k].points_S, cfg) if found is None else found
 
     with pair_threads() as pair_map:
-        thinned = pair_map(prepared, scans)
+        thinned = pair_map(prepared, range(len(scans)))
     world = [transform_points(s.T_W_S, j.points_S) for s, j in zip(scans, thinned, strict=True)]
     pairs = overlapping_pairs(world, [s.station for s in scans], cfg.pair_cell_mm, cfg.joint_max_partners_per_scan)
+    found = {}
+    for i, j in pairs if associations else ():
+        a = associations.get(association_key(keys[i], keys[j], scans[i].T_W_S, scans[j].T_W_S, cfg))
+        if a is not None:
+            found[i, j] = a
     return refine_jointly(thinned, priors, pairs, [s.T_W_S for s in scans], transfers, mount_prior,
-                          joint_settings(cfg))
+                          joint_settings(cfg), found), len(found)
 
 
 def joint_settings(cfg: CorrectionConfig) -> JointSettings:

@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -320,7 +320,7 @@ def _with_shares(sizes: Sequence[int], associated: list[tuple[_Pair, _Match]]) -
     covered = [np.ones(n) for n in sizes]
     for p, m in associated:
         covered[p.j][m.source] += 1.0
-        covered[p.i][np.unique(m.target)] += 1.0
+        covered[p.i] += np.bincount(m.target, minlength=sizes[p.i]) > 0   # each target point once
     return [(p, dataclasses.replace(m, share=noise_shares(np.maximum(covered[p.j][m.source], covered[p.i][m.target]))))
             for p, m in associated]
 
@@ -343,28 +343,50 @@ def _robust_sigma(r: np.ndarray) -> float:
     return max(1.4826 * float(np.median(np.abs(r))), _MIN_SIGMA_MM) if len(r) else 1.0
 
 
-def _associate(scans: Sequence[JointScan], trees: Sequence[cKDTree], poses: np.ndarray,
-               pairs: Sequence[tuple[int, int]], max_mm: float, pair_map: PairMap) -> list[tuple[_Pair, _Match]]:
+@dataclass(frozen=True)
+class Association:
+    """The nearest neighbours of a scan pair ``(i, j)`` at its start poses: the indices ``source`` of the points of
+    scan ``j`` that have a point of scan ``i`` within the distance asked for, and the indices ``target`` of those
+    points (int32; before the normal gate of :func:`refine_jointly`, which keeps those whose normals agree)."""
+
+    source: np.ndarray
+    target: np.ndarray
+
+
+def associate(target: JointScan, tree: cKDTree, source: JointScan, T_S_i_S_j: np.ndarray, max_mm: float
+              ) -> Association:
+    """Each point of ``source`` (scan j) placed in the target's frame S_i by ``T_S_i_S_j`` and its nearest point of
+    ``target`` (scan i, whose points ``tree`` holds) within ``max_mm`` (mm); only the source points inside the
+    target's bounding box widened by ``max_mm`` are searched. This is the costly part of the refinement's
+    association (a KD-tree query a point), so a job finds it for each pair while it measures, at the tracker
+    poses (``online_pairs.OnlinePairs``)."""
+    if not len(target.points_S) or not len(source.points_S):
+        return Association(np.zeros(0, np.int32), np.zeros(0, np.int32))
+    low, high = target.points_S.min(axis=0) - max_mm, target.points_S.max(axis=0) + max_mm
+    x = transform_points(T_S_i_S_j, source.points_S)
+    inside = np.flatnonzero(np.all((x >= low) & (x <= high), axis=1))
+    d, idx = tree.query(x[inside], distance_upper_bound=max_mm, workers=1)
+    found = np.isfinite(d)
+    return Association(inside[found].astype(np.int32), idx[found].astype(np.int32))
+
+
+def _associate(scans: Sequence[JointScan], poses: np.ndarray, pairs: Sequence[tuple[int, int]], max_mm: float,
+               given: Mapping[tuple[int, int], Association], pair_map: PairMap) -> list[tuple[_Pair, _Match]]:
     """The correspondences of every pair at ``poses``: each source point's nearest target point within ``max_mm``
-    (only the source points inside the target's bounding box widened by ``max_mm`` are searched), where their
-    normals agree; pairs without any are left out. ``pair_map`` maps a function over the pairs
-    (``parallel.pair_threads``)."""
-    boxes = [(s.points_S.min(axis=0) - max_mm, s.points_S.max(axis=0) + max_mm) if len(s.points_S) else None
-             for s in scans]
+    (:func:`associate`; taken from ``given`` where the pair is there), where their normals agree; pairs without
+    any are left out. ``pair_map`` maps a function over the pairs (``parallel.pair_threads``)."""
+    missing = sorted({i for i, j in pairs if (i, j) not in given})
+    trees = dict(zip(missing, pair_map(lambda i: cKDTree(scans[i].points_S), missing), strict=True))
 
     def near(pair: tuple[int, int]) -> tuple[_Pair, _Match] | None:
         i, j = pair
-        if boxes[i] is None:
-            return None
         rel = invert(poses[i]) @ poses[j]
-        x = transform_points(rel, scans[j].points_S)
-        inside = np.flatnonzero(np.all((x >= boxes[i][0]) & (x <= boxes[i][1]), axis=1))
-        d, idx = trees[i].query(x[inside], distance_upper_bound=max_mm, workers=1)
-        found = np.isfinite(d)
-        if not found.any():
+        found = given.get(pair) or associate(scans[i], trees[i], scans[j], rel, max_mm)
+        if not len(found.source):
             return None
         p = _Pair(i, j)
-        return p, p.matched(scans, rel, x[inside[found]], idx[found], inside[found])
+        x = transform_points(rel, scans[j].points_S[found.source])
+        return p, p.matched(scans, rel, x, found.target, found.source)
 
     return _with_shares([len(s.points_S) for s in scans], [p for p in pair_map(near, pairs) if p is not None])
 
@@ -373,26 +395,29 @@ def refine_jointly(
     scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequence[tuple[int, int]],
     start_poses: Sequence[np.ndarray], transfers: Sequence[TransferPrior] = (),
     mount_prior: MountPrior | None = None, settings: JointSettings = JointSettings(),
+    associations: Mapping[tuple[int, int], Association] | None = None,
 ) -> JointResult:
     """Refine every scan pose jointly from ``start_poses`` (the tracker poses: see the module doc) on the overlaps
     of ``pairs`` (``(i, j)``: points of ``j`` measured against the surface of ``i``); the priors are the tracker poses
-    ``priors`` (``T_W_S`` and covariance), ``transfers`` and ``mount_prior`` as in ``pose_graph.refine_poses``."""
+    ``priors`` (``T_W_S`` and covariance), ``transfers`` and ``mount_prior`` as in ``pose_graph.refine_poses``.
+    ``associations``: pairs' nearest neighbours found at the same start poses with ``settings.max_distance_mm``
+    (:func:`associate`, while the job measured); the other pairs' are found here."""
     if not (len(scans) == len(priors) == len(start_poses)):
         raise RefineError(f"{len(scans)} scans, {len(priors)} priors and {len(start_poses)} start poses differ")
     with pair_threads() as pair_map:
-        return _refine(scans, priors, pairs, start_poses, transfers, mount_prior, settings, pair_map)
+        return _refine(scans, priors, pairs, start_poses, transfers, mount_prior, settings, associations or {},
+                       pair_map)
 
 
 def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequence[tuple[int, int]],
             start_poses: Sequence[np.ndarray], transfers: Sequence[TransferPrior], mount_prior: MountPrior | None,
-            settings: JointSettings, pair_map: PairMap) -> JointResult:
+            settings: JointSettings, associations: Mapping[tuple[int, int], Association],
+            pair_map: PairMap) -> JointResult:
     """:func:`refine_jointly` with ``pair_map`` mapping a function over the pairs."""
     model = _Model(priors, transfers, mount_prior)
     poses = np.stack([np.asarray(T, float) for T in start_poses])
     e = model.corrections(poses)
-    trees = pair_map(lambda s: cKDTree(s.points_S), scans)
-    associated = _associate(scans, trees, poses, pairs, settings.max_distance_mm, pair_map)  # once, see above
-    del trees
+    associated = _associate(scans, poses, pairs, settings.max_distance_mm, associations, pair_map)  # once
     H_prior = model.prior_information
     rms_before, sigma, H, used, n_corr, it = float("nan"), 1.0, None, 0, 0, 0
     for it in range(1, settings.iterations + 1):
@@ -418,7 +443,7 @@ def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequ
                   it, used, n_corr, sigma, move)
         if move < settings.tolerance_mm:
             break
-    final = [pm[0].at(scans, poses, pm[1]).residual for pm in kept]
+    final = pair_map(lambda pm: pm[0].at(scans, poses, pm[1]).residual, kept)
     r_fin = np.concatenate(final) if final else np.zeros(0)
     rms_after = float(np.sqrt(np.mean(r_fin**2))) if len(r_fin) else float("nan")
     H_theta = (model.A.T @ H @ model.A + H_prior).toarray()

@@ -5,10 +5,12 @@ As each scan is stitched (its points in the scanner frame S, its tracker pose ``
 (``overlap.PairSelector``: a superset of the pairs ``overlap.overlapping_pairs`` selects over the whole job)
 and registers those pairs as the correction would (``correction.register_stitched_pair``), keeping each
 outcome under ``correction.pair_key``; with ``[correction] joint`` it also prepares each scan for the joint
-refinement (``correction.joint_scan``: thinned, with normals) under ``correction.joint_scan_key``. After the
-last scan ``correction.correct_scans`` takes the outcomes of the pairs it selects and the prepared scans from
-these caches and computes only the others (a job resumed after a restart, a scan whose pose changed), so its
-result never depends on what was done here.
+refinement (``correction.joint_scan``: thinned, with normals) under ``correction.joint_scan_key`` and finds the
+nearest neighbours of its pairs there at the tracker poses (``joint.associate``: the refinement's association,
+the costly part of it) under ``correction.association_key``. After the last scan
+``correction.correct_scans`` takes the outcomes of the pairs it selects, the prepared scans and the
+associations from these caches and computes only the others (a job resumed after a restart, a scan whose pose
+changed), so its result never depends on what was done here.
 """
 
 from __future__ import annotations
@@ -16,15 +18,18 @@ from __future__ import annotations
 import logging
 import time
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 from tandemscan.config.models import CorrectionConfig
-from tandemscan.pipeline.geometry.frames import transform_points
+from tandemscan.pipeline.geometry.frames import invert, transform_points
 from tandemscan.pipeline.registration.correction import (
     PairOutcome,
     StitchedScan,
+    association_key,
     cloud_digest,
     joint_scan,
     joint_scan_key,
@@ -33,7 +38,7 @@ from tandemscan.pipeline.registration.correction import (
     register_stitched_pair,
 )
 from tandemscan.pipeline.registration.icp import target_with_normals
-from tandemscan.pipeline.registration.joint import JointScan
+from tandemscan.pipeline.registration.joint import Association, JointScan, associate
 from tandemscan.pipeline.registration.overlap import PairSelector
 from tandemscan.pipeline.registration.pairs import NETWORK_METHODS
 from tandemscan.pipeline.registration.pose_graph import TransferPrior
@@ -41,8 +46,25 @@ from tandemscan.pipeline.registration.sampling import voxel_downsample
 
 log = logging.getLogger(__name__)
 
-#: targets with normals kept for the next scans' pairs (most partners are the last few scans)
+#: targets with normals, and KD trees of prepared scans, kept for the next scans' pairs (most partners are the
+#: last few scans; an older one is made again)
 _TARGETS_KEPT = 24
+
+
+class _Recent:
+    """``make(i)`` of scan ``i``, the last ``size`` used kept."""
+
+    def __init__(self, make: Callable[[int], Any], size: int = _TARGETS_KEPT):
+        self._make, self._size, self._kept = make, size, OrderedDict()
+
+    def __call__(self, i: int) -> Any:
+        if i in self._kept:
+            self._kept.move_to_end(i)
+        else:
+            self._kept[i] = self._make(i)
+            if len(self._kept) > self._size:
+                self._kept.popitem(last=False)
+        return self._kept[i]
 
 
 @dataclass(frozen=True)
@@ -58,10 +80,12 @@ class OnlineScan:
 @dataclass(frozen=True)
 class OnlineWork:
     """What a job computed while it measured, for ``correction.correct_scans``: pair outcomes by
-    ``correction.pair_key`` and scans prepared for the joint refinement by ``correction.joint_scan_key``."""
+    ``correction.pair_key``, scans prepared for the joint refinement by ``correction.joint_scan_key`` and their
+    pairs' nearest neighbours by ``correction.association_key``."""
 
     pairs: dict[str, PairOutcome]
     joint_scans: dict[str, JointScan]
+    associations: dict[str, Association]
 
 
 class OnlinePairs:
@@ -78,7 +102,11 @@ class OnlinePairs:
         self.scans: list[OnlineScan] = []
         self.outcomes: dict[str, PairOutcome] = {}
         self.joint_scans: dict[str, JointScan] = {}
-        self._targets: OrderedDict[int, object] = OrderedDict()
+        self.associations: dict[str, Association] = {}
+        self._target = _Recent(lambda i: target_with_normals(self.scans[i].world_mm))
+        self._joint_selector = PairSelector(cfg.pair_cell_mm, cfg.joint_max_partners_per_scan)
+        self._joint_starts: list[tuple[str, np.ndarray]] = []  # each prepared scan's key and tracker pose
+        self._tree = _Recent(lambda i: cKDTree(self.joint_scans[self._joint_starts[i][0]].points_S))
         self.cpu_s = 0.0  # CPU time (s) of this process spent in add
 
     def add(self, points_S: np.ndarray, T_W_S: np.ndarray, covariance: np.ndarray, station: int,
@@ -86,7 +114,8 @@ class OnlinePairs:
         """Take the next scan with points (``points_S`` (N, 3) mm as the end of the job loads them,
         ``finish.load_scans``; its 6x6 pose covariance, ``uncertainty.scan_pose_covariance``; its tracker
         station; the transfer priors known so far), register its pairs and, with ``[correction] joint``, prepare
-        it for the joint refinement; returns how many pairs were registered."""
+        it for the joint refinement and find the nearest neighbours of its pairs there; returns how many pairs
+        were registered."""
         if not self.enabled or len(points_S) == 0:
             return 0
         cpu = time.process_time()
@@ -102,21 +131,25 @@ class OnlinePairs:
             if key not in self.outcomes:
                 self.outcomes[key] = register_stitched_pair(world, self._target(i), cov, self.cfg)
         if self.cfg.joint:
-            self.joint_scans[joint_scan_key(points_S, self.cfg)] = joint_scan(points_S, self.cfg)
+            self._prepare_joint(points_S, scan.T_W_S, scan.station)
         self.cpu_s += time.process_time() - cpu
         log.debug("online pairs: scan %d, %d partners", len(self.scans) - 1, len(partners))
         return len(partners)
 
     def work(self) -> OnlineWork:
-        """The pair outcomes and prepared joint scans so far."""
-        return OnlineWork(self.outcomes, self.joint_scans)
+        """The pair outcomes, prepared joint scans and their pairs' nearest neighbours so far."""
+        return OnlineWork(self.outcomes, self.joint_scans, self.associations)
 
-    def _target(self, i: int) -> object:
-        """Scan ``i``'s world cloud with normals (``icp.target_with_normals``), kept for the next few scans."""
-        if i in self._targets:
-            self._targets.move_to_end(i)
-        else:
-            self._targets[i] = target_with_normals(self.scans[i].world_mm)
-            if len(self._targets) > _TARGETS_KEPT:
-                self._targets.popitem(last=False)
-        return self._targets[i]
+    def _prepare_joint(self, points_S: np.ndarray, T_W_S: np.ndarray, station: int) -> None:
+        """Prepare the scan for the joint refinement (``correction.joint_scan``) and find, at the tracker poses,
+        the nearest neighbours of its points in every earlier prepared scan it may be paired with there
+        (``correction._refine_jointly`` pairs the prepared scans sharing a grid cell)."""
+        key = joint_scan_key(points_S, self.cfg)
+        prepared = self.joint_scans[key] = joint_scan(points_S, self.cfg)
+        partners = self._joint_selector.add(transform_points(T_W_S, prepared.points_S), station)
+        self._joint_starts.append((key, T_W_S))
+        for i in partners:
+            key_i, T_W_S_i = self._joint_starts[i]
+            self.associations[association_key(key_i, key, T_W_S_i, T_W_S, self.cfg)] = associate(
+                self.joint_scans[key_i], self._tree(i), prepared, invert(T_W_S_i) @ T_W_S,
+                self.cfg.joint_max_distance_mm)
