@@ -101,7 +101,7 @@ def main() -> None:
         job, rep, points_S, tracker = load_job(args.job_dir, load_config(args.config), out)
         t_load = time.perf_counter() - t0
         t0, c0 = time.perf_counter(), _cpu_s()
-        section = job_outputs.write_job_outputs(job, points_S, tracker)
+        section = job_outputs.write_job_outputs(job, rep, points_S, tracker)
         total, cpu = time.perf_counter() - t0, _cpu_s() - c0
         sizes = {f.name: f.stat().st_size for f in out.iterdir() if f.is_file()}
     if args.json:

@@ -18,14 +18,13 @@ import dataclasses
 import logging
 import time
 from collections.abc import Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 from tandemscan.daemon.job_outputs import export_job, stitch_view_points
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan
-from tandemscan.pipeline.stitching.worldmap import MapCloud, PendingCloud, VoxelMap
+from tandemscan.pipeline.stitching.worldmap import VoxelMap
 
 if TYPE_CHECKING:
     from tandemscan.daemon.snapshot import JobSnapshot
@@ -118,35 +117,23 @@ def finish_job(job: JobSnapshot, started: float, measured_at: float,
     outcome = correct_stage(job, loaded, online)
     view_S = tuple(stitch_view_points(p) for p in loaded.points_S)  # all the exports need of the copies
     del loaded
+    t = time.perf_counter()
     tracker_map, job.worldmap = job.worldmap, None
-    tracker_poses = tracker_stitch = merging = None
+    tracker_poses = tracker_stitch = None
+    if outcome.corrected:
+        voxel_mm, tracker_poses = tracker_map.voxel_mm, [s.T_W_S for s in job.scans]
+        del tracker_map                              # the cloud is merged anew at the corrected poses
+        job.worldmap = merge_stage(voxel_mm, job, outcome.poses).frozen()
+
+        def tracker_stitch() -> JobSnapshot:
+            return dataclasses.replace(job, worldmap=merge_stage(voxel_mm, job, tracker_poses).frozen(np.float32))
+    else:
+        job.worldmap = tracker_map.frozen()
+        del tracker_map
+    timings["merge_s"] = round(time.perf_counter() - t, 3)
     final = dataclasses.replace(
         job, scans=[dataclasses.replace(s, T_W_S=T) for s, T in zip(job.scans, outcome.poses, strict=True)],
         correction=outcome.section)
-    with ThreadPoolExecutor(1, thread_name_prefix="merge") as pool:
-        if outcome.corrected:
-            voxel_mm, tracker_poses = tracker_map.voxel_mm, [s.T_W_S for s in job.scans]
-            del tracker_map                          # the cloud is merged anew at the corrected poses
-            merging = pool.submit(_timed_merge, voxel_mm, job, outcome.poses, timings)
-            final.worldmap = PendingCloud(voxel_mm, merging)
-
-            def tracker_stitch() -> JobSnapshot:
-                return dataclasses.replace(job, worldmap=merge_stage(voxel_mm, job, tracker_poses).frozen(np.float32))
-        else:
-            t = time.perf_counter()
-            final.worldmap = tracker_map.frozen()
-            del tracker_map
-            timings["merge_s"] = round(time.perf_counter() - t, 3)
-        report = export_job(final, time.monotonic() - started, measured_at, timings, view_S, tracker_poses,
-                            tracker_stitch)
-    job.worldmap = final.worldmap if merging is None else merging.result()
+    report = export_job(final, time.monotonic() - started, measured_at, timings, view_S, tracker_poses,
+                        tracker_stitch)
     return FinishedJob(report, outcome)
-
-
-def _timed_merge(voxel_mm: float, job: JobSnapshot, poses: Sequence[np.ndarray], timings: dict[str, float]
-                 ) -> MapCloud:
-    """:func:`merge_stage` frozen into the job's cloud, its seconds put in ``timings["merge_s"]``."""
-    t = time.perf_counter()
-    cloud = merge_stage(voxel_mm, job, poses).frozen()
-    timings["merge_s"] = round(time.perf_counter() - t, 3)
-    return cloud

@@ -19,7 +19,7 @@ import json
 import logging
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -27,8 +27,6 @@ from tandemscan.daemon.report import add_ground_truth, build_report
 from tandemscan.pipeline.geometry.part import load_part_mesh
 from tandemscan.pipeline.inspection.inspect import InspectionError
 from tandemscan.pipeline.inspection.inspection_job import InspectionOutputs, PlacedScans, align_and_inspect
-from tandemscan.pipeline.inspection.report import in_background
-from tandemscan.pipeline.inspection.stitch_quality import overlap_quality
 from tandemscan.pipeline.io.export import PosedScan, write_e57, write_ply, write_pose_log
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan
 
@@ -82,38 +80,51 @@ def stitch_view_points(points_S: np.ndarray) -> np.ndarray:
     return _thin(points_S).copy()
 
 
+def _accuracy(report: dict) -> dict:
+    truth = report.get("ground_truth") or {}
+    keys = {
+        "pose_err_mm_median": "scan pose error vs truth, median, mm",
+        "pose_err_mm_max": "scan pose error vs truth, max, mm",
+        "pose_err_deg_median": "scan pose error vs truth, median, deg",
+        "pose_err_deg_max": "scan pose error vs truth, max, deg",
+        "cloud_rms_mm": "stitched cloud to part (unsigned), RMS, mm",
+        "cloud_p95_mm": "stitched cloud to part (unsigned), P95, mm",
+    }
+    out: dict = {"scans": report.get("scans"), "coordinate transfers": report.get("transfers")}
+    return out | {label: truth[k] for k, label in keys.items() if k in truth}
+
+
 def export_job(job: JobSnapshot, seconds: float, measured_at: float, stages: Mapping[str, float] | None = None,
                points_S: Sequence[np.ndarray] | None = None, tracker_poses: Sequence[np.ndarray] | None = None,
                tracker_stitch: Callable[[], JobSnapshot] | None = None) -> dict:
     """Write ``cloud.ply`` (W, mm), the report (returned and written once, as ``report.json``) and the
-    inspection exports of a finished job into its folder; runs where ``job.worldmap`` (the final cloud, or a
-    ``worldmap.PendingCloud`` still being merged: the work that needs no cloud starts first) lives.
+    inspection exports of a finished job into its folder; runs where ``job.worldmap`` (the final cloud) lives.
     ``measured_at`` is ``time.monotonic()`` (system-wide) when the job's last step was committed:
     ``timings.after_last_scan_s`` is the time from there until report.html and every export are written (what
     the operator waits for), ``timings.correction_cpu_s`` the correction's CPU time after the last scan,
-    ``timings.stages_s`` the seconds of each stage (``stages``: those before this call, read once the outputs are
-    written; ``cloud.ply`` is written on a second thread, ``cloud_ply_s`` is the time to hand it over, and
-    ``report_s`` includes waiting for it; ``scoring_s``: the simulator's ground-truth scoring, after the
-    exports and outside ``after_last_scan_s``, none on a real cell); ``resources.peak_rss_gib`` the peak
-    memory of the process until then (:func:`peak_rss_gib`). ``points_S``: the scans' points (S, mm) thinned at ``[job]
+    ``timings.stages_s`` the seconds of each stage (``stages``: those before this call; ``cloud.ply`` is written
+    on a second thread, ``cloud_ply_s`` is the time to hand it over, and ``exports_and_inspection_s`` includes
+    waiting for it; ``scoring_s``: the simulator's ground-truth scoring, after the exports and outside
+    ``after_last_scan_s``, none on a real cell); ``resources.peak_rss_gib`` the peak memory of the process
+    until then (:func:`peak_rss_gib`). ``points_S``: the scans' points (S, mm) thinned at ``[job]
     voxel_mm`` or to :func:`stitch_view_points` (else read and thinned here; the E57 reads the full scans from
     their files); ``tracker_poses``: the tracker-stitched poses ``T_W_S`` (W, mm) where the correction changed
     them (None: not corrected); ``tracker_stitch``: the job as the tracker stitched it, its cloud merged when
     called (only the simulator's scoring calls it, ``report.add_ground_truth``)."""
     t = [time.perf_counter()]
-    with ThreadPoolExecutor(1, thread_name_prefix="cloud-ply") as pool:  # written while the rest computes
-        cloud_ply = pool.submit(_write_cloud_ply, job)
+    with ThreadPoolExecutor(1, thread_name_prefix="cloud-ply") as pool:  # written while the report computes
+        cloud_ply = pool.submit(write_ply, job.job_dir / "cloud.ply", job.worldmap.points(), job.worldmap.normals())
         t.append(time.perf_counter())
-        inspection = write_job_outputs(job, points_S, tracker_poses)  # report.html, E57, poses
+        report = build_report(job, seconds, tracker_poses)
         t.append(time.perf_counter())
-        report = build_report(job, seconds, tracker_poses) | {"inspection": inspection}
+        report["inspection"] = write_job_outputs(job, report, points_S, tracker_poses)  # report.html, E57, poses
         cloud_ply.result()  # complete before the job is reported done; its error, if any, is the job's
         t.append(time.perf_counter())
     after_last_scan_s = time.monotonic() - measured_at
     report["resources"] = {"peak_rss_gib": peak_rss_gib()}  # the job's work, before the simulator's scoring
     add_ground_truth(report, job, tracker_stitch)
     t.append(time.perf_counter())
-    names = ("cloud_ply_s", "exports_and_inspection_s", "report_s", "scoring_s")
+    names = ("cloud_ply_s", "report_s", "exports_and_inspection_s", "scoring_s")
     stages = {**(stages or {}), **job.correction.get("stage_seconds", {}),
               **dict(zip(names, np.round(np.diff(t), 3).tolist(), strict=True))}
     report["timings"] = {"after_last_scan_s": round(after_last_scan_s, 3),
@@ -134,7 +145,7 @@ def peak_rss_gib() -> float | None:
     return round(kib / (1 << 20), 3)
 
 
-def write_job_outputs(job: JobSnapshot, points_S: Sequence[np.ndarray] | None = None,
+def write_job_outputs(job: JobSnapshot, report: dict, points_S: Sequence[np.ndarray] | None = None,
                       tracker_poses: Sequence[np.ndarray] | None = None) -> dict:
     """Write the E57, the pose log and (when registered to CAD) the inspection report of a finished job
     (``points_S``: the scans thinned at ``[job] voxel_mm`` or to :func:`stitch_view_points`, and
@@ -143,52 +154,34 @@ def write_job_outputs(job: JobSnapshot, points_S: Sequence[np.ndarray] | None = 
     Returns the inspection section for the job's ``report.json``: the same numbers as report.html. The E57
     (the full scans streamed from their files) and the pose log are written on a second thread while the
     inspection computes on the thinned scans (both wait on files and numpy, which let the other thread run).
-    What needs no cloud starts before anything reads ``job.worldmap`` (it may still be merging): the E57's
-    scans, the pose log and the stitching's overlap figures.
     """
     scans = _posed_scans(job, points_S)
-    reason = ("inspection.in_job is off" if not job.config.inspection.in_job
-              else "no registration of the world frame to the CAD frame" if job.T_F_W is None else "")
-    views = None if reason else _stitch_views(scans, tracker_poses)
-    overlap = None if views is None else in_background(overlap_quality, *views)
+    cloud_W = job.worldmap.points()  # once, on this thread
     with ThreadPoolExecutor(1, thread_name_prefix="e57") as pool:
-        exports = pool.submit(_write_exports, job, scans)
-        section = _inspection_section(job, reason, views, overlap)
+        exports = pool.submit(_write_exports, job, scans, cloud_W)
+        section = _inspection_section(job, report, scans, cloud_W, tracker_poses)
         exports.result()  # its error, if any, is the job's
     return section
 
 
-def _write_cloud_ply(job: JobSnapshot) -> None:
-    """``cloud.ply``: the job's cloud (W, mm) with its normals."""
-    write_ply(job.job_dir / "cloud.ply", job.worldmap.points(), job.worldmap.normals())
-
-
-def _write_exports(job: JobSnapshot, scans: list[PosedScan]) -> None:
-    """``cloud.e57`` (the scans with points, read from their files one at a time, then the merged cloud
-    ``job.worldmap``, read once they are written) and ``poses.csv`` (every scan, ``scans``), frame W, mm."""
-    write_pose_log(job.job_dir / EXPORT_FILES["pose_log"], scans)
+def _write_exports(job: JobSnapshot, scans: list[PosedScan], cloud_W: np.ndarray) -> None:
+    """``cloud.e57`` (the scans with points, read from their files one at a time, and the merged cloud
+    ``cloud_W``) and ``poses.csv`` (every scan, ``scans``), frame W, mm."""
     if any(s.size for s in scans):
-        write_e57(job.job_dir / EXPORT_FILES["e57"], _full_scans(job, scans), job.worldmap.points)
+        write_e57(job.job_dir / EXPORT_FILES["e57"], _full_scans(job, scans), cloud_W if len(cloud_W) else None)
+    write_pose_log(job.job_dir / EXPORT_FILES["pose_log"], scans)
 
 
-def _stitch_views(scans: list[PosedScan], tracker_poses: Sequence[np.ndarray] | None
-                  ) -> tuple[PlacedScans, PlacedScans | None]:
-    """The scans' stitch-view points (W, mm) at the tracker poses (Eq. 1) and, where corrected, at the final
-    ones."""
-    view_S = [_thin(s.points_S_mm) for s in scans]
-    tracker_only = [s.T_W_S for s in scans] if tracker_poses is None else list(tracker_poses)
-    after = None if tracker_poses is None else PlacedScans(view_S, [s.T_W_S for s in scans])
-    return PlacedScans(view_S, tracker_only), after
-
-
-def _inspection_section(job: JobSnapshot, reason: str, views: tuple[PlacedScans, PlacedScans | None] | None,
-                        overlap: Future | None) -> dict:
-    """The inspection written into the job folder and its report.json section, or why there is none
-    (``reason``, else an empty cloud); ``views`` and ``overlap``: the stitch views and their overlap figures
-    (``stitch_quality.overlap_quality``), being computed."""
+def _inspection_section(job: JobSnapshot, report: dict, scans: list[PosedScan], cloud_W: np.ndarray,
+                        tracker_poses: Sequence[np.ndarray] | None) -> dict:
+    """The inspection written into the job folder and its report.json section (or why there is none)."""
     files = dict(EXPORT_FILES)
-    cloud_W = job.worldmap.points()  # once, on this thread
-    reason = reason or ("empty cloud" if len(cloud_W) == 0 else "")
+    reason = (
+        "inspection.in_job is off" if not job.config.inspection.in_job
+        else "no registration of the world frame to the CAD frame" if job.T_F_W is None
+        else "empty cloud" if len(cloud_W) == 0
+        else ""
+    )
     if reason:
         log.warning("inspection skipped: %s", reason)
         return {"skipped": reason, "files": files}
@@ -197,7 +190,8 @@ def _inspection_section(job: JobSnapshot, reason: str, views: tuple[PlacedScans,
     if step > 1:
         log.info("inspecting every %d-th of the cloud's %d points ([inspection] max_points)", step, len(cloud_W))
     try:
-        out = _inspect(job, cloud_W[::step], job.worldmap.normals()[::step], T_F_W, views, overlap, len(cloud_W))
+        out = _inspect(job, report, scans, cloud_W[::step], job.worldmap.normals()[::step], T_F_W, tracker_poses,
+                       len(cloud_W))
     except InspectionError as e:  # the measurement stands; the report says why it has no inspection
         log.warning("inspection failed: %s", e)
         return {"failed": str(e), "files": files}
@@ -205,13 +199,17 @@ def _inspection_section(job: JobSnapshot, reason: str, views: tuple[PlacedScans,
     return out.data | {"T_F_W": out.data["alignment"]["T_F_W"], "T_F_W_anchor": T_F_W.tolist(), "files": files}
 
 
-def _inspect(job: JobSnapshot, cloud_W: np.ndarray, normals_W: np.ndarray | None, T_F_W: np.ndarray,
-             views: tuple[PlacedScans, PlacedScans | None], overlap: Future, cloud_points: int) -> InspectionOutputs:
+def _inspect(job: JobSnapshot, report: dict, scans: list[PosedScan], cloud_W: np.ndarray,
+             normals_W: np.ndarray | None, T_F_W: np.ndarray, tracker_poses: Sequence[np.ndarray] | None,
+             cloud_points: int) -> InspectionOutputs:
     """The inspection of the job's cloud (``cloud_W``: of its ``cloud_points`` points those inspected),
     aligned to the CAD from the anchor's ``T_F_W``, written into the job folder; the stitch view shows the
-    tracker-only stitch (Eq. 1) and, where corrected, the final one (``views``; ``overlap``: their overlap
-    figures, being computed)."""
+    tracker-only stitch (Eq. 1) and, where corrected, the final one."""
     job_dir = job.job_dir
+    tracker_only = [s.T_W_S for s in scans] if tracker_poses is None else list(tracker_poses)
+    view_S = [_thin(s.points_S_mm) for s in scans]
+    before = PlacedScans(view_S, tracker_only)
+    after = None if tracker_poses is None else PlacedScans(view_S, [s.T_W_S for s in scans])
     return align_and_inspect(
         cloud_W,
         load_part_mesh(job.config.part),
@@ -220,14 +218,13 @@ def _inspect(job: JobSnapshot, cloud_W: np.ndarray, normals_W: np.ndarray | None
         normals_W=normals_W,
         start_T_F_W=T_F_W,
         start="W placed in F by the anchor reading (Eq. 5)",
-        scans_before_W=views[0],
-        scans_after_W=views[1],
-        overlap=overlap,
+        scans_before_W=before,
+        scans_after_W=after,
         title=f"Inspection report, {job_dir.name}",
         meta={"job": job_dir.name, "plan": job.plan.name, "cell": job.config.name,
               "alignment to CAD": job.config.inspection.alignment,
               "points": str(len(cloud_W)) if len(cloud_W) == cloud_points
               else f"{len(cloud_W)} of the cloud's {cloud_points} ([inspection] max_points)"},
-        accuracy={"scans": len(job.scans), "coordinate transfers": len(job.transfers)},
+        accuracy=_accuracy(report),
         json_name=None,
     )

@@ -103,18 +103,17 @@ def align_and_inspect(
     start: str = "as given",
     scans_before_W: Sequence[np.ndarray] | None = None,
     scans_after_W: Sequence[np.ndarray] | None = None,
-    overlap: Future | None = None,
     **report: Any,
 ) -> InspectionOutputs:
     """Register a cloud measured in frame W to the CAD frame F by ``cfg.alignment`` from ``start_T_F_W``
     (where the job's AGV stations put it, or the cloud as given; described by ``start``), then inspect and write
     as :func:`run_inspection` (``report`` passes its title, meta, accuracy and json_name). The points on
-    reference spheres are left out of the inspection; the stitching views are mapped into F as well.
-    ``overlap``: the stitching views' :func:`overlap_quality` in W, being computed (else started here)."""
+    reference spheres are left out of the inspection; the stitching views are mapped into F as well."""
     cfg = cfg or InspectionConfig()
     surface = mesh if isinstance(mesh, CadSurface) else CadSurface(mesh)
     p = as_points(points_W_mm)
-    if overlap is None and scans_before_W is not None:  # a rigid motion changes no overlap: computed in W
+    overlap = None  # a rigid motion changes no overlap: computed in W while the cloud is aligned and inspected
+    if scans_before_W is not None:
         overlap = in_background(overlap_quality, scans_before_W, scans_after_W)
     alignment = align(surface, p, cfg, start_T_F_W, start)
     keep = np.ones(len(p), bool) if alignment.excluded is None else ~alignment.excluded

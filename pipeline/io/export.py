@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import csv
 import logging
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -112,15 +112,13 @@ def _e57_xyz(points_mm: np.ndarray) -> dict[str, np.ndarray]:
 def write_e57(
     path: Path | str,
     scans: Iterable[PosedScan],
-    merged_points_mm: np.ndarray | Callable[[], np.ndarray] | None = None,
+    merged_points_mm: np.ndarray | None = None,
     merged_name: str = "merged",
 ) -> Path:
     """Write an E57 file: one data3D scan per pose (points in its scanner frame, pose = ``T_W_S``), then,
     when given, the merged cloud in the world frame with an identity pose. Metres inside the file (single
     precision, as pye57 writes it). ``scans`` is consumed once, in order, and each scan written before the
-    next is taken: a generator reading them from their files holds one scan in memory at a time.
-    ``merged_points_mm`` may be a function that returns the merged cloud, called once every scan is written
-    (a cloud still being merged meanwhile); an empty cloud it returns is left out."""
+    next is taken: a generator reading them from their files holds one scan in memory at a time."""
     import pye57  # local: only the export needs it
 
     path = Path(path)
@@ -136,9 +134,6 @@ def write_e57(
             e57.write_scan_raw(_e57_xyz(pts), name=scan.name, rotation=rotation, translation=translation)
             written += 1
             del pts, scan
-        if callable(merged_points_mm):
-            merged_points_mm = merged_points_mm()
-            merged_points_mm = merged_points_mm if len(merged_points_mm) else None
         if not written and merged_points_mm is None:
             raise ExportError("E57: nothing to write (no scans and no merged cloud)")
         if merged_points_mm is not None:

@@ -11,7 +11,6 @@ map is read), so each voxel is moved O(log scans) times, not once per scan.
 
 from __future__ import annotations
 
-from concurrent.futures import Future
 from dataclasses import dataclass
 
 import numpy as np
@@ -202,27 +201,3 @@ class MapCloud:
     def normals(self) -> np.ndarray:
         """Mean unit normal of every occupied voxel, (M, 3) (the stored array)."""
         return self.normals_unit
-
-
-class PendingCloud:
-    """A finished map's cloud (:class:`MapCloud`) still being merged on another thread (``future``): it reads as
-    the cloud does, each read waiting for it, so that work which does not need the cloud runs meanwhile;
-    ``voxel_mm`` is known at once."""
-
-    def __init__(self, voxel_mm: float, future: Future[MapCloud]):
-        self.voxel_mm, self._future = float(voxel_mm), future
-
-    def cloud(self) -> MapCloud:
-        """The cloud, once merged (the merge's error, if any, is raised here)."""
-        return self._future.result()
-
-    def __len__(self) -> int:
-        return len(self.cloud())
-
-    def points(self) -> np.ndarray:
-        """Mean point of every occupied voxel, (M, 3) mm (:meth:`MapCloud.points`)."""
-        return self.cloud().points()
-
-    def normals(self) -> np.ndarray:
-        """Mean unit normal of every occupied voxel, (M, 3) (:meth:`MapCloud.normals`)."""
-        return self.cloud().normals()
