@@ -7,12 +7,13 @@ two scans, so that the adjustment uses the same data the Cramer-Rao bound of the
 (``benchmarks/pose_bound.py``) assumes.
 
 The correspondences are found once, at the start poses (the tracker poses, which do not depend on the scans'
-noise), and kept. Measured on the whole default part (seed 8): one linearisation there, weighted there, lands
-at 0.043 mm median pose error against an expected 0.039 mm at the bound; re-associating at poses fitted to the
-same scans (the pose graph's, an earlier iteration's) drifts to 0.082 mm from any start, the truth included,
-and re-weighting the same correspondences at the corrected poses reaches 0.079 mm (docs/registration.md, "Why
-one association at the tracker poses": why a subset of the overlap points pulls beyond the truth when fully
-weighted is still open).
+noise), and kept; a job finds them while it measures (:func:`associate`, ``online_pairs``). Measured on the
+whole default part (seed 8): one linearisation there, weighted there, lands at 0.043 mm median pose error
+against an expected 0.039 mm at the bound. With the residuals of the first version, re-associating at poses
+fitted to the same scans drifted to 0.082 mm; with today's (symmetric, gated, shared, along the rays) a second
+pass from the first one's poses improves seed 7 a little (0.0547 -> 0.0511 mm associated again, 0.0531
+re-weighted only) for as much CPU again, and is not taken (docs/registration.md, "Why one association at the
+tracker poses" and "Shared noise, the rays and the draw").
 
 Model (first order in the small corrections, world axes, mm and rad; every 6-vector is (t, rotation vector)):
 the unknowns ``theta`` are a world motion ``x_i`` of each scan about its origin ``o_i`` (prior: the tracker
