@@ -4,7 +4,7 @@ After the last scan's commit: every scan file is read once and only its copy thi
 ``[job] voxel_mm`` kept (:func:`load_scans`: a full-resolution scan is 3.2 M points, 369 of them would not fit
 in memory), the stitch corrected on those copies (:func:`correct_stage`: the pairs registered while the job
 measured are reused, the pose graph and the joint refinement solved), the cloud merged once at the final poses
-from the scan files, one at a time (:func:`merge_stage`; the map built while measuring is kept when nothing
+from the scan files, one at a time on each core (:func:`merge_stage`; the map built while measuring is kept when nothing
 was corrected), then ``cloud.ply``, the E57 (full scans streamed from their files), the pose log and the
 inspection written and ``report.json`` written once (``job_outputs.export_job``). Each stage returns a frozen
 result; the tracker-stitched poses and the refined ones stay separate, and whether the poses
@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from tandemscan.daemon.job_outputs import export_job, stitch_view_points
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan
+from tandemscan.pipeline.registration.parallel import pair_threads
 from tandemscan.pipeline.stitching.worldmap import VoxelMap
 
 if TYPE_CHECKING:
@@ -31,6 +32,10 @@ if TYPE_CHECKING:
     from tandemscan.pipeline.registration.online_pairs import OnlineWork
 
 log = logging.getLogger(__name__)
+
+#: the end of a job merges its scans in this many groups of consecutive scans, each into a map of its own
+#: (:func:`merge_stage`)
+MERGE_GROUPS = 8
 
 
 @dataclass(frozen=True)
@@ -90,11 +95,21 @@ def correct_stage(job: JobSnapshot, loaded: LoadedScans, online: OnlineWork | No
 
 def merge_stage(voxel_mm: float, job: JobSnapshot, poses: Sequence[np.ndarray]) -> VoxelMap:
     """The job's cloud: every scan of ``job.scans`` merged into a voxel map at its pose (Eq. 1), read from its
-    file (points and normals, float32 as stored) one at a time."""
-    worldmap = VoxelMap(voxel_mm)
-    for T, s in zip(poses, job.scans, strict=True):
-        worldmap.add_scan(T, *read_raw_scan(s.file, np.float32))
-    return worldmap
+    file (points and normals, float32 as stored) one at a time on each thread. Consecutive scans (neighbours on
+    the part) are merged in :data:`MERGE_GROUPS` maps of their own, one thread per core, and the maps combined
+    once (``VoxelMap.combined``): the same cloud to the rounding of its sums."""
+    groups = [g for g in np.array_split(np.arange(len(job.scans)), MERGE_GROUPS) if len(g)]
+
+    def merged(group: np.ndarray) -> VoxelMap:
+        worldmap = VoxelMap(voxel_mm)
+        for k in group:
+            worldmap.add_scan(poses[k], *read_raw_scan(job.scans[k].file, np.float32))
+        return worldmap
+
+    if not groups:
+        return VoxelMap(voxel_mm)
+    with pair_threads() as thread_map:
+        return VoxelMap.combined(thread_map(merged, groups))
 
 
 def finish_job(job: JobSnapshot, started: float, measured_at: float,
@@ -103,7 +118,7 @@ def finish_job(job: JobSnapshot, started: float, measured_at: float,
     """Correct, merge, export and inspect a measured job. It takes over ``job.worldmap``, the map stitched while
     the job measured (tracker poses), and leaves there the finished job's cloud (``worldmap.MapCloud``), so that
     the caller, holding no other reference, lets the end of the job free the map's sums. Memory: the thinned
-    scans, one map and one cloud at a time and one full scan; where the correction changed the poses, the map
+    scans, the maps of one merge and one cloud at a time and one full scan a core; where the correction changed the poses, the map
     stitched while measuring is dropped before the merge at the corrected poses, and only the simulator's
     score of the tracker stitch (``correction.before``, after report.html) merges the scans at the tracker
     poses again.

@@ -104,3 +104,26 @@ def test_a_map_merged_scan_by_scan_equals_one_merged_at_once(monkeypatch):
     np.testing.assert_array_equal(each.counts(), once.counts())
     np.testing.assert_allclose(each.points(), once.points(), rtol=0, atol=1e-9)
     np.testing.assert_allclose(each.normals(), once.normals(), rtol=0, atol=1e-9)
+
+
+def test_maps_combined_equal_one_map_of_every_scan_and_are_left_empty():
+    """Groups of scans merged into maps of their own and combined once: the voxels, counts and means of one map
+    that took every scan (to the rounding of the sums' order); maps of another voxel edge are refused."""
+    rng = np.random.default_rng(5)
+    scans = [(rng.uniform(-40, 40, (3000, 3)) * [1, 1, 0.05] + [20 * k, 0, 0], rng.normal(size=(3000, 3)))
+             for k in range(7)]   # neighbours overlap by half: voxels shared across the groups
+    one = VoxelMap(1.0)
+    groups = [VoxelMap(1.0) for _ in range(3)]
+    for k, (points, normals) in enumerate(scans):
+        one.add(points, normals)
+        groups[k * 3 // len(scans)].add(points, normals)
+    combined = VoxelMap.combined(groups)
+    assert len(combined) == len(one) > 10_000 and len(combined) < sum(len(s[0]) for s in scans)
+    np.testing.assert_array_equal(combined.counts(), one.counts())
+    np.testing.assert_allclose(combined.points(), one.points(), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(combined.normals(), one.normals(), rtol=0, atol=1e-9)
+    assert all(len(g) == 0 for g in groups)   # their sums now live in the combined map only
+    with pytest.raises(ValueError, match="cannot be combined"):
+        VoxelMap.combined([VoxelMap(1.0), VoxelMap(2.0)])
+    with pytest.raises(ValueError, match="no maps"):
+        VoxelMap.combined([])

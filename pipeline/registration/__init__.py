@@ -5,7 +5,8 @@ the k nearest neighbours; ``global_registration`` FPFH + RANSAC (Open3D, importe
 ``overlap`` the overlap of two scans and the pairs of a job; ``sampling`` voxel and even thinning; ``pairs`` one
 pair by the configured method, verified; ``pose_graph`` the global refinement over all scans and tracker
 stations; ``mounts`` the shared scanner-mount unknown in it; ``correction`` the whole-job correction (pairs ->
-edges -> pose graph). A joint multi-view refinement on the overlap points would sit beside ``pose_graph``,
-initialised by it and called from ``correction``. The learned global registration (DeepMerge) lives beside
+edges -> pose graph -> joint refinement); ``joint`` the joint multi-view refinement of every pose on the overlap
+points; ``online_pairs`` the pairs and the joint association found while the job measures; ``parallel`` one
+thread per core for per-pair (and per-group) work. The learned global registration (DeepMerge) lives beside
 this package in ``pipeline.deepmerge``.
 """

@@ -11,6 +11,7 @@ map is read), so each voxel is moved O(log scans) times, not once per scan.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -63,6 +64,24 @@ class VoxelMap:
         rows = R @ np.asarray(points_S_mm, np.float32).T                      # (3, N): x, y, z about the origin
         normal_rows = None if normals_S is None else R @ np.asarray(normals_S, np.float32).T
         self._merge(rows, normal_rows, T[:3, 3])
+
+    @classmethod
+    def combined(cls, maps: Sequence[VoxelMap]) -> VoxelMap:
+        """One map of every voxel of ``maps`` (one voxel edge), merged in a single sort-and-reduce; ``maps`` are
+        left empty. Maps of a few tens of scans each, combined once, sort far fewer voxels than one map taking
+        every scan, whose growing arrays each flush sorts again (a whole part's 8 M voxels: 3.9 s on two
+        threads in eight maps against 10.5 s in one; docs/registration.md, "End of the job")."""
+        if not maps:
+            raise ValueError("no maps to combine")
+        out = cls(maps[0].voxel_mm)
+        for m in maps:
+            if m.voxel_mm != out.voxel_mm:
+                raise ValueError(f"maps of {m.voxel_mm} and {out.voxel_mm} mm voxels cannot be combined")
+            m._flush()
+            out._batch.append((m._keys, m._sums, m._counts))
+            m._keys, m._sums, m._counts = np.empty(0, np.int64), np.empty((0, 6)), np.empty(0, np.int64)
+        out._flush()
+        return out
 
     def _merge(self, rows: np.ndarray, normal_rows: np.ndarray | None, origin: np.ndarray | None = None) -> None:
         """Merge points given as (3, N) coordinate rows (W, mm; relative to ``origin`` if given) with (3, N)
