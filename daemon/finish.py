@@ -119,9 +119,9 @@ def finish_job(job: JobSnapshot, started: float, measured_at: float,
     the job measured (tracker poses), and leaves there the finished job's cloud (``worldmap.MapCloud``), so that
     the caller, holding no other reference, lets the end of the job free the map's sums. Memory: the thinned
     scans, the maps of one merge and one cloud at a time and one full scan a core; where the correction changed
-    the poses, the map stitched while measuring is dropped before the merge at the corrected poses, and only the simulator's
-    score of the tracker stitch (``correction.before``, after report.html) merges the scans at the tracker
-    poses again.
+    the poses, the map stitched while measuring is dropped before the merge at the corrected poses, and only the
+    simulator's score of the tracker stitch (``correction.before``, after report.html) merges the scans at the
+    tracker poses again.
     ``started`` and ``measured_at`` are ``time.monotonic()`` at the job's start and at its last step's commit;
     ``online``: what the job computed while it measured (``online_pairs.OnlineWork``: registered pairs, scans
     prepared for the joint refinement); ``stages`` (s) are timings of the work before this call."""
