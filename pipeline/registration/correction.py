@@ -16,6 +16,7 @@ import logging
 import time
 from collections import Counter
 from collections.abc import Mapping, MutableMapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -258,6 +259,9 @@ def correct_scans(
     by :func:`joint_scan_key`); each is taken out of it as the refinement takes it, so that none outlives the
     refinement (the prepared scans of a whole part are about half a gigabyte); ``association_cache`` the pairs'
     nearest neighbours found for it at the tracker poses (``joint.associate``, keyed by :func:`association_key`).
+    The report's ``stage_seconds`` are wall seconds of each stage; with ``[correction] joint`` the pose graph
+    (whose poses then serve only the report's graph figures) is solved on a thread beside the joint refinement,
+    and ``graph_s`` is what is left of it after ``joint_s``.
     """
     if cfg.method in NETWORK_METHODS and network is None:
         raise ValueError(f"method {cfg.method!r} needs a DeepMerge registrar (pairs.LazyNetwork)")
@@ -271,14 +275,16 @@ def correct_scans(
     graph_edges = [PairEdge(i, j, o.transformation, o.information, o.centre_mm) for i, j, o in edges
                    if o.information is not None]
     priors = [ScanPrior(s.T_W_S, s.covariance, s.station) for s in scans]
-    res = refine_poses(priors, graph_edges, transfers, mount_prior)
-    poses, mount, joint = res.poses, res.mount, None
-    clock.lap("graph_s")
-    if cfg.joint:
-        joint, associated_while_measuring = _refine_jointly(scans, priors, cfg, transfers, mount_prior,
-                                                            joint_cache or {}, association_cache or {})
-        poses, mount = joint.poses, joint.mount
-        clock.lap("joint_s")
+    joint = None
+    with ThreadPoolExecutor(1, thread_name_prefix="pose-graph") as pool:  # beside the joint refinement
+        graph = pool.submit(refine_poses, priors, graph_edges, transfers, mount_prior)
+        if cfg.joint:
+            joint, associated_while_measuring = _refine_jointly(scans, priors, cfg, transfers, mount_prior,
+                                                                joint_cache or {}, association_cache or {})
+            clock.lap("joint_s")
+        res = graph.result()
+        clock.lap("graph_s")
+    poses, mount = (res.poses, res.mount) if joint is None else (joint.poses, joint.mount)
     before = [s.T_W_S for s in scans]
     rms_b, rms_a = _overlap_rms(local, edges, before, poses, cfg)
     clock.lap("overlap_rms_s")

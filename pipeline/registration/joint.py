@@ -184,15 +184,9 @@ class _Model:
                 block(i, 6 * (n + k), _adjoint_blocks(self.P0[i, :3, :3]) @ self.L)
         self.A = sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                                    shape=(6 * n, self.size))
-        info = [np.linalg.inv(np.asarray(p.covariance, float)) for p in priors]
-        info += [np.linalg.inv(np.asarray(t.covariance, float)) for t in self.transfers]
-        if self.L is not None:
-            info.append(np.eye(6))
-        self.prior_information = sparse.block_diag(info, format="csr")
-        prior_cov = [np.asarray(p.covariance, float) for p in priors] + [np.asarray(t.covariance, float)
-                                                                         for t in self.transfers]
-        if self.L is not None:
-            prior_cov.append(np.eye(6))
+        prior_cov = np.stack([np.asarray(c.covariance, float) for c in [*priors, *self.transfers]]
+                             + ([] if self.L is None else [np.eye(6)]))
+        self.prior_information = sparse.block_diag(np.linalg.inv(prior_cov), format="csr")  # one call, all blocks
         self.prior_covariance = sparse.block_diag(prior_cov, format="csr")
 
     def poses(self, e: np.ndarray) -> np.ndarray:
@@ -212,9 +206,10 @@ class _Model:
         return out
 
     def scan_covariances(self, cov_theta: np.ndarray) -> np.ndarray:
-        """(n, 6, 6) covariance of every ``e_i`` from the covariance of ``theta`` (dense)."""
-        full = self.A @ (self.A @ cov_theta).T                      # (6n, 6n), A cov A^T
-        return np.stack([full[6 * i:6 * i + 6, 6 * i:6 * i + 6] for i in range(self.n)])
+        """(n, 6, 6) covariance of every ``e_i`` from the covariance of ``theta`` (dense): the diagonal blocks
+        ``A_i cov A_i^T`` of ``A cov A^T`` only, not the whole (6n, 6n) product."""
+        rows = (self.A @ cov_theta).reshape(self.n, 6, self.size)   # A_i cov
+        return np.einsum("iak,ibk->iab", rows, self.A.toarray().reshape(self.n, 6, self.size))
 
 
 @dataclass(frozen=True)
@@ -340,8 +335,15 @@ def _information(m: _Match, sigma: float, huber_k: float) -> np.ndarray:
 
 
 def _robust_sigma(r: np.ndarray) -> float:
-    """1.4826 x the median absolute residual (mm), at least ``_MIN_SIGMA_MM``."""
-    return max(1.4826 * float(np.median(np.abs(r))), _MIN_SIGMA_MM) if len(r) else 1.0
+    """1.4826 x the median absolute residual (mm), at least ``_MIN_SIGMA_MM``; the median of the absolute values
+    partitioned in place (``np.median`` would copy all of a whole part's 10 M residuals once more)."""
+    if not len(r):
+        return 1.0
+    a = np.abs(r)
+    half = len(a) // 2
+    a.partition([half - 1, half] if len(a) % 2 == 0 else [half])
+    median = 0.5 * (a[half - 1] + a[half]) if len(a) % 2 == 0 else a[half]
+    return max(1.4826 * float(median), _MIN_SIGMA_MM)
 
 
 @dataclass(frozen=True)
