@@ -67,13 +67,14 @@ class FinishedJob:
 
 
 def load_scans(job: JobSnapshot) -> LoadedScans:
-    """Read every scan file of ``job.scans`` once, keeping only its copy thinned at ``[job] voxel_mm``: the
-    correction thins to that voxel first, and thinning a thinned copy again changes nothing (its pairs and
-    pose graph are those of the full scans; only its joint refinement, thinning the copy to its coarser
-    ``joint_voxel_mm``, weighs each finer voxel once). A coarse scan, not halved by the thinning, is kept
-    whole, so the correction at coarse resolution is that of the scans as stored."""
+    """Read every scan file of ``job.scans`` once (one a core at a time), keeping only its copy thinned at ``[job]
+    voxel_mm``: the correction thins to that voxel first, and thinning a thinned copy again changes nothing (its
+    pairs and pose graph are those of the full scans; only its joint refinement, thinning the copy to its coarser
+    ``joint_voxel_mm``, weighs each finer voxel once). A coarse scan, not halved by the thinning, is kept whole, so
+    the correction at coarse resolution is that of the scans as stored."""
     voxel_mm = job.config.job.voxel_mm
-    return LoadedScans(voxel_mm, tuple(read_thinned_scan(s.file, voxel_mm) for s in job.scans))
+    with pair_threads() as thread_map:  # one file a core at a time
+        return LoadedScans(voxel_mm, tuple(thread_map(lambda s: read_thinned_scan(s.file, voxel_mm), job.scans)))
 
 
 def correct_stage(job: JobSnapshot, loaded: LoadedScans, online: OnlineWork | None) -> CorrectionOutcome:

@@ -220,10 +220,11 @@ def _pair_corrections(
     here (only the pairs need them placed: a whole part's at full resolution take about 0.9 GB, freed on
     return): from ``cache`` where the job registered the pair while it measured (same clouds, covariance and
     settings), else registered here. Returns the outcomes in pair order and how many came from the cache."""
-    world = [transform_points(s.T_W_S, P) for s, P in zip(scans, local, strict=True)]
+    with pair_threads() as pair_map:
+        world = pair_map(lambda k: transform_points(scans[k].T_W_S, local[k]), range(len(scans)))
+        digests = pair_map(cloud_digest, world) if cache else []
     out: list[tuple[int, int, PairOutcome]] = []
     target_index, target, hits = -1, None, 0
-    digests = [cloud_digest(w) for w in world] if cache else []
     for i, j in overlapping_pairs(world, [s.station for s in scans], cfg.pair_cell_mm, cfg.max_partners_per_scan):
         cov = pair_covariance(scans[i], scans[j], transfers)
         cached = cache.get(pair_key(digests[i], digests[j], cov, cfg)) if cache else None
@@ -266,7 +267,8 @@ def correct_scans(
     if cfg.method in NETWORK_METHODS and network is None:
         raise ValueError(f"method {cfg.method!r} needs a DeepMerge registrar (pairs.LazyNetwork)")
     clock = _Clock()
-    local = [voxel_downsample(np.asarray(s.points_S, float), voxel_mm) for s in scans]
+    with pair_threads() as pair_map:
+        local = pair_map(lambda s: voxel_downsample(np.asarray(s.points_S, float), voxel_mm), scans)
     clock.lap("thin_s")
     outcomes, cached = _pair_corrections(scans, local, cfg, network, transfers, pair_cache or {})
     clock.lap("pairs_s")
