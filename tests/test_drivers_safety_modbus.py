@@ -7,6 +7,7 @@ import time
 
 import pytest
 from tandemscan.config.models import SafetyConfig, SafetyModbusConfig
+from tandemscan.daemon.supervisor import Supervisor
 from tandemscan.drivers import DeviceFault, DeviceTimeout, NotConnected, SafetyIO, SafetyState, SafetyStop
 from tandemscan.drivers.safety_modbus import ModbusSafetyIO
 from tandemscan.sim_drivers.emulators.safety_modbus import SafetyIoEmulator
@@ -153,3 +154,26 @@ async def test_a_silent_module_is_a_safety_stop_before_its_request_times_out(emu
     emulator.faults.silent = False
     await io.connect()
     assert (await io.read()).motion_allowed
+
+
+async def test_the_supervisor_rides_out_a_stalled_event_loop_and_latches_on_a_silent_module(emulator, io):
+    """A stall of the supervisor's own event loop (a garbage collection, a starved CPU: 0.12 s here, thirty
+    times) delays the poll's reply and the supervisor's read alike; it is not a silent module and latches
+    nothing. A module that stays silent latches the cell within a few control periods."""
+    sup = Supervisor([], {}, io, control_period_s=0.02)
+    await sup.start()
+    try:
+        for k in range(30):
+            time.sleep(0.12)  # the loop blocked, as by a long garbage collection
+            await asyncio.sleep(0.005 * (1 + k % 7))  # at every phase of the poll
+        assert sup.latched_reason is None
+        emulator.faults.silent = True
+        t0 = time.monotonic()
+        async with asyncio.timeout(2):
+            while sup.latched_reason is None:
+                await asyncio.sleep(0.005)
+        assert time.monotonic() - t0 < 0.3  # well before the request's own timeout (0.3 s) plus a period
+        assert sup.latched_reason.startswith("safety I/O unreadable: safety: safety I/O silent")
+    finally:
+        emulator.faults.silent = False
+        await sup.close()
