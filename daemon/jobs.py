@@ -26,6 +26,7 @@ import logging
 from dataclasses import dataclass, field
 from typing import Any
 
+from tandemscan.daemon.backoff import backoff_delays
 from tandemscan.daemon.events import EventBus
 from tandemscan.daemon.faults import STORAGE_ERRORS, JobFault, classify_fault
 from tandemscan.daemon.held_states import HeldStates
@@ -33,7 +34,7 @@ from tandemscan.daemon.job_context import Abandon, JobCancelled, JobContext, Run
 from tandemscan.daemon.job_state import FINAL_STATES, PAUSED_STATES, JobState
 from tandemscan.daemon.recovery import recover
 from tandemscan.daemon.store import JobRecord, JobStore, StoreError
-from tandemscan.daemon.supervisor import Supervisor, backoff_delays
+from tandemscan.daemon.supervisor import Supervisor
 from tandemscan.drivers.errors import SafetyStop
 from tandemscan.drivers.tasks import cancel_and_wait
 

@@ -18,13 +18,13 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import random
 import time
 from collections import deque
-from collections.abc import AsyncIterator, Callable, Iterator, Mapping, Sequence
+from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
 
+from tandemscan.daemon.backoff import backoff_delays
 from tandemscan.daemon.jsonable import jsonable
 from tandemscan.drivers.errors import DeviceError, SafetyStop
 from tandemscan.drivers.interfaces import Device, SafetyIO
@@ -78,16 +78,6 @@ class _Motion:
 def _status_error(detail: Mapping) -> str:
     """The reason a device's own fault status gives (its ``error`` or ``fault`` detail)."""
     return str(detail.get("error") or detail.get("fault") or "the device reports a fault")
-
-
-def backoff_delays(initial_s: float, max_s: float, jitter: float = 0.1,
-                   rng: random.Random | None = None) -> Iterator[float]:
-    """Exponential backoff: ``initial_s, 2 initial_s, ...`` capped at ``max_s``, each +- ``jitter`` fraction."""
-    rng = rng or random.Random()
-    delay = initial_s
-    while True:
-        yield min(delay, max_s) * (1.0 + rng.uniform(-jitter, jitter))
-        delay = min(delay * 2.0, max_s)
 
 
 EventSink = Callable[[str, dict], None]

@@ -8,9 +8,10 @@ import time
 
 import numpy as np
 import pytest
+from tandemscan.daemon.backoff import backoff_delays
 from tandemscan.daemon.cell import build_cell
 from tandemscan.daemon.session import CellSession
-from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT, MotionInterlock, backoff_delays
+from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT, MotionInterlock
 from tandemscan.drivers.errors import SafetyStop
 from tandemscan.drivers.interfaces import ChassisPose
 from tandemscan.sim_drivers.cell import Simulation
