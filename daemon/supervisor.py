@@ -17,17 +17,19 @@ Times are seconds (monotonic clock).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import time
 from collections import deque
 from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from contextlib import asynccontextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from tandemscan.daemon.backoff import backoff_delays
+from tandemscan.daemon.device_health import DeviceHealth, fault_reason
 from tandemscan.daemon.jsonable import jsonable
 from tandemscan.drivers.errors import DeviceError, SafetyStop
-from tandemscan.drivers.interfaces import Device, SafetyIO
+from tandemscan.drivers.interfaces import Device, PushesSafetyChanges, SafetyIO, SafetyState
 from tandemscan.drivers.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
@@ -35,7 +37,8 @@ log = logging.getLogger(__name__)
 MEASURE_ROBOT = "measure"
 TRACKING_ROBOT = "tracking"
 
-# Consecutive control ticks whose safety I/O read fails before the latch (one period apart, 20 ms by default).
+# Consecutive safety I/O reads that fail before the latch (control ticks one period apart, 20 ms by default, and
+# any read woken by a pushed change between them).
 # One failed read can be the supervisor's own event loop stalled (a long garbage collection, a starved CPU):
 # the poll's reply and the read were delayed alike, and the next tick reads the reply. A state that forbids
 # motion latches at its first reading.
@@ -47,37 +50,10 @@ class MotionInterlock(DeviceError):
 
 
 @dataclass
-class DeviceHealth:
-    """What the supervisor knows about one device (published on every change)."""
-
-    name: str
-    connected: bool = False
-    state: str = "disconnected"
-    detail: dict = field(default_factory=dict)
-    last_error: str | None = None
-    reconnects: int = 0
-    next_retry_s: float | None = None
-
-    @property
-    def up(self) -> bool:
-        """Connected and not reporting a fault: a device a job can use."""
-        return self.connected and self.state != "fault"
-
-    def as_dict(self) -> dict:
-        return {"name": self.name, "connected": self.connected, "state": self.state, "detail": self.detail,
-                "last_error": self.last_error, "reconnects": self.reconnects}
-
-
-@dataclass
 class _Motion:
     robot: str
     task: asyncio.Task
     tripped: bool = False
-
-
-def _status_error(detail: Mapping) -> str:
-    """The reason a device's own fault status gives (its ``error`` or ``fault`` detail)."""
-    return str(detail.get("error") or detail.get("fault") or "the device reports a fault")
 
 
 EventSink = Callable[[str, dict], None]
@@ -116,6 +92,7 @@ class Supervisor:
         self._tasks: list[asyncio.Task] = []
         self._reconnecting: dict[str, asyncio.Task] = {}
         self._all_connected = asyncio.Event()
+        self._safety_changed = asyncio.Event()  # set by a pushed state that forbids motion
 
     # ------------------------------------------------------------ lifecycle
 
@@ -128,6 +105,8 @@ class Supervisor:
         self._update_all_connected()
         self._tasks.append(asyncio.create_task(self._health_loop(), name="supervisor-health"))
         if self.safety_io is not None:
+            if isinstance(self.safety_io, PushesSafetyChanges):
+                self.safety_io.add_listener(self._on_safety_change)
             self._tasks.append(asyncio.create_task(self._safety_loop(), name="supervisor-safety"))
 
     async def wait_connected(self, timeout_s: float | None = None) -> None:
@@ -194,7 +173,7 @@ class Supervisor:
             self._set_health(name, connected=False, state="fault", last_error=str(e) or type(e).__name__)
         else:
             self._set_health(name, connected=s.connected, state=s.state, detail=jsonable(dict(s.detail)),
-                             **({"last_error": _status_error(s.detail)} if s.state == "fault" else {}))
+                             **({"last_error": fault_reason(s.detail)} if s.state == "fault" else {}))
         if not self.health[name].up:
             self._schedule_reconnect(name)
         self._update_all_connected()
@@ -225,18 +204,35 @@ class Supervisor:
 
     # ------------------------------------------------------------ safety
 
+    def _on_safety_change(self, state: SafetyState) -> None:
+        """A change the safety I/O pushed as its poll's reply arrived: one that forbids motion is read at once."""
+        if not state.motion_allowed:
+            self._safety_changed.set()
+
+    async def _wait_for_tick(self, tick_t: float) -> bool:
+        """Sleep until ``tick_t`` (``time.monotonic()``, s) or until the safety I/O pushes a state that forbids
+        motion (:meth:`_on_safety_change`); True at the tick, False when woken before it."""
+        if not self._safety_changed.is_set():
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(max(0.0, tick_t - time.monotonic())):
+                    await self._safety_changed.wait()
+        woken = self._safety_changed.is_set()
+        self._safety_changed.clear()
+        return not woken
+
     async def _safety_loop(self) -> None:
-        """Read the safety I/O every control period; latch on a state that forbids motion at once, and on an
-        unreadable safety I/O when the next tick's read fails too (:data:`UNREADABLE_TICKS`)."""
+        """Read the safety I/O every control period and when it pushes a change (:meth:`_wait_for_tick`); latch
+        on a state that forbids motion at once, and on an unreadable safety I/O when the next read fails too
+        (:data:`UNREADABLE_TICKS`)."""
         period = self.control_period_s
         next_t = time.monotonic() + period
         unreadable_ticks = 0
         while True:
-            await asyncio.sleep(max(0.0, next_t - time.monotonic()))
-            now = time.monotonic()
-            self.control_lateness_s.append(max(0.0, now - next_t))
-            self.on_tick_lateness(self.control_lateness_s[-1])
-            next_t = max(next_t + period, now)
+            if await self._wait_for_tick(next_t):
+                now = time.monotonic()
+                self.control_lateness_s.append(max(0.0, now - next_t))
+                self.on_tick_lateness(self.control_lateness_s[-1])
+                next_t = max(next_t + period, now)
             try:
                 state = await asyncio.wait_for(self.safety_io.read(), period * 5)
             except (DeviceError, TimeoutError, OSError) as e:
@@ -245,7 +241,7 @@ class Supervisor:
                 if unreadable_ticks >= UNREADABLE_TICKS:
                     await self.trip(reason)
                 else:
-                    log.warning("%s (control tick %.0f ms late; read again next tick)", reason,
+                    log.warning("%s (last control tick %.0f ms late; read again next tick)", reason,
                                 1000.0 * self.control_lateness_s[-1])
                 continue
             unreadable_ticks = 0

@@ -7,6 +7,7 @@ Units: mm and rad; ``T_a_b`` 4x4 float64 matrices.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
@@ -145,6 +146,20 @@ class SafetyIO(Device, Protocol):
     async def read(self) -> SafetyState: ...
 
     async def set_target_light(self, on: bool) -> None: ...
+
+
+SafetyListener = Callable[[SafetyState], None]
+
+
+@runtime_checkable
+class PushesSafetyChanges(Protocol):
+    """A safety I/O that polls its inputs itself (a Modbus module) and tells listeners of each change as its reply
+    arrives, so the supervisor reads it at once instead of at its next control tick. A twin read on demand has
+    nothing to push and does not implement it."""
+
+    def add_listener(self, listener: SafetyListener) -> None:
+        """Call ``listener(state)`` on the event loop whenever the polled state changes."""
+        ...
 
 
 @runtime_checkable

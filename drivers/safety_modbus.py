@@ -21,12 +21,10 @@ from pymodbus.client import AsyncModbusTcpClient
 from pymodbus.exceptions import ModbusException
 from tandemscan.config.models import SafetyConfig
 from tandemscan.drivers.errors import DeviceError, DeviceFault, DeviceTimeout, NotConnected, SafetyStop
-from tandemscan.drivers.interfaces import DeviceStatus, SafetyState
+from tandemscan.drivers.interfaces import DeviceStatus, SafetyListener, SafetyState
 from tandemscan.drivers.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
-
-Listener = Callable[[SafetyState], None]
 
 
 class ModbusSafetyIO:
@@ -43,10 +41,11 @@ class ModbusSafetyIO:
         self._light = False
         self._link_error: DeviceError | None = None
         self._poll_sent_at: float | None = None  # loop time (s) of the poll request awaiting its reply
-        self._listeners: list[Listener] = []
+        self._listeners: list[SafetyListener] = []
 
-    def add_listener(self, listener: Listener) -> None:
-        """Call ``listener(state)`` whenever the polled state changes (a lost link reads as e-stop)."""
+    def add_listener(self, listener: SafetyListener) -> None:
+        """Call ``listener(state)`` whenever the polled state changes (a lost link reads as e-stop): the
+        supervisor's safety loop is woken by it (:class:`~tandemscan.drivers.interfaces.PushesSafetyChanges`)."""
         self._listeners.append(listener)
 
     async def connect(self) -> None:

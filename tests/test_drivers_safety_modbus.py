@@ -9,6 +9,7 @@ import pytest
 from tandemscan.config.models import SafetyConfig, SafetyModbusConfig
 from tandemscan.daemon.supervisor import Supervisor
 from tandemscan.drivers import DeviceFault, DeviceTimeout, NotConnected, SafetyIO, SafetyState, SafetyStop
+from tandemscan.drivers.interfaces import PushesSafetyChanges
 from tandemscan.drivers.safety_modbus import ModbusSafetyIO
 from tandemscan.sim_drivers.emulators.safety_modbus import SafetyIoEmulator
 
@@ -176,4 +177,25 @@ async def test_the_supervisor_rides_out_a_stalled_event_loop_and_latches_on_a_si
         assert sup.latched_reason.startswith("safety I/O unreadable: safety: safety I/O silent")
     finally:
         emulator.faults.silent = False
+        await sup.close()
+
+
+async def test_the_supervisor_latches_an_estop_as_the_module_pushes_it_not_at_its_next_tick(emulator, io):
+    """The driver polls at 20 ms and pushes each change; the supervisor, whose control period here is 2 s, reads
+    the safety I/O as the change arrives and latches at once, without counting the read as a control tick."""
+    assert isinstance(io, PushesSafetyChanges)
+    sup = Supervisor([], {}, io, control_period_s=2.0)
+    await sup.start()
+    try:
+        await asyncio.sleep(0.1)
+        t0 = time.monotonic()
+        await emulator.press_estop()
+        async with asyncio.timeout(3):
+            while sup.latched_reason is None:
+                await asyncio.sleep(0.005)
+        assert time.monotonic() - t0 < 0.5  # a few poll periods, not the 2 s control period
+        assert sup.latched_reason == "e-stop pressed"
+        assert len(sup.control_lateness_s) == 0  # no control tick yet
+    finally:
+        await emulator.press_estop(False)
         await sup.close()
