@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from tandemscan.daemon.backoff import backoff_delays
 from tandemscan.daemon.device_health import DeviceHealth, fault_reason
 from tandemscan.daemon.jsonable import jsonable
-from tandemscan.drivers.errors import DeviceError, SafetyStop
+from tandemscan.drivers.errors import DeviceError, NotConnected, SafetyStop
 from tandemscan.drivers.interfaces import Device, PushesSafetyChanges, SafetyIO, SafetyState
 from tandemscan.drivers.tasks import cancel_and_wait
 
@@ -297,7 +297,8 @@ class Supervisor:
 
     @asynccontextmanager
     async def motion(self, robot: str) -> AsyncIterator[None]:
-        """The gate every motion passes: refuses while latched or while another robot moves.
+        """The gate every motion passes: refuses while latched, while one of the robot's devices is down (being
+        reconnected: :class:`NotConnected`) or while another robot moves.
 
         A safety stop during the block interrupts it and raises :class:`SafetyStop`; a
         :class:`SafetyStop` from a device inside the block latches the stop for the whole cell.
@@ -306,6 +307,10 @@ class Supervisor:
             raise ValueError(f"unknown robot {robot!r}; known: {sorted(self.robots)}")
         if self.latched_reason is not None:
             raise SafetyStop("supervisor", f"motion refused, safety stop latched: {self.latched_reason}")
+        down = [d.name for d in self.robots[robot] if d.name in self.health and not self.health[d.name].up]
+        if down:
+            raise NotConnected(down[0], f"motion refused: {robot} robot's {down[0]} is down ("
+                                        f"{self.health[down[0]].last_error or self.health[down[0]].state})")
         others = [m.robot for m in self._motions if m.robot != robot]
         if others:
             raise MotionInterlock("supervisor", f"{robot} robot may not move while {others[0]} robot is moving")

@@ -12,7 +12,7 @@ from tandemscan.daemon.backoff import backoff_delays
 from tandemscan.daemon.cell import build_cell
 from tandemscan.daemon.session import CellSession
 from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT, MotionInterlock
-from tandemscan.drivers.errors import SafetyStop
+from tandemscan.drivers.errors import NotConnected, SafetyStop
 from tandemscan.drivers.interfaces import ChassisPose
 from tandemscan.sim_drivers.cell import Simulation
 from tandemscan.sim_drivers.world import SimWorld
@@ -155,3 +155,17 @@ async def test_a_task_that_swallows_one_cancel_is_still_stopped():
     await asyncio.sleep(0.02)
     await asyncio.wait_for(cancel_and_wait(task, None, retry_s=0.05), 5)
     assert task.cancelled() and swallowed == [True]
+
+
+async def test_a_robot_whose_device_is_down_may_not_move_until_it_is_reconnected(sup):
+    chassis = sup.cell.tracking_chassis
+    await chassis.close()
+    assert not (await sup.poll_device(chassis.name)).up  # a reconnect is now scheduled
+    with pytest.raises(NotConnected, match=f"motion refused: tracking robot's {chassis.name} is down"):
+        async with sup.motion(TRACKING_ROBOT):
+            pass
+    async with sup.motion(MEASURE_ROBOT):  # the other robot's devices are up
+        pass
+    await sup.wait_connected(2.0)
+    async with sup.motion(TRACKING_ROBOT):
+        assert sup.moving_robots == [TRACKING_ROBOT]
