@@ -18,7 +18,7 @@ import pytest
 from serving import running_server
 from tandemscan.daemon.api import create_app
 from tandemscan.daemon.cell import build_cell
-from tandemscan.daemon.console.cloud_view import DEVIATION_COLOURS, VIEW_FILE, view_file
+from tandemscan.daemon.console.cloud_view import DEVIATION_COLOURS, VIEW_FILE, CloudViewError, view_file
 from tandemscan.daemon.console.router import ASSETS, plan_view
 from tandemscan.daemon.plans import PlanCatalog
 from tandemscan.daemon.service import Daemon
@@ -195,6 +195,16 @@ def test_cloud_view_without_inspection_is_the_world_cloud_without_deviations(tmp
     header, xyz, dev = parse_view(view_file(tmp_path).read_bytes())
     assert header["frame"] == "W" and dev is None and header["colour_scale_mm"] is None
     np.testing.assert_allclose(xyz, points[::2] - 5.0, atol=1e-3)
+
+
+def test_cloud_view_of_a_damaged_cloud_file_is_an_error_that_names_it(tmp_path):
+    write_inspected_job(tmp_path, 1000)
+    (tmp_path / "report.json").write_text(json.dumps({"inspection": {"skipped": "no registration"}}))
+    cloud = tmp_path / "cloud.ply"
+    cloud.write_bytes(cloud.read_bytes()[:-100])  # cut short, as by a full disk
+    with pytest.raises(CloudViewError, match=r"cloud\.ply: truncated: \d+ of 500 vertices"):
+        view_file(tmp_path)
+    assert not (tmp_path / VIEW_FILE).exists()
 
 
 async def test_view_and_plan_of_a_job_over_rest(api):

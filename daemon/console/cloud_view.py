@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from tandemscan.pipeline.io.cloud_io import CloudIOError, read_ply_vertices
 
 MAGIC = b"TSV1"
 VIEW_POINTS = 200_000
@@ -33,9 +34,6 @@ MEDIA_TYPE = "application/octet-stream"
 # The report's deviation colour map, below CAD to above (tandemscan.pipeline.inspection.deviation_maps.DEVIATION_CMAP,
 # which this module does not import: that pulls matplotlib and Open3D into the daemon's process).
 DEVIATION_COLOURS = ("#1d3fbf", "#20b7e0", "#2fbf4a", "#f2e02a", "#d7261e")
-
-_PLY_TYPES = {"float": "f4", "float32": "f4", "double": "f8", "float64": "f8", "uchar": "u1", "uint8": "u1",
-              "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4", "short": "i2", "ushort": "u2"}
 
 
 class CloudViewError(Exception):
@@ -74,43 +72,15 @@ class CloudView:
         return b"".join(parts)
 
 
-def read_binary_ply(path: Path) -> dict[str, np.ndarray]:
-    """The vertex properties of a binary little-endian PLY (what :func:`tandemscan.pipeline.io.export.write_ply`
-    writes) by name; raises :class:`CloudViewError` for any other layout."""
-    try:
-        with path.open("rb") as f:
-            lines = []
-            while (line := f.readline()) and line.strip() != b"end_header":
-                lines.append(line.decode("ascii", "replace").split())
-            offset = f.tell()
-    except OSError as e:
-        raise CloudViewError(f"{path}: cannot read: {e.strerror}") from e
-    if not lines or lines[0] != ["ply"] or ["format", "binary_little_endian", "1.0"] not in lines:
-        raise CloudViewError(f"{path}: not a binary little-endian PLY")
-    count, fields, element = 0, [], None
-    for words in lines:
-        if words[:1] == ["element"]:
-            element = words[1]
-            if element == "vertex":
-                count = int(words[2])
-            elif int(words[2]):
-                raise CloudViewError(f"{path}: element {element!r} besides the vertices is not supported")
-        elif words[:1] == ["property"] and element == "vertex":
-            if words[1] not in _PLY_TYPES:
-                raise CloudViewError(f"{path}: property type {words[1]!r} is not supported")
-            fields.append((words[2], "<" + _PLY_TYPES[words[1]]))
-    data = np.fromfile(path, dtype=np.dtype(fields), count=count, offset=offset)
-    if len(data) != count or not {"x", "y", "z"} <= set(data.dtype.names or ()):
-        raise CloudViewError(f"{path}: truncated, or no x y z")
-    return {name: data[name] for name in data.dtype.names}
-
-
 def build_view(job_dir: Path, report: dict, max_points: int = VIEW_POINTS) -> CloudView:
     """The view of the job in ``job_dir`` whose ``report.json`` is ``report``."""
     inspection = report.get("inspection") or {}
     deviation_file = job_dir / inspection.get("files", {}).get("deviation_ply", "-")
     inspected = "colour_scale_mm" in inspection and deviation_file.is_file()
-    fields = read_binary_ply(deviation_file if inspected else job_dir / "cloud.ply")
+    try:
+        fields = read_ply_vertices(deviation_file if inspected else job_dir / "cloud.ply")
+    except CloudIOError as e:
+        raise CloudViewError(str(e)) from e
     total = len(fields["x"])
     keep = slice(None, None, max(1, -(-total // max_points)))
     xyz = np.column_stack([fields[a][keep] for a in "xyz"]).astype(np.float64)

@@ -61,7 +61,9 @@ def _ply_header(f, path: Path) -> tuple[str, int, list[tuple[str, str]]]:
     return fmt, count, props
 
 
-def _read_ply_numpy(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+def _vertex_columns(path: Path) -> dict[str, np.ndarray]:
+    """Every vertex property of a PLY by name (binary: its own type, ASCII: float64); :class:`_NotHere` for a
+    layout left to Open3D."""
     with path.open("rb") as f:
         fmt, count, props = _ply_header(f, path)
         names = [n for n, _ in props]
@@ -72,16 +74,34 @@ def _read_ply_numpy(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
             if rows.shape != (count, len(names)):
                 raise CloudIOError(f"{path}: {len(rows)} vertex rows of {rows.shape[1]} values, "
                                    f"expected {count} of {len(names)}")
-            cols = {n: rows[:, i] for i, n in enumerate(names)}
-        else:
-            dtype = np.dtype([(n, _ENDIAN[fmt] + k) for n, k in props])
-            data = np.fromfile(f, dtype=dtype, count=count)
-            if len(data) != count:
-                raise CloudIOError(f"{path}: truncated: {len(data)} of {count} vertices")
-            cols = {n: data[n] for n in names}
+            return {n: rows[:, i] for i, n in enumerate(names)}
+        dtype = np.dtype([(n, _ENDIAN[fmt] + k) for n, k in props])
+        data = np.fromfile(f, dtype=dtype, count=count)
+        if len(data) != count:
+            raise CloudIOError(f"{path}: truncated: {len(data)} of {count} vertices")
+        return {n: data[n] for n in names}
+
+
+def read_ply_vertices(path: Path | str) -> dict[str, np.ndarray]:
+    """Every vertex property of a PLY (``x y z`` at least, mm; others such as ``deviation_mm`` as written) by
+    name, with NumPy only; raises :class:`CloudIOError` for a missing or unreadable file and for a layout only
+    :func:`read_ply` reads (through Open3D)."""
+    path = Path(path)
+    try:
+        return _vertex_columns(path)
+    except OSError as e:
+        raise CloudIOError(f"{path}: cannot read: {e.strerror or e}") from e
+    except _NotHere as e:
+        raise CloudIOError(f"{path}: vertices after another element or with list properties") from e
+    except ValueError as e:
+        raise CloudIOError(f"{path}: unreadable PLY data: {e}") from e
+
+
+def _read_ply_numpy(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    cols = _vertex_columns(path)
     points = np.column_stack([cols[a] for a in "xyz"]).astype(np.float64)
     normals = np.column_stack([cols[a] for a in ("nx", "ny", "nz")]).astype(np.float64) \
-        if {"nx", "ny", "nz"} <= set(names) else None
+        if {"nx", "ny", "nz"} <= set(cols) else None
     return points, normals
 
 
