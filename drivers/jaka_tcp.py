@@ -196,7 +196,15 @@ class JakaTcpArm:
         return from_rpy(pose[:3], np.radians(pose[3:]))
 
     async def stop(self) -> None:
-        """Stop the running motion (``stop_program``)."""
+        """Stop the running motion (``stop_program``). Where the command link was dropped while the status stream
+        still runs (a move whose reply never came may be running: the controller acts on a command before it
+        replies), the stop goes out on a new command connection."""
+        if self._cmd is None and self._status_writer is not None:
+            async with self._lock:
+                if self._cmd is None:
+                    self._cmd = await self._open(self._net.host, self._net.command_port, self._net.reply_timeout_s)
+                    self._cmd_framer, self._cmd_backlog = JsonObjectFramer(), []
+                    log.warning("%s: command link reopened to stop the arm", self.name)
         await self._call("stop_program")
 
     async def clear_error(self) -> None:

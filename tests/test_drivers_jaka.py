@@ -118,6 +118,24 @@ async def test_move_timeout_stops_the_arm(emulator, arm):
     np.testing.assert_allclose(emulator.joints_deg(), q_after)  # halted, not still moving
 
 
+async def test_a_move_whose_reply_never_came_is_stopped_on_a_new_command_connection(emulator, arm):
+    """The controller starts a move, then its reply is late: the driver drops the command link (a late reply
+    would answer the next command) and raises; the stop that follows (the supervisor's halt) must still reach
+    the arm, which is moving."""
+    emulator.time_scale = 1.0
+    emulator.faults.reply_delay_s = 2.0
+    with pytest.raises(DeviceTimeout, match="joint_move: no reply"):
+        await arm.move_joints(Q_HOME + np.radians([90.0, 0, 0, 0, 0, 0]))  # a few seconds at joint speed
+    emulator.faults.reply_delay_s = 0.0
+    assert not emulator.motion.in_position(emulator.sim_time())  # the move runs
+    await arm.stop()
+    assert emulator.commands[-1] == "stop_program"
+    q_after = emulator.joints_deg()
+    await asyncio.sleep(0.05)
+    np.testing.assert_allclose(emulator.joints_deg(), q_after)  # halted
+    np.testing.assert_allclose(await arm.joints(), np.radians(q_after), atol=1e-9)  # the new link serves commands
+
+
 @pytest.mark.parametrize("fault", ["reply_delay_s", "silent"])
 async def test_slow_or_silent_controller_times_out_then_reconnects(emulator, arm, fault):
     setattr(emulator.faults, fault, 1.0 if fault == "reply_delay_s" else True)
