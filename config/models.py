@@ -176,7 +176,8 @@ class JakaTcpConfig(_Strict):
     joint_accel_deg_s2: float = Field(180.0, gt=0, le=720.0)
     linear_speed_mm_s: float = Field(100.0, gt=0)
     linear_accel_mm_s2: float = Field(500.0, gt=0)
-    inpos_tolerance_deg: float = Field(0.05, gt=0, description="joint target reached when all joints are this close")
+    inpos_tolerance_deg: float = Field(0.05, gt=0, description="joint target reached when all joints are this "
+                                       "close; a linear target when the flange's orientation is this close too")
     inpos_tolerance_mm: float = Field(0.2, gt=0, description="linear target reached when this close")
     status_gap_timeout_s: float = Field(
         0.3, gt=0, description="no status message for this long while waiting on the stream = link lost "

@@ -31,7 +31,7 @@ from tandemscan.drivers.errors import (
 from tandemscan.drivers.interfaces import DeviceStatus
 from tandemscan.drivers.json_stream import JsonFramingError, JsonObjectFramer, encode
 from tandemscan.drivers.tasks import cancel_and_wait
-from tandemscan.pipeline.geometry.frames import from_rpy, to_rpy
+from tandemscan.pipeline.geometry.frames import from_rpy, rotation_angle, to_rpy
 
 log = logging.getLogger(__name__)
 
@@ -177,11 +177,13 @@ class JakaTcpArm:
             "moveL", cart, cartPosition=cart, speed=self._net.linear_speed_mm_s, accel=self._net.linear_accel_mm_s2,
             relFlag=0, tol=0,
         )
-        tol = self._net.inpos_tolerance_mm
+        tol_mm, tol_rad = self._net.inpos_tolerance_mm, math.radians(self._net.inpos_tolerance_deg)
 
-        def arrived(st: dict) -> bool:
+        def arrived(st: dict) -> bool:  # inpos alone may still be the last move's: the pose must be the target's
             actual = six_finite(st.get("actual_position"), "actual_position", self.name)
-            return bool(st.get("inpos")) and float(np.linalg.norm(actual[:3] - xyz)) <= tol
+            if not st.get("inpos") or float(np.linalg.norm(actual[:3] - xyz)) > tol_mm:
+                return False
+            return rotation_angle(from_rpy(actual[:3], np.radians(actual[3:])) @ np.linalg.inv(T)) <= tol_rad
 
         await self._await_motion(arrived, timeout_s, "linear move")
 

@@ -11,7 +11,7 @@ from tandemscan.config.models import ArmConfig, JakaTcpConfig
 from tandemscan.drivers import Arm, DeviceFault, DeviceTimeout, NotConnected, OutOfReach, SafetyStop
 from tandemscan.drivers.jaka_tcp import JakaTcpArm
 from tandemscan.drivers.json_stream import JsonFramingError, JsonObjectFramer
-from tandemscan.pipeline.geometry.frames import pose_error
+from tandemscan.pipeline.geometry.frames import from_rotvec, pose_error
 from tandemscan.pipeline.geometry.kinematics import ArmKinematics
 from tandemscan.sim_drivers.emulators.jaka import JakaBehaviour, JakaEmulator
 
@@ -60,6 +60,18 @@ async def test_happy_path_joint_and_linear_moves(emulator, arm):
     assert dt < 0.05 and dr < 1e-4
     assert (await arm.status()).state == "idle"
     assert [c for c in emulator.commands[:6] if c != "get_robot_state"] == ["power_on", "enable_robot"]
+
+
+async def test_a_linear_move_that_only_turns_the_flange_waits_for_the_turn(emulator, arm):
+    """A controller starts a move a little after its reply and meanwhile still shows the last move's ``inpos``;
+    a linear move to the same position at another orientation must not return on that flag."""
+    emulator.behaviour = JakaBehaviour(move_start_delay_s=0.05)
+    kin = ArmKinematics(ArmConfig())
+    goal = kin.forward(Q_HOME) @ from_rotvec([0.0, 0.0, 0.0], [0.0, 0.0, np.radians(5.0)])  # the same position
+    await arm.move_linear(goal)
+    assert emulator.motion.in_position(emulator.sim_time())
+    dt, dr = pose_error(await arm.flange_pose(), goal)
+    assert dt < 0.05 and dr < 1e-4
 
 
 async def test_move_waits_for_motion_in_simulated_time(emulator, arm):
@@ -222,7 +234,7 @@ def test_framer_bounds_memory():
 # ---------------------------------------------------------------- vendor behaviour (issue 15)
 
 VENDOR_LIKE = JakaBehaviour(power_on_delay_s=0.3, enable_delay_s=0.1, segment_bytes=500, numeric_error_codes=True,
-                            status_bytes=6000)
+                            status_bytes=6000, move_start_delay_s=0.02)
 
 
 @pytest.fixture

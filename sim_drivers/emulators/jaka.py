@@ -54,6 +54,8 @@ class JakaBehaviour:
     segment_bytes: int = 0  # > 0: every write goes out in TCP segments of at most this many bytes
     numeric_error_codes: bool = False  # errorCode as a number (0, 2) instead of a string
     status_bytes: int = 0  # > 0: status objects padded with vendor keys (din, dout, ain, ...) to about this size
+    move_start_delay_s: float = 0.0  # wall seconds from a move's reply until the arm starts it; meanwhile the
+    # status still shows the last move's inpos (a real controller plans first and pushes every 8 ms)
 
 
 class JointMotion:
@@ -64,10 +66,11 @@ class JointMotion:
         self._t0 = 0.0
         self._duration = 0.0
 
-    def command(self, target_deg: np.ndarray, speed_deg_s: float, now_s: float) -> None:
+    def command(self, target_deg: np.ndarray, speed_deg_s: float, now_s: float, start_delay_s: float = 0.0) -> None:
+        """Move to ``target_deg`` at ``speed_deg_s``, starting ``start_delay_s`` after ``now_s`` (simulated s)."""
         self._start = self.position(now_s)
         self._target = np.asarray(target_deg, float)
-        self._t0 = now_s
+        self._t0 = now_s + start_delay_s
         self._duration = float(np.max(np.abs(self._target - self._start))) / max(speed_deg_s, 1e-9)
 
     def position(self, now_s: float) -> np.ndarray:
@@ -77,7 +80,8 @@ class JointMotion:
         return self._start + f * (self._target - self._start)
 
     def in_position(self, now_s: float) -> bool:
-        return now_s >= self._t0 + self._duration
+        """At the target, or not yet started (the previous move's flag, as a controller's status shows it)."""
+        return now_s >= self._t0 + self._duration or now_s < self._t0
 
     def halt(self, now_s: float) -> None:
         q = self.position(now_s)
@@ -331,7 +335,8 @@ class JakaEmulator:
             return _error("2", "bad target")
         if not self.kinematics.within_limits(np.radians(target)):
             return _error("2", "joint target outside limits")
-        self.motion.command(target, speed if self.time_scale > 0 else math.inf, now)
+        delay = self.behaviour.move_start_delay_s / self.time_scale if self.time_scale > 0 else 0.0
+        self.motion.command(target, speed if self.time_scale > 0 else math.inf, now, delay)
         return {}
 
 
