@@ -52,6 +52,7 @@ class PhoxiScanner:
         self._lock = asyncio.Lock()
         self._broken: DeviceError | None = None
         self._gige_order: tuple[str, ...] = ()  # enabled GigE components in increasing ComponentIDValue
+        self._late_scan_possible = False  # a fetch timed out: its scan may still reach the output queue
         default_best = _GIGE_CONFIDENCE_BEST if self._px.interface == "gige_vision" else 1.0
         self._confidence_best = self._px.confidence_best or default_best
         self._gige_formats = {"Range": self._px.range_pixel_format, "Normal": self._px.normal_pixel_format,
@@ -123,7 +124,7 @@ class PhoxiScanner:
         except Exception as e:  # vendor boundary
             _release(acquirer, harvester)
             raise DeviceFault(self.name, f"cannot configure the scanner: {type(e).__name__}: {e}") from e
-        self._harvester, self._acquirer = harvester, acquirer
+        self._harvester, self._acquirer, self._late_scan_possible = harvester, acquirer, False
         log.info("%s: opened through %s (%s)", self.name, producer, self._px.interface)
 
     def _import_harvesters(self) -> ModuleType:
@@ -165,8 +166,15 @@ class PhoxiScanner:
         return tuple(sorted(ids, key=ids.__getitem__))
 
     def _capture(self, timeout: float) -> ScanFrame:
+        """Trigger, fetch and decode one scan. After a fetch that timed out, the acquisition is stopped and
+        started first: its scan may still complete, and the output queue would hand it to this fetch in place of
+        the scan triggered now (taken at another arm pose)."""
         nodes = self._acquirer.remote_device.node_map
         try:
+            if self._late_scan_possible:
+                self._acquirer.stop()  # flushes the queues (GenTL ACQ_QUEUE_ALL_DISCARD)
+                self._acquirer.start()
+                self._late_scan_possible = False
             (nodes.TriggerFrame if self._px.interface == "photoneo_gentl" else nodes.TriggerSoftware).execute()
             with self._acquirer.fetch(timeout=timeout) as buffer:
                 comps = list(buffer.payload.components)
@@ -175,6 +183,7 @@ class PhoxiScanner:
             raise
         except Exception as e:  # vendor boundary: map by kind
             if "timeout" in type(e).__name__.lower():
+                self._late_scan_possible = True
                 raise DeviceTimeout(self.name, f"no scan within {timeout} s") from e
             raise DeviceFault(self.name, f"capture failed: {type(e).__name__}: {e}") from e
 

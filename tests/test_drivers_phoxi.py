@@ -107,6 +107,23 @@ async def test_slow_scan_times_out_then_recovers(producer):
     await scanner.close()
 
 
+async def test_a_scan_that_completes_after_its_fetch_timed_out_is_not_taken_for_the_next(producer):
+    """The scan of a timed-out fetch still completes into the producer's output queue; the next capture (at
+    another arm pose) must return its own scan, not that one."""
+    scanner = scanner_for(producer)
+    await scanner.connect()
+    fake.CAMERA.fetch_delay_s = 0.3
+    with pytest.raises(DeviceTimeout, match="no scan within 0.1 s"):
+        await scanner.capture(timeout_s=0.1)
+    time.sleep(0.3)  # the late scan is now complete and queued
+    fake.CAMERA.fetch_delay_s = 0.0
+    fake.CAMERA.scene = fake.recorded_style_scene(distance_mm=600.0)  # the arm moved on
+    frame = await scanner.capture()
+    assert frame.points_mm[:, 2].min() >= 600.0
+    assert len((await scanner.capture()).points_mm) == len(frame.points_mm)  # nothing queued behind it
+    await scanner.close()
+
+
 async def test_malformed_buffer_is_a_fault(producer):
     scanner = scanner_for(producer)
     await scanner.connect()

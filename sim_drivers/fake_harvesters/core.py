@@ -5,11 +5,16 @@ order, switched by ``Send*`` nodes) or ``gige_vision`` (GenICam component select
 with ``ComponentEnable``, ``PixelFormat`` and ``ComponentIDValue`` per component; a buffer has one part per
 enabled component in increasing ID; Intensity and Range are enabled at power-up, as on a device fresh from
 the factory; Confidence is ``Confidence8``, 0 invalid, 255 best; ``NormalsEstimationRadius`` 0 sends zeros).
+
+Each software trigger starts a scan of the scene as it is then, complete ``fetch_delay_s`` later; ``fetch``
+takes the scans in the order they complete, so a scan whose fetch timed out is still delivered to a later
+fetch unless the acquisition was stopped in between (GenTL's stop flushes the output queue, as harvesters'
+``ImageAcquirer.stop`` does with ``ACQ_QUEUE_ALL_DISCARD``).
 """
 
 from __future__ import annotations
 
-import threading
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -70,6 +75,7 @@ class FakeCamera:
     node_values: dict[str, object] = field(default_factory=dict)
     triggers: int = 0
     open_acquirers: int = 0
+    scans: list[tuple[float, Scene]] = field(default_factory=list)  # per trigger: (time.monotonic() done, scene)
 
     def reset(self) -> None:
         self.__init__()  # type: ignore[misc]
@@ -114,8 +120,11 @@ class _Node:
         return tuple(GIGE_COMPONENTS) if self._name == "ComponentSelector" else ()
 
     def execute(self) -> None:
-        self._camera.node_values[self._name] = "executed"
-        self._camera.triggers += 1
+        """A software trigger: a scan of the scene as it is now, complete after the camera's fetch delay."""
+        cam = self._camera
+        cam.node_values[self._name] = "executed"
+        cam.triggers += 1
+        cam.scans.append((time.monotonic() + cam.fetch_delay_s, cam.scene))
 
 
 class _NodeMap:
@@ -163,8 +172,7 @@ class ImageAcquirer:
     def __init__(self, camera: FakeCamera):
         self._camera = camera
         self.remote_device = _RemoteDevice(camera)
-        self._pending = 0
-        self._lock = threading.Lock()
+        self._taken = set(range(len(camera.scans)))  # scans delivered or discarded (triggered before it opened)
         self._started = False
         camera.open_acquirers += 1
 
@@ -172,22 +180,26 @@ class ImageAcquirer:
         self._started = True
 
     def stop(self) -> None:
+        """Stop acquiring and flush the queues: scans under way or complete and not fetched are discarded."""
         self._started = False
+        self._taken.update(range(len(self._camera.scans)))
 
     def destroy(self) -> None:
         self._camera.open_acquirers -= 1
 
     def fetch(self, timeout: float = 0) -> _Buffer:
-        """One buffer per software trigger; ``TimeoutException`` after ``timeout`` s without one."""
+        """The first scan to complete of those not yet fetched; ``TimeoutException`` after ``timeout`` s without
+        one."""
         cam = self._camera
-        delay = cam.fetch_delay_s
-        if not self._started or cam.triggers <= self._pending or delay > timeout:
+        waiting = [(done, k) for k, (done, _) in enumerate(cam.scans) if k not in self._taken]
+        wait_s = min(waiting)[0] - time.monotonic() if waiting and self._started else math.inf
+        if wait_s > timeout:
             time.sleep(timeout)
             raise TimeoutException(f"no buffer within {timeout} s")
-        time.sleep(delay)
-        with self._lock:
-            self._pending = cam.triggers
-        xyz, normals, conf = cam.scene()
+        time.sleep(max(0.0, wait_s))
+        k = min(waiting)[1]
+        self._taken.add(k)
+        xyz, normals, conf = cam.scans[k][1]()
         return _Buffer(_gige_parts(cam, xyz, normals, conf) if cam.interface == "gige_vision"
                        else _photoneo_components(cam, xyz, normals, conf))
 
