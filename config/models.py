@@ -180,8 +180,8 @@ class JakaTcpConfig(_Strict):
                                        "close; a linear target when the flange's orientation is this close too")
     inpos_tolerance_mm: float = Field(0.2, gt=0, description="linear target reached when this close")
     status_gap_timeout_s: float = Field(
-        0.3, gt=0, description="no status message for this long while waiting on the stream = link lost "
-                               "(a few periods of the controller's status push)")
+        0.3, gt=0, description="no status message for this long while waiting on the stream = link lost; "
+                               "4 push periods instead where the controller pushes slower (timed at connect)")
     power_on_timeout_s: float = Field(15.0, gt=0, description="power_on is asynchronous: wait this long for it")
     enable_timeout_s: float = Field(15.0, gt=0, description="enable_robot is asynchronous: wait this long for it")
     state_poll_period_s: float = Field(0.1, gt=0, description="get_robot_state polling period while waiting")

@@ -38,6 +38,8 @@ log = logging.getLogger(__name__)
 _READ_CHUNK = 65536
 _POWERED = ("powered_on", 1, True)
 _ENABLED = ("robot_enabled", 1, True)
+# A status stream silent for this many of its push periods is a lost link (where longer than status_gap_timeout_s)
+STATUS_GAP_PERIODS = 4
 
 
 def succeeded(reply: dict) -> bool:
@@ -75,6 +77,7 @@ class JakaTcpArm:
         self._status_event = asyncio.Event()
         self._status_error: DeviceError | None = None
         self._status_count = 0  # status messages received on this connection
+        self._status_gap_s = config.jaka.status_gap_timeout_s  # the watchdog's gap, measured at connect
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -86,9 +89,20 @@ class JakaTcpArm:
         status_reader, self._status_writer = await self._open(host, self._net.status_port, timeout)
         self._status_error, self._status_count = None, 0
         self._status_task = asyncio.create_task(self._read_status(status_reader), name=f"{self.name}-status")
-        await self._wait_status(lambda st: True, timeout, "the first status message", check_safety=False,
-                                watchdog=False)
-        log.info("%s: connected to %s:%d/%d", self.name, host, self._net.command_port, self._net.status_port)
+        self._status_gap_s = await self._measure_status_gap(timeout)
+        log.info("%s: connected to %s:%d/%d (status watchdog gap %.3f s)", self.name, host, self._net.command_port,
+                 self._net.status_port, self._status_gap_s)
+
+    async def _measure_status_gap(self, timeout_s: float) -> float:
+        """The status watchdog's gap (s): ``status_gap_timeout_s``, or :data:`STATUS_GAP_PERIODS` push periods
+        where the controller pushes slower (its send period is a setting of the controller, up to ``timeout_s``
+        here), the period timed between the second and third status messages of this connection."""
+        loop, seen_at = asyncio.get_running_loop(), []
+        for count in (1, 2, 3):
+            await self._wait_status(lambda st, count=count: self._status_count >= count, timeout_s,
+                                    f"status message {count}", check_safety=False, watchdog=False)
+            seen_at.append(loop.time())
+        return max(self._net.status_gap_timeout_s, STATUS_GAP_PERIODS * (seen_at[2] - seen_at[1]))
 
     async def close(self) -> None:
         """Drop both connections; safe to call twice or after the peer vanished."""
@@ -323,7 +337,7 @@ class JakaTcpArm:
         ``status_gap_timeout_s`` without any status message is a lost link (:class:`NotConnected`)."""
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout_s
-        gap = self._net.status_gap_timeout_s if watchdog else math.inf
+        gap = self._status_gap_s if watchdog else math.inf
         while True:
             if self._status_error is not None:
                 raise self._status_error
@@ -383,7 +397,7 @@ class JakaTcpArm:
         except BaseException as e:
             if self._cmd is not None:
                 # a silent link would not answer either: then the attempt is bounded by the watchdog gap
-                bound = self._net.status_gap_timeout_s if isinstance(e, NotConnected) else self._net.reply_timeout_s
+                bound = self._status_gap_s if isinstance(e, NotConnected) else self._net.reply_timeout_s
                 with contextlib.suppress(DeviceError):
                     await self._request("stop_program", bound)
             raise

@@ -148,6 +148,27 @@ async def test_a_move_whose_reply_never_came_is_stopped_on_a_new_command_connect
     np.testing.assert_allclose(await arm.joints(), np.radians(q_after), atol=1e-9)  # the new link serves commands
 
 
+async def test_a_controller_that_pushes_its_status_slowly_is_not_taken_for_a_lost_link():
+    """The status push period is a setting of the controller: at 0.5 s (beyond the default 0.3 s watchdog gap) the
+    driver times the period at connect and watches for a gap of four of them instead."""
+    emulator = JakaEmulator(ArmConfig(), time_scale=0.005, initial_joints_rad=Q_HOME, status_period_s=0.5)
+    await emulator.start()
+    arm = arm_for(emulator, reply_timeout_s=1.0)  # each status message awaited at connect for up to this long
+    try:
+        await arm.connect()
+        await arm.enable()
+        await arm.move_joints(Q_TARGET)
+        np.testing.assert_allclose(await arm.joints(), Q_TARGET, atol=1e-9)
+        emulator.faults.status_silent = True  # and a stream that stops is still a lost link, after 4 periods
+        t0 = time.monotonic()
+        with pytest.raises(NotConnected, match=r"no status message for 2\.\d+ s"):
+            await arm.move_joints(Q_HOME)
+        assert time.monotonic() - t0 < 3.5
+    finally:
+        await arm.close()
+        await emulator.stop()
+
+
 @pytest.mark.parametrize("fault", ["reply_delay_s", "silent"])
 async def test_slow_or_silent_controller_times_out_then_reconnects(emulator, arm, fault):
     setattr(emulator.faults, fault, 1.0 if fault == "reply_delay_s" else True)
