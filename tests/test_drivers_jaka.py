@@ -161,9 +161,9 @@ async def test_a_controller_that_pushes_its_status_slowly_is_not_taken_for_a_los
         np.testing.assert_allclose(await arm.joints(), Q_TARGET, atol=1e-9)
         emulator.faults.status_silent = True  # and a stream that stops is still a lost link, after 4 periods
         t0 = time.monotonic()
-        with pytest.raises(NotConnected, match=r"no status message for 2\.\d+ s"):
+        with pytest.raises(NotConnected, match=r"no status message for \d\.\d+ s"):
             await arm.move_joints(Q_HOME)
-        assert time.monotonic() - t0 < 3.5
+        assert 1.0 < time.monotonic() - t0 < 5.0  # about 2 s: four 0.5 s periods, not the default 0.3 s
     finally:
         await arm.close()
         await emulator.stop()

@@ -193,7 +193,7 @@ async def test_the_supervisor_latches_an_estop_as_the_module_pushes_it_not_at_it
         async with asyncio.timeout(3):
             while sup.latched_reason is None:
                 await asyncio.sleep(0.005)
-        assert time.monotonic() - t0 < 0.5  # a few poll periods, not the 2 s control period
+        assert time.monotonic() - t0 < 1.0  # a few 20 ms polls (and any stall of a loaded machine), not the 2 s period
         assert sup.latched_reason == "e-stop pressed"
         assert len(sup.control_lateness_s) == 0  # no control tick yet
     finally:
