@@ -17,7 +17,6 @@ Times are seconds (monotonic clock).
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import time
 from collections import deque
@@ -92,7 +91,8 @@ class Supervisor:
         self._tasks: list[asyncio.Task] = []
         self._reconnecting: dict[str, asyncio.Task] = {}
         self._all_connected = asyncio.Event()
-        self._safety_changed = asyncio.Event()  # set by a pushed state that forbids motion
+        self._safety_wake = asyncio.Event()  # set at a control tick, or by a pushed state that forbids motion
+        self._safety_pushed = False
 
     # ------------------------------------------------------------ lifecycle
 
@@ -207,18 +207,19 @@ class Supervisor:
     def _on_safety_change(self, state: SafetyState) -> None:
         """A change the safety I/O pushed as its poll's reply arrived: one that forbids motion is read at once."""
         if not state.motion_allowed:
-            self._safety_changed.set()
+            self._safety_pushed = True
+            self._safety_wake.set()
 
     async def _wait_for_tick(self, tick_t: float) -> bool:
         """Sleep until ``tick_t`` (``time.monotonic()``, s) or until the safety I/O pushes a state that forbids
         motion (:meth:`_on_safety_change`); True at the tick, False when woken before it."""
-        if not self._safety_changed.is_set():
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(max(0.0, tick_t - time.monotonic())):
-                    await self._safety_changed.wait()
-        woken = self._safety_changed.is_set()
-        self._safety_changed.clear()
-        return not woken
+        if not self._safety_pushed:
+            timer = asyncio.get_running_loop().call_later(max(0.0, tick_t - time.monotonic()), self._safety_wake.set)
+            await self._safety_wake.wait()
+            timer.cancel()
+        self._safety_wake.clear()
+        pushed, self._safety_pushed = self._safety_pushed, False
+        return not pushed or time.monotonic() >= tick_t
 
     async def _safety_loop(self) -> None:
         """Read the safety I/O every control period and when it pushes a change (:meth:`_wait_for_tick`); latch
