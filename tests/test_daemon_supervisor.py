@@ -169,3 +169,22 @@ async def test_a_robot_whose_device_is_down_may_not_move_until_it_is_reconnected
     await sup.wait_connected(2.0)
     async with sup.motion(TRACKING_ROBOT):
         assert sup.moving_robots == [TRACKING_ROBOT]
+
+
+async def test_opening_a_session_takes_the_live_heap_out_of_the_collectors_full_scans():
+    """A full collection scans every tracked object (about 80 ms for the daemon's imported stack, a stall of the
+    50 Hz control loop): the session freezes what is alive when it opens, before the loop runs."""
+    import gc
+
+    from tandemscan.config import load_config
+
+    gc.unfreeze()
+    alive = [{"a container": "alive across the open"}]
+    session = CellSession(load_config())
+    await session.open()
+    try:
+        assert gc.get_freeze_count() > 0
+        scanned = {id(o) for o in gc.get_objects(generation=2)}
+        assert id(alive) not in scanned and id(alive[0]) not in scanned
+    finally:
+        await session.close()
