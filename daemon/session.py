@@ -29,9 +29,11 @@ log = logging.getLogger(__name__)
 
 def freeze_heap() -> None:
     """Collect cyclic garbage once, then take every object alive now out of the cyclic collector's scans
-    (``gc.freeze``). The imported stack (NumPy, pydantic, the web app, the drivers: about 150 k objects in the
-    daemon) is otherwise scanned by every full collection, an 80 ms stall of the event loop that runs the 20 ms
-    control period (``benchmarks/gc_pause.py``); frozen objects are still freed when their last reference goes."""
+    (``gc.freeze``) until the session closes (``gc.unfreeze`` in :meth:`CellSession.close`). The imported stack
+    (NumPy, pydantic, the web app, the drivers: about 150 k objects in the daemon) is otherwise scanned by every
+    full collection, an 80 ms stall of the event loop that runs the 20 ms control period
+    (``benchmarks/gc_pause.py``). Frozen objects are still freed when their last reference goes; a reference
+    cycle among them waits for the thaw at close."""
     gc.collect()
     gc.freeze()
 
@@ -40,7 +42,8 @@ class MotionGate(Protocol):
     """Every motion of a robot runs inside ``async with gate.motion(robot)``."""
 
     def motion(self, robot: str) -> AsyncIterator[None]:
-        """Refuses (:class:`SafetyStop`, :class:`~tandemscan.daemon.supervisor.MotionInterlock`) or lets the
+        """Refuses (:class:`SafetyStop`, :class:`~tandemscan.daemon.supervisor.MotionInterlock`, or
+        :class:`~tandemscan.drivers.errors.NotConnected` while one of the robot's devices is down) or lets the
         block run; a safety stop during it interrupts it with :class:`SafetyStop`."""
         ...
 
@@ -110,6 +113,7 @@ class CellSession:
         await self.supervisor.close()
         if self.cell.simulation is not None:
             await self.cell.simulation.stop()
+        gc.unfreeze()  # the session's own reference cycles are collectable again
 
     async def __aenter__(self) -> CellSession:
         await self.open()
@@ -124,7 +128,8 @@ class CellSession:
 
     @asynccontextmanager
     async def motion(self, robot: str) -> AsyncIterator[None]:
-        """The gate: refused unless the session is open; then the supervisor's latch and interlock."""
+        """The gate: refused unless the session is open; then the supervisor's latch, device health and
+        interlock."""
         if not self.active:
             raise SafetyStop("session", f"motion of the {robot} robot refused: the cell session is not open")
         async with self.supervisor.motion(robot):

@@ -93,6 +93,8 @@ class Supervisor:
         self._all_connected = asyncio.Event()
         self._safety_wake = asyncio.Event()  # set at a control tick, or by a pushed state that forbids motion
         self._safety_pushed = False
+        if isinstance(safety, PushesSafetyChanges):  # once: a session opened again keeps its supervisor
+            safety.add_listener(self._on_safety_change)
 
     # ------------------------------------------------------------ lifecycle
 
@@ -105,8 +107,6 @@ class Supervisor:
         self._update_all_connected()
         self._tasks.append(asyncio.create_task(self._health_loop(), name="supervisor-health"))
         if self.safety_io is not None:
-            if isinstance(self.safety_io, PushesSafetyChanges):
-                self.safety_io.add_listener(self._on_safety_change)
             self._tasks.append(asyncio.create_task(self._safety_loop(), name="supervisor-safety"))
 
     async def wait_connected(self, timeout_s: float | None = None) -> None:
@@ -215,8 +215,10 @@ class Supervisor:
         motion (:meth:`_on_safety_change`); True at the tick, False when woken before it."""
         if not self._safety_pushed:
             timer = asyncio.get_running_loop().call_later(max(0.0, tick_t - time.monotonic()), self._safety_wake.set)
-            await self._safety_wake.wait()
-            timer.cancel()
+            try:
+                await self._safety_wake.wait()
+            finally:
+                timer.cancel()
         self._safety_wake.clear()
         pushed, self._safety_pushed = self._safety_pushed, False
         return not pushed or time.monotonic() >= tick_t
@@ -242,8 +244,7 @@ class Supervisor:
                 if unreadable_ticks >= UNREADABLE_TICKS:
                     await self.trip(reason)
                 else:
-                    log.warning("%s (last control tick %.0f ms late; read again next tick)", reason,
-                                1000.0 * self.control_lateness_s[-1])
+                    log.warning("%s (read again next tick)", reason)
                 continue
             unreadable_ticks = 0
             if not state.motion_allowed:

@@ -78,6 +78,7 @@ class JakaTcpArm:
         self._status_error: DeviceError | None = None
         self._status_count = 0  # status messages received on this connection
         self._status_gap_s = config.jaka.status_gap_timeout_s  # the watchdog's gap, measured at connect
+        self._status_arrivals: list[float] = []  # loop times (s) of this connection's first four status messages
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -87,7 +88,7 @@ class JakaTcpArm:
         host, timeout = self._net.host, self._net.reply_timeout_s
         self._cmd = await self._open(host, self._net.command_port, timeout)
         status_reader, self._status_writer = await self._open(host, self._net.status_port, timeout)
-        self._status_error, self._status_count = None, 0
+        self._status_error, self._status_count, self._status_arrivals = None, 0, []
         self._status_task = asyncio.create_task(self._read_status(status_reader), name=f"{self.name}-status")
         self._status_gap_s = await self._measure_status_gap(timeout)
         log.info("%s: connected to %s:%d/%d (status watchdog gap %.3f s)", self.name, host, self._net.command_port,
@@ -95,14 +96,17 @@ class JakaTcpArm:
 
     async def _measure_status_gap(self, timeout_s: float) -> float:
         """The status watchdog's gap (s): ``status_gap_timeout_s``, or :data:`STATUS_GAP_PERIODS` push periods
-        where the controller pushes slower (its send period is a setting of the controller, up to ``timeout_s``
-        here), the period timed between the second and third status messages of this connection."""
-        loop, seen_at = asyncio.get_running_loop(), []
-        for count in (1, 2, 3):
-            await self._wait_status(lambda st, count=count: self._status_count >= count, timeout_s,
-                                    f"status message {count}", check_safety=False, watchdog=False)
-            seen_at.append(loop.time())
-        return max(self._net.status_gap_timeout_s, STATUS_GAP_PERIODS * (seen_at[2] - seen_at[1]))
+        where the controller pushes slower (its send period is a setting of the controller). The period is the
+        median of the three intervals between the arrivals of this connection's first four status messages (a
+        stall of the event loop stretches one and squeezes the next). The first message is awaited for up to
+        ``timeout_s``, the other three for up to ``3 timeout_s``; the supervisor's ``device_timeout_s`` bounds
+        the whole connect."""
+        await self._wait_status(lambda st: True, timeout_s, "the first status message", check_safety=False,
+                                watchdog=False)
+        await self._wait_status(lambda st: len(self._status_arrivals) >= 4, 3 * timeout_s, "four status messages",
+                                check_safety=False, watchdog=False)
+        period_s = float(np.median(np.diff(self._status_arrivals)))
+        return max(self._net.status_gap_timeout_s, STATUS_GAP_PERIODS * period_s)
 
     async def close(self) -> None:
         """Drop both connections; safe to call twice or after the peer vanished."""
@@ -304,9 +308,12 @@ class JakaTcpArm:
                 data = await reader.read(_READ_CHUNK)
                 if not data:
                     raise NotConnected(self.name, "status stream closed by the controller")
+                arrived = asyncio.get_running_loop().time()
                 for obj in framer.feed(data):
                     self._status = obj
                     self._status_count += 1
+                    if len(self._status_arrivals) < 4:
+                        self._status_arrivals.append(arrived)
                     self._wake_status_waiters()
         except JsonFramingError as e:
             self._status_error = DeviceFault(self.name, f"malformed status message: {e}")

@@ -188,3 +188,4 @@ async def test_opening_a_session_takes_the_live_heap_out_of_the_collectors_full_
         assert id(alive) not in scanned and id(alive[0]) not in scanned
     finally:
         await session.close()
+    assert gc.get_freeze_count() == 0  # thawed at close: the closed session's reference cycles are collectable

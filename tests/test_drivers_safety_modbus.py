@@ -199,3 +199,19 @@ async def test_the_supervisor_latches_an_estop_as_the_module_pushes_it_not_at_it
     finally:
         await emulator.press_estop(False)
         await sup.close()
+
+
+async def test_a_link_lost_before_the_first_control_tick_still_latches_the_cell(emulator, io):
+    """The lost link is pushed (as an e-stop state) before the supervisor's first tick, and the read it wakes
+    fails: the loop reads again at its tick and latches; it does not end."""
+    sup = Supervisor([], {}, io, control_period_s=0.5)
+    await sup.start()
+    try:
+        await emulator.restart()  # drops the connection at once
+        async with asyncio.timeout(3):
+            while sup.latched_reason is None:
+                await asyncio.sleep(0.01)
+        assert "link lost" in sup.latched_reason
+        assert not any(t.done() for t in sup._tasks)  # the safety loop runs on
+    finally:
+        await sup.close()

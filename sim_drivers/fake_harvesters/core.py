@@ -6,7 +6,8 @@ with ``ComponentEnable``, ``PixelFormat`` and ``ComponentIDValue`` per component
 enabled component in increasing ID; Intensity and Range are enabled at power-up, as on a device fresh from
 the factory; Confidence is ``Confidence8``, 0 invalid, 255 best; ``NormalsEstimationRadius`` 0 sends zeros).
 
-Each software trigger starts a scan of the scene as it is then, complete ``fetch_delay_s`` later; ``fetch``
+Each software trigger starts a scan of the ``scene`` callable set then, complete ``fetch_delay_s`` later (the
+callable runs at fetch: one that reads a live world, as the hil cell's does, shows it as it is then); ``fetch``
 takes the scans in the order they complete, so a scan whose fetch timed out is still delivered to a later
 fetch unless the acquisition was stopped in between (GenTL's stop flushes the output queue, as harvesters'
 ``ImageAcquirer.stop`` does with ``ACQ_QUEUE_ALL_DISCARD``).
