@@ -31,7 +31,7 @@ from tandemscan.drivers.errors import (
 from tandemscan.drivers.interfaces import DeviceStatus
 from tandemscan.drivers.json_stream import JsonFramingError, JsonObjectFramer, encode
 from tandemscan.drivers.tasks import cancel_and_wait
-from tandemscan.pipeline.geometry.frames import from_rpy, rotation_angle, to_rpy
+from tandemscan.pipeline.geometry.frames import from_rpy, pose_error, to_rpy
 
 log = logging.getLogger(__name__)
 
@@ -199,9 +199,8 @@ class JakaTcpArm:
 
         def arrived(st: dict) -> bool:  # inpos alone may still be the last move's: the pose must be the target's
             actual = six_finite(st.get("actual_position"), "actual_position", self.name)
-            if not st.get("inpos") or float(np.linalg.norm(actual[:3] - xyz)) > tol_mm:
-                return False
-            return rotation_angle(from_rpy(actual[:3], np.radians(actual[3:])) @ np.linalg.inv(T)) <= tol_rad
+            dt_mm, dr_rad = pose_error(from_rpy(actual[:3], np.radians(actual[3:])), T)
+            return bool(st.get("inpos")) and dt_mm <= tol_mm and dr_rad <= tol_rad
 
         await self._await_motion(arrived, timeout_s, "linear move")
 

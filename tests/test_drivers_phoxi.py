@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import time
 
 import numpy as np
@@ -115,7 +116,7 @@ async def test_a_scan_that_completes_after_its_fetch_timed_out_is_not_taken_for_
     fake.CAMERA.fetch_delay_s = 0.3
     with pytest.raises(DeviceTimeout, match="no scan within 0.1 s"):
         await scanner.capture(timeout_s=0.1)
-    time.sleep(0.3)  # the late scan is now complete and queued
+    await asyncio.sleep(0.3)  # the late scan is now complete and queued
     fake.CAMERA.fetch_delay_s = 0.0
     fake.CAMERA.scene = fake.recorded_style_scene(distance_mm=600.0)  # the arm moved on
     frame = await scanner.capture()

@@ -193,12 +193,12 @@ class ImageAcquirer:
         one."""
         cam = self._camera
         waiting = [(done, k) for k, (done, _) in enumerate(cam.scans) if k not in self._taken]
-        wait_s = min(waiting)[0] - time.monotonic() if waiting and self._started else math.inf
+        done, k = min(waiting) if waiting and self._started else (math.inf, -1)
+        wait_s = done - time.monotonic()
         if wait_s > timeout:
-            time.sleep(timeout)
+            time.sleep(timeout)  # a blocking GenTL call: the driver makes it on a worker thread
             raise TimeoutException(f"no buffer within {timeout} s")
         time.sleep(max(0.0, wait_s))
-        k = min(waiting)[1]
         self._taken.add(k)
         xyz, normals, conf = cam.scans[k][1]()
         return _Buffer(_gige_parts(cam, xyz, normals, conf) if cam.interface == "gige_vision"
