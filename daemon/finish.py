@@ -2,7 +2,8 @@
 
 After the last scan's commit: every scan file is read once and only its copy thinned at the job's
 ``[job] voxel_mm`` kept (:func:`load_scans`: a full-resolution scan is 3.2 M points, 369 of them would not fit
-in memory), the stitch corrected on those copies (:func:`correct_stage`: the pairs registered while the job
+in memory; the map's owner reads them while the last scans' pairs still register, ``stitcher._Pairs.finish``),
+the stitch corrected on those copies (:func:`correct_stage`: the pairs registered while the job
 measured are reused, the pose graph and the joint refinement solved), the cloud merged once at the final poses
 from the scan files, one at a time on each core (:func:`merge_stage`; the map built while measuring is kept when nothing
 was corrected), then ``cloud.ply``, the E57 (full scans streamed from their files), the pose log and the
@@ -114,8 +115,8 @@ def merge_stage(voxel_mm: float, job: JobSnapshot, poses: Sequence[np.ndarray]) 
 
 
 def finish_job(job: JobSnapshot, started: float, measured_at: float,
-               online: OnlineWork | None = None, stages: Mapping[str, float] | None = None
-               ) -> FinishedJob:
+               online: OnlineWork | None = None, stages: Mapping[str, float] | None = None,
+               loaded: LoadedScans | None = None) -> FinishedJob:
     """Correct, merge, export and inspect a measured job. It takes over ``job.worldmap``, the map stitched while
     the job measured (tracker poses), and leaves there the finished job's cloud (``worldmap.MapCloud``), so that
     the caller, holding no other reference, lets the end of the job free the map's sums. Memory: the thinned
@@ -125,11 +126,13 @@ def finish_job(job: JobSnapshot, started: float, measured_at: float,
     tracker poses again.
     ``started`` and ``measured_at`` are ``time.monotonic()`` at the job's start and at its last step's commit;
     ``online``: what the job computed while it measured (``online_pairs.OnlineWork``: registered pairs, scans
-    prepared for the joint refinement); ``stages`` (s) are timings of the work before this call."""
+    prepared for the joint refinement); ``stages`` (s) are timings of the work before this call; ``loaded``: the
+    scans as :func:`load_scans` reads them, where they were read ahead (else they are read here)."""
     timings = dict(stages or {})
-    t = time.perf_counter()
-    loaded = load_scans(job)
-    timings["read_s"] = round(time.perf_counter() - t, 3)
+    if loaded is None:
+        t = time.perf_counter()
+        loaded = load_scans(job)
+        timings["read_s"] = round(time.perf_counter() - t, 3)
     outcome = correct_stage(job, loaded, online)
     view_S = tuple(stitch_view_points(p) for p in loaded.points_S)  # all the exports need of the copies
     del loaded

@@ -45,11 +45,17 @@ def scans_with_drift(n: int = 6, per_station: int = 2, seed: int = 0):
     return truth, scans, transfers
 
 
-def test_icp_correction_and_pose_graph_remove_transfer_drift():
+@pytest.mark.parametrize("joint", [True, False], ids=["joint refinement", "pose graph"])
+def test_icp_correction_and_its_refinement_remove_transfer_drift(joint):
     truth, scans, transfers = scans_with_drift()
-    cfg = CorrectionConfig(method="icp", min_overlap_points=100)
+    cfg = CorrectionConfig(method="icp", min_overlap_points=100, joint=joint)
     res = correct_scans(scans, cfg, transfers=transfers)
     assert res.report["pairs"] >= 5
+    # the pose graph is solved only where it gives the poses: with the joint refinement, not at all
+    assert ("joint" in res.report) is joint
+    assert ("graph_cost_after" in res.report) is not joint and ("graph_s" in res.report["stage_seconds"]) is not joint
+    if not joint:
+        assert res.report["graph_cost_after"] < res.report["graph_cost_before"]
     before = np.array([pose_error(s.T_W_S, X)[0] for s, X in zip(scans, truth, strict=True)])
     after = np.array([pose_error(T, X)[0] for T, X in zip(res.poses, truth, strict=True)])
     assert np.median(after[2:]) * 5 < np.median(before[2:])

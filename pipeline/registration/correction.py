@@ -5,8 +5,8 @@ Input: every scan's points in its scanner frame S, its tracker-stitched pose ``T
 its tracker station. For each overlapping pair (``overlap.overlapping_pairs``) the overlap is registered by
 the configured method (``pairs.correct_pair``), each correction becomes a pose-graph edge, and
 ``pose_graph.refine_poses`` spreads the corrections over all scans; with ``[correction] joint`` the poses are
-instead refined jointly on the overlap points from the tracker poses (``joint.refine_jointly``; the graph's
-figures stay in the report).
+instead refined jointly on the overlap points from the tracker poses (``joint.refine_jointly``), and the graph is
+not solved.
 """
 
 from __future__ import annotations
@@ -16,7 +16,6 @@ import logging
 import time
 from collections import Counter
 from collections.abc import Mapping, MutableMapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -260,9 +259,10 @@ def correct_scans(
     by :func:`joint_scan_key`); each is taken out of it as the refinement takes it, so that none outlives the
     refinement (the prepared scans of a whole part are about half a gigabyte); ``association_cache`` the pairs'
     nearest neighbours found for it at the tracker poses (``joint.associate``, keyed by :func:`association_key`).
-    The report's ``stage_seconds`` are wall seconds of each stage; with ``[correction] joint`` the pose graph
-    (whose poses then serve only the report's graph figures) is solved on a thread beside the joint refinement,
-    and ``graph_s`` is what is left of it after ``joint_s``.
+    The report's ``stage_seconds`` are wall seconds of each stage. With ``[correction] joint`` (the default) the
+    joint refinement gives the poses and the mount and the pose graph is not solved (it started from the tracker
+    poses, not from the graph's, and the graph's figures alone were about 4 s of CPU after the last scan); without
+    it the pose graph does, and the report has its costs (``graph_cost_before`` / ``_after``, ``graph_s``).
     """
     if cfg.method in NETWORK_METHODS and network is None:
         raise ValueError(f"method {cfg.method!r} needs a DeepMerge registrar (pairs.LazyNetwork)")
@@ -274,19 +274,19 @@ def correct_scans(
     clock.lap("pairs_s")
     edges = [(i, j, o) for i, j, o in outcomes if o.transformation is not None]
     dropped = [(i, j, o.dropped) for i, j, o in outcomes if o.dropped]
-    graph_edges = [PairEdge(i, j, o.transformation, o.information, o.centre_mm) for i, j, o in edges
-                   if o.information is not None]
     priors = [ScanPrior(s.T_W_S, s.covariance, s.station) for s in scans]
-    joint = None
-    with ThreadPoolExecutor(1, thread_name_prefix="pose-graph") as pool:  # beside the joint refinement
-        graph = pool.submit(refine_poses, priors, graph_edges, transfers, mount_prior)
-        if cfg.joint:
-            joint, associated_while_measuring = _refine_jointly(scans, priors, cfg, transfers, mount_prior,
-                                                                joint_cache or {}, association_cache or {})
-            clock.lap("joint_s")
-        res = graph.result()
+    joint, graph_figures = None, {}
+    if cfg.joint:
+        joint, associated_while_measuring = _refine_jointly(scans, priors, cfg, transfers, mount_prior,
+                                                            joint_cache or {}, association_cache or {})
+        clock.lap("joint_s")
+        poses, mount = joint.poses, joint.mount
+    else:
+        graph = refine_poses(priors, [PairEdge(i, j, o.transformation, o.information, o.centre_mm)
+                                      for i, j, o in edges if o.information is not None], transfers, mount_prior)
         clock.lap("graph_s")
-    poses, mount = (res.poses, res.mount) if joint is None else (joint.poses, joint.mount)
+        poses, mount = graph.poses, graph.mount
+        graph_figures = {"graph_cost_before": graph.cost_before, "graph_cost_after": graph.cost_after}
     before = [s.T_W_S for s in scans]
     rms_b, rms_a = _overlap_rms(local, edges, before, poses, cfg)
     clock.lap("overlap_rms_s")
@@ -302,8 +302,7 @@ def correct_scans(
         "overlap_rms_mm_median_after": rms_a,
         "pose_change_mm_median": float(np.median([m[0] for m in moves])) if moves else 0.0,
         "pose_change_deg_median": float(np.degrees(np.median([m[1] for m in moves]))) if moves else 0.0,
-        "graph_cost_before": res.cost_before,
-        "graph_cost_after": res.cost_after,
+        **graph_figures,
         "stage_seconds": clock.laps,
     }
     if joint is not None:
