@@ -620,8 +620,8 @@ class CorrectionConfig(_Strict):
         0.01, ge=0, lt=1, description="edge directions weaker than this share of the strongest are dropped"
     )
     joint: bool = Field(
-        True, description="after the pose graph, refine all poses, transfers and the mount jointly on the overlap "
-        "points (docs/registration.md, Joint refinement)"
+        True, description="after the pairwise stage, refine all poses, transfers and the mount jointly on the overlap "
+        "points (docs/registration.md, Joint refinement); off: the pose graph of the pairs gives the poses"
     )
     joint_voxel_mm: float = Field(2.0, gt=0,
                                   description="the joint refinement works on scans thinned to this voxel, mm")

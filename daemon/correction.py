@@ -3,13 +3,14 @@
 Given the scans' points (read once by :mod:`tandemscan.daemon.finish`), carries each tracker reading's
 covariance to its scan pose, takes each coordinate transfer's error prior from its journaled entry and runs
 ``pipeline.registration.correction.correct_scans`` (pairwise DeepMerge/ICP corrections, those registered while
-the job measured reused, the pose graph and the joint refinement over all scans and tracker stations). Report
+the job measured reused, then the joint refinement over all scans and tracker stations, or the pose graph where it
+is off). Report
 figures before and after are returned for ``report.json``.
 
-With ``correction.estimate_mount`` the graph also estimates the shared correction of the scanner mount
-``T_T_S`` (``registration.mounts.MountPrior``), with a prior per ``job.installation_source``: the calibration file's
-hand-eye covariance, the CAD tolerance ``correction.mount_nominal_sigma_*`` for nominal mounts, and a tight
-one for the simulator's ground truth.
+With ``correction.estimate_mount`` the refinement (or the graph) also estimates the shared correction of the
+scanner mount ``T_T_S`` (``registration.mounts.MountPrior``), with a prior per ``job.installation_source``: the
+calibration file's hand-eye covariance, the CAD tolerance ``correction.mount_nominal_sigma_*`` for nominal mounts,
+and a tight one for the simulator's ground truth.
 """
 
 from __future__ import annotations

@@ -1,16 +1,15 @@
 """The end of a job in one pass (docs/registration.md, "End of the job"), where the job's world map lives.
 
-After the last scan's commit: every scan file is read once and only its copy thinned at the job's
-``[job] voxel_mm`` kept (:func:`load_scans`: a full-resolution scan is 3.2 M points, 369 of them would not fit
-in memory; the map's owner reads them while the last scans' pairs still register, ``stitcher._Pairs.finish``),
-the stitch corrected on those copies (:func:`correct_stage`: the pairs registered while the job
-measured are reused, the pose graph and the joint refinement solved), the cloud merged once at the final poses
-from the scan files, one at a time on each core (:func:`merge_stage`; the map built while measuring is kept when nothing
-was corrected), then ``cloud.ply``, the E57 (full scans streamed from their files), the pose log and the
-inspection written and ``report.json`` written once (``job_outputs.export_job``). Each stage returns a frozen
-result; the tracker-stitched poses and the refined ones stay separate, and whether the poses
-were corrected is known from the correction stage. Frames: poses ``T_W_S`` in the job's world frame W,
-points in the scanner frame S, mm.
+After the last scan's commit: every scan file is read once and only its copy thinned at the job's ``[job]
+voxel_mm`` kept (:func:`load_scans`: a full-resolution scan is 3.2 M points, 369 of them would not fit in memory;
+the map's owner reads them while the last scans' pairs still register, ``stitcher._Pairs.finish``), the stitch
+corrected on those copies (:func:`correct_stage`: the pairs registered while the job measured are reused, the joint
+refinement solved, or the pose graph where it is off), the cloud merged once at the final poses from the scan
+files, one at a time on each core (:func:`merge_stage`; the map built while measuring is kept when nothing was
+corrected), then ``cloud.ply``, the E57 (full scans streamed from their files), the pose log and the inspection
+written and ``report.json`` written once (``job_outputs.export_job``). Each stage returns a frozen result; the
+tracker-stitched poses and the refined ones stay separate, and whether the poses were corrected is known from the
+correction stage. Frames: poses ``T_W_S`` in the job's world frame W, points in the scanner frame S, mm.
 """
 
 from __future__ import annotations

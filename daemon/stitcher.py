@@ -20,9 +20,11 @@ after the last scan.
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import multiprocessing
 import time
+import uuid
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -42,7 +44,7 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 _MAP: VoxelMap | None = None  # the worker's map
 _PAIRS: Any = None  # the pair worker's OnlinePairs
-_LOADED: dict[str, Any] = {}  # where the map lives: a finishing job's scans read ahead (finish.LoadedScans), by folder
+_LOADED: dict[str, Any] = {}  # where the map lives: finishing jobs' scans read ahead (finish.LoadedScans)
 
 
 def _init(voxel_mm: float, niceness: int) -> None:
@@ -88,26 +90,31 @@ def _pairs_outcomes() -> tuple[OnlineWork | None, float]:
     return (None, 0.0) if _PAIRS is None else (_PAIRS.work(), _PAIRS.cpu_s)
 
 
-def _read_ahead(job: JobSnapshot) -> float:
+def _read_ahead(job: JobSnapshot, key: str) -> float:
     """Where the map lives: read the scans the end of ``job`` starts from (``finish.load_scans``) and keep them
-    for :func:`_finish`; returns the seconds it took."""
+    under ``key`` for :func:`_finish`; returns the seconds it took."""
     from tandemscan.daemon.finish import load_scans
 
     t = time.perf_counter()
-    _LOADED[str(job.job_dir)] = load_scans(job)
+    _LOADED[key] = load_scans(job)
     return time.perf_counter() - t
 
 
-def _forget_read_ahead(job: JobSnapshot) -> None:
-    _LOADED.pop(str(job.job_dir), None)
+def _drop_read_ahead(key: str, reading: asyncio.Future) -> None:
+    """Drop what the read ahead for a job kept when the job ended before its end ran (the read's own error, if
+    any, is only logged: the job has failed of its own)."""
+    _LOADED.pop(key, None)
+    if not reading.cancelled() and reading.exception() is not None:
+        log.debug("read ahead for an ended job failed: %s", reading.exception())
 
 
-def _finish(job: JobSnapshot, started: float, measured_at: float, online: OnlineWork | None, stages: dict) -> Any:
+def _finish(job: JobSnapshot, key: str, started: float, measured_at: float, online: OnlineWork | None,
+            stages: dict) -> Any:
     """:func:`tandemscan.daemon.finish.finish_job`, imported where it runs (the registration stack, E57, Open3D
-    I/O, matplotlib), from the scans :func:`_read_ahead` read (read again where it failed)."""
+    I/O, matplotlib), from the scans :func:`_read_ahead` kept under ``key`` (read again where it failed)."""
     from tandemscan.daemon.finish import finish_job
 
-    return finish_job(job, started, measured_at, online, stages, _LOADED.pop(str(job.job_dir), None))
+    return finish_job(job, started, measured_at, online, stages, _LOADED.pop(key, None))
 
 
 class PairWorker:
@@ -176,17 +183,17 @@ class _Pairs:
     async def finish(self, job: JobSnapshot, started: float, measured_at: float) -> Any:
         """The end of the job (``finish.finish_job``, a ``finish.FinishedJob``) where the map lives, once the
         pairs of the last scans are registered; ``started`` and ``measured_at`` as ``time.monotonic()``. The
-        scans are read meanwhile (``read_s`` in the stages: it overlaps ``pair_backlog_s``), so the wait for the
-        last pairs and the reading share the two cores."""
-        reading = asyncio.ensure_future(self.run(_read_ahead, job))
+        scans are read meanwhile, so the wait for the last pairs and the reading share the two cores: ``read_s``
+        (the read's own seconds) runs beside ``pair_backlog_s`` (the wait for the pairs, which the read slows a
+        little), and where the read outlasts that wait its rest belongs to no stage."""
+        key = uuid.uuid4().hex  # this finish's read, never another's
+        reading = asyncio.ensure_future(self.run(_read_ahead, job, key))
         try:
             online, pair_cpu_s = await self.pair_outcomes()
-        except asyncio.CancelledError:
-            reading.cancel()  # the job ends with its map (a daemon job's worker process, a measure's process)
-            raise
-        except Exception:
-            await asyncio.gather(reading, return_exceptions=True)
-            await self.run(_forget_read_ahead, job)
+        except BaseException:
+            # the job ends here: the read runs on where the map lives and what it kept is dropped once it ends (a
+            # daemon job's map process ends with the job anyway); no second run of the map starts meanwhile
+            reading.add_done_callback(functools.partial(_drop_read_ahead, key))
             raise
         stages = {"pair_backlog_s": round(time.monotonic() - measured_at, 3),
                   "pairs_cpu_s_while_measuring": round(pair_cpu_s, 3)}
@@ -194,7 +201,7 @@ class _Pairs:
             stages["read_s"] = round(await reading, 3)
         except Exception as e:  # noqa: BLE001 - the end of the job reads them itself
             log.warning("scans not read ahead of the end of the job: %s", e)
-        return await self.run(_finish, job, started, measured_at, online, stages)
+        return await self.run(_finish, job, key, started, measured_at, online, stages)
 
     def _close_pairs(self) -> None:
         if self._pairs is not None:

@@ -13,12 +13,14 @@ from tandemscan.daemon import finish, stitcher
 
 @pytest.fixture
 def end_of_job(monkeypatch):
-    """``finish.load_scans`` and ``finish.finish_job`` replaced by recorders: the scans read (an event set
-    when read) and what the end of the job was handed."""
-    read, handed = threading.Event(), {}
+    """``finish.load_scans`` and ``finish.finish_job`` replaced by recorders (the scans read: an event set when
+    read; a read waits for ``release`` first) and the reads kept ahead in a fresh ``stitcher._LOADED``."""
+    read, release, handed = threading.Event(), threading.Event(), {}
+    release.set()
     loaded = object()
 
     def load_scans(job):
+        assert release.wait(10.0)
         read.set()
         return loaded
 
@@ -28,7 +30,16 @@ def end_of_job(monkeypatch):
 
     monkeypatch.setattr(finish, "load_scans", load_scans)
     monkeypatch.setattr(finish, "finish_job", finish_job)
-    return SimpleNamespace(read=read, handed=handed, loaded=loaded)
+    monkeypatch.setattr(stitcher, "_LOADED", {})
+    return SimpleNamespace(read=read, release=release, handed=handed, loaded=loaded)
+
+
+async def _settled(worldmap: stitcher.LocalWorldMap) -> None:
+    """Wait until the map is back with its owner (a read ahead still running holds it)."""
+    for _ in range(200):
+        if worldmap.map is not None:
+            return
+        await asyncio.sleep(0.05)
 
 
 async def test_the_scans_are_read_while_the_last_pairs_register(end_of_job, monkeypatch, tmp_path):
@@ -43,38 +54,44 @@ async def test_the_scans_are_read_while_the_last_pairs_register(end_of_job, monk
     assert await worldmap.finish(job, 0.0, time.monotonic()) == "finished"
     handed = end_of_job.handed
     assert handed["loaded"] is end_of_job.loaded and handed["online"] == "online work"
-    assert handed["stages"]["read_s"] >= 0.0 and handed["stages"]["pairs_cpu_s_while_measuring"] == 1.5
-    assert str(job.job_dir) not in stitcher._LOADED  # handed over, not kept
+    assert "read_s" in handed["stages"] and handed["stages"]["pairs_cpu_s_while_measuring"] == 1.5
+    assert stitcher._LOADED == {}  # handed over, not kept
     assert worldmap.map is not None  # the map is back with its owner
 
 
-async def test_a_failed_pair_hand_over_leaves_no_scans_behind(end_of_job, monkeypatch, tmp_path):
+@pytest.mark.parametrize("ending", ["pair worker died", "cancelled"])
+async def test_a_job_ended_before_its_end_leaves_no_scans_behind(end_of_job, monkeypatch, tmp_path, ending):
     worldmap = stitcher.LocalWorldMap(1.0)
+    end_of_job.release.clear()  # the read is still under way when the job ends
+    waiting = asyncio.Event()
 
     async def pair_outcomes():
-        await asyncio.to_thread(end_of_job.read.wait, 10.0)
+        waiting.set()
+        if ending == "cancelled":
+            await asyncio.sleep(30.0)
         raise RuntimeError("pair worker died")
 
     monkeypatch.setattr(worldmap, "pair_outcomes", pair_outcomes)
     job = SimpleNamespace(job_dir=tmp_path / "job", worldmap=None)
-    with pytest.raises(RuntimeError, match="pair worker died"):
-        await worldmap.finish(job, 0.0, time.monotonic())
-    assert end_of_job.read.is_set() and str(job.job_dir) not in stitcher._LOADED
-    assert not end_of_job.handed  # the end of the job did not run
+    finishing = asyncio.ensure_future(worldmap.finish(job, 0.0, time.monotonic()))
+    await waiting.wait()
+    if ending == "cancelled":
+        finishing.cancel()
+    with pytest.raises(asyncio.CancelledError if ending == "cancelled" else RuntimeError):
+        await finishing
+    assert not end_of_job.read.is_set()  # the job ended without waiting for the read
+    end_of_job.release.set()
+    await _settled(worldmap)
+    assert end_of_job.read.is_set() and worldmap.map is not None
+    await asyncio.sleep(0.05)  # the read's task ends after the map is handed back
+    assert stitcher._LOADED == {} and not end_of_job.handed  # nothing kept; the end of the job did not run
 
 
-async def test_scans_that_could_not_be_read_ahead_are_read_by_the_end_of_the_job(monkeypatch, tmp_path):
-    handed = {}
-
+async def test_scans_that_could_not_be_read_ahead_are_read_by_the_end_of_the_job(end_of_job, monkeypatch, tmp_path):
     def load_scans(job):
         raise OSError("disk hiccup")
 
-    def finish_job(job, started, measured_at, online, stages, loaded=None):
-        handed.update(loaded=loaded, stages=stages)
-        return "finished"
-
     monkeypatch.setattr(finish, "load_scans", load_scans)
-    monkeypatch.setattr(finish, "finish_job", finish_job)
     worldmap = stitcher.LocalWorldMap(1.0)
 
     async def pair_outcomes():
@@ -83,4 +100,5 @@ async def test_scans_that_could_not_be_read_ahead_are_read_by_the_end_of_the_job
     monkeypatch.setattr(worldmap, "pair_outcomes", pair_outcomes)
     job = SimpleNamespace(job_dir=tmp_path / "job", worldmap=None)
     assert await worldmap.finish(job, 0.0, time.monotonic()) == "finished"
+    handed = end_of_job.handed
     assert handed["loaded"] is None and "read_s" not in handed["stages"]  # finish_job reads them itself
