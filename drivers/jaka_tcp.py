@@ -40,6 +40,8 @@ _POWERED = ("powered_on", 1, True)
 _ENABLED = ("robot_enabled", 1, True)
 # A status stream silent for this many of its push periods is a lost link (where longer than status_gap_timeout_s)
 STATUS_GAP_PERIODS = 4
+# The push period is timed at connect as the median interval between this many first status messages
+STATUS_PERIOD_SAMPLES = 4
 
 
 def succeeded(reply: dict) -> bool:
@@ -78,7 +80,7 @@ class JakaTcpArm:
         self._status_error: DeviceError | None = None
         self._status_count = 0  # status messages received on this connection
         self._status_gap_s = config.jaka.status_gap_timeout_s  # the watchdog's gap, measured at connect
-        self._status_arrivals: list[float] = []  # loop times (s) of this connection's first four status messages
+        self._status_arrivals: list[float] = []  # loop times (s) of this connection's first status messages
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -97,13 +99,14 @@ class JakaTcpArm:
     async def _measure_status_gap(self, timeout_s: float) -> float:
         """The status watchdog's gap (s): ``status_gap_timeout_s``, or :data:`STATUS_GAP_PERIODS` push periods
         where the controller pushes slower (its send period is a setting of the controller). The period is the
-        median of the three intervals between the arrivals of this connection's first four status messages (a
-        stall of the event loop stretches one and squeezes the next). The first message is awaited for up to
-        ``timeout_s``, the other three for up to ``3 timeout_s``; the supervisor's ``device_timeout_s`` bounds
-        the whole connect."""
+        median of the intervals between the arrivals of this connection's first :data:`STATUS_PERIOD_SAMPLES`
+        status messages (a stall of the event loop stretches one and squeezes the next). The first message is
+        awaited for up to ``timeout_s``, the others for up to ``3 timeout_s``; the supervisor's
+        ``device_timeout_s`` bounds the whole connect."""
         await self._wait_status(lambda st: True, timeout_s, "the first status message", check_safety=False,
                                 watchdog=False)
-        await self._wait_status(lambda st: len(self._status_arrivals) >= 4, 3 * timeout_s, "four status messages",
+        await self._wait_status(lambda st: len(self._status_arrivals) >= STATUS_PERIOD_SAMPLES, 3 * timeout_s,
+                                f"{STATUS_PERIOD_SAMPLES} status messages",
                                 check_safety=False, watchdog=False)
         period_s = float(np.median(np.diff(self._status_arrivals)))
         return max(self._net.status_gap_timeout_s, STATUS_GAP_PERIODS * period_s)
@@ -311,7 +314,7 @@ class JakaTcpArm:
                 for obj in framer.feed(data):
                     self._status = obj
                     self._status_count += 1
-                    if len(self._status_arrivals) < 4:
+                    if len(self._status_arrivals) < STATUS_PERIOD_SAMPLES:
                         self._status_arrivals.append(arrived)
                     self._wake_status_waiters()
         except JsonFramingError as e:
