@@ -94,6 +94,22 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
+def _motion_rows(points: np.ndarray, normals: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """The (m, 6) rows of point-to-plane residuals along ``normals`` in a small motion ``(t mm, rotation vector
+    rad)`` of ``points`` about ``centre`` (one frame): ``[n, (p - c) x n]``."""
+    return np.hstack([normals, _cross(points - centre, normals)])
+
+
+def _rigid_step(rows: np.ndarray, residual: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """The small motion (6, as :func:`_motion_rows`) that minimises the weighted squared residuals
+    ``residual + rows @ d``: one least-squares step, damped by ``_ALIGN_DAMPING`` so that a direction the rows do
+    not observe (a sliding plane) stays at zero."""
+    Rw = rows * weights[:, None]
+    H = Rw.T @ rows
+    H[np.diag_indices(6)] += _ALIGN_DAMPING * np.trace(H)
+    return -np.linalg.solve(H, Rw.T @ residual)
+
+
 @dataclass(frozen=True)
 class JointScan:
     """One scan for the joint solve: its (thinned) points and unit normals in the scanner frame S (mm)."""
@@ -275,11 +291,7 @@ class _Pair:
         n = m.normals
         q = scans[self.i].points_S[m.target]
         o_j, o_i = (transform_points(to_local, origins[k][None])[0] for k in (self.j, self.i))
-        J = np.empty((len(n), 12))
-        J[:, :3], J[:, 6:9] = n, -n
-        J[:, 3:6] = _cross(m.source_S_i - o_j, n)
-        J[:, 9:] = _cross(n, q - o_i)
-        return J
+        return np.hstack([_motion_rows(m.source_S_i, n, o_j), -_motion_rows(q, n, o_i)])
 
     def aligned_residuals(self, scans: Sequence[JointScan], poses: np.ndarray, origins: np.ndarray,
                           m: _Match) -> np.ndarray:
@@ -289,12 +301,8 @@ class _Pair:
         and the robust sigma are taken on these, so that a pair which the start poses misplace by a few times
         the noise keeps its weight (:func:`_information`). A direction the pair does not observe changes no
         residual; the step's small damping keeps it at zero."""
-        J = self.jacobian(scans, poses, origins, m)[:, :6]
-        w = m.share / m.variance
-        Jw = J * w[:, None]
-        H = Jw.T @ J
-        H[np.diag_indices(6)] += _ALIGN_DAMPING * np.trace(H)
-        return m.residual - J @ np.linalg.solve(H, Jw.T @ m.residual)
+        rows = self.jacobian(scans, poses, origins, m)[:, :6]
+        return m.residual + rows @ _rigid_step(rows, m.residual, m.share / m.variance)
 
     def normal_equations(self, scans: Sequence[JointScan], poses: np.ndarray, origins: np.ndarray, m: _Match,
                          weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
