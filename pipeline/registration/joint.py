@@ -33,7 +33,7 @@ halved). Its variance follows the scanner's noise along its rays (``ray_variance
 scans cover a place their pairs share each scan's noise (``noise_shares``): each residual weighs its share over its
 variance. Each linearisation weights the residuals at the current poses: Huber at ``huber_k`` times their robust
 scale (which is also the sigma of two points seen head-on), both taken on each pair's residuals after the pair's
-own rigid fit (``_Pair.aligned_residuals``), so that the start's misalignment of a pair neither inflates the
+own rigid fit (``aligned_residuals``), so that the start's misalignment of a pair neither inflates the
 sigma nor turns its points into outliers (whole part, seed 7: sigma 0.071 -> 0.054 mm, the truth's; 0.0558 ->
 0.0544 mm median pose error; docs/registration.md, "Weights on the pair-aligned residuals"). It then solves the
 sparse normal
@@ -80,7 +80,7 @@ MIN_RAY_COSINES_SQ = 0.2
 #: weight every point without bound and make the normal equations singular in floating point
 _MIN_SIGMA_MM = 1e-4
 
-#: damping of a pair's own rigid fit (:meth:`_Pair.aligned_residuals`), relative to the trace of its normal
+#: damping of a pair's own rigid fit (:func:`aligned_residuals`), relative to the trace of its normal
 #: matrix: far below any direction an overlap observes, enough to keep an unobserved one (a sliding plane) finite
 _ALIGN_DAMPING = 1e-9
 
@@ -293,17 +293,6 @@ class _Pair:
         o_j, o_i = (transform_points(to_local, origins[k][None])[0] for k in (self.j, self.i))
         return np.hstack([_motion_rows(m.source_S_i, n, o_j), -_motion_rows(q, n, o_i)])
 
-    def aligned_residuals(self, scans: Sequence[JointScan], poses: np.ndarray, origins: np.ndarray,
-                          m: _Match) -> np.ndarray:
-        """The residuals (mm) of ``m`` after this pair's own best rigid fit (the source moved alone, one weighted
-        least-squares step, each residual weighted by its share over its variance): what is left once the
-        start's misalignment of the pair is taken out, the points' noise and their outliers. The Huber weights
-        and the robust sigma are taken on these, so that a pair which the start poses misplace by a few times
-        the noise keeps its weight (:func:`_information`). A direction the pair does not observe changes no
-        residual; the step's small damping keeps it at zero."""
-        rows = self.jacobian(scans, poses, origins, m)[:, :6]
-        return m.residual + rows @ _rigid_step(rows, m.residual, m.share / m.variance)
-
     def normal_equations(self, scans: Sequence[JointScan], poses: np.ndarray, origins: np.ndarray, m: _Match,
                          weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(H, b)`` (12x12, 12) of the weighted residuals in ``(e_j, e_i)`` linearised at the current poses,
@@ -313,6 +302,17 @@ class _Pair:
         Jw = J * weights[:, None]
         B = np.kron(np.eye(4), poses[self.i][:3, :3])          # local -> world for the four 3-blocks
         return B @ (Jw.T @ J) @ B.T, B @ (Jw.T @ m.residual)
+
+
+def aligned_residuals(m: _Match) -> np.ndarray:
+    """The residuals (mm) of ``m`` after its pair's own best rigid fit (the source moved alone, about the
+    correspondences' centroid, one weighted least-squares step, each residual weighted by its share over its
+    variance): what is left once the start's misalignment of the pair is taken out, the points' noise and their
+    outliers. The Huber weights and the robust sigma are taken on these, so that a pair which the start poses
+    misplace by a few times the noise keeps its weight (:func:`_information`). A direction the pair does not
+    observe changes no residual; the step's small damping keeps it at zero."""
+    rows = _motion_rows(m.source_S_i, m.normals, m.source_S_i.mean(axis=0))
+    return m.residual + rows @ _rigid_step(rows, m.residual, m.share / m.variance)
 
 
 def symmetric_normals(target_n: np.ndarray, source_n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -365,7 +365,7 @@ def _huber(r: np.ndarray, sigma: float, k: float) -> np.ndarray:
 
 def _information(m: _Match, aligned: np.ndarray, sigma: float, huber_k: float) -> np.ndarray:
     """The weight (1/mm^2) of each residual of ``m``: the Huber weight of its pair-aligned residual ``aligned``
-    (:meth:`_Pair.aligned_residuals`: at the start poses a raw residual holds the pair's misalignment, which is
+    (:func:`aligned_residuals`: at the start poses a raw residual holds the pair's misalignment, which is
     what the refinement is to remove, not an outlier), over its relative variance (:func:`ray_variances`), times
     its share (:func:`noise_shares`)."""
     return _huber(aligned, sigma, huber_k) / m.variance * m.share
@@ -467,7 +467,7 @@ def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequ
         r_all = np.concatenate([m.residual for _, m in kept]) if kept else np.zeros(0)
         if it == 1:
             rms_before = float(np.sqrt(np.mean(r_all**2))) if len(r_all) else float("nan")
-        aligned = pair_map(lambda pm, now=poses: pm[0].aligned_residuals(scans, now, model.origins, pm[1]), kept)
+        aligned = pair_map(lambda pm: aligned_residuals(pm[1]), kept)
         sigma = settings.sigma_mm or _robust_sigma(np.concatenate(aligned) if aligned else np.zeros(0))
         weights = [_information(m, a, sigma, settings.huber_k) for (_, m), a in zip(kept, aligned, strict=True)]
         del aligned
