@@ -31,12 +31,8 @@ where they agree within ``MIN_NORMAL_COSINE``): the symmetric point-to-plane res
 one circular arc, where the plane of ``q`` alone leaves the arc's sagitta (curvature times the squared offset,
 halved). Its variance follows the scanner's noise along its rays (``ray_variances``), and where more than two
 scans cover a place their pairs share each scan's noise (``noise_shares``): each residual weighs its share over its
-variance. Each linearisation weights the residuals at the current poses: Huber at ``huber_k`` times their robust
-scale (which is also the sigma of two points seen head-on), both taken on each pair's residuals after the pair's
-own rigid fit (``aligned_residuals``), so that the start's misalignment of a pair neither inflates the
-sigma nor turns its points into outliers (whole part, seed 7: sigma 0.071 -> 0.054 mm, the truth's; 0.0558 ->
-0.0544 mm median pose error; docs/registration.md, "Weights on the pair-aligned residuals"). It then solves the
-sparse normal
+variance. Each linearisation weights the residuals at the current poses (Huber at ``huber_k`` times their robust
+scale, which is also the sigma of two points seen head-on) and solves the sparse normal
 equations ``(A^T H_e A + prior) theta = A^T b`` for ``theta`` itself (scipy.sparse); the posterior covariance of
 each scan's correction is ``A_i H^-1 A_i^T``.
 """
@@ -80,10 +76,6 @@ MIN_RAY_COSINES_SQ = 0.2
 #: weight every point without bound and make the normal equations singular in floating point
 _MIN_SIGMA_MM = 1e-4
 
-#: damping of a pair's own rigid fit (:func:`aligned_residuals`), relative to the trace of its normal
-#: matrix: far below any direction an overlap observes, enough to keep an unobserved one (a sliding plane) finite
-_ALIGN_DAMPING = 1e-9
-
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise cross product of two (m, 3) arrays (np.cross is several times slower on short rows)."""
@@ -92,22 +84,6 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
     out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
     return out
-
-
-def _motion_rows(points: np.ndarray, normals: np.ndarray, centre: np.ndarray) -> np.ndarray:
-    """The (m, 6) rows of point-to-plane residuals along ``normals`` in a small motion ``(t mm, rotation vector
-    rad)`` of ``points`` about ``centre`` (one frame): ``[n, (p - c) x n]``."""
-    return np.hstack([normals, _cross(points - centre, normals)])
-
-
-def _rigid_step(rows: np.ndarray, residual: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """The small motion (6, as :func:`_motion_rows`) that minimises the weighted squared residuals
-    ``residual + rows @ d``: one least-squares step, damped by ``_ALIGN_DAMPING`` so that a direction the rows do
-    not observe (a sliding plane) stays at zero."""
-    Rw = rows * weights[:, None]
-    H = Rw.T @ rows
-    H[np.diag_indices(6)] += _ALIGN_DAMPING * np.trace(H)
-    return -np.linalg.solve(H, Rw.T @ residual)
 
 
 @dataclass(frozen=True)
@@ -133,8 +109,8 @@ class JointSettings:
     correspondence (found once); ``huber_k``: Huber threshold in robust sigmas; ``iterations``: at most this
     many linearisations, fewer once no scan moves more than ``tolerance_mm`` (translation plus rotation
     at ``lever_mm``); ``min_correspondences``: a pair with fewer contributes nothing in that iteration;
-    ``sigma_mm``: 1-sigma of a point-to-plane residual between two points seen head-on (None: the robust scale
-    of the pair-aligned residuals, re-estimated in every iteration)."""
+    ``sigma_mm``: 1-sigma of a point-to-plane residual between two points seen head-on (None: the residuals'
+    robust scale, re-estimated in every iteration)."""
 
     max_distance_mm: float = 1.0
     huber_k: float = 2.5
@@ -150,8 +126,8 @@ class JointResult:
     """Refined ``T_W_S`` per scan; each scan's posterior covariance (6x6, t mm^2 at its origin then r rad^2,
     world axes) and prior (tracker and transfers) covariance; the mount estimate (None without a mount
     prior); figures: outer iterations, pairs and correspondences of the last one, the residuals' sigma (mm, as
-    ``JointSettings.sigma_mm``; the pair-aligned residuals' robust scale unless set) and point-to-plane RMS (mm)
-    of the correspondences at the start and at the refined poses."""
+    ``JointSettings.sigma_mm``) and point-to-plane RMS (mm) of the correspondences at the start and at the refined
+    poses."""
 
     poses: list[np.ndarray]
     covariances: np.ndarray
@@ -284,35 +260,23 @@ class _Pair:
         targets ``target`` in scan i."""
         return symmetric_normals(scans[self.i].normals_S[target], scans[self.j].normals_S[source] @ rel[:3, :3].T)
 
-    def jacobian(self, scans: Sequence[JointScan], poses: np.ndarray, origins: np.ndarray, m: _Match) -> np.ndarray:
-        """The (m, 12) rows of the residuals of ``m`` in the local motions ``(d_j, d_i)`` of the two scans about
-        their origins, in S_i axes (mm, rad): ``[n, (p - o_j) x n, -n, n x (q - o_i)]``."""
-        to_local = invert(poses[self.i])
-        n = m.normals
-        q = scans[self.i].points_S[m.target]
-        o_j, o_i = (transform_points(to_local, origins[k][None])[0] for k in (self.j, self.i))
-        return np.hstack([_motion_rows(m.source_S_i, n, o_j), -_motion_rows(q, n, o_i)])
-
     def normal_equations(self, scans: Sequence[JointScan], poses: np.ndarray, origins: np.ndarray, m: _Match,
                          weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(H, b)`` (12x12, 12) of the weighted residuals in ``(e_j, e_i)`` linearised at the current poses,
-        for the normal equations ``H delta = -b``. Worked in S_i (:meth:`jacobian`): with ``R`` its rotation, a
-        world row ``[R n, R ((p - o) x n)]`` is the local row ``[n, (p - o) x n]`` turned by ``blockdiag(R, R)``."""
-        J = self.jacobian(scans, poses, origins, m)
+        for the normal equations ``H delta = -b``. Worked in S_i: with ``R`` its rotation, a world row
+        ``[R n, R ((p - o) x n)]`` is the local row ``[n, (p - o) x n]`` turned by ``blockdiag(R, R)``."""
+        Pi = poses[self.i]
+        to_local = invert(Pi)
+        n = m.normals
+        q = scans[self.i].points_S[m.target]
+        o_j, o_i = (transform_points(to_local, origins[k][None])[0] for k in (self.j, self.i))
+        J = np.empty((len(n), 12))
+        J[:, :3], J[:, 6:9] = n, -n
+        J[:, 3:6] = _cross(m.source_S_i - o_j, n)
+        J[:, 9:] = _cross(n, q - o_i)
         Jw = J * weights[:, None]
-        B = np.kron(np.eye(4), poses[self.i][:3, :3])          # local -> world for the four 3-blocks
+        B = np.kron(np.eye(4), Pi[:3, :3])                      # local -> world for the four 3-blocks
         return B @ (Jw.T @ J) @ B.T, B @ (Jw.T @ m.residual)
-
-
-def aligned_residuals(m: _Match) -> np.ndarray:
-    """The residuals (mm) of ``m`` after its pair's own best rigid fit (the source moved alone, about the
-    correspondences' centroid, one weighted least-squares step, each residual weighted by its share over its
-    variance): what is left once the start's misalignment of the pair is taken out, the points' noise and their
-    outliers. The Huber weights and the robust sigma are taken on these, so that a pair which the start poses
-    misplace by a few times the noise keeps its weight (:func:`_information`). A direction the pair does not
-    observe changes no residual; the step's small damping keeps it at zero."""
-    rows = _motion_rows(m.source_S_i, m.normals, m.source_S_i.mean(axis=0))
-    return m.residual + rows @ _rigid_step(rows, m.residual, m.share / m.variance)
 
 
 def symmetric_normals(target_n: np.ndarray, source_n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -363,12 +327,11 @@ def _huber(r: np.ndarray, sigma: float, k: float) -> np.ndarray:
     return np.where(a <= k, 1.0, k / np.maximum(a, 1e-300)) / sigma**2
 
 
-def _information(m: _Match, aligned: np.ndarray, sigma: float, huber_k: float) -> np.ndarray:
-    """The weight (1/mm^2) of each residual of ``m``: the Huber weight of its pair-aligned residual ``aligned``
-    (:func:`aligned_residuals`: at the start poses a raw residual holds the pair's misalignment, which is
-    what the refinement is to remove, not an outlier), over its relative variance (:func:`ray_variances`), times
-    its share (:func:`noise_shares`)."""
-    return _huber(aligned, sigma, huber_k) / m.variance * m.share
+def _information(m: _Match, sigma: float, huber_k: float) -> np.ndarray:
+    """The weight (1/mm^2) of each residual of ``m``: its Huber weight (on the residual as it is: away from the
+    truth the residuals that stand out are the start's errors along the normal, not the rays' noise), over its
+    relative variance (:func:`ray_variances`), times its share (:func:`noise_shares`)."""
+    return _huber(m.residual, sigma, huber_k) / m.variance * m.share
 
 
 def _robust_sigma(r: np.ndarray) -> float:
@@ -465,13 +428,10 @@ def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequ
             associated = pair_map(lambda pm, now=poses: (pm[0], pm[0].at(scans, now, pm[1])), associated)
         kept = [(p, m) for p, m in associated if len(m.residual) >= settings.min_correspondences]
         r_all = np.concatenate([m.residual for _, m in kept]) if kept else np.zeros(0)
+        sigma = settings.sigma_mm or _robust_sigma(r_all)
         if it == 1:
             rms_before = float(np.sqrt(np.mean(r_all**2))) if len(r_all) else float("nan")
-        aligned = pair_map(lambda pm: aligned_residuals(pm[1]), kept)
-        sigma = settings.sigma_mm or _robust_sigma(np.concatenate(aligned) if aligned else np.zeros(0))
-        weights = [_information(m, a, sigma, settings.huber_k) for (_, m), a in zip(kept, aligned, strict=True)]
-        del aligned
-        H, b_e = _data_system(model, scans, poses, kept, weights, pair_map)
+        H, b_e = _data_system(model, scans, poses, kept, sigma, settings.huber_k, pair_map)
         used, n_corr = len(kept), len(r_all)
         # linearised at e: data term |r + J (A theta - e)|^2, prior |theta|^2_prior -> solve for theta
         rhs = model.A.T @ (H @ e.ravel() - b_e)
@@ -499,16 +459,15 @@ def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequ
                        sigma, rms_before, rms_after)
 
 
-def _data_system(model: _Model, scans: Sequence[JointScan], poses: np.ndarray, kept: list,
-                 weights: list[np.ndarray], pair_map: PairMap) -> tuple[sparse.csr_matrix, np.ndarray]:
-    """The data's normal equations in the stacked corrections ``e``: sparse ``H_e`` (6n x 6n) and ``b_e``, each
-    pair's residuals weighted by its ``weights`` (1/mm^2, :func:`_information`)."""
+def _data_system(model: _Model, scans: Sequence[JointScan], poses: np.ndarray, kept: list, sigma: float,
+                 huber_k: float, pair_map: PairMap) -> tuple[sparse.csr_matrix, np.ndarray]:
+    """The data's normal equations in the stacked corrections ``e``: sparse ``H_e`` (6n x 6n) and ``b_e``."""
     n = model.n
     b = np.zeros(6 * n)
     if not kept:
         return sparse.csr_matrix((6 * n, 6 * n)), b
-    systems = pair_map(lambda pmw: pmw[0][0].normal_equations(scans, poses, model.origins, pmw[0][1], pmw[1]),
-                       list(zip(kept, weights, strict=True)))
+    systems = pair_map(lambda pm: pm[0].normal_equations(scans, poses, model.origins, pm[1],
+                                                         _information(pm[1], sigma, huber_k)), kept)
     rows, cols, vals = [], [], []
     for (p, _), (H, g) in zip(kept, systems, strict=True):
         idx = np.r_[np.arange(6) + 6 * p.j, np.arange(6) + 6 * p.i]
