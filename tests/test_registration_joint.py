@@ -76,6 +76,29 @@ def test_noiseless_overlaps_recover_exact_poses_from_perturbed_starts():
     assert np.all(np.diagonal(res.covariances[1:], axis1=1, axis2=2)[:, :3] < 1e-3 * LOOSE[0, 0])
 
 
+def test_the_posterior_from_a_misaligned_start_matches_the_spread_of_its_estimates():
+    """Two noisy scans of one surface (0.03 mm along z), the second started 0.3 mm / 0.05 deg off (many times the
+    noise), over 30 noise draws: the residuals' scale at the start is the misalignment's and weights the data that
+    way, but the posterior is that of the noise at the refined poses, so it matches the estimates' spread about the
+    truth (its standard deviations within 0.7-1.4 of the draws'; with the start's scale they were 13 times wider)."""
+    x, y = np.meshgrid(np.arange(0.0, 451.0, 2.0), np.arange(-100.0, 101.0, 2.0))
+    surface = np.c_[x.ravel(), y.ravel(), bumpy(x.ravel(), y.ravel())]
+    truth = [grid_scans(surface, [window])[0][0] for window in ((0, 300), (150, 450))]
+    priors = [ScanPrior(truth[0], TIGHT, 0), ScanPrior(truth[1], LOOSE, 0)]
+    start = [truth[0], from_rotvec([0.3, -0.2, 0.25], np.radians([0.05, -0.03, 0.02])) @ truth[1]]
+    errors, sigmas = [], []
+    for draw in range(30):
+        rng = np.random.default_rng(100 + draw)
+        scans = [grid_scans(surface + np.c_[np.zeros((len(surface), 2)), rng.normal(0, 0.03, len(surface))],
+                            [window])[1][0] for window in ((0, 300), (150, 450))]
+        res = refine_jointly(scans, priors, [(0, 1)], start, settings=JointSettings(max_distance_mm=2.5))
+        assert res.sigma_mm > 5 * res.noise_sigma_mm                  # the weights' sigma: the start's
+        errors.append(world_error(res.poses[1], truth[1]))
+        sigmas.append(np.sqrt(np.diagonal(res.covariances[1])))
+    ratio = np.mean(sigmas, axis=0) / np.std(errors, axis=0)
+    assert np.all((ratio > 0.7) & (ratio < 1.4)), ratio
+
+
 def two_scans_of(surface_W: np.ndarray, normals_W: np.ndarray, slide: np.ndarray, seed: int):
     """Two scans, x in 0-300 and 150-450 mm, with exact normals (estimated ones tilt at the scan's edges and
     would observe a little of the slide). Scan 0 is fixed at the truth; scan 1's tracker pose errs by

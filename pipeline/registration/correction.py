@@ -358,7 +358,8 @@ def _joint_report(joint: JointResult, stations: list[int]) -> dict:
         return {int(k): np.round(sig[st == k].mean(axis=0), 4).tolist() for k in np.unique(st)}
 
     return {"iterations": joint.iterations, "pairs": joint.pairs, "correspondences": joint.correspondences,
-            "sigma_mm": round(joint.sigma_mm, 5), "rms_mm_before": round(joint.rms_mm_before, 5),
+            "sigma_mm": round(joint.sigma_mm, 5), "noise_sigma_mm": round(joint.noise_sigma_mm, 5),
+            "rms_mm_before": round(joint.rms_mm_before, 5),
             "rms_mm_after": round(joint.rms_mm_after, 5),
             "sigma_xyz_mm_per_station": {"prior": per_station(joint.prior_covariances),
                                          "posterior": per_station(joint.covariances)}}
