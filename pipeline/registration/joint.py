@@ -35,7 +35,8 @@ variance. Each linearisation weights the residuals at the current poses (Huber a
 scale, which is also the sigma of two points seen head-on) and solves the sparse normal
 equations ``(A^T H_e A + prior) theta = A^T b`` for ``theta`` itself (scipy.sparse); the posterior covariance of
 each scan's correction is ``A_i C A_i^T``, ``C`` the covariance of ``theta`` under the residuals' noise at the
-refined poses (``_posterior_covariance``: the weights' sigma at the start poses also holds the start's
+refined poses (``_posterior_covariance``: the weights' sigma at the start poses (by default the only
+linearisation) also holds the start's
 misalignment, and ``H^-1`` alone was that much too wide: whole part, seed 7, 0.071 against 0.054 mm).
 """
 
@@ -462,8 +463,12 @@ def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequ
     rms_after = float(np.sqrt(np.mean(r_fin**2))) if len(r_fin) else float("nan")
     noise_sigma = settings.sigma_mm or _robust_sigma(r_fin)
     H_theta = (model.A.T @ H @ model.A + H_prior).toarray()
-    cov_theta = _posterior_covariance(H_theta, H_prior + (noise_sigma / sigma) ** 2 * (model.A.T @ N @ model.A))
-    mount = _mount_estimate(model, H_theta, cov_theta, theta) if model.L is not None else None
+    ratio = (noise_sigma / sigma) ** 2
+    cov_theta = _posterior_covariance(H_theta, H_prior + ratio * (model.A.T @ N @ model.A))
+    mount = None
+    if model.L is not None:   # the data's information under their noise at the refined poses, plus the priors
+        P = H_prior.toarray()
+        mount = _mount_estimate(model, (H_theta - P) / ratio + P, cov_theta, theta)
     prior_cov = model.scan_covariances(model.prior_covariance.toarray())
     log.info("joint refinement: %d scans, %d pairs, %d points, %d iterations; sigma %.4f mm (%.4f mm at the refined "
              "poses), RMS %.4f -> %.4f mm", model.n, used, n_corr, it, sigma, noise_sigma, rms_before, rms_after)
@@ -473,10 +478,11 @@ def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequ
 
 def _posterior_covariance(H_theta: np.ndarray, information: sparse.csr_matrix) -> np.ndarray:
     """The covariance of the estimate ``theta`` (dense) from the normal matrix it was solved with, ``H_theta`` (data
-    ``D`` + prior ``P``, the data weighted with a sigma taken at the start poses, where the residuals also hold the
-    start's misalignment), and the ``information`` its errors carry (``P`` + the data's under their noise at the
-    refined poses, :func:`_data_system`): the estimate's error is ``-H^-1 (P theta_true + D-weighted noise)``, its
-    covariance ``H^-1 information H^-1`` (``H^-1`` where the two agree)."""
+    ``D`` + prior ``P``, the data weighted with a sigma taken at the last linearisation's poses, by default the
+    start's, where the residuals also hold the start's misalignment), and the ``information`` its errors carry
+    (``P`` + the data's under their noise at the refined poses, :func:`_data_system`): the estimate's error is
+    ``-H^-1 (P theta_true + D-weighted noise)``, its covariance ``H^-1 information H^-1`` (``H^-1`` where the two
+    agree)."""
     cov = np.linalg.inv(H_theta)
     return cov @ information.toarray() @ cov     # dense: a sparse-dense product runs on one core, far slower
 
@@ -514,10 +520,12 @@ def _data_system(model: _Model, scans: Sequence[JointScan], poses: np.ndarray, k
     return H_e, b, sparse.csr_matrix((np.concatenate(noise_vals), at), shape=(6 * n, 6 * n))
 
 
-def _mount_estimate(model: _Model, H_theta: np.ndarray, cov_theta: np.ndarray, theta: np.ndarray) -> MountEstimate:
-    """The shared mount correction ``D = Exp(L u)``: its posterior and the data's information on it."""
+def _mount_estimate(model: _Model, information: np.ndarray, cov_theta: np.ndarray, theta: np.ndarray
+                    ) -> MountEstimate:
+    """The shared mount correction ``D = Exp(L u)``: its posterior (from ``cov_theta``) and the data's information
+    on it (from ``information``, the data's and the priors' on ``theta``, dense)."""
     L, prior = model.L, np.asarray(model.mount_prior.covariance, float)
-    H_data = H_theta.copy()
+    H_data = information.copy()
     H_data[-6:, -6:] -= np.eye(6)                      # without the mount's own prior
     data_u = _marginal_information(H_data, model.size - 6)
     ratio, U = np.linalg.eigh(0.5 * (data_u + data_u.T))
