@@ -29,15 +29,10 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+from tandemscan.sim_drivers.hil_box import free_port
 
 TOKEN = "bench"
 WATCHDOG_USEC = 200_000
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _buckets(text: str, name: str) -> list[tuple[float, float]]:
@@ -113,7 +108,7 @@ def main() -> None:
             if b"WATCHDOG=1" in msg:
                 pings.append(time.monotonic())
 
-    port = _free_port()
+    port = free_port()
     url = f"http://127.0.0.1:{port}"
     env = os.environ | {"TANDEMSCAN_STATE_DIR": str(tmp / "state"), "TANDEMSCAN_API_TOKEN": TOKEN,
                         "NOTIFY_SOCKET": str(notify_path), "WATCHDOG_USEC": str(WATCHDOG_USEC)}

@@ -6,6 +6,7 @@ Used by the e-stop tests and ``benchmarks/estop_cli.py`` (docs/daemon.md); every
 
 from __future__ import annotations
 
+import random
 import socket
 import tomllib
 from pathlib import Path
@@ -20,9 +21,39 @@ from tandemscan.pipeline.planning.plan import Plan
 BOX_PLAN = "box-band.toml"
 
 
+#: the kernel's ephemeral ports (``net.ipv4.ip_local_port_range``) where it cannot be read
+_EPHEMERAL_DEFAULT = (32768, 60999)
+#: the lowest port :func:`free_port` hands out
+_LOWEST_PORT = 10000
+_handed_out: set[int] = set()
+
+
+def _ephemeral_ports() -> tuple[int, int]:
+    """The range the kernel picks a connection's local port from (and ``bind(0)``'s)."""
+    try:
+        low, high = Path("/proc/sys/net/ipv4/ip_local_port_range").read_text(encoding="ascii").split()
+        return int(low), int(high)
+    except (OSError, ValueError):
+        return _EPHEMERAL_DEFAULT
+
+
 def free_port() -> int:
-    """A TCP port on 127.0.0.1 that is free now."""
-    with socket.socket() as s:
+    """A TCP port on 127.0.0.1 that is free now and not handed out before by this process, for an emulator to
+    listen on later. It lies below the kernel's ephemeral range: a port ``bind(0)`` gives is in that range, and
+    a connection opened before the emulator listens (a driver's to an emulator started earlier) could be given
+    it as its local port, so that the emulator could not bind it ("address already in use")."""
+    low = _ephemeral_ports()[0]
+    candidates = [p for p in random.SystemRandom().sample(range(_LOWEST_PORT, low), min(200, low - _LOWEST_PORT))
+                  if p not in _handed_out] if low > _LOWEST_PORT + 1000 else []
+    for port in candidates:
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+        _handed_out.add(port)
+        return port
+    with socket.socket() as s:  # no room below the ephemeral range: any port free now
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 import asyncio
 import os
 import signal
-import socket
 import sqlite3
 import subprocess
 import sys
@@ -27,6 +26,7 @@ from tandemscan.daemon.api import create_app
 from tandemscan.daemon.client import SseParser
 from tandemscan.daemon.service import Daemon
 from tandemscan.pipeline.io.cloud_io import read_ply
+from tandemscan.sim_drivers.hil_box import free_port
 
 TOKEN = "e2e-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -84,19 +84,13 @@ def test_job_over_http_is_followed_downloaded_and_scored(reference):
 # ---------------------------------------------------------------- crash and resume
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 class DaemonProcess:
     """``tandemscan serve`` as a child process on one state directory (``config``: an optional cell TOML)."""
 
     def __init__(self, state: Path, config: Path | None = None):
         self.state = state
         self.config = config
-        self.port = _free_port()
+        self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.proc: subprocess.Popen | None = None
         self.pids: list[int] = []

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import math
-import socket
 from pathlib import Path
 
 import numpy as np
@@ -23,13 +22,8 @@ from tandemscan.drivers.metronor import MetronorTracker
 from tandemscan.drivers.phoxi import PhoxiScanner
 from tandemscan.drivers.safety_modbus import ModbusSafetyIO
 from tandemscan.pipeline.geometry import frames as F
+from tandemscan.sim_drivers.hil_box import free_port
 from tandemscan.sim_drivers.twins import SimArm
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")
