@@ -21,20 +21,19 @@ from tandemscan.pipeline.planning.plan import Plan
 BOX_PLAN = "box-band.toml"
 
 
-#: the kernel's ephemeral ports (``net.ipv4.ip_local_port_range``) where it cannot be read
-_EPHEMERAL_DEFAULT = (32768, 60999)
+#: the lowest port of the kernel's ephemeral range (``net.ipv4.ip_local_port_range``) where it cannot be read
+_EPHEMERAL_LOW_DEFAULT = 32768
 #: the lowest port :func:`free_port` hands out
 _LOWEST_PORT = 10000
 _handed_out: set[int] = set()
 
 
-def _ephemeral_ports() -> tuple[int, int]:
-    """The range the kernel picks a connection's local port from (and ``bind(0)``'s)."""
+def _ephemeral_low() -> int:
+    """The lowest port the kernel gives a connection as its local port (and ``bind(0)``)."""
     try:
-        low, high = Path("/proc/sys/net/ipv4/ip_local_port_range").read_text(encoding="ascii").split()
-        return int(low), int(high)
-    except (OSError, ValueError):
-        return _EPHEMERAL_DEFAULT
+        return int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text(encoding="ascii").split()[0])
+    except (OSError, ValueError, IndexError):
+        return _EPHEMERAL_LOW_DEFAULT
 
 
 def free_port() -> int:
@@ -42,10 +41,10 @@ def free_port() -> int:
     listen on later. It lies below the kernel's ephemeral range: a port ``bind(0)`` gives is in that range, and
     a connection opened before the emulator listens (a driver's to an emulator started earlier) could be given
     it as its local port, so that the emulator could not bind it ("address already in use")."""
-    low = _ephemeral_ports()[0]
-    candidates = [p for p in random.SystemRandom().sample(range(_LOWEST_PORT, low), min(200, low - _LOWEST_PORT))
-                  if p not in _handed_out] if low > _LOWEST_PORT + 1000 else []
-    for port in candidates:
+    below = range(_LOWEST_PORT, max(_LOWEST_PORT, _ephemeral_low()))
+    for port in random.SystemRandom().sample(below, min(200, len(below))):
+        if port in _handed_out:
+            continue
         with socket.socket() as s:
             try:
                 s.bind(("127.0.0.1", port))

@@ -462,7 +462,7 @@ def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequ
     r_fin = np.concatenate(final) if final else np.zeros(0)
     rms_after = float(np.sqrt(np.mean(r_fin**2))) if len(r_fin) else float("nan")
     noise_sigma = settings.sigma_mm or _robust_sigma(r_fin)
-    H_theta = (model.A.T @ H @ model.A + H_prior).toarray()
+    H_theta = H_theta.toarray()                     # the last linearisation's normal matrix
     ratio = (noise_sigma / sigma) ** 2
     cov_theta = _posterior_covariance(H_theta, H_prior + ratio * (model.A.T @ N @ model.A))
     mount = None
