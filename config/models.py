@@ -629,9 +629,14 @@ class CorrectionConfig(_Strict):
         1.0, gt=0, description="joint refinement: a point's nearest neighbour in the other scan counts within this, mm"
     )
     joint_iterations: int = Field(
-        1, ge=1, description="joint refinement: linearisations on the correspondences found at the tracker poses, "
-        "each re-weighting them at the poses so far (one: a second pulled the whole part's seed 8 from 0.043 to "
-        "0.072 mm, docs/registration.md)")
+        1, ge=1, description="joint refinement: linearisations, the first on the correspondences found at the "
+        "tracker poses, each later one re-weighting them at the poses so far (one: a second pulled the whole "
+        "part's seed 8 from 0.043 to 0.072 mm, and with joint_reassociate_mm from 0.037 to 0.044 mm; "
+        "docs/registration.md)")
+    joint_reassociate_mm: float | None = Field(
+        None, gt=0, description="joint refinement: before a linearisation after the first, a pair whose points moved "
+        "more than this against its partner since its correspondences were found has them found anew, mm; empty = "
+        "never (docs/registration.md, Association anew after the first linearisation)")
     joint_sigma_mm: float | None = Field(
         None, gt=0, description="joint refinement: 1-sigma of a point-to-plane residual, mm; empty = the "
         "residuals' robust scale in each iteration"

@@ -76,6 +76,28 @@ def test_noiseless_overlaps_recover_exact_poses_from_perturbed_starts():
     assert np.all(np.diagonal(res.covariances[1:], axis1=1, axis2=2)[:, :3] < 1e-3 * LOOSE[0, 0])
 
 
+def test_pairs_that_moved_are_associated_anew_and_reach_the_exact_poses():
+    """A start 1.3 mm off along a 2 mm grid pairs each point with its neighbour's partner: kept, those
+    correspondences hold the estimate 0.04 mm off; found anew once the pair has moved, they are the exact ones."""
+    x, y = np.meshgrid(np.arange(0.0, 601.0, 2.0), np.arange(-100.0, 101.0, 2.0))
+    surface = np.c_[x.ravel(), y.ravel(), bumpy(x.ravel(), y.ravel())]
+    truth, scans = grid_scans(surface, [(0, 300), (150, 450)])
+    priors = [ScanPrior(truth[0], TIGHT, 0), ScanPrior(truth[1], LOOSE, 0)]
+    start = [truth[0], from_rotvec([1.3, -0.3, 0.1], np.radians([0.02, -0.03, 0.05])) @ truth[1]]
+    errors = {}
+    for reassociate_mm in (None, 0.05):
+        settings = JointSettings(max_distance_mm=1.5, iterations=20, tolerance_mm=1e-7, reassociate_mm=reassociate_mm)
+        errors[reassociate_mm] = pose_error(refine_jointly(scans, priors, [(0, 1)], start, settings=settings).poses[1],
+                                            truth[1])[0]
+    assert errors[None] > 0.01
+    assert errors[0.05] < 1e-6
+
+
+def test_at_least_one_linearisation_is_asked_for():
+    with pytest.raises(ValueError, match="at least one"):
+        JointSettings(iterations=0)
+
+
 def test_the_posterior_from_a_misaligned_start_matches_the_spread_of_its_estimates():
     """Two noisy scans of one surface (0.03 mm along z), the second started 0.3 mm / 0.05 deg off (many times the
     noise), over 30 noise draws: the residuals' scale at the start is the misalignment's and weights the data that

@@ -345,7 +345,7 @@ def _refine_jointly(scans: Sequence[StitchedScan], priors: list[ScanPrior], cfg:
 def joint_settings(cfg: CorrectionConfig) -> JointSettings:
     """The joint refinement's settings from ``[correction]`` (``joint_*``)."""
     return JointSettings(max_distance_mm=cfg.joint_max_distance_mm, iterations=cfg.joint_iterations,
-                         sigma_mm=cfg.joint_sigma_mm)
+                         sigma_mm=cfg.joint_sigma_mm, reassociate_mm=cfg.joint_reassociate_mm)
 
 
 def _joint_report(joint: JointResult, stations: list[int]) -> dict:
@@ -359,6 +359,7 @@ def _joint_report(joint: JointResult, stations: list[int]) -> dict:
 
     return {"iterations": joint.iterations, "pairs": joint.pairs, "correspondences": joint.correspondences,
             "sigma_mm": round(joint.sigma_mm, 5), "noise_sigma_mm": round(joint.noise_sigma_mm, 5),
+            "pairs_associated_anew": joint.pairs_associated_anew,
             "rms_mm_before": round(joint.rms_mm_before, 5),
             "rms_mm_after": round(joint.rms_mm_after, 5),
             "sigma_xyz_mm_per_station": {"prior": per_station(joint.prior_covariances),

@@ -6,14 +6,17 @@ matrix; it inherits each pair's own bias. Here every overlap point is a point-to
 two scans, so that the adjustment uses the same data the Cramer-Rao bound of the job
 (``benchmarks/pose_bound.py``) assumes.
 
-The correspondences are found once, at the start poses (the tracker poses, which do not depend on the scans'
+By default the correspondences are found once, at the start poses (the tracker poses, which do not depend on the scans'
 noise), and kept; a job finds them while it measures (:func:`associate`, ``online_pairs``). Measured on the
 whole default part (seed 8): one linearisation there, weighted there, lands at 0.043 mm median pose error
 against an expected 0.039 mm at the bound. With the residuals of the first version, re-associating at poses
 fitted to the same scans drifted to 0.082 mm; with today's (symmetric, gated, shared, along the rays) a second
 pass from the first one's poses improves seed 7 a little (0.0547 -> 0.0511 mm associated again, 0.0531
 re-weighted only) for as much CPU again, and is not taken (docs/registration.md, "Why one association at the
-tracker poses" and "Shared noise, the rays and the draw").
+tracker poses" and "Shared noise, the rays and the draw"). ``JointSettings.reassociate_mm`` finds anew, before
+each later linearisation, the correspondences of the pairs that have moved; measured over seeds 7-9 of the whole
+part it helps seed 7 and costs seeds 8 and 9, and is off by default ("Association anew after the first
+linearisation").
 
 Model (first order in the small corrections, world axes, mm and rad; every 6-vector is (t, rotation vector)):
 the unknowns ``theta`` are a world motion ``x_i`` of each scan about its origin ``o_i`` (prior: the tracker
@@ -33,7 +36,8 @@ halved). Its variance follows the scanner's noise along its rays (``ray_variance
 scans cover a place their pairs share each scan's noise (``noise_shares``): each residual weighs its share over its
 variance. Each linearisation weights the residuals at the current poses (Huber at ``huber_k`` times their robust
 scale, which is also the sigma of two points seen head-on) and solves the sparse normal
-equations ``(A^T H_e A + prior) theta = A^T b`` for ``theta`` itself (scipy.sparse); the posterior covariance of
+equations ``(A^T H_e A + prior) theta = A^T (H_e e - b_e)`` (``e`` the corrections so far, ``b_e`` the weighted
+residuals' gradient) for ``theta`` itself (scipy.sparse); the posterior covariance of
 each scan's correction is ``A_i C A_i^T``, ``C`` the covariance of ``theta`` under the residuals' noise at the
 refined poses (``_posterior_covariance``: the weights' sigma at the start poses (by default the only
 linearisation) also holds the start's
@@ -108,12 +112,15 @@ class JointScan:
 
 @dataclass(frozen=True)
 class JointSettings:
-    """``max_distance_mm``: a source point's nearest target point at the start poses within this distance is its
-    correspondence (found once); ``huber_k``: Huber threshold in robust sigmas; ``iterations``: at most this
-    many linearisations, fewer once no scan moves more than ``tolerance_mm`` (translation plus rotation
-    at ``lever_mm``); ``min_correspondences``: a pair with fewer contributes nothing in that iteration;
-    ``sigma_mm``: 1-sigma of a point-to-plane residual between two points seen head-on (None: the residuals'
-    robust scale, re-estimated in every iteration)."""
+    """``max_distance_mm``: a source point's nearest target point within this distance is its correspondence;
+    ``huber_k``: Huber threshold in robust sigmas; ``iterations``: at most this many linearisations (at least
+    one), fewer once no scan moves more than ``tolerance_mm`` (translation plus rotation at ``lever_mm``);
+    ``reassociate_mm``: before each linearisation after the first, a pair whose source points have moved
+    against its target scan by more than this (mm) since its correspondences were found has them found anew
+    at the current poses (None: those found at the start poses are kept throughout);
+    ``min_correspondences``: a pair with fewer contributes nothing in that iteration; ``sigma_mm``: 1-sigma of a
+    point-to-plane residual between two points seen head-on (None: the residuals' robust scale, re-estimated in
+    every iteration)."""
 
     max_distance_mm: float = 1.0
     huber_k: float = 2.5
@@ -122,6 +129,11 @@ class JointSettings:
     lever_mm: float = 100.0
     min_correspondences: int = 20
     sigma_mm: float | None = None
+    reassociate_mm: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.iterations < 1:
+            raise ValueError(f"joint refinement: {self.iterations} linearisations asked for, at least one is needed")
 
 
 @dataclass(frozen=True)
@@ -131,7 +143,8 @@ class JointResult:
     prior); figures: outer iterations, pairs and correspondences of the last one, the residuals' sigma (mm, as
     ``JointSettings.sigma_mm``) the weights used, the point-to-plane RMS (mm) of the correspondences at the start
     and at the refined poses, and their sigma at the refined poses (``noise_sigma_mm``, the same estimate as
-    ``sigma_mm``), which the posterior covariances take as the noise's (``_posterior_covariance``)."""
+    ``sigma_mm``), which the posterior covariances take as the noise's (``_posterior_covariance``); and how many
+    times a pair's correspondences were found anew after the first linearisation (``JointSettings.reassociate_mm``)."""
 
     poses: list[np.ndarray]
     covariances: np.ndarray
@@ -144,6 +157,7 @@ class JointResult:
     rms_mm_before: float
     rms_mm_after: float
     noise_sigma_mm: float
+    pairs_associated_anew: int
 
 
 def _adjoint_blocks(R: np.ndarray) -> np.ndarray:
@@ -221,8 +235,9 @@ class _Model:
 class _Match:
     """The correspondences of one pair: the indices of the source points (scan j) and of their target points
     (scan i), and at the current poses the source points in the target's frame S_i (mm), the point-to-plane
-    residuals (mm) and the symmetric normals (S_i); found once, each residual's variance relative to that of
-    two points seen head-on (:func:`ray_variances`) and its share (``2 / k``, :func:`noise_shares`)."""
+    residuals (mm) and the symmetric normals (S_i); fixed when they were found, each residual's variance relative
+    to that of two points seen head-on (:func:`ray_variances`), its share (``2 / k``, :func:`noise_shares`) and
+    ``found_at``, the relative pose ``T_S_i_S_j`` they were found at (:func:`_moved_mm`)."""
 
     source: np.ndarray
     target: np.ndarray
@@ -231,6 +246,7 @@ class _Match:
     normals: np.ndarray
     variance: np.ndarray
     share: np.ndarray
+    found_at: np.ndarray
 
 
 class _Pair:
@@ -249,7 +265,7 @@ class _Pair:
         x, n, source, target = x[same], n[same], source[same], target[same]
         q = scans[self.i].points_S[target]
         r = np.einsum("ij,ij->i", x - q, n)
-        return _Match(source, target, x, r, n, ray_variances(n, x - rel[:3, 3], q), np.ones(len(r)))
+        return _Match(source, target, x, r, n, ray_variances(n, x - rel[:3, 3], q), np.ones(len(r)), rel)
 
     def at(self, scans: Sequence[JointScan], poses: np.ndarray, m: _Match) -> _Match:
         """The same correspondences ``m`` at ``poses``: source points placed in S_i, normals and residuals anew."""
@@ -257,7 +273,7 @@ class _Pair:
         x = transform_points(rel, scans[self.j].points_S[m.source])
         n, _ = self._normals(scans, rel, m.source, m.target)
         r = np.einsum("ij,ij->i", x - scans[self.i].points_S[m.target], n)
-        return _Match(m.source, m.target, x, r, n, m.variance, m.share)
+        return _Match(m.source, m.target, x, r, n, m.variance, m.share, m.found_at)
 
     def _normals(self, scans: Sequence[JointScan], rel: np.ndarray, source: np.ndarray, target: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray]:
@@ -386,12 +402,14 @@ def associate(target: JointScan, tree: cKDTree, source: JointScan, T_S_i_S_j: np
 
 
 def _associate(scans: Sequence[JointScan], poses: np.ndarray, pairs: Sequence[tuple[int, int]], max_mm: float,
-               given: Mapping[tuple[int, int], Association], pair_map: PairMap) -> list[tuple[_Pair, _Match]]:
+               given: Mapping[tuple[int, int], Association], trees: dict[int, cKDTree], pair_map: PairMap
+               ) -> list[tuple[_Pair, _Match]]:
     """The correspondences of every pair at ``poses``: each source point's nearest target point within ``max_mm``
     (:func:`associate`; taken from ``given`` where the pair is there), where their normals agree; pairs without
-    any are left out. ``pair_map`` maps a function over the pairs (``parallel.pair_threads``)."""
-    missing = sorted({i for i, j in pairs if (i, j) not in given})
-    trees = dict(zip(missing, pair_map(lambda i: cKDTree(scans[i].points_S), missing), strict=True))
+    any are left out. ``trees``: the target scans' KD-trees built so far (those missing are added);
+    ``pair_map`` maps a function over the pairs (``parallel.pair_threads``)."""
+    missing = sorted({i for i, j in pairs if (i, j) not in given} - trees.keys())
+    trees.update(zip(missing, pair_map(lambda i: cKDTree(scans[i].points_S), missing), strict=True))
 
     def near(pair: tuple[int, int]) -> tuple[_Pair, _Match] | None:
         i, j = pair
@@ -404,6 +422,32 @@ def _associate(scans: Sequence[JointScan], poses: np.ndarray, pairs: Sequence[tu
         return p, p.matched(scans, rel, x, found.target, found.source)
 
     return _with_shares([len(s.points_S) for s in scans], [p for p in pair_map(near, pairs) if p is not None])
+
+
+def _moved_mm(scans: Sequence[JointScan], poses: np.ndarray, p: _Pair, m: _Match) -> float:
+    """How far (mm) the source points of ``m`` have moved in the target's frame S_i between the relative pose
+    they were found at (``m.found_at``) and the one at ``poses``: the largest of their displacements."""
+    source = scans[p.j].points_S[m.source]
+    now = transform_points(invert(poses[p.i]) @ poses[p.j], source)
+    return float(np.sqrt(np.max(np.sum((now - transform_points(m.found_at, source)) ** 2, axis=1), initial=0.0)))
+
+
+def _reassociated(scans: Sequence[JointScan], poses: np.ndarray, associated: list[tuple[_Pair, _Match]],
+                  settings: JointSettings, trees: dict[int, cKDTree], pair_map: PairMap
+                  ) -> tuple[list[tuple[_Pair, _Match]], int]:
+    """``associated`` at ``poses``: the pairs whose source points have moved more than ``settings.reassociate_mm``
+    since their correspondences were found (:func:`_moved_mm`) have them found anew (:func:`_associate`), the
+    others keep theirs (residuals and normals anew); every share is counted again (:func:`noise_shares`).
+    Returns them and the number of pairs associated anew."""
+    if settings.reassociate_mm is None:
+        return pair_map(lambda pm: (pm[0], pm[0].at(scans, poses, pm[1])), associated), 0
+    moved = pair_map(lambda pm: _moved_mm(scans, poses, *pm) > settings.reassociate_mm, associated)
+    anew = [(p.i, p.j) for (p, _), far in zip(associated, moved, strict=True) if far]
+    kept = [(p, m) for (p, m), far in zip(associated, moved, strict=True) if not far]
+    found = _associate(scans, poses, anew, settings.max_distance_mm, {}, trees, pair_map) if anew else []
+    log.debug("joint refinement: %d of %d pairs associated anew", len(anew), len(associated))
+    return _with_shares([len(s.points_S) for s in scans],
+                        [(p, p.at(scans, poses, m)) for p, m in kept] + found), len(anew)
 
 
 def refine_jointly(
@@ -432,12 +476,14 @@ def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequ
     model = _Model(priors, transfers, mount_prior)
     poses = np.stack([np.asarray(T, float) for T in start_poses])
     e = model.corrections(poses)
-    associated = _associate(scans, poses, pairs, settings.max_distance_mm, associations, pair_map)  # once
+    trees: dict[int, cKDTree] = {}
+    associated = _associate(scans, poses, pairs, settings.max_distance_mm, associations, trees, pair_map)
     H_prior = model.prior_information
-    rms_before, sigma, H, used, n_corr, it = float("nan"), 1.0, None, 0, 0, 0
+    rms_before, sigma, H, used, n_corr, it, anew = float("nan"), 1.0, None, 0, 0, 0, 0
     for it in range(1, settings.iterations + 1):
         if it > 1:
-            associated = pair_map(lambda pm, now=poses: (pm[0], pm[0].at(scans, now, pm[1])), associated)
+            associated, moved = _reassociated(scans, poses, associated, settings, trees, pair_map)
+            anew += moved
         kept = [(p, m) for p, m in associated if len(m.residual) >= settings.min_correspondences]
         r_all = np.concatenate([m.residual for _, m in kept]) if kept else np.zeros(0)
         sigma = settings.sigma_mm or _robust_sigma(r_all)
@@ -470,10 +516,11 @@ def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequ
         P = H_prior.toarray()
         mount = _mount_estimate(model, (H_theta - P) / ratio + P, cov_theta, theta)
     prior_cov = model.scan_covariances(model.prior_covariance.toarray())
-    log.info("joint refinement: %d scans, %d pairs, %d points, %d iterations; sigma %.4f mm (%.4f mm at the refined "
-             "poses), RMS %.4f -> %.4f mm", model.n, used, n_corr, it, sigma, noise_sigma, rms_before, rms_after)
+    log.info("joint refinement: %d scans, %d pairs, %d points, %d iterations, %d pairs associated anew; sigma "
+             "%.4f mm (%.4f mm at the refined poses), RMS %.4f -> %.4f mm", model.n, used, n_corr, it, anew, sigma,
+             noise_sigma, rms_before, rms_after)
     return JointResult([T for T in poses], model.scan_covariances(cov_theta), prior_cov, mount, it, used, n_corr,
-                       sigma, rms_before, rms_after, noise_sigma)
+                       sigma, rms_before, rms_after, noise_sigma, anew)
 
 
 def _posterior_covariance(H_theta: np.ndarray, information: sparse.csr_matrix) -> np.ndarray:
