@@ -630,9 +630,9 @@ class CorrectionConfig(_Strict):
     )
     joint_iterations: int = Field(
         1, ge=1, description="joint refinement: linearisations, the first on the correspondences found at the "
-        "tracker poses, each later one re-weighting them at the poses so far (one: a second pulled the whole "
-        "part's seed 8 from 0.043 to 0.072 mm, and with joint_reassociate_mm from 0.037 to 0.044 mm; "
-        "docs/registration.md)")
+        "tracker poses, each later one re-weighting them at the poses so far (one: with the first residuals a "
+        "second pulled the whole part's seed 8 from 0.043 to 0.072 mm, with today's and joint_reassociate_mm "
+        "0.1 from 0.037 to 0.044 mm; docs/registration.md)")
     joint_reassociate_mm: float | None = Field(
         None, gt=0, description="joint refinement: before a linearisation after the first, a pair whose points moved "
         "more than this against its partner since its correspondences were found has them found anew, mm; empty = "

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from tandemscan.config.models import CorrectionConfig
 from tandemscan.pipeline.geometry.frames import from_rotvec
 from tandemscan.pipeline.registration.correction import StitchedScan, correct_scans
@@ -55,18 +56,19 @@ def test_methods_with_the_network_register_nothing_while_measuring():
     assert online.outcomes == {}
 
 
-def test_scans_prepared_for_the_joint_refinement_while_measuring_give_the_same_poses(monkeypatch):
+@pytest.mark.parametrize("reassociate_mm", [None, 0.01])
+def test_scans_prepared_for_the_joint_refinement_while_measuring_give_the_same_poses(monkeypatch, reassociate_mm):
     """With ``joint`` on, every scan is thinned and given normals as it arrives, and its pairs' nearest
     neighbours are found at the tracker poses; the end of the job takes the scans out of the cache (none is
     prepared again, none kept after), searches no pair's neighbours at the tracker poses again (only those of
     the pairs that moved after the first linearisation, found anew there) and refines to the poses it computes
     without them. A scan whose points differ from what was prepared (another voxel) is prepared again, and its
-    pairs searched again."""
+    pairs searched again. With ``joint_reassociate_mm`` off nothing is searched at the end."""
     from tandemscan.pipeline.registration import correction, joint
 
     _, scans, transfers = scans_with_drift(n=4, per_station=2)
     cfg = CorrectionConfig(method="icp", min_overlap_points=100, joint=True, joint_iterations=2,
-                           joint_reassociate_mm=0.01)
+                           joint_reassociate_mm=reassociate_mm)
     online = _measure(scans, transfers, cfg)
     work = online.work()
     assert len(work.joint_scans) == len(scans)
@@ -79,13 +81,16 @@ def test_scans_prepared_for_the_joint_refinement_while_measuring_give_the_same_p
     kept = dict(work.joint_scans)
     reused = correct_scans(scans, cfg, transfers=transfers, pair_cache=work.pairs, joint_cache=work.joint_scans,
                            association_cache=work.associations)
-    assert prepared_at_end == [] and len(searched_at_end) == reused.report["joint"]["pairs_associated_anew"] > 0
+    anew = reused.report["joint"]["pairs_associated_anew"]
+    assert prepared_at_end == [] and len(searched_at_end) == anew
+    assert anew > 0 if reassociate_mm else anew == 0
     assert reused.report["joint"]["pairs"] == fresh.report["joint"]["pairs"] > 0
     assert reused.report["joint"]["pairs_associated_while_measuring"] >= fresh.report["joint"]["pairs"]
     assert work.joint_scans == {}  # taken out as used: none outlives the refinement
     for a, b in zip(fresh.poses, reused.poses, strict=True):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)
+    searched_before = len(searched_at_end)
     coarser = cfg.model_copy(update={"joint_voxel_mm": 3.0})
     correct_scans(scans, coarser, transfers=transfers, pair_cache=work.pairs, joint_cache=kept,
                   association_cache=work.associations)
-    assert len(prepared_at_end) == len(scans) and searched_at_end
+    assert len(prepared_at_end) == len(scans) and len(searched_at_end) > searched_before

@@ -143,8 +143,9 @@ class JointResult:
     prior); figures: outer iterations, pairs and correspondences of the last one, the residuals' sigma (mm, as
     ``JointSettings.sigma_mm``) the weights used, the point-to-plane RMS (mm) of the correspondences at the start
     and at the refined poses, and their sigma at the refined poses (``noise_sigma_mm``, the same estimate as
-    ``sigma_mm``), which the posterior covariances take as the noise's (``_posterior_covariance``); and how many
-    times a pair's correspondences were found anew after the first linearisation (``JointSettings.reassociate_mm``)."""
+    ``sigma_mm``), which the posterior covariances take as the noise's (``_posterior_covariance``); and the pairs
+    whose correspondences were found anew after the first linearisation, summed over the linearisations (a pair
+    found anew twice counts twice; ``JointSettings.reassociate_mm``)."""
 
     poses: list[np.ndarray]
     covariances: np.ndarray
@@ -236,8 +237,9 @@ class _Match:
     """The correspondences of one pair: the indices of the source points (scan j) and of their target points
     (scan i), and at the current poses the source points in the target's frame S_i (mm), the point-to-plane
     residuals (mm) and the symmetric normals (S_i); fixed when they were found, each residual's variance relative
-    to that of two points seen head-on (:func:`ray_variances`), its share (``2 / k``, :func:`noise_shares`) and
-    ``found_at``, the relative pose ``T_S_i_S_j`` they were found at (:func:`_moved_mm`)."""
+    to that of two points seen head-on (:func:`ray_variances`) and ``found_at``, the relative pose ``T_S_i_S_j``
+    they were found at (:func:`_moved_mm`); and each residual's share (``2 / k``, :func:`noise_shares`), counted
+    again whenever any pair's correspondences are found anew."""
 
     source: np.ndarray
     target: np.ndarray
@@ -445,7 +447,8 @@ def _reassociated(scans: Sequence[JointScan], poses: np.ndarray, associated: lis
     anew = [(p.i, p.j) for (p, _), far in zip(associated, moved, strict=True) if far]
     kept = [(p, m) for (p, m), far in zip(associated, moved, strict=True) if not far]
     found = _associate(scans, poses, anew, settings.max_distance_mm, {}, trees, pair_map) if anew else []
-    log.debug("joint refinement: %d of %d pairs associated anew", len(anew), len(associated))
+    log.debug("joint refinement: %d of %d pairs associated anew, %d of them without correspondences now (left out)",
+              len(anew), len(associated), len(anew) - len(found))
     return _with_shares([len(s.points_S) for s in scans],
                         [(p, p.at(scans, poses, m)) for p, m in kept] + found), len(anew)
 
@@ -478,6 +481,8 @@ def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequ
     e = model.corrections(poses)
     trees: dict[int, cKDTree] = {}
     associated = _associate(scans, poses, pairs, settings.max_distance_mm, associations, trees, pair_map)
+    if settings.reassociate_mm is None:
+        trees.clear()                      # nothing is searched again: the KD-trees need not live on
     H_prior = model.prior_information
     rms_before, sigma, H, used, n_corr, it, anew = float("nan"), 1.0, None, 0, 0, 0, 0
     for it in range(1, settings.iterations + 1):
