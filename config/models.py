@@ -302,6 +302,11 @@ class ChassisCanConfig(_Strict):
     approach_deadband_mm: float = Field(
         0.5, gt=0, description="final approach along the heading ends this close to the target (or when past it)")
     heading_tolerance_deg: float = Field(0.5, gt=0)
+    standstill_mm_s: float = Field(
+        1.0, ge=0, description="at rest when the motion state's linear speed is at most this, mm/s (its resolution: "
+        "a chassis may report a count of encoder noise at standstill)")
+    standstill_deg_s: float = Field(
+        0.06, ge=0, description="and its angular speed at most this, deg/s (the 0.001 rad/s resolution)")
     gain_linear_per_s: float = Field(1.5, gt=0, description="linear speed = gain x distance error")
     gain_angular_per_s: float = Field(2.0, gt=0, description="angular speed = gain x heading error")
 

@@ -124,8 +124,7 @@ class AgvCanChassis:
         elif self._fault is not None:
             state = "fault"
         else:
-            moving = self._motion.get("LinearVelocity", 0.0) != 0 or self._motion.get("AngularVelocity", 0.0) != 0
-            state = "moving" if moving else "idle"
+            state = "idle" if self._at_rest() else "moving"
         detail = {
             "pose": self._pose, "battery_V": self._system.get("BatteryVoltage"),
             "error_code": self._system.get("ErrorCode"), "control_mode": self._system.get("ControlMode"),
@@ -203,12 +202,19 @@ class AgvCanChassis:
                 and abs(wrap_angle(target.heading_rad - pose.heading_rad))
                 <= math.radians(self._can.heading_tolerance_deg))
 
+    def _at_rest(self) -> bool:
+        """Whether the last motion state reports standstill: both speeds within ``standstill_mm_s`` /
+        ``standstill_deg_s`` of zero (a chassis reports its encoders' speed, which may show a count of noise at
+        rest; none received yet counts as at rest)."""
+        return (abs(self._motion.get("LinearVelocity", 0.0)) <= self._can.standstill_mm_s
+                and abs(self._motion.get("AngularVelocity", 0.0)) <= math.radians(self._can.standstill_deg_s))
+
     async def _come_to_rest(self) -> ChassisPose:
         """Zero the set-point now and wait until the chassis reports standstill; the pose at rest."""
         self._zero_now()
         loop = asyncio.get_running_loop()
         deadline = loop.time() + self._can.feedback_timeout_s
-        while self._motion.get("LinearVelocity", 0.0) != 0 or self._motion.get("AngularVelocity", 0.0) != 0:
+        while not self._at_rest():
             if self._fault is not None:
                 raise self._fault
             if loop.time() > deadline:

@@ -229,6 +229,29 @@ async def test_driver_enabled_flag_is_state_not_a_fault():
         await emu.stop()
 
 
+async def test_a_count_of_encoder_noise_at_standstill_is_rest_not_motion():
+    """A chassis whose motion state shows 1 mm/s while it stands still (its encoders' speed): the move ends
+    and the chassis reads idle; a driver that waited for exactly zero would wait for ever (here: its timeout)."""
+    channel = f"agv-{uuid.uuid4().hex[:8]}"
+    emu = await vendor_pair(channel, standstill_speed_mm_s=1.0)
+    drv = AgvCanChassis(chassis_config(channel))
+    strict = AgvCanChassis(chassis_config(channel, standstill_mm_s=0.0))
+    try:
+        await drv.connect()
+        pose = await drv.move_to(ChassisPose(200.0, 0.0, 0.0))
+        assert abs(pose.x_mm - 200.0) <= 5.0
+        assert (await drv.status()).state == "idle"
+        await drv.close()
+        await strict.connect()
+        assert (await strict.status()).state == "moving"
+        with pytest.raises(DeviceTimeout, match="still moving"):
+            await strict.move_to(ChassisPose(300.0, 0.0, 0.0))
+    finally:
+        await drv.close()
+        await strict.close()
+        await emu.stop()
+
+
 async def test_odometry_counts_are_scaled_by_the_configured_unit():
     channel = f"agv-{uuid.uuid4().hex[:8]}"
     emu = await vendor_pair(channel, odometry_mm_per_count=0.1)  # counts of 0.1 mm

@@ -98,11 +98,15 @@ class ChassisEmulator:
         driver_state_flags: int = 0,
         odometry_mm_per_count: float = 1.0,
         slip: ChassisSlipConfig | None = None,
+        standstill_speed_mm_s: float = 0.0,
     ):
         """``on_pose(true pose, moving)`` is called every period (e.g. to move the simulated world's chassis);
         ``driver_state_flags``: DriverState bits every motor reports in normal running (0x40, 0x80); ``slip``: how
-        the body misses its commands (``[sim.<role>_slip]``; the default when not given)."""
+        the body misses its commands (``[sim.<role>_slip]``; the default when not given);
+        ``standstill_speed_mm_s``: the linear speed the motion state reports while the body stands still (a
+        real chassis's speed comes from its encoders and may show a count of noise there; 0: exactly zero)."""
         self.driver_state_flags = driver_state_flags
+        self.standstill_speed_mm_s = standstill_speed_mm_s
         self.odometry_mm_per_count = odometry_mm_per_count
         self.config = config
         self.faults = ChassisFaults()
@@ -191,7 +195,7 @@ class ChassisEmulator:
             mode = 3 if self.faults.rc_override else self.mode
             self._maybe_send("SystemStatus", VehicleState=state, ControlMode=mode, BatteryVoltage=25.2,
                              ErrorCode=self.faults.error_code, Counter=self._counter)
-        v, w = self.velocity
+        v, w = self.velocity if self.velocity != (0.0, 0.0) else (self.standstill_speed_mm_s, 0.0)
         self._maybe_send("MotionState", LinearVelocity=round(v), AngularVelocity=round(w, 3),
                          LateralVelocity=0, SteeringAngle=0)
         self._maybe_send("Odometry", LeftWheelOdometry=round(self.body.left_mm / self.odometry_mm_per_count),
