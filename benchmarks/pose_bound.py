@@ -51,7 +51,6 @@ import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import open3d as o3d
@@ -309,7 +308,7 @@ def corrected_from_truth(result: JobResult, T_T_S: np.ndarray, config, scorer: T
 def cloud_rms_mm(result: JobResult, poses: list[np.ndarray], scorer: TruthScorer, voxel_mm: float) -> float:
     """RMS distance (mm) to the part of the job's scans merged at ``poses`` (W) into a ``voxel_mm`` map, as the
     job merges and the simulator scores its cloud."""
-    cloud = merge_stage(voxel_mm, SimpleNamespace(scans=result.scans), poses).points()
+    cloud = merge_stage(voxel_mm, [s.file for s in result.scans], poses).points()
     distances = cloud_to_mesh_distances(scorer.world.scene, cloud, invert(scorer.world.T_W_F))
     return float(distance_stats(distances)["rms_mm"])
 
@@ -332,7 +331,7 @@ async def one_seed(config, plan: Plan, seed: int) -> dict:
         tracker = [np.asarray(e.get("T_W_S_tracker", e["T_W_S"])) for e in r["scan_log"]]
         scorer, T_T_S = runner.observer.scorer(), runner.installation.T_T_S
         figures |= bound(result, T_T_S, config, scorer.T_W_S_true, after["pose_err_mm_median"])
-        mount, _ = mount_prior(SimpleNamespace(config=config, installation=runner.installation))
+        mount, _ = mount_prior(config, runner.installation)
         figures |= corrected_from_truth(result, T_T_S, config, scorer, tracker, mount)
         joint = r["correction"].get("joint")
         if joint is not None:   # the joint refinement's own posterior, beside the bound's

@@ -29,8 +29,10 @@ from tandemscan.pipeline.registration.pairs import LazyNetwork
 from tandemscan.pipeline.registration.pose_graph import TransferPrior
 
 if TYPE_CHECKING:
+    from tandemscan.config.models import CellConfig
     from tandemscan.daemon.snapshot import JobSnapshot
     from tandemscan.pipeline.registration.online_pairs import OnlineWork
+    from tandemscan.pipeline.stitching.installation import Installation
 
 log = logging.getLogger(__name__)
 
@@ -42,9 +44,10 @@ def _diagonal(sigma_mm: float, sigma_rad: float) -> np.ndarray:
     return np.diag([sigma_mm**2] * 3 + [sigma_rad**2] * 3)
 
 
-def mount_prior(job: JobSnapshot) -> tuple[MountPrior | None, str]:
-    """The prior of the shared ``T_T_S`` correction for this job and where it came from."""
-    cfg, dm = job.config, job.config.correction
+def mount_prior(cfg: CellConfig, installation: Installation) -> tuple[MountPrior | None, str]:
+    """The prior of the shared ``T_T_S`` correction (mm, rad) for a job configured by ``cfg`` that stitches with
+    the mounts ``installation``, and where it came from."""
+    dm = cfg.correction
     if not dm.estimate_mount:
         return None, "off"
     source = cfg.job.installation_source
@@ -52,8 +55,8 @@ def mount_prior(job: JobSnapshot) -> tuple[MountPrior | None, str]:
     if source == "truth":
         cov, label = _diagonal(*_TRUTH_SIGMA), "truth (exact)"
     elif source == "calibration":
-        if job.installation.T_T_S_covariance is not None:
-            cov, label = job.installation.T_T_S_covariance, "calibration file"
+        if installation.T_T_S_covariance is not None:
+            cov, label = installation.T_T_S_covariance, "calibration file"
         else:
             log.warning("calibration file %s has no T_T_S covariance; the mount prior is the CAD tolerance",
                         cfg.job.calibration_file)
@@ -87,7 +90,7 @@ def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray], online: Online
     scans = [StitchedScan(P, s.T_W_S, scan_pose_covariance(s.T_W_C, s.reading.T_C_T, job.installation.T_T_S,
                                                             s.reading.covariance), s.tracker_station)
              for s, P in zip(job.scans, points_S, strict=True)]
-    prior, prior_source = mount_prior(job)
+    prior, prior_source = mount_prior(job.config, job.installation)
     result = correct_scans(scans, cfg, LazyNetwork(job.config.deepmerge), transfers=transfer_priors(job.transfers),
                            voxel_mm=job.config.job.voxel_mm, mount_prior=prior,
                            pair_cache=None if online is None else online.pairs,

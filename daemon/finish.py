@@ -28,6 +28,8 @@ from tandemscan.pipeline.registration.parallel import pair_threads
 from tandemscan.pipeline.stitching.worldmap import VoxelMap
 
 if TYPE_CHECKING:
+    from pathlib import Path
+
     from tandemscan.daemon.snapshot import JobSnapshot
     from tandemscan.pipeline.registration.online_pairs import OnlineWork
 
@@ -94,17 +96,17 @@ def correct_stage(job: JobSnapshot, loaded: LoadedScans, online: OnlineWork | No
     return CorrectionOutcome(section, tuple(poses), True)
 
 
-def merge_stage(voxel_mm: float, job: JobSnapshot, poses: Sequence[np.ndarray]) -> VoxelMap:
-    """The job's cloud: every scan of ``job.scans`` merged into a voxel map at its pose (Eq. 1), read from its
-    file (points and normals, float32 as stored) one at a time on each thread. Consecutive scans (neighbours on
-    the part) are merged in :data:`MERGE_GROUPS` maps of their own, one thread per core, and the maps combined
-    once (``VoxelMap.combined``): the same cloud to the rounding of its sums."""
-    groups = [g for g in np.array_split(np.arange(len(job.scans)), MERGE_GROUPS) if len(g)]
+def merge_stage(voxel_mm: float, scan_files: Sequence[Path], poses: Sequence[np.ndarray]) -> VoxelMap:
+    """A job's cloud: every raw scan file of ``scan_files`` merged into a voxel map (edge ``voxel_mm``, mm) at its
+    pose ``T_W_S`` of ``poses`` (Eq. 1), read (points and normals, float32 as stored) one at a time on each thread.
+    Consecutive scans (neighbours on the part) are merged in :data:`MERGE_GROUPS` maps of their own, one thread per
+    core, and the maps combined once (``VoxelMap.combined``): the same cloud to the rounding of its sums."""
+    groups = [g for g in np.array_split(np.arange(len(scan_files)), MERGE_GROUPS) if len(g)]
 
     def merged(group: np.ndarray) -> VoxelMap:
         worldmap = VoxelMap(voxel_mm)
         for k in group:
-            worldmap.add_scan(poses[k], *read_raw_scan(job.scans[k].file, np.float32))
+            worldmap.add_scan(poses[k], *read_raw_scan(scan_files[k], np.float32))
         return worldmap
 
     if not groups:
@@ -141,10 +143,11 @@ def finish_job(job: JobSnapshot, started: float, measured_at: float,
     if outcome.corrected:
         voxel_mm, tracker_poses = tracker_map.voxel_mm, [s.T_W_S for s in job.scans]
         del tracker_map                              # the cloud is merged anew at the corrected poses
-        job.worldmap = merge_stage(voxel_mm, job, outcome.poses).frozen()
+        files = [s.file for s in job.scans]
+        job.worldmap = merge_stage(voxel_mm, files, outcome.poses).frozen()
 
         def tracker_stitch() -> JobSnapshot:
-            return dataclasses.replace(job, worldmap=merge_stage(voxel_mm, job, tracker_poses).frozen(np.float32))
+            return dataclasses.replace(job, worldmap=merge_stage(voxel_mm, files, tracker_poses).frozen(np.float32))
     else:
         job.worldmap = tracker_map.frozen()
         del tracker_map

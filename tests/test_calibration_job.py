@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-from types import SimpleNamespace
 
 import numpy as np
 from tandemscan.daemon.calibrate import run_calibration
@@ -51,13 +50,13 @@ async def test_calibration_job_recovers_the_true_scanner_mount(sim_config, tmp_p
     labels = {"calibration": "calibration file", "nominal": "CAD tolerance", "truth": "truth (exact)"}
     for source, expected in labels.items():
         cfg = config.model_copy(update={"job": job.model_copy(update={"installation_source": source})})
-        priors[source], label = mount_prior(SimpleNamespace(config=cfg, installation=used))
+        priors[source], label = mount_prior(cfg, used)
         assert label == expected
     np.testing.assert_allclose(priors["calibration"].covariance, cov)
     assert np.sqrt(priors["nominal"].covariance[0, 0]) == config.correction.mount_nominal_sigma_mm
     assert np.all(np.diag(priors["truth"].covariance) < np.diag(cov) * 1e-3)
     off = config.model_copy(update={"correction": config.correction.model_copy(update={"estimate_mount": False})})
-    assert mount_prior(SimpleNamespace(config=off, installation=used)) == (None, "off")
+    assert mount_prior(off, used) == (None, "off")
 
 
 async def test_the_calibration_covariance_is_consistent_with_its_error_over_seeds(sim_config, tmp_path):

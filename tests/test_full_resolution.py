@@ -65,8 +65,7 @@ def test_thinned_copy_is_what_the_correction_thins_the_full_scan_to(scan_files, 
 
 def test_streamed_merge_equals_the_merge_of_scans_in_memory(scan_files):
     files, arrays, poses = scan_files
-    job = SimpleNamespace(scans=[SimpleNamespace(file=f) for f in files])
-    streamed = merge_stage(1.0, job, poses)
+    streamed = merge_stage(1.0, files, poses)
     in_memory = VoxelMap(1.0)
     for T, a in zip(poses, arrays, strict=True):
         in_memory.add_scan(T, a["points_S_mm"], a.get("normals_S"))
