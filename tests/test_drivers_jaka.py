@@ -321,6 +321,24 @@ async def test_protective_stop_refuses_moves_as_safety_stop(emulator, arm):
         await arm.move_joints(Q_TARGET)
 
 
+async def test_a_controller_error_during_a_move_is_a_fault_until_cleared(emulator, arm):
+    """The status stream's ``errcode`` (a string, "0x0" when none) turns non-zero mid-move: the move ends with a
+    DeviceFault naming it, the arm reads "fault"; after ``clear_error`` it moves again."""
+    emulator.time_scale = 1.0  # a slow move
+    move = asyncio.create_task(arm.move_joints(Q_TARGET))
+    while emulator.motion.in_position(emulator.sim_time()):  # the move has started
+        await asyncio.sleep(0.005)
+    emulator.faults.controller_error = "0x10030001"
+    with pytest.raises(DeviceFault, match="controller error 0x10030001: servo error"):
+        await move
+    assert (await arm.status()).state == "fault"
+    await arm.clear_error()
+    await asyncio.sleep(0.05)  # the cleared state reaches the driver through the status stream
+    emulator.time_scale = 0.01
+    await arm.move_joints(Q_HOME)
+    assert (await arm.status()).state == "idle"
+
+
 @pytest.mark.parametrize(("faults", "state"), [(("status_silent",), "fault"),
                                                (("status_silent", "silent"), "disconnected")])
 async def test_silent_controller_is_a_lost_link_after_a_status_gap(emulator, arm, faults, state):

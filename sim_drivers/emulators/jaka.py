@@ -43,6 +43,8 @@ class JakaFaults:
     protective_stop: bool = False  # protective stop (collision): as estop, reported as protective_stop
     nan_in_status: bool = False  # status stream sends a NaN joint angle
     status_silent: bool = False  # the status stream stops pushing while its connection stays open
+    controller_error: str = ""  # a controller error (e.g. "0x10030001"): motion halts, status reports it as
+    #                             errcode / errmsg, moves are refused until clear_error
 
 
 @dataclass(frozen=True)
@@ -174,7 +176,7 @@ class JakaEmulator:
         return [*xyz.tolist(), *np.degrees(rpy).tolist()]
 
     def status_message(self) -> dict:
-        if self.faults.estop or self.faults.protective_stop:
+        if self.faults.estop or self.faults.protective_stop or self.faults.controller_error:
             self.motion.halt(self.sim_time())
         q = self.joints_deg()
         joints: list[object] = q.tolist()
@@ -189,8 +191,8 @@ class JakaEmulator:
             "emergency_stop": int(self.faults.estop),
             "protective_stop": int(self.faults.protective_stop),
             "on_soft_limit": 0,
-            "errcode": "0x0",
-            "errmsg": "",
+            "errcode": self.faults.controller_error or "0x0",
+            "errmsg": "servo error (emulated)" if self.faults.controller_error else "",
             "task_state": 4 if self.enabled else 1,
             "paused": False,
         }
@@ -284,6 +286,8 @@ class JakaEmulator:
             return await self._kine_inverse(req)
         elif name in ("stop_program", "clear_error", "quit"):
             self.motion.halt(now)
+            if name == "clear_error":
+                self.faults.controller_error = ""
         elif name in ("joint_move", "moveL", "end_move"):
             return await self._move(name, req, now)
         else:
@@ -313,6 +317,8 @@ class JakaEmulator:
             return _error("2", "emergency stop active")
         if self.faults.protective_stop:
             return _error("2", "protective stop active")
+        if self.faults.controller_error:
+            return _error("2", f"controller error {self.faults.controller_error}")
         if not self.enabled:
             return _error("2", "robot is not enabled")
         current = self.motion.position(now)
