@@ -84,6 +84,27 @@ async def test_move_waits_for_motion_in_simulated_time(emulator, arm):
     np.testing.assert_allclose(await arm.joints(), Q_HOME, atol=1e-9)
 
 
+async def test_a_linear_move_takes_its_path_at_the_commanded_speed(emulator):
+    """``moveL`` carries the flange's speed (mm/s): 60 mm at 20 mm/s last at least 3 s of the controller's time,
+    though the joints alone could make it in a tenth of that; the driver waits for all of it."""
+    jaka = JakaTcpConfig(host="127.0.0.1", command_port=emulator._commands.port,
+                         status_port=emulator._status.port, linear_speed_mm_s=20.0)
+    arm = JakaTcpArm(ArmConfig(jaka=jaka, timeout_s=10.0))
+    await arm.connect()
+    try:
+        await arm.enable()
+        emulator.time_scale = 0.05
+        goal = ArmKinematics(ArmConfig()).forward(Q_HOME)
+        goal[:3, 3] += [40.0, 0.0, -44.7]
+        t0 = emulator.sim_time()
+        await arm.move_linear(goal)
+        assert emulator.sim_time() - t0 >= 60.0 / 20.0
+        dt, _ = pose_error(await arm.flange_pose(), goal)
+        assert dt < 0.05
+    finally:
+        await arm.close()
+
+
 async def test_joint_target_outside_limits_is_refused_before_sending(emulator, arm):
     bad = Q_TARGET.copy()
     bad[1] = np.radians(-100.0)

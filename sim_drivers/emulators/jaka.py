@@ -312,6 +312,15 @@ class JakaEmulator:
             return None
         return await asyncio.to_thread(self.kinematics.inverse, from_rpy(pose[:3], np.radians(pose[3:])), ref_rad)
 
+    def _joint_speed_for_path(self, path_mm: float, speed_mm_s: float, step_deg: np.ndarray) -> float:
+        """The joint speed (deg/s) at which the joint interpolation by ``step_deg`` takes as long as the flange's
+        straight ``path_mm`` at ``speed_mm_s`` (the emulator models a linear move's duration, not its path's
+        shape), at most the arm's joint speed; ValueError for a speed not above zero."""
+        if not speed_mm_s > 0:
+            raise ValueError(f"linear speed {speed_mm_s} mm/s")
+        largest_deg = float(np.max(np.abs(step_deg)))
+        return min(self.config.joint_speed_deg_s, largest_deg * speed_mm_s / path_mm if path_mm > 0 else math.inf)
+
     async def _move(self, name: str, req: dict, now: float) -> dict:
         if self.faults.estop:
             return _error("2", "emergency stop active")
@@ -328,6 +337,7 @@ class JakaEmulator:
                 speed = float(req.get("speed", self.config.joint_speed_deg_s))
             else:
                 pose = np.asarray(req["cartPosition" if name == "moveL" else "endPosition"], float)
+                start_mm = np.asarray(self.tcp_pose(current)[:3])
                 if req.get("relFlag"):
                     pose = pose + np.asarray(self.tcp_pose(current))
                 q = await self._solve(pose, np.radians(current))
@@ -335,6 +345,9 @@ class JakaEmulator:
                     return _error("2", "inverse kinematics failed")
                 target = np.degrees(q)
                 speed = self.config.joint_speed_deg_s
+                if name == "moveL":   # the flange's straight path at the commanded speed (mm/s), joints permitting
+                    speed = self._joint_speed_for_path(float(np.linalg.norm(pose[:3] - start_mm)),
+                                                       float(req.get("speed", math.inf)), target - current)
         except (KeyError, TypeError, ValueError) as e:
             return _error("2", f"bad parameters: {e}")
         if target.shape != (6,) or not np.all(np.isfinite(target)):
