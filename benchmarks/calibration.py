@@ -38,6 +38,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from clean_exit import clean_exit_on_sigterm
 from tandemscan.config import load_config
 from tandemscan.pipeline.calibration.hand_eye import METHODS, solve_hand_eye
 from tandemscan.pipeline.calibration.plate import PlateFit, fit_plate, nominal_centres_P
@@ -359,4 +360,5 @@ def _rounded(value: object) -> object:
 
 
 if __name__ == "__main__":
+    clean_exit_on_sigterm()
     sys.exit(main())

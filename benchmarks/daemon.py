@@ -29,6 +29,7 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+from clean_exit import clean_exit_on_sigterm
 from tandemscan.sim_drivers.hil_box import free_port
 
 TOKEN = "bench"
@@ -196,4 +197,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    clean_exit_on_sigterm()
     main()

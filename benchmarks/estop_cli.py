@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from clean_exit import clean_exit_on_sigterm
 from tandemscan.daemon import cli
 from tandemscan.sim_drivers.hil_box import BOX_PLAN, write_hil_box_cell
 from tandemscan.sim_drivers.world import SimWorld
@@ -150,4 +151,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    clean_exit_on_sigterm()
     main()

@@ -16,6 +16,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from clean_exit import clean_exit_on_sigterm
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -32,4 +34,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    clean_exit_on_sigterm()
     main()

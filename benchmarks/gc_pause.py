@@ -20,6 +20,8 @@ import statistics
 import tempfile
 import time
 
+from clean_exit import clean_exit_on_sigterm
+
 
 def full_collection_ms(repeats: int) -> float:
     """Median wall time (ms) of ``gc.collect(2)`` over ``repeats`` collections."""
@@ -62,4 +64,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    clean_exit_on_sigterm()
     main()

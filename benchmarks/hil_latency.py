@@ -17,6 +17,7 @@ from pathlib import Path
 from tempfile import TemporaryDirectory
 
 import numpy as np
+from clean_exit import clean_exit_on_sigterm
 from tandemscan.config.models import (
     ArmConfig,
     ChassisCanConfig,
@@ -164,4 +165,5 @@ async def main() -> dict[str, object]:
 
 
 if __name__ == "__main__":
+    clean_exit_on_sigterm()
     print(json.dumps(asyncio.run(main())))

@@ -12,6 +12,7 @@ import tempfile
 import time
 
 import numpy as np
+from clean_exit import clean_exit_on_sigterm
 from tandemscan.config.models import InspectionConfig, PartConfig
 from tandemscan.pipeline.geometry.part import train_nose_mesh
 from tandemscan.pipeline.inspection.inspect import CadSurface, inspect_cloud
@@ -61,4 +62,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    clean_exit_on_sigterm()
     main()

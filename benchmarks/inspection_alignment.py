@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
+from clean_exit import clean_exit_on_sigterm
 from pose_bound import bound_covariance  # benchmarks/pose_bound.py: the bound's error model
 from tandemscan.config import load_config
 from tandemscan.config.models import CellConfig
@@ -289,4 +290,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    clean_exit_on_sigterm()
     main()

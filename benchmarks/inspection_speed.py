@@ -24,6 +24,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+from clean_exit import clean_exit_on_sigterm
 from tandemscan.config.loader import load_config
 from tandemscan.daemon import job_outputs
 from tandemscan.pipeline.inspection import inspect, inspection_job, report
@@ -127,4 +128,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    clean_exit_on_sigterm()
     main()

@@ -54,6 +54,7 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
+from clean_exit import clean_exit_on_sigterm
 from scipy.spatial import cKDTree
 from tandemscan.config import load_config
 from tandemscan.daemon.cli import default_plan_path
@@ -376,4 +377,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    clean_exit_on_sigterm()
     main()

@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from clean_exit import clean_exit_on_sigterm
 from tandemscan.pipeline.io.durable import write_durably
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, write_raw_scan
 
@@ -88,4 +89,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    clean_exit_on_sigterm()
     main()

@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from clean_exit import clean_exit_on_sigterm
 from tandemscan.pipeline.geometry.frames import from_rotvec, invert, pose_error, transform_points
 from tandemscan.pipeline.io.export import write_ply
 
@@ -91,4 +92,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    clean_exit_on_sigterm()
     main()

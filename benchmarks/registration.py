@@ -53,6 +53,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 import torch
+from clean_exit import clean_exit_on_sigterm
 from scipy.spatial.transform import Rotation
 from tandemscan.config.models import CorrectionConfig, DeepMergeConfig
 from tandemscan.pipeline.deepmerge.register import DeepMergeRegistrar
@@ -373,4 +374,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    clean_exit_on_sigterm()
     main()

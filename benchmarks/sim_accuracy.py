@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from clean_exit import clean_exit_on_sigterm
 from tandemscan.config import load_config
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.runner import JobRunner
@@ -105,4 +106,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    clean_exit_on_sigterm()
     main()

@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
+from clean_exit import clean_exit_on_sigterm
 from tandemscan.config import load_config
 from tandemscan.daemon.coordinate_transfer import PoseReading, choose_transfer_poses, pose_transfer, transfer_joints
 from tandemscan.daemon.plan_cmd import plan_configured_part
@@ -233,4 +234,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    clean_exit_on_sigterm()
     main()

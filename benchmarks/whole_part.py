@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
+from clean_exit import clean_exit_on_sigterm
 from tandemscan.config import load_config
 from tandemscan.daemon.plan_cmd import plan_configured_part
 from tandemscan.daemon.runner import JobRunner
@@ -224,4 +225,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    clean_exit_on_sigterm()
     main()
