@@ -337,16 +337,16 @@ class JakaEmulator:
                 speed = float(req.get("speed", self.config.joint_speed_deg_s))
             else:
                 pose = np.asarray(req["cartPosition" if name == "moveL" else "endPosition"], float)
-                start_mm = np.asarray(self.tcp_pose(current)[:3])
+                start = np.asarray(self.tcp_pose(current))     # [x, y, z mm, rx, ry, rz deg]
                 if req.get("relFlag"):
-                    pose = pose + np.asarray(self.tcp_pose(current))
+                    pose = pose + start
                 q = await self._solve(pose, np.radians(current))
                 if q is None:
                     return _error("2", "inverse kinematics failed")
                 target = np.degrees(q)
                 speed = self.config.joint_speed_deg_s
                 if name == "moveL":   # the flange's straight path at the commanded speed (mm/s), joints permitting
-                    speed = self._joint_speed_for_path(float(np.linalg.norm(pose[:3] - start_mm)),
+                    speed = self._joint_speed_for_path(float(np.linalg.norm(pose[:3] - start[:3])),
                                                        float(req.get("speed", math.inf)), target - current)
         except (KeyError, TypeError, ValueError) as e:
             return _error("2", f"bad parameters: {e}")
