@@ -9,7 +9,8 @@ in the tracker noise scale. Our ``refine`` gets the fitted sphere centres with t
 tracker covariances, as the calibration job does; ``refine_poses`` gets only what OpenCV gets (the poses) plus
 their covariances. Then (unless ``--no-job``; ``--job-only`` runs just this part) runs the calibration job on
 the sim cell and the default measurement job (with its correction and pose graph, including the shared
-``T_T_S`` unknown) with nominal, calibrated and true mounts, and reports each cloud's RMS to the part
+``T_T_S`` unknown) with nominal, calibrated and true mounts (``truth``: the cell's surveyed mounts as a
+calibration file exact to 0.1 um, ``Simulation.write_survey``), and reports each cloud's RMS to the part
 (``cloud_rms_mm``), the tracker-only stitch's (``tracker_only_cloud_rms_mm``),
 ``calibrated_within_10pct_of_truth`` and the job's mount estimate. ``--consistency SEED ...`` runs only the
 calibration job per sim seed and puts its ``T_T_S`` error against the covariance it reports (normalised squared
@@ -194,7 +195,8 @@ async def _calibrate_and_measure(cfg, out: Path) -> dict:
     started = time.monotonic()
     async with CellSession(cfg) as session:
         run = await run_calibration(session, cfg, out / "calibration.json")
-    truth_X = session.cell.simulation.surveyed_installation().T_T_S
+    truth_X = session.cell.simulation.world.truth.T_T_S
+    survey = session.cell.simulation.write_survey(out / "surveyed_mounts.json")
     lever = cfg.scanner.sweet_spot_mm
     summary = run.hand_eye.summary()
     result = {"calibration_truth_error": run.truth_error,
@@ -203,8 +205,7 @@ async def _calibrate_and_measure(cfg, out: Path) -> dict:
               "cloud_rms_mm": {}, "tracker_only_cloud_rms_mm": {}, "mount_estimate": {}}
     plan = Plan.load(default_plan_path())
     for source in ("nominal", "calibration", "truth"):
-        job = cfg.job.model_copy(update={"installation_source": source, "calibration_file": run.file})
-        config = cfg.model_copy(update={"job": job})
+        config = _job_config(cfg, source, run.file, survey)
         async with CellSession(config) as session:
             res = await JobRunner(session, plan, config, out / source).run()
         correction = res.report["correction"]
@@ -250,14 +251,14 @@ async def _consistency(cfg, seeds: list[int], out: Path, band: bool) -> dict:
         config = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"seed": seed})})
         async with CellSession(config) as session:
             run = await run_calibration(session, config, out / f"calibration-{seed}.json")
-        truth = session.cell.simulation.surveyed_installation().T_T_S
+        truth = session.cell.simulation.world.truth.T_T_S
+        survey = session.cell.simulation.write_survey(out / f"surveyed_mounts-{seed}.json")
         t, r = to_rotvec(invert(run.installation.T_T_S) @ truth)
         v, cov = np.r_[t, r], run.hand_eye.covariance
         fig = {"seed": seed, "nees": float(v @ np.linalg.solve(cov, v)), "z": (v / np.sqrt(np.diag(cov))).tolist(),
                "err": _surface(run.installation.T_T_S, truth, lever)}
         for source in ("calibration", "truth") if band else ():
-            job = config.job.model_copy(update={"installation_source": source, "calibration_file": run.file})
-            job_config = config.model_copy(update={"job": job})
+            job_config = _job_config(config, source, run.file, survey)
             async with CellSession(job_config) as session:
                 res = await JobRunner(session, plan, job_config, out / f"{source}-{seed}").run()
             fig[f"band_cloud_rms_mm_{source}"] = res.report["ground_truth"]["cloud_rms_mm"]
@@ -276,6 +277,15 @@ async def _consistency(cfg, seeds: list[int], out: Path, band: bool) -> dict:
     if band:
         result["band_calibrated_over_truth_max"] = max(f["band_calibrated_over_truth"] for f in runs)
     return result
+
+
+def _job_config(cfg, source: str, calibration_file: Path, survey_file: Path):
+    """``cfg`` for a job with the mounts of ``source``: ``nominal``, ``calibration`` (``calibration_file``) or
+    ``truth`` (the cell's surveyed mounts, ``survey_file``)."""
+    file = survey_file if source == "truth" else calibration_file
+    job = cfg.job.model_copy(update={"installation_source": "nominal" if source == "nominal" else "calibration",
+                                     "calibration_file": file})
+    return cfg.model_copy(update={"job": job})
 
 
 def _surface(T: np.ndarray, truth: np.ndarray, lever_mm: float) -> dict[str, float]:

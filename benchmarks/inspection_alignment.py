@@ -50,6 +50,7 @@ from tandemscan.pipeline.io.cloud_io import read_ply
 from tandemscan.pipeline.io.export import write_ply
 from tandemscan.pipeline.io.raw_scan import read_raw_scan
 from tandemscan.pipeline.planning.plan import Plan
+from tandemscan.sim_drivers.cell import with_surveyed_mounts
 from tandemscan.sim_drivers.inspection_score import alignment_error, deviation_truths, score_areas
 
 AS_BUILT = Path(__file__).resolve().parents[1] / "config" / "as-built-example.toml"
@@ -74,6 +75,7 @@ class Measured:
 async def measure(config: CellConfig, plan: Plan, job_dir: Path) -> Measured:
     """Run the job on the simulated cell; the truth only from its observer's scorer."""
     async with CellSession(config) as session:
+        config = with_surveyed_mounts(config, session.cell.simulation, job_dir.parent)
         runner = JobRunner(session, plan, config, job_dir)
         result = await runner.run()
         scorer = runner.observer.scorer()

@@ -3,7 +3,9 @@
 Usage: python benchmarks/pose_bound.py [--plan FILE|generated] [--seeds 7 8 9] [--resolution coarse|full]
 (band plan: about 1 min a seed on the 2-core machine; the whole part, --plan generated: about 25 min)
 
-For each seed the default job runs on the simulated cell with its correction (``[correction]``), and the
+For each seed the default job runs on the simulated cell with its correction (``[correction]``) and the cell's
+surveyed mounts (a calibration file exact to 0.1 um, ``sim_drivers.cell.with_surveyed_mounts``: the bound is
+that of the correction, apart from the calibration's error), and the
 realised figures (tracker-only and corrected median pose error, mm) are put beside the bound of the same
 job: the posterior covariance of every scan pose given everything the job measured, under the simulator's
 own noise models, for an ideal estimator.
@@ -80,6 +82,7 @@ from tandemscan.pipeline.registration.normals import estimate_normals
 from tandemscan.pipeline.registration.overlap import extract_overlap, overlapping_pairs
 from tandemscan.pipeline.registration.pose_graph import ScanPrior
 from tandemscan.pipeline.registration.sampling import voxel_downsample
+from tandemscan.sim_drivers.cell import with_surveyed_mounts
 from tandemscan.sim_drivers.scoring import TruthScorer
 
 OVERLAP_MM = 1.0
@@ -318,6 +321,7 @@ async def one_seed(config, plan: Plan, seed: int) -> dict:
     config = config.model_copy(update={"sim": config.sim.model_copy(update={"seed": seed})})
     with tempfile.TemporaryDirectory() as tmp:
         async with CellSession(config) as session:
+            config = with_surveyed_mounts(config, session.cell.simulation, Path(tmp))
             runner = JobRunner(session, plan, config, Path(tmp) / "job")
             result = await runner.run()
         r = result.report

@@ -266,6 +266,7 @@ def sim_pairs(min_overlap: int = 200, delta_mm: float = 3.0):
     from tandemscan.pipeline.io.raw_scan import read_raw_scan
     from tandemscan.pipeline.planning.plan import Plan
     from tandemscan.pipeline.registration.sampling import voxel_downsample
+    from tandemscan.sim_drivers.cell import with_surveyed_mounts
 
     config = load_config(None)
     config = config.model_copy(update={
@@ -275,7 +276,8 @@ def sim_pairs(min_overlap: int = 200, delta_mm: float = 3.0):
     async def job():
         async with CellSession(config) as session:
             with tempfile.TemporaryDirectory() as tmp:
-                runner = JobRunner(session, Plan.load(default_plan_path()), config, Path(tmp) / "job")
+                surveyed = with_surveyed_mounts(config, session.cell.simulation, Path(tmp))
+                runner = JobRunner(session, Plan.load(default_plan_path()), surveyed, Path(tmp) / "job")
                 res = await runner.run()
                 clouds = [voxel_downsample(read_raw_scan(s.file)[0], config.job.voxel_mm) for s in res.scans]
         return res.scans, clouds, runner.observer.scorer().T_W_S_true

@@ -1,6 +1,7 @@
 """Run the default job on the simulated cell and print its accuracy figures (mm, deg, s) as JSON.
 
 Usage: python benchmarks/sim_accuracy.py [--resolution coarse|full] [--plan FILE|generated] [--config FILE]
+[--mounts surveyed|configured] (``job_mounts``: the job stitches with the cell's surveyed mounts by default).
 ``--plan generated`` plans the whole configured part first (``tandemscan plan``; ``plan_seconds``).
 The last line of output is one JSON object with keys scans (measured), scans_planned, scans_empty (no point in
 the depth window), relocalisation figures (AGV stations located, poses scanned with a nearby view, unresolved
@@ -23,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 from clean_exit import clean_exit_on_sigterm
+from job_mounts import add_mounts_option, job_config
 from tandemscan.config import load_config
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.runner import JobRunner
@@ -52,6 +54,7 @@ async def run(args: argparse.Namespace) -> dict:
     async with CellSession(config) as session:
         started, cpu = time.perf_counter(), time.process_time()
         with tempfile.TemporaryDirectory() as tmp:
+            config = job_config(config, args.mounts, session, Path(tmp))
             result = await JobRunner(session, plan, config, Path(tmp) / "job").run()
     r, g = result.report, result.report["ground_truth"]
     correction = r.get("correction", {})
@@ -102,6 +105,7 @@ def main() -> None:
     parser.add_argument("--resolution", choices=["coarse", "full"], default="coarse")
     parser.add_argument("--plan", help="plan file, or 'generated' to plan the whole part (default: the band plan)")
     parser.add_argument("--config", type=Path)
+    add_mounts_option(parser)
     print(json.dumps(asyncio.run(run(parser.parse_args()))))
 
 

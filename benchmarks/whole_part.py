@@ -1,7 +1,8 @@
 """Measure a whole part end to end on the simulated cell and print its coverage and accuracy as JSON.
 
 Usage: ``nice .venv/bin/python benchmarks/whole_part.py [--config CELL.toml] [--part default|barrel]
-[--stitch-only] [--tracker-stations N] [--time-scale S] [--resolution coarse|full]``; ``--time-scale 1``: the
+[--stitch-only] [--tracker-stations N] [--time-scale S] [--resolution coarse|full] [--mounts surveyed|configured]``
+(``job_mounts``: the cell's surveyed mounts by default); ``--time-scale 1``: the
 simulated robots move, scan and read the tracker in real time (the vendors' speeds of the configuration), as a
 real cell does, so that
 ``timings.after_last_scan_s`` is what an operator waits for after the last scan (with the default 0 every motion
@@ -37,6 +38,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 from clean_exit import clean_exit_on_sigterm
+from job_mounts import add_mounts_option, job_config
 from tandemscan.config import load_config
 from tandemscan.daemon.plan_cmd import plan_configured_part
 from tandemscan.daemon.runner import JobRunner
@@ -175,6 +177,7 @@ async def run(args: argparse.Namespace) -> dict:
         started = time.perf_counter()
         with TreeRssSampler() as sampler:
             async with CellSession(config) as session:
+                config = job_config(config, args.mounts, session, Path(tmp))
                 result = await JobRunner(session, plan, config, Path(tmp) / "job").run()
                 T_W_F = session.cell.simulation.world.T_W_F  # scoring only: the truth of where W lies
         seconds = time.perf_counter() - started
@@ -221,6 +224,7 @@ def main() -> None:
                         help="scanner resolution (full: 3.2 M points a scan)")
     parser.add_argument("--transfer-samples", type=int, default=0,
                         help="readings averaged on each side of a transfer (default: the config's)")
+    add_mounts_option(parser)
     print(json.dumps(asyncio.run(run(parser.parse_args()))))
 
 

@@ -566,8 +566,9 @@ class JobConfig(_Strict):
 
     out_dir: Path = Path("out")
     voxel_mm: float = Field(1.0, gt=0, description="world map voxel edge, mm")
-    installation_source: Literal["truth", "nominal", "calibration"] = Field(
-        "truth", description="which T_T_S etc. the stitch uses: sim ground truth, CAD nominal or calibration_file"
+    installation_source: Literal["nominal", "calibration"] = Field(
+        "nominal", description="which mounts (T_T_S etc.) the stitch uses: the CAD nominal ones ([installation]) or "
+        "those of calibration_file (`tandemscan calibrate`, what `make measure` uses)"
     )
     calibration_file: Path | None = None
     relocalise: bool = Field(

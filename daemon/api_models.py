@@ -103,7 +103,7 @@ class PlanSummary(BaseModel):
 class Calibration(BaseModel):
     """The installation transforms the stitch uses (4x4, mm) and where they come from."""
 
-    source: Literal["truth", "nominal", "calibration"]
+    source: Literal["nominal", "calibration"]
     file: str | None
     transforms: dict[str, list[list[float]]]
     error: str | None = Field(None, description="why the installation could not be resolved (no transforms then)")

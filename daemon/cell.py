@@ -19,7 +19,6 @@ from tandemscan.daemon.observer import CalibrationObserver, JobObserver
 from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT
 from tandemscan.drivers.factory import ROLES, SIMULATION, build_real_device, load_entry
 from tandemscan.drivers.interfaces import Arm, Chassis, Device, Lift, SafetyIO, Scanner, Tracker
-from tandemscan.pipeline.stitching.installation import Installation
 
 
 class CellBuildError(Exception):
@@ -53,11 +52,6 @@ class CellSimulation(Protocol):
 
     def calibration_observer(self) -> CalibrationObserver:
         """The observer of a calibration job (it also sets up the simulated calibration plate)."""
-        ...
-
-    def surveyed_installation(self) -> Installation | None:
-        """The mounts as a perfect survey would give them (``job.installation_source = "truth"``); None where
-        the cell's devices are all real drivers."""
         ...
 
 

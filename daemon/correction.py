@@ -36,10 +36,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-#: 1-sigma per axis (mm, rad) of the simulator's true mounts: exact, the prior only keeps the graph regular
-_TRUTH_SIGMA = (1e-4, 1e-7)
-
-
 def _diagonal(sigma_mm: float, sigma_rad: float) -> np.ndarray:
     return np.diag([sigma_mm**2] * 3 + [sigma_rad**2] * 3)
 
@@ -52,9 +48,7 @@ def mount_prior(cfg: CellConfig, installation: Installation) -> tuple[MountPrior
         return None, "off"
     source = cfg.job.installation_source
     cov, label = _diagonal(dm.mount_nominal_sigma_mm, np.radians(dm.mount_nominal_sigma_deg)), "CAD tolerance"
-    if source == "truth":
-        cov, label = _diagonal(*_TRUTH_SIGMA), "truth (exact)"
-    elif source == "calibration":
+    if source == "calibration":
         if installation.T_T_S_covariance is not None:
             cov, label = installation.T_T_S_covariance, "calibration file"
         else:

@@ -166,7 +166,7 @@ class ServiceFacade:
         the reason, when they cannot be resolved (:func:`~tandemscan.daemon.installation.installation_for_job`)."""
         config = self.daemon.config
         try:
-            installation = await asyncio.to_thread(installation_for_job, config, self.daemon.session)
+            installation = await asyncio.to_thread(installation_for_job, config)
         except (InstallationError, OSError, ValueError, KeyError) as e:
             log.warning("installation not resolved: %s", e)
             transforms, error = {}, str(e)

@@ -126,7 +126,7 @@ class JobRunner:
         self.progress = progress or (lambda p: None)
         self.journal = journal or NoJournal()
         self.observer: JobObserver | None = session.job_observer(self.job_dir.name, bool(self.journal.committed))
-        self.installation = installation_for_job(config, session)
+        self.installation = installation_for_job(config)
         self.worldmap = worldmap if worldmap is not None else LocalWorldMap(config.job.voxel_mm)
         self.correction: dict = {"enabled": False}
         # with relocalisation on, W is placed in the plan's frame F at the start (the anchor: the inspection's

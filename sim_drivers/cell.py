@@ -8,24 +8,33 @@ the session starts, as a real cell finds its robots where they stopped) and hand
 observers (:mod:`tandemscan.sim_drivers.scoring`). A hardware-in-the-loop cell whose every device is a real
 driver is a real cell to the product: its jobs get no observer and no surveyed mounts (the world still moves
 under the emulators, and a calibration still finds its plate there).
+
+The product never reads the simulated cell's true mounts. A benchmark or test that measures the correction
+apart from the calibration's error hands its job a calibration file of them (:func:`with_surveyed_mounts`), as
+an exact survey of the cell would give it.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 from functools import partial
 from pathlib import Path
 
+import numpy as np
 from tandemscan.config.models import CellConfig
 from tandemscan.drivers.factory import ROLES, device_class
 from tandemscan.drivers.interfaces import Device
-from tandemscan.pipeline.stitching.installation import Installation
 from tandemscan.sim_drivers.hil import HilEmulators
 from tandemscan.sim_drivers.persist import keep_world_state, load_world_state
 from tandemscan.sim_drivers.scoring import CalibrationTruth, TruthObserver
 from tandemscan.sim_drivers.world import SimWorld
 
 log = logging.getLogger(__name__)
+
+#: 1-sigma per axis (mm, rad) that the survey's calibration file states for T_T_S: exact (0.1 um, 0.1 urad), so
+#: that a job's correction keeps the surveyed mount and only stays numerically regular
+SURVEY_SIGMA_MM, SURVEY_SIGMA_RAD = 1e-4, 1e-7
 
 
 class Simulation:
@@ -68,8 +77,29 @@ class Simulation:
     def calibration_observer(self) -> CalibrationTruth:
         return CalibrationTruth(self.world, self.scores)
 
-    def surveyed_installation(self) -> Installation | None:
-        return self.world.truth if self.scores else None
+    def write_survey(self, path: Path) -> Path:
+        """Write the cell's true mounts (mm), as an exact survey gives them, to ``path`` as a calibration file
+        (``Installation.load`` reads it; its ``T_T_S_covariance`` is :data:`SURVEY_SIGMA_MM` /
+        :data:`SURVEY_SIGMA_RAD`). ValueError on a cell whose every device is a real driver: it has no truth."""
+        if not self.scores:
+            raise ValueError("a cell of real drivers has no simulated truth to survey")
+        covariance = np.diag([SURVEY_SIGMA_MM**2] * 3 + [SURVEY_SIGMA_RAD**2] * 3)
+        survey = {**self.world.truth.to_json(), "sources": {"all": "simulated cell's true mounts (exact survey)"},
+                  "T_T_S_covariance": {"order": "translation mm, rotation vector rad; T_T_S -> T_T_S [R(r), t]",
+                                       "matrix": covariance.tolist()}}
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(survey, indent=1), encoding="utf-8")
+        return path
+
+
+def with_surveyed_mounts(config: CellConfig, simulation: Simulation, folder: Path) -> CellConfig:
+    """``config`` with its jobs stitching with ``simulation``'s true mounts: written as a calibration file
+    (:meth:`Simulation.write_survey`) into ``folder``, and ``[job] installation_source = "calibration"`` on it.
+    For benchmarks and tests that measure the correction apart from the calibration's error."""
+    path = simulation.write_survey(Path(folder) / "surveyed_mounts.json")
+    job = config.job.model_copy(update={"installation_source": "calibration", "calibration_file": path})
+    return config.model_copy(update={"job": job})
 
 
 def _odometry_from_sim_start(config: CellConfig, real: set[str]) -> CellConfig:

@@ -11,6 +11,7 @@ from tandemscan.daemon.installation import installation_for_job
 from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.stitching.installation import Installation
+from tandemscan.sim_drivers.cell import with_surveyed_mounts
 
 
 async def test_calibration_job_recovers_the_true_scanner_mount(sim_config, tmp_path):
@@ -39,7 +40,7 @@ async def test_calibration_job_recovers_the_true_scanner_mount(sim_config, tmp_p
     assert F.pose_error(run.installation.T_E_S, cell.simulation.world.truth.T_E_S)[0] < 0.2
     job = config.job.model_copy(update={"installation_source": "calibration",
                                         "calibration_file": tmp_path / "calibration.json"})
-    used = installation_for_job(config.model_copy(update={"job": job}), cell)
+    used = installation_for_job(config.model_copy(update={"job": job}))
     np.testing.assert_allclose(used.T_T_S, run.installation.T_T_S)
 
     # the file carries T_T_S's covariance; the job loads it with the mounts and its pose graph takes it as the prior
@@ -47,14 +48,22 @@ async def test_calibration_job_recovers_the_true_scanner_mount(sim_config, tmp_p
     np.testing.assert_allclose(cov, run.hand_eye.covariance)  # translation first, as the hand-eye result gives it
     assert np.sqrt(cov[0, 0]) == run.hand_eye.sigma_trans_mm[0]
     priors = {}
-    labels = {"calibration": "calibration file", "nominal": "CAD tolerance", "truth": "truth (exact)"}
+    labels = {"calibration": "calibration file", "nominal": "CAD tolerance"}
     for source, expected in labels.items():
         cfg = config.model_copy(update={"job": job.model_copy(update={"installation_source": source})})
         priors[source], label = mount_prior(cfg, used)
         assert label == expected
     np.testing.assert_allclose(priors["calibration"].covariance, cov)
     assert np.sqrt(priors["nominal"].covariance[0, 0]) == config.correction.mount_nominal_sigma_mm
-    assert np.all(np.diag(priors["truth"].covariance) < np.diag(cov) * 1e-3)
+
+    # a benchmark's surveyed mounts come as a calibration file: the true mounts, stated far tighter than a
+    # calibration's, so that the job's correction keeps them
+    surveyed_cfg = with_surveyed_mounts(config, cell.simulation, tmp_path)
+    surveyed = installation_for_job(surveyed_cfg)
+    for k in ("T_V1_C", "T_V2_B", "T_E_S", "T_T_S"):
+        np.testing.assert_array_equal(getattr(surveyed, k), getattr(cell.simulation.world.truth, k))
+    survey_prior, label = mount_prior(surveyed_cfg, surveyed)
+    assert label == "calibration file" and np.all(np.diag(survey_prior.covariance) < np.diag(cov) * 1e-3)
     off = config.model_copy(update={"correction": config.correction.model_copy(update={"estimate_mount": False})})
     assert mount_prior(off, used) == (None, "off")
 

@@ -28,6 +28,7 @@ from tandemscan.config import load_config
 from tandemscan.daemon.api import create_app
 from tandemscan.daemon.service import Daemon
 from tandemscan.drivers.errors import DeviceError
+from tandemscan.sim_drivers.cell import Simulation, with_surveyed_mounts
 
 webdriver = pytest.importorskip("selenium.webdriver", reason="selenium not installed (pip install -e '.[dev]')")
 from PIL import Image  # noqa: E402 - after the skip: selenium is what the module needs first
@@ -53,6 +54,7 @@ class CellDaemon:
         config = load_config()
         # motion takes a little wall time, so that an operator stop lands while a step is under way
         config = config.model_copy(update={"sim": config.sim.model_copy(update={"time_scale": 0.05})})
+        config = with_surveyed_mounts(config, Simulation(config), state.parent)  # the part's verdict: pass
         self.daemon: Daemon | None = None
         self.url = ""
         self._state, self._config = state, config

@@ -7,6 +7,7 @@ from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.planning.plan import Plan, Scan
+from tandemscan.sim_drivers.cell import with_surveyed_mounts
 
 
 def _first_scans(plan: Plan, n: int) -> Plan:
@@ -23,14 +24,15 @@ def _first_scans(plan: Plan, n: int) -> Plan:
 async def test_runner_corrects_the_stitch_and_reports_before_and_after(sim_config, tmp_path):
     cfg = sim_config.model_copy(update={"correction": sim_config.correction.model_copy(update={"method": "icp"})})
     async with CellSession(cfg) as session:
-        result = await JobRunner(session, _first_scans(Plan.load(default_plan_path()), 2), cfg, tmp_path).run()
+        cfg = with_surveyed_mounts(cfg, session.cell.simulation, tmp_path)
+        result = await JobRunner(session, _first_scans(Plan.load(default_plan_path()), 2), cfg, tmp_path / "job").run()
     corr = result.report["correction"]
     assert corr["enabled"] and corr["method"] == "icp" and corr["pairs"] == 1
     before, after = corr["before"], result.report["ground_truth"]
     assert after["cloud_rms_mm"] < before["cloud_rms_mm"]
     assert corr["overlap_rms_mm_median_after"] < corr["overlap_rms_mm_median_before"]
-    # the shared mount unknown is reported; the simulator's true mount has a tight prior and stays put
-    assert corr["mount"]["estimated"] and corr["mount"]["prior"] == "truth (exact)"
+    # the shared mount unknown is reported; the surveyed (true) mount has a tight prior and stays put
+    assert corr["mount"]["estimated"] and corr["mount"]["prior"] == "calibration file"
     assert len(corr["mount"]["information_ratio"]) == 6 and max(map(abs, corr["mount"]["correction_mm"])) < 1e-3
     # the scan log carries the refined poses
     assert result.report["scan_log"][1]["T_W_S"] == result.scans[1].T_W_S.tolist()

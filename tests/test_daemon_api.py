@@ -19,6 +19,7 @@ from tandemscan.daemon.cell import build_cell
 from tandemscan.daemon.client import SseParser
 from tandemscan.daemon.service import BindRefused, Daemon, check_bind, resolve_state_dir, resolve_token
 from tandemscan.pipeline.planning.plan import MoveArm, Plan, Scan
+from tandemscan.pipeline.stitching.installation import Installation
 from tandemscan.sim_drivers.cell import Simulation
 from tandemscan.sim_drivers.world import SimWorld
 
@@ -259,8 +260,9 @@ async def test_cell_endpoints(api):
     assert plans["default-band"]["default"] and plans["default-band"]["scans"] == 2  # the site file wins
     assert plans["short"]["steps"] == 1 and not plans["short"]["default"]
     calib = (await api.get("/v1/calibration")).json()
-    truth = api.daemon.cell.simulation.world.truth
-    assert calib["source"] == "truth" and np.allclose(calib["transforms"]["T_T_S"], truth.T_T_S)
+    nominal = Installation.nominal(api.daemon.config.installation)  # the simulated cell's truth is never a source
+    assert calib["source"] == "nominal" and np.allclose(calib["transforms"]["T_T_S"], nominal.T_T_S)
+    assert not np.allclose(calib["transforms"]["T_T_S"], api.daemon.cell.simulation.world.truth.T_T_S)
     metrics = (await api.get("/metrics")).text
     assert 'tandemscan_device_connected{device="arm"} 1.0' in metrics
     assert "tandemscan_http_request_seconds_bucket" in metrics and 'tandemscan_jobs{state="queued"} 0.0' in metrics

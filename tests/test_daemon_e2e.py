@@ -26,6 +26,7 @@ from tandemscan.daemon.api import create_app
 from tandemscan.daemon.client import SseParser
 from tandemscan.daemon.service import Daemon
 from tandemscan.pipeline.io.cloud_io import read_ply
+from tandemscan.sim_drivers.cell import Simulation, with_surveyed_mounts
 from tandemscan.sim_drivers.hil_box import free_port
 
 TOKEN = "e2e-token"
@@ -34,7 +35,8 @@ FINAL = ("succeeded", "failed", "cancelled")
 
 
 async def _uninterrupted_run(state: Path, download: Path) -> dict:
-    daemon = Daemon(load_config(), state, token=TOKEN)
+    config = load_config()
+    daemon = Daemon(with_surveyed_mounts(config, Simulation(config), state.parent), state, token=TOKEN)
     async with running_server(create_app(daemon, manage_lifecycle=True)) as url:
         async with httpx.AsyncClient(base_url=url, timeout=60) as client:
             events = []
@@ -195,6 +197,9 @@ def test_sigkill_mid_job_resumes_with_every_scan_once(tmp_path, reference):
     # motion takes wall time (a transfer lasts ~0.1 s); no correction step, so the export is all that is left
     # at the last kill and the test stays short: the figures compare with the reference's tracker-only ones
     config.write_text("[sim]\ntime_scale = 0.02\n[correction]\nenabled = false\n")
+    survey = Simulation(load_config(config)).write_survey(tmp_path / "surveyed_mounts.json")  # as the reference's
+    with config.open("a") as f:
+        f.write(f'[job]\ninstallation_source = "calibration"\ncalibration_file = "{survey}"\n')
     daemon = DaemonProcess(state, config)
     hits = []
     try:

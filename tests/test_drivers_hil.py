@@ -161,7 +161,9 @@ async def test_a_job_on_the_hil_cell_needs_no_ground_truth_and_is_inspected(box_
     scans = [i for i, s in enumerate(plan.steps) if isinstance(s, Scan)]
     plan = plan.model_copy(update={"steps": plan.steps[: scans[1] + 1]})
     async with CellSession(cfg, connect_timeout_s=30.0) as session:
-        assert session.job_observer("job") is None and session.cell.simulation.surveyed_installation() is None
+        assert session.job_observer("job") is None
+        with pytest.raises(ValueError, match="real drivers"):
+            session.cell.simulation.write_survey(tmp_path / "survey.json")
         result = await JobRunner(session, plan, cfg, tmp_path / "job").run()
     report = result.report
     assert "ground_truth" not in report and report["scans"] == 2 and report["installation_source"] == "nominal"

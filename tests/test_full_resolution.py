@@ -22,6 +22,7 @@ from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan, wr
 from tandemscan.pipeline.planning.plan import Plan, Scan
 from tandemscan.pipeline.registration.sampling import voxel_downsample
 from tandemscan.pipeline.stitching.worldmap import VoxelMap
+from tandemscan.sim_drivers.cell import with_surveyed_mounts
 
 
 def _scan(seed: int, n: int = 60_000) -> dict[str, np.ndarray]:
@@ -148,6 +149,7 @@ async def test_full_resolution_job_reports_as_a_coarse_one(sim_config, tmp_path)
         scanner = sim_config.scanner.model_copy(update={"resolution": resolution})
         config = sim_config.model_copy(update={"inspection": inspection, "scanner": scanner})
         async with CellSession(config) as session:
+            config = with_surveyed_mounts(config, session.cell.simulation, tmp_path)
             result = await JobRunner(session, plan, config, tmp_path / resolution).run()
         reports[resolution] = json.loads((result.job_dir / "report.json").read_text())
     coarse, full = reports["coarse"], reports["full"]

@@ -13,6 +13,7 @@ from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.io.cloud_io import read_ply
 from tandemscan.pipeline.planning.plan import Plan, Scan
+from tandemscan.sim_drivers.cell import with_surveyed_mounts
 
 
 def perfect_correction(monkeypatch, truth_of):
@@ -35,6 +36,7 @@ async def test_job_writes_report_and_exports_next_to_cloud(sim_config, tmp_path,
     config = sim_config.model_copy(update={"inspection": inspection})
     perfect_correction(monkeypatch, lambda job: job.scorer.T_W_S_true)
     async with CellSession(config) as session:
+        config = with_surveyed_mounts(config, session.cell.simulation, tmp_path)
         result = await JobRunner(session, plan, config, tmp_path / "job").run()
     job = result.job_dir
     for name in ("cloud.ply", "report.html", "report.json", "cloud_deviation.ply", "cloud.e57", "poses.csv"):

@@ -31,6 +31,7 @@ from tandemscan.pipeline.planning.plan import MoveArm, MoveLift, MoveMeasure, Pl
 from tandemscan.pipeline.planning.planner import plan_part
 from tandemscan.pipeline.stitching.installation import Installation
 from tandemscan.pipeline.stitching.relocalise import Relocaliser
+from tandemscan.sim_drivers.cell import with_surveyed_mounts
 
 LARGE_CELL = default_plan_path().parents[1] / "large-cell.example.toml"
 
@@ -125,6 +126,7 @@ async def test_runner_moves_the_column_in_the_gate_and_scans_from_the_raised_arm
     plan = Plan(name="lift", steps=[drive, MoveLift(height_mm=300.0), pose, Scan(label="raised")])
     async with CellSession(config) as session:
         world = session.cell.simulation.world
+        config = with_surveyed_mounts(config, session.cell.simulation, tmp_path)
         result = await JobRunner(session, plan, config, tmp_path / "job").run()
         assert world.lift_mm == 300.0 and result.report["scans"] == 1 and not result.report["scans_empty"]
         assert result.report["ground_truth"]["cloud_rms_mm"] < 0.2

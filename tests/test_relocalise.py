@@ -29,6 +29,7 @@ from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.planning.plan import MoveArm, MoveMeasure, MoveTracker, Plan, Scan
 from tandemscan.pipeline.planning.planner import plan_part
 from tandemscan.pipeline.stitching.relocalise import Relocaliser, nearby_views
+from tandemscan.sim_drivers.cell import with_surveyed_mounts
 from tandemscan.sim_drivers.world import SimWorld
 
 
@@ -77,6 +78,7 @@ def first_scan_per_station(plan: Plan, stations: int) -> Plan:
 async def run(config, plan, job_dir, relocalise=True):
     config = config.model_copy(update={"job": config.job.model_copy(update={"relocalise": relocalise})})
     async with CellSession(config) as session:
+        config = with_surveyed_mounts(config, session.cell.simulation, job_dir.parent)
         return await JobRunner(session, plan, config, job_dir).run(), session.cell.simulation.world
 
 

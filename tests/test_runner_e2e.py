@@ -11,6 +11,7 @@ from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.io.cloud_io import read_ply
 from tandemscan.pipeline.planning.plan import MoveTracker, Plan, Scan
+from tandemscan.sim_drivers.cell import with_surveyed_mounts
 
 
 def short_plan() -> Plan:
@@ -37,8 +38,11 @@ def stitch_only_config(sim_config):
     })
 
 
-async def run(config, plan, job_dir):
+async def run(config, plan, job_dir, surveyed=True):
+    """The job, with the cell's surveyed mounts (``surveyed``) or the config's (the CAD nominal ones)."""
     async with CellSession(config) as session:
+        if surveyed:
+            config = with_surveyed_mounts(config, session.cell.simulation, job_dir.parent)
         return await JobRunner(session, plan, config, job_dir).run()
 
 
@@ -76,12 +80,9 @@ async def test_short_job_writes_cloud_scans_and_a_report_within_noise_bounds(sti
 
 async def test_nominal_installation_stitches_visibly_worse_than_calibrated(stitch_only_config, tmp_path):
     plan = short_plan()
-    truth_cfg = stitch_only_config
-    nominal_cfg = truth_cfg.model_copy(
-        update={"job": truth_cfg.job.model_copy(update={"installation_source": "nominal"})}
-    )
-    good = (await run(truth_cfg, plan, tmp_path / "a")).report["ground_truth"]
-    bad = (await run(nominal_cfg, plan, tmp_path / "b")).report["ground_truth"]
+    assert stitch_only_config.job.installation_source == "nominal"
+    good = (await run(stitch_only_config, plan, tmp_path / "a" / "job")).report["ground_truth"]
+    bad = (await run(stitch_only_config, plan, tmp_path / "b" / "job", surveyed=False)).report["ground_truth"]
     assert bad["cloud_rms_mm"] > 3 * good["cloud_rms_mm"]
     assert bad["pose_err_mm_median"] > 0.5
 
