@@ -557,7 +557,8 @@ class HilConfig(_Strict):
     @classmethod
     def _state_flags_only(cls, v: int) -> int:
         if v & 0x3F:
-            raise ValueError("only the state flags 0x40 (driver enabled) and 0x80 (driver reset); 0x01-0x20 are faults")
+            raise ValueError("only the state flags 0x40 (driver enabled) and 0x80 (driver reset); 0x01 (supply "
+                             "voltage low) is a warning and 0x02-0x20 are faults, not normal running")
         return v
 
 

@@ -34,12 +34,14 @@ ERROR_BITS = {
     0x0100: "motor driver", 0x0200: "host communication",
 }
 WARNING_BITS = {0x0002: "battery warning"}
-# Motor driver state (0x261-0x264, ugv_sdk DRIVER_STATE_*_MASK): bits 0x01-0x20 are faults, 0x40 and 0x80
-# report the driver enabled and reset (normal running shows 0x40), never a fault.
+# Motor driver state (0x261-0x264, ugv_sdk DRIVER_STATE_*_MASK): bits 0x02-0x20 are faults; 0x01 (supply
+# voltage low) is a warning, as the system status's battery warning is: the bus voltage dips under
+# acceleration on a part-charged battery, and a driver that really drops out reports its fault or stops the
+# chassis; 0x40 and 0x80 report the driver enabled and reset (normal running shows 0x40), never a fault.
 DRIVER_STATE_BITS = {
-    0x01: "supply voltage low", 0x02: "motor overheat", 0x04: "overload", 0x08: "driver overheat",
-    0x10: "sensor fault", 0x20: "driver fault",
+    0x02: "motor overheat", 0x04: "overload", 0x08: "driver overheat", 0x10: "sensor fault", 0x20: "driver fault",
 }
+DRIVER_WARNING_BITS = {0x01: "supply voltage low"}
 DRIVER_FAULT_MASK = sum(DRIVER_STATE_BITS)
 _MIN_LINEAR_MM_S = 10.0
 _MIN_ANGULAR_RAD_S = 0.01
@@ -75,7 +77,7 @@ class AgvCanChassis:
         self._last_status_t = 0.0
         self._fault: DeviceError | None = None
         self._commanding = False  # True once the chassis took CAN mode: leaving it is then a fault
-        self._warned = 0
+        self._warnings: dict[str, str] = {}  # what warns now, by source (the system status, each motor)
         self.last_residual_mm: float | None = None  # distance from the target (odometry) after the last move
         self._feedback = asyncio.Event()
         self.command_times: collections.deque[float] = collections.deque(maxlen=2000)  # loop time of each 0x111
@@ -129,6 +131,7 @@ class AgvCanChassis:
             "pose": self._pose, "battery_V": self._system.get("BatteryVoltage"),
             "error_code": self._system.get("ErrorCode"), "control_mode": self._system.get("ControlMode"),
             "fault": str(self._fault) if self._fault else None, "last_residual_mm": self.last_residual_mm,
+            "warnings": sorted(self._warnings.values()),
         }
         return DeviceStatus(self.name, True, state, detail)
 
@@ -342,9 +345,8 @@ class AgvCanChassis:
                 scale = self._can.odometry_mm_per_count
                 self._on_odometry(sig["LeftWheelOdometry"] * scale, sig["RightWheelOdometry"] * scale)
                 self._wake()
-            elif name.startswith("MotorLowRate") and int(sig["DriverState"]) & DRIVER_FAULT_MASK:
-                problems = ", ".join(bit_names(int(sig["DriverState"]), DRIVER_STATE_BITS))
-                self._latch(DeviceFault(self.name, f"motor {name[-1]} driver: {problems}"))
+            elif name.startswith("MotorLowRate"):
+                self._on_driver_state(name[-1], int(sig["DriverState"]))
 
     def _on_system_status(self, sig: dict[str, float]) -> None:
         self._system = sig
@@ -357,11 +359,25 @@ class AgvCanChassis:
             self._latch(DeviceFault(self.name, f"chassis error 0x{code:04X}: {', '.join(errors) or 'exception'}"))
         elif mode != MODE_CAN and self._commanding:
             self._latch(DeviceFault(self.name, f"chassis left CAN mode ({CONTROL_MODES.get(mode, mode)} has control)"))
-        warnings = code & sum(WARNING_BITS)
-        if warnings != self._warned:
-            self._warned = warnings
-            if warnings:
-                log.warning("%s: %s", self.name, ", ".join(bit_names(code, WARNING_BITS)))
+        self._warn("system", ", ".join(bit_names(code, WARNING_BITS)))
+
+    def _on_driver_state(self, motor: str, state: int) -> None:
+        """A motor driver's state bits: a fault latches, a warning is kept and logged."""
+        if state & DRIVER_FAULT_MASK:
+            problems = ", ".join(bit_names(state, DRIVER_STATE_BITS))
+            self._latch(DeviceFault(self.name, f"motor {motor} driver: {problems}"))
+        warnings = bit_names(state, DRIVER_WARNING_BITS)
+        self._warn(f"motor {motor}", f"motor {motor} driver: {', '.join(warnings)}" if warnings else "")
+
+    def _warn(self, source: str, text: str) -> None:
+        """Keep what ``source`` warns of now (empty: nothing) for ``status()``; log it when it changes."""
+        if text == self._warnings.get(source, ""):
+            return
+        if text:
+            self._warnings[source] = text
+            log.warning("%s: %s", self.name, text)
+        elif self._warnings.pop(source, None) is not None:
+            log.info("%s: %s warning cleared", self.name, source)
 
     def _on_odometry(self, left_mm: float, right_mm: float) -> None:
         """Dead-reckon the wheel travel into the pose (midpoint rule; effective skid-steer track)."""

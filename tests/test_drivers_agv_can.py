@@ -229,6 +229,32 @@ async def test_driver_enabled_flag_is_state_not_a_fault():
         await emu.stop()
 
 
+async def test_a_low_supply_voltage_is_a_warning_that_drives_on_and_clears(caplog):
+    """DriverState 0x01 (supply voltage low, as under acceleration on a part-charged battery) does not stop a move:
+    the status lists it while the drivers report it and the log says so once; a fault bit beside it still does."""
+    channel = f"agv-{uuid.uuid4().hex[:8]}"
+    emu = await vendor_pair(channel)
+    drv = AgvCanChassis(chassis_config(channel))
+    try:
+        await drv.connect()
+        emu.faults.driver_state = 0x01
+        await drv.move_to(ChassisPose(200.0, 0.0, 0.0))
+        status = await drv.status()
+        assert status.state == "idle" and status.detail["warnings"] == ["motor 1 driver: supply voltage low"]
+        assert sum("supply voltage low" in r.getMessage() for r in caplog.records) == 1
+        emu.faults.driver_state = 0
+        await wait_until(lambda: not drv._warnings)
+        assert (await drv.status()).detail["warnings"] == []
+        move = asyncio.create_task(drv.move_to(ChassisPose(3000.0, 0.0, 0.0)))
+        await asyncio.sleep(0.1)
+        emu.faults.driver_state = 0x03
+        with pytest.raises(DeviceFault, match="motor 1 driver: motor overheat$"):
+            await asyncio.wait_for(move, 1.0)
+    finally:
+        await drv.close()
+        await emu.stop()
+
+
 async def test_a_count_of_encoder_noise_at_standstill_is_rest_not_motion():
     """A chassis whose motion state shows 1 mm/s while it stands still (its encoders' speed): the move ends
     and the chassis reads idle; a driver that waited for exactly zero would wait for ever (here: its timeout)."""

@@ -162,7 +162,7 @@ class ChassisEmulator:
     def _effective_velocity(self, now: float) -> tuple[float, float]:
         self.watchdog_tripped = now - self._last_command_t > self.watchdog_s
         mode = 3 if self.faults.rc_override else self.mode
-        if mode != 1 or self.faults.estop or self.faults.error_code & ~0x0002 or self.faults.driver_state:
+        if mode != 1 or self.faults.estop or self.faults.error_code & ~0x0002 or self.faults.driver_state & ~0x01:
             return 0.0, 0.0
         if self.watchdog_tripped:
             return 0.0, 0.0
@@ -203,7 +203,8 @@ class ChassisEmulator:
         if self._counter % 5 == 0:
             for i in range(1, 5):
                 faults = self.faults.driver_state if i == 1 else 0
-                self._maybe_send(f"MotorLowRate{i}", DriverVoltage=25.0, DriverTemperature=35, MotorTemperature=30,
+                volts = 21.5 if faults & 0x01 else 25.0  # 0x01: supply voltage low, a warning; it drives on
+                self._maybe_send(f"MotorLowRate{i}", DriverVoltage=volts, DriverTemperature=35, MotorTemperature=30,
                                  DriverState=faults | self.driver_state_flags)
 
     def _maybe_send(self, name: str, **signals: float) -> None:
