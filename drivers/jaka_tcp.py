@@ -69,7 +69,10 @@ class JakaTcpArm:
         self._net = config.jaka
         self._q_min = np.radians(config.joint_min_deg)
         self._q_max = np.radians(config.joint_max_deg)
-        self._lock = asyncio.Lock()
+        self._lock = asyncio.Lock()  # one command and its reply at a time on the command link
+        # opening and closing the links: a connect, a close and a stop's reopening of the command link one at a
+        # time (the controller serves one command client, a new one replaces the old); taken before ``_lock``
+        self._link_lock = asyncio.Lock()
         self._cmd: tuple[asyncio.StreamReader, asyncio.StreamWriter] | None = None
         self._cmd_framer = JsonObjectFramer()
         self._cmd_backlog: list[dict] = []
@@ -86,7 +89,11 @@ class JakaTcpArm:
 
     async def connect(self) -> None:
         """Open the command and status connections and wait for the first status message."""
-        await self.close()
+        async with self._link_lock:
+            await self._close_links()
+            await self._open_links()
+
+    async def _open_links(self) -> None:
         host, timeout = self._net.host, self._net.reply_timeout_s
         self._cmd = await self._open(host, self._net.command_port, timeout)
         status_reader, self._status_writer = await self._open(host, self._net.status_port, timeout)
@@ -113,6 +120,10 @@ class JakaTcpArm:
 
     async def close(self) -> None:
         """Drop both connections; safe to call twice or after the peer vanished."""
+        async with self._link_lock:
+            await self._close_links()
+
+    async def _close_links(self) -> None:
         task, self._status_task = self._status_task, None
         await cancel_and_wait(task)
         writers = [w for w in (self._cmd[1] if self._cmd else None, self._status_writer) if w is not None]
@@ -220,14 +231,15 @@ class JakaTcpArm:
     async def stop(self) -> None:
         """Stop the running motion (``stop_program``). Where the command link was dropped while the status stream
         still runs (a move whose reply never came may be running: the controller acts on a command before it
-        replies), the stop goes out on a new command connection."""
-        if self._cmd is None and self._status_writer is not None:
-            async with self._lock:
-                if self._cmd is None:
+        replies), the stop goes out on a new command connection. A connect or close under way finishes first
+        (their links are the stop's; the controller serves one command client)."""
+        async with self._link_lock:
+            if self._cmd is None and self._status_writer is not None:
+                async with self._lock:
                     self._cmd = await self._open(self._net.host, self._net.command_port, self._net.reply_timeout_s)
                     self._cmd_framer, self._cmd_backlog = JsonObjectFramer(), []
-                    log.warning("%s: command link reopened to stop the arm", self.name)
-        await self._call("stop_program")
+                log.warning("%s: command link reopened to stop the arm", self.name)
+            await self._call("stop_program")
 
     async def clear_error(self) -> None:
         await self._call("clear_error")
@@ -239,10 +251,10 @@ class JakaTcpArm:
             async with asyncio.timeout(timeout):
                 return await asyncio.open_connection(host, port)
         except TimeoutError as e:
-            await self.close()
+            await self._close_links()
             raise DeviceTimeout(self.name, f"no connection to {host}:{port} within {timeout} s") from e
         except OSError as e:
-            await self.close()
+            await self._close_links()
             raise NotConnected(self.name, f"cannot connect to {host}:{port}: {e}") from e
 
     async def _call(self, cmd: str, **params: object) -> dict:

@@ -169,6 +169,22 @@ async def test_a_move_whose_reply_never_came_is_stopped_on_a_new_command_connect
     np.testing.assert_allclose(await arm.joints(), np.radians(q_after), atol=1e-9)  # the new link serves commands
 
 
+async def test_a_stop_beside_a_reconnect_leaves_one_command_link_that_serves(emulator, arm):
+    """The command link was dropped (a late reply) while the status stream runs; the supervisor reconnects the arm
+    while a stop goes out. The controller serves one command client (a new one replaces the old), so a stop that
+    reopened its own link beside the reconnect's would leave the driver on a link the controller had closed."""
+    emulator.faults.reply_delay_s = 1.0
+    with pytest.raises(DeviceTimeout):
+        await arm.joints()
+    emulator.faults.reply_delay_s = 0.0
+    await asyncio.gather(arm.stop(), arm.connect())
+    assert emulator._commands.client_count == 1 and "stop_program" in emulator.commands
+    np.testing.assert_allclose(await arm.joints(), Q_HOME, atol=1e-9)
+    await asyncio.gather(arm.connect(), arm.stop())  # the other way round: the stop waits for the new link
+    assert emulator._commands.client_count == 1 and emulator.commands[-1] == "stop_program"
+    np.testing.assert_allclose(await arm.joints(), Q_HOME, atol=1e-9)
+
+
 async def test_a_controller_that_pushes_its_status_slowly_is_not_taken_for_a_lost_link():
     """The status push period is a setting of the controller: at 0.5 s (beyond the default 0.3 s watchdog gap) the
     driver times the period at connect and watches for a gap of four of them instead."""
