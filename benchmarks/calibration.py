@@ -252,11 +252,11 @@ async def _consistency(cfg, seeds: list[int], out: Path, band: bool) -> dict:
         async with CellSession(config) as session:
             run = await run_calibration(session, config, out / f"calibration-{seed}.json")
         truth = session.cell.simulation.world.truth.T_T_S
-        survey = session.cell.simulation.write_survey(out / f"surveyed_mounts-{seed}.json")
         t, r = to_rotvec(invert(run.installation.T_T_S) @ truth)
         v, cov = np.r_[t, r], run.hand_eye.covariance
         fig = {"seed": seed, "nees": float(v @ np.linalg.solve(cov, v)), "z": (v / np.sqrt(np.diag(cov))).tolist(),
                "err": _surface(run.installation.T_T_S, truth, lever)}
+        survey = session.cell.simulation.write_survey(out / f"surveyed_mounts-{seed}.json") if band else None
         for source in ("calibration", "truth") if band else ():
             job_config = _job_config(config, source, run.file, survey)
             async with CellSession(job_config) as session:

@@ -30,6 +30,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 from clean_exit import clean_exit_on_sigterm
+from tandemscan.sim_drivers.cell import with_surveyed_mounts_toml
 from tandemscan.sim_drivers.hil_box import free_port
 
 TOKEN = "bench"
@@ -93,6 +94,7 @@ def main() -> None:
     tmp = Path(tempfile.mkdtemp(prefix="tandemscan-bench-"))
     cfg = tmp / "cell.toml"
     cfg.write_text(f'[scanner]\nresolution = "{args.resolution}"\n')
+    with_surveyed_mounts_toml(cfg)  # the job stitches with the cell's surveyed mounts, as the README's figures
     notify_path = tmp / "notify.sock"
     notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     notify.bind(str(notify_path))

@@ -1,7 +1,8 @@
 """Run the default job on the simulated cell and print its accuracy figures (mm, deg, s) as JSON.
 
 Usage: python benchmarks/sim_accuracy.py [--resolution coarse|full] [--plan FILE|generated] [--config FILE]
-[--mounts surveyed|configured] (``job_mounts``: the job stitches with the cell's surveyed mounts by default).
+[--mounts surveyed|configured] (``job_mounts``: the job stitches with the cell's surveyed mounts unless the config
+names a calibration file; ``mounts`` in the JSON).
 ``--plan generated`` plans the whole configured part first (``tandemscan plan``; ``plan_seconds``).
 The last line of output is one JSON object with keys scans (measured), scans_planned, scans_empty (no point in
 the depth window), relocalisation figures (AGV stations located, poses scanned with a nearby view, unresolved
@@ -24,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 from clean_exit import clean_exit_on_sigterm
-from job_mounts import add_mounts_option, job_config
+from job_mounts import add_mounts_option, chosen_mounts, job_config
 from tandemscan.config import load_config
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.runner import JobRunner
@@ -51,10 +52,11 @@ async def run(args: argparse.Namespace) -> dict:
         plan_seconds = round(time.perf_counter() - t, 2)
     else:
         plan = Plan.load(Path(args.plan) if args.plan else default_plan_path())
+    mounts = chosen_mounts(config, args.mounts)
     async with CellSession(config) as session:
         started, cpu = time.perf_counter(), time.process_time()
         with tempfile.TemporaryDirectory() as tmp:
-            config = job_config(config, args.mounts, session, Path(tmp))
+            config = job_config(config, mounts, session, Path(tmp))
             result = await JobRunner(session, plan, config, Path(tmp) / "job").run()
     r, g = result.report, result.report["ground_truth"]
     correction = r.get("correction", {})
@@ -62,6 +64,7 @@ async def run(args: argparse.Namespace) -> dict:
     reloc = r["relocalisation"]
     figures = {
         "resolution": args.resolution,
+        "mounts": mounts,
         "plan": plan.name,
         "scans_planned": r["scans_planned"],
         "scans": r["scans"],

@@ -2,11 +2,11 @@
 
 Usage: ``nice .venv/bin/python benchmarks/whole_part.py [--config CELL.toml] [--part default|barrel]
 [--stitch-only] [--tracker-stations N] [--time-scale S] [--resolution coarse|full] [--mounts surveyed|configured]``
-(``job_mounts``: the cell's surveyed mounts by default); ``--time-scale 1``: the
-simulated robots move, scan and read the tracker in real time (the vendors' speeds of the configuration), as a
-real cell does, so that
-``timings.after_last_scan_s`` is what an operator waits for after the last scan (with the default 0 every motion
-is instant and the pairs registered while measuring lag behind the simulator); ``--stitch-only``: the
+(``job_mounts``: the cell's surveyed mounts unless the config names a calibration file; ``mounts`` in the JSON);
+``--time-scale 1``: the simulated robots move, scan and read the tracker in real time (the vendors' speeds of the
+configuration), as a real cell does, so that ``timings.after_last_scan_s`` is what an operator waits for after
+the last scan (with the default 0 every motion is instant and the pairs registered while measuring lag behind
+the simulator); ``--stitch-only``: the
 tracker-only stitch (no correction step, no in-job inspection), which is most of the job's time;
 ``--tracker-stations N``: only the plan's steps while the tracker stands at its first N stations (a shorter
 job for the accuracy figures: the coverage is then that of the part of the plan run); ``--resolution full``:
@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 from clean_exit import clean_exit_on_sigterm
-from job_mounts import add_mounts_option, job_config
+from job_mounts import add_mounts_option, chosen_mounts, job_config
 from tandemscan.config import load_config
 from tandemscan.daemon.plan_cmd import plan_configured_part
 from tandemscan.daemon.runner import JobRunner
@@ -163,6 +163,7 @@ async def run(args: argparse.Namespace) -> dict:
     if args.stitch_only:
         config = config.model_copy(update={"correction": config.correction.model_copy(update={"enabled": False}),
                                            "inspection": config.inspection.model_copy(update={"in_job": False})})
+    mounts = chosen_mounts(config, args.mounts)
     with tempfile.TemporaryDirectory() as tmp:
         if args.part == "barrel":
             mesh_file = Path(tmp) / "barrel-panel.ply"
@@ -177,7 +178,7 @@ async def run(args: argparse.Namespace) -> dict:
         started = time.perf_counter()
         with TreeRssSampler() as sampler:
             async with CellSession(config) as session:
-                config = job_config(config, args.mounts, session, Path(tmp))
+                config = job_config(config, mounts, session, Path(tmp))
                 result = await JobRunner(session, plan, config, Path(tmp) / "job").run()
                 T_W_F = session.cell.simulation.world.T_W_F  # scoring only: the truth of where W lies
         seconds = time.perf_counter() - started
@@ -187,7 +188,7 @@ async def run(args: argparse.Namespace) -> dict:
     before = r.get("correction", {}).get("before", g)
     limit = np.radians(config.planning.incidence_limit_deg)
     return {
-        "cell": config.name, "part": args.part, "resolution": args.resolution,
+        "cell": config.name, "part": args.part, "resolution": args.resolution, "mounts": mounts,
         "correction": config.correction.enabled,
         "tracker_stations_run": args.tracker_stations or part_plan.summary()["tracker_stations"],
         "coverage_pct": round(measured_coverage_pct(mesh, cloud_W, F.invert(T_W_F), config.scanner.sweet_spot_mm,

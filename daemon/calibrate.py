@@ -15,7 +15,7 @@ import asyncio
 import json
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -68,11 +68,9 @@ class CalibrationRun:
     def to_json(self) -> dict:
         """The calibration file's content: the four mounts and how they were obtained."""
         return {
-            **self.installation.to_json(),
+            **replace(self.installation, T_T_S_covariance=self.hand_eye.covariance).to_json(),
             "sources": self.sources,
             "hand_eye": self.hand_eye.summary(),
-            "T_T_S_covariance": {"order": "translation mm, rotation vector rad; T_T_S -> T_T_S [R(r), t]",
-                                 "matrix": self.hand_eye.covariance.tolist()},
             "poses_used": self.poses_used,
             "skipped": self.skipped,
             **({"sim_truth_error": self.truth_error} if self.truth_error else {}),

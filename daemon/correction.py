@@ -9,8 +9,8 @@ figures before and after are returned for ``report.json``.
 
 With ``correction.estimate_mount`` the refinement (or the graph) also estimates the shared correction of the
 scanner mount ``T_T_S`` (``registration.mounts.MountPrior``), with a prior per ``job.installation_source``: the
-calibration file's hand-eye covariance, the CAD tolerance ``correction.mount_nominal_sigma_*`` for nominal mounts,
-and a tight one for the simulator's ground truth.
+calibration file's hand-eye covariance (a benchmark's surveyed mounts state a tight one) or the CAD tolerance
+``correction.mount_nominal_sigma_*`` for nominal mounts.
 """
 
 from __future__ import annotations
@@ -35,6 +35,7 @@ if TYPE_CHECKING:
     from tandemscan.pipeline.stitching.installation import Installation
 
 log = logging.getLogger(__name__)
+
 
 def _diagonal(sigma_mm: float, sigma_rad: float) -> np.ndarray:
     return np.diag([sigma_mm**2] * 3 + [sigma_rad**2] * 3)

@@ -92,7 +92,7 @@ class AgvCanChassis:
             link.open()
         except (can.CanError, OSError, ValueError) as e:
             raise NotConnected(self.name, f"cannot open CAN {self._can.interface}:{self._can.channel}: {e}") from e
-        self._link, self._wheels, self._fault, self._system = link, None, None, {}
+        self._link, self._wheels, self._fault, self._system, self._warnings = link, None, None, {}, {}
         self._last_status_t = asyncio.get_running_loop().time()
         self._tasks = [asyncio.create_task(self._receive(), name=f"{self.name}-rx")]
         try:

@@ -6,8 +6,8 @@ role's twin (the registry's ``"sim"`` class), runs the emulators for the real dr
 keeps the world's state in ``state_file`` (the twins save it as they move, scan and read; it is restored when
 the session starts, as a real cell finds its robots where they stopped) and hands out the ground-truth
 observers (:mod:`tandemscan.sim_drivers.scoring`). A hardware-in-the-loop cell whose every device is a real
-driver is a real cell to the product: its jobs get no observer and no surveyed mounts (the world still moves
-under the emulators, and a calibration still finds its plate there).
+driver is a real cell to the product: its jobs get no observer, and it has no true mounts to survey (the world
+still moves under the emulators, and a calibration still finds its plate there).
 
 The product never reads the simulated cell's true mounts. A benchmark or test that measures the correction
 apart from the calibration's error hands its job a calibration file of them (:func:`with_surveyed_mounts`), as
@@ -16,12 +16,14 @@ an exact survey of the cell would give it.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 from functools import partial
 from pathlib import Path
 
 import numpy as np
+from tandemscan.config import load_config
 from tandemscan.config.models import CellConfig
 from tandemscan.drivers.factory import ROLES, device_class
 from tandemscan.drivers.interfaces import Device
@@ -84,22 +86,35 @@ class Simulation:
         if not self.scores:
             raise ValueError("a cell of real drivers has no simulated truth to survey")
         covariance = np.diag([SURVEY_SIGMA_MM**2] * 3 + [SURVEY_SIGMA_RAD**2] * 3)
-        survey = {**self.world.truth.to_json(), "sources": {"all": "simulated cell's true mounts (exact survey)"},
-                  "T_T_S_covariance": {"order": "translation mm, rotation vector rad; T_T_S -> T_T_S [R(r), t]",
-                                       "matrix": covariance.tolist()}}
+        survey = {**dataclasses.replace(self.world.truth, T_T_S_covariance=covariance).to_json(),
+                  "sources": {"all": "simulated cell's true mounts (exact survey)"}}
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(survey, indent=1), encoding="utf-8")
         return path
 
 
-def with_surveyed_mounts(config: CellConfig, simulation: Simulation, folder: Path) -> CellConfig:
+def with_surveyed_mounts(config: CellConfig, simulation: Simulation | None, folder: Path) -> CellConfig:
     """``config`` with its jobs stitching with ``simulation``'s true mounts: written as a calibration file
     (:meth:`Simulation.write_survey`) into ``folder``, and ``[job] installation_source = "calibration"`` on it.
-    For benchmarks and tests that measure the correction apart from the calibration's error."""
+    For benchmarks and tests that measure the correction apart from the calibration's error. ValueError where
+    there is no simulated cell (``simulation`` None: a cell of real drivers)."""
+    if simulation is None:
+        raise ValueError("a cell of real drivers has no simulated truth to survey")
     path = simulation.write_survey(Path(folder) / "surveyed_mounts.json")
     job = config.job.model_copy(update={"installation_source": "calibration", "calibration_file": path})
     return config.model_copy(update={"job": job})
+
+
+def with_surveyed_mounts_toml(toml: Path) -> Path:
+    """The same for a cell configuration file that a child process (``tandemscan serve``) reads: the simulated
+    cell it configures is surveyed into ``surveyed_mounts.json`` beside it, and a ``[job]`` table naming that
+    file is appended (``toml`` must not have one). Returns ``toml``."""
+    toml = Path(toml)
+    survey = Simulation(load_config(toml)).write_survey(toml.parent / "surveyed_mounts.json")
+    with toml.open("a", encoding="utf-8") as f:
+        f.write(f'\n[job]\ninstallation_source = "calibration"\ncalibration_file = "{survey}"\n')
+    return toml
 
 
 def _odometry_from_sim_start(config: CellConfig, real: set[str]) -> CellConfig:

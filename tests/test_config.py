@@ -30,6 +30,14 @@ def test_unknown_key_is_an_error(tmp_path):
         load_config(bad)
 
 
+def test_the_simulators_truth_is_not_an_installation_source(tmp_path):
+    old = tmp_path / "cell.toml"
+    old.write_text('[job]\ninstallation_source = "truth"\n')
+    with pytest.raises(ConfigError, match="job.installation_source.*scoring only.*tandemscan calibrate"):
+        load_config(old)
+    assert load_config().job.installation_source == "nominal"
+
+
 def test_missing_and_malformed_files(tmp_path):
     with pytest.raises(ConfigError, match="file not found"):
         load_config(tmp_path / "nope.toml")

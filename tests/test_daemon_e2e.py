@@ -26,7 +26,7 @@ from tandemscan.daemon.api import create_app
 from tandemscan.daemon.client import SseParser
 from tandemscan.daemon.service import Daemon
 from tandemscan.pipeline.io.cloud_io import read_ply
-from tandemscan.sim_drivers.cell import Simulation, with_surveyed_mounts
+from tandemscan.sim_drivers.cell import Simulation, with_surveyed_mounts, with_surveyed_mounts_toml
 from tandemscan.sim_drivers.hil_box import free_port
 
 TOKEN = "e2e-token"
@@ -197,9 +197,7 @@ def test_sigkill_mid_job_resumes_with_every_scan_once(tmp_path, reference):
     # motion takes wall time (a transfer lasts ~0.1 s); no correction step, so the export is all that is left
     # at the last kill and the test stays short: the figures compare with the reference's tracker-only ones
     config.write_text("[sim]\ntime_scale = 0.02\n[correction]\nenabled = false\n")
-    survey = Simulation(load_config(config)).write_survey(tmp_path / "surveyed_mounts.json")  # as the reference's
-    with config.open("a") as f:
-        f.write(f'[job]\ninstallation_source = "calibration"\ncalibration_file = "{survey}"\n')
+    with_surveyed_mounts_toml(config)  # as the reference's
     daemon = DaemonProcess(state, config)
     hits = []
     try:

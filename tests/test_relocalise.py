@@ -78,7 +78,7 @@ def first_scan_per_station(plan: Plan, stations: int) -> Plan:
 async def run(config, plan, job_dir, relocalise=True):
     config = config.model_copy(update={"job": config.job.model_copy(update={"relocalise": relocalise})})
     async with CellSession(config) as session:
-        config = with_surveyed_mounts(config, session.cell.simulation, job_dir.parent)
+        config = with_surveyed_mounts(config, session.cell.simulation, job_dir)
         return await JobRunner(session, plan, config, job_dir).run(), session.cell.simulation.world
 
 

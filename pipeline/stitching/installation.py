@@ -43,9 +43,14 @@ class Installation:
 
         return Installation(jitter(self.T_V1_C), jitter(self.T_V2_B), jitter(self.T_E_S), jitter(self.T_T_S))
 
-    def to_json(self) -> dict[str, list[list[float]]]:
-        """The four matrices as nested lists (mm)."""
-        return {k: getattr(self, k).tolist() for k in ("T_V1_C", "T_V2_B", "T_E_S", "T_T_S")}
+    def to_json(self) -> dict:
+        """The four matrices as nested lists (mm) and, where known, ``T_T_S_covariance`` as a calibration file
+        holds it (``{"order": ..., "matrix": 6x6}``)."""
+        out: dict = {k: getattr(self, k).tolist() for k in ("T_V1_C", "T_V2_B", "T_E_S", "T_T_S")}
+        if self.T_T_S_covariance is not None:
+            out["T_T_S_covariance"] = {"order": "translation mm, rotation vector rad; T_T_S -> T_T_S [R(r), t]",
+                                       "matrix": np.asarray(self.T_T_S_covariance, float).tolist()}
+        return out
 
     @classmethod
     def from_json(cls, data: dict) -> Installation:

@@ -157,7 +157,7 @@ class ChassisEmulator:
                 self._last_command_t = loop.time()
             elif name == "ErrorClear":
                 self.faults.error_code = 0
-                self.faults.driver_state = 0
+                self.faults.driver_state &= 0x01  # the supply voltage stays low: a condition, not a latched error
 
     def _effective_velocity(self, now: float) -> tuple[float, float]:
         self.watchdog_tripped = now - self._last_command_t > self.watchdog_s
