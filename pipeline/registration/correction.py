@@ -51,7 +51,7 @@ from tandemscan.pipeline.registration.pose_graph import (
     constrained_edge,
     refine_poses,
 )
-from tandemscan.pipeline.registration.sampling import thin_evenly, voxel_downsample
+from tandemscan.pipeline.registration.sampling import thin_evenly, voxel_centroids, voxel_downsample
 
 log = logging.getLogger(__name__)
 
@@ -190,8 +190,10 @@ def pair_key(digest_i: bytes, digest_j: bytes, covariance: np.ndarray, cfg: Corr
 
 def joint_scan(points_S: np.ndarray, cfg: CorrectionConfig) -> JointScan:
     """A scan as the joint refinement takes it: its points (S, mm; as the end of the job loads them) thinned to
-    ``cfg.joint_voxel_mm``, with normals (``joint.JointScan.from_points``)."""
-    return JointScan.from_points(voxel_downsample(np.asarray(points_S, float), cfg.joint_voxel_mm))
+    ``cfg.joint_voxel_mm``, with normals and how many of those points each thinned one averages
+    (``joint.JointScan.from_points``)."""
+    centroids, counts = voxel_centroids(np.asarray(points_S, float), cfg.joint_voxel_mm)
+    return JointScan.from_points(centroids, counts=counts)
 
 
 def joint_scan_key(points_S: np.ndarray, cfg: CorrectionConfig) -> str:

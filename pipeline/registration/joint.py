@@ -95,19 +95,27 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class JointScan:
-    """One scan for the joint solve: its (thinned) points and unit normals in the scanner frame S (mm)."""
+    """One scan for the joint solve: its (thinned) points and unit normals in the scanner frame S (mm), and
+    ``counts``, how many measured points each thinned one averages (a voxel centroid of ``n`` errs by
+    ``1 / sqrt(n)`` of one point's noise; None: one each)."""
 
     points_S: np.ndarray
     normals_S: np.ndarray
+    counts: np.ndarray | None = None
 
     @classmethod
-    def from_points(cls, points_S: np.ndarray, normal_neighbours: int = 20) -> JointScan:
+    def from_points(cls, points_S: np.ndarray, normal_neighbours: int = 20, counts: np.ndarray | None = None
+                    ) -> JointScan:
         """The scan with unit normals estimated from its ``normal_neighbours`` nearest points (Open3D: three
         times faster than ``normals.estimate_normals`` on a scan of 30 k points, the same normals)."""
         P = np.asarray(points_S, float)
         cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P))
         cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(normal_neighbours))
-        return cls(P, np.asarray(cloud.normals))
+        return cls(P, np.asarray(cloud.normals), None if counts is None else np.asarray(counts, float))
+
+    def counts_at(self, indices: np.ndarray) -> np.ndarray | None:
+        """``counts`` of the points at ``indices`` (None where the scan has none: one each)."""
+        return None if self.counts is None else self.counts[indices]
 
 
 @dataclass(frozen=True)
@@ -267,7 +275,8 @@ class _Pair:
         x, n, source, target = x[same], n[same], source[same], target[same]
         q = scans[self.i].points_S[target]
         r = np.einsum("ij,ij->i", x - q, n)
-        return _Match(source, target, x, r, n, ray_variances(n, x - rel[:3, 3], q), np.ones(len(r)), rel)
+        variance = ray_variances(n, x - rel[:3, 3], q, scans[self.j].counts_at(source), scans[self.i].counts_at(target))
+        return _Match(source, target, x, r, n, variance, np.ones(len(r)), rel)
 
     def at(self, scans: Sequence[JointScan], poses: np.ndarray, m: _Match) -> _Match:
         """The same correspondences ``m`` at ``poses``: source points placed in S_i, normals and residuals anew."""
@@ -318,14 +327,19 @@ def symmetric_normals(target_n: np.ndarray, source_n: np.ndarray) -> tuple[np.nd
     return n, cosine
 
 
-def ray_variances(normals: np.ndarray, source_rays: np.ndarray, target_rays: np.ndarray) -> np.ndarray:
+def ray_variances(normals: np.ndarray, source_rays: np.ndarray, target_rays: np.ndarray,
+                  source_counts: np.ndarray | None = None, target_counts: np.ndarray | None = None) -> np.ndarray:
     """The variance of point-to-plane residuals along unit ``normals`` between points whose rays from the scanner
     origin are ``source_rays`` and ``target_rays`` (any length, the frame of the normals), relative to two points
-    seen head-on: ``(c_p^2 + c_q^2) / 2`` with ``c = n . ray / |ray|``, at least ``MIN_RAY_COSINES_SQ / 2``."""
+    seen head-on: ``(c_p^2 / n_p + c_q^2 / n_q) / 2`` with ``c = n . ray / |ray|`` and ``n`` the points each
+    averages (``*_counts``, None: one), at least ``MIN_RAY_COSINES_SQ (1 / n_p + 1 / n_q) / 4``."""
     def cos_sq(rays: np.ndarray) -> np.ndarray:
         return np.einsum("ij,ij->i", normals, rays) ** 2 / np.maximum(np.einsum("ij,ij->i", rays, rays), 1e-300)
 
-    return np.maximum(cos_sq(source_rays) + cos_sq(target_rays), MIN_RAY_COSINES_SQ) / 2.0
+    inv_p = 1.0 if source_counts is None else 1.0 / source_counts
+    inv_q = 1.0 if target_counts is None else 1.0 / target_counts
+    floor = MIN_RAY_COSINES_SQ * (inv_p + inv_q) / 2.0
+    return np.maximum(cos_sq(source_rays) * inv_p + cos_sq(target_rays) * inv_q, floor) / 2.0
 
 
 def noise_shares(covering: np.ndarray) -> np.ndarray:
