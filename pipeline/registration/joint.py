@@ -32,7 +32,8 @@ Cholesky factor ``L``). Scan ``i`` is corrected by the world motion about ``o_i`
 ``n . (T_W_S_j p - T_W_S_i q)``, ``n`` the mean of the two points' unit normals (at the current poses; kept
 where they agree within ``MIN_NORMAL_COSINE``): the symmetric point-to-plane residual, zero for two points of
 one circular arc, where the plane of ``q`` alone leaves the arc's sagitta (curvature times the squared offset,
-halved). Its variance follows the scanner's noise along its rays (``ray_variances``), and where more than two
+halved). Its variance follows the scanner's noise along its rays and the measured points each of the two
+thinned points averages (``ray_variances``, ``JointScan.counts``), and where more than two
 scans cover a place their pairs share each scan's noise (``noise_shares``): each residual weighs its share over its
 variance. Each linearisation weights the residuals at the current poses (Huber at ``huber_k`` times their robust
 scale, which is also the sigma of two points seen head-on) and solves the sparse normal
