@@ -644,14 +644,14 @@ class CorrectionConfig(_Strict):
         1.0, gt=0, description="joint refinement: a point's nearest neighbour in the other scan counts within this, mm"
     )
     joint_iterations: int = Field(
-        1, ge=1, description="joint refinement: linearisations, the first on the correspondences found at the "
-        "tracker poses, each later one re-weighting them at the poses so far (one: with the first residuals a "
-        "second pulled the whole part's seed 8 from 0.043 to 0.072 mm, with today's and joint_reassociate_mm "
-        "0.1 from 0.037 to 0.044 mm; docs/registration.md)")
+        2, ge=1, description="joint refinement: linearisations, the first on the correspondences found at the "
+        "tracker poses, each later one at the poses so far (re-weighted there, and with joint_reassociate_mm "
+        "associated anew); docs/registration.md, The weights' sigma and a second pass")
     joint_reassociate_mm: float | None = Field(
-        None, gt=0, description="joint refinement: before a linearisation after the first, a pair whose points moved "
-        "more than this against its partner since its correspondences were found has them found anew, mm; empty = "
-        "never (docs/registration.md, Association anew after the first linearisation)")
+        0.02, gt=0, description="joint refinement: before a linearisation after the first, a pair whose points moved "
+        "more than this against its partner since its correspondences were found has them found anew, mm (the "
+        "default, under half the scanner's noise, finds nearly every pair anew); empty = never "
+        "(docs/registration.md, The weights' sigma and a second pass)")
     joint_sigma_mm: float | None = Field(
         None, gt=0, description="joint refinement: 1-sigma of a point-to-plane residual, mm; empty = the "
         "residuals' robust scale in each iteration"

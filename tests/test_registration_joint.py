@@ -272,3 +272,23 @@ def test_a_third_scan_of_the_same_place_with_a_free_pose_adds_no_information_on_
     three = refine_jointly(scans, priors, [(0, 1), (0, 2), (1, 2)], truth, settings=SCANNER_NOISE)
     np.testing.assert_allclose(three.covariances[1], two.covariances[1], rtol=1e-3, atol=1e-12)
     assert np.all(np.diag(two.covariances[1]) < 1e-3 * np.diag(LOOSE))
+
+
+def test_the_weights_sigma_is_that_of_two_points_seen_head_on_where_the_surface_is_seen_obliquely():
+    """A surface tilted 45 deg to the scanners' rays, each point 0.05 mm off along its ray: along the normal a point
+    errs by 0.05 cos 45 deg, and a residual between two by 0.05 mm, while two points seen head-on differ by
+    0.05 sqrt(2) = 0.0707 mm. The refinement takes its sigma (``noise_sigma_mm``, ``sigma_mm``) from the residuals
+    whitened by their relative variance (:func:`ray_variances`), so it finds the head-on figure; the residuals'
+    own scale (0.05 mm) weighed the data twice too much against the priors."""
+    x, y = np.meshgrid(np.arange(0.0, 451.0, 2.0), np.arange(-100.0, 101.0, 2.0))
+    surface = np.c_[x.ravel(), y.ravel(), x.ravel() + 0.3 * bumpy(x.ravel(), y.ravel())]
+    truth, exact = grid_scans(surface, [(0, 300), (150, 450)])
+    rng = np.random.default_rng(7)
+    scans = []
+    for s in exact:
+        rays = s.points_S / np.linalg.norm(s.points_S, axis=1, keepdims=True)
+        scans.append(JointScan.from_points(s.points_S + rays * rng.normal(0, 0.05, (len(rays), 1))))
+    priors = [ScanPrior(truth[0], TIGHT, 0), ScanPrior(truth[1], LOOSE, 0)]
+    res = refine_jointly(scans, priors, [(0, 1)], truth, settings=JointSettings(iterations=2))
+    assert res.sigma_mm == pytest.approx(0.05 * np.sqrt(2), rel=0.08), res.sigma_mm
+    assert res.noise_sigma_mm == pytest.approx(0.05 * np.sqrt(2), rel=0.08), res.noise_sigma_mm

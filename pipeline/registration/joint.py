@@ -6,17 +6,15 @@ matrix; it inherits each pair's own bias. Here every overlap point is a point-to
 two scans, so that the adjustment uses the same data the Cramer-Rao bound of the job
 (``benchmarks/pose_bound.py``) assumes.
 
-By default the correspondences are found once, at the start poses (the tracker poses, which do not depend on the scans'
-noise), and kept; a job finds them while it measures (:func:`associate`, ``online_pairs``). Measured on the
-whole default part (seed 8): one linearisation there, weighted there, lands at 0.043 mm median pose error
-against an expected 0.039 mm at the bound. With the residuals of the first version, re-associating at poses
-fitted to the same scans drifted to 0.082 mm; with today's (symmetric, gated, shared, along the rays) a second
-pass from the first one's poses improves seed 7 a little (0.0547 -> 0.0511 mm associated again, 0.0531
-re-weighted only) for as much CPU again, and is not taken (docs/registration.md, "Why one association at the
-tracker poses" and "Shared noise, the rays and the draw"). ``JointSettings.reassociate_mm`` finds anew, before
-each later linearisation, the correspondences of the pairs that have moved; measured over seeds 7-9 of the whole
-part it helps seed 7 and costs seeds 8 and 9, and is off by default ("Association anew after the first
-linearisation").
+The first linearisation takes the correspondences found at the start poses (the tracker poses, which do not
+depend on the scans' noise; a job finds them while it measures: :func:`associate`, ``online_pairs``).
+``JointSettings.reassociate_mm`` finds anew, before each later linearisation, the correspondences of the pairs that
+have moved. A job runs two passes (``[correction] joint_iterations`` 2, ``joint_reassociate_mm`` 0.02): the first
+one's weights and correspondences are the start's (its residuals' scale holds the tracker's misalignment: whole
+part, seed 7, 0.093 mm whitened against the noise's 0.071), the second's are the data's own at poses within the
+posterior of the truth. Measured on seeds 7-9 of the whole part, a third pass changes the figures by 1-2 % either
+way (docs/registration.md, "The weights' sigma and a second pass"; before the weights' sigma was whitened, a
+second pass cost seed 8, "Association anew after the first linearisation").
 
 Model (first order in the small corrections, world axes, mm and rad; every 6-vector is (t, rotation vector)):
 the unknowns ``theta`` are a world motion ``x_i`` of each scan about its origin ``o_i`` (prior: the tracker
@@ -36,13 +34,13 @@ halved). Its variance follows the scanner's noise along its rays and the measure
 thinned points averages (``ray_variances``, ``JointScan.counts``), and where more than two
 scans cover a place their pairs share each scan's noise (``noise_shares``): each residual weighs its share over its
 variance. Each linearisation weights the residuals at the current poses (Huber at ``huber_k`` times their robust
-scale, which is also the sigma of two points seen head-on) and solves the sparse normal
+scale; the sigma of two points seen head-on from the residuals whitened by their relative variance, ``_whitened``)
+and solves the sparse normal
 equations ``(A^T H_e A + prior) theta = A^T (H_e e - b_e)`` (``e`` the corrections so far, ``b_e`` the weighted
 residuals' gradient) for ``theta`` itself (scipy.sparse); the posterior covariance of
 each scan's correction is ``A_i C A_i^T``, ``C`` the covariance of ``theta`` under the residuals' noise at the
-refined poses (``_posterior_covariance``: the weights' sigma at the start poses (by default the only
-linearisation) also holds the start's
-misalignment, and ``H^-1`` alone was that much too wide: whole part, seed 7, 0.071 against 0.054 mm).
+refined poses (``_posterior_covariance``: a sigma taken at the start poses also holds the start's misalignment,
+and ``H^-1`` alone was that much too wide: whole part, seed 7, one linearisation, 0.093 against 0.071 mm).
 """
 
 from __future__ import annotations
@@ -128,8 +126,8 @@ class JointSettings:
     against its target scan by more than this (mm) since its correspondences were found has them found anew
     at the current poses (None: those found at the start poses are kept throughout);
     ``min_correspondences``: a pair with fewer contributes nothing in that iteration; ``sigma_mm``: 1-sigma of a
-    point-to-plane residual between two points seen head-on (None: the residuals' robust scale, re-estimated in
-    every iteration)."""
+    point-to-plane residual between two points seen head-on (None: the robust scale of the residuals whitened by
+    their relative variance, re-estimated in every iteration)."""
 
     max_distance_mm: float = 1.0
     huber_k: float = 2.5
@@ -365,10 +363,20 @@ def _with_shares(sizes: Sequence[int], associated: list[tuple[_Pair, _Match]]) -
             for p, m in associated]
 
 
-def _huber(r: np.ndarray, sigma: float, k: float) -> np.ndarray:
-    """The Huber factor (0-1) of each residual ``r`` (mm) at ``k`` times ``sigma``."""
-    a = np.abs(r) / sigma
-    return np.where(a <= k, 1.0, k / np.maximum(a, 1e-300))
+def _huber(r: np.ndarray, threshold_mm: float) -> np.ndarray:
+    """The Huber factor (0-1) of each residual ``r`` (mm) at ``threshold_mm``."""
+    a = np.abs(r)
+    return np.where(a <= threshold_mm, 1.0, threshold_mm / np.maximum(a, 1e-300))
+
+
+def _whitened(associated: Sequence[tuple[_Pair, _Match]]) -> np.ndarray:
+    """Every residual of ``associated`` over the square root of its relative variance (:func:`ray_variances`): the
+    residuals as if between two single points seen head-on, whose robust scale is the weights' sigma. The
+    residuals as they are have a smaller scale (whole part at the simulator's truth: 0.054 mm, their median
+    relative variance 0.61), and taken as the sigma it weighed the data 1.75 times too much against the priors;
+    whitened they give 0.0711 mm, the simulator's 0.05 mm per point times sqrt(2) (docs/registration.md, "The
+    weights' sigma and a second pass")."""
+    return np.concatenate([m.residual / np.sqrt(m.variance) for _, m in associated]) if associated else np.zeros(0)
 
 
 def _information(m: _Match, huber: np.ndarray, sigma: float) -> np.ndarray:
@@ -506,10 +514,10 @@ def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequ
             anew += moved
         kept = [(p, m) for p, m in associated if len(m.residual) >= settings.min_correspondences]
         r_all = np.concatenate([m.residual for _, m in kept]) if kept else np.zeros(0)
-        sigma = settings.sigma_mm or _robust_sigma(r_all)
+        sigma = settings.sigma_mm or _robust_sigma(_whitened(kept))
         if it == 1:
             rms_before = float(np.sqrt(np.mean(r_all**2))) if len(r_all) else float("nan")
-        H, b_e, N = _data_system(model, scans, poses, kept, sigma, settings.huber_k, pair_map)
+        H, b_e, N = _data_system(model, scans, poses, kept, sigma, settings.huber_k * _robust_sigma(r_all), pair_map)
         used, n_corr = len(kept), len(r_all)
         # linearised at e: data term |r + J (A theta - e)|^2, prior |theta|^2_prior -> solve for theta
         rhs = model.A.T @ (H @ e.ravel() - b_e)
@@ -524,10 +532,10 @@ def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequ
                   it, used, n_corr, sigma, move)
         if move < settings.tolerance_mm:
             break
-    final = pair_map(lambda pm: pm[0].at(scans, poses, pm[1]).residual, kept)
-    r_fin = np.concatenate(final) if final else np.zeros(0)
+    final = pair_map(lambda pm: (pm[0], pm[0].at(scans, poses, pm[1])), kept)
+    r_fin = np.concatenate([m.residual for _, m in final]) if final else np.zeros(0)
     rms_after = float(np.sqrt(np.mean(r_fin**2))) if len(r_fin) else float("nan")
-    noise_sigma = settings.sigma_mm or _robust_sigma(r_fin)
+    noise_sigma = settings.sigma_mm or _robust_sigma(_whitened(final))
     H_theta = H_theta.toarray()                     # the last linearisation's normal matrix
     ratio = (noise_sigma / sigma) ** 2
     cov_theta = _posterior_covariance(H_theta, H_prior + ratio * (model.A.T @ N @ model.A))
@@ -555,8 +563,9 @@ def _posterior_covariance(H_theta: np.ndarray, information: sparse.csr_matrix) -
 
 
 def _data_system(model: _Model, scans: Sequence[JointScan], poses: np.ndarray, kept: list, sigma: float,
-                 huber_k: float, pair_map: PairMap) -> tuple[sparse.csr_matrix, np.ndarray, sparse.csr_matrix]:
-    """The data's normal equations in the stacked corrections ``e``: sparse ``H_e`` (6n x 6n) and ``b_e``, and
+                 huber_mm: float, pair_map: PairMap) -> tuple[sparse.csr_matrix, np.ndarray, sparse.csr_matrix]:
+    """The data's normal equations in the stacked corrections ``e``, each residual weighted by ``sigma`` (mm, two
+    points head-on; :func:`_information`) and Huber-cut beyond ``huber_mm``: sparse ``H_e`` (6n x 6n) and ``b_e``, and
     ``N_e``, the normal matrix of the same rows weighted by their Huber factor once more. With the residuals'
     noise ``ratio`` times the variance ``sigma^2`` weighs them by, the noise adds ``ratio N_e`` (not ``H_e``) to the
     information an estimate weighted by ``H_e`` carries (:func:`_posterior_covariance`)."""
@@ -568,7 +577,7 @@ def _data_system(model: _Model, scans: Sequence[JointScan], poses: np.ndarray, k
 
     def system(pm: tuple[_Pair, _Match]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         p, m = pm
-        huber = _huber(m.residual, sigma, huber_k)
+        huber = _huber(m.residual, huber_mm)
         weights = _information(m, huber, sigma)
         return p.normal_equations(scans, poses, model.origins, m, weights, huber)
 
