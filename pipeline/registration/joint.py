@@ -120,7 +120,8 @@ class JointScan:
 @dataclass(frozen=True)
 class JointSettings:
     """``max_distance_mm``: a source point's nearest target point within this distance is its correspondence;
-    ``huber_k``: Huber threshold in robust sigmas; ``iterations``: at most this many linearisations (at least
+    ``huber_k``: Huber threshold in robust sigmas of the residuals as they are (or ``sigma_mm``);
+    ``iterations``: at most this many linearisations (at least
     one), fewer once no scan moves more than ``tolerance_mm`` (translation plus rotation at ``lever_mm``);
     ``reassociate_mm``: before each linearisation after the first, a pair whose source points have moved
     against its target scan by more than this (mm) since its correspondences were found has them found anew
@@ -517,7 +518,8 @@ def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequ
         sigma = settings.sigma_mm or _robust_sigma(_whitened(kept))
         if it == 1:
             rms_before = float(np.sqrt(np.mean(r_all**2))) if len(r_all) else float("nan")
-        H, b_e, N = _data_system(model, scans, poses, kept, sigma, settings.huber_k * _robust_sigma(r_all), pair_map)
+        huber_mm = settings.huber_k * (settings.sigma_mm or _robust_sigma(r_all))   # on the residuals as they are
+        H, b_e, N = _data_system(model, scans, poses, kept, sigma, huber_mm, pair_map)
         used, n_corr = len(kept), len(r_all)
         # linearised at e: data term |r + J (A theta - e)|^2, prior |theta|^2_prior -> solve for theta
         rhs = model.A.T @ (H @ e.ravel() - b_e)
