@@ -653,8 +653,9 @@ class CorrectionConfig(_Strict):
         "default, under half the scanner's noise, finds nearly every pair anew); empty = never "
         "(docs/registration.md, The weights' sigma and a second pass)")
     joint_sigma_mm: float | None = Field(
-        None, gt=0, description="joint refinement: 1-sigma of a point-to-plane residual, mm; empty = the "
-        "residuals' robust scale in each iteration"
+        None, gt=0, description="joint refinement: 1-sigma of a point-to-plane residual between two single points "
+        "seen head-on, mm (also the Huber cut's unit); empty = the robust scale of the residuals whitened by their "
+        "relative variance, in each linearisation"
     )
     joint_max_partners_per_scan: int = Field(
         1000, ge=1, description="joint refinement: overlapping partners a scan keeps per station group (as "

@@ -23,7 +23,7 @@ from tandemscan.pipeline.registration.pose_graph import ScanPrior, TransferPrior
 from tandemscan.pipeline.registration.sampling import voxel_downsample
 
 TIGHT = np.diag([1e-8] * 3 + [1e-12] * 3)
-#: the residuals' sigma of a real scanner, so that the second-order fit of a sampled curve does not count
+#: a head-on residual's sigma of a real scanner, so that the second-order fit of a sampled curve does not count
 SCANNER_NOISE = JointSettings(iterations=20, tolerance_mm=1e-7, sigma_mm=0.05)
 LOOSE = np.diag([1.0] * 3 + [np.radians(0.5) ** 2] * 3)
 
@@ -275,11 +275,12 @@ def test_a_third_scan_of_the_same_place_with_a_free_pose_adds_no_information_on_
 
 
 def test_the_weights_sigma_is_that_of_two_points_seen_head_on_where_the_surface_is_seen_obliquely():
-    """A surface tilted 45 deg to the scanners' rays, each point 0.05 mm off along its ray: along the normal a point
-    errs by 0.05 cos 45 deg, and a residual between two by 0.05 mm, while two points seen head-on differ by
-    0.05 sqrt(2) = 0.0707 mm. The refinement takes its sigma (``noise_sigma_mm``, ``sigma_mm``) from the residuals
-    whitened by their relative variance (:func:`ray_variances`), so it finds the head-on figure; the residuals'
-    own scale (0.05 mm) weighed the data twice too much against the priors."""
+    """A plane rising 45 deg along x (bumped a little) under scanners looking down -z, each point 0.05 mm off
+    along its ray: the squared cosines between rays and normals run from about 0.06 to 0.96, so a residual errs
+    by less than two points seen head-on would (0.05 sqrt(2) = 0.0707 mm). The refinement takes its sigma
+    (``sigma_mm``, ``noise_sigma_mm``) from the residuals whitened by their relative variance
+    (:func:`ray_variances`) and finds the head-on figure (the residuals' own scale, 0.046 mm, weighed the data
+    twice too much against the priors), and its estimate and posterior are those of the sigma given outright."""
     x, y = np.meshgrid(np.arange(0.0, 451.0, 2.0), np.arange(-100.0, 101.0, 2.0))
     surface = np.c_[x.ravel(), y.ravel(), x.ravel() + 0.3 * bumpy(x.ravel(), y.ravel())]
     truth, exact = grid_scans(surface, [(0, 300), (150, 450)])
@@ -292,3 +293,8 @@ def test_the_weights_sigma_is_that_of_two_points_seen_head_on_where_the_surface_
     res = refine_jointly(scans, priors, [(0, 1)], truth, settings=JointSettings(iterations=2))
     assert res.sigma_mm == pytest.approx(0.05 * np.sqrt(2), rel=0.08), res.sigma_mm
     assert res.noise_sigma_mm == pytest.approx(0.05 * np.sqrt(2), rel=0.08), res.noise_sigma_mm
+    free = refine_jointly(scans, priors, [(0, 1)], truth, settings=JointSettings(iterations=2, huber_k=1e6))
+    given = refine_jointly(scans, priors, [(0, 1)], truth,
+                           settings=JointSettings(iterations=2, sigma_mm=free.sigma_mm, huber_k=1e6))
+    np.testing.assert_allclose(free.covariances[1], given.covariances[1], rtol=1e-3)
+    np.testing.assert_allclose(free.poses[1], given.poses[1], atol=1e-6)

@@ -102,6 +102,11 @@ class JointScan:
     normals_S: np.ndarray
     counts: np.ndarray | None = None
 
+    def __post_init__(self) -> None:
+        if self.counts is not None and (len(self.counts) != len(self.points_S) or np.any(self.counts < 1)):
+            raise ValueError(f"joint scan: {len(self.counts)} counts for {len(self.points_S)} points, each at least "
+                             "one measured point is needed")
+
     @classmethod
     def from_points(cls, points_S: np.ndarray, normal_neighbours: int = 20, counts: np.ndarray | None = None
                     ) -> JointScan:
@@ -120,7 +125,8 @@ class JointScan:
 @dataclass(frozen=True)
 class JointSettings:
     """``max_distance_mm``: a source point's nearest target point within this distance is its correspondence;
-    ``huber_k``: Huber threshold in robust sigmas of the residuals as they are (or ``sigma_mm``);
+    ``huber_k``: Huber threshold in robust sigmas of the residuals as they are (with ``sigma_mm`` set: times it, a
+    looser cut, the head-on sigma being above the residuals' own scale, 1.3 times on the whole part);
     ``iterations``: at most this many linearisations (at least
     one), fewer once no scan moves more than ``tolerance_mm`` (translation plus rotation at ``lever_mm``);
     ``reassociate_mm``: before each linearisation after the first, a pair whose source points have moved
@@ -370,6 +376,17 @@ def _huber(r: np.ndarray, threshold_mm: float) -> np.ndarray:
     return np.where(a <= threshold_mm, 1.0, threshold_mm / np.maximum(a, 1e-300))
 
 
+def _residuals(associated: Sequence[tuple[_Pair, _Match]]) -> np.ndarray:
+    """Every residual (mm) of ``associated``, concatenated."""
+    return np.concatenate([m.residual for _, m in associated]) if associated else np.zeros(0)
+
+
+def _at_poses(scans: Sequence[JointScan], poses: np.ndarray, associated: Sequence[tuple[_Pair, _Match]],
+              pair_map: PairMap) -> list[tuple[_Pair, _Match]]:
+    """``associated`` with the same correspondences at ``poses`` (:meth:`_Pair.at`)."""
+    return pair_map(lambda pm: (pm[0], pm[0].at(scans, poses, pm[1])), associated)
+
+
 def _whitened(associated: Sequence[tuple[_Pair, _Match]]) -> np.ndarray:
     """Every residual of ``associated`` over the square root of its relative variance (:func:`ray_variances`): the
     residuals as if between two single points seen head-on, whose robust scale is the weights' sigma. The
@@ -466,7 +483,7 @@ def _reassociated(scans: Sequence[JointScan], poses: np.ndarray, associated: lis
     others keep theirs (residuals and normals anew); every share is counted again (:func:`noise_shares`).
     Returns them and the number of pairs associated anew."""
     if settings.reassociate_mm is None:
-        return pair_map(lambda pm: (pm[0], pm[0].at(scans, poses, pm[1])), associated), 0
+        return _at_poses(scans, poses, associated, pair_map), 0
     moved = pair_map(lambda pm: _moved_mm(scans, poses, *pm) > settings.reassociate_mm, associated)
     anew = [(p.i, p.j) for (p, _), far in zip(associated, moved, strict=True) if far]
     kept = [(p, m) for (p, m), far in zip(associated, moved, strict=True) if not far]
@@ -514,7 +531,7 @@ def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequ
             associated, moved = _reassociated(scans, poses, associated, settings, trees, pair_map)
             anew += moved
         kept = [(p, m) for p, m in associated if len(m.residual) >= settings.min_correspondences]
-        r_all = np.concatenate([m.residual for _, m in kept]) if kept else np.zeros(0)
+        r_all = _residuals(kept)
         sigma = settings.sigma_mm or _robust_sigma(_whitened(kept))
         if it == 1:
             rms_before = float(np.sqrt(np.mean(r_all**2))) if len(r_all) else float("nan")
@@ -534,8 +551,8 @@ def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequ
                   it, used, n_corr, sigma, move)
         if move < settings.tolerance_mm:
             break
-    final = pair_map(lambda pm: (pm[0], pm[0].at(scans, poses, pm[1])), kept)
-    r_fin = np.concatenate([m.residual for _, m in final]) if final else np.zeros(0)
+    final = _at_poses(scans, poses, kept, pair_map)
+    r_fin = _residuals(final)
     rms_after = float(np.sqrt(np.mean(r_fin**2))) if len(r_fin) else float("nan")
     noise_sigma = settings.sigma_mm or _robust_sigma(_whitened(final))
     H_theta = H_theta.toarray()                     # the last linearisation's normal matrix
@@ -555,11 +572,11 @@ def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequ
 
 def _posterior_covariance(H_theta: np.ndarray, information: sparse.csr_matrix) -> np.ndarray:
     """The covariance of the estimate ``theta`` (dense) from the normal matrix it was solved with, ``H_theta`` (data
-    ``D`` + prior ``P``, the data weighted with a sigma taken at the last linearisation's poses, by default the
-    start's, where the residuals also hold the start's misalignment), and the ``information`` its errors carry
-    (``P`` + the data's under their noise at the refined poses, :func:`_data_system`): the estimate's error is
-    ``-H^-1 (P theta_true + D-weighted noise)``, its covariance ``H^-1 information H^-1`` (``H^-1`` where the two
-    agree)."""
+    ``D`` + prior ``P``, the data weighted with a sigma taken at the last linearisation's poses: with one
+    linearisation the start's, where the residuals also hold the start's misalignment), and the ``information``
+    its errors carry (``P`` + the data's under their noise at the refined poses, :func:`_data_system`): the
+    estimate's error is ``-H^-1 (P theta_true + D-weighted noise)``, its covariance ``H^-1 information H^-1``
+    (``H^-1`` where the two agree)."""
     cov = np.linalg.inv(H_theta)
     return cov @ information.toarray() @ cov     # dense: a sparse-dense product runs on one core, far slower
 
