@@ -481,15 +481,19 @@ def _reassociated(scans: Sequence[JointScan], poses: np.ndarray, associated: lis
     """``associated`` at ``poses``: the pairs whose source points have moved more than ``settings.reassociate_mm``
     since their correspondences were found (:func:`_moved_mm`) have them found anew (:func:`_associate`), the
     others keep theirs (residuals and normals anew); every share is counted again (:func:`noise_shares`).
-    Returns them and the number of pairs associated anew."""
+    Returns them and the number of pairs associated anew. ``associated`` is emptied before the search, so that
+    the matches found anew do not live beside those they replace (10 M correspondences on the whole part: about
+    0.9 GB)."""
     if settings.reassociate_mm is None:
         return _at_poses(scans, poses, associated, pair_map), 0
     moved = pair_map(lambda pm: _moved_mm(scans, poses, *pm) > settings.reassociate_mm, associated)
     anew = [(p.i, p.j) for (p, _), far in zip(associated, moved, strict=True) if far]
     kept = [(p, m) for (p, m), far in zip(associated, moved, strict=True) if not far]
+    total = len(associated)
+    associated.clear()
     found = _associate(scans, poses, anew, settings.max_distance_mm, {}, trees, pair_map) if anew else []
     log.debug("joint refinement: %d of %d pairs associated anew, %d of them without correspondences now (left out)",
-              len(anew), len(associated), len(anew) - len(found))
+              len(anew), total, len(anew) - len(found))
     return _with_shares([len(s.points_S) for s in scans],
                         [(p, p.at(scans, poses, m)) for p, m in kept] + found), len(anew)
 
@@ -528,8 +532,11 @@ def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequ
     rms_before, sigma, H, used, n_corr, it, anew = float("nan"), 1.0, None, 0, 0, 0, 0
     for it in range(1, settings.iterations + 1):
         if it > 1:
+            kept = []                      # the last linearisation's matches: freed as they are replaced
             associated, moved = _reassociated(scans, poses, associated, settings, trees, pair_map)
             anew += moved
+            if it == settings.iterations:
+                trees.clear()              # nothing is searched again
         kept = [(p, m) for p, m in associated if len(m.residual) >= settings.min_correspondences]
         r_all = _residuals(kept)
         sigma = settings.sigma_mm or _robust_sigma(_whitened(kept))
