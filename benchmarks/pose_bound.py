@@ -25,8 +25,8 @@ own noise models, for an ideal estimator.
   over seeds; ``sigma_xyz_mm_per_station``: per tracker station the mean 1-sigma of the scan origins along
   the world axes (W = the first station's camera frame; on the default band x runs along the part, y up
   the flank, z along the line of sight), tracker-only, at the bound and (``joint_posterior``) the joint
-  refinement's own posterior (``report.json`` ``correction.joint``); ``corrected_over_bound`` per seed (of the figures to
-  0.01 um, so that no ratio near a line is one of rounded figures) and
+  refinement's own posterior (``report.json`` ``correction.joint``); ``corrected_over_bound`` per seed (of the
+  figures to 0.01 um, so that no ratio near a line is one of rounded figures) and
   ``corrected_over_bound_mean`` (mean corrected error over mean bound) put the correction against the bound;
   ``after_last_scan_s`` / ``correction_cpu_s`` are the job's ``timings``. The bound is an expectation over noise
   draws, and one job's median scatters about it even for an ideal estimator: ``bound_mm_p95`` is the 95th
