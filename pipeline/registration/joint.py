@@ -376,15 +376,18 @@ def _huber(r: np.ndarray, threshold_mm: float) -> np.ndarray:
     return np.where(a <= threshold_mm, 1.0, threshold_mm / np.maximum(a, 1e-300))
 
 
-def _residuals(associated: Sequence[tuple[_Pair, _Match]]) -> np.ndarray:
-    """Every residual (mm) of ``associated``, concatenated."""
-    return np.concatenate([m.residual for _, m in associated]) if associated else np.zeros(0)
+def _residuals_at(scans: Sequence[JointScan], poses: np.ndarray, associated: Sequence[tuple[_Pair, _Match]],
+                  pair_map: PairMap) -> tuple[np.ndarray, np.ndarray]:
+    """The residuals (mm) of the correspondences ``associated`` at ``poses``, as they are and whitened
+    (:func:`_whitened`); only these two arrays are kept, not a second set of matches."""
+    def at(pm: tuple[_Pair, _Match]) -> tuple[np.ndarray, np.ndarray]:
+        m = pm[0].at(scans, poses, pm[1])
+        return m.residual, m.residual / np.sqrt(m.variance)
 
-
-def _at_poses(scans: Sequence[JointScan], poses: np.ndarray, associated: Sequence[tuple[_Pair, _Match]],
-              pair_map: PairMap) -> list[tuple[_Pair, _Match]]:
-    """``associated`` with the same correspondences at ``poses`` (:meth:`_Pair.at`)."""
-    return pair_map(lambda pm: (pm[0], pm[0].at(scans, poses, pm[1])), associated)
+    both = pair_map(at, associated)
+    if not both:
+        return np.zeros(0), np.zeros(0)
+    return np.concatenate([r for r, _ in both]), np.concatenate([w for _, w in both])
 
 
 def _whitened(associated: Sequence[tuple[_Pair, _Match]]) -> np.ndarray:
@@ -485,7 +488,7 @@ def _reassociated(scans: Sequence[JointScan], poses: np.ndarray, associated: lis
     the matches found anew do not live beside those they replace (10 M correspondences on the whole part: about
     0.9 GB)."""
     if settings.reassociate_mm is None:
-        return _at_poses(scans, poses, associated, pair_map), 0
+        return pair_map(lambda pm: (pm[0], pm[0].at(scans, poses, pm[1])), associated), 0
     moved = pair_map(lambda pm: _moved_mm(scans, poses, *pm) > settings.reassociate_mm, associated)
     anew = [(p.i, p.j) for (p, _), far in zip(associated, moved, strict=True) if far]
     kept = [(p, m) for (p, m), far in zip(associated, moved, strict=True) if not far]
@@ -538,7 +541,7 @@ def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequ
             if it == settings.iterations:
                 trees.clear()              # nothing is searched again
         kept = [(p, m) for p, m in associated if len(m.residual) >= settings.min_correspondences]
-        r_all = _residuals(kept)
+        r_all = np.concatenate([m.residual for _, m in kept]) if kept else np.zeros(0)
         sigma = settings.sigma_mm or _robust_sigma(_whitened(kept))
         if it == 1:
             rms_before = float(np.sqrt(np.mean(r_all**2))) if len(r_all) else float("nan")
@@ -558,10 +561,9 @@ def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequ
                   it, used, n_corr, sigma, move)
         if move < settings.tolerance_mm:
             break
-    final = _at_poses(scans, poses, kept, pair_map)
-    r_fin = _residuals(final)
+    r_fin, w_fin = _residuals_at(scans, poses, kept, pair_map)
     rms_after = float(np.sqrt(np.mean(r_fin**2))) if len(r_fin) else float("nan")
-    noise_sigma = settings.sigma_mm or _robust_sigma(_whitened(final))
+    noise_sigma = settings.sigma_mm or _robust_sigma(w_fin)
     H_theta = H_theta.toarray()                     # the last linearisation's normal matrix
     ratio = (noise_sigma / sigma) ** 2
     cov_theta = _posterior_covariance(H_theta, H_prior + ratio * (model.A.T @ N @ model.A))
