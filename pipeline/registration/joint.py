@@ -382,7 +382,7 @@ def _residuals_at(scans: Sequence[JointScan], poses: np.ndarray, associated: Seq
     (:func:`_whitened`); only these two arrays are kept, not a second set of matches."""
     def at(pm: tuple[_Pair, _Match]) -> tuple[np.ndarray, np.ndarray]:
         m = pm[0].at(scans, poses, pm[1])
-        return m.residual, m.residual / np.sqrt(m.variance)
+        return m.residual, _whitened([(pm[0], m)])
 
     both = pair_map(at, associated)
     if not both:
