@@ -746,6 +746,12 @@ class InspectionConfig(_Strict):
     in_job: bool = Field(True, description="a measurement job writes report.html; off: E57 and pose log only")
     tolerance_lower_mm: float = Field(-0.1, le=0)
     tolerance_upper_mm: float = Field(0.1, ge=0)
+    decision_rule: Literal["iso14253-1", "simple"] = Field(
+        "iso14253-1", description="ISO 14253-1: conformance proven only inside the tolerance shrunk by the "
+        "expanded uncertainty U, nonconformance only outside it widened by U, else indeterminate; simple: "
+        "in or out of the tolerance by the measured value alone (docs/inspection.md, \"Decision rule\")"
+    )
+    decision_k: float = Field(2.0, gt=0, description="coverage factor k of the expanded uncertainties U")
     regions: tuple[RegionConfig, ...] = (
         RegionConfig(name="body", min_mm=(-1e5, -1e5, -1e5), max_mm=(-500.0, 1e5, 1e5)),
         RegionConfig(name="nose", min_mm=(-500.0, -1e5, -1e5), max_mm=(1e5, 1e5, 1e5)),
