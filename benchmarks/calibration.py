@@ -40,6 +40,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 from clean_exit import clean_exit_on_sigterm
+from results import publish
 from tandemscan.config import load_config
 from tandemscan.pipeline.calibration.hand_eye import METHODS, solve_hand_eye
 from tandemscan.pipeline.calibration.plate import PlateFit, fit_plate, nominal_centres_P
@@ -314,12 +315,12 @@ def main(argv: list[str] | None = None) -> int:
         result = {"benchmark": "calibration_consistency", "poses": cfg.calibration.poses}
         with tempfile.TemporaryDirectory() as tmp:
             result |= asyncio.run(_consistency(cfg, args.consistency, Path(tmp), args.band))
-        return _finish(result, started, load_before)
+        return _finish("calibration_consistency", result, started, load_before)
     if args.job_only:
         result = {"benchmark": "calibration", "poses": cfg.calibration.poses}
         with tempfile.TemporaryDirectory() as tmp:
             result |= asyncio.run(_calibrate_and_measure(cfg, Path(tmp)))
-        return _finish(result, started, load_before)
+        return _finish("calibration-job-only", result, started, load_before)
     plate = PlateStats([], [], [], [])
     runs = [trial(cfg, rng, plate) for _ in range(args.trials)]
     by_noise: dict[str, dict] = {}
@@ -346,15 +347,15 @@ def main(argv: list[str] | None = None) -> int:
     if not args.no_job:
         with tempfile.TemporaryDirectory() as tmp:
             result |= asyncio.run(_calibrate_and_measure(cfg, Path(tmp)))
-    return _finish(result, started, load_before)
+    return _finish("calibration-no-job" if args.no_job else "calibration", result, started, load_before)
 
 
-def _finish(result: dict, started: float, load_before: float) -> int:
-    """Add time and load, print the JSON line."""
+def _finish(name: str, result: dict, started: float, load_before: float) -> int:
+    """Add time and load, publish the figures as ``name`` (``results.publish``)."""
     result["seconds"] = round(time.monotonic() - started, 1)
     result["load_avg_1min"] = [round(load_before, 2), round(os.getloadavg()[0], 2)]
     result["cpus"] = os.cpu_count()
-    print(json.dumps(_rounded(result)))
+    publish(name, _rounded(result))
     return 0
 
 

@@ -15,7 +15,6 @@ JSON object (ms) on its last line, with the machine's 1-minute load average befo
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import socket
@@ -30,6 +29,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 from clean_exit import clean_exit_on_sigterm
+from results import publish
 from tandemscan.sim_drivers.cell import with_surveyed_mounts_toml
 from tandemscan.sim_drivers.hil_box import free_port
 
@@ -181,7 +181,7 @@ def main() -> None:
         scans = db.execute("SELECT COUNT(*) FROM scans").fetchone()[0]
     if not args.keep_state:
         shutil.rmtree(tmp, ignore_errors=True)
-    print(json.dumps({
+    publish("daemon" if args.resolution == "full" else "daemon-coarse", {
         "benchmark": "daemon",
         "scanner_resolution": args.resolution,
         "scans_ingested": scans,
@@ -195,7 +195,7 @@ def main() -> None:
         "idle_baseline": {"seconds": args.idle_seconds, **_figures(idle_lat, m0, m1, idle_pings)},
         "cpu_cores": os.cpu_count(),
         "load_average_1min_before_after": [round(load_before[0], 2), round(os.getloadavg()[0], 2)],
-    }))
+    })
 
 
 if __name__ == "__main__":

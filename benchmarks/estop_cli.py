@@ -16,13 +16,13 @@ status, the latched reason and the two figures (median and max over the runs, ms
 from __future__ import annotations
 
 import argparse
-import json
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 from clean_exit import clean_exit_on_sigterm
+from results import publish
 from tandemscan.daemon import cli
 from tandemscan.sim_drivers.hil_box import BOX_PLAN, write_hil_box_cell
 from tandemscan.sim_drivers.world import SimWorld
@@ -147,7 +147,7 @@ def main() -> None:
                 if values:
                     case[key] = {"median": float(np.median(values)), "max": float(np.max(values))}
             result[f"{command}.{device}"] = case
-    print(json.dumps(result))
+    publish("estop_cli", result)
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ import tempfile
 from pathlib import Path
 
 from clean_exit import clean_exit_on_sigterm
+from results import publish
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -30,7 +31,7 @@ def main() -> None:
                               cwd=ROOT, env=env, capture_output=True, text=True)
         rows = [json.loads(line) for line in rows_file.read_text().splitlines()] if rows_file.exists() else []
     summary = proc.stdout.strip().splitlines()[-1] if proc.stdout.strip() else ""
-    print(json.dumps({"faults": rows, "tests": summary, "all_passed": proc.returncode == 0}))
+    publish("fault_matrix", {"faults": rows, "tests": summary, "all_passed": proc.returncode == 0})
 
 
 if __name__ == "__main__":

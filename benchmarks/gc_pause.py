@@ -15,12 +15,12 @@ from __future__ import annotations
 import argparse
 import asyncio
 import gc
-import json
 import statistics
 import tempfile
 import time
 
 from clean_exit import clean_exit_on_sigterm
+from results import publish
 
 
 def full_collection_ms(repeats: int) -> float:
@@ -60,7 +60,7 @@ async def measure(repeats: int) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=5)
-    print(json.dumps(asyncio.run(measure(ap.parse_args().repeats))))
+    publish("gc_pause", asyncio.run(measure(ap.parse_args().repeats)))
 
 
 if __name__ == "__main__":

@@ -10,7 +10,6 @@ Prints one JSON object on its last line: median and p99 in ms per call, jitter p
 from __future__ import annotations
 
 import asyncio
-import json
 import time
 import uuid
 from pathlib import Path
@@ -18,6 +17,7 @@ from tempfile import TemporaryDirectory
 
 import numpy as np
 from clean_exit import clean_exit_on_sigterm
+from results import publish
 from tandemscan.config.models import (
     ArmConfig,
     ChassisCanConfig,
@@ -166,4 +166,4 @@ async def main() -> dict[str, object]:
 
 if __name__ == "__main__":
     clean_exit_on_sigterm()
-    print(json.dumps(asyncio.run(main())))
+    publish("hil_latency", asyncio.run(main()))

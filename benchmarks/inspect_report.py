@@ -7,12 +7,12 @@ Usage: nice python benchmarks/inspect_report.py [--points 1000000]
 from __future__ import annotations
 
 import argparse
-import json
 import tempfile
 import time
 
 import numpy as np
 from clean_exit import clean_exit_on_sigterm
+from results import publish
 from tandemscan.config.models import InspectionConfig, PartConfig
 from tandemscan.pipeline.geometry.part import train_nose_mesh
 from tandemscan.pipeline.inspection.inspect import CadSurface, inspect_cloud
@@ -47,7 +47,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as out:
         write_report(build_report(result, surface, cfg), out)
     t_report = time.perf_counter() - t0
-    print(json.dumps({
+    publish("inspect_report", {
         "benchmark": "inspect_report",
         "points": args.points,
         "triangles": len(T),
@@ -58,7 +58,7 @@ def main() -> None:
         "inspect_with_best_fit_s": round(t_inspect, 3),
         "report_build_s": round(t_report, 3),
         "best_fit_translation_um": round(result.best_fit.translation_mm * 1000.0, 3),
-    }))
+    })
 
 
 if __name__ == "__main__":

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import tempfile
 import time
 from dataclasses import dataclass
@@ -34,6 +33,7 @@ import numpy as np
 import open3d as o3d
 from clean_exit import clean_exit_on_sigterm
 from pose_bound import bound_covariance  # benchmarks/pose_bound.py: the bound's error model
+from results import publish
 from tandemscan.config import load_config
 from tandemscan.config.models import CellConfig
 from tandemscan.daemon.cli import default_plan_path
@@ -288,7 +288,7 @@ def main() -> None:
             "vs_job_best_fit": rounded(alignment_error(T, T_F_W_fit, centre)), "verdict": res.result.verdict,
             "areas": len(res.result.areas),
             "seconds": round(time.perf_counter() - t0, 1)}
-    print(json.dumps(figures))
+    publish("inspection_alignment" + (f"-{plan.name}" if args.plan else ""), figures)
 
 
 if __name__ == "__main__":

@@ -25,6 +25,7 @@ from types import SimpleNamespace
 
 import numpy as np
 from clean_exit import clean_exit_on_sigterm
+from results import publish
 from tandemscan.config.loader import load_config
 from tandemscan.daemon import job_outputs
 from tandemscan.pipeline.inspection import inspect, inspection_job, report
@@ -108,7 +109,7 @@ def main() -> None:
     if args.json:
         args.json.write_text(json.dumps(section, indent=1), encoding="utf-8")
     stats = section.get("as_measured", {}).get("stats", {})
-    print(json.dumps({
+    publish("inspection_speed", {
         "benchmark": "inspection_speed",
         "job": args.job_dir.name,
         "points": len(job.worldmap.points()),
@@ -124,7 +125,7 @@ def main() -> None:
         "alignment_residual_mm": section.get("alignment", {}).get("residual_mm"),
         "rms_mm": stats.get("rms_mm"),
         "in_pct": section.get("as_measured", {}).get("tolerance", {}).get("in_pct"),
-    }))
+    })
 
 
 if __name__ == "__main__":

@@ -10,9 +10,9 @@ Prints one JSON object on its last line: ``{"6kB_125Hz": {"object_bytes": ..., "
 from __future__ import annotations
 
 import asyncio
-import json
 import time
 
+from results import publish
 from tandemscan.config.models import ArmConfig
 from tandemscan.drivers.json_stream import JsonObjectFramer, encode
 from tandemscan.sim_drivers.emulators.jaka import JakaBehaviour, JakaEmulator
@@ -54,4 +54,4 @@ async def main() -> dict[str, dict[str, float]]:
 
 
 if __name__ == "__main__":
-    print(json.dumps(asyncio.run(main())))
+    publish("jaka_status_framing", asyncio.run(main()))

@@ -21,6 +21,7 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
+from results import publish
 from tandemscan.config import load_config
 from tandemscan.config.models import CellConfig, PartConfig
 from tandemscan.pipeline.geometry.part import barrel_panel_mesh, load_part_mesh
@@ -73,7 +74,7 @@ def main() -> int:
             figures = bench(config, mesh, sim_start, exact=cell == "default")
             print(json.dumps({"cell": cell, "part": part, **figures}), file=sys.stderr)
             out |= {f"{cell}_{part}_{k}": v for k, v in figures.items()}
-    print(json.dumps(out))
+    publish("planning", out)
     return 0
 
 

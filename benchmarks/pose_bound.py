@@ -58,6 +58,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 from clean_exit import clean_exit_on_sigterm
+from results import publish
 from scipy.spatial import cKDTree
 from tandemscan.config import load_config
 from tandemscan.daemon.cli import default_plan_path
@@ -371,14 +372,15 @@ def main() -> None:
     mean = {k: round(float(np.mean([r[k] for r in runs])), 5) for k in ("corrected_mm", "bound_mm")}
     med = {k: float(np.median([r[k] for r in runs])) for k in
            ("tracker_only_mm", "corrected_mm", "ratio", "expected_tracker_only_mm", "bound_mm", "bound_ratio")}
-    print(json.dumps({"plan": plan.name, "seeds": args.seeds, "runs": runs,
+    name = f"pose_bound-{plan.name}" + ("-full" if args.resolution == "full" else "")
+    publish(name, {"plan": plan.name, "seeds": args.seeds, "runs": runs,
                       "pose_err_mm_median": med["tracker_only_mm"], "corrected_pose_err_mm_median": med["corrected_mm"],
                       "ratio_median": med["ratio"], "bound_pose_err_mm_median": med["bound_mm"],
                       "expected_tracker_only_mm_median": med["expected_tracker_only_mm"],
                       "bound_ratio_median": med["bound_ratio"], "five_x_within_bound": med["bound_ratio"] >= 5.0,
                       "corrected_mm_mean": mean["corrected_mm"], "bound_mm_mean": mean["bound_mm"],
                       "corrected_over_bound_mean": round(mean["corrected_mm"] / mean["bound_mm"], 3),
-                      "corrected_over_bound_max": max(r["corrected_over_bound"] for r in runs)}))
+                      "corrected_over_bound_max": max(r["corrected_over_bound"] for r in runs)})
 
 
 if __name__ == "__main__":

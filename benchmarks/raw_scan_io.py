@@ -13,7 +13,6 @@ page cache first). The last line of output is one JSON object.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import tempfile
 import time
@@ -21,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 from clean_exit import clean_exit_on_sigterm
+from results import publish
 from tandemscan.pipeline.io.durable import write_durably
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, write_raw_scan
 
@@ -85,7 +85,7 @@ def main() -> None:
         out["compressed_read_cold_s"], _ = _time(lambda: _read_cold(packed), args.repeat)
         out["float64_mb"] = round(sum(np.asarray(v, np.float64).nbytes for v in arrays.values()) / 1e6, 1)
     out["load_average_1min"] = round(os.getloadavg()[0], 2)
-    print(json.dumps(out))
+    publish("raw_scan_io" + ("-scan" if args.scan else ""), out)
 
 
 if __name__ == "__main__":

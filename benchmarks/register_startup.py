@@ -16,7 +16,6 @@ Usage: python benchmarks/register_startup.py [--repeats 5] [--points 30000]
 from __future__ import annotations
 
 import argparse
-import json
 import resource
 import subprocess
 import sys
@@ -26,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 from clean_exit import clean_exit_on_sigterm
+from results import publish
 from tandemscan.pipeline.geometry.frames import from_rotvec, invert, pose_error, transform_points
 from tandemscan.pipeline.io.export import write_ply
 
@@ -88,7 +88,7 @@ def main() -> None:
         modules = {line.split("|")[-1].strip() for line in proc.stderr.splitlines() if line.startswith("import time")}
         out["icp.imports_torch"] = "torch" in modules
         out["icp.imports_open3d"] = "open3d" in modules
-    print(json.dumps(out))
+    publish("register_startup", out)
 
 
 if __name__ == "__main__":

@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import os
 import resource
 import subprocess
@@ -54,6 +53,7 @@ import numpy as np
 import open3d as o3d
 import torch
 from clean_exit import clean_exit_on_sigterm
+from results import publish
 from scipy.spatial.transform import Rotation
 from tandemscan.config.models import CorrectionConfig, DeepMergeConfig
 from tandemscan.pipeline.deepmerge.register import DeepMergeRegistrar
@@ -372,7 +372,7 @@ def main() -> None:
         pairs, delta = sim_pairs()
         out |= summarise([scored(s, t, M, delta, CorrectionConfig(), network, None) for s, t, M in pairs], "sim")
     out["load_average_1min"] = os.getloadavg()[0]
-    print(json.dumps(out))
+    publish("registration" + ("" if args.sets == ",".join(SETS) else "-" + args.sets.replace(",", "-")), out)
 
 
 if __name__ == "__main__":

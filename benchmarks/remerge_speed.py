@@ -23,6 +23,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+from results import publish
 from tandemscan.daemon.finish import MERGE_GROUPS, merge_stage
 from tandemscan.pipeline.io.raw_scan import read_raw_scan
 from tandemscan.pipeline.stitching.worldmap import VoxelMap
@@ -76,10 +77,11 @@ def main() -> None:
         return {"wall_s_median": round(float(np.median(wall)), 3), "cpu_s_median": round(float(np.median(cpu)), 3),
                 "wall_s": [round(float(w), 3) for w in wall], "cpu_s": [round(float(c), 3) for c in cpu]}
 
-    print(json.dumps({"benchmark": "remerge_speed", "job": args.job_dir.name, "scans": len(poses), "voxels": voxels,
+    publish("remerge_speed", {
+                      "benchmark": "remerge_speed", "job": args.job_dir.name, "scans": len(poses), "voxels": voxels,
                       "groups": MERGE_GROUPS, "cores": os.cpu_count(), "grouped": summary("grouped"),
                       "one_map": summary("one_map"), "largest_point_difference_mm": largest_mm,
-                      "load_avg_1min": round(os.getloadavg()[0], 2)}))
+                      "load_avg_1min": round(os.getloadavg()[0], 2)})
 
 
 if __name__ == "__main__":

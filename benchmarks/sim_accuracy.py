@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import tempfile
 import time
 from pathlib import Path
@@ -26,6 +25,7 @@ from pathlib import Path
 import numpy as np
 from clean_exit import clean_exit_on_sigterm
 from job_mounts import add_mounts_option, chosen_mounts, job_config
+from results import publish
 from tandemscan.config import load_config
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.runner import JobRunner
@@ -109,7 +109,9 @@ def main() -> None:
     parser.add_argument("--plan", help="plan file, or 'generated' to plan the whole part (default: the band plan)")
     parser.add_argument("--config", type=Path)
     add_mounts_option(parser)
-    print(json.dumps(asyncio.run(run(parser.parse_args()))))
+    args = parser.parse_args()
+    plan = ("-" + (args.plan if args.plan == "generated" else Path(args.plan).stem)) if args.plan else ""
+    publish("sim_accuracy" + plan + ("-full" if args.resolution == "full" else ""), asyncio.run(run(args)))
 
 
 if __name__ == "__main__":

@@ -27,7 +27,6 @@ grow with height), with the mean tracker-to-target distance.
 from __future__ import annotations
 
 import argparse
-import json
 import tempfile
 from collections import defaultdict
 from pathlib import Path
@@ -35,6 +34,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 from clean_exit import clean_exit_on_sigterm
+from results import publish
 from tandemscan.config import load_config
 from tandemscan.daemon.coordinate_transfer import PoseReading, choose_transfer_poses, pose_transfer, transfer_joints
 from tandemscan.daemon.plan_cmd import plan_configured_part
@@ -230,7 +230,8 @@ def main() -> None:
                              "tracker.transfer_arm_poses); several: each compared on the same plan and seeds")
     parser.add_argument("--transfer-arm-reach", type=float, help="mm the extra poses move the scanner across its "
                                                                   "view (default: tracker.transfer_arm_reach_mm)")
-    print(json.dumps(run(parser.parse_args())))
+    args = parser.parse_args()
+    publish("stitch_chain" + ("" if args.part == "default" else f"-{args.part}"), run(args))
 
 
 if __name__ == "__main__":

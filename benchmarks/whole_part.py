@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import os
 import resource
 import tempfile
@@ -39,6 +38,7 @@ import numpy as np
 import open3d as o3d
 from clean_exit import clean_exit_on_sigterm
 from job_mounts import add_mounts_option, chosen_mounts, job_config
+from results import publish
 from tandemscan.config import load_config
 from tandemscan.daemon.plan_cmd import plan_configured_part
 from tandemscan.daemon.runner import JobRunner
@@ -213,6 +213,18 @@ async def run(args: argparse.Namespace) -> dict:
     }
 
 
+def result_name(args: argparse.Namespace) -> str:
+    """The results file of this run (``results.publish``): ``whole_part`` and the variant that departs from the
+    default instant, coarse, whole default part."""
+    variant = [args.part] if args.part != "default" else []
+    variant += ["full"] if args.resolution == "full" else []
+    variant += ["realtime"] if args.time_scale == 1 else [f"timescale{args.time_scale:g}"] if args.time_scale else []
+    variant += ["stitch-only"] if args.stitch_only else []
+    variant += [f"stations{args.tracker_stations}"] if args.tracker_stations else []
+    variant += [f"samples{args.transfer_samples}"] if args.transfer_samples else []
+    return "-".join(["whole_part", *variant])
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", type=Path, help="cell configuration (default: the simulated cell)")
@@ -226,7 +238,8 @@ def main() -> None:
     parser.add_argument("--transfer-samples", type=int, default=0,
                         help="readings averaged on each side of a transfer (default: the config's)")
     add_mounts_option(parser)
-    print(json.dumps(asyncio.run(run(parser.parse_args()))))
+    args = parser.parse_args()
+    publish(result_name(args), asyncio.run(run(args)))
 
 
 if __name__ == "__main__":

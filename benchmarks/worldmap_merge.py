@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import json
 import os
 import time
 
@@ -28,6 +27,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 import open3d as o3d  # noqa: E402
+from results import publish
 from tandemscan.pipeline.geometry.frames import from_rotvec, invert, transform_points  # noqa: E402
 from tandemscan.pipeline.stitching.worldmap import VoxelMap  # noqa: E402
 
@@ -79,7 +79,7 @@ def main() -> None:
     pcd.normals = o3d.utility.Vector3dVector(normals_W)
     o3d_voxels = len(pcd.voxel_down_sample(1.0).points)
     o3d_s, o3d_cpu = time.perf_counter() - t, time.process_time() - c
-    print(json.dumps({"scan_points": len(points_S), "map_voxels_before": len(base), "map_voxels_after": len(m),
+    publish("worldmap_merge", {"scan_points": len(points_S), "map_voxels_before": len(base), "map_voxels_after": len(m),
                       "scan_voxels": o3d_voxels, "merge_s_median": round(float(np.median(seconds)), 3),
                       "merge_s_min": round(min(seconds), 3),
                       "merge_cpu_s_median": round(float(np.median(cpu)), 3),
@@ -88,7 +88,7 @@ def main() -> None:
                       "merge_float32_cpu_s_min": round(min(cpu32), 3),
                       "batch_merge_into_map_cpu_s_median": round(float(np.median(flush_cpu)), 3),
                       "open3d_voxel_down_sample_s": round(o3d_s, 3), "open3d_cpu_s": round(o3d_cpu, 3),
-                      "load_average_1min": round(os.getloadavg()[0], 2)}))
+                      "load_average_1min": round(os.getloadavg()[0], 2)})
 
 
 if __name__ == "__main__":
