@@ -1,6 +1,9 @@
 """The plans a job can name: files shipped in ``tandemscan.config/plans`` and site plans in
 ``<state dir>/plans`` (TOML or JSON, :class:`tandemscan.pipeline.planning.plan.Plan`), plus the cell's default plan
-made on demand by a factory (the planner, for the configured part)."""
+made on demand by a factory (the planner, for the configured part).
+
+Every plan the catalog hands out has passed its ``check`` (the daemon's: :func:`part_check`, the plan made for the
+configured part), so a job cannot be queued with a plan for another part whatever asks for it (docs/daemon.md)."""
 
 from __future__ import annotations
 
@@ -8,23 +11,45 @@ import logging
 from collections.abc import Callable, Iterable
 from importlib import resources
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from tandemscan.pipeline.planning.plan import Plan, PlanError
+
+if TYPE_CHECKING:
+    from tandemscan.config.models import CellConfig
 
 log = logging.getLogger(__name__)
 
 PLAN_SUFFIXES = (".toml", ".json")
+#: what checks a plan file before a job may run it: raises :class:`PlanError` with the reason
+PlanCheck = Callable[[Plan, Path], None]
+
+
+def part_check(config: CellConfig) -> PlanCheck:
+    """The CLI's :func:`~tandemscan.daemon.plan_cmd.check_plan_part` against ``config``'s part, a mismatch as a
+    :class:`PlanError` naming both parts."""
+    from tandemscan.daemon.plan_cmd import PlanPartError, check_plan_part
+
+    def check(plan: Plan, plan_file: Path) -> None:
+        try:
+            check_plan_part(plan, plan_file, config)
+        except PlanPartError as e:
+            raise PlanError(str(e)) from e
+
+    return check
 
 
 class PlanCatalog:
     """Named plans. ``default_name`` is what an empty job request gets; ``default_factory()`` makes it
-    when no file of that name exists (cached after the first call)."""
+    when no file of that name exists (cached after the first call). ``check`` (when given) vets every plan file
+    :meth:`get` loads."""
 
     def __init__(self, folders: Iterable[Path], default_name: str = "default-band",
-                 default_factory: Callable[[], Plan] | None = None):
+                 default_factory: Callable[[], Plan] | None = None, check: PlanCheck | None = None):
         self.folders = [Path(f) for f in folders]
         self.default_name = default_name
         self._default_factory = default_factory
+        self._check = check
         self._default: Plan | None = None
 
     @staticmethod
@@ -47,11 +72,15 @@ class PlanCatalog:
         return sorted(names)
 
     def get(self, name: str | None) -> Plan:
-        """The plan called ``name`` (None: the default); raises :class:`PlanError` when unknown or invalid."""
+        """The plan called ``name`` (None: the default); raises :class:`PlanError` when unknown, invalid or refused
+        by the catalog's check."""
         name = name or self.default_name
         files = self._files()
         if name in files:
-            return Plan.load(files[name])
+            plan = Plan.load(files[name])
+            if self._check is not None:
+                self._check(plan, files[name])
+            return plan
         if name == self.default_name and self._default_factory is not None:
             if self._default is None:
                 self._default = self._default_factory()

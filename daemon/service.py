@@ -29,7 +29,7 @@ from tandemscan.daemon.jobs import JobManager, RetryPolicy, Runner
 from tandemscan.daemon.journal import journaled_abandon, run_journaled
 from tandemscan.daemon.metrics import DaemonCollector, timing_histograms
 from tandemscan.daemon.notify import Notifier
-from tandemscan.daemon.plans import PlanCatalog
+from tandemscan.daemon.plans import PlanCatalog, part_check
 from tandemscan.daemon.session import CellSession
 from tandemscan.daemon.store import JobStore
 from tandemscan.drivers.shared_array import remove_stale_blocks
@@ -109,7 +109,8 @@ class Daemon:
                                   self.session, RetryPolicy(d.fault_retry_attempts, d.fault_retry_initial_s,
                                                             d.fault_retry_max_s),
                                   journaled_abandon(self.session, config))
-        self.plans = PlanCatalog([PlanCatalog.shipped_folder(), self.state_dir / "plans"], config.daemon.default_plan)
+        self.plans = PlanCatalog([PlanCatalog.shipped_folder(), self.state_dir / "plans"], config.daemon.default_plan,
+                                 check=part_check(config))
         self.notifier = notifier or Notifier()
         self.sse_heartbeat_s = 15.0
         self.loop_lag_s: deque[float] = deque(maxlen=5000)

@@ -17,8 +17,9 @@ from serving import running_server
 from tandemscan.daemon.api import create_app
 from tandemscan.daemon.cell import build_cell
 from tandemscan.daemon.client import SseParser
+from tandemscan.daemon.plans import PlanCatalog
 from tandemscan.daemon.service import BindRefused, Daemon, check_bind, resolve_state_dir, resolve_token
-from tandemscan.pipeline.planning.plan import MoveArm, Plan, Scan
+from tandemscan.pipeline.planning.plan import MoveArm, PartIdentity, Plan, Scan
 from tandemscan.pipeline.stitching.installation import Installation
 from tandemscan.sim_drivers.cell import Simulation
 from tandemscan.sim_drivers.world import SimWorld
@@ -270,6 +271,23 @@ async def test_cell_endpoints(api):
     assert "tandemscan_event_loop_lag_seconds_count" in metrics
     spec = (await api.get("/openapi.json")).json()
     assert {"/v1/jobs", "/v1/jobs/{job_id}", "/v1/jobs/{job_id}/cloud", "/v1/events", "/metrics"} <= set(spec["paths"])
+
+
+async def test_a_plan_for_another_part_is_refused_and_listed_invalid(api):
+    """Issue 42 row 1: the daemon checks a site plan's part against the configured part (the CLI's check)."""
+    shipped = Plan.load(PlanCatalog.shipped_folder() / "default-band.toml")
+    other = PartIdentity(sha256="0" * 64, bbox_min_mm=(0.0, 0.0, 0.0), bbox_max_mm=(500.0, 500.0, 500.0),
+                         triangles=12)
+    shipped.model_copy(update={"name": "box", "part": "box.stl", "part_identity": other}).save(
+        api.daemon.state_dir / "plans" / "box-plan.toml")
+    r = await api.post("/v1/jobs", json={"plan": "box-plan"}, headers=AUTH)
+    detail = assert_problem(r, 409)["detail"]
+    assert "another part (box.stl" in detail and "parametric train nose" in detail
+    assert (await api.get("/v1/jobs")).json()["total"] == 0
+    plans = {p["name"]: p for p in (await api.get("/v1/plans")).json()}
+    assert not plans["box-plan"]["valid"] and "another part (box.stl" in plans["box-plan"]["error"]
+    shipped.save(api.daemon.state_dir / "plans" / "nose.toml")  # made for the configured part: accepted
+    assert (await api.post("/v1/jobs", json={"plan": "nose"}, headers=AUTH)).status_code == 202
 
 
 async def test_operator_stop_and_reset(api):
