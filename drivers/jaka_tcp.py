@@ -3,8 +3,9 @@
 Protocol facts (docs/drivers.md): requests ``{"cmdName": ..., ...}``; replies carry ``errorCode`` (``"0"``
 success; a string, some firmware sends a number) and ``errorMsg``; a reply only means "received", so
 ``power_on``/``enable_robot`` are polled with ``get_robot_state`` until done and a move is complete when the
-status stream shows ``inpos`` at the target. An error code is no reason: whether a Cartesian target is
-reachable is asked of ``kine_inverse``. The status stream is the link watchdog: a gap of
+status stream shows ``inpos`` at the target. An error code is no reason: a refused Cartesian target is out of
+reach only when ``kine_inverse`` answers that it has no solution; any other refusal is a fault with the
+controller's text and the robot's state. The status stream is the link watchdog: a gap of
 ``status_gap_timeout_s`` while waiting on it is a lost link. Degrees and JAKA's fixed x-y-z Euler angles
 exist only inside this module; the interface speaks radians, millimetres and 4x4 ``T_B_E``. The tool offset
 on the controller must be zero, so that its TCP pose is the flange pose ``T_B_E``.
@@ -390,8 +391,10 @@ class JakaTcpArm:
             log.error("%s", self._status_error)
 
     async def _start_move(self, cmd: str, cart: list[float] | None = None, **params: object) -> None:
-        """Refuse a move while the last status shows a stop or fault; else send it. A refused Cartesian move
-        is :class:`OutOfReach` only when ``kine_inverse`` cannot solve the target ``cart`` either."""
+        """Refuse a move while the last status shows a stop or fault; else send it. A refused move is classified by
+        what the controller says: :class:`OutOfReach` only when ``kine_inverse`` answers that it has no solution
+        for the target ``cart`` (errorCode 2, docs/drivers.md); otherwise a :class:`DeviceFault` with the
+        controller's text, the robot's power and enable state, and why reachability is not known."""
         if self._status is not None:
             self._check_safety(self._status)
         reply = await self._request(cmd, self._net.reply_timeout_s, **params)
@@ -401,9 +404,18 @@ class JakaTcpArm:
         if cart is not None:
             ik = await self._request("kine_inverse", self._net.reply_timeout_s, cartPosition=cart,
                                      jointPosition=self._reference_joints_deg())
-            if not succeeded(ik):
+            if _no_ik_solution(ik):
                 raise OutOfReach(self.name, f"{message}; {_error_text('kine_inverse', ik)}")
-        raise DeviceFault(self.name, message)
+            if not succeeded(ik):
+                message += f"; reachability unknown: {_error_text('kine_inverse', ik)}"
+        raise DeviceFault(self.name, message + self._not_ready_text())
+
+    def _not_ready_text(self) -> str:
+        """What the last status says keeps the robot from moving (not powered, not enabled), or ''."""
+        st = self._status or {}
+        missing = [what for key, what in (("powered_on", "not powered"), ("enabled", "not enabled"))
+                   if key in st and not st[key]]
+        return f" (status: robot {', '.join(missing)})" if missing else ""
 
     def _reference_joints_deg(self) -> list[float]:
         """The joints of the last status message (deg): the reference solution for ``kine_inverse``."""
@@ -422,6 +434,12 @@ class JakaTcpArm:
                 with contextlib.suppress(DeviceError):
                     await self._request("stop_program", bound)
             raise
+
+
+def _no_ik_solution(reply: dict) -> bool:
+    """Whether a ``kine_inverse`` reply says the target has no solution: errorCode 2, the controller's code for an
+    inverse-kinematics failure; any other failure (an unknown command, bad parameters) says nothing of reach."""
+    return str(reply.get("errorCode")).strip() == "2" and "unknown command" not in str(reply.get("errorMsg", ""))
 
 
 def _error_text(cmd: str, reply: dict) -> str:

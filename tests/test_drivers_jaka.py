@@ -351,6 +351,26 @@ async def test_refused_move_is_a_fault_with_the_reason_not_out_of_reach(emulator
     await arm.move_linear(reachable)
 
 
+async def test_a_refusal_is_out_of_reach_only_when_kine_inverse_says_so(emulator, arm):
+    """Issue 42 row 8: on a controller that does not know ``kine_inverse``, a move refused because the robot is
+    not enabled is a fault with the controller's text and state, and so is one whose reach cannot be asked."""
+    emulator.behaviour = JakaBehaviour(knows_kine_inverse=False)
+    reachable = ArmKinematics(ArmConfig()).forward(Q_TARGET)
+    emulator.set_power(True, False)  # powered, servos disabled
+    await asyncio.sleep(0.05)  # the status stream shows it
+    with pytest.raises(DeviceFault, match="robot is not enabled; reachability unknown: kine_inverse: error 1: "
+                                          r"unknown command 'kine_inverse' \(status: robot not enabled\)") as info:
+        await arm.move_linear(reachable)
+    assert not isinstance(info.value, OutOfReach)
+    emulator.set_power(True, True)
+    far = np.eye(4)
+    far[:3, 3] = [3000.0, 0.0, 0.0]
+    with pytest.raises(DeviceFault, match="moveL: error 2: inverse kinematics failed; reachability unknown") as info:
+        await arm.move_linear(far)
+    assert not isinstance(info.value, OutOfReach)
+    await arm.move_linear(reachable)
+
+
 async def test_protective_stop_refuses_moves_as_safety_stop(emulator, arm):
     emulator.faults.protective_stop = True
     await asyncio.sleep(0.05)  # the stop reaches the driver through the status stream

@@ -58,6 +58,7 @@ class JakaBehaviour:
     status_bytes: int = 0  # > 0: status objects padded with vendor keys (din, dout, ain, ...) to about this size
     move_start_delay_s: float = 0.0  # wall seconds from a move's reply until the arm starts it; meanwhile the
     # status still shows the last move's inpos (a real controller plans first and pushes every 8 ms)
+    knows_kine_inverse: bool = True  # False: an older controller that answers kine_inverse as an unknown command
 
 
 class JointMotion:
@@ -282,7 +283,7 @@ class JakaEmulator:
             return {"tcp_pos": self.tcp_pose(self.joints_deg())}
         elif name == "get_data":
             return self.status_message()
-        elif name == "kine_inverse":
+        elif name == "kine_inverse" and self.behaviour.knows_kine_inverse:
             return await self._kine_inverse(req)
         elif name in ("stop_program", "clear_error", "quit"):
             self.motion.halt(now)
