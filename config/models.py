@@ -529,6 +529,10 @@ class SimWorldConfig(_Strict):
     time_scale: float = Field(0.0, ge=0, description="simulated motion time x this = wall time; 0 = instant")
     fault_scanner_timeout_every: int = Field(0, ge=0, description="every n-th capture times out; 0 = never")
     fault_estop_after_moves: int = Field(0, ge=0, description="e-stop after n chassis moves; 0 = never")
+    fault_arm_after_moves: int = Field(0, ge=0, description="the n-th arm move and every later one fail with a servo "
+                                                            "fault; 0 = never")
+    fault_tracker_after_frames: int = Field(0, ge=0, description="after n tracker frames the tracker stops answering "
+                                                                 "(every reading times out); 0 = never")
     as_built: AsBuiltConfig = AsBuiltConfig()
     reference_spheres: bool = Field(
         False, description="the fixture carries the reference spheres of [inspection] (at their CAD centres)"

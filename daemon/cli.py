@@ -1,10 +1,12 @@
 """The operator's command line: ``tandemscan <command>``.
 
-Each command is a function taking the parsed arguments and returning an exit status. Bad input (a missing
-or invalid config, plan or mesh) prints one clear error line and exits with status 2, never a traceback.
-Commands that move hardware (``measure``, ``calibrate``, ``serve``) open a cell session
-(:mod:`tandemscan.daemon.session`): the supervisor's safety polling, latch and interlock hold for each; a
-safety stop ends the command with one line and status 3.
+Each command is a function taking the parsed arguments and returning an exit status. Every failure ends in one
+line on stderr and the exit status of its kind, never a traceback (docs/daemon.md, "Exit status"): bad input (a
+missing or invalid config, plan, mesh, calibration file, an unwritable output) 2, a safety stop 3, a device fault
+4, a job or calibration that ran but could not produce its result 5, a defect of the program 70 (its traceback
+logged with ``-v``). Commands that move hardware (``measure``, ``calibrate``, ``serve``) open a cell session
+(:mod:`tandemscan.daemon.session`): the supervisor's safety polling, latch and interlock hold for each; their
+background workers stop with the command.
 """
 
 from __future__ import annotations
@@ -19,20 +21,58 @@ from importlib import resources
 from pathlib import Path
 
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from tandemscan.config import CellConfig, ConfigError, load_config
 
 EXIT_USAGE = 2
 EXIT_SAFETY_STOP = 3
+EXIT_DEVICE_FAULT = 4
+EXIT_NOT_COMPLETED = 5
+EXIT_INTERNAL = 70
+EXIT_INTERRUPTED = 130
 console = Console(stderr=True)
+log = logging.getLogger(__name__)
 
 
-class UsageError(Exception):
+class CommandError(Exception):
+    """A command that ends in one line (``label: message``) and its exit ``status``."""
+
+    label = "error"
+    status = EXIT_USAGE
+
+
+class UsageError(CommandError):
     """Bad input from the operator: reported as one line, exit status 2."""
 
 
-class SafetyStopped(Exception):
+class SafetyStopped(CommandError):
     """A command was stopped by a safety stop: reported as one line, exit status 3."""
+
+    label = "safety stop"
+    status = EXIT_SAFETY_STOP
+
+
+class DeviceFaulted(CommandError):
+    """A device timed out, reported a fault, lost the target or could not reach: one line, exit status 4."""
+
+    label = "device fault"
+    status = EXIT_DEVICE_FAULT
+
+
+class NotCompleted(CommandError):
+    """A job or calibration ran but could not produce its result: one line, exit status 5."""
+
+    label = "not completed"
+    status = EXIT_NOT_COMPLETED
+
+
+class Defect(CommandError):
+    """An exception no command expects (a defect of the program): one line, exit status 70; ``-v`` logs its
+    traceback."""
+
+    label = "internal error"
+    status = EXIT_INTERNAL
 
 
 def default_plan_path() -> Path:
@@ -66,10 +106,12 @@ def cmd_measure(args: argparse.Namespace) -> int:
     """Run a complete measurement job on the configured cell (the simulated cell by default)."""
     from tandemscan.daemon.installation import InstallationError
     from tandemscan.daemon.runner import JobError, JobRunner
+    from tandemscan.daemon.stitcher import LocalWorldMap
     from tandemscan.pipeline.geometry.part import PartMeshError
     from tandemscan.pipeline.planning.plan import PlanError
 
     config = _load_config_with_overrides(args)
+    Console().print(_mounts_line(config), highlight=False, soft_wrap=True)
     out = Path(args.out) if args.out else config.job.out_dir
     job_dir = out / datetime.now().strftime("job-%Y%m%d-%H%M%S")
     try:
@@ -77,18 +119,49 @@ def cmd_measure(args: argparse.Namespace) -> int:
     except (PlanError, PartMeshError) as e:
         raise UsageError(str(e)) from e
     session = _session(config)
+    job_dir.mkdir(parents=True, exist_ok=True)  # an output that cannot be written is bad input, before any motion
+    worldmap = LocalWorldMap(config.job.voxel_mm)
 
     async def run():
         async with session:
             with _progress_bar() as bar:
                 task = bar.add_task("starting", total=len(plan.steps) + 1)
                 runner = JobRunner(session, plan, config, job_dir,
-                                   lambda p: bar.update(task, completed=p.done, total=p.total, description=p.message))
+                                   lambda p: bar.update(task, completed=p.done, total=p.total, description=p.message),
+                                   worldmap=worldmap)
                 return await runner.run()
 
-    result = _run_moving(run, (JobError, InstallationError), f"scans measured so far are in {job_dir / 'scans'}")
+    try:  # the pair registration's worker stops with the command, whatever ends it
+        result = _run_moving(run, f"scans measured so far are in {job_dir / 'scans'}",
+                             usage=(JobError, InstallationError))
+    finally:
+        worldmap.close()
     _print_summary(result.report, result.job_dir)
     return 0
+
+
+def _mounts_line(config: CellConfig) -> str:
+    """``measure``'s first line: the mounts the job stitches with (``job.installation_source``); on the nominal
+    ones a warning that the cell is not calibrated. An unreadable calibration file is a :class:`UsageError`."""
+    from tandemscan.daemon.installation import InstallationError, installation_for_job
+
+    try:
+        installation_for_job(config)
+    except InstallationError as e:
+        raise UsageError(f"{e} (write one with `tandemscan calibrate`)") from e
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise UsageError(f"calibration file {config.job.calibration_file}: not a calibration "
+                         f"({type(e).__name__}: {e})") from e
+    if config.job.installation_source == "nominal":
+        return ("mounts: nominal (the CAD values of \\[installation]); [bold yellow]warning:[/bold yellow] the cell is "
+                "not calibrated, the stitch errs by how far the build is from CAD: run `tandemscan calibrate`, then "
+                "`tandemscan measure --calibration FILE`")
+    sources = json.loads(Path(config.job.calibration_file).read_text(encoding="utf-8")).get("sources", {})
+    calibrated = [k for k, v in sources.items() if v != "nominal"]
+    nominal = [k for k, v in sources.items() if v == "nominal"]
+    detail = (f"; calibrated {', '.join(calibrated) or 'none'}" + (f", nominal {', '.join(nominal)}" if nominal else "")
+              if sources else "")
+    return f"mounts: calibration file {escape(str(config.job.calibration_file))}{detail}"
 
 
 def _plan_to_measure(args: argparse.Namespace, config: CellConfig, job_dir: Path):
@@ -125,17 +198,27 @@ def _session(config: CellConfig):
         raise UsageError(str(e)) from e
 
 
-def _run_moving(run, job_error: type[Exception] | tuple[type[Exception], ...], kept: str):
-    """``asyncio.run(run())`` of a command that moves hardware: a safety stop becomes :class:`SafetyStopped`
-    (the line says what was kept), a device fault or ``job_error`` a :class:`UsageError`."""
+def _run_moving(run, kept: str, usage: tuple[type[Exception], ...] = (),
+                not_completed: tuple[type[Exception], ...] = ()):
+    """``asyncio.run(run())`` of a command that moves hardware, every failure a :class:`CommandError` whose line
+    ends in ``kept`` (what was kept): a safety stop :class:`SafetyStopped`, another device error
+    :class:`DeviceFaulted`, ``usage`` a :class:`UsageError`, ``not_completed`` or an output that could not be
+    written :class:`NotCompleted`, anything else a :class:`Defect` (its traceback logged at debug level)."""
     from tandemscan.drivers.errors import DeviceError, SafetyStop
 
     try:
         return asyncio.run(run())
     except SafetyStop as e:
         raise SafetyStopped(f"{e}; {kept}") from e
-    except (job_error, DeviceError) as e:
-        raise UsageError(str(e)) from e
+    except DeviceError as e:
+        raise DeviceFaulted(f"{e}; {kept}") from e
+    except usage as e:
+        raise UsageError(f"{e}; {kept}") from e
+    except (*not_completed, OSError) as e:
+        raise NotCompleted(f"{e}; {kept}") from e
+    except Exception as e:
+        log.debug("traceback of the defect", exc_info=e)
+        raise Defect(f"{type(e).__name__}: {e}; {kept}") from e
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
@@ -145,6 +228,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     config = _load_config_with_overrides(args)
     session = _session(config)
     out_file = Path(args.out) if args.out else config.calibration.output_file
+    out_file.parent.mkdir(parents=True, exist_ok=True)  # an output that cannot be written is bad input, before motion
 
     async def run():
         async with session:
@@ -153,7 +237,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
                 return await run_calibration(
                     session, config, out_file, lambda d, t, m: bar.update(task, completed=d, total=t, description=m))
 
-    run = _run_moving(run, CalibrationJobError, f"no calibration written to {out_file}")
+    run = _run_moving(run, f"no calibration written to {out_file}", not_completed=(CalibrationJobError,))
     s = run.hand_eye.summary()
     out = Console()
     out.print(f"[bold]calibration[/bold] {run.file}: T_T_S from {run.poses_used} poses ({s['method']}), "
@@ -314,21 +398,30 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``tandemscan`` console script."""
+    """Entry point of the ``tandemscan`` console script: every failure one line and its exit status."""
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
         return args.func(args)
-    except (UsageError, ConfigError) as e:
-        console.print(f"[red]error:[/red] {e}", highlight=False, soft_wrap=True)
-        return EXIT_USAGE
-    except SafetyStopped as e:
-        console.print(f"[red]safety stop:[/red] {e}", highlight=False, soft_wrap=True)
-        return EXIT_SAFETY_STOP
     except KeyboardInterrupt:
         console.print("[yellow]interrupted[/yellow]")
-        return 130
+        return EXIT_INTERRUPTED
+    except Exception as e:  # noqa: BLE001 - the operator gets one line, never a traceback
+        failure = _as_command_error(e)
+        console.print(f"[red]{failure.label}:[/red] {escape(str(failure))}", highlight=False, soft_wrap=True)
+        return failure.status
+
+
+def _as_command_error(e: Exception) -> CommandError:
+    """The one line and status of any exception that ends a command: bad config or an unreadable or unwritable
+    file is usage, anything no command expects a :class:`Defect` (its traceback logged at debug level)."""
+    if isinstance(e, CommandError):
+        return e
+    if isinstance(e, ConfigError | OSError):
+        return UsageError(str(e))
+    log.debug("traceback of the defect", exc_info=e)
+    return Defect(f"{type(e).__name__}: {e} (a defect of tandemscan: `tandemscan -v ...` logs its traceback)")
 
 
 if __name__ == "__main__":

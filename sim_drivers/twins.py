@@ -2,7 +2,8 @@
 
 Each twin implements its Protocol from :mod:`tandemscan.drivers.interfaces`. Motion takes simulated time
 (``sim.time_scale`` x the physical duration in wall time; 0 makes it instant). Injected faults come from
-``[sim]`` settings: scanner timeouts and an e-stop after a number of chassis moves. Every move, capture and
+``[sim]`` settings: scanner timeouts, an e-stop after a number of chassis moves, an arm servo fault from its n-th
+move on and a tracker that stops answering after n frames. Every move, capture and
 reading saves the world's state where it has a state file (``sim_drivers.persist``), as a real cell keeps
 its robots where they stopped.
 """
@@ -13,7 +14,7 @@ import asyncio
 import time
 
 import numpy as np
-from tandemscan.drivers.errors import DeviceTimeout, NotConnected, SafetyStop
+from tandemscan.drivers.errors import DeviceFault, DeviceTimeout, NotConnected, SafetyStop
 from tandemscan.drivers.interfaces import (
     ChassisPose,
     DeviceStatus,
@@ -115,12 +116,20 @@ class SimChassis(_SimDevice):
 class SimArm(_SimDevice):
     """A JAKA Zu twin: joint moves within limits at the configured joint speed."""
 
+    def __init__(self, name: str, world: SimWorld):
+        super().__init__(name, world)
+        self._moves = 0
+
     async def enable(self) -> None:
         self._require_connected()
 
     async def move_joints(self, joints_rad: np.ndarray, timeout_s: float | None = None) -> None:
         self._require_connected()
         self._require_motion_allowed()
+        self._moves += 1
+        n = self.world.config.sim.fault_arm_after_moves
+        if n and self._moves >= n:
+            raise DeviceFault(self.name, "servo fault on joint 2 (injected fault)")
         self._state = "moving"
         self.world.motion.start(SimWorld.MEASURE_ROBOT)
         try:
@@ -194,6 +203,9 @@ class SimTracker(_SimDevice):
 
     async def read_pose(self, timeout_s: float | None = None) -> TrackerReading:
         self._require_connected()
+        n = self.world.config.sim.fault_tracker_after_frames
+        if n and self.world.tracker_frames >= n:
+            raise DeviceTimeout(self.name, "no pose within the timeout (injected fault)")
         await self._elapse(_TRACKER_FRAME_S)
         try:
             T_C_T, cov = self.world.measure_target()
