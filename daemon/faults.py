@@ -12,6 +12,8 @@
 from __future__ import annotations
 
 import errno
+import os
+import re
 import sqlite3
 from dataclasses import dataclass
 from typing import Literal
@@ -29,6 +31,14 @@ from tandemscan.drivers.errors import (
 STORAGE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EIO, errno.EROFS, errno.EFBIG})
 #: what a failed write of the journal or a file raises
 STORAGE_ERRORS = (OSError, sqlite3.OperationalError, sqlite3.DatabaseError)
+#: how libraries that raise without an errno say a write was refused: the C library's texts of
+#: :data:`STORAGE_ERRNOS` (formatted into their messages), numpy's ``tofile`` ("Not enough free space to write N
+#: bytes", "N requested and M written"), libE57Format through pye57 ("write() failed (ErrorWriteFailed)")
+STORAGE_MESSAGE = re.compile("|".join([*(re.escape(os.strerror(e)) for e in sorted(STORAGE_ERRNOS)),
+                                       r"Not enough free space", r"\d+ requested and \d+ written",
+                                       r"ErrorWriteFailed", r"database or disk is full"]), re.IGNORECASE)
+#: what in a storage fault's text says the disk is full (rather than failing or read-only)
+_FULL = re.compile(r"full|free space|no space|quota|requested and \d+ written", re.IGNORECASE)
 
 
 @dataclass(frozen=True)
@@ -41,16 +51,28 @@ class JobFault:
 
 
 def is_storage_error(exc: BaseException) -> bool:
-    """Whether ``exc`` is a failed write of the journal or of a file (full disk, read-only or failing medium)."""
-    if isinstance(exc, (sqlite3.OperationalError, sqlite3.DatabaseError)):
-        return True
-    return isinstance(exc, OSError) and exc.errno in STORAGE_ERRNOS
+    """Whether ``exc`` (or an exception it was raised from) is a failed write of the journal or of a file (full
+    disk, read-only or failing medium): an SQLite error, an ``OSError`` with one of :data:`STORAGE_ERRNOS`, or any
+    exception whose text is one of :data:`STORAGE_MESSAGE` (numpy, pye57 and others raise without an errno)."""
+    seen: set[int] = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        if isinstance(exc, (sqlite3.OperationalError, sqlite3.DatabaseError)):
+            return True
+        if isinstance(exc, OSError) and exc.errno in STORAGE_ERRNOS:
+            return True
+        if STORAGE_MESSAGE.search(str(exc)):
+            return True
+        exc = exc.__cause__ or exc.__context__
+    return False
 
 
 def classify_fault(exc: BaseException) -> JobFault | None:
-    """The recoverable fault ``exc`` is, or None when it is unrecoverable (the job fails)."""
-    if is_storage_error(exc):
-        detail = "disk full" if getattr(exc, "errno", None) == errno.ENOSPC or "full" in str(exc) else "write failed"
+    """The recoverable fault ``exc`` is, or None when it is unrecoverable (the job fails). A device's error is
+    the device's, whatever it was raised from."""
+    if not isinstance(exc, DeviceError) and is_storage_error(exc):
+        full = getattr(exc, "errno", None) in (errno.ENOSPC, errno.EDQUOT) or _FULL.search(str(exc))
+        detail = "disk full" if full else "write failed"
         return JobFault("storage", f"storage fault ({detail}): {type(exc).__name__}: {exc}; free space, then resume")
     if isinstance(exc, OutOfReach) or not isinstance(exc, DeviceError):
         return None

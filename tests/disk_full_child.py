@@ -1,7 +1,8 @@
 """A daemon job on a full disk, run by ``tests/test_daemon_disk_full.py`` inside ``unshare --user --map-root-user
 --mount`` so that it can mount a small tmpfs as its state folder: the simulated cell (twins) on a box part, the
-trimmed default plan; the disk is filled after the first scan commits, freed after the job paused. Prints one JSON
-object (the outcome) as its last line. Usage: ``disk_full_child.py WORK_DIR``."""
+trimmed default plan; the disk is filled after the first scan commits (``scan``) or once every step is committed,
+as the end-of-job export starts (``export``), and freed after the job paused. Prints one JSON object (the outcome)
+as its last line. Usage: ``disk_full_child.py WORK_DIR [scan|export]``."""
 
 from __future__ import annotations
 
@@ -55,7 +56,7 @@ async def wait_for(predicate, timeout_s: float, period_s: float = 0.02) -> bool:
     return True
 
 
-async def main(work: Path) -> dict:
+async def main(work: Path, phase: str) -> dict:
     state = work / "state"
     cfg = load_config()
     cfg = cfg.model_copy(update={
@@ -73,7 +74,10 @@ async def main(work: Path) -> dict:
         mgr, store = daemon.manager, daemon.store
         job, _ = await mgr.submit("trimmed", {"plan": plan.model_dump(mode="json"), "label": None}, len(plan.steps),
                                   None, None)
-        await wait_for(lambda: len(store.scans(job.id)) >= 1, 120)
+        if phase == "export":
+            await wait_for(lambda: store.steps_done(job.id) == len(plan.steps), 120, period_s=0.002)
+        else:
+            await wait_for(lambda: len(store.scans(job.id)) >= 1, 120)
         t0 = time.monotonic()
         filler = state / "filler.bin"
         out["filled_bytes"] = fill(filler)
@@ -96,7 +100,9 @@ async def main(work: Path) -> dict:
                 "scan_steps": [s.step_idx for s in store.scans(job.id)],
                 "scan_files": sorted(p.name for p in (store.job_dir(job.id) / "scans").iterdir())}
         if done.state == "succeeded":
-            out["report_scans"] = json.loads((store.job_dir(job.id) / "report.json").read_text())["scans"]
+            report = json.loads((store.job_dir(job.id) / "report.json").read_text())
+            out |= {"report_scans": report["scans"], "report_attempts": report["attempts"],
+                    "report_resumes": report["resumes"]}
     finally:
         await daemon.close()
     return out
@@ -106,4 +112,4 @@ if __name__ == "__main__":
     work = Path(sys.argv[1])
     (work / "state").mkdir(parents=True, exist_ok=True)
     subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={TMPFS_MB}m", "tmpfs", str(work / "state")], check=True)
-    print(json.dumps(asyncio.run(main(work))))
+    print(json.dumps(asyncio.run(main(work, sys.argv[2] if len(sys.argv) > 2 else "scan"))))

@@ -11,7 +11,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+from tandemscan.daemon.faults import classify_fault
+from tandemscan.drivers.errors import NotConnected
 
 CHILD = Path(__file__).with_name("disk_full_child.py")
 
@@ -23,10 +26,10 @@ def _namespaces_work() -> bool:
     return probe.returncode == 0
 
 
-def run_disk_full(tmp_path: Path) -> dict:
-    """The child's outcome (its last output line)."""
+def run_disk_full(tmp_path: Path, phase: str = "scan") -> dict:
+    """The child's outcome (its last output line); the disk fills in ``phase`` (``scan`` or ``export``)."""
     proc = subprocess.run(["unshare", "--user", "--map-root-user", "--mount", sys.executable, str(CHILD),
-                           str(tmp_path)], capture_output=True, text=True, timeout=600)
+                           str(tmp_path), phase], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
@@ -51,3 +54,42 @@ def test_a_full_disk_pauses_the_job_loudly_and_it_completes_once_space_returns(t
                                 "after space returned, succeeded", "reason": out["reason"],
                                 "left_running_s": out["left_running_s"], "health": health["status"],
                                 "scans": len(out["scan_steps"])}) + "\n")
+
+
+@pytest.mark.skipif(not _namespaces_work(), reason="needs unprivileged user and mount namespaces (a tmpfs)")
+def test_a_full_disk_during_the_export_pauses_and_the_job_completes_with_its_report(tmp_path):
+    """Issue 42 row 3: numpy's ``tofile`` raises an ``OSError`` without errno on a full disk; the export pauses like
+    any phase, and once space returns the resumed job writes report.json with every scan once."""
+    out = run_disk_full(tmp_path, "export")
+    assert out["state_on_full_disk"] == "paused_fault" and out["reason"].startswith("storage fault (disk full)"), out
+    assert out["committed_scans_on_full_disk"] == [2, 4, 8]  # every step was committed before the export
+    assert out["final_state"] == "succeeded", out["final_error"]
+    assert out["scan_steps"] == [2, 4, 8] and out["report_scans"] == 3 and out["report_attempts"] == 2
+    assert out["scan_files"] == ["scan-0000.npz", "scan-0001.npz", "scan-0002.npz"]
+
+
+def _raised(write) -> BaseException:
+    try:
+        write()
+    except Exception as e:  # noqa: BLE001 - what the library raises is the point
+        return e
+    raise AssertionError("the write to /dev/full did not fail")
+
+
+@pytest.mark.skipif(not Path("/dev/full").is_char_device(), reason="needs /dev/full")
+def test_storage_faults_are_recognised_by_what_they_are_not_by_errno():
+    """numpy's ``tofile`` raises on a full device without an errno; so does pye57 (its text, not run here: it
+    removes the file it could not write): both are storage faults, a device's error stays the device's."""
+    def numpy_tofile():
+        with open("/dev/full", "wb") as f:
+            np.zeros(1 << 17).tofile(f)
+
+    exc = _raised(numpy_tofile)
+    assert isinstance(exc, OSError) and exc.errno is None
+    fault = classify_fault(exc)
+    assert fault is not None and fault.reason.startswith("storage fault (disk full)"), exc
+    assert classify_fault(RuntimeError("write() failed (ErrorWriteFailed)")).kind == "storage"
+    link = NotConnected("tracker", "link lost")
+    link.__cause__ = OSError(5, "Input/output error")
+    assert classify_fault(link).kind == "device"
+    assert classify_fault(ValueError("bad plan")) is None
