@@ -168,6 +168,8 @@ class JobRunner:
             scan = (record.file, record.point_count) if isinstance(record, ScanRecord) else ()
             await self.journal.commit(i, step.kind, record.to_json(), *scan)
             self.state = apply(self.state, record)
+        if resuming:  # every step was committed before this attempt: it resumes in the export, nothing moves
+            await self.journal.record_resume(len(self.plan.steps), {"step": len(self.plan.steps), "kind": "export"})
         measured_at = time.monotonic()  # the last step committed: from here the operator waits for the report
         self.progress(JobProgress(total - 1, total, "correcting the stitch, writing cloud and report"))
         finished = await self.worldmap.finish(self.snapshot(), started, measured_at)

@@ -65,6 +65,7 @@ def test_a_full_disk_during_the_export_pauses_and_the_job_completes_with_its_rep
     assert out["committed_scans_on_full_disk"] == [2, 4, 8]  # every step was committed before the export
     assert out["final_state"] == "succeeded", out["final_error"]
     assert out["scan_steps"] == [2, 4, 8] and out["report_scans"] == 3 and out["report_attempts"] == 2
+    assert out["report_resumes"] == [{"step": 9, "kind": "export"}]  # issue 42 row 7: a resume in the export
     assert out["scan_files"] == ["scan-0000.npz", "scan-0001.npz", "scan-0002.npz"]
 
 

@@ -225,7 +225,8 @@ def test_sigkill_mid_job_resumes_with_every_scan_once(tmp_path, reference):
     assert hits == list(kill_points)
     assert job["state"] == "succeeded", job
     assert job["attempts"] == 1 + len(kill_points)
-    assert len(report["resumes"]) == 3  # the export kill resumes with no step left: no fresh reading
+    assert len(report["resumes"]) == 4  # the export kill resumes with no step left: listed, no fresh reading
+    assert report["resumes"][-1] == {"step": n_steps, "kind": "export"}
     scans = sorted(os.listdir(state / "jobs" / job_id / "scans"))
     assert scans == [f"scan-{i:04d}.npz" for i in range(17)]  # no orphan, no duplicate
     db = sqlite3.connect(state / "journal.sqlite")
