@@ -30,6 +30,8 @@ EXIT_SAFETY_STOP = 3
 EXIT_DEVICE_FAULT = 4
 EXIT_NOT_COMPLETED = 5
 EXIT_INTERNAL = 70
+EXIT_RETRY_LATER = 75  # sysexits EX_TEMPFAIL: serve's port is taken (systemd restarts it)
+EXIT_NOT_STARTED = 78  # sysexits EX_CONFIG: serve cannot use its state directory or port (no restart)
 EXIT_INTERRUPTED = 130
 console = Console(stderr=True)
 log = logging.getLogger(__name__)
@@ -65,6 +67,17 @@ class NotCompleted(CommandError):
 
     label = "not completed"
     status = EXIT_NOT_COMPLETED
+
+
+class NotStarted(CommandError):
+    """``serve`` could not start (state directory, journal, port): one line, exit status 78, or 75 when waiting
+    may help (its port is taken)."""
+
+    label = "daemon not started"
+
+    def __init__(self, message: str, retry: bool):
+        super().__init__(message)
+        self.status = EXIT_RETRY_LATER if retry else EXIT_NOT_STARTED
 
 
 class Defect(CommandError):
@@ -268,7 +281,7 @@ def _print_summary(report: dict, job_dir: Path) -> None:
 
 def cmd_serve(args: argparse.Namespace) -> int:
     """Run the daemon: devices, job queue and the REST API (``docs/daemon.md``)."""
-    from tandemscan.daemon.service import BindRefused, serve
+    from tandemscan.daemon.service import BindRefused, StartupError, serve
 
     if not args.verbose:
         logging.getLogger("tandemscan").setLevel(logging.INFO)
@@ -276,6 +289,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
         serve(args.config, args.host, args.port)
     except BindRefused as e:
         raise UsageError(str(e)) from e
+    except StartupError as e:
+        raise NotStarted(str(e), e.retry) from e
     return 0
 
 

@@ -4,15 +4,23 @@ systemd notification in one object, and ``serve()`` that puts the REST API in fr
 Environment: ``TANDEMSCAN_API_TOKEN`` (bearer token of mutating calls; overrides ``[daemon] api_token``),
 ``TANDEMSCAN_STATE_DIR`` (default: systemd's ``$STATE_DIRECTORY``, else ``./state``), ``NOTIFY_SOCKET`` and
 ``WATCHDOG_USEC`` (set by systemd).
+
+Start-up errors (:class:`StartupError`: the state directory or its journal unusable, the port not bindable) are
+found before any device is touched and end ``tandemscan serve`` in one line and their own exit status
+(docs/daemon.md, "Exit status"), which the systemd unit does not restart on.
 """
 
 from __future__ import annotations
 
 import asyncio
+import errno
 import ipaddress
 import logging
 import os
 import shutil
+import socket
+import sqlite3
+import tempfile
 import time
 from collections import deque
 from collections.abc import Mapping
@@ -45,6 +53,46 @@ WORLD_STATE_FILE = "sim_world.json"
 
 class BindRefused(Exception):
     """The daemon was asked to listen beyond loopback without an API token."""
+
+
+class StartupError(Exception):
+    """The daemon cannot start: its state directory, its journal or its port (one line for the operator).
+    ``retry`` is True where waiting may help (the port is held by another process)."""
+
+    def __init__(self, message: str, retry: bool = False):
+        super().__init__(message)
+        self.retry = retry
+
+
+def open_state(state_dir: Path) -> JobStore:
+    """The job store in ``state_dir``, once a file could be written there; :class:`StartupError` when the folder
+    cannot be made or written (a read-only mount, a file in the way, no permission) or the journal not opened."""
+    try:
+        state_dir.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=state_dir):
+            pass
+        return JobStore(state_dir)
+    except (OSError, sqlite3.Error) as e:
+        raise StartupError(f"state directory {state_dir} is not usable: {type(e).__name__}: {e} (set "
+                           f"{STATE_DIR_ENV}, or systemd's StateDirectory=, to a writable folder)") from e
+
+
+def listening_socket(host: str, port: int) -> socket.socket:
+    """A TCP socket bound to ``host:port`` for the REST server; :class:`StartupError` (``retry`` when the address
+    is in use) when it cannot be bound."""
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(host.strip("[]"), port, type=socket.SOCK_STREAM,
+                                                             flags=socket.AI_PASSIVE)[0]
+        sock = socket.socket(family, kind, proto)
+    except OSError as e:
+        raise StartupError(f"cannot listen on {host}:{port}: {e}") from e
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(address)
+    except OSError as e:
+        sock.close()
+        raise StartupError(f"cannot listen on {host}:{port}: {e.strerror or e}", e.errno == errno.EADDRINUSE) from e
+    return sock
 
 
 def resolve_state_dir(environ: Mapping[str, str] | None = None) -> Path:
@@ -96,7 +144,7 @@ class Daemon:
         self.token = token
         self.version = _package_version()
         self.state_dir = Path(state_dir)
-        self.store = JobStore(self.state_dir)
+        self.store = open_state(self.state_dir)
         self.bus = EventBus()
         self.registry = CollectorRegistry()
         self.lag_histogram, lateness_histogram = timing_histograms(self.registry)
@@ -200,7 +248,8 @@ class Daemon:
 
 def serve(config_path: Path | str | None = None, host: str | None = None, port: int | None = None,
           environ: Mapping[str, str] | None = None) -> None:
-    """Run the daemon and its REST API until SIGTERM/SIGINT (``tandemscan serve``)."""
+    """Run the daemon and its REST API until SIGTERM/SIGINT (``tandemscan serve``); :class:`StartupError` when its
+    port or state directory cannot be used."""
     import uvicorn
     from tandemscan.daemon.api import create_app
 
@@ -209,7 +258,11 @@ def serve(config_path: Path | str | None = None, host: str | None = None, port: 
     host = host or config.daemon.host
     port = config.daemon.port if port is None else port
     check_bind(host, token)
-    daemon = Daemon(config, resolve_state_dir(environ), token=token)
-    app = create_app(daemon, manage_lifecycle=True)
-    uvicorn.Server(uvicorn.Config(app, host=host, port=port, log_config=None, access_log=False,
-                                  timeout_graceful_shutdown=10)).run()
+    sock = listening_socket(host, port)  # before any device is touched: a taken port ends the start at once
+    try:
+        daemon = Daemon(config, resolve_state_dir(environ), token=token)
+        app = create_app(daemon, manage_lifecycle=True)
+        uvicorn.Server(uvicorn.Config(app, host=host, port=port, log_config=None, access_log=False,
+                                      timeout_graceful_shutdown=10)).run(sockets=[sock])
+    finally:
+        sock.close()

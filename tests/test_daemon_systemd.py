@@ -54,6 +54,51 @@ def test_unit_is_a_hardened_notify_service():
     assert "PrivateNetwork" not in s  # CAN is a network interface
 
 
+def _namespaces_work() -> bool:
+    if shutil.which("unshare") is None:
+        return False
+    probe = subprocess.run(["unshare", "--user", "--map-root-user", "--mount", "true"], capture_output=True)
+    return probe.returncode == 0
+
+
+def _serve(state: Path, port: int, wrap: list[str] = ()) -> subprocess.CompletedProcess:
+    exe = Path(sys.executable).parent / "tandemscan"
+    env = {**os.environ, "TANDEMSCAN_STATE_DIR": str(state)}
+    return subprocess.run([*wrap, str(exe), "serve", "--port", str(port)], capture_output=True, text=True, env=env,
+                          timeout=120)
+
+
+def _one_line(r: subprocess.CompletedProcess, status: int, start: str) -> str:
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == status and len(lines) == 1 and lines[0].startswith(start), (r.returncode, r.stderr)
+    return lines[0]
+
+
+def test_start_up_errors_are_one_line_and_a_status_systemd_does_not_restart_on(tmp_path):
+    """Issue 42 row 5: an unusable state directory or a taken port ends ``serve`` in one line and its own exit
+    status (documented), before any device is touched; the unit does not restart on a permanent one."""
+    in_the_way = tmp_path / "state"
+    in_the_way.write_text("a file where the state directory should be")
+    line = _one_line(_serve(in_the_way, 0), 78, "daemon not started: state directory")
+    assert str(in_the_way) in line
+    if _namespaces_work():  # a read-only mount, as on a site whose /var/lib went read-only
+        ro = tmp_path / "ro"
+        ro.mkdir()
+        script = f'mount -t tmpfs -o ro tmpfs {ro} && exec "$@"'
+        r = _serve(ro, 0, ["unshare", "--user", "--map-root-user", "--mount", "sh", "-c", script, "sh"])
+        assert "Read-only file system" in _one_line(r, 78, "daemon not started: state directory")
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        r = _serve(tmp_path / "fresh", port)
+    assert "in use" in _one_line(r, 75, f"daemon not started: cannot listen on 127.0.0.1:{port}")
+    assert not (tmp_path / "fresh").exists()  # refused before the state or any device was touched
+    assert unit_settings()["RestartPreventExitStatus"] == ["2 78"]
+    exit_table = (SYSTEMD.parent / "docs" / "daemon.md").read_text()
+    assert "| 78 | `daemon not started:` |" in exit_table and "| 75 | `daemon not started:` |" in exit_table
+
+
 @pytest.mark.skipif(shutil.which("systemd-sysusers") is None or shutil.which("systemd-tmpfiles") is None,
                     reason="systemd-sysusers/systemd-tmpfiles not installed")
 def test_sysusers_and_tmpfiles_apply_to_an_empty_root(tmp_path):
