@@ -17,11 +17,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from tandemscan.daemon.job_records import AnchorEntry, RelocalisationEntry
+from tandemscan.daemon.motion import Robot
 from tandemscan.daemon.observer import JobObserver
 from tandemscan.daemon.run_state import RelocalisationState, RunState
 from tandemscan.daemon.session import MotionGate
 from tandemscan.daemon.step_journal import StepJournal
-from tandemscan.daemon.supervisor import MEASURE_ROBOT
 from tandemscan.drivers.errors import TargetNotVisible
 from tandemscan.drivers.interfaces import TrackerReading
 from tandemscan.pipeline.geometry import frames as F
@@ -111,8 +111,8 @@ class AgvRelocalisation:
         planned = np.array(step.joints_rad)
         reloc, located = state.relocalisation, None
         if reloc.T_F_V2 is None and reloc.planned_T_F_V2 is not None:  # not seen from the travel pose: from here
-            async with self.gate.motion(MEASURE_ROBOT):
-                await self.cell.arm.move_joints(planned, self.arm_timeout_s)
+            async with self.gate.motion(Robot.MEASURE) as robot:
+                await robot.arm.move_joints(planned, self.arm_timeout_s)
             located, reloc = await self.locate(i, state)
         if reloc.T_F_V2 is None:
             return planned, reloc.entry(located, self._unresolved(i, state, "measurement AGV not located: the "

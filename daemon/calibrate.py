@@ -21,11 +21,11 @@ from pathlib import Path
 import numpy as np
 from tandemscan.config.models import CalibrationConfig, CellConfig
 from tandemscan.daemon.cell import Cell
+from tandemscan.daemon.motion import Robot
 from tandemscan.daemon.session import CellSession, MotionGate
-from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT
 from tandemscan.daemon.tracker_reading import read_at_rest
 from tandemscan.drivers.errors import TargetNotVisible
-from tandemscan.drivers.interfaces import Chassis, ChassisPose
+from tandemscan.drivers.interfaces import ChassisPose, ChassisReadings
 from tandemscan.pipeline.calibration.hand_eye import HandEyeError, HandEyeResult, solve_hand_eye
 from tandemscan.pipeline.calibration.mounts import (
     MountError,
@@ -144,7 +144,8 @@ async def _scan_plate_views(session: CellSession, config: CellConfig, nominal: I
                                    cal.sphere_diameter_mm / 2.0)
     candidates = plate_view_poses(int(np.ceil(cal.poses * _CANDIDATES_PER_POSE)), centre, distance, cal.tilt_deg,
                                   cal.roll_span_deg)
-    await cell.arm.enable()
+    async with gate.motion(Robot.MEASURE) as robot:
+        await robot.arm.enable()
     seed = await cell.arm.joints()
     progress(0, cal.poses, "planning arm poses over the plate")
     plan = await asyncio.to_thread(arm_joints_for_views, candidates, cal.T_V2_P.matrix(), nominal.T_V2_B,
@@ -155,8 +156,8 @@ async def _scan_plate_views(session: CellSession, config: CellConfig, nominal: I
         if len(views.tracker_poses) >= cal.poses:
             break
         progress(len(views.tracker_poses), cal.poses, f"view {i}: scanning the plate")
-        async with gate.motion(MEASURE_ROBOT):
-            await cell.arm.move_joints(q, config.arm.timeout_s)
+        async with gate.motion(Robot.MEASURE) as robot:
+            await robot.arm.move_joints(q, config.arm.timeout_s)
         try:
             T_C_T, cov = await _read_at_rest(cell, config)
             fits = [await _scan_plate(cell, config) for _ in range(cal.scans_per_pose)]
@@ -212,8 +213,8 @@ async def _chassis_mounts(session: CellSession, config: CellConfig, kinematics: 
     T_B_T = kinematics.forward(await cell.arm.joints()) @ T_E_S @ F.invert(T_T_S)
     mounts = {"T_V1_C": nominal.T_V1_C, "T_V2_B": nominal.T_V2_B}
     for name, chassis, robot, motions_of in (
-        ("T_V1_C", cell.tracking_chassis, TRACKING_ROBOT, lambda turns: relative_motions(F.invert(turns))),
-        ("T_V2_B", cell.measure_chassis, MEASURE_ROBOT, lambda turns: arm_base_motions(turns, T_B_T)),
+        ("T_V1_C", cell.tracking_chassis, Robot.TRACKING, lambda turns: relative_motions(F.invert(turns))),
+        ("T_V2_B", cell.measure_chassis, Robot.MEASURE, lambda turns: arm_base_motions(turns, T_B_T)),
     ):
         progress(cal.poses, cal.poses, f"{name}: turning its chassis in place")
         turns = await _turn_readings(session, chassis, robot, config, skipped)
@@ -233,7 +234,7 @@ async def _read_at_rest(cell: Cell, config: CellConfig) -> tuple[np.ndarray, np.
     return reading.T_C_T, reading.covariance
 
 
-async def _turn_readings(session: CellSession, chassis: Chassis, robot: str, config: CellConfig,
+async def _turn_readings(session: CellSession, chassis: ChassisReadings, robot: Robot, config: CellConfig,
                          skipped: list[str]) -> np.ndarray | None:
     """Tracker readings with ``chassis`` (of ``robot``) turned in place by each of ``_TURNS_DEG`` (then back);
     None if the target was lost at fewer than two headings."""
@@ -241,19 +242,19 @@ async def _turn_readings(session: CellSession, chassis: Chassis, robot: str, con
     readings = []
     for d in (0.0, *_TURNS_DEG):
         turned = ChassisPose(start.x_mm, start.y_mm, start.heading_rad + np.radians(d))
-        await _drive(session.gate, robot, chassis, turned, config.measure_chassis.timeout_s)
+        await _drive(session.gate, robot, turned, config.measure_chassis.timeout_s)
         try:
             readings.append((await _read_at_rest(session.cell, config))[0])
         except TargetNotVisible as e:
             skipped.append(f"turn {d:+.0f} deg: {e}")
-    await _drive(session.gate, robot, chassis, start, config.measure_chassis.timeout_s)
+    await _drive(session.gate, robot, start, config.measure_chassis.timeout_s)
     return np.array(readings) if len(readings) >= 2 else None
 
 
-async def _drive(gate: MotionGate, robot: str, chassis: Chassis, pose: ChassisPose, timeout_s: float) -> None:
-    """One chassis move through the gate."""
-    async with gate.motion(robot):
-        await chassis.move_to(pose, timeout_s)
+async def _drive(gate: MotionGate, robot: Robot, pose: ChassisPose, timeout_s: float) -> None:
+    """One move of ``robot``'s chassis through the gate."""
+    async with gate.motion(robot) as handle:
+        await handle.chassis.move_to(pose, timeout_s)
 
 
 async def _scan_plate(cell: Cell, config: CellConfig) -> PlateFit:

@@ -4,21 +4,31 @@ Each role's class comes from :data:`tandemscan.drivers.factory.DEVICE_REGISTRY`,
 for. Where any role is simulated or ``[hil] enabled``, the simulated world behind the twins and emulators is
 the registry's :data:`~tandemscan.drivers.factory.SIMULATION`; the product sees it only as a
 :class:`CellSimulation`: something to start and stop around the devices and an observer of jobs
-(``docs/architecture.md``, the cell layer). Motion always goes through a
-:class:`~tandemscan.daemon.session.CellSession`.
+(``docs/architecture.md``, the cell layer). Motion always goes through the motion gate of a
+:class:`~tandemscan.daemon.session.CellSession` (:mod:`tandemscan.daemon.motion`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
 from tandemscan.config.models import CellConfig
+from tandemscan.daemon.motion import Movers, readings
 from tandemscan.daemon.observer import CalibrationObserver, JobObserver
-from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT
 from tandemscan.drivers.factory import ROLES, SIMULATION, build_real_device, load_entry
-from tandemscan.drivers.interfaces import Arm, Chassis, Device, Lift, SafetyIO, Scanner, Tracker
+from tandemscan.drivers.interfaces import (
+    Arm,
+    ArmReadings,
+    Chassis,
+    ChassisReadings,
+    Device,
+    Lift,
+    LiftReadings,
+    SafetyIO,
+    Scanner,
+    Tracker,
+)
 
 
 class CellBuildError(Exception):
@@ -55,27 +65,31 @@ class CellSimulation(Protocol):
         ...
 
 
-@dataclass
 class Cell:
-    """The devices of one cell, and the simulation behind them where any device is simulated."""
+    """The devices of one cell, and the simulation behind them where any device is simulated.
 
-    measure_chassis: Chassis
-    tracking_chassis: Chassis
-    arm: Arm
-    scanner: Scanner
-    tracker: Tracker
-    safety: SafetyIO
-    simulation: CellSimulation | None = None
-    lift: Lift | None = None  # the measurement AGV's lifting column, where it has one
+    The movers (both chassis, the arm and the lifting column, None where not fitted) are shown through their
+    readings only (``cell.arm.joints()``, ``cell.tracking_chassis.odometry()``); their motion commands come with
+    the handle of ``gate.motion(robot)`` (:mod:`tandemscan.daemon.motion`)."""
+
+    def __init__(self, *, measure_chassis: Chassis, tracking_chassis: Chassis, arm: Arm, scanner: Scanner,
+                 tracker: Tracker, safety: SafetyIO, simulation: CellSimulation | None = None,
+                 lift: Lift | None = None):
+        self.scanner, self.tracker, self.safety, self.simulation = scanner, tracker, safety, simulation
+        self._movers = Movers(measure_chassis, tracking_chassis, arm, lift)
+        self.measure_chassis: ChassisReadings = readings(measure_chassis, ChassisReadings)
+        self.tracking_chassis: ChassisReadings = readings(tracking_chassis, ChassisReadings)
+        self.arm: ArmReadings = readings(arm, ArmReadings)
+        self.lift: LiftReadings | None = None if lift is None else readings(lift, LiftReadings)
 
     def devices(self) -> list[Device]:
-        devices = [self.measure_chassis, self.tracking_chassis, self.arm, self.scanner, self.tracker, self.safety]
-        return devices + ([self.lift] if self.lift is not None else [])
+        """Every device for the supervisor: the movers through their lifecycle and ``stop`` only."""
+        return self._movers.lifecycle() + [self.scanner, self.tracker, self.safety]
 
     def motion_devices(self) -> dict[str, list[Device]]:
-        """The devices that move, per robot (the measurement robot: its chassis, arm and column)."""
-        measure = [self.measure_chassis, self.arm] + ([self.lift] if self.lift is not None else [])
-        return {MEASURE_ROBOT: measure, TRACKING_ROBOT: [self.tracking_chassis]}
+        """The devices that move, per robot (the measurement robot: its chassis, arm and column), through their
+        lifecycle and ``stop`` only (the supervisor's emergency stop)."""
+        return self._movers.stoppable()
 
 
 def needs_simulation(config: CellConfig) -> bool:

@@ -24,9 +24,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 from tandemscan.config.models import CellConfig, TrackerConfig
 from tandemscan.daemon.job_records import Odometry, TransferRecord
+from tandemscan.daemon.motion import Robot
 from tandemscan.daemon.run_state import RunState
 from tandemscan.daemon.session import CellSession, MotionGate
-from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT
 from tandemscan.daemon.tracker_reading import read_for_transfer
 from tandemscan.drivers.errors import TargetNotVisible
 from tandemscan.drivers.interfaces import ChassisPose, TrackerReading
@@ -225,8 +225,8 @@ async def read_at_poses(cell, gate: MotionGate, config: CellConfig, joints: list
     dropped: list[dict] = []
     for k, q in enumerate(joints):
         if q is not None:
-            async with gate.motion(MEASURE_ROBOT):
-                await cell.arm.move_joints(q, config.arm.timeout_s)
+            async with gate.motion(Robot.MEASURE) as robot:
+                await robot.arm.move_joints(q, config.arm.timeout_s)
         try:
             r = await read_for_transfer(cell.tracker, config.tracker)
         except TargetNotVisible as e:
@@ -292,12 +292,12 @@ async def return_from_transfer(session: CellSession, plan: Plan, committed: set[
     odo = before.get("odometry")
     if odo is None:
         return False
-    async with session.gate.motion(TRACKING_ROBOT):
-        await session.cell.tracking_chassis.move_to(ChassisPose(*odo), config.tracking_chassis.timeout_s)
+    async with session.gate.motion(Robot.TRACKING) as robot:
+        await robot.chassis.move_to(ChassisPose(*odo), config.tracking_chassis.timeout_s)
     q0 = before.get("poses", [{}])[0].get("joints_rad")
     if q0 is not None:  # a transfer over several arm poses: the arm back at the transfer's own pose too
-        async with session.gate.motion(MEASURE_ROBOT):
-            await session.cell.arm.move_joints(np.array(q0, float), config.arm.timeout_s)
+        async with session.gate.motion(Robot.MEASURE) as robot:
+            await robot.arm.move_joints(np.array(q0, float), config.arm.timeout_s)
     log.warning("abandoned transfer of step %d undone: the tracking robot is back at %s", i, odo)
     return True
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
+from tandemscan.drivers.interfaces import DeviceState
+
 
 @dataclass
 class DeviceHealth:
@@ -13,7 +15,7 @@ class DeviceHealth:
 
     name: str
     connected: bool = False
-    state: str = "disconnected"
+    state: DeviceState = DeviceState.DISCONNECTED
     detail: dict = field(default_factory=dict)
     last_error: str | None = None
     reconnects: int = 0
@@ -22,7 +24,7 @@ class DeviceHealth:
     @property
     def up(self) -> bool:
         """Connected and not reporting a fault: a device a job can use."""
-        return self.connected and self.state != "fault"
+        return self.connected and self.state != DeviceState.FAULT
 
     def as_dict(self) -> dict:
         return {"name": self.name, "connected": self.connected, "state": self.state, "detail": self.detail,

@@ -51,6 +51,7 @@ from tandemscan.daemon.job_records import (
     TransferRecord,
     UntrackedScan,
 )
+from tandemscan.daemon.motion import Robot
 from tandemscan.daemon.observer import JobObserver
 from tandemscan.daemon.run_state import (
     RelocalisationState,
@@ -64,7 +65,6 @@ from tandemscan.daemon.session import CellSession, MotionGate
 from tandemscan.daemon.snapshot import JobSnapshot
 from tandemscan.daemon.step_journal import NoJournal, StepJournal
 from tandemscan.daemon.stitcher import LocalWorldMap, ProcessWorldMap
-from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT
 from tandemscan.daemon.tracker_reading import read_at_rest, read_for_transfer
 from tandemscan.drivers.errors import TargetNotVisible
 from tandemscan.drivers.interfaces import ChassisPose, TrackerReading
@@ -149,7 +149,8 @@ class JobRunner:
         started = time.monotonic()
         (self.job_dir / "scans").mkdir(parents=True, exist_ok=True)
         total = len(self.plan.steps) + 1
-        await self.cell.arm.enable()
+        async with self.gate.motion(Robot.MEASURE) as robot:
+            await robot.arm.enable()
         if self.cell.lift is not None:
             self.state = replace(self.state, lift_mm=await self.cell.lift.height())
         committed = self.journal.committed
@@ -197,9 +198,9 @@ class JobRunner:
                 return await self._relocate_tracker(step, i)
             return await self._transfer(step, i)
         if isinstance(step, MoveMeasure):
-            async with self.gate.motion(MEASURE_ROBOT):
-                odo = await self.cell.measure_chassis.move_to(ChassisPose(step.x_mm, step.y_mm, step.heading_rad),
-                                                              self.config.measure_chassis.timeout_s)
+            async with self.gate.motion(Robot.MEASURE) as robot:
+                odo = await robot.chassis.move_to(ChassisPose(step.x_mm, step.y_mm, step.heading_rad),
+                                                  self.config.measure_chassis.timeout_s)
             entry = None
             if self.resolving:
                 planned = F.planar_pose(step.x_mm, step.y_mm, step.heading_rad)
@@ -211,8 +212,8 @@ class JobRunner:
             joints, entry = np.array(step.joints_rad), None
             if self.resolving and step.T_F_S is not None:
                 joints, entry = await self.relocalisation.arm_target(i, step, self.state)
-            async with self.gate.motion(MEASURE_ROBOT):
-                await self.cell.arm.move_joints(joints, self.config.arm.timeout_s)
+            async with self.gate.motion(Robot.MEASURE) as robot:
+                await robot.arm.move_joints(joints, self.config.arm.timeout_s)
             return ArmMove(joints, entry)
         try:
             return await self._scan()
@@ -225,8 +226,8 @@ class JobRunner:
         """Raise or lower the measurement AGV's lifting column, inside the measurement robot's motion gate."""
         if self.cell.lift is None:
             raise JobError("the plan moves a lifting column but this cell has none ([lift] enabled = false)")
-        async with self.gate.motion(MEASURE_ROBOT):
-            return LiftMove(await self.cell.lift.move_to(step.height_mm, self.config.lift.timeout_s))
+        async with self.gate.motion(Robot.MEASURE) as robot:
+            return LiftMove(await robot.lift.move_to(step.height_mm, self.config.lift.timeout_s))
 
     async def _reestablish(self, i: int, step) -> None:
         """After a restart, before moving anything: a fresh target reading. Where the target has not moved
@@ -246,8 +247,8 @@ class JobRunner:
 
     async def _relocate_tracker(self, step: MoveTracker, i: int) -> TrackerRelocation:
         """A tracker move before the first scan: no transfer, W becomes the camera frame where it now stands."""
-        async with self.gate.motion(TRACKING_ROBOT):
-            odo = await self.cell.tracking_chassis.move_to(
+        async with self.gate.motion(Robot.TRACKING) as robot:
+            odo = await robot.chassis.move_to(
                 ChassisPose(step.x_mm, step.y_mm, step.heading_rad), self.config.tracking_chassis.timeout_s
             )
         record = TrackerRelocation((odo.x_mm, odo.y_mm, odo.heading_rad))
@@ -285,8 +286,8 @@ class JobRunner:
         return self._transferred(transfer_record(self.state, before_T_C_T, before_cov, after, odo))
 
     async def _move_tracker(self, step: MoveTracker) -> tuple[float, float, float]:
-        async with self.gate.motion(TRACKING_ROBOT):
-            odo = await self.cell.tracking_chassis.move_to(
+        async with self.gate.motion(Robot.TRACKING) as robot:
+            odo = await robot.chassis.move_to(
                 ChassisPose(step.x_mm, step.y_mm, step.heading_rad), self.config.tracking_chassis.timeout_s
             )
         return (odo.x_mm, odo.y_mm, odo.heading_rad)

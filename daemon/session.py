@@ -5,7 +5,8 @@ state and starts the hardware-in-the-loop emulators), then the :class:`~tandemsc
 it connects every device (a failed one retries with backoff), polls the safety I/O every control period
 (``safety.poll_period_s``, 20 ms = 50 Hz) and latches a safety stop. The session is the cell's
 :class:`MotionGate`: a motion is refused unless the session is open and the latch is clear, and the
-supervisor refuses to start one robot while the other moves. Runs get the gate; a journal (pause, cancel,
+supervisor refuses to start one robot while the other moves; inside the block the gate hands out the robot's
+motion commands (:mod:`tandemscan.daemon.motion`), nowhere else reachable. Runs get the gate; a journal (pause, cancel,
 durable commits) is the daemon's business, separate from it (``docs/daemon.md``).
 """
 
@@ -14,12 +15,13 @@ from __future__ import annotations
 import gc
 import logging
 from collections.abc import AsyncIterator, Callable
-from contextlib import asynccontextmanager
+from contextlib import AbstractAsyncContextManager, asynccontextmanager
 from pathlib import Path
-from typing import Protocol
+from typing import Literal, Protocol, overload
 
 from tandemscan.config.models import CellConfig
 from tandemscan.daemon.cell import Cell, build_cell
+from tandemscan.daemon.motion import MeasureRobot, Robot, TrackingRobot
 from tandemscan.daemon.observer import CalibrationObserver, JobObserver
 from tandemscan.daemon.supervisor import EventSink, Supervisor
 from tandemscan.drivers.errors import DeviceError, SafetyStop
@@ -39,12 +41,19 @@ def freeze_heap() -> None:
 
 
 class MotionGate(Protocol):
-    """Every motion of a robot runs inside ``async with gate.motion(robot)``."""
+    """Every motion of a robot runs inside ``async with gate.motion(Robot.X) as robot``, through ``robot``."""
 
-    def motion(self, robot: str) -> AsyncIterator[None]:
+    @overload
+    def motion(self, robot: Literal[Robot.MEASURE]) -> AbstractAsyncContextManager[MeasureRobot]: ...
+
+    @overload
+    def motion(self, robot: Literal[Robot.TRACKING]) -> AbstractAsyncContextManager[TrackingRobot]: ...
+
+    def motion(self, robot: Robot) -> AbstractAsyncContextManager[MeasureRobot | TrackingRobot]:
         """Refuses (:class:`SafetyStop`, :class:`~tandemscan.daemon.supervisor.MotionInterlock`, or
-        :class:`~tandemscan.drivers.errors.NotConnected` while one of the robot's devices is down) or lets the
-        block run; a safety stop during it interrupts it with :class:`SafetyStop`."""
+        :class:`~tandemscan.drivers.errors.NotConnected` while one of the robot's devices is down) or runs the
+        block with the robot's motion handle, revoked when the block ends; a safety stop during it interrupts
+        it with :class:`SafetyStop`."""
         ...
 
 
@@ -127,13 +136,18 @@ class CellSession:
         return self
 
     @asynccontextmanager
-    async def motion(self, robot: str) -> AsyncIterator[None]:
+    async def motion(self, robot: Robot) -> AsyncIterator[MeasureRobot | TrackingRobot]:
         """The gate: refused unless the session is open; then the supervisor's latch, device health and
-        interlock."""
+        interlock; the block gets the robot's motion handle, revoked when it ends."""
         if not self.active:
             raise SafetyStop("session", f"motion of the {robot} robot refused: the cell session is not open")
         async with self.supervisor.motion(robot):
-            yield
+            handle, views = self.cell._movers.grant(robot)  # the one reader of the raw movers (daemon/motion.py)
+            try:
+                yield handle
+            finally:
+                for view in views:
+                    view.revoke("its motion block has ended")
 
     def job_observer(self, job_key: str, resumed: bool = False) -> JobObserver | None:
         """The simulation's observer of one job; None on a real cell."""

@@ -28,13 +28,10 @@ from tandemscan.daemon.backoff import backoff_delays
 from tandemscan.daemon.device_health import DeviceHealth, fault_reason
 from tandemscan.daemon.jsonable import jsonable
 from tandemscan.drivers.errors import DeviceError, NotConnected, SafetyStop
-from tandemscan.drivers.interfaces import Device, PushesSafetyChanges, SafetyIO, SafetyState
+from tandemscan.drivers.interfaces import Device, DeviceState, PushesSafetyChanges, SafetyIO, SafetyState
 from tandemscan.drivers.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
-
-MEASURE_ROBOT = "measure"
-TRACKING_ROBOT = "tracking"
 
 # Consecutive safety I/O reads that fail before the latch (control ticks one period apart, 20 ms by default, and
 # any read woken by a pushed change between them).
@@ -136,7 +133,8 @@ class Supervisor:
             await asyncio.wait_for(self.devices[name].connect(), self.device_timeout_s)
             status = await asyncio.wait_for(self.devices[name].status(), self.device_timeout_s)
         except (DeviceError, TimeoutError, OSError) as e:
-            self._set_health(name, connected=False, state="disconnected", last_error=str(e) or type(e).__name__)
+            self._set_health(name, connected=False, state=DeviceState.DISCONNECTED,
+                             last_error=str(e) or type(e).__name__)
             return False
         self._set_health(name, connected=status.connected, state=status.state, detail=jsonable(dict(status.detail)),
                          last_error=None if status.connected else h.last_error)
@@ -170,10 +168,10 @@ class Supervisor:
         try:
             s = await asyncio.wait_for(self.devices[name].status(), self.device_timeout_s)
         except (DeviceError, TimeoutError, OSError) as e:
-            self._set_health(name, connected=False, state="fault", last_error=str(e) or type(e).__name__)
+            self._set_health(name, connected=False, state=DeviceState.FAULT, last_error=str(e) or type(e).__name__)
         else:
             self._set_health(name, connected=s.connected, state=s.state, detail=jsonable(dict(s.detail)),
-                             **({"last_error": fault_reason(s.detail)} if s.state == "fault" else {}))
+                             **({"last_error": fault_reason(s.detail)} if s.state == DeviceState.FAULT else {}))
         if not self.health[name].up:
             self._schedule_reconnect(name)
         self._update_all_connected()

@@ -19,7 +19,7 @@ import can
 from tandemscan.config.models import ChassisConfig
 from tandemscan.drivers.can_link import CanFrameError, CanLink, load_dbc
 from tandemscan.drivers.errors import DeviceError, DeviceFault, DeviceTimeout, NotConnected, SafetyStop
-from tandemscan.drivers.interfaces import ChassisPose, DeviceStatus
+from tandemscan.drivers.interfaces import ChassisPose, DeviceState, DeviceStatus
 from tandemscan.drivers.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
@@ -120,13 +120,13 @@ class AgvCanChassis:
 
     async def status(self) -> DeviceStatus:
         if self._link is None:
-            return DeviceStatus(self.name, False, "disconnected")
+            return DeviceStatus(self.name, False, DeviceState.DISCONNECTED)
         if isinstance(self._fault, SafetyStop):
-            state = "stopped"
+            state = DeviceState.STOPPED
         elif self._fault is not None:
-            state = "fault"
+            state = DeviceState.FAULT
         else:
-            state = "idle" if self._at_rest() else "moving"
+            state = DeviceState.IDLE if self._at_rest() else DeviceState.MOVING
         detail = {
             "pose": self._pose, "battery_V": self._system.get("BatteryVoltage"),
             "error_code": self._system.get("ErrorCode"), "control_mode": self._system.get("ControlMode"),

@@ -3,12 +3,17 @@
 A real driver and its simulated twin implement the same Protocol; the configuration picks which one.
 Every verb takes or applies a timeout and raises the typed errors of :mod:`tandemscan.drivers.errors`.
 Units: mm and rad; ``T_a_b`` 4x4 float64 matrices.
+
+A device that moves has two protocols: its readings (``ArmReadings``: joints, flange pose) and the device
+(``Arm``: the readings and the motion commands). The cell shows its movers through their readings only; the
+motion commands come with the motion gate's handle (docs/architecture.md, "The motion gate").
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -16,13 +21,24 @@ import numpy as np
 # ---------------------------------------------------------------- status snapshots and data
 
 
+class DeviceState(StrEnum):
+    """What a device is doing, as its status reports it (serialised as the lower-case word)."""
+
+    DISCONNECTED = "disconnected"
+    IDLE = "idle"
+    MOVING = "moving"
+    BUSY = "busy"   # working without moving (a scanner capturing)
+    FAULT = "fault"
+    STOPPED = "stopped"   # held by a safety stop or an e-stop input
+
+
 @dataclass(frozen=True)
 class DeviceStatus:
-    """A snapshot of one device: ``state`` is ``disconnected | idle | moving | busy | fault | stopped``."""
+    """A snapshot of one device."""
 
     name: str
     connected: bool
-    state: str
+    state: DeviceState
     detail: dict[str, object] = field(default_factory=dict)
 
 
@@ -88,14 +104,19 @@ class Device(Protocol):
 
 
 @runtime_checkable
-class Chassis(Device, Protocol):
+class ChassisReadings(Device, Protocol):
+    """What anyone may ask an AGV chassis: where its odometry says it stands."""
+
+    async def odometry(self) -> ChassisPose: ...
+
+
+@runtime_checkable
+class Chassis(ChassisReadings, Protocol):
     """An AGV chassis with skid steering; moves are closed-loop on its own odometry."""
 
     async def move_to(self, target: ChassisPose, timeout_s: float | None = None) -> ChassisPose:
         """Drive to ``target`` (odometry frame); returns the odometry pose on arrival."""
         ...
-
-    async def odometry(self) -> ChassisPose: ...
 
     async def stop(self) -> None:
         """Zero velocity at once (emergency path)."""
@@ -103,7 +124,18 @@ class Chassis(Device, Protocol):
 
 
 @runtime_checkable
-class Arm(Device, Protocol):
+class ArmReadings(Device, Protocol):
+    """What anyone may ask a six-axis arm: joint angles (rad) and flange pose ``T_B_E`` (mm)."""
+
+    async def joints(self) -> np.ndarray: ...
+
+    async def flange_pose(self) -> np.ndarray:
+        """``T_B_E`` as the controller reports it (mm)."""
+        ...
+
+
+@runtime_checkable
+class Arm(ArmReadings, Protocol):
     """A six-axis arm: joint angles in rad, flange pose ``T_B_E`` in mm."""
 
     async def enable(self) -> None:
@@ -112,12 +144,6 @@ class Arm(Device, Protocol):
 
     async def move_joints(self, joints_rad: np.ndarray, timeout_s: float | None = None) -> None:
         """Joint move; returns when the arm is in position."""
-        ...
-
-    async def joints(self) -> np.ndarray: ...
-
-    async def flange_pose(self) -> np.ndarray:
-        """``T_B_E`` as the controller reports it (mm)."""
         ...
 
     async def stop(self) -> None: ...
@@ -163,16 +189,21 @@ class PushesSafetyChanges(Protocol):
 
 
 @runtime_checkable
-class Lift(Device, Protocol):
+class LiftReadings(Device, Protocol):
+    """What anyone may ask a lifting column: its height now (mm)."""
+
+    async def height(self) -> float:
+        """The column's height now (mm)."""
+        ...
+
+
+@runtime_checkable
+class Lift(LiftReadings, Protocol):
     """A lifting column under the arm on the measurement AGV: one vertical axis, height in mm above the
     arm's mount (``T_V2_B`` with z raised by the height, :func:`pipeline.kinematics.arm_base_on_column`)."""
 
     async def move_to(self, height_mm: float, timeout_s: float | None = None) -> float:
         """Drive to ``height_mm``; returns the height reached (mm). Raises :class:`OutOfReach` outside its range."""
-        ...
-
-    async def height(self) -> float:
-        """The column's height now (mm)."""
         ...
 
     async def stop(self) -> None:

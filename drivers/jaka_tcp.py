@@ -29,7 +29,7 @@ from tandemscan.drivers.errors import (
     OutOfReach,
     SafetyStop,
 )
-from tandemscan.drivers.interfaces import DeviceStatus
+from tandemscan.drivers.interfaces import DeviceState, DeviceStatus
 from tandemscan.drivers.json_stream import JsonFramingError, JsonObjectFramer, encode
 from tandemscan.drivers.tasks import cancel_and_wait
 from tandemscan.pipeline.geometry.frames import from_rpy, pose_error, to_rpy
@@ -138,15 +138,15 @@ class JakaTcpArm:
     async def status(self) -> DeviceStatus:
         st = self._status
         if self._cmd is None or st is None:
-            return DeviceStatus(self.name, False, "disconnected")
+            return DeviceStatus(self.name, False, DeviceState.DISCONNECTED)
         if self._status_error is not None:
-            return DeviceStatus(self.name, True, "fault", {"error": str(self._status_error)})
+            return DeviceStatus(self.name, True, DeviceState.FAULT, {"error": str(self._status_error)})
         if st.get("emergency_stop") or st.get("protective_stop"):
-            state = "stopped"
+            state = DeviceState.STOPPED
         elif str(st.get("errcode", "0x0")) not in ("0", "0x0"):
-            state = "fault"
+            state = DeviceState.FAULT
         else:
-            state = "idle" if st.get("inpos", True) else "moving"
+            state = DeviceState.IDLE if st.get("inpos", True) else DeviceState.MOVING
         detail = {k: st.get(k) for k in ("joint_actual_position", "enabled", "powered_on", "inpos", "errcode")}
         return DeviceStatus(self.name, True, state, detail)
 

@@ -21,7 +21,7 @@ import time
 import serial
 from tandemscan.config.models import TrackerConfig
 from tandemscan.drivers.errors import DeviceError, DeviceFault, DeviceTimeout, NotConnected, TargetNotVisible
-from tandemscan.drivers.interfaces import DeviceStatus, TrackerReading
+from tandemscan.drivers.interfaces import DeviceState, DeviceStatus, TrackerReading
 from tandemscan.drivers.pose_stream import PoseFrameError, PoseSample, PoseStreamAdapter
 from tandemscan.drivers.tasks import cancel_and_wait
 
@@ -98,12 +98,12 @@ class MetronorTracker:
 
     async def status(self) -> DeviceStatus:
         if not self._connected:
-            return DeviceStatus(self.name, False, "disconnected")
+            return DeviceStatus(self.name, False, DeviceState.DISCONNECTED)
         if self._link_error is not None:
-            return DeviceStatus(self.name, True, "fault", {"error": str(self._link_error)})
+            return DeviceStatus(self.name, True, DeviceState.FAULT, {"error": str(self._link_error)})
         last = self.last_sample
         detail = {"frame": last.frame, "status": last.status} if last else {}
-        return DeviceStatus(self.name, True, "idle", detail)
+        return DeviceStatus(self.name, True, DeviceState.IDLE, detail)
 
     async def read_pose(self, timeout_s: float | None = None) -> TrackerReading:
         """The first frame that arrives after the call: ``T_C_T`` (mm), covariance, host time, frame number.

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 from tandemscan.config.models import ScannerConfig
 from tandemscan.drivers.errors import DeviceError, DeviceFault, DeviceTimeout, NotConnected
-from tandemscan.drivers.interfaces import DeviceStatus, ScanFrame
+from tandemscan.drivers.interfaces import DeviceState, DeviceStatus, ScanFrame
 
 log = logging.getLogger(__name__)
 
@@ -73,10 +73,10 @@ class PhoxiScanner:
 
     async def status(self) -> DeviceStatus:
         if self._acquirer is None:
-            return DeviceStatus(self.name, False, "disconnected")
+            return DeviceStatus(self.name, False, DeviceState.DISCONNECTED)
         if self._broken is not None:
-            return DeviceStatus(self.name, True, "fault", {"error": str(self._broken)})
-        return DeviceStatus(self.name, True, "idle", {"interface": self._px.interface})
+            return DeviceStatus(self.name, True, DeviceState.FAULT, {"error": str(self._broken)})
+        return DeviceStatus(self.name, True, DeviceState.IDLE, {"interface": self._px.interface})
 
     async def capture(self, timeout_s: float | None = None) -> ScanFrame:
         """Trigger one scan and return its points (mm, frame S), normals and confidence."""

@@ -21,7 +21,7 @@ from pymodbus.client import AsyncModbusTcpClient
 from pymodbus.exceptions import ModbusException
 from tandemscan.config.models import SafetyConfig
 from tandemscan.drivers.errors import DeviceError, DeviceFault, DeviceTimeout, NotConnected, SafetyStop
-from tandemscan.drivers.interfaces import DeviceStatus, SafetyListener, SafetyState
+from tandemscan.drivers.interfaces import DeviceState, DeviceStatus, SafetyListener, SafetyState
 from tandemscan.drivers.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
@@ -81,11 +81,11 @@ class ModbusSafetyIO:
 
     async def status(self) -> DeviceStatus:
         if self._client is None:
-            return DeviceStatus(self.name, False, "disconnected")
+            return DeviceStatus(self.name, False, DeviceState.DISCONNECTED)
         if self._link_error is not None:
-            return DeviceStatus(self.name, True, "fault", {"error": str(self._link_error)})
+            return DeviceStatus(self.name, True, DeviceState.FAULT, {"error": str(self._link_error)})
         st = self._state
-        state = "idle" if st is not None and st.motion_allowed else "stopped"
+        state = DeviceState.IDLE if st is not None and st.motion_allowed else DeviceState.STOPPED
         return DeviceStatus(self.name, True, state, {"state": st})
 
     async def read(self) -> SafetyState:

@@ -9,6 +9,7 @@ it moves with the tracking robot.
 from __future__ import annotations
 
 from tandemscan.drivers.errors import DeviceTimeout, OutOfReach
+from tandemscan.drivers.interfaces import DeviceState
 from tandemscan.sim_drivers.twins import _SimDevice
 from tandemscan.sim_drivers.world import SimWorld
 
@@ -27,14 +28,14 @@ class SimLift(_SimDevice):
         limit = cfg.timeout_s if timeout_s is None else timeout_s
         if duration > limit:
             raise DeviceTimeout(self.name, f"move needs {duration:.0f} s, over the {limit:.0f} s timeout")
-        self._state = "moving"
+        self._state = DeviceState.MOVING
         self.world.motion.start(SimWorld.MEASURE_ROBOT)
         try:
             await self._elapse(duration)
             self.world.lift_mm = float(height_mm)
         finally:
             self.world.motion.stop(SimWorld.MEASURE_ROBOT)
-            self._state = "idle"
+            self._state = DeviceState.IDLE
         return self.world.lift_mm
 
     async def height(self) -> float:
@@ -42,7 +43,7 @@ class SimLift(_SimDevice):
         return self.world.lift_mm
 
     async def stop(self) -> None:
-        self._state = "idle"
+        self._state = DeviceState.IDLE
 
     def _detail(self) -> dict[str, object]:
         return {"height_mm": self.world.lift_mm}

@@ -17,6 +17,7 @@ import numpy as np
 from tandemscan.drivers.errors import DeviceFault, DeviceTimeout, NotConnected, SafetyStop
 from tandemscan.drivers.interfaces import (
     ChassisPose,
+    DeviceState,
     DeviceStatus,
     SafetyState,
     ScanFrame,
@@ -39,15 +40,15 @@ class _SimDevice:
         self.name = name
         self.world = world
         self._connected = False
-        self._state = "disconnected"
+        self._state = DeviceState.DISCONNECTED
 
     async def connect(self) -> None:
         self._connected = True
-        self._state = "idle"
+        self._state = DeviceState.IDLE
 
     async def close(self) -> None:
         self._connected = False
-        self._state = "disconnected"
+        self._state = DeviceState.DISCONNECTED
 
     async def status(self) -> DeviceStatus:
         return DeviceStatus(self.name, self._connected, self._state, self._detail())
@@ -83,7 +84,7 @@ class SimChassis(_SimDevice):
         self._require_connected()
         self._require_motion_allowed()
         cfg = getattr(self.world.config, self.name)  # the chassis' speeds and timeout (ChassisConfig)
-        self._state = "moving"
+        self._state = DeviceState.MOVING
         self.world.motion.start(self.robot)
         try:
             distance, turn = self._truth.apply_move(target, self.world.rng)
@@ -97,7 +98,7 @@ class SimChassis(_SimDevice):
                 self.world.safety.estop = True
         finally:
             self.world.motion.stop(self.robot)
-            self._state = "idle"
+            self._state = DeviceState.IDLE
             keep_world_state(self.world)
         return self._truth.odometry
 
@@ -106,7 +107,7 @@ class SimChassis(_SimDevice):
         return self._truth.odometry
 
     async def stop(self) -> None:
-        self._state = "idle"
+        self._state = DeviceState.IDLE
 
     def _detail(self) -> dict[str, object]:
         o = self._truth.odometry
@@ -130,14 +131,14 @@ class SimArm(_SimDevice):
         n = self.world.config.sim.fault_arm_after_moves
         if n and self._moves >= n:
             raise DeviceFault(self.name, "servo fault on joint 2 (injected fault)")
-        self._state = "moving"
+        self._state = DeviceState.MOVING
         self.world.motion.start(SimWorld.MEASURE_ROBOT)
         try:
             travel = self.world.move_arm(joints_rad)
             await self._elapse(np.degrees(travel) / self.world.config.arm.joint_speed_deg_s)
         finally:
             self.world.motion.stop(SimWorld.MEASURE_ROBOT)
-            self._state = "idle"
+            self._state = DeviceState.IDLE
             keep_world_state(self.world)
 
     async def joints(self) -> np.ndarray:
@@ -149,7 +150,7 @@ class SimArm(_SimDevice):
         return self.world.kinematics.forward(self.world.joints_rad)
 
     async def stop(self) -> None:
-        self._state = "idle"
+        self._state = DeviceState.IDLE
 
     def _detail(self) -> dict[str, object]:
         return {"joints_deg": np.degrees(self.world.joints_rad).round(3).tolist()}
@@ -184,7 +185,7 @@ class SimScanner(_SimDevice):
         if n and (self.world.captures + 1) % n == 0:
             self.world.captures += 1
             raise DeviceTimeout(self.name, "no frame within the capture timeout (injected fault)")
-        self._state = "busy"
+        self._state = DeviceState.BUSY
         try:
             await self._elapse(_SCAN_TIME_S)
             if self._process is not None:
@@ -193,7 +194,7 @@ class SimScanner(_SimDevice):
             else:
                 points, normals = await asyncio.to_thread(self.world.scan)
         finally:
-            self._state = "idle"
+            self._state = DeviceState.IDLE
             keep_world_state(self.world)
         return ScanFrame(points, normals, None, time.time())
 

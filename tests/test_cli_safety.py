@@ -15,9 +15,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 from tandemscan.daemon import cli
+from tandemscan.daemon.motion import Robot
 from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.session import CellSession
-from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT, MotionInterlock
+from tandemscan.daemon.supervisor import MotionInterlock
 from tandemscan.drivers.errors import SafetyStop
 from tandemscan.drivers.interfaces import ChassisPose
 from tandemscan.pipeline.planning.plan import Plan
@@ -96,18 +97,16 @@ async def test_the_gate_refuses_motion_outside_an_open_session_and_one_robot_whi
     slow = sim_config.model_copy(update={"sim": sim_config.sim.model_copy(update={"time_scale": 1.0})})
     session = CellSession(slow)
     with pytest.raises(SafetyStop, match="session is not open"):
-        async with session.gate.motion(MEASURE_ROBOT):
+        async with session.gate.motion(Robot.MEASURE):
             pass
     async with session:
-        chassis = session.cell.tracking_chassis
-
         async def drive():  # 3 m at real speed: 10 s, cancelled below
-            async with session.gate.motion(TRACKING_ROBOT):
-                o = await chassis.odometry()
-                await chassis.move_to(ChassisPose(o.x_mm + 3000.0, o.y_mm, o.heading_rad))
+            async with session.gate.motion(Robot.TRACKING) as robot:
+                o = await robot.chassis.odometry()
+                await robot.chassis.move_to(ChassisPose(o.x_mm + 3000.0, o.y_mm, o.heading_rad))
 
         task = asyncio.create_task(drive())
-        while session.supervisor.moving_robots != [TRACKING_ROBOT]:
+        while session.supervisor.moving_robots != [Robot.TRACKING]:
             await asyncio.sleep(0.01)
         joints = await session.cell.arm.joints()
         # the runner as `tandemscan measure` runs it: its first arm move meets the interlock

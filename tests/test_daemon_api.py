@@ -17,6 +17,7 @@ from serving import running_server
 from tandemscan.daemon.api import create_app
 from tandemscan.daemon.cell import build_cell
 from tandemscan.daemon.client import SseParser
+from tandemscan.daemon.motion import Robot
 from tandemscan.daemon.plans import PlanCatalog
 from tandemscan.daemon.service import BindRefused, Daemon, check_bind, resolve_state_dir, resolve_token
 from tandemscan.pipeline.planning.plan import MoveArm, PartIdentity, Plan, Scan
@@ -55,9 +56,9 @@ class GatedRunner:
             async def step(i=i):
                 self.step_started.set()
                 await self.gate.acquire()
-                async with ctx.session.gate.motion("measure"):
+                async with ctx.session.gate.motion(Robot.MEASURE) as robot:
                     q = await ctx.cell.arm.joints()
-                    await ctx.cell.arm.move_joints(q)
+                    await robot.arm.move_joints(q)
                 await asyncio.to_thread(ctx.store.commit_step, ctx.job.id, i, "move_arm", {"i": i})
 
             await ctx.run_step(i, step)

@@ -9,10 +9,12 @@ import time
 import numpy as np
 import pytest
 from tandemscan.daemon.backoff import backoff_delays
-from tandemscan.daemon.cell import build_cell
+from tandemscan.daemon.cell import Cell
+from tandemscan.daemon.motion import Robot
 from tandemscan.daemon.session import CellSession
-from tandemscan.daemon.supervisor import MEASURE_ROBOT, TRACKING_ROBOT, MotionInterlock
+from tandemscan.daemon.supervisor import MotionInterlock
 from tandemscan.drivers.errors import NotConnected, SafetyStop
+from tandemscan.drivers.factory import ROLES
 from tandemscan.drivers.interfaces import ChassisPose
 from tandemscan.sim_drivers.cell import Simulation
 from tandemscan.sim_drivers.world import SimWorld
@@ -32,22 +34,24 @@ async def sup(slow_world):
     slow_world.safety.estop = False
     slow_world.motion.violations.clear()
     events = []
-    cell = build_cell(slow_world.config, simulation=Simulation(slow_world.config, world=slow_world))
+    sim = Simulation(slow_world.config, world=slow_world)
+    twins = {role: sim.device(role) for role in ROLES}  # the supervisor's gate alone: the test moves the twins
+    cell = Cell(**twins, simulation=sim)
     s = CellSession(slow_world.config, cell=cell, on_event=lambda k, d: events.append((k, d))).supervisor
     s.reconnect_initial_s = 0.05
     s.health_period_s = 0.05
     await s.start()
-    s.cell, s.events = cell, events
+    s.cell, s.twins, s.events = cell, twins, events
     yield s
     await s.close()
 
 
 def start_long_tracker_move(sup) -> asyncio.Task:
     """The tracking chassis driving 3 m (10 s) through the motion gate, as a task."""
-    chassis = sup.cell.tracking_chassis
+    chassis = sup.twins["tracking_chassis"]
 
     async def move():
-        async with sup.motion(TRACKING_ROBOT):
+        async with sup.motion(Robot.TRACKING):
             o = await chassis.odometry()
             await chassis.move_to(ChassisPose(o.x_mm + 3000.0, o.y_mm, o.heading_rad))
 
@@ -64,7 +68,7 @@ async def test_connects_every_device(sup):
 async def test_estop_halts_motion_within_a_control_period(sup, slow_world):
     task = start_long_tracker_move(sup)
     await asyncio.sleep(0.1)
-    assert sup.moving_robots == [TRACKING_ROBOT]
+    assert sup.moving_robots == [Robot.TRACKING]
     t0 = time.monotonic()
     slow_world.safety.estop = True
     with pytest.raises(SafetyStop, match="e-stop"):
@@ -84,24 +88,24 @@ async def test_motion_refused_while_latched_and_reset_needs_clear_inputs(sup, sl
             await asyncio.sleep(0.01)
         assert sup.latched_reason == "light curtain broken"
         with pytest.raises(SafetyStop, match="latched"):
-            async with sup.motion(MEASURE_ROBOT):
+            async with sup.motion(Robot.MEASURE):
                 pass
         with pytest.raises(SafetyStop, match="cannot reset"):
             await sup.reset_safety()
     finally:
         slow_world.safety.light_curtain_broken = False
     await sup.reset_safety()
-    async with sup.motion(MEASURE_ROBOT):
-        assert sup.moving_robots == [MEASURE_ROBOT]
+    async with sup.motion(Robot.MEASURE):
+        assert sup.moving_robots == [Robot.MEASURE]
 
 
 async def test_never_both_robots_moving(sup, slow_world):
     task = start_long_tracker_move(sup)
     await asyncio.sleep(0.05)
     with pytest.raises(MotionInterlock, match="measure robot may not move while tracking robot is moving"):
-        async with sup.motion(MEASURE_ROBOT):
-            await sup.cell.arm.move_joints(await sup.cell.arm.joints())
-    async with sup.motion(TRACKING_ROBOT):  # the same robot's other devices may go on
+        async with sup.motion(Robot.MEASURE):
+            await sup.twins["arm"].move_joints(await sup.cell.arm.joints())
+    async with sup.motion(Robot.TRACKING):  # the same robot's other devices may go on
         pass
     task.cancel()
     await asyncio.gather(task, return_exceptions=True)
@@ -114,8 +118,8 @@ async def test_never_both_robots_moving(sup, slow_world):
 async def test_device_safety_stop_latches_the_cell(sup, slow_world):
     slow_world.safety.estop = True  # the twin refuses before the poll notices
     with pytest.raises(SafetyStop):
-        async with sup.motion(MEASURE_ROBOT):
-            await sup.cell.arm.move_joints(np.zeros(6))
+        async with sup.motion(Robot.MEASURE):
+            await sup.twins["arm"].move_joints(np.zeros(6))
     assert sup.latched_reason is not None
 
 
@@ -158,17 +162,17 @@ async def test_a_task_that_swallows_one_cancel_is_still_stopped():
 
 
 async def test_a_robot_whose_device_is_down_may_not_move_until_it_is_reconnected(sup):
-    chassis = sup.cell.tracking_chassis
+    chassis = sup.twins["tracking_chassis"]
     await chassis.close()
     assert not (await sup.poll_device(chassis.name)).up  # a reconnect is now scheduled
     with pytest.raises(NotConnected, match=f"motion refused: tracking robot's {chassis.name} is down"):
-        async with sup.motion(TRACKING_ROBOT):
+        async with sup.motion(Robot.TRACKING):
             pass
-    async with sup.motion(MEASURE_ROBOT):  # the other robot's devices are up
+    async with sup.motion(Robot.MEASURE):  # the other robot's devices are up
         pass
     await sup.wait_connected(2.0)
-    async with sup.motion(TRACKING_ROBOT):
-        assert sup.moving_robots == [TRACKING_ROBOT]
+    async with sup.motion(Robot.TRACKING):
+        assert sup.moving_robots == [Robot.TRACKING]
 
 
 async def test_opening_a_session_takes_the_live_heap_out_of_the_collectors_full_scans():

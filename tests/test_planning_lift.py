@@ -12,6 +12,7 @@ from tandemscan.config import ConfigError, load_config
 from tandemscan.config.models import ArmConfig, LiftConfig
 from tandemscan.daemon.cell import CellBuildError, build_cell
 from tandemscan.daemon.cli import default_plan_path, main
+from tandemscan.daemon.motion import Robot
 from tandemscan.daemon.runner import JobError, JobRunner
 from tandemscan.daemon.session import CellSession
 from tandemscan.drivers.errors import OutOfReach, SafetyStop
@@ -83,16 +84,19 @@ def test_barrel_panel_is_closed_with_its_crown_and_floor_width(barrel):
 async def test_lift_twin_raises_the_arm_refuses_out_of_range_and_stops_on_the_latch(large_config):
     async with CellSession(large_config) as session:
         cell, world = session.cell, session.cell.simulation.world
-        assert isinstance(cell.lift, Lift) and cell.lift in cell.devices()
-        assert cell.lift in cell.motion_devices()["measure"]
+        assert cell.lift.name in [d.name for d in cell.devices()]
+        assert cell.lift.name in [d.name for d in cell.motion_devices()[Robot.MEASURE]]
         before = world.T_F_S().copy()
-        assert await cell.lift.move_to(400.0) == 400.0 == await cell.lift.height()
-        assert world.T_F_S()[:3, 3] - before[:3, 3] == pytest.approx([0.0, 0.0, 400.0])
-        with pytest.raises(OutOfReach, match="outside 0 .. 1000 mm"):
-            await cell.lift.move_to(1200.0)
+        async with session.gate.motion(Robot.MEASURE) as robot:
+            assert isinstance(robot.lift, Lift) and not isinstance(cell.lift, Lift)
+            assert await robot.lift.move_to(400.0) == 400.0 == await cell.lift.height()
+            assert world.T_F_S()[:3, 3] - before[:3, 3] == pytest.approx([0.0, 0.0, 400.0])
+            with pytest.raises(OutOfReach, match="outside 0 .. 1000 mm"):
+                await robot.lift.move_to(1200.0)
         world.safety.estop = True
         with pytest.raises(SafetyStop):
-            await cell.lift.move_to(100.0)
+            async with session.gate.motion(Robot.MEASURE) as robot:
+                await robot.lift.move_to(100.0)
         assert await cell.lift.height() == 400.0 and not world.motion.violations
     assert build_cell(load_config()).lift is None
 
@@ -219,11 +223,16 @@ async def test_a_scan_whose_target_the_tracker_cannot_see_is_left_out_and_report
 
 
 async def test_the_supervisor_halts_the_column_with_the_measurement_robot(large_config):
-    from tandemscan.daemon.supervisor import MEASURE_ROBOT
+    from tandemscan.daemon.cell import Cell
+    from tandemscan.drivers.factory import ROLES
+    from tandemscan.drivers.interfaces import DeviceState
+    from tandemscan.sim_drivers.cell import Simulation
 
-    async with CellSession(large_config) as session:
+    simulation = Simulation(large_config)
+    twins = {role: simulation.device(role) for role in (*ROLES, "lift")}  # the test holds the column's twin
+    async with CellSession(large_config, cell=Cell(**twins, simulation=simulation)) as session:
         cell, supervisor = session.cell, session.supervisor
-        assert cell.lift in supervisor.robots[MEASURE_ROBOT]
-        cell.lift._state = "moving"
+        assert cell.lift.name in [d.name for d in supervisor.robots[Robot.MEASURE]]
+        twins["lift"]._state = DeviceState.MOVING
         await supervisor.halt()
-        assert (await cell.lift.status()).state == "idle"
+        assert (await cell.lift.status()).state == DeviceState.IDLE

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 from tandemscan.daemon.cell import build_cell
 from tandemscan.drivers import ChassisPose, NotConnected, OutOfReach, SafetyStop, TargetNotVisible
+from tandemscan.drivers.factory import ROLES
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.inspection import scoring
 from tandemscan.pipeline.inspection.scoring import cloud_to_mesh_distances
@@ -13,11 +16,14 @@ from tandemscan.pipeline.inspection.scoring import cloud_to_mesh_distances
 
 @pytest.fixture
 async def cell(sim_config):
-    c = build_cell(sim_config)
-    for d in c.devices():  # the twins themselves, without a session's supervisor
+    """The twins themselves on one simulated world, without a session's supervisor and gate (what they model,
+    not how the product moves them)."""
+    simulation = build_cell(sim_config).simulation
+    twins = {role: simulation.device(role) for role in ROLES}
+    for d in twins.values():
         await d.connect()
-    yield c
-    for d in c.devices():
+    yield SimpleNamespace(simulation=simulation, **twins)
+    for d in twins.values():
         await d.close()
 
 

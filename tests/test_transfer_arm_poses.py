@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from tandemscan.daemon.coordinate_transfer import choose_transfer_poses, transfer_joints
 from tandemscan.daemon.job_records import TransferRecord, record_from_json
+from tandemscan.daemon.motion import Robot
 from tandemscan.daemon.run_state import RelocalisationState, RunState, journal_records, replay_journal
 from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.session import CellSession
-from tandemscan.daemon.supervisor import MEASURE_ROBOT
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.uncertainty import transfer_covariance
 from tandemscan.pipeline.planning.plan import MoveArm, MoveMeasure, MoveTracker, Plan
@@ -144,7 +144,7 @@ async def test_the_runner_carries_the_target_through_the_poses_under_the_gate_an
         async def watch() -> None:
             while True:
                 if SimWorld.MEASURE_ROBOT in world.motion.moving:
-                    samples.append(MEASURE_ROBOT in session.supervisor.moving_robots)
+                    samples.append(Robot.MEASURE in session.supervisor.moving_robots)
                 await asyncio.sleep(0.0005)
 
         watcher = asyncio.create_task(watch())
