@@ -39,8 +39,8 @@ own noise models, for an ideal estimator.
   ``overlap_chi2_per_dof`` checks its measurement model: the median over the pairs (within each station,
   across stations, all) of how much of the correction's residuals at the truth a rigid motion of the pair
   explains, per degree of freedom (1 for independent zero-mean noise): near 1, what the truth start leaves
-  is this draw's noise, not a bias another residual could remove (docs/registration.md, "The correction from
-  the truth").
+  is this draw's noise, not a bias another residual could remove (docs/correction.md, "What the measurements
+  showed").
 
 The last line of output is one JSON object.
 """
@@ -180,7 +180,7 @@ def row_weights(normals: np.ndarray, source_rays: np.ndarray, target_rays: np.nd
     how many scans cover the source point (its own and every other within ``OVERLAP_MM``); where ``k`` do, the
     pairs there share each scan's noise and each row counts ``2 / k`` of its information (``joint.noise_shares``: exact
     for an unknown surface; counting each row at full weight counts every point's noise once per partner,
-    ``k / 2`` times too much). docs/registration.md, "Shared noise and the scanner's rays"."""
+    ``k / 2`` times too much). docs/correction.md, "Shared noise and the scanner's rays"."""
     variance = 2.0 * sigma_mm**2 * ray_variances(normals, source_rays, target_rays)
     return noise_shares(covering) / variance
 

@@ -640,7 +640,7 @@ class CorrectionConfig(_Strict):
     )
     joint: bool = Field(
         True, description="after the pairwise stage, refine all poses, transfers and the mount jointly on the overlap "
-        "points (docs/registration.md, Joint refinement); off: the pose graph of the pairs gives the poses"
+        "points (docs/correction.md, Joint refinement); off: the pose graph of the pairs gives the poses"
     )
     joint_voxel_mm: float = Field(2.0, gt=0,
                                   description="the joint refinement works on scans thinned to this voxel, mm")
@@ -650,12 +650,12 @@ class CorrectionConfig(_Strict):
     joint_iterations: int = Field(
         2, ge=1, description="joint refinement: linearisations, the first on the correspondences found at the "
         "tracker poses, each later one at the poses so far (re-weighted there, and with joint_reassociate_mm "
-        "associated anew); docs/registration.md, The weights' sigma and a second pass")
+        "associated anew); docs/correction.md, What the measurements showed")
     joint_reassociate_mm: float | None = Field(
         0.02, gt=0, description="joint refinement: before a linearisation after the first, a pair whose points moved "
         "more than this against its partner since its correspondences were found has them found anew, mm (the "
         "default, under half the scanner's noise, finds nearly every pair anew); empty = never "
-        "(docs/registration.md, The weights' sigma and a second pass)")
+        "(docs/correction.md, What the measurements showed)")
     joint_sigma_mm: float | None = Field(
         None, gt=0, description="joint refinement: 1-sigma of a point-to-plane residual between two single points "
         "seen head-on, mm (also the Huber cut's unit); empty = the robust scale of the residuals whitened by their "

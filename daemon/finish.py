@@ -1,4 +1,4 @@
-"""The end of a job in one pass (docs/registration.md, "End of the job"), where the job's world map lives.
+"""The end of a job in one pass (docs/end-of-job.md), where the job's world map lives.
 
 After the last scan's commit: every scan file is read once and only its copy thinned at the job's ``[job]
 voxel_mm`` kept (:func:`load_scans`: a full-resolution scan is 3.2 M points, 369 of them would not fit in memory;

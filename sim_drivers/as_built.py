@@ -3,7 +3,7 @@ fixture's reference spheres (``[sim] reference_spheres``), and the truth of each
 
 The world scans this mesh; the planner and the inspection see only the CAD mesh. A deviation's truth is
 its displacement of the surface along the CAD normal at any CAD point (frame F, mm, + = material above
-CAD), known here only (docs/inspection.md, "As-built part in the simulator").
+CAD), known here only (docs/inspection-method.md, "As-built part in the simulator").
 
 Dents and steps are local: the CAD triangles near them are split (midpoints, 1 into 4) until their edges
 are short against the dent's radius, so the bell is resolved; the split stops far enough outside a dent

@@ -1,4 +1,4 @@
-"""The end of a job at full resolution (docs/registration.md, "End of the job"): only thinned copies of the scans
+"""The end of a job at full resolution (docs/end-of-job.md): only thinned copies of the scans
 stay in memory, the re-merge and the E57 stream the full scans from their files, and the result is the one the
 scans held in memory gave."""
 

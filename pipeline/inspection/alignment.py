@@ -1,5 +1,5 @@
 """Registration of a measured cloud's frame W (the job's world, or whatever frame a cloud file is in) to
-the CAD frame F, from what was measured: no ground truth (docs/inspection.md, "Alignment").
+the CAD frame F, from what was measured: no ground truth (docs/inspection-method.md, "Alignment").
 
 - **Stations** (coarse, to centimetres): the plan places the measurement AGV's stations in F; the job
   measures where the AGV stood in W (Eq. 5). A least-squares rigid fit of the two gives ``T_F_W``.

@@ -1,5 +1,5 @@
 """Deviation areas: the connected parts of the measured surface beyond the tolerance band, what a quality
-engineer marks on the part (docs/inspection.md, "Deviation areas").
+engineer marks on the part (docs/inspection-method.md, "Deviation areas").
 
 Frame F (CAD), millimetres. Each point's deviation is first averaged over its neighbours within
 ``smoothing_mm`` (scanner noise of 0.05 mm per point would otherwise put a few percent of any surface
@@ -166,7 +166,7 @@ def find_deviation_areas(
     """The areas beyond ``[lower_mm, upper_mm]`` of the cloud (frame F), largest |extreme| first, with ids
     1, 2, ... in that order; ``local`` may pass a :func:`local_deviation` already computed. ``screen``
     (default: above :data:`THIN_ABOVE_POINTS` points) averages only the points near where an even thinning
-    of the cloud comes near the band (:func:`_screened`; docs/inspection.md, "Deviation areas")."""
+    of the cloud comes near the band (:func:`_screened`; docs/inspection-method.md, "Deviation areas")."""
     p = np.asarray(points_mm, dtype=np.float64)
     d = np.asarray(deviations_mm, dtype=np.float64)
     if screen is None:

@@ -293,7 +293,7 @@ def coverage_map_png(surface: CadSurface, points_mm: np.ndarray | None, view: Vi
                      measured: np.ndarray | None = None) -> bytes:
     """The CAD surface seen along ``view``, each triangle green where the cloud (frame F, mm) measured it
     (:func:`measured_triangles`, or ``measured`` as it returns) and red where it did not, shaded as the
-    deviation maps; the title gives the measured share of the mesh area (docs/inspection.md, "Colour maps")."""
+    deviation maps; the title gives the measured share of the mesh area (docs/inspection-method.md, "Method")."""
     if measured is None:
         measured = measured_triangles(surface, points_mm)
     v = np.asarray(surface.mesh.vertices)[np.asarray(surface.mesh.triangles)]

@@ -49,7 +49,7 @@ def read_raw_scan(path: Path | str, dtype: type = np.float64) -> tuple[np.ndarra
 def read_thinned_scan(path: Path | str, voxel_mm: float) -> np.ndarray:
     """The points of a raw scan file (S, mm) thinned to the centroid of each occupied voxel of edge
     ``voxel_mm`` (float64; ``registration.sampling.voxel_downsample``, which leaves them as they are): the
-    small copy the end of a job keeps of a scan (docs/registration.md, "End of the job"). Where that would
+    small copy the end of a job keeps of a scan (docs/end-of-job.md). Where that would
     not halve the scan (a coarse scan, points over a voxel apart) the scan itself is returned (float32, as
     stored): it is hardly larger, and a thinning at a coarser voxel of it is that of the scan."""
     with np.load(path) as data:

@@ -1,5 +1,5 @@
 """Stitching correction of a whole job: overlapping scan pairs -> corrections -> pose graph
-(docs/registration.md, "Whole-job correction").
+(docs/correction.md).
 
 Input: every scan's points in its scanner frame S, its tracker-stitched pose ``T_W_S`` with covariance and
 its tracker station. For each overlapping pair (``overlap.overlapping_pairs``) the overlap is registered by

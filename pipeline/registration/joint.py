@@ -1,5 +1,5 @@
 """Joint multi-view refinement: every scan pose, the transfer errors and the shared mount fitted together on the
-overlap points themselves (docs/registration.md, "Joint refinement").
+overlap points themselves (docs/correction.md, "Joint refinement").
 
 The pose graph (``pose_graph``) summarises each registered pair by one relative pose and a fixed information
 matrix; it inherits each pair's own bias. Here every overlap point is a point-to-plane measurement between its
@@ -13,7 +13,7 @@ have moved. A job runs two passes (``[correction] joint_iterations`` 2, ``joint_
 one's weights and correspondences are the start's (its residuals' scale holds the tracker's misalignment: whole
 part, seed 7, 0.093 mm whitened against the noise's 0.071), the second's are the data's own at poses within the
 posterior of the truth. Measured on seeds 7-9 of the whole part, a third pass changes the figures by 1-2 % either
-way (docs/registration.md, "The weights' sigma and a second pass"; before the weights' sigma was whitened, a
+way (docs/correction.md, "What the measurements showed"; before the weights' sigma was whitened, a
 second pass cost seed 8, "Association anew after the first linearisation").
 
 Model (first order in the small corrections, world axes, mm and rad; every 6-vector is (t, rotation vector)):
@@ -69,7 +69,7 @@ log = logging.getLogger(__name__)
 #: then misplaces a point by the tilt times the point's offset along the surface; such points are a few in a
 #: thousand, but their residuals are biased alike and act through the lever arms of the weakly held
 #: transfers (whole part, seed 7: 0.061 -> 0.055 mm at 30 -> 5 deg, 0.05 % of the correspondences; the normal's
-#: own noise at 2 mm voxels is about 0.2 deg). docs/registration.md, "Symmetric residuals and the normal gate".
+#: own noise at 2 mm voxels is about 0.2 deg). docs/correction.md, "Joint refinement".
 MIN_NORMAL_COSINE = float(np.cos(np.radians(5.0)))
 
 #: the scanner errs along its rays from the origin of S (the camera's optical centre: the PhoXi's camera space,
@@ -354,7 +354,7 @@ def noise_shares(covering: np.ndarray) -> np.ndarray:
     each scan's noise: the surface there is unknown, and eliminating its height leaves ``(I - 1 1^T / k) /
     sigma^2`` of information on the scans' offsets, which the pairs' residuals give at ``2 / k`` of their weight
     each (exact for two scans; counting each at full weight counts every point's noise once per partner).
-    docs/registration.md, "Shared noise and the scanner's rays"."""
+    docs/correction.md, "Shared noise and the scanner's rays"."""
     return 2.0 / np.maximum(covering, 2.0)
 
 
@@ -395,8 +395,8 @@ def _whitened(associated: Sequence[tuple[_Pair, _Match]]) -> np.ndarray:
     residuals as if between two single points seen head-on, whose robust scale is the weights' sigma. The
     residuals as they are have a smaller scale (whole part at the simulator's truth: 0.054 mm, their median
     relative variance 0.61), and taken as the sigma it weighed the data 1.75 times too much against the priors;
-    whitened they give 0.0711 mm, the simulator's 0.05 mm per point times sqrt(2) (docs/registration.md, "The
-    weights' sigma and a second pass")."""
+    whitened they give 0.0711 mm, the simulator's 0.05 mm per point times sqrt(2) (docs/correction.md, "What
+    the measurements showed")."""
     return np.concatenate([m.residual / np.sqrt(m.variance) for _, m in associated]) if associated else np.zeros(0)
 
 

@@ -147,7 +147,7 @@ def overlapping_pairs(
 
 
 class PairSelector:
-    """:func:`overlapping_pairs` as the clouds of a job arrive, one at a time (docs/registration.md, "Pairs
+    """:func:`overlapping_pairs` as the clouds of a job arrive, one at a time (docs/end-of-job.md, "Pairs
     while the job measures").
 
     :meth:`add` returns the earlier clouds that the new one may be paired with in the end: those among its

@@ -1,4 +1,4 @@
-"""One thread per core for the per-pair work of the whole-job correction (docs/registration.md, "End of the job").
+"""One thread per core for the per-pair work of the whole-job correction (docs/end-of-job.md).
 
 A pair's work (KD-tree queries, numpy on thousands of points, Open3D) releases the GIL, so the pairs of one
 stage share the cores in threads of this process: no pickling of scans, no second copy of them.

@@ -70,7 +70,7 @@ class VoxelMap:
         """One map of every voxel of ``maps`` (one voxel edge), merged in a single sort-and-reduce; ``maps`` are
         left empty. Maps of a few tens of scans each, combined once, sort far fewer voxels than one map taking
         every scan, whose growing arrays each flush sorts again (a whole part's 369 scans, 8.2 M voxels: a median
-        5.8 s on two threads in eight maps against 8.7 s in one; docs/registration.md, "End of the job")."""
+        5.8 s on two threads in eight maps against 8.7 s in one; docs/end-of-job.md)."""
         if not maps:
             raise ValueError("no maps to combine")
         out = cls(maps[0].voxel_mm)
