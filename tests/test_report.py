@@ -4,9 +4,11 @@ report.html is self-contained and report.json carries the same numbers."""
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
 import subprocess
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -164,6 +166,8 @@ def test_report_renders_in_headless_chromium(written, tmp_path):
     hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV)
     colourful = ((hsv[..., 1] > 120) & (hsv[..., 2] > 80)).mean()  # the colour maps decoded and drawn
     assert not_white > 0.05 and colourful > 0.01 and img.std() > 20
+    if os.environ.get("TANDEMSCAN_SCREENSHOTS"):  # TANDEMSCAN_SCREENSHOTS=docs make test refreshes docs/'s picture
+        shutil.copyfile(shot, Path(os.environ["TANDEMSCAN_SCREENSHOTS"]) / "inspection-report.png")
 
 
 def test_isometric_view_looks_at_the_measured_side():

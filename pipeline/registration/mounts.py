@@ -1,4 +1,5 @@
-"""Self-calibration of the scanner mount in the pose graph (docs/calibration.md, "Self-calibration in the job's pose graph").
+"""Self-calibration of the scanner mount in the pose graph (docs/calibration.md, "Self-calibration in the job's
+pose graph").
 
 Every scan is placed by ``T_W_S_i = T_W_C T_C_T_i X`` with one shared ``X = T_T_S``, so an error of X is the
 same right-perturbation ``D`` (a motion in the scanner frame S) of every scan, ``T_W_S_i -> T_W_S_i D``. In the
