@@ -6,7 +6,6 @@ Units: millimetres, radians inside. Where a TOML key is a human-facing angle it 
 
 from __future__ import annotations
 
-import logging
 import math
 import tomllib
 from functools import cache
@@ -16,8 +15,6 @@ from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
-
-log = logging.getLogger(__name__)
 
 DriverKind = Literal["sim", "real"]
 OutputKind = Literal["coil", "holding_register"]
@@ -482,35 +479,6 @@ class ChassisSlipConfig(_Strict):
     odometry_drift_fraction: float = Field(0.005, ge=0, description="1-sigma odometry scale error")
 
 
-#: the simulation settings that used to live in a device section: (old section, key) -> new [sim] section
-MOVED_TO_SIM = {
-    **{("tracker", k): "tracker_noise" for k in TrackerNoiseConfig.model_fields},
-    **{(role, k): f"{role}_slip" for role in ("measure_chassis", "tracking_chassis")
-       for k in ChassisSlipConfig.model_fields},
-}
-
-
-def move_deprecated_sim_keys(raw: dict) -> dict:
-    """``raw`` (a cell configuration as read from TOML) with the simulation-only keys found in a device section
-    (``[tracker] position_noise_mm``, ``[measure_chassis] slip_heading_deg``, ...) moved under ``[sim]``, each
-    move logged as a deprecation warning; a key set in both places is an error."""
-    found = [(sec, key) for (sec, key) in MOVED_TO_SIM if isinstance(raw.get(sec), dict) and key in raw[sec]]
-    if not found:
-        return raw
-    raw = {**raw, "sim": dict(raw.get("sim") or {})}
-    for sec, key in found:
-        target = MOVED_TO_SIM[(sec, key)]
-        moved = dict(raw["sim"].get(target) or {})
-        if key in moved:
-            raise ValueError(f"{sec}.{key} is set in [{sec}] and [sim.{target}]: keep [sim.{target}] only")
-        log.warning("config: [%s] %s is deprecated and will be removed in the next release; set it in [sim.%s]",
-                    sec, key, target)
-        moved[key] = raw[sec][key]
-        raw[sec] = {k: v for k, v in raw[sec].items() if k != key}
-        raw["sim"][target] = moved
-    return raw
-
-
 class SimWorldConfig(_Strict):
     """Ground truth of the simulated cell: how far the real installation is from nominal, time scale."""
 
@@ -688,27 +656,6 @@ class DeepMergeConfig(_Strict):
     rounds: int = Field(
         4, ge=1, description="re-embedding rounds: the source moved by the estimate so far and embedded afresh"
     )
-
-
-#: keys that moved from ``[deepmerge]`` to ``[correction]``; the old place is read, with a warning, for one release
-MOVED_TO_CORRECTION = tuple(k for k in CorrectionConfig.model_fields if k not in DeepMergeConfig.model_fields)
-
-
-def move_deprecated_correction_keys(raw: dict) -> dict:
-    """``raw`` (a cell configuration as read from TOML) with the correction keys found under ``[deepmerge]``
-    moved to ``[correction]``, each move logged as a deprecation warning; a key set in both places is an
-    error."""
-    old = raw.get("deepmerge")
-    if not isinstance(old, dict) or not set(old) & set(MOVED_TO_CORRECTION):
-        return raw
-    new = dict(raw.get("correction") or {})
-    for key in [k for k in old if k in MOVED_TO_CORRECTION]:
-        if key in new:
-            raise ValueError(f"deepmerge.{key} is set in [deepmerge] and [correction]: keep [correction] only")
-        log.warning("config: [deepmerge] %s is deprecated and will be removed in the next release; "
-                    "set it in [correction]", key)
-        new[key] = old[key]
-    return {**raw, "deepmerge": {k: v for k, v in old.items() if k not in MOVED_TO_CORRECTION}, "correction": new}
 
 
 class RegionConfig(_Strict):
@@ -908,8 +855,3 @@ class CellConfig(_Strict):
     deepmerge: DeepMergeConfig = DeepMergeConfig()
     daemon: DaemonConfig = DaemonConfig()
     hil: HilConfig = HilConfig()
-
-    @model_validator(mode="before")
-    @classmethod
-    def _deprecated_keys(cls, data):
-        return move_deprecated_sim_keys(move_deprecated_correction_keys(data)) if isinstance(data, dict) else data

@@ -52,44 +52,15 @@ def test_relative_mesh_path_resolves_against_the_file(tmp_path):
     assert load_config(tmp_path / "c.toml").part.mesh == tmp_path / "part.stl"
 
 
-def test_correction_keys_under_deepmerge_still_work_with_a_deprecation_warning(tmp_path, caplog):
-    old = tmp_path / "old.toml"
-    old.write_text('[deepmerge]\nenabled = false\nmethod = "deepmerge+icp"\nnum_points = 512\n')
-    with caplog.at_level("WARNING", logger="tandemscan.config.models"):
-        config = load_config(old)
-    assert not config.correction.enabled and config.correction.method == "deepmerge+icp"
-    assert config.deepmerge.num_points == 512
-    warned = [r.getMessage() for r in caplog.records if "deprecated" in r.getMessage()]
-    assert len(warned) == 2 and any("enabled" in w for w in warned) and all("[correction]" in w for w in warned)
-
-
-def test_a_correction_key_in_both_sections_is_an_error(tmp_path):
-    both = tmp_path / "both.toml"
-    both.write_text('[deepmerge]\nmethod = "icp"\n[correction]\nmethod = "deepmerge"\n')
-    with pytest.raises(ConfigError, match=r"deepmerge\.method is set in \[deepmerge\] and \[correction\]"):
-        load_config(both)
-
-
-def test_simulation_keys_in_a_device_section_move_under_sim_with_a_deprecation_warning(tmp_path, caplog):
-    old = tmp_path / "old.toml"
-    old.write_text("[tracker]\nposition_noise_mm = 0.02\nsamples_per_reading = 3\n"
-                   "[tracking_chassis]\nslip_heading_deg = 1.5\n[sim]\nseed = 3\n")
-    with caplog.at_level("WARNING", logger="tandemscan.config.models"):
-        config = load_config(old)
-    assert config.sim.tracker_noise.position_noise_mm == 0.02 and config.tracker.samples_per_reading == 3
-    assert config.sim.tracking_chassis_slip.slip_heading_deg == 1.5
-    assert config.sim.measure_chassis_slip.slip_heading_deg == 0.3 and config.sim.seed == 3
-    warned = [r.getMessage() for r in caplog.records if "deprecated" in r.getMessage()]
-    assert sorted(w.split("]")[0] for w in warned) == ["config: [tracker", "config: [tracking_chassis"]
-    assert any("[sim.tracker_noise]" in w for w in warned) and any("[sim.tracking_chassis_slip]" in w for w in warned)
-
-
-def test_a_simulation_key_in_both_places_is_an_error(tmp_path):
-    both = tmp_path / "both.toml"
-    both.write_text("[measure_chassis]\nslip_distance_fraction = 0.02\n"
-                    "[sim.measure_chassis_slip]\nslip_distance_fraction = 0.03\n")
-    with pytest.raises(ConfigError, match=r"measure_chassis\.slip_distance_fraction is set in \[measure_chassis\]"):
-        load_config(both)
+def test_keys_in_their_old_sections_are_refused_with_the_file_the_key_and_the_reason(tmp_path):
+    """The correction keys once read from ``[deepmerge]`` and the simulator's noise once read from a device
+    section are unknown keys there now (the deprecation shims went before any release)."""
+    for section, key, value in (("deepmerge", "method", '"icp"'), ("tracker", "position_noise_mm", "0.02"),
+                                ("measure_chassis", "slip_heading_deg", "1.5")):
+        old = tmp_path / f"{section}.toml"
+        old.write_text(f"[{section}]\n{key} = {value}\n")
+        with pytest.raises(ConfigError, match=rf"{section}\.toml.*{section}\.{key}"):
+            load_config(old)
 
 
 def test_the_network_section_rejects_what_is_no_correction_key(tmp_path):
