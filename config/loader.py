@@ -28,14 +28,7 @@ def load_config(path: Path | str | None = None) -> CellConfig:
     file's folder, except for the shipped default whose paths are relative to the working directory.
     """
     path = Path(path) if path is not None else default_config_path()
-    try:
-        raw = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError as e:
-        raise ConfigError(f"{path}: file not found") from e
-    except OSError as e:
-        raise ConfigError(f"{path}: cannot read: {e.strerror}") from e
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise ConfigError(f"{path}: not valid TOML: {e}") from e
+    raw = read_toml(path)
     try:
         config = CellConfig.model_validate(raw)
     except ValidationError as e:
@@ -43,6 +36,18 @@ def load_config(path: Path | str | None = None) -> CellConfig:
     if path.resolve() != default_config_path().resolve():
         config = _resolve_relative_paths(config, path.parent)
     return config
+
+
+def read_toml(path: Path, what: str = "file") -> dict:
+    """The TOML document at ``path``; :class:`ConfigError` names the file (calling it ``what`` when missing)."""
+    try:
+        return tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError as e:
+        raise ConfigError(f"{path}: {what} not found") from e
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot read: {e.strerror}") from e
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{path}: not valid TOML: {e}") from e
 
 
 def format_validation_error(error: ValidationError) -> str:
@@ -61,7 +66,9 @@ def _resolve_relative_paths(config: CellConfig, base: Path) -> CellConfig:
     part = config.part.model_copy(update={"mesh": fix(config.part.mesh)})
     job = config.job.model_copy(update={"calibration_file": fix(config.job.calibration_file)})
     phoxi = config.scanner.phoxi.model_copy(update={"producer_path": fix(config.scanner.phoxi.producer_path)})
-    update = {"part": part, "job": job, "scanner": config.scanner.model_copy(update={"phoxi": phoxi})}
+    inspection = config.inspection.model_copy(update={"template": fix(config.inspection.template)})
+    update = {"part": part, "job": job, "scanner": config.scanner.model_copy(update={"phoxi": phoxi}),
+              "inspection": inspection}
     for role in ("measure_chassis", "tracking_chassis"):
         section = getattr(config, role)
         can = section.can.model_copy(update={"dbc": fix(section.can.dbc)})

@@ -42,14 +42,32 @@ class TransformConfig(_Strict):
         return T
 
 
+class OpeningConfig(_Strict):
+    """A rectangular recessed opening (a hatch) cut into the part's surface: centred at ``centre_mm`` (frame F,
+    near the surface), ``half_u_mm`` along ``u_axis`` and ``half_v_mm`` along ``v_axis`` (both in the surface),
+    its walls dropping at 45 deg to ``depth_mm`` below the surface (docs/inspection.md, "Openings").
+    ``edge_offsets_mm`` move its four edges (-u, +u, -v, +v) outward, the opening larger: an as-built part's."""
+
+    name: str = Field(min_length=1)
+    centre_mm: tuple[float, float, float]
+    u_axis: tuple[float, float, float] = (1.0, 0.0, 0.0)
+    v_axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    half_u_mm: float = Field(gt=0)
+    half_v_mm: float = Field(gt=0)
+    depth_mm: float = Field(10.0, gt=0)
+    edge_offsets_mm: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+
+
 class PartConfig(_Strict):
-    """The measured part: a CAD mesh file, or the parametric train nose when ``mesh`` is empty."""
+    """The measured part: a CAD mesh file, or the parametric train nose when ``mesh`` is empty; with
+    ``openings`` cut into either."""
 
     mesh: Path | None = None
     length_mm: float = Field(3000.0, gt=0)
     width_mm: float = Field(2000.0, gt=0)
     height_mm: float = Field(1600.0, gt=0)
     body_length_mm: float = Field(1000.0, ge=0, description="constant-section length before the nose, mm")
+    openings: tuple[OpeningConfig, ...] = ()
 
 
 class PhoxiConfig(_Strict):
@@ -448,11 +466,21 @@ class StepConfig(_Strict):
     step_mm: float
 
 
+class OpeningEdgeConfig(_Strict):
+    """An opening's edges as built: ``edge_offsets_mm`` (-u, +u, -v, +v) moved outward (the opening larger)
+    from where the part's opening ``opening`` (its name) has them."""
+
+    opening: str
+    edge_offsets_mm: tuple[float, float, float, float]
+
+
 class AsBuiltConfig(_Strict):
     """How the simulated part as built departs from its CAD model; the world scans this part while the
     planner and the inspection use the CAD mesh. Empty: the part is its CAD model."""
 
     deviations: tuple[Annotated[DentConfig | WarpConfig | StepConfig, Field(discriminator="kind")], ...] = ()
+    openings: tuple[OpeningEdgeConfig, ...] = Field(
+        (), description="the part's openings' edges as built (their CAD edges: [part] openings)")
 
 
 class TrackerNoiseConfig(_Strict):
@@ -544,6 +572,11 @@ class JobConfig(_Strict):
         "those of calibration_file (`tandemscan calibrate`, what `make measure` uses)"
     )
     calibration_file: Path | None = None
+    part_number: str | None = Field(
+        None, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$", description="the measured part's number; empty: the "
+        "inspection template's")
+    serial: str | None = Field(None, max_length=64, pattern=r"^[A-Za-z0-9_.:/-]+$",
+                               description="the measured part's serial number (a job's request, `--serial`)")
     relocalise: bool = Field(
         True, description="place W in the plan's frame F from one target reading at the start (the inspection's "
         "registration to CAD) and, after each measurement-AGV drive, measure where it stands (tracker, Eq. 5) and "
@@ -695,6 +728,9 @@ class InspectionConfig(_Strict):
     named regions, optional best-fit alignment and the colour-map scale."""
 
     in_job: bool = Field(True, description="a measurement job writes report.html; off: E57 and pose log only")
+    template: Path | None = Field(
+        None, description="inspection template (characteristics) of the part, TOML; empty: PART.inspection.toml "
+        "beside the part's mesh, or the shipped one of the parametric default part (docs/inspection.md)")
     tolerance_lower_mm: float = Field(-0.1, le=0)
     tolerance_upper_mm: float = Field(0.1, ge=0)
     decision_rule: Literal["iso14253-1", "simple"] = Field(

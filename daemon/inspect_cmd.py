@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 from tandemscan.config import ConfigError, load_config
+from tandemscan.config.inspection_template import load_template
 
 EXIT_BAD_INPUT = 2
 
@@ -42,6 +43,9 @@ def configure(p: argparse.ArgumentParser) -> None:
                    "(the cloud is in the CAD frame); default: the config's")
     p.add_argument("--datum", action="append", default=None, metavar="REGION",
                    help="best fit on the points of this [inspection] region only (repeatable)")
+    p.add_argument("--template", type=Path, default=None, metavar="T.toml",
+                   help="inspection template: the part's characteristics and alignment (docs/inspection.md)")
+    p.add_argument("--serial", default=None, help="the measured part's serial number (report, results.qif)")
     p.add_argument("--no-best-fit", action="store_true",
                    help="skip the separate best-fit figures reported after the alignment")
     p.set_defaults(func=run)
@@ -69,7 +73,11 @@ def run(args: argparse.Namespace) -> int:
             update["datum_regions"] = tuple(args.datum)
         cfg = cfg.model_copy(update=update)
         out = args.out if args.out is not None else cell.job.out_dir / "inspect"
-        outputs = inspect_files(args.cloud, args.cad, out, cfg)
+        template = None if args.template is None else load_template(args.template)
+        part = {k: v for k, v in (("part_number", template.part_number if template else None),
+                                  ("serial", args.serial), ("template", args.template and str(args.template)))
+                if v is not None}
+        outputs = inspect_files(args.cloud, args.cad, out, cfg, template, part)
     except (InspectionError, ConfigError, OSError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -81,6 +89,9 @@ def run(args: argparse.Namespace) -> int:
         f"{t.in_pct:.2f} % within [{t.lower_mm:+.3f}, {t.upper_mm:+.3f}] mm\n"
         f"report: {outputs.html}\ndata:   {outputs.json}\ncloud:  {outputs.ply}"
     )
+    for c in outputs.characteristics:
+        print(f"{c.id:>10} {c.status.upper():<13} actual {c.actual_mm:+.3f} mm in "
+              f"[{c.lower_mm:+.3f}, {c.upper_mm:+.3f}] U {c.uncertainty_mm:.3f}  {c.name}")
     return 0
 
 

@@ -20,9 +20,13 @@ import logging
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+from tandemscan.config.inspection_template import InspectionTemplate, find_template, load_template
+from tandemscan.config.loader import ConfigError
+from tandemscan.config.models import CellConfig
 from tandemscan.daemon.report import add_ground_truth, build_report
 from tandemscan.pipeline.geometry.part import load_part_mesh
 from tandemscan.pipeline.inspection.inspect import InspectionError
@@ -192,7 +196,7 @@ def _inspection_section(job: JobSnapshot, report: dict, scans: list[PosedScan], 
     try:
         out = _inspect(job, report, scans, cloud_W[::step], job.worldmap.normals()[::step], T_F_W, tracker_poses,
                        len(cloud_W))
-    except InspectionError as e:  # the measurement stands; the report says why it has no inspection
+    except (InspectionError, ConfigError) as e:  # the measurement stands; the report says why it has none
         log.warning("inspection failed: %s", e)
         return {"failed": str(e), "files": files}
     files |= {"html": out.html.name, "deviation_ply": out.ply.name}
@@ -210,6 +214,8 @@ def _inspect(job: JobSnapshot, report: dict, scans: list[PosedScan], cloud_W: np
     view_S = [_thin(s.points_S_mm) for s in scans]
     before = PlacedScans(view_S, tracker_only)
     after = None if tracker_poses is None else PlacedScans(view_S, [s.T_W_S for s in scans])
+    template_file = find_template(job.config.part.mesh, configured=job.config.inspection.template)
+    template = None if template_file is None else load_template(template_file)
     return align_and_inspect(
         cloud_W,
         load_part_mesh(job.config.part),
@@ -227,4 +233,16 @@ def _inspect(job: JobSnapshot, report: dict, scans: list[PosedScan], cloud_W: np
               else f"{len(cloud_W)} of the cloud's {cloud_points} ([inspection] max_points)"},
         accuracy=_accuracy(report),
         json_name=None,
+        template=template,
+        part=part_identity(job.config, template, template_file),
     )
+
+
+def part_identity(config: CellConfig, template: InspectionTemplate | None, template_file: Path | None
+                  ) -> dict[str, str]:
+    """The measured part as the report and results.qif name it: part number (``[job] part_number``, else the
+    template's), serial and the template file."""
+    number = config.job.part_number or (template.part_number if template is not None else None)
+    named = {"part_number": number, "serial": config.job.serial,
+             "template": None if template_file is None else str(template_file)}
+    return {k: v for k, v in named.items() if v is not None}

@@ -17,7 +17,8 @@ from collections.abc import Callable
 
 import numpy as np
 import open3d as o3d
-from tandemscan.config.models import CellConfig, DentConfig, StepConfig, WarpConfig
+from tandemscan.config.models import CellConfig, DentConfig, PartConfig, StepConfig, WarpConfig
+from tandemscan.pipeline.geometry.openings import split_triangles
 from tandemscan.pipeline.geometry.part import load_part_mesh
 from tandemscan.pipeline.inspection.inspect import CadSurface
 
@@ -86,28 +87,6 @@ def _refinement_test(dev: Deviation,
     return None
 
 
-def _split(vertices: np.ndarray, triangles: np.ndarray, needs, rounds: int = 8) -> tuple[np.ndarray, np.ndarray]:
-    """Midpoint-split (1 into 4) the triangles ``needs(centroids, longest edges)`` marks, until none is."""
-    V, T = vertices, triangles
-    for _ in range(rounds):
-        a, b, c = V[T[:, 0]], V[T[:, 1]], V[T[:, 2]]
-        longest = np.max(np.stack([np.linalg.norm(b - a, axis=1), np.linalg.norm(c - b, axis=1),
-                                   np.linalg.norm(a - c, axis=1)]), axis=0)
-        mask = needs((a + b + c) / 3.0, longest)
-        if not mask.any():
-            break
-        sel = T[mask]
-        edges = np.sort(np.stack([sel[:, [0, 1]], sel[:, [1, 2]], sel[:, [2, 0]]], axis=1).reshape(-1, 2), axis=1)
-        unique, inverse = np.unique(edges, axis=0, return_inverse=True)
-        mid = len(V) + inverse.reshape(-1, 3)  # midpoints of edges 01, 12, 20
-        V = np.vstack([V, 0.5 * (V[unique[:, 0]] + V[unique[:, 1]])])
-        v0, v1, v2 = sel[:, 0], sel[:, 1], sel[:, 2]
-        m01, m12, m20 = mid[:, 0], mid[:, 1], mid[:, 2]
-        T = np.vstack([T[~mask], np.column_stack([v0, m01, m20]), np.column_stack([m01, v1, m12]),
-                       np.column_stack([m20, m12, v2]), np.column_stack([m01, m12, m20])])
-    return V, T
-
-
 def as_built_mesh(cad: o3d.geometry.TriangleMesh, deviations: tuple[Deviation, ...]) -> o3d.geometry.TriangleMesh:
     """The CAD mesh (frame F, mm) with ``deviations`` applied: split where a local one needs it, then every
     vertex moved by the sum of their displacements (along the CAD vertex normals)."""
@@ -117,7 +96,7 @@ def as_built_mesh(cad: o3d.geometry.TriangleMesh, deviations: tuple[Deviation, .
     for dev, centre in zip(deviations, centres, strict=True):
         needs = _refinement_test(dev, centre)
         if needs is not None:
-            V, T = _split(V, T, needs)
+            V, T = split_triangles(V, T, needs)
     mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(V), o3d.utility.Vector3iVector(T))
     mesh.compute_vertex_normals()
     n = np.asarray(mesh.vertex_normals)
@@ -139,10 +118,23 @@ def reference_sphere_meshes(config: CellConfig) -> o3d.geometry.TriangleMesh:
     return out
 
 
+def as_built_part(config: CellConfig) -> PartConfig:
+    """``[part]`` with its openings' edges where ``[sim.as_built] openings`` moves them."""
+    names = {o.name for o in config.part.openings}
+    unknown = sorted({e.opening for e in config.sim.as_built.openings} - names)
+    if unknown:
+        raise ValueError(f"[sim.as_built] openings {unknown}: no such [part] opening (have {sorted(names)})")
+    moved = {e.opening: e.edge_offsets_mm for e in config.sim.as_built.openings}
+    openings = tuple(o.model_copy(update={"edge_offsets_mm": tuple(
+        a + b for a, b in zip(o.edge_offsets_mm, moved[o.name], strict=True))}) if o.name in moved else o
+        for o in config.part.openings)
+    return config.part.model_copy(update={"openings": openings})
+
+
 def scanned_part_mesh(config: CellConfig) -> o3d.geometry.TriangleMesh:
     """What the simulated scanner sees (frame F, mm): the part as built, with the reference spheres when
     ``[sim] reference_spheres``; the CAD mesh itself when neither is configured."""
-    mesh = load_part_mesh(config.part)
+    mesh = load_part_mesh(as_built_part(config))
     if config.sim.as_built.deviations:
         mesh = as_built_mesh(mesh, config.sim.as_built.deviations)
     if config.sim.reference_spheres:

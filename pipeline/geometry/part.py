@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 from tandemscan.config.models import PartConfig
+from tandemscan.pipeline.geometry.openings import cut_openings
 from tandemscan.pipeline.io.cloud_io import has_ply_magic
 from tandemscan.pipeline.planning.plan import PartIdentity
 
@@ -23,10 +24,10 @@ class PartMeshError(Exception):
 
 
 def load_part_mesh(part: PartConfig) -> o3d.geometry.TriangleMesh:
-    """The CAD mesh of ``part``: the file ``part.mesh`` (mm) or, when unset, :func:`train_nose_mesh`."""
-    if part.mesh is None:
-        return train_nose_mesh(part)
-    return read_mesh_file(part.mesh)
+    """The CAD mesh of ``part``: the file ``part.mesh`` (mm) or, when unset, :func:`train_nose_mesh`; with
+    ``part.openings`` cut into it (:func:`~tandemscan.pipeline.geometry.openings.cut_openings`)."""
+    mesh = train_nose_mesh(part) if part.mesh is None else read_mesh_file(part.mesh)
+    return cut_openings(mesh, part.openings) if part.openings else mesh
 
 
 def read_mesh_file(path: Path, what: str = "mesh") -> o3d.geometry.TriangleMesh:

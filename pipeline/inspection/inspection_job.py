@@ -17,10 +17,13 @@ from typing import Any
 
 import numpy as np
 import open3d as o3d
+from tandemscan.config.inspection_template import InspectionTemplate
 from tandemscan.config.models import InspectionConfig
 from tandemscan.pipeline.geometry.frames import rotate_vectors, transform_points
 from tandemscan.pipeline.geometry.part import PartMeshError, read_mesh_file
 from tandemscan.pipeline.inspection.alignment import Alignment, align
+from tandemscan.pipeline.inspection.characteristics import CharacteristicResult, MeasuredCloud, evaluate
+from tandemscan.pipeline.inspection.decision import DecisionRule
 from tandemscan.pipeline.inspection.inspect import (
     CadSurface,
     InspectionError,
@@ -48,6 +51,7 @@ class InspectionOutputs:
     html: Path
     json: Path | None
     ply: Path
+    characteristics: tuple[CharacteristicResult, ...] = ()
 
 
 def run_inspection(
@@ -65,17 +69,23 @@ def run_inspection(
     json_name: str | None = "report.json",
     alignment: Alignment | None = None,
     overlap: Future | None = None,
+    template: InspectionTemplate | None = None,
+    part: Mapping[str, str] | None = None,
 ) -> InspectionOutputs:
     """Inspect ``points_mm`` (frame F) against the CAD mesh and write the report and the deviation PLY
     into ``out_dir``. The PLY carries the cloud's normals when given, else the closest CAD normals.
     ``json_name=None`` leaves the JSON to the caller (it gets the same numbers as ``data``);
     ``alignment`` says how the points were placed in F (None: they came in F); ``overlap``: the scans'
-    :func:`overlap_quality`, being computed (else it is started here, while the cloud is inspected)."""
+    :func:`overlap_quality`, being computed (else it is started here, while the cloud is inspected);
+    ``template``: the part's characteristics, evaluated and reported first; ``part``: its part number,
+    serial and template file, as the report names them."""
     cfg = cfg or InspectionConfig()
     surface = mesh if isinstance(mesh, CadSurface) else CadSurface(mesh)
     if overlap is None and scans_before is not None:
         overlap = in_background(overlap_quality, scans_before, scans_after)
     result = inspect_cloud(points_mm, surface, cfg)
+    characteristics = () if template is None else evaluate(template, measured_cloud(result, surface),
+                                                           DecisionRule.of(cfg))
     with ThreadPoolExecutor(1, thread_name_prefix="deviation-ply") as pool:  # the file while the figures draw
         ply = pool.submit(
             write_ply,
@@ -87,9 +97,19 @@ def run_inspection(
         report = build_report(
             result, surface, cfg, title=title, meta=meta, accuracy=accuracy,
             scans_before=scans_before, scans_after=scans_after, alignment=alignment, overlap=overlap,
+            characteristics=characteristics, part=part,
         )
         html, js = write_report(report, out_dir, json_name)
-    return InspectionOutputs(result, report.data, html, js, ply.result())
+    return InspectionOutputs(result, report.data, html, js, ply.result(), characteristics)
+
+
+def measured_cloud(result: InspectionResult, surface: CadSurface) -> MeasuredCloud:
+    """What the characteristics are evaluated on: the inspection's points, deviations, closest triangles and
+    per-point expanded uncertainty."""
+    assert result.triangle_ids is not None  # inspect_cloud keeps them
+    log.warning("no per-point expanded uncertainty yet: the characteristics' U is 0")
+    return MeasuredCloud(result.points_mm, result.deviations_mm, result.triangle_ids,
+                         np.zeros(len(result.points_mm)), surface)
 
 
 def align_and_inspect(
@@ -108,8 +128,11 @@ def align_and_inspect(
     """Register a cloud measured in frame W to the CAD frame F by ``cfg.alignment`` from ``start_T_F_W``
     (where the job's AGV stations put it, or the cloud as given; described by ``start``), then inspect and write
     as :func:`run_inspection` (``report`` passes its title, meta, accuracy and json_name). The points on
-    reference spheres are left out of the inspection; the stitching views are mapped into F as well."""
+    reference spheres are left out of the inspection; the stitching views are mapped into F as well. A
+    ``template`` among ``report`` sets the alignment (:meth:`InspectionTemplate.inspection_config`)."""
     cfg = cfg or InspectionConfig()
+    if report.get("template") is not None:
+        cfg = report["template"].inspection_config(cfg)
     surface = mesh if isinstance(mesh, CadSurface) else CadSurface(mesh)
     p = as_points(points_W_mm)
     overlap = None  # a rigid motion changes no overlap: computed in W while the cloud is aligned and inspected
@@ -157,14 +180,17 @@ class PlacedScans(Sequence):
 
 
 def inspect_files(
-    cloud_path: Path | str, cad_path: Path | str, out_dir: Path | str, cfg: InspectionConfig | None = None
+    cloud_path: Path | str, cad_path: Path | str, out_dir: Path | str, cfg: InspectionConfig | None = None,
+    template: InspectionTemplate | None = None, part: Mapping[str, str] | None = None,
 ) -> InspectionOutputs:
     """Inspect a cloud file against a CAD mesh file; writes into ``out_dir``. The cloud is registered by
-    ``cfg.alignment`` from where it lies (within the first trim distance of its place on CAD)."""
+    ``cfg.alignment`` (the template's, when given) from where it lies (within the first trim distance of its
+    place on CAD); ``template`` and ``part`` as :func:`run_inspection` takes them."""
     try:
         points, normals = read_ply(cloud_path)
         mesh = read_mesh_file(Path(cad_path), what="CAD mesh")
     except (CloudIOError, PartMeshError) as e:
         raise InspectionError(str(e)) from e
     meta = {"cloud": str(cloud_path), "CAD mesh": str(cad_path), "points": str(len(points))}
-    return align_and_inspect(points, mesh, out_dir, cfg, normals_W=normals, start="the cloud as given", meta=meta)
+    return align_and_inspect(points, mesh, out_dir, cfg, normals_W=normals, start="the cloud as given", meta=meta,
+                             template=template, part=part)

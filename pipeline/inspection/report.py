@@ -20,6 +20,8 @@ import jinja2
 import numpy as np
 from tandemscan.config.models import InspectionConfig
 from tandemscan.pipeline.inspection.alignment import Alignment
+from tandemscan.pipeline.inspection.characteristic_figures import CloseUp, closeup, section_png
+from tandemscan.pipeline.inspection.characteristics import CharacteristicResult
 from tandemscan.pipeline.inspection.deviation_maps import (
     STANDARD_VIEWS,
     Callout,
@@ -108,6 +110,8 @@ def build_report(
     views: Sequence[View] | None = None,
     alignment: Alignment | None = None,
     overlap: Future | None = None,
+    characteristics: Sequence[CharacteristicResult] = (),
+    part: Mapping[str, str] | None = None,
 ) -> Report:
     """Render the figures and collect the numbers of one inspection.
 
@@ -117,6 +121,8 @@ def build_report(
     ``views`` default to the config's; ``alignment`` is how the cloud was placed in the CAD frame (none:
     it came in that frame). The deviation areas are labelled on every map (``#id`` at the centroid).
     ``overlap``: the scans' :func:`overlap_quality` where it is being computed already.
+    ``characteristics``: the template's, evaluated (:mod:`tandemscan.pipeline.inspection.characteristics`),
+    which the report leads with; ``part``: its template, part number and serial.
     """
     cfg = cfg or InspectionConfig()
     if overlap is None and scans_before is not None:
@@ -144,7 +150,8 @@ def build_report(
                 png = deviation_map_png(surface, p[keep], d[keep], view, tol, norm, cfg.map_width_px, title_,
                                         n[keep], spacing, ours)
                 split.append(ReportFigure(f"{label}-deviation", title_, png))
-    figures = maps + [coverage] + split
+    quality = quality_figures(result, characteristics, tol, norm)
+    figures = quality + maps + [coverage] + split
     hist = histogram_png(result.deviations_mm, result.stats, tol, norm)
     caption = "Deviation histogram with the tolerance band (the outer bins collect the 0.1 % tails)"
     figures.append(ReportFigure("histogram", caption, hist))
@@ -164,11 +171,44 @@ def build_report(
         "meta": dict(meta or {}),
         "colour_scale_mm": [norm.vmin, norm.vmax],
         **inspection_summary(result, alignment),
+        "part": dict(part or {}),
+        "characteristics": [c.summary() for c in characteristics],
+        "closeups": [dict(c.summary(), figure=f"figures/closeup-{c.area_id}.png") for c in closeups_of(quality)],
         "accuracy": _plain(dict(accuracy or {})),
         "stitching": [_plain(pr) for pr in pairs],
         "figures": [{"name": f.name, "caption": f.caption, "file": f"figures/{f.name}.png"} for f in figures],
     }
     return Report(data, tuple(figures))
+
+
+MAX_CLOSEUPS = 12  # close-ups of the largest deviation areas; the maps label the others
+
+
+@dataclass(frozen=True)
+class CloseUpFigure(ReportFigure):
+    """A deviation area's close-up as a report figure, with what it shows."""
+
+    closeup: CloseUp | None = field(default=None, repr=False)
+
+
+def quality_figures(result: InspectionResult, characteristics: Sequence[CharacteristicResult], tol, norm
+                    ) -> list[ReportFigure]:
+    """The figures the report leads with: each section's curve with its band, then a close-up of each of
+    the :data:`MAX_CLOSEUPS` largest deviation areas with its surroundings."""
+    out: list[ReportFigure] = [
+        ReportFigure(f"section-{c.id}", f"{c.id} {c.name}: deviation along the CAD section with the band",
+                     section_png(c))
+        for c in characteristics if c.curve is not None and len(c.curve.arc_mm)]
+    for a in result.areas[:MAX_CLOSEUPS]:
+        c = closeup(a, result.points_mm, result.deviations_mm, result.cad_normals, tol.lower_mm, tol.upper_mm, norm)
+        out.append(CloseUpFigure(f"closeup-{a.id}", f"Close-up of deviation area #{a.id} and its surroundings "
+                                 f"({c.points} points, {c.beyond_band} beyond the band)", c.png, c))
+    return out
+
+
+def closeups_of(figures: Sequence[ReportFigure]) -> list[CloseUp]:
+    """The close-ups among ``figures``."""
+    return [f.closeup for f in figures if isinstance(f, CloseUpFigure) and f.closeup is not None]
 
 
 def in_background(fn, *args) -> Future:

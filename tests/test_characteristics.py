@@ -1,0 +1,157 @@
+"""Inspection templates and characteristics: the shipped templates load, bad ones are refused by key, and on
+clouds sampled from the simulator's as-built parts each seeded deviation shows up in the characteristic that
+covers it with the expected status; a 0.5 mm edge offset of the hatch is measured within 0.1 mm."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from tandemscan.config import ConfigError, load_config
+from tandemscan.config.inspection_template import find_template, load_template, shipped_template
+from tandemscan.config.models import InspectionConfig
+from tandemscan.pipeline.geometry.part import load_part_mesh
+from tandemscan.pipeline.inspection.characteristics import MeasuredCloud, evaluate, sample_surface
+from tandemscan.pipeline.inspection.decision import DecisionRule
+from tandemscan.pipeline.inspection.inspect import CadSurface
+from tandemscan.sim_drivers.as_built import scanned_part_mesh
+
+U_MM = 0.02  # per-point expanded uncertainty given to the characteristics here
+NOISE_MM = 0.05
+
+
+def sampled_cloud(config_file: str, box_min, box_max, per_mm2: float, seed: int) -> MeasuredCloud:
+    """The simulated part as built (``config_file``), sampled on its triangles inside the box with the
+    scanner's noise along the CAD normal, against the CAD: what a measured cloud placed in F looks like."""
+    config = load_config(config_file)
+    cad = CadSurface(load_part_mesh(config.part))
+    built = scanned_part_mesh(config)
+    V, T = np.asarray(built.vertices), np.asarray(built.triangles)
+    c = V[T].mean(axis=1)
+    keep = np.all((c >= box_min) & (c <= box_max), axis=1)
+    p = sample_surface(V, T[keep], per_mm2, seed=seed)
+    rng = np.random.default_rng(seed)
+    p = p + rng.normal(0.0, NOISE_MM, len(p))[:, None] * cad.closest(p).normals
+    cp = cad.closest(p)
+    return MeasuredCloud(p, cp.signed_mm, cp.triangle_ids, np.full(len(p), U_MM), cad)
+
+
+@pytest.fixture(scope="module")
+def as_built_results():
+    cloud = sampled_cloud("config/as-built-example.toml", (-1450.0, 0.0, 540.0), (1200.0, 1100.0, 980.0), 0.4, 3)
+    template = load_template(shipped_template())
+    return {r.id: r for r in evaluate(template, cloud, DecisionRule())}
+
+
+def test_shipped_templates_load_and_the_default_part_finds_its_own(tmp_path):
+    default = load_template(shipped_template())
+    assert default.part_number == "TS-NOSE-3000" and len(default.characteristics) >= 5
+    assert {c.kind for c in default.characteristics} >= {"surface_profile", "flatness", "section"}
+    for name in ("hatch-part.toml", "barrel-panel.toml"):
+        assert load_template(shipped_template(name)).characteristics
+    hatch = load_config("config/hatch-example.toml")
+    found = find_template(hatch.part.mesh, configured=hatch.inspection.template)
+    assert found.resolve() == shipped_template("hatch-part.toml").resolve()
+    assert find_template(None) == shipped_template()
+    mesh = tmp_path / "panel.ply"
+    assert find_template(mesh) is None
+    (tmp_path / "panel.inspection.toml").write_text("")
+    assert find_template(mesh) == tmp_path / "panel.inspection.toml"
+
+
+@pytest.mark.parametrize("body, needle", [
+    ("[[characteristics]]\nid='A'\nname='a'\nkind='flatness'\nregion={patch='nope'}\nupper_mm=0.1\n",
+     "patches ['nope'] are not defined"),
+    ("[[characteristics]]\nid='A'\nname='a'\nkind='surface_profile'\nregion={min_mm=[0,0,0],max_mm=[1,1,1]}\n"
+     "lower_mm=0.1\nupper_mm=-0.1\n", "must be below upper_mm"),
+    ("[[characteristics]]\nid='A'\nname='a'\nkind='cylindricity'\nupper_mm=0.1\n", "characteristics.0"),
+    ("[[characteristics]]\nid='A'\nname='a'\nkind='section'\npoint_mm=[0,0,0]\nnormal=[1,0,0]\nlower_mm=-1\n"
+     "upper_mm=1\n[[characteristics]]\nid='A'\nname='b'\nkind='section'\npoint_mm=[0,0,0]\nnormal=[0,1,0]\n"
+     "lower_mm=-1\nupper_mm=1\n", "ids used twice"),
+])
+def test_bad_templates_are_refused_naming_the_key(tmp_path, body, needle):
+    path = tmp_path / "t.toml"
+    path.write_text("part = 'p'\npart_number = 'P-1'\n" + body)
+    with pytest.raises(ConfigError, match="t.toml") as e:
+        load_template(path)
+    assert needle in str(e.value)
+
+
+def test_template_alignment_becomes_the_inspection_config(tmp_path):
+    path = tmp_path / "t.toml"
+    path.write_text("part='p'\npart_number='P'\n[alignment]\nmethod='best-fit'\ndatum_patches=['d']\n"
+                    "[patches.d]\nmin_mm=[0,0,0]\nmax_mm=[1,1,1]\n[[characteristics]]\nid='F'\nname='f'\n"
+                    "kind='flatness'\nregion={patch='d'}\nupper_mm=0.1\n")
+    cfg = load_template(path).inspection_config(InspectionConfig())
+    assert cfg.alignment == "best-fit" and cfg.datum_regions == ("datum:d",)
+    assert cfg.regions[-1].min_mm == (0.0, 0.0, 0.0)
+
+
+def test_each_seeded_deviation_shows_in_its_characteristic(as_built_results):
+    r = as_built_results
+    # the rear end bent 0.3 mm (+y): body profile and flatness; the 0.3 mm dent at x -350: rear nose and
+    # its section; the 0.45 mm bulge and 0.25 mm dent: front nose; the section at x 400 crosses none. The
+    # worst of the averaged deviations reads high by the largest of the averaged noise (a few hundredths)
+    assert r["SP-1"].status == "fail" and r["SP-1"].actual_mm == pytest.approx(0.3, abs=0.07)
+    assert r["FL-1"].status == "fail"
+    assert r["SP-2"].status == "fail" and r["SP-2"].actual_mm == pytest.approx(-0.3, abs=0.07)
+    assert np.linalg.norm(np.subtract(r["SP-2"].at_mm, (-350.0, 996.2, 680.0))) < 15.0
+    assert r["SP-3"].status == "fail" and r["SP-3"].worst_plus_mm == pytest.approx(0.45, abs=0.07)
+    assert r["SP-3"].worst_minus_mm == pytest.approx(-0.25, abs=0.07)
+    assert r["SEC-1"].status == "fail" and r["SEC-1"].actual_mm == pytest.approx(-0.3, abs=0.07)
+    assert r["SEC-2"].status == "pass" and abs(r["SEC-2"].actual_mm) < 0.07
+    assert all(c.uncertainty_mm == U_MM for c in r.values() if c.kind != "flatness")
+    curve = r["SEC-1"].curve
+    assert np.all(np.diff(curve.arc_mm) >= 0) and curve.deviation_mm.min() == pytest.approx(-0.3, abs=0.07)
+
+
+def test_a_surface_profile_near_a_limit_within_u_is_indeterminate(as_built_results):
+    sp2 = as_built_results["SP-2"]
+    template = load_template(shipped_template())
+    spec = next(c for c in template.characteristics if c.id == "SP-2")
+    cloud = sampled_cloud("config/as-built-example.toml", (-420.0, 900.0, 620.0), (-280.0, 1100.0, 740.0), 0.4, 5)
+    near = spec.model_copy(update={"lower_mm": sp2.actual_mm - 0.01})
+    wide = MeasuredCloud(cloud.points_mm, cloud.deviations_mm, cloud.triangle_ids, np.full(len(cloud.points_mm), 0.05),
+                         cloud.surface)
+    out = evaluate(template.model_copy(update={"characteristics": (near,)}), wide, DecisionRule())[0]
+    assert out.status == "indeterminate" and out.uncertainty_mm == 0.05
+
+
+def test_the_hatch_edge_offset_is_measured_within_a_tenth(tmp_path):
+    """The hatch's +x edge 0.5 mm out as built (the opening larger): -0.5 mm within 0.1 mm, fail; the other
+    edges on CAD: pass."""
+    cloud = sampled_cloud("config/hatch-example.toml", (-1200.0, 900.0, 560.0), (-700.0, 1100.0, 960.0), 1.0, 4)
+    template = load_template(shipped_template("hatch-part.toml"))
+    r = {c.id: c for c in evaluate(template, cloud, DecisionRule())}
+    assert r["EDGE-1"].actual_mm == pytest.approx(-0.5, abs=0.1) and r["EDGE-1"].status == "fail"
+    for other in ("EDGE-2", "EDGE-3", "EDGE-4"):
+        assert abs(r[other].actual_mm) < 0.1 and r[other].status == "pass"
+    assert r["EDGE-1"].points > 100
+
+
+def test_report_leads_with_the_characteristics_and_shows_each_area_close_up(tmp_path):
+    """report.html: the characteristics table before the verdict and the maps; each deviation area has a
+    close-up figure centred on it that draws its points, many of them beyond the band (blue: a dent)."""
+    import json
+
+    from matplotlib.image import imread
+    from tandemscan.pipeline.inspection.inspection_job import run_inspection
+
+    cloud = sampled_cloud("config/as-built-example.toml", (-430.0, 900.0, 600.0), (-270.0, 1100.0, 760.0), 1.0, 6)
+    cfg = InspectionConfig(views=("right",), map_width_px=300, best_fit=False, regions=())
+    out = run_inspection(cloud.points_mm, cloud.surface, tmp_path, cfg, template=load_template(shipped_template()),
+                         part={"part_number": "TS-NOSE-3000", "serial": "SN-0001"})
+    html = (tmp_path / "report.html").read_text()
+    assert html.index('id="characteristics"') < html.index('id="verdict"') < html.index('id="map-0"')
+    assert "SN-0001" in html and "<td class=\"l\">SP-2</td>" in html
+    data = json.loads((tmp_path / "report.json").read_text())["inspection"]
+    statuses = {c["id"]: c["status"] for c in data["characteristics"]}
+    assert statuses["SP-2"] == "fail" and statuses["SEC-1"] == "fail" and statuses["SP-3"] == "not measured"
+    assert (tmp_path / "figures" / "section-SEC-1.png").is_file()
+    areas = out.result.areas
+    assert areas and len(data["closeups"]) == len(areas)
+    for area, shown in zip(areas, data["closeups"], strict=True):
+        assert shown["area"] == area.id and shown["centre_mm"] == pytest.approx(area.centroid_mm)
+        assert shown["points"] > area.points and shown["beyond_band"] > 0.3 * area.points
+        rgb = imread(tmp_path / shown["figure"])[..., :3]
+        blue = (rgb[..., 2] > 0.6) & (rgb[..., 0] < 0.3) & (rgb[..., 1] < 0.5)
+        assert blue.sum() > 200  # the dent's points drawn in the lower colours
