@@ -112,6 +112,13 @@ def _block(plan: Plan, i: int) -> range:
     return range(start, end)
 
 
+def _arm_joints(plan: Plan, j: int, committed: Mapping[int, dict]) -> np.ndarray:
+    """The joints (rad) of ``move_arm`` step ``j``: committed ones (re-solved where the job relocalises), else the
+    plan's."""
+    done = committed.get(j)
+    return np.array(done["joints_rad"] if done and "joints_rad" in done else plan.steps[j].joints_rad, float)
+
+
 def transfer_joints(plan: Plan, i: int, committed: Mapping[int, dict], current: np.ndarray | None = None
                     ) -> tuple[np.ndarray | None, list[np.ndarray]]:
     """Where the arm stands at the transfer of step ``i`` (the last arm move before it: its committed joints,
@@ -119,23 +126,31 @@ def transfer_joints(plan: Plan, i: int, committed: Mapping[int, dict], current: 
     arm has not moved) and the other scan poses of the plan at the same AGV station and column height (each a
     ``move_arm`` followed by a scan; rad): the poses the transfer may carry the target through. The committed
     joints come first: a transfer restarted after a crash between its poses finds the arm at one of them."""
-    def joints(j: int) -> np.ndarray:
-        done = committed.get(j)
-        return np.array(done["joints_rad"] if done and "joints_rad" in done else plan.steps[j].joints_rad, float)
-
     block = _block(plan, i)
     moves = [j for j in block if isinstance(plan.steps[j], MoveArm)]
     before = [j for j in moves if j < i]
     q0 = None
     if before:
         last = before[-1]
-        q0 = joints(last) if last in committed or current is None else np.asarray(current, float)
-    scans = [joints(j) for j in moves if j + 1 < len(plan.steps) and isinstance(plan.steps[j + 1], Scan)]
+        q0 = _arm_joints(plan, last, committed) if last in committed or current is None else np.asarray(current, float)
+    scans = [_arm_joints(plan, j, committed) for j in moves
+             if j + 1 < len(plan.steps) and isinstance(plan.steps[j + 1], Scan)]
     others: list[np.ndarray] = []
     for q in scans:
         if (q0 is None or not np.allclose(q, q0)) and not any(np.allclose(q, o) for o in others):
             others.append(q)
     return q0, others
+
+
+def fallback_joints(plan: Plan, i: int, committed: Mapping[int, dict], others: list[np.ndarray]) -> list[np.ndarray]:
+    """Where the transfer of step ``i`` reads the target when it is hidden at the transfer's own pose, in order:
+    the plan's alternatives of the step (scans whose target both tracker stations see past the part; the joints
+    of the arm move before each, committed where re-solved), then the station's other scan poses ``others``
+    (rad)."""
+    at = {s.label: j for j, s in enumerate(plan.steps) if isinstance(s, Scan) and s.label}
+    planned = [_arm_joints(plan, at[label] - 1, committed) for label in plan.steps[i].alternatives
+               if at.get(label, 0) > 0 and isinstance(plan.steps[at[label] - 1], MoveArm)]
+    return [*planned, *(q for q in others if not any(np.allclose(q, p) for p in planned))]
 
 
 # The target predicted this far (deg) inside the edges of the tracker's view and target cone: the prediction
@@ -177,6 +192,14 @@ def offset_poses(q0: np.ndarray, config: CellConfig, installation: Installation)
     return out
 
 
+def camera_move(installation: Installation, odometry: Odometry, step: MoveTracker) -> np.ndarray:
+    """``T_C_Cn``: the tracker camera at the station ``step`` drives to, in the camera frame where it stands (the
+    tracking chassis' odometry ``odometry``, mm, rad)."""
+    T_V1_C = installation.T_V1_C
+    return F.compose(F.invert(T_V1_C), F.invert(F.planar_pose(*odometry)),
+                     F.planar_pose(step.x_mm, step.y_mm, step.heading_rad), T_V1_C)
+
+
 def choose_transfer_poses(q0: np.ndarray, others: list[np.ndarray], T_C_T0: np.ndarray, count: int,
                           config: CellConfig, installation: Installation, odometry: Odometry, step: MoveTracker
                           ) -> tuple[list[np.ndarray], list[dict]]:
@@ -189,9 +212,7 @@ def choose_transfer_poses(q0: np.ndarray, others: list[np.ndarray], T_C_T0: np.n
     kin = ArmKinematics(config.arm)
     T_E_T = installation.T_E_T
     T_T0_B = F.invert(kin.forward(q0) @ T_E_T)
-    T_V1_C = installation.T_V1_C
-    T_C_Cn = F.compose(F.invert(T_V1_C), F.invert(F.planar_pose(*odometry)),
-                       F.planar_pose(step.x_mm, step.y_mm, step.heading_rad), T_V1_C)
+    T_C_Cn = camera_move(installation, odometry, step)
     left_out, usable, positions = [], [], []
     for q in [*offset_poses(q0, config, installation), *others]:
         if not kin.within_limits(q):
@@ -302,25 +323,66 @@ async def return_from_transfer(session: CellSession, plan: Plan, committed: set[
     return True
 
 
+async def read_own_or_fallback(cell, gate: MotionGate, config: CellConfig, installation: Installation,
+                               q0: np.ndarray | None, fallbacks: list[np.ndarray], odometry: Odometry,
+                               step: MoveTracker) -> tuple[PoseReading, list[dict]]:
+    """The still target read at the transfer's own pose ``q0`` (where the arm stands); where it is hidden there,
+    at the first of ``fallbacks`` (joints rad, :func:`fallback_joints`) within the joint limits where it is seen
+    and predicted inside the view of the tracker's next station too (``odometry``, ``step``), the arm moved there
+    through the gate. Returns the reading and the poses found unusable (joints, side, reason); raises
+    :class:`TargetNotVisible` when none is."""
+    try:
+        first, _ = await read_at_poses(cell, gate, config, [q0], "before", required=0)
+        return first[0], []
+    except TargetNotVisible as e:
+        own = e.reason
+    unusable = [{"joints_rad": None if q0 is None else q0.tolist(), "side": "before",
+                 "reason": f"the transfer's own pose: {own}"}]
+    kin = ArmKinematics(config.arm)
+    T_Cn_C = F.invert(camera_move(installation, odometry, step))
+    for q in fallbacks:
+        if not kin.within_limits(q):
+            unusable.append({"joints_rad": q.tolist(), "side": "before", "reason": "outside the joint limits"})
+            continue
+        (reading,), hidden = await read_at_poses(cell, gate, config, [q], "before")
+        unusable += hidden
+        if reading is None:
+            continue
+        if not _visible(T_Cn_C @ reading.T_C_T, config.tracker):
+            unusable.append({"joints_rad": q.tolist(), "side": "before",
+                             "reason": "target predicted out of view after the move"})
+            continue
+        log.warning("coordinate transfer: target hidden at the transfer's own pose (%s); read at %s instead", own,
+                    np.degrees(q).round(1).tolist())
+        return reading, unusable
+    raise TargetNotVisible("tracker", f"{own} at the transfer's own pose, and no other of the {len(fallbacks)} "
+                                      "poses at this station is seen from both tracker stations")
+
+
 async def readings_before_move(cell, gate: MotionGate, config: CellConfig, plan: Plan, journal, installation,
                                step: MoveTracker, i: int) -> tuple[list[PoseReading], list[dict]]:
-    """The target's readings before the tracker moves in a transfer over ``tracker.transfer_arm_poses`` arm poses
-    (step ``i`` of ``plan``), and the poses left out with their reason: read where the arm stands, then at the
-    poses :func:`choose_transfer_poses` picks, and journaled (``journal.note``, with the tracking chassis'
-    odometry) before the tracker moves; or, at a resume, the ones journaled (a one-pose transfer's note: its
-    reading, the arm not commanded)."""
+    """The target's readings before the tracker moves in a transfer (step ``i`` of ``plan``), and the poses left
+    out with their reason: read where the arm stands (or, where it is hidden there, at the first pose of the
+    station that both tracker stations see: :func:`read_own_or_fallback`), then at the poses
+    :func:`choose_transfer_poses` picks for ``tracker.transfer_arm_poses``, and journaled (``journal.note``, with
+    the tracking chassis' odometry) before the tracker moves; or, at a resume, the ones journaled (a one-pose
+    transfer's note: its reading, the arm not commanded)."""
     noted = journal.notes(i).get("before")
     if noted is not None:
         return [PoseReading.from_json(p) for p in noted.get("poses", [noted])], list(noted.get("left_out", []))
     q0, others = transfer_joints(plan, i, journal.committed, await cell.arm.joints())
-    first, _ = await read_at_poses(cell, gate, config, [q0], "before", required=0)
     odo = await cell.tracking_chassis.odometry()
-    chosen, dropped = [], []
-    if q0 is not None:
-        chosen, dropped = choose_transfer_poses(q0, others, first[0].T_C_T, config.tracker.transfer_arm_poses,
-                                                config, installation, (odo.x_mm, odo.y_mm, odo.heading_rad), step)
+    here = (odo.x_mm, odo.y_mm, odo.heading_rad)
+    first, dropped = await read_own_or_fallback(cell, gate, config, installation, q0,
+                                                fallback_joints(plan, i, journal.committed, others), here, step)
+    chosen = []
+    if first.joints_rad is not None:
+        rest = [q for q in others if not np.allclose(q, first.joints_rad)]
+        chosen, left_out = choose_transfer_poses(first.joints_rad, rest, first.T_C_T,
+                                                 config.tracker.transfer_arm_poses, config, installation, here, step)
+        dropped += left_out
     rest, hidden = await read_at_poses(cell, gate, config, chosen, "before")
-    before = [first[0], *(r for r in rest if r is not None)]
+    before = [first, *(r for r in rest if r is not None)]
     dropped += hidden
     await journal.note(i, "before", {
         "T_C_T": before[0].T_C_T.tolist(), "covariance": before[0].covariance.tolist(),

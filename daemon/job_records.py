@@ -101,11 +101,12 @@ class TransferRecord:
     the pose graph's error prior: the target's origin in W (``target_W_mm``) and the 6x6 covariance of both
     readings (translation mm^2 then rotation rad^2), with the number of scans before the transfer.
 
-    A transfer over several arm poses (``[tracker] transfer_arm_poses``) lists the pairs it used
-    (``arm_poses``: joints rad, ``before`` and ``after`` ``T_C_T`` mm; the first the transfer's own pose, whose
-    readings are ``before_T_C_T`` and ``after_T_C_T``), how many it asked for and the poses left out (joints,
-    why); its prior is then the estimate's: the targets' centroid in W and the 6x6 covariance about it. A
-    record journaled before these existed reads as a one-pose transfer."""
+    A transfer over several arm poses (``[tracker] transfer_arm_poses``), or one whose own pose hid the target,
+    lists the pairs it used (``arm_poses``: joints rad, ``before`` and ``after`` ``T_C_T`` mm; the first the
+    transfer's own pose, or where it read instead, whose readings are ``before_T_C_T`` and ``after_T_C_T``), how
+    many it asked for and the poses left out (joints, why); its prior is then the estimate's: the targets'
+    centroid in W and the 6x6 covariance about it. A record journaled before these existed reads as a one-pose
+    transfer."""
 
     station: int
     after_scan: int
@@ -123,7 +124,7 @@ class TransferRecord:
         """The transfer's entry in the report's ``transfer_log`` and the correction's prior (JSON lists)."""
         entry = {"station": self.station, "after_scan": self.after_scan, "target_W_mm": self.target_W_mm.tolist(),
                  "covariance": self.covariance.tolist()}
-        if self.arm_poses_requested > 1:
+        if self.arm_poses_requested > 1 or self.arm_poses_dropped:  # several poses, or the own one hidden
             entry |= {"arm_poses": len(self.arm_poses), "arm_poses_requested": self.arm_poses_requested,
                       "arm_poses_left_out": list(self.arm_poses_dropped)}
         return entry
@@ -132,7 +133,7 @@ class TransferRecord:
         out = {"T_W_C": self.T_W_C.tolist(), "station": self.station, "transfer": self.entry(),
                "before": self.before_T_C_T.tolist(), "after": self.after_T_C_T.tolist(),
                "odometry": list(self.odometry)}
-        if self.arm_poses_requested > 1:
+        if self.arm_poses:
             out["arm_poses"] = list(self.arm_poses)
         return out
 

@@ -263,7 +263,8 @@ class JobRunner:
 
     async def _transfer(self, step: MoveTracker, i: int = -1) -> StepRecord:
         """Eq. 2: read the still target, move the tracker, read it again, re-place the tracker in W; with
-        ``tracker.transfer_arm_poses`` > 1, at several arm poses on each side (:meth:`_transfer_poses`).
+        ``tracker.transfer_arm_poses`` > 1, or where the target is hidden at the transfer's own pose, at the arm
+        poses :meth:`_transfer_poses` finds.
 
         The reading before the move (and the tracking chassis' odometry) is journaled before the tracker moves,
         so a transfer interrupted by a crash, a safety stop or a device fault completes from it (the target stays
@@ -276,7 +277,10 @@ class JobRunner:
         if noted is not None:
             before_T_C_T, before_cov = np.array(noted["T_C_T"]), np.array(noted["covariance"])
         else:
-            before = await read_for_transfer(self.cell.tracker, self.config.tracker)
+            try:
+                before = await read_for_transfer(self.cell.tracker, self.config.tracker)
+            except TargetNotVisible:  # hidden at the transfer's own pose: read it at another pose of the station
+                return await self._transfer_poses(step, i)
             before_T_C_T, before_cov = before.T_C_T, before.covariance
             odo = await self.cell.tracking_chassis.odometry()  # where an abandoned transfer returns the tracker
             await self.journal.note(i, "before", {"T_C_T": before_T_C_T.tolist(), "covariance": before_cov.tolist(),

@@ -38,6 +38,20 @@ def test_sequence_scans_each_seen_pose_once_and_transfers_at_a_shared_pose(tmp_p
     assert Plan.load(tmp_path / "p.toml").scan_count == 8
 
 
+def test_a_transfer_names_the_other_shared_poses_at_its_station_nearest_first(tmp_path):
+    """Poses 2-5 are seen from both tracker stations; the transfer at pose 5 (AGV station 1) names 4 and 3, the
+    nearer in joints first, and not 2 (another AGV station) or 6 (seen from the second tracker station only)."""
+    ps = poses(9)
+    cover = np.array([[1, 1, 1, 1, 1, 1, 0, 0, 0], [0, 0, 1, 1, 1, 1, 1, 1, 1]], bool)
+    seq = build_sequence(ps, [(0.0, 0.0, 0.0), (1.0, 0.0, 0.0)], cover, HOME, "t")
+    assert seq.transfer_poses == (5,)
+    (transfer,) = [s for s in seq.plan.steps if isinstance(s, MoveTracker)]
+    assert transfer.alternatives == ("p4", "p3")
+    seq.plan.save(tmp_path / "p.toml")
+    (loaded,) = [s for s in Plan.load(tmp_path / "p.toml").steps if isinstance(s, MoveTracker)]
+    assert loaded == transfer
+
+
 def test_transfer_goes_back_to_a_shared_pose_when_the_last_scan_is_not_shared():
     ps = poses(6)
     cover = np.array([[1, 1, 1, 1, 0, 0], [0, 1, 0, 0, 1, 1]], bool)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 
 import numpy as np
+import open3d as o3d
 import pytest
 from tandemscan.daemon.coordinate_transfer import choose_transfer_poses, transfer_joints
 from tandemscan.daemon.job_records import TransferRecord, record_from_json
@@ -15,8 +16,9 @@ from tandemscan.daemon.run_state import RelocalisationState, RunState, journal_r
 from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.geometry.part import train_nose_mesh
 from tandemscan.pipeline.geometry.uncertainty import transfer_covariance
-from tandemscan.pipeline.planning.plan import MoveArm, MoveMeasure, MoveTracker, Plan
+from tandemscan.pipeline.planning.plan import MoveArm, MoveMeasure, MoveTracker, Plan, Scan
 from tandemscan.sim_drivers.persist import restore_world_state, world_state
 from tandemscan.sim_drivers.world import SimWorld
 
@@ -230,3 +232,64 @@ def test_poses_out_of_reach_or_out_of_view_are_left_out_with_the_reason(sim_conf
     none, left_out = choose_transfer_poses(q0, [], T_C_T0, 4, sim_config, world.truth, here, away)
     assert none == [] and left_out
     assert all(d["reason"] == "target predicted out of view after the move" for d in left_out)
+
+
+def _world_at(world: SimWorld, plan: Plan, i: int) -> SimWorld:
+    """``world`` with the robots where the plan's steps before ``i`` leave them (no slip)."""
+    for step in plan.steps[:i]:
+        if isinstance(step, MoveArm):
+            world.move_arm(np.array(step.joints_rad))
+        elif isinstance(step, MoveMeasure | MoveTracker):
+            name = "measure_chassis" if isinstance(step, MoveMeasure) else "tracking_chassis"
+            world.chassis[name].true_pose = F.planar_pose(step.x_mm, step.y_mm, step.heading_rad)
+    return world
+
+
+async def test_a_transfer_whose_own_pose_the_part_hides_reads_at_a_planned_alternative_and_the_job_completes(
+        sim_config, tmp_path):
+    """The nose with a post (120 mm square) standing a quarter of the way from the target to the tracker at the
+    shipped plan's first transfer: the target is hidden behind the part at the transfer's own pose. The transfer
+    (one arm pose, the default) reads it at the plan's alternative instead, the arm moved through the gate, the
+    record names the hidden pose, and the job completes with the scan after the transfer."""
+    plan = through_first_transfer()
+    i = next(k for k, s in enumerate(plan.steps) if isinstance(s, MoveTracker) and k > 0)
+    world = _world_at(SimWorld(sim_config), plan, i)
+    target, camera = world.T_F_T()[:3, 3], world.T_F_C()[:3, 3]
+    foot = target + 0.25 * (camera - target)
+    post = o3d.geometry.TriangleMesh.create_box(120.0, 120.0, foot[2] + 100.0)
+    post.translate([foot[0] - 60, foot[1] - 60, 0])
+    o3d.io.write_triangle_mesh(str(tmp_path / "nose-post.stl"), (train_nose_mesh(sim_config.part) + post)
+                               .compute_triangle_normals())
+    config = sim_config.model_copy(update={
+        "part": sim_config.part.model_copy(update={"mesh": tmp_path / "nose-post.stl"}),
+        "correction": sim_config.correction.model_copy(update={"enabled": False}),
+        "inspection": sim_config.inspection.model_copy(update={"in_job": False}),
+        "job": sim_config.job.model_copy(update={"relocalise": False})})
+    hidden = _world_at(SimWorld(config), plan, i)
+    assert "hidden behind the part" in hidden.target_visibility()
+    q0, others = transfer_joints(plan, i, {})
+    seen = []
+    for q in others:
+        hidden.move_arm(q)
+        seen.append(hidden.target_visibility() is None)
+    assert any(seen) and not all(seen)  # the post hides some of the station's other poses too
+    # the planner's alternative: the station's last pose the post does not hide (not the first one tried anyway)
+    alternative = max(k for k, ok in enumerate(seen) if ok)
+    label = next(plan.steps[j + 1].label for j in range(i) if isinstance(plan.steps[j], MoveArm)
+                 and isinstance(plan.steps[j + 1], Scan) and np.allclose(plan.steps[j].joints_rad, others[alternative]))
+    plan.steps[i] = plan.steps[i].model_copy(update={"alternatives": (label,)})
+    journal = MemoryJournal()
+    async with CellSession(config) as session:
+        result = await JobRunner(session, plan, config, tmp_path / "job", journal=journal).run()
+        assert session.cell.simulation.world.motion.violations == []
+    record = record_from_json(plan.steps[i], journal.results[i], tmp_path)
+    np.testing.assert_allclose(record.arm_poses[0]["joints_rad"], others[alternative])
+    (own, *_) = record.arm_poses_dropped
+    np.testing.assert_allclose(own["joints_rad"], q0)
+    assert own["reason"].startswith("the transfer's own pose: target hidden behind the part")
+    # the scans the post hides are left out as any untracked scan is; the one after the transfer is measured
+    untracked = [u["step"] for u in result.report["relocalisation"]["untracked"]]
+    assert result.report["scans"] == plan.scan_count - len(untracked) and len(untracked) == 2
+    assert result.report["scan_log"][-1]["tracker_station"] == 1
+    (entry,) = result.report["transfer_log"]
+    assert entry["arm_poses"] == 1 and entry["arm_poses_left_out"][0]["reason"] == own["reason"]

@@ -30,12 +30,16 @@ class _Step(BaseModel):
 
 
 class MoveTracker(_Step):
-    """Move the tracking AGV (a coordinate transfer)."""
+    """Move the tracking AGV (a coordinate transfer). ``alternatives``: labels of scans at the measurement AGV's
+    station and column height whose target both tracker stations see past the part (the planner's cover: view,
+    range, facing, sight line), nearest the transfer's own pose first; where the target is hidden at the
+    transfer's own pose the runner reads it at these."""
 
     kind: Literal["move_tracker"] = "move_tracker"
     x_mm: float
     y_mm: float
     heading_rad: float
+    alternatives: tuple[str, ...] = ()
 
 
 class MoveMeasure(_Step):

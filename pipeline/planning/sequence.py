@@ -6,7 +6,9 @@ yet scanned that station ``k`` sees, starting from where it stands and going on 
 goes to a pose that both station ``k`` and ``k + 1`` see (the last scan when it qualifies) and the tracker
 moves: a ``move_tracker`` step, which the job runner executes as a coordinate transfer (Eq. 2). Before the
 measurement AGV drives or its lifting column moves, the arm folds to its travel pose. Each scan's arm move
-carries its planned scanner pose, so the runner can re-solve the joints where the AGV really stands.
+carries its planned scanner pose, so the runner can re-solve the joints where the AGV really stands. Each
+transfer names the other poses at its AGV station and column height that both stations see (nearest in joints
+first), where the runner reads the target when it is hidden at the transfer's own pose.
 """
 
 from __future__ import annotations
@@ -74,6 +76,15 @@ class _Builder:
             self.joints = pose.joints_rad
 
 
+def _alternatives(poses: list[PoseRef], t: int, shared: np.ndarray) -> tuple[str, ...]:
+    """Labels of the ``shared`` poses (seen from both tracker stations) at pose ``t``'s AGV station and column
+    height, other than ``t``, nearest to it in joints first (the largest joint change, rad)."""
+    own = poses[t]
+    same = [j for j in shared if j != t and poses[j].agv_pose == own.agv_pose and poses[j].lift_mm == own.lift_mm]
+    turn = [float(np.max(np.abs(np.subtract(poses[j].joints_rad, own.joints_rad)))) for j in same]
+    return tuple(poses[same[k]].label for k in np.argsort(turn, kind="stable"))
+
+
 def build_sequence(
     poses: list[PoseRef],
     chain_poses: list[tuple[float, float, float]],
@@ -121,7 +132,7 @@ def build_sequence(
             t = int(shared[np.argmin((shared - cursor) % len(poses))])
         b.go(poses[t])
         x, y, h = chain_poses[k + 1]
-        b.steps.append(MoveTracker(x_mm=x, y_mm=y, heading_rad=h))
+        b.steps.append(MoveTracker(x_mm=x, y_mm=y, heading_rad=h, alternatives=_alternatives(poses, t, shared)))
         transfers.append(t)
         cursor = t
     if b.joints is not None and b.joints != b.home:
