@@ -110,8 +110,8 @@ class Calibration(BaseModel):
 
 
 class Health(BaseModel):
-    """``degraded`` while a device is down, the safety stop latched, free space under the reserve or a job's
-    state held in memory because the journal refuses writes."""
+    """``degraded`` while a device is down, the safety stop latched, free space under the reserve, or a job's
+    state or device events held in memory because the journal refuses writes."""
 
     status: Literal["ok", "degraded"]
     devices_connected: bool = Field(description="every device connected and none reporting a fault")
@@ -122,6 +122,9 @@ class Health(BaseModel):
     free_bytes: int = Field(description="free space of the state folder's file system (bytes)")
     storage_low: bool = Field(description="free space under [daemon] reserve_free_bytes")
     storage_error: str | None = Field(description="why a job's state is held in memory (the journal refuses writes)")
+    events_not_journaled: int = Field(0, description="device and safety events published but not journaled yet "
+                                      "(the journal refuses writes; retried)")
+    event_journal_failures: int = Field(0, description="journal writes of device events refused since the start")
     version: str
 
 

@@ -1,9 +1,10 @@
 """In-process publish/subscribe of journaled events (state changes, progress, devices, safety).
 
 Every event is written to the store first (so it has a sequence number a client can resume from with
-``Last-Event-ID``) and then handed to each live subscriber's bounded queue. A subscriber that falls more
-than ``maxsize`` events behind loses the oldest ones and is told so by a ``gap`` marker; it can re-read them
-from the journal.
+``Last-Event-ID``) and then handed to each live subscriber's bounded queue; a device or safety event the journal
+refuses is handed out at once without a sequence number (:mod:`tandemscan.daemon.device_events`). A subscriber
+that falls more than ``maxsize`` events behind loses the oldest ones and is told so by a ``gap`` marker; it can
+re-read them from the journal.
 """
 
 from __future__ import annotations
@@ -65,7 +66,8 @@ class EventBus:
 
 
 def sse_text(event: Event) -> str:
-    """``event`` as one server-sent event: its id (the journal's sequence number), kind and JSON data (the
-    event's fields, its job id and time, Unix s)."""
+    """``event`` as one server-sent event: its id (the journal's sequence number; none for an event the journal
+    has not taken), kind and JSON data (the event's fields, its job id and time, Unix s)."""
     data = {"job_id": event.job_id, **event.data, "t_s": event.t_s}
-    return f"id: {event.seq}\nevent: {event.kind}\ndata: {json.dumps(data)}\n\n"
+    event_id = "" if event.seq is None else f"id: {event.seq}\n"
+    return f"{event_id}event: {event.kind}\ndata: {json.dumps(data)}\n\n"

@@ -31,6 +31,7 @@ import numpy as np
 from prometheus_client import CollectorRegistry
 from tandemscan.config import CellConfig, load_config
 from tandemscan.daemon.cell import Cell
+from tandemscan.daemon.device_events import DeviceEventJournal
 from tandemscan.daemon.events import EventBus
 from tandemscan.daemon.job_state import JobState
 from tandemscan.daemon.jobs import JobManager, RetryPolicy, Runner
@@ -148,8 +149,10 @@ class Daemon:
         self.bus = EventBus()
         self.registry = CollectorRegistry()
         self.lag_histogram, lateness_histogram = timing_histograms(self.registry)
+        self.notifier = notifier or Notifier()
+        self.device_events = DeviceEventJournal(self.store, self.bus, self.notifier)
         self.session = CellSession(config, cell=cell, scan_process=True, state_file=self.state_dir / WORLD_STATE_FILE,
-                                   on_event=self._device_event, on_tick_lateness=lateness_histogram.observe,
+                                   on_event=self.device_events.emit, on_tick_lateness=lateness_histogram.observe,
                                    connect_timeout_s=connect_timeout_s, require_connected=False)
         self.cell, self.supervisor = self.session.cell, self.session.supervisor
         d = config.daemon
@@ -159,13 +162,11 @@ class Daemon:
                                   journaled_abandon(self.session, config))
         self.plans = PlanCatalog([PlanCatalog.shipped_folder(), self.state_dir / "plans"], config.daemon.default_plan,
                                  check=part_check(config))
-        self.notifier = notifier or Notifier()
         self.sse_heartbeat_s = 15.0
         self.loop_lag_s: deque[float] = deque(maxlen=5000)
         self.job_counts: dict[str, int] = {}  # jobs by state at the last scrape
         self.registry.register(DaemonCollector(self.metrics_snapshot))
         self._tasks: list[asyncio.Task] = []
-        self._journal_tasks: set[asyncio.Task] = set()
 
     # ------------------------------------------------------------ lifecycle
 
@@ -188,7 +189,7 @@ class Daemon:
         self.notifier.stopping()
         await self.manager.close()
         await self.session.close()
-        await asyncio.gather(*self._journal_tasks, return_exceptions=True)
+        await self.device_events.close()
         await cancel_and_wait(*self._tasks)
         self._tasks.clear()
         await asyncio.to_thread(self.store.close)
@@ -200,17 +201,6 @@ class Daemon:
             await asyncio.sleep(period_s)
             self.loop_lag_s.append(max(0.0, time.perf_counter() - t0 - period_s))
             self.lag_histogram.observe(self.loop_lag_s[-1])
-
-    def _device_event(self, kind: str, data: dict) -> None:
-        task = asyncio.get_running_loop().create_task(self._journal(kind, data))
-        self._journal_tasks.add(task)
-        task.add_done_callback(self._journal_tasks.discard)
-
-    async def _journal(self, kind: str, data: dict) -> None:
-        ev = await asyncio.to_thread(self.store.add_event, None, kind, data)
-        self.bus.publish(ev)
-        if kind == "safety":
-            self.notifier.status(f"safety stop: {data['reason']}" if data["latched"] else "safety stop reset")
 
     # ------------------------------------------------------------ read models
 
@@ -239,11 +229,13 @@ class Daemon:
         storage_error = self.manager.storage_error
         low = free < self.config.daemon.reserve_free_bytes
         down = self.supervisor.down_devices()
-        ok = not down and not snap["safety"]["latched"] and storage_error is None and not low
+        unjournaled = self.device_events.not_journaled
+        ok = not down and not snap["safety"]["latched"] and storage_error is None and not low and not unjournaled
         return {"status": "ok" if ok else "degraded", "devices_connected": not down, "devices_down": down,
                 "safety_latched": snap["safety"]["latched"], "active_job": self.manager.active_id,
                 "queued_jobs": self.store.list_jobs([JobState.QUEUED], limit=1)[1], "free_bytes": free,
-                "storage_low": low, "storage_error": storage_error, "version": self.version}
+                "storage_low": low, "storage_error": storage_error, "events_not_journaled": unjournaled,
+                "event_journal_failures": self.device_events.failed_writes, "version": self.version}
 
 
 def serve(config_path: Path | str | None = None, host: str | None = None, port: int | None = None,

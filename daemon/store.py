@@ -301,10 +301,10 @@ class JobStore(JobFolders):
                            (job_id, kind, json.dumps(data), now))
         return Event(cur.lastrowid, job_id, kind, data, now)
 
-    def add_event(self, job_id: str | None, kind: str, data: dict) -> Event:
-        """Journal one event (device state, safety, log line)."""
+    def add_event(self, job_id: str | None, kind: str, data: dict, t_s: float | None = None) -> Event:
+        """Journal one event (device state, safety, log line) of time ``t_s`` (Unix s; default: now)."""
         with self._tx() as conn:
-            return self._event(conn, job_id, kind, data, time.time())
+            return self._event(conn, job_id, kind, data, time.time() if t_s is None else t_s)
 
     def events(self, after_seq: int = 0, job_id: str | None = None, limit: int = 1000) -> list[Event]:
         """Journaled events with ``seq > after_seq``, oldest first."""

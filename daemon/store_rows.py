@@ -64,9 +64,10 @@ class PendingScan:
 
 @dataclass(frozen=True)
 class Event:
-    """A journaled state change or progress event; ``seq`` grows monotonically."""
+    """A journaled state change or progress event; ``seq`` grows monotonically (None: an event published while the
+    journal refused it, :mod:`tandemscan.daemon.device_events`)."""
 
-    seq: int
+    seq: int | None
     job_id: str | None
     kind: str
     data: dict

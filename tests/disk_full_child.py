@@ -1,14 +1,16 @@
 """A daemon job on a full disk, run by ``tests/test_daemon_disk_full.py`` inside ``unshare --user --map-root-user
 --mount`` so that it can mount a small tmpfs as its state folder: the simulated cell (twins) on a box part, the
 trimmed default plan; the disk is filled after the first scan commits (``scan``) or once every step is committed,
-as the end-of-job export starts (``export``), and freed after the job paused. Prints one JSON object (the outcome)
-as its last line. Usage: ``disk_full_child.py WORK_DIR [scan|export]``."""
+as the end-of-job export starts (``export``), and freed after the job paused; or, with no job (``events``), filled
+while operator stops and resets raise safety events. Prints one JSON object (the outcome) as its last line. Usage:
+``disk_full_child.py WORK_DIR [scan|export|events]``."""
 
 from __future__ import annotations
 
 import asyncio
 import errno
 import json
+import socket
 import subprocess
 import sys
 import time
@@ -17,6 +19,7 @@ from pathlib import Path
 import open3d as o3d
 from tandemscan.config import load_config
 from tandemscan.daemon.cli import default_plan_path
+from tandemscan.daemon.notify import Notifier
 from tandemscan.daemon.service import Daemon
 from tandemscan.pipeline.planning.plan import Plan
 
@@ -108,8 +111,60 @@ async def main(work: Path, phase: str) -> dict:
     return out
 
 
+async def events(work: Path) -> dict:
+    """Safety events while the journal cannot write: what subscribers and systemd got, what health said, what the
+    journal holds once space returns, and every exception the event loop saw unhandled."""
+    loop_errors: list[str] = []
+    asyncio.get_running_loop().set_exception_handler(lambda loop, ctx: loop_errors.append(ctx["message"]))
+    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    notify.bind(str(work / "notify.sock"))
+    notify.setblocking(False)
+    state = work / "state"
+    daemon = Daemon(load_config(), state, notifier=Notifier({"NOTIFY_SOCKET": str(work / "notify.sock")}),
+                    connect_timeout_s=30.0)
+    await daemon.start()
+    out: dict = {}
+    sub = daemon.bus.subscribe(maxsize=10000)
+    try:
+        filler = state / "filler.bin"
+        out["filled_bytes"] = fill(filler)
+        reasons, published = [], []
+        for i in range(40):  # until the journal refuses one (a write may still fit in a page it holds)
+            reasons.append(f"operator stop {i}")
+            await daemon.supervisor.trip(reasons[-1])
+            await daemon.supervisor.reset_safety()
+            while len(published) < 2 * len(reasons):  # its stop and its reset
+                if (event := await asyncio.wait_for(sub.get(), 5.0)).kind == "safety":
+                    published.append(event)
+            if daemon.device_events.failed_writes:
+                break
+        out["published_reasons"] = [e.data["reason"] for e in published if e.data["latched"]]
+        out["published_unjournaled"] = sum(e.seq is None for e in published)
+        statuses = []
+        while True:
+            try:
+                statuses.append(notify.recv(4096).decode())
+            except BlockingIOError:
+                break
+        out["notified"] = [line for m in statuses for line in m.splitlines() if line.startswith("STATUS=safety")]
+        out["health_while_full"] = daemon.health()
+        filler.unlink()
+        await wait_for(lambda: daemon.device_events.not_journaled == 0, 15)
+        out["health_after"] = daemon.health()
+        journaled = [e for e in daemon.store.events(0, None, 100000) if e.kind == "safety"]
+        out["journaled_reasons"] = [e.data["reason"] for e in journaled if e.data["latched"]]
+        out["reasons"] = reasons
+    finally:
+        sub.close()
+        await daemon.close()
+        notify.close()
+    out["loop_errors"] = loop_errors
+    return out
+
+
 if __name__ == "__main__":
     work = Path(sys.argv[1])
     (work / "state").mkdir(parents=True, exist_ok=True)
     subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={TMPFS_MB}m", "tmpfs", str(work / "state")], check=True)
-    print(json.dumps(asyncio.run(main(work, sys.argv[2] if len(sys.argv) > 2 else "scan"))))
+    phase = sys.argv[2] if len(sys.argv) > 2 else "scan"
+    print(json.dumps(asyncio.run(events(work) if phase == "events" else main(work, phase))))

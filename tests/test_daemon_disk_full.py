@@ -13,7 +13,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from tandemscan.daemon.events import sse_text
 from tandemscan.daemon.faults import classify_fault
+from tandemscan.daemon.store import Event
 from tandemscan.drivers.errors import NotConnected
 
 CHILD = Path(__file__).with_name("disk_full_child.py")
@@ -67,6 +69,30 @@ def test_a_full_disk_during_the_export_pauses_and_the_job_completes_with_its_rep
     assert out["scan_steps"] == [2, 4, 8] and out["report_scans"] == 3 and out["report_attempts"] == 2
     assert out["report_resumes"] == [{"step": 9, "kind": "export"}]  # issue 42 row 7: a resume in the export
     assert out["scan_files"] == ["scan-0000.npz", "scan-0001.npz", "scan-0002.npz"]
+
+
+@pytest.mark.skipif(not _namespaces_work(), reason="needs unprivileged user and mount namespaces (a tmpfs)")
+def test_safety_events_reach_subscribers_and_systemd_while_the_journal_is_full(tmp_path):
+    """Issue 42 row 6: with the journal refusing writes, each safety event is still published (without an id) and
+    sent to systemd; the refused writes are counted and retried, and every event is journaled once space returns;
+    no task dies unobserved."""
+    out = run_disk_full(tmp_path, "events")
+    reasons = out["reasons"]
+    full = out["health_while_full"]
+    assert full["event_journal_failures"] > 0 and full["events_not_journaled"] > 0, out
+    assert full["status"] == "degraded"
+    assert out["published_reasons"] == reasons and out["published_unjournaled"] > 0
+    assert out["notified"][-2:] == [f"STATUS=safety stop: {reasons[-1]}", "STATUS=safety stop reset"]
+    assert len(out["notified"]) == 2 * len(reasons)
+    assert out["journaled_reasons"] == reasons  # each retried until the journal took it, in order
+    assert out["health_after"]["events_not_journaled"] == 0
+    assert out["loop_errors"] == []
+
+
+def test_an_event_the_journal_has_not_taken_is_sent_without_an_id():
+    journaled, not_yet = Event(7, None, "safety", {"latched": True}, 1.0), Event(None, None, "safety", {}, 1.0)
+    assert sse_text(journaled).startswith("id: 7\nevent: safety\n")
+    assert sse_text(not_yet).startswith("event: safety\ndata: ")
 
 
 def _raised(write) -> BaseException:

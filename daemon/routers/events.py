@@ -56,6 +56,6 @@ async def _event_stream(facade: ServiceFacade, request: Request, job: str | None
                     return
                 yield ": ping\n\n"
                 continue
-            if ev.seq <= seen or (job is not None and ev.job_id != job):
+            if (ev.seq is not None and ev.seq <= seen) or (job is not None and ev.job_id != job):
                 continue
             yield sse_text(ev)
