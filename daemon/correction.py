@@ -24,12 +24,15 @@ from typing import TYPE_CHECKING
 import numpy as np
 from tandemscan.pipeline.geometry.uncertainty import scan_pose_covariance
 from tandemscan.pipeline.registration.correction import StitchedScan, correct_scans
+from tandemscan.pipeline.registration.joint import chain_covariance
 from tandemscan.pipeline.registration.mounts import MountPrior
 from tandemscan.pipeline.registration.pairs import LazyNetwork
-from tandemscan.pipeline.registration.pose_graph import TransferPrior
+from tandemscan.pipeline.registration.pose_covariance import PoseCovariance
+from tandemscan.pipeline.registration.pose_graph import ScanPrior, TransferPrior
 
 if TYPE_CHECKING:
     from tandemscan.config.models import CellConfig
+    from tandemscan.daemon.runner import ScanRecord
     from tandemscan.daemon.snapshot import JobSnapshot
     from tandemscan.pipeline.registration.online_pairs import OnlineWork
     from tandemscan.pipeline.stitching.installation import Installation
@@ -69,8 +72,22 @@ def transfer_priors(transfers: list[dict]) -> list[TransferPrior]:
     return [TransferPrior(t["station"], np.array(t["target_W_mm"]), np.array(t["covariance"])) for t in transfers]
 
 
+def _reading_covariance(job: JobSnapshot, scan: ScanRecord) -> np.ndarray:
+    """6x6 covariance of a scan's tracker pose (t mm^2 at its origin, r rad^2; W axes) from its reading's."""
+    return scan_pose_covariance(scan.T_W_C, scan.reading.T_C_T, job.installation.T_T_S, scan.reading.covariance)
+
+
+def tracker_chain_covariance(job: JobSnapshot) -> PoseCovariance:
+    """The scans' errors jointly where no correction ran: the tracker readings', the transfers' and the mount's
+    priors (the mount's as :func:`mount_prior` gives it, also where ``estimate_mount`` is off)."""
+    priors = [ScanPrior(s.T_W_S, _reading_covariance(job, s), s.tracker_station) for s in job.scans]
+    with_mount = job.config.model_copy(update={"correction": job.config.correction.model_copy(
+        update={"estimate_mount": True})})
+    return chain_covariance(priors, transfer_priors(job.transfers), mount_prior(with_mount, job.installation)[0])
+
+
 def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray], online: OnlineWork | None = None
-                ) -> tuple[dict, list[np.ndarray]]:
+                ) -> tuple[dict, list[np.ndarray], PoseCovariance | None]:
     """The refined pose ``T_W_S`` (W, mm) of every scan of ``job.scans``, whose points in the scanner frame S
     (mm) are ``points_S``; ``job`` is not changed. ``online``: what the job computed while it measured
     (``online_pairs.OnlineWork``: registered pairs, scans prepared for the joint refinement and their pairs'
@@ -78,12 +95,12 @@ def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray], online: Online
 
     Returns the ``correction`` section of the report (the settings, pair and graph figures; on the simulated
     cell ``report.add_ground_truth`` adds those of the tracker-only stitch, ``before``, once the job's outputs
-    are written) and the refined poses in scan order.
+    are written), the refined poses in scan order and the covariance of their errors (``pose_covariance``, scans
+    numbered as in ``job.scans``).
     """
     started, cpu = time.monotonic(), _cpu_seconds()
     cfg = job.config.correction
-    scans = [StitchedScan(P, s.T_W_S, scan_pose_covariance(s.T_W_C, s.reading.T_C_T, job.installation.T_T_S,
-                                                            s.reading.covariance), s.tracker_station)
+    scans = [StitchedScan(P, s.T_W_S, _reading_covariance(job, s), s.tracker_station)
              for s, P in zip(job.scans, points_S, strict=True)]
     prior, prior_source = mount_prior(job.config, job.installation)
     result = correct_scans(scans, cfg, LazyNetwork(job.config.deepmerge), transfers=transfer_priors(job.transfers),
@@ -98,4 +115,4 @@ def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray], online: Online
         section["mount"] |= result.mount.observability(job.config.scanner.sweet_spot_mm)
         section["mount"]["T_T_S_refined"] = (job.installation.T_T_S @ result.mount.correction).tolist()
     log.info("stitch corrected in %.1f s", section["seconds"])
-    return section, list(result.poses)
+    return section, list(result.poses), result.pose_covariance

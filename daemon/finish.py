@@ -32,6 +32,7 @@ if TYPE_CHECKING:
 
     from tandemscan.daemon.snapshot import JobSnapshot
     from tandemscan.pipeline.registration.online_pairs import OnlineWork
+    from tandemscan.pipeline.registration.pose_covariance import PoseCovariance
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +59,7 @@ class CorrectionOutcome:
     section: dict
     poses: tuple[np.ndarray, ...]
     corrected: bool
+    pose_covariance: PoseCovariance | None = None  # their errors jointly, scans numbered as in ``job.scans``
 
 
 @dataclass(frozen=True)
@@ -81,19 +83,27 @@ def load_scans(job: JobSnapshot) -> LoadedScans:
 
 def correct_stage(job: JobSnapshot, loaded: LoadedScans, online: OnlineWork | None) -> CorrectionOutcome:
     """The correction (``correction.correct_job``) of the scans that saw something, when ``[correction]`` is
-    enabled and there are two of them; otherwise the tracker stitch stands."""
+    enabled and there are two of them; otherwise the tracker stitch stands, with the tracker chain's covariance."""
+    from tandemscan.daemon.correction import correct_job, tracker_chain_covariance  # the registration stack
+
     tracker = tuple(np.asarray(s.T_W_S, float) for s in job.scans)
     measured = [k for k, s in enumerate(job.scans) if s.point_count > 0]  # a scan that saw nothing: nothing to do
-    if not (job.config.correction.enabled and len(measured) > 1):
-        return CorrectionOutcome({"enabled": False}, tracker, False)
-    from tandemscan.daemon.correction import correct_job  # imports the registration stack where it runs
-
     view = dataclasses.replace(job, scans=[job.scans[k] for k in measured])
-    section, refined = correct_job(view, [loaded.points_S[k] for k in measured], online)
+    if not (job.config.correction.enabled and len(measured) > 1):
+        chain = tracker_chain_covariance(view) if measured else None
+        return CorrectionOutcome({"enabled": False}, tracker, False, _numbered(chain, measured))
+    section, refined, covariance = correct_job(view, [loaded.points_S[k] for k in measured], online)
     poses = list(tracker)
     for k, T in zip(measured, refined, strict=True):
         poses[k] = T
-    return CorrectionOutcome(section, tuple(poses), True)
+    return CorrectionOutcome(section, tuple(poses), True, _numbered(covariance, measured))
+
+
+def _numbered(covariance: PoseCovariance | None, measured: Sequence[int]) -> PoseCovariance | None:
+    """``covariance`` of the scans ``measured`` (indices into the job's scans) with its scans numbered so."""
+    if covariance is None:
+        return None
+    return dataclasses.replace(covariance, scan_ids=np.asarray(measured, np.int64)[covariance.scan_ids])
 
 
 def merge_stage(voxel_mm: float, scan_files: Sequence[Path], poses: Sequence[np.ndarray]) -> VoxelMap:
@@ -154,7 +164,7 @@ def finish_job(job: JobSnapshot, started: float, measured_at: float,
     timings["merge_s"] = round(time.perf_counter() - t, 3)
     final = dataclasses.replace(
         job, scans=[dataclasses.replace(s, T_W_S=T) for s, T in zip(job.scans, outcome.poses, strict=True)],
-        correction=outcome.section)
+        correction=outcome.section, pose_covariance=outcome.pose_covariance)
     report = export_job(final, time.monotonic() - started, measured_at, timings, view_S, tracker_poses,
                         tracker_stitch)
     return FinishedJob(report, outcome)

@@ -27,10 +27,13 @@ import numpy as np
 from tandemscan.config.inspection_template import InspectionTemplate, find_template, load_template
 from tandemscan.config.loader import ConfigError
 from tandemscan.config.models import CellConfig
+from tandemscan.daemon.calibration_state import verdict_context
 from tandemscan.daemon.report import add_ground_truth, build_report
+from tandemscan.pipeline.geometry.frames import transform_points
 from tandemscan.pipeline.geometry.part import load_part_mesh
 from tandemscan.pipeline.inspection.inspect import InspectionError
 from tandemscan.pipeline.inspection.inspection_job import InspectionOutputs, PlacedScans, align_and_inspect
+from tandemscan.pipeline.inspection.point_uncertainty import JobUncertainty, ScanCover
 from tandemscan.pipeline.io.export import PosedScan, write_e57, write_ply, write_pose_log
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan
 
@@ -193,9 +196,10 @@ def _inspection_section(job: JobSnapshot, report: dict, scans: list[PosedScan], 
     step = -(-len(cloud_W) // job.config.inspection.max_points)  # ceil: every step-th voxel (map key order)
     if step > 1:
         log.info("inspecting every %d-th of the cloud's %d points ([inspection] max_points)", step, len(cloud_W))
+    counts = job.worldmap.counts()
     try:
         out = _inspect(job, report, scans, cloud_W[::step], job.worldmap.normals()[::step], T_F_W, tracker_poses,
-                       len(cloud_W))
+                       len(cloud_W), None if counts is None else counts[::step])
     except (InspectionError, ConfigError) as e:  # the measurement stands; the report says why it has none
         log.warning("inspection failed: %s", e)
         return {"failed": str(e), "files": files}
@@ -205,10 +209,11 @@ def _inspection_section(job: JobSnapshot, report: dict, scans: list[PosedScan], 
 
 def _inspect(job: JobSnapshot, report: dict, scans: list[PosedScan], cloud_W: np.ndarray,
              normals_W: np.ndarray | None, T_F_W: np.ndarray, tracker_poses: Sequence[np.ndarray] | None,
-             cloud_points: int) -> InspectionOutputs:
-    """The inspection of the job's cloud (``cloud_W``: of its ``cloud_points`` points those inspected),
-    aligned to the CAD from the anchor's ``T_F_W``, written into the job folder; the stitch view shows the
-    tracker-only stitch (Eq. 1) and, where corrected, the final one."""
+             cloud_points: int, counts: np.ndarray | None = None) -> InspectionOutputs:
+    """The inspection of the job's cloud (``cloud_W``: of its ``cloud_points`` points those inspected, each the
+    mean of ``counts`` scan points), aligned to the CAD from the anchor's ``T_F_W``, written into the job folder
+    with each point's uncertainty (:func:`job_uncertainty`); the stitch view shows the tracker-only stitch (Eq. 1)
+    and, where corrected, the final one."""
     job_dir = job.job_dir
     tracker_only = [s.T_W_S for s in scans] if tracker_poses is None else list(tracker_poses)
     view_S = [_thin(s.points_S_mm) for s in scans]
@@ -235,6 +240,8 @@ def _inspect(job: JobSnapshot, report: dict, scans: list[PosedScan], cloud_W: np
         json_name=None,
         template=template,
         part=part_identity(job.config, template, template_file),
+        uncertainty=job_uncertainty(job, scans, counts),
+        context=verdict_context(job),
     )
 
 
@@ -246,3 +253,18 @@ def part_identity(config: CellConfig, template: InspectionTemplate | None, templ
     named = {"part_number": number, "serial": config.job.serial,
              "template": None if template_file is None else str(template_file)}
     return {k: v for k, v in named.items() if v is not None}
+
+
+def job_uncertainty(job: JobSnapshot, scans: Sequence[PosedScan], counts: np.ndarray | None) -> JobUncertainty | None:
+    """The uncertainty model of the job's cloud (``point_uncertainty.JobUncertainty``): its poses' errors jointly
+    (the mount's at the installation's prior: the calibration's covariance, or the nominal mounts' build
+    tolerance; ``PoseCovariance.with_installation_at_prior``), the scans' thinned points placed in W for which
+    scans each point came from, the voxels' point counts and the scanner's noise; None where the end of the job
+    left no pose covariance."""
+    if job.pose_covariance is None:
+        return None
+    cover = ScanCover([transform_points(s.T_W_S, s.points_S_mm) for s in scans],
+                      np.array([len(s.points_S_mm) if s.point_count is None else s.point_count for s in scans], float),
+                      np.array([np.asarray(s.T_W_S)[:3, 3] for s in scans]), np.arange(len(scans)))
+    return JobUncertainty(job.pose_covariance.with_installation_at_prior(), cover, job.config.scanner.noise_sigma_mm,
+                          counts)

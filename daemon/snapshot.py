@@ -22,6 +22,7 @@ from tandemscan.pipeline.stitching.installation import Installation
 if TYPE_CHECKING:
     from tandemscan.daemon.observer import JobScorer
     from tandemscan.daemon.runner import ScanRecord
+    from tandemscan.pipeline.registration.pose_covariance import PoseCovariance
 
 
 @dataclass
@@ -40,6 +41,7 @@ class JobSnapshot:
     T_F_W: np.ndarray | None = None
     worldmap: Any = field(default=None, repr=False)  # the VoxelMap where the work runs
     relocalisation: dict = field(default_factory=dict)  # the runner's AGV relocalisation log (report section)
+    pose_covariance: PoseCovariance | None = None  # the final poses' errors jointly (the end of the job sets it)
 
     def __getstate__(self) -> dict:
         return self.__dict__ | {"worldmap": None}

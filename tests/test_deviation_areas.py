@@ -63,5 +63,6 @@ def test_verdict_and_report_list_the_areas_with_callouts():
     report = build_report(result, box, cfg)
     assert report.data["verdict"] == "fail" and report.data["alignment"]["method"] == "none"
     (area,) = report.data["deviations"]
-    assert set(area) == {"id", "side", "centroid_mm", "area_mm2", "extreme_mm", "mean_mm", "points"}
+    assert set(area) == {"id", "side", "centroid_mm", "area_mm2", "extreme_mm", "mean_mm", "points", "decision",
+                         "uncertainty_mm", "reason"}
     np.testing.assert_allclose(area["centroid_mm"], [120.0, 140.0, 50.0], atol=1.0)

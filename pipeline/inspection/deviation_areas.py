@@ -37,6 +37,9 @@ class DeviationArea:
     extreme_mm: float
     mean_mm: float
     points: int
+    decision: str = ""  # "nonconforming" or "indeterminate" once decided (``verdict.judge``)
+    uncertainty_mm: float | None = None  # expanded U of its extreme, mm
+    reason: str = ""
 
 
 @dataclass(frozen=True)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import open3d as o3d
@@ -21,6 +22,9 @@ from tandemscan.config.models import InspectionConfig, RegionConfig
 from tandemscan.pipeline.geometry.frames import from_rotvec, rotation_angle, transform_points
 from tandemscan.pipeline.geometry.part import enclosed_volume_mm3, triangles_closed
 from tandemscan.pipeline.inspection.deviation_areas import DeviationArea, find_deviation_areas
+
+if TYPE_CHECKING:
+    from tandemscan.pipeline.inspection.verdict import Judgement
 
 log = logging.getLogger(__name__)
 
@@ -225,10 +229,14 @@ class InspectionResult:
     best_fit_note: str = ""  # why there is no best fit when one was asked for
     areas: tuple[DeviationArea, ...] = ()  # beyond the band, largest |extreme| first
     triangle_ids: np.ndarray | None = field(default=None, repr=False)  # (N,) closest CAD triangle per point
+    judgement: Judgement | None = field(default=None, repr=False)  # the decision rule's (``verdict.judge``)
 
     @property
     def verdict(self) -> str:
-        """"pass" when no area of the surface lies beyond the tolerance band, else "fail"."""
+        """The judgement's "pass", "fail" or "indeterminate"; without one, by simple acceptance: "pass" when no
+        area of the surface lies beyond the tolerance band, else "fail"."""
+        if self.judgement is not None:
+            return self.judgement.verdict
         return "fail" if self.areas else "pass"
 
 

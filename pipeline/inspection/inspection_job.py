@@ -8,6 +8,7 @@ millimetres (PLY, PCD, XYZ clouds; STL, PLY, OBJ meshes).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -32,8 +33,10 @@ from tandemscan.pipeline.inspection.inspect import (
     in_chunks,
     inspect_cloud,
 )
+from tandemscan.pipeline.inspection.point_uncertainty import GivenUncertainty, UncertaintyModel
 from tandemscan.pipeline.inspection.report import build_report, in_background, write_report
 from tandemscan.pipeline.inspection.stitch_quality import overlap_quality
+from tandemscan.pipeline.inspection.verdict import VerdictContext, judge
 from tandemscan.pipeline.io.cloud_io import CloudIOError, read_ply
 from tandemscan.pipeline.io.export import write_ply
 
@@ -71,6 +74,8 @@ def run_inspection(
     overlap: Future | None = None,
     template: InspectionTemplate | None = None,
     part: Mapping[str, str] | None = None,
+    uncertainty: UncertaintyModel | None = None,
+    context: VerdictContext | None = None,
 ) -> InspectionOutputs:
     """Inspect ``points_mm`` (frame F) against the CAD mesh and write the report and the deviation PLY
     into ``out_dir``. The PLY carries the cloud's normals when given, else the closest CAD normals.
@@ -78,21 +83,30 @@ def run_inspection(
     ``alignment`` says how the points were placed in F (None: they came in F); ``overlap``: the scans'
     :func:`overlap_quality`, being computed (else it is started here, while the cloud is inspected);
     ``template``: the part's characteristics, evaluated and reported first; ``part``: its part number,
-    serial and template file, as the report names them."""
+    serial and template file, as the report names them; ``uncertainty``: what knows the points' uncertainty
+    (None: the cloud states none, U = 0) and ``context`` the installation and verification the verdict is made in
+    (``verdict.judge``)."""
     cfg = cfg or InspectionConfig()
     surface = mesh if isinstance(mesh, CadSurface) else CadSurface(mesh)
     if overlap is None and scans_before is not None:
         overlap = in_background(overlap_quality, scans_before, scans_after)
     result = inspect_cloud(points_mm, surface, cfg)
-    characteristics = () if template is None else evaluate(template, measured_cloud(result, surface),
-                                                           DecisionRule.of(cfg))
+    placed = alignment or Alignment("none", np.eye(4), 0.0, "the cloud as given")
+    u = (uncertainty or GivenUncertainty(0.0)).evaluate(
+        result.points_mm, result.cad_normals, cfg.decision_k, placed.T_F_W, placed.method,
+        None if placed.excluded is None else ~placed.excluded, None)
+    if uncertainty is None:
+        u = dataclasses.replace(u, notes=u.notes | {"cloud": "the cloud states no uncertainty: U = 0"})
+    result = judge(result, u, cfg, context or VerdictContext())
+    characteristics = () if template is None else evaluate(
+        template, measured_cloud(result, surface, u.expanded_mm), DecisionRule.of(cfg))
     with ThreadPoolExecutor(1, thread_name_prefix="deviation-ply") as pool:  # the file while the figures draw
         ply = pool.submit(
             write_ply,
             Path(out_dir) / DEVIATION_PLY,
             result.points_mm,
             normals if normals is not None else result.cad_normals,
-            {"deviation_mm": result.deviations_mm},
+            {"deviation_mm": result.deviations_mm, "uncertainty_mm": u.expanded_mm},
         )
         report = build_report(
             result, surface, cfg, title=title, meta=meta, accuracy=accuracy,
@@ -103,13 +117,11 @@ def run_inspection(
     return InspectionOutputs(result, report.data, html, js, ply.result(), characteristics)
 
 
-def measured_cloud(result: InspectionResult, surface: CadSurface) -> MeasuredCloud:
+def measured_cloud(result: InspectionResult, surface: CadSurface, expanded_mm: np.ndarray) -> MeasuredCloud:
     """What the characteristics are evaluated on: the inspection's points, deviations, closest triangles and
-    per-point expanded uncertainty."""
+    per-point expanded uncertainty (``expanded_mm``, ``point_uncertainty``)."""
     assert result.triangle_ids is not None  # inspect_cloud keeps them
-    log.warning("no per-point expanded uncertainty yet: the characteristics' U is 0")
-    return MeasuredCloud(result.points_mm, result.deviations_mm, result.triangle_ids,
-                         np.zeros(len(result.points_mm)), surface)
+    return MeasuredCloud(result.points_mm, result.deviations_mm, result.triangle_ids, expanded_mm, surface)
 
 
 def align_and_inspect(

@@ -86,7 +86,7 @@ SIDE_COLOURS = {"upper": "#b3140d", "lower": "#1d3fbf"}
 def inspection_summary(result: InspectionResult, alignment: Alignment | None = None) -> dict:
     """The numbers of an inspection as JSON-ready dicts (verdict, alignment, deviation areas largest
     extreme first, as measured, per region, best fit), mm / deg."""
-    return {
+    out = {
         "verdict": result.verdict,
         "alignment": alignment.summary() if alignment is not None else dict(NO_ALIGNMENT),
         "deviations": [_plain(a) for a in result.areas],
@@ -95,6 +95,13 @@ def inspection_summary(result: InspectionResult, alignment: Alignment | None = N
         "best_fit": _plain(result.best_fit),
         "best_fit_note": result.best_fit_note,
     }
+    j = result.judgement
+    if j is not None:  # the decision rule's verdict (docs/inspection.md, "Verdict")
+        out |= {"verdict_reasons": list(j.reasons), "decision_rule": j.rule.as_dict(),
+                "decision_rule_label": j.rule.label, "uncertainty": j.uncertainty.summary(),
+                "region_verdicts": [_plain(r) for r in j.regions],
+                "installation": _plain(j.context.installation), "verification": _plain(j.context.verification)}
+    return out
 
 
 def build_report(

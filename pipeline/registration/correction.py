@@ -32,6 +32,7 @@ from tandemscan.pipeline.registration.joint import (
     JointResult,
     JointScan,
     JointSettings,
+    chain_covariance,
     refine_jointly,
 )
 from tandemscan.pipeline.registration.mounts import MountEstimate, MountPrior
@@ -44,6 +45,7 @@ from tandemscan.pipeline.registration.pairs import (
     correct_pair,
 )
 from tandemscan.pipeline.registration.parallel import pair_threads
+from tandemscan.pipeline.registration.pose_covariance import PoseCovariance
 from tandemscan.pipeline.registration.pose_graph import (
     PairEdge,
     ScanPrior,
@@ -74,6 +76,7 @@ class CorrectionResult:
     edges: list[tuple[int, int, PairOutcome]] = field(default_factory=list)
     report: dict = field(default_factory=dict)
     mount: MountEstimate | None = None
+    pose_covariance: PoseCovariance | None = None  # the scans' errors jointly (``pose_covariance``)
 
 
 class _Clock:
@@ -312,7 +315,9 @@ def correct_scans(
             "pairs_associated_while_measuring": associated_while_measuring}
     log.info("correction: %d scans, %d pairs (%d dropped), overlap RMS %.4f -> %.4f mm", len(scans), len(edges),
              len(dropped), rms_b, rms_a)
-    return CorrectionResult(poses, edges, report, mount)
+    # the joint refinement's posterior of the scans' errors; the pose graph's is not formed: the chain's prior
+    covariance = joint.pose_covariance if joint is not None else chain_covariance(priors, transfers, mount_prior)
+    return CorrectionResult(poses, edges, report, mount, covariance)
 
 
 def _refine_jointly(scans: Sequence[StitchedScan], priors: list[ScanPrior], cfg: CorrectionConfig,

@@ -60,6 +60,7 @@ from tandemscan.pipeline.geometry.uncertainty import recentre
 from tandemscan.pipeline.registration.icp import RefineError
 from tandemscan.pipeline.registration.mounts import MountEstimate, MountPrior
 from tandemscan.pipeline.registration.parallel import PairMap, pair_threads
+from tandemscan.pipeline.registration.pose_covariance import PoseCovariance
 from tandemscan.pipeline.registration.pose_graph import ScanPrior, TransferPrior
 
 log = logging.getLogger(__name__)
@@ -173,6 +174,7 @@ class JointResult:
     rms_mm_after: float
     noise_sigma_mm: float
     pairs_associated_anew: int
+    pose_covariance: PoseCovariance | None = None  # the posterior of every scan's error jointly (its correlations)
 
 
 def _adjoint_blocks(R: np.ndarray) -> np.ndarray:
@@ -238,6 +240,12 @@ class _Model:
                              @ from_rotvec(o, [0, 0, 0]))
             out[i] = np.r_[t, r]
         return out
+
+    def pose_covariance(self, cov_theta: np.ndarray, source: str) -> PoseCovariance:
+        """The scans' errors ``e = A theta`` jointly, ``theta`` of covariance ``cov_theta`` (dense), for every scan
+        ``0 .. n-1`` (the caller maps them to its own)."""
+        mount = () if self.L is None else tuple(range(self.size - 6, self.size))
+        return PoseCovariance(np.arange(self.n), self.origins.copy(), self.A.toarray(), cov_theta, source, mount)
 
     def scan_covariances(self, cov_theta: np.ndarray) -> np.ndarray:
         """(n, 6, 6) covariance of every ``e_i`` from the covariance of ``theta`` (dense): the diagonal blocks
@@ -576,7 +584,16 @@ def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequ
              "%.4f mm (%.4f mm at the refined poses), RMS %.4f -> %.4f mm", model.n, used, n_corr, it, anew, sigma,
              noise_sigma, rms_before, rms_after)
     return JointResult([T for T in poses], model.scan_covariances(cov_theta), prior_cov, mount, it, used, n_corr,
-                       sigma, rms_before, rms_after, noise_sigma, anew)
+                       sigma, rms_before, rms_after, noise_sigma, anew,
+                       model.pose_covariance(cov_theta, "joint refinement posterior"))
+
+
+def chain_covariance(priors: Sequence[ScanPrior], transfers: Sequence[TransferPrior],
+                     mount_prior: MountPrior | None) -> PoseCovariance:
+    """The scans' errors as the tracker chain alone gives them (no correction ran): the readings', the transfers'
+    and the mount's priors through the joint refinement's error model (the module doc)."""
+    model = _Model(priors, transfers, mount_prior)
+    return model.pose_covariance(model.prior_covariance.toarray(), "tracker chain prior")
 
 
 def _posterior_covariance(H_theta: np.ndarray, information: sparse.csr_matrix) -> np.ndarray:

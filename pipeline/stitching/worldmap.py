@@ -187,9 +187,10 @@ class VoxelMap:
         once, as ``dtype`` (float32 halves them where only a score reads them). The map keeps its sums; the
         caller drops it to free them."""
         points, normals = self.points().astype(dtype, copy=False), self.normals().astype(dtype, copy=False)
-        for a in (points, normals):
+        counts = self._counts.astype(np.int32)
+        for a in (points, normals, counts):
             a.setflags(write=False)  # shared by every reader
-        return MapCloud(self.voxel_mm, points, normals)
+        return MapCloud(self.voxel_mm, points, normals, counts)
 
     @property
     def nbytes(self) -> int:
@@ -209,6 +210,7 @@ class MapCloud:
     voxel_mm: float
     points_mm: np.ndarray
     normals_unit: np.ndarray
+    point_counts: np.ndarray | None = None  # points merged into each voxel (the noise of its mean)
 
     def __len__(self) -> int:
         return len(self.points_mm)
@@ -220,3 +222,7 @@ class MapCloud:
     def normals(self) -> np.ndarray:
         """Mean unit normal of every occupied voxel, (M, 3) (the stored array)."""
         return self.normals_unit
+
+    def counts(self) -> np.ndarray | None:
+        """Points merged into each voxel, (M,) (the stored array), None where not kept."""
+        return self.point_counts

@@ -1,0 +1,274 @@
+"""Per-point expanded uncertainty U of the deviation from CAD (docs/inspection.md, "Per-point uncertainty").
+
+Every point's deviation is its signed distance along the CAD normal ``n`` (frame F, mm). First order, its error is
+
+    delta_d = n . delta_p - j . a + noise,
+
+- ``delta_p``: the point's error from the poses of the scans merged into its voxel, each weighing its share of
+  the voxel's points: scan ``i`` moved by the small world motion ``e_i`` about its origin ``o_i`` moves the point
+  by ``n . (t_i + r_i x (p - o_i)) = g_i . e_i`` with ``g_i = [n, (p - o_i) x n]`` (W axes). The ``e`` of all
+  scans are correlated (transfers, the mount) and jointly known as ``PoseCovariance`` (the joint refinement's
+  posterior, or the tracker chain's prior with the installation's: the calibration's ``T_T_S`` covariance, or for
+  nominal mounts a prior as wide as their build tolerance, ``[correction] mount_nominal_sigma_*``).
+- ``j . a``: a best-fit alignment to CAD absorbs the part of the scans' errors a rigid motion ``a`` (about the
+  fitted points' centroid, ``j = [n, (p - c) x n]`` in F) explains: ``a = -(J^T J)^-1 sum_q j_q delta_d_q`` over
+  the fitted points, so each point's error is ``(g_p - B^T j_p) . e`` with ``B = (J^T J)^-1 sum_q j_q g_q^T``.
+  RPS and "none" absorb nothing here (conservative).
+- noise: the scanner errs along its ray (``[scanner] noise_sigma_mm``, the simulator's and the bound's model), a
+  point of scan ``i`` along ``n`` by its noise times ``|cos|`` of ray and normal; the voxel's mean of ``c`` points
+  has the variance ``sigma^2 sum_i w_i cos_i^2 / c`` (the cosines of the nearest centre, ``c`` the point's own).
+- the alignment's own covariance (6x6 about a centre in F): where the alignment states one; otherwise this term
+  is zero and the budget says so.
+
+U = k sqrt(sum of the variances). The pose terms are smooth over the surface: they are evaluated at an even
+thinning of the cloud (at most :data:`MAX_CENTRES`) and each point takes its nearest centre's; the noise is each
+point's own.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+from scipy.spatial import cKDTree
+from tandemscan.pipeline.geometry.frames import invert, rotate_vectors, transform_points
+from tandemscan.pipeline.inspection.deviation_areas import even_centres
+from tandemscan.pipeline.registration.pose_covariance import PoseCovariance
+
+MAX_CENTRES = 40_000  # pose terms are evaluated at an even thinning of at most about this many points
+SCANS_PER_POINT = 4  # a point's voxel takes at most this many scans into account (the largest shares)
+NEIGHBOURS = 16  # nearest points of the scans' thinned copies that tell a point which scans cover it
+FIT_POINTS = 50_000  # the best fit's absorption is formed over an even subsample of this many points
+
+SOURCES = ("scan_poses", "installation", "scanner_noise", "alignment")
+
+
+@dataclass(frozen=True)
+class PointUncertainty:
+    """Expanded uncertainty (coverage factor ``k``) of every point's deviation along the CAD normal, mm; the budget:
+    per source the median over the points of that source's expanded uncertainty alone (``budget_mm``, sources
+    :data:`SOURCES`, correlations of the pose sources counted in the total only) and a note per source where it
+    needs one; ``noise_variance_mm2``: the part of each point's squared standard uncertainty that is independent
+    from point to point (the scanner's noise; 0 for a cloud's own stated U, taken as systematic);
+    ``scan_of_point``: the scan with the largest share of each point (index into the job's scans; None where not
+    known)."""
+
+    k: float
+    expanded_mm: np.ndarray = field(repr=False)
+    noise_variance_mm2: np.ndarray = field(repr=False)  # (N,) the share of u^2 that averaging neighbours reduces
+    budget_mm: dict[str, float] = field(default_factory=dict)
+    notes: dict[str, str] = field(default_factory=dict)
+    scan_of_point: np.ndarray | None = field(default=None, repr=False)
+
+    def summary(self) -> dict:
+        """report.json ``inspection.uncertainty``: ``{"k", "median_mm", "p95_mm", "budget_mm", "notes"}``."""
+        u = self.expanded_mm
+        return {"k": self.k, "median_mm": float(np.median(u)) if len(u) else 0.0,
+                "p95_mm": float(np.percentile(u, 95)) if len(u) else 0.0,
+                "budget_mm": {s: round(v, 5) for s, v in self.budget_mm.items()}, "notes": dict(self.notes)}
+
+
+@dataclass(frozen=True)
+class AlignmentCovariance:
+    """A 6x6 covariance of the alignment's small rigid motion about ``centre_mm`` (F; t mm^2, then r rad^2)."""
+
+    covariance: np.ndarray
+    centre_mm: np.ndarray
+
+
+class UncertaintyModel(Protocol):
+    """What knows the uncertainty of a cloud's points: evaluated once the cloud is aligned and its CAD normals are
+    known (``points_F``, ``normals_F``; ``kept``: which of the cloud's points, as it came, are these)."""
+
+    def evaluate(self, points_F: np.ndarray, normals_F: np.ndarray, k: float, T_F_W: np.ndarray,
+                 method: str, kept: np.ndarray | None, alignment: AlignmentCovariance | None
+                 ) -> PointUncertainty: ...
+
+
+def _alignment_variance(points_F: np.ndarray, normals_F: np.ndarray, alignment: AlignmentCovariance | None
+                        ) -> np.ndarray:
+    """Each point's variance along its normal from the alignment's own covariance (0 without one), mm^2."""
+    if alignment is None:
+        return np.zeros(len(points_F))
+    j = np.hstack([normals_F, np.cross(points_F - alignment.centre_mm, normals_F)])
+    return np.einsum("ij,jk,ik->i", j, np.asarray(alignment.covariance, float), j)
+
+
+ALIGNMENT_NOTE = "the alignment states no covariance of its own: term 0 (a best fit's absorption of the scans' " \
+                 "errors is in scan_poses and installation)"
+
+
+@dataclass(frozen=True)
+class GivenUncertainty:
+    """A cloud's own expanded uncertainty (per point (N,) or one for all, mm, coverage factor ``k``): a scanner's
+    statement (``tandemscan inspect --point-uncertainty-mm``, a PLY property ``uncertainty_mm``); the alignment's is
+    added."""
+
+    expanded_mm: np.ndarray | float
+    k: float = 2.0
+
+    def evaluate(self, points_F: np.ndarray, normals_F: np.ndarray, k: float, T_F_W: np.ndarray,
+                 method: str, kept: np.ndarray | None, alignment: AlignmentCovariance | None) -> PointUncertainty:
+        """U with coverage factor ``k`` of the points (the cloud's own, with its ``k``, and the alignment's)."""
+        own = np.broadcast_to(np.asarray(self.expanded_mm, float), (len(kept) if kept is not None else
+                                                                    len(points_F),))
+        own = own[kept] if kept is not None and own.ndim and len(own) == len(kept) else own
+        own = np.broadcast_to(own, (len(points_F),)) / self.k
+        aligned = _alignment_variance(points_F, normals_F, alignment)
+        total = k * np.sqrt(own**2 + aligned)
+        budget = {"cloud": float(np.median(k * own)) if len(own) else 0.0,
+                  "alignment": float(np.median(k * np.sqrt(aligned))) if len(own) else 0.0}
+        notes = {"cloud": "the cloud's own expanded uncertainty as given"}
+        if alignment is None:
+            notes["alignment"] = ALIGNMENT_NOTE.split(" (")[0]
+        return PointUncertainty(k, total, np.zeros(len(total)), budget, notes)
+
+
+@dataclass(frozen=True)
+class ScanCover:
+    """Which scans' points a cloud's points were merged from: the scans' thinned copies placed in W (mm), each
+    scan's full point count, its origin (the scanner's optical centre, W, mm) and index in the job's scans."""
+
+    points_W: Sequence[np.ndarray]
+    point_counts: np.ndarray
+    origins_mm: np.ndarray
+    scan_ids: np.ndarray
+
+    def shares(self, points_W: np.ndarray, k: int = SCANS_PER_POINT) -> tuple[np.ndarray, np.ndarray]:
+        """(M, k) scan positions (into this cover's scans) and their shares of each point's voxel (rows sum to
+        1): the scans among the :data:`NEIGHBOURS` nearest thinned points, each weighing its points found there
+        times its thinning ratio (full points over thinned ones), the ``k`` largest kept."""
+        sizes = np.array([len(p) for p in self.points_W])
+        labels = np.repeat(np.arange(len(sizes)), sizes)
+        tree = cKDTree(np.concatenate([np.asarray(p, float) for p in self.points_W]), leafsize=32,
+                       balanced_tree=False)
+        kn, kk = min(NEIGHBOURS, len(labels)), min(k, len(sizes))
+        ratio = np.asarray(self.point_counts, float) / np.maximum(sizes, 1)
+        top, w = np.empty((len(points_W), kk), np.int64), np.empty((len(points_W), kk))
+        step = max(1, 20_000_000 // (8 * max(len(sizes), 1)))  # dense votes of a chunk: about 20 MB
+        for lo in range(0, len(points_W), step):
+            idx = np.asarray(tree.query(points_W[lo:lo + step], k=kn, workers=-1)[1]).reshape(-1, kn)
+            votes = np.zeros((len(idx), len(sizes)))
+            np.add.at(votes, (np.repeat(np.arange(len(idx)), kn), labels[idx].ravel()), ratio[labels[idx].ravel()])
+            top[lo:lo + step] = np.argsort(-votes, axis=1)[:, :kk]
+            w[lo:lo + step] = np.take_along_axis(votes, top[lo:lo + step], axis=1)
+        return top, w / w.sum(axis=1, keepdims=True)
+
+
+@dataclass(frozen=True)
+class JobUncertainty:
+    """The uncertainty model of a job's cloud (module doc): its scans' pose errors jointly (``poses``), which
+    scans each point came from (``cover``), the points merged into each voxel (``counts``, (N,) of the cloud as
+    given to the inspection, None: one) and the scanner's noise along its ray (``noise_sigma_mm``, 1 sigma)."""
+
+    poses: PoseCovariance
+    cover: ScanCover
+    noise_sigma_mm: float
+    counts: np.ndarray | None = None
+
+    def evaluate(self, points_F: np.ndarray, normals_F: np.ndarray, k: float, T_F_W: np.ndarray,
+                 method: str, kept: np.ndarray | None, alignment: AlignmentCovariance | None) -> PointUncertainty:
+        """U (coverage factor ``k``) of the points ``points_F`` (F, mm) with CAD normals ``normals_F``, placed by
+        ``T_F_W`` with the alignment ``method``; ``kept`` selects them from the cloud as given (None: all)."""
+        p_F, n_F = np.asarray(points_F, float), np.asarray(normals_F, float)
+        T_W_F = invert(np.asarray(T_F_W, float))
+        p_W, n_W = transform_points(T_W_F, p_F), rotate_vectors(T_W_F, n_F)
+        counts = np.ones(len(p_F)) if self.counts is None else np.asarray(self.counts, float)
+        if kept is not None and self.counts is not None:
+            counts = counts[kept]
+        cell = _centre_cell(p_F)
+        centres = even_centres(p_F, cell)
+        nearest = cKDTree(p_F[centres]).query(p_F, workers=-1)[1] if len(centres) < len(p_F) else np.arange(len(p_F))
+        c_at = self.cover.shares(p_W[centres])
+        noise = (self.noise_sigma_mm**2 * self._ray_cosines_sq(p_W[centres], n_W[centres], c_at))[nearest]
+        noise /= np.maximum(counts, 1.0)
+        absorb = None
+        if method == "best-fit":
+            fit = np.arange(len(p_F))[:: max(1, len(p_F) // FIT_POINTS)]
+            absorb = self._absorption(p_W[fit], n_W[fit], p_F[fit], n_F[fit], self.cover.shares(p_W[fit]))
+        parts = {}
+        for part in ("all", "scan_poses", "installation"):
+            G = self.poses.factor(part)
+            parts[part] = self._pose_variance(G, p_W[centres], n_W[centres], p_F[centres], n_F[centres], c_at,
+                                              absorb)[nearest]
+        aligned = _alignment_variance(p_F, n_F, alignment)
+        total = k * np.sqrt(parts["all"] + noise + aligned)
+        budget = {"scan_poses": parts["scan_poses"], "installation": parts["installation"],
+                  "scanner_noise": noise, "alignment": aligned}
+        notes = {"scan_poses": f"{self.poses.source}: tracker readings, transfers"
+                 + (", less what the best fit absorbs" if absorb is not None else ""),
+                 "installation": "scanner mount T_T_S" + ("" if self.poses.installation_columns else
+                                                          ": not modelled (no mount prior)"),
+                 "scanner_noise": f"{self.noise_sigma_mm:g} mm (1 sigma) along the ray, averaged in the voxel"}
+        if alignment is None:
+            notes["alignment"] = ALIGNMENT_NOTE
+        scan_ids = self.cover.scan_ids[c_at[0][:, 0]][nearest]
+        return PointUncertainty(k, total, noise, {s: float(np.median(k * np.sqrt(v))) for s, v in budget.items()},
+                                notes, scan_ids)
+
+    def _ray_cosines_sq(self, p_W: np.ndarray, n_W: np.ndarray, at: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        """``sum_i w_i cos_i^2`` per point: cos_i of the ray from scan i's origin and the normal."""
+        idx, w = at
+        rays = p_W[:, None, :] - self.cover.origins_mm[idx]
+        cos = np.einsum("ikj,ij->ik", rays, n_W) / np.maximum(np.linalg.norm(rays, axis=2), 1e-9)
+        return np.sum(w * cos**2, axis=1)
+
+    def _gradients(self, p_W: np.ndarray, n_W: np.ndarray, at: tuple[np.ndarray, np.ndarray]
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """(M, K) rows into the pose covariance's scans and (M, K, 6) ``w_i g_i`` of each point (module doc)."""
+        idx, w = at
+        rows = self._pose_rows()[idx]
+        lever = p_W[:, None, :] - self.poses.origins_mm[np.maximum(rows, 0)]
+        g = np.concatenate([np.broadcast_to(n_W[:, None, :], lever.shape), np.cross(lever, n_W[:, None, :])], axis=2)
+        return np.maximum(rows, 0), g * (w * (rows >= 0))[:, :, None]
+
+    def _pose_rows(self) -> np.ndarray:
+        """Per scan of the cover its position in the pose covariance (-1: not in it, a scan that saw nothing)."""
+        where = {int(s): i for i, s in enumerate(self.poses.scan_ids)}
+        return np.array([where.get(int(s), -1) for s in self.cover.scan_ids])
+
+    def _absorption(self, p_W: np.ndarray, n_W: np.ndarray, p_F: np.ndarray, n_F: np.ndarray,
+                    at: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """``(B, c)``: the best fit's rigid motion about ``c`` (F) from the scans' errors, ``a = -B e``."""
+        c = p_F.mean(axis=0)
+        j = np.hstack([n_F, np.cross(p_F - c, n_F)])
+        rows, g = self._gradients(p_W, n_W, at)
+        S = np.zeros((6, len(self.poses.scan_ids), 6))
+        for kk in range(rows.shape[1]):
+            np.add.at(S, (slice(None), rows[:, kk]), np.einsum("qa,qb->aqb", j, g[:, kk]))
+        JtJ = j.T @ j
+        return np.linalg.solve(JtJ + 1e-9 * np.trace(JtJ) * np.eye(6), S.reshape(6, -1)), c
+
+    def _pose_variance(self, G: np.ndarray, p_W: np.ndarray, n_W: np.ndarray, p_F: np.ndarray, n_F: np.ndarray,
+                       at: tuple[np.ndarray, np.ndarray], absorb: tuple[np.ndarray, np.ndarray] | None
+                       ) -> np.ndarray:
+        """Each point's variance along its normal from the pose errors of factor ``G`` (6n, r), less the best fit's
+        absorption where given, mm^2."""
+        if G.shape[1] == 0:
+            return np.zeros(len(p_W))
+        r = G.shape[1]
+        blocks = G.reshape(-1, 6, r)
+        BG = None if absorb is None else absorb[0] @ G  # (6, r): the fit's motion per unit of each factor column
+        out = np.empty(len(p_W))
+        step = max(64, int(2e7 // (SCANS_PER_POINT * 6 * r)))
+        for lo in range(0, len(p_W), step):
+            sl = slice(lo, lo + step)
+            rows, g = self._gradients(p_W[sl], n_W[sl], (at[0][sl], at[1][sl]))
+            h = np.einsum("mkj,mkjr->mr", g, blocks[rows])
+            if BG is not None:
+                c = absorb[1]
+                j = np.hstack([n_F[sl], np.cross(p_F[sl] - c, n_F[sl])])
+                h -= j @ BG
+            out[sl] = np.einsum("mr,mr->m", h, h)
+        return out
+
+
+def _centre_cell(points_F: np.ndarray) -> float:
+    """Cube edge (mm) of the even thinning the pose terms are evaluated on: about :data:`MAX_CENTRES` cubes on a
+    surface of the cloud's extent (1 mm at least)."""
+    extent = np.ptp(points_F, axis=0) if len(points_F) else np.ones(3)
+    area = float(np.sort(extent)[-2:].prod()) * 2.0  # a sheet of the two largest extents, curved: about twice
+    return max(1.0, math.sqrt(area / MAX_CENTRES))

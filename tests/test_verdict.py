@@ -1,0 +1,105 @@
+"""The verdict by the decision rule and the points' uncertainty: overall, per region, per deviation area
+(pipeline/inspection/verdict.py)."""
+
+import numpy as np
+import open3d as o3d
+import pytest
+from tandemscan.config.models import InspectionConfig, RegionConfig
+from tandemscan.pipeline.inspection.inspect import CadSurface, inspect_cloud
+from tandemscan.pipeline.inspection.point_uncertainty import GivenUncertainty
+from tandemscan.pipeline.inspection.verdict import VerdictContext, judge
+
+TOP = 50.0
+BUMPS = {"out": ((100.0, 100.0), 0.8), "in": ((300.0, 200.0), 0.3), "between": ((500.0, 100.0), -0.54)}
+
+
+@pytest.fixture(scope="module")
+def box():
+    return CadSurface(o3d.geometry.TriangleMesh.create_box(600.0, 300.0, TOP))
+
+
+def bell(points, centre, radius, depth):
+    rho = np.linalg.norm(points[:, :2] - centre, axis=1) / radius
+    return np.where(rho < 1.0, 0.5 * depth * (1.0 + np.cos(np.pi * np.clip(rho, 0, 1))), 0.0)
+
+
+def top_with_bumps(step=1.5):
+    x, y = np.meshgrid(np.arange(2.0, 598.0, step), np.arange(2.0, 298.0, step))
+    p = np.c_[x.ravel(), y.ravel(), np.full(x.size, TOP)]
+    for centre, height in BUMPS.values():
+        p[:, 2] += bell(p, centre, 30.0, height)
+    return p
+
+
+def cfg(**kw):
+    regions = (RegionConfig(name="left", min_mm=(-1.0, -1.0, -1.0), max_mm=(200.0, 301.0, 100.0)),
+               RegionConfig(name="right", min_mm=(200.0, -1.0, -1.0), max_mm=(601.0, 301.0, 100.0)))
+    return InspectionConfig(**({"best_fit": False, "tolerance_lower_mm": -0.5, "tolerance_upper_mm": 0.5,
+                                "regions": regions} | kw))
+
+
+def judged(box, c, U=0.05, context=None):
+    result = inspect_cloud(top_with_bumps(), box, c)
+    u = GivenUncertainty(U).evaluate(result.points_mm, result.cad_normals, c.decision_k, np.eye(4), "none", None,
+                                     None)
+    return judge(result, u, c, context)
+
+
+def area_at(result, centre):
+    return [a for a in result.areas if np.hypot(a.centroid_mm[0] - centre[0], a.centroid_mm[1] - centre[1]) < 10]
+
+
+def test_iso_rule_proves_out_proves_in_and_leaves_the_band_between_indeterminate(box):
+    r = judged(box, cfg())
+    (out,) = area_at(r, BUMPS["out"][0])
+    (between,) = area_at(r, BUMPS["between"][0])
+    assert out.decision == "nonconforming" and between.decision == "indeterminate"
+    assert not area_at(r, BUMPS["in"][0])  # within tolerance - U: conformance proven, no area
+    assert out.uncertainty_mm == pytest.approx(0.05) and "nonconformance proven" in out.reason
+    assert r.verdict == "fail" and r.judgement.verdict == "fail"
+    assert r.judgement.reasons[0].startswith(f"area #{out.id} (upper) extreme")
+    regions = {g.name: g for g in r.judgement.regions}
+    assert regions["left"].verdict == "fail" and regions["right"].verdict == "indeterminate"
+    assert regions["left"].test_uncertainty_ratio == pytest.approx(10.0)
+    assert r.judgement.rule.as_dict() == {"name": "iso14253-1", "k": 2.0}
+
+
+def test_without_the_failing_bump_the_indeterminate_area_decides(box):
+    c = cfg(regions=(RegionConfig(name="right", min_mm=(200.0, -1.0, -1.0), max_mm=(601.0, 301.0, 100.0)),))
+    r = judged(box, c)
+    cut = r.points_mm[:, 0] > 200.0
+    u = GivenUncertainty(0.05).evaluate(r.points_mm[cut], r.cad_normals[cut], 2.0, np.eye(4), "none", None, None)
+    part = inspect_cloud(r.points_mm[cut], box, c)
+    verdict = judge(part, u, c)
+    assert verdict.verdict == "indeterminate" and [a.decision for a in verdict.areas] == ["indeterminate"]
+    assert "within U of a limit" in verdict.judgement.reasons[0]
+
+
+def test_simple_rule_decides_by_the_value_and_says_so(box):
+    r = judged(box, cfg(decision_rule="simple"))
+    assert r.verdict == "fail" and {a.decision for a in r.areas} == {"nonconforming"}
+    assert len(r.areas) == 2  # out and between (0.54 is outside the band): both nonconforming by the value
+    assert any("simple acceptance" in why for why in r.judgement.reasons)
+
+
+def test_an_uncertainty_as_wide_as_the_band_proves_nothing_conforming(box):
+    c = cfg(tolerance_lower_mm=-0.5, tolerance_upper_mm=0.5)
+    r = judged(box, c, U=0.6)
+    assert r.verdict == "indeterminate"
+    assert any("leaves no room" in why for why in r.judgement.reasons)
+    assert all(g.test_uncertainty_ratio < 1.0 for g in r.judgement.regions)
+    gross = judged(box, cfg(tolerance_lower_mm=-0.1, tolerance_upper_mm=0.1), U=0.15)  # 0.8 > 0.1 + 0.15
+    assert gross.verdict == "fail"
+
+
+def test_a_held_verdict_is_indeterminate_and_the_nominal_installation_is_named(box):
+    c = cfg()
+    part = inspect_cloud(top_with_bumps()[::2], box, c)
+    keep = np.abs(part.deviations_mm) < 0.2  # the flat top only: conformance is proven
+    flat = inspect_cloud(part.points_mm[keep], box, c)
+    u = GivenUncertainty(0.05).evaluate(flat.points_mm, flat.cad_normals, 2.0, np.eye(4), "none", None, None)
+    assert judge(flat, u, c).verdict == "pass"
+    held = judge(flat, u, c, VerdictContext(holds=("the last verification is 30 h old, more than 24 h",)))
+    assert held.verdict == "indeterminate" and "30 h old" in " ".join(held.judgement.reasons)
+    nominal = judge(flat, u, c, VerdictContext(installation={"source": "nominal"}))
+    assert any("nominal mounts" in why for why in nominal.judgement.reasons)
