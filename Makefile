@@ -3,7 +3,7 @@ PYTHON ?= python3.11
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
-APT_PACKAGES := libusb-1.0-0 libgl1 libgomp1 chromium chromium-driver systemd
+APT_PACKAGES := libusb-1.0-0 libgl1 libgomp1 chromium chromium-driver systemd nodejs npm
 
 .PHONY: measure test system-deps clean
 
@@ -26,7 +26,8 @@ test: $(STAMP)
 
 # System packages, installed through apt only where missing: what Open3D needs at import time, Chromium for the
 # report rendering test and, with chromium-driver, the console's browser tests; systemd for the unit tests
-# (systemd-analyze verify, sysusers, tmpfiles).
+# (systemd-analyze verify, sysusers, tmpfiles); Node.js and npm for node-opcua, the independent OPC UA client of
+# tests/test_opcua.py (installed from tests/node/package-lock.json).
 system-deps:
 	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
 	if [ -n "$$missing" ]; then \
@@ -36,13 +37,14 @@ system-deps:
 	fi
 
 # torch is pinned first to the CPU build so that the generic requirement does not pull a CUDA build.
-$(STAMP): pyproject.toml | system-deps
+$(STAMP): pyproject.toml tests/node/package-lock.json | system-deps
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "$(PYTHON) not found: install Python 3.11"; exit 2; }
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q torch==2.13.0
 	$(PY) -m pip install -q -e '.[dev]'
+	npm ci --prefix tests/node --no-audit --no-fund --loglevel=error
 	touch $(STAMP)
 
 clean:
-	rm -rf $(VENV) out
+	rm -rf $(VENV) out tests/node/node_modules

@@ -869,6 +869,35 @@ class DaemonConfig(_Strict):
                                     "the journal, reports and logs")
 
 
+class OpcuaUserConfig(_Strict):
+    """One OPC UA user: a viewer browses and subscribes, an operator may also call methods (docs/opcua.md)."""
+
+    role: Literal["viewer", "operator"] = "viewer"
+    password_hash: str = Field(min_length=1, description="scrypt hash of the password: `tandemscan opcua-user` "
+                               "prints it")
+
+
+class OpcuaConfig(_Strict):
+    """The OPC UA server beside the REST API (docs/opcua.md): off unless ``enabled``; its certificate, key and
+    trust list live in the state folder's ``opcua/`` unless ``trust_dir`` names another trust list."""
+
+    enabled: bool = False
+    host: str | None = Field(None, description="bind address; None: [daemon] host (loopback only while "
+                             "anonymous access is allowed)")
+    port: int = Field(4840, ge=0, le=65535)
+    security_policies: list[Literal["Basic256Sha256_SignAndEncrypt", "Basic256Sha256_Sign",
+                                    "Aes128Sha256RsaOaep_SignAndEncrypt", "Aes256Sha256RsaPss_SignAndEncrypt"]] = \
+        Field(["Basic256Sha256_SignAndEncrypt"], min_length=1)
+    allow_anonymous: bool = Field(False, description="an anonymous session is a viewer")
+    users: dict[str, OpcuaUserConfig] = Field({}, description="user name: role and password hash")
+    users_file: Path | None = Field(None, description="TOML file of further users ([users.NAME] tables)")
+    trust_dir: Path | None = Field(None, description="folder of trusted client certificates (DER or PEM); None: "
+                                   "opcua/trusted/ in the state folder")
+    manufacturer: str = "tandemscan"
+    model: str = "two-robot 3D measurement cell"
+    serial_number: str = "SIM-0001"
+
+
 class CellConfig(_Strict):
     """The whole cell."""
 
@@ -890,4 +919,5 @@ class CellConfig(_Strict):
     correction: CorrectionConfig = CorrectionConfig()
     deepmerge: DeepMergeConfig = DeepMergeConfig()
     daemon: DaemonConfig = DaemonConfig()
+    opcua: OpcuaConfig = OpcuaConfig()
     hil: HilConfig = HilConfig()

@@ -31,21 +31,33 @@ ROUTERS = (jobs.router, files.router, cell.router, health.router, events.router,
 def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
     """The FastAPI app over ``daemon``; with ``manage_lifecycle`` the app starts and closes it."""
     facade = ServiceFacade(daemon)
+    opcua = None
+    if manage_lifecycle and daemon.config.opcua.enabled:  # the OPC UA server beside REST (docs/opcua.md)
+        from tandemscan.daemon.opcua.server import gateway_for
+
+        opcua = gateway_for(facade)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         if manage_lifecycle:
+            if opcua is not None:
+                await opcua.prepare()  # before the safety loop runs: it builds the address space on the loop
             await daemon.start()
+            if opcua is not None:
+                await opcua.start()
         try:
             yield
         finally:
             if manage_lifecycle:
+                if opcua is not None:
+                    await opcua.stop()
                 await daemon.close()
             facade.close()
 
     app = FastAPI(title="tandemscan", version=daemon.version, lifespan=lifespan,
                   description="Two-robot 3D measurement cell: jobs, devices, calibration, events.")
     app.state.facade = facade
+    app.state.opcua = opcua
     app.add_middleware(GuardBody, token=daemon.token, max_body_bytes=daemon.config.daemon.max_body_bytes)
     app.add_middleware(RequestTimer, registry=daemon.registry)
     install_problem_handlers(app)

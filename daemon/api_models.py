@@ -27,6 +27,8 @@ class JobRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
     plan: str | None = Field(None, min_length=1, max_length=200, description="a name from /v1/plans")
     label: str | None = Field(None, max_length=200, description="free text for the MES (order, serial)")
+    part_number: str | None = Field(None, max_length=200, description="the part number (OPC UA ProductId)")
+    serial_number: str | None = Field(None, max_length=200, description="the part's serial number (OPC UA PartId)")
 
 
 class Job(BaseModel):
@@ -36,6 +38,8 @@ class Job(BaseModel):
     state: JobStateName
     plan: str
     label: str | None = None
+    part_number: str | None = None
+    serial_number: str | None = None
     progress: float = Field(ge=0, le=100)
     current_step: int | None
     steps_total: int
@@ -152,6 +156,7 @@ def job_body(job: JobRecord, steps_done: int) -> Job:
     if job.state == JobState.SUCCEEDED:
         links.update(cloud=f"{base}/cloud", report=f"{base}/report", report_html=f"{base}/files/report.html")
     return Job(id=job.id, state=job.state, plan=job.plan_name, label=job.plan.get("label"),
+               part_number=job.plan.get("part_number"), serial_number=job.plan.get("serial_number"),
                progress=job.progress, current_step=job.current_step, steps_total=job.n_steps,
                steps_done=steps_done, figures=job.figures, error=job.error, attempts=job.attempts,
                created=_ts(job.created_s), started=_ts(job.started_s), finished=_ts(job.finished_s), links=links)

@@ -30,6 +30,7 @@ from tandemscan.daemon.job_state import FINAL_STATES
 from tandemscan.daemon.jobs import request_hash
 from tandemscan.daemon.store import IdempotencyConflict, JobRecord
 from tandemscan.drivers.errors import SafetyStop
+from tandemscan.drivers.interfaces import SafetyState
 from tandemscan.pipeline.planning.plan import Plan, PlanError
 
 if TYPE_CHECKING:
@@ -95,7 +96,8 @@ class ServiceFacade:
     async def submit(self, req: JobRequest, idempotency_key: str | None) -> tuple[Job, bool]:
         """Queue a job: ``(job, created)``; 404 unknown plan, 409 invalid plan or key reused, 507 no room."""
         name, plan = await asyncio.to_thread(self._plan_with_room, req.plan)
-        stored = {"plan": plan.model_dump(mode="json"), "label": req.label}
+        stored = {"plan": plan.model_dump(mode="json"), "label": req.label, "part_number": req.part_number,
+                  "serial_number": req.serial_number}
         try:
             job, created = await self.daemon.manager.submit(name, stored, len(plan.steps), idempotency_key,
                                                             request_hash(req.model_dump(mode="json")))
@@ -149,8 +151,13 @@ class ServiceFacade:
         """The supervisor's snapshot (in memory): devices, latch, robots moving."""
         return self.daemon.supervisor.snapshot()
 
-    async def safety_stop(self) -> dict:
-        await self.daemon.supervisor.trip("operator stop (REST)")
+    def safety_inputs(self) -> SafetyState | None:
+        """The safety inputs as the control loop last read them (None before the first read)."""
+        return self.daemon.supervisor.safety_inputs
+
+    async def safety_stop(self, via: str = "REST") -> dict:
+        """Latch an operator safety stop (the reason names the interface ``via``); the devices' snapshot."""
+        await self.daemon.supervisor.trip(f"operator stop ({via})")
         return self.devices()
 
     async def safety_reset(self) -> dict:

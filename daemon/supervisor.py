@@ -80,6 +80,7 @@ class Supervisor:
         self.on_event = on_event or (lambda kind, data: None)
         self.health = {name: DeviceHealth(name) for name in self.devices}
         self.latched_reason: str | None = None
+        self.safety_inputs: SafetyState | None = None  # the control loop's last reading
         self.safety_listeners: list[Callable[[str], None]] = []
         self.connection_listeners: list[Callable[[bool], None]] = []  # called with all_connected on each change
         self.control_lateness_s: deque[float] = deque(maxlen=5000)
@@ -245,6 +246,7 @@ class Supervisor:
                     log.warning("%s (read again next tick)", reason)
                 continue
             unreadable_ticks = 0
+            self.safety_inputs = state
             if not state.motion_allowed:
                 await self.trip("e-stop pressed" if state.estop else "light curtain broken")
 
