@@ -60,10 +60,11 @@ def check_inputs(args: Sequence[ua.Variant], types: Sequence[ua.VariantType]) ->
             raise CallRefused(ua.StatusCodes.BadInvalidArgument, f"argument {i + 1} is over {MAX_TEXT} characters")
 
 
-def spec_method(types: Sequence[ua.VariantType], action: Callable[..., Awaitable[list[ua.Variant]]]
-                ) -> Callable[..., Awaitable[ua.CallMethodResult]]:
-    """A method callback of a companion specification's signature: the inputs checked against ``types``, then
-    ``action(*values)``; a refusal is its status code alone (and the text in the log)."""
+def checked_method(types: Sequence[ua.VariantType], action: Callable[..., Awaitable[list[ua.Variant]]],
+                   refusal_outputs: Callable[[CallRefused], list[ua.Variant]]
+                   ) -> Callable[..., Awaitable[ua.CallMethodResult]]:
+    """A method callback: the inputs checked against ``types``, then ``action(*values)`` (its outputs); a refusal
+    answers its status code, ``refusal_outputs(refusal)`` and the text in the log."""
 
     async def call(parent: ua.NodeId, *args: ua.Variant) -> ua.CallMethodResult:
         try:
@@ -71,29 +72,24 @@ def spec_method(types: Sequence[ua.VariantType], action: Callable[..., Awaitable
             outputs = await refusals_as_calls(action, *(a.Value for a in args))
         except CallRefused as e:
             log.info("OPC UA call refused (%s): %s", ua.StatusCode(e.status).name, e.text)
-            return result(e.status, (), len(args))
+            return result(e.status, refusal_outputs(e), len(args))
         return result(ua.StatusCodes.Good, outputs, len(args))
 
     return call
+
+
+def spec_method(types: Sequence[ua.VariantType], action: Callable[..., Awaitable[list[ua.Variant]]]
+                ) -> Callable[..., Awaitable[ua.CallMethodResult]]:
+    """A method of a companion specification's signature: a refusal is its status code alone."""
+    return checked_method(types, action, lambda refusal: [])
 
 
 def text_method(types: Sequence[ua.VariantType], n_outputs: int, action: Callable[..., Awaitable[list[ua.Variant]]]
                 ) -> Callable[..., Awaitable[ua.CallMethodResult]]:
-    """A method callback: the inputs checked against ``types``, then ``action(*values)``, whose ``n_outputs``
-    outputs (strings) end with the ``Message`` text; a refusal is its status code with its text as the
-    ``Message`` (the other outputs empty)."""
-
-    async def call(parent: ua.NodeId, *args: ua.Variant) -> ua.CallMethodResult:
-        try:
-            check_inputs(args, types)
-            outputs = await refusals_as_calls(action, *(a.Value for a in args))
-        except CallRefused as e:
-            log.info("OPC UA call refused (%s): %s", ua.StatusCode(e.status).name, e.text)
-            blanks = [ua.Variant("", ua.VariantType.String)] * (n_outputs - 1)
-            return result(e.status, [*blanks, ua.Variant(e.text, ua.VariantType.String)], len(args))
-        return result(ua.StatusCodes.Good, outputs, len(args))
-
-    return call
+    """A method of ours whose ``n_outputs`` outputs (strings) end with the ``Message`` text: a refusal is its status
+    code with its text as the ``Message`` (the other outputs empty)."""
+    blanks = [ua.Variant("", ua.VariantType.String)] * (n_outputs - 1)
+    return checked_method(types, action, lambda refusal: [*blanks, ua.Variant(refusal.text, ua.VariantType.String)])
 
 
 async def refusals_as_calls(action: Callable[..., Awaitable], *values):
