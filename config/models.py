@@ -178,6 +178,11 @@ class TrackerConfig(_Strict):
                                      "the target sits in the image): averaging does not reduce it; the simulated "
                                      "tracker draws it so, the averaged reading's covariance counts it")
     timeout_s: float = 5.0
+    scan_read_retries: int = Field(
+        4, ge=0, description="a scan whose target the tracker cannot see is read again this many times, "
+                             "scan_read_retry_s apart, before it is left out (a person or a cart passing through "
+                             "the sight line); 0 = left out at once")
+    scan_read_retry_s: float = Field(1.0, gt=0, description="seconds between the reads of a scan's hidden target")
     stream: TrackerStreamConfig = TrackerStreamConfig()
 
 
@@ -577,6 +582,10 @@ class JobConfig(_Strict):
         "inspection template's")
     serial: str | None = Field(None, max_length=64, pattern=r"^[A-Za-z0-9_.:/-]+$",
                                description="the measured part's serial number (a job's request, `--serial`)")
+    max_scans_left_out: int | None = Field(
+        3, ge=0, description="a daemon job that would leave out more scans than this (the tracker cannot see the "
+        "target after its retries) pauses for the operator instead (paused_fault); resuming leaves that scan out "
+        "and goes on; none = no limit. A job that left out scans ends succeeded_with_gaps")
     relocalise: bool = Field(
         True, description="place W in the plan's frame F from one target reading at the start (the inspection's "
         "registration to CAD) and, after each measurement-AGV drive, measure where it stands (tracker, Eq. 5) and "

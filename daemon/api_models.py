@@ -11,7 +11,7 @@ from typing import Annotated, Any, Literal
 
 from fastapi import Path
 from pydantic import BaseModel, ConfigDict, Field
-from tandemscan.daemon.job_state import JobState
+from tandemscan.daemon.job_state import COMPLETED_STATES, JobState
 from tandemscan.daemon.store import JobRecord
 
 PROBLEM = "application/problem+json"
@@ -153,7 +153,7 @@ def job_body(job: JobRecord, steps_done: int) -> Job:
     """The wire form of a job read from the store (``steps_done``: its committed steps)."""
     base = f"/v1/jobs/{job.id}"
     links = {"self": base, "events": f"/v1/events?job={job.id}"}
-    if job.state == JobState.SUCCEEDED:
+    if job.state in COMPLETED_STATES:
         links.update(cloud=f"{base}/cloud", report=f"{base}/report", report_html=f"{base}/files/report.html")
     return Job(id=job.id, state=job.state, plan=job.plan_name, label=job.plan.get("label"),
                part_number=job.plan.get("part_number"), serial_number=job.plan.get("serial_number"),

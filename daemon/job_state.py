@@ -1,6 +1,8 @@
 """The job's states and the changes between them: one definition for the store, the manager, the API and the client.
 
-``queued -> running -> succeeded | failed | cancelled``; ``running <-> paused`` (operator), ``paused_safety`` (a
+``queued -> running -> succeeded | succeeded_with_gaps | failed | cancelled`` (``succeeded_with_gaps``: the outputs
+are written but scans the plan could measure were left out, the tracker not seeing the target; its ``error`` says
+which); ``running <-> paused`` (operator), ``paused_safety`` (a
 safety stop), ``paused_fault`` (a recoverable fault, ``docs/daemon.md``, faults); a paused job resumes to
 ``running`` or is cancelled; an active job goes back to ``queued`` when a restart finds more than one active.
 A final state is never left. Writing a state again (a queued job's waiting reason, a held state flushed) is no
@@ -21,11 +23,14 @@ class JobState(StrEnum):
     PAUSED_SAFETY = "paused_safety"
     PAUSED_FAULT = "paused_fault"
     SUCCEEDED = "succeeded"
+    SUCCEEDED_WITH_GAPS = "succeeded_with_gaps"
     FAILED = "failed"
     CANCELLED = "cancelled"
 
 
-FINAL_STATES = frozenset({JobState.SUCCEEDED, JobState.FAILED, JobState.CANCELLED})
+#: the job ran to its end and wrote its outputs (cloud, report, exports)
+COMPLETED_STATES = frozenset({JobState.SUCCEEDED, JobState.SUCCEEDED_WITH_GAPS})
+FINAL_STATES = frozenset({*COMPLETED_STATES, JobState.FAILED, JobState.CANCELLED})
 PAUSED_STATES = frozenset({JobState.PAUSED, JobState.PAUSED_SAFETY, JobState.PAUSED_FAULT})
 ACTIVE_STATES = frozenset({JobState.RUNNING, *PAUSED_STATES})
 

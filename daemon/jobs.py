@@ -257,6 +257,7 @@ class JobManager:
             ctx = JobContext(job, self.store, self.supervisor, self, self.cell, self.config, committed, self.session)
             figures = await self.runner(ctx)
             ev = await asyncio.to_thread(self.store.set_progress, job_id, 100.0, None, figures)
+            gaps = await asyncio.to_thread(self._gaps, job)
         except (JobCancelled, asyncio.CancelledError):
             if job_id in self._cancelled:
                 task = asyncio.current_task()
@@ -280,7 +281,18 @@ class JobManager:
                 await self._fault_pause(job_id, fault)
         else:
             self.bus.publish(ev)
-            await self._finish(job_id, JobState.SUCCEEDED)
+            await self._finish(job_id, JobState.SUCCEEDED if gaps is None else JobState.SUCCEEDED_WITH_GAPS, gaps)
+
+    def _gaps(self, job: JobRecord) -> str | None:
+        """(thread) What a finished job left out: the scans whose target the tracker could not see, from its
+        journal (``{"untracked": ...}`` step results), as one line; None when it left out none."""
+        left_out = [r["untracked"] for r in self.store.committed_steps(job.id).values() if r and "untracked" in r]
+        if not left_out:
+            return None
+        planned = sum(s.get("kind") == "scan" for s in job.plan.get("plan", {}).get("steps", []))
+        listed = "; ".join(f"step {e['step']} ({e['label']}): {e['reason']}" for e in left_out[:3])
+        more = f"; and {len(left_out) - 3} more" if len(left_out) > 3 else ""
+        return f"{len(left_out)} of {planned} scans left out, the tracker could not see the target: {listed}{more}"
 
     async def _fault_pause(self, job_id: str, fault: JobFault) -> None:
         """A recoverable fault: motion halted, the job ``paused_fault`` with the reason, its runner ended; a device

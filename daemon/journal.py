@@ -83,7 +83,8 @@ async def run_journaled(ctx: JobContext) -> dict:
         log.info("job %s resumes at step %d of %d", ctx.job.id, min(set(range(len(plan.steps))) - set(ctx.committed),
                                                                       default=len(plan.steps)), len(plan.steps))
     worldmap = await asyncio.to_thread(ProcessWorldMap, ctx.config.job.voxel_mm, ctx.config.daemon.worker_niceness)
-    runner = JobRunner(ctx.session, plan, ctx.config, job_dir, journal.on_progress, journal, worldmap)
+    runner = JobRunner(ctx.session, plan, ctx.config, job_dir, journal.on_progress, journal, worldmap,
+                       ctx.config.job.max_scans_left_out)
     try:
         result = await runner.run()
     finally:
@@ -92,10 +93,11 @@ async def run_journaled(ctx: JobContext) -> dict:
     # every attempt's resumes, not only this one's (a restart after the last step resumes with nothing to redo)
     resumes = await asyncio.to_thread(ctx.store.resumes, ctx.job.id)
     report = dict(result.report) | {"job": ctx.job.id, "resumes": resumes,
-                                    "attempts": ctx.store.get_job(ctx.job.id).attempts}
+                                    "attempts": ctx.store.get_job(ctx.job.id).attempts,
+                                    "scans_left_out": result.report["relocalisation"]["untracked"]}
     await asyncio.to_thread(lambda: ctx.store.write_artifact(ctx.job.id, "report.json",
                                                              json.dumps(report, indent=1).encode()))
-    figures = {k: report[k] for k in _FIGURE_KEYS if k in report}
+    figures = {k: report[k] for k in _FIGURE_KEYS if k in report} | {"scans_left_out": len(report["scans_left_out"])}
     truth = report.get("ground_truth") or {}
     figures |= {k: truth[k] for k in _TRUTH_KEYS if k in truth}
     return figures

@@ -24,6 +24,7 @@ ground truth. Nothing here reads the truth.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import time
 from collections.abc import Callable
@@ -40,6 +41,7 @@ from tandemscan.daemon.coordinate_transfer import (
     reestablish,
     transfer_record,
 )
+from tandemscan.daemon.faults import TooManyScansLeftOut
 from tandemscan.daemon.installation import installation_for_job
 from tandemscan.daemon.job_records import (
     ArmMove,
@@ -74,6 +76,10 @@ from tandemscan.pipeline.stitching.relocalise import Relocaliser
 
 log = logging.getLogger(__name__)
 
+#: the journal note of a scan step whose left-out scan paused the job for the operator (the run after the
+#: operator's resume leaves it out)
+PAUSED_FOR_GAPS = "paused_for_gaps"
+
 _DESCRIBE = {"move_tracker": "coordinate transfer: moving the tracking robot", "move_measure": "moving the measurement "
              "robot", "move_lift": "moving the lifting column", "move_arm": "moving the arm", "scan": "scanning"}
 
@@ -106,7 +112,10 @@ class JobRunner:
     """Runs one plan on the cell of an open ``session`` into ``job_dir``: every motion through the session's
     gate, steps through ``journal`` (none: a run that cannot resume), what it measures told to the session's
     observer (the simulated cell's ground truth; none on a real cell). ``state`` is the job's state so far
-    (:class:`~tandemscan.daemon.run_state.RunState`): each step is measured into a record, committed, then applied."""
+    (:class:`~tandemscan.daemon.run_state.RunState`): each step is measured into a record, committed, then applied.
+    A scan whose target the tracker cannot see is read again (``tracker.scan_read_retries``) and then left out; one
+    more than ``max_scans_left_out`` (None: no limit) raises :class:`~tandemscan.daemon.faults.TooManyScansLeftOut`
+    once, so that the job pauses for the operator: run again, that step is left out if the target is still hidden."""
 
     def __init__(
         self,
@@ -117,6 +126,7 @@ class JobRunner:
         progress: Callable[[JobProgress], None] | None = None,
         journal: StepJournal | None = None,
         worldmap: LocalWorldMap | ProcessWorldMap | None = None,
+        max_scans_left_out: int | None = None,
     ):
         self.cell = session.cell
         self.gate: MotionGate = session.gate
@@ -129,6 +139,7 @@ class JobRunner:
         self.installation = installation_for_job(config)
         self.worldmap = worldmap if worldmap is not None else LocalWorldMap(config.job.voxel_mm)
         self.correction: dict = {"enabled": False}
+        self.max_scans_left_out = max_scans_left_out
         # with relocalisation on, W is placed in the plan's frame F at the start (the anchor: the inspection's
         # registration to CAD); the AGV is located after each drive where the plan has scanner poses to re-solve
         self.relocalisation: AgvRelocalisation | None = None
@@ -218,9 +229,20 @@ class JobRunner:
         try:
             return await self._scan()
         except TargetNotVisible as e:  # e.g. a nearby view the plan's tracker cover did not check: go on
-            label = step.label if isinstance(step, Scan) else ""
-            log.warning("step %d (%s): scan left out, %s", i, label, e.reason)
-            return UntrackedScan(i, label, e.reason)
+            return await self._leave_out(i, step.label if isinstance(step, Scan) else "", e.reason)
+
+    async def _leave_out(self, i: int, label: str, reason: str) -> UntrackedScan:
+        """Scan step ``i`` left out (the tracker cannot see the target); beyond ``max_scans_left_out`` the first time
+        a :class:`TooManyScansLeftOut` (noted in the journal, so that the run after the operator's resume goes on)."""
+        left_out = len(self.state.relocalisation.untracked)
+        if (self.max_scans_left_out is not None and left_out >= self.max_scans_left_out
+                and PAUSED_FOR_GAPS not in self.journal.notes(i)):
+            await self.journal.note(i, PAUSED_FOR_GAPS, {"reason": reason})
+            raise TooManyScansLeftOut(f"step {i} ({label}): the tracker cannot see the target ({reason}); "
+                                      f"{left_out} scans left out already, the limit is {self.max_scans_left_out} "
+                                      "([job] max_scans_left_out)")
+        log.warning("step %d (%s): scan left out, %s", i, label, reason)
+        return UntrackedScan(i, label, reason)
 
     async def _move_lift(self, step: MoveLift) -> LiftMove:
         """Raise or lower the measurement AGV's lifting column, inside the measurement robot's motion gate."""
@@ -315,10 +337,23 @@ class JobRunner:
                                                        self.installation, self.config.tracker.transfer_arm_poses,
                                                        dropped + hidden))
 
+    async def _read_for_scan(self) -> TrackerReading:
+        """The target at rest for a scan; a target the tracker cannot see is read again ``scan_read_retries``
+        times, ``scan_read_retry_s`` apart (nothing moves meanwhile), before :class:`TargetNotVisible` is raised."""
+        cfg = self.config.tracker
+        for retry in range(cfg.scan_read_retries):
+            try:
+                return await self.read_target()
+            except TargetNotVisible as e:
+                log.info("scan: %s; reading again in %.1f s (%d of %d)", e.reason, cfg.scan_read_retry_s, retry + 1,
+                         cfg.scan_read_retries)
+            await asyncio.sleep(cfg.scan_read_retry_s)
+        return await self.read_target()
+
     async def _scan(self) -> ScanRecord:
         """Capture and read at rest, persist raw data first, then stitch into the world map."""
         frame = await self.cell.scanner.capture(self.config.scanner.timeout_s)
-        reading = await self.read_target()
+        reading = await self._read_for_scan()
         joints = await self.cell.arm.joints()
         index = len(self.state.scans)
         T_W_C = self.state.T_W_C

@@ -121,6 +121,15 @@ def _floor_pose(p: FloorPoseConfig) -> np.ndarray:
     return F.planar_pose(p.x_mm, p.y_mm, np.radians(p.heading_deg))
 
 
+@dataclass
+class SightBlock:
+    """Something in the tracker's sight line (:meth:`SimWorld.block_sight`): why, and how many more readings see
+    past it before it is there."""
+
+    reason: str
+    after_reads: int = 0
+
+
 class SimWorld:
     """Ground truth of the simulated cell, seeded: the same config gives the same run."""
 
@@ -150,6 +159,8 @@ class SimWorld:
         self.motion = MotionLog()
         self.captures = 0
         self.tracker_frames = 0
+        self.sight_blocked: SightBlock | None = None  # something in the tracker's sight line (block_sight)
+        self.blocked_reads = 0  # tracker reads refused by a sight block
         # the tracker's still error: drawn once per still period (the true T_C_T unchanged), its own stream
         self.still_rng = np.random.default_rng([config.sim.seed, 1])
         self.still_T_C_T: np.ndarray | None = None
@@ -228,8 +239,16 @@ class SimWorld:
         self.captures += 1
         return self.scanner_model.scan(self.scene, self.T_F_S(), self.rng)
 
+    def block_sight(self, reason: str | None, after_reads: int = 0) -> None:
+        """Put something in the tracker's sight line (``reason``, e.g. a person walking through) once ``after_reads``
+        more readings were taken, or take it away (None); not part of the saved world state."""
+        self.sight_blocked = None if reason is None else SightBlock(reason, after_reads)
+
     def target_visibility(self) -> str | None:
         """Why the tracker cannot see the target now, or None when it can."""
+        block = self.sight_blocked
+        if block is not None and block.after_reads <= 0:
+            return f"occluded: {block.reason}"
         cfg = self.config.tracker
         T_C_T = F.invert(self.T_F_C()) @ self.T_F_T()
         p = T_C_T[:3, 3]
@@ -261,7 +280,11 @@ class SimWorld:
         image), so averaging the readings of one still period reduces only the first, as on a real tracker."""
         reason = self.target_visibility()
         if reason is not None:
+            if self.sight_blocked is not None and self.sight_blocked.after_reads <= 0:
+                self.blocked_reads += 1
             raise TargetNotVisible("tracker", reason)
+        if self.sight_blocked is not None:
+            self.sight_blocked.after_reads -= 1
         T_true = F.invert(self.T_F_C()) @ self.T_F_T()
         sigma_p, sigma_r = self.config.sim.tracker_noise.sigma(float(np.linalg.norm(T_true[:3, 3])))
         if self.still_T_C_T is None or not np.array_equal(self.still_T_C_T, T_true):

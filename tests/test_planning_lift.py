@@ -206,6 +206,7 @@ def test_measure_part_without_a_plan_plans_that_part_and_says_so(tmp_path, capsy
 
 async def test_a_scan_whose_target_the_tracker_cannot_see_is_left_out_and_reported(sim_config, tmp_path):
     config = sim_config.model_copy(update={
+        "tracker": sim_config.tracker.model_copy(update={"scan_read_retries": 0}),  # turned away for good
         "correction": sim_config.correction.model_copy(update={"enabled": False}),
         "inspection": sim_config.inspection.model_copy(update={"in_job": False}),
         "job": sim_config.job.model_copy(update={"relocalise": False})})

@@ -264,6 +264,7 @@ async def test_a_transfer_whose_own_pose_the_part_hides_reads_at_a_planned_alter
         "part": sim_config.part.model_copy(update={"mesh": tmp_path / "nose-post.stl"}),
         "correction": sim_config.correction.model_copy(update={"enabled": False}),
         "inspection": sim_config.inspection.model_copy(update={"in_job": False}),
+        "tracker": sim_config.tracker.model_copy(update={"scan_read_retries": 0}),  # the post hides them for good
         "job": sim_config.job.model_copy(update={"relocalise": False})})
     hidden = _world_at(SimWorld(config), plan, i)
     assert "hidden behind the part" in hidden.target_visibility()

@@ -3,7 +3,8 @@
 "use strict";
 
 const TOKEN_KEY = "tandemscan.token";
-const FINAL = ["succeeded", "failed", "cancelled"];
+const COMPLETED = ["succeeded", "succeeded_with_gaps"];  // outputs written (with gaps: scans left out, see error)
+const FINAL = [...COMPLETED, "failed", "cancelled"];
 const ACTIVE = ["running", "paused", "paused_safety", "paused_fault"];
 const $ = (id) => document.getElementById(id);
 
@@ -203,7 +204,7 @@ function jobRow(job, withFinished) {
 async function refreshJobs() {
   const [open, done] = await Promise.all([
     api("GET", "/v1/jobs?state=queued&state=running&state=paused&state=paused_safety&state=paused_fault&limit=50"),
-    api("GET", "/v1/jobs?state=succeeded&state=failed&state=cancelled&limit=20"),
+    api("GET", "/v1/jobs?state=succeeded&state=succeeded_with_gaps&state=failed&state=cancelled&limit=20"),
   ]);
   $("queue").tBodies[0].replaceChildren(...open.items.map((j) => jobRow(j, false)));
   $("history").tBodies[0].replaceChildren(...done.items.map((j) => jobRow(j, true)));
@@ -300,7 +301,8 @@ async function jobAction(verb) {
 // ------------------------------------------------------------------ a finished job
 
 function verdictOf(job, report) {
-  if (job.state !== "succeeded") return { pass: false, text: `Job ${job.state}${job.error ? ": " + job.error : ""}` };
+  if (!COMPLETED.includes(job.state)) return { pass: false, text: `Job ${job.state}${job.error ? ": " + job.error : ""}` };
+  if (job.state === "succeeded_with_gaps") return { pass: false, text: `Succeeded with gaps: ${job.error}` };
   const ins = report && report.inspection;
   const tol = ins && ins.as_measured && ins.as_measured.tolerance;
   if (!ins || !ins.verdict || !tol) {
@@ -330,14 +332,14 @@ async function openResult(jobId) {
   $("link-e57").href = `${base}/files/cloud.e57`;
   $("link-cloud").href = `${base}/cloud`;
   let report = null;
-  if (job.state === "succeeded") report = await api("GET", `${base}/report`);
+  if (COMPLETED.includes(job.state)) report = await api("GET", `${base}/report`);
   const verdict = verdictOf(job, report);
   $("verdict").textContent = verdict.text;
   $("verdict").className = `verdict ${verdict.pass ? "pass" : "fail"}`;
   renderFigures($("result-figures"), job.figures);
   $("result-panel").scrollIntoView({ block: "start" });
   $("view-status").textContent = "loading the cloud...";
-  if (job.state !== "succeeded") {
+  if (!COMPLETED.includes(job.state)) {
     $("view-status").textContent = "no cloud: the job did not finish";
     return;
   }

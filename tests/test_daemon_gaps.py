@@ -1,0 +1,58 @@
+"""Scans whose target the tracker cannot see (issue 42 row 2), on a daemon over the simulated cell: the target is
+read again before a scan is left out, too many left-out scans pause the job for the operator, and a job that left
+out scans ends ``succeeded_with_gaps`` with the scans named in its state, its report and the REST resource."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+
+from tandemscan.daemon.api_models import job_body
+from tandemscan.daemon.cli import default_plan_path
+from tandemscan.daemon.service import Daemon
+from tandemscan.pipeline.planning.plan import Plan
+
+#: the default plan's first AGV station: move_measure, move_arm, scan, move_arm, scan
+STEPS = 5
+
+
+async def until(predicate, timeout_s: float = 60.0) -> None:
+    async with asyncio.timeout(timeout_s):
+        while not predicate():
+            await asyncio.sleep(0.01)
+
+
+async def test_a_hidden_target_is_read_again_and_the_job_states_its_gaps(tmp_path, sim_config):
+    cfg = sim_config.model_copy(update={
+        "tracker": sim_config.tracker.model_copy(update={"scan_read_retries": 4, "scan_read_retry_s": 0.3}),
+        "job": sim_config.job.model_copy(update={"relocalise": False, "max_scans_left_out": 0}),
+        "inspection": sim_config.inspection.model_copy(update={"in_job": False}),
+        "correction": sim_config.correction.model_copy(update={"enabled": False}),
+    })
+    plan = Plan.load(default_plan_path())
+    plan = plan.model_copy(update={"steps": plan.steps[:STEPS]})
+    daemon = Daemon(cfg, tmp_path / "state", connect_timeout_s=30.0)
+    await daemon.start()
+    try:
+        world, manager, store = daemon.cell.simulation.world, daemon.manager, daemon.store
+        world.block_sight("someone walking through the sight line")
+        job, _ = await manager.submit("first station", {"plan": plan.model_dump(mode="json"), "label": None}, STEPS,
+                                      None, None)
+        await until(lambda: world.blocked_reads >= 2)  # the first scan's target hidden, and read again
+        world.block_sight("a cart parked in the sight line", after_reads=1)  # gone for one reading, then back
+        await until(lambda: manager.get(job.id).state != "running")
+        paused = manager.get(job.id)
+        assert [s.step_idx for s in store.scans(job.id)] == [2]  # the first scan measured once the person passed
+        assert paused.state == "paused_fault", paused.error
+        assert "step 4" in paused.error and "max_scans_left_out" in paused.error and "a cart" in paused.error
+        await manager.resume(job.id)  # the operator accepts the gap: the still-hidden scan is left out
+        await until(lambda: manager.get(job.id).state not in ("running", "paused_fault"))
+        done = manager.get(job.id)
+        body = job_body(done, store.steps_done(job.id))
+        report = json.loads((store.job_dir(job.id) / "report.json").read_text())
+    finally:
+        await daemon.close()
+    assert done.state == "succeeded_with_gaps", done.error
+    assert done.error.startswith("1 of 2 scans left out") and "step 4" in done.error and "a cart" in done.error
+    assert body.state == "succeeded_with_gaps" and body.figures["scans_left_out"] == 1 and "report" in body.links
+    assert report["scans"] == 1 and [e["step"] for e in report["scans_left_out"]] == [4]
