@@ -62,8 +62,8 @@ from results import publish
 from scipy.spatial import cKDTree
 from tandemscan.config import load_config
 from tandemscan.daemon.cli import default_plan_path
-from tandemscan.daemon.correction import mount_prior, transfer_priors
 from tandemscan.daemon.finish import merge_stage
+from tandemscan.daemon.job_correction import mount_prior, transfer_priors
 from tandemscan.daemon.runner import JobResult, JobRunner
 from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.geometry.frames import invert, to_rotvec, transform_points
@@ -79,13 +79,13 @@ from tandemscan.pipeline.registration.joint import (
     refine_jointly,
     symmetric_normals,
 )
-from tandemscan.pipeline.registration.mounts import MountPrior
+from tandemscan.pipeline.registration.mount_unknown import MountPrior
 from tandemscan.pipeline.registration.normals import estimate_normals
 from tandemscan.pipeline.registration.overlap import extract_overlap, overlapping_pairs
 from tandemscan.pipeline.registration.pose_graph import ScanPrior
 from tandemscan.pipeline.registration.sampling import voxel_downsample
 from tandemscan.sim_drivers.cell import with_surveyed_mounts
-from tandemscan.sim_drivers.scoring import TruthScorer
+from tandemscan.sim_drivers.truth_observer import TruthScorer
 
 OVERLAP_MM = 1.0
 #: neighbours of a point's normal, as the correction's (``joint.JointScan.from_points``)

@@ -1,7 +1,7 @@
 """The operator's command line: ``tandemscan <command>``.
 
 Each command is a function taking the parsed arguments and returning an exit status. Every failure ends in one
-line on stderr and the exit status of its kind, never a traceback (docs/daemon.md, "Exit status"): bad input (a
+line on stderr and the exit status of its kind, never a traceback (docs/cli.md, "Exit status"): bad input (a
 missing or invalid config, plan, mesh, calibration file, an unwritable output) 2, a safety stop 3, a device fault
 4, a job or calibration that ran but could not produce its result 5, a defect of the program 70 (its traceback
 logged with ``-v``). Commands that move hardware (``measure``, ``calibrate``, ``serve``) open a cell session

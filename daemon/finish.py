@@ -84,7 +84,7 @@ def load_scans(job: JobSnapshot) -> LoadedScans:
 def correct_stage(job: JobSnapshot, loaded: LoadedScans, online: OnlineWork | None) -> CorrectionOutcome:
     """The correction (``correction.correct_job``) of the scans that saw something, when ``[correction]`` is
     enabled and there are two of them; otherwise the tracker stitch stands, with the tracker chain's covariance."""
-    from tandemscan.daemon.correction import correct_job, tracker_chain_covariance  # the registration stack
+    from tandemscan.daemon.job_correction import correct_job, tracker_chain_covariance  # the registration stack
 
     tracker = tuple(np.asarray(s.T_W_S, float) for s in job.scans)
     measured = [k for k, s in enumerate(job.scans) if s.point_count > 0]  # a scan that saw nothing: nothing to do

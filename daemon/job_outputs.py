@@ -28,7 +28,7 @@ from tandemscan.config.inspection_template import InspectionTemplate, find_templ
 from tandemscan.config.loader import ConfigError
 from tandemscan.config.models import CellConfig
 from tandemscan.daemon.calibration_state import verdict_context
-from tandemscan.daemon.report import add_ground_truth, build_report
+from tandemscan.daemon.job_report import add_ground_truth, build_job_report
 from tandemscan.pipeline.geometry.frames import transform_points
 from tandemscan.pipeline.geometry.part import load_part_mesh
 from tandemscan.pipeline.inspection.inspect import InspectionError
@@ -122,7 +122,7 @@ def export_job(job: JobSnapshot, seconds: float, measured_at: float, stages: Map
     with ThreadPoolExecutor(1, thread_name_prefix="cloud-ply") as pool:  # written while the report computes
         cloud_ply = pool.submit(write_ply, job.job_dir / "cloud.ply", job.worldmap.points(), job.worldmap.normals())
         t.append(time.perf_counter())
-        report = build_report(job, seconds, tracker_poses)
+        report = build_job_report(job, seconds, tracker_poses)
         t.append(time.perf_counter())
         report["inspection"] = write_job_outputs(job, report, points_S, tracker_poses)  # report.html, E57, poses
         cloud_ply.result()  # complete before the job is reported done; its error, if any, is the job's

@@ -7,7 +7,7 @@ Environment: ``TANDEMSCAN_API_TOKEN`` (bearer token of mutating calls; overrides
 
 Start-up errors (:class:`StartupError`: the state directory or its journal unusable, the port not bindable) are
 found before any device is touched and end ``tandemscan serve`` in one line and their own exit status
-(docs/daemon.md, "Exit status"), which the systemd unit does not restart on.
+(docs/cli.md, "Exit status"), which the systemd unit does not restart on.
 """
 
 from __future__ import annotations

@@ -74,7 +74,7 @@ def _pairs_add(path: str, T_W_S: np.ndarray, T_T_S: np.ndarray, station: int, tr
                cfg: CorrectionConfig, voxel_mm: float) -> int:
     """In the pair worker: register the pairs of the scan in ``path`` (durable by now) with the earlier ones."""
     global _PAIRS
-    from tandemscan.daemon.correction import transfer_priors
+    from tandemscan.daemon.job_correction import transfer_priors
     from tandemscan.pipeline.geometry.uncertainty import scan_pose_covariance
     from tandemscan.pipeline.registration.online_pairs import OnlinePairs
 

@@ -5,7 +5,7 @@ device registry (:data:`tandemscan.drivers.factory.SIMULATION`). It owns the :cl
 role's twin (the registry's ``"sim"`` class), runs the emulators for the real drivers with ``[hil] enabled``,
 keeps the world's state in ``state_file`` (the twins save it as they move, scan and read; it is restored when
 the session starts, as a real cell finds its robots where they stopped) and hands out the ground-truth
-observers (:mod:`tandemscan.sim_drivers.scoring`). A hardware-in-the-loop cell whose every device is a real
+observers (:mod:`tandemscan.sim_drivers.truth_observer`). A hardware-in-the-loop cell whose every device is a real
 driver is a real cell to the product: its jobs get no observer, and it has no true mounts to survey (the world
 still moves under the emulators, and a calibration still finds its plate there).
 
@@ -29,7 +29,7 @@ from tandemscan.drivers.factory import ROLES, device_class
 from tandemscan.drivers.interfaces import Device
 from tandemscan.sim_drivers.hil import HilEmulators
 from tandemscan.sim_drivers.persist import keep_world_state, load_world_state
-from tandemscan.sim_drivers.scoring import CalibrationTruth, TruthObserver
+from tandemscan.sim_drivers.truth_observer import CalibrationTruth, TruthObserver
 from tandemscan.sim_drivers.world import SimWorld
 
 log = logging.getLogger(__name__)

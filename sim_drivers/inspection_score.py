@@ -1,7 +1,7 @@
 """Scoring an inspection against the simulated truth: how far the alignment's ``T_F_W`` is from the world's,
 and how well the report's deviation areas found the as-built part's deviations (``[sim.as_built]``).
 
-The job's truth scorer (``ground_truth.inspection``, :mod:`tandemscan.sim_drivers.scoring`), the benchmarks and
+The job's truth scorer (``ground_truth.inspection``, :mod:`tandemscan.sim_drivers.truth_observer`), the benchmarks and
 the tests call this; the product never sees what it reads. Frame F, mm, degrees in the
 figures it returns.
 """

@@ -168,7 +168,7 @@ class SimWorld:
         # the arm's repeatability: each move lands the flange off by a fresh offset (flange axes), its own stream
         self.arm_rng = np.random.default_rng([config.sim.seed, 2])
         self.flange_offset = np.eye(4)
-        self.scoring: dict[str, dict] = {}  # the ground-truth observers' logs, per job (sim_drivers.scoring)
+        self.scoring: dict[str, dict] = {}  # the ground-truth observers' logs, per job (sim_drivers.truth_observer)
         self.state_file: Path | None = None  # where the twins keep this state (sim_drivers.persist)
         self.define_world()  # W = the tracker camera frame at its first station
 

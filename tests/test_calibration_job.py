@@ -6,8 +6,8 @@ import json
 
 import numpy as np
 from tandemscan.daemon.calibrate import run_calibration
-from tandemscan.daemon.correction import mount_prior
 from tandemscan.daemon.installation import installation_for_job
+from tandemscan.daemon.job_correction import mount_prior
 from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.stitching.installation import Installation

@@ -1,5 +1,5 @@
 """Every failure of ``measure``, ``calibrate``, ``plan`` and ``inspect`` ends in one line and its documented exit
-status (docs/daemon.md, "Exit status"), never a traceback: each command is run into each device fault the
+status (docs/cli.md, "Exit status"), never a traceback: each command is run into each device fault the
 simulated cell injects (``[sim] fault_*``: a scanner timeout, an e-stop, an arm servo fault, a tracker that stops
 answering) and into each kind of bad file; the background workers of a failed job stop with the command."""
 

@@ -6,7 +6,7 @@ import pytest
 from tandemscan.pipeline.geometry.frames import from_rotvec, transform_points
 from tandemscan.pipeline.inspection.point_uncertainty import GivenUncertainty, JobUncertainty, ScanCover
 from tandemscan.pipeline.registration.joint import chain_covariance
-from tandemscan.pipeline.registration.mounts import MountPrior
+from tandemscan.pipeline.registration.mount_unknown import MountPrior
 from tandemscan.pipeline.registration.pose_covariance import PoseCovariance
 from tandemscan.pipeline.registration.pose_graph import ScanPrior, TransferPrior
 

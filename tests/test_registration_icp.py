@@ -14,7 +14,7 @@ from tandemscan.pipeline.registration.icp import (
     TargetCloud,
     evaluate_point_to_plane,
     icp_point_to_plane,
-    point_to_plane_icp,
+    iterate_point_to_plane,
     target_with_normals,
 )
 from tandemscan.pipeline.registration.normals import estimate_normals
@@ -60,7 +60,7 @@ def test_icp_gives_open3ds_transform_from_the_same_start(distance_mm, iterations
     S = transform_points(invert(T_true), source)
     tgt = target_with_normals(target)
     start = from_rotvec([0.2, 0.1, -0.1], np.radians([0.05, 0.0, -0.05]))
-    ours = point_to_plane_icp(S, tgt, start, distance_mm, Convergence(1e-9, 1e-9, iterations))
+    ours = iterate_point_to_plane(S, tgt, start, distance_mm, Convergence(1e-9, 1e-9, iterations))
     theirs = REG.registration_icp(_o3d(S), _o3d(target, tgt.normals), distance_mm, start,
                                   REG.TransformationEstimationPointToPlane(),
                                   REG.ICPConvergenceCriteria(1e-9, 1e-9, iterations)).transformation
@@ -74,7 +74,7 @@ def test_open3ds_default_stopping_rule_stops_where_open3d_does():
     source, target = overlapping(seed=1)
     S = transform_points(from_rotvec([2.0, 1.0, -1.0], np.radians([1.0, 0.5, -0.5])), source)
     tgt = target_with_normals(target)
-    ours = point_to_plane_icp(S, tgt, np.eye(4), 5.0, Convergence(1e-6, 1e-6, 30))
+    ours = iterate_point_to_plane(S, tgt, np.eye(4), 5.0, Convergence(1e-6, 1e-6, 30))
     theirs = REG.registration_icp(_o3d(S), _o3d(target, tgt.normals), 5.0, np.eye(4),
                                   REG.TransformationEstimationPointToPlane(),
                                   REG.ICPConvergenceCriteria(1e-6, 1e-6, 30)).transformation

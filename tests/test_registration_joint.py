@@ -18,7 +18,7 @@ from tandemscan.pipeline.registration.joint import (
     ray_variances,
     refine_jointly,
 )
-from tandemscan.pipeline.registration.mounts import MountPrior
+from tandemscan.pipeline.registration.mount_unknown import MountPrior
 from tandemscan.pipeline.registration.pose_graph import ScanPrior, TransferPrior
 from tandemscan.pipeline.registration.sampling import voxel_downsample
 

@@ -16,7 +16,7 @@ def bumpy_surface(rng: np.random.Generator, n: int = 6000, size: float = 200.0) 
     return np.c_[xy, z]
 
 
-def test_point_to_plane_icp_recovers_a_small_transform():
+def test_icp_point_to_plane_recovers_a_small_transform():
     rng = np.random.default_rng(0)
     target = bumpy_surface(rng)
     source_true = bumpy_surface(rng)                       # independent sampling of the same surface
@@ -224,7 +224,7 @@ def _mount_run(D_true: np.ndarray, tilt_deg: float, prior_sigma=(0.3, 8.7e-4)):
     """Correct the scans with and without the mount unknown (prior 1-sigma mm, rad per axis)."""
     from tandemscan.config.models import CorrectionConfig
     from tandemscan.pipeline.registration.correction import correct_scans
-    from tandemscan.pipeline.registration.mounts import MountPrior
+    from tandemscan.pipeline.registration.mount_unknown import MountPrior
 
     truth, scans = _mount_scans(D_true, tilt_deg)
     cfg = CorrectionConfig(method="icp", min_overlap_points=100)

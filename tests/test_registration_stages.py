@@ -21,7 +21,7 @@ from tandemscan.pipeline.registration.icp import (
     gate_distance,
     icp_coarse_to_fine,
     icp_point_to_plane,
-    point_to_plane_icp,
+    iterate_point_to_plane,
     refine_at_gate,
     target_with_normals,
 )
@@ -143,8 +143,8 @@ def test_stopping_at_a_repeated_correspondence_set_keeps_a_converging_fit():
     source, target_pts = moved(T_true)
     target = target_with_normals(target_pts)
     start = from_rotvec([0.2, 0.1, -0.1], np.radians([0.05, 0.0, -0.05])) @ T_true
-    open3ds = point_to_plane_icp(source, target, start, 1.5, Convergence())
-    ours = point_to_plane_icp(source, target, start, 1.5, Convergence(stop_on_repeat=True))
+    open3ds = iterate_point_to_plane(source, target, start, 1.5, Convergence())
+    ours = iterate_point_to_plane(source, target, start, 1.5, Convergence(stop_on_repeat=True))
     dt, dr = pose_error(ours, open3ds)
     assert np.degrees(dr) < 1e-5 and dt < 1e-5
 

@@ -35,7 +35,7 @@ from tandemscan.pipeline.registration.joint import (
     chain_covariance,
     refine_jointly,
 )
-from tandemscan.pipeline.registration.mounts import MountEstimate, MountPrior
+from tandemscan.pipeline.registration.mount_unknown import MountEstimate, MountPrior
 from tandemscan.pipeline.registration.overlap import overlapping_pairs, relative_covariance
 from tandemscan.pipeline.registration.pairs import (
     NETWORK_METHODS,

@@ -141,7 +141,7 @@ def _gauss_newton_step(points: np.ndarray, on_target: np.ndarray, normals: np.nd
     return _euler_xyz(x)
 
 
-def point_to_plane_icp(
+def iterate_point_to_plane(
     source_mm: np.ndarray, target: TargetCloud, init: np.ndarray, max_distance_mm: float,
     criteria: Convergence = Convergence(),
 ) -> np.ndarray:
@@ -183,7 +183,7 @@ def icp_point_to_plane(
     if S.ndim != 2 or S.shape[1] != 3:
         raise RefineError(f"ICP needs an (N, 3) source cloud; got {S.shape}")
     tgt = target_with_normals(target_mm, normal_neighbours)
-    M = point_to_plane_icp(S, tgt, np.eye(4) if init is None else np.asarray(init, float), max_distance_mm,
+    M = iterate_point_to_plane(S, tgt, np.eye(4) if init is None else np.asarray(init, float), max_distance_mm,
                            Convergence(max_iterations=iterations, stop_on_repeat=stop_on_repeat))
     return evaluate_point_to_plane(S, tgt, M, max_distance_mm)
 
@@ -272,7 +272,7 @@ def refine_at_gate(source_mm: ArrayLike, target: TargetCloud, T: ArrayLike, max_
     near = np.flatnonzero(d < max_distance_mm)
     if len(near) < MIN_LEVEL_POINTS:
         return M.copy(), gate
-    return point_to_plane_icp(S[near if max_points is None else thin_evenly(near, max_points)], target, M, gate,
+    return iterate_point_to_plane(S[near if max_points is None else thin_evenly(near, max_points)], target, M, gate,
                               Convergence(max_iterations=iterations, stop_on_repeat=True)), gate
 
 

@@ -58,7 +58,7 @@ from scipy.spatial import cKDTree
 from tandemscan.pipeline.geometry.frames import from_rotvec, invert, to_rotvec, transform_points
 from tandemscan.pipeline.geometry.uncertainty import recentre
 from tandemscan.pipeline.registration.icp import RefineError
-from tandemscan.pipeline.registration.mounts import MountEstimate, MountPrior
+from tandemscan.pipeline.registration.mount_unknown import MountEstimate, MountPrior
 from tandemscan.pipeline.registration.parallel import PairMap, pair_threads
 from tandemscan.pipeline.registration.pose_covariance import PoseCovariance
 from tandemscan.pipeline.registration.pose_graph import ScanPrior, TransferPrior

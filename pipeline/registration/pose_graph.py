@@ -29,7 +29,7 @@ from scipy.sparse.linalg import splu
 from scipy.spatial.transform import Rotation
 from tandemscan.pipeline.geometry.frames import invert
 from tandemscan.pipeline.registration.icp import RefineError
-from tandemscan.pipeline.registration.mounts import MountEstimate, MountPrior, MountSolve, schur
+from tandemscan.pipeline.registration.mount_unknown import MountEstimate, MountPrior, MountSolve, schur
 
 log = logging.getLogger(__name__)
 

@@ -8,7 +8,7 @@ is off). Report
 figures before and after are returned for ``report.json``.
 
 With ``correction.estimate_mount`` the refinement (or the graph) also estimates the shared correction of the
-scanner mount ``T_T_S`` (``registration.mounts.MountPrior``), with a prior per ``job.installation_source``: the
+scanner mount ``T_T_S`` (``registration.mount_unknown.MountPrior``), with a prior per ``job.installation_source``: the
 calibration file's hand-eye covariance (a benchmark's surveyed mounts state a tight one) or the CAD tolerance
 ``correction.mount_nominal_sigma_*`` for nominal mounts.
 """
@@ -25,7 +25,7 @@ import numpy as np
 from tandemscan.pipeline.geometry.uncertainty import scan_pose_covariance
 from tandemscan.pipeline.registration.correction import StitchedScan, correct_scans
 from tandemscan.pipeline.registration.joint import chain_covariance
-from tandemscan.pipeline.registration.mounts import MountPrior
+from tandemscan.pipeline.registration.mount_unknown import MountPrior
 from tandemscan.pipeline.registration.pairs import LazyNetwork
 from tandemscan.pipeline.registration.pose_covariance import PoseCovariance
 from tandemscan.pipeline.registration.pose_graph import ScanPrior, TransferPrior

@@ -13,7 +13,7 @@ if TYPE_CHECKING:
     from tandemscan.daemon.snapshot import JobSnapshot
 
 
-def build_report(job: JobSnapshot, seconds: float, tracker_poses: Sequence[np.ndarray] | None = None) -> dict:
+def build_job_report(job: JobSnapshot, seconds: float, tracker_poses: Sequence[np.ndarray] | None = None) -> dict:
     """The report of a finished run (mm, deg, s); each scan's final pose ``T_W_S`` (W, mm) and, where the
     correction changed it, its tracker-stitched pose ``T_W_S_tracker`` (``tracker_poses``)."""
     report: dict = {
