@@ -115,7 +115,8 @@ class Calibration(BaseModel):
 
 class Health(BaseModel):
     """``degraded`` while a device is down, the safety stop latched, free space under the reserve, or a job's
-    state or device events held in memory because the journal refuses writes."""
+    state or device events held in memory because the journal refuses writes, or the active job measuring again a
+    scan whose file was damaged."""
 
     status: Literal["ok", "degraded"]
     devices_connected: bool = Field(description="every device connected and none reporting a fault")
@@ -129,6 +130,9 @@ class Health(BaseModel):
     events_not_journaled: int = Field(0, description="device and safety events published but not journaled yet "
                                       "(the journal refuses writes; retried)")
     event_journal_failures: int = Field(0, description="journal writes of device events refused since the start")
+    damaged_scans: list[dict[str, Any]] = Field(
+        default_factory=list, description="committed scans found missing or altered when their job resumed (job, "
+        "step, scan_index, file, reason), since the start; degraded while their job is active (measured again)")
     version: str
 
 

@@ -5,10 +5,17 @@ the folder: :func:`~tandemscan.pipeline.io.durable.write_durably`). See docs/dae
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 
 from tandemscan.daemon.store_rows import PendingScan, StoreError
 from tandemscan.pipeline.io.durable import write_durably
+
+
+def file_sha256(path: Path) -> str:
+    """The SHA-256 of the file's bytes (hex)."""
+    with open(path, "rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 class JobFolders:
@@ -30,7 +37,7 @@ class JobFolders:
         path = Path(path)
         if not path.is_file() or self.job_dir(job_id) not in path.parents:
             raise StoreError(f"scan file {path} is not a file in the folder of job {job_id}")
-        return PendingScan(step_idx, path, int(n_points), path.stat().st_size)
+        return PendingScan(step_idx, path, int(n_points), path.stat().st_size, file_sha256(path))
 
     def write_artifact(self, job_id: str, name: str, data: bytes) -> Path:
         """Write a result file (``cloud.ply``, ``report.json``) durably into the job directory."""

@@ -23,6 +23,7 @@ import asyncio
 import hashlib
 import json
 import logging
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -33,7 +34,7 @@ from tandemscan.daemon.held_states import HeldStates
 from tandemscan.daemon.job_context import Abandon, JobCancelled, JobContext, Runner
 from tandemscan.daemon.job_state import FINAL_STATES, PAUSED_STATES, JobState
 from tandemscan.daemon.recovery import recover
-from tandemscan.daemon.store import JobRecord, JobStore, StoreError
+from tandemscan.daemon.store import DamagedScan, JobRecord, JobStore, StoreError
 from tandemscan.daemon.supervisor import Supervisor
 from tandemscan.drivers.errors import SafetyStop
 from tandemscan.drivers.tasks import cancel_and_wait
@@ -91,6 +92,7 @@ class JobManager:
     _retry_task: asyncio.Task | None = None
     _retries: dict[str, tuple[int, int]] = field(default_factory=dict)  # job: (retries, steps done at the last)
     _held: HeldStates = field(init=False)  # state changes the journal refused, written once it takes them
+    damaged_scans: deque[DamagedScan] = field(default_factory=lambda: deque(maxlen=20))  # found since the start
 
     def __post_init__(self) -> None:
         self._held = HeldStates(self.store, self.bus)
@@ -253,6 +255,7 @@ class JobManager:
     async def _run(self, job_id: str) -> None:
         try:
             job = await asyncio.to_thread(self.store.begin_attempt, job_id)
+            await self._take_back_damaged_scans(job_id)
             committed = await asyncio.to_thread(self.store.committed_steps, job_id)
             ctx = JobContext(job, self.store, self.supervisor, self, self.cell, self.config, committed, self.session)
             figures = await self.runner(ctx)
@@ -293,6 +296,17 @@ class JobManager:
         listed = "; ".join(f"step {e['step']} ({e['label']}): {e['reason']}" for e in left_out[:3])
         more = f"; and {len(left_out) - 3} more" if len(left_out) > 3 else ""
         return f"{len(left_out)} of {planned} scans left out, the tracker could not see the target: {listed}{more}"
+
+    async def _take_back_damaged_scans(self, job_id: str) -> None:
+        """Before a run reuses the job's committed scans: each whose file is missing or not what was committed (its
+        size, its SHA-256) is named (log, a ``scan_damaged`` event, ``damaged_scans``) and its step taken back out
+        of the journal, so that the runner measures it again."""
+        for damaged in await asyncio.to_thread(self.store.damaged_scans, job_id):
+            log.error("job %s: scan %s of step %d (%s) is damaged: %s; its step is measured again", job_id,
+                      damaged.index, damaged.step_idx, damaged.file, damaged.reason)
+            await asyncio.to_thread(self.store.uncommit_damaged_scan, damaged)
+            self.damaged_scans.append(damaged)
+            self.bus.publish(await asyncio.to_thread(self.store.add_event, job_id, "scan_damaged", damaged.entry()))
 
     async def _fault_pause(self, job_id: str, fault: JobFault) -> None:
         """A recoverable fault: motion halted, the job ``paused_fault`` with the reason, its runner ended; a device

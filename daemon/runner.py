@@ -67,6 +67,7 @@ from tandemscan.daemon.session import CellSession, MotionGate
 from tandemscan.daemon.snapshot import JobSnapshot
 from tandemscan.daemon.step_journal import NoJournal, StepJournal
 from tandemscan.daemon.stitcher import LocalWorldMap, ProcessWorldMap
+from tandemscan.daemon.store_rows import DAMAGED_NOTE
 from tandemscan.daemon.tracker_reading import read_at_rest, read_for_transfer
 from tandemscan.drivers.errors import TargetNotVisible
 from tandemscan.drivers.interfaces import ChassisPose, TrackerReading
@@ -140,6 +141,7 @@ class JobRunner:
         self.worldmap = worldmap if worldmap is not None else LocalWorldMap(config.job.voxel_mm)
         self.correction: dict = {"enabled": False}
         self.max_scans_left_out = max_scans_left_out
+        self._reserved_indices: set[int] = set()  # scan indices of damaged scans, measured again at the end
         # with relocalisation on, W is placed in the plan's frame F at the start (the anchor: the inspection's
         # registration to CAD); the AGV is located after each drive where the plan has scanner poses to re-solve
         self.relocalisation: AgvRelocalisation | None = None
@@ -169,14 +171,22 @@ class JobRunner:
         if opens_with_anchor(self.plan, self.relocalisation is not None) and 0 not in committed:
             self.state = apply(self.state, await self.relocalisation.anchor(0, self.state))
         resuming = bool(committed)
-        for i, step in enumerate(self.plan.steps):
+        # scans whose files were damaged, taken out of the journal on resume: measured again once the plan is done
+        again = [i for i, step in enumerate(self.plan.steps)
+                 if isinstance(step, Scan) and i not in committed and DAMAGED_NOTE in self.journal.notes(i)]
+        self._reserved_indices = {self.journal.notes(i)[DAMAGED_NOTE]["scan_index"] for i in again} - {None}
+        for i in [*(i for i in range(len(self.plan.steps)) if i not in again), *again]:
             if i in committed:
                 continue
+            step = self.plan.steps[i]
             if resuming:
                 await self._reestablish(i, step)
                 resuming = False
             self.progress(JobProgress(i, total, _DESCRIBE[step.kind]))
-            record = await self.journal.run_step(i, lambda i=i, step=step: self._execute(i, step))
+            if i in again:
+                record = await self.journal.run_step(i, lambda i=i: self._measure_again(i))
+            else:
+                record = await self.journal.run_step(i, lambda i=i, step=step: self._execute(i, step))
             scan = (record.file, record.point_count) if isinstance(record, ScanRecord) else ()
             await self.journal.commit(i, step.kind, record.to_json(), *scan)
             self.state = apply(self.state, record)
@@ -243,6 +253,31 @@ class JobRunner:
                                       "([job] max_scans_left_out)")
         log.warning("step %d (%s): scan left out, %s", i, label, reason)
         return UntrackedScan(i, label, reason)
+
+    async def _measure_again(self, i: int) -> StepRecord:
+        """Scan step ``i`` again, its file found damaged on resume: the measurement robot back at the step's AGV
+        station, column height and arm joints (the arm's as committed), then the scan under its old index, stitched
+        from where the tracker stands now; left out (and so stated) if the tracker cannot see the target there."""
+        steps, committed = self.plan.steps[:i], self.journal.committed
+        drive = next((s for s in reversed(steps) if isinstance(s, MoveMeasure)), None)
+        lift = next((s for s in reversed(steps) if isinstance(s, MoveLift)), None)
+        arm = next((k for k in reversed(range(i)) if isinstance(steps[k], MoveArm)), None)
+        if lift is not None:
+            await self._move_lift(lift)
+        async with self.gate.motion(Robot.MEASURE) as robot:
+            if drive is not None:
+                await robot.chassis.move_to(ChassisPose(drive.x_mm, drive.y_mm, drive.heading_rad),
+                                            self.config.measure_chassis.timeout_s)
+            if arm is not None:
+                joints = ArmMove.from_json(committed[arm]).joints_rad if arm in committed else steps[arm].joints_rad
+                await robot.arm.move_joints(np.asarray(joints), self.config.arm.timeout_s)
+        damaged = self.journal.notes(i)[DAMAGED_NOTE]
+        log.warning("step %d: measuring again the scan whose file %s was damaged (%s)", i, damaged["file"],
+                    damaged["reason"])
+        try:
+            return await self._scan(damaged["scan_index"])
+        except TargetNotVisible as e:
+            return await self._leave_out(i, self.plan.steps[i].label, e.reason)
 
     async def _move_lift(self, step: MoveLift) -> LiftMove:
         """Raise or lower the measurement AGV's lifting column, inside the measurement robot's motion gate."""
@@ -350,12 +385,14 @@ class JobRunner:
             await asyncio.sleep(cfg.scan_read_retry_s)
         return await self.read_target()
 
-    async def _scan(self) -> ScanRecord:
-        """Capture and read at rest, persist raw data first, then stitch into the world map."""
+    async def _scan(self, index: int | None = None) -> ScanRecord:
+        """Capture and read at rest, persist raw data first, then stitch into the world map; ``index`` among the
+        job's scans (default: the next)."""
         frame = await self.cell.scanner.capture(self.config.scanner.timeout_s)
         reading = await self._read_for_scan()
         joints = await self.cell.arm.joints()
-        index = len(self.state.scans)
+        if index is None:  # the next, past those kept for the scans measured again
+            index = max({s.index for s in self.state.scans} | self._reserved_indices, default=-1) + 1
         T_W_C = self.state.T_W_C
         file = self.job_dir / "scans" / f"scan-{index:04d}.npz"
         arrays = {  # written (points as float32) and stitched where the map lives, not on the event loop

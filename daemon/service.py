@@ -230,12 +230,16 @@ class Daemon:
         low = free < self.config.daemon.reserve_free_bytes
         down = self.supervisor.down_devices()
         unjournaled = self.device_events.not_journaled
-        ok = not down and not snap["safety"]["latched"] and storage_error is None and not low and not unjournaled
+        damaged = [d.entry() for d in self.manager.damaged_scans]
+        remeasuring = any(d["job"] == self.manager.active_id for d in damaged)
+        ok = (not down and not snap["safety"]["latched"] and storage_error is None and not low and not unjournaled
+              and not remeasuring)
         return {"status": "ok" if ok else "degraded", "devices_connected": not down, "devices_down": down,
                 "safety_latched": snap["safety"]["latched"], "active_job": self.manager.active_id,
                 "queued_jobs": self.store.list_jobs([JobState.QUEUED], limit=1)[1], "free_bytes": free,
                 "storage_low": low, "storage_error": storage_error, "events_not_journaled": unjournaled,
-                "event_journal_failures": self.device_events.failed_writes, "version": self.version}
+                "event_journal_failures": self.device_events.failed_writes, "damaged_scans": damaged,
+                "version": self.version}
 
 
 def serve(config_path: Path | str | None = None, host: str | None = None, port: int | None = None,

@@ -11,6 +11,8 @@ Durability rules: a scan file is written to a temporary name, fsynced, renamed a
 between the two leaves an orphan file that :func:`tandemscan.daemon.recovery.recover` removes, and the step is
 run again.
 Every step commits at most once (primary key ``(job_id, idx)``), so a resumed job has every scan exactly once.
+Each scan row carries the file's size and SHA-256 (:meth:`JobStore.damaged_scans` checks them before a resumed job
+reuses the files; :meth:`JobStore.uncommit_damaged_scan` takes a damaged one's step back out).
 
 This module is the SQL: the folders are :mod:`.job_folders`, the rows it returns :mod:`.store_rows`, the
 per-thread connections :mod:`.sqlite_db`, the allowed state changes :mod:`.job_state`.
@@ -28,13 +30,23 @@ import uuid
 from collections.abc import Iterable
 from pathlib import Path
 
-from tandemscan.daemon.job_folders import JobFolders
+from tandemscan.daemon.job_folders import JobFolders, file_sha256
 from tandemscan.daemon.job_state import ACTIVE_STATES, FINAL_STATES, JobState, TransitionError, check_transition
 from tandemscan.daemon.jsonable import jsonable
 from tandemscan.daemon.sqlite_db import SqliteDb
-from tandemscan.daemon.store_rows import Event, IdempotencyConflict, JobRecord, PendingScan, ScanRecord, StoreError
+from tandemscan.daemon.store_rows import (
+    DAMAGED_NOTE,
+    DamagedScan,
+    Event,
+    IdempotencyConflict,
+    JobRecord,
+    PendingScan,
+    ScanRecord,
+    StoreError,
+)
 
-__all__ = ["Event", "IdempotencyConflict", "JobRecord", "JobStore", "PendingScan", "ScanRecord", "StoreError"]
+__all__ = ["DamagedScan", "Event", "IdempotencyConflict", "JobRecord", "JobStore", "PendingScan", "ScanRecord",
+           "StoreError"]
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +92,7 @@ CREATE TABLE IF NOT EXISTS scans (
     n_points INTEGER NOT NULL,
     bytes INTEGER NOT NULL,
     t_s REAL NOT NULL,
+    sha256 TEXT,
     PRIMARY KEY (job_id, step_idx)
 );
 CREATE TABLE IF NOT EXISTS resumes (
@@ -105,6 +118,9 @@ class JobStore(JobFolders):
         self.db_path = self.state_dir / "journal.sqlite"
         self._db = SqliteDb(self.db_path, _SCHEMA)
         self._conn, self._tx = self._db.conn, self._db.tx
+        if "sha256" not in {r["name"] for r in self._conn().execute("PRAGMA table_info(scans)")}:
+            with self._tx() as conn:  # a journal from before scans carried their checksum
+                conn.execute("ALTER TABLE scans ADD COLUMN sha256 TEXT")
 
     def close(self) -> None:
         """Close every connection this store opened (any thread)."""
@@ -273,9 +289,9 @@ class JobStore(JobFolders):
                 if scan.step_idx != step_idx:
                     raise StoreError(f"scan of step {scan.step_idx} committed with step {step_idx}")
                 rel = scan.path.relative_to(self.job_dir(job_id)).as_posix()
-                conn.execute(
-                    "INSERT INTO scans (job_id, step_idx, file, n_points, bytes, t_s) VALUES (?, ?, ?, ?, ?, ?)",
-                    (job_id, step_idx, rel, scan.n_points, scan.bytes, now))
+                conn.execute("INSERT INTO scans (job_id, step_idx, file, n_points, bytes, t_s, sha256)"
+                             " VALUES (?, ?, ?, ?, ?, ?, ?)",
+                             (job_id, step_idx, rel, scan.n_points, scan.bytes, now, scan.sha256))
         return True
 
     def committed_steps(self, job_id: str) -> dict[int, dict]:
@@ -291,7 +307,37 @@ class JobStore(JobFolders):
     def scans(self, job_id: str) -> list[ScanRecord]:
         """Committed scans in step order."""
         rows = self._conn().execute("SELECT * FROM scans WHERE job_id = ? ORDER BY step_idx", (job_id,)).fetchall()
-        return [ScanRecord(r["job_id"], r["step_idx"], r["file"], r["n_points"], r["bytes"], r["t_s"]) for r in rows]
+        return [ScanRecord(r["job_id"], r["step_idx"], r["file"], r["n_points"], r["bytes"], r["t_s"], r["sha256"])
+                for r in rows]
+
+    def damaged_scans(self, job_id: str) -> list[DamagedScan]:
+        """The job's committed scans whose file is missing, of another size or another SHA-256 than committed
+        (reads every scan file: call it in a worker thread)."""
+        damaged = []
+        for scan in self.scans(job_id):
+            path = self.job_dir(job_id) / scan.file
+            if not path.is_file():
+                reason = "file missing"
+            elif (size := path.stat().st_size) != scan.bytes:
+                reason = f"{size} bytes, {scan.bytes} committed (truncated or overwritten)"
+            elif scan.sha256 is not None and file_sha256(path) != scan.sha256:
+                reason = "content differs from what was committed (SHA-256)"
+            else:
+                continue
+            result = self.committed_steps(job_id).get(scan.step_idx) or {}
+            damaged.append(DamagedScan(job_id, scan.step_idx, result.get("index"), scan.file, reason))
+        return damaged
+
+    def uncommit_damaged_scan(self, damaged: DamagedScan) -> None:
+        """Take a damaged scan's step back out of the journal (its step and scan rows; a ``damaged`` note on the step
+        keeps what was wrong and its scan index) and remove its file, so that the step is measured again."""
+        with self._tx() as conn:
+            conn.execute("DELETE FROM scans WHERE job_id = ? AND step_idx = ?", (damaged.job_id, damaged.step_idx))
+            conn.execute("DELETE FROM steps WHERE job_id = ? AND idx = ?", (damaged.job_id, damaged.step_idx))
+            conn.execute("INSERT OR REPLACE INTO notes (job_id, step_idx, kind, value_json, t_s)"
+                         " VALUES (?, ?, ?, ?, ?)",
+                         (damaged.job_id, damaged.step_idx, DAMAGED_NOTE, json.dumps(damaged.entry()), time.time()))
+        (self.job_dir(damaged.job_id) / damaged.file).unlink(missing_ok=True)
 
     # ------------------------------------------------------------ events
 

@@ -50,6 +50,7 @@ class ScanRecord:
     n_points: int
     bytes: int
     t_s: float
+    sha256: str | None = None  # of the file's bytes when committed (None: journaled before checksums)
 
 
 @dataclass(frozen=True)
@@ -60,6 +61,27 @@ class PendingScan:
     path: Path
     n_points: int
     bytes: int
+    sha256: str
+
+
+#: the note a damaged scan's step keeps once it is taken back out of the journal (``DamagedScan.entry()``)
+DAMAGED_NOTE = "damaged"
+
+
+@dataclass(frozen=True)
+class DamagedScan:
+    """A committed scan whose file is missing or not what was committed: its step, its index among the job's
+    scans, the file (relative to the job folder) and what is wrong."""
+
+    job_id: str
+    step_idx: int
+    index: int | None
+    file: str
+    reason: str
+
+    def entry(self) -> dict:
+        return {"job": self.job_id, "step": self.step_idx, "scan_index": self.index, "file": self.file,
+                "reason": self.reason}
 
 
 @dataclass(frozen=True)

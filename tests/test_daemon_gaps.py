@@ -56,3 +56,52 @@ async def test_a_hidden_target_is_read_again_and_the_job_states_its_gaps(tmp_pat
     assert done.error.startswith("1 of 2 scans left out") and "step 4" in done.error and "a cart" in done.error
     assert body.state == "succeeded_with_gaps" and body.figures["scans_left_out"] == 1 and "report" in body.links
     assert report["scans"] == 1 and [e["step"] for e in report["scans_left_out"]] == [4]
+
+
+async def test_a_truncated_scan_found_on_resume_is_measured_again(tmp_path, sim_config):
+    """Issue 42 row 4: scans carry their checksum in the journal; a resumed job finds a truncated scan file, names
+    it (file, step, scan index; health and an event), takes its step back out of the journal and measures it
+    again, and completes with every scan once."""
+    cfg = sim_config.model_copy(update={
+        "tracker": sim_config.tracker.model_copy(update={"scan_read_retries": 0}),
+        "job": sim_config.job.model_copy(update={"relocalise": False, "max_scans_left_out": 0}),
+        "inspection": sim_config.inspection.model_copy(update={"in_job": False}),
+        "correction": sim_config.correction.model_copy(update={"enabled": False}),
+    })
+    plan = Plan.load(default_plan_path())
+    plan = plan.model_copy(update={"steps": plan.steps[:STEPS]})
+    state = tmp_path / "state"
+    daemon = Daemon(cfg, state, connect_timeout_s=30.0)
+    await daemon.start()
+    try:  # the first scan measured, the job paused at the second (a hidden target: a deterministic stop)
+        daemon.cell.simulation.world.block_sight("a cart parked in the sight line", after_reads=1)
+        job, _ = await daemon.manager.submit("first station", {"plan": plan.model_dump(mode="json"), "label": None},
+                                             STEPS, None, None)
+        await until(lambda: daemon.manager.get(job.id).state == "paused_fault")
+        (first,) = daemon.store.scans(job.id)
+        assert first.step_idx == 2 and first.sha256 is not None
+    finally:
+        await daemon.close()
+    damaged_file = state / "jobs" / job.id / first.file
+    damaged_file.write_bytes(damaged_file.read_bytes()[: first.bytes // 2])  # truncated while the daemon was down
+    daemon = Daemon(cfg, state, connect_timeout_s=30.0)  # the simulated world as it was, the cart gone
+    await daemon.start()
+    try:
+        await daemon.manager.resume(job.id)
+        await until(lambda: daemon.manager.get(job.id).state not in ("running", "paused_fault"))
+        done = daemon.manager.get(job.id)
+        health = daemon.health()
+        scans = daemon.store.scans(job.id)
+        events = [e.data for e in daemon.store.events(0, job.id) if e.kind == "scan_damaged"]
+        report = json.loads((state / "jobs" / job.id / "report.json").read_text())
+    finally:
+        await daemon.close()
+    assert done.state == "succeeded", done.error
+    (entry,) = health["damaged_scans"]
+    assert entry == {"job": job.id, "step": 2, "scan_index": 0, "file": "scans/scan-0000.npz",
+                     "reason": f"{first.bytes // 2} bytes, {first.bytes} committed (truncated or overwritten)"}
+    assert events == [entry]
+    assert [s.step_idx for s in scans] == [2, 4] and [s.file for s in scans] == ["scans/scan-0000.npz",
+                                                                                  "scans/scan-0001.npz"]
+    assert sorted(p.name for p in (state / "jobs" / job.id / "scans").iterdir()) == ["scan-0000.npz", "scan-0001.npz"]
+    assert report["scans"] == 2 and sorted(s["index"] for s in report["scan_log"]) == [0, 1]
