@@ -732,6 +732,12 @@ _DEFAULT_SPHERES = (  # 12 mm off the default part's +y side, inside the default
 )
 
 
+DEFAULT_PART_REGIONS = (  # of the parametric train nose (PartConfig without a mesh), frame F, mm
+    RegionConfig(name="body", min_mm=(-1e5, -1e5, -1e5), max_mm=(-500.0, 1e5, 1e5)),
+    RegionConfig(name="nose", min_mm=(-500.0, -1e5, -1e5), max_mm=(1e5, 1e5, 1e5)),
+)
+
+
 class InspectionConfig(_Strict):
     """Deviation-from-CAD inspection: tolerance band (mm, signed: + = material outside the CAD surface),
     named regions, optional best-fit alignment and the colour-map scale."""
@@ -748,10 +754,9 @@ class InspectionConfig(_Strict):
         "in or out of the tolerance by the measured value alone (docs/inspection.md, \"Decision rule\")"
     )
     decision_k: float = Field(2.0, gt=0, description="coverage factor k of the expanded uncertainties U")
-    regions: tuple[RegionConfig, ...] = (
-        RegionConfig(name="body", min_mm=(-1e5, -1e5, -1e5), max_mm=(-500.0, 1e5, 1e5)),
-        RegionConfig(name="nose", min_mm=(-500.0, -1e5, -1e5), max_mm=(1e5, 1e5, 1e5)),
-    )
+    regions: tuple[RegionConfig, ...] = Field(
+        (), description="named regions reported apart; none configured: the parametric default part's body and "
+        "nose where it is the part (CellConfig.part_inspection), none for a part mesh")
     mesh_group_regions: bool = Field(
         True, description="also one region per material group of the CAD mesh (OBJ usemtl), by closest triangle"
     )
@@ -930,3 +935,11 @@ class CellConfig(_Strict):
     daemon: DaemonConfig = DaemonConfig()
     opcua: OpcuaConfig = OpcuaConfig()
     hil: HilConfig = HilConfig()
+
+    def part_inspection(self) -> InspectionConfig:
+        """``[inspection]`` for the configured part: without configured regions, the default part's body and nose
+        (``DEFAULT_PART_REGIONS``) where the part is the parametric nose; a part mesh gets only the regions
+        configured for it."""
+        if self.part.mesh is None and "regions" not in self.inspection.model_fields_set:
+            return self.inspection.model_copy(update={"regions": DEFAULT_PART_REGIONS})
+        return self.inspection

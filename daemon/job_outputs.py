@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import math
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -24,6 +25,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+import open3d as o3d
 from tandemscan.config.inspection_template import InspectionTemplate, find_template, load_template
 from tandemscan.config.loader import ConfigError
 from tandemscan.config.models import CellConfig
@@ -36,6 +38,7 @@ from tandemscan.pipeline.inspection.inspection_job import InspectionOutputs, Pla
 from tandemscan.pipeline.inspection.point_uncertainty import JobUncertainty, ScanCover
 from tandemscan.pipeline.io.export import PosedScan, write_e57, write_ply, write_pose_log
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan
+from tandemscan.pipeline.planning.coverage import CoverageFigures
 
 if TYPE_CHECKING:
     from tandemscan.daemon.snapshot import JobSnapshot
@@ -125,6 +128,7 @@ def export_job(job: JobSnapshot, seconds: float, measured_at: float, stages: Map
         report = build_job_report(job, seconds, tracker_poses)
         t.append(time.perf_counter())
         report["inspection"] = write_job_outputs(job, report, points_S, tracker_poses)  # report.html, E57, poses
+        report["coverage"] = report["inspection"].get("coverage") or plan_coverage(job).as_dict()
         cloud_ply.result()  # complete before the job is reported done; its error, if any, is the job's
         t.append(time.perf_counter())
     after_last_scan_s = time.monotonic() - measured_at
@@ -221,11 +225,12 @@ def _inspect(job: JobSnapshot, report: dict, scans: list[PosedScan], cloud_W: np
     after = None if tracker_poses is None else PlacedScans(view_S, [s.T_W_S for s in scans])
     template_file = find_template(job.config.part.mesh, configured=job.config.inspection.template)
     template = None if template_file is None else load_template(template_file)
+    mesh = load_part_mesh(job.config.part)
     return align_and_inspect(
         cloud_W,
-        load_part_mesh(job.config.part),
+        mesh,
         job_dir,
-        job.config.inspection,
+        job.config.part_inspection(),
         normals_W=normals_W,
         start_T_F_W=T_F_W,
         start="W placed in F by the anchor reading (Eq. 5)",
@@ -242,7 +247,17 @@ def _inspect(job: JobSnapshot, report: dict, scans: list[PosedScan], cloud_W: np
         part=part_identity(job.config, template, template_file),
         uncertainty=job_uncertainty(job, scans, counts),
         context=verdict_context(job),
+        coverage=plan_coverage(job, mesh),
     )
+
+
+def plan_coverage(job: JobSnapshot, mesh: o3d.geometry.TriangleMesh | None = None) -> CoverageFigures:
+    """What the job's plan covers and leaves out (report.json ``coverage``), with where a scanner pose fits on the
+    part's CAD ``mesh`` for the measured share (none: that share stays unknown)."""
+    if mesh is None:
+        return CoverageFigures(job.plan.coverage_pct, tuple(job.plan.left_out))
+    return CoverageFigures.of_plan(job.plan, mesh, job.config.scanner.sweet_spot_mm,
+                                   math.radians(job.config.planning.incidence_limit_deg))
 
 
 def part_identity(config: CellConfig, template: InspectionTemplate | None, template_file: Path | None

@@ -1,5 +1,5 @@
 """A job on the simulated cell leaves report.html, the deviation PLY, the E57 and the pose log next to
-cloud.ply, and report.json carries the same inspection numbers."""
+cloud.ply, and report.json carries the same inspection numbers and the coverage."""
 
 from __future__ import annotations
 
@@ -12,7 +12,8 @@ from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.io.cloud_io import read_ply
-from tandemscan.pipeline.planning.plan import Plan, Scan
+from tandemscan.pipeline.planning.coverage import REASON_REACH
+from tandemscan.pipeline.planning.plan import LeftOutArea, Plan, Scan
 from tandemscan.sim_drivers.cell import with_surveyed_mounts
 
 
@@ -31,7 +32,10 @@ def perfect_correction(monkeypatch, truth_of):
 async def test_job_writes_report_and_exports_next_to_cloud(sim_config, tmp_path, monkeypatch):
     plan = Plan.load(default_plan_path())
     scans = [i for i, s in enumerate(plan.steps) if isinstance(s, Scan)]
-    plan = plan.model_copy(update={"steps": plan.steps[: scans[1] + 1]})  # the first two scans only
+    left = LeftOutArea(reason=REASON_REACH, station=3, area_m2=0.412, z_range_mm=(1400.0, 1600.0),
+                       centroid_mm=(-200.0, 0.0, 1590.0))  # as a generated plan states them
+    plan = plan.model_copy(update={"steps": plan.steps[: scans[1] + 1],  # the first two scans only
+                                   "coverage_pct": 78.5, "left_out": [left]})
     inspection = sim_config.inspection.model_copy(update={"views": ("isometric",), "map_width_px": 300})
     config = sim_config.model_copy(update={"inspection": inspection})
     perfect_correction(monkeypatch, lambda job: job.scorer.T_W_S_true)
@@ -85,6 +89,17 @@ async def test_job_writes_report_and_exports_next_to_cloud(sim_config, tmp_path,
     with (job / "poses.csv").open() as f:
         rows = list(csv.DictReader(f))
     assert [int(r["points"]) for r in rows] == [e["points"] for e in report["scan_log"]]
+    # coverage: the plan's share of the surface where a pose fits, the share the cloud measured (two scans: a
+    # little of it) and the plan's left-out areas, which report.html lists
+    coverage = report["coverage"]
+    assert coverage["planned_pct"] == 78.5 and coverage["of"] == "surface where a pose fits"
+    assert 0.5 < coverage["measured_pct"] < 10.0 and report["inspection"]["coverage"] == coverage
+    (area,) = coverage["left_out"]
+    assert area["reason"] == REASON_REACH and area["area_m2"] == 0.412
+    assert area["where"] == "near AGV station 3, z 1400 to 1600 mm, centred at x -200, y 0, z 1590 mm"
+    assert 'id="left-out"' in html and area["where"] in html and "planned 78.5 %" in html
+    # the default part's regions, for the default part
+    assert [r["name"] for r in ins["regions"]] == ["body", "nose"]
 
 
 def test_inspection_skipped_with_reason(sim_config, tmp_path):
@@ -124,3 +139,4 @@ async def test_inspection_takes_at_most_max_points_of_the_cloud(sim_config, tmp_
     assert inspected == len(range(0, n, step)) <= 1000
     assert len(read_ply(result.job_dir / "cloud_deviation.ply")[0]) == inspected
     assert report["inspection"]["meta"]["points"] == f"{inspected} of the cloud's {n} ([inspection] max_points)"
+

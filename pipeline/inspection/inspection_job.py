@@ -39,6 +39,7 @@ from tandemscan.pipeline.inspection.stitch_quality import overlap_quality
 from tandemscan.pipeline.inspection.verdict import VerdictContext, judge
 from tandemscan.pipeline.io.cloud_io import CloudIOError, read_ply
 from tandemscan.pipeline.io.export import write_ply
+from tandemscan.pipeline.planning.coverage import CoverageFigures
 
 DEVIATION_PLY = "cloud_deviation.ply"  # written next to report.html
 
@@ -76,6 +77,7 @@ def run_inspection(
     part: Mapping[str, str] | None = None,
     uncertainty: UncertaintyModel | None = None,
     context: VerdictContext | None = None,
+    coverage: CoverageFigures | None = None,
 ) -> InspectionOutputs:
     """Inspect ``points_mm`` (frame F) against the CAD mesh and write the report and the deviation PLY
     into ``out_dir``. The PLY carries the cloud's normals when given, else the closest CAD normals.
@@ -85,7 +87,8 @@ def run_inspection(
     ``template``: the part's characteristics, evaluated and reported first; ``part``: its part number,
     serial and template file, as the report names them; ``uncertainty``: what knows the points' uncertainty
     (None: the cloud states none, U = 0) and ``context`` the installation and verification the verdict is made in
-    (``verdict.judge``)."""
+    (``verdict.judge``); ``coverage``: the job's plan's
+    (``report.build_report``)."""
     cfg = cfg or InspectionConfig()
     surface = mesh if isinstance(mesh, CadSurface) else CadSurface(mesh)
     if overlap is None and scans_before is not None:
@@ -111,7 +114,7 @@ def run_inspection(
         report = build_report(
             result, surface, cfg, title=title, meta=meta, accuracy=accuracy,
             scans_before=scans_before, scans_after=scans_after, alignment=alignment, overlap=overlap,
-            characteristics=characteristics, part=part,
+            characteristics=characteristics, part=part, coverage=coverage,
         )
         html, js = write_report(report, out_dir, json_name)
     return InspectionOutputs(result, report.data, html, js, ply.result(), characteristics)

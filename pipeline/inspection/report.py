@@ -36,6 +36,7 @@ from tandemscan.pipeline.inspection.deviation_maps import (
 )
 from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionResult
 from tandemscan.pipeline.inspection.stitch_quality import PAIR_SAMPLE, overlap_quality, stitching_png
+from tandemscan.pipeline.planning.coverage import CoverageFigures
 
 log = logging.getLogger(__name__)
 
@@ -119,6 +120,7 @@ def build_report(
     overlap: Future | None = None,
     characteristics: Sequence[CharacteristicResult] = (),
     part: Mapping[str, str] | None = None,
+    coverage: CoverageFigures | None = None,
 ) -> Report:
     """Render the figures and collect the numbers of one inspection.
 
@@ -129,7 +131,8 @@ def build_report(
     it came in that frame). The deviation areas are labelled on every map (``#id`` at the centroid).
     ``overlap``: the scans' :func:`overlap_quality` where it is being computed already.
     ``characteristics``: the template's, evaluated (:mod:`tandemscan.pipeline.inspection.characteristics`),
-    which the report leads with; ``part``: its template, part number and serial.
+    which the report leads with; ``part``: its template, part number and serial. ``coverage``: what the job's
+    plan covers and leaves out, reported with the share of it the cloud measured (``data["coverage"]``).
     """
     cfg = cfg or InspectionConfig()
     if overlap is None and scans_before is not None:
@@ -143,13 +146,14 @@ def build_report(
     spacing = typical_spacing(p)
     callouts = [Callout(f"#{a.id}", a.centroid_mm, SIDE_COLOURS[a.side]) for a in result.areas]
     maps, split = [], []
+    measured = _measured(result, surface)
     for i, view in enumerate(views):
         png = deviation_map_png(surface, p, d, view, tol, norm, cfg.map_width_px, normals=n, spacing_mm=spacing,
                                 callouts=callouts)
         maps.append(ReportFigure(f"map-{i}", f"Deviation colour map, {view.name}", png))
         if i > 0:
             continue
-        coverage = _coverage_figure(result, surface, view, cfg)  # while the first view's picture is cached
+        coverage_map = _coverage_figure(result, surface, view, cfg, measured)  # the first view's picture cached
         for label, side, keep in (("upper", "above", d > 0), ("lower", "below", d < 0)):  # first view only
             if keep.any():
                 title_ = f"{label.capitalize()} deviation (points {side} CAD), {view.name}"
@@ -158,7 +162,7 @@ def build_report(
                                         n[keep], spacing, ours)
                 split.append(ReportFigure(f"{label}-deviation", title_, png))
     quality = quality_figures(result, characteristics, tol, norm)
-    figures = quality + maps + [coverage] + split
+    figures = quality + maps + [coverage_map] + split
     hist = histogram_png(result.deviations_mm, result.stats, tol, norm)
     caption = "Deviation histogram with the tolerance band (the outer bins collect the 0.1 % tails)"
     figures.append(ReportFigure("histogram", caption, hist))
@@ -180,6 +184,7 @@ def build_report(
         **inspection_summary(result, alignment),
         "part": dict(part or {}),
         "characteristics": [c.summary() for c in characteristics],
+        **({} if coverage is None else {"coverage": coverage.with_measured(surface.mesh, measured).as_dict()}),
         "closeups": [dict(c.summary(), figure=f"figures/closeup-{c.area_id}.png") for c in closeups_of(quality)],
         "accuracy": _plain(dict(accuracy or {})),
         "stitching": [_plain(pr) for pr in pairs],
@@ -227,11 +232,16 @@ def in_background(fn, *args) -> Future:
         pool.shutdown(wait=False)  # the thread ends with its one task
 
 
+def _measured(result: InspectionResult, surface: CadSurface) -> np.ndarray:
+    """Per CAD triangle: the cloud measured it (``measured_triangles``)."""
+    if result.triangle_ids is None:
+        return measured_triangles(surface, result.points_mm)
+    return measured_triangles(surface, triangle_ids=result.triangle_ids, signed_mm=result.deviations_mm)
+
+
 def _coverage_figure(result: InspectionResult, surface: CadSurface, view: View,
-                     cfg: InspectionConfig) -> ReportFigure:
-    """The coverage map: measured vs not measured on the CAD surface, in the first view."""
-    measured = None if result.triangle_ids is None else measured_triangles(
-        surface, triangle_ids=result.triangle_ids, signed_mm=result.deviations_mm)
+                     cfg: InspectionConfig, measured: np.ndarray) -> ReportFigure:
+    """The coverage map: measured (``measured``, per CAD triangle) vs not measured, in the first view."""
     png = coverage_map_png(surface, result.points_mm, view, cfg.map_width_px, measured)
     return ReportFigure("coverage", f"Coverage of the CAD surface (measured vs not measured), {view.name}", png)
 

@@ -24,6 +24,7 @@ import open3d as o3d
 from tandemscan.config.models import ArmConfig, PlanningConfig, ScannerConfig
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.kinematics import arm_base_on_column
+from tandemscan.pipeline.planning.floor import floor_z_mm, no_pose_fits
 from tandemscan.pipeline.planning.stations import AgvStation, footprint_height_mm, footprint_width_mm
 
 log = logging.getLogger(__name__)
@@ -33,6 +34,7 @@ IkSolver = Callable[[np.ndarray, np.ndarray], "np.ndarray | None"]
 
 _PROFILE_STEP_MM = 20.0
 _TILT_STEP_DEG = 15.0
+_UNDERSIDE_DEG = 30.0  # an underside row's surface normal lies this close to straight down
 
 
 @dataclass(frozen=True)
@@ -113,13 +115,14 @@ def _cast(scene: o3d.t.geometry.RaycastingScene, origins: np.ndarray, dirs: np.n
 
 def surface_profile(
     scene: o3d.t.geometry.RaycastingScene, base_xy: np.ndarray, inward: np.ndarray, z_range: tuple[float, float],
-    reach_mm: float,
+    reach_mm: float, underside: Underside | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Surface points and outward normals (F, mm) on the vertical half-section seen from ``base_xy``.
 
     Horizontal rays towards the part at every height and vertical rays down onto the roof, kept up to the
-    part's middle (halfway between the near and far side) and ordered from the floor up and over the top.
-    Empty arrays when the rays miss the part.
+    part's middle (halfway between the near and far side) and ordered from the floor up and over the top; with
+    ``underside``, the part's underside where a scanner has room under it first, from the middle out
+    (:func:`underside_profile`). Empty arrays when the rays miss the part.
     """
     z0, z1 = z_range
     up = np.array([0.0, 0.0, 1.0])
@@ -146,7 +149,51 @@ def surface_profile(
     rel_t = (pts - base) @ v
     angle = np.arctan2(pts[:, 2] - z0, t_mid - rel_t)
     order = np.argsort(angle, kind="stable")
-    return pts[order], nrm[order]
+    if underside is None:
+        return pts[order], nrm[order]
+    below, below_n = underside_profile(scene, base, v, ts, underside)
+    return np.vstack([below, pts[order]]), np.vstack([below_n, nrm[order]])
+
+
+def _in_front(scene: o3d.t.geometry.RaycastingScene, base: np.ndarray, v: np.ndarray, z: np.ndarray,
+              along: np.ndarray) -> np.ndarray:
+    """Per height ``z`` (mm): a horizontal ray from ``base`` along ``v`` meets the part before ``along`` (mm)."""
+    level = base + np.asarray(z)[:, None] * np.array([0.0, 0.0, 1.0])
+    t, _ = _cast(scene, level, np.tile(v, (len(level), 1)))
+    return t < along
+
+
+@dataclass(frozen=True)
+class Underside:
+    """What the underside rows need: the floor's height in F, the scanner's sweet spot and the incidence limit
+    (mm, rad)."""
+
+    floor_z_mm: float
+    sweet_spot_mm: float
+    incidence_limit_rad: float
+
+
+def underside_profile(scene: o3d.t.geometry.RaycastingScene, base: np.ndarray, v: np.ndarray, ts: np.ndarray,
+                      underside: Underside) -> tuple[np.ndarray, np.ndarray]:
+    """The part's underside on the half-section from ``base`` (on the floor, F mm) along ``v`` at the distances
+    ``ts`` (mm): rays up from under the floor, kept where the surface faces down (within ``_UNDERSIDE_DEG``; the
+    horizontal rays find the steeper rest), where a scanner pose has room above the floor
+    (``floor.no_pose_fits``: a part on supports, not one resting on the floor) and where the scanner, square on
+    at the sweet spot, stands in free space the station reaches at its height (no part between: not inside an
+    arch); ordered from the part's middle out to the station's side. Points and outward normals (mm)."""
+    up = np.array([0.0, 0.0, 1.0])
+    org = base + ts[:, None] * v + (underside.floor_z_mm - 1.0) * up
+    t_up, n_up = _cast(scene, org, np.tile(up, (len(ts), 1)))
+    hit = np.isfinite(t_up)
+    pts, nrm = org[hit] + t_up[hit, None] * up, n_up[hit]
+    nrm[nrm @ up > 0] *= -1  # face the ray (down) whatever the mesh winding
+    keep = nrm[:, 2] < -math.cos(math.radians(_UNDERSIDE_DEG))  # the horizontal rays find the steeper rest
+    keep &= ~no_pose_fits(pts, nrm, underside.floor_z_mm, underside.sweet_spot_mm, underside.incidence_limit_rad)
+    scanner = pts + underside.sweet_spot_mm * nrm
+    if len(pts):
+        keep &= ~_in_front(scene, base, v, scanner[:, 2], (scanner - base) @ v)  # the scanner's place is free
+    order = np.argsort(-((pts[keep] - base) @ v), kind="stable")
+    return pts[keep][order], nrm[keep][order]
 
 
 def _sample_profile(pts: np.ndarray, nrm: np.ndarray, n_mm: float) -> tuple[list[np.ndarray], list[np.ndarray]]:
@@ -189,12 +236,14 @@ def raster_cells(
     """
     m = footprint_width_mm(scanner, planning)
     n = footprint_height_mm(scanner, planning)
+    underside = Underside(floor_z_mm(z_range[0]), scanner.sweet_spot_mm,
+                          math.radians(min(planning.incidence_limit_deg, scanner.max_incidence_deg)))
     cols = column_count(step_mm, m)
     cells, rows = [], 0
     for c in range(cols - 1 if shared_last_column else cols):
         offset = (c / (cols - 1) - 0.5) * step_mm
         base = station.xy + offset * station.tangent
-        pts, nrm = surface_profile(scene, base, station.towards_part, z_range, reach_mm)
+        pts, nrm = surface_profile(scene, base, station.towards_part, z_range, reach_mm, underside)
         if len(pts) < 2:
             continue
         ps, ns = _sample_profile(pts, nrm, n)

@@ -2,15 +2,18 @@
 
 Each planned scanner pose the tracker sees is ray cast with the scanner model (working range and incidence
 limit, no noise) at a reduced pixel grid; a triangle counts as seen when a kept ray lands on it. Unseen area is
-sorted by reason, after the nearest raster cell: no scanner pose fits (it faces the floor so steeply that the
-sweet spot lies under the floor clearance), out of the arm's reach (the cell has no joint solution), outside
-the tracker's view (the cell's pose is reachable but no tracker station sees its target), or missed (between
-scans or occluded). Each reason is listed per AGV station with its area, height range and centroid.
+sorted by reason, after the nearest raster cell: no scanner pose fits (it faces the floor, z = 0 of the part
+frame, so steeply and so low that the sweet spot lies under the floor clearance: a part on supports keeps its
+underside), out of the arm's reach (the cell has no joint solution), outside the tracker's view (the cell's
+pose is reachable but no tracker station sees its target), or missed (between scans or occluded). Each reason
+is listed per AGV station with its area, height range and centroid. :class:`CoverageFigures` is what a job's
+report.json (``coverage``) and report.html say of it: the planned and measured shares of the surface where a
+pose fits and the areas left out (docs/planning.md, "Coverage").
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import open3d as o3d
@@ -18,9 +21,9 @@ from scipy.spatial import cKDTree
 from tandemscan.config.models import ScannerConfig
 from tandemscan.pipeline.geometry.raycast import ScannerModel
 from tandemscan.pipeline.planning.arm import StationRaster
-from tandemscan.pipeline.planning.plan import LeftOutArea
+from tandemscan.pipeline.planning.floor import floor_z_mm, no_pose_fits
+from tandemscan.pipeline.planning.plan import LeftOutArea, Plan
 
-_FLOOR_CLEARANCE_MM = 150.0  # the scanner body needs this much room above the floor
 _DRY_RUN_PIXELS = (64, 50)
 _DRY_RUN_POSES_PER_CAST = 128  # poses ray cast together (128 x 3200 rays, about 40 MB)
 
@@ -115,16 +118,61 @@ def pose_fits(mesh: o3d.geometry.TriangleMesh, sweet_spot_mm: float, incidence_l
     """Per triangle: some scanner pose within the incidence limit fits above the floor clearance (the surface
     the coverage figures count)."""
     _, normal, centroid = triangle_geometry(mesh)
-    zmin = float(np.asarray(mesh.vertices)[:, 2].min())
-    return ~no_pose_fits(centroid, normal, zmin, sweet_spot_mm, incidence_limit_rad)
+    return ~no_pose_fits(centroid, normal, _floor_z(mesh), sweet_spot_mm, incidence_limit_rad)
 
 
-def no_pose_fits(centroid: np.ndarray, normal: np.ndarray, zmin: float, sweet_spot_mm: float,
-                 incidence_limit_rad: float) -> np.ndarray:
-    """Per triangle: even the most upward view within the incidence limit puts the scanner under the clearance."""
-    elevation = np.arcsin(np.clip(normal[:, 2], -1.0, 1.0))
-    best = np.minimum(elevation + incidence_limit_rad, np.pi / 2)
-    return centroid[:, 2] + sweet_spot_mm * np.sin(best) < zmin + _FLOOR_CLEARANCE_MM
+def _floor_z(mesh: o3d.geometry.TriangleMesh) -> float:
+    return floor_z_mm(float(np.asarray(mesh.vertices)[:, 2].min()))
+
+
+COVERAGE_OF = "surface where a pose fits"
+
+
+@dataclass(frozen=True)
+class CoverageFigures:
+    """A job's coverage as report.json (``coverage``) and report.html state it: the shares (%) of the part's
+    surface where a scanner pose fits (``pose_fits``, per CAD triangle: :func:`pose_fits`) that the plan sees
+    (``planned_pct``; None: a plan that does not state it) and that the cloud measured (``measured_pct``: CAD
+    triangles with a cloud point within 1 mm, ``deviation_maps.measured_triangles``; None: no cloud aligned to
+    CAD), and the areas the plan leaves out (part frame F, mm)."""
+
+    planned_pct: float | None
+    left_out: tuple[LeftOutArea, ...]
+    measured_pct: float | None = None
+    pose_fits: np.ndarray | None = field(default=None, repr=False, compare=False)
+
+    @classmethod
+    def of_plan(cls, plan: Plan, mesh: o3d.geometry.TriangleMesh, sweet_spot_mm: float,
+                incidence_limit_rad: float) -> CoverageFigures:
+        """What ``plan`` states (its coverage and left-out areas) and where a pose fits on ``mesh``."""
+        return cls(plan.coverage_pct, tuple(plan.left_out), None,
+                   pose_fits(mesh, sweet_spot_mm, incidence_limit_rad))
+
+    def with_measured(self, mesh: o3d.geometry.TriangleMesh, measured: np.ndarray) -> CoverageFigures:
+        """These figures with ``measured_pct`` from ``measured`` (per triangle of ``mesh``, the CAD mesh
+        ``pose_fits`` was found on); unchanged where that is not known or the meshes differ."""
+        measured = np.asarray(measured, bool)
+        if self.pose_fits is None or len(self.pose_fits) != len(measured):
+            return self
+        area, _, _ = triangle_geometry(mesh)
+        total = float(area[self.pose_fits].sum())
+        share = 100.0 * float(area[self.pose_fits & measured].sum()) / total if total > 0 else 0.0
+        return replace(self, measured_pct=round(share, 2))
+
+    def as_dict(self) -> dict:
+        """report.json's ``coverage``: each left-out area with its reason, area (m^2) and where it is in words
+        (with its centroid and height range, mm, for a script)."""
+        return {"planned_pct": self.planned_pct, "measured_pct": self.measured_pct, "of": COVERAGE_OF,
+                "left_out": [{"reason": a.reason, "area_m2": a.area_m2, "where": _where(a),
+                              "centroid_mm": list(a.centroid_mm), "z_range_mm": list(a.z_range_mm)}
+                             for a in self.left_out]}
+
+
+def _where(area: LeftOutArea) -> str:
+    x, y, z = area.centroid_mm
+    near = f"near AGV station {area.station}" if area.station >= 0 else "near no AGV station"
+    return (f"{near}, z {area.z_range_mm[0]:.0f} to {area.z_range_mm[1]:.0f} mm, centred at x {x:.0f}, y {y:.0f}, "
+            f"z {z:.0f} mm")
 
 
 REASON_NO_POSE = "faces the floor: no room for a scanner pose"
@@ -149,7 +197,6 @@ def dry_run(
     tri = np.asarray(mesh.triangles)
     p = np.asarray(mesh.vertices)[tri]
     area, normal, centroid = triangle_geometry(mesh)
-    zmin = float(p[:, :, 2].min())
     poses = [ps for r in rasters for ps in r.poses]
     tracked = np.ones(len(poses), bool) if tracked is None else np.asarray(tracked, bool)
     seen = seen_triangles(mesh, scene, [ps.T_F_S for ps, ok in zip(poses, tracked, strict=True) if ok], scanner)
@@ -173,7 +220,8 @@ def dry_run(
         station[unseen] = np.array(cell_station)[nearest]
     else:
         reason[unseen] = REASON_REACH
-    reason[no_pose_fits(centroid, normal, zmin, scanner.sweet_spot_mm, incidence_limit_rad) & unseen] = REASON_NO_POSE
+    no_pose = no_pose_fits(centroid, normal, _floor_z(mesh), scanner.sweet_spot_mm, incidence_limit_rad)
+    reason[no_pose & unseen] = REASON_NO_POSE
     left = []
     for why in (REASON_NO_POSE, REASON_REACH, REASON_TRACKER, REASON_MISSED):
         for st in np.unique(station[reason == why]):

@@ -128,6 +128,8 @@ class Plan(BaseModel):
     part_identity: PartIdentity | None = Field(None, description="the mesh the plan was made for; a job refuses "
                                                "a plan whose mesh differs")
     left_out: list[LeftOutArea] = Field(default_factory=list, description="surface the plan does not measure")
+    coverage_pct: float | None = Field(None, description="share (%) of the part's surface where a scanner pose "
+                                       "fits that the plan's scans see (the planner's dry run)")
     steps: list[Step]
 
     @field_validator("steps")

@@ -158,7 +158,8 @@ def plan_part(
     coverage = dry_run(mesh, scene, rasters, config.scanner, math.radians(config.planning.incidence_limit_deg),
                        tracked)
     stated = sequence.plan.model_copy(update={"part_identity": part_identity(mesh),
-                                              "left_out": coverage.left_out_areas()})
+                                              "left_out": coverage.left_out_areas(),
+                                              "coverage_pct": round(coverage.coverage_pct, 2)})
     sequence = dataclasses.replace(sequence, plan=stated)
     seconds["coverage"] = time.perf_counter() - t
     plan = PartPlan(layout, rasters, poses, candidates, cover, solution, sequence, start, coverage, seconds)
