@@ -689,6 +689,21 @@ class CorrectionConfig(_Strict):
     )
 
 
+class ComputeConfig(_Strict):
+    """Where the end of a job's per-unit work runs (docs/compute.md): this PC's threads, or a Dask cluster whose
+    workers read the job's scans by reference from ``scan_store``."""
+
+    backend: Literal["local", "dask"] = Field(
+        "local", description="local: threads of this PC; dask: the pair stage as Dask tasks (docs/compute.md)")
+    scheduler: str = Field(
+        "", description="dask: a scheduler address (tcp://host:8786); empty = a LocalCluster of dask_workers")
+    dask_workers: int = Field(2, ge=1, description="dask with no scheduler: processes of the LocalCluster")
+    scan_store: Path | None = Field(
+        None, description="the folder the workers read the job's scans from (a shared filesystem); empty = the "
+        "job folder")
+    retries: int = Field(3, ge=0, description="dask: times a task lost with its worker is run again")
+
+
 class DeepMergeConfig(_Strict):
     """The DeepMerge registration network (docs/deepmerge.md): its weights and inference size."""
 
@@ -932,6 +947,7 @@ class CellConfig(_Strict):
     planning: PlanningConfig = PlanningConfig()
     correction: CorrectionConfig = CorrectionConfig()
     deepmerge: DeepMergeConfig = DeepMergeConfig()
+    compute: ComputeConfig = ComputeConfig()
     daemon: DaemonConfig = DaemonConfig()
     opcua: OpcuaConfig = OpcuaConfig()
     hil: HilConfig = HilConfig()

@@ -19,9 +19,11 @@ import logging
 import os
 import time
 from collections.abc import Sequence
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+from tandemscan.pipeline.compute import backend_for
 from tandemscan.pipeline.geometry.uncertainty import scan_pose_covariance
 from tandemscan.pipeline.registration.correction import StitchedScan, correct_scans
 from tandemscan.pipeline.registration.joint import chain_covariance
@@ -86,6 +88,19 @@ def tracker_chain_covariance(job: JobSnapshot) -> PoseCovariance:
     return chain_covariance(priors, transfer_priors(job.transfers), mount_prior(with_mount, job.installation)[0])
 
 
+def stitched_scans(job: JobSnapshot, points_S: Sequence[np.ndarray]) -> list[StitchedScan]:
+    """The scans of ``job.scans`` as the correction takes them: their points ``points_S`` (S, mm), tracker poses
+    with each reading's covariance carried to the scan pose, stations, and files (:func:`_in_job`)."""
+    return [StitchedScan(P, s.T_W_S, _reading_covariance(job, s), s.tracker_station, _in_job(Path(s.file), job.job_dir))
+            for s, P in zip(job.scans, points_S, strict=True)]
+
+
+def _in_job(file: Path, job_dir: Path) -> str:
+    """``file`` relative to the job folder (its place in a scan store holding the job folder), or as it is where it
+    lies elsewhere."""
+    return (file.relative_to(job_dir) if file.is_relative_to(job_dir) else file).as_posix()
+
+
 def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray], online: OnlineWork | None = None
                 ) -> tuple[dict, list[np.ndarray], PoseCovariance | None]:
     """The refined pose ``T_W_S`` (W, mm) of every scan of ``job.scans``, whose points in the scanner frame S
@@ -99,15 +114,20 @@ def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray], online: Online
     numbered as in ``job.scans``).
     """
     started, cpu = time.monotonic(), _cpu_seconds()
-    cfg = job.config.correction
-    scans = [StitchedScan(P, s.T_W_S, _reading_covariance(job, s), s.tracker_station)
-             for s, P in zip(job.scans, points_S, strict=True)]
+    cfg, compute = job.config.correction, job.config.compute
     prior, prior_source = mount_prior(job.config, job.installation)
-    result = correct_scans(scans, cfg, LazyNetwork(job.config.deepmerge), transfers=transfer_priors(job.transfers),
-                           voxel_mm=job.config.job.voxel_mm, mount_prior=prior,
-                           pair_cache=None if online is None else online.pairs,
-                           joint_cache=None if online is None else online.joint_scans,
-                           association_cache=None if online is None else online.associations)
+    # on a cluster the pair stage's workers read the scans from the store by reference (docs/compute.md)
+    store = str(compute.scan_store or job.job_dir) if compute.backend != "local" else None
+    backend = backend_for(compute)
+    try:
+        result = correct_scans(stitched_scans(job, points_S), cfg, LazyNetwork(job.config.deepmerge),
+                               transfers=transfer_priors(job.transfers), voxel_mm=job.config.job.voxel_mm,
+                               mount_prior=prior, pair_cache=None if online is None else online.pairs,
+                               joint_cache=None if online is None else online.joint_scans,
+                               association_cache=None if online is None else online.associations,
+                               backend=backend, scan_store=store)
+    finally:
+        backend.close()
     section = {"enabled": True, **result.report, "seconds": round(time.monotonic() - started, 3),
                "cpu_seconds": round(_cpu_seconds() - cpu, 3)}
     section["mount"] = {"estimated": result.mount is not None, "prior": prior_source}

@@ -117,7 +117,7 @@ def test_deepmerge_then_icp_on_a_pair_recovers_the_correction():
 
 
 def test_a_pair_that_fails_its_verification_gets_no_edge_and_is_logged(monkeypatch, caplog):
-    from tandemscan.pipeline.registration import correction, pairs
+    from tandemscan.pipeline.registration import pair_stage, pairs
 
     truth, scans, transfers = scans_with_drift()
     cfg = CorrectionConfig(method="icp", min_overlap_points=100)
@@ -130,7 +130,7 @@ def test_a_pair_that_fails_its_verification_gets_no_edge_and_is_logged(monkeypat
         return pc
 
     full = correct_scans(scans, cfg, transfers=transfers)
-    monkeypatch.setattr(correction, "correct_pair", refuse_the_cross_station_pair)
+    monkeypatch.setattr(pair_stage, "correct_pair", refuse_the_cross_station_pair)
     with caplog.at_level("WARNING", logger="tandemscan.pipeline.registration.correction"):
         res = correct_scans(scans, cfg, transfers=transfers)
     dropped = res.report["pairs_dropped"]

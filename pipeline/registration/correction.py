@@ -20,13 +20,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from tandemscan.config.models import CorrectionConfig
+from tandemscan.pipeline.compute import ComputeBackend, LocalBackend
 from tandemscan.pipeline.geometry.frames import invert, pose_error, transform_points
 from tandemscan.pipeline.geometry.uncertainty import covariance_about
-from tandemscan.pipeline.registration.icp import (
-    evaluate_point_to_plane,
-    point_to_plane_information,
-    target_with_normals,
-)
+from tandemscan.pipeline.registration.icp import evaluate_point_to_plane, target_with_normals
 from tandemscan.pipeline.registration.joint import (
     Association,
     JointResult,
@@ -37,20 +34,21 @@ from tandemscan.pipeline.registration.joint import (
 )
 from tandemscan.pipeline.registration.mount_unknown import MountEstimate, MountPrior
 from tandemscan.pipeline.registration.overlap import overlapping_pairs, relative_covariance
-from tandemscan.pipeline.registration.pairs import (
-    NETWORK_METHODS,
-    PairCorrection,
-    Registrar,
-    RegistrationFailed,
-    correct_pair,
+from tandemscan.pipeline.registration.pair_stage import (
+    PairOutcome,
+    PlacedScans,
+    ScanRef,
+    StoredScans,
+    TargetPairs,
+    register_units,
 )
+from tandemscan.pipeline.registration.pairs import NETWORK_METHODS, Registrar
 from tandemscan.pipeline.registration.parallel import pair_threads
 from tandemscan.pipeline.registration.pose_covariance import PoseCovariance
 from tandemscan.pipeline.registration.pose_graph import (
     PairEdge,
     ScanPrior,
     TransferPrior,
-    constrained_edge,
     refine_poses,
 )
 from tandemscan.pipeline.registration.sampling import thin_evenly, voxel_centroids, voxel_downsample
@@ -60,12 +58,14 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class StitchedScan:
-    """One scan: points in the scanner frame (mm), tracker pose ``T_W_S``, its covariance, its station."""
+    """One scan: points in the scanner frame (mm), tracker pose ``T_W_S``, its covariance, its station, and its raw
+    scan file relative to the job's scan store (``pair_stage.StoredScans``; empty where it has none)."""
 
     points_S: np.ndarray
     T_W_S: np.ndarray
     covariance: np.ndarray
     station: int = 0
+    file: str = ""
 
 
 @dataclass
@@ -127,45 +127,6 @@ def _overlap_rms(clouds: list[np.ndarray], edges, poses_before, poses_after, cfg
     return float(np.median(vals[:, 0])), float(np.median(vals[:, 1]))
 
 
-@dataclass(frozen=True)
-class PairOutcome:
-    """What the pose graph and the report keep of one pair's registration (world frame W, mm, rad).
-
-    ``transformation`` (4x4, ``T`` moving the source onto the target) is None when the overlap was too small
-    or the registration failed its verification (``dropped`` says why); ``information`` (6x6, about
-    ``centre_mm``, only the directions the overlap constrains) is None for a fit of fewer than 6 inliers,
-    which makes no graph edge."""
-
-    transformation: np.ndarray | None = None
-    information: np.ndarray | None = None
-    centre_mm: np.ndarray | None = None
-    inliers: int = 0
-    stage: str = ""
-    dropped: str = ""
-
-
-def _outcome(pc: PairCorrection, cfg: CorrectionConfig) -> PairOutcome:
-    """The pose-graph edge of a pair correction, keeping only the directions the overlap constrains."""
-    if pc.fit.inliers < 6:
-        return PairOutcome(pc.transformation, None, pc.centre_mm, pc.fit.inliers, pc.stage)
-    info = point_to_plane_information(pc.fit.points_mm, pc.fit.normals, pc.centre_mm, max(pc.fit.rmse_mm, 0.005),
-                                      cfg.edge_effective_points)
-    size = float(np.sqrt(((pc.fit.points_mm - pc.centre_mm) ** 2).sum(axis=1).mean()))
-    T, info = constrained_edge(pc.transformation, info, pc.centre_mm, max(size, 1.0), cfg.edge_min_eigen_ratio)
-    return PairOutcome(T, info, pc.centre_mm, pc.fit.inliers, pc.stage)
-
-
-def register_stitched_pair(source_W: np.ndarray, target: object, covariance: np.ndarray, cfg: CorrectionConfig,
-                           network: Registrar | None = None) -> PairOutcome:
-    """Register one stitched pair (``pairs.correct_pair``: the source's world cloud, mm, onto the target with
-    normals, ``icp.target_with_normals``; ``covariance`` of their relative pose, :func:`pair_covariance`)."""
-    try:
-        pc = correct_pair(source_W, target, cfg, network, covariance)
-    except RegistrationFailed as e:
-        return PairOutcome(dropped=str(e))
-    return PairOutcome() if pc is None else _outcome(pc, cfg)
-
-
 def pair_covariance(scan_i: StitchedScan, scan_j: StitchedScan, transfers: Sequence[TransferPrior]) -> np.ndarray:
     """6x6 covariance (mm^2, rad^2) of the relative pose of two stitched scans: both tracker poses and the drift
     of every coordinate transfer between their stations, about the target scan ``i``'s origin."""
@@ -218,27 +179,41 @@ def association_key(scan_key_i: str, scan_key_j: str, T_W_S_i: np.ndarray, T_W_S
 
 def _pair_corrections(
     scans: Sequence[StitchedScan], local: list[np.ndarray], cfg: CorrectionConfig, network: Registrar | None,
-    transfers: Sequence[TransferPrior], cache: Mapping[str, PairOutcome],
+    transfers: Sequence[TransferPrior], cache: Mapping[str, PairOutcome], voxel_mm: float,
+    backend: ComputeBackend | None, scan_store: str | None,
 ) -> tuple[list[tuple[int, int, PairOutcome]], int]:
     """The outcome of every overlapping pair of the thinned scans ``local`` (S, mm), placed in W at their poses
     here (only the pairs need them placed: a whole part's at full resolution take about 0.9 GB, freed on
     return): from ``cache`` where the job registered the pair while it measured (same clouds, covariance and
-    settings), else registered here. Returns the outcomes in pair order and how many came from the cache."""
+    settings), else registered here, one unit a target (``pair_stage.TargetPairs``) on ``backend`` (this
+    process's threads where None); with ``scan_store`` the units read their scans from it by reference
+    (``pair_stage.StoredScans``: a Dask cluster's workers), else they take this process's clouds. Returns the
+    outcomes in pair order and how many came from the cache."""
     with pair_threads() as pair_map:
         world = pair_map(lambda k: transform_points(scans[k].T_W_S, local[k]), range(len(scans)))
         digests = pair_map(cloud_digest, world) if cache else []
-    out: list[tuple[int, int, PairOutcome]] = []
-    target_index, target, hits = -1, None, 0
+    out: list[tuple[int, int, PairOutcome | None]] = []
+    todo: dict[int, list[tuple[int, np.ndarray, int]]] = {}  # target -> (source, covariance, slot in out)
+    hits = 0
     for i, j in overlapping_pairs(world, [s.station for s in scans], cfg.pair_cell_mm, cfg.max_partners_per_scan):
         cov = pair_covariance(scans[i], scans[j], transfers)
         cached = cache.get(pair_key(digests[i], digests[j], cov, cfg)) if cache else None
-        if cached is not None:
-            out.append((i, j, cached))
+        if cached is None:
+            todo.setdefault(i, []).append((j, cov, len(out)))
+        else:
             hits += 1
-            continue
-        if i != target_index:                        # pairs come in target order: normals once per target
-            target_index, target = i, target_with_normals(world[i])
-        out.append((i, j, register_stitched_pair(world[j], target, cov, cfg, network)))
+        out.append((i, j, cached))
+
+    def ref(k: int) -> ScanRef:
+        return ScanRef(k, scans[k].file, scans[k].T_W_S)
+
+    units = [TargetPairs(ref(i), tuple(ref(j) for j, _, _ in group), tuple(cov for _, cov, _ in group))
+             for i, group in todo.items()]
+    placed = StoredScans(scan_store, voxel_mm) if scan_store is not None else PlacedScans(world)
+    for group, outcomes in zip(todo.values(), register_units(units, placed, cfg, voxel_mm, backend or LocalBackend(),
+                                                              network), strict=True):
+        for (_, _, slot), outcome in zip(group, outcomes, strict=True):
+            out[slot] = (out[slot][0], out[slot][1], outcome)
     for i, j, o in out:
         if o.dropped:
             log.warning("correction: pair (%d, %d) dropped: %s", i, j, o.dropped)
@@ -249,7 +224,8 @@ def correct_scans(
     scans: Sequence[StitchedScan], cfg: CorrectionConfig, network: Registrar | None = None,
     transfers: Sequence[TransferPrior] = (), voxel_mm: float = 1.0, mount_prior: MountPrior | None = None,
     pair_cache: Mapping[str, PairOutcome] | None = None, joint_cache: MutableMapping[str, JointScan] | None = None,
-    association_cache: Mapping[str, Association] | None = None,
+    association_cache: Mapping[str, Association] | None = None, backend: ComputeBackend | None = None,
+    scan_store: str | None = None,
 ) -> CorrectionResult:
     """Correct every overlapping pair and refine all poses; ``voxel_mm`` thins the scans first.
 
@@ -264,6 +240,9 @@ def correct_scans(
     by :func:`joint_scan_key`); each is taken out of it as the refinement takes it, so that none outlives the
     refinement (the prepared scans of a whole part are about half a gigabyte); ``association_cache`` the pairs'
     nearest neighbours found for it at the tracker poses (``joint.associate``, keyed by :func:`association_key`).
+    The pairs not in the cache run on ``backend`` (``pipeline.compute``; this process's threads where None), each
+    unit reading its scans from ``scan_store`` by their :attr:`StitchedScan.file` where it is given (a Dask
+    cluster, docs/compute.md), the result the same to the bit either way.
     The report's ``stage_seconds`` are wall seconds of each stage. With ``[correction] joint`` (the default) the
     joint refinement gives the poses and the mount and the pose graph is not solved (it started from the tracker
     poses, not from the graph's, and the graph's figures alone were about 4 s of CPU after the last scan); without
@@ -275,7 +254,8 @@ def correct_scans(
     with pair_threads() as pair_map:
         local = pair_map(lambda s: voxel_downsample(np.asarray(s.points_S, float), voxel_mm), scans)
     clock.lap("thin_s")
-    outcomes, cached = _pair_corrections(scans, local, cfg, network, transfers, pair_cache or {})
+    outcomes, cached = _pair_corrections(scans, local, cfg, network, transfers, pair_cache or {}, voxel_mm, backend,
+                                         scan_store)
     clock.lap("pairs_s")
     edges = [(i, j, o) for i, j, o in outcomes if o.transformation is not None]
     dropped = [(i, j, o.dropped) for i, j, o in outcomes if o.dropped]

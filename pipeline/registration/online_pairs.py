@@ -27,7 +27,6 @@ from scipy.spatial import cKDTree
 from tandemscan.config.models import CorrectionConfig
 from tandemscan.pipeline.geometry.frames import invert, transform_points
 from tandemscan.pipeline.registration.correction import (
-    PairOutcome,
     StitchedScan,
     association_key,
     cloud_digest,
@@ -35,11 +34,11 @@ from tandemscan.pipeline.registration.correction import (
     joint_scan_key,
     pair_covariance,
     pair_key,
-    register_stitched_pair,
 )
 from tandemscan.pipeline.registration.icp import target_with_normals
 from tandemscan.pipeline.registration.joint import Association, JointScan, associate
 from tandemscan.pipeline.registration.overlap import PairSelector
+from tandemscan.pipeline.registration.pair_stage import PairOutcome, register_stitched_pair
 from tandemscan.pipeline.registration.pairs import NETWORK_METHODS
 from tandemscan.pipeline.registration.pose_graph import TransferPrior
 from tandemscan.pipeline.registration.sampling import voxel_downsample

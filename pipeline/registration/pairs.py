@@ -16,6 +16,7 @@ Every result is verified (:func:`verify`): no inliers, an infinite RMS or a cost
 from __future__ import annotations
 
 import logging
+import threading
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
@@ -67,16 +68,19 @@ def load_registrar(network: DeepMergeConfig) -> DeepMergeRegistrar:
 
 
 class LazyNetwork:
-    """The network of ``[deepmerge]``, loaded (and PyTorch imported) at its first :meth:`register`."""
+    """The network of ``[deepmerge]``, loaded (and PyTorch imported) at its first :meth:`register` (once, whichever
+    of the pair stage's threads gets there first)."""
 
     def __init__(self, network: DeepMergeConfig) -> None:
         self.network = network
         self._registrar: DeepMergeRegistrar | None = None
+        self._loading = threading.Lock()
 
     def register(self, source_mm: np.ndarray, target_mm: np.ndarray) -> np.ndarray:
         """``T_target_source`` (4x4 mm) by the network."""
-        if self._registrar is None:
-            self._registrar = load_registrar(self.network)
+        with self._loading:
+            if self._registrar is None:
+                self._registrar = load_registrar(self.network)
         return self._registrar.register(source_mm, target_mm)
 
 

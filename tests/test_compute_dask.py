@@ -1,0 +1,128 @@
+"""The pair stage on a real Dask cluster on loopback (docs/compute.md): a ``dask scheduler`` and two ``dask worker``
+processes on 127.0.0.1, the workers reading the scans by reference from the scan store; the outcomes and the poses
+are those of the local backend to 1e-9 mm, also when a worker is killed while it registers pairs."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from dask.distributed import get_task_stream
+from tandemscan.config.models import CorrectionConfig
+from tandemscan.pipeline.compute import DaskBackend, LocalBackend
+from tandemscan.pipeline.io.raw_scan import read_thinned_scan, write_raw_scan
+from tandemscan.pipeline.registration.correction import StitchedScan, correct_scans
+
+from tests.test_registration_correction import scans_with_drift
+
+pytestmark = pytest.mark.slow
+VOXEL_MM = 1.0
+CFG = CorrectionConfig(method="icp", min_overlap_points=100, joint=False)  # the pose graph: poses from the pairs
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _start(*args: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", *args], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
+
+
+@pytest.fixture
+def cluster():
+    """The address of a scheduler with two single-threaded workers on 127.0.0.1, and the workers' processes."""
+    address = f"tcp://127.0.0.1:{_free_port()}"
+    scheduler = _start("distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", address.rsplit(":", 1)[1],
+                       "--no-dashboard")
+    workers = [_start("distributed.cli.dask_worker", address, "--host", "127.0.0.1", "--nthreads", "1",
+                      "--no-dashboard", "--no-nanny") for _ in range(2)]
+    try:
+        yield address, workers
+    finally:
+        for p in [*workers, scheduler]:
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGTERM)
+            p.wait(timeout=30)
+
+
+def _stored_job(folder: Path) -> list[StitchedScan]:
+    """The drift scenario's scans written as raw scan files under ``folder/scans`` (the store), each held here as
+    the end of a job holds it (``read_thinned_scan``) and named by its file relative to ``folder``."""
+    _, scans, transfers = scans_with_drift(n=6, per_station=2)
+    (folder / "scans").mkdir()
+    stored = []
+    for k, s in enumerate(scans):
+        file = f"scans/scan-{k:04d}.npz"
+        write_raw_scan(folder / file, points_S_mm=s.points_S)
+        stored.append(StitchedScan(read_thinned_scan(folder / file, VOXEL_MM), s.T_W_S, s.covariance, s.station,
+                                   file))
+    return stored, transfers
+
+
+def _same(a, b) -> None:
+    assert [(i, j) for i, j, _ in a.edges] == [(i, j) for i, j, _ in b.edges]
+    for (_, _, x), (_, _, y) in zip(a.edges, b.edges, strict=True):
+        np.testing.assert_allclose(x.transformation, y.transformation, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(x.information, y.information, rtol=1e-9, atol=0)
+    for P, Q in zip(a.poses, b.poses, strict=True):
+        np.testing.assert_allclose(P, Q, rtol=0, atol=1e-9)
+
+
+def test_the_pair_stage_on_two_dask_workers_gives_the_local_result(cluster, tmp_path):
+    address, _ = cluster
+    scans, transfers = _stored_job(tmp_path)
+    local = correct_scans(scans, CFG, transfers=transfers, voxel_mm=VOXEL_MM, backend=LocalBackend())
+    assert len(local.edges) >= 5
+    backend = DaskBackend(address)
+    try:
+        backend.client.wait_for_workers(2, timeout=60)
+        with get_task_stream(backend.client) as stream:
+            remote = correct_scans(scans, CFG, transfers=transfers, voxel_mm=VOXEL_MM, backend=backend,
+                                   scan_store=str(tmp_path))
+    finally:
+        backend.close()
+    _same(local, remote)
+    assert len({task["worker"] for task in stream.data}) == 2  # both workers registered pairs
+
+
+def test_a_worker_killed_mid_stage_leaves_the_result_unchanged(cluster, tmp_path):
+    address, workers = cluster
+    scans, transfers = _stored_job(tmp_path)
+    local = correct_scans(scans, CFG, transfers=transfers, voxel_mm=VOXEL_MM, backend=LocalBackend())
+    backend = DaskBackend(address)
+    killed = []
+    try:
+        backend.client.wait_for_workers(2, timeout=60)
+        pids = backend.client.run(os.getpid)  # worker address -> process id
+        by_pid = {p.pid: p for p in workers}
+
+        def kill_a_busy_worker() -> None:
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline and not killed:
+                busy = [w for w, tasks in backend.client.processing().items() if tasks]
+                if busy:
+                    os.kill(by_pid[pids[busy[0]]].pid, signal.SIGKILL)
+                    killed.append(busy[0])
+                time.sleep(0.005)
+
+        killer = threading.Thread(target=kill_a_busy_worker)
+        killer.start()
+        remote = correct_scans(scans, CFG, transfers=transfers, voxel_mm=VOXEL_MM, backend=backend,
+                               scan_store=str(tmp_path))
+        killer.join()
+    finally:
+        backend.close()
+    assert killed, "no worker was busy to be killed"
+    assert by_pid[pids[killed[0]]].wait(timeout=10) == -signal.SIGKILL
+    _same(local, remote)
