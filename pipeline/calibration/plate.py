@@ -224,7 +224,7 @@ def fit_sphere(
 # ---------------------------------------------------------------- segmentation
 
 
-def estimate_normals(points: ArrayLike, k: int = 16) -> np.ndarray:
+def normals_towards_scanner(points: ArrayLike, k: int = 16) -> np.ndarray:
     """Unit normals by local PCA over ``k`` neighbours, oriented towards the scanner origin (frame S)."""
     P = np.asarray(points, dtype=float)
     k = min(k, len(P))
@@ -244,7 +244,7 @@ def sphere_candidates(
 ) -> list[np.ndarray]:
     """Centre candidates (mm, frame S) of spheres of ``radius_mm``, strongest first (Hough vote)."""
     P = np.asarray(points, dtype=float)
-    N = estimate_normals(P) if normals is None else np.asarray(normals, dtype=float)
+    N = normals_towards_scanner(P) if normals is None else np.asarray(normals, dtype=float)
     flip = np.einsum("ij,ij->i", N, P) > 0
     N = np.where(flip[:, None], -N, N)
     votes = P - radius_mm * N

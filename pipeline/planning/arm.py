@@ -113,7 +113,7 @@ def _cast(scene: o3d.t.geometry.RaycastingScene, origins: np.ndarray, dirs: np.n
     return ans["t_hit"].numpy().astype(float), ans["primitive_normals"].numpy().astype(float)
 
 
-def surface_profile(
+def half_section(
     scene: o3d.t.geometry.RaycastingScene, base_xy: np.ndarray, inward: np.ndarray, z_range: tuple[float, float],
     reach_mm: float, underside: Underside | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -243,7 +243,7 @@ def raster_cells(
     for c in range(cols - 1 if shared_last_column else cols):
         offset = (c / (cols - 1) - 0.5) * step_mm
         base = station.xy + offset * station.tangent
-        pts, nrm = surface_profile(scene, base, station.towards_part, z_range, reach_mm, underside)
+        pts, nrm = half_section(scene, base, station.towards_part, z_range, reach_mm, underside)
         if len(pts) < 2:
             continue
         ps, ns = _sample_profile(pts, nrm, n)
