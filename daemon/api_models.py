@@ -158,7 +158,8 @@ def job_body(job: JobRecord, steps_done: int) -> Job:
     base = f"/v1/jobs/{job.id}"
     links = {"self": base, "events": f"/v1/events?job={job.id}"}
     if job.state in COMPLETED_STATES:
-        links.update(cloud=f"{base}/cloud", report=f"{base}/report", report_html=f"{base}/files/report.html")
+        links.update(cloud=f"{base}/cloud", report=f"{base}/report", report_html=f"{base}/files/report.html",
+                     results_qif=f"{base}/results.qif")
     return Job(id=job.id, state=job.state, plan=job.plan_name, label=job.plan.get("label"),
                part_number=job.plan.get("part_number"), serial_number=job.plan.get("serial_number"),
                progress=job.progress, current_step=job.current_step, steps_total=job.n_steps,

@@ -75,7 +75,8 @@ def run(args: argparse.Namespace) -> int:
         out = args.out if args.out is not None else cell.job.out_dir / "inspect"
         template = None if args.template is None else load_template(args.template)
         part = {k: v for k, v in (("part_number", template.part_number if template else None),
-                                  ("serial", args.serial), ("template", args.template and str(args.template)))
+                                  ("serial", args.serial), ("template", args.template and str(args.template)),
+                                  ("measuring_system", f"the scanner of {args.cloud.name} (tandemscan inspect)"))
                 if v is not None}
         outputs = inspect_files(args.cloud, args.cad, out, cfg, template, part)
     except (InspectionError, ConfigError, OSError) as e:
@@ -89,6 +90,8 @@ def run(args: argparse.Namespace) -> int:
         f"{t.in_pct:.2f} % within [{t.lower_mm:+.3f}, {t.upper_mm:+.3f}] mm\n"
         f"report: {outputs.html}\ndata:   {outputs.json}\ncloud:  {outputs.ply}"
     )
+    if outputs.qif is not None:
+        print(f"QIF:    {outputs.qif}")
     for c in outputs.characteristics:
         print(f"{c.id:>10} {c.status.upper():<13} actual {c.actual_mm:+.3f} mm in "
               f"[{c.lower_mm:+.3f}, {c.upper_mm:+.3f}] U {c.uncertainty_mm:.3f}  {c.name}")

@@ -207,7 +207,7 @@ def _inspection_section(job: JobSnapshot, report: dict, scans: list[PosedScan], 
     except (InspectionError, ConfigError) as e:  # the measurement stands; the report says why it has none
         log.warning("inspection failed: %s", e)
         return {"failed": str(e), "files": files}
-    files |= {"html": out.html.name, "deviation_ply": out.ply.name}
+    files |= {"html": out.html.name, "deviation_ply": out.ply.name} | ({"qif": out.qif.name} if out.qif else {})
     return out.data | {"T_F_W": out.data["alignment"]["T_F_W"], "T_F_W_anchor": T_F_W.tolist(), "files": files}
 
 
@@ -265,7 +265,7 @@ def part_identity(config: CellConfig, template: InspectionTemplate | None, templ
     """The measured part as the report and results.qif name it: part number (``[job] part_number``, else the
     template's), serial and the template file."""
     number = config.job.part_number or (template.part_number if template is not None else None)
-    named = {"part_number": number, "serial": config.job.serial,
+    named = {"part_number": number, "serial": config.job.serial, "measuring_system": config.name,
              "template": None if template_file is None else str(template_file)}
     return {k: v for k, v in named.items() if v is not None}
 

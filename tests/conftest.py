@@ -23,3 +23,22 @@ async def _no_leftover_tasks():
     for t in left:
         t.cancel()
     assert not left, f"test left asyncio tasks running: {left}"
+
+
+QIF_SCHEMA = "../shared/qif/schema/QIFDocument.xsd"  # the QIF 3.0 schema, beside the project (../shared/qif)
+
+
+@pytest.fixture(scope="session")
+def qif_schema(tmp_path_factory):
+    """The QIF 3.0 schema, loaded once per session (10-30 s). QIFDocument.xsd imports the XML-signature
+    namespace, which no QIF type uses; the shared copy of that schema is moved into the QIF namespace (for
+    Microsoft's tools) and so cannot stand for it: an empty schema of the namespace does."""
+    from pathlib import Path
+
+    import xmlschema
+
+    schema = Path(__file__).resolve().parents[1] / QIF_SCHEMA
+    dsig = tmp_path_factory.mktemp("qif") / "xmldsig-namespace.xsd"
+    dsig.write_text('<xs:schema xmlns:xs="http://www.w3.org/2001/XMLSchema" '
+                    'targetNamespace="http://www.w3.org/2000/09/xmldsig#"/>\n')
+    return xmlschema.XMLSchema(str(schema), locations=[("http://www.w3.org/2000/09/xmldsig#", str(dsig))])

@@ -138,6 +138,11 @@ async def test_job_files_are_served_by_name_only_from_the_list(api):
     assert_problem(await api.get(f"/v1/jobs/{job['id']}/files/poses.csv"), 404)  # listed, not written
     assert_problem(await api.get(f"/v1/jobs/{job['id']}/files/secrets.txt"), 404)
     assert_problem(await api.get(f"/v1/jobs/{job['id']}/files/..%2F..%2Fjournal.sqlite"), 404)
+    assert_problem(await api.get(done["links"]["results_qif"]), 404)  # inspected without a template: none
+    (job_dir / "results.qif").write_text('<?xml version="1.0"?><QIFDocument/>')
+    r = await api.get(done["links"]["results_qif"])
+    assert r.status_code == 200 and r.headers["content-type"].startswith("application/xml")
+    assert b"QIFDocument" in r.content
 
 
 async def test_idempotency_key_never_creates_two_jobs(api):

@@ -1,5 +1,6 @@
-"""A job's outputs: ``/v1/jobs/{id}/cloud``, ``/report`` and ``/files/{name}`` (docs/daemon.md). Files are
-streamed (Starlette reads them in its thread pool); the report is read off the loop by the facade."""
+"""A job's outputs: ``/v1/jobs/{id}/cloud``, ``/report``, ``/results.qif`` and ``/files/{name}``
+(docs/daemon.md). Files are streamed (Starlette reads them in its thread pool); the report is read off the
+loop by the facade."""
 
 from __future__ import annotations
 
@@ -25,6 +26,15 @@ async def get_cloud(job_id: JobId, facade: Facade) -> FileResponse:
 async def get_report(job_id: JobId, facade: Facade) -> Response:
     """The job's report (JSON: accuracy figures, per-scan poses, timings)."""
     return Response(await facade.read_job_file(job_id, "report.json"), media_type="application/json")
+
+
+@router.get("/v1/jobs/{job_id}/results.qif", response_class=FileResponse,
+            responses={**PROBLEM_RESPONSES, 200: {"content": {"application/xml": {}},
+                                                  "description": "QIF 3.0 Results (docs/inspection.md)"}})
+async def get_results_qif(job_id: JobId, facade: Facade) -> FileResponse:
+    """The job's characteristics as a QIF 3.0 Results document, streamed (a job inspected with a template)."""
+    return FileResponse(await facade.job_file(job_id, "results.qif"), media_type="application/xml",
+                        filename=f"{job_id}-results.qif")
 
 
 @router.get("/v1/jobs/{job_id}/files/{name}", response_class=FileResponse,

@@ -11,7 +11,7 @@ per-point U among the points its actual comes from (conservative: the averaging 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from tandemscan.config.inspection_template import (
@@ -69,6 +69,7 @@ class CharacteristicResult:
     point_ids: np.ndarray = field(repr=False)
     deviations_mm: np.ndarray = field(repr=False)
     curve: SectionCurve | None = field(default=None, repr=False)
+    direction: tuple[float, float, float] | None = None  # a section's plane normal; an edge's into the opening
 
     def summary(self) -> dict:
         """JSON-ready (report.json ``inspection.characteristics``): every figure but the per-point arrays."""
@@ -223,7 +224,8 @@ def section(spec: SectionSpec, template: InspectionTemplate, cloud: MeasuredClou
     on = np.abs(dist[pool_ids]) <= spec.half_width_mm
     ids = pool_ids[on]
     if len(ids) < MIN_POINTS:
-        return _not_measured(spec, "section", method, len(ids), f"{len(ids)} points within the section")
+        return replace(_not_measured(spec, "section", method, len(ids), f"{len(ids)} points within the section"),
+                       direction=tuple(map(float, n)))
     on_at = np.flatnonzero(on)
     _, s = _smoothed(cloud.points_mm[pool_ids], cloud.deviations_mm[pool_ids], template.smoothing_mm, on_at)
     curve = cad_section(cloud.surface, spec.point_mm, spec.normal)
@@ -233,8 +235,8 @@ def section(spec: SectionSpec, template: InspectionTemplate, cloud: MeasuredClou
     q = cloud.points_mm[ids] - centre
     along = np.interp(np.arctan2(q @ e2, q @ e1), angle_curve, arc)
     order = np.argsort(along)
-    return _worst_deviation(spec, "section", method, cloud, ids, np.arange(len(ids)), s, rule,
-                            SectionCurve(along[order], s[order]))
+    return replace(_worst_deviation(spec, "section", method, cloud, ids, np.arange(len(ids)), s, rule,
+                                    SectionCurve(along[order], s[order])), direction=tuple(map(float, n)))
 
 
 @dataclass(frozen=True)
@@ -362,7 +364,7 @@ def edge(spec: EdgeSpec, template: InspectionTemplate, cloud: MeasuredCloud,
     at = frame.origin + nominal[0] * frame.into
     return CharacteristicResult(spec.id, spec.name, "edge", method, actual, spec.lower_mm, spec.upper_mm, u, status,
                                 reason, len(wall_ids), actual, actual, tuple(map(float, at)), near,
-                                c[near, 1] - nominal[0])
+                                c[near, 1] - nominal[0], direction=tuple(map(float, frame.into)))
 
 
 EVALUATORS = {"surface_profile": surface_profile, "flatness": flatness, "section": section, "edge": edge}

@@ -9,6 +9,7 @@ millimetres (PLY, PCD, XYZ clouds; STL, PLY, OBJ meshes).
 from __future__ import annotations
 
 import dataclasses
+import datetime as dt
 import logging
 from collections.abc import Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -34,6 +35,7 @@ from tandemscan.pipeline.inspection.inspect import (
     inspect_cloud,
 )
 from tandemscan.pipeline.inspection.point_uncertainty import GivenUncertainty, UncertaintyModel
+from tandemscan.pipeline.inspection.qif import RESULTS_FILE, MeasuredPart, write_results
 from tandemscan.pipeline.inspection.report import build_report, in_background, write_report
 from tandemscan.pipeline.inspection.stitch_quality import overlap_quality
 from tandemscan.pipeline.inspection.verdict import VerdictContext, judge
@@ -56,6 +58,7 @@ class InspectionOutputs:
     json: Path | None
     ply: Path
     characteristics: tuple[CharacteristicResult, ...] = ()
+    qif: Path | None = None  # results.qif, written with a template
 
 
 def run_inspection(
@@ -84,11 +87,11 @@ def run_inspection(
     ``json_name=None`` leaves the JSON to the caller (it gets the same numbers as ``data``);
     ``alignment`` says how the points were placed in F (None: they came in F); ``overlap``: the scans'
     :func:`overlap_quality`, being computed (else it is started here, while the cloud is inspected);
-    ``template``: the part's characteristics, evaluated and reported first; ``part``: its part number,
-    serial and template file, as the report names them; ``uncertainty``: what knows the points' uncertainty
-    (None: the cloud states none, U = 0) and ``context`` the installation and verification the verdict is made in
-    (``verdict.judge``); ``coverage``: the job's plan's
-    (``report.build_report``)."""
+    ``template``: the part's characteristics, evaluated and reported first and written as ``results.qif``;
+    ``part``: its part number, serial, template file and measuring system, as the report and the QIF name them;
+    ``uncertainty``: what knows the points' uncertainty (None: the cloud states none, U = 0) and ``context``
+    the installation and verification the verdict is made in (``verdict.judge``); ``coverage``: the job's
+    plan's (``report.build_report``)."""
     cfg = cfg or InspectionConfig()
     surface = mesh if isinstance(mesh, CadSurface) else CadSurface(mesh)
     if overlap is None and scans_before is not None:
@@ -117,7 +120,16 @@ def run_inspection(
             characteristics=characteristics, part=part, coverage=coverage,
         )
         html, js = write_report(report, out_dir, json_name)
-    return InspectionOutputs(result, report.data, html, js, ply.result(), characteristics)
+    qif = None if template is None else write_results(
+        Path(out_dir) / RESULTS_FILE, measured_part(template, part or {}), characteristics, result.points_mm)
+    return InspectionOutputs(result, report.data, html, js, ply.result(), characteristics, qif)
+
+
+def measured_part(template: InspectionTemplate, part: Mapping[str, str]) -> MeasuredPart:
+    """What results.qif names: ``part``'s part number (else the template's), serial and measuring system, the
+    template's description of the part, measured now."""
+    return MeasuredPart(part.get("part_number", template.part_number), template.part, part.get("serial"),
+                        part.get("measuring_system", "tandemscan"), dt.datetime.now(dt.UTC))
 
 
 def measured_cloud(result: InspectionResult, surface: CadSurface, expanded_mm: np.ndarray) -> MeasuredCloud:
