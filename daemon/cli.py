@@ -272,11 +272,21 @@ def _print_summary(report: dict, job_dir: Path) -> None:
     if truth:
         out.print(f"  pose error median {truth['pose_err_mm_median']:.3f} mm / {truth['pose_err_deg_median']:.4f} deg, "
                   f"cloud to part RMS {truth['cloud_rms_mm']:.3f} mm (P95 {truth['cloud_p95_mm']:.3f} mm)")
+    coverage = report.get("coverage")
+    if coverage:
+        left = coverage["left_out"]
+        out.print(f"  coverage of the {coverage['of']}: planned {_pct(coverage['planned_pct'])}, measured "
+                  f"{_pct(coverage['measured_pct'])}; {len(left)} areas left out"
+                  + (f", {sum(a['area_m2'] for a in left):.2f} m^2" if left else ""), highlight=False)
     inspection = report.get("inspection", {})
     if "as_measured" in inspection:
         tol = inspection["as_measured"]["tolerance"]
         out.print(f"  {tol['in_pct']:.1f} % within [{tol['lower_mm']:+.3f}, {tol['upper_mm']:+.3f}] mm of CAD: "
                   f"{job_dir / inspection['files']['html']}")
+
+
+def _pct(value: float | None) -> str:
+    return "unknown" if value is None else f"{value:.1f} %"
 
 
 def cmd_serve(args: argparse.Namespace) -> int:

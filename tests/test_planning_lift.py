@@ -196,12 +196,17 @@ def test_measure_part_without_a_plan_plans_that_part_and_says_so(tmp_path, capsy
     cell = tmp_path / "cell.toml"
     cell.write_text("[correction]\nenabled = false\n[inspection]\nin_job = false\n")
     assert main(["measure", "--config", str(cell), "--part", str(part), "--out", str(tmp_path / "out")]) == 0
-    assert "no --plan given: planned" in capsys.readouterr().err
+    said = capsys.readouterr()
+    assert "no --plan given: planned" in said.err
     (job_dir,) = (tmp_path / "out").iterdir()
     plan = Plan.load(job_dir / "plan.toml")
     assert plan.part == str(part) and plan.part_identity == part_identity(read_mesh_file(part))
     report = json.loads((job_dir / "report.json").read_text())
     assert report["scans_planned"] == plan.scan_count > 10 and report["scans"] > 0.9 * plan.scan_count
+    # the plan's coverage in report.json and the summary; measured unknown: no inspection aligned the cloud
+    assert report["coverage"]["planned_pct"] == plan.coverage_pct > 50 and report["coverage"]["measured_pct"] is None
+    assert (f"coverage of the surface where a pose fits: planned {plan.coverage_pct:.1f} %, measured unknown"
+            in said.out)
 
 
 async def test_a_scan_whose_target_the_tracker_cannot_see_is_left_out_and_reported(sim_config, tmp_path):
