@@ -139,4 +139,7 @@ async def test_inspection_takes_at_most_max_points_of_the_cloud(sim_config, tmp_
     assert inspected == len(range(0, n, step)) <= 1000
     assert len(read_ply(result.job_dir / "cloud_deviation.ply")[0]) == inspected
     assert report["inspection"]["meta"]["points"] == f"{inspected} of the cloud's {n} ([inspection] max_points)"
+    # the shipped band plan states no coverage: report.html does not say it leaves nothing out
+    assert report["coverage"]["planned_pct"] is None and report["coverage"]["left_out"] == []
+    assert "The plan states no coverage" in (result.job_dir / "report.html").read_text()
 
