@@ -642,6 +642,14 @@ class CorrectionConfig(_Strict):
         "than this share of the final distance squared is refused: as if that share of the points had slid out "
         "of reach (a fit that slides along a smooth overlap moves a few boundary points that far)"
     )
+    register_min_fitness: float = Field(
+        0.1, ge=0, le=1, description="tandemscan register refuses a result with a smaller share of the source "
+        "within the final correspondence distance"
+    )
+    register_max_rms_share: float = Field(
+        0.25, gt=0, le=1, description="... or a point-to-plane RMS above this share of that distance (residuals "
+        "spread evenly over the gate give 0.58; a fit gives the noise)"
+    )
     edge_effective_points: float = Field(
         1000.0, gt=0, description="independent points an overlap is worth when weighting a pose-graph edge"
     )
@@ -794,6 +802,10 @@ class InspectionConfig(_Strict):
     )
     datum_regions: tuple[str, ...] = Field(
         (), description="names of regions whose points alone take part in the best-fit alignment; empty = all"
+    )
+    alignment_min_inlier_share: float = Field(
+        0.5, gt=0, le=1, description="best-fit alignment: a fit leaving a smaller share of the points within "
+        "best_fit_max_distance_mm of CAD tries the global stage, and failing there is a failed alignment"
     )
     reference_spheres: tuple[ReferenceSphereConfig, ...] = _DEFAULT_SPHERES
     reference_sphere_diameter_mm: float = Field(38.1, gt=0, description="calibrated diameter of the spheres, mm")

@@ -283,6 +283,9 @@ def _print_summary(report: dict, job_dir: Path) -> None:
         tol = inspection["as_measured"]["tolerance"]
         out.print(f"  {tol['in_pct']:.1f} % within [{tol['lower_mm']:+.3f}, {tol['upper_mm']:+.3f}] mm of CAD: "
                   f"{job_dir / inspection['files']['html']}")
+    elif "reason" in inspection:  # the alignment to CAD failed: verdict indeterminate
+        out.print(f"  inspection indeterminate: {inspection['reason']}: {job_dir / inspection['files']['html']}",
+                  highlight=False, markup=False)
 
 
 def _pct(value: float | None) -> str:

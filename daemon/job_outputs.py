@@ -207,7 +207,8 @@ def _inspection_section(job: JobSnapshot, report: dict, scans: list[PosedScan], 
     except (InspectionError, ConfigError) as e:  # the measurement stands; the report says why it has none
         log.warning("inspection failed: %s", e)
         return {"failed": str(e), "files": files}
-    files |= {"html": out.html.name, "deviation_ply": out.ply.name} | ({"qif": out.qif.name} if out.qif else {})
+    files |= {"html": out.html.name} | ({"deviation_ply": out.ply.name} if out.ply is not None else {})
+    files |= {"qif": out.qif.name} if out.qif else {}
     return out.data | {"T_F_W": out.data["alignment"]["T_F_W"], "T_F_W_anchor": T_F_W.tolist(), "files": files}
 
 
@@ -234,6 +235,8 @@ def _inspect(job: JobSnapshot, report: dict, scans: list[PosedScan], cloud_W: np
         normals_W=normals_W,
         start_T_F_W=T_F_W,
         start="W placed in F by the anchor reading (Eq. 5)",
+        prior_T_F_W=T_F_W,
+        viewpoints_W=np.array([s.T_W_S[:3, 3] for s in scans]),
         scans_before_W=before,
         scans_after_W=after,
         title=f"Inspection report, {job_dir.name}",

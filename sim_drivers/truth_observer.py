@@ -127,7 +127,8 @@ class TruthScorer:
             out |= {f"{label}_mm": mm, f"{label}_deg": deg}
         truths = deviation_truths(self.world.config, CadSurface(cad),
                                   F.transform_points(T_F_W_true, job.worldmap.points()))
-        areas = tuple(DeviationArea(**{**a, "centroid_mm": tuple(a["centroid_mm"])}) for a in inspection["deviations"])
+        areas = tuple(DeviationArea(**{**a, "centroid_mm": tuple(a["centroid_mm"])})
+                      for a in inspection.get("deviations", []))  # none where the alignment failed
         return out | score_areas(truths, areas)
 
 

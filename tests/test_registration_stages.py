@@ -237,3 +237,23 @@ def test_the_jobs_icp_correction_does_not_import_torch():
         assert res.report["pairs"] >= 3
     '''))
     assert "tandemscan.pipeline.registration.correction" in mods and "torch" not in mods
+
+
+def test_register_icp_from_40_deg_is_refused_by_its_fit_not_returned(tmp_path, capsys):
+    """From 40 deg with an overlap threshold that takes every point, the fine stage alone lands in a wrong
+    minimum that still beats its start: ``register --method icp`` refuses it by the absolute criterion (its
+    RMS spreads over the correspondence gate), one line and exit 3; from 0.6 deg it is accepted."""
+    T_true = from_rotvec([8.0, -6.0, 5.0], np.radians([10.0, -25.0, 30.0]))
+    source, target = moved(T_true)
+    cfg = CorrectionConfig(method="icp", icp_max_distance_mm=1.0)
+    with pytest.raises(RegistrationFailed, match="poor fit: point-to-plane RMS"):
+        register_clouds(source, target, cfg, delta_mm=1e4)
+    a, b = _write(tmp_path / "a.ply", source), _write(tmp_path / "b.ply", target)
+    conf = tmp_path / "cell.toml"
+    conf.write_text("[correction]\nicp_max_distance_mm = 1.0\n")
+    assert main(["register", a, b, "--method", "icp", "--delta-mm", "10000", "--config", str(conf)]) == 3
+    said = capsys.readouterr()
+    assert said.out == "" and len(said.err.strip().splitlines()) == 1
+    assert said.err.startswith("registration failed: poor fit")
+    good = register_clouds(*moved(from_rotvec([1.0, -0.5, 0.5], np.radians([0.5, -0.3, 0.2]))), cfg, delta_mm=5.0)
+    assert good.fit.rmse_mm < 0.1 * cfg.icp_max_distance_mm

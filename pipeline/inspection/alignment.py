@@ -24,8 +24,16 @@ import numpy as np
 from tandemscan.config.models import InspectionConfig
 from tandemscan.pipeline.calibration.plate import PlateError, fit_sphere
 from tandemscan.pipeline.geometry import frames as F
-from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionError, as_points, best_fit, region_mask
+from tandemscan.pipeline.inspection.inspect import (
+    CadSurface,
+    InspectionError,
+    SurfaceFit,
+    as_points,
+    best_fit,
+    region_mask,
+)
 from tandemscan.pipeline.planning.plan import MoveMeasure, Plan, Scan
+from tandemscan.pipeline.registration.global_registration import FeatureMatching, fpfh_ransac
 
 log = logging.getLogger(__name__)
 
@@ -68,7 +76,16 @@ class Alignment:
 
     ``residual_mm`` is the robust RMS point-to-plane residual of the best fit's last pass, the RMS of the
     sphere residuals for RPS, and 0 for none. ``spheres`` are the reference spheres fitted (RPS);
-    ``excluded`` is a bool mask of the cloud's points on them, which the inspection leaves out."""
+    ``excluded`` is a bool mask of the cloud's points on them, which the inspection leaves out.
+
+    Best fit: ``free_directions`` names the motions the measured surface does not fix (the axis of a cylinder,
+    an extrusion's length), held where the prior (the job's placement, or the given start) puts them.
+    ``covariance`` is the fitted pose's 6x6 covariance, translation (mm) then rotation (rad), of a small
+    motion in F about ``covariance_centre_F_mm`` (the inspected points' centroid, frame F) applied after
+    ``T_F_W``: the true pose is about ``(p -> p + r x (p - c) + t) T_F_W`` with ``(t, r) ~ N(0, covariance)``.
+    It is the residual scale squared times the inverse normal matrix of the fit's points (at most
+    ``FINE_POINTS``, so conservative for a denser cloud), zero along the free directions (a motion along
+    them moves no point off the surface). None for RPS and none."""
 
     method: str  # "best-fit", "rps" or "none"
     T_F_W: np.ndarray
@@ -80,20 +97,28 @@ class Alignment:
     spheres: tuple[SphereResidual, ...] = ()
     missing_spheres: tuple[str, ...] = ()  # "name: why"
     excluded: np.ndarray | None = field(default=None, repr=False)
+    inlier_share: float = 1.0  # best fit: share of its points within best_fit_max_distance_mm of CAD at the end
+    free_directions: tuple[str, ...] = ()  # best fit: what the measured surface does not fix, held by the prior
+    covariance: np.ndarray | None = field(default=None, repr=False)  # best fit: 6x6, see below
+    covariance_centre_F_mm: tuple[float, float, float] | None = None
 
     def summary(self) -> dict:
         """JSON-ready: method, residual_mm, start, T_F_W, translation and rotation of ``T_F_W`` and the
         per-sphere residuals (report.json ``inspection.alignment``)."""
         out = {
             "method": self.method,
-            "residual_mm": self.residual_mm,
+            "residual_mm": self.residual_mm if np.isfinite(self.residual_mm) else None,
             "start": self.start,
             "T_F_W": self.T_F_W.tolist(),
             "translation_mm": float(np.linalg.norm(self.T_F_W[:3, 3])),
             "rotation_deg": float(np.degrees(F.rotation_angle(self.T_F_W))),
         }
         if self.method == "best-fit":
-            out |= {"used_points": self.used_points, "iterations": self.iterations, "converged": self.converged}
+            out |= {"used_points": self.used_points, "iterations": self.iterations, "converged": self.converged,
+                    "inlier_share": self.inlier_share, "free_directions": list(self.free_directions)}
+        if self.covariance is not None:
+            out |= {"covariance": self.covariance.tolist(), "covariance_centre_F_mm": self.covariance_centre_F_mm,
+                    "covariance_units": "t mm then r rad, a motion about covariance_centre_F_mm after T_F_W"}
         out |= {"spheres": [{"name": s.name, "centre_F_mm": list(s.centre_F_mm),
                              "centre_W_mm": list(s.centre_W_mm), "radius_mm": s.radius_mm,
                              "points": s.points, "residual_mm": s.residual_mm} for s in self.spheres],
@@ -185,27 +210,204 @@ def _robust_sigma(surface: CadSurface, points_mm: np.ndarray, T_F_W: np.ndarray,
     return 1.4826 * float(np.median(np.abs(r - np.median(r)))) if len(r) else float("nan")
 
 
-def fit_to_surface(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.ndarray, cfg: InspectionConfig,
-                   start: str) -> Alignment:
-    """Robust best fit of the cloud (frame W, mm) to the CAD surface from ``start_T_F_W``: trimmed
-    point-to-plane passes at ``cfg.alignment_distances_mm`` then ``best_fit_max_distance_mm``, the last
-    one Huber-weighted beyond ``alignment_huber_sigmas`` robust sigmas of its residuals. The alignment's
-    residual is that robust sigma after the fit."""
-    p = as_points(points_mm)
-    T = np.array(start_T_F_W, dtype=np.float64)
-    its, converged, used = 0, True, 0
+class AlignmentFailed(InspectionError):
+    """The cloud could not be placed on the CAD: from the start nor from the global stage did a fit bring
+    ``cfg.alignment_min_inlier_share`` of its points within ``best_fit_max_distance_mm`` of the surface.
+    ``attempt`` is the best fit that was found (the report shows it beside the reason)."""
+
+    def __init__(self, reason: str, attempt: Alignment):
+        super().__init__(reason)
+        self.attempt = attempt
+
+
+#: a direction of the fit (rotations as millimetres at the cloud's RMS radius) whose normal-matrix eigenvalue is
+#: below this share of the largest is not fixed by the measured surface: it is named and held by the prior. A
+#: tessellated cylinder's facets fix its turn at about 1e-5 with 20 mm facets on a 2.2 m radius, 5e-5 with 50 mm
+#: ones; a 12 mm door-surround pad on a 4 x 4.6 m barrel panel fixes its axis at 1e-4 (tests)
+FREE_RATIO = 1e-5
+
+
+def _scaled(fit: SurfaceFit) -> tuple[np.ndarray, np.ndarray]:
+    """The fit's normal matrix with rotations scaled to millimetres at the points' RMS radius about its centre,
+    and that scale per parameter."""
+    return fit.normal_matrix / np.outer(fit.scale, fit.scale), fit.scale
+
+
+def free_directions(fit: SurfaceFit) -> tuple[np.ndarray, tuple[str, ...]]:
+    """The (6, k) directions ``(t mm, r rad)`` about ``fit.centre_mm`` the measured surface does not fix
+    (:data:`FREE_RATIO`), and each in words: a translation along a unit vector, or a rotation about an axis
+    (through a point, along a unit vector; frame F). A cylinder leaves two (along and about its axis), an
+    extrusion one, a plane three."""
+    Hs, scale = _scaled(fit)
+    lam, V = np.linalg.eigh(0.5 * (Hs + Hs.T))
+    free = V[:, lam < FREE_RATIO * max(float(lam[-1]), 1e-300)] / scale[:, None]
+    if not free.shape[1]:
+        return free, ()
+    U, s, Wt = np.linalg.svd(free[3:], full_matrices=True)  # rotation parts: the pure translations first
+    basis = free @ Wt.T[:, ::-1]
+    rot = np.linalg.norm(basis[3:], axis=0)
+    words = []
+    for k in range(basis.shape[1]):
+        t, r = basis[:3, k], basis[3:, k]
+        if rot[k] * fit.scale[3] < 1e-6 * np.linalg.norm(t):
+            u = t / np.linalg.norm(t)
+            words.append(f"translation along ({u[0]:+.3f}, {u[1]:+.3f}, {u[2]:+.3f})")
+            continue
+        a = r / np.linalg.norm(r)
+        through = fit.centre_mm + np.cross(r, t) / float(r @ r)
+        words.append(f"rotation about the axis along ({a[0]:+.3f}, {a[1]:+.3f}, {a[2]:+.3f}) through "
+                     f"({through[0]:.1f}, {through[1]:.1f}, {through[2]:.1f}) mm")
+    return basis, tuple(words)
+
+
+def covariance(fit: SurfaceFit) -> np.ndarray:
+    """The 6x6 covariance (t mm, r rad; about ``fit.centre_mm``, frame F) of the fitted pose: the residual
+    scale squared times the inverse of the normal matrix on the directions the surface fixes, zero on the free
+    ones (a motion along them moves no point off the surface, so no deviation; they are held by the prior)."""
+    Hs, scale = _scaled(fit)
+    lam, V = np.linalg.eigh(0.5 * (Hs + Hs.T))
+    fixed = lam >= FREE_RATIO * max(float(lam[-1]), 1e-300)
+    cov_s = (V[:, fixed] / lam[fixed]) @ V[:, fixed].T * fit.sigma_mm**2
+    return cov_s / np.outer(scale, scale)
+
+
+def _fine_fit(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray, prior_T_F_W: np.ndarray,
+              cfg: InspectionConfig, levels: str = "all") -> tuple[SurfaceFit, int]:
+    """The coarse-to-fine passes of :func:`fit_to_surface` from ``start_T_F_W`` (``levels``: "all", "coarse"
+    (trims beyond :data:`FINE_FROM_MM`) or "fine"), the free directions held at ``prior_T_F_W``: its last
+    pass and the iterations of all. A pass leaving less than ``cfg.alignment_min_inlier_share`` of the points
+    within its trim ends the fit (:class:`InspectionError`): the start was poor."""
+    T, its = np.array(start_T_F_W, dtype=np.float64), 0
     last = cfg.best_fit_max_distance_mm
-    for distance in (*cfg.alignment_distances_mm, last):
+    fit = None
+    distances = [d for d in (*cfg.alignment_distances_mm, last)
+                 if levels == "all" or (d > FINE_FROM_MM) == (levels == "coarse")]
+    for distance in distances:
         datum = _datum_points(p, T, cfg)
         huber = None
         if distance == last:
             sigma = _robust_sigma(surface, datum, T, last)
             huber = max(cfg.alignment_huber_sigmas * sigma, 1e-4) if np.isfinite(sigma) else None
-        T, its, converged, used = best_fit(surface, datum, distance, cfg.best_fit_iterations, start=T, huber_mm=huber)
-    if not converged:
-        log.warning("best-fit alignment did not converge in %d iterations", its)
-    return Alignment("best-fit", T, _robust_sigma(surface, _datum_points(p, T, cfg), T, last), start, used, its,
-                     converged)
+        fit = best_fit(surface, datum, distance, cfg.best_fit_iterations, STEP_TOLERANCE * distance, start=T,
+                       huber_mm=huber, prior=prior_T_F_W,
+                       max_points=COARSE_POINTS if distance > FINE_FROM_MM else FINE_POINTS)
+        T, its = fit.T_F_M, its + fit.iterations
+        if distance != last and _share(fit) < cfg.alignment_min_inlier_share:  # a poor start: no use refining it
+            raise InspectionError(f"best fit: only {100 * _share(fit):.1f} % of the points within {distance} mm of "
+                                  "the CAD surface")
+    assert fit is not None
+    return fit, its
+
+
+COARSE_POINTS = 5_000  # points of a coarse pass (trim beyond FINE_FROM_MM): enough to find the part
+FINE_POINTS = 50_000  # points of the fine passes: what fixes the pose
+FINE_FROM_MM = 20.0
+STEP_TOLERANCE = 1e-4  # a pass has converged when a step moves no point by more than this share of its trim
+
+
+def _global_starts(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray) -> list[np.ndarray]:
+    """The global stage's candidate ``T_F_W``: FPFH features of the cloud (placed by the start) matched by
+    RANSAC against points sampled evenly on the CAD surface (:func:`global_registration.fpfh_ransac`), one a
+    seed of :data:`GLOBAL_SEEDS`."""
+    mesh = surface.mesh
+    cad = np.asarray(mesh.sample_points_uniformly(int(min(GLOBAL_POINTS, max(1000, mesh.get_surface_area() / 100.0)))
+                                                  ).points)
+    src = F.transform_points(start_T_F_W, p[:: max(1, len(p) // GLOBAL_POINTS)])
+    return [fpfh_ransac(src, cad, FeatureMatching(voxel_fraction=GLOBAL_VOXEL_FRACTION, seed=seed)) @ start_T_F_W
+            for seed in range(GLOBAL_SEEDS)]
+
+
+def _global_fit(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray, prior_T_F_W: np.ndarray,
+                cfg: InspectionConfig) -> tuple[SurfaceFit, int]:
+    """The fit from the global stage: the coarse passes from each of its candidates, the fine ones from the
+    one with the lowest truncated cost (:func:`_final_cost` at :data:`FINE_FROM_MM`) after them."""
+    best, best_cost, its, why = None, np.inf, 0, "no candidate"
+    for T in _global_starts(surface, p, start_T_F_W):
+        try:
+            coarse, n = _fine_fit(surface, p, T, prior_T_F_W, cfg, "coarse")
+        except InspectionError as e:
+            why = str(e)
+            continue
+        its += n
+        cost = _final_cost(surface, p, coarse.T_F_M, FINE_FROM_MM)
+        if cost < best_cost:
+            best, best_cost = coarse.T_F_M, cost
+    if best is None:
+        raise InspectionError(why)
+    fit, n = _fine_fit(surface, p, best, prior_T_F_W, cfg, "fine")
+    return fit, its + n
+
+
+GLOBAL_POINTS = 30_000  # the CAD's sampled points and the cloud's, at most, of the global stage
+GLOBAL_VOXEL_FRACTION = 0.02
+GLOBAL_SEEDS = 3
+
+
+def _share(fit: SurfaceFit) -> float:
+    return fit.used_points / max(fit.sampled_points, 1)
+
+
+def _final_cost(surface: CadSurface, p: np.ndarray, T_F_W: np.ndarray, trim_mm: float) -> float:
+    """Mean truncated squared distance (mm^2) of at most :data:`FINE_POINTS` of the cloud's points (the same
+    ones for every pose) placed by ``T_F_W``: what candidates of the alignment are compared by."""
+    d = np.minimum(np.abs(surface.signed_distance(F.transform_points(T_F_W, p[:: max(1, len(p) // FINE_POINTS)]))),
+                   trim_mm)
+    return float(np.mean(d * d))
+
+
+def fit_to_surface(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.ndarray, cfg: InspectionConfig,
+                   start: str, prior_T_F_W: np.ndarray | None = None) -> Alignment:
+    """Robust best fit of the cloud (frame W, mm) to the CAD surface: trimmed, damped point-to-plane passes
+    (:func:`inspect.best_fit`) at ``cfg.alignment_distances_mm`` then ``best_fit_max_distance_mm``, the last
+    one Huber-weighted beyond ``alignment_huber_sigmas`` robust sigmas of its residuals.
+
+    The passes start from ``start_T_F_W`` and, where the fit from it leaves less than
+    ``cfg.alignment_min_inlier_share`` of the points within the last distance (a poor start), from the global
+    stage (:func:`_global_fit`) as well; the lower truncated cost over the same points wins
+    (:func:`_final_cost`), the start's fit on a tie. The directions the surface does not fix are held at
+    ``prior_T_F_W`` (the job's placement; default the start) and named (:func:`free_directions`).
+    Raises :class:`AlignmentFailed` when no fit leaves that share of the points on the CAD."""
+    p = as_points(points_mm)
+    T0 = np.array(start_T_F_W, dtype=np.float64)
+    prior = T0 if prior_T_F_W is None else np.asarray(prior_T_F_W, float)
+    last = cfg.best_fit_max_distance_mm
+    fits: list[tuple[SurfaceFit, str]] = []
+    why: list[str] = []
+    its = 0
+    try:
+        fit, its = _fine_fit(surface, p, T0, prior, cfg)
+        fits.append((fit, start))
+    except InspectionError as e:  # too few points near the surface from the start
+        why.append(f"from {start}: {e}")
+    if not fits or _share(fits[0][0]) < cfg.alignment_min_inlier_share:
+        try:
+            fit, n = _global_fit(surface, p, T0, prior, cfg)
+            its += n
+            fits.append((fit, f"{start}, then the global stage (FPFH + RANSAC against the CAD)"))
+        except InspectionError as e:
+            why.append(f"from the global stage: {e}")
+    if not fits:
+        raise AlignmentFailed("alignment to CAD failed: " + "; ".join(why),
+                              Alignment("best-fit", T0, float("nan"), start, inlier_share=0.0))
+    costs = [_final_cost(surface, p, f.T_F_M, last) for f, _ in fits]
+    fit, how = fits[-1] if costs[-1] < costs[0] * (1.0 - COST_TIE) else fits[0]
+    if not fit.converged:
+        log.warning("best-fit alignment did not converge in %d iterations", fit.iterations)
+    _, free = free_directions(fit)
+    if free:
+        log.warning("the measured surface does not fix %s: held where %s puts it", "; ".join(free), start)
+    out = Alignment("best-fit", fit.T_F_M, _robust_sigma(surface, _datum_points(p, fit.T_F_M, cfg), fit.T_F_M, last),
+                    how, fit.used_points, its, fit.converged, inlier_share=_share(fit), free_directions=free,
+                    covariance=covariance(fit), covariance_centre_F_mm=tuple(map(float, fit.centre_mm)))
+    if _share(fit) < cfg.alignment_min_inlier_share:
+        raise AlignmentFailed(
+            f"alignment to CAD failed: after the best fit from {start} and the global stage only "
+            f"{100 * _share(fit):.1f} % of the points lie within {last} mm of the CAD surface (at least "
+            f"{100 * cfg.alignment_min_inlier_share:.0f} % needed)", out)
+    return out
+
+
+COST_TIE = 0.05  # the global stage's fit wins only with a truncated cost lower than the start's by this share
 
 
 def within(points_mm: np.ndarray, centre_mm, radius_mm: float) -> np.ndarray:
@@ -290,13 +492,14 @@ def sphere_points(points_mm: np.ndarray, spheres: tuple[SphereResidual, ...], cf
 
 
 def align(surface: CadSurface, points_mm: np.ndarray, cfg: InspectionConfig, start_T_F_W: np.ndarray | None = None,
-          start: str = "as given") -> Alignment:
+          start: str = "as given", prior_T_F_W: np.ndarray | None = None) -> Alignment:
     """Place the cloud (frame W, mm) in the CAD frame F by ``cfg.alignment`` from ``start_T_F_W`` (default
-    identity: the cloud is roughly in F already)."""
+    identity: the cloud is roughly in F already); ``prior_T_F_W`` is a placement known independently (the
+    job's anchor), None where the start is unknown (:func:`fit_to_surface`)."""
     T0 = np.eye(4) if start_T_F_W is None else np.asarray(start_T_F_W, float)
     if cfg.alignment == "none":
         return Alignment("none", T0, 0.0, start)
-    fit = fit_to_surface(surface, points_mm, T0, cfg, start)  # for RPS the pre-alignment that finds the spheres
+    fit = fit_to_surface(surface, points_mm, T0, cfg, start, prior_T_F_W)  # RPS: the pre-alignment
     if cfg.alignment == "rps":
         return align_rps(surface, points_mm, fit.T_F_W, cfg, f"{start}, then a best fit")
     if not cfg.reference_spheres:

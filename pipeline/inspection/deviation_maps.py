@@ -100,6 +100,7 @@ class _Background:
     px: float
     depth0: float
     triangle_ids: np.ndarray  # (H, W) the CAD triangle each pixel shows, INVALID_ID where the ray misses
+    normals: np.ndarray  # (H, W, 3) that triangle's unit normal (F), zero where the ray misses
 
 
 @functools.lru_cache(maxsize=1)  # the upper/lower maps reuse the first view's background
@@ -121,8 +122,9 @@ def _background(surface: CadSurface, view: View, width_px: int) -> _Background:
     t_hit = hit["t_hit"].numpy()
     shade = 0.35 + 0.55 * np.abs(hit["primitive_normals"].numpy() @ f.astype(np.float32))
     rgb = np.where(np.isfinite(t_hit)[..., None], shade[..., None] * np.float32([0.82, 0.82, 0.85]), NO_MESH_RGB)
+    normals = np.where(np.isfinite(t_hit)[..., None], hit["primitive_normals"].numpy(), np.float32(0.0))
     return _Background(f, r, u, rgb.astype(np.float32), t_hit, (x0, x1, y0, y1), px, depth0,
-                       hit["primitive_ids"].numpy())
+                       hit["primitive_ids"].numpy(), normals)
 
 
 def render_view(
@@ -142,8 +144,10 @@ def render_view(
     A point is visible when it lies no more than ``depth_margin_mm`` (default: three pixels plus the colour
     range) behind the first CAD surface on its pixel; among visible points the nearest wins each pixel, and
     points are splatted over as many pixels as their spacing (``spacing_mm``, default: measured) needs, so
-    gaps in the data stay grey. With ``normals`` (outward, e.g. of the closest CAD triangle) points on faces
-    turned away are not drawn.
+    gaps in the data stay grey. With ``normals`` (of each point's closest CAD triangle) a point is drawn only
+    on pixels whose CAD triangle faces the same way as its own, from whichever side the camera sees it: an
+    open panel shows its measured points from outside and from inside, a thin closed part's far wall stays
+    hidden behind its near one (docs/inspection.md, "Colour maps").
     """
     bg = _background(surface, view, width_px)
     f, r, u, px = bg.f, bg.r, bg.u, bg.px
@@ -152,9 +156,7 @@ def render_view(
     p = np.asarray(points_mm, float)
     values = np.asarray(values, float)
     spacing = typical_spacing(p) if spacing_mm is None else spacing_mm
-    if normals is not None:
-        front = np.asarray(normals, float) @ f < 0.0
-        p, values = p[front], values[front]
+    own = None if normals is None else np.asarray(normals, np.float32)
     c = np.floor((p @ r - x0) / px).astype(np.int64)
     rr = np.floor((y1 - p @ u) / px).astype(np.int64)
     depth = p @ f - bg.depth0
@@ -169,6 +171,8 @@ def render_view(
             cc, r2 = c + dc - splat // 2, rr + dr - splat // 2
             ok = (cc >= 0) & (cc < width_px) & (r2 >= 0) & (r2 < height_px)
             ok[ok] &= depth[ok] <= bg.t_hit[r2[ok], cc[ok]] + margin
+            if own is not None:  # the same sheet as the pixel shows, seen from either side
+                ok[ok] &= np.einsum("ij,ij->i", own[ok], bg.normals[r2[ok], cc[ok]]) > 0.0
             np.minimum.at(nearest, r2[ok] * width_px + cc[ok], rank[ok])
     win_pix = np.flatnonzero(nearest < len(order))
     win_idx = order[nearest[win_pix]]

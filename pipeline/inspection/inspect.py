@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import open3d as o3d
 from tandemscan.config.models import InspectionConfig, RegionConfig
-from tandemscan.pipeline.geometry.frames import from_rotvec, rotation_angle, transform_points
+from tandemscan.pipeline.geometry.frames import from_rotvec, invert, rotation_angle, to_rotvec, transform_points
 from tandemscan.pipeline.geometry.part import enclosed_volume_mm3, triangles_closed
 from tandemscan.pipeline.inspection.deviation_areas import DeviationArea, find_deviation_areas
 
@@ -70,9 +70,13 @@ def in_chunks(fn, T: np.ndarray, rows: np.ndarray) -> np.ndarray:
 
 
 class CadSurface:
-    """The CAD mesh as a distance field: closest points and signed distances of queries, frame F, mm."""
+    """The CAD mesh as a distance field: closest points and signed distances of queries, frame F, mm.
 
-    def __init__(self, mesh: o3d.geometry.TriangleMesh):
+    The sign follows the mesh's winding; a closed mesh wound inside out is taken reversed. ``reversed``
+    (T,) bool reverses the chosen triangles instead (:mod:`tandemscan.pipeline.inspection.cad_orientation`:
+    an open or inconsistently wound mesh oriented by the measured side, :meth:`oriented`)."""
+
+    def __init__(self, mesh: o3d.geometry.TriangleMesh, reversed: np.ndarray | None = None):
         vertices = np.asarray(mesh.vertices, dtype=np.float64)
         triangles = np.asarray(mesh.triangles, dtype=np.int64)
         if len(triangles) == 0 or len(vertices) < 3:
@@ -82,12 +86,22 @@ class CadSurface:
         self.mesh = mesh
         self.origin_mm = 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
         local = (vertices - self.origin_mm).astype(np.float32)
-        self.flipped = triangles_closed(triangles) and enclosed_volume_mm3(local, triangles) < 0.0
-        if self.flipped:  # a closed mesh wound inside out: its normals would point into the material
+        if reversed is not None:
+            self.reversed = np.asarray(reversed, bool)
+        elif triangles_closed(triangles) and enclosed_volume_mm3(local, triangles) < 0.0:
             log.warning("CAD mesh is wound inside out (negative volume); using its triangles reversed")
-            triangles = triangles[:, ::-1].copy()
+            self.reversed = np.ones(len(triangles), bool)  # its normals would point into the material
+        else:
+            self.reversed = np.zeros(len(triangles), bool)
+        self.flipped = bool(self.reversed.all())
+        triangles = np.where(self.reversed[:, None], triangles[:, ::-1], triangles)
         self._scene = o3d.t.geometry.RaycastingScene()
         self._scene.add_triangles(o3d.core.Tensor(local), o3d.core.Tensor(triangles.astype(np.uint32)))
+
+    def oriented(self, reversed: np.ndarray) -> CadSurface:
+        """This surface with the triangles ``reversed`` (T,) bool wound against the file (itself where that is
+        how it is wound already)."""
+        return self if np.array_equal(reversed, self.reversed) else CadSurface(self.mesh, reversed)
 
     @property
     def scene(self) -> o3d.t.geometry.RaycastingScene:
@@ -246,61 +260,163 @@ def region_mask(points_mm: np.ndarray, region: RegionConfig) -> np.ndarray:
     return np.all((points_mm >= lo) & (points_mm <= hi), axis=1)
 
 
+@dataclass(frozen=True)
+class SurfaceFit:
+    """One robust fit of points (frame M) to the CAD surface (frame F): :func:`best_fit`'s result.
+
+    ``T_F_M`` places the points; ``cost_mm2`` is the mean robust cost per sampled point at the end (half the
+    squared residual inside the Huber threshold, linear beyond it, constant beyond the trim distance);
+    ``used_points`` are the sampled points within the trim distance. ``normal_matrix`` is the data's 6x6
+    ``J^T W J`` at the end for a small motion ``(t mm, r rad)`` of the points about ``centre_mm`` (frame F:
+    ``p -> p + r x (p - centre) + t``), ``scale`` what makes its rotations comparable with its translations, and
+    ``sigma_mm`` the weighted RMS residual of the used points: the
+    alignment turns them into its observability and covariance (docs/inspection.md, "Alignment")."""
+
+    T_F_M: np.ndarray
+    iterations: int
+    converged: bool
+    used_points: int
+    sampled_points: int
+    cost_mm2: float
+    normal_matrix: np.ndarray = field(repr=False)
+    centre_mm: np.ndarray = field(repr=False)
+    scale: np.ndarray = field(repr=False)  # (6,) 1, 1, 1 and the points' RMS radius about the centre (mm) thrice
+    sigma_mm: float = float("nan")
+
+
+#: the prior's spring (:func:`best_fit`): its stiffness per sampled point against a point's own ``n n^T``,
+#: so weak that a direction the surface fixes at 1e-5 of the strongest one moves by under 1e-5 of the
+#: distance to the prior, and strong enough to hold a direction the surface does not fix at all
+PRIOR_STIFFNESS = 1e-10
+MAX_STEP_RAD = 0.2  # a Levenberg-Marquardt step turns the points by at most this much (and moves them by the trim)
+
+
+def _robust_cost(r: np.ndarray, trim_mm: float, huber_mm: float | None) -> np.ndarray:
+    """Per-point cost (mm^2) of residuals ``r``: ``r^2/2`` (Huber's linear tail beyond ``huber_mm``), held
+    constant beyond ``trim_mm``: the same function of the pose for every point, near or far."""
+    a = np.minimum(np.abs(r), trim_mm)
+    if huber_mm is None or huber_mm >= trim_mm:
+        return 0.5 * a * a
+    return np.where(a <= huber_mm, 0.5 * a * a, huber_mm * a - 0.5 * huber_mm * huber_mm)
+
+
+EDGE_MIN_MM = 0.1  # a point this far from an edge or a corner (off the normal by 8 deg) pairs along its direction
+
+
+def _pairs(surface: CadSurface, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Residual (mm) and its unit gradient (the direction a point moves to lengthen it) of every point of
+    ``q`` (frame F): the signed distance and the closest triangle's normal on a face, the distance and the
+    direction from the closest point where that is an edge or a corner, so a slide off the mesh's boundary
+    is seen."""
+    cp = surface.closest(q)
+    r, g = cp.signed_mm.copy(), cp.normals.copy()
+    off = np.abs(r) > EDGE_MIN_MM  # nearer, float32's closest points leave the direction uncertain
+    to_point = (q[off] - cp.points_mm[off]) / np.abs(r[off])[:, None]
+    edge = np.abs(np.einsum("ij,ij->i", to_point, g[off])) < 0.99
+    at = np.flatnonzero(off)[edge]
+    g[at], r[at] = to_point[edge], np.abs(r[at])
+    return r, g
+
+
+def _twist(D: np.ndarray, centre_mm: np.ndarray) -> np.ndarray:
+    """A rigid motion ``D`` (frame F) as ``(t mm, r rad)`` about ``centre_mm``: how far it moves the centre and
+    its rotation vector."""
+    return np.r_[transform_points(D, centre_mm[None])[0] - centre_mm, to_rotvec(D)[1]]
+
+
+def _motion(x: np.ndarray, centre_mm: np.ndarray) -> np.ndarray:
+    """The rigid motion (4x4, frame F) turning by ``x[3:]`` rad about ``centre_mm`` and moving it by ``x[:3]`` mm."""
+    step = from_rotvec(x[:3], x[3:])
+    step[:3, 3] += centre_mm - step[:3, :3] @ centre_mm
+    return step
+
+
 def best_fit(
     surface: CadSurface,
     points_mm: np.ndarray,
     max_distance_mm: float,
     iterations: int = 30,
-    tolerance_mm: float = 1e-7,
+    tolerance_mm: float = 1e-5,
     max_points: int = 50_000,
     *,
     start: np.ndarray | None = None,
     huber_mm: float | None = None,
-) -> tuple[np.ndarray, int, bool, int]:
-    """Point-to-plane ICP of ``points_mm`` onto the CAD surface itself (no sampling of the mesh).
+    prior: np.ndarray | None = None,
+) -> SurfaceFit:
+    """Robust point-to-plane fit of ``points_mm`` (frame M) onto the CAD surface itself, by damped Gauss-Newton
+    (Levenberg-Marquardt) from ``start`` (``T_F_M``, default identity).
 
-    The points are in a frame M placed in F by ``start`` (``T_F_M``, default identity). Each iteration
-    pairs every point with its closest surface point and keeps the pairs closer than ``max_distance_mm``
-    (a trimmed fit), so outliers and real form errors beyond it do not pull the fit; with ``huber_mm`` the
-    residuals beyond it are weighted down as Huber's (weight ``huber_mm / |r|``), so a dent or a bulge
-    within the trim pulls little either. Returns ``(T_F_M, iterations run, converged, pairs used in the
-    last iteration)``; converged means the last update moved no point of the cloud's extent by more than
-    ``tolerance_mm``, or stopped lowering the (weighted) RMS residual (a shape with a symmetry leaves the
-    fit free along it). At most ``max_points`` points, an even subsample, take part.
+    The cost is :func:`_robust_cost` summed over the same points at every pose (at most ``max_points``, an
+    even subsample): a point further than ``max_distance_mm`` from the surface costs the same wherever it is
+    (a trimmed fit: outliers and form errors beyond it do not pull), one within ``huber_mm`` quadratically.
+    A step is taken only where it lowers that cost (else the damping grows and the step shrinks), turns by at
+    most :data:`MAX_STEP_RAD` and moves by at most ``max_distance_mm``. ``prior`` (``T_F_M``, default the
+    start) holds, by a spring of :data:`PRIOR_STIFFNESS`, the directions the surface does not fix (the axis of
+    a cylinder, an extrusion): they stay where the prior puts them instead of drifting. Converged: a step
+    moving no point by more than ``tolerance_mm``, or no step lowering the cost any more.
     """
     p = np.asarray(points_mm)
-    p = as_points(p[:: max(1, int(np.ceil(len(p) / max_points)))])  # the points that take part
+    p = as_points(p[:: max(1, int(np.ceil(len(p) / max_points)))])
     T = np.eye(4) if start is None else np.array(start, dtype=np.float64)
-    used = 0
-    rms_before = np.inf
-    for it in range(1, iterations + 1):
-        q = transform_points(T, p)
-        centre = q.mean(axis=0)
-        extent = max(float(np.linalg.norm(q - centre, axis=1).max()), 1.0)
-        cp = surface.closest(q)
-        keep = np.abs(cp.signed_mm) <= max_distance_mm
-        used = int(keep.sum())
-        if used < 6:
-            raise InspectionError(
-                f"best fit: only {used} points within {max_distance_mm} mm of the CAD surface"
-            )
-        qc, n = q[keep] - centre, cp.normals[keep]
-        r = cp.signed_mm[keep]
-        w = np.ones_like(r) if huber_mm is None else np.minimum(1.0, huber_mm / np.maximum(np.abs(r), 1e-12))
-        rms = float(np.sqrt(np.sum(w * r * r) / np.sum(w)))
-        if rms_before - rms < 1e-3 * tolerance_mm:
-            return T, it, True, used
-        rms_before = rms
-        sw = np.sqrt(w)[:, None]
-        A = np.hstack([np.cross(qc, n), n])  # d(residual)/d(omega, t) for small rotations about `centre`
-        x, *_ = np.linalg.lstsq(A * sw, -r * sw[:, 0], rcond=None)
-        omega, t = x[:3], x[3:]
-        step = from_rotvec(t, omega)
-        step[:3, 3] += centre - step[:3, :3] @ centre
-        T = step @ T
-        if float(np.linalg.norm(omega)) * extent + float(np.linalg.norm(t)) < tolerance_mm:
-            return T, it, True, used
-    return T, iterations, False, used
+    T_prior = T.copy() if prior is None else np.asarray(prior, float)
+    n = len(p)
+    q = transform_points(T, p)
+    centre = q.mean(axis=0)
+    extent = max(float(np.sqrt(np.mean(np.sum((q - centre) ** 2, axis=1)))), 1.0)
+    scale = np.r_[1.0, 1.0, 1.0, extent, extent, extent]  # rotation as mm at the cloud's RMS radius
+    spring = PRIOR_STIFFNESS * n * np.diag(scale**2)
+
+    def evaluate(T_: np.ndarray):
+        q_ = transform_points(T_, p)
+        r_, g_ = _pairs(surface, q_)
+        e = _twist(T_ @ invert(T_prior), centre)
+        return q_, r_, g_, float(_robust_cost(r_, max_distance_mm, huber_mm).sum() + 0.5 * e @ spring @ e), e
+
+    q, r, g, cost, e = evaluate(T)
+    mu, steps, converged = 1e-4, 0, False
+    while steps < iterations and not converged:
+        steps += 1
+        keep = np.abs(r) <= max_distance_mm
+        if int(keep.sum()) < 6:
+            raise InspectionError(f"best fit: only {int(keep.sum())} points within {max_distance_mm} mm of the "
+                                  "CAD surface")
+        H, b = _normal_equations(q[keep], g[keep], r[keep], centre, huber_mm)
+        b += spring @ e
+        accepted = False
+        while mu < 1e8 and not accepted:
+            x = -np.linalg.solve(H + spring + mu * n * np.diag(scale**2), b)
+            x *= min(1.0, max_distance_mm / max(float(np.linalg.norm(x[:3])), 1e-12),
+                     MAX_STEP_RAD / max(float(np.linalg.norm(x[3:])), 1e-12))
+            T_new = _motion(x, centre) @ T
+            trial = evaluate(T_new)
+            if trial[3] <= cost:
+                T, (q, r, g, cost, e), accepted = T_new, trial, True
+                mu = max(mu / 10.0, 1e-12)
+            else:
+                mu *= 10.0
+        converged = not accepted or float(np.linalg.norm(x[:3]) + np.linalg.norm(x[3:]) * extent) < tolerance_mm
+    keep = np.abs(r) <= max_distance_mm
+    used = int(keep.sum())
+    H, _ = _normal_equations(q[keep], g[keep], r[keep], centre, huber_mm)
+    w = _irls_weights(r[keep], huber_mm)
+    sigma = float(np.sqrt(np.sum(w * r[keep] ** 2) / max(float(w.sum()) - 6.0, 1.0))) if used > 6 else float("nan")
+    return SurfaceFit(T, steps, converged, used, n, cost / n, H, centre, scale, sigma)
+
+
+def _irls_weights(r: np.ndarray, huber_mm: float | None) -> np.ndarray:
+    """Gauss-Newton weights of :func:`_robust_cost` inside the trim: 1, Huber's ``huber_mm / |r|`` beyond it."""
+    if huber_mm is None:
+        return np.ones_like(r)
+    return np.minimum(1.0, huber_mm / np.maximum(np.abs(r), 1e-12))
+
+
+def _normal_equations(q: np.ndarray, g: np.ndarray, r: np.ndarray, centre: np.ndarray, huber_mm: float | None
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """``J^T W J`` (6x6) and ``J^T W r`` of residuals ``r`` with unit gradients ``g`` at points ``q`` (frame F)
+    for a small motion ``(t mm, r rad)`` about ``centre``: ``J = [g, (q - centre) x g]``, IRLS weights."""
+    w = _irls_weights(r, huber_mm)
+    J = np.hstack([g, np.cross(q - centre, g)])
+    return (J * w[:, None]).T @ J, J.T @ (w * r)
 
 
 SMALL_MOVE_MM = 0.005  # a best fit moving no point further than this updates the deviations to first order
@@ -357,27 +473,27 @@ def _best_fit_result(surface: CadSurface, p: np.ndarray, cfg: InspectionConfig, 
     stands on its own either way. ``closest``: the points' :meth:`CadSurface.closest` where known (then a
     small fit updates the deviations, :func:`signed_distance_moved`)."""
     try:
-        T, its, converged, used = best_fit(surface, p, cfg.best_fit_max_distance_mm, cfg.best_fit_iterations)
+        sf = best_fit(surface, p, cfg.best_fit_max_distance_mm, cfg.best_fit_iterations)
     except InspectionError as e:
         log.warning("%s", e)
         return None, str(e)
-    if not converged:
-        log.warning("best fit did not converge in %d iterations", its)
+    T = sf.T_F_M
+    if not sf.converged:
+        log.warning("best fit did not converge in %d iterations", sf.iterations)
     d_fit = (surface.signed_distance(transform_points(T, p)) if closest is None
              else signed_distance_moved(surface, p, T, closest))
     lo, hi = cfg.tolerance_lower_mm, cfg.tolerance_upper_mm
-    fit = BestFit(
+    return BestFit(
         T_F_M=T,
         translation_mm=float(np.linalg.norm(T[:3, 3])),
         rotation_deg=float(np.degrees(rotation_angle(T))),
-        iterations=its,
-        converged=converged,
-        used_points=used,
+        iterations=sf.iterations,
+        converged=sf.converged,
+        used_points=sf.used_points,
         deviations_mm=d_fit,
         stats=DeviationStats.of(d_fit),
         tolerance=ToleranceResult.of(d_fit, lo, hi),
-    )
-    return fit, ""
+    ), ""
 
 
 def inspect_cloud(

@@ -19,11 +19,13 @@ from typing import Any
 
 import numpy as np
 import open3d as o3d
+from scipy.spatial import cKDTree
 from tandemscan.config.inspection_template import InspectionTemplate
 from tandemscan.config.models import InspectionConfig
 from tandemscan.pipeline.geometry.frames import rotate_vectors, transform_points
 from tandemscan.pipeline.geometry.part import PartMeshError, read_mesh_file
-from tandemscan.pipeline.inspection.alignment import Alignment, align
+from tandemscan.pipeline.inspection.alignment import Alignment, AlignmentFailed, align
+from tandemscan.pipeline.inspection.cad_orientation import orient
 from tandemscan.pipeline.inspection.characteristics import CharacteristicResult, MeasuredCloud, evaluate
 from tandemscan.pipeline.inspection.decision import DecisionRule
 from tandemscan.pipeline.inspection.inspect import (
@@ -36,7 +38,7 @@ from tandemscan.pipeline.inspection.inspect import (
 )
 from tandemscan.pipeline.inspection.point_uncertainty import GivenUncertainty, UncertaintyModel
 from tandemscan.pipeline.inspection.qif import RESULTS_FILE, MeasuredPart, write_results
-from tandemscan.pipeline.inspection.report import build_report, in_background, write_report
+from tandemscan.pipeline.inspection.report import build_report, failed_report, in_background, write_report
 from tandemscan.pipeline.inspection.stitch_quality import overlap_quality
 from tandemscan.pipeline.inspection.verdict import VerdictContext, judge
 from tandemscan.pipeline.io.cloud_io import CloudIOError, read_ply
@@ -50,13 +52,14 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class InspectionOutputs:
-    """What :func:`run_inspection` wrote, and the result behind it."""
+    """What :func:`run_inspection` wrote, and the result behind it. A part whose alignment to CAD failed has
+    no ``result`` nor ``ply``: its report says why, with the verdict "indeterminate" (``data["reason"]``)."""
 
-    result: InspectionResult
+    result: InspectionResult | None
     data: dict
     html: Path
     json: Path | None
-    ply: Path
+    ply: Path | None
     characteristics: tuple[CharacteristicResult, ...] = ()
     qif: Path | None = None  # results.qif, written with a template
 
@@ -148,15 +151,21 @@ def align_and_inspect(
     normals_W: np.ndarray | None = None,
     start_T_F_W: np.ndarray | None = None,
     start: str = "as given",
+    prior_T_F_W: np.ndarray | None = None,
+    viewpoints_W: np.ndarray | None = None,
     scans_before_W: Sequence[np.ndarray] | None = None,
     scans_after_W: Sequence[np.ndarray] | None = None,
     **report: Any,
 ) -> InspectionOutputs:
     """Register a cloud measured in frame W to the CAD frame F by ``cfg.alignment`` from ``start_T_F_W``
-    (where the job's AGV stations put it, or the cloud as given; described by ``start``), then inspect and write
-    as :func:`run_inspection` (``report`` passes its title, meta, accuracy and json_name). The points on
-    reference spheres are left out of the inspection; the stitching views are mapped into F as well. A
-    ``template`` among ``report`` sets the alignment (:meth:`InspectionTemplate.inspection_config`)."""
+    (where the job's anchor put it, or the cloud as given; described by ``start``; ``prior_T_F_W``: the
+    placement that holds what the surface does not fix, None where the start is unknown), orient the CAD by
+    the measured side (:func:`measured_side`: ``viewpoints_W``, the scanner positions (K, 3) mm, else the
+    cloud's ``normals_W``), then inspect and write as :func:`run_inspection` (``report`` passes its title,
+    meta, accuracy and json_name). The points on reference spheres are left out of the inspection; the
+    stitching views are mapped into F as well. A ``template`` among ``report`` sets the alignment
+    (:meth:`InspectionTemplate.inspection_config`). A failed alignment writes the report of a failed
+    inspection (verdict "indeterminate", the reason) and returns it without a result."""
     cfg = cfg or InspectionConfig()
     if report.get("template") is not None:
         cfg = report["template"].inspection_config(cfg)
@@ -165,11 +174,21 @@ def align_and_inspect(
     overlap = None  # a rigid motion changes no overlap: computed in W while the cloud is aligned and inspected
     if scans_before_W is not None:
         overlap = in_background(overlap_quality, scans_before_W, scans_after_W)
-    alignment = align(surface, p, cfg, start_T_F_W, start)
+    try:
+        alignment = align(surface, p, cfg, start_T_F_W, start, prior_T_F_W)
+    except AlignmentFailed as e:  # a failed inspection, with the reason on its report
+        log.warning("%s", e)
+        failed = failed_report(str(e), e.attempt, title=report.get("title", "Inspection report"),
+                               meta=report.get("meta"))
+        html, js = write_report(failed, out_dir, report.get("json_name", "report.json"))
+        return InspectionOutputs(None, failed.data, html, js, None)
     keep = np.ones(len(p), bool) if alignment.excluded is None else ~alignment.excluded
     T = alignment.T_F_W
     log.info("aligned to CAD by %s: residual %.4f mm, %d points on reference spheres left out",
              alignment.method, alignment.residual_mm, int((~keep).sum()))
+    surface, note = measured_side(surface, p, T, normals_W, viewpoints_W)
+    if note:
+        report["meta"] = dict(report.get("meta") or {}) | {"CAD winding": note}
 
     def into_F(scans: Sequence[np.ndarray] | None) -> PlacedScans | None:
         return None if scans is None else PlacedScans(scans, T)
@@ -182,6 +201,29 @@ def align_and_inspect(
         scans_before=into_F(scans_before_W), scans_after=into_F(scans_after_W), alignment=alignment,
         overlap=overlap, **report,
     )
+
+
+ORIENTATION_POINTS = 50_000  # measured points that vote for the side each patch of the CAD faces
+
+
+def measured_side(surface: CadSurface, points_W_mm: np.ndarray, T_F_W: np.ndarray, normals_W: np.ndarray | None,
+                  viewpoints_W: np.ndarray | None) -> tuple[CadSurface, str]:
+    """The CAD surface wound so that its normals point to the measured side (:func:`cad_orientation.orient`),
+    and the warning where the file's winding disagreed (else ""). The side is where the points were seen
+    from: the nearest of ``viewpoints_W`` (scanner positions, W, mm) to each point, else the cloud's unit
+    normals (toward the scanner, as a scanner writes them); with neither, closed patches alone are decided."""
+    step = max(1, len(points_W_mm) // ORIENTATION_POINTS)
+    p_W = np.asarray(points_W_mm)[::step]
+    if viewpoints_W is not None and len(viewpoints_W):
+        eye = np.asarray(viewpoints_W, float)[cKDTree(viewpoints_W).query(p_W)[1]]
+        toward, by = rotate_vectors(T_F_W, eye - p_W), "scanner positions"
+    elif normals_W is not None:
+        toward, by = rotate_vectors(T_F_W, np.asarray(normals_W, float)[::step]), "cloud normals"
+    else:
+        toward, by = None, "the measured side"
+    ids = surface.closest(transform_points(T_F_W, p_W)).triangle_ids
+    o = orient(np.asarray(surface.mesh.vertices), np.asarray(surface.mesh.triangles), ids, toward, by)
+    return surface.oriented(o.reversed), o.note
 
 
 class PlacedScans(Sequence):

@@ -41,6 +41,7 @@ from tandemscan.pipeline.planning.coverage import CoverageFigures
 log = logging.getLogger(__name__)
 
 TEMPLATE = "report.html.j2"
+FAILED_TEMPLATE = "report_failed.html.j2"  # an inspection whose alignment failed
 
 
 @dataclass(frozen=True)
@@ -246,9 +247,20 @@ def _coverage_figure(result: InspectionResult, surface: CadSurface, view: View,
     return ReportFigure("coverage", f"Coverage of the CAD surface (measured vs not measured), {view.name}", png)
 
 
+def failed_report(reason: str, alignment: Alignment, *, title: str = "Inspection report",
+                  meta: Mapping[str, str] | None = None) -> Report:
+    """The report of a part that could not be inspected (its alignment to CAD failed): verdict
+    "indeterminate", the reason, and the alignment that was tried; no figures."""
+    return Report({"title": title, "created_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+                   "units": {"length": "mm", "angle": "deg"}, "meta": dict(meta or {}), "verdict": "indeterminate",
+                   "reason": reason, "alignment": alignment.summary(), "figures": []}, ())
+
+
 def render_html(report: Report) -> str:
-    """The report as one self-contained HTML page."""
-    source = (resources.files("tandemscan.pipeline.inspection") / "templates" / TEMPLATE).read_text(encoding="utf-8")
+    """The report as one self-contained HTML page (a failed inspection's when its verdict is "indeterminate"
+    with a reason)."""
+    name = FAILED_TEMPLATE if "reason" in report.data else TEMPLATE
+    source = (resources.files("tandemscan.pipeline.inspection") / "templates" / name).read_text(encoding="utf-8")
     env = jinja2.Environment(autoescape=True, undefined=jinja2.StrictUndefined, trim_blocks=True, lstrip_blocks=True)
     return env.from_string(source).render(r=report.data, figures=report.figures)
 

@@ -62,12 +62,14 @@ def fpfh_ransac(source_mm: ArrayLike, target_mm: ArrayLike, settings: FeatureMat
     reg = o3d.pipelines.registration
     threads = o3d.utility.get_max_threads()
     o3d.utility.set_max_threads(settings.threads)
-    try:
+    try:  # Open3D's own warnings (too few mutual matches: it falls back to all) would print past the caller
         o3d.utility.random.seed(settings.seed)
-        res = reg.registration_ransac_based_on_feature_matching(
-            src, tgt, f_src, f_tgt, True, 1.5 * voxel, reg.TransformationEstimationPointToPoint(False), 3,
-            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * voxel)],
-            reg.RANSACConvergenceCriteria(settings.max_iterations, settings.confidence))
+        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+            res = reg.registration_ransac_based_on_feature_matching(
+                src, tgt, f_src, f_tgt, True, 1.5 * voxel, reg.TransformationEstimationPointToPoint(False), 3,
+                [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+                 reg.CorrespondenceCheckerBasedOnDistance(1.5 * voxel)],
+                reg.RANSACConvergenceCriteria(settings.max_iterations, settings.confidence))
     finally:
         o3d.utility.set_max_threads(threads)
     return np.asarray(res.transformation, float).copy()

@@ -9,7 +9,9 @@ answer, kept only where it fits better than the start), ``deepmerge+icp``, ``fpf
 fine stage and FPFH + RANSAC; when the two disagree, the network too; the candidate with the lowest
 truncated point-to-plane cost wins, the fine stage from the start where the costs cannot tell them apart.
 Every result is verified (:func:`verify`): no inliers, an infinite RMS or a cost above the start's is a
-:class:`RegistrationFailed`. The network is loaded at its first use
+:class:`RegistrationFailed`; ``register`` (:func:`register_clouds`) also refuses a poor fit by an absolute
+measure, whatever the method (:func:`fits_well`: fitness, RMS against the correspondence distance). The
+network is loaded at its first use
 (:class:`LazyNetwork`), so a pair that does not need it never imports PyTorch.
 """
 
@@ -219,17 +221,34 @@ def register_clouds(
     init: np.ndarray | None = None, delta_mm: float = 5.0, network: Registrar | None = None,
     refine_sigmas: float | None = REFINE_SIGMAS,
 ) -> PairRegistration:
-    """``T_target_source`` (mm) of any two clouds from ``init`` (default identity), verified; the fine
-    stage starts at ``delta_mm``, the winner is refined at its gate (``refine_sigmas``, :func:`register_pair`).
-    Raises :class:`RegistrationFailed` for a result that must not be used."""
+    """``T_target_source`` (mm) of any two clouds from ``init`` (default identity), verified, by every method,
+    by the relative test (:func:`verify`) and an absolute one (:func:`fits_well`); the fine stage starts at
+    ``delta_mm``, the winner is refined at its gate (``refine_sigmas``, :func:`register_pair`). Raises
+    :class:`RegistrationFailed` for a result that must not be used."""
     T0 = np.eye(4) if init is None else np.asarray(init, float)
     target = target_with_normals(np.asarray(target_mm, float))
     res = register_pair(transform_points(T0, np.asarray(source_mm, float)), target, method or cfg.method, cfg,
                         network, delta_mm, refine_sigmas)
     M = res.transformation @ T0
-    return PairRegistration(M, evaluate_point_to_plane(np.asarray(source_mm, float), target, M,
-                                                       cfg.icp_max_distance_mm),
-                            res.stage, res.cost_mm2, res.start_cost_mm2, res.stages_run, res.gate_mm)
+    return fits_well(PairRegistration(M, evaluate_point_to_plane(np.asarray(source_mm, float), target, M,
+                                                                 cfg.icp_max_distance_mm),
+                                      res.stage, res.cost_mm2, res.start_cost_mm2, res.stages_run, res.gate_mm), cfg)
+
+
+def fits_well(result: PairRegistration, cfg: CorrectionConfig) -> PairRegistration:
+    """``result`` if its fit is good by an absolute measure, else :class:`RegistrationFailed` saying why: at
+    least ``cfg.register_min_fitness`` of the source within the final correspondence distance, and a
+    point-to-plane RMS of at most ``cfg.register_max_rms_share`` of it (a fit that only beats its start, a
+    wrong minimum, spreads its residuals over the whole gate)."""
+    gate = cfg.icp_max_distance_mm
+    if result.fit.fitness < cfg.register_min_fitness:
+        raise RegistrationFailed(f"poor fit: fitness {result.fit.fitness:.3f} below {cfg.register_min_fitness} "
+                                 f"(stage {result.stage})")
+    if result.fit.rmse_mm > cfg.register_max_rms_share * gate:
+        raise RegistrationFailed(f"poor fit: point-to-plane RMS {result.fit.rmse_mm:.3f} mm above "
+                                 f"{cfg.register_max_rms_share} of the {gate} mm correspondence distance "
+                                 f"(stage {result.stage})")
+    return result
 
 
 def pair_delta(target_W: np.ndarray, cfg: CorrectionConfig, pair_covariance: np.ndarray | None) -> float:
