@@ -253,7 +253,8 @@ def failed_report(reason: str, alignment: Alignment, *, title: str = "Inspection
     "indeterminate", the reason, and the alignment that was tried; no figures."""
     return Report({"title": title, "created_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
                    "units": {"length": "mm", "angle": "deg"}, "meta": dict(meta or {}), "verdict": "indeterminate",
-                   "reason": reason, "alignment": alignment.summary(), "figures": []}, ())
+                   "reason": reason, "verdict_reasons": [reason], "alignment": alignment.summary(), "figures": []},
+                  ())
 
 
 def render_html(report: Report) -> str:
