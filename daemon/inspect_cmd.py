@@ -4,7 +4,7 @@ deviation report for any cloud, registered to CAD from where it lies.
 ``register(subparsers)`` adds the sub-command to the main CLI; ``main(argv)`` runs it on its own.
 Bad input ends with one clear error line on stderr and exit status 2; a cloud that cannot be aligned to the
 CAD writes the report of a failed inspection (verdict "indeterminate", the reason) and ends with one line
-and exit status 3 (docs/inspection.md, "Alignment").
+and exit status 3 (docs/inspection-method.md, "Alignment").
 """
 
 from __future__ import annotations

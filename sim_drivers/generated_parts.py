@@ -1,6 +1,6 @@
 """Generated parts of different kinds for the alignment and inspection tests and benchmarks: a CAD mesh as a
 customer's file may have it (open, wound either way), a measured cloud of the side a scanner sees, with
-seeded dents and bulges, and a random misplacement of it (docs/inspection.md, "Alignment").
+seeded dents and bulges, and a random misplacement of it (docs/inspection-method.md, "Alignment").
 
 - :func:`arch_panel`: a 120 deg cylinder arch (2.2 m radius, crown at 1.6 m, 4 m long) with a door-surround
   pad at its crown, an open mesh wound with its normals toward the axis;

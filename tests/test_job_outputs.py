@@ -143,3 +143,22 @@ async def test_inspection_takes_at_most_max_points_of_the_cloud(sim_config, tmp_
     assert report["coverage"]["planned_pct"] is None and report["coverage"]["left_out"] == []
     assert "The plan states no coverage" in (result.job_dir / "report.html").read_text()
 
+
+
+async def test_a_job_whose_alignment_fails_reports_an_indeterminate_inspection(sim_config, tmp_path):
+    """A job whose cloud cannot be aligned to the CAD (here: no fit leaves 99 % of the points within 1 um of it)
+    still ends with report.html and report.json: the inspection's verdict "indeterminate" with the reason."""
+    plan = Plan.load(default_plan_path())
+    scans = [i for i, s in enumerate(plan.steps) if isinstance(s, Scan)]
+    plan = plan.model_copy(update={"steps": plan.steps[: scans[0] + 1]})
+    inspection = sim_config.inspection.model_copy(update={
+        "views": ("isometric",), "map_width_px": 300, "max_points": 3000, "best_fit_max_distance_mm": 0.001,
+        "alignment_min_inlier_share": 0.99})
+    config = sim_config.model_copy(update={"inspection": inspection})
+    async with CellSession(config) as session:
+        result = await JobRunner(session, plan, config, tmp_path / "job").run()
+    ins = json.loads((result.job_dir / "report.json").read_text())["inspection"]
+    assert ins["verdict"] == "indeterminate" and ins["reason"].startswith("alignment to CAD failed")
+    assert ins["files"]["html"] == "report.html" and "deviation_ply" not in ins["files"]
+    html = (result.job_dir / "report.html").read_text()
+    assert 'class="verdict indeterminate"' in html and ins["reason"][:40] in html

@@ -1,5 +1,5 @@
-"""Which way the CAD surface faces: the winding a deviation's sign is read from (docs/inspection.md, "Sign on
-any mesh").
+"""Which way the CAD surface faces: the winding a deviation's sign is read from (docs/inspection-method.md,
+"Alignment": sign on any mesh).
 
 A customer's mesh may be open (a panel) and wound either way, or inconsistently from patch to patch. Before
 deviations are signed, each connected patch of the mesh is wound consistently (neighbouring triangles

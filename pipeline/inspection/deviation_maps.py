@@ -147,7 +147,7 @@ def render_view(
     gaps in the data stay grey. With ``normals`` (of each point's closest CAD triangle) a point is drawn only
     on pixels whose CAD triangle faces the same way as its own, from whichever side the camera sees it: an
     open panel shows its measured points from outside and from inside, a thin closed part's far wall stays
-    hidden behind its near one (docs/inspection.md, "Colour maps").
+    hidden behind its near one (docs/inspection-method.md, "Method").
     """
     bg = _background(surface, view, width_px)
     f, r, u, px = bg.f, bg.r, bg.u, bg.px

@@ -270,7 +270,7 @@ class SurfaceFit:
     ``J^T W J`` at the end for a small motion ``(t mm, r rad)`` of the points about ``centre_mm`` (frame F:
     ``p -> p + r x (p - centre) + t``), ``scale`` what makes its rotations comparable with its translations, and
     ``sigma_mm`` the weighted RMS residual of the used points: the
-    alignment turns them into its observability and covariance (docs/inspection.md, "Alignment")."""
+    alignment turns them into its observability and covariance (docs/inspection-method.md, "Alignment")."""
 
     T_F_M: np.ndarray
     iterations: int

@@ -1,0 +1,104 @@
+"""Alignment to CAD from random starts on generated parts of different kinds (sim_drivers/generated_parts.py):
+the share of starts that align within 0.05 mm / 0.005 deg of the truth, the share that fail with a reason,
+the errors and the seconds, per part, and the seeded defects found with their sign.
+
+Usage: nice python benchmarks/alignment_starts.py [--starts 20] [--points 30000] [--max-deg 30] [--max-mm 300]
+
+Each start turns the measured cloud by up to ``--max-deg`` about a random axis through the CAD origin and moves
+it by up to ``--max-mm``; ``tandemscan inspect``'s path then aligns it from where it lies (``align``), orients
+the CAD by the cloud's normals and inspects it. Prints one JSON object on its last line. Timings on a shared
+CPU are unreliable.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+from clean_exit import clean_exit_on_sigterm
+from tandemscan.config.models import InspectionConfig
+from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.inspection.alignment import AlignmentFailed, align
+from tandemscan.pipeline.inspection.inspect import CadSurface, inspect_cloud
+from tandemscan.pipeline.inspection.inspection_job import measured_side
+from tandemscan.sim_drivers.generated_parts import PARTS, GeneratedPart, random_misplacement
+from tandemscan.sim_drivers.inspection_score import alignment_error
+
+TARGET = (0.05, 0.005)  # mm, deg at the CAD's bounding-box centre
+CFG = InspectionConfig(reference_spheres=(), regions=(), best_fit=False)
+
+
+def defects_found(part: GeneratedPart, areas) -> int:
+    """Seeded defects with an area of their side within 10 mm and its extreme within 0.03 mm."""
+    found = 0
+    for d in part.defects:
+        side = "upper" if d.depth_mm > 0 else "lower"
+        near = [a for a in areas if np.linalg.norm(np.subtract(a.centroid_mm, d.centre_mm)) < 10.0]
+        found += bool(near) and all(a.side == side for a in near) and abs(
+            max(near, key=lambda a: abs(a.extreme_mm)).extreme_mm - d.depth_mm) <= 0.03
+    return found
+
+
+def one_part(name: str, args: argparse.Namespace) -> dict:
+    part = PARTS[name]()
+    surface = CadSurface(part.mesh)
+    rng = np.random.default_rng(args.seed)
+    p_F, n_F = part.measured(args.points, args.noise_mm, rng)
+    v = np.asarray(part.mesh.vertices)
+    centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
+    within, failed, wrong, mm, deg, seconds, found, reasons = 0, 0, 0, [], [], [], 0, []
+    for _ in range(args.starts):
+        T_W_F = random_misplacement(rng, args.max_deg, args.max_mm)
+        p_W = F.transform_points(T_W_F, p_F)
+        t0 = time.perf_counter()
+        try:
+            a = align(surface, p_W, CFG)
+        except AlignmentFailed as e:
+            seconds.append(time.perf_counter() - t0)
+            failed += 1
+            reasons.append(str(e))
+            continue
+        seconds.append(time.perf_counter() - t0)
+        e_mm, e_deg = alignment_error(a.T_F_W, F.invert(T_W_F), centre)
+        mm.append(e_mm)
+        deg.append(e_deg)
+        ok = e_mm <= TARGET[0] and e_deg <= TARGET[1]
+        within += ok
+        wrong += not ok
+        if ok:
+            oriented, _ = measured_side(surface, p_W, a.T_F_W, F.rotate_vectors(T_W_F, n_F), None)
+            found += defects_found(part, inspect_cloud(F.transform_points(a.T_F_W, p_W), oriented, CFG).areas)
+    return {"points": len(p_F), "starts": args.starts, "aligned_within_target": within, "failed_with_reason": failed,
+            "wrong_without_failing": wrong, "success_rate": round(within / args.starts, 3),
+            "err_mm_max": round(max(mm), 5) if mm else None, "err_mm_median": round(float(np.median(mm)), 5)
+            if mm else None, "err_deg_max": round(max(deg), 6) if deg else None,
+            "defects_found": found, "defects_seeded": len(part.defects) * within,
+            "seconds_median": round(float(np.median(seconds)), 2), "seconds_max": round(max(seconds), 2),
+            "failures": reasons[:3]}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--starts", type=int, default=20)
+    ap.add_argument("--points", type=int, default=30_000)
+    ap.add_argument("--noise-mm", type=float, default=0.01)
+    ap.add_argument("--max-deg", type=float, default=30.0)
+    ap.add_argument("--max-mm", type=float, default=300.0)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--parts", default=",".join(PARTS))
+    args = ap.parse_args()
+    out: dict = {"benchmark": "alignment_starts", "target": {"mm": TARGET[0], "deg": TARGET[1]},
+                 "max_deg": args.max_deg, "max_mm": args.max_mm, "noise_mm": args.noise_mm}
+    for name in args.parts.split(","):
+        out[name] = one_part(name, args)
+    starts = sum(out[n]["starts"] for n in args.parts.split(","))
+    out["success_rate"] = round(sum(out[n]["aligned_within_target"] for n in args.parts.split(",")) / starts, 3)
+    out["wrong_without_failing"] = sum(out[n]["wrong_without_failing"] for n in args.parts.split(","))
+    print(json.dumps(out))
+
+
+if __name__ == "__main__":
+    clean_exit_on_sigterm()
+    main()
