@@ -142,15 +142,20 @@ def transfer_joints(plan: Plan, i: int, committed: Mapping[int, dict], current: 
     return q0, others
 
 
-def fallback_joints(plan: Plan, i: int, committed: Mapping[int, dict], others: list[np.ndarray]) -> list[np.ndarray]:
+def fallback_joints(plan: Plan, i: int, committed: Mapping[int, dict], around: list[np.ndarray],
+                    others: list[np.ndarray]) -> list[np.ndarray]:
     """Where the transfer of step ``i`` reads the target when it is hidden at the transfer's own pose, in order:
     the plan's alternatives of the step (scans whose target both tracker stations see past the part; the joints
-    of the arm move before each, committed where re-solved), then the station's other scan poses ``others``
-    (rad)."""
+    of the arm move before each, committed where re-solved), then ``around`` (the scanner moved across its view
+    from the own pose, :func:`offset_poses`: the target near where the planner checked it), then the station's
+    other scan poses ``others`` (rad), each once."""
     at = {s.label: j for j, s in enumerate(plan.steps) if isinstance(s, Scan) and s.label}
-    planned = [_arm_joints(plan, at[label] - 1, committed) for label in plan.steps[i].alternatives
-               if at.get(label, 0) > 0 and isinstance(plan.steps[at[label] - 1], MoveArm)]
-    return [*planned, *(q for q in others if not any(np.allclose(q, p) for p in planned))]
+    out = [_arm_joints(plan, at[label] - 1, committed) for label in plan.steps[i].alternatives
+           if at.get(label, 0) > 0 and isinstance(plan.steps[at[label] - 1], MoveArm)]
+    for q in [*around, *others]:
+        if not any(np.allclose(q, p) for p in out):
+            out.append(q)
+    return out
 
 
 # The target predicted this far (deg) inside the edges of the tracker's view and target cone: the prediction
@@ -373,8 +378,10 @@ async def readings_before_move(cell, gate: MotionGate, config: CellConfig, plan:
     q0, others = transfer_joints(plan, i, journal.committed, await cell.arm.joints())
     odo = await cell.tracking_chassis.odometry()
     here = (odo.x_mm, odo.y_mm, odo.heading_rad)
+    around = [] if q0 is None else offset_poses(q0, config, installation)
     first, dropped = await read_own_or_fallback(cell, gate, config, installation, q0,
-                                                fallback_joints(plan, i, journal.committed, others), here, step)
+                                                fallback_joints(plan, i, journal.committed, around, others), here,
+                                                step)
     chosen = []
     if first.joints_rad is not None:
         rest = [q for q in others if not np.allclose(q, first.joints_rad)]

@@ -9,7 +9,7 @@ import asyncio
 import numpy as np
 import open3d as o3d
 import pytest
-from tandemscan.daemon.coordinate_transfer import choose_transfer_poses, transfer_joints
+from tandemscan.daemon.coordinate_transfer import choose_transfer_poses, offset_poses, transfer_joints
 from tandemscan.daemon.job_records import TransferRecord, record_from_json
 from tandemscan.daemon.motion import Robot
 from tandemscan.daemon.run_state import RelocalisationState, RunState, journal_records, replay_journal
@@ -19,6 +19,7 @@ from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.part import train_nose_mesh
 from tandemscan.pipeline.geometry.uncertainty import transfer_covariance
 from tandemscan.pipeline.planning.plan import MoveArm, MoveMeasure, MoveTracker, Plan, Scan
+from tandemscan.pipeline.stitching.installation import Installation
 from tandemscan.sim_drivers.persist import restore_world_state, world_state
 from tandemscan.sim_drivers.world import SimWorld
 
@@ -245,12 +246,14 @@ def _world_at(world: SimWorld, plan: Plan, i: int) -> SimWorld:
     return world
 
 
-async def test_a_transfer_whose_own_pose_the_part_hides_reads_at_a_planned_alternative_and_the_job_completes(
-        sim_config, tmp_path):
+@pytest.mark.parametrize("planned", [True, False], ids=["a planned alternative", "no alternative planned"])
+async def test_a_transfer_whose_own_pose_the_part_hides_reads_elsewhere_and_the_job_completes(
+        planned, sim_config, tmp_path):
     """The nose with a post (120 mm square) standing a quarter of the way from the target to the tracker at the
     shipped plan's first transfer: the target is hidden behind the part at the transfer's own pose. The transfer
-    (one arm pose, the default) reads it at the plan's alternative instead, the arm moved through the gate, the
-    record names the hidden pose, and the job completes with the scan after the transfer."""
+    (one arm pose, the default) reads it at the plan's alternative instead or, with none planned, with the scanner
+    moved across its view from the own pose; the arm moved through the gate, the record names the hidden pose,
+    and the job completes with the scan after the transfer."""
     plan = through_first_transfer()
     i = next(k for k, s in enumerate(plan.steps) if isinstance(s, MoveTracker) and k > 0)
     world = _world_at(SimWorld(sim_config), plan, i)
@@ -278,13 +281,19 @@ async def test_a_transfer_whose_own_pose_the_part_hides_reads_at_a_planned_alter
     alternative = max(k for k, ok in enumerate(seen) if ok)
     label = next(plan.steps[j + 1].label for j in range(i) if isinstance(plan.steps[j], MoveArm)
                  and isinstance(plan.steps[j + 1], Scan) and np.allclose(plan.steps[j].joints_rad, others[alternative]))
-    plan.steps[i] = plan.steps[i].model_copy(update={"alternatives": (label,)})
+    if planned:
+        plan.steps[i] = plan.steps[i].model_copy(update={"alternatives": (label,)})
     journal = MemoryJournal()
     async with CellSession(config) as session:
         result = await JobRunner(session, plan, config, tmp_path / "job", journal=journal).run()
         assert session.cell.simulation.world.motion.violations == []
     record = record_from_json(plan.steps[i], journal.results[i], tmp_path)
-    np.testing.assert_allclose(record.arm_poses[0]["joints_rad"], others[alternative])
+    read_at = np.array(record.arm_poses[0]["joints_rad"])
+    if planned:
+        np.testing.assert_allclose(read_at, others[alternative])
+    else:
+        around = offset_poses(q0, config, Installation.nominal(config.installation))
+        assert any(np.allclose(read_at, q) for q in around)
     (own, *_) = record.arm_poses_dropped
     np.testing.assert_allclose(own["joints_rad"], q0)
     assert own["reason"].startswith("the transfer's own pose: target hidden behind the part")
