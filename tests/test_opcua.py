@@ -6,6 +6,9 @@ UA on a free port, both on 127.0.0.1)."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import json
+import logging
 import os
 import shutil
 import stat
@@ -210,3 +213,75 @@ def test_anonymous_access_binds_to_loopback_only(sim_config, tmp_path):
         update={"enabled": True, "allow_anonymous": True, "host": "0.0.0.0"})})
     with pytest.raises(BindRefused, match="anonymous"):
         create_app(Daemon(config, tmp_path / "state"), manage_lifecycle=True)
+
+
+async def test_node_opcua_client_browses_subscribes_and_calls(cell, identities, tmp_path):
+    """node-opcua, an independent stack (tests/node/client.mjs), gets what asyncua and REST get."""
+    args = ["node", str(NODE_DIR / "client.mjs"), cell.url, str(identities["trusted"].certificate),
+            str(identities["trusted"].private_key), str(tmp_path / "pki"), "operator", "op-pw"]
+    proc = await asyncio.create_subprocess_exec(*args, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+    stdout, stderr = await asyncio.wait_for(proc.communicate(), 120)
+    assert proc.returncode == 0, stderr.decode()[-2000:]
+    lines = [line for line in stdout.decode().splitlines() if line.startswith("{")]  # node-opcua logs to stdout too
+    assert lines, stderr.decode()[-2000:]
+    out = json.loads(lines[-1])
+    assert out["cell"] == ["Identification", "Monitoring", "Production", "ResultManagement"]
+    assert out["devices"] == sorted(d["name"] for d in cell.daemon.supervisor.snapshot()["devices"])
+    assert out["manufacturer"] == cell.daemon.config.opcua.manufacturer
+    assert out["stop"]["status"] == "Good" and out["reset"]["status"] == "Good"
+    assert out["latched"][:3] == [False, True, False]  # the subscription saw the latch set and cleared
+    http = await cell.http.post("/v1/jobs", json={"plan": "no-such-plan"})
+    assert out["unknown_plan"]["status"] == "BadNotFound" and http.status_code == 404
+    assert out["unknown_plan"]["outputs"][-1] == http.json()["detail"]
+
+
+def malformed_calls(ns: int, job_id: str) -> list[ua.CallMethodRequest]:
+    """Calls no well-behaved client makes: arguments missing, too many, of the wrong type or size, unknown nodes,
+    file handles never opened, filters not supported."""
+    s, i32, u32 = ua.VariantType.String, ua.VariantType.Int32, ua.VariantType.UInt32
+    shapes = [
+        ("Production", "Production.StartJob", []),
+        ("Production", "Production.StartJob", [ua.Variant(1, i32)] * 3),
+        ("Production", "Production.StartJob", [ua.Variant("x" * 5000, s), ua.Variant("", s), ua.Variant("", s)]),
+        ("Production", "Production.PauseJob", [ua.Variant(job_id, s), ua.Variant(job_id, s)]),
+        ("Production", "Production.CancelJob", [ua.Variant(["a", "b"], s)]),
+        ("Production", "Production.NoSuchMethod", []),
+        ("NoSuchObject", "Production.StartJob", []),
+        ("ResultManagement", "ResultManagement.GetResultById", [ua.Variant(3, u32), ua.Variant(0, i32)]),
+        ("ResultManagement", "ResultManagement.GetResultIdListFiltered",
+         [ua.Variant(ua.ContentFilter(Elements=[ua.ContentFilterElement()])), ua.Variant(ua.ContentFilter()),
+          ua.Variant(5, u32), ua.Variant(0, i32)]),
+        ("ResultManagement.ResultTransfer", "ResultManagement.ResultTransfer.GenerateFileForRead",
+         [ua.Variant(ua.ContentFilter())]),
+    ]
+    return [ua.CallMethodRequest(ObjectId=ua.NodeId(o, ns), MethodId=ua.NodeId(m, ns), InputArguments=a)
+            for o, m, a in shapes * 10]
+
+
+@pytest.mark.slow
+async def test_lost_client_many_subscribers_and_malformed_calls_leave_the_job_alone(cell, identities, caplog):
+    caplog.set_level(logging.WARNING)
+    trusted = identities["trusted"]
+    async with contextlib.AsyncExitStack() as stack:
+        clients = [await stack.enter_async_context(cell.client(trusted, "viewer", "view-pw")) for _ in range(20)]
+        ns = await clients[0].get_namespace_index(cell.ns_uri)
+        watchers = [Changes() for _ in clients]
+        for client, changes in zip(clients, watchers, strict=True):
+            await subscribe(client, ns, ["Production.ActiveJob.State", "Production.ActiveJob.Progress"], changes)
+        async with cell.client(trusted) as operator:
+            job_id, _ = await node(operator, ns, "Production").call_method(ua.NodeId("Production.StartJob", ns),
+                                                                           "short", "", "")
+            await watchers[0].wait_for(lambda: "running" in watchers[0].values.get("Production.ActiveJob.State", []))
+            async with cell.client(trusted, "viewer", "view-pw") as lost:  # it goes away without closing anything
+                await subscribe(lost, ns, ["Production.ActiveJob.Progress", "Monitoring.MovingRobot"], Changes())
+                lost.uaclient.protocol.transport.abort()
+            results = await operator.uaclient.call(malformed_calls(ns, job_id))
+            assert len(results) == 100 and all(r.StatusCode.is_bad() for r in results)
+            for changes in watchers:
+                await changes.wait_for(lambda c=changes: "succeeded" in c.values.get("Production.ActiveJob.State", []),
+                                       timeout_s=240)
+                assert 100.0 in changes.values["Production.ActiveJob.Progress"]
+            assert (await cell.http.get(f"/v1/jobs/{job_id}")).json()["state"] == "succeeded"
+    errors = [r for r in caplog.records if r.levelno >= logging.ERROR
+              and r.name.startswith(("tandemscan", "asyncua.server", "uvicorn"))]
+    assert not errors, [r.getMessage() for r in errors]

@@ -126,6 +126,10 @@ class OpcuaGateway:
         if self.server is not None:
             await self.transfer.close_all()
             await self.server.stop()
+            # a session whose client went away keeps its subscriptions for the session timeout (OPC 10000-4
+            # 6.7); asyncua's stop leaves them, and has no public list of sessions
+            for session in list(self.server.iserver._external_sessions.values()):
+                await session.close_session(True)
 
     # ------------------------------------------------------------ methods
 

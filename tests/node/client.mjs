@@ -1,9 +1,10 @@
 // An independent OPC UA stack against the tandemscan server (tests/test_opcua.py): node-opcua's client connects
 // over Basic256Sha256 SignAndEncrypt with a user name and password, browses the cell, subscribes to the safety
-// latch, calls methods and prints one JSON object on its last line.
+// latch, calls methods and prints one JSON object on a line of its own (node-opcua logs to stdout too).
 // Usage: node client.mjs URL CLIENT_CERT CLIENT_KEY PKI_DIR USER PASSWORD
 import { OPCUAClient, MessageSecurityMode, SecurityPolicy, AttributeIds, TimestampsToReturn, DataType,
-         OPCUACertificateManager, UserTokenType } from "node-opcua-client";
+         UserTokenType } from "node-opcua-client";
+import { OPCUACertificateManager } from "node-opcua-certificate-manager";
 
 const [url, certificateFile, privateKeyFile, pkiDir, userName, password] = process.argv.slice(2);
 const NS_URI = "urn:tandemscan:ua:cell";
