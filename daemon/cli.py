@@ -421,6 +421,10 @@ def build_parser() -> argparse.ArgumentParser:
     from tandemscan.daemon.plan_cmd import register as register_plan
 
     register_plan(sub)
+
+    from tandemscan.daemon.opcua.command import register as register_opcua
+
+    register_opcua(sub)
     return parser
 
 

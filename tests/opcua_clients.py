@@ -4,42 +4,25 @@
 from __future__ import annotations
 
 from contextlib import asynccontextmanager
-from dataclasses import dataclass
 from pathlib import Path
 
 from asyncua import Client, ua
-from asyncua.crypto.cert_gen import dump_private_key_as_pem, generate_private_key, generate_self_signed_app_certificate
 from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
-from cryptography import x509
-from cryptography.hazmat.primitives.serialization import Encoding
-from cryptography.x509.oid import ExtendedKeyUsageOID
+from tandemscan.daemon.opcua.security import ApplicationIdentity, make_application_identity
 
 CLIENT_URI = "urn:tandemscan:test-client"
 
 
-@dataclass(frozen=True)
-class ClientIdentity:
-    certificate: Path  # DER
-    private_key: Path  # PEM
-
-
-def make_client_identity(folder: Path, name: str) -> ClientIdentity:
-    """A client application certificate (RSA 2048, self-signed, application URI :data:`CLIENT_URI`)."""
-    folder.mkdir(parents=True, exist_ok=True)
-    key = generate_private_key()
-    cert = generate_self_signed_app_certificate(
-        key, name, {}, [x509.UniformResourceIdentifier(CLIENT_URI), x509.DNSName("localhost")],
-        [ExtendedKeyUsageOID.CLIENT_AUTH], days=30)
-    identity = ClientIdentity(folder / f"{name}.der", folder / f"{name}.pem")
-    identity.certificate.write_bytes(cert.public_bytes(Encoding.DER))
-    identity.private_key.write_bytes(dump_private_key_as_pem(key))
-    return identity
+def make_client_identity(folder: Path, name: str) -> ApplicationIdentity:
+    """A client application certificate and key (application URI :data:`CLIENT_URI`)."""
+    return make_application_identity(folder, name, CLIENT_URI, ["localhost"], server=False, days=30)
 
 
 @asynccontextmanager
-async def secure_client(url: str, identity: ClientIdentity, server_cert: Path, user: str | None,
-                        password: str | None, timeout_s: float = 20.0):
-    """A connected asyncua client: SignAndEncrypt, the user's name and password; the namespace's types loaded."""
+async def secure_client(url: str, identity: ApplicationIdentity, server_cert: Path, user: str | None,
+                        password: str | None, timeout_s: float = 20.0, load_types: bool = True):
+    """A connected asyncua client: SignAndEncrypt, the user's name and password; the namespace's types loaded
+    unless not ``load_types``."""
     client = Client(url, timeout=timeout_s)
     client.application_uri = CLIENT_URI
     await client.set_security(SecurityPolicyBasic256Sha256, str(identity.certificate), str(identity.private_key),
@@ -49,7 +32,8 @@ async def secure_client(url: str, identity: ClientIdentity, server_cert: Path, u
         client.set_password(password)
     await client.connect()
     try:
-        await client.load_data_type_definitions()
+        if load_types:
+            await client.load_data_type_definitions()
         yield client
     finally:
         await client.disconnect()

@@ -32,7 +32,6 @@ NODE_DIR = Path(__file__).parent / "node"
 CHEAP = (2**4, 8, 1)  # scrypt cost of the test users' hashes: the login path is the same, only faster
 USERS = {"operator": OpcuaUserConfig(role="operator", password_hash=hash_password("op-pw", CHEAP)),
          "viewer": OpcuaUserConfig(role="viewer", password_hash=hash_password("view-pw", CHEAP))}
-FINAL = ("succeeded", "failed", "cancelled")
 
 
 @pytest.fixture(scope="module")
@@ -47,8 +46,8 @@ class Cell:
     def __init__(self, http: httpx.AsyncClient, url: str, server_cert: Path, daemon: Daemon, ns_uri: str):
         self.http, self.url, self.server_cert, self.daemon, self.ns_uri = http, url, server_cert, daemon, ns_uri
 
-    def client(self, identity, user: str | None = "operator", password: str | None = "op-pw"):
-        return secure_client(self.url, identity, self.server_cert, user, password)
+    def client(self, identity, user: str | None = "operator", password: str | None = "op-pw", load_types=True):
+        return secure_client(self.url, identity, self.server_cert, user, password, load_types=load_types)
 
 
 @pytest.fixture
@@ -65,7 +64,7 @@ async def cell(tmp_path, identities):
     daemon = Daemon(config, state)
     async with running_server(create_app(daemon, manage_lifecycle=True)) as rest:
         async with httpx.AsyncClient(base_url=rest, timeout=30) as http:
-            yield Cell(http, f"opc.tcp://127.0.0.1:{port}/tandemscan/", state / "opcua" / "own" / "server_cert.der",
+            yield Cell(http, f"opc.tcp://127.0.0.1:{port}/tandemscan/", state / "opcua" / "own" / "server.der",
                        daemon, NAMESPACE_URI)
 
 
@@ -197,7 +196,7 @@ async def test_viewer_may_not_call_and_strangers_are_refused(cell, identities):
         with pytest.raises(ua.UaError):
             async with cell.client(identities["trusted"], user, password):
                 pass
-    key = cell.server_cert.parent / "server_key.pem"
+    key = cell.server_cert.parent / "server.pem"
     assert stat.S_IMODE(os.stat(key).st_mode) == 0o600
 
 
@@ -263,7 +262,8 @@ async def test_lost_client_many_subscribers_and_malformed_calls_leave_the_job_al
     caplog.set_level(logging.WARNING)
     trusted = identities["trusted"]
     async with contextlib.AsyncExitStack() as stack:
-        clients = [await stack.enter_async_context(cell.client(trusted, "viewer", "view-pw")) for _ in range(20)]
+        clients = [await stack.enter_async_context(cell.client(trusted, "viewer", "view-pw", load_types=False))
+                   for _ in range(20)]
         ns = await clients[0].get_namespace_index(cell.ns_uri)
         watchers = [Changes() for _ in clients]
         for client, changes in zip(clients, watchers, strict=True):
@@ -272,7 +272,7 @@ async def test_lost_client_many_subscribers_and_malformed_calls_leave_the_job_al
             job_id, _ = await node(operator, ns, "Production").call_method(ua.NodeId("Production.StartJob", ns),
                                                                            "short", "", "")
             await watchers[0].wait_for(lambda: "running" in watchers[0].values.get("Production.ActiveJob.State", []))
-            async with cell.client(trusted, "viewer", "view-pw") as lost:  # it goes away without closing anything
+            async with cell.client(trusted, "viewer", "view-pw", load_types=False) as lost:  # leaves, closing nothing
                 await subscribe(lost, ns, ["Production.ActiveJob.Progress", "Monitoring.MovingRobot"], Changes())
                 lost.uaclient.protocol.transport.abort()
             results = await operator.uaclient.call(malformed_calls(ns, job_id))
@@ -285,3 +285,41 @@ async def test_lost_client_many_subscribers_and_malformed_calls_leave_the_job_al
     errors = [r for r in caplog.records if r.levelno >= logging.ERROR
               and r.name.startswith(("tandemscan", "asyncua.server", "uvicorn"))]
     assert not errors, [r.getMessage() for r in errors]
+
+
+async def test_the_nodeset_export_imports_into_another_server(cell):
+    """The NodeSet2 XML the server writes at start holds its own namespace: another server imports it whole, with
+    the methods' signatures and the result types."""
+    from asyncua import Server
+
+    nodeset = cell.server_cert.parent.parent / "tandemscan-cell.NodeSet2.xml"
+    other = Server()
+    await other.init()
+    try:
+        await other.import_xml(str(nodeset))
+        ns = await other.get_namespace_index(cell.ns_uri)
+        children = await other.get_node(ua.NodeId("Monitoring.Devices", ns)).get_children()
+        assert {(await c.read_browse_name()).Name for c in children} == \
+            {d["name"] for d in cell.daemon.supervisor.snapshot()["devices"]}
+        start = other.get_node(ua.NodeId("Production.StartJob", ns))
+        inputs = await (await start.get_child(["0:InputArguments"])).read_value()
+        assert [a.Name for a in inputs] == ["Plan", "PartNumber", "SerialNumber"]
+        meta = other.get_node(ua.NodeId("ResultMetaDataType", ns))
+        fields = [f.Name for f in (await meta.read_data_type_definition()).Fields]
+        assert fields[:3] == ["ResultId", "HasTransferableDataOnFile", "IsPartial"] and "ResultEvaluation" in fields
+        assert (await other.get_node(ua.NodeId("Identification.Manufacturer", ns)).read_value()) == "tandemscan"
+    finally:
+        await other.stop()
+
+
+def test_opcua_user_prints_a_config_entry_that_logs_in(monkeypatch, capsys):
+    import io
+    import tomllib
+
+    from tandemscan.daemon.cli import main
+
+    monkeypatch.setattr("sys.stdin", io.StringIO("s3cret\n"))
+    assert main(["opcua-user", "alice", "--role", "operator"]) == 0
+    entry = tomllib.loads(capsys.readouterr().out)["opcua"]["users"]["alice"]
+    user = OpcuaUserConfig.model_validate(entry)
+    assert user.role == "operator" and verify_password("s3cret", user.password_hash)

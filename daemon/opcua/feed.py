@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterable
 
 from asyncua import Server, ua
 from tandemscan.daemon.facade import ServiceFacade
-from tandemscan.daemon.job_state import FINAL_STATES, JobState
+from tandemscan.daemon.job_state import COMPLETED_STATES, FINAL_STATES, JobState
 from tandemscan.daemon.jobs import JobError
 from tandemscan.daemon.opcua.model import CellNodes
 from tandemscan.daemon.store import Event, JobRecord
@@ -28,12 +28,13 @@ POLL_PERIOD_S = 0.1
 
 
 class CellFeed:
-    """Writes the cell's state into ``nodes``; ``on_succeeded(job_id)`` is called once a job succeeded."""
+    """Writes the cell's state into ``nodes``; ``on_completed(job_id)`` is called once a job completed (succeeded,
+    with gaps or without)."""
 
     def __init__(self, server: Server, nodes: CellNodes, facade: ServiceFacade,
-                 on_succeeded: Callable[[str], None]):
+                 on_completed: Callable[[str], None]):
         self.server, self.nodes, self.facade = server, nodes, facade
-        self.on_succeeded = on_succeeded
+        self.on_completed = on_completed
         self._values: dict[str, object] = {}
         self._job_state = ""
 
@@ -113,17 +114,17 @@ class CellFeed:
         state = data["state"]
         shown = self._values.get("Production.ActiveJob.JobId")
         if job_id != shown and state in (JobState.QUEUED, *FINAL_STATES):
-            if state == JobState.SUCCEEDED:
-                self.on_succeeded(job_id)
+            if state in COMPLETED_STATES:
+                self.on_completed(job_id)
             return  # another job queued or ended: the one shown stays
         if job_id != shown:
             await self.job(await self.facade.job_record(job_id))
         else:
             await self.write("Production.ActiveJob.State", state, VT.String)
             await self.write("Production.ActiveJob.Error", data.get("error") or "", VT.String)
-        if state == JobState.SUCCEEDED:
+        if state in COMPLETED_STATES:
             await self.write("Production.ActiveJob.Progress", 100.0, VT.Double)
-            self.on_succeeded(job_id)
+            self.on_completed(job_id)
 
     async def job(self, job: JobRecord) -> None:
         """Show ``job`` as the active one."""

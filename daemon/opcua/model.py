@@ -168,7 +168,7 @@ def result_methods(types: dict[str, Node]) -> dict[str, Method]:
     timeout = argument("Timeout", INT32, "ms; results are answered at once")
     return {
         "GetLatestResult": Method("GetLatestResult", [timeout], [handle, result, error],
-                                  "The newest result (of the last job that succeeded)"),
+                                  "The newest result (of the last job that completed)"),
         "GetResultById": Method("GetResultById", [argument("ResultId", STRING, "the job id"), timeout],
                                 [handle, result, error], "The result of one job"),
         "GetResultIdListFiltered": Method("GetResultIdListFiltered", [
@@ -234,8 +234,8 @@ async def build_model(server: Server, identification: dict[str, str], device_nam
     job = await b.obj(production, "Production.ActiveJob")
     for name, value, vt, text in (
             ("JobId", "", VT.String, "the job running or paused, else the last one"),
-            ("State", "", VT.String, "queued, running, paused, paused_safety, paused_fault, succeeded, failed, "
-                                     "cancelled"),
+            ("State", "", VT.String, "queued, running, paused, paused_safety, paused_fault, succeeded, "
+                                     "succeeded_with_gaps, failed, cancelled"),
             ("Progress", 0.0, VT.Double, "percent"), ("CurrentStep", -1, VT.Int32, "-1: none"),
             ("StepsTotal", 0, VT.Int32, ""), ("Plan", "", VT.String, ""), ("PartNumber", "", VT.String, ""),
             ("SerialNumber", "", VT.String, ""), ("Error", "", VT.String, "why it failed or is paused")):
@@ -250,7 +250,9 @@ async def build_model(server: Server, identification: dict[str, str], device_nam
     nodes.result_transfer = await b.obj(rm, "ResultManagement.ResultTransfer")
     await b.method(nodes.result_transfer, "ResultManagement.ResultTransfer.GenerateFileForRead",
                    generate_file_method(types))
-    nodes.result_ready_type = await server.create_custom_event_type(
-        ns, "ResultReadyEventType",
-        ua.ObjectIds.BaseEventType, [("Result", VT.ExtensionObject, types["ResultDataType"].nodeid)])
+    nodes.result_ready_type = ready = await server.nodes.base_event_type.add_object_type(
+        b._id("ResultReadyEventType"), ua.QualifiedName("ResultReadyEventType", ns))
+    result_field = await ready.add_property(b._id("ResultReadyEventType.Result"), ua.QualifiedName("Result", ns),
+                                            ua.Variant(None, VT.Null), datatype=types["ResultDataType"].nodeid)
+    await result_field.set_modelling_rule(True)
     return nodes

@@ -1,4 +1,5 @@
-"""Results after OPC 40001-101 Machinery Result Transfer: a succeeded job is a result (its id the job id), its
+"""Results after OPC 40001-101 Machinery Result Transfer: a completed job is a result (its id the job id; one
+``succeeded_with_gaps`` is ``IsPartial``), its
 metadata a ``ResultMetaDataType`` (job, plan, part number, serial, verdict, times), and its file read through
 the temporary file transfer: ``GenerateFileForRead`` opens a ``FileType`` object under ``ResultTransfer`` for
 reading, the client reads it with ``Read`` and ends with ``Close``, which removes the object (docs/opcua.md).
@@ -20,7 +21,7 @@ from pathlib import Path
 
 from asyncua import Node, Server, ua
 from tandemscan.daemon.facade import ServiceFacade
-from tandemscan.daemon.job_state import JobState
+from tandemscan.daemon.job_state import COMPLETED_STATES, JobState
 from tandemscan.daemon.opcua.calls import CallRefused, spec_method
 from tandemscan.daemon.opcua.model import CellNodes
 from tandemscan.daemon.store import JobRecord
@@ -70,15 +71,15 @@ class ResultCatalog:
     def _job_dir(self, job_id: str) -> Path:
         return self.facade.job_dir(job_id)
 
-    def _succeeded(self, job_id: str) -> JobRecord:
-        """(store thread) The job of result ``job_id``; refused unless it succeeded."""
+    def _completed(self, job_id: str) -> JobRecord:
+        """(store thread) The job of result ``job_id``; refused unless it completed (with gaps or without)."""
         job = self.facade.daemon.manager.get(job_id)
-        if job.state != JobState.SUCCEEDED:
+        if job.state not in COMPLETED_STATES:
             raise CallRefused(ua.StatusCodes.BadNotFound, f"job {job_id} is {job.state}: no result (yet)")
         return job
 
     def _metadata(self, job: JobRecord) -> ua.ExtensionObject:
-        """(thread) ``ResultDataType`` of a succeeded job, its verdict read from its report."""
+        """(thread) ``ResultDataType`` of a completed job, its verdict read from its report."""
         job_dir = self._job_dir(job.id)
         name = result_file_name(job_dir)
         try:
@@ -86,7 +87,8 @@ class ResultCatalog:
         except (OSError, ValueError):
             verdict = None
         meta = ua.ResultMetaDataType(
-            ResultId=job.id, HasTransferableDataOnFile=(job_dir / name).is_file(), IsPartial=False,
+            ResultId=job.id, HasTransferableDataOnFile=(job_dir / name).is_file(),
+            IsPartial=job.state == JobState.SUCCEEDED_WITH_GAPS,
             IsSimulated=self.simulated, ResultState=1, PartId=job.plan.get("serial_number") or "",
             ProductId=job.plan.get("part_number") or "", InternalRecipeId=job.plan_name, JobId=job.id,
             CreationTime=_ts(job.finished_s),
@@ -98,13 +100,13 @@ class ResultCatalog:
         return ua.ResultDataType(ResultMetaData=meta)
 
     async def result(self, job_id: str) -> ua.ExtensionObject:
-        """The ``ResultDataType`` of job ``job_id`` (refused unless it succeeded)."""
-        job = await self.facade.read(self._succeeded, job_id)
+        """The ``ResultDataType`` of job ``job_id`` (refused unless it completed)."""
+        job = await self.facade.read(self._completed, job_id)
         return await asyncio.to_thread(self._metadata, job)
 
     def _ids(self, limit: int) -> list[str]:
-        """(store thread) Ids of the succeeded jobs, newest first, at most ``limit`` (0: all)."""
-        jobs, _ = self.facade.daemon.store.list_jobs([JobState.SUCCEEDED], limit=limit or 2**31, offset=0)
+        """(store thread) Ids of the completed jobs, newest first, at most ``limit`` (0: all)."""
+        jobs, _ = self.facade.daemon.store.list_jobs(sorted(COMPLETED_STATES), limit=limit or 2**31, offset=0)
         return [j.id for j in jobs]
 
     async def ids(self, limit: int = 0) -> list[str]:
@@ -113,12 +115,12 @@ class ResultCatalog:
     async def latest(self) -> ua.ExtensionObject:
         ids = await self.ids(1)
         if not ids:
-            raise CallRefused(ua.StatusCodes.BadNoData, "no job has succeeded yet")
+            raise CallRefused(ua.StatusCodes.BadNoData, "no job has completed yet")
         return await self.result(ids[0])
 
     async def file(self, job_id: str) -> ResultFile:
-        """The bytes of the job's result file (refused unless it succeeded and the file is there)."""
-        await self.facade.read(self._succeeded, job_id)
+        """The bytes of the job's result file (refused unless it completed and the file is there)."""
+        await self.facade.read(self._completed, job_id)
         name = await asyncio.to_thread(result_file_name, self._job_dir(job_id))
         return ResultFile(name, await self.facade.read_job_file(job_id, name))
 

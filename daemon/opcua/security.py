@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import asyncio
 import base64
-import datetime
 import hashlib
 import hmac
 import logging
@@ -155,32 +154,42 @@ class RoleRuleset(PermissionRuleset):
 # ---------------------------------------------------------------- certificates
 
 @dataclass(frozen=True)
-class ServerIdentity:
-    """The server's certificate (DER) and private key (PEM) files."""
+class ApplicationIdentity:
+    """An OPC UA application's certificate (DER) and private key (PEM) files."""
 
     certificate: Path
     private_key: Path
 
 
-def ensure_server_identity(folder: Path, hostname: str | None = None) -> ServerIdentity:
-    """The server's certificate and key in ``folder``, made there on the first call (key file ``0600``)."""
+def make_application_identity(folder: Path, stem: str, uri: str, hostnames: list[str], server: bool,
+                              days: int = 3650) -> ApplicationIdentity:
+    """A new self-signed application certificate (RSA 2048, SHA-256, application URI ``uri``) and its key
+    (``0600``) as ``stem.der`` and ``stem.pem`` in ``folder``; a server's may also act as a client."""
     folder.mkdir(parents=True, exist_ok=True)
-    identity = ServerIdentity(folder / "server_cert.der", folder / "server_key.pem")
-    if identity.certificate.is_file() and identity.private_key.is_file():
-        return identity
-    host = hostname or socket.gethostname()
+    identity = ApplicationIdentity(folder / f"{stem}.der", folder / f"{stem}.pem")
     key = generate_private_key()
+    usages = [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH] if server \
+        else [ExtendedKeyUsageOID.CLIENT_AUTH]
     cert = generate_self_signed_app_certificate(
-        key, "tandemscan cell", {"organizationName": "tandemscan"},
-        [x509.UniformResourceIdentifier(APPLICATION_URI), x509.DNSName(host), x509.DNSName("localhost")],
-        [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH], days=3650)
+        key, stem, {"organizationName": "tandemscan"},
+        [x509.UniformResourceIdentifier(uri), *(x509.DNSName(h) for h in hostnames)], usages, days=days)
     fd = os.open(identity.private_key, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
     with os.fdopen(fd, "wb") as f:
         f.write(dump_private_key_as_pem(key))
     os.chmod(identity.private_key, 0o600)
     identity.certificate.write_bytes(cert.public_bytes(Encoding.DER))
-    log.info("OPC UA server certificate made in %s (valid until %s)", folder,
-             (datetime.datetime.now(datetime.UTC) + datetime.timedelta(days=3650)).date())
+    return identity
+
+
+def ensure_server_identity(folder: Path, hostname: str | None = None) -> ApplicationIdentity:
+    """The server's certificate and key in ``folder`` (``server.der``, ``server.pem``), made there on the first
+    call (valid ten years, key file ``0600``)."""
+    identity = ApplicationIdentity(folder / "server.der", folder / "server.pem")
+    if identity.certificate.is_file() and identity.private_key.is_file():
+        return identity
+    identity = make_application_identity(folder, "server", APPLICATION_URI,
+                                         [hostname or socket.gethostname(), "localhost"], server=True)
+    log.info("OPC UA server certificate made in %s", folder)
     return identity
 
 

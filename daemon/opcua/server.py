@@ -3,8 +3,9 @@
 
 :class:`OpcuaGateway` is made with the REST app and follows its lifespan: :meth:`~OpcuaGateway.prepare` builds
 the address space before the daemon starts (asyncua's standard address space takes seconds of CPU on the loop,
-which must not happen while the 50 Hz safety loop runs), :meth:`~OpcuaGateway.start` listens and starts the feed
-once it has started, :meth:`~OpcuaGateway.stop` closes both before the daemon closes.
+which must not happen while the 50 Hz safety loop runs) and writes it as NodeSet2 XML (:attr:`nodeset_file`);
+:meth:`~OpcuaGateway.start` listens and starts the feed once it has started, :meth:`~OpcuaGateway.stop` closes
+both before the daemon closes.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from tandemscan.daemon.facade import ServiceFacade
 from tandemscan.daemon.jobs import JobError
 from tandemscan.daemon.opcua.calls import CallRefused, spec_method, text_method
 from tandemscan.daemon.opcua.feed import CellFeed, device_names
-from tandemscan.daemon.opcua.model import CONTROL_METHODS, SAFETY_METHODS, CellNodes, build_model
+from tandemscan.daemon.opcua.model import CONTROL_METHODS, NAMESPACE_URI, SAFETY_METHODS, CellNodes, build_model
 from tandemscan.daemon.opcua.results import FileTransfer, ResultCatalog
 from tandemscan.daemon.opcua.security import (
     APPLICATION_URI,
@@ -37,6 +38,7 @@ from tandemscan.drivers.tasks import cancel_and_wait
 log = logging.getLogger(__name__)
 VT = ua.VariantType
 STR = VT.String
+NODESET_FILE = "tandemscan-cell.NodeSet2.xml"
 
 
 def _text(value: str) -> ua.Variant:
@@ -113,11 +115,18 @@ class OpcuaGateway:
         self._link_methods()
         self._result_ready = await server.get_event_generator(self.nodes.result_ready_type,
                                                               self.nodes.result_management)
+        self._result_ready.event.data_types["Result"] = VT.ExtensionObject  # the type's field has no default value
+        await server.export_xml_by_ns(str(self.nodeset_file), [NAMESPACE_URI], export_values=True)
+
+    @property
+    def nodeset_file(self) -> Path:
+        """The NodeSet2 XML of this server's own namespace, written at each start for clients to import."""
+        return self.folder / NODESET_FILE
 
     async def start(self) -> None:
         """Listen, and follow the daemon's events."""
         await self.server.start()
-        feed = CellFeed(self.server, self.nodes, self.facade, self._on_succeeded)
+        feed = CellFeed(self.server, self.nodes, self.facade, self._on_completed)
         self._feed_task = asyncio.create_task(feed.run(), name="opcua-feed")
         log.info("OPC UA server on %s (%s)", self.endpoint, ", ".join(self.config.security_policies))
 
@@ -203,13 +212,13 @@ class OpcuaGateway:
 
     # ------------------------------------------------------------ events
 
-    def _on_succeeded(self, job_id: str) -> None:
+    def _on_completed(self, job_id: str) -> None:
         task = asyncio.get_running_loop().create_task(self._announce(job_id), name=f"opcua-result-{job_id}")
         self._events.add(task)
         task.add_done_callback(self._events.discard)
 
     async def _announce(self, job_id: str) -> None:
-        """Emit ``ResultReady`` for a job that succeeded."""
+        """Emit ``ResultReady`` for a job that completed."""
         try:
             result = await self.results.result(job_id)
         except (CallRefused, JobError) as e:
