@@ -578,9 +578,9 @@ class JobConfig(_Strict):
     )
     calibration_file: Path | None = None
     part_number: str | None = Field(
-        None, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$", description="the measured part's number; empty: the "
-        "inspection template's")
-    serial: str | None = Field(None, max_length=64, pattern=r"^[A-Za-z0-9_.:/-]+$",
+        None, min_length=1, max_length=200, description="the measured part's number (a job's request); empty: "
+        "the inspection template's")
+    serial: str | None = Field(None, min_length=1, max_length=200,
                                description="the measured part's serial number (a job's request, `--serial`)")
     max_scans_left_out: int | None = Field(
         3, ge=0, description="a daemon job that would leave out more scans than this (the tracker cannot see the "

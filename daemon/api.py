@@ -20,12 +20,12 @@ from tandemscan.daemon.api_guard import GuardBody
 from tandemscan.daemon.console.router import router as console_router
 from tandemscan.daemon.facade import ServiceFacade
 from tandemscan.daemon.metrics import RequestTimer
-from tandemscan.daemon.routers import cell, events, files, health, jobs
+from tandemscan.daemon.routers import cell, events, files, health, jobs, parts
 
 if TYPE_CHECKING:
     from tandemscan.daemon.service import Daemon
 
-ROUTERS = (jobs.router, files.router, cell.router, health.router, events.router, console_router)
+ROUTERS = (jobs.router, files.router, parts.router, cell.router, health.router, events.router, console_router)
 
 
 def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:

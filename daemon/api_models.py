@@ -165,3 +165,49 @@ def job_body(job: JobRecord, steps_done: int) -> Job:
                progress=job.progress, current_step=job.current_step, steps_total=job.n_steps,
                steps_done=steps_done, figures=job.figures, error=job.error, attempts=job.attempts,
                created=_ts(job.created_s), started=_ts(job.started_s), finished=_ts(job.finished_s), links=links)
+
+
+class TrendPoint(BaseModel):
+    """One serial's result of a characteristic (mm; ``actual_mm`` null where it was not measured)."""
+
+    serial: str | None
+    job: str
+    measured: datetime
+    actual_mm: float | None
+    status: str
+
+
+class CharacteristicTrend(BaseModel):
+    """A characteristic's last results over serials and their individuals chart (mm): mean, standard
+    deviation, control limits (mean +/- 3 moving range / 1.128), Cp/Cpk (within) and Pp/Ppk (overall), and
+    why it drifts ("" when it does not; docs/inspection.md, "Trends")."""
+
+    part_number: str
+    characteristic: str
+    name: str
+    lower_mm: float
+    upper_mm: float
+    points: list[TrendPoint]
+    mean_mm: float | None
+    std_mm: float | None
+    sigma_within_mm: float | None
+    ucl_mm: float | None
+    lcl_mm: float | None
+    cp: float | None
+    cpk: float | None
+    pp: float | None
+    ppk: float | None
+    drift: str
+
+
+def trend_body(trend) -> CharacteristicTrend:
+    """The wire form of a :class:`~tandemscan.daemon.part_results.Trend`."""
+    c = trend.chart
+    chart = {k: getattr(c, k) if c is not None else None
+             for k in ("mean_mm", "std_mm", "sigma_within_mm", "ucl_mm", "lcl_mm", "cp", "cpk", "pp", "ppk")}
+    return CharacteristicTrend(
+        part_number=trend.part_number, characteristic=trend.characteristic, name=trend.name,
+        lower_mm=trend.lower_mm, upper_mm=trend.upper_mm,
+        points=[TrendPoint(serial=m.serial, job=m.job_id, measured=_ts(m.measured_s), actual_mm=m.actual_mm,
+                           status=m.status) for m in trend.series],
+        drift=c.drift if c is not None else "", **chart)

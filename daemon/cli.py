@@ -102,6 +102,10 @@ def _load_config_with_overrides(args: argparse.Namespace) -> CellConfig:
     if calibration is not None:
         job = config.job.model_copy(update={"installation_source": "calibration", "calibration_file": calibration})
         config = config.model_copy(update={"job": job})
+    identity = {k: v for k, v in (("serial", getattr(args, "serial", None)),
+                                  ("part_number", getattr(args, "part_number", None))) if v}
+    if identity:
+        config = config.model_copy(update={"job": config.job.model_copy(update=identity)})
     resolution = getattr(args, "resolution", None)
     if resolution is not None:
         scanner = config.scanner.model_copy(update={"resolution": resolution})
@@ -336,7 +340,7 @@ def cmd_job(args: argparse.Namespace) -> int:
     try:
         with _client(args) as client:
             if args.verb == "submit":
-                job = client.submit(args.plan, args.label, args.idempotency_key)
+                job = client.submit(args.plan, args.label, args.idempotency_key, args.part_number, args.serial)
                 Console().print(job["id"])
                 return _watch(client, job["id"]) if args.watch else 0
             if args.verb == "watch":
@@ -377,6 +381,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, help="output folder (default: job.out_dir of the config)")
     p.add_argument("--calibration", type=Path, help="calibration file from `tandemscan calibrate` (sets "
                    "job.installation_source = calibration)")
+    p.add_argument("--serial", help="the measured part's serial number (report, results.qif)")
+    p.add_argument("--part-number", help="the measured part's number (default: its inspection template's)")
     p.set_defaults(func=cmd_measure)
 
     p = sub.add_parser("serve", help="run the daemon with its REST API")
@@ -398,6 +404,8 @@ def build_parser() -> argparse.ArgumentParser:
     v = verbs.add_parser("submit", help="queue a job (the default plan unless --plan)")
     v.add_argument("--plan", help="a plan name from /v1/plans")
     v.add_argument("--label", help="free text for the MES")
+    v.add_argument("--part-number", help="the part's number (OPC UA ProductId; trends are kept per part number)")
+    v.add_argument("--serial", help="the part's serial number")
     v.add_argument("--idempotency-key", help="retry-safe key")
     v.add_argument("--watch", action="store_true", help="then follow it with a progress bar")
     for name in ("watch", "cancel", "pause", "resume"):

@@ -72,8 +72,10 @@ class DaemonClient:
     def job(self, job_id: str) -> dict:
         return self._call("GET", f"/v1/jobs/{job_id}")
 
-    def submit(self, plan: str | None = None, label: str | None = None, idempotency_key: str | None = None) -> dict:
-        body = {k: v for k, v in (("plan", plan), ("label", label)) if v is not None}
+    def submit(self, plan: str | None = None, label: str | None = None, idempotency_key: str | None = None,
+               part_number: str | None = None, serial_number: str | None = None) -> dict:
+        body = {k: v for k, v in (("plan", plan), ("label", label), ("part_number", part_number),
+                                  ("serial_number", serial_number)) if v is not None}
         headers = {"Idempotency-Key": idempotency_key} if idempotency_key else {}
         return self._call("POST", "/v1/jobs", json=body, headers=headers)
 

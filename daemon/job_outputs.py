@@ -31,6 +31,7 @@ from tandemscan.config.loader import ConfigError
 from tandemscan.config.models import CellConfig
 from tandemscan.daemon.calibration_state import verdict_context
 from tandemscan.daemon.job_report import add_ground_truth, build_job_report
+from tandemscan.daemon.part_results import HISTORY_FILE
 from tandemscan.pipeline.geometry.frames import transform_points
 from tandemscan.pipeline.geometry.part import load_part_mesh
 from tandemscan.pipeline.inspection.inspect import InspectionError
@@ -248,6 +249,7 @@ def _inspect(job: JobSnapshot, report: dict, scans: list[PosedScan], cloud_W: np
         json_name=None,
         template=template,
         part=part_identity(job.config, template, template_file),
+        history=_history(job_dir),
         uncertainty=job_uncertainty(job, scans, counts),
         context=verdict_context(job),
         coverage=plan_coverage(job, mesh),
@@ -261,6 +263,13 @@ def plan_coverage(job: JobSnapshot, mesh: o3d.geometry.TriangleMesh | None = Non
         return CoverageFigures(job.plan.coverage_pct, tuple(job.plan.left_out))
     return CoverageFigures.of_plan(job.plan, mesh, job.config.scanner.sweet_spot_mm,
                                    math.radians(job.config.planning.incidence_limit_deg))
+
+
+def _history(job_dir: Path) -> dict:
+    """The part's earlier results the daemon put in the job's folder (``part_results.HISTORY_FILE``), by
+    characteristic; none for a job run without the daemon."""
+    path = job_dir / HISTORY_FILE
+    return json.loads(path.read_text())["characteristics"] if path.is_file() else {}
 
 
 def part_identity(config: CellConfig, template: InspectionTemplate | None, template_file: Path | None

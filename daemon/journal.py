@@ -18,6 +18,7 @@ from typing import TypeVar
 from tandemscan.config.models import CellConfig
 from tandemscan.daemon.coordinate_transfer import return_from_transfer
 from tandemscan.daemon.job_context import JobContext
+from tandemscan.daemon.part_results import prepare_part, record_part
 from tandemscan.daemon.runner import JobProgress, JobRunner
 from tandemscan.daemon.session import CellSession
 from tandemscan.daemon.stitcher import ProcessWorldMap
@@ -83,7 +84,8 @@ async def run_journaled(ctx: JobContext) -> dict:
         log.info("job %s resumes at step %d of %d", ctx.job.id, min(set(range(len(plan.steps))) - set(ctx.committed),
                                                                       default=len(plan.steps)), len(plan.steps))
     worldmap = await asyncio.to_thread(ProcessWorldMap, ctx.config.job.voxel_mm, ctx.config.daemon.worker_niceness)
-    runner = JobRunner(ctx.session, plan, ctx.config, job_dir, journal.on_progress, journal, worldmap,
+    config = await asyncio.to_thread(prepare_part, ctx.config, ctx.job.plan, job_dir, ctx.store.state_dir)
+    runner = JobRunner(ctx.session, plan, config, job_dir, journal.on_progress, journal, worldmap,
                        ctx.config.job.max_scans_left_out)
     try:
         result = await runner.run()
@@ -97,6 +99,7 @@ async def run_journaled(ctx: JobContext) -> dict:
                                     "scans_left_out": result.report["relocalisation"]["untracked"]}
     await asyncio.to_thread(lambda: ctx.store.write_artifact(ctx.job.id, "report.json",
                                                              json.dumps(report, indent=1).encode()))
+    await asyncio.to_thread(record_part, ctx.store.state_dir, ctx.job.id, report)
     figures = {k: report[k] for k in _FIGURE_KEYS if k in report} | {"scans_left_out": len(report["scans_left_out"])}
     truth = report.get("ground_truth") or {}
     figures |= {k: truth[k] for k in _TRUTH_KEYS if k in truth}

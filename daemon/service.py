@@ -38,6 +38,7 @@ from tandemscan.daemon.jobs import JobManager, RetryPolicy, Runner
 from tandemscan.daemon.journal import journaled_abandon, run_journaled
 from tandemscan.daemon.metrics import DaemonCollector, timing_histograms
 from tandemscan.daemon.notify import Notifier
+from tandemscan.daemon.part_results import PartResults
 from tandemscan.daemon.plans import PlanCatalog, part_check
 from tandemscan.daemon.session import CellSession
 from tandemscan.daemon.store import JobStore
@@ -146,6 +147,7 @@ class Daemon:
         self.version = _package_version()
         self.state_dir = Path(state_dir)
         self.store = open_state(self.state_dir)
+        self.part_results = PartResults(self.state_dir)  # characteristics by part number and serial
         self.bus = EventBus()
         self.registry = CollectorRegistry()
         self.lag_histogram, lateness_histogram = timing_histograms(self.registry)
@@ -193,6 +195,7 @@ class Daemon:
         await cancel_and_wait(*self._tasks)
         self._tasks.clear()
         await asyncio.to_thread(self.store.close)
+        await asyncio.to_thread(self.part_results.close)
 
     async def _lag_monitor(self, period_s: float = 0.05) -> None:
         """Record how late the event loop wakes a sleeper (s): a blocked loop shows here first."""

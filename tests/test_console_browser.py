@@ -349,6 +349,10 @@ def test_finished_job_shows_verdict_links_and_a_3d_view_that_draws(cell, browser
     assert report.status_code == 200 and "Inspection report" in report.text
     points = int(browser.find_element(By.ID, "cloud-canvas").get_attribute("data-points"))
     assert 100_000 <= points <= 200_000
+    # the default part's template: its characteristics over serials, this job the first
+    wait(browser, lambda d: d.find_element(By.ID, "trend-svg").get_attribute("data-points"), 20)
+    assert int(browser.find_element(By.ID, "trend-svg").get_attribute("data-points")) >= 1
+    assert "serials, mean" in text(browser, "trend-text")
     ticks = text(browser, "colour-ticks")
     assert "-0.30" in ticks and "-0.10" in ticks and "+0.10" in ticks and "+0.30" in ticks
 

@@ -1,10 +1,12 @@
 """Figures of a quality engineer's report beside the colour maps: a section's deviation curve with its
-tolerance band, and a close-up of each deviation area with its surroundings (on a 4 m panel a 60 mm area is
-a few pixels of the whole-part map). Frame F, millimetres; matplotlib's Agg canvas, no pyplot state.
+tolerance band, a characteristic's trend over serials, and a close-up of each deviation area with its
+surroundings (on a 4 m panel a 60 mm area is a few pixels of the whole-part map). Frame F, millimetres;
+matplotlib's Agg canvas, no pyplot state.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,6 +17,7 @@ from tandemscan.pipeline.inspection.alignment import within
 from tandemscan.pipeline.inspection.characteristics import CharacteristicResult
 from tandemscan.pipeline.inspection.deviation_areas import DeviationArea
 from tandemscan.pipeline.inspection.deviation_maps import DEVIATION_CMAP, png_bytes
+from tandemscan.pipeline.inspection.spc import ControlChart
 
 CLOSEUP_PX = 360  # a close-up's raster, pixels a side
 CLOSEUP_MIN_RADIUS_MM = 40.0  # a close-up shows at least this far around an area's centroid
@@ -99,3 +102,24 @@ def closeup(area: DeviationArea, points_mm: np.ndarray, deviations_mm: np.ndarra
         bar.ax.axhline(lim, color="black", lw=1.0)
     beyond = int(np.count_nonzero((d > upper_mm) | (d < lower_mm)))
     return CloseUp(area.id, png_bytes(fig), int(len(d)), beyond, tuple(map(float, centre)), float(radius))
+
+
+def trend_png(c: CharacteristicResult, serials: Sequence[str], chart: ControlChart) -> bytes:
+    """A characteristic's individuals chart over serials (the last one this inspection's): the values, the
+    centre line, the control limits and the tolerance (mm)."""
+    x = np.arange(len(chart.values))
+    fig = Figure(figsize=(8.0, 3.0), dpi=100)
+    ax = fig.add_axes((0.09, 0.25, 0.88, 0.62))
+    ax.plot(x, chart.values, "o-", color="#1d3fbf", ms=4, lw=1.0, label="actual")
+    ax.axhline(chart.mean_mm, color="#444444", lw=1.0, label=f"mean {chart.mean_mm:+.3f}")
+    for v in (chart.ucl_mm, chart.lcl_mm):
+        ax.axhline(v, color="#d7261e", lw=1.0, ls="--")
+    for v in (c.lower_mm, c.upper_mm):
+        ax.axhline(v, color="#2fbf4a", lw=1.2)
+    ax.set_xticks(x, list(serials), rotation=45, fontsize=7, ha="right")
+    ax.set_ylabel(f"{c.id} actual, mm")
+    cpk = "" if chart.cpk is None else f", Cpk {chart.cpk:.2f}"
+    ax.set_title(f"{c.id} {c.name} over {len(x)} serials{cpk}{': ' + chart.drift if chart.drift else ''}",
+                 fontsize=9)
+    ax.legend(loc="upper left", fontsize=7)
+    return png_bytes(fig)

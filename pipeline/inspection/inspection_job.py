@@ -81,6 +81,7 @@ def run_inspection(
     overlap: Future | None = None,
     template: InspectionTemplate | None = None,
     part: Mapping[str, str] | None = None,
+    history: Mapping[str, Sequence[Mapping]] | None = None,
     uncertainty: UncertaintyModel | None = None,
     context: VerdictContext | None = None,
     coverage: CoverageFigures | None = None,
@@ -92,6 +93,7 @@ def run_inspection(
     :func:`overlap_quality`, being computed (else it is started here, while the cloud is inspected);
     ``template``: the part's characteristics, evaluated and reported first and written as ``results.qif``;
     ``part``: its part number, serial, template file and measuring system, as the report and the QIF name them;
+    ``history``: the part's earlier serials' results per characteristic (``report.build_report``);
     ``uncertainty``: what knows the points' uncertainty (None: the cloud states none, U = 0) and ``context``
     the installation and verification the verdict is made in (``verdict.judge``); ``coverage``: the job's
     plan's (``report.build_report``)."""
@@ -120,7 +122,7 @@ def run_inspection(
         report = build_report(
             result, surface, cfg, title=title, meta=meta, accuracy=accuracy,
             scans_before=scans_before, scans_after=scans_after, alignment=alignment, overlap=overlap,
-            characteristics=characteristics, part=part, coverage=coverage,
+            characteristics=characteristics, part=part, history=history, coverage=coverage,
         )
         html, js = write_report(report, out_dir, json_name)
     qif = None if template is None else write_results(

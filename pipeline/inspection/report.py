@@ -20,7 +20,7 @@ import jinja2
 import numpy as np
 from tandemscan.config.models import InspectionConfig
 from tandemscan.pipeline.inspection.alignment import Alignment
-from tandemscan.pipeline.inspection.characteristic_figures import CloseUp, closeup, section_png
+from tandemscan.pipeline.inspection.characteristic_figures import CloseUp, closeup, section_png, trend_png
 from tandemscan.pipeline.inspection.characteristics import CharacteristicResult
 from tandemscan.pipeline.inspection.deviation_maps import (
     STANDARD_VIEWS,
@@ -35,6 +35,7 @@ from tandemscan.pipeline.inspection.deviation_maps import (
     typical_spacing,
 )
 from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionResult
+from tandemscan.pipeline.inspection.spc import individuals_chart
 from tandemscan.pipeline.inspection.stitch_quality import PAIR_SAMPLE, overlap_quality, stitching_png
 from tandemscan.pipeline.planning.coverage import CoverageFigures
 
@@ -121,6 +122,7 @@ def build_report(
     overlap: Future | None = None,
     characteristics: Sequence[CharacteristicResult] = (),
     part: Mapping[str, str] | None = None,
+    history: Mapping[str, Sequence[Mapping]] | None = None,
     coverage: CoverageFigures | None = None,
 ) -> Report:
     """Render the figures and collect the numbers of one inspection.
@@ -132,7 +134,9 @@ def build_report(
     it came in that frame). The deviation areas are labelled on every map (``#id`` at the centroid).
     ``overlap``: the scans' :func:`overlap_quality` where it is being computed already.
     ``characteristics``: the template's, evaluated (:mod:`tandemscan.pipeline.inspection.characteristics`),
-    which the report leads with; ``part``: its template, part number and serial. ``coverage``: what the job's
+    which the report leads with; ``part``: its template, part number and serial; ``history``: per
+    characteristic id the part's earlier serials' results (``serial``, ``actual_mm``), oldest first, whose
+    trend the report shows for the characteristics that fail or drift. ``coverage``: what the job's
     plan covers and leaves out, reported with the share of it the cloud measured (``data["coverage"]``).
     """
     cfg = cfg or InspectionConfig()
@@ -162,7 +166,8 @@ def build_report(
                 png = deviation_map_png(surface, p[keep], d[keep], view, tol, norm, cfg.map_width_px, title_,
                                         n[keep], spacing, ours)
                 split.append(ReportFigure(f"{label}-deviation", title_, png))
-    quality = quality_figures(result, characteristics, tol, norm)
+    trends = trend_figures(characteristics, history or {}, part or {})
+    quality = quality_figures(result, characteristics, tol, norm) + [f for f, _ in trends]
     figures = quality + maps + [coverage_map] + split
     hist = histogram_png(result.deviations_mm, result.stats, tol, norm)
     caption = "Deviation histogram with the tolerance band (the outer bins collect the 0.1 % tails)"
@@ -185,6 +190,7 @@ def build_report(
         **inspection_summary(result, alignment),
         "part": dict(part or {}),
         "characteristics": [c.summary() for c in characteristics],
+        "trends": [t for _, t in trends],
         **({} if coverage is None else {"coverage": coverage.with_measured(surface.mesh, measured).as_dict()}),
         "closeups": [dict(c.summary(), figure=f"figures/closeup-{c.area_id}.png") for c in closeups_of(quality)],
         "accuracy": _plain(dict(accuracy or {})),
@@ -216,6 +222,25 @@ def quality_figures(result: InspectionResult, characteristics: Sequence[Characte
         c = closeup(a, result.points_mm, result.deviations_mm, result.cad_normals, tol.lower_mm, tol.upper_mm, norm)
         out.append(CloseUpFigure(f"closeup-{a.id}", f"Close-up of deviation area #{a.id} and its surroundings "
                                  f"({c.points} points, {c.beyond_band} beyond the band)", c.png, c))
+    return out
+
+
+def trend_figures(characteristics: Sequence[CharacteristicResult], history: Mapping[str, Sequence[Mapping]],
+                  part: Mapping[str, str]) -> list[tuple[ReportFigure, dict]]:
+    """(figure, figures) of the trend over serials of each characteristic that fails or whose individuals
+    chart, with this inspection's value last, drifts (:func:`individuals_chart`)."""
+    out = []
+    for c in characteristics:
+        earlier = [h for h in history.get(c.id, ()) if h.get("actual_mm") is not None]
+        if not earlier or not np.isfinite(c.actual_mm):
+            continue
+        chart = individuals_chart([h["actual_mm"] for h in earlier] + [c.actual_mm], c.lower_mm, c.upper_mm)
+        if c.status != "fail" and not chart.drift:
+            continue
+        serials = [str(h.get("serial") or "?") for h in earlier] + [str(part.get("serial") or "this")]
+        figure = ReportFigure(f"trend-{c.id}", f"{c.id} {c.name}: trend over {len(serials)} serials", trend_png(
+            c, serials, chart))
+        out.append((figure, {"id": c.id, "serials": serials} | chart.summary()))
     return out
 
 

@@ -229,6 +229,10 @@ async function submitJob(event) {
   const body = { plan: $("plan-select").value };
   const label = $("label-input").value.trim();
   if (label) body.label = label;
+  const partNumber = $("part-input").value.trim();
+  if (partNumber) body.part_number = partNumber;
+  const serial = $("serial-input").value.trim();
+  if (serial) body.serial_number = serial;
   await act(async () => {
     const job = await api("POST", "/v1/jobs", body);
     $("label-input").value = "";
@@ -337,6 +341,7 @@ async function openResult(jobId) {
   $("verdict").textContent = verdict.text;
   $("verdict").className = `verdict ${verdict.pass ? "pass" : "fail"}`;
   renderFigures($("result-figures"), job.figures);
+  await showTrends(report);
   $("result-panel").scrollIntoView({ block: "start" });
   $("view-status").textContent = "loading the cloud...";
   if (!COMPLETED.includes(job.state)) {
@@ -349,6 +354,50 @@ async function openResult(jobId) {
   $("view-status").textContent = `${info.points.toLocaleString()} of ${info.points_total.toLocaleString()} points` +
     ` (frame ${info.frame}); drag to turn, wheel or pinch to zoom`;
   $("cloud-canvas").dataset.points = String(info.points);
+}
+
+// ------------------------------------------------------------------ a characteristic over serials
+
+async function showTrends(report) {
+  const ins = report && report.inspection;
+  const part = ins && ins.part && ins.part.part_number;
+  const chars = (ins && ins.characteristics) || [];
+  $("trend-box").hidden = !part || !chars.length;
+  if ($("trend-box").hidden) return;
+  const select = $("trend-select");
+  select.replaceChildren(...chars.map((c) => new Option(`${c.id} ${c.name} (${c.status})`, c.id)));
+  const failing = chars.find((c) => c.status === "fail");
+  select.value = (failing || chars[0]).id;
+  select.onchange = () => act(() => drawTrend(part, select.value));
+  await drawTrend(part, select.value);
+}
+
+async function drawTrend(part, id) {
+  const t = await api("GET", `/v1/parts/${encodeURIComponent(part)}/characteristics/${encodeURIComponent(id)}/trend`);
+  const svg = $("trend-svg");
+  const w = Number(svg.getAttribute("width")), h = Number(svg.getAttribute("height")), pad = 28;
+  const pts = t.points.filter((p) => p.actual_mm !== null);
+  const ys = [...pts.map((p) => p.actual_mm), t.lower_mm, t.upper_mm, t.ucl_mm ?? 0, t.lcl_mm ?? 0];
+  const lo = Math.min(...ys), hi = Math.max(...ys), span = hi - lo || 1;
+  const x = (i) => pad + (i * (w - 2 * pad)) / Math.max(pts.length - 1, 1);
+  const y = (v) => h - pad - ((v - lo) / span) * (h - 2 * pad);
+  const line = (v, colour, dash) => svgElement("line", { x1: pad, x2: w - pad, y1: y(v), y2: y(v), stroke: colour,
+    "stroke-dasharray": dash, "stroke-width": 1 });
+  svg.replaceChildren(line(t.lower_mm, "#2fbf4a", ""), line(t.upper_mm, "#2fbf4a", ""));
+  if (t.mean_mm !== null) svg.append(line(t.mean_mm, "#444", ""), line(t.ucl_mm, "#d7261e", "4 3"),
+    line(t.lcl_mm, "#d7261e", "4 3"));
+  svg.append(svgElement("polyline", { points: pts.map((p, i) => `${x(i)},${y(p.actual_mm)}`).join(" "),
+    fill: "none", stroke: "#1d3fbf", "stroke-width": 1.5 }));
+  pts.forEach((p, i) => {
+    const dot = svgElement("circle", { cx: x(i), cy: y(p.actual_mm), r: 3, class: "trend-point",
+      fill: p.status === "fail" ? "#d7261e" : "#1d3fbf" });
+    dot.append(svgElement("title", {}, `${p.serial ?? p.job}: ${p.actual_mm.toFixed(3)} mm, ${p.status}`));
+    svg.append(dot);
+  });
+  svg.dataset.points = String(pts.length);
+  const f = (v, d = 3) => (v === null ? "-" : v.toFixed(d));
+  $("trend-text").textContent = `${pts.length} serials, mean ${f(t.mean_mm)} mm, std ${f(t.std_mm)} mm, ` +
+    `limits ${f(t.lcl_mm)}..${f(t.ucl_mm)} mm, Cp ${f(t.cp, 2)}, Cpk ${f(t.cpk, 2)}` + (t.drift ? `; ${t.drift}` : "");
 }
 
 function renderColourBar(info) {
