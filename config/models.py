@@ -625,6 +625,9 @@ class CorrectionConfig(_Strict):
     icp_max_points: int = Field(8000, ge=100, description="overlaps are thinned evenly to this many points per cloud")
     icp_max_distance_mm: float = Field(2.0, gt=0, description="point-to-plane ICP correspondence distance, mm")
     icp_iterations: int = Field(50, ge=1, description="ICP iterations per level of the coarse-to-fine schedule")
+    job_pair_iterations: int = Field(
+        5, ge=1, description="the same for the job's pairs (from the tracker stitch): later iterations only slid "
+        "along smooth overlaps, the pose error no lower at 50 (docs/compute.md, benchmarks/pair_kernel.py)")
     global_voxel_fraction: float = Field(
         0.02, gt=0, lt=1, description="FPFH + RANSAC voxel edge, share of the target's bounding-box diagonal"
     )

@@ -29,11 +29,14 @@ class ComputeBackend(Protocol):
 
 
 class LocalBackend:
-    """The units on one thread per core of this process."""
+    """The units on ``threads`` threads of this process (default one per core)."""
+
+    def __init__(self, threads: int | None = None):
+        self.threads = threads
 
     def map(self, fn: Callable[[Any], Any], units: Sequence[Any], keys: Sequence[str]) -> list:
         """``[fn(u) for u in units]``, in order (``keys`` are not needed here)."""
-        with pair_threads() as thread_map:
+        with pair_threads(self.threads) as thread_map:
             return thread_map(fn, units)
 
     def close(self) -> None:

@@ -212,14 +212,16 @@ MIN_LEVEL_POINTS = 10
 
 
 def icp_coarse_to_fine(
-    source_mm: ArrayLike, target: TargetCloud, init: ArrayLike, schedule: FineSchedule
+    source_mm: ArrayLike, target: TargetCloud, init: ArrayLike, schedule: FineSchedule,
+    source_tree: cKDTree | None = None,
 ) -> IcpResult:
     """Point-to-plane ICP of ``source`` onto ``target`` (with normals) from ``init``, re-selecting the overlap
     as the estimate improves: at each level of ``schedule`` the overlap within the level's distance is
     extracted afresh at the current estimate (both clouds), and ICP runs on it with that correspondence
-    distance. Returns the fit of the whole source at ``schedule.final_mm``."""
+    distance. Returns the fit of the whole source at ``schedule.final_mm``. ``source_tree``: a KD-tree of
+    ``source_mm`` where the caller built one."""
     S = np.asarray(source_mm, float)
-    source_tree = cKDTree(S)
+    source_tree = cKDTree(S) if source_tree is None else source_tree
     M = np.asarray(init, float).copy()
     d = max(schedule.start_mm, schedule.final_mm)
     for _ in range(schedule.max_levels):

@@ -3,7 +3,7 @@
 As each scan is stitched (its points in the scanner frame S, its tracker pose ``T_W_S`` in the world W, mm),
 :class:`OnlinePairs` finds its possible partners among the scans already measured
 (``overlap.PairSelector``: a superset of the pairs ``overlap.overlapping_pairs`` selects over the whole job)
-and registers those pairs as the correction would (``correction.register_stitched_pair``), keeping each
+and registers those pairs as the correction would (``pair_stage.register_stitched_pair``, one pair a core), keeping each
 outcome under ``correction.pair_key``; with ``[correction] joint`` it also prepares each scan for the joint
 refinement (``correction.joint_scan``: thinned, with normals) under ``correction.joint_scan_key`` and finds the
 nearest neighbours of its pairs there at the tracker poses (``joint.associate``: the refinement's association,
@@ -40,6 +40,7 @@ from tandemscan.pipeline.registration.joint import Association, JointScan, assoc
 from tandemscan.pipeline.registration.overlap import PairSelector
 from tandemscan.pipeline.registration.pair_stage import PairOutcome, register_stitched_pair
 from tandemscan.pipeline.registration.pairs import NETWORK_METHODS
+from tandemscan.pipeline.registration.parallel import pair_threads
 from tandemscan.pipeline.registration.pose_graph import TransferPrior
 from tandemscan.pipeline.registration.sampling import voxel_downsample
 
@@ -123,12 +124,16 @@ class OnlinePairs:
         new = OnlineScan(world, cloud_digest(world), scan)
         partners = self.selector.add(world, scan.station)
         self.scans.append(new)
+        todo = {}  # key -> (target, covariance) of each pair not registered yet
         for i in partners:
             old = self.scans[i]
             cov = pair_covariance(old.scan, scan, transfers)
             key = pair_key(old.digest, new.digest, cov, self.cfg)
-            if key not in self.outcomes:
-                self.outcomes[key] = register_stitched_pair(world, self._target(i), cov, self.cfg)
+            if key not in self.outcomes and key not in todo:
+                todo[key] = self._target(i), cov
+        with pair_threads() as pair_map:  # both cores: each pair has a target of its own
+            self.outcomes |= zip(todo, pair_map(lambda job: register_stitched_pair(world, *job, self.cfg),
+                                                todo.values()), strict=True)
         if self.cfg.joint:
             self._prepare_joint(points_S, scan.T_W_S, scan.station)
         self.cpu_s += time.process_time() - cpu
@@ -147,8 +152,12 @@ class OnlinePairs:
         prepared = self.joint_scans[key] = joint_scan(points_S, self.cfg)
         partners = self._joint_selector.add(transform_points(T_W_S, prepared.points_S), station)
         self._joint_starts.append((key, T_W_S))
+        todo = {}  # association key -> (prepared scan, its KD-tree, relative start pose) of each partner
         for i in partners:
             key_i, T_W_S_i = self._joint_starts[i]
-            self.associations[association_key(key_i, key, T_W_S_i, T_W_S, self.cfg)] = associate(
-                self.joint_scans[key_i], self._tree(i), prepared, invert(T_W_S_i) @ T_W_S,
-                self.cfg.joint_max_distance_mm)
+            todo[association_key(key_i, key, T_W_S_i, T_W_S, self.cfg)] = (
+                self.joint_scans[key_i], self._tree(i), invert(T_W_S_i) @ T_W_S)
+        with pair_threads() as pair_map:
+            self.associations |= zip(todo, pair_map(
+                lambda job: associate(job[0], job[1], prepared, job[2], self.cfg.joint_max_distance_mm),
+                todo.values()), strict=True)

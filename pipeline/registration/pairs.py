@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
+from scipy.spatial import cKDTree
 from tandemscan.config.models import CorrectionConfig, DeepMergeConfig
 from tandemscan.pipeline.geometry.frames import invert, rotation_angle, transform_points
 from tandemscan.pipeline.registration.global_registration import FeatureMatching, fpfh_ransac
@@ -36,7 +37,7 @@ from tandemscan.pipeline.registration.icp import (
     target_with_normals,
     truncated_cost,
 )
-from tandemscan.pipeline.registration.overlap import delta_from_covariance, extract_overlap
+from tandemscan.pipeline.registration.overlap import delta_from_covariance, overlap_at
 from tandemscan.pipeline.registration.sampling import thin_evenly
 
 if TYPE_CHECKING:
@@ -156,6 +157,7 @@ def verify(result: PairRegistration, distance_mm: float, max_cost_increase: floa
 def register_pair(
     source_mm: np.ndarray, target: TargetCloud, method: str, cfg: CorrectionConfig,
     network: Registrar | None, start_distance_mm: float, refine_sigmas: float | None = None,
+    iterations: int | None = None, source_tree: cKDTree | None = None,
 ) -> PairRegistration:
     """``T_target_source`` of a source placed at its start (its pose so far) onto a target with normals, by
     ``method``, verified (:func:`verify`); the fine stage from the start begins at ``start_distance_mm``
@@ -164,15 +166,17 @@ def register_pair(
     method but ``deepmerge``, the network's own answer) is refined at its own correspondence gate
     (:func:`icp.refine_at_gate`, that many sigmas), kept unless that raises its truncated cost at the final
     distance by more than the tie margin, and the fine stage's levels stop at a repeated correspondence set
-    (``FineSchedule.stop_on_repeat``); None (the job's pairs) does neither."""
+    (``FineSchedule.stop_on_repeat``); None (the job's pairs) does neither. ``iterations``: the fine stage's per
+    level (default ``cfg.icp_iterations``); ``source_tree``: a KD-tree of ``source_mm`` where one was built."""
     final = cfg.icp_max_distance_mm
     S = np.asarray(source_mm, float)
     # the refinement settles the end, so the levels stop at a cycle; ``deepmerge`` stays the network's answer
     refining = refine_sigmas is not None and method != "deepmerge"
 
     def fine(M: np.ndarray, start_mm: float) -> IcpResult:
-        return icp_coarse_to_fine(S, target, M, FineSchedule(start_mm, final, cfg.icp_iterations,
-                                                             cfg.icp_max_points, stop_on_repeat=refining))
+        return icp_coarse_to_fine(S, target, M, FineSchedule(start_mm, final, iterations or cfg.icp_iterations,
+                                                             cfg.icp_max_points, stop_on_repeat=refining),
+                                  source_tree)
 
     def network_answer() -> np.ndarray:
         if network is None:
@@ -271,14 +275,17 @@ def correct_pair(
     The whole clouds are registered, the overlap re-selected from them at each level as the fit converges
     (registering only the overlap at the stitch, or onto only the target's overlap, measured worse on the
     simulated job, docs/registration.md); the edge's fit is scored on the source overlap at the stitch,
-    thinned evenly to ``cfg.icp_max_points``.
+    thinned evenly to ``cfg.icp_max_points``. The fine stage runs ``cfg.job_pair_iterations`` a level (from the
+    tracker stitch more only slide along smooth overlaps, docs/compute.md); the source's KD-tree is built once.
     """
     target_W = np.asarray(target.points)
     delta = pair_delta(target_W, cfg, pair_covariance)
-    ov = extract_overlap(source_W, target_W, delta)
+    source_tree = cKDTree(source_W)
+    ov = overlap_at(source_W, source_tree, target_W, target.tree, np.eye(4), delta)
     if ov.size < cfg.min_overlap_points:
         return None
-    reg = register_pair(source_W, target, cfg.method, cfg, network, delta)
+    reg = register_pair(source_W, target, cfg.method, cfg, network, delta, iterations=cfg.job_pair_iterations,
+                        source_tree=source_tree)
     S = source_W[thin_evenly(ov.source_idx, cfg.icp_max_points)]
     fit = evaluate_point_to_plane(S, target, reg.transformation, cfg.icp_max_distance_mm)
     before = evaluate_point_to_plane(S, target, np.eye(4), cfg.icp_max_distance_mm)

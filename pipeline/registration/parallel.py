@@ -17,7 +17,7 @@ PairMap = Callable[[Callable[[Any], Any], Iterable[Any]], list]
 
 
 @contextmanager
-def pair_threads() -> Iterator[PairMap]:
-    """A :data:`PairMap` over one thread per core, for the ``with`` block."""
-    with ThreadPoolExecutor(os.cpu_count() or 1, thread_name_prefix="pairs") as pool:
+def pair_threads(threads: int | None = None) -> Iterator[PairMap]:
+    """A :data:`PairMap` over ``threads`` threads (default one per core), for the ``with`` block."""
+    with ThreadPoolExecutor(threads or os.cpu_count() or 1, thread_name_prefix="pairs") as pool:
         yield lambda fn, items: list(pool.map(fn, items))
