@@ -40,6 +40,7 @@ from clean_exit import clean_exit_on_sigterm
 from job_mounts import add_mounts_option, chosen_mounts, job_config
 from results import publish
 from tandemscan.config import load_config
+from tandemscan.config.inspection_template import shipped_template
 from tandemscan.daemon.plan_cmd import plan_configured_part
 from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.session import CellSession
@@ -168,7 +169,9 @@ async def run(args: argparse.Namespace) -> dict:
         if args.part == "barrel":
             mesh_file = Path(tmp) / "barrel-panel.ply"
             o3d.io.write_triangle_mesh(str(mesh_file), barrel_panel_mesh())
-            config = config.model_copy(update={"part": config.part.model_copy(update={"mesh": mesh_file})})
+            config = config.model_copy(update={"part": config.part.model_copy(update={"mesh": mesh_file}),
+                                               "inspection": config.inspection.model_copy(
+                                                   update={"template": shipped_template("barrel-panel.toml")})})
         t = time.perf_counter()
         mesh, part_plan = plan_configured_part(config, f"whole {args.part}")
         plan_seconds = time.perf_counter() - t
@@ -196,6 +199,8 @@ async def run(args: argparse.Namespace) -> dict:
         "planned_coverage_pct": round(part_plan.coverage.coverage_pct, 2),
         "scans": r["scans"], "scans_planned": r["scans_planned"], "scans_empty": len(r["scans_empty"]),
         "points_cloud": r["points_cloud"], "points_inspected": r.get("inspection", {}).get("meta", {}).get("points"),
+        "characteristics": {c["id"]: [c["status"], round(c["actual_mm"], 4)]
+                            for c in r.get("inspection", {}).get("characteristics", [])},
         "lift_moves": part_plan.summary()["lift_moves"], "transfers": r["transfers"],
         "unresolved_poses": r["relocalisation"]["unresolved_count"],
         "scans_untracked": r["relocalisation"]["untracked_count"],

@@ -155,3 +155,24 @@ def test_report_leads_with_the_characteristics_and_shows_each_area_close_up(tmp_
         rgb = imread(tmp_path / shown["figure"])[..., :3]
         blue = (rgb[..., 2] > 0.6) & (rgb[..., 0] < 0.3) & (rgb[..., 1] < 0.5)
         assert blue.sum() > 200  # the dent's points drawn in the lower colours
+
+
+def test_the_barrel_panel_template_measures_every_characteristic_of_a_panel_on_its_cad():
+    from tandemscan.pipeline.geometry.part import barrel_panel_mesh
+
+    cad = CadSurface(barrel_panel_mesh())
+    V, T = np.asarray(cad.mesh.vertices), np.asarray(cad.mesh.triangles)
+    c = V[T].mean(axis=1)
+    skin = np.asarray(cad.mesh.triangle_normals)[:, 2] > -0.5
+    bands = skin & ((np.abs(c[:, 0]) < 80.0) | (np.abs(c[:, 0] - 1500.0) < 80.0))  # the sections and a crown
+    p = sample_surface(V, T[bands], 0.5, seed=2)
+    p = p[(np.abs(p[:, 0]) < 60.0) | (np.abs(p[:, 0] - 1500.0) < 60.0)]
+    end = sample_surface(V, T[skin & (c[:, 0] > 1999.0) & (np.abs(c[:, 1]) < 2200.0)], 0.3, seed=3)
+    p = np.vstack([p, end[(np.abs(end[:, 1]) < 600.0) & (np.abs(end[:, 2] - 600.0) < 300.0)]])
+    rng = np.random.default_rng(2)
+    p = p + rng.normal(0.0, NOISE_MM, len(p))[:, None] * cad.closest(p).normals
+    cp = cad.closest(p)
+    cloud = MeasuredCloud(p, cp.signed_mm, cp.triangle_ids, np.full(len(p), U_MM), cad)
+    results = evaluate(load_template(shipped_template("barrel-panel.toml")), cloud, DecisionRule())
+    assert [r.status for r in results] == ["pass"] * len(results), [(r.id, r.status, r.actual_mm) for r in results]
+    assert {r.kind for r in results} == {"surface_profile", "flatness", "section"}

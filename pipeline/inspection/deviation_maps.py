@@ -310,7 +310,7 @@ def coverage_map_png(surface: CadSurface, points_mm: np.ndarray | None, view: Vi
     colour = np.where(measured[np.where(on_mesh, ids, 0)][..., None], MEASURED_RGB, NOT_MEASURED_RGB)
     rgb = np.where(on_mesh[..., None], np.clip(shade * colour, 0.0, 1.0), bg.rgb)
     h, w = rgb.shape[:2]
-    fig_w, left, right, bottom, top = 8.0, 0.85, 0.3, 0.6, 0.45  # inches
+    fig_w, left, right, bottom, top = 8.0, 0.85, 0.3, 0.6, 0.7  # inches
     fig = Figure(figsize=(fig_w, bottom + top + (fig_w - left - right) * h / w), dpi=110)
     ax = fig.add_axes((left / fig_w, bottom / fig.get_figheight(), 1 - (left + right) / fig_w,
                        1 - (bottom + top) / fig.get_figheight()))
@@ -318,8 +318,8 @@ def coverage_map_png(surface: CadSurface, points_mm: np.ndarray | None, view: Vi
     (xl, x_sign), (yl, y_sign) = _axis_label(r), _axis_label(u)
     x0, x1, y0, y1 = bg.extent_mm
     ax.imshow(rgb, extent=(x_sign * x0, x_sign * x1, y_sign * y0, y_sign * y1), interpolation="nearest")
-    ax.set_title(f"Coverage of the CAD surface, {view.name}: {share:.1f} % of its area measured "
-                 "(green measured, red not)")
+    ax.set_title(f"Coverage of the CAD surface, {view.name}\n{share:.1f} % of its area measured "
+                 "(green measured, red not)", fontsize=11)  # two lines: whole at any view name
     ax.set_xlabel(xl)
     ax.set_ylabel(yl)
     return png_bytes(fig)
