@@ -1,6 +1,6 @@
 """Errors of the REST API as RFC 9457 problem details (``application/problem+json``).
 
-A handler raises :class:`ApiProblem` (or the job manager a :class:`~tandemscan.daemon.jobs.JobError`, which
+A handler raises :class:`ApiProblem` (or the job manager a :class:`~tandemscan.daemon.jobs.JobRequestError`, which
 carries its status); :func:`install_problem_handlers` answers those, FastAPI's own HTTP and validation errors and
 any unhandled exception (500, logged) with a :class:`~tandemscan.daemon.api_models.Problem` body. See
 docs/daemon.md.
@@ -18,7 +18,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 from tandemscan.daemon.api_models import PROBLEM, Problem
-from tandemscan.daemon.jobs import JobError
+from tandemscan.daemon.jobs import JobRequestError
 
 log = logging.getLogger(__name__)
 
@@ -79,7 +79,7 @@ async def _api(request: Request, exc: ApiProblem) -> JSONResponse:
     return problem(exc.status, exc.title, exc.detail, request.url.path, exc.type)
 
 
-async def _job(request: Request, exc: JobError) -> JSONResponse:
+async def _job(request: Request, exc: JobRequestError) -> JSONResponse:
     return problem(exc.status, title_of(exc.status), str(exc), request.url.path)
 
 
@@ -93,5 +93,5 @@ def install_problem_handlers(app: FastAPI) -> None:
     app.add_exception_handler(StarletteHTTPException, _http)
     app.add_exception_handler(RequestValidationError, _invalid)
     app.add_exception_handler(ApiProblem, _api)
-    app.add_exception_handler(JobError, _job)
+    app.add_exception_handler(JobRequestError, _job)
     app.add_exception_handler(Exception, _crash)

@@ -74,7 +74,7 @@ class ServiceFacade:
         return job_body(job, self.daemon.store.steps_done(job.id))
 
     async def job_record(self, job_id: str) -> JobRecord:
-        """The job as the manager knows it; 404 (:class:`~tandemscan.daemon.jobs.JobError`) when unknown."""
+        """The job as the manager knows it; 404 (:class:`~tandemscan.daemon.jobs.JobRequestError`) when unknown."""
         return await self.read(self.daemon.manager.get, job_id)
 
     async def job_json(self, job_id: str) -> bytes:

@@ -42,7 +42,7 @@ from tandemscan.drivers.tasks import cancel_and_wait
 log = logging.getLogger(__name__)
 
 
-class JobError(Exception):
+class JobRequestError(Exception):
     """A job request cannot be done now (unknown job, wrong state); ``status`` is the HTTP status."""
 
     def __init__(self, message: str, status: int = 409):
@@ -134,7 +134,7 @@ class JobManager:
         try:
             return self.current(self.store.get_job(job_id))
         except StoreError as e:
-            raise JobError(str(e), 404) from e
+            raise JobRequestError(str(e), 404) from e
 
     async def read(self, job_id: str) -> JobRecord:
         """:meth:`get` in a worker thread: the manager's own reads keep SQLite off the event loop."""
@@ -152,7 +152,7 @@ class JobManager:
     async def cancel(self, job_id: str) -> JobRecord:
         job = await self.read(job_id)
         if job.state in FINAL_STATES:
-            raise JobError(f"job {job_id} is already {job.state}")
+            raise JobRequestError(f"job {job_id} is already {job.state}")
         if job.state == JobState.QUEUED:
             return await self._set_state(job_id, JobState.CANCELLED)
         await cancel_and_wait(self._retry_task)
@@ -169,7 +169,7 @@ class JobManager:
     async def pause(self, job_id: str) -> JobRecord:
         job = await self.read(job_id)
         if job.state != JobState.RUNNING:
-            raise JobError(f"job {job_id} is {job.state}; only a running job can be paused")
+            raise JobRequestError(f"job {job_id} is {job.state}; only a running job can be paused")
         self._resume_event(job_id).clear()
         return await self._set_state(job_id, JobState.PAUSED)
 
@@ -177,10 +177,10 @@ class JobManager:
         """Resume a paused job; one paused by a fault starts a new attempt at the step that faulted."""
         job = await self.read(job_id)
         if job.state not in PAUSED_STATES:
-            raise JobError(f"job {job_id} is {job.state}; only a paused job can be resumed")
+            raise JobRequestError(f"job {job_id} is {job.state}; only a paused job can be resumed")
         down = self.supervisor.down_devices()
         if job.state == JobState.PAUSED_FAULT and down:
-            raise JobError(f"cannot resume: devices down: {', '.join(down)} (the job resumes once they are up)")
+            raise JobRequestError(f"cannot resume: devices down: {', '.join(down)} (the job resumes once they are up)")
         if self._retry_task is not None and self._retry_task is not asyncio.current_task():
             await cancel_and_wait(self._retry_task)  # the operator resumes before the retry policy does
         self._retry_task = None
@@ -188,7 +188,7 @@ class JobManager:
             try:
                 await self.supervisor.reset_safety()
             except SafetyStop as e:
-                raise JobError(f"cannot resume: {e.reason}") from e
+                raise JobRequestError(f"cannot resume: {e.reason}") from e
         job = await self._set_state(job_id, JobState.RUNNING)
         self._resume_event(job_id).set()
         self._wake.set()

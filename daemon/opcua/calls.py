@@ -1,6 +1,6 @@
 """Method calls as OPC UA answers: the inputs checked against the method's signature, and a refusal of the service
-facade (an :class:`~tandemscan.daemon.api_errors.ApiProblem` or :class:`~tandemscan.daemon.jobs.JobError` with its
-HTTP status) as a Bad status code with the problem's text (docs/opcua.md, methods).
+facade (an :class:`~tandemscan.daemon.api_errors.ApiProblem` or :class:`~tandemscan.daemon.jobs.JobRequestError` with
+its HTTP status) as a Bad status code with the problem's text (docs/opcua.md, methods).
 
 A refusal answers the status code of its HTTP status (:data:`STATUS_OF_HTTP`) and the text in the method's
 ``Message`` output, so that a client sees why (OPC 10000-4 leaves the outputs of a Bad call empty; asyncua's
@@ -15,7 +15,7 @@ from collections.abc import Awaitable, Callable, Sequence
 from asyncua import ua
 from pydantic import ValidationError
 from tandemscan.daemon.api_errors import ApiProblem
-from tandemscan.daemon.jobs import JobError
+from tandemscan.daemon.jobs import JobRequestError
 
 log = logging.getLogger(__name__)
 
@@ -98,7 +98,7 @@ async def refusals_as_calls(action: Callable[..., Awaitable], *values):
         return await action(*values)
     except ApiProblem as e:
         raise CallRefused(STATUS_OF_HTTP.get(e.status, ua.StatusCodes.BadInternalError), e.detail or e.title) from e
-    except JobError as e:
+    except JobRequestError as e:
         raise CallRefused(STATUS_OF_HTTP.get(e.status, ua.StatusCodes.BadInternalError), str(e)) from e
     except ValidationError as e:
         raise CallRefused(ua.StatusCodes.BadInvalidArgument, "; ".join(err["msg"] for err in e.errors())) from e

@@ -17,7 +17,7 @@ from collections.abc import Callable, Iterable
 from asyncua import Server, ua
 from tandemscan.daemon.facade import ServiceFacade
 from tandemscan.daemon.job_state import COMPLETED_STATES, FINAL_STATES, JobState
-from tandemscan.daemon.jobs import JobError
+from tandemscan.daemon.jobs import JobRequestError
 from tandemscan.daemon.opcua.model import CellNodes
 from tandemscan.daemon.store import Event, JobRecord
 
@@ -87,7 +87,7 @@ class CellFeed:
                 await self.progress(ev.data)
             elif ev.kind == "state" and ev.job_id is not None:
                 await self.state(ev.job_id, ev.data)
-        except JobError as e:  # the job went away between the event and its read: nothing to show
+        except JobRequestError as e:  # the job went away between the event and its read: nothing to show
             log.info("OPC UA feed: %s", e)
         await self.machinery_state()
 

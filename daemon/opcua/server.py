@@ -19,7 +19,7 @@ from asyncua import Server, ua
 from tandemscan.config.models import OpcuaConfig
 from tandemscan.daemon.api_models import JobRequest
 from tandemscan.daemon.facade import ServiceFacade
-from tandemscan.daemon.jobs import JobError
+from tandemscan.daemon.jobs import JobRequestError
 from tandemscan.daemon.opcua.calls import CallRefused, spec_method, text_method
 from tandemscan.daemon.opcua.feed import CellFeed, device_names
 from tandemscan.daemon.opcua.model import CONTROL_METHODS, NAMESPACE_URI, SAFETY_METHODS, CellNodes, build_model
@@ -221,7 +221,7 @@ class OpcuaGateway:
         """Emit ``ResultReady`` for a job that completed."""
         try:
             result = await self.results.result(job_id)
-        except (CallRefused, JobError) as e:
+        except (CallRefused, JobRequestError) as e:
             log.warning("no ResultReady for job %s: %s", job_id, e)
             return
         self._result_ready.event.Result = result
