@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import tempfile
 import time
 from collections.abc import Callable
@@ -39,6 +38,7 @@ import numpy as np
 import open3d as o3d
 import small_gicp
 from clean_exit import clean_exit_on_sigterm
+from results import publish
 from scipy.spatial import cKDTree
 from tandemscan.config import load_config
 from tandemscan.config.models import CorrectionConfig
@@ -234,7 +234,7 @@ def main() -> None:
                 result[name]["speedup_vs_numpy_icp_50"] = round(base / result[name]["seconds_per_pair_mean"], 2)
         if not args.no_stage:
             result["stage"] = stage(job)
-    print(json.dumps(result))
+    publish("pair_kernel", result)
 
 
 if __name__ == "__main__":
