@@ -227,29 +227,27 @@ class AlignmentFailed(InspectionError):
 FREE_RATIO = 1e-5
 
 
-def _scaled(fit: SurfaceFit) -> tuple[np.ndarray, np.ndarray]:
-    """The fit's normal matrix with rotations scaled to millimetres at the points' RMS radius about its centre,
-    and that scale per parameter."""
-    return fit.normal_matrix / np.outer(fit.scale, fit.scale), fit.scale
-
-
-def free_directions(fit: SurfaceFit) -> tuple[np.ndarray, tuple[str, ...]]:
-    """The (6, k) directions ``(t mm, r rad)`` about ``fit.centre_mm`` the measured surface does not fix
-    (:data:`FREE_RATIO`), and each in words: a translation along a unit vector, or a rotation about an axis
-    (through a point, along a unit vector; frame F). A cylinder leaves two (along and about its axis), an
-    extrusion one, a plane three."""
-    Hs, scale = _scaled(fit)
+def _spectrum(fit: SurfaceFit) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Eigenvalues and eigenvectors of the fit's normal matrix with rotations scaled to millimetres at the
+    points' RMS radius about its centre (``fit.scale``), and which of them are free (:data:`FREE_RATIO`)."""
+    Hs = fit.normal_matrix / np.outer(fit.scale, fit.scale)
     lam, V = np.linalg.eigh(0.5 * (Hs + Hs.T))
-    free = V[:, lam < FREE_RATIO * max(float(lam[-1]), 1e-300)] / scale[:, None]
-    if not free.shape[1]:
-        return free, ()
-    U, s, Wt = np.linalg.svd(free[3:], full_matrices=True)  # rotation parts: the pure translations first
-    basis = free @ Wt.T[:, ::-1]
-    rot = np.linalg.norm(basis[3:], axis=0)
+    return lam, V, lam < FREE_RATIO * max(float(lam[-1]), 1e-300)
+
+
+def free_directions(fit: SurfaceFit) -> tuple[str, ...]:
+    """The directions about ``fit.centre_mm`` the measured surface does not fix (:data:`FREE_RATIO`), in words:
+    a translation along a unit vector, or a rotation about an axis (along a unit vector, through a point;
+    frame F). A cylinder leaves two (along and about its axis), an extrusion one, a plane three."""
+    _, V, free = _spectrum(fit)
+    if not free.any():
+        return ()
+    basis = V[:, free] / fit.scale[:, None]  # (t mm, r rad)
+    _, _, Wt = np.linalg.svd(basis[3:], full_matrices=True)
+    basis = basis @ Wt.T[:, ::-1]  # the pure translations first, then rotations with the least translation
     words = []
-    for k in range(basis.shape[1]):
-        t, r = basis[:3, k], basis[3:, k]
-        if rot[k] * fit.scale[3] < 1e-6 * np.linalg.norm(t):
+    for t, r in zip(basis[:3].T, basis[3:].T, strict=True):
+        if np.linalg.norm(r) * fit.scale[3] < 1e-6 * np.linalg.norm(t):
             u = t / np.linalg.norm(t)
             words.append(f"translation along ({u[0]:+.3f}, {u[1]:+.3f}, {u[2]:+.3f})")
             continue
@@ -257,18 +255,16 @@ def free_directions(fit: SurfaceFit) -> tuple[np.ndarray, tuple[str, ...]]:
         through = fit.centre_mm + np.cross(r, t) / float(r @ r)
         words.append(f"rotation about the axis along ({a[0]:+.3f}, {a[1]:+.3f}, {a[2]:+.3f}) through "
                      f"({through[0]:.1f}, {through[1]:.1f}, {through[2]:.1f}) mm")
-    return basis, tuple(words)
+    return tuple(words)
 
 
 def covariance(fit: SurfaceFit) -> np.ndarray:
     """The 6x6 covariance (t mm, r rad; about ``fit.centre_mm``, frame F) of the fitted pose: the residual
     scale squared times the inverse of the normal matrix on the directions the surface fixes, zero on the free
     ones (a motion along them moves no point off the surface, so no deviation; they are held by the prior)."""
-    Hs, scale = _scaled(fit)
-    lam, V = np.linalg.eigh(0.5 * (Hs + Hs.T))
-    fixed = lam >= FREE_RATIO * max(float(lam[-1]), 1e-300)
-    cov_s = (V[:, fixed] / lam[fixed]) @ V[:, fixed].T * fit.sigma_mm**2
-    return cov_s / np.outer(scale, scale)
+    lam, V, free = _spectrum(fit)
+    cov_scaled = (V[:, ~free] / lam[~free]) @ V[:, ~free].T * fit.sigma_mm**2
+    return cov_scaled / np.outer(fit.scale, fit.scale)
 
 
 def _fine_fit(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray, prior_T_F_W: np.ndarray,
@@ -309,12 +305,22 @@ def _global_starts(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray) 
     """The global stage's candidate ``T_F_W``: FPFH features of the cloud (placed by the start) matched by
     RANSAC against points sampled evenly on the CAD surface (:func:`global_registration.fpfh_ransac`), one a
     seed of :data:`GLOBAL_SEEDS`."""
-    mesh = surface.mesh
-    cad = np.asarray(mesh.sample_points_uniformly(int(min(GLOBAL_POINTS, max(1000, mesh.get_surface_area() / 100.0)))
-                                                  ).points)
+    cad = _surface_samples(surface, GLOBAL_POINTS)
     src = F.transform_points(start_T_F_W, p[:: max(1, len(p) // GLOBAL_POINTS)])
     return [fpfh_ransac(src, cad, FeatureMatching(voxel_fraction=GLOBAL_VOXEL_FRACTION, seed=seed)) @ start_T_F_W
             for seed in range(GLOBAL_SEEDS)]
+
+
+def _surface_samples(surface: CadSurface, n: int) -> np.ndarray:
+    """``n`` points (F, mm) spread over the CAD's triangles by their area, the same ones every time."""
+    V, T = np.asarray(surface.mesh.vertices), np.asarray(surface.mesh.triangles)
+    a, b, c = V[T[:, 0]], V[T[:, 1]], V[T[:, 2]]
+    area = np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    rng = np.random.default_rng(0)
+    pick = rng.choice(len(T), n, p=area / area.sum())
+    u = rng.uniform(size=(n, 2))
+    u = np.where(u.sum(axis=1, keepdims=True) > 1.0, 1.0 - u, u)
+    return a[pick] + u[:, :1] * (b[pick] - a[pick]) + u[:, 1:] * (c[pick] - a[pick])
 
 
 def _global_fit(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray, prior_T_F_W: np.ndarray,
@@ -393,7 +399,7 @@ def fit_to_surface(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.n
     fit, how = fits[-1] if costs[-1] < costs[0] * (1.0 - COST_TIE) else fits[0]
     if not fit.converged:
         log.warning("best-fit alignment did not converge in %d iterations", fit.iterations)
-    _, free = free_directions(fit)
+    free = free_directions(fit)
     if free:
         log.warning("the measured surface does not fix %s: held where %s puts it", "; ".join(free), start)
     out = Alignment("best-fit", fit.T_F_M, _robust_sigma(surface, _datum_points(p, fit.T_F_M, cfg), fit.T_F_M, last),
