@@ -63,13 +63,30 @@ class PatchSpec(_Strict):
         return self
 
 
+class DatumFeatureSpec(_Strict):
+    """One feature of a datum reference frame, fitted to a patch (a box) of the measured points and of the
+    CAD: the primary ``plane``, the secondary ``line`` (its plane's intersection with the primary) and the
+    tertiary ``point`` (where its plane meets that line)."""
+
+    feature: Literal["plane", "line", "point"]
+    patch: str
+
+
 class AlignmentSpec(_Strict):
     """How the measured cloud is placed in the CAD frame before the characteristics are evaluated:
     ``best-fit`` over every point or over the points of ``datum_patches`` (boxes); ``rps`` over the reference
-    spheres of ``[inspection]``; ``none`` (the cloud is in the CAD frame already)."""
+    spheres of ``[inspection]``; ``datums``, the datum reference frame of ``datums`` (a plane, a line and a
+    point, in that order) after a best fit; ``none`` (the cloud is in the CAD frame already)."""
 
-    method: Literal["best-fit", "rps", "none"] = "best-fit"
+    method: Literal["best-fit", "rps", "datums", "none"] = "best-fit"
     datum_patches: tuple[str, ...] = ()
+    datums: tuple[DatumFeatureSpec, ...] = ()
+
+    @model_validator(mode="after")
+    def _datums_complete(self) -> AlignmentSpec:
+        if self.method == "datums" and [d.feature for d in self.datums] != ["plane", "line", "point"]:
+            raise ValueError("a datum reference frame is a plane, a line and a point, in that order")
+        return self
 
 
 class _Characteristic(_Strict):
@@ -152,7 +169,7 @@ class InspectionTemplate(_Strict):
 
     @model_validator(mode="after")
     def _patches_known(self) -> InspectionTemplate:
-        named = list(self.alignment.datum_patches)
+        named = [*self.alignment.datum_patches, *(d.patch for d in self.alignment.datums)]
         for c in self.characteristics:
             region = getattr(c, "region", None)
             if region is not None and region.patch is not None:
@@ -167,15 +184,19 @@ class InspectionTemplate(_Strict):
         return self
 
     def inspection_config(self, cfg: InspectionConfig) -> InspectionConfig:
-        """``cfg`` with the template's alignment: its method and, for a best fit over datum patches, those
-        patches as ``[inspection]`` regions named ``datum:NAME`` (boxes only)."""
+        """``cfg`` with the template's alignment: its method (a best fit before ``datums``) and, for a best fit
+        over datum patches, those patches as ``[inspection]`` regions named ``datum:NAME`` (boxes only)."""
         datums = []
         for name in self.alignment.datum_patches:
             patch = self.patches[name]
             if patch.min_mm is None or patch.face_groups:
                 raise ConfigError(f"datum patch {name!r}: a best fit's datum patch is a box (min_mm, max_mm) only")
             datums.append(RegionConfig(name=f"datum:{name}", min_mm=patch.min_mm, max_mm=patch.max_mm))
-        return cfg.model_copy(update={"alignment": self.alignment.method,
+        method = "best-fit" if self.alignment.method == "datums" else self.alignment.method
+        for d in self.alignment.datums:
+            if self.patches[d.patch].min_mm is None:
+                raise ConfigError(f"datum {d.feature} {d.patch!r}: a datum patch is a box (min_mm, max_mm)")
+        return cfg.model_copy(update={"alignment": method,
                                       "regions": (*cfg.regions, *datums),
                                       "datum_regions": tuple(r.name for r in datums)})
 

@@ -27,6 +27,7 @@ from tandemscan.pipeline.geometry.part import PartMeshError, read_mesh_file
 from tandemscan.pipeline.inspection.alignment import Alignment, AlignmentFailed, align
 from tandemscan.pipeline.inspection.cad_orientation import orient
 from tandemscan.pipeline.inspection.characteristics import CharacteristicResult, MeasuredCloud, evaluate
+from tandemscan.pipeline.inspection.datum_frame import DatumPatch, align_datums
 from tandemscan.pipeline.inspection.decision import DecisionRule
 from tandemscan.pipeline.inspection.inspect import (
     CadSurface,
@@ -184,6 +185,11 @@ def align_and_inspect(
                                meta=report.get("meta"))
         html, js = write_report(failed, out_dir, report.get("json_name", "report.json"))
         return InspectionOutputs(None, failed.data, html, js, None)
+    template = report.get("template")
+    if template is not None and template.alignment.method == "datums":
+        alignment = align_datums(surface, p, alignment, [
+            DatumPatch(d.feature, d.patch, template.patches[d.patch].min_mm, template.patches[d.patch].max_mm)
+            for d in template.alignment.datums])
     keep = np.ones(len(p), bool) if alignment.excluded is None else ~alignment.excluded
     T = alignment.T_F_W
     log.info("aligned to CAD by %s: residual %.4f mm, %d points on reference spheres left out",
