@@ -582,6 +582,10 @@ class JobConfig(_Strict):
         "the inspection template's")
     serial: str | None = Field(None, min_length=1, max_length=200,
                                description="the measured part's serial number (a job's request, `--serial`)")
+    resume_pose_tolerance_mm: float = Field(
+        20.0, gt=0, description="a resumed job finds an AGV whose odometry is this far (mm) from where its journal "
+        "left it moved or re-started: the tracker tells which and it is re-localised, or the operator decides")
+    resume_pose_tolerance_deg: float = Field(1.0, gt=0, description="the same for the AGV's heading (deg)")
     max_scans_left_out: int | None = Field(
         3, ge=0, description="a daemon job that would leave out more scans than this (the tracker cannot see the "
         "target after its retries) pauses for the operator instead (paused_fault); resuming leaves that scan out "

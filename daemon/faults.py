@@ -5,8 +5,9 @@
   that faulted (every committed step reused), by the operator or the retry policy once the cell is whole.
 - **storage** (recoverable once space returns): a scan, the journal or an export could not be written (a full
   disk, a read-only or failing file system). The job pauses in ``paused_fault``; the operator resumes it.
-- **operator** (recoverable by the operator): a scan would be left out beyond ``[job] max_scans_left_out``
-  (:class:`TooManyScansLeftOut`). The job pauses in ``paused_fault``; resuming leaves that scan out and goes on.
+- **operator** (recoverable by the operator, :class:`OperatorDecision`): a scan would be left out beyond ``[job]
+  max_scans_left_out``; after a restart the robots are not where the journal left them. The job pauses in
+  ``paused_fault`` (never resumed automatically); the reason says what a resume does.
 - **unrecoverable** (None): anything else, a pose out of reach, a plan this cell cannot run, a bug. The job fails
   with the reason.
 """
@@ -43,8 +44,16 @@ STORAGE_MESSAGE = re.compile("|".join([*(re.escape(os.strerror(e)) for e in sort
 _FULL = re.compile(r"full|free space|no space|quota|requested and \d+ written", re.IGNORECASE)
 
 
-class TooManyScansLeftOut(Exception):
+class OperatorDecision(Exception):
+    """The job cannot go on without the operator (its text says what to look at and what a resume does)."""
+
+
+class TooManyScansLeftOut(OperatorDecision):
     """A scan whose target the tracker cannot see would be left out beyond ``[job] max_scans_left_out``."""
+
+
+class RobotsMovedWhileDown(OperatorDecision):
+    """After a restart the robots are not where the journal left them and the tracker cannot tell which moved."""
 
 
 @dataclass(frozen=True)
@@ -80,9 +89,8 @@ def classify_fault(exc: BaseException) -> JobFault | None:
         full = getattr(exc, "errno", None) in (errno.ENOSPC, errno.EDQUOT) or _FULL.search(str(exc))
         detail = "disk full" if full else "write failed"
         return JobFault("storage", f"storage fault ({detail}): {type(exc).__name__}: {exc}; free space, then resume")
-    if isinstance(exc, TooManyScansLeftOut):
-        return JobFault("operator", f"{exc}; clear the tracker's sight line and resume (that scan is then left out "
-                                    "if the target is still hidden), or cancel")
+    if isinstance(exc, OperatorDecision):
+        return JobFault("operator", str(exc))
     if isinstance(exc, OutOfReach) or not isinstance(exc, DeviceError):
         return None
     if isinstance(exc, (DeviceTimeout, NotConnected, TargetNotVisible, DeviceFault)):

@@ -35,13 +35,15 @@ import numpy as np
 from tandemscan.config.models import CellConfig
 from tandemscan.daemon.agv_relocalisation import AgvRelocalisation
 from tandemscan.daemon.coordinate_transfer import (
+    RESUME_TOLERANCE_DEG,
+    RESUME_TOLERANCE_MM,
     poses_transfer_record,
     read_at_poses,
     readings_before_move,
     reestablish,
     transfer_record,
 )
-from tandemscan.daemon.faults import TooManyScansLeftOut
+from tandemscan.daemon.faults import RobotsMovedWhileDown, TooManyScansLeftOut
 from tandemscan.daemon.installation import installation_for_job
 from tandemscan.daemon.job_records import (
     ArmMove,
@@ -55,6 +57,13 @@ from tandemscan.daemon.job_records import (
 )
 from tandemscan.daemon.motion import Robot
 from tandemscan.daemon.observer import JobObserver
+from tandemscan.daemon.resume_check import (
+    ChassisOff,
+    as_tuple,
+    chassis_off_journal,
+    chassis_pose_of,
+    relocalise_odometry,
+)
 from tandemscan.daemon.run_state import (
     RelocalisationState,
     RunState,
@@ -80,6 +89,9 @@ log = logging.getLogger(__name__)
 #: the journal note of a scan step whose left-out scan paused the job for the operator (the run after the
 #: operator's resume leaves it out)
 PAUSED_FOR_GAPS = "paused_for_gaps"
+#: the journal note of a resumed step whose robots were off the journal and paused the job for the operator (the
+#: run after the operator's resume goes on from where they stand)
+ROBOTS_CHECKED = "robots_checked"
 
 _DESCRIBE = {"move_tracker": "coordinate transfer: moving the tracking robot", "move_measure": "moving the measurement "
              "robot", "move_lift": "moving the lifting column", "move_arm": "moving the arm", "scan": "scanning"}
@@ -250,7 +262,8 @@ class JobRunner:
             await self.journal.note(i, PAUSED_FOR_GAPS, {"reason": reason})
             raise TooManyScansLeftOut(f"step {i} ({label}): the tracker cannot see the target ({reason}); "
                                       f"{left_out} scans left out already, the limit is {self.max_scans_left_out} "
-                                      "([job] max_scans_left_out)")
+                                      "([job] max_scans_left_out); clear the tracker's sight line and resume (that "
+                                      "scan is then left out if the target is still hidden), or cancel")
         log.warning("step %d (%s): scan left out, %s", i, label, reason)
         return UntrackedScan(i, label, reason)
 
@@ -287,20 +300,88 @@ class JobRunner:
             return LiftMove(await robot.lift.move_to(step.height_mm, self.config.lift.timeout_s))
 
     async def _reestablish(self, i: int, step) -> None:
-        """After a restart, before moving anything: a fresh target reading. Where the target has not moved
-        since the last journaled reading and the tracker is not mid-transfer, the two must agree; if not,
-        the tracker was moved while the daemon was down and its frame is re-established from the fresh one
-        (:func:`~tandemscan.daemon.coordinate_transfer.reestablish`)."""
+        """After a restart, before moving anything: a fresh target reading and each AGV's odometry against the
+        journal (:mod:`~tandemscan.daemon.resume_check`). Where both AGVs are where the journal left them and the
+        target has not moved since the last journaled reading, the two readings must agree; if not, the tracker
+        was moved while the daemon was down and its frame is re-established from the fresh one
+        (:func:`~tandemscan.daemon.coordinate_transfer.reestablish`). An AGV off its journaled pose:
+        :meth:`_relocalise_after_restart`. The resume is journaled with what was found."""
         entry: dict = {"step": i, "kind": step.kind}
+        fresh: TrackerReading | None = None
         try:
             fresh = await self.read_target()
         except TargetNotVisible as e:
             entry["fresh_reading"] = f"target not visible: {e.reason}"
             log.warning("resume at step %d: %s", i, entry["fresh_reading"])
-        else:
-            self.state, checked = reestablish(self.state, i, fresh.T_C_T, isinstance(step, MoveTracker))
+        mid_transfer = isinstance(step, MoveTracker)
+        job = self.config.job
+        off = await chassis_off_journal(self.cell, self.plan, self.journal.committed, i,
+                                        mid_transfer and "before" in self.journal.notes(i),
+                                        job.resume_pose_tolerance_mm, job.resume_pose_tolerance_deg)
+        if off:
+            entry["chassis_off_journal"] = {name: o.entry() for name, o in off.items()}
+            entry |= await self._relocalise_after_restart(i, fresh, off)
+        elif fresh is not None:
+            self.state, checked = reestablish(self.state, i, fresh.T_C_T, mid_transfer)
             entry |= checked
         await self.journal.record_resume(i, entry)
+
+    async def _relocalise_after_restart(self, i: int, fresh: TrackerReading | None,
+                                        off: dict[str, ChassisOff]) -> dict:
+        """AGVs off their journaled poses at a resume before step ``i``: where the tracker sees the target where the
+        journal left it (the fresh reading against the last still one, else the measurement AGV located again
+        against its journaled place), their odometry restarted and is set back; where it does not and only one AGV's
+        odometry moved, that one is re-localised (the tracker's frame re-established from the still target, or the
+        measurement AGV located by the tracker); otherwise, once, the operator decides
+        (:class:`~tandemscan.daemon.faults.RobotsMovedWhileDown`) and a resume goes on from where they stand.
+        Returns the resume's journal fields."""
+        unmoved = await self._target_where_journaled(i, fresh)
+        if unmoved:
+            await relocalise_odometry(self.gate, off)
+            log.warning("resume at step %d: %s odometry restarted; set back to the journal's poses", i, sorted(off))
+            return {"odometry_relocalised": sorted(off)}
+        if unmoved is False and list(off) == ["tracking_chassis"] and fresh is not None:
+            self.state, checked = reestablish(self.state, i, fresh.T_C_T, False)
+            if checked.get("reestablished"):
+                return checked | {"relocalised": "tracking_chassis"}
+        if unmoved is False and list(off) == ["measure_chassis"] and self.relocalisation is not None:
+            drive = next(s for s in reversed(self.plan.steps[:i]) if isinstance(s, MoveMeasure))
+            planned = F.planar_pose(drive.x_mm, drive.y_mm, drive.heading_rad)
+            entry = await self.relocalisation.after_drive(i, self.state, planned)
+            if entry.located is not None:  # where the tracker found it in F, its odometry's frame (the plan's)
+                located = chassis_pose_of(entry.T_F_V2)
+                async with self.gate.motion(Robot.MEASURE) as robot:
+                    await robot.chassis.set_odometry(located)
+                self.state = apply(self.state, MeasureMove(as_tuple(located), entry))
+                log.warning("resume at step %d: the measurement AGV was moved while the daemon was down; "
+                            "re-localised %s", i, entry.located)
+                return {"relocalised": "measure_chassis", "located": entry.located}
+        if ROBOTS_CHECKED not in self.journal.notes(i):
+            await self.journal.note(i, ROBOTS_CHECKED, {name: o.entry() for name, o in off.items()})
+            where = "; ".join(f"{name} at ({o.reported.x_mm:.0f}, {o.reported.y_mm:.0f}) mm, the journal left it "
+                              f"at ({o.journaled.x_mm:.0f}, {o.journaled.y_mm:.0f}) mm" for name, o in off.items())
+            raise RobotsMovedWhileDown(f"resume at step {i}: {where}, and the tracker cannot tell which robot moved; "
+                                       "put them back where the journal left them and resume, or cancel")
+        log.warning("resume at step %d: the operator resumed with %s off the journal", i, sorted(off))
+        return {"resumed_by_operator": True}
+
+    async def _target_where_journaled(self, i: int, fresh: TrackerReading | None) -> bool | None:
+        """Whether the tracker sees the target where the journal left it: the fresh reading against the last still
+        one (within the resume tolerance of Eq. 2's check), else the measurement AGV located again against where it
+        was last located (``[job] resume_pose_tolerance_*``); None where neither can be asked."""
+        last = self.state.last_still_T_C_T
+        if fresh is not None and last is not None:
+            d_mm, d_rad = F.pose_error(fresh.T_C_T, last)
+            return bool(d_mm <= RESUME_TOLERANCE_MM and np.degrees(d_rad) <= RESUME_TOLERANCE_DEG)
+        journaled = self.state.relocalisation.T_F_V2
+        if self.relocalisation is None or journaled is None:
+            return None
+        located, reloc = await self.relocalisation.locate(i, self.state)
+        if located is None:
+            return None
+        d_mm, d_rad = F.pose_error(reloc.T_F_V2, journaled)
+        job = self.config.job
+        return bool(d_mm <= job.resume_pose_tolerance_mm and np.degrees(d_rad) <= job.resume_pose_tolerance_deg)
 
     async def _relocate_tracker(self, step: MoveTracker, i: int) -> TrackerRelocation:
         """A tracker move before the first scan: no transfer, W becomes the camera frame where it now stands."""

@@ -142,6 +142,13 @@ class AgvCanChassis:
         self._require_link()
         return self._pose
 
+    async def set_odometry(self, pose: ChassisPose) -> None:
+        """Integrate the wheel odometry on from ``pose`` (mm, rad): a new driver starts at ``[can] odometry_start_*``,
+        so a restarted daemon re-localises it where the journal left the chassis."""
+        self._require_link()
+        log.info("%s: odometry re-localised from %s to %s", self.name, self._pose, pose)
+        self._pose = pose
+
     async def stop(self) -> None:
         """Zero the velocity now (not at the next period) and abort a running :meth:`move_to`."""
         self._latch(SafetyStop(self.name, "stop requested"))

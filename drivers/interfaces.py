@@ -118,6 +118,11 @@ class Chassis(ChassisReadings, Protocol):
         """Drive to ``target`` (odometry frame); returns the odometry pose on arrival."""
         ...
 
+    async def set_odometry(self, pose: ChassisPose) -> None:
+        """Re-localise the odometry: the chassis stands at ``pose`` (mm, rad) in its odometry frame from now on
+        (where the journal left it, once the tracker confirmed it did not move while the daemon was down)."""
+        ...
+
     async def stop(self) -> None:
         """Zero velocity at once (emergency path)."""
         ...

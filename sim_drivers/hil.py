@@ -3,7 +3,9 @@
 Started before the real drivers connect (``[hil] enabled = true``): the JAKA controller and the tracker stream
 on their configured 127.0.0.1 ports, one chassis per configured CAN channel, the Modbus I/O module, and the
 fake harvesters camera. Each emulator moves or reads the world, so a job run through the real drivers can be
-scored against the same ground truth as one run on the twins.
+scored against the same ground truth as one run on the twins; the world's state is saved whenever a robot comes
+to rest, so a restarted daemon finds it where it stopped (the drivers' odometry starts afresh, as a real cell's:
+the resumed job re-localises it, docs/daemon.md).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from tandemscan.sim_drivers.emulators.jaka import JakaBehaviour, JakaEmulator
 from tandemscan.sim_drivers.emulators.safety_modbus import SafetyIoEmulator
 from tandemscan.sim_drivers.emulators.tracker import TrackerStreamEmulator
 from tandemscan.sim_drivers.fake_harvesters import core as fake_harvesters
+from tandemscan.sim_drivers.persist import keep_world_state
 from tandemscan.sim_drivers.world import SimWorld
 
 log = logging.getLogger(__name__)
@@ -44,6 +47,7 @@ class HilEmulators:
         self.config, self.world = config, world
         self.running: dict[str, _Emulator] = {}
         self._sync_task: asyncio.Task | None = None
+        self._moving: dict[str, bool] = {}  # each emulated mover's last report: moving or at rest
 
     def _real(self, role: str) -> bool:
         return getattr(self.config, role).driver == "real"
@@ -108,6 +112,7 @@ class HilEmulators:
     def _arm_moved(self, q_rad: np.ndarray, moving: bool) -> None:
         (self.world.motion.start if moving else self.world.motion.stop)(SimWorld.MEASURE_ROBOT)
         self.world.joints_rad = np.asarray(q_rad, float)
+        self._keep_when_stopped("arm", moving)
 
     def _chassis_mover(self, role: str):
         robot = SimWorld.MEASURE_ROBOT if role == "measure_chassis" else SimWorld.TRACKING_ROBOT
@@ -115,8 +120,16 @@ class HilEmulators:
         def moved(pose: ChassisPose, moving: bool) -> None:
             self.world.chassis[role].true_pose = F.planar_pose(pose.x_mm, pose.y_mm, pose.heading_rad)
             (self.world.motion.start if moving else self.world.motion.stop)(robot)
+            self._keep_when_stopped(role, moving)
 
         return moved
+
+    def _keep_when_stopped(self, mover: str, moving: bool) -> None:
+        """Save the world's state (:func:`~tandemscan.sim_drivers.persist.keep_world_state`) each time ``mover``
+        comes to rest, so that a restarted daemon finds the robots where they stopped, as the twins' cell does."""
+        if self._moving.get(mover) and not moving:
+            keep_world_state(self.world)
+        self._moving[mover] = moving
 
     def _scan_as_buffer(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The world's scan laid out as a one-row image (the fake camera's buffer shape); an empty scan is one

@@ -106,6 +106,11 @@ class SimChassis(_SimDevice):
         self._require_connected()
         return self._truth.odometry
 
+    async def set_odometry(self, pose: ChassisPose) -> None:
+        self._require_connected()
+        self._truth.odometry = pose
+        keep_world_state(self.world)
+
     async def stop(self) -> None:
         self._state = DeviceState.IDLE
 
