@@ -4,7 +4,7 @@ deviation report for any cloud, registered to CAD from where it lies.
 ``register(subparsers)`` adds the sub-command to the main CLI; ``main(argv)`` runs it on its own.
 Bad input ends with one clear error line on stderr and exit status 2; a cloud that cannot be aligned to the
 CAD writes the report of a failed inspection (verdict "indeterminate", the reason) and ends with one line
-and exit status 3 (docs/inspection-method.md, "Alignment").
+``not completed:`` and exit status 5 (docs/cli.md, "Exit status"; docs/inspection-method.md, "Alignment").
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from tandemscan.config import ConfigError, load_config
 from tandemscan.config.inspection_template import load_template
 
 EXIT_BAD_INPUT = 2
-EXIT_NOT_INSPECTED = 3  # the alignment to CAD failed: report.html and report.json say why
+EXIT_NOT_INSPECTED = 5  # the alignment to CAD failed (docs/cli.md: not completed): report.html and report.json say why
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -55,7 +55,7 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the inspection for parsed ``args``; 0 on success, 2 with one error line on bad input, 3 with one
+    """Run the inspection for parsed ``args``; 0 on success, 2 with one error line on bad input, 5 with one
     line where the cloud could not be aligned to the CAD."""
     from tandemscan.pipeline.inspection.inspect import InspectionError  # local: keep `tandemscan --help` fast
     from tandemscan.pipeline.inspection.inspection_job import inspect_files
@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return EXIT_BAD_INPUT
     if outputs.result is None:
-        print(f"{prog}: not inspected: {outputs.data['reason']} (report: {outputs.html})", file=sys.stderr)
+        print(f"{prog}: not completed: {outputs.data['reason']}; the report says why: {outputs.html}", file=sys.stderr)
         return EXIT_NOT_INSPECTED
     s, t, a = outputs.result.stats, outputs.result.tolerance, outputs.data["alignment"]
     print(

@@ -127,8 +127,8 @@ def test_a_cylinder_leaves_its_axis_free_named_and_held_by_the_prior():
 
 
 def test_a_cloud_far_from_its_cad_fails_with_the_reason(tmp_path, capsys):
-    """``tandemscan inspect`` of a cloud that is not on its CAD: exit 3, one line, and a report.html and
-    report.json whose verdict is "indeterminate" with the reason."""
+    """``tandemscan inspect`` of a cloud that is not on its CAD: one line "not completed", exit 5, and a
+    report.html and report.json whose verdict is "indeterminate" with the reason."""
     part = arch_panel()
     mesh_file = tmp_path / "arch.ply"
     o3d.io.write_triangle_mesh(str(mesh_file), part.mesh)
@@ -138,10 +138,10 @@ def test_a_cloud_far_from_its_cad_fails_with_the_reason(tmp_path, capsys):
     cfg = tmp_path / "cell.toml"
     cfg.write_text("[inspection]\nmap_width_px = 200\nregions = []\nviews = ['top']\nreference_spheres = []\n")
     out = tmp_path / "out"
-    assert main([str(cloud), "--cad", str(mesh_file), "--out", str(out), "--config", str(cfg)]) == 3
+    assert main([str(cloud), "--cad", str(mesh_file), "--out", str(out), "--config", str(cfg)]) == 5
     said = capsys.readouterr()
     assert said.out == "" and len(said.err.strip().splitlines()) == 1
-    assert said.err.startswith("tandemscan inspect: not inspected: alignment to CAD failed:")
+    assert said.err.startswith("tandemscan inspect: not completed: alignment to CAD failed:")
     data = json.loads((out / "report.json").read_text())["inspection"]
     assert data["verdict"] == "indeterminate" and data["reason"].startswith("alignment to CAD failed")
     html = (out / "report.html").read_text()
