@@ -95,7 +95,7 @@ def test_start_up_errors_are_one_line_and_a_status_systemd_does_not_restart_on(t
     assert "in use" in _one_line(r, 75, f"daemon not started: cannot listen on 127.0.0.1:{port}")
     assert not (tmp_path / "fresh").exists()  # refused before the state or any device was touched
     assert unit_settings()["RestartPreventExitStatus"] == ["2 78"]
-    exit_table = (SYSTEMD.parent / "docs" / "daemon.md").read_text()
+    exit_table = (SYSTEMD.parent / "docs" / "cli.md").read_text()  # the exit statuses of the command line
     assert "| 78 | `daemon not started:` |" in exit_table and "| 75 | `daemon not started:` |" in exit_table
 
 
