@@ -41,7 +41,7 @@ async def _uninterrupted_run(state: Path, download: Path) -> dict:
         async with httpx.AsyncClient(base_url=url, timeout=60) as client:
             events = []
             async with client.stream("GET", "/v1/events", params={"after": 0}) as stream:
-                job = (await client.post("/v1/jobs", json={}, headers=AUTH)).json()
+                job = (await client.post("/v1/jobs", json={"serial_number": "SN-E2E-1"}, headers=AUTH)).json()
                 parser = SseParser()
                 async for line in stream.aiter_lines():
                     if (event := parser.feed(line)) is None:
@@ -57,7 +57,9 @@ async def _uninterrupted_run(state: Path, download: Path) -> dict:
                     async for chunk in r.aiter_bytes():
                         f.write(chunk)
             report = (await client.get(f"/v1/jobs/{job['id']}/report")).json()
-    return {"job": final, "events": events, "report": report}
+            qif = await client.get(final["links"]["results_qif"])
+            trend = (await client.get("/v1/parts/TS-NOSE-3000/characteristics/SP-2/trend")).json()
+    return {"job": final, "events": events, "report": report, "qif": qif, "trend": trend}
 
 
 @pytest.fixture(scope="module")
@@ -81,6 +83,21 @@ def test_job_over_http_is_followed_downloaded_and_scored(reference):
     # tracker-only stitch on the sim cell: tenths of a millimetre at worst, noise-level RMS to the CAD part
     assert truth["cloud_rms_mm"] < 0.15 and truth["pose_err_mm_median"] < 0.2
     assert job["figures"]["cloud_rms_mm"] == pytest.approx(truth["cloud_rms_mm"])
+
+
+def test_the_job_is_inspected_by_the_default_parts_template_and_kept_by_its_serial(reference):
+    """The default part's template: its characteristics in report.json (the part is its own CAD: none
+    fails), results.qif served, the serial's results in the part's trend."""
+    inspection = reference["report"]["inspection"]
+    assert inspection["part"]["part_number"] == "TS-NOSE-3000" and inspection["part"]["serial"] == "SN-E2E-1"
+    statuses = {c["id"]: c["status"] for c in inspection["characteristics"]}
+    assert set(statuses) == {"SP-1", "SP-2", "SP-3", "FL-1", "SEC-1", "SEC-2"} and "fail" not in statuses.values()
+    qif = reference["qif"]
+    assert qif.status_code == 200 and b"<SerialNumber>SN-E2E-1</SerialNumber>" in qif.content
+    trend = reference["trend"]
+    assert [p["serial"] for p in trend["points"]] == ["SN-E2E-1"]
+    assert trend["points"][0]["actual_mm"] == pytest.approx(
+        next(c["actual_mm"] for c in inspection["characteristics"] if c["id"] == "SP-2"))
 
 
 # ---------------------------------------------------------------- crash and resume
