@@ -9,6 +9,7 @@ rows of one part number's characteristic in measuring order, with its individual
 from __future__ import annotations
 
 import json
+import logging
 import math
 import time
 from collections.abc import Iterable, Mapping
@@ -16,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from tandemscan.config.inspection_template import find_template, load_template
+from tandemscan.config.loader import ConfigError
 from tandemscan.config.models import CellConfig
 from tandemscan.daemon.sqlite_db import SqliteDb
 from tandemscan.pipeline.inspection.spc import ControlChart, individuals_chart
@@ -23,6 +25,8 @@ from tandemscan.pipeline.inspection.spc import ControlChart, individuals_chart
 DB_FILE = "part_results.sqlite"
 HISTORY_FILE = "part_history.json"  # the part's earlier results, put in a job's folder before it runs
 HISTORY_SERIALS = 30  # serials of each characteristic a job's report looks back on
+
+log = logging.getLogger(__name__)
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS characteristic_results (
@@ -144,7 +148,10 @@ def prepare_part(config: CellConfig, request: Mapping, job_dir: Path, state_dir:
     number = job.part_number
     if number is None:
         found = find_template(config.part.mesh, configured=config.inspection.template)
-        number = None if found is None else load_template(found).part_number
+        try:
+            number = None if found is None else load_template(found).part_number
+        except ConfigError as e:  # the job measures; its inspection reports the template's error
+            log.warning("no part history for the report: %s", e)
     if number is not None:
         results = PartResults(state_dir)
         try:

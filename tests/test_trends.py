@@ -116,3 +116,13 @@ def test_the_report_shows_the_trend_of_a_failing_characteristic(tmp_path):
     assert (tmp_path / "figures" / "trend-SP-2.png").is_file()
     html = (tmp_path / "report.html").read_text()
     assert html.index('id="characteristics"') < html.index('id="trend-SP-2"') < html.index('id="verdict"')
+
+
+def test_a_broken_template_does_not_stop_the_job_from_running(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("part = 'p'\n")
+    config = load_config()
+    config = config.model_copy(update={"inspection": config.inspection.model_copy(update={"template": bad})})
+    (tmp_path / "jobs" / "j").mkdir(parents=True)
+    out = prepare_part(config, {"serial_number": "SN-1"}, tmp_path / "jobs" / "j", tmp_path)
+    assert out.job.serial == "SN-1" and not (tmp_path / "jobs" / "j" / HISTORY_FILE).exists()
