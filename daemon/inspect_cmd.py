@@ -97,6 +97,8 @@ def run(args: argparse.Namespace) -> int:
         f"{t.in_pct:.2f} % within [{t.lower_mm:+.3f}, {t.upper_mm:+.3f}] mm\n"
         f"report: {outputs.html}\ndata:   {outputs.json}\ncloud:  {outputs.ply}"
     )
+    if a.get("free_directions"):
+        print(f"not fixed by the measured surface (held where the cloud was given): {'; '.join(a['free_directions'])}")
     if outputs.qif is not None:
         print(f"QIF:    {outputs.qif}")
     for c in outputs.characteristics:
