@@ -95,7 +95,7 @@ def orient(vertices_mm: np.ndarray, triangles: np.ndarray, closest_triangles: np
         s = np.sign(np.einsum("ij,ij->i", n[ids[ok]], d[ok]))
         votes = np.bincount(label[ids[ok]], s, patches)
         counts = np.bincount(label[ids[ok]], minlength=patches).astype(float)
-    deciders = set()
+    deciders, undecided = set(), 0
     for patch in range(patches):
         mine = label == patch
         tri = np.where(flip[mine, None], t[mine][:, ::-1], t[mine])
@@ -108,12 +108,19 @@ def orient(vertices_mm: np.ndarray, triangles: np.ndarray, closest_triangles: np
         else:  # nothing says: the file's winding of most of the patch's area
             turn = float(area[mine][flip[mine]].sum()) > 0.5 * float(area[mine].sum())
             deciders.add("the file")
+            undecided += 1
         if turn:
             flip[mine] = ~flip[mine]
-    note = ""
+    notes = []
     if flip.any():
         share = float(area[flip].sum() / max(area.sum(), 1e-300))
-        note = (f"the CAD file's winding disagrees with {'/'.join(sorted(deciders))} on {int(flip.sum())} of "
-                f"{len(t)} triangles ({100 * share:.1f} % of the area): deviations are signed with them reversed")
+        against = "/".join(sorted(deciders - {"the file"})) or "its own majority (wound inconsistently)"
+        notes.append(f"the CAD file's winding disagrees with {against} on "
+                     f"{int(flip.sum())} of {len(t)} triangles ({100 * share:.1f} % of the area): deviations are "
+                     "signed with them reversed")
+    if undecided:
+        notes.append(f"{undecided} open patch{'es' if undecided > 1 else ''} of the CAD signed by the file's "
+                     f"winding: no clear measured side ({by}) near {'them' if undecided > 1 else 'it'}")
+    for note in notes:
         log.warning("%s", note)
-    return CadOrientation(flip, patches, ", ".join(sorted(deciders)), note)
+    return CadOrientation(flip, patches, ", ".join(sorted(deciders)), "; ".join(notes))

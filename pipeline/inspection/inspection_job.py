@@ -228,7 +228,7 @@ def measured_side(surface: CadSurface, points_W_mm: np.ndarray, T_F_W: np.ndarra
     elif normals_W is not None:
         toward, by = rotate_vectors(T_F_W, np.asarray(normals_W, float)[::step]), "cloud normals"
     else:
-        toward, by = None, "the measured side"
+        toward, by = None, "no scanner positions, no cloud normals"
     ids = surface.closest(transform_points(T_F_W, p_W)).triangle_ids
     o = orient(np.asarray(surface.mesh.vertices), np.asarray(surface.mesh.triangles), ids, toward, by)
     return surface.oriented(o.reversed), o.note
