@@ -55,7 +55,7 @@ def test_five_random_starts_align_and_find_the_defects_with_their_sign(name):
     part = PARTS[name]()
     surface = CadSurface(part.mesh)
     rng = np.random.default_rng(sum(map(ord, name)))
-    p_F, n_F = part.measured(30_000, 0.01, rng)
+    p_F, n_F = part.measured(20_000, 0.01, rng)
     aligned = 0
     for _ in range(5):
         T_W_F = random_misplacement(rng)
