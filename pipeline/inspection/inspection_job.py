@@ -110,9 +110,9 @@ def run_inspection(
     if uncertainty is None:
         u = dataclasses.replace(u, notes=u.notes | {"cloud": "the cloud states no uncertainty: U = 0"})
     result = judge(result, u, cfg, context or VerdictContext())
-    characteristics = () if template is None else evaluate(
-        template, measured_cloud(result, surface, u.expanded_mm), DecisionRule.of(cfg))
-    with ThreadPoolExecutor(1, thread_name_prefix="deviation-ply") as pool:  # the file while the figures draw
+    with ThreadPoolExecutor(2, thread_name_prefix="inspection-outputs") as pool:  # beside the figures: the
+        measured = None if template is None else pool.submit(  # characteristics and the file
+            evaluate, template, measured_cloud(result, surface, u.expanded_mm), DecisionRule.of(cfg))
         ply = pool.submit(
             write_ply,
             Path(out_dir) / DEVIATION_PLY,
@@ -123,9 +123,10 @@ def run_inspection(
         report = build_report(
             result, surface, cfg, title=title, meta=meta, accuracy=accuracy,
             scans_before=scans_before, scans_after=scans_after, alignment=alignment, overlap=overlap,
-            characteristics=characteristics, part=part, history=history, coverage=coverage,
+            characteristics=() if measured is None else measured, part=part, history=history, coverage=coverage,
         )
         html, js = write_report(report, out_dir, json_name)
+    characteristics = () if measured is None else measured.result()
     qif = None if template is None else write_results(
         Path(out_dir) / RESULTS_FILE, measured_part(template, part or {}), characteristics, result.points_mm)
     return InspectionOutputs(result, report.data, html, js, ply.result(), characteristics, qif)

@@ -120,7 +120,7 @@ def build_report(
     views: Sequence[View] | None = None,
     alignment: Alignment | None = None,
     overlap: Future | None = None,
-    characteristics: Sequence[CharacteristicResult] = (),
+    characteristics: Sequence[CharacteristicResult] | Future = (),
     part: Mapping[str, str] | None = None,
     history: Mapping[str, Sequence[Mapping]] | None = None,
     coverage: CoverageFigures | None = None,
@@ -134,9 +134,10 @@ def build_report(
     it came in that frame). The deviation areas are labelled on every map (``#id`` at the centroid).
     ``overlap``: the scans' :func:`overlap_quality` where it is being computed already.
     ``characteristics``: the template's, evaluated (:mod:`tandemscan.pipeline.inspection.characteristics`),
-    which the report leads with; ``part``: its template, part number and serial; ``history``: per
-    characteristic id the part's earlier serials' results (``serial``, ``actual_mm``), oldest first, whose
-    trend the report shows for the characteristics that fail or drift. ``coverage``: what the job's
+    which the report leads with (or their future, waited for once the maps are drawn); ``part``: its
+    template, part number and serial; ``history``: per characteristic id the part's earlier serials' results
+    (``serial``, ``actual_mm``), oldest first, whose trend the report shows for the characteristics that
+    fail or drift. ``coverage``: what the job's
     plan covers and leaves out, reported with the share of it the cloud measured (``data["coverage"]``).
     """
     cfg = cfg or InspectionConfig()
@@ -166,6 +167,8 @@ def build_report(
                 png = deviation_map_png(surface, p[keep], d[keep], view, tol, norm, cfg.map_width_px, title_,
                                         n[keep], spacing, ours)
                 split.append(ReportFigure(f"{label}-deviation", title_, png))
+    if isinstance(characteristics, Future):  # evaluated while the maps were drawn
+        characteristics = characteristics.result()
     trends = trend_figures(characteristics, history or {}, part or {})
     quality = quality_figures(result, characteristics, tol, norm) + [f for f, _ in trends]
     figures = quality + maps + [coverage_map] + split
