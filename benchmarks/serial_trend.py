@@ -73,7 +73,7 @@ def main() -> None:
         (state / "plans").mkdir(parents=True)
         band = Plan.load(default_plan_path())
         band.model_copy(update={"name": "two-stations", "steps": band.steps[:TWO_STATIONS_STEPS]}).save(
-            state / "plans" / "first-station.toml")
+            state / "plans" / "two-stations.toml")
         t0, finals = time.perf_counter(), []
         for k in range(args.jobs):
             finals.append(asyncio.run(one_job(state, args.first_seed + k, f"SN-{k + 1:04d}")))
