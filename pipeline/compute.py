@@ -53,7 +53,7 @@ class DaskBackend:
 
         self.retries = retries
         self._cluster = None if scheduler else LocalCluster(n_workers=workers, threads_per_worker=1,
-                                                            processes=True, dashboard_address=None)
+                                                            processes=True, dashboard_address="127.0.0.1:0")
         self.client = Client(scheduler or self._cluster)
         log.info("compute: dask scheduler %s", self.client.scheduler.address)
 

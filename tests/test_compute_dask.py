@@ -16,10 +16,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 from dask.distributed import get_task_stream
-from tandemscan.config.models import CorrectionConfig
-from tandemscan.pipeline.compute import DaskBackend, LocalBackend
+from tandemscan.config.models import ComputeConfig, CorrectionConfig, DeepMergeConfig
+from tandemscan.pipeline.compute import DaskBackend, LocalBackend, backend_for
 from tandemscan.pipeline.io.raw_scan import read_thinned_scan, write_raw_scan
 from tandemscan.pipeline.registration.correction import StitchedScan, correct_scans
+from tandemscan.pipeline.registration.pairs import LazyNetwork
 
 from tests.test_registration_correction import scans_with_drift
 
@@ -82,13 +83,14 @@ def _same(a, b) -> None:
 def test_the_pair_stage_on_two_dask_workers_gives_the_local_result(cluster, tmp_path):
     address, _ = cluster
     scans, transfers = _stored_job(tmp_path)
-    local = correct_scans(scans, CFG, transfers=transfers, voxel_mm=VOXEL_MM, backend=LocalBackend())
+    network = LazyNetwork(DeepMergeConfig())  # as the job passes it: pickled to the workers, loaded only where used
+    local = correct_scans(scans, CFG, network, transfers=transfers, voxel_mm=VOXEL_MM, backend=LocalBackend())
     assert len(local.edges) >= 5
     backend = DaskBackend(address)
     try:
         backend.client.wait_for_workers(2, timeout=60)
         with get_task_stream(backend.client) as stream:
-            remote = correct_scans(scans, CFG, transfers=transfers, voxel_mm=VOXEL_MM, backend=backend,
+            remote = correct_scans(scans, CFG, network, transfers=transfers, voxel_mm=VOXEL_MM, backend=backend,
                                    scan_store=str(tmp_path))
     finally:
         backend.close()
@@ -126,3 +128,15 @@ def test_a_worker_killed_mid_stage_leaves_the_result_unchanged(cluster, tmp_path
     assert killed, "no worker was busy to be killed"
     assert by_pid[pids[killed[0]]].wait(timeout=10) == -signal.SIGKILL
     _same(local, remote)
+
+
+def test_the_compute_config_picks_the_backend_and_a_local_cluster_maps_units_in_order():
+    assert isinstance(backend_for(ComputeConfig()), LocalBackend)
+    backend = backend_for(ComputeConfig(backend="dask", dask_workers=2))
+    try:
+        assert isinstance(backend, DaskBackend)
+        units = list(range(-6, 6))
+        assert backend.map(abs, units, [f"abs-{u}" for u in units]) == [abs(u) for u in units]
+        assert len(backend.client.scheduler_info()["workers"]) == 2
+    finally:
+        backend.close()

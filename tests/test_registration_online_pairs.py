@@ -94,3 +94,35 @@ def test_scans_prepared_for_the_joint_refinement_while_measuring_give_the_same_p
     correct_scans(scans, coarser, transfers=transfers, pair_cache=work.pairs, joint_cache=kept,
                   association_cache=work.associations)
     assert len(prepared_at_end) == len(scans) and len(searched_at_end) > searched_before
+
+
+
+def test_a_scans_pairs_register_on_both_cores_while_measuring(monkeypatch):
+    """The middle scan, measured last, has a partner on each side: its two pairs register at the same time (each
+    waits for the other to have started), with the outcomes of one pair at a time."""
+    import threading
+
+    from tandemscan.pipeline.registration import online_pairs
+
+    _, scans, transfers = scans_with_drift(n=3, per_station=3)
+    scans = [scans[0], scans[2], scans[1]]
+    cfg = CorrectionConfig(method="icp", min_overlap_points=100, joint=False)
+    one_at_a_time = _measure(scans, transfers, cfg).outcomes
+    monkeypatch.setattr("os.cpu_count", lambda: 2)
+    both_running, real = threading.Barrier(2, timeout=10), online_pairs.register_stitched_pair
+    middle = threading.Event()
+
+    def meet(*args):
+        if middle.is_set():
+            both_running.wait()  # returns only when the other pair is registering too
+        return real(*args)
+
+    monkeypatch.setattr(online_pairs, "register_stitched_pair", meet)
+    online = OnlinePairs(cfg, 1.0)
+    for s in scans[:2]:
+        online.add(s.points_S, s.T_W_S, s.covariance, s.station, transfers)
+    middle.set()
+    assert online.add(scans[2].points_S, scans[2].T_W_S, scans[2].covariance, scans[2].station, transfers) == 2
+    assert online.outcomes.keys() == one_at_a_time.keys()
+    for key, outcome in one_at_a_time.items():
+        np.testing.assert_array_equal(online.outcomes[key].transformation, outcome.transformation)

@@ -79,6 +79,13 @@ class LazyNetwork:
         self._registrar: DeepMergeRegistrar | None = None
         self._loading = threading.Lock()
 
+    def __getstate__(self) -> dict:
+        """Pickled as its settings only (to a Dask worker, docs/compute.md): the network loads where it is used."""
+        return {"network": self.network}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__(state["network"])
+
     def register(self, source_mm: np.ndarray, target_mm: np.ndarray) -> np.ndarray:
         """``T_target_source`` (4x4 mm) by the network."""
         with self._loading:
