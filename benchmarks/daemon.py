@@ -9,12 +9,18 @@ from the histograms in ``/metrics``, differenced between scrapes. Before the job
 same figures with no job running: on a shared machine that is the floor the load alone sets. Prints one
 JSON object (ms) on its last line, with the machine's 1-minute load average before and after.
 
+With ``--opcua-subscribers N`` the daemon also serves OPC UA (docs/opcua.md) and N sessions of
+``benchmarks/opcua_subscribers.py`` (another process) follow the job's progress, state and the latch for the whole
+run, idle phase included: the same figures with OPC UA beside REST.
+
     nice python benchmarks/daemon.py [--seconds 600] [--idle-seconds 30] [--resolution full|coarse] [--keep-state]
+                                     [--opcua-subscribers 20]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import shutil
 import socket
@@ -81,6 +87,47 @@ def _figures(lat: dict[str, list[float]], before: str, after: str, pings: list[f
     }
 
 
+class OpcuaLoad:
+    """The OPC UA side of a run: a viewer user and a trusted client certificate for the daemon's state folder
+    under ``tmp``, and ``n`` subscribed sessions in a child process (``opcua_subscribers.py``)."""
+
+    def __init__(self, tmp: Path, n: int):
+        from tandemscan.daemon.opcua.security import hash_password, make_application_identity
+
+        self.tmp, self.n, self.port, self.password = tmp, n, free_port(), "bench-pw"
+        self.hash = hash_password(self.password)
+        self.identity = make_application_identity(tmp / "clients", "bench", "urn:tandemscan:bench-client",
+                                                  ["localhost"], server=False, days=2)
+        trusted = tmp / "state" / "opcua" / "trusted"
+        trusted.mkdir(parents=True)
+        shutil.copy(self.identity.certificate, trusted / "bench.der")
+        self.proc: subprocess.Popen | None = None
+
+    def config_toml(self) -> str:
+        return (f'\n[opcua]\nenabled = true\nport = {self.port}\n[opcua.users.bench]\nrole = "viewer"\n'
+                f'password_hash = "{self.hash}"\n')
+
+    def start(self) -> None:
+        """Start the subscribers; return once every session subscribed."""
+        script = Path(__file__).with_name("opcua_subscribers.py")
+        self.proc = subprocess.Popen(
+            [sys.executable, str(script), f"opc.tcp://127.0.0.1:{self.port}/tandemscan/",
+             str(self.identity.certificate), str(self.identity.private_key),
+             str(self.tmp / "state" / "opcua" / "own" / "server.der"), "bench", self.password, str(self.n)],
+            stdout=subprocess.PIPE, text=True)
+        if self.proc.stdout.readline().strip() != "ready":
+            raise SystemExit("the OPC UA subscribers did not start")
+
+    def stop(self) -> dict | None:
+        """Stop the subscribers; their counts."""
+        if self.proc is None:
+            return None
+        self.proc.terminate()
+        out, _ = self.proc.communicate(timeout=120)
+        lines = [line for line in out.splitlines() if line.startswith("{")]
+        return {"subscribers": self.n, **(json.loads(lines[-1]) if lines else {"errors": "no result"})}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seconds", type=float, default=600.0, help="measure the job at most this long (s)")
@@ -88,6 +135,8 @@ def main() -> None:
     ap.add_argument("--resolution", choices=["full", "coarse"], default="full")
     ap.add_argument("--rate-hz", type=float, default=20.0, help="client request rate")
     ap.add_argument("--keep-state", action="store_true", help="keep the daemon's state folder (GBs of scans)")
+    ap.add_argument("--opcua-subscribers", type=int, default=0, help="serve OPC UA with this many subscribed "
+                    "sessions (0: OPC UA off)")
     args = ap.parse_args()
 
     load_before = os.getloadavg()
@@ -95,6 +144,10 @@ def main() -> None:
     cfg = tmp / "cell.toml"
     cfg.write_text(f'[scanner]\nresolution = "{args.resolution}"\n')
     with_surveyed_mounts_toml(cfg)  # the job stitches with the cell's surveyed mounts, as the README's figures
+    opcua = OpcuaLoad(tmp, args.opcua_subscribers) if args.opcua_subscribers else None
+    if opcua is not None:
+        with open(cfg, "a", encoding="utf-8") as f:
+            f.write(opcua.config_toml())
     notify_path = tmp / "notify.sock"
     notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     notify.bind(str(notify_path))
@@ -148,6 +201,8 @@ def main() -> None:
                     if proc.poll() is not None or time.monotonic() > deadline:
                         raise SystemExit("daemon did not start; see " + str(tmp / "daemon.log")) from None
                 time.sleep(0.1)
+            if opcua is not None:
+                opcua.start()
             period = 1.0 / args.rate_hz
             time.sleep(5.0)  # the scan worker builds its scene; first requests build their schemas
             idle_lat: dict[str, list[float]] = {"devices": []}
@@ -171,6 +226,7 @@ def main() -> None:
             if final["state"] not in ("succeeded", "failed", "cancelled"):
                 client.post(f"/v1/jobs/{job['id']}/cancel", headers={"Authorization": f"Bearer {TOKEN}"})
     finally:
+        opcua_figures = opcua.stop() if opcua is not None else None
         proc.terminate()
         proc.wait(60)
         stop.set()
@@ -181,7 +237,8 @@ def main() -> None:
         scans = db.execute("SELECT COUNT(*) FROM scans").fetchone()[0]
     if not args.keep_state:
         shutil.rmtree(tmp, ignore_errors=True)
-    publish("daemon" if args.resolution == "full" else "daemon-coarse", {
+    name = "daemon" if args.resolution == "full" else "daemon-coarse"
+    publish(name + ("-opcua" if opcua is not None else ""), {
         "benchmark": "daemon",
         "scanner_resolution": args.resolution,
         "scans_ingested": scans,
@@ -193,6 +250,7 @@ def main() -> None:
         **_figures(lat, m1, m2, job_pings),
         "watchdog_ping_period_target_ms": WATCHDOG_USEC / 2000,
         "idle_baseline": {"seconds": args.idle_seconds, **_figures(idle_lat, m0, m1, idle_pings)},
+        "opcua": opcua_figures,
         "cpu_cores": os.cpu_count(),
         "load_average_1min_before_after": [round(load_before[0], 2), round(os.getloadavg()[0], 2)],
     })

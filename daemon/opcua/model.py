@@ -24,7 +24,7 @@ companion NodeSets are not loaded into the server.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from asyncua import Node, Server, ua
 from asyncua.common.structures104 import new_enum, new_struct, new_struct_field
@@ -39,7 +39,7 @@ VT = ua.VariantType
 
 @dataclass
 class Method:
-    """A method node to create: its inputs and outputs as ``(name, data type NodeId, value rank, description)``."""
+    """A method node to create: its browse name, input and output arguments and description."""
 
     name: str
     inputs: list[ua.Argument]
@@ -66,8 +66,8 @@ class CellNodes:
     result_management: Node
     result_transfer: Node
     result_ready_type: Node
-    variables: dict[str, Node] = field(default_factory=dict)
-    types: dict[str, Node] = field(default_factory=dict)
+    variables: dict[str, Node]
+    types: dict[str, Node]
 
     def nodeid(self, path: str) -> ua.NodeId:
         return ua.NodeId(path, self.ns)
@@ -78,6 +78,7 @@ class ModelBuilder:
 
     def __init__(self, server: Server, ns: int):
         self.server, self.ns = server, ns
+        self.variables: dict[str, Node] = {}  # by path
 
     def _id(self, path: str) -> ua.NodeId:
         return ua.NodeId(path, self.ns)
@@ -86,13 +87,13 @@ class ModelBuilder:
         return await parent.add_object(self._id(path), ua.QualifiedName(path.rsplit(".", 1)[-1], self.ns),
                                        objecttype=objecttype)
 
-    async def var(self, nodes: CellNodes, parent: Node, path: str, value, vt: ua.VariantType,
-                  datatype: ua.NodeId | None = None, description: str = "") -> Node:
+    async def var(self, parent: Node, path: str, value, vt: ua.VariantType, datatype: ua.NodeId | None = None,
+                  description: str = "") -> Node:
         node = await parent.add_variable(self._id(path), ua.QualifiedName(path.rsplit(".", 1)[-1], self.ns),
                                          ua.Variant(value, vt), datatype=datatype)
         if description:
             await node.write_attribute(ua.AttributeIds.Description, ua.DataValue(ua.LocalizedText(description)))
-        nodes.variables[path] = node
+        self.variables[path] = node
         return node
 
     async def method(self, parent: Node, path: str, spec: Method) -> Node:
@@ -200,37 +201,36 @@ async def build_model(server: Server, identification: dict[str, str], device_nam
     types = await b.data_types()
     objects = server.nodes.objects
     cell = await b.obj(objects, "Cell")
-    nodes = CellNodes(ns, cell, None, None, None, None, None, None, types=types)  # type: ignore[arg-type]
 
     ident = await b.obj(cell, "Identification")
     for name, value in identification.items():
-        await b.var(nodes, ident, f"Identification.{name}", value, VT.String)
+        await b.var(ident, f"Identification.{name}", value, VT.String)
 
     monitoring = await b.obj(cell, "Monitoring")
-    await b.var(nodes, monitoring, "Monitoring.MachineryItemState", "NotAvailable", VT.String,
+    await b.var(monitoring, "Monitoring.MachineryItemState", "NotAvailable", VT.String,
                 description="OPC 40001-1: NotAvailable, OutOfService (a device down or the latch set), "
                             "NotExecuting, Executing (a job running)")
-    await b.var(nodes, monitoring, "Monitoring.AllConnected", False, VT.Boolean)
-    await b.var(nodes, monitoring, "Monitoring.MovingRobot", "", VT.String,
+    await b.var(monitoring, "Monitoring.AllConnected", False, VT.Boolean)
+    await b.var(monitoring, "Monitoring.MovingRobot", "", VT.String,
                 description="measure or tracking while that robot moves; empty at rest (never both)")
-    nodes.devices = await b.obj(monitoring, "Monitoring.Devices", ua.ObjectIds.FolderType)
+    devices = await b.obj(monitoring, "Monitoring.Devices", ua.ObjectIds.FolderType)
     for name in device_names:
-        dev = await b.obj(nodes.devices, f"Monitoring.Devices.{name}")
-        await b.var(nodes, dev, f"Monitoring.Devices.{name}.Connected", False, VT.Boolean)
-        await b.var(nodes, dev, f"Monitoring.Devices.{name}.State", "", VT.String)
-        await b.var(nodes, dev, f"Monitoring.Devices.{name}.LastError", "", VT.String)
-        await b.var(nodes, dev, f"Monitoring.Devices.{name}.Reconnects", 0, VT.UInt32)
-    nodes.safety = safety = await b.obj(monitoring, "Monitoring.Safety")
-    await b.var(nodes, safety, "Monitoring.Safety.Latched", False, VT.Boolean,
+        dev = await b.obj(devices, f"Monitoring.Devices.{name}")
+        await b.var(dev, f"Monitoring.Devices.{name}.Connected", False, VT.Boolean)
+        await b.var(dev, f"Monitoring.Devices.{name}.State", "", VT.String)
+        await b.var(dev, f"Monitoring.Devices.{name}.LastError", "", VT.String)
+        await b.var(dev, f"Monitoring.Devices.{name}.Reconnects", 0, VT.UInt32)
+    safety = await b.obj(monitoring, "Monitoring.Safety")
+    await b.var(safety, "Monitoring.Safety.Latched", False, VT.Boolean,
                 description="a safety stop is latched: no motion until reset")
-    await b.var(nodes, safety, "Monitoring.Safety.Reason", "", VT.String)
-    await b.var(nodes, safety, "Monitoring.Safety.EStop", False, VT.Boolean, description="input: e-stop pressed")
-    await b.var(nodes, safety, "Monitoring.Safety.LightCurtainBroken", False, VT.Boolean,
+    await b.var(safety, "Monitoring.Safety.Reason", "", VT.String)
+    await b.var(safety, "Monitoring.Safety.EStop", False, VT.Boolean, description="input: e-stop pressed")
+    await b.var(safety, "Monitoring.Safety.LightCurtainBroken", False, VT.Boolean,
                 description="input: light curtain broken")
     for name, spec in SAFETY_METHODS.items():
         await b.method(safety, f"Monitoring.Safety.{name}", spec)
 
-    nodes.production = production = await b.obj(cell, "Production")
+    production = await b.obj(cell, "Production")
     job = await b.obj(production, "Production.ActiveJob")
     for name, value, vt, text in (
             ("JobId", "", VT.String, "the job running or paused, else the last one"),
@@ -239,20 +239,20 @@ async def build_model(server: Server, identification: dict[str, str], device_nam
             ("Progress", 0.0, VT.Double, "percent"), ("CurrentStep", -1, VT.Int32, "-1: none"),
             ("StepsTotal", 0, VT.Int32, ""), ("Plan", "", VT.String, ""), ("PartNumber", "", VT.String, ""),
             ("SerialNumber", "", VT.String, ""), ("Error", "", VT.String, "why it failed or is paused")):
-        await b.var(nodes, job, f"Production.ActiveJob.{name}", value, vt, description=text)
+        await b.var(job, f"Production.ActiveJob.{name}", value, vt, description=text)
     for name, spec in CONTROL_METHODS.items():
         await b.method(production, f"Production.{name}", spec)
 
-    nodes.result_management = rm = await b.obj(cell, "ResultManagement")
+    rm = await b.obj(cell, "ResultManagement")
     for name, spec in result_methods(types).items():
         await b.method(rm, f"ResultManagement.{name}", spec)
     await b.obj(rm, "ResultManagement.Results", ua.ObjectIds.FolderType)
-    nodes.result_transfer = await b.obj(rm, "ResultManagement.ResultTransfer")
-    await b.method(nodes.result_transfer, "ResultManagement.ResultTransfer.GenerateFileForRead",
+    transfer = await b.obj(rm, "ResultManagement.ResultTransfer")
+    await b.method(transfer, "ResultManagement.ResultTransfer.GenerateFileForRead",
                    generate_file_method(types))
-    nodes.result_ready_type = ready = await server.nodes.base_event_type.add_object_type(
+    ready = await server.nodes.base_event_type.add_object_type(
         b._id("ResultReadyEventType"), ua.QualifiedName("ResultReadyEventType", ns))
     result_field = await ready.add_property(b._id("ResultReadyEventType.Result"), ua.QualifiedName("Result", ns),
                                             ua.Variant(None, VT.Null), datatype=types["ResultDataType"].nodeid)
     await result_field.set_modelling_rule(True)
-    return nodes
+    return CellNodes(ns, cell, devices, safety, production, rm, transfer, ready, b.variables, types)
