@@ -27,7 +27,7 @@ from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.facade import ServiceFacade
 from tandemscan.daemon.job_state import FINAL_STATES
 from tandemscan.daemon.part_results import PartResults
-from tandemscan.daemon.service import Daemon
+from tandemscan.daemon.service import WORLD_STATE_FILE, Daemon
 from tandemscan.pipeline.planning.plan import Plan
 from tandemscan.sim_drivers.cell import Simulation, with_surveyed_mounts
 
@@ -39,6 +39,7 @@ async def one_job(state: Path, seed: int, serial: str) -> str:
     """A job on a fresh simulated cell of ``seed`` (the daemon on ``state``); returns its final state."""
     config = load_config(AS_BUILT)
     config = config.model_copy(update={"sim": config.sim.model_copy(update={"seed": seed})})
+    (state / WORLD_STATE_FILE).unlink(missing_ok=True)  # a fresh cell: not the last job's world
     daemon = Daemon(with_surveyed_mounts(config, Simulation(config), state.parent / f"mounts-{seed}"), state)
     facade = ServiceFacade(daemon)
     await daemon.start()
