@@ -180,7 +180,7 @@ class TrendPoint(BaseModel):
 class CharacteristicTrend(BaseModel):
     """A characteristic's last results over serials and their individuals chart (mm): mean, standard
     deviation, control limits (mean +/- 3 moving range / 1.128), Cp/Cpk (within) and Pp/Ppk (overall), and
-    why it drifts ("" when it does not; docs/inspection.md, "Trends")."""
+    why it drifts ("" when it does not; docs/quality.md, "Serials and trends")."""
 
     part_number: str
     characteristic: str

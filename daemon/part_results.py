@@ -1,5 +1,5 @@
 """Each inspected job's characteristics by part number and serial, in the daemon's state folder
-(``part_results.sqlite``, beside the journal), and their trend over serials (docs/inspection.md, "Trends").
+(``part_results.sqlite``, beside the journal), and their trend over serials (docs/quality.md, "Serials and trends").
 
 A job with a template records one row per characteristic when its report is written; a trend is the last N
 rows of one part number's characteristic in measuring order, with its individuals chart

@@ -1,4 +1,4 @@
-"""``/v1/parts``: a part number's characteristics over its serials (docs/inspection.md, "Trends")."""
+"""``/v1/parts``: a part number's characteristics over its serials (docs/quality.md, "Serials and trends")."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """``results.qif``: a job's characteristics as a QIF 3.0 Results document (ISO 23952:2020), what a plant's
-quality system reads (docs/inspection.md, "QIF results").
+quality system reads (docs/quality.md, "QIF results").
 
 One document holds what the results need: the part (Product, its part number), the measuring system (the
 cell, a measurement device), the characteristics' definitions, nominals and items (from the template), a

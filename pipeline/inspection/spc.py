@@ -1,5 +1,5 @@
 """Statistical process control of one characteristic over serials: an individuals chart with its moving
-range, and the process capability against the tolerance (docs/inspection.md, "Trends").
+range, and the process capability against the tolerance (docs/quality.md, "Serials and trends").
 
 As the textbooks give them (Montgomery, Introduction to Statistical Quality Control, individuals and
 moving-range chart; capability ratios): with values x_1..x_n in measuring order, the moving ranges
