@@ -3,7 +3,8 @@ PYTHON ?= python3.11
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
-APT_PACKAGES := libusb-1.0-0 libgl1 libgomp1 chromium chromium-driver systemd nodejs npm
+APT_PACKAGES := libusb-1.0-0 libgl1 libgomp1 chromium chromium-driver systemd
+NODE_APT_PACKAGES := nodejs npm
 
 .PHONY: measure test system-deps clean
 
@@ -27,9 +28,11 @@ test: $(STAMP)
 # System packages, installed through apt only where missing: what Open3D needs at import time, Chromium for the
 # report rendering test and, with chromium-driver, the console's browser tests; systemd for the unit tests
 # (systemd-analyze verify, sysusers, tmpfiles); Node.js and npm for node-opcua, the independent OPC UA client of
-# tests/test_opcua.py (installed from tests/node/package-lock.json).
+# tests/test_opcua.py (installed from tests/node/package-lock.json), only where no npm is on the PATH (a NodeSource
+# nodejs carries its own npm and conflicts with Debian's).
 system-deps:
 	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	command -v npm >/dev/null 2>&1 || missing="$$missing $(NODE_APT_PACKAGES)"; \
 	if [ -n "$$missing" ]; then \
 	  echo "installing system packages:$$missing"; \
 	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
