@@ -11,12 +11,13 @@ import tomllib
 from functools import cache
 from importlib import resources
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, ClassVar, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, SerializeAsAny, ValidationError, field_validator, model_validator
+from pydantic_core import InitErrorDetails
+from tandemscan.config.devices import BUILT_IN_DRIVERS, DriverKind, plugin_settings_model
 
-DriverKind = Literal["sim", "real"]
 OutputKind = Literal["coil", "holding_register"]
 
 
@@ -24,6 +25,47 @@ class _Strict(BaseModel):
     """Base: unknown keys are errors, so a typo in a TOML file is reported, not ignored."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class DeviceSection(_Strict):
+    """A device role's section: its ``driver`` and, for a plugin's driver, the plugin's own settings.
+
+    ``driver = "sim"`` (the simulator's twin) or ``"real"`` (the built-in vendor's driver, its settings in the
+    section's own tables), or the name a plugin registered for the role (:mod:`tandemscan.config.devices`): its
+    ``[<role>.<driver>]`` table is validated by the plugin's ``Settings`` model into ``settings``
+    (docs/howto/add-a-device-driver.md)."""
+
+    #: the roles whose sections this model is (a plugin's driver is looked up for them)
+    ROLES: ClassVar[tuple[str, ...]]
+
+    driver: DriverKind = "sim"
+    settings: SerializeAsAny[BaseModel] | None = Field(None, description="a plugin's driver: its own settings")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _plugin_settings(cls, data: object) -> object:
+        """Validate a plugin driver's ``[<role>.<driver>]`` table by the plugin's model into ``settings``."""
+        if not isinstance(data, dict) or data.get("driver", "sim") in BUILT_IN_DRIVERS:
+            return data
+        driver = data["driver"]
+        if driver in cls.model_fields:
+            raise ValueError(f"driver {driver!r} is the name of a key of the section; a plugin needs another name")
+        data = dict(data)
+        raw = data.pop(driver, data.get("settings") or {})
+        model = plugin_settings_model(cls.ROLES, driver)
+        try:
+            data["settings"] = model.model_validate(raw)
+        except ValidationError as e:  # the errors at [<role>.<driver>.key], not at the section's keys
+            raise ValidationError.from_exception_data(e.title, [InitErrorDetails(
+                type=err["type"], loc=(driver, *err["loc"]), input=err["input"], ctx=err.get("ctx", {}))
+                for err in e.errors()]) from e
+        return data
+
+    @model_validator(mode="after")
+    def _settings_only_for_a_plugin(self) -> DeviceSection:
+        if self.driver in BUILT_IN_DRIVERS and self.settings is not None:
+            raise ValueError(f"settings are a plugin driver's; driver {self.driver!r} takes the section's own keys")
+        return self
 
 
 class TransformConfig(_Strict):
@@ -89,10 +131,10 @@ class PhoxiConfig(_Strict):
                                 "for gige_vision (Confidence8), 1 for photoneo_gentl (unverified)")
 
 
-class ScannerConfig(_Strict):
+class ScannerConfig(DeviceSection):
     """PhoXi 3D Scanner S: working range along the optical axis (mm), field of view and noise."""
 
-    driver: DriverKind = "sim"
+    ROLES = ("scanner",)
     range_min_mm: float = 384.0
     range_max_mm: float = 520.0
     sweet_spot_mm: float = 442.0
@@ -148,12 +190,12 @@ class TrackerStreamConfig(_Strict):
         return self
 
 
-class TrackerConfig(_Strict):
+class TrackerConfig(DeviceSection):
     """Metronor optical tracker: field of view, range, how readings at rest are averaged. The simulated tracker's
     noise is a simulation setting (``[sim.tracker_noise]``, :class:`TrackerNoiseConfig`); a real tracker reports
     each reading's covariance itself."""
 
-    driver: DriverKind = "sim"
+    ROLES = ("tracker",)
     range_max_mm: float = 30000.0
     fov_horizontal_deg: float = 70.0
     fov_vertical_deg: float = 55.0
@@ -234,13 +276,13 @@ def arm_models() -> dict[str, dict]:
     return tomllib.loads(text)
 
 
-class ArmConfig(_Strict):
+class ArmConfig(DeviceSection):
     """The arm (JAKA Zu 7 by default): standard DH parameters (mm, rad) and joint limits (deg at this edge).
 
     ``model`` names an entry of ``config/arm_models.toml`` (zu7, zu12, zu18, zu20); its DH and limits fill the keys
     this section leaves out (docs/planning.md, "Arm models and the lifting column")."""
 
-    driver: DriverKind = "sim"
+    ROLES = ("arm",)
     model: str = Field("zu7", description="arm model of config/arm_models.toml whose DH and limits are the defaults")
     # Standard DH of the Zu 7 (docs/planning.md, arm models: a public JAKA client cross-checked with
     # JAKA's ROS 2 URDF). Alpha signs differ between sources; this is the UR-style reading.
@@ -276,12 +318,12 @@ class ArmConfig(_Strict):
         return {**{k: tuple(models[name][k]) for k in _ARM_MODEL_KEYS}, **data}
 
 
-class LiftConfig(_Strict):
+class LiftConfig(DeviceSection):
     """An optional lifting column on the measurement AGV: a vertical axis that raises the arm base by
     ``height_mm`` above its mount ``T_V2_B`` (mm, mm/s). The planner sets its height per AGV station."""
 
     enabled: bool = False
-    driver: DriverKind = "sim"
+    ROLES = ("lift",)
     min_mm: float = Field(0.0, ge=0, description="lowest column height above the mount, mm")
     max_mm: float = Field(0.0, ge=0, description="highest column height above the mount, mm")
     speed_mm_s: float = Field(50.0, gt=0)
@@ -331,11 +373,11 @@ class ChassisCanConfig(_Strict):
     gain_angular_per_s: float = Field(2.0, gt=0, description="angular speed = gain x heading error")
 
 
-class ChassisConfig(_Strict):
+class ChassisConfig(DeviceSection):
     """An AGV chassis (skid steering): driver and speeds. How the simulated chassis slips is a simulation setting
     (``[sim.measure_chassis_slip]``, ``[sim.tracking_chassis_slip]``, :class:`ChassisSlipConfig`)."""
 
-    driver: DriverKind = "sim"
+    ROLES = ("measure_chassis", "tracking_chassis")
     speed_mm_s: float = Field(300.0, gt=0)
     turn_rate_deg_s: float = Field(20.0, gt=0)
     timeout_s: float = 120.0
@@ -366,10 +408,10 @@ class SafetyModbusConfig(_Strict):
     timeout_s: float = Field(1.0, gt=0)
 
 
-class SafetyConfig(_Strict):
+class SafetyConfig(DeviceSection):
     """Cell safety I/O (e-stop, light curtain, target light)."""
 
-    driver: DriverKind = "sim"
+    ROLES = ("safety",)
     poll_period_s: float = Field(0.02, gt=0)
     silent_after_periods: float = Field(2.0, ge=1, description="a Modbus poll unanswered this many poll periods "
                                         "is a safety stop (a silent module), long before the request's timeout")

@@ -1,8 +1,8 @@
 """The neutral cell layer: the devices of one cell built from the configuration through the device registry.
 
-Each role's class comes from :data:`tandemscan.drivers.factory.DEVICE_REGISTRY`, imported only when asked
-for. Where any role is simulated or ``[hil] enabled``, the simulated world behind the twins and emulators is
-the registry's :data:`~tandemscan.drivers.factory.SIMULATION`; the product sees it only as a
+Each role's class comes from the device registry (:mod:`tandemscan.config.devices`, entry points), imported
+only when asked for. Where any role is simulated or ``[hil] enabled``, the simulated world behind the twins and
+emulators is the registry's :data:`~tandemscan.drivers.factory.SIMULATION`; the product sees it only as a
 :class:`CellSimulation`: something to start and stop around the devices and an observer of jobs
 (``docs/architecture.md``, the cell layer). Motion always goes through the motion gate of a
 :class:`~tandemscan.daemon.session.CellSession` (:mod:`tandemscan.daemon.motion`).
@@ -13,10 +13,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Protocol
 
+from tandemscan.config.devices import cell_roles
 from tandemscan.config.models import CellConfig
 from tandemscan.daemon.motion import Movers, readings
 from tandemscan.daemon.observer import CalibrationObserver, JobObserver
-from tandemscan.drivers.factory import ROLES, SIMULATION, build_real_device, load_entry
+from tandemscan.drivers.factory import SIMULATION, build_real_device, load_entry
 from tandemscan.drivers.interfaces import (
     Arm,
     ArmReadings,
@@ -94,17 +95,13 @@ class Cell:
 
 def needs_simulation(config: CellConfig) -> bool:
     """Whether the cell of ``config`` has a simulated part: a twin, or emulators for the real drivers."""
-    return config.hil.enabled or any(getattr(config, role).driver == "sim" for role in _roles(config))
-
-
-def _roles(config: CellConfig) -> tuple[str, ...]:
-    """The device roles of ``config``'s cell: every cell's, and the lifting column where ``[lift] enabled``."""
-    return ROLES + (("lift",) if config.lift.enabled else ())
+    return config.hil.enabled or any(getattr(config, role).driver == "sim" for role in cell_roles(config))
 
 
 def build_cell(config: CellConfig, *, scan_process: bool = False, state_file: Path | None = None,
                simulation: CellSimulation | None = None) -> Cell:
-    """The devices of ``config``: per role the registry's real driver or the simulation's twin.
+    """The devices of ``config``: per role the registry's driver that its section names (a vendor's, built-in or
+    a plugin's) or the simulation's twin.
 
     ``scan_process``: a scanner twin casts its rays in a worker process (the daemon, whose event loop must not
     block). ``state_file``: where the simulated world keeps its state across restarts (the daemon).
@@ -114,8 +111,8 @@ def build_cell(config: CellConfig, *, scan_process: bool = False, state_file: Pa
     if simulation is not None:
         config = simulation.config
     try:
-        devices = {role: build_real_device(role, config) if getattr(config, role).driver == "real"
-                   else simulation.device(role) for role in _roles(config)}
+        devices = {role: build_real_device(role, config) if getattr(config, role).driver != "sim"
+                   else simulation.device(role) for role in cell_roles(config)}
     except ValueError as e:
         raise CellBuildError(str(e)) from e
     return Cell(**devices, simulation=simulation)

@@ -46,8 +46,8 @@ class Simulation:
                  world: SimWorld | None = None):
         self.world = world if world is not None else SimWorld(config)
         self.world.state_file = state_file
-        real = {role for role in ROLES if getattr(config, role).driver == "real"}
-        self.config = _odometry_from_sim_start(config, real) if config.hil.enabled and real else config
+        real = {role for role in ROLES if getattr(config, role).driver != "sim"}  # a vendor's, built-in or a plugin's
+        self.config = _odometry_from_sim_start(config) if config.hil.enabled and real else config
         self.scan_process = scan_process
         self.scores = len(real) < len(ROLES)  # some device is a twin: jobs are scored against the truth
         self.emulators = HilEmulators(self.config, self.world) if config.hil.enabled else None
@@ -117,12 +117,12 @@ def with_surveyed_mounts_toml(toml: Path) -> Path:
     return toml
 
 
-def _odometry_from_sim_start(config: CellConfig, real: set[str]) -> CellConfig:
+def _odometry_from_sim_start(config: CellConfig) -> CellConfig:
     """In a hardware-in-the-loop cell the chassis odometry starts at the simulated start poses, as the twins'."""
     update = {}
     for role, start in (("measure_chassis", config.sim.measure_start), ("tracking_chassis", config.sim.tracking_start)):
-        if role in real:
-            section = getattr(config, role)
+        section = getattr(config, role)
+        if section.driver == "real":  # the built-in CAN chassis; a plugin's starts where its own settings say
             can = section.can.model_copy(update={"odometry_start_x_mm": start.x_mm, "odometry_start_y_mm": start.y_mm,
                                                  "odometry_start_heading_deg": start.heading_deg})
             update[role] = section.model_copy(update={"can": can})

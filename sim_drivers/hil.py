@@ -2,7 +2,8 @@
 
 Started before the real drivers connect (``[hil] enabled = true``): the JAKA controller and the tracker stream
 on their configured 127.0.0.1 ports, one chassis per configured CAN channel, the Modbus I/O module, and the
-fake harvesters camera. Each emulator moves or reads the world, so a job run through the real drivers can be
+fake harvesters camera; for a plugin's driver, the emulator the plugin registers (group ``tandemscan.emulators``,
+:mod:`tandemscan.config.devices`). Each emulator moves or reads the world, so a job run through the real drivers can be
 scored against the same ground truth as one run on the twins; the world's state is saved whenever a robot comes
 to rest, so a restarted daemon finds it where it stopped (the drivers' odometry starts afresh, as a real cell's:
 the resumed job re-localises it, docs/daemon.md).
@@ -15,6 +16,7 @@ import logging
 from typing import Protocol
 
 import numpy as np
+from tandemscan.config.devices import BUILT_IN_DRIVERS, EMULATOR_GROUP, cell_roles, load_registered
 from tandemscan.config.models import CellConfig
 from tandemscan.drivers.interfaces import ChassisPose
 from tandemscan.drivers.tasks import cancel_and_wait
@@ -98,7 +100,17 @@ class HilEmulators:
             fake_harvesters.CAMERA.reset()
             fake_harvesters.CAMERA.interface = cfg.scanner.phoxi.interface
             fake_harvesters.CAMERA.scene = self._scan_as_buffer
+        await self._start_plugins()
         log.info("hil: emulators running for %s", ", ".join(self.running) or "no device")
+
+    async def _start_plugins(self) -> None:
+        """The emulator of each plugin's driver: its registered ``start(section, world)``, awaited, gives the
+        running emulator (something with ``async stop()``) that serves the section's settings on this world."""
+        for role in cell_roles(self.config):
+            section = getattr(self.config, role)
+            if section.driver not in BUILT_IN_DRIVERS:
+                start = load_registered(EMULATOR_GROUP, role, section.driver)
+                self.running[role] = await start(section, self.world)
 
     async def stop(self) -> None:
         await cancel_and_wait(self._sync_task)

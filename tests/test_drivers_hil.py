@@ -56,7 +56,7 @@ def hil_config(part_mesh: Path) -> CellConfig:
 
 
 def test_factory_builds_every_real_driver_named_by_role():
-    cfg = load_config()
+    cfg = load_config(default_config_path().parent / "cell.example.toml")  # every role: driver = "real"
     kinds = {role: type(build_real_device(role, cfg)) for role in ROLES}
     assert kinds == {"measure_chassis": AgvCanChassis, "tracking_chassis": AgvCanChassis, "arm": JakaTcpArm,
                      "scanner": PhoxiScanner, "tracker": MetronorTracker, "safety": ModbusSafetyIO}

@@ -103,7 +103,7 @@ async def test_lift_twin_raises_the_arm_refuses_out_of_range_and_stops_on_the_la
 
 def test_a_real_lifting_column_is_refused_until_a_driver_exists(large_config):
     real = large_config.model_copy(update={"lift": large_config.lift.model_copy(update={"driver": "real"})})
-    with pytest.raises(CellBuildError, match="lift: no real driver"):
+    with pytest.raises(CellBuildError, match="lift: no driver 'real' registered"):
         build_cell(real)
 
 

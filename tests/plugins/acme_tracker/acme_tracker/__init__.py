@@ -1,0 +1,1 @@
+"""The ACME tracker: a tandemscan tracker plugin (driver, settings and emulator)."""
