@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import sys
 from functools import lru_cache
-from importlib.metadata import EntryPoint, EntryPoints, entry_points
+from importlib.metadata import EntryPoint, distributions
 from typing import TYPE_CHECKING, Annotated
 
 from pydantic import Field
@@ -45,15 +45,22 @@ def cell_roles(config: CellConfig) -> tuple[str, ...]:
 def registered(group: str, role: str) -> dict[str, EntryPoint]:
     """The entry points of ``group`` registered for ``role``, by driver name."""
     prefix = f"{role}."
-    return {ep.name.removeprefix(prefix): ep for ep in _group(group, tuple(sys.path)) if ep.name.startswith(prefix)}
+    found: dict[str, EntryPoint] = {}
+    for ep in _group(group, tuple(sys.path)):
+        if ep.name.startswith(prefix):
+            found.setdefault(ep.name.removeprefix(prefix), ep)
+    return found
 
 
 @lru_cache(maxsize=8)
-def _group(group: str, search_path: tuple[str, ...]) -> EntryPoints:
-    """The entry points of ``group``, read once per ``search_path`` (``sys.path``: reading them scans every
-    installed distribution, about 20 ms here); a plugin installed while a process runs is seen once sys.path
-    changes, or by the next process."""
-    return entry_points(group=group)
+def _group(group: str, search_path: tuple[str, ...]) -> tuple[EntryPoint, ...]:
+    """The entry points of ``group`` of every distribution on ``search_path`` (``sys.path``), in its order (the
+    first of a name wins where a registry is built from them): also those of a copy of a distribution that an
+    earlier one shadows, so that an editable install whose metadata predates its entry points still finds them in
+    the shared environment's copy. Read once per ``search_path``, as a scan reads every installed distribution
+    (about 20 ms here); a plugin installed while a process runs is seen once sys.path changes, or by the next
+    process."""
+    return tuple(ep for dist in distributions() for ep in dist.entry_points.select(group=group))
 
 
 def load_registered(group: str, role: str, driver: str) -> object:
