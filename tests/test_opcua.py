@@ -111,6 +111,7 @@ async def subscribe(client, ns: int, paths: list[str], handler: Changes, events:
         ev_type = await client.nodes.root.get_child(["0:Types", "0:EventTypes", "0:BaseEventType",
                                                      f"{ns}:ResultReadyEventType"])
         await sub.subscribe_events(node(client, ns, "ResultManagement"), ev_type)
+        await sub.subscribe_events(client.nodes.server, ev_type)
     return sub
 
 
@@ -156,7 +157,9 @@ async def test_secure_client_runs_a_job_and_fetches_its_result(cell, identities)
         assert "queued" in message
         rest_job = (await cell.http.get(f"/v1/jobs/{job_id}")).json()
         assert (rest_job["plan"], rest_job["part_number"], rest_job["serial_number"]) == ("short", "PN-4711", "SN-0042")
-        await changes.wait_for(lambda: changes.events, timeout_s=240)
+        await changes.wait_for(lambda: len(changes.events) == 2, timeout_s=240)  # from ResultManagement and Server
+        assert {e.SourceNode for e in changes.events} == {node(client, ns, "ResultManagement").nodeid,
+                                                          client.nodes.server.nodeid}
         result = changes.events[0].Result.ResultMetaData
         assert (result.ResultId, result.JobId) == (job_id, job_id)
         assert (result.ProductId, result.PartId) == ("PN-4711", "SN-0042")

@@ -113,9 +113,11 @@ class OpcuaGateway:
         self.transfer = FileTransfer(server, self.nodes)
         self.server = server
         self._link_methods()
-        self._result_ready = await server.get_event_generator(self.nodes.result_ready_type,
-                                                              self.nodes.result_management)
-        self._result_ready.event.data_types["Result"] = VT.ExtensionObject  # the type's field has no default value
+        # ResultReady from ResultManagement (OPC 40001-101) and from the Server object, where plant clients listen
+        self._result_ready = [await server.get_event_generator(self.nodes.result_ready_type, source)
+                              for source in (self.nodes.result_management, server.nodes.server)]
+        for generator in self._result_ready:
+            generator.event.data_types["Result"] = VT.ExtensionObject  # the type's field has no default value
         await server.export_xml_by_ns(str(self.nodeset_file), [NAMESPACE_URI], export_values=True)
 
     @property
@@ -224,6 +226,7 @@ class OpcuaGateway:
         except (CallRefused, JobRequestError) as e:
             log.warning("no ResultReady for job %s: %s", job_id, e)
             return
-        self._result_ready.event.Result = result
-        self._result_ready.event.Severity = 100
-        await self._result_ready.trigger(message=f"result {job_id} ready")
+        for generator in self._result_ready:
+            generator.event.Result = result
+            generator.event.Severity = 100
+            await generator.trigger(message=f"result {job_id} ready")
