@@ -614,9 +614,11 @@ class JobConfig(_Strict):
 
     out_dir: Path = Path("out")
     voxel_mm: float = Field(1.0, gt=0, description="world map voxel edge, mm")
-    installation_source: Literal["nominal", "calibration"] = Field(
-        "nominal", description="which mounts (T_T_S etc.) the stitch uses: the CAD nominal ones ([installation]) or "
-        "those of calibration_file (`tandemscan calibrate`, what `make measure` uses)"
+    installation_source: Literal["nominal", "calibration", "current"] = Field(
+        "nominal", description="which mounts (T_T_S etc.) the stitch uses: the CAD nominal ones ([installation]), "
+        "those of calibration_file (`tandemscan calibrate`, what `make measure` uses), or the cell's current "
+        "calibration ([calibration] output_file, where it was made for this cell configuration and has not expired; "
+        "else nominal)"
     )
     calibration_file: Path | None = None
     part_number: str | None = Field(
@@ -919,7 +921,9 @@ class CalibrationConfig(_Strict):
         description="where the plate stands relative to the measurement chassis at its start (nominal for "
         "planning; the sim cell puts it exactly there)",
     )
-    output_file: Path = Field(Path("out/calibration.json"), description="where `tandemscan calibrate` writes")
+    output_file: Path = Field(Path("out/calibration.json"), description="where `tandemscan calibrate` writes: the "
+                              "cell's current calibration")
+    max_age_h: float = Field(720.0, gt=0, description="the current calibration expires after this many hours")
 
     @field_validator("centre_A_mm", "centre_X_mm")
     @classmethod

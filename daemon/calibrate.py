@@ -16,10 +16,12 @@ import json
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
 from tandemscan.config.models import CalibrationConfig, CellConfig
+from tandemscan.daemon.calibration_state import cell_fingerprint
 from tandemscan.daemon.cell import Cell
 from tandemscan.daemon.motion import Robot
 from tandemscan.daemon.session import CellSession, MotionGate
@@ -64,11 +66,15 @@ class CalibrationRun:
     skipped: list[str] = field(default_factory=list)
     truth_error: dict[str, float] | None = None
     sources: dict[str, str] = field(default_factory=dict)
+    made_for: str = ""  # the cell configuration's fingerprint (``calibration_state.cell_fingerprint``)
+    created_utc: str = ""
 
     def to_json(self) -> dict:
-        """The calibration file's content: the four mounts and how they were obtained."""
+        """The calibration file's content: the four mounts and how they were obtained, when and for which cell
+        configuration (docs/calibration.md, "The current calibration")."""
         return {
             **replace(self.installation, T_T_S_covariance=self.hand_eye.covariance).to_json(),
+            "created_utc": self.created_utc, "made_for": self.made_for,
             "sources": self.sources,
             "hand_eye": self.hand_eye.summary(),
             "poses_used": self.poses_used,
@@ -126,7 +132,8 @@ async def run_calibration(
         sources.setdefault(k, "nominal")
     installation = Installation(mounts["T_V1_C"], mounts["T_V2_B"], T_E_S, result.T_T_S)
     truth = observer.calibration_scored(nominal, installation) if observer is not None else None
-    run = CalibrationRun(installation, result, out_file, len(views.tracker_poses), skipped, truth, sources)
+    run = CalibrationRun(installation, result, out_file, len(views.tracker_poses), skipped, truth, sources,
+                         cell_fingerprint(config), datetime.now(UTC).isoformat(timespec="seconds"))
     _write_json(out_file, run.to_json())
     progress(cal.poses, cal.poses, "done")
     return run

@@ -160,8 +160,10 @@ def cmd_measure(args: argparse.Namespace) -> int:
 def _mounts_line(config: CellConfig) -> str:
     """``measure``'s first line: the mounts the job stitches with (``job.installation_source``); on the nominal
     ones a warning that the cell is not calibrated. An unreadable calibration file is a :class:`UsageError`."""
+    from tandemscan.daemon.calibration_state import resolve_installation
     from tandemscan.daemon.installation import InstallationError, installation_for_job
 
+    config = resolve_installation(config)
     try:
         installation_for_job(config)
     except InstallationError as e:
@@ -264,7 +266,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         t = run.truth_error
         out.print(f"  sim truth: calibrated {t['T_T_S_err_mm']:.4f} mm / {t['T_T_S_err_deg']:.5f} deg, "
                   f"nominal was {t['nominal_T_T_S_err_mm']:.3f} mm / {t['nominal_T_T_S_err_deg']:.4f} deg")
-    out.print(f"  use it: tandemscan measure --calibration {run.file}")
+    if Path(run.file).resolve() == Path(config.calibration.output_file).resolve():
+        out.print("  the cell's current calibration: jobs with installation_source = \"current\" (the default) use it "
+                  f"until the cell configuration changes or it is {config.calibration.max_age_h:g} h old")
+    else:
+        out.print(f"  use it: tandemscan measure --calibration {run.file}")
     return 0
 
 

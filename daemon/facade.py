@@ -24,6 +24,7 @@ from fastapi import Depends, Request
 from prometheus_client import generate_latest
 from tandemscan.daemon.api_errors import ApiProblem
 from tandemscan.daemon.api_models import Job, JobPage, JobRequest, job_body
+from tandemscan.daemon.calibration_state import resolve_installation
 from tandemscan.daemon.events import Subscription, sse_text
 from tandemscan.daemon.installation import InstallationError, installation_for_job
 from tandemscan.daemon.job_state import FINAL_STATES
@@ -171,7 +172,7 @@ class ServiceFacade:
     async def calibration(self) -> dict:
         """The installation transforms (4x4 lists, mm) a job started now would use and their source; none, with
         the reason, when they cannot be resolved (:func:`~tandemscan.daemon.installation.installation_for_job`)."""
-        config = self.daemon.config
+        config = await asyncio.to_thread(resolve_installation, self.daemon.config)
         try:
             installation = await asyncio.to_thread(installation_for_job, config)
         except (InstallationError, OSError, ValueError, KeyError) as e:

@@ -49,6 +49,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--template", type=Path, default=None, metavar="T.toml",
                    help="inspection template: the part's characteristics and alignment (docs/inspection.md)")
     p.add_argument("--serial", default=None, help="the measured part's serial number (report, results.qif)")
+    p.add_argument("--point-uncertainty-mm", type=float, default=None, metavar="U",
+                   help="the cloud's own expanded uncertainty per point (k = [inspection] decision_k), mm; default: "
+                   "the PLY's uncertainty_mm property where it has one, else 0")
     p.add_argument("--no-best-fit", action="store_true",
                    help="skip the separate best-fit figures reported after the alignment")
     p.set_defaults(func=run)
@@ -82,7 +85,9 @@ def run(args: argparse.Namespace) -> int:
                                   ("serial", args.serial), ("template", args.template and str(args.template)),
                                   ("measuring_system", f"the scanner of {args.cloud.name} (tandemscan inspect)"))
                 if v is not None}
-        outputs = inspect_files(args.cloud, args.cad, out, cfg, template, part)
+        if args.point_uncertainty_mm is not None and not args.point_uncertainty_mm >= 0:
+            raise InspectionError(f"--point-uncertainty-mm must be >= 0 mm, got {args.point_uncertainty_mm}")
+        outputs = inspect_files(args.cloud, args.cad, out, cfg, template, part, args.point_uncertainty_mm)
     except (InspectionError, ConfigError, OSError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return EXIT_BAD_INPUT

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 from tandemscan.config.models import CellConfig
 from tandemscan.daemon.agv_relocalisation import AgvRelocalisation
+from tandemscan.daemon.calibration_state import resolve_installation
 from tandemscan.daemon.coordinate_transfer import (
     RESUME_TOLERANCE_DEG,
     RESUME_TOLERANCE_MM,
@@ -144,7 +145,7 @@ class JobRunner:
         self.cell = session.cell
         self.gate: MotionGate = session.gate
         self.plan = plan
-        self.config = config
+        self.config = config = resolve_installation(config)  # "current": the cell's current calibration or nominal
         self.job_dir = Path(job_dir)
         self.progress = progress or (lambda p: None)
         self.journal = journal or NoJournal()

@@ -10,8 +10,10 @@ from tandemscan.config import CellConfig, load_config
 
 @pytest.fixture
 def sim_config() -> CellConfig:
-    """The shipped simulated-cell configuration."""
-    return load_config()
+    """The shipped simulated-cell configuration, on its nominal mounts: a current calibration a developer's
+    `tandemscan calibrate` left in out/ does not reach the tests."""
+    config = load_config()
+    return config.model_copy(update={"job": config.job.model_copy(update={"installation_source": "nominal"})})
 
 
 @pytest.fixture(autouse=True)

@@ -340,7 +340,8 @@ def test_finished_job_shows_verdict_links_and_a_3d_view_that_draws(cell, browser
     browser.execute_script("document.querySelector(arguments[0]).click()", button)  # the row may be rebuilt
     wait(browser, lambda d: d.find_element(By.ID, "cloud-canvas").get_attribute("data-points"), 60)
     verdict = text(browser, "verdict")  # the default part is its own CAD: no deviation area
-    assert "Inspection pass: no deviation area beyond [-0.100, 0.100] mm" in verdict
+    assert "Inspection pass (ISO 14253-1 (k = 2)): no deviation area beyond [-0.500, 0.500] mm" in verdict
+    assert "mounts: calibration" in verdict
     assert "aligned by best-fit" in verdict
     links = (("link-report", "/files/report.html"), ("link-e57", "/files/cloud.e57"), ("link-cloud", "/cloud"))
     for link, href in links:

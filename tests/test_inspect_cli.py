@@ -127,3 +127,48 @@ def test_registered_in_the_main_cli(files, tmp_path, capsys):
     with pytest.raises(SystemExit) as e:  # argparse: --cad is required
         tandemscan(["inspect", str(cloud)])
     assert e.value.code == 2
+
+
+def test_point_uncertainty_gives_the_same_decisions_in_place_and_20_deg_200_mm_away(tmp_path, capsys):
+    """A closed box with a bump proven out (0.8 mm), one proven in (0.25 mm) and one within U of the +-0.5 mm
+    limit (0.5 mm), its points' U 0.3 mm stated by --point-uncertainty-mm: in place (no alignment) and turned
+    20 deg and moved 200 mm (best fit), the same areas with the same decisions; the deviation PLY carries U."""
+    from tandemscan.pipeline.geometry import frames as F
+
+    mesh = o3d.geometry.TriangleMesh.create_box(400.0, 200.0, 100.0)
+    mesh.compute_triangle_normals()
+    cad = tmp_path / "box.stl"
+    o3d.io.write_triangle_mesh(str(cad), mesh)
+    rng = np.random.default_rng(4)
+    faces = []
+    for axis, size in ((0, 400.0), (1, 200.0), (2, 100.0)):
+        for at in (0.0, size):
+            p = rng.uniform([0, 0, 0], [400.0, 200.0, 100.0], (20_000, 3))
+            p[:, axis] = at
+            faces.append(p)
+    pts = np.vstack(faces)
+    top = pts[:, 2] == 100.0
+    for centre, height in (((80.0, 60.0), 0.8), ((200.0, 140.0), 0.25), ((320.0, 60.0), 0.5)):
+        r = np.linalg.norm(pts[:, :2] - centre, axis=1) / 35.0
+        pts[:, 2] += np.where(top & (r < 1.0), 0.5 * height * (1.0 + np.cos(np.pi * np.clip(r, 0, 1))), 0.0)
+    pts += rng.normal(0, 0.01, pts.shape)
+    cfg = tmp_path / "cell.toml"
+    cfg.write_text("[inspection]\nmap_width_px = 250\nregions = []\nviews = ['top']\nreference_spheres = []\n"
+                   "tolerance_lower_mm = -0.5\ntolerance_upper_mm = 0.5\n")
+    decisions = {}
+    off = F.from_rotvec([200.0, 0.0, 0.0], np.radians([0.0, 0.0, 20.0]))
+    for name, T, alignment in (("in-place", np.eye(4), "none"), ("moved", off, "best-fit")):
+        cloud = tmp_path / f"{name}.ply"
+        o3d.io.write_point_cloud(str(cloud), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(
+            F.transform_points(T, pts))))
+        out = tmp_path / name
+        assert main([str(cloud), "--cad", str(cad), "--out", str(out), "--config", str(cfg), "--alignment",
+                     alignment, "--point-uncertainty-mm", "0.3"]) == 0
+        ins = json.loads((out / "report.json").read_text())["inspection"]
+        decisions[name] = sorted((round(a["centroid_mm"][0] / 40.0), a["decision"]) for a in ins["deviations"])
+        assert ins["verdict"] == "fail" and ins["decision_rule"] == {"name": "iso14253-1", "k": 2.0}
+        assert ins["uncertainty"]["median_mm"] == pytest.approx(0.3)
+        u = o3d.t.io.read_point_cloud(str(out / "cloud_deviation.ply")).point.uncertainty_mm.numpy().ravel()
+        assert len(u) == len(pts) and np.allclose(u, 0.3)
+    assert decisions["in-place"] == decisions["moved"] == [(2, "nonconforming"), (8, "indeterminate")]
+    assert capsys.readouterr().out.startswith("FAIL")

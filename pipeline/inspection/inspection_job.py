@@ -42,7 +42,7 @@ from tandemscan.pipeline.inspection.qif import RESULTS_FILE, MeasuredPart, write
 from tandemscan.pipeline.inspection.report import build_report, failed_report, in_background, write_report
 from tandemscan.pipeline.inspection.stitch_quality import overlap_quality
 from tandemscan.pipeline.inspection.verdict import VerdictContext, judge
-from tandemscan.pipeline.io.cloud_io import CloudIOError, read_ply
+from tandemscan.pipeline.io.cloud_io import CloudIOError, read_ply, read_ply_vertices
 from tandemscan.pipeline.io.export import write_ply
 from tandemscan.pipeline.planning.coverage import CoverageFigures
 
@@ -260,15 +260,26 @@ class PlacedScans(Sequence):
 def inspect_files(
     cloud_path: Path | str, cad_path: Path | str, out_dir: Path | str, cfg: InspectionConfig | None = None,
     template: InspectionTemplate | None = None, part: Mapping[str, str] | None = None,
+    point_uncertainty_mm: float | None = None,
 ) -> InspectionOutputs:
     """Inspect a cloud file against a CAD mesh file; writes into ``out_dir``. The cloud is registered by
     ``cfg.alignment`` (the template's, when given) from where it lies (within the first trim distance of its
-    place on CAD); ``template`` and ``part`` as :func:`run_inspection` takes them."""
+    place on CAD); ``template`` and ``part`` as :func:`run_inspection` takes them. The points' expanded
+    uncertainty (k = ``cfg.decision_k``, mm) is ``point_uncertainty_mm``, else the PLY's ``uncertainty_mm``
+    property where it has one (a job's ``cloud_deviation.ply``), else none is known (0)."""
     try:
         points, normals = read_ply(cloud_path)
         mesh = read_mesh_file(Path(cad_path), what="CAD mesh")
     except (CloudIOError, PartMeshError) as e:
         raise InspectionError(str(e)) from e
+    own = point_uncertainty_mm
+    if own is None and Path(cloud_path).suffix.lower() == ".ply":
+        try:
+            own = read_ply_vertices(cloud_path).get("uncertainty_mm")
+        except CloudIOError:  # a layout only Open3D reads: it has no such property for us
+            own = None
+    cfg = cfg or InspectionConfig()
     meta = {"cloud": str(cloud_path), "CAD mesh": str(cad_path), "points": str(len(points))}
+    given = None if own is None else GivenUncertainty(np.asarray(own, float), cfg.decision_k)
     return align_and_inspect(points, mesh, out_dir, cfg, normals_W=normals, start="the cloud as given", meta=meta,
-                             template=template, part=part)
+                             template=template, part=part, uncertainty=given)

@@ -52,7 +52,7 @@ class PointUncertainty:
     per source the median over the points of that source's expanded uncertainty alone (``budget_mm``, sources
     :data:`SOURCES`, correlations of the pose sources counted in the total only) and a note per source where it
     needs one; ``noise_variance_mm2``: the part of each point's squared standard uncertainty that is independent
-    from point to point (the scanner's noise; 0 for a cloud's own stated U, taken as systematic);
+    from point to point (the scanner's noise; all of a cloud's own stated U, ``GivenUncertainty``);
     ``scan_of_point``: the scan with the largest share of each point (index into the job's scans; None where not
     known)."""
 
@@ -104,7 +104,8 @@ ALIGNMENT_NOTE = "the alignment states no covariance of its own: term 0 (a best 
 @dataclass(frozen=True)
 class GivenUncertainty:
     """A cloud's own expanded uncertainty (per point (N,) or one for all, mm, coverage factor ``k``): a scanner's
-    statement (``tandemscan inspect --point-uncertainty-mm``, a PLY property ``uncertainty_mm``); the alignment's is
+    statement (``tandemscan inspect --point-uncertainty-mm``, a PLY property ``uncertainty_mm``), taken as
+    independent from point to point (a deviation averaged over n points has 1/sqrt(n) of it); the alignment's is
     added."""
 
     expanded_mm: np.ndarray | float
@@ -124,7 +125,7 @@ class GivenUncertainty:
         notes = {"cloud": "the cloud's own expanded uncertainty as given"}
         if alignment is None:
             notes["alignment"] = ALIGNMENT_NOTE.split(" (")[0]
-        return PointUncertainty(k, total, np.zeros(len(total)), budget, notes)
+        return PointUncertainty(k, total, own**2, budget, notes)
 
 
 @dataclass(frozen=True)

@@ -305,24 +305,33 @@ async function jobAction(verb) {
 // ------------------------------------------------------------------ a finished job
 
 function verdictOf(job, report) {
-  if (!COMPLETED.includes(job.state)) return { pass: false, text: `Job ${job.state}${job.error ? ": " + job.error : ""}` };
-  if (job.state === "succeeded_with_gaps") return { pass: false, text: `Succeeded with gaps: ${job.error}` };
+  if (!COMPLETED.includes(job.state)) return { kind: "fail", text: `Job ${job.state}${job.error ? ": " + job.error : ""}` };
+  if (job.state === "succeeded_with_gaps") return { kind: "fail", text: `Succeeded with gaps: ${job.error}` };
   const ins = report && report.inspection;
   const tol = ins && ins.as_measured && ins.as_measured.tolerance;
   if (!ins || !ins.verdict || !tol) {
     const why = ins && (ins.skipped || ins.failed);
-    return { pass: true, text: `Succeeded; no inspection${why ? ": " + why : ""}` };
+    return { kind: "pass", text: `Succeeded; no inspection${why ? ": " + why : ""}` };
   }
   const band = `[${tol.lower_mm.toFixed(3)}, ${tol.upper_mm.toFixed(3)}] mm`;
   const areas = ins.deviations || [];
   const how = ins.alignment ? `, aligned by ${ins.alignment.method}` : "";
   const share = `${tol.in_pct.toFixed(1)} % of the points within ${band}${how}`;
-  if (ins.verdict === "pass") return { pass: true, text: `Inspection pass: no deviation area beyond ${band}; ${share}` };
+  const rule = ins.decision_rule_label ? ` (${ins.decision_rule_label})` : "";
+  const u = ins.uncertainty ? `; U ${ins.uncertainty.median_mm.toFixed(3)} mm (k = ${ins.uncertainty.k})` : "";
+  const inst = ins.installation ? `; mounts: ${ins.installation.source}` : "";
+  if (ins.verdict === "pass") {
+    return { kind: "pass", text: `Inspection pass${rule}: no deviation area beyond ${band}; ${share}${u}${inst}` };
+  }
+  if (ins.verdict === "indeterminate") {
+    const why = (ins.verdict_reasons || [])[0];
+    return { kind: "indeterminate", text: `Inspection indeterminate${rule}: ${why || "not proven either way"}${u}${inst}` };
+  }
   const worst = areas.length ? ` (largest: ${areas[0].side} ${areas[0].extreme_mm.toFixed(3)} mm, ` +
     `${areas[0].area_mm2.toFixed(0)} mm^2)` : "";
   return {
-    pass: false,
-    text: `Inspection fail: ${areas.length} deviation area${areas.length === 1 ? "" : "s"} beyond ${band}${worst}; ${share}`,
+    kind: "fail",
+    text: `Inspection fail${rule}: ${areas.length} deviation area${areas.length === 1 ? "" : "s"} beyond ${band}${worst}; ${share}${u}${inst}`,
   };
 }
 
@@ -339,7 +348,7 @@ async function openResult(jobId) {
   if (COMPLETED.includes(job.state)) report = await api("GET", `${base}/report`);
   const verdict = verdictOf(job, report);
   $("verdict").textContent = verdict.text;
-  $("verdict").className = `verdict ${verdict.pass ? "pass" : "fail"}`;
+  $("verdict").className = `verdict ${verdict.kind}`;
   renderFigures($("result-figures"), job.figures);
   await showTrends(report);
   $("result-panel").scrollIntoView({ block: "start" });

@@ -1,0 +1,164 @@
+"""Is the per-point expanded uncertainty U honest? Its coverage on a defect-free part, and a Monte Carlo check.
+
+Usage: python benchmarks/uncertainty_coverage.py [--plan FILE|generated] [--seeds 7 8 9] [--draws 200]
+(band plan: about 1.5 min a seed on the 2-core machine; the whole part, --plan generated: far longer)
+
+For each seed the default job runs on the simulated cell, calibrated (the cell's surveyed mounts, a calibration
+file exact to 0.1 um, ``sim_drivers.cell.with_surveyed_mounts``), on the default part, which is its own CAD: every
+point's true deviation is zero, so its measured deviation (``cloud_deviation.ply`` ``deviation_mm``) should lie
+within +-U (``uncertainty_mm``, k = 2) for about 95 % of the points (target 93 to 97.5 %), overall and among the
+points whose largest share comes from each tracker station's scans (``coverage_pct``,
+``coverage_pct_per_station``).
+
+The Monte Carlo check (GUM Supplement 1, JCGM 101:2008) draws what the first-order propagation linearises
+(docs/inspection.md, "Per-point uncertainty"): the scans' pose errors from the job's own joint covariance (the
+model the job evaluated, captured from ``daemon.job_outputs.job_uncertainty``), each scan moved by its exact rigid
+motion (not the linearised one) and the points by their voxels' shares of the scans, the noise along the normal;
+then the real best fit to the CAD (``inspect.best_fit``, point-to-plane ICP on the CAD surface, trimmed at
+``best_fit_max_distance_mm``) on an even subsample, and the real signed distances of an even subsample of
+evaluation points. ``mc_ratio_median``: the median over those points of first-order U over 2 x the draws' standard
+deviation (target within 10 % of 1). Attribution of points to scans and the evaluation at the nearest centre are
+shared by both, so the check is of the linearisation and of the best fit's absorption.
+
+The last line of output is one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import tempfile
+from pathlib import Path
+
+import numpy as np
+from clean_exit import clean_exit_on_sigterm
+from results import publish
+from tandemscan.config import load_config
+from tandemscan.daemon import job_outputs
+from tandemscan.daemon.cli import default_plan_path
+from tandemscan.daemon.runner import JobRunner
+from tandemscan.daemon.session import CellSession
+from tandemscan.pipeline.geometry.frames import from_rotvec, invert, transform_points
+from tandemscan.pipeline.geometry.part import load_part_mesh
+from tandemscan.pipeline.inspection.inspect import CadSurface, best_fit
+from tandemscan.pipeline.io.cloud_io import read_ply_vertices
+from tandemscan.pipeline.planning.plan import Plan
+from tandemscan.sim_drivers.cell import with_surveyed_mounts
+
+EVAL_POINTS = 2000
+FIT_POINTS = 6000
+
+
+def capture_models() -> list:
+    """Every ``JobUncertainty`` a job evaluates in this process, appended to the list returned."""
+    models = []
+    plain = job_outputs.job_uncertainty
+
+    def kept(*args, **kwargs):
+        m = plain(*args, **kwargs)
+        models.append(m)
+        return m
+
+    job_outputs.job_uncertainty = kept
+    return models
+
+
+def monte_carlo(model, surface: CadSurface, p_F: np.ndarray, T_F_W: np.ndarray, draws: int, max_mm: float,
+                rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(evaluation point indices, 2 x the standard deviation over ``draws`` of their fitted deviations)."""
+    ev = np.arange(len(p_F))[:: max(1, len(p_F) // EVAL_POINTS)]
+    fit = np.arange(len(p_F))[:: max(1, len(p_F) // FIT_POINTS)]
+    idx = np.r_[ev, fit]
+    cp = surface.closest(p_F[idx])
+    true_F, n_F = cp.points_mm, cp.normals                      # the part's surface where the points are
+    T_W_F = invert(T_F_W)
+    true_W = transform_points(T_W_F, true_F)
+    scans, w = model.cover.shares(true_W)
+    rows = model._pose_rows()[scans]
+    n_W = true_W.shape[0]
+    noise_sd = np.sqrt(model.noise_sigma_mm**2 * model._ray_cosines_sq(true_W, n_F @ T_F_W[:3, :3], (scans, w))
+                       / np.maximum(1.0 if model.counts is None else model.counts[idx], 1.0))
+    G = model.poses.factor("all")
+    origins = model.poses.origins_mm
+    out = np.empty((draws, len(ev)))
+    for d in range(draws):
+        e = (G @ rng.standard_normal(G.shape[1])).reshape(-1, 6)
+        moved = np.zeros((n_W, 3))
+        for k in range(rows.shape[1]):
+            for r in np.unique(rows[:, k]):
+                at = rows[:, k] == r
+                o = origins[r]
+                T = from_rotvec(o, [0, 0, 0]) @ from_rotvec(e[r, :3], e[r, 3:]) @ from_rotvec(-o, [0, 0, 0])
+                moved[at] += w[at, k, None] * (transform_points(T, true_W[at]) - true_W[at])
+        q_F = transform_points(T_F_W, true_W + moved) + (noise_sd * rng.standard_normal(n_W))[:, None] * n_F
+        T, *_ = best_fit(surface, q_F[len(ev):], max_mm, iterations=30)
+        out[d] = surface.signed_distance(transform_points(T, q_F[: len(ev)]))
+    return ev, 2.0 * out.std(axis=0)
+
+
+async def one_seed(config, plan: Plan, seed: int, draws: int, models: list) -> dict:
+    config = config.model_copy(update={"sim": config.sim.model_copy(update={"seed": seed})})
+    with tempfile.TemporaryDirectory() as tmp:
+        async with CellSession(config) as session:
+            config = with_surveyed_mounts(config, session.cell.simulation, Path(tmp))
+            result = await JobRunner(session, plan, config, Path(tmp) / "job").run()
+        ins = result.report["inspection"]
+        ply = read_ply_vertices(Path(tmp) / "job" / ins["files"]["deviation_ply"])
+    model = models[-1]
+    p_F = np.column_stack([ply[a] for a in "xyz"]).astype(float)
+    d, U = ply["deviation_mm"].astype(float), ply["uncertainty_mm"].astype(float)
+    inside = np.abs(d) <= U
+    T_F_W = np.asarray(ins["T_F_W"], float)
+    scans = model.cover.shares(transform_points(invert(T_F_W), p_F), k=1)[0][:, 0]
+    stations = np.array([s.tracker_station for s in result.scans])[model.cover.scan_ids[scans]]
+    surface = CadSurface(load_part_mesh(config.part))
+    ev, mc = monte_carlo(model, surface, p_F, T_F_W, draws, config.inspection.best_fit_max_distance_mm,
+                         np.random.default_rng(seed))
+    ratio = U[ev] / mc
+    return {"seed": seed, "points": int(len(d)), "scans": result.report["scans"],
+            "coverage_pct": round(100.0 * float(inside.mean()), 2),
+            "coverage_pct_per_station": {int(s): round(100.0 * float(inside[stations == s].mean()), 2)
+                                         for s in np.unique(stations)},
+            "points_per_station": {int(s): int((stations == s).sum()) for s in np.unique(stations)},
+            "U_median_mm": round(float(np.median(U)), 4), "U_p95_mm": round(float(np.percentile(U, 95)), 4),
+            "deviation_rms_mm": round(float(np.sqrt(np.mean(d**2))), 4),
+            "budget_mm": ins["uncertainty"]["budget_mm"], "verdict": ins["verdict"],
+            "mc_draws": draws, "mc_points": int(len(ev)), "mc_ratio_median": round(float(np.median(ratio)), 3),
+            "mc_ratio_p5_p95": [round(float(v), 3) for v in np.percentile(ratio, [5, 95])]}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--plan", help="plan file, or 'generated' to plan the whole part (default: the band plan)")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[7, 8, 9])
+    parser.add_argument("--draws", type=int, default=200, help="Monte Carlo draws a seed")
+    args = parser.parse_args()
+    config = load_config(None)
+    if args.plan == "generated":
+        from tandemscan.pipeline.planning.planner import plan_part
+
+        start = config.sim.tracking_start
+        plan = plan_part(load_part_mesh(config.part), config, name="generated",
+                         tracker_start=(start.x_mm, start.y_mm, np.radians(start.heading_deg))).sequence.plan
+    else:
+        plan = Plan.load(Path(args.plan) if args.plan else default_plan_path())
+    models = capture_models()
+    runs = []
+    for seed in args.seeds:
+        runs.append(asyncio.run(one_seed(config, plan, seed, args.draws, models)))
+        print(json.dumps(runs[-1]), flush=True)
+    per_station = [v for r in runs for v in r["coverage_pct_per_station"].values()]
+    cov = [r["coverage_pct"] for r in runs]
+    publish(f"uncertainty_coverage-{plan.name}", {
+        "plan": plan.name, "seeds": args.seeds, "runs": runs,
+        "coverage_pct_min": min(cov), "coverage_pct_max": max(cov),
+        "coverage_pct_per_station_min": min(per_station), "coverage_pct_per_station_max": max(per_station),
+        "coverage_within_93_97_5": all(93.0 <= v <= 97.5 for v in cov + per_station),
+        "mc_ratio_median": float(np.median([r["mc_ratio_median"] for r in runs])),
+        "mc_within_10_pct": all(abs(r["mc_ratio_median"] - 1.0) <= 0.1 for r in runs)})
+
+
+if __name__ == "__main__":
+    clean_exit_on_sigterm()
+    main()
