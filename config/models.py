@@ -939,6 +939,21 @@ class CalibrationConfig(_Strict):
             raise ValueError("Y lies on the plate +y axis: x = z = 0, y > 0")
         return v
 
+class VerificationConfig(_Strict):
+    """Interim verification (VDI/VDE 2634-3 style, `tandemscan verify`): the calibration plate's spheres measured
+    through the whole chain (tracker, target, mounts, scanner) from several views; maximum permissible errors
+    (mm) and how long a verification holds."""
+
+    views: int = Field(6, ge=2, description="plate views of a verification (each sphere seen from each)")
+    mpe_sphere_spacing_mm: float = Field(0.15, gt=0, description="MPE of the sphere-spacing error across views")
+    mpe_probing_form_mm: float = Field(0.1, gt=0, description="MPE of the probing form error (RMS of a sphere fit)")
+    mpe_probing_size_mm: float = Field(0.1, gt=0, description="MPE of the probing size error (fitted diameter)")
+    max_age_h: float = Field(24.0, gt=0, description="a job's verdict is indeterminate after a verification this "
+                             "old (or one that failed); none on record: the report says so")
+    output_file: Path = Field(Path("out/verification.json"), description="where `tandemscan verify` records "
+                              "the last verification (the journal of verifications beside it, .jsonl)")
+
+
 class DaemonConfig(_Strict):
     """The daemon: REST bind address, API token, device health polling and reconnect backoff (seconds)."""
 
@@ -1009,6 +1024,7 @@ class CellConfig(_Strict):
     job: JobConfig = JobConfig()
     inspection: InspectionConfig = InspectionConfig()
     calibration: CalibrationConfig = CalibrationConfig()
+    verification: VerificationConfig = VerificationConfig()
     planning: PlanningConfig = PlanningConfig()
     correction: CorrectionConfig = CorrectionConfig()
     deepmerge: DeepMergeConfig = DeepMergeConfig()

@@ -111,6 +111,8 @@ class Calibration(BaseModel):
     file: str | None
     transforms: dict[str, list[list[float]]]
     error: str | None = Field(None, description="why the installation could not be resolved (no transforms then)")
+    verification: dict | None = Field(None, description="the last interim verification (`tandemscan verify`): "
+                                      "result, errors against their MPEs, created_utc, age_h, summary; none on record")
 
 
 class Health(BaseModel):

@@ -95,6 +95,7 @@ class PlateViews:
     centres: list[np.ndarray] = field(default_factory=list)
     centre_covariances: list[np.ndarray] = field(default_factory=list)
     joints: list[np.ndarray] = field(default_factory=list)
+    fits: list[list[PlateFit]] = field(default_factory=list)  # each view's plate fits (its spheres' fits)
 
     def add(self, T_C_T: np.ndarray, cov: np.ndarray, fits: list[PlateFit], q: np.ndarray) -> None:
         """One view: the arm stands still, so the scans' centres are averaged and their covariance shrinks
@@ -102,6 +103,7 @@ class PlateViews:
         self.tracker_poses.append(T_C_T)
         self.covariances.append(cov)
         self.joints.append(q)
+        self.fits.append(list(fits))
         self.centres.append(np.mean([f.centres_S for f in fits], axis=0))
         self.centre_covariances.append(np.mean([f.centre_covariances for f in fits], axis=0) / len(fits))
         self.plate_poses.append(plate_frame(*self.centres[-1]))
@@ -122,7 +124,7 @@ async def run_calibration(
     if observer is not None:  # off the event loop: the supervisor's 50 Hz safety polling runs on it
         await asyncio.to_thread(observer.calibration_started)
     kinematics = ArmKinematics(config.arm)
-    views, skipped = await _scan_plate_views(session, config, nominal, kinematics, progress)
+    views, skipped = await scan_plate_views(session, config, nominal, kinematics, progress)
     result = await _solve_scanner_mount(views, cal)
     sources = {"T_T_S": f"hand-eye ({result.method}, {len(views.tracker_poses)} poses)"}
     T_E_S = _flange_mount(views, kinematics, result, nominal.T_E_S, sources, skipped)
@@ -139,7 +141,7 @@ async def run_calibration(
     return run
 
 
-async def _scan_plate_views(session: CellSession, config: CellConfig, nominal: Installation,
+async def scan_plate_views(session: CellSession, config: CellConfig, nominal: Installation,
                             kinematics: ArmKinematics, progress: Callable[[int, int, str], None],
                             ) -> tuple[PlateViews, list[str]]:
     """Plan the views over the plate (IK with the nominal mounts), then at each until ``calibration.poses``

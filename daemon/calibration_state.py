@@ -92,5 +92,10 @@ def installation_record(config: CellConfig) -> dict:
 
 
 def verdict_context(job: JobSnapshot) -> VerdictContext:
-    """What a job's verdict is made in: the installation it stitched with."""
-    return VerdictContext(installation=installation_record(job.config))
+    """What a job's verdict is made in: the installation it stitched with and the last verification, which holds
+    the verdict back where it failed or is overdue (``verify.verification_holds``)."""
+    from tandemscan.daemon.verify import last_verification, verification_holds  # verify imports this module
+
+    last = last_verification(job.config)
+    return VerdictContext(installation=installation_record(job.config), verification=last,
+                          holds=verification_holds(job.config, last))

@@ -274,6 +274,29 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_verify(args: argparse.Namespace) -> int:
+    """Interim verification (VDI/VDE 2634-3 style): the plate's spheres through the whole chain; 0 when it
+    passes, 1 when an error is beyond its MPE (recorded either way)."""
+    from tandemscan.daemon.verify import run_verification
+
+    config = _load_config_with_overrides(args)
+    session = _session(config)
+    Path(config.verification.output_file).parent.mkdir(parents=True, exist_ok=True)
+
+    async def run():
+        async with session:
+            with _progress_bar() as bar:
+                task = bar.add_task("starting", total=config.verification.views)
+                return await run_verification(
+                    session, config, lambda d, t, m: bar.update(task, completed=d, total=t, description=m))
+
+    result = _run_moving(run, "no verification recorded")
+    Console().print(f"[bold]verification[/bold] {result.summary()}; recorded in {config.verification.output_file}")
+    for why in result.failures:
+        Console().print(f"  [bold red]fail:[/bold red] {why}")
+    return 0 if result.result == "pass" else 1
+
+
 def _print_summary(report: dict, job_dir: Path) -> None:
     out = Console()
     out.print(f"[bold]job[/bold] {job_dir}: {report['scans']} scans, {report['transfers']} coordinate transfers, "
@@ -427,6 +450,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", type=Path, help="cell configuration TOML (default: the simulated cell)")
     p.add_argument("--out", type=Path, help="calibration file to write (default: calibration.output_file)")
     p.set_defaults(func=cmd_calibrate)
+
+    p = sub.add_parser("verify", help="interim verification on the calibration plate (VDI/VDE 2634-3 style)")
+    p.add_argument("--config", type=Path, help="cell configuration TOML (default: the simulated cell)")
+    p.add_argument("--calibration", type=Path, help="calibration file to verify (default: the job's mounts)")
+    p.set_defaults(func=cmd_verify)
 
     from tandemscan.daemon.deepmerge_cmd import register as register_deepmerge
 

@@ -30,6 +30,7 @@ from tandemscan.daemon.installation import InstallationError, installation_for_j
 from tandemscan.daemon.job_state import FINAL_STATES
 from tandemscan.daemon.jobs import request_hash
 from tandemscan.daemon.store import IdempotencyConflict, JobRecord
+from tandemscan.daemon.verify import last_verification
 from tandemscan.drivers.errors import SafetyStop
 from tandemscan.drivers.interfaces import SafetyState
 from tandemscan.pipeline.planning.plan import Plan, PlanError
@@ -182,8 +183,9 @@ class ServiceFacade:
             transforms = {n: np.asarray(getattr(installation, n), float).tolist() for n in CALIBRATION_TRANSFORMS}
             error = None
         job = config.job
+        verification = await asyncio.to_thread(last_verification, config)
         return {"source": job.installation_source, "file": str(job.calibration_file) if job.calibration_file else None,
-                "transforms": transforms, "error": error}
+                "transforms": transforms, "error": error, "verification": verification}
 
     async def plans(self) -> list[dict]:
         return await asyncio.to_thread(self.daemon.plans.summaries)

@@ -35,7 +35,7 @@ def test_the_simulators_truth_is_not_an_installation_source(tmp_path):
     old.write_text('[job]\ninstallation_source = "truth"\n')
     with pytest.raises(ConfigError, match="job.installation_source.*scoring only.*tandemscan calibrate"):
         load_config(old)
-    assert load_config().job.installation_source == "nominal"
+    assert load_config().job.installation_source == "current"  # the current calibration, else nominal
 
 
 def test_missing_and_malformed_files(tmp_path):

@@ -8,6 +8,7 @@ from tandemscan.config.models import InspectionConfig, RegionConfig
 from tandemscan.pipeline.inspection.inspect import CadSurface, inspect_cloud
 from tandemscan.pipeline.inspection.point_uncertainty import GivenUncertainty
 from tandemscan.pipeline.inspection.verdict import VerdictContext, judge
+from tandemscan.pipeline.io.cloud_io import read_ply_vertices
 
 TOP = 50.0
 BUMPS = {"out": ((100.0, 100.0), 0.8), "in": ((300.0, 200.0), 0.3), "between": ((500.0, 100.0), -0.54)}
@@ -105,3 +106,27 @@ def test_a_held_verdict_is_indeterminate_and_the_nominal_installation_is_named(b
     assert held.verdict == "indeterminate" and "30 h old" in " ".join(held.judgement.reasons)
     nominal = judge(flat, u, c, VerdictContext(installation={"source": "nominal"}))
     assert any("nominal mounts" in why for why in nominal.judgement.reasons)
+
+
+def test_report_states_the_rule_the_budget_the_ratios_and_maps_the_uncertainty(box, tmp_path):
+    import json
+
+    from tandemscan.pipeline.inspection.inspection_job import run_inspection
+
+    c = cfg(views=("top",), map_width_px=250)
+    out = run_inspection(top_with_bumps(3.0), box, tmp_path, c, uncertainty=GivenUncertainty(0.25),
+                         context=VerdictContext(installation={"source": "calibration", "file": "cal.json",
+                                                              "date": "2026-12-05T18:00:00+00:00"}))
+    data = json.loads((tmp_path / "report.json").read_text())["inspection"]
+    assert data["verdict"] == out.result.verdict == "fail"
+    assert data["decision_rule"] == {"name": "iso14253-1", "k": 2.0}
+    assert data["uncertainty"]["median_mm"] == pytest.approx(0.25) and "cloud" in data["uncertainty"]["budget_mm"]
+    assert {d["decision"] for d in data["deviations"]} == {"nonconforming", "indeterminate"}
+    assert data["installation"]["file"] == "cal.json" and data["verdict_reasons"]
+    assert [g["name"] for g in data["region_verdicts"]] == ["left", "right"]
+    assert "uncertainty-map" in {f["name"] for f in data["figures"]}
+    html = (tmp_path / "report.html").read_text()
+    assert 'class="verdict fail"' in html and "ISO 14253-1 (k = 2)" in html and 'id="uncertainty"' in html
+    assert 'id="region-verdicts"' in html and "2.0 : 1" in html and "installation: calibration, cal.json" in html
+    ply = read_ply_vertices(tmp_path / "cloud_deviation.ply")
+    assert np.allclose(ply["uncertainty_mm"], 0.25)

@@ -244,11 +244,14 @@ def deviation_map_png(
     normals: np.ndarray | None = None,
     spacing_mm: float | None = None,
     callouts: Sequence[Callout] = (),
+    cmap=DEVIATION_CMAP,
+    bar_label: str = "deviation, mm",
 ) -> bytes:
     """One deviation colour map as PNG: the view, mm axes on the view plane, a colour bar with the band,
     and a labelled leader to each of ``callouts`` this view sees. Fixed axes positions (no layout engine:
-    text measuring would cost more than the picture)."""
-    img = render_view(surface, points_mm, deviations_mm, view, norm, width_px, normals=normals,
+    text measuring would cost more than the picture). ``cmap`` and ``bar_label`` draw another field per point
+    (the uncertainty map: ``tolerance``'s limits are then its marks on the bar)."""
+    img = render_view(surface, points_mm, deviations_mm, view, norm, width_px, cmap=cmap, normals=normals,
                       spacing_mm=spacing_mm)
     h, w = img.rgb.shape[:2]
     fig_w, left, right, bottom, top = 8.0, 0.85, 1.3, 0.6, 0.45  # inches
@@ -269,7 +272,7 @@ def deviation_map_png(
                     textcoords="offset points", fontsize=9, fontweight="bold", color=c.colour,
                     bbox={"boxstyle": "round,pad=0.2", "fc": "white", "ec": c.colour, "lw": 1.0},
                     arrowprops={"arrowstyle": "-", "color": c.colour, "lw": 1.2})
-    bar = fig.colorbar(ScalarMappable(norm, DEVIATION_CMAP), cax=cax, label="deviation, mm")
+    bar = fig.colorbar(ScalarMappable(norm, cmap), cax=cax, label=bar_label)
     for v in (tolerance.lower_mm, tolerance.upper_mm):
         bar.ax.axhline(v, color="black", lw=1.2)
     return png_bytes(fig)

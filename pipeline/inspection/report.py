@@ -18,6 +18,8 @@ from pathlib import Path
 
 import jinja2
 import numpy as np
+from matplotlib import colormaps
+from matplotlib.colors import Normalize
 from tandemscan.config.models import InspectionConfig
 from tandemscan.pipeline.inspection.alignment import Alignment
 from tandemscan.pipeline.inspection.characteristic_figures import CloseUp, closeup, section_png, trend_png
@@ -34,7 +36,7 @@ from tandemscan.pipeline.inspection.deviation_maps import (
     measured_triangles,
     typical_spacing,
 )
-from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionResult
+from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionResult, ToleranceResult
 from tandemscan.pipeline.inspection.spc import individuals_chart
 from tandemscan.pipeline.inspection.stitch_quality import PAIR_SAMPLE, overlap_quality, stitching_png
 from tandemscan.pipeline.planning.coverage import CoverageFigures
@@ -171,7 +173,8 @@ def build_report(
         characteristics = characteristics.result()
     trends = trend_figures(characteristics, history or {}, part or {})
     quality = quality_figures(result, characteristics, tol, norm) + [f for f, _ in trends]
-    figures = quality + maps + [coverage_map] + split
+    figures = quality + maps + _uncertainty_map(result, surface, views[0], cfg, p, n, spacing, every) + [
+        coverage_map] + split
     hist = histogram_png(result.deviations_mm, result.stats, tol, norm)
     caption = "Deviation histogram with the tolerance band (the outer bins collect the 0.1 % tails)"
     figures.append(ReportFigure("histogram", caption, hist))
@@ -250,6 +253,24 @@ def trend_figures(characteristics: Sequence[CharacteristicResult], history: Mapp
 def closeups_of(figures: Sequence[ReportFigure]) -> list[CloseUp]:
     """The close-ups among ``figures``."""
     return [f.closeup for f in figures if isinstance(f, CloseUpFigure) and f.closeup is not None]
+
+
+def _uncertainty_map(result: InspectionResult, surface: CadSurface, view: View, cfg: InspectionConfig,
+                     p: np.ndarray, n: np.ndarray, spacing: float, every: int) -> list[ReportFigure]:
+    """The points' expanded uncertainty U on the first view (none where every U is 0): viridis from 0 to the
+    larger of its 99th percentile and a quarter of the tolerance width; the bar marks where the test uncertainty
+    ratio is 4:1 (U = width / 8)."""
+    j = result.judgement
+    if j is None or not np.any(j.uncertainty.expanded_mm > 0.0):
+        return []
+    U = j.uncertainty.expanded_mm[::every]
+    width = cfg.tolerance_upper_mm - cfg.tolerance_lower_mm
+    norm = Normalize(0.0, max(float(np.percentile(U, 99)), 0.25 * width))
+    mark = ToleranceResult(width / 8.0, width / 8.0, 0.0, 0.0, 0.0)
+    title = f"Expanded uncertainty U (k = {j.rule.k:g}) of the deviation, {view.name}"
+    png = deviation_map_png(surface, p, U, view, mark, norm, cfg.map_width_px, title, n, spacing, (),
+                            colormaps["viridis"], f"U (k = {j.rule.k:g}), mm; line: TUR 4:1")
+    return [ReportFigure("uncertainty-map", title, png)]
 
 
 def in_background(fn, *args) -> Future:

@@ -160,10 +160,20 @@ function renderSafety(s) {
     : "";
 }
 
+function renderCalibration(cal) {
+  const mounts = cal.source === "calibration" ? `calibration ${cal.file}` : cal.source;
+  const v = cal.verification;
+  const verified = v ? `last verification ${v.result}, ${v.age_h.toFixed(1)} h ago` : "no verification on record";
+  $("calibration").textContent = `mounts: ${mounts}${cal.error ? " (" + cal.error + ")" : ""}; ${verified}`;
+  $("calibration").className = v && v.result !== "pass" ? "verdict fail" : "muted";
+}
+
 async function refreshCell() {
-  const [devices, safety] = await Promise.all([api("GET", "/v1/devices"), api("GET", "/v1/safety")]);
+  const [devices, safety, cal] = await Promise.all(
+    [api("GET", "/v1/devices"), api("GET", "/v1/safety"), api("GET", "/v1/calibration")]);
   renderDevices(devices);
   renderSafety(safety);
+  renderCalibration(cal);
 }
 
 // ------------------------------------------------------------------ jobs

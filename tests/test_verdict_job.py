@@ -1,0 +1,39 @@
+"""Acceptance of the verdict on the simulated cell (issue 41): the default band plan on nominal mounts proves
+nothing and says the cell is not calibrated; after `tandemscan calibrate` the same command passes the
+defect-free part, the calibration found as the cell's current one."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from tandemscan.config.loader import default_config_path
+from tandemscan.daemon.cli import main
+
+
+def only_report(out: Path) -> dict:
+    (job,) = sorted(out.glob("job-*"))
+    return json.loads((job / "report.json").read_text())["inspection"]
+
+
+@pytest.mark.slow
+def test_measure_is_indeterminate_uncalibrated_and_passes_after_calibrate(tmp_path):
+    config = tmp_path / "cell.toml"
+    config.write_text(Path(default_config_path()).read_text(encoding="utf-8")
+                      + f'\n[calibration]\noutput_file = "{tmp_path / "current.json"}"\n')
+    assert main(["measure", "--config", str(config), "--out", str(tmp_path / "nominal")]) == 0
+    nominal = only_report(tmp_path / "nominal")
+    assert nominal["verdict"] == "indeterminate" and nominal["installation"]["source"] == "nominal"
+    assert "no current calibration" in nominal["installation"]["note"]
+    assert any("nominal mounts (no calibration)" in why for why in nominal["verdict_reasons"])
+    assert nominal["uncertainty"]["median_mm"] > 0.25  # the mounts' build tolerance, not a special case
+    assert main(["calibrate", "--config", str(config)]) == 0
+    assert main(["measure", "--config", str(config), "--out", str(tmp_path / "calibrated")]) == 0
+    calibrated = only_report(tmp_path / "calibrated")
+    assert calibrated["installation"]["source"] == "calibration"
+    assert calibrated["installation"]["file"] == str(tmp_path / "current.json")
+    assert calibrated["verdict"] == "pass" and not calibrated["deviations"]
+    # the default tolerance of the train nose, +-0.5 mm, is at least four times 2U
+    assert 1.0 / (2.0 * calibrated["uncertainty"]["median_mm"]) >= 4.0
+    assert calibrated["decision_rule"] == {"name": "iso14253-1", "k": 2.0}
