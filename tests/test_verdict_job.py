@@ -18,6 +18,7 @@ def only_report(out: Path) -> dict:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(900)  # two band jobs and a calibration on the simulated cell: about 2 min when idle
 def test_measure_is_indeterminate_uncalibrated_and_passes_after_calibrate(tmp_path):
     config = tmp_path / "cell.toml"
     config.write_text(Path(default_config_path()).read_text(encoding="utf-8")
