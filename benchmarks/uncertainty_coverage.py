@@ -1,7 +1,8 @@
 """Is the per-point expanded uncertainty U honest? Its coverage on a defect-free part, and a Monte Carlo check.
 
-Usage: python benchmarks/uncertainty_coverage.py [--plan FILE|generated] [--seeds 7 8 9] [--draws 200]
-(band plan: about 1.5 min a seed on the 2-core machine; the whole part, --plan generated: far longer)
+Usage: python benchmarks/uncertainty_coverage.py [--plan FILE] [--seeds 7 8 9] [--draws 200]
+(band plan: about 1.5 min a seed on the idle 2-core machine; the whole part, a plan file of `tandemscan plan`:
+far longer)
 
 For each seed the default job runs on the simulated cell, calibrated (the cell's surveyed mounts, a calibration
 file exact to 0.1 um, ``sim_drivers.cell.with_surveyed_mounts``), on the default part, which is its own CAD: every
@@ -130,19 +131,12 @@ async def one_seed(config, plan: Plan, seed: int, draws: int, models: list) -> d
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--plan", help="plan file, or 'generated' to plan the whole part (default: the band plan)")
+    parser.add_argument("--plan", help="plan file (default: the band plan; the whole part: `tandemscan plan` first)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[7, 8, 9])
     parser.add_argument("--draws", type=int, default=200, help="Monte Carlo draws a seed")
     args = parser.parse_args()
     config = load_config(None)
-    if args.plan == "generated":
-        from tandemscan.pipeline.planning.planner import plan_part
-
-        start = config.sim.tracking_start
-        plan = plan_part(load_part_mesh(config.part), config, name="generated",
-                         tracker_start=(start.x_mm, start.y_mm, np.radians(start.heading_deg))).sequence.plan
-    else:
-        plan = Plan.load(Path(args.plan) if args.plan else default_plan_path())
+    plan = Plan.load(Path(args.plan or default_plan_path()))
     models = capture_models()
     runs = []
     for seed in args.seeds:

@@ -65,23 +65,28 @@ def test_bad_input_is_one_error_line_and_exit_2(files, tmp_path, capsys, case, n
     assert len(said.err.strip().splitlines()) == 1
 
 
+def closed_box(tmp_path, rng, per_face):
+    """The CAD of a 400 x 200 x 100 mm box written as STL, and ``per_face`` points uniform on each of its faces."""
+    mesh = o3d.geometry.TriangleMesh.create_box(400.0, 200.0, 100.0)
+    mesh.compute_triangle_normals()
+    cad = tmp_path / "box.stl"
+    o3d.io.write_triangle_mesh(str(cad), mesh)
+    faces = []
+    for axis, size in ((0, 400.0), (1, 200.0), (2, 100.0)):
+        for at in (0.0, size):
+            p = rng.uniform([0, 0, 0], [400.0, 200.0, 100.0], (per_face, 3))
+            p[:, axis] = at
+            faces.append(p)
+    return cad, np.vstack(faces)
+
+
 def test_misplaced_cloud_is_aligned_and_its_dent_reported_in_cad_coordinates(tmp_path, capsys):
     """A closed box scanned all round with a 0.3 mm dent, given 5 deg and 40 mm off CAD: the best fit puts
     it back, the report fails it with one lower area at the dent (CAD mm)."""
     from tandemscan.pipeline.geometry import frames as F
 
-    mesh = o3d.geometry.TriangleMesh.create_box(400.0, 200.0, 100.0)
-    cad = tmp_path / "box.stl"
-    mesh.compute_triangle_normals()
-    o3d.io.write_triangle_mesh(str(cad), mesh)
     rng = np.random.default_rng(1)
-    faces = []
-    for axis, size in ((0, 400.0), (1, 200.0), (2, 100.0)):
-        for at in (0.0, size):
-            p = rng.uniform([0, 0, 0], [400.0, 200.0, 100.0], (15_000, 3))
-            p[:, axis] = at
-            faces.append(p)
-    pts = np.vstack(faces)
+    cad, pts = closed_box(tmp_path, rng, 15_000)
     dent = np.linalg.norm(pts - [150.0, 80.0, 100.0], axis=1)
     pts[:, 2] -= np.where(dent < 30.0, 0.15 * (1.0 + np.cos(np.pi * dent / 30.0)), 0.0)  # top face, 0.3 mm deep
     pts += rng.normal(0, 0.01, pts.shape)
@@ -135,18 +140,8 @@ def test_point_uncertainty_gives_the_same_decisions_in_place_and_20_deg_200_mm_a
     20 deg and moved 200 mm (best fit), the same areas with the same decisions; the deviation PLY carries U."""
     from tandemscan.pipeline.geometry import frames as F
 
-    mesh = o3d.geometry.TriangleMesh.create_box(400.0, 200.0, 100.0)
-    mesh.compute_triangle_normals()
-    cad = tmp_path / "box.stl"
-    o3d.io.write_triangle_mesh(str(cad), mesh)
     rng = np.random.default_rng(4)
-    faces = []
-    for axis, size in ((0, 400.0), (1, 200.0), (2, 100.0)):
-        for at in (0.0, size):
-            p = rng.uniform([0, 0, 0], [400.0, 200.0, 100.0], (20_000, 3))
-            p[:, axis] = at
-            faces.append(p)
-    pts = np.vstack(faces)
+    cad, pts = closed_box(tmp_path, rng, 20_000)
     top = pts[:, 2] == 100.0
     for centre, height in (((80.0, 60.0), 0.8), ((200.0, 140.0), 0.25), ((320.0, 60.0), 0.5)):
         r = np.linalg.norm(pts[:, :2] - centre, axis=1) / 35.0
