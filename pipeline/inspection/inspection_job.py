@@ -37,7 +37,7 @@ from tandemscan.pipeline.inspection.inspect import (
     in_chunks,
     inspect_cloud,
 )
-from tandemscan.pipeline.inspection.point_uncertainty import GivenUncertainty, UncertaintyModel
+from tandemscan.pipeline.inspection.point_uncertainty import GivenUncertainty, UncertaintyModel, alignment_covariance
 from tandemscan.pipeline.inspection.qif import RESULTS_FILE, MeasuredPart, write_results
 from tandemscan.pipeline.inspection.report import build_report, failed_report, in_background, write_report
 from tandemscan.pipeline.inspection.stitch_quality import overlap_quality
@@ -106,7 +106,7 @@ def run_inspection(
     placed = alignment or Alignment("none", np.eye(4), 0.0, "the cloud as given")
     u = (uncertainty or GivenUncertainty(0.0)).evaluate(
         result.points_mm, result.cad_normals, cfg.decision_k, placed.T_F_W, placed.method,
-        None if placed.excluded is None else ~placed.excluded, None)
+        None if placed.excluded is None else ~placed.excluded, alignment_covariance(placed))
     if uncertainty is None:
         u = dataclasses.replace(u, notes=u.notes | {"cloud": "the cloud states no uncertainty: U = 0"})
     result = judge(result, u, cfg, context or VerdictContext())

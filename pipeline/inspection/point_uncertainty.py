@@ -17,8 +17,9 @@ Every point's deviation is its signed distance along the CAD normal ``n`` (frame
 - noise: the scanner errs along its ray (``[scanner] noise_sigma_mm``, the simulator's and the bound's model), a
   point of scan ``i`` along ``n`` by its noise times ``|cos|`` of ray and normal; the voxel's mean of ``c`` points
   has the variance ``sigma^2 sum_i w_i cos_i^2 / c`` (the cosines of the nearest centre, ``c`` the point's own).
-- the alignment's own covariance (6x6 about a centre in F): where the alignment states one; otherwise this term
-  is zero and the budget says so.
+- the alignment's own covariance (6x6 about a centre in F; a best fit's: its residuals' scatter through its normal
+  matrix, ``alignment.covariance``): where the alignment states one; otherwise this term is zero and the budget
+  says so.
 
 U = k sqrt(sum of the variances). The pose terms are smooth over the surface: they are evaluated at an even
 thinning of the cloud (at most :data:`MAX_CENTRES`) and each point takes its nearest centre's; the noise is each
@@ -35,6 +36,7 @@ from typing import Protocol
 import numpy as np
 from scipy.spatial import cKDTree
 from tandemscan.pipeline.geometry.frames import invert, rotate_vectors, transform_points
+from tandemscan.pipeline.inspection.alignment import Alignment
 from tandemscan.pipeline.inspection.deviation_areas import even_centres
 from tandemscan.pipeline.registration.pose_covariance import PoseCovariance
 
@@ -79,6 +81,14 @@ class AlignmentCovariance:
     centre_mm: np.ndarray
 
 
+def alignment_covariance(alignment: Alignment) -> AlignmentCovariance | None:
+    """The alignment's own covariance where it states one (a best fit's, ``alignment.covariance``), else None."""
+    if alignment.covariance is None or alignment.covariance_centre_F_mm is None:
+        return None
+    return AlignmentCovariance(np.asarray(alignment.covariance, float),
+                               np.asarray(alignment.covariance_centre_F_mm, float))
+
+
 class UncertaintyModel(Protocol):
     """What knows the uncertainty of a cloud's points: evaluated once the cloud is aligned and its CAD normals are
     known (``points_F``, ``normals_F``; ``kept``: which of the cloud's points, as it came, are these)."""
@@ -99,6 +109,9 @@ def _alignment_variance(points_F: np.ndarray, normals_F: np.ndarray, alignment: 
 
 ALIGNMENT_NOTE = "the alignment states no covariance of its own: term 0 (a best fit's absorption of the scans' " \
                  "errors is in scan_poses and installation)"
+
+
+OWN_ALIGNMENT_NOTE = "the alignment's own covariance (a best fit's residual scatter through its normal matrix)"
 
 
 @dataclass(frozen=True)
@@ -123,8 +136,7 @@ class GivenUncertainty:
         budget = {"cloud": float(np.median(k * own)) if len(own) else 0.0,
                   "alignment": float(np.median(k * np.sqrt(aligned))) if len(own) else 0.0}
         notes = {"cloud": "the cloud's own expanded uncertainty as given"}
-        if alignment is None:
-            notes["alignment"] = ALIGNMENT_NOTE.split(" (")[0]
+        notes["alignment"] = ALIGNMENT_NOTE.split(" (")[0] if alignment is None else OWN_ALIGNMENT_NOTE
         return PointUncertainty(k, total, own**2, budget, notes)
 
 
@@ -204,8 +216,7 @@ class JobUncertainty:
                  "installation": "scanner mount T_T_S" + ("" if self.poses.installation_columns else
                                                           ": not modelled (no mount prior)"),
                  "scanner_noise": f"{self.noise_sigma_mm:g} mm (1 sigma) along the ray, averaged in the voxel"}
-        if alignment is None:
-            notes["alignment"] = ALIGNMENT_NOTE
+        notes["alignment"] = ALIGNMENT_NOTE if alignment is None else OWN_ALIGNMENT_NOTE
         scan_ids = self.cover.scan_ids[c_at[0][:, 0]][nearest]
         return PointUncertainty(k, total, noise, {s: float(np.median(k * np.sqrt(v))) for s, v in budget.items()},
                                 notes, scan_ids)
