@@ -12,7 +12,7 @@ points whose largest share comes from each tracker station's scans (``coverage_p
 ``coverage_pct_per_station``).
 
 The Monte Carlo check (GUM Supplement 1, JCGM 101:2008) draws what the first-order propagation linearises
-(docs/inspection.md, "Per-point uncertainty"): the scans' pose errors from the job's own joint covariance (the
+(docs/verdict.md, "Per-point uncertainty"): the scans' pose errors from the job's own joint covariance (the
 model the job evaluated, captured from ``daemon.job_outputs.job_uncertainty``), each scan moved by its exact rigid
 motion (not the linearised one) and the points by their voxels' shares of the scans, the noise along the normal;
 then the real best fit to the CAD (``inspect.best_fit``, point-to-plane ICP on the CAD surface, trimmed at

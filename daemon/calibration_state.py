@@ -1,5 +1,5 @@
 """The cell's current calibration and where a job's mounts came from (docs/calibration.md, "The current
-calibration"; docs/inspection.md, "Verdict").
+calibration"; docs/verdict.md, "Verdict").
 
 ``tandemscan calibrate`` writes the cell's current calibration to ``[calibration] output_file`` with the date it
 was made and a fingerprint of the cell configuration it was made for (:func:`cell_fingerprint`: the devices, the

@@ -1,5 +1,5 @@
 """Decision rules: conformance of a measured value to a tolerance interval given its expanded uncertainty
-(docs/inspection.md, "Decision rule").
+(docs/verdict.md, "Decision rule").
 
 Two rules, named as ILAC-G8:09/2019 names them:
 

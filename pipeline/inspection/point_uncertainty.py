@@ -1,4 +1,4 @@
-"""Per-point expanded uncertainty U of the deviation from CAD (docs/inspection.md, "Per-point uncertainty").
+"""Per-point expanded uncertainty U of the deviation from CAD (docs/verdict.md, "Per-point uncertainty").
 
 Every point's deviation is its signed distance along the CAD normal ``n`` (frame F, mm). First order, its error is
 

@@ -101,7 +101,7 @@ def inspection_summary(result: InspectionResult, alignment: Alignment | None = N
         "best_fit_note": result.best_fit_note,
     }
     j = result.judgement
-    if j is not None:  # the decision rule's verdict (docs/inspection.md, "Verdict")
+    if j is not None:  # the decision rule's verdict (docs/verdict.md, "Verdict")
         out |= {"verdict_reasons": list(j.reasons), "decision_rule": j.rule.as_dict(),
                 "decision_rule_label": j.rule.label, "uncertainty": j.uncertainty.summary(),
                 "region_verdicts": [_plain(r) for r in j.regions],

@@ -1,5 +1,5 @@
 """The verdict of an inspection, overall, per region and per deviation area, by the decision rule and the points'
-expanded uncertainty (docs/inspection.md, "Verdict").
+expanded uncertainty (docs/verdict.md, "Verdict").
 
 A deviation area is decided by its extreme (the deviation averaged over ``area_smoothing_mm``) against the band,
 given the uncertainty of that average: the pose terms of its points (smooth over the surface, not averaged
