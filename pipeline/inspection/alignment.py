@@ -323,12 +323,32 @@ def _surface_samples(surface: CadSurface, n: int) -> np.ndarray:
     return a[pick] + u[:, :1] * (b[pick] - a[pick]) + u[:, 1:] * (c[pick] - a[pick])
 
 
+def _turned_over(p: np.ndarray, T_F_W: np.ndarray) -> list[np.ndarray]:
+    """``T_F_W`` turned by 180 deg about each principal axis of the points (W, mm) through their centroid, as
+    placed by it: where a near-symmetric part (an arch about its crown's normal) fits in its symmetric pose."""
+    q = F.transform_points(T_F_W, p[:: max(1, len(p) // COARSE_POINTS)])
+    c = q.mean(axis=0)
+    _, _, axes = np.linalg.svd(q - c, full_matrices=False)
+    out = []
+    for a in axes:
+        turn = F.from_rotvec(np.zeros(3), np.pi * a)
+        turn[:3, 3] = c - turn[:3, :3] @ c
+        out.append(turn @ T_F_W)
+    return out
+
+
 def _global_fit(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray, prior_T_F_W: np.ndarray,
-                cfg: InspectionConfig) -> tuple[SurfaceFit, int]:
-    """The fit from the global stage: the coarse passes from each of its candidates, the fine ones from the
-    one with the lowest truncated cost (:func:`_final_cost` at :data:`FINE_FROM_MM`) after them."""
+                cfg: InspectionConfig, fitted_T_F_W: np.ndarray | None, features: bool) -> tuple[SurfaceFit, int]:
+    """The fit from the global stage: the coarse passes from each of its candidates (the feature matches where
+    ``features``; the start's fit ``fitted_T_F_W`` turned over, :func:`_turned_over`, where that lies within
+    twice its truncated cost plus 1 mm^2), the fine ones from the one with the lowest truncated cost
+    (:func:`_final_cost` at :data:`FINE_FROM_MM`) after them."""
     best, best_cost, its, why = None, np.inf, 0, "no candidate"
-    for T in _global_starts(surface, p, start_T_F_W):
+    turned = []
+    if fitted_T_F_W is not None:  # only where the turned part lies about as well on the CAD as the fit does
+        bar = 2.0 * _final_cost(surface, p, fitted_T_F_W, FINE_FROM_MM) + 1.0
+        turned = [T for T in _turned_over(p, fitted_T_F_W) if _final_cost(surface, p, T, FINE_FROM_MM) <= bar]
+    for T in (_global_starts(surface, p, start_T_F_W) if features else []) + turned:
         try:
             coarse, n = _fine_fit(surface, p, T, prior_T_F_W, cfg, "coarse")
         except InspectionError as e:
@@ -368,8 +388,9 @@ def fit_to_surface(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.n
     one Huber-weighted beyond ``alignment_huber_sigmas`` robust sigmas of its residuals.
 
     The passes start from ``start_T_F_W`` and, where the fit from it leaves less than
-    ``cfg.alignment_min_inlier_share`` of the points within the last distance (a poor start), from the global
-    stage (:func:`_global_fit`) as well; the lower truncated cost over the same points wins
+    ``cfg.alignment_min_inlier_share`` of the points within the last distance (a poor start; from an unknown
+    start, no ``prior_T_F_W``, less than :data:`UNSURE_SHARE`), from the global stage (:func:`_global_fit`)
+    as well; the lower truncated cost over the same points wins
     (:func:`_final_cost`), the start's fit on a tie. The directions the surface does not fix are held at
     ``prior_T_F_W`` (the job's placement; default the start) and named (:func:`free_directions`).
     Raises :class:`AlignmentFailed` when no fit leaves that share of the points on the CAD."""
@@ -385,9 +406,11 @@ def fit_to_surface(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.n
         fits.append((fit, start))
     except InspectionError as e:  # too few points near the surface from the start
         why.append(f"from {start}: {e}")
-    if not fits or _share(fits[0][0]) < cfg.alignment_min_inlier_share:
+    enough = max(cfg.alignment_min_inlier_share, UNSURE_SHARE if prior_T_F_W is None else 0.0)  # unknown start:
+    if not fits or _share(fits[0][0]) < enough:  # is this the part's only fit?
         try:
-            fit, n = _global_fit(surface, p, T0, prior, cfg)
+            poor = not fits or _share(fits[0][0]) < cfg.alignment_min_inlier_share  # else only unsure
+            fit, n = _global_fit(surface, p, T0, prior, cfg, fits[0][0].T_F_M if fits else None, poor)
             its += n
             fits.append((fit, f"{start}, then the global stage (FPFH + RANSAC against the CAD)"))
         except InspectionError as e:
@@ -413,6 +436,10 @@ def fit_to_surface(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.n
     return out
 
 
+#: from an unknown start (no prior), a fit leaving less than this share of the points within the last trim tries
+#: the global stage as well: a near-symmetric part (an arch turned about its crown's normal) fits most of its
+#: points in its symmetric pose
+UNSURE_SHARE = 0.98
 COST_TIE = 0.05  # the global stage's fit wins only with a truncated cost lower than the start's by this share
 
 
