@@ -355,7 +355,7 @@ def test_finished_job_shows_verdict_links_and_a_3d_view_that_draws(cell, browser
     assert int(browser.find_element(By.ID, "trend-svg").get_attribute("data-points")) >= 1
     assert "serials, mean" in text(browser, "trend-text")
     ticks = text(browser, "colour-ticks")
-    assert "-0.30" in ticks and "-0.10" in ticks and "+0.10" in ticks and "+0.30" in ticks
+    assert "-1.50" in ticks and "-0.50" in ticks and "+0.50" in ticks and "+1.50" in ticks  # 3x the +-0.5 mm band
 
     img = canvas_pixels(browser)
     drawn = np.abs(img - BACKGROUND_RGB).sum(axis=2) > 40
