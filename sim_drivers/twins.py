@@ -175,7 +175,7 @@ class SimScanner(_SimDevice):
     async def connect(self) -> None:
         if self.out_of_process and self._process is None:
             config = self.world.config
-            self._process = ScanProcess(config.part, config.scanner, config.daemon.worker_niceness)
+            self._process = ScanProcess(config, config.daemon.worker_niceness)
         await super().connect()
 
     async def close(self) -> None:

@@ -15,6 +15,7 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 import pytest
+from tandemscan.config import load_config
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.drivers.interfaces import ChassisPose
 from tandemscan.drivers.shared_array import PREFIX, SHM_DIR, SharedArray, hand_over, remove_stale_blocks, share, take
@@ -81,11 +82,13 @@ def _at_first_scan(world: SimWorld) -> None:
             world.move_arm(np.array(step.joints_rad))
 
 
-async def test_scan_process_captures_what_the_world_captures(sim_config):
+@pytest.mark.parametrize("cell", [None, "config/as-built-example.toml"])
+async def test_scan_process_captures_what_the_world_captures(cell):
+    sim_config = load_config(cell)  # the as-built part: the worker scans it too, not the CAD
     here, there = SimWorld(sim_config), SimWorld(sim_config)
     _at_first_scan(here)
     _at_first_scan(there)
-    process = ScanProcess(sim_config.part, sim_config.scanner)
+    process = ScanProcess(sim_config)
     try:
         points, normals = await process.scan(there.T_F_S(), there.rng)
     finally:
