@@ -93,8 +93,8 @@ def monte_carlo(model, surface: CadSurface, p_F: np.ndarray, T_F_W: np.ndarray, 
                 T = from_rotvec(o, [0, 0, 0]) @ from_rotvec(e[r, :3], e[r, 3:]) @ from_rotvec(-o, [0, 0, 0])
                 moved[at] += w[at, k, None] * (transform_points(T, true_W[at]) - true_W[at])
         q_F = transform_points(T_F_W, true_W + moved) + (noise_sd * rng.standard_normal(n_W))[:, None] * n_F
-        T, *_ = best_fit(surface, q_F[len(ev):], max_mm, iterations=30)
-        out[d] = surface.signed_distance(transform_points(T, q_F[: len(ev)]))
+        fit = best_fit(surface, q_F[len(ev):], max_mm, iterations=30)
+        out[d] = surface.signed_distance(transform_points(fit.T_F_M, q_F[: len(ev)]))
     return ev, 2.0 * out.std(axis=0)
 
 
