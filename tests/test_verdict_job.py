@@ -7,9 +7,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 from tandemscan.config.loader import default_config_path
-from tandemscan.daemon.cli import main
+from tandemscan.daemon.cli import default_plan_path, main
 
 
 def only_report(out: Path) -> dict:
@@ -38,3 +39,32 @@ def test_measure_is_indeterminate_uncalibrated_and_passes_after_calibrate(tmp_pa
     # the default tolerance of the train nose, +-0.5 mm, is at least four times 2U
     assert 1.0 / (2.0 * calibrated["uncertainty"]["median_mm"]) >= 4.0
     assert calibrated["decision_rule"] == {"name": "iso14253-1", "k": 2.0}
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+async def test_as_built_example_has_a_deviation_proven_out_one_proven_in_and_one_indeterminate(tmp_path):
+    """config/as-built-example.toml (+-0.3 mm), calibrated: the 0.45 mm bulge beyond tolerance + U is a
+    nonconforming area and fails the part; the 0.3 mm dent at the limit is an indeterminate area; the 0.25 mm dent
+    (within tolerance - U) and the bend give no area."""
+    from tandemscan.config import load_config
+    from tandemscan.daemon.runner import JobRunner
+    from tandemscan.daemon.session import CellSession
+    from tandemscan.pipeline.planning.plan import Plan
+    from tandemscan.sim_drivers.cell import with_surveyed_mounts
+
+    config = load_config("config/as-built-example.toml")
+    async with CellSession(config) as session:
+        config = with_surveyed_mounts(config, session.cell.simulation, tmp_path)
+        result = await JobRunner(session, Plan.load(default_plan_path()), config, tmp_path / "job").run()
+    ins = result.report["inspection"]
+
+    def near(centre):
+        return [a for a in ins["deviations"] if np.linalg.norm(np.subtract(a["centroid_mm"], centre)) < 20.0]
+
+    (bulge,) = near((250.0, 930.9, 820.0))
+    (dent,) = near((-350.0, 996.2, 680.0))
+    assert bulge["decision"] == "nonconforming" and bulge["extreme_mm"] > 0.3 + bulge["uncertainty_mm"]
+    assert dent["decision"] == "indeterminate" and abs(abs(dent["extreme_mm"]) - 0.3) <= dent["uncertainty_mm"]
+    assert not near((750.0, 794.4, 720.0)) and len(ins["deviations"]) == 2
+    assert ins["verdict"] == "fail" and ins["verdict_reasons"][0].startswith(f"area #{bulge['id']}")
