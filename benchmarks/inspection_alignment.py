@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 from clean_exit import clean_exit_on_sigterm
-from pose_bound import bound_covariance  # benchmarks/pose_bound.py: the bound's error model
+from pose_bound import bound_model  # benchmarks/pose_bound.py: the bound's error model
 from results import publish
 from tandemscan.config import load_config
 from tandemscan.config.models import CellConfig
@@ -171,12 +171,13 @@ def rigid_error_bound(config: CellConfig, m: Measured, centre_F: np.ndarray) -> 
     better in expectation), beside the job's realised rigid error (linearised, and as a point-weighted and a
     plain mean of the scans' pose errors)."""
     true = {s.index: T for s, T in zip(m.scans, m.true_T_W_S, strict=True)}
-    A, prior, posterior, origins, pairs = bound_covariance(m.result, m.T_T_S, config, true)
+    model = bound_model(m.result, m.T_T_S, config, true)
+    A, prior, posterior, origins = model.A, model.prior, model.posterior, model.origins
     centre_W = F.transform_points(F.invert(m.T_F_W_true), centre_F[None])[0]
     G = rigid_error_map(m.scans, m.true_T_W_S, centre_W)
     mean = np.hstack([recentre(o, centre_W) for o in origins]) / len(origins)
     rng = np.random.default_rng(0)
-    out: dict = {"target": {"mm": _TARGET[0], "deg": _TARGET[1]}, "pairs_in_bound": pairs}
+    out: dict = {"target": {"mm": _TARGET[0], "deg": _TARGET[1]}, "pairs_in_bound": len(model.pairs)}
     for name, cov in (("tracker_only", prior), ("bound", posterior)):
         out[name] = rigid_error_figures(G @ A @ cov @ A.T @ G.T, rng)
         out[name]["plain_mean_mm_mean"] = rigid_error_figures(mean @ A @ cov @ A.T @ mean.T, rng)["mm_mean"]

@@ -221,11 +221,12 @@ def median_draws(A: np.ndarray, cov: np.ndarray, n: int, rng: np.random.Generato
 class BoundModel:
     """The linear error model of a job at its true poses: scan errors ``A theta`` (6 a scan, about its origin,
     world; mm, rad), the unknowns' covariance tracker-only (``prior``) and at the bound (``posterior``: every
-    overlap point added), and the pairs in it."""
+    overlap point added), the scans' true origins in W (mm, what ``A`` is about) and the pairs in it."""
 
     A: np.ndarray
     prior: np.ndarray
     posterior: np.ndarray
+    origins: tuple[np.ndarray, ...]
     pairs: tuple[PairData, ...]
 
 
@@ -241,7 +242,7 @@ def bound_model(result: JobResult, T_T_S: np.ndarray, config, true_T_W_S: dict[i
         H = to_j @ A[6 * j:6 * j + 6] - to_i @ A[6 * i:6 * i + 6]
         cols = np.flatnonzero(np.any(H != 0.0, axis=0))  # the two scans' and their transfers' unknowns
         info[np.ix_(cols, cols)] += H[:, cols].T @ pair.information @ H[:, cols]
-    return BoundModel(A, prior, np.linalg.inv(info), tuple(pairs))
+    return BoundModel(A, prior, np.linalg.inv(info), tuple(origins), tuple(pairs))
 
 
 def chi2_summary(pairs: Sequence[PairData], stations: np.ndarray) -> dict:
