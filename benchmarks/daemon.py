@@ -108,10 +108,12 @@ class OpcuaLoad:
                 f'password_hash = "{self.hash}"\n')
 
     def start(self) -> None:
-        """Start the subscribers; return once every session subscribed."""
+        """Start the subscribers; return once every session subscribed. They run at the lowest CPU priority: in a
+        plant the clients are other machines, and on this one their own decoding must not take the daemon's
+        cores (the daemon still does all of the server's work)."""
         script = Path(__file__).with_name("opcua_subscribers.py")
         self.proc = subprocess.Popen(
-            [sys.executable, str(script), f"opc.tcp://127.0.0.1:{self.port}/tandemscan/",
+            ["nice", "-n", "19", sys.executable, str(script), f"opc.tcp://127.0.0.1:{self.port}/tandemscan/",
              str(self.identity.certificate), str(self.identity.private_key),
              str(self.tmp / "state" / "opcua" / "own" / "server.der"), "bench", self.password, str(self.n)],
             stdout=subprocess.PIPE, text=True)
@@ -137,6 +139,8 @@ def main() -> None:
     ap.add_argument("--keep-state", action="store_true", help="keep the daemon's state folder (GBs of scans)")
     ap.add_argument("--opcua-subscribers", type=int, default=0, help="serve OPC UA with this many subscribed "
                     "sessions (0: OPC UA off)")
+    ap.add_argument("--no-publish", action="store_true", help="print the figures only (a run of a series, such "
+                    "as opcua_overhead.py's), keeping benchmarks/results/ as it is")
     args = ap.parse_args()
 
     load_before = os.getloadavg()
@@ -238,7 +242,7 @@ def main() -> None:
     if not args.keep_state:
         shutil.rmtree(tmp, ignore_errors=True)
     name = "daemon" if args.resolution == "full" else "daemon-coarse"
-    publish(name + ("-opcua" if opcua is not None else ""), {
+    figures = {
         "benchmark": "daemon",
         "scanner_resolution": args.resolution,
         "scans_ingested": scans,
@@ -253,7 +257,11 @@ def main() -> None:
         "opcua": opcua_figures,
         "cpu_cores": os.cpu_count(),
         "load_average_1min_before_after": [round(load_before[0], 2), round(os.getloadavg()[0], 2)],
-    })
+    }
+    if args.no_publish:
+        print(json.dumps(figures), flush=True)
+    else:
+        publish(name + ("-opcua" if opcua is not None else ""), figures)
 
 
 if __name__ == "__main__":

@@ -1002,6 +1002,9 @@ class OpcuaConfig(_Strict):
     users_file: Path | None = Field(None, description="TOML file of further users ([users.NAME] tables)")
     trust_dir: Path | None = Field(None, description="folder of trusted client certificates (DER or PEM); None: "
                                    "opcua/trusted/ in the state folder")
+    min_publishing_interval_ms: float = Field(200.0, gt=0, description="fastest publishing interval a "
+                                              "subscription gets (ms): a faster request is revised up to it, so "
+                                              "many fast subscribers cannot crowd the event loop")
     manufacturer: str = "tandemscan"
     model: str = "two-robot 3D measurement cell"
     serial_number: str = "SIM-0001"

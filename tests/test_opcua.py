@@ -143,8 +143,10 @@ async def test_secure_client_runs_a_job_and_fetches_its_result(cell, identities)
         assert await node(client, ns, "Monitoring.AllConnected").read_value() is True
 
         changes = Changes()
-        await subscribe(client, ns, ["Production.ActiveJob.Progress", "Production.ActiveJob.State",
-                                     "Monitoring.Safety.Latched"], changes, events=True)
+        sub = await subscribe(client, ns, ["Production.ActiveJob.Progress", "Production.ActiveJob.State",
+                                           "Monitoring.Safety.Latched"], changes, events=True)
+        # asked for 50 ms, revised up to the server's fastest ([opcua] min_publishing_interval_ms)
+        assert sub.parameters.RequestedPublishingInterval == cell.daemon.config.opcua.min_publishing_interval_ms
         # the latch: stop all motion, then reset it (both through OPC UA, seen as data changes)
         await node(client, ns, "Monitoring.Safety").call_method(ua.NodeId("Monitoring.Safety.StopAllMotion", ns))
         await changes.wait_for(lambda: True in changes.values.get("Monitoring.Safety.Latched", []))
