@@ -5,6 +5,7 @@ are those of the local backend to 1e-9 mm, also when a worker is killed while it
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -18,11 +19,14 @@ import pytest
 from dask.distributed import get_task_stream
 from tandemscan.config.models import ComputeConfig, CorrectionConfig, DeepMergeConfig
 from tandemscan.pipeline.compute import DaskBackend, LocalBackend, backend_for
+from tandemscan.pipeline.inspection.tile_inspection import inspect_tiles
 from tandemscan.pipeline.io.raw_scan import read_thinned_scan, write_raw_scan
 from tandemscan.pipeline.registration.correction import StitchedScan, correct_scans
 from tandemscan.pipeline.registration.pairs import LazyNetwork
+from tandemscan.pipeline.stitching.tiles import merge_tiles
 
 from tests.test_registration_correction import scans_with_drift
+from tests.test_tiles import T_F_W, TILE_MM, concatenated, stored_job
 
 pytestmark = pytest.mark.slow
 VOXEL_MM = 1.0
@@ -128,6 +132,40 @@ def test_a_worker_killed_mid_stage_leaves_the_result_unchanged(cluster, tmp_path
     assert killed, "no worker was busy to be killed"
     assert by_pid[pids[killed[0]]].wait(timeout=10) == -signal.SIGKILL
     _same(local, remote)
+
+
+def _deviations(store: Path, inspected) -> list[np.ndarray]:
+    out = []
+    for t in inspected:
+        with np.load(store / t.file) as data:
+            out += [data[name] for name in ("points_F", "normals_F", "deviation_mm")]
+    return out
+
+
+def test_the_tile_stages_on_two_dask_workers_give_the_local_result(cluster, tmp_path):
+    address, _ = cluster
+    refs, mesh_file = stored_job(tmp_path, scans=4, points=15_000)
+    local = merge_tiles(refs, VOXEL_MM, TILE_MM, tmp_path, LocalBackend())
+    local_cloud = concatenated(tmp_path, local)
+    local_inspected = inspect_tiles(local, tmp_path, mesh_file, T_F_W, -0.08, 0.08, LocalBackend())
+    local_deviations = _deviations(tmp_path, local_inspected)
+    shutil.rmtree(tmp_path / "tiles")  # the workers write their own
+    backend = DaskBackend(address)
+    try:
+        backend.client.wait_for_workers(2, timeout=60)
+        with get_task_stream(backend.client) as stream:
+            remote = merge_tiles(refs, VOXEL_MM, TILE_MM, tmp_path, backend)
+            remote_inspected = inspect_tiles(remote, tmp_path, mesh_file, T_F_W, -0.08, 0.08, backend)
+    finally:
+        backend.close()
+    assert remote == local  # the same tiles, files and voxel counts
+    for a, b in zip(concatenated(tmp_path, remote), local_cloud, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert [(t.count, t.mean_mm, t.below, t.above) for t in remote_inspected] == [
+        (t.count, t.mean_mm, t.below, t.above) for t in local_inspected]
+    for a, b in zip(_deviations(tmp_path, remote_inspected), local_deviations, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert len({task["worker"] for task in stream.data}) == 2  # both workers merged or inspected tiles
 
 
 def test_the_compute_config_picks_the_backend_and_a_local_cluster_maps_units_in_order():

@@ -65,35 +65,85 @@ def write_ply(
 ) -> Path:
     """Write a binary little-endian PLY: x y z (float64, mm), optional nx ny nz, one float32 property per
     scalar field (e.g. ``deviation_mm``; CloudCompare shows each as a scalar field). Returns the path."""
-    pts = np.asarray(points_mm, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise ExportError(f"points: expected (N, 3), got shape {pts.shape}")
-    n = len(pts)
-    fields: list[tuple[str, str, np.ndarray]] = [(a, "f8", pts[:, i]) for i, a in enumerate("xyz")]
-    nrm = _columns(n, normals, "normals", 3)
-    if nrm is not None:
-        fields += [(a, "f4", nrm[:, i]) for i, a in enumerate(("nx", "ny", "nz"))]
-    for name, values in (scalars or {}).items():
-        if not name.isidentifier():
-            raise ExportError(f"scalar field name {name!r} is not a plain identifier")
-        fields.append((name, "f4", _columns(n, values, name, 1)))
-    record = np.dtype([(name, "<" + kind) for name, kind, _ in fields])
-    ply_type = {"f8": "double", "f4": "float"}
-    header = ["ply", "format binary_little_endian 1.0", "comment units mm", f"element vertex {n}"]
-    header += [f"property {ply_type[kind]} {name}" for name, kind, _ in fields]
-    header.append("end_header\n")
+    pts = np.asarray(points_mm, dtype=np.float64)  # its shape checked by PlyChunk.fields
+    return write_ply_streamed(path, len(pts), [PlyChunk(pts, normals, scalars or {})])
+
+
+@dataclass(frozen=True)
+class PlyChunk:
+    """Consecutive vertices of a PLY: points (N, 3) mm, unit normals (N, 3) or None, float32 scalar fields."""
+
+    points_mm: np.ndarray
+    normals: np.ndarray | None = None
+    scalars: Mapping[str, np.ndarray] = field(default_factory=dict)
+
+    def fields(self) -> list[tuple[str, str, np.ndarray]]:
+        """(PLY property, numpy kind, values) of each column, validated."""
+        pts = np.asarray(self.points_mm, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise ExportError(f"points: expected (N, 3), got shape {pts.shape}")
+        n = len(pts)
+        fields: list[tuple[str, str, np.ndarray]] = [(a, "f8", pts[:, i]) for i, a in enumerate("xyz")]
+        nrm = _columns(n, self.normals, "normals", 3)
+        if nrm is not None:
+            fields += [(a, "f4", nrm[:, i]) for i, a in enumerate(("nx", "ny", "nz"))]
+        for name, values in self.scalars.items():
+            if not name.isidentifier():
+                raise ExportError(f"scalar field name {name!r} is not a plain identifier")
+            fields.append((name, "f4", _columns(n, values, name, 1)))
+        return fields
+
+
+def write_ply_streamed(path: Path | str, count: int, chunks: Iterable[PlyChunk]) -> Path:
+    """Write a PLY as :func:`write_ply` does from ``chunks`` taken one at a time (a cloud tile by tile:
+    ``tiles.write_cloud_ply``), ``count`` vertices in all, known before the first (the tiles' voxel counts): the same
+    bytes as :func:`write_ply` of the chunks one after the other. Every chunk has the first one's fields; a total
+    other than ``count`` raises :class:`ExportError` and leaves no file. Returns the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("wb") as f:
-        f.write("\n".join(header).encode("ascii"))
-        data = np.empty(min(n, PLY_CHUNK_POINTS), dtype=record)
-        for lo in range(0, n, PLY_CHUNK_POINTS):  # records a chunk at a time: no copy of a whole cloud
-            rows = data[: min(PLY_CHUNK_POINTS, n - lo)]
-            for name, _, values in fields:
-                rows[name] = values[lo:lo + len(rows)]
-            rows.tofile(f)
-    log.info("wrote %s (%d points, fields %s)", path, n, [f[0] for f in fields])
+    written, names = 0, None
+    try:
+        with path.open("wb") as f:
+            for chunk in chunks:
+                fields = chunk.fields()
+                if names is None:
+                    names = [(name, kind) for name, kind, _ in fields]
+                    f.write(_ply_header(count, names))
+                elif [(name, kind) for name, kind, _ in fields] != names:
+                    raise ExportError(f"PLY chunk fields {[n for n, _, _ in fields]} differ from {names}")
+                written += _write_records(f, fields)
+            if names is None:
+                names = [(a, "f8") for a in "xyz"]
+                f.write(_ply_header(count, names))
+        if written != count:
+            raise ExportError(f"PLY {path.name}: {written} vertices written, the header says {count}")
+    except BaseException:
+        path.unlink(missing_ok=True)
+        raise
+    log.info("wrote %s (%d points, fields %s)", path, count, [name for name, _ in names])
     return path
+
+
+def _ply_header(count: int, fields: Sequence[tuple[str, str]]) -> bytes:
+    ply_type = {"f8": "double", "f4": "float"}
+    header = ["ply", "format binary_little_endian 1.0", "comment units mm", f"element vertex {count}"]
+    header += [f"property {ply_type[kind]} {name}" for name, kind in fields]
+    header.append("end_header\n")
+    return "\n".join(header).encode("ascii")
+
+
+def _write_records(f, fields: Sequence[tuple[str, str, np.ndarray]]) -> int:
+    """The columns ``fields`` as little-endian records, a chunk of :data:`PLY_CHUNK_POINTS` at a time (no copy
+    of a whole cloud); returns the records written."""
+    n = len(fields[0][2])
+    record = np.dtype([(name, "<" + kind) for name, kind, _ in fields])
+    data = np.empty(min(n, PLY_CHUNK_POINTS), dtype=record)
+    for lo in range(0, n, PLY_CHUNK_POINTS):
+        rows = data[: min(PLY_CHUNK_POINTS, n - lo)]
+        for name, _, values in fields:
+            rows[name] = values[lo:lo + len(rows)]
+        rows.tofile(f)
+    return n
 
 
 def _e57_pose(T_W_S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

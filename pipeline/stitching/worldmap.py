@@ -28,12 +28,16 @@ _MIN_BATCH_VOXELS = 2_000_000
 
 
 class VoxelMap:
-    """Voxel-merged cloud in the world frame (mm)."""
+    """Voxel-merged cloud in the world frame (mm). ``x_voxels`` = ``(lo, hi)`` keeps only the voxels whose x index
+    (``floor(x / voxel_mm)``, W) is in ``[lo, hi)``: one tile of the world (``tiles.merge_tile``). Each scan is
+    voxelised whole and its voxels outside the tile dropped, so a voxel's sums are those the whole map has."""
 
-    def __init__(self, voxel_mm: float = 1.0):
+    def __init__(self, voxel_mm: float = 1.0, x_voxels: tuple[int, int] | None = None):
         if voxel_mm <= 0:
             raise ValueError("voxel_mm must be positive")
         self.voxel_mm = float(voxel_mm)
+        self._key_window = None if x_voxels is None else tuple(
+            (int(x) + _OFFSET) << (2 * _BITS) for x in x_voxels)  # packed keys [lo, hi): x is their top bits
         self._keys = np.empty(0, np.int64)
         self._sums = np.empty((0, 6), np.float64)  # point sum xyz, normal sum xyz
         self._counts = np.empty(0, np.int64)
@@ -87,6 +91,9 @@ class VoxelMap:
         """Merge points given as (3, N) coordinate rows (W, mm; relative to ``origin`` if given) with (3, N)
         normal rows or None: their voxels join the batch, merged once it is as large as the map."""
         voxels = self._voxelise(rows, normal_rows, origin)
+        if self._key_window is not None:  # the voxels' keys are sorted: the tile's are one slice of them
+            within = slice(*np.searchsorted(voxels[0], self._key_window))
+            voxels = tuple(a[within] for a in voxels)
         self._batch.append(voxels)
         self._batch_voxels += len(voxels[0])
         if self._batch_voxels >= max(len(self._keys), _MIN_BATCH_VOXELS):

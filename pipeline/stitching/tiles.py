@@ -1,0 +1,206 @@
+"""The merge of a job's cloud by spatial tile (docs/compute.md, "Tiles"): memory bounded by the tile, not the part.
+
+The world frame W is cut into slabs across its x axis, each a whole number of voxels of the merge (edge
+``voxel_mm``): tile ``k`` holds the voxels whose x index ``floor(x / voxel_mm)`` is in ``[lo_k, hi_k)``. A
+:class:`MergeTile` unit names the tile and the scans that may reach it by reference (:class:`TileScan`: the raw
+scan file in the scan store, its final pose ``T_W_S``, a bound of its points' x in W), never their points; where it
+runs it reads those scans one at a time, merges each whole into a voxel map that keeps only the tile's voxels
+(``VoxelMap(x_voxels=...)``) and writes the tile's cloud beside the scans (:func:`read_tile`). Only a
+:class:`TileCloud` (the file, its voxel count) comes back.
+
+Equal to the untiled merge: a voxel lies in exactly one tile (the slabs are cut on voxel faces) and gets there the
+same per-scan sums (each scan is voxelised whole, as the untiled map does, and only then cut), from every scan that
+has a point in it: a scan's points lie within :func:`scan_x_extent` of its thinned copy widened by the margin (the
+thinning voxel's diagonal, where a thinned centroid lies from the points of its voxel, and one merge voxel for the
+float32 rounding of the placement), and a tile reads every scan whose widened extent meets its slab. The voxel
+keys sort x first, so the tiles' clouds one after the other are the untiled cloud in its order; only the order in
+which a voxel's per-scan sums are added differs (the untiled merge adds them by groups of scans): its mean is the
+same to the rounding of those sums, 1e-9 mm (``tests/test_tiles.py``).
+
+A unit is idempotent (its file is named by the digest of everything it depends on and written durably), so a unit
+lost with its worker is run again with the same result.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import math
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tandemscan.pipeline.compute import ComputeBackend
+from tandemscan.pipeline.geometry.frames import transform_points
+from tandemscan.pipeline.io.durable import write_durably
+from tandemscan.pipeline.io.export import PlyChunk, write_ply_streamed
+from tandemscan.pipeline.io.raw_scan import read_raw_scan
+from tandemscan.pipeline.stitching.worldmap import VoxelMap
+
+#: the tiles' clouds are written in this folder of the scan store
+TILES_FOLDER = "tiles"
+
+
+@dataclass(frozen=True)
+class TileScan:
+    """A scan by reference for the tile stages: its raw scan file (relative to the scan store), its final pose
+    ``T_W_S`` (4x4, W, mm) and a bound of its points' x in W (mm, :func:`scan_x_extent`: every point within)."""
+
+    file: str
+    T_W_S: np.ndarray
+    x_min_mm: float
+    x_max_mm: float
+
+
+def scan_x_extent(T_W_S: np.ndarray, thinned_S: np.ndarray, thin_voxel_mm: float, voxel_mm: float
+                  ) -> tuple[float, float]:
+    """A bound of the x (W, mm) of a scan's points from its copy thinned at ``thin_voxel_mm`` (S, mm;
+    ``raw_scan.read_thinned_scan``) placed at ``T_W_S``: the copy's extent widened by the thinning voxel's
+    diagonal (a point's distance to its voxel's centroid at most) and one merge voxel ``voxel_mm`` (the float32
+    rounding of the merge's placement, and the floor to the voxel). (inf, -inf) for a scan without points."""
+    if len(thinned_S) == 0:
+        return math.inf, -math.inf
+    x = transform_points(T_W_S, thinned_S)[:, 0]
+    margin = math.sqrt(3.0) * thin_voxel_mm + voxel_mm
+    return float(x.min()) - margin, float(x.max()) + margin
+
+
+@dataclass(frozen=True)
+class TileGrid:
+    """Slabs of W across x, cut on the faces of voxels of edge ``voxel_mm``: tile ``k`` holds the voxels of x
+    index in ``[x_edges[k], x_edges[k + 1])``."""
+
+    voxel_mm: float
+    x_edges: tuple[int, ...]
+
+    @classmethod
+    def over(cls, scans: Sequence[TileScan], voxel_mm: float, tile_mm: float) -> TileGrid:
+        """Slabs about ``tile_mm`` wide (a whole number of voxels) over the x extent of ``scans`` (those with
+        points)."""
+        seen = [s for s in scans if s.x_min_mm <= s.x_max_mm]
+        lo = min((s.x_min_mm for s in seen), default=0.0)
+        hi = max((s.x_max_mm for s in seen), default=0.0)
+        first, last = math.floor(lo / voxel_mm), math.floor(hi / voxel_mm) + 1
+        width = max(1, round(tile_mm / voxel_mm))
+        edges = list(range(first, last, width)) + [last]
+        return cls(voxel_mm, tuple(edges) if last > first else (first, first + 1))
+
+    def __len__(self) -> int:
+        return len(self.x_edges) - 1
+
+    def bounds_mm(self, k: int) -> tuple[float, float]:
+        """Tile ``k``'s slab ``[x0, x1)`` in W, mm."""
+        return self.x_edges[k] * self.voxel_mm, self.x_edges[k + 1] * self.voxel_mm
+
+
+@dataclass(frozen=True)
+class MergeTile:
+    """One unit of the tiled merge: tile ``index`` of ``grid`` and the scans whose x bound meets its slab, read from
+    the scan store ``store`` (a folder every worker reaches)."""
+
+    index: int
+    grid: TileGrid
+    scans: tuple[TileScan, ...]
+    store: str
+
+    def key(self) -> str:
+        """The unit's name: everything its cloud depends on (slab, voxel, the scans' files and poses)."""
+        h = hashlib.blake2b(digest_size=16)
+        h.update(np.array([self.grid.voxel_mm, *self.grid.bounds_mm(self.index)], np.float64).tobytes())
+        for s in self.scans:
+            h.update(s.file.encode())
+            h.update(np.ascontiguousarray(s.T_W_S, np.float64).tobytes())
+        return f"merge-tile-{self.index:05d}-{h.hexdigest()}"
+
+
+@dataclass(frozen=True)
+class TileCloud:
+    """A tile's merged cloud as the tiled merge wrote it: ``file`` (relative to the scan store: points and unit
+    normals, W, mm, float64, and each voxel's point count, in voxel key order) and its ``voxels``."""
+
+    index: int
+    file: str
+    voxels: int
+
+
+def tile_units(scans: Sequence[TileScan], grid: TileGrid, store: str) -> list[MergeTile]:
+    """One :class:`MergeTile` a tile of ``grid``: the scans whose x bound meets its slab, in the job's order."""
+    units = []
+    for k in range(len(grid)):
+        x0, x1 = grid.bounds_mm(k)
+        units.append(MergeTile(k, grid, tuple(s for s in scans if s.x_max_mm >= x0 and s.x_min_mm <= x1), store))
+    return units
+
+
+def merge_tile(unit: MergeTile) -> TileCloud:
+    """Merge the unit's scans (read one at a time, float32 as stored, placed at ``T_W_S``: Eq. 1) into its tile's
+    voxels and write them to ``<store>/tiles/<unit key>.npz``."""
+    x_voxels = (unit.grid.x_edges[unit.index], unit.grid.x_edges[unit.index + 1])
+    worldmap = VoxelMap(unit.grid.voxel_mm, x_voxels)
+    for s in unit.scans:
+        worldmap.add_scan(s.T_W_S, *read_raw_scan(Path(unit.store) / s.file, np.float32))
+    cloud = worldmap.frozen()
+    del worldmap
+    file = f"{TILES_FOLDER}/{unit.key()}.npz"
+    write_durably(Path(unit.store) / file, functools.partial(
+        _save_cloud, points=cloud.points(), normals=cloud.normals(), counts=np.asarray(cloud.counts(), np.int64)))
+    return TileCloud(unit.index, file, len(cloud))
+
+
+def _save_cloud(f, **arrays: np.ndarray) -> None:
+    np.savez(f, **arrays)
+
+
+def merge_tiles(scans: Sequence[TileScan], voxel_mm: float, tile_mm: float, store: str | Path,
+                backend: ComputeBackend) -> tuple[TileCloud, ...]:
+    """The job's cloud merged tile by tile on ``backend`` (:func:`merge_tile` a unit of slabs about ``tile_mm``
+    wide; W, mm), in x order: the tiles' clouds one after the other are the untiled cloud (module doc)."""
+    units = tile_units(scans, TileGrid.over(scans, voxel_mm, tile_mm), str(store))
+    return tuple(backend.map(merge_tile, units, [u.key() for u in units]))
+
+
+@dataclass(frozen=True)
+class TilePoints:
+    """A tile's cloud read back: mean points and unit normals (W, mm, float64), each voxel's point count."""
+
+    points_mm: np.ndarray
+    normals: np.ndarray
+    counts: np.ndarray
+
+
+def read_tile(store: str | Path, tile: TileCloud) -> TilePoints:
+    """Tile ``tile``'s cloud from the scan store ``store``."""
+    with np.load(Path(store) / tile.file) as data:
+        return TilePoints(data["points"], data["normals"], data["counts"])
+
+
+def _ply_chunks(store: str | Path, tiles: Sequence[TileCloud]) -> Iterator[PlyChunk]:
+    """Each tile's points and normals in turn, read when the writer asks for them: one tile in memory at a time."""
+    for tile in tiles:
+        cloud = read_tile(store, tile)
+        yield PlyChunk(cloud.points_mm, cloud.normals)
+
+
+def write_cloud_ply(path: Path, store: str | Path, tiles: Sequence[TileCloud]) -> Path:
+    """``cloud.ply`` (W, mm: points and unit normals) streamed from the tiles' clouds, the vertex count known from
+    their voxel counts: the bytes ``export.write_ply`` writes of the untiled cloud, to the rounding of the merge."""
+    return write_ply_streamed(path, sum(t.voxels for t in tiles), _ply_chunks(store, tiles))
+
+
+def every_kth(store: str | Path, tiles: Sequence[TileCloud], step: int) -> TilePoints:
+    """The cloud's every ``step``-th voxel, counted over the tiles one after the other (the untiled cloud's
+    ``[::step]``: what the alignment to the CAD and the report's figures take, ``[inspection] max_points``), read
+    a tile at a time."""
+    parts, offset = [], 0
+    for tile in tiles:
+        first = (-offset) % step
+        if first < tile.voxels:
+            cloud = read_tile(store, tile)
+            parts.append(TilePoints(cloud.points_mm[first::step], cloud.normals[first::step],
+                                    cloud.counts[first::step]))
+        offset += tile.voxels
+    if not parts:
+        return TilePoints(np.empty((0, 3)), np.empty((0, 3)), np.empty(0, np.int64))
+    return TilePoints(*(np.concatenate([getattr(p, name) for p in parts])
+                        for name in ("points_mm", "normals", "counts")))

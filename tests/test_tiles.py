@@ -1,0 +1,167 @@
+"""The merge, the inspection and the exports tile by tile (docs/compute.md, "Tiles"): the tiled cloud, its deviations
+from the CAD, the report's figures and the PLYs are those of the untiled end of the job, to 1e-9 mm."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import pytest
+from tandemscan.daemon.finish import merge_stage
+from tandemscan.pipeline.compute import LocalBackend
+from tandemscan.pipeline.geometry.frames import from_rpy, invert, rotate_vectors, transform_points
+from tandemscan.pipeline.inspection.inspect import CadSurface, DeviationStats, ToleranceResult
+from tandemscan.pipeline.inspection.tile_inspection import deviation_figures, inspect_tiles, write_deviation_ply
+from tandemscan.pipeline.io.export import ExportError, PlyChunk, write_ply, write_ply_streamed
+from tandemscan.pipeline.io.raw_scan import read_thinned_scan, write_raw_scan
+from tandemscan.pipeline.stitching.tiles import (
+    TileGrid,
+    TileScan,
+    every_kth,
+    merge_tiles,
+    read_tile,
+    scan_x_extent,
+    tile_units,
+    write_cloud_ply,
+)
+
+VOXEL_MM = 1.0
+TILE_MM = 37.0  # narrower than a scan (80 mm): every scan reaches two or three tiles
+T_F_W = from_rpy([120.0, -40.0, 15.0], np.radians([3.0, -2.0, 20.0]))  # the job's world W in the CAD frame F
+
+
+def _height(x: np.ndarray) -> np.ndarray:
+    return 4.0 * np.sin(x / 30.0)
+
+
+def cad_mesh() -> o3d.geometry.TriangleMesh:
+    """A wavy sheet z = 4 sin(x / 30) mm over x in [-60, 380], y in [-70, 70] (F, mm), normals up."""
+    x, y = np.meshgrid(np.linspace(-60, 380, 221), np.linspace(-70, 70, 71), indexing="ij")
+    vertices = np.c_[x.ravel(), y.ravel(), _height(x.ravel())]
+    i, j = np.meshgrid(np.arange(220), np.arange(70), indexing="ij")
+    a = (i * 71 + j).ravel()
+    triangles = np.r_[np.c_[a, a + 71, a + 1], np.c_[a + 1, a + 71, a + 72]]
+    return o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(triangles))
+
+
+def stored_job(store: Path, scans: int = 6, points: int = 30_000, seed: int = 3) -> tuple[list[TileScan], Path]:
+    """Raw scans of the sheet (80 x 80 mm patches 50 mm apart along x, 0.05 mm noise, normals) under
+    ``store/scans``, each with its final pose and x bound, and the CAD mesh's file."""
+    rng = np.random.default_rng(seed)
+    T_W_F = invert(T_F_W)
+    refs = []
+    for k in range(scans):
+        x = rng.uniform(-40, 40, points) + 50.0 * k
+        y = rng.uniform(-40, 40, points)
+        p_F = np.c_[x, y, _height(x) + rng.normal(0, 0.05, points)]
+        n_F = np.c_[-4.0 / 30.0 * np.cos(x / 30.0), np.zeros(points), np.ones(points)]
+        n_F /= np.linalg.norm(n_F, axis=1, keepdims=True)
+        T_W_S = from_rpy(transform_points(T_W_F, [50.0 * k, 0.0, 300.0]), rng.uniform(-np.pi, np.pi, 3))
+        T_S_F = invert(T_W_S) @ T_W_F
+        file = f"scans/scan-{k:04d}.npz"
+        write_raw_scan(store / file, points_S_mm=transform_points(T_S_F, p_F), normals_S=rotate_vectors(T_S_F, n_F))
+        x_min, x_max = scan_x_extent(T_W_S, read_thinned_scan(store / file, VOXEL_MM), VOXEL_MM, VOXEL_MM)
+        refs.append(TileScan(file, T_W_S, x_min, x_max))
+    mesh_file = store / "cad.ply"
+    o3d.io.write_triangle_mesh(str(mesh_file), cad_mesh())
+    return refs, mesh_file
+
+
+@pytest.fixture(scope="module")
+def job(tmp_path_factory):
+    """The stored job, its untiled cloud (``finish.merge_stage``) and its tiled one (the local backend)."""
+    store = tmp_path_factory.mktemp("store")
+    refs, mesh_file = stored_job(store)
+    untiled = merge_stage(VOXEL_MM, [store / s.file for s in refs], [s.T_W_S for s in refs]).frozen()
+    tiles = merge_tiles(refs, VOXEL_MM, TILE_MM, store, LocalBackend())
+    return store, refs, mesh_file, untiled, tiles
+
+
+def concatenated(store: Path, tiles) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    clouds = [read_tile(store, t) for t in tiles]
+    return tuple(np.concatenate([getattr(c, a) for c in clouds]) for a in ("points_mm", "normals", "counts"))
+
+
+def test_the_tiles_cut_the_scans_and_their_clouds_are_the_untiled_cloud(job):
+    store, refs, _, untiled, tiles = job
+    units = tile_units(refs, TileGrid.over(refs, VOXEL_MM, TILE_MM), str(store))
+    assert len(tiles) == len(units) >= 10
+    assert sum(len(u.scans) for u in units) >= 2 * len(refs)  # scans cross tile borders
+    assert all(t.voxels for t in tiles)
+    points, normals, counts = concatenated(store, tiles)
+    assert len(points) == len(untiled) > 30_000
+    np.testing.assert_array_equal(counts, untiled.counts())  # the same voxels, in the same order
+    np.testing.assert_allclose(points, untiled.points(), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(normals, untiled.normals(), rtol=0, atol=1e-9)
+    step = 7
+    sub = every_kth(store, tiles, step)
+    np.testing.assert_allclose(sub.points_mm, untiled.points()[::step], rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(sub.counts, untiled.counts()[::step])
+
+
+def test_a_tile_merge_run_again_writes_the_same_cloud(job):
+    store, refs, _, _, tiles = job
+    again = merge_tiles(refs, VOXEL_MM, TILE_MM, store, LocalBackend(threads=1))
+    assert again == tiles
+    for a, b in zip(concatenated(store, again), concatenated(store, tiles), strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def _vertices(path: Path) -> tuple[bytes, np.ndarray]:
+    data = path.read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    header = data[:end]
+    names = [line.split()[-1].decode() for line in header.splitlines() if line.startswith(b"property")]
+    kinds = ["<f8" if b"double" in line else "<f4" for line in header.splitlines() if line.startswith(b"property")]
+    return header, np.frombuffer(data[end:], np.dtype(list(zip(names, kinds, strict=True))))
+
+
+def test_cloud_ply_streamed_from_the_tiles_is_the_untiled_one(job, tmp_path):
+    store, _, _, untiled, tiles = job
+    tiled = write_cloud_ply(tmp_path / "tiled.ply", store, tiles)
+    whole = write_ply(tmp_path / "whole.ply", untiled.points(), untiled.normals())
+    (h1, v1), (h2, v2) = _vertices(tiled), _vertices(whole)
+    assert h1 == h2 and len(v1) == len(v2) == len(untiled)
+    for name in ("x", "y", "z"):
+        np.testing.assert_allclose(v1[name], v2[name], rtol=0, atol=1e-9)
+    for name in ("nx", "ny", "nz"):
+        np.testing.assert_allclose(v1[name], v2[name], rtol=0, atol=1e-6)  # float32 of normals equal to 1e-9
+    points, normals, _ = concatenated(store, tiles)  # the same arrays: the same bytes
+    assert tiled.read_bytes() == write_ply(tmp_path / "same.ply", points, normals).read_bytes()
+
+
+def test_a_streamed_ply_whose_count_is_wrong_is_refused_and_removed(tmp_path):
+    chunks = [PlyChunk(np.zeros((3, 3))), PlyChunk(np.ones((2, 3)))]
+    assert write_ply_streamed(tmp_path / "ok.ply", 5, chunks).read_bytes() == write_ply(
+        tmp_path / "one.ply", np.r_[np.zeros((3, 3)), np.ones((2, 3))]).read_bytes()
+    with pytest.raises(ExportError, match="5 vertices written, the header says 4"):
+        write_ply_streamed(tmp_path / "bad.ply", 4, chunks)
+    with pytest.raises(ExportError, match="differ"):
+        write_ply_streamed(tmp_path / "mixed.ply", 5, [chunks[0], PlyChunk(np.ones((2, 3)), np.ones((2, 3)))])
+    assert not (tmp_path / "bad.ply").exists() and not (tmp_path / "mixed.ply").exists()
+
+
+def test_the_tiles_deviations_and_report_figures_are_the_untiled_ones(job, tmp_path):
+    store, _, mesh_file, untiled, tiles = job
+    lower, upper = -0.02, 0.02  # about the noise of a voxel's mean
+    inspected = inspect_tiles(tiles, store, mesh_file, T_F_W, lower, upper, LocalBackend())
+    points_F = transform_points(T_F_W, untiled.points())
+    d = CadSurface(cad_mesh()).closest(points_F).signed_mm
+    figures = deviation_figures(store, inspected, lower, upper)
+    expected = DeviationStats.of(d)
+    for name in ("mean_mm", "sigma_mm", "rms_mm", "min_mm", "max_mm", "p5_mm", "p95_mm"):
+        assert getattr(figures.stats, name) == pytest.approx(getattr(expected, name), rel=0, abs=1e-9), name
+    assert figures.stats.count == expected.count == len(untiled)
+    tolerance = ToleranceResult.of(d, lower, upper)
+    assert 0 < tolerance.above_pct < 50 and 0 < tolerance.below_pct < 50  # the band cuts the noise
+    for name in ("in_pct", "above_pct", "below_pct"):
+        assert getattr(figures.tolerance, name) == pytest.approx(getattr(tolerance, name), rel=0, abs=1e-9)
+    tiled = write_deviation_ply(tmp_path / "tiled.ply", store, inspected)
+    whole = write_ply(tmp_path / "whole.ply", points_F, rotate_vectors(T_F_W, untiled.normals()),
+                      {"deviation_mm": d})
+    (h1, v1), (h2, v2) = _vertices(tiled), _vertices(whole)
+    assert h1 == h2
+    for name in ("x", "y", "z"):
+        np.testing.assert_allclose(v1[name], v2[name], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(v1["deviation_mm"], v2["deviation_mm"], rtol=0, atol=1e-6)  # float32 in the file
