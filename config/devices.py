@@ -8,7 +8,8 @@ built-in vendor's driver) and ``<role>.sim`` (the simulator's twin). A vendor's 
 ``<role>.<its name>``: a class built as ``Class(section, name=role)`` that names its own pydantic settings model
 as ``Class.Settings`` (the section's ``[<role>.<its name>]`` table, validated by it, arrives as
 ``section.settings``), and, for hardware-in-the-loop cells, its emulator in :data:`EMULATOR_GROUP` under the same
-name. The device sections of :class:`~tandemscan.config.models.CellConfig` are the roles.
+name. The device sections of :class:`~tandemscan.config.models.CellConfig` are the roles. The simulator's own
+sections (``[sim]``, ``[hil]``) are validated by the models it registers in :data:`SIMULATOR_GROUP`.
 """
 
 from __future__ import annotations
@@ -25,6 +26,8 @@ if TYPE_CHECKING:
 
 DEVICE_GROUP = "tandemscan.devices"
 EMULATOR_GROUP = "tandemscan.emulators"
+#: the simulator's own settings models, by the section of the cell configuration they validate (``sim``, ``hil``)
+SIMULATOR_GROUP = "tandemscan.simulator"
 #: the roles every cell has
 ROLES = ("measure_chassis", "tracking_chassis", "arm", "scanner", "tracker", "safety")
 #: the roles a cell has where its section says ``enabled`` (the measurement AGV's lifting column)
@@ -86,3 +89,13 @@ def plugin_settings_model(roles: tuple[str, ...], driver: str) -> type:
     if not hasattr(cls, "Settings"):
         raise ValueError(f"{role}: the plugin's driver {driver!r} names no Settings model")
     return cls.Settings
+
+
+def simulator_settings_model(section: str) -> type:
+    """The pydantic model the simulator registers in :data:`SIMULATOR_GROUP` for its section ``section`` of the
+    cell configuration (``sim``, ``hil``), imported now; ValueError where none is."""
+    for ep in _group(SIMULATOR_GROUP, tuple(sys.path)):
+        if ep.name == section:
+            return ep.load()
+    raise ValueError(f"no settings model registered for [{section}] in {SIMULATOR_GROUP}: is the package installed "
+                     "(pip install -e .)?")

@@ -17,10 +17,11 @@ from collections.abc import Callable
 
 import numpy as np
 import open3d as o3d
-from tandemscan.config.models import CellConfig, DentConfig, PartConfig, StepConfig, WarpConfig
+from tandemscan.config.models import CellConfig, PartConfig
 from tandemscan.pipeline.geometry.openings import split_triangles
 from tandemscan.pipeline.geometry.part import load_part_mesh
 from tandemscan.pipeline.inspection.inspect import CadSurface
+from tandemscan.sim_drivers.config import DentConfig, StepConfig, WarpConfig
 
 log = logging.getLogger(__name__)
 

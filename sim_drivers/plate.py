@@ -14,10 +14,11 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 from numpy.typing import ArrayLike
-from tandemscan.config.models import CalibrationConfig, ScannerConfig, TrackerNoiseConfig
+from tandemscan.config.models import CalibrationConfig, ScannerConfig
 from tandemscan.pipeline.calibration.plate import nominal_centres_P
 from tandemscan.pipeline.geometry.frames import from_rotvec, invert, transform_points
 from tandemscan.pipeline.geometry.raycast import make_scene
+from tandemscan.sim_drivers.config import TrackerNoiseConfig
 from tandemscan.sim_drivers.world import SimWorld
 
 

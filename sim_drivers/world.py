@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
-from tandemscan.config.models import CellConfig, ChassisSlipConfig, FloorPoseConfig
+from tandemscan.config.models import CellConfig
 from tandemscan.drivers.errors import OutOfReach, TargetNotVisible
 from tandemscan.drivers.interfaces import ChassisPose
 from tandemscan.pipeline.geometry import frames as F
@@ -21,6 +21,7 @@ from tandemscan.pipeline.geometry.kinematics import ArmKinematics, arm_base_on_c
 from tandemscan.pipeline.geometry.raycast import ScannerModel, make_scene
 from tandemscan.pipeline.stitching.installation import Installation
 from tandemscan.sim_drivers.as_built import scanned_part_mesh
+from tandemscan.sim_drivers.config import ChassisSlipConfig, FloorPoseConfig
 
 log = logging.getLogger(__name__)
 

@@ -7,11 +7,12 @@ import numpy as np
 import open3d as o3d
 import pytest
 from tandemscan.config import load_config
-from tandemscan.config.models import CellConfig, DentConfig, PartConfig, StepConfig, WarpConfig
+from tandemscan.config.models import CellConfig, PartConfig
 from tandemscan.pipeline.geometry.part import train_nose_mesh
 from tandemscan.pipeline.inspection.deviation_areas import DeviationArea
 from tandemscan.pipeline.inspection.inspect import CadSurface
 from tandemscan.sim_drivers.as_built import as_built_mesh, normal_deviation, scanned_part_mesh
+from tandemscan.sim_drivers.config import DentConfig, StepConfig, WarpConfig
 from tandemscan.sim_drivers.inspection_score import DeviationTruth, score_areas
 from tandemscan.sim_drivers.world import SimWorld
 

@@ -68,3 +68,40 @@ def test_the_network_section_rejects_what_is_no_correction_key(tmp_path):
     bad.write_text('[deepmerge]\nicp_max_distanse_mm = 2.0\n')
     with pytest.raises(ConfigError, match="deepmerge.icp_max_distanse_mm"):
         load_config(bad)
+
+
+def test_every_shipped_cell_file_loads_with_the_simulators_own_tables():
+    """Every ``config/*.toml`` loads; its ``[sim]`` and ``[hil]`` tables are validated by the simulator's own
+    models (``sim_drivers/config.py``, registered in ``tandemscan.simulator``), not the product's."""
+    from tandemscan.config import default_config_path
+    from tandemscan.sim_drivers.config import HilConfig, SimWorldConfig
+
+    files = sorted(default_config_path().parent.glob("*.toml"))
+    cells = [f for f in files if f.name != "arm_models.toml"]
+    assert len(cells) >= 5
+    for path in cells:
+        config = load_config(path)
+        assert isinstance(config.sim, SimWorldConfig) and isinstance(config.hil, HilConfig), path
+    hil = load_config(default_config_path().parent / "hil-cell.toml")
+    assert hil.hil.enabled and hil.sim.seed == load_config().sim.seed  # the tables' keys arrive
+
+
+def test_a_bad_simulator_setting_names_file_key_and_reason(tmp_path):
+    for table, key, value, reason in (("sim", "install_error_mm", "-1.0", "greater than or equal to 0"),
+                                      ("sim.tracker_noise", "angle_noise_deg", '"big"', "valid number"),
+                                      ("hil", "chassis_driver_state_flags", "1", "only the state flags"),
+                                      ("hil", "arm_time_scal", "0.1", "Extra inputs are not permitted")):
+        bad = tmp_path / f"{key}.toml"
+        bad.write_text(f"[{table}]\n{key} = {value}\n")
+        with pytest.raises(ConfigError) as e:
+            load_config(bad)
+        assert str(bad) in str(e.value) and f"{table}.{key}: " in str(e.value) and reason in str(e.value)
+
+
+def test_the_product_models_hold_no_simulator_settings():
+    """The product's models know the simulator's tables only as tables to hand on."""
+    from tandemscan.config import models
+
+    assert not {"SimWorldConfig", "HilConfig", "AsBuiltConfig", "TrackerNoiseConfig", "ChassisSlipConfig"} & set(
+        vars(models))
+    assert models.CellConfig().sim.seed == 7 and models.CellConfig().hil.enabled is False  # the defaults

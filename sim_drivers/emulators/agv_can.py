@@ -22,10 +22,11 @@ from dataclasses import dataclass
 
 import can
 import numpy as np
-from tandemscan.config.models import ChassisConfig, ChassisSlipConfig
+from tandemscan.config.models import ChassisConfig
 from tandemscan.drivers.can_link import CanFrameError, CanLink, load_dbc
 from tandemscan.drivers.interfaces import ChassisPose
 from tandemscan.drivers.tasks import cancel_and_wait
+from tandemscan.sim_drivers.config import ChassisSlipConfig
 
 log = logging.getLogger(__name__)
 
