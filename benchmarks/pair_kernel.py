@@ -63,7 +63,7 @@ from tandemscan.pipeline.registration.pair_stage import (
     register_stitched_pair,
     register_units,
 )
-from tandemscan.pipeline.registration.pairs import pair_delta
+from tandemscan.pipeline.registration.pairs import JobPairSettings, pair_delta
 from tandemscan.pipeline.registration.sampling import thin_evenly, voxel_downsample
 from tandemscan.sim_drivers.cell import with_surveyed_mounts
 
@@ -120,7 +120,7 @@ class JobPairs:
 def ours(iterations: int) -> Callable:
     def kernel(source: np.ndarray, target: np.ndarray, cov: np.ndarray, cfg: CorrectionConfig) -> np.ndarray:
         c = cfg.model_copy(update={"job_pair_iterations": iterations})
-        out = register_stitched_pair(source, target_with_normals(target), cov, c)
+        out = register_stitched_pair(source, target_with_normals(target), cov, JobPairSettings.from_section(c))
         return np.eye(4) if out.transformation is None else out.transformation
     return kernel
 
@@ -135,7 +135,7 @@ def small_gicp_kernel(kind: str) -> Callable:
             small_gicp.estimate_normals(tgt, tree, 20)
         source_tree, target_tree = cKDTree(source), cKDTree(target)
         M, final = np.eye(4), cfg.icp_max_distance_mm
-        d = max(pair_delta(target, cfg, cov), final)
+        d = max(pair_delta(target, JobPairSettings.from_section(cfg), cov), final)
         while True:
             ov = overlap_at(source, source_tree, target, target_tree, M, d)
             if ov.size >= 10:
@@ -158,7 +158,8 @@ def open3d_kernel(source: np.ndarray, target: np.ndarray, cov: np.ndarray, cfg: 
     tgt.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(20))
     src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(source))
     M = np.eye(4)
-    for d in (max(pair_delta(target, cfg, cov), cfg.icp_max_distance_mm), cfg.icp_max_distance_mm):
+    for d in (max(pair_delta(target, JobPairSettings.from_section(cfg), cov), cfg.icp_max_distance_mm),
+              cfg.icp_max_distance_mm):
         M = reg.registration_icp(src, tgt, d, M, reg.TransformationEstimationPointToPlane(),
                                  reg.ICPConvergenceCriteria(1e-9, 1e-9, OTHER_ITERATIONS)).transformation
     return M
@@ -201,7 +202,7 @@ def stage_throughput(job: JobPairs, backend, scans) -> tuple[float, float]:
 
     units, c = job.units(), cpu_s()
     t = time.perf_counter()
-    register_units(units, scans, job.cfg, job.voxel_mm, backend)
+    register_units(units, scans, JobPairSettings.from_section(job.cfg), job.voxel_mm, backend)
     wall = time.perf_counter() - t
     return len(job.pairs) / wall, (cpu_s() - c) / len(job.pairs)
 

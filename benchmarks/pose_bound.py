@@ -71,9 +71,10 @@ from tandemscan.pipeline.geometry.uncertainty import recentre, scan_pose_covaria
 from tandemscan.pipeline.inspection.scoring import cloud_to_mesh_distances, distance_stats
 from tandemscan.pipeline.io.raw_scan import read_raw_scan
 from tandemscan.pipeline.planning.plan import Plan
-from tandemscan.pipeline.registration.correction import joint_scan, joint_settings
+from tandemscan.pipeline.registration.correction import joint_scan
 from tandemscan.pipeline.registration.joint import (
     MIN_NORMAL_COSINE,
+    JointSettings,
     noise_shares,
     ray_variances,
     refine_jointly,
@@ -292,14 +293,14 @@ def corrected_from_truth(result: JobResult, T_T_S: np.ndarray, config, scorer: T
     cfg, true_T_W_S = config.correction, scorer.T_W_S_true
     seen = [k for k, s in enumerate(result.scans) if s.point_count > 0]      # the scans the job corrects
     scans = [result.scans[k] for k in seen]
-    thinned = [joint_scan(read_raw_scan(s.file)[0], cfg) for s in scans]
+    thinned = [joint_scan(read_raw_scan(s.file)[0], cfg.joint_voxel_mm) for s in scans]
     priors = [ScanPrior(tracker_T_W_S[k], scan_pose_covariance(s.T_W_C, s.reading.T_C_T, T_T_S, s.reading.covariance),
                         s.tracker_station) for k, s in zip(seen, scans, strict=True)]
     world = [transform_points(p.T_W_S, t.points_S) for p, t in zip(priors, thinned, strict=True)]
     pairs = overlapping_pairs(world, [s.tracker_station for s in scans], cfg.pair_cell_mm,
                               cfg.joint_max_partners_per_scan)
     joint = refine_jointly(thinned, priors, pairs, [true_T_W_S[s.index] for s in scans],
-                           transfer_priors(result.report["transfer_log"]), mount, joint_settings(cfg))
+                           transfer_priors(result.report["transfer_log"]), mount, JointSettings.from_section(cfg))
     poses = list(tracker_T_W_S)
     for k, T in zip(seen, joint.poses, strict=True):
         poses[k] = T

@@ -61,7 +61,7 @@ from tandemscan.pipeline.geometry.frames import from_quaternion, invert, make_tr
 from tandemscan.pipeline.registration.global_registration import FeatureMatching, fpfh_ransac
 from tandemscan.pipeline.registration.icp import target_with_normals
 from tandemscan.pipeline.registration.overlap import extract_overlap
-from tandemscan.pipeline.registration.pairs import REFINE_SIGMAS, RegistrationFailed, register_pair
+from tandemscan.pipeline.registration.pairs import REFINE_SIGMAS, PairCriteria, RegistrationFailed, register_pair
 
 VERIFIED = ("icp", "deepmerge+icp", "fpfh+icp", "auto")     # ours, verified as ``register`` runs them
 ANCHORS = ("open3d_icp", "open3d_fpfh_ransac_icp")
@@ -174,7 +174,7 @@ def run_pair(source, target, M_true, delta, cfg, network, refine_sigmas) -> dict
         t0 = time.perf_counter()
         try:
             tgt = target_with_normals(target)
-            res = register_pair(source, tgt, m, cfg, network, delta, refine_sigmas)
+            res = register_pair(source, tgt, PairCriteria.from_section(cfg, method=m), network, delta, refine_sigmas)
             rot, tr = error_of(res.transformation, M_true, c)
             failed, zero, stage, gate = False, res.fit.inliers == 0, res.stage, res.gate_mm or float("nan")
         except RegistrationFailed:

@@ -50,15 +50,15 @@ def cmd_register(args: argparse.Namespace) -> int:
     import numpy as np
     from tandemscan.daemon.cli import UsageError, console
     from tandemscan.pipeline.io.cloud_io import CloudIOError, read_ply
-    from tandemscan.pipeline.registration.pairs import LazyNetwork, RegistrationFailed, register_clouds
+    from tandemscan.pipeline.registration.pairs import LazyNetwork, PairCriteria, RegistrationFailed, register_clouds
 
     config = load_config(args.config)
     try:
         source, _ = read_ply(Path(args.source))
         target, _ = read_ply(Path(args.target))
         init = np.loadtxt(args.init).reshape(4, 4) if args.init else None
-        res = register_clouds(source, target, config.correction, args.method, init, args.delta_mm,
-                              LazyNetwork(config.deepmerge))
+        criteria = PairCriteria.from_section(config.correction, **({"method": args.method} if args.method else {}))
+        res = register_clouds(source, target, criteria, init, args.delta_mm, LazyNetwork(config.deepmerge))
     except RegistrationFailed as e:
         console.print(f"registration failed: {e}", highlight=False, markup=False, soft_wrap=True)
         return 3

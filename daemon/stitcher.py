@@ -39,6 +39,7 @@ from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan, wr
 from tandemscan.pipeline.stitching.worldmap import VoxelMap
 
 if TYPE_CHECKING:
+    from tandemscan.pipeline.registration.correction import CorrectionSettings
     from tandemscan.pipeline.registration.online_pairs import OnlineWork
 
 log = logging.getLogger(__name__)
@@ -71,7 +72,7 @@ def _run(fn: Callable[..., Any], job: JobSnapshot, args: tuple) -> tuple[Any, in
 
 
 def _pairs_add(path: str, T_W_S: np.ndarray, T_T_S: np.ndarray, station: int, transfers: list[dict],
-               cfg: CorrectionConfig, voxel_mm: float) -> int:
+               cfg: CorrectionSettings, voxel_mm: float) -> int:
     """In the pair worker: register the pairs of the scan in ``path`` (durable by now) with the earlier ones."""
     global _PAIRS
     from tandemscan.daemon.job_correction import transfer_priors
@@ -121,7 +122,7 @@ class PairWorker:
     """A process registering each scan's pairs as it arrives (``online_pairs.OnlinePairs``); tasks queue in
     scan order and nobody waits for them until :meth:`outcomes`."""
 
-    def __init__(self, cfg: CorrectionConfig, voxel_mm: float, niceness: int):
+    def __init__(self, cfg: CorrectionSettings, voxel_mm: float, niceness: int):
         self.cfg, self.voxel_mm = cfg, float(voxel_mm)
         self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
                                          initializer=init_worker, initargs=(niceness,))
@@ -162,11 +163,12 @@ class _Pairs:
             return
         cfg: CorrectionConfig = pairs["correction"]
         if self._pairs is None:
+            from tandemscan.pipeline.registration.correction import CorrectionSettings
             from tandemscan.pipeline.registration.pairs import NETWORK_METHODS
 
             if not cfg.enabled or cfg.method in NETWORK_METHODS:
                 return
-            self._pairs = PairWorker(cfg, self.voxel_mm, self._pair_niceness)
+            self._pairs = PairWorker(CorrectionSettings.from_section(cfg), self.voxel_mm, self._pair_niceness)
         self._pairs.submit(file, T_W_S, pairs["T_T_S"], pairs["station"], pairs["transfers"])
 
     async def pair_outcomes(self) -> tuple[OnlineWork | None, float]:

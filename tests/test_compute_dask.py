@@ -21,7 +21,7 @@ from tandemscan.config.models import ComputeConfig, CorrectionConfig, DeepMergeC
 from tandemscan.pipeline.compute import DaskBackend, LocalBackend, backend_for
 from tandemscan.pipeline.inspection.tile_inspection import inspect_tiles
 from tandemscan.pipeline.io.raw_scan import read_thinned_scan, write_raw_scan
-from tandemscan.pipeline.registration.correction import StitchedScan, correct_scans
+from tandemscan.pipeline.registration.correction import CorrectionSettings, StitchedScan, correct_scans
 from tandemscan.pipeline.registration.pairs import LazyNetwork
 from tandemscan.pipeline.stitching.tiles import merge_tiles
 
@@ -30,7 +30,8 @@ from tests.test_tiles import T_F_W, TILE_MM, concatenated, stored_job
 
 pytestmark = pytest.mark.slow
 VOXEL_MM = 1.0
-CFG = CorrectionConfig(method="icp", min_overlap_points=100, joint=False)  # the pose graph: poses from the pairs
+# the pose graph: poses from the pairs
+CFG = CorrectionSettings.from_section(CorrectionConfig(method="icp", min_overlap_points=100, joint=False))
 
 
 def _free_port() -> int:

@@ -7,9 +7,9 @@ import pytest
 from tandemscan.config.models import CorrectionConfig
 from tandemscan.pipeline.geometry.frames import compose, from_rotvec, invert, pose_error, transform_points
 from tandemscan.pipeline.registration import correction
-from tandemscan.pipeline.registration.correction import StitchedScan, correct_scans
+from tandemscan.pipeline.registration.correction import CorrectionSettings, StitchedScan, correct_scans
 from tandemscan.pipeline.registration.icp import target_with_normals
-from tandemscan.pipeline.registration.pairs import correct_pair, register_pair
+from tandemscan.pipeline.registration.pairs import JobPairSettings, PairCriteria, correct_pair, register_pair
 from tandemscan.pipeline.registration.pose_graph import TransferPrior
 
 
@@ -49,7 +49,7 @@ def scans_with_drift(n: int = 6, per_station: int = 2, seed: int = 0):
 @pytest.mark.parametrize("joint", [True, False], ids=["joint refinement", "pose graph"])
 def test_icp_correction_and_its_refinement_remove_transfer_drift(joint, monkeypatch):
     truth, scans, transfers = scans_with_drift()
-    cfg = CorrectionConfig(method="icp", min_overlap_points=100, joint=joint)
+    cfg = CorrectionSettings.from_section(CorrectionConfig(method="icp", min_overlap_points=100, joint=joint))
     if joint:  # the pose graph is not solved where the joint refinement gives the poses
         monkeypatch.setattr(correction, "refine_poses", lambda *a, **k: pytest.fail("pose graph solved"))
     res = correct_scans(scans, cfg, transfers=transfers)
@@ -69,7 +69,7 @@ def test_correct_pair_needs_overlap_and_a_delta():
     truth, scans, _ = scans_with_drift(n=2, per_station=1)
     a = transform_points(scans[0].T_W_S, scans[0].points_S)
     b = transform_points(scans[1].T_W_S, scans[1].points_S)
-    cfg = CorrectionConfig(method="icp", overlap_delta_mm=3.0)
+    cfg = JobPairSettings.from_section(CorrectionConfig(method="icp", overlap_delta_mm=3.0))
     target = target_with_normals(a)
     pc = correct_pair(b, target, cfg, None)
     assert pc is not None and pc.overlap_points > 1000 and pc.delta_mm == 3.0 and pc.stage == "init"
@@ -77,7 +77,7 @@ def test_correct_pair_needs_overlap_and_a_delta():
     far = b + [5000.0, 0, 0]
     assert correct_pair(far, target, cfg, None) is None
     with pytest.raises(ValueError, match="overlap_delta_mm"):
-        correct_pair(b, target, CorrectionConfig(method="icp"), None)
+        correct_pair(b, target, JobPairSettings.from_section(CorrectionConfig(method="icp")), None)
 
 
 def bumpy(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -107,20 +107,20 @@ def test_deepmerge_then_icp_on_a_pair_recovers_the_correction():
     P = np.c_[xy, bumpy(xy[:, 0], xy[:, 1])]
     T_true = from_rotvec([0.5, -0.3, 0.2], np.radians([0.2, 0.1, -0.3]))
     source, target = transform_points(invert(T_true), P[::2]), target_with_normals(P[1::2])
-    cfg = CorrectionConfig(method="deepmerge+icp")
+    cfg = PairCriteria.from_section(CorrectionConfig(method="deepmerge+icp"))
     reg = DeepMergeRegistrar.load(num_points=256)
-    res = register_pair(source, target, "deepmerge+icp", cfg, reg, start_distance_mm=3.0)
+    res = register_pair(source, target, cfg, reg, start_distance_mm=3.0)
     dt, dr = pose_error(res.transformation, T_true)
     assert dt < 0.05 and np.degrees(dr) < 0.02 and res.stage == "deepmerge"
     with pytest.raises(ValueError, match="registrar"):
-        register_pair(source, target, "deepmerge", cfg, None, 3.0)
+        register_pair(source, target, PairCriteria.from_section(CorrectionConfig(method="deepmerge")), None, 3.0)
 
 
 def test_a_pair_that_fails_its_verification_gets_no_edge_and_is_logged(monkeypatch, caplog):
     from tandemscan.pipeline.registration import pair_stage, pairs
 
     truth, scans, transfers = scans_with_drift()
-    cfg = CorrectionConfig(method="icp", min_overlap_points=100)
+    cfg = CorrectionSettings.from_section(CorrectionConfig(method="icp", min_overlap_points=100))
     real = pairs.correct_pair
 
     def refuse_the_cross_station_pair(source_W, target, cfg_, network, cov=None):
@@ -139,3 +139,24 @@ def test_a_pair_that_fails_its_verification_gets_no_edge_and_is_logged(monkeypat
     assert all((i, j) != (d["i"], d["j"]) for i, j, _ in res.edges for d in dropped)
     assert any("dropped" in r.getMessage() and "(1, 2)" in r.getMessage() for r in caplog.records)
     assert full.report["pairs_dropped"] == [] and full.report["stages"] == {"init": full.report["pairs"]}
+
+
+def test_the_stages_parameters_are_the_sections_keys_of_the_same_names():
+    """``CorrectionSettings.from_section`` takes each stage's parameters from ``[correction]``, once: the pair
+    criteria, the job's pair settings and the joint refinement's (its ``joint_*`` keys)."""
+    from dataclasses import FrozenInstanceError
+
+    from tandemscan.config.models import DeepMergeConfig
+
+    section = CorrectionConfig(method="auto", icp_max_distance_mm=1.25, job_pair_iterations=7, overlap_delta_mm=2.5,
+                               joint_voxel_mm=3.0, joint_max_distance_mm=0.8, joint_iterations=3, joint_sigma_mm=0.04)
+    s = CorrectionSettings.from_section(section)
+    assert s.method == s.pairs.criteria.method == "auto" and s.pairs.criteria.icp_max_distance_mm == 1.25
+    assert s.pairs.job_pair_iterations == 7 and s.pairs.overlap_delta_mm == 2.5 and s.joint_voxel_mm == 3.0
+    assert (s.joint_refinement.max_distance_mm, s.joint_refinement.iterations, s.joint_refinement.sigma_mm) == (
+        0.8, 3, 0.04)
+    assert PairCriteria.from_section(section, method="icp").method == "icp"
+    with pytest.raises(FrozenInstanceError):
+        s.pairs.criteria.icp_iterations = 1
+    with pytest.raises(AttributeError, match="icp_max_distance_mm|method"):  # a section without the stage's keys
+        PairCriteria.from_section(DeepMergeConfig())

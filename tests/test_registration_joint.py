@@ -7,7 +7,6 @@ import dataclasses
 
 import numpy as np
 import pytest
-from tandemscan.config.models import CorrectionConfig
 from tandemscan.pipeline.geometry.frames import from_rotvec, invert, pose_error, transform_points
 from tandemscan.pipeline.registration.correction import joint_scan
 from tandemscan.pipeline.registration.icp import RefineError
@@ -219,8 +218,7 @@ def test_a_centroid_of_several_points_counts_as_their_lower_noise():
 def test_the_joint_scan_counts_the_measured_points_each_thinned_point_averages():
     rng = np.random.default_rng(3)
     points = np.r_[rng.uniform(0, 20, (400, 3)), np.tile([[31.0, 31.0, 31.0]], (5, 1))]  # five in one 2 mm voxel
-    cfg = CorrectionConfig(joint_voxel_mm=2.0)
-    scan = joint_scan(points, cfg)
+    scan = joint_scan(points, 2.0)
     np.testing.assert_array_equal(scan.points_S, voxel_downsample(points, 2.0))
     assert scan.counts.sum() == len(points) and scan.counts.min() >= 1
     assert scan.counts[np.flatnonzero(np.all(scan.points_S == 31.0, axis=1))].tolist() == [5.0]

@@ -2,14 +2,21 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from tandemscan.config.models import CorrectionConfig
 from tandemscan.pipeline.geometry.frames import from_rotvec
-from tandemscan.pipeline.registration.correction import StitchedScan, correct_scans
+from tandemscan.pipeline.registration.correction import CorrectionSettings, StitchedScan, correct_scans
 from tandemscan.pipeline.registration.online_pairs import OnlinePairs
 
 from tests.test_registration_correction import scans_with_drift
+
+
+def settings(**keys) -> CorrectionSettings:
+    """The correction's parameters of a ``[correction]`` section with ``keys``."""
+    return CorrectionSettings.from_section(CorrectionConfig(**keys))
 
 
 def _measure(scans, transfers, cfg, voxel_mm=1.0) -> OnlinePairs:
@@ -22,7 +29,7 @@ def _measure(scans, transfers, cfg, voxel_mm=1.0) -> OnlinePairs:
 
 def test_the_end_of_the_job_reuses_every_pair_and_gets_the_same_poses():
     _, scans, transfers = scans_with_drift(n=6, per_station=2)
-    cfg = CorrectionConfig(method="icp", min_overlap_points=100, joint=False)
+    cfg = settings(method="icp", min_overlap_points=100, joint=False)
     online = _measure(scans, transfers, cfg)
     assert online.outcomes
     fresh = correct_scans(scans, cfg, transfers=transfers)
@@ -36,7 +43,7 @@ def test_the_end_of_the_job_reuses_every_pair_and_gets_the_same_poses():
 
 def test_a_scan_whose_pose_changed_is_registered_again_at_the_end():
     _, scans, transfers = scans_with_drift(n=4, per_station=4)
-    cfg = CorrectionConfig(method="icp", min_overlap_points=100, joint=False)
+    cfg = settings(method="icp", min_overlap_points=100, joint=False)
     online = _measure(scans, transfers, cfg)
     moved = list(scans)
     moved[3] = StitchedScan(scans[3].points_S, from_rotvec([0.3, 0, 0], [0, 0, 0]) @ scans[3].T_W_S,
@@ -52,7 +59,7 @@ def test_a_scan_whose_pose_changed_is_registered_again_at_the_end():
 
 def test_methods_with_the_network_register_nothing_while_measuring():
     _, scans, transfers = scans_with_drift(n=3)
-    online = _measure(scans, transfers, CorrectionConfig(method="deepmerge+icp"))
+    online = _measure(scans, transfers, settings(method="deepmerge+icp"))
     assert online.outcomes == {}
 
 
@@ -67,8 +74,8 @@ def test_scans_prepared_for_the_joint_refinement_while_measuring_give_the_same_p
     from tandemscan.pipeline.registration import correction, joint
 
     _, scans, transfers = scans_with_drift(n=4, per_station=2)
-    cfg = CorrectionConfig(method="icp", min_overlap_points=100, joint=True, joint_iterations=2,
-                           joint_reassociate_mm=reassociate_mm)
+    cfg = settings(method="icp", min_overlap_points=100, joint=True, joint_iterations=2,
+                   joint_reassociate_mm=reassociate_mm)
     online = _measure(scans, transfers, cfg)
     work = online.work()
     assert len(work.joint_scans) == len(scans)
@@ -90,7 +97,7 @@ def test_scans_prepared_for_the_joint_refinement_while_measuring_give_the_same_p
     for a, b in zip(fresh.poses, reused.poses, strict=True):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)
     searched_before = len(searched_at_end)
-    coarser = cfg.model_copy(update={"joint_voxel_mm": 3.0})
+    coarser = replace(cfg, joint_voxel_mm=3.0)
     correct_scans(scans, coarser, transfers=transfers, pair_cache=work.pairs, joint_cache=kept,
                   association_cache=work.associations)
     assert len(prepared_at_end) == len(scans) and len(searched_at_end) > searched_before
@@ -106,7 +113,7 @@ def test_a_scans_pairs_register_on_both_cores_while_measuring(monkeypatch):
 
     _, scans, transfers = scans_with_drift(n=3, per_station=3)
     scans = [scans[0], scans[2], scans[1]]
-    cfg = CorrectionConfig(method="icp", min_overlap_points=100, joint=False)
+    cfg = settings(method="icp", min_overlap_points=100, joint=False)
     one_at_a_time = _measure(scans, transfers, cfg).outcomes
     monkeypatch.setattr("os.cpu_count", lambda: 2)
     both_running, real = threading.Barrier(2, timeout=10), online_pairs.register_stitched_pair

@@ -7,6 +7,7 @@ from __future__ import annotations
 import subprocess
 import sys
 import textwrap
+from dataclasses import replace
 
 import numpy as np
 import open3d as o3d
@@ -28,10 +29,17 @@ from tandemscan.pipeline.registration.icp import (
 from tandemscan.pipeline.registration.pairs import (
     REFINE_SIGMAS,
     LazyNetwork,
+    PairCriteria,
     RegistrationFailed,
     register_clouds,
     register_pair,
 )
+
+
+def criteria(**keys) -> PairCriteria:
+    """The pair criteria of a ``[correction]`` section with ``keys``."""
+    return PairCriteria.from_section(CorrectionConfig(**keys))
+
 
 _BUMPS = np.random.default_rng(11).uniform([-90, -90, 4, -15], [90, 90, 14, 15], (40, 4))
 
@@ -112,19 +120,19 @@ def test_the_final_refinement_at_the_gate_drops_what_the_fixed_distance_lets_pul
     assert np.degrees(dr_fixed) > 0.08                       # the standoff points pull the fit at 1.5 mm
     assert np.degrees(dr) < 0.04 and dt < 0.05 and dr < dr_fixed / 3
     # register_pair refines only when asked (the job's pairs do not): without, it is the fine stage's answer
-    cfg = CorrectionConfig(method="icp", icp_max_distance_mm=1.5)
-    plain = register_pair(source, target, "icp", cfg, None, 5.0)
+    cfg = criteria(method="icp", icp_max_distance_mm=1.5)
+    plain = register_pair(source, target, cfg, None, 5.0)
     assert plain.gate_mm is None and np.array_equal(plain.transformation, fit.transformation)
     # asked (register's default), its levels stop at a repeated correspondence set, then it refines
     stopped = icp_coarse_to_fine(source, target, np.eye(4), FineSchedule(5.0, 1.5, stop_on_repeat=True))
     expected, expected_gate = refine_at_gate(source, target, stopped.transformation, 1.5, REFINE_SIGMAS)
-    asked = register_pair(source, target, "icp", cfg, None, 5.0, REFINE_SIGMAS)
+    asked = register_pair(source, target, cfg, None, 5.0, REFINE_SIGMAS)
     assert asked.gate_mm == expected_gate and np.array_equal(asked.transformation, expected)
     assert register_clouds(source, target_pts, cfg).gate_mm == pytest.approx(expected_gate)
     assert np.degrees(pose_error(expected, T_true)[1]) < 0.04
     # ``deepmerge`` stays the network's own answer: not refined
     answer = from_rotvec([0.3, 0.0, 0.0], np.radians([0.05, 0.0, 0.0])) @ T_true
-    alone = register_pair(source, target, "deepmerge", cfg, FixedAnswer(answer), 5.0, REFINE_SIGMAS)
+    alone = register_pair(source, target, replace(cfg, method="deepmerge"), FixedAnswer(answer), 5.0, REFINE_SIGMAS)
     assert alone.gate_mm is None and np.array_equal(alone.transformation, answer)
 
 
@@ -168,7 +176,7 @@ def test_fpfh_ransac_finds_a_large_rotation_without_a_start():
 def test_auto_recovers_an_arbitrary_pose_and_says_which_stage_won():
     T_true = from_rotvec([8.0, -6.0, 5.0], np.radians([10.0, -25.0, 30.0]))
     source, target = moved(T_true)
-    res = register_clouds(source, target, CorrectionConfig(method="auto", icp_max_distance_mm=1.0), delta_mm=1e4,
+    res = register_clouds(source, target, criteria(method="auto", icp_max_distance_mm=1.0), delta_mm=1e4,
                           network=LazyNetwork(DeepMergeConfig()))
     dt, dr = pose_error(res.transformation, T_true)
     assert np.degrees(dr) < 0.02 and dt < 0.05
@@ -180,7 +188,7 @@ def test_auto_recovers_an_arbitrary_pose_and_says_which_stage_won():
 def test_a_pair_without_overlap_is_refused_not_returned():
     source, target = moved(from_rotvec([500.0, 0.0, 0.0], [0.0, 0.0, 0.0]))
     with pytest.raises(RegistrationFailed, match="no inliers"):
-        register_clouds(source, target, CorrectionConfig(method="icp"), delta_mm=5.0)
+        register_clouds(source, target, criteria(method="icp"), delta_mm=5.0)
 
 
 def _write(path, points: np.ndarray) -> str:
@@ -229,10 +237,11 @@ def test_the_jobs_icp_correction_does_not_import_torch():
         sys.path.insert(0, "tests")
         from test_registration_correction import scans_with_drift
         from tandemscan.config.models import CorrectionConfig, DeepMergeConfig
-        from tandemscan.pipeline.registration.correction import correct_scans
+        from tandemscan.pipeline.registration.correction import CorrectionSettings, correct_scans
         from tandemscan.pipeline.registration.pairs import LazyNetwork
         truth, scans, transfers = scans_with_drift(n=4)
-        res = correct_scans(scans, CorrectionConfig(method="icp", min_overlap_points=100),
+        cfg = CorrectionSettings.from_section(CorrectionConfig(method="icp", min_overlap_points=100))
+        res = correct_scans(scans, cfg,
                             LazyNetwork(DeepMergeConfig()), transfers=transfers)
         assert res.report["pairs"] >= 3
     '''))
@@ -245,7 +254,7 @@ def test_register_icp_from_40_deg_is_refused_by_its_fit_not_returned(tmp_path, c
     RMS spreads over the correspondence gate), one line and exit 3; from 0.6 deg it is accepted."""
     T_true = from_rotvec([8.0, -6.0, 5.0], np.radians([10.0, -25.0, 30.0]))
     source, target = moved(T_true)
-    cfg = CorrectionConfig(method="icp", icp_max_distance_mm=1.0)
+    cfg = criteria(method="icp", icp_max_distance_mm=1.0)
     with pytest.raises(RegistrationFailed, match="poor fit: point-to-plane RMS"):
         register_clouds(source, target, cfg, delta_mm=1e4)
     a, b = _write(tmp_path / "a.ply", source), _write(tmp_path / "b.ply", target)

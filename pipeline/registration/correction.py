@@ -19,10 +19,10 @@ from collections.abc import Mapping, MutableMapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from tandemscan.config.models import CorrectionConfig
 from tandemscan.pipeline.compute import ComputeBackend, LocalBackend
 from tandemscan.pipeline.geometry.frames import invert, pose_error, transform_points
 from tandemscan.pipeline.geometry.uncertainty import covariance_about
+from tandemscan.pipeline.parameters import FromSection
 from tandemscan.pipeline.registration.icp import evaluate_point_to_plane, target_with_normals
 from tandemscan.pipeline.registration.joint import (
     Association,
@@ -42,7 +42,7 @@ from tandemscan.pipeline.registration.pair_stage import (
     TargetPairs,
     register_units,
 )
-from tandemscan.pipeline.registration.pairs import NETWORK_METHODS, Registrar
+from tandemscan.pipeline.registration.pairs import NETWORK_METHODS, JobPairSettings, Registrar
 from tandemscan.pipeline.registration.parallel import pair_threads
 from tandemscan.pipeline.registration.pose_covariance import PoseCovariance
 from tandemscan.pipeline.registration.pose_graph import (
@@ -54,6 +54,29 @@ from tandemscan.pipeline.registration.pose_graph import (
 from tandemscan.pipeline.registration.sampling import thin_evenly, voxel_centroids, voxel_downsample
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class CorrectionSettings(FromSection):
+    """The whole-job correction's parameters: ``[correction]``'s keys of the same names
+    (``CorrectionSettings.from_section(config.correction)``, built once where the job starts; mm). Whether it
+    runs (``enabled``); the pairs (``pairs``: how each is registered), found on a grid of ``pair_cell_mm`` with
+    at most ``max_partners_per_scan`` a scan; with ``joint`` the joint refinement (``joint_refinement``) on scans
+    thinned to ``joint_voxel_mm`` with at most ``joint_max_partners_per_scan`` partners, else the pose graph."""
+
+    enabled: bool
+    pairs: JobPairSettings
+    pair_cell_mm: float
+    max_partners_per_scan: int
+    joint: bool
+    joint_refinement: JointSettings
+    joint_voxel_mm: float
+    joint_max_partners_per_scan: int
+
+    @property
+    def method(self) -> str:
+        """The pair registration method (``pairs.criteria.method``)."""
+        return self.pairs.criteria.method
 
 
 @dataclass(frozen=True)
@@ -101,8 +124,10 @@ OVERLAP_RMS_POINTS = 2000
 OVERLAP_RMS_TARGETS = 64
 
 
-def _overlap_rms(clouds: list[np.ndarray], edges, poses_before, poses_after, cfg) -> tuple[float, float]:
-    """Median over edges of the point-to-plane RMS (mm) of the overlaps, with the poses before and after; the
+def _overlap_rms(clouds: list[np.ndarray], edges, poses_before, poses_after, distance_mm: float
+                 ) -> tuple[float, float]:
+    """Median over edges of the point-to-plane RMS (mm) of the overlaps, with the poses before and after (scored
+    within ``distance_mm``, the fine stage's final correspondence distance); the
     edges of at most :data:`OVERLAP_RMS_TARGETS` target scans, evenly spread over the job's, each source scan
     evaluated on at most :data:`OVERLAP_RMS_POINTS` of its points, evenly spread. The edges of one target run
     on one thread (its normals are computed once, where first needed), the targets on all."""
@@ -117,7 +142,7 @@ def _overlap_rms(clouds: list[np.ndarray], edges, poses_before, poses_after, cfg
         i, partners = item
         target = target_with_normals(clouds[i])
         return [tuple(evaluate_point_to_plane(sources[j], target, invert(poses[i]) @ poses[j],
-                                              cfg.icp_max_distance_mm).rmse_mm for poses in (poses_before, poses_after))
+                                              distance_mm).rmse_mm for poses in (poses_before, poses_after))
                 for j in partners]
 
     with pair_threads() as pair_map:
@@ -144,41 +169,42 @@ def cloud_digest(world_mm: np.ndarray) -> bytes:
     return hashlib.blake2b(np.ascontiguousarray(world_mm, np.float64).tobytes(), digest_size=16).digest()
 
 
-def pair_key(digest_i: bytes, digest_j: bytes, covariance: np.ndarray, cfg: CorrectionConfig) -> str:
+def pair_key(digest_i: bytes, digest_j: bytes, covariance: np.ndarray, cfg: JobPairSettings) -> str:
     """The cache key of pair ``(i, j)``: everything its registration depends on (clouds, covariance, settings)."""
     h = hashlib.blake2b(digest_i + digest_j, digest_size=16)
     h.update(np.ascontiguousarray(covariance, np.float64).tobytes())
-    h.update(cfg.model_dump_json().encode())
+    h.update(repr(cfg).encode())
     return h.hexdigest()
 
 
-def joint_scan(points_S: np.ndarray, cfg: CorrectionConfig) -> JointScan:
+def joint_scan(points_S: np.ndarray, voxel_mm: float) -> JointScan:
     """A scan as the joint refinement takes it: its points (S, mm; as the end of the job loads them) thinned to
-    ``cfg.joint_voxel_mm``, with normals and how many of those points each thinned one averages
-    (``joint.JointScan.from_points``)."""
-    centroids, counts = voxel_centroids(np.asarray(points_S, float), cfg.joint_voxel_mm)
+    ``voxel_mm`` (``[correction] joint_voxel_mm``), with normals and how many of those points each thinned one
+    averages (``joint.JointScan.from_points``)."""
+    centroids, counts = voxel_centroids(np.asarray(points_S, float), voxel_mm)
     return JointScan.from_points(centroids, counts=counts)
 
 
-def joint_scan_key(points_S: np.ndarray, cfg: CorrectionConfig) -> str:
-    """The cache key of :func:`joint_scan`: the points themselves and the joint voxel."""
+def joint_scan_key(points_S: np.ndarray, voxel_mm: float) -> str:
+    """The cache key of :func:`joint_scan`: the points themselves and the joint voxel (mm)."""
     h = hashlib.blake2b(cloud_digest(points_S), digest_size=16)
-    h.update(np.float64(cfg.joint_voxel_mm).tobytes())
+    h.update(np.float64(voxel_mm).tobytes())
     return h.hexdigest()
 
 
 def association_key(scan_key_i: str, scan_key_j: str, T_W_S_i: np.ndarray, T_W_S_j: np.ndarray,
-                    cfg: CorrectionConfig) -> str:
+                    max_distance_mm: float) -> str:
     """The cache key of a pair's nearest neighbours for the joint refinement (``joint.associate``): both
-    prepared scans (:func:`joint_scan_key`), both start poses (W, mm) and the distance they are searched within."""
+    prepared scans (:func:`joint_scan_key`), both start poses (W, mm) and the distance they are searched within
+    (mm)."""
     h = hashlib.blake2b((scan_key_i + scan_key_j).encode(), digest_size=16)
     h.update(np.ascontiguousarray(np.stack([T_W_S_i, T_W_S_j]), np.float64).tobytes())
-    h.update(np.float64(cfg.joint_max_distance_mm).tobytes())
+    h.update(np.float64(max_distance_mm).tobytes())
     return h.hexdigest()
 
 
 def _pair_corrections(
-    scans: Sequence[StitchedScan], local: list[np.ndarray], cfg: CorrectionConfig, network: Registrar | None,
+    scans: Sequence[StitchedScan], local: list[np.ndarray], cfg: CorrectionSettings, network: Registrar | None,
     transfers: Sequence[TransferPrior], cache: Mapping[str, PairOutcome], voxel_mm: float,
     backend: ComputeBackend | None, scan_store: str | None,
 ) -> tuple[list[tuple[int, int, PairOutcome]], int]:
@@ -197,7 +223,7 @@ def _pair_corrections(
     hits = 0
     for i, j in overlapping_pairs(world, [s.station for s in scans], cfg.pair_cell_mm, cfg.max_partners_per_scan):
         cov = pair_covariance(scans[i], scans[j], transfers)
-        cached = cache.get(pair_key(digests[i], digests[j], cov, cfg)) if cache else None
+        cached = cache.get(pair_key(digests[i], digests[j], cov, cfg.pairs)) if cache else None
         if cached is None:
             todo.setdefault(i, []).append((j, cov, len(out)))
         else:
@@ -210,8 +236,8 @@ def _pair_corrections(
     units = [TargetPairs(ref(i), tuple(ref(j) for j, _, _ in group), tuple(cov for _, cov, _ in group))
              for i, group in todo.items()]
     placed = StoredScans(scan_store, voxel_mm) if scan_store is not None else PlacedScans(world)
-    for group, outcomes in zip(todo.values(), register_units(units, placed, cfg, voxel_mm, backend or LocalBackend(),
-                                                              network), strict=True):
+    registered = register_units(units, placed, cfg.pairs, voxel_mm, backend or LocalBackend(), network)
+    for group, outcomes in zip(todo.values(), registered, strict=True):
         for (_, _, slot), outcome in zip(group, outcomes, strict=True):
             out[slot] = (out[slot][0], out[slot][1], outcome)
     for i, j, o in out:
@@ -221,7 +247,7 @@ def _pair_corrections(
 
 
 def correct_scans(
-    scans: Sequence[StitchedScan], cfg: CorrectionConfig, network: Registrar | None = None,
+    scans: Sequence[StitchedScan], cfg: CorrectionSettings, network: Registrar | None = None,
     transfers: Sequence[TransferPrior] = (), voxel_mm: float = 1.0, mount_prior: MountPrior | None = None,
     pair_cache: Mapping[str, PairOutcome] | None = None, joint_cache: MutableMapping[str, JointScan] | None = None,
     association_cache: Mapping[str, Association] | None = None, backend: ComputeBackend | None = None,
@@ -273,7 +299,7 @@ def correct_scans(
         poses, mount = graph.poses, graph.mount
         graph_figures = {"graph_cost_before": graph.cost_before, "graph_cost_after": graph.cost_after}
     before = [s.T_W_S for s in scans]
-    rms_b, rms_a = _overlap_rms(local, edges, before, poses, cfg)
+    rms_b, rms_a = _overlap_rms(local, edges, before, poses, cfg.pairs.criteria.icp_max_distance_mm)
     clock.lap("overlap_rms_s")
     moves = [pose_error(a, b) for a, b in zip(poses, before, strict=True)]
     report = {
@@ -300,7 +326,7 @@ def correct_scans(
     return CorrectionResult(poses, edges, report, mount, covariance)
 
 
-def _refine_jointly(scans: Sequence[StitchedScan], priors: list[ScanPrior], cfg: CorrectionConfig,
+def _refine_jointly(scans: Sequence[StitchedScan], priors: list[ScanPrior], cfg: CorrectionSettings,
                     transfers: Sequence[TransferPrior], mount_prior: MountPrior | None,
                     cache: MutableMapping[str, JointScan], associations: Mapping[str, Association]
                     ) -> tuple[JointResult, int]:
@@ -310,11 +336,11 @@ def _refine_jointly(scans: Sequence[StitchedScan], priors: list[ScanPrior], cfg:
     over every pair sharing a grid cell (``cfg.joint_max_partners_per_scan``), with the pairs' nearest neighbours
     from ``associations`` where found while the job measured. Returns it and the number of pairs whose
     neighbours came from ``associations``."""
-    keys = [joint_scan_key(s.points_S, cfg) for s in scans]
+    keys = [joint_scan_key(s.points_S, cfg.joint_voxel_mm) for s in scans]
 
     def prepared(k: int) -> JointScan:
         found = cache.pop(keys[k], None) if cache else None
-        return joint_scan(scans[k].points_S, cfg) if found is None else found
+        return joint_scan(scans[k].points_S, cfg.joint_voxel_mm) if found is None else found
 
     with pair_threads() as pair_map:
         thinned = pair_map(prepared, range(len(scans)))
@@ -322,17 +348,12 @@ def _refine_jointly(scans: Sequence[StitchedScan], priors: list[ScanPrior], cfg:
     pairs = overlapping_pairs(world, [s.station for s in scans], cfg.pair_cell_mm, cfg.joint_max_partners_per_scan)
     found = {}
     for i, j in pairs if associations else ():
-        a = associations.get(association_key(keys[i], keys[j], scans[i].T_W_S, scans[j].T_W_S, cfg))
+        a = associations.get(association_key(keys[i], keys[j], scans[i].T_W_S, scans[j].T_W_S,
+                                             cfg.joint_refinement.max_distance_mm))
         if a is not None:
             found[i, j] = a
     return refine_jointly(thinned, priors, pairs, [s.T_W_S for s in scans], transfers, mount_prior,
-                          joint_settings(cfg), found), len(found)
-
-
-def joint_settings(cfg: CorrectionConfig) -> JointSettings:
-    """The joint refinement's settings from ``[correction]`` (``joint_*``)."""
-    return JointSettings(max_distance_mm=cfg.joint_max_distance_mm, iterations=cfg.joint_iterations,
-                         sigma_mm=cfg.joint_sigma_mm, reassociate_mm=cfg.joint_reassociate_mm)
+                          cfg.joint_refinement, found), len(found)
 
 
 def _joint_report(joint: JointResult, stations: list[int]) -> dict:

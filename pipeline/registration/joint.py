@@ -57,6 +57,7 @@ from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 from tandemscan.pipeline.geometry.frames import from_rotvec, invert, to_rotvec, transform_points
 from tandemscan.pipeline.geometry.uncertainty import recentre
+from tandemscan.pipeline.parameters import FromSection
 from tandemscan.pipeline.registration.icp import RefineError
 from tandemscan.pipeline.registration.mount_unknown import MountEstimate, MountPrior
 from tandemscan.pipeline.registration.parallel import PairMap, pair_threads
@@ -124,7 +125,7 @@ class JointScan:
 
 
 @dataclass(frozen=True)
-class JointSettings:
+class JointSettings(FromSection):
     """``max_distance_mm``: a source point's nearest target point within this distance is its correspondence;
     ``huber_k``: Huber threshold in robust sigmas of the residuals as they are (with ``sigma_mm`` set: times it, a
     looser cut, the head-on sigma being above the residuals' own scale, 1.3 times on the whole part);
@@ -149,6 +150,13 @@ class JointSettings:
     def __post_init__(self) -> None:
         if self.iterations < 1:
             raise ValueError(f"joint refinement: {self.iterations} linearisations asked for, at least one is needed")
+
+    @classmethod
+    def from_section(cls, section: object, **given: object) -> JointSettings:
+        """From ``[correction]``'s ``joint_*`` keys (``joint_max_distance_mm``, ``joint_iterations``,
+        ``joint_sigma_mm``, ``joint_reassociate_mm``); the others keep their defaults."""
+        return cls(**{"max_distance_mm": section.joint_max_distance_mm, "iterations": section.joint_iterations,
+                      "sigma_mm": section.joint_sigma_mm, "reassociate_mm": section.joint_reassociate_mm, **given})
 
 
 @dataclass(frozen=True)

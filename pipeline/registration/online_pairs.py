@@ -24,9 +24,9 @@ from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
-from tandemscan.config.models import CorrectionConfig
 from tandemscan.pipeline.geometry.frames import invert, transform_points
 from tandemscan.pipeline.registration.correction import (
+    CorrectionSettings,
     StitchedScan,
     association_key,
     cloud_digest,
@@ -91,11 +91,11 @@ class OnlineWork:
 class OnlinePairs:
     """The pair outcomes of a job, registered as its scans arrive (one instance per job, where the work runs).
 
-    ``cfg`` and ``voxel_mm`` must be the job's ``[correction]`` settings and ``[job] voxel_mm``, as the end of
-    the job uses them; a method that needs the DeepMerge network registers nothing here (the network is loaded
-    at the end only)."""
+    ``cfg`` and ``voxel_mm`` must be the job's ``[correction]`` settings (:class:`CorrectionSettings`) and
+    ``[job] voxel_mm``, as the end of the job uses them; a method that needs the DeepMerge network registers
+    nothing here (the network is loaded at the end only)."""
 
-    def __init__(self, cfg: CorrectionConfig, voxel_mm: float):
+    def __init__(self, cfg: CorrectionSettings, voxel_mm: float):
         self.cfg, self.voxel_mm = cfg, float(voxel_mm)
         self.enabled = cfg.enabled and cfg.method not in NETWORK_METHODS
         self.selector = PairSelector(cfg.pair_cell_mm, cfg.max_partners_per_scan)
@@ -128,11 +128,11 @@ class OnlinePairs:
         for i in partners:
             old = self.scans[i]
             cov = pair_covariance(old.scan, scan, transfers)
-            key = pair_key(old.digest, new.digest, cov, self.cfg)
+            key = pair_key(old.digest, new.digest, cov, self.cfg.pairs)
             if key not in self.outcomes and key not in todo:
                 todo[key] = self._target(i), cov
         with pair_threads() as pair_map:  # both cores: each pair has a target of its own
-            self.outcomes |= zip(todo, pair_map(lambda job: register_stitched_pair(world, *job, self.cfg),
+            self.outcomes |= zip(todo, pair_map(lambda job: register_stitched_pair(world, *job, self.cfg.pairs),
                                                 todo.values()), strict=True)
         if self.cfg.joint:
             self._prepare_joint(points_S, scan.T_W_S, scan.station)
@@ -148,16 +148,16 @@ class OnlinePairs:
         """Prepare the scan for the joint refinement (``correction.joint_scan``) and find, at the tracker poses,
         the nearest neighbours of its points in every earlier prepared scan it may be paired with there
         (``correction._refine_jointly`` pairs the prepared scans sharing a grid cell)."""
-        key = joint_scan_key(points_S, self.cfg)
-        prepared = self.joint_scans[key] = joint_scan(points_S, self.cfg)
+        key = joint_scan_key(points_S, self.cfg.joint_voxel_mm)
+        prepared = self.joint_scans[key] = joint_scan(points_S, self.cfg.joint_voxel_mm)
         partners = self._joint_selector.add(transform_points(T_W_S, prepared.points_S), station)
         self._joint_starts.append((key, T_W_S))
         todo = {}  # association key -> (prepared scan, its KD-tree, relative start pose) of each partner
         for i in partners:
             key_i, T_W_S_i = self._joint_starts[i]
-            todo[association_key(key_i, key, T_W_S_i, T_W_S, self.cfg)] = (
+            todo[association_key(key_i, key, T_W_S_i, T_W_S, self.cfg.joint_refinement.max_distance_mm)] = (
                 self.joint_scans[key_i], self._tree(i), invert(T_W_S_i) @ T_W_S)
         with pair_threads() as pair_map:
             self.associations |= zip(todo, pair_map(
-                lambda job: associate(job[0], job[1], prepared, job[2], self.cfg.joint_max_distance_mm),
+                lambda job: associate(job[0], job[1], prepared, job[2], self.cfg.joint_refinement.max_distance_mm),
                 todo.values()), strict=True)

@@ -19,12 +19,17 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from tandemscan.config.models import CorrectionConfig
 from tandemscan.pipeline.compute import ComputeBackend
 from tandemscan.pipeline.geometry.frames import transform_points
 from tandemscan.pipeline.io.raw_scan import read_thinned_scan
 from tandemscan.pipeline.registration.icp import point_to_plane_information, target_with_normals
-from tandemscan.pipeline.registration.pairs import PairCorrection, Registrar, RegistrationFailed, correct_pair
+from tandemscan.pipeline.registration.pairs import (
+    JobPairSettings,
+    PairCorrection,
+    Registrar,
+    RegistrationFailed,
+    correct_pair,
+)
 from tandemscan.pipeline.registration.pose_graph import constrained_edge
 from tandemscan.pipeline.registration.sampling import voxel_downsample
 
@@ -46,7 +51,7 @@ class PairOutcome:
     dropped: str = ""
 
 
-def _outcome(pc: PairCorrection, cfg: CorrectionConfig) -> PairOutcome:
+def _outcome(pc: PairCorrection, cfg: JobPairSettings) -> PairOutcome:
     """The pose-graph edge of a pair correction, keeping only the directions the overlap constrains."""
     if pc.fit.inliers < 6:
         return PairOutcome(pc.transformation, None, pc.centre_mm, pc.fit.inliers, pc.stage)
@@ -57,7 +62,7 @@ def _outcome(pc: PairCorrection, cfg: CorrectionConfig) -> PairOutcome:
     return PairOutcome(T, info, pc.centre_mm, pc.fit.inliers, pc.stage)
 
 
-def register_stitched_pair(source_W: np.ndarray, target: object, covariance: np.ndarray, cfg: CorrectionConfig,
+def register_stitched_pair(source_W: np.ndarray, target: object, covariance: np.ndarray, cfg: JobPairSettings,
                            network: Registrar | None = None) -> PairOutcome:
     """Register one stitched pair (``pairs.correct_pair``: the source's world cloud, mm, onto the target with
     normals, ``icp.target_with_normals``; ``covariance`` of their relative pose, :func:`pair_covariance`)."""
@@ -87,7 +92,7 @@ class TargetPairs:
     sources: tuple[ScanRef, ...]
     covariances: tuple[np.ndarray, ...]
 
-    def key(self, cfg: CorrectionConfig, voxel_mm: float) -> str:
+    def key(self, cfg: JobPairSettings, voxel_mm: float) -> str:
         """The unit's name: everything its outcomes depend on (files, poses, covariances, settings, voxel)."""
         h = hashlib.blake2b(digest_size=16)
         for ref in (self.target, *self.sources):
@@ -95,7 +100,7 @@ class TargetPairs:
             h.update(np.ascontiguousarray(ref.T_W_S, np.float64).tobytes())
         for cov in self.covariances:
             h.update(np.ascontiguousarray(cov, np.float64).tobytes())
-        h.update(cfg.model_dump_json().encode())
+        h.update(repr(cfg).encode())
         h.update(np.float64(voxel_mm).tobytes())
         return f"pairs-{h.hexdigest()}"
 
@@ -123,7 +128,7 @@ class StoredScans:
         return transform_points(ref.T_W_S, voxel_downsample(np.asarray(points, float), self.voxel_mm))
 
 
-def register_unit(unit: TargetPairs, scans: PlacedScans | StoredScans, cfg: CorrectionConfig,
+def register_unit(unit: TargetPairs, scans: PlacedScans | StoredScans, cfg: JobPairSettings,
                   network: Registrar | None = None) -> list[PairOutcome]:
     """The outcome of each pair of ``unit``: the target's normals once, each source registered onto it."""
     target = target_with_normals(scans(unit.target))
@@ -131,7 +136,7 @@ def register_unit(unit: TargetPairs, scans: PlacedScans | StoredScans, cfg: Corr
             for s, cov in zip(unit.sources, unit.covariances, strict=True)]
 
 
-def register_units(units: Sequence[TargetPairs], scans: PlacedScans | StoredScans, cfg: CorrectionConfig,
+def register_units(units: Sequence[TargetPairs], scans: PlacedScans | StoredScans, cfg: JobPairSettings,
                    voxel_mm: float, backend: ComputeBackend, network: Registrar | None = None
                    ) -> list[list[PairOutcome]]:
     """:func:`register_unit` of every unit on ``backend``, in order (each unit a task named by

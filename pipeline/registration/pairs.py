@@ -19,13 +19,13 @@ from __future__ import annotations
 
 import logging
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 from scipy.spatial import cKDTree
-from tandemscan.config.models import CorrectionConfig, DeepMergeConfig
 from tandemscan.pipeline.geometry.frames import invert, rotation_angle, transform_points
+from tandemscan.pipeline.parameters import FromSection
 from tandemscan.pipeline.registration.global_registration import FeatureMatching, fpfh_ransac
 from tandemscan.pipeline.registration.icp import (
     FineSchedule,
@@ -41,6 +41,7 @@ from tandemscan.pipeline.registration.overlap import delta_from_covariance, over
 from tandemscan.pipeline.registration.sampling import thin_evenly
 
 if TYPE_CHECKING:
+    from tandemscan.config.models import DeepMergeConfig
     from tandemscan.pipeline.deepmerge.register import DeepMergeRegistrar
 
 log = logging.getLogger(__name__)
@@ -51,6 +52,49 @@ REFINE_SIGMAS = 3.0
 
 #: the methods that always run the DeepMerge network (``auto`` runs it only when the others disagree)
 NETWORK_METHODS = ("deepmerge", "deepmerge+icp")
+
+
+@dataclass(frozen=True)
+class PairCriteria(FromSection):
+    """How a pair is registered and when its result is refused: ``[correction]``'s keys of the same names
+    (``PairCriteria.from_section(config.correction)``; mm, deg). ``method`` (the module doc's); the fine stage's
+    final correspondence distance ``icp_max_distance_mm``, ``icp_iterations`` a level and ``icp_max_points`` a
+    cloud; the global stage's FPFH voxel (``global_voxel_fraction`` of the target's diagonal), RANSAC draws and
+    confidence, and the distance its fine stage starts at (``global_fine_start_mm``); ``auto``'s agreement
+    (``agreement_deg``, ``agreement_mm``); the verification's margin (``max_cost_increase``, :func:`verify`) and
+    ``register``'s absolute gate (``register_min_fitness``, ``register_max_rms_share``, :func:`fits_well`)."""
+
+    method: str
+    icp_max_distance_mm: float
+    icp_iterations: int
+    icp_max_points: int
+    global_voxel_fraction: float
+    ransac_max_iterations: int
+    ransac_confidence: float
+    global_fine_start_mm: float
+    agreement_deg: float
+    agreement_mm: float
+    max_cost_increase: float
+    register_min_fitness: float
+    register_max_rms_share: float
+
+
+@dataclass(frozen=True)
+class JobPairSettings(FromSection):
+    """How the job's stitched pairs are registered (:func:`correct_pair`) and made pose-graph edges
+    (``pair_stage``): ``[correction]``'s keys of the same names (mm). The pair ``criteria``, at
+    ``job_pair_iterations`` a level; no edge under ``min_overlap_points``; the overlap threshold
+    (:func:`pair_delta`: ``overlap_delta_mm``, else ``overlap_sigmas`` of the pair's pose uncertainty, at least
+    ``overlap_min_delta_mm``); an edge's information (``edge_effective_points``, ``edge_min_eigen_ratio``)."""
+
+    criteria: PairCriteria
+    job_pair_iterations: int
+    min_overlap_points: int
+    overlap_delta_mm: float | None
+    overlap_sigmas: float
+    overlap_min_delta_mm: float
+    edge_effective_points: float
+    edge_min_eigen_ratio: float
 
 
 class RegistrationFailed(RuntimeError):
@@ -138,7 +182,7 @@ def keep_if_better(
     return T
 
 
-def agree(A: np.ndarray, B: np.ndarray, centre_mm: np.ndarray, cfg: CorrectionConfig) -> bool:
+def agree(A: np.ndarray, B: np.ndarray, centre_mm: np.ndarray, cfg: PairCriteria) -> bool:
     """Whether two ``T_target_source`` estimates agree: within ``cfg.agreement_deg`` in rotation and
     ``cfg.agreement_mm`` at ``centre_mm`` (a point of the source, mm)."""
     D = A @ invert(B)
@@ -162,26 +206,25 @@ def verify(result: PairRegistration, distance_mm: float, max_cost_increase: floa
 
 
 def register_pair(
-    source_mm: np.ndarray, target: TargetCloud, method: str, cfg: CorrectionConfig,
-    network: Registrar | None, start_distance_mm: float, refine_sigmas: float | None = None,
-    iterations: int | None = None, source_tree: cKDTree | None = None,
+    source_mm: np.ndarray, target: TargetCloud, cfg: PairCriteria, network: Registrar | None,
+    start_distance_mm: float, refine_sigmas: float | None = None, source_tree: cKDTree | None = None,
 ) -> PairRegistration:
     """``T_target_source`` of a source placed at its start (its pose so far) onto a target with normals, by
-    ``method``, verified (:func:`verify`); the fine stage from the start begins at ``start_distance_mm``
+    ``cfg.method``, verified (:func:`verify`); the fine stage from the start begins at ``start_distance_mm``
     (the overlap threshold), after a global candidate at ``cfg.global_fine_start_mm``. ``auto`` without a
     ``network`` compares the fine and the classical stage only. With ``refine_sigmas`` the winner (of any
     method but ``deepmerge``, the network's own answer) is refined at its own correspondence gate
     (:func:`icp.refine_at_gate`, that many sigmas), kept unless that raises its truncated cost at the final
     distance by more than the tie margin, and the fine stage's levels stop at a repeated correspondence set
-    (``FineSchedule.stop_on_repeat``); None (the job's pairs) does neither. ``iterations``: the fine stage's per
-    level (default ``cfg.icp_iterations``); ``source_tree``: a KD-tree of ``source_mm`` where one was built."""
-    final = cfg.icp_max_distance_mm
+    (``FineSchedule.stop_on_repeat``); None (the job's pairs) does neither. ``source_tree``: a KD-tree of
+    ``source_mm`` where one was built."""
+    method, final = cfg.method, cfg.icp_max_distance_mm
     S = np.asarray(source_mm, float)
     # the refinement settles the end, so the levels stop at a cycle; ``deepmerge`` stays the network's answer
     refining = refine_sigmas is not None and method != "deepmerge"
 
     def fine(M: np.ndarray, start_mm: float) -> IcpResult:
-        return icp_coarse_to_fine(S, target, M, FineSchedule(start_mm, final, iterations or cfg.icp_iterations,
+        return icp_coarse_to_fine(S, target, M, FineSchedule(start_mm, final, cfg.icp_iterations,
                                                              cfg.icp_max_points, stop_on_repeat=refining),
                                   source_tree)
 
@@ -228,25 +271,24 @@ def register_pair(
 
 
 def register_clouds(
-    source_mm: np.ndarray, target_mm: np.ndarray, cfg: CorrectionConfig, method: str | None = None,
-    init: np.ndarray | None = None, delta_mm: float = 5.0, network: Registrar | None = None,
-    refine_sigmas: float | None = REFINE_SIGMAS,
+    source_mm: np.ndarray, target_mm: np.ndarray, cfg: PairCriteria, init: np.ndarray | None = None,
+    delta_mm: float = 5.0, network: Registrar | None = None, refine_sigmas: float | None = REFINE_SIGMAS,
 ) -> PairRegistration:
-    """``T_target_source`` (mm) of any two clouds from ``init`` (default identity), verified, by every method,
+    """``T_target_source`` (mm) of any two clouds from ``init`` (default identity), verified, by ``cfg.method``,
     by the relative test (:func:`verify`) and an absolute one (:func:`fits_well`); the fine stage starts at
     ``delta_mm``, the winner is refined at its gate (``refine_sigmas``, :func:`register_pair`). Raises
     :class:`RegistrationFailed` for a result that must not be used."""
     T0 = np.eye(4) if init is None else np.asarray(init, float)
     target = target_with_normals(np.asarray(target_mm, float))
-    res = register_pair(transform_points(T0, np.asarray(source_mm, float)), target, method or cfg.method, cfg,
-                        network, delta_mm, refine_sigmas)
+    res = register_pair(transform_points(T0, np.asarray(source_mm, float)), target, cfg, network, delta_mm,
+                        refine_sigmas)
     M = res.transformation @ T0
     return fits_well(PairRegistration(M, evaluate_point_to_plane(np.asarray(source_mm, float), target, M,
                                                                  cfg.icp_max_distance_mm),
                                       res.stage, res.cost_mm2, res.start_cost_mm2, res.stages_run, res.gate_mm), cfg)
 
 
-def fits_well(result: PairRegistration, cfg: CorrectionConfig) -> PairRegistration:
+def fits_well(result: PairRegistration, cfg: PairCriteria) -> PairRegistration:
     """``result`` if its fit is good by an absolute measure, else :class:`RegistrationFailed` saying why: at
     least ``cfg.register_min_fitness`` of the source within the final correspondence distance, and a
     point-to-plane RMS of at most ``cfg.register_max_rms_share`` of it (a fit that only beats its start, a
@@ -262,7 +304,7 @@ def fits_well(result: PairRegistration, cfg: CorrectionConfig) -> PairRegistrati
     return result
 
 
-def pair_delta(target_W: np.ndarray, cfg: CorrectionConfig, pair_covariance: np.ndarray | None) -> float:
+def pair_delta(target_W: np.ndarray, cfg: JobPairSettings, pair_covariance: np.ndarray | None) -> float:
     """The overlap threshold (mm) of a stitched pair: configured, or from the pair's pose covariance."""
     if cfg.overlap_delta_mm is not None:
         return cfg.overlap_delta_mm
@@ -273,7 +315,7 @@ def pair_delta(target_W: np.ndarray, cfg: CorrectionConfig, pair_covariance: np.
 
 
 def correct_pair(
-    source_W: np.ndarray, target: TargetCloud, cfg: CorrectionConfig, network: Registrar | None,
+    source_W: np.ndarray, target: TargetCloud, cfg: JobPairSettings, network: Registrar | None,
     pair_covariance: np.ndarray | None = None,
 ) -> PairCorrection | None:
     """Correct a stitched pair (the source in the world, mm; the target with normals, world); None when the
@@ -282,7 +324,7 @@ def correct_pair(
     The whole clouds are registered, the overlap re-selected from them at each level as the fit converges
     (registering only the overlap at the stitch, or onto only the target's overlap, measured worse on the
     simulated job, docs/registration.md); the edge's fit is scored on the source overlap at the stitch,
-    thinned evenly to ``cfg.icp_max_points``. The fine stage runs ``cfg.job_pair_iterations`` a level (from the
+    thinned evenly to ``icp_max_points``. The fine stage runs ``cfg.job_pair_iterations`` a level (from the
     tracker stitch more only slide along smooth overlaps, docs/compute.md); the source's KD-tree is built once.
     """
     target_W = np.asarray(target.points)
@@ -291,10 +333,11 @@ def correct_pair(
     ov = overlap_at(source_W, source_tree, target_W, target.tree, np.eye(4), delta)
     if ov.size < cfg.min_overlap_points:
         return None
-    reg = register_pair(source_W, target, cfg.method, cfg, network, delta, iterations=cfg.job_pair_iterations,
-                        source_tree=source_tree)
-    S = source_W[thin_evenly(ov.source_idx, cfg.icp_max_points)]
-    fit = evaluate_point_to_plane(S, target, reg.transformation, cfg.icp_max_distance_mm)
-    before = evaluate_point_to_plane(S, target, np.eye(4), cfg.icp_max_distance_mm)
+    # the job's pairs do not refine at a gate (no refine_sigmas), so icp_iterations is the fine stage's alone
+    criteria = replace(cfg.criteria, icp_iterations=cfg.job_pair_iterations)
+    reg = register_pair(source_W, target, criteria, network, delta, source_tree=source_tree)
+    S = source_W[thin_evenly(ov.source_idx, criteria.icp_max_points)]
+    fit = evaluate_point_to_plane(S, target, reg.transformation, criteria.icp_max_distance_mm)
+    before = evaluate_point_to_plane(S, target, np.eye(4), criteria.icp_max_distance_mm)
     return PairCorrection(reg.transformation, fit, before.rmse_mm, ov.size, delta,
                           target_W[ov.target_idx].mean(axis=0), reg.stage)
