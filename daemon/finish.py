@@ -31,7 +31,7 @@ if TYPE_CHECKING:
     from pathlib import Path
 
     from tandemscan.daemon.snapshot import JobSnapshot
-    from tandemscan.pipeline.registration.online_pairs import OnlineWork
+    from tandemscan.pipeline.registration.correction import OnlineWork
     from tandemscan.pipeline.registration.pose_covariance import PoseCovariance
 
 log = logging.getLogger(__name__)

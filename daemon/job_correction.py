@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from tandemscan.pipeline.compute import backend_for
 from tandemscan.pipeline.geometry.uncertainty import scan_pose_covariance
-from tandemscan.pipeline.registration.correction import CorrectionSettings, StitchedScan, correct_scans
+from tandemscan.pipeline.registration.correction import CorrectionSettings, StitchedJob, StitchedScan, correct_scans
 from tandemscan.pipeline.registration.joint import chain_covariance
 from tandemscan.pipeline.registration.mount_unknown import MountPrior
 from tandemscan.pipeline.registration.pairs import LazyNetwork
@@ -36,7 +36,7 @@ if TYPE_CHECKING:
     from tandemscan.config.models import CellConfig
     from tandemscan.daemon.runner import ScanRecord
     from tandemscan.daemon.snapshot import JobSnapshot
-    from tandemscan.pipeline.registration.online_pairs import OnlineWork
+    from tandemscan.pipeline.registration.correction import OnlineWork
     from tandemscan.pipeline.stitching.installation import Installation
 
 log = logging.getLogger(__name__)
@@ -120,13 +120,10 @@ def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray], online: Online
     store = str(compute.scan_store or job.job_dir) if compute.backend != "local" else None
     backend = backend_for(compute)
     try:
-        result = correct_scans(stitched_scans(job, points_S), CorrectionSettings.from_section(cfg),
-                               LazyNetwork(job.config.deepmerge),
-                               transfers=transfer_priors(job.transfers), voxel_mm=job.config.job.voxel_mm,
-                               mount_prior=prior, pair_cache=None if online is None else online.pairs,
-                               joint_cache=None if online is None else online.joint_scans,
-                               association_cache=None if online is None else online.associations,
-                               backend=backend, scan_store=store)
+        stitched = StitchedJob(stitched_scans(job, points_S), transfer_priors(job.transfers), prior,
+                               job.config.job.voxel_mm)
+        result = correct_scans(stitched, CorrectionSettings.from_section(cfg), LazyNetwork(job.config.deepmerge),
+                               online, backend, store)
     finally:
         backend.close()
     section = {"enabled": True, **result.report, "seconds": round(time.monotonic() - started, 3),

@@ -39,8 +39,7 @@ from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan, wr
 from tandemscan.pipeline.stitching.worldmap import VoxelMap
 
 if TYPE_CHECKING:
-    from tandemscan.pipeline.registration.correction import CorrectionSettings
-    from tandemscan.pipeline.registration.online_pairs import OnlineWork
+    from tandemscan.pipeline.registration.correction import CorrectionSettings, OnlineWork
 
 log = logging.getLogger(__name__)
 _MAP: VoxelMap | None = None  # the worker's map

@@ -21,7 +21,7 @@ from tandemscan.config.models import ComputeConfig, CorrectionConfig, DeepMergeC
 from tandemscan.pipeline.compute import DaskBackend, LocalBackend, backend_for
 from tandemscan.pipeline.inspection.tile_inspection import inspect_tiles
 from tandemscan.pipeline.io.raw_scan import read_thinned_scan, write_raw_scan
-from tandemscan.pipeline.registration.correction import CorrectionSettings, StitchedScan, correct_scans
+from tandemscan.pipeline.registration.correction import CorrectionSettings, StitchedJob, StitchedScan, correct_scans
 from tandemscan.pipeline.registration.pairs import LazyNetwork
 from tandemscan.pipeline.stitching.tiles import merge_tiles
 
@@ -89,13 +89,13 @@ def test_the_pair_stage_on_two_dask_workers_gives_the_local_result(cluster, tmp_
     address, _ = cluster
     scans, transfers = _stored_job(tmp_path)
     network = LazyNetwork(DeepMergeConfig())  # as the job passes it: pickled to the workers, loaded only where used
-    local = correct_scans(scans, CFG, network, transfers=transfers, voxel_mm=VOXEL_MM, backend=LocalBackend())
+    local = correct_scans(StitchedJob(scans, transfers, voxel_mm=VOXEL_MM), CFG, network, backend=LocalBackend())
     assert len(local.edges) >= 5
     backend = DaskBackend(address)
     try:
         backend.client.wait_for_workers(2, timeout=60)
         with get_task_stream(backend.client) as stream:
-            remote = correct_scans(scans, CFG, network, transfers=transfers, voxel_mm=VOXEL_MM, backend=backend,
+            remote = correct_scans(StitchedJob(scans, transfers, voxel_mm=VOXEL_MM), CFG, network, backend=backend,
                                    scan_store=str(tmp_path))
     finally:
         backend.close()
@@ -106,7 +106,7 @@ def test_the_pair_stage_on_two_dask_workers_gives_the_local_result(cluster, tmp_
 def test_a_worker_killed_mid_stage_leaves_the_result_unchanged(cluster, tmp_path):
     address, workers = cluster
     scans, transfers = _stored_job(tmp_path)
-    local = correct_scans(scans, CFG, transfers=transfers, voxel_mm=VOXEL_MM, backend=LocalBackend())
+    local = correct_scans(StitchedJob(scans, transfers, voxel_mm=VOXEL_MM), CFG, backend=LocalBackend())
     backend = DaskBackend(address)
     killed = []
     try:
@@ -125,7 +125,7 @@ def test_a_worker_killed_mid_stage_leaves_the_result_unchanged(cluster, tmp_path
 
         killer = threading.Thread(target=kill_a_busy_worker)
         killer.start()
-        remote = correct_scans(scans, CFG, transfers=transfers, voxel_mm=VOXEL_MM, backend=backend,
+        remote = correct_scans(StitchedJob(scans, transfers, voxel_mm=VOXEL_MM), CFG, backend=backend,
                                scan_store=str(tmp_path))
         killer.join()
     finally:

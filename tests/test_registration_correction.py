@@ -7,7 +7,7 @@ import pytest
 from tandemscan.config.models import CorrectionConfig
 from tandemscan.pipeline.geometry.frames import compose, from_rotvec, invert, pose_error, transform_points
 from tandemscan.pipeline.registration import correction
-from tandemscan.pipeline.registration.correction import CorrectionSettings, StitchedScan, correct_scans
+from tandemscan.pipeline.registration.correction import CorrectionSettings, StitchedJob, StitchedScan, correct_scans
 from tandemscan.pipeline.registration.icp import target_with_normals
 from tandemscan.pipeline.registration.pairs import JobPairSettings, PairCriteria, correct_pair, register_pair
 from tandemscan.pipeline.registration.pose_graph import TransferPrior
@@ -52,7 +52,7 @@ def test_icp_correction_and_its_refinement_remove_transfer_drift(joint, monkeypa
     cfg = CorrectionSettings.from_section(CorrectionConfig(method="icp", min_overlap_points=100, joint=joint))
     if joint:  # the pose graph is not solved where the joint refinement gives the poses
         monkeypatch.setattr(correction, "refine_poses", lambda *a, **k: pytest.fail("pose graph solved"))
-    res = correct_scans(scans, cfg, transfers=transfers)
+    res = correct_scans(StitchedJob(scans, transfers), cfg)
     assert res.report["pairs"] >= 5
     assert ("joint" in res.report) is joint
     assert ("graph_cost_after" in res.report) is not joint and ("graph_s" in res.report["stage_seconds"]) is not joint
@@ -129,10 +129,10 @@ def test_a_pair_that_fails_its_verification_gets_no_edge_and_is_logged(monkeypat
             raise pairs.RegistrationFailed("fit worse than the start (test)")
         return pc
 
-    full = correct_scans(scans, cfg, transfers=transfers)
+    full = correct_scans(StitchedJob(scans, transfers), cfg)
     monkeypatch.setattr(pair_stage, "correct_pair", refuse_the_cross_station_pair)
     with caplog.at_level("WARNING", logger="tandemscan.pipeline.registration.correction"):
-        res = correct_scans(scans, cfg, transfers=transfers)
+        res = correct_scans(StitchedJob(scans, transfers), cfg)
     dropped = res.report["pairs_dropped"]
     assert dropped and all(d["j"] == 2 and "worse than the start" in d["reason"] for d in dropped)
     assert res.report["pairs"] == full.report["pairs"] - len(dropped)

@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 from tandemscan.config.models import CorrectionConfig
 from tandemscan.pipeline.geometry.frames import from_rotvec
-from tandemscan.pipeline.registration.correction import CorrectionSettings, StitchedScan, correct_scans
+from tandemscan.pipeline.registration.correction import (
+    CorrectionSettings,
+    OnlineWork,
+    StitchedJob,
+    StitchedScan,
+    correct_scans,
+)
 from tandemscan.pipeline.registration.online_pairs import OnlinePairs
 
 from tests.test_registration_correction import scans_with_drift
@@ -32,8 +38,8 @@ def test_the_end_of_the_job_reuses_every_pair_and_gets_the_same_poses():
     cfg = settings(method="icp", min_overlap_points=100, joint=False)
     online = _measure(scans, transfers, cfg)
     assert online.outcomes
-    fresh = correct_scans(scans, cfg, transfers=transfers)
-    reused = correct_scans(scans, cfg, transfers=transfers, pair_cache=online.outcomes)
+    fresh = correct_scans(StitchedJob(scans, transfers), cfg)
+    reused = correct_scans(StitchedJob(scans, transfers), cfg, online=online.work())
     assert fresh.report["pairs_registered_while_measuring"] == 0
     selected = fresh.report["pairs"] + sum(1 for _ in fresh.report["pairs_dropped"])
     assert reused.report["pairs_registered_while_measuring"] >= selected
@@ -48,8 +54,8 @@ def test_a_scan_whose_pose_changed_is_registered_again_at_the_end():
     moved = list(scans)
     moved[3] = StitchedScan(scans[3].points_S, from_rotvec([0.3, 0, 0], [0, 0, 0]) @ scans[3].T_W_S,
                             scans[3].covariance, scans[3].station)
-    res = correct_scans(moved, cfg, transfers=transfers, pair_cache=online.outcomes)
-    fresh = correct_scans(moved, cfg, transfers=transfers)
+    res = correct_scans(StitchedJob(moved, transfers), cfg, online=online.work())
+    fresh = correct_scans(StitchedJob(moved, transfers), cfg)
     pairs_with_3 = sum(1 for i, j, _ in fresh.edges if 3 in (i, j))
     assert pairs_with_3 > 0
     assert res.report["pairs_registered_while_measuring"] == fresh.report["pairs"] - pairs_with_3
@@ -79,15 +85,14 @@ def test_scans_prepared_for_the_joint_refinement_while_measuring_give_the_same_p
     online = _measure(scans, transfers, cfg)
     work = online.work()
     assert len(work.joint_scans) == len(scans)
-    fresh = correct_scans(scans, cfg, transfers=transfers)
+    fresh = correct_scans(StitchedJob(scans, transfers), cfg)
     assert fresh.report["joint"]["pairs_associated_while_measuring"] == 0
     prepared_at_end, searched_at_end = [], []
     real, real_associate = correction.joint_scan, joint.associate
     monkeypatch.setattr(correction, "joint_scan", lambda P, c: prepared_at_end.append(len(P)) or real(P, c))
     monkeypatch.setattr(joint, "associate", lambda *a: searched_at_end.append(1) or real_associate(*a))
     kept = dict(work.joint_scans)
-    reused = correct_scans(scans, cfg, transfers=transfers, pair_cache=work.pairs, joint_cache=work.joint_scans,
-                           association_cache=work.associations)
+    reused = correct_scans(StitchedJob(scans, transfers), cfg, online=work)
     anew = reused.report["joint"]["pairs_associated_anew"]
     assert prepared_at_end == [] and len(searched_at_end) == anew
     assert anew > 0 if reassociate_mm else anew == 0
@@ -98,8 +103,7 @@ def test_scans_prepared_for_the_joint_refinement_while_measuring_give_the_same_p
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)
     searched_before = len(searched_at_end)
     coarser = replace(cfg, joint_voxel_mm=3.0)
-    correct_scans(scans, coarser, transfers=transfers, pair_cache=work.pairs, joint_cache=kept,
-                  association_cache=work.associations)
+    correct_scans(StitchedJob(scans, transfers), coarser, online=OnlineWork(work.pairs, kept, work.associations))
     assert len(prepared_at_end) == len(scans) and len(searched_at_end) > searched_before
 
 

@@ -223,14 +223,14 @@ def _turned(T: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
 def _mount_run(D_true: np.ndarray, tilt_deg: float, prior_sigma=(0.3, 8.7e-4)):
     """Correct the scans with and without the mount unknown (prior 1-sigma mm, rad per axis)."""
     from tandemscan.config.models import CorrectionConfig
-    from tandemscan.pipeline.registration.correction import CorrectionSettings, correct_scans
+    from tandemscan.pipeline.registration.correction import CorrectionSettings, StitchedJob, correct_scans
     from tandemscan.pipeline.registration.mount_unknown import MountPrior
 
     truth, scans = _mount_scans(D_true, tilt_deg)
     cfg = CorrectionSettings.from_section(CorrectionConfig(method="icp", min_overlap_points=100))
     prior = MountPrior(np.diag([prior_sigma[0] ** 2] * 3 + [prior_sigma[1] ** 2] * 3))
-    with_mount = correct_scans(scans, cfg, mount_prior=prior)
-    without = correct_scans(scans, cfg)
+    with_mount = correct_scans(StitchedJob(scans, mount_prior=prior), cfg)
+    without = correct_scans(StitchedJob(scans), cfg)
 
     def errors(poses):
         return np.array([pose_error(T, X)[0] for T, X in zip(poses, truth, strict=True)])

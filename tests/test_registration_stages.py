@@ -237,12 +237,11 @@ def test_the_jobs_icp_correction_does_not_import_torch():
         sys.path.insert(0, "tests")
         from test_registration_correction import scans_with_drift
         from tandemscan.config.models import CorrectionConfig, DeepMergeConfig
-        from tandemscan.pipeline.registration.correction import CorrectionSettings, correct_scans
+        from tandemscan.pipeline.registration.correction import CorrectionSettings, StitchedJob, correct_scans
         from tandemscan.pipeline.registration.pairs import LazyNetwork
         truth, scans, transfers = scans_with_drift(n=4)
         cfg = CorrectionSettings.from_section(CorrectionConfig(method="icp", min_overlap_points=100))
-        res = correct_scans(scans, cfg,
-                            LazyNetwork(DeepMergeConfig()), transfers=transfers)
+        res = correct_scans(StitchedJob(scans, transfers), cfg, LazyNetwork(DeepMergeConfig()))
         assert res.report["pairs"] >= 3
     '''))
     assert "tandemscan.pipeline.registration.correction" in mods and "torch" not in mods

@@ -91,6 +91,31 @@ class StitchedScan:
     file: str = ""
 
 
+@dataclass(frozen=True)
+class StitchedJob:
+    """What the tracker stitch of a job gives the correction: its ``scans``; the prior of each coordinate transfer
+    (``transfers``, one per tracker station after the first, ``pose_graph.TransferPrior``: the refinement removes
+    their drift, and pairs across stations get a wider overlap threshold); the prior of the shared scanner-mount
+    correction (``mount_prior``, ``mount_unknown.MountPrior``; None: not estimated); and the voxel (mm) the scans
+    are thinned to first (``voxel_mm``, the map's, ``[job] voxel_mm``)."""
+
+    scans: Sequence[StitchedScan]
+    transfers: Sequence[TransferPrior] = ()
+    mount_prior: MountPrior | None = None
+    voxel_mm: float = 1.0
+
+
+@dataclass(frozen=True)
+class OnlineWork:
+    """What a job computed while it measured (``online_pairs.OnlinePairs``), for :func:`correct_scans`: pair
+    outcomes by :func:`pair_key`, scans prepared for the joint refinement by :func:`joint_scan_key` (taken out as
+    the refinement takes them) and their pairs' nearest neighbours by :func:`association_key`."""
+
+    pairs: dict[str, PairOutcome]
+    joint_scans: dict[str, JointScan]
+    associations: dict[str, Association]
+
+
 @dataclass
 class CorrectionResult:
     """Refined poses and the figures a report needs (mm, deg); the shared mount correction if estimated."""
@@ -204,17 +229,17 @@ def association_key(scan_key_i: str, scan_key_j: str, T_W_S_i: np.ndarray, T_W_S
 
 
 def _pair_corrections(
-    scans: Sequence[StitchedScan], local: list[np.ndarray], cfg: CorrectionSettings, network: Registrar | None,
-    transfers: Sequence[TransferPrior], cache: Mapping[str, PairOutcome], voxel_mm: float,
-    backend: ComputeBackend | None, scan_store: str | None,
+    job: StitchedJob, local: list[np.ndarray], cfg: CorrectionSettings, network: Registrar | None,
+    cache: Mapping[str, PairOutcome], backend: ComputeBackend | None, scan_store: str | None,
 ) -> tuple[list[tuple[int, int, PairOutcome]], int]:
-    """The outcome of every overlapping pair of the thinned scans ``local`` (S, mm), placed in W at their poses
+    """The outcome of every overlapping pair of the job's thinned scans ``local`` (S, mm), placed in W at their poses
     here (only the pairs need them placed: a whole part's at full resolution take about 0.9 GB, freed on
     return): from ``cache`` where the job registered the pair while it measured (same clouds, covariance and
     settings), else registered here, one unit a target (``pair_stage.TargetPairs``) on ``backend`` (this
     process's threads where None); with ``scan_store`` the units read their scans from it by reference
     (``pair_stage.StoredScans``: a Dask cluster's workers), else they take this process's clouds. Returns the
     outcomes in pair order and how many came from the cache."""
+    scans, voxel_mm = job.scans, job.voxel_mm
     with pair_threads() as pair_map:
         world = pair_map(lambda k: transform_points(scans[k].T_W_S, local[k]), range(len(scans)))
         digests = pair_map(cloud_digest, world) if cache else []
@@ -222,7 +247,7 @@ def _pair_corrections(
     todo: dict[int, list[tuple[int, np.ndarray, int]]] = {}  # target -> (source, covariance, slot in out)
     hits = 0
     for i, j in overlapping_pairs(world, [s.station for s in scans], cfg.pair_cell_mm, cfg.max_partners_per_scan):
-        cov = pair_covariance(scans[i], scans[j], transfers)
+        cov = pair_covariance(scans[i], scans[j], job.transfers)
         cached = cache.get(pair_key(digests[i], digests[j], cov, cfg.pairs)) if cache else None
         if cached is None:
             todo.setdefault(i, []).append((j, cov, len(out)))
@@ -247,25 +272,19 @@ def _pair_corrections(
 
 
 def correct_scans(
-    scans: Sequence[StitchedScan], cfg: CorrectionSettings, network: Registrar | None = None,
-    transfers: Sequence[TransferPrior] = (), voxel_mm: float = 1.0, mount_prior: MountPrior | None = None,
-    pair_cache: Mapping[str, PairOutcome] | None = None, joint_cache: MutableMapping[str, JointScan] | None = None,
-    association_cache: Mapping[str, Association] | None = None, backend: ComputeBackend | None = None,
-    scan_store: str | None = None,
+    job: StitchedJob, cfg: CorrectionSettings, network: Registrar | None = None, online: OnlineWork | None = None,
+    backend: ComputeBackend | None = None, scan_store: str | None = None,
 ) -> CorrectionResult:
-    """Correct every overlapping pair and refine all poses; ``voxel_mm`` thins the scans first.
+    """Correct every overlapping pair of the job's scans (:class:`StitchedJob`: thinned to its voxel first) and
+    refine all poses, removing the drift of its transfers and, with its mount prior, estimating the shared
+    scanner-mount correction too.
 
     ``network`` registers pairs where the method asks for DeepMerge (``pairs.LazyNetwork`` loads it only
-    then). ``transfers`` (one per tracker station after the first, see ``pose_graph.refine_poses``) let the
-    graph remove the drift of the coordinate transfers and widen the overlap threshold of pairs across
-    stations; ``mount_prior`` makes the graph estimate the shared scanner-mount correction too
-    (``mounts.MountPrior``). A pair whose registration fails its verification is dropped and logged.
-    ``pair_cache`` holds the outcomes of pairs registered while the job measured (:class:`OnlinePairs`, keyed
-    by :func:`pair_key`); a pair not in it is registered here, so the result never depends on it. ``joint_cache``
-    likewise holds the scans prepared for the joint refinement while the job measured (:func:`joint_scan`, keyed
-    by :func:`joint_scan_key`); each is taken out of it as the refinement takes it, so that none outlives the
-    refinement (the prepared scans of a whole part are about half a gigabyte); ``association_cache`` the pairs'
-    nearest neighbours found for it at the tracker poses (``joint.associate``, keyed by :func:`association_key`).
+    then). A pair whose registration fails its verification is dropped and logged. ``online`` holds what the job
+    computed while it measured (:class:`OnlineWork`): the outcomes of pairs registered then (a pair not among them
+    is registered here, so the result never depends on them), the scans prepared for the joint refinement (each
+    taken out as the refinement takes it, so that none outlives the refinement: the prepared scans of a whole part
+    are about half a gigabyte) and the pairs' nearest neighbours found for it at the tracker poses.
     The pairs not in the cache run on ``backend`` (``pipeline.compute``; this process's threads where None), each
     unit reading its scans from ``scan_store`` by their :attr:`StitchedScan.file` where it is given (a Dask
     cluster, docs/compute.md), the result the same to the bit either way.
@@ -277,19 +296,20 @@ def correct_scans(
     if cfg.method in NETWORK_METHODS and network is None:
         raise ValueError(f"method {cfg.method!r} needs a DeepMerge registrar (pairs.LazyNetwork)")
     clock = _Clock()
+    scans, transfers, mount_prior = job.scans, job.transfers, job.mount_prior
+    online = online or OnlineWork({}, {}, {})
     with pair_threads() as pair_map:
-        local = pair_map(lambda s: voxel_downsample(np.asarray(s.points_S, float), voxel_mm), scans)
+        local = pair_map(lambda s: voxel_downsample(np.asarray(s.points_S, float), job.voxel_mm), scans)
     clock.lap("thin_s")
-    outcomes, cached = _pair_corrections(scans, local, cfg, network, transfers, pair_cache or {}, voxel_mm, backend,
-                                         scan_store)
+    outcomes, cached = _pair_corrections(job, local, cfg, network, online.pairs, backend, scan_store)
     clock.lap("pairs_s")
     edges = [(i, j, o) for i, j, o in outcomes if o.transformation is not None]
     dropped = [(i, j, o.dropped) for i, j, o in outcomes if o.dropped]
     priors = [ScanPrior(s.T_W_S, s.covariance, s.station) for s in scans]
     joint, graph_figures = None, {}
     if cfg.joint:
-        joint, associated_while_measuring = _refine_jointly(scans, priors, cfg, transfers, mount_prior,
-                                                            joint_cache or {}, association_cache or {})
+        joint, associated_while_measuring = _refine_jointly(job, priors, cfg, online.joint_scans,
+                                                            online.associations)
         clock.lap("joint_s")
         poses, mount = joint.poses, joint.mount
     else:
@@ -326,8 +346,7 @@ def correct_scans(
     return CorrectionResult(poses, edges, report, mount, covariance)
 
 
-def _refine_jointly(scans: Sequence[StitchedScan], priors: list[ScanPrior], cfg: CorrectionSettings,
-                    transfers: Sequence[TransferPrior], mount_prior: MountPrior | None,
+def _refine_jointly(job: StitchedJob, priors: list[ScanPrior], cfg: CorrectionSettings,
                     cache: MutableMapping[str, JointScan], associations: Mapping[str, Association]
                     ) -> tuple[JointResult, int]:
     """The joint refinement (``joint.refine_jointly``) from the tracker poses (its correspondences are found
@@ -336,6 +355,7 @@ def _refine_jointly(scans: Sequence[StitchedScan], priors: list[ScanPrior], cfg:
     over every pair sharing a grid cell (``cfg.joint_max_partners_per_scan``), with the pairs' nearest neighbours
     from ``associations`` where found while the job measured. Returns it and the number of pairs whose
     neighbours came from ``associations``."""
+    scans = job.scans
     keys = [joint_scan_key(s.points_S, cfg.joint_voxel_mm) for s in scans]
 
     def prepared(k: int) -> JointScan:
@@ -352,7 +372,7 @@ def _refine_jointly(scans: Sequence[StitchedScan], priors: list[ScanPrior], cfg:
                                              cfg.joint_refinement.max_distance_mm))
         if a is not None:
             found[i, j] = a
-    return refine_jointly(thinned, priors, pairs, [s.T_W_S for s in scans], transfers, mount_prior,
+    return refine_jointly(thinned, priors, pairs, [s.T_W_S for s in scans], job.transfers, job.mount_prior,
                           cfg.joint_refinement, found), len(found)
 
 

@@ -27,6 +27,7 @@ from scipy.spatial import cKDTree
 from tandemscan.pipeline.geometry.frames import invert, transform_points
 from tandemscan.pipeline.registration.correction import (
     CorrectionSettings,
+    OnlineWork,
     StitchedScan,
     association_key,
     cloud_digest,
@@ -75,17 +76,6 @@ class OnlineScan:
     world_mm: np.ndarray
     digest: bytes
     scan: StitchedScan
-
-
-@dataclass(frozen=True)
-class OnlineWork:
-    """What a job computed while it measured, for ``correction.correct_scans``: pair outcomes by
-    ``correction.pair_key``, scans prepared for the joint refinement by ``correction.joint_scan_key`` and their
-    pairs' nearest neighbours by ``correction.association_key``."""
-
-    pairs: dict[str, PairOutcome]
-    joint_scans: dict[str, JointScan]
-    associations: dict[str, Association]
 
 
 class OnlinePairs:

@@ -9,7 +9,7 @@ the priors keep every scan near its tracker reading. The solution minimises the 
 residuals by Gauss-Newton on the exact residuals with their first-order sparse Jacobian (every correction is a
 small world motion, so the Jacobian hardly depends on the estimate: :meth:`_Graph.jacobian`), each step a
 sparse LU solve of the normal equations (scipy.sparse), halved while it does not lower the cost. With a
-``mounts.MountPrior`` the shared scanner-mount correction is one more unknown (see ``mounts``).
+``mount_unknown.MountPrior`` the shared scanner-mount correction is one more unknown (see ``mount_unknown``).
 
 Conventions: a pose perturbation is ``(t mm, rotation vector rad)`` of a world-frame motion about a stated
 centre (the scan origin for priors, the overlap centre for edges, the station's scans' centroid for station
