@@ -527,20 +527,21 @@ def refine_jointly(
     of ``pairs`` (``(i, j)``: points of ``j`` measured against the surface of ``i``); the priors are the tracker poses
     ``priors`` (``T_W_S`` and covariance), ``transfers`` and ``mount_prior`` as in ``pose_graph.refine_poses``.
     ``associations``: pairs' nearest neighbours found at the same start poses with ``settings.max_distance_mm``
-    (:func:`associate`, while the job measured); the other pairs' are found here."""
+    (:func:`associate`, while the job measured); the other pairs' are found here.
+
+    Eight parameters: the data (scans, pairs, start poses, associations), the settings, and the tracker chain's
+    three priors taken as ``pose_graph.refine_poses`` and :func:`chain_covariance` take them."""
     if not (len(scans) == len(priors) == len(start_poses)):
         raise RefineError(f"{len(scans)} scans, {len(priors)} priors and {len(start_poses)} start poses differ")
     with pair_threads() as pair_map:
-        return _refine(scans, priors, pairs, start_poses, transfers, mount_prior, settings, associations or {},
-                       pair_map)
+        return _refine(scans, _Model(priors, transfers, mount_prior), pairs, start_poses, settings,
+                       associations or {}, pair_map)
 
 
-def _refine(scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequence[tuple[int, int]],
-            start_poses: Sequence[np.ndarray], transfers: Sequence[TransferPrior], mount_prior: MountPrior | None,
-            settings: JointSettings, associations: Mapping[tuple[int, int], Association],
-            pair_map: PairMap) -> JointResult:
-    """:func:`refine_jointly` with ``pair_map`` mapping a function over the pairs."""
-    model = _Model(priors, transfers, mount_prior)
+def _refine(scans: Sequence[JointScan], model: _Model, pairs: Sequence[tuple[int, int]],
+            start_poses: Sequence[np.ndarray], settings: JointSettings,
+            associations: Mapping[tuple[int, int], Association], pair_map: PairMap) -> JointResult:
+    """:func:`refine_jointly` on the priors' ``model`` with ``pair_map`` mapping a function over the pairs."""
     poses = np.stack([np.asarray(T, float) for T in start_poses])
     e = model.corrections(poses)
     trees: dict[int, cKDTree] = {}
