@@ -441,6 +441,10 @@ def solve_hand_eye(
     :attr:`PlateFit.covariance` gives it (translation mm, rotation rad, left perturbation in frame S);
     ``plate_point_covariances`` (N, K, 3, 3 mm^2, frame S) of the measured ``plate_points_S``
     (:attr:`SphereFit.centre_covariance`); or else ``plate_sigma_mm``, the 1-sigma per axis of a plate point.
+
+    Twelve parameters: the two pose series and the method, then keyword-only options with defaults: the points the
+    refinement uses, the pair selection, and the noise model (per reading or one sigma, three forms on the plate
+    side).
     """
     if method not in METHODS:
         raise HandEyeError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")

@@ -121,7 +121,10 @@ class DeepMerge(nn.Module):
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Inference schedule: embed once, ``coarse_iterations`` head iterations on a random subset of
         ``coarse_points`` points of each cloud (the head costs the product of the point counts), then
-        ``iterations`` at all points. Returns the final ``(R, t)``."""
+        ``iterations`` at all points. Returns the final ``(R, t)``.
+
+        Eight parameters: both clouds' point structures and points as the network's tensors, and the inference
+        schedule."""
         fs, ft, nt = self.embed(src_structure), self.embed(tgt_structure), tgt_structure[:, :, 0, 3:6]
         start, first = None, 0
         if coarse_iterations:
@@ -148,6 +151,9 @@ class DeepMerge(nn.Module):
         ``tgt_normals``: each target point's own normal (a point's first neighbour in its structure is
         itself). ``start``: the running estimate to begin from (default identity); ``first``: the index of
         the first iteration, whose parameters it uses (iterations past the trained ones repeat the last).
+
+        Eight parameters: both clouds' embeddings and points, the target's normals, and how many iterations run from
+        where.
         """
         tgt_xyzn = torch.cat([tgt_xyz, tgt_normals], dim=2)  # matched points and normals in one product
         tgt_sq = tgt_xyz.square().sum(dim=2)[:, None, :]

@@ -89,6 +89,8 @@ class DeepMergeRegistrar:
                  iterations: int | None = None, coarse_iterations: int = 0,
                  coarse_points: int = COARSE_POINTS, rounds: int = 1, round_tolerance_deg: float = 0.05,
                  round_tolerance: float = 5e-4) -> None:
+        """The network and its settings (the class doc). Ten parameters: the model, then each setting with the
+        default the shipped weights use, kept as the registrar's attributes."""
         self.model = model.eval()
         self.num_points = num_points
         self.k = k

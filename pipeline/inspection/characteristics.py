@@ -138,7 +138,10 @@ def _worst_deviation(spec, kind: str, method: str, cloud: MeasuredCloud, ids: np
                      smoothed: np.ndarray, rule: DecisionRule, curve: SectionCurve | None = None
                      ) -> CharacteristicResult:
     """A two-sided deviation characteristic from the averaged deviations ``smoothed`` at the points
-    ``ids[at]``: the worst positive and negative, actual = the larger in magnitude, both decided."""
+    ``ids[at]``: the worst positive and negative, actual = the larger in magnitude, both decided.
+
+    Nine parameters: the characteristic (spec, kind, method), the cloud and its points that count (``ids``, ``at``),
+    their averaged deviations, the rule, and the section curve where there is one."""
     hi, lo = int(np.argmax(smoothed)), int(np.argmin(smoothed))
     worst, other = (hi, lo) if abs(smoothed[hi]) >= abs(smoothed[lo]) else (lo, hi)
     u = float(max(cloud.uncertainty_mm[ids[at[hi]]], cloud.uncertainty_mm[ids[at[lo]]]))

@@ -169,7 +169,10 @@ def find_deviation_areas(
     """The areas beyond ``[lower_mm, upper_mm]`` of the cloud (frame F), largest |extreme| first, with ids
     1, 2, ... in that order; ``local`` may pass a :func:`local_deviation` already computed. ``screen``
     (default: above :data:`THIN_ABOVE_POINTS` points) averages only the points near where an even thinning
-    of the cloud comes near the band (:func:`_screened`; docs/inspection-method.md, "Deviation areas")."""
+    of the cloud comes near the band (:func:`_screened`; docs/inspection-method.md, "Deviation areas").
+
+    Eight parameters: the cloud, its deviations and band, the averaging's settings (``[inspection]
+    area_smoothing_mm``, ``area_min_mm2``), and what a caller computed (``local``) or decided (``screen``) already."""
     p = np.asarray(points_mm, dtype=np.float64)
     d = np.asarray(deviations_mm, dtype=np.float64)
     if screen is None:

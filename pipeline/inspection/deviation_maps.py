@@ -148,6 +148,9 @@ def render_view(
     on pixels whose CAD triangle faces the same way as its own, from whichever side the camera sees it: an
     open panel shows its measured points from outside and from inside, a thin closed part's far wall stays
     hidden behind its near one (docs/inspection-method.md, "Method").
+
+    Ten parameters: what is drawn (the surface, the points and their values, the view and the colour scale), then
+    drawing options with defaults.
     """
     bg = _background(surface, view, width_px)
     f, r, u, px = bg.f, bg.r, bg.u, bg.px
@@ -250,7 +253,10 @@ def deviation_map_png(
     """One deviation colour map as PNG: the view, mm axes on the view plane, a colour bar with the band,
     and a labelled leader to each of ``callouts`` this view sees. Fixed axes positions (no layout engine:
     text measuring would cost more than the picture). ``cmap`` and ``bar_label`` draw another field per point
-    (the uncertainty map: ``tolerance``'s limits are then its marks on the bar)."""
+    (the uncertainty map: ``tolerance``'s limits are then its marks on the bar).
+
+    Thirteen parameters: what is drawn (the surface, the points and their deviations, the view, the band and the
+    colour scale), then drawing options with defaults."""
     img = render_view(surface, points_mm, deviations_mm, view, norm, width_px, cmap=cmap, normals=normals,
                       spacing_mm=spacing_mm)
     h, w = img.rgb.shape[:2]

@@ -354,6 +354,9 @@ def best_fit(
     start) holds, by a spring of :data:`PRIOR_STIFFNESS`, the directions the surface does not fix (the axis of
     a cylinder, an extrusion): they stay where the prior puts them instead of drifting. Converged: a step
     moving no point by more than ``tolerance_mm``, or no step lowering the cost any more.
+
+    Nine parameters: the surface and the points, the fit's gate, then solver options with defaults (iterations,
+    tolerance, thinning; keyword-only: start, Huber scale, prior).
     """
     p = np.asarray(points_mm)
     p = as_points(p[:: max(1, int(np.ceil(len(p) / max_points)))])

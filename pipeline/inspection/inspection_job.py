@@ -97,7 +97,10 @@ def run_inspection(
     ``history``: the part's earlier serials' results per characteristic (``report.build_report``);
     ``uncertainty``: what knows the points' uncertainty (None: the cloud states none, U = 0) and ``context``
     the installation and verification the verdict is made in (``verdict.judge``); ``coverage``: the job's
-    plan's (``report.build_report``)."""
+    plan's (``report.build_report``).
+
+    Nineteen parameters: the cloud, the mesh, where to write and the settings, then keyword-only inputs of the
+    report, each optional (a caller passes those it has)."""
     cfg = cfg or InspectionConfig()
     surface = mesh if isinstance(mesh, CadSurface) else CadSurface(mesh)
     if overlap is None and scans_before is not None:
@@ -169,7 +172,10 @@ def align_and_inspect(
     meta, accuracy and json_name). The points on reference spheres are left out of the inspection; the
     stitching views are mapped into F as well. A ``template`` among ``report`` sets the alignment
     (:meth:`InspectionTemplate.inspection_config`). A failed alignment writes the report of a failed
-    inspection (verdict "indeterminate", the reason) and returns it without a result."""
+    inspection (verdict "indeterminate", the reason) and returns it without a result.
+
+    Twelve parameters: the cloud, the mesh, where to write and the settings, then keyword-only inputs of the
+    alignment and the stitching views, each optional."""
     cfg = cfg or InspectionConfig()
     if report.get("template") is not None:
         cfg = report["template"].inspection_config(cfg)

@@ -141,6 +141,9 @@ def build_report(
     (``serial``, ``actual_mm``), oldest first, whose trend the report shows for the characteristics that
     fail or drift. ``coverage``: what the job's
     plan covers and leaves out, reported with the share of it the cloud measured (``data["coverage"]``).
+
+    Fifteen parameters: the inspection's result, surface and settings, then keyword-only parts of the report, each
+    optional (a caller passes those it has).
     """
     cfg = cfg or InspectionConfig()
     if overlap is None and scans_before is not None:
@@ -259,7 +262,10 @@ def _uncertainty_map(result: InspectionResult, surface: CadSurface, view: View, 
                      p: np.ndarray, n: np.ndarray, spacing: float, every: int) -> list[ReportFigure]:
     """The points' expanded uncertainty U on the first view (none where every U is 0): viridis from 0 to the
     larger of its 99th percentile and a quarter of the tolerance width; the bar marks where the test uncertainty
-    ratio is 4:1 (U = width / 8)."""
+    ratio is 4:1 (U = width / 8).
+
+    Eight parameters: the result, surface, view and settings, and the points, normals, spacing and thinning the
+    deviation maps drew with."""
     j = result.judgement
     if j is None or not np.any(j.uncertainty.expanded_mm > 0.0):
         return []

@@ -141,7 +141,9 @@ def _region_masks(result: InspectionResult, cfg: InspectionConfig) -> list[tuple
 
 def _region(name: str, mask: np.ndarray, areas: tuple[DeviationArea, ...], p: np.ndarray,
             u: PointUncertainty, area_u: np.ndarray, band: Tolerance, rule: DecisionRule) -> RegionVerdict:
-    """A region's verdict: its areas (by centroid) and whether its band holds 2U of its averaged deviations."""
+    """A region's verdict: its areas (by centroid) and whether its band holds 2U of its averaged deviations.
+
+    Eight parameters: the region (name, mask), the areas and points, their uncertainties, the band and the rule."""
     inside = [a for a in areas if _contains(p, mask, a)]
     if not mask.any():
         return RegionVerdict(name, "indeterminate", math.nan, math.nan, f"region {name}: no points measured")

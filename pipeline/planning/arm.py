@@ -233,6 +233,9 @@ def raster_cells(
     """The raster's surface cells at ``station`` with its (rows, columns); rows is the largest column's count.
 
     With ``shared_last_column`` the last column is left to the next station, whose first column is the same.
+
+    Eight parameters: the scene and the station, the section's extent (step, height range, reach), the scanner and
+    planning settings the footprint comes from, and whether the next station shares the last column.
     """
     m = footprint_width_mm(scanner, planning)
     n = footprint_height_mm(scanner, planning)
