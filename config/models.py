@@ -868,6 +868,14 @@ class OpcuaConfig(_Strict):
     serial_number: str = "SIM-0001"
 
 
+def _simulator_section(section: str, what: str):
+    """A field holding the simulator's own table ``[section]``: validated by the model the simulator registers for
+    it (:func:`~tandemscan.config.devices.simulator_settings_model`, ``sim_drivers/config.py``), by default that
+    model's defaults."""
+    return Field(default_factory=lambda: simulator_settings_model(section)(),
+                 description=f"{what}: the simulator's own table, validated by the model it registers")
+
+
 class CellConfig(_Strict):
     """The whole cell."""
 
@@ -881,10 +889,7 @@ class CellConfig(_Strict):
     tracking_chassis: ChassisConfig = ChassisConfig()
     safety: SafetyConfig = SafetyConfig()
     installation: InstallationConfig = InstallationConfig()
-    sim: SerializeAsAny[BaseModel] = Field(
-        default_factory=lambda: simulator_settings_model("sim")(),
-        description="the simulated cell's ground truth, noise and faults: the simulator's own table, validated by "
-                    "its model (tandemscan.sim_drivers.config.SimWorldConfig)")
+    sim: SerializeAsAny[BaseModel] = _simulator_section("sim", "the simulated cell's ground truth, noise and faults")
     job: JobConfig = JobConfig()
     inspection: InspectionConfig = InspectionConfig()
     calibration: CalibrationConfig = CalibrationConfig()
@@ -895,14 +900,11 @@ class CellConfig(_Strict):
     compute: ComputeConfig = ComputeConfig()
     daemon: DaemonConfig = DaemonConfig()
     opcua: OpcuaConfig = OpcuaConfig()
-    hil: SerializeAsAny[BaseModel] = Field(
-        default_factory=lambda: simulator_settings_model("hil")(),
-        description="hardware-in-the-loop: the simulator's protocol emulators, its own table, validated by its "
-                    "model (tandemscan.sim_drivers.config.HilConfig)")
+    hil: SerializeAsAny[BaseModel] = _simulator_section("hil", "hardware-in-the-loop: the simulator's emulators")
 
     @field_validator("sim", "hil", mode="before")
     @classmethod
-    def _simulator_table(cls, table: object, info) -> object:
+    def _validated_by_the_simulator(cls, table: object, info) -> object:
         """Hand the simulator its own table: validated by the model it registers for the section (errors at
         ``sim.key``, ``hil.key``)."""
         model = simulator_settings_model(info.field_name)

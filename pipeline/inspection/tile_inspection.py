@@ -124,7 +124,10 @@ def inspect_tiles(tiles: Sequence[TileCloud], store: str | Path, mesh_file: str 
                   lower_mm: float, upper_mm: float, backend: ComputeBackend,
                   reversed: np.ndarray | None = None) -> tuple[TileDeviations, ...]:
     """:func:`inspect_tile` of every tile on ``backend``, in the tiles' order (:class:`InspectTile` for the
-    arguments)."""
+    arguments).
+
+    Eight parameters: the tiles, where they and the mesh lie, the placement in F and the band (the fields of an
+    :class:`InspectTile` unit) and the backend."""
     units = [InspectTile(t, str(store), str(mesh_file), np.asarray(T_F_W, float), lower_mm, upper_mm, reversed)
              for t in tiles]
     return tuple(backend.map(inspect_tile, units, [u.key() for u in units]))
