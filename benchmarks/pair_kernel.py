@@ -56,7 +56,7 @@ from tandemscan.pipeline.registration.correction import pair_covariance
 from tandemscan.pipeline.registration.icp import target_with_normals
 from tandemscan.pipeline.registration.overlap import overlap_at, overlapping_pairs
 from tandemscan.pipeline.registration.pair_stage import (
-    PlacedScans,
+    HeldScans,
     ScanRef,
     StoredScans,
     TargetPairs,
@@ -219,7 +219,7 @@ def forgotten(backend: DaskBackend, timeout_s: float = 30.0) -> None:
 def stage(job: JobPairs, rounds: int) -> dict:
     """Pairs a second of the pair stage on 1 and 2 threads (``LocalBackend``) and Dask workers (``LocalCluster``):
     the best of ``rounds`` runs each, 1 and 2 alternating (a shared CPU's load comes and goes)."""
-    local = {n: max(stage_throughput(job, LocalBackend(n), PlacedScans(job.world)) for _ in range(rounds))
+    local = {n: max(stage_throughput(job, LocalBackend(n), HeldScans(job.world)) for _ in range(rounds))
              for n in (1, 2)}  # the best round by its pairs a second
     clusters = {n: DaskBackend(workers=n, retries=0) for n in (1, 2)}
     try:

@@ -248,7 +248,7 @@ def _inspect(job: JobSnapshot, report: dict, scans: list[PosedScan], cloud_W: np
         accuracy=_accuracy(report),
         json_name=None,
         template=template,
-        part=part_identity(job.config, template, template_file),
+        part=measured_part(job.config, template, template_file),
         history=_history(job_dir),
         uncertainty=job_uncertainty(job, scans, counts),
         context=verdict_context(job),
@@ -272,7 +272,7 @@ def _history(job_dir: Path) -> dict:
     return json.loads(path.read_text())["characteristics"] if path.is_file() else {}
 
 
-def part_identity(config: CellConfig, template: InspectionTemplate | None, template_file: Path | None
+def measured_part(config: CellConfig, template: InspectionTemplate | None, template_file: Path | None
                   ) -> dict[str, str]:
     """The measured part as the report and results.qif name it: part number (``[job] part_number``, else the
     template's), serial and the template file."""

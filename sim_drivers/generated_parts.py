@@ -21,7 +21,7 @@ from tandemscan.pipeline.geometry import frames as F
 
 
 @dataclass(frozen=True)
-class Defect:
+class SurfaceDefect:
     """A smooth dent (depth < 0) or bulge (> 0) of the measured surface along its outward normal: a raised
     cosine of ``radius_mm`` about ``centre_mm`` (a point of the CAD surface, frame F)."""
 
@@ -44,7 +44,7 @@ class GeneratedPart:
     mesh: o3d.geometry.TriangleMesh
     outward: np.ndarray  # (T, 3)
     seen: np.ndarray  # (T,) bool
-    defects: tuple[Defect, ...]
+    defects: tuple[SurfaceDefect, ...]
 
     def measured(self, n: int, noise_mm: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """About ``n`` points (frame F, mm) spread evenly over the seen triangles (random ones thinned to one a
@@ -120,8 +120,8 @@ def arch_panel(step_mm: float = 50.0) -> GeneratedPart:
         t = np.radians(deg)
         return (x_mm, R * np.sin(t), axis_z + R * np.cos(t))
 
-    defects = (Defect(on_arch(-900.0, 8.0), 120.0, -0.4), Defect(on_arch(1300.0, -40.0), 120.0, 0.4),
-               Defect(on_arch(-300.0, 45.0), 120.0, 0.4))
+    defects = (SurfaceDefect(on_arch(-900.0, 8.0), 120.0, -0.4), SurfaceDefect(on_arch(1300.0, -40.0), 120.0, 0.4),
+               SurfaceDefect(on_arch(-300.0, 45.0), 120.0, 0.4))
     return GeneratedPart("arch", inward, normals, np.ones(len(normals), bool), defects)
 
 
@@ -150,8 +150,8 @@ def extrusion(length_mm: float = 3000.0, step_mm: float = 100.0) -> GeneratedPar
         mesh.triangles = o3d.utility.Vector3iVector(np.array(tris)[:, ::-1].copy())
         normals = -normals
     seen = ~((np.abs(normals[:, 2] + 1.0) < 1e-9) & (centroids[:, 2] < 1e-6))
-    defects = (Defect((120.0, 1100.0, 160.0), 80.0, -0.4),
-               Defect((250.0, 2200.0, 130.0), 70.0, 0.4), Defect((150.0, 0.0, 70.0), 50.0, -0.4))
+    defects = (SurfaceDefect((120.0, 1100.0, 160.0), 80.0, -0.4),
+               SurfaceDefect((250.0, 2200.0, 130.0), 70.0, 0.4), SurfaceDefect((150.0, 0.0, 70.0), 50.0, -0.4))
     return GeneratedPart("extrusion", mesh, normals, seen, defects)
 
 
@@ -170,7 +170,7 @@ def double_curved(resolution: int = 60) -> GeneratedPart:
     seen = centroids[:, 2] > 300.0
     top = shaped[np.argmax(shaped[:, 2] - 0.001 * shaped[:, 0])]
     side = shaped[np.argmin(np.abs(shaped[:, 2] - 480.0) + np.abs(shaped[:, 0] - 300.0) + 1e3 * (shaped[:, 1] < 0))]
-    defects = (Defect(tuple(top), 120.0, -0.4), Defect(tuple(side), 120.0, 0.4))
+    defects = (SurfaceDefect(tuple(top), 120.0, -0.4), SurfaceDefect(tuple(side), 120.0, 0.4))
     return GeneratedPart("double-curved", mesh, normals, seen, defects)
 
 

@@ -35,8 +35,8 @@ from tandemscan.pipeline.registration.joint import (
 from tandemscan.pipeline.registration.mount_unknown import MountEstimate, MountPrior
 from tandemscan.pipeline.registration.overlap import overlapping_pairs, relative_covariance
 from tandemscan.pipeline.registration.pair_stage import (
+    HeldScans,
     PairOutcome,
-    PlacedScans,
     ScanRef,
     StoredScans,
     TargetPairs,
@@ -260,7 +260,7 @@ def _pair_corrections(
 
     units = [TargetPairs(ref(i), tuple(ref(j) for j, _, _ in group), tuple(cov for _, cov, _ in group))
              for i, group in todo.items()]
-    placed = StoredScans(scan_store, voxel_mm) if scan_store is not None else PlacedScans(world)
+    placed = StoredScans(scan_store, voxel_mm) if scan_store is not None else HeldScans(world)
     registered = register_units(units, placed, cfg.pairs, voxel_mm, backend or LocalBackend(), network)
     for group, outcomes in zip(todo.values(), registered, strict=True):
         for (_, _, slot), outcome in zip(group, outcomes, strict=True):

@@ -3,7 +3,7 @@ scans registered onto it, run by a compute backend (``pipeline.compute``).
 
 A :class:`TargetPairs` unit names its scans by :class:`ScanRef` (the raw scan file in the scan store, the tracker
 pose ``T_W_S`` in the world W, mm), never by their points: where the unit runs they are placed by a
-:class:`PlacedScans` (the clouds this process holds) or a :class:`StoredScans` (read from the store, thinned at the
+:class:`HeldScans` (the clouds this process holds) or a :class:`StoredScans` (read from the store, thinned at the
 job's voxel and placed at ``T_W_S``: the copy the end of the job holds, ``raw_scan.read_thinned_scan``, which a
 second thinning leaves as it is). The target's normals are computed once a unit and each source registered onto
 it (:func:`register_stitched_pair`); a unit's outcomes (:class:`PairOutcome`: 4x4, 6x6 and a centre) are all
@@ -106,7 +106,7 @@ class TargetPairs:
 
 
 @dataclass(frozen=True)
-class PlacedScans:
+class HeldScans:
     """The scans' clouds this process holds, thinned and placed in W (mm), by :attr:`ScanRef.index`."""
 
     world_mm: Sequence[np.ndarray]
@@ -128,7 +128,7 @@ class StoredScans:
         return transform_points(ref.T_W_S, voxel_downsample(np.asarray(points, float), self.voxel_mm))
 
 
-def register_unit(unit: TargetPairs, scans: PlacedScans | StoredScans, cfg: JobPairSettings,
+def register_unit(unit: TargetPairs, scans: HeldScans | StoredScans, cfg: JobPairSettings,
                   network: Registrar | None = None) -> list[PairOutcome]:
     """The outcome of each pair of ``unit``: the target's normals once, each source registered onto it."""
     target = target_with_normals(scans(unit.target))
@@ -136,7 +136,7 @@ def register_unit(unit: TargetPairs, scans: PlacedScans | StoredScans, cfg: JobP
             for s, cov in zip(unit.sources, unit.covariances, strict=True)]
 
 
-def register_units(units: Sequence[TargetPairs], scans: PlacedScans | StoredScans, cfg: JobPairSettings,
+def register_units(units: Sequence[TargetPairs], scans: HeldScans | StoredScans, cfg: JobPairSettings,
                    voxel_mm: float, backend: ComputeBackend, network: Registrar | None = None
                    ) -> list[list[PairOutcome]]:
     """:func:`register_unit` of every unit on ``backend``, in order (each unit a task named by
