@@ -28,7 +28,7 @@ test: $(STAMP)
 # System packages, installed through apt only where missing: what Open3D needs at import time, Chromium for the
 # report rendering test and, with chromium-driver, the console's browser tests; systemd for the unit tests
 # (systemd-analyze verify, sysusers, tmpfiles); Node.js and npm for node-opcua, the independent OPC UA client of
-# tests/test_opcua.py (installed from tests/node/package-lock.json), only where no npm is on the PATH (a NodeSource
+# tests/daemon/test_opcua.py (installed from tests/node/package-lock.json), only where no npm is on the PATH (a NodeSource
 # nodejs carries its own npm and conflicts with Debian's).
 system-deps:
 	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \

@@ -1,7 +1,7 @@
 """The fault matrix: every fault of the daemon's fault tests (docs/daemon.md, faults) and what it did to the job.
 
-Runs ``tests/test_daemon_faults.py`` and ``tests/test_daemon_disk_full.py`` (hardware-in-the-loop cell, faults
-injected through the emulators; a full tmpfs) and prints, as one JSON object on the last line, a row per fault:
+Runs ``tests/hil/test_daemon_faults.py`` and ``tests/daemon/test_daemon_disk_full.py`` (hardware-in-the-loop cell,
+faults injected through the emulators; a full tmpfs) and prints, as one JSON object on the last line, a row per fault:
 its outcome, the typed reason, how long until the job left ``running`` (s) and the scans of the finished job.
 
     .venv/bin/python benchmarks/fault_matrix.py
@@ -27,7 +27,7 @@ def main() -> None:
         rows_file = Path(tmp) / "matrix.jsonl"
         env = dict(os.environ, TANDEMSCAN_FAULT_MATRIX=str(rows_file))
         proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-                               "tests/test_daemon_faults.py", "tests/test_daemon_disk_full.py"],
+                               "tests/hil/test_daemon_faults.py", "tests/daemon/test_daemon_disk_full.py"],
                               cwd=ROOT, env=env, capture_output=True, text=True)
         rows = [json.loads(line) for line in rows_file.read_text().splitlines()] if rows_file.exists() else []
     summary = proc.stdout.strip().splitlines()[-1] if proc.stdout.strip() else ""

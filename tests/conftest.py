@@ -1,11 +1,24 @@
-"""Shared fixtures: the default config, and a guard that no test leaves asyncio tasks running."""
+"""Shared fixtures (the default config, the QIF schema), a guard that no test leaves asyncio tasks running, and the
+markers each folder's tests carry (docs/testing.md)."""
 
 from __future__ import annotations
 
 import asyncio
+from pathlib import Path
 
 import pytest
 from tandemscan.config import CellConfig, load_config
+
+TESTS = Path(__file__).resolve().parent
+MARKED_FOLDERS = ("hil", "browser", "e2e")  # a test under tests/<folder>/ carries that marker (pyproject.toml)
+
+
+def pytest_collection_modifyitems(config, items):
+    """Mark each test by its folder, so that ``-m "not hil and not browser"`` selects the inner loop."""
+    for item in items:
+        path = Path(item.path).resolve()
+        if path.is_relative_to(TESTS) and path.relative_to(TESTS).parts[0] in MARKED_FOLDERS:
+            item.add_marker(path.relative_to(TESTS).parts[0])
 
 
 @pytest.fixture
@@ -35,11 +48,9 @@ def qif_schema(tmp_path_factory):
     """The QIF 3.0 schema, loaded once per session (10-30 s). QIFDocument.xsd imports the XML-signature
     namespace, which no QIF type uses; the shared copy of that schema is moved into the QIF namespace (for
     Microsoft's tools) and so cannot stand for it: an empty schema of the namespace does."""
-    from pathlib import Path
-
     import xmlschema
 
-    schema = Path(__file__).resolve().parents[1] / QIF_SCHEMA
+    schema = TESTS.parent / QIF_SCHEMA
     dsig = tmp_path_factory.mktemp("qif") / "xmldsig-namespace.xsd"
     dsig.write_text('<xs:schema xmlns:xs="http://www.w3.org/2001/XMLSchema" '
                     'targetNamespace="http://www.w3.org/2000/09/xmldsig#"/>\n')

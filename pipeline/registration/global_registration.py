@@ -7,7 +7,7 @@ time, rejects draws whose edge lengths disagree by more than 10 % or whose point
 voxels apart, and keeps the rigid fit with most inliers. RANSAC runs on ``FeatureMatching.threads`` threads
 (default one): Open3D's threads draw from one seeded generator in the order they get to it, so on several
 threads one seed gives different draws from run to run, and on one the same answer every time
-(tests/test_registration_stages.py; on one thread it was no slower on the bunny pairs). The result
+(tests/pipeline/registration/test_registration_stages.py; on one thread it was no slower on the bunny pairs). The result
 ``T_target_source`` (4x4 mm) is good to about a voxel: the fine stage (``icp.icp_coarse_to_fine``) finishes
 it. Open3D is imported at the first call, so importing this module (as ``pairs`` does) costs nothing on a
 path that never runs the global stage.

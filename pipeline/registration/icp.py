@@ -5,8 +5,8 @@ All clouds are (N, 3) arrays in millimetres; a result's ``transformation`` is ``
 maps source coordinates into the target's frame). The target carries normals and a KD-tree (a
 :class:`TargetCloud`, made once per cloud by :func:`target_with_normals`); residuals are distances along the
 target normal (mm). NumPy and SciPy only, the iteration and its stopping rule as Open3D's point-to-plane
-``registration_icp`` has them (checked against it in tests/test_registration_icp.py), so the fine stage does
-not import Open3D.
+``registration_icp`` has them (checked against it in tests/pipeline/registration/test_registration_icp.py), so the
+fine stage does not import Open3D.
 """
 
 from __future__ import annotations

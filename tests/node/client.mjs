@@ -1,4 +1,4 @@
-// An independent OPC UA stack against the tandemscan server (tests/test_opcua.py): node-opcua's client connects
+// An independent OPC UA stack against the tandemscan server (tests/daemon/test_opcua.py): node-opcua's client connects
 // over Basic256Sha256 SignAndEncrypt with a user name and password, browses the cell, subscribes to the safety
 // latch, calls methods and prints one JSON object on a line of its own (node-opcua logs to stdout too).
 // Usage: node client.mjs URL CLIENT_CERT CLIENT_KEY PKI_DIR USER PASSWORD

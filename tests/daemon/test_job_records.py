@@ -1,5 +1,5 @@
 """The job's records read the journal as the daemon has written it since it first resumed jobs, and ``apply``
-changes the job's state as the runner's steps do (the journaled-job replay itself: tests/test_relocalise.py)."""
+changes the job's state as the runner's steps do (the journaled-job replay itself: tests/daemon/test_relocalise.py)."""
 
 from __future__ import annotations
 

@@ -16,8 +16,7 @@ from tandemscan.pipeline.registration.correction import (
     correct_scans,
 )
 from tandemscan.pipeline.registration.online_pairs import OnlinePairs
-
-from tests.test_registration_correction import scans_with_drift
+from test_registration_correction import scans_with_drift
 
 
 def settings(**keys) -> CorrectionSettings:

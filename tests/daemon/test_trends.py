@@ -18,8 +18,9 @@ from tandemscan.daemon.service import Daemon
 from tandemscan.pipeline.inspection.characteristics import evaluate
 from tandemscan.pipeline.inspection.decision import DecisionRule
 from tandemscan.pipeline.inspection.spc import individuals_chart
-from test_characteristics import sampled_cloud
 from test_daemon_api import GatedRunner, sim_cell, world  # noqa: F401 (world: the module fixture)
+
+from tests.pipeline.inspection.test_characteristics import sampled_cloud
 
 
 def test_individuals_chart_and_capability_as_the_textbook_computes_them():

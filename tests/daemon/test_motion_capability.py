@@ -50,7 +50,7 @@ async def test_the_gate_hands_out_the_robot_asked_for(sim_config):
 
 def test_only_the_session_reads_the_raw_movers():
     """The raw movers are a private field of the cell; its one reader is the gate in ``daemon/session.py``."""
-    root = Path(__file__).resolve().parent.parent
+    root = Path(__file__).resolve().parents[2]
     readers = set()
     for folder in ("daemon", "pipeline", "drivers", "config", "sim_drivers"):
         for path in (root / folder).rglob("*.py"):

@@ -1,6 +1,7 @@
 """A full disk during a daemon job (a 64 MB tmpfs as the state folder, mounted in a user and mount namespace by
-``tests/disk_full_child.py``): the job leaves ``running`` with a storage reason, health says so, nothing committed
-is lost, and once space returns the held state is journaled and a resumed job completes with every scan once."""
+``tests/daemon/disk_full_child.py``): the job leaves ``running`` with a storage reason, health says so, nothing
+committed is lost, and once space returns the held state is journaled and a resumed job completes with every scan
+once."""
 
 from __future__ import annotations
 

@@ -28,7 +28,7 @@ from tandemscan.daemon.service import BindRefused, Daemon
 from tandemscan.pipeline.planning.plan import Plan, Scan
 from tandemscan.sim_drivers.hil_box import free_port
 
-NODE_DIR = Path(__file__).parent / "node"
+NODE_DIR = Path(__file__).resolve().parents[1] / "node"
 CHEAP = (2**4, 8, 1)  # scrypt cost of the test users' hashes: the login path is the same, only faster
 USERS = {"operator": OpcuaUserConfig(role="operator", password_hash=hash_password("op-pw", CHEAP)),
          "viewer": OpcuaUserConfig(role="viewer", password_hash=hash_password("view-pw", CHEAP))}

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 from tandemscan.daemon.notify import Notifier
 
-SYSTEMD = Path(__file__).resolve().parent.parent / "systemd"
+SYSTEMD = Path(__file__).resolve().parents[2] / "systemd"
 UNIT = SYSTEMD / "tandemscan.service"
 
 

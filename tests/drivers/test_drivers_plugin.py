@@ -17,7 +17,7 @@ from tandemscan.daemon.cell import build_cell
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.sim_drivers.hil_box import free_port
 
-PLUGIN = Path(__file__).parent / "plugins" / "acme_tracker"
+PLUGIN = Path(__file__).resolve().parents[1] / "plugins" / "acme_tracker"
 
 
 @pytest.fixture

@@ -8,6 +8,7 @@ import subprocess
 import sys
 import textwrap
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import open3d as o3d
@@ -232,9 +233,9 @@ def test_register_icp_imports_neither_torch_nor_open3d(tmp_path):
 
 
 def test_the_jobs_icp_correction_does_not_import_torch():
-    mods = _modules_after(textwrap.dedent('''
+    mods = _modules_after(textwrap.dedent(f'''
         import sys
-        sys.path.insert(0, "tests")
+        sys.path.insert(0, {str(Path(__file__).parent)!r})
         from test_registration_correction import scans_with_drift
         from tandemscan.config.models import CorrectionConfig, DeepMergeConfig
         from tandemscan.pipeline.registration.correction import CorrectionSettings, StitchedJob, correct_scans

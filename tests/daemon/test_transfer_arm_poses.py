@@ -22,9 +22,8 @@ from tandemscan.pipeline.planning.plan import MoveArm, MoveMeasure, MoveTracker,
 from tandemscan.pipeline.stitching.installation import Installation
 from tandemscan.sim_drivers.persist import restore_world_state, world_state
 from tandemscan.sim_drivers.world import SimWorld
-
-from tests.test_relocalise import MemoryJournal, assert_same
-from tests.test_transfer_averaging import through_first_transfer
+from test_relocalise import MemoryJournal, assert_same
+from test_transfer_averaging import through_first_transfer
 
 T_W_C_OLD = F.from_rotvec([200.0, 1500.0, -300.0], [0.1, 0.2, -0.3])
 T_W_C_NEW = F.from_rotvec([3200.0, -400.0, 150.0], [0.02, -0.3, 1.2])

@@ -25,8 +25,8 @@ from tandemscan.pipeline.registration.correction import CorrectionSettings, Stit
 from tandemscan.pipeline.registration.pairs import LazyNetwork
 from tandemscan.pipeline.stitching.tiles import merge_tiles
 
-from tests.test_registration_correction import scans_with_drift
-from tests.test_tiles import T_F_W, TILE_MM, concatenated, stored_job
+from tests.pipeline.registration.test_registration_correction import scans_with_drift
+from tests.pipeline.stitching.test_tiles import T_F_W, TILE_MM, concatenated, stored_job
 
 pytestmark = pytest.mark.slow
 VOXEL_MM = 1.0

@@ -149,6 +149,7 @@ CHROMIUM_FLAGS = [
 ]
 
 
+@pytest.mark.browser
 @pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed (make system-deps installs it)")
 def test_report_renders_in_headless_chromium(written, tmp_path):
     html_path = written[3][0]

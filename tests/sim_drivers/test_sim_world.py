@@ -64,7 +64,7 @@ async def test_tracker_noise_matches_its_model(cell):
     errors = np.array([r.T_C_T[:3, 3] - T_true[:3, 3] for r in readings])
     sigma_p, _ = world.config.sim.tracker_noise.sigma(float(np.linalg.norm(T_true[:3, 3])))
     # one still period: the frames scatter by the fresh share, their mean keeps the still share
-    # (tests/test_transfer_averaging.py checks the whole sigma over many still periods)
+    # (tests/daemon/test_transfer_averaging.py checks the whole sigma over many still periods)
     f = world.config.tracker.still_noise_fraction
     assert np.std(errors - errors.mean(axis=0)) == pytest.approx(sigma_p * np.sqrt(1 - f), rel=0.15)
     assert np.abs(errors.mean(axis=0)).max() < 4 * sigma_p * np.sqrt(f + (1 - f) / 200)

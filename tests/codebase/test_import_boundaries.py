@@ -8,7 +8,7 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-PACKAGE_ROOT = Path(__file__).resolve().parents[1]  # the repository root is the package tandemscan
+PACKAGE_ROOT = Path(__file__).resolve().parents[2]  # the repository root is the package tandemscan
 PRODUCT = ("pipeline", "drivers", "daemon", "config")
 
 
