@@ -10,7 +10,7 @@ extremes, the points below and above the tolerance band, and a histogram of fixe
 from those summaries (:func:`deviation_figures`): count, mean, sigma, RMS, extremes and the tolerance shares to the
 rounding of their sums, the 5th and 95th percentiles exactly (a second pass reads back only the deviations in the
 histogram bins that hold those ranks). Equal to the untiled ``inspect.DeviationStats`` and ``ToleranceResult`` to
-1e-9 mm (``tests/test_tiles.py``).
+1e-9 mm (``tests/pipeline/stitching/test_tiles.py``).
 """
 
 from __future__ import annotations

@@ -15,7 +15,7 @@ thinning voxel's diagonal, where a thinned centroid lies from the points of its 
 float32 rounding of the placement), and a tile reads every scan whose widened extent meets its slab. The voxel
 keys sort x first, so the tiles' clouds one after the other are the untiled cloud in its order; only the order in
 which a voxel's per-scan sums are added differs (the untiled merge adds them by groups of scans): its mean is the
-same to the rounding of those sums, 1e-9 mm (``tests/test_tiles.py``).
+same to the rounding of those sums, 1e-9 mm (``tests/pipeline/stitching/test_tiles.py``).
 
 A unit is idempotent (its file is named by the digest of everything it depends on and written durably), so a unit
 lost with its worker is run again with the same result.
