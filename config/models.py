@@ -465,6 +465,16 @@ class PlanningConfig(_Strict):
     keep_out_xy_mm: tuple[tuple[tuple[float, float], ...], ...] = Field(
         (), description="floor polygons no robot may stand in, each a list of (x, y) mm"
     )
+    arm_start_deg: tuple[float, ...] = Field(
+        (0.0, 90.0, 0.0, 90.0, 0.0, 0.0), description="the arm's joints (deg) where a job starts: the first "
+        "station's IK starts from them (the simulated arm rests at [sim] arm_home_deg)")
+
+    @field_validator("arm_start_deg")
+    @classmethod
+    def _six_joints(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        if len(v) != 6:
+            raise ValueError(f"needs 6 values, got {len(v)}")
+        return v
 
 
 class JobConfig(_Strict):

@@ -123,7 +123,9 @@ class SimWorldConfig(_Strict):
     tracking_chassis_slip: ChassisSlipConfig = ChassisSlipConfig()
     tracking_start: FloorPoseConfig = FloorPoseConfig(x_mm=-1400.0, y_mm=4600.0, heading_deg=-90.0)
     measure_start: FloorPoseConfig = FloorPoseConfig(x_mm=-1800.0, y_mm=2300.0, heading_deg=0.0)
-    arm_home_deg: tuple[float, ...] = (0.0, 90.0, 0.0, 90.0, 0.0, 0.0)
+    arm_home_deg: tuple[float, ...] = Field(
+        (0.0, 90.0, 0.0, 90.0, 0.0, 0.0), description="the simulated arm's joints at start, deg (the plans start "
+        "from [planning] arm_start_deg)")
     install_error_mm: float = Field(2.0, ge=0, description="1-sigma per axis of true vs nominal mounts")
     install_error_deg: float = Field(0.3, ge=0, description="1-sigma per axis of true vs nominal mounts")
     time_scale: float = Field(0.0, ge=0, description="simulated motion time x this = wall time; 0 = instant")

@@ -117,7 +117,7 @@ def plan_part(
     t = time.perf_counter()
     scene = make_scene(mesh)
     bb = mesh.get_axis_aligned_bounding_box()
-    home = np.radians(config.sim.arm_home_deg)
+    home = np.radians(config.planning.arm_start_deg)
     rasters = plan_arm(scene, (bb.min_bound, bb.max_bound), layout.stations, layout.step_mm,
                        layout.path.exterior.length,
                        ArmSetup(ik or default_ik(config.arm), config.arm, inst.T_V2_B.matrix(), inst.T_E_S.matrix(),

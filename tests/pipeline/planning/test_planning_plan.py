@@ -102,3 +102,22 @@ def test_cli_plan_writes_plan_report_and_picture(tmp_path, capsys):
 def test_cli_plan_bad_mesh_is_one_line_error(tmp_path, capsys):
     assert main(["plan", "--part", str(tmp_path / "missing.stl"), "--out", str(tmp_path / "p.toml")]) == 2
     assert "missing.stl" in capsys.readouterr().err
+
+
+def test_the_arm_starts_from_the_planning_setting(monkeypatch):
+    """The first station's IK starts from ``[planning] arm_start_deg``, not from the simulator's table."""
+    from tandemscan.pipeline.planning import planner
+
+    class Seen(Exception):
+        pass
+
+    def seen(*args):
+        raise Seen(args[-1])
+
+    config = load_config()
+    start = (10.0, 80.0, 5.0, 95.0, -5.0, 0.0)
+    config = config.model_copy(update={"planning": config.planning.model_copy(update={"arm_start_deg": start})})
+    monkeypatch.setattr(planner, "plan_arm", seen)
+    with pytest.raises(Seen) as e:
+        plan_part(SimWorld(config).mesh, config)
+    np.testing.assert_allclose(e.value.args[0], np.radians(start))
