@@ -4,8 +4,8 @@ as built) and the ``[hil]`` table (the protocol emulators of a hardware-in-the-l
 The product's configuration (:class:`~tandemscan.config.models.CellConfig`) does not know these models: the
 simulator registers them as entry points of group :data:`~tandemscan.config.devices.SIMULATOR_GROUP` (in
 ``pyproject.toml``, as its device classes in ``tandemscan.devices``), and the cell configuration hands each its own
-table to validate (docs/sim.md, "Configuration"). Units: mm and degrees at this edge (``*_deg`` keys), as the
-product's settings.
+table to validate (docs/architecture.md, "The cell layer"). Units: mm and degrees at this edge (``*_deg`` keys),
+as the product's settings.
 """
 
 from __future__ import annotations
