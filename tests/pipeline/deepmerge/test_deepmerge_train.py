@@ -84,7 +84,7 @@ def test_register_command_prints_the_transform_and_fitness(tmp_path, capsys):
 
 
 def test_re_embedding_rounds_bring_a_large_error_closer_than_one_pass():
-    from test_registration_stages import moved
+    from tests.pipeline.registration.test_registration_stages import moved
 
     T_true = from_rotvec([4.0, -3.0, 2.0], np.radians([15.0, 10.0, -10.0]))      # 20.6 deg, 5.4 mm
     source, target = moved(T_true)
