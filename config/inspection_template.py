@@ -97,12 +97,25 @@ class _Characteristic(_Strict):
 
     @model_validator(mode="after")
     def _band(self) -> _Characteristic:
-        if not self.lower_mm < self.upper_mm:
+        if (self.lower_mm is None) != (self.upper_mm is None):
+            raise ValueError(f"{self.id}: give both lower_mm and upper_mm, or neither (the general tolerance)")
+        if self.lower_mm is not None and not self.lower_mm < self.upper_mm:
             raise ValueError(f"{self.id}: lower_mm {self.lower_mm} must be below upper_mm {self.upper_mm}")
         return self
 
 
-class SurfaceProfileSpec(_Characteristic):
+_GENERAL = ("none: the part's general surface profile tolerance, [inspection] tolerance_lower_mm/"
+            "tolerance_upper_mm (ISO 22081)")
+
+
+class _ProfileCharacteristic(_Characteristic):
+    """A deviation from CAD, whose limits a drawing may leave to its general surface profile tolerance."""
+
+    lower_mm: float | None = Field(None, description=f"lower limit of the deviation, mm; {_GENERAL}")
+    upper_mm: float | None = Field(None, description=f"upper limit of the deviation, mm; {_GENERAL}")
+
+
+class SurfaceProfileSpec(_ProfileCharacteristic):
     """ISO 1101 profile of a surface: the region's deviations from CAD; actual = the worst (largest |value|)
     of the deviations averaged over the template's ``smoothing_mm``, with the worst positive and negative."""
 
@@ -119,7 +132,7 @@ class FlatnessSpec(_Characteristic):
     lower_mm: float = 0.0
 
 
-class SectionSpec(_Characteristic):
+class SectionSpec(_ProfileCharacteristic):
     """The deviation along the intersection of the CAD surface with a plane (``point_mm``, ``normal``):
     the points within ``half_width_mm`` of the plane (in ``region`` when given); actual = the worst."""
 
@@ -199,6 +212,19 @@ class InspectionTemplate(_Strict):
         return cfg.model_copy(update={"alignment": method,
                                       "regions": (*cfg.regions, *datums),
                                       "datum_regions": tuple(r.name for r in datums)})
+
+    def with_general_tolerance(self, lower_mm: float, upper_mm: float) -> InspectionTemplate:
+        """The template with the part's general surface profile tolerance ``[lower_mm, upper_mm]`` (ISO 22081: the
+        drawing's title-block tolerance, ``[inspection] tolerance_*``) as the limits of each surface profile and
+        section that states none of its own (docs/verdict.md, "Tolerances of the shipped parts")."""
+        general = {"lower_mm": lower_mm, "upper_mm": upper_mm}
+        return self.model_copy(update={"characteristics": tuple(
+            c.model_copy(update=general) if c.lower_mm is None else c for c in self.characteristics)})
+
+    @property
+    def needs_general_tolerance(self) -> tuple[str, ...]:
+        """Ids of the characteristics that take the general tolerance (no limits of their own)."""
+        return tuple(c.id for c in self.characteristics if c.lower_mm is None)
 
     def region(self, spec: RegionSpec) -> PatchSpec:
         """The patch a region names, or the region's own box and face groups."""

@@ -375,7 +375,11 @@ EVALUATORS = {"surface_profile": surface_profile, "flatness": flatness, "section
 
 def evaluate(template: InspectionTemplate, cloud: MeasuredCloud, rule: DecisionRule
              ) -> tuple[CharacteristicResult, ...]:
-    """Every characteristic of ``template`` on ``cloud`` (frame F), in the template's order."""
+    """Every characteristic of ``template`` on ``cloud`` (frame F), in the template's order; a characteristic that
+    takes the part's general tolerance must have been given it (``InspectionTemplate.with_general_tolerance``)."""
+    if template.needs_general_tolerance:
+        raise InspectionError(f"characteristics {', '.join(template.needs_general_tolerance)} of "
+                              f"{template.part_number} take the general tolerance, which was not given")
     out = tuple(EVALUATORS[spec.kind](spec, template, cloud, rule) for spec in template.characteristics)
     log.info("characteristics of %s: %s", template.part_number,
              ", ".join(f"{r.id} {r.status}" for r in out))

@@ -92,7 +92,8 @@ def run_inspection(
     ``json_name=None`` leaves the JSON to the caller (it gets the same numbers as ``data``);
     ``alignment`` says how the points were placed in F (None: they came in F); ``overlap``: the scans'
     :func:`overlap_quality`, being computed (else it is started here, while the cloud is inspected);
-    ``template``: the part's characteristics, evaluated and reported first and written as ``results.qif``;
+    ``template``: the part's characteristics (those without limits of their own under ``cfg``'s tolerance, the
+    general one), evaluated and reported first and written as ``results.qif``;
     ``part``: its part number, serial, template file and measuring system, as the report and the QIF name them;
     ``history``: the part's earlier serials' results per characteristic (``report.build_report``);
     ``uncertainty``: what knows the points' uncertainty (None: the cloud states none, U = 0) and ``context``
@@ -102,6 +103,8 @@ def run_inspection(
     Nineteen parameters: the cloud, the mesh, where to write and the settings, then keyword-only inputs of the
     report, each optional (a caller passes those it has)."""
     cfg = cfg or InspectionConfig()
+    if template is not None:
+        template = template.with_general_tolerance(cfg.tolerance_lower_mm, cfg.tolerance_upper_mm)
     surface = mesh if isinstance(mesh, CadSurface) else CadSurface(mesh)
     if overlap is None and scans_before is not None:
         overlap = in_background(overlap_quality, scans_before, scans_after)

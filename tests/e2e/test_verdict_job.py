@@ -30,12 +30,16 @@ def test_measure_is_indeterminate_uncalibrated_and_passes_after_calibrate(tmp_pa
     assert "no current calibration" in nominal["installation"]["note"]
     assert any("nominal mounts (no calibration)" in why for why in nominal["verdict_reasons"])
     assert nominal["uncertainty"]["median_mm"] > 0.25  # the mounts' build tolerance, not a special case
+    assert {c["status"] for c in nominal["characteristics"]} == {"indeterminate"}
     assert main(["calibrate", "--config", str(config)]) == 0
     assert main(["measure", "--config", str(config), "--out", str(tmp_path / "calibrated")]) == 0
     calibrated = only_report(tmp_path / "calibrated")
     assert calibrated["installation"]["source"] == "calibration"
     assert calibrated["installation"]["file"] == str(tmp_path / "current.json")
     assert calibrated["verdict"] == "pass" and not calibrated["deviations"]
+    # the template's characteristics under the part's tolerances (docs/verdict.md, "Tolerances of the shipped
+    # parts"): each proven in, none left to noise
+    assert [c["status"] for c in calibrated["characteristics"]] == ["pass"] * 6, calibrated["characteristics"]
     # the default tolerance of the train nose, +-0.5 mm, is at least four times 2U
     assert 1.0 / (2.0 * calibrated["uncertainty"]["median_mm"]) >= 4.0
     assert calibrated["decision_rule"] == {"name": "iso14253-1", "k": 2.0}
@@ -46,7 +50,8 @@ def test_measure_is_indeterminate_uncalibrated_and_passes_after_calibrate(tmp_pa
 async def test_as_built_example_has_a_deviation_proven_out_one_proven_in_and_one_indeterminate(tmp_path):
     """config/as-built-example.toml (+-0.3 mm), calibrated: the 0.45 mm bulge beyond tolerance + U is a
     nonconforming area and fails the part; the 0.3 mm dent at the limit is an indeterminate area; the 0.25 mm dent
-    (within tolerance - U) and the bend give no area."""
+    (within tolerance - U) and the bend give no area; the template's characteristics, under the example's general
+    tolerance, likewise."""
     from tandemscan.config import load_config
     from tandemscan.daemon.runner import JobRunner
     from tandemscan.daemon.session import CellSession
@@ -68,3 +73,7 @@ async def test_as_built_example_has_a_deviation_proven_out_one_proven_in_and_one
     assert dent["decision"] == "indeterminate" and abs(abs(dent["extreme_mm"]) - 0.3) <= dent["uncertainty_mm"]
     assert not near((750.0, 794.4, 720.0)) and len(ins["deviations"]) == 2
     assert ins["verdict"] == "fail" and ins["verdict_reasons"][0].startswith(f"area #{bulge['id']}")
+    # the characteristics alike: the front nose's profile (the bulge) fails, the rear nose's (the 0.3 mm dent)
+    # is indeterminate, the bent body strip within its 0.5 mm flatness passes
+    status = {c["id"]: c["status"] for c in ins["characteristics"]}
+    assert (status["SP-3"], status["SP-2"], status["FL-1"]) == ("fail", "indeterminate", "pass"), ins["characteristics"]
