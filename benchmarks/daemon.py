@@ -92,7 +92,7 @@ class OpcuaLoad:
     under ``tmp``, and ``n`` subscribed sessions in a child process (``opcua_subscribers.py``)."""
 
     def __init__(self, tmp: Path, n: int):
-        from tandemscan.daemon.opcua.security import hash_password, make_application_identity
+        from tandemscan.daemon.api.opcua.security import hash_password, make_application_identity
 
         self.tmp, self.n, self.port, self.password = tmp, n, free_port(), "bench-pw"
         self.hash = hash_password(self.password)

@@ -35,7 +35,7 @@ def full_collection_ms(repeats: int) -> float:
 
 async def measure(repeats: int) -> dict:
     from tandemscan.config import load_config
-    from tandemscan.daemon.api import create_app
+    from tandemscan.daemon.api.app import create_app
     from tandemscan.daemon.service import Daemon
     from tandemscan.daemon.session import CellSession
 

@@ -22,9 +22,9 @@ from pathlib import Path
 from clean_exit import clean_exit_on_sigterm
 from results import publish
 from tandemscan.config import load_config
-from tandemscan.daemon.api_models import JobRequest, trend_body
+from tandemscan.daemon.api.facade import ServiceFacade
+from tandemscan.daemon.api.models import JobRequest, trend_body
 from tandemscan.daemon.cli import default_plan_path
-from tandemscan.daemon.facade import ServiceFacade
 from tandemscan.daemon.job_state import FINAL_STATES
 from tandemscan.daemon.part_results import PartResults
 from tandemscan.daemon.service import WORLD_STATE_FILE, Daemon

@@ -26,9 +26,9 @@ PlanCheck = Callable[[Plan, Path], None]
 
 
 def part_check(config: CellConfig) -> PlanCheck:
-    """The CLI's :func:`~tandemscan.daemon.plan_cmd.check_plan_part` against ``config``'s part, a mismatch as a
+    """The CLI's :func:`~tandemscan.daemon.cli.plan_cmd.check_plan_part` against ``config``'s part, a mismatch as a
     :class:`PlanError` naming both parts."""
-    from tandemscan.daemon.plan_cmd import PlanPartError, check_plan_part
+    from tandemscan.daemon.cli.plan_cmd import PlanPartError, check_plan_part
 
     def check(plan: Plan, plan_file: Path) -> None:
         try:

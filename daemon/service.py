@@ -209,7 +209,7 @@ class Daemon:
 
     def metrics_snapshot(self) -> dict:
         """What the Prometheus collector reports; the job counts are those of the last ``/metrics`` scrape, which
-        reads them off the event loop (:meth:`~tandemscan.daemon.facade.ServiceFacade.metrics`)."""
+        reads them off the event loop (:meth:`~tandemscan.daemon.api.facade.ServiceFacade.metrics`)."""
         snap = self.supervisor.snapshot()
         return {"jobs": {state: self.job_counts.get(state, 0) for state in JobState}, "devices": snap["devices"],
                 "safety": snap["safety"],
@@ -250,7 +250,7 @@ def serve(config_path: Path | str | None = None, host: str | None = None, port: 
     """Run the daemon and its REST API until SIGTERM/SIGINT (``tandemscan serve``); :class:`StartupError` when its
     port or state directory cannot be used."""
     import uvicorn
-    from tandemscan.daemon.api import create_app
+    from tandemscan.daemon.api.app import create_app
 
     config = load_config(config_path)
     token = resolve_token(config, environ)

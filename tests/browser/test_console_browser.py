@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 from serving import running_server
 from tandemscan.config import load_config
-from tandemscan.daemon.api import create_app
+from tandemscan.daemon.api.app import create_app
 from tandemscan.daemon.service import Daemon
 from tandemscan.drivers.errors import DeviceError
 from tandemscan.sim_drivers.cell import Simulation, with_surveyed_mounts

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from asyncua import Client, ua
 from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
-from tandemscan.daemon.opcua.security import ApplicationIdentity, make_application_identity
+from tandemscan.daemon.api.opcua.security import ApplicationIdentity, make_application_identity
 
 CLIENT_URI = "urn:tandemscan:test-client"
 

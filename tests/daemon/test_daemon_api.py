@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, settings
 from serving import running_server
-from tandemscan.daemon.api import create_app
+from tandemscan.daemon.api.app import create_app
 from tandemscan.daemon.cell import build_cell
-from tandemscan.daemon.client import SseParser
+from tandemscan.daemon.cli.client import SseParser
 from tandemscan.daemon.motion import Robot
 from tandemscan.daemon.plans import PlanCatalog
 from tandemscan.daemon.service import BindRefused, Daemon, check_bind, resolve_state_dir, resolve_token

@@ -7,7 +7,7 @@ from __future__ import annotations
 import asyncio
 import json
 
-from tandemscan.daemon.api_models import job_body
+from tandemscan.daemon.api.models import job_body
 from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.service import Daemon
 from tandemscan.pipeline.planning.plan import Plan

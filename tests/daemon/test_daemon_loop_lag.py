@@ -26,7 +26,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 from serving import running_server
-from tandemscan.daemon.api import create_app
+from tandemscan.daemon.api.app import create_app
 from tandemscan.daemon.job_state import JobState
 from tandemscan.daemon.plans import PlanCatalog
 from tandemscan.daemon.service import Daemon

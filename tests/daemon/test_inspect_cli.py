@@ -7,7 +7,7 @@ import json
 import numpy as np
 import open3d as o3d
 import pytest
-from tandemscan.daemon.inspect_cmd import main
+from tandemscan.daemon.cli.inspect_cmd import main
 
 
 @pytest.fixture

@@ -21,9 +21,9 @@ from opcua_clients import make_client_identity, secure_client
 from serving import running_server
 from tandemscan.config import load_config
 from tandemscan.config.models import OpcuaUserConfig
-from tandemscan.daemon.api import create_app
-from tandemscan.daemon.opcua.model import NAMESPACE_URI
-from tandemscan.daemon.opcua.security import hash_password, verify_password
+from tandemscan.daemon.api.app import create_app
+from tandemscan.daemon.api.opcua.model import NAMESPACE_URI
+from tandemscan.daemon.api.opcua.security import hash_password, verify_password
 from tandemscan.daemon.service import BindRefused, Daemon
 from tandemscan.pipeline.planning.plan import Plan, Scan
 from tandemscan.sim_drivers.hil_box import free_port

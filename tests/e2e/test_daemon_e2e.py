@@ -22,8 +22,8 @@ import numpy as np
 import pytest
 from serving import running_server
 from tandemscan.config import load_config
-from tandemscan.daemon.api import create_app
-from tandemscan.daemon.client import SseParser
+from tandemscan.daemon.api.app import create_app
+from tandemscan.daemon.cli.client import SseParser
 from tandemscan.daemon.service import Daemon
 from tandemscan.pipeline.io.cloud_io import read_ply
 from tandemscan.sim_drivers.cell import Simulation, with_surveyed_mounts, with_surveyed_mounts_toml

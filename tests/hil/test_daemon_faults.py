@@ -226,7 +226,7 @@ async def test_scanner_timeout(cell, reference):
 
 
 async def test_tracker_tcp_drop_is_reconnected_and_health_follows(cell, reference):
-    from tandemscan.daemon.api_models import Health
+    from tandemscan.daemon.api.models import Health
 
     await cell.daemon.session.supervisor.wait_connected(10)
     assert Health.model_validate(cell.daemon.health()).status == "ok"

@@ -12,7 +12,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 from tandemscan.config.models import InspectionConfig
-from tandemscan.daemon.inspect_cmd import main
+from tandemscan.daemon.cli.inspect_cmd import main
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.inspection.alignment import AlignmentFailed, align, fit_to_surface
 from tandemscan.pipeline.inspection.cad_orientation import consistent_winding, orient

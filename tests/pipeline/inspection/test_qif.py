@@ -12,7 +12,7 @@ import open3d as o3d
 import pytest
 from tandemscan.config.inspection_template import load_template, shipped_template
 from tandemscan.config.models import InspectionConfig
-from tandemscan.daemon.inspect_cmd import main
+from tandemscan.daemon.cli.inspect_cmd import main
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.inspection.inspection_job import run_inspection
 from tandemscan.pipeline.inspection.qif import QIF_KINDS

@@ -1,10 +1,10 @@
 """The REST API for the MES and operators (FastAPI; OpenAPI at ``/openapi.json``, docs at ``/docs``).
 
-A thin HTTP gateway over the daemon: routers per resource (:mod:`tandemscan.daemon.routers`: jobs, a job's
-files, the cell, events, health and metrics; the console's own, :mod:`tandemscan.daemon.console.router`) call
-the async service facade (:mod:`tandemscan.daemon.facade`), which keeps every blocking call off the event
-loop. Errors are RFC 9457 problem details (:mod:`tandemscan.daemon.api_errors`). Mutating calls need
-``Authorization: Bearer <token>`` when the daemon has a token (:mod:`tandemscan.daemon.api_guard`); without one
+A thin HTTP gateway over the daemon: routers per resource (:mod:`tandemscan.daemon.api.routers`: jobs, a job's
+files, the cell, events, health and metrics; the console's own, :mod:`tandemscan.daemon.api.console.router`) call
+the async service facade (:mod:`tandemscan.daemon.api.facade`), which keeps every blocking call off the event
+loop. Errors are RFC 9457 problem details (:mod:`tandemscan.daemon.api.errors`). Mutating calls need
+``Authorization: Bearer <token>`` when the daemon has a token (:mod:`tandemscan.daemon.api.guard`); without one
 the daemon only binds to loopback (see :func:`tandemscan.daemon.service.check_bind`). See docs/daemon.md.
 """
 
@@ -15,12 +15,12 @@ from contextlib import asynccontextmanager
 from typing import TYPE_CHECKING
 
 from fastapi import FastAPI
-from tandemscan.daemon.api_errors import install_problem_handlers
-from tandemscan.daemon.api_guard import GuardBody
-from tandemscan.daemon.console.router import router as console_router
-from tandemscan.daemon.facade import ServiceFacade
+from tandemscan.daemon.api.console.router import router as console_router
+from tandemscan.daemon.api.errors import install_problem_handlers
+from tandemscan.daemon.api.facade import ServiceFacade
+from tandemscan.daemon.api.guard import GuardBody
+from tandemscan.daemon.api.routers import cell, events, files, health, jobs, parts
 from tandemscan.daemon.metrics import RequestTimer
-from tandemscan.daemon.routers import cell, events, files, health, jobs, parts
 
 if TYPE_CHECKING:
     from tandemscan.daemon.service import Daemon
@@ -33,7 +33,7 @@ def create_app(daemon: Daemon, manage_lifecycle: bool = False) -> FastAPI:
     facade = ServiceFacade(daemon)
     opcua = None
     if manage_lifecycle and daemon.config.opcua.enabled:  # the OPC UA server beside REST (docs/opcua.md)
-        from tandemscan.daemon.opcua.server import gateway_for
+        from tandemscan.daemon.api.opcua.server import gateway_for
 
         opcua = gateway_for(facade)
 

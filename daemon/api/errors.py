@@ -2,7 +2,7 @@
 
 A handler raises :class:`ApiProblem` (or the job manager a :class:`~tandemscan.daemon.jobs.JobRequestError`, which
 carries its status); :func:`install_problem_handlers` answers those, FastAPI's own HTTP and validation errors and
-any unhandled exception (500, logged) with a :class:`~tandemscan.daemon.api_models.Problem` body. See
+any unhandled exception (500, logged) with a :class:`~tandemscan.daemon.api.models.Problem` body. See
 docs/daemon.md.
 """
 
@@ -17,7 +17,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
-from tandemscan.daemon.api_models import PROBLEM, Problem
+from tandemscan.daemon.api.models import PROBLEM, Problem
 from tandemscan.daemon.jobs import JobRequestError
 
 log = logging.getLogger(__name__)

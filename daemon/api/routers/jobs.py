@@ -6,9 +6,9 @@ from typing import Annotated
 
 from fastapi import APIRouter, Depends, Header, Query, Request
 from fastapi.responses import JSONResponse, Response
-from tandemscan.daemon.api_guard import require_token
-from tandemscan.daemon.api_models import PROBLEM_RESPONSES, Job, JobId, JobPage, JobRequest, JobStateName
-from tandemscan.daemon.facade import Facade
+from tandemscan.daemon.api.facade import Facade
+from tandemscan.daemon.api.guard import require_token
+from tandemscan.daemon.api.models import PROBLEM_RESPONSES, Job, JobId, JobPage, JobRequest, JobStateName
 
 router = APIRouter(tags=["jobs"])
 MUTATING = [Depends(require_token)]

@@ -17,14 +17,13 @@ from pathlib import Path
 
 from asyncua import Server, ua
 from tandemscan.config.models import OpcuaConfig
-from tandemscan.daemon.api_models import JobRequest
-from tandemscan.daemon.facade import ServiceFacade
-from tandemscan.daemon.jobs import JobRequestError
-from tandemscan.daemon.opcua.calls import CallRefused, spec_method, text_method
-from tandemscan.daemon.opcua.feed import CellFeed, device_names
-from tandemscan.daemon.opcua.model import CONTROL_METHODS, NAMESPACE_URI, SAFETY_METHODS, CellNodes, build_model
-from tandemscan.daemon.opcua.results import FileTransfer, ResultCatalog
-from tandemscan.daemon.opcua.security import (
+from tandemscan.daemon.api.facade import ServiceFacade
+from tandemscan.daemon.api.models import JobRequest
+from tandemscan.daemon.api.opcua.calls import CallRefused, spec_method, text_method
+from tandemscan.daemon.api.opcua.feed import CellFeed, device_names
+from tandemscan.daemon.api.opcua.model import CONTROL_METHODS, NAMESPACE_URI, SAFETY_METHODS, CellNodes, build_model
+from tandemscan.daemon.api.opcua.results import FileTransfer, ResultCatalog
+from tandemscan.daemon.api.opcua.security import (
     APPLICATION_URI,
     PlantUserManager,
     RoleRuleset,
@@ -32,6 +31,7 @@ from tandemscan.daemon.opcua.security import (
     ensure_server_identity,
     load_users,
 )
+from tandemscan.daemon.jobs import JobRequestError
 from tandemscan.daemon.service import BindRefused, check_bind
 from tandemscan.drivers.tasks import cancel_and_wait
 

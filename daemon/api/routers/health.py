@@ -5,8 +5,8 @@ from __future__ import annotations
 from fastapi import APIRouter
 from fastapi.responses import Response
 from prometheus_client import CONTENT_TYPE_LATEST
-from tandemscan.daemon.api_models import Health
-from tandemscan.daemon.facade import Facade
+from tandemscan.daemon.api.facade import Facade
+from tandemscan.daemon.api.models import Health
 
 router = APIRouter(tags=["service"])
 

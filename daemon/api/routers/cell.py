@@ -4,9 +4,9 @@
 from __future__ import annotations
 
 from fastapi import APIRouter, Depends
-from tandemscan.daemon.api_guard import require_token
-from tandemscan.daemon.api_models import PROBLEM_RESPONSES, Calibration, Devices, PlanSummary
-from tandemscan.daemon.facade import Facade
+from tandemscan.daemon.api.facade import Facade
+from tandemscan.daemon.api.guard import require_token
+from tandemscan.daemon.api.models import PROBLEM_RESPONSES, Calibration, Devices, PlanSummary
 
 router = APIRouter(tags=["cell"])
 MUTATING = [Depends(require_token)]

@@ -1,12 +1,12 @@
 """The daemon as the REST API sees it: one coroutine per question or command, none of which blocks the event loop.
 
-The routers (``daemon/routers/``) are a thin HTTP gateway over this facade, as bluesky-queueserver keeps its
+The routers (``daemon/api/routers/``) are a thin HTTP gateway over this facade, as bluesky-queueserver keeps its
 manager apart from its HTTP server: they parse requests and shape answers, the facade reads the journal and
 commands the job manager and the supervisor. Every read of the journal runs in the facade's one store thread (a
 dedicated executor thread with its own SQLite connection, so SQLite's work and the JSON decoding of rows never
 run on the loop); file reads (plans, the calibration file, a job's report) and disk usage run in asyncio's
 default thread pool; commands are coroutines of the manager and the supervisor on the loop. Refusals are
-:class:`~tandemscan.daemon.api_errors.ApiProblem` with their HTTP status. See docs/daemon.md.
+:class:`~tandemscan.daemon.api.errors.ApiProblem` with their HTTP status. See docs/daemon.md.
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ from typing import TYPE_CHECKING, Annotated, TypeVar
 import numpy as np
 from fastapi import Depends, Request
 from prometheus_client import generate_latest
-from tandemscan.daemon.api_errors import ApiProblem
-from tandemscan.daemon.api_models import Job, JobPage, JobRequest, job_body
+from tandemscan.daemon.api.errors import ApiProblem
+from tandemscan.daemon.api.models import Job, JobPage, JobRequest, job_body
 from tandemscan.daemon.calibration_state import resolve_installation
 from tandemscan.daemon.events import Subscription, sse_text
 from tandemscan.daemon.installation import InstallationError, installation_for_job
@@ -80,12 +80,12 @@ class ServiceFacade:
         return await self.read(self.daemon.manager.get, job_id)
 
     async def job_json(self, job_id: str) -> bytes:
-        """The job's JSON (a :class:`~tandemscan.daemon.api_models.Job`), read and encoded in the store thread."""
+        """The job's JSON (a :class:`~tandemscan.daemon.api.models.Job`), read and encoded in the store thread."""
         return await self.read(lambda: self._body(self.daemon.manager.get(job_id)).model_dump_json().encode())
 
     async def jobs_json(self, states: list[str] | None, plan: str | None, limit: int, offset: int,
                         next_url: Callable[[int], str]) -> bytes:
-        """One page of jobs, newest first, as the JSON of a :class:`~tandemscan.daemon.api_models.JobPage` (read
+        """One page of jobs, newest first, as the JSON of a :class:`~tandemscan.daemon.api.models.JobPage` (read
         and encoded in the store thread); ``next_url(offset)`` links the next page when there is one."""
         def page() -> bytes:
             jobs, total = self.daemon.store.list_jobs(states, plan, None, limit, offset)

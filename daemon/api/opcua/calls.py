@@ -1,5 +1,5 @@
 """Method calls as OPC UA answers: the inputs checked against the method's signature, and a refusal of the service
-facade (an :class:`~tandemscan.daemon.api_errors.ApiProblem` or :class:`~tandemscan.daemon.jobs.JobRequestError` with
+facade (an :class:`~tandemscan.daemon.api.errors.ApiProblem` or :class:`~tandemscan.daemon.jobs.JobRequestError` with
 its HTTP status) as a Bad status code with the problem's text (docs/opcua.md, methods).
 
 A refusal answers the status code of its HTTP status (:data:`STATUS_OF_HTTP`) and the text in the method's
@@ -14,7 +14,7 @@ from collections.abc import Awaitable, Callable, Sequence
 
 from asyncua import ua
 from pydantic import ValidationError
-from tandemscan.daemon.api_errors import ApiProblem
+from tandemscan.daemon.api.errors import ApiProblem
 from tandemscan.daemon.jobs import JobRequestError
 
 log = logging.getLogger(__name__)

@@ -20,10 +20,10 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from asyncua import Node, Server, ua
-from tandemscan.daemon.facade import ServiceFacade
+from tandemscan.daemon.api.facade import ServiceFacade
+from tandemscan.daemon.api.opcua.calls import CallRefused, spec_method
+from tandemscan.daemon.api.opcua.model import CellNodes
 from tandemscan.daemon.job_state import COMPLETED_STATES, JobState
-from tandemscan.daemon.opcua.calls import CallRefused, spec_method
-from tandemscan.daemon.opcua.model import CellNodes
 from tandemscan.daemon.store import JobRecord
 
 log = logging.getLogger(__name__)

@@ -6,9 +6,9 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 from fastapi.responses import FileResponse, Response
-from tandemscan.daemon.api_errors import ApiProblem
-from tandemscan.daemon.api_models import JOB_FILES, PROBLEM_RESPONSES, JobId
-from tandemscan.daemon.facade import Facade
+from tandemscan.daemon.api.errors import ApiProblem
+from tandemscan.daemon.api.facade import Facade
+from tandemscan.daemon.api.models import JOB_FILES, PROBLEM_RESPONSES, JobId
 
 router = APIRouter(tags=["jobs"])
 

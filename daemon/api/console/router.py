@@ -18,11 +18,11 @@ from typing import Literal
 from fastapi import APIRouter, Depends, Path
 from fastapi.responses import FileResponse, HTMLResponse, Response
 from pydantic import BaseModel, Field
-from tandemscan.daemon.api_errors import ApiProblem
-from tandemscan.daemon.api_guard import require_token
-from tandemscan.daemon.api_models import PROBLEM_RESPONSES, JobId
-from tandemscan.daemon.console.cloud_view import MEDIA_TYPE, CloudViewError, view_file
-from tandemscan.daemon.facade import Facade
+from tandemscan.daemon.api.console.cloud_view import MEDIA_TYPE, CloudViewError, view_file
+from tandemscan.daemon.api.errors import ApiProblem
+from tandemscan.daemon.api.facade import Facade
+from tandemscan.daemon.api.guard import require_token
+from tandemscan.daemon.api.models import PROBLEM_RESPONSES, JobId
 from tandemscan.daemon.job_state import FINAL_STATES
 from tandemscan.drivers.errors import DeviceError
 from tandemscan.pipeline.planning.plan import MoveMeasure, MoveTracker, Plan
@@ -99,7 +99,7 @@ def plan_view(plan: Plan, chassis_devices: dict[str, str]) -> PlanView:
 
 
 def _asset_text(name: str) -> str:
-    return resources.files("tandemscan.daemon.console").joinpath("static", name).read_text(encoding="utf-8")
+    return resources.files("tandemscan.daemon.api.console").joinpath("static", name).read_text(encoding="utf-8")
 
 
 @router.get("/", response_class=HTMLResponse, responses={200: {"content": {"text/html": {}}}})

@@ -15,10 +15,10 @@ import logging
 from collections.abc import Callable, Iterable
 
 from asyncua import Server, ua
-from tandemscan.daemon.facade import ServiceFacade
+from tandemscan.daemon.api.facade import ServiceFacade
+from tandemscan.daemon.api.opcua.model import CellNodes
 from tandemscan.daemon.job_state import COMPLETED_STATES, FINAL_STATES, JobState
 from tandemscan.daemon.jobs import JobRequestError
-from tandemscan.daemon.opcua.model import CellNodes
 from tandemscan.daemon.store import Event, JobRecord
 
 log = logging.getLogger(__name__)

@@ -95,7 +95,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
                                               for x, y, h in plan.tracker_poses]}
     report_file.write_text(json.dumps(report, indent=1), encoding="utf-8")
     if args.png:
-        from tandemscan.daemon.plan_figure import draw_plan
+        from tandemscan.daemon.cli.plan_figure import draw_plan
 
         args.png.parent.mkdir(parents=True, exist_ok=True)
         draw_plan(plan, config.installation.T_T_S.matrix(), Path(args.png))

@@ -8,10 +8,10 @@ from typing import Annotated
 
 from fastapi import APIRouter, Header, Query, Request
 from fastapi.responses import StreamingResponse
-from tandemscan.daemon.api_errors import ApiProblem
-from tandemscan.daemon.api_models import MAX_EVENT_ID, PROBLEM_RESPONSES
+from tandemscan.daemon.api.errors import ApiProblem
+from tandemscan.daemon.api.facade import Facade, ServiceFacade
+from tandemscan.daemon.api.models import MAX_EVENT_ID, PROBLEM_RESPONSES
 from tandemscan.daemon.events import sse_text
-from tandemscan.daemon.facade import Facade, ServiceFacade
 
 router = APIRouter(tags=["service"])
 

@@ -113,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Stand-alone entry: ``python -m tandemscan.daemon.inspect_cmd CLOUD --cad MESH``."""
+    """Stand-alone entry: ``python -m tandemscan.daemon.cli.inspect_cmd CLOUD --cad MESH``."""
     parser = argparse.ArgumentParser(prog="tandemscan inspect")
     configure(parser)
     return run(parser.parse_args(argv))

@@ -23,7 +23,7 @@ def read_password() -> str:
 
 
 def cmd_opcua_user(args: argparse.Namespace) -> int:
-    from tandemscan.daemon.opcua.security import hash_password
+    from tandemscan.daemon.api.opcua.security import hash_password
 
     try:
         password = read_password()

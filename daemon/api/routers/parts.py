@@ -5,9 +5,9 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Path, Query
-from tandemscan.daemon.api_errors import ApiProblem
-from tandemscan.daemon.api_models import PROBLEM_RESPONSES, CharacteristicTrend, trend_body
-from tandemscan.daemon.facade import Facade
+from tandemscan.daemon.api.errors import ApiProblem
+from tandemscan.daemon.api.facade import Facade
+from tandemscan.daemon.api.models import PROBLEM_RESPONSES, CharacteristicTrend, trend_body
 
 router = APIRouter(tags=["parts"])
 Name = Annotated[str, Path(min_length=1, max_length=200)]

@@ -186,7 +186,7 @@ def _mounts_line(config: CellConfig) -> str:
 def _plan_to_measure(args: argparse.Namespace, config: CellConfig, job_dir: Path):
     """The plan of a ``measure``: ``--plan`` if given (refused when made for another part), else for ``--part``
     a plan made now (saved as ``plan.toml`` in the job folder, and said so), else the shipped band plan."""
-    from tandemscan.daemon.plan_cmd import PlanPartError, check_plan_part, describe, plan_configured_part
+    from tandemscan.daemon.cli.plan_cmd import PlanPartError, check_plan_part, describe, plan_configured_part
     from tandemscan.pipeline.planning.plan import Plan
 
     try:
@@ -341,14 +341,14 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 
 def _client(args: argparse.Namespace):
-    from tandemscan.daemon.client import DaemonClient
+    from tandemscan.daemon.cli.client import DaemonClient
 
     return DaemonClient(args.url)
 
 
 def cmd_jobs(args: argparse.Namespace) -> int:
     """List the daemon's jobs, newest first."""
-    from tandemscan.daemon.client import ClientError
+    from tandemscan.daemon.cli.client import ClientError
 
     try:
         with _client(args) as client:
@@ -364,7 +364,7 @@ def cmd_jobs(args: argparse.Namespace) -> int:
 
 def cmd_job(args: argparse.Namespace) -> int:
     """``job submit|watch|cancel|pause|resume``: one job on a running daemon."""
-    from tandemscan.daemon.client import ClientError
+    from tandemscan.daemon.cli.client import ClientError
 
     try:
         with _client(args) as client:
@@ -442,7 +442,7 @@ def build_parser() -> argparse.ArgumentParser:
         v.add_argument("job_id")
     p.set_defaults(func=cmd_job)
 
-    from tandemscan.daemon.inspect_cmd import register as register_inspect
+    from tandemscan.daemon.cli.inspect_cmd import register as register_inspect
 
     register_inspect(sub)
 
@@ -456,15 +456,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--calibration", type=Path, help="calibration file to verify (default: the job's mounts)")
     p.set_defaults(func=cmd_verify)
 
-    from tandemscan.daemon.deepmerge_cmd import register as register_deepmerge
+    from tandemscan.daemon.cli.deepmerge_cmd import register as register_deepmerge
 
     register_deepmerge(sub)
 
-    from tandemscan.daemon.plan_cmd import register as register_plan
+    from tandemscan.daemon.cli.plan_cmd import register as register_plan
 
     register_plan(sub)
 
-    from tandemscan.daemon.opcua.command import register as register_opcua
+    from tandemscan.daemon.cli.opcua_cmd import register as register_opcua
 
     register_opcua(sub)
     return parser

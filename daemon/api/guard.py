@@ -13,8 +13,8 @@ from typing import Annotated
 
 from fastapi import Header, Request
 from starlette.exceptions import HTTPException as StarletteHTTPException
-from tandemscan.daemon.api_errors import problem
-from tandemscan.daemon.facade import facade_of
+from tandemscan.daemon.api.errors import problem
+from tandemscan.daemon.api.facade import facade_of
 
 UNAUTHORISED_HEADERS = {"WWW-Authenticate": 'Bearer realm="tandemscan"'}
 
