@@ -188,7 +188,7 @@ async def _calibrate_and_measure(cfg, out: Path) -> dict:
     job and of its tracker-only stitch, and the ``T_T_S`` error (mm, deg, surface mm) the job's mount
     estimate leaves against the truth."""
     from tandemscan.daemon.calibrate import run_calibration
-    from tandemscan.daemon.cli import default_plan_path
+    from tandemscan.daemon.plans import default_plan_path
     from tandemscan.daemon.runner import JobRunner
     from tandemscan.daemon.session import CellSession
     from tandemscan.pipeline.planning.plan import Plan
@@ -242,7 +242,7 @@ async def _consistency(cfg, seeds: list[int], out: Path, band: bool) -> dict:
     axis in 1-sigma; with ``band`` the default band job with the calibrated and with the true mounts (cloud RMS
     after the correction, mm; the job's mount estimate against the truth)."""
     from tandemscan.daemon.calibrate import run_calibration
-    from tandemscan.daemon.cli import default_plan_path
+    from tandemscan.daemon.plans import default_plan_path
     from tandemscan.daemon.runner import JobRunner
     from tandemscan.daemon.session import CellSession
     from tandemscan.pipeline.planning.plan import Plan

@@ -24,6 +24,8 @@ import numpy as np
 from clean_exit import clean_exit_on_sigterm
 from results import publish
 from tandemscan.daemon import cli
+from tandemscan.daemon.cli import cell_cmd
+from tandemscan.daemon.plans import default_plan_path
 from tandemscan.sim_drivers.hil_box import BOX_PLAN, write_hil_box_cell
 from tandemscan.sim_drivers.world import SimWorld
 
@@ -33,7 +35,7 @@ CASES = (("measure", "arm"), ("measure", "tracking_chassis"), ("calibrate", "arm
 def hil_config_file(folder: Path) -> Path:
     """The box cell of ``sim_drivers.hil_box`` with the arm at 1/20 of real time (the shipped 1/500 ends most arm
     moves within a few ms, before an e-stop could land while the arm moves)."""
-    return write_hil_box_cell(folder, cli.default_plan_path(), "bench", arm_time_scale=0.05)
+    return write_hil_box_cell(folder, default_plan_path(), "bench", arm_time_scale=0.05)
 
 
 class EstopProbe:
@@ -113,20 +115,20 @@ class EstopProbe:
 
 def run_case(config_file: Path, command: str, device: str, out: Path) -> dict:
     probe = EstopProbe(device)
-    build = cli._session
+    build = cell_cmd._session
 
     def spied(config):
         session = build(config)
         probe.attach(session)
         return session
 
-    cli._session = spied
+    cell_cmd._session = spied
     try:
         target = (["--out", str(out / "calibration.json")] if command == "calibrate"
                   else ["--plan", str(config_file.parent / BOX_PLAN), "--out", str(out)])
         status = cli.main([command, "--config", str(config_file), *target])
     finally:
-        cli._session = build
+        cell_cmd._session = build
     return {"exit_status": status, "latched": probe.session.supervisor.latched_reason, **probe.figures()}
 
 

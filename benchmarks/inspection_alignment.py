@@ -36,7 +36,7 @@ from pose_bound import bound_model  # benchmarks/pose_bound.py: the bound's erro
 from results import publish
 from tandemscan.config import load_config
 from tandemscan.config.models import CellConfig
-from tandemscan.daemon.cli import default_plan_path
+from tandemscan.daemon.plans import default_plan_path
 from tandemscan.daemon.runner import JobResult, JobRunner, ScanRecord
 from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.geometry import frames as F

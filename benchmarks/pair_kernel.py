@@ -44,8 +44,8 @@ from results import publish
 from scipy.spatial import cKDTree
 from tandemscan.config import load_config
 from tandemscan.config.models import CorrectionConfig
-from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.job_correction import stitched_scans, transfer_priors
+from tandemscan.daemon.plans import default_plan_path
 from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.compute import DaskBackend, LocalBackend

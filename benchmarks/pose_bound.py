@@ -61,9 +61,9 @@ from clean_exit import clean_exit_on_sigterm
 from results import publish
 from scipy.spatial import cKDTree
 from tandemscan.config import load_config
-from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.finish import merge_stage
 from tandemscan.daemon.job_correction import mount_prior, transfer_priors
+from tandemscan.daemon.plans import default_plan_path
 from tandemscan.daemon.runner import JobResult, JobRunner
 from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.geometry.frames import invert, to_rotvec, transform_points

@@ -24,9 +24,9 @@ from results import publish
 from tandemscan.config import load_config
 from tandemscan.daemon.api.facade import ServiceFacade
 from tandemscan.daemon.api.models import JobRequest, trend_body
-from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.job_state import FINAL_STATES
 from tandemscan.daemon.part_results import PartResults
+from tandemscan.daemon.plans import default_plan_path
 from tandemscan.daemon.service import WORLD_STATE_FILE, Daemon
 from tandemscan.pipeline.planning.plan import Plan
 from tandemscan.sim_drivers.cell import Simulation, with_surveyed_mounts

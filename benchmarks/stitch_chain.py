@@ -36,8 +36,8 @@ import open3d as o3d
 from clean_exit import clean_exit_on_sigterm
 from results import publish
 from tandemscan.config import load_config
-from tandemscan.daemon.cli.plan_cmd import plan_configured_part
 from tandemscan.daemon.coordinate_transfer import PoseReading, choose_transfer_poses, pose_transfer, transfer_joints
+from tandemscan.daemon.plans import plan_configured_part
 from tandemscan.daemon.tracker_reading import averaged_covariance
 from tandemscan.drivers.errors import TargetNotVisible
 from tandemscan.pipeline.geometry import frames as F

@@ -37,7 +37,7 @@ from clean_exit import clean_exit_on_sigterm
 from results import publish
 from tandemscan.config import load_config
 from tandemscan.daemon import job_outputs
-from tandemscan.daemon.cli import default_plan_path
+from tandemscan.daemon.plans import default_plan_path
 from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.geometry.frames import from_rotvec, invert, transform_points

@@ -1,9 +1,11 @@
 """The plans a job can name: files shipped in ``tandemscan.config/plans`` and site plans in
 ``<state dir>/plans`` (TOML or JSON, :class:`tandemscan.pipeline.planning.plan.Plan`), plus the cell's default plan
-made on demand by a factory (the planner, for the configured part).
+made on demand by a factory (the planner, for the configured part); and which part a plan is for.
 
 Every plan the catalog hands out has passed its ``check`` (the daemon's: :func:`part_check`, the plan made for the
-configured part), so a job cannot be queued with a plan for another part whatever asks for it (docs/daemon.md)."""
+configured part), so a job cannot be queued with a plan for another part whatever asks for it (docs/daemon.md);
+``measure`` refuses such a plan the same way (:func:`check_plan_part`) and plans the configured part when given
+none (:func:`plan_configured_part`)."""
 
 from __future__ import annotations
 
@@ -13,6 +15,7 @@ from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
 from tandemscan.pipeline.planning.plan import Plan, PlanError
 
 if TYPE_CHECKING:
@@ -25,11 +28,60 @@ PLAN_SUFFIXES = (".toml", ".json")
 PlanCheck = Callable[[Plan, Path], None]
 
 
-def part_check(config: CellConfig) -> PlanCheck:
-    """The CLI's :func:`~tandemscan.daemon.cli.plan_cmd.check_plan_part` against ``config``'s part, a mismatch as a
-    :class:`PlanError` naming both parts."""
-    from tandemscan.daemon.cli.plan_cmd import PlanPartError, check_plan_part
+class PlanPartError(Exception):
+    """The part cannot be planned, or a plan does not belong to the part (one line for the operator)."""
 
+
+def part_name(config: CellConfig) -> str:
+    """How a plan names its part: the mesh file, or the parametric nose."""
+    return str(config.part.mesh) if config.part.mesh else "parametric train nose"
+
+
+def plan_configured_part(config: CellConfig, name: str):
+    """Plan the configured part (mesh file or parametric nose); the tracker chain starts where the tracking robot
+    stands (``sim.tracking_start``). Returns the mesh and the :class:`PartPlan`; raises :class:`PlanPartError`."""
+    from tandemscan.pipeline.geometry.part import PartMeshError, load_part_mesh
+    from tandemscan.pipeline.planning.planner import plan_part
+    from tandemscan.pipeline.planning.sequence import SequenceError
+    from tandemscan.pipeline.planning.stations import StationPlanningError
+    from tandemscan.pipeline.planning.tracker import TrackerPlanningError
+
+    start = config.sim.tracking_start
+    try:
+        mesh = load_part_mesh(config.part)
+        return mesh, plan_part(mesh, config, tracker_start=(start.x_mm, start.y_mm, np.radians(start.heading_deg)),
+                               name=name, part=part_name(config))
+    except (PartMeshError, StationPlanningError, TrackerPlanningError, SequenceError) as e:
+        raise PlanPartError(str(e)) from e
+
+
+def check_plan_part(plan: Plan, plan_file: Path, config: CellConfig) -> None:
+    """Refuse a plan made for another part than the configured mesh (raises :class:`PlanPartError`); a plan that
+    does not state its part (older files) is taken as it is."""
+    from tandemscan.pipeline.geometry.part import PartMeshError, load_part_mesh, part_identity
+
+    if plan.part_identity is None:
+        return
+    try:
+        mine = part_identity(load_part_mesh(config.part))
+    except PartMeshError as e:
+        raise PlanPartError(str(e)) from e
+    made_for = plan.part_identity
+    if mine.sha256 != made_for.sha256:
+        raise PlanPartError(
+            f"{plan_file}: plan made for another part ({plan.part or 'unnamed'}, bbox {list(made_for.bbox_min_mm)} .. "
+            f"{list(made_for.bbox_max_mm)} mm, sha256 {made_for.sha256[:12]}) than {part_name(config)} (bbox "
+            f"{list(mine.bbox_min_mm)} .. {list(mine.bbox_max_mm)} mm, sha256 {mine.sha256[:12]}); plan this part "
+            "with `tandemscan plan --part MESH` or run `measure --part MESH` without --plan")
+
+
+def default_plan_path() -> Path:
+    """The shipped plan for the default part."""
+    return PlanCatalog.shipped_folder() / "default-band.toml"
+
+
+def part_check(config: CellConfig) -> PlanCheck:
+    """:func:`check_plan_part` against ``config``'s part, a mismatch as a :class:`PlanError` naming both parts."""
     def check(plan: Plan, plan_file: Path) -> None:
         try:
             check_plan_part(plan, plan_file, config)

@@ -1,9 +1,9 @@
 """The daemon process: store, the cell session (devices, supervisor, simulation), job manager, events and
-systemd notification in one object, and ``serve()`` that puts the REST API in front of it with uvicorn.
+systemd notification in one object, :class:`Daemon`, which the gateways (:mod:`tandemscan.daemon.api`) put in
+front of the MES and operators (:func:`tandemscan.daemon.api.app.serve`).
 
-Environment: ``TANDEMSCAN_API_TOKEN`` (bearer token of mutating calls; overrides ``[daemon] api_token``),
-``TANDEMSCAN_STATE_DIR`` (default: systemd's ``$STATE_DIRECTORY``, else ``./state``), ``NOTIFY_SOCKET`` and
-``WATCHDOG_USEC`` (set by systemd).
+Environment: ``TANDEMSCAN_STATE_DIR`` (default: systemd's ``$STATE_DIRECTORY``, else ``./state``),
+``NOTIFY_SOCKET`` and ``WATCHDOG_USEC`` (set by systemd).
 
 Start-up errors (:class:`StartupError`: the state directory or its journal unusable, the port not bindable) are
 found before any device is touched and end ``tandemscan serve`` in one line and their own exit status
@@ -13,12 +13,9 @@ found before any device is touched and end ``tandemscan serve`` in one line and 
 from __future__ import annotations
 
 import asyncio
-import errno
-import ipaddress
 import logging
 import os
 import shutil
-import socket
 import sqlite3
 import tempfile
 import time
@@ -29,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 from prometheus_client import CollectorRegistry
-from tandemscan.config import CellConfig, load_config
+from tandemscan.config import CellConfig
 from tandemscan.daemon.cell import Cell
 from tandemscan.daemon.device_events import DeviceEventJournal
 from tandemscan.daemon.events import EventBus
@@ -47,14 +44,9 @@ from tandemscan.drivers.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
 
-TOKEN_ENV = "TANDEMSCAN_API_TOKEN"
 STATE_DIR_ENV = "TANDEMSCAN_STATE_DIR"
 #: where a simulated cell keeps its world's state in the state folder (its robots where they stopped)
 WORLD_STATE_FILE = "sim_world.json"
-
-
-class BindRefused(Exception):
-    """The daemon was asked to listen beyond loopback without an API token."""
 
 
 class StartupError(Exception):
@@ -79,24 +71,6 @@ def open_state(state_dir: Path) -> JobStore:
                            f"{STATE_DIR_ENV}, or systemd's StateDirectory=, to a writable folder)") from e
 
 
-def listening_socket(host: str, port: int) -> socket.socket:
-    """A TCP socket bound to ``host:port`` for the REST server; :class:`StartupError` (``retry`` when the address
-    is in use) when it cannot be bound."""
-    try:
-        family, kind, proto, _, address = socket.getaddrinfo(host.strip("[]"), port, type=socket.SOCK_STREAM,
-                                                             flags=socket.AI_PASSIVE)[0]
-        sock = socket.socket(family, kind, proto)
-    except OSError as e:
-        raise StartupError(f"cannot listen on {host}:{port}: {e}") from e
-    try:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        sock.bind(address)
-    except OSError as e:
-        sock.close()
-        raise StartupError(f"cannot listen on {host}:{port}: {e.strerror or e}", e.errno == errno.EADDRINUSE) from e
-    return sock
-
-
 def resolve_state_dir(environ: Mapping[str, str] | None = None) -> Path:
     """``$TANDEMSCAN_STATE_DIR``, else the first of systemd's ``$STATE_DIRECTORY``, else ``./state``."""
     env = os.environ if environ is None else environ
@@ -105,25 +79,6 @@ def resolve_state_dir(environ: Mapping[str, str] | None = None) -> Path:
     if env.get("STATE_DIRECTORY"):
         return Path(env["STATE_DIRECTORY"].split(":")[0])
     return Path("state")
-
-
-def resolve_token(config: CellConfig, environ: Mapping[str, str] | None = None) -> str | None:
-    """The API token: the environment wins over the config; empty means none."""
-    env = os.environ if environ is None else environ
-    return env.get(TOKEN_ENV) or config.daemon.api_token or None
-
-
-def check_bind(host: str, token: str | None) -> None:
-    """Refuse (:class:`BindRefused`) to listen beyond loopback without a token."""
-    if token:
-        return
-    try:
-        loopback = host == "localhost" or ipaddress.ip_address(host.strip("[]")).is_loopback
-    except ValueError:
-        loopback = False
-    if not loopback:
-        raise BindRefused(f"refusing to listen on {host} without an API token: set {TOKEN_ENV} "
-                          f"or daemon.api_token in the config, or bind to 127.0.0.1")
 
 
 def _package_version() -> str:
@@ -243,25 +198,3 @@ class Daemon:
                 "storage_low": low, "storage_error": storage_error, "events_not_journaled": unjournaled,
                 "event_journal_failures": self.device_events.failed_writes, "damaged_scans": damaged,
                 "version": self.version}
-
-
-def serve(config_path: Path | str | None = None, host: str | None = None, port: int | None = None,
-          environ: Mapping[str, str] | None = None) -> None:
-    """Run the daemon and its REST API until SIGTERM/SIGINT (``tandemscan serve``); :class:`StartupError` when its
-    port or state directory cannot be used."""
-    import uvicorn
-    from tandemscan.daemon.api.app import create_app
-
-    config = load_config(config_path)
-    token = resolve_token(config, environ)
-    host = host or config.daemon.host
-    port = config.daemon.port if port is None else port
-    check_bind(host, token)
-    sock = listening_socket(host, port)  # before any device is touched: a taken port ends the start at once
-    try:
-        daemon = Daemon(config, resolve_state_dir(environ), token=token)
-        app = create_app(daemon, manage_lifecycle=True)
-        uvicorn.Server(uvicorn.Config(app, host=host, port=port, log_config=None, access_log=False,
-                                      timeout_graceful_shutdown=10)).run(sockets=[sock])
-    finally:
-        sock.close()

@@ -1,5 +1,8 @@
-"""Who may call what: the bearer token of mutating calls and the request-body limit.
+"""Who may call what: the bearer token of mutating calls, where the daemon may listen without one, and the
+request-body limit.
 
+Environment: ``TANDEMSCAN_API_TOKEN`` (bearer token of mutating calls; overrides ``[daemon] api_token``).
+:func:`check_bind` refuses to listen beyond loopback without a token (the REST API and the OPC UA server alike).
 :class:`GuardBody` sits in front of every handler (pure ASGI): a mutating request without the token is refused
 (401) before its body is read, and a body over ``[daemon] max_body_bytes`` (declared or streamed) with 413.
 :func:`require_token` is the same check as a route dependency (it also documents the header in the OpenAPI).
@@ -9,14 +12,44 @@ See docs/daemon.md.
 from __future__ import annotations
 
 import hmac
-from typing import Annotated
+import ipaddress
+import os
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Annotated
 
 from fastapi import Header, Request
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from tandemscan.daemon.api.errors import problem
 from tandemscan.daemon.api.facade import facade_of
 
+if TYPE_CHECKING:
+    from tandemscan.config import CellConfig
+
+TOKEN_ENV = "TANDEMSCAN_API_TOKEN"
 UNAUTHORISED_HEADERS = {"WWW-Authenticate": 'Bearer realm="tandemscan"'}
+
+
+class BindRefused(Exception):
+    """The daemon was asked to listen beyond loopback without an API token."""
+
+
+def resolve_token(config: CellConfig, environ: Mapping[str, str] | None = None) -> str | None:
+    """The API token: the environment wins over the config; empty means none."""
+    env = os.environ if environ is None else environ
+    return env.get(TOKEN_ENV) or config.daemon.api_token or None
+
+
+def check_bind(host: str, token: str | None) -> None:
+    """Refuse (:class:`BindRefused`) to listen beyond loopback without a token."""
+    if token:
+        return
+    try:
+        loopback = host == "localhost" or ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        loopback = False
+    if not loopback:
+        raise BindRefused(f"refusing to listen on {host} without an API token: set {TOKEN_ENV} "
+                          f"or daemon.api_token in the config, or bind to 127.0.0.1")
 
 
 def require_token(request: Request, authorization: Annotated[str | None, Header()] = None) -> None:

@@ -1,8 +1,8 @@
 """``tandemscan train-deepmerge`` and ``tandemscan register``: DeepMerge training and pairwise registration.
 
 ``register(subparsers)`` adds both sub-commands to the main CLI. Bad input (a missing cloud, an unreadable
-transform or weights file) raises the CLI's ``UsageError``: one error line, exit status 2; a registration
-that fails its verification is one line and exit status 3 (docs/registration.md).
+transform or weights file) raises :class:`~tandemscan.daemon.cli.command.UsageError`: one error line, exit status
+2; a registration that fails its verification is one line and exit status 3 (docs/registration.md).
 """
 
 from __future__ import annotations
@@ -15,12 +15,12 @@ from pathlib import Path
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from tandemscan.config import load_config
+from tandemscan.daemon.cli.command import UsageError, console
 
 
 def cmd_train_deepmerge(args: argparse.Namespace) -> int:
     """Train DeepMerge weights on generated data (CPU; see docs/deepmerge.md)."""
     import torch
-    from tandemscan.daemon.cli import console
     from tandemscan.pipeline.deepmerge.train import TrainSettings, train
 
     if args.threads:
@@ -48,7 +48,6 @@ def cmd_register(args: argparse.Namespace) -> int:
     won. A result that fails its verification (no inliers, infinite RMS, worse than the start) prints one
     line saying why and exits with status 3; the network (PyTorch) is loaded only if a stage needs it."""
     import numpy as np
-    from tandemscan.daemon.cli import UsageError, console
     from tandemscan.pipeline.io.cloud_io import CloudIOError, read_ply
     from tandemscan.pipeline.registration.pairs import LazyNetwork, PairCriteria, RegistrationFailed, register_clouds
 

@@ -14,12 +14,8 @@ from pathlib import Path
 
 import numpy as np
 from rich.console import Console
-from tandemscan.config.models import CellConfig
-from tandemscan.pipeline.planning.plan import Plan
-
-
-class PlanPartError(Exception):
-    """The part cannot be planned, or a plan does not belong to the part (one line for the operator)."""
+from tandemscan.daemon.cli.command import UsageError, config_from_args
+from tandemscan.daemon.plans import PlanPartError, part_name, plan_configured_part
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -33,54 +29,9 @@ def register(subparsers) -> argparse.ArgumentParser:
     return p
 
 
-def part_name(config: CellConfig) -> str:
-    """How a plan names its part: the mesh file, or the parametric nose."""
-    return str(config.part.mesh) if config.part.mesh else "parametric train nose"
-
-
-def plan_configured_part(config: CellConfig, name: str):
-    """Plan the configured part (mesh file or parametric nose); the tracker chain starts where the tracking robot
-    stands (``sim.tracking_start``). Returns the mesh and the :class:`PartPlan`; raises :class:`PlanPartError`."""
-    from tandemscan.pipeline.geometry.part import PartMeshError, load_part_mesh
-    from tandemscan.pipeline.planning.planner import plan_part
-    from tandemscan.pipeline.planning.sequence import SequenceError
-    from tandemscan.pipeline.planning.stations import StationPlanningError
-    from tandemscan.pipeline.planning.tracker import TrackerPlanningError
-
-    start = config.sim.tracking_start
-    try:
-        mesh = load_part_mesh(config.part)
-        return mesh, plan_part(mesh, config, tracker_start=(start.x_mm, start.y_mm, np.radians(start.heading_deg)),
-                               name=name, part=part_name(config))
-    except (PartMeshError, StationPlanningError, TrackerPlanningError, SequenceError) as e:
-        raise PlanPartError(str(e)) from e
-
-
-def check_plan_part(plan: Plan, plan_file: Path, config: CellConfig) -> None:
-    """Refuse a plan made for another part than the configured mesh (raises :class:`PlanPartError`); a plan that
-    does not state its part (older files) is taken as it is."""
-    from tandemscan.pipeline.geometry.part import PartMeshError, load_part_mesh, part_identity
-
-    if plan.part_identity is None:
-        return
-    try:
-        mine = part_identity(load_part_mesh(config.part))
-    except PartMeshError as e:
-        raise PlanPartError(str(e)) from e
-    made_for = plan.part_identity
-    if mine.sha256 != made_for.sha256:
-        raise PlanPartError(
-            f"{plan_file}: plan made for another part ({plan.part or 'unnamed'}, bbox {list(made_for.bbox_min_mm)} .. "
-            f"{list(made_for.bbox_max_mm)} mm, sha256 {made_for.sha256[:12]}) than {part_name(config)} (bbox "
-            f"{list(mine.bbox_min_mm)} .. {list(mine.bbox_max_mm)} mm, sha256 {mine.sha256[:12]}); plan this part "
-            "with `tandemscan plan --part MESH` or run `measure --part MESH` without --plan")
-
-
 def cmd_plan(args: argparse.Namespace) -> int:
     """Plan the configured part, write the plan, its report and (``--png``) the top view."""
-    from tandemscan.daemon.cli import UsageError, _load_config_with_overrides
-
-    config = _load_config_with_overrides(args)
+    config = config_from_args(args)
     out = Path(args.out) if args.out else config.job.out_dir / "plan.toml"
     try:
         _, plan = plan_configured_part(config, out.stem)

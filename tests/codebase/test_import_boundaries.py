@@ -1,7 +1,8 @@
 """The product's import boundaries (docs/architecture.md, the cell layer): no module of ``pipeline/``,
 ``drivers/``, ``daemon/`` or ``config/`` imports the simulator (the device registry names its classes as
-data), and ``config/`` imports nothing of the package but itself. Every import statement counts, also one
-inside a function."""
+data), ``config/`` imports nothing of the package but itself, and the modules of ``daemon/`` import each other
+without a cycle (docs/architecture.md, "The daemon's packages"). Every import statement counts, also one inside a
+function or under ``TYPE_CHECKING``."""
 
 from __future__ import annotations
 
@@ -65,3 +66,95 @@ def test_a_planted_violation_is_found(tmp_path):
         "config/models.py: imports tandemscan.pipeline",
         "config/models.py: imports tandemscan.pipeline.frames",
     ]
+
+
+def daemon_import_graph(root: Path, package: str = "tandemscan") -> dict[str, set[str]]:
+    """Module of ``daemon/`` -> the modules of ``daemon/`` it imports (names relative to ``daemon``, a package by
+    its own name). ``from a import b`` is an edge to ``a.b`` where that is a module, else to ``a``; importing a
+    module does not count as importing the packages above it."""
+    daemon = f"{package}.daemon"
+    paths = {}
+    for path in sorted((root / "daemon").rglob("*.py")):
+        parts = path.relative_to(root).with_suffix("").parts
+        paths[".".join([package, *(parts[:-1] if parts[-1] == "__init__" else parts)])] = path
+    graph = {}
+    for module, path in paths.items():
+        is_package = path.name == "__init__.py"
+        targets = set()
+        for name in imported_modules(path.read_text(encoding="utf-8"), module + (".__init__" if is_package else "")):
+            while name and name not in paths:  # an imported name: the module that defines it
+                name = name.rpartition(".")[0]
+            if name and name not in (module, daemon):
+                targets.add(name.removeprefix(daemon + "."))
+        graph[module.removeprefix(daemon + ".").removeprefix(daemon)] = targets
+    return graph
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of ``graph`` with more than one module (each sorted; Tarjan's
+    algorithm, iterative): every module of one imports every other, directly or through the others."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    cycles = []
+    for start in sorted(graph):
+        if start in index:
+            continue
+        work = [(start, iter(sorted(graph[start])))]
+        index[start] = low[start] = len(index)
+        stack.append(start)
+        on_stack.add(start)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = len(index)
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(graph.get(child, ())))))
+                elif child in on_stack:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                component = []
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    component.append(member)
+                    if member == node:
+                        break
+                if len(component) > 1:
+                    cycles.append(sorted(component))
+    return sorted(cycles)
+
+
+#: the cycles left while the job side of the daemon is regrouped (issue 45 point 4); nothing may join them
+CYCLES_LEFT = [
+    ["agv_relocalisation", "calibrate", "calibration_state", "cell", "coordinate_transfer", "finish", "installation",
+     "job_correction", "job_outputs", "job_report", "observer", "runner", "session", "snapshot", "stitcher", "verify"],
+    ["job_context", "jobs"],
+]
+
+
+def test_daemon_modules_import_each_other_without_a_cycle():
+    assert import_cycles(daemon_import_graph(PACKAGE_ROOT)) == CYCLES_LEFT
+
+
+def test_a_planted_import_cycle_is_found(tmp_path):
+    (tmp_path / "daemon" / "jobs").mkdir(parents=True)
+    (tmp_path / "daemon" / "__init__.py").write_text("")
+    (tmp_path / "daemon" / "jobs" / "__init__.py").write_text("")
+    (tmp_path / "daemon" / "jobs" / "runner.py").write_text(
+        "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from .snapshot import JobSnapshot\n")
+    (tmp_path / "daemon" / "jobs" / "snapshot.py").write_text(
+        "def take():\n    from tandemscan.daemon.jobs import runner\n    return runner\n")
+    (tmp_path / "daemon" / "alone.py").write_text("from tandemscan.daemon.jobs.runner import JobRunner\n")
+    graph = daemon_import_graph(tmp_path)
+    assert graph == {"": set(), "jobs": set(), "jobs.runner": {"jobs.snapshot"}, "jobs.snapshot": {"jobs.runner"},
+                     "alone": {"jobs.runner"}}
+    assert import_cycles(graph) == [["jobs.runner", "jobs.snapshot"]]

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import open3d as o3d
 from tandemscan.config import load_config
-from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.notify import Notifier
+from tandemscan.daemon.plans import default_plan_path
 from tandemscan.daemon.service import Daemon
 from tandemscan.pipeline.planning.plan import Plan
 

@@ -12,7 +12,8 @@ from pathlib import Path
 
 import pytest
 from tandemscan.config.loader import default_config_path
-from tandemscan.daemon import cli, plan_cmd
+from tandemscan.daemon import cli
+from tandemscan.daemon.cli import command, plan_cmd
 
 SHIPPED = default_config_path().read_text(encoding="utf-8")
 
@@ -51,7 +52,7 @@ def test_measure_into_a_device_fault_is_one_line_exit_4_and_its_workers_stop(fau
     threads = set(threading.enumerate())
     status, lines = run_cli(["measure", "--config", str(cell_toml(tmp_path, "cell", sim)), "--out",
                              str(tmp_path / "out")], capfd)
-    assert status == cli.EXIT_DEVICE_FAULT == 4
+    assert status == command.EXIT_DEVICE_FAULT == 4
     line = one_line(lines, "device fault")
     assert words in line and "scans measured so far are in" in line
     # the pair registration's process (started at the first scan) is gone, the threads of the job end promptly
@@ -65,7 +66,7 @@ def test_measure_into_a_device_fault_is_one_line_exit_4_and_its_workers_stop(fau
 def test_measure_into_an_estop_is_one_line_exit_3(tmp_path, capfd):
     status, lines = run_cli(["measure", "--config", str(cell_toml(tmp_path, "cell", "fault_estop_after_moves = 1")),
                              "--out", str(tmp_path / "out")], capfd)
-    assert status == cli.EXIT_SAFETY_STOP == 3
+    assert status == command.EXIT_SAFETY_STOP == 3
     assert "scans measured so far are in" in one_line(lines, "safety stop")
 
 
@@ -76,7 +77,7 @@ def test_calibrate_into_a_device_fault_is_one_line_exit_4(fault, tmp_path, capfd
     out = tmp_path / "calibration.json"
     status, lines = run_cli(["calibrate", "--config", str(cell_toml(tmp_path, "cell", sim)), "--out", str(out)],
                             capfd)
-    assert status == cli.EXIT_DEVICE_FAULT
+    assert status == command.EXIT_DEVICE_FAULT
     line = one_line(lines, "device fault")
     assert words in line and f"no calibration written to {out}" in line and not out.exists()
 
@@ -86,7 +87,7 @@ def test_calibrate_that_sees_no_plate_is_not_completed_exit_5(tmp_path, capfd):
     out = tmp_path / "calibration.json"
     toml = cell_toml(tmp_path, "short-sighted", tracker="target_view_cone_deg = 1.0")
     status, lines = run_cli(["calibrate", "--config", str(toml), "--out", str(out)], capfd)
-    assert status == cli.EXIT_NOT_COMPLETED == 5
+    assert status == command.EXIT_NOT_COMPLETED == 5
     assert "usable plate views" in one_line(lines, "not completed") and not out.exists()
 
 
@@ -135,7 +136,7 @@ def test_bad_input_is_one_line_exit_2(case, bad_files, tmp_path, capfd, monkeypa
     monkeypatch.chdir(tmp_path)  # the default outputs (out/) land here
     template, words = BAD_INPUT[case]
     status, lines = run_cli(template.format(**bad_files).split(), capfd)
-    assert status == cli.EXIT_USAGE == 2
+    assert status == command.EXIT_USAGE == 2
     errors = [ln for ln in lines if "error:" in ln]
     assert len(errors) == 1 and words in errors[0], lines
 
@@ -146,7 +147,7 @@ def test_a_defect_is_one_line_exit_70(monkeypatch, capfd):
 
     monkeypatch.setattr(plan_cmd, "cmd_plan", broken)
     status, lines = run_cli(["plan"], capfd)
-    assert status == cli.EXIT_INTERNAL == 70
+    assert status == command.EXIT_INTERNAL == 70
     assert "ZeroDivisionError: a bug" in one_line(lines, "internal error")
 
 
@@ -157,7 +158,7 @@ def test_measure_says_its_mounts_on_its_first_line_and_warns_on_nominal_ones(tmp
     from tandemscan.pipeline.stitching.installation import Installation
 
     toml = str(cell_toml(tmp_path, "cell", "fault_arm_after_moves = 1"))
-    assert cli.main(["measure", "--config", toml, "--out", str(tmp_path / "out")]) == cli.EXIT_DEVICE_FAULT
+    assert cli.main(["measure", "--config", toml, "--out", str(tmp_path / "out")]) == command.EXIT_DEVICE_FAULT
     first = capfd.readouterr().out.splitlines()[0]
     assert first.startswith("mounts: nominal") and "warning: the cell is not calibrated" in first
     calibration = tmp_path / "calibration.json"
@@ -166,6 +167,6 @@ def test_measure_says_its_mounts_on_its_first_line_and_warns_on_nominal_ones(tmp
     calibration.write_text(json.dumps({**Installation.nominal(load_config().installation).to_json(),
                                        "sources": sources}))
     assert cli.main(["measure", "--config", toml, "--calibration", str(calibration), "--out",
-                     str(tmp_path / "out")]) == cli.EXIT_DEVICE_FAULT
+                     str(tmp_path / "out")]) == command.EXIT_DEVICE_FAULT
     first = capfd.readouterr().out.splitlines()[0]
     assert first == f"mounts: calibration file {calibration}; calibrated T_T_S, T_V1_C, nominal T_E_S, T_V2_B"

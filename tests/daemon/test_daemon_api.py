@@ -15,11 +15,12 @@ import pytest
 from hypothesis import HealthCheck, settings
 from serving import running_server
 from tandemscan.daemon.api.app import create_app
+from tandemscan.daemon.api.guard import BindRefused, check_bind, resolve_token
 from tandemscan.daemon.cell import build_cell
 from tandemscan.daemon.cli.client import SseParser
 from tandemscan.daemon.motion import Robot
 from tandemscan.daemon.plans import PlanCatalog
-from tandemscan.daemon.service import BindRefused, Daemon, check_bind, resolve_state_dir, resolve_token
+from tandemscan.daemon.service import Daemon, resolve_state_dir
 from tandemscan.pipeline.planning.plan import MoveArm, PartIdentity, Plan, Scan
 from tandemscan.pipeline.stitching.installation import Installation
 from tandemscan.sim_drivers.cell import Simulation

@@ -8,7 +8,7 @@ import asyncio
 import json
 
 from tandemscan.daemon.api.models import job_body
-from tandemscan.daemon.cli import default_plan_path
+from tandemscan.daemon.plans import default_plan_path
 from tandemscan.daemon.service import Daemon
 from tandemscan.pipeline.planning.plan import Plan
 

@@ -16,7 +16,7 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 import pytest
 from tandemscan.config import load_config
-from tandemscan.daemon.cli import default_plan_path
+from tandemscan.daemon.plans import default_plan_path
 from tandemscan.drivers.interfaces import ChassisPose
 from tandemscan.drivers.shared_array import PREFIX, SHM_DIR, SharedArray, hand_over, remove_stale_blocks, share, take
 from tandemscan.pipeline.planning.plan import MoveArm, MoveMeasure, Plan

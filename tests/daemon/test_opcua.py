@@ -22,9 +22,10 @@ from serving import running_server
 from tandemscan.config import load_config
 from tandemscan.config.models import OpcuaUserConfig
 from tandemscan.daemon.api.app import create_app
+from tandemscan.daemon.api.guard import BindRefused
 from tandemscan.daemon.api.opcua.model import NAMESPACE_URI
 from tandemscan.daemon.api.opcua.security import hash_password, verify_password
-from tandemscan.daemon.service import BindRefused, Daemon
+from tandemscan.daemon.service import Daemon
 from tandemscan.pipeline.planning.plan import Plan, Scan
 from tandemscan.sim_drivers.hil_box import free_port
 

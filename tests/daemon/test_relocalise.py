@@ -186,7 +186,7 @@ async def test_an_opening_tracker_move_is_a_plain_relocation(generated, drifting
 
 @pytest.mark.slow
 async def test_a_scan_that_saw_nothing_is_left_out_of_the_correction(sim_config, tmp_path):
-    from tandemscan.daemon.cli import default_plan_path
+    from tandemscan.daemon.plans import default_plan_path
 
     band = Plan.load(default_plan_path())
     two = [i for i, s in enumerate(band.steps) if isinstance(s, Scan)][1]
@@ -289,7 +289,7 @@ async def test_a_journaled_job_replayed_through_apply_is_the_state_that_wrote_it
     with a coordinate transfer and the anchor noted before its first step. Their committed journals, replayed
     through ``apply`` from the state a job starts with, give the state each run ended with (the tracker-only
     stitch: the correction changes poses after the last step, not a step)."""
-    from tandemscan.daemon.cli import default_plan_path
+    from tandemscan.daemon.plans import default_plan_path
 
     band = Plan.load(default_plan_path())
     second_scan = [i for i, s in enumerate(band.steps) if isinstance(s, Scan)][1]

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from tandemscan.daemon.cli import default_plan_path
+from tandemscan.daemon.plans import default_plan_path
 from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.session import CellSession
 from tandemscan.daemon.tracker_reading import averaged_covariance

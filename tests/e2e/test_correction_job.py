@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import pytest
-from tandemscan.daemon.cli import default_plan_path
+from tandemscan.daemon.plans import default_plan_path
 from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.planning.plan import Plan, Scan

@@ -11,9 +11,9 @@ from types import SimpleNamespace
 import numpy as np
 import pye57
 import pytest
-from tandemscan.daemon.cli import default_plan_path
 from tandemscan.daemon.finish import merge_stage
 from tandemscan.daemon.job_outputs import write_job_outputs
+from tandemscan.daemon.plans import default_plan_path
 from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.geometry.frames import from_rpy

@@ -8,7 +8,7 @@ import json
 
 import numpy as np
 import pye57
-from tandemscan.daemon.cli import default_plan_path
+from tandemscan.daemon.plans import default_plan_path
 from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.io.cloud_io import read_ply

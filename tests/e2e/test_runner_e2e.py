@@ -6,7 +6,8 @@ import json
 
 import numpy as np
 import pytest
-from tandemscan.daemon.cli import default_plan_path, main
+from tandemscan.daemon.cli import main
+from tandemscan.daemon.plans import default_plan_path
 from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.io.cloud_io import read_ply

@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from tandemscan.config.loader import default_config_path
-from tandemscan.daemon.cli import default_plan_path, main
+from tandemscan.daemon.cli import main
+from tandemscan.daemon.plans import default_plan_path
 
 
 def only_report(out: Path) -> dict:

@@ -15,7 +15,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 from tandemscan.daemon import cli
+from tandemscan.daemon.cli import cell_cmd
+from tandemscan.daemon.cli.command import EXIT_SAFETY_STOP
 from tandemscan.daemon.motion import Robot
+from tandemscan.daemon.plans import default_plan_path
 from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.session import CellSession
 from tandemscan.daemon.supervisor import MotionInterlock
@@ -28,7 +31,7 @@ from tandemscan.sim_drivers.hil_box import BOX_PLAN, write_hil_box_cell
 @pytest.fixture(scope="module")
 def hil_toml(tmp_path_factory) -> Path:
     """config/hil-cell.toml with free ports and a 3 x 2 x 1.6 m box as the part, and the band plan for the box."""
-    return write_hil_box_cell(tmp_path_factory.mktemp("hil"), cli.default_plan_path(), "cli")
+    return write_hil_box_cell(tmp_path_factory.mktemp("hil"), default_plan_path(), "cli")
 
 
 @pytest.fixture
@@ -36,7 +39,7 @@ def estop_after_two_captures(monkeypatch) -> list[CellSession]:
     """Every session the CLI opens; in each, the e-stop is pressed as the first motion after the second
     capture starts (the world's input, mirrored onto the Modbus emulator within half a control period)."""
     sessions: list[CellSession] = []
-    build = cli._session
+    build = cell_cmd._session
 
     def spied(config):
         session = build(config)
@@ -52,7 +55,7 @@ def estop_after_two_captures(monkeypatch) -> list[CellSession]:
         sessions.append(session)
         return session
 
-    monkeypatch.setattr(cli, "_session", spied)
+    monkeypatch.setattr(cell_cmd, "_session", spied)
     return sessions
 
 
@@ -65,7 +68,7 @@ def test_estop_during_measure_stops_motion_exits_nonzero_and_keeps_the_scans(hil
     status = cli.main(["measure", "--config", str(hil_toml), "--plan", str(hil_toml.parent / BOX_PLAN),
                        "--out", str(tmp_path)])
     err = capfd.readouterr().err
-    assert status == cli.EXIT_SAFETY_STOP and "Traceback" not in err
+    assert status == EXIT_SAFETY_STOP and "Traceback" not in err
     (line,) = safety_lines(err)
     assert "e-stop pressed" in line and "scans measured so far are in" in line
     (session,) = estop_after_two_captures
@@ -85,7 +88,7 @@ def test_estop_during_calibrate_stops_motion_and_writes_no_calibration(hil_toml,
     out = tmp_path / "calibration.json"
     status = cli.main(["calibrate", "--config", str(hil_toml), "--out", str(out)])
     err = capfd.readouterr().err
-    assert status == cli.EXIT_SAFETY_STOP and "Traceback" not in err
+    assert status == EXIT_SAFETY_STOP and "Traceback" not in err
     (line,) = safety_lines(err)
     assert "e-stop pressed" in line and f"no calibration written to {out}" in line
     (session,) = estop_after_two_captures

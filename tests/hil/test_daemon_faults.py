@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from tandemscan.config.models import CellConfig
-from tandemscan.daemon.cli import default_plan_path
+from tandemscan.daemon.plans import default_plan_path
 from tandemscan.daemon.service import Daemon
 from tandemscan.drivers.interfaces import ChassisPose
 from tandemscan.pipeline.planning.plan import Plan

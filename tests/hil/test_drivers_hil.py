@@ -151,7 +151,7 @@ async def test_failed_connect_closes_everything(box_part):
 async def test_a_job_on_the_hil_cell_needs_no_ground_truth_and_is_inspected(box_part, tmp_path):
     """Every device a real driver: the product path alone, no observer; the inspection registers W to CAD from the
     job's own anchor reading by a best fit to the configured CAD and reports its verdict."""
-    from tandemscan.daemon.cli import default_plan_path
+    from tandemscan.daemon.plans import default_plan_path
     from tandemscan.daemon.runner import JobRunner
     from tandemscan.pipeline.planning.plan import Plan, Scan
 

@@ -29,7 +29,7 @@ async def cell(sim_config):
 
 async def _face_the_side(cell):
     """Arm pose of the shipped plan's first scan: the scanner faces the part's side at the sweet spot."""
-    from tandemscan.daemon.cli import default_plan_path
+    from tandemscan.daemon.plans import default_plan_path
     from tandemscan.pipeline.planning.plan import MoveArm, MoveMeasure, Plan
 
     plan = Plan.load(default_plan_path())

@@ -18,6 +18,7 @@ from pathlib import Path
 from asyncua import Server, ua
 from tandemscan.config.models import OpcuaConfig
 from tandemscan.daemon.api.facade import ServiceFacade
+from tandemscan.daemon.api.guard import BindRefused, check_bind
 from tandemscan.daemon.api.models import JobRequest
 from tandemscan.daemon.api.opcua.calls import CallRefused, spec_method, text_method
 from tandemscan.daemon.api.opcua.feed import CellFeed, device_names
@@ -32,7 +33,6 @@ from tandemscan.daemon.api.opcua.security import (
     load_users,
 )
 from tandemscan.daemon.jobs import JobRequestError
-from tandemscan.daemon.service import BindRefused, check_bind
 from tandemscan.drivers.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
@@ -47,7 +47,7 @@ def _text(value: str) -> ua.Variant:
 
 def gateway_for(facade: ServiceFacade) -> OpcuaGateway | None:
     """The OPC UA server of the facade's daemon where ``[opcua] enabled``; bound to ``[opcua] host``, else the
-    REST host. Refused (:class:`~tandemscan.daemon.service.BindRefused`) beyond loopback while anonymous access is
+    REST host. Refused (:class:`~tandemscan.daemon.api.guard.BindRefused`) beyond loopback while anonymous access is
     allowed."""
     daemon = facade.daemon
     config = daemon.config.opcua

@@ -11,8 +11,9 @@ import pytest
 from tandemscan.config import ConfigError, load_config
 from tandemscan.config.models import ArmConfig, LiftConfig
 from tandemscan.daemon.cell import CellBuildError, build_cell
-from tandemscan.daemon.cli import default_plan_path, main
+from tandemscan.daemon.cli import main
 from tandemscan.daemon.motion import Robot
+from tandemscan.daemon.plans import default_plan_path
 from tandemscan.daemon.runner import JobError, JobRunner
 from tandemscan.daemon.session import CellSession
 from tandemscan.drivers.errors import OutOfReach, SafetyStop

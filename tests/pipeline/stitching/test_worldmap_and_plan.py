@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from tandemscan.daemon.cli import default_plan_path
+from tandemscan.daemon.plans import default_plan_path
 from tandemscan.pipeline.planning.plan import MoveTracker, Plan, PlanError, Scan
 from tandemscan.pipeline.stitching.worldmap import VoxelMap
 
