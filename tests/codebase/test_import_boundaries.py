@@ -68,10 +68,32 @@ def test_a_planted_violation_is_found(tmp_path):
     ]
 
 
+def imported_daemon_modules(source: str, module: str, modules: set[str]) -> set[str]:
+    """The modules of ``modules`` that ``source`` (the module ``module``, ``.__init__`` for a package) imports:
+    ``from a import b`` is ``a.b`` where that is one of them, else ``a``; ``import a.b`` is ``a.b``; a name that is
+    not itself one of them counts as the module that defines it (its longest prefix among them)."""
+    def defining(name: str) -> str | None:
+        while name and name not in modules:
+            name = name.rpartition(".")[0]
+        return name or None
+
+    found = set()
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            found |= {defining(a.name) for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parent = module.split(".")[: -node.level]
+                base = ".".join([*parent, base] if base else parent)
+            found |= {f"{base}.{a.name}" if f"{base}.{a.name}" in modules else defining(base) for a in node.names}
+    return found - {None}
+
+
 def daemon_import_graph(root: Path, package: str = "tandemscan") -> dict[str, set[str]]:
-    """Module of ``daemon/`` -> the modules of ``daemon/`` it imports (names relative to ``daemon``, a package by
-    its own name). ``from a import b`` is an edge to ``a.b`` where that is a module, else to ``a``; importing a
-    module does not count as importing the packages above it."""
+    """Module of ``daemon/`` -> the modules of ``daemon/`` it imports (:func:`imported_daemon_modules`; names
+    relative to ``daemon``, a package by its own name, ``daemon`` itself ""); importing a module does not count as
+    importing the packages above it."""
     daemon = f"{package}.daemon"
     paths = {}
     for path in sorted((root / "daemon").rglob("*.py")):
@@ -79,14 +101,9 @@ def daemon_import_graph(root: Path, package: str = "tandemscan") -> dict[str, se
         paths[".".join([package, *(parts[:-1] if parts[-1] == "__init__" else parts)])] = path
     graph = {}
     for module, path in paths.items():
-        is_package = path.name == "__init__.py"
-        targets = set()
-        for name in imported_modules(path.read_text(encoding="utf-8"), module + (".__init__" if is_package else "")):
-            while name and name not in paths:  # an imported name: the module that defines it
-                name = name.rpartition(".")[0]
-            if name and name not in (module, daemon):
-                targets.add(name.removeprefix(daemon + "."))
-        graph[module.removeprefix(daemon + ".").removeprefix(daemon)] = targets
+        own = module + (".__init__" if path.name == "__init__.py" else "")
+        targets = imported_daemon_modules(path.read_text(encoding="utf-8"), own, set(paths)) - {module, daemon}
+        graph[module.removeprefix(daemon).removeprefix(".")] = {t.removeprefix(daemon + ".") for t in targets}
     return graph
 
 
