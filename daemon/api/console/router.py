@@ -29,7 +29,7 @@ from tandemscan.pipeline.planning.plan import MoveMeasure, MoveTracker, Plan
 
 log = logging.getLogger(__name__)
 
-# The console's files in the package (tandemscan/daemon/console/static), with their media types.
+# The console's files in the package (tandemscan/daemon/api/console/static), with their media types.
 ASSETS = {
     "console.js": "text/javascript",
     "view3d.js": "text/javascript",
