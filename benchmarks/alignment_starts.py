@@ -20,7 +20,7 @@ import numpy as np
 from clean_exit import clean_exit_on_sigterm
 from tandemscan.config.models import InspectionConfig
 from tandemscan.pipeline.geometry import frames as F
-from tandemscan.pipeline.inspection.alignment import AlignmentFailed, align
+from tandemscan.pipeline.inspection.alignment import AlignmentCriteria, AlignmentFailed, align
 from tandemscan.pipeline.inspection.inspect import CadSurface, inspect_cloud
 from tandemscan.pipeline.inspection.inspection_job import measured_side
 from tandemscan.sim_drivers.generated_parts import PARTS, GeneratedPart, random_misplacement
@@ -54,7 +54,7 @@ def one_part(name: str, args: argparse.Namespace) -> dict:
         p_W = F.transform_points(T_W_F, p_F)
         t0 = time.perf_counter()
         try:
-            a = align(surface, p_W, CFG)
+            a = align(surface, p_W, AlignmentCriteria.from_section(CFG))
         except AlignmentFailed as e:
             seconds.append(time.perf_counter() - t0)
             failed += 1

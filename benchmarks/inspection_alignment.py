@@ -43,7 +43,7 @@ from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.kinematics import ArmKinematics
 from tandemscan.pipeline.geometry.part import load_part_mesh
 from tandemscan.pipeline.geometry.uncertainty import recentre
-from tandemscan.pipeline.inspection.alignment import align, align_plan_stations, fit_rigid
+from tandemscan.pipeline.inspection.alignment import AlignmentCriteria, align, align_plan_stations, fit_rigid
 from tandemscan.pipeline.inspection.inspect import CadSurface
 from tandemscan.pipeline.inspection.inspection_job import align_and_inspect, inspect_files
 from tandemscan.pipeline.io.cloud_io import read_ply
@@ -119,7 +119,7 @@ def what_the_cloud_allows(config: CellConfig, m: Measured, surface: CadSurface, 
         points = m.cloud_W if name == "job" else stitch(m.scans, poses, config.job.voxel_mm)
         fig: dict = {"cloud_rigid_err": rounded(alignment_error(reachable, m.T_F_W_true, centre))}
         for method in ("best-fit", "rps"):
-            cfg = config.inspection.model_copy(update={"alignment": method})
+            cfg = AlignmentCriteria.from_section(config.inspection, alignment=method)
             T = align(surface, points, cfg, m.anchor_T_F_W, "the anchor reading").T_F_W
             fig[method] = {"vs_truth": rounded(alignment_error(T, m.T_F_W_true, centre)),
                            "vs_reachable": rounded(alignment_error(T, reachable, centre))}

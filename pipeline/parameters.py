@@ -10,7 +10,7 @@ The fields are keys of a configuration section of the same names (``[correction]
 from __future__ import annotations
 
 import dataclasses
-import typing
+import sys
 from typing import Self
 
 
@@ -20,11 +20,12 @@ class FromSection:
     @classmethod
     def from_section(cls, section: object, **given: object) -> Self:
         """``cls`` with each field from ``given``, else from ``section``'s attribute of its name; a field whose
-        type is itself a :class:`FromSection` is built from the same section."""
-        hints = typing.get_type_hints(cls)
+        type is itself a :class:`FromSection` (named bare in the annotation, imported by the class's module) is
+        built from the same section."""
+        names = vars(sys.modules[cls.__module__])
         values = {}
         for f in dataclasses.fields(cls):
-            kind = hints[f.name]
+            kind = names.get(f.type) if isinstance(f.type, str) else f.type
             if f.name in given:
                 values[f.name] = given[f.name]
             elif isinstance(kind, type) and issubclass(kind, FromSection):

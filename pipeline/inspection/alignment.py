@@ -19,9 +19,9 @@ from __future__ import annotations
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
-from tandemscan.config.models import InspectionConfig
 from tandemscan.pipeline.calibration.plate import PlateError, fit_sphere
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.inspection.inspect import (
@@ -32,13 +32,40 @@ from tandemscan.pipeline.inspection.inspect import (
     best_fit,
     region_mask,
 )
+from tandemscan.pipeline.parameters import FromSection
 from tandemscan.pipeline.planning.plan import MoveMeasure, Plan, Scan
 from tandemscan.pipeline.registration.global_registration import FeatureMatching, fpfh_ransac
+
+if TYPE_CHECKING:
+    from tandemscan.config.models import ReferenceSphereConfig, RegionConfig
 
 log = logging.getLogger(__name__)
 
 OFF_SURFACE_MM = 1.0  # a point this far off the CAD surface near a sphere's place may lie on the sphere
 STATION_ARM_MM = 1000.0  # a station pose enters the fit as its origin and points this far along its x and y
+
+
+@dataclass(frozen=True)
+class AlignmentCriteria(FromSection):
+    """How a cloud is aligned to CAD: ``[inspection]``'s keys of the same names
+    (``AlignmentCriteria.from_section(cfg)``; mm). The method (``alignment``: best-fit, rps or none); the best
+    fit's trim distances (``alignment_distances_mm``, then ``best_fit_max_distance_mm``), ``best_fit_iterations``
+    a pass, its last pass Huber-weighted beyond ``alignment_huber_sigmas`` robust sigmas, the share of the points a
+    fit must leave on the CAD (``alignment_min_inlier_share``) and the regions it fits on (``datum_regions``, by
+    name among ``regions``); the reference spheres (``reference_spheres``, ``reference_sphere_diameter_mm``,
+    searched within ``reference_sphere_search_mm`` of where the best fit expects them)."""
+
+    alignment: str
+    alignment_distances_mm: tuple[float, ...]
+    alignment_huber_sigmas: float
+    alignment_min_inlier_share: float
+    best_fit_iterations: int
+    best_fit_max_distance_mm: float
+    datum_regions: tuple[str, ...]
+    regions: tuple[RegionConfig, ...]
+    reference_spheres: tuple[ReferenceSphereConfig, ...]
+    reference_sphere_diameter_mm: float
+    reference_sphere_search_mm: float
 
 
 @dataclass(frozen=True)
@@ -185,7 +212,7 @@ def align_plan_stations(plan: Plan, scan_T_W_V2: Sequence[np.ndarray]) -> Statio
     return align_stations([g[0] for g in groups.values()], [F.mean_pose(g[1]) for g in groups.values()])
 
 
-def _datum_points(points_mm: np.ndarray, T_F_W: np.ndarray, cfg: InspectionConfig) -> np.ndarray:
+def _datum_points(points_mm: np.ndarray, T_F_W: np.ndarray, cfg: AlignmentCriteria) -> np.ndarray:
     """The points (W) inside the named datum regions where ``T_F_W`` places them; all without datums."""
     if not cfg.datum_regions:
         return points_mm
@@ -268,7 +295,7 @@ def covariance(fit: SurfaceFit) -> np.ndarray:
 
 
 def _fine_fit(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray, prior_T_F_W: np.ndarray,
-              cfg: InspectionConfig, levels: str = "all") -> tuple[SurfaceFit, int]:
+              cfg: AlignmentCriteria, levels: str = "all") -> tuple[SurfaceFit, int]:
     """The coarse-to-fine passes of :func:`fit_to_surface` from ``start_T_F_W`` (``levels``: "all", "coarse"
     (trims beyond :data:`FINE_FROM_MM`) or "fine"), the free directions held at ``prior_T_F_W``: its last
     pass and the iterations of all. A pass leaving less than ``cfg.alignment_min_inlier_share`` of the points
@@ -338,7 +365,7 @@ def _turned_over(p: np.ndarray, T_F_W: np.ndarray) -> list[np.ndarray]:
 
 
 def _global_fit(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray, prior_T_F_W: np.ndarray,
-                cfg: InspectionConfig, fitted_T_F_W: np.ndarray | None, features: bool) -> tuple[SurfaceFit, int]:
+                cfg: AlignmentCriteria, fitted_T_F_W: np.ndarray | None, features: bool) -> tuple[SurfaceFit, int]:
     """The fit from the global stage: the coarse passes from each of its candidates (the feature matches where
     ``features``; the start's fit ``fitted_T_F_W`` turned over, :func:`_turned_over`, where that lies within
     twice its truncated cost plus 1 mm^2), the fine ones from the one with the lowest truncated cost
@@ -381,7 +408,7 @@ def _final_cost(surface: CadSurface, p: np.ndarray, T_F_W: np.ndarray, trim_mm: 
     return float(np.mean(d * d))
 
 
-def fit_to_surface(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.ndarray, cfg: InspectionConfig,
+def fit_to_surface(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.ndarray, cfg: AlignmentCriteria,
                    start: str, prior_T_F_W: np.ndarray | None = None) -> Alignment:
     """Robust best fit of the cloud (frame W, mm) to the CAD surface: trimmed, damped point-to-plane passes
     (:func:`inspect.best_fit`) at ``cfg.alignment_distances_mm`` then ``best_fit_max_distance_mm``, the last
@@ -455,7 +482,7 @@ def within(points_mm: np.ndarray, centre_mm, radius_mm: float) -> np.ndarray:
     return box[np.einsum("ij,ij->i", diff, diff) <= radius_mm * radius_mm]
 
 
-def locate_spheres(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.ndarray, cfg: InspectionConfig,
+def locate_spheres(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.ndarray, cfg: AlignmentCriteria,
                    noise_mm: float = 0.05) -> tuple[list[tuple[str, np.ndarray, np.ndarray, float, int]], list[str]]:
     """Fit each configured reference sphere in the cloud (W) among the points within
     ``reference_sphere_search_mm`` of where ``start_T_F_W`` (a best fit: to a fraction of a millimetre)
@@ -487,7 +514,7 @@ def locate_spheres(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.n
     return found, missing
 
 
-def align_rps(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.ndarray, cfg: InspectionConfig,
+def align_rps(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.ndarray, cfg: AlignmentCriteria,
               start: str) -> Alignment:
     """``T_F_W`` from the reference spheres, searched for where ``start_T_F_W`` (a best fit) puts them:
     their fitted centres (W) onto their CAD centres (F) by least squares, twice (the second search where
@@ -516,7 +543,7 @@ def sphere_residuals(found: list[tuple[str, np.ndarray, np.ndarray, float, int]]
                  for (name, cF, cW, rad, n), e in zip(found, res, strict=True))
 
 
-def sphere_points(points_mm: np.ndarray, spheres: tuple[SphereResidual, ...], cfg: InspectionConfig) -> np.ndarray:
+def sphere_points(points_mm: np.ndarray, spheres: tuple[SphereResidual, ...], cfg: AlignmentCriteria) -> np.ndarray:
     """(N,) bool: the points on the fitted spheres or within 3 mm of them (their bases): no part surface."""
     excluded = np.zeros(len(points_mm), bool)
     for s in spheres:
@@ -524,7 +551,7 @@ def sphere_points(points_mm: np.ndarray, spheres: tuple[SphereResidual, ...], cf
     return excluded
 
 
-def align(surface: CadSurface, points_mm: np.ndarray, cfg: InspectionConfig, start_T_F_W: np.ndarray | None = None,
+def align(surface: CadSurface, points_mm: np.ndarray, cfg: AlignmentCriteria, start_T_F_W: np.ndarray | None = None,
           start: str = "as given", prior_T_F_W: np.ndarray | None = None) -> Alignment:
     """Place the cloud (frame W, mm) in the CAD frame F by ``cfg.alignment`` from ``start_T_F_W`` (default
     identity: the cloud is roughly in F already); ``prior_T_F_W`` is a placement known independently (the

@@ -24,7 +24,7 @@ from tandemscan.config.inspection_template import InspectionTemplate
 from tandemscan.config.models import InspectionConfig
 from tandemscan.pipeline.geometry.frames import rotate_vectors, transform_points
 from tandemscan.pipeline.geometry.part import PartMeshError, read_mesh_file
-from tandemscan.pipeline.inspection.alignment import Alignment, AlignmentFailed, align
+from tandemscan.pipeline.inspection.alignment import Alignment, AlignmentCriteria, AlignmentFailed, align
 from tandemscan.pipeline.inspection.cad_orientation import orient
 from tandemscan.pipeline.inspection.characteristics import CharacteristicResult, MeasuredCloud, evaluate
 from tandemscan.pipeline.inspection.datum_frame import DatumPatch, align_datums
@@ -188,7 +188,7 @@ def align_and_inspect(
     if scans_before_W is not None:
         overlap = in_background(overlap_quality, scans_before_W, scans_after_W)
     try:
-        alignment = align(surface, p, cfg, start_T_F_W, start, prior_T_F_W)
+        alignment = align(surface, p, AlignmentCriteria.from_section(cfg), start_T_F_W, start, prior_T_F_W)
     except AlignmentFailed as e:  # a failed inspection, with the reason on its report
         log.warning("%s", e)
         failed = failed_report(str(e), e.attempt, title=report.get("title", "Inspection report"),

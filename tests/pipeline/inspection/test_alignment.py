@@ -8,7 +8,13 @@ import pytest
 from tandemscan.config.models import InspectionConfig, PartConfig, ReferenceSphereConfig, RegionConfig
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.part import train_nose_mesh
-from tandemscan.pipeline.inspection.alignment import align, align_plan_stations, align_stations, fit_to_surface
+from tandemscan.pipeline.inspection.alignment import (
+    AlignmentCriteria,
+    align,
+    align_plan_stations,
+    align_stations,
+    fit_to_surface,
+)
 from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionError
 from tandemscan.pipeline.planning.plan import Plan
 
@@ -90,7 +96,7 @@ def test_best_fit_recovers_a_misplacement_despite_a_bulge(part):
     bulge = np.linalg.norm(p_F - [0.0, 960.0, 750.0], axis=1) < 60.0  # a 0.4 mm bulge the fit must not follow
     p_F[bulge] += 0.4 * part.closest(p_F[bulge]).normals
     p_W = F.transform_points(MISPLACED, p_F)
-    fit = fit_to_surface(part, p_W, np.eye(4), InspectionConfig(), "as given")
+    fit = fit_to_surface(part, p_W, np.eye(4), criteria(), "as given")
     mm, deg = transform_error(fit.T_F_W, F.invert(MISPLACED))
     assert mm < 0.01 and deg < 0.001, (mm, deg)
     assert fit.method == "best-fit" and fit.converged and 0.02 < fit.residual_mm < 0.05  # the noise
@@ -101,19 +107,24 @@ def test_best_fit_on_datum_regions_only(part):
     p_F = band_points(part, rng, noise=0.0)
     nose = p_F[:, 0] > 0.0
     p_F[nose] += [0.0, 0.5, 0.0]  # the nose moved: the body alone is the datum
-    body_only = InspectionConfig(datum_regions=("body",), regions=(
+    body_only = criteria(datum_regions=("body",), regions=(
         RegionConfig(name="body", min_mm=(-1e5, -1e5, -1e5), max_mm=(-200.0, 1e5, 1e5)),))
     T_true = F.from_rotvec([0.0, 0.0, 0.0], np.radians([0.0, 0.0, 0.01]))  # the body band alone fixes no x slide
     fit = fit_to_surface(part, F.transform_points(F.invert(T_true), p_F), np.eye(4), body_only, "as given")
     on_body = F.transform_points(fit.T_F_W @ F.invert(T_true), p_F[~nose & (p_F[:, 0] < -300)])
     assert np.abs(part.signed_distance(on_body)).max() < 0.005
     with pytest.raises(InspectionError, match="not among the inspection regions"):
-        fit_to_surface(part, p_F, np.eye(4), InspectionConfig(datum_regions=("wing",)), "as given")
+        fit_to_surface(part, p_F, np.eye(4), criteria(datum_regions=("wing",)), "as given")
+
+
+def criteria(**keys) -> AlignmentCriteria:
+    """The alignment criteria of an ``[inspection]`` section with ``keys``."""
+    return AlignmentCriteria.from_section(InspectionConfig(**keys))
 
 
 def rps_config():
     centres = [(-1010.0, 1002.7, 558.7), (-750.0, 1009.2, 960.6), (51.5, 969.0, 558.7), (804.3, 786.7, 559.7)]
-    return InspectionConfig(alignment="rps", reference_spheres=tuple(
+    return criteria(alignment="rps", reference_spheres=tuple(
         ReferenceSphereConfig(name=f"S{i}", centre_mm=c) for i, c in enumerate(centres)))
 
 
@@ -145,11 +156,11 @@ def test_best_fit_from_20_deg_and_200_mm_as_given(part):
     axis = np.array([0.3, 0.4, 0.866]) / np.linalg.norm([0.3, 0.4, 0.866])
     far = F.from_rotvec(np.array([120.0, -140.0, 80.0]) * 200.0 / np.linalg.norm([120.0, -140.0, 80.0]),
                         np.radians(20.0) * axis)
-    fit = align(part, F.transform_points(far, p_F), InspectionConfig())
+    fit = align(part, F.transform_points(far, p_F), criteria())
     mm, deg = transform_error(fit.T_F_W, F.invert(far))
     assert mm < 0.01 and deg < 0.001, (mm, deg)
 
 
 def test_no_alignment_keeps_the_given_frame(part):
-    a = align(part, np.zeros((10, 3)), InspectionConfig(alignment="none"))
+    a = align(part, np.zeros((10, 3)), criteria(alignment="none"))
     assert a.method == "none" and np.array_equal(a.T_F_W, np.eye(4)) and a.residual_mm == 0.0

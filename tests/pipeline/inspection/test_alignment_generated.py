@@ -14,7 +14,7 @@ import pytest
 from tandemscan.config.models import InspectionConfig
 from tandemscan.daemon.cli.inspect_cmd import main
 from tandemscan.pipeline.geometry import frames as F
-from tandemscan.pipeline.inspection.alignment import AlignmentFailed, align, fit_to_surface
+from tandemscan.pipeline.inspection.alignment import AlignmentCriteria, AlignmentFailed, align, fit_to_surface
 from tandemscan.pipeline.inspection.cad_orientation import consistent_winding, orient
 from tandemscan.pipeline.inspection.deviation_maps import View, deviation_norm, render_view
 from tandemscan.pipeline.inspection.inspect import CadSurface, inspect_cloud
@@ -43,7 +43,7 @@ def found_with_the_right_sign(part, areas) -> None:
 def inspect_from(part, surface, p_W, n_W, T_W_F):
     """The product's path without the pictures: align from the cloud as given, orient the CAD by the cloud's
     normals, inspect; the alignment's error against the truth at the CAD's centre."""
-    a = align(surface, p_W, CFG)
+    a = align(surface, p_W, AlignmentCriteria.from_section(CFG))
     oriented, note = measured_side(surface, p_W, a.T_F_W, n_W, None)
     res = inspect_cloud(F.transform_points(a.T_F_W, p_W), oriented, CFG)
     return a, alignment_error(a.T_F_W, F.invert(T_W_F), centre_of(part.mesh)), res, note
@@ -109,7 +109,7 @@ def test_a_cylinder_leaves_its_axis_free_named_and_held_by_the_prior():
     part, p_F, _ = cylinder_strip(rng)
     surface = CadSurface(part.mesh)
     prior = F.from_rotvec([40.0, 3.0, -2.0], np.radians([0.05, 0.0, 0.0]))  # 40 mm along, 0.05 deg about the axis
-    a = fit_to_surface(surface, p_F, prior, CFG, "the anchor", prior)
+    a = fit_to_surface(surface, p_F, prior, AlignmentCriteria.from_section(CFG), "the anchor", prior)
     assert len(a.free_directions) == 2
     assert any(w.startswith("translation along (+1.000, +0.000, +0.000)") or
                w.startswith("translation along (-1.000") for w in a.free_directions), a.free_directions
@@ -204,7 +204,7 @@ def test_maps_draw_an_open_panel_from_outside_and_inside():
 def test_the_alignment_covariance_matches_the_scatter_of_repeated_fits():
     """The fit's 6x6 covariance (t mm, r rad about its centre) predicts the scatter of the pose over 30 noise
     draws of the same 3 000 points of the double-curved part (0.05 mm noise) to within a factor 1.5 a component."""
-    cfg = InspectionConfig(reference_spheres=(), regions=(), alignment_distances_mm=(4.0,))
+    cfg = AlignmentCriteria.from_section(CFG, alignment_distances_mm=(4.0,))
     part = PARTS["double-curved"]()
     surface = CadSurface(part.mesh)
     rng = np.random.default_rng(8)
