@@ -509,14 +509,6 @@ class JobConfig(_Strict):
         "in-job inspection"
     )
 
-    @field_validator("installation_source", mode="before")
-    @classmethod
-    def _no_truth_source(cls, v: object) -> object:
-        if v == "truth":
-            raise ValueError("'truth' is no longer a source: the simulator's true mounts are for scoring only; use "
-                             "'nominal', or 'calibration' with the calibration_file of `tandemscan calibrate`")
-        return v
-
 
 class CorrectionConfig(_Strict):
     """Whole-job stitching correction (docs/registration.md): which pairs, the pair registration method, the

@@ -33,7 +33,8 @@ def test_unknown_key_is_an_error(tmp_path):
 def test_the_simulators_truth_is_not_an_installation_source(tmp_path):
     old = tmp_path / "cell.toml"
     old.write_text('[job]\ninstallation_source = "truth"\n')
-    with pytest.raises(ConfigError, match="job.installation_source.*scoring only.*tandemscan calibrate"):
+    with pytest.raises(ConfigError, match="job.installation_source: Input should be 'nominal', 'calibration' or "
+                                          "'current'"):  # the simulator's true mounts are for scoring only
         load_config(old)
     assert load_config().job.installation_source == "current"  # the current calibration, else nominal
 
