@@ -433,6 +433,14 @@ class InstallationConfig(_Strict):
     T_T_S: TransformConfig = TransformConfig(xyz_mm=(0.0, -90.0, 40.0), rpy_deg=(180.0, 0.0, 0.0))
 
 
+class FloorPoseConfig(_Strict):
+    """A chassis pose on the floor (part frame F): position mm and heading in degrees about +z."""
+
+    x_mm: float = 0.0
+    y_mm: float = 0.0
+    heading_deg: float = 0.0
+
+
 class PlanningConfig(_Strict):
     """Motion planning (docs/planning.md, paper Eq. 13-18). Floor polygons are in the part frame F, mm.
 
@@ -465,6 +473,10 @@ class PlanningConfig(_Strict):
     keep_out_xy_mm: tuple[tuple[tuple[float, float], ...], ...] = Field(
         (), description="floor polygons no robot may stand in, each a list of (x, y) mm"
     )
+    tracker_start: FloorPoseConfig = Field(
+        FloorPoseConfig(x_mm=-1400.0, y_mm=4600.0, heading_deg=-90.0), description="where the tracking robot "
+        "stands when a job begins (F): the tracker chain starts there where it sees a measuring point (the "
+        "simulated robot starts at [sim] tracking_start)")
     arm_start_deg: tuple[float, ...] = Field(
         (0.0, 90.0, 0.0, 90.0, 0.0, 0.0), description="the arm's joints (deg) where a job starts: the first "
         "station's IK starts from them (the simulated arm rests at [sim] arm_home_deg)")

@@ -39,14 +39,14 @@ def part_name(config: CellConfig) -> str:
 
 def plan_configured_part(config: CellConfig, name: str):
     """Plan the configured part (mesh file or parametric nose); the tracker chain starts where the tracking robot
-    stands (``sim.tracking_start``). Returns the mesh and the :class:`PartPlan`; raises :class:`PlanPartError`."""
+    stands (``[planning] tracker_start``). Returns the mesh and the :class:`PartPlan`; raises :class:`PlanPartError`."""
     from tandemscan.pipeline.geometry.part import PartMeshError, load_part_mesh
     from tandemscan.pipeline.planning.planner import plan_part
     from tandemscan.pipeline.planning.sequence import SequenceError
     from tandemscan.pipeline.planning.stations import StationPlanningError
     from tandemscan.pipeline.planning.tracker import TrackerPlanningError
 
-    start = config.sim.tracking_start
+    start = config.planning.tracker_start
     try:
         mesh = load_part_mesh(config.part)
         return mesh, plan_part(mesh, config, tracker_start=(start.x_mm, start.y_mm, np.radians(start.heading_deg)),

@@ -14,21 +14,13 @@ import math
 from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
-from tandemscan.config.models import ArmRepeatabilityConfig
+from tandemscan.config.models import ArmRepeatabilityConfig, FloorPoseConfig
 
 
 class _Strict(BaseModel):
     """Base: unknown keys are errors, so a typo in a TOML file is reported, not ignored."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class FloorPoseConfig(_Strict):
-    """A chassis pose on the floor (part frame F): position mm and heading in degrees about +z."""
-
-    x_mm: float = 0.0
-    y_mm: float = 0.0
-    heading_deg: float = 0.0
 
 
 class DentConfig(_Strict):

@@ -108,11 +108,13 @@ def test_the_product_models_hold_no_simulator_settings():
     assert models.CellConfig().sim.seed == 7 and models.CellConfig().hil.enabled is False  # the defaults
 
 
-def test_the_plans_arm_start_is_a_planning_setting_not_the_simulators(tmp_path):
-    """The planner starts the arm's IK from ``[planning] arm_start_deg`` (a real cell's setting too); the
-    simulated arm's rest stays the simulator's ``[sim] arm_home_deg``, the same joints by default."""
+def test_the_plans_starts_are_planning_settings_not_the_simulators(tmp_path):
+    """The planner starts the arm's IK from ``[planning] arm_start_deg`` and the tracker chain at ``[planning]
+    tracker_start`` (a real cell's settings too); where the simulated robots start stays the simulator's (``[sim]
+    arm_home_deg``, ``tracking_start``), the same by default."""
     config = load_config()
     assert config.planning.arm_start_deg == config.sim.arm_home_deg == (0.0, 90.0, 0.0, 90.0, 0.0, 0.0)
+    assert config.planning.tracker_start == config.sim.tracking_start  # the same pose, two meanings
     bad = tmp_path / "cell.toml"
     bad.write_text("[planning]\narm_start_deg = [0.0, 90.0]\n")
     with pytest.raises(ConfigError, match="planning.arm_start_deg: .*needs 6 values"):

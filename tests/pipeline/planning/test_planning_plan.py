@@ -121,3 +121,17 @@ def test_the_arm_starts_from_the_planning_setting(monkeypatch):
     with pytest.raises(Seen) as e:
         plan_part(SimWorld(config).mesh, config)
     np.testing.assert_allclose(e.value.args[0], np.radians(start))
+
+
+def test_the_plan_command_starts_the_tracker_chain_at_the_planning_setting(monkeypatch):
+    """``tandemscan plan`` starts the chain where ``[planning] tracker_start`` puts the tracking robot."""
+    from tandemscan.daemon import plans
+    from tandemscan.pipeline.planning import planner
+
+    seen = {}
+    monkeypatch.setattr(planner, "plan_part", lambda mesh, config, **k: seen.update(k) or "planned")
+    config = load_config()
+    start = config.planning.tracker_start.model_copy(update={"x_mm": -1000.0, "heading_deg": 180.0})
+    config = config.model_copy(update={"planning": config.planning.model_copy(update={"tracker_start": start})})
+    assert plans.plan_configured_part(config, "p")[1] == "planned"
+    np.testing.assert_allclose(seen["tracker_start"], (-1000.0, start.y_mm, np.pi))
