@@ -1,15 +1,16 @@
 """The end of a job in one pass (docs/end-of-job.md), where the job's world map lives.
 
-After the last scan's commit: every scan file is read once and only its copy thinned at the job's ``[job]
-voxel_mm`` kept (:func:`load_scans`: a full-resolution scan is 3.2 M points, 369 of them would not fit in memory;
-the map's owner reads them while the last scans' pairs still register, ``stitcher._Pairs.finish``), the stitch
+After the last scan's commit: every scan's copy thinned at the job's ``[job] voxel_mm``, made as the scan was merged
+(:func:`load_scans`; a full-resolution scan is 3.2 M points, 369 of them would not fit in memory), the stitch
 corrected on those copies (:func:`correct_stage`: the pairs registered while the job measured are reused, the joint
 refinement solved, or the pose graph where it is off), the cloud merged once at the final poses from the scan
 files, one at a time on each core (:func:`merge_stage`; the map built while measuring is kept when nothing was
 corrected), then ``cloud.ply``, the E57 (full scans streamed from their files), the pose log and the inspection
-written and ``report.json`` written once (``job_outputs.export_job``). Each stage returns a frozen result; the
-tracker-stitched poses and the refined ones stay separate, and whether the poses were corrected is known from the
-correction stage. Frames: poses ``T_W_S`` in the job's world frame W, points in the scanner frame S, mm.
+written, the simulator's observer scores the job (``job_report.score_ground_truth``, none on a real cell) and
+``report.json`` is built once (``pipeline.job_report.JobReport``) and written once (``write_job_report``). Each
+stage returns a frozen result; the tracker-stitched poses and the refined ones stay separate, and whether the poses
+were corrected is known from the correction stage. Frames: poses ``T_W_S`` in the job's world frame W, points in the
+scanner frame S, mm.
 """
 
 from __future__ import annotations
@@ -23,13 +24,16 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from tandemscan.daemon.job_outputs import export_job, stitch_view_points
+from tandemscan.daemon.job_report import build_job_report, score_ground_truth
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan
+from tandemscan.pipeline.job_report import JobReport, Timings, write_job_report
 from tandemscan.pipeline.registration.parallel import pair_threads
 from tandemscan.pipeline.stitching.worldmap import VoxelMap
 
 if TYPE_CHECKING:
     from pathlib import Path
 
+    from tandemscan.daemon.job_records import ScanRecord
     from tandemscan.daemon.snapshot import JobSnapshot
     from tandemscan.pipeline.registration.correction import OnlineWork
     from tandemscan.pipeline.registration.pose_covariance import PoseCovariance
@@ -64,21 +68,31 @@ class CorrectionOutcome:
 
 @dataclass(frozen=True)
 class FinishedJob:
-    """What the end of a job produced: the report (as written to ``report.json``) and the correction stage."""
+    """What the end of a job produced: its report (``report.json``, as written) and the correction stage."""
 
-    report: dict
+    report: JobReport
     correction: CorrectionOutcome
 
 
 def load_scans(job: JobSnapshot) -> LoadedScans:
-    """Read every scan file of ``job.scans`` once (one a core at a time), keeping only its copy thinned at ``[job]
-    voxel_mm``: the correction thins to that voxel first, and thinning a thinned copy again changes nothing (its
-    pairs and pose graph are those of the full scans; only its joint refinement, thinning the copy to its coarser
-    ``joint_voxel_mm``, weighs each finer voxel once). A coarse scan, not halved by the thinning, is kept whole, so
-    the correction at coarse resolution is that of the scans as stored."""
+    """Every scan of ``job.scans`` as its copy thinned at ``[job] voxel_mm``: the copy the map's owner kept as it
+    merged the scan (``job.scan_copies``, ``stitcher.merge_scan``: taken from there, not read), else its file read
+    once (one a core at a time). The correction thins to that voxel first, and thinning a thinned copy again
+    changes nothing (its pairs and pose graph are those of the full scans; only its joint refinement, thinning the
+    copy to its coarser ``joint_voxel_mm``, weighs each finer voxel once). A coarse scan, not halved by the
+    thinning, is kept whole, so the correction at coarse resolution is that of the scans as stored."""
     voxel_mm = job.config.job.voxel_mm
+    at_voxel = job.worldmap is not None and job.worldmap.voxel_mm == voxel_mm
+    kept = job.scan_copies if job.scan_copies is not None and at_voxel else {}
+
+    def copy_of(scan: ScanRecord) -> np.ndarray:
+        copy = kept.pop(str(scan.file), None)
+        return read_thinned_scan(scan.file, voxel_mm) if copy is None else copy
+
     with pair_threads() as thread_map:  # one file a core at a time
-        return LoadedScans(voxel_mm, tuple(thread_map(lambda s: read_thinned_scan(s.file, voxel_mm), job.scans)))
+        loaded = LoadedScans(voxel_mm, tuple(thread_map(copy_of, job.scans)))
+    kept.clear()  # the end of the job holds them now
+    return loaded
 
 
 def correct_stage(job: JobSnapshot, loaded: LoadedScans, online: OnlineWork | None) -> CorrectionOutcome:
@@ -132,9 +146,9 @@ def finish_job(job: JobSnapshot, started: float, measured_at: float,
     the job measured (tracker poses), and leaves there the finished job's cloud (``worldmap.MapCloud``), so that
     the caller, holding no other reference, lets the end of the job free the map's sums. Memory: the thinned
     scans, the maps of one merge and one cloud at a time and one full scan a core; where the correction changed
-    the poses, the map stitched while measuring is dropped before the merge at the corrected poses, and only the
-    simulator's score of the tracker stitch (``correction.before``, after report.html) merges the scans at the
-    tracker poses again.
+    the poses, the map stitched while measuring is dropped before the merge at the corrected poses (on the
+    simulated cell its cloud is kept, float32, for the score of the tracker stitch, ``correction.before``). Each
+    raw scan file is read at most twice here: by the merge at the corrected poses and by the E57.
     ``started`` and ``measured_at`` are ``time.monotonic()`` at the job's start and at its last step's commit;
     ``online``: what the job computed while it measured (``online_pairs.OnlineWork``: registered pairs, scans
     prepared for the joint refinement); ``stages`` (s) are timings of the work before this call; ``loaded``: the
@@ -152,12 +166,10 @@ def finish_job(job: JobSnapshot, started: float, measured_at: float,
     tracker_poses = tracker_stitch = None
     if outcome.corrected:
         voxel_mm, tracker_poses = tracker_map.voxel_mm, [s.T_W_S for s in job.scans]
+        if job.scorer is not None:  # the observer scores the tracker stitch too: its cloud (float32), not merged again
+            tracker_stitch = dataclasses.replace(job, worldmap=tracker_map.frozen(np.float32))
         del tracker_map                              # the cloud is merged anew at the corrected poses
-        files = [s.file for s in job.scans]
-        job.worldmap = merge_stage(voxel_mm, files, outcome.poses).frozen()
-
-        def tracker_stitch() -> JobSnapshot:
-            return dataclasses.replace(job, worldmap=merge_stage(voxel_mm, files, tracker_poses).frozen(np.float32))
+        job.worldmap = merge_stage(voxel_mm, [s.file for s in job.scans], outcome.poses).frozen()
     else:
         job.worldmap = tracker_map.frozen()
         del tracker_map
@@ -165,6 +177,14 @@ def finish_job(job: JobSnapshot, started: float, measured_at: float,
     final = dataclasses.replace(
         job, scans=[dataclasses.replace(s, T_W_S=T) for s, T in zip(job.scans, outcome.poses, strict=True)],
         correction=outcome.section, pose_covariance=outcome.pose_covariance)
-    report = export_job(final, time.monotonic() - started, measured_at, timings, view_S, tracker_poses,
-                        tracker_stitch)
+    seconds = time.monotonic() - started  # the job until its exports
+    exports = export_job(final, measured_at, view_S, tracker_poses)
+    t = time.perf_counter()
+    ground_truth = score_ground_truth(final, exports.inspection, tracker_stitch)  # the simulator's observer
+    stages = {**timings, **outcome.section.get("stage_seconds", {}), **exports.stages_s,
+              "scoring_s": round(time.perf_counter() - t, 3)}
+    timings_s = Timings(exports.after_last_scan_s, outcome.section.get("cpu_seconds"), stages)
+    report = build_job_report(final, seconds, tracker_poses, exports.inspection, exports.coverage,
+                              exports.peak_rss_gib, timings_s, ground_truth)
+    write_job_report(report, job.job_dir)
     return FinishedJob(report, outcome)

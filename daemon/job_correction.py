@@ -109,7 +109,7 @@ def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray], online: Online
     nearest neighbours, reused by ``correction.correct_scans`` where their keys match).
 
     Returns the ``correction`` section of the report (the settings, pair and graph figures; on the simulated
-    cell ``report.add_ground_truth`` adds those of the tracker-only stitch, ``before``, once the job's outputs
+    cell ``job_report.score_ground_truth`` adds those of the tracker-only stitch, ``before``, once the job's outputs
     are written), the refined poses in scan order and the covariance of their errors (``pose_covariance``, scans
     numbered as in ``job.scans``).
     """

@@ -9,7 +9,7 @@ the plan's frame F (the part frame, relocalisation's anchor, Eq. 5) the cloud is
 never seen) skips the inspection with the reason recorded. The CAD is the configured part mesh (``[part]``),
 never the mesh a simulator scans. On the simulated cell the job's scorer then scores the alignment and the
 deviation areas against the world's truth (``ground_truth.inspection``, docs/inspection.md), once every
-output is written (``report.add_ground_truth``).
+output is written (``job_report.score_ground_truth``).
 """
 
 from __future__ import annotations
@@ -19,8 +19,9 @@ import json
 import logging
 import math
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -30,7 +31,6 @@ from tandemscan.config.inspection_template import InspectionTemplate, find_templ
 from tandemscan.config.loader import ConfigError
 from tandemscan.config.models import CellConfig
 from tandemscan.daemon.calibration_state import verdict_context
-from tandemscan.daemon.job_report import add_ground_truth, build_job_report
 from tandemscan.daemon.part_results import HISTORY_FILE
 from tandemscan.pipeline.geometry.frames import transform_points
 from tandemscan.pipeline.geometry.part import load_part_mesh
@@ -91,58 +91,46 @@ def stitch_view_points(points_S: np.ndarray) -> np.ndarray:
     return _thin(points_S).copy()
 
 
-def _accuracy(report: dict) -> dict:
-    truth = report.get("ground_truth") or {}
-    keys = {
-        "pose_err_mm_median": "scan pose error vs truth, median, mm",
-        "pose_err_mm_max": "scan pose error vs truth, max, mm",
-        "pose_err_deg_median": "scan pose error vs truth, median, deg",
-        "pose_err_deg_max": "scan pose error vs truth, max, deg",
-        "cloud_rms_mm": "stitched cloud to part (unsigned), RMS, mm",
-        "cloud_p95_mm": "stitched cloud to part (unsigned), P95, mm",
-    }
-    out: dict = {"scans": report.get("scans"), "coordinate transfers": report.get("transfers")}
-    return out | {label: truth[k] for k, label in keys.items() if k in truth}
+def _accuracy(report: Mapping) -> dict:
+    """report.html's accuracy table: the job's scan and coordinate transfer counts (``report``'s ``scans`` and
+    ``transfers``)."""
+    return {"scans": report.get("scans"), "coordinate transfers": report.get("transfers")}
 
 
-def export_job(job: JobSnapshot, seconds: float, measured_at: float, stages: Mapping[str, float] | None = None,
-               points_S: Sequence[np.ndarray] | None = None, tracker_poses: Sequence[np.ndarray] | None = None,
-               tracker_stitch: Callable[[], JobSnapshot] | None = None) -> dict:
-    """Write ``cloud.ply`` (W, mm), the report (returned and written once, as ``report.json``) and the
-    inspection exports of a finished job into its folder; runs where ``job.worldmap`` (the final cloud) lives.
-    ``measured_at`` is ``time.monotonic()`` (system-wide) when the job's last step was committed:
-    ``timings.after_last_scan_s`` is the time from there until report.html and every export are written (what
-    the operator waits for), ``timings.correction_cpu_s`` the correction's CPU time after the last scan,
-    ``timings.stages_s`` the seconds of each stage (``stages``: those before this call; ``cloud.ply`` is written
-    on a second thread, ``cloud_ply_s`` is the time to hand it over, and ``exports_and_inspection_s`` includes
-    waiting for it; ``scoring_s``: the simulator's ground-truth scoring, after the exports and outside
-    ``after_last_scan_s``, none on a real cell); ``resources.peak_rss_gib`` the peak memory of the process
-    until then (:func:`peak_rss_gib`). ``points_S``: the scans' points (S, mm) thinned at ``[job]
-    voxel_mm`` or to :func:`stitch_view_points` (else read and thinned here; the E57 reads the full scans from
-    their files); ``tracker_poses``: the tracker-stitched poses ``T_W_S`` (W, mm) where the correction changed
-    them (None: not corrected); ``tracker_stitch``: the job as the tracker stitched it, its cloud merged when
-    called (only the simulator's scoring calls it, ``report.add_ground_truth``)."""
+@dataclass(frozen=True)
+class JobExports:
+    """What :func:`export_job` wrote for a finished job: its report's ``inspection`` and ``coverage`` sections,
+    the seconds from the last step's commit until every export was written (``after_last_scan_s``), the
+    process's peak memory until then (GiB, :func:`peak_rss_gib`) and the seconds of its stages (``cloud_ply_s``:
+    the time to hand ``cloud.ply`` to its thread, ``exports_and_inspection_s`` includes waiting for it)."""
+
+    inspection: dict
+    coverage: dict
+    after_last_scan_s: float
+    peak_rss_gib: float | None
+    stages_s: dict[str, float]
+
+
+def export_job(job: JobSnapshot, measured_at: float, points_S: Sequence[np.ndarray] | None = None,
+               tracker_poses: Sequence[np.ndarray] | None = None) -> JobExports:
+    """Write ``cloud.ply`` (W, mm) and the inspection exports of a finished job into its folder; runs where
+    ``job.worldmap`` (the final cloud) lives. ``measured_at`` is ``time.monotonic()`` (system-wide) when the job's
+    last step was committed. ``points_S``: the scans' points (S, mm) thinned at ``[job] voxel_mm`` or to
+    :func:`stitch_view_points` (else read and thinned here; the E57 reads the full scans from their files);
+    ``tracker_poses``: the tracker-stitched poses ``T_W_S`` (W, mm) where the correction changed them (None: not
+    corrected)."""
     t = [time.perf_counter()]
-    with ThreadPoolExecutor(1, thread_name_prefix="cloud-ply") as pool:  # written while the report computes
+    with ThreadPoolExecutor(1, thread_name_prefix="cloud-ply") as pool:  # written while the inspection computes
         cloud_ply = pool.submit(write_ply, job.job_dir / "cloud.ply", job.worldmap.points(), job.worldmap.normals())
         t.append(time.perf_counter())
-        report = build_job_report(job, seconds, tracker_poses)
-        t.append(time.perf_counter())
-        report["inspection"] = write_job_outputs(job, report, points_S, tracker_poses)  # report.html, E57, poses
-        report["coverage"] = report["inspection"].get("coverage") or plan_coverage(job).as_dict()
+        figures = {"scans": len(job.scans), "transfers": len(job.transfers)}
+        inspection = write_job_outputs(job, figures, points_S, tracker_poses)  # report.html, E57, poses
+        coverage = inspection.get("coverage") or plan_coverage(job).as_dict()
         cloud_ply.result()  # complete before the job is reported done; its error, if any, is the job's
         t.append(time.perf_counter())
     after_last_scan_s = time.monotonic() - measured_at
-    report["resources"] = {"peak_rss_gib": peak_rss_gib()}  # the job's work, before the simulator's scoring
-    add_ground_truth(report, job, tracker_stitch)
-    t.append(time.perf_counter())
-    names = ("cloud_ply_s", "report_s", "exports_and_inspection_s", "scoring_s")
-    stages = {**(stages or {}), **job.correction.get("stage_seconds", {}),
-              **dict(zip(names, np.round(np.diff(t), 3).tolist(), strict=True))}
-    report["timings"] = {"after_last_scan_s": round(after_last_scan_s, 3),
-                         "correction_cpu_s": job.correction.get("cpu_seconds"), "stages_s": stages}
-    (job.job_dir / "report.json").write_text(json.dumps(report, indent=1), encoding="utf-8")
-    return report
+    stages = dict(zip(("cloud_ply_s", "exports_and_inspection_s"), np.round(np.diff(t), 3).tolist(), strict=True))
+    return JobExports(inspection, coverage, round(after_last_scan_s, 3), peak_rss_gib(), stages)
 
 
 def peak_rss_gib() -> float | None:
@@ -157,11 +145,12 @@ def peak_rss_gib() -> float | None:
     return round(kib / (1 << 20), 3)
 
 
-def write_job_outputs(job: JobSnapshot, report: dict, points_S: Sequence[np.ndarray] | None = None,
+def write_job_outputs(job: JobSnapshot, report: Mapping, points_S: Sequence[np.ndarray] | None = None,
                       tracker_poses: Sequence[np.ndarray] | None = None) -> dict:
     """Write the E57, the pose log and (when registered to CAD) the inspection report of a finished job
-    (``points_S``: the scans thinned at ``[job] voxel_mm`` or to :func:`stitch_view_points`, and
-    ``tracker_poses``: the tracker-stitched poses where the correction changed them, None where not corrected).
+    (``report``: the job's ``scans`` and ``transfers`` counts for report.html's accuracy table; ``points_S``: the
+    scans thinned at ``[job] voxel_mm`` or to :func:`stitch_view_points`, and ``tracker_poses``: the
+    tracker-stitched poses where the correction changed them, None where not corrected).
 
     Returns the inspection section for the job's ``report.json``: the same numbers as report.html. The E57
     (the full scans streamed from their files) and the pose log are written on a second thread while the
@@ -184,7 +173,7 @@ def _write_exports(job: JobSnapshot, scans: list[PosedScan], cloud_W: np.ndarray
     write_pose_log(job.job_dir / EXPORT_FILES["pose_log"], scans)
 
 
-def _inspection_section(job: JobSnapshot, report: dict, scans: list[PosedScan], cloud_W: np.ndarray,
+def _inspection_section(job: JobSnapshot, report: Mapping, scans: list[PosedScan], cloud_W: np.ndarray,
                         tracker_poses: Sequence[np.ndarray] | None) -> dict:
     """The inspection written into the job folder and its report.json section (or why there is none)."""
     files = dict(EXPORT_FILES)
@@ -213,7 +202,7 @@ def _inspection_section(job: JobSnapshot, report: dict, scans: list[PosedScan], 
     return out.data | {"T_F_W": out.data["alignment"]["T_F_W"], "T_F_W_anchor": T_F_W.tolist(), "files": files}
 
 
-def _inspect(job: JobSnapshot, report: dict, scans: list[PosedScan], cloud_W: np.ndarray,
+def _inspect(job: JobSnapshot, report: Mapping, scans: list[PosedScan], cloud_W: np.ndarray,
              normals_W: np.ndarray | None, T_F_W: np.ndarray, tracker_poses: Sequence[np.ndarray] | None,
              cloud_points: int, counts: np.ndarray | None = None) -> InspectionOutputs:
     """The inspection of the job's cloud (``cloud_W``: of its ``cloud_points`` points those inspected, each the

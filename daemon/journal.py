@@ -9,7 +9,6 @@ they act), so the journal never touches it.
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -23,6 +22,7 @@ from tandemscan.daemon.runner import JobProgress, JobRunner
 from tandemscan.daemon.session import CellSession
 from tandemscan.daemon.stitcher import ProcessWorldMap
 from tandemscan.daemon.store import JobRecord, JobStore
+from tandemscan.pipeline.job_report import JobHistory
 from tandemscan.pipeline.planning.plan import Plan
 
 log = logging.getLogger(__name__)
@@ -64,6 +64,14 @@ class StoreJournal:
         scan = None if scan_file is None else store.register_scan_file(job_id, idx, scan_file, scan_points)
         store.commit_step(job_id, idx, kind, result, scan=scan)
 
+    async def history(self) -> JobHistory:
+        """Every resume of every attempt of the job, not only this one's (a restart after the last step resumes
+        with nothing to redo), and its attempts: the report's ``resumes`` and ``attempts``."""
+        store, job_id = self.ctx.store, self.ctx.job.id
+        resumes = await asyncio.to_thread(store.resumes, job_id)
+        attempts = (await asyncio.to_thread(store.get_job, job_id)).attempts
+        return JobHistory(tuple(resumes), attempts)
+
     def on_progress(self, p: JobProgress) -> None:
         """The runner's (synchronous) progress callback: journal and publish it in the background."""
         task = asyncio.get_running_loop().create_task(
@@ -86,19 +94,13 @@ async def run_journaled(ctx: JobContext) -> dict:
     worldmap = await asyncio.to_thread(ProcessWorldMap, ctx.config.job.voxel_mm, ctx.config.daemon.worker_niceness)
     config = await asyncio.to_thread(prepare_part, ctx.config, ctx.job.plan, job_dir, ctx.store.state_dir)
     runner = JobRunner(ctx.session, plan, config, job_dir, journal.on_progress, journal, worldmap,
-                       ctx.config.job.max_scans_left_out)
+                       ctx.config.job.max_scans_left_out, journal.history)
     try:
         result = await runner.run()
     finally:
         await journal.drain()
         await asyncio.to_thread(worldmap.close)
-    # every attempt's resumes, not only this one's (a restart after the last step resumes with nothing to redo)
-    resumes = await asyncio.to_thread(ctx.store.resumes, ctx.job.id)
-    report = dict(result.report) | {"job": ctx.job.id, "resumes": resumes,
-                                    "attempts": ctx.store.get_job(ctx.job.id).attempts,
-                                    "scans_left_out": result.report["relocalisation"]["untracked"]}
-    await asyncio.to_thread(lambda: ctx.store.write_artifact(ctx.job.id, "report.json",
-                                                             json.dumps(report, indent=1).encode()))
+    report = result.report  # report.json, written once by the end of the job
     await asyncio.to_thread(record_part, ctx.store.state_dir, ctx.job.id, report)
     figures = {k: report[k] for k in _FIGURE_KEYS if k in report} | {"scans_left_out": len(report["scans_left_out"])}
     truth = report.get("ground_truth") or {}

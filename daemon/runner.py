@@ -25,9 +25,10 @@ ground truth. Nothing here reads the truth.
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -82,6 +83,7 @@ from tandemscan.daemon.tracker_reading import read_at_rest, read_for_transfer
 from tandemscan.drivers.errors import TargetNotVisible
 from tandemscan.drivers.interfaces import ChassisPose, TrackerReading
 from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.job_report import REPORT_FILE, JobHistory, JobReport
 from tandemscan.pipeline.planning.plan import MoveArm, MoveLift, MoveMeasure, MoveTracker, Plan, Scan
 from tandemscan.pipeline.stitching.relocalise import Relocaliser
 
@@ -113,13 +115,19 @@ class JobProgress:
 
 @dataclass
 class JobResult:
-    """What a finished job left behind."""
+    """What a finished job left behind: its folder, ``cloud.ply`` and ``report.json`` (``job_report``; ``report``
+    is that file's content) and its scan records at their final poses."""
 
     job_dir: Path
     cloud_file: Path
     report_file: Path
-    report: dict
+    job_report: JobReport
     scans: list[ScanRecord] = field(default_factory=list)
+
+    @functools.cached_property
+    def report(self) -> dict:
+        """The content of ``report.json``."""
+        return self.job_report.to_json()
 
 
 class JobRunner:
@@ -129,7 +137,9 @@ class JobRunner:
     (:class:`~tandemscan.daemon.run_state.RunState`): each step is measured into a record, committed, then applied.
     A scan whose target the tracker cannot see is read again (``tracker.scan_read_retries``) and then left out; one
     more than ``max_scans_left_out`` (None: no limit) raises :class:`~tandemscan.daemon.faults.TooManyScansLeftOut`
-    once, so that the job pauses for the operator: run again, that step is left out if the target is still hidden."""
+    once, so that the job pauses for the operator: run again, that step is left out if the target is still hidden.
+    ``history`` (a journaled job) returns the journal's resumes and attempts for its report, asked once every step
+    is committed."""
 
     def __init__(
         self,
@@ -141,6 +151,7 @@ class JobRunner:
         journal: StepJournal | None = None,
         worldmap: LocalWorldMap | ProcessWorldMap | None = None,
         max_scans_left_out: int | None = None,
+        history: Callable[[], Awaitable[JobHistory]] | None = None,
     ):
         self.cell = session.cell
         self.gate: MotionGate = session.gate
@@ -154,6 +165,7 @@ class JobRunner:
         self.worldmap = worldmap if worldmap is not None else LocalWorldMap(config.job.voxel_mm)
         self.correction: dict = {"enabled": False}
         self.max_scans_left_out = max_scans_left_out
+        self.history = history  # the journal's resumes of every attempt, for the report (none: not journaled)
         self._reserved_indices: set[int] = set()  # scan indices of damaged scans, measured again at the end
         # with relocalisation on, W is placed in the plan's frame F at the start (the anchor: the inspection's
         # registration to CAD); the AGV is located after each drive where the plan has scanner poses to re-solve
@@ -207,13 +219,16 @@ class JobRunner:
             await self.journal.record_resume(len(self.plan.steps), {"step": len(self.plan.steps), "kind": "export"})
         measured_at = time.monotonic()  # the last step committed: from here the operator waits for the report
         self.progress(JobProgress(total - 1, total, "correcting the stitch, writing cloud and report"))
-        finished = await self.worldmap.finish(self.snapshot(), started, measured_at)
+        job = self.snapshot()
+        if self.history is not None:  # every resume is journaled by now, the export's included
+            job.history = await self.history()
+        finished = await self.worldmap.finish(job, started, measured_at)
         self.correction = finished.correction.section
         final = {s.index: T for s, T in zip(self.state.scans, finished.correction.poses, strict=True)}
         # JobResult's records carry the final poses; report.json keeps both (finish.FinishedJob)
         self.state = replace(self.state, scans=tuple(replace(s, T_W_S=final[s.index]) for s in self.state.scans))
         self.progress(JobProgress(total, total, "done"))
-        return JobResult(self.job_dir, self.job_dir / "cloud.ply", self.job_dir / "report.json", finished.report,
+        return JobResult(self.job_dir, self.job_dir / "cloud.ply", self.job_dir / REPORT_FILE, finished.report,
                          list(self.state.scans))
 
     async def _replay(self) -> None:

@@ -4,7 +4,8 @@ The runner's heavy end-of-job work runs where its world map lives: in a worker p
 (:class:`tandemscan.daemon.stitcher.ProcessWorldMap`), in a thread for ``tandemscan measure``. A
 :class:`JobSnapshot` carries the job's small state there (scan records with their poses, transfers, config,
 plan, mounts, the world frame W placed in the plan's frame F where it was measured, and on the simulated cell
-the ground-truth scorer, :mod:`tandemscan.daemon.observer`); ``worldmap`` is set to the map on that side.
+the ground-truth scorer, :mod:`tandemscan.daemon.observer`); ``worldmap`` is set to the map on that side, and
+``scan_copies`` to the scans' thinned copies the map's owner kept.
 Frames: poses ``T_W_S`` in the job's world frame W (mm).
 """
 
@@ -22,6 +23,7 @@ from tandemscan.pipeline.stitching.installation import Installation
 if TYPE_CHECKING:
     from tandemscan.daemon.observer import JobScorer
     from tandemscan.daemon.runner import ScanRecord
+    from tandemscan.pipeline.job_report import JobHistory
     from tandemscan.pipeline.registration.pose_covariance import PoseCovariance
 
 
@@ -42,6 +44,9 @@ class JobSnapshot:
     worldmap: Any = field(default=None, repr=False)  # the VoxelMap where the work runs
     relocalisation: dict = field(default_factory=dict)  # the runner's AGV relocalisation log (report section)
     pose_covariance: PoseCovariance | None = None  # the final poses' errors jointly (the end of the job sets it)
+    history: JobHistory | None = None  # the journal's resumes and attempts (report.json), None without a journal
+    # where the work runs: the scans thinned at the map's voxel as they were merged, by file (stitcher.merge_scan)
+    scan_copies: dict[str, np.ndarray] | None = field(default=None, repr=False)
 
     def __getstate__(self) -> dict:
-        return self.__dict__ | {"worldmap": None}
+        return self.__dict__ | {"worldmap": None, "scan_copies": None}

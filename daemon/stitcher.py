@@ -1,7 +1,9 @@
 """The job's world map and its end-of-job work, in a worker process for the daemon or in this one.
 
 Both maps have one interface: ``await add_scan(file, T_W_S, arrays)`` persists a raw scan (when ``arrays`` is
-given: written and fsynced first) and merges it into the voxel grid (Eq. 1, points in S, map in W, mm);
+given: written and fsynced first) and merges it into the voxel grid (Eq. 1, points in S, map in W, mm), keeping
+its copy thinned at the map's voxel for the end of the job (:func:`merge_scan`: a scan written here is merged and
+thinned from its arrays, one replayed after a restart read once, so neither reads its file again);
 ``await run(fn, job, *args)`` runs ``fn(job, *args)`` where the map lives, with ``job.worldmap`` set to it
 (correction, report, exports) and handed over: ``fn`` owns the map while it runs (no other reference to it is
 kept, so the end of a job can free it), and the map or cloud it leaves there is adopted.
@@ -13,8 +15,9 @@ never pickled by value. :class:`LocalWorldMap` (``tandemscan measure``) does the
 
 Both register each scan's overlapping pairs as it arrives when given the job's ``[correction]`` settings
 (:class:`PairWorker`: a second process at the map's priority, so both cores work and the event loop stays
-free; ``pipeline.registration.online_pairs``); :meth:`pair_outcomes` hands their outcomes to the correction
-after the last scan.
+free; ``pipeline.registration.online_pairs``), handing it the scan's thinned copy (through shared memory from the
+map's process, :mod:`tandemscan.drivers.shared_array`), not its file; :meth:`pair_outcomes` hands their outcomes to
+the correction after the last scan.
 """
 
 from __future__ import annotations
@@ -33,9 +36,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from tandemscan.config.models import CorrectionConfig
 from tandemscan.daemon.snapshot import JobSnapshot
-from tandemscan.drivers.shared_array import share
+from tandemscan.drivers.shared_array import SharedBlock, hand_over, share, take
 from tandemscan.drivers.worker import init_worker, stop_pool
-from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan, write_raw_scan
+from tandemscan.pipeline.io.raw_scan import read_raw_scan, thin_scan, write_raw_scan
 from tandemscan.pipeline.stitching.worldmap import VoxelMap
 
 if TYPE_CHECKING:
@@ -43,6 +46,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 _MAP: VoxelMap | None = None  # the worker's map
+_COPIES: dict[str, np.ndarray] = {}  # the worker's scans thinned at the map's voxel as they were merged, by file
 _PAIRS: Any = None  # the pair worker's OnlinePairs
 _LOADED: dict[str, Any] = {}  # where the map lives: finishing jobs' scans read ahead (finish.LoadedScans)
 
@@ -53,16 +57,36 @@ def _init(voxel_mm: float, niceness: int) -> None:
     _MAP = VoxelMap(voxel_mm)
 
 
-def _add(path: str, T_W_S: np.ndarray, arrays: dict[str, np.ndarray] | None) -> int:
+def merge_scan(worldmap: VoxelMap, copies: dict[str, np.ndarray], file: str, T_W_S: np.ndarray,
+               arrays: dict[str, np.ndarray] | None) -> np.ndarray:
+    """Merge the scan of ``file`` into ``worldmap`` at ``T_W_S`` (W, mm) from its ``arrays`` where given (written
+    already; the map rotates them in float32, as the file stores them), else from the file, read once (a job
+    rebuilt after a restart), and keep in ``copies`` its copy thinned at the map's voxel
+    (``raw_scan.thin_scan``, the copy ``raw_scan.read_thinned_scan`` would read: ``finish.load_scans`` takes it
+    from there). Returns that copy."""
+    if arrays is None:
+        points, normals = read_raw_scan(file, np.float32)
+    else:
+        points, normals = arrays["points_S_mm"], arrays.get("normals_S")
+    worldmap.add_scan(T_W_S, points, normals)
+    copies[file] = copy = thin_scan(points, worldmap.voxel_mm)
+    return copy
+
+
+def _add(path: str, T_W_S: np.ndarray, arrays: dict[str, np.ndarray] | None, lend: bool
+         ) -> tuple[int, SharedBlock | np.ndarray | None]:
+    """In the map's process: write ``arrays`` (if given) durably to ``path`` and merge the scan (:func:`merge_scan`);
+    returns the map's size and, where ``lend``, the scan's thinned copy handed over for the pair worker."""
     if arrays is not None:
         write_raw_scan(Path(path), **arrays)
-    _MAP.add_scan(T_W_S, *read_raw_scan(path, np.float32))  # from the file, as a resumed job rebuilds it
-    return len(_MAP)
+    copy = merge_scan(_MAP, _COPIES, path, T_W_S, arrays)
+    return len(_MAP), hand_over(copy) if lend else None
 
 
 def _run(fn: Callable[..., Any], job: JobSnapshot, args: tuple) -> tuple[Any, int]:
     global _MAP
     job.worldmap, _MAP = _MAP, None  # fn owns the map while it runs (it may replace it and free the old one)
+    job.scan_copies = _COPIES
     try:
         out = fn(job, *args)
     finally:
@@ -70,9 +94,12 @@ def _run(fn: Callable[..., Any], job: JobSnapshot, args: tuple) -> tuple[Any, in
     return out, len(_MAP)
 
 
-def _pairs_add(path: str, T_W_S: np.ndarray, T_T_S: np.ndarray, station: int, transfers: list[dict],
-               cfg: CorrectionSettings, voxel_mm: float) -> int:
-    """In the pair worker: register the pairs of the scan in ``path`` (durable by now) with the earlier ones."""
+def _pairs_add(points: SharedBlock | np.ndarray, T_W_S: np.ndarray, placement: dict[str, np.ndarray],
+               T_T_S: np.ndarray, station: int, transfers: list[dict], cfg: CorrectionSettings,
+               voxel_mm: float) -> int:
+    """In the pair worker: register the pairs of a scan (``points``: its thinned copy, S, mm, taken over from the
+    map's process; ``placement``: its raw file's ``T_W_C``, ``T_C_T`` and ``tracker_covariance``) with the
+    earlier ones."""
     global _PAIRS
     from tandemscan.daemon.job_correction import transfer_priors
     from tandemscan.pipeline.geometry.uncertainty import scan_pose_covariance
@@ -80,10 +107,8 @@ def _pairs_add(path: str, T_W_S: np.ndarray, T_T_S: np.ndarray, station: int, tr
 
     if _PAIRS is None:
         _PAIRS = OnlinePairs(cfg, voxel_mm)
-    points = read_thinned_scan(path, voxel_mm)  # the copy the end of the job loads (finish.load_scans)
-    with np.load(path) as f:
-        cov = scan_pose_covariance(f["T_W_C"], f["T_C_T"], T_T_S, f["tracker_covariance"])
-    return _PAIRS.add(points, T_W_S, cov, station, transfer_priors(transfers))
+    cov = scan_pose_covariance(placement["T_W_C"], placement["T_C_T"], T_T_S, placement["tracker_covariance"])
+    return _PAIRS.add(take(points), T_W_S, cov, station, transfer_priors(transfers))
 
 
 def _pairs_outcomes() -> tuple[OnlineWork | None, float]:
@@ -127,9 +152,12 @@ class PairWorker:
                                          initializer=init_worker, initargs=(niceness,))
         self._pending: list[Any] = []
 
-    def submit(self, file: Path, T_W_S: np.ndarray, T_T_S: np.ndarray, station: int, transfers: list[dict]) -> None:
-        """Queue the pairs of the scan in ``file`` (written durably), placed at ``T_W_S`` (mm)."""
-        self._pending.append(self._pool.submit(_pairs_add, str(file), np.asarray(T_W_S, float),
+    def submit(self, points: SharedBlock | np.ndarray, T_W_S: np.ndarray, placement: dict[str, np.ndarray],
+               T_T_S: np.ndarray, station: int, transfers: list[dict]) -> None:
+        """Queue the pairs of a scan: its copy thinned at the map's voxel (S, mm; a block of shared memory the
+        worker takes over, or the array), placed at ``T_W_S`` (mm), with its raw file's ``T_W_C``, ``T_C_T`` and
+        ``tracker_covariance`` (``placement``) and the mount ``T_T_S``."""
+        self._pending.append(self._pool.submit(_pairs_add, points, np.asarray(T_W_S, float), placement,
                                                np.asarray(T_T_S, float), int(station), list(transfers), self.cfg,
                                                self.voxel_mm))
 
@@ -157,18 +185,26 @@ class _Pairs:
     _pair_niceness: int = 0
     _pairs: PairWorker | None = None
 
-    def _queue_pairs(self, file: Path, T_W_S: np.ndarray, pairs: dict | None) -> None:
+    def _pair_worker(self, pairs: dict | None) -> PairWorker | None:
+        """The pair worker for a scan with these ``pairs`` settings (started at the first that asks for one); None
+        where its pairs are not registered while measuring."""
         if not pairs:
-            return
+            return None
         cfg: CorrectionConfig = pairs["correction"]
         if self._pairs is None:
             from tandemscan.pipeline.registration.correction import CorrectionSettings
             from tandemscan.pipeline.registration.pairs import NETWORK_METHODS
 
             if not cfg.enabled or cfg.method in NETWORK_METHODS:
-                return
+                return None
             self._pairs = PairWorker(CorrectionSettings.from_section(cfg), self.voxel_mm, self._pair_niceness)
-        self._pairs.submit(file, T_W_S, pairs["T_T_S"], pairs["station"], pairs["transfers"])
+        return self._pairs
+
+    @staticmethod
+    def _queue_pairs(worker: PairWorker, copy: SharedBlock | np.ndarray, T_W_S: np.ndarray,
+                     arrays: dict[str, np.ndarray], pairs: dict) -> None:
+        placement = {k: np.asarray(arrays[k]) for k in ("T_W_C", "T_C_T", "tracker_covariance")}
+        worker.submit(copy, T_W_S, placement, pairs["T_T_S"], pairs["station"], pairs["transfers"])
 
     async def pair_outcomes(self) -> tuple[OnlineWork | None, float]:
         """What the pair worker computed while the job measured (``online_pairs.OnlineWork``; None without a
@@ -230,11 +266,13 @@ class ProcessWorldMap(_Pairs):
         The caller keeps ``arrays`` until this returns (the worker maps their shared memory). ``pairs``
         (``correction``: the job's ``[correction]``, ``station``, ``transfers``: the runner's transfer entries
         so far, ``T_T_S``: the mount, mm) queues the scan's pair registration."""
+        worker = None if arrays is None else self._pair_worker(pairs)
         if arrays is not None:
             arrays = await asyncio.to_thread(_share_big, arrays)
-        self._len = await asyncio.wrap_future(
-            self._pool.submit(_add, str(file), np.asarray(T_W_S, float), arrays))
-        self._queue_pairs(file, T_W_S, pairs)
+        self._len, copy = await asyncio.wrap_future(
+            self._pool.submit(_add, str(file), np.asarray(T_W_S, float), arrays, worker is not None))
+        if worker is not None:
+            self._queue_pairs(worker, copy, T_W_S, arrays, pairs)
 
     async def run(self, fn: Callable[..., Any], job: JobSnapshot, *args: Any) -> Any:
         """``fn(job, *args)`` in the worker with ``job.worldmap`` = its map; ``fn`` and its result pickle."""
@@ -257,20 +295,22 @@ class LocalWorldMap(_Pairs):
     def __init__(self, voxel_mm: float):
         self.voxel_mm = float(voxel_mm)
         self.map = VoxelMap(self.voxel_mm)
+        self.copies: dict[str, np.ndarray] = {}  # the scans thinned at the map's voxel as merged (merge_scan)
 
     async def add_scan(self, file: Path, T_W_S: np.ndarray, arrays: dict[str, np.ndarray] | None = None,
                        pairs: dict | None = None) -> None:
-        """As :meth:`ProcessWorldMap.add_scan`; given arrays are merged as they are (float64)."""
-        if arrays is None:
-            await asyncio.to_thread(lambda: self.map.add_scan(T_W_S, *read_raw_scan(file, np.float32)))
-        else:
+        """As :meth:`ProcessWorldMap.add_scan`."""
+        if arrays is not None:
             await asyncio.to_thread(write_raw_scan, Path(file), **arrays)
-            await asyncio.to_thread(self.map.add_scan, T_W_S, arrays["points_S_mm"], arrays.get("normals_S"))
-        self._queue_pairs(file, T_W_S, pairs)
+        copy = await asyncio.to_thread(merge_scan, self.map, self.copies, str(file), T_W_S, arrays)
+        worker = None if arrays is None else self._pair_worker(pairs)
+        if worker is not None:
+            self._queue_pairs(worker, copy, T_W_S, arrays, pairs)
 
     async def run(self, fn: Callable[..., Any], job: JobSnapshot, *args: Any) -> Any:
         """``fn(job, *args)`` in a thread with ``job.worldmap`` = this map, which ``fn`` owns while it runs."""
         job.worldmap, self.map = self.map, None
+        job.scan_copies = self.copies
         try:
             return await asyncio.to_thread(fn, job, *args)
         finally:

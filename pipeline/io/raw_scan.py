@@ -54,5 +54,12 @@ def read_thinned_scan(path: Path | str, voxel_mm: float) -> np.ndarray:
     stored): it is hardly larger, and a thinning at a coarser voxel of it is that of the scan."""
     with np.load(path) as data:
         points = data["points_S_mm"]  # the normals stay on disk
+    return thin_scan(points, voxel_mm)
+
+
+def thin_scan(points_S: np.ndarray, voxel_mm: float) -> np.ndarray:
+    """:func:`read_thinned_scan` of a scan whose points (S, mm) are at hand: the same copy, from its points as a
+    raw scan file stores them (float32), so a scan thinned as it is written needs no read of its file."""
+    points = np.asarray(points_S, np.float32)
     thinned = voxel_downsample(points, voxel_mm)
-    return thinned if 2 * len(thinned) <= len(points) else points
+    return thinned if 2 * len(thinned) <= len(points) else np.array(points, np.float32)  # a copy of its own

@@ -1,6 +1,7 @@
 """The product's import boundaries (docs/architecture.md, the cell layer): no module of ``pipeline/``,
 ``drivers/``, ``daemon/`` or ``config/`` imports the simulator (the device registry names its classes as
-data), ``config/`` imports nothing of the package but itself, and the modules of ``daemon/`` import each other
+data), ``config/`` imports nothing of the package but itself, ``pipeline/`` never imports ``daemon/`` (the daemon
+calls the pipeline, the pipeline never calls back), and the modules of ``daemon/`` import each other
 without a cycle (docs/architecture.md, "The daemon's packages"). Every import statement counts, also one inside a
 function or under ``TYPE_CHECKING``."""
 
@@ -38,12 +39,14 @@ def boundary_violations(root: Path, package: str = "tandemscan") -> list[str]:
                 sim = name == f"{package}.sim_drivers" or name.startswith(f"{package}.sim_drivers.")
                 outside_config = (area == "config" and name.startswith(f"{package}.")
                                   and not name.startswith(f"{package}.config"))
-                if sim or outside_config:
+                into_daemon = area == "pipeline" and (name == f"{package}.daemon"
+                                                      or name.startswith(f"{package}.daemon."))
+                if sim or outside_config or into_daemon:
                     found.append(f"{path.relative_to(root)}: imports {name}")
     return found
 
 
-def test_product_never_imports_the_simulator_and_config_imports_nothing_of_the_package():
+def test_product_never_imports_the_simulator_config_nothing_of_the_package_and_pipeline_no_daemon():
     assert boundary_violations(PACKAGE_ROOT) == []
 
 
@@ -55,10 +58,13 @@ def test_a_planted_violation_is_found(tmp_path):
         "def build():\n    from tandemscan.sim_drivers.world import SimWorld\n    return SimWorld\n")
     (tmp_path / "drivers" / "relative.py").write_text("from ..sim_drivers import twins\n")
     (tmp_path / "pipeline" / "plain.py").write_text("import tandemscan.sim_drivers\n")
+    (tmp_path / "pipeline" / "upward.py").write_text("def f():\n    from tandemscan.daemon import finish\n")
     (tmp_path / "config" / "models.py").write_text("from tandemscan.pipeline import frames\n"
                                                    "from tandemscan.config.loader import load_config\n")
     assert boundary_violations(tmp_path) == [
         "pipeline/plain.py: imports tandemscan.sim_drivers",
+        "pipeline/upward.py: imports tandemscan.daemon",
+        "pipeline/upward.py: imports tandemscan.daemon.finish",
         "drivers/relative.py: imports tandemscan.sim_drivers",
         "drivers/relative.py: imports tandemscan.sim_drivers.twins",
         "daemon/planted.py: imports tandemscan.sim_drivers.world",

@@ -1,0 +1,172 @@
+"""``report.json`` of a measured job as one frozen, typed model, built once at the end of the job and written once
+(docs/end-of-job.md, "report.json").
+
+:class:`JobReport` holds the stages' results: the job's figures and scan log (poses ``T_W_S`` in the job's world
+frame W, 4x4, mm), the correction, inspection and coverage sections as those stages return them, the job's
+resources and timings (s), and two sections beside the product's: the simulator's ground-truth scores
+(:class:`GroundTruth`, from the job's observer; None on a real cell) and the resumes a journaled job went
+through (:class:`JobHistory`; None for a job run without a journal). :meth:`JobReport.to_json` is the file's
+content, :meth:`JobReport.from_json` reads it back into the same model; :func:`write_job_report` is the one
+writer of the file (durable: temporary name, fsync, rename).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tandemscan.pipeline.io.durable import write_durably
+
+REPORT_FILE = "report.json"
+
+#: a 4x4 pose (mm) as the report keeps it: rows of floats
+Matrix = tuple[tuple[float, ...], ...]
+
+
+def as_matrix(T: np.ndarray | Sequence[Sequence[float]]) -> Matrix:
+    """A 4x4 pose (mm) as nested tuples of floats, as :class:`ScanEntry` keeps it."""
+    return tuple(tuple(float(v) for v in row) for row in np.asarray(T, float).tolist())
+
+
+@dataclass(frozen=True)
+class ScanEntry:
+    """One scan of ``scan_log``: its index and tracker station, its point count, its raw file's name, its final
+    pose ``T_W_S`` (W, mm) and, where the correction changed it, its tracker-stitched pose ``T_W_S_tracker``."""
+
+    index: int
+    tracker_station: int
+    points: int
+    file: str
+    T_W_S: Matrix
+    T_W_S_tracker: Matrix | None = None
+
+    def to_json(self) -> dict:
+        out = {"index": self.index, "tracker_station": self.tracker_station, "points": self.points,
+               "file": self.file, "T_W_S": [list(r) for r in self.T_W_S]}
+        if self.T_W_S_tracker is not None:
+            out["T_W_S_tracker"] = [list(r) for r in self.T_W_S_tracker]
+        return out
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> ScanEntry:
+        tracker = d.get("T_W_S_tracker")
+        return cls(d["index"], d["tracker_station"], d["points"], d["file"], as_matrix(d["T_W_S"]),
+                   None if tracker is None else as_matrix(tracker))
+
+
+@dataclass(frozen=True)
+class Timings:
+    """``timings``: seconds from the last step's commit until report.html and every export were written
+    (``after_last_scan_s``), the correction's CPU seconds after the last scan and the seconds of each stage."""
+
+    after_last_scan_s: float
+    correction_cpu_s: float | None
+    stages_s: Mapping[str, float]
+
+    def to_json(self) -> dict:
+        return {"after_last_scan_s": self.after_last_scan_s, "correction_cpu_s": self.correction_cpu_s,
+                "stages_s": dict(self.stages_s)}
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """The simulated cell's scores of the job against its truth (the job's observer, ``daemon.observer``): the
+    final stitch's (``ground_truth``), the tracker-only stitch's summary where the correction changed the poses
+    (``correction.before`` in the file) and the inspection's (``ground_truth.inspection``, where it aligned)."""
+
+    scores: Mapping[str, Any]
+    tracker_only: Mapping[str, Any] | None = None
+    inspection: Mapping[str, Any] | None = None
+
+
+@dataclass(frozen=True)
+class JobHistory:
+    """How a journaled job ran: every resume of every attempt (the journal's entries) and the attempts."""
+
+    resumes: tuple[Mapping[str, Any], ...]
+    attempts: int
+
+
+@dataclass(frozen=True)
+class JobReport:
+    """A measured job's ``report.json`` (mm, deg, s). The correction, inspection, coverage and relocalisation
+    sections are the JSON of those stages' results, kept as they return them; ``scans``, ``scans_empty`` and (for
+    a journaled job) ``scans_left_out`` are derived from ``scan_log`` and ``relocalisation``."""
+
+    job: str
+    plan: str
+    transfers: int
+    points_raw: int
+    points_cloud: int
+    voxel_mm: float
+    installation_source: str
+    seconds: float
+    scans_planned: int
+    left_out_by_plan: tuple[Mapping[str, Any], ...]
+    transfer_log: tuple[Mapping[str, Any], ...]
+    relocalisation: Mapping[str, Any]
+    correction: Mapping[str, Any]
+    scan_log: tuple[ScanEntry, ...]
+    inspection: Mapping[str, Any]
+    coverage: Mapping[str, Any]
+    peak_rss_gib: float | None
+    timings: Timings
+    ground_truth: GroundTruth | None = None
+    history: JobHistory | None = None
+
+    def to_json(self) -> dict:
+        """The content of ``report.json``."""
+        correction = dict(self.correction)
+        if self.ground_truth is not None and self.ground_truth.tracker_only is not None:
+            correction["before"] = dict(self.ground_truth.tracker_only)
+        out: dict = {
+            "job": self.job, "plan": self.plan, "scans": len(self.scan_log), "transfers": self.transfers,
+            "points_raw": self.points_raw, "points_cloud": self.points_cloud, "voxel_mm": self.voxel_mm,
+            "installation_source": self.installation_source, "seconds": self.seconds,
+            "scans_planned": self.scans_planned, "left_out_by_plan": [dict(a) for a in self.left_out_by_plan],
+            "scans_empty": [s.index for s in self.scan_log if s.points == 0],
+            "transfer_log": [dict(t) for t in self.transfer_log], "relocalisation": dict(self.relocalisation),
+            "correction": correction, "scan_log": [s.to_json() for s in self.scan_log],
+            "inspection": dict(self.inspection), "coverage": dict(self.coverage),
+            "resources": {"peak_rss_gib": self.peak_rss_gib},
+        }
+        if self.ground_truth is not None:
+            truth = self.ground_truth
+            out["ground_truth"] = dict(truth.scores) | ({} if truth.inspection is None
+                                                        else {"inspection": dict(truth.inspection)})
+        out["timings"] = self.timings.to_json()
+        if self.history is not None:
+            out |= {"resumes": [dict(r) for r in self.history.resumes], "attempts": self.history.attempts,
+                    "scans_left_out": self.relocalisation["untracked"]}
+        return out
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> JobReport:
+        """The model of a ``report.json``'s content (:meth:`to_json` gives it back)."""
+        correction = dict(d["correction"])
+        tracker_only = correction.pop("before", None)
+        truth = None
+        if "ground_truth" in d:
+            scores = dict(d["ground_truth"])
+            truth = GroundTruth(scores, tracker_only, scores.pop("inspection", None))
+        history = JobHistory(tuple(d["resumes"]), d["attempts"]) if "resumes" in d else None
+        t = d["timings"]
+        return cls(d["job"], d["plan"], d["transfers"], d["points_raw"], d["points_cloud"], d["voxel_mm"],
+                   d["installation_source"], d["seconds"], d["scans_planned"], tuple(d["left_out_by_plan"]),
+                   tuple(d["transfer_log"]), d["relocalisation"], correction,
+                   tuple(ScanEntry.from_json(s) for s in d["scan_log"]), d["inspection"], d["coverage"],
+                   d["resources"]["peak_rss_gib"], Timings(t["after_last_scan_s"], t["correction_cpu_s"],
+                                                           t["stages_s"]), truth, history)
+
+
+def write_job_report(report: JobReport, job_dir: Path | str) -> Path:
+    """Write ``report`` as ``report.json`` into ``job_dir`` durably (readers see the old file or the whole new
+    one): the one writer of a job's report. Returns the file."""
+    path = Path(job_dir) / REPORT_FILE
+    data = json.dumps(report.to_json(), indent=1).encode()
+    write_durably(path, lambda f: f.write(data))
+    return path

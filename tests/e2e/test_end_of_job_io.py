@@ -1,0 +1,69 @@
+"""The end of a job's file I/O on a small band job: report.json built once with the journal's resumes and the
+simulator's scores in it and written once by its one writer (``pipeline.job_report.write_job_report``), and each raw
+scan file read at most twice after it is written (docs/end-of-job.md)."""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+from tandemscan.daemon.plans import default_plan_path
+from tandemscan.daemon.runner import JobRunner
+from tandemscan.daemon.session import CellSession
+from tandemscan.pipeline.job_report import REPORT_FILE, JobHistory, JobReport, write_job_report
+from tandemscan.pipeline.planning.plan import Plan, Scan
+
+
+async def test_a_job_writes_report_json_once_and_reads_each_scan_file_at_most_twice(sim_config, tmp_path,
+                                                                                      monkeypatch):
+    """A two-scan band job on the simulated cell with a journal's history: report.json does not exist before the
+    one writer's call, is written by it once, and nothing writes it after; it holds the journal's resumes and the
+    simulator's scores, and reads back into the model the job returned. Each raw scan file is read twice after it
+    was written (the merge at the corrected poses, the E57), its scores included: the map and the thinned copies
+    are made from the scan's arrays, the pair worker is handed the copy, the tracker stitch's score takes the map
+    stitched while measuring."""
+    from tandemscan.daemon import finish
+
+    reads: Counter[str] = Counter()
+    load = np.load
+
+    def counting_load(file, *args, **kwargs):
+        if Path(file).parent.name == "scans":
+            reads[Path(file).name] += 1
+        return load(file, *args, **kwargs)
+
+    monkeypatch.setattr(np, "load", counting_load)
+    writes: list[tuple[JobReport, tuple[int, int, int]]] = []
+
+    def writer(report: JobReport, job_dir: Path) -> Path:
+        assert not (Path(job_dir) / REPORT_FILE).exists()  # nobody wrote it before the one writer
+        path = write_job_report(report, job_dir)
+        st = path.stat()
+        writes.append((report, (st.st_ino, st.st_mtime_ns, st.st_size)))
+        return path
+
+    monkeypatch.setattr(finish, "write_job_report", writer)
+    plan = Plan.load(default_plan_path())
+    scans = [i for i, s in enumerate(plan.steps) if isinstance(s, Scan)]
+    plan = plan.model_copy(update={"steps": plan.steps[: scans[1] + 1]})  # the first two scans only
+    config = sim_config.model_copy(update={"inspection": sim_config.inspection.model_copy(update={"in_job": False})})
+    history = JobHistory(({"step": scans[1], "kind": "scan", "fresh_reading": True},), 2)
+
+    async def journal_history() -> JobHistory:
+        return history
+
+    async with CellSession(config) as session:
+        result = await JobRunner(session, plan, config, tmp_path / "job", history=journal_history).run()
+    ((report, written),) = writes
+    st = result.report_file.stat()
+    assert (st.st_ino, st.st_mtime_ns, st.st_size) == written  # nothing wrote it after
+    doc = json.loads(result.report_file.read_text())
+    assert result.job_report is report and json.loads(json.dumps(result.report)) == doc
+    assert JobReport.from_json(doc).to_json() == doc
+    assert JobReport.from_json(doc).scan_log == report.scan_log and report.history == history
+    assert doc["resumes"] == [dict(history.resumes[0])] and doc["attempts"] == 2
+    assert doc["scans"] == 2 and doc["correction"]["enabled"] and "before" in doc["correction"]
+    assert doc["ground_truth"]["pose_err_mm_median"] > 0 and "scoring_s" in doc["timings"]["stages_s"]
+    assert reads == {entry["file"]: 2 for entry in doc["scan_log"]}

@@ -1,0 +1,55 @@
+"""report.json is one frozen, typed model (``pipeline.job_report.JobReport``): its file's layout, and the file read
+back into the same model."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+from tandemscan.pipeline.job_report import (
+    GroundTruth,
+    JobHistory,
+    JobReport,
+    ScanEntry,
+    Timings,
+    as_matrix,
+    write_job_report,
+)
+
+
+def _report(**changes) -> JobReport:
+    pose = np.eye(4)
+    pose[:3, 3] = (1.5, -2.25, 3.0)
+    scans = (ScanEntry(0, 1, 1200, "scan-0000.npz", as_matrix(pose), as_matrix(np.eye(4))),
+             ScanEntry(1, 1, 0, "scan-0001.npz", as_matrix(np.eye(4))))
+    report = JobReport(
+        job="job-1", plan="band", transfers=0, points_raw=1200, points_cloud=900, voxel_mm=1.0,
+        installation_source="nominal", seconds=12.5, scans_planned=3, left_out_by_plan=({"reason": "reach"},),
+        transfer_log=(), relocalisation={"untracked": [{"step": 4}], "located": []},
+        correction={"enabled": True, "cpu_seconds": 0.5}, scan_log=scans, inspection={"skipped": "off"},
+        coverage={"planned_pct": 80.0}, peak_rss_gib=0.75, timings=Timings(3.25, 0.5, {"merge_s": 0.25}),
+        ground_truth=GroundTruth({"pose_err_mm_median": 0.01}, {"pose_err_mm_median": 0.05}, {"method": "best-fit"}),
+        history=JobHistory(({"step": 2, "kind": "scan"},), 2))
+    return dataclasses.replace(report, **changes)
+
+
+def test_the_report_reads_back_into_the_same_model_and_is_frozen(tmp_path):
+    report = _report()
+    doc = json.loads(write_job_report(report, tmp_path).read_text())
+    assert JobReport.from_json(doc) == report
+    # the file's layout: derived counts, the simulator's tracker-only scores in the correction section, the
+    # journal's resumes and the scans it left out at the top level
+    assert doc["scans"] == 2 and doc["scans_empty"] == [1]
+    assert doc["correction"] == {"enabled": True, "cpu_seconds": 0.5, "before": {"pose_err_mm_median": 0.05}}
+    assert doc["ground_truth"] == {"pose_err_mm_median": 0.01, "inspection": {"method": "best-fit"}}
+    assert doc["resumes"] == [{"step": 2, "kind": "scan"}] and doc["attempts"] == 2
+    assert doc["scans_left_out"] == [{"step": 4}]
+    assert doc["scan_log"][0]["T_W_S"][0][3] == 1.5 and "T_W_S_tracker" not in doc["scan_log"][1]
+    plain = _report(ground_truth=None, history=None)  # a real cell's job run without a journal
+    doc = plain.to_json()
+    assert "ground_truth" not in doc and "before" not in doc["correction"] and "resumes" not in doc
+    assert JobReport.from_json(json.loads(json.dumps(doc))) == plain
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        report.seconds = 1.0
