@@ -14,6 +14,7 @@ from tandemscan.daemon.runner import JobRunner
 from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.job_report import REPORT_FILE, JobHistory, JobReport, write_job_report
 from tandemscan.pipeline.planning.plan import Plan, Scan
+from tandemscan.sim_drivers.cell import with_surveyed_mounts
 
 
 async def test_a_job_writes_report_json_once_and_reads_each_scan_file_at_most_twice(sim_config, tmp_path,
@@ -55,6 +56,7 @@ async def test_a_job_writes_report_json_once_and_reads_each_scan_file_at_most_tw
         return history
 
     async with CellSession(config) as session:
+        config = with_surveyed_mounts(config, session.cell.simulation, tmp_path)
         result = await JobRunner(session, plan, config, tmp_path / "job", history=journal_history).run()
     ((report, written),) = writes
     st = result.report_file.stat()
@@ -67,3 +69,6 @@ async def test_a_job_writes_report_json_once_and_reads_each_scan_file_at_most_tw
     assert doc["scans"] == 2 and doc["correction"]["enabled"] and "before" in doc["correction"]
     assert doc["ground_truth"]["pose_err_mm_median"] > 0 and "scoring_s" in doc["timings"]["stages_s"]
     assert reads == {entry["file"]: 2 for entry in doc["scan_log"]}
+    # the pair worker's copies are the end of the job's: its pairs are taken from the cache by their keys
+    c = doc["correction"]
+    assert c["pairs"] >= 1 and c["pairs_registered_while_measuring"] >= c["pairs"] + len(c["pairs_dropped"])
