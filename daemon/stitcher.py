@@ -101,6 +101,7 @@ def _pairs_add(points: SharedBlock | np.ndarray, T_W_S: np.ndarray, placement: d
     map's process; ``placement``: its raw file's ``T_W_C``, ``T_C_T`` and ``tracker_covariance``) with the
     earlier ones."""
     global _PAIRS
+    points = np.array(take(points))  # a copy of its own: the block is removed as its mapping goes
     from tandemscan.daemon.job_correction import transfer_priors
     from tandemscan.pipeline.geometry.uncertainty import scan_pose_covariance
     from tandemscan.pipeline.registration.online_pairs import OnlinePairs
@@ -108,7 +109,7 @@ def _pairs_add(points: SharedBlock | np.ndarray, T_W_S: np.ndarray, placement: d
     if _PAIRS is None:
         _PAIRS = OnlinePairs(cfg, voxel_mm)
     cov = scan_pose_covariance(placement["T_W_C"], placement["T_C_T"], T_T_S, placement["tracker_covariance"])
-    return _PAIRS.add(take(points), T_W_S, cov, station, transfer_priors(transfers))
+    return _PAIRS.add(points, T_W_S, cov, station, transfer_priors(transfers))
 
 
 def _pairs_outcomes() -> tuple[OnlineWork | None, float]:
@@ -157,9 +158,11 @@ class PairWorker:
         """Queue the pairs of a scan: its copy thinned at the map's voxel (S, mm; a block of shared memory the
         worker takes over, or the array), placed at ``T_W_S`` (mm), with its raw file's ``T_W_C``, ``T_C_T`` and
         ``tracker_covariance`` (``placement``) and the mount ``T_T_S``."""
-        self._pending.append(self._pool.submit(_pairs_add, points, np.asarray(T_W_S, float), placement,
-                                               np.asarray(T_T_S, float), int(station), list(transfers), self.cfg,
-                                               self.voxel_mm))
+        future = self._pool.submit(_pairs_add, points, np.asarray(T_W_S, float), placement, np.asarray(T_T_S, float),
+                                   int(station), list(transfers), self.cfg, self.voxel_mm)
+        if isinstance(points, SharedBlock):  # once its task is done, failed or cancelled, no block is left behind
+            future.add_done_callback(lambda _: points.discard())
+        self._pending.append(future)
 
     async def outcomes(self) -> tuple[OnlineWork | None, float]:
         """Wait for the queued scans, then what the worker computed (``online_pairs.OnlineWork``: pair outcomes

@@ -61,6 +61,11 @@ class SharedBlock:
         """Map the block; this process owns it from now on."""
         return _attach(self.name, self.shape, self.dtype, True)
 
+    def discard(self) -> None:
+        """Remove the block without mapping it: a hand-over passed on to a process that has taken it or never
+        will (its task done, failed or cancelled); nothing where it is gone already."""
+        _unlink(SHM_DIR / self.name)
+
 
 def take(value: SharedBlock | np.ndarray) -> np.ndarray:
     """The array of a :func:`hand_over` result (this process becomes its owner)."""
