@@ -3,11 +3,12 @@ in ``/dev/shm`` once its task ran, and none of the tasks a closed worker never r
 
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
-from tandemscan.daemon.stitcher import PairWorker
-from tandemscan.drivers.shared_array import SHM_DIR, SharedBlock, hand_over
+from tandemscan.daemon.stitcher import PairWorker, ProcessWorldMap
+from tandemscan.drivers.shared_array import PREFIX, SHM_DIR, SharedBlock, hand_over
 from tandemscan.pipeline.registration.correction import CorrectionSettings
 
 PLACEMENT = {"T_W_C": np.eye(4), "T_C_T": np.eye(4), "tracker_covariance": np.eye(6) * 1e-4}
@@ -42,3 +43,26 @@ async def test_the_pair_workers_copies_leave_no_shared_memory(sim_config):
     finally:
         worker.close()  # the job ended: its queued scans are dropped
     assert _gone(never_ran)
+
+
+async def test_the_maps_process_hands_a_fine_scans_copy_to_the_pair_worker(sim_config, tmp_path):
+    """Two overlapping fine scans (2 points a 1 mm voxel: their copies, over 1 MB, go through shared memory) written
+    and merged in a :class:`ProcessWorldMap`: the pair worker prepares both for the joint refinement from the copies
+    it was handed, and no block is left."""
+    rng = np.random.default_rng(8)
+    before = set(SHM_DIR.glob(f"{PREFIX}{os.getpid()}-*"))
+    worldmap = ProcessWorldMap(1.0)
+    try:
+        for k in range(2):
+            xy = rng.uniform(0.0, 250.0, (130_000, 2))
+            arrays = {"points_S_mm": np.c_[xy, 500.0 + 0.01 * np.sin(xy[:, 0] / 20.0)], **PLACEMENT}
+            T_W_S = np.eye(4)
+            T_W_S[0, 3] = 40.0 * k
+            await worldmap.add_scan(tmp_path / f"scan-{k:04d}.npz", T_W_S, arrays,
+                                    pairs={"correction": sim_config.correction, "station": 0, "transfers": [],
+                                           "T_T_S": np.eye(4)})
+        online, _ = await worldmap.pair_outcomes()
+    finally:
+        worldmap.close()
+    assert len(online.joint_scans) == 2
+    assert set(SHM_DIR.glob(f"{PREFIX}{os.getpid()}-*")) <= before
