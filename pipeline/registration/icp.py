@@ -11,13 +11,14 @@ fine stage does not import Open3D.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 from tandemscan.pipeline.registration.normals import estimate_normals
-from tandemscan.pipeline.registration.overlap import overlap_at
+from tandemscan.pipeline.registration.overlap import Overlap, overlap_at
 from tandemscan.pipeline.registration.sampling import thin_evenly
 
 
@@ -45,12 +46,14 @@ class IcpResult:
 class TargetCloud:
     """The target of a point-to-plane fit: points (N, 3) mm and a KD-tree of them (:func:`target_with_normals`
     makes one; prepare it once per cloud). Unit normals (PCA of the ``normal_neighbours`` nearest points) are
-    computed at first use, per point, and kept: a pair's fit needs them only in its overlap."""
+    computed at first use, per point, and kept: a pair's fit needs them only in its overlap. Pairs on several
+    threads may share one (``online_pairs.OnlinePairs``): a lock keeps one thread at a time computing them."""
 
     points: np.ndarray
     tree: cKDTree
     normal_neighbours: int = 20
     known: np.ndarray = field(default=None, repr=False)     # (N, 3) normals so far, NaN where not yet computed
+    _computing: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     def __post_init__(self) -> None:
         if self.known is None:
@@ -58,9 +61,10 @@ class TargetCloud:
 
     def normals_at(self, indices: np.ndarray) -> np.ndarray:
         """The unit normals (len(indices), 3) of the points at ``indices``, computed where not yet known."""
-        todo = np.unique(indices[np.isnan(self.known[indices, 0])])
-        if len(todo):
-            self.known[todo] = estimate_normals(self.points, self.normal_neighbours, self.tree, at=todo)
+        with self._computing:
+            todo = np.unique(indices[np.isnan(self.known[indices, 0])])
+            if len(todo):
+                self.known[todo] = estimate_normals(self.points, self.normal_neighbours, self.tree, at=todo)
         return self.known[indices]
 
     @property
@@ -213,29 +217,33 @@ MIN_LEVEL_POINTS = 10
 
 def icp_coarse_to_fine(
     source_mm: ArrayLike, target: TargetCloud, init: ArrayLike, schedule: FineSchedule,
-    source_tree: cKDTree | None = None,
+    source_tree: cKDTree | None = None, first: Overlap | None = None,
 ) -> IcpResult:
     """Point-to-plane ICP of ``source`` onto ``target`` (with normals) from ``init``, re-selecting the overlap
     as the estimate improves: at each level of ``schedule`` the overlap within the level's distance is
     extracted afresh at the current estimate (both clouds), and ICP runs on it with that correspondence
     distance. Returns the fit of the whole source at ``schedule.final_mm``. ``source_tree``: a KD-tree of
-    ``source_mm`` where the caller built one."""
+    ``source_mm`` where the caller built one; ``first``: the overlap at ``init`` within the first level's distance
+    where the caller found it."""
     S = np.asarray(source_mm, float)
     source_tree = cKDTree(S) if source_tree is None else source_tree
     M = np.asarray(init, float).copy()
     d = max(schedule.start_mm, schedule.final_mm)
-    for _ in range(schedule.max_levels):
-        ov = overlap_at(S, source_tree, target.points, target.tree, M, d)
+    for level in range(schedule.max_levels):
+        ov = first if level == 0 and first is not None else overlap_at(S, source_tree, target.points, target.tree, M, d)
         if ov.size >= MIN_LEVEL_POINTS:
-            fit = icp_point_to_plane(S[thin_evenly(ov.source_idx, schedule.max_points)],
-                                     target.select(ov.target_idx), M, d, schedule.iterations,
-                                     stop_on_repeat=schedule.stop_on_repeat)
+            part, sub = target.select(ov.target_idx), S[thin_evenly(ov.source_idx, schedule.max_points)]
+            if d <= schedule.final_mm:  # the last level: its fit on the overlap is not needed
+                M = iterate_point_to_plane(sub, part, M, d, Convergence(max_iterations=schedule.iterations,
+                                                                        stop_on_repeat=schedule.stop_on_repeat))
+                break
+            fit = icp_point_to_plane(sub, part, M, d, schedule.iterations, stop_on_repeat=schedule.stop_on_repeat)
             M = fit.transformation
             d_next = min(d * schedule.shrink, schedule.rms_multiple * fit.rmse_mm)
+        elif d <= schedule.final_mm:
+            break
         else:
             d_next = d * schedule.shrink
-        if d <= schedule.final_mm:
-            break
         d = max(schedule.final_mm, d_next)
     return evaluate_point_to_plane(S, target, M, schedule.final_mm)
 
@@ -289,14 +297,20 @@ def truncated_cost(fit: IcpResult, distance_mm: float) -> float:
 
 def evaluate_point_to_plane(
     source_mm: ArrayLike, target: ArrayLike | TargetCloud, T: ArrayLike, max_distance_mm: float,
-    normal_neighbours: int = 20,
+    normal_neighbours: int = 20, nearest: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> IcpResult:
-    """Score ``T_target_source`` without moving it: nearest-neighbour inliers within ``max_distance_mm``."""
+    """Score ``T_target_source`` without moving it: nearest-neighbour inliers within ``max_distance_mm``.
+    ``nearest``: each source point's nearest target point at ``T`` where the caller searched them (distances mm,
+    infinite beyond a bound of at least ``max_distance_mm``, and indices), not searched again."""
     S = np.asarray(source_mm, float)
     tgt = target_with_normals(target, normal_neighbours)
     M = np.asarray(T, float).copy()
     moved = S @ M[:3, :3].T + M[:3, 3]
-    ok, idx, _, _ = _correspondences(moved, tgt, max_distance_mm)
+    if nearest is None:
+        ok, idx, _, _ = _correspondences(moved, tgt, max_distance_mm)
+    else:
+        ok = nearest[0] < max_distance_mm
+        idx = nearest[1][ok]
     normals = tgt.normals_at(idx)
     r = np.einsum("ij,ij->i", moved[ok] - tgt.points[idx], normals)
     rmse = float(np.sqrt(np.mean(r**2))) if ok.any() else float("inf")

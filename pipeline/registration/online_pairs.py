@@ -3,11 +3,12 @@
 As each scan is stitched (its points in the scanner frame S, its tracker pose ``T_W_S`` in the world W, mm),
 :class:`OnlinePairs` finds its possible partners among the scans already measured
 (``overlap.PairSelector``: a superset of the pairs ``overlap.overlapping_pairs`` selects over the whole job)
-and registers those pairs as the correction would (``pair_stage.register_stitched_pair``, one pair a core), keeping each
-outcome under ``correction.pair_key``; with ``[correction] joint`` it also prepares each scan for the joint
-refinement (``correction.joint_scan``: thinned, with normals) under ``correction.joint_scan_key`` and finds the
-nearest neighbours of its pairs there at the tracker poses (``joint.associate``: the refinement's association,
-the costly part of it) under ``correction.association_key``. After the last scan
+and registers those pairs as the correction would (``pair_stage.register_stitched_pair``, one pair a thread, a
+thread a core, beside the next scans), keeping each outcome under ``correction.pair_key``; with ``[correction]
+joint`` it also prepares each scan for the joint refinement (``correction.joint_scan``: thinned, with normals)
+under ``correction.joint_scan_key`` and finds the nearest neighbours of its pairs there at the tracker poses
+(``joint.associate``: the refinement's association, the costly part of it) under
+``correction.association_key``. After the last scan
 ``correction.correct_scans`` takes the outcomes of the pairs it selects, the prepared scans and the
 associations from these caches and computes only the others (a job resumed after a restart, a scan whose pose
 changed), so its result never depends on what was done here.
@@ -16,9 +17,12 @@ changed), so its result never depends on what was done here.
 from __future__ import annotations
 
 import logging
+import os
+import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -41,7 +45,6 @@ from tandemscan.pipeline.registration.joint import Association, JointScan, assoc
 from tandemscan.pipeline.registration.overlap import PairSelector
 from tandemscan.pipeline.registration.pair_stage import PairOutcome, register_stitched_pair
 from tandemscan.pipeline.registration.pairs import NETWORK_METHODS
-from tandemscan.pipeline.registration.parallel import pair_threads
 from tandemscan.pipeline.registration.pose_graph import TransferPrior
 from tandemscan.pipeline.registration.sampling import voxel_downsample
 
@@ -81,9 +84,12 @@ class OnlineScan:
 class OnlinePairs:
     """The pair outcomes of a job, registered as its scans arrive (one instance per job, where the work runs).
 
-    ``cfg`` and ``voxel_mm`` must be the job's ``[correction]`` settings (:class:`CorrectionSettings`) and
-    ``[job] voxel_mm``, as the end of the job uses them; a method that needs the DeepMerge network registers
-    nothing here (the network is loaded at the end only)."""
+    :meth:`add` queues a scan's pairs (and joint associations) on a pool of one thread per core and returns: the
+    pairs of the next scans queue behind them, so no core waits at the end of a scan's pairs. A queued pair that a
+    later scan displaced before it started (``overlap.PairSelector.kept``: the end of the job never selects it) is
+    not registered. :meth:`work` waits for what is queued. ``cfg`` and ``voxel_mm`` must be the job's
+    ``[correction]`` settings (:class:`CorrectionSettings`) and ``[job] voxel_mm``, as the end of the job uses them;
+    a method that needs the DeepMerge network registers nothing here (the network is loaded at the end only)."""
 
     def __init__(self, cfg: CorrectionSettings, voxel_mm: float):
         self.cfg, self.voxel_mm = cfg, float(voxel_mm)
@@ -97,57 +103,88 @@ class OnlinePairs:
         self._joint_selector = PairSelector(cfg.pair_cell_mm, cfg.joint_max_partners_per_scan)
         self._joint_starts: list[tuple[str, np.ndarray]] = []  # each prepared scan's key and tracker pose
         self._tree = _Recent(lambda i: cKDTree(self.joint_scans[self._joint_starts[i][0]].points_S))
-        self.cpu_s = 0.0  # CPU time (s) of this process spent in add
+        self._queued: dict[str, Future] = {}  # pair key -> its outcome (None: displaced before it started)
+        self._queued_associations: dict[str, Future] = {}
+        self._pool: ThreadPoolExecutor | None = None
+        self._shared = threading.Lock()  # the selector and the kept targets, which the pool's threads read
+        self._cpu_start = time.process_time()
+        self.cpu_s = 0.0  # CPU time (s) of this process from its start to the last :meth:`work`
 
     def add(self, points_S: np.ndarray, T_W_S: np.ndarray, covariance: np.ndarray, station: int,
             transfers: Sequence[TransferPrior]) -> int:
         """Take the next scan with points (``points_S`` (N, 3) mm as the end of the job loads them,
         ``finish.load_scans``; its 6x6 pose covariance, ``uncertainty.scan_pose_covariance``; its tracker
-        station; the transfer priors known so far), register its pairs and, with ``[correction] joint``, prepare
-        it for the joint refinement and find the nearest neighbours of its pairs there; returns how many pairs
-        were registered."""
+        station; the transfer priors known so far), queue the registration of its pairs and, with ``[correction]
+        joint``, prepare it for the joint refinement and queue the nearest neighbours of its pairs there; returns
+        how many partners it has."""
         if not self.enabled or len(points_S) == 0:
             return 0
-        cpu = time.process_time()
         scan = StitchedScan(np.empty((0, 3)), np.asarray(T_W_S, float), np.asarray(covariance, float), int(station))
         world = transform_points(scan.T_W_S, voxel_downsample(np.asarray(points_S, float), self.voxel_mm))
         new = OnlineScan(world, cloud_digest(world), scan)
-        partners = self.selector.add(world, scan.station)
-        self.scans.append(new)
-        todo = {}  # key -> (target, covariance) of each pair not registered yet
+        with self._shared:
+            partners = self.selector.add(world, scan.station)
+            self.scans.append(new)
+        j = len(self.scans) - 1
         for i in partners:
             old = self.scans[i]
             cov = pair_covariance(old.scan, scan, transfers)
             key = pair_key(old.digest, new.digest, cov, self.cfg.pairs)
-            if key not in self.outcomes and key not in todo:
-                todo[key] = self._target(i), cov
-        with pair_threads() as pair_map:  # both cores: each pair has a target of its own
-            self.outcomes |= zip(todo, pair_map(lambda job: register_stitched_pair(world, *job, self.cfg.pairs),
-                                                todo.values()), strict=True)
+            if key not in self.outcomes and key not in self._queued:
+                self._queued[key] = self._threads().submit(self._register, i, j, cov)
         if self.cfg.joint:
             self._prepare_joint(points_S, scan.T_W_S, scan.station)
-        self.cpu_s += time.process_time() - cpu
-        log.debug("online pairs: scan %d, %d partners", len(self.scans) - 1, len(partners))
+        log.debug("online pairs: scan %d, %d partners", j, len(partners))
         return len(partners)
 
+    def _threads(self) -> ThreadPoolExecutor:
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(os.cpu_count() or 1, thread_name_prefix="online-pairs")
+        return self._pool
+
+    def _register(self, i: int, j: int, covariance: np.ndarray) -> PairOutcome | None:
+        """Pair ``(i, j)`` registered, or None where a later scan displaced it (the end never selects it)."""
+        with self._shared:
+            if not self.selector.kept(i, j):
+                return None
+            target = self._target(i)
+        return register_stitched_pair(self.scans[j].world_mm, target, covariance, self.cfg.pairs)
+
     def work(self) -> OnlineWork:
-        """The pair outcomes, prepared joint scans and their pairs' nearest neighbours so far."""
+        """Wait for the queued pairs and associations, then the pair outcomes, prepared joint scans and their pairs'
+        nearest neighbours so far (a task that failed is logged and left to the end of the job)."""
+        self.outcomes |= {k: o for k, o in _results(self._queued).items() if o is not None}
+        self.associations |= _results(self._queued_associations)
+        self._queued, self._queued_associations = {}, {}
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
+        self.cpu_s = time.process_time() - self._cpu_start
         return OnlineWork(self.outcomes, self.joint_scans, self.associations)
 
     def _prepare_joint(self, points_S: np.ndarray, T_W_S: np.ndarray, station: int) -> None:
-        """Prepare the scan for the joint refinement (``correction.joint_scan``) and find, at the tracker poses,
-        the nearest neighbours of its points in every earlier prepared scan it may be paired with there
-        (``correction._refine_jointly`` pairs the prepared scans sharing a grid cell)."""
+        """Prepare the scan for the joint refinement (``correction.joint_scan``) and queue, at the tracker poses,
+        the search of the nearest neighbours of its points in every earlier prepared scan it may be paired with
+        there (``correction._refine_jointly`` pairs the prepared scans sharing a grid cell)."""
         key = joint_scan_key(points_S, self.cfg.joint_voxel_mm)
         prepared = self.joint_scans[key] = joint_scan(points_S, self.cfg.joint_voxel_mm)
         partners = self._joint_selector.add(transform_points(T_W_S, prepared.points_S), station)
         self._joint_starts.append((key, T_W_S))
-        todo = {}  # association key -> (prepared scan, its KD-tree, relative start pose) of each partner
         for i in partners:
             key_i, T_W_S_i = self._joint_starts[i]
-            todo[association_key(key_i, key, T_W_S_i, T_W_S, self.cfg.joint_refinement.max_distance_mm)] = (
-                self.joint_scans[key_i], self._tree(i), invert(T_W_S_i) @ T_W_S)
-        with pair_threads() as pair_map:
-            self.associations |= zip(todo, pair_map(
-                lambda job: associate(job[0], job[1], prepared, job[2], self.cfg.joint_refinement.max_distance_mm),
-                todo.values()), strict=True)
+            found = association_key(key_i, key, T_W_S_i, T_W_S, self.cfg.joint_refinement.max_distance_mm)
+            if found not in self.associations and found not in self._queued_associations:
+                self._queued_associations[found] = self._threads().submit(
+                    associate, self.joint_scans[key_i], self._tree(i), prepared, invert(T_W_S_i) @ T_W_S,
+                    self.cfg.joint_refinement.max_distance_mm)
+
+
+def _results(futures: dict[str, Future]) -> dict[str, Any]:
+    """Each future's result by its key, those that raised left out (logged)."""
+    out = {}
+    for key, future in futures.items():
+        try:
+            out[key] = future.result()
+        except Exception as e:  # noqa: BLE001 - the end of the job computes what is missing
+            log.warning("online pairs: a task failed, left to the end of the job: %s", e)
+    return out

@@ -182,3 +182,11 @@ class PairSelector:
         partners.update(i for i in np.flatnonzero(row > 0).tolist()
                         if n in _best_partners(shared[i], stations, i, self.max_partners))
         return sorted(partners)
+
+    def kept(self, i: int, j: int) -> bool:
+        """Whether the pair of clouds ``i`` and ``j`` is still among those :meth:`add` returned: one of them keeps
+        the other among its candidates so far. Once not, never again (a later cloud only adds competitors), so a
+        pair :func:`overlapping_pairs` selects over all the clouds is kept at every step."""
+        stations = np.asarray(self._stations)
+        return (j in _best_partners(self._shared[i], stations, i, self.max_partners)
+                or i in _best_partners(self._shared[j], stations, j, self.max_partners))

@@ -37,7 +37,7 @@ from tandemscan.pipeline.registration.icp import (
     target_with_normals,
     truncated_cost,
 )
-from tandemscan.pipeline.registration.overlap import delta_from_covariance, overlap_at
+from tandemscan.pipeline.registration.overlap import Overlap, delta_from_covariance
 from tandemscan.pipeline.registration.sampling import thin_evenly
 
 if TYPE_CHECKING:
@@ -205,9 +205,22 @@ def verify(result: PairRegistration, distance_mm: float, max_cost_increase: floa
     return result
 
 
+@dataclass(frozen=True)
+class SourceAtStitch:
+    """What :func:`correct_pair` found of a source at its start (the stitch) for :func:`register_pair`: a KD-tree of
+    the source points, how many points the whole source has (the fits' fitness and so their costs are shares of
+    it: the points left out are out of reach of the target), the overlap at the fine stage's first distance, and
+    each point's nearest target point (distances mm, infinite beyond a bound of at least that distance; indices)."""
+
+    tree: cKDTree
+    whole_points: int
+    first: Overlap
+    nearest: tuple[np.ndarray, np.ndarray]
+
+
 def register_pair(
     source_mm: np.ndarray, target: TargetCloud, cfg: PairCriteria, network: Registrar | None,
-    start_distance_mm: float, refine_sigmas: float | None = None, source_tree: cKDTree | None = None,
+    start_distance_mm: float, refine_sigmas: float | None = None, at_stitch: SourceAtStitch | None = None,
 ) -> PairRegistration:
     """``T_target_source`` of a source placed at its start (its pose so far) onto a target with normals, by
     ``cfg.method``, verified (:func:`verify`); the fine stage from the start begins at ``start_distance_mm``
@@ -216,17 +229,21 @@ def register_pair(
     method but ``deepmerge``, the network's own answer) is refined at its own correspondence gate
     (:func:`icp.refine_at_gate`, that many sigmas), kept unless that raises its truncated cost at the final
     distance by more than the tie margin, and the fine stage's levels stop at a repeated correspondence set
-    (``FineSchedule.stop_on_repeat``); None (the job's pairs) does neither. ``source_tree``: a KD-tree of
-    ``source_mm`` where one was built."""
+    (``FineSchedule.stop_on_repeat``); None (the job's pairs) does neither. ``at_stitch``: what
+    :func:`correct_pair` found of the source at its start (:class:`SourceAtStitch`), not searched again."""
     method, final = cfg.method, cfg.icp_max_distance_mm
     S = np.asarray(source_mm, float)
+    source_tree = None if at_stitch is None else at_stitch.tree
+
+    def whole(fit: IcpResult) -> IcpResult:
+        return fit if at_stitch is None else replace(fit, fitness=fit.inliers / at_stitch.whole_points)
     # the refinement settles the end, so the levels stop at a cycle; ``deepmerge`` stays the network's answer
     refining = refine_sigmas is not None and method != "deepmerge"
 
-    def fine(M: np.ndarray, start_mm: float) -> IcpResult:
-        return icp_coarse_to_fine(S, target, M, FineSchedule(start_mm, final, cfg.icp_iterations,
-                                                             cfg.icp_max_points, stop_on_repeat=refining),
-                                  source_tree)
+    def fine(M: np.ndarray, start_mm: float, first: Overlap | None = None) -> IcpResult:
+        return whole(icp_coarse_to_fine(S, target, M, FineSchedule(start_mm, final, cfg.icp_iterations,
+                                                                   cfg.icp_max_points, stop_on_repeat=refining),
+                                        source_tree, first))
 
     def network_answer() -> np.ndarray:
         if network is None:
@@ -235,7 +252,7 @@ def register_pair(
 
     candidates: dict[str, IcpResult] = {}
     if method in ("icp", "auto"):
-        candidates["init"] = fine(np.eye(4), start_distance_mm)
+        candidates["init"] = fine(np.eye(4), start_distance_mm, None if at_stitch is None else at_stitch.first)
     if method in ("fpfh+icp", "auto"):
         matching = FeatureMatching(cfg.global_voxel_fraction, cfg.ransac_max_iterations, cfg.ransac_confidence)
         candidates["fpfh"] = fine(fpfh_ransac(S, np.asarray(target.points), matching), cfg.global_fine_start_mm)
@@ -243,8 +260,8 @@ def register_pair(
             candidates["init"].transformation, candidates["fpfh"].transformation, S.mean(axis=0), cfg):
         candidates["deepmerge"] = fine(network_answer(), cfg.global_fine_start_mm)
     if method == "deepmerge":
-        candidates["deepmerge"] = evaluate_point_to_plane(
-            S, target, keep_if_better(S, target, network_answer(), start_distance_mm), final)
+        candidates["deepmerge"] = whole(evaluate_point_to_plane(
+            S, target, keep_if_better(S, target, network_answer(), start_distance_mm), final))
     if method == "deepmerge+icp":
         guarded = keep_if_better(S, target, network_answer(), start_distance_mm)
         candidates["deepmerge"] = fine(guarded, final)
@@ -259,12 +276,14 @@ def register_pair(
     fit, cost, gate = candidates[stage], costs[stage], None
     if refining:
         M, gate = refine_at_gate(S, target, fit.transformation, final, refine_sigmas, cfg.icp_iterations)
-        refined = evaluate_point_to_plane(S, target, M, final)
+        refined = whole(evaluate_point_to_plane(S, target, M, final))
         if truncated_cost(refined, final) <= cost + tie:
             fit, cost = refined, truncated_cost(refined, final)
         else:
             gate = None
-    start = truncated_cost(evaluate_point_to_plane(S, target, np.eye(4), final), final)
+    start = truncated_cost(whole(evaluate_point_to_plane(S, target, np.eye(4), final,
+                                                         nearest=None if at_stitch is None else at_stitch.nearest)),
+                           final)
     log.debug("pair registration %s: costs %s, start %.4g mm^2, gate %s mm", method, costs, start, gate)
     return verify(PairRegistration(fit.transformation, fit, stage, cost, start, tuple(candidates), gate), final,
                   cfg.max_cost_increase)
@@ -325,19 +344,88 @@ def correct_pair(
     (registering only the overlap at the stitch, or onto only the target's overlap, measured worse on the
     simulated job, docs/registration.md); the edge's fit is scored on the source overlap at the stitch,
     thinned evenly to ``icp_max_points``. The fine stage runs ``cfg.job_pair_iterations`` a level (from the
-    tracker stitch more only slide along smooth overlaps, docs/compute.md); the source's KD-tree is built once.
+    tracker stitch more only slide along smooth overlaps, docs/compute.md). Each cloud is searched once at the
+    stitch (:class:`SourceAtStitch`).
+
+    With ``method = "icp"`` only the source points within :data:`REACH_MULTIPLE` times the largest correspondence
+    distance of the target at the stitch take part: the overlaps, fits and scores are those of the whole source
+    while no point left out comes within that distance of the target, which is checked on the result
+    (:func:`stays_out_of_reach`); where one may have, or where the fit was refused, the pair is registered again
+    with the whole source.
     """
     target_W = np.asarray(target.points)
     delta = pair_delta(target_W, cfg, pair_covariance)
+    largest = max(delta, cfg.criteria.icp_max_distance_mm)
+    if cfg.criteria.method == "icp":
+        reach = REACH_MULTIPLE * largest
+        d, idx = target.tree.query(source_W, k=1, distance_upper_bound=reach, workers=1)
+        near = np.flatnonzero(d < reach)
+        try:
+            pc = _correct_from_stitch(source_W[near], len(source_W), (d[near], idx[near]), target, cfg, network,
+                                      delta)
+        except RegistrationFailed:  # decided on the whole source (a refused fit may have moved it beyond reach)
+            pc = None
+        else:
+            if pc is None or stays_out_of_reach(pc.transformation, source_W, target_W, largest, reach):
+                return pc
+        log.debug("pair correction: registered again with the whole source")
+    nearest = target.tree.query(source_W, k=1, distance_upper_bound=largest, workers=1)
+    return _correct_from_stitch(source_W, len(source_W), nearest, target, cfg, network, delta)
+
+
+#: :func:`correct_pair` registers the source points within this many times the pair's largest correspondence
+#: distance of the target at the stitch
+REACH_MULTIPLE = 2.0
+
+
+def box_move_mm(T: np.ndarray, low: np.ndarray, high: np.ndarray) -> float:
+    """The largest distance (mm) by which ``T`` (4x4 mm) moves a point of the box from ``low`` to ``high`` (mm):
+    at one of its corners (the move is affine in the point, its length convex)."""
+    corners = np.array([[(low, high)[(k >> a) & 1][a] for a in range(3)] for k in range(8)], float)
+    return float(np.linalg.norm(transform_points(T, corners) - corners, axis=1).max())
+
+
+def stays_out_of_reach(T: np.ndarray, source_W: np.ndarray, target_W: np.ndarray, distance_mm: float,
+                       reach_mm: float) -> bool:
+    """Whether ``T`` (4x4 mm) brings no source point that is farther than ``reach_mm`` from the target within
+    ``distance_mm`` of it (all mm, W). Such a point lies in the source's bounding box, within ``distance_mm`` plus
+    its move of the target's bounding box, and moves at least ``reach_mm - distance_mm``: its move is bounded by
+    that at the corners of the boxes' common part, which each bound narrows again."""
+    low, high = source_W.min(axis=0), source_W.max(axis=0)
+    t_low, t_high = target_W.min(axis=0), target_W.max(axis=0)
+    move = box_move_mm(T, low, high)
+    for _ in range(3):
+        lo, hi = np.maximum(low, t_low - distance_mm - move), np.minimum(high, t_high + distance_mm + move)
+        if np.any(lo > hi):
+            return True
+        move = box_move_mm(T, lo, hi)
+    return move <= reach_mm - distance_mm
+
+
+def _correct_from_stitch(source_W: np.ndarray, whole_points: int, nearest: tuple[np.ndarray, np.ndarray],
+                         target: TargetCloud, cfg: JobPairSettings, network: Registrar | None, delta_mm: float
+                         ) -> PairCorrection | None:
+    """:func:`correct_pair` on ``source_W``, the points of a source of ``whole_points`` points that can reach the
+    target (all of them, or those :func:`correct_pair` kept) and their ``nearest`` target points at the stitch
+    (searched within at least the largest correspondence distance), at the overlap threshold ``delta_mm``."""
+    if len(source_W) < cfg.min_overlap_points:
+        return None
+    largest = max(delta_mm, cfg.criteria.icp_max_distance_mm)
     source_tree = cKDTree(source_W)
-    ov = overlap_at(source_W, source_tree, target_W, target.tree, np.eye(4), delta)
+    d_t, _ = source_tree.query(target.points, k=1, distance_upper_bound=largest, workers=1)
+    d_s = nearest[0]
+    ov = Overlap(np.flatnonzero(d_s < delta_mm), np.flatnonzero(d_t < delta_mm), delta_mm)
     if ov.size < cfg.min_overlap_points:
         return None
+    first = Overlap(np.flatnonzero(d_s < largest), np.flatnonzero(d_t < largest), largest)
     # the job's pairs do not refine at a gate (no refine_sigmas), so icp_iterations is the fine stage's alone
     criteria = replace(cfg.criteria, icp_iterations=cfg.job_pair_iterations)
-    reg = register_pair(source_W, target, criteria, network, delta, source_tree=source_tree)
-    S = source_W[thin_evenly(ov.source_idx, criteria.icp_max_points)]
+    reg = register_pair(source_W, target, criteria, network, delta_mm,
+                        at_stitch=SourceAtStitch(source_tree, whole_points, first, nearest))
+    thin = thin_evenly(ov.source_idx, criteria.icp_max_points)
+    S = source_W[thin]
     fit = evaluate_point_to_plane(S, target, reg.transformation, criteria.icp_max_distance_mm)
-    before = evaluate_point_to_plane(S, target, np.eye(4), criteria.icp_max_distance_mm)
-    return PairCorrection(reg.transformation, fit, before.rmse_mm, ov.size, delta,
-                          target_W[ov.target_idx].mean(axis=0), reg.stage)
+    before = evaluate_point_to_plane(S, target, np.eye(4), criteria.icp_max_distance_mm,
+                                     nearest=(d_s[thin], nearest[1][thin]))
+    return PairCorrection(reg.transformation, fit, before.rmse_mm, ov.size, delta_mm,
+                          target.points[ov.target_idx].mean(axis=0), reg.stage)

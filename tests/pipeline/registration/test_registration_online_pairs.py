@@ -29,6 +29,7 @@ def _measure(scans, transfers, cfg, voxel_mm=1.0) -> OnlinePairs:
     online = OnlinePairs(cfg, voxel_mm)
     for s in scans:
         online.add(s.points_S, s.T_W_S, s.covariance, s.station, [t for t in transfers if t.station <= s.station])
+    online.work()
     return online
 
 
@@ -133,6 +134,7 @@ def test_a_scans_pairs_register_on_both_cores_while_measuring(monkeypatch):
         online.add(s.points_S, s.T_W_S, s.covariance, s.station, transfers)
     middle.set()
     assert online.add(scans[2].points_S, scans[2].T_W_S, scans[2].covariance, scans[2].station, transfers) == 2
+    online.work()
     assert online.outcomes.keys() == one_at_a_time.keys()
     for key, outcome in one_at_a_time.items():
         np.testing.assert_array_equal(online.outcomes[key].transformation, outcome.transformation)
