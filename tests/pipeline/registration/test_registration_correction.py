@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from tandemscan.config.models import CorrectionConfig
 from tandemscan.pipeline.geometry.frames import compose, from_rotvec, invert, pose_error, transform_points
-from tandemscan.pipeline.registration import correction
+from tandemscan.pipeline.registration import correction, pairs
 from tandemscan.pipeline.registration.correction import CorrectionSettings, StitchedJob, StitchedScan, correct_scans
 from tandemscan.pipeline.registration.icp import target_with_normals
 from tandemscan.pipeline.registration.pairs import JobPairSettings, PairCriteria, correct_pair, register_pair
@@ -78,6 +78,32 @@ def test_correct_pair_needs_overlap_and_a_delta():
     assert correct_pair(far, target, cfg, None) is None
     with pytest.raises(ValueError, match="overlap_delta_mm"):
         correct_pair(b, target, JobPairSettings.from_section(CorrectionConfig(method="icp")), None)
+
+
+@pytest.mark.parametrize("reach", [2.0, 1.001], ids=["within reach", "moved beyond: again whole"])
+def test_a_pair_on_its_source_within_reach_is_the_whole_sources_to_the_bit(reach, monkeypatch):
+    """``correct_pair`` registers only the source points within ``REACH_MULTIPLE`` times the largest
+    correspondence distance of the target: correction, fit, overlap and centre are the whole source's to the bit.
+    Where the fit moves a point left out farther than that allows (a reach of 1.001 times), the whole source is
+    registered again."""
+    _, scans, _ = scans_with_drift(n=2, per_station=1)
+    a = transform_points(scans[0].T_W_S, scans[0].points_S)
+    b = transform_points(from_rotvec([0.2, -0.1, 0.1], np.radians([0.01, -0.02, 0.01])),
+                         transform_points(scans[1].T_W_S, scans[1].points_S))
+    cfg = JobPairSettings.from_section(CorrectionConfig(method="icp", overlap_delta_mm=1.5))
+    monkeypatch.setattr(pairs, "REACH_MULTIPLE", 1e9)  # every source point within reach: the whole source
+    whole = correct_pair(b, target_with_normals(a), cfg, None)
+    sizes, real = [], pairs._correct_from_stitch
+    monkeypatch.setattr(pairs, "_correct_from_stitch", lambda S, *args: sizes.append(len(S)) or real(S, *args))
+    monkeypatch.setattr(pairs, "REACH_MULTIPLE", reach)
+    part = correct_pair(b, target_with_normals(a), cfg, None)
+    assert sizes[0] < 0.8 * len(b) and sizes[1:] == ([] if reach > 1.5 else [len(b)])
+    np.testing.assert_array_equal(part.transformation, whole.transformation)
+    np.testing.assert_array_equal(part.fit.points_mm, whole.fit.points_mm)
+    np.testing.assert_array_equal(part.centre_mm, whole.centre_mm)
+    assert (part.fit.fitness, part.fit.rmse_mm, part.rmse_before_mm, part.overlap_points) == (
+        whole.fit.fitness, whole.fit.rmse_mm, whole.rmse_before_mm, whole.overlap_points)
+    assert pose_error(whole.transformation, np.eye(4))[0] > 0.05  # the fit moved the source
 
 
 def bumpy(x: np.ndarray, y: np.ndarray) -> np.ndarray:

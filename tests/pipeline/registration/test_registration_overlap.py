@@ -74,6 +74,24 @@ def test_pairs_selected_as_clouds_arrive_include_every_final_pair():
     assert (0, 1) in offered and (0, 1) not in overlapping_pairs(clouds, [0, 0, 0], 10.0, 1)
 
 
+def test_a_pair_stays_kept_until_displaced_and_every_final_pair_is_kept_throughout():
+    """``PairSelector.kept``: every pair the selection over all clouds holds is kept after each arrival from its
+    later cloud's on; a pair displaced by a later cloud is not kept from then on, never again."""
+    rng = np.random.default_rng(5)
+    corners = np.cumsum(rng.uniform(-60, 60, size=(30, 2)), axis=0)
+    clouds = [_patch(x, y, size_mm=80.0, step_mm=4.0) for x, y in corners]
+    stations = np.repeat([0, 1], [18, 12])
+    final = set(overlapping_pairs(clouds, stations, cell_mm=10.0, max_partners=2))
+    selector, offered, dropped = PairSelector(10.0, 2), set(), set()
+    for j, c in enumerate(clouds):
+        offered |= {(i, j) for i in selector.add(c, stations[j])}
+        kept = {p for p in offered if selector.kept(*p)}
+        assert dropped.isdisjoint(kept)
+        dropped |= offered - kept
+        assert {p for p in final if p[1] <= j} <= kept
+    assert dropped and kept == final
+
+
 def test_overlap_from_prebuilt_trees_is_the_overlap_of_the_moved_source():
     """``overlap_at`` (trees built once, the target moved into the source's frame) selects exactly what
     ``extract_overlap`` selects on the moved source: a wrong direction of the transform would not."""
