@@ -53,6 +53,23 @@ def test_normals_are_open3ds_knn_normals_up_to_sign():
     assert np.all(np.isfinite(flat)) and np.allclose(np.linalg.norm(flat, axis=1), 1.0)
 
 
+def test_the_closed_form_normal_is_lapacks_smallest_eigenvector():
+    """``normals.smallest_eigenvectors`` against ``numpy.linalg.eigh`` on sets from round blobs to thin plates far
+    from the origin (world coordinates, mm): the same direction to 1e-12; a set on a line gets a normal of it."""
+    from tandemscan.pipeline.registration.normals import smallest_eigenvectors
+
+    rng = np.random.default_rng(4)
+    X = rng.normal(size=(600, 20, 3)) * np.geomspace([1.0, 1.0, 1.0], [5.0, 2.0, 1e-4], 600)[:, None, :]
+    X = X @ np.stack([from_rotvec([0, 0, 0], r)[:3, :3] for r in rng.normal(size=(600, 3))]) + 3000.0
+    centred = X - X.mean(axis=1, keepdims=True)
+    _, V = np.linalg.eigh(np.matmul(centred.transpose(0, 2, 1), centred))
+    ours = smallest_eigenvectors(centred)
+    assert np.abs(np.einsum("ij,ij->i", ours, V[:, :, 0])).min() > 1 - 1e-12
+    line = np.outer(np.arange(20.0), [1.0, 2.0, 3.0])[None]
+    n = smallest_eigenvectors(line - line.mean(axis=1, keepdims=True))[0]
+    assert np.linalg.norm(n) == pytest.approx(1.0) and abs(n @ [1.0, 2.0, 3.0]) < 1e-6   # a normal of the line
+
+
 @pytest.mark.parametrize(("distance_mm", "iterations"), [(5.0, 50), (2.0, 50), (2.0, 3)])
 def test_icp_gives_open3ds_transform_from_the_same_start(distance_mm, iterations):
     source, target = overlapping()
