@@ -633,6 +633,9 @@ class ComputeConfig(_Strict):
         None, description="the folder the workers read the job's scans from (a shared filesystem); empty = the "
         "job folder")
     retries: int = Field(3, ge=0, description="dask: times a task lost with its worker is run again")
+    tile_mm: float = Field(
+        0.0, ge=0, description="the end of a job merges its cloud by slabs of W this wide (mm) on the backend, "
+        "each unit reading only its scans (docs/compute.md, Tiles); 0 = in one process, as one map")
 
 
 class DeepMergeConfig(_Strict):

@@ -20,19 +20,20 @@ import logging
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 from tandemscan.daemon.job_outputs import export_job, stitch_view_points
 from tandemscan.daemon.job_report import build_job_report, score_ground_truth
+from tandemscan.pipeline.compute import backend_for
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan
 from tandemscan.pipeline.job_report import JobReport, Timings, write_job_report
 from tandemscan.pipeline.registration.parallel import pair_threads
-from tandemscan.pipeline.stitching.worldmap import VoxelMap
+from tandemscan.pipeline.stitching.tiles import TileScan, merge_tiles, read_cloud, scan_x_extent
+from tandemscan.pipeline.stitching.worldmap import MapCloud, VoxelMap
 
 if TYPE_CHECKING:
-    from pathlib import Path
-
     from tandemscan.daemon.job_records import ScanRecord
     from tandemscan.daemon.snapshot import JobSnapshot
     from tandemscan.pipeline.registration.correction import OnlineWork
@@ -139,6 +140,31 @@ def merge_stage(voxel_mm: float, scan_files: Sequence[Path], poses: Sequence[np.
         return VoxelMap.combined(thread_map(merged, groups))
 
 
+def merged_cloud(job: JobSnapshot, voxel_mm: float, poses: Sequence[np.ndarray], points_S: Sequence[np.ndarray]
+                 ) -> MapCloud:
+    """The job's cloud at its final ``poses`` (W, mm) in voxels of edge ``voxel_mm``: with ``[compute] tile_mm``
+    merged by slabs of W on the compute backend (``tiles.merge_tiles``, docs/compute.md "Tiles": each unit reads
+    only the scans whose bound, from their thinned copies ``points_S``, meets its slab, from the scan store), then
+    read back here for the exports, which still take the whole cloud; else here (:func:`merge_stage`)."""
+    from tandemscan.daemon.job_correction import in_job  # the registration stack, as correct_stage
+
+    compute = job.config.compute
+    if not compute.tile_mm:
+        return merge_stage(voxel_mm, [s.file for s in job.scans], poses).frozen()
+    store = compute.scan_store or job.job_dir
+    refs = [TileScan(in_job(Path(s.file), job.job_dir), T, *scan_x_extent(T, p, job.config.job.voxel_mm, voxel_mm))
+            for s, T, p in zip(job.scans, poses, points_S, strict=True)]
+    backend = backend_for(compute)
+    try:
+        tiles = merge_tiles(refs, voxel_mm, compute.tile_mm, store, backend)
+    finally:
+        backend.close()
+    cloud = read_cloud(store, tiles, voxel_mm)
+    for t in tiles:
+        (Path(store) / t.file).unlink(missing_ok=True)
+    return cloud
+
+
 def finish_job(job: JobSnapshot, started: float, measured_at: float,
                online: OnlineWork | None = None, stages: Mapping[str, float] | None = None,
                loaded: LoadedScans | None = None) -> FinishedJob:
@@ -160,6 +186,7 @@ def finish_job(job: JobSnapshot, started: float, measured_at: float,
         timings["read_s"] = round(time.perf_counter() - t, 3)
     outcome = correct_stage(job, loaded, online)
     view_S = tuple(stitch_view_points(p) for p in loaded.points_S)  # all the exports need of the copies
+    points_S = loaded.points_S if outcome.corrected and job.config.compute.tile_mm else ()  # the tiles' bounds
     del loaded
     t = time.perf_counter()
     tracker_map, job.worldmap = job.worldmap, None
@@ -169,7 +196,8 @@ def finish_job(job: JobSnapshot, started: float, measured_at: float,
         if job.scorer is not None:  # the observer scores the tracker stitch too: its cloud (float32), not merged again
             tracker_stitch = dataclasses.replace(job, worldmap=tracker_map.frozen(np.float32))
         del tracker_map                              # the cloud is merged anew at the corrected poses
-        job.worldmap = merge_stage(voxel_mm, [s.file for s in job.scans], outcome.poses).frozen()
+        job.worldmap = merged_cloud(job, voxel_mm, outcome.poses, points_S)
+        del points_S
     else:
         job.worldmap = tracker_map.frozen()
         del tracker_map

@@ -90,12 +90,12 @@ def tracker_chain_covariance(job: JobSnapshot) -> PoseCovariance:
 
 def stitched_scans(job: JobSnapshot, points_S: Sequence[np.ndarray]) -> list[StitchedScan]:
     """The scans of ``job.scans`` as the correction takes them: their points ``points_S`` (S, mm), tracker poses
-    with each reading's covariance carried to the scan pose, stations, and files (:func:`_in_job`)."""
-    return [StitchedScan(P, s.T_W_S, _reading_covariance(job, s), s.tracker_station, _in_job(Path(s.file), job.job_dir))
+    with each reading's covariance carried to the scan pose, stations, and files (:func:`in_job`)."""
+    return [StitchedScan(P, s.T_W_S, _reading_covariance(job, s), s.tracker_station, in_job(Path(s.file), job.job_dir))
             for s, P in zip(job.scans, points_S, strict=True)]
 
 
-def _in_job(file: Path, job_dir: Path) -> str:
+def in_job(file: Path, job_dir: Path) -> str:
     """``file`` relative to the job folder (its place in a scan store holding the job folder), or as it is where it
     lies elsewhere."""
     return (file.relative_to(job_dir) if file.is_relative_to(job_dir) else file).as_posix()

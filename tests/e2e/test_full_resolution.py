@@ -11,7 +11,7 @@ from types import SimpleNamespace
 import numpy as np
 import pye57
 import pytest
-from tandemscan.daemon.finish import merge_stage
+from tandemscan.daemon.finish import merge_stage, merged_cloud
 from tandemscan.daemon.job_outputs import write_job_outputs
 from tandemscan.daemon.plans import default_plan_path
 from tandemscan.daemon.runner import JobRunner
@@ -75,6 +75,19 @@ def test_streamed_merge_equals_the_merge_of_scans_in_memory(scan_files):
     # merged in groups of scans on two threads, combined once: the same sums, added in another order
     np.testing.assert_allclose(streamed.points(), in_memory.points(), rtol=0, atol=1e-9)
     np.testing.assert_allclose(streamed.normals(), in_memory.normals(), rtol=0, atol=1e-9)
+
+
+def test_the_cloud_merged_by_tiles_on_the_backend_is_the_one_merged_here(scan_files, sim_config, tmp_path):
+    files, _, poses = scan_files
+    tiled_config = sim_config.model_copy(update={"compute": sim_config.compute.model_copy(update={"tile_mm": 50.0})})
+    job = SimpleNamespace(job_dir=tmp_path, scans=[SimpleNamespace(file=f) for f in files], config=tiled_config)
+    tiled = merged_cloud(job, 1.0, poses, [read_thinned_scan(f, 1.0) for f in files])
+    here = merge_stage(1.0, files, poses).frozen()
+    assert len(tiled) == len(here) > 1000
+    np.testing.assert_array_equal(tiled.counts(), here.counts())
+    np.testing.assert_allclose(tiled.points(), here.points(), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(tiled.normals(), here.normals(), rtol=0, atol=1e-9)
+    assert not list((tmp_path / "tiles").iterdir())  # the tiles' files go once the cloud is read back
 
 
 def _read_e57(path) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
