@@ -1,0 +1,278 @@
+"""Capacity of the end of a job: seconds and peak memory of every stage against the scans and points, at two part
+sizes and on 1 and 2 Dask workers, and from them the estimate for a 20 m railway car (docs/compute.md, "Capacity").
+
+Each size is a job of the parametric train nose (``geometry.part.train_nose_mesh``: the 3 m nose, and the same
+nose on a body ``--length-factor`` times as long), its scans ray cast by the simulated scanner
+(``geometry.raycast.ScannerModel`` at ``--resolution``) from views spread evenly over the part's upper surface
+(Poisson disk on the mesh, the sweet spot along each normal; ``--scans`` on the nose, in proportion to the area on
+the longer part), each stored pose off the true one by the tracker's noise. The job is written as raw scan files
+(``scans/``, the scan store), then the end of the job's stages run one after the other on a Dask ``LocalCluster`` of
+1 and 2 single-threaded workers: ``read_thin`` (every scan read and thinned at 1 mm, this process, one a core),
+``correction`` (``correction.correct_scans``: pairs on the workers from the store, the joint refinement here),
+``merge`` (``tiles.merge_tiles`` on the workers), ``cloud_ply`` (streamed from the tiles, here), ``inspect``
+(``tile_inspection.inspect_tiles`` on the workers), ``figures`` (the report's deviation figures from the tiles'
+summaries, here), ``deviation_ply`` (streamed, here) and ``e57`` (the full scans streamed, here). Each stage's
+wall seconds and peak RSS (GiB; the peak is reset before each stage, Linux ``/proc/<pid>/clear_refs``): of the
+process that runs the stages (``main_gib``; a fresh one for each size and worker count) and of each worker
+(``worker_gib``, their largest).
+
+The model, per stage: on one worker ``t1 = a + b x`` through the two sizes, ``x`` the stage's driver (raw points,
+scans or merged voxels: :data:`DRIVERS`); on N workers Amdahl's law with the stage's serial share ``f = 2 t2 / t1 -
+1`` (clipped to [0, 1]) measured at the larger size; the peak of a worker is the larger of the two sizes' (bounded by
+the tile and the scan, not the part), that of this process ``a + b scans``. The car: :data:`CAR` (scans, raw
+points), its merged voxels those of the larger size's per raw point. Prints one JSON object on its last line and
+keeps it in ``benchmarks/results/capacity.json`` (``results.publish``).
+
+Usage: ``nice -n 10 .venv/bin/python benchmarks/capacity.py [--resolution coarse|full|COLSxROWS] [--scans 369]
+[--length-factor 2] [--tile-mm 500] [--workers 1 2] [--folder DIR]``. Full resolution on the nose writes about
+28 GB of raw scans (removed after each size) and runs for tens of minutes: an idle machine's job.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from multiprocessing import get_context
+from pathlib import Path
+
+import numpy as np
+from results import publish
+from tandemscan.config.models import CorrectionConfig, PartConfig, ScannerConfig
+from tandemscan.pipeline.compute import DaskBackend
+from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.geometry.part import train_nose_mesh
+from tandemscan.pipeline.geometry.raycast import ScannerModel, make_scene
+from tandemscan.pipeline.inspection.tile_inspection import deviation_figures, inspect_tiles, write_deviation_ply
+from tandemscan.pipeline.io.export import PosedScan, write_e57
+from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan, write_raw_scan
+from tandemscan.pipeline.registration.correction import (
+    CorrectionSettings,
+    StitchedJob,
+    StitchedScan,
+    correct_scans,
+)
+from tandemscan.pipeline.registration.parallel import pair_threads
+from tandemscan.pipeline.stitching.tiles import TileScan, merge_tiles, scan_x_extent, write_cloud_ply
+
+VOXEL_MM = 1.0
+#: the 20 m railway car on the larger cell at full resolution (issue 43): scans and raw points
+CAR = {"scans": 3700, "raw_points": 12e9}
+#: what each stage's time grows with
+DRIVERS = {"read_thin": "raw_points", "correction": "scans", "merge": "raw_points", "cloud_ply": "voxels",
+           "inspect": "voxels", "figures": "voxels", "deviation_ply": "voxels", "e57": "raw_points"}
+TRACKER_SIGMA = (0.03, 5e-5)  # mm, rad (1 sigma) of the stored poses' error
+GIB = float(1 << 30)
+
+
+def reset_peak() -> None:
+    """Restart this process's peak RSS count (Linux: ``5`` to ``/proc/self/clear_refs`` resets ``VmHWM``)."""
+    with open("/proc/self/clear_refs", "w", encoding="ascii") as f:
+        f.write("5")
+
+
+def peak_gib() -> float:
+    """This process's peak RSS since the last :func:`reset_peak`, GiB."""
+    with open("/proc/self/status", encoding="ascii") as f:
+        kib = next(int(line.split()[1]) for line in f if line.startswith("VmHWM:"))
+    return kib * 1024 / GIB
+
+
+@dataclass(frozen=True)
+class Job:
+    """A simulated job in ``folder`` (the scan store): its scans' files, stored (tracker) poses, the CAD file."""
+
+    folder: Path
+    files: tuple[str, ...]
+    poses: tuple[np.ndarray, ...]
+    mesh_file: Path
+    raw_points: int
+
+
+def _pixels(resolution: str) -> tuple[int, int]:
+    if resolution in ("coarse", "full"):
+        return ScannerConfig(resolution=resolution).pixels
+    cols, rows = resolution.lower().split("x")
+    return int(cols), int(rows)
+
+
+def make_job(folder: Path, part: PartConfig, scans: int, pixels: tuple[int, int], seed: int) -> Job:
+    """``scans`` views spread over the part's upper surface (Poisson disk; normals facing down left out), each
+    ray cast at the sweet spot along the normal and written as a raw scan (frame S, mm) with its pose off the
+    true one by :data:`TRACKER_SIGMA`; W is the CAD frame F."""
+    import open3d as o3d
+
+    rng = np.random.default_rng(seed)
+    mesh = train_nose_mesh(part)
+    mesh.compute_triangle_normals()
+    mesh_file = folder / "cad.ply"
+    o3d.io.write_triangle_mesh(str(mesh_file), mesh)
+    up_share = _upper_share(mesh, np.asarray(mesh.triangle_normals))
+    views = mesh.sample_points_poisson_disk(max(2, round(scans / up_share)), use_triangle_normal=True)
+    centres, facing = np.asarray(views.points), np.asarray(views.normals)
+    keep = facing[:, 2] > -0.3
+    scanner = ScannerConfig(coarse_pixels=pixels, resolution="coarse")
+    model, scene = ScannerModel(scanner), make_scene(mesh)
+    files, poses, raw = [], [], 0
+    for c, n in zip(centres[keep], facing[keep], strict=True):
+        z = -n / np.linalg.norm(n)
+        x = np.cross([0.0, 0.0, 1.0], z) if abs(z[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+        x -= (x @ z) * z
+        x /= np.linalg.norm(x)
+        T_F_S = F.make_transform(np.column_stack([x, np.cross(z, x), z]), c - scanner.sweet_spot_mm * z)
+        points, normals_S = model.scan(scene, T_F_S, rng)
+        if len(points) < 1000:  # a view past the part's edge: a job keeps no such scan
+            continue
+        file = f"scans/scan-{len(files):04d}.npz"
+        write_raw_scan(folder / file, points_S_mm=points, normals_S=normals_S)
+        error = F.from_rotvec(rng.normal(0, TRACKER_SIGMA[0], 3), rng.normal(0, TRACKER_SIGMA[1], 3))
+        files.append(file)
+        poses.append(error @ T_F_S)
+        raw += len(points)
+    return Job(folder, tuple(files), tuple(poses), mesh_file, raw)
+
+
+def _upper_share(mesh, normals: np.ndarray) -> float:
+    """The share of the mesh's area whose normal does not face down (where the views are kept)."""
+    v, t = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    area = 0.5 * np.linalg.norm(np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1)
+    return float(area[normals[:, 2] > -0.3].sum() / area.sum())
+
+
+def _stage(name: str, backend: DaskBackend, record: dict, fn: Callable[[], object]) -> object:
+    """``fn()`` timed, with this process's and each worker's peak RSS during it, into ``record[name]``."""
+    reset_peak()
+    backend.client.run(reset_peak)
+    t = time.perf_counter()
+    out = fn()
+    wall = time.perf_counter() - t
+    workers = sorted(backend.client.run(peak_gib).values())
+    record[name] = {"wall_s": round(wall, 3), "main_gib": round(peak_gib(), 3),
+                    "worker_gib": round(max(workers), 3), "workers_gib": [round(w, 3) for w in workers]}
+    print(f"{name}: {record[name]}", file=sys.stderr, flush=True)
+    return out
+
+
+def run_stages(job: Job, workers: int, tile_mm: float) -> tuple[dict, dict]:
+    """Every stage of the end of the job on a ``LocalCluster`` of ``workers``: (per stage figures, drivers)."""
+    store = str(job.folder)
+    stages: dict = {}
+    cov = np.diag([TRACKER_SIGMA[0] ** 2] * 3 + [TRACKER_SIGMA[1] ** 2] * 3)
+    backend = DaskBackend("", workers)
+    try:
+        backend.client.wait_for_workers(workers, timeout=120)
+        with pair_threads() as thread_map:
+            thinned = _stage("read_thin", backend, stages, lambda: thread_map(
+                lambda f: read_thinned_scan(job.folder / f, VOXEL_MM), job.files))
+        scans = [StitchedScan(p, T, cov, 0, f) for p, T, f in zip(thinned, job.poses, job.files, strict=True)]
+        result = _stage("correction", backend, stages, lambda: correct_scans(
+            StitchedJob(scans, voxel_mm=VOXEL_MM), CorrectionSettings.from_section(CorrectionConfig()),
+            backend=backend, scan_store=store))
+        refs = [TileScan(f, T, *scan_x_extent(T, p, VOXEL_MM, VOXEL_MM))
+                for f, T, p in zip(job.files, result.poses, thinned, strict=True)]
+        scans = thinned = None  # the thinned copies freed before the merge
+        tiles = _stage("merge", backend, stages, lambda: merge_tiles(refs, VOXEL_MM, tile_mm, store, backend))
+        _stage("cloud_ply", backend, stages, lambda: write_cloud_ply(job.folder / "cloud.ply", store, tiles))
+        inspected = _stage("inspect", backend, stages, lambda: inspect_tiles(
+            tiles, store, job.mesh_file, np.eye(4), -0.5, 0.5, backend))
+        _stage("figures", backend, stages, lambda: deviation_figures(store, inspected, -0.5, 0.5))
+        _stage("deviation_ply", backend, stages,
+               lambda: write_deviation_ply(job.folder / "cloud_deviation.ply", store, inspected))
+        _stage("e57", backend, stages, lambda: write_e57(job.folder / "cloud.e57", (
+            PosedScan(Path(f).stem, T, read_raw_scan(job.folder / f, np.float32)[0])
+            for f, T in zip(job.files, result.poses, strict=True) if _has_points(job.folder / f))))
+    finally:
+        backend.close()
+    shutil.rmtree(job.folder / "tiles", ignore_errors=True)
+    for name in ("cloud.ply", "cloud_deviation.ply", "cloud.e57"):
+        (job.folder / name).unlink(missing_ok=True)
+    drivers = {"scans": len(job.files), "raw_points": job.raw_points, "voxels": sum(t.voxels for t in tiles),
+               "tiles": len(tiles), "pairs": len(result.edges)}
+    return stages, drivers
+
+
+def _has_points(path: Path) -> bool:
+    with np.load(path) as data:
+        return len(data["points_S_mm"]) > 0
+
+
+def model(sizes: list[dict], workers: list[int], car_workers: tuple[int, ...]) -> dict:
+    """Per stage the fitted ``a + b x`` on one worker, the serial share, the peaks, and the car's estimate on
+    ``car_workers`` workers (module doc)."""
+    small, large = sizes[0], sizes[-1]
+    one, two = str(min(workers)), str(max(workers))
+    per_point = large["drivers"]["voxels"] / large["drivers"]["raw_points"]
+    car = {"scans": CAR["scans"], "raw_points": CAR["raw_points"], "voxels": CAR["raw_points"] * per_point}
+    stages, seconds = {}, dict.fromkeys(car_workers, 0.0)
+    for name, driver in DRIVERS.items():
+        x0, x1 = small["drivers"][driver], large["drivers"][driver]
+        t0, t1 = small["runs"][one][name]["wall_s"], large["runs"][one][name]["wall_s"]
+        b = max((t1 - t0) / (x1 - x0), 0.0) if x1 != x0 else t1 / x1  # no less time for more (noise)
+        a = t1 - b * x1
+        serial = (min(1.0, max(0.0, 2.0 * large["runs"][two][name]["wall_s"] / t1 - 1.0)) if t1 > 0 and one != two
+                  else 1.0)
+        car_t1 = max(a + b * car[driver], 0.0)
+        worker = max(s["runs"][w][name]["worker_gib"] for s in sizes for w in (one, two))
+        main = [s["runs"][one][name]["main_gib"] for s in sizes]
+        scans = [s["drivers"]["scans"] for s in sizes]
+        slope = (main[-1] - main[0]) / (scans[-1] - scans[0]) if scans[-1] != scans[0] else 0.0
+        stages[name] = {"driver": driver, "a_s": round(a, 4), "b_s_per_unit": b, "serial_share": round(serial, 3),
+                        "worker_peak_gib": worker, "main_peak_gib_car": round(main[-1] + slope * (car["scans"] -
+                                                                                                  scans[-1]), 2)}
+        for n in car_workers:
+            seconds[n] += car_t1 * (serial + (1.0 - serial) / n)
+    return {"car_inputs": car, "stages": stages,
+            "car_minutes_on_n_workers": {str(n): round(s / 60.0, 1) for n, s in seconds.items()},
+            "car_main_peak_gib": max(s["main_peak_gib_car"] for s in stages.values()),
+            "car_worker_peak_gib": max(s["worker_peak_gib"] for s in stages.values())}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--resolution", default="coarse", help="coarse, full or COLSxROWS of the scanner")
+    ap.add_argument("--scans", type=int, default=369, help="scans of the nose (the larger part: by its area)")
+    ap.add_argument("--length-factor", type=float, default=2.0, help="the larger part's length over the nose's")
+    ap.add_argument("--tile-mm", type=float, default=500.0)
+    ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--folder", type=Path, default=None, help="where the jobs are written (default: a temp dir)")
+    ap.add_argument("--seed", type=int, default=7)
+    args = ap.parse_args()
+    pixels = _pixels(args.resolution)
+    nose = PartConfig()
+    long = PartConfig(length_mm=nose.length_mm * args.length_factor,
+                      body_length_mm=nose.body_length_mm + nose.length_mm * (args.length_factor - 1.0))
+    area = {id(p): train_nose_mesh(p).get_surface_area() for p in (nose, long)}
+    root = Path(tempfile.mkdtemp(prefix="capacity-", dir=args.folder))
+    sizes = []
+    try:
+        for label, part in (("nose", nose), ("long", long)):
+            folder = root / label
+            folder.mkdir()
+            scans = round(args.scans * area[id(part)] / area[id(nose)])
+            t = time.perf_counter()
+            job = make_job(folder, part, scans, pixels, args.seed)
+            made = time.perf_counter() - t
+            print(f"{label}: {len(job.files)} scans, {job.raw_points} points written in {made:.0f} s",
+                  file=sys.stderr, flush=True)
+            runs, drivers = {}, {}
+            for w in args.workers:  # each run in a fresh process: its peaks are its own, not an earlier run's heap
+                with ProcessPoolExecutor(1, mp_context=get_context("spawn")) as pool:
+                    runs[str(w)], drivers = pool.submit(run_stages, job, w, args.tile_mm).result()
+            sizes.append({"part": label, "length_mm": part.length_mm, "drivers": drivers,
+                          "job_written_s": round(made, 1), "runs": runs})
+            shutil.rmtree(folder)
+    finally:
+        shutil.rmtree(root, ignore_errors=True)
+    figures = {"resolution": args.resolution, "pixels": list(pixels), "tile_mm": args.tile_mm, "sizes": sizes,
+               "model": model(sizes, args.workers, (1, 2, 8, 32, 64)),
+               "note": "wall seconds on a shared machine are upper bounds; the model is only as good as the run"}
+    publish("capacity", figures)
+
+
+if __name__ == "__main__":
+    main()
