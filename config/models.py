@@ -510,6 +510,9 @@ class JobConfig(_Strict):
         20.0, gt=0, description="a resumed job finds an AGV whose odometry is this far (mm) from where its journal "
         "left it moved or re-started: the tracker tells which and it is re-localised, or the operator decides")
     resume_pose_tolerance_deg: float = Field(1.0, gt=0, description="the same for the AGV's heading (deg)")
+    resume_joint_tolerance_deg: float = Field(
+        0.1, gt=0, description="a resumed job finds the arm off the joints its journal left it at when a joint is "
+        "this far (deg) from them (a move cut short, a jogged arm): the arm moves back before the job goes on")
     max_scans_left_out: int | None = Field(
         3, ge=0, description="a daemon job that would leave out more scans than this (the tracker cannot see the "
         "target after its retries) pauses for the operator instead (paused_fault); resuming leaves that scan out "

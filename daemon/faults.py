@@ -56,6 +56,10 @@ class RobotsMovedWhileDown(OperatorDecision):
     """After a restart the robots are not where the journal left them and the tracker cannot tell which moved."""
 
 
+class ScanSawNothing(OperatorDecision):
+    """The first scan after a resume saw nothing where the plan's scanner pose looks at the part."""
+
+
 @dataclass(frozen=True)
 class JobFault:
     """A recoverable fault: its class, the device it came from (device faults) and a one-line reason."""

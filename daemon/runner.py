@@ -45,7 +45,7 @@ from tandemscan.daemon.coordinate_transfer import (
     reestablish,
     transfer_record,
 )
-from tandemscan.daemon.faults import RobotsMovedWhileDown, TooManyScansLeftOut
+from tandemscan.daemon.faults import RobotsMovedWhileDown, ScanSawNothing, TooManyScansLeftOut
 from tandemscan.daemon.installation import installation_for_job
 from tandemscan.daemon.job_records import (
     ArmMove,
@@ -60,11 +60,18 @@ from tandemscan.daemon.job_records import (
 from tandemscan.daemon.motion import Robot
 from tandemscan.daemon.observer import JobObserver
 from tandemscan.daemon.resume_check import (
+    ArmOff,
     ChassisOff,
+    agv_shift,
+    arm_off_journal,
     as_tuple,
     chassis_off_journal,
     chassis_pose_of,
+    journaled_joints,
+    last_target_at_rest,
+    planned_scanner_pose,
     relocalise_odometry,
+    view_reaches_box,
 )
 from tandemscan.daemon.run_state import (
     RelocalisationState,
@@ -83,6 +90,8 @@ from tandemscan.daemon.tracker_reading import read_at_rest, read_for_transfer
 from tandemscan.drivers.errors import TargetNotVisible
 from tandemscan.drivers.interfaces import ChassisPose, TrackerReading
 from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.geometry.kinematics import ArmKinematics
+from tandemscan.pipeline.geometry.part import load_part_mesh
 from tandemscan.pipeline.job_report import REPORT_FILE, JobHistory, JobReport
 from tandemscan.pipeline.planning.plan import MoveArm, MoveLift, MoveMeasure, MoveTracker, Plan, Scan
 from tandemscan.pipeline.stitching.relocalise import Relocaliser
@@ -95,6 +104,9 @@ PAUSED_FOR_GAPS = "paused_for_gaps"
 #: the journal note of a resumed step whose robots were off the journal and paused the job for the operator (the
 #: run after the operator's resume goes on from where they stand)
 ROBOTS_CHECKED = "robots_checked"
+#: the journal note of the first scan after a resume that saw nothing where the plan looks at the part and paused
+#: the job for the operator (the run after the operator's resume keeps what it sees)
+EMPTY_SCAN_CHECKED = "empty_scan_checked"
 
 _DESCRIBE = {"move_tracker": "coordinate transfer: moving the tracking robot", "move_measure": "moving the measurement "
              "robot", "move_lift": "moving the lifting column", "move_arm": "moving the arm", "scan": "scanning"}
@@ -167,6 +179,7 @@ class JobRunner:
         self.max_scans_left_out = max_scans_left_out
         self.history = history  # the journal's resumes of every attempt, for the report (none: not journaled)
         self._reserved_indices: set[int] = set()  # scan indices of damaged scans, measured again at the end
+        self._first_scan_resumed: int | None = None  # the step of the first scan after a resume (checked if empty)
         # with relocalisation on, W is placed in the plan's frame F at the start (the anchor: the inspection's
         # registration to CAD); the AGV is located after each drive where the plan has scanner poses to re-solve
         self.relocalisation: AgvRelocalisation | None = None
@@ -200,12 +213,15 @@ class JobRunner:
         again = [i for i, step in enumerate(self.plan.steps)
                  if isinstance(step, Scan) and i not in committed and DAMAGED_NOTE in self.journal.notes(i)]
         self._reserved_indices = {self.journal.notes(i)[DAMAGED_NOTE]["scan_index"] for i in again} - {None}
-        for i in [*(i for i in range(len(self.plan.steps)) if i not in again), *again]:
+        order = [*(i for i in range(len(self.plan.steps)) if i not in again), *again]
+        for at, i in enumerate(order):
             if i in committed:
                 continue
             step = self.plan.steps[i]
             if resuming:
-                await self._reestablish(i, step)
+                await self._reestablish(i, step, i in again)
+                self._first_scan_resumed = next((k for k in order[at:] if k not in committed and k not in again
+                                                 and isinstance(self.plan.steps[k], Scan)), None)
                 resuming = False
             self.progress(JobProgress(i, total, _DESCRIBE[step.kind]))
             if i in again:
@@ -265,7 +281,7 @@ class JobRunner:
                 await robot.arm.move_joints(joints, self.config.arm.timeout_s)
             return ArmMove(joints, entry)
         try:
-            return await self._scan()
+            return await self._scan(empty_check=i if i == self._first_scan_resumed else None)
         except TargetNotVisible as e:  # e.g. a nearby view the plan's tracker cover did not check: go on
             return await self._leave_out(i, step.label if isinstance(step, Scan) else "", e.reason)
 
@@ -315,51 +331,81 @@ class JobRunner:
         async with self.gate.motion(Robot.MEASURE) as robot:
             return LiftMove(await robot.lift.move_to(step.height_mm, self.config.lift.timeout_s))
 
-    async def _reestablish(self, i: int, step) -> None:
-        """After a restart, before moving anything: a fresh target reading and each AGV's odometry against the
-        journal (:mod:`~tandemscan.daemon.resume_check`). Where both AGVs are where the journal left them and the
-        target has not moved since the last journaled reading, the two readings must agree; if not, the tracker
-        was moved while the daemon was down and its frame is re-established from the fresh one
-        (:func:`~tandemscan.daemon.coordinate_transfer.reestablish`). An AGV off its journaled pose:
-        :meth:`_relocalise_after_restart`. The resume is journaled with what was found."""
+    async def _reestablish(self, i: int, step, measuring_again: bool) -> None:
+        """After a restart or a pause, before moving anything: the arm's joints read back against the journal, a
+        fresh target reading and each AGV's odometry against the journal (:mod:`~tandemscan.daemon.resume_check`).
+        An AGV off its journaled pose: :meth:`_relocalise_after_restart`. An arm off its journaled joints (a move cut
+        short, a jogged arm; not checked before a scan ``measuring_again``, whose own moves put the robot back) is
+        then moved back to them, re-running the last arm move from where it stands, and the target read again
+        there. Where both AGVs are where the journal left them (or only their odometry restarted) and the target
+        has not moved since the last journaled reading, that reading and the fresh one must agree; if not, the
+        tracker was moved while the daemon was down and its frame is re-established from the fresh one
+        (:func:`~tandemscan.daemon.coordinate_transfer.reestablish`). The resume is journaled with what was
+        found."""
         entry: dict = {"step": i, "kind": step.kind}
-        fresh: TrackerReading | None = None
-        try:
-            fresh = await self.read_target()
-        except TargetNotVisible as e:
-            entry["fresh_reading"] = f"target not visible: {e.reason}"
-            log.warning("resume at step %d: %s", i, entry["fresh_reading"])
+        joints = await self.cell.arm.joints()
+        arm = None if measuring_again else arm_off_journal(
+            journaled_joints(self.plan, self.journal.committed, i), joints, self.config.job.resume_joint_tolerance_deg)
+        fresh = await self._fresh_reading(i, entry)
         mid_transfer = isinstance(step, MoveTracker)
         job = self.config.job
         off = await chassis_off_journal(self.cell, self.plan, self.journal.committed, i,
                                         mid_transfer and "before" in self.journal.notes(i),
                                         job.resume_pose_tolerance_mm, job.resume_pose_tolerance_deg)
+        if arm is not None:
+            entry["arm_off_journal"] = arm.entry()
+            log.warning("resume at step %d: the arm stands %.2f deg off the joints the journal left it at", i,
+                        arm.off_deg)
         if off:
             entry["chassis_off_journal"] = {name: o.entry() for name, o in off.items()}
-            entry |= await self._relocalise_after_restart(i, fresh, off)
-        elif fresh is not None:
+            entry |= await self._relocalise_after_restart(i, fresh, off, joints, arm)
+        if arm is not None and not entry.get("arm_returned"):
+            fresh = await self._return_arm(i, arm, entry)
+        if fresh is not None and (not off or "odometry_relocalised" in entry):
             self.state, checked = reestablish(self.state, i, fresh.T_C_T, mid_transfer)
             entry |= checked
         await self.journal.record_resume(i, entry)
 
-    async def _relocalise_after_restart(self, i: int, fresh: TrackerReading | None,
-                                        off: dict[str, ChassisOff]) -> dict:
-        """AGVs off their journaled poses at a resume before step ``i``: where the tracker sees the target where the
-        journal left it (the fresh reading against the last still one, else the measurement AGV located again
-        against its journaled place), their odometry restarted and is set back; where it does not and only one AGV's
-        odometry moved, that one is re-localised (the tracker's frame re-established from the still target, or the
-        measurement AGV located by the tracker); otherwise, once, the operator decides
-        (:class:`~tandemscan.daemon.faults.RobotsMovedWhileDown`) and a resume goes on from where they stand.
-        Returns the resume's journal fields."""
-        unmoved = await self._target_where_journaled(i, fresh)
+    async def _fresh_reading(self, i: int, entry: dict) -> TrackerReading | None:
+        """The target at rest at a resume; None, noted in the resume's ``entry``, where the tracker cannot see it."""
+        try:
+            return await self.read_target()
+        except TargetNotVisible as e:
+            entry["fresh_reading"] = f"target not visible: {e.reason}"
+            log.warning("resume at step %d: %s", i, entry["fresh_reading"])
+            return None
+
+    async def _return_arm(self, i: int, arm: ArmOff, entry: dict) -> TrackerReading | None:
+        """The arm moved back to the joints the journal left it at (the last arm move run again from where it stands,
+        through the gate), ``entry`` told so; the target read again there."""
+        async with self.gate.motion(Robot.MEASURE) as robot:
+            await robot.arm.move_joints(arm.journaled, self.config.arm.timeout_s)
+        entry["arm_returned"] = True
+        log.warning("resume at step %d: the arm moved back to the journaled joints", i)
+        return await self._fresh_reading(i, entry)
+
+    async def _relocalise_after_restart(self, i: int, fresh: TrackerReading | None, off: dict[str, ChassisOff],
+                                        joints: np.ndarray, arm: ArmOff | None) -> dict:
+        """AGVs off their journaled poses at a resume before step ``i``, the arm at ``joints`` (rad; ``arm``: off its
+        journaled ones): where the tracker sees the target where the journal left it
+        (:meth:`_target_where_journaled`), their odometry restarted and is set back; where it does not and only one
+        AGV's odometry moved, that one is re-localised (the tracker's frame re-established from the still target,
+        read again once the arm is back where it was read, or the measurement AGV located by the tracker);
+        otherwise, once, the operator decides (:class:`~tandemscan.daemon.faults.RobotsMovedWhileDown`) and a resume
+        goes on from where they stand. Returns the resume's journal fields."""
+        fields: dict = {}
+        unmoved = await self._target_where_journaled(i, fresh, joints, arm is not None)
         if unmoved:
             await relocalise_odometry(self.gate, off)
             log.warning("resume at step %d: %s odometry restarted; set back to the journal's poses", i, sorted(off))
             return {"odometry_relocalised": sorted(off)}
         if unmoved is False and list(off) == ["tracking_chassis"] and fresh is not None:
-            self.state, checked = reestablish(self.state, i, fresh.T_C_T, False)
-            if checked.get("reestablished"):
-                return checked | {"relocalised": "tracking_chassis"}
+            if arm is not None:
+                fresh = await self._return_arm(i, arm, fields)
+            if fresh is not None:
+                self.state, checked = reestablish(self.state, i, fresh.T_C_T, False)
+                if checked.get("reestablished"):
+                    return fields | checked | {"relocalised": "tracking_chassis"}
         if unmoved is False and list(off) == ["measure_chassis"] and self.relocalisation is not None:
             drive = next(s for s in reversed(self.plan.steps[:i]) if isinstance(s, MoveMeasure))
             planned = F.planar_pose(drive.x_mm, drive.y_mm, drive.heading_rad)
@@ -371,7 +417,7 @@ class JobRunner:
                 self.state = apply(self.state, MeasureMove(as_tuple(located), entry))
                 log.warning("resume at step %d: the measurement AGV was moved while the daemon was down; "
                             "re-localised %s", i, entry.located)
-                return {"relocalised": "measure_chassis", "located": entry.located}
+                return fields | {"relocalised": "measure_chassis", "located": entry.located}
         if ROBOTS_CHECKED not in self.journal.notes(i):
             await self.journal.note(i, ROBOTS_CHECKED, {name: o.entry() for name, o in off.items()})
             where = "; ".join(f"{name} at ({o.reported.x_mm:.0f}, {o.reported.y_mm:.0f}) mm, the journal left it "
@@ -379,16 +425,27 @@ class JobRunner:
             raise RobotsMovedWhileDown(f"resume at step {i}: {where}, and the tracker cannot tell which robot moved; "
                                        "put them back where the journal left them and resume, or cancel")
         log.warning("resume at step %d: the operator resumed with %s off the journal", i, sorted(off))
-        return {"resumed_by_operator": True}
+        return fields | {"resumed_by_operator": True}
 
-    async def _target_where_journaled(self, i: int, fresh: TrackerReading | None) -> bool | None:
+    async def _target_where_journaled(self, i: int, fresh: TrackerReading | None, joints: np.ndarray,
+                                      arm_off: bool) -> bool | None:
         """Whether the tracker sees the target where the journal left it: the fresh reading against the last still
-        one (within the resume tolerance of Eq. 2's check), else the measurement AGV located again against where it
-        was last located (``[job] resume_pose_tolerance_*``); None where neither can be asked."""
+        one (within the resume tolerance of Eq. 2's check) where the arm stands where that was read; else the
+        measurement AGV by the fresh reading at the arm's ``joints`` (rad) against where the last scan's reading put
+        it (Eq. 5, ``[job] resume_pose_tolerance_*``: the arm may have moved since); else the measurement AGV
+        located again against where it was last located; None where none of these can be asked."""
+        job = self.config.job
         last = self.state.last_still_T_C_T
-        if fresh is not None and last is not None:
+        if fresh is not None and last is not None and not arm_off:
             d_mm, d_rad = F.pose_error(fresh.T_C_T, last)
             return bool(d_mm <= RESUME_TOLERANCE_MM and np.degrees(d_rad) <= RESUME_TOLERANCE_DEG)
+        then = last_target_at_rest(self.plan, self.journal.committed, i)
+        if fresh is not None and then is not None:
+            d_mm, d_deg = agv_shift(self.installation, ArmKinematics(self.config.arm), self.state.lift_mm, then,
+                                    self.state.T_W_C, fresh.T_C_T, joints)
+            log.info("resume at step %d: the measurement AGV %.2f mm / %.3f deg from where the last scan's reading "
+                     "put it", i, d_mm, d_deg)
+            return bool(d_mm <= job.resume_pose_tolerance_mm and d_deg <= job.resume_pose_tolerance_deg)
         journaled = self.state.relocalisation.T_F_V2
         if self.relocalisation is None or journaled is None:
             return None
@@ -396,7 +453,6 @@ class JobRunner:
         if located is None:
             return None
         d_mm, d_rad = F.pose_error(reloc.T_F_V2, journaled)
-        job = self.config.job
         return bool(d_mm <= job.resume_pose_tolerance_mm and np.degrees(d_rad) <= job.resume_pose_tolerance_deg)
 
     async def _relocate_tracker(self, step: MoveTracker, i: int) -> TrackerRelocation:
@@ -482,10 +538,13 @@ class JobRunner:
             await asyncio.sleep(cfg.scan_read_retry_s)
         return await self.read_target()
 
-    async def _scan(self, index: int | None = None) -> ScanRecord:
+    async def _scan(self, index: int | None = None, empty_check: int | None = None) -> ScanRecord:
         """Capture and read at rest, persist raw data first, then stitch into the world map; ``index`` among the
-        job's scans (default: the next)."""
+        job's scans (default: the next). A capture of no point at step ``empty_check`` (the first scan after a
+        resume) is checked first (:meth:`_check_empty_scan`)."""
         frame = await self.cell.scanner.capture(self.config.scanner.timeout_s)
+        if empty_check is not None and len(frame.points_mm) == 0:
+            await self._check_empty_scan(empty_check)
         reading = await self._read_for_scan()
         joints = await self.cell.arm.joints()
         if index is None:  # the next, past those kept for the scans measured again
@@ -512,6 +571,32 @@ class JobRunner:
             self.observer.scan_measured(index)
         return ScanRecord(index, self.state.tracker_station, file, reading, joints, T_W_C.copy(), T_W_S,
                           len(frame.points_mm))
+
+    async def _check_empty_scan(self, i: int) -> None:
+        """The first scan after a resume (step ``i``) saw nothing. Where the plan's scanner pose looks at the part (its
+        optical axis within the working range reaches into the part's bounding box,
+        :func:`~tandemscan.daemon.resume_check.view_reaches_box`), the robots may not stand where the resume found
+        them, or the part is not in place: the job pauses for the operator, once
+        (:class:`~tandemscan.daemon.faults.ScanSawNothing`); run again, the scan is taken and kept as it is."""
+        if EMPTY_SCAN_CHECKED in self.journal.notes(i):
+            log.warning("step %d: the first scan after the resume saw nothing again; kept (the operator resumed)", i)
+            return
+        T_F_S = planned_scanner_pose(self.plan, self.journal.committed, i, self.installation,
+                                     ArmKinematics(self.config.arm), self.state.lift_mm)
+        if T_F_S is None:
+            return
+        vertices = np.asarray((await asyncio.to_thread(load_part_mesh, self.config.part)).vertices)
+        scanner = self.config.scanner
+        if not view_reaches_box(T_F_S, vertices.min(axis=0), vertices.max(axis=0), scanner.range_min_mm,
+                                scanner.range_max_mm):
+            return
+        joints = await self.cell.arm.joints()
+        await self.journal.note(i, EMPTY_SCAN_CHECKED, {"joints_rad": joints.tolist()})
+        label = self.plan.steps[i].label if isinstance(self.plan.steps[i], Scan) else ""
+        raise ScanSawNothing(f"step {i} ({label}): the first scan after the resume saw nothing where the plan's "
+                             f"scanner pose looks at the part (arm at {np.degrees(joints).round(1).tolist()} deg); "
+                             "check that the part is in place and the robots where the plan puts them, then resume "
+                             "(the scan is taken again and kept as it is), or cancel")
 
     def snapshot(self, scans: list[ScanRecord] | None = None) -> JobSnapshot:
         """The job's state for its end-of-job work (correction, report, exports) where the map lives; ``scans``

@@ -4,9 +4,11 @@ Started before the real drivers connect (``[hil] enabled = true``): the JAKA con
 on their configured 127.0.0.1 ports, one chassis per configured CAN channel, the Modbus I/O module, and the
 fake harvesters camera; for a plugin's driver, the emulator the plugin registers (group ``tandemscan.emulators``,
 :mod:`tandemscan.config.devices`). Each emulator moves or reads the world, so a job run through the real drivers can be
-scored against the same ground truth as one run on the twins; the world's state is saved whenever a robot comes
-to rest, so a restarted daemon finds it where it stopped (the drivers' odometry starts afresh, as a real cell's:
-the resumed job re-localises it, docs/daemon.md).
+scored against the same ground truth as one run on the twins. The world's state is saved whenever an emulated
+robot reports a pose at rest other than the one last saved (the end of every move, however short, and where a stop
+cut one short) and whenever the tracker's still error is drawn anew, so a restarted daemon finds the robots where
+they stopped and the still target read with the error it had, as the twins' cell does (the drivers' odometry
+starts afresh, as a real cell's: the resumed job re-localises it, docs/daemon.md).
 """
 
 from __future__ import annotations
@@ -49,7 +51,7 @@ class HilEmulators:
         self.config, self.world = config, world
         self.running: dict[str, _Emulator] = {}
         self._sync_task: asyncio.Task | None = None
-        self._moving: dict[str, bool] = {}  # each emulated mover's last report: moving or at rest
+        self._kept: dict[str, np.ndarray] = {}  # each emulated mover's pose at rest when the world was last saved
 
     def _real(self, role: str) -> bool:
         return getattr(self.config, role).driver == "real"
@@ -87,7 +89,7 @@ class HilEmulators:
                 self.running[role] = chassis
         if self._real("tracker"):
             stream = cfg.tracker.stream
-            tracker = TrackerStreamEmulator(stream, world.measure_target, rate_hz=hil.tracker_rate_hz,
+            tracker = TrackerStreamEmulator(stream, self._measure_target, rate_hz=hil.tracker_rate_hz,
                                             requires_start=hil.tracker_requires_start)
             await tracker.start_tcp(stream.host, stream.port)
             self.running["tracker"] = tracker
@@ -124,7 +126,7 @@ class HilEmulators:
     def _arm_moved(self, q_rad: np.ndarray, moving: bool) -> None:
         (self.world.motion.start if moving else self.world.motion.stop)(SimWorld.MEASURE_ROBOT)
         self.world.joints_rad = np.asarray(q_rad, float)
-        self._keep_when_stopped("arm", moving)
+        self._keep_at_rest("arm", self.world.joints_rad, moving)
 
     def _chassis_mover(self, role: str):
         robot = SimWorld.MEASURE_ROBOT if role == "measure_chassis" else SimWorld.TRACKING_ROBOT
@@ -132,16 +134,28 @@ class HilEmulators:
         def moved(pose: ChassisPose, moving: bool) -> None:
             self.world.chassis[role].true_pose = F.planar_pose(pose.x_mm, pose.y_mm, pose.heading_rad)
             (self.world.motion.start if moving else self.world.motion.stop)(robot)
-            self._keep_when_stopped(role, moving)
+            self._keep_at_rest(role, self.world.chassis[role].true_pose, moving)
 
         return moved
 
-    def _keep_when_stopped(self, mover: str, moving: bool) -> None:
-        """Save the world's state (:func:`~tandemscan.sim_drivers.persist.keep_world_state`) each time ``mover``
-        comes to rest, so that a restarted daemon finds the robots where they stopped, as the twins' cell does."""
-        if self._moving.get(mover) and not moving:
+    def _keep_at_rest(self, mover: str, pose: np.ndarray, moving: bool) -> None:
+        """Save the world's state (:func:`~tandemscan.sim_drivers.persist.keep_world_state`) when ``mover`` reports
+        a ``pose`` at rest (joints rad, or a chassis' 4x4 mm) other than the one last saved, so that a restarted
+        daemon finds the robots where they stopped, as the twins' cell does. Not on the change from moving to rest:
+        a move shorter than the emulator's report period is never reported moving, and its end would not be kept."""
+        if moving or np.array_equal(self._kept.get(mover), pose):
+            return
+        self._kept[mover] = np.array(pose, float)
+        keep_world_state(self.world)
+
+    def _measure_target(self) -> tuple[np.ndarray, np.ndarray]:
+        """The world's target reading for the tracker emulator; the state saved when the reading began a new still
+        period, so that a restarted daemon's tracker reads the still target with the error it had."""
+        still = self.world.still_T_C_T
+        reading = self.world.measure_target()
+        if self.world.still_T_C_T is not still:
             keep_world_state(self.world)
-        self._moving[mover] = moving
+        return reading
 
     def _scan_as_buffer(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The world's scan laid out as a one-row image (the fake camera's buffer shape); an empty scan is one

@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import json
 
+import numpy as np
 from tandemscan.daemon.api.models import job_body
 from tandemscan.daemon.plans import default_plan_path
 from tandemscan.daemon.service import Daemon
@@ -121,32 +122,42 @@ def _moved(state_file, role: str, dx_mm: float) -> None:
     state_file.write_text(json.dumps(world))
 
 
-async def test_a_restart_with_a_moved_agv_relocalises_it_before_moving(tmp_path, sim_config):
-    """Issue 42 row 9: the measurement AGV pushed while the daemon was down is found off its journaled pose on
-    resume and located by the tracker before the arm moves; the job completes as accurately as ever."""
-    cfg, plan = station_config(sim_config, relocalise=True), first_station()
-    state = tmp_path / "state"
-    daemon = Daemon(cfg, state, connect_timeout_s=30.0)
-    await daemon.start()
-    try:  # paused at the second scan (a hidden target: a deterministic stop), the first measured
-        world = daemon.cell.simulation.world
-        world.block_sight("a cart parked in the sight line", after_reads=READS_BEFORE_SECOND_SCAN)
-        job, _ = await daemon.manager.submit("first station", {"plan": plan.model_dump(mode="json"), "label": None},
-                                             STEPS, None, None)
-        await until(lambda: daemon.manager.get(job.id).state == "paused_fault")
-        assert [s.step_idx for s in daemon.store.scans(job.id)] == [2]
-    finally:
-        await daemon.close()
-    _moved(state / "sim_world.json", "measure_chassis", 150.0)
+async def paused_at_the_second_scan(cfg, state, reads: int):
+    """A daemon on ``state`` runs the first station until its second scan's target is hidden (``reads`` readings on:
+    a deterministic stop), then closes; returns the job's id and its committed steps' results."""
     daemon = Daemon(cfg, state, connect_timeout_s=30.0)
     await daemon.start()
     try:
-        await daemon.manager.resume(job.id)
-        await until(lambda: daemon.manager.get(job.id).state not in ("running", "paused_fault"))
-        done = daemon.manager.get(job.id)
-        report = json.loads((state / "jobs" / job.id / "report.json").read_text())
+        daemon.cell.simulation.world.block_sight("a cart parked in the sight line", after_reads=reads)
+        job, _ = await daemon.manager.submit("first station", {"plan": first_station().model_dump(mode="json"),
+                                                               "label": None}, STEPS, None, None)
+        await until(lambda: daemon.manager.get(job.id).state == "paused_fault")
+        assert [s.step_idx for s in daemon.store.scans(job.id)] == [2]
+        return job.id, daemon.store.committed_steps(job.id)
     finally:
         await daemon.close()
+
+
+async def resumed_after_restart(cfg, state, job_id: str):
+    """A new daemon on ``state`` resumes the job to its end: the job, its committed steps' results, its report."""
+    daemon = Daemon(cfg, state, connect_timeout_s=30.0)
+    await daemon.start()
+    try:
+        await daemon.manager.resume(job_id)
+        await until(lambda: daemon.manager.get(job_id).state not in ("running", "paused_fault"))
+        return (daemon.manager.get(job_id), daemon.store.committed_steps(job_id),
+                json.loads((state / "jobs" / job_id / "report.json").read_text()))
+    finally:
+        await daemon.close()
+
+
+async def test_a_restart_with_a_moved_agv_relocalises_it_before_moving(tmp_path, sim_config):
+    """Issue 42 row 9: the measurement AGV pushed while the daemon was down is found off its journaled pose on
+    resume and located by the tracker before the arm moves; the job completes as accurately as ever."""
+    cfg, state = station_config(sim_config, relocalise=True), tmp_path / "state"
+    job_id, _ = await paused_at_the_second_scan(cfg, state, READS_BEFORE_SECOND_SCAN)
+    _moved(state / "sim_world.json", "measure_chassis", 150.0)
+    done, _, report = await resumed_after_restart(cfg, state, job_id)
     assert done.state == "succeeded", done.error
     (resume,) = report["resumes"]
     off = resume["chassis_off_journal"]["measure_chassis"]
@@ -157,3 +168,35 @@ async def test_a_restart_with_a_moved_agv_relocalises_it_before_moving(tmp_path,
     # an uninterrupted run of this station stitches within 5.9 mm (the nominal mounts' error); the push unnoticed
     # would put the second scan 150 mm off
     assert truth["robots_moved_together"] == [] and truth["pose_err_mm_max"] < 10.0
+
+
+def _arm_cut_short(state_file, joints_rad, odometry_start) -> None:
+    """Put the arm at ``joints_rad`` in the saved simulated world (a move cut short) and the measurement AGV's
+    odometry at ``odometry_start`` (x, y mm, heading rad: a real chassis driver's odometry starts afresh)."""
+    world = json.loads(state_file.read_text())
+    world["joints_rad"] = list(joints_rad)
+    world["chassis"]["measure_chassis"]["odometry"] = list(odometry_start)
+    state_file.write_text(json.dumps(world))
+
+
+async def test_a_restart_with_the_arm_off_its_journaled_joints_moves_it_back_before_the_scan(tmp_path, sim_config):
+    """Issue 42 row 9: the arm found after a restart halfway between two of the plan's poses (a move cut short) is
+    seen off the joints the journal left it at, before anything moves; the tracker tells, from the readings at the
+    joints each was taken at, that the measurement AGV did not move (only its odometry started afresh, set back);
+    the arm is moved back and the scan is taken where the plan put it, not from where the arm happened to stand."""
+    cfg, state = station_config(sim_config), tmp_path / "state"
+    job_id, committed = await paused_at_the_second_scan(cfg, state, 1)  # its arm move committed
+    journaled = np.array(committed[3]["joints_rad"])
+    halfway = (np.array(first_station().steps[1].joints_rad) + journaled) / 2
+    start = cfg.sim.measure_start
+    _arm_cut_short(state / "sim_world.json", halfway, (start.x_mm, start.y_mm, np.radians(start.heading_deg)))
+    done, committed, report = await resumed_after_restart(cfg, state, job_id)
+    second_scan = committed[4]
+    assert done.state == "succeeded", done.error
+    (resume,) = report["resumes"]
+    off = resume["arm_off_journal"]
+    np.testing.assert_allclose(np.radians(off["read_back_deg"]), halfway, atol=1e-4)
+    assert off["off_deg"] > 5.0 and resume["arm_returned"] and resume["odometry_relocalised"] == ["measure_chassis"]
+    np.testing.assert_allclose(second_scan["joints_rad"], journaled, atol=1e-9)  # scanned where the plan put it
+    assert report["scans"] == 2 and report["scans_empty"] == []
+    assert report["ground_truth"]["pose_err_mm_max"] < 10.0

@@ -315,3 +315,34 @@ async def test_a_journaled_job_replayed_through_apply_is_the_state_that_wrote_it
             assert runner.resolving and len(state.relocalisation.located) == plan.scan_count
         else:
             assert not runner.resolving and len(state.transfers) == state.tracker_station == 1
+
+
+async def test_the_first_scan_after_a_resume_that_sees_nothing_where_the_plan_looks_at_the_part_pauses(sim_config,
+                                                                                                        tmp_path):
+    """Issue 42 row 9: resumed before the station's second scan, the part gone from the cell meanwhile: the scan that
+    sees nothing where the plan's scanner pose looks at the part is not kept silently; the job pauses for the
+    operator, and the operator's resume keeps what the scan sees (stated in ``scans_empty``)."""
+    import copy
+
+    from tandemscan.daemon.faults import ScanSawNothing
+    from tandemscan.daemon.plans import default_plan_path
+    from tandemscan.pipeline.geometry.raycast import make_scene
+
+    band = Plan.load(default_plan_path())
+    plan = band.model_copy(update={"steps": band.steps[:5]})  # move_measure, move_arm, scan, move_arm, scan
+    config = sim_config.model_copy(update={
+        "correction": sim_config.correction.model_copy(update={"enabled": False}),
+        "inspection": sim_config.inspection.model_copy(update={"in_job": False}),
+    })
+    async with CellSession(config) as session:
+        first = MemoryJournal()
+        full = await JobRunner(session, plan, config, tmp_path, journal=first).run()
+        assert full.report["scans_empty"] == []
+        world = session.cell.simulation.world
+        world.scene = make_scene(copy.deepcopy(world.mesh).translate((0.0, 0.0, 20000.0)))  # the part taken away
+        again = MemoryJournal({i: first.results[i] for i in range(4)}, first._notes)
+        with pytest.raises(ScanSawNothing, match="step 4 .* saw nothing where the plan's scanner pose looks at"):
+            await JobRunner(session, plan, config, tmp_path, journal=again).run()
+        assert 4 not in again.results
+        kept = await JobRunner(session, plan, config, tmp_path, journal=again).run()  # the operator resumed
+    assert kept.report["scans_empty"] == [1] and kept.report["scans"] == 2

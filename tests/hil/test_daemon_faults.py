@@ -338,15 +338,12 @@ async def test_every_device_event_serialises(cell):
     assert {e.data["name"] for e in journaled if e.kind == "device"} >= {"tracker"}
 
 
-@pytest.mark.xfail(strict=False, reason="known defect, open in issue 42 row 9: where the e-stop cuts an arm move "
-                   "short, the resumed job's first scan on the HIL cell sees nothing in some environments "
-                   "(the measurement AGV located 6.7 mm / 0.7 deg off plan; scans_empty [1]); "
-                   "passes where the odometry is set back")
 async def test_a_restart_mid_job_on_the_hil_cell_goes_on_where_the_robots_stopped(box_part, tmp_path,  # noqa: F811
                                                                                     reference):
-    """Issue 42 row 9: the hardware-in-the-loop cell keeps its world across a restart (as the twins' cell does)
-    while the real drivers' odometry starts afresh, as on a real cell; the resumed job sees both, re-localises the
-    odometry before any motion and completes like an uninterrupted run."""
+    """Issue 42 row 9: the hardware-in-the-loop cell keeps its world across a restart (as the twins' cell does: the
+    arm where it stopped too, though its last move was shorter than the controller's status period) while the real
+    drivers' odometry starts afresh, as on a real cell; the resumed job sees both, re-localises the odometry before
+    any motion and completes like an uninterrupted run, every scan from the pose the plan put it at."""
     cfg = fault_config(box_part)
     state = tmp_path / "state"
     daemon = Daemon(cfg, state, connect_timeout_s=30.0)
@@ -359,6 +356,7 @@ async def test_a_restart_mid_job_on_the_hil_cell_goes_on_where_the_robots_stoppe
         daemon.cell.simulation.world.safety.estop = True
         await Cell(daemon).state(job_id, "paused_safety")
         stopped = {name: c.true_pose.copy() for name, c in daemon.cell.simulation.world.chassis.items()}
+        stopped_joints = daemon.cell.simulation.world.joints_rad.copy()
     finally:
         await daemon.close()
     daemon = Daemon(cfg, state, connect_timeout_s=30.0)
@@ -367,16 +365,22 @@ async def test_a_restart_mid_job_on_the_hil_cell_goes_on_where_the_robots_stoppe
         world = daemon.cell.simulation.world
         for name, pose in stopped.items():
             np.testing.assert_allclose(world.chassis[name].true_pose, pose, atol=1e-6)
+        np.testing.assert_allclose(world.joints_rad, stopped_joints, atol=1e-6)
         await daemon.manager.resume(job_id)
         c = Cell(daemon)
         job = await c.state(job_id, "succeeded", "failed", "paused_fault")
         report = c.report(job_id) if job.state == "succeeded" else {}
+        steps = daemon.store.committed_steps(job_id)
     finally:
         await daemon.close()
     assert job.state == "succeeded", job.error
+    for k in SCAN_STEPS:  # each scan taken at the joints its arm move was committed with (read back, deg rounding)
+        np.testing.assert_allclose(steps[k]["joints_rad"], steps[k - 1]["joints_rad"], atol=np.radians(0.05))
     (resume,) = report["resumes"]
     # the odometry set back (the tracker confirmed nothing moved) or, where the e-stop cut an arm move short (the
     # target moved since its last reading), the measurement AGV located by the tracker
     assert "measure_chassis" in resume["chassis_off_journal"], resume
     assert resume.get("odometry_relocalised") or resume.get("relocalised") == "measure_chassis", resume
+    assert "arm_off_journal" not in resume or resume["arm_returned"], resume  # a move cut short: the arm back first
+    assert report["scans_empty"] == reference["scans_empty"] == [], report["scans_empty"]
     assert_like_reference(report, reference)
