@@ -13,8 +13,8 @@ the longer part), each stored pose off the true one by the tracker's noise. The 
 (``tile_inspection.inspect_tiles`` on the workers), ``figures`` (the report's deviation figures from the tiles'
 summaries, here), ``deviation_ply`` (streamed, here) and ``e57`` (the full scans streamed, here). Each stage's
 wall seconds and peak RSS (GiB; the peak is reset before each stage, Linux ``/proc/<pid>/clear_refs``): of the
-process that runs the stages (``main_gib``; a fresh one for each size and worker count) and of each worker
-(``worker_gib``, their largest).
+process that runs the stages (``main_gib``, and ``main_start_gib`` what it held as the stage started; a fresh
+process for each size and worker count) and of each worker (``worker_gib``, their largest).
 
 The model, per stage: on one worker ``t1 = a + b x`` through the two sizes, ``x`` the stage's driver (raw points,
 scans or merged voxels: :data:`DRIVERS`); on N workers Amdahl's law with the stage's serial share ``f = 2 t2 / t1 -
@@ -148,11 +148,12 @@ def _stage(name: str, backend: DaskBackend, record: dict, fn: Callable[[], objec
     """``fn()`` timed, with this process's and each worker's peak RSS during it, into ``record[name]``."""
     reset_peak()
     backend.client.run(reset_peak)
+    start = peak_gib()  # the peak just reset: what the process holds as the stage starts
     t = time.perf_counter()
     out = fn()
     wall = time.perf_counter() - t
     workers = sorted(backend.client.run(peak_gib).values())
-    record[name] = {"wall_s": round(wall, 3), "main_gib": round(peak_gib(), 3),
+    record[name] = {"wall_s": round(wall, 3), "main_gib": round(peak_gib(), 3), "main_start_gib": round(start, 3),
                     "worker_gib": round(max(workers), 3), "workers_gib": [round(w, 3) for w in workers]}
     print(f"{name}: {record[name]}", file=sys.stderr, flush=True)
     return out
