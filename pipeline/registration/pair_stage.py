@@ -140,6 +140,12 @@ def register_units(units: Sequence[TargetPairs], scans: HeldScans | StoredScans,
                    voxel_mm: float, backend: ComputeBackend, network: Registrar | None = None
                    ) -> list[list[PairOutcome]]:
     """:func:`register_unit` of every unit on ``backend``, in order (each unit a task named by
-    :meth:`TargetPairs.key`)."""
+    :meth:`TargetPairs.key`). The units are handed out largest first (most sources), so the workers finish
+    together rather than one of them registering a large unit alone at the end."""
     fn = functools.partial(register_unit, scans=scans, cfg=cfg, network=network)
-    return backend.map(fn, units, [u.key(cfg, voxel_mm) for u in units])
+    order = sorted(range(len(units)), key=lambda k: -len(units[k].sources))  # stable: ties keep their order
+    done = backend.map(fn, [units[k] for k in order], [units[k].key(cfg, voxel_mm) for k in order])
+    out: list[list[PairOutcome]] = [[] for _ in units]
+    for k, outcomes in zip(order, done, strict=True):
+        out[k] = outcomes
+    return out
