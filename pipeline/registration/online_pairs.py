@@ -45,6 +45,7 @@ from tandemscan.pipeline.registration.joint import Association, JointScan, assoc
 from tandemscan.pipeline.registration.overlap import PairSelector
 from tandemscan.pipeline.registration.pair_stage import PairOutcome, register_stitched_pair
 from tandemscan.pipeline.registration.pairs import NETWORK_METHODS
+from tandemscan.pipeline.registration.parallel import pair_threads
 from tandemscan.pipeline.registration.pose_graph import TransferPrior
 from tandemscan.pipeline.registration.sampling import voxel_downsample
 
@@ -84,7 +85,7 @@ class OnlineScan:
 class OnlinePairs:
     """The pair outcomes of a job, registered as its scans arrive (one instance per job, where the work runs).
 
-    :meth:`add` queues a scan's pairs (and joint associations) on a pool of one thread per core and returns: the
+    :meth:`add` queues a scan's pairs on a pool of one thread per core and returns: the
     pairs of the next scans queue behind them, so no core waits at the end of a scan's pairs. A queued pair that a
     later scan displaced before it started (``overlap.PairSelector.kept``: the end of the job never selects it) is
     not registered. :meth:`work` waits for what is queued. ``cfg`` and ``voxel_mm`` must be the job's
@@ -104,7 +105,6 @@ class OnlinePairs:
         self._joint_starts: list[tuple[str, np.ndarray]] = []  # each prepared scan's key and tracker pose
         self._tree = _Recent(lambda i: cKDTree(self.joint_scans[self._joint_starts[i][0]].points_S))
         self._queued: dict[str, Future] = {}  # pair key -> its outcome (None: displaced before it started)
-        self._queued_associations: dict[str, Future] = {}
         self._pool: ThreadPoolExecutor | None = None
         self._shared = threading.Lock()  # the selector and the kept targets, which the pool's threads read
         self._cpu_start = time.process_time()
@@ -115,7 +115,7 @@ class OnlinePairs:
         """Take the next scan with points (``points_S`` (N, 3) mm as the end of the job loads them,
         ``finish.load_scans``; its 6x6 pose covariance, ``uncertainty.scan_pose_covariance``; its tracker
         station; the transfer priors known so far), queue the registration of its pairs and, with ``[correction]
-        joint``, prepare it for the joint refinement and queue the nearest neighbours of its pairs there; returns
+        joint``, prepare it for the joint refinement and find the nearest neighbours of its pairs there; returns
         how many partners it has."""
         if not self.enabled or len(points_S) == 0:
             return 0
@@ -151,11 +151,10 @@ class OnlinePairs:
         return register_stitched_pair(self.scans[j].world_mm, target, covariance, self.cfg.pairs)
 
     def work(self) -> OnlineWork:
-        """Wait for the queued pairs and associations, then the pair outcomes, prepared joint scans and their pairs'
-        nearest neighbours so far (a task that failed is logged and left to the end of the job)."""
+        """Wait for the queued pairs, then the pair outcomes, prepared joint scans and their pairs' nearest neighbours
+        so far (a pair whose task failed is logged and left to the end of the job)."""
         self.outcomes |= {k: o for k, o in _results(self._queued).items() if o is not None}
-        self.associations |= _results(self._queued_associations)
-        self._queued, self._queued_associations = {}, {}
+        self._queued = {}
         if self._pool is not None:
             self._pool.shutdown()
             self._pool = None
@@ -163,20 +162,23 @@ class OnlinePairs:
         return OnlineWork(self.outcomes, self.joint_scans, self.associations)
 
     def _prepare_joint(self, points_S: np.ndarray, T_W_S: np.ndarray, station: int) -> None:
-        """Prepare the scan for the joint refinement (``correction.joint_scan``) and queue, at the tracker poses,
-        the search of the nearest neighbours of its points in every earlier prepared scan it may be paired with
-        there (``correction._refine_jointly`` pairs the prepared scans sharing a grid cell)."""
+        """Prepare the scan for the joint refinement (``correction.joint_scan``) and find, at the tracker poses,
+        the nearest neighbours of its points in every earlier prepared scan it may be paired with there
+        (``correction._refine_jointly`` pairs the prepared scans sharing a grid cell). Not queued behind the pairs:
+        each search holds its partner's KD tree (a few megabytes at full resolution) until it has run."""
         key = joint_scan_key(points_S, self.cfg.joint_voxel_mm)
         prepared = self.joint_scans[key] = joint_scan(points_S, self.cfg.joint_voxel_mm)
         partners = self._joint_selector.add(transform_points(T_W_S, prepared.points_S), station)
         self._joint_starts.append((key, T_W_S))
+        todo = {}  # association key -> (prepared scan, its KD-tree, relative start pose) of each partner
         for i in partners:
             key_i, T_W_S_i = self._joint_starts[i]
-            found = association_key(key_i, key, T_W_S_i, T_W_S, self.cfg.joint_refinement.max_distance_mm)
-            if found not in self.associations and found not in self._queued_associations:
-                self._queued_associations[found] = self._threads().submit(
-                    associate, self.joint_scans[key_i], self._tree(i), prepared, invert(T_W_S_i) @ T_W_S,
-                    self.cfg.joint_refinement.max_distance_mm)
+            todo[association_key(key_i, key, T_W_S_i, T_W_S, self.cfg.joint_refinement.max_distance_mm)] = (
+                self.joint_scans[key_i], self._tree(i), invert(T_W_S_i) @ T_W_S)
+        with pair_threads() as pair_map:
+            self.associations |= zip(todo, pair_map(
+                lambda job: associate(job[0], job[1], prepared, job[2], self.cfg.joint_refinement.max_distance_mm),
+                todo.values()), strict=True)
 
 
 def _results(futures: dict[str, Future]) -> dict[str, Any]:
