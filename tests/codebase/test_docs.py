@@ -1,5 +1,5 @@
-"""The documentation stays usable (docs/README.md): pages short enough to read, and every page a docstring,
-a test, a benchmark or another page cites exists."""
+"""The documentation stays usable (docs/README.md): pages short enough to read, every page a docstring,
+a test, a benchmark or another page cites exists, and every repository file a page names exists."""
 
 from __future__ import annotations
 
@@ -8,6 +8,10 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
 CITED = re.compile(r"docs/([\w./-]+\.md)")
+# a repository path a page names in backticks: `pipeline/compute.py`, `tests/drivers/test_drivers_*.py`,
+# `benchmarks/results/`; a path with an upper-case placeholder (`benchmarks/NAME.py`) is a pattern, not a file
+NAMED_PATH = re.compile(r"`((?:daemon|drivers|sim_drivers|pipeline|config|tests|benchmarks|docs|systemd)/[\w./*-]*)")
+PLACEHOLDER = re.compile(r"\b[A-Z]{2,}\b")
 
 
 def test_readme_and_every_docs_page_are_short():
@@ -25,3 +29,16 @@ def test_every_cited_docs_page_exists():
                for page in CITED.findall(src.read_text(encoding="utf-8"))
                if not (ROOT / "docs" / page.rstrip(".")).exists()}
     assert not missing, sorted(missing)
+
+
+def test_every_repository_file_a_page_names_exists():
+    pages = [ROOT / "README.md", *(ROOT / "docs").rglob("*.md")]
+    missing = {f"{page.relative_to(ROOT)}: {path}" for page in pages
+               for path in NAMED_PATH.findall(page.read_text(encoding="utf-8"))
+               if not PLACEHOLDER.search(path) and not _exists(path.rstrip("."))}
+    assert not missing, f"docs name files that are not in the repository (moved or renamed?): {sorted(missing)}"
+
+
+def _exists(path: str) -> bool:
+    """Whether a repository path, or a glob such as ``tests/drivers/test_*.py``, names at least one file."""
+    return any(ROOT.glob(path)) if "*" in path else (ROOT / path).exists()
