@@ -348,9 +348,9 @@ class JobRunner:
             journaled_joints(self.plan, self.journal.committed, i), joints, self.config.job.resume_joint_tolerance_deg)
         fresh = await self._fresh_reading(i, entry)
         mid_transfer = isinstance(step, MoveTracker)
+        tracker_may_have_moved = mid_transfer and "before" in self.journal.notes(i)
         job = self.config.job
-        off = await chassis_off_journal(self.cell, self.plan, self.journal.committed, i,
-                                        mid_transfer and "before" in self.journal.notes(i),
+        off = await chassis_off_journal(self.cell, self.plan, self.journal.committed, i, tracker_may_have_moved,
                                         job.resume_pose_tolerance_mm, job.resume_pose_tolerance_deg)
         if arm is not None:
             entry["arm_off_journal"] = arm.entry()
@@ -358,7 +358,7 @@ class JobRunner:
                         arm.off_deg)
         if off:
             entry["chassis_off_journal"] = {name: o.entry() for name, o in off.items()}
-            entry |= await self._relocalise_after_restart(i, fresh, off, joints, arm)
+            entry |= await self._relocalise_after_restart(i, fresh, off, joints, arm, tracker_may_have_moved)
         if arm is not None and not entry.get("arm_returned"):
             fresh = await self._return_arm(i, arm, entry)
         if fresh is not None and (not off or "odometry_relocalised" in entry):
@@ -385,16 +385,19 @@ class JobRunner:
         return await self._fresh_reading(i, entry)
 
     async def _relocalise_after_restart(self, i: int, fresh: TrackerReading | None, off: dict[str, ChassisOff],
-                                        joints: np.ndarray, arm: ArmOff | None) -> dict:
+                                        joints: np.ndarray, arm: ArmOff | None, tracker_may_have_moved: bool) -> dict:
         """AGVs off their journaled poses at a resume before step ``i``, the arm at ``joints`` (rad; ``arm``: off its
         journaled ones): where the tracker sees the target where the journal left it
-        (:meth:`_target_where_journaled`), their odometry restarted and is set back; where it does not and only one
-        AGV's odometry moved, that one is re-localised (the tracker's frame re-established from the still target,
+        (:meth:`_target_where_journaled`), their odometry restarted and is set back; where it does not (and the
+        tracker stood still: not ``tracker_may_have_moved`` in a transfer) and only one AGV's odometry moved, that
+        one is re-localised (the tracker's frame re-established from the still target,
         read again once the arm is back where it was read, or the measurement AGV located by the tracker);
         otherwise, once, the operator decides (:class:`~tandemscan.daemon.faults.RobotsMovedWhileDown`) and a resume
         goes on from where they stand. Returns the resume's journal fields."""
         fields: dict = {}
         unmoved = await self._target_where_journaled(i, fresh, joints, arm is not None)
+        if tracker_may_have_moved and not unmoved:
+            unmoved = None  # the target seen elsewhere by a tracker that may have driven on: no witness
         if unmoved:
             await relocalise_odometry(self.gate, off)
             log.warning("resume at step %d: %s odometry restarted; set back to the journal's poses", i, sorted(off))

@@ -150,10 +150,11 @@ class HilEmulators:
 
     def _measure_target(self) -> tuple[np.ndarray, np.ndarray]:
         """The world's target reading for the tracker emulator; the state saved when the reading began a new still
-        period, so that a restarted daemon's tracker reads the still target with the error it had."""
+        period with every robot at rest, so that a restarted daemon's tracker reads the still target with the error
+        it had (not at every frame of a move)."""
         still = self.world.still_T_C_T
         reading = self.world.measure_target()
-        if self.world.still_T_C_T is not still:
+        if self.world.still_T_C_T is not still and not self.world.motion.moving:
             keep_world_state(self.world)
         return reading
 

@@ -368,7 +368,10 @@ async def test_a_restart_mid_job_on_the_hil_cell_goes_on_where_the_robots_stoppe
         np.testing.assert_allclose(world.joints_rad, stopped_joints, atol=1e-6)
         await daemon.manager.resume(job_id)
         c = Cell(daemon)
-        job = await c.state(job_id, "succeeded", "failed", "paused_fault")
+        async with asyncio.timeout(90):  # to the end, through automatic resumes (a link lost on a loaded machine)
+            while (job := daemon.manager.get(job_id)).state not in ("succeeded", "failed") and not (
+                    job.state == "paused_fault" and "automatic resume" not in (job.error or "")):
+                await asyncio.sleep(0.02)
         report = c.report(job_id) if job.state == "succeeded" else {}
         steps = daemon.store.committed_steps(job_id)
     finally:
@@ -376,11 +379,11 @@ async def test_a_restart_mid_job_on_the_hil_cell_goes_on_where_the_robots_stoppe
     assert job.state == "succeeded", job.error
     for k in SCAN_STEPS:  # each scan taken at the joints its arm move was committed with (read back, deg rounding)
         np.testing.assert_allclose(steps[k]["joints_rad"], steps[k - 1]["joints_rad"], atol=np.radians(0.05))
-    (resume,) = report["resumes"]
-    # the odometry set back (the tracker confirmed nothing moved) or, where the e-stop cut an arm move short (the
-    # target moved since its last reading), the measurement AGV located by the tracker
+    resume = report["resumes"][0]  # the restart's (an automatic resume after a lost link may follow)
+    # the odometry set back: the tracker confirmed nothing moved (where the arm moved since the last still reading,
+    # the measurement AGV by Eq. 5 from each reading at the joints it was read at)
     assert "measure_chassis" in resume["chassis_off_journal"], resume
-    assert resume.get("odometry_relocalised") or resume.get("relocalised") == "measure_chassis", resume
+    assert "measure_chassis" in resume.get("odometry_relocalised", []), resume
     assert "arm_off_journal" not in resume or resume["arm_returned"], resume  # a move cut short: the arm back first
     assert report["scans_empty"] == reference["scans_empty"] == [], report["scans_empty"]
     assert_like_reference(report, reference)
