@@ -18,9 +18,15 @@ from tandemscan.daemon.cli import command, plan_cmd
 SHIPPED = default_config_path().read_text(encoding="utf-8")
 
 
-def cell_toml(folder: Path, name: str, sim: str = "", tracker: str = "") -> Path:
-    """The shipped simulated cell with ``sim`` lines added to its ``[sim]`` and ``tracker`` to its ``[tracker]``."""
-    text = SHIPPED.replace("[sim]\n", f"[sim]\n{sim}\n").replace("[tracker]\n", f"[tracker]\n{tracker}\n")
+#: a calibration job of four plate views (the shipped 32): the faults below come within its first views, and
+#: planning fewer views keeps each command short
+FEW_VIEWS = "\n[calibration]\nposes = 4\n"
+
+
+def cell_toml(folder: Path, name: str, sim: str = "", tracker: str = "", extra: str = "") -> Path:
+    """The shipped simulated cell with ``sim`` lines added to its ``[sim]`` and ``tracker`` to its ``[tracker]``,
+    ``extra`` (whole tables) at its end."""
+    text = SHIPPED.replace("[sim]\n", f"[sim]\n{sim}\n").replace("[tracker]\n", f"[tracker]\n{tracker}\n") + extra
     path = folder / f"{name}.toml"
     path.write_text(text, encoding="utf-8")
     return path
@@ -75,8 +81,8 @@ def test_measure_into_an_estop_is_one_line_exit_3(tmp_path, capfd):
 def test_calibrate_into_a_device_fault_is_one_line_exit_4(fault, tmp_path, capfd):
     sim, words = FAULTS[fault]
     out = tmp_path / "calibration.json"
-    status, lines = run_cli(["calibrate", "--config", str(cell_toml(tmp_path, "cell", sim)), "--out", str(out)],
-                            capfd)
+    status, lines = run_cli(["calibrate", "--config", str(cell_toml(tmp_path, "cell", sim, extra=FEW_VIEWS)),
+                             "--out", str(out)], capfd)
     assert status == command.EXIT_DEVICE_FAULT
     line = one_line(lines, "device fault")
     assert words in line and f"no calibration written to {out}" in line and not out.exists()
@@ -85,7 +91,7 @@ def test_calibrate_into_a_device_fault_is_one_line_exit_4(fault, tmp_path, capfd
 @pytest.mark.slow
 def test_calibrate_that_sees_no_plate_is_not_completed_exit_5(tmp_path, capfd):
     out = tmp_path / "calibration.json"
-    toml = cell_toml(tmp_path, "short-sighted", tracker="target_view_cone_deg = 1.0")
+    toml = cell_toml(tmp_path, "short-sighted", tracker="target_view_cone_deg = 1.0", extra=FEW_VIEWS)
     status, lines = run_cli(["calibrate", "--config", str(toml), "--out", str(out)], capfd)
     assert status == command.EXIT_NOT_COMPLETED == 5
     assert "usable plate views" in one_line(lines, "not completed") and not out.exists()
