@@ -169,15 +169,15 @@ def test_daemon_modules_import_each_other_without_a_cycle():
 
 
 def test_a_planted_import_cycle_is_found(tmp_path):
-    (tmp_path / "daemon" / "jobs").mkdir(parents=True)
+    (tmp_path / "daemon" / "shop").mkdir(parents=True)
     (tmp_path / "daemon" / "__init__.py").write_text("")
-    (tmp_path / "daemon" / "jobs" / "__init__.py").write_text("")
-    (tmp_path / "daemon" / "jobs" / "runner.py").write_text(
-        "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from .snapshot import JobSnapshot\n")
-    (tmp_path / "daemon" / "jobs" / "snapshot.py").write_text(
-        "def take():\n    from tandemscan.daemon.jobs import runner\n    return runner\n")
-    (tmp_path / "daemon" / "alone.py").write_text("from tandemscan.daemon.jobs.runner import JobRunner\n")
+    (tmp_path / "daemon" / "shop" / "__init__.py").write_text("")
+    (tmp_path / "daemon" / "shop" / "till.py").write_text(
+        "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from .ledger import Ledger\n")
+    (tmp_path / "daemon" / "shop" / "ledger.py").write_text(
+        "def take():\n    from tandemscan.daemon.shop import till\n    return till\n")
+    (tmp_path / "daemon" / "alone.py").write_text("from tandemscan.daemon.shop.till import Till\n")
     graph = daemon_import_graph(tmp_path)
-    assert graph == {"": set(), "jobs": set(), "jobs.runner": {"jobs.snapshot"}, "jobs.snapshot": {"jobs.runner"},
-                     "alone": {"jobs.runner"}}
-    assert import_cycles(graph) == [["jobs.runner", "jobs.snapshot"]]
+    assert graph == {"": set(), "shop": set(), "shop.till": {"shop.ledger"}, "shop.ledger": {"shop.till"},
+                     "alone": {"shop.till"}}
+    assert import_cycles(graph) == [["shop.ledger", "shop.till"]]
