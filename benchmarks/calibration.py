@@ -187,10 +187,10 @@ async def _calibrate_and_measure(cfg, out: Path) -> dict:
     shared ``T_T_S`` unknown, as configured) with each installation source. Cloud RMS (mm) of the default
     job and of its tracker-only stitch, and the ``T_T_S`` error (mm, deg, surface mm) the job's mount
     estimate leaves against the truth."""
-    from tandemscan.daemon.calibrate import run_calibration
+    from tandemscan.daemon.calibration.calibrate import run_calibration
+    from tandemscan.daemon.cell.session import CellSession
+    from tandemscan.daemon.jobs.runner import JobRunner
     from tandemscan.daemon.plans import default_plan_path
-    from tandemscan.daemon.runner import JobRunner
-    from tandemscan.daemon.session import CellSession
     from tandemscan.pipeline.planning.plan import Plan
 
     started = time.monotonic()
@@ -241,10 +241,10 @@ async def _consistency(cfg, seeds: list[int], out: Path, band: bool) -> dict:
     T_T_S [R(r), t]``: chi-square with 6 degrees of freedom where the covariance is honest, mean 6) and per
     axis in 1-sigma; with ``band`` the default band job with the calibrated and with the true mounts (cloud RMS
     after the correction, mm; the job's mount estimate against the truth)."""
-    from tandemscan.daemon.calibrate import run_calibration
+    from tandemscan.daemon.calibration.calibrate import run_calibration
+    from tandemscan.daemon.cell.session import CellSession
+    from tandemscan.daemon.jobs.runner import JobRunner
     from tandemscan.daemon.plans import default_plan_path
-    from tandemscan.daemon.runner import JobRunner
-    from tandemscan.daemon.session import CellSession
     from tandemscan.pipeline.planning.plan import Plan
 
     runs, lever, plan = [], cfg.scanner.sweet_spot_mm, Plan.load(default_plan_path())

@@ -1,5 +1,5 @@
 """The cyclic garbage collector's full-collection pause in the daemon's process, before and after the session
-freezes its heap (``daemon.session.freeze_heap``).
+freezes its heap (``daemon.cell.session.freeze_heap``).
 
 Builds what ``tandemscan serve`` holds before it serves (configuration, the daemon over a fresh state folder,
 the web app) and opens the simulated cell's session, which freezes the heap; times ``gc.collect(2)`` (ms, the
@@ -36,8 +36,8 @@ def full_collection_ms(repeats: int) -> float:
 async def measure(repeats: int) -> dict:
     from tandemscan.config import load_config
     from tandemscan.daemon.api.app import create_app
+    from tandemscan.daemon.cell.session import CellSession
     from tandemscan.daemon.service import Daemon
-    from tandemscan.daemon.session import CellSession
 
     config = load_config(None)
     with tempfile.TemporaryDirectory() as state:

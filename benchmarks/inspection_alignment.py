@@ -36,9 +36,9 @@ from pose_bound import bound_model  # benchmarks/pose_bound.py: the bound's erro
 from results import publish
 from tandemscan.config import load_config
 from tandemscan.config.models import CellConfig
+from tandemscan.daemon.cell.session import CellSession
+from tandemscan.daemon.jobs.runner import JobResult, JobRunner, ScanRecord
 from tandemscan.daemon.plans import default_plan_path
-from tandemscan.daemon.runner import JobResult, JobRunner, ScanRecord
-from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.kinematics import ArmKinematics
 from tandemscan.pipeline.geometry.part import load_part_mesh

@@ -1,4 +1,4 @@
-"""Seconds of a finished job's exports and inspection (what :func:`tandemscan.daemon.job_outputs.write_job_outputs`
+"""Seconds of a finished job's exports and inspection (what :func:`tandemscan.daemon.jobs.outputs.write_job_outputs`
 runs after ``cloud.ply``: E57, pose log, alignment to CAD, deviations, report.html, cloud_deviation.ply) on a
 finished job's folder, per stage, plus the inspection's numbers to compare runs. Prints one JSON object last.
 
@@ -27,7 +27,7 @@ import numpy as np
 from clean_exit import clean_exit_on_sigterm
 from results import publish
 from tandemscan.config.loader import load_config
-from tandemscan.daemon import job_outputs
+from tandemscan.daemon.jobs import outputs as job_outputs
 from tandemscan.pipeline.inspection import inspect, inspection_job, report
 from tandemscan.pipeline.io.cloud_io import read_ply
 from tandemscan.pipeline.io.raw_scan import read_raw_scan

@@ -11,7 +11,7 @@ import argparse
 from pathlib import Path
 
 from tandemscan.config.models import CellConfig
-from tandemscan.daemon.session import CellSession
+from tandemscan.daemon.cell.session import CellSession
 from tandemscan.sim_drivers.cell import with_surveyed_mounts
 
 

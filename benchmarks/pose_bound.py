@@ -61,11 +61,11 @@ from clean_exit import clean_exit_on_sigterm
 from results import publish
 from scipy.spatial import cKDTree
 from tandemscan.config import load_config
-from tandemscan.daemon.finish import merge_stage
-from tandemscan.daemon.job_correction import mount_prior, transfer_priors
+from tandemscan.daemon.cell.session import CellSession
+from tandemscan.daemon.jobs.correction import mount_prior, transfer_priors
+from tandemscan.daemon.jobs.finish import merge_stage
+from tandemscan.daemon.jobs.runner import JobResult, JobRunner
 from tandemscan.daemon.plans import default_plan_path
-from tandemscan.daemon.runner import JobResult, JobRunner
-from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.geometry.frames import invert, to_rotvec, transform_points
 from tandemscan.pipeline.geometry.uncertainty import recentre, scan_pose_covariance
 from tandemscan.pipeline.inspection.scoring import cloud_to_mesh_distances, distance_stats

@@ -260,9 +260,9 @@ def sim_pairs(min_overlap: int = 200, delta_mm: float = 3.0):
     The job runs with the correction off; scans are thinned to the job's voxel as the correction does.
     """
     from tandemscan.config import load_config
+    from tandemscan.daemon.cell.session import CellSession
+    from tandemscan.daemon.jobs.runner import JobRunner
     from tandemscan.daemon.plans import default_plan_path
-    from tandemscan.daemon.runner import JobRunner
-    from tandemscan.daemon.session import CellSession
     from tandemscan.pipeline.io.raw_scan import read_raw_scan
     from tandemscan.pipeline.planning.plan import Plan
     from tandemscan.pipeline.registration.sampling import voxel_downsample

@@ -1,4 +1,4 @@
-"""Seconds of the end of a job's re-merge (``daemon.finish.merge_stage``: every scan file merged into a 1 mm
+"""Seconds of the end of a job's re-merge (``daemon.jobs.finish.merge_stage``: every scan file merged into a 1 mm
 voxel map at its final pose) on a finished job's folder, against one map taking every scan in turn (what the
 re-merge did before it merged consecutive scans in groups of their own on two threads and combined them once,
 ``worldmap.VoxelMap.combined``). Prints one JSON object last.
@@ -24,7 +24,7 @@ from types import SimpleNamespace
 
 import numpy as np
 from results import publish
-from tandemscan.daemon.finish import MERGE_GROUPS, merge_stage
+from tandemscan.daemon.jobs.finish import MERGE_GROUPS, merge_stage
 from tandemscan.pipeline.io.raw_scan import read_raw_scan
 from tandemscan.pipeline.stitching.worldmap import VoxelMap
 

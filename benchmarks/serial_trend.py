@@ -25,9 +25,9 @@ from tandemscan.config import load_config
 from tandemscan.daemon.api.facade import ServiceFacade
 from tandemscan.daemon.api.models import JobRequest, trend_body
 from tandemscan.daemon.job_state import FINAL_STATES
-from tandemscan.daemon.part_results import PartResults
 from tandemscan.daemon.plans import default_plan_path
 from tandemscan.daemon.service import WORLD_STATE_FILE, Daemon
+from tandemscan.daemon.store.part_results import PartResults
 from tandemscan.pipeline.planning.plan import Plan
 from tandemscan.sim_drivers.cell import Simulation, with_surveyed_mounts
 

@@ -27,9 +27,9 @@ from clean_exit import clean_exit_on_sigterm
 from job_mounts import add_mounts_option, chosen_mounts, job_config
 from results import publish
 from tandemscan.config import load_config
+from tandemscan.daemon.cell.session import CellSession
+from tandemscan.daemon.jobs.runner import JobRunner
 from tandemscan.daemon.plans import default_plan_path
-from tandemscan.daemon.runner import JobRunner
-from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.planning.plan import Plan
 
 

@@ -36,9 +36,15 @@ import open3d as o3d
 from clean_exit import clean_exit_on_sigterm
 from results import publish
 from tandemscan.config import load_config
-from tandemscan.daemon.coordinate_transfer import PoseReading, choose_transfer_poses, pose_transfer, transfer_joints
+from tandemscan.daemon.cell.tracker_reading import averaged_covariance
+from tandemscan.daemon.jobs.coordinate_transfer import (
+    PoseReading,
+    camera_move,
+    choose_transfer_poses,
+    pose_transfer,
+    transfer_joints,
+)
 from tandemscan.daemon.plans import plan_configured_part
-from tandemscan.daemon.tracker_reading import averaged_covariance
 from tandemscan.drivers.errors import TargetNotVisible
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.part import barrel_panel_mesh
@@ -76,8 +82,8 @@ def _poses_transfer(world: SimWorld, config, plan, i: int, T_W_C: np.ndarray, no
     before = [_pose_reading(world, noisy, samples)]
     T_F_V1 = world.chassis["tracking_chassis"].true_pose
     odometry = (T_F_V1[0, 3], T_F_V1[1, 3], float(np.arctan2(T_F_V1[1, 0], T_F_V1[0, 0])))
-    chosen, _ = choose_transfer_poses(q0, others, before[0].T_C_T, config.tracker.transfer_arm_poses, config,
-                                      world.truth, odometry, step)
+    chosen, _ = choose_transfer_poses(q0, others, before[0].T_C_T, camera_move(world.truth, odometry, step),
+                                      config.tracker.transfer_arm_poses, config, world.truth)
     for q in chosen:
         world.move_arm(q)
         try:

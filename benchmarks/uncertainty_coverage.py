@@ -13,7 +13,7 @@ points whose largest share comes from each tracker station's scans (``coverage_p
 
 The Monte Carlo check (GUM Supplement 1, JCGM 101:2008) draws what the first-order propagation linearises
 (docs/verdict.md, "Per-point uncertainty"): the scans' pose errors from the job's own joint covariance (the
-model the job evaluated, captured from ``daemon.job_outputs.job_uncertainty``), each scan moved by its exact rigid
+model the job evaluated, captured from ``daemon.jobs.outputs.job_uncertainty``), each scan moved by its exact rigid
 motion (not the linearised one) and the points by their voxels' shares of the scans, the noise along the normal;
 then the real best fit to the CAD (``inspect.best_fit``, point-to-plane ICP on the CAD surface, trimmed at
 ``best_fit_max_distance_mm``) on an even subsample, and the real signed distances of an even subsample of
@@ -36,10 +36,10 @@ import numpy as np
 from clean_exit import clean_exit_on_sigterm
 from results import publish
 from tandemscan.config import load_config
-from tandemscan.daemon import job_outputs
+from tandemscan.daemon.cell.session import CellSession
+from tandemscan.daemon.jobs import outputs as job_outputs
+from tandemscan.daemon.jobs.runner import JobRunner
 from tandemscan.daemon.plans import default_plan_path
-from tandemscan.daemon.runner import JobRunner
-from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.geometry.frames import from_rotvec, invert, transform_points
 from tandemscan.pipeline.geometry.part import load_part_mesh
 from tandemscan.pipeline.inspection.inspect import CadSurface, best_fit

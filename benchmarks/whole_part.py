@@ -41,9 +41,9 @@ from job_mounts import add_mounts_option, chosen_mounts, job_config
 from results import publish
 from tandemscan.config import load_config
 from tandemscan.config.inspection_template import shipped_template
+from tandemscan.daemon.cell.session import CellSession
+from tandemscan.daemon.jobs.runner import JobRunner
 from tandemscan.daemon.plans import plan_configured_part
-from tandemscan.daemon.runner import JobRunner
-from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.part import barrel_panel_mesh
 from tandemscan.pipeline.geometry.raycast import make_scene

@@ -27,18 +27,18 @@ from pathlib import Path
 import numpy as np
 from prometheus_client import CollectorRegistry
 from tandemscan.config import CellConfig
-from tandemscan.daemon.cell import Cell
-from tandemscan.daemon.device_events import DeviceEventJournal
-from tandemscan.daemon.events import EventBus
+from tandemscan.daemon.cell.devices import Cell
+from tandemscan.daemon.cell.session import CellSession
 from tandemscan.daemon.job_state import JobState
-from tandemscan.daemon.jobs import JobManager, RetryPolicy, Runner
-from tandemscan.daemon.journal import journaled_abandon, run_journaled
+from tandemscan.daemon.jobs.journal import journaled_abandon, run_journaled
+from tandemscan.daemon.jobs.manager import JobManager, RetryPolicy, Runner
 from tandemscan.daemon.metrics import DaemonCollector, timing_histograms
 from tandemscan.daemon.notify import Notifier
-from tandemscan.daemon.part_results import PartResults
 from tandemscan.daemon.plans import PlanCatalog, part_check
-from tandemscan.daemon.session import CellSession
-from tandemscan.daemon.store import JobStore
+from tandemscan.daemon.store.device_events import DeviceEventJournal
+from tandemscan.daemon.store.events import EventBus
+from tandemscan.daemon.store.job_store import JobStore
+from tandemscan.daemon.store.part_results import PartResults
 from tandemscan.drivers.shared_array import remove_stale_blocks
 from tandemscan.drivers.tasks import cancel_and_wait
 

@@ -74,7 +74,7 @@ class Timings:
 
 @dataclass(frozen=True)
 class GroundTruth:
-    """The simulated cell's scores of the job against its truth (the job's observer, ``daemon.observer``): the
+    """The simulated cell's scores of the job against its truth (the job's observer, ``daemon.cell.observer``): the
     final stitch's (``ground_truth``), the tracker-only stitch's summary where the correction changed the poses
     (``correction.before`` in the file) and the inspection's (``ground_truth.inspection``, where it aligned)."""
 

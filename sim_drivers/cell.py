@@ -1,6 +1,6 @@
 """The simulated cell behind the twins and the hardware-in-the-loop emulators, as the product's cell layer sees it.
 
-:class:`Simulation` implements :class:`tandemscan.daemon.cell.CellSimulation` and is loaded lazily through the
+:class:`Simulation` implements :class:`tandemscan.daemon.cell.devices.CellSimulation` and is loaded lazily through the
 device registry (:data:`tandemscan.drivers.factory.SIMULATION`). It owns the :class:`SimWorld`, builds each
 role's twin (the registry's ``"sim"`` class), runs the emulators for the real drivers with ``[hil] enabled``,
 keeps the world's state in ``state_file`` (the twins save it as they move, scan and read; it is restored when

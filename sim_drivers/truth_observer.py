@@ -1,6 +1,6 @@
 """Ground truth as an observer: the simulated cell's scoring of a job and of a calibration.
 
-:class:`TruthObserver` implements :class:`tandemscan.daemon.observer.JobObserver`: as the runner reports what
+:class:`TruthObserver` implements :class:`tandemscan.daemon.cell.observer.JobObserver`: as the runner reports what
 it measured it records the truth at that moment (the true scanner pose ``T_W_S`` of each scan, the true
 tracker camera pose of each transfer, the true measurement-AGV pose of each located station) in the world's
 ``scoring`` log, which the world state saves with itself, so a resumed job is scored as one run.
@@ -25,7 +25,7 @@ from tandemscan.sim_drivers.inspection_score import alignment_error, deviation_t
 from tandemscan.sim_drivers.world import GroundTruth, SimWorld
 
 if TYPE_CHECKING:
-    from tandemscan.daemon.snapshot import JobSnapshot
+    from tandemscan.daemon.jobs.snapshot import JobSnapshot
 
 
 def _error(T: np.ndarray, T_true: np.ndarray) -> dict[str, float]:

@@ -1,7 +1,7 @@
 """Errors of the REST API as RFC 9457 problem details (``application/problem+json``).
 
-A handler raises :class:`ApiProblem` (or the job manager a :class:`~tandemscan.daemon.jobs.JobRequestError`, which
-carries its status); :func:`install_problem_handlers` answers those, FastAPI's own HTTP and validation errors and
+A handler raises :class:`ApiProblem` (or the job manager a :class:`~tandemscan.daemon.jobs.manager.JobRequestError`,
+which carries its status); :func:`install_problem_handlers` answers those, FastAPI's own HTTP and validation errors and
 any unhandled exception (500, logged) with a :class:`~tandemscan.daemon.api.models.Problem` body. See
 docs/daemon.md.
 """
@@ -18,7 +18,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 from tandemscan.daemon.api.models import PROBLEM, Problem
-from tandemscan.daemon.jobs import JobRequestError
+from tandemscan.daemon.jobs.manager import JobRequestError
 
 log = logging.getLogger(__name__)
 

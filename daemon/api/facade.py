@@ -24,13 +24,12 @@ from fastapi import Depends, Request
 from prometheus_client import generate_latest
 from tandemscan.daemon.api.errors import ApiProblem
 from tandemscan.daemon.api.models import Job, JobPage, JobRequest, job_body
-from tandemscan.daemon.calibration_state import resolve_installation
-from tandemscan.daemon.events import Subscription, sse_text
-from tandemscan.daemon.installation import InstallationError, installation_for_job
+from tandemscan.daemon.calibration.current import InstallationError, installation_for_job, resolve_installation
+from tandemscan.daemon.calibration.verify import last_verification
 from tandemscan.daemon.job_state import FINAL_STATES
-from tandemscan.daemon.jobs import request_hash
-from tandemscan.daemon.store import IdempotencyConflict, JobRecord
-from tandemscan.daemon.verify import last_verification
+from tandemscan.daemon.jobs.manager import request_hash
+from tandemscan.daemon.store.events import Subscription, sse_text
+from tandemscan.daemon.store.job_store import IdempotencyConflict, JobRecord
 from tandemscan.drivers.errors import SafetyStop
 from tandemscan.drivers.interfaces import SafetyState
 from tandemscan.pipeline.planning.plan import Plan, PlanError
@@ -76,7 +75,8 @@ class ServiceFacade:
         return job_body(job, self.daemon.store.steps_done(job.id))
 
     async def job_record(self, job_id: str) -> JobRecord:
-        """The job as the manager knows it; 404 (:class:`~tandemscan.daemon.jobs.JobRequestError`) when unknown."""
+        """The job as the manager knows it; 404 (:class:`~tandemscan.daemon.jobs.manager.JobRequestError`) when
+        unknown."""
         return await self.read(self.daemon.manager.get, job_id)
 
     async def job_json(self, job_id: str) -> bytes:
@@ -172,7 +172,8 @@ class ServiceFacade:
 
     async def calibration(self) -> dict:
         """The installation transforms (4x4 lists, mm) a job started now would use and their source; none, with
-        the reason, when they cannot be resolved (:func:`~tandemscan.daemon.installation.installation_for_job`)."""
+        the reason, when they cannot be resolved
+        (:func:`~tandemscan.daemon.calibration.current.installation_for_job`)."""
         config = await asyncio.to_thread(resolve_installation, self.daemon.config)
         try:
             installation = await asyncio.to_thread(installation_for_job, config)

@@ -12,7 +12,7 @@ from typing import Annotated, Any, Literal
 from fastapi import Path
 from pydantic import BaseModel, ConfigDict, Field
 from tandemscan.daemon.job_state import COMPLETED_STATES, JobState
-from tandemscan.daemon.store import JobRecord
+from tandemscan.daemon.store.job_store import JobRecord
 
 PROBLEM = "application/problem+json"
 JobId = Annotated[str, Path(pattern=r"^[A-Za-z0-9_-]{1,64}$", description="job id")]
@@ -203,7 +203,7 @@ class CharacteristicTrend(BaseModel):
 
 
 def trend_body(trend) -> CharacteristicTrend:
-    """The wire form of a :class:`~tandemscan.daemon.part_results.Trend`."""
+    """The wire form of a :class:`~tandemscan.daemon.store.part_results.Trend`."""
     c = trend.chart
     chart = {k: getattr(c, k) if c is not None else None
              for k in ("mean_mm", "std_mm", "sigma_within_mm", "ucl_mm", "lcl_mm", "cp", "cpk", "pp", "ppk")}

@@ -1,4 +1,4 @@
-"""The commands that move the cell, each in a cell session of its own (:mod:`tandemscan.daemon.session`: the
+"""The commands that move the cell, each in a cell session of its own (:mod:`tandemscan.daemon.cell.session`: the
 supervisor's safety polling, latch and interlock hold for each; their background workers stop with the command):
 ``measure`` (a whole job), ``calibrate`` (hand-eye from plate scans) and ``verify`` (interim verification on the
 plate). docs/cli.md.
@@ -54,9 +54,9 @@ def register(sub) -> None:
 
 def cmd_measure(args: argparse.Namespace) -> int:
     """Run a complete measurement job on the configured cell (the simulated cell by default)."""
-    from tandemscan.daemon.installation import InstallationError
-    from tandemscan.daemon.runner import JobError, JobRunner
-    from tandemscan.daemon.stitcher import LocalWorldMap
+    from tandemscan.daemon.calibration.current import InstallationError
+    from tandemscan.daemon.jobs.runner import JobError, JobRunner
+    from tandemscan.daemon.jobs.stitcher import LocalWorldMap
     from tandemscan.pipeline.geometry.part import PartMeshError
     from tandemscan.pipeline.planning.plan import PlanError
 
@@ -93,8 +93,7 @@ def cmd_measure(args: argparse.Namespace) -> int:
 def _mounts_line(config: CellConfig) -> str:
     """``measure``'s first line: the mounts the job stitches with (``job.installation_source``); on the nominal
     ones a warning that the cell is not calibrated. An unreadable calibration file is a :class:`UsageError`."""
-    from tandemscan.daemon.calibration_state import resolve_installation
-    from tandemscan.daemon.installation import InstallationError, installation_for_job
+    from tandemscan.daemon.calibration.current import InstallationError, installation_for_job, resolve_installation
 
     config = resolve_installation(config)
     try:
@@ -139,8 +138,8 @@ def _plan_to_measure(args: argparse.Namespace, config: CellConfig, job_dir: Path
 
 def _session(config: CellConfig):
     """The cell session of a command (devices built, nothing connected yet); bad device config is usage."""
-    from tandemscan.daemon.cell import CellBuildError
-    from tandemscan.daemon.session import CellSession
+    from tandemscan.daemon.cell.devices import CellBuildError
+    from tandemscan.daemon.cell.session import CellSession
     from tandemscan.pipeline.geometry.part import PartMeshError
 
     try:
@@ -151,7 +150,7 @@ def _session(config: CellConfig):
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """Calibrate the scanner on its target (hand-eye) from plate scans; writes the calibration file."""
-    from tandemscan.daemon.calibrate import CalibrationJobError, run_calibration
+    from tandemscan.daemon.calibration.calibrate import CalibrationJobError, run_calibration
 
     config = config_from_args(args)
     session = _session(config)
@@ -186,7 +185,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 def cmd_verify(args: argparse.Namespace) -> int:
     """Interim verification (VDI/VDE 2634-3 style): the plate's spheres through the whole chain; 0 when it
     passes, 1 when an error is beyond its MPE (recorded either way)."""
-    from tandemscan.daemon.verify import run_verification
+    from tandemscan.daemon.calibration.verify import run_verification
 
     config = config_from_args(args)
     session = _session(config)

@@ -156,16 +156,8 @@ def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
     return sorted(cycles)
 
 
-#: the cycles left while the job side of the daemon is regrouped (issue 45 point 4); nothing may join them
-CYCLES_LEFT = [
-    ["agv_relocalisation", "calibrate", "calibration_state", "cell", "coordinate_transfer", "finish", "installation",
-     "job_correction", "job_outputs", "job_report", "observer", "runner", "session", "snapshot", "stitcher", "verify"],
-    ["job_context", "jobs"],
-]
-
-
 def test_daemon_modules_import_each_other_without_a_cycle():
-    assert import_cycles(daemon_import_graph(PACKAGE_ROOT)) == CYCLES_LEFT
+    assert import_cycles(daemon_import_graph(PACKAGE_ROOT)) == []
 
 
 def test_a_planted_import_cycle_is_found(tmp_path):

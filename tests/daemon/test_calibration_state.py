@@ -1,17 +1,17 @@
 """The cell's current calibration: made for a cell configuration, expiring, resolved for a job, and named in
-the report's installation record (daemon/calibration_state.py)."""
+the report's installation record (daemon/calibration/current.py)."""
 
 import datetime as dt
 import json
 
 from tandemscan.config import load_config
-from tandemscan.daemon.calibration_state import (
+from tandemscan.daemon.calibration.current import (
     cell_fingerprint,
     current_calibration,
+    installation_for_job,
     installation_record,
     resolve_installation,
 )
-from tandemscan.daemon.installation import installation_for_job
 from tandemscan.pipeline.stitching.installation import Installation
 
 

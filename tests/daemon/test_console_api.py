@@ -19,7 +19,7 @@ from serving import running_server
 from tandemscan.daemon.api.app import create_app
 from tandemscan.daemon.api.console.cloud_view import DEVIATION_COLOURS, VIEW_FILE, CloudViewError, view_file
 from tandemscan.daemon.api.console.router import ASSETS, plan_view
-from tandemscan.daemon.cell import build_cell
+from tandemscan.daemon.cell.devices import build_cell
 from tandemscan.daemon.plans import PlanCatalog
 from tandemscan.daemon.service import Daemon
 from tandemscan.pipeline.io.export import write_ply

@@ -16,9 +16,9 @@ from hypothesis import HealthCheck, settings
 from serving import running_server
 from tandemscan.daemon.api.app import create_app
 from tandemscan.daemon.api.guard import BindRefused, check_bind, resolve_token
-from tandemscan.daemon.cell import build_cell
+from tandemscan.daemon.cell.devices import build_cell
+from tandemscan.daemon.cell.motion import Robot
 from tandemscan.daemon.cli.client import SseParser
-from tandemscan.daemon.motion import Robot
 from tandemscan.daemon.plans import PlanCatalog
 from tandemscan.daemon.service import Daemon, resolve_state_dir
 from tandemscan.pipeline.planning.plan import MoveArm, PartIdentity, Plan, Scan

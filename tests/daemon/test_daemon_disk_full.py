@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from tandemscan.daemon.events import sse_text
-from tandemscan.daemon.faults import classify_fault
-from tandemscan.daemon.store import Event
+from tandemscan.daemon.jobs.faults import classify_fault
+from tandemscan.daemon.store.events import sse_text
+from tandemscan.daemon.store.job_store import Event
 from tandemscan.drivers.errors import NotConnected
 
 CHILD = Path(__file__).with_name("disk_full_child.py")

@@ -30,7 +30,7 @@ from tandemscan.daemon.api.app import create_app
 from tandemscan.daemon.job_state import JobState
 from tandemscan.daemon.plans import PlanCatalog
 from tandemscan.daemon.service import Daemon
-from tandemscan.daemon.store import JobStore
+from tandemscan.daemon.store.job_store import JobStore
 
 TOKEN = "lag-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}

@@ -12,8 +12,7 @@ import textwrap
 
 import numpy as np
 import pytest
-from tandemscan.daemon.recovery import recover
-from tandemscan.daemon.store import IdempotencyConflict, JobStore, StoreError
+from tandemscan.daemon.store.job_store import IdempotencyConflict, JobStore, StoreError, recover
 from tandemscan.pipeline.io.raw_scan import RawScanError, read_raw_scan, write_raw_scan
 
 
@@ -100,7 +99,7 @@ def test_events_are_journaled_in_order(store):
 _CRASHER = textwrap.dedent("""
     import os, signal, sys
     import numpy as np
-    from tandemscan.daemon.store import JobStore
+    from tandemscan.daemon.store.job_store import JobStore
     from tandemscan.pipeline.io.raw_scan import write_raw_scan
     store = JobStore(sys.argv[1])
     job, _ = store.create_job("p", {}, 3)
@@ -156,8 +155,8 @@ def test_bad_scan_shape_is_a_clear_error(store):
 
 
 def test_two_restarts_on_the_same_step_are_two_resumes(tmp_path):
-    from tandemscan.daemon.jobs import JobContext
-    from tandemscan.daemon.journal import StoreJournal
+    from tandemscan.daemon.jobs.journal import StoreJournal
+    from tandemscan.daemon.jobs.manager import JobContext
 
     store = JobStore(tmp_path)
     job, _ = store.create_job("p", {"plan": {}}, 10)

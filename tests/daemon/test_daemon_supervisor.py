@@ -8,11 +8,10 @@ import time
 
 import numpy as np
 import pytest
-from tandemscan.daemon.backoff import backoff_delays
-from tandemscan.daemon.cell import Cell
-from tandemscan.daemon.motion import Robot
-from tandemscan.daemon.session import CellSession
-from tandemscan.daemon.supervisor import MotionInterlock
+from tandemscan.daemon.cell.devices import Cell
+from tandemscan.daemon.cell.motion import Robot
+from tandemscan.daemon.cell.session import CellSession
+from tandemscan.daemon.cell.supervisor import MotionInterlock, backoff_delays
 from tandemscan.drivers.errors import NotConnected, SafetyStop
 from tandemscan.drivers.factory import ROLES
 from tandemscan.drivers.interfaces import ChassisPose

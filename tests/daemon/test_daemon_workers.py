@@ -145,7 +145,8 @@ def test_workers_die_with_a_killed_parent(tmp_path):
 def test_the_daemon_process_never_loads_the_heavy_pipeline():
     """torch (correction), matplotlib and pye57 (exports) take seconds to import: only worker processes
     load them, never the daemon's event loop (the runner hands them over by thin wrappers)."""
-    code = ("import sys, tandemscan.daemon.service, tandemscan.daemon.api.app, tandemscan.daemon.journal, "
-            "tandemscan.daemon.runner; print(sorted(m for m in ('torch', 'matplotlib', 'pye57') if m in sys.modules))")
+    code = ("import sys, tandemscan.daemon.service, tandemscan.daemon.api.app, tandemscan.daemon.jobs.journal, "
+            "tandemscan.daemon.jobs.runner; "
+            "print(sorted(m for m in ('torch', 'matplotlib', 'pye57') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"

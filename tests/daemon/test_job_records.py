@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from tandemscan.daemon.job_records import AnchorEntry, ScanRecord, TransferRecord, UntrackedScan, record_from_json
-from tandemscan.daemon.run_state import RelocalisationState, RunState, apply, replay_journal
+from tandemscan.daemon.jobs.records import AnchorEntry, ScanRecord, TransferRecord, UntrackedScan, record_from_json
+from tandemscan.daemon.jobs.run_state import RelocalisationState, RunState, apply, replay_journal
 from tandemscan.pipeline.planning.plan import MoveArm, MoveLift, MoveMeasure, MoveTracker, Scan
 
 

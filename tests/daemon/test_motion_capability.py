@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from tandemscan.daemon.motion import NoMotionCapability, Robot
-from tandemscan.daemon.session import CellSession
+from tandemscan.daemon.cell.motion import NoMotionCapability, Robot
+from tandemscan.daemon.cell.session import CellSession
 from tandemscan.drivers.interfaces import Arm, ArmReadings, ChassisPose, DeviceState
 
 
@@ -49,7 +49,7 @@ async def test_the_gate_hands_out_the_robot_asked_for(sim_config):
 
 
 def test_only_the_session_reads_the_raw_movers():
-    """The raw movers are a private field of the cell; its one reader is the gate in ``daemon/session.py``."""
+    """The raw movers are a private field of the cell; its one reader is the gate in ``daemon/cell/session.py``."""
     root = Path(__file__).resolve().parents[2]
     readers = set()
     for folder in ("daemon", "pipeline", "drivers", "config", "sim_drivers"):
@@ -57,4 +57,4 @@ def test_only_the_session_reads_the_raw_movers():
             tree = ast.parse(path.read_text(encoding="utf-8"))
             if any(isinstance(n, ast.Attribute) and n.attr == "_movers" for n in ast.walk(tree)):
                 readers.add(path.relative_to(root).as_posix())
-    assert readers == {"daemon/cell.py", "daemon/session.py"}
+    assert readers == {"daemon/cell/devices.py", "daemon/cell/session.py"}

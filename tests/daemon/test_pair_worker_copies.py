@@ -1,4 +1,4 @@
-"""The pair worker is handed each scan's thinned copy through shared memory (daemon/stitcher.py): no block is left
+"""The pair worker is handed each scan's thinned copy through shared memory (daemon/jobs/stitcher.py): no block is left
 in ``/dev/shm`` once its task ran, and none of the tasks a closed worker never ran (docs/end-of-job.md)."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import os
 import time
 
 import numpy as np
-from tandemscan.daemon.stitcher import PairWorker, ProcessWorldMap
+from tandemscan.daemon.jobs.stitcher import PairWorker, ProcessWorldMap
 from tandemscan.drivers.shared_array import PREFIX, SHM_DIR, SharedBlock, hand_over
 from tandemscan.pipeline.registration.correction import CorrectionSettings
 

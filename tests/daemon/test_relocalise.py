@@ -11,20 +11,20 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 from tandemscan.config import load_config
-from tandemscan.daemon.events import EventBus
-from tandemscan.daemon.job_context import JobContext
-from tandemscan.daemon.jobs import JobManager
-from tandemscan.daemon.journal import StoreJournal
-from tandemscan.daemon.run_state import (
+from tandemscan.daemon.cell.session import CellSession
+from tandemscan.daemon.jobs.context import JobContext
+from tandemscan.daemon.jobs.journal import StoreJournal
+from tandemscan.daemon.jobs.manager import JobManager
+from tandemscan.daemon.jobs.run_state import (
     RelocalisationState,
     RunState,
     journal_records,
     opens_with_anchor,
     replay_journal,
 )
-from tandemscan.daemon.runner import JobRunner
-from tandemscan.daemon.session import CellSession
-from tandemscan.daemon.store import JobStore
+from tandemscan.daemon.jobs.runner import JobRunner
+from tandemscan.daemon.store.events import EventBus
+from tandemscan.daemon.store.job_store import JobStore
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.planning.plan import MoveArm, MoveMeasure, MoveTracker, Plan, Scan
 from tandemscan.pipeline.planning.planner import plan_part
@@ -324,7 +324,7 @@ async def test_the_first_scan_after_a_resume_that_sees_nothing_where_the_plan_lo
     operator, and the operator's resume keeps what the scan sees (stated in ``scans_empty``)."""
     import copy
 
-    from tandemscan.daemon.faults import ScanSawNothing
+    from tandemscan.daemon.jobs.faults import ScanSawNothing
     from tandemscan.daemon.plans import default_plan_path
     from tandemscan.pipeline.geometry.raycast import make_scene
 

@@ -1,4 +1,4 @@
-"""The end of a job reads its scans while the last scans' pairs still register (daemon/stitcher.py)."""
+"""The end of a job reads its scans while the last scans' pairs still register (daemon/jobs/stitcher.py)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import time
 from types import SimpleNamespace
 
 import pytest
-from tandemscan.daemon import finish, stitcher
+from tandemscan.daemon.jobs import finish, stitcher
 
 
 @pytest.fixture

@@ -9,12 +9,12 @@ import asyncio
 import numpy as np
 import open3d as o3d
 import pytest
-from tandemscan.daemon.coordinate_transfer import choose_transfer_poses, offset_poses, transfer_joints
-from tandemscan.daemon.job_records import TransferRecord, record_from_json
-from tandemscan.daemon.motion import Robot
-from tandemscan.daemon.run_state import RelocalisationState, RunState, journal_records, replay_journal
-from tandemscan.daemon.runner import JobRunner
-from tandemscan.daemon.session import CellSession
+from tandemscan.daemon.cell.motion import Robot
+from tandemscan.daemon.cell.session import CellSession
+from tandemscan.daemon.jobs.coordinate_transfer import camera_move, choose_transfer_poses, offset_poses, transfer_joints
+from tandemscan.daemon.jobs.records import TransferRecord, record_from_json
+from tandemscan.daemon.jobs.run_state import RelocalisationState, RunState, journal_records, replay_journal
+from tandemscan.daemon.jobs.runner import JobRunner
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.part import train_nose_mesh
 from tandemscan.pipeline.geometry.uncertainty import transfer_covariance
@@ -219,8 +219,8 @@ def test_poses_out_of_reach_or_out_of_view_are_left_out_with_the_reason(sim_conf
     here = (odo.x_mm, odo.y_mm, odo.heading_rad)
     beyond = q0.copy()
     beyond[1] = np.radians(sim_config.arm.joint_max_deg[1]) + 0.5
-    chosen, left_out = choose_transfer_poses(q0, [*others, beyond], T_C_T0, 4, sim_config, world.truth, here,
-                                             plan.steps[i])
+    chosen, left_out = choose_transfer_poses(q0, [*others, beyond], T_C_T0,
+                                             camera_move(world.truth, here, plan.steps[i]), 4, sim_config, world.truth)
     assert len(chosen) == 3 and all(np.max(np.abs(q - q0)) > 0 for q in chosen)
     assert {"joints_rad": beyond.tolist(), "reason": "outside the joint limits"} in left_out
     # each chosen target seen from the tracker where it stands (the part's shadow included: the truth)
@@ -229,7 +229,8 @@ def test_poses_out_of_reach_or_out_of_view_are_left_out_with_the_reason(sim_conf
         assert world.target_visibility() is None
     # the tracker turned half round: every pose's target would face away from it
     away = MoveTracker(x_mm=odo.x_mm, y_mm=odo.y_mm, heading_rad=odo.heading_rad + np.pi)
-    none, left_out = choose_transfer_poses(q0, [], T_C_T0, 4, sim_config, world.truth, here, away)
+    none, left_out = choose_transfer_poses(q0, [], T_C_T0, camera_move(world.truth, here, away), 4, sim_config,
+                                           world.truth)
     assert none == [] and left_out
     assert all(d["reason"] == "target predicted out of view after the move" for d in left_out)
 

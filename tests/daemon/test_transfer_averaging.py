@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from tandemscan.daemon.cell.session import CellSession
+from tandemscan.daemon.cell.tracker_reading import averaged_covariance
+from tandemscan.daemon.jobs.runner import JobRunner
 from tandemscan.daemon.plans import default_plan_path
-from tandemscan.daemon.runner import JobRunner
-from tandemscan.daemon.session import CellSession
-from tandemscan.daemon.tracker_reading import averaged_covariance
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.planning.plan import MoveTracker, Plan, Scan
 from tandemscan.sim_drivers.world import SimWorld

@@ -13,8 +13,8 @@ from serving import running_server
 from tandemscan.config import load_config
 from tandemscan.config.inspection_template import load_template, shipped_template
 from tandemscan.daemon.api.app import create_app
-from tandemscan.daemon.part_results import HISTORY_FILE, PartResults, prepare_part, record_part
 from tandemscan.daemon.service import Daemon
+from tandemscan.daemon.store.part_results import HISTORY_FILE, PartResults, prepare_part, record_part
 from tandemscan.pipeline.inspection.characteristics import evaluate
 from tandemscan.pipeline.inspection.decision import DecisionRule
 from tandemscan.pipeline.inspection.spc import individuals_chart

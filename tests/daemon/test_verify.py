@@ -1,4 +1,4 @@
-"""Interim verification on the calibration plate (daemon/verify.py, `tandemscan verify`): the sphere-spacing
+"""Interim verification on the calibration plate (daemon/calibration/verify.py, `tandemscan verify`): the sphere-spacing
 error through the whole chain within 2U of the simulator's truth (the plate is exactly its calibrated layout), a
 cell on nominal mounts failing it, and a job after an expired or failed verification held indeterminate."""
 
@@ -7,11 +7,9 @@ from __future__ import annotations
 import dataclasses
 import datetime as dt
 import json
-from types import SimpleNamespace
 
-from tandemscan.daemon.calibration_state import verdict_context
-from tandemscan.daemon.session import CellSession
-from tandemscan.daemon.verify import last_verification, record, run_verification
+from tandemscan.daemon.calibration.verify import last_verification, record, run_verification, verdict_context
+from tandemscan.daemon.cell.session import CellSession
 from tandemscan.sim_drivers.cell import with_surveyed_mounts
 
 
@@ -41,21 +39,20 @@ async def test_verify_reports_the_sphere_spacing_within_2u_of_the_truth_and_reco
 
 def test_an_expired_or_failed_verification_holds_the_verdict_and_a_fresh_pass_does_not(sim_config, tmp_path):
     config = verified_config(sim_config, tmp_path)
-    job = SimpleNamespace(config=config)
-    assert verdict_context(job).verification is None and verdict_context(job).holds == ()
+    assert verdict_context(config).verification is None and verdict_context(config).holds == ()
     passed = {"result": "pass", "sphere_spacing_error_mm": 0.01, "sphere_spacing_uncertainty_mm": 0.02,
               "probing_form_mm": 0.05, "probing_size_mm": 0.01, "mpe_sphere_spacing_mm": 0.15,
               "mpe_probing_form_mm": 0.1, "mpe_probing_size_mm": 0.1, "views": 4, "spacings": 72,
               "installation": {"source": "calibration"}}
-    from tandemscan.daemon.verify import VerificationResult
+    from tandemscan.daemon.calibration.verify import VerificationResult
 
     fresh = VerificationResult(created_utc=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), **passed)
     record(config, fresh)
-    assert verdict_context(job).holds == () and verdict_context(job).verification["result"] == "pass"
+    assert verdict_context(config).holds == () and verdict_context(config).verification["result"] == "pass"
     old = dataclasses.replace(fresh, created_utc=(dt.datetime.now(dt.UTC) - dt.timedelta(hours=30)).isoformat())
     record(config, old)
-    (why,) = verdict_context(job).holds
+    (why,) = verdict_context(config).holds
     assert "30 h old, more than [verification] max_age_h 24 h" in why
     record(config, dataclasses.replace(fresh, result="fail", failures=("sphere-spacing error 0.3 mm",)))
-    (why,) = verdict_context(job).holds
+    (why,) = verdict_context(config).holds
     assert "last verification failed" in why

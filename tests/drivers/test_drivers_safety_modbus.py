@@ -7,7 +7,7 @@ import time
 
 import pytest
 from tandemscan.config.models import SafetyConfig, SafetyModbusConfig
-from tandemscan.daemon.supervisor import Supervisor
+from tandemscan.daemon.cell.supervisor import Supervisor
 from tandemscan.drivers import DeviceFault, DeviceTimeout, NotConnected, SafetyIO, SafetyState, SafetyStop
 from tandemscan.drivers.interfaces import PushesSafetyChanges
 from tandemscan.drivers.safety_modbus import ModbusSafetyIO

@@ -5,10 +5,10 @@ from __future__ import annotations
 import json
 
 import numpy as np
-from tandemscan.daemon.calibrate import run_calibration
-from tandemscan.daemon.installation import installation_for_job
-from tandemscan.daemon.job_correction import mount_prior
-from tandemscan.daemon.session import CellSession
+from tandemscan.daemon.calibration.calibrate import run_calibration
+from tandemscan.daemon.calibration.current import installation_for_job
+from tandemscan.daemon.cell.session import CellSession
+from tandemscan.daemon.jobs.correction import mount_prior
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.stitching.installation import Installation
 from tandemscan.sim_drivers.cell import with_surveyed_mounts

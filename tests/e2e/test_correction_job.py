@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import pytest
+from tandemscan.daemon.cell.session import CellSession
+from tandemscan.daemon.jobs.runner import JobRunner
 from tandemscan.daemon.plans import default_plan_path
-from tandemscan.daemon.runner import JobRunner
-from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.planning.plan import Plan, Scan
 from tandemscan.sim_drivers.cell import with_surveyed_mounts
 

@@ -9,9 +9,9 @@ from collections import Counter
 from pathlib import Path
 
 import numpy as np
+from tandemscan.daemon.cell.session import CellSession
+from tandemscan.daemon.jobs.runner import JobRunner
 from tandemscan.daemon.plans import default_plan_path
-from tandemscan.daemon.runner import JobRunner
-from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.job_report import REPORT_FILE, JobHistory, JobReport, write_job_report
 from tandemscan.pipeline.planning.plan import Plan, Scan
 from tandemscan.sim_drivers.cell import with_surveyed_mounts
@@ -25,7 +25,7 @@ async def test_a_job_writes_report_json_once_and_reads_each_scan_file_at_most_tw
     was written (the merge at the corrected poses, the E57), its scores included: the map and the thinned copies
     are made from the scan's arrays, the pair worker is handed the copy, the tracker stitch's score takes the map
     stitched while measuring."""
-    from tandemscan.daemon import finish
+    from tandemscan.daemon.jobs import finish
 
     reads: Counter[str] = Counter()
     load = np.load

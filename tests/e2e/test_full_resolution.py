@@ -11,11 +11,11 @@ from types import SimpleNamespace
 import numpy as np
 import pye57
 import pytest
-from tandemscan.daemon.finish import merge_stage, merged_cloud
-from tandemscan.daemon.job_outputs import write_job_outputs
+from tandemscan.daemon.cell.session import CellSession
+from tandemscan.daemon.jobs.finish import merge_stage, merged_cloud
+from tandemscan.daemon.jobs.outputs import write_job_outputs
+from tandemscan.daemon.jobs.runner import JobRunner
 from tandemscan.daemon.plans import default_plan_path
-from tandemscan.daemon.runner import JobRunner
-from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.geometry.frames import from_rpy
 from tandemscan.pipeline.io.export import PosedScan, write_e57
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan, write_raw_scan
@@ -201,7 +201,7 @@ def test_a_coarse_scan_is_kept_whole(tmp_path):
 def test_the_stitch_view_takes_the_same_points_from_its_copy():
     """The end of the job keeps only :func:`stitch_view_points` of a scan after its correction; the stitch
     view, thinning those, shows what it showed of the whole scan."""
-    from tandemscan.daemon.job_outputs import _thin, stitch_view_points
+    from tandemscan.daemon.jobs.outputs import _thin, stitch_view_points
 
     for n in (0, 7, 19_999, 40_001, 143_118, 3_186_816):
         points = np.arange(3 * n, dtype=np.float32).reshape(n, 3)

@@ -8,9 +8,9 @@ import json
 
 import numpy as np
 import pye57
+from tandemscan.daemon.cell.session import CellSession
+from tandemscan.daemon.jobs.runner import JobRunner
 from tandemscan.daemon.plans import default_plan_path
-from tandemscan.daemon.runner import JobRunner
-from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.io.cloud_io import read_ply
 from tandemscan.pipeline.planning.coverage import REASON_REACH
 from tandemscan.pipeline.planning.plan import LeftOutArea, Plan, Scan
@@ -19,7 +19,7 @@ from tandemscan.sim_drivers.cell import with_surveyed_mounts
 
 def perfect_correction(monkeypatch, truth_of):
     """Stands in for the correction stage: every scan gets its true pose (``truth_of(job)``, by scan index)."""
-    from tandemscan.daemon import finish
+    from tandemscan.daemon.jobs import finish
 
     def correct_stage(job, loaded, online):
         truth = truth_of(job)
@@ -105,7 +105,7 @@ async def test_job_writes_report_and_exports_next_to_cloud(sim_config, tmp_path,
 def test_inspection_skipped_with_reason(sim_config, tmp_path):
     from types import SimpleNamespace
 
-    from tandemscan.daemon.job_outputs import write_job_outputs
+    from tandemscan.daemon.jobs.outputs import write_job_outputs
 
     def runner(config, T_F_W):
         worldmap = SimpleNamespace(points=lambda: np.zeros((0, 3)), normals=lambda: None)

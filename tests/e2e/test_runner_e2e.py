@@ -6,10 +6,10 @@ import json
 
 import numpy as np
 import pytest
+from tandemscan.daemon.cell.session import CellSession
 from tandemscan.daemon.cli import main
+from tandemscan.daemon.jobs.runner import JobRunner
 from tandemscan.daemon.plans import default_plan_path
-from tandemscan.daemon.runner import JobRunner
-from tandemscan.daemon.session import CellSession
 from tandemscan.pipeline.io.cloud_io import read_ply
 from tandemscan.pipeline.planning.plan import MoveTracker, Plan, Scan
 from tandemscan.sim_drivers.cell import with_surveyed_mounts

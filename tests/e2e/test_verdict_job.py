@@ -54,8 +54,8 @@ async def test_as_built_example_has_a_deviation_proven_out_one_proven_in_and_one
     (within tolerance - U) and the bend give no area; the template's characteristics, under the example's general
     tolerance, likewise."""
     from tandemscan.config import load_config
-    from tandemscan.daemon.runner import JobRunner
-    from tandemscan.daemon.session import CellSession
+    from tandemscan.daemon.cell.session import CellSession
+    from tandemscan.daemon.jobs.runner import JobRunner
     from tandemscan.pipeline.planning.plan import Plan
     from tandemscan.sim_drivers.cell import with_surveyed_mounts
 

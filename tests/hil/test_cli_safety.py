@@ -15,13 +15,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 from tandemscan.daemon import cli
+from tandemscan.daemon.cell.motion import Robot
+from tandemscan.daemon.cell.session import CellSession
+from tandemscan.daemon.cell.supervisor import MotionInterlock
 from tandemscan.daemon.cli import cell_cmd
 from tandemscan.daemon.cli.command import EXIT_SAFETY_STOP
-from tandemscan.daemon.motion import Robot
+from tandemscan.daemon.jobs.runner import JobRunner
 from tandemscan.daemon.plans import default_plan_path
-from tandemscan.daemon.runner import JobRunner
-from tandemscan.daemon.session import CellSession
-from tandemscan.daemon.supervisor import MotionInterlock
 from tandemscan.drivers.errors import SafetyStop
 from tandemscan.drivers.interfaces import ChassisPose
 from tandemscan.pipeline.planning.plan import Plan

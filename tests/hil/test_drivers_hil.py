@@ -12,9 +12,9 @@ import pytest
 from tandemscan.config import load_config
 from tandemscan.config.loader import default_config_path
 from tandemscan.config.models import CellConfig
-from tandemscan.daemon.cell import build_cell
-from tandemscan.daemon.motion import Robot
-from tandemscan.daemon.session import CellSession, DevicesNotConnected
+from tandemscan.daemon.cell.devices import build_cell
+from tandemscan.daemon.cell.motion import Robot
+from tandemscan.daemon.cell.session import CellSession, DevicesNotConnected
 from tandemscan.drivers import ChassisPose
 from tandemscan.drivers.agv_can import AgvCanChassis
 from tandemscan.drivers.factory import ROLES, build_real_device
@@ -151,8 +151,8 @@ async def test_failed_connect_closes_everything(box_part):
 async def test_a_job_on_the_hil_cell_needs_no_ground_truth_and_is_inspected(box_part, tmp_path):
     """Every device a real driver: the product path alone, no observer; the inspection registers W to CAD from the
     job's own anchor reading by a best fit to the configured CAD and reports its verdict."""
+    from tandemscan.daemon.jobs.runner import JobRunner
     from tandemscan.daemon.plans import default_plan_path
-    from tandemscan.daemon.runner import JobRunner
     from tandemscan.pipeline.planning.plan import Plan, Scan
 
     cfg = hil_config(box_part)

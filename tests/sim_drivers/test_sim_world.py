@@ -6,7 +6,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from tandemscan.daemon.cell import build_cell
+from tandemscan.daemon.cell.devices import build_cell
 from tandemscan.drivers import ChassisPose, NotConnected, OutOfReach, SafetyStop, TargetNotVisible
 from tandemscan.drivers.factory import ROLES
 from tandemscan.pipeline.geometry import frames as F

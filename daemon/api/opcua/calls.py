@@ -1,6 +1,6 @@
 """Method calls as OPC UA answers: the inputs checked against the method's signature, and a refusal of the service
-facade (an :class:`~tandemscan.daemon.api.errors.ApiProblem` or :class:`~tandemscan.daemon.jobs.JobRequestError` with
-its HTTP status) as a Bad status code with the problem's text (docs/opcua.md, methods).
+facade (an :class:`~tandemscan.daemon.api.errors.ApiProblem` or :class:`~tandemscan.daemon.jobs.manager.JobRequestError`
+with its HTTP status) as a Bad status code with the problem's text (docs/opcua.md, methods).
 
 A refusal answers the status code of its HTTP status (:data:`STATUS_OF_HTTP`) and the text in the method's
 ``Message`` output, so that a client sees why (OPC 10000-4 leaves the outputs of a Bad call empty; asyncua's
@@ -15,7 +15,7 @@ from collections.abc import Awaitable, Callable, Sequence
 from asyncua import ua
 from pydantic import ValidationError
 from tandemscan.daemon.api.errors import ApiProblem
-from tandemscan.daemon.jobs import JobRequestError
+from tandemscan.daemon.jobs.manager import JobRequestError
 
 log = logging.getLogger(__name__)
 

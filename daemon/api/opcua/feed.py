@@ -18,8 +18,8 @@ from asyncua import Server, ua
 from tandemscan.daemon.api.facade import ServiceFacade
 from tandemscan.daemon.api.opcua.model import CellNodes
 from tandemscan.daemon.job_state import COMPLETED_STATES, FINAL_STATES, JobState
-from tandemscan.daemon.jobs import JobRequestError
-from tandemscan.daemon.store import Event, JobRecord
+from tandemscan.daemon.jobs.manager import JobRequestError
+from tandemscan.daemon.store.job_store import Event, JobRecord
 
 log = logging.getLogger(__name__)
 VT = ua.VariantType

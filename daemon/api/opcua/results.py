@@ -24,7 +24,7 @@ from tandemscan.daemon.api.facade import ServiceFacade
 from tandemscan.daemon.api.opcua.calls import CallRefused, spec_method
 from tandemscan.daemon.api.opcua.model import CellNodes
 from tandemscan.daemon.job_state import COMPLETED_STATES, JobState
-from tandemscan.daemon.store import JobRecord
+from tandemscan.daemon.store.job_store import JobRecord
 
 log = logging.getLogger(__name__)
 

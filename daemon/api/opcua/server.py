@@ -32,7 +32,7 @@ from tandemscan.daemon.api.opcua.security import (
     ensure_server_identity,
     load_users,
 )
-from tandemscan.daemon.jobs import JobRequestError
+from tandemscan.daemon.jobs.manager import JobRequestError
 from tandemscan.drivers.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)

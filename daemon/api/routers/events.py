@@ -11,7 +11,7 @@ from fastapi.responses import StreamingResponse
 from tandemscan.daemon.api.errors import ApiProblem
 from tandemscan.daemon.api.facade import Facade, ServiceFacade
 from tandemscan.daemon.api.models import MAX_EVENT_ID, PROBLEM_RESPONSES
-from tandemscan.daemon.events import sse_text
+from tandemscan.daemon.store.events import sse_text
 
 router = APIRouter(tags=["service"])
 

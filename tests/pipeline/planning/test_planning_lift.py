@@ -10,12 +10,12 @@ import open3d as o3d
 import pytest
 from tandemscan.config import ConfigError, load_config
 from tandemscan.config.models import ArmConfig, LiftConfig
-from tandemscan.daemon.cell import CellBuildError, build_cell
+from tandemscan.daemon.cell.devices import CellBuildError, build_cell
+from tandemscan.daemon.cell.motion import Robot
+from tandemscan.daemon.cell.session import CellSession
 from tandemscan.daemon.cli import main
-from tandemscan.daemon.motion import Robot
+from tandemscan.daemon.jobs.runner import JobError, JobRunner
 from tandemscan.daemon.plans import default_plan_path
-from tandemscan.daemon.runner import JobError, JobRunner
-from tandemscan.daemon.session import CellSession
 from tandemscan.drivers.errors import OutOfReach, SafetyStop
 from tandemscan.drivers.interfaces import Lift
 from tandemscan.pipeline.geometry import frames as F
@@ -230,7 +230,7 @@ async def test_a_scan_whose_target_the_tracker_cannot_see_is_left_out_and_report
 
 
 async def test_the_supervisor_halts_the_column_with_the_measurement_robot(large_config):
-    from tandemscan.daemon.cell import Cell
+    from tandemscan.daemon.cell.devices import Cell
     from tandemscan.drivers.factory import ROLES
     from tandemscan.drivers.interfaces import DeviceState
     from tandemscan.sim_drivers.cell import Simulation

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 import pytest
-from tandemscan.daemon.finish import merge_stage
+from tandemscan.daemon.jobs.finish import merge_stage
 from tandemscan.pipeline.compute import LocalBackend
 from tandemscan.pipeline.geometry.frames import from_rpy, invert, rotate_vectors, transform_points
 from tandemscan.pipeline.inspection.inspect import CadSurface, DeviationStats, ToleranceResult

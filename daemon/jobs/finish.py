@@ -1,0 +1,218 @@
+"""The end of a job in one pass (docs/end-of-job.md), where the job's world map lives.
+
+After the last scan's commit: every scan's copy thinned at the job's ``[job] voxel_mm``, made as the scan was merged
+(:func:`load_scans`; a full-resolution scan is 3.2 M points, 369 of them would not fit in memory), the stitch
+corrected on those copies (:func:`correct_stage`: the pairs registered while the job measured are reused, the joint
+refinement solved, or the pose graph where it is off), the cloud merged once at the final poses from the scan
+files, one at a time on each core (:func:`merge_stage`; the map built while measuring is kept when nothing was
+corrected), then ``cloud.ply``, the E57 (full scans streamed from their files), the pose log and the inspection
+written, the simulator's observer scores the job (``job_report.score_ground_truth``, none on a real cell) and
+``report.json`` is built once (``pipeline.job_report.JobReport``) and written once (``write_job_report``). Each
+stage returns a frozen result; the tracker-stitched poses and the refined ones stay separate, and whether the poses
+were corrected is known from the correction stage. Frames: poses ``T_W_S`` in the job's world frame W, points in the
+scanner frame S, mm.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+from tandemscan.daemon.jobs.outputs import export_job, stitch_view_points
+from tandemscan.daemon.jobs.reporting import build_job_report, score_ground_truth
+from tandemscan.pipeline.compute import backend_for
+from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan
+from tandemscan.pipeline.job_report import JobReport, Timings, write_job_report
+from tandemscan.pipeline.registration.parallel import pair_threads
+from tandemscan.pipeline.stitching.tiles import TileScan, merge_tiles, read_cloud, scan_x_extent
+from tandemscan.pipeline.stitching.worldmap import MapCloud, VoxelMap
+
+if TYPE_CHECKING:
+    from tandemscan.daemon.jobs.records import ScanRecord
+    from tandemscan.daemon.jobs.snapshot import JobSnapshot
+    from tandemscan.pipeline.registration.correction import OnlineWork
+    from tandemscan.pipeline.registration.pose_covariance import PoseCovariance
+
+log = logging.getLogger(__name__)
+
+#: the end of a job merges its scans in this many groups of consecutive scans, each into a map of its own
+#: (:func:`merge_stage`)
+MERGE_GROUPS = 8
+
+
+@dataclass(frozen=True)
+class LoadedScans:
+    """Every scan's points in its scanner frame S thinned to one centroid per occupied voxel of edge
+    ``voxel_mm`` (float64, mm; ``registration.sampling.voxel_downsample``), or the scan itself where that would
+    not halve it (float32, a coarse scan: ``raw_scan.read_thinned_scan``), in the order of ``job.scans``."""
+
+    voxel_mm: float
+    points_S: tuple[np.ndarray, ...]
+
+
+@dataclass(frozen=True)
+class CorrectionOutcome:
+    """The correction stage: the report's ``correction`` section and the final poses ``T_W_S`` (W, mm; refined
+    where ``corrected``, else the tracker-stitched ones of Eq. 1), one per scan of ``job.scans``."""
+
+    section: dict
+    poses: tuple[np.ndarray, ...]
+    corrected: bool
+    pose_covariance: PoseCovariance | None = None  # their errors jointly, scans numbered as in ``job.scans``
+
+
+@dataclass(frozen=True)
+class FinishedJob:
+    """What the end of a job produced: its report (``report.json``, as written) and the correction stage."""
+
+    report: JobReport
+    correction: CorrectionOutcome
+
+
+def load_scans(job: JobSnapshot) -> LoadedScans:
+    """Every scan of ``job.scans`` as its copy thinned at ``[job] voxel_mm``: the copy the map's owner kept as it
+    merged the scan (``job.scan_copies``, ``stitcher.merge_scan``: taken from there, not read), else its file read
+    once (one a core at a time). The correction thins to that voxel first, and thinning a thinned copy again
+    changes nothing (its pairs and pose graph are those of the full scans; only its joint refinement, thinning the
+    copy to its coarser ``joint_voxel_mm``, weighs each finer voxel once). A coarse scan, not halved by the
+    thinning, is kept whole, so the correction at coarse resolution is that of the scans as stored."""
+    voxel_mm = job.config.job.voxel_mm
+    at_voxel = job.worldmap is not None and job.worldmap.voxel_mm == voxel_mm
+    kept = job.scan_copies if job.scan_copies is not None and at_voxel else {}
+
+    def copy_of(scan: ScanRecord) -> np.ndarray:
+        copy = kept.pop(str(scan.file), None)
+        return read_thinned_scan(scan.file, voxel_mm) if copy is None else copy
+
+    with pair_threads() as thread_map:  # one file a core at a time
+        loaded = LoadedScans(voxel_mm, tuple(thread_map(copy_of, job.scans)))
+    kept.clear()  # the end of the job holds them now
+    return loaded
+
+
+def correct_stage(job: JobSnapshot, loaded: LoadedScans, online: OnlineWork | None) -> CorrectionOutcome:
+    """The correction (``correction.correct_job``) of the scans that saw something, when ``[correction]`` is
+    enabled and there are two of them; otherwise the tracker stitch stands, with the tracker chain's covariance."""
+    from tandemscan.daemon.jobs.correction import correct_job, tracker_chain_covariance  # the registration stack
+
+    tracker = tuple(np.asarray(s.T_W_S, float) for s in job.scans)
+    measured = [k for k, s in enumerate(job.scans) if s.point_count > 0]  # a scan that saw nothing: nothing to do
+    view = dataclasses.replace(job, scans=[job.scans[k] for k in measured])
+    if not (job.config.correction.enabled and len(measured) > 1):
+        chain = tracker_chain_covariance(view) if measured else None
+        return CorrectionOutcome({"enabled": False}, tracker, False, _numbered(chain, measured))
+    section, refined, covariance = correct_job(view, [loaded.points_S[k] for k in measured], online)
+    poses = list(tracker)
+    for k, T in zip(measured, refined, strict=True):
+        poses[k] = T
+    return CorrectionOutcome(section, tuple(poses), True, _numbered(covariance, measured))
+
+
+def _numbered(covariance: PoseCovariance | None, measured: Sequence[int]) -> PoseCovariance | None:
+    """``covariance`` of the scans ``measured`` (indices into the job's scans) with its scans numbered so."""
+    if covariance is None:
+        return None
+    return dataclasses.replace(covariance, scan_ids=np.asarray(measured, np.int64)[covariance.scan_ids])
+
+
+def merge_stage(voxel_mm: float, scan_files: Sequence[Path], poses: Sequence[np.ndarray]) -> VoxelMap:
+    """A job's cloud: every raw scan file of ``scan_files`` merged into a voxel map (edge ``voxel_mm``, mm) at its
+    pose ``T_W_S`` of ``poses`` (Eq. 1), read (points and normals, float32 as stored) one at a time on each thread.
+    Consecutive scans (neighbours on the part) are merged in :data:`MERGE_GROUPS` maps of their own, one thread per
+    core, and the maps combined once (``VoxelMap.combined``): the same cloud to the rounding of its sums."""
+    groups = [g for g in np.array_split(np.arange(len(scan_files)), MERGE_GROUPS) if len(g)]
+
+    def merged(group: np.ndarray) -> VoxelMap:
+        worldmap = VoxelMap(voxel_mm)
+        for k in group:
+            worldmap.add_scan(poses[k], *read_raw_scan(scan_files[k], np.float32))
+        return worldmap
+
+    if not groups:
+        return VoxelMap(voxel_mm)
+    with pair_threads() as thread_map:
+        return VoxelMap.combined(thread_map(merged, groups))
+
+
+def merged_cloud(job: JobSnapshot, voxel_mm: float, poses: Sequence[np.ndarray], points_S: Sequence[np.ndarray]
+                 ) -> MapCloud:
+    """The job's cloud at its final ``poses`` (W, mm) in voxels of edge ``voxel_mm``: with ``[compute] tile_mm``
+    merged by slabs of W on the compute backend (``tiles.merge_tiles``, docs/compute.md "Tiles": each unit reads
+    only the scans whose bound, from their thinned copies ``points_S``, meets its slab, from the scan store), then
+    read back here for the exports, which still take the whole cloud; else here (:func:`merge_stage`)."""
+    from tandemscan.daemon.jobs.correction import in_job  # the registration stack, as correct_stage
+
+    compute = job.config.compute
+    if not compute.tile_mm:
+        return merge_stage(voxel_mm, [s.file for s in job.scans], poses).frozen()
+    store = compute.scan_store or job.job_dir
+    refs = [TileScan(in_job(Path(s.file), job.job_dir), T, *scan_x_extent(T, p, job.config.job.voxel_mm, voxel_mm))
+            for s, T, p in zip(job.scans, poses, points_S, strict=True)]
+    backend = backend_for(compute)
+    try:
+        tiles = merge_tiles(refs, voxel_mm, compute.tile_mm, store, backend)
+    finally:
+        backend.close()
+    cloud = read_cloud(store, tiles, voxel_mm)
+    for t in tiles:
+        (Path(store) / t.file).unlink(missing_ok=True)
+    return cloud
+
+
+def finish_job(job: JobSnapshot, started: float, measured_at: float,
+               online: OnlineWork | None = None, stages: Mapping[str, float] | None = None,
+               loaded: LoadedScans | None = None) -> FinishedJob:
+    """Correct, merge, export and inspect a measured job. It takes over ``job.worldmap``, the map stitched while
+    the job measured (tracker poses), and leaves there the finished job's cloud (``worldmap.MapCloud``), so that
+    the caller, holding no other reference, lets the end of the job free the map's sums. Memory: the thinned
+    scans, the maps of one merge and one cloud at a time and one full scan a core; where the correction changed
+    the poses, the map stitched while measuring is dropped before the merge at the corrected poses (on the
+    simulated cell its cloud is kept, float32, for the score of the tracker stitch, ``correction.before``). Each
+    raw scan file is read at most twice here: by the merge at the corrected poses and by the E57.
+    ``started`` and ``measured_at`` are ``time.monotonic()`` at the job's start and at its last step's commit;
+    ``online``: what the job computed while it measured (``online_pairs.OnlineWork``: registered pairs, scans
+    prepared for the joint refinement); ``stages`` (s) are timings of the work before this call; ``loaded``: the
+    scans as :func:`load_scans` reads them, where they were read ahead (else they are read here)."""
+    timings = dict(stages or {})
+    if loaded is None:
+        t = time.perf_counter()
+        loaded = load_scans(job)
+        timings["read_s"] = round(time.perf_counter() - t, 3)
+    outcome = correct_stage(job, loaded, online)
+    view_S = tuple(stitch_view_points(p) for p in loaded.points_S)  # all the exports need of the copies
+    points_S = loaded.points_S if outcome.corrected and job.config.compute.tile_mm else ()  # the tiles' bounds
+    del loaded
+    t = time.perf_counter()
+    tracker_map, job.worldmap = job.worldmap, None
+    tracker_poses = tracker_stitch = None
+    if outcome.corrected:
+        voxel_mm, tracker_poses = tracker_map.voxel_mm, [s.T_W_S for s in job.scans]
+        if job.scorer is not None:  # the observer scores the tracker stitch too: its cloud (float32), not merged again
+            tracker_stitch = dataclasses.replace(job, worldmap=tracker_map.frozen(np.float32))
+        del tracker_map                              # the cloud is merged anew at the corrected poses
+        job.worldmap = merged_cloud(job, voxel_mm, outcome.poses, points_S)
+        del points_S
+    else:
+        job.worldmap = tracker_map.frozen()
+        del tracker_map
+    timings["merge_s"] = round(time.perf_counter() - t, 3)
+    final = dataclasses.replace(
+        job, scans=[dataclasses.replace(s, T_W_S=T) for s, T in zip(job.scans, outcome.poses, strict=True)],
+        correction=outcome.section, pose_covariance=outcome.pose_covariance)
+    seconds = time.monotonic() - started  # the job until its exports
+    exports = export_job(final, measured_at, view_S, tracker_poses)
+    t = time.perf_counter()
+    ground_truth = score_ground_truth(final, exports.inspection, tracker_stitch)  # the simulator's observer
+    stages = {**timings, **outcome.section.get("stage_seconds", {}), **exports.stages_s,
+              "scoring_s": round(time.perf_counter() - t, 3)}
+    timings_s = Timings(exports.after_last_scan_s, outcome.section.get("cpu_seconds"), stages)
+    report = build_job_report(final, seconds, tracker_poses, exports.inspection, exports.coverage,
+                              exports.peak_rss_gib, timings_s, ground_truth)
+    write_job_report(report, job.job_dir)
+    return FinishedJob(report, outcome)

@@ -1,0 +1,290 @@
+"""What a finished job leaves for the quality engineer besides ``cloud.ply``: ``cloud.e57`` (one scan per
+pose with its world pose, plus the merged cloud) and ``poses.csv`` in the job's world frame W, and, where W
+is registered to the CAD frame F, ``report.html`` with ``figures/`` and ``cloud_deviation.ply`` in frame F.
+
+The registration is the job's own, the same on a real and a simulated cell: from where the runner placed W in
+the plan's frame F (the part frame, relocalisation's anchor, Eq. 5) the cloud is aligned to the CAD by
+``[inspection] alignment`` (best fit, RPS on reference spheres, or none:
+:mod:`tandemscan.pipeline.inspection.alignment`); a job that did not place W (relocalisation off, the target
+never seen) skips the inspection with the reason recorded. The CAD is the configured part mesh (``[part]``),
+never the mesh a simulator scans. On the simulated cell the job's scorer then scores the alignment and the
+deviation areas against the world's truth (``ground_truth.inspection``, docs/inspection.md), once every
+output is written (``job_report.score_ground_truth``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import open3d as o3d
+from tandemscan.config.inspection_template import InspectionTemplate, find_template, load_template
+from tandemscan.config.loader import ConfigError
+from tandemscan.config.models import CellConfig
+from tandemscan.daemon.calibration.verify import verdict_context
+from tandemscan.daemon.store.part_results import HISTORY_FILE
+from tandemscan.pipeline.geometry.frames import transform_points
+from tandemscan.pipeline.geometry.part import load_part_mesh
+from tandemscan.pipeline.inspection.inspect import InspectionError
+from tandemscan.pipeline.inspection.inspection_job import InspectionOutputs, PlacedScans, align_and_inspect
+from tandemscan.pipeline.inspection.point_uncertainty import JobUncertainty, ScanCover
+from tandemscan.pipeline.io.export import PosedScan, write_e57, write_ply, write_pose_log
+from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan
+from tandemscan.pipeline.planning.coverage import CoverageFigures
+
+if TYPE_CHECKING:
+    from tandemscan.daemon.jobs.snapshot import JobSnapshot
+
+log = logging.getLogger(__name__)
+
+STITCH_VIEW_POINTS = 20_000  # per scan, for the overlap figure
+EXPORT_FILES = {"e57": "cloud.e57", "pose_log": "poses.csv"}
+
+
+def _posed_scans(job: JobSnapshot, points_S: Sequence[np.ndarray] | None = None) -> list[PosedScan]:
+    """The job's scans at their poses with their thinned points (S, mm; ``points_S`` where the caller has
+    them, else read, thinned at ``[job] voxel_mm`` and to :func:`stitch_view_points` here, one file at a
+    time) and their full point counts."""
+    scans = []
+    for k, s in enumerate(job.scans):
+        points = (stitch_view_points(read_thinned_scan(s.file, job.config.job.voxel_mm)) if points_S is None
+                  else points_S[k])
+        meta = {"tracker_station": s.tracker_station, "timestamp_s": s.reading.timestamp_s,
+                **{f"joint{i + 1}_deg": float(np.degrees(q)) for i, q in enumerate(s.joints_rad)}}
+        scans.append(PosedScan(s.file.stem, s.T_W_S, points, meta, s.point_count))
+    return scans
+
+
+def _full_scans(job: JobSnapshot, scans: Sequence[PosedScan]) -> Iterator[PosedScan]:
+    """``scans`` (:func:`_posed_scans`) with all their points (S, mm, float32 as stored), each read from its
+    file when the E57 writer asks for it: one full scan in memory at a time. Scans that saw nothing are left
+    out (E57 has no empty scans)."""
+    empty = 0
+    for record, scan in zip(job.scans, scans, strict=True):
+        points, _ = read_raw_scan(record.file, np.float32)
+        if len(points):
+            yield dataclasses.replace(scan, points_S_mm=points, point_count=None)
+        else:
+            empty += 1
+        del points
+    if empty:
+        log.warning("%d scans saw nothing and are left out of the E57", empty)
+
+
+def _thin(points: np.ndarray) -> np.ndarray:
+    return points[:: max(1, len(points) // STITCH_VIEW_POINTS)]
+
+
+def stitch_view_points(points_S: np.ndarray) -> np.ndarray:
+    """The points of a scan (S, mm) the inspection's stitch view takes (every k-th, under twice
+    ``STITCH_VIEW_POINTS``; thinning them again leaves them as they are): all the end of a job still needs of
+    a scan once its correction is done. A copy, so that the scan's array can be freed."""
+    return _thin(points_S).copy()
+
+
+def _accuracy(report: Mapping) -> dict:
+    """report.html's accuracy table: the job's scan and coordinate transfer counts (``report``'s ``scans`` and
+    ``transfers``)."""
+    return {"scans": report.get("scans"), "coordinate transfers": report.get("transfers")}
+
+
+@dataclass(frozen=True)
+class JobExports:
+    """What :func:`export_job` wrote for a finished job: its report's ``inspection`` and ``coverage`` sections,
+    the seconds from the last step's commit until every export was written (``after_last_scan_s``), the
+    process's peak memory until then (GiB, :func:`peak_rss_gib`) and the seconds of its stages (``cloud_ply_s``:
+    the time to hand ``cloud.ply`` to its thread, ``exports_and_inspection_s`` includes waiting for it)."""
+
+    inspection: dict
+    coverage: dict
+    after_last_scan_s: float
+    peak_rss_gib: float | None
+    stages_s: dict[str, float]
+
+
+def export_job(job: JobSnapshot, measured_at: float, points_S: Sequence[np.ndarray] | None = None,
+               tracker_poses: Sequence[np.ndarray] | None = None) -> JobExports:
+    """Write ``cloud.ply`` (W, mm) and the inspection exports of a finished job into its folder; runs where
+    ``job.worldmap`` (the final cloud) lives. ``measured_at`` is ``time.monotonic()`` (system-wide) when the job's
+    last step was committed. ``points_S``: the scans' points (S, mm) thinned at ``[job] voxel_mm`` or to
+    :func:`stitch_view_points` (else read and thinned here; the E57 reads the full scans from their files);
+    ``tracker_poses``: the tracker-stitched poses ``T_W_S`` (W, mm) where the correction changed them (None: not
+    corrected)."""
+    t = [time.perf_counter()]
+    with ThreadPoolExecutor(1, thread_name_prefix="cloud-ply") as pool:  # written while the inspection computes
+        cloud_ply = pool.submit(write_ply, job.job_dir / "cloud.ply", job.worldmap.points(), job.worldmap.normals())
+        t.append(time.perf_counter())
+        figures = {"scans": len(job.scans), "transfers": len(job.transfers)}
+        inspection = write_job_outputs(job, figures, points_S, tracker_poses)  # report.html, E57, poses
+        coverage = inspection.get("coverage") or plan_coverage(job).as_dict()
+        cloud_ply.result()  # complete before the job is reported done; its error, if any, is the job's
+        t.append(time.perf_counter())
+    after_last_scan_s = time.monotonic() - measured_at
+    stages = dict(zip(("cloud_ply_s", "exports_and_inspection_s"), np.round(np.diff(t), 3).tolist(), strict=True))
+    return JobExports(inspection, coverage, round(after_last_scan_s, 3), peak_rss_gib(), stages)
+
+
+def peak_rss_gib() -> float | None:
+    """Peak resident memory (GiB) of this process so far (``VmHWM``, Linux ``/proc/self/status``; None where
+    there is none): read when report.html is written, it is what the process that finished the job (the
+    daemon's map worker, one per job, or ``tandemscan measure``) needed for it."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            kib = next(int(line.split()[1]) for line in f if line.startswith("VmHWM:"))
+    except (OSError, StopIteration, ValueError, IndexError):
+        return None
+    return round(kib / (1 << 20), 3)
+
+
+def write_job_outputs(job: JobSnapshot, report: Mapping, points_S: Sequence[np.ndarray] | None = None,
+                      tracker_poses: Sequence[np.ndarray] | None = None) -> dict:
+    """Write the E57, the pose log and (when registered to CAD) the inspection report of a finished job
+    (``report``: the job's ``scans`` and ``transfers`` counts for report.html's accuracy table; ``points_S``: the
+    scans thinned at ``[job] voxel_mm`` or to :func:`stitch_view_points`, and ``tracker_poses``: the
+    tracker-stitched poses where the correction changed them, None where not corrected).
+
+    Returns the inspection section for the job's ``report.json``: the same numbers as report.html. The E57
+    (the full scans streamed from their files) and the pose log are written on a second thread while the
+    inspection computes on the thinned scans (both wait on files and numpy, which let the other thread run).
+    """
+    scans = _posed_scans(job, points_S)
+    cloud_W = job.worldmap.points()  # once, on this thread
+    with ThreadPoolExecutor(1, thread_name_prefix="e57") as pool:
+        exports = pool.submit(_write_exports, job, scans, cloud_W)
+        section = _inspection_section(job, report, scans, cloud_W, tracker_poses)
+        exports.result()  # its error, if any, is the job's
+    return section
+
+
+def _write_exports(job: JobSnapshot, scans: list[PosedScan], cloud_W: np.ndarray) -> None:
+    """``cloud.e57`` (the scans with points, read from their files one at a time, and the merged cloud
+    ``cloud_W``) and ``poses.csv`` (every scan, ``scans``), frame W, mm."""
+    if any(s.size for s in scans):
+        write_e57(job.job_dir / EXPORT_FILES["e57"], _full_scans(job, scans), cloud_W if len(cloud_W) else None)
+    write_pose_log(job.job_dir / EXPORT_FILES["pose_log"], scans)
+
+
+def _inspection_section(job: JobSnapshot, report: Mapping, scans: list[PosedScan], cloud_W: np.ndarray,
+                        tracker_poses: Sequence[np.ndarray] | None) -> dict:
+    """The inspection written into the job folder and its report.json section (or why there is none)."""
+    files = dict(EXPORT_FILES)
+    reason = (
+        "inspection.in_job is off" if not job.config.inspection.in_job
+        else "no registration of the world frame to the CAD frame" if job.T_F_W is None
+        else "empty cloud" if len(cloud_W) == 0
+        else ""
+    )
+    if reason:
+        log.warning("inspection skipped: %s", reason)
+        return {"skipped": reason, "files": files}
+    T_F_W = np.asarray(job.T_F_W, float)
+    step = -(-len(cloud_W) // job.config.inspection.max_points)  # ceil: every step-th voxel (map key order)
+    if step > 1:
+        log.info("inspecting every %d-th of the cloud's %d points ([inspection] max_points)", step, len(cloud_W))
+    counts = job.worldmap.counts()
+    try:
+        out = _inspect(job, report, scans, cloud_W[::step], job.worldmap.normals()[::step], T_F_W, tracker_poses,
+                       len(cloud_W), None if counts is None else counts[::step])
+    except (InspectionError, ConfigError) as e:  # the measurement stands; the report says why it has none
+        log.warning("inspection failed: %s", e)
+        return {"failed": str(e), "files": files}
+    files |= {"html": out.html.name} | ({"deviation_ply": out.ply.name} if out.ply is not None else {})
+    files |= {"qif": out.qif.name} if out.qif else {}
+    return out.data | {"T_F_W": out.data["alignment"]["T_F_W"], "T_F_W_anchor": T_F_W.tolist(), "files": files}
+
+
+def _inspect(job: JobSnapshot, report: Mapping, scans: list[PosedScan], cloud_W: np.ndarray,
+             normals_W: np.ndarray | None, T_F_W: np.ndarray, tracker_poses: Sequence[np.ndarray] | None,
+             cloud_points: int, counts: np.ndarray | None = None) -> InspectionOutputs:
+    """The inspection of the job's cloud (``cloud_W``: of its ``cloud_points`` points those inspected, each the
+    mean of ``counts`` scan points), aligned to the CAD from the anchor's ``T_F_W``, written into the job folder
+    with each point's uncertainty (:func:`job_uncertainty`); the stitch view shows the tracker-only stitch (Eq. 1)
+    and, where corrected, the final one.
+
+    Nine parameters: the job and its report so far, the scans at their final poses and, where the correction
+    changed them, their tracker-stitched poses; the cloud as inspected (points, normals, counts) beside its full
+    size; and the anchor's ``T_F_W`` the alignment starts from."""
+    job_dir = job.job_dir
+    tracker_only = [s.T_W_S for s in scans] if tracker_poses is None else list(tracker_poses)
+    view_S = [_thin(s.points_S_mm) for s in scans]
+    before = PlacedScans(view_S, tracker_only)
+    after = None if tracker_poses is None else PlacedScans(view_S, [s.T_W_S for s in scans])
+    template_file = find_template(job.config.part.mesh, configured=job.config.inspection.template)
+    template = None if template_file is None else load_template(template_file)
+    mesh = load_part_mesh(job.config.part)
+    return align_and_inspect(
+        cloud_W,
+        mesh,
+        job_dir,
+        job.config.part_inspection(),
+        normals_W=normals_W,
+        start_T_F_W=T_F_W,
+        start="W placed in F by the anchor reading (Eq. 5)",
+        prior_T_F_W=T_F_W,
+        viewpoints_W=np.array([s.T_W_S[:3, 3] for s in scans]),
+        scans_before_W=before,
+        scans_after_W=after,
+        title=f"Inspection report, {job_dir.name}",
+        meta={"job": job_dir.name, "plan": job.plan.name, "cell": job.config.name,
+              "alignment to CAD": job.config.inspection.alignment,
+              "points": str(len(cloud_W)) if len(cloud_W) == cloud_points
+              else f"{len(cloud_W)} of the cloud's {cloud_points} ([inspection] max_points)"},
+        accuracy=_accuracy(report),
+        json_name=None,
+        template=template,
+        part=measured_part(job.config, template, template_file),
+        history=_history(job_dir),
+        uncertainty=job_uncertainty(job, scans, counts),
+        context=verdict_context(job.config),
+        coverage=plan_coverage(job, mesh),
+    )
+
+
+def plan_coverage(job: JobSnapshot, mesh: o3d.geometry.TriangleMesh | None = None) -> CoverageFigures:
+    """What the job's plan covers and leaves out (report.json ``coverage``), with where a scanner pose fits on the
+    part's CAD ``mesh`` for the measured share (none: that share stays unknown)."""
+    if mesh is None:
+        return CoverageFigures(job.plan.coverage_pct, tuple(job.plan.left_out))
+    return CoverageFigures.of_plan(job.plan, mesh, job.config.scanner.sweet_spot_mm,
+                                   math.radians(job.config.planning.incidence_limit_deg))
+
+
+def _history(job_dir: Path) -> dict:
+    """The part's earlier results the daemon put in the job's folder (``part_results.HISTORY_FILE``), by
+    characteristic; none for a job run without the daemon."""
+    path = job_dir / HISTORY_FILE
+    return json.loads(path.read_text())["characteristics"] if path.is_file() else {}
+
+
+def measured_part(config: CellConfig, template: InspectionTemplate | None, template_file: Path | None
+                  ) -> dict[str, str]:
+    """The measured part as the report and results.qif name it: part number (``[job] part_number``, else the
+    template's), serial and the template file."""
+    number = config.job.part_number or (template.part_number if template is not None else None)
+    named = {"part_number": number, "serial": config.job.serial, "measuring_system": config.name,
+             "template": None if template_file is None else str(template_file)}
+    return {k: v for k, v in named.items() if v is not None}
+
+
+def job_uncertainty(job: JobSnapshot, scans: Sequence[PosedScan], counts: np.ndarray | None) -> JobUncertainty | None:
+    """The uncertainty model of the job's cloud (``point_uncertainty.JobUncertainty``): its poses' errors jointly
+    (the mount's at the installation's prior: the calibration's covariance, or the nominal mounts' build
+    tolerance; ``PoseCovariance.with_installation_at_prior``), the scans' thinned points placed in W for which
+    scans each point came from, the voxels' point counts and the scanner's noise; None where the end of the job
+    left no pose covariance."""
+    if job.pose_covariance is None:
+        return None
+    cover = ScanCover([transform_points(s.T_W_S, s.points_S_mm) for s in scans],
+                      np.array([len(s.points_S_mm) if s.point_count is None else s.point_count for s in scans], float),
+                      np.array([np.asarray(s.T_W_S)[:3, 3] for s in scans]), np.arange(len(scans)))
+    return JobUncertainty(job.pose_covariance.with_installation_at_prior(), cover, job.config.scanner.noise_sigma_mm,
+                          counts)

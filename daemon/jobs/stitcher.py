@@ -1,0 +1,329 @@
+"""The job's world map and its end-of-job work, in a worker process for the daemon or in this one.
+
+Both maps have one interface: ``await add_scan(file, T_W_S, arrays)`` persists a raw scan (when ``arrays`` is
+given: written and fsynced first) and merges it into the voxel grid (Eq. 1, points in S, map in W, mm), keeping
+its copy thinned at the map's voxel for the end of the job (:func:`merge_scan`: a scan written here is merged and
+thinned from its arrays, one replayed after a restart read once, so neither reads its file again);
+``await run(fn, job, *args)`` runs ``fn(job, *args)`` where the map lives, with ``job.worldmap`` set to it
+(correction, report, exports) and handed over: ``fn`` owns the map while it runs (no other reference to it is
+kept, so the end of a job can free it), and the map or cloud it leaves there is adopted.
+
+:class:`ProcessWorldMap` (the daemon) keeps its grid in a one-process pool, so no stitch, scan write or export
+holds the daemon's GIL: a full-resolution scan (3.2 M points) merged or written in a thread stalled the event
+loop for over half a second. Scan arrays go to it as shared memory (:mod:`tandemscan.drivers.shared_array`),
+never pickled by value. :class:`LocalWorldMap` (``tandemscan measure``) does the same work in threads.
+
+Both register each scan's overlapping pairs as it arrives when given the job's ``[correction]`` settings
+(:class:`PairWorker`: a second process at the map's priority, so both cores work and the event loop stays
+free; ``pipeline.registration.online_pairs``), handing it the scan's thinned copy (through shared memory from the
+map's process, :mod:`tandemscan.drivers.shared_array`), not its file; :meth:`pair_outcomes` hands their outcomes to
+the correction after the last scan.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import functools
+import logging
+import multiprocessing
+import time
+import uuid
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from tandemscan.config.models import CorrectionConfig
+from tandemscan.daemon.jobs.snapshot import JobSnapshot
+from tandemscan.drivers.shared_array import SharedBlock, hand_over, share, take
+from tandemscan.drivers.worker import init_worker, stop_pool
+from tandemscan.pipeline.io.raw_scan import read_raw_scan, thin_scan, write_raw_scan
+from tandemscan.pipeline.stitching.worldmap import VoxelMap
+
+if TYPE_CHECKING:
+    from tandemscan.pipeline.registration.correction import CorrectionSettings, OnlineWork
+
+log = logging.getLogger(__name__)
+_MAP: VoxelMap | None = None  # the worker's map
+_COPIES: dict[str, np.ndarray] = {}  # the worker's scans thinned at the map's voxel as they were merged, by file
+_PAIRS: Any = None  # the pair worker's OnlinePairs
+_LOADED: dict[str, Any] = {}  # where the map lives: finishing jobs' scans read ahead (finish.LoadedScans)
+
+
+def _init(voxel_mm: float, niceness: int) -> None:
+    global _MAP
+    init_worker(niceness)
+    _MAP = VoxelMap(voxel_mm)
+
+
+def merge_scan(worldmap: VoxelMap, copies: dict[str, np.ndarray], file: str, T_W_S: np.ndarray,
+               arrays: dict[str, np.ndarray] | None) -> np.ndarray:
+    """Merge the scan of ``file`` into ``worldmap`` at ``T_W_S`` (W, mm) from its ``arrays`` where given (written
+    already; the map rotates them in float32, as the file stores them), else from the file, read once (a job
+    rebuilt after a restart), and keep in ``copies`` its copy thinned at the map's voxel
+    (``raw_scan.thin_scan``, the copy ``raw_scan.read_thinned_scan`` would read: ``finish.load_scans`` takes it
+    from there). Returns that copy."""
+    if arrays is None:
+        points, normals = read_raw_scan(file, np.float32)
+    else:
+        points, normals = arrays["points_S_mm"], arrays.get("normals_S")
+    worldmap.add_scan(T_W_S, points, normals)
+    copies[file] = copy = thin_scan(points, worldmap.voxel_mm)
+    return copy
+
+
+def _add(path: str, T_W_S: np.ndarray, arrays: dict[str, np.ndarray] | None, lend: bool
+         ) -> tuple[int, SharedBlock | np.ndarray | None]:
+    """In the map's process: write ``arrays`` (if given) durably to ``path`` and merge the scan (:func:`merge_scan`);
+    returns the map's size and, where ``lend``, the scan's thinned copy handed over for the pair worker."""
+    if arrays is not None:
+        write_raw_scan(Path(path), **arrays)
+    copy = merge_scan(_MAP, _COPIES, path, T_W_S, arrays)
+    return len(_MAP), hand_over(copy) if lend else None
+
+
+def _run(fn: Callable[..., Any], job: JobSnapshot, args: tuple) -> tuple[Any, int]:
+    global _MAP
+    job.worldmap, _MAP = _MAP, None  # fn owns the map while it runs (it may replace it and free the old one)
+    job.scan_copies = _COPIES
+    try:
+        out = fn(job, *args)
+    finally:
+        _MAP = job.worldmap
+    return out, len(_MAP)
+
+
+def _pairs_add(points: SharedBlock | np.ndarray, T_W_S: np.ndarray, placement: dict[str, np.ndarray],
+               T_T_S: np.ndarray, station: int, transfers: list[dict], cfg: CorrectionSettings,
+               voxel_mm: float) -> int:
+    """In the pair worker: register the pairs of a scan (``points``: its thinned copy, S, mm, taken over from the
+    map's process; ``placement``: its raw file's ``T_W_C``, ``T_C_T`` and ``tracker_covariance``) with the
+    earlier ones.
+
+    Eight parameters: a task sent to the worker process takes plain picklable values, each one the pair
+    registration of this scan needs."""
+    global _PAIRS
+    points = np.array(take(points))  # a copy of its own: the block is removed as its mapping goes
+    from tandemscan.daemon.jobs.correction import transfer_priors
+    from tandemscan.pipeline.geometry.uncertainty import scan_pose_covariance
+    from tandemscan.pipeline.registration.online_pairs import OnlinePairs
+
+    if _PAIRS is None:
+        _PAIRS = OnlinePairs(cfg, voxel_mm)
+    cov = scan_pose_covariance(placement["T_W_C"], placement["T_C_T"], T_T_S, placement["tracker_covariance"])
+    return _PAIRS.add(points, T_W_S, cov, station, transfer_priors(transfers))
+
+
+def _pairs_outcomes() -> tuple[OnlineWork | None, float]:
+    return (None, 0.0) if _PAIRS is None else (_PAIRS.work(), _PAIRS.cpu_s)
+
+
+def _read_ahead(job: JobSnapshot, key: str) -> float:
+    """Where the map lives: read the scans the end of ``job`` starts from (``finish.load_scans``) and keep them
+    under ``key`` for :func:`_finish`; returns the seconds it took."""
+    from tandemscan.daemon.jobs.finish import load_scans
+
+    t = time.perf_counter()
+    _LOADED[key] = load_scans(job)
+    return time.perf_counter() - t
+
+
+def _drop_read_ahead(key: str, reading: asyncio.Future) -> None:
+    """Drop what the read ahead for a job kept when the job ended before its end ran (the read's own error, if
+    any, is only logged: the job has failed of its own)."""
+    _LOADED.pop(key, None)
+    if not reading.cancelled() and reading.exception() is not None:
+        log.debug("read ahead for an ended job failed: %s", reading.exception())
+
+
+def _finish(job: JobSnapshot, key: str, started: float, measured_at: float, online: OnlineWork | None,
+            stages: dict) -> Any:
+    """:func:`tandemscan.daemon.jobs.finish.finish_job`, imported where it runs (the registration stack, E57, Open3D
+    I/O, matplotlib), from the scans :func:`_read_ahead` kept under ``key`` (read again where it failed)."""
+    from tandemscan.daemon.jobs.finish import finish_job
+
+    return finish_job(job, started, measured_at, online, stages, _LOADED.pop(key, None))
+
+
+class PairWorker:
+    """A process registering each scan's pairs as it arrives (``online_pairs.OnlinePairs``); tasks queue in
+    scan order and nobody waits for them until :meth:`outcomes`."""
+
+    def __init__(self, cfg: CorrectionSettings, voxel_mm: float, niceness: int):
+        self.cfg, self.voxel_mm = cfg, float(voxel_mm)
+        self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
+                                         initializer=init_worker, initargs=(niceness,))
+        self._pending: list[Any] = []
+
+    def submit(self, points: SharedBlock | np.ndarray, T_W_S: np.ndarray, placement: dict[str, np.ndarray],
+               T_T_S: np.ndarray, station: int, transfers: list[dict]) -> None:
+        """Queue the pairs of a scan: its copy thinned at the map's voxel (S, mm; a block of shared memory the
+        worker takes over, or the array), placed at ``T_W_S`` (mm), with its raw file's ``T_W_C``, ``T_C_T`` and
+        ``tracker_covariance`` (``placement``) and the mount ``T_T_S``."""
+        future = self._pool.submit(_pairs_add, points, np.asarray(T_W_S, float), placement, np.asarray(T_T_S, float),
+                                   int(station), list(transfers), self.cfg, self.voxel_mm)
+        if isinstance(points, SharedBlock):  # once its task is done, failed or cancelled, no block is left behind
+            future.add_done_callback(lambda _: points.discard())
+        self._pending.append(future)
+
+    async def outcomes(self) -> tuple[OnlineWork | None, float]:
+        """Wait for the queued scans, then what the worker computed (``online_pairs.OnlineWork``: pair outcomes
+        and prepared joint scans; a failed task only leaves its work to the end of the job) and its CPU
+        seconds."""
+        for future in self._pending:
+            try:
+                await asyncio.wrap_future(future)
+            except Exception as e:  # noqa: BLE001 - the correction registers what is missing
+                log.warning("pairs of a scan not registered while measuring: %s", e)
+        self._pending = []
+        return await asyncio.wrap_future(self._pool.submit(_pairs_outcomes))
+
+    def close(self) -> None:
+        stop_pool(self._pool)
+
+
+class _Pairs:
+    """The pair registration and end of the job both maps share: a :class:`PairWorker` started at the first scan
+    that asks for it."""
+
+    voxel_mm: float
+    _pair_niceness: int = 0
+    _pairs: PairWorker | None = None
+
+    def _pair_worker(self, pairs: dict | None) -> PairWorker | None:
+        """The pair worker for a scan with these ``pairs`` settings (started at the first that asks for one); None
+        where its pairs are not registered while measuring."""
+        if not pairs:
+            return None
+        cfg: CorrectionConfig = pairs["correction"]
+        if self._pairs is None:
+            from tandemscan.pipeline.registration.correction import CorrectionSettings
+            from tandemscan.pipeline.registration.pairs import NETWORK_METHODS
+
+            if not cfg.enabled or cfg.method in NETWORK_METHODS:
+                return None
+            self._pairs = PairWorker(CorrectionSettings.from_section(cfg), self.voxel_mm, self._pair_niceness)
+        return self._pairs
+
+    @staticmethod
+    def _queue_pairs(worker: PairWorker, copy: SharedBlock | np.ndarray, T_W_S: np.ndarray,
+                     arrays: dict[str, np.ndarray], pairs: dict) -> None:
+        placement = {k: np.asarray(arrays[k]) for k in ("T_W_C", "T_C_T", "tracker_covariance")}
+        worker.submit(copy, T_W_S, placement, pairs["T_T_S"], pairs["station"], pairs["transfers"])
+
+    async def pair_outcomes(self) -> tuple[OnlineWork | None, float]:
+        """What the pair worker computed while the job measured (``online_pairs.OnlineWork``; None without a
+        pair worker) and the CPU seconds spent on it; the worker stops after handing it over."""
+        if self._pairs is None:
+            return None, 0.0
+        try:
+            return await self._pairs.outcomes()
+        finally:
+            self._pairs.close()
+            self._pairs = None
+
+    async def finish(self, job: JobSnapshot, started: float, measured_at: float) -> Any:
+        """The end of the job (``finish.finish_job``, a ``finish.FinishedJob``) where the map lives, once the
+        pairs of the last scans are registered; ``started`` and ``measured_at`` as ``time.monotonic()``. The
+        scans are read meanwhile, so the wait for the last pairs and the reading share the two cores: ``read_s``
+        (the read's own seconds) runs beside ``pair_backlog_s`` (the wait for the pairs, which the read slows a
+        little), and where the read outlasts that wait its rest belongs to no stage."""
+        key = uuid.uuid4().hex  # this finish's read, never another's
+        reading = asyncio.ensure_future(self.run(_read_ahead, job, key))
+        try:
+            online, pair_cpu_s = await self.pair_outcomes()
+        except BaseException:
+            # the job ends here: the read runs on where the map lives and what it kept is dropped once it ends (a
+            # daemon job's map process ends with the job anyway); no second run of the map starts meanwhile
+            reading.add_done_callback(functools.partial(_drop_read_ahead, key))
+            raise
+        stages = {"pair_backlog_s": round(time.monotonic() - measured_at, 3),
+                  "pairs_cpu_s_while_measuring": round(pair_cpu_s, 3)}
+        try:
+            stages["read_s"] = round(await reading, 3)
+        except Exception as e:  # noqa: BLE001 - the end of the job reads them itself
+            log.warning("scans not read ahead of the end of the job: %s", e)
+        return await self.run(_finish, job, key, started, measured_at, online, stages)
+
+    def _close_pairs(self) -> None:
+        if self._pairs is not None:
+            self._pairs.close()
+            self._pairs = None
+
+
+def _share_big(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    return {k: share(v) for k, v in arrays.items()}
+
+
+class ProcessWorldMap(_Pairs):
+    """The job's :class:`VoxelMap` in its own process; call :meth:`close` when the job is done."""
+
+    def __init__(self, voxel_mm: float, niceness: int = 0):
+        self.voxel_mm = float(voxel_mm)
+        self._pair_niceness = niceness
+        self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
+                                         initializer=_init, initargs=(self.voxel_mm, niceness))
+        self._len = 0
+
+    async def add_scan(self, file: Path, T_W_S: np.ndarray, arrays: dict[str, np.ndarray] | None = None,
+                       pairs: dict | None = None) -> None:
+        """Write ``arrays`` (if given) durably to ``file``, then merge the scan in ``file`` placed at ``T_W_S``.
+        The caller keeps ``arrays`` until this returns (the worker maps their shared memory). ``pairs``
+        (``correction``: the job's ``[correction]``, ``station``, ``transfers``: the runner's transfer entries
+        so far, ``T_T_S``: the mount, mm) queues the scan's pair registration."""
+        worker = None if arrays is None else self._pair_worker(pairs)
+        if arrays is not None:
+            arrays = await asyncio.to_thread(_share_big, arrays)
+        self._len, copy = await asyncio.wrap_future(
+            self._pool.submit(_add, str(file), np.asarray(T_W_S, float), arrays, worker is not None))
+        if worker is not None:
+            self._queue_pairs(worker, copy, T_W_S, arrays, pairs)
+
+    async def run(self, fn: Callable[..., Any], job: JobSnapshot, *args: Any) -> Any:
+        """``fn(job, *args)`` in the worker with ``job.worldmap`` = its map; ``fn`` and its result pickle."""
+        out, self._len = await asyncio.wrap_future(self._pool.submit(_run, fn, job, args))
+        return out
+
+    def __len__(self) -> int:
+        return self._len
+
+    def close(self) -> None:
+        """Stop the worker; work still under way (a job interrupted by shutdown) is abandoned, not awaited."""
+        stop_pool(self._pool)
+        self._close_pairs()
+
+
+class LocalWorldMap(_Pairs):
+    """The job's :class:`VoxelMap` in this process, its work in threads (``tandemscan measure``); its pair
+    registration in a process."""
+
+    def __init__(self, voxel_mm: float):
+        self.voxel_mm = float(voxel_mm)
+        self.map = VoxelMap(self.voxel_mm)
+        self.copies: dict[str, np.ndarray] = {}  # the scans thinned at the map's voxel as merged (merge_scan)
+
+    async def add_scan(self, file: Path, T_W_S: np.ndarray, arrays: dict[str, np.ndarray] | None = None,
+                       pairs: dict | None = None) -> None:
+        """As :meth:`ProcessWorldMap.add_scan`."""
+        if arrays is not None:
+            await asyncio.to_thread(write_raw_scan, Path(file), **arrays)
+        copy = await asyncio.to_thread(merge_scan, self.map, self.copies, str(file), T_W_S, arrays)
+        worker = None if arrays is None else self._pair_worker(pairs)
+        if worker is not None:
+            self._queue_pairs(worker, copy, T_W_S, arrays, pairs)
+
+    async def run(self, fn: Callable[..., Any], job: JobSnapshot, *args: Any) -> Any:
+        """``fn(job, *args)`` in a thread with ``job.worldmap`` = this map, which ``fn`` owns while it runs."""
+        job.worldmap, self.map = self.map, None
+        job.scan_copies = self.copies
+        try:
+            return await asyncio.to_thread(fn, job, *args)
+        finally:
+            self.map = job.worldmap
+
+    def __len__(self) -> int:
+        return len(self.map)
+
+    def close(self) -> None:
+        self._close_pairs()
