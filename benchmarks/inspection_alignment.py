@@ -13,7 +13,7 @@ truth at the part's centre (mm, deg); the areas beyond the default band (found, 
 and extreme errors). Then ``tandemscan inspect``'s path on the defect-free cloud turned 20 deg and moved 200 mm:
 the best fit from there.
 
-What the stitched cloud allows (defect-free part, docs/inspection.md "How close T_F_W can come"): the cloud's
+What the stitched cloud allows (defect-free part, docs/inspection-method.md "How close `T_F_W` can come"): the cloud's
 own rigid error (the least-squares rigid motion of every scan point from where the job's poses put it to where
 the true poses do), and both alignments of the cloud stitched with the true poses and of the tracker-only
 stitch (Eq. 1), against the truth and against the truth moved by that rigid error (the best any alignment of

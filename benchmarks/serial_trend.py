@@ -1,6 +1,6 @@
 """Ten serials of the as-built default part measured on the simulated cell, each job on a fresh cell of its
 own seed, queued through the daemon's facade (what ``POST /v1/jobs`` calls) with its serial number; then each
-characteristic's trend as ``GET /v1/parts/{part}/characteristics/{id}/trend`` serves it (docs/inspection.md,
+characteristic's trend as ``GET /v1/parts/{part}/characteristics/{id}/trend`` serves it (docs/quality.md,
 "Serials and trends").
 
 The plan is the shipped band plan's first two AGV stations (twelve scans from x -1190 to +490 mm over the

@@ -1,5 +1,5 @@
 """Time merging one full-resolution scan (3.2 M points with normals) into a world map that already holds
-740 k voxels (docs/daemon.md, "World map"), on one core.
+740 k voxels (docs/daemon.md, "Keeping the event loop free"), on one core.
 
 Usage: python benchmarks/worldmap_merge.py [--points 3200000] [--map-voxels 740000] [--repeat 5]
 

@@ -1,4 +1,4 @@
-"""Overlap and pair selection (docs/registration.md, "Overlap"): the points of two stitched scans whose nearest
+"""Overlap and pair selection (docs/registration.md): the points of two stitched scans whose nearest
 neighbour in the other scan is closer than delta, and which scan pairs of a job are worth registering.
 
 Both clouds are in one frame (the world, after the tracker stitch), in millimetres. ``delta`` is either

@@ -1,4 +1,4 @@
-"""The joint covariance of a job's scan pose errors, as the per-point uncertainty needs it (docs/inspection.md,
+"""The joint covariance of a job's scan pose errors, as the per-point uncertainty needs it (docs/verdict.md,
 "Per-point uncertainty").
 
 A scan's pose error is a small world motion ``e_i`` about its origin ``o_i`` (W axes; t mm, then rotation vector

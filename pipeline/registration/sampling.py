@@ -1,4 +1,4 @@
-"""Thinning of clouds before registration (docs/registration.md, "Overlap"): a voxel grid and even spacing.
+"""Thinning of clouds before registration (docs/registration.md): a voxel grid and even spacing.
 
 Points are (N, 3) arrays in any unit; a voxel edge is in the same unit (mm in the pipeline, radii of the
 normalised cloud in ``deepmerge.register``).

@@ -1,5 +1,5 @@
 """Coordinate transfers read the still target ``tracker.transfer_samples`` times on each side, and the simulated
-tracker keeps the share of its noise that averaging cannot remove (docs/planning.md, "Averaging the transfer's
+tracker keeps the share of its noise that averaging cannot remove (docs/planning.md, "Averaging a transfer's
 readings")."""
 
 from __future__ import annotations
