@@ -1,5 +1,5 @@
-"""The documentation stays usable (docs/README.md): pages short enough to read, every page a docstring,
-a test, a benchmark or another page cites exists, and every repository file a page names exists."""
+"""The documentation stays usable (docs/README.md): pages short enough to read, every page (and section) a
+docstring, a test, a benchmark or another page cites exists, and every repository file a page names exists."""
 
 from __future__ import annotations
 
@@ -12,6 +12,9 @@ CITED = re.compile(r"docs/([\w./-]+\.md)")
 # `benchmarks/results/`; a path with an upper-case placeholder (`benchmarks/NAME.py`) is a pattern, not a file
 NAMED_PATH = re.compile(r"`((?:daemon|drivers|sim_drivers|pipeline|config|tests|benchmarks|docs|systemd)/[\w./*-]*)")
 PLACEHOLDER = re.compile(r"\b[A-Z]{2,}\b")
+# a cited section: the docs path of a page, then its heading in double quotes (which may run over lines and
+# comment marks)
+CITED_SECTION = re.compile(r'docs/([\w./-]+\.md),?\s+"([^"]+)"')
 
 
 def test_readme_and_every_docs_page_are_short():
@@ -21,13 +24,33 @@ def test_readme_and_every_docs_page_are_short():
     assert not long, f"docs pages over 20 KB (split them by concept): {long}"
 
 
-def test_every_cited_docs_page_exists():
+def _citing_files() -> list[Path]:
     sources = [ROOT / "README.md", ROOT / "CHANGELOG.md", *(ROOT / "docs").rglob("*.md")]
     for folder in ("daemon", "pipeline", "drivers", "config", "sim_drivers", "benchmarks", "tests"):
         sources += (ROOT / folder).rglob("*.py")
-    missing = {f"{src.relative_to(ROOT)}: docs/{page}" for src in sources
+    return sources
+
+
+def test_every_cited_docs_page_exists():
+    missing = {f"{src.relative_to(ROOT)}: docs/{page}" for src in _citing_files()
                for page in CITED.findall(src.read_text(encoding="utf-8"))
                if not (ROOT / "docs" / page.rstrip(".")).exists()}
+    assert not missing, sorted(missing)
+
+
+def test_every_cited_docs_section_exists():
+    """A section is cited by (part of) its heading, or by the bold words that open its paragraph."""
+    missing = set()
+    for src in _citing_files():
+        for page, section in CITED_SECTION.findall(src.read_text(encoding="utf-8")):
+            path = ROOT / "docs" / page
+            if not path.exists():
+                continue  # test_every_cited_docs_page_exists names it
+            title = re.sub(r"[\s#]+", " ", section).strip(" .").lower()
+            text = path.read_text(encoding="utf-8")
+            headings = [line.lstrip("#").strip().lower() for line in text.splitlines() if line.startswith("#")]
+            if not any(title in h for h in headings) and f"**{title}" not in text.lower():
+                missing.add(f"{src.relative_to(ROOT)}: docs/{page}, \"{section}\"")
     assert not missing, sorted(missing)
 
 
