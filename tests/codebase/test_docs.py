@@ -3,6 +3,7 @@ docstring, a test, a benchmark or another page cites exists, and every repositor
 
 from __future__ import annotations
 
+import fnmatch
 import re
 from pathlib import Path
 
@@ -15,6 +16,8 @@ PLACEHOLDER = re.compile(r"\b[A-Z]{2,}\b")
 # a cited section: the docs path of a page, then its heading in double quotes (which may run over lines and
 # comment marks)
 CITED_SECTION = re.compile(r'docs/([\w./-]+\.md),?\s+"([^"]+)"')
+# a configuration key in backticks: `[job] voxel_mm`, `[sim.as_built] deviations`, `[calibration] centre_*_mm`
+NAMED_KEY = re.compile(r"`\[([a-z_.]+)\] ([a-z_0-9*]+)")
 
 
 def test_readme_and_every_docs_page_are_short():
@@ -65,3 +68,37 @@ def test_every_repository_file_a_page_names_exists():
 def _exists(path: str) -> bool:
     """Whether a repository path, or a glob such as ``tests/drivers/test_*.py``, names at least one file."""
     return any(ROOT.glob(path)) if "*" in path else (ROOT / path).exists()
+
+
+def test_every_config_key_a_page_names_exists():
+    """`[section] key` in a page (`key_*` a family of keys) is a field of that section's model: the product's
+    (`config/models.py`, a sub-table by its own name, `[can]`) or the simulator's (`[sim]`, `[hil]`)."""
+    from tandemscan.config.devices import simulator_settings_model
+    from tandemscan.config.models import CellConfig
+
+    keys = _section_fields(CellConfig, "")
+    for section in ("sim", "hil"):
+        keys.update(_section_fields(simulator_settings_model(section), section))
+    missing = set()
+    for page in [ROOT / "README.md", *(ROOT / "docs").rglob("*.md")]:
+        for section, key in NAMED_KEY.findall(page.read_text(encoding="utf-8")):
+            fields = keys.get(section, set())
+            if not fnmatch.filter(fields, key):
+                missing.add(f"{page.relative_to(ROOT)}: [{section}] {key}")
+    assert not missing, f"docs name config keys no model has (renamed or moved?): {sorted(missing)}"
+
+
+def _section_fields(model: type, name: str) -> dict[str, set[str]]:
+    """Field names by table name (``a.b`` and ``b`` alike) for ``model`` and every model nested in it."""
+    from pydantic import BaseModel
+
+    found: dict[str, set[str]] = {}
+    if name:
+        for table in {name, name.rsplit(".", 1)[-1]}:
+            found.setdefault(table, set()).update(model.model_fields)
+    for field, info in model.model_fields.items():
+        for inner in (info.annotation, *getattr(info.annotation, "__args__", ())):
+            if isinstance(inner, type) and issubclass(inner, BaseModel) and inner is not BaseModel:
+                for table, fields in _section_fields(inner, f"{name}.{field}".lstrip(".")).items():
+                    found.setdefault(table, set()).update(fields)
+    return found
