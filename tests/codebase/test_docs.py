@@ -102,3 +102,10 @@ def _section_fields(model: type, name: str) -> dict[str, set[str]]:
                 for table, fields in _section_fields(inner, f"{name}.{field}".lstrip(".")).items():
                     found.setdefault(table, set()).update(fields)
     return found
+
+
+def test_every_code_block_closes():
+    """An unclosed fence turns the rest of a page into code."""
+    open_fences = [p.relative_to(ROOT).as_posix() for p in [ROOT / "README.md", *(ROOT / "docs").rglob("*.md")]
+                   if sum(line.lstrip().startswith("```") for line in p.read_text(encoding="utf-8").splitlines()) % 2]
+    assert not open_fences, open_fences
