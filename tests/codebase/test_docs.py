@@ -3,6 +3,7 @@ docstring, a test, a benchmark or another page cites exists, and every repositor
 
 from __future__ import annotations
 
+import argparse
 import fnmatch
 import re
 from pathlib import Path
@@ -18,6 +19,9 @@ PLACEHOLDER = re.compile(r"\b[A-Z]{2,}\b")
 CITED_SECTION = re.compile(r'docs/([\w./-]+\.md),?\s+"([^"]+)"')
 # a configuration key in backticks: `[job] voxel_mm`, `[sim.as_built] deviations`, `[calibration] centre_*_mm`
 NAMED_KEY = re.compile(r"`\[([a-z_.]+)\] ([a-z_0-9*]+)")
+# a command line: `tandemscan job submit --serial S` (sub-commands, then the rest of the line or code span)
+NAMED_COMMAND = re.compile(r"tandemscan ([a-z][a-z-]*(?: [a-z][a-z|-]*)?)([^`\n]*)")
+COMMAND_OPTION = re.compile(r"(?<![\w-])(--[a-z][a-z0-9-]*)")
 
 
 def test_readme_and_every_docs_page_are_short():
@@ -109,3 +113,28 @@ def test_every_code_block_closes():
     open_fences = [p.relative_to(ROOT).as_posix() for p in [ROOT / "README.md", *(ROOT / "docs").rglob("*.md")]
                    if sum(line.lstrip().startswith("```") for line in p.read_text(encoding="utf-8").splitlines()) % 2]
     assert not open_fences, open_fences
+
+
+def test_every_command_option_a_page_names_exists():
+    """`tandemscan job submit --serial S` in a page: `job submit` is a command and `--serial` one of its options."""
+    from tandemscan.daemon.cli import build_parser
+
+    missing = set()
+    for page in [ROOT / "README.md", *(ROOT / "docs").rglob("*.md")]:
+        for words, rest in NAMED_COMMAND.findall(page.read_text(encoding="utf-8")):
+            parser, command = build_parser(), ["tandemscan"]
+            for word in words.split():
+                commands = _commands(parser)
+                if word.split("|")[0] not in commands:
+                    break
+                parser = commands[word.split("|")[0]]
+                command.append(word)
+            options = {o for action in parser._actions for o in action.option_strings}
+            missing.update(f"{page.relative_to(ROOT)}: {' '.join(command)} {flag}"
+                           for flag in COMMAND_OPTION.findall(rest) if flag not in options)
+    assert not missing, sorted(missing)
+
+
+def _commands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    """The sub-commands of ``parser`` by name (none for a leaf)."""
+    return next((dict(a.choices) for a in parser._actions if isinstance(a, argparse._SubParsersAction)), {})
