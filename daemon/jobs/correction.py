@@ -105,7 +105,7 @@ def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray], online: Online
                 ) -> tuple[dict, list[np.ndarray], PoseCovariance | None]:
     """The refined pose ``T_W_S`` (W, mm) of every scan of ``job.scans``, whose points in the scanner frame S
     (mm) are ``points_S``; ``job`` is not changed. ``online``: what the job computed while it measured
-    (``online_pairs.OnlineWork``: registered pairs, scans prepared for the joint refinement and their pairs'
+    (``registration.correction.OnlineWork``: registered pairs, scans prepared for the joint refinement and their pairs'
     nearest neighbours, reused by ``correction.correct_scans`` where their keys match).
 
     Returns the ``correction`` section of the report (the settings, pair and graph figures; on the simulated

@@ -176,7 +176,7 @@ def finish_job(job: JobSnapshot, started: float, measured_at: float,
     simulated cell its cloud is kept, float32, for the score of the tracker stitch, ``correction.before``). Each
     raw scan file is read at most twice here: by the merge at the corrected poses and by the E57.
     ``started`` and ``measured_at`` are ``time.monotonic()`` at the job's start and at its last step's commit;
-    ``online``: what the job computed while it measured (``online_pairs.OnlineWork``: registered pairs, scans
+    ``online``: what the job computed while it measured (``registration.correction.OnlineWork``: registered pairs, scans
     prepared for the joint refinement); ``stages`` (s) are timings of the work before this call; ``loaded``: the
     scans as :func:`load_scans` reads them, where they were read ahead (else they are read here)."""
     timings = dict(stages or {})

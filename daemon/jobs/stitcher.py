@@ -168,8 +168,8 @@ class PairWorker:
         self._pending.append(future)
 
     async def outcomes(self) -> tuple[OnlineWork | None, float]:
-        """Wait for the queued scans, then what the worker computed (``online_pairs.OnlineWork``: pair outcomes
-        and prepared joint scans; a failed task only leaves its work to the end of the job) and its CPU
+        """Wait for the queued scans, then what the worker computed (``registration.correction.OnlineWork``: pair
+        outcomes and prepared joint scans; a failed task only leaves its work to the end of the job) and its CPU
         seconds."""
         for future in self._pending:
             try:
@@ -213,7 +213,7 @@ class _Pairs:
         worker.submit(copy, T_W_S, placement, pairs["T_T_S"], pairs["station"], pairs["transfers"])
 
     async def pair_outcomes(self) -> tuple[OnlineWork | None, float]:
-        """What the pair worker computed while the job measured (``online_pairs.OnlineWork``; None without a
+        """What the pair worker computed while the job measured (``registration.correction.OnlineWork``; None without a
         pair worker) and the CPU seconds spent on it; the worker stops after handing it over."""
         if self._pairs is None:
             return None, 0.0
