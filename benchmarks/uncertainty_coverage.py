@@ -21,6 +21,10 @@ evaluation points. ``mc_ratio_median``: the median over those points of first-or
 deviation (target within 10 % of 1). Attribution of points to scans and the evaluation at the nearest centre are
 shared by both, so the check is of the linearisation and of the best fit's absorption.
 
+``truth_split_per_station`` tells which part of U falls short where coverage does (:func:`truth_split`): the
+systematic part from the simulator's true scan poses against U's non-noise part, the noise against the model's,
+and the scans' true pose errors against the job's pose covariance.
+
 The last line of output is one JSON object.
 """
 
@@ -40,7 +44,7 @@ from tandemscan.daemon.cell.session import CellSession
 from tandemscan.daemon.jobs import outputs as job_outputs
 from tandemscan.daemon.jobs.runner import JobRunner
 from tandemscan.daemon.plans import default_plan_path
-from tandemscan.pipeline.geometry.frames import from_rotvec, invert, transform_points
+from tandemscan.pipeline.geometry.frames import from_rotvec, invert, to_rotvec, transform_points
 from tandemscan.pipeline.geometry.part import load_part_mesh
 from tandemscan.pipeline.inspection.inspect import CadSurface, best_fit
 from tandemscan.pipeline.io.cloud_io import read_ply_vertices
@@ -52,13 +56,14 @@ FIT_POINTS = 6000
 
 
 def capture_models() -> list:
-    """Every ``JobUncertainty`` a job evaluates in this process, appended to the list returned."""
+    """Every ``(JobUncertainty, JobSnapshot)`` a job evaluates in this process, appended to the list returned (the
+    snapshot's ``scorer`` holds the simulator's true scan poses, for :func:`truth_split` only)."""
     models = []
     plain = job_outputs.job_uncertainty
 
-    def kept(*args, **kwargs):
-        m = plain(*args, **kwargs)
-        models.append(m)
+    def kept(job, *args, **kwargs):
+        m = plain(job, *args, **kwargs)
+        models.append((m, job))
         return m
 
     job_outputs.job_uncertainty = kept
@@ -98,15 +103,58 @@ def monte_carlo(model, surface: CadSurface, p_F: np.ndarray, T_F_W: np.ndarray, 
     return ev, 2.0 * out.std(axis=0)
 
 
+def truth_split(model, job, surface: CadSurface, p_F: np.ndarray, d: np.ndarray, U: np.ndarray, T_F_W: np.ndarray,
+                T_W_F_true: np.ndarray, station_of_scan: np.ndarray, rng: np.random.Generator) -> dict:
+    """Where U falls short, from the simulator's truth, per tracker station (an even sample of the points, each
+    counted for the station of its largest share): each point's systematic deviation (its scans' true pose errors
+    by their shares, through the job's alignment against the true placement) against U's non-noise part
+    (``systematic_rms_mm``, ``systematic_predicted_rms_mm``), the rest over the model's noise (``noise_z``, 1 when
+    honest), and the mean chi-square of the scans' true pose errors (about their origins) under the job's pose
+    covariance (``pose_chi2_mean``, 6 when honest)."""
+    at = rng.choice(len(p_F), min(300_000, len(p_F)), replace=False)
+    p, dd, UU = p_F[at], d[at], U[at]
+    n_F = surface.closest(p).normals
+    noise = model.evaluate(p, n_F, 2.0, T_F_W, "best-fit", at, None).noise_variance_mm2
+    p_W = transform_points(invert(T_F_W), p)
+    idx, w = model.cover.shares(p_W)
+    scans = model.cover.scan_ids[idx]
+    error = np.array([np.asarray(s.T_W_S) @ invert(job.scorer.T_W_S_true[s.index]) for s in job.scans])
+    moved = sum(w[:, k, None] * (transform_points_each(error[scans[:, k]], p_W) - p_W) for k in range(idx.shape[1]))
+    systematic = np.einsum("ij,ij->i", p - transform_points(invert(T_W_F_true), p_W - moved), n_F)
+    predicted = np.clip((UU / 2.0) ** 2 - noise, 0.0, None)
+    station = station_of_scan[scans[:, 0]]
+    G = model.poses.factor("all")
+    chi2 = {}
+    for r, s in enumerate(model.poses.scan_ids):
+        o = model.poses.origins_mm[r]
+        t, rv = to_rotvec(from_rotvec(-o, [0, 0, 0]) @ error[s] @ from_rotvec(o, [0, 0, 0]))
+        e, g = np.r_[t, rv], G[6 * r:6 * r + 6]
+        chi2.setdefault(int(station_of_scan[s]), []).append(float(e @ np.linalg.solve(g @ g.T, e)))
+    out = {}
+    for k in np.unique(station):
+        m = station == k
+        out[int(k)] = {"systematic_rms_mm": round(float(np.sqrt(np.mean(systematic[m] ** 2))), 4),
+                       "systematic_predicted_rms_mm": round(float(np.sqrt(np.mean(predicted[m]))), 4),
+                       "noise_z": round(float(np.std((dd[m] - systematic[m]) / np.sqrt(noise[m]))), 3),
+                       "pose_chi2_mean": round(float(np.mean(chi2.get(int(k), [np.nan]))), 2)}
+    return out
+
+
+def transform_points_each(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """(N, 3) each point ``p[i]`` moved by its own 4x4 ``T[i]`` (mm)."""
+    return np.einsum("nij,nj->ni", T[:, :3, :3], p) + T[:, :3, 3]
+
+
 async def one_seed(config, plan: Plan, seed: int, draws: int, models: list) -> dict:
     config = config.model_copy(update={"sim": config.sim.model_copy(update={"seed": seed})})
     with tempfile.TemporaryDirectory() as tmp:
         async with CellSession(config) as session:
             config = with_surveyed_mounts(config, session.cell.simulation, Path(tmp))
             result = await JobRunner(session, plan, config, Path(tmp) / "job").run()
+            T_W_F_true = np.asarray(session.cell.simulation.world.T_W_F, float)  # the truth: scoring only
         ins = result.report["inspection"]
         ply = read_ply_vertices(Path(tmp) / "job" / ins["files"]["deviation_ply"])
-    model = models[-1]
+    model, job = models[-1]
     p_F = np.column_stack([ply[a] for a in "xyz"]).astype(float)
     d, U = ply["deviation_mm"].astype(float), ply["uncertainty_mm"].astype(float)
     inside = np.abs(d) <= U
@@ -117,6 +165,8 @@ async def one_seed(config, plan: Plan, seed: int, draws: int, models: list) -> d
     ev, mc = monte_carlo(model, surface, p_F, T_F_W, draws, config.inspection.best_fit_max_distance_mm,
                          np.random.default_rng(seed))
     ratio = U[ev] / mc
+    split = truth_split(model, job, surface, p_F, d, U, T_F_W, T_W_F_true,
+                        np.array([s.tracker_station for s in job.scans]), np.random.default_rng(seed))
     return {"seed": seed, "points": int(len(d)), "scans": result.report["scans"],
             "coverage_pct": round(100.0 * float(inside.mean()), 2),
             "coverage_pct_per_station": {int(s): round(100.0 * float(inside[stations == s].mean()), 2)
@@ -126,7 +176,8 @@ async def one_seed(config, plan: Plan, seed: int, draws: int, models: list) -> d
             "deviation_rms_mm": round(float(np.sqrt(np.mean(d**2))), 4),
             "budget_mm": ins["uncertainty"]["budget_mm"], "verdict": ins["verdict"],
             "mc_draws": draws, "mc_points": int(len(ev)), "mc_ratio_median": round(float(np.median(ratio)), 3),
-            "mc_ratio_p5_p95": [round(float(v), 3) for v in np.percentile(ratio, [5, 95])]}
+            "mc_ratio_p5_p95": [round(float(v), 3) for v in np.percentile(ratio, [5, 95])],
+            "truth_split_per_station": split}
 
 
 def main() -> None:
