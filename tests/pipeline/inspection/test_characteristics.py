@@ -4,6 +4,8 @@ covers it with the expected status; a 0.5 mm edge offset of the hatch is measure
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 from tandemscan.config import ConfigError, load_config
@@ -19,13 +21,19 @@ U_MM = 0.02  # per-point expanded uncertainty given to the characteristics here
 NOISE_MM = 0.05
 
 
+@functools.cache
+def as_built_part(config_file: str) -> tuple[CadSurface, np.ndarray, np.ndarray]:
+    """The CAD surface of ``config_file``'s part and the vertices (mm) and triangles of the part as built, made once
+    per configuration (about 2 s each) and shared by the clouds sampled from it; read only."""
+    config = load_config(config_file)
+    built = scanned_part_mesh(config)
+    return CadSurface(load_part_mesh(config.part)), np.asarray(built.vertices), np.asarray(built.triangles)
+
+
 def sampled_cloud(config_file: str, box_min, box_max, per_mm2: float, seed: int) -> MeasuredCloud:
     """The simulated part as built (``config_file``), sampled on its triangles inside the box with the
     scanner's noise along the CAD normal, against the CAD: what a measured cloud placed in F looks like."""
-    config = load_config(config_file)
-    cad = CadSurface(load_part_mesh(config.part))
-    built = scanned_part_mesh(config)
-    V, T = np.asarray(built.vertices), np.asarray(built.triangles)
+    cad, V, T = as_built_part(config_file)
     c = V[T].mean(axis=1)
     keep = np.all((c >= box_min) & (c <= box_max), axis=1)
     p = sample_surface(V, T[keep], per_mm2, seed=seed)
