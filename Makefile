@@ -22,8 +22,11 @@ measure: $(STAMP) $(CALIBRATION)
 $(CALIBRATION): $(CELL_CONFIG) $(STAMP)
 	$(VENV)/bin/tandemscan calibrate --out $(CALIBRATION)
 
+# Two workers (CI has two cores; many tests wait on processes and sockets), a test file to a worker so that a
+# module's shared job runs once (docs/testing.md).
+TEST_WORKERS ?= 2
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 # System packages, installed through apt only where missing: what Open3D needs at import time, Chromium for the
 # report rendering test and, with chromium-driver, the console's browser tests; systemd for the unit tests
