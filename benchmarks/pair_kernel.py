@@ -2,8 +2,8 @@
 workers; prints one JSON object (last line).
 
 The default band job runs on the simulated cell (coarse resolution, correction off); its scans are taken as the end
-of the job takes them (``read_thinned_scan``, ``daemon.jobs.correction.stitched_scans``) and its pairs as the correction
-selects them (``overlap.overlapping_pairs``), each scored against the simulator's truth: ``rot_err_deg`` and
+of the job takes them (``read_thinned_scan``, ``daemon.jobs.pose_correction.stitched_scans``) and its pairs as the
+correction selects them (``overlap.overlapping_pairs``), each scored against the simulator's truth: ``rot_err_deg`` and
 ``trans_err_mm`` (at the source's centroid) of the pair's correction against the true one, medians and 90th
 percentiles over the pairs; ``stitch`` is the tracker stitch itself (no correction). Kernels, each on one thread and
 each preparing its target per pair:
@@ -47,7 +47,7 @@ from scipy.spatial import cKDTree
 from tandemscan.config import load_config
 from tandemscan.config.models import CorrectionConfig
 from tandemscan.daemon.cell.session import CellSession
-from tandemscan.daemon.jobs.correction import stitched_scans, transfer_priors
+from tandemscan.daemon.jobs.pose_correction import stitched_scans, transfer_priors
 from tandemscan.daemon.jobs.runner import JobRunner
 from tandemscan.daemon.plans import default_plan_path
 from tandemscan.pipeline.compute import DaskBackend, LocalBackend

@@ -62,8 +62,8 @@ from results import publish
 from scipy.spatial import cKDTree
 from tandemscan.config import load_config
 from tandemscan.daemon.cell.session import CellSession
-from tandemscan.daemon.jobs.correction import mount_prior, transfer_priors
 from tandemscan.daemon.jobs.finish import merge_stage
+from tandemscan.daemon.jobs.pose_correction import mount_prior, transfer_priors
 from tandemscan.daemon.jobs.runner import JobResult, JobRunner
 from tandemscan.daemon.plans import default_plan_path
 from tandemscan.pipeline.geometry.frames import invert, to_rotvec, transform_points

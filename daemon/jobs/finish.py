@@ -97,9 +97,9 @@ def load_scans(job: JobSnapshot) -> LoadedScans:
 
 
 def correct_stage(job: JobSnapshot, loaded: LoadedScans, online: OnlineWork | None) -> CorrectionOutcome:
-    """The correction (``correction.correct_job``) of the scans that saw something, when ``[correction]`` is
+    """The correction (``pose_correction.correct_job``) of the scans that saw something, when ``[correction]`` is
     enabled and there are two of them; otherwise the tracker stitch stands, with the tracker chain's covariance."""
-    from tandemscan.daemon.jobs.correction import correct_job, tracker_chain_covariance  # the registration stack
+    from tandemscan.daemon.jobs.pose_correction import correct_job, tracker_chain_covariance  # the registration stack
 
     tracker = tuple(np.asarray(s.T_W_S, float) for s in job.scans)
     measured = [k for k, s in enumerate(job.scans) if s.point_count > 0]  # a scan that saw nothing: nothing to do
@@ -146,7 +146,7 @@ def merged_cloud(job: JobSnapshot, voxel_mm: float, poses: Sequence[np.ndarray],
     merged by slabs of W on the compute backend (``tiles.merge_tiles``, docs/compute.md "Tiles": each unit reads
     only the scans whose bound, from their thinned copies ``points_S``, meets its slab, from the scan store), then
     read back here for the exports, which still take the whole cloud; else here (:func:`merge_stage`)."""
-    from tandemscan.daemon.jobs.correction import in_job  # the registration stack, as correct_stage
+    from tandemscan.daemon.jobs.pose_correction import in_job  # the registration stack, as correct_stage
 
     compute = job.config.compute
     if not compute.tile_mm:

@@ -105,7 +105,7 @@ def _pairs_add(points: SharedBlock | np.ndarray, T_W_S: np.ndarray, placement: d
     registration of this scan needs."""
     global _PAIRS
     points = np.array(take(points))  # a copy of its own: the block is removed as its mapping goes
-    from tandemscan.daemon.jobs.correction import transfer_priors
+    from tandemscan.daemon.jobs.pose_correction import transfer_priors
     from tandemscan.pipeline.geometry.uncertainty import scan_pose_covariance
     from tandemscan.pipeline.registration.online_pairs import OnlinePairs
 

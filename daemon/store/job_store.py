@@ -35,17 +35,17 @@ from tandemscan.daemon.jsonable import jsonable
 from tandemscan.daemon.store.job_folders import JobFolders, file_sha256
 from tandemscan.daemon.store.rows import (
     DAMAGED_NOTE,
+    CommittedScan,
     DamagedScan,
     Event,
     IdempotencyConflict,
     JobRecord,
     PendingScan,
-    ScanRecord,
     StoreError,
 )
 from tandemscan.daemon.store.sqlite_db import SqliteDb
 
-__all__ = ["DamagedScan", "Event", "IdempotencyConflict", "JobRecord", "JobStore", "PendingScan", "ScanRecord",
+__all__ = ["DamagedScan", "Event", "IdempotencyConflict", "JobRecord", "JobStore", "PendingScan", "CommittedScan",
            "StoreError"]
 
 log = logging.getLogger(__name__)
@@ -307,10 +307,10 @@ class JobStore(JobFolders):
         """How many steps of the job are committed (one indexed count, no result is read)."""
         return self._conn().execute("SELECT COUNT(*) FROM steps WHERE job_id = ?", (job_id,)).fetchone()[0]
 
-    def scans(self, job_id: str) -> list[ScanRecord]:
+    def scans(self, job_id: str) -> list[CommittedScan]:
         """Committed scans in step order."""
         rows = self._conn().execute("SELECT * FROM scans WHERE job_id = ? ORDER BY step_idx", (job_id,)).fetchall()
-        return [ScanRecord(r["job_id"], r["step_idx"], r["file"], r["n_points"], r["bytes"], r["t_s"], r["sha256"])
+        return [CommittedScan(r["job_id"], r["step_idx"], r["file"], r["n_points"], r["bytes"], r["t_s"], r["sha256"])
                 for r in rows]
 
     def damaged_scans(self, job_id: str) -> list[DamagedScan]:

@@ -41,7 +41,7 @@ class JobRecord:
 
 
 @dataclass(frozen=True)
-class ScanRecord:
+class CommittedScan:
     """One committed raw scan: the file path is relative to the job directory."""
 
     job_id: str

@@ -8,7 +8,7 @@ import numpy as np
 from tandemscan.daemon.calibration.calibrate import run_calibration
 from tandemscan.daemon.calibration.current import installation_for_job
 from tandemscan.daemon.cell.session import CellSession
-from tandemscan.daemon.jobs.correction import mount_prior
+from tandemscan.daemon.jobs.pose_correction import mount_prior
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.stitching.installation import Installation
 from tandemscan.sim_drivers.cell import with_surveyed_mounts
