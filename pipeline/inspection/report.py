@@ -39,6 +39,7 @@ from tandemscan.pipeline.inspection.deviation_maps import (
 from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionResult, ToleranceResult
 from tandemscan.pipeline.inspection.spc import individuals_chart
 from tandemscan.pipeline.inspection.stitch_quality import PAIR_SAMPLE, overlap_quality, stitching_png
+from tandemscan.pipeline.io.durable import write_durably
 from tandemscan.pipeline.planning.coverage import CoverageFigures
 
 log = logging.getLogger(__name__)
@@ -326,16 +327,18 @@ def write_report(
 ) -> tuple[Path, Path | None]:
     """Write ``report.html``, ``figures/*.png`` and (unless ``json_name`` is None, for a caller that merges
     ``report.data`` into its own JSON) the JSON, ``{"inspection": report.data}``, into ``out_dir``; returns
-    (html, json or None)."""
+    (html, json or None). The HTML and the JSON are each written durably (a temporary file in the same folder,
+    then renamed over the old one): a reader or a crash sees the old report or the whole new one, never half."""
     out = Path(out_dir)
     (out / "figures").mkdir(parents=True, exist_ok=True)
     for f in report.figures:
         (out / "figures" / f"{f.name}.png").write_bytes(f.png)
     html = out / "report.html"
-    html.write_text(render_html(report), encoding="utf-8")
+    write_durably(html, lambda file: file.write(render_html(report).encode("utf-8")))
     js = None
     if json_name is not None:  # the same layout as a job's report.json: the numbers under "inspection"
         js = out / json_name
-        js.write_text(json.dumps({"inspection": report.data}, indent=2) + "\n", encoding="utf-8")
+        text = json.dumps({"inspection": report.data}, indent=2) + "\n"
+        write_durably(js, lambda file: file.write(text.encode("utf-8")))
     log.info("wrote %s%s", html, f" and {js}" if js else "")
     return html, js

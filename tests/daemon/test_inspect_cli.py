@@ -167,3 +167,25 @@ def test_point_uncertainty_gives_the_same_decisions_in_place_and_20_deg_200_mm_a
         assert len(u) == len(pts) and np.allclose(u, 0.3)
     assert decisions["in-place"] == decisions["moved"] == [(2, "nonconforming"), (8, "indeterminate")]
     assert capsys.readouterr().out.startswith("FAIL")
+
+
+def test_a_second_inspection_replaces_the_report_whole(files, tmp_path):
+    """report.json and report.html are replaced, not rewritten in place: a reader that opened them before the
+    next inspection into the same folder reads the whole old report (a crash mid-write leaves the old or the new
+    file, never half of one)."""
+    cloud, cad, cfg = files
+    out = tmp_path / "out"
+    args = [str(cloud), "--cad", str(cad), "--out", str(out), "--config", str(cfg), "--alignment", "none"]
+    assert main([*args, "--tolerance", "0.05"]) == 0
+    old = {name: (out / name).read_bytes() for name in ("report.json", "report.html")}
+    readers = {name: open(out / name, "rb") for name in old}  # noqa: SIM115 - closed below
+    try:
+        assert main([*args, "--tolerance", "0.08"]) == 0
+        for name, reader in readers.items():
+            assert reader.read() == old[name], name  # the old file, whole, for whoever had it open
+    finally:
+        for reader in readers.values():
+            reader.close()
+    new = json.loads((out / "report.json").read_text())["inspection"]
+    assert new["as_measured"]["tolerance"]["upper_mm"] == 0.08
+    assert not list(out.glob("*.part"))
