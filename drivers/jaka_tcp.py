@@ -14,6 +14,7 @@ on the controller must be zero, so that its TCP pose is the flange pose ``T_B_E`
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import logging
 import math
@@ -43,6 +44,11 @@ _ENABLED = ("robot_enabled", 1, True)
 STATUS_GAP_PERIODS = 4
 # The push period is timed at connect as the median interval between this many first status messages
 STATUS_PERIOD_SAMPLES = 4
+# Moves: their reply means "received" on most firmware, "done" where the controller answers a move at its end
+MOVE_COMMANDS = ("joint_move", "moveL", "end_move")
+# The controller's tool and user frame the driver needs: 0 and 0, the flange in the base frame (status keys
+# current_tool_id / current_user_id); poses and Cartesian targets are then the flange's T_B_E
+FLANGE_TOOL_ID, BASE_USER_FRAME_ID = 0, 0
 
 
 def succeeded(reply: dict) -> bool:
@@ -77,6 +83,9 @@ class JakaTcpArm:
         self._cmd: tuple[asyncio.StreamReader, asyncio.StreamWriter] | None = None
         self._cmd_framer = JsonObjectFramer()
         self._cmd_backlog: list[dict] = []
+        # replies still owed on this command link, by command: a move whose reply did not come within
+        # reply_timeout_s (a controller that answers a move when it is done); read and checked when they come
+        self._owed: collections.Counter[str] = collections.Counter()
         self._status_writer: asyncio.StreamWriter | None = None
         self._status_task: asyncio.Task | None = None
         self._status: dict | None = None
@@ -129,7 +138,7 @@ class JakaTcpArm:
         await cancel_and_wait(task)
         writers = [w for w in (self._cmd[1] if self._cmd else None, self._status_writer) if w is not None]
         self._cmd, self._status_writer, self._status = None, None, None
-        self._cmd_framer, self._cmd_backlog = JsonObjectFramer(), []
+        self._cmd_framer, self._cmd_backlog, self._owed = JsonObjectFramer(), [], collections.Counter()
         for w in writers:
             w.close()
             with contextlib.suppress(OSError, TimeoutError):
@@ -147,7 +156,8 @@ class JakaTcpArm:
             state = DeviceState.FAULT
         else:
             state = DeviceState.IDLE if st.get("inpos", True) else DeviceState.MOVING
-        detail = {k: st.get(k) for k in ("joint_actual_position", "enabled", "powered_on", "inpos", "errcode")}
+        detail = {k: st.get(k) for k in ("joint_actual_position", "enabled", "powered_on", "inpos", "errcode",
+                                         "current_tool_id", "current_user_id")}
         return DeviceStatus(self.name, True, state, detail)
 
     # ------------------------------------------------------------------ verbs
@@ -204,6 +214,7 @@ class JakaTcpArm:
         T = np.asarray(T_B_E, dtype=float)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise ValueError("T_B_E must be a finite 4x4 matrix")
+        self._check_flange_frames("moveL")
         xyz, rpy = to_rpy(T)
         cart = [*xyz.tolist(), *np.degrees(rpy).tolist()]
         await self._start_move(
@@ -226,6 +237,7 @@ class JakaTcpArm:
 
     async def flange_pose(self) -> np.ndarray:
         """``T_B_E`` (mm) from ``get_tcp_pos`` (x, y, z mm; rx, ry, rz deg, fixed x-y-z)."""
+        self._check_flange_frames("get_tcp_pos")
         pose = six_finite((await self._call("get_tcp_pos")).get("tcp_pos"), "tcp_pos", self.name)
         return from_rpy(pose[:3], np.radians(pose[3:]))
 
@@ -238,7 +250,7 @@ class JakaTcpArm:
             if self._cmd is None and self._status_writer is not None:
                 async with self._lock:
                     self._cmd = await self._open(self._net.host, self._net.command_port, self._net.reply_timeout_s)
-                    self._cmd_framer, self._cmd_backlog = JsonObjectFramer(), []
+                    self._cmd_framer, self._cmd_backlog, self._owed = JsonObjectFramer(), [], collections.Counter()
                 log.warning("%s: command link reopened to stop the arm", self.name)
             await self._call("stop_program")
 
@@ -261,12 +273,15 @@ class JakaTcpArm:
     async def _call(self, cmd: str, **params: object) -> dict:
         """Send one command, return its reply; a reply with a non-zero ``errorCode`` is a :class:`DeviceFault`."""
         reply = await self._request(cmd, self._net.reply_timeout_s, **params)
+        assert reply is not None, f"{cmd} is a move: sent by _start_move"
         if not succeeded(reply):
             raise DeviceFault(self.name, _error_text(cmd, reply))
         return reply
 
-    async def _request(self, cmd: str, timeout_s: float, **params: object) -> dict:
-        """Send one command and return its reply as it is (``errorCode`` unchecked); link errors raise."""
+    async def _request(self, cmd: str, timeout_s: float, **params: object) -> dict | None:
+        """Send one command and return its reply as it is (``errorCode`` unchecked); link errors raise. A move
+        (:data:`MOVE_COMMANDS`) whose reply does not come within ``timeout_s`` returns None: the controller may
+        answer a move only when it is done (docs/drivers.md); the reply is owed and read when it comes."""
         async with self._lock:
             if self._cmd is None:
                 raise NotConnected(self.name, f"{cmd}: not connected")
@@ -277,6 +292,9 @@ class JakaTcpArm:
                     await writer.drain()
                     reply = await self._read_reply(reader, cmd)
             except TimeoutError as e:
+                if cmd in MOVE_COMMANDS and not self._cmd_framer.pending:
+                    self._owed[cmd] += 1
+                    return None
                 await self._drop_command_link()  # a late reply would be taken for the next command's
                 raise DeviceTimeout(self.name, f"{cmd}: no reply within {timeout_s} s") from e
             except JsonFramingError as e:
@@ -293,12 +311,19 @@ class JakaTcpArm:
         return reply
 
     async def _read_reply(self, reader: asyncio.StreamReader, cmd: str) -> dict:
+        """The reply to ``cmd``; replies owed to earlier moves (:meth:`_request`) are taken first, in order."""
         while True:
             while self._cmd_backlog:
                 obj = self._cmd_backlog.pop(0)
-                if obj.get("cmdName") == cmd:
+                name = obj.get("cmdName")
+                if self._owed[name] > 0:
+                    self._owed[name] -= 1
+                    if not succeeded(obj):
+                        log.warning("%s: late reply: %s", self.name, _error_text(str(name), obj))
+                    continue
+                if name == cmd:
                     return obj
-                log.warning("%s: ignoring reply to %r while waiting for %r", self.name, obj.get("cmdName"), cmd)
+                log.warning("%s: ignoring reply to %r while waiting for %r", self.name, name, cmd)
             data = await reader.read(_READ_CHUNK)
             if not data:
                 if self._cmd_framer.pending:
@@ -398,17 +423,36 @@ class JakaTcpArm:
         if self._status is not None:
             self._check_safety(self._status)
         reply = await self._request(cmd, self._net.reply_timeout_s, **params)
+        if reply is None:
+            log.info("%s: %s not answered within %s s: a controller that answers a move when it is done; its "
+                     "completion is awaited on the status stream", self.name, cmd, self._net.reply_timeout_s)
+            return
         if succeeded(reply):
             return
         message = _error_text(cmd, reply)
         if cart is not None:
             ik = await self._request("kine_inverse", self._net.reply_timeout_s, cartPosition=cart,
                                      jointPosition=self._reference_joints_deg())
+            assert ik is not None
             if _no_ik_solution(ik):
                 raise OutOfReach(self.name, f"{message}; {_error_text('kine_inverse', ik)}")
             if not succeeded(ik):
                 message += f"; reachability unknown: {_error_text('kine_inverse', ik)}"
         raise DeviceFault(self.name, message + self._not_ready_text())
+
+    def _check_flange_frames(self, cmd: str) -> None:
+        """Cartesian poses are the flange's in the base frame (``T_B_E``) only while the controller has tool
+        :data:`FLANGE_TOOL_ID` and user frame :data:`BASE_USER_FRAME_ID` selected (status ``current_tool_id``,
+        ``current_user_id``; a controller that does not push them is taken as set so): else a
+        :class:`DeviceFault` before ``cmd`` is sent, naming what is selected."""
+        st = self._status or {}
+        wrong = [f"{what} {st[key]!r} (needs {want})" for key, want, what in (
+            ("current_tool_id", FLANGE_TOOL_ID, "tool"), ("current_user_id", BASE_USER_FRAME_ID, "user frame"))
+            if key in st and str(st[key]).strip() != str(want)]
+        if wrong:
+            raise DeviceFault(self.name, f"{cmd}: the controller has {' and '.join(wrong)} selected: Cartesian "
+                                         "poses would not be the flange's in the base frame; select tool 0 and "
+                                         "user frame 0 on the controller")
 
     def _not_ready_text(self) -> str:
         """What the last status says keeps the robot from moving (not powered, not enabled), or ''."""

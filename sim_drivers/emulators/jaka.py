@@ -8,13 +8,17 @@ Faults are injected through :class:`JakaFaults`, which may be changed while the 
 Vendor behaviour it can be told to show (:class:`JakaBehaviour`, docs/drivers.md): ``power_on`` and
 ``enable_robot`` that complete seconds after their reply, replies and status objects cut into small TCP
 segments (and status objects coalesced across segments), ``errorCode`` as a number, status objects padded to
-the size of a real controller's (5-9 kB). Refused motion commands answer ``errorCode`` 2 whatever the reason,
-as the controller's generic "call failed" code.
+the size of a real controller's (5-9 kB), moves answered only when they are done (as client code that treats
+``joint_move`` as blocking sees it; other commands, ``stop_program`` too, are served meanwhile). Refused motion
+commands answer ``errorCode`` 2 whatever the reason, as the controller's generic "call failed" code. A tool and a
+user frame selected on the controller (:meth:`JakaEmulator.select_frames`) apply to every Cartesian pose, as
+``current_tool_id`` / ``current_user_id`` in the status say.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
 import math
@@ -24,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from tandemscan.config.models import ArmConfig
 from tandemscan.drivers.json_stream import JsonFramingError, JsonObjectFramer, encode
+from tandemscan.drivers.tasks import cancel_and_wait
 from tandemscan.pipeline.geometry.frames import from_rpy, to_rpy
 from tandemscan.pipeline.geometry.kinematics import ArmKinematics
 from tandemscan.sim_drivers.emulators.tcp_server import TcpService
@@ -59,6 +64,7 @@ class JakaBehaviour:
     move_start_delay_s: float = 0.0  # wall seconds from a move's reply until the arm starts it; meanwhile the
     # status still shows the last move's inpos (a real controller plans first and pushes every 8 ms)
     knows_kine_inverse: bool = True  # False: an older controller that answers kine_inverse as an unknown command
+    reply_moves_when_done: bool = False  # True: a move's reply comes when the motion ends (or is stopped)
 
 
 class JointMotion:
@@ -84,12 +90,16 @@ class JointMotion:
 
     def in_position(self, now_s: float) -> bool:
         """At the target, or not yet started (the previous move's flag, as a controller's status shows it)."""
-        return now_s >= self._t0 + self._duration or now_s < self._t0
+        return self.done(now_s) or now_s < self._t0
+
+    def done(self, now_s: float) -> bool:
+        """The last move is over: at its target, or halted."""
+        return now_s >= self._t0 + self._duration
 
     def halt(self, now_s: float) -> None:
         q = self.position(now_s)
         self._start = self._target = q
-        self._duration = 0.0
+        self._t0, self._duration = now_s, 0.0
 
 
 class JakaEmulator:
@@ -120,6 +130,9 @@ class JakaEmulator:
         self._powered_at = math.inf  # loop time at which power_on / enable_robot take effect
         self._enabled_at = math.inf
         self.commands: list[str] = []  # every command name received, in order
+        # the selected tool (id, T_E_tool) and user frame (id, T_B_U), mm: Cartesian poses are the tool's in it
+        self.tool: tuple[int, np.ndarray] = (0, np.eye(4))
+        self.user_frame: tuple[int, np.ndarray] = (0, np.eye(4))
         self._commands = TcpService(self._serve_commands, host, command_port, exclusive=True)
         self._status = TcpService(self._serve_status, host, status_port)
         self._sim_s = 0.0
@@ -172,9 +185,20 @@ class JakaEmulator:
             self.on_joints(np.radians(q), not self.motion.in_position(now))
         return q
 
+    def select_frames(self, tool: tuple[int, np.ndarray], user_frame: tuple[int, np.ndarray]) -> None:
+        """Select a tool ``(id, T_E_tool)`` and a user frame ``(id, T_B_U)`` (mm), as on the pendant."""
+        self.tool, self.user_frame = tool, user_frame
+
     def tcp_pose(self, q_deg: np.ndarray) -> list[float]:
-        xyz, rpy = to_rpy(self.kinematics.forward(np.radians(q_deg)))
+        """The selected tool's pose in the selected user frame: ``[x, y, z mm, rx, ry, rz deg]``."""
+        T_B_E = self.kinematics.forward(np.radians(q_deg))
+        xyz, rpy = to_rpy(np.linalg.inv(self.user_frame[1]) @ T_B_E @ self.tool[1])
         return [*xyz.tolist(), *np.degrees(rpy).tolist()]
+
+    def flange_target(self, pose: np.ndarray) -> np.ndarray:
+        """``T_B_E`` (mm) that puts the selected tool at ``pose`` ``[x, y, z mm, rx, ry, rz deg]`` in the user
+        frame."""
+        return self.user_frame[1] @ from_rpy(pose[:3], np.radians(pose[3:])) @ np.linalg.inv(self.tool[1])
 
     def status_message(self) -> dict:
         if self.faults.estop or self.faults.protective_stop or self.faults.controller_error:
@@ -192,6 +216,8 @@ class JakaEmulator:
             "emergency_stop": int(self.faults.estop),
             "protective_stop": int(self.faults.protective_stop),
             "on_soft_limit": 0,
+            "current_tool_id": self.tool[0],
+            "current_user_id": self.user_frame[0],
             "errcode": self.faults.controller_error or "0x0",
             "errmsg": "servo error (emulated)" if self.faults.controller_error else "",
             "task_state": 4 if self.enabled else 1,
@@ -227,6 +253,16 @@ class JakaEmulator:
     # ------------------------------------------------------------------ command port
 
     async def _serve_commands(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        sending = asyncio.Lock()  # one reply at a time on the wire (a move's may be sent later, when it is done)
+        deferred: set[asyncio.Task] = set()
+        try:
+            await self._serve_requests(reader, writer, sending, deferred)
+        finally:
+            for task in deferred:
+                await cancel_and_wait(task)
+
+    async def _serve_requests(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
+                              sending: asyncio.Lock, deferred: set[asyncio.Task]) -> None:
         framer = JsonObjectFramer()
         while True:
             data = await reader.read(65536)
@@ -253,10 +289,25 @@ class JakaEmulator:
                     writer.write(raw[: len(raw) // 2])
                     await writer.drain()
                     return
-                await self._send(writer, raw)
-                if name in ("joint_move", "moveL", "end_move") and self.faults.disconnect_on_move:
+                is_move = name in ("joint_move", "moveL", "end_move")
+                if is_move and self.behaviour.reply_moves_when_done and str(reply["errorCode"]) == "0":
+                    task = asyncio.create_task(self._reply_when_done(writer, raw, sending))
+                    deferred.add(task)
+                    task.add_done_callback(deferred.discard)
+                else:
+                    async with sending:
+                        await self._send(writer, raw)
+                if is_move and self.faults.disconnect_on_move:
                     await self._status.drop_clients()
                     return  # ends this handler, which closes the command connection
+
+    async def _reply_when_done(self, writer: asyncio.StreamWriter, raw: bytes, sending: asyncio.Lock) -> None:
+        """Send a move's reply once the motion is over (at its target, or stopped)."""
+        while not self.motion.done(self.sim_time()):
+            await asyncio.sleep(self.status_period_s)
+        async with sending:
+            with contextlib.suppress(ConnectionError, OSError):  # the client went away meanwhile
+                await self._send(writer, raw)
 
     async def _execute(self, name: str, req: dict) -> dict:
         """Apply one command; returns the reply's data, with ``errorCode``/``errorMsg`` on failure."""
@@ -307,11 +358,13 @@ class JakaEmulator:
         return {"jointPosition": np.degrees(q).tolist()}
 
     async def _solve(self, pose: np.ndarray, ref_rad: np.ndarray) -> np.ndarray | None:
-        """Joints (rad) for the flange pose ``[x, y, z mm, rx, ry, rz deg]`` near ``ref_rad``; None if none."""
+        """Joints (rad) near ``ref_rad`` that put the selected tool at ``pose`` ``[x, y, z mm, rx, ry, rz deg]`` in
+        the selected user frame; None if none."""
         reach_mm = float(np.sum(np.abs(self.config.dh_a_mm)) + np.sum(np.abs(self.config.dh_d_mm)))
-        if np.linalg.norm(pose[:3]) > reach_mm:
+        T_B_E = self.flange_target(pose)
+        if np.linalg.norm(T_B_E[:3, 3]) > reach_mm:
             return None
-        return await asyncio.to_thread(self.kinematics.inverse, from_rpy(pose[:3], np.radians(pose[3:])), ref_rad)
+        return await asyncio.to_thread(self.kinematics.inverse, T_B_E, ref_rad)
 
     def _joint_speed_for_path(self, path_mm: float, speed_mm_s: float, step_deg: np.ndarray) -> float:
         """The joint speed (deg/s) at which the joint interpolation by ``step_deg`` takes as long as the flange's

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import asyncio
-import time
+import re
 
 import numpy as np
 import pytest
@@ -75,12 +75,14 @@ async def test_a_linear_move_that_only_turns_the_flange_waits_for_the_turn(emula
 
 
 async def test_move_waits_for_motion_in_simulated_time(emulator, arm):
-    emulator.time_scale = 0.01  # a 20 deg move at 60 deg/s = 1/3 s simulated = 3.3 ms wall
+    """A move returns once the controller's motion is over: 20 deg at 60 deg/s last 1/3 s of its time."""
+    emulator.time_scale = 0.01
     await arm.move_joints(Q_TARGET)
-    emulator.time_scale = 0.5  # now 1/3 s simulated = 170 ms wall
-    t0 = time.monotonic()
+    emulator.time_scale = 0.5  # 1/3 s simulated = 170 ms wall: many status periods after the reply
+    t0 = emulator.sim_time()
     await arm.move_joints(Q_HOME)
-    assert time.monotonic() - t0 >= 0.12
+    assert emulator.sim_time() - t0 >= 20.0 / ArmConfig().joint_speed_deg_s
+    assert emulator.motion.done(emulator.sim_time())
     np.testing.assert_allclose(await arm.joints(), Q_HOME, atol=1e-9)
 
 
@@ -127,10 +129,8 @@ async def test_estop_during_move_is_safety_stop_and_sends_stop(emulator, arm):
     while emulator.motion.in_position(emulator.sim_time()):  # the move has started
         await asyncio.sleep(0.005)
     emulator.faults.estop = True
-    t0 = time.monotonic()
-    with pytest.raises(SafetyStop, match="emergency stop"):
+    with pytest.raises(SafetyStop, match="emergency stop"):  # from the status stream, not the move's timeout
         await move
-    assert time.monotonic() - t0 < 0.5
     assert emulator.commands[-1] == "stop_program"
     with pytest.raises(SafetyStop):
         await arm.move_joints(Q_HOME)
@@ -138,10 +138,8 @@ async def test_estop_during_move_is_safety_stop_and_sends_stop(emulator, arm):
 
 async def test_move_timeout_stops_the_arm(emulator, arm):
     emulator.time_scale = 1.0
-    t0 = time.monotonic()
-    with pytest.raises(DeviceTimeout, match="joint move completion"):
+    with pytest.raises(DeviceTimeout, match="joint move completion not seen within 0.1 s"):
         await arm.move_joints(Q_TARGET, timeout_s=0.1)
-    assert time.monotonic() - t0 < 1.0
     assert emulator.commands[-1] == "stop_program"
     assert not emulator.motion.in_position(emulator.sim_time()) or np.allclose(
         emulator.joints_deg(), emulator.motion.position(emulator.sim_time())
@@ -151,14 +149,17 @@ async def test_move_timeout_stops_the_arm(emulator, arm):
     np.testing.assert_allclose(emulator.joints_deg(), q_after)  # halted, not still moving
 
 
-async def test_a_move_whose_reply_never_came_is_stopped_on_a_new_command_connection(emulator, arm):
-    """The controller starts a move, then its reply is late: the driver drops the command link (a late reply
-    would answer the next command) and raises; the stop that follows (the supervisor's halt) must still reach
-    the arm, which is moving."""
+async def test_a_stop_after_a_late_reply_dropped_the_command_link_goes_out_on_a_new_connection(emulator, arm):
+    """A command's reply is late while a move runs: the driver drops the command link (a late reply would answer
+    the next command) and raises; the stop that follows (the supervisor's halt) must still reach the arm, which is
+    moving."""
     emulator.time_scale = 1.0
+    move = asyncio.create_task(arm.move_joints(Q_HOME + np.radians([90.0, 0, 0, 0, 0, 0]), timeout_s=30.0))
+    while emulator.motion.in_position(emulator.sim_time()):  # the move has started: seconds at joint speed
+        await asyncio.sleep(0.005)
     emulator.faults.reply_delay_s = 2.0
-    with pytest.raises(DeviceTimeout, match="joint_move: no reply"):
-        await arm.move_joints(Q_HOME + np.radians([90.0, 0, 0, 0, 0, 0]))  # a few seconds at joint speed
+    with pytest.raises(DeviceTimeout, match="get_joint_pos: no reply"):
+        await arm.joints()
     emulator.faults.reply_delay_s = 0.0
     assert not emulator.motion.in_position(emulator.sim_time())  # the move runs
     await arm.stop()
@@ -167,6 +168,54 @@ async def test_a_move_whose_reply_never_came_is_stopped_on_a_new_command_connect
     await asyncio.sleep(0.05)
     np.testing.assert_allclose(emulator.joints_deg(), q_after)  # halted
     np.testing.assert_allclose(await arm.joints(), np.radians(q_after), atol=1e-9)  # the new link serves commands
+    move.cancel()
+    await asyncio.gather(move, return_exceptions=True)
+
+
+async def test_a_controller_that_answers_a_move_when_it_is_done(emulator, arm):
+    """Some firmware (and client code) treats a move as blocking: its reply comes when the motion is over, long
+    after the reply timeout (0.5 s here). The move completes from the status stream; the late replies are read
+    and not taken for the next commands' (the link is kept)."""
+    emulator.behaviour = JakaBehaviour(reply_moves_when_done=True)
+    emulator.time_scale = 3.0  # 20 deg at 60 deg/s: 1/3 s of the controller's time, 1 s wall
+    clients = emulator._commands.client_count
+    await arm.move_joints(Q_TARGET)
+    np.testing.assert_allclose(await arm.joints(), Q_TARGET, atol=1e-9)
+    await arm.move_joints(Q_HOME)
+    emulator.time_scale = 0.05
+    goal = ArmKinematics(ArmConfig()).forward(Q_HOME)
+    goal[:3, 3] += [20.0, 0.0, -10.0]
+    await arm.move_linear(goal)
+    assert pose_error(await arm.flange_pose(), goal)[0] < 0.05
+    assert emulator._commands.client_count == clients == 1
+    assert emulator.commands.count("power_on") == 1  # never reconnected and re-enabled
+
+
+async def test_a_tool_or_user_frame_selected_on_the_controller_is_refused_for_cartesian_poses(emulator, arm):
+    """``get_tcp_pos``, ``actual_position`` and ``moveL`` speak of the selected tool in the selected user frame
+    (status ``current_tool_id`` / ``current_user_id``): the driver's flange poses need tool 0 and user frame 0."""
+    kin = ArmKinematics(ArmConfig())
+    tool = from_rotvec([0.0, 0.0, 120.0], [0.0, 0.0, 0.0])  # a scanner's TCP 120 mm out along the flange's z
+    emulator.select_frames((1, tool), (0, np.eye(4)))
+    while (await arm.status()).detail["current_tool_id"] != 1:  # the status stream shows it
+        await asyncio.sleep(0.01)
+    with pytest.raises(DeviceFault, match="tool 1"):
+        await arm.flange_pose()
+    sent = len(emulator.commands)
+    with pytest.raises(DeviceFault, match="tool 1"):
+        await arm.move_linear(kin.forward(Q_TARGET))
+    assert len(emulator.commands) == sent  # refused before sending
+    await arm.move_joints(Q_TARGET)  # joint moves do not depend on it
+    emulator.select_frames((0, np.eye(4)), (2, from_rotvec([100.0, 0.0, 0.0], [0.0, 0.0, 0.0])))
+    while (await arm.status()).detail["current_user_id"] != 2:
+        await asyncio.sleep(0.01)
+    with pytest.raises(DeviceFault, match="user frame 2"):
+        await arm.flange_pose()
+    emulator.select_frames((0, np.eye(4)), (0, np.eye(4)))
+    while (await arm.status()).detail["current_user_id"] != 0:
+        await asyncio.sleep(0.01)
+    dt, dr = pose_error(await arm.flange_pose(), kin.forward(Q_TARGET))
+    assert dt < 1e-6 and dr < 1e-9
 
 
 async def test_a_stop_beside_a_reconnect_leaves_one_command_link_that_serves(emulator, arm):
@@ -197,10 +246,10 @@ async def test_a_controller_that_pushes_its_status_slowly_is_not_taken_for_a_los
         await arm.move_joints(Q_TARGET)
         np.testing.assert_allclose(await arm.joints(), Q_TARGET, atol=1e-9)
         emulator.faults.status_silent = True  # and a stream that stops is still a lost link, after 4 periods
-        t0 = time.monotonic()
-        with pytest.raises(NotConnected, match=r"no status message for \d\.\d+ s"):
+        with pytest.raises(NotConnected, match=r"no status message for \d\.\d+ s") as lost:
             await arm.move_joints(Q_HOME)
-        assert 1.0 < time.monotonic() - t0 < 5.0  # about 2 s: four 0.5 s periods, not the default 0.3 s
+        gap_s = float(re.search(r"for (\d\.\d+) s", str(lost.value)).group(1))
+        assert gap_s > 1.0  # four of the timed 0.5 s periods, not the default 0.3 s
     finally:
         await arm.close()
         await emulator.stop()
@@ -209,10 +258,8 @@ async def test_a_controller_that_pushes_its_status_slowly_is_not_taken_for_a_los
 @pytest.mark.parametrize("fault", ["reply_delay_s", "silent"])
 async def test_slow_or_silent_controller_times_out_then_reconnects(emulator, arm, fault):
     setattr(emulator.faults, fault, 1.0 if fault == "reply_delay_s" else True)
-    t0 = time.monotonic()
-    with pytest.raises(DeviceTimeout, match="get_joint_pos"):
+    with pytest.raises(DeviceTimeout, match="get_joint_pos: no reply within 0.5 s"):
         await arm.joints()
-    assert time.monotonic() - t0 < 1.0
     with pytest.raises(NotConnected):  # the link is dropped: a late reply must not answer the next call
         await arm.joints()
     setattr(emulator.faults, fault, 0.0 if fault == "reply_delay_s" else False)
