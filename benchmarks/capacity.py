@@ -23,8 +23,15 @@ the tile and the scan, not the part), that of this process ``a + b scans``. The 
 points), its merged voxels those of the larger size's per raw point. Prints one JSON object on its last line and
 keeps it in ``benchmarks/results/capacity.json`` (``results.publish``).
 
+The per-process peaks (``peaks``, first in the JSON): per worker count and size the largest peak over the stages of
+the process running them and of a worker, with the stage, and issue 43's memory line on them (a worker at most
+3 GiB and within 15 % of it on the longer part, the main process under 1.5 GiB); each size's also on stderr as it
+ends. ``--band-share`` keeps the views of a band across each part (the same share of its length from its tail, so
+twice the scans on the longer part) where the whole parts do not fit the time at hand.
+
 Usage: ``nice -n 10 .venv/bin/python benchmarks/capacity.py [--resolution coarse|full|COLSxROWS] [--scans 369]
-[--length-factor 2] [--tile-mm 500] [--workers 1 2] [--folder DIR] [--no-e57]``. Full resolution writes about
+[--length-factor 2] [--tile-mm 500] [--workers 1 2] [--folder DIR] [--no-e57] [--band-share 1] [--sizes nose
+long]``. Full resolution writes about
 28 GB of raw scans for the nose and 57 GB for the longer part (one size at a time, removed after it; the E57 adds
 half as much again: ``--no-e57`` where the disk has less room) and runs for tens of minutes: an idle machine's job.
 """
@@ -32,6 +39,7 @@ half as much again: ``--no-e57`` where the disk has less room) and runs for tens
 from __future__ import annotations
 
 import argparse
+import json
 import shutil
 import sys
 import tempfile
@@ -102,10 +110,13 @@ def _pixels(resolution: str) -> tuple[int, int]:
     return int(cols), int(rows)
 
 
-def make_job(folder: Path, part: PartConfig, scans: int, pixels: tuple[int, int], seed: int) -> Job:
-    """``scans`` views spread over the part's upper surface (Poisson disk; normals facing down left out), each
-    ray cast at the sweet spot along the normal and written as a raw scan (frame S, mm) with its pose off the
-    true one by :data:`TRACKER_SIGMA`; W is the CAD frame F."""
+def make_job(folder: Path, part: PartConfig, scans: int, pixels: tuple[int, int], seed: int,
+             band_share: float = 1.0) -> Job:
+    """``scans`` views spread over the part's upper surface (Poisson disk; normals facing down left out), of them
+    those whose centre lies in the first ``band_share`` of the part's length from its tail (x from ``-length/2``:
+    a band across the part, the same density of views), each ray cast at the sweet spot along the normal and
+    written as a raw scan (frame S, mm) with its pose off the true one by :data:`TRACKER_SIGMA`; W is the CAD frame
+    F."""
     import open3d as o3d
 
     rng = np.random.default_rng(seed)
@@ -116,7 +127,7 @@ def make_job(folder: Path, part: PartConfig, scans: int, pixels: tuple[int, int]
     up_share = _upper_share(mesh, np.asarray(mesh.triangle_normals))
     views = mesh.sample_points_poisson_disk(max(2, round(scans / up_share)), use_triangle_normal=True)
     centres, facing = np.asarray(views.points), np.asarray(views.normals)
-    keep = facing[:, 2] > -0.3
+    keep = (facing[:, 2] > -0.3) & (centres[:, 0] <= part.length_mm * (band_share - 0.5))
     scanner = ScannerConfig(coarse_pixels=pixels, resolution="coarse")
     model, scene = ScannerModel(scanner), make_scene(mesh)
     files, poses, raw = [], [], 0
@@ -196,7 +207,8 @@ def run_stages(job: Job, workers: int, tile_mm: float, e57: bool = True) -> tupl
     for name in ("cloud.ply", "cloud_deviation.ply", "cloud.e57"):
         (job.folder / name).unlink(missing_ok=True)
     drivers = {"scans": len(job.files), "raw_points": job.raw_points, "voxels": sum(t.voxels for t in tiles),
-               "tiles": len(tiles), "pairs": len(result.edges)}
+               "tiles": len(tiles), "tile_voxels_max": max((t.voxels for t in tiles), default=0),
+               "pairs": len(result.edges)}
     return stages, drivers
 
 
@@ -238,6 +250,28 @@ def model(sizes: list[dict], workers: list[int], car_workers: tuple[int, ...]) -
             "car_worker_peak_gib": max(s["worker_peak_gib"] for s in stages.values())}
 
 
+def peaks(sizes: list[dict]) -> dict:
+    """Per worker count the peak RSS (GiB) over the stages of the process running them (``main_gib``) and of the
+    largest worker (``worker_gib``) at each size, their stages, the larger size's worker peak over the smaller's
+    (``worker_growth``) and issue 43's memory line on them: a worker at most 3 GiB and within 15 % of it on the
+    larger part, the main process under 1.5 GiB."""
+    out = {}
+    for w in sizes[0]["runs"]:
+        by_size = {}
+        for size in sizes:
+            stages = size["runs"][w]
+            main, worker = (max(stages, key=lambda name, k=k: stages[name][k]) for k in ("main_gib", "worker_gib"))
+            by_size[size["part"]] = {"scans": size["drivers"]["scans"], "raw_points": size["drivers"]["raw_points"],
+                                     "main_gib": stages[main]["main_gib"], "main_stage": main,
+                                     "worker_gib": stages[worker]["worker_gib"], "worker_stage": worker}
+        out[w] = {**by_size, "worker_at_most_3_gib": max(s["worker_gib"] for s in by_size.values()) <= 3.0,
+                  "main_under_1_5_gib": max(s["main_gib"] for s in by_size.values()) < 1.5}
+        if len(sizes) > 1:
+            growth = by_size[sizes[-1]["part"]]["worker_gib"] / by_size[sizes[0]["part"]]["worker_gib"]
+            out[w] |= {"worker_growth": round(growth, 3), "worker_within_15_percent": growth <= 1.15}
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--resolution", default="coarse", help="coarse, full or COLSxROWS of the scanner")
@@ -247,6 +281,10 @@ def main() -> None:
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--folder", type=Path, default=None, help="where the jobs are written (default: a temp dir)")
     ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--band-share", type=float, default=1.0, help="only the views in this share of each part's "
+                    "length from its tail (a band across it: the nose's and, twice as long, the longer part's)")
+    ap.add_argument("--sizes", nargs="+", choices=("nose", "long"), default=["nose", "long"],
+                    help="which parts to run (the model and the growth need both)")
     ap.add_argument("--no-e57", action="store_true", help="leave the E57 out (at full resolution the longer part's "
                     "E57 is about 28 GB beside its 57 GB of raw scans)")
     args = ap.parse_args()
@@ -259,11 +297,13 @@ def main() -> None:
     sizes = []
     try:
         for label, part in (("nose", nose), ("long", long)):
+            if label not in args.sizes:
+                continue
             folder = root / label
             folder.mkdir()
             scans = round(args.scans * area[id(part)] / area[id(nose)])
             t = time.perf_counter()
-            job = make_job(folder, part, scans, pixels, args.seed)
+            job = make_job(folder, part, scans, pixels, args.seed, args.band_share)
             made = time.perf_counter() - t
             print(f"{label}: {len(job.files)} scans, {job.raw_points} points written in {made:.0f} s",
                   file=sys.stderr, flush=True)
@@ -273,13 +313,17 @@ def main() -> None:
                     runs[str(w)], drivers = pool.submit(run_stages, job, w, args.tile_mm, not args.no_e57).result()
             sizes.append({"part": label, "length_mm": part.length_mm, "drivers": drivers,
                           "job_written_s": round(made, 1), "runs": runs})
+            print(f"{label}: peaks {json.dumps(peaks(sizes[-1:]))}", file=sys.stderr, flush=True)
             shutil.rmtree(folder)
     finally:
         shutil.rmtree(root, ignore_errors=True)
-    figures = {"resolution": args.resolution, "pixels": list(pixels), "tile_mm": args.tile_mm, "sizes": sizes,
-               "model": model(sizes, args.workers, (1, 2, 8, 32, 64)),
+    figures = {"resolution": args.resolution, "pixels": list(pixels), "tile_mm": args.tile_mm,
+               "band_share": args.band_share, "peaks": peaks(sizes), "sizes": sizes,
+               "model": model(sizes, args.workers, (1, 2, 8, 32, 64)) if len(sizes) > 1 else None,
                "note": "wall seconds on a shared machine are upper bounds; the model is only as good as the run"}
-    publish("capacity", figures)
+    variant = "" if args.resolution == "coarse" and args.band_share == 1.0 else f"-{args.resolution}"
+    variant += f"-band{args.band_share:g}" if args.band_share < 1.0 else ""
+    publish(f"capacity{variant}" + ("" if len(sizes) > 1 else f"-{sizes[0]['part']}"), figures)
 
 
 if __name__ == "__main__":
