@@ -21,13 +21,14 @@ from clean_exit import clean_exit_on_sigterm
 from tandemscan.config.models import InspectionConfig
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.inspection.alignment import AlignmentCriteria, AlignmentFailed, align
-from tandemscan.pipeline.inspection.inspect import CadSurface, inspect_cloud
+from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionCriteria, inspect_cloud
 from tandemscan.pipeline.inspection.inspection_job import measured_side
 from tandemscan.sim_drivers.generated_parts import PARTS, GeneratedPart, random_misplacement
 from tandemscan.sim_drivers.inspection_score import alignment_error
 
 TARGET = (0.05, 0.005)  # mm, deg at the CAD's bounding-box centre
 CFG = InspectionConfig(reference_spheres=(), regions=(), best_fit=False)
+CRITERIA = InspectionCriteria.from_section(CFG)
 
 
 def defects_found(part: GeneratedPart, areas) -> int:
@@ -69,7 +70,7 @@ def one_part(name: str, args: argparse.Namespace) -> dict:
         wrong += not ok
         if ok:
             oriented, _ = measured_side(surface, p_W, a.T_F_W, F.rotate_vectors(T_W_F, n_F), None)
-            found += defects_found(part, inspect_cloud(F.transform_points(a.T_F_W, p_W), oriented, CFG).areas)
+            found += defects_found(part, inspect_cloud(F.transform_points(a.T_F_W, p_W), oriented, CRITERIA).areas)
     return {"points": len(p_F), "starts": args.starts, "aligned_within_target": within, "failed_with_reason": failed,
             "wrong_without_failing": wrong, "success_rate": round(within / args.starts, 3),
             "err_mm_max": round(max(mm), 5) if mm else None, "err_mm_median": round(float(np.median(mm)), 5)

@@ -15,8 +15,8 @@ from clean_exit import clean_exit_on_sigterm
 from results import publish
 from tandemscan.config.models import InspectionConfig, PartConfig
 from tandemscan.pipeline.geometry.part import train_nose_mesh
-from tandemscan.pipeline.inspection.inspect import CadSurface, inspect_cloud
-from tandemscan.pipeline.inspection.report import build_report, write_report
+from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionCriteria, inspect_cloud
+from tandemscan.pipeline.inspection.report import InspectedPart, ReportStyle, build_report, write_report
 
 
 def main() -> None:
@@ -41,11 +41,11 @@ def main() -> None:
     err_um = np.abs(d - offsets) * 1000.0
     cfg = InspectionConfig()
     t0 = time.perf_counter()
-    result = inspect_cloud(pts, surface, cfg)
+    result = inspect_cloud(pts, surface, InspectionCriteria.from_section(cfg))
     t_inspect = time.perf_counter() - t0
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as out:
-        write_report(build_report(result, surface, cfg), out)
+        write_report(build_report(result, InspectedPart(surface), ReportStyle.from_section(cfg)), out)
     t_report = time.perf_counter() - t0
     publish("inspect_report", {
         "benchmark": "inspect_report",

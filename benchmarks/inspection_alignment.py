@@ -45,7 +45,15 @@ from tandemscan.pipeline.geometry.part import load_part_mesh
 from tandemscan.pipeline.geometry.uncertainty import recentre
 from tandemscan.pipeline.inspection.alignment import AlignmentCriteria, align, align_plan_stations, fit_rigid
 from tandemscan.pipeline.inspection.inspect import CadSurface
-from tandemscan.pipeline.inspection.inspection_job import align_and_inspect, inspect_files
+from tandemscan.pipeline.inspection.inspection_job import (
+    AlignmentStart,
+    InspectionSettings,
+    Measurement,
+    ReportOutput,
+    align_and_inspect,
+    inspect_files,
+)
+from tandemscan.pipeline.inspection.report import InspectedPart
 from tandemscan.pipeline.io.cloud_io import read_ply
 from tandemscan.pipeline.io.export import write_ply
 from tandemscan.pipeline.io.raw_scan import read_raw_scan
@@ -216,8 +224,9 @@ def one_part(config: CellConfig, plan: Plan, tmp: Path, name: str) -> tuple[dict
     for method in ("best-fit", "rps"):
         cfg = config.inspection.model_copy(update={"alignment": method})
         t0 = time.perf_counter()
-        outputs = align_and_inspect(cloud_W, surface, tmp / f"{name}-{method}", cfg, start_T_F_W=m.anchor_T_F_W,
-                                    start="the anchor reading", json_name=None)
+        outputs = align_and_inspect(Measurement(cloud_W), InspectedPart(surface), InspectionSettings.from_section(cfg),
+                                    ReportOutput(tmp / f"{name}-{method}", json_name=None),
+                                    AlignmentStart(m.anchor_T_F_W, "the anchor reading"))
         res, T = outputs.result, np.array(outputs.data["alignment"]["T_F_W"])
         found[method] = T
         fig = {"T_F_W_err_at_part_centre": rounded(alignment_error(T, T_F_W_true, centre)),
@@ -282,7 +291,7 @@ def main() -> None:
         mesh_file = tmp / "cad.ply"
         o3d.io.write_triangle_mesh(str(mesh_file), cad)
         t0 = time.perf_counter()
-        res = inspect_files(cloud_file, mesh_file, tmp / "moved", base.inspection)
+        res = inspect_files(cloud_file, mesh_file, tmp / "moved", InspectionSettings.from_section(base.inspection))
         T = np.array(res.data["alignment"]["T_F_W"]) @ offset @ T_F_W_true  # back to the job's W
         figures["inspect_moved_20deg_200mm"] = {
             "T_F_W_err_at_part_centre": rounded(alignment_error(T, T_F_W_true, centre)),

@@ -42,7 +42,6 @@ TIMED = [  # (module, function, stage name): each call's seconds are added to it
     (inspect, "find_deviation_areas", "deviation_areas_s"),
     (inspection_job, "build_report", "build_report_s"),
     (report, "overlap_quality", "overlap_quality_s"),
-    (inspection_job, "overlap_quality", "overlap_quality_s"),
     (report, "_coverage_figure", "coverage_s"),
     (report, "deviation_map_png", "maps_s"),
     (inspection_job, "write_report", "write_report_s"),

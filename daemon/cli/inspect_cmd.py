@@ -61,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the inspection for parsed ``args``; 0 on success, 2 with one error line on bad input, 5 with one
     line where the cloud could not be aligned to the CAD."""
     from tandemscan.pipeline.inspection.inspect import InspectionError  # local: keep `tandemscan --help` fast
-    from tandemscan.pipeline.inspection.inspection_job import inspect_files
+    from tandemscan.pipeline.inspection.inspection_job import InspectionSettings, inspect_files
 
     prog = "tandemscan inspect"
     try:
@@ -87,7 +87,8 @@ def run(args: argparse.Namespace) -> int:
                 if v is not None}
         if args.point_uncertainty_mm is not None and not args.point_uncertainty_mm >= 0:
             raise InspectionError(f"--point-uncertainty-mm must be >= 0 mm, got {args.point_uncertainty_mm}")
-        outputs = inspect_files(args.cloud, args.cad, out, cfg, template, part, args.point_uncertainty_mm)
+        settings = InspectionSettings.from_section(cfg, template)
+        outputs = inspect_files(args.cloud, args.cad, out, settings, template, part, args.point_uncertainty_mm)
     except (InspectionError, ConfigError, OSError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return EXIT_BAD_INPUT

@@ -34,9 +34,18 @@ from tandemscan.daemon.calibration.verify import verdict_context
 from tandemscan.daemon.store.part_results import HISTORY_FILE
 from tandemscan.pipeline.geometry.frames import transform_points
 from tandemscan.pipeline.geometry.part import load_part_mesh
-from tandemscan.pipeline.inspection.inspect import InspectionError
-from tandemscan.pipeline.inspection.inspection_job import InspectionOutputs, PlacedScans, align_and_inspect
+from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionError
+from tandemscan.pipeline.inspection.inspection_job import (
+    AlignmentStart,
+    InspectionOutputs,
+    InspectionSettings,
+    Measurement,
+    PlacedScans,
+    ReportOutput,
+    align_and_inspect,
+)
 from tandemscan.pipeline.inspection.point_uncertainty import JobUncertainty, ScanCover
+from tandemscan.pipeline.inspection.report import InspectedPart, ReportFacts, StitchViews
 from tandemscan.pipeline.io.export import PosedScan, write_e57, write_ply, write_pose_log
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan
 from tandemscan.pipeline.planning.coverage import CoverageFigures
@@ -221,32 +230,23 @@ def _inspect(job: JobSnapshot, report: Mapping, scans: list[PosedScan], cloud_W:
     template_file = find_template(job.config.part.mesh, configured=job.config.inspection.template)
     template = None if template_file is None else load_template(template_file)
     mesh = load_part_mesh(job.config.part)
-    return align_and_inspect(
-        cloud_W,
-        mesh,
-        job_dir,
-        job.config.part_inspection(),
-        normals_W=normals_W,
-        start_T_F_W=T_F_W,
-        start="W placed in F by the anchor reading (Eq. 5)",
-        prior_T_F_W=T_F_W,
-        viewpoints_W=np.array([s.T_W_S[:3, 3] for s in scans]),
-        scans_before_W=before,
-        scans_after_W=after,
+    part = InspectedPart(CadSurface(mesh), template, part_identity(job.config, template, template_file),
+                         _history(job_dir))
+    settings = InspectionSettings.from_section(job.config.part_inspection(), template)
+    measured = Measurement(cloud_W, normals_W, job_uncertainty(job, scans, counts), StitchViews(before, after))
+    facts = ReportFacts(
         title=f"Inspection report, {job_dir.name}",
         meta={"job": job_dir.name, "plan": job.plan.name, "cell": job.config.name,
               "alignment to CAD": job.config.inspection.alignment,
               "points": str(len(cloud_W)) if len(cloud_W) == cloud_points
               else f"{len(cloud_W)} of the cloud's {cloud_points} ([inspection] max_points)"},
         accuracy=_accuracy(report),
-        json_name=None,
-        template=template,
-        part=measured_part(job.config, template, template_file),
-        history=_history(job_dir),
-        uncertainty=job_uncertainty(job, scans, counts),
-        context=verdict_context(job.config),
         coverage=plan_coverage(job, mesh),
     )
+    start = AlignmentStart(T_F_W, "W placed in F by the anchor reading (Eq. 5)", T_F_W,
+                           np.array([s.T_W_S[:3, 3] for s in scans]))
+    return align_and_inspect(measured, part, settings, ReportOutput(job_dir, facts, json_name=None), start,
+                             verdict_context(job.config))
 
 
 def plan_coverage(job: JobSnapshot, mesh: o3d.geometry.TriangleMesh | None = None) -> CoverageFigures:
@@ -265,7 +265,7 @@ def _history(job_dir: Path) -> dict:
     return json.loads(path.read_text())["characteristics"] if path.is_file() else {}
 
 
-def measured_part(config: CellConfig, template: InspectionTemplate | None, template_file: Path | None
+def part_identity(config: CellConfig, template: InspectionTemplate | None, template_file: Path | None
                   ) -> dict[str, str]:
     """The measured part as the report and results.qif name it: part number (``[job] part_number``, else the
     template's), serial and the template file."""

@@ -22,7 +22,6 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from tandemscan.config.models import InspectionConfig
 
 RuleName = Literal["iso14253-1", "simple"]
 Verdict = Literal["pass", "fail", "indeterminate"]
@@ -50,11 +49,6 @@ class DecisionRule:
         """How every output names the rule, e.g. ``ISO 14253-1 (k = 2)`` or ``simple acceptance (k = 2)``."""
         what = "ISO 14253-1" if self.name == "iso14253-1" else "simple acceptance"
         return f"{what} (k = {self.k:g})"
-
-    @classmethod
-    def of(cls, cfg: InspectionConfig) -> DecisionRule:
-        """The rule ``[inspection] decision_rule`` with ``decision_k`` names."""
-        return cls(cfg.decision_rule, cfg.decision_k)
 
     def as_dict(self) -> dict[str, object]:
         """``{"name", "k"}`` as report.json writes it."""

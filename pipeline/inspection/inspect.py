@@ -18,10 +18,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import open3d as o3d
-from tandemscan.config.models import InspectionConfig, RegionConfig
+from tandemscan.config.models import RegionConfig
 from tandemscan.pipeline.geometry.frames import from_rotvec, invert, rotation_angle, to_rotvec, transform_points
 from tandemscan.pipeline.geometry.part import enclosed_volume_mm3, triangles_closed
+from tandemscan.pipeline.inspection.decision import DecisionRule, RuleName
 from tandemscan.pipeline.inspection.deviation_areas import DeviationArea, find_deviation_areas
+from tandemscan.pipeline.parameters import FromSection
 
 if TYPE_CHECKING:
     from tandemscan.pipeline.inspection.verdict import Judgement
@@ -31,6 +33,34 @@ log = logging.getLogger(__name__)
 
 class InspectionError(ValueError):
     """Bad input to the inspection: an empty cloud, a mesh without triangles, non-finite points."""
+
+
+@dataclass(frozen=True)
+class InspectionCriteria(FromSection):
+    """What a cloud is inspected and judged by: ``[inspection]``'s keys of the same names
+    (``InspectionCriteria.from_section(cfg)``; mm). The tolerance band (``tolerance_lower_mm``,
+    ``tolerance_upper_mm``, signed: + = material outside the CAD surface) and the decision rule with its coverage
+    factor (``decision_rule``, ``decision_k``: :attr:`rule`); the regions reported apart (``regions``, and one a
+    mesh material group with ``mesh_group_regions``); the best fit reported beside the result (``best_fit``, on
+    the points within ``best_fit_max_distance_mm``, ``best_fit_iterations``); deviation areas (deviations averaged
+    over ``area_smoothing_mm``, none smaller than ``area_min_mm2``)."""
+
+    tolerance_lower_mm: float
+    tolerance_upper_mm: float
+    decision_rule: RuleName
+    decision_k: float
+    regions: tuple[RegionConfig, ...]
+    mesh_group_regions: bool
+    best_fit: bool
+    best_fit_max_distance_mm: float
+    best_fit_iterations: int
+    area_smoothing_mm: float
+    area_min_mm2: float
+
+    @property
+    def rule(self) -> DecisionRule:
+        """The decision rule ``decision_rule`` with ``decision_k`` names."""
+        return DecisionRule(self.decision_rule, self.decision_k)
 
 
 def as_points(points: np.ndarray, what: str = "cloud") -> np.ndarray:
@@ -470,13 +500,13 @@ def _moved_mm(T: np.ndarray, points_mm: np.ndarray) -> float:
     return float(np.sqrt(np.einsum("ij,ij->i", delta, delta).max()))
 
 
-def _best_fit_result(surface: CadSurface, p: np.ndarray, cfg: InspectionConfig, closest: ClosestPoints | None = None
-                     ) -> tuple[BestFit | None, str]:
+def _best_fit_result(surface: CadSurface, p: np.ndarray, criteria: InspectionCriteria,
+                     closest: ClosestPoints | None = None) -> tuple[BestFit | None, str]:
     """The best fit and its deviations, or (None, why) when it cannot be made; the as-measured result
     stands on its own either way. ``closest``: the points' :meth:`CadSurface.closest` where known (then a
     small fit updates the deviations, :func:`signed_distance_moved`)."""
     try:
-        sf = best_fit(surface, p, cfg.best_fit_max_distance_mm, cfg.best_fit_iterations)
+        sf = best_fit(surface, p, criteria.best_fit_max_distance_mm, criteria.best_fit_iterations)
     except InspectionError as e:
         log.warning("%s", e)
         return None, str(e)
@@ -485,7 +515,7 @@ def _best_fit_result(surface: CadSurface, p: np.ndarray, cfg: InspectionConfig, 
         log.warning("best fit did not converge in %d iterations", sf.iterations)
     d_fit = (surface.signed_distance(transform_points(T, p)) if closest is None
              else signed_distance_moved(surface, p, T, closest))
-    lo, hi = cfg.tolerance_lower_mm, cfg.tolerance_upper_mm
+    lo, hi = criteria.tolerance_lower_mm, criteria.tolerance_upper_mm
     return BestFit(
         T_F_M=T,
         translation_mm=float(np.linalg.norm(T[:3, 3])),
@@ -502,25 +532,24 @@ def _best_fit_result(surface: CadSurface, p: np.ndarray, cfg: InspectionConfig, 
 def inspect_cloud(
     points_mm: np.ndarray,
     mesh: o3d.geometry.TriangleMesh | CadSurface,
-    cfg: InspectionConfig | None = None,
+    criteria: InspectionCriteria,
 ) -> InspectionResult:
-    """Deviation of a measured cloud (frame F, mm) from the CAD mesh, by ``cfg`` (tolerance, regions, fit)."""
-    cfg = cfg or InspectionConfig()
+    """Deviation of a measured cloud (frame F, mm) from the CAD mesh, by ``criteria`` (tolerance, regions, fit)."""
     p = as_points(points_mm)
     surface = mesh if isinstance(mesh, CadSurface) else CadSurface(mesh)
     closest = surface.closest(p)
     d = closest.signed_mm
-    lo, hi = cfg.tolerance_lower_mm, cfg.tolerance_upper_mm
-    masks = [(region.name, region_mask(p, region)) for region in cfg.regions]
-    if cfg.mesh_group_regions:
+    lo, hi = criteria.tolerance_lower_mm, criteria.tolerance_upper_mm
+    masks = [(region.name, region_mask(p, region)) for region in criteria.regions]
+    if criteria.mesh_group_regions:
         masks += surface.group_masks(closest.triangle_ids)
     regions = [RegionResult(name, DeviationStats.of(d[m]), ToleranceResult.of(d[m], lo, hi)) for name, m in masks]
     with ThreadPoolExecutor(1, thread_name_prefix="best-fit") as pool:  # the fit while the areas are found
-        fit = pool.submit(_best_fit_result, surface, p, cfg, closest) if cfg.best_fit else None
+        fit = pool.submit(_best_fit_result, surface, p, criteria, closest) if criteria.best_fit else None
         stats = DeviationStats.of(d)
         tol = ToleranceResult.of(d, lo, hi)
         assert stats is not None and tol is not None  # p has at least one point
-        areas = find_deviation_areas(p, d, lo, hi, cfg.area_smoothing_mm, cfg.area_min_mm2)
+        areas = find_deviation_areas(p, d, lo, hi, criteria.area_smoothing_mm, criteria.area_min_mm2)
         fit, note = fit.result() if fit is not None else (None, "")
     log.info(
         "inspected %d points: mean %.4f mm, sigma %.4f mm, %.1f %% in tolerance, %d areas beyond it",

@@ -12,13 +12,12 @@ import dataclasses
 import datetime as dt
 import logging
 from collections.abc import Mapping, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Self
 
 import numpy as np
-import open3d as o3d
 from scipy.spatial import cKDTree
 from tandemscan.config.inspection_template import InspectionTemplate
 from tandemscan.config.models import InspectionConfig
@@ -28,9 +27,9 @@ from tandemscan.pipeline.inspection.alignment import Alignment, AlignmentCriteri
 from tandemscan.pipeline.inspection.cad_orientation import orient
 from tandemscan.pipeline.inspection.characteristics import CharacteristicResult, MeasuredCloud, evaluate
 from tandemscan.pipeline.inspection.datum_frame import DatumPatch, align_datums
-from tandemscan.pipeline.inspection.decision import DecisionRule
 from tandemscan.pipeline.inspection.inspect import (
     CadSurface,
+    InspectionCriteria,
     InspectionError,
     InspectionResult,
     as_points,
@@ -39,12 +38,18 @@ from tandemscan.pipeline.inspection.inspect import (
 )
 from tandemscan.pipeline.inspection.point_uncertainty import GivenUncertainty, UncertaintyModel, alignment_covariance
 from tandemscan.pipeline.inspection.qif import RESULTS_FILE, MeasuredPart, write_results
-from tandemscan.pipeline.inspection.report import build_report, failed_report, in_background, write_report
-from tandemscan.pipeline.inspection.stitch_quality import overlap_quality
+from tandemscan.pipeline.inspection.report import (
+    InspectedPart,
+    ReportFacts,
+    ReportStyle,
+    StitchViews,
+    build_report,
+    failed_report,
+    write_report,
+)
 from tandemscan.pipeline.inspection.verdict import VerdictContext, judge
 from tandemscan.pipeline.io.cloud_io import CloudIOError, read_ply, read_ply_vertices
 from tandemscan.pipeline.io.export import write_ply
-from tandemscan.pipeline.planning.coverage import CoverageFigures
 
 DEVIATION_PLY = "cloud_deviation.ply"  # written next to report.html
 
@@ -65,76 +70,101 @@ class InspectionOutputs:
     qif: Path | None = None  # results.qif, written with a template
 
 
-def run_inspection(
-    points_mm: np.ndarray,
-    mesh: o3d.geometry.TriangleMesh | CadSurface,
-    out_dir: Path | str,
-    cfg: InspectionConfig | None = None,
-    *,
-    normals: np.ndarray | None = None,
-    title: str = "Inspection report",
-    meta: Mapping[str, str] | None = None,
-    accuracy: Mapping[str, float | int | str] | None = None,
-    scans_before: Sequence[np.ndarray] | None = None,
-    scans_after: Sequence[np.ndarray] | None = None,
-    json_name: str | None = "report.json",
-    alignment: Alignment | None = None,
-    overlap: Future | None = None,
-    template: InspectionTemplate | None = None,
-    part: Mapping[str, str] | None = None,
-    history: Mapping[str, Sequence[Mapping]] | None = None,
-    uncertainty: UncertaintyModel | None = None,
-    context: VerdictContext | None = None,
-    coverage: CoverageFigures | None = None,
-) -> InspectionOutputs:
-    """Inspect ``points_mm`` (frame F) against the CAD mesh and write the report and the deviation PLY
-    into ``out_dir``. The PLY carries the cloud's normals when given, else the closest CAD normals.
-    ``json_name=None`` leaves the JSON to the caller (it gets the same numbers as ``data``);
-    ``alignment`` says how the points were placed in F (None: they came in F); ``overlap``: the scans'
-    :func:`overlap_quality`, being computed (else it is started here, while the cloud is inspected);
-    ``template``: the part's characteristics (those without limits of their own under ``cfg``'s tolerance, the
-    general one), evaluated and reported first and written as ``results.qif``;
-    ``part``: its part number, serial, template file and measuring system, as the report and the QIF name them;
-    ``history``: the part's earlier serials' results per characteristic (``report.build_report``);
-    ``uncertainty``: what knows the points' uncertainty (None: the cloud states none, U = 0) and ``context``
-    the installation and verification the verdict is made in (``verdict.judge``); ``coverage``: the job's
-    plan's (``report.build_report``).
+@dataclass(frozen=True)
+class InspectionSettings:
+    """``[inspection]`` as the stages take it, built once where the configuration is read
+    (:meth:`from_section`): how the cloud is aligned to CAD, what it is inspected and judged by, how the report
+    draws."""
 
-    Nineteen parameters: the cloud, the mesh, where to write and the settings, then keyword-only inputs of the
-    report, each optional (a caller passes those it has)."""
-    cfg = cfg or InspectionConfig()
+    alignment: AlignmentCriteria
+    criteria: InspectionCriteria
+    style: ReportStyle
+
+    @classmethod
+    def from_section(cls, section: InspectionConfig, template: InspectionTemplate | None = None) -> Self:
+        """The stages' parameters of ``section``, with ``template``'s alignment where given
+        (:meth:`InspectionTemplate.inspection_config`: its method and datum regions)."""
+        if template is not None:
+            section = template.inspection_config(section)
+        return cls(AlignmentCriteria.from_section(section), InspectionCriteria.from_section(section),
+                   ReportStyle.from_section(section))
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """What was measured, in the frame the function it is given to names (F for :func:`run_inspection`, W for
+    :func:`align_and_inspect`), mm: the cloud's ``points_mm`` (N, 3), its unit ``normals`` (N, 3; None: none), what
+    knows the points' ``uncertainty`` (None: the cloud states none, U = 0) and the scans for the stitching view
+    (``stitching``; None: no such view)."""
+
+    points_mm: np.ndarray
+    normals: np.ndarray | None = None
+    uncertainty: UncertaintyModel | None = None
+    stitching: StitchViews | None = None
+
+
+@dataclass(frozen=True)
+class ReportOutput:
+    """Where and what the inspection writes: the folder ``out_dir``, the report's ``facts``, and the JSON's file
+    name (``json_name``; None leaves the JSON to the caller, who gets the same numbers as ``data``)."""
+
+    out_dir: Path
+    facts: ReportFacts = ReportFacts()
+    json_name: str | None = "report.json"
+
+
+@dataclass(frozen=True)
+class AlignmentStart:
+    """Where the alignment to CAD starts: ``T_F_W`` (where the job's anchor put the cloud; None: the cloud as
+    given), described by ``description``; ``prior_T_F_W``, the placement that holds what the surface does not fix
+    (None where the start is unknown); ``viewpoints_W``, the scanner positions (K, 3) mm the CAD's measured side
+    is decided by (None: the cloud's normals)."""
+
+    T_F_W: np.ndarray | None = None
+    description: str = "as given"
+    prior_T_F_W: np.ndarray | None = None
+    viewpoints_W: np.ndarray | None = None
+
+
+def run_inspection(measured: Measurement, part: InspectedPart, settings: InspectionSettings, output: ReportOutput,
+                   alignment: Alignment | None = None, context: VerdictContext | None = None) -> InspectionOutputs:
+    """Inspect ``measured`` (frame F) against ``part`` by ``settings`` and write the report and the deviation PLY
+    into ``output.out_dir``. The PLY carries the cloud's normals when given, else the closest CAD normals.
+    ``alignment`` says how the points were placed in F (None: they came in F); ``context``: the installation and
+    verification the verdict is made in (``verdict.judge``). The part's template characteristics (those without
+    limits of their own under the criteria's tolerance, the general one) are evaluated, reported first and written
+    as ``results.qif``."""
+    criteria = settings.criteria
+    template = part.template
     if template is not None:
-        template = template.with_general_tolerance(cfg.tolerance_lower_mm, cfg.tolerance_upper_mm)
-    surface = mesh if isinstance(mesh, CadSurface) else CadSurface(mesh)
-    if overlap is None and scans_before is not None:
-        overlap = in_background(overlap_quality, scans_before, scans_after)
-    result = inspect_cloud(points_mm, surface, cfg)
+        template = template.with_general_tolerance(criteria.tolerance_lower_mm, criteria.tolerance_upper_mm)
+    surface = part.surface
+    stitching = None if measured.stitching is None else measured.stitching.started()  # while the cloud is inspected
+    result = inspect_cloud(measured.points_mm, surface, criteria)
     placed = alignment or Alignment("none", np.eye(4), 0.0, "the cloud as given")
-    u = (uncertainty or GivenUncertainty(0.0)).evaluate(
-        result.points_mm, result.cad_normals, cfg.decision_k, placed.T_F_W, placed.method,
+    u = (measured.uncertainty or GivenUncertainty(0.0)).evaluate(
+        result.points_mm, result.cad_normals, criteria.decision_k, placed.T_F_W, placed.method,
         None if placed.excluded is None else ~placed.excluded, alignment_covariance(placed))
-    if uncertainty is None:
+    if measured.uncertainty is None:
         u = dataclasses.replace(u, notes=u.notes | {"cloud": "the cloud states no uncertainty: U = 0"})
-    result = judge(result, u, cfg, context or VerdictContext())
+    result = judge(result, u, criteria, context or VerdictContext())
+    out_dir = Path(output.out_dir)
     with ThreadPoolExecutor(2, thread_name_prefix="inspection-outputs") as pool:  # beside the figures: the
-        measured = None if template is None else pool.submit(  # characteristics and the file
-            evaluate, template, measured_cloud(result, surface, u.expanded_mm), DecisionRule.of(cfg))
+        evaluated = None if template is None else pool.submit(  # characteristics and the file
+            evaluate, template, measured_cloud(result, surface, u.expanded_mm), criteria.rule)
         ply = pool.submit(
             write_ply,
-            Path(out_dir) / DEVIATION_PLY,
+            out_dir / DEVIATION_PLY,
             result.points_mm,
-            normals if normals is not None else result.cad_normals,
+            measured.normals if measured.normals is not None else result.cad_normals,
             {"deviation_mm": result.deviations_mm, "uncertainty_mm": u.expanded_mm},
         )
-        report = build_report(
-            result, surface, cfg, title=title, meta=meta, accuracy=accuracy,
-            scans_before=scans_before, scans_after=scans_after, alignment=alignment, overlap=overlap,
-            characteristics=() if measured is None else measured, part=part, history=history, coverage=coverage,
-        )
-        html, js = write_report(report, out_dir, json_name)
-    characteristics = () if measured is None else measured.result()
+        report = build_report(result, part, settings.style, output.facts, alignment=alignment, stitching=stitching,
+                              characteristics=() if evaluated is None else evaluated)
+        html, js = write_report(report, out_dir, output.json_name)
+    characteristics = () if evaluated is None else evaluated.result()
     qif = None if template is None else write_results(
-        Path(out_dir) / RESULTS_FILE, measured_part(template, part or {}), characteristics, result.points_mm)
+        out_dir / RESULTS_FILE, measured_part(template, part.identity), characteristics, result.points_mm)
     return InspectionOutputs(result, report.data, html, js, ply.result(), characteristics, qif)
 
 
@@ -152,50 +182,27 @@ def measured_cloud(result: InspectionResult, surface: CadSurface, expanded_mm: n
     return MeasuredCloud(result.points_mm, result.deviations_mm, result.triangle_ids, expanded_mm, surface)
 
 
-def align_and_inspect(
-    points_W_mm: np.ndarray,
-    mesh: o3d.geometry.TriangleMesh | CadSurface,
-    out_dir: Path | str,
-    cfg: InspectionConfig | None = None,
-    *,
-    normals_W: np.ndarray | None = None,
-    start_T_F_W: np.ndarray | None = None,
-    start: str = "as given",
-    prior_T_F_W: np.ndarray | None = None,
-    viewpoints_W: np.ndarray | None = None,
-    scans_before_W: Sequence[np.ndarray] | None = None,
-    scans_after_W: Sequence[np.ndarray] | None = None,
-    **report: Any,
-) -> InspectionOutputs:
-    """Register a cloud measured in frame W to the CAD frame F by ``cfg.alignment`` from ``start_T_F_W``
-    (where the job's anchor put it, or the cloud as given; described by ``start``; ``prior_T_F_W``: the
-    placement that holds what the surface does not fix, None where the start is unknown), orient the CAD by
-    the measured side (:func:`measured_side`: ``viewpoints_W``, the scanner positions (K, 3) mm, else the
-    cloud's ``normals_W``), then inspect and write as :func:`run_inspection` (``report`` passes its title,
-    meta, accuracy and json_name). The points on reference spheres are left out of the inspection; the
-    stitching views are mapped into F as well. A ``template`` among ``report`` sets the alignment
-    (:meth:`InspectionTemplate.inspection_config`). A failed alignment writes the report of a failed
-    inspection (verdict "indeterminate", the reason) and returns it without a result.
-
-    Twelve parameters: the cloud, the mesh, where to write and the settings, then keyword-only inputs of the
-    alignment and the stitching views, each optional."""
-    cfg = cfg or InspectionConfig()
-    if report.get("template") is not None:
-        cfg = report["template"].inspection_config(cfg)
-    surface = mesh if isinstance(mesh, CadSurface) else CadSurface(mesh)
-    p = as_points(points_W_mm)
-    overlap = None  # a rigid motion changes no overlap: computed in W while the cloud is aligned and inspected
-    if scans_before_W is not None:
-        overlap = in_background(overlap_quality, scans_before_W, scans_after_W)
+def align_and_inspect(measured_W: Measurement, part: InspectedPart, settings: InspectionSettings,
+                      output: ReportOutput, start: AlignmentStart = AlignmentStart(),
+                      context: VerdictContext | None = None) -> InspectionOutputs:
+    """Register a cloud measured in frame W (``measured_W``) to the CAD frame F by ``settings.alignment`` from
+    ``start``, orient the CAD by the measured side (:func:`measured_side`: the start's scanner positions, else the
+    cloud's normals), then inspect and write as :func:`run_inspection`. The points on reference spheres are left
+    out of the inspection; the stitching views are mapped into F as well. A template aligned on datums
+    (``part.template``) refines the fit on its datum patches (:func:`align_datums`). A failed alignment writes the
+    report of a failed inspection (verdict "indeterminate", the reason) and returns it without a result."""
+    surface = part.surface
+    p = as_points(measured_W.points_mm)
+    # a rigid motion changes no overlap: computed in W while the cloud is aligned and inspected
+    views_W = None if measured_W.stitching is None else measured_W.stitching.started()
     try:
-        alignment = align(surface, p, AlignmentCriteria.from_section(cfg), start_T_F_W, start, prior_T_F_W)
+        alignment = align(surface, p, settings.alignment, start.T_F_W, start.description, start.prior_T_F_W)
     except AlignmentFailed as e:  # a failed inspection, with the reason on its report
         log.warning("%s", e)
-        failed = failed_report(str(e), e.attempt, title=report.get("title", "Inspection report"),
-                               meta=report.get("meta"))
-        html, js = write_report(failed, out_dir, report.get("json_name", "report.json"))
+        failed = failed_report(str(e), e.attempt, title=output.facts.title, meta=output.facts.meta)
+        html, js = write_report(failed, output.out_dir, output.json_name)
         return InspectionOutputs(None, failed.data, html, js, None)
-    template = report.get("template")
+    template = part.template
     if template is not None and template.alignment.method == "datums":
         alignment = align_datums(surface, p, alignment, [
             DatumPatch(d.feature, d.patch, template.patches[d.patch].min_mm, template.patches[d.patch].max_mm)
@@ -204,21 +211,21 @@ def align_and_inspect(
     T = alignment.T_F_W
     log.info("aligned to CAD by %s: residual %.4f mm, %d points on reference spheres left out",
              alignment.method, alignment.residual_mm, int((~keep).sum()))
-    surface, note = measured_side(surface, p, T, normals_W, viewpoints_W)
+    surface, note = measured_side(surface, p, T, measured_W.normals, start.viewpoints_W)
     if note:
-        report["meta"] = dict(report.get("meta") or {}) | {"CAD winding": note}
-
-    def into_F(scans: Sequence[np.ndarray] | None) -> PlacedScans | None:
-        return None if scans is None else PlacedScans(scans, T)
-
+        facts = dataclasses.replace(output.facts, meta=dict(output.facts.meta) | {"CAD winding": note})
+        output = dataclasses.replace(output, facts=facts)
     every = bool(keep.all())  # no copy of the cloud where no point is left out
-    return run_inspection(
-        in_chunks(transform_points, T, p if every else p[keep]), surface, out_dir, cfg,
-        normals=None if normals_W is None else in_chunks(
-            rotate_vectors, T, normals_W if every else np.asarray(normals_W)[keep]),
-        scans_before=into_F(scans_before_W), scans_after=into_F(scans_after_W), alignment=alignment,
-        overlap=overlap, **report,
-    )
+    normals_W = None if measured_W.normals is None else (
+        measured_W.normals if every else np.asarray(measured_W.normals)[keep])
+    measured_F = Measurement(
+        in_chunks(transform_points, T, p if every else p[keep]),
+        None if normals_W is None else in_chunks(rotate_vectors, T, normals_W),
+        measured_W.uncertainty,
+        None if views_W is None else StitchViews(
+            PlacedScans(views_W.before, T), None if views_W.after is None else PlacedScans(views_W.after, T),
+            views_W.overlap))
+    return run_inspection(measured_F, dataclasses.replace(part, surface=surface), settings, output, alignment, context)
 
 
 ORIENTATION_POINTS = 50_000  # measured points that vote for the side each patch of the CAD faces
@@ -266,15 +273,13 @@ class PlacedScans(Sequence):
         return transform_points(self._poses[i], self._scans[i])
 
 
-def inspect_files(
-    cloud_path: Path | str, cad_path: Path | str, out_dir: Path | str, cfg: InspectionConfig | None = None,
-    template: InspectionTemplate | None = None, part: Mapping[str, str] | None = None,
-    point_uncertainty_mm: float | None = None,
-) -> InspectionOutputs:
+def inspect_files(cloud_path: Path | str, cad_path: Path | str, out_dir: Path | str, settings: InspectionSettings,
+                  template: InspectionTemplate | None = None, identity: Mapping[str, str] | None = None,
+                  point_uncertainty_mm: float | None = None) -> InspectionOutputs:
     """Inspect a cloud file against a CAD mesh file; writes into ``out_dir``. The cloud is registered by
-    ``cfg.alignment`` (the template's, when given) from where it lies (within the first trim distance of its
-    place on CAD); ``template`` and ``part`` as :func:`run_inspection` takes them. The points' expanded
-    uncertainty (k = ``cfg.decision_k``, mm) is ``point_uncertainty_mm``, else the PLY's ``uncertainty_mm``
+    ``settings.alignment`` from where it lies (within the first trim distance of its place on CAD); ``template``
+    and ``identity`` as :class:`InspectedPart` holds them. The points' expanded uncertainty
+    (k = ``settings.criteria.decision_k``, mm) is ``point_uncertainty_mm``, else the PLY's ``uncertainty_mm``
     property where it has one (a job's ``cloud_deviation.ply``), else none is known (0)."""
     try:
         points, normals = read_ply(cloud_path)
@@ -287,8 +292,9 @@ def inspect_files(
             own = read_ply_vertices(cloud_path).get("uncertainty_mm")
         except CloudIOError:  # a layout only Open3D reads: it has no such property for us
             own = None
-    cfg = cfg or InspectionConfig()
     meta = {"cloud": str(cloud_path), "CAD mesh": str(cad_path), "points": str(len(points))}
-    given = None if own is None else GivenUncertainty(np.asarray(own, float), cfg.decision_k)
-    return align_and_inspect(points, mesh, out_dir, cfg, normals_W=normals, start="the cloud as given", meta=meta,
-                             template=template, part=part, uncertainty=given)
+    given = None if own is None else GivenUncertainty(np.asarray(own, float), settings.criteria.decision_k)
+    part = InspectedPart(CadSurface(mesh), template, dict(identity or {}))
+    return align_and_inspect(Measurement(points, normals, given), part, settings,
+                             ReportOutput(Path(out_dir), ReportFacts(meta=meta)),
+                             AlignmentStart(description="the cloud as given"))

@@ -15,12 +15,12 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import jinja2
 import numpy as np
 from matplotlib import colormaps
 from matplotlib.colors import Normalize
-from tandemscan.config.models import InspectionConfig
 from tandemscan.pipeline.inspection.alignment import Alignment
 from tandemscan.pipeline.inspection.characteristic_figures import CloseUp, closeup, section_png, trend_png
 from tandemscan.pipeline.inspection.characteristics import CharacteristicResult
@@ -40,12 +40,71 @@ from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionResult,
 from tandemscan.pipeline.inspection.spc import individuals_chart
 from tandemscan.pipeline.inspection.stitch_quality import PAIR_SAMPLE, overlap_quality, stitching_png
 from tandemscan.pipeline.io.durable import write_durably
+from tandemscan.pipeline.parameters import FromSection
 from tandemscan.pipeline.planning.coverage import CoverageFigures
+
+if TYPE_CHECKING:
+    from tandemscan.config.inspection_template import InspectionTemplate
 
 log = logging.getLogger(__name__)
 
 TEMPLATE = "report.html.j2"
 FAILED_TEMPLATE = "report_failed.html.j2"  # an inspection whose alignment failed
+
+
+@dataclass(frozen=True)
+class ReportStyle(FromSection):
+    """How the report draws: ``[inspection]``'s keys of the same names (``ReportStyle.from_section(cfg)``). The
+    colour maps saturate at +/- ``colour_limit_mm`` (None: 3x the wider tolerance), are ``map_width_px`` wide and
+    draw an even subsample of at most ``map_max_points``; ``views`` by name (``STANDARD_VIEWS``; "isometric" looks
+    at the measured side) or as a :class:`View`."""
+
+    colour_limit_mm: float | None
+    map_width_px: int
+    map_max_points: int
+    views: tuple[str | View, ...]
+
+
+@dataclass(frozen=True)
+class InspectedPart:
+    """The part a cloud is inspected against: its CAD ``surface`` (frame F, mm), its inspection ``template``
+    (characteristics; None: none), ``identity`` (part number, serial, template file and measuring system, as the
+    report and results.qif name them) and ``history`` (per characteristic id the part's earlier serials' results,
+    ``serial`` and ``actual_mm``, oldest first)."""
+
+    surface: CadSurface
+    template: InspectionTemplate | None = None
+    identity: Mapping[str, str] = field(default_factory=dict)
+    history: Mapping[str, Sequence[Mapping]] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class StitchViews:
+    """The stitching-quality view's inputs: each scan's points (mm, the frame of the cloud they go with) in
+    measuring order ``before`` and ``after`` the correction (None: not corrected), and their
+    :func:`overlap_quality` where it is being computed already (``overlap``, a future)."""
+
+    before: Sequence[np.ndarray]
+    after: Sequence[np.ndarray] | None = None
+    overlap: Future | None = None
+
+    def started(self) -> StitchViews:
+        """These views with their overlap being computed (on a thread of its own where it was not yet)."""
+        if self.overlap is not None:
+            return self
+        return dataclasses.replace(self, overlap=in_background(overlap_quality, self.before, self.after))
+
+
+@dataclass(frozen=True)
+class ReportFacts:
+    """What the report states beside the inspection: its ``title``, ``meta`` (the job, cloud and CAD files),
+    ``accuracy`` (figures computed elsewhere: pose errors against ground truth, calibration residuals) and
+    ``coverage`` (what the job's plan covers and leaves out, reported with the share of it the cloud measured)."""
+
+    title: str = "Inspection report"
+    meta: Mapping[str, str] = field(default_factory=dict)
+    accuracy: Mapping[str, float | int | str] = field(default_factory=dict)
+    coverage: CoverageFigures | None = None
 
 
 @dataclass(frozen=True)
@@ -112,98 +171,80 @@ def inspection_summary(result: InspectionResult, alignment: Alignment | None = N
 
 def build_report(
     result: InspectionResult,
-    surface: CadSurface,
-    cfg: InspectionConfig | None = None,
+    part: InspectedPart,
+    style: ReportStyle,
+    facts: ReportFacts = ReportFacts(),
     *,
-    title: str = "Inspection report",
-    meta: Mapping[str, str] | None = None,
-    accuracy: Mapping[str, float | int | str] | None = None,
-    scans_before: Sequence[np.ndarray] | None = None,
-    scans_after: Sequence[np.ndarray] | None = None,
-    views: Sequence[View] | None = None,
     alignment: Alignment | None = None,
-    overlap: Future | None = None,
+    stitching: StitchViews | None = None,
     characteristics: Sequence[CharacteristicResult] | Future = (),
-    part: Mapping[str, str] | None = None,
-    history: Mapping[str, Sequence[Mapping]] | None = None,
-    coverage: CoverageFigures | None = None,
 ) -> Report:
-    """Render the figures and collect the numbers of one inspection.
-
-    ``meta`` names the job, cloud and CAD files; ``accuracy`` carries figures computed elsewhere (pose
-    errors against ground truth, calibration residuals). ``scans_before``/``scans_after`` are the world
-    points (mm) of each scan in measuring order before/after correction, for the stitching-quality view.
-    ``views`` default to the config's; ``alignment`` is how the cloud was placed in the CAD frame (none:
-    it came in that frame). The deviation areas are labelled on every map (``#id`` at the centroid).
-    ``overlap``: the scans' :func:`overlap_quality` where it is being computed already.
-    ``characteristics``: the template's, evaluated (:mod:`tandemscan.pipeline.inspection.characteristics`),
-    which the report leads with (or their future, waited for once the maps are drawn); ``part``: its
-    template, part number and serial; ``history``: per characteristic id the part's earlier serials' results
-    (``serial``, ``actual_mm``), oldest first, whose trend the report shows for the characteristics that
-    fail or drift. ``coverage``: what the job's
-    plan covers and leaves out, reported with the share of it the cloud measured (``data["coverage"]``).
-
-    Fifteen parameters: the inspection's result, surface and settings, then keyword-only parts of the report, each
-    optional (a caller passes those it has).
-    """
-    cfg = cfg or InspectionConfig()
-    if overlap is None and scans_before is not None:
-        overlap = in_background(overlap_quality, scans_before, scans_after)
+    """Render the figures and collect the numbers of one inspection of ``part``, drawn as ``style`` says, with
+    ``facts`` beside them. ``alignment`` is how the cloud was placed in the CAD frame (none: it came in that
+    frame); ``stitching``: the scans before and after the correction, for the stitching-quality view;
+    ``characteristics``: the template's, evaluated (:mod:`tandemscan.pipeline.inspection.characteristics`), which
+    the report leads with (or their future, waited for once the maps are drawn), with the trend over the part's
+    serials (``part.history``) of those that fail or drift. The deviation areas are labelled on every map
+    (``#id`` at the centroid)."""
+    surface = part.surface
+    if stitching is not None:
+        stitching = stitching.started()
     tol = result.tolerance
-    norm = deviation_norm(tol.lower_mm, tol.upper_mm, cfg.colour_limit_mm)
-    every = max(1, int(np.ceil(len(result.points_mm) / cfg.map_max_points)))  # pictures only; numbers use all
+    norm = deviation_norm(tol.lower_mm, tol.upper_mm, style.colour_limit_mm)
+    every = max(1, int(np.ceil(len(result.points_mm) / style.map_max_points)))  # pictures only; numbers use all
     p, d, n = result.points_mm[::every], result.deviations_mm[::every], result.cad_normals[::every]
-    if views is None:  # the isometric view looks at the side that was measured
-        views = [facing_isometric(n) if k == "isometric" else STANDARD_VIEWS[k] for k in cfg.views]
+    views = [v if isinstance(v, View) else facing_isometric(n) if v == "isometric" else STANDARD_VIEWS[v]
+             for v in style.views]  # the isometric view looks at the side that was measured
     spacing = typical_spacing(p)
     callouts = [Callout(f"#{a.id}", a.centroid_mm, SIDE_COLOURS[a.side]) for a in result.areas]
     maps, split = [], []
     measured = _measured(result, surface)
     for i, view in enumerate(views):
-        png = deviation_map_png(surface, p, d, view, tol, norm, cfg.map_width_px, normals=n, spacing_mm=spacing,
+        png = deviation_map_png(surface, p, d, view, tol, norm, style.map_width_px, normals=n, spacing_mm=spacing,
                                 callouts=callouts)
         maps.append(ReportFigure(f"map-{i}", f"Deviation colour map, {view.name}", png))
         if i > 0:
             continue
-        coverage_map = _coverage_figure(result, surface, view, cfg, measured)  # the first view's picture cached
+        coverage_map = _coverage_figure(result, surface, view, style, measured)  # the first view's picture cached
         for label, side, keep in (("upper", "above", d > 0), ("lower", "below", d < 0)):  # first view only
             if keep.any():
                 title_ = f"{label.capitalize()} deviation (points {side} CAD), {view.name}"
                 ours = [c for c, a in zip(callouts, result.areas, strict=True) if a.side == label]
-                png = deviation_map_png(surface, p[keep], d[keep], view, tol, norm, cfg.map_width_px, title_,
+                png = deviation_map_png(surface, p[keep], d[keep], view, tol, norm, style.map_width_px, title_,
                                         n[keep], spacing, ours)
                 split.append(ReportFigure(f"{label}-deviation", title_, png))
     if isinstance(characteristics, Future):  # evaluated while the maps were drawn
         characteristics = characteristics.result()
-    trends = trend_figures(characteristics, history or {}, part or {})
+    trends = trend_figures(characteristics, part.history, part.identity)
     quality = quality_figures(result, characteristics, tol, norm) + [f for f, _ in trends]
-    figures = quality + maps + _uncertainty_map(result, surface, views[0], cfg, p, n, spacing, every) + [
+    figures = quality + maps + _uncertainty_map(result, surface, views[0], style, p, n, spacing, every) + [
         coverage_map] + split
     hist = histogram_png(result.deviations_mm, result.stats, tol, norm)
     caption = "Deviation histogram with the tolerance band (the outer bins collect the 0.1 % tails)"
     figures.append(ReportFigure("histogram", caption, hist))
     pairs = []
-    if scans_before is not None:
-        assert overlap is not None
-        pairs = overlap.result()
-        png = stitching_png(scans_before, scans_after, pairs)
+    if stitching is not None:
+        assert stitching.overlap is not None
+        pairs = stitching.overlap.result()
+        png = stitching_png(stitching.before, stitching.after, pairs)
         if png is not None:
             caption = ("Overlap of neighbouring scans before and after correction (RMS of an even subsample of "
                        f"at most {PAIR_SAMPLE} overlap points a pair)")
             figures.append(ReportFigure("stitching", caption, png))
     data = {
-        "title": title,
+        "title": facts.title,
         "created_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "units": {"length": "mm", "angle": "deg", "deviation_sign": "+ = above the CAD surface (outward normal)"},
-        "meta": dict(meta or {}),
+        "meta": dict(facts.meta),
         "colour_scale_mm": [norm.vmin, norm.vmax],
         **inspection_summary(result, alignment),
-        "part": dict(part or {}),
+        "part": dict(part.identity),
         "characteristics": [c.summary() for c in characteristics],
         "trends": [t for _, t in trends],
-        **({} if coverage is None else {"coverage": coverage.with_measured(surface.mesh, measured).as_dict()}),
+        **({} if facts.coverage is None
+           else {"coverage": facts.coverage.with_measured(surface.mesh, measured).as_dict()}),
         "closeups": [dict(c.summary(), figure=f"figures/closeup-{c.area_id}.png") for c in closeups_of(quality)],
-        "accuracy": _plain(dict(accuracy or {})),
+        "accuracy": _plain(dict(facts.accuracy)),
         "stitching": [_plain(pr) for pr in pairs],
         "figures": [{"name": f.name, "caption": f.caption, "file": f"figures/{f.name}.png"} for f in figures],
     }
@@ -259,7 +300,7 @@ def closeups_of(figures: Sequence[ReportFigure]) -> list[CloseUp]:
     return [f.closeup for f in figures if isinstance(f, CloseUpFigure) and f.closeup is not None]
 
 
-def _uncertainty_map(result: InspectionResult, surface: CadSurface, view: View, cfg: InspectionConfig,
+def _uncertainty_map(result: InspectionResult, surface: CadSurface, view: View, style: ReportStyle,
                      p: np.ndarray, n: np.ndarray, spacing: float, every: int) -> list[ReportFigure]:
     """The points' expanded uncertainty U on the first view (none where every U is 0): viridis from 0 to the
     larger of its 99th percentile and a quarter of the tolerance width; the bar marks where the test uncertainty
@@ -271,11 +312,11 @@ def _uncertainty_map(result: InspectionResult, surface: CadSurface, view: View, 
     if j is None or not np.any(j.uncertainty.expanded_mm > 0.0):
         return []
     U = j.uncertainty.expanded_mm[::every]
-    width = cfg.tolerance_upper_mm - cfg.tolerance_lower_mm
+    width = result.tolerance.upper_mm - result.tolerance.lower_mm
     norm = Normalize(0.0, max(float(np.percentile(U, 99)), 0.25 * width))
     mark = ToleranceResult(width / 8.0, width / 8.0, 0.0, 0.0, 0.0)
     title = f"Expanded uncertainty U (k = {j.rule.k:g}) of the deviation, {view.name}"
-    png = deviation_map_png(surface, p, U, view, mark, norm, cfg.map_width_px, title, n, spacing, (),
+    png = deviation_map_png(surface, p, U, view, mark, norm, style.map_width_px, title, n, spacing, (),
                             colormaps["viridis"], f"U (k = {j.rule.k:g}), mm; line: TUR 4:1")
     return [ReportFigure("uncertainty-map", title, png)]
 
@@ -297,9 +338,9 @@ def _measured(result: InspectionResult, surface: CadSurface) -> np.ndarray:
 
 
 def _coverage_figure(result: InspectionResult, surface: CadSurface, view: View,
-                     cfg: InspectionConfig, measured: np.ndarray) -> ReportFigure:
+                     style: ReportStyle, measured: np.ndarray) -> ReportFigure:
     """The coverage map: measured (``measured``, per CAD triangle) vs not measured, in the first view."""
-    png = coverage_map_png(surface, result.points_mm, view, cfg.map_width_px, measured)
+    png = coverage_map_png(surface, result.points_mm, view, style.map_width_px, measured)
     return ReportFigure("coverage", f"Coverage of the CAD surface (measured vs not measured), {view.name}", png)
 
 

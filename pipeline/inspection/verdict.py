@@ -24,7 +24,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
-from tandemscan.config.models import InspectionConfig
 from tandemscan.pipeline.inspection.decision import (
     DecisionRule,
     Tolerance,
@@ -34,7 +33,7 @@ from tandemscan.pipeline.inspection.decision import (
     uncertainty_ratio,
 )
 from tandemscan.pipeline.inspection.deviation_areas import NEIGHBOURS, DeviationArea, find_deviation_areas
-from tandemscan.pipeline.inspection.inspect import InspectionResult, region_mask
+from tandemscan.pipeline.inspection.inspect import InspectionCriteria, InspectionResult, region_mask
 from tandemscan.pipeline.inspection.point_uncertainty import PointUncertainty
 
 
@@ -90,15 +89,15 @@ def _points_averaged(points_mm: np.ndarray, radius_mm: float) -> float:
     return float(min(NEIGHBOURS, np.median(counts)))
 
 
-def judge(result: InspectionResult, u: PointUncertainty, cfg: InspectionConfig,
+def judge(result: InspectionResult, u: PointUncertainty, criteria: InspectionCriteria,
           context: VerdictContext | None = None) -> InspectionResult:
     """``result`` with its deviation areas decided (``decision``, ``uncertainty_mm``, ``reason``) and its
     :class:`Judgement` (module doc)."""
     context = context or VerdictContext()
-    rule = DecisionRule.of(cfg)
-    band = Tolerance(cfg.tolerance_lower_mm, cfg.tolerance_upper_mm)
+    rule = criteria.rule
+    band = Tolerance(criteria.tolerance_lower_mm, criteria.tolerance_upper_mm)
     p, d = result.points_mm, result.deviations_mm
-    area_u = averaged_uncertainty(u, _points_averaged(p, cfg.area_smoothing_mm))
+    area_u = averaged_uncertainty(u, _points_averaged(p, criteria.area_smoothing_mm))
     guard = float(np.percentile(area_u, 95)) if len(area_u) else 0.0
     no_room = rule.name == "iso14253-1" and 2.0 * guard >= band.width
     if rule.name == "simple":
@@ -107,8 +106,9 @@ def judge(result: InspectionResult, u: PointUncertainty, cfg: InspectionConfig,
         lo, hi = band.lower - guard, band.upper + guard
     else:
         lo, hi = band.lower + guard, band.upper - guard
-    same = (lo, hi) == (cfg.tolerance_lower_mm, cfg.tolerance_upper_mm)  # the areas found already
-    found = result.areas if same else find_deviation_areas(p, d, lo, hi, cfg.area_smoothing_mm, cfg.area_min_mm2)
+    same = (lo, hi) == (criteria.tolerance_lower_mm, criteria.tolerance_upper_mm)  # the areas found already
+    found = result.areas if same else find_deviation_areas(p, d, lo, hi, criteria.area_smoothing_mm,
+                                                           criteria.area_min_mm2)
     tree = cKDTree(p[:: max(1, len(p) // 500_000)]) if found else None
     step = max(1, len(p) // 500_000)
     areas = []
@@ -122,7 +122,7 @@ def judge(result: InspectionResult, u: PointUncertainty, cfg: InspectionConfig,
                                          uncertainty_mm=round(decision.uncertainty, 5), reason=decision.reason))
     areas_t = tuple(areas)
     regions = tuple(_region(name, mask, areas_t, p, u, area_u, band, rule)
-                    for name, mask in _region_masks(result, cfg))
+                    for name, mask in _region_masks(result, criteria))
     reasons = _reasons(areas_t, u, area_u, band, rule, no_room, context)
     verdict = combine([_area_verdict(a) for a in areas_t] + (["indeterminate"] if no_room or context.holds else [])
                       + ["pass"])
@@ -134,9 +134,9 @@ def _area_verdict(a: DeviationArea) -> Verdict:
     return "fail" if a.decision == "nonconforming" else "indeterminate"
 
 
-def _region_masks(result: InspectionResult, cfg: InspectionConfig) -> list[tuple[str, np.ndarray]]:
+def _region_masks(result: InspectionResult, criteria: InspectionCriteria) -> list[tuple[str, np.ndarray]]:
     """The configured regions' masks (the mesh groups' regions are reported with their statistics only)."""
-    return [(r.name, region_mask(result.points_mm, r)) for r in cfg.regions]
+    return [(r.name, region_mask(result.points_mm, r)) for r in criteria.regions]
 
 
 def _region(name: str, mask: np.ndarray, areas: tuple[DeviationArea, ...], p: np.ndarray,

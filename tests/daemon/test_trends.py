@@ -103,14 +103,21 @@ async def test_trend_endpoint_serves_the_ten_serials_with_their_chart(ten_serial
 
 def test_the_report_shows_the_trend_of_a_failing_characteristic(tmp_path):
     from tandemscan.config.models import InspectionConfig
-    from tandemscan.pipeline.inspection.inspection_job import run_inspection
+    from tandemscan.pipeline.inspection.inspection_job import (
+        InspectionSettings,
+        Measurement,
+        ReportOutput,
+        run_inspection,
+    )
+    from tandemscan.pipeline.inspection.report import InspectedPart
 
     cloud = sampled_cloud("config/as-built-example.toml", (-430.0, 900.0, 600.0), (-270.0, 1100.0, 760.0), 0.3, 9)
     history = {"SP-2": [{"serial": f"SN-{k}", "actual_mm": -0.28 - 0.002 * k, "status": "fail"} for k in range(9)],
                "SEC-2": [{"serial": "SN-0", "actual_mm": 0.0, "status": "pass"}]}
     cfg = InspectionConfig(views=("right",), map_width_px=150, best_fit=False, regions=())
-    out = run_inspection(cloud.points_mm, cloud.surface, tmp_path, cfg, template=load_template(shipped_template()),
-                         part={"serial": "SN-9"}, history=history)
+    part = InspectedPart(cloud.surface, load_template(shipped_template()), {"serial": "SN-9"}, history)
+    out = run_inspection(Measurement(cloud.points_mm), part, InspectionSettings.from_section(cfg),
+                         ReportOutput(tmp_path))
     trends = {t["id"]: t for t in out.data["trends"]}
     assert set(trends) == {"SP-2"}  # SEC-1 fails with no history; SEC-2 was not measured here
     assert trends["SP-2"]["serials"] == [*(f"SN-{k}" for k in range(9)), "SN-9"] and len(trends["SP-2"]["values"]) == 10

@@ -17,7 +17,7 @@ from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.inspection.alignment import AlignmentCriteria, AlignmentFailed, align, fit_to_surface
 from tandemscan.pipeline.inspection.cad_orientation import consistent_winding, orient
 from tandemscan.pipeline.inspection.deviation_maps import View, deviation_norm, render_view
-from tandemscan.pipeline.inspection.inspect import CadSurface, inspect_cloud
+from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionCriteria, inspect_cloud
 from tandemscan.pipeline.inspection.inspection_job import measured_side
 from tandemscan.pipeline.io.export import write_ply
 from tandemscan.sim_drivers.generated_parts import PARTS, arch_panel, random_misplacement
@@ -45,7 +45,7 @@ def inspect_from(part, surface, p_W, n_W, T_W_F):
     normals, inspect; the alignment's error against the truth at the CAD's centre."""
     a = align(surface, p_W, AlignmentCriteria.from_section(CFG))
     oriented, note = measured_side(surface, p_W, a.T_F_W, n_W, None)
-    res = inspect_cloud(F.transform_points(a.T_F_W, p_W), oriented, CFG)
+    res = inspect_cloud(F.transform_points(a.T_F_W, p_W), oriented, InspectionCriteria.from_section(CFG))
     return a, alignment_error(a.T_F_W, F.invert(T_W_F), centre_of(part.mesh)), res, note
 
 

@@ -171,12 +171,20 @@ def test_report_leads_with_the_characteristics_and_shows_each_area_close_up(tmp_
     import json
 
     from matplotlib.image import imread
-    from tandemscan.pipeline.inspection.inspection_job import run_inspection
+    from tandemscan.pipeline.inspection.inspection_job import (
+        InspectionSettings,
+        Measurement,
+        ReportOutput,
+        run_inspection,
+    )
+    from tandemscan.pipeline.inspection.report import InspectedPart
 
     cloud = sampled_cloud("config/as-built-example.toml", (-430.0, 900.0, 600.0), (-270.0, 1100.0, 760.0), 1.0, 6)
     cfg = InspectionConfig(views=("right",), map_width_px=300, best_fit=False, regions=())
-    out = run_inspection(cloud.points_mm, cloud.surface, tmp_path, cfg, template=load_template(shipped_template()),
-                         part={"part_number": "TS-NOSE-3000", "serial": "SN-0001"})
+    part = InspectedPart(cloud.surface, load_template(shipped_template()),
+                         {"part_number": "TS-NOSE-3000", "serial": "SN-0001"})
+    out = run_inspection(Measurement(cloud.points_mm), part, InspectionSettings.from_section(cfg),
+                         ReportOutput(tmp_path))
     html = (tmp_path / "report.html").read_text()
     assert html.index('id="characteristics"') < html.index('id="verdict"') < html.index('id="map-0"')
     assert "SN-0001" in html and "<td class=\"l\">SP-2</td>" in html
@@ -224,7 +232,13 @@ def test_a_datum_reference_frame_leaves_a_raised_end_where_a_best_fit_would_spre
     the top's profile reads the whole 0.5 mm."""
     import open3d as o3d
     from tandemscan.pipeline.geometry import frames as F
-    from tandemscan.pipeline.inspection.inspection_job import align_and_inspect
+    from tandemscan.pipeline.inspection.inspection_job import (
+        InspectionSettings,
+        Measurement,
+        ReportOutput,
+        align_and_inspect,
+    )
+    from tandemscan.pipeline.inspection.report import InspectedPart
 
     box = o3d.geometry.TriangleMesh.create_box(400.0, 200.0, 100.0)
     box.compute_triangle_normals()
@@ -245,7 +259,9 @@ datums = [{feature = 'plane', patch = 'bottom'}, {feature = 'line', patch = 'fro
 [[characteristics]]\nid = 'SP-TOP'\nname = 'top'\nkind = 'surface_profile'\nregion = {patch = 'top'}
 lower_mm = -0.2\nupper_mm = 0.2\n""")
     cfg = InspectionConfig(views=("top",), map_width_px=150, best_fit=False, regions=(), reference_spheres=())
-    out = align_and_inspect(F.transform_points(T_true, p), cad, tmp_path, cfg, template=load_template(path))
+    template = load_template(path)
+    out = align_and_inspect(Measurement(F.transform_points(T_true, p)), InspectedPart(cad, template),
+                            InspectionSettings.from_section(cfg, template), ReportOutput(tmp_path))
     T = out.data["alignment"]
     assert T["method"] == "datums"
     corners = np.asarray(box.vertices)

@@ -16,6 +16,7 @@ from tandemscan.pipeline.inspection.decision import (
     decide_points,
     uncertainty_ratio,
 )
+from tandemscan.pipeline.inspection.inspect import InspectionCriteria
 
 BAND = Tolerance(-0.5, 0.5)
 ISO = DecisionRule()
@@ -93,9 +94,9 @@ def test_bad_input_is_refused():
 
 
 def test_config_names_the_rule_iso_by_default():
-    assert DecisionRule.of(CellConfig().inspection) == DecisionRule("iso14253-1", 2.0)
-    cfg = InspectionConfig(decision_rule="simple", decision_k=3.0)
-    assert DecisionRule.of(cfg).as_dict() == {"name": "simple", "k": 3.0}
-    assert DecisionRule.of(cfg).label == "simple acceptance (k = 3)"
+    assert InspectionCriteria.from_section(CellConfig().inspection).rule == DecisionRule("iso14253-1", 2.0)
+    rule = InspectionCriteria.from_section(InspectionConfig(decision_rule="simple", decision_k=3.0)).rule
+    assert rule.as_dict() == {"name": "simple", "k": 3.0}
+    assert rule.label == "simple acceptance (k = 3)"
     with pytest.raises(ValueError):
         InspectionConfig(decision_rule="guarded")

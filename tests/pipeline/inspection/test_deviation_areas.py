@@ -8,8 +8,8 @@ import open3d as o3d
 import pytest
 from tandemscan.config.models import InspectionConfig
 from tandemscan.pipeline.inspection.deviation_areas import find_deviation_areas
-from tandemscan.pipeline.inspection.inspect import CadSurface, inspect_cloud
-from tandemscan.pipeline.inspection.report import build_report
+from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionCriteria, inspect_cloud
+from tandemscan.pipeline.inspection.report import InspectedPart, ReportStyle, build_report
 
 
 def bell(points, centre, radius, depth):
@@ -54,13 +54,13 @@ def test_verdict_and_report_list_the_areas_with_callouts():
     rng = np.random.default_rng(2)
     p, d = plane(rng, noise=0.01, step=1.5)
     p[:, 2] = 50.0
-    ok = inspect_cloud(p, box, InspectionConfig(best_fit=False))
+    ok = inspect_cloud(p, box, InspectionCriteria.from_section(InspectionConfig(best_fit=False)))
     assert ok.verdict == "pass" and ok.areas == ()
     p[:, 2] += bell(p, (120.0, 140.0), 30.0, 0.4)
     cfg = InspectionConfig(best_fit=False, map_width_px=300, views=("top",), regions=())
-    result = inspect_cloud(p, box, cfg)
+    result = inspect_cloud(p, box, InspectionCriteria.from_section(cfg))
     assert result.verdict == "fail" and [a.side for a in result.areas] == ["upper"]
-    report = build_report(result, box, cfg)
+    report = build_report(result, InspectedPart(box), ReportStyle.from_section(cfg))
     assert report.data["verdict"] == "fail" and report.data["alignment"]["method"] == "none"
     (area,) = report.data["deviations"]
     assert set(area) == {"id", "side", "centroid_mm", "area_mm2", "extreme_mm", "mean_mm", "points", "decision",

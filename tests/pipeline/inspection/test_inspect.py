@@ -12,6 +12,7 @@ from tandemscan.pipeline.geometry.frames import from_rotvec, invert, transform_p
 from tandemscan.pipeline.inspection.inspect import (
     CadSurface,
     DeviationStats,
+    InspectionCriteria,
     InspectionError,
     ToleranceResult,
     inspect_cloud,
@@ -178,6 +179,11 @@ def test_tolerance_shares_and_stats_by_hand():
         ToleranceResult.of(d, 0.2, 0.1)
 
 
+def criteria(**kw) -> InspectionCriteria:
+    """``[inspection]``'s defaults, but ``kw``, as :func:`inspect_cloud` takes them."""
+    return InspectionCriteria.from_section(InspectionConfig(**kw))
+
+
 def test_regions_and_best_fit_reported_apart():
     size = (400.0, 200.0, 100.0)
     mesh = box_mesh(size)
@@ -193,7 +199,7 @@ def test_regions_and_best_fit_reported_apart():
         ),
         best_fit_max_distance_mm=2.0,
     )
-    res = inspect_cloud(measured, mesh, cfg)
+    res = inspect_cloud(measured, mesh, InspectionCriteria.from_section(cfg))
     assert res.stats.rms_mm > 0.1 and res.tolerance.in_pct < 60  # as measured: the misplacement shows
     fit = res.best_fit
     assert fit is not None and fit.converged
@@ -220,7 +226,7 @@ def test_bad_input_is_a_clear_error():
     with pytest.raises(InspectionError, match="no triangles"):
         CadSurface(o3d.geometry.TriangleMesh())
     # a cloud too far off for the best fit still gets its as-measured result, with the reason noted
-    far = inspect_cloud(CENTRE + [[1e4, 0, 0]] * 10, mesh, InspectionConfig(best_fit_max_distance_mm=1.0))
+    far = inspect_cloud(CENTRE + [[1e4, 0, 0]] * 10, mesh, criteria(best_fit_max_distance_mm=1.0))
     assert far.best_fit is None and "only 0 points within 1.0 mm" in far.best_fit_note
     assert far.stats.min_mm == pytest.approx(1e4 - 400.0) and far.stats.mean_mm > 9000
 
@@ -236,13 +242,13 @@ def test_regions_from_mesh_material_groups(tmp_path):
     rng = np.random.default_rng(0)
     left = np.c_[rng.uniform(1, 99, 300), rng.uniform(1, 99, 300), np.full(300, 0.05)]
     right = np.c_[rng.uniform(101, 199, 500), rng.uniform(1, 99, 500), np.full(500, -0.2)]
-    res = inspect_cloud(np.vstack([left, right]), mesh, InspectionConfig(regions=(), best_fit=False))
+    res = inspect_cloud(np.vstack([left, right]), mesh, criteria(regions=(), best_fit=False))
     assert len(res.regions) == 2
     by_count = sorted(res.regions, key=lambda r: r.stats.count)
     assert by_count[0].stats.count == 300 and by_count[0].stats.mean_mm == pytest.approx(0.05, abs=UM)
     assert by_count[1].stats.count == 500 and by_count[1].stats.mean_mm == pytest.approx(-0.2, abs=UM)
     assert all(r.name.startswith("mesh group") for r in res.regions)
-    off = inspect_cloud(left, mesh, InspectionConfig(regions=(), best_fit=False, mesh_group_regions=False))
+    off = inspect_cloud(left, mesh, criteria(regions=(), best_fit=False, mesh_group_regions=False))
     assert off.regions == ()
 
 

@@ -14,8 +14,9 @@ from tandemscan.config.inspection_template import load_template, shipped_templat
 from tandemscan.config.models import InspectionConfig
 from tandemscan.daemon.cli.inspect_cmd import main
 from tandemscan.pipeline.geometry import frames as F
-from tandemscan.pipeline.inspection.inspection_job import run_inspection
+from tandemscan.pipeline.inspection.inspection_job import InspectionSettings, Measurement, ReportOutput, run_inspection
 from tandemscan.pipeline.inspection.qif import QIF_KINDS
+from tandemscan.pipeline.inspection.report import InspectedPart
 from test_characteristics import sampled_cloud
 
 NS = {"q": "http://qifstandards.org/xsd/qif3"}
@@ -39,8 +40,10 @@ def qif_statuses(path) -> tuple[dict[str, str], str | None, ET.Element]:
 def test_results_qif_validates_and_reads_back_as_the_report(tmp_path, qif_schema):
     cloud = sampled_cloud("config/as-built-example.toml", (-430.0, 900.0, 600.0), (-270.0, 1100.0, 760.0), 1.0, 6)
     cfg = InspectionConfig(views=("right",), map_width_px=200, best_fit=False, regions=())
-    out = run_inspection(cloud.points_mm, cloud.surface, tmp_path, cfg, template=load_template(shipped_template()),
-                         part={"serial": "SN-0042", "measuring_system": "simulated cell"})
+    part = InspectedPart(cloud.surface, load_template(shipped_template()),
+                         {"serial": "SN-0042", "measuring_system": "simulated cell"})
+    out = run_inspection(Measurement(cloud.points_mm), part, InspectionSettings.from_section(cfg),
+                         ReportOutput(tmp_path))
     assert out.qif == tmp_path / "results.qif"
     qif_schema.validate(str(out.qif))
     statuses, serial, root = qif_statuses(out.qif)

@@ -23,8 +23,15 @@ from tandemscan.pipeline.inspection.deviation_maps import (
     measured_triangles,
     render_view,
 )
-from tandemscan.pipeline.inspection.inspect import CadSurface, inspect_cloud
-from tandemscan.pipeline.inspection.report import build_report, write_report
+from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionCriteria, inspect_cloud
+from tandemscan.pipeline.inspection.report import (
+    InspectedPart,
+    ReportFacts,
+    ReportStyle,
+    StitchViews,
+    build_report,
+    write_report,
+)
 from tandemscan.pipeline.inspection.stitch_quality import overlap_quality
 
 
@@ -103,13 +110,12 @@ def make_report(box, tmp_path):
     pts = np.vstack([grid_on_face(100.0, step=3.0), grid_on_face(0.0, step=3.0)])
     pts[:, 2] += 0.08 * np.sin(pts[:, 0] / 40.0) + rng.normal(0, 0.01, len(pts))
     cfg = InspectionConfig(map_width_px=400)
-    result = inspect_cloud(pts, box, cfg)
+    result = inspect_cloud(pts, box, InspectionCriteria.from_section(cfg))
     views = (View("isometric", (-1.0, 1.0, -0.8)), View("top (from +z)", (0, 0, -1), up=(0, 1, 0)))
-    report = build_report(
-        result, box, cfg, title="Box <test>", meta={"cloud": "cloud.ply", "cad": "box.stl"},
-        accuracy={"stitched RMS vs CAD, mm": 0.0123, "scans": 3},
-        scans_before=layered_scans(0.2), scans_after=layered_scans(0.0), views=views,
-    )
+    facts = ReportFacts("Box <test>", {"cloud": "cloud.ply", "cad": "box.stl"},
+                        {"stitched RMS vs CAD, mm": 0.0123, "scans": 3})
+    report = build_report(result, InspectedPart(box), ReportStyle.from_section(cfg, views=views), facts,
+                          stitching=StitchViews(layered_scans(0.2), layered_scans(0.0)))
     return result, report, write_report(report, tmp_path)
 
 

@@ -6,6 +6,7 @@ import open3d as o3d
 import pytest
 from tandemscan.config.models import InspectionConfig, RegionConfig
 from tandemscan.pipeline.inspection.inspect import CadSurface, inspect_cloud
+from tandemscan.pipeline.inspection.inspection_job import InspectionSettings
 from tandemscan.pipeline.inspection.point_uncertainty import GivenUncertainty
 from tandemscan.pipeline.inspection.verdict import VerdictContext, judge
 from tandemscan.pipeline.io.cloud_io import read_ply_vertices
@@ -32,20 +33,20 @@ def top_with_bumps(step=1.5):
     return p
 
 
-def cfg(**kw):
+def cfg(**kw) -> InspectionSettings:
     regions = (RegionConfig(name="left", min_mm=(-1.0, -1.0, -1.0), max_mm=(200.0, 301.0, 100.0)),
                RegionConfig(name="right", min_mm=(200.0, -1.0, -1.0), max_mm=(601.0, 301.0, 100.0)))
-    return InspectionConfig(**({"best_fit": False, "tolerance_lower_mm": -0.5, "tolerance_upper_mm": 0.5,
-                                "regions": regions} | kw))
+    return InspectionSettings.from_section(InspectionConfig(**(
+        {"best_fit": False, "tolerance_lower_mm": -0.5, "tolerance_upper_mm": 0.5, "regions": regions} | kw)))
 
 
 def judged(box, c, U=0.25, context=None):
     """The top inspected and judged with a point U independent from point to point (about 22 points averaged
     within the 4 mm smoothing radius at 1.5 mm spacing: the areas' U about a fifth of it)."""
-    result = inspect_cloud(top_with_bumps(), box, c)
-    u = GivenUncertainty(U).evaluate(result.points_mm, result.cad_normals, c.decision_k, np.eye(4), "none", None,
-                                     None)
-    return judge(result, u, c, context)
+    result = inspect_cloud(top_with_bumps(), box, c.criteria)
+    u = GivenUncertainty(U).evaluate(result.points_mm, result.cad_normals, c.criteria.decision_k, np.eye(4), "none",
+                                     None, None)
+    return judge(result, u, c.criteria, context)
 
 
 def area_at(result, centre):
@@ -72,8 +73,8 @@ def test_without_the_failing_bump_the_indeterminate_area_decides(box):
     r = judged(box, c)
     cut = r.points_mm[:, 0] > 200.0
     u = GivenUncertainty(0.25).evaluate(r.points_mm[cut], r.cad_normals[cut], 2.0, np.eye(4), "none", None, None)
-    part = inspect_cloud(r.points_mm[cut], box, c)
-    verdict = judge(part, u, c)
+    part = inspect_cloud(r.points_mm[cut], box, c.criteria)
+    verdict = judge(part, u, c.criteria)
     assert verdict.verdict == "indeterminate" and [a.decision for a in verdict.areas] == ["indeterminate"]
     assert "within U of a limit" in verdict.judgement.reasons[0]
 
@@ -97,26 +98,28 @@ def test_an_uncertainty_as_wide_as_the_band_proves_nothing_conforming(box):
 
 def test_a_held_verdict_is_indeterminate_and_the_nominal_installation_is_named(box):
     c = cfg()
-    part = inspect_cloud(top_with_bumps()[::2], box, c)
+    part = inspect_cloud(top_with_bumps()[::2], box, c.criteria)
     keep = np.abs(part.deviations_mm) < 0.2  # the flat top only: conformance is proven
-    flat = inspect_cloud(part.points_mm[keep], box, c)
+    flat = inspect_cloud(part.points_mm[keep], box, c.criteria)
     u = GivenUncertainty(0.05).evaluate(flat.points_mm, flat.cad_normals, 2.0, np.eye(4), "none", None, None)
-    assert judge(flat, u, c).verdict == "pass"
-    held = judge(flat, u, c, VerdictContext(holds=("the last verification is 30 h old, more than 24 h",)))
+    assert judge(flat, u, c.criteria).verdict == "pass"
+    held = judge(flat, u, c.criteria, VerdictContext(holds=("the last verification is 30 h old, more than 24 h",)))
     assert held.verdict == "indeterminate" and "30 h old" in " ".join(held.judgement.reasons)
-    nominal = judge(flat, u, c, VerdictContext(installation={"source": "nominal"}))
+    nominal = judge(flat, u, c.criteria, VerdictContext(installation={"source": "nominal"}))
     assert any("nominal mounts" in why for why in nominal.judgement.reasons)
 
 
 def test_report_states_the_rule_the_budget_the_ratios_and_maps_the_uncertainty(box, tmp_path):
     import json
 
-    from tandemscan.pipeline.inspection.inspection_job import run_inspection
+    from tandemscan.pipeline.inspection.inspection_job import Measurement, ReportOutput, run_inspection
+    from tandemscan.pipeline.inspection.report import InspectedPart
 
     c = cfg(views=("top",), map_width_px=250)
-    out = run_inspection(top_with_bumps(3.0), box, tmp_path, c, uncertainty=GivenUncertainty(0.25),
-                         context=VerdictContext(installation={"source": "calibration", "file": "cal.json",
-                                                              "date": "2026-12-05T18:00:00+00:00"}))
+    context = VerdictContext(installation={"source": "calibration", "file": "cal.json",
+                                           "date": "2026-12-05T18:00:00+00:00"})
+    out = run_inspection(Measurement(top_with_bumps(3.0), uncertainty=GivenUncertainty(0.25)), InspectedPart(box), c,
+                         ReportOutput(tmp_path), context=context)
     data = json.loads((tmp_path / "report.json").read_text())["inspection"]
     assert data["verdict"] == out.result.verdict == "fail"
     assert data["decision_rule"] == {"name": "iso14253-1", "k": 2.0}
