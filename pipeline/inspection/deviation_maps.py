@@ -11,13 +11,13 @@ from __future__ import annotations
 import functools
 import io
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import open3d as o3d
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.cm import ScalarMappable
-from matplotlib.colors import LinearSegmentedColormap, Normalize
+from matplotlib.colors import Colormap, LinearSegmentedColormap, Normalize
 from matplotlib.figure import Figure
 from scipy.spatial import cKDTree
 from tandemscan.pipeline.inspection.inspect import CadSurface, DeviationStats, ToleranceResult
@@ -78,6 +78,34 @@ def _camera(view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 @dataclass(frozen=True)
+class MapPoints:
+    """What a colour map draws: points (frame F, mm), a value each (a deviation or an uncertainty, mm), the unit
+    normals of their closest CAD triangles (None: any pixel in front shows them) and their typical spacing (mm;
+    None: measured, :func:`typical_spacing`)."""
+
+    points_mm: np.ndarray
+    values: np.ndarray
+    normals: np.ndarray | None = None
+    spacing_mm: float | None = None
+
+    def subset(self, keep: np.ndarray) -> MapPoints:
+        """The points ``keep`` (a mask or indices) selects, at the same spacing."""
+        return MapPoints(self.points_mm[keep], self.values[keep],
+                         None if self.normals is None else self.normals[keep], self.spacing_mm)
+
+
+@dataclass(frozen=True)
+class ColourScale:
+    """How a map's values become colours: ``norm`` over ``cmap``, a colour bar labelled ``label`` with a line at
+    each of ``marks`` (the tolerance limits, mm)."""
+
+    norm: Normalize
+    marks: tuple[float, ...] = ()
+    cmap: Colormap = field(default_factory=lambda: DEVIATION_CMAP)
+    label: str = "deviation, mm"
+
+
+@dataclass(frozen=True)
 class Rendering:
     """An RGB image (rows top-down, float 0-1) and its extent on the view plane, mm (left, right, bottom, top)."""
 
@@ -129,37 +157,30 @@ def _background(surface: CadSurface, view: View, width_px: int) -> _Background:
 
 def render_view(
     surface: CadSurface,
-    points_mm: np.ndarray,
-    values: np.ndarray,
+    drawn: MapPoints,
     view: View,
     norm: Normalize,
     width_px: int = 900,
-    cmap=DEVIATION_CMAP,
+    cmap: Colormap = DEVIATION_CMAP,
     depth_margin_mm: float | None = None,
-    normals: np.ndarray | None = None,
-    spacing_mm: float | None = None,
 ) -> Rendering:
-    """Ray-cast the CAD mesh along ``view`` and paint the visible points coloured by ``values``.
+    """Ray-cast the CAD mesh along ``view`` and paint the visible points of ``drawn`` coloured by their values.
 
     A point is visible when it lies no more than ``depth_margin_mm`` (default: three pixels plus the colour
     range) behind the first CAD surface on its pixel; among visible points the nearest wins each pixel, and
-    points are splatted over as many pixels as their spacing (``spacing_mm``, default: measured) needs, so
-    gaps in the data stay grey. With ``normals`` (of each point's closest CAD triangle) a point is drawn only
+    points are splatted over as many pixels as their spacing needs, so gaps in the data stay grey. With
+    normals (of each point's closest CAD triangle) a point is drawn only
     on pixels whose CAD triangle faces the same way as its own, from whichever side the camera sees it: an
     open panel shows its measured points from outside and from inside, a thin closed part's far wall stays
-    hidden behind its near one (docs/inspection-method.md, "Method").
-
-    Ten parameters: what is drawn (the surface, the points and their values, the view and the colour scale), then
-    drawing options with defaults.
-    """
+    hidden behind its near one (docs/inspection-method.md, "Method")."""
     bg = _background(surface, view, width_px)
     f, r, u, px = bg.f, bg.r, bg.u, bg.px
     x0, x1, y0, y1 = bg.extent_mm
     height_px = bg.t_hit.shape[0]
-    p = np.asarray(points_mm, float)
-    values = np.asarray(values, float)
-    spacing = typical_spacing(p) if spacing_mm is None else spacing_mm
-    own = None if normals is None else np.asarray(normals, np.float32)
+    p = np.asarray(drawn.points_mm, float)
+    values = np.asarray(drawn.values, float)
+    spacing = typical_spacing(p) if drawn.spacing_mm is None else drawn.spacing_mm
+    own = None if drawn.normals is None else np.asarray(drawn.normals, np.float32)
     c = np.floor((p @ r - x0) / px).astype(np.int64)
     rr = np.floor((y1 - p @ u) / px).astype(np.int64)
     depth = p @ f - bg.depth0
@@ -237,28 +258,19 @@ def deviation_norm(lower_mm: float, upper_mm: float, limit_mm: float | None = No
 
 def deviation_map_png(
     surface: CadSurface,
-    points_mm: np.ndarray,
-    deviations_mm: np.ndarray,
+    drawn: MapPoints,
     view: View,
-    tolerance: ToleranceResult,
-    norm: Normalize,
+    scale: ColourScale,
     width_px: int = 900,
     title: str | None = None,
-    normals: np.ndarray | None = None,
-    spacing_mm: float | None = None,
     callouts: Sequence[Callout] = (),
-    cmap=DEVIATION_CMAP,
-    bar_label: str = "deviation, mm",
 ) -> bytes:
-    """One deviation colour map as PNG: the view, mm axes on the view plane, a colour bar with the band,
-    and a labelled leader to each of ``callouts`` this view sees. Fixed axes positions (no layout engine:
-    text measuring would cost more than the picture). ``cmap`` and ``bar_label`` draw another field per point
-    (the uncertainty map: ``tolerance``'s limits are then its marks on the bar).
-
-    Thirteen parameters: what is drawn (the surface, the points and their deviations, the view, the band and the
-    colour scale), then drawing options with defaults."""
-    img = render_view(surface, points_mm, deviations_mm, view, norm, width_px, cmap=cmap, normals=normals,
-                      spacing_mm=spacing_mm)
+    """One deviation colour map as PNG: the view, mm axes on the view plane, a colour bar with the band
+    (``scale.marks``), and a labelled leader to each of ``callouts`` this view sees. Fixed axes positions (no
+    layout engine: text measuring would cost more than the picture). Another ``scale`` draws another field per
+    point (the uncertainty map)."""
+    norm = scale.norm
+    img = render_view(surface, drawn, view, norm, width_px, scale.cmap)
     h, w = img.rgb.shape[:2]
     fig_w, left, right, bottom, top = 8.0, 0.85, 1.3, 0.6, 0.45  # inches
     fig_h = bottom + top + (fig_w - left - right) * h / w
@@ -278,8 +290,8 @@ def deviation_map_png(
                     textcoords="offset points", fontsize=9, fontweight="bold", color=c.colour,
                     bbox={"boxstyle": "round,pad=0.2", "fc": "white", "ec": c.colour, "lw": 1.0},
                     arrowprops={"arrowstyle": "-", "color": c.colour, "lw": 1.2})
-    bar = fig.colorbar(ScalarMappable(norm, cmap), cax=cax, label=bar_label)
-    for v in (tolerance.lower_mm, tolerance.upper_mm):
+    bar = fig.colorbar(ScalarMappable(norm, scale.cmap), cax=cax, label=scale.label)
+    for v in scale.marks:
         bar.ax.axhline(v, color="black", lw=1.2)
     return png_bytes(fig)
 

@@ -27,6 +27,8 @@ from tandemscan.pipeline.inspection.characteristics import CharacteristicResult
 from tandemscan.pipeline.inspection.deviation_maps import (
     STANDARD_VIEWS,
     Callout,
+    ColourScale,
+    MapPoints,
     View,
     coverage_map_png,
     deviation_map_png,
@@ -36,7 +38,7 @@ from tandemscan.pipeline.inspection.deviation_maps import (
     measured_triangles,
     typical_spacing,
 )
-from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionResult, ToleranceResult
+from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionResult
 from tandemscan.pipeline.inspection.spc import individuals_chart
 from tandemscan.pipeline.inspection.stitch_quality import PAIR_SAMPLE, overlap_quality, stitching_png
 from tandemscan.pipeline.io.durable import write_durably
@@ -195,13 +197,13 @@ def build_report(
     p, d, n = result.points_mm[::every], result.deviations_mm[::every], result.cad_normals[::every]
     views = [v if isinstance(v, View) else facing_isometric(n) if v == "isometric" else STANDARD_VIEWS[v]
              for v in style.views]  # the isometric view looks at the side that was measured
-    spacing = typical_spacing(p)
+    drawn = MapPoints(p, d, n, typical_spacing(p))
+    scale = ColourScale(norm, (tol.lower_mm, tol.upper_mm))
     callouts = [Callout(f"#{a.id}", a.centroid_mm, SIDE_COLOURS[a.side]) for a in result.areas]
     maps, split = [], []
     measured = _measured(result, surface)
     for i, view in enumerate(views):
-        png = deviation_map_png(surface, p, d, view, tol, norm, style.map_width_px, normals=n, spacing_mm=spacing,
-                                callouts=callouts)
+        png = deviation_map_png(surface, drawn, view, scale, style.map_width_px, callouts=callouts)
         maps.append(ReportFigure(f"map-{i}", f"Deviation colour map, {view.name}", png))
         if i > 0:
             continue
@@ -210,14 +212,13 @@ def build_report(
             if keep.any():
                 title_ = f"{label.capitalize()} deviation (points {side} CAD), {view.name}"
                 ours = [c for c, a in zip(callouts, result.areas, strict=True) if a.side == label]
-                png = deviation_map_png(surface, p[keep], d[keep], view, tol, norm, style.map_width_px, title_,
-                                        n[keep], spacing, ours)
+                png = deviation_map_png(surface, drawn.subset(keep), view, scale, style.map_width_px, title_, ours)
                 split.append(ReportFigure(f"{label}-deviation", title_, png))
     if isinstance(characteristics, Future):  # evaluated while the maps were drawn
         characteristics = characteristics.result()
     trends = trend_figures(characteristics, part.history, part.identity)
     quality = quality_figures(result, characteristics, tol, norm) + [f for f, _ in trends]
-    figures = quality + maps + _uncertainty_map(result, surface, views[0], style, p, n, spacing, every) + [
+    figures = quality + maps + _uncertainty_map(result, surface, views[0], style, drawn, every) + [
         coverage_map] + split
     hist = histogram_png(result.deviations_mm, result.stats, tol, norm)
     caption = "Deviation histogram with the tolerance band (the outer bins collect the 0.1 % tails)"
@@ -301,23 +302,21 @@ def closeups_of(figures: Sequence[ReportFigure]) -> list[CloseUp]:
 
 
 def _uncertainty_map(result: InspectionResult, surface: CadSurface, view: View, style: ReportStyle,
-                     p: np.ndarray, n: np.ndarray, spacing: float, every: int) -> list[ReportFigure]:
-    """The points' expanded uncertainty U on the first view (none where every U is 0): viridis from 0 to the
-    larger of its 99th percentile and a quarter of the tolerance width; the bar marks where the test uncertainty
-    ratio is 4:1 (U = width / 8).
-
-    Eight parameters: the result, surface, view and settings, and the points, normals, spacing and thinning the
-    deviation maps drew with."""
+                     deviations: MapPoints, every: int) -> list[ReportFigure]:
+    """The points' expanded uncertainty U on the first view (none where every U is 0), at the points the
+    deviation maps drew (``deviations``, every ``every``-th of the result's): viridis from 0 to the larger of its
+    99th percentile and a quarter of the tolerance width; the bar marks where the test uncertainty ratio is 4:1
+    (U = width / 8)."""
     j = result.judgement
     if j is None or not np.any(j.uncertainty.expanded_mm > 0.0):
         return []
     U = j.uncertainty.expanded_mm[::every]
     width = result.tolerance.upper_mm - result.tolerance.lower_mm
     norm = Normalize(0.0, max(float(np.percentile(U, 99)), 0.25 * width))
-    mark = ToleranceResult(width / 8.0, width / 8.0, 0.0, 0.0, 0.0)
+    scale = ColourScale(norm, (width / 8.0,), colormaps["viridis"], f"U (k = {j.rule.k:g}), mm; line: TUR 4:1")
     title = f"Expanded uncertainty U (k = {j.rule.k:g}) of the deviation, {view.name}"
-    png = deviation_map_png(surface, p, U, view, mark, norm, style.map_width_px, title, n, spacing, (),
-                            colormaps["viridis"], f"U (k = {j.rule.k:g}), mm; line: TUR 4:1")
+    png = deviation_map_png(surface, dataclasses.replace(deviations, values=U), view, scale, style.map_width_px,
+                            title)
     return [ReportFigure("uncertainty-map", title, png)]
 
 

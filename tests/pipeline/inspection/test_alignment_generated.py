@@ -16,7 +16,7 @@ from tandemscan.daemon.cli.inspect_cmd import main
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.inspection.alignment import AlignmentCriteria, AlignmentFailed, align, fit_to_surface
 from tandemscan.pipeline.inspection.cad_orientation import consistent_winding, orient
-from tandemscan.pipeline.inspection.deviation_maps import View, deviation_norm, render_view
+from tandemscan.pipeline.inspection.deviation_maps import MapPoints, View, deviation_norm, render_view
 from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionCriteria, inspect_cloud
 from tandemscan.pipeline.inspection.inspection_job import measured_side
 from tandemscan.pipeline.io.export import write_ply
@@ -187,17 +187,16 @@ def test_maps_draw_an_open_panel_from_outside_and_inside():
     p, _ = part.measured(20_000, 0.0, rng)
     cp = surface.closest(p)
     norm = deviation_norm(-0.1, 0.1)
-    outside = render_view(surface, p, cp.signed_mm, View("top", (0.0, 0.0, -1.0), (0.0, 1.0, 0.0)), norm, 200,
-                          normals=cp.normals)
-    inside = render_view(surface, p, cp.signed_mm, View("bottom", (0.0, 0.0, 1.0), (0.0, 1.0, 0.0)), norm, 200,
-                         normals=cp.normals)
+    drawn = MapPoints(p, cp.signed_mm, cp.normals)
+    outside = render_view(surface, drawn, View("top", (0.0, 0.0, -1.0), (0.0, 1.0, 0.0)), norm, 200)
+    inside = render_view(surface, drawn, View("bottom", (0.0, 0.0, 1.0), (0.0, 1.0, 0.0)), norm, 200)
     assert outside.coloured_px > 5000 and inside.coloured_px > 0.8 * outside.coloured_px
     box = o3d.geometry.TriangleMesh.create_box(400.0, 300.0, 2.0)  # a 2 mm plate, closed
     plate = CadSurface(box)
     under = np.c_[rng.uniform(0, 400, 4000), rng.uniform(0, 300, 4000), np.zeros(4000)]  # its bottom face only
     cpb = plate.closest(under)
-    seen = render_view(plate, under, cpb.signed_mm, View("top", (0.0, 0.0, -1.0), (0.0, 1.0, 0.0)), norm, 200,
-                       normals=cpb.normals)
+    seen = render_view(plate, MapPoints(under, cpb.signed_mm, cpb.normals), View("top", (0.0, 0.0, -1.0),
+                                                                                 (0.0, 1.0, 0.0)), norm, 200)
     assert seen.coloured_px == 0
 
 

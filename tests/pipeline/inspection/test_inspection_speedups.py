@@ -189,6 +189,7 @@ def test_colour_map_z_buffer_picks_the_nearest_point_of_each_pixel_as_a_sort_wou
     from tandemscan.pipeline.inspection.deviation_maps import (
         DEVIATION_CMAP,
         STANDARD_VIEWS,
+        MapPoints,
         _background,
         deviation_norm,
         render_view,
@@ -202,7 +203,7 @@ def test_colour_map_z_buffer_picks_the_nearest_point_of_each_pixel_as_a_sort_wou
     values = rng.normal(0.0, 0.2, len(p))
     norm = deviation_norm(-0.1, 0.1)
     for view in (STANDARD_VIEWS["isometric"], STANDARD_VIEWS["top"]):
-        ours = render_view(surface, p, values, view, norm, 300, spacing_mm=3.0, depth_margin_mm=400.0)
+        ours = render_view(surface, MapPoints(p, values, spacing_mm=3.0), view, norm, 300, depth_margin_mm=400.0)
         bg = _background(surface, view, 300)  # the same splats, resolved by sorting (pixel, depth)
         x0, _, _, y1 = bg.extent_mm
         c, r = np.floor((p @ bg.r - x0) / bg.px).astype(int), np.floor((y1 - p @ bg.u) / bg.px).astype(int)

@@ -17,6 +17,7 @@ import pytest
 from tandemscan.config.models import InspectionConfig
 from tandemscan.pipeline.inspection.deviation_maps import (
     DEVIATION_CMAP,
+    MapPoints,
     View,
     coverage_map_png,
     deviation_norm,
@@ -51,7 +52,7 @@ def test_colour_map_paints_visible_points_only(box):
     pts = np.vstack([top, bottom])
     vals = np.r_[np.full(len(top), 0.3), np.full(len(bottom), -0.3)]
     norm = deviation_norm(-0.1, 0.1)
-    img = render_view(box, pts, vals, View("top", (0, 0, -1), up=(0, 1, 0)), norm, width_px=300)
+    img = render_view(box, MapPoints(pts, vals), View("top", (0, 0, -1), up=(0, 1, 0)), norm, width_px=300)
     red, blue = DEVIATION_CMAP(norm(0.3))[:3], DEVIATION_CMAP(norm(-0.3))[:3]
     flat = img.rgb.reshape(-1, 3)
     n_red = np.all(np.isclose(flat, red, atol=1e-6), axis=1).sum()
@@ -59,7 +60,7 @@ def test_colour_map_paints_visible_points_only(box):
     assert n_red == img.coloured_px > 0.9 * (400 * 200) / px_mm**2  # the top face is covered, in red
     assert not np.all(np.isclose(flat, blue, atol=1e-6), axis=1).any()
     # seen from below, the same cloud is blue and the red layer is hidden
-    img = render_view(box, pts, vals, View("bottom", (0, 0, 1), up=(0, 1, 0)), norm, width_px=300)
+    img = render_view(box, MapPoints(pts, vals), View("bottom", (0, 0, 1), up=(0, 1, 0)), norm, width_px=300)
     flat = img.rgb.reshape(-1, 3)
     assert np.all(np.isclose(flat, blue, atol=1e-6), axis=1).sum() == img.coloured_px > 0
     assert not np.all(np.isclose(flat, red, atol=1e-6), axis=1).any()
