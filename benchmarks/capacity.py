@@ -26,8 +26,8 @@ keeps it in ``benchmarks/results/capacity.json`` (``results.publish``).
 The per-process peaks (``peaks``, first in the JSON): per worker count and size the largest peak over the stages of
 the process running them and of a worker, with the stage, and issue 43's memory line on them (a worker at most
 3 GiB and within 15 % of it on the longer part, the main process under 1.5 GiB); each size's also on stderr as it
-ends. ``--band-share`` keeps the views of a band across each part (the same share of its length from its tail, so
-twice the scans on the longer part) where the whole parts do not fit the time at hand.
+ends. ``--band-share`` keeps the views of a band across each part's body (the same share of its length from its
+tail, the end cap left out, so twice the scans on the longer part) where the whole parts do not fit the time at hand.
 
 Usage: ``nice -n 10 .venv/bin/python benchmarks/capacity.py [--resolution coarse|full|COLSxROWS] [--scans 369]
 [--length-factor 2] [--tile-mm 500] [--workers 1 2] [--folder DIR] [--no-e57] [--band-share 1] [--sizes nose
@@ -113,10 +113,11 @@ def _pixels(resolution: str) -> tuple[int, int]:
 def make_job(folder: Path, part: PartConfig, scans: int, pixels: tuple[int, int], seed: int,
              band_share: float = 1.0) -> Job:
     """``scans`` views spread over the part's upper surface (Poisson disk; normals facing down left out), of them
-    those whose centre lies in the first ``band_share`` of the part's length from its tail (x from ``-length/2``:
-    a band across the part, the same density of views), each ray cast at the sweet spot along the normal and
-    written as a raw scan (frame S, mm) with its pose off the true one by :data:`TRACKER_SIGMA`; W is the CAD frame
-    F."""
+    with ``band_share`` under 1 those on the body whose centre lies in the first ``band_share`` of the part's length
+    from its tail (x from ``-length/2``; the tail's end cap left out, a wall across x whose views fill one tile: a
+    band across the part, the same density of views, twice the scans on a part twice as long), each ray cast at the
+    sweet spot along the normal and written as a raw scan (frame S, mm) with its pose off the true one by
+    :data:`TRACKER_SIGMA`; W is the CAD frame F."""
     import open3d as o3d
 
     rng = np.random.default_rng(seed)
@@ -127,7 +128,10 @@ def make_job(folder: Path, part: PartConfig, scans: int, pixels: tuple[int, int]
     up_share = _upper_share(mesh, np.asarray(mesh.triangle_normals))
     views = mesh.sample_points_poisson_disk(max(2, round(scans / up_share)), use_triangle_normal=True)
     centres, facing = np.asarray(views.points), np.asarray(views.normals)
-    keep = (facing[:, 2] > -0.3) & (centres[:, 0] <= part.length_mm * (band_share - 0.5))
+    keep = facing[:, 2] > -0.3
+    if band_share < 1.0:  # the body's views only: the tail's end cap (centres on x = -length/2) is one x slab
+        tail = -0.5 * part.length_mm
+        keep &= (centres[:, 0] > tail + 1.0) & (centres[:, 0] <= tail + band_share * part.length_mm)
     scanner = ScannerConfig(coarse_pixels=pixels, resolution="coarse")
     model, scene = ScannerModel(scanner), make_scene(mesh)
     files, poses, raw = [], [], 0

@@ -140,20 +140,28 @@ def merge_stage(voxel_mm: float, scan_files: Sequence[Path], poses: Sequence[np.
         return VoxelMap.combined(thread_map(merged, groups))
 
 
-def merged_cloud(job: JobSnapshot, voxel_mm: float, poses: Sequence[np.ndarray], points_S: Sequence[np.ndarray]
-                 ) -> MapCloud:
+def scan_x_bounds(job: JobSnapshot, voxel_mm: float, poses: Sequence[np.ndarray], points_S: Sequence[np.ndarray]
+                  ) -> tuple[tuple[float, float], ...]:
+    """Each scan's bound of its points' x in W (mm; ``tiles.scan_x_extent`` at its final pose of ``poses``, from
+    its copy thinned at ``[job] voxel_mm``, ``points_S``; ``voxel_mm`` the merge's): all the tiled merge needs of the
+    copies, so that they can be freed before it."""
+    return tuple(scan_x_extent(T, p, job.config.job.voxel_mm, voxel_mm) for T, p in zip(poses, points_S, strict=True))
+
+
+def merged_cloud(job: JobSnapshot, voxel_mm: float, poses: Sequence[np.ndarray],
+                 x_bounds_mm: Sequence[tuple[float, float]]) -> MapCloud:
     """The job's cloud at its final ``poses`` (W, mm) in voxels of edge ``voxel_mm``: with ``[compute] tile_mm``
     merged by slabs of W on the compute backend (``tiles.merge_tiles``, docs/compute.md "Tiles": each unit reads
-    only the scans whose bound, from their thinned copies ``points_S``, meets its slab, from the scan store), then
-    read back here for the exports, which still take the whole cloud; else here (:func:`merge_stage`)."""
+    only the scans whose bound of x, ``x_bounds_mm`` (:func:`scan_x_bounds`), meets its slab, from the scan store),
+    then read back here for the exports, which still take the whole cloud; else here (:func:`merge_stage`)."""
     from tandemscan.daemon.jobs.pose_correction import in_job  # the registration stack, as correct_stage
 
     compute = job.config.compute
     if not compute.tile_mm:
         return merge_stage(voxel_mm, [s.file for s in job.scans], poses).frozen()
     store = compute.scan_store or job.job_dir
-    refs = [TileScan(in_job(Path(s.file), job.job_dir), T, *scan_x_extent(T, p, job.config.job.voxel_mm, voxel_mm))
-            for s, T, p in zip(job.scans, poses, points_S, strict=True)]
+    refs = [TileScan(in_job(Path(s.file), job.job_dir), T, *bound)
+            for s, T, bound in zip(job.scans, poses, x_bounds_mm, strict=True)]
     backend = backend_for(compute)
     try:
         tiles = merge_tiles(refs, voxel_mm, compute.tile_mm, store, backend)
@@ -168,13 +176,14 @@ def merged_cloud(job: JobSnapshot, voxel_mm: float, poses: Sequence[np.ndarray],
 def finish_job(job: JobSnapshot, started: float, measured_at: float,
                online: OnlineWork | None = None, stages: Mapping[str, float] | None = None,
                loaded: LoadedScans | None = None) -> FinishedJob:
-    """Correct, merge, export and inspect a measured job. It takes over ``job.worldmap``, the map stitched while
-    the job measured (tracker poses), and leaves there the finished job's cloud (``worldmap.MapCloud``), so that
-    the caller, holding no other reference, lets the end of the job free the map's sums. Memory: the thinned
-    scans, the maps of one merge and one cloud at a time and one full scan a core; where the correction changed
-    the poses, the map stitched while measuring is dropped before the merge at the corrected poses (on the
-    simulated cell its cloud is kept, float32, for the score of the tracker stitch, ``correction.before``). Each
-    raw scan file is read at most twice here: by the merge at the corrected poses and by the E57.
+    """Correct, merge, export and inspect a measured job. It takes over ``job.worldmap``, the map stitched while the
+    job measured (tracker poses), and leaves there the finished job's cloud (``worldmap.MapCloud``), so that the
+    caller, holding no other reference, lets the end of the job free the map's sums. Memory: the thinned scans until
+    the correction is done, the maps of one merge and one cloud at a time and one full scan a core; where the
+    correction changed the poses, the map stitched while measuring is dropped before the merge at the corrected
+    poses (on the simulated cell its cloud is kept, float32, for the score of the tracker stitch,
+    ``correction.before``). Each raw scan file is read at most twice here: by the merge at the corrected poses and
+    by the E57.
     ``started`` and ``measured_at`` are ``time.monotonic()`` at the job's start and at its last step's commit;
     ``online``: what the job computed while it measured (``registration.correction.OnlineWork``: registered pairs, scans
     prepared for the joint refinement); ``stages`` (s) are timings of the work before this call; ``loaded``: the
@@ -186,8 +195,9 @@ def finish_job(job: JobSnapshot, started: float, measured_at: float,
         timings["read_s"] = round(time.perf_counter() - t, 3)
     outcome = correct_stage(job, loaded, online)
     view_S = tuple(stitch_view_points(p) for p in loaded.points_S)  # all the exports need of the copies
-    points_S = loaded.points_S if outcome.corrected and job.config.compute.tile_mm else ()  # the tiles' bounds
-    del loaded
+    x_bounds = (scan_x_bounds(job, job.worldmap.voxel_mm, outcome.poses, loaded.points_S)
+                if outcome.corrected and job.config.compute.tile_mm else ())  # all the tiled merge needs of them
+    del loaded  # the copies freed before the merge (a whole part's at full resolution: about 1.2 GB)
     t = time.perf_counter()
     tracker_map, job.worldmap = job.worldmap, None
     tracker_poses = tracker_stitch = None
@@ -196,8 +206,7 @@ def finish_job(job: JobSnapshot, started: float, measured_at: float,
         if job.scorer is not None:  # the observer scores the tracker stitch too: its cloud (float32), not merged again
             tracker_stitch = dataclasses.replace(job, worldmap=tracker_map.frozen(np.float32))
         del tracker_map                              # the cloud is merged anew at the corrected poses
-        job.worldmap = merged_cloud(job, voxel_mm, outcome.poses, points_S)
-        del points_S
+        job.worldmap = merged_cloud(job, voxel_mm, outcome.poses, x_bounds)
     else:
         job.worldmap = tracker_map.frozen()
         del tracker_map

@@ -12,7 +12,7 @@ import numpy as np
 import pye57
 import pytest
 from tandemscan.daemon.cell.session import CellSession
-from tandemscan.daemon.jobs.finish import merge_stage, merged_cloud
+from tandemscan.daemon.jobs.finish import merge_stage, merged_cloud, scan_x_bounds
 from tandemscan.daemon.jobs.outputs import write_job_outputs
 from tandemscan.daemon.jobs.runner import JobRunner
 from tandemscan.daemon.plans import default_plan_path
@@ -81,7 +81,7 @@ def test_the_cloud_merged_by_tiles_on_the_backend_is_the_one_merged_here(scan_fi
     files, _, poses = scan_files
     tiled_config = sim_config.model_copy(update={"compute": sim_config.compute.model_copy(update={"tile_mm": 50.0})})
     job = SimpleNamespace(job_dir=tmp_path, scans=[SimpleNamespace(file=f) for f in files], config=tiled_config)
-    tiled = merged_cloud(job, 1.0, poses, [read_thinned_scan(f, 1.0) for f in files])
+    tiled = merged_cloud(job, 1.0, poses, scan_x_bounds(job, 1.0, poses, [read_thinned_scan(f, 1.0) for f in files]))
     here = merge_stage(1.0, files, poses).frozen()
     assert len(tiled) == len(here) > 1000
     np.testing.assert_array_equal(tiled.counts(), here.counts())
