@@ -105,6 +105,8 @@ class PartConfig(_Strict):
     ``openings`` cut into either."""
 
     mesh: Path | None = None
+    mesh_units: Literal["mm", "cm", "m", "in"] = Field(
+        "mm", description="the unit of the mesh file's coordinates, read into millimetres (--part-units)")
     length_mm: float = Field(3000.0, gt=0)
     width_mm: float = Field(2000.0, gt=0)
     height_mm: float = Field(1600.0, gt=0)

@@ -41,6 +41,7 @@ def plan_configured_part(config: CellConfig, name: str):
     """Plan the configured part (mesh file or parametric nose); the tracker chain starts where the tracking robot
     stands (``[planning] tracker_start``). Returns the mesh and the :class:`PartPlan`; raises :class:`PlanPartError`."""
     from tandemscan.pipeline.geometry.part import PartMeshError, load_part_mesh
+    from tandemscan.pipeline.geometry.units import extent_mm, small_part_hint
     from tandemscan.pipeline.planning.planner import plan_part
     from tandemscan.pipeline.planning.sequence import SequenceError
     from tandemscan.pipeline.planning.stations import StationPlanningError
@@ -49,10 +50,14 @@ def plan_configured_part(config: CellConfig, name: str):
     start = config.planning.tracker_start
     try:
         mesh = load_part_mesh(config.part)
+    except PartMeshError as e:
+        raise PlanPartError(str(e)) from e
+    try:
         return mesh, plan_part(mesh, config, tracker_start=(start.x_mm, start.y_mm, np.radians(start.heading_deg)),
                                name=name, part=part_name(config))
-    except (PartMeshError, StationPlanningError, TrackerPlanningError, SequenceError) as e:
-        raise PlanPartError(str(e)) from e
+    except (StationPlanningError, TrackerPlanningError, SequenceError) as e:  # a part read in the wrong unit?
+        hint = small_part_hint(extent_mm(np.asarray(mesh.vertices)), "--part-units")
+        raise PlanPartError(f"{e}; {hint}" if hint else str(e)) from e
 
 
 def check_plan_part(plan: Plan, plan_file: Path, config: CellConfig) -> None:

@@ -23,6 +23,7 @@ from tandemscan.daemon.cli.command import (
 )
 from tandemscan.daemon.cli.plan_cmd import describe
 from tandemscan.daemon.plans import PlanPartError, check_plan_part, default_plan_path, plan_configured_part
+from tandemscan.pipeline.geometry.units import MM_PER_UNIT
 
 
 def register(sub) -> None:
@@ -32,6 +33,7 @@ def register(sub) -> None:
     p.add_argument("--plan", type=Path, help="plan TOML/JSON (default: planned now for --part, else the shipped band "
                    "plan of the default part); refused when made for another part")
     p.add_argument("--part", type=Path, help="part mesh STL/PLY/OBJ in mm (default: the parametric train nose)")
+    p.add_argument("--part-units", choices=sorted(MM_PER_UNIT), help="the unit of the part mesh file (default: mm)")
     p.add_argument("--resolution", choices=["coarse", "full"], help="simulated scanner resolution")
     p.add_argument("--out", type=Path, help="output folder (default: job.out_dir of the config)")
     p.add_argument("--calibration", type=Path, help="calibration file from `tandemscan calibrate` (sets "

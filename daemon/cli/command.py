@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
-from pathlib import Path
 
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
@@ -82,11 +81,13 @@ class Defect(CommandError):
 
 def config_from_args(args: argparse.Namespace) -> CellConfig:
     """The cell configuration of ``--config`` with what the command's options override: ``--part`` (the mesh),
-    ``--calibration`` (the installation from that file), ``--serial`` and ``--part-number``, ``--resolution``."""
+    ``--part-units``, ``--calibration`` (the installation from that file), ``--serial`` and ``--part-number``,
+    ``--resolution``."""
     config = load_config(args.config)
-    part_mesh = getattr(args, "part", None)
-    if part_mesh is not None:
-        config = config.model_copy(update={"part": config.part.model_copy(update={"mesh": Path(part_mesh)})})
+    part = {k: v for k, v in (("mesh", getattr(args, "part", None)), ("mesh_units", getattr(args, "part_units", None)))
+            if v is not None}
+    if part:
+        config = config.model_copy(update={"part": config.part.model_copy(update=part)})
     calibration = getattr(args, "calibration", None)
     if calibration is not None:
         job = config.job.model_copy(update={"installation_source": "calibration", "calibration_file": calibration})

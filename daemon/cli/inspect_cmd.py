@@ -15,6 +15,7 @@ from pathlib import Path
 
 from tandemscan.config import ConfigError, load_config
 from tandemscan.config.inspection_template import load_template
+from tandemscan.pipeline.geometry.units import MM_PER_UNIT
 
 EXIT_BAD_INPUT = 2
 EXIT_NOT_INSPECTED = 5  # the alignment to CAD failed (docs/cli.md: not completed): report.html and report.json say why
@@ -52,6 +53,8 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--point-uncertainty-mm", type=float, default=None, metavar="U",
                    help="the cloud's own expanded uncertainty per point (k = [inspection] decision_k), mm; default: "
                    "the PLY's uncertainty_mm property where it has one, else 0")
+    p.add_argument("--cad-units", choices=sorted(MM_PER_UNIT), default="mm", help="the unit of the CAD mesh file")
+    p.add_argument("--cloud-units", choices=sorted(MM_PER_UNIT), default="mm", help="the unit of the cloud file")
     p.add_argument("--no-best-fit", action="store_true",
                    help="skip the separate best-fit figures reported after the alignment")
     p.set_defaults(func=run)
@@ -88,7 +91,8 @@ def run(args: argparse.Namespace) -> int:
         if args.point_uncertainty_mm is not None and not args.point_uncertainty_mm >= 0:
             raise InspectionError(f"--point-uncertainty-mm must be >= 0 mm, got {args.point_uncertainty_mm}")
         settings = InspectionSettings.from_section(cfg, template)
-        outputs = inspect_files(args.cloud, args.cad, out, settings, template, part, args.point_uncertainty_mm)
+        outputs = inspect_files(args.cloud, args.cad, out, settings, template, part, args.point_uncertainty_mm,
+                                (args.cad_units, args.cloud_units))
     except (InspectionError, ConfigError, OSError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return EXIT_BAD_INPUT

@@ -16,6 +16,7 @@ import numpy as np
 from rich.console import Console
 from tandemscan.daemon.cli.command import UsageError, config_from_args
 from tandemscan.daemon.plans import PlanPartError, part_name, plan_configured_part
+from tandemscan.pipeline.geometry.units import MM_PER_UNIT
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -23,6 +24,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser("plan", help="plan AGV stations, scans and tracker transfers for a part")
     p.add_argument("--config", type=Path, help="cell configuration TOML (default: the simulated cell)")
     p.add_argument("--part", type=Path, help="part mesh STL/PLY/OBJ in mm (default: the parametric train nose)")
+    p.add_argument("--part-units", choices=sorted(MM_PER_UNIT), help="the unit of the part mesh file (default: mm)")
     p.add_argument("--out", type=Path, help="plan file .toml/.json (default: <job.out_dir>/plan.toml)")
     p.add_argument("--png", type=Path, help="also draw the plan's top view to this PNG")
     p.set_defaults(func=cmd_plan)

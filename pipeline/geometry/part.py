@@ -13,6 +13,7 @@ import numpy as np
 import open3d as o3d
 from tandemscan.config.models import PartConfig
 from tandemscan.pipeline.geometry.openings import cut_openings
+from tandemscan.pipeline.geometry.units import MM_PER_UNIT
 from tandemscan.pipeline.io.cloud_io import has_ply_magic
 from tandemscan.pipeline.planning.plan import PartIdentity
 
@@ -26,12 +27,13 @@ class PartMeshError(Exception):
 def load_part_mesh(part: PartConfig) -> o3d.geometry.TriangleMesh:
     """The CAD mesh of ``part``: the file ``part.mesh`` (mm) or, when unset, :func:`train_nose_mesh`; with
     ``part.openings`` cut into it (:func:`~tandemscan.pipeline.geometry.openings.cut_openings`)."""
-    mesh = train_nose_mesh(part) if part.mesh is None else read_mesh_file(part.mesh)
+    mesh = train_nose_mesh(part) if part.mesh is None else read_mesh_file(part.mesh, units=part.mesh_units)
     return cut_openings(mesh, part.openings) if part.openings else mesh
 
 
-def read_mesh_file(path: Path, what: str = "mesh") -> o3d.geometry.TriangleMesh:
-    """Read an STL/PLY/OBJ mesh in millimetres, with vertex normals; raises :class:`PartMeshError`
+def read_mesh_file(path: Path, what: str = "mesh", units: str = "mm") -> o3d.geometry.TriangleMesh:
+    """Read an STL/PLY/OBJ mesh into millimetres (its coordinates in ``units``, a key of
+    :data:`~tandemscan.pipeline.geometry.units.MM_PER_UNIT`), with vertex normals; raises :class:`PartMeshError`
     whose message names the file and calls it ``what`` (e.g. ``"CAD mesh"``)."""
     path = Path(path)
     if not path.is_file():
@@ -44,6 +46,8 @@ def read_mesh_file(path: Path, what: str = "mesh") -> o3d.geometry.TriangleMesh:
         mesh = o3d.io.read_triangle_mesh(str(path))
     if len(mesh.triangles) == 0:
         raise PartMeshError(f"{path}: no triangles could be read (formats: {' '.join(MESH_SUFFIXES)})")
+    if MM_PER_UNIT[units] != 1.0:
+        mesh.scale(MM_PER_UNIT[units], center=np.zeros(3))
     mesh.compute_vertex_normals()
     return mesh
 

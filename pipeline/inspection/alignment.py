@@ -24,9 +24,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 from tandemscan.pipeline.calibration.plate import PlateError, fit_sphere
 from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.geometry.units import extent_mm, scale_mismatch
+from tandemscan.pipeline.inspection.cad_orientation import orient
 from tandemscan.pipeline.inspection.inspect import (
     CadSurface,
     InspectionError,
+    SeenFrom,
     SurfaceFit,
     as_points,
     best_fit,
@@ -212,10 +215,11 @@ def align_plan_stations(plan: Plan, scan_T_W_V2: Sequence[np.ndarray]) -> Statio
     return align_stations([g[0] for g in groups.values()], [F.mean_pose(g[1]) for g in groups.values()])
 
 
-def _datum_points(points_mm: np.ndarray, T_F_W: np.ndarray, cfg: AlignmentCriteria) -> np.ndarray:
-    """The points (W) inside the named datum regions where ``T_F_W`` places them; all without datums."""
+def _datum_rows(points_mm: np.ndarray, T_F_W: np.ndarray, cfg: AlignmentCriteria) -> np.ndarray | slice:
+    """Which of the points (W) lie inside the named datum regions where ``T_F_W`` places them (indices); all
+    (a slice) without datums."""
     if not cfg.datum_regions:
-        return points_mm
+        return slice(None)
     regions = {r.name: r for r in cfg.regions}
     unknown = [n for n in cfg.datum_regions if n not in regions]
     if unknown:
@@ -226,13 +230,27 @@ def _datum_points(points_mm: np.ndarray, T_F_W: np.ndarray, cfg: AlignmentCriter
         inside |= region_mask(q, regions[name])
     if inside.sum() < 6:
         raise InspectionError(f"only {int(inside.sum())} points in the datum regions {list(cfg.datum_regions)}")
-    return points_mm[inside]
+    return np.flatnonzero(inside)
 
 
-def _robust_sigma(surface: CadSurface, points_mm: np.ndarray, T_F_W: np.ndarray, trim_mm: float) -> float:
+def _residuals(surface: CadSurface, points_mm: np.ndarray, T_F_W: np.ndarray, seen: SeenFrom | None,
+               every: int) -> np.ndarray:
+    """Signed distances (mm) of every ``every``-th point placed by ``T_F_W``; infinite where ``seen`` puts the
+    point on the back of a closed face (:class:`SeenFrom`)."""
+    rows = slice(None, None, max(1, every))
+    cp = surface.closest(F.transform_points(T_F_W, points_mm[rows]))
+    r = cp.signed_mm
+    if seen is not None:
+        r[seen.rows(rows).behind(T_F_W, cp)] = np.inf
+    return r
+
+
+def _robust_sigma(surface: CadSurface, points_mm: np.ndarray, T_F_W: np.ndarray, trim_mm: float,
+                  seen: SeenFrom | None = None) -> float:
     """1.4826 x the median absolute point-to-plane residual (mm) of at most 50 000 evenly chosen points,
-    placed by ``T_F_W``, among those within ``trim_mm`` of the surface; nan when none is."""
-    r = surface.signed_distance(F.transform_points(T_F_W, points_mm[:: max(1, len(points_mm) // 50_000)]))
+    placed by ``T_F_W``, among those within ``trim_mm`` of the surface (and not behind it, ``seen``); nan when
+    none is."""
+    r = _residuals(surface, points_mm, T_F_W, seen, len(points_mm) // 50_000)
     r = r[np.abs(r) <= trim_mm]
     return 1.4826 * float(np.median(np.abs(r - np.median(r)))) if len(r) else float("nan")
 
@@ -295,24 +313,26 @@ def covariance(fit: SurfaceFit) -> np.ndarray:
 
 
 def _fine_fit(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray, prior_T_F_W: np.ndarray,
-              cfg: AlignmentCriteria, levels: str = "all") -> tuple[SurfaceFit, int]:
+              cfg: AlignmentCriteria, levels: str = "all", seen: SeenFrom | None = None) -> tuple[SurfaceFit, int]:
     """The coarse-to-fine passes of :func:`fit_to_surface` from ``start_T_F_W`` (``levels``: "all", "coarse"
-    (trims beyond :data:`FINE_FROM_MM`) or "fine"), the free directions held at ``prior_T_F_W``: its last
-    pass and the iterations of all. A pass leaving less than ``cfg.alignment_min_inlier_share`` of the points
-    within its trim ends the fit (:class:`InspectionError`): the start was poor."""
+    (trims beyond :data:`FINE_FROM_MM`) or "fine"), the free directions held at ``prior_T_F_W``, no point
+    paired on the back of a closed face (``seen``): its last pass and the iterations of all. A pass leaving
+    less than ``cfg.alignment_min_inlier_share`` of the points within its trim ends the fit
+    (:class:`InspectionError`): the start was poor."""
     T, its = np.array(start_T_F_W, dtype=np.float64), 0
     last = cfg.best_fit_max_distance_mm
     fit = None
     distances = [d for d in (*cfg.alignment_distances_mm, last)
                  if levels == "all" or (d > FINE_FROM_MM) == (levels == "coarse")]
     for distance in distances:
-        datum = _datum_points(p, T, cfg)
+        rows = _datum_rows(p, T, cfg)
+        datum, datum_seen = p[rows], None if seen is None else seen.rows(rows)
         huber = None
         if distance == last:
-            sigma = _robust_sigma(surface, datum, T, last)
+            sigma = _robust_sigma(surface, datum, T, last, datum_seen)
             huber = max(cfg.alignment_huber_sigmas * sigma, 1e-4) if np.isfinite(sigma) else None
         fit = best_fit(surface, datum, distance, cfg.best_fit_iterations, STEP_TOLERANCE * distance, start=T,
-                       huber_mm=huber, prior=prior_T_F_W,
+                       huber_mm=huber, prior=prior_T_F_W, seen=datum_seen,
                        max_points=COARSE_POINTS if distance > FINE_FROM_MM else FINE_POINTS)
         T, its = fit.T_F_M, its + fit.iterations
         if distance != last and _share(fit) < cfg.alignment_min_inlier_share:  # a poor start: no use refining it
@@ -365,29 +385,34 @@ def _turned_over(p: np.ndarray, T_F_W: np.ndarray) -> list[np.ndarray]:
 
 
 def _global_fit(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray, prior_T_F_W: np.ndarray,
-                cfg: AlignmentCriteria, fitted_T_F_W: np.ndarray | None, features: bool) -> tuple[SurfaceFit, int]:
+                cfg: AlignmentCriteria, fitted_T_F_W: np.ndarray | None, features: bool, seen: SeenFrom | None
+                ) -> tuple[SurfaceFit, int]:
     """The fit from the global stage: the coarse passes from each of its candidates (the feature matches where
     ``features``; the start's fit ``fitted_T_F_W`` turned over, :func:`_turned_over`, where that lies within
     twice its truncated cost plus 1 mm^2), the fine ones from the one with the lowest truncated cost
-    (:func:`_final_cost` at :data:`FINE_FROM_MM`) after them."""
+    (:func:`_final_cost` at :data:`FINE_FROM_MM`) after them; no point paired on the back of a closed face
+    (``seen``).
+
+    Eight parameters: the surface, the points and where they were seen from, the start, the prior and the
+    criteria, and the two switches of the candidates (the start's fit to turn over, the feature matches)."""
     best, best_cost, its, why = None, np.inf, 0, "no candidate"
     turned = []
     if fitted_T_F_W is not None:  # only where the turned part lies about as well on the CAD as the fit does
-        bar = 2.0 * _final_cost(surface, p, fitted_T_F_W, FINE_FROM_MM) + 1.0
-        turned = [T for T in _turned_over(p, fitted_T_F_W) if _final_cost(surface, p, T, FINE_FROM_MM) <= bar]
+        bar = 2.0 * _final_cost(surface, p, fitted_T_F_W, FINE_FROM_MM, seen) + 1.0
+        turned = [T for T in _turned_over(p, fitted_T_F_W) if _final_cost(surface, p, T, FINE_FROM_MM, seen) <= bar]
     for T in (_global_starts(surface, p, start_T_F_W) if features else []) + turned:
         try:
-            coarse, n = _fine_fit(surface, p, T, prior_T_F_W, cfg, "coarse")
+            coarse, n = _fine_fit(surface, p, T, prior_T_F_W, cfg, "coarse", seen)
         except InspectionError as e:
             why = str(e)
             continue
         its += n
-        cost = _final_cost(surface, p, coarse.T_F_M, FINE_FROM_MM)
+        cost = _final_cost(surface, p, coarse.T_F_M, FINE_FROM_MM, seen)
         if cost < best_cost:
             best, best_cost = coarse.T_F_M, cost
     if best is None:
         raise InspectionError(why)
-    fit, n = _fine_fit(surface, p, best, prior_T_F_W, cfg, "fine")
+    fit, n = _fine_fit(surface, p, best, prior_T_F_W, cfg, "fine", seen)
     return fit, its + n
 
 
@@ -400,16 +425,67 @@ def _share(fit: SurfaceFit) -> float:
     return fit.used_points / max(fit.sampled_points, 1)
 
 
-def _final_cost(surface: CadSurface, p: np.ndarray, T_F_W: np.ndarray, trim_mm: float) -> float:
+def _final_cost(surface: CadSurface, p: np.ndarray, T_F_W: np.ndarray, trim_mm: float,
+                seen: SeenFrom | None = None) -> float:
     """Mean truncated squared distance (mm^2) of at most :data:`FINE_POINTS` of the cloud's points (the same
-    ones for every pose) placed by ``T_F_W``: what candidates of the alignment are compared by."""
-    d = np.minimum(np.abs(surface.signed_distance(F.transform_points(T_F_W, p[:: max(1, len(p) // FINE_POINTS)]))),
-                   trim_mm)
+    ones for every pose) placed by ``T_F_W``, a point on the back of a closed face (``seen``) at the trim: what
+    candidates of the alignment are compared by."""
+    d = np.minimum(np.abs(_residuals(surface, p, T_F_W, seen, len(p) // FINE_POINTS)), trim_mm)
     return float(np.mean(d * d))
 
 
 def fit_to_surface(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.ndarray, cfg: AlignmentCriteria,
-                   start: str, prior_T_F_W: np.ndarray | None = None) -> Alignment:
+                   start: str, prior_T_F_W: np.ndarray | None = None, seen: SeenFrom | None = None) -> Alignment:
+    """:func:`_fit_from` with no point paired on the back of a closed face (``seen``: where the points were seen
+    from), where that leaves the cloud's directions consistent with its fit: a cloud whose normals do not face
+    its scanner (unoriented, a share beyond :data:`BEHIND_SHARE` of its points on closed faces behind them at
+    the fit) is fitted again without them, and the log says so. A failure whose cloud and CAD differ in size as
+    files in different units do says so (:func:`units.scale_mismatch`)."""
+    p = as_points(points_mm)
+    try:
+        return _fit_seen_or_not(surface, p, start_T_F_W, cfg, start, prior_T_F_W, seen)
+    except AlignmentFailed as e:
+        hint = scale_mismatch(extent_mm(p), extent_mm(np.asarray(surface.mesh.vertices)), *UNITS_SUSPECT)
+        if not hint:
+            raise
+        raise AlignmentFailed(f"{e}; {hint}", e.attempt) from e
+
+
+UNITS_SUSPECT = (4.0, 20.0)  # a cloud this many times larger or smaller than its CAD that fails to align: units?
+
+
+def _fit_seen_or_not(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray, cfg: AlignmentCriteria,
+                     start: str, prior_T_F_W: np.ndarray | None, seen: SeenFrom | None) -> Alignment:
+    """:func:`fit_to_surface`'s fit with ``seen``, else (none, or the cloud's directions not its scanner's)
+    without it."""
+    if seen is not None:
+        try:
+            out = _fit_from(surface, p, start_T_F_W, cfg, start, prior_T_F_W, seen)
+        except AlignmentFailed:
+            out = None
+        behind = None if out is None else _behind_share(surface, p, out.T_F_W, seen, cfg.best_fit_max_distance_mm)
+        if behind is not None and behind <= BEHIND_SHARE:
+            return out
+        log.warning("the cloud's normals do not face where it was seen from (%s of its points on closed CAD faces "
+                    "behind them): aligned without them", "no fit" if behind is None else f"{100 * behind:.0f} %")
+    return _fit_from(surface, p, start_T_F_W, cfg, start, prior_T_F_W, None)
+
+
+#: a fit leaving more of its points near closed CAD faces behind them: the cloud's directions are not its scanner's
+BEHIND_SHARE = 0.1
+
+
+def _behind_share(surface: CadSurface, p: np.ndarray, T_F_W: np.ndarray, seen: SeenFrom, trim_mm: float) -> float:
+    """Of at most :data:`FINE_POINTS` of the points placed by ``T_F_W`` within ``trim_mm`` of a closed face, the
+    share on its back (:meth:`SeenFrom.behind`); 0 where none is near a closed face."""
+    rows = slice(None, None, max(1, len(p) // FINE_POINTS))
+    cp = surface.closest(F.transform_points(T_F_W, p[rows]))
+    near = (np.abs(cp.signed_mm) <= trim_mm) & (seen.outward[cp.triangle_ids] != 0)
+    return float(seen.rows(rows).behind(T_F_W, cp)[near].sum() / max(int(near.sum()), 1))
+
+
+def _fit_from(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray, cfg: AlignmentCriteria, start: str,
+              prior_T_F_W: np.ndarray | None, seen: SeenFrom | None) -> Alignment:
     """Robust best fit of the cloud (frame W, mm) to the CAD surface: trimmed, damped point-to-plane passes
     (:func:`inspect.best_fit`) at ``cfg.alignment_distances_mm`` then ``best_fit_max_distance_mm``, the last
     one Huber-weighted beyond ``alignment_huber_sigmas`` robust sigmas of its residuals.
@@ -419,9 +495,9 @@ def fit_to_surface(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.n
     start, no ``prior_T_F_W``, less than :data:`UNSURE_SHARE`), from the global stage (:func:`_global_fit`)
     as well; the lower truncated cost over the same points wins
     (:func:`_final_cost`), the start's fit on a tie. The directions the surface does not fix are held at
-    ``prior_T_F_W`` (the job's placement; default the start) and named (:func:`free_directions`).
+    ``prior_T_F_W`` (the job's placement; default the start) and named (:func:`free_directions`). A point does
+    not pair with the back of a closed face (``seen``, :class:`SeenFrom`; None: every pair counts).
     Raises :class:`AlignmentFailed` when no fit leaves that share of the points on the CAD."""
-    p = as_points(points_mm)
     T0 = np.array(start_T_F_W, dtype=np.float64)
     prior = T0 if prior_T_F_W is None else np.asarray(prior_T_F_W, float)
     last = cfg.best_fit_max_distance_mm
@@ -429,7 +505,7 @@ def fit_to_surface(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.n
     why: list[str] = []
     its = 0
     try:
-        fit, its = _fine_fit(surface, p, T0, prior, cfg)
+        fit, its = _fine_fit(surface, p, T0, prior, cfg, "all", seen)
         fits.append((fit, start))
     except InspectionError as e:  # too few points near the surface from the start
         why.append(f"from {start}: {e}")
@@ -437,7 +513,7 @@ def fit_to_surface(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.n
     if not fits or _share(fits[0][0]) < enough:  # is this the part's only fit?
         try:
             poor = not fits or _share(fits[0][0]) < cfg.alignment_min_inlier_share  # else only unsure
-            fit, n = _global_fit(surface, p, T0, prior, cfg, fits[0][0].T_F_M if fits else None, poor)
+            fit, n = _global_fit(surface, p, T0, prior, cfg, fits[0][0].T_F_M if fits else None, poor, seen)
             its += n
             fits.append((fit, f"{start}, then the global stage (FPFH + RANSAC against the CAD)"))
         except InspectionError as e:
@@ -445,15 +521,17 @@ def fit_to_surface(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.n
     if not fits:
         raise AlignmentFailed("alignment to CAD failed: " + "; ".join(why),
                               Alignment("best-fit", T0, float("nan"), start, inlier_share=0.0))
-    costs = [_final_cost(surface, p, f.T_F_M, last) for f, _ in fits]
+    costs = [_final_cost(surface, p, f.T_F_M, last, seen) for f, _ in fits]
     fit, how = fits[-1] if costs[-1] < costs[0] * (1.0 - COST_TIE) else fits[0]
     if not fit.converged:
         log.warning("best-fit alignment did not converge in %d iterations", fit.iterations)
     free = free_directions(fit)
     if free:
         log.warning("the measured surface does not fix %s: held where %s puts it", "; ".join(free), start)
-    out = Alignment("best-fit", fit.T_F_M, _robust_sigma(surface, _datum_points(p, fit.T_F_M, cfg), fit.T_F_M, last),
-                    how, fit.used_points, its, fit.converged, inlier_share=_share(fit), free_directions=free,
+    rows = _datum_rows(p, fit.T_F_M, cfg)
+    sigma = _robust_sigma(surface, p[rows], fit.T_F_M, last, None if seen is None else seen.rows(rows))
+    out = Alignment("best-fit", fit.T_F_M, sigma, how, fit.used_points, its, fit.converged, inlier_share=_share(fit),
+                    free_directions=free,
                     covariance=covariance(fit), covariance_centre_F_mm=tuple(map(float, fit.centre_mm)))
     if _share(fit) < cfg.alignment_min_inlier_share:
         raise AlignmentFailed(
@@ -468,6 +546,18 @@ def fit_to_surface(surface: CadSurface, points_mm: np.ndarray, start_T_F_W: np.n
 #: points in its symmetric pose
 UNSURE_SHARE = 0.98
 COST_TIE = 0.05  # the global stage's fit wins only with a truncated cost lower than the start's by this share
+
+
+def seen_from(surface: CadSurface, toward_W: np.ndarray) -> SeenFrom:
+    """:class:`SeenFrom` of the cloud's directions toward where it was seen from (W; normalised here, zero
+    kept as unknown) and of which way each closed patch of the CAD faces (:func:`cad_orientation.orient` by the
+    volume alone; open patches 0)."""
+    d = np.asarray(toward_W, np.float64)
+    length = np.linalg.norm(d, axis=1, keepdims=True)
+    d = np.divide(d, length, out=np.zeros_like(d), where=length > 0)
+    o = orient(np.asarray(surface.mesh.vertices), np.asarray(surface.mesh.triangles))
+    outward = np.where(o.reversed == surface.reversed, 1, -1) * o.closed
+    return SeenFrom(d, outward.astype(np.int8))
 
 
 def within(points_mm: np.ndarray, centre_mm, radius_mm: float) -> np.ndarray:
@@ -552,14 +642,18 @@ def sphere_points(points_mm: np.ndarray, spheres: tuple[SphereResidual, ...], cf
 
 
 def align(surface: CadSurface, points_mm: np.ndarray, cfg: AlignmentCriteria, start_T_F_W: np.ndarray | None = None,
-          start: str = "as given", prior_T_F_W: np.ndarray | None = None) -> Alignment:
+          start: str = "as given", prior_T_F_W: np.ndarray | None = None, toward_W: np.ndarray | None = None
+          ) -> Alignment:
     """Place the cloud (frame W, mm) in the CAD frame F by ``cfg.alignment`` from ``start_T_F_W`` (default
     identity: the cloud is roughly in F already); ``prior_T_F_W`` is a placement known independently (the
-    job's anchor), None where the start is unknown (:func:`fit_to_surface`)."""
+    job's anchor), None where the start is unknown (:func:`fit_to_surface`); ``toward_W`` (N, 3): each point's
+    direction toward where it was seen from (a scanner's normals, W), which keeps points off the back of the
+    CAD's closed faces (:func:`seen_from`)."""
     T0 = np.eye(4) if start_T_F_W is None else np.asarray(start_T_F_W, float)
     if cfg.alignment == "none":
         return Alignment("none", T0, 0.0, start)
-    fit = fit_to_surface(surface, points_mm, T0, cfg, start, prior_T_F_W)  # RPS: the pre-alignment
+    seen = None if toward_W is None else seen_from(surface, toward_W)
+    fit = fit_to_surface(surface, points_mm, T0, cfg, start, prior_T_F_W, seen)  # RPS: the pre-alignment
     if cfg.alignment == "rps":
         return align_rps(surface, points_mm, fit.T_F_W, cfg, f"{start}, then a best fit")
     if not cfg.reference_spheres:

@@ -31,12 +31,14 @@ class CadOrientation:
     """How the CAD's triangles are wound for signing: ``reversed`` (T,) bool, the triangles taken against the
     file's winding; ``patches`` the connected patches of the mesh; ``by`` what decided ("closed volume",
     "scanner positions", "cloud normals", "the file": per patch, the strongest); ``note`` a warning for the
-    report where the file's winding disagreed (empty where it did not)."""
+    report where the file's winding disagreed (empty where it did not); ``closed`` (T,) bool, the triangles of
+    closed patches (whose outside is known from their volume, whatever the measured side)."""
 
     reversed: np.ndarray
     patches: int
     by: str
     note: str = ""
+    closed: np.ndarray | None = None
 
 
 def consistent_winding(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -96,11 +98,14 @@ def orient(vertices_mm: np.ndarray, triangles: np.ndarray, closest_triangles: np
         votes = np.bincount(label[ids[ok]], s, patches)
         counts = np.bincount(label[ids[ok]], minlength=patches).astype(float)
     deciders, undecided = set(), 0
+    closed = np.zeros(len(t), bool)
+    merged = same.ravel()[t]  # closed or not by the vertices' positions, not by how the file numbers them
     for patch in range(patches):
         mine = label == patch
         tri = np.where(flip[mine, None], t[mine][:, ::-1], t[mine])
-        if triangles_closed(tri):
+        if triangles_closed(np.where(flip[mine, None], merged[mine][:, ::-1], merged[mine])):
             turn = enclosed_volume_mm3(V - V.mean(axis=0), tri) < 0.0
+            closed[mine] = True
             deciders.add("closed volume")
         elif counts[patch] and abs(votes[patch]) >= CLEAR_MAJORITY * counts[patch]:
             turn = votes[patch] < 0.0
@@ -123,4 +128,4 @@ def orient(vertices_mm: np.ndarray, triangles: np.ndarray, closest_triangles: np
                      f"winding: no clear measured side ({by}) near {'them' if undecided > 1 else 'it'}")
     for note in notes:
         log.warning("%s", note)
-    return CadOrientation(flip, patches, ", ".join(sorted(deciders)), "; ".join(notes))
+    return CadOrientation(flip, patches, ", ".join(sorted(deciders)), "; ".join(notes), closed)

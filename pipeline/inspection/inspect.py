@@ -19,7 +19,14 @@ from typing import TYPE_CHECKING
 import numpy as np
 import open3d as o3d
 from tandemscan.config.models import RegionConfig
-from tandemscan.pipeline.geometry.frames import from_rotvec, invert, rotation_angle, to_rotvec, transform_points
+from tandemscan.pipeline.geometry.frames import (
+    from_rotvec,
+    invert,
+    rotate_vectors,
+    rotation_angle,
+    to_rotvec,
+    transform_points,
+)
 from tandemscan.pipeline.geometry.part import enclosed_volume_mm3, triangles_closed
 from tandemscan.pipeline.inspection.decision import DecisionRule, RuleName
 from tandemscan.pipeline.inspection.deviation_areas import DeviationArea, find_deviation_areas
@@ -83,6 +90,35 @@ class ClosestPoints:
     normals: np.ndarray  # (N, 3) outward unit normal of the triangle holding it
     triangle_ids: np.ndarray  # (N,) index into the mesh's triangles
     signed_mm: np.ndarray  # (N,) signed distance, + along the outward normal
+
+
+#: a point pairs with no face of a closed solid that turns away from where the point was seen from by more than
+#: about 107 deg (its outward normal's cosine with that direction below -this)
+BEHIND_COS = 0.3
+
+
+@dataclass(frozen=True)
+class SeenFrom:
+    """Where the points of a fit were seen from and which way the CAD's closed solids face: a point cannot lie on
+    a face of a closed solid whose outside turns away from the scanner that saw it (it would be the far side of a
+    wall, seen through the material), so :func:`best_fit` does not pair it there: the two skins of a thin plate
+    or shell are told apart (docs/inspection-method.md, "Alignment").
+
+    ``toward`` (N, 3): unit directions from each point toward where it was seen from, in the points' own frame
+    (a scanner's normals; zero where unknown); ``outward`` (T,): per CAD triangle +1 where the surface's normal
+    points out of its closed solid, -1 where it points in, 0 on an open patch (no inside to tell)."""
+
+    toward: np.ndarray
+    outward: np.ndarray
+
+    def rows(self, rows) -> SeenFrom:
+        """The same for the points ``rows`` (an index array or a slice) of the cloud."""
+        return SeenFrom(self.toward[rows], self.outward)
+
+    def behind(self, T_F_M: np.ndarray, cp: ClosestPoints) -> np.ndarray:
+        """(N,) bool: the points (placed by ``T_F_M``, closest CAD points ``cp``) on the back of a closed face."""
+        facing = np.einsum("ij,ij->i", cp.normals, rotate_vectors(T_F_M, self.toward))
+        return self.outward[cp.triangle_ids] * facing < -BEHIND_COS
 
 
 CLOSEST_CHUNK = 262_144  # query points a chunk of :meth:`CadSurface.closest` (and of the other chunked passes)
@@ -333,11 +369,13 @@ def _robust_cost(r: np.ndarray, trim_mm: float, huber_mm: float | None) -> np.nd
 EDGE_MIN_MM = 0.1  # a point this far from an edge or a corner (off the normal by 8 deg) pairs along its direction
 
 
-def _pairs(surface: CadSurface, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _pairs(surface: CadSurface, q: np.ndarray, seen: SeenFrom | None = None, T_F_M: np.ndarray | None = None
+           ) -> tuple[np.ndarray, np.ndarray]:
     """Residual (mm) and its unit gradient (the direction a point moves to lengthen it) of every point of
     ``q`` (frame F): the signed distance and the closest triangle's normal on a face, the distance and the
     direction from the closest point where that is an edge or a corner, so a slide off the mesh's boundary
-    is seen."""
+    is seen; infinite where ``seen`` (the points' directions, placed by ``T_F_M``) puts the point on the back
+    of a closed face (:class:`SeenFrom`): no pair."""
     cp = surface.closest(q)
     r, g = cp.signed_mm.copy(), cp.normals.copy()
     off = np.abs(r) > EDGE_MIN_MM  # nearer, float32's closest points leave the direction uncertain
@@ -345,6 +383,8 @@ def _pairs(surface: CadSurface, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     edge = np.abs(np.einsum("ij,ij->i", to_point, g[off])) < 0.99
     at = np.flatnonzero(off)[edge]
     g[at], r[at] = to_point[edge], np.abs(r[at])
+    if seen is not None:
+        r[seen.behind(T_F_M, cp)] = np.inf
     return r, g
 
 
@@ -372,6 +412,7 @@ def best_fit(
     start: np.ndarray | None = None,
     huber_mm: float | None = None,
     prior: np.ndarray | None = None,
+    seen: SeenFrom | None = None,
 ) -> SurfaceFit:
     """Robust point-to-plane fit of ``points_mm`` (frame M) onto the CAD surface itself, by damped Gauss-Newton
     (Levenberg-Marquardt) from ``start`` (``T_F_M``, default identity).
@@ -383,13 +424,16 @@ def best_fit(
     most :data:`MAX_STEP_RAD` and moves by at most ``max_distance_mm``. ``prior`` (``T_F_M``, default the
     start) holds, by a spring of :data:`PRIOR_STIFFNESS`, the directions the surface does not fix (the axis of
     a cylinder, an extrusion): they stay where the prior puts them instead of drifting. Converged: a step
-    moving no point by more than ``tolerance_mm``, or no step lowering the cost any more.
+    moving no point by more than ``tolerance_mm``, or no step lowering the cost any more. ``seen``: where the
+    points were seen from (:class:`SeenFrom`); a point on the back of a closed face costs as one beyond the trim.
 
-    Nine parameters: the surface and the points, the fit's gate, then solver options with defaults (iterations,
-    tolerance, thinning; keyword-only: start, Huber scale, prior).
+    Ten parameters: the surface and the points, the fit's gate, then solver options with defaults (iterations,
+    tolerance, thinning; keyword-only: start, Huber scale, prior, viewing side).
     """
     p = np.asarray(points_mm)
-    p = as_points(p[:: max(1, int(np.ceil(len(p) / max_points)))])
+    thin = slice(None, None, max(1, int(np.ceil(len(p) / max_points))))
+    p = as_points(p[thin])
+    seen = None if seen is None else seen.rows(thin)
     T = np.eye(4) if start is None else np.array(start, dtype=np.float64)
     T_prior = T.copy() if prior is None else np.asarray(prior, float)
     n = len(p)
@@ -401,7 +445,7 @@ def best_fit(
 
     def evaluate(T_: np.ndarray):
         q_ = transform_points(T_, p)
-        r_, g_ = _pairs(surface, q_)
+        r_, g_ = _pairs(surface, q_, seen, T_)
         e = _twist(T_ @ invert(T_prior), centre)
         return q_, r_, g_, float(_robust_cost(r_, max_distance_mm, huber_mm).sum() + 0.5 * e @ spring @ e), e
 

@@ -23,6 +23,7 @@ from tandemscan.config.inspection_template import InspectionTemplate
 from tandemscan.config.models import InspectionConfig
 from tandemscan.pipeline.geometry.frames import rotate_vectors, transform_points
 from tandemscan.pipeline.geometry.part import PartMeshError, read_mesh_file
+from tandemscan.pipeline.geometry.units import MM_PER_UNIT, extent_mm, scale_mismatch
 from tandemscan.pipeline.inspection.alignment import Alignment, AlignmentCriteria, AlignmentFailed, align
 from tandemscan.pipeline.inspection.cad_orientation import orient
 from tandemscan.pipeline.inspection.characteristics import CharacteristicResult, MeasuredCloud, evaluate
@@ -196,7 +197,8 @@ def align_and_inspect(measured_W: Measurement, part: InspectedPart, settings: In
     # a rigid motion changes no overlap: computed in W while the cloud is aligned and inspected
     views_W = None if measured_W.stitching is None else measured_W.stitching.started()
     try:
-        alignment = align(surface, p, settings.alignment, start.T_F_W, start.description, start.prior_T_F_W)
+        alignment = align(surface, p, settings.alignment, start.T_F_W, start.description, start.prior_T_F_W,
+                          toward_W=measured_W.normals)  # a scanner's normals face it: no point fits a wall's far side
     except AlignmentFailed as e:  # a failed inspection, with the reason on its report
         log.warning("%s", e)
         failed = failed_report(str(e), e.attempt, title=output.facts.title, meta=output.facts.meta)
@@ -275,21 +277,31 @@ class PlacedScans(Sequence):
 
 def inspect_files(cloud_path: Path | str, cad_path: Path | str, out_dir: Path | str, settings: InspectionSettings,
                   template: InspectionTemplate | None = None, identity: Mapping[str, str] | None = None,
-                  point_uncertainty_mm: float | None = None) -> InspectionOutputs:
+                  point_uncertainty_mm: float | None = None, units: tuple[str, str] = ("mm", "mm")
+                  ) -> InspectionOutputs:
     """Inspect a cloud file against a CAD mesh file; writes into ``out_dir``. The cloud is registered by
     ``settings.alignment`` from where it lies (within the first trim distance of its place on CAD); ``template``
     and ``identity`` as :class:`InspectedPart` holds them. The points' expanded uncertainty
     (k = ``settings.criteria.decision_k``, mm) is ``point_uncertainty_mm``, else the PLY's ``uncertainty_mm``
-    property where it has one (a job's ``cloud_deviation.ply``), else none is known (0)."""
+    property where it has one (a job's ``cloud_deviation.ply``), else none is known (0). ``units``: the CAD's
+    and the cloud's file units (keys of ``units.MM_PER_UNIT``); files whose sizes disagree as files in different
+    units do are refused (:func:`units.scale_mismatch`).
+
+    Eight parameters: the two files and where to write, the settings, then what the operator states of the part
+    and the files (template, identity, the points' uncertainty, the files' units), each optional."""
     try:
         points, normals = read_ply(cloud_path)
-        mesh = read_mesh_file(Path(cad_path), what="CAD mesh")
+        mesh = read_mesh_file(Path(cad_path), what="CAD mesh", units=units[0])
     except (CloudIOError, PartMeshError) as e:
         raise InspectionError(str(e)) from e
+    points = points * MM_PER_UNIT[units[1]]
+    if mismatch := scale_mismatch(extent_mm(points), extent_mm(np.asarray(mesh.vertices))):
+        raise InspectionError(f"{cloud_path}, {cad_path}: {mismatch}")
     own = point_uncertainty_mm
     if own is None and Path(cloud_path).suffix.lower() == ".ply":
         try:
-            own = read_ply_vertices(cloud_path).get("uncertainty_mm")
+            own = read_ply_vertices(cloud_path).get("uncertainty_mm")  # the file's unit, as its points
+            own = None if own is None else own * MM_PER_UNIT[units[1]]
         except CloudIOError:  # a layout only Open3D reads: it has no such property for us
             own = None
     meta = {"cloud": str(cloud_path), "CAD mesh": str(cad_path), "points": str(len(points))}

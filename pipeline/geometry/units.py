@@ -1,0 +1,63 @@
+"""The length units a customer's files come in, and the check that catches a file read in the wrong one.
+
+Inside, everything is in millimetres (docs/architecture.md); a mesh or cloud file in another unit is scaled once,
+where it is read (``[part] mesh_units``, ``[inspection] cad_units`` and ``cloud_units``; the CLI's
+``--part-units``, ``--cad-units``, ``--cloud-units``). A file read in the wrong unit is off by a factor of 10,
+25.4 or 1000: a part a thousandth of its size, or a cloud a thousand times larger than its CAD.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: millimetres per unit of a file's coordinates
+MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
+
+#: a part whose largest side is below this (mm) is far smaller than the cell measures: perhaps its file is in metres
+SMALL_PART_MM = 100.0
+#: a cloud this many times larger than its CAD, or smaller by :data:`MAX_SMALLER`, is in another unit than the CAD
+MAX_LARGER = 50.0
+MAX_SMALLER = 200.0
+
+
+def extent_mm(points_mm: np.ndarray) -> np.ndarray:
+    """(3,) the sides of the points' axis-aligned bounding box (mm)."""
+    p = np.asarray(points_mm, float)
+    return p.max(axis=0) - p.min(axis=0)
+
+
+def size_words(extent: np.ndarray) -> str:
+    """``"0.90 x 0.60 x 0.35 mm"``: a bounding box's sides in words (mm)."""
+    return " x ".join(f"{x:.3g}" for x in extent) + " mm"
+
+
+def small_part_hint(extent: np.ndarray, option: str) -> str:
+    """For a part whose largest side is under :data:`SMALL_PART_MM`: the sentence that names its size and the
+    units its file may really be in (those that make it :data:`SMALL_PART_MM` to 40 m long), with ``option``
+    (the CLI's, e.g. ``--part-units``); else ""."""
+    largest = float(np.max(extent))
+    if largest >= SMALL_PART_MM:
+        return ""
+    units = [u for u, mm in MM_PER_UNIT.items() if SMALL_PART_MM <= largest * mm <= 40_000.0] or ["m"]
+    return (f"the part is {size_words(extent)}, far smaller than the cell measures: if its file is not in "
+            f"millimetres, give {option} {' or '.join(units)}")
+
+
+def scale_mismatch(cloud_extent: np.ndarray, cad_extent: np.ndarray, max_larger: float = MAX_LARGER,
+                   max_smaller: float = MAX_SMALLER) -> str:
+    """Where a cloud's size and its CAD's differ by more than a part and its surroundings can (the cloud more
+    than ``max_larger`` times larger, or ``max_smaller`` times smaller): the sentence that says so and names
+    the options; else ""."""
+    cloud, cad = float(np.max(cloud_extent)), float(np.max(cad_extent))
+    if cad <= 0.0 or cloud <= 0.0:
+        return ""
+    ratio = cloud / cad
+    if 1.0 / max_smaller <= ratio <= max_larger:
+        return ""
+    unit = min((u for u in MM_PER_UNIT if u != "mm"),
+               key=lambda u: abs(np.log(max(ratio, 1.0 / ratio) / MM_PER_UNIT[u])))
+    which = ("the CAD", "--cad-units") if ratio > 1.0 else ("the cloud", "--cloud-units")
+    name = {"in": "inches", "m": "metres", "cm": "centimetres"}[unit]
+    return (f"the cloud spans {size_words(cloud_extent)}, the CAD {size_words(cad_extent)}: "
+            f"{max(ratio, 1.0 / ratio):.4g} times {'larger' if ratio > 1.0 else 'smaller'}; both files are read in "
+            f"millimetres: if {which[0]} is in {name}, give {which[1]} {unit} ([part] mesh_units in a job)")

@@ -1,0 +1,87 @@
+"""Parts a new customer brings (sim_drivers/generated_parts.py, ``CUSTOMER_PARTS``) and their CAD exports: a thin
+skin is fitted on its measured side, not its far side; a closed mesh stored as an STL triangle soup and wound
+inward is still signed outward; a cloud whose normals do not face its scanner is aligned without them
+(docs/inspection-method.md, "Alignment")."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from tandemscan.config.models import InspectionConfig
+from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.geometry.part import read_mesh_file
+from tandemscan.pipeline.inspection.alignment import AlignmentCriteria, align
+from tandemscan.pipeline.inspection.cad_orientation import orient
+from tandemscan.pipeline.inspection.inspect import CadSurface, inspect_cloud
+from tandemscan.pipeline.inspection.inspection_job import measured_side
+from tandemscan.sim_drivers.generated_parts import CadExport, near_symmetric, stiffened_panel, twisted_blade
+from tandemscan.sim_drivers.inspection_score import alignment_error
+
+CFG = InspectionConfig(reference_spheres=(), regions=(), best_fit=False)
+CRITERIA = AlignmentCriteria.from_section(CFG)
+
+
+def centre_of(mesh) -> np.ndarray:
+    v = np.asarray(mesh.vertices)
+    return 0.5 * (v.min(axis=0) + v.max(axis=0))
+
+
+def signs_of_defects(part, areas) -> list[str]:
+    """Per seeded defect: the side of the areas within 10 mm of it ("none" where there is none)."""
+    out = []
+    for d in part.defects:
+        near = {a.side for a in areas if np.linalg.norm(np.subtract(a.centroid_mm, d.centre_mm)) < 10.0}
+        out.append("none" if not near else near.pop() if len(near) == 1 else "both")
+    return out
+
+
+def expected_signs(part) -> list[str]:
+    return ["upper" if d.depth_mm > 0 else "lower" for d in part.defects]
+
+
+@pytest.mark.parametrize("make, T_W_F", [
+    # a 4 mm skin given 3 mm low: without the viewing side its top lands on its bottom face (4 mm off, signs turned)
+    (stiffened_panel, F.from_rotvec([20.0, -10.0, -3.0], np.radians([1.0, 0.5, 3.0]))),
+    # a 60 mm plate given 50 mm low: without it the top lands on the bottom face (60 mm off)
+    (near_symmetric, F.from_rotvec([20.0, -10.0, -50.0], np.radians([1.0, 0.5, 3.0]))),
+])
+def test_a_thin_wall_is_fitted_on_the_side_its_scanner_saw(make, T_W_F):
+    part = make()
+    surface = CadSurface(part.mesh)
+    p_F, n_F = part.measured(6000, 0.01, np.random.default_rng(2))
+    p_W, n_W = F.transform_points(T_W_F, p_F), F.rotate_vectors(T_W_F, n_F)
+    a = align(surface, p_W, CRITERIA, toward_W=n_W)
+    mm, deg = alignment_error(a.T_F_W, F.invert(T_W_F), centre_of(part.mesh))
+    assert mm < 0.05 and deg < 0.005, (mm, deg)
+    oriented, _ = measured_side(surface, p_W, a.T_F_W, n_W, None)
+    res = inspect_cloud(F.transform_points(a.T_F_W, p_W), oriented, CFG)
+    assert signs_of_defects(part, res.areas) == expected_signs(part)
+
+
+def test_unoriented_normals_are_not_trusted():
+    """Normals of either sign at random (a cloud whose normals were estimated, not a scanner's): the fit with
+    them leaves half the points behind closed faces, so the cloud is aligned without them, as before."""
+    part = near_symmetric()
+    p_F, n_F = part.measured(4000, 0.01, np.random.default_rng(3))
+    T_W_F = F.from_rotvec([30.0, 20.0, 10.0], np.radians([2.0, -1.0, 4.0]))
+    n_F = np.where(np.random.default_rng(4).uniform(size=len(n_F))[:, None] < 0.5, -n_F, n_F)
+    a = align(CadSurface(part.mesh), F.transform_points(T_W_F, p_F), CRITERIA, toward_W=F.rotate_vectors(T_W_F, n_F))
+    mm, deg = alignment_error(a.T_F_W, F.invert(T_W_F), centre_of(part.mesh))
+    assert mm < 0.05 and deg < 0.005, (mm, deg)
+
+
+@pytest.mark.parametrize("suffix", [".stl", ".ply", ".obj"])
+def test_a_closed_triangle_soup_wound_inward_is_signed_outward_without_any_measured_side(tmp_path, suffix):
+    """An STL stores every triangle's own three vertices: the mesh is closed by its vertices' positions, so its
+    volume decides its outside even where the cloud says nothing of its side (an XYZ file: no normals)."""
+    part = twisted_blade()
+    mesh = read_mesh_file(CadExport(winding="inward", soup=True).write(part, tmp_path / f"blade{suffix}"))
+    V, T = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    o = orient(V, T)
+    assert o.by == "closed volume" and o.closed.all() and o.reversed.all()
+    surface = CadSurface(mesh)
+    p_F, _ = part.measured(3000, 0.0, np.random.default_rng(5))
+    oriented, note = measured_side(surface, p_F, np.eye(4), None, None)
+    assert "winding disagrees with closed volume" in note
+    res = inspect_cloud(p_F, oriented, CFG)
+    assert signs_of_defects(part, res.areas) == expected_signs(part)
