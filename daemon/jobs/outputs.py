@@ -230,7 +230,7 @@ def _inspect(job: JobSnapshot, report: Mapping, scans: list[PosedScan], cloud_W:
     template_file = find_template(job.config.part.mesh, configured=job.config.inspection.template)
     template = None if template_file is None else load_template(template_file)
     mesh = load_part_mesh(job.config.part)
-    part = InspectedPart(CadSurface(mesh), template, part_identity(job.config, template, template_file),
+    part = InspectedPart(CadSurface(mesh), template, part_labels(job.config, template, template_file),
                          _history(job_dir))
     settings = InspectionSettings.from_section(job.config.part_inspection(), template)
     measured = Measurement(cloud_W, normals_W, job_uncertainty(job, scans, counts), StitchViews(before, after))
@@ -265,8 +265,8 @@ def _history(job_dir: Path) -> dict:
     return json.loads(path.read_text())["characteristics"] if path.is_file() else {}
 
 
-def part_identity(config: CellConfig, template: InspectionTemplate | None, template_file: Path | None
-                  ) -> dict[str, str]:
+def part_labels(config: CellConfig, template: InspectionTemplate | None, template_file: Path | None
+                ) -> dict[str, str]:
     """The measured part as the report and results.qif name it: part number (``[job] part_number``, else the
     template's), serial and the template file."""
     number = config.job.part_number or (template.part_number if template is not None else None)

@@ -165,7 +165,7 @@ def run_inspection(measured: Measurement, part: InspectedPart, settings: Inspect
         html, js = write_report(report, out_dir, output.json_name)
     characteristics = () if evaluated is None else evaluated.result()
     qif = None if template is None else write_results(
-        out_dir / RESULTS_FILE, measured_part(template, part.identity), characteristics, result.points_mm)
+        out_dir / RESULTS_FILE, measured_part(template, part.labels), characteristics, result.points_mm)
     return InspectionOutputs(result, report.data, html, js, ply.result(), characteristics, qif)
 
 
@@ -276,19 +276,19 @@ class PlacedScans(Sequence):
 
 
 def inspect_files(cloud_path: Path | str, cad_path: Path | str, out_dir: Path | str, settings: InspectionSettings,
-                  template: InspectionTemplate | None = None, identity: Mapping[str, str] | None = None,
+                  template: InspectionTemplate | None = None, labels: Mapping[str, str] | None = None,
                   point_uncertainty_mm: float | None = None, units: tuple[str, str] = ("mm", "mm")
                   ) -> InspectionOutputs:
     """Inspect a cloud file against a CAD mesh file; writes into ``out_dir``. The cloud is registered by
     ``settings.alignment`` from where it lies (within the first trim distance of its place on CAD); ``template``
-    and ``identity`` as :class:`InspectedPart` holds them. The points' expanded uncertainty
+    and ``labels`` as :class:`InspectedPart` holds them. The points' expanded uncertainty
     (k = ``settings.criteria.decision_k``, mm) is ``point_uncertainty_mm``, else the PLY's ``uncertainty_mm``
     property where it has one (a job's ``cloud_deviation.ply``), else none is known (0). ``units``: the CAD's
     and the cloud's file units (keys of ``units.MM_PER_UNIT``); files whose sizes disagree as files in different
     units do are refused (:func:`units.scale_mismatch`).
 
     Eight parameters: the two files and where to write, the settings, then what the operator states of the part
-    and the files (template, identity, the points' uncertainty, the files' units), each optional."""
+    and the files (template, labels, the points' uncertainty, the files' units), each optional."""
     try:
         points, normals = read_ply(cloud_path)
         mesh = read_mesh_file(Path(cad_path), what="CAD mesh", units=units[0])
@@ -306,7 +306,7 @@ def inspect_files(cloud_path: Path | str, cad_path: Path | str, out_dir: Path | 
             own = None
     meta = {"cloud": str(cloud_path), "CAD mesh": str(cad_path), "points": str(len(points))}
     given = None if own is None else GivenUncertainty(np.asarray(own, float), settings.criteria.decision_k)
-    part = InspectedPart(CadSurface(mesh), template, dict(identity or {}))
+    part = InspectedPart(CadSurface(mesh), template, dict(labels or {}))
     return align_and_inspect(Measurement(points, normals, given), part, settings,
                              ReportOutput(Path(out_dir), ReportFacts(meta=meta)),
                              AlignmentStart(description="the cloud as given"))

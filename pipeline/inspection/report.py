@@ -70,13 +70,13 @@ class ReportStyle(FromSection):
 @dataclass(frozen=True)
 class InspectedPart:
     """The part a cloud is inspected against: its CAD ``surface`` (frame F, mm), its inspection ``template``
-    (characteristics; None: none), ``identity`` (part number, serial, template file and measuring system, as the
+    (characteristics; None: none), ``labels`` (part number, serial, template file and measuring system, as the
     report and results.qif name them) and ``history`` (per characteristic id the part's earlier serials' results,
     ``serial`` and ``actual_mm``, oldest first)."""
 
     surface: CadSurface
     template: InspectionTemplate | None = None
-    identity: Mapping[str, str] = field(default_factory=dict)
+    labels: Mapping[str, str] = field(default_factory=dict)
     history: Mapping[str, Sequence[Mapping]] = field(default_factory=dict)
 
 
@@ -216,7 +216,7 @@ def build_report(
                 split.append(ReportFigure(f"{label}-deviation", title_, png))
     if isinstance(characteristics, Future):  # evaluated while the maps were drawn
         characteristics = characteristics.result()
-    trends = trend_figures(characteristics, part.history, part.identity)
+    trends = trend_figures(characteristics, part.history, part.labels)
     quality = quality_figures(result, characteristics, tol, norm) + [f for f, _ in trends]
     figures = quality + maps + _uncertainty_map(result, surface, views[0], style, drawn, every) + [
         coverage_map] + split
@@ -239,7 +239,7 @@ def build_report(
         "meta": dict(facts.meta),
         "colour_scale_mm": [norm.vmin, norm.vmax],
         **inspection_summary(result, alignment),
-        "part": dict(part.identity),
+        "part": dict(part.labels),
         "characteristics": [c.summary() for c in characteristics],
         "trends": [t for _, t in trends],
         **({} if facts.coverage is None
