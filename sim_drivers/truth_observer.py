@@ -22,7 +22,7 @@ from tandemscan.pipeline.inspection.inspect import CadSurface
 from tandemscan.pipeline.inspection.scoring import cloud_to_mesh_distances, distance_stats, pose_errors
 from tandemscan.pipeline.stitching.installation import Installation
 from tandemscan.sim_drivers.inspection_score import alignment_error, deviation_truths, score_areas
-from tandemscan.sim_drivers.world import GroundTruth, SimWorld
+from tandemscan.sim_drivers.world import SimWorld, WorldTruth
 
 if TYPE_CHECKING:
     from tandemscan.daemon.jobs.snapshot import JobSnapshot
@@ -66,7 +66,7 @@ class TruthObserver:
         self.keep_state()
 
     def scorer(self) -> TruthScorer:
-        return TruthScorer(self.world.ground_truth(), {int(k): np.array(v) for k, v in self.log["T_W_S_true"].items()},
+        return TruthScorer(self.world.scoring_truth(), {int(k): np.array(v) for k, v in self.log["T_W_S_true"].items()},
                            list(self.log["transfers"]), list(self.log["located"]))
 
 
@@ -74,7 +74,7 @@ class TruthObserver:
 class TruthScorer:
     """The truth a job was observed at; :meth:`score` writes its ``ground_truth`` report section."""
 
-    world: GroundTruth
+    world: WorldTruth
     T_W_S_true: dict[int, np.ndarray]  # per scan index, mm
     transfers: list[dict]
     located: list[dict]

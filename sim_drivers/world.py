@@ -88,7 +88,7 @@ class MotionLog:
 
 
 @dataclass
-class GroundTruth:
+class WorldTruth:
     """What scoring a simulated job needs of the world: the world frame W in the part frame F (``T_W_F``,
     mm), the mesh the scanner saw (the part as built, with the fixture's spheres) and its ray-casting scene,
     and every moment both robots moved.
@@ -183,9 +183,9 @@ class SimWorld:
         bias = self.rng.normal(0.0, cfg.odometry_drift_fraction)
         return ChassisTruth(name, cfg, _floor_pose(start), pose, bias)
 
-    def ground_truth(self) -> GroundTruth:
+    def scoring_truth(self) -> WorldTruth:
         """The scoring view of the world now (shares this world's mesh and scene)."""
-        return GroundTruth(self.config, self.T_W_F.copy(), list(self.motion.violations), self.mesh, self.scene)
+        return WorldTruth(self.config, self.T_W_F.copy(), list(self.motion.violations), self.mesh, self.scene)
 
     # ------------------------------------------------------------ true poses in F
 
