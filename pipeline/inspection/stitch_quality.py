@@ -19,6 +19,7 @@ from scipy.spatial import cKDTree
 from tandemscan.pipeline.geometry.frames import transform_points
 from tandemscan.pipeline.inspection.alignment import fit_rigid
 from tandemscan.pipeline.inspection.deviation_maps import png_bytes
+from tandemscan.pipeline.registration.normals import scatter_matrices, smallest_eigenvectors
 
 PAIR_SAMPLE = 2000  # overlap points of a pair the RMS is evaluated on, at most (an even subsample)
 MAX_PAIR_LABELS = 60  # the stitching figure names at most this many pairs (evenly chosen) under its bars
@@ -35,40 +36,6 @@ class PairOverlap:
     rms_after_mm: float | None
 
 
-def smallest_eigenvectors(cov: np.ndarray) -> np.ndarray:
-    """(N, 3) unit eigenvector of the smallest eigenvalue of each symmetric (N, 3, 3) matrix ``cov`` (a local
-    plane's normal from its scatter matrix), in closed form: the eigenvalue by the trigonometric solution of the
-    characteristic cubic, the vector as the largest cross product of two rows of ``cov - lambda I``. Where that
-    is ill-defined (the two smallest eigenvalues within about 1e-6 of the largest: no plane, any normal fits
-    as well) the matrices go to ``numpy.linalg.eigh``. The sign is arbitrary."""
-    c = np.asarray(cov, dtype=np.float64)
-    a, b, z = c[:, 0, 0], c[:, 1, 1], c[:, 2, 2]
-    d, e, f = c[:, 0, 1], c[:, 0, 2], c[:, 1, 2]
-    q = (a + b + z) / 3.0
-    off = d * d + e * e + f * f
-    p = np.sqrt(((a - q) ** 2 + (b - q) ** 2 + (z - q) ** 2 + 2.0 * off) / 6.0)
-    ps = np.where(p > 0.0, p, 1.0)
-    ba, bb, bz = (a - q) / ps, (b - q) / ps, (z - q) / ps
-    bd, be, bf = d / ps, e / ps, f / ps
-    det_b = ba * (bb * bz - bf * bf) - bd * (bd * bz - bf * be) + be * (bd * bf - bb * be)
-    phi = np.arccos(np.clip(0.5 * det_b, -1.0, 1.0)) / 3.0
-    lam = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)  # the smallest root
-    r0 = np.stack([a - lam, d, e], axis=1)
-    r1 = np.stack([d, b - lam, f], axis=1)
-    r2 = np.stack([e, f, z - lam], axis=1)
-    cands = np.stack([np.cross(r0, r1), np.cross(r0, r2), np.cross(r1, r2)], axis=1)  # (N, 3, 3)
-    norms = np.linalg.norm(cands, axis=2)
-    best = np.argmax(norms, axis=1)
-    rows = np.arange(len(c))
-    big = norms[rows, best]
-    out = cands[rows, best] / np.where(big > 0.0, big, 1.0)[:, None]
-    scale = np.maximum(q * 3.0, np.finfo(float).tiny)  # trace: the largest eigenvalue's size
-    bad = ~(big > 1e-12 * scale * scale) | ~np.isfinite(out).all(axis=1)
-    if bad.any():
-        out[bad] = np.linalg.eigh(c[bad])[1][:, :, 0]
-    return out
-
-
 def _tree(points: np.ndarray) -> cKDTree:
     """A KD tree of one scan's points: built median-free and uncompacted, which builds twice and answers
     nearest-neighbour queries three times as fast on scans of 20 000 to 35 000 points as the defaults."""
@@ -82,12 +49,8 @@ def _plane_distances(points: np.ndarray, reference: np.ndarray, tree: cKDTree, k
     _, idx = tree.query(points, k=max(3, min(k, len(reference))))
     nb = reference[idx]  # (N, k, 3)
     centre = nb.mean(axis=1)
-    centred = nb - centre[:, None]
-    cov = np.empty((len(points), 3, 3))
-    for i in range(3):
-        for j in range(i, 3):
-            cov[:, i, j] = cov[:, j, i] = np.einsum("nk,nk->n", centred[:, :, i], centred[:, :, j])
-    return np.abs(np.einsum("ni,ni->n", points - centre, smallest_eigenvectors(cov)))
+    normals = smallest_eigenvectors(scatter_matrices(nb - centre[:, None]))
+    return np.abs(np.einsum("ni,ni->n", points - centre, normals))
 
 
 RIGID_TOLERANCE_MM = 1e-6  # a scan before and after correction is one rigid motion apart to this

@@ -32,31 +32,50 @@ def estimate_normals(points_mm: np.ndarray, neighbours: int, tree: cKDTree | Non
         block = Q[lo:lo + BLOCK_POINTS]
         _, idx = tree.query(block, k=k, workers=1)
         X = np.take(P, idx.reshape(len(block), k), axis=0)
-        out[lo:lo + BLOCK_POINTS] = smallest_eigenvectors(X - X.mean(axis=1, keepdims=True))
+        out[lo:lo + BLOCK_POINTS] = smallest_eigenvectors(scatter_matrices(X - X.mean(axis=1, keepdims=True)))
     return out
 
 
-def smallest_eigenvectors(centred: np.ndarray) -> np.ndarray:
-    """(B, 3) unit eigenvectors of the smallest eigenvalue of each covariance of ``centred`` (B, k, 3) points
-    (each set's mean removed); (0, 0, 1) where a set has no spread."""
-    x, y, z = centred[:, :, 0], centred[:, :, 1], centred[:, :, 2]
-    k = centred.shape[1]
-    a00, a11, a22 = (x * x).sum(axis=1) / k, (y * y).sum(axis=1) / k, (z * z).sum(axis=1) / k
-    a01, a02, a12 = (x * y).sum(axis=1) / k, (x * z).sum(axis=1) / k, (y * z).sum(axis=1) / k
-    q = (a00 + a11 + a22) / 3.0
-    p = np.sqrt(((a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2.0 * (a01**2 + a02**2 + a12**2)) / 6.0)
-    spread = p > 0
-    s = np.where(spread, p, 1.0)
-    b00, b11, b22, b01, b02, b12 = (a00 - q) / s, (a11 - q) / s, (a22 - q) / s, a01 / s, a02 / s, a12 / s
-    half_det = 0.5 * (b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02))
-    smallest = q + 2.0 * p * np.cos(np.arccos(np.clip(half_det, -1.0, 1.0)) / 3.0 + 2.0 * np.pi / 3.0)
-    rows = np.stack([np.stack([a00 - smallest, a01, a02], axis=1), np.stack([a01, a11 - smallest, a12], axis=1),
-                     np.stack([a02, a12, a22 - smallest], axis=1)], axis=1)
-    crosses = np.stack([np.cross(rows[:, 0], rows[:, 1]), np.cross(rows[:, 0], rows[:, 2]),
-                        np.cross(rows[:, 1], rows[:, 2])], axis=1)
-    lengths = np.einsum("bij,bij->bi", crosses, crosses)
-    best = lengths.argmax(axis=1)
-    pick = np.arange(len(best))
-    n = crosses[pick, best] / np.sqrt(np.where(lengths[pick, best] > 0, lengths[pick, best], 1.0))[:, None]
-    n[~spread | (lengths[pick, best] <= 0)] = (0.0, 0.0, 1.0)
-    return n
+def scatter_matrices(centred: np.ndarray) -> np.ndarray:
+    """(B, 3, 3) scatter matrices ``X^T X`` of (B, k, 3) point sets ``centred`` (each set's mean removed)."""
+    cov = np.empty((len(centred), 3, 3))
+    for i in range(3):
+        for j in range(i, 3):
+            cov[:, i, j] = cov[:, j, i] = np.einsum("nk,nk->n", centred[:, :, i], centred[:, :, j])
+    return cov
+
+
+def smallest_eigenvectors(cov: np.ndarray) -> np.ndarray:
+    """(N, 3) unit eigenvector of the smallest eigenvalue of each symmetric (N, 3, 3) matrix ``cov`` (a local
+    plane's normal from its scatter matrix), in closed form: the eigenvalue by the trigonometric solution of the
+    characteristic cubic, the vector as the largest cross product of two rows of ``cov - lambda I``. Where that
+    is ill-defined (the two smallest eigenvalues within about 1e-6 of the largest: no plane, any normal fits
+    as well) the matrices go to ``numpy.linalg.eigh``; a zero matrix (no spread) gets (0, 0, 1). The sign is
+    arbitrary."""
+    c = np.asarray(cov, dtype=np.float64)
+    a, b, z = c[:, 0, 0], c[:, 1, 1], c[:, 2, 2]
+    d, e, f = c[:, 0, 1], c[:, 0, 2], c[:, 1, 2]
+    q = (a + b + z) / 3.0
+    off = d * d + e * e + f * f
+    p = np.sqrt(((a - q) ** 2 + (b - q) ** 2 + (z - q) ** 2 + 2.0 * off) / 6.0)
+    ps = np.where(p > 0.0, p, 1.0)
+    ba, bb, bz = (a - q) / ps, (b - q) / ps, (z - q) / ps
+    bd, be, bf = d / ps, e / ps, f / ps
+    det_b = ba * (bb * bz - bf * bf) - bd * (bd * bz - bf * be) + be * (bd * bf - bb * be)
+    phi = np.arccos(np.clip(0.5 * det_b, -1.0, 1.0)) / 3.0
+    lam = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)  # the smallest root
+    r0 = np.stack([a - lam, d, e], axis=1)
+    r1 = np.stack([d, b - lam, f], axis=1)
+    r2 = np.stack([e, f, z - lam], axis=1)
+    cands = np.stack([np.cross(r0, r1), np.cross(r0, r2), np.cross(r1, r2)], axis=1)  # (N, 3, 3)
+    norms = np.linalg.norm(cands, axis=2)
+    best = np.argmax(norms, axis=1)
+    rows = np.arange(len(c))
+    big = norms[rows, best]
+    out = cands[rows, best] / np.where(big > 0.0, big, 1.0)[:, None]
+    scale = np.maximum(q * 3.0, np.finfo(float).tiny)  # trace: the largest eigenvalue's size
+    bad = ~(big > 1e-12 * scale * scale) | ~np.isfinite(out).all(axis=1)
+    if bad.any():
+        out[bad] = np.linalg.eigh(c[bad])[1][:, :, 0]
+    out[~(q > 0.0)] = (0.0, 0.0, 1.0)
+    return out

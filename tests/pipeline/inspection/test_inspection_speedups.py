@@ -14,7 +14,7 @@ from tandemscan.pipeline.inspection import deviation_areas
 from tandemscan.pipeline.inspection.deviation_areas import even_centres, find_deviation_areas
 from tandemscan.pipeline.inspection.deviation_maps import measured_triangles
 from tandemscan.pipeline.inspection.inspect import SMALL_MOVE_MM, CadSurface, signed_distance_moved
-from tandemscan.pipeline.inspection.stitch_quality import smallest_eigenvectors
+from tandemscan.pipeline.registration.normals import smallest_eigenvectors
 from test_deviation_areas import bell, plane
 
 

@@ -56,17 +56,17 @@ def test_normals_are_open3ds_knn_normals_up_to_sign():
 def test_the_closed_form_normal_is_lapacks_smallest_eigenvector():
     """``normals.smallest_eigenvectors`` against ``numpy.linalg.eigh`` on sets from round blobs to thin plates far
     from the origin (world coordinates, mm): the same direction to 1e-12; a set on a line gets a normal of it."""
-    from tandemscan.pipeline.registration.normals import smallest_eigenvectors
+    from tandemscan.pipeline.registration.normals import scatter_matrices, smallest_eigenvectors
 
     rng = np.random.default_rng(4)
     X = rng.normal(size=(600, 20, 3)) * np.geomspace([1.0, 1.0, 1.0], [5.0, 2.0, 1e-4], 600)[:, None, :]
     X = X @ np.stack([from_rotvec([0, 0, 0], r)[:3, :3] for r in rng.normal(size=(600, 3))]) + 3000.0
     centred = X - X.mean(axis=1, keepdims=True)
     _, V = np.linalg.eigh(np.matmul(centred.transpose(0, 2, 1), centred))
-    ours = smallest_eigenvectors(centred)
+    ours = smallest_eigenvectors(scatter_matrices(centred))
     assert np.abs(np.einsum("ij,ij->i", ours, V[:, :, 0])).min() > 1 - 1e-12
     line = np.outer(np.arange(20.0), [1.0, 2.0, 3.0])[None]
-    n = smallest_eigenvectors(line - line.mean(axis=1, keepdims=True))[0]
+    n = smallest_eigenvectors(scatter_matrices(line - line.mean(axis=1, keepdims=True)))[0]
     assert np.linalg.norm(n) == pytest.approx(1.0) and abs(n @ [1.0, 2.0, 3.0]) < 1e-6   # a normal of the line
 
 
