@@ -27,6 +27,7 @@ from numpy.typing import ArrayLike
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 from tandemscan.pipeline.geometry.frames import invert, make_transform
+from tandemscan.pipeline.geometry.uncertainty import skew
 
 log = logging.getLogger(__name__)
 
@@ -148,15 +149,6 @@ def _check_conditioning(A: np.ndarray, min_axis_spread_deg: float) -> None:
 # ---------------------------------------------------------------- closed-form solvers
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(..., 3) -> (..., 3, 3) cross-product matrices."""
-    v = np.asarray(v, dtype=float)
-    S = np.zeros(v.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
-    S[..., 1, 0], S[..., 2, 0], S[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
-    return S
-
-
 def _translation_ls(A: np.ndarray, B: np.ndarray, R_X: np.ndarray) -> np.ndarray:
     """Least squares of ``(R_A - I) t_X = R_X t_B - t_A`` (mm)."""
     M = (A[:, :3, :3] - np.eye(3)).reshape(-1, 3)
@@ -175,7 +167,7 @@ def _solve_tsai(A: np.ndarray, B: np.ndarray) -> np.ndarray:
         return 2.0 * np.sin(th / 2.0) * rv / np.maximum(th, 1e-300)
 
     pa, pb = mrp(ra), mrp(rb)
-    px_, *_ = np.linalg.lstsq(_skew(pa + pb).reshape(-1, 3), (pb - pa).reshape(-1), rcond=None)
+    px_, *_ = np.linalg.lstsq(skew(pa + pb).reshape(-1, 3), (pb - pa).reshape(-1), rcond=None)
     # Px' = tan(theta/2) axis  ->  quaternion (cos, sin axis) proportional to (1, Px')
     q = np.append(px_, 1.0)
     R_X = Rotation.from_quat(q / np.linalg.norm(q)).as_matrix()
@@ -211,10 +203,10 @@ def _solve_horaud(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     # a x = L(a) x and x b = R(b) x with L, R the left and right multiplication matrices
     L = np.zeros((len(a), 4, 4))
     L[:, 0, 0], L[:, 0, 1:], L[:, 1:, 0] = a[:, 0], -a[:, 1:], a[:, 1:]
-    L[:, 1:, 1:] = a[:, 0, None, None] * np.eye(3) + _skew(a[:, 1:])
+    L[:, 1:, 1:] = a[:, 0, None, None] * np.eye(3) + skew(a[:, 1:])
     Rm = np.zeros((len(b), 4, 4))
     Rm[:, 0, 0], Rm[:, 0, 1:], Rm[:, 1:, 0] = b[:, 0], -b[:, 1:], b[:, 1:]
-    Rm[:, 1:, 1:] = b[:, 0, None, None] * np.eye(3) - _skew(b[:, 1:])
+    Rm[:, 1:, 1:] = b[:, 0, None, None] * np.eye(3) - skew(b[:, 1:])
     D = L - Rm
     _, V = np.linalg.eigh(np.einsum("nji,njk->ik", D, D))
     q = V[:, 0]
@@ -246,11 +238,11 @@ def _solve_daniilidis(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     n = len(A)
     S = np.zeros((n, 6, 8))
     S[:, :3, 0] = a[:, 1:] - b[:, 1:]
-    S[:, :3, 1:4] = _skew(a[:, 1:] + b[:, 1:])
+    S[:, :3, 1:4] = skew(a[:, 1:] + b[:, 1:])
     S[:, 3:, 0] = ad[:, 1:] - bd[:, 1:]
-    S[:, 3:, 1:4] = _skew(ad[:, 1:] + bd[:, 1:])
+    S[:, 3:, 1:4] = skew(ad[:, 1:] + bd[:, 1:])
     S[:, 3:, 4] = a[:, 1:] - b[:, 1:]
-    S[:, 3:, 5:8] = _skew(a[:, 1:] + b[:, 1:])
+    S[:, 3:, 5:8] = skew(a[:, 1:] + b[:, 1:])
     _, _, Vt = np.linalg.svd(S.reshape(-1, 8), full_matrices=False)
     v1, v2 = Vt[-2], Vt[-1]
     u1, w1, u2, w2 = v1[:4], v1[4:], v2[:4], v2[4:]
@@ -307,7 +299,7 @@ class _Bundle:
         lever = np.einsum("nij,nkj->nki", T_C_T[:, :3, :3], u)  # from the target origin, in frame C
         J = np.zeros((n, self.K, 3, 6))
         J[..., :3] = np.eye(3)
-        J[..., 3:] = -_skew(lever)
+        J[..., 3:] = -skew(lever)
         J = J.reshape(n, 3 * self.K, 6)
         R_C_S = T_C_T[:, :3, :3] @ X0[:3, :3]
         plate = np.einsum("nai,nkilj,nbj->nkalb", R_C_S, cov_S.reshape(n, self.K, 3, self.K, 3), R_C_S)
@@ -391,7 +383,7 @@ def _plate_side_covariance(
     if plate_covariances is not None:
         Jp = np.zeros((n, K, 3, 6))
         Jp[..., :3] = np.eye(3)
-        Jp[..., 3:] = -_skew(pts_S)
+        Jp[..., 3:] = -skew(pts_S)
         Jp = Jp.reshape(n, 3 * K, 6)
         cov += Jp @ plate_covariances @ np.swapaxes(Jp, 1, 2)
     return cov

@@ -11,8 +11,13 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+def skew(v: ArrayLike) -> np.ndarray:
+    """(..., 3) vectors -> (..., 3, 3) cross-product matrices ``[v]x`` (``skew(v) @ u == cross(v, u)``)."""
+    v = np.asarray(v, dtype=float)
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    S[..., 1, 0], S[..., 2, 0], S[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
+    return S
 
 
 def scan_pose_covariance(T_W_C: ArrayLike, T_C_T: ArrayLike, T_T_S: ArrayLike, reading_cov: ArrayLike) -> np.ndarray:
@@ -55,7 +60,7 @@ def recentre(centre_mm: ArrayLike, new_centre_mm: ArrayLike) -> np.ndarray:
     """6x6 map of a small world motion (t mm, r rad) about ``centre_mm`` to the same motion about
     ``new_centre_mm`` (a rotation ``r`` moves the new centre by ``r x (new - old)``)."""
     J = np.eye(6)
-    J[:3, 3:] = -_skew(np.asarray(new_centre_mm, float) - np.asarray(centre_mm, float))
+    J[:3, 3:] = -skew(np.asarray(new_centre_mm, float) - np.asarray(centre_mm, float))
     return J
 
 

@@ -37,7 +37,7 @@ def has_ply_magic(path: Path) -> bool:
         return f.read(4).rstrip(b"\r\n") == b"ply"
 
 
-def _ply_header(f, path: Path) -> tuple[str, int, list[tuple[str, str]]]:
+def _read_ply_header(f, path: Path) -> tuple[str, int, list[tuple[str, str]]]:
     """(format, vertex count, vertex properties as (name, NumPy kind)) of the header; ``f`` is left at the
     first byte of the data."""
     fmt, count, props, element, first = None, None, [], None, True
@@ -65,7 +65,7 @@ def _vertex_columns(path: Path) -> dict[str, np.ndarray]:
     """Every vertex property of a PLY by name (binary: its own type, ASCII: float64); :class:`_NotHere` for a
     layout left to Open3D."""
     with path.open("rb") as f:
-        fmt, count, props = _ply_header(f, path)
+        fmt, count, props = _read_ply_header(f, path)
         names = [n for n, _ in props]
         if not {"x", "y", "z"} <= set(names):
             raise CloudIOError(f"{path}: the vertices have no x y z")

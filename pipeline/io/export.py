@@ -108,13 +108,13 @@ def write_ply_streamed(path: Path | str, count: int, chunks: Iterable[PlyChunk])
                 fields = chunk.fields()
                 if names is None:
                     names = [(name, kind) for name, kind, _ in fields]
-                    f.write(_ply_header(count, names))
+                    f.write(_ply_header_bytes(count, names))
                 elif [(name, kind) for name, kind, _ in fields] != names:
                     raise ExportError(f"PLY chunk fields {[n for n, _, _ in fields]} differ from {names}")
                 written += _write_records(f, fields)
             if names is None:
                 names = [(a, "f8") for a in "xyz"]
-                f.write(_ply_header(count, names))
+                f.write(_ply_header_bytes(count, names))
         if written != count:
             raise ExportError(f"PLY {path.name}: {written} vertices written, the header says {count}")
     except BaseException:
@@ -124,7 +124,7 @@ def write_ply_streamed(path: Path | str, count: int, chunks: Iterable[PlyChunk])
     return path
 
 
-def _ply_header(count: int, fields: Sequence[tuple[str, str]]) -> bytes:
+def _ply_header_bytes(count: int, fields: Sequence[tuple[str, str]]) -> bytes:
     ply_type = {"f8": "double", "f4": "float"}
     header = ["ply", "format binary_little_endian 1.0", "comment units mm", f"element vertex {count}"]
     header += [f"property {ply_type[kind]} {name}" for name, kind in fields]

@@ -28,6 +28,7 @@ from scipy import sparse
 from scipy.sparse.linalg import splu
 from scipy.spatial.transform import Rotation
 from tandemscan.pipeline.geometry.frames import invert
+from tandemscan.pipeline.geometry.uncertainty import skew
 from tandemscan.pipeline.registration.icp import RefineError
 from tandemscan.pipeline.registration.mount_unknown import MountEstimate, MountPrior, MountSolve, schur
 
@@ -201,16 +202,11 @@ def _motion_about(offset: np.ndarray) -> np.ndarray:
     return M
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(m, 3, 3) cross-product matrices ``[v]x`` of (m, 3) vectors."""
-    return _motion_about(v)[:, :3, 3:]
-
-
 def _inverse_left_jacobian(phi: np.ndarray) -> np.ndarray:
     """(m, 3, 3) inverse left Jacobians of SO(3) at rotation vectors ``phi`` (m, 3): a small rotation ``d``
     applied on the left of ``Exp(phi)`` changes its rotation vector by ``Jl^-1(phi) d``."""
     theta = np.linalg.norm(phi, axis=1)
-    K = _skew(phi)
+    K = skew(phi)
     small = theta < 1e-4
     half = np.where(small, 1.0, 0.5 * theta)
     coef = np.where(small, 1.0 / 12.0, (1.0 - half / np.tan(half)) / np.where(small, 1.0, theta) ** 2)
@@ -223,7 +219,7 @@ def _adjoint(P: np.ndarray) -> np.ndarray:
     R = P[:, :3, :3]
     A = np.zeros((len(P), 6, 6))
     A[:, :3, :3] = A[:, 3:, 3:] = R
-    A[:, :3, 3:] = _skew(P[:, :3, 3]) @ R
+    A[:, :3, 3:] = skew(P[:, :3, 3]) @ R
     return A
 
 
@@ -328,7 +324,7 @@ class _Graph:
             Xp = self.poses(x)
             E = _about(self.ec, Xp[self.ei] @ self.Z @ invert(Xp[self.ej]))       # about c_e
             L = np.tile(np.eye(6), (len(E), 1, 1))
-            L[:, :3, 3:] = -_skew(E[:, :3, 3])
+            L[:, :3, 3:] = -skew(E[:, :3, 3])
             L[:, 3:, 3:] = _inverse_left_jacobian(_log(E)[:, 3:])
             to_edge = self.We @ L @ _motion_about(-self.ec)
             side_i, side_j = to_edge, -self.We @ L @ _adjoint(E) @ _motion_about(-self.ec)

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from tandemscan.pipeline.calibration.hand_eye import CLOSED_FORM, METHODS, HandEyeError, _skew, solve_hand_eye
+from tandemscan.pipeline.calibration.hand_eye import CLOSED_FORM, METHODS, HandEyeError, solve_hand_eye
 from tandemscan.pipeline.calibration.plate import nominal_centres_P, plate_frame, plate_frame_covariance
 from tandemscan.pipeline.calibration.poses import plate_view_poses
 from tandemscan.pipeline.geometry.frames import from_rotvec, from_rpy, invert, pose_error, transform_points
+from tandemscan.pipeline.geometry.uncertainty import skew
 from tandemscan.sim_drivers.plate import hand_eye_dataset
 
 X_TRUE = from_rpy([3.0, -88.0, 42.0], np.radians([179.2, 0.4, -0.3]))
@@ -46,7 +47,7 @@ def _plate_covariance(T_S_P: np.ndarray, scale: float) -> np.ndarray:
     """``hand_eye_dataset``'s plate noise (rotation about the plate origin, translation added) in
     ``PlateFit.covariance``'s convention (left perturbation about the S origin): ``dt' = dt + t x dtheta``."""
     J = np.eye(6)
-    J[:3, 3:] = _skew(T_S_P[:3, 3])
+    J[:3, 3:] = skew(T_S_P[:3, 3])
     return J @ np.diag(np.repeat(np.square(PLATE_SIGMA), 3) * scale**2) @ J.T
 
 
