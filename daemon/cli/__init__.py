@@ -24,7 +24,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="log at debug level")
     sub = parser.add_subparsers(dest="command", required=True)
     for commands in (cell_cmd, daemon_cmd, inspect_cmd, deepmerge_cmd, plan_cmd, opcua_cmd):
-        commands.register(sub)
+        commands.add_commands(sub)
     return parser
 
 

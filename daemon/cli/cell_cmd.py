@@ -26,7 +26,7 @@ from tandemscan.daemon.plans import PlanPartError, check_plan_part, default_plan
 from tandemscan.pipeline.geometry.units import MM_PER_UNIT
 
 
-def register(sub) -> None:
+def add_commands(sub) -> None:
     """Add ``measure``, ``calibrate`` and ``verify`` to the main CLI's sub-parsers."""
     p = sub.add_parser("measure", help="run a measurement job (simulated cell by default)")
     p.add_argument("--config", type=Path, help="cell configuration TOML (default: the simulated cell)")

@@ -14,7 +14,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from tandemscan.daemon.cli.command import NotStarted, UsageError, console
 
 
-def register(sub) -> None:
+def add_commands(sub) -> None:
     """Add ``serve``, ``jobs`` and ``job`` to the main CLI's sub-parsers."""
     p = sub.add_parser("serve", help="run the daemon with its REST API")
     p.add_argument("--host", help="address to listen on (default: [daemon] host, 127.0.0.1)")

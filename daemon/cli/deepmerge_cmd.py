@@ -1,6 +1,6 @@
 """``tandemscan train-deepmerge`` and ``tandemscan register``: DeepMerge training and pairwise registration.
 
-``register(subparsers)`` adds both sub-commands to the main CLI. Bad input (a missing cloud, an unreadable
+``add_commands(subparsers)`` adds both sub-commands to the main CLI. Bad input (a missing cloud, an unreadable
 transform or weights file) raises :class:`~tandemscan.daemon.cli.command.UsageError`: one error line, exit status
 2; a registration that fails its verification is one line and exit status 3 (docs/registration.md).
 """
@@ -74,7 +74,7 @@ def cmd_register(args: argparse.Namespace) -> int:
     return 0
 
 
-def register(sub) -> None:
+def add_commands(sub) -> None:
     """Add ``train-deepmerge`` and ``register`` to an argparse sub-parser collection."""
     p = sub.add_parser("train-deepmerge", help="train DeepMerge weights on generated data (CPU)")
     p.add_argument("--out", type=Path, default=Path("deepmerge.pt"), help="weights file to write")

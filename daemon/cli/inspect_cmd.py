@@ -1,7 +1,7 @@
 """``tandemscan inspect CLOUD --cad MESH [--tolerance 0.1] [--out DIR] [--alignment best-fit|rps|none]``:
 deviation report for any cloud, registered to CAD from where it lies.
 
-``register(subparsers)`` adds the sub-command to the main CLI; ``main(argv)`` runs it on its own.
+``add_commands(subparsers)`` adds the sub-command to the main CLI; ``main(argv)`` runs it on its own.
 Bad input ends with one clear error line on stderr and exit status 2; a cloud that cannot be aligned to the
 CAD writes the report of a failed inspection (verdict "indeterminate", the reason) and ends with one line
 ``not completed:`` and exit status 5 (docs/cli.md, "Exit status"; docs/inspection-method.md, "Alignment").
@@ -21,7 +21,7 @@ EXIT_BAD_INPUT = 2
 EXIT_NOT_INSPECTED = 5  # the alignment to CAD failed (docs/cli.md: not completed): report.html and report.json say why
 
 
-def register(subparsers) -> argparse.ArgumentParser:
+def add_commands(subparsers) -> argparse.ArgumentParser:
     """Add the ``inspect`` sub-command to an argparse sub-parser collection."""
     p = subparsers.add_parser(
         "inspect",

@@ -37,7 +37,7 @@ def cmd_opcua_user(args: argparse.Namespace) -> int:
     return 0
 
 
-def register(sub) -> None:
+def add_commands(sub) -> None:
     p = sub.add_parser("opcua-user", help="print an [opcua.users] entry with the password's hash (docs/opcua.md)")
     p.add_argument("name", help="the user name")
     p.add_argument("--role", choices=("viewer", "operator"), default="viewer",

@@ -19,7 +19,7 @@ from tandemscan.daemon.plans import PlanPartError, part_name, plan_configured_pa
 from tandemscan.pipeline.geometry.units import MM_PER_UNIT
 
 
-def register(subparsers) -> argparse.ArgumentParser:
+def add_commands(subparsers) -> argparse.ArgumentParser:
     """Add the ``plan`` sub-command to the main CLI's sub-parsers."""
     p = subparsers.add_parser("plan", help="plan AGV stations, scans and tracker transfers for a part")
     p.add_argument("--config", type=Path, help="cell configuration TOML (default: the simulated cell)")
