@@ -16,7 +16,12 @@ from typing import ClassVar, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, SerializeAsAny, ValidationError, field_validator, model_validator
 from pydantic_core import InitErrorDetails
-from tandemscan.config.devices import BUILT_IN_DRIVERS, DriverKind, plugin_settings_model, simulator_settings_model
+from tandemscan.config.device_registry import (
+    BUILT_IN_DRIVERS,
+    DriverKind,
+    plugin_settings_model,
+    simulator_settings_model,
+)
 
 OutputKind = Literal["coil", "holding_register"]
 
@@ -31,7 +36,7 @@ class DeviceSection(_Strict):
     """A device role's section: its ``driver`` and, for a plugin's driver, the plugin's own settings.
 
     ``driver = "sim"`` (the simulator's twin) or ``"real"`` (the built-in vendor's driver, its settings in the
-    section's own tables), or the name a plugin registered for the role (:mod:`tandemscan.config.devices`): its
+    section's own tables), or the name a plugin registered for the role (:mod:`tandemscan.config.device_registry`): its
     ``[<role>.<driver>]`` table is validated by the plugin's ``Settings`` model into ``settings``
     (docs/howto/add-a-device-driver.md)."""
 
@@ -892,7 +897,7 @@ class OpcuaConfig(_Strict):
 
 def _simulator_section(section: str, what: str):
     """A field holding the simulator's own table ``[section]``: validated by the model the simulator registers for
-    it (:func:`~tandemscan.config.devices.simulator_settings_model`, ``sim_drivers/config.py``), by default that
+    it (:func:`~tandemscan.config.device_registry.simulator_settings_model`, ``sim_drivers/config.py``), by default that
     model's defaults."""
     return Field(default_factory=lambda: simulator_settings_model(section)(),
                  description=f"{what}: the simulator's own table, validated by the model it registers")

@@ -1,4 +1,4 @@
-"""Building a cell's devices from the device registry (:mod:`tandemscan.config.devices`: entry points of group
+"""Building a cell's devices from the device registry (:mod:`tandemscan.config.device_registry`: entry points of group
 ``tandemscan.devices``, ``<role>.<driver>`` = ``"module:Class"``).
 
 A class is imported only when a cell asks for it (as python-can loads its interfaces), so no product module
@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import importlib
 
-from tandemscan.config.devices import OPTIONAL_ROLES, ROLES, device_class
+from tandemscan.config.device_registry import OPTIONAL_ROLES, ROLES, device_class
 from tandemscan.config.models import CellConfig
 from tandemscan.drivers.interfaces import Device
 

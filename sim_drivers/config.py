@@ -2,7 +2,7 @@
 as built) and the ``[hil]`` table (the protocol emulators of a hardware-in-the-loop cell).
 
 The product's configuration (:class:`~tandemscan.config.models.CellConfig`) does not know these models: the
-simulator registers them as entry points of group :data:`~tandemscan.config.devices.SIMULATOR_GROUP` (in
+simulator registers them as entry points of group :data:`~tandemscan.config.device_registry.SIMULATOR_GROUP` (in
 ``pyproject.toml``, as its device classes in ``tandemscan.devices``), and the cell configuration hands each its own
 table to validate (docs/architecture.md, "The cell layer"). Units: mm and degrees at this edge (``*_deg`` keys),
 as the product's settings.

@@ -1,13 +1,13 @@
 """Hardware-in-the-loop: every protocol emulator a ``driver = "real"`` device needs, backed by one SimWorld.
 
-Started before the real drivers connect (``[hil] enabled = true``): the JAKA controller and the tracker stream
-on their configured 127.0.0.1 ports, one chassis per configured CAN channel, the Modbus I/O module, and the
-fake harvesters camera; for a plugin's driver, the emulator the plugin registers (group ``tandemscan.emulators``,
-:mod:`tandemscan.config.devices`). Each emulator moves or reads the world, so a job run through the real drivers can be
-scored against the same ground truth as one run on the twins. The world's state is saved whenever an emulated
-robot reports a pose at rest other than the one last saved (the end of every move, however short, and where a stop
-cut one short) and whenever the tracker's still error is drawn anew, so a restarted daemon finds the robots where
-they stopped and the still target read with the error it had, as the twins' cell does (the drivers' odometry
+Started before the real drivers connect (``[hil] enabled = true``): the JAKA controller and the tracker stream on
+their configured 127.0.0.1 ports, one chassis per configured CAN channel, the Modbus I/O module, and the fake
+harvesters camera; for a plugin's driver, the emulator the plugin registers (group ``tandemscan.emulators``,
+:mod:`tandemscan.config.device_registry`). Each emulator moves or reads the world, so a job run through the real
+drivers can be scored against the same ground truth as one run on the twins. The world's state is saved whenever an
+emulated robot reports a pose at rest other than the one last saved (the end of every move, however short, and where
+a stop cut one short) and whenever the tracker's still error is drawn anew, so a restarted daemon finds the robots
+where they stopped and the still target read with the error it had, as the twins' cell does (the drivers' odometry
 starts afresh, as a real cell's: the resumed job re-localises it, docs/daemon.md).
 """
 
@@ -18,7 +18,7 @@ import logging
 from typing import Protocol
 
 import numpy as np
-from tandemscan.config.devices import BUILT_IN_DRIVERS, EMULATOR_GROUP, cell_roles, load_registered
+from tandemscan.config.device_registry import BUILT_IN_DRIVERS, EMULATOR_GROUP, cell_roles, load_registered
 from tandemscan.config.models import CellConfig
 from tandemscan.drivers.interfaces import ChassisPose
 from tandemscan.drivers.tasks import cancel_and_wait

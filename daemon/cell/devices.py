@@ -1,6 +1,6 @@
 """The neutral cell layer: the devices of one cell built from the configuration through the device registry.
 
-Each role's class comes from the device registry (:mod:`tandemscan.config.devices`, entry points), imported
+Each role's class comes from the device registry (:mod:`tandemscan.config.device_registry`, entry points), imported
 only when asked for. Where any role is simulated or ``[hil] enabled``, the simulated world behind the twins and
 emulators is the registry's :data:`~tandemscan.drivers.factory.SIMULATION`; the product sees it only as a
 :class:`CellSimulation`: something to start and stop around the devices and an observer of jobs
@@ -13,7 +13,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Protocol
 
-from tandemscan.config.devices import cell_roles
+from tandemscan.config.device_registry import cell_roles
 from tandemscan.config.models import CellConfig
 from tandemscan.daemon.cell.motion import Movers, readings
 from tandemscan.daemon.cell.observer import CalibrationObserver, JobObserver

@@ -77,7 +77,7 @@ def _exists(path: str) -> bool:
 def test_every_config_key_a_page_names_exists():
     """`[section] key` in a page (`key_*` a family of keys) is a field of that section's model: the product's
     (`config/models.py`, a sub-table by its own name, `[can]`) or the simulator's (`[sim]`, `[hil]`)."""
-    from tandemscan.config.devices import simulator_settings_model
+    from tandemscan.config.device_registry import simulator_settings_model
     from tandemscan.config.models import CellConfig
 
     keys = _section_fields(CellConfig, "")

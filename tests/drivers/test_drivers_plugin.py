@@ -12,7 +12,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 from tandemscan.config import ConfigError, load_config
-from tandemscan.config.devices import DEVICE_GROUP, device_class, registered
+from tandemscan.config.device_registry import DEVICE_GROUP, device_class, registered
 from tandemscan.daemon.cell.devices import build_cell
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.sim_drivers.hil_box import free_port
