@@ -84,7 +84,7 @@ class HilEmulators:
                                           time_scale=hil.chassis_time_scale, seed=cfg.sim.seed,
                                           start_pose=start_pose_of(world, role), on_pose=self._chassis_mover(role),
                                           driver_state_flags=hil.chassis_driver_state_flags,
-                                          slip=getattr(cfg.sim, f"{role}_slip"))
+                                          truth=world.chassis[role])
                 await chassis.start()
                 self.running[role] = chassis
         if self._real("tracker"):

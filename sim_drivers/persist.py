@@ -2,10 +2,12 @@
 
 Without this a restarted daemon would rebuild the world at its start poses, teleporting both robots; with it,
 a crash test sees what a real cell shows. Saved: the true and odometry pose of each chassis, the arm joints,
-counters, the random generators' states, the tracker's still error of the still period under way and the arm's
-flange offset of its last move (so the run goes on with the same noise model, not a replay of its first draws),
-the world frame W of the job under way and the ground-truth observers' logs. mm, rad. The twins save it as they act
-(:func:`keep_world_state`); :class:`tandemscan.sim_drivers.cell.Simulation` restores it when a session starts.
+counters, the random generators' states (the emulated chassis's slip streams too), the tracker's still error of
+the still period under way and the arm's flange offset of its last move (so the run goes on with the same noise
+model, not a replay of its first draws), the world frame W of the job under way and the ground-truth observers'
+logs. mm, rad. The twins save it as they act (:func:`keep_world_state`); the hardware-in-the-loop cell whenever an
+emulated robot comes to rest (``sim_drivers.hil``); :class:`tandemscan.sim_drivers.cell.Simulation` restores it
+when a session starts.
 """
 
 from __future__ import annotations
@@ -29,7 +31,8 @@ def world_state(world: SimWorld) -> dict:
         "seed": world.config.sim.seed,
         "chassis": {
             name: {"true_pose": c.true_pose.tolist(), "moves": c.moves,
-                   "odometry": [c.odometry.x_mm, c.odometry.y_mm, c.odometry.heading_rad]}
+                   "odometry": [c.odometry.x_mm, c.odometry.y_mm, c.odometry.heading_rad],
+                   "slip_rng": c.slip_rng.bit_generator.state}
             for name, c in world.chassis.items()
         },
         "joints_rad": world.joints_rad.tolist(),
@@ -55,6 +58,8 @@ def restore_world_state(world: SimWorld, state: dict) -> None:
         truth.true_pose = np.array(c["true_pose"], float)
         truth.odometry = ChassisPose(*c["odometry"])
         truth.moves = int(c["moves"])
+        if "slip_rng" in c:  # a state saved before the emulated chassis's slip stream was kept has none
+            truth.slip_rng.bit_generator.state = c["slip_rng"]
     world.joints_rad = np.array(state["joints_rad"], float)
     world.captures = int(state["captures"])
     world.tracker_frames = int(state["tracker_frames"])

@@ -27,13 +27,17 @@ log = logging.getLogger(__name__)
 
 # The target counts as occluded when the part is hit this much (mm) before the target along the sight line.
 _OCCLUSION_MARGIN_MM = 5.0
+# Each chassis's slip stream: [sim] seed and this number (the tracker's still error is 1, the arm's repeatability 2)
+_SLIP_STREAMS = {"tracking_chassis": 3, "measure_chassis": 4}
 
 
 @dataclass
 class ChassisTruth:
     """One AGV: its true floor pose, what its odometry believes, and its slip/drift model.
 
-    The odometry frame is F at the start (the start pose is surveyed); it drifts from there on.
+    The odometry frame is F at the start (the start pose is surveyed); it drifts from there on. ``slip_rng`` is the
+    stream an emulated chassis draws its slip from (the hardware-in-the-loop cell, ``sim_drivers.hil``): kept with
+    the world's state, so that a restarted daemon's chassis goes on with the stream, not a replay of its first draws.
     """
 
     name: str
@@ -42,6 +46,7 @@ class ChassisTruth:
     odometry: ChassisPose
     scale_bias: float  # systematic odometry scale error (drift), drawn once
     moves: int = 0
+    slip_rng: np.random.Generator = field(default_factory=np.random.default_rng)
 
     def apply_move(self, target: ChassisPose, rng: np.random.Generator) -> tuple[float, float]:
         """Drive from the odometry pose to ``target``: the odometry lands exactly on it (closed loop on the
@@ -181,7 +186,8 @@ class SimWorld:
     def _make_chassis(self, name: str, cfg: ChassisSlipConfig, start: FloorPoseConfig) -> ChassisTruth:
         pose = ChassisPose(start.x_mm, start.y_mm, np.radians(start.heading_deg))
         bias = self.rng.normal(0.0, cfg.odometry_drift_fraction)
-        return ChassisTruth(name, cfg, _floor_pose(start), pose, bias)
+        return ChassisTruth(name, cfg, _floor_pose(start), pose, bias,
+                            slip_rng=np.random.default_rng([self.config.sim.seed, _SLIP_STREAMS[name]]))
 
     def scoring_truth(self) -> WorldTruth:
         """The scoring view of the world now (shares this world's mesh and scene)."""

@@ -27,6 +27,7 @@ from tandemscan.drivers.can_link import CanFrameError, CanLink, load_dbc
 from tandemscan.drivers.interfaces import ChassisPose
 from tandemscan.drivers.tasks import cancel_and_wait
 from tandemscan.sim_drivers.config import ChassisSlipConfig
+from tandemscan.sim_drivers.world import ChassisTruth
 
 log = logging.getLogger(__name__)
 
@@ -56,11 +57,14 @@ class SkidSteerBody:
     wheel encoders see the commanded motion scaled by a fixed odometry error (``odometry_drift_fraction``).
     """
 
-    def __init__(self, slip: ChassisSlipConfig, track_mm: float, rng: np.random.Generator):
+    def __init__(self, slip: ChassisSlipConfig, track_mm: float, rng: np.random.Generator,
+                 odometry_scale: float | None = None):
+        """``odometry_scale``: the encoders' fixed scale error (default: drawn from ``rng``)."""
         self.cfg, self.track_mm, self.rng = slip, track_mm, rng
         self.x_mm = self.y_mm = self.heading_rad = 0.0
         self.left_mm = self.right_mm = 0.0
-        self.odometry_scale = 1.0 + rng.normal(0.0, slip.odometry_drift_fraction)
+        self.odometry_scale = (1.0 + rng.normal(0.0, slip.odometry_drift_fraction) if odometry_scale is None
+                               else odometry_scale)
         self._moving = False
         self._slip = (1.0, 1.0, 0.0)
 
@@ -100,12 +104,16 @@ class ChassisEmulator:
         odometry_mm_per_count: float = 1.0,
         slip: ChassisSlipConfig | None = None,
         standstill_speed_mm_s: float = 0.0,
+        truth: ChassisTruth | None = None,
     ):
         """``on_pose(true pose, moving)`` is called every period (e.g. to move the simulated world's chassis);
         ``driver_state_flags``: DriverState bits every motor reports in normal running (0x40, 0x80); ``slip``: how
         the body misses its commands (``[sim.<role>_slip]``; the default when not given);
         ``standstill_speed_mm_s``: the linear speed the motion state reports while the body stands still (a
-        real chassis's speed comes from its encoders and may show a count of noise there; 0: exactly zero)."""
+        real chassis's speed comes from its encoders and may show a count of noise there; 0: exactly zero);
+        ``truth``: the simulated world's chassis, whose slip model, slip stream and odometry scale error the body
+        takes (the hardware-in-the-loop cell: the world keeps them across a restart) in place of ``slip`` and draws
+        from ``seed``."""
         self.driver_state_flags = driver_state_flags
         self.standstill_speed_mm_s = standstill_speed_mm_s
         self.odometry_mm_per_count = odometry_mm_per_count
@@ -113,8 +121,12 @@ class ChassisEmulator:
         self.faults = ChassisFaults()
         self.period_s, self.watchdog_s, self.time_scale = period_s, watchdog_s, time_scale
         self.on_pose = on_pose
-        self.rng = np.random.default_rng(seed)
-        self.body = SkidSteerBody(slip or ChassisSlipConfig(), config.can.odometry_track_mm, self.rng)
+        self.rng = np.random.default_rng(seed)  # frame drops; the body's slip draws too unless ``truth`` is given
+        if truth is None:
+            self.body = SkidSteerBody(slip or ChassisSlipConfig(), config.can.odometry_track_mm, self.rng)
+        else:
+            self.body = SkidSteerBody(truth.cfg, config.can.odometry_track_mm, truth.slip_rng,
+                                      odometry_scale=1.0 + truth.scale_bias)
         if start_pose is not None:
             p = start_pose
             self.body.x_mm, self.body.y_mm, self.body.heading_rad = p.x_mm, p.y_mm, p.heading_rad

@@ -23,7 +23,11 @@ from tandemscan.drivers.metronor import MetronorTracker
 from tandemscan.drivers.phoxi import PhoxiScanner
 from tandemscan.drivers.safety_modbus import ModbusSafetyIO
 from tandemscan.pipeline.geometry import frames as F
+from tandemscan.sim_drivers.emulators.agv_can import SkidSteerBody
+from tandemscan.sim_drivers.hil import HilEmulators
 from tandemscan.sim_drivers.hil_box import free_port
+from tandemscan.sim_drivers.persist import load_world_state, save_world_state
+from tandemscan.sim_drivers.world import SimWorld
 
 
 @pytest.fixture(scope="module")
@@ -191,3 +195,37 @@ async def test_the_daemon_on_the_hil_cell_starts_its_emulators(box_part, tmp_pat
     finally:
         await daemon.close()
     assert not daemon.cell.simulation.emulators.running
+
+
+
+async def test_the_hil_chassis_slip_goes_on_across_a_restart_not_replayed(box_part, tmp_path):
+    """An emulated chassis draws its slip from a stream the world keeps with its state (``sim_drivers.persist``): a
+    restarted daemon's chassis goes on with that stream, as the twins do, instead of drawing its first moves' slip
+    again after every restart; its encoders keep the same scale error."""
+    cfg = hil_config(box_part)
+
+    async def emulated_body(world: SimWorld) -> SkidSteerBody:
+        emulators = HilEmulators(cfg, world)
+        await emulators.start()
+        body = emulators.running["measure_chassis"].body
+        await emulators.stop()
+        return body
+
+    def drive(body: SkidSteerBody) -> float:
+        """One move from standstill, 1 s at 500 mm/s: the distance travelled (mm)."""
+        x, y = body.x_mm, body.y_mm
+        body.step(500.0, 0.0, 1.0)
+        body.step(0.0, 0.0, 0.0)
+        return math.hypot(body.x_mm - x, body.y_mm - y)
+
+    world = SimWorld(cfg)
+    body = await emulated_body(world)
+    first = drive(body)
+    save_world_state(world, tmp_path / "world.json")  # as the cell saves it with the chassis at rest
+    restarted = SimWorld(cfg)
+    assert load_world_state(restarted, tmp_path / "world.json")
+    body_after = await emulated_body(restarted)
+    after_restart, uninterrupted = drive(body_after), drive(body)
+    assert after_restart == pytest.approx(uninterrupted, rel=1e-12)  # the stream goes on
+    assert abs(after_restart - first) > 1e-3  # not the first move's slip again (1 % sigma: about 5 mm)
+    assert body_after.odometry_scale == body.odometry_scale
