@@ -121,9 +121,17 @@ def _(record: TrackerRelocation, state: RunState) -> RunState:
                    relocalisation=relocalised(state.relocalisation, record.relocalisation))
 
 
-@_apply.register(MeasureMove)
-@_apply.register(ArmMove)
-def _(record: MeasureMove | ArmMove, state: RunState) -> RunState:
+@_apply.register
+def _(record: MeasureMove, state: RunState) -> RunState:
+    # a drive without a relocalisation entry (the job re-solves nothing) leaves the AGV unmeasured: where it was
+    # measured and planned before the drive is forgotten, never kept as where it stands now (docs/relocalisation.md)
+    reloc = state.relocalisation if record.relocalisation is not None else replace(
+        state.relocalisation, T_F_V2=None, planned_T_F_V2=None)
+    return replace(state, last_still_T_C_T=None, relocalisation=relocalised(reloc, record.relocalisation))
+
+
+@_apply.register
+def _(record: ArmMove, state: RunState) -> RunState:
     return replace(state, last_still_T_C_T=None, relocalisation=relocalised(state.relocalisation,
                                                                             record.relocalisation))
 

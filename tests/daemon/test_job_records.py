@@ -8,7 +8,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from tandemscan.daemon.jobs.records import AnchorEntry, ScanRecord, TransferRecord, UntrackedScan, record_from_json
+from tandemscan.daemon.jobs.records import (
+    AnchorEntry,
+    MeasureMove,
+    RelocalisationEntry,
+    ScanRecord,
+    TransferRecord,
+    UntrackedScan,
+    record_from_json,
+)
 from tandemscan.daemon.jobs.run_state import RelocalisationState, RunState, apply, replay_journal
 from tandemscan.pipeline.planning.plan import MoveArm, MoveLift, MoveMeasure, MoveTracker, Scan
 
@@ -80,3 +88,21 @@ def test_an_anchor_noted_at_the_start_places_the_world_and_the_planned_station()
         k: note[k] for k in ("step", "placed", "source")}
     unseen = apply(RunState(), AnchorEntry(0, False, reason="occluded", planned_T_F_V2=np.eye(4))).relocalisation
     assert unseen.T_F_W is None and unseen.anchor == {"step": 0, "placed": False, "reason": "occluded"}
+
+
+def test_a_drive_the_job_did_not_measure_leaves_no_stale_agv_pose():
+    """A drive without a relocalisation entry (the job re-solves no scanner pose, so it does not locate the AGV)
+    leaves the AGV unmeasured: the state no longer says it stands where it was measured and planned before the
+    drive (the restart check's last fallback compared a fresh location with that; a later anchor would place W
+    from it); W stays placed. A drive with an entry takes the entry's."""
+    T_F_W, before = np.array(pose(5.0)), np.array(pose(7.0, 1.0))
+    anchored = apply(RunState(), AnchorEntry(0, True, "measurement AGV where its odometry says", None, T_F_W, before,
+                                             before))
+    driven = apply(anchored, MeasureMove((1500.0, 0.0, 0.0), None)).relocalisation
+    assert driven.T_F_V2 is None and driven.planned_T_F_V2 is None
+    assert np.array_equal(driven.T_F_W, T_F_W) and driven.anchor == anchored.relocalisation.anchor
+    after = np.array(pose(1507.0, 2.0))
+    entry = RelocalisationEntry(T_F_W, after, np.array(pose(1500.0)), anchored.relocalisation.anchor,
+                                {"step": 1, "off_plan_mm": 7.3, "off_plan_deg": 0.0})
+    located = apply(anchored, MeasureMove((1500.0, 0.0, 0.0), entry)).relocalisation
+    assert np.array_equal(located.T_F_V2, after) and located.located == (entry.located,)
