@@ -7,13 +7,15 @@ The safety functions themselves stay hard-wired; this driver reports their state
 ``SafetyConfig.poll_period_s`` in a background task; listeners hear every change at once. A lost or
 misbehaving link counts as a safety stop: :meth:`ModbusSafetyIO.read` raises :class:`SafetyStop` until the
 link is back (``connect()`` again). So does a silent module: a poll left unanswered for more than
-``SafetyConfig.silent_after_periods`` (2) poll periods makes :meth:`ModbusSafetyIO.read` raise :class:`SafetyStop`
-at once, long before the request's own timeout.
+``SafetyConfig.silent_after_periods`` (2) poll periods, and one more in which the event loop may take a reply that
+came while it was held up, makes :meth:`ModbusSafetyIO.read` raise :class:`SafetyStop`, long before the request's
+own timeout.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 from collections.abc import Callable
 
@@ -41,6 +43,7 @@ class ModbusSafetyIO:
         self._light = False
         self._link_error: DeviceError | None = None
         self._poll_sent_at: float | None = None  # loop time (s) of the poll request awaiting its reply
+        self._poll_answered = asyncio.Event()  # set when that poll's reply (or the link's loss) is taken
         self._listeners: list[SafetyListener] = []
 
     def add_listener(self, listener: SafetyListener) -> None:
@@ -95,13 +98,20 @@ class ModbusSafetyIO:
         if self._link_error is not None:
             raise SafetyStop(self.name, f"safety I/O link lost ({self._link_error.reason})")
         if self._silent_s() is not None:
-            for _ in range(3):  # a reply already in the socket, not yet taken by a busy event loop, is no silence
-                await asyncio.sleep(0)
+            await self._take_late_reply()
             silent_s = self._silent_s()
             if silent_s is not None:
                 raise SafetyStop(self.name, f"safety I/O silent: no reply to a poll for {1000.0 * silent_s:.0f} ms")
         assert self._state is not None
         return self._state
+
+    async def _take_late_reply(self) -> None:
+        """Give the event loop one poll period to take the reply of the poll in flight: a module answers while
+        this loop is held up by other work, and its reply then waits in the socket for a few loop turns (the
+        client's data callback, its transaction, the poll task). A silent module is reported one period later."""
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(self._cfg.poll_period_s):
+                await self._poll_answered.wait()
 
     def _silent_s(self) -> float | None:
         """How long the poll in flight has waited for its reply (s), once that is over ``silent_after_periods``
@@ -166,8 +176,11 @@ class ModbusSafetyIO:
             raise NotConnected(self.name, "not connected")
         first = min(self._mb.estop_input, self._mb.light_curtain_input)
         count = max(self._mb.estop_input, self._mb.light_curtain_input) - first + 1
-        self._poll_sent_at = asyncio.get_running_loop().time()
-        rr = await self._request("read inputs", client.read_discrete_inputs, first, count=count)
+        self._poll_sent_at, self._poll_answered = asyncio.get_running_loop().time(), asyncio.Event()
+        try:
+            rr = await self._request("read inputs", client.read_discrete_inputs, first, count=count)
+        finally:
+            self._poll_answered.set()
         self._poll_sent_at = None
         bits = list(rr.bits)
         if len(bits) < count:

@@ -157,6 +157,18 @@ async def test_a_silent_module_is_a_safety_stop_before_its_request_times_out(emu
     assert (await io.read()).motion_allowed
 
 
+async def test_the_module_answers_while_the_drivers_event_loop_is_held_up(emulator, io):
+    """The emulated module is hardware of its own (its own event loop and thread): a poll sent just before the
+    driver's event loop is held up (blocking work in the daemon, 0.12 s) is answered meanwhile, so the first read
+    after the stall finds the reply, not a module silent for 0.12 s. Ten times."""
+    for _ in range(10):
+        await io.read()
+        while io._poll_sent_at is None:  # a poll in flight, the module not yet asked
+            await asyncio.sleep(0)
+        time.sleep(0.12)  # the loop held up, six poll periods
+        assert (await io.read()).motion_allowed
+
+
 async def test_the_supervisor_rides_out_a_stalled_event_loop_and_latches_on_a_silent_module(emulator, io):
     """A stall of the supervisor's own event loop (a garbage collection, a starved CPU: 0.12 s here, thirty
     times) delays the poll's reply and the supervisor's read alike; it is not a silent module and latches
