@@ -124,7 +124,9 @@ class PhoxiConfig(_Strict):
 
     producer_path: Path | None = Field(None, description="GenTL producer (.cti), e.g. PhoXi Control's photoneo.cti")
     interface: Literal["photoneo_gentl", "gige_vision"] = "photoneo_gentl"
-    serial_number: str = Field("", description="device serial/ID to open; empty = the first device found")
+    serial_number: str = Field("", description="the scanner to open: its serial number, its ID (with or without "
+                               "PhoXi Control's PhotoneoTL_DEV_ prefix) or its user-defined name; empty = the first "
+                               "device found")
     harvesters_module: str = Field(
         "harvesters.core", description="module providing Harvester (the fake one for hardware-in-the-loop runs)"
     )

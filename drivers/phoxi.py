@@ -110,8 +110,7 @@ class PhoxiScanner:
             harvester.update()
             if not harvester.device_info_list:
                 raise NotConnected(self.name, f"no scanner found through {producer.name}")
-            key = {"serial_number": self._px.serial_number} if self._px.serial_number else None
-            acquirer = harvester.create(key)
+            acquirer = harvester.create(self._device_index(harvester.device_info_list))
         except DeviceError:
             harvester.reset()
             raise
@@ -126,6 +125,22 @@ class PhoxiScanner:
             raise DeviceFault(self.name, f"cannot configure the scanner: {type(e).__name__}: {e}") from e
         self._harvester, self._acquirer, self._late_scan_possible = harvester, acquirer, False
         log.info("%s: opened through %s (%s)", self.name, producer, self._px.interface)
+
+    def _device_index(self, infos: list[Any]) -> int:
+        """Index of the configured scanner (``phoxi.serial_number``) in the producer's device list: the device that
+        has it as its serial number, its ID (``id_``, or that without PhoXi Control's ``PhotoneoTL_DEV_`` or a
+        GigE producer's ``..._DEV_`` prefix) or its user-defined name; the first device where none is configured.
+        :class:`NotConnected` naming what was found where no device, or several, have it."""
+        wanted = self._px.serial_number.strip()
+        if not wanted:
+            return 0
+        found = [_identities(info) for info in infos]
+        matches = [i for i, ids in enumerate(found) if wanted in ids]
+        if len(matches) != 1:
+            listed = "; ".join(", ".join(sorted(ids)) for ids in found)
+            raise NotConnected(self.name, f"{'no' if not matches else 'more than one'} scanner identified as "
+                                          f"{wanted!r} (found: {listed})")
+        return matches[0]
 
     def _import_harvesters(self) -> ModuleType:
         try:
@@ -238,6 +253,17 @@ def _pixels(component: Any, channels: int) -> np.ndarray | None:
     if data.size != n * channels:
         raise ValueError(f"component of {data.size} values for {component.width}x{component.height}x{channels}")
     return data.reshape(n, channels).copy()
+
+
+def _identities(info: Any) -> set[str]:
+    """What identifies a device in harvesters' device list (its ``property_dict``): serial number, ID with and
+    without the producer's ``<producer>_DEV_`` prefix, user-defined name; empty values left out."""
+    props = getattr(info, "property_dict", info)
+    ids = {str(props.get(key) or "") for key in ("serial_number", "id_", "user_defined_name")}
+    device_id = str(props.get("id_") or "")
+    if "_DEV_" in device_id:
+        ids.add(device_id.split("_DEV_", 1)[1])
+    return ids - {""}
 
 
 def _release(acquirer: Any, harvester: Any) -> None:

@@ -69,7 +69,9 @@ def recorded_style_scene(width: int = 64, height: int = 48, distance_mm: float =
 class FakeCamera:
     """The camera state tests and the hil cell set: scene, a fetch delay (slow scan), and what was written."""
 
-    serial_number: str = "PHOXI-FAKE-1"
+    device_id: str = "FAKE-001"  # Photoneo's ID of the device (on its label, in PhoXi Control)
+    serial_number: str = "PHOXI-FAKE-1"  # what PhoXi Control's producer lists as serial_number (not the ID)
+    user_defined_name: str = ""  # GigE Vision DeviceUserID
     interface: str = "photoneo_gentl"  # or "gige_vision": which producer the fake stands for
     scene: Scene = field(default_factory=recorded_style_scene)
     fetch_delay_s: float = 0.0
@@ -237,12 +239,29 @@ def _gige_parts(cam: FakeCamera, xyz: np.ndarray, normals: np.ndarray, conf: np.
     return parts
 
 
+@dataclass(frozen=True)
+class DeviceInfo:
+    """harvesters' device info: the GenTL producer's properties of one device (``property_dict``)."""
+
+    property_dict: dict[str, str]
+
+
+def device_info(cam: FakeCamera) -> DeviceInfo:
+    """How the producer lists the camera: PhoXi Control's as ``id_`` ``PhotoneoTL_DEV_<ID>`` beside a serial
+    number of its own (Photoneo's GenTL examples open ``{"id_": ...}``); a GigE Vision producer with the ID as the
+    serial number (Photoneo's GigE examples open ``{"serial_number": ...}``)."""
+    gige = cam.interface == "gige_vision"
+    return DeviceInfo({"id_": f"{'GEV' if gige else 'PhotoneoTL'}_DEV_{cam.device_id}",
+                       "serial_number": cam.device_id if gige else cam.serial_number,
+                       "user_defined_name": cam.user_defined_name, "vendor": "Photoneo", "model": "PhoXi3DScanner-S"})
+
+
 class Harvester:
     """``add_file`` a producer, ``update``, then ``create`` an acquirer for the one fake camera."""
 
     def __init__(self) -> None:
         self.files: list[str] = []
-        self.device_info_list: list[dict[str, str]] = []
+        self.device_info_list: list[DeviceInfo] = []
 
     def add_file(self, file_path: str) -> None:
         if not Path(file_path).is_file():
@@ -250,13 +269,18 @@ class Harvester:
         self.files.append(file_path)
 
     def update(self) -> None:
-        self.device_info_list = [{"serial_number": CAMERA.serial_number}] if self.files else []
+        self.device_info_list = [device_info(CAMERA)] if self.files else []
 
     def create(self, search_key: dict[str, str] | int | None = None) -> ImageAcquirer:
-        if isinstance(search_key, dict) and search_key.get("serial_number") not in (None, CAMERA.serial_number):
+        """An acquirer for the device at index ``search_key``, or the one whose properties have every value of the
+        dict ``search_key``, or the first; ValueError when none is."""
+        infos = self.device_info_list
+        if isinstance(search_key, dict):
+            infos = [i for i in infos if all(i.property_dict.get(k) == v for k, v in search_key.items())]
+        elif isinstance(search_key, int):
+            infos = infos[search_key : search_key + 1]
+        if not infos:
             raise ValueError(f"no device matches {search_key}")
-        if not self.device_info_list:
-            raise ValueError("no device found")
         return ImageAcquirer(CAMERA)
 
     def reset(self) -> None:

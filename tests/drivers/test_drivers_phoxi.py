@@ -142,8 +142,26 @@ async def test_missing_pieces_are_named(producer, tmp_path):
         await scanner_for(None).connect()
     with pytest.raises(NotConnected, match="producer not found.*missing.cti"):
         await scanner_for(tmp_path / "missing.cti").connect()
-    with pytest.raises(NotConnected, match="cannot open"):
+    with pytest.raises(NotConnected, match="no scanner identified as 'OTHER' .found: .*FAKE-001"):
         await scanner_for(producer, serial_number="OTHER").connect()
     with pytest.raises(NotConnected):
         await scanner_for(producer).capture()
     assert fake.CAMERA.open_acquirers == 0
+
+
+@pytest.mark.parametrize(("interface", "identity"), [
+    ("photoneo_gentl", "FAKE-001"), ("photoneo_gentl", "PhotoneoTL_DEV_FAKE-001"), ("photoneo_gentl", "PHOXI-FAKE-1"),
+    ("gige_vision", "FAKE-001"), ("gige_vision", "scanner-left")])
+async def test_the_scanner_is_found_by_any_of_its_identities(producer, interface, identity):
+    """PhoXi Control's producer lists a scanner as ``id_`` ``PhotoneoTL_DEV_<ID>`` beside a serial number of its own
+    (Photoneo's GenTL examples open it by ``id_``), a GigE Vision producer with the ID as its serial number (the
+    GigE examples open it by ``serial_number``): the configured scanner may be named by either, by the bare ID or
+    by its user-defined name."""
+    fake.CAMERA.interface = interface
+    fake.CAMERA.user_defined_name = "scanner-left"
+    scanner = scanner_for(producer, interface=interface, serial_number=identity)
+    await scanner.connect()
+    try:
+        assert len((await scanner.capture()).points_mm) > 0
+    finally:
+        await scanner.close()
