@@ -34,6 +34,9 @@ ERROR_BITS = {
     0x0100: "motor driver", 0x0200: "host communication",
 }
 WARNING_BITS = {0x0002: "battery warning"}
+# Host communication: the chassis has not heard a motion command (its 500 ms watchdog). True from its boot until our
+# first command arrives: a fault only once a status frame without it showed that the chassis hears us.
+HOST_COMMUNICATION = 0x0200
 # Motor driver state (0x261-0x264, ugv_sdk DRIVER_STATE_*_MASK): bits 0x02-0x20 are faults; 0x01 (supply
 # voltage low) is a warning, as the system status's battery warning is: the bus voltage dips under
 # acceleration on a part-charged battery, and a driver that really drops out reports its fault or stops the
@@ -77,6 +80,7 @@ class AgvCanChassis:
         self._last_status_t = 0.0
         self._fault: DeviceError | None = None
         self._commanding = False  # True once the chassis took CAN mode: leaving it is then a fault
+        self._heard = False  # True once a status frame showed no host-communication error since connect
         self._warnings: dict[str, str] = {}  # what warns now, by source (the system status, each motor)
         self.last_residual_mm: float | None = None  # distance from the target (odometry) after the last move
         self._feedback = asyncio.Event()
@@ -93,6 +97,7 @@ class AgvCanChassis:
         except (can.CanError, OSError, ValueError) as e:
             raise NotConnected(self.name, f"cannot open CAN {self._can.interface}:{self._can.channel}: {e}") from e
         self._link, self._wheels, self._fault, self._system, self._warnings = link, None, None, {}, {}
+        self._heard = False
         self._last_status_t = asyncio.get_running_loop().time()
         self._tasks = [asyncio.create_task(self._receive(), name=f"{self.name}-rx")]
         try:
@@ -359,10 +364,12 @@ class AgvCanChassis:
         self._system = sig
         self._last_status_t = asyncio.get_running_loop().time()
         state, code, mode = int(sig["VehicleState"]), int(sig["ErrorCode"]), int(sig["ControlMode"])
-        errors = bit_names(code, ERROR_BITS)
+        self._heard = self._heard or not code & HOST_COMMUNICATION
+        not_yet = 0 if self._heard else HOST_COMMUNICATION  # no command heard yet: no fault of the link
+        errors = bit_names(code & ~not_yet, ERROR_BITS)
         if state == 1:
             self._latch(SafetyStop(self.name, "chassis emergency stop"))
-        elif errors or state == 2:
+        elif errors or (state == 2 and not code & not_yet):
             self._latch(DeviceFault(self.name, f"chassis error 0x{code:04X}: {', '.join(errors) or 'exception'}"))
         elif mode != MODE_CAN and self._commanding:
             self._latch(DeviceFault(self.name, f"chassis left CAN mode ({CONTROL_MODES.get(mode, mode)} has control)"))

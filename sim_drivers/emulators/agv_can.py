@@ -105,6 +105,7 @@ class ChassisEmulator:
         slip: ChassisSlipConfig | None = None,
         standstill_speed_mm_s: float = 0.0,
         truth: ChassisTruth | None = None,
+        reports_host_timeout: bool = False,
     ):
         """``on_pose(true pose, moving)`` is called every period (e.g. to move the simulated world's chassis);
         ``driver_state_flags``: DriverState bits every motor reports in normal running (0x40, 0x80); ``slip``: how
@@ -113,8 +114,10 @@ class ChassisEmulator:
         real chassis's speed comes from its encoders and may show a count of noise there; 0: exactly zero);
         ``truth``: the simulated world's chassis, whose slip model, slip stream and odometry scale error the body
         takes (the hardware-in-the-loop cell: the world keeps them across a restart) in place of ``slip`` and draws
-        from ``seed``."""
+        from ``seed``; ``reports_host_timeout``: the system status reports error 0x0200 (host communication, vehicle
+        state "exception") while no motion command came for ``watchdog_s``, from boot until the first one too."""
         self.driver_state_flags = driver_state_flags
+        self.reports_host_timeout = reports_host_timeout
         self.standstill_speed_mm_s = standstill_speed_mm_s
         self.odometry_mm_per_count = odometry_mm_per_count
         self.config = config
@@ -204,10 +207,11 @@ class ChassisEmulator:
             self.faults.bad_dlc_next = False
             self._link.send_raw(self._link.db.get_message_by_name("SystemStatus").frame_id, b"\x00\x01\x00")
         else:
-            state = 1 if self.faults.estop else (2 if self.faults.error_code & ~0x0002 else 0)
+            code = self.faults.error_code | (0x0200 if self.reports_host_timeout and self.watchdog_tripped else 0)
+            state = 1 if self.faults.estop else (2 if code & ~0x0002 else 0)
             mode = 3 if self.faults.rc_override else self.mode
             self._maybe_send("SystemStatus", VehicleState=state, ControlMode=mode, BatteryVoltage=25.2,
-                             ErrorCode=self.faults.error_code, Counter=self._counter)
+                             ErrorCode=code, Counter=self._counter)
         v, w = self.velocity if self.velocity != (0.0, 0.0) else (self.standstill_speed_mm_s, 0.0)
         self._maybe_send("MotionState", LinearVelocity=round(v), AngularVelocity=round(w, 3),
                          LateralVelocity=0, SteeringAngle=0)

@@ -318,3 +318,27 @@ async def test_approach_decelerates_to_the_target_and_reports_the_residual():
     finally:
         await drv.close()
         await emu.stop()
+
+
+async def test_a_chassis_reporting_no_host_until_commanded_connects_and_a_lapse_after_is_a_fault():
+    """A chassis may report error 0x0200 (host communication: no motion command within its 500 ms watchdog) from
+    its boot until the first command arrives: connect() takes it to CAN mode all the same and the heartbeat clears
+    it. Once the chassis has heard the host, the same report (its commands lost) is a fault."""
+    channel = f"agv-{uuid.uuid4().hex[:8]}"
+    emu = ChassisEmulator(chassis_config(channel), channel, time_scale=0.1, seed=3, reports_host_timeout=True)
+    await emu.start()
+    drv = AgvCanChassis(chassis_config(channel), name="measure_chassis")
+    try:
+        await drv.connect()
+        pose = await drv.move_to(ChassisPose(100.0, 0.0, 0.0))
+        assert math.hypot(pose.x_mm - 100.0, pose.y_mm) <= 5.0
+        emu.faults.ignore_commands = True  # the chassis stops hearing the host
+        async with asyncio.timeout(5):
+            while (await drv.status()).state != "fault":
+                await asyncio.sleep(0.01)
+        assert "host communication" in (await drv.status()).detail["fault"]
+        with pytest.raises(DeviceFault, match="host communication"):
+            await drv.move_to(ChassisPose(0.0, 0.0, 0.0))
+    finally:
+        await drv.close()
+        await emu.stop()
