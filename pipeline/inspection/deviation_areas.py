@@ -163,22 +163,18 @@ def find_deviation_areas(
     upper_mm: float,
     smoothing_mm: float = 5.0,
     min_area_mm2: float = 50.0,
-    local: LocalDeviation | None = None,
     screen: bool | None = None,
 ) -> tuple[DeviationArea, ...]:
     """The areas beyond ``[lower_mm, upper_mm]`` of the cloud (frame F), largest |extreme| first, with ids
-    1, 2, ... in that order; ``local`` may pass a :func:`local_deviation` already computed. ``screen``
-    (default: above :data:`THIN_ABOVE_POINTS` points) averages only the points near where an even thinning
-    of the cloud comes near the band (:func:`_screened`; docs/inspection-method.md, "Deviation areas").
-
-    Eight parameters: the cloud, its deviations and band, the averaging's settings (``[inspection]
-    area_smoothing_mm``, ``area_min_mm2``), and what a caller computed (``local``) or decided (``screen``) already."""
+    1, 2, ... in that order, each point's deviation averaged over ``smoothing_mm`` (``[inspection]
+    area_smoothing_mm``), none smaller than ``min_area_mm2``. ``screen`` (default: above :data:`THIN_ABOVE_POINTS`
+    points) averages only the points near where an even thinning of the cloud comes near the band
+    (:func:`_screened`; docs/inspection-method.md, "Deviation areas")."""
     p = np.asarray(points_mm, dtype=np.float64)
     d = np.asarray(deviations_mm, dtype=np.float64)
     if screen is None:
         screen = len(p) > THIN_ABOVE_POINTS
-    if local is None:
-        local = _screened(p, d, lower_mm, upper_mm, smoothing_mm) if screen else local_deviation(p, d, smoothing_mm)
+    local = _screened(p, d, lower_mm, upper_mm, smoothing_mm) if screen else local_deviation(p, d, smoothing_mm)
     link_mm = max(3.0 * local.spacing_mm, smoothing_mm)
     at = np.arange(len(p)) if local.at is None else local.at
     found = []
