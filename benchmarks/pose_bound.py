@@ -68,7 +68,6 @@ from tandemscan.daemon.jobs.runner import JobResult, JobRunner
 from tandemscan.daemon.plans import default_plan_path
 from tandemscan.pipeline.geometry.frames import invert, to_rotvec, transform_points
 from tandemscan.pipeline.geometry.uncertainty import recentre, scan_pose_covariance
-from tandemscan.pipeline.inspection.scoring import cloud_to_mesh_distances, distance_stats
 from tandemscan.pipeline.io.raw_scan import read_raw_scan
 from tandemscan.pipeline.planning.plan import Plan
 from tandemscan.pipeline.registration.correction import joint_scan
@@ -86,6 +85,7 @@ from tandemscan.pipeline.registration.overlap import extract_overlap, overlappin
 from tandemscan.pipeline.registration.pose_graph import ScanPrior
 from tandemscan.pipeline.registration.sampling import voxel_downsample
 from tandemscan.sim_drivers.cell import with_surveyed_mounts
+from tandemscan.sim_drivers.stitch_score import cloud_to_mesh_distances, distance_stats
 from tandemscan.sim_drivers.truth_observer import TruthScorer
 
 OVERLAP_MM = 1.0

@@ -47,9 +47,9 @@ from tandemscan.daemon.plans import plan_configured_part
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.part import barrel_panel_mesh
 from tandemscan.pipeline.geometry.raycast import make_scene
-from tandemscan.pipeline.inspection.scoring import SCORE_CHUNK
 from tandemscan.pipeline.planning.coverage import pose_fits, triangle_geometry
 from tandemscan.pipeline.planning.plan import MoveTracker, Plan, Scan
+from tandemscan.sim_drivers.stitch_score import SCORE_CHUNK
 
 _ON_SURFACE_MM = 1.0
 

@@ -19,9 +19,9 @@ from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.part import load_part_mesh
 from tandemscan.pipeline.inspection.deviation_areas import DeviationArea
 from tandemscan.pipeline.inspection.inspect import CadSurface
-from tandemscan.pipeline.inspection.scoring import cloud_to_mesh_distances, distance_stats, pose_errors
 from tandemscan.pipeline.stitching.installation import Installation
 from tandemscan.sim_drivers.inspection_score import alignment_error, deviation_truths, score_areas
+from tandemscan.sim_drivers.stitch_score import cloud_to_mesh_distances, distance_stats, pose_errors
 from tandemscan.sim_drivers.world import SimWorld, WorldTruth
 
 if TYPE_CHECKING:

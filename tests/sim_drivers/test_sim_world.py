@@ -10,8 +10,8 @@ from tandemscan.daemon.cell.devices import build_cell
 from tandemscan.drivers import ChassisPose, NotConnected, OutOfReach, SafetyStop, TargetNotVisible
 from tandemscan.drivers.factory import ROLES
 from tandemscan.pipeline.geometry import frames as F
-from tandemscan.pipeline.inspection import scoring
-from tandemscan.pipeline.inspection.scoring import cloud_to_mesh_distances
+from tandemscan.sim_drivers import stitch_score
+from tandemscan.sim_drivers.stitch_score import cloud_to_mesh_distances
 
 
 @pytest.fixture
@@ -50,7 +50,7 @@ async def test_scanned_points_lie_on_the_mesh_within_the_noise(cell, monkeypatch
     rms = np.sqrt(np.mean(d**2))
     # noise is 0.05 mm along the ray; the distance to the surface is its projection on the normal
     assert 0.03 < rms < 0.06
-    monkeypatch.setattr(scoring, "SCORE_CHUNK", 4096)  # placed and measured chunk by chunk: the same distances
+    monkeypatch.setattr(stitch_score, "SCORE_CHUNK", 4096)  # placed and measured chunk by chunk: the same distances
     placed = cloud_to_mesh_distances(world.scene, frame.points_mm.astype(np.float32), world.T_F_S())
     np.testing.assert_allclose(placed, d, atol=5e-4)  # the scene is float32: 0.1-0.2 um at metres from F
     assert np.all(np.sum(frame.normals * frame.points_mm, axis=1) < 0)  # normals face the scanner

@@ -1,4 +1,5 @@
-"""Ground-truth scores of a simulated job: per-scan pose errors and cloud-to-mesh distances (mm, deg)."""
+"""Ground-truth scores of a simulated job's stitch: per-scan pose errors and cloud-to-mesh distances (mm, deg); the
+simulator's, as :mod:`tandemscan.sim_drivers.inspection_score` is of its inspection (the product never imports it)."""
 
 from __future__ import annotations
 
