@@ -56,6 +56,12 @@ def succeeded(reply: dict) -> bool:
     return str(reply.get("errorCode")).strip() == "0"
 
 
+def in_position(status: dict) -> bool:
+    """The status's ``inpos``; true where the controller does not push it (the status content is a setting of the
+    controller): completion then rests on the actual position at the target alone."""
+    return bool(status.get("inpos", True))
+
+
 def six_finite(value: object, what: str, device: str) -> np.ndarray:
     """``value`` as a float array of 6 finite numbers, else :class:`DeviceFault`."""
     try:
@@ -155,7 +161,7 @@ class JakaTcpArm:
         elif str(st.get("errcode", "0x0")) not in ("0", "0x0"):
             state = DeviceState.FAULT
         else:
-            state = DeviceState.IDLE if st.get("inpos", True) else DeviceState.MOVING
+            state = DeviceState.IDLE if in_position(st) else DeviceState.MOVING
         detail = {k: st.get(k) for k in ("joint_actual_position", "enabled", "powered_on", "inpos", "errcode",
                                          "current_tool_id", "current_user_id")}
         return DeviceStatus(self.name, True, state, detail)
@@ -205,7 +211,7 @@ class JakaTcpArm:
 
         def arrived(st: dict) -> bool:
             actual = six_finite(st.get("joint_actual_position"), "joint_actual_position", self.name)
-            return bool(st.get("inpos")) and float(np.max(np.abs(actual - target_deg))) <= tol
+            return in_position(st) and float(np.max(np.abs(actual - target_deg))) <= tol
 
         await self._await_motion(arrived, timeout_s, "joint move")
 
@@ -226,7 +232,7 @@ class JakaTcpArm:
         def arrived(st: dict) -> bool:  # inpos alone may still be the last move's: the pose must be the target's
             actual = six_finite(st.get("actual_position"), "actual_position", self.name)
             dt_mm, dr_rad = pose_error(from_rpy(actual[:3], np.radians(actual[3:])), T)
-            return bool(st.get("inpos")) and dt_mm <= tol_mm and dr_rad <= tol_rad
+            return in_position(st) and dt_mm <= tol_mm and dr_rad <= tol_rad
 
         await self._await_motion(arrived, timeout_s, "linear move")
 

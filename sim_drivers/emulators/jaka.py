@@ -65,6 +65,7 @@ class JakaBehaviour:
     # status still shows the last move's inpos (a real controller plans first and pushes every 8 ms)
     knows_kine_inverse: bool = True  # False: an older controller that answers kine_inverse as an unknown command
     reply_moves_when_done: bool = False  # True: a move's reply comes when the motion ends (or is stopped)
+    status_leaves_out: tuple[str, ...] = ()  # status keys not pushed (the content is a setting of the controller)
 
 
 class JointMotion:
@@ -223,6 +224,8 @@ class JakaEmulator:
             "task_state": 4 if self.enabled else 1,
             "paused": False,
         }
+        for key in self.behaviour.status_leaves_out:
+            msg.pop(key, None)
         if self.behaviour.status_bytes > 0:
             msg.update(vendor_padding(self.behaviour.status_bytes - len(encode(msg))))
         return msg

@@ -191,6 +191,19 @@ async def test_a_controller_that_answers_a_move_when_it_is_done(emulator, arm):
     assert emulator.commands.count("power_on") == 1  # never reconnected and re-enabled
 
 
+async def test_a_status_stream_configured_without_inpos_still_completes_moves(emulator, arm):
+    """The status content is a setting of the controller: where it leaves ``inpos`` out, a move completes when the
+    actual joints (or the flange) reach the target."""
+    emulator.behaviour = JakaBehaviour(status_leaves_out=("inpos",), move_start_delay_s=0.02)
+    emulator.time_scale = 0.05
+    await arm.move_joints(Q_TARGET)
+    assert emulator.motion.done(emulator.sim_time())
+    goal = ArmKinematics(ArmConfig()).forward(Q_TARGET)
+    goal[:3, 3] += [0.0, 15.0, 10.0]
+    await arm.move_linear(goal)
+    assert pose_error(await arm.flange_pose(), goal)[0] < 0.05
+
+
 async def test_a_tool_or_user_frame_selected_on_the_controller_is_refused_for_cartesian_poses(emulator, arm):
     """``get_tcp_pos``, ``actual_position`` and ``moveL`` speak of the selected tool in the selected user frame
     (status ``current_tool_id`` / ``current_user_id``): the driver's flange poses need tool 0 and user frame 0."""
