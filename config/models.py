@@ -552,7 +552,14 @@ class CorrectionConfig(_Strict):
     pair_cell_mm: float = Field(10.0, gt=0, description="grid cell (mm) by which scans are found to overlap")
     max_partners_per_scan: int = Field(
         6, ge=1, description="each scan is registered with at most this many scans of its own tracker station "
-        "and as many of the others, those sharing the most grid cells with it"
+        "and as many of the others, those sharing the most grid cells with it, for the pose graph (joint off); "
+        "the report's overlap RMS is taken on these pairs either way"
+    )
+    check_partners_per_scan: int = Field(
+        1, ge=0, description="with joint (which starts from the tracker poses and takes no pose from the pairs): "
+        "each scan is registered as a check (the report's correction.pairs, pairs_dropped, stages) with this many "
+        "best-overlap scans of its own tracker station and as many of the others (the transfer links); 0 = none "
+        "(docs/correction.md, Which pairs are registered)"
     )
     icp_max_points: int = Field(8000, ge=100, description="overlaps are thinned evenly to this many points per cloud")
     icp_max_distance_mm: float = Field(2.0, gt=0, description="point-to-plane ICP correspondence distance, mm")

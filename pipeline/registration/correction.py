@@ -33,7 +33,7 @@ from tandemscan.pipeline.registration.joint import (
     refine_jointly,
 )
 from tandemscan.pipeline.registration.mount_unknown import MountEstimate, MountPrior
-from tandemscan.pipeline.registration.overlap import overlapping_pairs, relative_covariance
+from tandemscan.pipeline.registration.overlap import overlapping_pairs, relative_covariance, shared_cells
 from tandemscan.pipeline.registration.pair_stage import (
     HeldScans,
     PairOutcome,
@@ -61,13 +61,16 @@ class CorrectionSettings(FromSection):
     """The whole-job correction's parameters: ``[correction]``'s keys of the same names
     (``CorrectionSettings.from_section(config.correction)``, built once where the job starts; mm). Whether it
     runs (``enabled``); the pairs (``pairs``: how each is registered), found on a grid of ``pair_cell_mm`` with
-    at most ``max_partners_per_scan`` a scan; with ``joint`` the joint refinement (``joint_refinement``) on scans
-    thinned to ``joint_voxel_mm`` with at most ``joint_max_partners_per_scan`` partners, else the pose graph."""
+    at most ``max_partners_per_scan`` a scan (the pose graph's and the overlap RMS's), of which with ``joint``
+    only ``check_partners_per_scan`` a scan are registered (:attr:`registered_partners`); with ``joint`` the
+    joint refinement (``joint_refinement``) on scans thinned to ``joint_voxel_mm`` with at most
+    ``joint_max_partners_per_scan`` partners, else the pose graph."""
 
     enabled: bool
     pairs: JobPairSettings
     pair_cell_mm: float
     max_partners_per_scan: int
+    check_partners_per_scan: int
     joint: bool
     joint_refinement: JointSettings
     joint_voxel_mm: float
@@ -77,6 +80,14 @@ class CorrectionSettings(FromSection):
     def method(self) -> str:
         """The pair registration method (``pairs.criteria.method``)."""
         return self.pairs.criteria.method
+
+    @property
+    def registered_partners(self) -> int:
+        """Partners a scan is registered with (``overlap.overlapping_pairs``' ``max_partners``; 0: no pair is
+        registered): the pose graph's ``max_partners_per_scan``, or with ``joint``, which takes no pose from the
+        pairs (it starts from the tracker poses), ``check_partners_per_scan``: the pairs are then a check only
+        (docs/correction.md, "Which pairs are registered")."""
+        return self.check_partners_per_scan if self.joint else self.max_partners_per_scan
 
 
 @dataclass(frozen=True)
@@ -141,23 +152,23 @@ class _Clock:
 
 
 #: points of a source scan, evenly spread, on which the report's overlap RMS is evaluated: a median over the
-#: job's edges of RMS values from hundreds of inliers each is a stable figure; more only costs time
+#: job's pairs of RMS values from hundreds of inliers each is a stable figure; more only costs time
 OVERLAP_RMS_POINTS = 2000
-#: target scans, evenly spread over the job's, whose edges the report's overlap RMS is evaluated on: each
-#: target's normals cost as much as its edges' evaluation, and a median over a few hundred edges (about four
-#: a target) is as stable as one over all of them (a whole part: 1,460 edges, 6.3 s on two cores)
+#: target scans, evenly spread over the job's, whose pairs the report's overlap RMS is evaluated on: each
+#: target's normals cost as much as its pairs' evaluation, and a median over a few hundred pairs (about four
+#: a target) is as stable as one over all of them (a whole part: 1,460 pairs, 6.3 s on two cores)
 OVERLAP_RMS_TARGETS = 64
 
 
-def _overlap_rms(clouds: list[np.ndarray], edges, poses_before, poses_after, distance_mm: float
-                 ) -> tuple[float, float]:
-    """Median over edges of the point-to-plane RMS (mm) of the overlaps, with the poses before and after (scored
-    within ``distance_mm``, the fine stage's final correspondence distance); the
-    edges of at most :data:`OVERLAP_RMS_TARGETS` target scans, evenly spread over the job's, each source scan
-    evaluated on at most :data:`OVERLAP_RMS_POINTS` of its points, evenly spread. The edges of one target run
+def _overlap_rms(clouds: list[np.ndarray], pairs: Sequence[tuple[int, int]], poses_before, poses_after,
+                 distance_mm: float) -> tuple[float, float]:
+    """Median over ``pairs`` (target, source) of the point-to-plane RMS (mm) of the overlaps, with the poses before
+    and after (scored within ``distance_mm``, the fine stage's final correspondence distance); the
+    pairs of at most :data:`OVERLAP_RMS_TARGETS` target scans, evenly spread over the job's, each source scan
+    evaluated on at most :data:`OVERLAP_RMS_POINTS` of its points, evenly spread. The pairs of one target run
     on one thread (its normals are computed once, where first needed), the targets on all."""
     by_target: dict[int, list[int]] = {}
-    for i, j, _ in edges:
+    for i, j in pairs:
         by_target.setdefault(i, []).append(j)
     by_target = {int(i): by_target[i] for i in thin_evenly(np.array(sorted(by_target)), OVERLAP_RMS_TARGETS)}
     sources = {j: clouds[j][thin_evenly(np.arange(len(clouds[j])), OVERLAP_RMS_POINTS)]
@@ -231,22 +242,29 @@ def association_key(scan_key_i: str, scan_key_j: str, T_W_S_i: np.ndarray, T_W_S
 def _pair_corrections(
     job: StitchedJob, local: list[np.ndarray], cfg: CorrectionSettings, network: Registrar | None,
     cache: Mapping[str, PairOutcome], backend: ComputeBackend | None, scan_store: str | None,
-) -> tuple[list[tuple[int, int, PairOutcome]], int]:
-    """The outcome of every overlapping pair of the job's thinned scans ``local`` (S, mm), placed in W at their poses
-    here (only the pairs need them placed: a whole part's at full resolution take about 0.9 GB, freed on
-    return): from ``cache`` where the job registered the pair while it measured (same clouds, covariance and
-    settings), else registered here, one unit a target (``pair_stage.TargetPairs``) on ``backend`` (this
-    process's threads where None); with ``scan_store`` the units read their scans from it by reference
-    (``pair_stage.StoredScans``: a Dask cluster's workers), else they take this process's clouds. Returns the
-    outcomes in pair order and how many came from the cache."""
+) -> tuple[list[tuple[int, int, PairOutcome]], int, list[tuple[int, int]]]:
+    """The outcome of every pair of the job's thinned scans ``local`` (S, mm) registered at
+    ``cfg.registered_partners`` (``overlap.overlapping_pairs``), placed in W at their poses here (only the pairs need
+    them placed: a whole part's at full resolution take about 0.9 GB, freed on return): from ``cache`` where the
+    job registered the pair while it measured (same clouds, covariance and settings), else registered here, one unit
+    a target (``pair_stage.TargetPairs``) on ``backend`` (this process's threads where None); with ``scan_store``
+    the units read their scans from it by reference (``pair_stage.StoredScans``: a Dask cluster's workers), else
+    they take this process's clouds. Returns the outcomes in pair order, how many came from the cache, and the
+    pairs selected at ``cfg.max_partners_per_scan`` (the registered ones where the joint refinement is off), on
+    all of which the report's overlap RMS is taken, registered or not: it scores the overlaps at the poses."""
     scans, voxel_mm = job.scans, job.voxel_mm
     with pair_threads() as pair_map:
         world = pair_map(lambda k: transform_points(scans[k].T_W_S, local[k]), range(len(scans)))
-        digests = pair_map(cloud_digest, world) if cache else []
+        digests = pair_map(cloud_digest, world) if cache and cfg.registered_partners else []
+    stations = [s.station for s in scans]
+    shared = shared_cells(world, cfg.pair_cell_mm)
+    selected = overlapping_pairs(world, stations, cfg.pair_cell_mm, cfg.max_partners_per_scan, shared)
+    registering = (overlapping_pairs(world, stations, cfg.pair_cell_mm, cfg.registered_partners, shared)
+                   if cfg.registered_partners else [])
     out: list[tuple[int, int, PairOutcome | None]] = []
     todo: dict[int, list[tuple[int, np.ndarray, int]]] = {}  # target -> (source, covariance, slot in out)
     hits = 0
-    for i, j in overlapping_pairs(world, [s.station for s in scans], cfg.pair_cell_mm, cfg.max_partners_per_scan):
+    for i, j in registering:
         cov = pair_covariance(scans[i], scans[j], job.transfers)
         cached = cache.get(pair_key(digests[i], digests[j], cov, cfg.pairs)) if cache else None
         if cached is None:
@@ -268,7 +286,7 @@ def _pair_corrections(
     for i, j, o in out:
         if o.dropped:
             log.warning("correction: pair (%d, %d) dropped: %s", i, j, o.dropped)
-    return out, hits
+    return out, hits, selected
 
 
 def correct_scans(
@@ -301,7 +319,7 @@ def correct_scans(
     with pair_threads() as pair_map:
         local = pair_map(lambda s: voxel_downsample(np.asarray(s.points_S, float), job.voxel_mm), scans)
     clock.lap("thin_s")
-    outcomes, cached = _pair_corrections(job, local, cfg, network, online.pairs, backend, scan_store)
+    outcomes, cached, selected = _pair_corrections(job, local, cfg, network, online.pairs, backend, scan_store)
     clock.lap("pairs_s")
     edges = [(i, j, o) for i, j, o in outcomes if o.transformation is not None]
     dropped = [(i, j, o.dropped) for i, j, o in outcomes if o.dropped]
@@ -319,7 +337,7 @@ def correct_scans(
         poses, mount = graph.poses, graph.mount
         graph_figures = {"graph_cost_before": graph.cost_before, "graph_cost_after": graph.cost_after}
     before = [s.T_W_S for s in scans]
-    rms_b, rms_a = _overlap_rms(local, edges, before, poses, cfg.pairs.criteria.icp_max_distance_mm)
+    rms_b, rms_a = _overlap_rms(local, selected, before, poses, cfg.pairs.criteria.icp_max_distance_mm)
     clock.lap("overlap_rms_s")
     moves = [pose_error(a, b) for a, b in zip(poses, before, strict=True)]
     report = {

@@ -95,7 +95,8 @@ class OnlinePairs:
     def __init__(self, cfg: CorrectionSettings, voxel_mm: float):
         self.cfg, self.voxel_mm = cfg, float(voxel_mm)
         self.enabled = cfg.enabled and cfg.method not in NETWORK_METHODS
-        self.selector = PairSelector(cfg.pair_cell_mm, cfg.max_partners_per_scan)
+        # the pairs registered (``CorrectionSettings.registered_partners``; None: none)
+        self.selector = PairSelector(cfg.pair_cell_mm, cfg.registered_partners) if cfg.registered_partners else None
         self.scans: list[OnlineScan] = []
         self.outcomes: dict[str, PairOutcome] = {}
         self.joint_scans: dict[str, JointScan] = {}
@@ -123,7 +124,7 @@ class OnlinePairs:
         world = transform_points(scan.T_W_S, voxel_downsample(np.asarray(points_S, float), self.voxel_mm))
         new = OnlineScan(world, cloud_digest(world), scan)
         with self._shared:
-            partners = self.selector.add(world, scan.station)
+            partners = self.selector.add(world, scan.station) if self.selector is not None else []
             self.scans.append(new)
         j = len(self.scans) - 1
         for i in partners:

@@ -118,8 +118,25 @@ def _check_selection(cell_mm: float, max_partners: int) -> None:
         raise OverlapError(f"cell_mm must be > 0 and max_partners >= 1, got {cell_mm}, {max_partners}")
 
 
+def shared_cells(clouds: list[np.ndarray], cell_mm: float) -> np.ndarray:
+    """``shared[i, j]``: how many cells of the ``cell_mm`` grid world-frame clouds (mm) ``i`` and ``j`` both occupy
+    (0 on the diagonal); :func:`overlapping_pairs` selects from it, once or at several ``max_partners``."""
+    if cell_mm <= 0:
+        raise OverlapError(f"cell_mm must be > 0, got {cell_mm}")
+    cells = [_cells(_cloud(c, f"cloud {i}"), cell_mm) for i, c in enumerate(clouds)]
+    if not cells:
+        return np.zeros((0, 0), np.int64)
+    _, column = np.unique(np.concatenate(cells), return_inverse=True)
+    row = np.repeat(np.arange(len(cells)), [len(c) for c in cells])
+    incidence = sparse.csr_matrix((np.ones(len(row), np.int64), (row, column.ravel())))
+    shared = (incidence @ incidence.T).toarray()
+    np.fill_diagonal(shared, 0)
+    return shared
+
+
 def overlapping_pairs(
     clouds: list[np.ndarray], stations: ArrayLike, cell_mm: float, max_partners: int,
+    shared: np.ndarray | None = None,
 ) -> list[tuple[int, int]]:
     """Pairs ``(i, j)``, ``i < j``, of world-frame clouds (mm) worth registering, in index order.
 
@@ -127,21 +144,14 @@ def overlapping_pairs(
     ``max_partners`` candidates with the most shared cells among the clouds of its own tracker station, and
     as many among the other stations (the links that carry a coordinate transfer); a pair is kept when either
     of its clouds keeps it. On a plan of hundreds of scans this keeps the raster neighbours and drops the
-    pairs that only touch at a corner. :class:`PairSelector` finds a superset of these pairs as the clouds
-    arrive one by one.
+    pairs that only touch at a corner. ``shared``: the clouds' :func:`shared_cells` where already counted.
+    :class:`PairSelector` finds a superset of these pairs as the clouds arrive one by one.
     """
     _check_selection(cell_mm, max_partners)
     stations = np.asarray(stations)
-    cells = [_cells(_cloud(c, f"cloud {i}"), cell_mm) for i, c in enumerate(clouds)]
-    if not cells:
-        return []
-    _, column = np.unique(np.concatenate(cells), return_inverse=True)
-    row = np.repeat(np.arange(len(cells)), [len(c) for c in cells])
-    incidence = sparse.csr_matrix((np.ones(len(row), np.int64), (row, column.ravel())))
-    shared = (incidence @ incidence.T).toarray()       # shared[i, j] = cells clouds i and j both occupy
-    np.fill_diagonal(shared, 0)
+    shared = shared_cells(clouds, cell_mm) if shared is None else shared
     keep = set()
-    for i in range(len(clouds)):
+    for i in range(len(shared)):
         keep.update((min(i, j), max(i, j)) for j in _best_partners(shared[i], stations, i, max_partners))
     return sorted(keep)
 
@@ -161,6 +171,7 @@ class PairSelector:
         _check_selection(cell_mm, max_partners)
         self.cell_mm, self.max_partners = float(cell_mm), int(max_partners)
         self._cells: list[np.ndarray] = []
+        self._boxes = np.zeros((0, 2, 3), np.int64)  # each cloud's lowest and highest cell along x, y, z
         self._stations: list[int] = []
         self._shared = np.zeros((0, 0), np.int64)
 
@@ -170,9 +181,16 @@ class PairSelector:
     def add(self, cloud_W: np.ndarray, station: int) -> list[int]:
         """Take the next cloud (world frame, mm) of tracker station ``station``; returns its possible partners
         (indices of earlier clouds, ascending)."""
-        cells = _cells(_cloud(cloud_W, f"cloud {len(self)}"), self.cell_mm)
-        row = np.array([len(np.intersect1d(c, cells, assume_unique=True)) for c in self._cells], np.int64)
+        cloud = _cloud(cloud_W, f"cloud {len(self)}")
+        cells = _cells(cloud, self.cell_mm)
         n = len(self._cells)
+        box = (np.floor(np.array([cloud.min(axis=0), cloud.max(axis=0)]) / self.cell_mm).astype(np.int64)
+               if len(cloud) else np.array([[1, 1, 1], [0, 0, 0]], np.int64))   # an empty box meets none
+        row = np.zeros(n, np.int64)
+        meets = np.all((self._boxes[:, 0] <= box[1]) & (self._boxes[:, 1] >= box[0]), axis=1)
+        for k in np.flatnonzero(meets):  # only clouds whose boxes of cells meet can share a cell
+            row[k] = len(np.intersect1d(self._cells[k], cells, assume_unique=True))
+        self._boxes = np.concatenate([self._boxes, box[None]])
         shared = np.zeros((n + 1, n + 1), np.int64)
         shared[:n, :n], shared[n, :n], shared[:n, n] = self._shared, row, row
         self._shared, self._cells = shared, [*self._cells, cells]

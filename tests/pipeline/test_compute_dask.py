@@ -32,6 +32,8 @@ pytestmark = pytest.mark.slow
 VOXEL_MM = 1.0
 # the pose graph: poses from the pairs
 CFG = CorrectionSettings.from_section(CorrectionConfig(method="icp", min_overlap_points=100, joint=False))
+# the joint refinement (the default): poses from the tracker start, the check pairs registered on the backend
+JOINT = CorrectionSettings.from_section(CorrectionConfig(method="icp", min_overlap_points=100))
 
 
 def _free_port() -> int:
@@ -91,15 +93,22 @@ def test_the_pair_stage_on_two_dask_workers_gives_the_local_result(cluster, tmp_
     network = LazyNetwork(DeepMergeConfig())  # as the job passes it: pickled to the workers, loaded only where used
     local = correct_scans(StitchedJob(scans, transfers, voxel_mm=VOXEL_MM), CFG, network, backend=LocalBackend())
     assert len(local.edges) >= 5
+    local_joint = correct_scans(StitchedJob(scans, transfers, voxel_mm=VOXEL_MM), JOINT, network,
+                                backend=LocalBackend())
+    assert 0 < len(local_joint.edges) <= len(local.edges)  # the check pairs only
     backend = DaskBackend(address)
     try:
         backend.client.wait_for_workers(2, timeout=60)
         with get_task_stream(backend.client) as stream:
             remote = correct_scans(StitchedJob(scans, transfers, voxel_mm=VOXEL_MM), CFG, network, backend=backend,
                                    scan_store=str(tmp_path))
+        remote_joint = correct_scans(StitchedJob(scans, transfers, voxel_mm=VOXEL_MM), JOINT, network,
+                                     backend=backend, scan_store=str(tmp_path))
     finally:
         backend.close()
     _same(local, remote)
+    _same(local_joint, remote_joint)
+    assert local_joint.report["joint"] == remote_joint.report["joint"]
     assert len({task["worker"] for task in stream.data}) == 2  # both workers registered pairs
 
 

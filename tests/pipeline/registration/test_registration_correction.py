@@ -186,3 +186,38 @@ def test_the_stages_parameters_are_the_sections_keys_of_the_same_names():
         s.pairs.criteria.icp_iterations = 1
     with pytest.raises(AttributeError, match="icp_max_distance_mm|method"):  # a section without the stage's keys
         PairCriteria.from_section(DeepMergeConfig())
+
+
+def test_with_the_joint_refinement_only_the_check_pairs_are_registered_and_give_no_pose(monkeypatch):
+    """The joint refinement starts from the tracker poses and takes nothing from the pairs' outcomes: with it only
+    each scan's ``check_partners_per_scan`` best-overlap partners of its station and of the others are registered
+    (the report's pair figures), and the poses, the joint's figures and the overlap RMS (on the pairs selected at
+    ``max_partners_per_scan`` either way) are the same to the bit with no pair registered at all."""
+    from tandemscan.pipeline.registration.overlap import overlapping_pairs
+
+    _, scans, transfers = scans_with_drift(n=8, per_station=3)
+    registered, real = [], correction.register_units
+    monkeypatch.setattr(correction, "register_units", lambda units, *a, **k: registered.extend(
+        (u.target.index, s.index) for u in units for s in u.sources) or real(units, *a, **k))
+
+    def run(**keys):
+        registered.clear()
+        cfg = CorrectionSettings.from_section(CorrectionConfig(method="icp", min_overlap_points=100, **keys))
+        return correct_scans(StitchedJob(scans, transfers), cfg), sorted(registered)
+
+    checked, pairs_checked = run()
+    world = [transform_points(s.T_W_S, s.points_S) for s in scans]
+    stations = [s.station for s in scans]
+    assert pairs_checked == overlapping_pairs(world, stations, 10.0, 1)
+    assert len(pairs_checked) < len(overlapping_pairs(world, stations, 10.0, 6))
+    assert any(stations[i] != stations[j] for i, j in pairs_checked)  # the transfers' links among them
+    assert 0 < checked.report["pairs"] + len(checked.report["pairs_dropped"]) <= len(pairs_checked)
+    unchecked, pairs_unchecked = run(check_partners_per_scan=0)
+    assert pairs_unchecked == [] and unchecked.report["pairs"] == 0 and unchecked.edges == []
+    graph, pairs_graph = run(joint=False)
+    assert pairs_graph == overlapping_pairs(world, stations, 10.0, 6)
+    for a, b in zip(checked.poses, unchecked.poses, strict=True):
+        np.testing.assert_array_equal(a, b)
+    for key in ("joint", "overlap_rms_mm_median_before", "pose_change_mm_median"):
+        assert checked.report[key] == unchecked.report[key]
+    assert checked.report["overlap_rms_mm_median_before"] == graph.report["overlap_rms_mm_median_before"]

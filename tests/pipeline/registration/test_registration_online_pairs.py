@@ -138,3 +138,21 @@ def test_a_scans_pairs_register_on_both_cores_while_measuring(monkeypatch):
     assert online.outcomes.keys() == one_at_a_time.keys()
     for key, outcome in one_at_a_time.items():
         np.testing.assert_array_equal(online.outcomes[key].transformation, outcome.transformation)
+
+
+@pytest.mark.parametrize("check", [1, 0])
+def test_with_the_joint_refinement_only_the_check_pairs_register_while_measuring(check):
+    """With ``joint`` the scans are prepared for it as they arrive and only the check pairs
+    (``check_partners_per_scan``) are registered: the end of the job finds every one of them registered
+    already; with none asked for, none is registered and the joint refinement still takes every prepared scan."""
+    _, scans, transfers = scans_with_drift(n=6, per_station=3)
+    cfg = settings(method="icp", min_overlap_points=100, check_partners_per_scan=check)
+    online = _measure(scans, transfers, cfg)
+    everything = _measure(scans, transfers, settings(method="icp", min_overlap_points=100, joint=False))
+    assert len(online.outcomes) < len(everything.outcomes) if check else online.outcomes == {}
+    work = online.work()
+    assert len(work.joint_scans) == len(scans)
+    res = correct_scans(StitchedJob(scans, transfers), cfg, online=work)
+    assert res.report["pairs_registered_while_measuring"] >= res.report["pairs"] + len(res.report["pairs_dropped"])
+    assert (res.report["pairs"] > 0) is bool(check)
+    assert res.report["joint"]["pairs_associated_while_measuring"] >= res.report["joint"]["pairs"] > 0
