@@ -89,7 +89,7 @@ class PlateViews:
     and its covariance (driver order), the mean sphere centres in S (mm, (3, 3)) with their covariances, the
     plate pose ``T_S_P`` from them (Eq. 7-8) and the arm joints (rad)."""
 
-    tracker_poses: list[np.ndarray] = field(default_factory=list)
+    target_poses: list[np.ndarray] = field(default_factory=list)
     covariances: list[np.ndarray] = field(default_factory=list)
     plate_poses: list[np.ndarray] = field(default_factory=list)
     centres: list[np.ndarray] = field(default_factory=list)
@@ -100,7 +100,7 @@ class PlateViews:
     def add(self, T_C_T: np.ndarray, cov: np.ndarray, fits: list[PlateFit], q: np.ndarray) -> None:
         """One view: the arm stands still, so the scans' centres are averaged and their covariance shrinks
         with the count."""
-        self.tracker_poses.append(T_C_T)
+        self.target_poses.append(T_C_T)
         self.covariances.append(cov)
         self.joints.append(q)
         self.fits.append(list(fits))
@@ -126,7 +126,7 @@ async def run_calibration(
     kinematics = ArmKinematics(config.arm)
     views, skipped = await scan_plate_views(session, config, nominal, kinematics, progress)
     result = await _solve_scanner_mount(views, cal)
-    sources = {"T_T_S": f"hand-eye ({result.method}, {len(views.tracker_poses)} poses)"}
+    sources = {"T_T_S": f"hand-eye ({result.method}, {len(views.target_poses)} poses)"}
     T_E_S = _flange_mount(views, kinematics, result, nominal.T_E_S, sources, skipped)
     mounts, chassis_sources, chassis_skipped = await _chassis_mounts(session, config, kinematics,
                                                                      (T_E_S, result.T_T_S), nominal, progress)
@@ -136,7 +136,7 @@ async def run_calibration(
         sources.setdefault(k, "nominal")
     installation = Installation(mounts["T_V1_C"], mounts["T_V2_B"], T_E_S, result.T_T_S)
     truth = observer.calibration_scored(nominal, installation) if observer is not None else None
-    run = CalibrationRun(installation, result, out_file, len(views.tracker_poses), skipped, truth, sources,
+    run = CalibrationRun(installation, result, out_file, len(views.target_poses), skipped, truth, sources,
                          cell_fingerprint(config), datetime.now(UTC).isoformat(timespec="seconds"))
     _write_json(out_file, run.to_json())
     progress(cal.poses, cal.poses, "done")
@@ -164,9 +164,9 @@ async def scan_plate_views(session: CellSession, config: CellConfig, nominal: In
     skipped = [f"view {i}: out of reach" for i in range(len(candidates)) if i not in {j for j, _ in plan}]
     views = PlateViews()
     for i, q in plan:
-        if len(views.tracker_poses) >= cal.poses:
+        if len(views.target_poses) >= cal.poses:
             break
-        progress(len(views.tracker_poses), cal.poses, f"view {i}: scanning the plate")
+        progress(len(views.target_poses), cal.poses, f"view {i}: scanning the plate")
         async with gate.motion(Robot.MEASURE) as robot:
             await robot.arm.move_joints(q, config.arm.timeout_s)
         try:
@@ -178,8 +178,8 @@ async def scan_plate_views(session: CellSession, config: CellConfig, nominal: In
         views.add(T_C_T, cov, fits, q)
     for s in skipped:
         log.info("calibration: %s", s)
-    if len(views.tracker_poses) < 3:
-        raise CalibrationJobError(f"only {len(views.tracker_poses)} usable plate views: {'; '.join(skipped)}")
+    if len(views.target_poses) < 3:
+        raise CalibrationJobError(f"only {len(views.target_poses)} usable plate views: {'; '.join(skipped)}")
     return views, skipped
 
 
@@ -188,7 +188,7 @@ async def _solve_scanner_mount(views: PlateViews, cal: CalibrationConfig) -> Han
     covariances as plate points and the averaged readings' covariances (docs/calibration.md)."""
     try:
         return await asyncio.to_thread(
-            solve_hand_eye, np.array(views.tracker_poses), np.array(views.plate_poses), cal.method,
+            solve_hand_eye, np.array(views.target_poses), np.array(views.plate_poses), cal.method,
             plate_points_P=nominal_centres_P(cal), plate_points_S=np.array(views.centres),
             tracker_covariances=np.array(views.covariances),
             plate_point_covariances=np.array(views.centre_covariances),
@@ -203,7 +203,7 @@ def _flange_mount(views: PlateViews, kinematics: ArmKinematics, hand_eye: HandEy
     """``T_E_S`` from the arm's forward kinematics and the tracker readings (``solve_flange_mount``); the
     nominal one, with the reason in ``skipped``, where that fails."""
     try:
-        flange = solve_flange_mount([kinematics.forward(q) for q in views.joints], views.tracker_poses,
+        flange = solve_flange_mount([kinematics.forward(q) for q in views.joints], views.target_poses,
                                     hand_eye.T_T_S)
     except HandEyeError as e:
         skipped.append(f"T_E_S stays nominal: {e}")

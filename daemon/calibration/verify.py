@@ -76,7 +76,7 @@ def _centres_C(views: PlateViews, installation: Installation) -> tuple[np.ndarra
     tracker reading's (about the target's origin) and the mount's (right-perturbation of ``T_T_S``)."""
     centres, covs = [], []
     mount = installation.T_T_S_covariance
-    for T_C_T, reading_cov, c_S, c_cov in zip(views.tracker_poses, views.covariances, views.centres,
+    for T_C_T, reading_cov, c_S, c_cov in zip(views.target_poses, views.covariances, views.centres,
                                                views.centre_covariances, strict=True):
         T_C_S = np.asarray(T_C_T) @ installation.T_T_S
         R = T_C_S[:3, :3]
@@ -126,7 +126,7 @@ def evaluate(views: PlateViews, installation: Installation, config: CellConfig) 
     return VerificationResult(
         dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), "fail" if failures else "pass",
         float(errors[worst]), float(U[worst]), float(form), float(size), ver.mpe_sphere_spacing_mm,
-        ver.mpe_probing_form_mm, ver.mpe_probing_size_mm, len(views.tracker_poses), len(errors),
+        ver.mpe_probing_form_mm, ver.mpe_probing_size_mm, len(views.target_poses), len(errors),
         installation_record(config), failures)
 
 

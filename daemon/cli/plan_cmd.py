@@ -45,7 +45,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
     report_file = out.with_name(out.stem + "-report.json")
     report = {"plan": str(out), "part": part_name(config), **plan.summary(), "coverage": coverage.as_dict(),
               "tracker_stations_xy_heading": [[round(x, 1), round(y, 1), round(float(np.degrees(h)), 2)]
-                                              for x, y, h in plan.tracker_poses]}
+                                              for x, y, h in plan.tracker_chain]}
     report_file.write_text(json.dumps(report, indent=1), encoding="utf-8")
     if args.png:
         from tandemscan.daemon.cli.plan_figure import draw_plan

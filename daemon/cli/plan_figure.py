@@ -44,7 +44,7 @@ def draw_plan(plan: PartPlan, T_T_S: np.ndarray, path: Path, title: str = "") ->
                     textcoords="offset points")
     ax.scatter(plan.candidates[:, 0] * mm, plan.candidates[:, 1] * mm, s=3, color="0.7", label="tracker candidates")
 
-    chain = np.array(plan.tracker_poses)
+    chain = np.array(plan.tracker_chain)
     ax.plot(chain[:, 0] * mm, chain[:, 1] * mm, color="tab:red", lw=1.0, ls=":", label="tracker transfer order")
     for k, (x, y, h) in enumerate(chain):
         c = colours(k % 10)

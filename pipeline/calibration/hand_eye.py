@@ -402,7 +402,7 @@ def pair_residuals(A: np.ndarray, B: np.ndarray, X: np.ndarray) -> tuple[np.ndar
 
 
 def solve_hand_eye(
-    tracker_poses: ArrayLike,
+    target_poses: ArrayLike,
     plate_poses: ArrayLike,
     method: Method = "refine",
     *,
@@ -418,7 +418,8 @@ def solve_hand_eye(
 ) -> HandEyeResult:
     """Solve ``A X = X B`` for ``X = T_T_S`` (4x4, mm).
 
-    ``tracker_poses[i]`` is ``T_C_T`` and ``plate_poses[i]`` is ``T_S_P`` at arm pose i (N >= 3).
+    ``target_poses[i]`` is ``T_C_T`` (the tracker's reading of the target) and ``plate_poses[i]`` is ``T_S_P`` at
+    arm pose i (N >= 3).
     ``plate_points_P`` (K, 3 mm, frame P) are the points the refinement and the point residuals use
     (for example the sphere centres); default a plate-sized tetrahedron. ``plate_points_S`` (N, K, 3 mm),
     when given, are those points as measured in each scan (the fitted sphere centres): the refinement then
@@ -440,11 +441,11 @@ def solve_hand_eye(
     """
     if method not in METHODS:
         raise HandEyeError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
-    T_C_T = _as_poses(tracker_poses, "tracker_poses")
+    T_C_T = _as_poses(target_poses, "target_poses")
     T_S_P = _as_poses(plate_poses, "plate_poses")
     n = len(T_C_T)
     if n != len(T_S_P):
-        raise HandEyeError(f"{n} tracker poses but {len(T_S_P)} plate poses")
+        raise HandEyeError(f"{n} target poses but {len(T_S_P)} plate poses")
     if n < 3:
         raise HandEyeError(f"hand-eye calibration needs at least 3 poses, got {n}")
     pts_P = DEFAULT_PLATE_POINTS_P if plate_points_P is None else np.asarray(plate_points_P, dtype=float)

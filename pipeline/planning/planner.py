@@ -45,7 +45,8 @@ class PartPlan:
     seconds: dict[str, float] = field(default_factory=dict)
 
     @property
-    def tracker_poses(self) -> list[tuple[float, float, float]]:
+    def tracker_chain(self) -> list[tuple[float, float, float]]:
+        """The chain's tracker stations in measuring order: x mm, y mm, heading rad (frame F)."""
         return [tuple(float(v) for v in self.candidates[k]) for k in self.tracker.chain]
 
     @property

@@ -152,7 +152,7 @@ def test_bad_input_is_reported(sim_config):
     d = _data(sim_config, 3)
     with pytest.raises(HandEyeError, match="at least 3 poses"):
         solve_hand_eye(d.T_C_T[:2], d.T_S_P[:2])
-    with pytest.raises(HandEyeError, match="14 tracker poses but 13"):
+    with pytest.raises(HandEyeError, match="14 target poses but 13"):
         solve_hand_eye(d.T_C_T, d.T_S_P[:13])
     bad = d.T_S_P.copy()
     bad[4, :3, :3] *= 1.01
