@@ -203,16 +203,16 @@ class JakaTcpArm:
         if np.any(q < self._q_min - 1e-9) or np.any(q > self._q_max + 1e-9):
             raise OutOfReach(self.name, f"joint target {np.round(np.degrees(q), 3).tolist()} deg outside limits")
         target_deg = np.degrees(q)
-        await self._start_move(
-            "joint_move", jointPosition=target_deg.tolist(), speed=self._cfg.joint_speed_deg_s,
-            accel=self._net.joint_accel_deg_s2, relFlag=0,
-        )
         tol = self._net.inpos_tolerance_deg
 
         def arrived(st: dict) -> bool:
             actual = six_finite(st.get("joint_actual_position"), "joint_actual_position", self.name)
             return in_position(st) and float(np.max(np.abs(actual - target_deg))) <= tol
 
+        await self._start_move(
+            "joint_move", arrived, jointPosition=target_deg.tolist(), speed=self._cfg.joint_speed_deg_s,
+            accel=self._net.joint_accel_deg_s2, relFlag=0,
+        )
         await self._await_motion(arrived, timeout_s, "joint move")
 
     async def move_linear(self, T_B_E: np.ndarray, timeout_s: float | None = None) -> None:
@@ -223,10 +223,6 @@ class JakaTcpArm:
         self._check_flange_frames("moveL")
         xyz, rpy = to_rpy(T)
         cart = [*xyz.tolist(), *np.degrees(rpy).tolist()]
-        await self._start_move(
-            "moveL", cart, cartPosition=cart, speed=self._net.linear_speed_mm_s, accel=self._net.linear_accel_mm_s2,
-            relFlag=0, tol=0,
-        )
         tol_mm, tol_rad = self._net.inpos_tolerance_mm, math.radians(self._net.inpos_tolerance_deg)
 
         def arrived(st: dict) -> bool:  # inpos alone may still be the last move's: the pose must be the target's
@@ -234,6 +230,10 @@ class JakaTcpArm:
             dt_mm, dr_rad = pose_error(from_rpy(actual[:3], np.radians(actual[3:])), T)
             return in_position(st) and dt_mm <= tol_mm and dr_rad <= tol_rad
 
+        await self._start_move(
+            "moveL", arrived, cart, cartPosition=cart, speed=self._net.linear_speed_mm_s,
+            accel=self._net.linear_accel_mm_s2, relFlag=0, tol=0,
+        )
         await self._await_motion(arrived, timeout_s, "linear move")
 
     async def joints(self) -> np.ndarray:
@@ -421,17 +421,28 @@ class JakaTcpArm:
                                                          f"or link lost")
             log.error("%s", self._status_error)
 
-    async def _start_move(self, cmd: str, cart: list[float] | None = None, **params: object) -> None:
+    async def _start_move(self, cmd: str, arrived: Callable[[dict], bool], cart: list[float] | None = None,
+                          **params: object) -> None:
         """Refuse a move while the last status shows a stop or fault; else send it. A refused move is classified by
         what the controller says: :class:`OutOfReach` only when ``kine_inverse`` answers that it has no solution
         for the target ``cart`` (errorCode 2, docs/drivers.md); otherwise a :class:`DeviceFault` with the
-        controller's text, the robot's power and enable state, and why reachability is not known."""
+        controller's text, the robot's power and enable state, and why reachability is not known. A move not
+        answered within ``reply_timeout_s`` is taken as under way once the status shows the arm moving or
+        ``arrived`` (a controller that answers a move when it is done); one that shows neither within as long
+        again was not taken: :class:`DeviceTimeout`, the command link dropped."""
         if self._status is not None:
             self._check_safety(self._status)
-        reply = await self._request(cmd, self._net.reply_timeout_s, **params)
+        timeout_s = self._net.reply_timeout_s
+        reply = await self._request(cmd, timeout_s, **params)
         if reply is None:
-            log.info("%s: %s not answered within %s s: a controller that answers a move when it is done; its "
-                     "completion is awaited on the status stream", self.name, cmd, self._net.reply_timeout_s)
+            try:
+                await self._wait_status(lambda st: not in_position(st) or arrived(st), timeout_s, f"{cmd} under way")
+            except DeviceTimeout as e:
+                async with self._lock:
+                    await self._drop_command_link()
+                raise DeviceTimeout(self.name, f"{cmd}: no reply within {timeout_s} s and the arm did not start") from e
+            log.info("%s: %s not answered within %s s but under way: a controller that answers a move when it is "
+                     "done", self.name, cmd, timeout_s)
             return
         if succeeded(reply):
             return

@@ -41,7 +41,8 @@ class JakaFaults:
     """Fault injection; every flag can be flipped while a client is connected."""
 
     reply_delay_s: float = 0.0  # every reply waits this long (slow controller)
-    silent: bool = False  # commands are read but never answered
+    silent: bool = False  # commands are read and carried out but never answered
+    ignore_commands: bool = False  # commands are read and dropped: neither carried out nor answered
     truncate_next_reply: bool = False  # half a reply, then the command connection closes
     disconnect_on_move: bool = False  # every connection drops as soon as a move starts
     estop: bool = False  # emergency stop pressed: motion halts, status reports it, moves are refused
@@ -279,6 +280,8 @@ class JakaEmulator:
             for req in requests:
                 name = str(req.get("cmdName", ""))
                 self.commands.append(name)
+                if self.faults.ignore_commands:
+                    continue
                 reply = {"cmdName": name, "errorCode": "0", "errorMsg": "", **await self._execute(name, req)}
                 if self.behaviour.numeric_error_codes:
                     reply["errorCode"] = int(reply["errorCode"])

@@ -191,6 +191,20 @@ async def test_a_controller_that_answers_a_move_when_it_is_done(emulator, arm):
     assert emulator.commands.count("power_on") == 1  # never reconnected and re-enabled
 
 
+async def test_a_move_neither_answered_nor_started_fails_after_the_reply_timeout(emulator, arm):
+    """A late move reply is tolerated only while the status shows the arm moving: a controller whose command task
+    hangs (the status still pushed) fails the move after twice the reply timeout, not the move's own (5 s)."""
+    emulator.faults.ignore_commands = True
+    with pytest.raises(DeviceTimeout, match="joint_move: no reply within 0.5 s and the arm did not start"):
+        await arm.move_joints(Q_TARGET)
+    with pytest.raises(NotConnected):  # the command link was dropped
+        await arm.joints()
+    emulator.faults.ignore_commands = False
+    await arm.connect()
+    await arm.move_joints(Q_TARGET)
+    np.testing.assert_allclose(await arm.joints(), Q_TARGET, atol=1e-9)
+
+
 async def test_a_status_stream_configured_without_inpos_still_completes_moves(emulator, arm):
     """The status content is a setting of the controller: where it leaves ``inpos`` out, a move completes when the
     actual joints (or the flange) reach the target."""
