@@ -5,7 +5,7 @@ Each command is a function taking the parsed arguments and returning an exit sta
 line on stderr and the exit status of its kind (:mod:`tandemscan.daemon.cli.command`; docs/cli.md, "Exit
 status"). The commands, by what they act on: the cell (:mod:`.cell_cmd`: ``measure``, ``calibrate``,
 ``verify``), the daemon (:mod:`.daemon_cmd`: ``serve``, ``jobs``, ``job``), a part's plan (:mod:`.plan_cmd`),
-a cloud's inspection (:mod:`.inspect_cmd`), registration and DeepMerge (:mod:`.deepmerge_cmd`) and OPC UA users
+a cloud's inspection (:mod:`.inspect_cmd`), registration and DeepMerge (:mod:`.registration_cmd`) and OPC UA users
 (:mod:`.opcua_cmd`).
 """
 
@@ -15,7 +15,7 @@ import argparse
 import logging
 
 from rich.markup import escape
-from tandemscan.daemon.cli import cell_cmd, daemon_cmd, deepmerge_cmd, inspect_cmd, opcua_cmd, plan_cmd
+from tandemscan.daemon.cli import cell_cmd, daemon_cmd, inspect_cmd, opcua_cmd, plan_cmd, registration_cmd
 from tandemscan.daemon.cli.command import EXIT_INTERRUPTED, as_command_error, console
 
 
@@ -23,7 +23,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="tandemscan", description="Two-robot 3D measurement cell")
     parser.add_argument("-v", "--verbose", action="store_true", help="log at debug level")
     sub = parser.add_subparsers(dest="command", required=True)
-    for commands in (cell_cmd, daemon_cmd, inspect_cmd, deepmerge_cmd, plan_cmd, opcua_cmd):
+    for commands in (cell_cmd, daemon_cmd, inspect_cmd, registration_cmd, plan_cmd, opcua_cmd):
         commands.add_commands(sub)
     return parser
 
