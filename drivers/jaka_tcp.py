@@ -49,6 +49,8 @@ MOVE_COMMANDS = ("joint_move", "moveL", "end_move")
 # The controller's tool and user frame the driver needs: 0 and 0, the flange in the base frame (status keys
 # current_tool_id / current_user_id); poses and Cartesian targets are then the flange's T_B_E
 FLANGE_TOOL_ID, BASE_USER_FRAME_ID = 0, 0
+# A stop's new command connection closed at once by the controller is opened again after this long (s)
+REOPEN_PERIOD_S = 0.05
 
 
 def succeeded(reply: dict) -> bool:
@@ -254,11 +256,30 @@ class JakaTcpArm:
         (their links are the stop's; the controller serves one command client)."""
         async with self._link_lock:
             if self._cmd is None and self._status_writer is not None:
-                async with self._lock:
-                    self._cmd = await self._open(self._net.host, self._net.command_port, self._net.reply_timeout_s)
-                    self._cmd_framer, self._cmd_backlog, self._owed = JsonObjectFramer(), [], collections.Counter()
-                log.warning("%s: command link reopened to stop the arm", self.name)
-            await self._call("stop_program")
+                await self._stop_on_a_new_command_link()
+            else:
+                await self._call("stop_program")
+
+    async def _stop_on_a_new_command_link(self) -> None:
+        """Open a command connection and send ``stop_program`` on it. A controller that serves one command client
+        may close a new connection at once while it has not yet let the dropped one go: tried again every
+        :data:`REOPEN_PERIOD_S` until ``reply_timeout_s`` has passed."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + self._net.reply_timeout_s
+        while True:
+            async with self._lock:
+                self._cmd = await self._open(self._net.host, self._net.command_port, self._net.reply_timeout_s)
+                self._cmd_framer, self._cmd_backlog, self._owed = JsonObjectFramer(), [], collections.Counter()
+            log.warning("%s: command link reopened to stop the arm", self.name)
+            try:
+                await self._call("stop_program")
+                return
+            except NotConnected:
+                if loop.time() > deadline:
+                    raise
+                log.info("%s: the controller closed the new command link (still serving the dropped one?); again",
+                         self.name)
+                await asyncio.sleep(REOPEN_PERIOD_S)
 
     async def clear_error(self) -> None:
         await self._call("clear_error")

@@ -67,6 +67,8 @@ class JakaBehaviour:
     knows_kine_inverse: bool = True  # False: an older controller that answers kine_inverse as an unknown command
     reply_moves_when_done: bool = False  # True: a move's reply comes when the motion ends (or is stopped)
     status_leaves_out: tuple[str, ...] = ()  # status keys not pushed (the content is a setting of the controller)
+    refuse_second_client: bool = False  # True: a new command connection is closed at once while one is served
+    # (until the controller has let the last one go), instead of replacing it
 
 
 class JointMotion:
@@ -123,7 +125,7 @@ class JakaEmulator:
         self.config = config
         self.kinematics = kinematics or ArmKinematics(config)
         self.faults = JakaFaults()
-        self.behaviour = behaviour or JakaBehaviour()
+        self._behaviour = behaviour or JakaBehaviour()
         self.status_period_s = status_period_s
         self.time_scale = time_scale
         self.on_joints = on_joints
@@ -136,9 +138,19 @@ class JakaEmulator:
         self.tool: tuple[int, np.ndarray] = (0, np.eye(4))
         self.user_frame: tuple[int, np.ndarray] = (0, np.eye(4))
         self._commands = TcpService(self._serve_commands, host, command_port, exclusive=True)
+        self._commands.refuse_second = self._behaviour.refuse_second_client
         self._status = TcpService(self._serve_status, host, status_port)
         self._sim_s = 0.0
         self._wall_s = 0.0
+
+    @property
+    def behaviour(self) -> JakaBehaviour:
+        return self._behaviour
+
+    @behaviour.setter
+    def behaviour(self, behaviour: JakaBehaviour) -> None:
+        self._behaviour = behaviour
+        self._commands.refuse_second = behaviour.refuse_second_client
 
     # ------------------------------------------------------------------ lifecycle
 

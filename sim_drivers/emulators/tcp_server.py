@@ -19,11 +19,13 @@ class TcpService:
     """One listening socket; ``handler(reader, writer)`` runs per client. ``port`` is known after ``start``."""
 
     def __init__(self, handler: Handler, host: str = "127.0.0.1", port: int = 0, exclusive: bool = False):
-        """``exclusive``: a new client replaces the previous one (JAKA's command port allows one client)."""
+        """``exclusive``: one client at a time (JAKA's command port), a new one replacing the previous, or with
+        ``refuse_second`` (settable while running) closed at once while the previous one is still served."""
         self._handler = handler
         self.host = host
         self.port = port
         self._exclusive = exclusive
+        self.refuse_second = False
         self._server: asyncio.Server | None = None
         # serving task -> (handler task, writer); the handler runs in its own task so that dropping a client
         # cancels the handler while the serving task that asyncio.start_server watches ends normally
@@ -41,6 +43,10 @@ class TcpService:
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         task = asyncio.current_task()
         assert task is not None
+        if self._exclusive and self._clients and self.refuse_second:
+            log.info("port %d: a second client refused while the first is served", self.port)
+            writer.close()
+            return
         if self._exclusive:
             await self.drop_clients()
         handler = asyncio.create_task(self._handler(reader, writer))

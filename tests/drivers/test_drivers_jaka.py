@@ -245,6 +245,34 @@ async def test_a_tool_or_user_frame_selected_on_the_controller_is_refused_for_ca
     assert dt < 1e-6 and dr < 1e-9
 
 
+async def test_a_controller_that_refuses_a_second_client_still_gets_the_stop(emulator):
+    """Only one client may hold the command port: a controller may close a new connection at once while it still
+    serves the old one (here: it has not let go of the link the driver dropped after a late reply, 1.2 s late for a
+    1 s timeout). The stop on a new connection is tried again until the controller takes it."""
+    emulator.behaviour = JakaBehaviour(refuse_second_client=True)
+    arm = arm_for(emulator, reply_timeout_s=1.0)
+    await arm.connect()
+    try:
+        await arm.enable()
+        emulator.time_scale = 1.0
+        move = asyncio.create_task(arm.move_joints(Q_HOME + np.radians([90.0, 0, 0, 0, 0, 0]), timeout_s=30.0))
+        while emulator.motion.in_position(emulator.sim_time()):  # the move has started
+            await asyncio.sleep(0.005)
+        emulator.faults.reply_delay_s = 1.2
+        with pytest.raises(DeviceTimeout, match="get_joint_pos: no reply"):
+            await arm.joints()
+        emulator.faults.reply_delay_s = 0.0
+        await arm.stop()
+        assert emulator.commands[-1] == "stop_program"
+        q_after = emulator.joints_deg()
+        await asyncio.sleep(0.05)
+        np.testing.assert_allclose(emulator.joints_deg(), q_after)  # halted
+        move.cancel()
+        await asyncio.gather(move, return_exceptions=True)
+    finally:
+        await arm.close()
+
+
 async def test_a_stop_beside_a_reconnect_leaves_one_command_link_that_serves(emulator, arm):
     """The command link was dropped (a late reply) while the status stream runs; the supervisor reconnects the arm
     while a stop goes out. The controller serves one command client (a new one replaces the old), so a stop that
