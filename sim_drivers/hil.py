@@ -171,8 +171,11 @@ class HilEmulators:
     async def _sync_safety(self, safety: SafetyIoEmulator) -> None:
         """Mirror the world's e-stop and light curtain onto the inputs, and the target-light coil back."""
         truth, mb = self.world.safety, self.config.safety.modbus
+        inputs = None  # the (e-stop, light curtain) last written: the module's inputs change only when the world's do
         while True:
-            await safety.press_estop(truth.estop)
-            await safety.break_light_curtain(truth.light_curtain_broken)
+            if inputs != (truth.estop, truth.light_curtain_broken):
+                inputs = (truth.estop, truth.light_curtain_broken)
+                await safety.press_estop(inputs[0])
+                await safety.break_light_curtain(inputs[1])
             truth.target_light_on = await safety.coil(mb.target_light_coil)
             await asyncio.sleep(self.config.safety.poll_period_s / 2)
