@@ -7,11 +7,14 @@ resources and timings (s), and two sections beside the product's: the simulator'
 (:class:`GroundTruth`, from the job's observer; None on a real cell) and the resumes a journaled job went
 through (:class:`JobHistory`; None for a job run without a journal). :meth:`JobReport.to_json` is the file's
 content, :meth:`JobReport.from_json` reads it back into the same model; :func:`write_job_report` is the one
-writer of the file (durable: temporary name, fsync, rename).
+writer of the file (durable: temporary name, fsync, rename). The observer scores the job after the report is
+written: its section goes beside it, :func:`write_ground_truth` (``ground_truth.json``), and
+:func:`read_job_report` reads both back into the model the end of the job returned.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -22,6 +25,7 @@ import numpy as np
 from tandemscan.pipeline.io.durable import write_durably
 
 REPORT_FILE = "report.json"
+GROUND_TRUTH_FILE = "ground_truth.json"  # the simulator's observer's scores, beside it
 
 #: a 4x4 pose (mm) as the report keeps it: rows of floats
 Matrix = tuple[tuple[float, ...], ...]
@@ -75,12 +79,30 @@ class Timings:
 @dataclass(frozen=True)
 class GroundTruth:
     """The simulated cell's scores of the job against its truth (the job's observer, ``daemon.cell.observer``): the
-    final stitch's (``ground_truth``), the tracker-only stitch's summary where the correction changed the poses
-    (``correction.before`` in the file) and the inspection's (``ground_truth.inspection``, where it aligned)."""
+    final stitch's (``ground_truth``, with the seconds the scoring took, ``scoring_s``), the tracker-only stitch's
+    summary where the correction changed the poses (``correction.before`` in the report) and the inspection's
+    (``ground_truth.inspection``, where it aligned). Written beside ``report.json``, after it, as
+    :data:`GROUND_TRUTH_FILE` (:func:`write_ground_truth`)."""
 
     scores: Mapping[str, Any]
     tracker_only: Mapping[str, Any] | None = None
     inspection: Mapping[str, Any] | None = None
+
+    def section(self) -> dict:
+        """The report's ``ground_truth`` section: the scores and, where scored, the inspection's."""
+        return dict(self.scores) | ({} if self.inspection is None else {"inspection": dict(self.inspection)})
+
+    def to_json(self) -> dict:
+        """The content of :data:`GROUND_TRUTH_FILE`: ``ground_truth`` (:meth:`section`) and, where there is one,
+        the tracker-only stitch's summary (``before``)."""
+        return {"ground_truth": self.section()} | (
+            {} if self.tracker_only is None else {"before": dict(self.tracker_only)})
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> GroundTruth:
+        """The model of a :data:`GROUND_TRUTH_FILE`'s content (:meth:`to_json` gives it back)."""
+        scores = dict(d["ground_truth"])
+        return cls(scores, d.get("before"), scores.pop("inspection", None))
 
 
 @dataclass(frozen=True)
@@ -135,9 +157,7 @@ class JobReport:
             "resources": {"peak_rss_gib": self.peak_rss_gib},
         }
         if self.ground_truth is not None:
-            truth = self.ground_truth
-            out["ground_truth"] = dict(truth.scores) | ({} if truth.inspection is None
-                                                        else {"inspection": dict(truth.inspection)})
+            out["ground_truth"] = self.ground_truth.section()
         out["timings"] = self.timings.to_json()
         if self.history is not None:
             out |= {"resumes": [dict(r) for r in self.history.resumes], "attempts": self.history.attempts,
@@ -165,8 +185,37 @@ class JobReport:
 
 def write_job_report(report: JobReport, job_dir: Path | str) -> Path:
     """Write ``report`` as ``report.json`` into ``job_dir`` durably (readers see the old file or the whole new
-    one): the one writer of a job's report. Returns the file."""
-    path = Path(job_dir) / REPORT_FILE
-    data = json.dumps(report.to_json(), indent=1).encode()
+    one): the one writer of a job's report. The simulator's observer, which scores the job after its report, is
+    not in it (``report.ground_truth`` is None here; :func:`write_ground_truth` writes it beside). Returns the
+    file."""
+    if report.ground_truth is not None:
+        raise ValueError("report.json is written before the observer's scores: they go beside it")
+    return _write_json(Path(job_dir) / REPORT_FILE, report.to_json())
+
+
+def write_ground_truth(truth: GroundTruth, job_dir: Path | str) -> Path:
+    """Write the observer's scores as :data:`GROUND_TRUTH_FILE` beside ``report.json`` (durably, once, after the
+    report: the operator's report does not wait for the simulator's scoring). Returns the file."""
+    return _write_json(Path(job_dir) / GROUND_TRUTH_FILE, truth.to_json())
+
+
+def _write_json(path: Path, content: dict) -> Path:
+    data = json.dumps(content, indent=1).encode()
     write_durably(path, lambda f: f.write(data))
     return path
+
+
+def joined_report(report: Mapping[str, Any], ground_truth: Mapping[str, Any] | None) -> JobReport:
+    """The model of a ``report.json``'s content with the observer's :data:`GROUND_TRUTH_FILE` content beside it
+    (None: a job no observer scored)."""
+    model = JobReport.from_json(report)
+    return model if ground_truth is None else dataclasses.replace(model, ground_truth=GroundTruth.from_json(
+        ground_truth))
+
+
+def read_job_report(job_dir: Path | str) -> JobReport:
+    """A finished job's report as the end of the job returned it: ``report.json`` with, where the job's observer
+    scored it, :data:`GROUND_TRUTH_FILE` beside it as its ``ground_truth`` (:func:`joined_report`)."""
+    truth = Path(job_dir) / GROUND_TRUTH_FILE
+    return joined_report(json.loads((Path(job_dir) / REPORT_FILE).read_text(encoding="utf-8")),
+                         json.loads(truth.read_text(encoding="utf-8")) if truth.is_file() else None)

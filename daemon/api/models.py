@@ -148,6 +148,7 @@ JOB_FILES = {
     "cloud.e57": "application/octet-stream",
     "poses.csv": "text/csv",
     "cloud_deviation.ply": "application/octet-stream",
+    "ground_truth.json": "application/json",  # the simulated cell's scores of the job (job_report.GROUND_TRUTH_FILE)
 }
 
 

@@ -6,8 +6,9 @@ corrected on those copies (:func:`correct_stage`: the pairs registered while the
 refinement solved, or the pose graph where it is off), the cloud merged once at the final poses from the scan
 files, one at a time on each core (:func:`merge_stage`; the map built while measuring is kept when nothing was
 corrected), then ``cloud.ply``, the E57 (full scans streamed from their files), the pose log and the inspection
-written, the simulator's observer scores the job (``job_report.score_ground_truth``, none on a real cell) and
-``report.json`` is built once (``pipeline.job_report.JobReport``) and written once (``write_job_report``). Each
+written, ``report.json`` is built once (``pipeline.job_report.JobReport``) and written once (``write_job_report``),
+then the simulator's observer scores the job (``reporting.score_ground_truth``, none on a real cell) into its own
+file beside it (``write_ground_truth``). Each
 stage returns a frozen result; the tracker-stitched poses and the refined ones stay separate, and whether the poses
 were corrected is known from the correction stage. Frames: poses ``T_W_S`` in the job's world frame W, points in the
 scanner frame S, mm.
@@ -28,7 +29,7 @@ from tandemscan.daemon.jobs.outputs import export_job, stitch_view_points
 from tandemscan.daemon.jobs.reporting import build_job_report, score_ground_truth
 from tandemscan.pipeline.compute import backend_for
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan
-from tandemscan.pipeline.job_report import JobReport, Timings, write_job_report
+from tandemscan.pipeline.job_report import JobReport, Timings, write_ground_truth, write_job_report
 from tandemscan.pipeline.registration.parallel import pair_threads
 from tandemscan.pipeline.stitching.tiles import TileScan, merge_tiles, read_cloud, scan_x_extent
 from tandemscan.pipeline.stitching.worldmap import MapCloud, VoxelMap
@@ -69,7 +70,8 @@ class CorrectionOutcome:
 
 @dataclass(frozen=True)
 class FinishedJob:
-    """What the end of a job produced: its report (``report.json``, as written) and the correction stage."""
+    """What the end of a job produced: its report (``report.json`` with, on the simulated cell, the observer's
+    ``ground_truth.json``: ``job_report.read_job_report``) and the correction stage."""
 
     report: JobReport
     correction: CorrectionOutcome
@@ -216,12 +218,16 @@ def finish_job(job: JobSnapshot, started: float, measured_at: float,
         correction=outcome.section, pose_covariance=outcome.pose_covariance)
     seconds = time.monotonic() - started  # the job until its exports
     exports = export_job(final, measured_at, view_S, tracker_poses)
-    t = time.perf_counter()
-    ground_truth = score_ground_truth(final, exports.inspection, tracker_stitch)  # the simulator's observer
-    stages = {**timings, **outcome.section.get("stage_seconds", {}), **exports.stages_s,
-              "scoring_s": round(time.perf_counter() - t, 3)}
+    stages = {**timings, **outcome.section.get("stage_seconds", {}), **exports.stages_s}
     timings_s = Timings(exports.after_last_scan_s, outcome.section.get("cpu_seconds"), stages)
     report = build_job_report(final, seconds, tracker_poses, exports.inspection, exports.coverage,
-                              exports.peak_rss_gib, timings_s, ground_truth)
+                              exports.peak_rss_gib, timings_s)
     write_job_report(report, job.job_dir)
+    t = time.perf_counter()  # the simulator's observer, after the report: beside it, in its own file
+    ground_truth = score_ground_truth(final, exports.inspection, tracker_stitch)
+    if ground_truth is not None:
+        ground_truth = dataclasses.replace(
+            ground_truth, scores={**ground_truth.scores, "scoring_s": round(time.perf_counter() - t, 3)})
+        write_ground_truth(ground_truth, job.job_dir)
+        report = dataclasses.replace(report, ground_truth=ground_truth)
     return FinishedJob(report, outcome)

@@ -125,8 +125,9 @@ class JobProgress:
 
 @dataclass
 class JobResult:
-    """What a finished job left behind: its folder, ``cloud.ply`` and ``report.json`` (``job_report``; ``report``
-    is that file's content) and its scan records at their final poses."""
+    """What a finished job left behind: its folder, ``cloud.ply`` and ``report.json`` (``job_report``, with the
+    simulator's scores where it has them, ``ground_truth.json`` beside it: ``job_report.read_job_report``;
+    ``report`` is its JSON) and its scan records at their final poses."""
 
     job_dir: Path
     cloud_file: Path
@@ -136,7 +137,7 @@ class JobResult:
 
     @functools.cached_property
     def report(self) -> dict:
-        """The content of ``report.json``."""
+        """The content of ``report.json`` with the observer's ``ground_truth`` (``job_report.read_job_report``)."""
         return self.job_report.to_json()
 
 

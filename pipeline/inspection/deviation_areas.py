@@ -13,7 +13,11 @@ averaged deviation (a noise peak of one point is no defect) and the mean of the 
 
 from __future__ import annotations
 
+import threading
+import weakref
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -23,6 +27,7 @@ from scipy.spatial import cKDTree
 NEIGHBOURS = 48  # at most this many neighbours enter a point's average
 DENSITY_K = 8  # the neighbour whose distance gives a point's share of the surface
 _CHUNK = 50_000
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -72,8 +77,33 @@ def even_centres(points_mm: np.ndarray, cell_mm: float) -> np.ndarray:
 
 def kd_tree(points_mm: np.ndarray) -> cKDTree:
     """A KD tree of a cloud for the bounded neighbour queries here: median-free with leaves of 32 points,
-    which builds in half the time of the defaults and answers them as fast (whole-part job, 8 M points)."""
-    return cKDTree(points_mm, leafsize=32, balanced_tree=False)
+    which builds in half the time of the defaults and answers them as fast (whole-part job, 8 M points). A
+    read-only array (an inspected cloud: ``inspect.inspect_cloud`` makes its points so) has its tree built once
+    while it lives (:func:`kept_for`): the areas at the band and at the verdict's guard band and the
+    characteristics' averages ask for the same cloud's."""
+    return kept_for((points_mm,), "kd_tree", lambda: cKDTree(points_mm, leafsize=32, balanced_tree=False))
+
+
+_KEPT: dict[tuple, tuple[tuple[weakref.ref, ...], object]] = {}
+_KEPT_LOCK = threading.Lock()
+
+
+def kept_for(arrays: tuple[np.ndarray, ...], what: object, build: Callable[[], T]) -> T:
+    """``build()``, kept for ``arrays`` and ``what`` (hashable) while every array lives, where all are read-only
+    numpy arrays (their values cannot change under the result); else built each time. Built under a lock, so
+    two threads asking at once build it once."""
+    if not all(isinstance(a, np.ndarray) and not a.flags.writeable for a in arrays):
+        return build()
+    key = (*(id(a) for a in arrays), what)
+    with _KEPT_LOCK:
+        for k in [k for k, (refs, _) in _KEPT.items() if any(r() is None for r in refs)]:
+            del _KEPT[k]  # an array it was kept for is gone (its id may be another's now)
+        held = _KEPT.get(key)
+        if held is not None and all(r() is a for r, a in zip(held[0], arrays, strict=True)):
+            return held[1]  # type: ignore[return-value]
+        value = build()
+        _KEPT[key] = (tuple(weakref.ref(a) for a in arrays), value)
+        return value
 
 
 def neighbours_within(tree: cKDTree, queries: np.ndarray, k: int, radius_mm: float, need: int
@@ -147,13 +177,21 @@ def _screened(p: np.ndarray, d: np.ndarray, lower_mm: float, upper_mm: float, sm
     times the screening's noise at 0.05 mm per point) are left out; the spacing is the screening points'."""
     tree = kd_tree(p)
     cell = SCREEN_CELL * smoothing_mm
-    centres = even_centres(p, cell)
-    coarse = local_deviation(p, d, smoothing_mm, centres, tree, SCREEN_NEIGHBOURS)
+    centres, coarse = kept_for((p, d), ("screening", smoothing_mm), lambda: _screening(p, d, smoothing_mm, tree))
     margin = 0.25 * (upper_mm - lower_mm)
     near = centres[(coarse.smoothed_mm > upper_mm - margin) | (coarse.smoothed_mm < lower_mm + margin)]
     at = _within(tree, p[near], cell * np.sqrt(3.0))
     fine = local_deviation(p, d, smoothing_mm, at, tree)
     return LocalDeviation(fine.smoothed_mm, fine.area_mm2, coarse.spacing_mm, at)
+
+
+def _screening(p: np.ndarray, d: np.ndarray, smoothing_mm: float, tree: cKDTree
+               ) -> tuple[np.ndarray, LocalDeviation]:
+    """:func:`_screened`'s even thinning (one point per cube of :data:`SCREEN_CELL` ``* smoothing_mm``) and its
+    points' deviations averaged over their :data:`SCREEN_NEIGHBOURS` nearest within ``smoothing_mm``: the same for
+    every band (the areas at the band and at the verdict's guard band share it)."""
+    centres = even_centres(p, SCREEN_CELL * smoothing_mm)
+    return centres, local_deviation(p, d, smoothing_mm, centres, tree, SCREEN_NEIGHBOURS)
 
 
 def find_deviation_areas(

@@ -579,10 +579,12 @@ def inspect_cloud(
     criteria: InspectionCriteria,
 ) -> InspectionResult:
     """Deviation of a measured cloud (frame F, mm) from the CAD mesh, by ``criteria`` (tolerance, regions, fit)."""
-    p = as_points(points_mm)
+    p = as_points(points_mm).view()
     surface = mesh if isinstance(mesh, CadSurface) else CadSurface(mesh)
     closest = surface.closest(p)
     d = closest.signed_mm
+    for a in (p, d):  # read-only: the KD tree and the areas' screening of this cloud are built once (deviation_areas)
+        a.setflags(write=False)
     lo, hi = criteria.tolerance_lower_mm, criteria.tolerance_upper_mm
     masks = [(region.name, region_mask(p, region)) for region in criteria.regions]
     if criteria.mesh_group_regions:

@@ -204,9 +204,8 @@ class JobUncertainty:
             absorb = self._absorption(p_W[fit], n_W[fit], p_F[fit], n_F[fit], self.cover.shares(p_W[fit]))
         parts = {}
         for part in ("all", "scan_poses", "installation"):
-            G = self.poses.factor(part)
-            parts[part] = self._pose_variance(G, p_W[centres], n_W[centres], p_F[centres], n_F[centres], c_at,
-                                              absorb)[nearest]
+            parts[part] = self._pose_variance(self.poses.covariance(part), p_W[centres], n_W[centres],
+                                              p_F[centres], n_F[centres], c_at, absorb)[nearest]
         aligned = _alignment_variance(p_F, n_F, alignment)
         total = k * np.sqrt(parts["all"] + noise + aligned)
         budget = {"scan_poses": parts["scan_poses"], "installation": parts["installation"],
@@ -254,27 +253,30 @@ class JobUncertainty:
         JtJ = j.T @ j
         return np.linalg.solve(JtJ + 1e-9 * np.trace(JtJ) * np.eye(6), S.reshape(6, -1)), c
 
-    def _pose_variance(self, G: np.ndarray, p_W: np.ndarray, n_W: np.ndarray, p_F: np.ndarray, n_F: np.ndarray,
+    def _pose_variance(self, cov: np.ndarray, p_W: np.ndarray, n_W: np.ndarray, p_F: np.ndarray, n_F: np.ndarray,
                        at: tuple[np.ndarray, np.ndarray], absorb: tuple[np.ndarray, np.ndarray] | None
                        ) -> np.ndarray:
-        """Each point's variance along its normal from the pose errors of factor ``G`` (6n, r), less the best fit's
-        absorption where given, mm^2."""
-        if G.shape[1] == 0:
+        """Each point's variance along its normal from the pose errors of covariance ``cov`` (6n, 6n:
+        ``PoseCovariance.covariance``), less the best fit's absorption where given, mm^2: with ``v = g - B^T j``
+        (``g`` a point's weighted gradients, nonzero at its few scans only), ``v^T cov v = g^T cov g - 2 g^T cov B^T
+        j + j^T B cov B^T j``, each term from the 6x6 blocks of its scans (no dense product with ``cov``)."""
+        n = cov.shape[0] // 6
+        if not cov.any():
             return np.zeros(len(p_W))
-        r = G.shape[1]
-        blocks = G.reshape(-1, 6, r)
-        BG = None if absorb is None else absorb[0] @ G  # (6, r): the fit's motion per unit of each factor column
+        blocks = np.ascontiguousarray(cov.reshape(n, 6, n, 6).transpose(0, 2, 1, 3))  # [i, l]: 6x6 of scans i, l
+        cov_B = None if absorb is None else (cov @ absorb[0].T).reshape(n, 6, 6)  # cov B^T: per scan 6 x 6 motions
+        B_cov_B = None if absorb is None else absorb[0] @ cov @ absorb[0].T
         out = np.empty(len(p_W))
-        step = max(64, int(2e7 // (SCANS_PER_POINT * 6 * r)))
+        step = 4096
         for lo in range(0, len(p_W), step):
             sl = slice(lo, lo + step)
             rows, g = self._gradients(p_W[sl], n_W[sl], (at[0][sl], at[1][sl]))
-            h = np.einsum("mkj,mkjr->mr", g, blocks[rows])
-            if BG is not None:
-                c = absorb[1]
-                j = np.hstack([n_F[sl], np.cross(p_F[sl] - c, n_F[sl])])
-                h -= j @ BG
-            out[sl] = np.einsum("mr,mr->m", h, h)
+            var = np.einsum("mkj,mkljq,mlq->m", g, blocks[rows[:, :, None], rows[:, None, :]], g, optimize=True)
+            if absorb is not None:
+                j = np.hstack([n_F[sl], np.cross(p_F[sl] - absorb[1], n_F[sl])])
+                var -= 2.0 * np.einsum("mkj,mkjq,mq->m", g, cov_B[rows], j, optimize=True)
+                var += np.einsum("ma,ab,mb->m", j, B_cov_B, j, optimize=True)
+            out[sl] = np.maximum(var, 0.0)  # rounding may take an absorbed variance below 0
         return out
 
 

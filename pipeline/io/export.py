@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import csv
 import logging
-from collections.abc import Iterable, Mapping, Sequence
+import uuid
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 from tandemscan.pipeline.geometry.frames import to_quaternion, to_rpy, transform_points
@@ -153,22 +155,132 @@ def _e57_pose(T_W_S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _e57_xyz(points_mm: np.ndarray) -> dict[str, np.ndarray]:
-    """pye57's columns (float64, m) of ``points_mm`` (N, 3), any float dtype: made one column at a time, so a
-    merged cloud of 18 M float32 points takes its 0.4 GB of columns and no whole-cloud temporaries."""
+    """pye57's columns (float64, m) of ``points_mm`` (N, 3), any float dtype: made one column at a time."""
     return {name: np.divide(points_mm[:, axis], MM_PER_M, dtype=np.float64)
-            for axis, name in enumerate(("cartesianX", "cartesianY", "cartesianZ"))}
+            for axis, name in enumerate(E57_XYZ)}
+
+
+E57_XYZ = ("cartesianX", "cartesianY", "cartesianZ")
+#: points a block of the E57 writer's buffers (three float64 columns: 24 MB)
+E57_BLOCK_POINTS = 1_000_000
+
+
+class PointBlocks(Protocol):
+    """A cloud given a block at a time (a tile at a time: ``tiles.TileBlocks``), mm: its point count, its bounds
+    (per axis, mm) and its blocks, (N, 3) each, in order; :meth:`blocks` may be asked more than once."""
+
+    @property
+    def count(self) -> int: ...
+
+    def bounds_mm(self) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def blocks(self) -> Iterator[np.ndarray]: ...
+
+
+@dataclass(frozen=True)
+class ArrayBlocks:
+    """A cloud in memory, (N, 3) mm, as :class:`PointBlocks` of :data:`E57_BLOCK_POINTS` rows (views, no copy)."""
+
+    points_mm: np.ndarray
+
+    @property
+    def count(self) -> int:
+        return len(self.points_mm)
+
+    def bounds_mm(self) -> tuple[np.ndarray, np.ndarray]:
+        p = np.asarray(self.points_mm)
+        lo = np.array([p[:, i].min() for i in range(3)], np.float64)
+        hi = np.array([p[:, i].max() for i in range(3)], np.float64)
+        return lo, hi
+
+    def blocks(self) -> Iterator[np.ndarray]:
+        for lo in range(0, len(self.points_mm), E57_BLOCK_POINTS):
+            yield self.points_mm[lo:lo + E57_BLOCK_POINTS]
+
+
+def _write_e57_blocks(e57, cloud: PointBlocks, name: str, rotation: np.ndarray, translation: np.ndarray) -> None:
+    """One data3D scan of ``cloud`` (points x y z only, metres, single precision) written a block at a time: the
+    nodes and values ``pye57.E57.write_scan_raw`` writes for the whole cloud at once (its bounds, from
+    ``cloud.bounds_mm`` divided as each point is, and its pose), with buffers of :data:`E57_BLOCK_POINTS` points
+    instead of a copy of every column."""
+    from pye57 import libe57  # local: only the export needs it
+
+    imf = e57.image_file
+    n = cloud.count
+    lo_mm, hi_mm = cloud.bounds_mm()
+    bb_min, bb_max = lo_mm / MM_PER_M, hi_mm / MM_PER_M  # min(p / 1000) = min(p) / 1000: division is monotone
+    scan = libe57.StructureNode(imf)
+    scan.set("guid", libe57.StringNode(imf, f"{{{uuid.uuid4()}}}"))
+    scan.set("name", libe57.StringNode(imf, name))
+    for key in ("temperature", "relativeHumidity", "atmosphericPressure"):
+        scan.set(key, libe57.FloatNode(imf, 0))
+    scan.set("description", libe57.StringNode(imf, f"pye57 v{_pye57_version()}"))
+    index = libe57.StructureNode(imf)
+    for key, value in (("rowMinimum", 0), ("rowMaximum", n - 1), ("columnMinimum", 0), ("columnMaximum", 0),
+                       ("returnMinimum", 0), ("returnMaximum", 0)):
+        index.set(key, libe57.IntegerNode(imf, value))
+    scan.set("indexBounds", index)
+    bounds = libe57.StructureNode(imf)
+    lo_g = e57.to_global(bb_min.reshape(-1, 3), rotation, translation)[0]
+    hi_g = e57.to_global(bb_max.reshape(-1, 3), rotation, translation)[0]
+    for axis, a in enumerate("xyz"):
+        bounds.set(f"{a}Minimum", libe57.FloatNode(imf, lo_g[axis]))
+        bounds.set(f"{a}Maximum", libe57.FloatNode(imf, hi_g[axis]))
+    scan.set("cartesianBounds", bounds)
+    pose = libe57.StructureNode(imf)
+    scan.set("pose", pose)
+    rot = libe57.StructureNode(imf)
+    for i, a in enumerate("wxyz"):
+        rot.set(a, libe57.FloatNode(imf, rotation[i]))
+    pose.set("rotation", rot)
+    trans = libe57.StructureNode(imf)
+    for i, a in enumerate("xyz"):
+        trans.set(a, libe57.FloatNode(imf, translation[i]))
+    pose.set("translation", trans)
+    for key in ("acquisitionStart", "acquisitionEnd"):
+        when = libe57.StructureNode(imf)
+        scan.set(key, when)
+        when.set("dateTimeValue", libe57.FloatNode(imf, 0))
+        when.set("isAtomicClockReferenced", libe57.IntegerNode(imf, False))
+    prototype = libe57.StructureNode(imf)
+    centre = (bb_max + bb_min) / 2
+    for axis, column in enumerate(E57_XYZ):
+        prototype.set(column, libe57.FloatNode(imf, centre[axis], libe57.E57_SINGLE, bb_min[axis], bb_max[axis]))
+    arrays, buffers = e57.make_buffers(list(E57_XYZ), min(max(n, 1), E57_BLOCK_POINTS))
+    points = libe57.CompressedVectorNode(imf, prototype, libe57.VectorNode(imf, True))
+    scan.set("points", points)
+    e57.data3d.append(scan)
+    writer = points.writer(buffers)
+    written = 0
+    for block in cloud.blocks():
+        for at in range(0, len(block), E57_BLOCK_POINTS):
+            rows = block[at:at + E57_BLOCK_POINTS]
+            for axis, column in enumerate(E57_XYZ):
+                np.divide(rows[:, axis], MM_PER_M, out=arrays[column][:len(rows)], dtype=np.float64)
+            writer.write(len(rows))
+            written += len(rows)
+    writer.close()
+    if written != n:
+        raise ExportError(f"E57 scan {name!r}: {written} points written, {n} announced")
+
+
+def _pye57_version() -> str:
+    from pye57.__version__ import __version__
+
+    return __version__
 
 
 def write_e57(
     path: Path | str,
     scans: Iterable[PosedScan],
-    merged_points_mm: np.ndarray | None = None,
+    merged_points_mm: np.ndarray | PointBlocks | None = None,
     merged_name: str = "merged",
 ) -> Path:
     """Write an E57 file: one data3D scan per pose (points in its scanner frame, pose = ``T_W_S``), then,
-    when given, the merged cloud in the world frame with an identity pose. Metres inside the file (single
-    precision, as pye57 writes it). ``scans`` is consumed once, in order, and each scan written before the
-    next is taken: a generator reading them from their files holds one scan in memory at a time."""
+    when given, the merged cloud in the world frame with an identity pose (an array, or :class:`PointBlocks`
+    written a block at a time: a cloud tile by tile). Metres inside the file (single precision, as pye57 writes
+    it). ``scans`` is consumed once, in order, and each scan written before the next is taken: a generator
+    reading them from their files holds one scan in memory at a time."""
     import pye57  # local: only the export needs it
 
     path = Path(path)
@@ -187,12 +299,13 @@ def write_e57(
         if not written and merged_points_mm is None:
             raise ExportError("E57: nothing to write (no scans and no merged cloud)")
         if merged_points_mm is not None:
-            merged = np.asarray(merged_points_mm)  # as it is: its columns are converted one at a time
-            if merged.ndim != 2 or merged.shape[1] != 3 or len(merged) == 0:
-                raise ExportError(f"E57 merged cloud: expected (N>0, 3) points, got shape {merged.shape}")
-            e57.write_scan_raw(
-                _e57_xyz(merged), name=merged_name, rotation=np.array([1.0, 0, 0, 0]), translation=np.zeros(3)
-            )
+            merged = (ArrayBlocks(np.asarray(merged_points_mm)) if isinstance(merged_points_mm, np.ndarray)
+                      else merged_points_mm)
+            if isinstance(merged, ArrayBlocks) and (merged.points_mm.ndim != 2 or merged.points_mm.shape[1] != 3):
+                raise ExportError(f"E57 merged cloud: expected (N>0, 3) points, got shape {merged.points_mm.shape}")
+            if merged.count == 0:
+                raise ExportError("E57 merged cloud: expected (N>0, 3) points, got none")
+            _write_e57_blocks(e57, merged, merged_name, np.array([1.0, 0, 0, 0]), np.zeros(3))
     except BaseException:
         e57.close()
         path.unlink(missing_ok=True)  # no half-written E57 left behind

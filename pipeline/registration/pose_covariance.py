@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import sparse
 
 
 @dataclass(frozen=True)
@@ -51,6 +52,22 @@ class PoseCovariance:
         w = np.clip(w, 0.0, None)
         big = w > 1e-12 * max(float(w.max()), 1e-300)
         return self.A[:, keep] @ (V[:, big] * np.sqrt(w[big]))
+
+    def covariance(self, part: str = "all") -> np.ndarray:
+        """(6n, 6n) covariance of ``e`` from ``part``'s unknowns, as :meth:`factor` splits them: ``A C A^T`` of
+        those columns, formed through ``A``'s sparsity (a scan's error depends on its reading, its station's
+        transfers and the mount: a few columns of the thousands), so it costs milliseconds where the factor's
+        eigendecomposition costs seconds. Its ``C`` block is taken as positive semi-definite (a posterior, a
+        prior); :meth:`factor` clips what rounding makes negative."""
+        cols = np.arange(self.A.shape[1])
+        mount = np.isin(cols, self.installation_columns)
+        keep = {"all": np.ones_like(mount), "installation": mount, "scan_poses": ~mount}[part]
+        if not keep.any():
+            return np.zeros((self.A.shape[0], self.A.shape[0]))
+        C = self.theta_covariance[np.ix_(keep, keep)]
+        A = sparse.csr_matrix(self.A[:, keep])
+        AC = np.asarray(A @ (0.5 * (C + C.T)))  # (6n, m)
+        return np.asarray((A @ AC.T).T)
 
     def with_installation_at_prior(self) -> PoseCovariance:
         """The same with the mount's unknowns at their prior, uncorrelated with the rest: the joint refinement

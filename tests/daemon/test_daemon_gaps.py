@@ -11,6 +11,7 @@ import numpy as np
 from tandemscan.daemon.api.models import job_body
 from tandemscan.daemon.plans import default_plan_path
 from tandemscan.daemon.service import Daemon
+from tandemscan.pipeline.job_report import read_job_report
 from tandemscan.pipeline.planning.plan import Plan
 
 #: the default plan's first AGV station: move_measure, move_arm, scan, move_arm, scan
@@ -146,7 +147,7 @@ async def resumed_after_restart(cfg, state, job_id: str):
         await daemon.manager.resume(job_id)
         await until(lambda: daemon.manager.get(job_id).state not in ("running", "paused_fault"))
         return (daemon.manager.get(job_id), daemon.store.committed_steps(job_id),
-                json.loads((state / "jobs" / job_id / "report.json").read_text()))
+                read_job_report(state / "jobs" / job_id).to_json())
     finally:
         await daemon.close()
 

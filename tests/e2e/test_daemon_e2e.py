@@ -26,6 +26,7 @@ from tandemscan.daemon.api.app import create_app
 from tandemscan.daemon.cli.client import SseParser
 from tandemscan.daemon.service import Daemon
 from tandemscan.pipeline.io.cloud_io import read_ply
+from tandemscan.pipeline.job_report import joined_report
 from tandemscan.sim_drivers.cell import Simulation, with_surveyed_mounts, with_surveyed_mounts_toml
 from tandemscan.sim_drivers.hil_box import free_port
 
@@ -57,6 +58,8 @@ async def _uninterrupted_run(state: Path, download: Path) -> dict:
                     async for chunk in r.aiter_bytes():
                         f.write(chunk)
             report = (await client.get(f"/v1/jobs/{job['id']}/report")).json()
+            truth = (await client.get(f"/v1/jobs/{job['id']}/files/ground_truth.json")).json()
+            report = joined_report(report, truth).to_json()  # the simulator's scores beside the report
             qif = await client.get(final["links"]["results_qif"])
             trend = (await client.get("/v1/parts/TS-NOSE-3000/characteristics/SP-2/trend")).json()
     return {"job": final, "events": events, "report": report, "qif": qif, "trend": trend}
@@ -239,7 +242,8 @@ def test_sigkill_mid_job_resumes_with_every_scan_once(tmp_path, reference):
             again = httpx.post(f"{daemon.url}/v1/jobs", json={}, headers={**AUTH, "Idempotency-Key": "crash-1"})
             assert again.json()["id"] == job_id
         job = _wait(daemon.url, job_id, lambda j: j["state"] in FINAL)
-        report = httpx.get(f"{daemon.url}/v1/jobs/{job_id}/report").json()
+        report = joined_report(httpx.get(f"{daemon.url}/v1/jobs/{job_id}/report").json(),
+                               httpx.get(f"{daemon.url}/v1/jobs/{job_id}/files/ground_truth.json").json()).to_json()
     finally:
         if journal is not None:
             journal.close()

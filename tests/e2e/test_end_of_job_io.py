@@ -1,18 +1,19 @@
-"""The end of a job's file I/O on a small band job: report.json built once with the journal's resumes and the
-simulator's scores in it and written once by its one writer (``pipeline.job_report.write_job_report``), and each raw
-scan file read at most twice after it is written (docs/end-of-job.md)."""
+"""The end of a job's file I/O on a small band job: report.json built once with the journal's resumes in it and
+written once by its one writer (``pipeline.job_report.write_job_report``), the simulator's scores after it beside it,
+and each raw scan file read at most twice after it is written (docs/end-of-job.md)."""
 
 from __future__ import annotations
 
 import json
 from collections import Counter
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 from tandemscan.daemon.cell.session import CellSession
 from tandemscan.daemon.jobs.runner import JobRunner
 from tandemscan.daemon.plans import default_plan_path
-from tandemscan.pipeline.job_report import REPORT_FILE, JobHistory, JobReport, write_job_report
+from tandemscan.pipeline.job_report import REPORT_FILE, JobHistory, JobReport, read_job_report, write_job_report
 from tandemscan.pipeline.planning.plan import Plan, Scan
 from tandemscan.sim_drivers.cell import with_surveyed_mounts
 
@@ -20,8 +21,9 @@ from tandemscan.sim_drivers.cell import with_surveyed_mounts
 async def test_a_job_writes_report_json_once_and_reads_each_scan_file_at_most_twice(sim_config, tmp_path,
                                                                                       monkeypatch):
     """A two-scan band job on the simulated cell with a journal's history: report.json does not exist before the
-    one writer's call, is written by it once, and nothing writes it after; it holds the journal's resumes and the
-    simulator's scores, and reads back into the model the job returned. Each raw scan file is read twice after it
+    one writer's call, is written by it once, and nothing writes it after; it holds the journal's resumes and reads
+    back into the model written; the simulator's observer scores the job after it, into ground_truth.json beside
+    it, and the two read back into the model the job returned. Each raw scan file is read twice after it
     was written (the merge at the corrected poses, the E57), its scores included: the map and the thinned copies
     are made from the scan's arrays, the pair worker is handed the copy, the tracker stitch's score takes the map
     stitched while measuring."""
@@ -46,6 +48,14 @@ async def test_a_job_writes_report_json_once_and_reads_each_scan_file_at_most_tw
         return path
 
     monkeypatch.setattr(finish, "write_job_report", writer)
+    score = finish.score_ground_truth
+    scored_after: list[bool] = []
+
+    def observer(job, inspection, tracker_stitch):
+        scored_after.append((Path(job.job_dir) / REPORT_FILE).is_file())
+        return score(job, inspection, tracker_stitch)
+
+    monkeypatch.setattr(finish, "score_ground_truth", observer)
     plan = Plan.load(default_plan_path())
     scans = [i for i, s in enumerate(plan.steps) if isinstance(s, Scan)]
     plan = plan.model_copy(update={"steps": plan.steps[: scans[1] + 1]})  # the first two scans only
@@ -62,12 +72,16 @@ async def test_a_job_writes_report_json_once_and_reads_each_scan_file_at_most_tw
     st = result.report_file.stat()
     assert (st.st_ino, st.st_mtime_ns, st.st_size) == written  # nothing wrote it after
     doc = json.loads(result.report_file.read_text())
-    assert result.job_report is report and json.loads(json.dumps(result.report)) == doc
-    assert JobReport.from_json(doc).to_json() == doc
-    assert JobReport.from_json(doc).scan_log == report.scan_log and report.history == history
+    assert json.loads(json.dumps(report.to_json())) == doc and JobReport.from_json(doc).to_json() == doc
+    assert report.scan_log == result.job_report.scan_log and report.history == history
     assert doc["resumes"] == [dict(history.resumes[0])] and doc["attempts"] == 2
-    assert doc["scans"] == 2 and doc["correction"]["enabled"] and "before" in doc["correction"]
-    assert doc["ground_truth"]["pose_err_mm_median"] > 0 and "scoring_s" in doc["timings"]["stages_s"]
+    # the simulator's observer scored the job once report.json was written, into its own file beside it
+    assert scored_after == [True] and "ground_truth" not in doc and "before" not in doc["correction"]
+    assert result.job_report == replace(report, ground_truth=result.job_report.ground_truth)
+    full = json.loads(json.dumps(result.report))
+    assert full == read_job_report(result.job_dir).to_json()
+    assert full["scans"] == 2 and full["correction"]["enabled"] and "before" in full["correction"]
+    assert full["ground_truth"]["pose_err_mm_median"] > 0 and full["ground_truth"]["scoring_s"] >= 0
     assert reads == {entry["file"]: 2 for entry in doc["scan_log"]}
     # the pair worker's copies are the end of the job's: its pairs are taken from the cache by their keys
     c = doc["correction"]

@@ -5,7 +5,6 @@ scans held in memory gave."""
 from __future__ import annotations
 
 import csv
-import json
 from types import SimpleNamespace
 
 import numpy as np
@@ -19,6 +18,7 @@ from tandemscan.daemon.plans import default_plan_path
 from tandemscan.pipeline.geometry.frames import from_rpy
 from tandemscan.pipeline.io.export import PosedScan, write_e57
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan, write_raw_scan
+from tandemscan.pipeline.job_report import read_job_report
 from tandemscan.pipeline.planning.plan import Plan, Scan
 from tandemscan.pipeline.registration.sampling import voxel_downsample
 from tandemscan.pipeline.stitching.worldmap import VoxelMap
@@ -164,7 +164,7 @@ async def test_full_resolution_job_reports_as_a_coarse_one(sim_config, tmp_path)
         async with CellSession(config) as session:
             config = with_surveyed_mounts(config, session.cell.simulation, tmp_path)
             result = await JobRunner(session, plan, config, tmp_path / resolution).run()
-        reports[resolution] = json.loads((result.job_dir / "report.json").read_text())
+        reports[resolution] = read_job_report(result.job_dir).to_json()
     coarse, full = reports["coarse"], reports["full"]
     assert _keys(full) == _keys(coarse)
     for resolution, whole in (("coarse", True), ("full", False)):  # what the end of the job kept of each scan

@@ -129,3 +129,34 @@ def test_the_chain_covariance_carries_transfers_and_the_mount_to_every_scan_and_
     np.testing.assert_allclose((back @ back.T)[0, 0], 4.0, rtol=1e-9)
     with pytest.raises(ValueError, match="do not fit"):
         PoseCovariance(np.arange(3), cov.origins_mm, cov.A, cov.theta_covariance, "bad")
+
+
+def test_the_pose_variance_from_covariance_blocks_is_that_of_the_factor():
+    """Three scans on two tracker stations with a transfer and the mount (correlated errors), their covers
+    overlapping: each point's pose variance from the 6x6 blocks of ``PoseCovariance.covariance`` equals
+    ``|G^T v|^2`` with the factor ``G`` of each part and ``v`` the point's gradients over all scans, less the best
+    fit's absorption (to the rounding of the sums, 1e-9 relative)."""
+    rng = np.random.default_rng(5)
+    poses_W = [np.eye(4), from_rotvec([200.0, 0, 0], [0, 0.01, 0]), from_rotvec([400.0, 0, 0], [0.01, 0, 0])]
+    tight = np.diag([0.01] * 3 + [1e-8] * 3)
+    priors = [ScanPrior(T, tight, k // 2) for k, T in enumerate(poses_W)]
+    cov = chain_covariance(priors, [TransferPrior(1, np.array([300.0, 0, 0]), np.diag([0.25] * 3 + [1e-7] * 3))],
+                           MountPrior(np.diag([4.0] * 3 + [1e-6] * 3)))
+    p, n = plate(rng, 0.0, 550.0, step=10.0)
+    covers = [plate(rng, x0, x0 + 250.0)[0] for x0 in (0.0, 150.0, 300.0)]
+    cover = ScanCover(covers, np.array([len(c) for c in covers], float), cov.origins_mm, np.arange(3))
+    m = JobUncertainty(cov, cover, NOISE)
+    at = cover.shares(p)
+    absorb = m._absorption(p, n, p, n, at)
+    for part in ("all", "scan_poses", "installation"):
+        G = cov.factor(part)
+        rows, g = m._gradients(p, n, at)
+        v = np.zeros((len(p), G.shape[0]))
+        for k in range(rows.shape[1]):
+            np.add.at(v, (np.arange(len(p))[:, None], 6 * rows[:, k, None] + np.arange(6)), g[:, k])
+        for fit in (None, absorb):
+            w = v if fit is None else v - np.hstack([n, np.cross(p - fit[1], n)]) @ fit[0]
+            want = np.einsum("mr,mr->m", w @ G, w @ G)
+            got = m._pose_variance(cov.covariance(part), p, n, p, n, at, fit)
+            np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12 * want.max())
+            assert want.max() > 0

@@ -50,6 +50,68 @@ def test_e57_round_trip_points_poses_counts(tmp_path):
         e57.close()
 
 
+def _e57_scans(path):
+    """Every scan of an E57 file read back: its header's fields (name, pose, bounds, index bounds, the points'
+    prototype limits) and its raw points (m)."""
+    e57 = pye57.E57(str(path))
+    try:
+        out = []
+        for i in range(e57.scan_count):
+            header = e57.get_header(i)
+            node = header.node
+            fields = {"name": header["name"].value(), "count": header.point_count,
+                      "rotation": tuple(header.rotation), "translation": tuple(header.translation)}
+            for group in ("cartesianBounds", "indexBounds"):
+                fields |= {f"{group}.{c.elementName()}": c.value() for c in (node[group][k] for k in
+                                                                            range(node[group].childCount()))}
+            prototype = pye57.libe57.StructureNode(header.points.prototype())
+            for axis in ("cartesianX", "cartesianY", "cartesianZ"):
+                f = pye57.libe57.FloatNode(prototype.get(axis))
+                fields[axis] = (f.minimum(), f.maximum(), f.precision())
+            raw = e57.read_scan_raw(i)
+            out.append((fields, np.c_[raw["cartesianX"], raw["cartesianY"], raw["cartesianZ"]]))
+        return out
+    finally:
+        e57.close()
+
+
+def test_e57_merged_cloud_written_a_block_at_a_time_is_the_whole_one(tmp_path, monkeypatch):
+    """The merged cloud streamed a block at a time (blocks of 7 points, handed in tiles of uneven size, float32 as a
+    tile may hold it) reads back as pye57's ``write_scan_raw`` of the whole cloud writes it: the same header
+    fields (bounds, pose, counts, prototype limits) and the same points."""
+    monkeypatch.setattr(export, "E57_BLOCK_POINTS", 7)
+    scans = make_scans()
+    merged = np.vstack([s.points_W_mm() for s in scans]).astype(np.float32)
+
+    class Tiles:
+        count = len(merged)
+
+        def bounds_mm(self):
+            cuts = np.split(merged, [50, 51, 300])
+            return (np.min([c.astype(float).min(axis=0) for c in cuts], axis=0),
+                    np.max([c.astype(float).max(axis=0) for c in cuts], axis=0))
+
+        def blocks(self):
+            yield from np.split(merged, [50, 51, 300])
+
+    whole = tmp_path / "whole.e57"
+    e57 = pye57.E57(str(whole), mode="w")
+    for scan in scans:
+        rotation, translation = export._e57_pose(scan.T_W_S)
+        e57.write_scan_raw(export._e57_xyz(scan.points_S_mm), name=scan.name, rotation=rotation,
+                           translation=translation)
+    e57.write_scan_raw(export._e57_xyz(merged), name="merged", rotation=np.array([1.0, 0, 0, 0]),
+                       translation=np.zeros(3))
+    e57.close()
+    by_blocks = _e57_scans(write_e57(tmp_path / "blocks.e57", scans, Tiles()))
+    in_memory = _e57_scans(write_e57(tmp_path / "array.e57", scans, merged))
+    for got in (by_blocks, in_memory):
+        assert len(got) == len(scans) + 1
+        for (fields, points), (want_fields, want_points) in zip(got, _e57_scans(whole), strict=True):
+            assert fields == want_fields
+            np.testing.assert_array_equal(points, want_points)
+
+
 def test_e57_refuses_empty_input(tmp_path):
     with pytest.raises(ExportError, match="nothing to write"):
         write_e57(tmp_path / "x.e57", [])
