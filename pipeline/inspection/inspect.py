@@ -577,11 +577,13 @@ def inspect_cloud(
     points_mm: np.ndarray,
     mesh: o3d.geometry.TriangleMesh | CadSurface,
     criteria: InspectionCriteria,
+    closest: ClosestPoints | None = None,
 ) -> InspectionResult:
-    """Deviation of a measured cloud (frame F, mm) from the CAD mesh, by ``criteria`` (tolerance, regions, fit)."""
+    """Deviation of a measured cloud (frame F, mm) from the CAD mesh, by ``criteria`` (tolerance, regions, fit);
+    ``closest``: the CAD surface's closest points to the cloud where the caller has them (``CadSurface.closest``)."""
     p = as_points(points_mm).view()
     surface = mesh if isinstance(mesh, CadSurface) else CadSurface(mesh)
-    closest = surface.closest(p)
+    closest = surface.closest(p) if closest is None else closest
     d = closest.signed_mm
     for a in (p, d):  # read-only: the KD tree and the areas' screening of this cloud are built once (deviation_areas)
         a.setflags(write=False)

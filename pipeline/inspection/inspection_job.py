@@ -141,11 +141,15 @@ def run_inspection(measured: Measurement, part: InspectedPart, settings: Inspect
         template = template.with_general_tolerance(criteria.tolerance_lower_mm, criteria.tolerance_upper_mm)
     surface = part.surface
     stitching = None if measured.stitching is None else measured.stitching.started()  # while the cloud is inspected
-    result = inspect_cloud(measured.points_mm, surface, criteria)
+    p = as_points(measured.points_mm)
+    closest = surface.closest(p)
     placed = alignment or Alignment("none", np.eye(4), 0.0, "the cloud as given")
-    u = (measured.uncertainty or GivenUncertainty(0.0)).evaluate(
-        result.points_mm, result.cad_normals, criteria.decision_k, placed.T_F_W, placed.method,
-        None if placed.excluded is None else ~placed.excluded, alignment_covariance(placed))
+    with ThreadPoolExecutor(1, thread_name_prefix="uncertainty") as pool:  # U beside the areas and the best fit
+        u_of_points = pool.submit((measured.uncertainty or GivenUncertainty(0.0)).evaluate, p, closest.normals,
+                                  criteria.decision_k, placed.T_F_W, placed.method,
+                                  None if placed.excluded is None else ~placed.excluded, alignment_covariance(placed))
+        result = inspect_cloud(p, surface, criteria, closest)
+        u = u_of_points.result()
     if measured.uncertainty is None:
         u = dataclasses.replace(u, notes=u.notes | {"cloud": "the cloud states no uncertainty: U = 0"})
     result = judge(result, u, criteria, context or VerdictContext())
