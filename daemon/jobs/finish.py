@@ -31,7 +31,7 @@ from tandemscan.pipeline.compute import backend_for
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan
 from tandemscan.pipeline.job_report import JobReport, Timings, write_ground_truth, write_job_report
 from tandemscan.pipeline.registration.parallel import pair_threads
-from tandemscan.pipeline.stitching.tiles import TileScan, merge_tiles, read_cloud, scan_x_extent
+from tandemscan.pipeline.stitching.tiles import TiledCloud, TileScan, merge_tiles, scan_x_extent
 from tandemscan.pipeline.stitching.worldmap import MapCloud, VoxelMap
 
 if TYPE_CHECKING:
@@ -151,11 +151,12 @@ def scan_x_bounds(job: JobSnapshot, voxel_mm: float, poses: Sequence[np.ndarray]
 
 
 def merged_cloud(job: JobSnapshot, voxel_mm: float, poses: Sequence[np.ndarray],
-                 x_bounds_mm: Sequence[tuple[float, float]]) -> MapCloud:
+                 x_bounds_mm: Sequence[tuple[float, float]]) -> MapCloud | TiledCloud:
     """The job's cloud at its final ``poses`` (W, mm) in voxels of edge ``voxel_mm``: with ``[compute] tile_mm``
     merged by slabs of W on the compute backend (``tiles.merge_tiles``, docs/compute.md "Tiles": each unit reads
-    only the scans whose bound of x, ``x_bounds_mm`` (:func:`scan_x_bounds`), meets its slab, from the scan store),
-    then read back here for the exports, which still take the whole cloud; else here (:func:`merge_stage`)."""
+    only the scans whose bound of x, ``x_bounds_mm`` (:func:`scan_x_bounds`), meets its slab, from the scan store)
+    and left in the tiles' files (``tiles.TiledCloud``: the exports read it a tile at a time); else here
+    (:func:`merge_stage`)."""
     from tandemscan.daemon.jobs.pose_correction import in_job  # the registration stack, as correct_stage
 
     compute = job.config.compute
@@ -169,21 +170,19 @@ def merged_cloud(job: JobSnapshot, voxel_mm: float, poses: Sequence[np.ndarray],
         tiles = merge_tiles(refs, voxel_mm, compute.tile_mm, store, backend)
     finally:
         backend.close()
-    cloud = read_cloud(store, tiles, voxel_mm)
-    for t in tiles:
-        (Path(store) / t.file).unlink(missing_ok=True)
-    return cloud
+    return TiledCloud(voxel_mm, str(store), tiles)
 
 
 def finish_job(job: JobSnapshot, started: float, measured_at: float,
                online: OnlineWork | None = None, stages: Mapping[str, float] | None = None,
                loaded: LoadedScans | None = None) -> FinishedJob:
     """Correct, merge, export and inspect a measured job. It takes over ``job.worldmap``, the map stitched while the
-    job measured (tracker poses), and leaves there the finished job's cloud (``worldmap.MapCloud``), so that the
-    caller, holding no other reference, lets the end of the job free the map's sums. Memory: the thinned scans until
-    the correction is done, the maps of one merge and one cloud at a time and one full scan a core; where the
-    correction changed the poses, the map stitched while measuring is dropped before the merge at the corrected
-    poses (on the simulated cell its cloud is kept, float32, for the score of the tracker stitch,
+    job measured (tracker poses), and leaves there the finished job's cloud (``worldmap.MapCloud``; with ``[compute]
+    tile_mm`` a ``tiles.TiledCloud``, whose tiles' files are removed once the exports and the score have read
+    them), so that the caller, holding no other reference, lets the end of the job free the map's sums. Memory: the
+    thinned scans until the correction is done, the maps of one merge and one cloud at a time and one full scan a
+    core; where the correction changed the poses, the map stitched while measuring is dropped before the merge at
+    the corrected poses (on the simulated cell its cloud is kept, float32, for the score of the tracker stitch,
     ``correction.before``). Each raw scan file is read at most twice here: by the merge at the corrected poses and
     by the E57.
     ``started`` and ``measured_at`` are ``time.monotonic()`` at the job's start and at its last step's commit;
@@ -217,17 +216,21 @@ def finish_job(job: JobSnapshot, started: float, measured_at: float,
         job, scans=[dataclasses.replace(s, T_W_S=T) for s, T in zip(job.scans, outcome.poses, strict=True)],
         correction=outcome.section, pose_covariance=outcome.pose_covariance)
     seconds = time.monotonic() - started  # the job until its exports
-    exports = export_job(final, measured_at, view_S, tracker_poses)
-    stages = {**timings, **outcome.section.get("stage_seconds", {}), **exports.stages_s}
-    timings_s = Timings(exports.after_last_scan_s, outcome.section.get("cpu_seconds"), stages)
-    report = build_job_report(final, seconds, tracker_poses, exports.inspection, exports.coverage,
-                              exports.peak_rss_gib, timings_s)
-    write_job_report(report, job.job_dir)
-    t = time.perf_counter()  # the simulator's observer, after the report: beside it, in its own file
-    ground_truth = score_ground_truth(final, exports.inspection, tracker_stitch)
-    if ground_truth is not None:
-        ground_truth = dataclasses.replace(
-            ground_truth, scores={**ground_truth.scores, "scoring_s": round(time.perf_counter() - t, 3)})
-        write_ground_truth(ground_truth, job.job_dir)
-        report = dataclasses.replace(report, ground_truth=ground_truth)
+    try:
+        exports = export_job(final, measured_at, view_S, tracker_poses)
+        stages = {**timings, **outcome.section.get("stage_seconds", {}), **exports.stages_s}
+        timings_s = Timings(exports.after_last_scan_s, outcome.section.get("cpu_seconds"), stages)
+        report = build_job_report(final, seconds, tracker_poses, exports.inspection, exports.coverage,
+                                  exports.peak_rss_gib, timings_s)
+        write_job_report(report, job.job_dir)
+        t = time.perf_counter()  # the simulator's observer, after the report: beside it, in its own file
+        ground_truth = score_ground_truth(final, exports.inspection, tracker_stitch)
+        if ground_truth is not None:
+            ground_truth = dataclasses.replace(
+                ground_truth, scores={**ground_truth.scores, "scoring_s": round(time.perf_counter() - t, 3)})
+            write_ground_truth(ground_truth, job.job_dir)
+            report = dataclasses.replace(report, ground_truth=ground_truth)
+    finally:
+        if isinstance(final.worldmap, TiledCloud):
+            final.worldmap.remove()  # the tiles' files, once cloud.ply and the E57 hold the cloud
     return FinishedJob(report, outcome)

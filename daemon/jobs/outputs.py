@@ -46,9 +46,11 @@ from tandemscan.pipeline.inspection.inspection_job import (
 )
 from tandemscan.pipeline.inspection.point_uncertainty import JobUncertainty, ScanCover
 from tandemscan.pipeline.inspection.report import InspectedPart, ReportFacts, StitchViews
-from tandemscan.pipeline.io.export import PosedScan, write_e57, write_ply, write_pose_log
+from tandemscan.pipeline.io.export import ArrayBlocks, PointBlocks, PosedScan, write_e57, write_ply, write_pose_log
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan
 from tandemscan.pipeline.planning.coverage import CoverageFigures
+from tandemscan.pipeline.stitching.tiles import TiledCloud, TilePoints
+from tandemscan.pipeline.stitching.worldmap import MapCloud
 
 if TYPE_CHECKING:
     from tandemscan.daemon.jobs.snapshot import JobSnapshot
@@ -130,7 +132,7 @@ def export_job(job: JobSnapshot, measured_at: float, points_S: Sequence[np.ndarr
     corrected)."""
     t = [time.perf_counter()]
     with ThreadPoolExecutor(1, thread_name_prefix="cloud-ply") as pool:  # written while the inspection computes
-        cloud_ply = pool.submit(write_ply, job.job_dir / "cloud.ply", job.worldmap.points(), job.worldmap.normals())
+        cloud_ply = pool.submit(_write_cloud_ply, job.job_dir / "cloud.ply", job.worldmap)
         t.append(time.perf_counter())
         figures = {"scans": len(job.scans), "transfers": len(job.transfers)}
         inspection = write_job_outputs(job, figures, points_S, tracker_poses)  # report.html, E57, poses
@@ -140,6 +142,26 @@ def export_job(job: JobSnapshot, measured_at: float, points_S: Sequence[np.ndarr
     after_last_scan_s = time.monotonic() - measured_at
     stages = dict(zip(("cloud_ply_s", "exports_and_inspection_s"), np.round(np.diff(t), 3).tolist(), strict=True))
     return JobExports(inspection, coverage, round(after_last_scan_s, 3), peak_rss_gib(), stages)
+
+
+def _write_cloud_ply(path: Path, cloud: MapCloud | TiledCloud) -> Path:
+    """``cloud.ply`` (W, mm: points and unit normals) of the job's cloud, streamed a tile at a time where it was
+    merged by tiles."""
+    return cloud.write_ply(path) if isinstance(cloud, TiledCloud) else write_ply(path, cloud.points(), cloud.normals())
+
+
+def _point_blocks(cloud: MapCloud | TiledCloud) -> PointBlocks:
+    """The job's cloud's points as the E57 writer takes them, a block or a tile at a time."""
+    return cloud if isinstance(cloud, TiledCloud) else ArrayBlocks(cloud.points())
+
+
+def _every_kth(cloud: MapCloud | TiledCloud, step: int) -> TilePoints:
+    """The job's cloud's every ``step``-th voxel (points, normals, counts: the inspected cloud, ``[inspection]
+    max_points``), read a tile at a time where it was merged by tiles."""
+    if isinstance(cloud, TiledCloud):
+        return cloud.every_kth(step)
+    counts = cloud.counts()
+    return TilePoints(cloud.points()[::step], cloud.normals()[::step], None if counts is None else counts[::step])
 
 
 def peak_rss_gib() -> float | None:
@@ -166,43 +188,44 @@ def write_job_outputs(job: JobSnapshot, report: Mapping, points_S: Sequence[np.n
     inspection computes on the thinned scans (both wait on files and numpy, which let the other thread run).
     """
     scans = _posed_scans(job, points_S)
-    cloud_W = job.worldmap.points()  # once, on this thread
     with ThreadPoolExecutor(1, thread_name_prefix="e57") as pool:
-        exports = pool.submit(_write_exports, job, scans, cloud_W)
-        section = _inspection_section(job, report, scans, cloud_W, tracker_poses)
+        exports = pool.submit(_write_exports, job, scans)
+        section = _inspection_section(job, report, scans, tracker_poses)
         exports.result()  # its error, if any, is the job's
     return section
 
 
-def _write_exports(job: JobSnapshot, scans: list[PosedScan], cloud_W: np.ndarray) -> None:
+def _write_exports(job: JobSnapshot, scans: list[PosedScan]) -> None:
     """``cloud.e57`` (the scans with points, read from their files one at a time, and the merged cloud
-    ``cloud_W``) and ``poses.csv`` (every scan, ``scans``), frame W, mm."""
+    ``job.worldmap``, a block or a tile at a time) and ``poses.csv`` (every scan, ``scans``), frame W, mm."""
     if any(s.size for s in scans):
-        write_e57(job.job_dir / EXPORT_FILES["e57"], _full_scans(job, scans), cloud_W if len(cloud_W) else None)
+        write_e57(job.job_dir / EXPORT_FILES["e57"], _full_scans(job, scans),
+                  _point_blocks(job.worldmap) if len(job.worldmap) else None)
     write_pose_log(job.job_dir / EXPORT_FILES["pose_log"], scans)
 
 
-def _inspection_section(job: JobSnapshot, report: Mapping, scans: list[PosedScan], cloud_W: np.ndarray,
+def _inspection_section(job: JobSnapshot, report: Mapping, scans: list[PosedScan],
                         tracker_poses: Sequence[np.ndarray] | None) -> dict:
     """The inspection written into the job folder and its report.json section (or why there is none)."""
     files = dict(EXPORT_FILES)
     reason = (
         "inspection.in_job is off" if not job.config.inspection.in_job
         else "no registration of the world frame to the CAD frame" if job.T_F_W is None
-        else "empty cloud" if len(cloud_W) == 0
+        else "empty cloud" if len(job.worldmap) == 0
         else ""
     )
     if reason:
         log.warning("inspection skipped: %s", reason)
         return {"skipped": reason, "files": files}
     T_F_W = np.asarray(job.T_F_W, float)
-    step = -(-len(cloud_W) // job.config.inspection.max_points)  # ceil: every step-th voxel (map key order)
+    points = len(job.worldmap)
+    step = -(-points // job.config.inspection.max_points)  # ceil: every step-th voxel (map key order)
     if step > 1:
-        log.info("inspecting every %d-th of the cloud's %d points ([inspection] max_points)", step, len(cloud_W))
-    counts = job.worldmap.counts()
+        log.info("inspecting every %d-th of the cloud's %d points ([inspection] max_points)", step, points)
+    sample = _every_kth(job.worldmap, step)
     try:
-        out = _inspect(job, report, scans, cloud_W[::step], job.worldmap.normals()[::step], T_F_W, tracker_poses,
-                       len(cloud_W), None if counts is None else counts[::step])
+        out = _inspect(job, report, scans, sample.points_mm, sample.normals, T_F_W, tracker_poses, points,
+                       sample.counts)
     except (InspectionError, ConfigError) as e:  # the measurement stands; the report says why it has none
         log.warning("inspection failed: %s", e)
         return {"failed": str(e), "files": files}

@@ -162,11 +162,12 @@ def merge_tiles(scans: Sequence[TileScan], voxel_mm: float, tile_mm: float, stor
 
 @dataclass(frozen=True)
 class TilePoints:
-    """A tile's cloud read back: mean points and unit normals (W, mm, float64), each voxel's point count."""
+    """A tile's cloud read back: mean points and unit normals (W, mm, float64), each voxel's point count (None: a
+    cloud that kept none)."""
 
     points_mm: np.ndarray
     normals: np.ndarray
-    counts: np.ndarray
+    counts: np.ndarray | None
 
 
 def read_tile(store: str | Path, tile: TileCloud) -> TilePoints:
@@ -217,3 +218,56 @@ def every_kth(store: str | Path, tiles: Sequence[TileCloud], step: int) -> TileP
         return TilePoints(np.empty((0, 3)), np.empty((0, 3)), np.empty(0, np.int64))
     return TilePoints(*(np.concatenate([getattr(p, name) for p in parts])
                         for name in ("points_mm", "normals", "counts")))
+
+
+@dataclass(frozen=True)
+class TiledCloud:
+    """A job's cloud merged by tiles (:func:`merge_tiles`), left in its tiles' files in the scan store ``store``:
+    voxels of edge ``voxel_mm``, W, mm, the tiles one after the other in the untiled cloud's order. The end of a job
+    takes it where it would take the whole cloud and reads it a tile at a time: ``cloud.ply`` (:meth:`write_ply`),
+    the E57's merged scan (:meth:`bounds_mm`, :meth:`blocks`: ``export.PointBlocks``), the inspected subsample
+    (:meth:`every_kth`); :meth:`points` reads it whole, for the simulator's observer alone."""
+
+    voxel_mm: float
+    store: str
+    tiles: tuple[TileCloud, ...]
+
+    def __len__(self) -> int:
+        return sum(t.voxels for t in self.tiles)
+
+    @property
+    def count(self) -> int:
+        """The cloud's points (voxels)."""
+        return len(self)
+
+    def bounds_mm(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per axis the smallest and largest point coordinate (mm), a tile read at a time."""
+        lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+        for block in self.blocks():
+            if len(block):
+                lo, hi = np.minimum(lo, block.min(axis=0)), np.maximum(hi, block.max(axis=0))
+        return lo, hi
+
+    def blocks(self) -> Iterator[np.ndarray]:
+        """Each tile's points (mm) in turn, read when asked for."""
+        for tile in self.tiles:
+            with np.load(Path(self.store) / tile.file) as data:
+                points = data["points"]
+            yield points
+
+    def write_ply(self, path: Path) -> Path:
+        """``cloud.ply`` streamed from the tiles (:func:`write_cloud_ply`)."""
+        return write_cloud_ply(path, self.store, self.tiles)
+
+    def every_kth(self, step: int) -> TilePoints:
+        """The cloud's every ``step``-th voxel (:func:`every_kth`), a tile read at a time."""
+        return every_kth(self.store, self.tiles, step)
+
+    def points(self) -> np.ndarray:
+        """Every point (mm), read whole: the simulator's observer's score of the cloud, never the product's."""
+        return np.concatenate(list(self.blocks())) if self.tiles else np.empty((0, 3))
+
+    def remove(self) -> None:
+        """Delete the tiles' files (once the cloud's exports are written)."""
+        for t in self.tiles:
+            (Path(self.store) / t.file).unlink(missing_ok=True)

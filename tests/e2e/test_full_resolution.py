@@ -12,10 +12,11 @@ import pye57
 import pytest
 from tandemscan.daemon.cell.session import CellSession
 from tandemscan.daemon.jobs.finish import merge_stage, merged_cloud, scan_x_bounds
-from tandemscan.daemon.jobs.outputs import write_job_outputs
+from tandemscan.daemon.jobs.outputs import _point_blocks, _write_cloud_ply, write_job_outputs
 from tandemscan.daemon.jobs.runner import JobRunner
 from tandemscan.daemon.plans import default_plan_path
 from tandemscan.pipeline.geometry.frames import from_rpy
+from tandemscan.pipeline.io.cloud_io import read_ply
 from tandemscan.pipeline.io.export import PosedScan, write_e57
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan, write_raw_scan
 from tandemscan.pipeline.job_report import read_job_report
@@ -83,11 +84,22 @@ def test_the_cloud_merged_by_tiles_on_the_backend_is_the_one_merged_here(scan_fi
     job = SimpleNamespace(job_dir=tmp_path, scans=[SimpleNamespace(file=f) for f in files], config=tiled_config)
     tiled = merged_cloud(job, 1.0, poses, scan_x_bounds(job, 1.0, poses, [read_thinned_scan(f, 1.0) for f in files]))
     here = merge_stage(1.0, files, poses).frozen()
+    whole = tiled.every_kth(1)
     assert len(tiled) == len(here) > 1000
-    np.testing.assert_array_equal(tiled.counts(), here.counts())
-    np.testing.assert_allclose(tiled.points(), here.points(), rtol=0, atol=1e-9)
-    np.testing.assert_allclose(tiled.normals(), here.normals(), rtol=0, atol=1e-9)
-    assert not list((tmp_path / "tiles").iterdir())  # the tiles' files go once the cloud is read back
+    np.testing.assert_array_equal(whole.counts, here.counts())
+    np.testing.assert_allclose(whole.points_mm, here.points(), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(whole.normals, here.normals(), rtol=0, atol=1e-9)
+    # the exports read it a tile at a time: cloud.ply and the E57's merged scan as of the cloud in memory
+    for name, cloud in (("tiled", tiled), ("here", here)):
+        _write_cloud_ply(tmp_path / f"{name}.ply", cloud)
+        write_e57(tmp_path / f"{name}.e57", [], _point_blocks(cloud))
+    (a_points, a_normals), (b_points, b_normals) = (read_ply(tmp_path / f"{n}.ply") for n in ("tiled", "here"))
+    np.testing.assert_allclose(a_points, b_points, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(a_normals, b_normals, rtol=0, atol=1e-6)  # float32 in the file
+    ((_, _, _, a_m),), ((_, _, _, b_m),) = (_read_e57(tmp_path / f"{n}.e57") for n in ("tiled", "here"))
+    np.testing.assert_allclose(a_m, b_m, rtol=0, atol=1e-7)  # single precision, metres
+    tiled.remove()
+    assert not list((tmp_path / "tiles").iterdir())  # the tiles' files go once the exports hold the cloud
 
 
 def _read_e57(path) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
