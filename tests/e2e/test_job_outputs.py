@@ -15,6 +15,7 @@ from tandemscan.pipeline.io.cloud_io import read_ply
 from tandemscan.pipeline.job_report import read_job_report
 from tandemscan.pipeline.planning.coverage import REASON_REACH
 from tandemscan.pipeline.planning.plan import LeftOutArea, Plan, Scan
+from tandemscan.pipeline.stitching.worldmap import MapCloud
 from tandemscan.sim_drivers.cell import with_surveyed_mounts
 
 
@@ -109,7 +110,7 @@ def test_inspection_skipped_with_reason(sim_config, tmp_path):
     from tandemscan.daemon.jobs.outputs import write_job_outputs
 
     def runner(config, T_F_W):
-        worldmap = SimpleNamespace(points=lambda: np.zeros((0, 3)), normals=lambda: None)
+        worldmap = MapCloud(1.0, np.zeros((0, 3)), np.zeros((0, 3)))  # a job whose scans saw nothing
         return SimpleNamespace(job_dir=tmp_path, scans=[], worldmap=worldmap, T_F_W=T_F_W, config=config)
 
     off = sim_config.model_copy(update={"inspection": sim_config.inspection.model_copy(update={"in_job": False})})

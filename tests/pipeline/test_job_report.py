@@ -15,6 +15,8 @@ from tandemscan.pipeline.job_report import (
     ScanEntry,
     Timings,
     as_matrix,
+    read_job_report,
+    write_ground_truth,
     write_job_report,
 )
 
@@ -37,9 +39,15 @@ def _report(**changes) -> JobReport:
 
 def test_the_report_reads_back_into_the_same_model_and_is_frozen(tmp_path):
     report = _report()
-    doc = json.loads(write_job_report(report, tmp_path).read_text())
-    assert JobReport.from_json(doc) == report
-    # the file's layout: derived counts, the simulator's tracker-only scores in the correction section, the
+    with pytest.raises(ValueError, match="beside"):  # the observer's scores are not report.json's
+        write_job_report(report, tmp_path)
+    written = json.loads(write_job_report(dataclasses.replace(report, ground_truth=None), tmp_path).read_text())
+    assert "ground_truth" not in written and "before" not in written["correction"]
+    write_ground_truth(report.ground_truth, tmp_path)
+    assert read_job_report(tmp_path) == report  # report.json and ground_truth.json beside it: the model again
+    doc = report.to_json()
+    assert JobReport.from_json(json.loads(json.dumps(doc))) == report
+    # the layout: derived counts, the simulator's tracker-only scores in the correction section, the
     # journal's resumes and the scans it left out at the top level
     assert doc["scans"] == 2 and doc["scans_empty"] == [1]
     assert doc["correction"] == {"enabled": True, "cpu_seconds": 0.5, "before": {"pose_err_mm_median": 0.05}}
