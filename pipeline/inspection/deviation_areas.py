@@ -81,28 +81,32 @@ def kd_tree(points_mm: np.ndarray) -> cKDTree:
     read-only array (an inspected cloud: ``inspect.inspect_cloud`` makes its points so) has its tree built once
     while it lives (:func:`kept_for`): the areas at the band and at the verdict's guard band and the
     characteristics' averages ask for the same cloud's."""
-    return kept_for((points_mm,), "kd_tree", lambda: cKDTree(points_mm, leafsize=32, balanced_tree=False))
+    # the tree holds a view of its own of the points, so that it does not keep the array it is kept for alive
+    return kept_for((points_mm,), "kd_tree", lambda: cKDTree(np.asarray(points_mm).view(), leafsize=32,
+                                                             balanced_tree=False))
 
 
 _KEPT: dict[tuple, tuple[tuple[weakref.ref, ...], object]] = {}
+KEPT_AT_MOST = 4  # values kept at once (a cloud's tree and screening, and the previous cloud's)
 _KEPT_LOCK = threading.Lock()
 
 
 def kept_for(arrays: tuple[np.ndarray, ...], what: object, build: Callable[[], T]) -> T:
-    """``build()``, kept for ``arrays`` and ``what`` (hashable) while every array lives, where all are read-only
-    numpy arrays (their values cannot change under the result); else built each time. Built under a lock, so
-    two threads asking at once build it once."""
+    """``build()``, kept for ``arrays`` and ``what`` (hashable) while every array lives (dropped as the first of
+    them goes; at most :data:`KEPT_AT_MOST` values, the oldest dropped first), where all are read-only numpy
+    arrays (their values cannot change under the result); else built each time. Built under a lock, so two threads
+    asking at once build it once."""
     if not all(isinstance(a, np.ndarray) and not a.flags.writeable for a in arrays):
         return build()
     key = (*(id(a) for a in arrays), what)
     with _KEPT_LOCK:
-        for k in [k for k, (refs, _) in _KEPT.items() if any(r() is None for r in refs)]:
-            del _KEPT[k]  # an array it was kept for is gone (its id may be another's now)
         held = _KEPT.get(key)
         if held is not None and all(r() is a for r, a in zip(held[0], arrays, strict=True)):
             return held[1]  # type: ignore[return-value]
         value = build()
-        _KEPT[key] = (tuple(weakref.ref(a) for a in arrays), value)
+        while len(_KEPT) >= KEPT_AT_MOST:  # an array the value holds itself never goes: the oldest make room
+            _KEPT.pop(next(iter(_KEPT)))
+        _KEPT[key] = (tuple(weakref.ref(a, lambda _, key=key: _KEPT.pop(key, None)) for a in arrays), value)
         return value
 
 

@@ -286,3 +286,29 @@ def test_points_near_the_screening_centres_are_found_chunk_by_chunk():
     nearest = cKDTree(centres).query(p)[0]
     np.testing.assert_array_equal(within, np.flatnonzero(nearest <= 6.0))
     assert 0 < len(within) < len(p)
+
+
+def test_a_read_only_clouds_tree_and_screening_are_built_once_and_go_with_it(monkeypatch):
+    """The areas of a read-only cloud at the band and at a narrower (guard) band are those of a writeable copy,
+    which is screened anew each time; the read-only cloud's KD tree and coarse screening are built once for both,
+    and dropped when the cloud goes."""
+    rng = np.random.default_rng(0)
+    p, d = plane(rng, noise=0.04)
+    d += -bell(p, (100.0, 100.0), 30.0, 0.3) + bell(p, (220.0, 200.0), 20.0, 0.2)
+    built = []
+    tree = deviation_areas.cKDTree
+    monkeypatch.setattr(deviation_areas, "cKDTree", lambda *a, **k: built.append(1) or tree(*a, **k))
+    p_ro, d_ro = p.view(), d.view()
+    for a in (p_ro, d_ro):
+        a.setflags(write=False)
+    for lo, hi in ((-0.1, 0.1), (-0.08, 0.08)):
+        before = len(built)
+        fresh = find_deviation_areas(p, d, lo, hi, smoothing_mm=4.0, screen=True)
+        assert len(built) > before  # a writeable cloud: its tree built each time
+        assert find_deviation_areas(p_ro, d_ro, lo, hi, smoothing_mm=4.0, screen=True) == fresh
+    kept = [len(built)]
+    find_deviation_areas(p_ro, d_ro, -0.09, 0.09, smoothing_mm=4.0, screen=True)
+    assert len(built) - kept[0] <= 2  # only the areas' own small trees (one a side), not the cloud's
+    assert deviation_areas._KEPT
+    del p_ro, d_ro
+    assert not deviation_areas._KEPT
