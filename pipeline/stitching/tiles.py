@@ -36,7 +36,7 @@ from tandemscan.pipeline.geometry.frames import transform_points
 from tandemscan.pipeline.io.durable import write_durably
 from tandemscan.pipeline.io.export import PlyChunk, write_ply_streamed
 from tandemscan.pipeline.io.raw_scan import read_raw_scan
-from tandemscan.pipeline.stitching.worldmap import MapCloud, VoxelMap
+from tandemscan.pipeline.stitching.worldmap import VoxelMap
 
 #: the tiles' clouds are written in this folder of the scan store
 TILES_FOLDER = "tiles"
@@ -174,19 +174,6 @@ def read_tile(store: str | Path, tile: TileCloud) -> TilePoints:
     """Tile ``tile``'s cloud from the scan store ``store``."""
     with np.load(Path(store) / tile.file) as data:
         return TilePoints(data["points"], data["normals"], data["counts"])
-
-
-def read_cloud(store: str | Path, tiles: Sequence[TileCloud], voxel_mm: float) -> MapCloud:
-    """The whole cloud of ``tiles`` (voxels of edge ``voxel_mm``) read back into one ``MapCloud`` (W, mm), the tiles
-    one after the other: the untiled merge's cloud (module doc), for the stages that still take a whole cloud."""
-    clouds = [read_tile(store, t) for t in tiles]
-    points = np.concatenate([c.points_mm for c in clouds]) if clouds else np.empty((0, 3))
-    normals = np.concatenate([c.normals for c in clouds]) if clouds else np.empty((0, 3))
-    counts = np.concatenate([c.counts for c in clouds]).astype(np.int32) if clouds else np.empty(0, np.int32)
-    del clouds
-    for a in (points, normals, counts):
-        a.setflags(write=False)
-    return MapCloud(voxel_mm, points, normals, counts)
 
 
 def _ply_chunks(store: str | Path, tiles: Sequence[TileCloud]) -> Iterator[PlyChunk]:
