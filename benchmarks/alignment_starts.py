@@ -1,29 +1,32 @@
-"""Alignment to CAD from random starts on generated parts of different kinds (sim_drivers/generated_parts.py):
+"""Alignment to CAD from random starts on generated parts of different kinds (sim_drivers/generated_parts.py:
+``PARTS`` and a new customer's ``CUSTOMER_PARTS``):
 the share of starts that align within 0.05 mm / 0.005 deg of the truth, the share that fail with a reason,
 the errors and the seconds, per part, and the seeded defects found with their sign.
 
 Usage: nice python benchmarks/alignment_starts.py [--starts 20] [--points 30000] [--max-deg 30] [--max-mm 300]
+                                                 [--parts arch,...] [--publish NAME]
 
 Each start turns the measured cloud by up to ``--max-deg`` about a random axis through the CAD origin and moves
-it by up to ``--max-mm``; ``tandemscan inspect``'s path then aligns it from where it lies (``align``), orients
-the CAD by the cloud's normals and inspects it. Prints one JSON object on its last line. Timings on a shared
-CPU are unreliable.
+it by up to ``--max-mm``; ``tandemscan inspect``'s path then aligns it from where it lies (``align``, with the
+cloud's normals as a scanner writes them), orients the CAD by them and inspects it. Prints one JSON object on its
+last line and keeps it as ``benchmarks/results/NAME.json`` (``--publish``). Timings on a shared CPU are
+unreliable.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
 import numpy as np
 from clean_exit import clean_exit_on_sigterm
+from results import publish
 from tandemscan.config.models import InspectionConfig
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.inspection.alignment import AlignmentCriteria, AlignmentFailed, align
 from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionCriteria, inspect_cloud
 from tandemscan.pipeline.inspection.inspection_job import measured_side
-from tandemscan.sim_drivers.generated_parts import PARTS, GeneratedPart, random_misplacement
+from tandemscan.sim_drivers.generated_parts import CUSTOMER_PARTS, PARTS, GeneratedPart, random_misplacement
 from tandemscan.sim_drivers.inspection_score import alignment_error
 
 TARGET = (0.05, 0.005)  # mm, deg at the CAD's bounding-box centre
@@ -43,7 +46,7 @@ def defects_found(part: GeneratedPart, areas) -> int:
 
 
 def one_part(name: str, args: argparse.Namespace) -> dict:
-    part = PARTS[name]()
+    part = {**PARTS, **CUSTOMER_PARTS}[name]()
     surface = CadSurface(part.mesh)
     rng = np.random.default_rng(args.seed)
     p_F, n_F = part.measured(args.points, args.noise_mm, rng)
@@ -55,7 +58,7 @@ def one_part(name: str, args: argparse.Namespace) -> dict:
         p_W = F.transform_points(T_W_F, p_F)
         t0 = time.perf_counter()
         try:
-            a = align(surface, p_W, AlignmentCriteria.from_section(CFG))
+            a = align(surface, p_W, AlignmentCriteria.from_section(CFG), toward_W=F.rotate_vectors(T_W_F, n_F))
         except AlignmentFailed as e:
             seconds.append(time.perf_counter() - t0)
             failed += 1
@@ -88,7 +91,8 @@ def main() -> None:
     ap.add_argument("--max-deg", type=float, default=30.0)
     ap.add_argument("--max-mm", type=float, default=300.0)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--parts", default=",".join(PARTS))
+    ap.add_argument("--parts", default=",".join(PARTS), help=f"of {', '.join([*PARTS, *CUSTOMER_PARTS])}")
+    ap.add_argument("--publish", default="alignment_starts", metavar="NAME", help="benchmarks/results/NAME.json")
     args = ap.parse_args()
     out: dict = {"benchmark": "alignment_starts", "target": {"mm": TARGET[0], "deg": TARGET[1]},
                  "max_deg": args.max_deg, "max_mm": args.max_mm, "noise_mm": args.noise_mm}
@@ -97,7 +101,7 @@ def main() -> None:
     starts = sum(out[n]["starts"] for n in args.parts.split(","))
     out["success_rate"] = round(sum(out[n]["aligned_within_target"] for n in args.parts.split(",")) / starts, 3)
     out["wrong_without_failing"] = sum(out[n]["wrong_without_failing"] for n in args.parts.split(","))
-    print(json.dumps(out))
+    publish(args.publish, out)
 
 
 if __name__ == "__main__":

@@ -250,9 +250,15 @@ def _sample_edges(ring, step_mm: float):
     return shapely.segmentize(ring, step_mm)
 
 
+def _taper(x_mm: float, span_mm: float) -> float:
+    """A blade section's scale at span position ``x_mm``: 1 at the root (-span/2), 0.8 at the tip."""
+    return 1.0 - 0.2 * (x_mm / span_mm + 0.5)
+
+
 def twisted_blade(span_mm: float = 1500.0, chord_mm: float = 500.0, twist_deg: float = 25.0) -> GeneratedPart:
     """A wind-blade segment: an 8 % thick cambered airfoil (NACA 2408 shape, trailing edge 0.7 mm thick) of
-    ``chord_mm`` along y, swept ``span_mm`` along x and twisted by ``twist_deg`` about its quarter-chord line
+    ``chord_mm`` along y at the root, 0.8 of it at the tip, swept ``span_mm`` along x and twisted by ``twist_deg``
+    about its quarter-chord line
     (z = 900 mm, held by a fixture the mesh does not show); closed by a thin trailing-edge face and flat tip
     faces, wound outward; the scanner sees every face but the tips. Defects: a dent on the suction side, a
     bulge near the trailing edge on the pressure side."""
@@ -272,7 +278,8 @@ def twisted_blade(span_mm: float = 1500.0, chord_mm: float = 500.0, twist_deg: f
     for x in xs:
         a = np.radians(twist_deg) * (x / span_mm + 0.5)
         c, s = np.cos(a), np.sin(a)
-        rows.append(np.c_[np.full(k, x), c * ring[:, 0] - s * ring[:, 1], 900.0 + s * ring[:, 0] + c * ring[:, 1]])
+        q = ring * _taper(x, span_mm)
+        rows.append(np.c_[np.full(k, x), c * q[:, 0] - s * q[:, 1], 900.0 + s * q[:, 0] + c * q[:, 1]])
     V = np.vstack(rows)
     idx = np.arange(n_span * k).reshape(n_span, k)
     i = np.arange(k)
@@ -291,7 +298,7 @@ def twisted_blade(span_mm: float = 1500.0, chord_mm: float = 500.0, twist_deg: f
     def on_side(x_mm: float, chord_share: float, upper_side: bool) -> tuple[float, float, float]:
         a = np.radians(twist_deg) * (x_mm / span_mm + 0.5)
         u = int(np.argmin(np.abs(xc - chord_share)))
-        q = (upper if upper_side else lower)[u] * chord_mm - [0.25 * chord_mm, 0.0]
+        q = ((upper if upper_side else lower)[u] * chord_mm - [0.25 * chord_mm, 0.0]) * _taper(x_mm, span_mm)
         return (x_mm, np.cos(a) * q[0] - np.sin(a) * q[1], 900.0 + np.sin(a) * q[0] + np.cos(a) * q[1])
 
     defects = (SurfaceDefect(on_side(-300.0, 0.35, True), 60.0, -0.4), SurfaceDefect(on_side(350.0, 0.7, False),

@@ -25,7 +25,7 @@ import numpy as np
 from tandemscan.pipeline.calibration.plate import PlateError, fit_sphere
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.units import extent_mm, scale_mismatch
-from tandemscan.pipeline.inspection.cad_orientation import orient
+from tandemscan.pipeline.inspection.cad_orientation import wind
 from tandemscan.pipeline.inspection.inspect import (
     CadSurface,
     InspectionError,
@@ -389,7 +389,8 @@ def _global_fit(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray, pri
                 ) -> tuple[SurfaceFit, int]:
     """The fit from the global stage: the coarse passes from each of its candidates (the feature matches where
     ``features``; the start's fit ``fitted_T_F_W`` turned over, :func:`_turned_over`, where that lies within
-    twice its truncated cost plus 1 mm^2), the fine ones from the one with the lowest truncated cost
+    :data:`TURNED_BAR` times its truncated cost plus 1 mm^2: the turn is about the cloud's centroid, not the
+    part's, so a turned pose lies centimetres off its fit), the fine ones from the one with the lowest truncated cost
     (:func:`_final_cost` at :data:`FINE_FROM_MM`) after them; no point paired on the back of a closed face
     (``seen``).
 
@@ -397,8 +398,8 @@ def _global_fit(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray, pri
     criteria, and the two switches of the candidates (the start's fit to turn over, the feature matches)."""
     best, best_cost, its, why = None, np.inf, 0, "no candidate"
     turned = []
-    if fitted_T_F_W is not None:  # only where the turned part lies about as well on the CAD as the fit does
-        bar = 2.0 * _final_cost(surface, p, fitted_T_F_W, FINE_FROM_MM, seen) + 1.0
+    if fitted_T_F_W is not None:  # only where the turned part lies nearly as well on the CAD as the fit does
+        bar = TURNED_BAR * _final_cost(surface, p, fitted_T_F_W, FINE_FROM_MM, seen) + 1.0
         turned = [T for T in _turned_over(p, fitted_T_F_W) if _final_cost(surface, p, T, FINE_FROM_MM, seen) <= bar]
     for T in (_global_starts(surface, p, start_T_F_W) if features else []) + turned:
         try:
@@ -416,6 +417,7 @@ def _global_fit(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray, pri
     return fit, its + n
 
 
+TURNED_BAR = 4.0  # a box with an off-centre pocket turned round: 2.2 times its fit's cost before its own fit
 GLOBAL_POINTS = 30_000  # the CAD's sampled points and the cloud's, at most, of the global stage
 GLOBAL_VOXEL_FRACTION = 0.02
 GLOBAL_SEEDS = 3
@@ -491,12 +493,13 @@ def _fit_from(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray, cfg: 
     one Huber-weighted beyond ``alignment_huber_sigmas`` robust sigmas of its residuals.
 
     The passes start from ``start_T_F_W`` and, where the fit from it leaves less than
-    ``cfg.alignment_min_inlier_share`` of the points within the last distance (a poor start; from an unknown
-    start, no ``prior_T_F_W``, less than :data:`UNSURE_SHARE`), from the global stage (:func:`_global_fit`)
-    as well; the lower truncated cost over the same points wins
-    (:func:`_final_cost`), the start's fit on a tie. The directions the surface does not fix are held at
-    ``prior_T_F_W`` (the job's placement; default the start) and named (:func:`free_directions`). A point does
-    not pair with the back of a closed face (``seen``, :class:`SeenFrom`; None: every pair counts).
+    ``cfg.alignment_min_inlier_share`` of the points within the last distance (a poor start), from the global
+    stage (:func:`_global_fit`) as well, and from an unknown start (no ``prior_T_F_W``) turned over
+    (:func:`_turned_over`: a near-symmetric part fits most of its points in its symmetric pose); the lower
+    truncated cost over the same points wins (:func:`_final_cost`), the start's fit on a tie, and a tie between
+    poses apart is named among the free directions (:func:`_twin_pose`). The directions the surface does not fix
+    are held at ``prior_T_F_W`` (the job's placement; default the start) and named (:func:`free_directions`). A
+    point does not pair with the back of a closed face (``seen``, :class:`SeenFrom`; None: every pair counts).
     Raises :class:`AlignmentFailed` when no fit leaves that share of the points on the CAD."""
     T0 = np.array(start_T_F_W, dtype=np.float64)
     prior = T0 if prior_T_F_W is None else np.asarray(prior_T_F_W, float)
@@ -509,13 +512,13 @@ def _fit_from(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray, cfg: 
         fits.append((fit, start))
     except InspectionError as e:  # too few points near the surface from the start
         why.append(f"from {start}: {e}")
-    enough = max(cfg.alignment_min_inlier_share, UNSURE_SHARE if prior_T_F_W is None else 0.0)  # unknown start:
-    if not fits or _share(fits[0][0]) < enough:  # is this the part's only fit?
+    poor = not fits or _share(fits[0][0]) < cfg.alignment_min_inlier_share
+    if poor or prior_T_F_W is None:  # a poor fit, or one nobody vouches for: is it the part's only one?
         try:
-            poor = not fits or _share(fits[0][0]) < cfg.alignment_min_inlier_share  # else only unsure
             fit, n = _global_fit(surface, p, T0, prior, cfg, fits[0][0].T_F_M if fits else None, poor, seen)
             its += n
-            fits.append((fit, f"{start}, then the global stage (FPFH + RANSAC against the CAD)"))
+            fits.append((fit, f"{start}, then the global stage (FPFH + RANSAC against the CAD)" if poor else
+                         f"{start}, turned over"))
         except InspectionError as e:
             why.append(f"from the global stage: {e}")
     if not fits:
@@ -523,9 +526,10 @@ def _fit_from(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray, cfg: 
                               Alignment("best-fit", T0, float("nan"), start, inlier_share=0.0))
     costs = [_final_cost(surface, p, f.T_F_M, last, seen) for f, _ in fits]
     fit, how = fits[-1] if costs[-1] < costs[0] * (1.0 - COST_TIE) else fits[0]
+    twin = _twin_pose(fits, costs, p)
     if not fit.converged:
         log.warning("best-fit alignment did not converge in %d iterations", fit.iterations)
-    free = free_directions(fit)
+    free = free_directions(fit) + twin
     if free:
         log.warning("the measured surface does not fix %s: held where %s puts it", "; ".join(free), start)
     rows = _datum_rows(p, fit.T_F_M, cfg)
@@ -541,21 +545,37 @@ def _fit_from(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray, cfg: 
     return out
 
 
-#: from an unknown start (no prior), a fit leaving less than this share of the points within the last trim tries
-#: the global stage as well: a near-symmetric part (an arch turned about its crown's normal) fits most of its
-#: points in its symmetric pose
-UNSURE_SHARE = 0.98
+def _twin_pose(fits: list[tuple[SurfaceFit, str]], costs: list[float], p: np.ndarray) -> tuple[str, ...]:
+    """Where the start's fit and the global stage's are poses more than :data:`TWIN_DEG` apart that fit the
+    cloud equally well (truncated costs within :data:`COST_TIE`): the words that say the part looks symmetric to
+    the fit (the deviations may be shown at its mirror's places); else ()."""
+    if len(fits) < 2 or abs(costs[1] - costs[0]) > COST_TIE * max(costs):
+        return ()
+    turn = fits[1][0].T_F_M @ F.invert(fits[0][0].T_F_M)
+    deg = float(np.degrees(F.rotation_angle(turn)))
+    if deg < TWIN_DEG:
+        return ()
+    axis = F.to_rotvec(turn)[1]
+    axis = axis / max(float(np.linalg.norm(axis)), 1e-12)
+    centre = F.transform_points(fits[0][0].T_F_M, p.mean(axis=0)[None])[0]
+    return (f"the pose turned {deg:.0f} deg about the axis along ({axis[0]:+.3f}, {axis[1]:+.3f}, {axis[2]:+.3f}) "
+            f"near ({centre[0]:.0f}, {centre[1]:.0f}, {centre[2]:.0f}) mm fits as well (a symmetric part): the "
+            "deviations may be shown at their mirror's places; start the cloud within 30 deg of its place or align "
+            "it by reference spheres",)
+
+
+TWIN_DEG = 1.0  # two fits turned further apart than this are different poses
 COST_TIE = 0.05  # the global stage's fit wins only with a truncated cost lower than the start's by this share
 
 
 def seen_from(surface: CadSurface, toward_W: np.ndarray) -> SeenFrom:
     """:class:`SeenFrom` of the cloud's directions toward where it was seen from (W; normalised here, zero
-    kept as unknown) and of which way each closed patch of the CAD faces (:func:`cad_orientation.orient` by the
+    kept as unknown) and of which way each closed patch of the CAD faces (:func:`cad_orientation.wind` by the
     volume alone; open patches 0)."""
     d = np.asarray(toward_W, np.float64)
     length = np.linalg.norm(d, axis=1, keepdims=True)
     d = np.divide(d, length, out=np.zeros_like(d), where=length > 0)
-    o = orient(np.asarray(surface.mesh.vertices), np.asarray(surface.mesh.triangles))
+    o = wind(np.asarray(surface.mesh.vertices), np.asarray(surface.mesh.triangles))
     outward = np.where(o.reversed == surface.reversed, 1, -1) * o.closed
     return SeenFrom(d, outward.astype(np.int8))
 

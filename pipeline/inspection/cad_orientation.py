@@ -18,7 +18,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components
-from tandemscan.pipeline.geometry.part import enclosed_volume_mm3, triangles_closed
 
 log = logging.getLogger(__name__)
 
@@ -60,15 +59,59 @@ def consistent_winding(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     patches, label = connected_components(graph, directed=False)
     parity = coo_matrix((same_way.astype(float) + 1.0, (owner[a], owner[b])), shape=(n_t, n_t)).tocsr()
     parity = parity + parity.T  # 1: consistent, 2: opposite
-    flip = [False] * n_t
     roots = np.unique(label, return_index=True)[1]
-    for root in roots:
-        tree, pred = breadth_first_order(graph, int(root), directed=False, return_predecessors=True)
-        tree = tree[1:]
-        turns = (np.asarray(parity[tree, pred[tree]]).ravel() == 2.0).tolist()
-        for node, up, turn in zip(tree.tolist(), pred[tree].tolist(), turns, strict=True):
-            flip[node] = flip[up] ^ turn
-    return np.array(flip, bool), label
+    hub = coo_matrix((np.ones(len(roots)), (np.full(len(roots), n_t), roots)), shape=(n_t + 1, n_t + 1)).tocsr()
+    g = graph.tocoo()
+    joined = hub + hub.T + coo_matrix((g.data, (g.row, g.col)), shape=(n_t + 1, n_t + 1)).tocsr()  # one walk
+    tree, pred = breadth_first_order(joined, n_t, directed=False, return_predecessors=True)
+    tree = tree[1:]
+    inner = pred[tree] < n_t  # a patch's first triangle hangs from the hub and keeps its winding
+    turns = np.zeros(len(tree), bool)
+    if inner.any():  # (a sparse matrix indexed by nothing is no array)
+        turns[inner] = np.asarray(parity[tree[inner], pred[tree][inner]]).ravel() == 2.0
+    flip = [False] * (n_t + 1)
+    for node, up, turn in zip(tree.tolist(), pred[tree].tolist(), turns.tolist(), strict=True):
+        flip[node] = flip[up] ^ turn
+    return np.array(flip[:n_t], bool), label
+
+
+def same_position(vertices_mm: np.ndarray) -> np.ndarray:
+    """(V,) for every vertex the index of the first vertex at exactly its position (``np.unique(axis=0)``'s
+    grouping, by a sort of the three columns: several times faster on a million vertices)."""
+    V = np.asarray(vertices_mm, float)
+    if not len(V):
+        return np.zeros(0, np.int64)
+    order = np.lexsort((V[:, 2], V[:, 1], V[:, 0]))
+    s = V[order]
+    new = np.r_[True, np.any(s[1:] != s[:-1], axis=1)]
+    group = np.empty(len(V), np.int64)
+    group[order] = np.cumsum(new) - 1
+    return group
+
+
+def closed_patches(wound: np.ndarray, label: np.ndarray, patches: int) -> np.ndarray:
+    """(patches,) bool: which patches of the consistently ``wound`` (T, 3) triangles (vertex indices merged by
+    position; ``label`` each triangle's patch) are closed (``part.triangles_closed`` for all patches at once):
+    every edge of the patch held by exactly two triangles traversing it in opposite directions (two triangles
+    sharing an edge are of one patch, so the edges are counted over the whole mesh)."""
+    t = np.asarray(wound, np.int64)
+    if not len(t):
+        return np.zeros(patches, bool)
+    n = int(t.max()) + 1
+    a = np.concatenate([t[:, 0], t[:, 1], t[:, 2]])
+    b = np.concatenate([t[:, 1], t[:, 2], t[:, 0]])
+    owner = np.tile(np.asarray(label), 3)
+    undirected = np.minimum(a, b) * n + np.maximum(a, b)
+    order = np.argsort(undirected, kind="stable")
+    u, forward = undirected[order], (a < b)[order]
+    start = np.r_[True, u[1:] != u[:-1]]
+    group = np.cumsum(start) - 1
+    uses = np.bincount(group)
+    ways = np.bincount(group, forward.astype(np.int64))  # of an edge's two uses, one each way
+    good_edge = (uses == 2) & (ways == 1)
+    bad = np.zeros(patches, bool)
+    bad[owner[order][~good_edge[group]]] = True
+    return ~bad
 
 
 def _normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -79,11 +122,20 @@ def _normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 
 def orient(vertices_mm: np.ndarray, triangles: np.ndarray, closest_triangles: np.ndarray | None = None,
            toward: np.ndarray | None = None, by: str = "the measured side") -> CadOrientation:
+    """The winding to sign deviations by (:func:`wind`), its notes logged as warnings."""
+    o = wind(vertices_mm, triangles, closest_triangles, toward, by)
+    for note in filter(None, o.note.split("; ")):
+        log.warning("%s", note)
+    return o
+
+
+def wind(vertices_mm: np.ndarray, triangles: np.ndarray, closest_triangles: np.ndarray | None = None,
+         toward: np.ndarray | None = None, by: str = "the measured side") -> CadOrientation:
     """The winding to sign deviations by. ``closest_triangles`` (N,) are the closest triangles of measured
     points and ``toward`` (N, 3) the directions from each point to where it was seen from (``by`` names them);
     without them only closed patches are decided (by their volume) and open ones keep the file's majority."""
     V, t = np.asarray(vertices_mm, float), np.asarray(triangles, np.int64)
-    _, same = np.unique(V, axis=0, return_inverse=True)  # an STL repeats a vertex in every triangle holding it
+    same = same_position(V)  # an STL repeats a vertex in every triangle holding it
     flip, label = consistent_winding(same.ravel()[t])
     patches = int(label.max()) + 1 if len(label) else 0
     n = _normals(V, np.where(flip[:, None], t[:, ::-1], t))
@@ -97,25 +149,20 @@ def orient(vertices_mm: np.ndarray, triangles: np.ndarray, closest_triangles: np
         s = np.sign(np.einsum("ij,ij->i", n[ids[ok]], d[ok]))
         votes = np.bincount(label[ids[ok]], s, patches)
         counts = np.bincount(label[ids[ok]], minlength=patches).astype(float)
-    deciders, undecided = set(), 0
-    closed = np.zeros(len(t), bool)
-    merged = same.ravel()[t]  # closed or not by the vertices' positions, not by how the file numbers them
-    for patch in range(patches):
-        mine = label == patch
-        tri = np.where(flip[mine, None], t[mine][:, ::-1], t[mine])
-        if triangles_closed(np.where(flip[mine, None], merged[mine][:, ::-1], merged[mine])):
-            turn = enclosed_volume_mm3(V - V.mean(axis=0), tri) < 0.0
-            closed[mine] = True
-            deciders.add("closed volume")
-        elif counts[patch] and abs(votes[patch]) >= CLEAR_MAJORITY * counts[patch]:
-            turn = votes[patch] < 0.0
-            deciders.add(by)
-        else:  # nothing says: the file's winding of most of the patch's area
-            turn = float(area[mine][flip[mine]].sum()) > 0.5 * float(area[mine].sum())
-            deciders.add("the file")
-            undecided += 1
-        if turn:
-            flip[mine] = ~flip[mine]
+    wound = np.where(flip[:, None], t[:, ::-1], t)
+    shut = closed_patches(np.where(flip[:, None], same.ravel()[t][:, ::-1], same.ravel()[t]), label, patches)
+    c = V - V.mean(axis=0)
+    volume = np.bincount(label, np.einsum("ij,ij->i", c[wound[:, 0]], np.cross(c[wound[:, 1]], c[wound[:, 2]])),
+                         patches)
+    voted = ~shut & (counts > 0) & (np.abs(votes) >= CLEAR_MAJORITY * counts)
+    undecided_patch = ~shut & ~voted  # nothing says: the file's winding of most of the patch's area
+    turn = np.where(shut, volume < 0.0, np.where(voted, votes < 0.0, np.bincount(label, area * flip, patches)
+                                                  > 0.5 * np.bincount(label, area, patches)))
+    flip ^= turn[label]
+    closed = shut[label]
+    deciders = {name for name, used in (("closed volume", shut.any()), (by, voted.any()),
+                                        ("the file", undecided_patch.any())) if used}
+    undecided = int(undecided_patch.sum())
     notes = []
     if flip.any():
         share = float(area[flip].sum() / max(area.sum(), 1e-300))
@@ -126,6 +173,4 @@ def orient(vertices_mm: np.ndarray, triangles: np.ndarray, closest_triangles: np
     if undecided:
         notes.append(f"{undecided} open patch{'es' if undecided > 1 else ''} of the CAD signed by the file's "
                      f"winding: no clear measured side ({by}) near {'them' if undecided > 1 else 'it'}")
-    for note in notes:
-        log.warning("%s", note)
     return CadOrientation(flip, patches, ", ".join(sorted(deciders)), "; ".join(notes), closed)

@@ -1,11 +1,13 @@
 """Parts a new customer brings (sim_drivers/generated_parts.py, ``CUSTOMER_PARTS``) and their CAD exports: a thin
 skin is fitted on its measured side, not its far side; a closed mesh stored as an STL triangle soup and wound
 inward is still signed outward; a cloud whose normals do not face its scanner is aligned without them
-(docs/inspection-method.md, "Alignment")."""
+(docs/inspection-method.md, "Alignment"); a near-symmetric part given turned round lands in its own pose, and a
+symmetric one says its twin pose fits as well."""
 
 from __future__ import annotations
 
 import numpy as np
+import open3d as o3d
 import pytest
 from tandemscan.config.models import InspectionConfig
 from tandemscan.pipeline.geometry import frames as F
@@ -85,3 +87,44 @@ def test_a_closed_triangle_soup_wound_inward_is_signed_outward_without_any_measu
     assert "winding disagrees with closed volume" in note
     res = inspect_cloud(p_F, oriented, CFG)
     assert signs_of_defects(part, res.areas) == expected_signs(part)
+
+
+def test_a_near_symmetric_part_turned_round_lands_in_its_own_pose():
+    """A cover plate symmetric but for a 15 mm boss, given turned 170 deg about its normal: the start's fit lands
+    in the symmetric pose with 99.7 % of the points on the CAD; turned over, the boss fits, and that pose wins."""
+    part = near_symmetric()
+    p_F, n_F = part.measured(4000, 0.01, np.random.default_rng(6))
+    T_W_F = F.from_rotvec([30.0, 20.0, 10.0], np.radians([1.0, -1.0, 170.0]))
+    a = align(CadSurface(part.mesh), F.transform_points(T_W_F, p_F), CRITERIA, toward_W=F.rotate_vectors(T_W_F, n_F))
+    mm, deg = alignment_error(a.T_F_W, F.invert(T_W_F), centre_of(part.mesh))
+    assert mm < 0.05 and deg < 0.005, (mm, deg)
+    assert a.start.endswith("turned over") and a.free_directions == ()
+
+
+def test_a_symmetric_part_says_its_twin_pose_fits_as_well():
+    """With a boss of 0.6 mm (within the fit's last trim) the plate is symmetric to the fit: turned 180 deg it
+    fits as well, and the alignment says so among what the surface does not fix."""
+    part = near_symmetric(boss_mm=0.6)
+    p_F, n_F = part.measured(4000, 0.01, np.random.default_rng(7))
+    a = align(CadSurface(part.mesh), p_F, CRITERIA, toward_W=n_F)
+    (twin,) = [w for w in a.free_directions if "fits as well" in w]
+    assert twin.startswith("the pose turned 180 deg about the axis along") and "reference spheres" in twin
+
+
+def test_a_stray_triangle_and_a_thousand_bodies_are_oriented_each():
+    """A CAD export with a lone triangle left over (its own patch, no neighbour) and an assembly of many closed
+    bodies (fasteners), some wound inward: each body is turned outward by its volume, the lone triangle keeps the
+    file's winding, and nothing fails (a lone triangle made the winding walk index a sparse matrix by nothing)."""
+    rng = np.random.default_rng(8)
+    bodies = o3d.geometry.TriangleMesh()
+    for i in range(1000):
+        bodies += o3d.geometry.TriangleMesh.create_box(5.0, 5.0, 5.0).translate([10.0 * (i % 40), 10.0 * (i // 40), 0])
+    V, T = np.asarray(bodies.vertices), np.asarray(bodies.triangles).copy()
+    inward = np.repeat(rng.uniform(size=1000) < 0.3, 12)  # a box is 12 triangles
+    T[inward] = T[inward][:, ::-1]
+    V = np.vstack([V, [[0.0, -50.0, 0.0], [10.0, -50.0, 0.0], [0.0, -40.0, 0.0]]])
+    T = np.vstack([T, [len(V) - 3, len(V) - 2, len(V) - 1]])
+    o = orient(V, T)
+    assert o.patches == 1001 and o.closed[:-1].all() and not o.closed[-1]
+    assert np.array_equal(o.reversed[:-1], inward) and not o.reversed[-1]
+    assert "1 open patch of the CAD signed by the file's winding" in o.note
