@@ -86,3 +86,32 @@ async def test_a_job_writes_report_json_once_and_reads_each_scan_file_at_most_tw
     # the pair worker's copies are the end of the job's: its pairs are taken from the cache by their keys
     c = doc["correction"]
     assert c["pairs"] >= 1 and c["pairs_registered_while_measuring"] >= c["pairs"] + len(c["pairs_dropped"])
+
+
+async def test_a_job_merged_by_tiles_exports_from_them_and_removes_them(sim_config, tmp_path):
+    """The two-scan band job with ``[compute] tile_mm``: the cloud stays in its tiles' files (``tiles.TiledCloud``),
+    cloud.ply, the E57's merged scan and the inspection read them, the report counts the same cloud, and the tiles'
+    files are gone once the job is done."""
+    import pye57
+    from tandemscan.pipeline.io.cloud_io import read_ply
+
+    plan = Plan.load(default_plan_path())
+    scans = [i for i, s in enumerate(plan.steps) if isinstance(s, Scan)]
+    plan = plan.model_copy(update={"steps": plan.steps[: scans[1] + 1]})
+    inspection = sim_config.inspection.model_copy(update={"views": ("isometric",), "map_width_px": 300})
+    config = sim_config.model_copy(update={"inspection": inspection,
+                                           "compute": sim_config.compute.model_copy(update={"tile_mm": 100.0})})
+    async with CellSession(config) as session:
+        config = with_surveyed_mounts(config, session.cell.simulation, tmp_path)
+        result = await JobRunner(session, plan, config, tmp_path / "job").run()
+    report = result.report
+    assert report["correction"]["enabled"] and report["points_cloud"] > 10_000
+    assert len(read_ply(result.job_dir / "cloud.ply")[0]) == report["points_cloud"]
+    assert report["inspection"]["as_measured"]["stats"]["count"] == report["points_cloud"]
+    e57 = pye57.E57(str(result.job_dir / "cloud.e57"))
+    try:
+        assert e57.get_header(e57.scan_count - 1).point_count == report["points_cloud"]
+    finally:
+        e57.close()
+    assert not list((result.job_dir / "tiles").glob("*"))
+    assert report["ground_truth"]["cloud_rms_mm"] < 0.2  # the observer read the tiles before they went
