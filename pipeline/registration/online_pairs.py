@@ -27,7 +27,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.spatial import cKDTree
 from tandemscan.pipeline.geometry.frames import invert, transform_points
 from tandemscan.pipeline.registration.correction import (
     CorrectionSettings,
@@ -41,7 +40,7 @@ from tandemscan.pipeline.registration.correction import (
     pair_key,
 )
 from tandemscan.pipeline.registration.icp import target_with_normals
-from tandemscan.pipeline.registration.joint import Association, JointScan, associate
+from tandemscan.pipeline.registration.joint import Association, JointScan, associate, joint_tree
 from tandemscan.pipeline.registration.overlap import PairSelector
 from tandemscan.pipeline.registration.pair_stage import PairOutcome, register_stitched_pair
 from tandemscan.pipeline.registration.pairs import NETWORK_METHODS
@@ -104,7 +103,7 @@ class OnlinePairs:
         self._target = _Recent(lambda i: target_with_normals(self.scans[i].world_mm))
         self._joint_selector = PairSelector(cfg.pair_cell_mm, cfg.joint_max_partners_per_scan)
         self._joint_starts: list[tuple[str, np.ndarray]] = []  # each prepared scan's key and tracker pose
-        self._tree = _Recent(lambda i: cKDTree(self.joint_scans[self._joint_starts[i][0]].points_S))
+        self._tree = _Recent(lambda i: joint_tree(self.joint_scans[self._joint_starts[i][0]]))
         self._queued: dict[str, Future] = {}  # pair key -> its outcome (None: displaced before it started)
         self._pool: ThreadPoolExecutor | None = None
         self._shared = threading.Lock()  # the selector and the kept targets, which the pool's threads read
