@@ -28,6 +28,7 @@ point's own.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -150,14 +151,20 @@ class ScanCover:
     origins_mm: np.ndarray
     scan_ids: np.ndarray
 
+    @functools.cached_property
+    def _tree(self) -> tuple[np.ndarray, np.ndarray, cKDTree]:
+        """Each scan's thinned point count, each thinned point's scan (position in the cover) and a KD tree of all
+        of them, built once (:meth:`shares` is asked at the even centres and at the best fit's points)."""
+        sizes = np.array([len(p) for p in self.points_W])
+        tree = cKDTree(np.concatenate([np.asarray(p, float) for p in self.points_W]), leafsize=32,
+                       balanced_tree=False)
+        return sizes, np.repeat(np.arange(len(sizes)), sizes), tree
+
     def shares(self, points_W: np.ndarray, k: int = SCANS_PER_POINT) -> tuple[np.ndarray, np.ndarray]:
         """(M, k) scan positions (into this cover's scans) and their shares of each point's voxel (rows sum to
         1): the scans among the :data:`NEIGHBOURS` nearest thinned points, each weighing its points found there
         times its thinning ratio (full points over thinned ones), the ``k`` largest kept."""
-        sizes = np.array([len(p) for p in self.points_W])
-        labels = np.repeat(np.arange(len(sizes)), sizes)
-        tree = cKDTree(np.concatenate([np.asarray(p, float) for p in self.points_W]), leafsize=32,
-                       balanced_tree=False)
+        sizes, labels, tree = self._tree
         kn, kk = min(NEIGHBOURS, len(labels)), min(k, len(sizes))
         ratio = np.asarray(self.point_counts, float) / np.maximum(sizes, 1)
         top, w = np.empty((len(points_W), kk), np.int64), np.empty((len(points_W), kk))
