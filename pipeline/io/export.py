@@ -166,7 +166,7 @@ E57_BLOCK_POINTS = 1_000_000
 
 
 class PointBlocks(Protocol):
-    """A cloud given a block at a time (a tile at a time: ``tiles.TileBlocks``), mm: its point count, its bounds
+    """A cloud given a block at a time (a tile at a time: ``tiles.TiledCloud``), mm: its point count, its bounds
     (per axis, mm) and its blocks, (N, 3) each, in order; :meth:`blocks` may be asked more than once."""
 
     @property
@@ -209,39 +209,7 @@ def _write_e57_blocks(e57, cloud: PointBlocks, name: str, rotation: np.ndarray, 
     n = cloud.count
     lo_mm, hi_mm = cloud.bounds_mm()
     bb_min, bb_max = lo_mm / MM_PER_M, hi_mm / MM_PER_M  # min(p / 1000) = min(p) / 1000: division is monotone
-    scan = libe57.StructureNode(imf)
-    scan.set("guid", libe57.StringNode(imf, f"{{{uuid.uuid4()}}}"))
-    scan.set("name", libe57.StringNode(imf, name))
-    for key in ("temperature", "relativeHumidity", "atmosphericPressure"):
-        scan.set(key, libe57.FloatNode(imf, 0))
-    scan.set("description", libe57.StringNode(imf, f"pye57 v{_pye57_version()}"))
-    index = libe57.StructureNode(imf)
-    for key, value in (("rowMinimum", 0), ("rowMaximum", n - 1), ("columnMinimum", 0), ("columnMaximum", 0),
-                       ("returnMinimum", 0), ("returnMaximum", 0)):
-        index.set(key, libe57.IntegerNode(imf, value))
-    scan.set("indexBounds", index)
-    bounds = libe57.StructureNode(imf)
-    lo_g = e57.to_global(bb_min.reshape(-1, 3), rotation, translation)[0]
-    hi_g = e57.to_global(bb_max.reshape(-1, 3), rotation, translation)[0]
-    for axis, a in enumerate("xyz"):
-        bounds.set(f"{a}Minimum", libe57.FloatNode(imf, lo_g[axis]))
-        bounds.set(f"{a}Maximum", libe57.FloatNode(imf, hi_g[axis]))
-    scan.set("cartesianBounds", bounds)
-    pose = libe57.StructureNode(imf)
-    scan.set("pose", pose)
-    rot = libe57.StructureNode(imf)
-    for i, a in enumerate("wxyz"):
-        rot.set(a, libe57.FloatNode(imf, rotation[i]))
-    pose.set("rotation", rot)
-    trans = libe57.StructureNode(imf)
-    for i, a in enumerate("xyz"):
-        trans.set(a, libe57.FloatNode(imf, translation[i]))
-    pose.set("translation", trans)
-    for key in ("acquisitionStart", "acquisitionEnd"):
-        when = libe57.StructureNode(imf)
-        scan.set(key, when)
-        when.set("dateTimeValue", libe57.FloatNode(imf, 0))
-        when.set("isAtomicClockReferenced", libe57.IntegerNode(imf, False))
+    scan = _e57_scan_node(e57, name, n, (bb_min, bb_max), rotation, translation)
     prototype = libe57.StructureNode(imf)
     centre = (bb_max + bb_min) / 2
     for axis, column in enumerate(E57_XYZ):
@@ -262,6 +230,46 @@ def _write_e57_blocks(e57, cloud: PointBlocks, name: str, rotation: np.ndarray, 
     writer.close()
     if written != n:
         raise ExportError(f"E57 scan {name!r}: {written} points written, {n} announced")
+
+
+def _e57_scan_node(e57, name: str, n: int, bounds_m: tuple[np.ndarray, np.ndarray], rotation: np.ndarray,
+                   translation: np.ndarray):
+    """A data3D scan's header node as ``pye57.E57.write_scan_raw`` makes it for ``n`` points with bounds
+    ``bounds_m`` (its scanner frame, m) and its pose (quaternion w x y z, translation m): name, index and cartesian
+    bounds (the latter placed by the pose), pose, zero atmosphere and acquisition times."""
+    from pye57 import libe57  # local: only the export needs it
+
+    imf = e57.image_file
+    scan = libe57.StructureNode(imf)
+    scan.set("guid", libe57.StringNode(imf, f"{{{uuid.uuid4()}}}"))
+    scan.set("name", libe57.StringNode(imf, name))
+    for key in ("temperature", "relativeHumidity", "atmosphericPressure"):
+        scan.set(key, libe57.FloatNode(imf, 0))
+    scan.set("description", libe57.StringNode(imf, f"pye57 v{_pye57_version()}"))
+    index = libe57.StructureNode(imf)
+    for key, value in (("rowMinimum", 0), ("rowMaximum", n - 1), ("columnMinimum", 0), ("columnMaximum", 0),
+                       ("returnMinimum", 0), ("returnMaximum", 0)):
+        index.set(key, libe57.IntegerNode(imf, value))
+    scan.set("indexBounds", index)
+    bounds = libe57.StructureNode(imf)
+    lo_g, hi_g = (e57.to_global(b.reshape(-1, 3), rotation, translation)[0] for b in bounds_m)
+    for axis, a in enumerate("xyz"):
+        bounds.set(f"{a}Minimum", libe57.FloatNode(imf, lo_g[axis]))
+        bounds.set(f"{a}Maximum", libe57.FloatNode(imf, hi_g[axis]))
+    scan.set("cartesianBounds", bounds)
+    pose = libe57.StructureNode(imf)
+    scan.set("pose", pose)
+    for part, values, axes in (("rotation", rotation, "wxyz"), ("translation", translation, "xyz")):
+        node = libe57.StructureNode(imf)
+        for i, a in enumerate(axes):
+            node.set(a, libe57.FloatNode(imf, values[i]))
+        pose.set(part, node)
+    for key in ("acquisitionStart", "acquisitionEnd"):
+        when = libe57.StructureNode(imf)
+        scan.set(key, when)
+        when.set("dateTimeValue", libe57.FloatNode(imf, 0))
+        when.set("isAtomicClockReferenced", libe57.IntegerNode(imf, False))
+    return scan
 
 
 def _pye57_version() -> str:
