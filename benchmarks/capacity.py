@@ -175,9 +175,9 @@ def _stage(name: str, backend: DaskBackend, record: dict, fn: Callable[[], objec
     return out
 
 
-def run_stages(job: Job, workers: int, tile_mm: float, e57: bool = True) -> tuple[dict, dict]:
-    """Every stage of the end of the job on a ``LocalCluster`` of ``workers`` (the E57 where ``e57``): (per stage
-    figures, drivers)."""
+def run_stages(job: Job, workers: int, tile_mm: float, e57: bool = True, correct: bool = True) -> tuple[dict, dict]:
+    """Every stage of the end of the job on a ``LocalCluster`` of ``workers`` (the E57 where ``e57``; without
+    ``correct`` no correction, the tiles merged at the stored poses): (per stage figures, drivers)."""
     store = str(job.folder)
     stages: dict = {}
     cov = np.diag([TRACKER_SIGMA[0] ** 2] * 3 + [TRACKER_SIGMA[1] ** 2] * 3)
@@ -190,9 +190,10 @@ def run_stages(job: Job, workers: int, tile_mm: float, e57: bool = True) -> tupl
         scans = [StitchedScan(p, T, cov, 0, f) for p, T, f in zip(thinned, job.poses, job.files, strict=True)]
         result = _stage("correction", backend, stages, lambda: correct_scans(
             StitchedJob(scans, voxel_mm=VOXEL_MM), CorrectionSettings.from_section(CorrectionConfig()),
-            backend=backend, scan_store=store))
+            backend=backend, scan_store=store)) if correct else None
+        poses = result.poses if correct else job.poses
         refs = [TileScan(f, T, *scan_x_extent(T, p, VOXEL_MM, VOXEL_MM))
-                for f, T, p in zip(job.files, result.poses, thinned, strict=True)]
+                for f, T, p in zip(job.files, poses, thinned, strict=True)]
         scans = thinned = None  # the thinned copies freed before the merge
         tiles = _stage("merge", backend, stages, lambda: merge_tiles(refs, VOXEL_MM, tile_mm, store, backend))
         _stage("cloud_ply", backend, stages, lambda: write_cloud_ply(job.folder / "cloud.ply", store, tiles))
@@ -204,7 +205,7 @@ def run_stages(job: Job, workers: int, tile_mm: float, e57: bool = True) -> tupl
         if e57:
             _stage("e57", backend, stages, lambda: write_e57(job.folder / "cloud.e57", (
                 PosedScan(Path(f).stem, T, read_raw_scan(job.folder / f, np.float32)[0])
-                for f, T in zip(job.files, result.poses, strict=True) if _has_points(job.folder / f))))
+                for f, T in zip(job.files, poses, strict=True) if _has_points(job.folder / f))))
     finally:
         backend.close()
     shutil.rmtree(job.folder / "tiles", ignore_errors=True)
@@ -212,7 +213,7 @@ def run_stages(job: Job, workers: int, tile_mm: float, e57: bool = True) -> tupl
         (job.folder / name).unlink(missing_ok=True)
     drivers = {"scans": len(job.files), "raw_points": job.raw_points, "voxels": sum(t.voxels for t in tiles),
                "tiles": len(tiles), "tile_voxels_max": max((t.voxels for t in tiles), default=0),
-               "pairs": len(result.edges)}
+               "pairs": len(result.edges) if correct else None}
     return stages, drivers
 
 
@@ -289,6 +290,8 @@ def main() -> None:
                     "length from its tail (a band across it: the nose's and, twice as long, the longer part's)")
     ap.add_argument("--sizes", nargs="+", choices=("nose", "long"), default=["nose", "long"],
                     help="which parts to run (the model and the growth need both)")
+    ap.add_argument("--no-correction", action="store_true", help="the tile stages at the stored poses, without the "
+                    "correction (its pair units read every scan several times: at full resolution the longest stage)")
     ap.add_argument("--no-e57", action="store_true", help="leave the E57 out (at full resolution the longer part's "
                     "E57 is about 28 GB beside its 57 GB of raw scans)")
     args = ap.parse_args()
@@ -314,7 +317,8 @@ def main() -> None:
             runs, drivers = {}, {}
             for w in args.workers:  # each run in a fresh process: its peaks are its own, not an earlier run's heap
                 with ProcessPoolExecutor(1, mp_context=get_context("spawn")) as pool:
-                    runs[str(w)], drivers = pool.submit(run_stages, job, w, args.tile_mm, not args.no_e57).result()
+                    runs[str(w)], drivers = pool.submit(run_stages, job, w, args.tile_mm, not args.no_e57,
+                                                                 not args.no_correction).result()
             sizes.append({"part": label, "length_mm": part.length_mm, "drivers": drivers,
                           "job_written_s": round(made, 1), "runs": runs})
             print(f"{label}: peaks {json.dumps(peaks(sizes[-1:]))}", file=sys.stderr, flush=True)
@@ -327,6 +331,7 @@ def main() -> None:
                "note": "wall seconds on a shared machine are upper bounds; the model is only as good as the run"}
     variant = "" if args.resolution == "coarse" and args.band_share == 1.0 else f"-{args.resolution}"
     variant += f"-band{args.band_share:g}" if args.band_share < 1.0 else ""
+    variant += "-no-correction" if args.no_correction else ""
     publish(f"capacity{variant}" + ("" if len(sizes) > 1 else f"-{sizes[0]['part']}"), figures)
 
 
