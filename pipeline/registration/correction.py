@@ -120,11 +120,13 @@ class StitchedJob:
 class OnlineWork:
     """What a job computed while it measured (``online_pairs.OnlinePairs``), for :func:`correct_scans`: pair
     outcomes by :func:`pair_key`, scans prepared for the joint refinement by :func:`joint_scan_key` (taken out as
-    the refinement takes them) and their pairs' nearest neighbours by :func:`association_key`."""
+    the refinement takes them) and their pairs' nearest neighbours by :func:`association_key`; the CPU seconds the
+    pairs' registrations took (``pair_cpu_s``, their threads' own, for the report's figure a pair)."""
 
     pairs: dict[str, PairOutcome]
     joint_scans: dict[str, JointScan]
     associations: dict[str, Association]
+    pair_cpu_s: float = 0.0
 
 
 @dataclass
@@ -345,6 +347,8 @@ def correct_scans(
         "scans": len(scans),
         "pairs": len(edges),
         "pairs_registered_while_measuring": cached,
+        # the CPU seconds a pair took while the job measured (the registration's thread, nothing else of the worker)
+        "cpu_s_a_pair_while_measuring": round(online.pair_cpu_s / len(online.pairs), 4) if online.pairs else None,
         "pairs_dropped": [{"i": int(i), "j": int(j), "reason": why} for i, j, why in dropped],
         "stages": dict(Counter(pc.stage for _, _, pc in edges)),
         "overlap_rms_mm_median_before": rms_b,

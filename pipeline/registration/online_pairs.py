@@ -109,6 +109,7 @@ class OnlinePairs:
         self._shared = threading.Lock()  # the selector and the kept targets, which the pool's threads read
         self._cpu_start = time.process_time()
         self.cpu_s = 0.0  # CPU time (s) of this process from its start to the last :meth:`work`
+        self.pair_cpu_s = 0.0  # CPU time (s) of the pair registrations' threads
 
     def add(self, points_S: np.ndarray, T_W_S: np.ndarray, covariance: np.ndarray, station: int,
             transfers: Sequence[TransferPrior]) -> int:
@@ -143,12 +144,17 @@ class OnlinePairs:
         return self._pool
 
     def _register(self, i: int, j: int, covariance: np.ndarray) -> PairOutcome | None:
-        """Pair ``(i, j)`` registered, or None where a later scan displaced it (the end never selects it)."""
+        """Pair ``(i, j)`` registered, or None where a later scan displaced it (the end never selects it); its
+        thread's CPU seconds (the target's preparation where it is made here included) add to :attr:`pair_cpu_s`."""
+        started = time.thread_time()
         with self._shared:
             if not self.selector.kept(i, j):
                 return None
             target = self._target(i)
-        return register_stitched_pair(self.scans[j].world_mm, target, covariance, self.cfg.pairs)
+        outcome = register_stitched_pair(self.scans[j].world_mm, target, covariance, self.cfg.pairs)
+        with self._shared:
+            self.pair_cpu_s += time.thread_time() - started
+        return outcome
 
     def work(self) -> OnlineWork:
         """Wait for the queued pairs, then the pair outcomes, prepared joint scans and their pairs' nearest neighbours
@@ -159,7 +165,7 @@ class OnlinePairs:
             self._pool.shutdown()
             self._pool = None
         self.cpu_s = time.process_time() - self._cpu_start
-        return OnlineWork(self.outcomes, self.joint_scans, self.associations)
+        return OnlineWork(self.outcomes, self.joint_scans, self.associations, self.pair_cpu_s)
 
     def _prepare_joint(self, points_S: np.ndarray, T_W_S: np.ndarray, station: int) -> None:
         """Prepare the scan for the joint refinement (``correction.joint_scan``) and find, at the tracker poses,

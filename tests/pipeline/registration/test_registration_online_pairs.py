@@ -155,4 +155,6 @@ def test_with_the_joint_refinement_only_the_check_pairs_register_while_measuring
     res = correct_scans(StitchedJob(scans, transfers), cfg, online=work)
     assert res.report["pairs_registered_while_measuring"] >= res.report["pairs"] + len(res.report["pairs_dropped"])
     assert (res.report["pairs"] > 0) is bool(check)
+    cpu = res.report["cpu_s_a_pair_while_measuring"]  # the registrations' own threads' CPU, each pair's share
+    assert cpu > 0 if check else cpu is None
     assert res.report["joint"]["pairs_associated_while_measuring"] >= res.report["joint"]["pairs"] > 0
