@@ -19,6 +19,7 @@ from results import publish
 from tandemscan.config import load_config
 from tandemscan.pipeline.geometry.raycast import make_scene
 from tandemscan.pipeline.planning.coverage import seen_triangles, triangle_geometry
+from tandemscan.pipeline.planning.parameters import PartPlanning
 from tandemscan.pipeline.planning.planner import plan_part
 
 
@@ -35,11 +36,12 @@ def bench(bottom_mm: float) -> dict:
     config = load_config()
     start = config.sim.tracking_start
     mesh = blade(bottom_mm)
+    cell = PartPlanning.from_config(config)
     t = time.perf_counter()
-    plan = plan_part(mesh, config, tracker_start=(start.x_mm, start.y_mm, np.radians(start.heading_deg)))
+    plan = plan_part(mesh, cell, tracker_start=(start.x_mm, start.y_mm, np.radians(start.heading_deg)))
     seconds = time.perf_counter() - t
     area, normal, _ = triangle_geometry(mesh)
-    seen = seen_triangles(mesh, make_scene(mesh), [p.T_F_S for p in plan.poses], config.scanner)
+    seen = seen_triangles(mesh, make_scene(mesh), [p.T_F_S for p in plan.poses], cell.scanner)
     under = normal[:, 2] < -np.cos(np.radians(30.0))
     return {"coverage_pct": round(plan.coverage.coverage_pct, 2),
             "faces_the_floor_m2": round(plan.coverage.floor_contact_mm2 / 1e6, 3),

@@ -252,10 +252,11 @@ def part_centre(cad: o3d.geometry.TriangleMesh) -> np.ndarray:
 
 def generated_plan(config: CellConfig) -> Plan:
     """The whole configured part, planned as ``tandemscan plan`` does."""
+    from tandemscan.pipeline.planning.parameters import PartPlanning
     from tandemscan.pipeline.planning.planner import plan_part
 
     start = config.sim.tracking_start
-    return plan_part(load_part_mesh(config.part), config, name="generated",
+    return plan_part(load_part_mesh(config.part), PartPlanning.from_config(config), name="generated",
                      tracker_start=(start.x_mm, start.y_mm, np.radians(start.heading_deg))).sequence.plan
 
 

@@ -25,6 +25,7 @@ from results import publish
 from tandemscan.config import load_config
 from tandemscan.config.models import CellConfig, PartConfig
 from tandemscan.pipeline.geometry.part import barrel_panel_mesh, load_part_mesh
+from tandemscan.pipeline.planning.parameters import PartPlanning
 from tandemscan.pipeline.planning.planner import plan_part
 from tandemscan.pipeline.planning.tracker import solve_exact
 
@@ -38,8 +39,9 @@ def bench(config: CellConfig, mesh, sim_start: bool, exact: bool) -> dict:
     the default part; other parts start free)."""
     start = config.sim.tracking_start
     tracker_start = (start.x_mm, start.y_mm, np.radians(start.heading_deg)) if sim_start else None
+    cell = PartPlanning.from_config(config)
     t, cpu = time.perf_counter(), time.process_time()
-    plan = plan_part(mesh, config, tracker_start=tracker_start)
+    plan = plan_part(mesh, cell, tracker_start=tracker_start)
     seconds, cpu_seconds = time.perf_counter() - t, time.process_time() - cpu
     s, coverage = plan.summary(), plan.coverage
     left_out = defaultdict(float)

@@ -360,10 +360,11 @@ def main() -> None:
     config = config.model_copy(update={"scanner": config.scanner.model_copy(update={"resolution": args.resolution})})
     if args.plan == "generated":
         from tandemscan.pipeline.geometry.part import load_part_mesh
+        from tandemscan.pipeline.planning.parameters import PartPlanning
         from tandemscan.pipeline.planning.planner import plan_part
 
         start = config.sim.tracking_start
-        plan = plan_part(load_part_mesh(config.part), config, name="generated",
+        plan = plan_part(load_part_mesh(config.part), PartPlanning.from_config(config), name="generated",
                          tracker_start=(start.x_mm, start.y_mm, np.radians(start.heading_deg))).sequence.plan
     else:
         plan = Plan.load(Path(args.plan) if args.plan else default_plan_path())

@@ -43,11 +43,12 @@ async def run(args: argparse.Namespace) -> dict:
     plan_seconds = None
     if args.plan == "generated":
         from tandemscan.pipeline.geometry.part import load_part_mesh
+        from tandemscan.pipeline.planning.parameters import PartPlanning
         from tandemscan.pipeline.planning.planner import plan_part
 
         t = time.perf_counter()
         start = config.sim.tracking_start
-        plan = plan_part(load_part_mesh(config.part), config, name="generated",
+        plan = plan_part(load_part_mesh(config.part), PartPlanning.from_config(config), name="generated",
                          tracker_start=(start.x_mm, start.y_mm, np.radians(start.heading_deg))).sequence.plan
         plan_seconds = round(time.perf_counter() - t, 2)
     else:

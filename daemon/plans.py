@@ -42,6 +42,7 @@ def plan_configured_part(config: CellConfig, name: str):
     stands (``[planning] tracker_start``). Returns the mesh and the :class:`PartPlan`; raises :class:`PlanPartError`."""
     from tandemscan.pipeline.geometry.part import PartMeshError, load_part_mesh
     from tandemscan.pipeline.geometry.units import extent_mm, small_part_hint
+    from tandemscan.pipeline.planning.parameters import PartPlanning
     from tandemscan.pipeline.planning.planner import plan_part
     from tandemscan.pipeline.planning.sequence import SequenceError
     from tandemscan.pipeline.planning.stations import StationPlanningError
@@ -53,7 +54,8 @@ def plan_configured_part(config: CellConfig, name: str):
     except PartMeshError as e:
         raise PlanPartError(str(e)) from e
     try:
-        return mesh, plan_part(mesh, config, tracker_start=(start.x_mm, start.y_mm, np.radians(start.heading_deg)),
+        return mesh, plan_part(mesh, PartPlanning.from_config(config),
+                               tracker_start=(start.x_mm, start.y_mm, np.radians(start.heading_deg)),
                                name=name, part=part_name(config))
     except (StationPlanningError, TrackerPlanningError, SequenceError) as e:  # a part read in the wrong unit?
         hint = small_part_hint(extent_mm(np.asarray(mesh.vertices)), "--part-units")

@@ -43,6 +43,15 @@ class ScannerModel:
         self.directions_S = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
         self.half_angles_rad = (float(np.arctan(tan_x)), float(np.arctan(tan_y)))
 
+    @property
+    def sweet_spot_mm(self) -> float:
+        """The distance (S z, mm) at which the field of view is given."""
+        return self.cfg.sweet_spot_mm
+
+    def with_pixels(self, pixels: tuple[int, int]) -> ScannerModel:
+        """The same scanner with a grid of ``pixels`` (columns, rows) rays, noise-free casts made cheaper."""
+        return ScannerModel(self.cfg.model_copy(update={"resolution": "coarse", "coarse_pixels": pixels}))
+
     def cast(self, scene: o3d.t.geometry.RaycastingScene, T_F_S: np.ndarray) -> ScanHits:
         """Noise-free hits of the scanner at pose ``T_F_S`` (scene in frame F), returned in frame S."""
         R = np.asarray(T_F_S, float)[:3, :3]

@@ -21,11 +21,12 @@ from dataclasses import dataclass
 
 import numpy as np
 import open3d as o3d
-from tandemscan.config.models import ArmConfig, PlanningConfig, ScannerConfig
+from tandemscan.config.models import ArmConfig
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.kinematics import arm_base_on_column
 from tandemscan.pipeline.planning.floor import floor_z_mm, no_pose_fits
-from tandemscan.pipeline.planning.stations import AgvStation, footprint_height_mm, footprint_width_mm
+from tandemscan.pipeline.planning.parameters import AgvMargin, ScanFootprint, StationSpacing
+from tandemscan.pipeline.planning.stations import AgvStation
 
 log = logging.getLogger(__name__)
 
@@ -85,15 +86,17 @@ class StationRaster:
 
 @dataclass(frozen=True)
 class ArmSetup:
-    """The robot as the raster sees it: IK, arm (limits, DH), mounts ``T_V2_B`` and ``T_E_S`` (mm), settings,
-    and the lifting column's heights to try (mm above the mount; ``(0,)`` without a column)."""
+    """The robot as the raster sees it: IK, arm (limits, DH), mounts ``T_V2_B`` and ``T_E_S`` (mm), one scan's
+    footprint, the stations' spacing (the section's reach), the AGV's margin off its station, and the lifting
+    column's heights to try (mm above the mount; ``(0,)`` without a column)."""
 
     ik: IkSolver
     arm: ArmConfig
     T_V2_B: np.ndarray
     T_E_S: np.ndarray
-    scanner: ScannerConfig
-    planning: PlanningConfig
+    footprint: ScanFootprint
+    spacing: StationSpacing
+    margin: AgvMargin
     lift_heights_mm: tuple[float, ...] = (0.0,)
 
 
@@ -226,21 +229,15 @@ def raster_cells(
     step_mm: float,
     z_range: tuple[float, float],
     reach_mm: float,
-    scanner: ScannerConfig,
-    planning: PlanningConfig,
+    footprint: ScanFootprint,
     shared_last_column: bool = False,
 ) -> tuple[list[RasterCell], int, int]:
     """The raster's surface cells at ``station`` with its (rows, columns); rows is the largest column's count.
 
     With ``shared_last_column`` the last column is left to the next station, whose first column is the same.
-
-    Eight parameters: the scene and the station, the section's extent (step, height range, reach), the scanner and
-    planning settings the footprint comes from, and whether the next station shares the last column.
     """
-    m = footprint_width_mm(scanner, planning)
-    n = footprint_height_mm(scanner, planning)
-    underside = Underside(floor_z_mm(z_range[0]), scanner.sweet_spot_mm,
-                          math.radians(min(planning.incidence_limit_deg, scanner.max_incidence_deg)))
+    m, n = footprint.width_mm, footprint.height_mm
+    underside = Underside(floor_z_mm(z_range[0]), footprint.sweet_spot_mm, footprint.incidence_limit_rad)
     cols = column_count(step_mm, m)
     cells, rows = [], 0
     for c in range(cols - 1 if shared_last_column else cols):
@@ -302,11 +299,11 @@ def _views(cell: RasterCell, base_F: np.ndarray, limit_rad: float) -> list[tuple
     return out
 
 
-def margin_moves(T_V2_B: np.ndarray, planning: PlanningConfig) -> np.ndarray:
+def margin_moves(T_V2_B: np.ndarray, margin: AgvMargin) -> np.ndarray:
     """``(K, 4, 4)`` maps ``M`` with ``T_B'_E = M T_B_E``: the flange target seen from the arm base when the AGV
     stands off its station by the planning margin (forward, back, left, right, each way round; mm, rad); none
     when the margin is zero."""
-    m, h = planning.agv_margin_mm, math.radians(planning.agv_margin_deg)
+    m, h = margin.distance_mm, margin.heading_rad
     offsets = [o for o in ((m, 0.0, 0.0), (-m, 0.0, 0.0), (0.0, m, 0.0), (0.0, -m, 0.0), (0.0, 0.0, h), (0.0, 0.0, -h))
                if any(o)]
     T_B_V2 = F.invert(T_V2_B)
@@ -356,12 +353,12 @@ def plan_station(
     where the AGV really stands); a cell with no such view keeps its first reachable one, marked not robust.
     The poses are grouped by column height, lowest first, each group in the order that moves the joints least.
     """
-    ik, arm, scanner, planning = setup.ik, setup.arm, setup.scanner, setup.planning
+    ik, arm, footprint = setup.ik, setup.arm, setup.footprint
     heights = np.asarray(setup.lift_heights_mm, float)
     T_F_V2 = F.planar_pose(station.x_mm, station.y_mm, station.heading_rad)
     T_B_F = np.array([F.invert(T_F_V2 @ arm_base_on_column(setup.T_V2_B, h)) for h in heights])  # (L, 4, 4)
     T_S_E = F.invert(setup.T_E_S)
-    limit = math.radians(min(planning.incidence_limit_deg, scanner.max_incidence_deg))
+    limit = footprint.incidence_limit_rad
     base_F = (T_F_V2 @ arm_base_on_column(setup.T_V2_B, float(np.median(heights))))[:3, 3]
     order = _snake([(c.row, c.col) for c in cells], column_major=True)
     owner, tilts, pts, views, rolls = [], [], [], [], []
@@ -376,7 +373,7 @@ def plan_station(
     found: list[ScanPose] = []
     unreached: list[Unreached] = []
     if owner:
-        T_F_S = scanner_poses(np.array(pts), np.array(views), scanner.sweet_spot_mm, station.towards_part,
+        T_F_S = scanner_poses(np.array(pts), np.array(views), footprint.sweet_spot_mm, station.towards_part,
                               np.array(rolls))
         T_B_E = T_B_F[:, None] @ (T_F_S @ T_S_E)[None]  # (L, K, 4, 4)
         shoulder = np.array([0.0, 0.0, arm.dh_d_mm[0]])
@@ -387,7 +384,7 @@ def plan_station(
             in_reach &= prefilter(T_B_E.reshape(-1, 4, 4)).reshape(in_reach.shape)
         owner_arr = np.array(owner)
         seeds = [np.asarray(seed_rad, float)] * len(heights)
-        moves = margin_moves(setup.T_V2_B, planning)  # a column's lift commutes with the AGV's planar offsets
+        moves = margin_moves(setup.T_V2_B, setup.margin)  # a column's lift commutes with the AGV's planar offsets
         for i in order:
             ks = np.flatnonzero(owner_arr == i)
             best = None  # (level, k, q, robust)
@@ -455,9 +452,9 @@ def plan_arm(
     Stations sit ``step_mm`` apart on a closed path of ``path_length_mm``; a station whose successor on the path
     is planned leaves their shared fence-post column to it.
     """
-    planning = setup.planning
+    spacing = setup.spacing
     lo, hi = (np.asarray(b, float) for b in mesh_bounds)
-    reach = float(np.linalg.norm(hi - lo)) + 4.0 * planning.arm_standoff_max_mm + planning.agv_width_mm
+    reach = float(np.linalg.norm(hi - lo)) + 4.0 * spacing.arm_standoff_max_mm + spacing.agv_width_mm
     out = []
     seed = np.asarray(home_rad, float)
     arcs = np.array([st.arc_mm for st in stations])
@@ -465,8 +462,8 @@ def plan_arm(
         after = (st.arc_mm + step_mm) % path_length_mm if path_length_mm > 0 else np.inf
         shared = len(stations) > 1 and bool(np.any(np.abs(arcs - after) < 1.0) or (
             abs(after - path_length_mm) < 1.0 and np.any(arcs < 1.0)))
-        cells, rows, cols = raster_cells(scene, st, step_mm, (float(lo[2]), float(hi[2])), reach, setup.scanner,
-                                         planning, shared)
+        cells, rows, cols = raster_cells(scene, st, step_mm, (float(lo[2]), float(hi[2])), reach, setup.footprint,
+                                         shared)
         raster = plan_station(st, cells, rows, cols, setup, seed)
         if raster.poses:
             seed = raster.poses[-1].joints_rad

@@ -18,7 +18,6 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
-from tandemscan.config.models import ScannerConfig
 from tandemscan.pipeline.geometry.raycast import ScannerModel
 from tandemscan.pipeline.planning.arm import StationRaster
 from tandemscan.pipeline.planning.floor import floor_z_mm, no_pose_fits
@@ -94,10 +93,11 @@ def seen_triangles(
     mesh: o3d.geometry.TriangleMesh,
     scene: o3d.t.geometry.RaycastingScene,
     poses_T_F_S: list[np.ndarray],
-    scanner: ScannerConfig,
+    scanner: ScannerModel,
 ) -> np.ndarray:
-    """Boolean per triangle: some planned scan sees it (reduced pixel grid, range and incidence limits)."""
-    model = ScannerModel(scanner.model_copy(update={"resolution": "coarse", "coarse_pixels": _DRY_RUN_PIXELS}))
+    """Boolean per triangle: some planned scan sees it (``scanner``'s range and incidence limits, at a reduced
+    pixel grid)."""
+    model = scanner.with_pixels(_DRY_RUN_PIXELS)
     seen = np.zeros(len(mesh.triangles), bool)
     for start in range(0, len(poses_T_F_S), _DRY_RUN_POSES_PER_CAST):
         seen[model.seen_primitives(scene, np.array(poses_T_F_S[start:start + _DRY_RUN_POSES_PER_CAST]))] = True
@@ -185,7 +185,7 @@ def dry_run(
     mesh: o3d.geometry.TriangleMesh,
     scene: o3d.t.geometry.RaycastingScene,
     rasters: list[StationRaster],
-    scanner: ScannerConfig,
+    scanner: ScannerModel,
     incidence_limit_rad: float,
     tracked: np.ndarray | None = None,
 ) -> CoverageReport:

@@ -1,27 +1,26 @@
 """Plan a whole part: AGV stations, arm rasters, tracker stations and the command sequence (docs/planning.md).
 
-Everything is in the part frame F (mm, rad). The installation transforms are the nominal (or calibrated)
-ones from the configuration; the plan never sees the simulator's truth.
+Everything is in the part frame F (mm, rad). The cell comes as a :class:`PartPlanning` built once from the
+configuration; its installation transforms are the nominal (or calibrated) ones, never the simulator's truth.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
-import math
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 import open3d as o3d
 from shapely.geometry import Point
-from tandemscan.config.models import CellConfig
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.part import part_identity
 from tandemscan.pipeline.geometry.raycast import make_scene
 from tandemscan.pipeline.planning.arm import ArmSetup, IkSolver, ScanPose, StationRaster, plan_arm
 from tandemscan.pipeline.planning.coverage import CoverageReport, dry_run
 from tandemscan.pipeline.planning.ik import default_ik
+from tandemscan.pipeline.planning.parameters import PartPlanning, StationSpacing, TrackerCandidates
 from tandemscan.pipeline.planning.sequence import PoseRef, Sequence, build_sequence
 from tandemscan.pipeline.planning.stations import StationLayout, free_floor, offset_ring, place_stations
 from tandemscan.pipeline.planning.tracker import TrackerSolution, candidate_poses, choose_stations, cover_matrix
@@ -85,69 +84,68 @@ def target_poses(poses: list[ScanPose], T_T_S: np.ndarray) -> tuple[np.ndarray, 
     return T_F_T[:, :3, 3], T_F_T[:, :3, 2]
 
 
-def tracker_candidates(layout: StationLayout, config: CellConfig) -> np.ndarray:
-    """Candidate tracking-AGV poses at ``d1`` around the part, on free floor only."""
-    pl = config.planning
-    ring, inward = offset_ring(layout.contour, pl.tracker_distance_mm, pl.tracker_candidate_step_mm)
-    cand = candidate_poses(ring, inward, pl.tracker_heading_offsets_deg)
-    floor = free_floor(pl)
-    half = 0.5 * pl.agv_width_mm
+def tracker_candidates(layout: StationLayout, where: TrackerCandidates, spacing: StationSpacing) -> np.ndarray:
+    """Candidate tracking-AGV poses at ``d1`` around the part, on free floor only (``spacing``'s floor and
+    chassis width)."""
+    ring, inward = offset_ring(layout.contour, where.distance_mm, where.spacing_mm)
+    cand = candidate_poses(ring, inward, where.heading_offsets_rad)
+    floor = free_floor(spacing)
+    half = 0.5 * spacing.agv_width_mm
     ok = [floor.contains(Point(x, y).buffer(half, quad_segs=8)) for x, y, _ in cand]
     return cand[np.array(ok, bool)] if len(cand) else cand
 
 
 def plan_part(
     mesh: o3d.geometry.TriangleMesh,
-    config: CellConfig,
+    cell: PartPlanning,
     ik: IkSolver | None = None,
     tracker_start: tuple[float, float, float] | None = None,
     name: str = "generated",
     part: str = "",
 ) -> PartPlan:
-    """Plan the measurement of ``mesh`` on the configured cell.
+    """Plan the measurement of ``mesh`` on the cell ``cell`` (``PartPlanning.from_config(config)``).
 
     ``tracker_start`` (x mm, y mm, heading rad): where the tracking robot stands when the job begins; the
     chain starts there when it sees any measuring point.
     """
     seconds: dict[str, float] = {}
     t = time.perf_counter()
-    inst = config.installation
-    layout = place_stations(mesh, config.scanner, config.planning)
+    layout = place_stations(mesh, cell.spacing, cell.footprint)
     seconds["stations"] = time.perf_counter() - t
 
     t = time.perf_counter()
     scene = make_scene(mesh)
     bb = mesh.get_axis_aligned_bounding_box()
-    home = np.radians(config.planning.arm_start_deg)
+    home = cell.arm_start_rad
     rasters = plan_arm(scene, (bb.min_bound, bb.max_bound), layout.stations, layout.step_mm,
                        layout.path.exterior.length,
-                       ArmSetup(ik or default_ik(config.arm), config.arm, inst.T_V2_B.matrix(), inst.T_E_S.matrix(),
-                                config.scanner, config.planning, config.lift.heights_mm()), home)
+                       ArmSetup(ik or default_ik(cell.arm), cell.arm, cell.T_V2_B, cell.T_E_S, cell.footprint,
+                                cell.spacing, cell.margin, cell.lift_heights_mm), home)
     poses = [p for r in rasters for p in r.poses]
     seconds["arm"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    candidates = tracker_candidates(layout, config)
+    candidates = tracker_candidates(layout, cell.tracker_candidates, cell.spacing)
     start = None
     if tracker_start is not None:
         candidates = np.vstack([candidates, np.asarray(tracker_start, float)[None, :]])
         start = len(candidates) - 1
-    pts, nrm = target_poses(poses, inst.T_T_S.matrix())
-    cover = cover_matrix(candidates, inst.T_V1_C.matrix(), pts, nrm, scene, config.tracker, config.planning)
+    pts, nrm = target_poses(poses, cell.T_T_S)
+    cover = cover_matrix(candidates, cell.T_V1_C, pts, nrm, scene, cell.tracker_view)
     if start is not None and not cover[start].any():
         log.warning("the tracker's start pose sees none of the planned scans; the plan moves it first")
         start = None
     seconds["tracker_cover"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    solution = choose_stations(cover, config.planning, first=start)
+    solution = choose_stations(cover, cell.chain, first=start)
     seconds["tracker_solve"] = time.perf_counter() - t
 
     t = time.perf_counter()
     refs = [PoseRef(p.station, (layout.stations[p.station].x_mm, layout.stations[p.station].y_mm,
                                 layout.stations[p.station].heading_rad),
                     tuple(float(v) for v in p.joints_rad), f"station {p.station} row {p.cell.row} col {p.cell.col}",
-                    p.T_F_S, p.lift_mm if config.lift.enabled else None)
+                    p.T_F_S, p.lift_mm if cell.lift_enabled else None)
             for p in poses]
     chain_poses = [tuple(float(v) for v in candidates[k]) for k in solution.chain]
     sequence = build_sequence(refs, chain_poses, cover[list(solution.chain)], home, name, part,
@@ -156,8 +154,7 @@ def plan_part(
 
     t = time.perf_counter()
     tracked = cover[list(solution.chain)].any(axis=0) if len(solution.chain) else np.zeros(len(poses), bool)
-    coverage = dry_run(mesh, scene, rasters, config.scanner, math.radians(config.planning.incidence_limit_deg),
-                       tracked)
+    coverage = dry_run(mesh, scene, rasters, cell.scanner, cell.coverage_incidence_limit_rad, tracked)
     stated = sequence.plan.model_copy(update={"part_identity": part_identity(mesh),
                                               "left_out": coverage.left_out_areas(),
                                               "coverage_pct": round(coverage.coverage_pct, 2)})

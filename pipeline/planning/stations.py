@@ -18,7 +18,7 @@ import open3d as o3d
 import shapely
 from shapely.geometry import LinearRing, Point, Polygon, box
 from shapely.ops import unary_union
-from tandemscan.config.models import PlanningConfig, ScannerConfig
+from tandemscan.pipeline.planning.parameters import ScanFootprint, StationSpacing
 
 log = logging.getLogger(__name__)
 
@@ -65,16 +65,6 @@ class StationLayout:
     skipped: tuple[tuple[float, str], ...]
 
 
-def footprint_width_mm(scanner: ScannerConfig, planning: PlanningConfig) -> float:
-    """``m``: useful width of one scan along the contour (sweet-spot width less the overlap), mm."""
-    return scanner.width_at_sweet_spot_mm * (1.0 - planning.scan_overlap_fraction)
-
-
-def footprint_height_mm(scanner: ScannerConfig, planning: PlanningConfig) -> float:
-    """``n``: useful height of one scan across the contour (sweet-spot height less the overlap), mm."""
-    return scanner.height_at_sweet_spot_mm * (1.0 - planning.scan_overlap_fraction)
-
-
 def floor_contour(mesh: o3d.geometry.TriangleMesh) -> Polygon:
     """The part's shadow on the floor (F xy, mm), holes filled.
 
@@ -109,18 +99,18 @@ def floor_contour(mesh: o3d.geometry.TriangleMesh) -> Polygon:
     return Polygon(shadow.exterior)
 
 
-def free_floor(planning: PlanningConfig) -> Polygon:
+def free_floor(spacing: StationSpacing) -> Polygon:
     """Floor a chassis may stand on: the cell rectangle less the keep-out zones (F xy, mm)."""
-    x0, y0, x1, y1 = planning.floor_xy_mm
+    x0, y0, x1, y1 = spacing.floor_xy_mm
     floor = box(x0, y0, x1, y1)
-    for zone in planning.keep_out_xy_mm:
+    for zone in spacing.keep_out_xy_mm:
         floor = floor.difference(Polygon(zone))
     return floor
 
 
-def standoff_mm(planning: PlanningConfig) -> float:
+def standoff_mm(spacing: StationSpacing) -> float:
     """Centre distance of the stations from the contour: the middle of ``(d3 + w/2, d4 + w/2)`` (Eq. 13), mm."""
-    d3, d4, w = planning.arm_standoff_min_mm, planning.arm_standoff_max_mm, planning.agv_width_mm
+    d3, d4, w = spacing.arm_standoff_min_mm, spacing.arm_standoff_max_mm, spacing.agv_width_mm
     if d4 <= d3:
         raise StationPlanningError(f"arm standoff: d4 = {d4} mm must exceed d3 = {d3} mm")
     return 0.5 * (d3 + d4) + 0.5 * w
@@ -142,20 +132,20 @@ def station_count(length_mm: float, p_mm: float, m_mm: float) -> int:
     return max(n_lo, 1)
 
 
-def place_stations(mesh: o3d.geometry.TriangleMesh, scanner: ScannerConfig, planning: PlanningConfig) -> StationLayout:
-    """Stations around the part (Eq. 13-14); places in keep-out zones or off the floor are skipped, with reason."""
+def place_stations(mesh: o3d.geometry.TriangleMesh, spacing: StationSpacing, footprint: ScanFootprint) -> StationLayout:
+    """Stations around the part (Eq. 13-14), at most one scan's useful width (``footprint.width_mm``) more than
+    the least step apart; places in keep-out zones or off the floor are skipped, with reason."""
     contour = floor_contour(mesh)
-    distance = standoff_mm(planning)
+    distance = standoff_mm(spacing)
     path = Polygon(contour.buffer(distance, quad_segs=16).exterior)
     ring = LinearRing(path.exterior.coords)
     if not ring.is_ccw:
         ring = LinearRing(list(ring.coords)[::-1])
     length = ring.length
-    m = footprint_width_mm(scanner, planning)
-    n = station_count(length, planning.station_step_mm, m)
+    n = station_count(length, spacing.station_step_mm, footprint.width_mm)
     step = length / n
-    floor = free_floor(planning)
-    half = 0.5 * planning.agv_width_mm
+    floor = free_floor(spacing)
+    half = 0.5 * spacing.agv_width_mm
     stations, skipped = [], []
     for k in range(n):
         s = k * step

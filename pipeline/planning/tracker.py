@@ -22,8 +22,8 @@ import numpy as np
 import open3d as o3d
 from scipy.optimize import Bounds, LinearConstraint, linprog, milp
 from scipy.sparse import bmat, csr_matrix, identity, kron, vstack
-from tandemscan.config.models import PlanningConfig, TrackerConfig
 from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.planning.parameters import ChainLimits, TrackerView
 
 log = logging.getLogger(__name__)
 
@@ -54,14 +54,14 @@ class TrackerSolution:
 # ------------------------------------------------------------------ candidates and covers
 
 
-def candidate_poses(ring_xy_mm: np.ndarray, inward_xy: np.ndarray, offsets_deg: tuple[float, ...]) -> np.ndarray:
+def candidate_poses(ring_xy_mm: np.ndarray, inward_xy: np.ndarray, offsets_rad: tuple[float, ...]) -> np.ndarray:
     """Candidate tracking-AGV poses ``(K, 3)`` = x mm, y mm, heading rad: each ring point times each offset.
 
     ``inward_xy`` (unit, per ring point) points at the part; heading 0 means the chassis faces +x. The
     camera looks along the chassis heading (installation ``T_V1_C``, docs/architecture.md "Frames").
     """
     base = np.arctan2(inward_xy[:, 1], inward_xy[:, 0])
-    rows = [np.c_[ring_xy_mm, base + np.radians(o)] for o in offsets_deg]
+    rows = [np.c_[ring_xy_mm, base + o] for o in offsets_rad]
     return np.vstack(rows) if rows else np.zeros((0, 3))
 
 
@@ -71,8 +71,7 @@ def cover_matrix(
     target_points_F: np.ndarray,
     target_normals_F: np.ndarray,
     scene: o3d.t.geometry.RaycastingScene | None,
-    tracker: TrackerConfig,
-    planning: PlanningConfig,
+    view: TrackerView,
 ) -> np.ndarray:
     """Boolean ``(K, M)``: candidate ``k`` sees measuring point ``m`` (field of view, range, facing, sight line)."""
     pts = np.asarray(target_points_F, float)
@@ -81,11 +80,10 @@ def cover_matrix(
     out = np.zeros((K, M), bool)
     if K == 0 or M == 0:
         return out
-    margin = planning.tracker_margin_deg  # chassis slip must not push a target out of view
-    tan_h = np.tan(np.radians(tracker.fov_horizontal_deg / 2 - margin))
-    tan_v = np.tan(np.radians(tracker.fov_vertical_deg / 2 - margin))
-    cos_cone = np.cos(np.radians(tracker.target_view_cone_deg - margin))
-    far = min(planning.tracker_best_range_mm, tracker.range_max_mm)
+    tan_h = np.tan(view.half_fov_horizontal_rad)
+    tan_v = np.tan(view.half_fov_vertical_rad)
+    cos_cone = np.cos(view.view_cone_rad)
+    far = view.range_max_mm
     origins, dirs, where = [], [], []
     for k, (x, y, h) in enumerate(candidates):
         T_F_C = F.planar_pose(x, y, h) @ T_V1_C
@@ -94,7 +92,7 @@ def cover_matrix(
         z = p_C[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             ok = (z > 0) & (np.abs(p_C[:, 0]) <= tan_h * z) & (np.abs(p_C[:, 1]) <= tan_v * z)
-        ok &= (dist <= far) & (dist >= planning.tracker_min_range_mm)
+        ok &= (dist <= far) & (dist >= view.range_min_mm)
         to_cam = T_F_C[:3, 3] - pts
         ok &= np.einsum("ij,ij->i", nrm, to_cam) >= cos_cone * np.linalg.norm(to_cam, axis=1)
         idx = np.flatnonzero(ok)
@@ -399,10 +397,10 @@ def solve_exact(
     return TrackerSolution(chain, "milp", True, len(chain), time.perf_counter() - t0, greedy.uncovered)
 
 
-def choose_stations(cover: np.ndarray, planning: PlanningConfig, first: int | None = None) -> TrackerSolution:
-    """The exact solver where it finishes within the configured limits, else the greedy chain (solved once)."""
+def choose_stations(cover: np.ndarray, limits: ChainLimits, first: int | None = None) -> TrackerSolution:
+    """The exact solver where it finishes within ``limits``, else the greedy chain (solved once)."""
     greedy = solve_greedy(cover, first=first)
-    exact = solve_exact(cover, planning.exact_time_limit_s, planning.exact_max_variables, first, greedy)
+    exact = solve_exact(cover, limits.time_limit_s, limits.max_variables, first, greedy)
     return exact if exact is not None else greedy
 
 

@@ -74,6 +74,35 @@ def test_a_planted_violation_is_found(tmp_path):
     ]
 
 
+PLANNING_SECTIONS = ("CellConfig", "PlanningConfig", "ScannerConfig", "TrackerConfig")
+
+
+def planning_section_imports(root: Path, package: str = "tandemscan") -> list[str]:
+    """``"file: imports name"`` for every module of ``pipeline/planning/`` that imports one of the configuration
+    sections in :data:`PLANNING_SECTIONS`: the planning stages take small parameter objects built once from the
+    configuration (docs/planning.md, "Parameters")."""
+    sections = {f"{package}.config.models.{name}" for name in PLANNING_SECTIONS}
+    found = []
+    for path in sorted((root / "pipeline" / "planning").rglob("*.py")):
+        module = ".".join([package, *path.relative_to(root).with_suffix("").parts])
+        for name in sorted(imported_modules(path.read_text(encoding="utf-8"), module) & sections):
+            found.append(f"{path.relative_to(root).as_posix()}: imports {name}")
+    return found
+
+
+def test_planning_stages_import_no_whole_configuration_section():
+    assert planning_section_imports(PACKAGE_ROOT) == []
+
+
+def test_a_planted_planning_section_import_is_found(tmp_path):
+    (tmp_path / "pipeline" / "planning").mkdir(parents=True)
+    (tmp_path / "pipeline" / "planning" / "arm.py").write_text("from tandemscan.config.models import ArmConfig\n")
+    (tmp_path / "pipeline" / "planning" / "late.py").write_text(
+        "def plan():\n    from ...config.models import ArmConfig, PlanningConfig\n")
+    assert planning_section_imports(tmp_path) == [
+        "pipeline/planning/late.py: imports tandemscan.config.models.PlanningConfig"]
+
+
 def imported_daemon_modules(source: str, module: str, modules: set[str]) -> set[str]:
     """The modules of ``modules`` that ``source`` (the module ``module``, ``.__init__`` for a package) imports:
     ``from a import b`` is ``a.b`` where that is one of them, else ``a``; ``import a.b`` is ``a.b``; a name that is

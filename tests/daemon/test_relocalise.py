@@ -26,6 +26,7 @@ from tandemscan.daemon.jobs.runner import JobRunner
 from tandemscan.daemon.store.events import EventBus
 from tandemscan.daemon.store.job_store import JobStore
 from tandemscan.pipeline.geometry import frames as F
+from tandemscan.pipeline.planning.parameters import PartPlanning
 from tandemscan.pipeline.planning.plan import MoveArm, MoveMeasure, MoveTracker, Plan, Scan
 from tandemscan.pipeline.planning.planner import plan_part
 from tandemscan.pipeline.stitching.relocalise import Relocaliser, nearby_views
@@ -39,7 +40,8 @@ def generated():
     config = load_config()
     start = config.sim.tracking_start
     world = SimWorld(config)
-    return plan_part(world.mesh, config, tracker_start=(start.x_mm, start.y_mm, np.radians(start.heading_deg)))
+    return plan_part(world.mesh, PartPlanning.from_config(config),
+                     tracker_start=(start.x_mm, start.y_mm, np.radians(start.heading_deg)))
 
 
 @pytest.fixture

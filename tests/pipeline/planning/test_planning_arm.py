@@ -7,7 +7,7 @@ import math
 import numpy as np
 import open3d as o3d
 import pytest
-from tandemscan.config.models import ArmConfig, InstallationConfig, PlanningConfig, ScannerConfig
+from tandemscan.config.models import ArmConfig, CellConfig
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.kinematics import ArmKinematics
 from tandemscan.pipeline.geometry.raycast import make_scene
@@ -21,15 +21,15 @@ from tandemscan.pipeline.planning.arm import (
     row_count,
 )
 from tandemscan.pipeline.planning.ik import AnalyticIK
+from tandemscan.pipeline.planning.parameters import PartPlanning
 from tandemscan.pipeline.planning.stations import AgvStation
 
-SCANNER = ScannerConfig()
-PLANNING = PlanningConfig()
-INSTALL = InstallationConfig()
+CELL = PartPlanning.from_config(CellConfig())
+FOOTPRINT = CELL.footprint
 
 
 def setup(ik) -> ArmSetup:
-    return ArmSetup(ik, ArmConfig(), INSTALL.T_V2_B.matrix(), INSTALL.T_E_S.matrix(), SCANNER, PLANNING)
+    return ArmSetup(ik, ArmConfig(), CELL.T_V2_B, CELL.T_E_S, FOOTPRINT, CELL.spacing, CELL.margin)
 
 
 def box(lx: float, ly: float, lz: float) -> o3d.geometry.TriangleMesh:
@@ -54,7 +54,7 @@ def test_eq15_counts_by_hand():
 def test_box_raster_cells_by_hand():
     scene = make_scene(box(2000.0, 1000.0, 1000.0))
     st = station_below(-1300.0)
-    cells, rows, cols = raster_cells(scene, st, 848.2, (0.0, 1000.0), 6000.0, SCANNER, PLANNING)
+    cells, rows, cols = raster_cells(scene, st, 848.2, (0.0, 1000.0), 6000.0, FOOTPRINT)
     # profile on the near side: 1000 mm wall + 500 mm of roof to the middle -> 7 rows; 4 columns
     assert (rows, cols) == (7, 4)
     assert len(cells) == 28
@@ -76,7 +76,7 @@ def test_cylinder_raster_cells_lie_on_the_surface():
     scene = make_scene(cyl)
     st = station_below(-1300.0)
     step = 2 * math.pi * 1300.0 / 10  # the ten stations of the cylinder's station test
-    cells, rows, cols = raster_cells(scene, st, step, (0.0, 1000.0), 6000.0, SCANNER, PLANNING)
+    cells, rows, cols = raster_cells(scene, st, step, (0.0, 1000.0), 6000.0, FOOTPRINT)
     assert cols == column_count(step, 288.0) == 4
     assert rows == 7  # centre columns: 1000 mm wall + about 500 mm roof
     for c in cells:
@@ -92,7 +92,7 @@ def test_cylinder_raster_cells_lie_on_the_surface():
 def test_scanner_poses_face_the_surface_at_the_sweet_spot():
     scene = make_scene(box(2000.0, 1000.0, 1000.0))
     st = station_below(-1300.0)
-    cells, rows, cols = raster_cells(scene, st, 848.2, (0.0, 1000.0), 6000.0, SCANNER, PLANNING)
+    cells, rows, cols = raster_cells(scene, st, 848.2, (0.0, 1000.0), 6000.0, FOOTPRINT)
     ik = AnalyticIK(ArmConfig())
     raster = plan_station(st, cells, rows, cols, setup(ik), np.radians([0.0, 90.0, 0.0, 90.0, 0.0, 0.0]))
     assert raster.poses, "the wall of a 1 m box is within reach"
@@ -110,15 +110,15 @@ def test_scanner_poses_face_the_surface_at_the_sweet_spot():
         assert incidence == pytest.approx(math.degrees(p.tilt_rad), abs=1e-6)
         assert kin.within_limits(p.joints_rad)
         # the joints really put the scanner there
-        T = F.planar_pose(st.x_mm, st.y_mm, st.heading_rad) @ INSTALL.T_V2_B.matrix() @ kin.forward(
-            p.joints_rad) @ INSTALL.T_E_S.matrix()
+        T = F.planar_pose(st.x_mm, st.y_mm, st.heading_rad) @ CELL.T_V2_B @ kin.forward(
+            p.joints_rad) @ CELL.T_E_S
         np.testing.assert_allclose(T, p.T_F_S, atol=1e-6)
 
 
 def test_unreachable_region_is_reported_not_skipped():
     scene = make_scene(box(2000.0, 1000.0, 4000.0))  # a 4 m wall: the arm on its AGV cannot reach the top
     st = station_below(-1300.0)
-    cells, rows, cols = raster_cells(scene, st, 848.2, (0.0, 4000.0), 8000.0, SCANNER, PLANNING)
+    cells, rows, cols = raster_cells(scene, st, 848.2, (0.0, 4000.0), 8000.0, FOOTPRINT)
     raster = plan_station(st, cells, rows, cols, setup(AnalyticIK(ArmConfig())), np.radians([0, 90, 0, 90, 0, 0]))
     assert raster.unreached and raster.poses
     assert len(raster.poses) + len(raster.unreached) == len(cells)
@@ -130,7 +130,7 @@ def test_unreachable_region_is_reported_not_skipped():
 def test_order_moves_the_joints_no_more_than_the_plain_snake():
     scene = make_scene(box(2000.0, 1000.0, 1000.0))
     st = station_below(-1300.0)
-    cells, rows, cols = raster_cells(scene, st, 848.2, (0.0, 1000.0), 6000.0, SCANNER, PLANNING)
+    cells, rows, cols = raster_cells(scene, st, 848.2, (0.0, 1000.0), 6000.0, FOOTPRINT)
     raster = plan_station(st, cells, rows, cols, setup(AnalyticIK(ArmConfig())), np.radians([0, 90, 0, 90, 0, 0]))
     poses = list(raster.poses)
     snake = [poses[k] for k in _snake([(p.cell.row, p.cell.col) for p in poses], column_major=True)]

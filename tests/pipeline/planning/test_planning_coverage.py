@@ -10,6 +10,7 @@ import pytest
 from tandemscan.config import load_config
 from tandemscan.config.models import DEFAULT_PART_REGIONS, RegionConfig
 from tandemscan.pipeline.planning.coverage import REASON_NO_POSE, CoverageFigures, triangle_geometry
+from tandemscan.pipeline.planning.parameters import PartPlanning
 from tandemscan.pipeline.planning.plan import Plan, Scan
 from tandemscan.pipeline.planning.planner import plan_part
 
@@ -35,8 +36,8 @@ def test_a_blade_on_supports_is_scanned_from_below_where_the_arm_fits():
     tracker = (start.x_mm, start.y_mm, np.radians(start.heading_deg))
     area, normal, _ = triangle_geometry(blade(0.0))
     underside = float(area[normal[:, 2] < -0.5].sum())
-    on_floor = plan_part(blade(0.0), config, tracker_start=tracker).coverage
-    raised = plan_part(blade(1000.0), config, tracker_start=tracker)
+    on_floor = plan_part(blade(0.0), PartPlanning.from_config(config), tracker_start=tracker).coverage
+    raised = plan_part(blade(1000.0), PartPlanning.from_config(config), tracker_start=tracker)
     # resting on the floor, its underside has no room for a scanner pose
     assert on_floor.floor_contact_mm2 == pytest.approx(underside, rel=0.05)
     booked = sum(lo.area_mm2 for lo in on_floor.left_out if lo.reason == REASON_NO_POSE)

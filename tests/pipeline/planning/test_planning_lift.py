@@ -29,6 +29,7 @@ from tandemscan.pipeline.geometry.part import (
 )
 from tandemscan.pipeline.geometry.raycast import make_scene
 from tandemscan.pipeline.planning.coverage import REASON_REACH, REASON_TRACKER, dry_run
+from tandemscan.pipeline.planning.parameters import PartPlanning
 from tandemscan.pipeline.planning.plan import MoveArm, MoveLift, MoveMeasure, Plan, Scan
 from tandemscan.pipeline.planning.planner import plan_part
 from tandemscan.pipeline.stitching.installation import Installation
@@ -51,7 +52,8 @@ def barrel():
 @pytest.fixture(scope="module")
 def barrel_plans(large_config, barrel):
     """The barrel panel planned on the default cell and on the shipped larger cell."""
-    return plan_part(barrel, load_config()), plan_part(barrel, large_config)
+    return (plan_part(barrel, PartPlanning.from_config(load_config())),
+            plan_part(barrel, PartPlanning.from_config(large_config)))
 
 
 def test_arm_models_fill_dh_and_limits_and_an_unknown_model_is_one_line(tmp_path):
@@ -176,7 +178,8 @@ def test_poses_no_tracker_station_sees_are_reported_as_outside_its_view(barrel_p
     poses = [p for r in plan.rasters for p in r.poses]
     tracked = np.ones(len(poses), bool)
     tracked[: len(poses) // 2] = False
-    report = dry_run(barrel, make_scene(barrel), plan.rasters, load_config().scanner, np.radians(45.0), tracked)
+    report = dry_run(barrel, make_scene(barrel), plan.rasters, PartPlanning.from_config(load_config()).scanner,
+                     np.radians(45.0), tracked)
     assert report.untracked_mm2 > 1e6 and report.seen_area_mm2 < plan.coverage.seen_area_mm2
     assert {lo.reason for lo in report.left_out} >= {REASON_TRACKER, REASON_REACH}
 

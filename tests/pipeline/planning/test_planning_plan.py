@@ -11,6 +11,7 @@ from tandemscan.config import load_config
 from tandemscan.daemon.cli import main
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.planning.coverage import dry_run
+from tandemscan.pipeline.planning.parameters import PartPlanning
 from tandemscan.pipeline.planning.plan import MoveArm, MoveMeasure, MoveTracker, Plan, Scan
 from tandemscan.pipeline.planning.planner import plan_part
 from tandemscan.pipeline.planning.tracker import is_valid_chain
@@ -22,7 +23,8 @@ def planned():
     config = load_config()
     world = SimWorld(config)
     start = config.sim.tracking_start
-    plan = plan_part(world.mesh, config, tracker_start=(start.x_mm, start.y_mm, np.radians(start.heading_deg)))
+    plan = plan_part(world.mesh, PartPlanning.from_config(config),
+                     tracker_start=(start.x_mm, start.y_mm, np.radians(start.heading_deg)))
     return config, world, plan
 
 
@@ -76,8 +78,8 @@ def test_no_pose_is_scanned_twice(planned):
 
 def test_coverage_of_the_reachable_surface_and_left_out_areas_reported(planned):
     config, world, plan = planned
-    report = dry_run(world.mesh, world.scene, plan.rasters, config.scanner,
-                     np.radians(config.planning.incidence_limit_deg))
+    cell = PartPlanning.from_config(config)
+    report = dry_run(world.mesh, world.scene, plan.rasters, cell.scanner, cell.coverage_incidence_limit_rad)
     assert report.coverage_of_reachable_pct >= 95.0
     assert report.seen_area_mm2 > 0.5 * (report.total_area_mm2 - report.floor_contact_mm2)
     # the roof of a 1.6 m part is out of the arm's reach: reported with where it is, not silently skipped
@@ -119,7 +121,7 @@ def test_the_arm_starts_from_the_planning_setting(monkeypatch):
     config = config.model_copy(update={"planning": config.planning.model_copy(update={"arm_start_deg": start})})
     monkeypatch.setattr(planner, "plan_arm", seen)
     with pytest.raises(Seen) as e:
-        plan_part(SimWorld(config).mesh, config)
+        plan_part(SimWorld(config).mesh, PartPlanning.from_config(config))
     np.testing.assert_allclose(e.value.args[0], np.radians(start))
 
 

@@ -8,7 +8,8 @@ import numpy as np
 import open3d as o3d
 import pytest
 from shapely.geometry import Point
-from tandemscan.config.models import PlanningConfig, ScannerConfig
+from tandemscan.config.models import CellConfig, PlanningConfig
+from tandemscan.pipeline.planning.parameters import PartPlanning
 from tandemscan.pipeline.planning.stations import (
     StationPlanningError,
     floor_contour,
@@ -23,8 +24,14 @@ def box_mesh(lx=2000.0, ly=1000.0, lz=1000.0) -> o3d.geometry.TriangleMesh:
     return m
 
 
+def placed(mesh: o3d.geometry.TriangleMesh, planning: PlanningConfig | None = None):
+    """``mesh``'s stations on the default cell with ``planning`` (default: its own)."""
+    cell = PartPlanning.from_config(CellConfig(planning=planning or PlanningConfig()))
+    return place_stations(mesh, cell.spacing, cell.footprint)
+
+
 def test_box_contour_and_stations_by_hand():
-    layout = place_stations(box_mesh(), ScannerConfig(), PlanningConfig())
+    layout = placed(box_mesh())
     assert layout.contour.area == pytest.approx(2000.0 * 1000.0, rel=1e-6)
     # D = (d3 + d4)/2 + w/2 = 400 + 400 = 800 mm; path = 6000 + 2 pi 800 mm
     assert layout.distance_mm == pytest.approx(800.0)
@@ -52,7 +59,7 @@ def test_box_contour_and_stations_by_hand():
 def test_cylinder_stations_by_hand():
     cyl = o3d.geometry.TriangleMesh.create_cylinder(radius=500.0, height=1000.0, resolution=128)
     cyl.translate([0.0, 0.0, 500.0])
-    layout = place_stations(cyl, ScannerConfig(), PlanningConfig())
+    layout = placed(cyl)
     # circle of radius 1300: 8168 mm; N in (9.2, 13.6) -> 10 stations 817 mm apart
     assert len(layout.stations) == 10
     assert layout.step_mm == pytest.approx(2 * math.pi * 1300.0 / 10, rel=2e-3)
@@ -76,12 +83,12 @@ def test_station_count_interval():
 def test_keep_out_zone_and_floor_boundary_skip_stations_with_reason():
     zone = ((-3000.0, 800.0), (3000.0, 800.0), (3000.0, 3000.0), (-3000.0, 3000.0))  # all above the box
     planning = PlanningConfig(keep_out_xy_mm=(zone,))
-    layout = place_stations(box_mesh(), ScannerConfig(), planning)
+    layout = placed(box_mesh(), planning)
     assert layout.skipped and all("keep-out" in why for _, why in layout.skipped)
     assert all(s.y_mm < 800.0 - 400.0 for s in layout.stations)
     tight = PlanningConfig(floor_xy_mm=(-1000.0, -1000.0, 1000.0, 1000.0))
     with pytest.raises(StationPlanningError, match="free floor"):
-        place_stations(box_mesh(), ScannerConfig(), tight)
+        placed(box_mesh(), tight)
 
 
 def test_concave_part_contour_keeps_its_notch():
@@ -95,5 +102,4 @@ def test_concave_part_contour_keeps_its_notch():
 
 def test_inconsistent_standoff_is_an_error():
     with pytest.raises(StationPlanningError, match="d4"):
-        place_stations(box_mesh(), ScannerConfig(), PlanningConfig(arm_standoff_min_mm=500.0,
-                                                                   arm_standoff_max_mm=400.0))
+        placed(box_mesh(), PlanningConfig(arm_standoff_min_mm=500.0, arm_standoff_max_mm=400.0))

@@ -7,9 +7,10 @@ import itertools
 import numpy as np
 import open3d as o3d
 import pytest
-from tandemscan.config.models import PlanningConfig, TrackerConfig
+from tandemscan.config.models import CellConfig, PlanningConfig
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.raycast import make_scene
+from tandemscan.pipeline.planning.parameters import PartPlanning
 from tandemscan.pipeline.planning.tracker import (
     TrackerPlanningError,
     candidate_poses,
@@ -109,8 +110,8 @@ def test_covers_that_cannot_chain_raise():
 
 
 def test_cover_by_field_of_view_range_facing_and_occlusion():
-    tracker = TrackerConfig()
-    planning = PlanningConfig(tracker_best_range_mm=9000.0, tracker_min_range_mm=1000.0)
+    view = PartPlanning.from_config(CellConfig(planning=PlanningConfig(tracker_best_range_mm=9000.0,
+                                                                       tracker_min_range_mm=1000.0))).tracker_view
     T_V1_C = F.make_transform(np.eye(3), [0, 0, 0]) @ _camera_along_x()
     # a wall between x = 2000 and 2200, 1 m wide in y, 3 m tall
     wall = o3d.geometry.TriangleMesh.create_box(200.0, 1000.0, 3000.0)
@@ -127,9 +128,9 @@ def test_cover_by_field_of_view_range_facing_and_occlusion():
     normals = np.tile([-1.0, 0.0, 0.0], (6, 1))
     normals[5] = [1.0, 0.0, 0.0]
     cand = np.array([[0.0, 0.0, 0.0]])
-    cov = cover_matrix(cand, T_V1_C, targets, normals, scene, tracker, planning)
+    cov = cover_matrix(cand, T_V1_C, targets, normals, scene, view)
     assert cov[0].tolist() == [False, True, False, False, False, False]
-    cov_no_occlusion = cover_matrix(cand, T_V1_C, targets, normals, None, tracker, planning)
+    cov_no_occlusion = cover_matrix(cand, T_V1_C, targets, normals, None, view)
     assert cov_no_occlusion[0, 0]
 
 
@@ -142,7 +143,7 @@ def _camera_along_x() -> np.ndarray:
 def test_candidate_headings_face_the_part():
     ring = np.array([[0.0, 5000.0], [5000.0, 0.0]])
     inward = np.array([[0.0, -1.0], [-1.0, 0.0]])
-    cand = candidate_poses(ring, inward, (0.0, 30.0))
+    cand = candidate_poses(ring, inward, (0.0, np.radians(30.0)))
     assert cand.shape == (4, 3)
     np.testing.assert_allclose(cand[:2, 2], [-np.pi / 2, np.pi])
     np.testing.assert_allclose(cand[2:, 2], [-np.pi / 2 + np.radians(30), np.pi + np.radians(30)])
