@@ -2,8 +2,8 @@
 cell's configuration where it is read (:meth:`PartPlanning.from_config`, in the daemon, a command or a benchmark),
 so that the stages never see a whole configuration section (docs/planning.md, "Parameters").
 
-The configuration's degrees become radians here, each the same expression the stages computed before, so a
-plan does not change by a bit.
+The configuration's degrees become radians here, once. The arm stays its ``[arm]`` section (``ArmConfig``): its
+kinematics and limits are the arm's description, shared with the IK and the daemon.
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from tandemscan.config.models import ArmConfig
 from tandemscan.pipeline.geometry.raycast import ScannerModel
 
 
@@ -95,7 +96,7 @@ class PartPlanning:
     tracker_candidates: TrackerCandidates
     tracker_view: TrackerView
     chain: ChainLimits
-    arm: object
+    arm: ArmConfig
     arm_start_rad: np.ndarray
     lift_heights_mm: tuple[float, ...]
     lift_enabled: bool
