@@ -7,6 +7,7 @@ along x with the nose towards +x.
 from __future__ import annotations
 
 import hashlib
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,8 @@ from tandemscan.pipeline.geometry.units import MM_PER_UNIT
 from tandemscan.pipeline.io.cloud_io import has_ply_magic
 from tandemscan.pipeline.planning.plan import PartIdentity
 
+log = logging.getLogger(__name__)
+
 MESH_SUFFIXES = (".stl", ".ply", ".obj", ".off", ".gltf", ".glb")
 
 
@@ -25,10 +28,33 @@ class PartMeshError(Exception):
 
 
 def load_part_mesh(part: PartConfig) -> o3d.geometry.TriangleMesh:
-    """The CAD mesh of ``part``: the file ``part.mesh`` (mm) or, when unset, :func:`train_nose_mesh`; with
-    ``part.openings`` cut into it (:func:`~tandemscan.pipeline.geometry.openings.cut_openings`)."""
-    mesh = train_nose_mesh(part) if part.mesh is None else read_mesh_file(part.mesh, units=part.mesh_units)
+    """The CAD mesh of ``part``: the file ``part.mesh`` (mm, in ``part.mesh_units``; :func:`wound_outward`) or,
+    when unset, :func:`train_nose_mesh`; with ``part.openings`` cut into it
+    (:func:`~tandemscan.pipeline.geometry.openings.cut_openings`)."""
+    if part.mesh is None:
+        mesh = train_nose_mesh(part)
+    else:
+        mesh = wound_outward(read_mesh_file(part.mesh, units=part.mesh_units), str(part.mesh))
     return cut_openings(mesh, part.openings) if part.openings else mesh
+
+
+def wound_outward(mesh: o3d.geometry.TriangleMesh, name: str) -> o3d.geometry.TriangleMesh:
+    """``mesh`` with each connected patch wound consistently, a closed one outward by its volume, an open one as
+    most of its area is in the file (:func:`~tandemscan.pipeline.inspection.cad_orientation.wind`): the planner
+    looks along the normals and the simulator moves its deviations along them, so a file wound inward or
+    inconsistently (each triangle as its exporter pleased) would have them look from inside. Says so in the log
+    (``name``: the file) where it turned triangles; the mesh itself where none."""
+    from tandemscan.pipeline.inspection.cad_orientation import wind  # the winding rules of the inspection's sign
+
+    T = np.asarray(mesh.triangles)
+    o = wind(np.asarray(mesh.vertices), T)
+    if not o.reversed.any():
+        return mesh
+    log.warning("%s: %s", name, o.note.replace("deviations are signed with them reversed", "planned and simulated "
+                                                "with them reversed"))
+    mesh.triangles = o3d.utility.Vector3iVector(np.where(o.reversed[:, None], T[:, ::-1], T))
+    mesh.compute_vertex_normals()
+    return mesh
 
 
 def read_mesh_file(path: Path, what: str = "mesh", units: str = "mm") -> o3d.geometry.TriangleMesh:
