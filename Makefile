@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.installed
 APT_PACKAGES := libusb-1.0-0 libgl1 libgomp1 chromium chromium-driver systemd
 NODE_APT_PACKAGES := nodejs npm
 
-.PHONY: measure test system-deps clean
+.PHONY: measure test test-fast system-deps clean
 
 CELL_CONFIG := config/sim-cell.toml
 CALIBRATION := out/calibration.json
@@ -27,6 +27,11 @@ $(CALIBRATION): $(CELL_CONFIG) $(STAMP)
 TEST_WORKERS ?= 2
 test: $(STAMP)
 	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
+
+# The inner loop (docs/testing.md, the inner loop): the suite without the HIL cell, Chromium, whole jobs (tests/e2e/)
+# and the tests marked slow (about a minute on 2 idle cores).
+test-fast: $(STAMP)
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile -m "not hil and not browser and not e2e and not slow"
 
 # System packages, installed through apt only where missing: what Open3D needs at import time, Chromium for the
 # report rendering test and, with chromium-driver, the console's browser tests; systemd for the unit tests

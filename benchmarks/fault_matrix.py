@@ -1,6 +1,6 @@
 """The fault matrix: every fault of the daemon's fault tests (docs/daemon.md, faults) and what it did to the job.
 
-Runs ``tests/hil/test_daemon_faults.py`` and ``tests/daemon/test_daemon_disk_full.py`` (hardware-in-the-loop cell,
+Runs ``tests/hil/test_daemon_faults.py`` and ``tests/e2e/test_daemon_disk_full.py`` (hardware-in-the-loop cell,
 faults injected through the emulators; a full tmpfs) and prints, as one JSON object on the last line, a row per fault:
 its outcome, the typed reason, how long until the job left ``running`` (s) and the scans of the finished job.
 
@@ -27,7 +27,7 @@ def main() -> None:
         rows_file = Path(tmp) / "matrix.jsonl"
         env = dict(os.environ, TANDEMSCAN_FAULT_MATRIX=str(rows_file))
         proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-                               "tests/hil/test_daemon_faults.py", "tests/daemon/test_daemon_disk_full.py"],
+                               "tests/hil/test_daemon_faults.py", "tests/e2e/test_daemon_disk_full.py"],
                               cwd=ROOT, env=env, capture_output=True, text=True)
         rows = [json.loads(line) for line in rows_file.read_text().splitlines()] if rows_file.exists() else []
     summary = proc.stdout.strip().splitlines()[-1] if proc.stdout.strip() else ""

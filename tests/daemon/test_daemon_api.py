@@ -373,6 +373,7 @@ def api_schema(world, tmp_path_factory):
 if schemathesis is not None:
     schema = schemathesis.pytest.from_fixture("api_schema")
 
+    @pytest.mark.slow
     @schema.parametrize()
     @settings(max_examples=15, deadline=None, suppress_health_check=list(HealthCheck))
     def test_openapi_contract_holds_for_generated_requests(case):

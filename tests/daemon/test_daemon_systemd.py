@@ -74,6 +74,7 @@ def _one_line(r: subprocess.CompletedProcess, status: int, start: str) -> str:
     return lines[0]
 
 
+@pytest.mark.slow
 def test_start_up_errors_are_one_line_and_a_status_systemd_does_not_restart_on(tmp_path):
     """Issue 42 row 5: an unusable state directory or a taken port ends ``serve`` in one line and its own exit
     status (documented), before any device is touched; the unit does not restart on a permanent one."""

@@ -82,6 +82,7 @@ def _at_first_scan(world: SimWorld) -> None:
             world.move_arm(np.array(step.joints_rad))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("cell", [None, "config/as-built-example.toml"])
 async def test_scan_process_captures_what_the_world_captures(cell):
     sim_config = load_config(cell)  # the as-built part: the worker scans it too, not the CAD

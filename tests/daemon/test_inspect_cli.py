@@ -25,6 +25,7 @@ def files(tmp_path):
     return cloud, cad, cfg
 
 
+@pytest.mark.slow
 def test_inspect_writes_report_and_deviation_cloud(files, tmp_path, capsys):
     cloud, cad, cfg = files
     out = tmp_path / "out"
@@ -80,6 +81,7 @@ def closed_box(tmp_path, rng, per_face):
     return cad, np.vstack(faces)
 
 
+@pytest.mark.slow
 def test_misplaced_cloud_is_aligned_and_its_dent_reported_in_cad_coordinates(tmp_path, capsys):
     """A closed box scanned all round with a 0.3 mm dent, given 5 deg and 40 mm off CAD: the best fit puts
     it back, the report fails it with one lower area at the dent (CAD mm)."""
@@ -134,6 +136,7 @@ def test_registered_in_the_main_cli(files, tmp_path, capsys):
     assert e.value.code == 2
 
 
+@pytest.mark.slow
 def test_point_uncertainty_gives_the_same_decisions_in_place_and_20_deg_200_mm_away(tmp_path, capsys):
     """A closed box with a bump proven out (0.8 mm), one proven in (0.25 mm) and one within U of the +-0.5 mm
     limit (0.5 mm), its points' U 0.3 mm stated by --point-uncertainty-mm: in place (no alignment) and turned
@@ -169,6 +172,7 @@ def test_point_uncertainty_gives_the_same_decisions_in_place_and_20_deg_200_mm_a
     assert capsys.readouterr().out.startswith("FAIL")
 
 
+@pytest.mark.slow
 def test_a_second_inspection_replaces_the_report_whole(files, tmp_path):
     """report.json and report.html are replaced, not rewritten in place: a reader that opened them before the
     next inspection into the same folder reads the whole old report (a crash mid-write leaves the old or the new

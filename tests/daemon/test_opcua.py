@@ -187,6 +187,7 @@ async def test_secure_client_runs_a_job_and_fetches_its_result(cell, identities)
         assert res.StatusCode.value == ua.StatusCodes.BadNotFound
 
 
+@pytest.mark.slow
 async def test_viewer_may_not_call_and_strangers_are_refused(cell, identities, caplog):
     async with cell.client(identities["trusted"], "viewer", "view-pw") as client:
         ns = await client.get_namespace_index(cell.ns_uri)
@@ -225,6 +226,7 @@ def test_anonymous_access_binds_to_loopback_only(sim_config, tmp_path):
         create_app(Daemon(config, tmp_path / "state"), manage_lifecycle=True)
 
 
+@pytest.mark.slow
 async def test_node_opcua_client_browses_subscribes_and_calls(cell, identities, tmp_path):
     """node-opcua, an independent stack (tests/node/client.mjs), gets what asyncua and REST get."""
     args = ["node", str(NODE_DIR / "client.mjs"), cell.url, str(identities["trusted"].certificate),
@@ -298,6 +300,7 @@ async def test_lost_client_many_subscribers_and_malformed_calls_leave_the_job_al
     assert not errors, [r.getMessage() for r in errors]
 
 
+@pytest.mark.slow
 async def test_the_nodeset_export_imports_into_another_server(cell):
     """The NodeSet2 XML the server writes at start holds its own namespace: another server imports it whole, with
     the methods' signatures and the result types."""

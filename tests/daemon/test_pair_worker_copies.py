@@ -7,6 +7,7 @@ import os
 import time
 
 import numpy as np
+import pytest
 from tandemscan.daemon.jobs.stitcher import PairWorker, ProcessWorldMap
 from tandemscan.drivers.shared_array import PREFIX, SHM_DIR, SharedBlock, hand_over
 from tandemscan.pipeline.registration.correction import CorrectionSettings
@@ -29,6 +30,7 @@ def _gone(blocks: list[SharedBlock], timeout_s: float = 10.0) -> bool:
     return not any((SHM_DIR / b.name).exists() for b in blocks)
 
 
+@pytest.mark.slow
 async def test_the_pair_workers_copies_leave_no_shared_memory(sim_config):
     settings = CorrectionSettings.from_section(sim_config.correction)
     worker = PairWorker(settings, 1.0, 0)
@@ -45,6 +47,7 @@ async def test_the_pair_workers_copies_leave_no_shared_memory(sim_config):
     assert _gone(never_ran)
 
 
+@pytest.mark.slow
 async def test_the_maps_process_hands_a_fine_scans_copy_to_the_pair_worker(sim_config, tmp_path):
     """Two overlapping fine scans (2 points a 1 mm voxel: their copies, over 1 MB, go through shared memory) written
     and merged in a :class:`ProcessWorldMap`: the pair worker prepares both for the joint refinement from the copies

@@ -83,6 +83,7 @@ def _errors(world: SimWorld, periods: int, samples: int) -> np.ndarray:
     return np.array(out), np.sqrt(readings[0][1][0, 0])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("still", [0.0, 0.5, 1.0])
 def test_the_simulated_tracker_keeps_its_still_share_when_averaged(world, still):
     world.config = _tracker(world.config, still_noise_fraction=still)

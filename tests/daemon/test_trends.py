@@ -80,6 +80,7 @@ def ten_serials(tmp_path_factory):
     return state
 
 
+@pytest.mark.slow
 async def test_trend_endpoint_serves_the_ten_serials_with_their_chart(ten_serials, sim_config, world):  # noqa: F811
     world.safety.estop = False
     daemon = Daemon(sim_config, ten_serials, GatedRunner(), cell=sim_cell(sim_config, world))

@@ -8,6 +8,7 @@ import dataclasses
 import datetime as dt
 import json
 
+import pytest
 from tandemscan.daemon.calibration.verify import last_verification, record, run_verification, verdict_context
 from tandemscan.daemon.cell.session import CellSession
 from tandemscan.sim_drivers.cell import with_surveyed_mounts
@@ -18,6 +19,7 @@ def verified_config(sim_config, tmp_path):
     return sim_config.model_copy(update={"verification": ver})
 
 
+@pytest.mark.slow
 async def test_verify_reports_the_sphere_spacing_within_2u_of_the_truth_and_records_it(sim_config, tmp_path):
     config = verified_config(sim_config, tmp_path)
     async with CellSession(config) as session:

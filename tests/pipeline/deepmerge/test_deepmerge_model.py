@@ -109,6 +109,7 @@ def test_the_untrained_head_is_a_soft_nearest_neighbour_registration_that_iterat
     assert errors[-1] < 0.5 * before
 
 
+@pytest.mark.slow
 def test_inference_schedule_with_cheap_coarse_iterations_beats_the_fine_iterations_alone():
     args, R_err = _wavy_pair(5, [1.0, -1.5, 1.5], [0.0, 0.0, 0.0], 1024)
     net = DeepMerge(iterations=3).eval()

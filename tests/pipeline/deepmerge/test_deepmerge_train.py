@@ -19,6 +19,7 @@ TINY = TrainSettings(seed=3, train_pairs=6, val_pairs=2, shapes_per_pool=3, num_
                      val_points=64)
 
 
+@pytest.mark.slow
 def test_a_tiny_model_trains_and_its_loss_falls(tmp_path):
     torch.set_num_threads(1)
     out = tmp_path / "tiny.pt"
@@ -83,6 +84,7 @@ def test_register_command_prints_the_transform_and_fitness(tmp_path, capsys):
     assert main(["register", str(tmp_path / "missing.ply"), str(tmp_path / "target.ply")]) == 2
 
 
+@pytest.mark.slow
 def test_re_embedding_rounds_bring_a_large_error_closer_than_one_pass():
     from tests.pipeline.registration.test_registration_stages import moved
 

@@ -128,6 +128,7 @@ def rps_config():
         ReferenceSphereConfig(name=f"S{i}", centre_mm=c) for i, c in enumerate(centres)))
 
 
+@pytest.mark.slow
 def test_rps_uses_the_spheres_alone_and_reports_each_residual(part):
     rng = np.random.default_rng(4)
     cfg = rps_config()

@@ -200,6 +200,7 @@ def test_maps_draw_an_open_panel_from_outside_and_inside():
     assert seen.coloured_px == 0
 
 
+@pytest.mark.slow
 def test_the_alignment_covariance_matches_the_scatter_of_repeated_fits():
     """The fit's 6x6 covariance (t mm, r rad about its centre) predicts the scatter of the pose over 30 noise
     draws of the same 3 000 points of the double-curved part (0.05 mm noise) to within a factor 1.5 a component."""

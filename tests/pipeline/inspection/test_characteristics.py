@@ -120,6 +120,7 @@ def test_template_alignment_becomes_the_inspection_config(tmp_path):
     assert cfg.regions[-1].min_mm == (0.0, 0.0, 0.0)
 
 
+@pytest.mark.slow
 def test_each_seeded_deviation_shows_in_its_characteristic(as_built_results):
     r = as_built_results
     # the rear end bent 0.3 mm (+y): body profile and flatness; the 0.3 mm dent at x -350: rear nose and
@@ -141,6 +142,7 @@ def test_each_seeded_deviation_shows_in_its_characteristic(as_built_results):
     assert np.all(np.diff(curve.arc_mm) >= 0) and curve.deviation_mm.min() == pytest.approx(-0.3, abs=0.07)
 
 
+@pytest.mark.slow
 def test_a_surface_profile_near_a_limit_within_u_is_indeterminate(as_built_results):
     sp2 = as_built_results["SP-2"]
     template = load_template(shipped_template())
@@ -153,6 +155,7 @@ def test_a_surface_profile_near_a_limit_within_u_is_indeterminate(as_built_resul
     assert out.status == "indeterminate" and out.uncertainty_mm == 0.05
 
 
+@pytest.mark.slow
 def test_the_hatch_edge_offset_is_measured_within_a_tenth(tmp_path):
     """The hatch's +x edge 0.5 mm out as built (the opening larger): -0.5 mm within 0.1 mm, fail; the other
     edges on CAD: pass."""
@@ -165,6 +168,7 @@ def test_the_hatch_edge_offset_is_measured_within_a_tenth(tmp_path):
     assert r["EDGE-1"].points > 100
 
 
+@pytest.mark.slow
 def test_report_leads_with_the_characteristics_and_shows_each_area_close_up(tmp_path):
     """report.html: the characteristics table before the verdict and the maps; each deviation area has a
     close-up figure centred on it that draws its points, many of them beyond the band (blue: a dent)."""
@@ -205,6 +209,7 @@ def test_report_leads_with_the_characteristics_and_shows_each_area_close_up(tmp_
         assert blue.sum() > 200  # the dent's points drawn in the lower colours
 
 
+@pytest.mark.slow
 def test_the_barrel_panel_template_measures_every_characteristic_of_a_panel_on_its_cad():
     from tandemscan.pipeline.geometry.part import barrel_panel_mesh
 
@@ -226,6 +231,7 @@ def test_the_barrel_panel_template_measures_every_characteristic_of_a_panel_on_i
     assert {r.kind for r in results} == {"surface_profile", "flatness", "section"}
 
 
+@pytest.mark.slow
 def test_a_datum_reference_frame_leaves_a_raised_end_where_a_best_fit_would_spread_it(tmp_path):
     """A 400 x 200 x 100 mm box whose top is raised 0.5 mm over its last 150 mm, given 0.3 deg and 2.3 mm off:
     the 3-2-1 frame of its bottom (plane), front (line) and left (point) faces puts it back to 0.01 mm, and
@@ -280,6 +286,7 @@ def test_a_datum_frame_needs_a_plane_a_line_and_a_point_in_boxes(tmp_path):
         load_template(path)
 
 
+@pytest.mark.slow
 def test_the_simulated_scanner_sees_the_hatch_edge_offset_within_a_tenth():
     """Twelve views of the simulated scanner (its noise, its ray casting: walls seen at an angle) at the
     hatch of config/hatch-example.toml, the +x edge 0.5 mm out as built: -0.5 mm within 0.1 mm, fail; the

@@ -37,6 +37,7 @@ def qif_statuses(path) -> tuple[dict[str, str], str | None, ET.Element]:
     return out, None if serial is None else serial.text, root
 
 
+@pytest.mark.slow
 def test_results_qif_validates_and_reads_back_as_the_report(tmp_path, qif_schema):
     cloud = sampled_cloud("config/as-built-example.toml", (-430.0, 900.0, 600.0), (-270.0, 1100.0, 760.0), 1.0, 6)
     cfg = InspectionConfig(views=("right",), map_width_px=200, best_fit=False, regions=())

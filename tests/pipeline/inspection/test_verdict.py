@@ -109,6 +109,7 @@ def test_a_held_verdict_is_indeterminate_and_the_nominal_installation_is_named(b
     assert any("nominal mounts" in why for why in nominal.judgement.reasons)
 
 
+@pytest.mark.slow
 def test_report_states_the_rule_the_budget_the_ratios_and_maps_the_uncertainty(box, tmp_path):
     import json
 

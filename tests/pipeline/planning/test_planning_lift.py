@@ -146,6 +146,7 @@ async def test_runner_moves_the_column_in_the_gate_and_scans_from_the_raised_arm
             await JobRunner(no_lift, plan, load_config(), tmp_path / "job2").run()
 
 
+@pytest.mark.slow
 def test_larger_cell_covers_the_barrel_with_column_moves_while_the_arm_is_folded(barrel_plans, large_config):
     small, large = barrel_plans
     assert large.coverage.coverage_pct >= 95.0 > small.coverage.coverage_pct
@@ -160,6 +161,7 @@ def test_larger_cell_covers_the_barrel_with_column_moves_while_the_arm_is_folded
     assert not any(isinstance(s, MoveLift) for s in small.sequence.plan.steps)
 
 
+@pytest.mark.slow
 def test_plan_states_its_part_and_every_area_it_leaves_out(barrel_plans, barrel):
     small, _ = barrel_plans
     plan = small.sequence.plan
@@ -173,6 +175,7 @@ def test_plan_states_its_part_and_every_area_it_leaves_out(barrel_plans, barrel)
     assert crown and sum(lo.area_mm2 for lo in crown) > 1e6  # the default cell does not reach the crown
 
 
+@pytest.mark.slow
 def test_poses_no_tracker_station_sees_are_reported_as_outside_its_view(barrel_plans, barrel):
     plan = barrel_plans[0]
     poses = [p for r in plan.rasters for p in r.poses]
@@ -193,6 +196,7 @@ def test_measure_refuses_a_plan_made_for_another_part(tmp_path, barrel, capsys):
     assert part_identity(load_part_mesh(load_config().part)) == Plan.load(default_plan_path()).part_identity
 
 
+@pytest.mark.slow
 def test_measure_part_without_a_plan_plans_that_part_and_says_so(tmp_path, capsys):
     box = o3d.geometry.TriangleMesh.create_box(900.0, 600.0, 500.0).translate((-450.0, -300.0, 0.0))
     part = tmp_path / "box.ply"

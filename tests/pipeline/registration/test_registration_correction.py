@@ -125,6 +125,7 @@ def test_the_guard_keeps_a_closer_fit_and_rejects_a_worse_one():
     np.testing.assert_array_equal(keep_if_better(source, target, worse, 3.0), np.eye(4))
 
 
+@pytest.mark.slow
 def test_deepmerge_then_icp_on_a_pair_recovers_the_correction():
     from tandemscan.pipeline.deepmerge.register import DeepMergeRegistrar
 

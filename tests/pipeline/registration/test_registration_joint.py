@@ -102,6 +102,7 @@ def test_at_least_one_linearisation_is_asked_for():
         JointSettings(iterations=0)
 
 
+@pytest.mark.slow
 def test_the_posterior_from_a_misaligned_start_matches_the_spread_of_its_estimates():
     """Two noisy scans of one surface (0.03 mm along z), the second started 0.3 mm / 0.05 deg off (many times the
     noise), over 30 noise draws: the residuals' scale at the start is the misalignment's and weights the data that
@@ -225,6 +226,7 @@ def test_the_joint_scan_counts_the_measured_points_each_thinned_point_averages()
     assert scan.counts_at(np.array([0, 1])).shape == (2,) and JointScan(points, points).counts_at(np.array([0])) is None
 
 
+@pytest.mark.slow
 def test_points_that_average_more_measurements_weigh_more_and_the_estimate_is_tighter():
     """Scan 0's thinned points are centroids of nine measured points (a third of one point's noise), and so are
     scan 1's on one half of it; on the other half scan 1 has single points. The residuals there vary five times

@@ -174,6 +174,7 @@ def test_fpfh_ransac_finds_a_large_rotation_without_a_start():
     assert np.degrees(dr) < 3.0 and dt < 5.0
 
 
+@pytest.mark.slow
 def test_auto_recovers_an_arbitrary_pose_and_says_which_stage_won():
     T_true = from_rotvec([8.0, -6.0, 5.0], np.radians([10.0, -25.0, 30.0]))
     source, target = moved(T_true)
@@ -248,6 +249,7 @@ def test_the_jobs_icp_correction_does_not_import_torch():
     assert "tandemscan.pipeline.registration.correction" in mods and "torch" not in mods
 
 
+@pytest.mark.slow
 def test_register_icp_from_40_deg_is_refused_by_its_fit_not_returned(tmp_path, capsys):
     """From 40 deg with an overlap threshold that takes every point, the fine stage alone lands in a wrong
     minimum that still beats its start: ``register --method icp`` refuses it by the absolute criterion (its

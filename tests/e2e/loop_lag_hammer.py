@@ -1,6 +1,6 @@
-"""Child process of tests/daemon/test_daemon_loop_lag.py: hammers a daemon's REST handlers for a while.
+"""Child process of tests/e2e/test_daemon_loop_lag.py: hammers a daemon's REST handlers for a while.
 
-    python tests/daemon/loop_lag_hammer.py URL JOB_ID SECONDS
+    python tests/e2e/loop_lag_hammer.py URL JOB_ID SECONDS
 
 Cycles ``GET /v1/jobs/{id}``, ``GET /v1/jobs?limit=100``, ``GET /v1/devices`` and a replay of the event journal
 (``GET /v1/events?after=0``, read until the stream says ``connected``) as fast as the daemon answers, from its

@@ -3,7 +3,7 @@
 A daemon on the simulated cell runs the real job path (journaled runner, scan process) behind uvicorn in this
 process. Its journal already holds 100 earlier jobs, each with its plan, so that a page of 100 jobs or a replay
 of the event journal is real work: read on the loop, one page decodes about a megabyte of JSON. A child process
-(``tests/daemon/loop_lag_hammer.py``, so that the client's own work is not on this loop) cycles ``GET /v1/jobs/{id}``,
+(``tests/e2e/loop_lag_hammer.py``, so that the client's own work is not on this loop) cycles ``GET /v1/jobs/{id}``,
 ``GET /v1/jobs?limit=100``, ``GET /v1/devices`` and an event replay as fast as the daemon answers while the job
 runs; a ticker task here records how late the loop wakes it (every 5 ms).
 

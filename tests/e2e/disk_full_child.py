@@ -1,4 +1,4 @@
-"""A daemon job on a full disk, run by ``tests/daemon/test_daemon_disk_full.py`` inside ``unshare --user --map-root-user
+"""A daemon job on a full disk, run by ``tests/e2e/test_daemon_disk_full.py`` inside ``unshare --user --map-root-user
 --mount`` so that it can mount a small tmpfs as its state folder: the simulated cell (twins) on a box part, the
 trimmed default plan; the disk is filled after the first scan commits (``scan``) or once every step is committed,
 as the end-of-job export starts (``export``), and freed after the job paused; or, with no job (``events``), filled
