@@ -31,7 +31,7 @@ def outcome_counts(summary: str) -> dict[str, int]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description="Time the inner loop (make test-fast) or the whole suite.")
     parser.add_argument("--suite", action="store_true", help="the whole suite (make test), not the inner loop")
     parser.add_argument("--workers", type=int, default=2, help="pytest-xdist workers (make's TEST_WORKERS)")
     args = parser.parse_args()
