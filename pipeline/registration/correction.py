@@ -33,7 +33,12 @@ from tandemscan.pipeline.registration.joint import (
     refine_jointly,
 )
 from tandemscan.pipeline.registration.mount_unknown import MountEstimate, MountPrior
-from tandemscan.pipeline.registration.overlap import overlapping_pairs, relative_covariance, shared_cells
+from tandemscan.pipeline.registration.overlap import (
+    occupied_cells,
+    relative_covariance,
+    select_pairs,
+    shared_cells,
+)
 from tandemscan.pipeline.registration.pair_stage import (
     HeldScans,
     PairOutcome,
@@ -246,8 +251,9 @@ def _pair_corrections(
     cache: Mapping[str, PairOutcome], backend: ComputeBackend | None, scan_store: str | None,
 ) -> tuple[list[tuple[int, int, PairOutcome]], int, list[tuple[int, int]]]:
     """The outcome of every pair of the job's thinned scans ``local`` (S, mm) registered at
-    ``cfg.registered_partners`` (``overlap.overlapping_pairs``), placed in W at their poses here (only the pairs need
-    them placed: a whole part's at full resolution take about 0.9 GB, freed on return): from ``cache`` where the
+    ``cfg.registered_partners`` (``overlap.overlapping_pairs``, from each scan's grid cells in W: each scan is placed
+    in W one at a time, and only the scans of pairs left to register are kept placed, a whole part's at full
+    resolution being about 0.9 GB): from ``cache`` where the
     job registered the pair while it measured (same clouds, covariance and settings), else registered here, one unit
     a target (``pair_stage.TargetPairs``) on ``backend`` (this process's threads where None); with ``scan_store``
     the units read their scans from it by reference (``pair_stage.StoredScans``: a Dask cluster's workers), else
@@ -255,14 +261,18 @@ def _pair_corrections(
     pairs selected at ``cfg.max_partners_per_scan`` (the registered ones where the joint refinement is off), on
     all of which the report's overlap RMS is taken, registered or not: it scores the overlaps at the poses."""
     scans, voxel_mm = job.scans, job.voxel_mm
+    digesting = bool(cache) and cfg.registered_partners > 0
+
+    def placed(k: int) -> tuple[np.ndarray, bytes]:  # the grid cells and digest of scan k in W, not the cloud
+        world = transform_points(scans[k].T_W_S, local[k])
+        return occupied_cells(world, cfg.pair_cell_mm), cloud_digest(world) if digesting else b""
+
     with pair_threads() as pair_map:
-        world = pair_map(lambda k: transform_points(scans[k].T_W_S, local[k]), range(len(scans)))
-        digests = pair_map(cloud_digest, world) if cache and cfg.registered_partners else []
-    stations = [s.station for s in scans]
-    shared = shared_cells(world, cfg.pair_cell_mm)
-    selected = overlapping_pairs(world, stations, cfg.pair_cell_mm, cfg.max_partners_per_scan, shared)
-    registering = (overlapping_pairs(world, stations, cfg.pair_cell_mm, cfg.registered_partners, shared)
-                   if cfg.registered_partners else [])
+        summaries = pair_map(placed, range(len(scans)))
+    stations, digests = [s.station for s in scans], [d for _, d in summaries]
+    shared = shared_cells([c for c, _ in summaries])
+    selected = select_pairs(shared, stations, cfg.max_partners_per_scan)
+    registering = select_pairs(shared, stations, cfg.registered_partners) if cfg.registered_partners else []
     out: list[tuple[int, int, PairOutcome | None]] = []
     todo: dict[int, list[tuple[int, np.ndarray, int]]] = {}  # target -> (source, covariance, slot in out)
     hits = 0
@@ -280,8 +290,14 @@ def _pair_corrections(
 
     units = [TargetPairs(ref(i), tuple(ref(j) for j, _, _ in group), tuple(cov for _, cov, _ in group))
              for i, group in todo.items()]
-    placed = StoredScans(scan_store, voxel_mm) if scan_store is not None else HeldScans(world)
-    registered = register_units(units, placed, cfg.pairs, voxel_mm, backend or LocalBackend(), network)
+    if scan_store is not None:
+        clouds: StoredScans | HeldScans = StoredScans(scan_store, voxel_mm)
+    else:  # only the scans of the pairs left are placed here
+        needed = sorted({k for i, group in todo.items() for k in (i, *(j for j, _, _ in group))})
+        with pair_threads() as pair_map:
+            clouds = HeldScans(dict(zip(needed, pair_map(
+                lambda k: transform_points(scans[k].T_W_S, local[k]), needed), strict=True)))
+    registered = register_units(units, clouds, cfg.pairs, voxel_mm, backend or LocalBackend(), network)
     for group, outcomes in zip(todo.values(), registered, strict=True):
         for (_, _, slot), outcome in zip(group, outcomes, strict=True):
             out[slot] = (out[slot][0], out[slot][1], outcome)
@@ -386,8 +402,9 @@ def _refine_jointly(job: StitchedJob, priors: list[ScanPrior], cfg: CorrectionSe
 
     with pair_threads() as pair_map:
         thinned = pair_map(prepared, range(len(scans)))
-    world = [transform_points(s.T_W_S, j.points_S) for s, j in zip(scans, thinned, strict=True)]
-    pairs = overlapping_pairs(world, [s.station for s in scans], cfg.pair_cell_mm, cfg.joint_max_partners_per_scan)
+    cells = [occupied_cells(transform_points(s.T_W_S, j.points_S), cfg.pair_cell_mm)  # placed in W one at a time
+             for s, j in zip(scans, thinned, strict=True)]
+    pairs = select_pairs(shared_cells(cells), [s.station for s in scans], cfg.joint_max_partners_per_scan)
     found = {}
     for i, j in pairs if associations else ():
         a = associations.get(association_key(keys[i], keys[j], scans[i].T_W_S, scans[j].T_W_S,

@@ -9,6 +9,7 @@ configured or derived from the pose uncertainty of the pair: a pose error of tra
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -96,8 +97,9 @@ def overlap_at(source_mm: np.ndarray, source_tree: cKDTree, target_mm: np.ndarra
     return Overlap(np.flatnonzero(d_s < delta_mm), np.flatnonzero(d_t < delta_mm), float(delta_mm))
 
 
-def _cells(points: np.ndarray, cell_mm: float) -> np.ndarray:
-    """Sorted unique ids of the ``cell_mm`` grid cells the points occupy (one int64 per cell)."""
+def occupied_cells(points: np.ndarray, cell_mm: float) -> np.ndarray:
+    """Sorted unique ids of the ``cell_mm`` grid cells the points (world frame, mm) occupy (one int64 per cell):
+    all :func:`shared_cells` needs of a cloud."""
     keys = np.floor(points / cell_mm).astype(np.int64) + (1 << 20)  # non-negative within +-1 km at 1 mm cells
     return np.unique((keys[:, 0] << 42) | (keys[:, 1] << 21) | keys[:, 2])
 
@@ -118,13 +120,10 @@ def _check_selection(cell_mm: float, max_partners: int) -> None:
         raise OverlapError(f"cell_mm must be > 0 and max_partners >= 1, got {cell_mm}, {max_partners}")
 
 
-def shared_cells(clouds: list[np.ndarray], cell_mm: float) -> np.ndarray:
-    """``shared[i, j]``: how many cells of the ``cell_mm`` grid world-frame clouds (mm) ``i`` and ``j`` both occupy
-    (0 on the diagonal); :func:`overlapping_pairs` selects from it, once or at several ``max_partners``."""
-    if cell_mm <= 0:
-        raise OverlapError(f"cell_mm must be > 0, got {cell_mm}")
-    cells = [_cells(_cloud(c, f"cloud {i}"), cell_mm) for i, c in enumerate(clouds)]
-    if not cells:
+def shared_cells(cells: Sequence[np.ndarray]) -> np.ndarray:
+    """``shared[i, j]``: how many grid cells clouds ``i`` and ``j`` both occupy (0 on the diagonal), from each
+    cloud's :func:`occupied_cells`; :func:`overlapping_pairs` selects from it, once or at several ``max_partners``."""
+    if not len(cells):
         return np.zeros((0, 0), np.int64)
     _, column = np.unique(np.concatenate(cells), return_inverse=True)
     row = np.repeat(np.arange(len(cells)), [len(c) for c in cells])
@@ -136,20 +135,27 @@ def shared_cells(clouds: list[np.ndarray], cell_mm: float) -> np.ndarray:
 
 def overlapping_pairs(
     clouds: list[np.ndarray], stations: ArrayLike, cell_mm: float, max_partners: int,
-    shared: np.ndarray | None = None,
 ) -> list[tuple[int, int]]:
     """Pairs ``(i, j)``, ``i < j``, of world-frame clouds (mm) worth registering, in index order.
 
     Two clouds are candidates when they share a cell of the ``cell_mm`` grid. Each cloud keeps its
     ``max_partners`` candidates with the most shared cells among the clouds of its own tracker station, and
     as many among the other stations (the links that carry a coordinate transfer); a pair is kept when either
-    of its clouds keeps it. On a plan of hundreds of scans this keeps the raster neighbours and drops the
-    pairs that only touch at a corner. ``shared``: the clouds' :func:`shared_cells` where already counted.
-    :class:`PairSelector` finds a superset of these pairs as the clouds arrive one by one.
+    of its clouds keeps it (:func:`select_pairs`). On a plan of hundreds of scans this keeps the raster neighbours
+    and drops the pairs that only touch at a corner. :class:`PairSelector` finds a superset of these pairs as the
+    clouds arrive one by one.
     """
     _check_selection(cell_mm, max_partners)
+    cells = [occupied_cells(_cloud(c, f"cloud {i}"), cell_mm) for i, c in enumerate(clouds)]
+    return select_pairs(shared_cells(cells), stations, max_partners)
+
+
+def select_pairs(shared: np.ndarray, stations: ArrayLike, max_partners: int) -> list[tuple[int, int]]:
+    """:func:`overlapping_pairs` of clouds whose :func:`shared_cells` are ``shared``: each keeps its ``max_partners``
+    candidates sharing the most cells among its own tracker station and as many among the others."""
+    if max_partners < 1:
+        raise OverlapError(f"max_partners must be >= 1, got {max_partners}")
     stations = np.asarray(stations)
-    shared = shared_cells(clouds, cell_mm) if shared is None else shared
     keep = set()
     for i in range(len(shared)):
         keep.update((min(i, j), max(i, j)) for j in _best_partners(shared[i], stations, i, max_partners))
@@ -182,7 +188,7 @@ class PairSelector:
         """Take the next cloud (world frame, mm) of tracker station ``station``; returns its possible partners
         (indices of earlier clouds, ascending)."""
         cloud = _cloud(cloud_W, f"cloud {len(self)}")
-        cells = _cells(cloud, self.cell_mm)
+        cells = occupied_cells(cloud, self.cell_mm)
         n = len(self._cells)
         box = (np.floor(np.array([cloud.min(axis=0), cloud.max(axis=0)]) / self.cell_mm).astype(np.int64)
                if len(cloud) else np.array([[1, 1, 1], [0, 0, 0]], np.int64))   # an empty box meets none

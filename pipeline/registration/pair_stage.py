@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -107,9 +107,10 @@ class TargetPairs:
 
 @dataclass(frozen=True)
 class HeldScans:
-    """The scans' clouds this process holds, thinned and placed in W (mm), by :attr:`ScanRef.index`."""
+    """The scans' clouds this process holds, thinned and placed in W (mm), by :attr:`ScanRef.index` (a sequence of
+    every scan's, or a mapping of those the units name)."""
 
-    world_mm: Sequence[np.ndarray]
+    world_mm: Sequence[np.ndarray] | Mapping[int, np.ndarray]
 
     def __call__(self, ref: ScanRef) -> np.ndarray:
         return self.world_mm[ref.index]
