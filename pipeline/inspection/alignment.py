@@ -459,18 +459,32 @@ UNITS_SUSPECT = (4.0, 20.0)  # a cloud this many times larger or smaller than it
 def _fit_seen_or_not(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray, cfg: AlignmentCriteria,
                      start: str, prior_T_F_W: np.ndarray | None, seen: SeenFrom | None) -> Alignment:
     """:func:`fit_to_surface`'s fit with ``seen``, else (none, or the cloud's directions not its scanner's)
-    without it."""
-    if seen is not None:
-        try:
-            out = _fit_from(surface, p, start_T_F_W, cfg, start, prior_T_F_W, seen)
-        except AlignmentFailed:
-            out = None
-        behind = None if out is None else _behind_share(surface, p, out.T_F_W, seen, cfg.best_fit_max_distance_mm)
-        if behind is not None and behind <= BEHIND_SHARE:
-            return out
-        log.warning("the cloud's normals do not face where it was seen from (%s of its points on closed CAD faces "
-                    "behind them): aligned without them", "no fit" if behind is None else f"{100 * behind:.0f} %")
-    return _fit_from(surface, p, start_T_F_W, cfg, start, prior_T_F_W, None)
+    without it. Where the fit with ``seen`` found nothing from the start (a part given turned right round), it is
+    tried again from where the fit without lands (a thin wall's far side lies millimetres from its near one)."""
+    if seen is None:
+        return _fit_from(surface, p, start_T_F_W, cfg, start, prior_T_F_W, None)
+    out = _seen_fit(surface, p, start_T_F_W, cfg, start, prior_T_F_W, seen)
+    if out is not None:
+        return out
+    plain = _fit_from(surface, p, start_T_F_W, cfg, start, prior_T_F_W, None)
+    again = _seen_fit(surface, p, plain.T_F_W, cfg, f"{start}, refitted from its fit without its normals",
+                      prior_T_F_W, seen)
+    if again is not None:
+        return again
+    log.warning("the cloud's normals do not face where it was seen from (more than %.0f %% of its points on closed "
+                "CAD faces behind them, or no fit): aligned without them", 100 * BEHIND_SHARE)
+    return plain
+
+
+def _seen_fit(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray, cfg: AlignmentCriteria, start: str,
+              prior_T_F_W: np.ndarray | None, seen: SeenFrom) -> Alignment | None:
+    """:func:`_fit_from` with ``seen`` where it leaves at most :data:`BEHIND_SHARE` of the points near closed
+    faces behind them; None where it fails or leaves more."""
+    try:
+        out = _fit_from(surface, p, start_T_F_W, cfg, start, prior_T_F_W, seen)
+    except AlignmentFailed:
+        return None
+    return out if _behind_share(surface, p, out.T_F_W, seen, cfg.best_fit_max_distance_mm) <= BEHIND_SHARE else None
 
 
 #: a fit leaving more of its points near closed CAD faces behind them: the cloud's directions are not its scanner's
