@@ -4,7 +4,8 @@ The driver puts the chassis in CAN command mode, sends the motion command every 
 chassis stops by itself after 500 ms without one), integrates the wheel odometry into a pose in its odometry
 frame (mm, rad) and closes the loop on it in :meth:`AgvCanChassis.move_to`. Every fault (e-stop, error bits,
 motor-driver state, RC override, malformed frame, silent bus) zeroes the velocity set-point at once and is
-raised as a typed error naming the chassis.
+raised as a typed error naming the chassis. Connecting is single-flight (one lock over connect and close), and the
+background tasks never end with an exception: a lost link is latched as a fault for the supervisor, which reconnects.
 """
 
 from __future__ import annotations
@@ -27,13 +28,20 @@ log = logging.getLogger(__name__)
 # ugv_sdk protocol v2: 0 standby (RC on some firmware), 1 CAN, 2 UART; 3 RC as this DBC's chassis reports it
 CONTROL_MODES = {0: "standby", 1: "CAN", 2: "UART", 3: "RC"}
 MODE_CAN = 1
+MODE_RC = 3
 # SystemStatus.ErrorCode bits (generic; vary per model). Warnings do not stop a move.
 ERROR_BITS = {
-    0x0001: "battery fault", 0x0004: "RC signal lost", 0x0008: "motor 1 communication",
+    0x0001: "battery fault", 0x0008: "motor 1 communication",
     0x0010: "motor 2 communication", 0x0020: "motor 3 communication", 0x0040: "motor 4 communication",
     0x0100: "motor driver", 0x0200: "host communication",
 }
 WARNING_BITS = {0x0002: "battery warning"}
+# RC lost: the RC transmitter is off or out of range. A fault only while the RC has control (mode RC); in any other
+# mode (CAN above all) the transmitter may simply be off: a warning.
+RC_LOST = 0x0004
+RC_LOST_NAME = "RC signal lost"
+# The 0x311 wheel odometry: int32 counters that wrap; a delta is taken modulo 2^32, signed.
+ODOMETRY_COUNTER_MODULUS = 1 << 32
 # Host communication: the chassis has not heard a motion command (its 500 ms watchdog). True from its boot until our
 # first command arrives: a fault only once a status frame without it showed that the chassis hears us.
 HOST_COMMUNICATION = 0x0200
@@ -60,6 +68,13 @@ def bit_names(value: int, table: dict[int, str]) -> list[str]:
     return [name for bit, name in table.items() if value & bit]
 
 
+def counter_delta(new: int, old: int, modulus: int = ODOMETRY_COUNTER_MODULUS) -> int:
+    """``new - old`` of a signed counter that wraps at ``modulus`` (the shorter way round: in [-modulus/2,
+    modulus/2))."""
+    half = modulus // 2
+    return (new - old + half) % modulus - half
+
+
 class AgvCanChassis:
     """The :class:`~tandemscan.drivers.interfaces.Chassis` on a CAN bus (settings in ``ChassisConfig.can``)."""
 
@@ -74,7 +89,7 @@ class AgvCanChassis:
         # the odometry frame is F: it starts at the surveyed start pose and is kept across reconnects
         self._pose = ChassisPose(config.can.odometry_start_x_mm, config.can.odometry_start_y_mm,
                                  math.radians(config.can.odometry_start_heading_deg))
-        self._wheels: tuple[float, float] | None = None  # last wheel odometry (mm), None until the first frame
+        self._wheels: tuple[int, int] | None = None  # last wheel odometry (raw counts), None until the first frame
         self._system: dict[str, float] = {}
         self._motion: dict[str, float] = {}
         self._last_status_t = 0.0
@@ -84,35 +99,47 @@ class AgvCanChassis:
         self._warnings: dict[str, str] = {}  # what warns now, by source (the system status, each motor)
         self.last_residual_mm: float | None = None  # distance from the target (odometry) after the last move
         self._feedback = asyncio.Event()
+        self._connection = asyncio.Lock()  # one connect or close at a time: each owns the link and tasks it makes
+        self._links_opened = 0  # a move ends when the link it started on is closed (a reconnect under it)
         self.command_times: collections.deque[float] = collections.deque(maxlen=2000)  # loop time of each 0x111
 
     # ------------------------------------------------------------------ lifecycle
 
     async def connect(self) -> None:
-        """Open the bus, switch the chassis to CAN command mode and start the command heartbeat."""
-        await self.close()
+        """Open the bus, switch the chassis to CAN command mode and start the command heartbeat. A connect or close
+        called while another runs waits for it, then does its own (a reconnect never overlaps a connect)."""
+        async with self._connection:
+            await self._connect()
+
+    async def close(self) -> None:
+        """Zero the velocity, stop the heartbeat and release the bus; safe to call twice."""
+        async with self._connection:
+            await self._disconnect()
+
+    async def _connect(self) -> None:
+        await self._disconnect()
         link = CanLink(self._can.interface, self._can.channel, self._can.bitrate, self._db)
         try:
             link.open()
         except (can.CanError, OSError, ValueError) as e:
             raise NotConnected(self.name, f"cannot open CAN {self._can.interface}:{self._can.channel}: {e}") from e
         self._link, self._wheels, self._fault, self._system, self._warnings = link, None, None, {}, {}
+        self._links_opened += 1
         self._heard = False
         self._last_status_t = asyncio.get_running_loop().time()
-        self._tasks = [asyncio.create_task(self._receive(), name=f"{self.name}-rx")]
+        self._tasks = [asyncio.create_task(self._receive(link), name=f"{self.name}-rx")]
         try:
             await self._enter_can_mode()
         except BaseException as e:
-            await self.close()
+            await self._disconnect()
             if isinstance(e, DeviceError):
                 self._fault = e  # why the link is down, for the verbs called until the next connect
             raise
         self._commanding = True
-        self._tasks.append(asyncio.create_task(self._command_loop(), name=f"{self.name}-tx"))
+        self._tasks.append(asyncio.create_task(self._command_loop(link), name=f"{self.name}-tx"))
         log.info("%s: CAN command mode on %s", self.name, self._can.channel)
 
-    async def close(self) -> None:
-        """Zero the velocity, stop the heartbeat and release the bus; safe to call twice."""
+    async def _disconnect(self) -> None:
         tasks, self._tasks = self._tasks, []
         for t in tasks:
             await cancel_and_wait(t)
@@ -122,9 +149,11 @@ class AgvCanChassis:
             with contextlib.suppress(can.CanError, CanFrameError):
                 link.send("MotionCommand", LinearVelocity=0, AngularVelocity=0, LateralVelocity=0, SteeringAngle=0)
             await link.close()
+        self._wake()  # a move waiting for feedback ends now
 
     async def status(self) -> DeviceStatus:
-        if self._link is None:
+        """Disconnected until a connect has the chassis in CAN mode (while one is under way too)."""
+        if self._link is None or not self._commanding:
             return DeviceStatus(self.name, False, DeviceState.DISCONNECTED)
         if isinstance(self._fault, SafetyStop):
             state = DeviceState.STOPPED
@@ -168,6 +197,7 @@ class AgvCanChassis:
         heading until the target is reached or passed (so the residual is centred, not at the tolerance's
         edge), turn to the heading. The residual distance is kept in ``last_residual_mm`` and logged."""
         self._require_link()
+        link_id = self._links_opened
         loop = asyncio.get_running_loop()
         timeout = self._cfg.timeout_s if timeout_s is None else timeout_s
         deadline = loop.time() + timeout
@@ -178,8 +208,7 @@ class AgvCanChassis:
         tol = self._can.position_tolerance_mm
         try:
             while True:
-                if self._fault is not None:
-                    raise self._fault
+                self._raise_if_interrupted(link_id)
                 pose = self._pose
                 dx, dy = target.x_mm - pose.x_mm, target.y_mm - pose.y_mm
                 dist = math.hypot(dx, dy)
@@ -198,7 +227,7 @@ class AgvCanChassis:
                 else:
                     err = wrap_angle(target.heading_rad - pose.heading_rad)
                     if abs(err) <= math.radians(self._can.heading_tolerance_deg):
-                        rest = await self._come_to_rest()
+                        rest = await self._come_to_rest(link_id)
                         if self._arrived(rest, target):
                             self.last_residual_mm = math.hypot(target.x_mm - rest.x_mm, target.y_mm - rest.y_mm)
                             log.info("%s: at %s, %.2f mm from the target", self.name, rest, self.last_residual_mm)
@@ -224,14 +253,20 @@ class AgvCanChassis:
         return (abs(self._motion.get("LinearVelocity", 0.0)) <= self._can.standstill_mm_s
                 and abs(self._motion.get("AngularVelocity", 0.0)) <= math.radians(self._can.standstill_deg_s))
 
-    async def _come_to_rest(self) -> ChassisPose:
+    def _raise_if_interrupted(self, link_id: int) -> None:
+        """Raise the latched fault, or NotConnected when link ``link_id`` (the move's) was closed since."""
+        if self._fault is not None:
+            raise self._fault
+        if self._link is None or self._links_opened != link_id:
+            raise NotConnected(self.name, "the link was closed during the move")
+
+    async def _come_to_rest(self, link_id: int) -> ChassisPose:
         """Zero the set-point now and wait until the chassis reports standstill; the pose at rest."""
         self._zero_now()
         loop = asyncio.get_running_loop()
         deadline = loop.time() + self._can.feedback_timeout_s
         while not self._at_rest():
-            if self._fault is not None:
-                raise self._fault
+            self._raise_if_interrupted(link_id)
             if loop.time() > deadline:
                 raise DeviceTimeout(self.name, f"chassis still moving {self._can.feedback_timeout_s} s after stop")
             await self._next_feedback(self._can.feedback_timeout_s)
@@ -297,7 +332,7 @@ class AgvCanChassis:
         self._setpoint = (0.0, 0.0)
         if self._link is not None:
             with contextlib.suppress(can.CanError, CanFrameError):
-                self._send_setpoint()
+                self._send_setpoint(self._link)
 
     def _latch(self, error: DeviceError) -> None:
         """Record the first fault, zero the velocity at once and wake a waiting move."""
@@ -311,20 +346,20 @@ class AgvCanChassis:
         self._feedback.set()
         self._feedback = asyncio.Event()
 
-    def _send_setpoint(self) -> None:
+    def _send_setpoint(self, link: CanLink) -> None:
         v, w = self._setpoint
-        assert self._link is not None
-        self._link.send("MotionCommand", LinearVelocity=round(v), AngularVelocity=round(w, 3),
-                        LateralVelocity=0, SteeringAngle=0)
+        link.send("MotionCommand", LinearVelocity=round(v), AngularVelocity=round(w, 3),
+                  LateralVelocity=0, SteeringAngle=0)
 
-    async def _command_loop(self) -> None:
-        """The heartbeat: the motion command every period on an absolute schedule, and the feedback watchdog."""
+    async def _command_loop(self, link: CanLink) -> None:
+        """The heartbeat on ``link`` (this connection's; closed under it, a send fails and latches NotConnected):
+        the motion command every period on an absolute schedule, and the feedback watchdog."""
         loop = asyncio.get_running_loop()
         period = self._can.command_period_s
         next_t = loop.time()
         while True:
             try:
-                self._send_setpoint()
+                self._send_setpoint(link)
             except (can.CanError, CanFrameError) as e:
                 self._latch(NotConnected(self.name, f"cannot send on CAN: {e}"))
             self.command_times.append(loop.time())
@@ -337,9 +372,7 @@ class AgvCanChassis:
                 next_t = now
             await asyncio.sleep(max(0.0, next_t - now))
 
-    async def _receive(self) -> None:
-        assert self._link is not None
-        link = self._link
+    async def _receive(self, link: CanLink) -> None:
         while True:
             try:
                 name, sig, _ = await link.recv()
@@ -354,8 +387,7 @@ class AgvCanChassis:
             elif name == "MotionState":
                 self._motion = sig
             elif name == "Odometry":
-                scale = self._can.odometry_mm_per_count
-                self._on_odometry(sig["LeftWheelOdometry"] * scale, sig["RightWheelOdometry"] * scale)
+                self._on_odometry(int(sig["LeftWheelOdometry"]), int(sig["RightWheelOdometry"]))
                 self._wake()
             elif name.startswith("MotorLowRate"):
                 self._on_driver_state(name[-1], int(sig["DriverState"]))
@@ -367,13 +399,17 @@ class AgvCanChassis:
         self._heard = self._heard or not code & HOST_COMMUNICATION
         not_yet = 0 if self._heard else HOST_COMMUNICATION  # no command heard yet: no fault of the link
         errors = bit_names(code & ~not_yet, ERROR_BITS)
+        rc_lost = bool(code & RC_LOST)
+        if rc_lost and mode == MODE_RC:
+            errors.append(RC_LOST_NAME)
         if state == 1:
             self._latch(SafetyStop(self.name, "chassis emergency stop"))
-        elif errors or (state == 2 and not code & not_yet):
+        elif errors or (state == 2 and not code & (not_yet | RC_LOST)):
             self._latch(DeviceFault(self.name, f"chassis error 0x{code:04X}: {', '.join(errors) or 'exception'}"))
         elif mode != MODE_CAN and self._commanding:
             self._latch(DeviceFault(self.name, f"chassis left CAN mode ({CONTROL_MODES.get(mode, mode)} has control)"))
-        self._warn("system", ", ".join(bit_names(code, WARNING_BITS)))
+        warnings = bit_names(code, WARNING_BITS) + ([RC_LOST_NAME] if rc_lost and mode != MODE_RC else [])
+        self._warn("system", ", ".join(warnings))
 
     def _on_driver_state(self, motor: str, state: int) -> None:
         """A motor driver's state bits: a fault latches, a warning is kept and logged."""
@@ -393,13 +429,15 @@ class AgvCanChassis:
         elif self._warnings.pop(source, None) is not None:
             log.info("%s: %s warning cleared", self.name, source)
 
-    def _on_odometry(self, left_mm: float, right_mm: float) -> None:
-        """Dead-reckon the wheel travel into the pose (midpoint rule; effective skid-steer track)."""
+    def _on_odometry(self, left: int, right: int) -> None:
+        """Dead-reckon the wheel travel (raw counts; a counter that wrapped counts on) into the pose (midpoint rule;
+        effective skid-steer track)."""
         if self._wheels is not None:
-            dl, dr = left_mm - self._wheels[0], right_mm - self._wheels[1]
+            scale = self._can.odometry_mm_per_count
+            dl, dr = counter_delta(left, self._wheels[0]) * scale, counter_delta(right, self._wheels[1]) * scale
             ds, dth = (dl + dr) / 2, (dr - dl) / self._can.odometry_track_mm
             p = self._pose
             mid = p.heading_rad + dth / 2
             self._pose = ChassisPose(p.x_mm + ds * math.cos(mid), p.y_mm + ds * math.sin(mid),
                                      wrap_angle(p.heading_rad + dth))
-        self._wheels = (left_mm, right_mm)
+        self._wheels = (left, right)

@@ -149,6 +149,9 @@ class HilConfig(_Strict):
     arm_status_bytes: int = Field(0, ge=0, description="status objects padded to about this size (real: 5-9 kB)")
     chassis_driver_state_flags: int = Field(0, ge=0, le=0xC0, description="motor DriverState in normal running "
                                                                              "(0x40 driver enabled)")
+    chassis_odometry_start_counts: int = Field(
+        0, ge=-(1 << 31), lt=1 << 31,
+        description="the 0x311 odometry counters at boot (raw int32; near 2^31 they wrap soon)")
     tracker_requires_start: bool = Field(False, description="the stream starts only after tracker.stream.start_command")
 
     @field_validator("chassis_driver_state_flags")

@@ -84,6 +84,7 @@ class HilEmulators:
                                           time_scale=hil.chassis_time_scale, seed=cfg.sim.seed,
                                           start_pose=start_pose_of(world, role), on_pose=self._chassis_mover(role),
                                           driver_state_flags=hil.chassis_driver_state_flags,
+                                          odometry_start_counts=hil.chassis_odometry_start_counts,
                                           truth=world.chassis[role])
                 await chassis.start()
                 self.running[role] = chassis

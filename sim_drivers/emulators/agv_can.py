@@ -8,7 +8,8 @@ away from what the wheel odometry says. Faults are injected through :class:`Chas
 
 As a real chassis (ugv_sdk protocol v2), every motor driver may report state bits that are not faults in normal
 running (``driver_state_flags``, e.g. 0x40 "driver enabled"), and the odometry frame carries raw counts of
-``odometry_mm_per_count`` mm.
+``odometry_mm_per_count`` mm, int32 counters that wrap (``odometry_start_counts`` starts them anywhere, e.g. near
+the limit). Error 0x0004 (RC lost) stops the chassis only while the RC has control, not in CAN mode.
 """
 
 from __future__ import annotations
@@ -33,6 +34,13 @@ log = logging.getLogger(__name__)
 
 MAX_LINEAR_MM_S = 1500.0
 MAX_ANGULAR_RAD_S = 2.5
+RC_LOST = 0x0004
+NOT_STOPPING_ERRORS = 0x0002 | RC_LOST  # battery warning; RC lost outside RC mode (the transmitter may be off)
+
+
+def int32_wrapped(value: int) -> int:
+    """``value`` as an int32 counter shows it (wrapped modulo 2^32 into [-2^31, 2^31))."""
+    return (value + (1 << 31)) % (1 << 32) - (1 << 31)
 
 
 @dataclass
@@ -106,6 +114,7 @@ class ChassisEmulator:
         standstill_speed_mm_s: float = 0.0,
         truth: ChassisTruth | None = None,
         reports_host_timeout: bool = False,
+        odometry_start_counts: int = 0,
     ):
         """``on_pose(true pose, moving)`` is called every period (e.g. to move the simulated world's chassis);
         ``driver_state_flags``: DriverState bits every motor reports in normal running (0x40, 0x80); ``slip``: how
@@ -115,11 +124,13 @@ class ChassisEmulator:
         ``truth``: the simulated world's chassis, whose slip model, slip stream and odometry scale error the body
         takes (the hardware-in-the-loop cell: the world keeps them across a restart) in place of ``slip`` and draws
         from ``seed``; ``reports_host_timeout``: the system status reports error 0x0200 (host communication, vehicle
-        state "exception") while no motion command came for ``watchdog_s``, from boot until the first one too."""
+        state "exception") while no motion command came for ``watchdog_s``, from boot until the first one too;
+        ``odometry_start_counts``: both odometry counters' value at boot (raw counts; near 2^31 they wrap soon)."""
         self.driver_state_flags = driver_state_flags
         self.reports_host_timeout = reports_host_timeout
         self.standstill_speed_mm_s = standstill_speed_mm_s
         self.odometry_mm_per_count = odometry_mm_per_count
+        self.odometry_start_counts = odometry_start_counts
         self.config = config
         self.faults = ChassisFaults()
         self.period_s, self.watchdog_s, self.time_scale = period_s, watchdog_s, time_scale
@@ -178,7 +189,8 @@ class ChassisEmulator:
     def _effective_velocity(self, now: float) -> tuple[float, float]:
         self.watchdog_tripped = now - self._last_command_t > self.watchdog_s
         mode = 3 if self.faults.rc_override else self.mode
-        if mode != 1 or self.faults.estop or self.faults.error_code & ~0x0002 or self.faults.driver_state & ~0x01:
+        if mode != 1 or self.faults.estop or self.faults.error_code & ~NOT_STOPPING_ERRORS \
+                or self.faults.driver_state & ~0x01:
             return 0.0, 0.0
         if self.watchdog_tripped:
             return 0.0, 0.0
@@ -208,21 +220,24 @@ class ChassisEmulator:
             self._link.send_raw(self._link.db.get_message_by_name("SystemStatus").frame_id, b"\x00\x01\x00")
         else:
             code = self.faults.error_code | (0x0200 if self.reports_host_timeout and self.watchdog_tripped else 0)
-            state = 1 if self.faults.estop else (2 if code & ~0x0002 else 0)
+            state = 1 if self.faults.estop else (2 if code & ~NOT_STOPPING_ERRORS else 0)
             mode = 3 if self.faults.rc_override else self.mode
             self._maybe_send("SystemStatus", VehicleState=state, ControlMode=mode, BatteryVoltage=25.2,
                              ErrorCode=code, Counter=self._counter)
         v, w = self.velocity if self.velocity != (0.0, 0.0) else (self.standstill_speed_mm_s, 0.0)
         self._maybe_send("MotionState", LinearVelocity=round(v), AngularVelocity=round(w, 3),
                          LateralVelocity=0, SteeringAngle=0)
-        self._maybe_send("Odometry", LeftWheelOdometry=round(self.body.left_mm / self.odometry_mm_per_count),
-                         RightWheelOdometry=round(self.body.right_mm / self.odometry_mm_per_count))
+        self._maybe_send("Odometry", LeftWheelOdometry=self._odometry_counts(self.body.left_mm),
+                         RightWheelOdometry=self._odometry_counts(self.body.right_mm))
         if self._counter % 5 == 0:
             for i in range(1, 5):
                 faults = self.faults.driver_state if i == 1 else 0
                 volts = 21.5 if faults & 0x01 else 25.0  # 0x01: supply voltage low, a warning; it drives on
                 self._maybe_send(f"MotorLowRate{i}", DriverVoltage=volts, DriverTemperature=35, MotorTemperature=30,
                                  DriverState=faults | self.driver_state_flags)
+
+    def _odometry_counts(self, wheel_mm: float) -> int:
+        return int32_wrapped(self.odometry_start_counts + round(wheel_mm / self.odometry_mm_per_count))
 
     def _maybe_send(self, name: str, **signals: float) -> None:
         if self.faults.drop_feedback_fraction and self.rng.random() < self.faults.drop_feedback_fraction:

@@ -10,7 +10,8 @@ import uuid
 import numpy as np
 import pytest
 from tandemscan.config.models import ChassisCanConfig, ChassisConfig
-from tandemscan.drivers import Chassis, ChassisPose, DeviceFault, DeviceTimeout, NotConnected, SafetyStop
+from tandemscan.daemon.cell.supervisor import Supervisor
+from tandemscan.drivers import Chassis, ChassisPose, DeviceError, DeviceFault, DeviceTimeout, NotConnected, SafetyStop
 from tandemscan.drivers.agv_can import AgvCanChassis
 from tandemscan.drivers.can_link import load_dbc
 from tandemscan.sim_drivers.emulators.agv_can import ChassisEmulator
@@ -336,6 +337,108 @@ async def test_a_chassis_reporting_no_host_until_commanded_connects_and_a_lapse_
         assert "host communication" in (await drv.status()).detail["fault"]
         with pytest.raises(DeviceFault, match="host communication"):
             await drv.move_to(ChassisPose(0.0, 0.0, 0.0))
+    finally:
+        await drv.close()
+        await emu.stop()
+
+
+# ---------------------------------------------------------------- a lost link, RC lost, odometry wrap
+
+
+@pytest.fixture
+async def created_tasks():
+    """Every task the running loop creates during the test (to see how each one ended)."""
+    loop = asyncio.get_running_loop()
+    created: list[asyncio.Task] = []
+    previous = loop.get_task_factory()
+
+    def recording(loop, coro, **kw):
+        task = asyncio.Task(coro, loop=loop, **kw)
+        created.append(task)
+        return task
+
+    loop.set_task_factory(recording)
+    yield created
+    loop.set_task_factory(previous)
+
+
+async def test_link_drops_during_commands_and_overlapping_connects_recover_and_kill_no_task(created_tasks):
+    """The emulated link drops (the chassis silent and deaf) again and again while moves and the heartbeat send,
+    while the supervisor reconnects and while further connects overlap it (a reconnect started beside a connect
+    in progress). A move ends with the link it started on; no driver or supervisor task ends with an exception (a
+    heartbeat of one connect running on as another closed the link died with AssertionError, or ran on orphaned);
+    the supervisor sees the chassis down and, once the link is back, up again, and it moves."""
+    channel = f"agv-{uuid.uuid4().hex[:8]}"
+    cfg = chassis_config(channel, feedback_timeout_s=0.2)
+    emu = ChassisEmulator(cfg, channel, time_scale=0.1, seed=3)
+    await emu.start()
+    drv = AgvCanChassis(cfg, name="measure_chassis")
+    sup = Supervisor([drv], {}, None, health_period_s=0.05, reconnect_initial_s=0.05, reconnect_max_s=0.1)
+    moved: list[ChassisPose | BaseException] = []
+    connected: list[BaseException | None] = []
+    try:
+        await sup.start()
+        await sup.wait_connected(2.0)
+        for i in range(4):
+            moves = [asyncio.create_task(drv.move_to(ChassisPose(3000.0, 0.0, 0.0), timeout_s=2.0))]
+            connects = [asyncio.create_task(drv.connect()) for _ in range(2)]
+            await asyncio.sleep(0.03 * i)  # the link drops at another point of the connects each round
+            emu.faults.silent = emu.faults.ignore_commands = True
+            await wait_until(lambda: not sup.health["measure_chassis"].up)  # a fault, or no connection
+            emu.faults.silent = emu.faults.ignore_commands = False
+            moved += await asyncio.gather(*moves, return_exceptions=True)
+            connected += await asyncio.gather(*connects, return_exceptions=True)
+        health = sup.health["measure_chassis"]
+        await wait_until(lambda: health.up and health.next_retry_s is None, 5.0)  # reconnected, none pending
+        assert health.reconnects >= 1
+        pose = await drv.move_to(ChassisPose(100.0, 0.0, 0.0))
+        assert math.hypot(pose.x_mm - 100.0, pose.y_mm) <= 5.0
+    finally:
+        await sup.close()
+        await emu.stop()
+    assert all(isinstance(m, DeviceError) for m in moved), moved  # a move never runs on across a reconnect
+    assert all(c is None or isinstance(c, DeviceError) for c in connected), connected
+    mine = [t for t in created_tasks if t.get_name().startswith(("measure_chassis-", "reconnect-", "supervisor-"))]
+    assert {t.get_name() for t in mine} >= {"measure_chassis-rx", "measure_chassis-tx", "reconnect-measure_chassis"}
+    assert all(t.done() for t in mine), [t.get_name() for t in mine if not t.done()]
+    died = [(t.get_name(), t.exception()) for t in mine if not t.cancelled() and t.exception() is not None]
+    assert not died
+
+
+async def test_rc_lost_in_can_mode_is_a_warning_that_drives_on(emulator, chassis):
+    """Error 0x0004 (RC lost): in CAN mode the transmitter may simply be off; the move goes on and the status lists
+    the warning, cleared when the bit goes."""
+    emulator.faults.error_code = 0x0004
+    pose = await chassis.move_to(ChassisPose(200.0, 0.0, 0.0))
+    assert abs(pose.x_mm - 200.0) <= 5.0
+    status = await chassis.status()
+    assert status.state == "idle" and status.detail["warnings"] == ["RC signal lost"]
+    emulator.faults.error_code = 0
+    await wait_until(lambda: not chassis._warnings)
+
+
+async def test_rc_lost_while_the_rc_has_control_is_a_fault(emulator, chassis):
+    emulator.faults.rc_override = True
+    emulator.faults.error_code = 0x0004
+    with pytest.raises(DeviceFault, match=r"0x0004: RC signal lost"):
+        await chassis.move_to(ChassisPose(200.0, 0.0, 0.0))
+    assert (await chassis.status()).state == "fault"
+
+
+@pytest.mark.parametrize(("start_counts", "target_x_mm"), [(2**31 - 100, 300.0), (-(2**31) + 100, -300.0)])
+async def test_odometry_counters_wrapping_at_2_pow_31_count_on(start_counts, target_x_mm):
+    """The int32 wheel counters start 100 counts from their limit and wrap during the drive (forwards past +2^31,
+    backwards past -2^31): the pose counts on across the wrap, and the body went where the odometry says."""
+    channel = f"agv-{uuid.uuid4().hex[:8]}"
+    emu = ChassisEmulator(chassis_config(channel), channel, time_scale=0.1, seed=3, odometry_start_counts=start_counts)
+    await emu.start()
+    drv = AgvCanChassis(chassis_config(channel))
+    try:
+        await drv.connect()
+        pose = await drv.move_to(ChassisPose(target_x_mm, 0.0, 0.0), timeout_s=5.0)
+        assert math.hypot(pose.x_mm - target_x_mm, pose.y_mm) <= 5.0
+        assert abs(emu.true_pose.x_mm - target_x_mm) < 30.0
+        assert abs(drv._wheels[0] - start_counts) > 2**31  # the counters did wrap
     finally:
         await drv.close()
         await emu.stop()
