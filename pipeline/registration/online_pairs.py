@@ -121,10 +121,19 @@ class OnlinePairs:
         if not self.enabled or len(points_S) == 0:
             return 0
         scan = StitchedScan(np.empty((0, 3)), np.asarray(T_W_S, float), np.asarray(covariance, float), int(station))
+        partners = [] if self.selector is None else self._queue_pairs(points_S, scan, transfers)
+        if self.cfg.joint:
+            self._prepare_joint(points_S, scan.T_W_S, scan.station)
+        return len(partners)
+
+    def _queue_pairs(self, points_S: np.ndarray, scan: StitchedScan, transfers: Sequence[TransferPrior]
+                     ) -> list[int]:
+        """Place the scan (thinned, in W), select its partners and queue the registration of its pairs; returns
+        the partners."""
         world = transform_points(scan.T_W_S, voxel_downsample(np.asarray(points_S, float), self.voxel_mm))
         new = OnlineScan(world, cloud_digest(world), scan)
         with self._shared:
-            partners = self.selector.add(world, scan.station) if self.selector is not None else []
+            partners = self.selector.add(world, scan.station)
             self.scans.append(new)
         j = len(self.scans) - 1
         for i in partners:
@@ -133,10 +142,8 @@ class OnlinePairs:
             key = pair_key(old.digest, new.digest, cov, self.cfg.pairs)
             if key not in self.outcomes and key not in self._queued:
                 self._queued[key] = self._threads().submit(self._register, i, j, cov)
-        if self.cfg.joint:
-            self._prepare_joint(points_S, scan.T_W_S, scan.station)
         log.debug("online pairs: scan %d, %d partners", j, len(partners))
-        return len(partners)
+        return partners
 
     def _threads(self) -> ThreadPoolExecutor:
         if self._pool is None:
