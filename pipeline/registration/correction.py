@@ -417,7 +417,9 @@ def _refine_jointly(job: StitchedJob, priors: list[ScanPrior], cfg: CorrectionSe
 
 def _joint_report(joint: JointResult, stations: list[int]) -> dict:
     """Figures of the joint refinement; per tracker station the mean 1-sigma (mm) of the scan origins along the
-    world axes, a priori (tracker and transfers) and a posteriori (the realised counterpart of the bound)."""
+    world axes, a priori (tracker and transfers) and a posteriori (the realised counterpart of the bound); per
+    pair of tracker stations the factor the posterior counts their pairs' noise information at (``joint``
+    ``_dispersions``)."""
     st = np.asarray(stations)
 
     def per_station(cov: np.ndarray) -> dict:
@@ -429,5 +431,6 @@ def _joint_report(joint: JointResult, stations: list[int]) -> dict:
             "pairs_associated_anew": joint.pairs_associated_anew,
             "rms_mm_before": round(joint.rms_mm_before, 5),
             "rms_mm_after": round(joint.rms_mm_after, 5),
+            "dispersion_per_station_pair": {k: round(v, 3) for k, v in joint.dispersion.items()},
             "sigma_xyz_mm_per_station": {"prior": per_station(joint.prior_covariances),
                                          "posterior": per_station(joint.covariances)}}

@@ -80,6 +80,12 @@ MIN_NORMAL_COSINE = float(np.cos(np.radians(5.0)))
 #: is taken as at least this: a grazing pair counts at most ten times a head-on one (each cosine 1, sum 2).
 MIN_RAY_COSINES_SQ = 0.2
 
+#: a group of pairs tests its dispersion (:func:`_dispersions`) only where it leaves at least this many degrees of
+#: freedom of its residuals' rigid-motion chi-square to the test: a chi-square of 30 scatters by 26 % about its
+#: mean, and with fewer the factor would be mostly its own noise (the band plan's pairs across two stations,
+#: four pairs, leave about 18; the whole part's groups hundreds)
+MIN_REDUNDANCY = 30.0
+
 #: a robust scale (mm) never below this (0.1 um, far below any scanner noise): noiseless data would otherwise
 #: weight every point without bound and make the normal equations singular in floating point
 _MIN_SIGMA_MM = 1e-4
@@ -183,6 +189,9 @@ class JointResult:
     noise_sigma_mm: float
     pairs_associated_anew: int
     pose_covariance: PoseCovariance | None = None  # the posterior of every scan's error jointly (its correlations)
+    #: per pair of tracker stations ("2-3"), the factor its pairs' noise information is counted at in the
+    #: posterior (:func:`_dispersions`; 1 where the pairs scatter as their points' independent noise says)
+    dispersion: Mapping[str, float] = dataclasses.field(default_factory=dict)
 
 
 def _adjoint_blocks(R: np.ndarray) -> np.ndarray:
@@ -200,7 +209,7 @@ class _Model:
         n = self.n = len(priors)
         self.P0 = np.stack([np.asarray(p.T_W_S, float) for p in priors])
         self.origins = self.P0[:, :3, 3]
-        stations = np.array([p.station for p in priors])
+        stations = self.stations = np.array([p.station for p in priors])
         known = {t.station for t in transfers}
         if transfers and (len(known) != len(transfers) or min(known) <= stations.min()
                           or not set(stations) - {stations.min()} <= known):
@@ -588,20 +597,23 @@ def _refine(scans: Sequence[JointScan], model: _Model, pairs: Sequence[tuple[int
     r_fin, w_fin = _residuals_at(scans, poses, kept, pair_map)
     rms_after = float(np.sqrt(np.mean(r_fin**2))) if len(r_fin) else float("nan")
     noise_sigma = settings.sigma_mm or _robust_sigma(w_fin)
-    H_theta = H_theta.toarray()                     # the last linearisation's normal matrix
+    H_inv = np.linalg.inv(H_theta.toarray())        # the last linearisation's normal matrix, inverted
     ratio = (noise_sigma / sigma) ** 2
-    cov_theta = _posterior_covariance(H_theta, H_prior + ratio * (model.A.T @ N @ model.A))
+    cov_theta = _posterior_covariance(H_inv, H_prior + ratio * (model.A.T @ N.matrix() @ model.A))
+    factors, dispersion = _dispersions(model, scans, poses, kept, noise_sigma, cov_theta, pair_map)
+    if np.any(factors > 1.0):
+        cov_theta = _posterior_covariance(H_inv, H_prior + ratio * (model.A.T @ N.matrix(factors) @ model.A))
     mount = None
     if model.L is not None:   # the data's information under their noise at the refined poses, plus the priors
         P = H_prior.toarray()
-        mount = _mount_estimate(model, (H_theta - P) / ratio + P, cov_theta, theta)
+        mount = _mount_estimate(model, (H_theta.toarray() - P) / ratio + P, cov_theta, theta)
     prior_cov = model.scan_covariances(model.prior_covariance.toarray())
     log.info("joint refinement: %d scans, %d pairs, %d points, %d iterations, %d pairs associated anew; sigma "
              "%.4f mm (%.4f mm at the refined poses), RMS %.4f -> %.4f mm", model.n, used, n_corr, it, anew, sigma,
              noise_sigma, rms_before, rms_after)
     return JointResult([T for T in poses], model.scan_covariances(cov_theta), prior_cov, mount, it, used, n_corr,
                        sigma, rms_before, rms_after, noise_sigma, anew,
-                       model.pose_covariance(cov_theta, "joint refinement posterior"))
+                       model.pose_covariance(cov_theta, "joint refinement posterior"), dispersion)
 
 
 def chain_covariance(priors: Sequence[ScanPrior], transfers: Sequence[TransferPrior],
@@ -612,29 +624,96 @@ def chain_covariance(priors: Sequence[ScanPrior], transfers: Sequence[TransferPr
     return model.pose_covariance(model.prior_covariance.toarray(), "tracker chain prior")
 
 
-def _posterior_covariance(H_theta: np.ndarray, information: sparse.csr_matrix) -> np.ndarray:
-    """The covariance of the estimate ``theta`` (dense) from the normal matrix it was solved with, ``H_theta`` (data
-    ``D`` + prior ``P``, the data weighted with a sigma taken at the last linearisation's poses: with one
+def _posterior_covariance(H_inv: np.ndarray, information: sparse.csr_matrix) -> np.ndarray:
+    """The covariance of the estimate ``theta`` (dense) from the inverse ``H_inv`` of the normal matrix it was solved
+    with (data ``D`` + prior ``P``, the data weighted with a sigma taken at the last linearisation's poses: with one
     linearisation the start's, where the residuals also hold the start's misalignment), and the ``information``
-    its errors carry (``P`` + the data's under their noise at the refined poses, :func:`_data_system`): the
-    estimate's error is ``-H^-1 (P theta_true + D-weighted noise)``, its covariance ``H^-1 information H^-1``
-    (``H^-1`` where the two agree)."""
-    cov = np.linalg.inv(H_theta)
-    return cov @ information.toarray() @ cov     # dense: a sparse-dense product runs on one core, far slower
+    its errors carry (``P`` + the data's under their noise at the refined poses, :func:`_data_system`, each pair's
+    counted at its group's dispersion, :func:`_dispersions`): the estimate's error is ``-H^-1 (P theta_true +
+    D-weighted noise)``, its covariance ``H^-1 information H^-1`` (``H^-1`` where the two agree)."""
+    return H_inv @ information.toarray() @ H_inv   # dense: a sparse-dense product runs on one core, far slower
+
+
+def _dispersions(model: _Model, scans: Sequence[JointScan], poses: np.ndarray, kept: list, sigma: float,
+                 cov_theta: np.ndarray, pair_map: PairMap) -> tuple[np.ndarray, dict[str, float]]:
+    """How much more the pairs' residuals scatter than their points' independent noise (``sigma``, mm, two points
+    head-on; :func:`ray_variances`) says, pooled over the pairs of the same two tracker stations: per pair of
+    ``kept`` its group's factor (at least 1), and the factors by group ("2-3").
+
+    A pair's residuals at the refined ``poses``, whitened, projected on the directions a motion of scan j relative
+    to scan i moves them (:meth:`_Pair.normal_equations`, rank ``r``, 6 but where the overlap slides) have a
+    chi-square of about ``r - tr(K C)`` if its points err independently (``K`` the pair's information in both
+    scans' errors, ``C`` their posterior under that noise, ``cov_theta``: what the fit took up; so measured on
+    noise alone, whatever the pairs' noise shares, :func:`noise_shares`). An error the pair's points share
+    (the thinning's voxel grid, the normals', the correspondences found at misaligned starts) adds to it and is
+    not averaged away by the pair's thousands of points, so the group's information is counted at the pooled
+    ratio instead (a variance component of the group, docs/correction.md, "Pairs that err together"); never
+    below 1, the points' own noise being measured by ``sigma`` already, and 1 where the group's pairs leave less
+    than :data:`MIN_REDUNDANCY` of their chi-square to test (a pair that alone places a scan leaves none)."""
+    if not kept:
+        return np.ones(0), {}
+
+    def test(pm: tuple[_Pair, _Match]) -> tuple[float, float]:
+        p, m = pm
+        at = p.at(scans, poses, m)
+        w = 1.0 / (sigma**2 * at.variance)
+        K, g, _ = p.normal_equations(scans, poses, model.origins, at, w, np.ones(len(w)))
+        vals, vecs = np.linalg.eigh(K[:6, :6])   # the residuals depend on scan j's motion relative to scan i's
+        seen = vals > vals.max() * 1e-9
+        q = float(np.sum((vecs[:, seen].T @ g[:6]) ** 2 / vals[seen]))
+        rows = model.A[np.r_[np.arange(6) + 6 * p.j, np.arange(6) + 6 * p.i]]
+        cols = np.unique(rows.indices)
+        Ap = rows[:, cols].toarray()
+        return q, float(np.count_nonzero(seen)) - float(np.sum(K * (Ap @ cov_theta[np.ix_(cols, cols)] @ Ap.T)))
+
+    tests = np.array(pair_map(test, kept))
+    st = model.stations
+    group = np.array([f"{min(st[p.i], st[p.j])}-{max(st[p.i], st[p.j])}" for p, _ in kept], dtype=object)
+    q, free = ({str(g): float(tests[group == g, k].sum()) for g in sorted(set(group))} for k in (0, 1))
+    factor = {g: max(1.0, q[g] / free[g]) if free[g] >= MIN_REDUNDANCY else 1.0 for g in q}
+    log.debug("joint refinement: pairs' dispersion per pair of tracker stations %s", factor)
+    return np.array([factor[g] for g in group]), factor
+
+
+@dataclass(frozen=True)
+class _NoiseBlocks:
+    """Each pair's normal matrix (12x12 in ``(e_j, e_i)``, world axes) with its rows' weights times their Huber
+    factors once more: the noise's share of the information an estimate weighted by ``H_e`` carries
+    (:func:`_data_system`), for the ``n`` scans."""
+
+    pairs: list[_Pair]
+    blocks: list[np.ndarray]
+    n: int
+
+    def matrix(self, factors: np.ndarray | None = None) -> sparse.csr_matrix:
+        """``N_e`` (6n x 6n, sparse): the blocks summed, each times its pair's ``factors`` (None: 1 each)."""
+        f = np.ones(len(self.blocks)) if factors is None else factors
+        return _assembled(self.n, self.pairs, [k * B for k, B in zip(f, self.blocks, strict=True)])
+
+
+def _assembled(n: int, pairs: Sequence[_Pair], blocks: Sequence[np.ndarray]) -> sparse.csr_matrix:
+    """The 12x12 ``blocks`` of ``pairs`` (in ``(e_j, e_i)``) summed into one sparse 6n x 6n matrix."""
+    if not blocks:
+        return sparse.csr_matrix((6 * n, 6 * n))
+    rows, cols = [], []
+    for p in pairs:
+        idx = np.r_[np.arange(6) + 6 * p.j, np.arange(6) + 6 * p.i]
+        r, c = np.meshgrid(idx, idx, indexing="ij")
+        rows.append(r.ravel())
+        cols.append(c.ravel())
+    values = np.concatenate([B.ravel() for B in blocks])
+    return sparse.csr_matrix((values, (np.concatenate(rows), np.concatenate(cols))), shape=(6 * n, 6 * n))
 
 
 def _data_system(model: _Model, scans: Sequence[JointScan], poses: np.ndarray, kept: list, sigma: float,
-                 huber_mm: float, pair_map: PairMap) -> tuple[sparse.csr_matrix, np.ndarray, sparse.csr_matrix]:
+                 huber_mm: float, pair_map: PairMap) -> tuple[sparse.csr_matrix, np.ndarray, _NoiseBlocks]:
     """The data's normal equations in the stacked corrections ``e``, each residual weighted by ``sigma`` (mm, two
     points head-on; :func:`_information`) and Huber-cut beyond ``huber_mm``: sparse ``H_e`` (6n x 6n) and ``b_e``, and
-    ``N_e``, the normal matrix of the same rows weighted by their Huber factor once more. With the residuals'
-    noise ``ratio`` times the variance ``sigma^2`` weighs them by, the noise adds ``ratio N_e`` (not ``H_e``) to the
-    information an estimate weighted by ``H_e`` carries (:func:`_posterior_covariance`)."""
+    the blocks of ``N_e``, the normal matrix of the same rows weighted by their Huber factor once more. With the
+    residuals' noise ``ratio`` times the variance ``sigma^2`` weighs them by, the noise adds ``ratio N_e`` (not
+    ``H_e``) to the information an estimate weighted by ``H_e`` carries (:func:`_posterior_covariance`)."""
     n = model.n
     b = np.zeros(6 * n)
-    if not kept:
-        empty = sparse.csr_matrix((6 * n, 6 * n))
-        return empty, b, empty
 
     def system(pm: tuple[_Pair, _Match]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         p, m = pm
@@ -643,18 +722,10 @@ def _data_system(model: _Model, scans: Sequence[JointScan], poses: np.ndarray, k
         return p.normal_equations(scans, poses, model.origins, m, weights, huber)
 
     systems = pair_map(system, kept)
-    rows, cols, vals, noise_vals = [], [], [], []
-    for (p, _), (H, g, N) in zip(kept, systems, strict=True):
-        idx = np.r_[np.arange(6) + 6 * p.j, np.arange(6) + 6 * p.i]
-        r, c = np.meshgrid(idx, idx, indexing="ij")
-        rows.append(r.ravel())
-        cols.append(c.ravel())
-        vals.append(H.ravel())
-        noise_vals.append(N.ravel())
-        b[idx] += g
-    at = (np.concatenate(rows), np.concatenate(cols))
-    H_e = sparse.csr_matrix((np.concatenate(vals), at), shape=(6 * n, 6 * n))
-    return H_e, b, sparse.csr_matrix((np.concatenate(noise_vals), at), shape=(6 * n, 6 * n))
+    pairs = [p for p, _ in kept]
+    for p, (_, g, _) in zip(pairs, systems, strict=True):
+        b[np.r_[np.arange(6) + 6 * p.j, np.arange(6) + 6 * p.i]] += g
+    return _assembled(n, pairs, [H for H, _, _ in systems]), b, _NoiseBlocks(pairs, [N for _, _, N in systems], n)
 
 
 def _mount_estimate(model: _Model, information: np.ndarray, cov_theta: np.ndarray, theta: np.ndarray
