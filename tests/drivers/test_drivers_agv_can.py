@@ -87,10 +87,12 @@ async def test_estop_during_move_zeroes_velocity_and_raises(emulator, chassis):
     emulator.faults.estop = True
     with pytest.raises(SafetyStop, match="measure_chassis.*emergency stop"):
         await move
-    assert emulator.true_pose.x_mm < 2000.0  # the e-stop ended the move, far from its 3 m target
+    stopped_at = emulator.true_pose
+    assert stopped_at.x_mm < 3000.0 - 40.0  # the e-stop ended the move short of its target (beyond the slip, above)
     assert chassis._setpoint == (0.0, 0.0)
     await asyncio.sleep(0.06)
     assert emulator.command == (0.0, 0.0)
+    assert emulator.velocity == (0.0, 0.0) and emulator.true_pose == stopped_at  # and the body stays there
     with pytest.raises(SafetyStop):  # a standing e-stop refuses the next move
         await chassis.move_to(ChassisPose(100.0, 0.0, 0.0))
     emulator.faults.estop = False
