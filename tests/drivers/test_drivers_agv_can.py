@@ -90,8 +90,7 @@ async def test_estop_during_move_zeroes_velocity_and_raises(emulator, chassis):
     stopped_at = emulator.true_pose
     assert stopped_at.x_mm < 3000.0 - 40.0  # the e-stop ended the move short of its target (beyond the slip, above)
     assert chassis._setpoint == (0.0, 0.0)
-    await asyncio.sleep(0.06)
-    assert emulator.command == (0.0, 0.0)
+    await wait_until(lambda: emulator.command == (0.0, 0.0))  # the zero command reaches the chassis
     assert emulator.velocity == (0.0, 0.0) and emulator.true_pose == stopped_at  # and the body stays there
     with pytest.raises(SafetyStop):  # a standing e-stop refuses the next move
         await chassis.move_to(ChassisPose(100.0, 0.0, 0.0))
@@ -105,8 +104,7 @@ async def test_stop_aborts_a_move_at_once(emulator, chassis):
     await chassis.stop()
     with pytest.raises(SafetyStop, match="stop requested"):
         await move
-    await asyncio.sleep(0.05)
-    assert emulator.command == (0.0, 0.0)
+    await wait_until(lambda: emulator.command == (0.0, 0.0))  # the zero command reaches the chassis
 
 
 @pytest.mark.parametrize(
@@ -161,8 +159,7 @@ async def test_dropped_feedback_frames_still_arrive(emulator, chassis):
 async def test_move_timeout_stops(emulator, chassis):
     with pytest.raises(DeviceTimeout, match="not finished within 0.2 s"):
         await chassis.move_to(ChassisPose(10000.0, 0.0, 0.0), timeout_s=0.2)
-    await asyncio.sleep(0.05)
-    assert emulator.command == (0.0, 0.0)
+    await wait_until(lambda: emulator.command == (0.0, 0.0))  # the zero command reaches the chassis
 
 
 async def test_no_chassis_on_the_bus_times_out_and_calls_need_a_link():

@@ -473,9 +473,16 @@ async def test_a_refusal_is_out_of_reach_only_when_kine_inverse_says_so(emulator
     await arm.move_linear(reachable)
 
 
+async def status_reaches(arm, predicate) -> None:
+    """Wait until ``predicate(the arm's status state)`` holds (the timeout only against a hang)."""
+    async with asyncio.timeout(10):
+        while not predicate((await arm.status()).state):
+            await asyncio.sleep(0.005)
+
+
 async def test_protective_stop_refuses_moves_as_safety_stop(emulator, arm):
     emulator.faults.protective_stop = True
-    await asyncio.sleep(0.05)  # the stop reaches the driver through the status stream
+    await status_reaches(arm, lambda state: state == "stopped")  # through the status stream
     with pytest.raises(SafetyStop, match="protective stop"):
         await arm.move_joints(Q_TARGET)
 
@@ -492,7 +499,7 @@ async def test_a_controller_error_during_a_move_is_a_fault_until_cleared(emulato
         await move
     assert (await arm.status()).state == "fault"
     await arm.clear_error()
-    await asyncio.sleep(0.05)  # the cleared state reaches the driver through the status stream
+    await status_reaches(arm, lambda state: state != "fault")  # the cleared state, through the status stream
     emulator.time_scale = 0.01
     await arm.move_joints(Q_HOME)
     assert (await arm.status()).state == "idle"
