@@ -118,10 +118,10 @@ async def test_stop_aborts_a_move_at_once(emulator, chassis):
 )
 async def test_chassis_faults_become_typed_errors(emulator, chassis, fault, value, match):
     move = asyncio.create_task(chassis.move_to(ChassisPose(3000.0, 0.0, 0.0)))
-    await asyncio.sleep(0.1)
+    await wait_until(lambda: emulator.velocity[0] > 0)
     setattr(emulator.faults, fault, value)
     with pytest.raises(DeviceFault, match=match):
-        await asyncio.wait_for(move, 1.0)
+        await move  # the fault ends it (the chassis' own 10 s timeout bounds it)
     assert chassis._setpoint == (0.0, 0.0)
     assert (await chassis.status()).state == "fault"
 
@@ -217,10 +217,10 @@ async def test_driver_enabled_flag_is_state_not_a_fault():
         await drv.move_to(ChassisPose(200.0, 0.0, 0.0))  # 0x40 on every motor, all the way
         assert (await drv.status()).state == "idle"
         move = asyncio.create_task(drv.move_to(ChassisPose(3000.0, 0.0, 0.0)))
-        await asyncio.sleep(0.1)
+        await wait_until(lambda: emu.velocity[0] > 0)
         emu.faults.driver_state = 0x04  # a real fault beside the state flag
         with pytest.raises(DeviceFault, match="motor 1 driver: overload$"):
-            await asyncio.wait_for(move, 1.0)
+            await move  # the fault ends it (the chassis' own 10 s timeout bounds it)
     finally:
         await drv.close()
         await emu.stop()
@@ -243,10 +243,10 @@ async def test_a_low_supply_voltage_is_a_warning_that_drives_on_and_clears(caplo
         await wait_until(lambda: not drv._warnings)
         assert (await drv.status()).detail["warnings"] == []
         move = asyncio.create_task(drv.move_to(ChassisPose(3000.0, 0.0, 0.0)))
-        await asyncio.sleep(0.1)
+        await wait_until(lambda: emu.velocity[0] > 0)
         emu.faults.driver_state = 0x03
         with pytest.raises(DeviceFault, match="motor 1 driver: motor overheat$"):
-            await asyncio.wait_for(move, 1.0)
+            await move  # the fault ends it (the chassis' own 10 s timeout bounds it)
     finally:
         await drv.close()
         await emu.stop()
