@@ -53,15 +53,29 @@ def _seed(state: Path, default_plan: str) -> None:
         store.close()
 
 
-def _record_read_threads(store: JobStore, threads: list[tuple[str, int]]) -> None:
-    """Wrap ``store``'s read methods (on this instance) so that each call appends ``(method, thread id)`` to
-    ``threads`` and then runs the real method."""
+API_PACKAGE = str(Path(create_app.__code__.co_filename).parent)
+
+
+def _called_from_api() -> bool:
+    """Whether a REST handler (a frame of ``tandemscan.daemon.api``) is on the caller's stack: the job's runner
+    shares the loop and reads its own step's journal notes there; those are not the handlers' reads."""
+    frame = sys._getframe(2)
+    while frame is not None:
+        if frame.f_code.co_filename.startswith(API_PACKAGE):
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _record_read_threads(store: JobStore, threads: list[tuple[str, int, bool]]) -> None:
+    """Wrap ``store``'s read methods (on this instance) so that each call appends ``(method, thread id, called
+    from a handler)`` to ``threads`` and then runs the real method."""
     for name in READS:
         real = getattr(store, name)
 
         @functools.wraps(real)
         def recorded(*args, _real=real, _name=name, **kwargs):
-            threads.append((_name, threading.get_ident()))
+            threads.append((_name, threading.get_ident(), _called_from_api()))
             return _real(*args, **kwargs)
 
         setattr(store, name, recorded)
@@ -77,7 +91,7 @@ async def _hammered_job(url: str, store: JobStore) -> dict:
             if (await client.get(f"/v1/jobs/{job['id']}")).json()["state"] == JobState.RUNNING:
                 break
             await asyncio.sleep(0.02)
-        threads: list[tuple[str, int]] = []
+        threads: list[tuple[str, int, bool]] = []
         _record_read_threads(store, threads)
         hammer = await asyncio.create_subprocess_exec(
             sys.executable, str(Path(__file__).with_name("loop_lag_hammer.py")), url, job["id"], str(ROUNDS),
@@ -89,8 +103,9 @@ async def _hammered_job(url: str, store: JobStore) -> dict:
             await client.post(f"/v1/jobs/{job['id']}/cancel", headers=AUTH)
     counts = json.loads(out.decode().strip().splitlines()[-1])
     return counts | {
-        "reads_on_loop": dict(Counter(name for name, t in threads if t == loop_thread)),
-        "reads_off_loop": dict(Counter(name for name, t in threads if t != loop_thread)),
+        "reads_on_loop": dict(Counter(name for name, t, api in threads if t == loop_thread and api)),
+        "runner_reads_on_loop": dict(Counter(name for name, t, api in threads if t == loop_thread and not api)),
+        "reads_off_loop": dict(Counter(name for name, t, _ in threads if t != loop_thread)),
         "job_state_after": state, "job_error": after["error"]}
 
 
