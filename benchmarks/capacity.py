@@ -7,14 +7,18 @@ nose on a body ``--length-factor`` times as long), its scans ray cast by the sim
 (Poisson disk on the mesh, the sweet spot along each normal; ``--scans`` on the nose, in proportion to the area on
 the longer part), each stored pose off the true one by the tracker's noise. The job is written as raw scan files
 (``scans/``, the scan store), then the end of the job's stages run one after the other on a Dask ``LocalCluster`` of
-1 and 2 single-threaded workers: ``read_thin`` (every scan read and thinned at 1 mm, this process, one a core),
-``correction`` (``correction.correct_scans``: pairs on the workers from the store, the joint refinement here),
-``merge`` (``tiles.merge_tiles`` on the workers), ``cloud_ply`` (streamed from the tiles, here), ``inspect``
-(``tile_inspection.inspect_tiles`` on the workers), ``figures`` (the report's deviation figures from the tiles'
-summaries, here), ``deviation_ply`` (streamed, here) and ``e57`` (the full scans streamed, here). Each stage's
+1 and 2 single-threaded workers, this process holding no scan's points (as the daemon on the dask backend):
+``correction`` (``correction.correct_scans`` given only the scans' references: each scan read and summarised on the
+workers, ``correction.summarise_scan``, its pairs and the overlap RMS there, the joint refinement here; without the
+correction ``summaries``: only the scans' bounds of x), ``merge`` (``tiles.merge_tiles`` on the workers),
+``cloud_ply`` (streamed from the tiles, here), ``inspect`` (``tile_inspection.inspect_tiles`` on the workers),
+``figures`` (the report's deviation figures from the tiles' summaries, here), ``deviation_ply`` (streamed, here) and
+``e57`` (the full scans streamed, here). Each stage's
 wall seconds and peak RSS (GiB; the peak is reset before each stage, Linux ``/proc/<pid>/clear_refs``): of the
 process that runs the stages (``main_gib``, and ``main_start_gib`` what it held as the stage started; a fresh
-process for each size and worker count) and of each worker (``worker_gib``, their largest).
+process for each size and worker count) and of each worker (``worker_gib``, their largest). ``--density-views``
+checks that a reduced ``--resolution`` stands for full resolution in the main process's memory
+(:func:`density_check`).
 
 The model, per stage: on one worker ``t1 = a + b x`` through the two sizes, ``x`` the stage's driver (raw points,
 scans or merged voxels: :data:`DRIVERS`); on N workers Amdahl's law with the stage's serial share ``f = 2 t2 / t1 -
@@ -39,6 +43,7 @@ half as much again: ``--no-e57`` where the disk has less room) and runs for tens
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import shutil
 import sys
@@ -59,21 +64,23 @@ from tandemscan.pipeline.geometry.part import train_nose_mesh
 from tandemscan.pipeline.geometry.raycast import ScannerModel, make_scene
 from tandemscan.pipeline.inspection.tile_inspection import deviation_figures, inspect_tiles, write_deviation_ply
 from tandemscan.pipeline.io.export import PosedScan, write_e57
-from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan, write_raw_scan
+from tandemscan.pipeline.io.raw_scan import read_raw_scan, thin_scan, write_raw_scan
 from tandemscan.pipeline.registration.correction import (
     CorrectionSettings,
     StitchedJob,
     StitchedScan,
     correct_scans,
+    summarise_stored_scan,
 )
-from tandemscan.pipeline.registration.parallel import pair_threads
-from tandemscan.pipeline.stitching.tiles import TileScan, merge_tiles, scan_x_extent, write_cloud_ply
+from tandemscan.pipeline.registration.pair_stage import ScanRef, StoredScans
+from tandemscan.pipeline.registration.sampling import voxel_centroids
+from tandemscan.pipeline.stitching.tiles import TileScan, merge_tiles, write_cloud_ply
 
 VOXEL_MM = 1.0
 #: the 20 m railway car on the larger cell at full resolution (issue 43): scans and raw points
 CAR = {"scans": 3700, "raw_points": 12e9}
 #: what each stage's time grows with
-DRIVERS = {"read_thin": "raw_points", "correction": "scans", "merge": "raw_points", "cloud_ply": "voxels",
+DRIVERS = {"summaries": "raw_points", "correction": "scans", "merge": "raw_points", "cloud_ply": "voxels",
            "inspect": "voxels", "figures": "voxels", "deviation_ply": "voxels", "e57": "raw_points"}
 TRACKER_SIGMA = (0.03, 5e-5)  # mm, rad (1 sigma) of the stored poses' error
 GIB = float(1 << 30)
@@ -125,22 +132,10 @@ def make_job(folder: Path, part: PartConfig, scans: int, pixels: tuple[int, int]
     mesh.compute_triangle_normals()
     mesh_file = folder / "cad.ply"
     o3d.io.write_triangle_mesh(str(mesh_file), mesh)
-    up_share = _upper_share(mesh, np.asarray(mesh.triangle_normals))
-    views = mesh.sample_points_poisson_disk(max(2, round(scans / up_share)), use_triangle_normal=True)
-    centres, facing = np.asarray(views.points), np.asarray(views.normals)
-    keep = facing[:, 2] > -0.3
-    if band_share < 1.0:  # the body's views only: the tail's end cap (centres on x = -length/2) is one x slab
-        tail = -0.5 * part.length_mm
-        keep &= (centres[:, 0] > tail + 1.0) & (centres[:, 0] <= tail + band_share * part.length_mm)
     scanner = ScannerConfig(coarse_pixels=pixels, resolution="coarse")
     model, scene = ScannerModel(scanner), make_scene(mesh)
     files, poses, raw = [], [], 0
-    for c, n in zip(centres[keep], facing[keep], strict=True):
-        z = -n / np.linalg.norm(n)
-        x = np.cross([0.0, 0.0, 1.0], z) if abs(z[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-        x -= (x @ z) * z
-        x /= np.linalg.norm(x)
-        T_F_S = F.make_transform(np.column_stack([x, np.cross(z, x), z]), c - scanner.sweet_spot_mm * z)
+    for T_F_S in view_poses(mesh, part, scans, band_share, scanner.sweet_spot_mm):
         points, normals_S = model.scan(scene, T_F_S, rng)
         if len(points) < 1000:  # a view past the part's edge: a job keeps no such scan
             continue
@@ -151,6 +146,52 @@ def make_job(folder: Path, part: PartConfig, scans: int, pixels: tuple[int, int]
         poses.append(error @ T_F_S)
         raw += len(points)
     return Job(folder, tuple(files), tuple(poses), mesh_file, raw)
+
+
+def view_poses(mesh, part: PartConfig, scans: int, band_share: float, sweet_spot_mm: float) -> list[np.ndarray]:
+    """:func:`make_job`'s views ``T_F_S`` (mm): Poisson disk on the part's upper surface, the scanner at the sweet
+    spot along each normal, looking at it."""
+    up_share = _upper_share(mesh, np.asarray(mesh.triangle_normals))
+    views = mesh.sample_points_poisson_disk(max(2, round(scans / up_share)), use_triangle_normal=True)
+    centres, facing = np.asarray(views.points), np.asarray(views.normals)
+    keep = facing[:, 2] > -0.3
+    if band_share < 1.0:  # the body's views only: the tail's end cap (centres on x = -length/2) is one x slab
+        tail = -0.5 * part.length_mm
+        keep &= (centres[:, 0] > tail + 1.0) & (centres[:, 0] <= tail + band_share * part.length_mm)
+    out = []
+    for c, n in zip(centres[keep], facing[keep], strict=True):
+        z = -n / np.linalg.norm(n)
+        x = np.cross([0.0, 0.0, 1.0], z) if abs(z[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+        x -= (x @ z) * z
+        x /= np.linalg.norm(x)
+        out.append(F.make_transform(np.column_stack([x, np.cross(z, x), z]), c - sweet_spot_mm * z))
+    return out
+
+
+def density_check(part: PartConfig, pixels: tuple[int, int], views: int, seed: int) -> dict:
+    """How well scans of ``pixels`` stand for full-resolution ones in the main process's memory, which holds no
+    scan's points but, per scan, its copy thinned at the joint refinement's voxel (``correction.joint_scan``):
+    on ``views`` views of ``part`` (evenly among :func:`view_poses`) ray cast at both resolutions, the points of the
+    copies thinned at :data:`VOXEL_MM` (the merge's and the pairs') and at ``[correction] joint_voxel_mm``, summed,
+    and their ratio to full resolution's."""
+    mesh = train_nose_mesh(part)
+    mesh.compute_triangle_normals()
+    scene, rng = make_scene(mesh), np.random.default_rng(seed)
+    joint_mm = CorrectionConfig().joint_voxel_mm
+    poses = view_poses(mesh, part, 369, 1.0, ScannerConfig().sweet_spot_mm)
+    sums = {}
+    for label, px in (("full", ScannerConfig().full_pixels), ("run", pixels)):
+        model = ScannerModel(ScannerConfig(coarse_pixels=px, resolution="coarse"))
+        counts = np.zeros(3)
+        for T in poses[:: max(1, len(poses) // views)][:views]:
+            points, _ = model.scan(scene, T, rng)
+            thinned = thin_scan(points, VOXEL_MM)
+            counts += (len(points), len(thinned), len(voxel_centroids(np.asarray(thinned, float), joint_mm)[1]))
+        sums[label] = counts
+    return {"views": views, "pixels_full": list(ScannerConfig().full_pixels), "pixels_run": list(pixels),
+            "points": {k: int(v[0]) for k, v in sums.items()},
+            "thinned_1mm_ratio": round(sums["run"][1] / sums["full"][1], 4),
+            "joint_ratio": round(sums["run"][2] / sums["full"][2], 4)}
 
 
 def _upper_share(mesh, normals: np.ndarray) -> float:
@@ -184,17 +225,21 @@ def run_stages(job: Job, workers: int, tile_mm: float, e57: bool = True, correct
     backend = DaskBackend("", workers)
     try:
         backend.client.wait_for_workers(workers, timeout=120)
-        with pair_threads() as thread_map:
-            thinned = _stage("read_thin", backend, stages, lambda: thread_map(
-                lambda f: read_thinned_scan(job.folder / f, VOXEL_MM), job.files))
-        scans = [StitchedScan(p, T, cov, 0, f) for p, T, f in zip(thinned, job.poses, job.files, strict=True)]
-        result = _stage("correction", backend, stages, lambda: correct_scans(
-            StitchedJob(scans, voxel_mm=VOXEL_MM), CorrectionSettings.from_section(CorrectionConfig()),
-            backend=backend, scan_store=store)) if correct else None
-        poses = result.poses if correct else job.poses
-        refs = [TileScan(f, T, *scan_x_extent(T, p, VOXEL_MM, VOXEL_MM))
-                for f, T, p in zip(job.files, poses, thinned, strict=True)]
-        scans = thinned = None  # the thinned copies freed before the merge
+        scans = [StitchedScan(None, T, cov, 0, f) for T, f in zip(job.poses, job.files, strict=True)]  # no points here
+        settings = CorrectionSettings.from_section(CorrectionConfig())
+        if correct:  # each scan read and summarised on the workers (correction.summarise_scan), its pairs there too
+            result = _stage("correction", backend, stages, lambda: correct_scans(
+                StitchedJob(scans, voxel_mm=VOXEL_MM), settings, backend=backend, scan_store=store))
+            poses, reaches = result.poses, result.reaches
+        else:  # only the scans' bounds of x, read on the workers
+            refs = [ScanRef(k, f, T) for k, (f, T) in enumerate(zip(job.files, job.poses, strict=True))]
+            fn = functools.partial(summarise_stored_scan, store=StoredScans(store, VOXEL_MM), cfg=settings,
+                                   digest=False, joint=False)
+            keys = [f"reach-{r.file}" for r in refs]
+            read = _stage("summaries", backend, stages, lambda: backend.map(fn, refs, keys))
+            poses, reaches, result = job.poses, [r.summary.reach for r in read], None
+        refs = [TileScan(f, T, *reach.x_bound(T, VOXEL_MM, VOXEL_MM))
+                for f, T, reach in zip(job.files, poses, reaches, strict=True)]
         tiles = _stage("merge", backend, stages, lambda: merge_tiles(refs, VOXEL_MM, tile_mm, store, backend))
         _stage("cloud_ply", backend, stages, lambda: write_cloud_ply(job.folder / "cloud.ply", store, tiles))
         inspected = _stage("inspect", backend, stages, lambda: inspect_tiles(
@@ -292,6 +337,8 @@ def main() -> None:
                     help="which parts to run (the model and the growth need both)")
     ap.add_argument("--no-correction", action="store_true", help="the tile stages at the stored poses, without the "
                     "correction (its pair units read every scan several times: at full resolution the longest stage)")
+    ap.add_argument("--density-views", type=int, default=0, help="ray cast this many views at full resolution too "
+                    "and compare the thinned copies' points (whether --resolution stands for full in memory)")
     ap.add_argument("--no-e57", action="store_true", help="leave the E57 out (at full resolution the longer part's "
                     "E57 is about 28 GB beside its 57 GB of raw scans)")
     args = ap.parse_args()
@@ -300,6 +347,9 @@ def main() -> None:
     long = PartConfig(length_mm=nose.length_mm * args.length_factor,
                       body_length_mm=nose.body_length_mm + nose.length_mm * (args.length_factor - 1.0))
     area = {id(p): train_nose_mesh(p).get_surface_area() for p in (nose, long)}
+    density = density_check(nose, pixels, args.density_views, args.seed) if args.density_views else None
+    if density:
+        print(f"density: {json.dumps(density)}", file=sys.stderr, flush=True)
     root = Path(tempfile.mkdtemp(prefix="capacity-", dir=args.folder))
     sizes = []
     try:
@@ -325,7 +375,7 @@ def main() -> None:
             shutil.rmtree(folder)
     finally:
         shutil.rmtree(root, ignore_errors=True)
-    figures = {"resolution": args.resolution, "pixels": list(pixels), "tile_mm": args.tile_mm,
+    figures = {"resolution": args.resolution, "pixels": list(pixels), "tile_mm": args.tile_mm, "density": density,
                "band_share": args.band_share, "peaks": peaks(sizes), "sizes": sizes,
                "model": model(sizes, args.workers, (1, 2, 8, 32, 64)) if len(sizes) > 1 else None,
                "note": "wall seconds on a shared machine are upper bounds; the model is only as good as the run"}

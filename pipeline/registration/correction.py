@@ -11,11 +11,12 @@ not solved.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import logging
 import time
 from collections import Counter
-from collections.abc import Mapping, MutableMapping, Sequence
+from collections.abc import Callable, Mapping, MutableMapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -57,6 +58,7 @@ from tandemscan.pipeline.registration.pose_graph import (
     refine_poses,
 )
 from tandemscan.pipeline.registration.sampling import thin_evenly, voxel_centroids, voxel_downsample
+from tandemscan.pipeline.stitching.tiles import ScanReach
 
 log = logging.getLogger(__name__)
 
@@ -97,10 +99,11 @@ class CorrectionSettings(FromSection):
 
 @dataclass(frozen=True)
 class StitchedScan:
-    """One scan: points in the scanner frame (mm), tracker pose ``T_W_S``, its covariance, its station, and its raw
+    """One scan: points in the scanner frame (mm; None where the correction is given a scan store: they are read
+    where they are needed, :func:`correct_scans`), tracker pose ``T_W_S``, its covariance, its station, and its raw
     scan file relative to the job's scan store (``pair_stage.StoredScans``; empty where it has none)."""
 
-    points_S: np.ndarray
+    points_S: np.ndarray | None
     T_W_S: np.ndarray
     covariance: np.ndarray
     station: int = 0
@@ -143,6 +146,7 @@ class CorrectionResult:
     report: dict = field(default_factory=dict)
     mount: MountEstimate | None = None
     pose_covariance: PoseCovariance | None = None  # the scans' errors jointly (``pose_covariance``)
+    reaches: tuple[ScanReach, ...] = ()  # each scan's bound of its x at any pose (``tiles.ScanReach``)
 
 
 class _Clock:
@@ -167,32 +171,67 @@ OVERLAP_RMS_POINTS = 2000
 OVERLAP_RMS_TARGETS = 64
 
 
-def _overlap_rms(clouds: list[np.ndarray], pairs: Sequence[tuple[int, int]], poses_before, poses_after,
-                 distance_mm: float) -> tuple[float, float]:
-    """Median over ``pairs`` (target, source) of the point-to-plane RMS (mm) of the overlaps, with the poses before
-    and after (scored within ``distance_mm``, the fine stage's final correspondence distance); the
-    pairs of at most :data:`OVERLAP_RMS_TARGETS` target scans, evenly spread over the job's, each source scan
-    evaluated on at most :data:`OVERLAP_RMS_POINTS` of its points, evenly spread. The pairs of one target run
-    on one thread (its normals are computed once, where first needed), the targets on all."""
-    by_target: dict[int, list[int]] = {}
-    for i, j in pairs:
-        by_target.setdefault(i, []).append(j)
-    by_target = {int(i): by_target[i] for i in thin_evenly(np.array(sorted(by_target)), OVERLAP_RMS_TARGETS)}
-    sources = {j: clouds[j][thin_evenly(np.arange(len(clouds[j])), OVERLAP_RMS_POINTS)]
-               for j in {j for partners in by_target.values() for j in partners}}
+@dataclass(frozen=True)
+class OverlapRmsUnit:
+    """A unit of the report's overlap RMS (:func:`_overlap_rms`): a target scan, its partners (sources), and each
+    source's pose relative to the target (``T_i_j``, 4x4, mm) before and after the correction."""
 
-    def rms_of_target(item: tuple[int, list[int]]) -> list[tuple[float, float]]:
-        i, partners = item
-        target = target_with_normals(clouds[i])
-        return [tuple(evaluate_point_to_plane(sources[j], target, invert(poses[i]) @ poses[j],
-                                              distance_mm).rmse_mm for poses in (poses_before, poses_after))
-                for j in partners]
+    target: ScanRef
+    sources: tuple[ScanRef, ...]
+    before: tuple[np.ndarray, ...]
+    after: tuple[np.ndarray, ...]
 
-    with pair_threads() as pair_map:
-        vals = np.array([v for group in pair_map(rms_of_target, by_target.items()) for v in group]).reshape(-1, 2)
+    def key(self, voxel_mm: float, distance_mm: float) -> str:
+        """The unit's name: its scans' files and every pose it depends on, the voxel and the distance (mm)."""
+        h = hashlib.blake2b(digest_size=16)
+        for ref in (self.target, *self.sources):
+            h.update(ref.file.encode())
+        h.update(np.ascontiguousarray(np.stack([*self.before, *self.after]), np.float64).tobytes())
+        h.update(np.float64([voxel_mm, distance_mm]).tobytes())
+        return f"overlap-rms-{h.hexdigest()}"
+
+
+def overlap_rms_of_target(unit: OverlapRmsUnit, clouds: Callable[[ScanRef], np.ndarray], distance_mm: float
+                          ) -> list[tuple[float, float]]:
+    """The point-to-plane RMS (mm) of each source of ``unit`` on its target, before and after: the target's normals
+    once, each source evaluated on at most :data:`OVERLAP_RMS_POINTS` of its points, evenly spread, scored within
+    ``distance_mm``; ``clouds`` gives a scan's thinned points (S, mm) by reference."""
+    target = target_with_normals(clouds(unit.target))
+    out = []
+    for ref, before, after in zip(unit.sources, unit.before, unit.after, strict=True):
+        points = clouds(ref)
+        source = points[thin_evenly(np.arange(len(points)), OVERLAP_RMS_POINTS)]
+        out.append(tuple(evaluate_point_to_plane(source, target, T, distance_mm).rmse_mm for T in (before, after)))
+    return out
+
+
+def _overlap_rms(units: Sequence[OverlapRmsUnit], clouds: Callable[[ScanRef], np.ndarray], distance_mm: float,
+                 voxel_mm: float, backend: ComputeBackend) -> tuple[float, float]:
+    """Median over the units' pairs (:func:`_overlap_rms_units`) of the point-to-plane RMS (mm) of the overlaps,
+    with the poses before and after (:func:`overlap_rms_of_target` on ``backend``, the scans from ``clouds``)."""
+    fn = functools.partial(overlap_rms_of_target, clouds=clouds, distance_mm=distance_mm)
+    done = backend.map(fn, units, [u.key(voxel_mm, distance_mm) for u in units])
+    vals = np.array([v for group in done for v in group]).reshape(-1, 2)
     if not len(vals):
         return float("nan"), float("nan")
     return float(np.median(vals[:, 0])), float(np.median(vals[:, 1]))
+
+
+def _overlap_rms_units(scans: Sequence[StitchedScan], pairs: Sequence[tuple[int, int]], poses_before, poses_after
+                       ) -> list[OverlapRmsUnit]:
+    """The overlap RMS's units: the ``pairs`` (target, source) of at most :data:`OVERLAP_RMS_TARGETS` target scans,
+    evenly spread over the job's, one unit a target."""
+    by_target: dict[int, list[int]] = {}
+    for i, j in pairs:
+        by_target.setdefault(i, []).append(j)
+
+    def ref(k: int) -> ScanRef:
+        return ScanRef(k, scans[k].file, scans[k].T_W_S)
+
+    return [OverlapRmsUnit(ref(i), tuple(ref(j) for j in by_target[i]),
+                           *(tuple(invert(poses[i]) @ poses[j] for j in by_target[i])
+                             for poses in (poses_before, poses_after)))
+            for i in (int(i) for i in thin_evenly(np.array(sorted(by_target)), OVERLAP_RMS_TARGETS))]
 
 
 def pair_covariance(scan_i: StitchedScan, scan_j: StitchedScan, transfers: Sequence[TransferPrior]) -> np.ndarray:
@@ -246,31 +285,98 @@ def association_key(scan_key_i: str, scan_key_j: str, T_W_S_i: np.ndarray, T_W_S
     return h.hexdigest()
 
 
-def _pair_corrections(
-    job: StitchedJob, local: list[np.ndarray], cfg: CorrectionSettings, network: Registrar | None,
-    cache: Mapping[str, PairOutcome], backend: ComputeBackend | None, scan_store: str | None,
-) -> tuple[list[tuple[int, int, PairOutcome]], int, list[tuple[int, int]]]:
-    """The outcome of every pair of the job's thinned scans ``local`` (S, mm) registered at
-    ``cfg.registered_partners`` (``overlap.overlapping_pairs``, from each scan's grid cells in W: each scan is placed
-    in W one at a time, and only the scans of pairs left to register are kept placed, a whole part's at full
-    resolution being about 0.9 GB): from ``cache`` where the
-    job registered the pair while it measured (same clouds, covariance and settings), else registered here, one unit
-    a target (``pair_stage.TargetPairs``) on ``backend`` (this process's threads where None); with ``scan_store``
-    the units read their scans from it by reference (``pair_stage.StoredScans``: a Dask cluster's workers), else
-    they take this process's clouds. Returns the outcomes in pair order, how many came from the cache, and the
-    pairs selected at ``cfg.max_partners_per_scan`` (the registered ones where the joint refinement is off), on
-    all of which the report's overlap RMS is taken, registered or not: it scores the overlaps at the poses."""
-    scans, voxel_mm = job.scans, job.voxel_mm
-    digesting = bool(cache) and cfg.registered_partners > 0
+@dataclass(frozen=True)
+class ScanSummary:
+    """What the correction keeps of one scan instead of its points (:func:`summarise_scan`): the ``pair_cell_mm``
+    grid cells (``overlap.occupied_cells``, W) its copy thinned at the job's voxel occupies at the tracker pose,
+    that placed copy's digest (:func:`cloud_digest`, the pair cache's key; empty where not asked for), the key of
+    the scan prepared for the joint refinement (:func:`joint_scan_key`) and its reach (``tiles.ScanReach``: the
+    tiled merge's bound of its x at the final pose)."""
 
-    def placed(k: int) -> tuple[np.ndarray, bytes]:  # the grid cells and digest of scan k in W, not the cloud
-        world = transform_points(scans[k].T_W_S, local[k])
-        return occupied_cells(world, cfg.pair_cell_mm), cloud_digest(world) if digesting else b""
+    cells: np.ndarray
+    digest: bytes
+    joint_key: str
+    reach: ScanReach
 
+
+@dataclass(frozen=True)
+class ReadScan:
+    """A scan summarised where it was read (:func:`summarise_scan`): its :class:`ScanSummary` and, where asked for,
+    the scan prepared for the joint refinement (:func:`joint_scan`, else None): all the correction needs of it."""
+
+    summary: ScanSummary
+    joint: JointScan | None
+
+
+def summarise_scan(points_S: np.ndarray, T_W_S: np.ndarray, voxel_mm: float, cfg: CorrectionSettings,
+                   digest: bool, joint: bool) -> ReadScan:
+    """:class:`ReadScan` of a scan whose copy as the end of the job loads it (``raw_scan.read_thinned_scan``, S,
+    mm) is ``points_S``, at its tracker pose ``T_W_S`` (W, mm): the grid cells and ``digest`` (if asked) of that
+    copy thinned to ``voxel_mm`` (the job's, as the pairs take it) in W, and with ``joint`` the scan at
+    ``cfg.joint_voxel_mm``."""
+    world = transform_points(T_W_S, voxel_downsample(np.asarray(points_S, float), voxel_mm))
+    summary = ScanSummary(occupied_cells(world, cfg.pair_cell_mm), cloud_digest(world) if digest else b"",
+                          joint_scan_key(points_S, cfg.joint_voxel_mm), ScanReach.of(T_W_S, points_S))
+    return ReadScan(summary, joint_scan(points_S, cfg.joint_voxel_mm) if joint else None)
+
+
+def summarise_stored_scan(ref: ScanRef, store: StoredScans, cfg: CorrectionSettings, digest: bool, joint: bool
+                          ) -> ReadScan:
+    """:func:`summarise_scan` of a scan read from the scan store (a backend unit: where the scan is read)."""
+    return summarise_scan(store.loaded(ref), ref.T_W_S, store.voxel_mm, cfg, digest, joint)
+
+
+def _summaries(job: StitchedJob, cfg: CorrectionSettings, digest: bool, backend: ComputeBackend,
+               scan_store: str | None) -> list[ReadScan]:
+    """:func:`summarise_scan` of every scan of ``job``: from its points where it holds them, else read from
+    ``scan_store`` by a unit on ``backend`` (the scans prepared for the joint refinement with ``cfg.joint``)."""
+    scans = job.scans
+    out: list[ReadScan | None] = [None] * len(scans)
+    held = [k for k, s in enumerate(scans) if s.points_S is not None]
     with pair_threads() as pair_map:
-        summaries = pair_map(placed, range(len(scans)))
-    stations, digests = [s.station for s in scans], [d for _, d in summaries]
-    shared = shared_cells([c for c, _ in summaries])
+        for k, read in zip(held, pair_map(lambda k: summarise_scan(scans[k].points_S, scans[k].T_W_S, job.voxel_mm,
+                                                                   cfg, digest, False), held), strict=True):
+            out[k] = read
+    stored = [k for k, s in enumerate(scans) if s.points_S is None]
+    if stored:
+        if scan_store is None:
+            raise ValueError(f"correction: {len(stored)} scans without points and no scan store to read them from")
+        refs = [ScanRef(k, scans[k].file, scans[k].T_W_S) for k in stored]
+        fn = functools.partial(summarise_stored_scan, store=StoredScans(scan_store, job.voxel_mm), cfg=cfg,
+                               digest=digest, joint=cfg.joint)
+        keys = [f"summary-{_unit_digest(ref, job.voxel_mm, cfg, digest)}" for ref in refs]
+        for k, read in zip(stored, backend.map(fn, refs, keys), strict=True):
+            out[k] = read
+    return out
+
+
+def _unit_digest(ref: ScanRef, voxel_mm: float, cfg: CorrectionSettings, *flags: object) -> str:
+    """A unit's name: the scan's file and pose, the voxel, the settings and ``flags``."""
+    h = hashlib.blake2b(ref.file.encode(), digest_size=16)
+    h.update(np.ascontiguousarray(ref.T_W_S, np.float64).tobytes())
+    h.update(np.float64(voxel_mm).tobytes())
+    h.update(repr((cfg, flags)).encode())
+    return h.hexdigest()
+
+
+def _pair_corrections(
+    job: StitchedJob, summaries: Sequence[ScanSummary], local: Sequence[np.ndarray] | None, cfg: CorrectionSettings,
+    network: Registrar | None, cache: Mapping[str, PairOutcome], backend: ComputeBackend | None,
+    scan_store: str | None,
+) -> tuple[list[tuple[int, int, PairOutcome]], int, list[tuple[int, int]]]:
+    """The outcome of every pair of the job's scans registered at ``cfg.registered_partners``
+    (``overlap.overlapping_pairs``, from each scan's grid cells in W, ``summaries``, :func:`summarise_scan`): from
+    ``cache`` where the job registered the pair while it measured (same clouds, covariance and settings: the
+    summaries' digests), else registered here, one unit a target (``pair_stage.TargetPairs``) on ``backend`` (this
+    process's threads where None); with ``scan_store`` the units read their scans from it by reference
+    (``pair_stage.StoredScans``: a Dask cluster's workers), else they take this process's thinned clouds ``local``
+    (S, mm), of which only the scans of pairs left to register are placed in W here. Returns the outcomes in pair
+    order, how many came from the cache, and the pairs selected at ``cfg.max_partners_per_scan`` (the registered
+    ones where the joint refinement is off), on all of which the report's overlap RMS is taken, registered or not:
+    it scores the overlaps at the poses."""
+    scans, voxel_mm = job.scans, job.voxel_mm
+    stations, digests = [s.station for s in scans], [m.digest for m in summaries]
+    shared = shared_cells([m.cells for m in summaries])
     selected = select_pairs(shared, stations, cfg.max_partners_per_scan)
     registering = select_pairs(shared, stations, cfg.registered_partners) if cfg.registered_partners else []
     out: list[tuple[int, int, PairOutcome | None]] = []
@@ -334,18 +440,27 @@ def correct_scans(
     clock = _Clock()
     scans, transfers, mount_prior = job.scans, job.transfers, job.mount_prior
     online = online or OnlineWork({}, {}, {})
-    with pair_threads() as pair_map:
-        local = pair_map(lambda s: voxel_downsample(np.asarray(s.points_S, float), job.voxel_mm), scans)
+    read = _summaries(job, cfg, bool(online.pairs) and cfg.registered_partners > 0, backend or LocalBackend(),
+                      scan_store)
+    summaries = [r.summary for r in read]
+    prepared = [r.joint for r in read]  # the joint refinement's scans read with their summaries (else None)
+    del read
+    held = all(s.points_S is not None for s in scans)
+    local = None
+    if held:  # the thinned clouds this process holds: the pairs' and the overlap RMS's
+        with pair_threads() as pair_map:
+            local = pair_map(lambda s: voxel_downsample(np.asarray(s.points_S, float), job.voxel_mm), scans)
     clock.lap("thin_s")
-    outcomes, cached, selected = _pair_corrections(job, local, cfg, network, online.pairs, backend, scan_store)
+    outcomes, cached, selected = _pair_corrections(job, summaries, local, cfg, network, online.pairs, backend,
+                                                   scan_store)
     clock.lap("pairs_s")
     edges = [(i, j, o) for i, j, o in outcomes if o.transformation is not None]
     dropped = [(i, j, o.dropped) for i, j, o in outcomes if o.dropped]
     priors = [ScanPrior(s.T_W_S, s.covariance, s.station) for s in scans]
     joint, graph_figures = None, {}
     if cfg.joint:
-        joint, associated_while_measuring = _refine_jointly(job, priors, cfg, online.joint_scans,
-                                                            online.associations)
+        joint, associated_while_measuring = _refine_jointly(job, priors, cfg, summaries, prepared,
+                                                            online.joint_scans, online.associations)
         clock.lap("joint_s")
         poses, mount = joint.poses, joint.mount
     else:
@@ -355,7 +470,13 @@ def correct_scans(
         poses, mount = graph.poses, graph.mount
         graph_figures = {"graph_cost_before": graph.cost_before, "graph_cost_after": graph.cost_after}
     before = [s.T_W_S for s in scans]
-    rms_b, rms_a = _overlap_rms(local, selected, before, poses, cfg.pairs.criteria.icp_max_distance_mm)
+    rms_units = _overlap_rms_units(scans, selected, before, poses)
+    if held:  # on this process's clouds, else read on the backend from the store
+        rms_b, rms_a = _overlap_rms(rms_units, lambda ref: local[ref.index], cfg.pairs.criteria.icp_max_distance_mm,
+                                    job.voxel_mm, LocalBackend())
+    else:
+        rms_b, rms_a = _overlap_rms(rms_units, StoredScans(scan_store, job.voxel_mm).thinned,
+                                    cfg.pairs.criteria.icp_max_distance_mm, job.voxel_mm, backend or LocalBackend())
     clock.lap("overlap_rms_s")
     moves = [pose_error(a, b) for a, b in zip(poses, before, strict=True)]
     report = {
@@ -381,27 +502,31 @@ def correct_scans(
              len(dropped), rms_b, rms_a)
     # the joint refinement's posterior of the scans' errors; the pose graph's is not formed: the chain's prior
     covariance = joint.pose_covariance if joint is not None else chain_covariance(priors, transfers, mount_prior)
-    return CorrectionResult(poses, edges, report, mount, covariance)
+    return CorrectionResult(poses, edges, report, mount, covariance, tuple(m.reach for m in summaries))
 
 
 def _refine_jointly(job: StitchedJob, priors: list[ScanPrior], cfg: CorrectionSettings,
+                    summaries: Sequence[ScanSummary], prepared: list[JointScan | None],
                     cache: MutableMapping[str, JointScan], associations: Mapping[str, Association]
                     ) -> tuple[JointResult, int]:
     """The joint refinement (``joint.refine_jointly``) from the tracker poses (its correspondences are found
     there, not at the pose graph's, which are fitted to the same scans: ``joint`` module doc), on scans thinned
-    to ``cfg.joint_voxel_mm`` (:func:`joint_scan`, taken out of ``cache`` where prepared while the job measured),
+    to ``cfg.joint_voxel_mm`` (:func:`joint_scan`: ``prepared`` where read with the scans' ``summaries``, each
+    taken out as the refinement takes it, else taken out of ``cache`` where prepared while the job measured),
     over every pair sharing a grid cell (``cfg.joint_max_partners_per_scan``), with the pairs' nearest neighbours
     from ``associations`` where found while the job measured. Returns it and the number of pairs whose
     neighbours came from ``associations``."""
     scans = job.scans
-    keys = [joint_scan_key(s.points_S, cfg.joint_voxel_mm) for s in scans]
+    keys = [m.joint_key for m in summaries]
 
-    def prepared(k: int) -> JointScan:
-        found = cache.pop(keys[k], None) if cache else None
+    def taken(k: int) -> JointScan:
+        found, prepared[k] = prepared[k], None
+        if found is None and cache:
+            found = cache.pop(keys[k], None)
         return joint_scan(scans[k].points_S, cfg.joint_voxel_mm) if found is None else found
 
     with pair_threads() as pair_map:
-        thinned = pair_map(prepared, range(len(scans)))
+        thinned = pair_map(taken, range(len(scans)))
     cells = [occupied_cells(transform_points(s.T_W_S, j.points_S), cfg.pair_cell_mm)  # placed in W one at a time
              for s, j in zip(scans, thinned, strict=True)]
     pairs = select_pairs(shared_cells(cells), [s.station for s in scans], cfg.joint_max_partners_per_scan)

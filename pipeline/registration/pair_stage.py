@@ -125,8 +125,15 @@ class StoredScans:
     voxel_mm: float
 
     def __call__(self, ref: ScanRef) -> np.ndarray:
-        points = read_thinned_scan(Path(self.store) / ref.file, self.voxel_mm)
-        return transform_points(ref.T_W_S, voxel_downsample(np.asarray(points, float), self.voxel_mm))
+        return transform_points(ref.T_W_S, self.thinned(ref))
+
+    def loaded(self, ref: ScanRef) -> np.ndarray:
+        """The scan's copy as the end of the job loads it (``raw_scan.read_thinned_scan`` at ``voxel_mm``; S, mm)."""
+        return read_thinned_scan(Path(self.store) / ref.file, self.voxel_mm)
+
+    def thinned(self, ref: ScanRef) -> np.ndarray:
+        """:meth:`loaded`, thinned as the correction thins it (float64, S, mm)."""
+        return voxel_downsample(np.asarray(self.loaded(ref), float), self.voxel_mm)
 
 
 def register_unit(unit: TargetPairs, scans: HeldScans | StoredScans, cfg: JobPairSettings,

@@ -59,11 +59,41 @@ def scan_x_extent(T_W_S: np.ndarray, thinned_S: np.ndarray, thin_voxel_mm: float
     ``raw_scan.read_thinned_scan``) placed at ``T_W_S``: the copy's extent widened by the thinning voxel's
     diagonal (a point's distance to its voxel's centroid at most) and one merge voxel ``voxel_mm`` (the float32
     rounding of the merge's placement, and the floor to the voxel). (inf, -inf) for a scan without points."""
-    if len(thinned_S) == 0:
-        return math.inf, -math.inf
-    x = transform_points(T_W_S, thinned_S)[:, 0]
-    margin = math.sqrt(3.0) * thin_voxel_mm + voxel_mm
-    return float(x.min()) - margin, float(x.max()) + margin
+    return ScanReach.of(T_W_S, thinned_S).x_bound(T_W_S, thin_voxel_mm, voxel_mm)
+
+
+@dataclass(frozen=True)
+class ScanReach:
+    """What bounds a scan's x in W at any pose, without its points: the x extent (W, mm) of its thinned copy at the
+    pose ``T_W_S`` it was summarised at, and ``reach_mm``, the largest distance of the copy's points from the
+    scanner's origin (S, mm). Made where the scan is read (``correction.summarise_scan``), so that the process that
+    plans the tiles holds no scan's points."""
+
+    T_W_S: np.ndarray
+    x_min_mm: float
+    x_max_mm: float
+    reach_mm: float
+
+    @classmethod
+    def of(cls, T_W_S: np.ndarray, thinned_S: np.ndarray) -> ScanReach:
+        """The reach of the thinned copy ``thinned_S`` (S, mm) at ``T_W_S``; x extent (inf, -inf) without points."""
+        if len(thinned_S) == 0:
+            return cls(np.asarray(T_W_S, float), math.inf, -math.inf, 0.0)
+        x = transform_points(T_W_S, thinned_S)[:, 0]
+        reach = float(np.sqrt(np.max(np.einsum("ij,ij->i", thinned_S, thinned_S, dtype=float))))
+        return cls(np.asarray(T_W_S, float), float(x.min()), float(x.max()), reach)
+
+    def x_bound(self, T_W_S: np.ndarray, thin_voxel_mm: float, voxel_mm: float) -> tuple[float, float]:
+        """A bound of the x (W, mm) of the scan's points at the pose ``T_W_S``: the extent at :attr:`T_W_S` moved
+        by the change of x's translation and widened by how far the change of the rotation's x row can move a
+        point within :attr:`reach_mm` (Cauchy-Schwarz), then by the margin of :func:`scan_x_extent`. At the
+        summarised pose itself, :func:`scan_x_extent` of the copy to the bit."""
+        if self.x_min_mm > self.x_max_mm:
+            return math.inf, -math.inf
+        shift = float(T_W_S[0, 3] - self.T_W_S[0, 3])
+        turn = float(np.linalg.norm(np.asarray(T_W_S[0, :3], float) - self.T_W_S[0, :3])) * self.reach_mm
+        margin = math.sqrt(3.0) * thin_voxel_mm + voxel_mm
+        return self.x_min_mm + shift - turn - margin, self.x_max_mm + shift + turn + margin
 
 
 @dataclass(frozen=True)

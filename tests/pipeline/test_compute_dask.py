@@ -4,6 +4,7 @@ are those of the local backend to 1e-9 mm, also when a worker is killed while it
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import shutil
 import signal
@@ -102,13 +103,20 @@ def test_the_pair_stage_on_two_dask_workers_gives_the_local_result(cluster, tmp_
         with get_task_stream(backend.client) as stream:
             remote = correct_scans(StitchedJob(scans, transfers, voxel_mm=VOXEL_MM), CFG, network, backend=backend,
                                    scan_store=str(tmp_path))
-        remote_joint = correct_scans(StitchedJob(scans, transfers, voxel_mm=VOXEL_MM), JOINT, network,
+        # this process without the scans' points: their summaries, joint scans and overlap RMS read on the workers
+        unheld = [dataclasses.replace(s, points_S=None) for s in scans]
+        remote_joint = correct_scans(StitchedJob(unheld, transfers, voxel_mm=VOXEL_MM), JOINT, network,
                                      backend=backend, scan_store=str(tmp_path))
     finally:
         backend.close()
     _same(local, remote)
     _same(local_joint, remote_joint)
     assert local_joint.report["joint"] == remote_joint.report["joint"]
+    for key in ("overlap_rms_mm_median_before", "overlap_rms_mm_median_after", "pairs", "stages"):
+        assert local_joint.report[key] == remote_joint.report[key], key
+    assert len(remote_joint.reaches) == len(scans)  # the tiled merge's bounds of x, from the workers' reads
+    assert [(a.x_min_mm, a.x_max_mm, a.reach_mm) for a in local_joint.reaches] == [
+        (b.x_min_mm, b.x_max_mm, b.reach_mm) for b in remote_joint.reaches]
     assert len({task["worker"] for task in stream.data}) == 2  # both workers registered pairs
 
 

@@ -16,6 +16,7 @@ from tandemscan.pipeline.inspection.tile_inspection import deviation_figures, in
 from tandemscan.pipeline.io.export import ExportError, PlyChunk, write_ply, write_ply_streamed
 from tandemscan.pipeline.io.raw_scan import read_thinned_scan, write_raw_scan
 from tandemscan.pipeline.stitching.tiles import (
+    ScanReach,
     TileGrid,
     TileScan,
     every_kth,
@@ -165,3 +166,25 @@ def test_the_tiles_deviations_and_report_figures_are_the_untiled_ones(job, tmp_p
     for name in ("x", "y", "z"):
         np.testing.assert_allclose(v1[name], v2[name], rtol=0, atol=1e-9)
     np.testing.assert_allclose(v1["deviation_mm"], v2["deviation_mm"], rtol=0, atol=1e-6)  # float32 in the file
+
+
+def test_a_scans_reach_bounds_its_x_at_a_moved_pose(tmp_path):
+    """``ScanReach`` (made where the scan is read) bounds the scan's points' x at the corrected pose without its points:
+    at the summarised pose it is ``scan_x_extent`` to the bit; moved by up to 0.5 mm and 1 mrad it still holds every
+    point of the raw scan, and it is at most the move's reach wider than the extent at the moved pose."""
+    refs, _ = stored_job(tmp_path, scans=2)
+    rng = np.random.default_rng(5)
+    for ref in refs:
+        thinned = read_thinned_scan(tmp_path / ref.file, VOXEL_MM)
+        reach = ScanReach.of(ref.T_W_S, thinned)
+        assert reach.x_bound(ref.T_W_S, VOXEL_MM, VOXEL_MM) == scan_x_extent(ref.T_W_S, thinned, VOXEL_MM, VOXEL_MM)
+        with np.load(tmp_path / ref.file) as data:
+            raw = data["points_S_mm"].astype(float)
+        for _ in range(10):
+            moved = from_rpy(rng.uniform(-0.5, 0.5, 3), rng.uniform(-1e-3, 1e-3, 3)) @ ref.T_W_S
+            lo, hi = reach.x_bound(moved, VOXEL_MM, VOXEL_MM)
+            x = transform_points(moved, raw)[:, 0]
+            assert lo <= x.min() and x.max() <= hi
+            exact_lo, exact_hi = scan_x_extent(moved, thinned, VOXEL_MM, VOXEL_MM)
+            slack = 0.5 * np.sqrt(3) + np.sqrt(3) * 1e-3 * reach.reach_mm  # the move's translation and turn
+            assert exact_lo - slack <= lo <= exact_lo and exact_hi <= hi <= exact_hi + slack
