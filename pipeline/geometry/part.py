@@ -34,8 +34,14 @@ def load_part_mesh(part: PartConfig) -> o3d.geometry.TriangleMesh:
     if part.mesh is None:
         mesh = train_nose_mesh(part)
     else:
-        mesh = wound_outward(read_mesh_file(part.mesh, units=part.mesh_units), str(part.mesh))
+        mesh = read_cad_mesh(part.mesh, part.mesh_units)
     return cut_openings(mesh, part.openings) if part.openings else mesh
+
+
+def read_cad_mesh(path: Path | str, units: str = "mm", what: str = "mesh") -> o3d.geometry.TriangleMesh:
+    """A CAD mesh file as a job takes it (``[part] mesh``, without its openings): read into millimetres from
+    ``units`` (:func:`read_mesh_file`) and wound outward (:func:`wound_outward`)."""
+    return wound_outward(read_mesh_file(Path(path), what, units), str(path))
 
 
 def wound_outward(mesh: o3d.geometry.TriangleMesh, name: str) -> o3d.geometry.TriangleMesh:

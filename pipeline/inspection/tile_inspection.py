@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 from tandemscan.pipeline.compute import ComputeBackend
 from tandemscan.pipeline.geometry.frames import rotate_vectors, transform_points
-from tandemscan.pipeline.geometry.part import read_mesh_file
+from tandemscan.pipeline.geometry.part import read_cad_mesh
 from tandemscan.pipeline.inspection.inspect import CadSurface, DeviationStats, ToleranceResult, in_chunks
 from tandemscan.pipeline.io.durable import write_durably
 from tandemscan.pipeline.io.export import PlyChunk, write_ply_streamed
@@ -39,8 +39,9 @@ HISTOGRAM_EDGES_MM = np.linspace(-20.0, 20.0, 4001)
 @dataclass(frozen=True)
 class InspectTile:
     """One unit of the tiled inspection: the tile ``tile`` of the merged cloud in the scan store ``store``, placed
-    in the CAD frame F by ``T_F_W`` (4x4, mm) and compared with the CAD mesh file ``mesh_file`` (F, mm; its
-    triangles ``reversed`` wound the other way: ``CadSurface``), the tolerance band ``[lower_mm, upper_mm]``."""
+    in the CAD frame F by ``T_F_W`` (4x4, mm) and compared with the CAD mesh file ``mesh_file`` (F; its coordinates
+    in ``mesh_units``, read as the job reads its CAD, ``part.read_cad_mesh``: in mm, wound outward; its triangles
+    ``reversed`` wound the other way: ``CadSurface``), the tolerance band ``[lower_mm, upper_mm]``."""
 
     tile: TileCloud
     store: str
@@ -49,11 +50,12 @@ class InspectTile:
     lower_mm: float
     upper_mm: float
     reversed: np.ndarray | None = None
+    mesh_units: str = "mm"
 
     def key(self) -> str:
         """The unit's name: everything its deviations depend on."""
         h = hashlib.blake2b(digest_size=16)
-        for text in (self.tile.file, self.mesh_file):
+        for text in (self.tile.file, self.mesh_file, self.mesh_units):
             h.update(text.encode())
         h.update(np.ascontiguousarray(self.T_F_W, np.float64).tobytes())
         h.update(np.array([self.lower_mm, self.upper_mm], np.float64).tobytes())
@@ -81,11 +83,12 @@ class TileDeviations:
 
 
 @functools.lru_cache(maxsize=2)
-def _surface(mesh_file: str, reversed_bits: bytes | None, triangles: int) -> CadSurface:
-    """The CAD surface of ``mesh_file``, built once a worker process (the units of a job share it)."""
+def _surface(mesh_file: str, units: str, reversed_bits: bytes | None, triangles: int) -> CadSurface:
+    """The CAD surface of ``mesh_file`` (coordinates in ``units``) as the job takes it (``part.read_cad_mesh``: mm,
+    wound outward), built once a worker process (the units of a job share it)."""
     reversed = None if reversed_bits is None else np.unpackbits(
         np.frombuffer(reversed_bits, np.uint8), count=triangles).astype(bool)
-    return CadSurface(read_mesh_file(Path(mesh_file), "CAD mesh"), reversed)
+    return CadSurface(read_cad_mesh(mesh_file, units, "CAD mesh"), reversed)
 
 
 def _bins(deviations_mm: np.ndarray) -> np.ndarray:
@@ -98,7 +101,7 @@ def inspect_tile(unit: InspectTile) -> TileDeviations:
     summary."""
     cloud = read_tile(unit.store, unit.tile)
     reversed = unit.reversed
-    surface = _surface(unit.mesh_file, None if reversed is None else np.packbits(reversed).tobytes(),
+    surface = _surface(unit.mesh_file, unit.mesh_units, None if reversed is None else np.packbits(reversed).tobytes(),
                        0 if reversed is None else len(reversed))
     T = np.asarray(unit.T_F_W, float)
     points_F = in_chunks(transform_points, T, cloud.points_mm)
@@ -122,14 +125,14 @@ def _save(f, **arrays: np.ndarray) -> None:
 
 def inspect_tiles(tiles: Sequence[TileCloud], store: str | Path, mesh_file: str | Path, T_F_W: np.ndarray,
                   lower_mm: float, upper_mm: float, backend: ComputeBackend,
-                  reversed: np.ndarray | None = None) -> tuple[TileDeviations, ...]:
+                  reversed: np.ndarray | None = None, mesh_units: str = "mm") -> tuple[TileDeviations, ...]:
     """:func:`inspect_tile` of every tile on ``backend``, in the tiles' order (:class:`InspectTile` for the
     arguments).
 
-    Eight parameters: the tiles, where they and the mesh lie, the placement in F and the band (the fields of an
-    :class:`InspectTile` unit) and the backend."""
-    units = [InspectTile(t, str(store), str(mesh_file), np.asarray(T_F_W, float), lower_mm, upper_mm, reversed)
-             for t in tiles]
+    Nine parameters: the tiles, where they and the mesh lie, the placement in F, the band, the CAD's orientation
+    and units (the fields of an :class:`InspectTile` unit) and the backend."""
+    units = [InspectTile(t, str(store), str(mesh_file), np.asarray(T_F_W, float), lower_mm, upper_mm, reversed,
+                         mesh_units) for t in tiles]
     return tuple(backend.map(inspect_tile, units, [u.key() for u in units]))
 
 

@@ -373,7 +373,10 @@ def _pair_corrections(
     (S, mm), of which only the scans of pairs left to register are placed in W here. Returns the outcomes in pair
     order, how many came from the cache, and the pairs selected at ``cfg.max_partners_per_scan`` (the registered
     ones where the joint refinement is off), on all of which the report's overlap RMS is taken, registered or not:
-    it scores the overlaps at the poses."""
+    it scores the overlaps at the poses.
+
+    Eight parameters: the job, what is known of its scans (summaries, the clouds where held), the settings and
+    network, the pairs registered while measuring, and where the rest run and read their scans."""
     scans, voxel_mm = job.scans, job.voxel_mm
     stations, digests = [s.station for s in scans], [m.digest for m in summaries]
     shared = shared_cells([m.cells for m in summaries])

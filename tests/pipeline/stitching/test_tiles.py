@@ -8,9 +8,11 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 import pytest
+from tandemscan.config.models import PartConfig
 from tandemscan.daemon.jobs.finish import merge_stage
 from tandemscan.pipeline.compute import LocalBackend
 from tandemscan.pipeline.geometry.frames import from_rpy, invert, rotate_vectors, transform_points
+from tandemscan.pipeline.geometry.part import load_part_mesh
 from tandemscan.pipeline.inspection.inspect import CadSurface, DeviationStats, ToleranceResult
 from tandemscan.pipeline.inspection.tile_inspection import deviation_figures, inspect_tiles, write_deviation_ply
 from tandemscan.pipeline.io.export import ExportError, PlyChunk, write_ply, write_ply_streamed
@@ -188,3 +190,28 @@ def test_a_scans_reach_bounds_its_x_at_a_moved_pose(tmp_path):
             exact_lo, exact_hi = scan_x_extent(moved, thinned, VOXEL_MM, VOXEL_MM)
             slack = 0.5 * np.sqrt(3) + np.sqrt(3) * 1e-3 * reach.reach_mm  # the move's translation and turn
             assert exact_lo - slack <= lo <= exact_lo and exact_hi <= hi <= exact_hi + slack
+
+
+def test_the_tiles_are_inspected_against_the_cad_as_the_job_reads_it(job, tmp_path):
+    """A CAD file in metres with a fifth of its triangles wound the other way: each tile's deviations are those from
+    the job's CAD (``[part] mesh`` and ``mesh_units``: in mm, wound outward), not from the file's raw coordinates
+    and winding."""
+    store, _, _, untiled, tiles = job
+    mesh = cad_mesh()
+    triangles = np.asarray(mesh.triangles)
+    triangles[::5] = triangles[::5, ::-1]
+    in_metres = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(mesh.vertices) / 1000.0),
+                                          o3d.utility.Vector3iVector(triangles))
+    mesh_file = tmp_path / "cad_m.ply"
+    o3d.io.write_triangle_mesh(str(mesh_file), in_metres)
+    inspected = inspect_tiles(tiles, store, mesh_file, T_F_W, -0.02, 0.02, LocalBackend(), mesh_units="m")
+    (d,) = zip(*(_read(store, t.file, "deviation_mm") for t in inspected), strict=True)
+    job_cad = load_part_mesh(PartConfig(mesh=mesh_file, mesh_units="m"))
+    expected = CadSurface(job_cad).closest(transform_points(T_F_W, untiled.points())).signed_mm
+    np.testing.assert_allclose(np.concatenate(d), expected, rtol=0, atol=1e-9)
+    assert np.abs(expected).max() < 0.5  # the sheet's noise, every point on the measured side
+
+
+def _read(store: Path, file: str, *names: str) -> list[np.ndarray]:
+    with np.load(store / file) as data:
+        return [data[name] for name in names]
