@@ -264,6 +264,17 @@ class _Model:
         mount = () if self.L is None else tuple(range(self.size - 6, self.size))
         return PoseCovariance(np.arange(self.n), self.origins.copy(), self.A.toarray(), cov_theta, source, mount)
 
+    def scan_columns(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per scan ``i`` the columns of ``A`` its six rows use (its reading, its station's transfers, the mount) and
+        those rows there (6 x k, dense): ``e_i = A_i theta[cols]``."""
+        A = self.A
+        out = []
+        for i in range(self.n):
+            rows = A[6 * i:6 * i + 6]
+            cols = np.unique(rows.indices)
+            out.append((cols, rows[:, cols].toarray()))
+        return out
+
     def scan_covariances(self, cov_theta: np.ndarray) -> np.ndarray:
         """(n, 6, 6) covariance of every ``e_i`` from the covariance of ``theta`` (dense): the diagonal blocks
         ``A_i cov A_i^T`` of ``A cov A^T`` only, not the whole (6n, 6n) product."""
@@ -277,7 +288,7 @@ class _Match:
     (scan i), and at the current poses the source points in the target's frame S_i (mm), the point-to-plane
     residuals (mm) and the symmetric normals (S_i); fixed when they were found, each residual's variance relative
     to that of two points seen head-on (:func:`ray_variances`) and ``found_at``, the relative pose ``T_S_i_S_j``
-    they were found at (:func:`_moved_mm`); and each residual's share (``2 / k``, :func:`noise_shares`), counted
+    they were found at (:func:`_moved_beyond`); and each residual's share (``2 / k``, :func:`noise_shares`), counted
     again whenever any pair's correspondences are found anew."""
 
     source: np.ndarray
@@ -345,16 +356,18 @@ class _Pair:
         KwK = Kw.T @ K
         cut = np.flatnonzero(huber < 1.0)
         KnK = KwK - (Kw[cut] * (1.0 - huber[cut, None])).T @ K[cut]
-        B = np.kron(np.eye(4), Pi[:3, :3]) @ _ROW_SIGNS      # (e_j, e_i) local -> world, from the nine columns
+        B = _rows_to_world(Pi[:3, :3])
         return B @ KwK @ B.T, B @ (Kw.T @ m.residual), B @ KnK @ B.T
 
 
-#: the twelve columns of a residual's row in ``(e_j, e_i)`` from its nine distinct ones ``[n, a, c]``
-#: (:meth:`_Pair.normal_equations`): ``[n, a, -n, c]``
-_ROW_SIGNS = np.zeros((12, 9))
-_ROW_SIGNS[:6, :6] = np.eye(6)
-_ROW_SIGNS[6:9, :3] = -np.eye(3)
-_ROW_SIGNS[9:, 6:] = np.eye(3)
+def _rows_to_world(R: np.ndarray) -> np.ndarray:
+    """(12, 9) ``B``: a residual's row in ``(e_j, e_i)``, world axes, from its nine distinct local columns ``[n, a,
+    c]`` (:meth:`_Pair.normal_equations`; the row is ``[n, a, -n, c]``, each 3-block turned by the rotation ``R`` of
+    S_i)."""
+    B = np.zeros((12, 9))
+    B[:3, :3] = B[3:6, 3:6] = B[9:, 6:] = R
+    B[6:9, :3] = -R
+    return B
 
 
 def symmetric_normals(target_n: np.ndarray, source_n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -410,18 +423,24 @@ def _huber(r: np.ndarray, threshold_mm: float) -> np.ndarray:
     return np.where(a <= threshold_mm, 1.0, threshold_mm / np.maximum(a, 1e-300))
 
 
-def _residuals_at(scans: Sequence[JointScan], poses: np.ndarray, associated: Sequence[tuple[_Pair, _Match]],
-                  pair_map: PairMap) -> tuple[np.ndarray, np.ndarray]:
+def _residuals_at(scans: Sequence[JointScan], poses: np.ndarray, origins: np.ndarray,
+                  associated: Sequence[tuple[_Pair, _Match]], pair_map: PairMap
+                  ) -> tuple[np.ndarray, np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
     """The residuals (mm) of the correspondences ``associated`` at ``poses``, as they are and whitened
-    (:func:`_whitened`); only these two arrays are kept, not a second set of matches."""
-    def at(pm: tuple[_Pair, _Match]) -> tuple[np.ndarray, np.ndarray]:
-        m = pm[0].at(scans, poses, pm[1])
-        return m.residual, _whitened([(pm[0], m)])
+    (:func:`_whitened`), and per pair the normal equations ``(K, g)`` (12x12 and 12 in ``(e_j, e_i)``) of its
+    residuals each weighted by its relative variance alone (a sigma of 1 mm, no Huber cut), which
+    :func:`_dispersions` scales by the noise's sigma; only these are kept, not a second set of matches
+    (``origins``: the scans' origins in W, mm)."""
+    def at(pm: tuple[_Pair, _Match]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        p, m = pm[0], pm[0].at(scans, poses, pm[1])
+        K, g, _ = p.normal_equations(scans, poses, origins, m, 1.0 / m.variance, np.ones(len(m.variance)))
+        return m.residual, _whitened([(p, m)]), K, g
 
-    both = pair_map(at, associated)
-    if not both:
-        return np.zeros(0), np.zeros(0)
-    return np.concatenate([r for r, _ in both]), np.concatenate([w for _, w in both])
+    out = pair_map(at, associated)
+    if not out:
+        return np.zeros(0), np.zeros(0), []
+    return (np.concatenate([r for r, _, _, _ in out]), np.concatenate([w for _, w, _, _ in out]),
+            [(K, g) for _, _, K, g in out])
 
 
 def _whitened(associated: Sequence[tuple[_Pair, _Match]]) -> np.ndarray:
@@ -504,7 +523,8 @@ def _associate(scans: Sequence[JointScan], poses: np.ndarray, pairs: Sequence[tu
                ) -> list[tuple[_Pair, _Match]]:
     """The correspondences of every pair at ``poses``: each source point's nearest target point within ``max_mm``
     (:func:`associate`; taken from ``given`` where the pair is there), where their normals agree; pairs without
-    any are left out. ``trees``: the target scans' KD-trees built so far (those missing are added);
+    any are left out; their noise shares are those of one pair alone (the caller counts them over all pairs,
+    :func:`_with_shares`). ``trees``: the target scans' KD-trees built so far (those missing are added);
     ``pair_map`` maps a function over the pairs (``parallel.pair_threads``)."""
     missing = sorted({i for i, j in pairs if (i, j) not in given} - trees.keys())
     trees.update(zip(missing, pair_map(lambda i: joint_tree(scans[i]), missing), strict=True))
@@ -522,29 +542,37 @@ def _associate(scans: Sequence[JointScan], poses: np.ndarray, pairs: Sequence[tu
         p = _Pair(i, j)
         return p, p.matched(scans, rel, x, found.target, found.source)
 
-    return _with_shares([len(s.points_S) for s in scans], [p for p in pair_map(near, pairs) if p is not None])
+    return [p for p in pair_map(near, pairs) if p is not None]
 
 
-def _moved_mm(scans: Sequence[JointScan], poses: np.ndarray, p: _Pair, m: _Match) -> float:
-    """How far (mm) the source points of ``m`` have moved in the target's frame S_i between the relative pose
-    they were found at (``m.found_at``) and the one at ``poses``: the largest of their displacements (each the
-    difference of the two relative poses applied to the point, ``(T_now - T_then) p``: one product a point)."""
-    moved = transform_points(invert(poses[p.i]) @ poses[p.j] - m.found_at, scans[p.j].points_S[m.source])
-    return float(np.sqrt(np.max(np.einsum("ij,ij->i", moved, moved), initial=0.0)))
+def _moved_beyond(scans: Sequence[JointScan], poses: np.ndarray, p: _Pair, m: _Match, limit_mm: float) -> bool:
+    """Whether the source points of ``m`` have moved more than ``limit_mm`` in the target's frame S_i between the
+    relative pose they were found at (``m.found_at``) and the one at ``poses``: the largest of their displacements
+    (each the difference of the two relative poses applied to the point, ``(T_now - T_then) p``: one product a
+    point), tried first on every 64th point (a pair that moved has its answer there, the whole part's nearly all),
+    then on all."""
+    D = invert(poses[p.i]) @ poses[p.j] - m.found_at
+    points = scans[p.j].points_S[m.source]
+
+    def farthest_mm(P: np.ndarray) -> float:
+        moved = transform_points(D, P)
+        return float(np.sqrt(np.max(np.einsum("ij,ij->i", moved, moved), initial=0.0)))
+
+    return farthest_mm(points[::64]) > limit_mm or farthest_mm(points) > limit_mm
 
 
 def _reassociated(scans: Sequence[JointScan], poses: np.ndarray, associated: list[tuple[_Pair, _Match]],
                   settings: JointSettings, trees: dict[int, cKDTree], pair_map: PairMap
                   ) -> tuple[list[tuple[_Pair, _Match]], int]:
     """``associated`` at ``poses``: the pairs whose source points have moved more than ``settings.reassociate_mm``
-    since their correspondences were found (:func:`_moved_mm`) have them found anew (:func:`_associate`), the
+    since their correspondences were found (:func:`_moved_beyond`) have them found anew (:func:`_associate`), the
     others keep theirs (residuals and normals anew); every share is counted again (:func:`noise_shares`).
     Returns them and the number of pairs associated anew. ``associated`` is emptied before the search, so that
     the matches found anew do not live beside those they replace (10 M correspondences on the whole part: about
     0.9 GB)."""
     if settings.reassociate_mm is None:
         return pair_map(lambda pm: (pm[0], pm[0].at(scans, poses, pm[1])), associated), 0
-    moved = pair_map(lambda pm: _moved_mm(scans, poses, *pm) > settings.reassociate_mm, associated)
+    moved = pair_map(lambda pm: _moved_beyond(scans, poses, *pm, settings.reassociate_mm), associated)
     anew = [(p.i, p.j) for (p, _), far in zip(associated, moved, strict=True) if far]
     kept = [(p, m) for (p, m), far in zip(associated, moved, strict=True) if not far]
     total = len(associated)
@@ -584,7 +612,8 @@ def _refine(scans: Sequence[JointScan], model: _Model, pairs: Sequence[tuple[int
     poses = np.stack([np.asarray(T, float) for T in start_poses])
     e = model.corrections(poses)
     trees: dict[int, cKDTree] = {}
-    associated = _associate(scans, poses, pairs, settings.max_distance_mm, associations, trees, pair_map)
+    associated = _with_shares([len(s.points_S) for s in scans],
+                              _associate(scans, poses, pairs, settings.max_distance_mm, associations, trees, pair_map))
     if settings.reassociate_mm is None:
         trees.clear()                      # nothing is searched again: the KD-trees need not live on
     H_prior = model.prior_information
@@ -617,13 +646,15 @@ def _refine(scans: Sequence[JointScan], model: _Model, pairs: Sequence[tuple[int
                   it, used, n_corr, sigma, move)
         if move < settings.tolerance_mm:
             break
-    r_fin, w_fin = _residuals_at(scans, poses, kept, pair_map)
+    r_fin, w_fin, unit_systems = _residuals_at(scans, poses, model.origins, kept, pair_map)
+    kept_pairs = [p for p, _ in kept]
+    kept = []                              # the matches are not needed any more (the whole part's: about 0.9 GB)
     rms_after = float(np.sqrt(np.mean(r_fin**2))) if len(r_fin) else float("nan")
     noise_sigma = settings.sigma_mm or _robust_sigma(w_fin)
     H_inv = np.linalg.inv(H_theta.toarray())        # the last linearisation's normal matrix, inverted
     ratio = (noise_sigma / sigma) ** 2
     cov_theta = _posterior_covariance(H_inv, H_prior + ratio * (model.A.T @ N.matrix() @ model.A))
-    factors, dispersion = _dispersions(model, scans, poses, kept, noise_sigma, cov_theta, pair_map)
+    factors, dispersion = _dispersions(model, kept_pairs, unit_systems, noise_sigma, cov_theta)
     if np.any(factors > 1.0):
         cov_theta = _posterior_covariance(H_inv, H_prior + ratio * (model.A.T @ N.matrix(factors) @ model.A))
     mount = None
@@ -657,13 +688,13 @@ def _posterior_covariance(H_inv: np.ndarray, information: sparse.csr_matrix) -> 
     return H_inv @ information.toarray() @ H_inv   # dense: a sparse-dense product runs on one core, far slower
 
 
-def _dispersions(model: _Model, scans: Sequence[JointScan], poses: np.ndarray, kept: list, sigma: float,
-                 cov_theta: np.ndarray, pair_map: PairMap) -> tuple[np.ndarray, dict[str, float]]:
+def _dispersions(model: _Model, pairs: Sequence[_Pair], unit_systems: Sequence[tuple[np.ndarray, np.ndarray]],
+                 sigma: float, cov_theta: np.ndarray) -> tuple[np.ndarray, dict[str, float]]:
     """How much more the pairs' residuals scatter than their points' independent noise (``sigma``, mm, two points
     head-on; :func:`ray_variances`) says, pooled over the pairs of the same two tracker stations: per pair of
-    ``kept`` its group's factor (at least 1), and the factors by group ("2-3").
+    ``pairs`` its group's factor (at least 1), and the factors by group ("2-3").
 
-    A pair's residuals at the refined ``poses``, whitened, projected on the directions a motion of scan j relative
+    A pair's residuals at the refined poses, whitened, projected on the directions a motion of scan j relative
     to scan i moves them (:meth:`_Pair.normal_equations`, rank ``r``, 6 but where the overlap slides) have a
     chi-square of about ``r - tr(K C)`` if its points err independently (``K`` the pair's information in both
     scans' errors, ``C`` their posterior under that noise, ``cov_theta``: what the fit took up; so measured on
@@ -672,26 +703,28 @@ def _dispersions(model: _Model, scans: Sequence[JointScan], poses: np.ndarray, k
     not averaged away by the pair's thousands of points, so the group's information is counted at the pooled
     ratio instead (a variance component of the group, docs/correction.md, "Pairs that err together"); never
     below 1, the points' own noise being measured by ``sigma`` already, and 1 where the group's pairs leave less
-    than :data:`MIN_REDUNDANCY` of their chi-square to test (a pair that alone places a scan leaves none)."""
-    if not kept:
+    than :data:`MIN_REDUNDANCY` of their chi-square to test (a pair that alone places a scan leaves none).
+    ``unit_systems``: each pair's normal equations at the refined poses with a sigma of 1 mm
+    (:func:`_residuals_at`), scaled here by ``sigma``."""
+    if not pairs:
         return np.ones(0), {}
+    columns = model.scan_columns()
 
-    def test(pm: tuple[_Pair, _Match]) -> tuple[float, float]:
-        p, m = pm
-        at = p.at(scans, poses, m)
-        w = 1.0 / (sigma**2 * at.variance)
-        K, g, _ = p.normal_equations(scans, poses, model.origins, at, w, np.ones(len(w)))
+    def test(p: _Pair, unit: tuple[np.ndarray, np.ndarray]) -> tuple[float, float]:
+        K, g = unit[0] / sigma**2, unit[1] / sigma**2
         vals, vecs = np.linalg.eigh(K[:6, :6])   # the residuals depend on scan j's motion relative to scan i's
         seen = vals > vals.max() * 1e-9
         q = float(np.sum((vecs[:, seen].T @ g[:6]) ** 2 / vals[seen]))
-        rows = model.A[np.r_[np.arange(6) + 6 * p.j, np.arange(6) + 6 * p.i]]
-        cols = np.unique(rows.indices)
-        Ap = rows[:, cols].toarray()
+        (cj, Aj), (ci, Ai) = columns[p.j], columns[p.i]
+        cols = np.union1d(cj, ci)
+        Ap = np.zeros((12, len(cols)))
+        Ap[:6, np.searchsorted(cols, cj)] = Aj
+        Ap[6:, np.searchsorted(cols, ci)] = Ai
         return q, float(np.count_nonzero(seen)) - float(np.sum(K * (Ap @ cov_theta[np.ix_(cols, cols)] @ Ap.T)))
 
-    tests = np.array(pair_map(test, kept))
+    tests = np.array([test(p, u) for p, u in zip(pairs, unit_systems, strict=True)])
     st = model.stations
-    group = np.array([f"{min(st[p.i], st[p.j])}-{max(st[p.i], st[p.j])}" for p, _ in kept], dtype=object)
+    group = np.array([f"{min(st[p.i], st[p.j])}-{max(st[p.i], st[p.j])}" for p in pairs], dtype=object)
     q, free = ({str(g): float(tests[group == g, k].sum()) for g in sorted(set(group))} for k in (0, 1))
     factor = {g: max(1.0, q[g] / free[g]) if free[g] >= MIN_REDUNDANCY else 1.0 for g in q}
     log.debug("joint refinement: pairs' dispersion per pair of tracker stations %s", factor)
