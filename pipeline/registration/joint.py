@@ -46,6 +46,7 @@ and ``H^-1`` alone was that much too wide: whole part, seed 7, one linearisation
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -260,26 +261,34 @@ class _Model:
 
     def pose_covariance(self, cov_theta: np.ndarray, source: str) -> PoseCovariance:
         """The scans' errors ``e = A theta`` jointly, ``theta`` of covariance ``cov_theta`` (dense), for every scan
-        ``0 .. n-1`` (the caller maps them to its own)."""
+        ``0 .. n-1`` (the caller maps them to its own); ``A`` as it is, sparse."""
         mount = () if self.L is None else tuple(range(self.size - 6, self.size))
-        return PoseCovariance(np.arange(self.n), self.origins.copy(), self.A.toarray(), cov_theta, source, mount)
+        return PoseCovariance(np.arange(self.n), self.origins.copy(), self.A, cov_theta, source, mount)
 
+    @functools.cached_property
     def scan_columns(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """Per scan ``i`` the columns of ``A`` its six rows use (its reading, its station's transfers, the mount) and
         those rows there (6 x k, dense): ``e_i = A_i theta[cols]``."""
-        A = self.A
+        A = self.A                                # CSR, one entry a (row, column): read from its arrays
         out = []
         for i in range(self.n):
-            rows = A[6 * i:6 * i + 6]
-            cols = np.unique(rows.indices)
-            out.append((cols, rows[:, cols].toarray()))
+            lo, hi = A.indptr[6 * i], A.indptr[6 * i + 6]
+            cols, at = np.unique(A.indices[lo:hi], return_inverse=True)
+            block = np.zeros((6, len(cols)))
+            block[np.repeat(np.arange(6), np.diff(A.indptr[6 * i:6 * i + 7])), at] = A.data[lo:hi]
+            out.append((cols, block))
         return out
 
-    def scan_covariances(self, cov_theta: np.ndarray) -> np.ndarray:
-        """(n, 6, 6) covariance of every ``e_i`` from the covariance of ``theta`` (dense): the diagonal blocks
-        ``A_i cov A_i^T`` of ``A cov A^T`` only, not the whole (6n, 6n) product."""
-        rows = (self.A @ cov_theta).reshape(self.n, 6, self.size)   # A_i cov
-        return np.einsum("iak,ibk->iab", rows, self.A.toarray().reshape(self.n, 6, self.size))
+    def scan_covariances(self, cov_theta: np.ndarray | sparse.spmatrix) -> np.ndarray:
+        """(n, 6, 6) covariance of every ``e_i`` from the covariance of ``theta`` (dense, or sparse as the priors'):
+        the diagonal blocks ``A_i cov A_i^T`` of ``A cov A^T`` only, each from the few columns ``A_i`` uses
+        (:attr:`scan_columns`), neither the whole (6n, 6n) product nor ``A`` dense."""
+        C = sparse.csr_matrix(cov_theta) if sparse.issparse(cov_theta) else cov_theta
+        out = np.empty((self.n, 6, 6))
+        for i, (cols, Ai) in enumerate(self.scan_columns):
+            block = C[cols][:, cols].toarray() if sparse.issparse(C) else C[np.ix_(cols, cols)]
+            out[i] = Ai @ block @ Ai.T
+        return out
 
 
 @dataclass(frozen=True)
@@ -659,9 +668,8 @@ def _refine(scans: Sequence[JointScan], model: _Model, pairs: Sequence[tuple[int
         cov_theta = _posterior_covariance(H_inv, H_prior + ratio * (model.A.T @ N.matrix(factors) @ model.A))
     mount = None
     if model.L is not None:   # the data's information under their noise at the refined poses, plus the priors
-        P = H_prior.toarray()
-        mount = _mount_estimate(model, (H_theta.toarray() - P) / ratio + P, cov_theta, theta)
-    prior_cov = model.scan_covariances(model.prior_covariance.toarray())
+        mount = _mount_estimate(model, (H_theta - H_prior) / ratio + H_prior, cov_theta, theta)
+    prior_cov = model.scan_covariances(model.prior_covariance)
     log.info("joint refinement: %d scans, %d pairs, %d points, %d iterations, %d pairs associated anew; sigma "
              "%.4f mm (%.4f mm at the refined poses), RMS %.4f -> %.4f mm", model.n, used, n_corr, it, anew, sigma,
              noise_sigma, rms_before, rms_after)
@@ -708,7 +716,7 @@ def _dispersions(model: _Model, pairs: Sequence[_Pair], unit_systems: Sequence[t
     (:func:`_residuals_at`), scaled here by ``sigma``."""
     if not pairs:
         return np.ones(0), {}
-    columns = model.scan_columns()
+    columns = model.scan_columns
 
     def test(p: _Pair, unit: tuple[np.ndarray, np.ndarray]) -> tuple[float, float]:
         K, g = unit[0] / sigma**2, unit[1] / sigma**2
@@ -784,14 +792,15 @@ def _data_system(model: _Model, scans: Sequence[JointScan], poses: np.ndarray, k
     return _assembled(n, pairs, [H for H, _, _ in systems]), b, _NoiseBlocks(pairs, [N for _, _, N in systems], n)
 
 
-def _mount_estimate(model: _Model, information: np.ndarray, cov_theta: np.ndarray, theta: np.ndarray
+def _mount_estimate(model: _Model, information: sparse.spmatrix, cov_theta: np.ndarray, theta: np.ndarray
                     ) -> MountEstimate:
     """The shared mount correction ``D = Exp(L u)``: its posterior (from ``cov_theta``) and the data's information
-    on it (from ``information``, the data's and the priors' on ``theta``, dense)."""
+    on it (from ``information``, the data's and the priors' on ``theta``, sparse)."""
     L, prior = model.L, np.asarray(model.mount_prior.covariance, float)
-    H_data = information.copy()
-    H_data[-6:, -6:] -= np.eye(6)                      # without the mount's own prior
-    data_u = _marginal_information(H_data, model.size - 6)
+    first = model.size - 6
+    own_prior = sparse.csr_matrix((np.ones(6), (np.arange(first, model.size), np.arange(first, model.size))),
+                                  shape=information.shape)
+    data_u = _marginal_information(sparse.csc_matrix(information - own_prior), first)   # without the mount's prior
     ratio, U = np.linalg.eigh(0.5 * (data_u + data_u.T))
     d = L @ theta[-6:]
     cov = L @ cov_theta[-6:, -6:] @ L.T
@@ -803,7 +812,8 @@ def _mount_estimate(model: _Model, information: np.ndarray, cov_theta: np.ndarra
                          ratio, U, observed)
 
 
-def _marginal_information(H: np.ndarray, first: int) -> np.ndarray:
-    """The information of the unknowns from ``first`` on with the earlier ones marginalised (``H`` dense)."""
-    A, B, C = H[:first, :first], H[:first, first:], H[first:, first:]
-    return C - B.T @ np.linalg.solve(A, B)
+def _marginal_information(H: sparse.csc_matrix, first: int) -> np.ndarray:
+    """The information (dense) of the few unknowns from ``first`` on with the earlier ones marginalised: their
+    Schur complement in ``H`` (sparse), the earlier ones' block factored sparse and solved against the few columns."""
+    A, B, C = H[:first, :first], H[:first, first:].toarray(), H[first:, first:].toarray()
+    return C - B.T @ splu(sparse.csc_matrix(A)).solve(B)

@@ -21,7 +21,8 @@ from scipy import sparse
 @dataclass(frozen=True)
 class PoseCovariance:
     """``e = A theta``, ``theta`` of covariance ``theta_covariance``, for the scans ``scan_ids`` (indices into the
-    job's scans) whose origins in W are ``origins_mm`` (n, 3); ``A`` is (6n, m) dense. ``source`` says where ``C``
+    job's scans) whose origins in W are ``origins_mm`` (n, 3); ``A`` is (6n, m), kept sparse (CSR; a dense one
+    given is converted: a scan's row uses a few of the thousands of columns). ``source`` says where ``C``
     came from ("joint refinement posterior" or "tracker chain prior"); ``installation_columns``: the columns of
     ``theta`` that are the mount's (empty: the mount is taken as known, or its error is not modelled)."""
 
@@ -33,6 +34,8 @@ class PoseCovariance:
     installation_columns: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
+        if not sparse.isspmatrix_csr(self.A):
+            object.__setattr__(self, "A", sparse.csr_matrix(self.A))
         n, m = len(self.scan_ids), self.theta_covariance.shape[0]
         if self.A.shape != (6 * n, m) or self.origins_mm.shape != (n, 3) or self.theta_covariance.shape != (m, m):
             raise ValueError(f"pose covariance: A {self.A.shape}, origins {self.origins_mm.shape} and C "
@@ -51,7 +54,7 @@ class PoseCovariance:
         w, V = np.linalg.eigh(0.5 * (C + C.T))
         w = np.clip(w, 0.0, None)
         big = w > 1e-12 * max(float(w.max()), 1e-300)
-        return self.A[:, keep] @ (V[:, big] * np.sqrt(w[big]))
+        return np.asarray(self.A[:, np.flatnonzero(keep)] @ (V[:, big] * np.sqrt(w[big])))
 
     def covariance(self, part: str = "all") -> np.ndarray:
         """(6n, 6n) covariance of ``e`` from ``part``'s unknowns, as :meth:`factor` splits them: ``A C A^T`` of
@@ -65,7 +68,7 @@ class PoseCovariance:
         if not keep.any():
             return np.zeros((self.A.shape[0], self.A.shape[0]))
         C = self.theta_covariance[np.ix_(keep, keep)]
-        A = sparse.csr_matrix(self.A[:, keep])
+        A = self.A[:, np.flatnonzero(keep)]
         AC = np.asarray(A @ (0.5 * (C + C.T)))  # (6n, m)
         return np.asarray((A @ AC.T).T)
 
@@ -85,4 +88,4 @@ class PoseCovariance:
 
     def full(self) -> np.ndarray:
         """(6n, 6n) covariance of the stacked ``e``."""
-        return self.A @ self.theta_covariance @ self.A.T
+        return np.asarray((self.A @ (self.A @ self.theta_covariance).T).T)

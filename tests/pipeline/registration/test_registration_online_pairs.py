@@ -88,9 +88,9 @@ def test_scans_prepared_for_the_joint_refinement_while_measuring_give_the_same_p
     fresh = correct_scans(StitchedJob(scans, transfers), cfg)
     assert fresh.report["joint"]["pairs_associated_while_measuring"] == 0
     prepared_at_end, searched_at_end = [], []
-    real, real_associate = correction.joint_scan, joint.associate
+    real, real_search = correction.joint_scan, joint._nearest   # the refinement's search (``associate``'s)
     monkeypatch.setattr(correction, "joint_scan", lambda P, c: prepared_at_end.append(len(P)) or real(P, c))
-    monkeypatch.setattr(joint, "associate", lambda *a: searched_at_end.append(1) or real_associate(*a))
+    monkeypatch.setattr(joint, "_nearest", lambda *a: searched_at_end.append(1) or real_search(*a))
     kept = dict(work.joint_scans)
     reused = correct_scans(StitchedJob(scans, transfers), cfg, online=work)
     anew = reused.report["joint"]["pairs_associated_anew"]

@@ -1,0 +1,138 @@
+"""The joint refinement's sparse paths against their dense formulas (docs/correction.md, "Joint refinement"): each
+scan's posterior block, the mount's marginal information and ``PoseCovariance``'s products from the sparse error
+model ``A``; a job of 1,500 scans keeps that model and the prior's blocks sparse-sized; the association's
+shortcuts (the target's box from its KD-tree, a pair's move told on a subsample) find what the full search finds."""
+
+from __future__ import annotations
+
+import tracemalloc
+
+import numpy as np
+from scipy import sparse
+from scipy.spatial import cKDTree
+from tandemscan.pipeline.geometry.frames import from_rotvec, invert, transform_points
+from tandemscan.pipeline.registration.joint import (
+    JointScan,
+    JointSettings,
+    _marginal_information,
+    _Match,
+    _Model,
+    _moved_beyond,
+    _Pair,
+    associate,
+    joint_tree,
+    refine_jointly,
+)
+from tandemscan.pipeline.registration.mount_unknown import MountPrior
+from tandemscan.pipeline.registration.pose_covariance import PoseCovariance
+from tandemscan.pipeline.registration.pose_graph import ScanPrior, TransferPrior
+
+LOOSE = np.diag([0.3**2] * 3 + [np.radians(0.05) ** 2] * 3)
+
+
+def strip(n: int, seed: int) -> tuple[list[JointScan], list[ScanPrior], list[tuple[int, int]], list[TransferPrior]]:
+    """``n`` noisy scans (0.03 mm) of a curved strip, 150 mm windows 75 mm apart, two tracker stations."""
+    rng = np.random.default_rng(seed)
+    x, y = np.meshgrid(np.arange(0.0, 75.0 * (n + 1) + 1, 3.0), np.arange(-60.0, 61.0, 3.0))
+    x, y = x.ravel(), y.ravel()
+    world = np.c_[x, y, 10 * np.sin(x / 17.0) * np.cos(y / 13.0) + 6 * np.cos(x / 23.0 + y / 19.0)]
+    scans, priors = [], []
+    for k in range(n):
+        T = from_rotvec([75.0 * k + 75.0, 0.0, 400.0], [np.pi, 0, 0])
+        inside = (world[:, 0] >= 75.0 * k) & (world[:, 0] <= 75.0 * k + 150.0)
+        P = transform_points(invert(T), world[inside])
+        P[:, 2] += rng.normal(0, 0.03, len(P))
+        scans.append(JointScan.from_points(P))
+        tracker = from_rotvec(rng.normal(0, 0.1, 3), rng.normal(0, 1e-4, 3)) @ T
+        priors.append(ScanPrior(tracker, LOOSE, int(k >= n // 2)))
+    transfers = [TransferPrior(1, np.array([75.0 * n / 2, 0, 400.0]), LOOSE)]
+    return scans, priors, [(k, k + 1) for k in range(n - 1)], transfers
+
+
+def test_the_sparse_posterior_blocks_equal_the_dense_products():
+    """Each scan's posterior (from the few columns of ``A`` it uses) and ``PoseCovariance``'s covariance of every
+    part equal ``A C A^T`` formed densely, the mount's marginal information the dense Schur complement."""
+    scans, priors, pairs, transfers = strip(5, 1)
+    mount = MountPrior(np.diag([0.01] * 3 + [1e-6] * 3))
+    res = refine_jointly(scans, priors, pairs, [p.T_W_S for p in priors], transfers, mount,
+                         JointSettings(iterations=2, reassociate_mm=0.02))
+    pc = res.pose_covariance
+    assert sparse.isspmatrix_csr(pc.A)
+    A, C = pc.A.toarray(), pc.theta_covariance
+    full = A @ C @ A.T
+    scale = np.abs(full).max()
+    blocks = np.stack([full[6 * i:6 * i + 6, 6 * i:6 * i + 6] for i in range(len(scans))])
+    assert np.abs(res.covariances - blocks).max() < 1e-12 * scale
+    assert np.abs(pc.full() - full).max() < 1e-12 * scale
+    assert np.abs(pc.covariance("all") - A @ (0.5 * (C + C.T)) @ A.T).max() < 1e-12 * scale   # C taken symmetric
+    mount_cols = list(pc.installation_columns)
+    assert len(mount_cols) == 6
+    C_rest = C.copy()
+    C_rest[mount_cols, :] = C_rest[:, mount_cols] = 0.0
+    assert np.abs(pc.covariance("scan_poses") - A @ (0.5 * (C_rest + C_rest.T)) @ A.T).max() < 1e-12 * scale
+    assert np.abs(pc.factor("all") @ pc.factor("all").T - full).max() < 1e-9 * scale
+
+    M = sparse.random(60, 60, density=0.1, random_state=3)
+    H = (M @ M.T + sparse.identity(60) * 5.0).tocsc()
+    D = H.toarray()
+    dense = D[54:, 54:] - D[:54, 54:].T @ np.linalg.solve(D[:54, :54], D[:54, 54:])
+    assert np.abs(_marginal_information(H, 54) - dense).max() < 1e-12 * np.abs(dense).max()
+
+
+def test_a_job_of_many_scans_keeps_its_error_model_sparse_sized():
+    """1,500 scans, four stations and the mount (9,024 unknowns): the error model ``A`` and every scan's prior block
+    are formed without any dense (6n x m) or (m x m) array: a dense ``A`` alone would be 650 MB, here the model's
+    sparse matrices hold under 16 MB and the scans' prior blocks take under 64 MB traced."""
+    n = 1500
+    rng = np.random.default_rng(4)
+    priors = [ScanPrior(from_rotvec(rng.uniform(-3000, 3000, 3), rng.normal(0, 1, 3)), LOOSE, k * 4 // n)
+              for k in range(n)]
+    transfers = [TransferPrior(s, rng.uniform(-3000, 3000, 3), LOOSE) for s in (1, 2, 3)]
+    model = _Model(priors, transfers, MountPrior(np.diag([0.01] * 3 + [1e-6] * 3)))
+    assert sparse.issparse(model.A) and model.A.shape == (6 * n, 6 * (n + 3 + 1))
+    assert sparse.issparse(model.prior_covariance) and sparse.issparse(model.prior_information)
+    stored = sum(M.data.nbytes + M.indices.nbytes + M.indptr.nbytes
+                 for M in (model.A, model.prior_covariance, model.prior_information))
+    assert stored < 16 * 2**20, stored / 2**20
+    tracemalloc.start()
+    blocks = model.scan_covariances(model.prior_covariance)    # each scan's columns found on the way
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    assert peak < 64 * 2**20, peak / 2**20
+    # a scan of station 3: its reading's, three transfers' and the mount's prior through A, formed densely
+    k = n - 1
+    cols, Ak = model.scan_columns[k]
+    assert len(cols) == 6 * (1 + 3 + 1)
+    P = model.prior_covariance[cols][:, cols].toarray()
+    assert np.allclose(blocks[k], Ak @ P @ Ak.T, rtol=1e-12, atol=0)
+    assert np.all(np.linalg.eigvalsh(blocks[k]) > 0)
+    given = PoseCovariance(np.arange(2), np.zeros((2, 3)), np.eye(12), np.eye(12), "test")
+    assert sparse.isspmatrix_csr(given.A)
+
+
+def test_the_association_shortcuts_find_what_the_full_search_finds():
+    """The target's box taken from its KD-tree and tested column by column leaves out no source point that has a
+    target point within the distance (the search over all source points finds the same pairs); a pair's move
+    beyond a limit is told the same from a subsample first as from all its points."""
+    rng = np.random.default_rng(5)
+    target = JointScan(rng.uniform(0, 100, (4000, 3)), np.tile([0.0, 0.0, 1.0], (4000, 1)))
+    source = JointScan(rng.uniform(-20, 120, (5000, 3)), np.tile([0.0, 0.0, 1.0], (5000, 1)))
+    rel = from_rotvec([3.0, -2.0, 1.0], [0.01, 0.02, -0.01])
+    tree = joint_tree(target)
+    found = associate(target, tree, source, rel, 3.0)
+    d, idx = cKDTree(target.points_S).query(transform_points(rel, source.points_S), distance_upper_bound=3.0)
+    every = np.flatnonzero(np.isfinite(d))
+    assert len(every) > 300
+    assert np.array_equal(found.source, every) and np.array_equal(found.target, idx[every])
+
+    scans = [target, source]
+    m = _Match(every, idx[every], np.zeros((len(every), 3)), np.zeros(len(every)), np.zeros((len(every), 3)),
+               np.ones(len(every)), np.ones(len(every)), rel)
+    poses = np.stack([np.eye(4), rel])
+    for rotation in (0.0, 1e-5, 4e-5, 1e-3):
+        moved = poses.copy()
+        moved[1] = from_rotvec([0, 0, 0], [0, 0, rotation]) @ rel
+        shift = transform_points(invert(moved[0]) @ moved[1] - rel, source.points_S[every])
+        farthest = float(np.sqrt(np.max(np.einsum("ij,ij->i", shift, shift))))
+        for limit in (0.5 * farthest, farthest * (1 - 1e-9), farthest * 1.001, 0.002):
+            assert _moved_beyond(scans, moved, _Pair(0, 1), m, limit) == (farthest > limit)
