@@ -294,15 +294,15 @@ class _Model:
 @dataclass(frozen=True)
 class _Match:
     """The correspondences of one pair: the indices of the source points (scan j) and of their target points
-    (scan i), and at the current poses the source points in the target's frame S_i (mm), the point-to-plane
-    residuals (mm) and the symmetric normals (S_i); fixed when they were found, each residual's variance relative
+    (scan i), and at the current poses the point-to-plane residuals (mm) and the symmetric normals (S_i; the source
+    points placed in S_i are not kept: 24 bytes a correspondence, a quarter GB on the whole part, placed again
+    where needed, :meth:`_Pair.normal_equations`); fixed when they were found, each residual's variance relative
     to that of two points seen head-on (:func:`ray_variances`) and ``found_at``, the relative pose ``T_S_i_S_j``
     they were found at (:func:`_moved_beyond`); and each residual's share (``2 / k``, :func:`noise_shares`), counted
     again whenever any pair's correspondences are found anew."""
 
     source: np.ndarray
     target: np.ndarray
-    source_S_i: np.ndarray
     residual: np.ndarray
     normals: np.ndarray
     variance: np.ndarray
@@ -327,7 +327,7 @@ class _Pair:
         q = scans[self.i].points_S[target]
         r = np.einsum("ij,ij->i", x - q, n)
         variance = ray_variances(n, x - rel[:3, 3], q, scans[self.j].counts_at(source), scans[self.i].counts_at(target))
-        return _Match(source, target, x, r, n, variance, np.ones(len(r)), rel)
+        return _Match(source, target, r, n, variance, np.ones(len(r)), rel)
 
     def at(self, scans: Sequence[JointScan], poses: np.ndarray, m: _Match) -> _Match:
         """The same correspondences ``m`` at ``poses``: source points placed in S_i, normals and residuals anew."""
@@ -335,7 +335,7 @@ class _Pair:
         x = transform_points(rel, scans[self.j].points_S[m.source])
         n, _ = self._normals(scans, rel, m.source, m.target)
         r = np.einsum("ij,ij->i", x - scans[self.i].points_S[m.target], n)
-        return _Match(m.source, m.target, x, r, n, m.variance, m.share, m.found_at)
+        return _Match(m.source, m.target, r, n, m.variance, m.share, m.found_at)
 
     def _normals(self, scans: Sequence[JointScan], rel: np.ndarray, source: np.ndarray, target: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray]:
@@ -359,7 +359,8 @@ class _Pair:
         # a row is [n, a, -n, c]: its nine distinct columns K = [n, a, c] are summed, the twelve follow by sign
         K = np.empty((len(n), 9))
         K[:, :3] = n
-        K[:, 3:6] = _cross(m.source_S_i - o_j, n)
+        x = transform_points(to_local @ poses[self.j], scans[self.j].points_S[m.source])   # as :meth:`at` placed them
+        K[:, 3:6] = _cross(x - o_j, n)
         K[:, 6:] = _cross(n, q - o_i)
         Kw = K * weights[:, None]
         KwK = Kw.T @ K

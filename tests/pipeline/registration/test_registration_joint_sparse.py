@@ -126,8 +126,8 @@ def test_the_association_shortcuts_find_what_the_full_search_finds():
     assert np.array_equal(found.source, every) and np.array_equal(found.target, idx[every])
 
     scans = [target, source]
-    m = _Match(every, idx[every], np.zeros((len(every), 3)), np.zeros(len(every)), np.zeros((len(every), 3)),
-               np.ones(len(every)), np.ones(len(every)), rel)
+    m = _Match(every, idx[every], np.zeros(len(every)), np.zeros((len(every), 3)), np.ones(len(every)),
+               np.ones(len(every)), rel)
     poses = np.stack([np.eye(4), rel])
     for rotation in (0.0, 1e-5, 4e-5, 1e-3):
         moved = poses.copy()
