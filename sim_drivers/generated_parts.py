@@ -413,8 +413,24 @@ def near_symmetric(boss_mm: float = 15.0) -> GeneratedPart:
     return GeneratedPart("near-symmetric", mesh, normals, seen, defects)
 
 
+def chamfered_bar(chamfer_mm: float = 10.0) -> GeneratedPart:
+    """A bar, 800 x 120 x 80 mm on the floor along x, symmetric but for a 45 deg chamfer of ``chamfer_mm`` on the top
+    edge of its +x end: turned 180 deg about any of its axes it fits all but that edge. Closed, wound outward; the
+    scanner sees every face but the bottom. Defects: a dent on the top, a bulge on a side."""
+    import shapely
+
+    c = chamfer_mm
+    profile = shapely.Polygon([(-400.0, 0.0), (400.0, 0.0), (400.0, 80.0 - c), (400.0 - c, 80.0), (-400.0, 80.0)])
+    pieces = [(v[:, [0, 2, 1]], t) for v, t in _prism(_sample_edges(profile, 40.0), -60.0, 60.0)]  # (x, z) along y
+    mesh, normals = _outward(_soup_to_closed(pieces))
+    tc = np.asarray(mesh.vertices)[np.asarray(mesh.triangles)].mean(axis=1)
+    seen = ~((normals[:, 2] < -0.9) & (tc[:, 2] < 1e-6))
+    defects = (SurfaceDefect((-200.0, 20.0, 80.0), 40.0, -0.4), SurfaceDefect((100.0, -60.0, 40.0), 30.0, 0.4))
+    return GeneratedPart("chamfered-bar", mesh, normals, seen, defects)
+
+
 CUSTOMER_PARTS = {"twisted-blade": twisted_blade, "stiffened-panel": stiffened_panel, "barrel-shell": barrel_shell,
-                  "pocket-box": pocket_box, "near-symmetric": near_symmetric}
+                  "pocket-box": pocket_box, "near-symmetric": near_symmetric, "chamfered-bar": chamfered_bar}
 """Parts unlike the shipped ones and :data:`PARTS`, as a new customer brings them."""
 
 

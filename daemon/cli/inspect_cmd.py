@@ -109,6 +109,8 @@ def run(args: argparse.Namespace) -> int:
     )
     if a.get("free_directions"):
         print(f"not fixed by the measured surface (held where the cloud was given): {'; '.join(a['free_directions'])}")
+    if a.get("ambiguity"):
+        print(f"pose not proven: {a['ambiguity']}")
     if outputs.qif is not None:
         print(f"QIF:    {outputs.qif}")
     for c in outputs.characteristics:

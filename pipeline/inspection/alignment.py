@@ -101,6 +101,59 @@ class SphereResidual:
 
 
 @dataclass(frozen=True)
+class RivalPose:
+    """The best fit of the cloud in another pose than the chosen one (turned more than :data:`TWIN_DEG` from it: an
+    unknown start's fit turned over, or another candidate) and what tells them apart (docs/inspection-method.md,
+    "Alignment": twin poses). ``T_F_W`` places the cloud there, turned by ``turn_deg`` about the axis along ``axis``
+    near ``centre_F_mm`` (the cloud's centroid, frame F) from the chosen pose. The evidence is the points whose
+    residual (truncated at the last trim) differs by more than :data:`DISTINGUISH_SIGMAS` robust sigmas between
+    the two poses: ``points_for`` lie closer to the CAD in the chosen pose, ``points_against`` in this one."""
+
+    T_F_W: np.ndarray = field(repr=False)
+    turn_deg: float
+    axis: tuple[float, float, float]
+    centre_F_mm: tuple[float, float, float]
+    points_for: int
+    points_against: int
+
+    @property
+    def z(self) -> float:
+        """The sign test's statistic of the evidence: how many standard deviations of a fair coin's count the points
+        for the chosen pose outnumber those against it by (0 without any)."""
+        n = self.points_for + self.points_against
+        return (self.points_for - self.points_against) / float(np.sqrt(n)) if n else 0.0
+
+    @property
+    def settled(self) -> bool:
+        """Whether the chosen pose is proven over this one: the sign test beyond :data:`SETTLED_Z` (at least
+        ``SETTLED_Z ** 2`` points that fit it and not this one, where none fits this one and not it)."""
+        return self.z >= SETTLED_Z
+
+    @property
+    def unsettles_verdict(self) -> bool:
+        """Not settled, and some point's deviation differs between the two poses: which verdict holds is unknown.
+        A rival no point tells apart (an exactly symmetric part) gives the same deviations, shown at the mirror's
+        places."""
+        return not self.settled and self.points_for + self.points_against > 0
+
+    def words(self) -> str:
+        """The rival pose in words, with the evidence, for the report and the log."""
+        a, c = self.axis, self.centre_F_mm
+        return (f"the pose turned {self.turn_deg:.0f} deg about the axis along ({a[0]:+.3f}, {a[1]:+.3f}, "
+                f"{a[2]:+.3f}) near ({c[0]:.0f}, {c[1]:.0f}, {c[2]:.0f}) mm fits as well (a symmetric part: "
+                f"{self.points_for} points fit the chosen pose and not it, {self.points_against} it and not the "
+                f"chosen one, z = {self.z:.1f} < {SETTLED_Z:g}): the deviations may be shown at their mirror's places"
+                + ("" if self.points_for + self.points_against == 0 else " and differ between the two poses")
+                + "; start the cloud within 30 deg of its place or align it by reference spheres")
+
+    def summary(self) -> dict:
+        """JSON-ready (report.json ``inspection.alignment.rival_pose``)."""
+        return {"T_F_W": self.T_F_W.tolist(), "turn_deg": self.turn_deg, "axis": list(self.axis),
+                "centre_F_mm": list(self.centre_F_mm), "points_for": self.points_for,
+                "points_against": self.points_against, "z": round(self.z, 2), "settled": self.settled}
+
+
+@dataclass(frozen=True)
 class Alignment:
     """How the cloud was placed in the CAD frame: the method, ``T_F_W``, its residual and the details.
 
@@ -115,7 +168,8 @@ class Alignment:
     ``T_F_W``: the true pose is about ``(p -> p + r x (p - c) + t) T_F_W`` with ``(t, r) ~ N(0, covariance)``.
     It is the residual scale squared times the inverse normal matrix of the fit's points (at most
     ``FINE_POINTS``, so conservative for a denser cloud), zero along the free directions (a motion along
-    them moves no point off the surface). None for RPS and none."""
+    them moves no point off the surface). None for RPS and none. ``rival``: the best fit in another pose and
+    the evidence between them (:class:`RivalPose`); None where no other pose was found."""
 
     method: str  # "best-fit", "rps" or "none"
     T_F_W: np.ndarray
@@ -131,6 +185,12 @@ class Alignment:
     free_directions: tuple[str, ...] = ()  # best fit: what the measured surface does not fix, held by the prior
     covariance: np.ndarray | None = field(default=None, repr=False)  # best fit: 6x6, see below
     covariance_centre_F_mm: tuple[float, float, float] | None = None
+    rival: RivalPose | None = None  # best fit: the best other pose found and what tells the two apart
+
+    @property
+    def ambiguity(self) -> str:
+        """Where a rival pose is not ruled out (:attr:`RivalPose.settled`): it in words; else ""."""
+        return "" if self.rival is None or self.rival.settled else self.rival.words()
 
     def summary(self) -> dict:
         """JSON-ready: method, residual_mm, start, T_F_W, translation and rotation of ``T_F_W`` and the
@@ -145,7 +205,9 @@ class Alignment:
         }
         if self.method == "best-fit":
             out |= {"used_points": self.used_points, "iterations": self.iterations, "converged": self.converged,
-                    "inlier_share": self.inlier_share, "free_directions": list(self.free_directions)}
+                    "inlier_share": self.inlier_share, "free_directions": list(self.free_directions),
+                    "ambiguity": self.ambiguity or None,
+                    "rival_pose": None if self.rival is None else self.rival.summary()}
         if self.covariance is not None:
             out |= {"covariance": self.covariance.tolist(), "covariance_centre_F_mm": self.covariance_centre_F_mm,
                     "covariance_units": "t mm then r rad, a motion about covariance_centre_F_mm after T_F_W"}
@@ -315,7 +377,8 @@ def covariance(fit: SurfaceFit) -> np.ndarray:
 def _fine_fit(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray, prior_T_F_W: np.ndarray,
               cfg: AlignmentCriteria, levels: str = "all", seen: SeenFrom | None = None) -> tuple[SurfaceFit, int]:
     """The coarse-to-fine passes of :func:`fit_to_surface` from ``start_T_F_W`` (``levels``: "all", "coarse"
-    (trims beyond :data:`FINE_FROM_MM`) or "fine"), the free directions held at ``prior_T_F_W``, no point
+    (trims beyond :data:`FINE_FROM_MM`), "near" (the last of those alone: a start with most points within it) or
+    "fine"), the free directions held at ``prior_T_F_W``, no point
     paired on the back of a closed face (``seen``): its last pass and the iterations of all. A pass leaving
     less than ``cfg.alignment_min_inlier_share`` of the points within its trim ends the fit
     (:class:`InspectionError`): the start was poor."""
@@ -323,7 +386,8 @@ def _fine_fit(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray, prior
     last = cfg.best_fit_max_distance_mm
     fit = None
     distances = [d for d in (*cfg.alignment_distances_mm, last)
-                 if levels == "all" or (d > FINE_FROM_MM) == (levels == "coarse")]
+                 if levels == "all" or (d > FINE_FROM_MM) == (levels in ("coarse", "near"))]
+    distances = distances[-1:] if levels == "near" else distances
     for distance in distances:
         rows = _datum_rows(p, T, cfg)
         datum, datum_seen = p[rows], None if seen is None else seen.rows(rows)
@@ -370,10 +434,11 @@ def _surface_samples(surface: CadSurface, n: int) -> np.ndarray:
     return a[pick] + u[:, :1] * (b[pick] - a[pick]) + u[:, 1:] * (c[pick] - a[pick])
 
 
-def _turned_over(p: np.ndarray, T_F_W: np.ndarray) -> list[np.ndarray]:
-    """``T_F_W`` turned by 180 deg about each principal axis of the points (W, mm) through their centroid, as
-    placed by it: where a near-symmetric part (an arch about its crown's normal) fits in its symmetric pose."""
-    q = F.transform_points(T_F_W, p[:: max(1, len(p) // COARSE_POINTS)])
+def _turned_over(surface: CadSurface, T_F_W: np.ndarray) -> list[np.ndarray]:
+    """``T_F_W`` turned by 180 deg about each principal axis of the CAD surface through its centroid (F, of
+    :data:`GLOBAL_POINTS` points sampled on it by area): the turns that map a symmetric part onto itself, so where a
+    near-symmetric part (an arch about its crown's normal, a plate upside down) fits in its symmetric pose."""
+    q = _surface_samples(surface, GLOBAL_POINTS)
     c = q.mean(axis=0)
     _, _, axes = np.linalg.svd(q - c, full_matrices=False)
     out = []
@@ -385,25 +450,42 @@ def _turned_over(p: np.ndarray, T_F_W: np.ndarray) -> list[np.ndarray]:
 
 
 def _global_fit(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray, prior_T_F_W: np.ndarray,
-                cfg: AlignmentCriteria, fitted_T_F_W: np.ndarray | None, features: bool, seen: SeenFrom | None
-                ) -> tuple[SurfaceFit, int]:
-    """The fit from the global stage: the coarse passes from each of its candidates (the feature matches where
-    ``features``; the start's fit ``fitted_T_F_W`` turned over, :func:`_turned_over`, where that lies within
-    :data:`TURNED_BAR` times its truncated cost plus 1 mm^2: the turn is about the cloud's centroid, not the
-    part's, so a turned pose lies centimetres off its fit), the fine ones from the one with the lowest truncated cost
-    (:func:`_final_cost` at :data:`FINE_FROM_MM`) after them; no point paired on the back of a closed face
-    (``seen``).
+                cfg: AlignmentCriteria, seen: SeenFrom | None) -> tuple[SurfaceFit, int]:
+    """The fit from the global stage: the coarse passes from each of its feature matches (:func:`_global_starts`),
+    the fine ones from the one with the lowest truncated cost after them (:func:`_coarse_best`); no point paired on
+    the back of a closed face (``seen``)."""
+    best, its = _coarse_best(surface, p, _global_starts(surface, p, start_T_F_W), prior_T_F_W, cfg, seen)
+    fit, n = _fine_fit(surface, p, best, prior_T_F_W, cfg, "fine", seen)
+    return fit, its + n
 
-    Eight parameters: the surface, the points and where they were seen from, the start, the prior and the
-    criteria, and the two switches of the candidates (the start's fit to turn over, the feature matches)."""
+
+def _turned_fit(surface: CadSurface, p: np.ndarray, fitted_T_F_W: np.ndarray, prior_T_F_W: np.ndarray,
+                cfg: AlignmentCriteria, seen: SeenFrom | None) -> tuple[SurfaceFit, int]:
+    """The fit of the cloud (W, mm) placed by ``fitted_T_F_W`` turned over (:func:`_turned_over`): the last coarse
+    pass from each turn that leaves ``cfg.alignment_min_inlier_share`` of the points within its trim (a turn that
+    maps the part nearly onto itself does), the fine ones from the one with the lowest truncated cost after it
+    (:func:`_coarse_best`) unless the points rule it out (:func:`_ruled_out` within :data:`FINE_FROM_MM`).
+    :class:`InspectionError` where none is left: the part has no twin pose."""
+    reach = min(d for d in cfg.alignment_distances_mm if d > FINE_FROM_MM)
+    turned = [T for T in _turned_over(surface, fitted_T_F_W) if _share_within(surface, p, T, reach, seen)
+              >= cfg.alignment_min_inlier_share]
+    best, its = _coarse_best(surface, p, turned, prior_T_F_W, cfg, seen, "near")
+    if _ruled_out(surface, p, fitted_T_F_W, best, FINE_FROM_MM, seen):
+        raise InspectionError("turned over, the part lies off the CAD")
+    fit, n = _fine_fit(surface, p, best, prior_T_F_W, cfg, "fine", seen)
+    return fit, its + n
+
+
+def _coarse_best(surface: CadSurface, p: np.ndarray, starts: list[np.ndarray], prior_T_F_W: np.ndarray,
+                 cfg: AlignmentCriteria, seen: SeenFrom | None, levels: str = "coarse") -> tuple[np.ndarray, int]:
+    """Of the coarse passes (:func:`_fine_fit` at ``levels``) from each of ``starts`` (``T_F_W``), the pose with the
+    lowest
+    truncated cost (:func:`_final_cost` at :data:`FINE_FROM_MM`) and the iterations of all; :class:`InspectionError`
+    where none leaves enough of the points on the CAD."""
     best, best_cost, its, why = None, np.inf, 0, "no candidate"
-    turned = []
-    if fitted_T_F_W is not None:  # only where the turned part lies nearly as well on the CAD as the fit does
-        bar = TURNED_BAR * _final_cost(surface, p, fitted_T_F_W, FINE_FROM_MM, seen) + 1.0
-        turned = [T for T in _turned_over(p, fitted_T_F_W) if _final_cost(surface, p, T, FINE_FROM_MM, seen) <= bar]
-    for T in (_global_starts(surface, p, start_T_F_W) if features else []) + turned:
+    for T in starts:
         try:
-            coarse, n = _fine_fit(surface, p, T, prior_T_F_W, cfg, "coarse", seen)
+            coarse, n = _fine_fit(surface, p, T, prior_T_F_W, cfg, levels, seen)
         except InspectionError as e:
             why = str(e)
             continue
@@ -413,11 +495,22 @@ def _global_fit(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray, pri
             best, best_cost = coarse.T_F_M, cost
     if best is None:
         raise InspectionError(why)
-    fit, n = _fine_fit(surface, p, best, prior_T_F_W, cfg, "fine", seen)
-    return fit, its + n
+    return best, its
 
 
-TURNED_BAR = 4.0  # a box with an off-centre pocket turned round: 2.2 times its fit's cost before its own fit
+def _ruled_out(surface: CadSurface, p: np.ndarray, T_F_W: np.ndarray, rival_T_F_W: np.ndarray, within_mm: float,
+               seen: SeenFrom | None) -> bool:
+    """Whether, of at most :data:`COARSE_POINTS` of the cloud's points, those within ``within_mm`` of the CAD placed
+    by ``T_F_W`` and not by ``rival_T_F_W`` outnumber those the other way round beyond :data:`SETTLED_Z` (the sign
+    test of :class:`RivalPose`, on distances the next passes, trimmed closer, cannot bring back): the rival needs no
+    further fit."""
+    every = len(p) // COARSE_POINTS
+    near = np.abs(_residuals(surface, p, T_F_W, seen, every)) <= within_mm
+    near_rival = np.abs(_residuals(surface, p, rival_T_F_W, seen, every)) <= within_mm
+    n_for, n_against = int(np.sum(near & ~near_rival)), int(np.sum(near_rival & ~near))
+    return n_for - n_against >= SETTLED_Z * np.sqrt(max(n_for + n_against, 1))
+
+
 GLOBAL_POINTS = 30_000  # the CAD's sampled points and the cloud's, at most, of the global stage
 GLOBAL_VOXEL_FRACTION = 0.02
 GLOBAL_SEEDS = 3
@@ -425,6 +518,13 @@ GLOBAL_SEEDS = 3
 
 def _share(fit: SurfaceFit) -> float:
     return fit.used_points / max(fit.sampled_points, 1)
+
+
+def _share_within(surface: CadSurface, p: np.ndarray, T_F_W: np.ndarray, trim_mm: float, seen: SeenFrom | None
+                  ) -> float:
+    """The share of at most :data:`COARSE_POINTS` of the cloud's points placed by ``T_F_W`` within ``trim_mm`` of
+    the CAD surface (not on the back of a closed face, ``seen``)."""
+    return float(np.mean(np.abs(_residuals(surface, p, T_F_W, seen, len(p) // COARSE_POINTS)) <= trim_mm))
 
 
 def _final_cost(surface: CadSurface, p: np.ndarray, T_F_W: np.ndarray, trim_mm: float,
@@ -509,12 +609,13 @@ def _fit_from(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray, cfg: 
     The passes start from ``start_T_F_W`` and, where the fit from it leaves less than
     ``cfg.alignment_min_inlier_share`` of the points within the last distance (a poor start; from an unknown
     start, no ``prior_T_F_W``, less than :data:`UNSURE_SHARE`), from the global stage (:func:`_global_fit`) as
-    well, and from an unknown start turned over (:func:`_turned_over`: a near-symmetric part fits most of its
-    points in its symmetric pose); the lower
-    truncated cost over the same points wins (:func:`_final_cost`), the start's fit on a tie, and a tie between
-    poses apart is named among the free directions (:func:`_twin_pose`). The directions the surface does not fix
-    are held at ``prior_T_F_W`` (the job's placement; default the start) and named (:func:`free_directions`). A
-    point does not pair with the back of a closed face (``seen``, :class:`SeenFrom`; None: every pair counts).
+    well; the lower truncated cost over the same points wins (:func:`_final_cost`), the start's fit on a tie. From
+    an unknown start the winner is also turned over (:func:`_turned_over`: a near-symmetric part fits most of its
+    points in its symmetric pose) and fitted again. Of two fits in poses apart, the one the points that tell them
+    apart favour wins (:func:`_rival`) and the other is kept as the alignment's ``rival``: where the evidence does not
+    prove the winner, an ambiguity the report and the verdict state. The directions the surface does not fix are held at
+    ``prior_T_F_W`` (the job's placement; default the start) and named (:func:`free_directions`). A point does not
+    pair with the back of a closed face (``seen``, :class:`SeenFrom`; None: every pair counts).
     Raises :class:`AlignmentFailed` when no fit leaves that share of the points on the CAD."""
     T0 = np.array(start_T_F_W, dtype=np.float64)
     prior = T0 if prior_T_F_W is None else np.asarray(prior_T_F_W, float)
@@ -528,32 +629,39 @@ def _fit_from(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray, cfg: 
     except InspectionError as e:  # too few points near the surface from the start
         why.append(f"from {start}: {e}")
     poor = not fits or _share(fits[0][0]) < cfg.alignment_min_inlier_share
-    unsure = prior_T_F_W is None and (poor or _share(fits[0][0]) < UNSURE_SHARE)  # the features as well
-    if poor or prior_T_F_W is None:  # a poor fit, or one nobody vouches for: is it the part's only one?
+    if poor or (prior_T_F_W is None and _share(fits[0][0]) < UNSURE_SHARE):  # the features as well
         try:
-            fit, n = _global_fit(surface, p, T0, prior, cfg, fits[0][0].T_F_M if fits else None, poor or unsure,
-                                 seen)
+            fit, n = _global_fit(surface, p, T0, prior, cfg, seen)
             its += n
-            fits.append((fit, f"{start}, then the global stage (FPFH + RANSAC against the CAD)" if poor or unsure
-                         else f"{start}, turned over"))
+            fits.append((fit, f"{start}, then the global stage (FPFH + RANSAC against the CAD)"))
         except InspectionError as e:
             why.append(f"from the global stage: {e}")
     if not fits:
         raise AlignmentFailed("alignment to CAD failed: " + "; ".join(why),
                               Alignment("best-fit", T0, float("nan"), start, inlier_share=0.0))
     costs = [_final_cost(surface, p, f.T_F_M, last, seen) for f, _ in fits]
-    fit, how = fits[-1] if costs[-1] < costs[0] * (1.0 - COST_TIE) else fits[0]
-    twin = _twin_pose(fits, costs, p)
+    best = len(fits) - 1 if costs[-1] < costs[0] * (1.0 - COST_TIE) else 0
+    if prior_T_F_W is None:  # a fit nobody vouches for: is it the part's only pose?
+        try:
+            fit, n = _turned_fit(surface, p, fits[best][0].T_F_M, prior, cfg, seen)
+            its += n
+            fits.append((fit, f"{fits[best][1]}, turned over"))
+            costs.append(_final_cost(surface, p, fit.T_F_M, last, seen))
+        except InspectionError:  # turned over it lies nowhere near the CAD: no twin
+            pass
+    (fit, how), rival = _rival(surface, p, fits, costs, best, last, seen)
     if not fit.converged:
         log.warning("best-fit alignment did not converge in %d iterations", fit.iterations)
-    free = free_directions(fit) + twin
+    free = free_directions(fit)
     if free:
         log.warning("the measured surface does not fix %s: held where %s puts it", "; ".join(free), start)
+    if rival is not None and not rival.settled:
+        log.warning("%s", rival.words())
     rows = _datum_rows(p, fit.T_F_M, cfg)
     sigma = _robust_sigma(surface, p[rows], fit.T_F_M, last, None if seen is None else seen.rows(rows))
     out = Alignment("best-fit", fit.T_F_M, sigma, how, fit.used_points, its, fit.converged, inlier_share=_share(fit),
-                    free_directions=free,
-                    covariance=covariance(fit), covariance_centre_F_mm=tuple(map(float, fit.centre_mm)))
+                    free_directions=free, covariance=covariance(fit),
+                    covariance_centre_F_mm=tuple(map(float, fit.centre_mm)), rival=rival)
     if _share(fit) < cfg.alignment_min_inlier_share:
         raise AlignmentFailed(
             f"alignment to CAD failed: after the best fit from {start} and the global stage only "
@@ -562,26 +670,56 @@ def _fit_from(surface: CadSurface, p: np.ndarray, start_T_F_W: np.ndarray, cfg: 
     return out
 
 
-def _twin_pose(fits: list[tuple[SurfaceFit, str]], costs: list[float], p: np.ndarray) -> tuple[str, ...]:
-    """Where the start's fit and the global stage's are poses more than :data:`TWIN_DEG` apart that fit the
-    cloud equally well (truncated costs within :data:`COST_TIE`): the words that say the part looks symmetric to
-    the fit (the deviations may be shown at its mirror's places); else ()."""
-    if len(fits) < 2 or abs(costs[1] - costs[0]) > COST_TIE * max(costs):
-        return ()
-    turn = fits[1][0].T_F_M @ F.invert(fits[0][0].T_F_M)
-    deg = float(np.degrees(F.rotation_angle(turn)))
-    if deg < TWIN_DEG:
-        return ()
+def _rival(surface: CadSurface, p: np.ndarray, fits: list[tuple[SurfaceFit, str]], costs: list[float], best: int,
+           trim_mm: float, seen: SeenFrom | None) -> tuple[tuple[SurfaceFit, str], RivalPose | None]:
+    """Of the candidate fits (``costs`` their truncated costs, ``best`` the one the costs choose) and the best other
+    one in a pose more than :data:`TWIN_DEG` apart, the one the points that tell the two apart favour
+    (:func:`_pose_evidence`; the costs' choice on a tie) and the other as its rival, with that evidence (proven
+    or not, :attr:`RivalPose.settled`); None where every candidate is in the chosen pose."""
+    apart = [k for k in np.argsort(costs) if _turn_deg(fits[k][0].T_F_M, fits[best][0].T_F_M) > TWIN_DEG]
+    if not apart:
+        return fits[best], None
+    rival = _pose_evidence(surface, p, fits[best][0].T_F_M, fits[apart[0]][0].T_F_M, trim_mm, seen)
+    if rival.z >= 0.0:
+        return fits[best], rival
+    return fits[apart[0]], _pose_evidence(surface, p, fits[apart[0]][0].T_F_M, fits[best][0].T_F_M, trim_mm, seen)
+
+
+def _turn_deg(T_a: np.ndarray, T_b: np.ndarray) -> float:
+    """The angle (deg) of the turn between two placements ``T_F_W``."""
+    return float(np.degrees(F.rotation_angle(T_a @ F.invert(T_b))))
+
+
+def _pose_evidence(surface: CadSurface, p: np.ndarray, T_F_W: np.ndarray, rival_T_F_W: np.ndarray, trim_mm: float,
+                   seen: SeenFrom | None) -> RivalPose:
+    """What tells the pose ``T_F_W`` from ``rival_T_F_W`` (the cloud ``p``, W, mm): of at most :data:`FINE_POINTS`
+    points, those whose residual truncated at ``trim_mm`` (a point behind a closed face at the trim, ``seen``)
+    is smaller by more than :data:`DISTINGUISH_SIGMAS` robust sigmas of the pose's fit in the one pose than in the
+    other, counted for each (:class:`RivalPose`). The points where the CAD and its turned copy differ decide;
+    everywhere else both poses leave the same residual, whatever the noise or the defects."""
+    every = len(p) // FINE_POINTS
+    r = np.minimum(np.abs(_residuals(surface, p, T_F_W, seen, every)), trim_mm)
+    r_rival = np.minimum(np.abs(_residuals(surface, p, rival_T_F_W, seen, every)), trim_mm)
+    inside = r[r < trim_mm]
+    sigma = 1.4826 * float(np.median(np.abs(inside - np.median(inside)))) if len(inside) else trim_mm
+    tell = DISTINGUISH_SIGMAS * max(sigma, SIGMA_FLOOR_MM)
+    turn = rival_T_F_W @ F.invert(T_F_W)
     axis = F.to_rotvec(turn)[1]
     axis = axis / max(float(np.linalg.norm(axis)), 1e-12)
-    centre = F.transform_points(fits[0][0].T_F_M, p.mean(axis=0)[None])[0]
-    return (f"the pose turned {deg:.0f} deg about the axis along ({axis[0]:+.3f}, {axis[1]:+.3f}, {axis[2]:+.3f}) "
-            f"near ({centre[0]:.0f}, {centre[1]:.0f}, {centre[2]:.0f}) mm fits as well (a symmetric part): the "
-            "deviations may be shown at their mirror's places; start the cloud within 30 deg of its place or align "
-            "it by reference spheres",)
+    centre = F.transform_points(T_F_W, p.mean(axis=0)[None])[0]
+    return RivalPose(np.array(rival_T_F_W, float), float(np.degrees(F.rotation_angle(turn))),
+                     tuple(map(float, axis)), tuple(map(float, centre)), int(np.sum(r_rival - r > tell)),
+                     int(np.sum(r - r_rival > tell)))
 
 
 TWIN_DEG = 1.0  # two fits turned further apart than this are different poses
+#: a point tells two poses apart where its truncated residual differs between them by more than this many robust
+#: sigmas of the residuals (noise and the pose's own uncertainty stay well below it)
+DISTINGUISH_SIGMAS = 3.0
+SIGMA_FLOOR_MM = 1e-3  # the robust sigma taken at least (a noise-free cloud)
+#: a pose is proven over a rival where the points telling them apart favour it by this many standard deviations of a
+#: fair coin's count (sign test, one-sided p = 0.0013): at least 9 points for it and none against
+SETTLED_Z = 3.0
 #: from an unknown start (no prior), a fit leaving less than this share of the points within the last trim tries the
 #: feature matches as well: a 4 mm skin with stringers fitted 32 mm and 8 deg off leaves 73 % on the CAD
 UNSURE_SHARE = 0.98

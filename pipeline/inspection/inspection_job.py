@@ -152,7 +152,7 @@ def run_inspection(measured: Measurement, part: InspectedPart, settings: Inspect
         u = u_of_points.result()
     if measured.uncertainty is None:
         u = dataclasses.replace(u, notes=u.notes | {"cloud": "the cloud states no uncertainty: U = 0"})
-    result = judge(result, u, criteria, context or VerdictContext())
+    result = judge(result, u, criteria, pose_context(placed, context or VerdictContext()))
     out_dir = Path(output.out_dir)
     with ThreadPoolExecutor(2, thread_name_prefix="inspection-outputs") as pool:  # beside the figures: the
         evaluated = None if template is None else pool.submit(  # characteristics and the file
@@ -171,6 +171,17 @@ def run_inspection(measured: Measurement, part: InspectedPart, settings: Inspect
     qif = None if template is None else write_results(
         out_dir / RESULTS_FILE, measured_part(template, part.labels), characteristics, result.points_mm)
     return InspectionOutputs(result, report.data, html, js, ply.result(), characteristics, qif)
+
+
+def pose_context(alignment: Alignment, context: VerdictContext) -> VerdictContext:
+    """``context`` with the alignment's ambiguity among its unsettled reasons where a rival pose is not ruled out and
+    the deviations differ between the two (:attr:`RivalPose.unsettles_verdict`): the verdict is indeterminate."""
+    rival = alignment.rival
+    if rival is None or not rival.unsettles_verdict:
+        return context
+    why = (f"the cloud's pose on the CAD is ambiguous: {alignment.ambiguity}; which deviations are the part's is "
+           "not proven")
+    return dataclasses.replace(context, unsettled=(*context.unsettled, why))
 
 
 def measured_part(template: InspectionTemplate, part: Mapping[str, str]) -> MeasuredPart:

@@ -13,7 +13,9 @@ widened by U are sought then. The simple rule keeps the areas beyond the band, e
 Whole and regions: ``fail`` where an area is nonconforming, ``pass`` where none is indeterminate and the band
 holds 2U (test uncertainty ratio, band width / 2U of the median point, reported per region), else
 ``indeterminate``; reasons that hold the whole verdict back (``VerdictContext.holds``: an overdue or failed
-verification) make a ``pass`` indeterminate.
+verification) make a ``pass`` indeterminate, and reasons that leave the deviations themselves in doubt
+(``VerdictContext.unsettled``: the cloud's pose on the CAD ambiguous between poses whose deviations differ) make any
+verdict indeterminate.
 """
 
 from __future__ import annotations
@@ -47,6 +49,7 @@ class VerdictContext:
     installation: dict | None = None
     verification: dict | None = None
     holds: tuple[str, ...] = ()
+    unsettled: tuple[str, ...] = ()  # the deviations in doubt (an ambiguous pose): neither pass nor fail is proven
 
 
 @dataclass(frozen=True)
@@ -126,6 +129,8 @@ def judge(result: InspectionResult, u: PointUncertainty, criteria: InspectionCri
     reasons = _reasons(areas_t, u, area_u, band, rule, no_room, context)
     verdict = combine([_area_verdict(a) for a in areas_t] + (["indeterminate"] if no_room or context.holds else [])
                       + ["pass"])
+    if context.unsettled:
+        verdict = "indeterminate"
     judgement = Judgement(verdict, tuple(reasons), rule, u, regions, context)
     return dataclasses.replace(result, areas=areas_t, judgement=judgement)
 
@@ -170,7 +175,8 @@ def _reasons(areas: tuple[DeviationArea, ...], u: PointUncertainty, area_u: np.n
              rule: DecisionRule, no_room: bool, context: VerdictContext) -> list[str]:
     """The verdict's reasons in words, the decisive first."""
     median_u = float(np.median(u.expanded_mm)) if len(u.expanded_mm) else 0.0
-    reasons = [a.reason for a in areas if a.decision == "nonconforming"]
+    reasons = list(context.unsettled)
+    reasons += [a.reason for a in areas if a.decision == "nonconforming"]
     reasons += [a.reason for a in areas if a.decision == "indeterminate"]
     if no_room:
         reasons.append(f"the expanded uncertainty of the averaged deviations ({float(np.percentile(area_u, 95)):.3f}"
