@@ -1,6 +1,7 @@
 """Alignment to CAD from random starts on generated parts of different kinds (sim_drivers/generated_parts.py:
 ``PARTS`` and a new customer's ``CUSTOMER_PARTS``):
-the share of starts that align within 0.05 mm / 0.005 deg of the truth, the share that fail with a reason,
+the share of starts that align within 0.05 mm / 0.005 deg of the truth, the share that fail with a reason, those
+whose alignment says its pose is ambiguous (a twin pose not ruled out) and those wrong without failing or saying so,
 the errors and the seconds, per part, and the seeded defects found with their sign.
 
 Usage: nice python benchmarks/alignment_starts.py [--starts 20] [--points 30000] [--max-deg 30] [--max-mm 300]
@@ -52,7 +53,7 @@ def one_part(name: str, args: argparse.Namespace) -> dict:
     p_F, n_F = part.measured(args.points, args.noise_mm, rng)
     v = np.asarray(part.mesh.vertices)
     centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
-    within, failed, wrong, mm, deg, seconds, found, reasons = 0, 0, 0, [], [], [], 0, []
+    within, failed, wrong, silent, ambiguous, mm, deg, seconds, found, reasons = 0, 0, 0, 0, 0, [], [], [], 0, []
     for _ in range(args.starts):
         T_W_F = random_misplacement(rng, args.max_deg, args.max_mm)
         p_W = F.transform_points(T_W_F, p_F)
@@ -71,11 +72,14 @@ def one_part(name: str, args: argparse.Namespace) -> dict:
         ok = e_mm <= TARGET[0] and e_deg <= TARGET[1]
         within += ok
         wrong += not ok
+        ambiguous += bool(a.ambiguity)
+        silent += not ok and not a.ambiguity
         if ok:
             oriented, _ = measured_side(surface, p_W, a.T_F_W, F.rotate_vectors(T_W_F, n_F), None)
             found += defects_found(part, inspect_cloud(F.transform_points(a.T_F_W, p_W), oriented, CRITERIA).areas)
     return {"points": len(p_F), "starts": args.starts, "aligned_within_target": within, "failed_with_reason": failed,
-            "wrong_without_failing": wrong, "success_rate": round(within / args.starts, 3),
+            "wrong_without_failing": wrong, "said_ambiguous": ambiguous, "wrong_without_saying": silent,
+            "success_rate": round(within / args.starts, 3),
             "err_mm_max": round(max(mm), 5) if mm else None, "err_mm_median": round(float(np.median(mm)), 5)
             if mm else None, "err_deg_max": round(max(deg), 6) if deg else None,
             "defects_found": found, "defects_seeded": len(part.defects) * within,
@@ -100,7 +104,8 @@ def main() -> None:
         out[name] = one_part(name, args)
     starts = sum(out[n]["starts"] for n in args.parts.split(","))
     out["success_rate"] = round(sum(out[n]["aligned_within_target"] for n in args.parts.split(",")) / starts, 3)
-    out["wrong_without_failing"] = sum(out[n]["wrong_without_failing"] for n in args.parts.split(","))
+    for key in ("wrong_without_failing", "said_ambiguous", "wrong_without_saying"):
+        out[key] = sum(out[n][key] for n in args.parts.split(","))
     publish(args.publish, out)
 
 
