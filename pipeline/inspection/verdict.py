@@ -129,8 +129,10 @@ def judge(result: InspectionResult, u: PointUncertainty, criteria: InspectionCri
     reasons = _reasons(areas_t, u, area_u, band, rule, no_room, context)
     verdict = combine([_area_verdict(a) for a in areas_t] + (["indeterminate"] if no_room or context.holds else [])
                       + ["pass"])
-    if context.unsettled:
+    if context.unsettled:  # the deviations themselves in doubt: nothing is proven, the whole nor any region
         verdict = "indeterminate"
+        regions = tuple(dataclasses.replace(g, verdict="indeterminate",
+                                            reason=f"region {g.name}: {context.unsettled[0]}") for g in regions)
     judgement = Judgement(verdict, tuple(reasons), rule, u, regions, context)
     return dataclasses.replace(result, areas=areas_t, judgement=judgement)
 

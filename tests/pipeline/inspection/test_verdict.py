@@ -96,6 +96,17 @@ def test_an_uncertainty_as_wide_as_the_band_proves_nothing_conforming(box):
     assert gross.verdict == "fail"
 
 
+def test_deviations_in_doubt_prove_neither_a_fail_nor_a_pass(box):
+    """An unsettled context (the cloud's pose on the CAD ambiguous, docs/verdict.md): the proven nonconforming area
+    stays as found, but the whole and every region are indeterminate, that reason first."""
+    why = "the cloud's pose on the CAD is ambiguous: the pose turned 180 deg ... fits as well"
+    r = judged(box, cfg(), context=VerdictContext(unsettled=(why,)))
+    assert [a.decision for a in area_at(r, BUMPS["out"][0])] == ["nonconforming"]
+    assert r.verdict == "indeterminate" and r.judgement.reasons[0] == why
+    assert {g.verdict for g in r.judgement.regions} == {"indeterminate"}
+    assert all(why in g.reason for g in r.judgement.regions)
+
+
 def test_a_held_verdict_is_indeterminate_and_the_nominal_installation_is_named(box):
     c = cfg()
     part = inspect_cloud(top_with_bumps()[::2], box, c.criteria)
