@@ -139,6 +139,8 @@ class JobReport:
     timings: Timings
     ground_truth: GroundTruth | None = None
     history: JobHistory | None = None
+    #: the outputs that could not be written (``cloud_ply``, ``e57``, ``inspection``), each with its error
+    failed_outputs: Mapping[str, str] = dataclasses.field(default_factory=dict)
 
     def to_json(self) -> dict:
         """The content of ``report.json``."""
@@ -156,6 +158,8 @@ class JobReport:
             "inspection": dict(self.inspection), "coverage": dict(self.coverage),
             "resources": {"peak_rss_gib": self.peak_rss_gib},
         }
+        if self.failed_outputs:
+            out["failed_outputs"] = dict(self.failed_outputs)
         if self.ground_truth is not None:
             out["ground_truth"] = self.ground_truth.section()
         out["timings"] = self.timings.to_json()
@@ -180,7 +184,8 @@ class JobReport:
                    tuple(d["transfer_log"]), d["relocalisation"], correction,
                    tuple(ScanEntry.from_json(s) for s in d["scan_log"]), d["inspection"], d["coverage"],
                    d["resources"]["peak_rss_gib"], Timings(t["after_last_scan_s"], t["correction_cpu_s"],
-                                                           t["stages_s"]), truth, history)
+                                                           t["stages_s"]), truth, history,
+                   d.get("failed_outputs", {}))
 
 
 def write_job_report(report: JobReport, job_dir: Path | str) -> Path:

@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from tandemscan.daemon.jobs.outputs import export_job, stitch_view_points
+from tandemscan.daemon.jobs.outputs import JobExports, export_job, stitch_view_points
 from tandemscan.daemon.jobs.reporting import build_job_report, score_ground_truth
 from tandemscan.pipeline.compute import backend_for
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan
@@ -37,7 +37,7 @@ from tandemscan.pipeline.stitching.worldmap import MapCloud, VoxelMap
 if TYPE_CHECKING:
     from tandemscan.daemon.jobs.records import ScanRecord
     from tandemscan.daemon.jobs.snapshot import JobSnapshot
-    from tandemscan.pipeline.registration.correction import OnlineWork
+    from tandemscan.pipeline.registration.correction import OnlineWork, PairChecks
     from tandemscan.pipeline.registration.pose_covariance import PoseCovariance
 
 log = logging.getLogger(__name__)
@@ -60,12 +60,20 @@ class LoadedScans:
 @dataclass(frozen=True)
 class CorrectionOutcome:
     """The correction stage: the report's ``correction`` section and the final poses ``T_W_S`` (W, mm; refined
-    where ``corrected``, else the tracker-stitched ones of Eq. 1), one per scan of ``job.scans``."""
+    where ``corrected``, else the tracker-stitched ones of Eq. 1), one per scan of ``job.scans``; ``checks``: its
+    check pairs still registering (``correction.PairChecks``, the section without pair figures until
+    :func:`report_job` completes them)."""
 
     section: dict
     poses: tuple[np.ndarray, ...]
     corrected: bool
     pose_covariance: PoseCovariance | None = None  # their errors jointly, scans numbered as in ``job.scans``
+    checks: PairChecks | None = None
+
+
+class OutputsNotWritten(OSError):
+    """An output of a finished job (``cloud.ply``, the E57 and pose log, the inspection) could not be written; the
+    job's ``report.json`` names it (``failed_outputs``)."""
 
 
 @dataclass(frozen=True)
@@ -109,11 +117,11 @@ def correct_stage(job: JobSnapshot, loaded: LoadedScans, online: OnlineWork | No
     if not (job.config.correction.enabled and len(measured) > 1):
         chain = tracker_chain_covariance(view) if measured else None
         return CorrectionOutcome({"enabled": False}, tracker, False, _numbered(chain, measured))
-    section, refined, covariance = correct_job(view, [loaded.points_S[k] for k in measured], online)
+    section, refined, covariance, checks = correct_job(view, [loaded.points_S[k] for k in measured], online)
     poses = list(tracker)
     for k, T in zip(measured, refined, strict=True):
         poses[k] = T
-    return CorrectionOutcome(section, tuple(poses), True, _numbered(covariance, measured))
+    return CorrectionOutcome(section, tuple(poses), True, _numbered(covariance, measured), checks)
 
 
 def _numbered(covariance: PoseCovariance | None, measured: Sequence[int]) -> PoseCovariance | None:
@@ -173,11 +181,40 @@ def merged_cloud(job: JobSnapshot, voxel_mm: float, poses: Sequence[np.ndarray],
     return TiledCloud(voxel_mm, str(store), tiles)
 
 
+@dataclass(frozen=True)
+class JobOutputs:
+    """The end of a job up to its report (:func:`finish_outputs`): the job at its final poses with its cloud
+    (``final``: ``worldmap`` the finished cloud, ``correction`` the section so far), the correction stage (whose
+    check pairs may still be registering: ``CorrectionOutcome.checks``), the exports and inspection, the
+    tracker-stitched poses ``T_W_S`` (W, mm) where corrected and, for the simulator's observer, the tracker stitch;
+    ``seconds`` the job until its exports, ``stages_s`` the seconds of each stage so far. Kept where the map lives
+    until :func:`report_job`."""
+
+    final: JobSnapshot
+    correction: CorrectionOutcome
+    exports: JobExports
+    tracker_poses: list[np.ndarray] | None
+    tracker_stitch: JobSnapshot | None
+    seconds: float
+    stages_s: Mapping[str, float]
+
+
 def finish_job(job: JobSnapshot, started: float, measured_at: float,
                online: OnlineWork | None = None, stages: Mapping[str, float] | None = None,
                loaded: LoadedScans | None = None) -> FinishedJob:
-    """Correct, merge, export and inspect a measured job. It takes over ``job.worldmap``, the map stitched while the
-    job measured (tracker poses), and leaves there the finished job's cloud (``worldmap.MapCloud``; with ``[compute]
+    """Correct, merge, export, inspect and report a measured job in one pass (:func:`finish_outputs`, then
+    :func:`report_job`): ``online`` names no pair still registering (``OnlineWork.pending``), or those pairs are
+    registered before the report."""
+    return report_job(finish_outputs(job, started, measured_at, online, stages, loaded), measured_at, None)
+
+
+def finish_outputs(job: JobSnapshot, started: float, measured_at: float,
+                   online: OnlineWork | None = None, stages: Mapping[str, float] | None = None,
+                   loaded: LoadedScans | None = None) -> JobOutputs:
+    """Correct, merge, export and inspect a measured job: all of its end but the report (:func:`report_job`), which
+    alone waits for the check pairs still registering where ``online`` names some (``OnlineWork.pending``: with the
+    joint refinement no pose takes them). It takes over ``job.worldmap``, the map stitched while the job measured
+    (tracker poses), and leaves there the finished job's cloud (``worldmap.MapCloud``; with ``[compute]
     tile_mm`` a ``tiles.TiledCloud``, whose tiles' files are removed once the exports and the score have read
     them), so that the caller, holding no other reference, lets the end of the job free the map's sums. Memory: the
     thinned scans until the correction is done, the maps of one merge and one cloud at a time and one full scan a
@@ -217,20 +254,64 @@ def finish_job(job: JobSnapshot, started: float, measured_at: float,
         correction=outcome.section, pose_covariance=outcome.pose_covariance)
     seconds = time.monotonic() - started  # the job until its exports
     try:
-        exports = export_job(final, measured_at, view_S, tracker_poses)
-        stages = {**timings, **outcome.section.get("stage_seconds", {}), **exports.stages_s}
-        timings_s = Timings(exports.after_last_scan_s, outcome.section.get("cpu_seconds"), stages)
-        report = build_job_report(final, seconds, tracker_poses, exports.inspection, exports.coverage,
-                                  exports.peak_rss_gib, timings_s)
-        write_job_report(report, job.job_dir)
+        exports = export_job(final, view_S, tracker_poses)
+    except BaseException:
+        _remove_tiles(final)
+        raise
+    return JobOutputs(final, outcome, exports, tracker_poses, tracker_stitch, seconds,
+                      {**timings, **outcome.section.get("stage_seconds", {}), **exports.stages_s})
+
+
+def report_job(outputs: JobOutputs, measured_at: float, later: OnlineWork | None,
+               stages: Mapping[str, float] | None = None) -> FinishedJob:
+    """The report of a job whose outputs are written (:func:`finish_outputs`): the correction's check pairs
+    completed where they were still registering (``pose_correction.complete_checks``, from ``later``, what the pair
+    worker handed over once they were done; a failure there is named in the correction section,
+    ``pair_checks_failed``, the poses and outputs stand), ``report.json`` built and written once, then the
+    simulator's observer's scores beside it. ``stages`` (s): timings of the work beside the outputs. An export that
+    failed (``JobExports.failed``) is named in the report, which is written all the same, and then fails the job
+    (:class:`OutputsNotWritten`). The tiles' files of a tiled cloud are removed once the exports and the score
+    have read them."""
+    from tandemscan.daemon.jobs.pose_correction import complete_checks  # the registration stack, as correct_stage
+    from tandemscan.pipeline.registration.correction import with_pair_figures
+
+    final, outcome, exports = outputs.final, outputs.correction, outputs.exports
+    timings = {**outputs.stages_s, **(stages or {})}
+    try:
+        if outcome.checks is not None:
+            t = time.perf_counter()
+            try:
+                figures = complete_checks(final, outcome.checks, later)
+            except Exception as e:  # noqa: BLE001 - checks of the stitch: the poses and outputs stand without them
+                log.warning("check pairs not registered: %s", e)
+                figures = {"pair_checks_failed": f"{type(e).__name__}: {e}"}
+            timings["pair_checks_s"] = round(time.perf_counter() - t, 3)
+            outcome = dataclasses.replace(outcome, section=with_pair_figures(outcome.section, figures), checks=None)
+            final = dataclasses.replace(final, correction=outcome.section)
+        timings_s = Timings(round(time.monotonic() - measured_at, 3), outcome.section.get("cpu_seconds"), timings)
+        report = build_job_report(final, outputs.seconds, outputs.tracker_poses, exports.inspection, exports.coverage,
+                                  exports.peak_rss_gib, timings_s, failed=exports.failed)
+        write_job_report(report, final.job_dir)
+        if exports.failed:
+            raise OutputsNotWritten("; ".join(f"{k} not written: {v}" for k, v in exports.failed.items())
+                                    + f" (named in {final.job_dir / 'report.json'})")
         t = time.perf_counter()  # the simulator's observer, after the report: beside it, in its own file
-        ground_truth = score_ground_truth(final, exports.inspection, tracker_stitch)
+        ground_truth = score_ground_truth(final, exports.inspection, outputs.tracker_stitch)
         if ground_truth is not None:
             ground_truth = dataclasses.replace(
                 ground_truth, scores={**ground_truth.scores, "scoring_s": round(time.perf_counter() - t, 3)})
-            write_ground_truth(ground_truth, job.job_dir)
+            write_ground_truth(ground_truth, final.job_dir)
             report = dataclasses.replace(report, ground_truth=ground_truth)
     finally:
-        if isinstance(final.worldmap, TiledCloud):
-            final.worldmap.remove()  # the tiles' files, once cloud.ply and the E57 hold the cloud
+        _remove_tiles(final)
     return FinishedJob(report, outcome)
+
+
+def drop_outputs(outputs: JobOutputs) -> None:
+    """Let go of the outputs of a job that ended before its report: its tiles' files removed (a tiled cloud)."""
+    _remove_tiles(outputs.final)
+
+
+def _remove_tiles(final: JobSnapshot) -> None:
+    if isinstance(final.worldmap, TiledCloud):
+        final.worldmap.remove()  # the tiles' files, once cloud.ply and the E57 hold the cloud

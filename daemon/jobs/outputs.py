@@ -20,7 +20,7 @@ import logging
 import math
 import time
 from collections.abc import Iterator, Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -111,37 +111,47 @@ def _accuracy(report: Mapping) -> dict:
 @dataclass(frozen=True)
 class JobExports:
     """What :func:`export_job` wrote for a finished job: its report's ``inspection`` and ``coverage`` sections,
-    the seconds from the last step's commit until every export was written (``after_last_scan_s``), the
-    process's peak memory until then (GiB, :func:`peak_rss_gib`) and the seconds of its stages (``cloud_ply_s``:
-    the time to hand ``cloud.ply`` to its thread, ``exports_and_inspection_s`` includes waiting for it)."""
+    the process's peak memory until then (GiB, :func:`peak_rss_gib`), the seconds of its stages
+    (``cloud_ply_s``: the time to hand ``cloud.ply`` to its thread, ``exports_and_inspection_s`` includes waiting
+    for it) and the outputs that could not be written, each with its error (``failed``: ``cloud_ply``, ``e57``
+    with the pose log, ``inspection``; the others are written all the same)."""
 
     inspection: dict
     coverage: dict
-    after_last_scan_s: float
     peak_rss_gib: float | None
     stages_s: dict[str, float]
+    failed: dict[str, str]
 
 
-def export_job(job: JobSnapshot, measured_at: float, points_S: Sequence[np.ndarray] | None = None,
+def export_job(job: JobSnapshot, points_S: Sequence[np.ndarray] | None = None,
                tracker_poses: Sequence[np.ndarray] | None = None) -> JobExports:
     """Write ``cloud.ply`` (W, mm) and the inspection exports of a finished job into its folder; runs where
-    ``job.worldmap`` (the final cloud) lives. ``measured_at`` is ``time.monotonic()`` (system-wide) when the job's
-    last step was committed. ``points_S``: the scans' points (S, mm) thinned at ``[job] voxel_mm`` or to
-    :func:`stitch_view_points` (else read and thinned here; the E57 reads the full scans from their files);
+    ``job.worldmap`` (the final cloud) lives. ``points_S``: the scans' points (S, mm) thinned at ``[job] voxel_mm``
+    or to :func:`stitch_view_points` (else read and thinned here; the E57 reads the full scans from their files);
     ``tracker_poses``: the tracker-stitched poses ``T_W_S`` (W, mm) where the correction changed them (None: not
-    corrected)."""
+    corrected). ``cloud.ply``, the E57 with the pose log and the inspection run side by side; one that fails does
+    not stop the others and is named in :attr:`JobExports.failed`."""
     t = [time.perf_counter()]
+    failed: dict[str, str] = {}
     with ThreadPoolExecutor(1, thread_name_prefix="cloud-ply") as pool:  # written while the inspection computes
         cloud_ply = pool.submit(_write_cloud_ply, job.job_dir / "cloud.ply", job.worldmap)
         t.append(time.perf_counter())
         figures = {"scans": len(job.scans), "transfers": len(job.transfers)}
-        inspection = write_job_outputs(job, figures, points_S, tracker_poses)  # report.html, E57, poses
+        inspection = write_job_outputs(job, figures, points_S, tracker_poses, failed=failed)  # report.html, E57, poses
         coverage = inspection.get("coverage") or plan_coverage(job).as_dict()
-        cloud_ply.result()  # complete before the job is reported done; its error, if any, is the job's
+        _wait(cloud_ply, "cloud_ply", failed)  # complete before the job is reported done
         t.append(time.perf_counter())
-    after_last_scan_s = time.monotonic() - measured_at
     stages = dict(zip(("cloud_ply_s", "exports_and_inspection_s"), np.round(np.diff(t), 3).tolist(), strict=True))
-    return JobExports(inspection, coverage, round(after_last_scan_s, 3), peak_rss_gib(), stages)
+    return JobExports(inspection, coverage, peak_rss_gib(), stages, failed)
+
+
+def _wait(future: Future, name: str, failed: dict[str, str]) -> None:
+    """Wait for the output ``name`` written by ``future``; its error, if any, goes into ``failed`` (logged)."""
+    try:
+        future.result()
+    except Exception as e:  # noqa: BLE001 - named in the report, which fails the job once written
+        log.error("%s not written: %s: %s", name, type(e).__name__, e, exc_info=e)
+        failed[name] = f"{type(e).__name__}: {e}"
 
 
 def _write_cloud_ply(path: Path, cloud: MapCloud | TiledCloud) -> Path:
@@ -177,7 +187,8 @@ def peak_rss_gib() -> float | None:
 
 
 def write_job_outputs(job: JobSnapshot, report: Mapping, points_S: Sequence[np.ndarray] | None = None,
-                      tracker_poses: Sequence[np.ndarray] | None = None) -> dict:
+                      tracker_poses: Sequence[np.ndarray] | None = None, *, failed: dict[str, str] | None = None
+                      ) -> dict:
     """Write the E57, the pose log and (when registered to CAD) the inspection report of a finished job
     (``report``: the job's ``scans`` and ``transfers`` counts for report.html's accuracy table; ``points_S``: the
     scans thinned at ``[job] voxel_mm`` or to :func:`stitch_view_points`, and ``tracker_poses``: the
@@ -186,22 +197,36 @@ def write_job_outputs(job: JobSnapshot, report: Mapping, points_S: Sequence[np.n
     Returns the inspection section for the job's ``report.json``: the same numbers as report.html. The E57
     (the full scans streamed from their files) and the pose log are written on a second thread while the
     inspection computes on the thinned scans (both wait on files and numpy, which let the other thread run).
+    Where one of them fails the other is written all the same and its error goes into ``failed`` (``e57``,
+    ``inspection``), or where that is None the first error is raised then.
     """
+    errors: dict[str, str] = {} if failed is None else failed
     scans = _posed_scans(job, points_S)
     with ThreadPoolExecutor(1, thread_name_prefix="e57") as pool:
         exports = pool.submit(_write_exports, job, scans)
-        section = _inspection_section(job, report, scans, tracker_poses)
-        exports.result()  # its error, if any, is the job's
+        try:
+            section = _inspection_section(job, report, scans, tracker_poses)
+        except Exception as e:  # noqa: BLE001 - named in the report, which fails the job once written
+            if failed is None:
+                exports.cancel()
+                raise
+            log.error("inspection failed: %s: %s", type(e).__name__, e, exc_info=e)
+            errors["inspection"] = f"{type(e).__name__}: {e}"
+            section = {"failed": errors["inspection"], "files": dict(EXPORT_FILES)}
+        if failed is None:
+            exports.result()
+        else:
+            _wait(exports, "e57", errors)
     return section
 
 
 def _write_exports(job: JobSnapshot, scans: list[PosedScan]) -> None:
-    """``cloud.e57`` (the scans with points, read from their files one at a time, and the merged cloud
-    ``job.worldmap``, a block or a tile at a time) and ``poses.csv`` (every scan, ``scans``), frame W, mm."""
+    """``poses.csv`` (every scan, ``scans``) and ``cloud.e57`` (the scans with points, read from their files one at
+    a time, and the merged cloud ``job.worldmap``, a block or a tile at a time), frame W, mm."""
+    write_pose_log(job.job_dir / EXPORT_FILES["pose_log"], scans)
     if any(s.size for s in scans):
         write_e57(job.job_dir / EXPORT_FILES["e57"], _full_scans(job, scans),
                   _point_blocks(job.worldmap) if len(job.worldmap) else None)
-    write_pose_log(job.job_dir / EXPORT_FILES["pose_log"], scans)
 
 
 def _inspection_section(job: JobSnapshot, report: Mapping, scans: list[PosedScan],

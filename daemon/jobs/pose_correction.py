@@ -25,7 +25,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 from tandemscan.pipeline.compute import backend_for
 from tandemscan.pipeline.geometry.uncertainty import scan_pose_covariance
-from tandemscan.pipeline.registration.correction import CorrectionSettings, StitchedJob, StitchedScan, correct_scans
+from tandemscan.pipeline.registration.correction import (
+    CorrectionSettings,
+    StitchedJob,
+    StitchedScan,
+    complete_pair_checks,
+    correct_scans,
+)
 from tandemscan.pipeline.registration.joint import chain_covariance
 from tandemscan.pipeline.registration.mount_unknown import MountPrior
 from tandemscan.pipeline.registration.pairs import LazyNetwork
@@ -36,7 +42,7 @@ if TYPE_CHECKING:
     from tandemscan.config.models import CellConfig
     from tandemscan.daemon.jobs.records import ScanRecord
     from tandemscan.daemon.jobs.snapshot import JobSnapshot
-    from tandemscan.pipeline.registration.correction import OnlineWork
+    from tandemscan.pipeline.registration.correction import OnlineWork, PairChecks
     from tandemscan.pipeline.stitching.installation import Installation
 
 log = logging.getLogger(__name__)
@@ -102,7 +108,7 @@ def in_job(file: Path, job_dir: Path) -> str:
 
 
 def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray], online: OnlineWork | None = None
-                ) -> tuple[dict, list[np.ndarray], PoseCovariance | None]:
+                ) -> tuple[dict, list[np.ndarray], PoseCovariance | None, PairChecks | None]:
     """The refined pose ``T_W_S`` (W, mm) of every scan of ``job.scans``, whose points in the scanner frame S
     (mm) are ``points_S``; ``job`` is not changed. ``online``: what the job computed while it measured
     (``registration.correction.OnlineWork``: registered pairs, scans prepared for the joint refinement and their pairs'
@@ -110,8 +116,9 @@ def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray], online: Online
 
     Returns the ``correction`` section of the report (the settings, pair and graph figures; on the simulated
     cell ``job_report.score_ground_truth`` adds those of the tracker-only stitch, ``before``, once the job's outputs
-    are written), the refined poses in scan order and the covariance of their errors (``pose_covariance``, scans
-    numbered as in ``job.scans``).
+    are written), the refined poses in scan order, the covariance of their errors (``pose_covariance``, scans
+    numbered as in ``job.scans``) and the check pairs still registering where ``online`` named some
+    (``correction.PairChecks``: the section has no pair figures until :func:`complete_checks` gives them).
     """
     started, cpu = time.monotonic(), _cpu_seconds()
     cfg, compute = job.config.correction, job.config.compute
@@ -133,4 +140,19 @@ def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray], online: Online
         section["mount"] |= result.mount.observability(job.config.scanner.sweet_spot_mm)
         section["mount"]["T_T_S_refined"] = (job.installation.T_T_S @ result.mount.correction).tolist()
     log.info("stitch corrected in %.1f s", section["seconds"])
-    return section, list(result.poses), result.pose_covariance
+    return section, list(result.poses), result.pose_covariance, result.checks
+
+
+def complete_checks(job: JobSnapshot, checks: PairChecks, later: OnlineWork | None) -> dict:
+    """The pair figures of the correction section :func:`correct_job` left with ``checks`` still registering
+    (``correction.complete_pair_checks``: from ``later``, the pair worker's outcomes once its pairs were done, None
+    where they could not be handed over; a pair missing there registered here, its scans read from the scan store,
+    ``[compute] scan_store`` or the job folder)."""
+    compute = job.config.compute
+    backend = backend_for(compute)
+    try:
+        return complete_pair_checks(checks, CorrectionSettings.from_section(job.config.correction), later,
+                                    str(compute.scan_store or job.job_dir), job.config.job.voxel_mm, backend,
+                                    LazyNetwork(job.config.deepmerge))
+    finally:
+        backend.close()

@@ -17,12 +17,14 @@ if TYPE_CHECKING:
 
 def build_job_report(job: JobSnapshot, seconds: float, tracker_poses: Sequence[np.ndarray] | None,
                      inspection: Mapping[str, Any], coverage: Mapping[str, Any], peak_rss_gib: float | None,
-                     timings: Timings, ground_truth: GroundTruth | None = None) -> JobReport:
+                     timings: Timings, ground_truth: GroundTruth | None = None,
+                     failed: Mapping[str, str] | None = None) -> JobReport:
     """The report of a finished run (mm, deg, s): each scan's final pose ``T_W_S`` (W, mm) and, where the
     correction changed it, its tracker-stitched pose ``T_W_S_tracker`` (``tracker_poses``), the stages' sections,
-    the observer's ``ground_truth`` and the journal's resumes (``job.history``).
+    the observer's ``ground_truth``, the journal's resumes (``job.history``) and the outputs that could not be
+    written (``failed``: name -> error).
 
-    Eight parameters: the job's snapshot, then each stage's result the report holds, built once here."""
+    Nine parameters: the job's snapshot, then each stage's result the report holds, built once here."""
     tracker = [None] * len(job.scans) if tracker_poses is None else [as_matrix(T) for T in tracker_poses]
     scan_log = tuple(ScanEntry(s.index, s.tracker_station, s.point_count, s.file.name, as_matrix(s.T_W_S), T)
                      for s, T in zip(job.scans, tracker, strict=True))
@@ -34,7 +36,8 @@ def build_job_report(job: JobSnapshot, seconds: float, tracker_poses: Sequence[n
         left_out_by_plan=tuple(a.model_dump() for a in job.plan.left_out),  # what the plan could not measure, where
         transfer_log=tuple(job.transfers), relocalisation=relocalisation_summary(job.relocalisation),
         correction=job.correction, scan_log=scan_log, inspection=inspection, coverage=coverage,
-        peak_rss_gib=peak_rss_gib, timings=timings, ground_truth=ground_truth, history=job.history)
+        peak_rss_gib=peak_rss_gib, timings=timings, ground_truth=ground_truth, history=job.history,
+        failed_outputs=dict(failed or {}))
 
 
 #: the ground-truth figures of the tracker-only stitch kept in ``correction.before``

@@ -49,6 +49,7 @@ _MAP: VoxelMap | None = None  # the worker's map
 _COPIES: dict[str, np.ndarray] = {}  # the worker's scans thinned at the map's voxel as they were merged, by file
 _PAIRS: Any = None  # the pair worker's OnlinePairs
 _LOADED: dict[str, Any] = {}  # where the map lives: finishing jobs' scans read ahead (finish.LoadedScans)
+_OUTPUTS: dict[str, Any] = {}  # where the map lives: finishing jobs' outputs until their report (finish.JobOutputs)
 
 
 def _init(voxel_mm: float, niceness: int) -> None:
@@ -119,6 +120,10 @@ def _pairs_outcomes() -> tuple[OnlineWork | None, float]:
     return (None, 0.0) if _PAIRS is None else (_PAIRS.work(), _PAIRS.cpu_s)
 
 
+def _joint_outcomes() -> OnlineWork | None:
+    return None if _PAIRS is None else _PAIRS.joint_work()
+
+
 def _read_ahead(job: JobSnapshot, key: str) -> float:
     """Where the map lives: read the scans the end of ``job`` starts from (``finish.load_scans``) and keep them
     under ``key`` for :func:`_finish`; returns the seconds it took."""
@@ -137,13 +142,35 @@ def _drop_read_ahead(key: str, reading: asyncio.Future) -> None:
         log.debug("read ahead for an ended job failed: %s", reading.exception())
 
 
-def _finish(job: JobSnapshot, key: str, started: float, measured_at: float, online: OnlineWork | None,
-            stages: dict) -> Any:
-    """:func:`tandemscan.daemon.jobs.finish.finish_job`, imported where it runs (the registration stack, E57, Open3D
-    I/O, matplotlib), from the scans :func:`_read_ahead` kept under ``key`` (read again where it failed)."""
-    from tandemscan.daemon.jobs.finish import finish_job
+def _finish_outputs(job: JobSnapshot, key: str, started: float, measured_at: float, online: OnlineWork | None,
+                    stages: dict) -> None:
+    """:func:`tandemscan.daemon.jobs.finish.finish_outputs`, imported where it runs (the registration stack, E57,
+    Open3D I/O, matplotlib), from the scans :func:`_read_ahead` kept under ``key`` (read again where it failed);
+    what it returns is kept there under ``key`` for :func:`_report`."""
+    from tandemscan.daemon.jobs.finish import finish_outputs
 
-    return finish_job(job, started, measured_at, online, stages, _LOADED.pop(key, None))
+    _OUTPUTS[key] = finish_outputs(job, started, measured_at, online, stages, _LOADED.pop(key, None))
+
+
+def _report(job: JobSnapshot, key: str, measured_at: float, later: OnlineWork | None, stages: dict) -> Any:
+    """:func:`tandemscan.daemon.jobs.finish.report_job` of the outputs :func:`_finish_outputs` kept under ``key``
+    (``job`` is not used: the outputs hold the job at its final poses)."""
+    from tandemscan.daemon.jobs.finish import report_job
+
+    return report_job(_OUTPUTS.pop(key), measured_at, later, stages)
+
+
+def _drop_outputs(key: str, running: asyncio.Future) -> None:
+    """Drop the outputs kept under ``key`` of a job that ended before its report, once their run (``running``)
+    ended (its tiles' files removed; its own error, if any, is only logged: the job has failed of its own). Like
+    :func:`_drop_read_ahead` this runs in the job's process: a daemon job's map process ends with the job anyway."""
+    from tandemscan.daemon.jobs.finish import drop_outputs
+
+    outputs = _OUTPUTS.pop(key, None)
+    if outputs is not None:
+        drop_outputs(outputs)
+    if not running.cancelled() and running.exception() is not None:
+        log.debug("outputs of an ended job failed: %s", running.exception())
 
 
 class PairWorker:
@@ -166,6 +193,18 @@ class PairWorker:
         if isinstance(points, SharedBlock):  # once its task is done, failed or cancelled, no block is left behind
             future.add_done_callback(lambda _: points.discard())
         self._pending.append(future)
+
+    async def joint_work(self) -> OnlineWork | None:
+        """Wait for the queued scans' preparation for the joint refinement (not for their pairs), then what the
+        worker computed so far (``online_pairs.OnlinePairs.joint_work``: prepared scans and their nearest neighbours,
+        the pairs registered so far and the keys of those still registering; a scan whose task failed is logged and
+        left to the end of the job). :meth:`outcomes` gives the pairs once they are done."""
+        for future in self._pending:
+            try:
+                await asyncio.wrap_future(future)
+            except Exception as e:  # noqa: BLE001 - the correction prepares what is missing
+                log.warning("a scan not prepared while measuring: %s", e)
+        return await asyncio.wrap_future(self._pool.submit(_joint_outcomes))
 
     async def outcomes(self) -> tuple[OnlineWork | None, float]:
         """Wait for the queued scans, then what the worker computed (``registration.correction.OnlineWork``: pair
@@ -224,27 +263,61 @@ class _Pairs:
             self._pairs = None
 
     async def finish(self, job: JobSnapshot, started: float, measured_at: float) -> Any:
-        """The end of the job (``finish.finish_job``, a ``finish.FinishedJob``) where the map lives, once the
-        pairs of the last scans are registered; ``started`` and ``measured_at`` as ``time.monotonic()``. The
-        scans are read meanwhile, so the wait for the last pairs and the reading share the two cores: ``read_s``
-        (the read's own seconds) runs beside ``pair_backlog_s`` (the wait for the pairs, which the read slows a
-        little), and where the read outlasts that wait its rest belongs to no stage."""
-        key = uuid.uuid4().hex  # this finish's read, never another's
+        """The end of the job (``finish.finish_outputs`` then ``finish.report_job``: a ``finish.FinishedJob``) where
+        the map lives; ``started`` and ``measured_at`` as ``time.monotonic()``. It starts once the pair worker has
+        prepared the last scans for the joint refinement (``joint_backlog_s``) or, without the joint refinement,
+        whose pose graph takes every pair, once their pairs are registered (``pair_backlog_s``). The scans are read
+        meanwhile, so the wait and the reading share the two cores: ``read_s`` (the read's own seconds) runs beside
+        it, and where the read outlasts that wait its rest belongs to no stage. With the joint refinement the check
+        pairs still registering (its poses take none of them) register beside the correction, merge, exports and
+        inspection (``pair_backlog_s``: until they are handed over) and only the report waits for them."""
+        key = uuid.uuid4().hex  # this finish's read and outputs, never another's
         reading = asyncio.ensure_future(self.run(_read_ahead, job, key))
+        joint = job.config.correction.joint
         try:
-            online, pair_cpu_s = await self.pair_outcomes()
+            if joint:
+                online = await self._joint_work()
+            else:
+                online, pair_cpu_s = await self.pair_outcomes()
         except BaseException:
             # the job ends here: the read runs on where the map lives and what it kept is dropped once it ends (a
             # daemon job's map process ends with the job anyway); no second run of the map starts meanwhile
             reading.add_done_callback(functools.partial(_drop_read_ahead, key))
             raise
-        stages = {"pair_backlog_s": round(time.monotonic() - measured_at, 3),
-                  "pairs_cpu_s_while_measuring": round(pair_cpu_s, 3)}
+        waited = round(time.monotonic() - measured_at, 3)
+        stages = ({"joint_backlog_s": waited} if joint
+                  else {"pair_backlog_s": waited, "pairs_cpu_s_while_measuring": round(pair_cpu_s, 3)})
+        checks = asyncio.ensure_future(self._checks(measured_at)) if joint else None
+        outputs = None
         try:
-            stages["read_s"] = round(await reading, 3)
-        except Exception as e:  # noqa: BLE001 - the end of the job reads them itself
-            log.warning("scans not read ahead of the end of the job: %s", e)
-        return await self.run(_finish, job, key, started, measured_at, online, stages)
+            try:
+                stages["read_s"] = round(await reading, 3)
+            except Exception as e:  # noqa: BLE001 - the end of the job reads them itself
+                log.warning("scans not read ahead of the end of the job: %s", e)
+            outputs = asyncio.ensure_future(self.run(_finish_outputs, job, key, started, measured_at, online, stages))
+            await asyncio.shield(outputs)
+            later, later_stages = (None, {}) if checks is None else await checks
+        except BaseException:
+            if checks is not None:
+                checks.cancel()  # the pair worker stops (pair_outcomes)
+            if outputs is not None:  # once the map is free, what the outputs kept is dropped
+                outputs.add_done_callback(functools.partial(_drop_outputs, key))
+            raise
+        return await self.run(_report, job, key, measured_at, later, later_stages)
+
+    async def _joint_work(self) -> OnlineWork | None:
+        return None if self._pairs is None else await self._pairs.joint_work()
+
+    async def _checks(self, measured_at: float) -> tuple[OnlineWork | None, dict[str, float]]:
+        """The check pairs the pair worker still registered at the end of the job, once done (None where they
+        could not be handed over: the report registers those it misses), and the stages' seconds of it."""
+        try:
+            later, cpu_s = await self.pair_outcomes()
+        except Exception as e:  # noqa: BLE001 - the report registers the pairs it misses
+            log.warning("check pairs not handed over by the pair worker: %s", e)
+            return None, {}
+        return later, {"pair_backlog_s": round(time.monotonic() - measured_at, 3),
+                       "pairs_cpu_s_while_measuring": round(cpu_s, 3)}
 
     def _close_pairs(self) -> None:
         if self._pairs is not None:

@@ -135,6 +135,34 @@ class OnlineWork:
     joint_scans: dict[str, JointScan]
     associations: dict[str, Association]
     pair_cpu_s: float = 0.0
+    #: keys of the pairs still being registered when this was handed over (``OnlinePairs.joint_work``): with the
+    #: joint refinement :func:`correct_scans` leaves them to :func:`complete_pair_checks` (:class:`PairChecks`)
+    pending: frozenset[str] = frozenset()
+
+
+@dataclass(frozen=True)
+class PendingPair:
+    """A check pair still registering where the job measured: its place in the job's pairs (``slot``), both scans
+    by reference (target, source), its relative pose covariance and its cache key (:func:`pair_key`)."""
+
+    slot: int
+    target: ScanRef
+    source: ScanRef
+    covariance: np.ndarray
+    key: str
+
+
+@dataclass(frozen=True)
+class PairChecks:
+    """The check pairs of a job whose poses the joint refinement gave while some of its pairs were still registering
+    (``OnlineWork.pending``): every pair registered, in order, with its outcome where known (None where pending), the
+    pending ones (:class:`PendingPair`), how many outcomes came from the work done while measuring, and the CPU
+    seconds a pair took there so far. :func:`complete_pair_checks` gives the report's pair figures."""
+
+    outcomes: tuple[tuple[int, int, PairOutcome | None], ...]
+    pending: tuple[PendingPair, ...]
+    cached: int
+    cpu_s_a_pair: float | None
 
 
 @dataclass
@@ -147,6 +175,7 @@ class CorrectionResult:
     mount: MountEstimate | None = None
     pose_covariance: PoseCovariance | None = None  # the scans' errors jointly (``pose_covariance``)
     reaches: tuple[ScanReach, ...] = ()  # each scan's bound of its x at any pose (``tiles.ScanReach``)
+    checks: PairChecks | None = None  # pairs still registering: ``report`` has no pair figures yet
 
 
 class _Clock:
@@ -361,19 +390,19 @@ def _unit_digest(ref: ScanRef, voxel_mm: float, cfg: CorrectionSettings, *flags:
 
 def _pair_corrections(
     job: StitchedJob, summaries: Sequence[ScanSummary], local: Sequence[np.ndarray] | None, cfg: CorrectionSettings,
-    network: Registrar | None, cache: Mapping[str, PairOutcome], backend: ComputeBackend | None,
-    scan_store: str | None,
-) -> tuple[list[tuple[int, int, PairOutcome]], int, list[tuple[int, int]]]:
+    network: Registrar | None, online: OnlineWork, backend: ComputeBackend | None, scan_store: str | None,
+) -> tuple[list[tuple[int, int, PairOutcome | None]], int, list[tuple[int, int]], list[PendingPair]]:
     """The outcome of every pair of the job's scans registered at ``cfg.registered_partners``
     (``overlap.overlapping_pairs``, from each scan's grid cells in W, ``summaries``, :func:`summarise_scan`): from
-    ``cache`` where the job registered the pair while it measured (same clouds, covariance and settings: the
-    summaries' digests), else registered here, one unit a target (``pair_stage.TargetPairs``) on ``backend`` (this
+    ``online.pairs`` where the job registered the pair while it measured (same clouds, covariance and settings: the
+    summaries' digests), None where it is still registering there (``online.pending``: returned as
+    :class:`PendingPair`), else registered here, one unit a target (``pair_stage.TargetPairs``) on ``backend`` (this
     process's threads where None); with ``scan_store`` the units read their scans from it by reference
     (``pair_stage.StoredScans``: a Dask cluster's workers), else they take this process's thinned clouds ``local``
     (S, mm), of which only the scans of pairs left to register are placed in W here. Returns the outcomes in pair
-    order, how many came from the cache, and the pairs selected at ``cfg.max_partners_per_scan`` (the registered
+    order, how many came from the cache, the pairs selected at ``cfg.max_partners_per_scan`` (the registered
     ones where the joint refinement is off), on all of which the report's overlap RMS is taken, registered or not:
-    it scores the overlaps at the poses.
+    it scores the overlaps at the poses, and the pending pairs.
 
     Eight parameters: the job, what is known of its scans (summaries, the clouds where held), the settings and
     network, the pairs registered while measuring, and where the rest run and read their scans."""
@@ -382,20 +411,26 @@ def _pair_corrections(
     shared = shared_cells([m.cells for m in summaries])
     selected = select_pairs(shared, stations, cfg.max_partners_per_scan)
     registering = select_pairs(shared, stations, cfg.registered_partners) if cfg.registered_partners else []
+    cache, digesting = online.pairs, bool(online.pairs or online.pending)
     out: list[tuple[int, int, PairOutcome | None]] = []
     todo: dict[int, list[tuple[int, np.ndarray, int]]] = {}  # target -> (source, covariance, slot in out)
+    pending: list[PendingPair] = []
     hits = 0
-    for i, j in registering:
-        cov = pair_covariance(scans[i], scans[j], job.transfers)
-        cached = cache.get(pair_key(digests[i], digests[j], cov, cfg.pairs)) if cache else None
-        if cached is None:
-            todo.setdefault(i, []).append((j, cov, len(out)))
-        else:
-            hits += 1
-        out.append((i, j, cached))
 
     def ref(k: int) -> ScanRef:
         return ScanRef(k, scans[k].file, scans[k].T_W_S)
+
+    for i, j in registering:
+        cov = pair_covariance(scans[i], scans[j], job.transfers)
+        key = pair_key(digests[i], digests[j], cov, cfg.pairs) if digesting else ""
+        cached = cache.get(key) if cache else None
+        if cached is not None:
+            hits += 1
+        elif key in online.pending:
+            pending.append(PendingPair(len(out), ref(i), ref(j), cov, key))
+        else:
+            todo.setdefault(i, []).append((j, cov, len(out)))
+        out.append((i, j, cached))
 
     units = [TargetPairs(ref(i), tuple(ref(j) for j, _, _ in group), tuple(cov for _, cov, _ in group))
              for i, group in todo.items()]
@@ -410,10 +445,66 @@ def _pair_corrections(
     for group, outcomes in zip(todo.values(), registered, strict=True):
         for (_, _, slot), outcome in zip(group, outcomes, strict=True):
             out[slot] = (out[slot][0], out[slot][1], outcome)
-    for i, j, o in out:
+    return out, hits, selected, pending
+
+
+def _pair_figures(outcomes: Sequence[tuple[int, int, PairOutcome]], cached: int, cpu_s_a_pair: float | None
+                  ) -> dict:
+    """The correction section's figures of its registered pairs (``outcomes``, every one known): how many gave an
+    edge, how many came from the work done while measuring (``cached``) at what CPU seconds a pair, which were
+    dropped and why, and the stages the edges came from (each dropped pair logged)."""
+    for i, j, o in outcomes:
         if o.dropped:
             log.warning("correction: pair (%d, %d) dropped: %s", i, j, o.dropped)
-    return out, hits, selected
+    edges = [o for _, _, o in outcomes if o.transformation is not None]
+    return {
+        "pairs": len(edges),
+        "pairs_registered_while_measuring": cached,
+        # the CPU seconds a pair took while the job measured (the registration's thread, nothing else of the worker)
+        "cpu_s_a_pair_while_measuring": cpu_s_a_pair,
+        "pairs_dropped": [{"i": int(i), "j": int(j), "reason": o.dropped} for i, j, o in outcomes if o.dropped],
+        "stages": dict(Counter(o.stage for o in edges)),
+    }
+
+
+def _cpu_s_a_pair(online: OnlineWork) -> float | None:
+    return round(online.pair_cpu_s / len(online.pairs), 4) if online.pairs else None
+
+
+def complete_pair_checks(checks: PairChecks, cfg: CorrectionSettings, later: OnlineWork | None, scan_store: str,
+                         voxel_mm: float, backend: ComputeBackend | None = None, network: Registrar | None = None
+                         ) -> dict:
+    """The report's pair figures (those :func:`correct_scans` leaves out of its report where ``checks`` were still
+    registering: :func:`with_pair_figures` puts them in): each pending pair's outcome from ``later`` (what the job
+    computed while measuring, handed over once its pairs were done: ``online_pairs.OnlinePairs.work``; None where
+    that failed), else registered here as :func:`correct_scans` would, its scans read from ``scan_store``
+    (``pair_stage.StoredScans``, thinned to ``voxel_mm``) on ``backend`` (this process's threads where None)."""
+    out, cached = list(checks.outcomes), checks.cached
+    todo: dict[int, list[PendingPair]] = {}
+    for pair in checks.pending:
+        outcome = later.pairs.get(pair.key) if later is not None else None
+        if outcome is None:
+            todo.setdefault(pair.target.index, []).append(pair)
+        else:
+            out[pair.slot] = (out[pair.slot][0], out[pair.slot][1], outcome)
+            cached += 1
+    units = [TargetPairs(group[0].target, tuple(p.source for p in group), tuple(p.covariance for p in group))
+             for group in todo.values()]
+    registered = register_units(units, StoredScans(scan_store, voxel_mm), cfg.pairs, voxel_mm,
+                                backend or LocalBackend(), network)
+    for group, outcomes in zip(todo.values(), registered, strict=True):
+        for pair, outcome in zip(group, outcomes, strict=True):
+            out[pair.slot] = (out[pair.slot][0], out[pair.slot][1], outcome)
+    cpu_s_a_pair = checks.cpu_s_a_pair if later is None else _cpu_s_a_pair(later)
+    return _pair_figures(out, cached, cpu_s_a_pair)
+
+
+def with_pair_figures(report: Mapping, figures: Mapping) -> dict:
+    """A correction section whose check pairs were still registering (``CorrectionResult.checks``) with their
+    figures (:func:`complete_pair_checks`), in the place a complete section has them."""
+    keys = list(report)
+    at = keys.index("scans") + 1
+    return {k: report[k] for k in keys[:at]} | dict(figures) | {k: report[k] for k in keys[at:]}
 
 
 def correct_scans(
@@ -429,7 +520,10 @@ def correct_scans(
     computed while it measured (:class:`OnlineWork`): the outcomes of pairs registered then (a pair not among them
     is registered here, so the result never depends on them), the scans prepared for the joint refinement (each
     taken out as the refinement takes it, so that none outlives the refinement: the prepared scans of a whole part
-    are about half a gigabyte) and the pairs' nearest neighbours found for it at the tracker poses.
+    are about half a gigabyte) and the pairs' nearest neighbours found for it at the tracker poses; the pairs it
+    names as still registering (``online.pending``, only with the joint refinement, whose poses take none of them)
+    are left out of the report, which then lacks its pair figures: ``CorrectionResult.checks`` holds them for
+    :func:`complete_pair_checks`.
     The pairs not in the cache run on ``backend`` (``pipeline.compute``; this process's threads where None), each
     unit reading its scans from ``scan_store`` by their :attr:`StitchedScan.file` where it is given (a Dask
     cluster, docs/compute.md), the result the same to the bit either way.
@@ -443,8 +537,10 @@ def correct_scans(
     clock = _Clock()
     scans, transfers, mount_prior = job.scans, job.transfers, job.mount_prior
     online = online or OnlineWork({}, {}, {})
-    read = _summaries(job, cfg, bool(online.pairs) and cfg.registered_partners > 0, backend or LocalBackend(),
-                      scan_store)
+    if online.pending and not cfg.joint:
+        raise ValueError("the pose graph takes every pair: pairs still registering only with the joint refinement")
+    read = _summaries(job, cfg, bool(online.pairs or online.pending) and cfg.registered_partners > 0,
+                      backend or LocalBackend(), scan_store)
     summaries = [r.summary for r in read]
     prepared = [r.joint for r in read]  # the joint refinement's scans read with their summaries (else None)
     del read
@@ -454,11 +550,11 @@ def correct_scans(
         with pair_threads() as pair_map:
             local = pair_map(lambda s: voxel_downsample(np.asarray(s.points_S, float), job.voxel_mm), scans)
     clock.lap("thin_s")
-    outcomes, cached, selected = _pair_corrections(job, summaries, local, cfg, network, online.pairs, backend,
-                                                   scan_store)
+    outcomes, cached, selected, pending = _pair_corrections(job, summaries, local, cfg, network, online, backend,
+                                                            scan_store)
     clock.lap("pairs_s")
-    edges = [(i, j, o) for i, j, o in outcomes if o.transformation is not None]
-    dropped = [(i, j, o.dropped) for i, j, o in outcomes if o.dropped]
+    edges = [(i, j, o) for i, j, o in outcomes if o is not None and o.transformation is not None]
+    checks = PairChecks(tuple(outcomes), tuple(pending), cached, _cpu_s_a_pair(online)) if pending else None
     priors = [ScanPrior(s.T_W_S, s.covariance, s.station) for s in scans]
     joint, graph_figures = None, {}
     if cfg.joint:
@@ -485,12 +581,7 @@ def correct_scans(
     report = {
         "method": cfg.method,
         "scans": len(scans),
-        "pairs": len(edges),
-        "pairs_registered_while_measuring": cached,
-        # the CPU seconds a pair took while the job measured (the registration's thread, nothing else of the worker)
-        "cpu_s_a_pair_while_measuring": round(online.pair_cpu_s / len(online.pairs), 4) if online.pairs else None,
-        "pairs_dropped": [{"i": int(i), "j": int(j), "reason": why} for i, j, why in dropped],
-        "stages": dict(Counter(pc.stage for _, _, pc in edges)),
+        **({} if checks is not None else _pair_figures(outcomes, cached, _cpu_s_a_pair(online))),
         "overlap_rms_mm_median_before": rms_b,
         "overlap_rms_mm_median_after": rms_a,
         "pose_change_mm_median": float(np.median([m[0] for m in moves])) if moves else 0.0,
@@ -501,11 +592,11 @@ def correct_scans(
     if joint is not None:
         report["joint"] = _joint_report(joint, [s.station for s in scans]) | {
             "pairs_associated_while_measuring": associated_while_measuring}
-    log.info("correction: %d scans, %d pairs (%d dropped), overlap RMS %.4f -> %.4f mm", len(scans), len(edges),
-             len(dropped), rms_b, rms_a)
+    log.info("correction: %d scans, %d pairs (%d still registering), overlap RMS %.4f -> %.4f mm", len(scans),
+             len(edges), len(pending), rms_b, rms_a)
     # the joint refinement's posterior of the scans' errors; the pose graph's is not formed: the chain's prior
     covariance = joint.pose_covariance if joint is not None else chain_covariance(priors, transfers, mount_prior)
-    return CorrectionResult(poses, edges, report, mount, covariance, tuple(m.reach for m in summaries))
+    return CorrectionResult(poses, edges, report, mount, covariance, tuple(m.reach for m in summaries), checks)
 
 
 def _refine_jointly(job: StitchedJob, priors: list[ScanPrior], cfg: CorrectionSettings,

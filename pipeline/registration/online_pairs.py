@@ -174,6 +174,19 @@ class OnlinePairs:
         self.cpu_s = time.process_time() - self._cpu_start
         return OnlineWork(self.outcomes, self.joint_scans, self.associations, self.pair_cpu_s)
 
+    def joint_work(self) -> OnlineWork:
+        """Once the last scan is added: what the joint refinement takes (the prepared scans and their pairs' nearest
+        neighbours, handed over and no longer kept here) and the pairs registered so far, without waiting for the
+        pairs still queued, whose keys it names (``OnlineWork.pending``: their outcomes come with :meth:`work`; with
+        the joint refinement no pose waits for them, docs/end-of-job.md)."""
+        done = {k: f for k, f in self._queued.items() if f.done()}
+        self.outcomes |= {k: o for k, o in _results(done).items() if o is not None}
+        self._queued = {k: f for k, f in self._queued.items() if k not in done}
+        work = OnlineWork(dict(self.outcomes), self.joint_scans, self.associations, self.pair_cpu_s,
+                          frozenset(self._queued))
+        self.joint_scans, self.associations = {}, {}
+        return work
+
     def _prepare_joint(self, points_S: np.ndarray, T_W_S: np.ndarray, station: int) -> None:
         """Prepare the scan for the joint refinement (``correction.joint_scan``) and find, at the tracker poses,
         the nearest neighbours of its points in every earlier prepared scan it may be paired with there

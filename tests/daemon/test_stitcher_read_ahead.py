@@ -1,4 +1,6 @@
-"""The end of a job reads its scans while the last scans' pairs still register (daemon/jobs/stitcher.py)."""
+"""The end of a job where the map lives (daemon/jobs/stitcher.py): its scans read while the pair worker finishes
+the last scans, and with the joint refinement its outputs made while the check pairs still register, the report
+alone waiting for them."""
 
 from __future__ import annotations
 
@@ -13,25 +15,39 @@ from tandemscan.daemon.jobs import finish, stitcher
 
 @pytest.fixture
 def end_of_job(monkeypatch):
-    """``finish.load_scans`` and ``finish.finish_job`` replaced by recorders (the scans read: an event set when
-    read; a read waits for ``release`` first) and the reads kept ahead in a fresh ``stitcher._LOADED``."""
-    read, release, handed = threading.Event(), threading.Event(), {}
+    """``finish.load_scans``, ``finish.finish_outputs`` and ``finish.report_job`` replaced by recorders (the scans
+    read: an event set when read; a read waits for ``release`` first; ``events``: the order of the end's stages)
+    and the reads and outputs kept in fresh ``stitcher._LOADED`` / ``_OUTPUTS``."""
+    read, release, handed, events = threading.Event(), threading.Event(), {}, []
     release.set()
-    loaded = object()
+    loaded, outputs = object(), SimpleNamespace(final=SimpleNamespace(worldmap=None))  # no tiles to remove
 
     def load_scans(job):
         assert release.wait(10.0)
         read.set()
         return loaded
 
-    def finish_job(job, started, measured_at, online, stages, loaded=None):
-        handed.update(loaded=loaded, stages=stages, online=online)
+    def finish_outputs(job, started, measured_at, online, stages, loaded=None):
+        events.append("outputs")
+        handed.update(loaded=loaded, stages=dict(stages), online=online)
+        return outputs
+
+    def report_job(kept, measured_at, later, stages=None):
+        events.append("report")
+        handed.update(outputs=kept, later=later, later_stages=dict(stages or {}))
         return "finished"
 
     monkeypatch.setattr(finish, "load_scans", load_scans)
-    monkeypatch.setattr(finish, "finish_job", finish_job)
+    monkeypatch.setattr(finish, "finish_outputs", finish_outputs)
+    monkeypatch.setattr(finish, "report_job", report_job)
     monkeypatch.setattr(stitcher, "_LOADED", {})
-    return SimpleNamespace(read=read, release=release, handed=handed, loaded=loaded)
+    monkeypatch.setattr(stitcher, "_OUTPUTS", {})
+    return SimpleNamespace(read=read, release=release, handed=handed, loaded=loaded, outputs=outputs, events=events)
+
+
+def _job(tmp_path, joint: bool) -> SimpleNamespace:
+    return SimpleNamespace(job_dir=tmp_path / "job", worldmap=None,
+                           config=SimpleNamespace(correction=SimpleNamespace(joint=joint)))
 
 
 async def _settled(worldmap: stitcher.LocalWorldMap) -> None:
@@ -50,13 +66,86 @@ async def test_the_scans_are_read_while_the_last_pairs_register(end_of_job, monk
         return "online work", 1.5
 
     monkeypatch.setattr(worldmap, "pair_outcomes", pair_outcomes)
-    job = SimpleNamespace(job_dir=tmp_path / "job", worldmap=None)
-    assert await worldmap.finish(job, 0.0, time.monotonic()) == "finished"
+    assert await worldmap.finish(_job(tmp_path, joint=False), 0.0, time.monotonic()) == "finished"
     handed = end_of_job.handed
     assert handed["loaded"] is end_of_job.loaded and handed["online"] == "online work"
     assert "read_s" in handed["stages"] and handed["stages"]["pairs_cpu_s_while_measuring"] == 1.5
-    assert stitcher._LOADED == {}  # handed over, not kept
+    assert handed["outputs"] is end_of_job.outputs and handed["later"] is None  # the graph took every pair
+    assert stitcher._LOADED == {} and stitcher._OUTPUTS == {}  # handed over, not kept
     assert worldmap.map is not None  # the map is back with its owner
+
+
+async def test_with_the_joint_refinement_the_outputs_do_not_wait_for_the_check_pairs(end_of_job, monkeypatch,
+                                                                                     tmp_path):
+    """The order of events, not timings: the check pairs are handed over only once the outputs were made (were
+    the outputs waiting for them, this would hang), and the report comes after both."""
+    worldmap = stitcher.LocalWorldMap(1.0)
+    events = end_of_job.events
+
+    async def joint_work():
+        events.append("joint work")
+        return "prepared scans"
+
+    async def pair_outcomes():
+        async with asyncio.timeout(10):  # only against a hang
+            while "outputs" not in events:
+                await asyncio.sleep(0.005)
+        events.append("check pairs")
+        return "check pairs", 2.5
+
+    monkeypatch.setattr(worldmap, "_joint_work", joint_work)
+    monkeypatch.setattr(worldmap, "pair_outcomes", pair_outcomes)
+    assert await worldmap.finish(_job(tmp_path, joint=True), 0.0, time.monotonic()) == "finished"
+    assert events == ["joint work", "outputs", "check pairs", "report"]
+    handed = end_of_job.handed
+    assert handed["online"] == "prepared scans" and "joint_backlog_s" in handed["stages"]
+    assert "pair_backlog_s" not in handed["stages"]
+    assert handed["later"] == "check pairs" and handed["later_stages"]["pairs_cpu_s_while_measuring"] == 2.5
+    assert handed["later_stages"]["pair_backlog_s"] >= 0
+    assert stitcher._OUTPUTS == {} and worldmap.map is not None
+
+
+async def test_check_pairs_the_worker_could_not_hand_over_leave_the_report_to_register_them(end_of_job, monkeypatch,
+                                                                                          tmp_path):
+    worldmap = stitcher.LocalWorldMap(1.0)
+
+    async def joint_work():
+        return "prepared scans"
+
+    async def pair_outcomes():
+        raise RuntimeError("pair worker died")
+
+    monkeypatch.setattr(worldmap, "_joint_work", joint_work)
+    monkeypatch.setattr(worldmap, "pair_outcomes", pair_outcomes)
+    assert await worldmap.finish(_job(tmp_path, joint=True), 0.0, time.monotonic()) == "finished"
+    assert end_of_job.events == ["outputs", "report"]
+    assert end_of_job.handed["later"] is None and end_of_job.handed["later_stages"] == {}
+
+
+async def test_a_job_cancelled_while_its_check_pairs_register_keeps_no_outputs(end_of_job, monkeypatch, tmp_path):
+    worldmap = stitcher.LocalWorldMap(1.0)
+    stopped = asyncio.Event()
+
+    async def joint_work():
+        return "prepared scans"
+
+    async def pair_outcomes():
+        try:
+            await asyncio.sleep(30.0)
+        finally:
+            stopped.set()
+
+    monkeypatch.setattr(worldmap, "_joint_work", joint_work)
+    monkeypatch.setattr(worldmap, "pair_outcomes", pair_outcomes)
+    finishing = asyncio.ensure_future(worldmap.finish(_job(tmp_path, joint=True), 0.0, time.monotonic()))
+    async with asyncio.timeout(10):  # only against a hang
+        while "outputs" not in end_of_job.events or stitcher._OUTPUTS == {}:
+            await asyncio.sleep(0.005)
+    finishing.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await finishing
+    assert stopped.is_set()  # the check pairs' wait ended with the job (the pair worker stops)
+    assert stitcher._OUTPUTS == {} and "report" not in end_of_job.events
 
 
 @pytest.mark.parametrize("ending", ["pair worker died", "cancelled"])
@@ -72,8 +161,7 @@ async def test_a_job_ended_before_its_end_leaves_no_scans_behind(end_of_job, mon
         raise RuntimeError("pair worker died")
 
     monkeypatch.setattr(worldmap, "pair_outcomes", pair_outcomes)
-    job = SimpleNamespace(job_dir=tmp_path / "job", worldmap=None)
-    finishing = asyncio.ensure_future(worldmap.finish(job, 0.0, time.monotonic()))
+    finishing = asyncio.ensure_future(worldmap.finish(_job(tmp_path, joint=False), 0.0, time.monotonic()))
     await waiting.wait()
     if ending == "cancelled":
         finishing.cancel()
@@ -100,7 +188,6 @@ async def test_scans_that_could_not_be_read_ahead_are_read_by_the_end_of_the_job
         return None, 0.0
 
     monkeypatch.setattr(worldmap, "pair_outcomes", pair_outcomes)
-    job = SimpleNamespace(job_dir=tmp_path / "job", worldmap=None)
-    assert await worldmap.finish(job, 0.0, time.monotonic()) == "finished"
+    assert await worldmap.finish(_job(tmp_path, joint=False), 0.0, time.monotonic()) == "finished"
     handed = end_of_job.handed
-    assert handed["loaded"] is None and "read_s" not in handed["stages"]  # finish_job reads them itself
+    assert handed["loaded"] is None and "read_s" not in handed["stages"]  # finish_outputs reads them itself

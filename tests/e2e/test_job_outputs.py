@@ -8,6 +8,7 @@ import json
 
 import numpy as np
 import pye57
+import pytest
 from tandemscan.daemon.cell.session import CellSession
 from tandemscan.daemon.jobs.runner import JobRunner
 from tandemscan.daemon.plans import default_plan_path
@@ -102,6 +103,39 @@ async def test_job_writes_report_and_exports_next_to_cloud(sim_config, tmp_path,
     assert 'id="left-out"' in html and area["where"] in html and "planned 78.5 %" in html
     # the default part's regions, for the default part
     assert [r["name"] for r in ins["regions"]] == ["body", "nose"]
+
+
+async def test_an_export_that_fails_is_named_in_the_report_and_fails_the_job(sim_config, tmp_path, monkeypatch):
+    """The E57 cannot be written (a full disk): cloud.ply, the inspection and the pose log beside it are written all
+    the same, report.json is written naming the failed output, and the job ends with that error (an OSError: an
+    output not written, no traceback), so that a resume writes its outputs again."""
+    from tandemscan.daemon.jobs import finish, outputs
+
+    def write_e57(path, scans, merged):
+        for _ in scans:  # the scans are read, then the disk is full
+            pass
+        raise OSError(28, "No space left on device", str(path))
+
+    monkeypatch.setattr(outputs, "write_e57", write_e57)
+    plan = Plan.load(default_plan_path())
+    scans = [i for i, s in enumerate(plan.steps) if isinstance(s, Scan)]
+    plan = plan.model_copy(update={"steps": plan.steps[: scans[1] + 1]})  # the first two scans only
+    inspection = sim_config.inspection.model_copy(update={"views": ("isometric",), "map_width_px": 300})
+    config = sim_config.model_copy(update={"inspection": inspection})
+    perfect_correction(monkeypatch, lambda job: job.scorer.T_W_S_true)
+    async with CellSession(config) as session:
+        config = with_surveyed_mounts(config, session.cell.simulation, tmp_path)
+        with pytest.raises(finish.OutputsNotWritten, match="e57 not written: OSError.*No space left") as failed:
+            await JobRunner(session, plan, config, tmp_path / "job").run()
+    assert isinstance(failed.value, OSError)
+    job = tmp_path / "job"
+    report = json.loads((job / "report.json").read_text())
+    assert report["failed_outputs"] == {"e57": "OSError: [Errno 28] No space left on device: "
+                                                f"'{job / 'cloud.e57'}'"}
+    assert str(job / "report.json") in str(failed.value)
+    for name in ("cloud.ply", "report.html", "poses.csv"):
+        assert (job / name).is_file(), name
+    assert report["inspection"]["verdict"] == "pass" and len(read_ply(job / "cloud.ply")[0]) == report["points_cloud"]
 
 
 def test_inspection_skipped_with_reason(sim_config, tmp_path):

@@ -158,3 +158,48 @@ def test_with_the_joint_refinement_only_the_check_pairs_register_while_measuring
     cpu = res.report["cpu_s_a_pair_while_measuring"]  # the registrations' own threads' CPU, each pair's share
     assert cpu > 0 if check else cpu is None
     assert res.report["joint"]["pairs_associated_while_measuring"] >= res.report["joint"]["pairs"] > 0
+
+
+def test_check_pairs_still_registering_leave_the_poses_alone_and_complete_the_same_figures(monkeypatch, tmp_path):
+    """With the joint refinement the end of the job takes the prepared scans while check pairs still register
+    (``OnlinePairs.joint_work``): the poses are those of the end that waited for them, the report lacks only the
+    pair figures, and completed from the pairs handed over later (``complete_pair_checks``) the section is the same;
+    pairs the worker never handed over are registered from the scan store, with the same figures."""
+    import threading
+
+    from tandemscan.pipeline.io.raw_scan import write_raw_scan
+    from tandemscan.pipeline.registration import online_pairs
+    from tandemscan.pipeline.registration.correction import complete_pair_checks, with_pair_figures
+
+    _, scans, transfers = scans_with_drift(n=6, per_station=3)
+    scans = [replace(s, points_S=s.points_S.astype(np.float32).astype(float), file=f"scan-{k}.npz")
+             for k, s in enumerate(scans)]  # as stored: float32
+    for s in scans:
+        write_raw_scan(tmp_path / s.file, points_S_mm=s.points_S)
+    cfg = settings(method="icp", min_overlap_points=100, joint_iterations=2)
+    waited = correct_scans(StitchedJob(scans, transfers), cfg, online=_measure(scans, transfers, cfg).work())
+    assert waited.checks is None and waited.report["pairs"] > 0
+
+    release, real = threading.Event(), online_pairs.register_stitched_pair
+    monkeypatch.setattr(online_pairs, "register_stitched_pair", lambda *a: release.wait(10) and real(*a))
+    online = OnlinePairs(cfg, 1.0)
+    for s in scans:
+        online.add(s.points_S, s.T_W_S, s.covariance, s.station, [t for t in transfers if t.station <= s.station])
+    early = online.joint_work()
+    assert early.pending and early.pairs == {} and len(early.joint_scans) == len(scans)
+    assert online.joint_scans == {}  # handed over, not kept
+    result = correct_scans(StitchedJob(scans, transfers), cfg, online=early)
+    assert result.checks is not None and "pairs" not in result.report and "pairs_dropped" not in result.report
+    for a, b in zip(waited.poses, result.poses, strict=True):
+        np.testing.assert_array_equal(a, b)
+    release.set()
+    later = online.work()
+    completed = with_pair_figures(result.report, complete_pair_checks(result.checks, cfg, later, str(tmp_path), 1.0))
+    timeless = {"stage_seconds", "cpu_s_a_pair_while_measuring"}
+    assert list(completed) == list(waited.report)  # the same section, in the same order
+    assert {k: v for k, v in completed.items() if k not in timeless} == {
+        k: v for k, v in waited.report.items() if k not in timeless}
+    from_store = complete_pair_checks(result.checks, cfg, None, str(tmp_path), 1.0)
+    assert from_store["pairs_registered_while_measuring"] == 0
+    assert {k: from_store[k] for k in ("pairs", "pairs_dropped", "stages")} == {
+        k: waited.report[k] for k in ("pairs", "pairs_dropped", "stages")}
