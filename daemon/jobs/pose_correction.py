@@ -69,10 +69,12 @@ def mount_prior(cfg: CellConfig, installation: Installation) -> tuple[MountPrior
     return MountPrior(cov, dm.mount_min_information_ratio), label
 
 
-def _cpu_seconds() -> float:
-    """CPU time (user + system, s) of this process and its finished child processes."""
+def _cpu_seconds(children: bool) -> float:
+    """CPU time (user + system, s) of this process and, where ``children``, its finished child processes (a compute
+    backend's worker processes; not with the local backend's threads: the job's pair worker, a child of the process
+    running ``tandemscan measure``, may end during the correction, its CPU none of the correction's)."""
     t = os.times()
-    return t.user + t.system + t.children_user + t.children_system
+    return t.user + t.system + (t.children_user + t.children_system if children else 0.0)
 
 
 def transfer_priors(transfers: list[dict]) -> list[TransferPrior]:
@@ -120,8 +122,9 @@ def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray], online: Online
     numbered as in ``job.scans``) and the check pairs still registering where ``online`` named some
     (``correction.PairChecks``: the section has no pair figures until :func:`complete_checks` gives them).
     """
-    started, cpu = time.monotonic(), _cpu_seconds()
     cfg, compute = job.config.correction, job.config.compute
+    children = compute.backend != "local"
+    started, cpu = time.monotonic(), _cpu_seconds(children)
     prior, prior_source = mount_prior(job.config, job.installation)
     # on a cluster the pair stage's workers read the scans from the store by reference (docs/compute.md)
     store = str(compute.scan_store or job.job_dir) if compute.backend != "local" else None
@@ -134,7 +137,7 @@ def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray], online: Online
     finally:
         backend.close()
     section = {"enabled": True, **result.report, "seconds": round(time.monotonic() - started, 3),
-               "cpu_seconds": round(_cpu_seconds() - cpu, 3)}
+               "cpu_seconds": round(_cpu_seconds(children) - cpu, 3)}
     section["mount"] = {"estimated": result.mount is not None, "prior": prior_source}
     if result.mount is not None:
         section["mount"] |= result.mount.observability(job.config.scanner.sweet_spot_mm)

@@ -48,6 +48,7 @@ log = logging.getLogger(__name__)
 _MAP: VoxelMap | None = None  # the worker's map
 _COPIES: dict[str, np.ndarray] = {}  # the worker's scans thinned at the map's voxel as they were merged, by file
 _PAIRS: Any = None  # the pair worker's OnlinePairs
+_MEASURED: Any = None  # the pair worker's event set once the job has measured its last scan (PairWorker)
 _LOADED: dict[str, Any] = {}  # where the map lives: finishing jobs' scans read ahead (finish.LoadedScans)
 _OUTPUTS: dict[str, Any] = {}  # where the map lives: finishing jobs' outputs until their report (finish.JobOutputs)
 
@@ -112,8 +113,16 @@ def _pairs_add(points: SharedBlock | np.ndarray, T_W_S: np.ndarray, placement: d
 
     if _PAIRS is None:
         _PAIRS = OnlinePairs(cfg, voxel_mm)
+    if _MEASURED.is_set():  # the end of the job waits for the joint refinement's preparation: it makes the rest
+        _PAIRS.stop_preparing()
     cov = scan_pose_covariance(placement["T_W_C"], placement["T_C_T"], T_T_S, placement["tracker_covariance"])
     return _PAIRS.add(points, T_W_S, cov, station, transfer_priors(transfers))
+
+
+def _init_pairs(niceness: int, measured: Any) -> None:
+    global _MEASURED
+    init_worker(niceness)
+    _MEASURED = measured
 
 
 def _pairs_outcomes() -> tuple[OnlineWork | None, float]:
@@ -179,8 +188,10 @@ class PairWorker:
 
     def __init__(self, cfg: CorrectionSettings, voxel_mm: float, niceness: int):
         self.cfg, self.voxel_mm = cfg, float(voxel_mm)
-        self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
-                                         initializer=init_worker, initargs=(niceness,))
+        context = multiprocessing.get_context("spawn")
+        self._measured = context.Event()  # set by :meth:`joint_work`: the scans still queued are not prepared
+        self._pool = ProcessPoolExecutor(1, mp_context=context, initializer=_init_pairs,
+                                         initargs=(niceness, self._measured))
         self._pending: list[Any] = []
 
     def submit(self, points: SharedBlock | np.ndarray, T_W_S: np.ndarray, placement: dict[str, np.ndarray],
@@ -195,10 +206,13 @@ class PairWorker:
         self._pending.append(future)
 
     async def joint_work(self) -> OnlineWork | None:
-        """Wait for the queued scans' preparation for the joint refinement (not for their pairs), then what the
-        worker computed so far (``online_pairs.OnlinePairs.joint_work``: prepared scans and their nearest neighbours,
-        the pairs registered so far and the keys of those still registering; a scan whose task failed is logged and
-        left to the end of the job). :meth:`outcomes` gives the pairs once they are done."""
+        """Once the job has measured its last scan: what the worker computed for the joint refinement so far
+        (``online_pairs.OnlinePairs.joint_work``: prepared scans and their nearest neighbours, the pairs registered
+        so far and the keys of those still registering). The scans still queued are not prepared any more
+        (``OnlinePairs.stop_preparing``: the end of the job prepares them itself on every core instead of waiting
+        for this one thread), only their pairs queued; a scan whose task failed is logged and left to the end of
+        the job. :meth:`outcomes` gives the pairs once they are done."""
+        self._measured.set()
         for future in self._pending:
             try:
                 await asyncio.wrap_future(future)

@@ -107,6 +107,7 @@ class OnlinePairs:
         self._queued: dict[str, Future] = {}  # pair key -> its outcome (None: displaced before it started)
         self._pool: ThreadPoolExecutor | None = None
         self._shared = threading.Lock()  # the selector and the kept targets, which the pool's threads read
+        self.preparing = cfg.joint  # scans prepared for the joint refinement as they arrive (:meth:`stop_preparing`)
         self._cpu_start = time.process_time()
         self.cpu_s = 0.0  # CPU time (s) of this process from its start to the last :meth:`work`
         self.pair_cpu_s = 0.0  # CPU time (s) of the pair registrations' threads
@@ -122,9 +123,15 @@ class OnlinePairs:
             return 0
         scan = StitchedScan(np.empty((0, 3)), np.asarray(T_W_S, float), np.asarray(covariance, float), int(station))
         partners = [] if self.selector is None else self._queue_pairs(points_S, scan, transfers)
-        if self.cfg.joint:
+        if self.preparing:
             self._prepare_joint(points_S, scan.T_W_S, scan.station)
         return len(partners)
+
+    def stop_preparing(self) -> None:
+        """The job has measured its last scan: the scans still to come here are not prepared for the joint
+        refinement (the end of the job, which waits for that, prepares them itself on every core, to the same
+        poses); their pairs still register."""
+        self.preparing = False
 
     def _queue_pairs(self, points_S: np.ndarray, scan: StitchedScan, transfers: Sequence[TransferPrior]
                      ) -> list[int]:

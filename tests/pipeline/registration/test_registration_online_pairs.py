@@ -162,7 +162,8 @@ def test_with_the_joint_refinement_only_the_check_pairs_register_while_measuring
 
 def test_check_pairs_still_registering_leave_the_poses_alone_and_complete_the_same_figures(monkeypatch, tmp_path):
     """With the joint refinement the end of the job takes the prepared scans while check pairs still register
-    (``OnlinePairs.joint_work``): the poses are those of the end that waited for them, the report lacks only the
+    (``OnlinePairs.joint_work``), and prepares itself those the worker did not (``stop_preparing``, the job having
+    measured its last scan): the poses are those of the end that waited for them, the report lacks only the
     pair figures, and completed from the pairs handed over later (``complete_pair_checks``) the section is the same;
     pairs the worker never handed over are registered from the scan store, with the same figures."""
     import threading
@@ -183,10 +184,12 @@ def test_check_pairs_still_registering_leave_the_poses_alone_and_complete_the_sa
     release, real = threading.Event(), online_pairs.register_stitched_pair
     monkeypatch.setattr(online_pairs, "register_stitched_pair", lambda *a: release.wait(10) and real(*a))
     online = OnlinePairs(cfg, 1.0)
-    for s in scans:
+    for k, s in enumerate(scans):
+        if k == 4:  # the job measured its last scan: the worker leaves the last two to the end to prepare
+            online.stop_preparing()
         online.add(s.points_S, s.T_W_S, s.covariance, s.station, [t for t in transfers if t.station <= s.station])
     early = online.joint_work()
-    assert early.pending and early.pairs == {} and len(early.joint_scans) == len(scans)
+    assert early.pending and early.pairs == {} and len(early.joint_scans) == 4
     assert online.joint_scans == {}  # handed over, not kept
     result = correct_scans(StitchedJob(scans, transfers), cfg, online=early)
     assert result.checks is not None and "pairs" not in result.report and "pairs_dropped" not in result.report
@@ -195,10 +198,13 @@ def test_check_pairs_still_registering_leave_the_poses_alone_and_complete_the_sa
     release.set()
     later = online.work()
     completed = with_pair_figures(result.report, complete_pair_checks(result.checks, cfg, later, str(tmp_path), 1.0))
-    timeless = {"stage_seconds", "cpu_s_a_pair_while_measuring"}
+    timeless = {"stage_seconds", "cpu_s_a_pair_while_measuring", "joint"}  # what took how long where
     assert list(completed) == list(waited.report)  # the same section, in the same order
     assert {k: v for k, v in completed.items() if k not in timeless} == {
         k: v for k, v in waited.report.items() if k not in timeless}
+    late = completed["joint"].pop("pairs_associated_while_measuring")
+    assert late < waited.report["joint"].pop("pairs_associated_while_measuring")  # the last two's: at the end
+    assert completed["joint"] == waited.report["joint"]
     from_store = complete_pair_checks(result.checks, cfg, None, str(tmp_path), 1.0)
     assert from_store["pairs_registered_while_measuring"] == 0
     assert {k: from_store[k] for k in ("pairs", "pairs_dropped", "stages")} == {
