@@ -28,6 +28,20 @@ def init_worker(niceness: int = 0) -> None:
     die_with_parent()
 
 
+def yield_cores(niceness: int) -> None:
+    """Add ``niceness`` to every thread of this process (Linux: niceness is a thread's; the threads it starts later
+    take their starter's): its work yields the cores to other processes' until it is the only work left. Where the
+    threads cannot be listed or reniced nothing changes (logged)."""
+    try:
+        for tid in map(int, os.listdir("/proc/self/task")):
+            try:
+                os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + niceness))
+            except ProcessLookupError:  # the thread ended meanwhile
+                continue
+    except OSError as e:
+        log.debug("threads not reniced: %s", e)
+
+
 def die_with_parent(poll_s: float = 1.0) -> None:
     """Make this process exit when its parent does: ``prctl(PR_SET_PDEATHSIG)`` on Linux, else a thread
     polling the parent's pid every ``poll_s`` seconds."""

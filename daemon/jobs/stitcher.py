@@ -37,7 +37,7 @@ import numpy as np
 from tandemscan.config.models import CorrectionConfig
 from tandemscan.daemon.jobs.snapshot import JobSnapshot
 from tandemscan.drivers.shared_array import SharedBlock, hand_over, share, take
-from tandemscan.drivers.worker import init_worker, stop_pool
+from tandemscan.drivers.worker import init_worker, stop_pool, yield_cores
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, thin_scan, write_raw_scan
 from tandemscan.pipeline.stitching.worldmap import VoxelMap
 
@@ -48,6 +48,9 @@ log = logging.getLogger(__name__)
 _MAP: VoxelMap | None = None  # the worker's map
 _COPIES: dict[str, np.ndarray] = {}  # the worker's scans thinned at the map's voxel as they were merged, by file
 _PAIRS: Any = None  # the pair worker's OnlinePairs
+#: niceness the pair worker adds once the job has measured (:func:`_joint_outcomes`): its check pairs run on the
+#: cores the end of the job leaves free, and on all once only they are left
+CHECKS_NICENESS = 10
 _MEASURED: Any = None  # the pair worker's event set once the job has measured its last scan (PairWorker)
 _LOADED: dict[str, Any] = {}  # where the map lives: finishing jobs' scans read ahead (finish.LoadedScans)
 _OUTPUTS: dict[str, Any] = {}  # where the map lives: finishing jobs' outputs until their report (finish.JobOutputs)
@@ -130,7 +133,14 @@ def _pairs_outcomes() -> tuple[OnlineWork | None, float]:
 
 
 def _joint_outcomes() -> OnlineWork | None:
-    return None if _PAIRS is None else _PAIRS.joint_work()
+    """In the pair worker once the job has measured: what the joint refinement takes (``OnlinePairs.joint_work``);
+    the pairs still registering then yield the cores to the end of the job (:data:`CHECKS_NICENESS`), which needs
+    them only for its report."""
+    if _PAIRS is None:
+        return None
+    work = _PAIRS.joint_work()
+    yield_cores(CHECKS_NICENESS)
+    return work
 
 
 def _read_ahead(job: JobSnapshot, key: str) -> float:

@@ -4,6 +4,7 @@ the in-process capture, and workers die with a daemon killed by SIGKILL."""
 from __future__ import annotations
 
 import gc
+import json
 import multiprocessing
 import os
 import pickle
@@ -151,3 +152,31 @@ def test_the_daemon_process_never_loads_the_heavy_pipeline():
             "print(sorted(m for m in ('torch', 'matplotlib', 'pye57') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="threads listed by /proc (Linux)")
+def test_yield_cores_renices_every_thread_of_the_process():
+    """The pair worker's check pairs yield the cores once the job has measured: every thread of its process, the
+    pool threads registering them included, is reniced (niceness is a thread's on Linux), not only the caller."""
+    code = """
+import json, os, threading
+from tandemscan.drivers.worker import yield_cores
+started, stop = threading.Event(), threading.Event()
+tid = []
+def run():
+    tid.append(threading.get_native_id())
+    started.set()
+    stop.wait()
+t = threading.Thread(target=run)
+t.start()
+started.wait()
+before = [os.getpriority(os.PRIO_PROCESS, k) for k in (threading.get_native_id(), tid[0])]
+yield_cores(3)
+after = [os.getpriority(os.PRIO_PROCESS, k) for k in (threading.get_native_id(), tid[0])]
+stop.set()
+t.join()
+print(json.dumps([before, after]))
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
+    before, after = json.loads(out.stdout)
+    assert after == [min(19, b + 3) for b in before]
