@@ -92,9 +92,10 @@ MIN_REDUNDANCY = 30.0
 _MIN_SIGMA_MM = 1e-4
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise cross product of two (m, 3) arrays (np.cross is several times slower on short rows)."""
-    out = np.empty((len(a), 3))
+def _cross(a: np.ndarray, b: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """Row-wise cross product of two (m, 3) arrays (np.cross is several times slower on short rows), written into
+    ``out`` ((m, 3), e.g. three columns of a larger array) where given."""
+    out = np.empty((len(a), 3)) if out is None else out
     out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
     out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
     out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
@@ -360,8 +361,8 @@ class _Pair:
         K = np.empty((len(n), 9))
         K[:, :3] = n
         x = transform_points(to_local @ poses[self.j], scans[self.j].points_S[m.source])   # as :meth:`at` placed them
-        K[:, 3:6] = _cross(x - o_j, n)
-        K[:, 6:] = _cross(n, q - o_i)
+        _cross(x - o_j, n, K[:, 3:6])
+        _cross(n, q - o_i, K[:, 6:])
         Kw = K * weights[:, None]
         KwK = Kw.T @ K
         cut = np.flatnonzero(huber < 1.0)
@@ -658,7 +659,7 @@ def _refine(scans: Sequence[JointScan], model: _Model, pairs: Sequence[tuple[int
             break
     r_fin, w_fin, unit_systems = _residuals_at(scans, poses, model.origins, kept, pair_map)
     kept_pairs = [p for p, _ in kept]
-    kept = []                              # the matches are not needed any more (the whole part's: about 0.9 GB)
+    kept = []                              # the matches are not needed any more (the whole part's: about 0.6 GB)
     rms_after = float(np.sqrt(np.mean(r_fin**2))) if len(r_fin) else float("nan")
     noise_sigma = settings.sigma_mm or _robust_sigma(w_fin)
     H_inv = np.linalg.inv(H_theta.toarray())        # the last linearisation's normal matrix, inverted
