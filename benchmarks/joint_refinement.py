@@ -8,17 +8,24 @@ Scan ``k`` sees a 300 x 200 mm window of the strip starting at ``k x 100`` mm (p
 either side), 0.05 mm of noise along the scanner's z; the tracker poses are the truth moved by 0.1 mm and 0.01 deg
 (1 sigma). Prints, per scan count, the seconds, the traced peak (MiB, ``tracemalloc``: numpy's and SciPy's arrays,
 not the interpreter's own), the correspondences, the pose error against the truth (median mm) and whether the
-posterior's objects stay sparse-sized (``pose_covariance.A`` sparse, its stored bytes). Timings on a shared machine
-are unreliable: run it idle.
+posterior's objects stay sparse-sized (``pose_covariance.A`` sparse, its stored bytes). With ``--against REV`` the same
+problems also run on ``pipeline/registration/joint.py`` as it was at git revision ``REV`` (the rest of the package as
+it is now), after this code, and the figures add its seconds and the largest difference of the two codes' poses (mm,
+and of their rotation matrices' entries). Timings on a shared machine are unreliable: run it idle.
 
-Usage: nice -n 10 python benchmarks/joint_refinement.py [--scans 60 120] [--threads 2]
+Usage: nice -n 10 python benchmarks/joint_refinement.py [--scans 60 120] [--threads 2] [--against f4b0c1c]
 """
 
 from __future__ import annotations
 
 import argparse
+import subprocess
+import sys
+import tempfile
 import time
 import tracemalloc
+from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 from results import publish
@@ -69,24 +76,52 @@ def strip_problem(n: int, seed: int) -> dict:
             "truth": truth}
 
 
-def measure(n: int, seed: int) -> dict:
-    """The figures of one scan count (module doc)."""
-    problem = strip_problem(n, seed)
-    truth = problem.pop("truth")
+def joint_at(revision: str) -> ModuleType:
+    """``pipeline/registration/joint.py`` as it was at git ``revision``, loaded as a module of its own."""
+    root = Path(__file__).resolve().parent.parent
+    source = subprocess.run(["git", "-C", str(root), "show", f"{revision}:pipeline/registration/joint.py"],
+                            capture_output=True, text=True, check=True).stdout
+    path = Path(tempfile.mkdtemp()) / f"joint_{revision}.py"
+    path.write_text(source, encoding="utf-8")
+    module = ModuleType(f"joint_{revision}")
+    module.__file__ = str(path)
+    sys.modules[module.__name__] = module          # its dataclasses look their module up
+    exec(compile(source, str(path), "exec"), module.__dict__)  # noqa: S102 - the repository's own file
+    return module
+
+
+def timed(refine, problem: dict):
+    """``refine(**problem)`` with its CPU and wall seconds and the traced peak (bytes)."""
     tracemalloc.start()
     cpu, wall = time.process_time(), time.perf_counter()
-    result = refine_jointly(**problem)
+    result = refine(**problem)
     cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
+    return result, cpu, wall, peak
+
+
+def measure(n: int, seed: int, against: ModuleType | None) -> dict:
+    """The figures of one scan count (module doc)."""
+    problem = strip_problem(n, seed)
+    truth = problem.pop("truth")
+    result, cpu, wall, peak = timed(refine_jointly, problem)
     A = result.pose_covariance.A
-    return {"scans": n, "pairs": result.pairs, "correspondences": result.correspondences,
-            "cpu_s": round(cpu, 2), "wall_s": round(wall, 2), "traced_peak_mib": round(peak / 2**20, 1),
-            "pose_error_mm_median": round(float(np.median([pose_error(P, T)[0] for P, T in
-                                                          zip(result.poses, truth, strict=True)])), 5),
-            "A_sparse": bool(hasattr(A, "nnz")),
-            "A_stored_mib": round((A.data.nbytes + A.indices.nbytes + A.indptr.nbytes) / 2**20, 3),
-            "theta_covariance_mib": round(result.pose_covariance.theta_covariance.nbytes / 2**20, 1)}
+    figures = {"scans": n, "pairs": result.pairs, "correspondences": result.correspondences,
+               "cpu_s": round(cpu, 2), "wall_s": round(wall, 2), "traced_peak_mib": round(peak / 2**20, 1),
+               "pose_error_mm_median": round(float(np.median([pose_error(P, T)[0] for P, T in
+                                                             zip(result.poses, truth, strict=True)])), 5),
+               "A_sparse": bool(hasattr(A, "nnz")),
+               "A_stored_mib": round((A.data.nbytes + A.indices.nbytes + A.indptr.nbytes) / 2**20, 3),
+               "theta_covariance_mib": round(result.pose_covariance.theta_covariance.nbytes / 2**20, 1)}
+    if against is not None:
+        before, cpu, wall, peak = timed(against.refine_jointly, problem)
+        P, Q = np.stack(result.poses), np.stack(before.poses)
+        figures["before"] = {"cpu_s": round(cpu, 2), "wall_s": round(wall, 2),
+                             "traced_peak_mib": round(peak / 2**20, 1),
+                             "pose_difference_mm": float(np.abs(P[:, :3, 3] - Q[:, :3, 3]).max()),
+                             "rotation_difference": float(np.abs(P[:, :3, :3] - Q[:, :3, :3]).max())}
+    return figures
 
 
 def main() -> None:
@@ -94,12 +129,16 @@ def main() -> None:
     ap.add_argument("--scans", type=int, nargs="+", default=[60, 120])
     ap.add_argument("--threads", type=int, default=0, help="threads of the pair work (0: one per core)")
     ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--against", default="", help="a git revision whose joint.py runs the same problems too")
     args = ap.parse_args()
+    against = joint_at(args.against) if args.against else None
     if args.threads:
         threads = parallel.pair_threads
-        joint.pair_threads = lambda: threads(args.threads)
-    publish("joint_refinement", {"threads": args.threads or "cores", "runs": [measure(n, args.seed)
-                                                                              for n in args.scans]})
+        for module in (joint, against):
+            if module is not None:
+                module.pair_threads = lambda: threads(args.threads)
+    publish("joint_refinement", {"threads": args.threads or "cores", "against": args.against or None,
+                                 "runs": [measure(n, args.seed, against) for n in args.scans]})
 
 
 if __name__ == "__main__":
