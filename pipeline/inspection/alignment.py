@@ -479,9 +479,8 @@ def _turned_fit(surface: CadSurface, p: np.ndarray, fitted_T_F_W: np.ndarray, pr
 def _coarse_best(surface: CadSurface, p: np.ndarray, starts: list[np.ndarray], prior_T_F_W: np.ndarray,
                  cfg: AlignmentCriteria, seen: SeenFrom | None, levels: str = "coarse") -> tuple[np.ndarray, int]:
     """Of the coarse passes (:func:`_fine_fit` at ``levels``) from each of ``starts`` (``T_F_W``), the pose with the
-    lowest
-    truncated cost (:func:`_final_cost` at :data:`FINE_FROM_MM`) and the iterations of all; :class:`InspectionError`
-    where none leaves enough of the points on the CAD."""
+    lowest truncated cost (:func:`_final_cost` at :data:`FINE_FROM_MM`) and the iterations of all;
+    :class:`InspectionError` where none leaves enough of the points on the CAD."""
     best, best_cost, its, why = None, np.inf, 0, "no candidate"
     for T in starts:
         try:
