@@ -31,7 +31,7 @@ from tandemscan.pipeline.compute import backend_for
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan
 from tandemscan.pipeline.job_report import JobReport, Timings, write_ground_truth, write_job_report
 from tandemscan.pipeline.registration.parallel import pair_threads
-from tandemscan.pipeline.stitching.tiles import TiledCloud, TileScan, merge_tiles, scan_x_extent
+from tandemscan.pipeline.stitching.tiles import ScanReach, TiledCloud, TileScan, merge_tiles, scan_x_extent
 from tandemscan.pipeline.stitching.worldmap import MapCloud, VoxelMap
 
 if TYPE_CHECKING:
@@ -69,6 +69,7 @@ class CorrectionOutcome:
     corrected: bool
     pose_covariance: PoseCovariance | None = None  # their errors jointly, scans numbered as in ``job.scans``
     checks: PairChecks | None = None
+    reaches: tuple[ScanReach, ...] = ()  # each scan's bound of x at any pose (``tiles.ScanReach``)
 
 
 class OutputsNotWritten(OSError):
@@ -106,9 +107,11 @@ def load_scans(job: JobSnapshot) -> LoadedScans:
     return loaded
 
 
-def correct_stage(job: JobSnapshot, loaded: LoadedScans, online: OnlineWork | None) -> CorrectionOutcome:
+def correct_stage(job: JobSnapshot, loaded: LoadedScans | None, online: OnlineWork | None) -> CorrectionOutcome:
     """The correction (``pose_correction.correct_job``) of the scans that saw something, when ``[correction]`` is
-    enabled and there are two of them; otherwise the tracker stitch stands, with the tracker chain's covariance."""
+    enabled and there are two of them; otherwise the tracker stitch stands, with the tracker chain's covariance.
+    ``loaded`` None: this process holds no scan's points, the backend's workers read and summarise them from the
+    scan store (``correction.summarise_scan``), and the outcome has each scan's ``tiles.ScanReach``."""
     from tandemscan.daemon.jobs.pose_correction import correct_job, tracker_chain_covariance  # the registration stack
 
     tracker = tuple(np.asarray(s.T_W_S, float) for s in job.scans)
@@ -117,11 +120,12 @@ def correct_stage(job: JobSnapshot, loaded: LoadedScans, online: OnlineWork | No
     if not (job.config.correction.enabled and len(measured) > 1):
         chain = tracker_chain_covariance(view) if measured else None
         return CorrectionOutcome({"enabled": False}, tracker, False, _numbered(chain, measured))
-    section, refined, covariance, checks = correct_job(view, [loaded.points_S[k] for k in measured], online)
-    poses = list(tracker)
-    for k, T in zip(measured, refined, strict=True):
-        poses[k] = T
-    return CorrectionOutcome(section, tuple(poses), True, _numbered(covariance, measured), checks)
+    points = [None if loaded is None else loaded.points_S[k] for k in measured]
+    section, refined, covariance, checks, measured_reaches = correct_job(view, points, online)
+    poses, reaches = list(tracker), [ScanReach.of(T, np.zeros((0, 3))) for T in tracker]  # none: saw nothing
+    for k, T, reach in zip(measured, refined, measured_reaches, strict=True):
+        poses[k], reaches[k] = T, reach
+    return CorrectionOutcome(section, tuple(poses), True, _numbered(covariance, measured), checks, tuple(reaches))
 
 
 def _numbered(covariance: PoseCovariance | None, measured: Sequence[int]) -> PoseCovariance | None:
@@ -231,11 +235,15 @@ def finish_outputs(job: JobSnapshot, started: float, measured_at: float,
         t = time.perf_counter()
         loaded = load_scans(job)
         timings["read_s"] = round(time.perf_counter() - t, 3)
-    outcome = correct_stage(job, loaded, online)
     view_S = tuple(stitch_view_points(p) for p in loaded.points_S)  # all the exports need of the copies
-    x_bounds = (scan_x_bounds(job, job.worldmap.voxel_mm, outcome.poses, loaded.points_S)
+    if job.config.compute.backend != "local":  # the workers read the scans from the store (docs/compute.md)
+        loaded = None  # the copies freed before the correction (a whole part's at full resolution: about 1.2 GB)
+    outcome = correct_stage(job, loaded, online)
+    x_bounds = ((scan_x_bounds(job, job.worldmap.voxel_mm, outcome.poses, loaded.points_S) if loaded is not None
+                 else tuple(r.x_bound(T, job.config.job.voxel_mm, job.worldmap.voxel_mm)
+                            for r, T in zip(outcome.reaches, outcome.poses, strict=True)))
                 if outcome.corrected and job.config.compute.tile_mm else ())  # all the tiled merge needs of them
-    del loaded  # the copies freed before the merge (a whole part's at full resolution: about 1.2 GB)
+    del loaded  # the copies freed before the merge
     t = time.perf_counter()
     tracker_map, job.worldmap = job.worldmap, None
     tracker_poses = tracker_stitch = None

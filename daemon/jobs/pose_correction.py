@@ -44,6 +44,7 @@ if TYPE_CHECKING:
     from tandemscan.daemon.jobs.snapshot import JobSnapshot
     from tandemscan.pipeline.registration.correction import OnlineWork, PairChecks
     from tandemscan.pipeline.stitching.installation import Installation
+    from tandemscan.pipeline.stitching.tiles import ScanReach
 
 log = logging.getLogger(__name__)
 
@@ -109,18 +110,20 @@ def in_job(file: Path, job_dir: Path) -> str:
     return (file.relative_to(job_dir) if file.is_relative_to(job_dir) else file).as_posix()
 
 
-def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray], online: OnlineWork | None = None
-                ) -> tuple[dict, list[np.ndarray], PoseCovariance | None, PairChecks | None]:
+def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray | None], online: OnlineWork | None = None
+                ) -> tuple[dict, list[np.ndarray], PoseCovariance | None, PairChecks | None, tuple[ScanReach, ...]]:
     """The refined pose ``T_W_S`` (W, mm) of every scan of ``job.scans``, whose points in the scanner frame S
-    (mm) are ``points_S``; ``job`` is not changed. ``online``: what the job computed while it measured
+    (mm) are ``points_S`` (None: read from the scan store by the backend's workers, not on the local backend); ``job``
+    is not changed. ``online``: what the job computed while it measured
     (``registration.correction.OnlineWork``: registered pairs, scans prepared for the joint refinement and their pairs'
     nearest neighbours, reused by ``correction.correct_scans`` where their keys match).
 
     Returns the ``correction`` section of the report (the settings, pair and graph figures; on the simulated
     cell ``job_report.score_ground_truth`` adds those of the tracker-only stitch, ``before``, once the job's outputs
     are written), the refined poses in scan order, the covariance of their errors (``pose_covariance``, scans
-    numbered as in ``job.scans``) and the check pairs still registering where ``online`` named some
-    (``correction.PairChecks``: the section has no pair figures until :func:`complete_checks` gives them).
+    numbered as in ``job.scans``), the check pairs still registering where ``online`` named some
+    (``correction.PairChecks``: the section has no pair figures until :func:`complete_checks` gives them) and
+    each scan's ``tiles.ScanReach`` (the tiled merge's bound of its x at the refined pose).
     """
     cfg, compute = job.config.correction, job.config.compute
     children = compute.backend != "local"
@@ -143,7 +146,7 @@ def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray], online: Online
         section["mount"] |= result.mount.observability(job.config.scanner.sweet_spot_mm)
         section["mount"]["T_T_S_refined"] = (job.installation.T_T_S @ result.mount.correction).tolist()
     log.info("stitch corrected in %.1f s", section["seconds"])
-    return section, list(result.poses), result.pose_covariance, result.checks
+    return section, list(result.poses), result.pose_covariance, result.checks, result.reaches
 
 
 def complete_checks(job: JobSnapshot, checks: PairChecks, later: OnlineWork | None) -> dict:

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 from tandemscan.daemon.cell.session import CellSession
+from tandemscan.daemon.jobs.finish import merge_stage
 from tandemscan.daemon.jobs.runner import JobRunner
 from tandemscan.daemon.plans import default_plan_path
+from tandemscan.pipeline.io.cloud_io import read_ply
 from tandemscan.pipeline.planning.plan import Plan, Scan
 from tandemscan.sim_drivers.cell import with_surveyed_mounts
 
@@ -36,3 +39,28 @@ async def test_runner_corrects_the_stitch_and_reports_before_and_after(sim_confi
     assert len(corr["mount"]["information_ratio"]) == 6 and max(map(abs, corr["mount"]["correction_mm"])) < 1e-3
     # the scan log carries the refined poses
     assert result.report["scan_log"][1]["T_W_S"] == result.scans[1].T_W_S.tolist()
+
+
+@pytest.mark.slow
+async def test_on_the_dask_backend_the_job_holds_no_scan_for_its_correction(sim_config, tmp_path, monkeypatch):
+    """``[compute] backend = "dask"`` with tiles: the correction is given no scan's points (the workers read and
+    summarise them from the job folder, ``correction.summarise_scan``: the same poses as from held points,
+    ``tests/pipeline/test_compute_dask.py``) and the tiled merge takes its bounds of x from those summaries: the
+    cloud is the one merged here from every scan at the final poses."""
+    from tandemscan.pipeline.registration import correction
+
+    given = []
+    real = correction.correct_scans
+    monkeypatch.setattr("tandemscan.daemon.jobs.pose_correction.correct_scans",
+                        lambda job, *a, **k: given.append([s.points_S for s in job.scans]) or real(job, *a, **k))
+    compute = sim_config.compute.model_copy(update={"backend": "dask", "dask_workers": 1, "tile_mm": 200.0})
+    cfg = sim_config.model_copy(update={"compute": compute})
+    async with CellSession(cfg) as session:
+        cfg = with_surveyed_mounts(cfg, session.cell.simulation, tmp_path)
+        result = await JobRunner(session, _first_scans(Plan.load(default_plan_path()), 2), cfg, tmp_path / "job").run()
+    assert len(given) == 1 and len(given[0]) == 2 and all(p is None for p in given[0])
+    assert result.report["correction"]["enabled"] and result.report["correction"]["joint"]["pairs"] >= 1
+    here = merge_stage(cfg.job.voxel_mm, [s.file for s in result.scans], [s.T_W_S for s in result.scans]).frozen()
+    points, _ = read_ply(tmp_path / "job" / "cloud.ply")
+    assert len(points) == len(here) > 1000
+    np.testing.assert_allclose(points, here.points(), rtol=0, atol=1e-9)
