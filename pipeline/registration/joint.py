@@ -295,20 +295,25 @@ class _Model:
 @dataclass(frozen=True)
 class _Match:
     """The correspondences of one pair: the indices of the source points (scan j) and of their target points
-    (scan i), and at the current poses the point-to-plane residuals (mm) and the symmetric normals (S_i; the source
-    points placed in S_i are not kept: 24 bytes a correspondence, a quarter GB on the whole part, placed again
-    where needed, :meth:`_Pair.normal_equations`); fixed when they were found, each residual's variance relative
-    to that of two points seen head-on (:func:`ray_variances`) and ``found_at``, the relative pose ``T_S_i_S_j``
-    they were found at (:func:`_moved_beyond`); and each residual's share (``2 / k``, :func:`noise_shares`), counted
-    again whenever any pair's correspondences are found anew."""
+    (scan i), and at the current poses the point-to-plane residuals (mm); fixed when they were found, each
+    residual's variance relative to that of two points seen head-on (:func:`ray_variances`) and ``found_at``, the
+    relative pose ``T_S_i_S_j`` they were found at (:func:`_moved_beyond`); and ``covering``, the scans that cover
+    each residual's place (uint16; its share :attr:`share`, :func:`noise_shares`), counted again whenever any pair's
+    correspondences are found anew. 26 bytes a correspondence: neither the source points placed in S_i nor the
+    symmetric normals are kept (48 bytes more, half a GB on the whole part's 10.9 M), both found again where the
+    normal equations need them (:meth:`_Pair.normal_equations`, the same bits)."""
 
     source: np.ndarray
     target: np.ndarray
     residual: np.ndarray
-    normals: np.ndarray
     variance: np.ndarray
-    share: np.ndarray
+    covering: np.ndarray
     found_at: np.ndarray
+
+    @property
+    def share(self) -> np.ndarray:
+        """Each residual's share of its information (:func:`noise_shares` of :attr:`covering`)."""
+        return noise_shares(self.covering)
 
 
 class _Pair:
@@ -328,15 +333,19 @@ class _Pair:
         q = scans[self.i].points_S[target]
         r = np.einsum("ij,ij->i", x - q, n)
         variance = ray_variances(n, x - rel[:3, 3], q, scans[self.j].counts_at(source), scans[self.i].counts_at(target))
-        return _Match(source, target, r, n, variance, np.ones(len(r)), rel)
+        return _Match(source, target, r, variance, np.full(len(r), 2, np.uint16), rel)   # one pair alone: share 1
 
     def at(self, scans: Sequence[JointScan], poses: np.ndarray, m: _Match) -> _Match:
-        """The same correspondences ``m`` at ``poses``: source points placed in S_i, normals and residuals anew."""
+        """The same correspondences ``m`` at ``poses``: their residuals anew (:meth:`residuals`)."""
+        return dataclasses.replace(m, residual=self.residuals(scans, poses, m)[0])
+
+    def residuals(self, scans: Sequence[JointScan], poses: np.ndarray, m: _Match) -> tuple[np.ndarray, np.ndarray]:
+        """The residuals (mm) of the correspondences ``m`` at ``poses`` and their symmetric normals (S_i): the source
+        points placed in S_i, the normals found anew."""
         rel = invert(poses[self.i]) @ poses[self.j]
         x = transform_points(rel, scans[self.j].points_S[m.source])
         n, _ = self._normals(scans, rel, m.source, m.target)
-        r = np.einsum("ij,ij->i", x - scans[self.i].points_S[m.target], n)
-        return _Match(m.source, m.target, r, n, m.variance, m.share, m.found_at)
+        return np.einsum("ij,ij->i", x - scans[self.i].points_S[m.target], n), n
 
     def _normals(self, scans: Sequence[JointScan], rel: np.ndarray, source: np.ndarray, target: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray]:
@@ -345,22 +354,25 @@ class _Pair:
         return symmetric_normals(scans[self.i].normals_S[target], rotate_vectors(rel, scans[self.j].normals_S[source]))
 
     def normal_equations(self, scans: Sequence[JointScan], poses: np.ndarray, origins: np.ndarray, m: _Match,
-                         weights: np.ndarray, huber: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                         weights: np.ndarray, huber: np.ndarray, normals: np.ndarray | None = None
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(H, b, N)`` (12x12, 12, 12x12) of the weighted residuals in ``(e_j, e_i)`` linearised at the current
         poses: ``H delta = -b`` the normal equations with ``weights``, ``N`` the rows' normal matrix with the
         weights times their Huber factors ``huber`` (the noise's share of the estimate's covariance,
         :func:`_data_system`; only the rows the Huber weights cut differ from ``H``). Worked in S_i: with ``R`` its
         rotation, a world row ``[R n, R ((p - o) x n)]`` is the local row ``[n, (p - o) x n]`` turned by
-        ``blockdiag(R, R)``."""
+        ``blockdiag(R, R)``; the symmetric normals ``n`` at ``poses`` are ``normals`` where the caller has them
+        (:meth:`residuals`), else found here as :meth:`residuals` finds them."""
         Pi = poses[self.i]
         to_local = invert(Pi)
-        n = m.normals
+        rel = to_local @ poses[self.j]
+        n = self._normals(scans, rel, m.source, m.target)[0] if normals is None else normals
         q = scans[self.i].points_S[m.target]
         o_j, o_i = (transform_points(to_local, origins[k][None])[0] for k in (self.j, self.i))
         # a row is [n, a, -n, c]: its nine distinct columns K = [n, a, c] are summed, the twelve follow by sign
         K = np.empty((len(n), 9))
         K[:, :3] = n
-        x = transform_points(to_local @ poses[self.j], scans[self.j].points_S[m.source])   # as :meth:`at` placed them
+        x = transform_points(rel, scans[self.j].points_S[m.source])   # as :meth:`residuals` placed them
         _cross(x - o_j, n, K[:, 3:6])
         _cross(n, q - o_i, K[:, 6:])
         Kw = K * weights[:, None]
@@ -424,8 +436,8 @@ def _with_shares(sizes: Sequence[int], associated: list[tuple[_Pair, _Match]]) -
     for p, m in associated:
         covered[p.j][m.source] += 1.0
         covered[p.i] += np.bincount(m.target, minlength=sizes[p.i]) > 0   # each target point once
-    return [(p, dataclasses.replace(m, share=noise_shares(np.maximum(covered[p.j][m.source], covered[p.i][m.target]))))
-            for p, m in associated]
+    return [(p, dataclasses.replace(m, covering=np.maximum(covered[p.j][m.source], covered[p.i][m.target])
+                                    .astype(np.uint16))) for p, m in associated]
 
 
 def _huber(r: np.ndarray, threshold_mm: float) -> np.ndarray:
@@ -443,8 +455,10 @@ def _residuals_at(scans: Sequence[JointScan], poses: np.ndarray, origins: np.nda
     :func:`_dispersions` scales by the noise's sigma; only these are kept, not a second set of matches
     (``origins``: the scans' origins in W, mm)."""
     def at(pm: tuple[_Pair, _Match]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        p, m = pm[0], pm[0].at(scans, poses, pm[1])
-        K, g, _ = p.normal_equations(scans, poses, origins, m, 1.0 / m.variance, np.ones(len(m.variance)))
+        p = pm[0]
+        r, n = p.residuals(scans, poses, pm[1])
+        m = dataclasses.replace(pm[1], residual=r)
+        K, g, _ = p.normal_equations(scans, poses, origins, m, 1.0 / m.variance, np.ones(len(m.variance)), n)
         return m.residual, _whitened([(p, m)]), K, g
 
     out = pair_map(at, associated)
@@ -579,8 +593,8 @@ def _reassociated(scans: Sequence[JointScan], poses: np.ndarray, associated: lis
     since their correspondences were found (:func:`_moved_beyond`) have them found anew (:func:`_associate`), the
     others keep theirs (residuals and normals anew); every share is counted again (:func:`noise_shares`).
     Returns them and the number of pairs associated anew. ``associated`` is emptied before the search, so that
-    the matches found anew do not live beside those they replace (10 M correspondences on the whole part: about
-    0.9 GB)."""
+    the matches found anew do not live beside those they replace (10.9 M correspondences on the whole part: about
+    0.3 GB a set)."""
     if settings.reassociate_mm is None:
         return pair_map(lambda pm: (pm[0], pm[0].at(scans, poses, pm[1])), associated), 0
     moved = pair_map(lambda pm: _moved_beyond(scans, poses, *pm, settings.reassociate_mm), associated)
@@ -659,7 +673,7 @@ def _refine(scans: Sequence[JointScan], model: _Model, pairs: Sequence[tuple[int
             break
     r_fin, w_fin, unit_systems = _residuals_at(scans, poses, model.origins, kept, pair_map)
     kept_pairs = [p for p, _ in kept]
-    kept = []                              # the matches are not needed any more (the whole part's: about 0.6 GB)
+    kept = []                              # the matches are not needed any more (the whole part's: about 0.3 GB)
     rms_after = float(np.sqrt(np.mean(r_fin**2))) if len(r_fin) else float("nan")
     noise_sigma = settings.sigma_mm or _robust_sigma(w_fin)
     H_inv = np.linalg.inv(H_theta.toarray())        # the last linearisation's normal matrix, inverted

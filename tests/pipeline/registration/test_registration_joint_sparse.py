@@ -5,6 +5,7 @@ shortcuts (the target's box from its KD-tree, a pair's move told on a subsample)
 
 from __future__ import annotations
 
+import dataclasses
 import tracemalloc
 
 import numpy as np
@@ -126,8 +127,7 @@ def test_the_association_shortcuts_find_what_the_full_search_finds():
     assert np.array_equal(found.source, every) and np.array_equal(found.target, idx[every])
 
     scans = [target, source]
-    m = _Match(every, idx[every], np.zeros(len(every)), np.zeros((len(every), 3)), np.ones(len(every)),
-               np.ones(len(every)), rel)
+    m = _Match(every, idx[every], np.zeros(len(every)), np.ones(len(every)), np.full(len(every), 2, np.uint16), rel)
     poses = np.stack([np.eye(4), rel])
     for rotation in (0.0, 1e-5, 4e-5, 1e-3):
         moved = poses.copy()
@@ -136,3 +136,29 @@ def test_the_association_shortcuts_find_what_the_full_search_finds():
         farthest = float(np.sqrt(np.max(np.einsum("ij,ij->i", shift, shift))))
         for limit in (0.5 * farthest, farthest * (1 - 1e-9), farthest * 1.001, 0.002):
             assert _moved_beyond(scans, moved, _Pair(0, 1), m, limit) == (farthest > limit)
+
+
+def test_the_normal_equations_find_the_normals_the_residuals_found():
+    """The matches keep no normals (``_Match``: 26 bytes a correspondence): the normal equations find them again at
+    the same poses, and they are those the residuals were found with, to the bit; the share follows the covering
+    count (two scans or fewer: all of it)."""
+    scans, priors, pairs, _ = strip(3, 4)
+    poses = np.stack([s.T_W_S for s in priors])
+    i, j = pairs[0]
+    found = associate(scans[i], joint_tree(scans[i]), scans[j], invert(poses[i]) @ poses[j], 3.0)
+    p = _Pair(i, j)
+    m = _Match(found.source, found.target, np.zeros(len(found.source)), np.ones(len(found.source)),
+               np.full(len(found.source), 2, np.uint16), np.eye(4))
+    r, n = p.residuals(scans, poses, m)
+    assert len(r) > 100 and np.abs(r).max() > 0
+    m = p.at(scans, poses, m)
+    assert np.array_equal(m.residual, r)
+    origins = poses[:, :3, 3]
+    weights = np.random.default_rng(1).uniform(0.5, 2.0, len(r))
+    huber = np.where(np.arange(len(r)) % 7 == 0, 0.5, 1.0)
+    given = p.normal_equations(scans, poses, origins, m, weights, huber, n)
+    again = p.normal_equations(scans, poses, origins, m, weights, huber)
+    assert all(np.array_equal(a, b) for a, b in zip(given, again, strict=True))
+    assert np.abs(given[0]).max() > 0
+    covering = np.array([1, 2, 3, 4], np.uint16)
+    assert np.array_equal(dataclasses.replace(m, covering=covering).share, [1.0, 1.0, 2 / 3, 0.5])
