@@ -28,9 +28,11 @@ from clean_exit import clean_exit_on_sigterm
 from results import publish
 from tandemscan.config.loader import load_config
 from tandemscan.daemon.jobs import outputs as job_outputs
+from tandemscan.daemon.jobs.outputs import stitch_view_points
 from tandemscan.pipeline.inspection import inspect, inspection_job, report
 from tandemscan.pipeline.io.cloud_io import read_ply
-from tandemscan.pipeline.io.raw_scan import read_raw_scan
+from tandemscan.pipeline.io.raw_scan import read_raw_scan, thin_scan
+from tandemscan.pipeline.stitching.worldmap import MapCloud
 
 SECONDS: dict[str, float] = defaultdict(float)
 TIMED = [  # (module, function, stage name): each call's seconds are added to its stage (threads may overlap)
@@ -74,15 +76,17 @@ def load_job(job_dir: Path, config, out_dir: Path) -> tuple[SimpleNamespace, dic
     scans, points_S = [], []
     for entry in rep["scan_log"]:
         raw = read_raw_scan(job_dir / "scans" / entry["file"])
-        points_S.append(raw[0])
+        points_S.append(stitch_view_points(thin_scan(raw[0], rep["voxel_mm"])))  # what the end of the job passes
         scans.append(SimpleNamespace(file=job_dir / "scans" / entry["file"], tracker_station=entry["tracker_station"],
                                      reading=SimpleNamespace(timestamp_s=0.0), joints_rad=np.zeros(6),
                                      T_W_S=np.asarray(entry["T_W_S"], float), point_count=len(raw[0])))
     tracker = [np.asarray(e["T_W_S_tracker"], float) for e in rep["scan_log"]] if all(
         "T_W_S_tracker" in e for e in rep["scan_log"]) else None
-    cloud = SimpleNamespace(points=lambda: points, normals=lambda: normals)
-    job = SimpleNamespace(job_dir=out_dir, scans=scans, worldmap=cloud, config=config,
-                          T_F_W=np.asarray(rep["inspection"]["T_F_W_anchor"], float), plan=SimpleNamespace(name="plan"))
+    cloud = MapCloud(rep["voxel_mm"], np.asarray(points, float), np.asarray(normals, float))
+    job = SimpleNamespace(job_dir=out_dir, scans=scans, worldmap=cloud, config=config, transfers=[],
+                          T_F_W=np.asarray(rep["inspection"]["T_F_W_anchor"], float), pose_covariance=None,
+                          plan=SimpleNamespace(name="plan", coverage_pct=rep["coverage"].get("planned_pct"),
+                                               left_out=[]))
     return job, rep, points_S, tracker
 
 
