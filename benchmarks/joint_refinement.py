@@ -19,6 +19,7 @@ Usage: nice -n 10 python benchmarks/joint_refinement.py [--scans 60 120] [--thre
 from __future__ import annotations
 
 import argparse
+import functools
 import subprocess
 import sys
 import tempfile
@@ -30,8 +31,9 @@ from types import ModuleType
 import numpy as np
 from results import publish
 from tandemscan.config.models import CorrectionConfig
+from tandemscan.pipeline.compute import LocalBackend
 from tandemscan.pipeline.geometry.frames import from_rotvec, invert, pose_error, transform_points
-from tandemscan.pipeline.registration import joint, parallel
+from tandemscan.pipeline.registration import parallel
 from tandemscan.pipeline.registration.joint import JointScan, JointSettings, refine_jointly
 from tandemscan.pipeline.registration.mount_unknown import MountPrior
 from tandemscan.pipeline.registration.pose_graph import ScanPrior, TransferPrior
@@ -101,11 +103,11 @@ def timed(refine, problem: dict):
     return result, cpu, wall, peak
 
 
-def measure(n: int, seed: int, against: ModuleType | None) -> dict:
-    """The figures of one scan count (module doc)."""
+def measure(n: int, seed: int, against: ModuleType | None, threads: int) -> dict:
+    """The figures of one scan count (module doc), the pairs' work on ``threads`` threads (0: one per core)."""
     problem = strip_problem(n, seed)
     truth = problem.pop("truth")
-    result, cpu, wall, peak = timed(refine_jointly, problem)
+    result, cpu, wall, peak = timed(functools.partial(refine_jointly, backend=LocalBackend(threads or None)), problem)
     A = result.pose_covariance.A
     figures = {"scans": n, "pairs": result.pairs, "correspondences": result.correspondences,
                "cpu_s": round(cpu, 2), "wall_s": round(wall, 2), "traced_peak_mib": round(peak / 2**20, 1),
@@ -132,13 +134,11 @@ def main() -> None:
     ap.add_argument("--against", default="", help="a git revision whose joint.py runs the same problems too")
     args = ap.parse_args()
     against = joint_at(args.against) if args.against else None
-    if args.threads:
+    if args.threads and against is not None and hasattr(against, "pair_threads"):   # a joint.py before its backend
         threads = parallel.pair_threads
-        for module in (joint, against):
-            if module is not None:
-                module.pair_threads = lambda: threads(args.threads)
+        against.pair_threads = lambda: threads(args.threads)
     publish("joint_refinement", {"threads": args.threads or "cores", "against": args.against or None,
-                                 "runs": [measure(n, args.seed, against) for n in args.scans]})
+                                 "runs": [measure(n, args.seed, against, args.threads) for n in args.scans]})
 
 
 if __name__ == "__main__":

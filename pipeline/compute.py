@@ -21,9 +21,20 @@ log = logging.getLogger(__name__)
 
 class ComputeBackend(Protocol):
     """``map(fn, units, keys)``: ``[fn(u) for u in units]`` in order, the calls spread over the backend's workers;
-    ``keys`` name the units (one unique string each: the same unit, the same key)."""
+    ``keys`` name the units (one unique string each: the same unit, the same key). With ``inputs`` (per unit a
+    sequence of handles, :meth:`keep`) each call is ``fn(u, *values)``, the values those handles stand for, taken
+    where they were left. ``keep`` is ``map`` whose results stay where they were computed: it returns their handles
+    (on this process's threads the results themselves, on Dask its futures: a worker's result moves only to the
+    workers whose units take it, never to this process), and a result is released with the last handle to it;
+    ``put`` makes handles of values this process holds."""
 
-    def map(self, fn: Callable[[Any], Any], units: Sequence[Any], keys: Sequence[str]) -> list: ...
+    def map(self, fn: Callable[..., Any], units: Sequence[Any], keys: Sequence[str],
+            inputs: Sequence[Sequence[Any]] | None = None) -> list: ...
+
+    def keep(self, fn: Callable[..., Any], units: Sequence[Any], keys: Sequence[str],
+             inputs: Sequence[Sequence[Any]] | None = None) -> list: ...
+
+    def put(self, values: Sequence[Any]) -> list: ...
 
     def close(self) -> None: ...
 
@@ -34,10 +45,23 @@ class LocalBackend:
     def __init__(self, threads: int | None = None):
         self.threads = threads
 
-    def map(self, fn: Callable[[Any], Any], units: Sequence[Any], keys: Sequence[str]) -> list:
-        """``[fn(u) for u in units]``, in order (``keys`` are not needed here)."""
+    def map(self, fn: Callable[..., Any], units: Sequence[Any], keys: Sequence[str],
+            inputs: Sequence[Sequence[Any]] | None = None) -> list:
+        """``[fn(u) for u in units]`` (with ``inputs``: ``fn(u, *inputs[k])``), in order (``keys`` are not needed
+        here)."""
         with pair_threads(self.threads) as thread_map:
-            return thread_map(fn, units)
+            if inputs is None:
+                return thread_map(fn, units)
+            return thread_map(lambda k: fn(units[k], *inputs[k]), range(len(units)))
+
+    def keep(self, fn: Callable[..., Any], units: Sequence[Any], keys: Sequence[str],
+             inputs: Sequence[Sequence[Any]] | None = None) -> list:
+        """:meth:`map`: the results are their own handles here."""
+        return self.map(fn, units, keys, inputs)
+
+    def put(self, values: Sequence[Any]) -> list:
+        """The values themselves."""
+        return list(values)
 
     def close(self) -> None:
         """Nothing to release: the threads end with each :meth:`map`."""
@@ -57,12 +81,26 @@ class DaskBackend:
         self.client = Client(scheduler or self._cluster)
         log.info("compute: dask scheduler %s", self.client.scheduler.address)
 
-    def map(self, fn: Callable[[Any], Any], units: Sequence[Any], keys: Sequence[str]) -> list:
-        """``[fn(u) for u in units]`` in order, each unit a task of key ``keys[k]``."""
+    def map(self, fn: Callable[..., Any], units: Sequence[Any], keys: Sequence[str],
+            inputs: Sequence[Sequence[Any]] | None = None) -> list:
+        """``[fn(u) for u in units]`` (with ``inputs``: ``fn(u, *inputs[k])``, futures) in order, each unit a task of
+        key ``keys[k]``."""
+        return self.client.gather(self.keep(fn, units, keys, inputs)) if units else []
+
+    def keep(self, fn: Callable[..., Any], units: Sequence[Any], keys: Sequence[str],
+             inputs: Sequence[Sequence[Any]] | None = None) -> list:
+        """The futures of :meth:`map`'s tasks: their results stay on the workers (a lost one is computed again from
+        its unit and inputs)."""
         if not units:
             return []
-        futures = self.client.map(fn, list(units), key=list(keys), retries=self.retries, pure=True)
-        return self.client.gather(futures)
+        if inputs is None:
+            return self.client.map(fn, list(units), key=list(keys), retries=self.retries, pure=True)
+        return [self.client.submit(fn, u, *given, key=k, retries=self.retries, pure=True)
+                for u, given, k in zip(units, inputs, keys, strict=True)]
+
+    def put(self, values: Sequence[Any]) -> list:
+        """Futures of ``values`` scattered to the workers (keyed by their contents)."""
+        return self.client.scatter(list(values), hash=True) if len(values) else []
 
     def close(self) -> None:
         """Disconnect, and stop the ``LocalCluster`` if this backend started one."""

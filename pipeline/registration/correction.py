@@ -18,6 +18,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Mapping, MutableMapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from tandemscan.pipeline.compute import ComputeBackend, LocalBackend
@@ -355,17 +356,31 @@ def summarise_stored_scan(ref: ScanRef, store: StoredScans, cfg: CorrectionSetti
     return summarise_scan(store.loaded(ref), ref.T_W_S, store.voxel_mm, cfg, digest, joint)
 
 
+def _summary_of(_: ScanRef, read: ReadScan) -> ScanSummary:
+    """The summary of a scan summarised on the backend (a unit of :func:`_summaries`)."""
+    return read.summary
+
+
+def _joint_of(_: ScanRef, read: ReadScan) -> JointScan | None:
+    """The scan prepared for the joint refinement of a scan summarised on the backend (a unit of :func:`_summaries`,
+    its result left there)."""
+    return read.joint
+
+
 def _summaries(job: StitchedJob, cfg: CorrectionSettings, digest: bool, backend: ComputeBackend,
-               scan_store: str | None) -> list[ReadScan]:
+               scan_store: str | None) -> tuple[list[ScanSummary], list[Any]]:
     """:func:`summarise_scan` of every scan of ``job``: from its points where it holds them, else read from
-    ``scan_store`` by a unit on ``backend`` (the scans prepared for the joint refinement with ``cfg.joint``)."""
+    ``scan_store`` by a unit on ``backend``; the summaries, and per scan the scan prepared for the joint refinement
+    with ``cfg.joint`` where it was read on the backend, left there (its handle, ``ComputeBackend.keep``: on a Dask
+    cluster this process never holds it), else None."""
     scans = job.scans
-    out: list[ReadScan | None] = [None] * len(scans)
+    out: list[ScanSummary | None] = [None] * len(scans)
+    joints: list[Any] = [None] * len(scans)
     held = [k for k, s in enumerate(scans) if s.points_S is not None]
     with pair_threads() as pair_map:
         for k, read in zip(held, pair_map(lambda k: summarise_scan(scans[k].points_S, scans[k].T_W_S, job.voxel_mm,
                                                                    cfg, digest, False), held), strict=True):
-            out[k] = read
+            out[k] = read.summary
     stored = [k for k, s in enumerate(scans) if s.points_S is None]
     if stored:
         if scan_store is None:
@@ -374,9 +389,15 @@ def _summaries(job: StitchedJob, cfg: CorrectionSettings, digest: bool, backend:
         fn = functools.partial(summarise_stored_scan, store=StoredScans(scan_store, job.voxel_mm), cfg=cfg,
                                digest=digest, joint=cfg.joint)
         keys = [f"summary-{_unit_digest(ref, job.voxel_mm, cfg, digest)}" for ref in refs]
-        for k, read in zip(stored, backend.map(fn, refs, keys), strict=True):
-            out[k] = read
-    return out
+        reads = [(r,) for r in backend.keep(fn, refs, keys)]
+        for k, summary in zip(stored, backend.map(_summary_of, refs, [f"{key}-summary" for key in keys], reads),
+                              strict=True):
+            out[k] = summary
+        if cfg.joint:
+            for k, joint in zip(stored, backend.keep(_joint_of, refs, [f"{key}-joint" for key in keys], reads),
+                                strict=True):
+                joints[k] = joint
+    return out, joints
 
 
 def _unit_digest(ref: ScanRef, voxel_mm: float, cfg: CorrectionSettings, *flags: object) -> str:
@@ -539,11 +560,9 @@ def correct_scans(
     online = online or OnlineWork({}, {}, {})
     if online.pending and not cfg.joint:
         raise ValueError("the pose graph takes every pair: pairs still registering only with the joint refinement")
-    read = _summaries(job, cfg, bool(online.pairs or online.pending) and cfg.registered_partners > 0,
-                      backend or LocalBackend(), scan_store)
-    summaries = [r.summary for r in read]
-    prepared = [r.joint for r in read]  # the joint refinement's scans read with their summaries (else None)
-    del read
+    # the joint refinement's scans read with their summaries: the backend's handles (else None)
+    summaries, prepared = _summaries(job, cfg, bool(online.pairs or online.pending) and cfg.registered_partners > 0,
+                                     backend or LocalBackend(), scan_store)
     held = all(s.points_S is not None for s in scans)
     local = None
     if held:  # the thinned clouds this process holds: the pairs' and the overlap RMS's
@@ -559,7 +578,8 @@ def correct_scans(
     joint, graph_figures = None, {}
     if cfg.joint:
         joint, associated_while_measuring = _refine_jointly(job, priors, cfg, summaries, prepared,
-                                                            online.joint_scans, online.associations)
+                                                            online.joint_scans, online.associations,
+                                                            backend or LocalBackend())
         clock.lap("joint_s")
         poses, mount = joint.poses, joint.mount
     else:
@@ -599,21 +619,32 @@ def correct_scans(
     return CorrectionResult(poses, edges, report, mount, covariance, tuple(m.reach for m in summaries), checks)
 
 
+def _joint_cells(unit: tuple[np.ndarray, float], scan: JointScan) -> np.ndarray:
+    """The grid cells (``overlap.occupied_cells``, W) of a scan prepared for the joint refinement at its tracker pose:
+    ``unit`` is that pose ``T_W_S`` and the cell (mm) (a unit of :func:`_refine_jointly`)."""
+    T_W_S, cell_mm = unit
+    return occupied_cells(transform_points(T_W_S, scan.points_S), cell_mm)
+
+
 def _refine_jointly(job: StitchedJob, priors: list[ScanPrior], cfg: CorrectionSettings,
-                    summaries: Sequence[ScanSummary], prepared: list[JointScan | None],
-                    cache: MutableMapping[str, JointScan], associations: Mapping[str, Association]
-                    ) -> tuple[JointResult, int]:
-    """The joint refinement (``joint.refine_jointly``) from the tracker poses (its correspondences are found
-    there, not at the pose graph's, which are fitted to the same scans: ``joint`` module doc), on scans thinned
-    to ``cfg.joint_voxel_mm`` (:func:`joint_scan`: ``prepared`` where read with the scans' ``summaries``, each
-    taken out as the refinement takes it, else taken out of ``cache`` where prepared while the job measured),
-    over every pair sharing a grid cell (``cfg.joint_max_partners_per_scan``), with the pairs' nearest neighbours
-    from ``associations`` where found while the job measured. Returns it and the number of pairs whose
-    neighbours came from ``associations``."""
+                    summaries: Sequence[ScanSummary], prepared: list[Any],
+                    cache: MutableMapping[str, JointScan], associations: Mapping[str, Association],
+                    backend: ComputeBackend) -> tuple[JointResult, int]:
+    """The joint refinement (``joint.refine_jointly``, its per-pair work on ``backend``) from the tracker poses (its
+    correspondences are found there, not at the pose graph's, which are fitted to the same scans: ``joint`` module
+    doc), on scans thinned to ``cfg.joint_voxel_mm`` (:func:`joint_scan`: ``prepared`` where read with the scans'
+    ``summaries``, the backend's handles of them, each taken out as the refinement takes it, else taken out of
+    ``cache`` where prepared while the job measured, else prepared here; those this process holds are handed to the
+    backend, ``ComputeBackend.put``), over every pair sharing a grid cell (``cfg.joint_max_partners_per_scan``),
+    with the pairs' nearest neighbours from ``associations`` where found while the job measured. Returns it and
+    the number of pairs whose neighbours came from ``associations``.
+
+    Eight parameters: the job, its priors and settings, what is known of its scans (summaries, prepared ones,
+    those prepared while measuring, their associations) and the backend."""
     scans = job.scans
     keys = [m.joint_key for m in summaries]
 
-    def taken(k: int) -> JointScan:
+    def taken(k: int) -> Any:
         found, prepared[k] = prepared[k], None
         if found is None and cache:
             found = cache.pop(keys[k], None)
@@ -621,8 +652,12 @@ def _refine_jointly(job: StitchedJob, priors: list[ScanPrior], cfg: CorrectionSe
 
     with pair_threads() as pair_map:
         thinned = pair_map(taken, range(len(scans)))
-    cells = [occupied_cells(transform_points(s.T_W_S, j.points_S), cfg.pair_cell_mm)  # placed in W one at a time
-             for s, j in zip(scans, thinned, strict=True)]
+    here = [k for k, t in enumerate(thinned) if isinstance(t, JointScan)]
+    for k, handle in zip(here, backend.put([thinned[k] for k in here]), strict=True):
+        thinned[k] = handle
+    cells = backend.map(_joint_cells, [(s.T_W_S, cfg.pair_cell_mm) for s in scans],
+                        [f"joint-cells-{_unit_digest(ScanRef(k, keys[k], s.T_W_S), cfg.joint_voxel_mm, cfg)}"
+                         for k, s in enumerate(scans)], [(t,) for t in thinned])
     pairs = select_pairs(shared_cells(cells), [s.station for s in scans], cfg.joint_max_partners_per_scan)
     found = {}
     for i, j in pairs if associations else ():
@@ -631,7 +666,7 @@ def _refine_jointly(job: StitchedJob, priors: list[ScanPrior], cfg: CorrectionSe
         if a is not None:
             found[i, j] = a
     return refine_jointly(thinned, priors, pairs, [s.T_W_S for s in scans], job.transfers, job.mount_prior,
-                          cfg.joint_refinement, found), len(found)
+                          cfg.joint_refinement, found, backend), len(found)
 
 
 def _joint_report(joint: JointResult, stations: list[int]) -> dict:

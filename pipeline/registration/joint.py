@@ -47,21 +47,24 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
 import logging
-from collections.abc import Mapping, Sequence
+import pickle
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import open3d as o3d
 from scipy import sparse
 from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
+from tandemscan.pipeline.compute import ComputeBackend, LocalBackend
 from tandemscan.pipeline.geometry.frames import from_rotvec, invert, rotate_vectors, to_rotvec, transform_points
 from tandemscan.pipeline.geometry.uncertainty import recentre
 from tandemscan.pipeline.parameters import FromSection
 from tandemscan.pipeline.registration.icp import RefineError
 from tandemscan.pipeline.registration.mount_unknown import MountEstimate, MountPrior
-from tandemscan.pipeline.registration.parallel import PairMap, pair_threads
 from tandemscan.pipeline.registration.pose_covariance import PoseCovariance
 from tandemscan.pipeline.registration.pose_graph import ScanPrior, TransferPrior
 
@@ -210,7 +213,7 @@ class _Model:
                  mount_prior: MountPrior | None) -> None:
         n = self.n = len(priors)
         self.P0 = np.stack([np.asarray(p.T_W_S, float) for p in priors])
-        self.origins = self.P0[:, :3, 3]
+        self.origins = np.ascontiguousarray(self.P0[:, :3, 3])   # as a unit gets them (contiguous): the same bits
         stations = self.stations = np.array([p.station for p in priors])
         known = {t.station for t in transfers}
         if transfers and (len(known) != len(transfers) or min(known) <= stations.min()
@@ -383,6 +386,70 @@ class _Pair:
         return B @ KwK @ B.T, B @ (Kw.T @ m.residual), B @ KnK @ B.T
 
 
+#: one pair's correspondences as the refinement holds them: the pair, the handle of its matches on the compute
+#: backend (:class:`_PairWork`; on this process's threads the :class:`_Match` itself) and how many they are
+_Held = tuple[_Pair, Any, int]
+
+
+@dataclass(frozen=True)
+class _PairPoses:
+    """A pair's unit: the pair, its two scans' current poses ``T_W_S`` by scan (mm) and, where the unit needs them,
+    their origins in W (mm); only these two, not every scan's, travel with a unit."""
+
+    pair: _Pair
+    poses: dict[int, np.ndarray]
+    origins: dict[int, np.ndarray] | None = None
+
+    @classmethod
+    def of(cls, pair: _Pair, poses: np.ndarray, origins: np.ndarray | None = None) -> _PairPoses:
+        """The unit of ``pair`` at every scan's ``poses`` (and ``origins``)."""
+        ends = (pair.i, pair.j)
+        return cls(pair, {k: poses[k] for k in ends}, None if origins is None else {k: origins[k] for k in ends})
+
+
+class _PairWork:
+    """The refinement's per-pair work as units on a compute backend (``pipeline.compute``): the scans (``scans``, the
+    backend's handles of them) and each pair's matches stay where they were made (on a Dask cluster, its workers);
+    this process gets the matches' sizes, the residuals and each pair's normal equations. ``run`` names the
+    refinement (its scans, priors, pairs, start poses and settings) in each unit's key, and the stages are
+    numbered in the order they run, so the same refinement names its units alike."""
+
+    def __init__(self, backend: ComputeBackend, scans: Sequence[Any], run: str) -> None:
+        self.backend, self.scans, self.run, self.stages = backend, list(scans), run, 0
+
+    @classmethod
+    def of(cls, backend: ComputeBackend, scans: Sequence[Any], model: _Model, pairs: Sequence[tuple[int, int]],
+           start_poses: Sequence[np.ndarray], settings: JointSettings,
+           associations: Mapping[tuple[int, int], Association]) -> _PairWork:
+        """The work of one refinement on ``backend``, its ``run`` a digest of everything its units depend on (the
+        scans by their handles' keys where they have them: a Dask future's)."""
+        if isinstance(backend, LocalBackend):    # the keys name nothing here
+            return cls(backend, scans, "")
+        h = hashlib.blake2b(digest_size=16)
+        h.update(repr([getattr(s, "key", id(s)) for s in scans]).encode())
+        h.update(pickle.dumps((model.P0, model.prior_information.toarray(), model.A.toarray(), list(pairs),
+                               np.stack([np.asarray(T, float) for T in start_poses]), settings)))
+        for pair in sorted(associations):
+            h.update(np.asarray(pair, np.int64).tobytes())
+            h.update(associations[pair].source.tobytes())
+            h.update(associations[pair].target.tobytes())
+        return cls(backend, scans, h.hexdigest())
+
+    def _keys(self, stage: str, count: int) -> list[str]:
+        self.stages += 1
+        return [f"joint-{stage}-{self.run}-{self.stages}-{k}" for k in range(count)]
+
+    def keep(self, stage: str, fn: Callable[..., Any], units: Sequence[Any], inputs: Sequence[Sequence[Any]]
+             ) -> list:
+        """``fn(unit, *inputs)`` of every unit, its results left where they were computed (their handles)."""
+        return self.backend.keep(fn, units, self._keys(stage, len(units)), inputs)
+
+    def map(self, stage: str, fn: Callable[..., Any], units: Sequence[Any], inputs: Sequence[Sequence[Any]]
+            ) -> list:
+        """``fn(unit, *inputs)`` of every unit, its results here."""
+        return self.backend.map(fn, units, self._keys(stage, len(units)), inputs)
+
+
 def _rows_to_world(R: np.ndarray) -> np.ndarray:
     """(12, 9) ``B``: a residual's row in ``(e_j, e_i)``, world axes, from its nine distinct local columns ``[n, a,
     c]`` (:meth:`_Pair.normal_equations`; the row is ``[n, a, -n, c]``, each 3-block turned by the rotation ``R`` of
@@ -428,16 +495,37 @@ def noise_shares(covering: np.ndarray) -> np.ndarray:
     return 2.0 / np.maximum(covering, 2.0)
 
 
-def _with_shares(sizes: Sequence[int], associated: list[tuple[_Pair, _Match]]) -> list[tuple[_Pair, _Match]]:
+def _covering(sources: Sequence[bool], scan: JointScan, *matches: _Match) -> np.ndarray:
+    """How many scans cover each point of ``scan`` (its own and every other it has a correspondence with): one, and
+    one more for each of ``matches`` (its pairs' matches, in pair order) where the point is a source point of it
+    (``sources``) or, once, a target point (a unit of :func:`_with_shares`)."""
+    covered = np.ones(len(scan.points_S))
+    for source, m in zip(sources, matches, strict=True):
+        if source:
+            covered[m.source] += 1.0
+        else:
+            covered += np.bincount(m.target, minlength=len(covered)) > 0   # each target point once
+    return covered
+
+
+def _shared(_: _Pair, m: _Match, covered_i: np.ndarray, covered_j: np.ndarray) -> _Match:
+    """``m`` with its covering count: the larger of its source's and its target's (:func:`_covering`)."""
+    return dataclasses.replace(m, covering=np.maximum(covered_j[m.source], covered_i[m.target]).astype(np.uint16))
+
+
+def _with_shares(work: _PairWork, associated: list[_Held]) -> list[_Held]:
     """``associated`` with each correspondence's :func:`noise_shares`, ``k`` the larger of its source's and its
-    target's count of scans (its own and every other it has a correspondence with); ``sizes``: the points of
-    each scan."""
-    covered = [np.ones(n) for n in sizes]
-    for p, m in associated:
-        covered[p.j][m.source] += 1.0
-        covered[p.i] += np.bincount(m.target, minlength=sizes[p.i]) > 0   # each target point once
-    return [(p, dataclasses.replace(m, covering=np.maximum(covered[p.j][m.source], covered[p.i][m.target])
-                                    .astype(np.uint16))) for p, m in associated]
+    target's count of scans (its own and every other it has a correspondence with), counted a scan a unit."""
+    roles: dict[int, list[tuple[bool, object]]] = {}
+    for p, m, _ in associated:
+        roles.setdefault(p.j, []).append((True, m))
+        roles.setdefault(p.i, []).append((False, m))
+    scans = sorted(roles)
+    covered = dict(zip(scans, work.keep("covering", _covering, [[r for r, _ in roles[k]] for k in scans],
+                                        [(work.scans[k], *(m for _, m in roles[k])) for k in scans]), strict=True))
+    shared = work.keep("shared", _shared, [p for p, _, _ in associated],
+                       [(m, covered[p.i], covered[p.j]) for p, m, _ in associated])
+    return [(p, m, size) for (p, _, size), m in zip(associated, shared, strict=True)]
 
 
 def _huber(r: np.ndarray, threshold_mm: float) -> np.ndarray:
@@ -446,26 +534,42 @@ def _huber(r: np.ndarray, threshold_mm: float) -> np.ndarray:
     return np.where(a <= threshold_mm, 1.0, threshold_mm / np.maximum(a, 1e-300))
 
 
-def _residuals_at(scans: Sequence[JointScan], poses: np.ndarray, origins: np.ndarray,
-                  associated: Sequence[tuple[_Pair, _Match]], pair_map: PairMap
+def _at_refined(u: _PairPoses, m: _Match, target: JointScan, source: JointScan
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A unit of :func:`_residuals_at`: the pair's residuals at its poses, whitened, and its unit-sigma ``(K, g)``."""
+    p, scans = u.pair, {u.pair.i: target, u.pair.j: source}
+    r, n = p.residuals(scans, u.poses, m)
+    m = dataclasses.replace(m, residual=r)
+    K, g, _ = p.normal_equations(scans, u.poses, u.origins, m, 1.0 / m.variance, np.ones(len(m.variance)), n)
+    return m.residual, _whitened([(p, m)]), K, g
+
+
+def _residuals_at(work: _PairWork, poses: np.ndarray, origins: np.ndarray, associated: Sequence[_Held]
                   ) -> tuple[np.ndarray, np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
     """The residuals (mm) of the correspondences ``associated`` at ``poses``, as they are and whitened
     (:func:`_whitened`), and per pair the normal equations ``(K, g)`` (12x12 and 12 in ``(e_j, e_i)``) of its
     residuals each weighted by its relative variance alone (a sigma of 1 mm, no Huber cut), which
     :func:`_dispersions` scales by the noise's sigma; only these are kept, not a second set of matches
     (``origins``: the scans' origins in W, mm)."""
-    def at(pm: tuple[_Pair, _Match]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        p = pm[0]
-        r, n = p.residuals(scans, poses, pm[1])
-        m = dataclasses.replace(pm[1], residual=r)
-        K, g, _ = p.normal_equations(scans, poses, origins, m, 1.0 / m.variance, np.ones(len(m.variance)), n)
-        return m.residual, _whitened([(p, m)]), K, g
-
-    out = pair_map(at, associated)
+    out = work.map("refined", _at_refined, [_PairPoses.of(p, poses, origins) for p, _, _ in associated],
+                   [(m, work.scans[p.i], work.scans[p.j]) for p, m, _ in associated])
     if not out:
         return np.zeros(0), np.zeros(0), []
     return (np.concatenate([r for r, _, _, _ in out]), np.concatenate([w for _, w, _, _ in out]),
             [(K, g) for _, _, K, g in out])
+
+
+def _residual_pair(_: _Pair, m: _Match) -> tuple[np.ndarray, np.ndarray]:
+    """A unit of :func:`_residuals`: the pair's residuals as they are and whitened."""
+    return m.residual, _whitened([(None, m)])
+
+
+def _residuals(work: _PairWork, held: Sequence[_Held]) -> tuple[np.ndarray, np.ndarray]:
+    """Every residual (mm) of ``held`` as it is and whitened (:func:`_whitened`), in pair order."""
+    out = work.map("residuals", _residual_pair, [p for p, _, _ in held], [(m,) for _, m, _ in held])
+    if not out:
+        return np.zeros(0), np.zeros(0)
+    return np.concatenate([r for r, _ in out]), np.concatenate([w for _, w in out])
 
 
 def _whitened(associated: Sequence[tuple[_Pair, _Match]]) -> np.ndarray:
@@ -543,31 +647,43 @@ def _nearest(target: JointScan, tree: cKDTree, source: JointScan, T_S_i_S_j: np.
     return Association(inside[found].astype(np.int32), idx[found].astype(np.int32)), x[found]
 
 
-def _associate(scans: Sequence[JointScan], poses: np.ndarray, pairs: Sequence[tuple[int, int]], max_mm: float,
-               given: Mapping[tuple[int, int], Association], trees: dict[int, cKDTree], pair_map: PairMap
-               ) -> list[tuple[_Pair, _Match]]:
+def _tree(_: int, scan: JointScan) -> cKDTree:
+    """:func:`joint_tree` as a unit of :func:`_associate`."""
+    return joint_tree(scan)
+
+
+def _near(u: _PairPoses, target: JointScan, source: JointScan, tree: cKDTree | None, given: Association | None,
+          max_mm: float) -> _Match | None:
+    """A unit of :func:`_associate`: the pair's correspondences at its poses (None where it has none)."""
+    p, scans = u.pair, {u.pair.i: target, u.pair.j: source}
+    rel = invert(u.poses[p.i]) @ u.poses[p.j]
+    if given is None:
+        given, x = _nearest(target, tree, source, rel, max_mm)
+    else:
+        x = transform_points(rel, source.points_S[given.source])
+    return p.matched(scans, rel, x, given.target, given.source) if len(given.source) else None
+
+
+def _size(_: _Pair, m: _Match | None) -> int:
+    """How many correspondences ``m`` holds (-1: None)."""
+    return -1 if m is None else len(m.source)
+
+
+def _associate(work: _PairWork, poses: np.ndarray, pairs: Sequence[tuple[int, int]], max_mm: float,
+               given: Mapping[tuple[int, int], Association], trees: dict[int, object]) -> list[_Held]:
     """The correspondences of every pair at ``poses``: each source point's nearest target point within ``max_mm``
     (:func:`associate`; taken from ``given`` where the pair is there), where their normals agree; pairs without
     any are left out; their noise shares are those of one pair alone (the caller counts them over all pairs,
-    :func:`_with_shares`). ``trees``: the target scans' KD-trees built so far (those missing are added);
-    ``pair_map`` maps a function over the pairs (``parallel.pair_threads``)."""
+    :func:`_with_shares`). ``trees``: the handles of the target scans' KD-trees built so far (those missing are
+    added)."""
     missing = sorted({i for i, j in pairs if (i, j) not in given} - trees.keys())
-    trees.update(zip(missing, pair_map(lambda i: joint_tree(scans[i]), missing), strict=True))
-
-    def near(pair: tuple[int, int]) -> tuple[_Pair, _Match] | None:
-        i, j = pair
-        rel = invert(poses[i]) @ poses[j]
-        found = given.get(pair)
-        if found is None:
-            found, x = _nearest(scans[i], trees[i], scans[j], rel, max_mm)
-        else:
-            x = transform_points(rel, scans[j].points_S[found.source])
-        if not len(found.source):
-            return None
-        p = _Pair(i, j)
-        return p, p.matched(scans, rel, x, found.target, found.source)
-
-    return [p for p in pair_map(near, pairs) if p is not None]
+    trees.update(zip(missing, work.keep("tree", _tree, missing, [(work.scans[i],) for i in missing]), strict=True))
+    units = [_PairPoses.of(_Pair(i, j), poses) for i, j in pairs]
+    found = work.keep("near", functools.partial(_near, max_mm=max_mm), units,
+                      [(work.scans[i], work.scans[j], None if (i, j) in given else trees[i], given.get((i, j)))
+                       for i, j in pairs])
+    sizes = work.map("size", _size, [u.pair for u in units], [(m,) for m in found])
+    return [(u.pair, m, size) for u, m, size in zip(units, found, sizes, strict=True) if size >= 0]
 
 
 def _moved_beyond(scans: Sequence[JointScan], poses: np.ndarray, p: _Pair, m: _Match, limit_mm: float) -> bool:
@@ -586,59 +702,78 @@ def _moved_beyond(scans: Sequence[JointScan], poses: np.ndarray, p: _Pair, m: _M
     return farthest_mm(points[::64]) > limit_mm or farthest_mm(points) > limit_mm
 
 
-def _reassociated(scans: Sequence[JointScan], poses: np.ndarray, associated: list[tuple[_Pair, _Match]],
-                  settings: JointSettings, trees: dict[int, cKDTree], pair_map: PairMap
-                  ) -> tuple[list[tuple[_Pair, _Match]], int]:
+def _moved(u: _PairPoses, m: _Match, source: JointScan, limit_mm: float) -> bool:
+    """:func:`_moved_beyond` as a unit of :func:`_reassociated`."""
+    return _moved_beyond({u.pair.j: source}, u.poses, u.pair, m, limit_mm)
+
+
+def _at(u: _PairPoses, m: _Match, target: JointScan, source: JointScan) -> _Match:
+    """:meth:`_Pair.at` as a unit of :func:`_reassociated`."""
+    return u.pair.at({u.pair.i: target, u.pair.j: source}, u.poses, m)
+
+
+def _reassociated(work: _PairWork, poses: np.ndarray, associated: list[_Held], settings: JointSettings,
+                  trees: dict[int, object]) -> tuple[list[_Held], int]:
     """``associated`` at ``poses``: the pairs whose source points have moved more than ``settings.reassociate_mm``
     since their correspondences were found (:func:`_moved_beyond`) have them found anew (:func:`_associate`), the
-    others keep theirs (residuals and normals anew); every share is counted again (:func:`noise_shares`).
+    others keep theirs (residuals anew); every share is counted again (:func:`noise_shares`).
     Returns them and the number of pairs associated anew. ``associated`` is emptied before the search, so that
     the matches found anew do not live beside those they replace (10.9 M correspondences on the whole part: about
     0.3 GB a set)."""
+    def at(held: Sequence[_Held]) -> list[_Held]:
+        moved = work.keep("at", _at, [_PairPoses.of(p, poses) for p, _, _ in held],
+                          [(m, work.scans[p.i], work.scans[p.j]) for p, m, _ in held])
+        return [(p, m, size) for (p, _, size), m in zip(held, moved, strict=True)]
+
     if settings.reassociate_mm is None:
-        return pair_map(lambda pm: (pm[0], pm[0].at(scans, poses, pm[1])), associated), 0
-    moved = pair_map(lambda pm: _moved_beyond(scans, poses, *pm, settings.reassociate_mm), associated)
-    anew = [(p.i, p.j) for (p, _), far in zip(associated, moved, strict=True) if far]
-    kept = [(p, m) for (p, m), far in zip(associated, moved, strict=True) if not far]
+        return at(associated), 0
+    moved = work.map("moved", functools.partial(_moved, limit_mm=settings.reassociate_mm),
+                     [_PairPoses.of(p, poses) for p, _, _ in associated],
+                     [(m, work.scans[p.j]) for p, m, _ in associated])
+    anew = [(p.i, p.j) for (p, _, _), far in zip(associated, moved, strict=True) if far]
+    kept = [held for held, far in zip(associated, moved, strict=True) if not far]
     total = len(associated)
     associated.clear()
-    found = _associate(scans, poses, anew, settings.max_distance_mm, {}, trees, pair_map) if anew else []
+    found = _associate(work, poses, anew, settings.max_distance_mm, {}, trees) if anew else []
     log.debug("joint refinement: %d of %d pairs associated anew, %d of them without correspondences now (left out)",
               len(anew), total, len(anew) - len(found))
-    return _with_shares([len(s.points_S) for s in scans],
-                        [(p, p.at(scans, poses, m)) for p, m in kept] + found), len(anew)
+    return _with_shares(work, at(kept) + found), len(anew)
 
 
 def refine_jointly(
     scans: Sequence[JointScan], priors: Sequence[ScanPrior], pairs: Sequence[tuple[int, int]],
     start_poses: Sequence[np.ndarray], transfers: Sequence[TransferPrior] = (),
     mount_prior: MountPrior | None = None, settings: JointSettings = JointSettings(),
-    associations: Mapping[tuple[int, int], Association] | None = None,
+    associations: Mapping[tuple[int, int], Association] | None = None, backend: ComputeBackend | None = None,
 ) -> JointResult:
     """Refine every scan pose jointly from ``start_poses`` (the tracker poses: see the module doc) on the overlaps
     of ``pairs`` (``(i, j)``: points of ``j`` measured against the surface of ``i``); the priors are the tracker poses
     ``priors`` (``T_W_S`` and covariance), ``transfers`` and ``mount_prior`` as in ``pose_graph.refine_poses``.
     ``associations``: pairs' nearest neighbours found at the same start poses with ``settings.max_distance_mm``
     (:func:`associate`, while the job measured); the other pairs' are found here.
+    The per-pair work (association, residuals, each pair's normal equations) runs as units on ``backend``
+    (``pipeline.compute``; this process's threads where None): ``scans`` are its handles of the scans
+    (:meth:`ComputeBackend.keep` or ``put``; on this process's threads the scans themselves) and every pair's
+    correspondences stay where they were found, so that on a Dask cluster this process holds neither the scans
+    nor the correspondences, only each pair's normal equations, the residuals (for their robust scale) and the
+    solve (docs/compute.md).
 
-    Eight parameters: the data (scans, pairs, start poses, associations), the settings, and the tracker chain's
-    three priors taken as ``pose_graph.refine_poses`` and :func:`chain_covariance` take them."""
+    Nine parameters: the data (scans, pairs, start poses, associations), the settings, the tracker chain's
+    three priors taken as ``pose_graph.refine_poses`` and :func:`chain_covariance` take them, and the backend."""
     if not (len(scans) == len(priors) == len(start_poses)):
         raise RefineError(f"{len(scans)} scans, {len(priors)} priors and {len(start_poses)} start poses differ")
-    with pair_threads() as pair_map:
-        return _refine(scans, _Model(priors, transfers, mount_prior), pairs, start_poses, settings,
-                       associations or {}, pair_map)
+    model = _Model(priors, transfers, mount_prior)
+    work = _PairWork.of(backend or LocalBackend(), scans, model, pairs, start_poses, settings, associations or {})
+    return _refine(work, model, pairs, start_poses, settings, associations or {})
 
 
-def _refine(scans: Sequence[JointScan], model: _Model, pairs: Sequence[tuple[int, int]],
-            start_poses: Sequence[np.ndarray], settings: JointSettings,
-            associations: Mapping[tuple[int, int], Association], pair_map: PairMap) -> JointResult:
-    """:func:`refine_jointly` on the priors' ``model`` with ``pair_map`` mapping a function over the pairs."""
+def _refine(work: _PairWork, model: _Model, pairs: Sequence[tuple[int, int]], start_poses: Sequence[np.ndarray],
+            settings: JointSettings, associations: Mapping[tuple[int, int], Association]) -> JointResult:
+    """:func:`refine_jointly` on the priors' ``model`` with the per-pair ``work``."""
     poses = np.stack([np.asarray(T, float) for T in start_poses])
     e = model.corrections(poses)
-    trees: dict[int, cKDTree] = {}
-    associated = _with_shares([len(s.points_S) for s in scans],
-                              _associate(scans, poses, pairs, settings.max_distance_mm, associations, trees, pair_map))
+    trees: dict[int, object] = {}
+    associated = _with_shares(work, _associate(work, poses, pairs, settings.max_distance_mm, associations, trees))
     if settings.reassociate_mm is None:
         trees.clear()                      # nothing is searched again: the KD-trees need not live on
     H_prior = model.prior_information
@@ -646,18 +781,20 @@ def _refine(scans: Sequence[JointScan], model: _Model, pairs: Sequence[tuple[int
     for it in range(1, settings.iterations + 1):
         if it > 1:
             kept = []                      # the last linearisation's matches: freed as they are replaced
-            associated, moved = _reassociated(scans, poses, associated, settings, trees, pair_map)
+            associated, moved = _reassociated(work, poses, associated, settings, trees)
             anew += moved
             if it == settings.iterations:
                 trees.clear()              # nothing is searched again
-        kept = [(p, m) for p, m in associated if len(m.residual) >= settings.min_correspondences]
-        r_all = np.concatenate([m.residual for _, m in kept]) if kept else np.zeros(0)
-        sigma = settings.sigma_mm or _robust_sigma(_whitened(kept))
+        kept = [held for held in associated if held[2] >= settings.min_correspondences]
+        r_all, whitened = _residuals(work, kept)
+        sigma = settings.sigma_mm or _robust_sigma(whitened)
+        del whitened
         if it == 1:
             rms_before = float(np.sqrt(np.mean(r_all**2))) if len(r_all) else float("nan")
         huber_mm = settings.huber_k * (settings.sigma_mm or _robust_sigma(r_all))   # on the residuals as they are
-        H, b_e, N = _data_system(model, scans, poses, kept, sigma, huber_mm, pair_map)
         used, n_corr = len(kept), len(r_all)
+        del r_all
+        H, b_e, N = _data_system(model, work, poses, kept, sigma, huber_mm)
         # linearised at e: data term |r + J (A theta - e)|^2, prior |theta|^2_prior -> solve for theta
         rhs = model.A.T @ (H @ e.ravel() - b_e)
         H_theta = (model.A.T @ H @ model.A + H_prior).tocsc()
@@ -671,8 +808,8 @@ def _refine(scans: Sequence[JointScan], model: _Model, pairs: Sequence[tuple[int
                   it, used, n_corr, sigma, move)
         if move < settings.tolerance_mm:
             break
-    r_fin, w_fin, unit_systems = _residuals_at(scans, poses, model.origins, kept, pair_map)
-    kept_pairs = [p for p, _ in kept]
+    r_fin, w_fin, unit_systems = _residuals_at(work, poses, model.origins, kept)
+    kept_pairs = [p for p, _, _ in kept]
     kept = []                              # the matches are not needed any more (the whole part's: about 0.3 GB)
     rms_after = float(np.sqrt(np.mean(r_fin**2))) if len(r_fin) else float("nan")
     noise_sigma = settings.sigma_mm or _robust_sigma(w_fin)
@@ -785,8 +922,16 @@ def _assembled(n: int, pairs: Sequence[_Pair], blocks: Sequence[np.ndarray]) -> 
     return sparse.csr_matrix((values, (np.concatenate(rows), np.concatenate(cols))), shape=(6 * n, 6 * n))
 
 
-def _data_system(model: _Model, scans: Sequence[JointScan], poses: np.ndarray, kept: list, sigma: float,
-                 huber_mm: float, pair_map: PairMap) -> tuple[sparse.csr_matrix, np.ndarray, _NoiseBlocks]:
+def _system(u: _PairPoses, m: _Match, target: JointScan, source: JointScan, sigma: float, huber_mm: float
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A unit of :func:`_data_system`: the pair's ``(H, b, N)`` (:meth:`_Pair.normal_equations`)."""
+    huber = _huber(m.residual, huber_mm)
+    weights = _information(m, huber, sigma)
+    return u.pair.normal_equations({u.pair.i: target, u.pair.j: source}, u.poses, u.origins, m, weights, huber)
+
+
+def _data_system(model: _Model, work: _PairWork, poses: np.ndarray, kept: Sequence[_Held], sigma: float,
+                 huber_mm: float) -> tuple[sparse.csr_matrix, np.ndarray, _NoiseBlocks]:
     """The data's normal equations in the stacked corrections ``e``, each residual weighted by ``sigma`` (mm, two
     points head-on; :func:`_information`) and Huber-cut beyond ``huber_mm``: sparse ``H_e`` (6n x 6n) and ``b_e``, and
     the blocks of ``N_e``, the normal matrix of the same rows weighted by their Huber factor once more. With the
@@ -794,15 +939,10 @@ def _data_system(model: _Model, scans: Sequence[JointScan], poses: np.ndarray, k
     ``H_e``) to the information an estimate weighted by ``H_e`` carries (:func:`_posterior_covariance`)."""
     n = model.n
     b = np.zeros(6 * n)
-
-    def system(pm: tuple[_Pair, _Match]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        p, m = pm
-        huber = _huber(m.residual, huber_mm)
-        weights = _information(m, huber, sigma)
-        return p.normal_equations(scans, poses, model.origins, m, weights, huber)
-
-    systems = pair_map(system, kept)
-    pairs = [p for p, _ in kept]
+    pairs = [p for p, _, _ in kept]
+    systems = work.map("system", functools.partial(_system, sigma=sigma, huber_mm=huber_mm),
+                       [_PairPoses.of(p, poses, model.origins) for p in pairs],
+                       [(m, work.scans[p.i], work.scans[p.j]) for p, m, _ in kept])
     for p, (_, g, _) in zip(pairs, systems, strict=True):
         b[np.r_[np.arange(6) + 6 * p.j, np.arange(6) + 6 * p.i]] += g
     return _assembled(n, pairs, [H for H, _, _ in systems]), b, _NoiseBlocks(pairs, [N for _, _, N in systems], n)

@@ -22,7 +22,14 @@ from tandemscan.config.models import ComputeConfig, CorrectionConfig, DeepMergeC
 from tandemscan.pipeline.compute import DaskBackend, LocalBackend, backend_for
 from tandemscan.pipeline.inspection.tile_inspection import inspect_tiles
 from tandemscan.pipeline.io.raw_scan import read_thinned_scan, write_raw_scan
-from tandemscan.pipeline.registration.correction import CorrectionSettings, StitchedJob, StitchedScan, correct_scans
+from tandemscan.pipeline.registration.correction import (
+    CorrectionSettings,
+    ReadScan,
+    StitchedJob,
+    StitchedScan,
+    correct_scans,
+)
+from tandemscan.pipeline.registration.joint import JointScan, _Match
 from tandemscan.pipeline.registration.pairs import LazyNetwork
 from tandemscan.pipeline.stitching.tiles import merge_tiles
 
@@ -88,6 +95,23 @@ def _same(a, b) -> None:
         np.testing.assert_allclose(P, Q, rtol=0, atol=1e-9)
 
 
+class _Watched(DaskBackend):
+    """A Dask backend that notes the types of what its units hand back to this process and the stages' keys."""
+
+    def __init__(self, address: str):
+        super().__init__(address)
+        self.returned, self.keys = set(), []
+
+    def keep(self, fn, units, keys, inputs=None):
+        self.keys += list(keys)
+        return super().keep(fn, units, keys, inputs)
+
+    def map(self, fn, units, keys, inputs=None):
+        out = super().map(fn, units, keys, inputs)
+        self.returned |= {type(x) for r in out for x in (r if isinstance(r, tuple) else (r,))}
+        return out
+
+
 def test_the_pair_stage_on_two_dask_workers_gives_the_local_result(cluster, tmp_path):
     address, _ = cluster
     scans, transfers = _stored_job(tmp_path)
@@ -97,7 +121,7 @@ def test_the_pair_stage_on_two_dask_workers_gives_the_local_result(cluster, tmp_
     local_joint = correct_scans(StitchedJob(scans, transfers, voxel_mm=VOXEL_MM), JOINT, network,
                                 backend=LocalBackend())
     assert 0 < len(local_joint.edges) <= len(local.edges)  # the check pairs only
-    backend = DaskBackend(address)
+    backend = _Watched(address)
     try:
         backend.client.wait_for_workers(2, timeout=60)
         with get_task_stream(backend.client) as stream:
@@ -118,6 +142,11 @@ def test_the_pair_stage_on_two_dask_workers_gives_the_local_result(cluster, tmp_
     assert [(a.x_min_mm, a.x_max_mm, a.reach_mm) for a in local_joint.reaches] == [
         (b.x_min_mm, b.x_max_mm, b.reach_mm) for b in remote_joint.reaches]
     assert len({task["worker"] for task in stream.data}) == 2  # both workers registered pairs
+    # the joint refinement's scans and its pairs' correspondences stayed on the workers: its per-pair units ran
+    # there and handed this process only sizes, residuals and normal equations
+    assert any(k.startswith("joint-near-") for k in backend.keys) and any(k.endswith("-joint") for k in backend.keys)
+    assert not backend.returned & {JointScan, _Match, ReadScan}
+    assert np.ndarray in backend.returned
 
 
 def test_a_worker_killed_mid_stage_leaves_the_result_unchanged(cluster, tmp_path):
