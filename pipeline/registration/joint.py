@@ -49,6 +49,7 @@ import dataclasses
 import functools
 import hashlib
 import logging
+import math
 import pickle
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -534,42 +535,140 @@ def _huber(r: np.ndarray, threshold_mm: float) -> np.ndarray:
     return np.where(a <= threshold_mm, 1.0, threshold_mm / np.maximum(a, 1e-300))
 
 
-def _at_refined(u: _PairPoses, m: _Match, target: JointScan, source: JointScan
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """A unit of :func:`_residuals_at`: the pair's residuals at its poses, whitened, and its unit-sigma ``(K, g)``."""
-    p, scans = u.pair, {u.pair.i: target, u.pair.j: source}
-    r, n = p.residuals(scans, u.poses, m)
-    m = dataclasses.replace(m, residual=r)
-    K, g, _ = p.normal_equations(scans, u.poses, u.origins, m, 1.0 / m.variance, np.ones(len(m.variance)), n)
-    return m.residual, _whitened([(p, m)]), K, g
+def _unit_system(u: _PairPoses, m: _Match, target: JointScan, source: JointScan) -> tuple[np.ndarray, np.ndarray]:
+    """A unit of :func:`_residuals_at`: the pair's normal equations ``(K, g)`` at its poses (where ``m``'s residuals
+    were found), each residual weighted by its relative variance alone."""
+    K, g, _ = u.pair.normal_equations({u.pair.i: target, u.pair.j: source}, u.poses, u.origins, m, 1.0 / m.variance,
+                                      np.ones(len(m.variance)))
+    return K, g
 
 
 def _residuals_at(work: _PairWork, poses: np.ndarray, origins: np.ndarray, associated: Sequence[_Held]
-                  ) -> tuple[np.ndarray, np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
-    """The residuals (mm) of the correspondences ``associated`` at ``poses``, as they are and whitened
-    (:func:`_whitened`), and per pair the normal equations ``(K, g)`` (12x12 and 12 in ``(e_j, e_i)``) of its
-    residuals each weighted by its relative variance alone (a sigma of 1 mm, no Huber cut), which
-    :func:`_dispersions` scales by the noise's sigma; only these are kept, not a second set of matches
+                  ) -> tuple[_Scales, list[tuple[np.ndarray, np.ndarray]]]:
+    """The scales of the residuals of the correspondences ``associated`` at ``poses`` (:func:`_scales`) and per pair
+    the normal equations ``(K, g)`` (12x12 and 12 in ``(e_j, e_i)``) of its residuals each weighted by its relative
+    variance alone (a sigma of 1 mm, no Huber cut), which :func:`_dispersions` scales by the noise's sigma
     (``origins``: the scans' origins in W, mm)."""
-    out = work.map("refined", _at_refined, [_PairPoses.of(p, poses, origins) for p, _, _ in associated],
-                   [(m, work.scans[p.i], work.scans[p.j]) for p, m, _ in associated])
-    if not out:
-        return np.zeros(0), np.zeros(0), []
-    return (np.concatenate([r for r, _, _, _ in out]), np.concatenate([w for _, w, _, _ in out]),
-            [(K, g) for _, _, K, g in out])
+    units = [_PairPoses.of(p, poses, origins) for p, _, _ in associated]
+    refined = work.keep("refined", _at, units, [(m, work.scans[p.i], work.scans[p.j]) for p, m, _ in associated])
+    held = [(p, m, size) for (p, _, size), m in zip(associated, refined, strict=True)]
+    systems = work.map("unit-system", _unit_system, units,
+                       [(m, work.scans[p.i], work.scans[p.j]) for p, m, _ in held])
+    return _scales(work, held), systems
 
 
-def _residual_pair(_: _Pair, m: _Match) -> tuple[np.ndarray, np.ndarray]:
-    """A unit of :func:`_residuals`: the pair's residuals as they are and whitened."""
-    return m.residual, _whitened([(None, m)])
+#: pairs a unit of :func:`_scales` takes (a unit a pair would cost a Dask task each, about a millisecond)
+_SCALE_BATCH = 64
+#: edges a round of :func:`_order_statistics` counts the values between (evenly apart in the floats' bit patterns)
+_SCALE_EDGES = 64
+#: the values within a bracket are fetched once there are at most this many
+_SCALE_FETCH = 1 << 16
 
 
-def _residuals(work: _PairWork, held: Sequence[_Held]) -> tuple[np.ndarray, np.ndarray]:
-    """Every residual (mm) of ``held`` as it is and whitened (:func:`_whitened`), in pair order."""
-    out = work.map("residuals", _residual_pair, [p for p, _, _ in held], [(m,) for _, m, _ in held])
-    if not out:
-        return np.zeros(0), np.zeros(0)
-    return np.concatenate([r for r, _ in out]), np.concatenate([w for _, w in out])
+@dataclass(frozen=True)
+class _Scales:
+    """The residuals' count, RMS (mm) and robust scales (1.4826 x their median absolute value, at least
+    ``_MIN_SIGMA_MM``; 1 mm where there are none), as they are and whitened by :func:`_whitened`, found where the
+    matches are (:func:`_scales`)."""
+
+    count: int
+    rms_mm: float
+    sigma_mm: float
+    whitened_sigma_mm: float
+
+
+def _absolute(m: _Match, whitened: bool) -> np.ndarray:
+    """The absolute residuals of ``m``, whitened (:func:`_whitened`) or as they are."""
+    return np.abs(m.residual / np.sqrt(m.variance) if whitened else m.residual)
+
+
+def _squares(_: None, *matches: _Match) -> tuple[list[float], float, float]:
+    """A unit of :func:`_scales`: per pair the sum of its squared residuals, and the largest absolute residual of
+    the batch as it is and whitened."""
+    return ([float(np.dot(m.residual, m.residual)) for m in matches],
+            max(float(_absolute(m, False).max(initial=0.0)) for m in matches),
+            max(float(_absolute(m, True).max(initial=0.0)) for m in matches))
+
+
+def _bracket_counts(queries: tuple[tuple[bool, np.ndarray], ...], *matches: _Match) -> list[np.ndarray]:
+    """A unit of :func:`_order_statistics`: per query ``(whitened, edges)`` how many absolute residuals of the
+    batch lie between each two neighbouring edges (``[e_k, e_k+1)``)."""
+    out = []
+    for whitened, edges in queries:
+        counts = np.zeros(len(edges) - 1, np.int64)
+        for m in matches:
+            at = np.searchsorted(edges, _absolute(m, whitened), side="right") - 1
+            counts += np.bincount(at[(at >= 0) & (at < len(counts))], minlength=len(counts))
+        out.append(counts)
+    return out
+
+
+def _bracketed(queries: tuple[tuple[bool, float, float], ...], *matches: _Match) -> list[np.ndarray]:
+    """A unit of :func:`_order_statistics`: per query ``(whitened, low, high)`` the batch's absolute residuals in
+    ``[low, high)``."""
+    out = []
+    for whitened, low, high in queries:
+        values = [_absolute(m, whitened) for m in matches]
+        out.append(np.concatenate([a[(a >= low) & (a < high)] for a in values]))
+    return out
+
+
+def _edges(low: float, high: float) -> np.ndarray:
+    """At most ``_SCALE_EDGES + 1`` floats from ``low`` to ``high`` (both non-negative), evenly apart in their bit
+    patterns (which order non-negative floats as their values)."""
+    lo, hi = (int(np.float64(x).view(np.int64)) for x in (low, high))
+    return np.unique(np.array([lo + (hi - lo) * k // _SCALE_EDGES for k in range(_SCALE_EDGES + 1)],
+                              np.int64)).view(np.float64)
+
+
+def _order_statistics(work: _PairWork, batches: Sequence[tuple], targets: Sequence[tuple[bool, int]],
+                      largest: Mapping[bool, float]) -> list[float]:
+    """The exact value of rank ``r`` (0: the least) among all absolute residuals (whitened or as they are) for each
+    target ``(whitened, r)``, found on the backend where the matches are (``batches``: their handles, a unit each):
+    each round counts the values between evenly spaced edges of every target's bracket and keeps the interval
+    that holds its rank, until it holds at most ``_SCALE_FETCH`` values (fetched, sorted) or one float."""
+    brackets = [[0.0, float(np.nextafter(largest[w], np.inf)), 0] for w, _ in targets]   # [low, high), below low
+    open_ = list(range(len(targets)))
+    fetch: list[int] = []
+    while open_:
+        queries = tuple((targets[t][0], _edges(*brackets[t][:2])) for t in open_)
+        counts = [sum(c) for c in zip(*work.map("bracket", _bracket_counts, [queries] * len(batches), batches),
+                                      strict=True)]
+        still = []
+        for t, (_, edges), c in zip(open_, queries, counts, strict=True):
+            rank, cumulative = targets[t][1], brackets[t][2] + np.cumsum(c)
+            k = int(np.searchsorted(cumulative, rank, side="right"))
+            brackets[t] = [float(edges[k]), float(edges[k + 1]), int(cumulative[k] - c[k])]
+            if np.nextafter(edges[k], np.inf) == edges[k + 1]:
+                continue                                     # one float: it is the value
+            (fetch if c[k] <= _SCALE_FETCH else still).append(t)
+        open_ = still
+    out = [low for low, _, _ in brackets]
+    if fetch:
+        queries = tuple((targets[t][0], *brackets[t][:2]) for t in fetch)
+        found = [np.sort(np.concatenate(v)) for v in zip(*work.map("bracketed", _bracketed,
+                                                                    [queries] * len(batches), batches), strict=True)]
+        for t, values in zip(fetch, found, strict=True):
+            out[t] = float(values[targets[t][1] - brackets[t][2]])
+    return out
+
+
+def _scales(work: _PairWork, held: Sequence[_Held]) -> _Scales:
+    """The count, RMS (mm) and robust scales (:class:`_Scales`) of every residual of ``held`` together (the medians
+    exact: the values a partition of all of them would give), found where the matches are: this process gets per
+    pair a sum of squares and per round a few counts, never the residuals (10.9 M on the whole part)."""
+    n = sum(size for _, _, size in held)
+    if not n:
+        return _Scales(0, float("nan"), 1.0, 1.0)
+    batches = [tuple(m for _, m, _ in held[k:k + _SCALE_BATCH]) for k in range(0, len(held), _SCALE_BATCH)]
+    squares = work.map("squares", _squares, [None] * len(batches), batches)
+    rms = float(np.sqrt(math.fsum(x for sums, _, _ in squares for x in sums) / n))
+    largest = {False: max(r for _, r, _ in squares), True: max(w for _, _, w in squares)}
+    ranks = [n // 2 - 1, n // 2] if n % 2 == 0 else [n // 2]
+    values = _order_statistics(work, batches, [(w, r) for w in (False, True) for r in ranks], largest)
+    per = len(ranks)
+    medians = [0.5 * (v[0] + v[1]) if per == 2 else v[0] for v in (values[:per], values[per:])]
+    return _Scales(n, rms, *(max(1.4826 * float(m), _MIN_SIGMA_MM) for m in medians))
 
 
 def _whitened(associated: Sequence[tuple[_Pair, _Match]]) -> np.ndarray:
@@ -588,18 +687,6 @@ def _information(m: _Match, huber: np.ndarray, sigma: float) -> np.ndarray:
     noise) over ``sigma^2`` and its relative variance (:func:`ray_variances`), times its share
     (:func:`noise_shares`)."""
     return huber / sigma**2 / m.variance * m.share
-
-
-def _robust_sigma(r: np.ndarray) -> float:
-    """1.4826 x the median absolute residual (mm), at least ``_MIN_SIGMA_MM``; the median of the absolute values
-    partitioned in place (``np.median`` would copy all of a whole part's 10 M residuals once more)."""
-    if not len(r):
-        return 1.0
-    a = np.abs(r)
-    half = len(a) // 2
-    a.partition([half - 1, half] if len(a) % 2 == 0 else [half])
-    median = 0.5 * (a[half - 1] + a[half]) if len(a) % 2 == 0 else a[half]
-    return max(1.4826 * float(median), _MIN_SIGMA_MM)
 
 
 @dataclass(frozen=True)
@@ -786,14 +873,12 @@ def _refine(work: _PairWork, model: _Model, pairs: Sequence[tuple[int, int]], st
             if it == settings.iterations:
                 trees.clear()              # nothing is searched again
         kept = [held for held in associated if held[2] >= settings.min_correspondences]
-        r_all, whitened = _residuals(work, kept)
-        sigma = settings.sigma_mm or _robust_sigma(whitened)
-        del whitened
+        scales = _scales(work, kept)       # where the matches are: this process never holds the residuals
+        sigma = settings.sigma_mm or scales.whitened_sigma_mm
         if it == 1:
-            rms_before = float(np.sqrt(np.mean(r_all**2))) if len(r_all) else float("nan")
-        huber_mm = settings.huber_k * (settings.sigma_mm or _robust_sigma(r_all))   # on the residuals as they are
-        used, n_corr = len(kept), len(r_all)
-        del r_all
+            rms_before = scales.rms_mm
+        huber_mm = settings.huber_k * (settings.sigma_mm or scales.sigma_mm)   # on the residuals as they are
+        used, n_corr = len(kept), scales.count
         H, b_e, N = _data_system(model, work, poses, kept, sigma, huber_mm)
         # linearised at e: data term |r + J (A theta - e)|^2, prior |theta|^2_prior -> solve for theta
         rhs = model.A.T @ (H @ e.ravel() - b_e)
@@ -808,11 +893,11 @@ def _refine(work: _PairWork, model: _Model, pairs: Sequence[tuple[int, int]], st
                   it, used, n_corr, sigma, move)
         if move < settings.tolerance_mm:
             break
-    r_fin, w_fin, unit_systems = _residuals_at(work, poses, model.origins, kept)
+    final, unit_systems = _residuals_at(work, poses, model.origins, kept)
     kept_pairs = [p for p, _, _ in kept]
     kept = []                              # the matches are not needed any more (the whole part's: about 0.3 GB)
-    rms_after = float(np.sqrt(np.mean(r_fin**2))) if len(r_fin) else float("nan")
-    noise_sigma = settings.sigma_mm or _robust_sigma(w_fin)
+    rms_after = final.rms_mm
+    noise_sigma = settings.sigma_mm or final.whitened_sigma_mm
     H_inv = np.linalg.inv(H_theta.toarray())        # the last linearisation's normal matrix, inverted
     ratio = (noise_sigma / sigma) ** 2
     cov_theta = _posterior_covariance(H_inv, H_prior + ratio * (model.A.T @ N.matrix() @ model.A))

@@ -9,9 +9,12 @@ import dataclasses
 import tracemalloc
 
 import numpy as np
+import pytest
 from scipy import sparse
 from scipy.spatial import cKDTree
+from tandemscan.pipeline.compute import LocalBackend
 from tandemscan.pipeline.geometry.frames import from_rotvec, invert, transform_points
+from tandemscan.pipeline.registration import joint as joint_module
 from tandemscan.pipeline.registration.joint import (
     JointScan,
     JointSettings,
@@ -20,6 +23,8 @@ from tandemscan.pipeline.registration.joint import (
     _Model,
     _moved_beyond,
     _Pair,
+    _PairWork,
+    _scales,
     associate,
     joint_tree,
     refine_jointly,
@@ -162,3 +167,39 @@ def test_the_normal_equations_find_the_normals_the_residuals_found():
     assert np.abs(given[0]).max() > 0
     covering = np.array([1, 2, 3, 4], np.uint16)
     assert np.array_equal(dataclasses.replace(m, covering=covering).share, [1.0, 1.0, 2 / 3, 0.5])
+
+
+def _scales_of(residuals: list[np.ndarray], variances: list[np.ndarray]) -> tuple[float, float, float]:
+    """The RMS and robust scales of the residuals all together, as one array gives them."""
+    r, v = np.concatenate(residuals), np.concatenate(variances)
+
+    def robust(a: np.ndarray) -> float:
+        return max(1.4826 * float(np.median(np.abs(a))), 1e-4) if len(a) else 1.0
+
+    return float(np.sqrt(np.mean(r**2))), robust(r), robust(r / np.sqrt(v))
+
+
+@pytest.mark.parametrize("fetch", [1 << 16, 3])
+def test_the_residual_scales_found_where_the_matches_are_equal_those_of_all_residuals_together(monkeypatch, fetch):
+    """The robust scales the refinement takes from its pairs' residuals on the backend, a few counts a round
+    (``joint._scales``), are the medians of all residuals together to the bit: odd and even counts, ties, zeros
+    and a bracket narrowed down to one float (``fetch`` 3: no values fetched)."""
+    monkeypatch.setattr(joint_module, "_SCALE_FETCH", fetch)
+    rng = np.random.default_rng(3)
+    work = _PairWork(LocalBackend(1), [], "")
+    for sizes in ([7], [4000, 1, 2999], [1000] * 70, [5, 6]):
+        residuals = [rng.normal(0, 0.05, n) for n in sizes]
+        if len(sizes) == 2:
+            residuals[0][:3] = 0.0         # zeros at the median
+        if len(sizes) == 3:
+            residuals[2][:1500] = 0.0625   # a tie across the median
+        variances = [rng.uniform(0.2, 1.0, n) for n in sizes]
+        held = [(_Pair(0, 1), _Match(np.arange(n), np.arange(n), r, v, np.full(n, 2, np.uint16), np.eye(4)), n)
+                for n, r, v in zip(sizes, residuals, variances, strict=True)]
+        got = _scales(work, held)
+        rms, sigma, whitened = _scales_of(residuals, variances)
+        assert got.count == sum(sizes)
+        assert (got.sigma_mm, got.whitened_sigma_mm) == (sigma, whitened), sizes
+        assert got.rms_mm == pytest.approx(rms, rel=1e-14)
+    empty = _scales(work, [])
+    assert (empty.count, empty.sigma_mm, empty.whitened_sigma_mm) == (0, 1.0, 1.0) and np.isnan(empty.rms_mm)
