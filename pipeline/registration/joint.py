@@ -559,10 +559,14 @@ def _residuals_at(work: _PairWork, poses: np.ndarray, origins: np.ndarray, assoc
 
 #: pairs a unit of :func:`_scales` takes (a unit a pair would cost a Dask task each, about a millisecond)
 _SCALE_BATCH = 64
-#: edges a round of :func:`_order_statistics` counts the values between (evenly apart in the floats' bit patterns)
-_SCALE_EDGES = 64
-#: the values within a bracket are fetched once there are at most this many
-_SCALE_FETCH = 1 << 16
+#: a round of :func:`_order_statistics` counts the values in at most this many bins of its bracket (bins of a
+#: power of two of the floats' bit patterns, which order non-negative floats as their values)
+_SCALE_BINS = 1 << 16
+#: the values within a bracket are fetched once there are at most this many (2 MB: after the first round on the
+#: whole part's 10.9 M, whose bins are 1/32 of a binade, so that one round and the fetch see every residual twice)
+_SCALE_FETCH = 1 << 18
+#: a bracket is bit patterns ``[low, low + span)``; the first holds every non-negative float
+_ALL_FLOATS = (0, 1 << 63)
 
 
 @dataclass(frozen=True)
@@ -577,80 +581,80 @@ class _Scales:
     whitened_sigma_mm: float
 
 
-def _absolute(m: _Match, whitened: bool) -> np.ndarray:
-    """The absolute residuals of ``m``, whitened (:func:`_whitened`) or as they are."""
-    return np.abs(m.residual / np.sqrt(m.variance) if whitened else m.residual)
+def _absolute_bits(matches: Sequence[_Match], whitened: bool) -> np.ndarray:
+    """The bit patterns (int64) of the absolute residuals of ``matches``, whitened (:func:`_whitened`) or as they
+    are: ordered as their values."""
+    return np.concatenate([np.abs(m.residual / np.sqrt(m.variance) if whitened else m.residual)
+                           for m in matches]).view(np.int64)
 
 
-def _squares(_: None, *matches: _Match) -> tuple[list[float], float, float]:
-    """A unit of :func:`_scales`: per pair the sum of its squared residuals, and the largest absolute residual of
-    the batch as it is and whitened."""
-    return ([float(np.dot(m.residual, m.residual)) for m in matches],
-            max(float(_absolute(m, False).max(initial=0.0)) for m in matches),
-            max(float(_absolute(m, True).max(initial=0.0)) for m in matches))
+def _shift(span: int) -> int:
+    """The bin width (a power of two, its exponent) that splits a bracket of ``span`` bit patterns into at most
+    ``_SCALE_BINS`` bins."""
+    return max(0, (span - 1).bit_length() - (_SCALE_BINS - 1).bit_length())
 
 
-def _bracket_counts(queries: tuple[tuple[bool, np.ndarray], ...], *matches: _Match) -> list[np.ndarray]:
-    """A unit of :func:`_order_statistics`: per query ``(whitened, edges)`` how many absolute residuals of the
-    batch lie between each two neighbouring edges (``[e_k, e_k+1)``)."""
+def _bracket_counts(queries: tuple[tuple[bool, int, int], ...], squares: bool, *matches: _Match
+                    ) -> tuple[list[float], list[tuple[int, np.ndarray]]]:
+    """A unit of :func:`_order_statistics`: per query ``(whitened, low, span)`` how many absolute residuals of the
+    batch lie in each bin of the bracket (:func:`_shift`), from the first bin that holds any (its index, the counts
+    from it to the last that holds any); with ``squares`` also each pair's sum of squared residuals
+    (:func:`_scales`)."""
+    sums = [float(np.einsum("i,i->", m.residual, m.residual)) for m in matches] if squares else []   # no BLAS
+    bits = {w: _absolute_bits(matches, w) for w in {w for w, _, _ in queries}}
     out = []
-    for whitened, edges in queries:
-        counts = np.zeros(len(edges) - 1, np.int64)
-        for m in matches:
-            at = np.searchsorted(edges, _absolute(m, whitened), side="right") - 1
-            counts += np.bincount(at[(at >= 0) & (at < len(counts))], minlength=len(counts))
-        out.append(counts)
-    return out
+    for whitened, low, span in queries:
+        b = bits[whitened] - low
+        at = b[(b >= 0) & (b < min(span, (1 << 63) - 1))] >> _shift(span)
+        first = int(at.min()) if len(at) else 0
+        out.append((first, np.bincount(at - first)))
+    return sums, out
 
 
-def _bracketed(queries: tuple[tuple[bool, float, float], ...], *matches: _Match) -> list[np.ndarray]:
-    """A unit of :func:`_order_statistics`: per query ``(whitened, low, high)`` the batch's absolute residuals in
-    ``[low, high)``."""
-    out = []
-    for whitened, low, high in queries:
-        values = [_absolute(m, whitened) for m in matches]
-        out.append(np.concatenate([a[(a >= low) & (a < high)] for a in values]))
-    return out
+def _bracketed(queries: tuple[tuple[bool, int, int], ...], *matches: _Match) -> list[np.ndarray]:
+    """A unit of :func:`_order_statistics`: per query ``(whitened, low, span)`` the batch's absolute residuals in
+    the bracket, as floats."""
+    bits = {w: _absolute_bits(matches, w) for w in {w for w, _, _ in queries}}
+    return [bits[w][(bits[w] >= low) & (bits[w] - low < span)].view(np.float64) for w, low, span in queries]
 
 
-def _edges(low: float, high: float) -> np.ndarray:
-    """At most ``_SCALE_EDGES + 1`` floats from ``low`` to ``high`` (both non-negative), evenly apart in their bit
-    patterns (which order non-negative floats as their values)."""
-    lo, hi = (int(np.float64(x).view(np.int64)) for x in (low, high))
-    return np.unique(np.array([lo + (hi - lo) * k // _SCALE_EDGES for k in range(_SCALE_EDGES + 1)],
-                              np.int64)).view(np.float64)
-
-
-def _order_statistics(work: _PairWork, batches: Sequence[tuple], targets: Sequence[tuple[bool, int]],
-                      largest: Mapping[bool, float]) -> list[float]:
+def _order_statistics(work: _PairWork, batches: Sequence[tuple], targets: Sequence[tuple[bool, int]]
+                      ) -> tuple[list[float], list[float]]:
     """The exact value of rank ``r`` (0: the least) among all absolute residuals (whitened or as they are) for each
     target ``(whitened, r)``, found on the backend where the matches are (``batches``: their handles, a unit each):
-    each round counts the values between evenly spaced edges of every target's bracket and keeps the interval
-    that holds its rank, until it holds at most ``_SCALE_FETCH`` values (fetched, sorted) or one float."""
-    brackets = [[0.0, float(np.nextafter(largest[w], np.inf)), 0] for w, _ in targets]   # [low, high), below low
-    open_ = list(range(len(targets)))
-    fetch: list[int] = []
+    each round counts every target's bracket's values by bins of their bit patterns and keeps the bin that holds
+    its rank, until it holds at most ``_SCALE_FETCH`` values (fetched, sorted) or one float. Returns the values
+    and, from the first round, each pair's sum of squared residuals."""
+    brackets = [[*_ALL_FLOATS, 0] for _ in targets]   # low, span (bit patterns), values below low
+    open_, fetch, sums = list(range(len(targets))), [], None
     while open_:
-        queries = tuple((targets[t][0], _edges(*brackets[t][:2])) for t in open_)
-        counts = [sum(c) for c in zip(*work.map("bracket", _bracket_counts, [queries] * len(batches), batches),
-                                      strict=True)]
+        asked = [(targets[t][0], *brackets[t][:2]) for t in open_]
+        queries = tuple(dict.fromkeys(asked))           # the two middle ranks share their brackets at first
+        got = work.map("bracket", _bracket_counts, [queries] * len(batches), [(sums is None, *b) for b in batches])
+        if sums is None:
+            sums = [x for batch_sums, _ in got for x in batch_sums]
         still = []
-        for t, (_, edges), c in zip(open_, queries, counts, strict=True):
-            rank, cumulative = targets[t][1], brackets[t][2] + np.cumsum(c)
-            k = int(np.searchsorted(cumulative, rank, side="right"))
-            brackets[t] = [float(edges[k]), float(edges[k + 1]), int(cumulative[k] - c[k])]
-            if np.nextafter(edges[k], np.inf) == edges[k + 1]:
-                continue                                     # one float: it is the value
-            (fetch if c[k] <= _SCALE_FETCH else still).append(t)
+        for q, t in zip((queries.index(a) for a in asked), open_, strict=True):
+            low, span, below = brackets[t]
+            shift = _shift(span)
+            c = np.zeros(-(-span >> shift), np.int64)
+            for _, counts in got:
+                first, binned = counts[q]
+                c[first:first + len(binned)] += binned
+            cumulative = below + np.cumsum(c)
+            k = int(np.searchsorted(cumulative, targets[t][1], side="right"))
+            brackets[t] = [low + (k << shift), min(1 << shift, span - (k << shift)), int(cumulative[k] - c[k])]
+            if brackets[t][1] > 1:                           # else one float: it is the value
+                (fetch if c[k] <= _SCALE_FETCH else still).append(t)
         open_ = still
-    out = [low for low, _, _ in brackets]
+    out = [float(np.int64(low).view(np.float64)) for low, _, _ in brackets]
     if fetch:
         queries = tuple((targets[t][0], *brackets[t][:2]) for t in fetch)
         found = [np.sort(np.concatenate(v)) for v in zip(*work.map("bracketed", _bracketed,
                                                                     [queries] * len(batches), batches), strict=True)]
         for t, values in zip(fetch, found, strict=True):
             out[t] = float(values[targets[t][1] - brackets[t][2]])
-    return out
+    return out, sums
 
 
 def _scales(work: _PairWork, held: Sequence[_Held]) -> _Scales:
@@ -661,14 +665,12 @@ def _scales(work: _PairWork, held: Sequence[_Held]) -> _Scales:
     if not n:
         return _Scales(0, float("nan"), 1.0, 1.0)
     batches = [tuple(m for _, m, _ in held[k:k + _SCALE_BATCH]) for k in range(0, len(held), _SCALE_BATCH)]
-    squares = work.map("squares", _squares, [None] * len(batches), batches)
-    rms = float(np.sqrt(math.fsum(x for sums, _, _ in squares for x in sums) / n))
-    largest = {False: max(r for _, r, _ in squares), True: max(w for _, _, w in squares)}
     ranks = [n // 2 - 1, n // 2] if n % 2 == 0 else [n // 2]
-    values = _order_statistics(work, batches, [(w, r) for w in (False, True) for r in ranks], largest)
+    values, sums = _order_statistics(work, batches, [(w, r) for w in (False, True) for r in ranks])
     per = len(ranks)
     medians = [0.5 * (v[0] + v[1]) if per == 2 else v[0] for v in (values[:per], values[per:])]
-    return _Scales(n, rms, *(max(1.4826 * float(m), _MIN_SIGMA_MM) for m in medians))
+    return _Scales(n, float(np.sqrt(math.fsum(sums) / n)),
+                   *(max(1.4826 * float(m), _MIN_SIGMA_MM) for m in medians))
 
 
 def _whitened(associated: Sequence[tuple[_Pair, _Match]]) -> np.ndarray:
