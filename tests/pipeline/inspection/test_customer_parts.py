@@ -37,13 +37,10 @@ from tandemscan.sim_drivers.generated_parts import (
 )
 from tandemscan.sim_drivers.inspection_score import alignment_error
 
+from tests.pipeline.inspection.test_alignment_generated import centre_of
+
 CFG = InspectionConfig(reference_spheres=(), regions=(), best_fit=False)
 CRITERIA = AlignmentCriteria.from_section(CFG)
-
-
-def centre_of(mesh) -> np.ndarray:
-    v = np.asarray(mesh.vertices)
-    return 0.5 * (v.min(axis=0) + v.max(axis=0))
 
 
 def signs_of_defects(part, areas) -> list[str]:
