@@ -125,7 +125,7 @@ class JakaEmulator:
         self.config = config
         self.kinematics = kinematics or ArmKinematics(config)
         self.faults = JakaFaults()
-        self._behaviour = behaviour or JakaBehaviour()
+        self.behaviour = behaviour or JakaBehaviour()
         self.status_period_s = status_period_s
         self.time_scale = time_scale
         self.on_joints = on_joints
@@ -137,20 +137,11 @@ class JakaEmulator:
         # the selected tool (id, T_E_tool) and user frame (id, T_B_U), mm: Cartesian poses are the tool's in it
         self.tool: tuple[int, np.ndarray] = (0, np.eye(4))
         self.user_frame: tuple[int, np.ndarray] = (0, np.eye(4))
-        self._commands = TcpService(self._serve_commands, host, command_port, exclusive=True)
-        self._commands.refuse_second = self._behaviour.refuse_second_client
+        self._commands = TcpService(self._serve_commands, host, command_port, exclusive=True,
+                                    refuse_second=lambda: self.behaviour.refuse_second_client)
         self._status = TcpService(self._serve_status, host, status_port)
         self._sim_s = 0.0
         self._wall_s = 0.0
-
-    @property
-    def behaviour(self) -> JakaBehaviour:
-        return self._behaviour
-
-    @behaviour.setter
-    def behaviour(self, behaviour: JakaBehaviour) -> None:
-        self._behaviour = behaviour
-        self._commands.refuse_second = behaviour.refuse_second_client
 
     # ------------------------------------------------------------------ lifecycle
 

@@ -18,14 +18,15 @@ Handler = Callable[[asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]
 class TcpService:
     """One listening socket; ``handler(reader, writer)`` runs per client. ``port`` is known after ``start``."""
 
-    def __init__(self, handler: Handler, host: str = "127.0.0.1", port: int = 0, exclusive: bool = False):
-        """``exclusive``: one client at a time (JAKA's command port), a new one replacing the previous, or with
-        ``refuse_second`` (settable while running) closed at once while the previous one is still served."""
+    def __init__(self, handler: Handler, host: str = "127.0.0.1", port: int = 0, exclusive: bool = False,
+                 refuse_second: Callable[[], bool] = lambda: False):
+        """``exclusive``: one client at a time (JAKA's command port), a new one replacing the previous, or while
+        ``refuse_second()`` (asked at each new client) closed at once while the previous one is still served."""
         self._handler = handler
         self.host = host
         self.port = port
         self._exclusive = exclusive
-        self.refuse_second = False
+        self._refuse_second = refuse_second
         self._server: asyncio.Server | None = None
         # serving task -> (handler task, writer); the handler runs in its own task so that dropping a client
         # cancels the handler while the serving task that asyncio.start_server watches ends normally
@@ -43,7 +44,7 @@ class TcpService:
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         task = asyncio.current_task()
         assert task is not None
-        if self._exclusive and self._clients and self.refuse_second:
+        if self._exclusive and self._clients and self._refuse_second():
             log.info("port %d: a second client refused while the first is served", self.port)
             writer.close()
             return
