@@ -584,8 +584,7 @@ class _Scales:
 def _absolute_bits(matches: Sequence[_Match], whitened: bool) -> np.ndarray:
     """The bit patterns (int64) of the absolute residuals of ``matches``, whitened (:func:`_whitened`) or as they
     are: ordered as their values."""
-    return np.concatenate([np.abs(m.residual / np.sqrt(m.variance) if whitened else m.residual)
-                           for m in matches]).view(np.int64)
+    return np.abs(_whitened(matches) if whitened else np.concatenate([m.residual for m in matches])).view(np.int64)
 
 
 def _shift(span: int) -> int:
@@ -673,14 +672,14 @@ def _scales(work: _PairWork, held: Sequence[_Held]) -> _Scales:
                    *(max(1.4826 * float(m), _MIN_SIGMA_MM) for m in medians))
 
 
-def _whitened(associated: Sequence[tuple[_Pair, _Match]]) -> np.ndarray:
-    """Every residual of ``associated`` over the square root of its relative variance (:func:`ray_variances`): the
+def _whitened(matches: Sequence[_Match]) -> np.ndarray:
+    """Every residual of ``matches`` over the square root of its relative variance (:func:`ray_variances`): the
     residuals as if between two single points seen head-on, whose robust scale is the weights' sigma. The
     residuals as they are have a smaller scale (whole part at the simulator's truth: 0.054 mm, their median
     relative variance 0.61), and taken as the sigma it weighed the data 1.75 times too much against the priors;
     whitened they give 0.0711 mm, the simulator's 0.05 mm per point times sqrt(2) (docs/correction.md, "What
     the measurements showed")."""
-    return np.concatenate([m.residual / np.sqrt(m.variance) for _, m in associated]) if associated else np.zeros(0)
+    return np.concatenate([m.residual / np.sqrt(m.variance) for m in matches]) if matches else np.zeros(0)
 
 
 def _information(m: _Match, huber: np.ndarray, sigma: float) -> np.ndarray:
