@@ -428,8 +428,10 @@ class _PairWork:
             return cls(backend, scans, "")
         h = hashlib.blake2b(digest_size=16)
         h.update(repr([getattr(s, "key", id(s)) for s in scans]).encode())
-        h.update(pickle.dumps((model.P0, model.prior_information.toarray(), model.A.toarray(), list(pairs),
-                               np.stack([np.asarray(T, float) for T in start_poses]), settings)))
+        # the sparse matrices by their CSR arrays: made dense they would be (6n)^2 floats each to pickle and hash
+        csr = [(M.shape, M.indptr, M.indices, M.data) for M in (model.prior_information, model.A)]
+        h.update(pickle.dumps((model.P0, csr, list(pairs), np.stack([np.asarray(T, float) for T in start_poses]),
+                               settings)))
         for pair in sorted(associations):
             h.update(np.asarray(pair, np.int64).tobytes())
             h.update(associations[pair].source.tobytes())
