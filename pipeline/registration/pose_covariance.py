@@ -41,13 +41,17 @@ class PoseCovariance:
             raise ValueError(f"pose covariance: A {self.A.shape}, origins {self.origins_mm.shape} and C "
                              f"{self.theta_covariance.shape} do not fit {n} scans")
 
+    def _columns(self, part: str) -> np.ndarray:
+        """Which columns of ``theta`` are ``part``'s (bool, m): "all", the mount's ("installation") or the rest
+        ("scan_poses")."""
+        mount = np.isin(np.arange(self.A.shape[1]), self.installation_columns)
+        return {"all": np.ones_like(mount), "installation": mount, "scan_poses": ~mount}[part]
+
     def factor(self, part: str = "all") -> np.ndarray:
         """(6n, r) ``G`` with ``G G^T`` the covariance of ``e`` (``part`` "all"), of the mount's share alone
         ("installation") or of the readings' and transfers' alone ("scan_poses"); cross terms of the parts are in
         "all" only."""
-        cols = np.arange(self.A.shape[1])
-        mount = np.isin(cols, self.installation_columns)
-        keep = {"all": np.ones_like(mount), "installation": mount, "scan_poses": ~mount}[part]
+        keep = self._columns(part)
         if not keep.any():
             return np.zeros((self.A.shape[0], 0))
         C = self.theta_covariance[np.ix_(keep, keep)]
@@ -62,9 +66,7 @@ class PoseCovariance:
         transfers and the mount: a few columns of the thousands), so it costs milliseconds where the factor's
         eigendecomposition costs seconds. Its ``C`` block is taken as positive semi-definite (a posterior, a
         prior); :meth:`factor` clips what rounding makes negative."""
-        cols = np.arange(self.A.shape[1])
-        mount = np.isin(cols, self.installation_columns)
-        keep = {"all": np.ones_like(mount), "installation": mount, "scan_poses": ~mount}[part]
+        keep = self._columns(part)
         if not keep.any():
             return np.zeros((self.A.shape[0], self.A.shape[0]))
         C = self.theta_covariance[np.ix_(keep, keep)]
