@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 from clean_exit import clean_exit_on_sigterm
+from generated_plan import generated_plan
 from pose_bound import bound_model  # benchmarks/pose_bound.py: the bound's error model
 from results import publish
 from tandemscan.config import load_config
@@ -248,16 +249,6 @@ def part_centre(cad: o3d.geometry.TriangleMesh) -> np.ndarray:
     """The centre of the CAD's bounding box (F, mm): where the alignment errors are taken."""
     v = np.asarray(cad.vertices)
     return 0.5 * (v.min(axis=0) + v.max(axis=0))
-
-
-def generated_plan(config: CellConfig) -> Plan:
-    """The whole configured part, planned as ``tandemscan plan`` does."""
-    from tandemscan.pipeline.planning.parameters import PartPlanning
-    from tandemscan.pipeline.planning.planner import plan_part
-
-    start = config.sim.tracking_start
-    return plan_part(load_part_mesh(config.part), PartPlanning.from_config(config), name="generated",
-                     tracker_start=(start.x_mm, start.y_mm, np.radians(start.heading_deg))).sequence.plan
 
 
 def main() -> None:

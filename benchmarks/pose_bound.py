@@ -58,6 +58,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 from clean_exit import clean_exit_on_sigterm
+from generated_plan import generated_plan
 from results import publish
 from scipy.spatial import cKDTree
 from tandemscan.config import load_config
@@ -359,13 +360,7 @@ def main() -> None:
     config = load_config(None)
     config = config.model_copy(update={"scanner": config.scanner.model_copy(update={"resolution": args.resolution})})
     if args.plan == "generated":
-        from tandemscan.pipeline.geometry.part import load_part_mesh
-        from tandemscan.pipeline.planning.parameters import PartPlanning
-        from tandemscan.pipeline.planning.planner import plan_part
-
-        start = config.sim.tracking_start
-        plan = plan_part(load_part_mesh(config.part), PartPlanning.from_config(config), name="generated",
-                         tracker_start=(start.x_mm, start.y_mm, np.radians(start.heading_deg))).sequence.plan
+        plan = generated_plan(config)
     else:
         plan = Plan.load(Path(args.plan) if args.plan else default_plan_path())
     runs = []

@@ -22,8 +22,8 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 from clean_exit import clean_exit_on_sigterm
+from generated_plan import generated_plan
 from job_mounts import add_mounts_option, chosen_mounts, job_config
 from results import publish
 from tandemscan.config import load_config
@@ -42,14 +42,8 @@ async def run(args: argparse.Namespace) -> dict:
     config = config.model_copy(update={"scanner": config.scanner.model_copy(update={"resolution": args.resolution})})
     plan_seconds = None
     if args.plan == "generated":
-        from tandemscan.pipeline.geometry.part import load_part_mesh
-        from tandemscan.pipeline.planning.parameters import PartPlanning
-        from tandemscan.pipeline.planning.planner import plan_part
-
         t = time.perf_counter()
-        start = config.sim.tracking_start
-        plan = plan_part(load_part_mesh(config.part), PartPlanning.from_config(config), name="generated",
-                         tracker_start=(start.x_mm, start.y_mm, np.radians(start.heading_deg))).sequence.plan
+        plan = generated_plan(config)
         plan_seconds = round(time.perf_counter() - t, 2)
     else:
         plan = Plan.load(Path(args.plan) if args.plan else default_plan_path())
