@@ -339,12 +339,14 @@ class ReadScan:
 
 
 def summarise_scan(points_S: np.ndarray, T_W_S: np.ndarray, voxel_mm: float, cfg: CorrectionSettings,
-                   digest: bool, joint: bool) -> ReadScan:
+                   digest: bool, joint: bool, thinned_S: np.ndarray | None = None) -> ReadScan:
     """:class:`ReadScan` of a scan whose copy as the end of the job loads it (``raw_scan.read_thinned_scan``, S,
     mm) is ``points_S``, at its tracker pose ``T_W_S`` (W, mm): the grid cells and ``digest`` (if asked) of that
-    copy thinned to ``voxel_mm`` (the job's, as the pairs take it) in W, and with ``joint`` the scan at
-    ``cfg.joint_voxel_mm``."""
-    world = transform_points(T_W_S, voxel_downsample(np.asarray(points_S, float), voxel_mm))
+    copy thinned to ``voxel_mm`` (the job's, as the pairs take it; ``thinned_S`` where the caller has thinned it)
+    in W, and with ``joint`` the scan at ``cfg.joint_voxel_mm``."""
+    if thinned_S is None:
+        thinned_S = voxel_downsample(np.asarray(points_S, float), voxel_mm)
+    world = transform_points(T_W_S, thinned_S)
     summary = ScanSummary(occupied_cells(world, cfg.pair_cell_mm), cloud_digest(world) if digest else b"",
                           joint_scan_key(points_S, cfg.joint_voxel_mm), ScanReach.of(T_W_S, points_S))
     return ReadScan(summary, joint_scan(points_S, cfg.joint_voxel_mm) if joint else None)
@@ -368,19 +370,25 @@ def _joint_of(_: ScanRef, read: ReadScan) -> JointScan | None:
 
 
 def _summaries(job: StitchedJob, cfg: CorrectionSettings, digest: bool, backend: ComputeBackend,
-               scan_store: str | None) -> tuple[list[ScanSummary], list[Any]]:
+               scan_store: str | None) -> tuple[list[ScanSummary], list[Any], list[np.ndarray | None]]:
     """:func:`summarise_scan` of every scan of ``job``: from its points where it holds them, else read from
-    ``scan_store`` by a unit on ``backend``; the summaries, and per scan the scan prepared for the joint refinement
+    ``scan_store`` by a unit on ``backend``; the summaries, per scan the scan prepared for the joint refinement
     with ``cfg.joint`` where it was read on the backend, left there (its handle, ``ComputeBackend.keep``: on a Dask
-    cluster this process never holds it), else None."""
+    cluster this process never holds it), else None, and per scan its points thinned to the job's voxel (S, mm)
+    where it holds them (thinned once: for the summary and for the pairs and the overlap RMS), else None."""
     scans = job.scans
     out: list[ScanSummary | None] = [None] * len(scans)
     joints: list[Any] = [None] * len(scans)
+    thinned: list[np.ndarray | None] = [None] * len(scans)
     held = [k for k, s in enumerate(scans) if s.points_S is not None]
+
+    def summarise_held(k: int) -> ScanSummary:
+        thinned[k] = voxel_downsample(np.asarray(scans[k].points_S, float), job.voxel_mm)
+        return summarise_scan(scans[k].points_S, scans[k].T_W_S, job.voxel_mm, cfg, digest, False, thinned[k]).summary
+
     with pair_threads() as pair_map:
-        for k, read in zip(held, pair_map(lambda k: summarise_scan(scans[k].points_S, scans[k].T_W_S, job.voxel_mm,
-                                                                   cfg, digest, False), held), strict=True):
-            out[k] = read.summary
+        for k, summary in zip(held, pair_map(summarise_held, held), strict=True):
+            out[k] = summary
     stored = [k for k, s in enumerate(scans) if s.points_S is None]
     if stored:
         if scan_store is None:
@@ -397,7 +405,7 @@ def _summaries(job: StitchedJob, cfg: CorrectionSettings, digest: bool, backend:
             for k, joint in zip(stored, backend.keep(_joint_of, refs, [f"{key}-joint" for key in keys], reads),
                                 strict=True):
                 joints[k] = joint
-    return out, joints
+    return out, joints, thinned
 
 
 def _unit_digest(ref: ScanRef, voxel_mm: float, cfg: CorrectionSettings, *flags: object) -> str:
@@ -561,13 +569,11 @@ def correct_scans(
     if online.pending and not cfg.joint:
         raise ValueError("the pose graph takes every pair: pairs still registering only with the joint refinement")
     # the joint refinement's scans read with their summaries: the backend's handles (else None)
-    summaries, prepared = _summaries(job, cfg, bool(online.pairs or online.pending) and cfg.registered_partners > 0,
-                                     backend or LocalBackend(), scan_store)
+    summaries, prepared, local = _summaries(job, cfg, bool(online.pairs or online.pending)
+                                            and cfg.registered_partners > 0, backend or LocalBackend(), scan_store)
     held = all(s.points_S is not None for s in scans)
-    local = None
-    if held:  # the thinned clouds this process holds: the pairs' and the overlap RMS's
-        with pair_threads() as pair_map:
-            local = pair_map(lambda s: voxel_downsample(np.asarray(s.points_S, float), job.voxel_mm), scans)
+    if not held:  # the thinned clouds this process holds (the pairs' and the overlap RMS's): only where it holds all
+        local = None
     clock.lap("thin_s")
     outcomes, cached, selected, pending = _pair_corrections(job, summaries, local, cfg, network, online, backend,
                                                             scan_store)
