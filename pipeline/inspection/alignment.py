@@ -732,7 +732,7 @@ def seen_from(surface: CadSurface, toward_W: np.ndarray) -> SeenFrom:
     d = np.asarray(toward_W, np.float64)
     length = np.linalg.norm(d, axis=1, keepdims=True)
     d = np.divide(d, length, out=np.zeros_like(d), where=length > 0)
-    o = wind(np.asarray(surface.mesh.vertices), np.asarray(surface.mesh.triangles))
+    o = wind(np.asarray(surface.mesh.vertices), np.asarray(surface.mesh.triangles), patches=surface.patches)
     outward = np.where(o.reversed == surface.reversed, 1, -1) * o.closed
     return SeenFrom(d, outward.astype(np.int8))
 

@@ -121,44 +121,76 @@ def _normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 
 
 def orient(vertices_mm: np.ndarray, triangles: np.ndarray, closest_triangles: np.ndarray | None = None,
-           toward: np.ndarray | None = None, by: str = "the measured side") -> CadOrientation:
+           toward: np.ndarray | None = None, by: str = "the measured side",
+           patches: MeshPatches | None = None) -> CadOrientation:
     """The winding to sign deviations by (:func:`wind`), its notes logged as warnings."""
-    o = wind(vertices_mm, triangles, closest_triangles, toward, by)
+    o = wind(vertices_mm, triangles, closest_triangles, toward, by, patches)
     for note in filter(None, o.note.split("; ")):
         log.warning("%s", note)
     return o
 
 
-def wind(vertices_mm: np.ndarray, triangles: np.ndarray, closest_triangles: np.ndarray | None = None,
-         toward: np.ndarray | None = None, by: str = "the measured side") -> CadOrientation:
-    """The winding to sign deviations by. ``closest_triangles`` (N,) are the closest triangles of measured
-    points and ``toward`` (N, 3) the directions from each point to where it was seen from (``by`` names them);
-    without them only closed patches are decided (by their volume) and open ones keep the file's majority."""
+@dataclass(frozen=True)
+class MeshPatches:
+    """What :func:`wind` decides from the mesh alone, whatever the measured side: ``flip`` (T,) bool, the
+    triangles taken against the file to wind each connected patch consistently (:func:`consistent_winding`);
+    ``label`` (T,) each triangle's patch; ``closed`` (patches,) bool (:func:`closed_patches`); ``inward``
+    (patches,) bool, the closed patches whose volume, wound by ``flip``, is negative; ``area`` (T,) mm^2;
+    ``normals`` (T, 3) unit, wound by ``flip``."""
+
+    flip: np.ndarray
+    label: np.ndarray
+    closed: np.ndarray
+    inward: np.ndarray
+    area: np.ndarray
+    normals: np.ndarray
+
+    @property
+    def count(self) -> int:
+        """How many patches."""
+        return len(self.closed)
+
+
+def mesh_patches(vertices_mm: np.ndarray, triangles: np.ndarray) -> MeshPatches:
+    """:class:`MeshPatches` of the mesh (frame F, mm): computed once a CAD surface
+    (``inspect.CadSurface.patches``)."""
     V, t = np.asarray(vertices_mm, float), np.asarray(triangles, np.int64)
     same = same_position(V)  # an STL repeats a vertex in every triangle holding it
     flip, label = consistent_winding(same.ravel()[t])
     patches = int(label.max()) + 1 if len(label) else 0
-    n = _normals(V, np.where(flip[:, None], t[:, ::-1], t))
+    wound = np.where(flip[:, None], t[:, ::-1], t)
     area = 0.5 * np.linalg.norm(np.cross(V[t[:, 1]] - V[t[:, 0]], V[t[:, 2]] - V[t[:, 0]]), axis=1)
-    votes = np.zeros(patches)
-    counts = np.zeros(patches)
+    shut = closed_patches(np.where(flip[:, None], same.ravel()[t][:, ::-1], same.ravel()[t]), label, patches)
+    c = V - V.mean(axis=0)
+    volume = np.bincount(label, np.einsum("ij,ij->i", c[wound[:, 0]], np.cross(c[wound[:, 1]], c[wound[:, 2]])),
+                         patches)
+    return MeshPatches(flip, label, shut, shut & (volume < 0.0), area, _normals(V, wound))
+
+
+def wind(vertices_mm: np.ndarray, triangles: np.ndarray, closest_triangles: np.ndarray | None = None,
+         toward: np.ndarray | None = None, by: str = "the measured side",
+         patches: MeshPatches | None = None) -> CadOrientation:
+    """The winding to sign deviations by. ``closest_triangles`` (N,) are the closest triangles of measured
+    points and ``toward`` (N, 3) the directions from each point to where it was seen from (``by`` names them);
+    without them only closed patches are decided (by their volume) and open ones keep the file's majority.
+    ``patches``: the mesh's :func:`mesh_patches` where the caller has them."""
+    t = np.asarray(triangles, np.int64)
+    mp = mesh_patches(vertices_mm, t) if patches is None else patches
+    label, shut, area, n, n_patches = mp.label, mp.closed, mp.area, mp.normals, mp.count
+    votes = np.zeros(n_patches)
+    counts = np.zeros(n_patches)
     if closest_triangles is not None and toward is not None and len(closest_triangles):
         ids = np.asarray(closest_triangles, np.int64)
         d = np.asarray(toward, float)
         ok = np.linalg.norm(d, axis=1) > 0
         s = np.sign(np.einsum("ij,ij->i", n[ids[ok]], d[ok]))
-        votes = np.bincount(label[ids[ok]], s, patches)
-        counts = np.bincount(label[ids[ok]], minlength=patches).astype(float)
-    wound = np.where(flip[:, None], t[:, ::-1], t)
-    shut = closed_patches(np.where(flip[:, None], same.ravel()[t][:, ::-1], same.ravel()[t]), label, patches)
-    c = V - V.mean(axis=0)
-    volume = np.bincount(label, np.einsum("ij,ij->i", c[wound[:, 0]], np.cross(c[wound[:, 1]], c[wound[:, 2]])),
-                         patches)
+        votes = np.bincount(label[ids[ok]], s, n_patches)
+        counts = np.bincount(label[ids[ok]], minlength=n_patches).astype(float)
     voted = ~shut & (counts > 0) & (np.abs(votes) >= CLEAR_MAJORITY * counts)
     undecided_patch = ~shut & ~voted  # nothing says: the file's winding of most of the patch's area
-    turn = np.where(shut, volume < 0.0, np.where(voted, votes < 0.0, np.bincount(label, area * flip, patches)
-                                                  > 0.5 * np.bincount(label, area, patches)))
-    flip ^= turn[label]
+    turn = np.where(shut, mp.inward, np.where(voted, votes < 0.0, np.bincount(label, area * mp.flip, n_patches)
+                                               > 0.5 * np.bincount(label, area, n_patches)))
+    flip = mp.flip ^ turn[label]
     closed = shut[label]
     deciders = {name for name, used in (("closed volume", shut.any()), (by, voted.any()),
                                         ("the file", undecided_patch.any())) if used}
@@ -173,4 +205,4 @@ def wind(vertices_mm: np.ndarray, triangles: np.ndarray, closest_triangles: np.n
     if undecided:
         notes.append(f"{undecided} open patch{'es' if undecided > 1 else ''} of the CAD signed by the file's "
                      f"winding: no clear measured side ({by}) near {'them' if undecided > 1 else 'it'}")
-    return CadOrientation(flip, patches, ", ".join(sorted(deciders)), "; ".join(notes), closed)
+    return CadOrientation(flip, n_patches, ", ".join(sorted(deciders)), "; ".join(notes), closed)

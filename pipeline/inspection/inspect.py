@@ -11,6 +11,7 @@ before it is handed over and every query is shifted the same way, which keeps th
 
 from __future__ import annotations
 
+import functools
 import logging
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -28,6 +29,7 @@ from tandemscan.pipeline.geometry.frames import (
     transform_points,
 )
 from tandemscan.pipeline.geometry.part import enclosed_volume_mm3, triangles_closed
+from tandemscan.pipeline.inspection.cad_orientation import MeshPatches, mesh_patches
 from tandemscan.pipeline.inspection.decision import DecisionRule, RuleName
 from tandemscan.pipeline.inspection.deviation_areas import DeviationArea, find_deviation_areas
 from tandemscan.pipeline.parameters import FromSection
@@ -167,7 +169,18 @@ class CadSurface:
     def oriented(self, reversed: np.ndarray) -> CadSurface:
         """This surface with the triangles ``reversed`` (T,) bool wound against the file (itself where that is
         how it is wound already)."""
-        return self if np.array_equal(reversed, self.reversed) else CadSurface(self.mesh, reversed)
+        if np.array_equal(reversed, self.reversed):
+            return self
+        turned = CadSurface(self.mesh, reversed)
+        if "patches" in self.__dict__:  # of the same mesh: not computed again
+            turned.patches = self.patches
+        return turned
+
+    @functools.cached_property
+    def patches(self) -> MeshPatches:
+        """The mesh's connected patches as its file winds them (:func:`cad_orientation.mesh_patches`), computed once
+        for the alignment's viewing side and the measured side's winding."""
+        return mesh_patches(np.asarray(self.mesh.vertices), np.asarray(self.mesh.triangles))
 
     @property
     def scene(self) -> o3d.t.geometry.RaycastingScene:

@@ -264,7 +264,7 @@ def measured_side(surface: CadSurface, points_W_mm: np.ndarray, T_F_W: np.ndarra
     else:
         toward, by = None, "no scanner positions, no cloud normals"
     ids = surface.closest(transform_points(T_F_W, p_W)).triangle_ids
-    o = orient(np.asarray(surface.mesh.vertices), np.asarray(surface.mesh.triangles), ids, toward, by)
+    o = orient(np.asarray(surface.mesh.vertices), np.asarray(surface.mesh.triangles), ids, toward, by, surface.patches)
     return surface.oriented(o.reversed), o.note
 
 
