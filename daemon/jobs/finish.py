@@ -162,6 +162,20 @@ def scan_x_bounds(job: JobSnapshot, voxel_mm: float, poses: Sequence[np.ndarray]
     return tuple(scan_x_extent(T, p, job.config.job.voxel_mm, voxel_mm) for T, p in zip(poses, points_S, strict=True))
 
 
+def _tiled_merge_x_bounds(job: JobSnapshot, outcome: CorrectionOutcome, loaded: LoadedScans | None
+                          ) -> tuple[tuple[float, float], ...]:
+    """The bounds of x (W, mm) :func:`merged_cloud` takes where the correction changed the poses and ``[compute]
+    tile_mm`` merges by tiles (else none): from the thinned copies where this process holds them
+    (:func:`scan_x_bounds`), else from each scan's ``tiles.ScanReach`` the correction returned."""
+    if not (outcome.corrected and job.config.compute.tile_mm):
+        return ()
+    voxel_mm = job.worldmap.voxel_mm  # the merge's
+    if loaded is not None:
+        return scan_x_bounds(job, voxel_mm, outcome.poses, loaded.points_S)
+    return tuple(r.x_bound(T, job.config.job.voxel_mm, voxel_mm)
+                 for r, T in zip(outcome.reaches, outcome.poses, strict=True))
+
+
 def merged_cloud(job: JobSnapshot, voxel_mm: float, poses: Sequence[np.ndarray],
                  x_bounds_mm: Sequence[tuple[float, float]]) -> MapCloud | TiledCloud:
     """The job's cloud at its final ``poses`` (W, mm) in voxels of edge ``voxel_mm``: with ``[compute] tile_mm``
@@ -239,10 +253,7 @@ def finish_outputs(job: JobSnapshot, started: float, measured_at: float,
     if job.config.compute.backend != "local":  # the workers read the scans from the store (docs/compute.md)
         loaded = None  # the copies freed before the correction (a whole part's at full resolution: about 1.2 GB)
     outcome = correct_stage(job, loaded, online)
-    x_bounds = ((scan_x_bounds(job, job.worldmap.voxel_mm, outcome.poses, loaded.points_S) if loaded is not None
-                 else tuple(r.x_bound(T, job.config.job.voxel_mm, job.worldmap.voxel_mm)
-                            for r, T in zip(outcome.reaches, outcome.poses, strict=True)))
-                if outcome.corrected and job.config.compute.tile_mm else ())  # all the tiled merge needs of them
+    x_bounds = _tiled_merge_x_bounds(job, outcome, loaded)  # all the tiled merge needs of the copies
     del loaded  # the copies freed before the merge
     t = time.perf_counter()
     tracker_map, job.worldmap = job.worldmap, None
