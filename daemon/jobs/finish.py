@@ -310,10 +310,10 @@ def report_job(outputs: JobOutputs, measured_at: float, later: OnlineWork | None
         timings_s = Timings(round(time.monotonic() - measured_at, 3), outcome.section.get("cpu_seconds"), timings)
         report = build_job_report(final, outputs.seconds, outputs.tracker_poses, exports.inspection, exports.coverage,
                                   exports.peak_rss_gib, timings_s, failed=exports.failed)
-        write_job_report(report, final.job_dir)
+        report_file = write_job_report(report, final.job_dir)
         if exports.failed:
             raise OutputsNotWritten("; ".join(f"{k} not written: {v}" for k, v in exports.failed.items())
-                                    + f" (named in {final.job_dir / 'report.json'})")
+                                    + f" (named in {report_file})")
         t = time.perf_counter()  # the simulator's observer, after the report: beside it, in its own file
         ground_truth = score_ground_truth(final, exports.inspection, outputs.tracker_stitch)
         if ground_truth is not None:
