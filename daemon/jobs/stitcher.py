@@ -145,7 +145,7 @@ def _joint_outcomes() -> OnlineWork | None:
 
 def _read_ahead(job: JobSnapshot, key: str) -> float:
     """Where the map lives: read the scans the end of ``job`` starts from (``finish.load_scans``) and keep them
-    under ``key`` for :func:`_finish`; returns the seconds it took."""
+    under ``key`` for :func:`_finish_outputs`; returns the seconds it took."""
     from tandemscan.daemon.jobs.finish import load_scans
 
     t = time.perf_counter()
