@@ -419,14 +419,14 @@ def _unit_digest(ref: ScanRef, voxel_mm: float, cfg: CorrectionSettings, *flags:
 
 def _pair_corrections(
     job: StitchedJob, summaries: Sequence[ScanSummary], local: Sequence[np.ndarray] | None, cfg: CorrectionSettings,
-    network: Registrar | None, online: OnlineWork, backend: ComputeBackend | None, scan_store: str | None,
+    network: Registrar | None, online: OnlineWork, backend: ComputeBackend, scan_store: str | None,
 ) -> tuple[list[tuple[int, int, PairOutcome | None]], int, list[tuple[int, int]], list[PendingPair]]:
     """The outcome of every pair of the job's scans registered at ``cfg.registered_partners``
     (``overlap.overlapping_pairs``, from each scan's grid cells in W, ``summaries``, :func:`summarise_scan`): from
     ``online.pairs`` where the job registered the pair while it measured (same clouds, covariance and settings: the
     summaries' digests), None where it is still registering there (``online.pending``: returned as
-    :class:`PendingPair`), else registered here, one unit a target (``pair_stage.TargetPairs``) on ``backend`` (this
-    process's threads where None); with ``scan_store`` the units read their scans from it by reference
+    :class:`PendingPair`), else registered here, one unit a target (``pair_stage.TargetPairs``) on ``backend``; with
+    ``scan_store`` the units read their scans from it by reference
     (``pair_stage.StoredScans``: a Dask cluster's workers), else they take this process's thinned clouds ``local``
     (S, mm), of which only the scans of pairs left to register are placed in W here. Returns the outcomes in pair
     order, how many came from the cache, the pairs selected at ``cfg.max_partners_per_scan`` (the registered
@@ -470,7 +470,7 @@ def _pair_corrections(
         with pair_threads() as pair_map:
             clouds = HeldScans(dict(zip(needed, pair_map(
                 lambda k: transform_points(scans[k].T_W_S, local[k]), needed), strict=True)))
-    registered = register_units(units, clouds, cfg.pairs, voxel_mm, backend or LocalBackend(), network)
+    registered = register_units(units, clouds, cfg.pairs, voxel_mm, backend, network)
     for group, outcomes in zip(todo.values(), registered, strict=True):
         for (_, _, slot), outcome in zip(group, outcomes, strict=True):
             out[slot] = (out[slot][0], out[slot][1], outcome)
@@ -566,11 +566,12 @@ def correct_scans(
     clock = _Clock()
     scans, transfers, mount_prior = job.scans, job.transfers, job.mount_prior
     online = online or OnlineWork({}, {}, {})
+    backend = backend or LocalBackend()
     if online.pending and not cfg.joint:
         raise ValueError("the pose graph takes every pair: pairs still registering only with the joint refinement")
     # the joint refinement's scans read with their summaries: the backend's handles (else None)
     summaries, prepared, local = _summaries(job, cfg, bool(online.pairs or online.pending)
-                                            and cfg.registered_partners > 0, backend or LocalBackend(), scan_store)
+                                            and cfg.registered_partners > 0, backend, scan_store)
     held = all(s.points_S is not None for s in scans)
     if not held:  # the thinned clouds this process holds (the pairs' and the overlap RMS's): only where it holds all
         local = None
@@ -584,8 +585,7 @@ def correct_scans(
     joint, graph_figures = None, {}
     if cfg.joint:
         joint, associated_while_measuring = _refine_jointly(job, priors, cfg, summaries, prepared,
-                                                            online.joint_scans, online.associations,
-                                                            backend or LocalBackend())
+                                                            online.joint_scans, online.associations, backend)
         clock.lap("joint_s")
         poses, mount = joint.poses, joint.mount
     else:
@@ -601,7 +601,7 @@ def correct_scans(
                                     job.voxel_mm, LocalBackend())
     else:
         rms_b, rms_a = _overlap_rms(rms_units, StoredScans(scan_store, job.voxel_mm).thinned,
-                                    cfg.pairs.criteria.icp_max_distance_mm, job.voxel_mm, backend or LocalBackend())
+                                    cfg.pairs.criteria.icp_max_distance_mm, job.voxel_mm, backend)
     clock.lap("overlap_rms_s")
     moves = [pose_error(a, b) for a, b in zip(poses, before, strict=True)]
     report = {
