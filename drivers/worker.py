@@ -67,9 +67,14 @@ def stop_pool(pool: ProcessPoolExecutor) -> None:
     """Shut ``pool`` down without waiting for a task in flight: its workers are terminated (a correction
     of a full-resolution job can run for minutes; a daemon stopping must not wait for it)."""
     workers = list((getattr(pool, "_processes", None) or {}).values())  # its own handles (CPython 3.8-3.13)
+    manager = getattr(pool, "_executor_manager_thread", None)
     pool.shutdown(wait=False, cancel_futures=True)
     for worker in workers:
         if worker.is_alive():
             worker.terminate()
+    # the pool's manager thread reaps the workers too; a worker it reaped while this thread waited reads as alive
+    # to this thread until the manager has recorded its exit status, so the manager is awaited first
+    if manager is not None:
+        manager.join(5)
     for worker in workers:
         worker.join(5)
