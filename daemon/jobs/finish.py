@@ -326,6 +326,13 @@ def report_job(outputs: JobOutputs, measured_at: float, later: OnlineWork | None
     return FinishedJob(report, outcome)
 
 
+def left_on_disk(outputs: JobOutputs) -> TiledCloud | None:
+    """The files ``outputs`` leave until their report (:func:`report_job` removes them): a tiled cloud's tiles
+    (``tiles.TiledCloud``: its ``remove()`` deletes them from any process that reaches the scan store), else None."""
+    cloud = outputs.final.worldmap
+    return cloud if isinstance(cloud, TiledCloud) else None
+
+
 def drop_outputs(outputs: JobOutputs) -> None:
     """Let go of the outputs of a job that ended before its report: its tiles' files removed (a tiled cloud)."""
     _remove_tiles(outputs.final)

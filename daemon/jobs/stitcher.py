@@ -162,13 +162,16 @@ def _drop_read_ahead(key: str, reading: asyncio.Future) -> None:
 
 
 def _finish_outputs(job: JobSnapshot, key: str, started: float, measured_at: float, online: OnlineWork | None,
-                    stages: dict) -> None:
+                    stages: dict) -> Any:
     """:func:`tandemscan.daemon.jobs.finish.finish_outputs`, imported where it runs (the registration stack, E57,
     Open3D I/O, matplotlib), from the scans :func:`_read_ahead` kept under ``key`` (read again where it failed);
-    what it returns is kept there under ``key`` for :func:`_report`."""
-    from tandemscan.daemon.jobs.finish import finish_outputs
+    what it returns is kept there under ``key`` for :func:`_report`. Returns the files the outputs leave until
+    their report (``finish.left_on_disk``: small, it pickles), for the job's process to remove where the job ends
+    before its report (:func:`_drop_outputs`)."""
+    from tandemscan.daemon.jobs.finish import finish_outputs, left_on_disk
 
-    _OUTPUTS[key] = finish_outputs(job, started, measured_at, online, stages, _LOADED.pop(key, None))
+    _OUTPUTS[key] = outputs = finish_outputs(job, started, measured_at, online, stages, _LOADED.pop(key, None))
+    return left_on_disk(outputs)
 
 
 def _report(job: JobSnapshot, key: str, measured_at: float, later: OnlineWork | None, stages: dict) -> Any:
@@ -180,16 +183,21 @@ def _report(job: JobSnapshot, key: str, measured_at: float, later: OnlineWork | 
 
 
 def _drop_outputs(key: str, running: asyncio.Future) -> None:
-    """Drop the outputs kept under ``key`` of a job that ended before its report, once their run (``running``)
-    ended (its tiles' files removed; its own error, if any, is only logged: the job has failed of its own). Like
-    :func:`_drop_read_ahead` this runs in the job's process: a daemon job's map process ends with the job anyway."""
+    """Drop the outputs of a job that ended before its report, once their run (``running``, of
+    :func:`_finish_outputs`) ended: the files they left (its result, a tiled cloud's tiles) removed from here, and
+    what is kept under ``key`` where this process holds it (the map in this process, ``LocalWorldMap``; a daemon
+    job's map process ends with the job). Its own error, if any, is only logged: the job has failed of its own."""
     from tandemscan.daemon.jobs.finish import drop_outputs
 
     outputs = _OUTPUTS.pop(key, None)
     if outputs is not None:
         drop_outputs(outputs)
-    if not running.cancelled() and running.exception() is not None:
+    if running.cancelled():
+        return
+    if running.exception() is not None:
         log.debug("outputs of an ended job failed: %s", running.exception())
+    elif running.result() is not None:
+        running.result().remove()
 
 
 class PairWorker:

@@ -191,3 +191,57 @@ async def test_scans_that_could_not_be_read_ahead_are_read_by_the_end_of_the_job
     assert await worldmap.finish(_job(tmp_path, joint=False), 0.0, time.monotonic()) == "finished"
     handed = end_of_job.handed
     assert handed["loaded"] is None and "read_s" not in handed["stages"]  # finish_outputs reads them itself
+
+
+_REAL_FINISH_OUTPUTS = stitcher._finish_outputs  # imported in the map's process too: the real one there
+
+
+def finish_outputs_leaving_a_tile(job, key, started, measured_at, online, stages):
+    """In the map's process (a module function: it pickles by name): the real ``stitcher._finish_outputs`` around a
+    ``finish.finish_outputs`` whose outputs hold a tiled cloud of one tile file, written here."""
+    from tandemscan.pipeline.stitching.tiles import TileCloud, TiledCloud
+
+    tile = TileCloud(0, "tiles/merge-tile-00000.npz", 1)
+    (job.job_dir / "tiles").mkdir(parents=True, exist_ok=True)
+    (job.job_dir / tile.file).write_bytes(b"tile")
+    cloud = TiledCloud(1.0, str(job.job_dir), (tile,))
+    finish.finish_outputs = lambda *args: SimpleNamespace(final=SimpleNamespace(worldmap=cloud))
+    return _REAL_FINISH_OUTPUTS(job, key, started, measured_at, online, stages)
+
+
+async def test_a_job_cancelled_between_its_outputs_and_its_report_leaves_no_tiles_where_its_map_lives_apart(
+        monkeypatch, tmp_path):
+    """The daemon's map in its own process (``ProcessWorldMap``): a job with a tiled cloud cancelled while its
+    check pairs register, after its outputs were made, leaves none of its tiles' files (removed from the job's
+    process, which never held the outputs)."""
+    worldmap = stitcher.ProcessWorldMap(1.0)
+    try:
+        monkeypatch.setattr(stitcher, "_finish_outputs", finish_outputs_leaving_a_tile)
+        made = asyncio.Event()
+
+        async def joint_work():
+            return None
+
+        async def pair_outcomes():
+            made.set()  # the outputs run beside the check pairs: wait for their tile below
+            await asyncio.sleep(30.0)
+
+        monkeypatch.setattr(worldmap, "_joint_work", joint_work)
+        monkeypatch.setattr(worldmap, "pair_outcomes", pair_outcomes)
+        job = _job(tmp_path, joint=True)
+        tile = job.job_dir / "tiles" / "merge-tile-00000.npz"
+        finishing = asyncio.ensure_future(worldmap.finish(job, 0.0, time.monotonic()))
+        await made.wait()
+        async with asyncio.timeout(60):  # only against a hang (the map's process starts and imports first)
+            while not tile.exists():
+                await asyncio.sleep(0.02)
+            await asyncio.sleep(0.5)  # the outputs' run hands its result back
+        finishing.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await finishing
+        async with asyncio.timeout(10):
+            while tile.exists():
+                await asyncio.sleep(0.02)
+        assert not list((job.job_dir / "tiles").iterdir())
+    finally:
+        worldmap.close()
