@@ -14,6 +14,7 @@ output is written (``job_report.score_ground_truth``).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import logging
@@ -32,6 +33,7 @@ from tandemscan.config.loader import ConfigError
 from tandemscan.config.models import CellConfig
 from tandemscan.daemon.calibration.verify import verdict_context
 from tandemscan.daemon.store.part_results import HISTORY_FILE
+from tandemscan.pipeline.compute import backend_for
 from tandemscan.pipeline.geometry.frames import transform_points
 from tandemscan.pipeline.geometry.part import load_part_mesh
 from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionError
@@ -46,6 +48,7 @@ from tandemscan.pipeline.inspection.inspection_job import (
 )
 from tandemscan.pipeline.inspection.point_uncertainty import JobUncertainty, ScanCover
 from tandemscan.pipeline.inspection.report import InspectedPart, ReportFacts, StitchViews
+from tandemscan.pipeline.inspection.tile_inspection import TiledInspection
 from tandemscan.pipeline.io.export import ArrayBlocks, PointBlocks, PosedScan, write_e57, write_ply, write_pose_log
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan
 from tandemscan.pipeline.planning.coverage import CoverageFigures
@@ -244,13 +247,16 @@ def _inspection_section(job: JobSnapshot, report: Mapping, scans: list[PosedScan
         return {"skipped": reason, "files": files}
     T_F_W = np.asarray(job.T_F_W, float)
     points = len(job.worldmap)
-    step = -(-points // job.config.inspection.max_points)  # ceil: every step-th voxel (map key order)
+    tiled = isinstance(job.worldmap, TiledCloud)  # its figures from every point, tile by tile (TiledInspection)
+    limit = min(job.config.inspection.max_points, job.config.compute.report_points if tiled else points)
+    step = -(-points // limit)  # ceil: every step-th voxel (map key order)
     if step > 1:
-        log.info("inspecting every %d-th of the cloud's %d points ([inspection] max_points)", step, points)
+        log.info("inspecting every %d-th of the cloud's %d points (%s)", step, points,
+                 "[compute] report_points" if tiled else "[inspection] max_points")
     sample = _every_kth(job.worldmap, step)
     try:
-        out = _inspect(job, report, scans, sample.points_mm, sample.normals, T_F_W, tracker_poses, points,
-                       sample.counts)
+        with _whole_cloud(job) as whole:
+            out = _inspect(job, report, scans, sample, T_F_W, tracker_poses, points, whole)
     except (InspectionError, ConfigError) as e:  # the measurement stands; the report says why it has none
         log.warning("inspection failed: %s", e)
         return {"failed": str(e), "files": files}
@@ -259,17 +265,34 @@ def _inspection_section(job: JobSnapshot, report: Mapping, scans: list[PosedScan
     return out.data | {"T_F_W": out.data["alignment"]["T_F_W"], "T_F_W_anchor": T_F_W.tolist(), "files": files}
 
 
-def _inspect(job: JobSnapshot, report: Mapping, scans: list[PosedScan], cloud_W: np.ndarray,
-             normals_W: np.ndarray | None, T_F_W: np.ndarray, tracker_poses: Sequence[np.ndarray] | None,
-             cloud_points: int, counts: np.ndarray | None = None) -> InspectionOutputs:
-    """The inspection of the job's cloud (``cloud_W``: of its ``cloud_points`` points those inspected, each the
-    mean of ``counts`` scan points), aligned to the CAD from the anchor's ``T_F_W``, written into the job folder
-    with each point's uncertainty (:func:`job_uncertainty`); the stitch view shows the tracker-only stitch (Eq. 1)
-    and, where corrected, the final one.
+@contextlib.contextmanager
+def _whole_cloud(job: JobSnapshot) -> Iterator[TiledInspection | None]:
+    """Where the job's cloud is tiled (``tiles.TiledCloud``): its inspection tile by tile on the job's compute
+    backend (``tile_inspection.TiledInspection``), the backend closed after; else None."""
+    cloud = job.worldmap
+    if not isinstance(cloud, TiledCloud):
+        yield None
+        return
+    backend = backend_for(job.config.compute)
+    try:
+        yield TiledInspection(cloud.tiles, cloud.store, backend)
+    finally:
+        backend.close()
 
-    Nine parameters: the job and its report so far, the scans at their final poses and, where the correction
-    changed them, their tracker-stitched poses; the cloud as inspected (points, normals, counts) beside its full
-    size; and the anchor's ``T_F_W`` the alignment starts from."""
+
+def _inspect(job: JobSnapshot, report: Mapping, scans: list[PosedScan], sample: TilePoints, T_F_W: np.ndarray,
+             tracker_poses: Sequence[np.ndarray] | None, cloud_points: int, whole: TiledInspection | None
+             ) -> InspectionOutputs:
+    """The inspection of the job's cloud (``sample``: of its ``cloud_points`` points those inspected, W, mm, each
+    the mean of its ``counts`` scan points), aligned to the CAD from the anchor's ``T_F_W``, written into the job
+    folder with each point's uncertainty (:func:`job_uncertainty`); the stitch view shows the tracker-only stitch
+    (Eq. 1) and, where corrected, the final one. ``whole``: the tiled cloud ``sample`` is an even sample of, whose
+    deviation figures and PLY come from every point (``inspection_job.run_inspection``).
+
+    Eight parameters: the job and its report so far, the scans at their final poses and, where the correction
+    changed them, their tracker-stitched poses; the cloud as inspected beside its full size and, where tiled, the
+    whole of it; and the anchor's ``T_F_W`` the alignment starts from."""
+    cloud_W, counts = sample.points_mm, sample.counts
     job_dir = job.job_dir
     tracker_only = [s.T_W_S for s in scans] if tracker_poses is None else list(tracker_poses)
     view_S = [_thin(s.points_S_mm) for s in scans]
@@ -281,20 +304,29 @@ def _inspect(job: JobSnapshot, report: Mapping, scans: list[PosedScan], cloud_W:
     part = InspectedPart(CadSurface(mesh), template, part_labels(job.config, template, template_file),
                          _history(job_dir))
     settings = InspectionSettings.from_section(job.config.part_inspection(), template)
-    measured = Measurement(cloud_W, normals_W, job_uncertainty(job, scans, counts), StitchViews(before, after))
+    measured = Measurement(cloud_W, sample.normals, job_uncertainty(job, scans, counts), StitchViews(before, after))
     facts = ReportFacts(
         title=f"Inspection report, {job_dir.name}",
         meta={"job": job_dir.name, "plan": job.plan.name, "cell": job.config.name,
               "alignment to CAD": job.config.inspection.alignment,
-              "points": str(len(cloud_W)) if len(cloud_W) == cloud_points
-              else f"{len(cloud_W)} of the cloud's {cloud_points} ([inspection] max_points)"},
+              "points": _points_inspected(len(cloud_W), cloud_points, whole is not None)},
         accuracy=_accuracy(report),
         coverage=plan_coverage(job, mesh),
     )
     start = AlignmentStart(T_F_W, "W placed in F by the anchor reading (Eq. 5)", T_F_W,
                            np.array([s.T_W_S[:3, 3] for s in scans]))
     return align_and_inspect(measured, part, settings, ReportOutput(job_dir, facts, json_name=None), start,
-                             verdict_context(job.config))
+                             verdict_context(job.config), whole)
+
+
+def _points_inspected(sample: int, cloud: int, tiled: bool) -> str:
+    """report.html's "points": those inspected of the cloud's and the setting that bounds them."""
+    if sample == cloud:
+        return str(cloud)
+    if not tiled:
+        return f"{sample} of the cloud's {cloud} ([inspection] max_points)"
+    return (f"{sample} of the cloud's {cloud} for the areas, verdict, U and pictures ([compute] report_points); "
+            "every point for the deviation figures and cloud_deviation.ply")
 
 
 def plan_coverage(job: JobSnapshot, mesh: o3d.geometry.TriangleMesh | None = None) -> CoverageFigures:

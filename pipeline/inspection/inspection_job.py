@@ -48,6 +48,7 @@ from tandemscan.pipeline.inspection.report import (
     failed_report,
     write_report,
 )
+from tandemscan.pipeline.inspection.tile_inspection import TiledInspection, UncertaintyField
 from tandemscan.pipeline.inspection.verdict import VerdictContext, judge
 from tandemscan.pipeline.io.cloud_io import CloudIOError, read_ply, read_ply_vertices
 from tandemscan.pipeline.io.export import write_ply
@@ -128,13 +129,17 @@ class AlignmentStart:
 
 
 def run_inspection(measured: Measurement, part: InspectedPart, settings: InspectionSettings, output: ReportOutput,
-                   alignment: Alignment | None = None, context: VerdictContext | None = None) -> InspectionOutputs:
+                   alignment: Alignment | None = None, context: VerdictContext | None = None,
+                   whole: TiledInspection | None = None) -> InspectionOutputs:
     """Inspect ``measured`` (frame F) against ``part`` by ``settings`` and write the report and the deviation PLY
     into ``output.out_dir``. The PLY carries the cloud's normals when given, else the closest CAD normals.
     ``alignment`` says how the points were placed in F (None: they came in F); ``context``: the installation and
     verification the verdict is made in (``verdict.judge``). The part's template characteristics (those without
     limits of their own under the criteria's tolerance, the general one) are evaluated, reported first and written
-    as ``results.qif``."""
+    as ``results.qif``. ``whole``: the tiled cloud ``measured`` is an even sample of (its frame W placed in F as
+    ``alignment`` places the sample): the report's deviation figures (``as_measured``) are the whole cloud's and the
+    deviation PLY holds every point of it, tile by tile (``tile_inspection.TiledInspection``, each point with the U
+    of the sample's nearest); the areas, verdict, U and pictures are the sample's."""
     criteria = settings.criteria
     template = part.template
     if template is not None:
@@ -154,10 +159,14 @@ def run_inspection(measured: Measurement, part: InspectedPart, settings: Inspect
         u = dataclasses.replace(u, notes=u.notes | {"cloud": "the cloud states no uncertainty: U = 0"})
     result = judge(result, u, criteria, pose_context(placed, context or VerdictContext()))
     out_dir = Path(output.out_dir)
+    if whole is not None:  # the whole cloud's deviation figures and PLY, tile by tile
+        figures = whole.inspect(surface, placed.T_F_W, (criteria.tolerance_lower_mm, criteria.tolerance_upper_mm),
+                                UncertaintyField.of(result.points_mm, u.expanded_mm), out_dir / DEVIATION_PLY)
+        result = dataclasses.replace(result, stats=figures.stats, tolerance=figures.tolerance)
     with ThreadPoolExecutor(2, thread_name_prefix="inspection-outputs") as pool:  # beside the figures: the
         evaluated = None if template is None else pool.submit(  # characteristics and the file
             evaluate, template, measured_cloud(result, surface, u.expanded_mm), criteria.rule)
-        ply = pool.submit(
+        ply = None if whole is not None else pool.submit(
             write_ply,
             out_dir / DEVIATION_PLY,
             result.points_mm,
@@ -170,7 +179,8 @@ def run_inspection(measured: Measurement, part: InspectedPart, settings: Inspect
     characteristics = () if evaluated is None else evaluated.result()
     qif = None if template is None else write_results(
         out_dir / RESULTS_FILE, measured_part(template, part.labels), characteristics, result.points_mm)
-    return InspectionOutputs(result, report.data, html, js, ply.result(), characteristics, qif)
+    return InspectionOutputs(result, report.data, html, js, out_dir / DEVIATION_PLY if ply is None else ply.result(),
+                             characteristics, qif)
 
 
 def pose_context(alignment: Alignment, context: VerdictContext) -> VerdictContext:
@@ -200,13 +210,15 @@ def measured_cloud(result: InspectionResult, surface: CadSurface, expanded_mm: n
 
 def align_and_inspect(measured_W: Measurement, part: InspectedPart, settings: InspectionSettings,
                       output: ReportOutput, start: AlignmentStart = AlignmentStart(),
-                      context: VerdictContext | None = None) -> InspectionOutputs:
+                      context: VerdictContext | None = None, whole: TiledInspection | None = None
+                      ) -> InspectionOutputs:
     """Register a cloud measured in frame W (``measured_W``) to the CAD frame F by ``settings.alignment`` from
     ``start``, orient the CAD by the measured side (:func:`measured_side`: the start's scanner positions, else the
     cloud's normals), then inspect and write as :func:`run_inspection`. The points on reference spheres are left
     out of the inspection; the stitching views are mapped into F as well. A template aligned on datums
     (``part.template``) refines the fit on its datum patches (:func:`align_datums`). A failed alignment writes the
-    report of a failed inspection (verdict "indeterminate", the reason) and returns it without a result."""
+    report of a failed inspection (verdict "indeterminate", the reason) and returns it without a result.
+    ``whole``: the tiled cloud ``measured_W`` is an even sample of (:func:`run_inspection`)."""
     surface = part.surface
     p = as_points(measured_W.points_mm)
     # a rigid motion changes no overlap: computed in W while the cloud is aligned and inspected
@@ -242,7 +254,8 @@ def align_and_inspect(measured_W: Measurement, part: InspectedPart, settings: In
         None if views_W is None else StitchViews(
             PlacedScans(views_W.before, T), None if views_W.after is None else PlacedScans(views_W.after, T),
             views_W.overlap))
-    return run_inspection(measured_F, dataclasses.replace(part, surface=surface), settings, output, alignment, context)
+    return run_inspection(measured_F, dataclasses.replace(part, surface=surface), settings, output, alignment, context,
+                          whole)
 
 
 ORIENTATION_POINTS = 50_000  # measured points that vote for the side each patch of the CAD faces

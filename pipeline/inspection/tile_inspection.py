@@ -11,6 +11,12 @@ from those summaries (:func:`deviation_figures`): count, mean, sigma, RMS, extre
 rounding of their sums, the 5th and 95th percentiles exactly (a second pass reads back only the deviations in the
 histogram bins that hold those ranks). Equal to the untiled ``inspect.DeviationStats`` and ``ToleranceResult`` to
 1e-9 mm (``tests/pipeline/stitching/test_tiles.py``).
+
+A job's inspection of a tiled cloud (:class:`TiledInspection`, docs/compute.md "Tiles"): the alignment, the deviation
+areas, the verdict, the points' uncertainty U and the report's figures are those of an even sample of the cloud in
+the process that writes the report (``[compute] report_points``); the deviation figures of the whole cloud (count,
+mean, sigma, RMS, extremes, percentiles, tolerance shares) come from every point, tile by tile, and so does
+``cloud_deviation.ply``, each point with the U of the sample's nearest point (:class:`UncertaintyField`).
 """
 
 from __future__ import annotations
@@ -23,13 +29,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
 from tandemscan.pipeline.compute import ComputeBackend
 from tandemscan.pipeline.geometry.frames import rotate_vectors, transform_points
 from tandemscan.pipeline.geometry.part import read_cad_mesh
 from tandemscan.pipeline.inspection.inspect import CadSurface, DeviationStats, ToleranceResult, in_chunks
 from tandemscan.pipeline.io.durable import write_durably
 from tandemscan.pipeline.io.export import PlyChunk, write_ply_streamed
-from tandemscan.pipeline.stitching.tiles import TileCloud, read_tile
+from tandemscan.pipeline.stitching.tiles import TILES_FOLDER, TileCloud, read_tile
 
 #: the edges (mm) of the deviation histogram each tile returns (0.01 mm bins over +-20 mm, and one bin beyond each
 #: end): only a bin's count travels, the percentiles are found exactly from its values (:func:`deviation_figures`)
@@ -40,8 +48,10 @@ HISTOGRAM_EDGES_MM = np.linspace(-20.0, 20.0, 4001)
 class InspectTile:
     """One unit of the tiled inspection: the tile ``tile`` of the merged cloud in the scan store ``store``, placed
     in the CAD frame F by ``T_F_W`` (4x4, mm) and compared with the CAD mesh file ``mesh_file`` (F; its coordinates
-    in ``mesh_units``, read as the job reads its CAD, ``part.read_cad_mesh``: in mm, wound outward; its triangles
-    ``reversed`` wound the other way: ``CadSurface``), the tolerance band ``[lower_mm, upper_mm]``."""
+    in ``mesh_units``, read as the job reads its CAD, ``part.read_cad_mesh``: in mm, wound outward; or a ``.npz``
+    of the job's CAD as it took it, :func:`write_cad`; its triangles ``reversed`` wound the other way:
+    ``CadSurface``), the tolerance band ``[lower_mm, upper_mm]``; ``uncertainty``: the file of an
+    :class:`UncertaintyField` in the store whose nearest point's U each point takes ("": none)."""
 
     tile: TileCloud
     store: str
@@ -51,11 +61,12 @@ class InspectTile:
     upper_mm: float
     reversed: np.ndarray | None = None
     mesh_units: str = "mm"
+    uncertainty: str = ""
 
     def key(self) -> str:
         """The unit's name: everything its deviations depend on."""
         h = hashlib.blake2b(digest_size=16)
-        for text in (self.tile.file, self.mesh_file, self.mesh_units):
+        for text in (self.tile.file, self.mesh_file, self.mesh_units, self.uncertainty):
             h.update(text.encode())
         h.update(np.ascontiguousarray(self.T_F_W, np.float64).tobytes())
         h.update(np.array([self.lower_mm, self.upper_mm], np.float64).tobytes())
@@ -85,10 +96,17 @@ class TileDeviations:
 @functools.lru_cache(maxsize=2)
 def _surface(mesh_file: str, units: str, reversed_bits: bytes | None, triangles: int) -> CadSurface:
     """The CAD surface of ``mesh_file`` (coordinates in ``units``) as the job takes it (``part.read_cad_mesh``: mm,
-    wound outward), built once a worker process (the units of a job share it)."""
+    wound outward; a ``.npz``: the job's CAD as it took it, :func:`write_cad`), built once a worker process (the
+    units of a job share it)."""
     reversed = None if reversed_bits is None else np.unpackbits(
         np.frombuffer(reversed_bits, np.uint8), count=triangles).astype(bool)
-    return CadSurface(read_cad_mesh(mesh_file, units, "CAD mesh"), reversed)
+    if mesh_file.endswith(".npz"):
+        with np.load(mesh_file) as data:
+            mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(data["vertices_mm"]),
+                                             o3d.utility.Vector3iVector(data["triangles"]))
+    else:
+        mesh = read_cad_mesh(mesh_file, units, "CAD mesh")
+    return CadSurface(mesh, reversed)
 
 
 def _bins(deviations_mm: np.ndarray) -> np.ndarray:
@@ -97,8 +115,8 @@ def _bins(deviations_mm: np.ndarray) -> np.ndarray:
 
 
 def inspect_tile(unit: InspectTile) -> TileDeviations:
-    """The deviations of the unit's tile from the CAD, written to ``<store>/tiles/<unit key>.npz``, and their
-    summary."""
+    """The deviations of the unit's tile from the CAD (with each point's U where the unit names a field), written to
+    ``<store>/tiles/<unit key>.npz``, and their summary."""
     cloud = read_tile(unit.store, unit.tile)
     reversed = unit.reversed
     surface = _surface(unit.mesh_file, unit.mesh_units, None if reversed is None else np.packbits(reversed).tobytes(),
@@ -108,8 +126,10 @@ def inspect_tile(unit: InspectTile) -> TileDeviations:
     normals_F = in_chunks(rotate_vectors, T, cloud.normals)
     d = surface.closest(points_F).signed_mm if len(points_F) else np.empty(0)
     file = f"{Path(unit.tile.file).parent.as_posix()}/{unit.key()}.npz"
+    u = {} if not unit.uncertainty else {
+        "uncertainty_mm": _field(str(Path(unit.store) / unit.uncertainty)).at(points_F)}
     write_durably(Path(unit.store) / file, functools.partial(
-        _save, points_F=points_F, normals_F=normals_F, deviation_mm=d))
+        _save, points_F=points_F, normals_F=normals_F, deviation_mm=d, **u))
     n = len(d)
     mean = float(d.mean()) if n else 0.0
     return TileDeviations(
@@ -125,14 +145,15 @@ def _save(f, **arrays: np.ndarray) -> None:
 
 def inspect_tiles(tiles: Sequence[TileCloud], store: str | Path, mesh_file: str | Path, T_F_W: np.ndarray,
                   lower_mm: float, upper_mm: float, backend: ComputeBackend,
-                  reversed: np.ndarray | None = None, mesh_units: str = "mm") -> tuple[TileDeviations, ...]:
+                  reversed: np.ndarray | None = None, mesh_units: str = "mm", uncertainty: str = ""
+                  ) -> tuple[TileDeviations, ...]:
     """:func:`inspect_tile` of every tile on ``backend``, in the tiles' order (:class:`InspectTile` for the
     arguments).
 
-    Nine parameters: the tiles, where they and the mesh lie, the placement in F, the band, the CAD's orientation
-    and units (the fields of an :class:`InspectTile` unit) and the backend."""
+    Ten parameters: the tiles, where they and the mesh lie, the placement in F, the band, the CAD's orientation
+    and units and the field of U (the fields of an :class:`InspectTile` unit) and the backend."""
     units = [InspectTile(t, str(store), str(mesh_file), np.asarray(T_F_W, float), lower_mm, upper_mm, reversed,
-                         mesh_units) for t in tiles]
+                         mesh_units, uncertainty) for t in tiles]
     return tuple(backend.map(inspect_tile, units, [u.key() for u in units]))
 
 
@@ -142,15 +163,18 @@ def _read_deviations(store: str | Path, tile: TileDeviations, *names: str) -> li
 
 
 def _deviation_chunks(store: str | Path, tiles: Sequence[TileDeviations]) -> Iterator[PlyChunk]:
-    """The deviation PLY's vertices a tile at a time (F, mm: points, unit normals, ``deviation_mm``)."""
+    """The deviation PLY's vertices a tile at a time (F, mm: points, unit normals, ``deviation_mm`` and, where the
+    tiles have it, ``uncertainty_mm``)."""
     for tile in tiles:
-        points, normals, d = _read_deviations(store, tile, "points_F", "normals_F", "deviation_mm")
-        yield PlyChunk(points, normals, {"deviation_mm": d})
+        with np.load(Path(store) / tile.file) as data:
+            scalars = {name: data[name] for name in ("deviation_mm", "uncertainty_mm") if name in data.files}
+            yield PlyChunk(data["points_F"], data["normals_F"], scalars)
 
 
 def write_deviation_ply(path: Path, store: str | Path, tiles: Sequence[TileDeviations]) -> Path:
-    """The deviation PLY (F, mm: points, unit normals, ``deviation_mm``) streamed a tile at a time, the vertex
-    count known from the tiles' summaries."""
+    """The deviation PLY (F, mm: points, unit normals, ``deviation_mm``, with U ``uncertainty_mm`` where the tiles
+    were inspected with a field of it) streamed a tile at a time, the vertex count known from the tiles'
+    summaries."""
     return write_ply_streamed(path, sum(t.count for t in tiles), _deviation_chunks(store, tiles))
 
 
@@ -211,3 +235,97 @@ def _percentiles(store: str | Path, tiles: Sequence[TileDeviations], n: int, qs:
         lo, hi = order[math.floor(rank)], order[math.ceil(rank)]
         out.append(lo + (hi - lo) * (rank - math.floor(rank)))
     return out
+
+
+#: the report sample's points an :class:`UncertaintyField` keeps (an even thinning beyond it): U is smooth over the
+#: surface (its pose terms are evaluated at even centres, ``point_uncertainty.MAX_CENTRES``) and a worker holds
+#: the field whole
+FIELD_POINTS = 250_000
+
+
+@dataclass(frozen=True)
+class UncertaintyField:
+    """The expanded uncertainty U (mm) of the report sample's points ``points_F_mm`` (F, mm): each point of the tiles
+    takes its nearest one's (:meth:`at`). A thinning of the sample, so U's noise term is the sample's point's."""
+
+    points_F_mm: np.ndarray
+    expanded_mm: np.ndarray
+
+    @classmethod
+    def of(cls, points_F_mm: np.ndarray, expanded_mm: np.ndarray) -> UncertaintyField:
+        """Every k-th of the sample's points and their U, at most :data:`FIELD_POINTS`."""
+        step = max(1, -(-len(points_F_mm) // FIELD_POINTS))
+        return cls(np.asarray(points_F_mm, float)[::step], np.asarray(expanded_mm, float)[::step])
+
+    @functools.cached_property
+    def _tree(self) -> cKDTree:
+        return cKDTree(self.points_F_mm)
+
+    def at(self, points_F_mm: np.ndarray) -> np.ndarray:
+        """U of the field's nearest point to each of ``points_F_mm`` (F, mm)."""
+        if len(points_F_mm) == 0:
+            return np.empty(0)
+        return self.expanded_mm[self._tree.query(points_F_mm, workers=-1)[1]]
+
+    def write(self, store: str | Path) -> str:
+        """Write the field into the scan store's tiles folder under the digest of its arrays; the file relative to
+        ``store``."""
+        h = hashlib.blake2b(digest_size=16)
+        for a in (self.points_F_mm, self.expanded_mm):
+            h.update(np.ascontiguousarray(a, np.float64).tobytes())
+        file = f"{TILES_FOLDER}/uncertainty-{h.hexdigest()}.npz"
+        write_durably(Path(store) / file, functools.partial(
+            _save, points_F_mm=self.points_F_mm, expanded_mm=self.expanded_mm))
+        return file
+
+
+@functools.lru_cache(maxsize=1)
+def _field(path: str) -> UncertaintyField:
+    """The field in ``path``, read once a worker process (the units of a job share it)."""
+    with np.load(path) as data:
+        return UncertaintyField(data["points_F_mm"], data["expanded_mm"])
+
+
+def write_cad(store: str | Path, surface: CadSurface) -> str:
+    """The CAD mesh of ``surface`` (F, mm: vertices float64 and triangles as the job took them, before its
+    ``reversed``) into the scan store's tiles folder under its digest, for the units to read to the bit; the file
+    relative to ``store``."""
+    vertices = np.asarray(surface.mesh.vertices, np.float64)
+    triangles = np.asarray(surface.mesh.triangles, np.int64)
+    h = hashlib.blake2b(digest_size=16)
+    for a in (vertices, triangles):
+        h.update(np.ascontiguousarray(a).tobytes())
+    file = f"{TILES_FOLDER}/cad-{h.hexdigest()}.npz"
+    write_durably(Path(store) / file, functools.partial(_save, vertices_mm=vertices, triangles=triangles))
+    return file
+
+
+@dataclass(frozen=True)
+class TiledInspection:
+    """A job's cloud merged by tiles (``tiles.TiledCloud``'s ``tiles`` in the scan store ``store``) as the inspection
+    takes it beside the report's sample (module doc): :meth:`inspect` runs on ``backend``."""
+
+    tiles: tuple[TileCloud, ...]
+    store: str
+    backend: ComputeBackend
+
+    def inspect(self, surface: CadSurface, T_F_W: np.ndarray, band_mm: tuple[float, float],
+                uncertainty: UncertaintyField | None, ply: Path) -> DeviationFigures:
+        """Every tile placed in F by ``T_F_W`` (4x4, mm) and compared with ``surface`` (the CAD as the inspection
+        oriented it: its ``reversed`` triangles) on the backend, each point with the U of ``uncertainty``'s nearest
+        (None: no U): the deviation figures of the whole cloud in the band ``band_mm`` (lower, upper, mm) and
+        ``ply``, the deviation PLY, streamed; the units' files removed after."""
+        lower, upper = band_mm
+        cad = write_cad(self.store, surface)
+        field = "" if uncertainty is None else uncertainty.write(self.store)
+        inspected: tuple[TileDeviations, ...] = ()
+        try:
+            inspected = inspect_tiles(self.tiles, self.store, Path(self.store) / cad, T_F_W, lower, upper,
+                                      self.backend, surface.reversed, "mm", field)
+            figures = deviation_figures(self.store, inspected, lower, upper)
+            write_deviation_ply(ply, self.store, inspected)
+        finally:
+            for file in (cad, field, *(t.file for t in inspected)):
+                if file:
+                    (Path(self.store) / file).unlink(missing_ok=True)
+        return figures
