@@ -18,7 +18,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Mapping, MutableMapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from pathlib import Path
 
 import numpy as np
 from tandemscan.pipeline.compute import ComputeBackend, LocalBackend
@@ -31,7 +31,9 @@ from tandemscan.pipeline.registration.joint import (
     JointResult,
     JointScan,
     JointSettings,
+    StoredJointScan,
     chain_covariance,
+    loaded_scan,
     refine_jointly,
 )
 from tandemscan.pipeline.registration.mount_unknown import MountEstimate, MountPrior
@@ -332,10 +334,11 @@ class ScanSummary:
 @dataclass(frozen=True)
 class ReadScan:
     """A scan summarised where it was read (:func:`summarise_scan`): its :class:`ScanSummary` and, where asked for,
-    the scan prepared for the joint refinement (:func:`joint_scan`, else None): all the correction needs of it."""
+    the scan prepared for the joint refinement (:func:`joint_scan`; read from the scan store, kept there:
+    ``joint.StoredJointScan``; else None): all the correction needs of it."""
 
     summary: ScanSummary
-    joint: JointScan | None
+    joint: JointScan | StoredJointScan | None
 
 
 def summarise_scan(points_S: np.ndarray, T_W_S: np.ndarray, voxel_mm: float, cfg: CorrectionSettings,
@@ -352,33 +355,37 @@ def summarise_scan(points_S: np.ndarray, T_W_S: np.ndarray, voxel_mm: float, cfg
     return ReadScan(summary, joint_scan(points_S, cfg.joint_voxel_mm) if joint else None)
 
 
+#: the folder of the scan store that holds the scans prepared for the joint refinement while it runs
+#: (:func:`summarise_stored_scan`), each file named by its contents (:func:`joint_scan_key`)
+JOINT_FOLDER = "joint"
+
+
 def summarise_stored_scan(ref: ScanRef, store: StoredScans, cfg: CorrectionSettings, digest: bool, joint: bool
                           ) -> ReadScan:
-    """:func:`summarise_scan` of a scan read from the scan store (a backend unit: where the scan is read)."""
-    return summarise_scan(store.loaded(ref), ref.T_W_S, store.voxel_mm, cfg, digest, joint)
-
-
-def _summary_of(_: ScanRef, read: ReadScan) -> ScanSummary:
-    """The summary of a scan summarised on the backend (a unit of :func:`_summaries`)."""
-    return read.summary
-
-
-def _joint_of(_: ScanRef, read: ReadScan) -> JointScan | None:
-    """The scan prepared for the joint refinement of a scan summarised on the backend (a unit of :func:`_summaries`,
-    its result left there)."""
-    return read.joint
+    """:func:`summarise_scan` of a scan read from the scan store (a backend unit: where the scan is read); with
+    ``joint`` the scan prepared for the joint refinement is written to the store (:data:`JOINT_FOLDER`) and its
+    reference returned (``joint.StoredJointScan``, read by each unit that takes it: no worker holds it between
+    them)."""
+    read = summarise_scan(store.loaded(ref), ref.T_W_S, store.voxel_mm, cfg, digest, joint)
+    if read.joint is None:
+        return read
+    key = read.summary.joint_key
+    return ReadScan(read.summary, StoredJointScan.write(read.joint, Path(store.store) / JOINT_FOLDER / f"{key}.npz",
+                                                        key))
 
 
 def _summaries(job: StitchedJob, cfg: CorrectionSettings, digest: bool, backend: ComputeBackend,
-               scan_store: str | None) -> tuple[list[ScanSummary], list[Any], list[np.ndarray | None]]:
+               scan_store: str | None
+               ) -> tuple[list[ScanSummary], list[StoredJointScan | None], list[np.ndarray | None]]:
     """:func:`summarise_scan` of every scan of ``job``: from its points where it holds them, else read from
     ``scan_store`` by a unit on ``backend``; the summaries, per scan the scan prepared for the joint refinement
-    with ``cfg.joint`` where it was read on the backend, left there (its handle, ``ComputeBackend.keep``: on a Dask
-    cluster this process never holds it), else None, and per scan its points thinned to the job's voxel (S, mm)
-    where it holds them (thinned once: for the summary and for the pairs and the overlap RMS), else None."""
+    with ``cfg.joint`` where it was read on the backend, kept in the store (``joint.StoredJointScan``: on a Dask
+    cluster neither this process nor a worker holds it), else None, and per scan its points thinned to the job's
+    voxel (S, mm) where it holds them (thinned once: for the summary and for the pairs and the overlap RMS), else
+    None."""
     scans = job.scans
     out: list[ScanSummary | None] = [None] * len(scans)
-    joints: list[Any] = [None] * len(scans)
+    joints: list[StoredJointScan | None] = [None] * len(scans)
     thinned: list[np.ndarray | None] = [None] * len(scans)
     held = [k for k, s in enumerate(scans) if s.points_S is not None]
 
@@ -397,14 +404,8 @@ def _summaries(job: StitchedJob, cfg: CorrectionSettings, digest: bool, backend:
         fn = functools.partial(summarise_stored_scan, store=StoredScans(scan_store, job.voxel_mm), cfg=cfg,
                                digest=digest, joint=cfg.joint)
         keys = [f"summary-{_unit_digest(ref, job.voxel_mm, cfg, digest)}" for ref in refs]
-        reads = [(r,) for r in backend.keep(fn, refs, keys)]
-        for k, summary in zip(stored, backend.map(_summary_of, refs, [f"{key}-summary" for key in keys], reads),
-                              strict=True):
-            out[k] = summary
-        if cfg.joint:
-            for k, joint in zip(stored, backend.keep(_joint_of, refs, [f"{key}-joint" for key in keys], reads),
-                                strict=True):
-                joints[k] = joint
+        for k, read in zip(stored, backend.map(fn, refs, keys), strict=True):
+            out[k], joints[k] = read.summary, read.joint
     return out, joints, thinned
 
 
@@ -584,8 +585,12 @@ def correct_scans(
     priors = [ScanPrior(s.T_W_S, s.covariance, s.station) for s in scans]
     joint, graph_figures = None, {}
     if cfg.joint:
-        joint, associated_while_measuring = _refine_jointly(job, priors, cfg, summaries, prepared,
-                                                            online.joint_scans, online.associations, backend)
+        stored = [j for j in prepared if j is not None]
+        try:
+            joint, associated_while_measuring = _refine_jointly(job, priors, cfg, summaries, prepared,
+                                                                online.joint_scans, online.associations, backend)
+        finally:
+            _remove_stored(stored)
         clock.lap("joint_s")
         poses, mount = joint.poses, joint.mount
     else:
@@ -622,24 +627,37 @@ def correct_scans(
              len(edges), len(pending), rms_b, rms_a)
     # the joint refinement's posterior of the scans' errors; the pose graph's is not formed: the chain's prior
     covariance = joint.pose_covariance if joint is not None else chain_covariance(priors, transfers, mount_prior)
+    backend.trim()   # the next stage (the tiled merge) starts from what the workers hold, not from this one's peak
     return CorrectionResult(poses, edges, report, mount, covariance, tuple(m.reach for m in summaries), checks)
 
 
-def _joint_cells(unit: tuple[np.ndarray, float], scan: JointScan) -> np.ndarray:
+def _joint_cells(unit: tuple[np.ndarray, float], scan: JointScan | StoredJointScan) -> np.ndarray:
     """The grid cells (``overlap.occupied_cells``, W) of a scan prepared for the joint refinement at its tracker pose:
     ``unit`` is that pose ``T_W_S`` and the cell (mm) (a unit of :func:`_refine_jointly`)."""
     T_W_S, cell_mm = unit
-    return occupied_cells(transform_points(T_W_S, scan.points_S), cell_mm)
+    return occupied_cells(transform_points(T_W_S, loaded_scan(scan).points_S), cell_mm)
+
+
+def _remove_stored(scans: Sequence[StoredJointScan]) -> None:
+    """Remove the files of the scans the joint refinement read from the scan store (:func:`summarise_stored_scan`),
+    and their folder once it is empty."""
+    for scan in scans:
+        scan.remove()
+    if scans:
+        try:
+            Path(scans[0].path).parent.rmdir()
+        except OSError:   # another job's scans are still there, or it is gone
+            pass
 
 
 def _refine_jointly(job: StitchedJob, priors: list[ScanPrior], cfg: CorrectionSettings,
-                    summaries: Sequence[ScanSummary], prepared: list[Any],
+                    summaries: Sequence[ScanSummary], prepared: list[StoredJointScan | None],
                     cache: MutableMapping[str, JointScan], associations: Mapping[str, Association],
                     backend: ComputeBackend) -> tuple[JointResult, int]:
     """The joint refinement (``joint.refine_jointly``, its per-pair work on ``backend``) from the tracker poses (its
     correspondences are found there, not at the pose graph's, which are fitted to the same scans: ``joint`` module
     doc), on scans thinned to ``cfg.joint_voxel_mm`` (:func:`joint_scan`: ``prepared`` where read with the scans'
-    ``summaries``, the backend's handles of them, each taken out as the refinement takes it, else taken out of
+    ``summaries``, kept in the scan store (``joint.StoredJointScan``: each unit reads those it takes), else taken out of
     ``cache`` where prepared while the job measured, else prepared here; those this process holds are handed to the
     backend, ``ComputeBackend.put``), over every pair sharing a grid cell (``cfg.joint_max_partners_per_scan``),
     with the pairs' nearest neighbours from ``associations`` where found while the job measured. Returns it and
@@ -650,7 +668,7 @@ def _refine_jointly(job: StitchedJob, priors: list[ScanPrior], cfg: CorrectionSe
     scans = job.scans
     keys = [m.joint_key for m in summaries]
 
-    def taken(k: int) -> Any:
+    def taken(k: int) -> JointScan | StoredJointScan:
         found, prepared[k] = prepared[k], None
         if found is None and cache:
             found = cache.pop(keys[k], None)

@@ -50,9 +50,12 @@ import functools
 import hashlib
 import logging
 import math
+import os
 import pickle
+import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -134,6 +137,45 @@ class JointScan:
     def counts_at(self, indices: np.ndarray) -> np.ndarray | None:
         """``counts`` of the points at ``indices`` (None where the scan has none: one each)."""
         return None if self.counts is None else self.counts[indices]
+
+
+@dataclass(frozen=True)
+class StoredJointScan:
+    """A :class:`JointScan` kept in a file of the job's scan store (``path``, written once where its scan was read:
+    :meth:`write`) and read by each unit that takes it (:func:`loaded_scan`): on a Dask cluster no worker holds the
+    scans between the refinement's units, so that a worker's memory is bounded by a unit's, not by its share of the
+    part (docs/compute.md). ``key`` names its contents (``correction.joint_scan_key``)."""
+
+    path: str
+    key: str
+
+    @classmethod
+    def write(cls, scan: JointScan, path: Path, key: str) -> StoredJointScan:
+        """``scan`` written to ``path`` (uncompressed npz; through a temporary file, so that a unit run twice, or
+        two scans of the same points, never leave a partial file)."""
+        path.parent.mkdir(parents=True, exist_ok=True)
+        arrays = {"points_S": scan.points_S, "normals_S": scan.normals_S}
+        if scan.counts is not None:
+            arrays["counts"] = scan.counts
+        tmp = path.with_name(f"{path.name}.{os.getpid()}-{threading.get_ident()}.tmp")
+        with open(tmp, "wb") as f:
+            np.savez(f, **arrays)
+        os.replace(tmp, path)
+        return cls(str(path), key)
+
+    def read(self) -> JointScan:
+        """The scan, as it was written (the same bits)."""
+        with np.load(self.path) as data:
+            return JointScan(data["points_S"], data["normals_S"], data["counts"] if "counts" in data else None)
+
+    def remove(self) -> None:
+        """Remove its file (once the refinement is done)."""
+        Path(self.path).unlink(missing_ok=True)
+
+
+def loaded_scan(scan: JointScan | StoredJointScan) -> JointScan:
+    """The scan a unit takes: read where it is a :class:`StoredJointScan`."""
+    return scan.read() if isinstance(scan, StoredJointScan) else scan
 
 
 @dataclass(frozen=True)
@@ -407,6 +449,11 @@ class _PairPoses:
         ends = (pair.i, pair.j)
         return cls(pair, {k: poses[k] for k in ends}, None if origins is None else {k: origins[k] for k in ends})
 
+    def scans(self, target: JointScan | StoredJointScan, source: JointScan | StoredJointScan
+              ) -> dict[int, JointScan]:
+        """The pair's two scans by index, as :class:`_Pair` takes them (a stored one read, :func:`loaded_scan`)."""
+        return {self.pair.i: loaded_scan(target), self.pair.j: loaded_scan(source)}
+
 
 class _PairWork:
     """The refinement's per-pair work as units on a compute backend (``pipeline.compute``): the scans (``scans``, the
@@ -498,34 +545,40 @@ def noise_shares(covering: np.ndarray) -> np.ndarray:
     return 2.0 / np.maximum(covering, 2.0)
 
 
-def _covering(sources: Sequence[bool], scan: JointScan, *matches: _Match) -> np.ndarray:
-    """How many scans cover each point of ``scan`` (its own and every other it has a correspondence with): one, and
-    one more for each of ``matches`` (its pairs' matches, in pair order) where the point is a source point of it
-    (``sources``) or, once, a target point (a unit of :func:`_with_shares`)."""
-    covered = np.ones(len(scan.points_S))
-    for source, m in zip(sources, matches, strict=True):
-        if source:
-            covered[m.source] += 1.0
-        else:
-            covered += np.bincount(m.target, minlength=len(covered)) > 0   # each target point once
-    return covered
+def _covered(_: _Pair, m: _Match) -> tuple[np.ndarray, np.ndarray]:
+    """A unit of :func:`_with_shares`: the points a pair's correspondences ``m`` cover in its source scan and in its
+    target scan (indices, each once: a source point has one correspondence, a target point may have several)."""
+    return m.source, np.unique(m.target)
+
+
+def _covering(sources: Sequence[bool], scan: JointScan | StoredJointScan,
+              *covered: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """How many scans cover each point of ``scan`` (its own and every other it has a correspondence with; uint16):
+    one, and one more for each of its pairs (in pair order) whose correspondences cover the point (``covered``,
+    :func:`_covered`), as their source scan or their target scan (``sources``; a unit of :func:`_with_shares`)."""
+    count = np.ones(len(loaded_scan(scan).points_S), np.uint16)
+    for source, (in_source, in_target) in zip(sources, covered, strict=True):
+        count[in_source if source else in_target] += 1
+    return count
 
 
 def _shared(_: _Pair, m: _Match, covered_i: np.ndarray, covered_j: np.ndarray) -> _Match:
     """``m`` with its covering count: the larger of its source's and its target's (:func:`_covering`)."""
-    return dataclasses.replace(m, covering=np.maximum(covered_j[m.source], covered_i[m.target]).astype(np.uint16))
+    return dataclasses.replace(m, covering=np.maximum(covered_j[m.source], covered_i[m.target]))
 
 
 def _with_shares(work: _PairWork, associated: list[_Held]) -> list[_Held]:
     """``associated`` with each correspondence's :func:`noise_shares`, ``k`` the larger of its source's and its
-    target's count of scans (its own and every other it has a correspondence with), counted a scan a unit."""
+    target's count of scans (its own and every other it has a correspondence with), counted a scan a unit from the
+    points each pair covers (:func:`_covered`: the matches stay where they are)."""
+    covers = work.keep("covered", _covered, [p for p, _, _ in associated], [(m,) for _, m, _ in associated])
     roles: dict[int, list[tuple[bool, object]]] = {}
-    for p, m, _ in associated:
-        roles.setdefault(p.j, []).append((True, m))
-        roles.setdefault(p.i, []).append((False, m))
+    for (p, _, _), c in zip(associated, covers, strict=True):
+        roles.setdefault(p.j, []).append((True, c))
+        roles.setdefault(p.i, []).append((False, c))
     scans = sorted(roles)
     covered = dict(zip(scans, work.keep("covering", _covering, [[r for r, _ in roles[k]] for k in scans],
-                                        [(work.scans[k], *(m for _, m in roles[k])) for k in scans]), strict=True))
+                                        [(work.scans[k], *(c for _, c in roles[k])) for k in scans]), strict=True))
     shared = work.keep("shared", _shared, [p for p, _, _ in associated],
                        [(m, covered[p.i], covered[p.j]) for p, m, _ in associated])
     return [(p, m, size) for (p, _, size), m in zip(associated, shared, strict=True)]
@@ -540,7 +593,7 @@ def _huber(r: np.ndarray, threshold_mm: float) -> np.ndarray:
 def _unit_system(u: _PairPoses, m: _Match, target: JointScan, source: JointScan) -> tuple[np.ndarray, np.ndarray]:
     """A unit of :func:`_residuals_at`: the pair's normal equations ``(K, g)`` at its poses (where ``m``'s residuals
     were found), each residual weighted by its relative variance alone."""
-    K, g, _ = u.pair.normal_equations({u.pair.i: target, u.pair.j: source}, u.poses, u.origins, m, 1.0 / m.variance,
+    K, g, _ = u.pair.normal_equations(u.scans(target, source), u.poses, u.origins, m, 1.0 / m.variance,
                                       np.ones(len(m.variance)))
     return K, g
 
@@ -738,17 +791,19 @@ def _nearest(target: JointScan, tree: cKDTree, source: JointScan, T_S_i_S_j: np.
 
 
 def _tree(_: int, scan: JointScan) -> cKDTree:
-    """:func:`joint_tree` as a unit of :func:`_associate`."""
+    """:func:`joint_tree` as a unit of :func:`_associate` (a scan held on the backend, not a stored one)."""
     return joint_tree(scan)
 
 
 def _near(u: _PairPoses, target: JointScan, source: JointScan, tree: cKDTree | None, given: Association | None,
           max_mm: float) -> _Match | None:
-    """A unit of :func:`_associate`: the pair's correspondences at its poses (None where it has none)."""
-    p, scans = u.pair, {u.pair.i: target, u.pair.j: source}
+    """A unit of :func:`_associate`: the pair's correspondences at its poses (None where it has none); the target's
+    KD-tree built here where ``tree`` is None (a stored scan's)."""
+    p, scans = u.pair, u.scans(target, source)
+    target, source = scans[p.i], scans[p.j]
     rel = invert(u.poses[p.i]) @ u.poses[p.j]
     if given is None:
-        given, x = _nearest(target, tree, source, rel, max_mm)
+        given, x = _nearest(target, joint_tree(target) if tree is None else tree, source, rel, max_mm)
     else:
         x = transform_points(rel, source.points_S[given.source])
     return p.matched(scans, rel, x, given.target, given.source) if len(given.source) else None
@@ -765,12 +820,14 @@ def _associate(work: _PairWork, poses: np.ndarray, pairs: Sequence[tuple[int, in
     (:func:`associate`; taken from ``given`` where the pair is there), where their normals agree; pairs without
     any are left out; their noise shares are those of one pair alone (the caller counts them over all pairs,
     :func:`_with_shares`). ``trees``: the handles of the target scans' KD-trees built so far (those missing are
-    added)."""
-    missing = sorted({i for i, j in pairs if (i, j) not in given} - trees.keys())
+    added; a stored scan's, :class:`StoredJointScan`, is built in each unit instead: kept, it would stay on a worker
+    for the whole refinement)."""
+    missing = sorted({i for i, j in pairs if (i, j) not in given and not isinstance(work.scans[i], StoredJointScan)}
+                     - trees.keys())
     trees.update(zip(missing, work.keep("tree", _tree, missing, [(work.scans[i],) for i in missing]), strict=True))
     units = [_PairPoses.of(_Pair(i, j), poses) for i, j in pairs]
     found = work.keep("near", functools.partial(_near, max_mm=max_mm), units,
-                      [(work.scans[i], work.scans[j], None if (i, j) in given else trees[i], given.get((i, j)))
+                      [(work.scans[i], work.scans[j], None if (i, j) in given else trees.get(i), given.get((i, j)))
                        for i, j in pairs])
     sizes = work.map("size", _size, [u.pair for u in units], [(m,) for m in found])
     return [(u.pair, m, size) for u, m, size in zip(units, found, sizes, strict=True) if size >= 0]
@@ -794,12 +851,12 @@ def _moved_beyond(scans: Sequence[JointScan], poses: np.ndarray, p: _Pair, m: _M
 
 def _moved(u: _PairPoses, m: _Match, source: JointScan, limit_mm: float) -> bool:
     """:func:`_moved_beyond` as a unit of :func:`_reassociated`."""
-    return _moved_beyond({u.pair.j: source}, u.poses, u.pair, m, limit_mm)
+    return _moved_beyond({u.pair.j: loaded_scan(source)}, u.poses, u.pair, m, limit_mm)
 
 
 def _at(u: _PairPoses, m: _Match, target: JointScan, source: JointScan) -> _Match:
     """:meth:`_Pair.at` as a unit of :func:`_reassociated`."""
-    return u.pair.at({u.pair.i: target, u.pair.j: source}, u.poses, m)
+    return u.pair.at(u.scans(target, source), u.poses, m)
 
 
 def _reassociated(work: _PairWork, poses: np.ndarray, associated: list[_Held], settings: JointSettings,
@@ -1015,7 +1072,7 @@ def _system(u: _PairPoses, m: _Match, target: JointScan, source: JointScan, sigm
     """A unit of :func:`_data_system`: the pair's ``(H, b, N)`` (:meth:`_Pair.normal_equations`)."""
     huber = _huber(m.residual, huber_mm)
     weights = _information(m, huber, sigma)
-    return u.pair.normal_equations({u.pair.i: target, u.pair.j: source}, u.poses, u.origins, m, weights, huber)
+    return u.pair.normal_equations(u.scans(target, source), u.poses, u.origins, m, weights, huber)
 
 
 def _data_system(model: _Model, work: _PairWork, poses: np.ndarray, kept: Sequence[_Held], sigma: float,

@@ -29,7 +29,7 @@ from tandemscan.pipeline.registration.correction import (
     StitchedScan,
     correct_scans,
 )
-from tandemscan.pipeline.registration.joint import JointScan, _Match
+from tandemscan.pipeline.registration.joint import JointScan, StoredJointScan, _Match
 from tandemscan.pipeline.registration.pairs import LazyNetwork
 from tandemscan.pipeline.stitching.tiles import merge_tiles
 
@@ -109,7 +109,20 @@ class _Watched(DaskBackend):
     def map(self, fn, units, keys, inputs=None):
         out = super().map(fn, units, keys, inputs)
         self.returned |= {type(x) for r in out for x in (r if isinstance(r, tuple) else (r,))}
+        self.returned |= {type(r.joint) for r in out if isinstance(r, ReadScan)}
         return out
+
+
+def _held_by_workers(backend: DaskBackend) -> dict[str, list[str]]:
+    """The keys the workers still hold, once the releases sent to them have arrived (within 10 s)."""
+    deadline = time.monotonic() + 10
+    while True:
+        # a lambda: pickled by value (this module is not importable on the workers)
+        held = {w: keys for w, keys in backend.client.run(lambda dask_worker: sorted(map(str, dask_worker.data))
+                                                          ).items() if keys}
+        if not held or time.monotonic() > deadline:
+            return held
+        time.sleep(0.1)
 
 
 def test_the_pair_stage_on_two_dask_workers_gives_the_local_result(cluster, tmp_path):
@@ -131,6 +144,9 @@ def test_the_pair_stage_on_two_dask_workers_gives_the_local_result(cluster, tmp_
         unheld = [dataclasses.replace(s, points_S=None) for s in scans]
         remote_joint = correct_scans(StitchedJob(unheld, transfers, voxel_mm=VOXEL_MM), JOINT, network,
                                      backend=backend, scan_store=str(tmp_path))
+        # the correction returned: nothing of it is left on the workers, nor its joint scans in the store
+        assert _held_by_workers(backend) == {}
+        assert not (tmp_path / "joint").exists()
     finally:
         backend.close()
     _same(local, remote)
@@ -142,10 +158,12 @@ def test_the_pair_stage_on_two_dask_workers_gives_the_local_result(cluster, tmp_
     assert [(a.x_min_mm, a.x_max_mm, a.reach_mm) for a in local_joint.reaches] == [
         (b.x_min_mm, b.x_max_mm, b.reach_mm) for b in remote_joint.reaches]
     assert len({task["worker"] for task in stream.data}) == 2  # both workers registered pairs
-    # the joint refinement's scans and its pairs' correspondences stayed on the workers: its per-pair units ran
-    # there and handed this process only sizes, residuals and normal equations
-    assert any(k.startswith("joint-near-") for k in backend.keys) and any(k.endswith("-joint") for k in backend.keys)
-    assert not backend.returned & {JointScan, _Match, ReadScan}
+    # the joint refinement's scans stayed in the store (each unit read those it took) and its pairs'
+    # correspondences on the workers: its per-pair units ran there and handed this process only sizes, residuals
+    # and normal equations
+    assert any(k.startswith("joint-near-") for k in backend.keys)
+    assert StoredJointScan in backend.returned
+    assert not backend.returned & {JointScan, _Match}
     assert np.ndarray in backend.returned
 
 
