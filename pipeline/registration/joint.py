@@ -955,7 +955,7 @@ def _refine(work: _PairWork, model: _Model, pairs: Sequence[tuple[int, int]], st
             break
     final, unit_systems = _residuals_at(work, poses, model.origins, kept)
     kept_pairs = [p for p, _, _ in kept]
-    kept = []                              # the matches are not needed any more (the whole part's: about 0.3 GB)
+    kept = associated = []                 # the matches are not needed any more: released (whole part: ~0.3 GB)
     rms_after = final.rms_mm
     noise_sigma = settings.sigma_mm or final.whitened_sigma_mm
     H_inv = np.linalg.inv(H_theta.toarray())        # the last linearisation's normal matrix, inverted

@@ -185,9 +185,13 @@ def _save_cloud(f, **arrays: np.ndarray) -> None:
 def merge_tiles(scans: Sequence[TileScan], voxel_mm: float, tile_mm: float, store: str | Path,
                 backend: ComputeBackend) -> tuple[TileCloud, ...]:
     """The job's cloud merged tile by tile on ``backend`` (:func:`merge_tile` a unit of slabs about ``tile_mm``
-    wide; W, mm), in x order: the tiles' clouds one after the other are the untiled cloud (module doc)."""
+    wide; W, mm), in x order: the tiles' clouds one after the other are the untiled cloud (module doc). The heap the
+    tiles' voxels took is handed back once they are written (``ComputeBackend.trim``), so that the next stage starts
+    from what the workers hold, not from the largest tile's peak."""
     units = tile_units(scans, TileGrid.over(scans, voxel_mm, tile_mm), str(store))
-    return tuple(backend.map(merge_tile, units, [u.key() for u in units]))
+    merged = tuple(backend.map(merge_tile, units, [u.key() for u in units]))
+    backend.trim()
+    return merged
 
 
 @dataclass(frozen=True)
