@@ -61,6 +61,11 @@ class SharedBlock:
         """Map the block; this process owns it from now on."""
         return _attach(self.name, self.shape, self.dtype, True)
 
+    def borrow(self) -> np.ndarray:
+        """Map the block without owning it: the process that handed it on removes it (:meth:`discard`) once every
+        process it went to is done with it."""
+        return _attach(self.name, self.shape, self.dtype, False)
+
     def discard(self) -> None:
         """Remove the block without mapping it: a hand-over passed on to a process that has taken it or never
         will (its task done, failed or cancelled); nothing where it is gone already."""

@@ -15,7 +15,8 @@ never pickled by value. :class:`LocalWorldMap` (``tandemscan measure``) does the
 
 Both register each scan's overlapping pairs as it arrives when given the job's ``[correction]`` settings
 (:class:`PairWorker`: a second process at the map's priority, so both cores work and the event loop stays
-free; ``pipeline.registration.online_pairs``), handing it the scan's thinned copy (through shared memory from the
+free, and with the joint refinement a third beside it that prepares the scans for it;
+``pipeline.registration.online_pairs``), handing them the scan's thinned copy (through shared memory from the
 map's process, :mod:`tandemscan.drivers.shared_array`), not its file; :meth:`pair_outcomes` hands their outcomes to
 the correction after the last scan.
 """
@@ -23,20 +24,21 @@ the correction after the last scan.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import functools
 import logging
 import multiprocessing
 import time
 import uuid
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from tandemscan.config.models import CorrectionConfig
 from tandemscan.daemon.jobs.snapshot import JobSnapshot
-from tandemscan.drivers.shared_array import SharedBlock, hand_over, share, take
+from tandemscan.drivers.shared_array import SharedBlock, hand_over, share
 from tandemscan.drivers.worker import init_worker, stop_pool, yield_cores
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, thin_scan, write_raw_scan
 from tandemscan.pipeline.stitching.worldmap import VoxelMap
@@ -48,10 +50,11 @@ log = logging.getLogger(__name__)
 _MAP: VoxelMap | None = None  # the worker's map
 _COPIES: dict[str, np.ndarray] = {}  # the worker's scans thinned at the map's voxel as they were merged, by file
 _PAIRS: Any = None  # the pair worker's OnlinePairs
-#: niceness the pair worker adds once the job has measured (:func:`_joint_outcomes`): its check pairs run on the
+_JOINT: Any = None  # the joint worker's OnlineJoint (PairWorker)
+#: niceness the pair worker adds once the job has measured (:func:`_pairs_so_far`): its check pairs run on the
 #: cores the end of the job leaves free, and on all once only they are left
 CHECKS_NICENESS = 10
-_MEASURED: Any = None  # the pair worker's event set once the job has measured its last scan (PairWorker)
+_MEASURED: Any = None  # the joint worker's event set once the job has measured its last scan (PairWorker)
 _LOADED: dict[str, Any] = {}  # where the map lives: finishing jobs' scans read ahead (finish.LoadedScans)
 _OUTPUTS: dict[str, Any] = {}  # where the map lives: finishing jobs' outputs until their report (finish.JobOutputs)
 
@@ -99,30 +102,51 @@ def _run(fn: Callable[..., Any], job: JobSnapshot, args: tuple) -> tuple[Any, in
     return out, len(_MAP)
 
 
+def _lent(points: SharedBlock | np.ndarray) -> np.ndarray:
+    """A scan's copy handed to a worker (:meth:`PairWorker.submit`): the block mapped (the submitter removes it once
+    every worker it went to is done with it), or the array itself."""
+    return points.borrow() if isinstance(points, SharedBlock) else points
+
+
 def _pairs_add(points: SharedBlock | np.ndarray, T_W_S: np.ndarray, placement: dict[str, np.ndarray],
                T_T_S: np.ndarray, station: int, transfers: list[dict], cfg: CorrectionSettings,
                voxel_mm: float) -> int:
-    """In the pair worker: register the pairs of a scan (``points``: its thinned copy, S, mm, taken over from the
-    map's process; ``placement``: its raw file's ``T_W_C``, ``T_C_T`` and ``tracker_covariance``) with the
-    earlier ones.
+    """In the pair worker: register the pairs of a scan (``points``: its thinned copy, S, mm, lent by the map's
+    process; ``placement``: its raw file's ``T_W_C``, ``T_C_T`` and ``tracker_covariance``) with the earlier ones.
 
     Eight parameters: a task sent to the worker process takes plain picklable values, each one the pair
     registration of this scan needs."""
     global _PAIRS
-    points = np.array(take(points))  # a copy of its own: the block is removed as its mapping goes
+    points = np.array(_lent(points))  # a copy of its own: the block is removed once both workers are done with it
     from tandemscan.daemon.jobs.pose_correction import transfer_priors
     from tandemscan.pipeline.geometry.uncertainty import scan_pose_covariance
     from tandemscan.pipeline.registration.online_pairs import OnlinePairs
 
-    if _PAIRS is None:
-        _PAIRS = OnlinePairs(cfg, voxel_mm)
-    if _MEASURED.is_set():  # the end of the job waits for the joint refinement's preparation: it makes the rest
-        _PAIRS.stop_preparing()
+    if _PAIRS is None:  # the joint refinement's preparation runs in the joint worker (_joint_add)
+        _PAIRS = OnlinePairs(cfg, voxel_mm, joint=False)
     cov = scan_pose_covariance(placement["T_W_C"], placement["T_C_T"], T_T_S, placement["tracker_covariance"])
     return _PAIRS.add(points, T_W_S, cov, station, transfer_priors(transfers))
 
 
-def _init_pairs(niceness: int, measured: Any) -> None:
+def _joint_add(points: SharedBlock | np.ndarray, T_W_S: np.ndarray, station: int, cfg: CorrectionSettings) -> None:
+    """In the joint worker: prepare a scan for the joint refinement and find its pairs' nearest neighbours
+    (``online_pairs.OnlineJoint.add``; ``points``: its thinned copy, S, mm, lent by the map's process), unless the
+    job has measured its last scan: the end of the job, which waits for this, prepares the rest itself."""
+    global _JOINT
+    from tandemscan.pipeline.registration.online_pairs import OnlineJoint
+
+    if _JOINT is None:
+        _JOINT = OnlineJoint(cfg)
+    if _MEASURED.is_set():
+        _JOINT.stop_preparing()
+    _JOINT.add(_lent(points), T_W_S, station)
+
+
+def _init_pairs(niceness: int) -> None:
+    init_worker(niceness)
+
+
+def _init_joint(niceness: int, measured: Any) -> None:
     global _MEASURED
     init_worker(niceness)
     _MEASURED = measured
@@ -132,15 +156,40 @@ def _pairs_outcomes() -> tuple[OnlineWork | None, float]:
     return (None, 0.0) if _PAIRS is None else (_PAIRS.work(), _PAIRS.cpu_s)
 
 
-def _joint_outcomes() -> OnlineWork | None:
-    """In the pair worker once the job has measured: what the joint refinement takes (``OnlinePairs.joint_work``);
-    the pairs still registering then yield the cores to the end of the job (:data:`CHECKS_NICENESS`), which needs
-    them only for its report."""
+def _pairs_so_far() -> OnlineWork | None:
+    """In the pair worker once the job has measured: the pairs registered so far and the keys of those still
+    registering (``OnlinePairs.joint_work``); those then yield the cores to the end of the job
+    (:data:`CHECKS_NICENESS`), which needs them only for its report."""
     if _PAIRS is None:
         return None
     work = _PAIRS.joint_work()
     yield_cores(CHECKS_NICENESS)
     return work
+
+
+def _joint_outcomes() -> tuple[dict, dict, float]:
+    """In the joint worker: the prepared scans and their pairs' nearest neighbours (``OnlineJoint.hand_over``) and
+    this process's CPU seconds."""
+    scans, associations = ({}, {}) if _JOINT is None else _JOINT.hand_over()
+    return scans, associations, time.process_time()
+
+
+def _discard_after(block: SharedBlock, futures: list[Future]) -> None:
+    """Remove ``block`` once every one of ``futures`` (the tasks it was lent to) is done, failed or cancelled."""
+    if not futures:
+        block.discard()
+    else:
+        futures[0].add_done_callback(lambda _: _discard_after(block, futures[1:]))
+
+
+async def _settled(futures: list[Future], failed: str) -> None:
+    """Wait for ``futures``; a task that failed is logged (``failed`` % its error): the end of the job computes
+    what it missed."""
+    for future in futures:
+        try:
+            await asyncio.wrap_future(future)
+        except Exception as e:  # noqa: BLE001 - the end of the job computes what is missing
+            log.warning(failed, e)
 
 
 def _read_ahead(job: JobSnapshot, key: str) -> float:
@@ -201,57 +250,84 @@ def _drop_outputs(key: str, running: asyncio.Future) -> None:
 
 
 class PairWorker:
-    """A process registering each scan's pairs as it arrives (``online_pairs.OnlinePairs``); tasks queue in
-    scan order and nobody waits for them until :meth:`outcomes`."""
+    """A process registering each scan's pairs as it arrives (``online_pairs.OnlinePairs``) and, with the joint
+    refinement, a second one beside it preparing each scan for that (``online_pairs.OnlineJoint``: the end of the
+    job waits for it, not for the check pairs, and the two no longer share one process's interpreter); tasks queue in
+    scan order and nobody waits for them until :meth:`joint_work` or :meth:`outcomes`."""
 
     def __init__(self, cfg: CorrectionSettings, voxel_mm: float, niceness: int):
         self.cfg, self.voxel_mm = cfg, float(voxel_mm)
         context = multiprocessing.get_context("spawn")
         self._measured = context.Event()  # set by :meth:`joint_work`: the scans still queued are not prepared
-        self._pool = ProcessPoolExecutor(1, mp_context=context, initializer=_init_pairs,
-                                         initargs=(niceness, self._measured))
-        self._pending: list[Any] = []
+        self._pool = ProcessPoolExecutor(1, mp_context=context, initializer=_init_pairs, initargs=(niceness,))
+        self._joint = (ProcessPoolExecutor(1, mp_context=context, initializer=_init_joint,
+                                           initargs=(niceness, self._measured)) if cfg.joint else None)
+        self._pending: list[Any] = []  # the pairs' tasks
+        self._joint_pending: list[Any] = []  # the joint preparation's tasks
+        self._joint_cpu_s = 0.0  # the joint worker's CPU seconds, once it handed its work over
 
     def submit(self, points: SharedBlock | np.ndarray, T_W_S: np.ndarray, placement: dict[str, np.ndarray],
                T_T_S: np.ndarray, station: int, transfers: list[dict]) -> None:
-        """Queue the pairs of a scan: its copy thinned at the map's voxel (S, mm; a block of shared memory the
-        worker takes over, or the array), placed at ``T_W_S`` (mm), with its raw file's ``T_W_C``, ``T_C_T`` and
-        ``tracker_covariance`` (``placement``) and the mount ``T_T_S``."""
-        future = self._pool.submit(_pairs_add, points, np.asarray(T_W_S, float), placement, np.asarray(T_T_S, float),
-                                   int(station), list(transfers), self.cfg, self.voxel_mm)
-        if isinstance(points, SharedBlock):  # once its task is done, failed or cancelled, no block is left behind
-            future.add_done_callback(lambda _: points.discard())
-        self._pending.append(future)
+        """Queue the pairs of a scan and, with the joint refinement, its preparation for that: its copy thinned at the
+        map's voxel (S, mm; a block of shared memory lent to the workers, removed once they are done with it, or the
+        array), placed at ``T_W_S`` (mm), with its raw file's ``T_W_C``, ``T_C_T`` and ``tracker_covariance``
+        (``placement``) and the mount ``T_T_S``."""
+        T_W_S = np.asarray(T_W_S, float)
+        futures = [self._pool.submit(_pairs_add, points, T_W_S, placement, np.asarray(T_T_S, float), int(station),
+                                     list(transfers), self.cfg, self.voxel_mm)]
+        self._pending.append(futures[0])
+        if self._joint is not None:
+            futures.append(self._joint.submit(_joint_add, points, T_W_S, int(station), self.cfg))
+            self._joint_pending.append(futures[-1])
+        if isinstance(points, SharedBlock):  # once its tasks are done, failed or cancelled, no block is left behind
+            _discard_after(points, futures)
 
     async def joint_work(self) -> OnlineWork | None:
-        """Once the job has measured its last scan: what the worker computed for the joint refinement so far
-        (``online_pairs.OnlinePairs.joint_work``: prepared scans and their nearest neighbours, the pairs registered
-        so far and the keys of those still registering). The scans still queued are not prepared any more
-        (``OnlinePairs.stop_preparing``: the end of the job prepares them itself on every core instead of waiting
-        for this one thread), only their pairs queued; a scan whose task failed is logged and left to the end of
-        the job. :meth:`outcomes` gives the pairs once they are done."""
+        """Once the job has measured its last scan: what the workers computed for the joint refinement so far
+        (``online_pairs.OnlineJoint.hand_over``: prepared scans and their nearest neighbours) with the pairs registered
+        so far and the keys of those still registering (``OnlinePairs.joint_work``). The scans still queued are not
+        prepared any more (``OnlineJoint.stop_preparing``: the end of the job prepares them itself on every core
+        instead of waiting for this one process), only their pairs queued; a scan whose task failed is logged and left
+        to the end of the job. The joint worker stops once it has handed its work over; :meth:`outcomes` gives the
+        pairs once they are done."""
         self._measured.set()
-        for future in self._pending:
-            try:
-                await asyncio.wrap_future(future)
-            except Exception as e:  # noqa: BLE001 - the correction prepares what is missing
-                log.warning("a scan not prepared while measuring: %s", e)
-        return await asyncio.wrap_future(self._pool.submit(_joint_outcomes))
+        pairs = asyncio.wrap_future(self._pool.submit(_pairs_so_far))  # behind the scans queued there
+        if self._joint is None:
+            return await pairs
+        scans, associations = await self._joint_handed_over()
+        work = await pairs
+        return None if work is None else dataclasses.replace(work, joint_scans=scans, associations=associations)
+
+    async def _joint_handed_over(self) -> tuple[dict, dict]:
+        """The joint worker's prepared scans and associations, once its queued scans are done; it stops then (its
+        memory, every prepared scan, goes with it)."""
+        await _settled(self._joint_pending, "a scan not prepared while measuring: %s")
+        self._joint_pending = []
+        try:
+            scans, associations, self._joint_cpu_s = await asyncio.wrap_future(self._joint.submit(_joint_outcomes))
+        finally:
+            stop_pool(self._joint)
+            self._joint = None
+        return scans, associations
 
     async def outcomes(self) -> tuple[OnlineWork | None, float]:
-        """Wait for the queued scans, then what the worker computed (``registration.correction.OnlineWork``: pair
-        outcomes and prepared joint scans; a failed task only leaves its work to the end of the job) and its CPU
-        seconds."""
-        for future in self._pending:
-            try:
-                await asyncio.wrap_future(future)
-            except Exception as e:  # noqa: BLE001 - the correction registers what is missing
-                log.warning("pairs of a scan not registered while measuring: %s", e)
+        """Wait for the queued scans, then what the workers computed (``registration.correction.OnlineWork``: pair
+        outcomes and, where :meth:`joint_work` did not take them, the prepared joint scans; a failed task only leaves
+        its work to the end of the job) and their CPU seconds."""
+        await _settled(self._pending, "pairs of a scan not registered while measuring: %s")
         self._pending = []
-        return await asyncio.wrap_future(self._pool.submit(_pairs_outcomes))
+        work, cpu_s = await asyncio.wrap_future(self._pool.submit(_pairs_outcomes))
+        if self._joint is not None:
+            scans, associations = await self._joint_handed_over()
+            if work is not None:
+                work = dataclasses.replace(work, joint_scans=scans, associations=associations)
+        return work, cpu_s + self._joint_cpu_s
 
     def close(self) -> None:
         stop_pool(self._pool)
+        if self._joint is not None:
+            stop_pool(self._joint)
+            self._joint = None
 
 
 class _Pairs:

@@ -8,7 +8,8 @@ thread a core, beside the next scans), keeping each outcome under ``correction.p
 joint`` it also prepares each scan for the joint refinement (``correction.joint_scan``: thinned, with normals)
 under ``correction.joint_scan_key`` and finds the nearest neighbours of its pairs there at the tracker poses
 (``joint.associate``: the refinement's association, the costly part of it) under
-``correction.association_key``. After the last scan
+``correction.association_key`` (:class:`OnlineJoint`, which the daemon's pair worker runs in a process of its own
+beside the pairs': ``stitcher.PairWorker``). After the last scan
 ``correction.correct_scans`` takes the outcomes of the pairs it selects, the prepared scans and the
 associations from these caches and computes only the others (a job resumed after a restart, a scan whose pose
 changed), so its result never depends on what was done here.
@@ -81,8 +82,60 @@ class OnlineScan:
     scan: StitchedScan
 
 
+class OnlineJoint:
+    """The scans of a job prepared for the joint refinement as they arrive (``correction.joint_scan``, under
+    ``correction.joint_scan_key``) and the nearest neighbours of their pairs at the tracker poses
+    (``joint.associate``, under ``correction.association_key``): one instance per job, where the work runs.
+    ``cfg`` must be the job's ``[correction]`` settings (:class:`CorrectionSettings`, ``joint`` on)."""
+
+    def __init__(self, cfg: CorrectionSettings):
+        self.cfg = cfg
+        self.joint_scans: dict[str, JointScan] = {}
+        self.associations: dict[str, Association] = {}
+        self._selector = PairSelector(cfg.pair_cell_mm, cfg.joint_max_partners_per_scan)
+        self._starts: list[tuple[str, np.ndarray]] = []  # each prepared scan's key and tracker pose
+        self._tree = _Recent(lambda i: joint_tree(self.joint_scans[self._starts[i][0]]))
+        self.preparing = True  # scans prepared as they arrive (:meth:`stop_preparing`)
+
+    def add(self, points_S: np.ndarray, T_W_S: np.ndarray, station: int) -> None:
+        """Prepare the next scan (``points_S`` (N, 3) mm as the end of the job loads them, its tracker pose ``T_W_S``
+        and station) and find, at the tracker poses, the nearest neighbours of its points in every earlier prepared
+        scan it may be paired with there (``correction._refine_jointly`` pairs the prepared scans sharing a grid
+        cell); nothing once :meth:`stop_preparing` was called. Not queued behind anything: each search holds its
+        partner's KD tree (a few megabytes at full resolution) until it has run."""
+        if not self.preparing or len(points_S) == 0:
+            return
+        T_W_S = np.asarray(T_W_S, float)
+        key = joint_scan_key(points_S, self.cfg.joint_voxel_mm)
+        prepared = self.joint_scans[key] = joint_scan(points_S, self.cfg.joint_voxel_mm)
+        partners = self._selector.add(transform_points(T_W_S, prepared.points_S), int(station))
+        self._starts.append((key, T_W_S))
+        todo = {}  # association key -> (prepared scan, its KD-tree, relative start pose) of each partner
+        for i in partners:
+            key_i, T_W_S_i = self._starts[i]
+            todo[association_key(key_i, key, T_W_S_i, T_W_S, self.cfg.joint_refinement.max_distance_mm)] = (
+                self.joint_scans[key_i], self._tree(i), invert(T_W_S_i) @ T_W_S)
+        with pair_threads() as pair_map:
+            self.associations |= zip(todo, pair_map(
+                lambda job: associate(job[0], job[1], prepared, job[2], self.cfg.joint_refinement.max_distance_mm),
+                todo.values()), strict=True)
+
+    def stop_preparing(self) -> None:
+        """The job has measured its last scan: the scans still to come here are not prepared (the end of the job,
+        which waits for that, prepares them itself on every core, to the same poses)."""
+        self.preparing = False
+
+    def hand_over(self) -> tuple[dict[str, JointScan], dict[str, Association]]:
+        """The prepared scans and their pairs' nearest neighbours so far, no longer kept here."""
+        out = self.joint_scans, self.associations
+        self.joint_scans, self.associations = {}, {}
+        return out
+
+
 class OnlinePairs:
-    """The pair outcomes of a job, registered as its scans arrive (one instance per job, where the work runs).
+    """The pair outcomes of a job, registered as its scans arrive (one instance per job, where the work runs), and
+    with ``[correction] joint`` and ``joint`` (the default) its scans prepared for the joint refinement here too
+    (:class:`OnlineJoint`, :attr:`joint`; the daemon's pair worker prepares them in a process of its own instead).
 
     :meth:`add` queues a scan's pairs on a pool of one thread per core and returns: the
     pairs of the next scans queue behind them, so no core waits at the end of a scan's pairs. A queued pair that a
@@ -91,23 +144,19 @@ class OnlinePairs:
     ``[correction]`` settings (:class:`CorrectionSettings`) and ``[job] voxel_mm``, as the end of the job uses them;
     a method that needs the DeepMerge network registers nothing here (the network is loaded at the end only)."""
 
-    def __init__(self, cfg: CorrectionSettings, voxel_mm: float):
+    def __init__(self, cfg: CorrectionSettings, voxel_mm: float, joint: bool = True):
         self.cfg, self.voxel_mm = cfg, float(voxel_mm)
         self.enabled = cfg.enabled and cfg.method not in NETWORK_METHODS
         # the pairs registered (``CorrectionSettings.registered_partners``; None: none)
         self.selector = PairSelector(cfg.pair_cell_mm, cfg.registered_partners) if cfg.registered_partners else None
         self.scans: list[OnlineScan] = []
         self.outcomes: dict[str, PairOutcome] = {}
-        self.joint_scans: dict[str, JointScan] = {}
-        self.associations: dict[str, Association] = {}
+        # the scans prepared for the joint refinement here (None: not here)
+        self.joint = OnlineJoint(cfg) if cfg.joint and joint and self.enabled else None
         self._target = _Recent(lambda i: target_with_normals(self.scans[i].world_mm))
-        self._joint_selector = PairSelector(cfg.pair_cell_mm, cfg.joint_max_partners_per_scan)
-        self._joint_starts: list[tuple[str, np.ndarray]] = []  # each prepared scan's key and tracker pose
-        self._tree = _Recent(lambda i: joint_tree(self.joint_scans[self._joint_starts[i][0]]))
         self._queued: dict[str, Future] = {}  # pair key -> its outcome (None: displaced before it started)
         self._pool: ThreadPoolExecutor | None = None
         self._shared = threading.Lock()  # the selector and the kept targets, which the pool's threads read
-        self.preparing = cfg.joint  # scans prepared for the joint refinement as they arrive (:meth:`stop_preparing`)
         self._cpu_start = time.process_time()
         self.cpu_s = 0.0  # CPU time (s) of this process from its start to the last :meth:`work`
         self.pair_cpu_s = 0.0  # CPU time (s) of the pair registrations' threads
@@ -116,22 +165,21 @@ class OnlinePairs:
             transfers: Sequence[TransferPrior]) -> int:
         """Take the next scan with points (``points_S`` (N, 3) mm as the end of the job loads them,
         ``finish.load_scans``; its 6x6 pose covariance, ``uncertainty.scan_pose_covariance``; its tracker
-        station; the transfer priors known so far), queue the registration of its pairs and, with ``[correction]
-        joint``, prepare it for the joint refinement and find the nearest neighbours of its pairs there; returns
-        how many partners it has."""
+        station; the transfer priors known so far), queue the registration of its pairs and, with :attr:`joint`,
+        prepare it for the joint refinement and find the nearest neighbours of its pairs there
+        (:meth:`OnlineJoint.add`); returns how many partners it has."""
         if not self.enabled or len(points_S) == 0:
             return 0
         scan = StitchedScan(np.empty((0, 3)), np.asarray(T_W_S, float), np.asarray(covariance, float), int(station))
         partners = [] if self.selector is None else self._queue_pairs(points_S, scan, transfers)
-        if self.preparing:
-            self._prepare_joint(points_S, scan.T_W_S, scan.station)
+        if self.joint is not None:
+            self.joint.add(points_S, scan.T_W_S, scan.station)
         return len(partners)
 
     def stop_preparing(self) -> None:
-        """The job has measured its last scan: the scans still to come here are not prepared for the joint
-        refinement (the end of the job, which waits for that, prepares them itself on every core, to the same
-        poses); their pairs still register."""
-        self.preparing = False
+        """The job has measured its last scan: :meth:`OnlineJoint.stop_preparing` (their pairs still register)."""
+        if self.joint is not None:
+            self.joint.stop_preparing()
 
     def _queue_pairs(self, points_S: np.ndarray, scan: StitchedScan, transfers: Sequence[TransferPrior]
                      ) -> list[int]:
@@ -179,39 +227,19 @@ class OnlinePairs:
             self._pool.shutdown()
             self._pool = None
         self.cpu_s = time.process_time() - self._cpu_start
-        return OnlineWork(self.outcomes, self.joint_scans, self.associations, self.pair_cpu_s)
+        scans, associations = (self.joint.joint_scans, self.joint.associations) if self.joint is not None else ({}, {})
+        return OnlineWork(self.outcomes, scans, associations, self.pair_cpu_s)
 
     def joint_work(self) -> OnlineWork:
         """Once the last scan is added: what the joint refinement takes (the prepared scans and their pairs' nearest
-        neighbours, handed over and no longer kept here) and the pairs registered so far, without waiting for the
-        pairs still queued, whose keys it names (``OnlineWork.pending``: their outcomes come with :meth:`work`; with
-        the joint refinement no pose waits for them, docs/end-of-job.md)."""
+        neighbours, handed over and no longer kept here: :meth:`OnlineJoint.hand_over`) and the pairs registered so
+        far, without waiting for the pairs still queued, whose keys it names (``OnlineWork.pending``: their outcomes
+        come with :meth:`work`; with the joint refinement no pose waits for them, docs/end-of-job.md)."""
         done = {k: f for k, f in self._queued.items() if f.done()}
         self.outcomes |= {k: o for k, o in _results(done).items() if o is not None}
         self._queued = {k: f for k, f in self._queued.items() if k not in done}
-        work = OnlineWork(dict(self.outcomes), self.joint_scans, self.associations, self.pair_cpu_s,
-                          frozenset(self._queued))
-        self.joint_scans, self.associations = {}, {}
-        return work
-
-    def _prepare_joint(self, points_S: np.ndarray, T_W_S: np.ndarray, station: int) -> None:
-        """Prepare the scan for the joint refinement (``correction.joint_scan``) and find, at the tracker poses,
-        the nearest neighbours of its points in every earlier prepared scan it may be paired with there
-        (``correction._refine_jointly`` pairs the prepared scans sharing a grid cell). Not queued behind the pairs:
-        each search holds its partner's KD tree (a few megabytes at full resolution) until it has run."""
-        key = joint_scan_key(points_S, self.cfg.joint_voxel_mm)
-        prepared = self.joint_scans[key] = joint_scan(points_S, self.cfg.joint_voxel_mm)
-        partners = self._joint_selector.add(transform_points(T_W_S, prepared.points_S), station)
-        self._joint_starts.append((key, T_W_S))
-        todo = {}  # association key -> (prepared scan, its KD-tree, relative start pose) of each partner
-        for i in partners:
-            key_i, T_W_S_i = self._joint_starts[i]
-            todo[association_key(key_i, key, T_W_S_i, T_W_S, self.cfg.joint_refinement.max_distance_mm)] = (
-                self.joint_scans[key_i], self._tree(i), invert(T_W_S_i) @ T_W_S)
-        with pair_threads() as pair_map:
-            self.associations |= zip(todo, pair_map(
-                lambda job: associate(job[0], job[1], prepared, job[2], self.cfg.joint_refinement.max_distance_mm),
-                todo.values()), strict=True)
+        scans, associations = self.joint.hand_over() if self.joint is not None else ({}, {})
+        return OnlineWork(dict(self.outcomes), scans, associations, self.pair_cpu_s, frozenset(self._queued))
 
 
 def _results(futures: dict[str, Future]) -> dict[str, Any]:

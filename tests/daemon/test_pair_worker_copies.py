@@ -3,6 +3,7 @@ in ``/dev/shm`` once its task ran, and none of the tasks a closed worker never r
 
 from __future__ import annotations
 
+import asyncio
 import os
 import time
 
@@ -69,3 +70,33 @@ async def test_the_maps_process_hands_a_fine_scans_copy_to_the_pair_worker(sim_c
         worldmap.close()
     assert len(online.joint_scans) == 2
     assert set(SHM_DIR.glob(f"{PREFIX}{os.getpid()}-*")) <= before
+
+
+@pytest.mark.slow
+async def test_the_joint_preparation_is_handed_over_from_its_own_worker_while_check_pairs_register(sim_config):
+    """With the joint refinement the scans are prepared for it in a worker of their own beside the check pairs': once
+    the job has measured, :meth:`PairWorker.joint_work` hands over every scan prepared and the pairs' nearest
+    neighbours found at the tracker poses, with the check pairs still registering named, and stops that worker; the
+    pairs come later (:meth:`PairWorker.outcomes`), every block lent to the two workers removed."""
+    rng = np.random.default_rng(9)
+    settings = CorrectionSettings.from_section(sim_config.correction)
+    assert settings.joint and settings.registered_partners > 0
+    worker = PairWorker(settings, 1.0, 0)
+    blocks = []
+    try:
+        for k in range(3):
+            xy = rng.uniform(0.0, 250.0, (130_000, 2))
+            T_W_S = np.eye(4)
+            T_W_S[0, 3] = 40.0 * k
+            blocks.append(hand_over(np.c_[xy - [40.0 * k, 0.0], 500.0 + 5.0 * np.sin(xy[:, 0] / 20.0)]))
+            worker.submit(blocks[-1], T_W_S, PLACEMENT, np.eye(4), 0, [])
+        # the job measures more slowly than the worker prepares: every scan is prepared before the last is measured
+        await asyncio.gather(*map(asyncio.wrap_future, worker._joint_pending))
+        early = await worker.joint_work()
+        assert len(early.joint_scans) == 3 and len(early.associations) >= 2
+        assert len(early.pairs) + len(early.pending) >= 2  # every check pair registered or named
+        later, cpu_s = await worker.outcomes()
+        assert later.joint_scans == {} and later.pairs.keys() >= early.pending and cpu_s > 0
+    finally:
+        worker.close()
+    assert _gone(blocks)

@@ -190,7 +190,7 @@ def test_check_pairs_still_registering_leave_the_poses_alone_and_complete_the_sa
         online.add(s.points_S, s.T_W_S, s.covariance, s.station, [t for t in transfers if t.station <= s.station])
     early = online.joint_work()
     assert early.pending and early.pairs == {} and len(early.joint_scans) == 4
-    assert online.joint_scans == {}  # handed over, not kept
+    assert online.joint.joint_scans == {}  # handed over, not kept
     result = correct_scans(StitchedJob(scans, transfers), cfg, online=early)
     assert result.checks is not None and "pairs" not in result.report and "pairs_dropped" not in result.report
     for a, b in zip(waited.poses, result.poses, strict=True):
