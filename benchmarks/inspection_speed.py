@@ -1,6 +1,7 @@
 """Seconds of a finished job's exports and inspection (what :func:`tandemscan.daemon.jobs.outputs.write_job_outputs`
-runs after ``cloud.ply``: E57, pose log, alignment to CAD, deviations, report.html, cloud_deviation.ply) on a
-finished job's folder, per stage, plus the inspection's numbers to compare runs. Prints one JSON object last.
+runs after ``cloud.ply``: E57 and pose log in a process of their own, alignment to CAD, deviations, report.html,
+cloud_deviation.ply) on a finished job's folder, per stage, plus the inspection's numbers to compare runs. Prints
+one JSON object last.
 
 The job folder is only read: its ``cloud.ply`` (W, mm) is the final cloud, ``scans/scan-NNNN.npz`` the raw scans
 (S, mm), ``report.json`` the final and tracker-stitched poses ``T_W_S`` and the anchor's ``T_F_W``; the outputs go
@@ -36,8 +37,6 @@ from tandemscan.pipeline.stitching.worldmap import MapCloud
 
 SECONDS: dict[str, float] = defaultdict(float)
 TIMED = [  # (module, function, stage name): each call's seconds are added to its stage (threads may overlap)
-    (job_outputs, "write_e57", "e57_s"),
-    (job_outputs, "write_pose_log", "pose_log_s"),
     (inspection_job, "align", "alignment_s"),
     (inspection_job, "inspect_cloud", "inspect_cloud_s"),
     (inspect, "_best_fit_result", "best_fit_s"),
@@ -62,9 +61,10 @@ def _timed(fn, name):
     return wrapper
 
 
-def _cpu_s() -> float:
-    """CPU seconds of this process, all its threads (a figure that holds on a machine shared with others)."""
-    r = resource.getrusage(resource.RUSAGE_SELF)
+def _cpu_s(who: int = resource.RUSAGE_SELF) -> float:
+    """CPU seconds of this process, all its threads (a figure that holds on a machine shared with others), or of its
+    ended child processes (``RUSAGE_CHILDREN``: the E57's)."""
+    r = resource.getrusage(who)
     return r.ru_utime + r.ru_stime
 
 
@@ -105,9 +105,9 @@ def main() -> None:
         t0 = time.perf_counter()
         job, rep, points_S, tracker = load_job(args.job_dir, load_config(args.config), out)
         t_load = time.perf_counter() - t0
-        t0, c0 = time.perf_counter(), _cpu_s()
+        t0, c0, e0 = time.perf_counter(), _cpu_s(), _cpu_s(resource.RUSAGE_CHILDREN)
         section = job_outputs.write_job_outputs(job, rep, points_S, tracker)
-        total, cpu = time.perf_counter() - t0, _cpu_s() - c0
+        total, cpu, e57_cpu = time.perf_counter() - t0, _cpu_s() - c0, _cpu_s(resource.RUSAGE_CHILDREN) - e0
         sizes = {f.name: f.stat().st_size for f in out.iterdir() if f.is_file()}
     if args.json:
         args.json.write_text(json.dumps(section, indent=1), encoding="utf-8")
@@ -120,6 +120,7 @@ def main() -> None:
         "load_s": round(t_load, 3),
         "exports_and_inspection_s": round(total, 3),
         "exports_and_inspection_cpu_s": round(cpu, 3),
+        "e57_process_cpu_s": round(e57_cpu, 3),
         "load_avg_1min": round(os.getloadavg()[0], 2),
         "stages_s": {k: round(v, 3) for k, v in SECONDS.items()},
         "file_mb": {k: round(v / 1e6, 1) for k, v in sizes.items()},

@@ -19,9 +19,10 @@ import dataclasses
 import json
 import logging
 import math
+import multiprocessing
 import time
 from collections.abc import Iterator, Mapping, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -33,6 +34,8 @@ from tandemscan.config.loader import ConfigError
 from tandemscan.config.models import CellConfig
 from tandemscan.daemon.calibration.verify import verdict_context
 from tandemscan.daemon.store.part_results import HISTORY_FILE
+from tandemscan.drivers.shared_array import share
+from tandemscan.drivers.worker import init_worker
 from tandemscan.pipeline.compute import backend_for
 from tandemscan.pipeline.geometry.frames import transform_points
 from tandemscan.pipeline.geometry.part import load_part_mesh
@@ -49,8 +52,15 @@ from tandemscan.pipeline.inspection.inspection_job import (
 from tandemscan.pipeline.inspection.point_uncertainty import JobUncertainty, ScanCover
 from tandemscan.pipeline.inspection.report import InspectedPart, ReportFacts, StitchViews
 from tandemscan.pipeline.inspection.tile_inspection import TiledInspection
-from tandemscan.pipeline.io.export import ArrayBlocks, PointBlocks, PosedScan, write_e57, write_ply, write_pose_log
-from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan
+from tandemscan.pipeline.io.export import (
+    ArrayBlocks,
+    PointBlocks,
+    PosedScan,
+    ScanExports,
+    write_ply,
+    write_scan_exports,
+)
+from tandemscan.pipeline.io.raw_scan import read_thinned_scan
 from tandemscan.pipeline.planning.coverage import CoverageFigures
 from tandemscan.pipeline.stitching.tiles import TiledCloud, TilePoints
 from tandemscan.pipeline.stitching.worldmap import MapCloud
@@ -76,22 +86,6 @@ def _posed_scans(job: JobSnapshot, points_S: Sequence[np.ndarray] | None = None)
                 **{f"joint{i + 1}_deg": float(np.degrees(q)) for i, q in enumerate(s.joints_rad)}}
         scans.append(PosedScan(s.file.stem, s.T_W_S, points, meta, s.point_count))
     return scans
-
-
-def _full_scans(job: JobSnapshot, scans: Sequence[PosedScan]) -> Iterator[PosedScan]:
-    """``scans`` (:func:`_posed_scans`) with all their points (S, mm, float32 as stored), each read from its
-    file when the E57 writer asks for it: one full scan in memory at a time. Scans that saw nothing are left
-    out (E57 has no empty scans)."""
-    empty = 0
-    for record, scan in zip(job.scans, scans, strict=True):
-        points, _ = read_raw_scan(record.file, np.float32)
-        if len(points):
-            yield dataclasses.replace(scan, points_S_mm=points, point_count=None)
-        else:
-            empty += 1
-        del points
-    if empty:
-        log.warning("%d scans saw nothing and are left out of the E57", empty)
 
 
 def _thin(points: np.ndarray) -> np.ndarray:
@@ -164,8 +158,9 @@ def _write_cloud_ply(path: Path, cloud: MapCloud | TiledCloud) -> Path:
 
 
 def _point_blocks(cloud: MapCloud | TiledCloud) -> PointBlocks:
-    """The job's cloud's points as the E57 writer takes them, a block or a tile at a time."""
-    return cloud if isinstance(cloud, TiledCloud) else ArrayBlocks(cloud.points())
+    """The job's cloud's points as the E57 writer takes them in another process, a block or a tile at a time: its
+    tiles' files, or its points copied into shared memory (``shared_array.share``: pickled by name)."""
+    return cloud if isinstance(cloud, TiledCloud) else ArrayBlocks(share(cloud.points()))
 
 
 def _every_kth(cloud: MapCloud | TiledCloud, step: int) -> TilePoints:
@@ -198,15 +193,18 @@ def write_job_outputs(job: JobSnapshot, report: Mapping, points_S: Sequence[np.n
     tracker-stitched poses where the correction changed them, None where not corrected).
 
     Returns the inspection section for the job's ``report.json``: the same numbers as report.html. The E57
-    (the full scans streamed from their files) and the pose log are written on a second thread while the
-    inspection computes on the thinned scans (both wait on files and numpy, which let the other thread run).
-    Where one of them fails the other is written all the same and its error goes into ``failed`` (``e57``,
-    ``inspection``), or where that is None the first error is raised then.
+    (the full scans streamed from their files) and the pose log are written in a process of their own
+    (``export.write_scan_exports``, spawned, ``[daemon] worker_niceness`` below this one: pye57 holds the GIL
+    while it packs the points) while the inspection computes on the thinned scans. Where one of them fails the
+    other is written all the same and its error goes into ``failed`` (``e57``, ``inspection``), or where that is
+    None the first error is raised then.
     """
     errors: dict[str, str] = {} if failed is None else failed
     scans = _posed_scans(job, points_S)
-    with ThreadPoolExecutor(1, thread_name_prefix="e57") as pool:
-        exports = pool.submit(_write_exports, job, scans)
+    to_export = _scan_exports(job, scans)  # holds the cloud's shared copy until the process is done
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=init_worker,
+                             initargs=(job.config.daemon.worker_niceness,)) as pool:
+        exports = pool.submit(write_scan_exports, to_export)
         try:
             section = _inspection_section(job, report, scans, tracker_poses)
         except Exception as e:  # noqa: BLE001 - named in the report, which fails the job once written
@@ -223,13 +221,17 @@ def write_job_outputs(job: JobSnapshot, report: Mapping, points_S: Sequence[np.n
     return section
 
 
-def _write_exports(job: JobSnapshot, scans: list[PosedScan]) -> None:
-    """``poses.csv`` (every scan, ``scans``) and ``cloud.e57`` (the scans with points, read from their files one at
-    a time, and the merged cloud ``job.worldmap``, a block or a tile at a time), frame W, mm."""
-    write_pose_log(job.job_dir / EXPORT_FILES["pose_log"], scans)
-    if any(s.size for s in scans):
-        write_e57(job.job_dir / EXPORT_FILES["e57"], _full_scans(job, scans),
-                  _point_blocks(job.worldmap) if len(job.worldmap) else None)
+def _scan_exports(job: JobSnapshot, scans: list[PosedScan]) -> ScanExports:
+    """What ``poses.csv`` and ``cloud.e57`` are written from in their own process (``export.write_scan_exports``):
+    ``scans`` without their thinned points, the scans' raw files, and the job's cloud (``job.worldmap``: its
+    points in shared memory, or its tiles' files), frame W, mm."""
+    return ScanExports(job.job_dir / EXPORT_FILES["pose_log"], job.job_dir / EXPORT_FILES["e57"],
+                       tuple(dataclasses.replace(s, points_S_mm=_NO_POINTS, point_count=s.size) for s in scans),
+                       tuple(Path(r.file) for r in job.scans),
+                       _point_blocks(job.worldmap) if len(job.worldmap) else None)
+
+
+_NO_POINTS = np.empty((0, 3))
 
 
 def _inspection_section(job: JobSnapshot, report: Mapping, scans: list[PosedScan],

@@ -17,6 +17,7 @@ from typing import Protocol
 
 import numpy as np
 from tandemscan.pipeline.geometry.frames import to_quaternion, to_rpy, transform_points
+from tandemscan.pipeline.io.raw_scan import read_raw_scan
 
 log = logging.getLogger(__name__)
 
@@ -343,3 +344,42 @@ def write_pose_log(path: Path | str, scans: Sequence[PosedScan]) -> Path:
             row += [f"{v:.6f}" for v in np.degrees(rpy)]
             w.writerow(row + [scan.meta.get(k, "") for k in extra])
     return path
+
+
+@dataclass(frozen=True)
+class ScanExports:
+    """What a job's pose log and E57 are written from (:func:`write_scan_exports`, in a process of its own): the
+    scans' poses ``T_W_S``, log fields and point counts (``scans``: :class:`PosedScan` whose points are not needed,
+    ``point_count`` set), each one's raw scan file (``files``, read one at a time for the E57; a scan that saw nothing
+    is left out of it), the merged cloud (W, mm, :class:`PointBlocks`; None: empty) and the two files' paths.
+    Small to pickle: the cloud is a shared-memory array or tiles' files (docs/end-of-job.md)."""
+
+    pose_log: Path
+    e57: Path
+    scans: tuple[PosedScan, ...]
+    files: tuple[Path, ...]
+    merged: PointBlocks | None
+
+
+def write_scan_exports(exports: ScanExports) -> None:
+    """``exports.pose_log`` (every scan) and, where some scan measured points, ``exports.e57`` (the scans read from
+    their files one at a time, then the merged cloud), frame W, mm."""
+    write_pose_log(exports.pose_log, exports.scans)
+    if any(s.size for s in exports.scans):
+        write_e57(exports.e57, _full_scans(exports.scans, exports.files), exports.merged)
+
+
+def _full_scans(scans: Sequence[PosedScan], files: Sequence[Path]) -> Iterator[PosedScan]:
+    """``scans`` with all their points (S, mm, float32 as stored), each read from its file of ``files`` when the E57
+    writer asks for it: one full scan in memory at a time. Scans that saw nothing are left out (E57 has no empty
+    scans)."""
+    empty = 0
+    for scan, file in zip(scans, files, strict=True):
+        points, _ = read_raw_scan(file, np.float32)
+        if len(points):
+            yield PosedScan(scan.name, scan.T_W_S, points, scan.meta)
+        else:
+            empty += 1
+        del points
+    if empty:
+        log.warning("%d scans saw nothing and are left out of the E57", empty)

@@ -5,7 +5,9 @@ and each raw scan file read at most twice after it is written (docs/end-of-job.m
 from __future__ import annotations
 
 import json
+import os
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -17,6 +19,38 @@ from tandemscan.pipeline.job_report import REPORT_FILE, JobHistory, JobReport, r
 from tandemscan.pipeline.planning.plan import Plan, Scan
 from tandemscan.sim_drivers.cell import with_surveyed_mounts
 
+READ_COUNTER = '''"""Installed by tests/e2e/test_end_of_job_io.py in every Python process the job starts (the E57's,
+the pair and map workers): each np.load of a file in a scans/ folder appends its name to $SCAN_READ_LOG."""
+import os
+from pathlib import Path
+
+import numpy as np
+
+_load = np.load
+
+
+def _counting_load(file, *args, **kwargs):
+    if Path(file).parent.name == "scans":
+        with open(os.environ["SCAN_READ_LOG"], "a", encoding="utf-8") as log:
+            log.write(Path(file).name + "\\n")
+    return _load(file, *args, **kwargs)
+
+
+np.load = _counting_load
+'''
+
+
+def count_reads_in_child_processes(folder: Path, monkeypatch) -> Callable[[], Counter[str]]:
+    """Count the raw scan reads of the processes the job starts from now on (spawned: they import
+    ``sitecustomize`` from ``PYTHONPATH`` at start-up, here :data:`READ_COUNTER`); the counts by file name so far."""
+    folder.mkdir()
+    (folder / "sitecustomize.py").write_text(READ_COUNTER, encoding="utf-8")
+    log = folder / "reads.log"
+    log.touch()
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(filter(None, (str(folder), os.environ.get("PYTHONPATH")))))
+    monkeypatch.setenv("SCAN_READ_LOG", str(log))
+    return lambda: Counter(log.read_text(encoding="utf-8").split())
+
 
 async def test_a_job_writes_report_json_once_and_reads_each_scan_file_at_most_twice(sim_config, tmp_path,
                                                                                       monkeypatch):
@@ -24,7 +58,8 @@ async def test_a_job_writes_report_json_once_and_reads_each_scan_file_at_most_tw
     one writer's call, is written by it once, and nothing writes it after; it holds the journal's resumes and reads
     back into the model written; the simulator's observer scores the job after it, into ground_truth.json beside
     it, and the two read back into the model the job returned. Each raw scan file is read twice after it
-    was written (the merge at the corrected poses, the E57), its scores included: the map and the thinned copies
+    was written (the merge at the corrected poses, the E57 in a process of its own: counted there and in every
+    process the job starts), its scores included: the map and the thinned copies
     are made from the scan's arrays, the pair worker is handed the copy, the tracker stitch's score takes the map
     stitched while measuring."""
     from tandemscan.daemon.jobs import finish
@@ -38,6 +73,7 @@ async def test_a_job_writes_report_json_once_and_reads_each_scan_file_at_most_tw
         return load(file, *args, **kwargs)
 
     monkeypatch.setattr(np, "load", counting_load)
+    child_reads = count_reads_in_child_processes(tmp_path / "child-reads", monkeypatch)
     writes: list[tuple[JobReport, tuple[int, int, int]]] = []
 
     def writer(report: JobReport, job_dir: Path) -> Path:
@@ -82,7 +118,7 @@ async def test_a_job_writes_report_json_once_and_reads_each_scan_file_at_most_tw
     assert full == read_job_report(result.job_dir).to_json()
     assert full["scans"] == 2 and full["correction"]["enabled"] and "before" in full["correction"]
     assert full["ground_truth"]["pose_err_mm_median"] > 0 and full["ground_truth"]["scoring_s"] >= 0
-    assert reads == {entry["file"]: 2 for entry in doc["scan_log"]}
+    assert reads + child_reads() == {entry["file"]: 2 for entry in doc["scan_log"]}
     # the pair worker's copies are the end of the job's: its pairs are taken from the cache by their keys
     c = doc["correction"]
     assert c["pairs"] >= 1 and c["pairs_registered_while_measuring"] >= c["pairs"] + len(c["pairs_dropped"])

@@ -13,6 +13,7 @@ from tandemscan.daemon.cell.session import CellSession
 from tandemscan.daemon.jobs.runner import JobRunner
 from tandemscan.daemon.plans import default_plan_path
 from tandemscan.pipeline.io.cloud_io import read_ply
+from tandemscan.pipeline.io.export import ScanExports, write_pose_log
 from tandemscan.pipeline.job_report import read_job_report
 from tandemscan.pipeline.planning.coverage import REASON_REACH
 from tandemscan.pipeline.planning.plan import LeftOutArea, Plan, Scan
@@ -111,12 +112,7 @@ async def test_an_export_that_fails_is_named_in_the_report_and_fails_the_job(sim
     output not written, no traceback), so that a resume writes its outputs again."""
     from tandemscan.daemon.jobs import finish, outputs
 
-    def write_e57(path, scans, merged):
-        for _ in scans:  # the scans are read, then the disk is full
-            pass
-        raise OSError(28, "No space left on device", str(path))
-
-    monkeypatch.setattr(outputs, "write_e57", write_e57)
+    monkeypatch.setattr(outputs, "write_scan_exports", exports_on_a_full_disk)  # run in the exports' process
     plan = Plan.load(default_plan_path())
     scans = [i for i, s in enumerate(plan.steps) if isinstance(s, Scan)]
     plan = plan.model_copy(update={"steps": plan.steps[: scans[1] + 1]})  # the first two scans only
@@ -136,6 +132,12 @@ async def test_an_export_that_fails_is_named_in_the_report_and_fails_the_job(sim
     for name in ("cloud.ply", "report.html", "poses.csv"):
         assert (job / name).is_file(), name
     assert report["inspection"]["verdict"] == "pass" and len(read_ply(job / "cloud.ply")[0]) == report["points_cloud"]
+
+
+def exports_on_a_full_disk(exports: ScanExports) -> None:
+    """``export.write_scan_exports`` where the disk fills after the pose log: the E57 is not written."""
+    write_pose_log(exports.pose_log, exports.scans)
+    raise OSError(28, "No space left on device", str(exports.e57))
 
 
 def test_inspection_skipped_with_reason(sim_config, tmp_path):
