@@ -164,13 +164,31 @@ class StoredJointScan:
         return cls(str(path), key)
 
     def read(self) -> JointScan:
-        """The scan, as it was written (the same bits)."""
-        with np.load(self.path) as data:
-            return JointScan(data["points_S"], data["normals_S"], data["counts"] if "counts" in data else None)
+        """The scan, as it was written (the same bits; one of the few read last where it is among them,
+        :data:`RECENT_SCANS`)."""
+        return _read_stored(self)
 
     def remove(self) -> None:
         """Remove its file (once the refinement is done)."""
         Path(self.path).unlink(missing_ok=True)
+
+
+#: stored scans a process keeps once read, and KD-trees of them (the latest used): consecutive units share scans (a
+#: target's pairs run one after another), and these few (about 2.8 MB a scan at full resolution, 1.6 MB a tree) keep
+#: a worker's memory independent of the part's scans
+RECENT_SCANS, RECENT_TREES = 8, 4
+
+
+@functools.lru_cache(maxsize=RECENT_SCANS)
+def _read_stored(scan: StoredJointScan) -> JointScan:
+    with np.load(scan.path) as data:
+        return JointScan(data["points_S"], data["normals_S"], data["counts"] if "counts" in data else None)
+
+
+@functools.lru_cache(maxsize=RECENT_TREES)
+def _stored_tree(scan: StoredJointScan) -> cKDTree:
+    """:func:`joint_tree` of a stored scan (one of the few built last where it is among them)."""
+    return joint_tree(scan.read())
 
 
 def loaded_scan(scan: JointScan | StoredJointScan) -> JointScan:
@@ -797,13 +815,15 @@ def _tree(_: int, scan: JointScan) -> cKDTree:
 
 def _near(u: _PairPoses, target: JointScan, source: JointScan, tree: cKDTree | None, given: Association | None,
           max_mm: float) -> _Match | None:
-    """A unit of :func:`_associate`: the pair's correspondences at its poses (None where it has none); the target's
-    KD-tree built here where ``tree`` is None (a stored scan's)."""
+    """A unit of :func:`_associate`: the pair's correspondences at its poses (None where it has none); a stored
+    target's KD-tree (``tree`` None) built here."""
+    if tree is None and given is None:
+        tree = _stored_tree(target)
     p, scans = u.pair, u.scans(target, source)
     target, source = scans[p.i], scans[p.j]
     rel = invert(u.poses[p.i]) @ u.poses[p.j]
     if given is None:
-        given, x = _nearest(target, joint_tree(target) if tree is None else tree, source, rel, max_mm)
+        given, x = _nearest(target, tree, source, rel, max_mm)
     else:
         x = transform_points(rel, source.points_S[given.source])
     return p.matched(scans, rel, x, given.target, given.source) if len(given.source) else None
@@ -820,8 +840,8 @@ def _associate(work: _PairWork, poses: np.ndarray, pairs: Sequence[tuple[int, in
     (:func:`associate`; taken from ``given`` where the pair is there), where their normals agree; pairs without
     any are left out; their noise shares are those of one pair alone (the caller counts them over all pairs,
     :func:`_with_shares`). ``trees``: the handles of the target scans' KD-trees built so far (those missing are
-    added; a stored scan's, :class:`StoredJointScan`, is built in each unit instead: kept, it would stay on a worker
-    for the whole refinement)."""
+    added; a stored scan's, :class:`StoredJointScan`, is built in the units that search it instead, a few kept there,
+    :data:`RECENT_TREES`: kept as a handle, it would stay on a worker for the whole refinement)."""
     missing = sorted({i for i, j in pairs if (i, j) not in given and not isinstance(work.scans[i], StoredJointScan)}
                      - trees.keys())
     trees.update(zip(missing, work.keep("tree", _tree, missing, [(work.scans[i],) for i in missing]), strict=True))
