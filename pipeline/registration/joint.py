@@ -565,8 +565,10 @@ def noise_shares(covering: np.ndarray) -> np.ndarray:
 
 def _covered(_: _Pair, m: _Match) -> tuple[np.ndarray, np.ndarray]:
     """A unit of :func:`_with_shares`: the points a pair's correspondences ``m`` cover in its source scan and in its
-    target scan (indices, each once: a source point has one correspondence, a target point may have several)."""
-    return m.source, np.unique(m.target)
+    target scan (indices, each once, ascending: a source point has one correspondence, a target point may have
+    several; the target's by a count of each index, ``np.unique``'s result without its sort: a quarter of its time on
+    the whole part's pairs of 4,500 correspondences in 26,000 target points)."""
+    return m.source, np.flatnonzero(np.bincount(m.target)).astype(m.target.dtype)
 
 
 def _covering(sources: Sequence[bool], scan: JointScan | StoredJointScan,

@@ -18,6 +18,7 @@ from tandemscan.pipeline.registration import joint as joint_module
 from tandemscan.pipeline.registration.joint import (
     JointScan,
     JointSettings,
+    _covered,
     _marginal_information,
     _Match,
     _Model,
@@ -141,6 +142,18 @@ def test_the_association_shortcuts_find_what_the_full_search_finds():
         farthest = float(np.sqrt(np.max(np.einsum("ij,ij->i", shift, shift))))
         for limit in (0.5 * farthest, farthest * (1 - 1e-9), farthest * 1.001, 0.002):
             assert _moved_beyond(scans, moved, _Pair(0, 1), m, limit) == (farthest > limit)
+
+
+def test_the_points_a_pair_covers_are_each_named_once_in_order():
+    """A pair's covered target points (:func:`joint._covered`, counted by index) are ``np.unique`` of its matches'
+    targets, the same dtype; none where it has none."""
+    rng = np.random.default_rng(6)
+    for count in (0, 1, 4500):
+        targets = rng.integers(0, 26_000, count).astype(np.int32)
+        m = _Match(np.arange(count, dtype=np.int32), targets, np.zeros(count), np.ones(count),
+                   np.full(count, 2, np.uint16), np.eye(4))
+        source, target = _covered(_Pair(0, 1), m)
+        assert source is m.source and target.dtype == np.int32 and np.array_equal(target, np.unique(targets))
 
 
 def test_the_normal_equations_find_the_normals_the_residuals_found():
