@@ -117,7 +117,7 @@ def correct_stage(job: JobSnapshot, loaded: LoadedScans | None, online: OnlineWo
     tracker = tuple(np.asarray(s.T_W_S, float) for s in job.scans)
     measured = [k for k, s in enumerate(job.scans) if s.point_count > 0]  # a scan that saw nothing: nothing to do
     view = dataclasses.replace(job, scans=[job.scans[k] for k in measured])
-    if not (job.config.correction.enabled and len(measured) > 1):
+    if not corrects(job):
         chain = tracker_chain_covariance(view) if measured else None
         return CorrectionOutcome({"enabled": False}, tracker, False, _numbered(chain, measured))
     points = [None if loaded is None else loaded.points_S[k] for k in measured]
@@ -126,6 +126,12 @@ def correct_stage(job: JobSnapshot, loaded: LoadedScans | None, online: OnlineWo
     for k, T, reach in zip(measured, refined, measured_reaches, strict=True):
         poses[k], reaches[k] = T, reach
     return CorrectionOutcome(section, tuple(poses), True, _numbered(covariance, measured), checks, tuple(reaches))
+
+
+def corrects(job: JobSnapshot) -> bool:
+    """Whether :func:`correct_stage` corrects the poses of ``job`` (``CorrectionOutcome.corrected``): ``[correction]``
+    enabled and two scans that saw something."""
+    return job.config.correction.enabled and sum(s.point_count > 0 for s in job.scans) > 1
 
 
 def _numbered(covariance: PoseCovariance | None, measured: Sequence[int]) -> PoseCovariance | None:
@@ -162,14 +168,14 @@ def scan_x_bounds(job: JobSnapshot, voxel_mm: float, poses: Sequence[np.ndarray]
     return tuple(scan_x_extent(T, p, job.config.job.voxel_mm, voxel_mm) for T, p in zip(poses, points_S, strict=True))
 
 
-def _tiled_merge_x_bounds(job: JobSnapshot, outcome: CorrectionOutcome, loaded: LoadedScans | None
-                          ) -> tuple[tuple[float, float], ...]:
-    """The bounds of x (W, mm) :func:`merged_cloud` takes where the correction changed the poses and ``[compute]
-    tile_mm`` merges by tiles (else none): from the thinned copies where this process holds them
-    (:func:`scan_x_bounds`), else from each scan's ``tiles.ScanReach`` the correction returned."""
+def _tiled_merge_x_bounds(job: JobSnapshot, outcome: CorrectionOutcome, loaded: LoadedScans | None,
+                          voxel_mm: float) -> tuple[tuple[float, float], ...]:
+    """The bounds of x (W, mm) :func:`merged_cloud` takes, in voxels of edge ``voxel_mm`` (the merge's), where the
+    correction changed the poses and ``[compute] tile_mm`` merges by tiles (else none): from the thinned copies where
+    this process holds them (:func:`scan_x_bounds`), else from each scan's ``tiles.ScanReach`` the correction
+    returned."""
     if not (outcome.corrected and job.config.compute.tile_mm):
         return ()
-    voxel_mm = job.worldmap.voxel_mm  # the merge's
     if loaded is not None:
         return scan_x_bounds(job, voxel_mm, outcome.poses, loaded.points_S)
     return tuple(r.x_bound(T, job.config.job.voxel_mm, voxel_mm)
@@ -236,10 +242,10 @@ def finish_outputs(job: JobSnapshot, started: float, measured_at: float,
     tile_mm`` a ``tiles.TiledCloud``, whose tiles' files are removed once the exports and the score have read
     them), so that the caller, holding no other reference, lets the end of the job free the map's sums. Memory: the
     thinned scans until the correction is done, the maps of one merge and one cloud at a time and one full scan a
-    core; where the correction changed the poses, the map stitched while measuring is dropped before the merge at
-    the corrected poses (on the simulated cell its cloud is kept, float32, for the score of the tracker stitch,
-    ``correction.before``). Each raw scan file is read at most twice here: by the merge at the corrected poses and
-    by the E57.
+    core; where the correction changes the poses, the map stitched while measuring (its sums: 64 B a voxel of the
+    whole part) is dropped before the correction and the cloud merged anew at the corrected poses (on the simulated
+    cell its cloud is kept, float32, for the score of the tracker stitch, ``correction.before``). Each raw scan file
+    is read at most twice here: by the merge at the corrected poses and by the E57.
     ``started`` and ``measured_at`` are ``time.monotonic()`` at the job's start and at its last step's commit;
     ``online``: what the job computed while it measured (``registration.correction.OnlineWork``: registered pairs, scans
     prepared for the joint refinement); ``stages`` (s) are timings of the work before this call; ``loaded``: the
@@ -252,21 +258,23 @@ def finish_outputs(job: JobSnapshot, started: float, measured_at: float,
     view_S = tuple(stitch_view_points(p) for p in loaded.points_S)  # all the exports need of the copies
     if job.config.compute.backend != "local":  # the workers read the scans from the store (docs/compute.md)
         loaded = None  # the copies freed before the correction (a whole part's at full resolution: about 1.2 GB)
-    outcome = correct_stage(job, loaded, online)
-    x_bounds = _tiled_merge_x_bounds(job, outcome, loaded)  # all the tiled merge needs of the copies
-    del loaded  # the copies freed before the merge
-    t = time.perf_counter()
     tracker_map, job.worldmap = job.worldmap, None
-    tracker_poses = tracker_stitch = None
-    if outcome.corrected:
-        voxel_mm, tracker_poses = tracker_map.voxel_mm, [s.T_W_S for s in job.scans]
+    voxel_mm, tracker_stitch = tracker_map.voxel_mm, None
+    if corrects(job):  # the cloud is merged anew at the corrected poses: the map's sums freed before the correction
         if job.scorer is not None:  # the observer scores the tracker stitch too: its cloud (float32), not merged again
             tracker_stitch = dataclasses.replace(job, worldmap=tracker_map.frozen(np.float32))
-        del tracker_map                              # the cloud is merged anew at the corrected poses
+        tracker_map = None
+    outcome = correct_stage(job, loaded, online)
+    x_bounds = _tiled_merge_x_bounds(job, outcome, loaded, voxel_mm)  # all the tiled merge needs of the copies
+    del loaded  # the copies freed before the merge
+    t = time.perf_counter()
+    tracker_poses = None
+    if outcome.corrected:
+        tracker_poses = [s.T_W_S for s in job.scans]
         job.worldmap = merged_cloud(job, voxel_mm, outcome.poses, x_bounds)
     else:
         job.worldmap = tracker_map.frozen()
-        del tracker_map
+    del tracker_map
     timings["merge_s"] = round(time.perf_counter() - t, 3)
     final = dataclasses.replace(
         job, scans=[dataclasses.replace(s, T_W_S=T) for s, T in zip(job.scans, outcome.poses, strict=True)],
