@@ -6,24 +6,29 @@ nose on a body ``--length-factor`` times as long), its scans ray cast by the sim
 (``geometry.raycast.ScannerModel`` at ``--resolution``) from views spread evenly over the part's upper surface
 (Poisson disk on the mesh, the sweet spot along each normal; ``--scans`` on the nose, in proportion to the area on
 the longer part), each stored pose off the true one by the tracker's noise. The job is written as raw scan files
-(``scans/``, the scan store), then the end of the job's stages run one after the other on a Dask ``LocalCluster`` of
-1 and 2 single-threaded workers, this process holding no scan's points (as the daemon on the dask backend):
-``correction`` (``correction.correct_scans`` given only the scans' references: each scan read and summarised on the
-workers, ``correction.summarise_scan``, its pairs and the overlap RMS there, the joint refinement here; without the
-correction ``summaries``: only the scans' bounds of x), ``merge`` (``tiles.merge_tiles`` on the workers),
-``cloud_ply`` (streamed from the tiles, here), ``inspect`` (``tile_inspection.inspect_tiles`` on the workers),
-``figures`` (the report's deviation figures from the tiles' summaries, here), ``deviation_ply`` (streamed, here) and
-``e57`` (the full scans streamed, here). Each stage's
-wall seconds and peak RSS (GiB; the peak is reset before each stage, Linux ``/proc/<pid>/clear_refs``): of the
-process that runs the stages (``main_gib``, and ``main_start_gib`` what it held as the stage started; a fresh
-process for each size and worker count) and of each worker (``worker_gib``, their largest). ``--density-views``
-checks that a reduced ``--resolution`` stands for full resolution in the main process's memory
+(``scans/``, the scan store), then the daemon's own end of the job runs on it, on a Dask ``LocalCluster`` of 1 and
+2 single-threaded workers given as ``[compute] scheduler`` (``backend = "dask"``, ``scan_store`` the job folder,
+``tile_mm``): first what the daemon's map process does while the job measures (``measure``: each scan merged into
+the map at its tracker pose and its thinned copy kept, ``stitcher.merge_scan``), then ``finish.finish_outputs`` on the
+job's snapshot (``snapshot.JobSnapshot``: the scans' records, W the CAD frame), as the map process runs it after the
+last scan. Its stages are the product's functions, each timed by name where the product calls it: ``read``
+(``finish.load_scans``), ``correction`` (``finish.correct_stage``: every scan read and summarised on the workers, its
+pairs and the joint's per-pair work there), ``merge`` (``finish.merged_cloud``, tiles on the workers), ``exports``
+(``outputs.export_job``) and within it, side by side as in the product, ``cloud_ply`` and ``inspection``
+(``outputs._inspection_section``: the report's sample here, then ``inspect`` on the workers, ``figures`` and
+``deviation_ply``, ``tile_inspection``; the E57 and pose log in a process of their own, not sampled). Each stage's
+wall seconds and peak RSS (GiB): of the process that runs the end of the job (``main_gib``, and ``main_start_gib``
+what it held as the stage started; a fresh process for each size and worker count) and of each worker
+(``worker_gib``, their largest), the largest of samples taken every :data:`SAMPLE_S` on a thread of each process
+(stages that run side by side share their samples).
+``--density-views`` checks that a reduced ``--resolution`` stands for full resolution in the main process's memory
 (:func:`density_check`).
 
-The model, per stage: on one worker ``t1 = a + b x`` through the two sizes, ``x`` the stage's driver (raw points,
-scans or merged voxels: :data:`DRIVERS`); on N workers Amdahl's law with the stage's serial share ``f = 2 t2 / t1 -
-1`` (clipped to [0, 1]) measured at the larger size; the peak of a worker is the larger of the two sizes' (bounded by
-the tile and the scan, not the part), that of this process ``a + b scans``. The car: :data:`CAR` (scans, raw
+The model, per stage of :data:`DRIVERS` (the end of the job's stages one after the other): on one worker
+``t1 = a + b x`` through the two sizes, ``x`` the stage's driver (raw points or scans); on N workers Amdahl's law
+with the stage's serial share ``f = 2 t2 / t1 - 1`` (clipped to [0, 1]) measured at the larger size; the peak of a
+worker is the larger of the two sizes' (bounded by the tile and the scan, not the part), that of this process
+``a + b scans``. The car: :data:`CAR` (scans, raw
 points), its merged voxels those of the larger size's per raw point. Prints one JSON object on its last line and
 keeps it in ``benchmarks/results/capacity.json`` (``results.publish``).
 
@@ -43,60 +48,35 @@ half as much again: ``--no-e57`` where the disk has less room) and runs for tens
 from __future__ import annotations
 
 import argparse
-import functools
+import contextlib
 import json
 import shutil
 import sys
 import tempfile
 import time
-from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 from results import publish
-from tandemscan.config.models import CorrectionConfig, PartConfig, ScannerConfig
+from tandemscan.config.models import ComputeConfig, CorrectionConfig, PartConfig, ScannerConfig
 from tandemscan.pipeline.compute import DaskBackend
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.part import train_nose_mesh
 from tandemscan.pipeline.geometry.raycast import ScannerModel, make_scene
-from tandemscan.pipeline.inspection.tile_inspection import deviation_figures, inspect_tiles, write_deviation_ply
-from tandemscan.pipeline.io.export import PosedScan, write_e57
-from tandemscan.pipeline.io.raw_scan import read_raw_scan, thin_scan, write_raw_scan
-from tandemscan.pipeline.registration.correction import (
-    CorrectionSettings,
-    StitchedJob,
-    StitchedScan,
-    correct_scans,
-    summarise_stored_scan,
-)
-from tandemscan.pipeline.registration.pair_stage import ScanRef, StoredScans
+from tandemscan.pipeline.io.raw_scan import thin_scan, write_raw_scan
 from tandemscan.pipeline.registration.sampling import voxel_centroids
-from tandemscan.pipeline.stitching.tiles import TileScan, merge_tiles, write_cloud_ply
 
 VOXEL_MM = 1.0
 #: the 20 m railway car on the larger cell at full resolution (issue 43): scans and raw points
 CAR = {"scans": 3700, "raw_points": 12e9}
 #: what each stage's time grows with
-DRIVERS = {"summaries": "raw_points", "correction": "scans", "merge": "raw_points", "cloud_ply": "voxels",
-           "inspect": "voxels", "figures": "voxels", "deviation_ply": "voxels", "e57": "raw_points"}
+DRIVERS = {"read": "scans", "correction": "scans", "merge": "raw_points", "exports": "raw_points"}
 TRACKER_SIGMA = (0.03, 5e-5)  # mm, rad (1 sigma) of the stored poses' error
 GIB = float(1 << 30)
-
-
-def reset_peak() -> None:
-    """Restart this process's peak RSS count (Linux: ``5`` to ``/proc/self/clear_refs`` resets ``VmHWM``)."""
-    with open("/proc/self/clear_refs", "w", encoding="ascii") as f:
-        f.write("5")
-
-
-def peak_gib() -> float:
-    """This process's peak RSS since the last :func:`reset_peak`, GiB."""
-    with open("/proc/self/status", encoding="ascii") as f:
-        kib = next(int(line.split()[1]) for line in f if line.startswith("VmHWM:"))
-    return kib * 1024 / GIB
 
 
 @dataclass(frozen=True)
@@ -201,70 +181,182 @@ def _upper_share(mesh, normals: np.ndarray) -> float:
     return float(area[normals[:, 2] > -0.3].sum() / area.sum())
 
 
-def _stage(name: str, backend: DaskBackend, record: dict, fn: Callable[[], object]) -> object:
-    """``fn()`` timed, with this process's and each worker's peak RSS during it, into ``record[name]``."""
-    reset_peak()
-    backend.client.run(reset_peak)
-    start = peak_gib()  # the peak just reset: what the process holds as the stage starts
-    t = time.perf_counter()
-    out = fn()
-    wall = time.perf_counter() - t
-    workers = sorted(backend.client.run(peak_gib).values())
-    record[name] = {"wall_s": round(wall, 3), "main_gib": round(peak_gib(), 3), "main_start_gib": round(start, 3),
-                    "worker_gib": round(max(workers), 3), "workers_gib": [round(w, 3) for w in workers]}
-    print(f"{name}: {record[name]}", file=sys.stderr, flush=True)
+#: how often each process's resident memory is sampled (s): the stages run side by side in the product (cloud.ply,
+#: the E57 and the inspection), so a stage's peak is the largest sample in its window, not a reset high-water mark
+SAMPLE_S = 0.02
+#: the daemon's end-of-job functions each stage is (module, function): its window is their call
+STAGES = (("finish", "load_scans", "read"), ("finish", "correct_stage", "correction"),
+          ("finish", "merged_cloud", "merge"), ("finish", "export_job", "exports"),
+          ("outputs", "_write_cloud_ply", "cloud_ply"),
+          ("outputs", "_inspection_section", "inspection"), ("tile_inspection", "inspect_tiles", "inspect"),
+          ("tile_inspection", "deviation_figures", "figures"),
+          ("tile_inspection", "write_deviation_ply", "deviation_ply"))
+
+
+def rss_gib() -> float:
+    """This process's resident memory now, GiB (``VmRSS``)."""
+    with open("/proc/self/status", encoding="ascii") as f:
+        kib = next(int(line.split()[1]) for line in f if line.startswith("VmRSS:"))
+    return kib * 1024 / GIB
+
+
+def start_sampling(dask_worker=None) -> list:
+    """Sample this process's RSS every :data:`SAMPLE_S` on a thread of its own: (time.time(), GiB) appended to the
+    returned list (on a Dask worker, ``client.run``, kept on the worker: :func:`worker_samples`)."""
+    import threading
+
+    samples: list = []
+
+    def sample() -> None:
+        while True:
+            samples.append((time.time(), rss_gib()))
+            time.sleep(SAMPLE_S)
+
+    threading.Thread(target=sample, daemon=True, name="rss-samples").start()
+    if dask_worker is not None:
+        dask_worker.capacity_rss_samples = samples
+    return samples
+
+
+def worker_samples(dask_worker=None) -> list:
+    """The samples :func:`start_sampling` keeps on this Dask worker."""
+    return list(dask_worker.capacity_rss_samples)
+
+
+def _timed_stages(windows: list) -> contextlib.ExitStack:
+    """Each function of :data:`STAGES` replaced, until the returned stack closes, by one that appends its stage's
+    (name, start, end) (time.time()) and its result to ``windows``: the product calls its own functions by these
+    names, so their windows are the product's stages."""
+    from tandemscan.daemon.jobs import finish, outputs
+    from tandemscan.pipeline.inspection import tile_inspection
+
+    modules = {"finish": finish, "outputs": outputs, "tile_inspection": tile_inspection}
+    stack = contextlib.ExitStack()
+    for module, function, stage in STAGES:
+        real = getattr(modules[module], function)
+
+        def timed(*args, _real=real, _stage=stage, **kwargs):
+            t = time.time()
+            out = _real(*args, **kwargs)
+            windows.append((_stage, t, time.time(), out))
+            print(f"{_stage}: {time.time() - t:.1f} s", file=sys.stderr, flush=True)
+            return out
+
+        setattr(modules[module], function, timed)
+        stack.callback(setattr, modules[module], function, real)
+    return stack
+
+
+def _peaks_in(windows: list, main: list, workers: dict) -> dict:
+    """Per stage (its first window): wall seconds, the largest sample of this process and of each worker in it, and
+    this process's sample as it started."""
+    out = {}
+    for stage, t0, t1, _ in windows:
+        if stage in out:
+            continue
+        inside = [g for t, g in main if t0 <= t <= t1] or [min(main, key=lambda s: abs(s[0] - t0))[1]]
+        before = [g for t, g in main if t <= t0] or inside
+        each = sorted(max([g for t, g in w if t0 <= t <= t1] or [w[-1][1]]) for w in workers.values())
+        out[stage] = {"wall_s": round(t1 - t0, 3), "main_gib": round(max(inside), 3),
+                      "main_start_gib": round(before[-1], 3), "worker_gib": round(each[-1], 3),
+                      "workers_gib": [round(g, 3) for g in each]}
     return out
 
 
-def run_stages(job: Job, workers: int, tile_mm: float, e57: bool = True, correct: bool = True) -> tuple[dict, dict]:
-    """Every stage of the end of the job on a ``LocalCluster`` of ``workers`` (the E57 where ``e57``; without
-    ``correct`` no correction, the tiles merged at the stored poses): (per stage figures, drivers)."""
-    store = str(job.folder)
-    stages: dict = {}
+def snapshot(job: Job, part: PartConfig, compute: ComputeConfig, correct: bool):
+    """The job as the daemon's map process holds it at its last scan (``snapshot.JobSnapshot``): the scans' records
+    (each pose its tracker reading's, W the CAD frame F, ``T_F_W`` the identity), a configuration of the simulated
+    cell with ``part``, ``compute`` and, without ``correct``, the correction off; its map and thinned copies are
+    made by :func:`measure`."""
+    from tandemscan.config.models import CellConfig
+    from tandemscan.daemon.jobs.records import ScanRecord
+    from tandemscan.daemon.jobs.snapshot import JobSnapshot
+    from tandemscan.drivers.interfaces import TrackerReading
+    from tandemscan.pipeline.stitching.installation import Installation
+
     cov = np.diag([TRACKER_SIGMA[0] ** 2] * 3 + [TRACKER_SIGMA[1] ** 2] * 3)
+    config = CellConfig(part=part, compute=compute, correction=CorrectionConfig(enabled=correct),
+                        job={"voxel_mm": VOXEL_MM})
+    scans = []
+    for k, (file, T) in enumerate(zip(job.files, job.poses, strict=True)):
+        with np.load(job.folder / file) as data:
+            count = len(data["points_S_mm"])
+        scans.append(ScanRecord(k, 0, job.folder / file, TrackerReading(np.eye(4), cov, float(k), k), np.zeros(6),
+                                np.asarray(T, float), np.asarray(T, float), count))
+    plan = SimpleNamespace(name="capacity", coverage_pct=None, left_out=(), scan_count=len(scans))
+    return JobSnapshot(job.folder, plan, config, Installation(*[np.eye(4)] * 4), scans, [], {}, None, np.eye(4))
+
+
+def measure(job) -> None:
+    """What the daemon's map process does while the job measures: each scan merged into the map at its tracker pose
+    and its thinned copy kept (``stitcher.merge_scan``), read here from its file."""
+    from tandemscan.daemon.jobs.stitcher import merge_scan
+    from tandemscan.pipeline.stitching.worldmap import VoxelMap
+
+    job.worldmap, job.scan_copies = VoxelMap(job.config.job.voxel_mm), {}
+    for s in job.scans:
+        merge_scan(job.worldmap, job.scan_copies, str(s.file), s.T_W_S, None)
+
+
+def run_stages(job: Job, part: PartConfig, workers: int, tile_mm: float, e57: bool = True, correct: bool = True
+               ) -> tuple[dict, dict]:
+    """The daemon's end of the job (``finish.finish_outputs``, the map process's work after the last scan) on a
+    ``LocalCluster`` of ``workers`` as ``[compute] scheduler`` (the E57 where ``e57``; without ``correct`` the
+    correction off), after :func:`measure`: (per stage figures, drivers).
+
+    Six parameters: the job and its part, the cluster's size, the tiles, and two stages left out."""
+    from tandemscan.daemon.jobs import finish, outputs
+
     backend = DaskBackend("", workers)
+    windows: list = []
     try:
         backend.client.wait_for_workers(workers, timeout=120)
-        scans = [StitchedScan(None, T, cov, 0, f) for T, f in zip(job.poses, job.files, strict=True)]  # no points here
-        settings = CorrectionSettings.from_section(CorrectionConfig())
-        if correct:  # each scan read and summarised on the workers (correction.summarise_scan), its pairs there too
-            result = _stage("correction", backend, stages, lambda: correct_scans(
-                StitchedJob(scans, voxel_mm=VOXEL_MM), settings, backend=backend, scan_store=store))
-            poses, reaches = result.poses, result.reaches
-        else:  # only the scans' bounds of x, read on the workers
-            refs = [ScanRef(k, f, T) for k, (f, T) in enumerate(zip(job.files, job.poses, strict=True))]
-            fn = functools.partial(summarise_stored_scan, store=StoredScans(store, VOXEL_MM), cfg=settings,
-                                   digest=False, joint=False)
-            keys = [f"reach-{r.file}" for r in refs]
-            read = _stage("summaries", backend, stages, lambda: backend.map(fn, refs, keys))
-            poses, reaches, result = job.poses, [r.summary.reach for r in read], None
-        refs = [TileScan(f, T, *reach.x_bound(T, VOXEL_MM, VOXEL_MM))
-                for f, T, reach in zip(job.files, poses, reaches, strict=True)]
-        tiles = _stage("merge", backend, stages, lambda: merge_tiles(refs, VOXEL_MM, tile_mm, store, backend))
-        _stage("cloud_ply", backend, stages, lambda: write_cloud_ply(job.folder / "cloud.ply", store, tiles))
-        inspected = _stage("inspect", backend, stages, lambda: inspect_tiles(
-            tiles, store, job.mesh_file, np.eye(4), -0.5, 0.5, backend))
-        _stage("figures", backend, stages, lambda: deviation_figures(store, inspected, -0.5, 0.5))
-        _stage("deviation_ply", backend, stages,
-               lambda: write_deviation_ply(job.folder / "cloud_deviation.ply", store, inspected))
-        if e57:
-            _stage("e57", backend, stages, lambda: write_e57(job.folder / "cloud.e57", (
-                PosedScan(Path(f).stem, T, read_raw_scan(job.folder / f, np.float32)[0])
-                for f, T in zip(job.files, poses, strict=True) if _has_points(job.folder / f))))
+        main = start_sampling()
+        backend.client.run(start_sampling)
+        compute = ComputeConfig(backend="dask", scheduler=backend.client.scheduler.address, tile_mm=tile_mm,
+                                scan_store=job.folder, dask_workers=workers)
+        snap = snapshot(job, part, compute, correct)
+        with _timed_stages(windows) as stack:
+            if not e57:  # its disk (at full resolution half the raw scans again), not the product's choice
+                stack.enter_context(_without_e57(outputs))
+            t = time.time()
+            measure(snap)
+            windows.append(("measure", t, time.time(), None))
+            kept = finish.finish_outputs(snap, time.monotonic(), time.monotonic())
+        time.sleep(2 * SAMPLE_S)
+        stages = _peaks_in(windows, list(main), backend.client.run(worker_samples))
     finally:
         backend.close()
-    shutil.rmtree(job.folder / "tiles", ignore_errors=True)
-    for name in ("cloud.ply", "cloud_deviation.ply", "cloud.e57"):
+    finish.drop_outputs(kept)
+    cloud = next(out for stage, _, _, out in windows if stage == "merge")
+    for name in ("cloud.ply", "cloud_deviation.ply", "cloud.e57", "poses.csv", "report.html"):
         (job.folder / name).unlink(missing_ok=True)
-    drivers = {"scans": len(job.files), "raw_points": job.raw_points, "voxels": sum(t.voxels for t in tiles),
-               "tiles": len(tiles), "tile_voxels_max": max((t.voxels for t in tiles), default=0),
-               "pairs": len(result.edges) if correct else None}
+    shutil.rmtree(job.folder / "figures", ignore_errors=True)
+    tiles = getattr(cloud, "tiles", ())
+    drivers = {"scans": len(job.files), "raw_points": job.raw_points, "voxels": len(cloud), "tiles": len(tiles),
+               "tile_voxels_max": max((t.voxels for t in tiles), default=0),
+               "pairs": kept.correction.section.get("pairs") if correct else None,
+               "verdict": kept.exports.inspection.get("verdict")}
     return stages, drivers
 
 
-def _has_points(path: Path) -> bool:
-    with np.load(path) as data:
-        return len(data["points_S_mm"]) > 0
+def pose_log_only(exports) -> None:
+    """``export.write_scan_exports`` without the E57: the pose log alone (in the exports' own process, which imports
+    this module by name)."""
+    from tandemscan.pipeline.io.export import write_pose_log
+
+    write_pose_log(exports.pose_log, exports.scans)
+
+
+@contextlib.contextmanager
+def _without_e57(outputs):
+    """The job's E57 left out (``daemon.jobs.outputs`` hands its exports' process :func:`pose_log_only`)."""
+    real = outputs.write_scan_exports
+    outputs.write_scan_exports = pose_log_only
+    try:
+        yield
+    finally:
+        outputs.write_scan_exports = real
 
 
 def model(sizes: list[dict], workers: list[int], car_workers: tuple[int, ...]) -> dict:
@@ -276,7 +368,7 @@ def model(sizes: list[dict], workers: list[int], car_workers: tuple[int, ...]) -
     car = {"scans": CAR["scans"], "raw_points": CAR["raw_points"], "voxels": CAR["raw_points"] * per_point}
     stages, seconds = {}, dict.fromkeys(car_workers, 0.0)
     for name, driver in DRIVERS.items():
-        if name not in large["runs"][one]:  # a stage left out of the run
+        if any(name not in s["runs"][w] for s in sizes for w in (one, two)):  # a stage left out of a run
             continue
         x0, x1 = small["drivers"][driver], large["drivers"][driver]
         t0, t1 = small["runs"][one][name]["wall_s"], large["runs"][one][name]["wall_s"]
@@ -335,8 +427,8 @@ def main() -> None:
                     "length from its tail (a band across it: the nose's and, twice as long, the longer part's)")
     ap.add_argument("--sizes", nargs="+", choices=("nose", "long"), default=["nose", "long"],
                     help="which parts to run (the model and the growth need both)")
-    ap.add_argument("--no-correction", action="store_true", help="the tile stages at the stored poses, without the "
-                    "correction (its pair units read every scan several times: at full resolution the longest stage)")
+    ap.add_argument("--no-correction", action="store_true", help="[correction] enabled = false: the product then "
+                    "keeps the map stitched while measuring (no tiles, the whole cloud in the map's process)")
     ap.add_argument("--density-views", type=int, default=0, help="ray cast this many views at full resolution too "
                     "and compare the thinned copies' points (whether --resolution stands for full in memory)")
     ap.add_argument("--no-e57", action="store_true", help="leave the E57 out (at full resolution the longer part's "
@@ -367,8 +459,8 @@ def main() -> None:
             runs, drivers = {}, {}
             for w in args.workers:  # each run in a fresh process: its peaks are its own, not an earlier run's heap
                 with ProcessPoolExecutor(1, mp_context=get_context("spawn")) as pool:
-                    runs[str(w)], drivers = pool.submit(run_stages, job, w, args.tile_mm, not args.no_e57,
-                                                                 not args.no_correction).result()
+                    runs[str(w)], drivers = pool.submit(run_stages, job, part, w, args.tile_mm, not args.no_e57,
+                                                        not args.no_correction).result()
             sizes.append({"part": label, "length_mm": part.length_mm, "drivers": drivers,
                           "job_written_s": round(made, 1), "runs": runs})
             print(f"{label}: peaks {json.dumps(peaks(sizes[-1:]))}", file=sys.stderr, flush=True)
