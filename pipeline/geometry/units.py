@@ -20,10 +20,18 @@ MAX_LARGER = 50.0
 MAX_SMALLER = 200.0
 
 
+def box_mm(points_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi), (3,) each: the corners of the points' (N, 3) axis-aligned bounding box (mm), reduced a column at
+    a time (the same values as ``min(axis=0)`` / ``max(axis=0)``, which run a third as fast on (N, 3) rows)."""
+    p = np.asarray(points_mm, float)
+    return (np.array([p[:, i].min() for i in range(3)], np.float64),
+            np.array([p[:, i].max() for i in range(3)], np.float64))
+
+
 def extent_mm(points_mm: np.ndarray) -> np.ndarray:
     """(3,) the sides of the points' axis-aligned bounding box (mm)."""
-    p = np.asarray(points_mm, float)
-    return p.max(axis=0) - p.min(axis=0)
+    lo, hi = box_mm(points_mm)
+    return hi - lo
 
 
 def size_words(extent: np.ndarray) -> str:

@@ -23,6 +23,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
+from tandemscan.pipeline.geometry.units import box_mm
 
 NEIGHBOURS = 48  # at most this many neighbours enter a point's average
 DENSITY_K = 8  # the neighbour whose distance gives a point's share of the surface
@@ -64,8 +65,9 @@ def even_centres(points_mm: np.ndarray, cell_mm: float) -> np.ndarray:
     p = np.asarray(points_mm, float)
     if not len(p):
         return np.zeros(0, np.int64)
-    lo = np.floor(p.min(axis=0) / cell_mm)  # the smallest cube index (floor of a quotient is monotone)
-    size = (np.floor(p.max(axis=0) / cell_mm) - lo + 1).astype(np.int64)
+    p_lo, p_hi = box_mm(p)
+    lo = np.floor(p_lo / cell_mm)  # the smallest cube index (floor of a quotient is monotone)
+    size = (np.floor(p_hi / cell_mm) - lo + 1).astype(np.int64)
     keys = np.empty(len(p), np.int64)
     for at in range(0, len(p), _CHUNK):
         cell = (np.floor(p[at:at + _CHUNK] / cell_mm) - lo).astype(np.int64)

@@ -131,7 +131,7 @@ class _Background:
     normals: np.ndarray  # (H, W, 3) that triangle's unit normal (F), zero where the ray misses
 
 
-@functools.lru_cache(maxsize=1)  # the upper/lower maps reuse the first view's background
+@functools.lru_cache(maxsize=1)  # the first view's other maps (coverage, upper/lower, U) reuse its background
 def _background(surface: CadSurface, view: View, width_px: int) -> _Background:
     f, r, u = _camera(view)
     corners = np.asarray(surface.mesh.get_axis_aligned_bounding_box().get_box_points())

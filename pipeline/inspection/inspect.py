@@ -29,6 +29,7 @@ from tandemscan.pipeline.geometry.frames import (
     transform_points,
 )
 from tandemscan.pipeline.geometry.part import enclosed_volume_mm3, triangles_closed
+from tandemscan.pipeline.geometry.units import box_mm
 from tandemscan.pipeline.inspection.cad_orientation import MeshPatches, mesh_patches
 from tandemscan.pipeline.inspection.decision import DecisionRule, RuleName
 from tandemscan.pipeline.inspection.deviation_areas import DeviationArea, find_deviation_areas
@@ -543,7 +544,7 @@ def _moves_further(T: np.ndarray, points_mm: np.ndarray, limit_mm: float) -> boo
     """Whether ``T`` moves some point of ``points_mm`` further than ``limit_mm`` (mm). A rigid motion's
     displacement is affine in the point, so its length is largest at a corner of the points' bounding box:
     where no corner moves further no point does; else the points are measured, a chunk at a time."""
-    lo, hi = points_mm.min(axis=0), points_mm.max(axis=0)
+    lo, hi = box_mm(points_mm)
     corners = np.array([[hi[i] if (k >> i) & 1 else lo[i] for i in range(3)] for k in range(8)])
     for q in [corners] if _moved_mm(T, corners) <= limit_mm else (
             points_mm[at:at + CLOSEST_CHUNK] for at in range(0, len(points_mm), CLOSEST_CHUNK)):

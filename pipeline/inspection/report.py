@@ -200,7 +200,7 @@ def build_report(
     drawn = MapPoints(p, d, n, typical_spacing(p))
     scale = ColourScale(norm, (tol.lower_mm, tol.upper_mm))
     callouts = [Callout(f"#{a.id}", a.centroid_mm, SIDE_COLOURS[a.side]) for a in result.areas]
-    maps, split = [], []
+    maps, split, uncertainty = [], [], []
     measured = _measured(result, surface)
     for i, view in enumerate(views):
         png = deviation_map_png(surface, drawn, view, scale, style.map_width_px, callouts=callouts)
@@ -208,6 +208,7 @@ def build_report(
         if i > 0:
             continue
         coverage_map = _coverage_figure(result, surface, view, style, measured)  # the first view's picture cached
+        uncertainty = _uncertainty_map(result, surface, view, style, drawn, every)
         for label, side, keep in (("upper", "above", d > 0), ("lower", "below", d < 0)):  # first view only
             if keep.any():
                 title_ = f"{label.capitalize()} deviation (points {side} CAD), {view.name}"
@@ -218,8 +219,7 @@ def build_report(
         characteristics = characteristics.result()
     trends = trend_figures(characteristics, part.history, part.labels)
     quality = quality_figures(result, characteristics, tol, norm) + [f for f, _ in trends]
-    figures = quality + maps + _uncertainty_map(result, surface, views[0], style, drawn, every) + [
-        coverage_map] + split
+    figures = quality + maps + uncertainty + [coverage_map] + split
     hist = histogram_png(result.deviations_mm, result.stats, tol, norm)
     caption = "Deviation histogram with the tolerance band (the outer bins collect the 0.1 % tails)"
     figures.append(ReportFigure("histogram", caption, hist))

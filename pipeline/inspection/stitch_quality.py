@@ -87,9 +87,11 @@ def overlap_quality(
     if scans_after is not None and len(scans_after) != len(scans_before):
         raise ValueError(f"{len(scans_before)} scans before correction but {len(scans_after)} after")
     pairs = []
+    select = scans_after if scans_after is not None else scans_before
+    b = b0 = None  # a pair's later scan is the next one's earlier: each scan of a list placed once
     for i in range(len(scans_before) - 1):
-        select = scans_after if scans_after is not None else scans_before
-        a, b = np.asarray(select[i], float), np.asarray(select[i + 1], float)
+        a, b = (b if b is not None else np.asarray(select[i], float)), np.asarray(select[i + 1], float)
+        a0, b0 = b0, None  # scan i before the correction, where the previous pair placed it
         if len(a) < 3 or len(b) == 0:
             continue
         b_idx = np.arange(len(b))[:: max(1, len(b) // max_points)]
@@ -107,7 +109,8 @@ def overlap_quality(
         rms_after = None
         if scans_after is not None:
             rms_after = float(np.sqrt(np.mean(dist**2)))
-            a0, b0 = np.asarray(scans_before[i], float), np.asarray(scans_before[i + 1], float)
+            a0 = a0 if a0 is not None else np.asarray(scans_before[i], float)
+            b0 = np.asarray(scans_before[i + 1], float)
             T = rigid_motion(a, a0)  # scan i moved by the correction: its tree serves before and after
             dist0 = (_plane_distances(b0[over], a0, _tree(a0), k) if T is None
                      else _plane_distances(transform_points(T, b0[over]), a, tree_a, k))

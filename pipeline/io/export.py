@@ -17,6 +17,7 @@ from typing import Protocol
 
 import numpy as np
 from tandemscan.pipeline.geometry.frames import to_quaternion, to_rpy, transform_points
+from tandemscan.pipeline.geometry.units import box_mm
 from tandemscan.pipeline.io.raw_scan import read_raw_scan
 
 log = logging.getLogger(__name__)
@@ -189,10 +190,7 @@ class ArrayBlocks:
         return len(self.points_mm)
 
     def bounds_mm(self) -> tuple[np.ndarray, np.ndarray]:
-        p = np.asarray(self.points_mm)
-        lo = np.array([p[:, i].min() for i in range(3)], np.float64)
-        hi = np.array([p[:, i].max() for i in range(3)], np.float64)
-        return lo, hi
+        return box_mm(self.points_mm)
 
     def blocks(self) -> Iterator[np.ndarray]:
         for lo in range(0, len(self.points_mm), E57_BLOCK_POINTS):

@@ -312,3 +312,59 @@ def test_a_read_only_clouds_tree_and_screening_are_built_once_and_go_with_it(mon
     assert deviation_areas._KEPT
     del p_ro, d_ro
     assert not deviation_areas._KEPT
+
+
+def test_nearest_even_centre_searched_within_a_cubes_diagonal_is_the_plain_nearest():
+    from tandemscan.pipeline.geometry.units import box_mm
+    from tandemscan.pipeline.inspection.point_uncertainty import _nearest_centre
+
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(-1500.0, 1500.0, (60_000, 2))  # a curved sheet at part scale, some cubes nearly empty
+    p = np.c_[xy, 3e-4 * xy[:, 0] ** 2 - 2e-4 * xy[:, 1] ** 2 + rng.normal(0.0, 0.05, len(xy))] + [250.0, -40.0, 900.0]
+    lo, hi = box_mm(p)
+    assert np.array_equal(lo, p.min(axis=0)) and np.array_equal(hi, p.max(axis=0))
+    for cell in (17.4, 45.0, 120.0):
+        centres = even_centres(p, cell)
+        assert np.array_equal(_nearest_centre(p, centres, cell), cKDTree(p[centres]).query(p)[1])
+    assert np.array_equal(_nearest_centre(p, np.arange(len(p)), 0.1), np.arange(len(p)))
+
+
+def test_alignment_variance_a_chunk_at_a_time_is_one_pass():
+    from tandemscan.pipeline.inspection.point_uncertainty import ROWS_AT_ONCE, AlignmentCovariance, _alignment_variance
+
+    rng = np.random.default_rng(4)
+    n = 3 * ROWS_AT_ONCE + 17
+    p, normals = rng.uniform(-1000.0, 1000.0, (n, 3)), rng.normal(size=(n, 3))
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    a = rng.normal(size=(6, 6))
+    cov = AlignmentCovariance(a @ a.T * 1e-4, np.array([10.0, -20.0, 300.0]))
+    j = np.hstack([normals, np.cross(p - cov.centre_mm, normals)])
+    assert np.array_equal(_alignment_variance(p, normals, cov), np.einsum("ij,jk,ik->i", j, cov.covariance, j))
+
+
+def test_overlap_quality_places_each_scan_once():
+    from tandemscan.pipeline.inspection.inspection_job import PlacedScans
+    from tandemscan.pipeline.inspection.stitch_quality import overlap_quality
+
+    rng = np.random.default_rng(5)
+    scans = []
+    for k in range(5):  # overlapping patches, each in a scanner frame of its own
+        xy = rng.uniform([60.0 * k, 0.0], [60.0 * k + 100.0, 100.0], (3000, 2))
+        scans.append(np.c_[xy, 1e-3 * xy[:, 1] ** 2 + rng.normal(0.0, 0.02, len(xy))])
+    poses = [from_rotvec(rng.normal(0.0, 1e-4, 3), rng.normal(0.0, 0.1, 3)) for _ in scans]
+
+    class Counted(PlacedScans):
+        def __init__(self, *args):
+            super().__init__(*args)
+            self.asked: list[int] = []
+
+        def __getitem__(self, i):
+            self.asked.append(i)
+            return super().__getitem__(i)
+
+    before, after = Counted(scans, poses), Counted(scans, np.eye(4))
+    pairs = overlap_quality(before, after)
+    assert [p.i for p in pairs] == [0, 1, 2, 3] and all(p.rms_before_mm > p.rms_after_mm for p in pairs)
+    assert after.asked == [0, 1, 2, 3, 4] and before.asked == [0, 1, 2, 3, 4]
+    placed = [[transform_points(T, s) for s, T in zip(scans, poses, strict=True)], [np.asarray(s) for s in scans]]
+    assert pairs == overlap_quality(*placed)  # the same figures as from the scans placed beforehand
