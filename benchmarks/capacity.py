@@ -328,7 +328,7 @@ def run_stages(job: Job, part: PartConfig, workers: int, tile_mm: float, e57: bo
     finally:
         backend.close()
     finish.drop_outputs(kept)
-    cloud = next(out for stage, _, _, out in windows if stage == "merge")
+    cloud = kept.final.worldmap  # tiles (their files removed), or the cloud merged while measuring (no correction)
     for name in ("cloud.ply", "cloud_deviation.ply", "cloud.e57", "poses.csv", "report.html"):
         (job.folder / name).unlink(missing_ok=True)
     shutil.rmtree(job.folder / "figures", ignore_errors=True)
