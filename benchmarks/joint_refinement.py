@@ -8,7 +8,8 @@ Scan ``k`` sees a 300 x 200 mm window of the strip starting at ``k x 100`` mm (p
 either side), 0.05 mm of noise along the scanner's z; the tracker poses are the truth moved by 0.1 mm and 0.01 deg
 (1 sigma). Prints, per scan count, the seconds, the traced peak (MiB, ``tracemalloc``: numpy's and SciPy's arrays,
 not the interpreter's own), the correspondences, the pose error against the truth (median mm) and whether the
-posterior's objects stay sparse-sized (``pose_covariance.A`` sparse, its stored bytes). With ``--against REV`` the same
+posterior's objects stay sparse-sized (``pose_covariance.A`` sparse, its stored bytes; the posterior's normal and
+information matrices, sparse, their stored bytes). With ``--against REV`` the same
 problems also run on ``pipeline/registration/joint.py`` as it was at git revision ``REV`` (the rest of the package as
 it is now), after this code, and the figures add its seconds and the largest difference of the two codes' poses (mm,
 and of their rotation matrices' entries). Timings on a shared machine are unreliable: run it idle.
@@ -115,7 +116,8 @@ def measure(n: int, seed: int, against: ModuleType | None, threads: int) -> dict
                                                              zip(result.poses, truth, strict=True)])), 5),
                "A_sparse": bool(hasattr(A, "nnz")),
                "A_stored_mib": round((A.data.nbytes + A.indices.nbytes + A.indptr.nbytes) / 2**20, 3),
-               "theta_covariance_mib": round(result.pose_covariance.theta_covariance.nbytes / 2**20, 1)}
+               "posterior_stored_mib": round(sum(M.data.nbytes + M.indices.nbytes + M.indptr.nbytes for M in (
+                   result.pose_covariance.normal, result.pose_covariance.information)) / 2**20, 1)}
     if against is not None:
         before, cpu, wall, peak = timed(against.refine_jointly, problem)
         P, Q = np.stack(result.poses), np.stack(before.poses)

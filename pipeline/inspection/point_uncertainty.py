@@ -40,7 +40,7 @@ from tandemscan.pipeline.geometry.frames import invert, rotate_vectors, transfor
 from tandemscan.pipeline.geometry.units import extent_mm
 from tandemscan.pipeline.inspection.alignment import Alignment
 from tandemscan.pipeline.inspection.deviation_areas import even_centres
-from tandemscan.pipeline.registration.pose_covariance import PoseCovariance
+from tandemscan.pipeline.registration.pose_covariance import PoseCovariance, ScanErrors
 
 MAX_CENTRES = 40_000  # pose terms are evaluated at an even thinning of at most about this many points
 SCANS_PER_POINT = 4  # a point's voxel takes at most this many scans into account (the largest shares)
@@ -216,10 +216,12 @@ class JobUncertainty:
         if method == "best-fit":
             fit = np.arange(len(p_F))[:: max(1, len(p_F) // FIT_POINTS)]
             absorb = self._absorption(p_W[fit], n_W[fit], p_F[fit], n_F[fit], self.cover.shares(p_W[fit]))
+        errors = self.poses.scan_errors(_covering_pairs(np.maximum(self._pose_rows()[c_at[0]], 0)))
+        absorbed = {} if absorb is None else _Absorbed.of(self.poses, *absorb)
         parts = {}
-        for part in ("all", "scan_poses", "installation"):
-            parts[part] = self._pose_variance(self.poses.covariance(part), p_W[centres], n_W[centres],
-                                              p_F[centres], n_F[centres], c_at, absorb)[nearest]
+        for part, blocks in errors.items():
+            parts[part] = self._pose_variance(blocks, p_W[centres], n_W[centres], p_F[centres], n_F[centres], c_at,
+                                              absorbed.get(part))[nearest]
         aligned = _alignment_variance(p_F, n_F, alignment)
         total = k * np.sqrt(parts["all"] + noise + aligned)
         budget = {"scan_poses": parts["scan_poses"], "installation": parts["installation"],
@@ -267,29 +269,22 @@ class JobUncertainty:
         JtJ = j.T @ j
         return np.linalg.solve(JtJ + 1e-9 * np.trace(JtJ) * np.eye(6), S.reshape(6, -1)), c
 
-    def _pose_variance(self, cov: np.ndarray, p_W: np.ndarray, n_W: np.ndarray, p_F: np.ndarray, n_F: np.ndarray,
-                       at: tuple[np.ndarray, np.ndarray], absorb: tuple[np.ndarray, np.ndarray] | None
-                       ) -> np.ndarray:
-        """Each point's variance along its normal from the pose errors of covariance ``cov`` (6n, 6n:
-        ``PoseCovariance.covariance``), less the best fit's absorption where given, mm^2: with ``v = g - B^T j``
+    def _pose_variance(self, errors: ScanErrors, p_W: np.ndarray, n_W: np.ndarray, p_F: np.ndarray,
+                       n_F: np.ndarray, at: tuple[np.ndarray, np.ndarray], absorbed: _Absorbed | None) -> np.ndarray:
+        """Each point's variance along its normal from the pose errors ``errors`` (one part's,
+        ``PoseCovariance.scan_errors``), less the best fit's absorption where given, mm^2: with ``v = g - B^T j``
         (``g`` a point's weighted gradients, nonzero at its few scans only), ``v^T cov v = g^T cov g - 2 g^T cov B^T
-        j + j^T B cov B^T j``, each term from the 6x6 blocks of its scans (no dense product with ``cov``)."""
-        n = cov.shape[0] // 6
-        if not cov.any():
-            return np.zeros(len(p_W))
-        blocks = np.ascontiguousarray(cov.reshape(n, 6, n, 6).transpose(0, 2, 1, 3))  # [i, l]: 6x6 of scans i, l
-        cov_B = None if absorb is None else (cov @ absorb[0].T).reshape(n, 6, 6)  # cov B^T: per scan 6 x 6 motions
-        B_cov_B = None if absorb is None else absorb[0] @ cov @ absorb[0].T
+        j + j^T B cov B^T j``, the first term from the blocks of its scans (no product with the whole ``cov``)."""
         out = np.empty(len(p_W))
-        step = 4096
+        step = 2048
         for lo in range(0, len(p_W), step):
             sl = slice(lo, lo + step)
             rows, g = self._gradients(p_W[sl], n_W[sl], (at[0][sl], at[1][sl]))
-            var = np.einsum("mkj,mkljq,mlq->m", g, blocks[rows[:, :, None], rows[:, None, :]], g, optimize=True)
-            if absorb is not None:
-                j = np.hstack([n_F[sl], np.cross(p_F[sl] - absorb[1], n_F[sl])])
-                var -= 2.0 * np.einsum("mkj,mkjq,mq->m", g, cov_B[rows], j, optimize=True)
-                var += np.einsum("ma,ab,mb->m", j, B_cov_B, j, optimize=True)
+            var = errors.variance(rows, g)
+            if absorbed is not None:
+                j = np.hstack([n_F[sl], np.cross(p_F[sl] - absorbed.centre_mm, n_F[sl])])
+                var -= 2.0 * np.einsum("mkj,mkjq,mq->m", g, absorbed.cov_B[rows], j, optimize=True)
+                var += np.einsum("ma,ab,mb->m", j, absorbed.B_cov_B, j, optimize=True)
             out[sl] = np.maximum(var, 0.0)  # rounding may take an absorbed variance below 0
         return out
 
@@ -302,6 +297,32 @@ def _nearest_centre(points_F: np.ndarray, centres: np.ndarray, cell_mm: float) -
         return np.arange(len(points_F))
     bound_mm = cell_mm * math.sqrt(3.0) * (1.0 + 1e-9)
     return cKDTree(points_F[centres]).query(points_F, workers=-1, distance_upper_bound=bound_mm)[1]
+
+
+@dataclass(frozen=True)
+class _Absorbed:
+    """What a best fit takes of one part's pose errors (``JobUncertainty._absorption``'s ``B`` about ``centre_mm``):
+    ``cov B^T`` per scan (n, 6, 6: a scan's error against the fit's motion) and ``B cov B^T`` (6, 6)."""
+
+    cov_B: np.ndarray
+    B_cov_B: np.ndarray
+    centre_mm: np.ndarray
+
+    @classmethod
+    def of(cls, poses: PoseCovariance, B: np.ndarray, centre_mm: np.ndarray) -> dict[str, _Absorbed]:
+        """Per part (``pose_covariance.PARTS``) from ``B`` (6, 6n) and the part's covariance applied by solves
+        (``PoseCovariance.times``)."""
+        return {part: cls(cov_B.reshape(-1, 6, 6), B @ cov_B, centre_mm)
+                for part, cov_B in poses.times(B.T).items()}
+
+
+def _covering_pairs(rows: np.ndarray) -> np.ndarray:
+    """(P, 2) the pairs of scan rows that share a point (``rows``: (M, K) each point's scans), each once."""
+    K = rows.shape[1]
+    a, b = np.triu_indices(K, 1)
+    pairs = np.stack([rows[:, a].ravel(), rows[:, b].ravel()], axis=1)
+    pairs = np.sort(pairs, axis=1)
+    return np.unique(pairs[pairs[:, 0] != pairs[:, 1]], axis=0)
 
 
 def _centre_cell(points_F: np.ndarray) -> float:

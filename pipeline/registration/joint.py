@@ -39,7 +39,7 @@ and solves the sparse normal
 equations ``(A^T H_e A + prior) theta = A^T (H_e e - b_e)`` (``e`` the corrections so far, ``b_e`` the weighted
 residuals' gradient) for ``theta`` itself (scipy.sparse); the posterior covariance of
 each scan's correction is ``A_i C A_i^T``, ``C`` the covariance of ``theta`` under the residuals' noise at the
-refined poses (``_posterior_covariance``: a sigma taken at the start poses also holds the start's misalignment,
+refined poses (``_posterior``: a sigma taken at the start poses also holds the start's misalignment,
 and ``H^-1`` alone was that much too wide: whole part, seed 7, one linearisation, 0.093 against 0.071 mm).
 """
 
@@ -238,7 +238,7 @@ class JointResult:
     prior); figures: outer iterations, pairs and correspondences of the last one, the residuals' sigma (mm, as
     ``JointSettings.sigma_mm``) the weights used, the point-to-plane RMS (mm) of the correspondences at the start
     and at the refined poses, and their sigma at the refined poses (``noise_sigma_mm``, the same estimate as
-    ``sigma_mm``), which the posterior covariances take as the noise's (``_posterior_covariance``); and the pairs
+    ``sigma_mm``), which the posterior covariances take as the noise's (``_posterior``); and the pairs
     whose correspondences were found anew after the first linearisation, summed over the linearisations (a pair
     found anew twice counts twice; ``JointSettings.reassociate_mm``)."""
 
@@ -324,11 +324,12 @@ class _Model:
             out[i] = np.r_[t, r]
         return out
 
-    def pose_covariance(self, cov_theta: np.ndarray, source: str) -> PoseCovariance:
-        """The scans' errors ``e = A theta`` jointly, ``theta`` of covariance ``cov_theta`` (dense), for every scan
-        ``0 .. n-1`` (the caller maps them to its own); ``A`` as it is, sparse."""
+    def pose_covariance(self, normal: sparse.spmatrix, information: sparse.spmatrix, source: str) -> PoseCovariance:
+        """The scans' errors ``e = A theta`` jointly, ``theta`` of covariance ``normal^-1 information normal^-1``
+        (both sparse, kept so: ``PoseCovariance``), for every scan ``0 .. n-1`` (the caller maps them to its own);
+        ``A`` as it is, sparse."""
         mount = () if self.L is None else tuple(range(self.size - 6, self.size))
-        return PoseCovariance(np.arange(self.n), self.origins.copy(), self.A, cov_theta, source, mount)
+        return PoseCovariance(np.arange(self.n), self.origins.copy(), self.A, normal, information, source, mount)
 
     @functools.cached_property
     def scan_columns(self) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -344,15 +345,14 @@ class _Model:
             out.append((cols, block))
         return out
 
-    def scan_covariances(self, cov_theta: np.ndarray | sparse.spmatrix) -> np.ndarray:
-        """(n, 6, 6) covariance of every ``e_i`` from the covariance of ``theta`` (dense, or sparse as the priors'):
-        the diagonal blocks ``A_i cov A_i^T`` of ``A cov A^T`` only, each from the few columns ``A_i`` uses
-        (:attr:`scan_columns`), neither the whole (6n, 6n) product nor ``A`` dense."""
-        C = sparse.csr_matrix(cov_theta) if sparse.issparse(cov_theta) else cov_theta
+    def scan_covariances(self, cov_theta: sparse.spmatrix) -> np.ndarray:
+        """(n, 6, 6) covariance of every ``e_i`` from a sparse covariance of ``theta`` (the priors'): the diagonal
+        blocks ``A_i cov A_i^T`` of ``A cov A^T`` only, each from the few columns ``A_i`` uses (:attr:`scan_columns`),
+        neither the whole (6n, 6n) product nor ``A`` dense (the posterior's: ``PoseCovariance.scan_covariances``)."""
+        C = sparse.csr_matrix(cov_theta)
         out = np.empty((self.n, 6, 6))
         for i, (cols, Ai) in enumerate(self.scan_columns):
-            block = C[cols][:, cols].toarray() if sparse.issparse(C) else C[np.ix_(cols, cols)]
-            out[i] = Ai @ block @ Ai.T
+            out[i] = Ai @ C[cols][:, cols].toarray() @ Ai.T
         return out
 
 
@@ -980,22 +980,20 @@ def _refine(work: _PairWork, model: _Model, pairs: Sequence[tuple[int, int]], st
     kept = associated = []                 # the matches are not needed any more: released (whole part: ~0.3 GB)
     rms_after = final.rms_mm
     noise_sigma = settings.sigma_mm or final.whitened_sigma_mm
-    H_inv = np.linalg.inv(H_theta.toarray())        # the last linearisation's normal matrix, inverted
     ratio = (noise_sigma / sigma) ** 2
-    cov_theta = _posterior_covariance(H_inv, H_prior + ratio * (model.A.T @ N.matrix() @ model.A))
-    factors, dispersion = _dispersions(model, kept_pairs, unit_systems, noise_sigma, cov_theta)
+    posterior = _posterior(model, H_theta, H_prior + ratio * (model.A.T @ N.matrix() @ model.A))
+    factors, dispersion = _dispersions(model, kept_pairs, unit_systems, noise_sigma, posterior)
     if np.any(factors > 1.0):
-        cov_theta = _posterior_covariance(H_inv, H_prior + ratio * (model.A.T @ N.matrix(factors) @ model.A))
+        posterior = _posterior(model, H_theta, H_prior + ratio * (model.A.T @ N.matrix(factors) @ model.A))
     mount = None
     if model.L is not None:   # the data's information under their noise at the refined poses, plus the priors
-        mount = _mount_estimate(model, (H_theta - H_prior) / ratio + H_prior, cov_theta, theta)
+        mount = _mount_estimate(model, (H_theta - H_prior) / ratio + H_prior, posterior, theta)
     prior_cov = model.scan_covariances(model.prior_covariance)
     log.info("joint refinement: %d scans, %d pairs, %d points, %d iterations, %d pairs associated anew; sigma "
              "%.4f mm (%.4f mm at the refined poses), RMS %.4f -> %.4f mm", model.n, used, n_corr, it, anew, sigma,
              noise_sigma, rms_before, rms_after)
-    return JointResult([T for T in poses], model.scan_covariances(cov_theta), prior_cov, mount, it, used, n_corr,
-                       sigma, rms_before, rms_after, noise_sigma, anew,
-                       model.pose_covariance(cov_theta, "joint refinement posterior"), dispersion)
+    return JointResult([T for T in poses], posterior.scan_covariances(), prior_cov, mount, it, used, n_corr,
+                       sigma, rms_before, rms_after, noise_sigma, anew, posterior, dispersion)
 
 
 def chain_covariance(priors: Sequence[ScanPrior], transfers: Sequence[TransferPrior],
@@ -1003,21 +1001,22 @@ def chain_covariance(priors: Sequence[ScanPrior], transfers: Sequence[TransferPr
     """The scans' errors as the tracker chain alone gives them (no correction ran): the readings', the transfers'
     and the mount's priors through the joint refinement's error model (the module doc)."""
     model = _Model(priors, transfers, mount_prior)
-    return model.pose_covariance(model.prior_covariance.toarray(), "tracker chain prior")
+    return model.pose_covariance(model.prior_information, model.prior_information, "tracker chain prior")
 
 
-def _posterior_covariance(H_inv: np.ndarray, information: sparse.csr_matrix) -> np.ndarray:
-    """The covariance of the estimate ``theta`` (dense) from the inverse ``H_inv`` of the normal matrix it was solved
-    with (data ``D`` + prior ``P``, the data weighted with a sigma taken at the last linearisation's poses: with one
-    linearisation the start's, where the residuals also hold the start's misalignment), and the ``information``
-    its errors carry (``P`` + the data's under their noise at the refined poses, :func:`_data_system`, each pair's
-    counted at its group's dispersion, :func:`_dispersions`): the estimate's error is ``-H^-1 (P theta_true +
-    D-weighted noise)``, its covariance ``H^-1 information H^-1`` (``H^-1`` where the two agree)."""
-    return H_inv @ information.toarray() @ H_inv   # dense: a sparse-dense product runs on one core, far slower
+def _posterior(model: _Model, H: sparse.spmatrix, information: sparse.spmatrix) -> PoseCovariance:
+    """The posterior of the estimate ``theta`` from the normal matrix ``H`` it was solved with (data ``D`` + prior
+    ``P``, the data weighted with a sigma taken at the last linearisation's poses: with one linearisation the
+    start's, where the residuals also hold the start's misalignment), and the ``information`` its errors carry
+    (``P`` + the data's under their noise at the refined poses, :func:`_data_system`, each pair's counted at its
+    group's dispersion, :func:`_dispersions`): the estimate's error is ``-H^-1 (P theta_true + D-weighted
+    noise)``, its covariance ``H^-1 information H^-1`` (``H^-1`` where the two agree), kept as the two sparse
+    matrices (``PoseCovariance``: the blocks asked for, never the dense (m x m))."""
+    return model.pose_covariance(H, information, "joint refinement posterior")
 
 
 def _dispersions(model: _Model, pairs: Sequence[_Pair], unit_systems: Sequence[tuple[np.ndarray, np.ndarray]],
-                 sigma: float, cov_theta: np.ndarray) -> tuple[np.ndarray, dict[str, float]]:
+                 sigma: float, posterior: PoseCovariance) -> tuple[np.ndarray, dict[str, float]]:
     """How much more the pairs' residuals scatter than their points' independent noise (``sigma``, mm, two points
     head-on; :func:`ray_variances`) says, pooled over the pairs of the same two tracker stations: per pair of
     ``pairs`` its group's factor (at least 1), and the factors by group ("2-3").
@@ -1025,7 +1024,7 @@ def _dispersions(model: _Model, pairs: Sequence[_Pair], unit_systems: Sequence[t
     A pair's residuals at the refined poses, whitened, projected on the directions a motion of scan j relative
     to scan i moves them (:meth:`_Pair.normal_equations`, rank ``r``, 6 but where the overlap slides) have a
     chi-square of about ``r - tr(K C)`` if its points err independently (``K`` the pair's information in both
-    scans' errors, ``C`` their posterior under that noise, ``cov_theta``: what the fit took up; so measured on
+    scans' errors, ``C`` their posterior under that noise, ``posterior``'s: what the fit took up; so measured on
     noise alone, whatever the pairs' noise shares, :func:`noise_shares`). An error the pair's points share
     (the thinning's voxel grid, the normals', the correspondences found at misaligned starts) adds to it and is
     not averaged away by the pair's thousands of points, so the group's information is counted at the pooled
@@ -1048,7 +1047,7 @@ def _dispersions(model: _Model, pairs: Sequence[_Pair], unit_systems: Sequence[t
         Ap = np.zeros((12, len(cols)))
         Ap[:6, np.searchsorted(cols, cj)] = Aj
         Ap[6:, np.searchsorted(cols, ci)] = Ai
-        return q, float(np.count_nonzero(seen)) - float(np.sum(K * (Ap @ cov_theta[np.ix_(cols, cols)] @ Ap.T)))
+        return q, float(np.count_nonzero(seen)) - float(np.sum(K * (Ap @ posterior.theta_covariance(cols) @ Ap.T)))
 
     tests = np.array([test(p, u) for p, u in zip(pairs, unit_systems, strict=True)])
     st = model.stations
@@ -1103,7 +1102,7 @@ def _data_system(model: _Model, work: _PairWork, poses: np.ndarray, kept: Sequen
     points head-on; :func:`_information`) and Huber-cut beyond ``huber_mm``: sparse ``H_e`` (6n x 6n) and ``b_e``, and
     the blocks of ``N_e``, the normal matrix of the same rows weighted by their Huber factor once more. With the
     residuals' noise ``ratio`` times the variance ``sigma^2`` weighs them by, the noise adds ``ratio N_e`` (not
-    ``H_e``) to the information an estimate weighted by ``H_e`` carries (:func:`_posterior_covariance`)."""
+    ``H_e``) to the information an estimate weighted by ``H_e`` carries (:func:`_posterior`)."""
     n = model.n
     b = np.zeros(6 * n)
     pairs = [p for p, _, _ in kept]
@@ -1115,9 +1114,9 @@ def _data_system(model: _Model, work: _PairWork, poses: np.ndarray, kept: Sequen
     return _assembled(n, pairs, [H for H, _, _ in systems]), b, _NoiseBlocks(pairs, [N for _, _, N in systems], n)
 
 
-def _mount_estimate(model: _Model, information: sparse.spmatrix, cov_theta: np.ndarray, theta: np.ndarray
+def _mount_estimate(model: _Model, information: sparse.spmatrix, posterior: PoseCovariance, theta: np.ndarray
                     ) -> MountEstimate:
-    """The shared mount correction ``D = Exp(L u)``: its posterior (from ``cov_theta``) and the data's information
+    """The shared mount correction ``D = Exp(L u)``: its posterior (from ``posterior``) and the data's information
     on it (from ``information``, the data's and the priors' on ``theta``, sparse)."""
     L, prior = model.L, np.asarray(model.mount_prior.covariance, float)
     first = model.size - 6
@@ -1126,7 +1125,7 @@ def _mount_estimate(model: _Model, information: sparse.spmatrix, cov_theta: np.n
     data_u = _marginal_information(sparse.csc_matrix(information - own_prior), first)   # without the mount's prior
     ratio, U = np.linalg.eigh(0.5 * (data_u + data_u.T))
     d = L @ theta[-6:]
-    cov = L @ cov_theta[-6:, -6:] @ L.T
+    cov = L @ posterior.theta_covariance(np.arange(first, model.size)) @ L.T
     Linv = np.linalg.inv(L)
     data_D = Linv.T @ data_u @ Linv
     log.info("joint refinement: mount correction %s mm, %s deg", np.round(d[:3], 4), np.round(np.degrees(d[3:]), 5))

@@ -4,7 +4,13 @@ covariance of the scans' pose errors it is propagated from (pipeline/registratio
 import numpy as np
 import pytest
 from tandemscan.pipeline.geometry.frames import from_rotvec, transform_points
-from tandemscan.pipeline.inspection.point_uncertainty import GivenUncertainty, JobUncertainty, ScanCover
+from tandemscan.pipeline.inspection.point_uncertainty import (
+    GivenUncertainty,
+    JobUncertainty,
+    ScanCover,
+    _Absorbed,
+    _covering_pairs,
+)
 from tandemscan.pipeline.registration.joint import chain_covariance
 from tandemscan.pipeline.registration.mount_unknown import MountPrior
 from tandemscan.pipeline.registration.pose_covariance import PoseCovariance
@@ -24,7 +30,7 @@ def two_scans(sigma_t, sigma_r):
     """Two scans 450 mm above the plate, over x 0..300 and 250..550 mm, independent pose errors."""
     origins = np.array([[150.0, 150.0, 450.0], [400.0, 150.0, 450.0]])
     C = np.diag(([sigma_t**2] * 3 + [sigma_r**2] * 3) * 2)
-    return PoseCovariance(np.arange(2), origins, np.eye(12), C, "test")
+    return PoseCovariance(np.arange(2), origins, np.eye(12), np.eye(12), C, "test")   # C = 1^-1 C 1^-1
 
 
 def model(rng, poses, counts=None):
@@ -68,9 +74,9 @@ def test_first_order_u_agrees_with_monte_carlo_of_the_best_fit():
                                         np.arange(2)), NOISE, None)
     first = m.evaluate(p, n, 2.0, np.eye(4), "best-fit", None, None).expanded_mm
     draws = []
-    L = np.linalg.cholesky(poses.theta_covariance)
+    L = poses.factor("all")   # L L^T: the two scans' errors' covariance
     for _ in range(400):
-        e = (L @ rng.standard_normal(12)).reshape(2, 6)
+        e = (L @ rng.standard_normal(L.shape[1])).reshape(2, 6)
         q = np.empty_like(p)
         for i in range(2):
             o = poses.origins_mm[i]
@@ -115,48 +121,87 @@ def test_the_chain_covariance_carries_transfers_and_the_mount_to_every_scan_and_
     transfer = TransferPrior(1, np.array([250.0, 0, 0]), np.diag([0.25] * 3 + [1e-8] * 3))
     mount = MountPrior(np.diag([4.0] * 3 + [1e-6] * 3))
     cov = chain_covariance(priors, [transfer], mount)
-    full = cov.full()
+    errors = cov.scan_errors(np.array([[0, 1]]))["all"]
     assert cov.source == "tracker chain prior" and len(cov.installation_columns) == 6
     # scan 0: its reading and the mount; scan 1 also the transfer; the mount correlates them
-    np.testing.assert_allclose(np.diag(full)[:3], 0.01 + 4.0, rtol=1e-9)
-    np.testing.assert_allclose(np.diag(full)[6:9], 0.01 + 0.25 + 4.0, rtol=1e-3)  # + the lever of its tilt
-    np.testing.assert_allclose(full[0, 6], 4.0, rtol=1e-9)
+    np.testing.assert_allclose(np.diag(errors.covariance([0], [0])[0])[:3], 0.01 + 4.0, rtol=1e-9)
+    np.testing.assert_allclose(np.diag(errors.covariance([1], [1])[0])[:3], 0.01 + 0.25 + 4.0, rtol=1e-3)  # + tilt
+    np.testing.assert_allclose(errors.covariance([0], [1])[0][0, 0], 4.0, rtol=1e-9)
     G = cov.factor("installation")
     np.testing.assert_allclose((G @ G.T)[0, 0], 4.0, rtol=1e-9)
-    shrunk = PoseCovariance(cov.scan_ids, cov.origins_mm, cov.A, cov.theta_covariance * 1e-4, cov.source,
+    shrunk = PoseCovariance(cov.scan_ids, cov.origins_mm, cov.A, cov.normal, cov.information * 1e-4, cov.source,
                             cov.installation_columns)
-    back = shrunk.with_installation_at_prior().factor("installation")
-    np.testing.assert_allclose((back @ back.T)[0, 0], 4.0, rtol=1e-9)
+    back = shrunk.with_installation_at_prior()
+    np.testing.assert_allclose((back.factor("installation") @ back.factor("installation").T)[0, 0], 4.0, rtol=1e-9)
+    np.testing.assert_allclose(back.scan_errors(np.zeros((0, 2)))["installation"].covariance([0], [0])[0][0, 0],
+                               4.0, rtol=1e-9)
+    np.testing.assert_allclose(back.scan_covariances()[0][0, 0], 0.01e-4 + 4.0, rtol=1e-9)
     with pytest.raises(ValueError, match="do not fit"):
-        PoseCovariance(np.arange(3), cov.origins_mm, cov.A, cov.theta_covariance, "bad")
+        PoseCovariance(np.arange(3), cov.origins_mm, cov.A, cov.normal, cov.information, "bad")
 
 
-def test_the_pose_variance_from_covariance_blocks_is_that_of_the_factor():
+def coupled(cov: PoseCovariance, links: list[tuple[int, int]], seed: int) -> PoseCovariance:
+    """``cov``'s unknowns observed as a joint refinement's are: its prior's information ``P`` plus pairs' 12x12
+    information in the linked scans' errors, ``H = P + A^T N A``, and the information its errors carry, the same
+    pairs' weighted otherwise (``I = P + A^T N' A``), so that ``C = H^-1 I H^-1`` couples the scans."""
+    rng = np.random.default_rng(seed)
+    n = len(cov.scan_ids)
+    N, N2 = np.zeros((6 * n, 6 * n)), np.zeros((6 * n, 6 * n))
+    for i, k in links:
+        idx = np.r_[6 * i:6 * i + 6, 6 * k:6 * k + 6]
+        J = rng.standard_normal((30, 12)) * np.r_[[1.0] * 3 + [300.0] * 3, [1.0] * 3 + [300.0] * 3] * 20.0
+        w = rng.uniform(0.5, 1.5, 30)
+        N[np.ix_(idx, idx)] += J.T @ (w[:, None] * J)
+        N2[np.ix_(idx, idx)] += J.T @ (w[:, None] ** 2 * J)
+    A = cov.A.toarray()
+    return PoseCovariance(cov.scan_ids, cov.origins_mm, cov.A, cov.normal + A.T @ N @ A,
+                          cov.information + A.T @ N2 @ A, "test", cov.installation_columns)
+
+
+@pytest.mark.parametrize("links", [[], [(0, 1), (1, 2)], [(0, 1)]])
+def test_the_pose_variance_from_covariance_blocks_is_that_of_the_factor(links):
     """Three scans on two tracker stations with a transfer and the mount (correlated errors), their covers
-    overlapping: each point's pose variance from the 6x6 blocks of ``PoseCovariance.covariance`` equals
-    ``|G^T v|^2`` with the factor ``G`` of each part and ``v`` the point's gradients over all scans, less the best
-    fit's absorption (to the rounding of the sums, 1e-9 relative)."""
+    overlapping: each point's pose variance from the blocks of ``PoseCovariance.scan_errors`` (the tracker chain's
+    prior, or a posterior whose pairs couple the scans: pairs of scans that share points but no pair are blocks
+    beyond the normal matrix's pattern) equals the dense route's ``v^T A C A^T v``, ``C = H^-1 I H^-1`` formed
+    whole, ``v`` the point's gradients over all scans, less the best fit's absorption (1e-9 relative); the mount at
+    its prior likewise. The joint refinement's own blocks against the dense route: test_registration_joint_sparse."""
     rng = np.random.default_rng(5)
     poses_W = [np.eye(4), from_rotvec([200.0, 0, 0], [0, 0.01, 0]), from_rotvec([400.0, 0, 0], [0.01, 0, 0])]
     tight = np.diag([0.01] * 3 + [1e-8] * 3)
     priors = [ScanPrior(T, tight, k // 2) for k, T in enumerate(poses_W)]
-    cov = chain_covariance(priors, [TransferPrior(1, np.array([300.0, 0, 0]), np.diag([0.25] * 3 + [1e-7] * 3))],
-                           MountPrior(np.diag([4.0] * 3 + [1e-6] * 3)))
+    cov = coupled(chain_covariance(priors, [TransferPrior(1, np.array([300.0, 0, 0]),
+                                                          np.diag([0.25] * 3 + [1e-7] * 3))],
+                                   MountPrior(np.diag([4.0] * 3 + [1e-6] * 3))), links, 6)
     p, n = plate(rng, 0.0, 550.0, step=10.0)
     covers = [plate(rng, x0, x0 + 250.0)[0] for x0 in (0.0, 150.0, 300.0)]
     cover = ScanCover(covers, np.array([len(c) for c in covers], float), cov.origins_mm, np.arange(3))
-    m = JobUncertainty(cov, cover, NOISE)
     at = cover.shares(p)
-    absorb = m._absorption(p, n, p, n, at)
-    for part in ("all", "scan_poses", "installation"):
-        G = cov.factor(part)
+    H_inv = np.linalg.inv(cov.normal.toarray())
+    dense = H_inv @ cov.information.toarray() @ H_inv
+    mount = list(cov.installation_columns)
+    at_prior = dense.copy()
+    at_prior[mount, :] = at_prior[:, mount] = 0.0
+    at_prior[mount, mount] = 1.0
+    for poses, C in ((cov, dense), (cov.with_installation_at_prior(), at_prior)):
+        m = JobUncertainty(poses, cover, NOISE)
+        absorb = m._absorption(p, n, p, n, at)
         rows, g = m._gradients(p, n, at)
-        v = np.zeros((len(p), G.shape[0]))
-        for k in range(rows.shape[1]):
-            np.add.at(v, (np.arange(len(p))[:, None], 6 * rows[:, k, None] + np.arange(6)), g[:, k])
-        for fit in (None, absorb):
-            w = v if fit is None else v - np.hstack([n, np.cross(p - fit[1], n)]) @ fit[0]
-            want = np.einsum("mr,mr->m", w @ G, w @ G)
-            got = m._pose_variance(cov.covariance(part), p, n, p, n, at, fit)
-            np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12 * want.max())
-            assert want.max() > 0
+        errors = poses.scan_errors(_covering_pairs(rows))
+        for part in ("all", "scan_poses", "installation"):
+            keep = np.isin(np.arange(len(C)), mount) if part == "installation" else (
+                ~np.isin(np.arange(len(C)), mount) if part == "scan_poses" else np.ones(len(C), bool))
+            A = poses.A.toarray()[:, keep]
+            full = A @ C[np.ix_(keep, keep)] @ A.T
+            v = np.zeros((len(p), full.shape[0]))
+            for k in range(rows.shape[1]):
+                np.add.at(v, (np.arange(len(p))[:, None], 6 * rows[:, k, None] + np.arange(6)), g[:, k])
+            for fit in (None, absorb):
+                w = v if fit is None else v - np.hstack([n, np.cross(p - fit[1], n)]) @ fit[0]
+                want = np.einsum("mr,rs,ms->m", w, full, w)
+                got = m._pose_variance(errors[part], p, n, p, n, at,
+                                       None if fit is None else _Absorbed.of(poses, *fit)[part])
+                # where the fit absorbs nearly all of a point's variance, the three terms' rounding (each 1e-13 of
+                # itself, from the blocks and from the solves) is what is left: 1e-10 of the largest
+                np.testing.assert_allclose(got, want, rtol=1e-9, atol=(1e-12 if fit is None else 1e-10) * want.max())
+                assert want.max() > 0

@@ -1,7 +1,8 @@
 """The joint refinement's sparse paths against their dense formulas (docs/correction.md, "Joint refinement"): each
-scan's posterior block, the mount's marginal information and ``PoseCovariance``'s products from the sparse error
-model ``A``; a job of 1,500 scans keeps that model and the prior's blocks sparse-sized; the association's
-shortcuts (the target's box from its KD-tree, a pair's move told on a subsample) find what the full search finds."""
+scan's posterior block, the mount's marginal information and ``PoseCovariance``'s blocks and products from the sparse
+error model ``A`` and the sparse normal and information matrices; a job of 1,500 scans keeps that model and the
+prior's blocks sparse-sized; the association's shortcuts (the target's box from its KD-tree, a pair's move told on
+a subsample) find what the full search finds."""
 
 from __future__ import annotations
 
@@ -57,27 +58,59 @@ def strip(n: int, seed: int) -> tuple[list[JointScan], list[ScanPrior], list[tup
 
 
 def test_the_sparse_posterior_blocks_equal_the_dense_products():
-    """Each scan's posterior (from the few columns of ``A`` it uses) and ``PoseCovariance``'s covariance of every
-    part equal ``A C A^T`` formed densely, the mount's marginal information the dense Schur complement."""
-    scans, priors, pairs, transfers = strip(5, 1)
+    """Each scan's posterior, ``PoseCovariance``'s blocks of every part (the scans' own, the pairs asked for beyond
+    the normal matrix's pattern, the shared unknowns'), its products and its ``theta`` sub-blocks equal ``A C A^T``
+    with ``C = H^-1 I H^-1`` formed densely (1e-9 of the entries' scale, the two routes' rounding), the mount's
+    marginal information the dense Schur complement."""
+    scans, priors, pairs, transfers = strip(8, 1)
     mount = MountPrior(np.diag([0.01] * 3 + [1e-6] * 3))
     res = refine_jointly(scans, priors, pairs, [p.T_W_S for p in priors], transfers, mount,
                          JointSettings(iterations=2, reassociate_mm=0.02))
     pc = res.pose_covariance
-    assert sparse.isspmatrix_csr(pc.A)
-    A, C = pc.A.toarray(), pc.theta_covariance
+    assert sparse.isspmatrix_csr(pc.A) and sparse.issparse(pc.normal) and sparse.issparse(pc.information)
+    H_inv = np.linalg.inv(pc.normal.toarray())
+    A, C = pc.A.toarray(), H_inv @ pc.information.toarray() @ H_inv
+    n = len(scans)
+
+    def close(got, want, sd_rows, sd_cols):
+        """Entries within 1e-9 of sqrt(var_a var_b) (translations mm^2, rotations rad^2 each at their scale)."""
+        scale = np.outer(sd_rows, sd_cols) + 1e-300
+        assert np.all(np.abs(got - want) <= 1e-9 * scale), np.max(np.abs(got - want) / scale)
+
     full = A @ C @ A.T
-    scale = np.abs(full).max()
-    blocks = np.stack([full[6 * i:6 * i + 6, 6 * i:6 * i + 6] for i in range(len(scans))])
-    assert np.abs(res.covariances - blocks).max() < 1e-12 * scale
-    assert np.abs(pc.full() - full).max() < 1e-12 * scale
-    assert np.abs(pc.covariance("all") - A @ (0.5 * (C + C.T)) @ A.T).max() < 1e-12 * scale   # C taken symmetric
+    blocks = np.stack([full[6 * i:6 * i + 6, 6 * i:6 * i + 6] for i in range(n)])
+    sd = np.sqrt(np.diag(full)).reshape(n, 6)
+    for i in range(n):
+        close(res.covariances[i], blocks[i], sd[i], sd[i])
+    cols = np.r_[0:12, 6 * n:pc.normal.shape[0]]
+    sd_theta = np.sqrt(np.diag(C))[cols]
+    close(pc.theta_covariance(cols), C[np.ix_(cols, cols)], sd_theta, sd_theta)
     mount_cols = list(pc.installation_columns)
     assert len(mount_cols) == 6
-    C_rest = C.copy()
-    C_rest[mount_cols, :] = C_rest[:, mount_cols] = 0.0
-    assert np.abs(pc.covariance("scan_poses") - A @ (0.5 * (C_rest + C_rest.T)) @ A.T).max() < 1e-12 * scale
-    assert np.abs(pc.factor("all") @ pc.factor("all").T - full).max() < 1e-9 * scale
+    far = np.array([[0, n - 1], [1, n - 2]])           # no pair links them: outside the normal matrix's pattern
+    for prior in (False, True):
+        cov = pc.with_installation_at_prior() if prior else pc
+        Cp = C.copy()
+        if prior:
+            Cp[mount_cols, :] = Cp[:, mount_cols] = 0.0
+            Cp[mount_cols, mount_cols] = 1.0
+        errors = cov.scan_errors(far)
+        for part, keep in (("all", slice(None)), ("scan_poses", np.setdiff1d(np.arange(len(C)), mount_cols)),
+                           ("installation", mount_cols)):
+            Ck = np.zeros_like(Cp)
+            Ck[np.ix_(np.arange(len(C))[keep], np.arange(len(C))[keep])] = Cp[np.ix_(np.arange(len(C))[keep],
+                                                                                   np.arange(len(C))[keep])]
+            want = A @ Ck @ A.T
+            sd = np.sqrt(np.diag(want)).reshape(n, 6)
+            for i, k in np.r_[far, far[:, ::-1], np.c_[np.arange(n), np.arange(n)]]:
+                close(errors[part].covariance([i], [k])[0], want[6 * i:6 * i + 6, 6 * k:6 * k + 6], sd[i], sd[k])
+            X = np.random.default_rng(2).standard_normal((6 * n, 6))
+            got, dense = cov.times(X)[part], want @ X
+            assert np.abs(got - dense).max() <= 1e-9 * np.abs(dense).max() + 1e-300
+            with pytest.raises(KeyError):
+                errors[part].covariance([0], [n // 2])   # not asked for
+        G = cov.factor("all")
+        assert np.abs(G @ G.T - A @ Cp @ A.T).max() < 1e-9 * np.abs(A @ Cp @ A.T).max()
 
     M = sparse.random(60, 60, density=0.1, random_state=3)
     H = (M @ M.T + sparse.identity(60) * 5.0).tocsc()
@@ -113,7 +146,7 @@ def test_a_job_of_many_scans_keeps_its_error_model_sparse_sized():
     P = model.prior_covariance[cols][:, cols].toarray()
     assert np.allclose(blocks[k], Ak @ P @ Ak.T, rtol=1e-12, atol=0)
     assert np.all(np.linalg.eigvalsh(blocks[k]) > 0)
-    given = PoseCovariance(np.arange(2), np.zeros((2, 3)), np.eye(12), np.eye(12), "test")
+    given = PoseCovariance(np.arange(2), np.zeros((2, 3)), np.eye(12), np.eye(12), np.eye(12), "test")
     assert sparse.isspmatrix_csr(given.A)
 
 
