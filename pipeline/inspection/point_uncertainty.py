@@ -40,7 +40,7 @@ from tandemscan.pipeline.geometry.frames import invert, rotate_vectors, transfor
 from tandemscan.pipeline.geometry.units import extent_mm
 from tandemscan.pipeline.inspection.alignment import Alignment
 from tandemscan.pipeline.inspection.deviation_areas import even_centres
-from tandemscan.pipeline.registration.pose_covariance import PoseCovariance, ScanErrors
+from tandemscan.pipeline.registration.pose_covariance import PARTS, PoseCovariance, ScanErrors
 
 MAX_CENTRES = 40_000  # pose terms are evaluated at an even thinning of at most about this many points
 SCANS_PER_POINT = 4  # a point's voxel takes at most this many scans into account (the largest shares)
@@ -217,11 +217,10 @@ class JobUncertainty:
             fit = np.arange(len(p_F))[:: max(1, len(p_F) // FIT_POINTS)]
             absorb = self._absorption(p_W[fit], n_W[fit], p_F[fit], n_F[fit], self.cover.shares(p_W[fit]))
         errors = self.poses.scan_errors(_covering_pairs(np.maximum(self._pose_rows()[c_at[0]], 0)))
-        absorbed = {} if absorb is None else _Absorbed.of(self.poses, *absorb)
-        parts = {}
-        for part, blocks in errors.items():
-            parts[part] = self._pose_variance(blocks, p_W[centres], n_W[centres], p_F[centres], n_F[centres], c_at,
-                                              absorbed.get(part))[nearest]
+        absorbed = None if absorb is None else _Absorbed.of(self.poses, *absorb)
+        parts = {part: v[nearest] for part, v in self._pose_variances(errors, p_W[centres], n_W[centres],
+                                                                      p_F[centres], n_F[centres], c_at,
+                                                                      absorbed).items()}
         aligned = _alignment_variance(p_F, n_F, alignment)
         total = k * np.sqrt(parts["all"] + noise + aligned)
         budget = {"scan_poses": parts["scan_poses"], "installation": parts["installation"],
@@ -269,23 +268,24 @@ class JobUncertainty:
         JtJ = j.T @ j
         return np.linalg.solve(JtJ + 1e-9 * np.trace(JtJ) * np.eye(6), S.reshape(6, -1)), c
 
-    def _pose_variance(self, errors: ScanErrors, p_W: np.ndarray, n_W: np.ndarray, p_F: np.ndarray,
-                       n_F: np.ndarray, at: tuple[np.ndarray, np.ndarray], absorbed: _Absorbed | None) -> np.ndarray:
-        """Each point's variance along its normal from the pose errors ``errors`` (one part's,
-        ``PoseCovariance.scan_errors``), less the best fit's absorption where given, mm^2: with ``v = g - B^T j``
+    def _pose_variances(self, errors: ScanErrors, p_W: np.ndarray, n_W: np.ndarray, p_F: np.ndarray,
+                        n_F: np.ndarray, at: tuple[np.ndarray, np.ndarray], absorbed: dict[str, _Absorbed] | None
+                        ) -> dict[str, np.ndarray]:
+        """Per part (``pose_covariance.PARTS``) each point's variance along its normal from the pose errors
+        (``PoseCovariance.scan_errors``), less the best fit's absorption where given, mm^2: with ``v = g - B^T j``
         (``g`` a point's weighted gradients, nonzero at its few scans only), ``v^T cov v = g^T cov g - 2 g^T cov B^T
         j + j^T B cov B^T j``, the first term from the blocks of its scans (no product with the whole ``cov``)."""
-        out = np.empty(len(p_W))
+        out = {part: np.empty(len(p_W)) for part in PARTS}
         step = 2048
         for lo in range(0, len(p_W), step):
             sl = slice(lo, lo + step)
             rows, g = self._gradients(p_W[sl], n_W[sl], (at[0][sl], at[1][sl]))
-            var = errors.variance(rows, g)
-            if absorbed is not None:
-                j = np.hstack([n_F[sl], np.cross(p_F[sl] - absorbed.centre_mm, n_F[sl])])
-                var -= 2.0 * np.einsum("mkj,mkjq,mq->m", g, absorbed.cov_B[rows], j, optimize=True)
-                var += np.einsum("ma,ab,mb->m", j, absorbed.B_cov_B, j, optimize=True)
-            out[sl] = np.maximum(var, 0.0)  # rounding may take an absorbed variance below 0
+            j = np.hstack([n_F[sl], np.cross(p_F[sl] - absorbed["all"].centre_mm, n_F[sl])]) if absorbed else None
+            for part, var in errors.variances(rows, g).items():
+                if absorbed is not None:
+                    var -= 2.0 * np.einsum("mkj,mkjq,mq->m", g, absorbed[part].cov_B[rows], j)
+                    var += np.einsum("ma,ab,mb->m", j, absorbed[part].B_cov_B, j)
+                out[part][sl] = np.maximum(var, 0.0)  # rounding may take an absorbed variance below 0
         return out
 
 
@@ -318,11 +318,11 @@ class _Absorbed:
 
 def _covering_pairs(rows: np.ndarray) -> np.ndarray:
     """(P, 2) the pairs of scan rows that share a point (``rows``: (M, K) each point's scans), each once."""
-    K = rows.shape[1]
-    a, b = np.triu_indices(K, 1)
-    pairs = np.stack([rows[:, a].ravel(), rows[:, b].ravel()], axis=1)
-    pairs = np.sort(pairs, axis=1)
-    return np.unique(pairs[pairs[:, 0] != pairs[:, 1]], axis=0)
+    a, b = np.triu_indices(rows.shape[1], 1)
+    lo, hi = np.minimum(rows[:, a], rows[:, b]).ravel(), np.maximum(rows[:, a], rows[:, b]).ravel()
+    n = int(rows.max()) + 1 if rows.size else 1
+    keys = np.unique(hi[hi != lo] * n + lo[hi != lo])
+    return np.stack([keys // n, keys % n], axis=1)
 
 
 def _centre_cell(points_F: np.ndarray) -> float:

@@ -34,44 +34,59 @@ PARTS = ("all", "scan_poses", "installation")  # whose unknowns: all, the readin
 
 @dataclass(frozen=True)
 class ScanErrors:
-    """The covariance of the scans' errors ``e`` from one part's unknowns (:data:`PARTS`), as the blocks a point's
-    variance needs: ``Cov(e_i, e_l) = own(i, l) + cross_i lever_l^T + lever_i cross_l^T + lever_i shared lever_l^T``
-    (module doc), ``own`` for the scan pairs ``keys`` (sorted, ``hi * n + lo`` of scan rows, ``hi >= lo``) only."""
+    """The covariance of the scans' errors ``e`` as the blocks a point's variance needs: ``Cov(e_i, e_l) = own(i, l)
+    + cross_i lever_l^T + lever_i cross_l^T + lever_i shared lever_l^T`` (module doc), ``own`` for the scan pairs
+    ``keys`` only (sorted, ``i * n + l`` of scan rows, both orders); per part of :data:`PARTS` the shared columns'
+    terms of that part's (``installation``: which shared columns are the mount's; the scans' own unknowns are
+    "scan_poses")."""
 
     scans: int
     keys: np.ndarray = field(repr=False)
-    own: np.ndarray = field(repr=False)     # (P, 6, 6) own(hi, lo)
-    lever: np.ndarray = field(repr=False)   # (n, 6, r) each scan's shared columns of A
-    cross: np.ndarray = field(repr=False)   # (n, 6, r) A_io C_{i,R}
-    shared: np.ndarray = field(repr=False)  # (r, r) C_RR
+    own: np.ndarray = field(repr=False)           # (P, 6, 6) own(i, l)
+    lever: np.ndarray = field(repr=False)         # (n, 6, r) each scan's shared columns of A
+    cross: np.ndarray = field(repr=False)         # (n, 6, r) A_io C_{i,R}
+    shared: np.ndarray = field(repr=False)        # (r, r) C_RR
+    installation: np.ndarray = field(repr=False)  # (r,) bool
 
     def _own(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """(..., 6, 6) ``own(a, b)`` of scan rows ``a``, ``b`` (broadcast together; each pair among ``keys``)."""
         a, b = np.broadcast_arrays(a, b)
-        hi, lo = np.maximum(a, b).ravel(), np.minimum(a, b).ravel()
-        key = hi * self.scans + lo
+        key = (a * self.scans + b).ravel()
         at = np.minimum(np.searchsorted(self.keys, key), len(self.keys) - 1)
         if np.any(self.keys[at] != key):
             raise KeyError("scan errors: a pair of scans was not asked for")
-        out = self.own[at]
-        upper = (a < b).ravel()
-        out[upper] = out[upper].transpose(0, 2, 1)
-        return out.reshape(*np.shape(a), NODE, NODE)
+        return self.own[at].reshape(*np.shape(a), NODE, NODE)
 
-    def covariance(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        """(K, 6, 6) ``Cov(e_a, e_b)`` for scan rows ``a``, ``b`` ((K,) each)."""
+    def _keep(self, part: str) -> np.ndarray:
+        """(r,) bool: the shared columns that are ``part``'s."""
+        return {"all": np.ones_like(self.installation), "scan_poses": ~self.installation,
+                "installation": self.installation}[part]
+
+    def covariance(self, a: np.ndarray, b: np.ndarray, part: str = "all") -> np.ndarray:
+        """(K, 6, 6) ``Cov(e_a, e_b)`` from ``part``'s unknowns for scan rows ``a``, ``b`` ((K,) each)."""
         a, b = np.asarray(a, np.int64), np.asarray(b, np.int64)
-        La, Lb, Xa, Xb = self.lever[a], self.lever[b], self.cross[a], self.cross[b]
-        return (self._own(a, b) + Xa @ Lb.transpose(0, 2, 1) + La @ Xb.transpose(0, 2, 1)
-                + La @ self.shared @ Lb.transpose(0, 2, 1))
+        keep = self._keep(part)
+        La, Lb = self.lever[a] * keep, self.lever[b] * keep
+        shared = La @ self.shared @ Lb.transpose(0, 2, 1)
+        if part == "installation":            # the scans' own unknowns and their cross terms are not the mount's
+            return shared
+        Xa, Xb = self.cross[a] * keep, self.cross[b] * keep
+        return self._own(a, b) + Xa @ Lb.transpose(0, 2, 1) + La @ Xb.transpose(0, 2, 1) + shared
 
-    def variance(self, rows: np.ndarray, g: np.ndarray) -> np.ndarray:
-        """(M,) ``Var(sum_k g_k . e_{rows_k})`` per point: ``rows`` (M, K) scan rows, ``g`` (M, K, 6) gradients."""
-        own = self._own(rows[:, :, None], rows[:, None, :])          # (M, K, K, 6, 6)
-        var = np.einsum("mkj,mkljq,mlq->m", g, own, g, optimize=True)
-        h = np.einsum("mkj,mkjr->mr", g, self.lever[rows], optimize=True)
-        w = np.einsum("mkj,mkjr->mr", g, self.cross[rows], optimize=True)
-        return var + 2.0 * np.einsum("mr,mr->m", w, h) + np.einsum("mr,rs,ms->m", h, self.shared, h, optimize=True)
+    def variances(self, rows: np.ndarray, g: np.ndarray, parts: tuple[str, ...] = PARTS) -> dict[str, np.ndarray]:
+        """Per part (M,) ``Var(sum_k g_k . e_{rows_k})`` of each point: ``rows`` (M, K) scan rows, ``g`` (M, K, 6)
+        gradients."""
+        # einsum's own loops: products of a few dozen rows and columns, which BLAS would hand to its threads
+        own_term = np.einsum("mkj,mkljq,mlq->m", g, self._own(rows[:, :, None], rows[:, None, :]), g)
+        h = np.einsum("mkj,mkjr->mr", g, self.lever[rows])          # the shared columns' gradient, (M, r)
+        w = np.einsum("mkj,mkjr->mr", g, self.cross[rows])
+        out = {}
+        for part in parts:
+            hk = h * self._keep(part)
+            out[part] = np.einsum("mr,rs,ms->m", hk, self.shared, hk)
+            if part != "installation":        # the scans' own unknowns and their cross terms are not the mount's
+                out[part] += own_term + 2.0 * np.einsum("mr,mr->m", w, hk)
+        return out
 
 
 @dataclass(frozen=True)
@@ -182,9 +197,9 @@ class PoseCovariance:
         index = NODE * at.ravel() + columns % NODE
         return self._at_prior(C[np.ix_(index, index)], columns)
 
-    def scan_errors(self, scan_pairs: np.ndarray, parts: tuple[str, ...] = PARTS) -> dict[str, ScanErrors]:
-        """Per part of :data:`PARTS` the covariance of the scans' errors (:class:`ScanErrors`) with the own blocks of
-        ``scan_pairs`` ((K, 2) scan rows, any order; the diagonal ones are added)."""
+    def scan_errors(self, scan_pairs: np.ndarray) -> ScanErrors:
+        """The covariance of the scans' errors (:class:`ScanErrors`) with the own blocks of ``scan_pairs`` ((K, 2)
+        scan rows, any order; the diagonal ones are added)."""
         lay = self._layout
         n = len(self.scan_ids)
         pairs = np.asarray(scan_pairs, np.int64).reshape(-1, 2)
@@ -194,29 +209,24 @@ class PoseCovariance:
         selected = self.__dict__.get("_pattern_selected")   # the pattern's blocks, where already formed
         if selected is None or not selected.holds(lay.own[hi], lay.own[lo]):
             selected = self._selected(np.c_[hi, lo])        # else an inversion with these pairs in it
-        own_C = selected.pairs(lay.own[hi], lay.own[lo])
+        own = lay.own_A[hi] @ selected.pairs(lay.own[hi], lay.own[lo]) @ lay.own_A[lo].transpose(0, 2, 1)
         columns = (NODE * lay.shared[:, None] + np.arange(NODE)).ravel()
-        C_RR = self._at_prior(selected.dense(lay.shared), columns)
         r = len(columns)
         C_oR = selected.pairs(np.repeat(lay.own, len(lay.shared)), np.tile(lay.shared, n)).reshape(
             n, len(lay.shared), NODE, NODE).transpose(0, 2, 1, 3).reshape(n, NODE, r)
         if self.installation_at_prior:
             C_oR[:, :, lay.installation] = 0.0
-        own = lay.own_A[hi] @ own_C @ lay.own_A[lo].transpose(0, 2, 1)
-        cross = lay.own_A @ C_oR
-        out = {}
-        for part in parts:
-            keep = {"all": np.ones(r, bool), "scan_poses": ~lay.installation, "installation": lay.installation}[part]
-            use_own = part != "installation"
-            out[part] = ScanErrors(n, keys, own if use_own else np.zeros_like(own), lay.shared_A,
-                                   np.where(keep, cross, 0.0) if use_own else np.zeros_like(cross),
-                                   C_RR * np.outer(keep, keep))
-        return out
+        both = np.r_[keys, lo * n + hi]                       # each pair in both orders, transposed
+        order = np.argsort(both, kind="stable")
+        both, at = np.unique(both[order], return_index=True)
+        blocks = np.concatenate([own, own.transpose(0, 2, 1)])[order[at]]
+        return ScanErrors(n, both, blocks, lay.shared_A, lay.own_A @ C_oR,
+                          self._at_prior(selected.dense(lay.shared), columns), lay.installation)
 
     def scan_covariances(self) -> np.ndarray:
         """(n, 6, 6) each scan's error covariance ``A_i C A_i^T``."""
         rows = np.arange(len(self.scan_ids))
-        return self.scan_errors(np.zeros((0, 2), np.int64), ("all",))["all"].covariance(rows, rows)
+        return self.scan_errors(np.zeros((0, 2), np.int64)).covariance(rows, rows)
 
     def times(self, X: np.ndarray, parts: tuple[str, ...] = PARTS) -> dict[str, np.ndarray]:
         """Per part of :data:`PARTS` (6n, k) the covariance of ``e`` from that part's unknowns times ``X`` (6n, k):
@@ -233,14 +243,13 @@ class PoseCovariance:
 
         mount = self._columns("installation")
         at_prior = mount if self.installation_at_prior else np.zeros_like(mount)
-        out = {}
-        for part in parts:
-            keep = self._columns(part)
-            Y = np.asarray(self.A.T @ X) * keep[:, None]
-            Z = solve(np.asarray(self.information @ solve(np.where(at_prior[:, None], 0.0, Y))))
-            Z[at_prior] = Y[at_prior]
-            out[part] = np.asarray(self.A @ (Z * keep[:, None]))
-        return out
+        AX = np.asarray(self.A.T @ X)
+        Y = np.concatenate([AX * self._columns(part)[:, None] for part in parts], axis=1)   # every part at once
+        Z = solve(np.asarray(self.information @ solve(np.where(at_prior[:, None], 0.0, Y))))
+        Z[at_prior] = Y[at_prior]
+        k = AX.shape[1]
+        return {part: np.asarray(self.A @ (Z[:, i * k:(i + 1) * k] * self._columns(part)[:, None]))
+                for i, part in enumerate(parts)}
 
     def _columns(self, part: str) -> np.ndarray:
         """Which columns of ``theta`` are ``part``'s (bool, m): "all", the mount's ("installation") or the rest

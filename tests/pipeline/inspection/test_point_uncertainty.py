@@ -121,7 +121,7 @@ def test_the_chain_covariance_carries_transfers_and_the_mount_to_every_scan_and_
     transfer = TransferPrior(1, np.array([250.0, 0, 0]), np.diag([0.25] * 3 + [1e-8] * 3))
     mount = MountPrior(np.diag([4.0] * 3 + [1e-6] * 3))
     cov = chain_covariance(priors, [transfer], mount)
-    errors = cov.scan_errors(np.array([[0, 1]]))["all"]
+    errors = cov.scan_errors(np.array([[0, 1]]))
     assert cov.source == "tracker chain prior" and len(cov.installation_columns) == 6
     # scan 0: its reading and the mount; scan 1 also the transfer; the mount correlates them
     np.testing.assert_allclose(np.diag(errors.covariance([0], [0])[0])[:3], 0.01 + 4.0, rtol=1e-9)
@@ -133,7 +133,7 @@ def test_the_chain_covariance_carries_transfers_and_the_mount_to_every_scan_and_
                             cov.installation_columns)
     back = shrunk.with_installation_at_prior()
     np.testing.assert_allclose((back.factor("installation") @ back.factor("installation").T)[0, 0], 4.0, rtol=1e-9)
-    np.testing.assert_allclose(back.scan_errors(np.zeros((0, 2)))["installation"].covariance([0], [0])[0][0, 0],
+    np.testing.assert_allclose(back.scan_errors(np.zeros((0, 2))).covariance([0], [0], "installation")[0][0, 0],
                                4.0, rtol=1e-9)
     np.testing.assert_allclose(back.scan_covariances()[0][0, 0], 0.01e-4 + 4.0, rtol=1e-9)
     with pytest.raises(ValueError, match="do not fit"):
@@ -199,8 +199,8 @@ def test_the_pose_variance_from_covariance_blocks_is_that_of_the_factor(links):
             for fit in (None, absorb):
                 w = v if fit is None else v - np.hstack([n, np.cross(p - fit[1], n)]) @ fit[0]
                 want = np.einsum("mr,rs,ms->m", w, full, w)
-                got = m._pose_variance(errors[part], p, n, p, n, at,
-                                       None if fit is None else _Absorbed.of(poses, *fit)[part])
+                absorbed = None if fit is None else _Absorbed.of(poses, *fit)
+                got = m._pose_variances(errors, p, n, p, n, at, absorbed)[part]
                 # where the fit absorbs nearly all of a point's variance, the three terms' rounding (each 1e-13 of
                 # itself, from the blocks and from the solves) is what is left: 1e-10 of the largest
                 np.testing.assert_allclose(got, want, rtol=1e-9, atol=(1e-12 if fit is None else 1e-10) * want.max())
