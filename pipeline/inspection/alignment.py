@@ -810,11 +810,16 @@ def sphere_residuals(found: list[tuple[str, np.ndarray, np.ndarray, float, int]]
                  for (name, cF, cW, rad, n), e in zip(found, res, strict=True))
 
 
+def sphere_balls(spheres: tuple[SphereResidual, ...], cfg: AlignmentCriteria) -> tuple[tuple[np.ndarray, float], ...]:
+    """The balls (centre W mm, radius mm) of the fitted spheres and 3 mm beyond them (their bases): no part surface."""
+    return tuple((np.asarray(s.centre_W_mm, float), 0.5 * cfg.reference_sphere_diameter_mm + 3.0) for s in spheres)
+
+
 def sphere_points(points_mm: np.ndarray, spheres: tuple[SphereResidual, ...], cfg: AlignmentCriteria) -> np.ndarray:
-    """(N,) bool: the points on the fitted spheres or within 3 mm of them (their bases): no part surface."""
+    """(N,) bool: the points in :func:`sphere_balls`."""
     excluded = np.zeros(len(points_mm), bool)
-    for s in spheres:
-        excluded[within(points_mm, s.centre_W_mm, 0.5 * cfg.reference_sphere_diameter_mm + 3.0)] = True
+    for centre, radius in sphere_balls(spheres, cfg):
+        excluded[within(points_mm, centre, radius)] = True
     return excluded
 
 

@@ -24,7 +24,13 @@ from tandemscan.config.models import InspectionConfig
 from tandemscan.pipeline.geometry.frames import rotate_vectors, transform_points
 from tandemscan.pipeline.geometry.part import PartMeshError, read_mesh_file
 from tandemscan.pipeline.geometry.units import MM_PER_UNIT, extent_mm, scale_mismatch
-from tandemscan.pipeline.inspection.alignment import Alignment, AlignmentCriteria, AlignmentFailed, align
+from tandemscan.pipeline.inspection.alignment import (
+    Alignment,
+    AlignmentCriteria,
+    AlignmentFailed,
+    align,
+    sphere_balls,
+)
 from tandemscan.pipeline.inspection.cad_orientation import orient
 from tandemscan.pipeline.inspection.characteristics import CharacteristicResult, MeasuredCloud, evaluate
 from tandemscan.pipeline.inspection.datum_frame import DatumPatch, align_datums
@@ -160,8 +166,9 @@ def run_inspection(measured: Measurement, part: InspectedPart, settings: Inspect
     result = judge(result, u, criteria, pose_context(placed, context or VerdictContext()))
     out_dir = Path(output.out_dir)
     if whole is not None:  # the whole cloud's deviation figures and PLY, tile by tile
+        left_out = () if placed.excluded is None else sphere_balls(placed.spheres, settings.alignment)  # as the sample
         figures = whole.inspect(surface, placed.T_F_W, (criteria.tolerance_lower_mm, criteria.tolerance_upper_mm),
-                                UncertaintyField.of(result.points_mm, u.expanded_mm), out_dir / DEVIATION_PLY)
+                                UncertaintyField.of(result.points_mm, u.expanded_mm), left_out, out_dir / DEVIATION_PLY)
         result = dataclasses.replace(result, stats=figures.stats, tolerance=figures.tolerance)
     with ThreadPoolExecutor(2, thread_name_prefix="inspection-outputs") as pool:  # beside the figures: the
         evaluated = None if template is None else pool.submit(  # characteristics and the file

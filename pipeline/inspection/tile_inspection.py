@@ -34,10 +34,11 @@ from scipy.spatial import cKDTree
 from tandemscan.pipeline.compute import ComputeBackend
 from tandemscan.pipeline.geometry.frames import rotate_vectors, transform_points
 from tandemscan.pipeline.geometry.part import read_cad_mesh
+from tandemscan.pipeline.inspection.alignment import within
 from tandemscan.pipeline.inspection.inspect import CadSurface, DeviationStats, ToleranceResult, in_chunks
 from tandemscan.pipeline.io.durable import write_durably
 from tandemscan.pipeline.io.export import PlyChunk, write_ply_streamed
-from tandemscan.pipeline.stitching.tiles import TILES_FOLDER, TileCloud, read_tile
+from tandemscan.pipeline.stitching.tiles import TILES_FOLDER, TileCloud, TilePoints, read_tile
 
 #: the edges (mm) of the deviation histogram each tile returns (0.01 mm bins over +-20 mm, and one bin beyond each
 #: end): only a bin's count travels, the percentiles are found exactly from its values (:func:`deviation_figures`)
@@ -50,8 +51,8 @@ class InspectTile:
     in the CAD frame F by ``T_F_W`` (4x4, mm) and compared with the CAD mesh file ``mesh_file`` (F; its coordinates
     in ``mesh_units``, read as the job reads its CAD, ``part.read_cad_mesh``: in mm, wound outward; or a ``.npz``
     of the job's CAD as it took it, :func:`write_cad`; its triangles ``reversed`` wound the other way:
-    ``CadSurface``), the tolerance band ``[lower_mm, upper_mm]``; ``uncertainty``: the file of an
-    :class:`UncertaintyField` in the store whose nearest point's U each point takes ("": none)."""
+    ``CadSurface``), the tolerance band ``[lower_mm, upper_mm]``; ``sample``: what the tile takes from the
+    inspection of the report's sample (:class:`FromSample`; None: nothing)."""
 
     tile: TileCloud
     store: str
@@ -61,18 +62,32 @@ class InspectTile:
     upper_mm: float
     reversed: np.ndarray | None = None
     mesh_units: str = "mm"
-    uncertainty: str = ""
+    sample: FromSample | None = None
 
     def key(self) -> str:
         """The unit's name: everything its deviations depend on."""
         h = hashlib.blake2b(digest_size=16)
-        for text in (self.tile.file, self.mesh_file, self.mesh_units, self.uncertainty):
+        for text in (self.tile.file, self.mesh_file, self.mesh_units):
             h.update(text.encode())
+        if self.sample is not None:
+            h.update(self.sample.uncertainty.encode())
+            h.update(np.array(self.sample.left_out, np.float64).tobytes())
         h.update(np.ascontiguousarray(self.T_F_W, np.float64).tobytes())
         h.update(np.array([self.lower_mm, self.upper_mm], np.float64).tobytes())
         if self.reversed is not None:
             h.update(np.packbits(np.asarray(self.reversed, bool)).tobytes())
         return f"inspect-tile-{self.tile.index:05d}-{h.hexdigest()}"
+
+
+@dataclass(frozen=True)
+class FromSample:
+    """What a tile's inspection takes from the inspection of the report's sample (module doc): ``uncertainty``, the
+    file of an :class:`UncertaintyField` in the scan store whose nearest point's U each point takes ("": none), and
+    ``left_out``, balls (x, y, z, radius; W, mm) whose points are no part surface and are left out, as the sample's
+    were (``alignment.sphere_balls``: the reference spheres)."""
+
+    uncertainty: str = ""
+    left_out: tuple[tuple[float, float, float, float], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -118,6 +133,12 @@ def inspect_tile(unit: InspectTile) -> TileDeviations:
     """The deviations of the unit's tile from the CAD (with each point's U where the unit names a field), written to
     ``<store>/tiles/<unit key>.npz``, and their summary."""
     cloud = read_tile(unit.store, unit.tile)
+    sample = unit.sample or FromSample()
+    if sample.left_out:
+        keep = np.ones(len(cloud.points_mm), bool)
+        for x, y, z, radius in sample.left_out:
+            keep[within(cloud.points_mm, (x, y, z), radius)] = False
+        cloud = TilePoints(cloud.points_mm[keep], cloud.normals[keep], None)
     reversed = unit.reversed
     surface = _surface(unit.mesh_file, unit.mesh_units, None if reversed is None else np.packbits(reversed).tobytes(),
                        0 if reversed is None else len(reversed))
@@ -126,8 +147,8 @@ def inspect_tile(unit: InspectTile) -> TileDeviations:
     normals_F = in_chunks(rotate_vectors, T, cloud.normals)
     d = surface.closest(points_F).signed_mm if len(points_F) else np.empty(0)
     file = f"{Path(unit.tile.file).parent.as_posix()}/{unit.key()}.npz"
-    u = {} if not unit.uncertainty else {
-        "uncertainty_mm": _field(str(Path(unit.store) / unit.uncertainty)).at(points_F)}
+    u = {} if not sample.uncertainty else {
+        "uncertainty_mm": _field(str(Path(unit.store) / sample.uncertainty)).at(points_F)}
     write_durably(Path(unit.store) / file, functools.partial(
         _save, points_F=points_F, normals_F=normals_F, deviation_mm=d, **u))
     n = len(d)
@@ -145,15 +166,16 @@ def _save(f, **arrays: np.ndarray) -> None:
 
 def inspect_tiles(tiles: Sequence[TileCloud], store: str | Path, mesh_file: str | Path, T_F_W: np.ndarray,
                   lower_mm: float, upper_mm: float, backend: ComputeBackend,
-                  reversed: np.ndarray | None = None, mesh_units: str = "mm", uncertainty: str = ""
+                  reversed: np.ndarray | None = None, mesh_units: str = "mm", sample: FromSample | None = None
                   ) -> tuple[TileDeviations, ...]:
     """:func:`inspect_tile` of every tile on ``backend``, in the tiles' order (:class:`InspectTile` for the
     arguments).
 
     Ten parameters: the tiles, where they and the mesh lie, the placement in F, the band, the CAD's orientation
-    and units and the field of U (the fields of an :class:`InspectTile` unit) and the backend."""
+    and units and what it takes from the report's sample (the fields of an :class:`InspectTile` unit) and the
+    backend."""
     units = [InspectTile(t, str(store), str(mesh_file), np.asarray(T_F_W, float), lower_mm, upper_mm, reversed,
-                         mesh_units, uncertainty) for t in tiles]
+                         mesh_units, sample) for t in tiles]
     return tuple(backend.map(inspect_tile, units, [u.key() for u in units]))
 
 
@@ -310,18 +332,21 @@ class TiledInspection:
     backend: ComputeBackend
 
     def inspect(self, surface: CadSurface, T_F_W: np.ndarray, band_mm: tuple[float, float],
-                uncertainty: UncertaintyField | None, ply: Path) -> DeviationFigures:
+                uncertainty: UncertaintyField | None, left_out: Sequence[tuple[np.ndarray, float]], ply: Path
+                ) -> DeviationFigures:
         """Every tile placed in F by ``T_F_W`` (4x4, mm) and compared with ``surface`` (the CAD as the inspection
         oriented it: its ``reversed`` triangles) on the backend, each point with the U of ``uncertainty``'s nearest
-        (None: no U): the deviation figures of the whole cloud in the band ``band_mm`` (lower, upper, mm) and
-        ``ply``, the deviation PLY, streamed; the units' files removed after."""
+        (None: no U), the points in the balls ``left_out`` ((centre W mm, radius mm): the reference spheres) left
+        out: the deviation figures of the whole cloud in the band ``band_mm`` (lower, upper, mm) and ``ply``, the
+        deviation PLY, streamed; the units' files removed after."""
         lower, upper = band_mm
         cad = write_cad(self.store, surface)
         field = "" if uncertainty is None else uncertainty.write(self.store)
+        sample = FromSample(field, tuple((*map(float, c), float(r)) for c, r in left_out))
         inspected: tuple[TileDeviations, ...] = ()
         try:
             inspected = inspect_tiles(self.tiles, self.store, Path(self.store) / cad, T_F_W, lower, upper,
-                                      self.backend, surface.reversed, "mm", field)
+                                      self.backend, surface.reversed, "mm", sample)
             figures = deviation_figures(self.store, inspected, lower, upper)
             write_deviation_ply(ply, self.store, inspected)
         finally:

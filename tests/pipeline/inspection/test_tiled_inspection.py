@@ -120,3 +120,21 @@ def test_a_tiled_clouds_report_is_the_whole_clouds_within_what_its_sample_implie
     np.testing.assert_allclose(ply["uncertainty_mm"], _stated_u(untiled.points()), rtol=0, atol=5e-4)
     assert sorted(p.name for p in (Path(store) / "tiles").iterdir()) == sorted(Path(t.file).name
                                                                                for t in tiles.tiles)
+
+
+def test_the_tiles_leave_out_the_points_the_samples_alignment_left_out(job, tmp_path):
+    """The points in a ball the alignment left out of the sample (a reference sphere and its base:
+    ``alignment.sphere_balls``) are left out of the whole cloud's figures and PLY too."""
+    store, untiled, tiles = job
+    points = untiled.points()
+    centre = points[len(points) // 2]  # a ball across the sheet, reaching into two or three tiles
+    surface = CadSurface(cad_mesh())
+    figures = TiledInspection(tiles.tiles, tiles.store, LocalBackend()).inspect(
+        surface, T_F_W, (-0.1, 0.1), None, [(centre, 30.0)], tmp_path / "deviation.ply")
+    outside = np.linalg.norm(points - centre, axis=1) > 30.0
+    assert 0.05 < 1 - outside.mean() < 0.5
+    d = surface.closest(transform_points(T_F_W, points[outside])).signed_mm
+    expected = DeviationStats.of(d)
+    assert figures.stats.count == expected.count == len(read_ply_vertices(tmp_path / "deviation.ply")["x"])
+    for name in ("mean_mm", "sigma_mm", "min_mm", "max_mm", "p5_mm", "p95_mm"):
+        assert getattr(figures.stats, name) == pytest.approx(getattr(expected, name), rel=0, abs=1e-9), name
