@@ -361,12 +361,12 @@ def job_uncertainty(job: JobSnapshot, scans: Sequence[PosedScan], counts: np.nda
     """The uncertainty model of the job's cloud (``point_uncertainty.JobUncertainty``): its poses' errors jointly
     (the mount's at the installation's prior: the calibration's covariance, or the nominal mounts' build
     tolerance; ``PoseCovariance.with_installation_at_prior``), the scans' thinned points placed in W for which
-    scans each point came from, the voxels' point counts and the scanner's noise; None where the end of the job
-    left no pose covariance."""
+    scans each point came from (their KD tree built from now on, beside the alignment: ``ScanCover.prepared``),
+    the voxels' point counts and the scanner's noise; None where the end of the job left no pose covariance."""
     if job.pose_covariance is None:
         return None
     cover = ScanCover([transform_points(s.T_W_S, s.points_S_mm) for s in scans],
                       np.array([len(s.points_S_mm) if s.point_count is None else s.point_count for s in scans], float),
                       np.array([np.asarray(s.T_W_S)[:3, 3] for s in scans]), np.arange(len(scans)))
-    return JobUncertainty(job.pose_covariance.with_installation_at_prior(), cover, job.config.scanner.noise_sigma_mm,
-                          counts)
+    return JobUncertainty(job.pose_covariance.with_installation_at_prior(), cover.prepared(),
+                          job.config.scanner.noise_sigma_mm, counts)

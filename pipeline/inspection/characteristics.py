@@ -22,6 +22,7 @@ from tandemscan.config.inspection_template import (
     SectionSpec,
     SurfaceProfileSpec,
 )
+from tandemscan.pipeline.geometry.units import in_box_mm
 from tandemscan.pipeline.inspection.decision import DecisionRule, Tolerance, combine, decide
 from tandemscan.pipeline.inspection.deviation_areas import even_centres, kd_tree, local_deviation
 from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionError
@@ -97,7 +98,7 @@ def patch_mask(cloud: MeasuredCloud, patch: PatchSpec) -> np.ndarray:
     p = cloud.points_mm
     inside = np.ones(len(p), bool)
     if patch.min_mm is not None:
-        inside &= np.all((p >= np.asarray(patch.min_mm)) & (p <= np.asarray(patch.max_mm)), axis=1)
+        inside &= in_box_mm(p, patch.min_mm, patch.max_mm)
     if patch.face_groups:
         groups = np.asarray(cloud.surface.mesh.triangle_material_ids)
         if len(groups) != len(cloud.surface.mesh.triangles):

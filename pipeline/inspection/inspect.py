@@ -29,7 +29,7 @@ from tandemscan.pipeline.geometry.frames import (
     transform_points,
 )
 from tandemscan.pipeline.geometry.part import enclosed_volume_mm3, triangles_closed
-from tandemscan.pipeline.geometry.units import box_mm
+from tandemscan.pipeline.geometry.units import box_mm, in_box_mm
 from tandemscan.pipeline.inspection.cad_orientation import MeshPatches, mesh_patches
 from tandemscan.pipeline.inspection.decision import DecisionRule, RuleName
 from tandemscan.pipeline.inspection.deviation_areas import DeviationArea, find_deviation_areas
@@ -336,8 +336,7 @@ class InspectionResult:
 
 def region_mask(points_mm: np.ndarray, region: RegionConfig) -> np.ndarray:
     """(N,) bool: points inside the region's box (bounds inclusive), frame F."""
-    lo, hi = np.asarray(region.min_mm), np.asarray(region.max_mm)
-    return np.all((points_mm >= lo) & (points_mm <= hi), axis=1)
+    return in_box_mm(points_mm, region.min_mm, region.max_mm)
 
 
 @dataclass(frozen=True)

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import functools
 import math
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -166,6 +167,12 @@ class ScanCover:
         tree = cKDTree(np.concatenate([np.asarray(p, float) for p in self.points_W]), leafsize=32,
                        balanced_tree=False)
         return sizes, np.repeat(np.arange(len(sizes)), sizes), tree
+
+    def prepared(self) -> ScanCover:
+        """This cover with its KD tree being built on a thread of its own (SciPy builds it without the GIL): made as
+        the job's inspection starts, it needs none of it, and the points' U finds it built (or waits for it)."""
+        threading.Thread(target=lambda: self._tree, name="scan-cover-tree", daemon=True).start()
+        return self
 
     def shares(self, points_W: np.ndarray, k: int = SCANS_PER_POINT) -> tuple[np.ndarray, np.ndarray]:
         """(M, k) scan positions (into this cover's scans) and their shares of each point's voxel (rows sum to

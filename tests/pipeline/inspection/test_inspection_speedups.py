@@ -368,3 +368,24 @@ def test_overlap_quality_places_each_scan_once():
     assert after.asked == [0, 1, 2, 3, 4] and before.asked == [0, 1, 2, 3, 4]
     placed = [[transform_points(T, s) for s, T in zip(scans, poses, strict=True)], [np.asarray(s) for s in scans]]
     assert pairs == overlap_quality(*placed)  # the same figures as from the scans placed beforehand
+
+
+def test_a_scan_cover_prepared_builds_its_tree_unasked_and_answers_as_one_built_when_asked():
+    import time
+
+    from tandemscan.pipeline.inspection.point_uncertainty import ScanCover
+
+    rng = np.random.default_rng(6)
+    scans = [rng.uniform([100.0 * k, 0.0, 0.0], [100.0 * k + 150.0, 100.0, 1.0], (4000, 3)) for k in range(6)]
+
+    def cover() -> ScanCover:
+        return ScanCover(scans, np.full(len(scans), 40_000.0), np.zeros((len(scans), 3)), np.arange(len(scans)))
+
+    prepared, asked = cover().prepared(), cover()
+    deadline = time.monotonic() + 30.0
+    while "_tree" not in prepared.__dict__ and time.monotonic() < deadline:  # built on its own thread
+        time.sleep(0.01)
+    assert "_tree" in prepared.__dict__ and "_tree" not in asked.__dict__
+    queries = rng.uniform([0.0, 0.0, 0.0], [650.0, 100.0, 1.0], (500, 3))
+    for a, b in zip(prepared.shares(queries), asked.shares(queries), strict=True):
+        assert np.array_equal(a, b)
