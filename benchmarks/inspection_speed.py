@@ -106,9 +106,12 @@ def main() -> None:
         job, rep, points_S, tracker = load_job(args.job_dir, load_config(args.config), out)
         t_load = time.perf_counter() - t0
         t0, c0, e0 = time.perf_counter(), _cpu_s(), _cpu_s(resource.RUSAGE_CHILDREN)
-        section = job_outputs.write_job_outputs(job, rep, points_S, tracker)
+        failed: dict[str, str] = {}
+        section = job_outputs.write_job_outputs(job, rep, points_S, tracker, failed=failed)
         total, cpu, e57_cpu = time.perf_counter() - t0, _cpu_s() - c0, _cpu_s(resource.RUSAGE_CHILDREN) - e0
         sizes = {f.name: f.stat().st_size for f in out.iterdir() if f.is_file()}
+    if failed:  # no figures of outputs that were not written
+        raise SystemExit(f"outputs not written: {failed}")
     if args.json:
         args.json.write_text(json.dumps(section, indent=1), encoding="utf-8")
     stats = section.get("as_measured", {}).get("stats", {})

@@ -185,8 +185,7 @@ def peak_rss_gib() -> float | None:
 
 
 def write_job_outputs(job: JobSnapshot, report: Mapping, points_S: Sequence[np.ndarray] | None = None,
-                      tracker_poses: Sequence[np.ndarray] | None = None, *, failed: dict[str, str] | None = None
-                      ) -> dict:
+                      tracker_poses: Sequence[np.ndarray] | None = None, *, failed: dict[str, str]) -> dict:
     """Write the E57, the pose log and (when registered to CAD) the inspection report of a finished job
     (``report``: the job's ``scans`` and ``transfers`` counts for report.html's accuracy table; ``points_S``: the
     scans thinned at ``[job] voxel_mm`` or to :func:`stitch_view_points`, and ``tracker_poses``: the
@@ -196,10 +195,8 @@ def write_job_outputs(job: JobSnapshot, report: Mapping, points_S: Sequence[np.n
     (the full scans streamed from their files) and the pose log are written in a process of their own
     (``export.write_scan_exports``, spawned, ``[daemon] worker_niceness`` below this one: pye57 holds the GIL
     while it packs the points) while the inspection computes on the thinned scans. Where one of them fails the
-    other is written all the same and its error goes into ``failed`` (``e57``, ``inspection``), or where that is
-    None the first error is raised then.
+    other is written all the same and its error goes into ``failed`` (``e57``, ``inspection``).
     """
-    errors: dict[str, str] = {} if failed is None else failed
     scans = _posed_scans(job, points_S)
     to_export = _scan_exports(job, scans)  # holds the cloud's shared copy until the process is done
     with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=init_worker,
@@ -208,16 +205,10 @@ def write_job_outputs(job: JobSnapshot, report: Mapping, points_S: Sequence[np.n
         try:
             section = _inspection_section(job, report, scans, tracker_poses)
         except Exception as e:  # noqa: BLE001 - named in the report, which fails the job once written
-            if failed is None:
-                exports.cancel()
-                raise
             log.error("inspection failed: %s: %s", type(e).__name__, e, exc_info=e)
-            errors["inspection"] = f"{type(e).__name__}: {e}"
-            section = {"failed": errors["inspection"], "files": dict(EXPORT_FILES)}
-        if failed is None:
-            exports.result()
-        else:
-            _wait(exports, "e57", errors)
+            failed["inspection"] = f"{type(e).__name__}: {e}"
+            section = {"failed": failed["inspection"], "files": dict(EXPORT_FILES)}
+        _wait(exports, "e57", failed)
     return section
 
 

@@ -143,7 +143,9 @@ def test_job_exports_hold_the_full_scans_while_the_job_holds_thinned_ones(scan_f
     off = sim_config.model_copy(update={"inspection": sim_config.inspection.model_copy(update={"in_job": False})})
     job = SimpleNamespace(job_dir=tmp_path, scans=records, worldmap=cloud, T_F_W=None, config=off)
     thinned = [read_thinned_scan(f, 1.0) for f in files]
-    write_job_outputs(job, {}, thinned)
+    failed = {}
+    write_job_outputs(job, {}, thinned, failed=failed)
+    assert failed == {}
     e57 = _read_e57(tmp_path / "cloud.e57")
     assert [s[0] for s in e57] == ["scan-0000", "scan-0001", "merged"]  # the empty scan is left out
     for (_, _, _, points_m), a in zip(e57[:2], arrays[:2], strict=True):  # every point, not the thinned copy

@@ -150,10 +150,12 @@ def test_inspection_skipped_with_reason(sim_config, tmp_path):
         return SimpleNamespace(job_dir=tmp_path, scans=[], worldmap=worldmap, T_F_W=T_F_W, config=config)
 
     off = sim_config.model_copy(update={"inspection": sim_config.inspection.model_copy(update={"in_job": False})})
-    assert write_job_outputs(runner(off, np.eye(4)), {})["skipped"] == "inspection.in_job is off"
-    unplaced = write_job_outputs(runner(sim_config, None), {})  # relocalisation off or the target never seen
+    failed = {}
+    assert write_job_outputs(runner(off, np.eye(4)), {}, failed=failed)["skipped"] == "inspection.in_job is off"
+    unplaced = write_job_outputs(runner(sim_config, None), {}, failed=failed)  # relocalisation off or target unseen
     assert unplaced["skipped"] == "no registration of the world frame to the CAD frame"
-    assert write_job_outputs(runner(sim_config, np.eye(4)), {})["skipped"] == "empty cloud"
+    assert write_job_outputs(runner(sim_config, np.eye(4)), {}, failed=failed)["skipped"] == "empty cloud"
+    assert failed == {}  # skipped is not failed: the pose log and the E57 were written each time
     assert (tmp_path / "poses.csv").read_text().startswith("index,name,points")
     assert not (tmp_path / "report.html").exists()
 
