@@ -6,10 +6,9 @@ frame W, 4x4, mm), the correction, inspection and coverage sections as those sta
 resources and timings (s), and two sections beside the product's: the simulator's ground-truth scores
 (:class:`GroundTruth`, from the job's observer; None on a real cell) and the resumes a journaled job went
 through (:class:`JobHistory`; None for a job run without a journal). :meth:`JobReport.to_json` is the file's
-content, :meth:`JobReport.from_json` reads it back into the same model; :func:`write_job_report` is the one
-writer of the file (durable: temporary name, fsync, rename). The observer scores the job after the report is
-written: its section goes beside it, :func:`write_ground_truth` (``ground_truth.json``), and
-:func:`read_job_report` reads both back into the model the end of the job returned.
+content; :func:`write_job_report` is the one writer of the file (durable: temporary name, fsync, rename). The
+observer scores the job after the report is written: its section goes beside it, :func:`write_ground_truth`
+(``ground_truth.json``).
 """
 
 from __future__ import annotations
@@ -55,12 +54,6 @@ class ScanEntry:
             out["T_W_S_tracker"] = [list(r) for r in self.T_W_S_tracker]
         return out
 
-    @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> ScanEntry:
-        tracker = d.get("T_W_S_tracker")
-        return cls(d["index"], d["tracker_station"], d["points"], d["file"], as_matrix(d["T_W_S"]),
-                   None if tracker is None else as_matrix(tracker))
-
 
 @dataclass(frozen=True)
 class Timings:
@@ -97,12 +90,6 @@ class GroundTruth:
         the tracker-only stitch's summary (``before``)."""
         return {"ground_truth": self.section()} | (
             {} if self.tracker_only is None else {"before": dict(self.tracker_only)})
-
-    @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> GroundTruth:
-        """The model of a :data:`GROUND_TRUTH_FILE`'s content (:meth:`to_json` gives it back)."""
-        scores = dict(d["ground_truth"])
-        return cls(scores, d.get("before"), scores.pop("inspection", None))
 
 
 @dataclass(frozen=True)
@@ -168,25 +155,6 @@ class JobReport:
                     "scans_left_out": self.relocalisation["untracked"]}
         return out
 
-    @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> JobReport:
-        """The model of a ``report.json``'s content (:meth:`to_json` gives it back)."""
-        correction = dict(d["correction"])
-        tracker_only = correction.pop("before", None)
-        truth = None
-        if "ground_truth" in d:
-            scores = dict(d["ground_truth"])
-            truth = GroundTruth(scores, tracker_only, scores.pop("inspection", None))
-        history = JobHistory(tuple(d["resumes"]), d["attempts"]) if "resumes" in d else None
-        t = d["timings"]
-        return cls(d["job"], d["plan"], d["transfers"], d["points_raw"], d["points_cloud"], d["voxel_mm"],
-                   d["installation_source"], d["seconds"], d["scans_planned"], tuple(d["left_out_by_plan"]),
-                   tuple(d["transfer_log"]), d["relocalisation"], correction,
-                   tuple(ScanEntry.from_json(s) for s in d["scan_log"]), d["inspection"], d["coverage"],
-                   d["resources"]["peak_rss_gib"], Timings(t["after_last_scan_s"], t["correction_cpu_s"],
-                                                           t["stages_s"]), truth, history,
-                   d.get("failed_outputs", {}))
-
 
 def write_job_report(report: JobReport, job_dir: Path | str) -> Path:
     """Write ``report`` as ``report.json`` into ``job_dir`` durably (readers see the old file or the whole new
@@ -208,19 +176,3 @@ def _write_json(path: Path, content: dict) -> Path:
     data = json.dumps(content, indent=1).encode()
     write_durably(path, lambda f: f.write(data))
     return path
-
-
-def joined_report(report: Mapping[str, Any], ground_truth: Mapping[str, Any] | None) -> JobReport:
-    """The model of a ``report.json``'s content with the observer's :data:`GROUND_TRUTH_FILE` content beside it
-    (None: a job no observer scored)."""
-    model = JobReport.from_json(report)
-    return model if ground_truth is None else dataclasses.replace(model, ground_truth=GroundTruth.from_json(
-        ground_truth))
-
-
-def read_job_report(job_dir: Path | str) -> JobReport:
-    """A finished job's report as the end of the job returned it: ``report.json`` with, where the job's observer
-    scored it, :data:`GROUND_TRUTH_FILE` beside it as its ``ground_truth`` (:func:`joined_report`)."""
-    truth = Path(job_dir) / GROUND_TRUTH_FILE
-    return joined_report(json.loads((Path(job_dir) / REPORT_FILE).read_text(encoding="utf-8")),
-                         json.loads(truth.read_text(encoding="utf-8")) if truth.is_file() else None)

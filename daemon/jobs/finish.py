@@ -80,7 +80,7 @@ class OutputsNotWritten(OSError):
 @dataclass(frozen=True)
 class FinishedJob:
     """What the end of a job produced: its report (``report.json`` with, on the simulated cell, the observer's
-    ``ground_truth.json``: ``job_report.read_job_report``) and the correction stage."""
+    scores, written beside it as ``ground_truth.json``) and the correction stage."""
 
     report: JobReport
     correction: CorrectionOutcome

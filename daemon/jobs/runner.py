@@ -126,8 +126,8 @@ class JobProgress:
 @dataclass
 class JobResult:
     """What a finished job left behind: its folder, ``cloud.ply`` and ``report.json`` (``job_report``, with the
-    simulator's scores where it has them, ``ground_truth.json`` beside it: ``job_report.read_job_report``;
-    ``report`` is its JSON) and its scan records at their final poses."""
+    simulator's scores where it has them, which are written beside it as ``ground_truth.json``; ``report`` is its
+    JSON) and its scan records at their final poses."""
 
     job_dir: Path
     cloud_file: Path
@@ -137,7 +137,7 @@ class JobResult:
 
     @functools.cached_property
     def report(self) -> dict:
-        """The content of ``report.json`` with the observer's ``ground_truth`` (``job_report.read_job_report``)."""
+        """The content of ``report.json`` with the observer's ``ground_truth`` (``ground_truth.json``'s)."""
         return self.job_report.to_json()
 
 

@@ -20,13 +20,13 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+from job_reports import joined_report
 from serving import running_server
 from tandemscan.config import load_config
 from tandemscan.daemon.api.app import create_app
 from tandemscan.daemon.cli.client import SseParser
 from tandemscan.daemon.service import Daemon
 from tandemscan.pipeline.io.cloud_io import read_ply
-from tandemscan.pipeline.job_report import joined_report
 from tandemscan.sim_drivers.cell import Simulation, with_surveyed_mounts, with_surveyed_mounts_toml
 from tandemscan.sim_drivers.hil_box import free_port
 
@@ -59,7 +59,7 @@ async def _uninterrupted_run(state: Path, download: Path) -> dict:
                         f.write(chunk)
             report = (await client.get(f"/v1/jobs/{job['id']}/report")).json()
             truth = (await client.get(f"/v1/jobs/{job['id']}/files/ground_truth.json")).json()
-            report = joined_report(report, truth).to_json()  # the simulator's scores beside the report
+            report = joined_report(report, truth)  # the simulator's scores beside the report
             qif = await client.get(final["links"]["results_qif"])
             trend = (await client.get("/v1/parts/TS-NOSE-3000/characteristics/SP-2/trend")).json()
     return {"job": final, "events": events, "report": report, "qif": qif, "trend": trend}
@@ -243,7 +243,7 @@ def test_sigkill_mid_job_resumes_with_every_scan_once(tmp_path, reference):
             assert again.json()["id"] == job_id
         job = _wait(daemon.url, job_id, lambda j: j["state"] in FINAL)
         report = joined_report(httpx.get(f"{daemon.url}/v1/jobs/{job_id}/report").json(),
-                               httpx.get(f"{daemon.url}/v1/jobs/{job_id}/files/ground_truth.json").json()).to_json()
+                               httpx.get(f"{daemon.url}/v1/jobs/{job_id}/files/ground_truth.json").json())
     finally:
         if journal is not None:
             journal.close()

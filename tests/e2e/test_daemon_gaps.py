@@ -8,10 +8,10 @@ import asyncio
 import json
 
 import numpy as np
+from job_reports import report_with_ground_truth
 from tandemscan.daemon.api.models import job_body
 from tandemscan.daemon.plans import default_plan_path
 from tandemscan.daemon.service import Daemon
-from tandemscan.pipeline.job_report import read_job_report
 from tandemscan.pipeline.planning.plan import Plan
 
 #: the default plan's first AGV station: move_measure, move_arm, scan, move_arm, scan
@@ -147,7 +147,7 @@ async def resumed_after_restart(cfg, state, job_id: str):
         await daemon.manager.resume(job_id)
         await until(lambda: daemon.manager.get(job_id).state not in ("running", "paused_fault"))
         return (daemon.manager.get(job_id), daemon.store.committed_steps(job_id),
-                read_job_report(state / "jobs" / job_id).to_json())
+                report_with_ground_truth(state / "jobs" / job_id))
     finally:
         await daemon.close()
 

@@ -10,6 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pye57
 import pytest
+from job_reports import report_with_ground_truth
 from tandemscan.daemon.cell.session import CellSession
 from tandemscan.daemon.jobs.finish import merge_stage, merged_cloud, scan_x_bounds
 from tandemscan.daemon.jobs.outputs import _point_blocks, _write_cloud_ply, write_job_outputs
@@ -19,7 +20,6 @@ from tandemscan.pipeline.geometry.frames import from_rpy
 from tandemscan.pipeline.io.cloud_io import read_ply
 from tandemscan.pipeline.io.export import PosedScan, write_e57
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan, write_raw_scan
-from tandemscan.pipeline.job_report import read_job_report
 from tandemscan.pipeline.planning.plan import Plan, Scan
 from tandemscan.pipeline.registration.sampling import voxel_downsample
 from tandemscan.pipeline.stitching.worldmap import VoxelMap
@@ -178,7 +178,7 @@ async def test_full_resolution_job_reports_as_a_coarse_one(sim_config, tmp_path)
         async with CellSession(config) as session:
             config = with_surveyed_mounts(config, session.cell.simulation, tmp_path)
             result = await JobRunner(session, plan, config, tmp_path / resolution).run()
-        reports[resolution] = read_job_report(result.job_dir).to_json()
+        reports[resolution] = report_with_ground_truth(result.job_dir)
     coarse, full = reports["coarse"], reports["full"]
     assert _keys(full) == _keys(coarse)
     for resolution, whole in (("coarse", True), ("full", False)):  # what the end of the job kept of each scan

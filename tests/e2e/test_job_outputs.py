@@ -9,12 +9,12 @@ import json
 import numpy as np
 import pye57
 import pytest
+from job_reports import report_with_ground_truth
 from tandemscan.daemon.cell.session import CellSession
 from tandemscan.daemon.jobs.runner import JobRunner
 from tandemscan.daemon.plans import default_plan_path
 from tandemscan.pipeline.io.cloud_io import read_ply
 from tandemscan.pipeline.io.export import ScanExports, write_pose_log
-from tandemscan.pipeline.job_report import read_job_report
 from tandemscan.pipeline.planning.coverage import REASON_REACH
 from tandemscan.pipeline.planning.plan import LeftOutArea, Plan, Scan
 from tandemscan.pipeline.stitching.worldmap import MapCloud
@@ -49,7 +49,7 @@ async def test_job_writes_report_and_exports_next_to_cloud(sim_config, tmp_path,
     job = result.job_dir
     for name in ("cloud.ply", "report.html", "report.json", "cloud_deviation.ply", "cloud.e57", "poses.csv"):
         assert (job / name).is_file(), name
-    report = read_job_report(job).to_json()  # report.json and the simulator's scores beside it
+    report = report_with_ground_truth(job)  # report.json and the simulator's scores beside it
     assert len(read_ply(job / "cloud.ply")[0]) == report["points_cloud"]  # written on a thread, complete
     # report.html is written after the last scan, before report.json
     assert report["timings"]["after_last_scan_s"] > 0
