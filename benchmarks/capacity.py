@@ -115,7 +115,7 @@ def make_job(folder: Path, part: PartConfig, scans: int, pixels: tuple[int, int]
     scanner = ScannerConfig(coarse_pixels=pixels, resolution="coarse")
     model, scene = ScannerModel(scanner), make_scene(mesh)
     files, poses, raw = [], [], 0
-    for T_F_S in view_poses(mesh, part, scans, band_share, scanner.sweet_spot_mm):
+    for T_F_S in view_poses(mesh, part, scans, band_share, scanner.sweet_spot_mm, seed):
         points, normals_S = model.scan(scene, T_F_S, rng)
         if len(points) < 1000:  # a view past the part's edge: a job keeps no such scan
             continue
@@ -128,9 +128,13 @@ def make_job(folder: Path, part: PartConfig, scans: int, pixels: tuple[int, int]
     return Job(folder, tuple(files), tuple(poses), mesh_file, raw)
 
 
-def view_poses(mesh, part: PartConfig, scans: int, band_share: float, sweet_spot_mm: float) -> list[np.ndarray]:
-    """:func:`make_job`'s views ``T_F_S`` (mm): Poisson disk on the part's upper surface, the scanner at the sweet
-    spot along each normal, looking at it."""
+def view_poses(mesh, part: PartConfig, scans: int, band_share: float, sweet_spot_mm: float, seed: int
+               ) -> list[np.ndarray]:
+    """:func:`make_job`'s views ``T_F_S`` (mm): Poisson disk on the part's upper surface (Open3D's sampler seeded with
+    ``seed``: the same views every run), the scanner at the sweet spot along each normal, looking at it."""
+    import open3d as o3d
+
+    o3d.utility.random.seed(seed)
     up_share = _upper_share(mesh, np.asarray(mesh.triangle_normals))
     views = mesh.sample_points_poisson_disk(max(2, round(scans / up_share)), use_triangle_normal=True)
     centres, facing = np.asarray(views.points), np.asarray(views.normals)
@@ -158,7 +162,7 @@ def density_check(part: PartConfig, pixels: tuple[int, int], views: int, seed: i
     mesh.compute_triangle_normals()
     scene, rng = make_scene(mesh), np.random.default_rng(seed)
     joint_mm = CorrectionConfig().joint_voxel_mm
-    poses = view_poses(mesh, part, 369, 1.0, ScannerConfig().sweet_spot_mm)
+    poses = view_poses(mesh, part, 369, 1.0, ScannerConfig().sweet_spot_mm, seed)
     sums = {}
     for label, px in (("full", ScannerConfig().full_pixels), ("run", pixels)):
         model = ScannerModel(ScannerConfig(coarse_pixels=px, resolution="coarse"))
