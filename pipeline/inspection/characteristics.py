@@ -24,7 +24,7 @@ from tandemscan.config.inspection_template import (
 )
 from tandemscan.pipeline.geometry.units import in_box_mm
 from tandemscan.pipeline.inspection.decision import DecisionRule, Tolerance, combine, decide
-from tandemscan.pipeline.inspection.deviation_areas import even_centres, kd_tree, local_deviation
+from tandemscan.pipeline.inspection.deviation_areas import even_centres, local_deviation
 from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionError
 
 log = logging.getLogger(__name__)
@@ -114,7 +114,7 @@ def _smoothed(points_mm: np.ndarray, values_mm: np.ndarray, radius_mm: float, at
     the averages is found to that, for a ninth of the work at 1 mm spacing and 4 mm radius)."""
     if at is None:
         at = even_centres(points_mm, CENTRE_CELL * radius_mm)
-    return at, local_deviation(points_mm, values_mm, radius_mm, at, kd_tree(points_mm)).smoothed_mm
+    return at, local_deviation(points_mm, values_mm, radius_mm, at).smoothed_mm
 
 
 def _decided(spec, actual: float, u: float, rule: DecisionRule, also: float | None = None) -> tuple[str, str]:

@@ -13,11 +13,7 @@ averaged deviation (a noise peak of one point is no defect) and the mean of the 
 
 from __future__ import annotations
 
-import threading
-import weakref
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TypeVar
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -28,7 +24,6 @@ from tandemscan.pipeline.geometry.units import box_mm
 NEIGHBOURS = 48  # at most this many neighbours enter a point's average
 DENSITY_K = 8  # the neighbour whose distance gives a point's share of the surface
 _CHUNK = 50_000
-T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -79,37 +74,35 @@ def even_centres(points_mm: np.ndarray, cell_mm: float) -> np.ndarray:
 
 def kd_tree(points_mm: np.ndarray) -> cKDTree:
     """A KD tree of a cloud for the bounded neighbour queries here: median-free with leaves of 32 points,
-    which builds in half the time of the defaults and answers them as fast (whole-part job, 8 M points). A
-    read-only array (an inspected cloud: ``inspect.inspect_cloud`` makes its points so) has its tree built once
-    while it lives (:func:`kept_for`): the areas at the band and at the verdict's guard band and the
-    characteristics' averages ask for the same cloud's."""
-    # the tree holds a view of its own of the points, so that it does not keep the array it is kept for alive
-    return kept_for((points_mm,), "kd_tree", lambda: cKDTree(np.asarray(points_mm).view(), leafsize=32,
-                                                             balanced_tree=False))
+    which builds in half the time of the defaults and answers them as fast (whole-part job, 8 M points)."""
+    return cKDTree(points_mm, leafsize=32, balanced_tree=False)
 
 
-_KEPT: dict[tuple, tuple[tuple[weakref.ref, ...], object]] = {}
-KEPT_AT_MOST = 4  # values kept at once (a cloud's tree and screening, and the previous cloud's)
-_KEPT_LOCK = threading.Lock()
+class DeviationCloud:
+    """A cloud's points and their deviations (frame F, mm, float64) with what its areas are found on: its KD tree
+    and, per smoothing radius, its coarse screening (:func:`_screening`), each built on first use and kept by this
+    object. The areas at the band and at the verdict's guard band are found on the same object (the inspection's
+    result holds it, ``inspect.InspectionResult.deviation_cloud``): they share the tree and the screening, which go
+    with it, not with any cache that outlives the inspection."""
 
+    def __init__(self, points_mm: np.ndarray, deviations_mm: np.ndarray):
+        self.points_mm = np.asarray(points_mm, dtype=np.float64)
+        self.deviations_mm = np.asarray(deviations_mm, dtype=np.float64)
+        self._tree: cKDTree | None = None
+        self._screenings: dict[float, tuple[np.ndarray, LocalDeviation]] = {}
 
-def kept_for(arrays: tuple[np.ndarray, ...], what: object, build: Callable[[], T]) -> T:
-    """``build()``, kept for ``arrays`` and ``what`` (hashable) while every array lives (dropped as the first of
-    them goes; at most :data:`KEPT_AT_MOST` values, the oldest dropped first), where all are read-only numpy
-    arrays (their values cannot change under the result); else built each time. Built under a lock, so two threads
-    asking at once build it once."""
-    if not all(isinstance(a, np.ndarray) and not a.flags.writeable for a in arrays):
-        return build()
-    key = (*(id(a) for a in arrays), what)
-    with _KEPT_LOCK:
-        held = _KEPT.get(key)
-        if held is not None and all(r() is a for r, a in zip(held[0], arrays, strict=True)):
-            return held[1]  # type: ignore[return-value]
-        value = build()
-        while len(_KEPT) >= KEPT_AT_MOST:  # an array the value holds itself never goes: the oldest make room
-            _KEPT.pop(next(iter(_KEPT)))
-        _KEPT[key] = (tuple(weakref.ref(a, lambda _, key=key: _KEPT.pop(key, None)) for a in arrays), value)
-        return value
+    @property
+    def tree(self) -> cKDTree:
+        """The points' KD tree (:func:`kd_tree`), built on first use."""
+        if self._tree is None:
+            self._tree = kd_tree(self.points_mm)
+        return self._tree
+
+    def screening(self, smoothing_mm: float) -> tuple[np.ndarray, LocalDeviation]:
+        """:func:`_screening` of the cloud at ``smoothing_mm``, built on first use: the same for every band."""
+        if smoothing_mm not in self._screenings:
+            self._screenings[smoothing_mm] = _screening(self.points_mm, self.deviations_mm, smoothing_mm, self.tree)
+        return self._screenings[smoothing_mm]
 
 
 def neighbours_within(tree: cKDTree, queries: np.ndarray, k: int, radius_mm: float, need: int
@@ -173,17 +166,16 @@ def _within(tree: cKDTree, centres_mm: np.ndarray, radius_mm: float) -> np.ndarr
     return np.flatnonzero(found)
 
 
-def _screened(p: np.ndarray, d: np.ndarray, lower_mm: float, upper_mm: float, smoothing_mm: float
-              ) -> LocalDeviation:
+def _screened(cloud: DeviationCloud, lower_mm: float, upper_mm: float, smoothing_mm: float) -> LocalDeviation:
     """:func:`local_deviation` of the points that can be beyond the band: one point per cube of side
     :data:`SCREEN_CELL` ``* smoothing_mm`` is averaged first, over its :data:`SCREEN_NEIGHBOURS` nearest
     points within ``smoothing_mm`` (noise 1/4 of a point's, half the smoothing radius); every point within
     that cube's diagonal of one whose average is beyond the band narrowed by half its half-width is then
     averaged itself, as without the screening. The others (the surface within the band by that margin, five
     times the screening's noise at 0.05 mm per point) are left out; the spacing is the screening points'."""
-    tree = kd_tree(p)
+    p, d, tree = cloud.points_mm, cloud.deviations_mm, cloud.tree
     cell = SCREEN_CELL * smoothing_mm
-    centres, coarse = kept_for((p, d), ("screening", smoothing_mm), lambda: _screening(p, d, smoothing_mm, tree))
+    centres, coarse = cloud.screening(smoothing_mm)
     margin = 0.25 * (upper_mm - lower_mm)
     near = centres[(coarse.smoothed_mm > upper_mm - margin) | (coarse.smoothed_mm < lower_mm + margin)]
     at = _within(tree, p[near], cell * np.sqrt(3.0))
@@ -201,24 +193,23 @@ def _screening(p: np.ndarray, d: np.ndarray, smoothing_mm: float, tree: cKDTree
 
 
 def find_deviation_areas(
-    points_mm: np.ndarray,
-    deviations_mm: np.ndarray,
+    cloud: DeviationCloud,
     lower_mm: float,
     upper_mm: float,
     smoothing_mm: float = 5.0,
     min_area_mm2: float = 50.0,
     screen: bool | None = None,
 ) -> tuple[DeviationArea, ...]:
-    """The areas beyond ``[lower_mm, upper_mm]`` of the cloud (frame F), largest |extreme| first, with ids
+    """The areas beyond ``[lower_mm, upper_mm]`` of ``cloud`` (frame F), largest |extreme| first, with ids
     1, 2, ... in that order, each point's deviation averaged over ``smoothing_mm`` (``[inspection]
     area_smoothing_mm``), none smaller than ``min_area_mm2``. ``screen`` (default: above :data:`THIN_ABOVE_POINTS`
     points) averages only the points near where an even thinning of the cloud comes near the band
     (:func:`_screened`; docs/inspection-method.md, "Deviation areas")."""
-    p = np.asarray(points_mm, dtype=np.float64)
-    d = np.asarray(deviations_mm, dtype=np.float64)
+    p, d = cloud.points_mm, cloud.deviations_mm
     if screen is None:
         screen = len(p) > THIN_ABOVE_POINTS
-    local = _screened(p, d, lower_mm, upper_mm, smoothing_mm) if screen else local_deviation(p, d, smoothing_mm)
+    local = (_screened(cloud, lower_mm, upper_mm, smoothing_mm) if screen
+             else local_deviation(p, d, smoothing_mm, tree=cloud.tree))
     link_mm = max(3.0 * local.spacing_mm, smoothing_mm)
     at = np.arange(len(p)) if local.at is None else local.at
     found = []

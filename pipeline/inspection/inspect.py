@@ -32,7 +32,7 @@ from tandemscan.pipeline.geometry.part import enclosed_volume_mm3, triangles_clo
 from tandemscan.pipeline.geometry.units import box_mm, in_box_mm
 from tandemscan.pipeline.inspection.cad_orientation import MeshPatches, mesh_patches
 from tandemscan.pipeline.inspection.decision import DecisionRule, RuleName
-from tandemscan.pipeline.inspection.deviation_areas import DeviationArea, find_deviation_areas
+from tandemscan.pipeline.inspection.deviation_areas import DeviationArea, DeviationCloud, find_deviation_areas
 from tandemscan.pipeline.parameters import FromSection
 
 if TYPE_CHECKING:
@@ -320,6 +320,9 @@ class InspectionResult:
     tolerance: ToleranceResult
     regions: tuple[RegionResult, ...]
     best_fit: BestFit | None
+    #: the points and deviations with their KD tree and areas' screening, built once for the band and the verdict's
+    #: guard band (``verdict.judge``): they go with this result
+    deviation_cloud: DeviationCloud = field(repr=False, compare=False)
     best_fit_note: str = ""  # why there is no best fit when one was asked for
     areas: tuple[DeviationArea, ...] = ()  # beyond the band, largest |extreme| first
     triangle_ids: np.ndarray | None = field(default=None, repr=False)  # (N,) closest CAD triangle per point
@@ -594,12 +597,11 @@ def inspect_cloud(
 ) -> InspectionResult:
     """Deviation of a measured cloud (frame F, mm) from the CAD mesh, by ``criteria`` (tolerance, regions, fit);
     ``closest``: the CAD surface's closest points to the cloud where the caller has them (``CadSurface.closest``)."""
-    p = as_points(points_mm).view()
+    p = as_points(points_mm)
     surface = mesh if isinstance(mesh, CadSurface) else CadSurface(mesh)
     closest = surface.closest(p) if closest is None else closest
     d = closest.signed_mm
-    for a in (p, d):  # read-only: the KD tree and the areas' screening of this cloud are built once (deviation_areas)
-        a.setflags(write=False)
+    cloud = DeviationCloud(p, d)
     lo, hi = criteria.tolerance_lower_mm, criteria.tolerance_upper_mm
     masks = [(region.name, region_mask(p, region)) for region in criteria.regions]
     if criteria.mesh_group_regions:
@@ -610,11 +612,11 @@ def inspect_cloud(
         stats = DeviationStats.of(d)
         tol = ToleranceResult.of(d, lo, hi)
         assert stats is not None and tol is not None  # p has at least one point
-        areas = find_deviation_areas(p, d, lo, hi, criteria.area_smoothing_mm, criteria.area_min_mm2)
+        areas = find_deviation_areas(cloud, lo, hi, criteria.area_smoothing_mm, criteria.area_min_mm2)
         fit, note = fit.result() if fit is not None else (None, "")
     log.info(
         "inspected %d points: mean %.4f mm, sigma %.4f mm, %.1f %% in tolerance, %d areas beyond it",
         stats.count, stats.mean_mm, stats.sigma_mm, tol.in_pct, len(areas),
     )
-    return InspectionResult(p, d, closest.normals, stats, tol, tuple(regions), fit, note, areas,
+    return InspectionResult(p, d, closest.normals, stats, tol, tuple(regions), fit, cloud, note, areas,
                             closest.triangle_ids)

@@ -99,7 +99,7 @@ def judge(result: InspectionResult, u: PointUncertainty, criteria: InspectionCri
     context = context or VerdictContext()
     rule = criteria.rule
     band = Tolerance(criteria.tolerance_lower_mm, criteria.tolerance_upper_mm)
-    p, d = result.points_mm, result.deviations_mm
+    p = result.points_mm
     area_u = averaged_uncertainty(u, _points_averaged(p, criteria.area_smoothing_mm))
     guard = float(np.percentile(area_u, 95)) if len(area_u) else 0.0
     no_room = rule.name == "iso14253-1" and 2.0 * guard >= band.width
@@ -110,8 +110,8 @@ def judge(result: InspectionResult, u: PointUncertainty, criteria: InspectionCri
     else:
         lo, hi = band.lower + guard, band.upper - guard
     same = (lo, hi) == (criteria.tolerance_lower_mm, criteria.tolerance_upper_mm)  # the areas found already
-    found = result.areas if same else find_deviation_areas(p, d, lo, hi, criteria.area_smoothing_mm,
-                                                           criteria.area_min_mm2)
+    found = result.areas if same else find_deviation_areas(  # on the inspection's tree and screening
+        result.deviation_cloud, lo, hi, criteria.area_smoothing_mm, criteria.area_min_mm2)
     tree = cKDTree(p[:: max(1, len(p) // 500_000)]) if found else None
     step = max(1, len(p) // 500_000)
     areas = []

@@ -7,7 +7,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 from tandemscan.config.models import InspectionConfig
-from tandemscan.pipeline.inspection.deviation_areas import find_deviation_areas
+from tandemscan.pipeline.inspection.deviation_areas import DeviationCloud, find_deviation_areas
 from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionCriteria, inspect_cloud
 from tandemscan.pipeline.inspection.report import InspectedPart, ReportStyle, build_report
 
@@ -27,7 +27,7 @@ def test_a_dent_and_a_bulge_are_two_areas_with_their_figures():
     rng = np.random.default_rng(0)
     p, d = plane(rng)
     d += -bell(p, (100.0, 100.0), 30.0, 0.3) + bell(p, (220.0, 200.0), 20.0, 0.2)
-    areas = find_deviation_areas(p, d, -0.1, 0.1, smoothing_mm=4.0, min_area_mm2=50.0)
+    areas = find_deviation_areas(DeviationCloud(p, d), -0.1, 0.1, smoothing_mm=4.0, min_area_mm2=50.0)
     assert [(a.id, a.side) for a in areas] == [(1, "lower"), (2, "upper")]  # largest |extreme| first
     dent, bulge = areas
     np.testing.assert_allclose(dent.centroid_mm, [100.0, 100.0, 0.0], atol=0.5)
@@ -45,8 +45,8 @@ def test_noise_alone_and_small_spots_give_no_area():
     p, d = plane(rng, noise=0.05)  # half the band: raw points leave it by the thousand
     assert (np.abs(d) > 0.1).sum() > 1000
     d += bell(p, (150.0, 150.0), 4.0, 0.3)  # a 0.3 mm spot of under 20 mm^2 beyond the band
-    assert find_deviation_areas(p, d, -0.1, 0.1, smoothing_mm=4.0, min_area_mm2=50.0) == ()
-    assert len(find_deviation_areas(p, d, -0.1, 0.1, smoothing_mm=2.0, min_area_mm2=5.0)) == 1
+    assert find_deviation_areas(DeviationCloud(p, d), -0.1, 0.1, smoothing_mm=4.0, min_area_mm2=50.0) == ()
+    assert len(find_deviation_areas(DeviationCloud(p, d), -0.1, 0.1, smoothing_mm=2.0, min_area_mm2=5.0)) == 1
 
 
 def test_verdict_and_report_list_the_areas_with_callouts():

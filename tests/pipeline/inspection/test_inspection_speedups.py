@@ -5,13 +5,16 @@ triangles against a new query."""
 
 from __future__ import annotations
 
+import gc
+import weakref
+
 import numpy as np
 import open3d as o3d
 import pytest
 from scipy.spatial import cKDTree
 from tandemscan.pipeline.geometry.frames import from_rotvec, transform_points
 from tandemscan.pipeline.inspection import deviation_areas
-from tandemscan.pipeline.inspection.deviation_areas import even_centres, find_deviation_areas
+from tandemscan.pipeline.inspection.deviation_areas import DeviationCloud, even_centres, find_deviation_areas
 from tandemscan.pipeline.inspection.deviation_maps import measured_triangles
 from tandemscan.pipeline.inspection.inspect import SMALL_MOVE_MM, CadSurface, signed_distance_moved
 from tandemscan.pipeline.registration.normals import smallest_eigenvectors
@@ -94,15 +97,16 @@ def test_deviation_areas_screened_on_a_thinning_are_those_of_every_point():
     p, d = plane(rng, noise=0.04)
     d += (-bell(p, (100.0, 100.0), 30.0, 0.3) + bell(p, (220.0, 200.0), 20.0, 0.2)
           + bell(p, (60.0, 240.0), 9.0, 0.25) - bell(p, (250.0, 60.0), 7.0, 0.3))
-    full = find_deviation_areas(p, d, -0.1, 0.1, smoothing_mm=4.0, min_area_mm2=50.0, screen=False)
-    screened = find_deviation_areas(p, d, -0.1, 0.1, smoothing_mm=4.0, min_area_mm2=50.0, screen=True)
+    full = find_deviation_areas(DeviationCloud(p, d), -0.1, 0.1, smoothing_mm=4.0, min_area_mm2=50.0, screen=False)
+    screened = find_deviation_areas(DeviationCloud(p, d), -0.1, 0.1, smoothing_mm=4.0, min_area_mm2=50.0, screen=True)
     assert len(full) == 4
     assert [(a.id, a.side, a.points) for a in screened] == [(a.id, a.side, a.points) for a in full]
     for a, b in zip(full, screened, strict=True):
         np.testing.assert_allclose(b.centroid_mm, a.centroid_mm, atol=1e-9)
         assert (b.area_mm2, b.extreme_mm, b.mean_mm) == pytest.approx((a.area_mm2, a.extreme_mm, a.mean_mm), abs=1e-12)
-    assert find_deviation_areas(p, 0.5 * d, -0.1, 0.1, smoothing_mm=4.0, screen=True) == find_deviation_areas(
-        p, 0.5 * d, -0.1, 0.1, smoothing_mm=4.0, screen=False)
+    half = DeviationCloud(p, 0.5 * d)
+    assert find_deviation_areas(half, -0.1, 0.1, smoothing_mm=4.0, screen=True) == find_deviation_areas(
+        half, -0.1, 0.1, smoothing_mm=4.0, screen=False)
 
 
 def test_even_centres_keep_one_point_per_cube():
@@ -288,30 +292,27 @@ def test_points_near_the_screening_centres_are_found_chunk_by_chunk():
     assert 0 < len(within) < len(p)
 
 
-def test_a_read_only_clouds_tree_and_screening_are_built_once_and_go_with_it(monkeypatch):
-    """The areas of a read-only cloud at the band and at a narrower (guard) band are those of a writeable copy,
-    which is screened anew each time; the read-only cloud's KD tree and coarse screening are built once for both,
-    and dropped when the cloud goes."""
+def test_a_clouds_tree_and_screening_are_built_once_for_every_band_and_go_with_it(monkeypatch):
+    """The areas at the band and at a narrower (guard) band found on one DeviationCloud are those of a fresh one
+    each time, and its KD tree and coarse screening are built once for both; once the caller drops the cloud, its
+    points are freed (nothing kept them: a whole part's are hundreds of MB)."""
     rng = np.random.default_rng(0)
     p, d = plane(rng, noise=0.04)
     d += -bell(p, (100.0, 100.0), 30.0, 0.3) + bell(p, (220.0, 200.0), 20.0, 0.2)
-    built = []
-    tree = deviation_areas.cKDTree
-    monkeypatch.setattr(deviation_areas, "cKDTree", lambda *a, **k: built.append(1) or tree(*a, **k))
-    p_ro, d_ro = p.view(), d.view()
-    for a in (p_ro, d_ro):
-        a.setflags(write=False)
-    for lo, hi in ((-0.1, 0.1), (-0.08, 0.08)):
-        before = len(built)
-        fresh = find_deviation_areas(p, d, lo, hi, smoothing_mm=4.0, screen=True)
-        assert len(built) > before  # a writeable cloud: its tree built each time
-        assert find_deviation_areas(p_ro, d_ro, lo, hi, smoothing_mm=4.0, screen=True) == fresh
-    kept = [len(built)]
-    find_deviation_areas(p_ro, d_ro, -0.09, 0.09, smoothing_mm=4.0, screen=True)
-    assert len(built) - kept[0] <= 2  # only the areas' own small trees (one a side), not the cloud's
-    assert deviation_areas._KEPT
-    del p_ro, d_ro
-    assert not deviation_areas._KEPT
+    trees, screenings = [], []  # the cloud's trees (not the areas' own small ones), the screenings
+    tree, screening, n = deviation_areas.cKDTree, deviation_areas._screening, len(p)
+    monkeypatch.setattr(deviation_areas, "cKDTree",
+                        lambda points, *a, **k: trees.append(len(points) == n) or tree(points, *a, **k))
+    monkeypatch.setattr(deviation_areas, "_screening", lambda *a: screenings.append(1) or screening(*a))
+    cloud = DeviationCloud(p, d)
+    for lo, hi in ((-0.1, 0.1), (-0.08, 0.08), (-0.09, 0.09)):
+        fresh = find_deviation_areas(DeviationCloud(p, d), lo, hi, smoothing_mm=4.0, screen=True)
+        assert fresh and find_deviation_areas(cloud, lo, hi, smoothing_mm=4.0, screen=True) == fresh
+    assert sum(trees) == 3 + 1 and len(screenings) == 3 + 1  # a fresh cloud's each time, the shared one's once
+    freed = weakref.ref(p), weakref.ref(d)
+    del p, d, cloud
+    gc.collect()
+    assert [r() for r in freed] == [None, None]
 
 
 def test_nearest_even_centre_searched_within_a_cubes_diagonal_is_the_plain_nearest():

@@ -1,10 +1,15 @@
 """The verdict by the decision rule and the points' uncertainty: overall, per region, per deviation area
 (pipeline/inspection/verdict.py)."""
 
+import gc
+import weakref
+
 import numpy as np
 import open3d as o3d
 import pytest
 from tandemscan.config.models import InspectionConfig, RegionConfig
+from tandemscan.pipeline.inspection import deviation_areas
+from tandemscan.pipeline.inspection import verdict as verdict_module
 from tandemscan.pipeline.inspection.inspect import CadSurface, inspect_cloud
 from tandemscan.pipeline.inspection.inspection_job import InspectionSettings
 from tandemscan.pipeline.inspection.point_uncertainty import GivenUncertainty
@@ -77,6 +82,29 @@ def test_without_the_failing_bump_the_indeterminate_area_decides(box):
     verdict = judge(part, u, c.criteria)
     assert verdict.verdict == "indeterminate" and [a.decision for a in verdict.areas] == ["indeterminate"]
     assert "within U of a limit" in verdict.judgement.reasons[0]
+
+
+def test_the_guard_bands_areas_reuse_the_inspections_tree_and_the_cloud_goes_with_the_result(box, monkeypatch):
+    """One inspection builds the cloud's KD tree once for the areas at the band and at the verdict's guard band
+    (the result's ``deviation_cloud``), and nothing else keeps the cloud once the judged result is dropped."""
+    points = top_with_bumps()
+    n, trees, tree = len(points), [], deviation_areas.cKDTree
+    monkeypatch.setattr(deviation_areas, "cKDTree", lambda q, *a, **k: trees.append(len(q) == n) or tree(q, *a, **k))
+    c = cfg()
+    result = inspect_cloud(points, box, c.criteria)
+    assert result.points_mm is points and sum(trees) == 1  # the band's areas
+    u = GivenUncertainty(0.25).evaluate(points, result.cad_normals, c.criteria.decision_k, np.eye(4), "none", None,
+                                        None)
+    searched, find = [], verdict_module.find_deviation_areas
+    monkeypatch.setattr(verdict_module, "find_deviation_areas",
+                        lambda cloud, *a: searched.append(id(cloud)) or find(cloud, *a))
+    judged = judge(result, u, c.criteria)
+    assert searched == [id(result.deviation_cloud)] and sum(trees) == 1  # the guard band's areas: the same tree
+    assert judged.areas
+    freed = weakref.ref(points)
+    del points, result, judged, u
+    gc.collect()
+    assert freed() is None
 
 
 def test_simple_rule_decides_by_the_value_and_says_so(box):
