@@ -55,9 +55,8 @@ def _ts(t_s: float | None) -> datetime:
 
 def verdict_of(report: dict) -> str | None:
     """The inspection's verdict a report gives ("pass", "fail"), None where it has none."""
-    verdict = report.get("verdict")
-    if verdict is None and isinstance(report.get("inspection"), dict):
-        verdict = report["inspection"].get("verdict")
+    inspection = report.get("inspection")
+    verdict = inspection.get("verdict") if isinstance(inspection, dict) else None
     return verdict if isinstance(verdict, str) else None
 
 
