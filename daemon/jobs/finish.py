@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from tandemscan.daemon.jobs.outputs import JobExports, export_job, stitch_view_points
 from tandemscan.daemon.jobs.reporting import build_job_report, score_ground_truth
-from tandemscan.pipeline.compute import backend_for
+from tandemscan.pipeline.compute import backend_for, trim_heap
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan
 from tandemscan.pipeline.job_report import JobReport, Timings, write_ground_truth, write_job_report
 from tandemscan.pipeline.registration.parallel import pair_threads
@@ -264,9 +264,11 @@ def finish_outputs(job: JobSnapshot, started: float, measured_at: float,
         if job.scorer is not None:  # the observer scores the tracker stitch too: its cloud (float32), not merged again
             tracker_stitch = dataclasses.replace(job, worldmap=tracker_map.frozen(np.float32))
         tracker_map = None
+    trim_heap()  # what the copies and the map freed back to the system: the correction starts from what is held
     outcome = correct_stage(job, loaded, online)
     x_bounds = _tiled_merge_x_bounds(job, outcome, loaded, voxel_mm)  # all the tiled merge needs of the copies
     del loaded  # the copies freed before the merge
+    trim_heap()
     t = time.perf_counter()
     tracker_poses = None
     if outcome.corrected:
