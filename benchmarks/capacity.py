@@ -293,13 +293,13 @@ def snapshot(job: Job, part: PartConfig, compute: ComputeConfig, correct: bool):
 
 def measure(job) -> None:
     """What the daemon's map process does while the job measures: each scan merged into the map at its tracker pose
-    and its thinned copy kept (``stitcher.merge_scan``), read here from its file."""
+    and what it keeps of the scan kept (``stitcher.merge_scan``), read here from its file."""
     from tandemscan.daemon.jobs.stitcher import merge_scan
     from tandemscan.pipeline.stitching.worldmap import VoxelMap
 
     job.worldmap, job.scan_copies = VoxelMap(job.config.job.voxel_mm), {}
     for s in job.scans:
-        merge_scan(job.worldmap, job.scan_copies, str(s.file), s.T_W_S, None)
+        merge_scan(job.worldmap, job.scan_copies, str(s.file), s.T_W_S, None, job.config.compute.reads_scan_store)
 
 
 def run_stages(job: Job, part: PartConfig, workers: int, tile_mm: float, e57: bool = True, correct: bool = True

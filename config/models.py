@@ -660,6 +660,12 @@ class ComputeConfig(_Strict):
         "voxel up to this many in the process that writes it; its deviation figures and cloud_deviation.ply from "
         "every point, tile by tile on the backend (docs/compute.md, Tiles)")
 
+    @property
+    def reads_scan_store(self) -> bool:
+        """Whether the end of a job reads every scan from ``scan_store`` on the backend's workers (not ``local``):
+        then the job's map process keeps no scan's thinned copy, only its stitch-view points (docs/compute.md)."""
+        return self.backend != "local"
+
 
 class DeepMergeConfig(_Strict):
     """The DeepMerge registration network (docs/deepmerge.md): its weights and inference size."""

@@ -72,7 +72,7 @@ def cmd_measure(args: argparse.Namespace) -> int:
         raise UsageError(str(e)) from e
     session = _session(config)
     job_dir.mkdir(parents=True, exist_ok=True)  # an output that cannot be written is bad input, before any motion
-    worldmap = LocalWorldMap(config.job.voxel_mm)
+    worldmap = LocalWorldMap(config.job.voxel_mm, config.compute.reads_scan_store)
 
     async def run():
         async with session:

@@ -51,7 +51,9 @@ MERGE_GROUPS = 8
 class LoadedScans:
     """Every scan's points in its scanner frame S thinned to one centroid per occupied voxel of edge
     ``voxel_mm`` (float64, mm; ``registration.sampling.voxel_downsample``), or the scan itself where that would
-    not halve it (float32, a coarse scan: ``raw_scan.read_thinned_scan``), in the order of ``job.scans``."""
+    not halve it (float32, a coarse scan: ``raw_scan.read_thinned_scan``), in the order of ``job.scans``; where
+    the correction reads the scans from the store (``[compute] reads_scan_store``) only their stitch-view points
+    (``outputs.stitch_view_points``), all the end takes of them there."""
 
     voxel_mm: float
     points_S: tuple[np.ndarray, ...]
@@ -92,14 +94,17 @@ def load_scans(job: JobSnapshot) -> LoadedScans:
     once (one a core at a time). The correction thins to that voxel first, and thinning a thinned copy again
     changes nothing (its pairs and pose graph are those of the full scans; only its joint refinement, thinning the
     copy to its coarser ``joint_voxel_mm``, weighs each finer voxel once). A coarse scan, not halved by the
-    thinning, is kept whole, so the correction at coarse resolution is that of the scans as stored."""
+    thinning, is kept whole, so the correction at coarse resolution is that of the scans as stored. Where the
+    correction reads the scans from the store (``[compute] reads_scan_store``), only their stitch-view points (what
+    the map's owner kept there, ``stitcher.merge_scan``; thinning them again leaves them as they are)."""
     voxel_mm = job.config.job.voxel_mm
     at_voxel = job.worldmap is not None and job.worldmap.voxel_mm == voxel_mm
     kept = job.scan_copies if job.scan_copies is not None and at_voxel else {}
+    kept_of = stitch_view_points if job.config.compute.reads_scan_store else np.asarray
 
     def copy_of(scan: ScanRecord) -> np.ndarray:
         copy = kept.pop(str(scan.file), None)
-        return read_thinned_scan(scan.file, voxel_mm) if copy is None else copy
+        return kept_of(read_thinned_scan(scan.file, voxel_mm) if copy is None else copy)
 
     with pair_threads() as thread_map:  # one file a core at a time
         loaded = LoadedScans(voxel_mm, tuple(thread_map(copy_of, job.scans)))
@@ -256,8 +261,8 @@ def finish_outputs(job: JobSnapshot, started: float, measured_at: float,
         loaded = load_scans(job)
         timings["read_s"] = round(time.perf_counter() - t, 3)
     view_S = tuple(stitch_view_points(p) for p in loaded.points_S)  # all the exports need of the copies
-    if job.config.compute.backend != "local":  # the workers read the scans from the store (docs/compute.md)
-        loaded = None  # the copies freed before the correction (a whole part's at full resolution: about 1.2 GB)
+    if job.config.compute.reads_scan_store:  # the workers read the scans from the store (docs/compute.md)
+        loaded = None  # only their stitch-view points were loaded (load_scans)
     tracker_map, job.worldmap = job.worldmap, None
     voxel_mm, tracker_stitch = tracker_map.voxel_mm, None
     if corrects(job):  # the cloud is merged anew at the corrected poses: the map's sums freed before the correction

@@ -91,7 +91,8 @@ async def run_journaled(ctx: JobContext) -> dict:
     if ctx.resumed:
         log.info("job %s resumes at step %d of %d", ctx.job.id, min(set(range(len(plan.steps))) - set(ctx.committed),
                                                                       default=len(plan.steps)), len(plan.steps))
-    worldmap = await asyncio.to_thread(ProcessWorldMap, ctx.config.job.voxel_mm, ctx.config.daemon.worker_niceness)
+    worldmap = await asyncio.to_thread(ProcessWorldMap, ctx.config.job.voxel_mm, ctx.config.daemon.worker_niceness,
+                                     ctx.config.compute.reads_scan_store)
     config = await asyncio.to_thread(prepare_part, ctx.config, ctx.job.plan, job_dir, ctx.store.state_dir)
     runner = JobRunner(ctx.session, plan, config, job_dir, journal.on_progress, journal, worldmap,
                        ctx.config.job.max_scans_left_out, journal.history)

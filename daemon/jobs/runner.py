@@ -176,7 +176,8 @@ class JobRunner:
         self.journal = journal or NoJournal()
         self.observer: JobObserver | None = session.job_observer(self.job_dir.name, bool(self.journal.committed))
         self.installation = installation_for_job(config)
-        self.worldmap = worldmap if worldmap is not None else LocalWorldMap(config.job.voxel_mm)
+        self.worldmap = worldmap if worldmap is not None else LocalWorldMap(
+            config.job.voxel_mm, config.compute.reads_scan_store)
         self.correction: dict = {"enabled": False}
         self.max_scans_left_out = max_scans_left_out
         self.history = history  # the journal's resumes of every attempt, for the report (none: not journaled)

@@ -48,7 +48,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 _MAP: VoxelMap | None = None  # the worker's map
-_COPIES: dict[str, np.ndarray] = {}  # the worker's scans thinned at the map's voxel as they were merged, by file
+_COPIES: dict[str, np.ndarray] = {}  # the worker's scans as kept when merged (merge_scan), by file
+_VIEWS_ONLY = False  # the worker's map keeps only each scan's stitch-view points (merge_scan)
 _PAIRS: Any = None  # the pair worker's OnlinePairs
 _JOINT: Any = None  # the joint worker's OnlineJoint (PairWorker)
 #: niceness the pair worker adds once the job has measured (:func:`_pairs_so_far`): its check pairs run on the
@@ -59,25 +60,33 @@ _LOADED: dict[str, Any] = {}  # where the map lives: finishing jobs' scans read 
 _OUTPUTS: dict[str, Any] = {}  # where the map lives: finishing jobs' outputs until their report (finish.JobOutputs)
 
 
-def _init(voxel_mm: float, niceness: int) -> None:
-    global _MAP
+def _init(voxel_mm: float, niceness: int, views_only: bool) -> None:
+    global _MAP, _VIEWS_ONLY
     init_worker(niceness)
-    _MAP = VoxelMap(voxel_mm)
+    _MAP, _VIEWS_ONLY = VoxelMap(voxel_mm), views_only
 
 
 def merge_scan(worldmap: VoxelMap, copies: dict[str, np.ndarray], file: str, T_W_S: np.ndarray,
-               arrays: dict[str, np.ndarray] | None) -> np.ndarray:
+               arrays: dict[str, np.ndarray] | None, views_only: bool = False) -> np.ndarray:
     """Merge the scan of ``file`` into ``worldmap`` at ``T_W_S`` (W, mm) from its ``arrays`` where given (written
     already; the map rotates them in float32, as the file stores them), else from the file, read once (a job
     rebuilt after a restart), and keep in ``copies`` its copy thinned at the map's voxel
     (``raw_scan.thin_scan``, the copy ``raw_scan.read_thinned_scan`` would read: ``finish.load_scans`` takes it
-    from there). Returns that copy."""
+    from there) or, with ``views_only`` (``[compute] reads_scan_store``: the correction reads the scans from the
+    store), only the points of it the exports take (``outputs.stitch_view_points``: at most 40 k, under 1 MB a
+    scan). Returns the thinned copy (for the pair worker)."""
     if arrays is None:
         points, normals = read_raw_scan(file, np.float32)
     else:
         points, normals = arrays["points_S_mm"], arrays.get("normals_S")
     worldmap.add_scan(T_W_S, points, normals)
-    copies[file] = copy = thin_scan(points, worldmap.voxel_mm)
+    copy = thin_scan(points, worldmap.voxel_mm)
+    if views_only:
+        from tandemscan.daemon.jobs.outputs import stitch_view_points  # the exports' stack, where the map lives
+
+        copies[file] = stitch_view_points(copy)
+    else:
+        copies[file] = copy
     return copy
 
 
@@ -87,7 +96,7 @@ def _add(path: str, T_W_S: np.ndarray, arrays: dict[str, np.ndarray] | None, len
     returns the map's size and, where ``lend``, the scan's thinned copy handed over for the pair worker."""
     if arrays is not None:
         write_raw_scan(Path(path), **arrays)
-    copy = merge_scan(_MAP, _COPIES, path, T_W_S, arrays)
+    copy = merge_scan(_MAP, _COPIES, path, T_W_S, arrays, _VIEWS_ONLY)
     return len(_MAP), hand_over(copy) if lend else None
 
 
@@ -438,13 +447,14 @@ def _share_big(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 
 class ProcessWorldMap(_Pairs):
-    """The job's :class:`VoxelMap` in its own process; call :meth:`close` when the job is done."""
+    """The job's :class:`VoxelMap` in its own process; call :meth:`close` when the job is done. ``views_only``:
+    each scan's stitch-view points kept, not its thinned copy (:func:`merge_scan`)."""
 
-    def __init__(self, voxel_mm: float, niceness: int = 0):
+    def __init__(self, voxel_mm: float, niceness: int = 0, views_only: bool = False):
         self.voxel_mm = float(voxel_mm)
         self._pair_niceness = niceness
         self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
-                                         initializer=_init, initargs=(self.voxel_mm, niceness))
+                                         initializer=_init, initargs=(self.voxel_mm, niceness, views_only))
         self._len = 0
 
     async def add_scan(self, file: Path, T_W_S: np.ndarray, arrays: dict[str, np.ndarray] | None = None,
@@ -477,19 +487,21 @@ class ProcessWorldMap(_Pairs):
 
 class LocalWorldMap(_Pairs):
     """The job's :class:`VoxelMap` in this process, its work in threads (``tandemscan measure``); its pair
-    registration in a process."""
+    registration in a process. ``views_only`` as :class:`ProcessWorldMap`."""
 
-    def __init__(self, voxel_mm: float):
+    def __init__(self, voxel_mm: float, views_only: bool = False):
         self.voxel_mm = float(voxel_mm)
         self.map = VoxelMap(self.voxel_mm)
-        self.copies: dict[str, np.ndarray] = {}  # the scans thinned at the map's voxel as merged (merge_scan)
+        self.views_only = views_only
+        self.copies: dict[str, np.ndarray] = {}  # the scans as kept when merged (merge_scan)
 
     async def add_scan(self, file: Path, T_W_S: np.ndarray, arrays: dict[str, np.ndarray] | None = None,
                        pairs: dict | None = None) -> None:
         """As :meth:`ProcessWorldMap.add_scan`."""
         if arrays is not None:
             await asyncio.to_thread(write_raw_scan, Path(file), **arrays)
-        copy = await asyncio.to_thread(merge_scan, self.map, self.copies, str(file), T_W_S, arrays)
+        copy = await asyncio.to_thread(merge_scan, self.map, self.copies, str(file), T_W_S, arrays,
+                                       self.views_only)
         worker = None if arrays is None else self._pair_worker(pairs)
         if worker is not None:
             self._queue_pairs(worker, copy, T_W_S, arrays, pairs)
