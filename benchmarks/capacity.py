@@ -329,9 +329,9 @@ def run_stages(job: Job, part: PartConfig, workers: int, tile_mm: float, e57: bo
             kept = finish.finish_outputs(snap, time.monotonic(), time.monotonic())
         time.sleep(2 * SAMPLE_S)
         stages = _peaks_in(windows, list(main), backend.client.run(worker_samples))
+        finish.drop_outputs(kept)  # its tiles and its client of this cluster, while the scheduler runs
     finally:
         backend.close()
-    finish.drop_outputs(kept)
     cloud = kept.final.worldmap  # tiles (their files removed), or the cloud merged while measuring (no correction)
     for name in ("cloud.ply", "cloud_deviation.ply", "cloud.e57", "poses.csv", "report.html"):
         (job.folder / name).unlink(missing_ok=True)

@@ -30,6 +30,7 @@ from results import publish
 from tandemscan.config.loader import load_config
 from tandemscan.daemon.jobs import outputs as job_outputs
 from tandemscan.daemon.jobs.outputs import stitch_view_points
+from tandemscan.pipeline.compute import LazyBackend
 from tandemscan.pipeline.inspection import inspect, inspection_job, report
 from tandemscan.pipeline.io.cloud_io import read_ply
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, thin_scan
@@ -107,7 +108,8 @@ def main() -> None:
         t_load = time.perf_counter() - t0
         t0, c0, e0 = time.perf_counter(), _cpu_s(), _cpu_s(resource.RUSAGE_CHILDREN)
         failed: dict[str, str] = {}
-        section = job_outputs.write_job_outputs(job, rep, points_S, tracker, failed=failed)
+        backend = stack.enter_context(LazyBackend(job.config.compute))  # the job's cloud is not tiled: makes none
+        section = job_outputs.write_job_outputs(job, rep, points_S, tracker, failed=failed, backend=backend)
         total, cpu, e57_cpu = time.perf_counter() - t0, _cpu_s() - c0, _cpu_s(resource.RUSAGE_CHILDREN) - e0
         sizes = {f.name: f.stat().st_size for f in out.iterdir() if f.is_file()}
     if failed:  # no figures of outputs that were not written

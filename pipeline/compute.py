@@ -4,7 +4,8 @@ A unit is small (scan references: file, pose; never the points) and its work is 
 same result wherever and however often it runs, so a unit lost with its worker is simply run again. Two backends:
 :class:`LocalBackend` (threads of this process, one per core: numpy, SciPy's KD-trees and Open3D release the GIL)
 and :class:`DaskBackend` (Dask distributed: a ``LocalCluster`` of worker processes on this PC, or a scheduler's
-address, ``tcp://host:8786``, on a cluster whose workers reach the job's scans on a shared filesystem).
+address, ``tcp://host:8786``, on a cluster whose workers reach the job's scans on a shared filesystem). The stages of
+one end of a job share one backend (:class:`LazyBackend`: made at the first stage that needs it, closed once).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import logging
+import os
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
@@ -28,7 +30,8 @@ class ComputeBackend(Protocol):
     where they were left. ``keep`` is ``map`` whose results stay where they were computed: it returns their handles
     (on this process's threads the results themselves, on Dask its futures: a worker's result moves only to the
     workers whose units take it, never to this process), and a result is released with the last handle to it;
-    ``put`` makes handles of values this process holds."""
+    ``put`` makes handles of values this process holds; ``cpu_seconds`` is the CPU time (user + system, s) this
+    process and the backend's workers have spent so far (a difference of two readings: a stage's CPU)."""
 
     def map(self, fn: Callable[..., Any], units: Sequence[Any], keys: Sequence[str],
             inputs: Sequence[Sequence[Any]] | None = None) -> list: ...
@@ -39,6 +42,8 @@ class ComputeBackend(Protocol):
     def put(self, values: Sequence[Any]) -> list: ...
 
     def trim(self) -> None: ...
+
+    def cpu_seconds(self) -> float: ...
 
     def close(self) -> None: ...
 
@@ -70,6 +75,10 @@ class LocalBackend:
     def trim(self) -> None:
         """:func:`trim_heap` of this process (its threads are the workers)."""
         trim_heap()
+
+    def cpu_seconds(self) -> float:
+        """:func:`process_cpu_seconds` of this process (its threads are the workers)."""
+        return process_cpu_seconds()
 
     def close(self) -> None:
         """Nothing to release: the threads end with each :meth:`map`."""
@@ -115,6 +124,11 @@ class DaskBackend:
         results were released: the next stage starts from what it holds, not from the last one's peak)."""
         self.client.run(trim_heap)
 
+    def cpu_seconds(self) -> float:
+        """:func:`process_cpu_seconds` of this process and of each worker now connected (a worker lost and started
+        again counts from its restart)."""
+        return process_cpu_seconds() + sum(self.client.run(process_cpu_seconds).values())
+
     def close(self) -> None:
         """Disconnect, and stop the ``LocalCluster`` if this backend started one."""
         self.client.close()
@@ -132,8 +146,44 @@ def trim_heap() -> int:
         return 0
 
 
+def process_cpu_seconds() -> float:
+    """CPU time (user + system, s) of this process, all its threads."""
+    t = os.times()
+    return t.user + t.system
+
+
 def backend_for(cfg: ComputeConfig) -> ComputeBackend:
     """The backend of ``[compute]``."""
     if cfg.backend == "dask":
         return DaskBackend(cfg.scheduler, cfg.dask_workers, cfg.retries)
     return LocalBackend()
+
+
+class LazyBackend:
+    """The one backend of ``[compute]`` (:func:`backend_for`) that the stages of one end of a job share
+    (docs/compute.md): made at the first :meth:`get` (a job whose stages all run in this process starts no
+    cluster), the same one handed to every later stage (on Dask one ``LocalCluster``, or one client of the
+    scheduler at ``scheduler``, whose workers keep what they cached between stages), closed by :meth:`close`, also
+    as a context manager: when the end of the job is done, fails or is cancelled."""
+
+    def __init__(self, cfg: ComputeConfig):
+        self.cfg = cfg
+        self._backend: ComputeBackend | None = None
+
+    def get(self) -> ComputeBackend:
+        """The backend, made now where no stage asked for it before."""
+        if self._backend is None:
+            self._backend = backend_for(self.cfg)
+        return self._backend
+
+    def close(self) -> None:
+        """Close the backend where one was made (once: a later :meth:`get` makes a new one)."""
+        backend, self._backend = self._backend, None
+        if backend is not None:
+            backend.close()
+
+    def __enter__(self) -> LazyBackend:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from tandemscan.daemon.jobs.outputs import JobExports, export_job, stitch_view_points
 from tandemscan.daemon.jobs.reporting import build_job_report, score_ground_truth
-from tandemscan.pipeline.compute import backend_for, trim_heap
+from tandemscan.pipeline.compute import LazyBackend, trim_heap
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, read_thinned_scan
 from tandemscan.pipeline.job_report import JobReport, Timings, write_ground_truth, write_job_report
 from tandemscan.pipeline.registration.parallel import pair_threads
@@ -112,11 +112,13 @@ def load_scans(job: JobSnapshot) -> LoadedScans:
     return loaded
 
 
-def correct_stage(job: JobSnapshot, loaded: LoadedScans | None, online: OnlineWork | None) -> CorrectionOutcome:
+def correct_stage(job: JobSnapshot, loaded: LoadedScans | None, online: OnlineWork | None, backend: LazyBackend
+                  ) -> CorrectionOutcome:
     """The correction (``pose_correction.correct_job``) of the scans that saw something, when ``[correction]`` is
     enabled and there are two of them; otherwise the tracker stitch stands, with the tracker chain's covariance.
     ``loaded`` None: this process holds no scan's points, the backend's workers read and summarise them from the
-    scan store (``correction.summarise_scan``), and the outcome has each scan's ``tiles.ScanReach``."""
+    scan store (``correction.summarise_scan``), and the outcome has each scan's ``tiles.ScanReach``. ``backend``: the
+    end of the job's, made here where it corrects."""
     from tandemscan.daemon.jobs.pose_correction import correct_job, tracker_chain_covariance  # the registration stack
 
     tracker = tuple(np.asarray(s.T_W_S, float) for s in job.scans)
@@ -126,7 +128,7 @@ def correct_stage(job: JobSnapshot, loaded: LoadedScans | None, online: OnlineWo
         chain = tracker_chain_covariance(view) if measured else None
         return CorrectionOutcome({"enabled": False}, tracker, False, _numbered(chain, measured))
     points = [None if loaded is None else loaded.points_S[k] for k in measured]
-    section, refined, covariance, checks, measured_reaches = correct_job(view, points, online)
+    section, refined, covariance, checks, measured_reaches = correct_job(view, points, online, backend.get())
     poses, reaches = list(tracker), [ScanReach.of(T, np.zeros((0, 3))) for T in tracker]  # none: saw nothing
     for k, T, reach in zip(measured, refined, measured_reaches, strict=True):
         poses[k], reaches[k] = T, reach
@@ -188,12 +190,12 @@ def _tiled_merge_x_bounds(job: JobSnapshot, outcome: CorrectionOutcome, loaded: 
 
 
 def merged_cloud(job: JobSnapshot, voxel_mm: float, poses: Sequence[np.ndarray],
-                 x_bounds_mm: Sequence[tuple[float, float]]) -> MapCloud | TiledCloud:
+                 x_bounds_mm: Sequence[tuple[float, float]], backend: LazyBackend) -> MapCloud | TiledCloud:
     """The job's cloud at its final ``poses`` (W, mm) in voxels of edge ``voxel_mm``: with ``[compute] tile_mm``
-    merged by slabs of W on the compute backend (``tiles.merge_tiles``, docs/compute.md "Tiles": each unit reads
-    only the scans whose bound of x, ``x_bounds_mm`` (:func:`scan_x_bounds`), meets its slab, from the scan store)
-    and left in the tiles' files (``tiles.TiledCloud``: the exports read it a tile at a time); else here
-    (:func:`merge_stage`)."""
+    merged by slabs of W on the end of the job's compute ``backend`` (``tiles.merge_tiles``, docs/compute.md
+    "Tiles": each unit reads only the scans whose bound of x, ``x_bounds_mm`` (:func:`scan_x_bounds`), meets its
+    slab, from the scan store) and left in the tiles' files (``tiles.TiledCloud``: the exports read it a tile at a
+    time); else here (:func:`merge_stage`)."""
     from tandemscan.daemon.jobs.pose_correction import in_job  # the registration stack, as correct_stage
 
     compute = job.config.compute
@@ -202,12 +204,7 @@ def merged_cloud(job: JobSnapshot, voxel_mm: float, poses: Sequence[np.ndarray],
     store = compute.scan_store or job.job_dir
     refs = [TileScan(in_job(Path(s.file), job.job_dir), T, *bound)
             for s, T, bound in zip(job.scans, poses, x_bounds_mm, strict=True)]
-    backend = backend_for(compute)
-    try:
-        tiles = merge_tiles(refs, voxel_mm, compute.tile_mm, store, backend)
-    finally:
-        backend.close()
-    return TiledCloud(voxel_mm, str(store), tiles)
+    return TiledCloud(voxel_mm, str(store), merge_tiles(refs, voxel_mm, compute.tile_mm, store, backend.get()))
 
 
 @dataclass(frozen=True)
@@ -216,8 +213,9 @@ class JobOutputs:
     (``final``: ``worldmap`` the finished cloud, ``correction`` the section so far), the correction stage (whose
     check pairs may still be registering: ``CorrectionOutcome.checks``), the exports and inspection, the
     tracker-stitched poses ``T_W_S`` (W, mm) where corrected and, for the simulator's observer, the tracker stitch;
-    ``seconds`` the job until its exports, ``stages_s`` the seconds of each stage so far. Kept where the map lives
-    until :func:`report_job`."""
+    ``seconds`` the job until its exports, ``stages_s`` the seconds of each stage so far; ``backend`` the stages' one
+    compute backend, still open for the report's check pairs (closed by :func:`report_job` or :func:`drop_outputs`).
+    Kept where the map lives until :func:`report_job`."""
 
     final: JobSnapshot
     correction: CorrectionOutcome
@@ -226,6 +224,7 @@ class JobOutputs:
     tracker_stitch: JobSnapshot | None
     seconds: float
     stages_s: Mapping[str, float]
+    backend: LazyBackend
 
 
 def finish_job(job: JobSnapshot, started: float, measured_at: float,
@@ -254,8 +253,21 @@ def finish_outputs(job: JobSnapshot, started: float, measured_at: float,
     ``started`` and ``measured_at`` are ``time.monotonic()`` at the job's start and at its last step's commit;
     ``online``: what the job computed while it measured (``registration.correction.OnlineWork``: registered pairs, scans
     prepared for the joint refinement); ``stages`` (s) are timings of the work before this call; ``loaded``: the
-    scans as :func:`load_scans` reads them, where they were read ahead (else they are read here)."""
-    timings = dict(stages or {})
+    scans as :func:`load_scans` reads them, where they were read ahead (else they are read here). The stages share
+    one compute backend (``compute.LazyBackend``: one ``LocalCluster`` or scheduler client for the whole end of the
+    job, started by the first stage that needs it), closed here where this fails or is cancelled, else handed on
+    with the outputs."""
+    backend = LazyBackend(job.config.compute)
+    try:
+        return _outputs_on(backend, job, started, online, dict(stages or {}), loaded)
+    except BaseException:  # failed or cancelled: no cluster or client left behind
+        backend.close()
+        raise
+
+
+def _outputs_on(backend: LazyBackend, job: JobSnapshot, started: float, online: OnlineWork | None,
+                timings: dict[str, float], loaded: LoadedScans | None) -> JobOutputs:
+    """:func:`finish_outputs` on the end of the job's ``backend``; ``timings`` (s) gets its stages'."""
     if loaded is None:
         t = time.perf_counter()
         loaded = load_scans(job)
@@ -270,7 +282,7 @@ def finish_outputs(job: JobSnapshot, started: float, measured_at: float,
             tracker_stitch = dataclasses.replace(job, worldmap=tracker_map.frozen(np.float32))
         tracker_map = None
     trim_heap()  # what the copies and the map freed back to the system: the correction starts from what is held
-    outcome = correct_stage(job, loaded, online)
+    outcome = correct_stage(job, loaded, online, backend)
     x_bounds = _tiled_merge_x_bounds(job, outcome, loaded, voxel_mm)  # all the tiled merge needs of the copies
     del loaded  # the copies freed before the merge
     trim_heap()
@@ -278,7 +290,7 @@ def finish_outputs(job: JobSnapshot, started: float, measured_at: float,
     tracker_poses = None
     if outcome.corrected:
         tracker_poses = [s.T_W_S for s in job.scans]
-        job.worldmap = merged_cloud(job, voxel_mm, outcome.poses, x_bounds)
+        job.worldmap = merged_cloud(job, voxel_mm, outcome.poses, x_bounds, backend)
     else:
         job.worldmap = tracker_map.frozen()
     del tracker_map
@@ -288,12 +300,12 @@ def finish_outputs(job: JobSnapshot, started: float, measured_at: float,
         correction=outcome.section, pose_covariance=outcome.pose_covariance)
     seconds = time.monotonic() - started  # the job until its exports
     try:
-        exports = export_job(final, view_S, tracker_poses)
+        exports = export_job(final, view_S, tracker_poses, backend=backend)
     except BaseException:
         _remove_tiles(final)
         raise
     return JobOutputs(final, outcome, exports, tracker_poses, tracker_stitch, seconds,
-                      {**timings, **outcome.section.get("stage_seconds", {}), **exports.stages_s})
+                      {**timings, **outcome.section.get("stage_seconds", {}), **exports.stages_s}, backend)
 
 
 def report_job(outputs: JobOutputs, measured_at: float, later: OnlineWork | None,
@@ -305,7 +317,7 @@ def report_job(outputs: JobOutputs, measured_at: float, later: OnlineWork | None
     simulator's observer's scores beside it. ``stages`` (s): timings of the work beside the outputs. An export that
     failed (``JobExports.failed``) is named in the report, which is written all the same, and then fails the job
     (:class:`OutputsNotWritten`). The tiles' files of a tiled cloud are removed once the exports and the score
-    have read them."""
+    have read them, and the outputs' compute backend closed (``JobOutputs.backend``: done, failed or cancelled)."""
     from tandemscan.daemon.jobs.pose_correction import complete_checks  # the registration stack, as correct_stage
     from tandemscan.pipeline.registration.correction import with_pair_figures
 
@@ -315,7 +327,7 @@ def report_job(outputs: JobOutputs, measured_at: float, later: OnlineWork | None
         if outcome.checks is not None:
             t = time.perf_counter()
             try:
-                figures = complete_checks(final, outcome.checks, later)
+                figures = complete_checks(final, outcome.checks, later, outputs.backend.get())
             except Exception as e:  # noqa: BLE001 - checks of the stitch: the poses and outputs stand without them
                 log.warning("check pairs not registered: %s", e)
                 figures = {"pair_checks_failed": f"{type(e).__name__}: {e}"}
@@ -337,7 +349,8 @@ def report_job(outputs: JobOutputs, measured_at: float, later: OnlineWork | None
             write_ground_truth(ground_truth, final.job_dir)
             report = dataclasses.replace(report, ground_truth=ground_truth)
     finally:
-        _remove_tiles(final)
+        with outputs.backend:  # closed, also where removing the tiles fails
+            _remove_tiles(final)
     return FinishedJob(report, outcome)
 
 
@@ -349,8 +362,10 @@ def left_on_disk(outputs: JobOutputs) -> TiledCloud | None:
 
 
 def drop_outputs(outputs: JobOutputs) -> None:
-    """Let go of the outputs of a job that ended before its report: its tiles' files removed (a tiled cloud)."""
-    _remove_tiles(outputs.final)
+    """Let go of the outputs of a job that ended before its report: its tiles' files removed (a tiled cloud) and
+    its compute backend closed."""
+    with outputs.backend:
+        _remove_tiles(outputs.final)
 
 
 def _remove_tiles(final: JobSnapshot) -> None:

@@ -14,14 +14,13 @@ output is written (``job_report.score_ground_truth``).
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import json
 import logging
 import math
 import multiprocessing
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,7 +35,7 @@ from tandemscan.daemon.calibration.verify import verdict_context
 from tandemscan.daemon.store.part_results import HISTORY_FILE
 from tandemscan.drivers.shared_array import share
 from tandemscan.drivers.worker import init_worker
-from tandemscan.pipeline.compute import backend_for
+from tandemscan.pipeline.compute import LazyBackend
 from tandemscan.pipeline.geometry.frames import transform_points
 from tandemscan.pipeline.geometry.part import load_part_mesh
 from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionError
@@ -121,20 +120,22 @@ class JobExports:
 
 
 def export_job(job: JobSnapshot, points_S: Sequence[np.ndarray] | None = None,
-               tracker_poses: Sequence[np.ndarray] | None = None) -> JobExports:
+               tracker_poses: Sequence[np.ndarray] | None = None, *, backend: LazyBackend) -> JobExports:
     """Write ``cloud.ply`` (W, mm) and the inspection exports of a finished job into its folder; runs where
     ``job.worldmap`` (the final cloud) lives. ``points_S``: the scans' points (S, mm) thinned at ``[job] voxel_mm``
     or to :func:`stitch_view_points` (else read and thinned here; the E57 reads the full scans from their files);
     ``tracker_poses``: the tracker-stitched poses ``T_W_S`` (W, mm) where the correction changed them (None: not
-    corrected). ``cloud.ply``, the E57 with the pose log and the inspection run side by side; one that fails does
-    not stop the others and is named in :attr:`JobExports.failed`."""
+    corrected); ``backend``: the end of the job's compute backend (a tiled cloud's inspection). ``cloud.ply``, the
+    E57 with the pose log and the inspection run side by side; one that fails does not stop the others and is named
+    in :attr:`JobExports.failed`."""
     t = [time.perf_counter()]
     failed: dict[str, str] = {}
     with ThreadPoolExecutor(1, thread_name_prefix="cloud-ply") as pool:  # written while the inspection computes
         cloud_ply = pool.submit(_write_cloud_ply, job.job_dir / "cloud.ply", job.worldmap)
         t.append(time.perf_counter())
         figures = {"scans": len(job.scans), "transfers": len(job.transfers)}
-        inspection = write_job_outputs(job, figures, points_S, tracker_poses, failed=failed)  # report.html, E57, poses
+        # report.html, the E57 and the pose log
+        inspection = write_job_outputs(job, figures, points_S, tracker_poses, failed=failed, backend=backend)
         coverage = inspection.get("coverage") or plan_coverage(job).as_dict()
         _wait(cloud_ply, "cloud_ply", failed)  # complete before the job is reported done
         t.append(time.perf_counter())
@@ -185,11 +186,13 @@ def peak_rss_gib() -> float | None:
 
 
 def write_job_outputs(job: JobSnapshot, report: Mapping, points_S: Sequence[np.ndarray] | None = None,
-                      tracker_poses: Sequence[np.ndarray] | None = None, *, failed: dict[str, str]) -> dict:
+                      tracker_poses: Sequence[np.ndarray] | None = None, *, failed: dict[str, str],
+                      backend: LazyBackend) -> dict:
     """Write the E57, the pose log and (when registered to CAD) the inspection report of a finished job
     (``report``: the job's ``scans`` and ``transfers`` counts for report.html's accuracy table; ``points_S``: the
     scans thinned at ``[job] voxel_mm`` or to :func:`stitch_view_points`, and ``tracker_poses``: the
-    tracker-stitched poses where the correction changed them, None where not corrected).
+    tracker-stitched poses where the correction changed them, None where not corrected; ``backend``: the end of the
+    job's compute backend, made here only to inspect a tiled cloud).
 
     Returns the inspection section for the job's ``report.json``: the same numbers as report.html. The E57
     (the full scans streamed from their files) and the pose log are written in a process of their own
@@ -203,7 +206,7 @@ def write_job_outputs(job: JobSnapshot, report: Mapping, points_S: Sequence[np.n
                              initargs=(job.config.daemon.worker_niceness,)) as pool:
         exports = pool.submit(write_scan_exports, to_export)
         try:
-            section = _inspection_section(job, report, scans, tracker_poses)
+            section = _inspection_section(job, report, scans, tracker_poses, backend)
         except Exception as e:  # noqa: BLE001 - named in the report, which fails the job once written
             log.error("inspection failed: %s: %s", type(e).__name__, e, exc_info=e)
             failed["inspection"] = f"{type(e).__name__}: {e}"
@@ -226,7 +229,7 @@ _NO_POINTS = np.empty((0, 3))
 
 
 def _inspection_section(job: JobSnapshot, report: Mapping, scans: list[PosedScan],
-                        tracker_poses: Sequence[np.ndarray] | None) -> dict:
+                        tracker_poses: Sequence[np.ndarray] | None, backend: LazyBackend) -> dict:
     """The inspection written into the job folder and its report.json section (or why there is none)."""
     files = dict(EXPORT_FILES)
     reason = (
@@ -248,8 +251,7 @@ def _inspection_section(job: JobSnapshot, report: Mapping, scans: list[PosedScan
                  "[compute] report_points" if tiled else "[inspection] max_points")
     sample = _every_kth(job.worldmap, step)
     try:
-        with _whole_cloud(job) as whole:
-            out = _inspect(job, report, scans, sample, T_F_W, tracker_poses, points, whole)
+        out = _inspect(job, report, scans, sample, T_F_W, tracker_poses, points, _whole_cloud(job, backend))
     except (InspectionError, ConfigError) as e:  # the measurement stands; the report says why it has none
         log.warning("inspection failed: %s", e)
         return {"failed": str(e), "files": files}
@@ -258,19 +260,11 @@ def _inspection_section(job: JobSnapshot, report: Mapping, scans: list[PosedScan
     return out.data | {"T_F_W": out.data["alignment"]["T_F_W"], "T_F_W_anchor": T_F_W.tolist(), "files": files}
 
 
-@contextlib.contextmanager
-def _whole_cloud(job: JobSnapshot) -> Iterator[TiledInspection | None]:
-    """Where the job's cloud is tiled (``tiles.TiledCloud``): its inspection tile by tile on the job's compute
-    backend (``tile_inspection.TiledInspection``), the backend closed after; else None."""
+def _whole_cloud(job: JobSnapshot, backend: LazyBackend) -> TiledInspection | None:
+    """Where the job's cloud is tiled (``tiles.TiledCloud``): its inspection tile by tile on the end of the job's
+    compute ``backend`` (``tile_inspection.TiledInspection``); else None."""
     cloud = job.worldmap
-    if not isinstance(cloud, TiledCloud):
-        yield None
-        return
-    backend = backend_for(job.config.compute)
-    try:
-        yield TiledInspection(cloud.tiles, cloud.store, backend)
-    finally:
-        backend.close()
+    return TiledInspection(cloud.tiles, cloud.store, backend.get()) if isinstance(cloud, TiledCloud) else None
 
 
 def _inspect(job: JobSnapshot, report: Mapping, scans: list[PosedScan], sample: TilePoints, T_F_W: np.ndarray,

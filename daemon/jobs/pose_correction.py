@@ -16,14 +16,12 @@ calibration file's hand-eye covariance (a benchmark's surveyed mounts state a ti
 from __future__ import annotations
 
 import logging
-import os
 import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from tandemscan.pipeline.compute import backend_for
 from tandemscan.pipeline.geometry.uncertainty import scan_pose_covariance
 from tandemscan.pipeline.registration.correction import (
     CorrectionSettings,
@@ -42,6 +40,7 @@ if TYPE_CHECKING:
     from tandemscan.config.models import CellConfig
     from tandemscan.daemon.jobs.records import ScanRecord
     from tandemscan.daemon.jobs.snapshot import JobSnapshot
+    from tandemscan.pipeline.compute import ComputeBackend
     from tandemscan.pipeline.registration.correction import OnlineWork, PairChecks
     from tandemscan.pipeline.stitching.installation import Installation
     from tandemscan.pipeline.stitching.tiles import ScanReach
@@ -68,14 +67,6 @@ def mount_prior(cfg: CellConfig, installation: Installation) -> tuple[MountPrior
             log.warning("calibration file %s has no T_T_S covariance; the mount prior is the CAD tolerance",
                         cfg.job.calibration_file)
     return MountPrior(cov, dm.mount_min_information_ratio), label
-
-
-def _cpu_seconds(children: bool) -> float:
-    """CPU time (user + system, s) of this process and, where ``children``, its finished child processes (a compute
-    backend's worker processes; not with the local backend's threads: the job's pair worker, a child of the process
-    running ``tandemscan measure``, may end during the correction, its CPU none of the correction's)."""
-    t = os.times()
-    return t.user + t.system + (t.children_user + t.children_system if children else 0.0)
 
 
 def transfer_priors(transfers: list[dict]) -> list[TransferPrior]:
@@ -110,13 +101,15 @@ def in_job(file: Path, job_dir: Path) -> str:
     return (file.relative_to(job_dir) if file.is_relative_to(job_dir) else file).as_posix()
 
 
-def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray | None], online: OnlineWork | None = None
+def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray | None], online: OnlineWork | None,
+                backend: ComputeBackend
                 ) -> tuple[dict, list[np.ndarray], PoseCovariance | None, PairChecks | None, tuple[ScanReach, ...]]:
     """The refined pose ``T_W_S`` (W, mm) of every scan of ``job.scans``, whose points in the scanner frame S
     (mm) are ``points_S`` (None: read from the scan store by the backend's workers, not on the local backend); ``job``
     is not changed. ``online``: what the job computed while it measured
     (``registration.correction.OnlineWork``: registered pairs, scans prepared for the joint refinement and their pairs'
-    nearest neighbours, reused by ``correction.correct_scans`` where their keys match).
+    nearest neighbours, reused by ``correction.correct_scans`` where their keys match); ``backend``: the end of the
+    job's compute backend (``compute.LazyBackend``), left open.
 
     Returns the ``correction`` section of the report (the settings, pair and graph figures; on the simulated
     cell ``job_report.score_ground_truth`` adds those of the tracker-only stitch, ``before``, once the job's outputs
@@ -126,21 +119,16 @@ def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray | None], online:
     each scan's ``tiles.ScanReach`` (the tiled merge's bound of its x at the refined pose).
     """
     cfg, compute = job.config.correction, job.config.compute
-    children = compute.backend != "local"
-    started, cpu = time.monotonic(), _cpu_seconds(children)
+    started, cpu = time.monotonic(), backend.cpu_seconds()  # this process's and the workers'
     prior, prior_source = mount_prior(job.config, job.installation)
     # on a cluster the pair stage's workers read the scans from the store by reference (docs/compute.md)
     store = str(compute.scan_store or job.job_dir) if compute.backend != "local" else None
-    backend = backend_for(compute)
-    try:
-        stitched = StitchedJob(stitched_scans(job, points_S), transfer_priors(job.transfers), prior,
-                               job.config.job.voxel_mm)
-        result = correct_scans(stitched, CorrectionSettings.from_section(cfg), LazyNetwork(job.config.deepmerge),
-                               online, backend, store)
-    finally:
-        backend.close()
+    stitched = StitchedJob(stitched_scans(job, points_S), transfer_priors(job.transfers), prior,
+                           job.config.job.voxel_mm)
+    result = correct_scans(stitched, CorrectionSettings.from_section(cfg), LazyNetwork(job.config.deepmerge),
+                           online, backend, store)
     section = {"enabled": True, **result.report, "seconds": round(time.monotonic() - started, 3),
-               "cpu_seconds": round(_cpu_seconds(children) - cpu, 3)}
+               "cpu_seconds": round(backend.cpu_seconds() - cpu, 3)}
     section["mount"] = {"estimated": result.mount is not None, "prior": prior_source}
     if result.mount is not None:
         section["mount"] |= result.mount.observability(job.config.scanner.sweet_spot_mm)
@@ -149,16 +137,13 @@ def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray | None], online:
     return section, list(result.poses), result.pose_covariance, result.checks, result.reaches
 
 
-def complete_checks(job: JobSnapshot, checks: PairChecks, later: OnlineWork | None) -> dict:
+def complete_checks(job: JobSnapshot, checks: PairChecks, later: OnlineWork | None, backend: ComputeBackend
+                    ) -> dict:
     """The pair figures of the correction section :func:`correct_job` left with ``checks`` still registering
     (``correction.complete_pair_checks``: from ``later``, the pair worker's outcomes once its pairs were done, None
     where they could not be handed over; a pair missing there registered here, its scans read from the scan store,
-    ``[compute] scan_store`` or the job folder)."""
+    ``[compute] scan_store`` or the job folder, on ``backend``, the end of the job's, left open)."""
     compute = job.config.compute
-    backend = backend_for(compute)
-    try:
-        return complete_pair_checks(checks, CorrectionSettings.from_section(job.config.correction), later,
-                                    str(compute.scan_store or job.job_dir), job.config.job.voxel_mm, backend,
-                                    LazyNetwork(job.config.deepmerge))
-    finally:
-        backend.close()
+    return complete_pair_checks(checks, CorrectionSettings.from_section(job.config.correction), later,
+                                str(compute.scan_store or job.job_dir), job.config.job.voxel_mm, backend,
+                                LazyNetwork(job.config.deepmerge))

@@ -6,9 +6,11 @@ from __future__ import annotations
 import time
 
 import pytest
+from tandemscan.config.models import ComputeConfig
 from tandemscan.daemon.jobs import finish, pose_correction
 from tandemscan.daemon.jobs.outputs import JobExports
 from tandemscan.daemon.jobs.snapshot import JobSnapshot
+from tandemscan.pipeline.compute import LazyBackend
 
 
 @pytest.fixture
@@ -30,11 +32,11 @@ def _outputs(tmp_path, checks: object | None, failed: dict[str, str]) -> finish.
     job = JobSnapshot(tmp_path, None, None, None, [], [], section, None)
     return finish.JobOutputs(job, finish.CorrectionOutcome(section, (), True, None, checks),
                              JobExports({}, {}, None, {"exports_and_inspection_s": 1.0}, failed), None, None, 1.0,
-                             {"merge_s": 1.0})
+                             {"merge_s": 1.0}, LazyBackend(ComputeConfig()))
 
 
 def test_check_pairs_that_cannot_be_registered_are_named_in_the_correction_section(written, monkeypatch, tmp_path):
-    def complete_checks(job, checks, later):
+    def complete_checks(job, checks, later, backend):
         raise RuntimeError("scan store unreachable")
 
     monkeypatch.setattr(pose_correction, "complete_checks", complete_checks)

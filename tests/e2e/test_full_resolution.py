@@ -16,6 +16,7 @@ from tandemscan.daemon.jobs.finish import merge_stage, merged_cloud, scan_x_boun
 from tandemscan.daemon.jobs.outputs import _point_blocks, _write_cloud_ply, write_job_outputs
 from tandemscan.daemon.jobs.runner import JobRunner
 from tandemscan.daemon.plans import default_plan_path
+from tandemscan.pipeline.compute import LazyBackend
 from tandemscan.pipeline.geometry.frames import from_rpy
 from tandemscan.pipeline.io.cloud_io import read_ply
 from tandemscan.pipeline.io.export import PosedScan, write_e57
@@ -82,7 +83,9 @@ def test_the_cloud_merged_by_tiles_on_the_backend_is_the_one_merged_here(scan_fi
     files, _, poses = scan_files
     tiled_config = sim_config.model_copy(update={"compute": sim_config.compute.model_copy(update={"tile_mm": 50.0})})
     job = SimpleNamespace(job_dir=tmp_path, scans=[SimpleNamespace(file=f) for f in files], config=tiled_config)
-    tiled = merged_cloud(job, 1.0, poses, scan_x_bounds(job, 1.0, poses, [read_thinned_scan(f, 1.0) for f in files]))
+    bounds = scan_x_bounds(job, 1.0, poses, [read_thinned_scan(f, 1.0) for f in files])
+    with LazyBackend(tiled_config.compute) as backend:
+        tiled = merged_cloud(job, 1.0, poses, bounds, backend)
     here = merge_stage(1.0, files, poses).frozen()
     whole = tiled.every_kth(1)
     assert len(tiled) == len(here) > 1000
@@ -144,7 +147,7 @@ def test_job_exports_hold_the_full_scans_while_the_job_holds_thinned_ones(scan_f
     job = SimpleNamespace(job_dir=tmp_path, scans=records, worldmap=cloud, T_F_W=None, config=off)
     thinned = [read_thinned_scan(f, 1.0) for f in files]
     failed = {}
-    write_job_outputs(job, {}, thinned, failed=failed)
+    write_job_outputs(job, {}, thinned, failed=failed, backend=LazyBackend(off.compute))  # untiled: makes none
     assert failed == {}
     e57 = _read_e57(tmp_path / "cloud.e57")
     assert [s[0] for s in e57] == ["scan-0000", "scan-0001", "merged"]  # the empty scan is left out

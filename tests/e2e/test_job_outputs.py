@@ -25,7 +25,7 @@ def perfect_correction(monkeypatch, truth_of):
     """Stands in for the correction stage: every scan gets its true pose (``truth_of(job)``, by scan index)."""
     from tandemscan.daemon.jobs import finish
 
-    def correct_stage(job, loaded, online):
+    def correct_stage(job, loaded, online, backend):
         truth = truth_of(job)
         return finish.CorrectionOutcome({"enabled": True, "cpu_seconds": 0.001},
                                         tuple(truth[s.index] for s in job.scans), True)
@@ -144,17 +144,21 @@ def test_inspection_skipped_with_reason(sim_config, tmp_path):
     from types import SimpleNamespace
 
     from tandemscan.daemon.jobs.outputs import write_job_outputs
+    from tandemscan.pipeline.compute import LazyBackend
 
     def runner(config, T_F_W):
         worldmap = MapCloud(1.0, np.zeros((0, 3)), np.zeros((0, 3)))  # a job whose scans saw nothing
         return SimpleNamespace(job_dir=tmp_path, scans=[], worldmap=worldmap, T_F_W=T_F_W, config=config)
 
     off = sim_config.model_copy(update={"inspection": sim_config.inspection.model_copy(update={"in_job": False})})
-    failed = {}
-    assert write_job_outputs(runner(off, np.eye(4)), {}, failed=failed)["skipped"] == "inspection.in_job is off"
-    unplaced = write_job_outputs(runner(sim_config, None), {}, failed=failed)  # relocalisation off or target unseen
+    failed, backend = {}, LazyBackend(sim_config.compute)  # an untiled cloud's inspection makes none
+    assert write_job_outputs(runner(off, np.eye(4)), {}, failed=failed, backend=backend)["skipped"] \
+        == "inspection.in_job is off"
+    # relocalisation off or target unseen
+    unplaced = write_job_outputs(runner(sim_config, None), {}, failed=failed, backend=backend)
     assert unplaced["skipped"] == "no registration of the world frame to the CAD frame"
-    assert write_job_outputs(runner(sim_config, np.eye(4)), {}, failed=failed)["skipped"] == "empty cloud"
+    assert write_job_outputs(runner(sim_config, np.eye(4)), {}, failed=failed, backend=backend)["skipped"] \
+        == "empty cloud"
     assert failed == {}  # skipped is not failed: the pose log and the E57 were written each time
     assert (tmp_path / "poses.csv").read_text().startswith("index,name,points")
     assert not (tmp_path / "report.html").exists()

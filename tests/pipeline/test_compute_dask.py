@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from dask.distributed import get_task_stream
 from tandemscan.config.models import ComputeConfig, CorrectionConfig, DeepMergeConfig
-from tandemscan.pipeline.compute import DaskBackend, LocalBackend, backend_for
+from tandemscan.pipeline.compute import DaskBackend, LazyBackend, LocalBackend, backend_for, process_cpu_seconds
 from tandemscan.pipeline.inspection.tile_inspection import inspect_tiles
 from tandemscan.pipeline.io.raw_scan import read_thinned_scan, write_raw_scan
 from tandemscan.pipeline.registration.correction import (
@@ -243,3 +243,29 @@ def test_the_compute_config_picks_the_backend_and_a_local_cluster_maps_units_in_
         assert len(backend.client.scheduler_info()["workers"]) == 2
     finally:
         backend.close()
+
+
+def test_one_lazy_backend_is_one_client_of_the_scheduler_for_every_stage(cluster, tmp_path):
+    """``[compute] scheduler`` an address: the stages of one end of a job share one client, made at the first
+    stage, closed with the end of the job; its CPU seconds count the workers' (they are no child of this
+    process)."""
+    address, _ = cluster
+    refs, mesh_file = stored_job(tmp_path, scans=2, points=5_000)
+
+    def busy(seconds: float) -> float:  # a unit spinning on its worker's CPU (local: pickled by value)
+        start = process_cpu_seconds()
+        while process_cpu_seconds() - start < seconds:
+            pass
+        return seconds
+
+    with LazyBackend(ComputeConfig(backend="dask", scheduler=address)) as lazy:
+        backend = lazy.get()
+        backend.client.wait_for_workers(2, timeout=60)
+        tiles = merge_tiles(refs, VOXEL_MM, TILE_MM, tmp_path, lazy.get())
+        assert lazy.get() is backend
+        inspect_tiles(tiles, tmp_path, mesh_file, T_F_W, -0.08, 0.08, lazy.get())
+        assert lazy.get() is backend
+        before, here = backend.cpu_seconds(), process_cpu_seconds()
+        assert backend.map(busy, [0.2, 0.2], ["busy-0", "busy-1"]) == [0.2, 0.2]
+        assert backend.cpu_seconds() - before > 0.4 + (process_cpu_seconds() - here)
+    assert backend.client.status == "closed"
