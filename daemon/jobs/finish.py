@@ -52,11 +52,13 @@ class LoadedScans:
     """Every scan's points in its scanner frame S thinned to one centroid per occupied voxel of edge
     ``voxel_mm`` (float64, mm; ``registration.sampling.voxel_downsample``), or the scan itself where that would
     not halve it (float32, a coarse scan: ``raw_scan.read_thinned_scan``), in the order of ``job.scans``; where
-    the correction reads the scans from the store (``[compute] reads_scan_store``) only their stitch-view points
-    (``outputs.stitch_view_points``), all the end takes of them there."""
+    the end reads the scans from the store (``[compute] reads_scan_store``) only what it takes of them there: their
+    stitch-view points (``outputs.stitch_view_points``) and ``reaches``, each scan's ``tiles.ScanReach`` at its
+    tracker pose."""
 
     voxel_mm: float
     points_S: tuple[np.ndarray, ...]
+    reaches: tuple[ScanReach, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -95,19 +97,29 @@ def load_scans(job: JobSnapshot) -> LoadedScans:
     changes nothing (its pairs and pose graph are those of the full scans; only its joint refinement, thinning the
     copy to its coarser ``joint_voxel_mm``, weighs each finer voxel once). A coarse scan, not halved by the
     thinning, is kept whole, so the correction at coarse resolution is that of the scans as stored. Where the
-    correction reads the scans from the store (``[compute] reads_scan_store``), only their stitch-view points (what
-    the map's owner kept there, ``stitcher.merge_scan``; thinning them again leaves them as they are)."""
+    end reads the scans from the store (``[compute] reads_scan_store``), their stitch-view points and reaches only
+    (what the map's owner kept there, ``stitcher.merge_scan``)."""
     voxel_mm = job.config.job.voxel_mm
     at_voxel = job.worldmap is not None and job.worldmap.voxel_mm == voxel_mm
     kept = job.scan_copies if job.scan_copies is not None and at_voxel else {}
-    kept_of = stitch_view_points if job.config.compute.reads_scan_store else np.asarray
 
     def copy_of(scan: ScanRecord) -> np.ndarray:
         copy = kept.pop(str(scan.file), None)
-        return kept_of(read_thinned_scan(scan.file, voxel_mm) if copy is None else copy)
+        return read_thinned_scan(scan.file, voxel_mm) if copy is None else copy
+
+    def view_of(scan: ScanRecord) -> tuple[np.ndarray, ScanReach]:
+        view = kept.pop(str(scan.file), None)
+        if view is None:
+            copy = read_thinned_scan(scan.file, voxel_mm)
+            view = stitch_view_points(copy), ScanReach.of(scan.T_W_S, copy)
+        return view
 
     with pair_threads() as thread_map:  # one file a core at a time
-        loaded = LoadedScans(voxel_mm, tuple(thread_map(copy_of, job.scans)))
+        if job.config.compute.reads_scan_store:
+            views, reaches = zip(*thread_map(view_of, job.scans), strict=True) if job.scans else ((), ())
+            loaded = LoadedScans(voxel_mm, tuple(views), tuple(reaches))
+        else:
+            loaded = LoadedScans(voxel_mm, tuple(thread_map(copy_of, job.scans)))
     kept.clear()  # the end of the job holds them now
     return loaded
 
@@ -185,8 +197,23 @@ def _tiled_merge_x_bounds(job: JobSnapshot, outcome: CorrectionOutcome, loaded: 
         return ()
     if loaded is not None:
         return scan_x_bounds(job, voxel_mm, outcome.poses, loaded.points_S)
-    return tuple(r.x_bound(T, job.config.job.voxel_mm, voxel_mm)
-                 for r, T in zip(outcome.reaches, outcome.poses, strict=True))
+    return reach_x_bounds(job, outcome.reaches, outcome.poses, voxel_mm)
+
+
+def reach_x_bounds(job: JobSnapshot, reaches: Sequence[ScanReach], poses: Sequence[np.ndarray], voxel_mm: float
+                   ) -> tuple[tuple[float, float], ...]:
+    """Each scan's bound of x (W, mm) at its pose of ``poses`` from its ``tiles.ScanReach`` of ``reaches``, in
+    voxels of edge ``voxel_mm`` (the merge's): :func:`scan_x_bounds` without the copies."""
+    return tuple(r.x_bound(T, job.config.job.voxel_mm, voxel_mm) for r, T in zip(reaches, poses, strict=True))
+
+
+def tracker_map(job: JobSnapshot, measured: VoxelMap, reaches: Sequence[ScanReach]) -> VoxelMap:
+    """The map of ``job``'s scans at their tracker poses (``job.scans``' ``T_W_S``): ``measured``, the one merged
+    while the job measured, or where its owner merged none and kept each scan's reach instead (``reaches``: the
+    scan-store path, ``stitcher.merge_scan``) merged now from the scan files (:func:`merge_stage`)."""
+    if not reaches:
+        return measured
+    return merge_stage(measured.voxel_mm, [s.file for s in job.scans], [s.T_W_S for s in job.scans])
 
 
 def merged_cloud(job: JobSnapshot, voxel_mm: float, poses: Sequence[np.ndarray],
@@ -248,8 +275,11 @@ def finish_outputs(job: JobSnapshot, started: float, measured_at: float,
     thinned scans until the correction is done, the maps of one merge and one cloud at a time and one full scan a
     core; where the correction changes the poses, the map stitched while measuring (its sums: 64 B a voxel of the
     whole part) is dropped before the correction and the cloud merged anew at the corrected poses (on the simulated
-    cell its cloud is kept, float32, for the score of the tracker stitch, ``correction.before``). Each raw scan file
-    is read at most twice here: by the merge at the corrected poses and by the E57.
+    cell its cloud is kept, float32, for the score of the tracker stitch, ``correction.before``). On the scan-store
+    path (``[compute] reads_scan_store``) no map was merged while measuring (``stitcher.merge_scan``): the cloud at
+    the tracker poses is merged from the files where it is needed (:func:`tracker_map`; uncorrected, by
+    :func:`merged_cloud`). Each raw scan file is read at most twice here: by the merge at the corrected poses and by
+    the E57 (on the simulated cell on that path a third time, for the tracker stitch's score).
     ``started`` and ``measured_at`` are ``time.monotonic()`` at the job's start and at its last step's commit;
     ``online``: what the job computed while it measured (``registration.correction.OnlineWork``: registered pairs, scans
     prepared for the joint refinement); ``stages`` (s) are timings of the work before this call; ``loaded``: the
@@ -273,14 +303,15 @@ def _outputs_on(backend: LazyBackend, job: JobSnapshot, started: float, online: 
         loaded = load_scans(job)
         timings["read_s"] = round(time.perf_counter() - t, 3)
     view_S = tuple(stitch_view_points(p) for p in loaded.points_S)  # all the exports need of the copies
+    reaches = loaded.reaches  # where the map's process merged no scan: the scan-store path (load_scans)
     if job.config.compute.reads_scan_store:  # the workers read the scans from the store (docs/compute.md)
         loaded = None  # only their stitch-view points were loaded (load_scans)
-    tracker_map, job.worldmap = job.worldmap, None
-    voxel_mm, tracker_stitch = tracker_map.voxel_mm, None
+    measured, job.worldmap = job.worldmap, None
+    voxel_mm, tracker_stitch = measured.voxel_mm, None
     if corrects(job):  # the cloud is merged anew at the corrected poses: the map's sums freed before the correction
-        if job.scorer is not None:  # the observer scores the tracker stitch too: its cloud (float32), not merged again
-            tracker_stitch = dataclasses.replace(job, worldmap=tracker_map.frozen(np.float32))
-        tracker_map = None
+        if job.scorer is not None:  # the observer scores the tracker stitch too: its cloud (float32)
+            tracker_stitch = dataclasses.replace(job, worldmap=tracker_map(job, measured, reaches).frozen(np.float32))
+        measured = None
     trim_heap()  # what the copies and the map freed back to the system: the correction starts from what is held
     outcome = correct_stage(job, loaded, online, backend)
     x_bounds = _tiled_merge_x_bounds(job, outcome, loaded, voxel_mm)  # all the tiled merge needs of the copies
@@ -291,9 +322,12 @@ def _outputs_on(backend: LazyBackend, job: JobSnapshot, started: float, online: 
     if outcome.corrected:
         tracker_poses = [s.T_W_S for s in job.scans]
         job.worldmap = merged_cloud(job, voxel_mm, outcome.poses, x_bounds, backend)
+    elif reaches:  # the tracker stitch merged from the scan files on the backend, as the corrected one
+        bounds = reach_x_bounds(job, reaches, outcome.poses, voxel_mm)
+        job.worldmap = merged_cloud(job, voxel_mm, outcome.poses, bounds, backend)
     else:
-        job.worldmap = tracker_map.frozen()
-    del tracker_map
+        job.worldmap = measured.frozen()
+    del measured
     timings["merge_s"] = round(time.perf_counter() - t, 3)
     final = dataclasses.replace(
         job, scans=[dataclasses.replace(s, T_W_S=T) for s, T in zip(job.scans, outcome.poses, strict=True)],

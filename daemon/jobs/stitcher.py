@@ -3,7 +3,9 @@
 Both maps have one interface: ``await add_scan(file, T_W_S, arrays)`` persists a raw scan (when ``arrays`` is
 given: written and fsynced first) and merges it into the voxel grid (Eq. 1, points in S, map in W, mm), keeping
 its copy thinned at the map's voxel for the end of the job (:func:`merge_scan`: a scan written here is merged and
-thinned from its arrays, one replayed after a restart read once, so neither reads its file again);
+thinned from its arrays, one replayed after a restart read once, so neither reads its file again; where the end
+reads the scans from the store, ``[compute] reads_scan_store``, nothing is merged and only each scan's stitch-view
+points and reach are kept: the map's process holds no whole-part map there);
 ``await run(fn, job, *args)`` runs ``fn(job, *args)`` where the map lives, with ``job.worldmap`` set to it
 (correction, report, exports) and handed over: ``fn`` owns the map while it runs (no other reference to it is
 kept, so the end of a job can free it), and the map or cloud it leaves there is adopted.
@@ -41,6 +43,7 @@ from tandemscan.daemon.jobs.snapshot import JobSnapshot
 from tandemscan.drivers.shared_array import SharedBlock, hand_over, share
 from tandemscan.drivers.worker import init_worker, stop_pool, yield_cores
 from tandemscan.pipeline.io.raw_scan import read_raw_scan, thin_scan, write_raw_scan
+from tandemscan.pipeline.stitching.tiles import ScanReach
 from tandemscan.pipeline.stitching.worldmap import VoxelMap
 
 if TYPE_CHECKING:
@@ -48,8 +51,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 _MAP: VoxelMap | None = None  # the worker's map
-_COPIES: dict[str, np.ndarray] = {}  # the worker's scans as kept when merged (merge_scan), by file
-_VIEWS_ONLY = False  # the worker's map keeps only each scan's stitch-view points (merge_scan)
+_COPIES: dict[str, Any] = {}  # what the worker keeps of the scans as they are merged (merge_scan), by file
+_LEAN = False  # the worker merges no scan, keeps only each scan's stitch-view points and reach (merge_scan)
 _PAIRS: Any = None  # the pair worker's OnlinePairs
 _JOINT: Any = None  # the joint worker's OnlineJoint (PairWorker)
 #: niceness the pair worker adds once the job has measured (:func:`_pairs_so_far`): its check pairs run on the
@@ -60,32 +63,34 @@ _LOADED: dict[str, Any] = {}  # where the map lives: finishing jobs' scans read 
 _OUTPUTS: dict[str, Any] = {}  # where the map lives: finishing jobs' outputs until their report (finish.JobOutputs)
 
 
-def _init(voxel_mm: float, niceness: int, views_only: bool) -> None:
-    global _MAP, _VIEWS_ONLY
+def _init(voxel_mm: float, niceness: int, lean: bool) -> None:
+    global _MAP, _LEAN
     init_worker(niceness)
-    _MAP, _VIEWS_ONLY = VoxelMap(voxel_mm), views_only
+    _MAP, _LEAN = VoxelMap(voxel_mm), lean
 
 
-def merge_scan(worldmap: VoxelMap, copies: dict[str, np.ndarray], file: str, T_W_S: np.ndarray,
-               arrays: dict[str, np.ndarray] | None, views_only: bool = False) -> np.ndarray:
+def merge_scan(worldmap: VoxelMap, copies: dict[str, Any], file: str, T_W_S: np.ndarray,
+               arrays: dict[str, np.ndarray] | None, lean: bool = False) -> np.ndarray:
     """Merge the scan of ``file`` into ``worldmap`` at ``T_W_S`` (W, mm) from its ``arrays`` where given (written
     already; the map rotates them in float32, as the file stores them), else from the file, read once (a job
     rebuilt after a restart), and keep in ``copies`` its copy thinned at the map's voxel
     (``raw_scan.thin_scan``, the copy ``raw_scan.read_thinned_scan`` would read: ``finish.load_scans`` takes it
-    from there) or, with ``views_only`` (``[compute] reads_scan_store``: the correction reads the scans from the
-    store), only the points of it the exports take (``outputs.stitch_view_points``: at most 40 k, under 1 MB a
-    scan). Returns the thinned copy (for the pair worker)."""
+    from there). ``lean`` (``[compute] reads_scan_store``: the end of the job reads the scans from the store on the
+    backend's workers and merges its cloud there): the scan is not merged here and only what the end takes of it
+    is kept, small and bounded a scan: its stitch-view points (``outputs.stitch_view_points``, at most 40 k, under
+    1 MB) and its ``tiles.ScanReach`` at ``T_W_S`` (``finish.load_scans``). Returns the thinned copy (for the pair
+    worker)."""
     if arrays is None:
         points, normals = read_raw_scan(file, np.float32)
     else:
         points, normals = arrays["points_S_mm"], arrays.get("normals_S")
-    worldmap.add_scan(T_W_S, points, normals)
     copy = thin_scan(points, worldmap.voxel_mm)
-    if views_only:
+    if lean:
         from tandemscan.daemon.jobs.outputs import stitch_view_points  # the exports' stack, where the map lives
 
-        copies[file] = stitch_view_points(copy)
+        copies[file] = (stitch_view_points(copy), ScanReach.of(T_W_S, copy))
     else:
+        worldmap.add_scan(T_W_S, points, normals)
         copies[file] = copy
     return copy
 
@@ -96,7 +101,7 @@ def _add(path: str, T_W_S: np.ndarray, arrays: dict[str, np.ndarray] | None, len
     returns the map's size and, where ``lend``, the scan's thinned copy handed over for the pair worker."""
     if arrays is not None:
         write_raw_scan(Path(path), **arrays)
-    copy = merge_scan(_MAP, _COPIES, path, T_W_S, arrays, _VIEWS_ONLY)
+    copy = merge_scan(_MAP, _COPIES, path, T_W_S, arrays, _LEAN)
     return len(_MAP), hand_over(copy) if lend else None
 
 
@@ -447,14 +452,14 @@ def _share_big(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 
 class ProcessWorldMap(_Pairs):
-    """The job's :class:`VoxelMap` in its own process; call :meth:`close` when the job is done. ``views_only``:
-    each scan's stitch-view points kept, not its thinned copy (:func:`merge_scan`)."""
+    """The job's :class:`VoxelMap` in its own process; call :meth:`close` when the job is done. ``lean``:
+    no scan merged, each scan's stitch-view points and reach kept, not its thinned copy (:func:`merge_scan`)."""
 
-    def __init__(self, voxel_mm: float, niceness: int = 0, views_only: bool = False):
+    def __init__(self, voxel_mm: float, niceness: int = 0, lean: bool = False):
         self.voxel_mm = float(voxel_mm)
         self._pair_niceness = niceness
         self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
-                                         initializer=_init, initargs=(self.voxel_mm, niceness, views_only))
+                                         initializer=_init, initargs=(self.voxel_mm, niceness, lean))
         self._len = 0
 
     async def add_scan(self, file: Path, T_W_S: np.ndarray, arrays: dict[str, np.ndarray] | None = None,
@@ -487,13 +492,13 @@ class ProcessWorldMap(_Pairs):
 
 class LocalWorldMap(_Pairs):
     """The job's :class:`VoxelMap` in this process, its work in threads (``tandemscan measure``); its pair
-    registration in a process. ``views_only`` as :class:`ProcessWorldMap`."""
+    registration in a process. ``lean`` as :class:`ProcessWorldMap`."""
 
-    def __init__(self, voxel_mm: float, views_only: bool = False):
+    def __init__(self, voxel_mm: float, lean: bool = False):
         self.voxel_mm = float(voxel_mm)
         self.map = VoxelMap(self.voxel_mm)
-        self.views_only = views_only
-        self.copies: dict[str, np.ndarray] = {}  # the scans as kept when merged (merge_scan)
+        self.lean = lean
+        self.copies: dict[str, Any] = {}  # what is kept of the scans as they are merged (merge_scan)
 
     async def add_scan(self, file: Path, T_W_S: np.ndarray, arrays: dict[str, np.ndarray] | None = None,
                        pairs: dict | None = None) -> None:
@@ -501,7 +506,7 @@ class LocalWorldMap(_Pairs):
         if arrays is not None:
             await asyncio.to_thread(write_raw_scan, Path(file), **arrays)
         copy = await asyncio.to_thread(merge_scan, self.map, self.copies, str(file), T_W_S, arrays,
-                                       self.views_only)
+                                       self.lean)
         worker = None if arrays is None else self._pair_worker(pairs)
         if worker is not None:
             self._queue_pairs(worker, copy, T_W_S, arrays, pairs)

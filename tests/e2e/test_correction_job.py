@@ -11,7 +11,9 @@ from tandemscan.daemon.jobs.finish import merge_stage
 from tandemscan.daemon.jobs.runner import JobRunner
 from tandemscan.daemon.plans import default_plan_path
 from tandemscan.pipeline.io.cloud_io import read_ply
+from tandemscan.pipeline.io.raw_scan import read_raw_scan
 from tandemscan.pipeline.planning.plan import Plan, Scan
+from tandemscan.pipeline.stitching.worldmap import VoxelMap
 from tandemscan.sim_drivers.cell import with_surveyed_mounts
 
 
@@ -106,6 +108,7 @@ async def test_on_the_dask_backend_the_job_holds_no_scan_for_its_correction(sim_
     points, _ = read_ply(tmp_path / "job" / "cloud.ply")
     assert len(points) == len(here) > 1000
     np.testing.assert_allclose(points, here.points(), rtol=0, atol=1e-9)
+    assert "cloud_rms_mm" in result.report["correction"]["before"]  # the tracker stitch merged from the files, scored
 
 
 @pytest.mark.slow
@@ -128,3 +131,24 @@ async def test_the_dask_backend_of_a_failed_end_of_job_is_closed(sim_config, tmp
             await JobRunner(session, _first_scans(Plan.load(default_plan_path()), 2), cfg, tmp_path / "job").run()
         _all_closed(dask_made, children)
     assert len(dask_made["clusters"]) == 1  # the correction's, still running at the merge
+
+
+@pytest.mark.slow
+async def test_uncorrected_on_the_dask_backend_the_cloud_is_the_tracker_stitch_merged_from_the_files(sim_config,
+                                                                                                     tmp_path):
+    """``[compute] backend = "dask"`` with the correction off: the job's map process merged no scan while measuring
+    (``stitcher.merge_scan``), the cloud is merged from the scan files at the tracker poses by tiles on the backend:
+    the map the local backend merges while measuring, to 1e-9 mm."""
+    off = sim_config.correction.model_copy(update={"enabled": False})
+    cfg = _dask_config(sim_config).model_copy(update={"correction": off})
+    async with CellSession(cfg) as session:
+        cfg = with_surveyed_mounts(cfg, session.cell.simulation, tmp_path)
+        result = await JobRunner(session, _first_scans(Plan.load(default_plan_path()), 2), cfg, tmp_path / "job").run()
+    assert not result.report["correction"]["enabled"]
+    measured = VoxelMap(cfg.job.voxel_mm)  # what the local backend's map process merges while measuring
+    for s in result.scans:
+        measured.add_scan(s.T_W_S, *read_raw_scan(s.file, np.float32))
+    points, _ = read_ply(tmp_path / "job" / "cloud.ply")
+    here = measured.points()
+    assert len(points) == len(here) > 1000
+    np.testing.assert_allclose(points[np.lexsort(points.T)], here[np.lexsort(here.T)], rtol=0, atol=1e-9)
