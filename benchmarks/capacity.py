@@ -293,7 +293,7 @@ def snapshot(job: Job, part: PartConfig, compute: ComputeConfig, correct: bool):
 
 def measure(job) -> None:
     """What the daemon's map process does while the job measures (``stitcher.merge_scan``, each scan read here from
-    its file): on the scan-store path (``[compute] reads_scan_store``, always here) only each scan's stitch-view
+    its file): on the scan-store path (``ComputeConfig.reads_scan_store``, always here) only each scan's stitch-view
     points and reach kept, no scan merged."""
     from tandemscan.daemon.jobs.stitcher import merge_scan
     from tandemscan.pipeline.stitching.worldmap import VoxelMap

@@ -52,7 +52,7 @@ class LoadedScans:
     """Every scan's points in its scanner frame S thinned to one centroid per occupied voxel of edge
     ``voxel_mm`` (float64, mm; ``registration.sampling.voxel_downsample``), or the scan itself where that would
     not halve it (float32, a coarse scan: ``raw_scan.read_thinned_scan``), in the order of ``job.scans``; where
-    the end reads the scans from the store (``[compute] reads_scan_store``) only what it takes of them there: their
+    the end reads the scans from the store (``ComputeConfig.reads_scan_store``) only what it takes of them there: their
     stitch-view points (``outputs.stitch_view_points``) and ``reaches``, each scan's ``tiles.ScanReach`` at its
     tracker pose."""
 
@@ -97,7 +97,7 @@ def load_scans(job: JobSnapshot) -> LoadedScans:
     changes nothing (its pairs and pose graph are those of the full scans; only its joint refinement, thinning the
     copy to its coarser ``joint_voxel_mm``, weighs each finer voxel once). A coarse scan, not halved by the
     thinning, is kept whole, so the correction at coarse resolution is that of the scans as stored. Where the
-    end reads the scans from the store (``[compute] reads_scan_store``), their stitch-view points and reaches only
+    end reads the scans from the store (``ComputeConfig.reads_scan_store``), their stitch-view points and reaches only
     (what the map's owner kept there, ``stitcher.merge_scan``)."""
     voxel_mm = job.config.job.voxel_mm
     at_voxel = job.worldmap is not None and job.worldmap.voxel_mm == voxel_mm
@@ -276,7 +276,7 @@ def finish_outputs(job: JobSnapshot, started: float, measured_at: float,
     core; where the correction changes the poses, the map stitched while measuring (its sums: 64 B a voxel of the
     whole part) is dropped before the correction and the cloud merged anew at the corrected poses (on the simulated
     cell its cloud is kept, float32, for the score of the tracker stitch, ``correction.before``). On the scan-store
-    path (``[compute] reads_scan_store``) no map was merged while measuring (``stitcher.merge_scan``): the cloud at
+    path (``ComputeConfig.reads_scan_store``) no map was merged while measuring (``stitcher.merge_scan``): the cloud at
     the tracker poses is merged from the files where it is needed (:func:`tracker_map`; uncorrected, by
     :func:`merged_cloud`). Each raw scan file is read at most twice here: by the merge at the corrected poses and by
     the E57 (on the simulated cell on that path a third time, for the tracker stitch's score).

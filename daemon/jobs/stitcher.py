@@ -4,7 +4,7 @@ Both maps have one interface: ``await add_scan(file, T_W_S, arrays)`` persists a
 given: written and fsynced first) and merges it into the voxel grid (Eq. 1, points in S, map in W, mm), keeping
 its copy thinned at the map's voxel for the end of the job (:func:`merge_scan`: a scan written here is merged and
 thinned from its arrays, one replayed after a restart read once, so neither reads its file again; where the end
-reads the scans from the store, ``[compute] reads_scan_store``, nothing is merged and only each scan's stitch-view
+reads the scans from the store, ``ComputeConfig.reads_scan_store``, nothing is merged and only each scan's stitch-view
 points and reach are kept: the map's process holds no whole-part map there);
 ``await run(fn, job, *args)`` runs ``fn(job, *args)`` where the map lives, with ``job.worldmap`` set to it
 (correction, report, exports) and handed over: ``fn`` owns the map while it runs (no other reference to it is
@@ -75,7 +75,7 @@ def merge_scan(worldmap: VoxelMap, copies: dict[str, Any], file: str, T_W_S: np.
     already; the map rotates them in float32, as the file stores them), else from the file, read once (a job
     rebuilt after a restart), and keep in ``copies`` its copy thinned at the map's voxel
     (``raw_scan.thin_scan``, the copy ``raw_scan.read_thinned_scan`` would read: ``finish.load_scans`` takes it
-    from there). ``lean`` (``[compute] reads_scan_store``: the end of the job reads the scans from the store on the
+    from there). ``lean`` (``ComputeConfig.reads_scan_store``: the end of the job reads the scans from the store on the
     backend's workers and merges its cloud there): the scan is not merged here and only what the end takes of it
     is kept, small and bounded a scan: its stitch-view points (``outputs.stitch_view_points``, at most 40 k, under
     1 MB) and its ``tiles.ScanReach`` at ``T_W_S`` (``finish.load_scans``). Returns the thinned copy (for the pair

@@ -1,5 +1,5 @@
-"""Where the end of a job reads the scans from the store (``[compute] reads_scan_store``), the job's map process merges
-no scan and keeps of each only its stitch-view points and reach, not its thinned copy (daemon/jobs/stitcher.py,
+"""Where the end of a job reads the scans from the store (``ComputeConfig.reads_scan_store``), the job's map process
+merges no scan and keeps of each only its stitch-view points and reach, not its thinned copy (daemon/jobs/stitcher.py,
 docs/compute.md): what the end of the job takes from it there is the same as on the local backend."""
 
 from __future__ import annotations
