@@ -156,10 +156,6 @@ def _joint_add(points: SharedBlock | np.ndarray, T_W_S: np.ndarray, station: int
     _JOINT.add(_lent(points), T_W_S, station)
 
 
-def _init_pairs(niceness: int) -> None:
-    init_worker(niceness)
-
-
 def _init_joint(niceness: int, measured: Any) -> None:
     global _MEASURED
     init_worker(niceness)
@@ -273,7 +269,7 @@ class PairWorker:
         self.cfg, self.voxel_mm = cfg, float(voxel_mm)
         context = multiprocessing.get_context("spawn")
         self._measured = context.Event()  # set by :meth:`joint_work`: the scans still queued are not prepared
-        self._pool = ProcessPoolExecutor(1, mp_context=context, initializer=_init_pairs, initargs=(niceness,))
+        self._pool = ProcessPoolExecutor(1, mp_context=context, initializer=init_worker, initargs=(niceness,))
         self._joint = (ProcessPoolExecutor(1, mp_context=context, initializer=_init_joint,
                                            initargs=(niceness, self._measured)) if cfg.joint else None)
         self._pending: list[Any] = []  # the pairs' tasks
