@@ -109,7 +109,7 @@ def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray | None], online:
     is not changed. ``online``: what the job computed while it measured
     (``registration.correction.OnlineWork``: registered pairs, scans prepared for the joint refinement and their pairs'
     nearest neighbours, reused by ``correction.correct_scans`` where their keys match); ``backend``: the end of the
-    job's compute backend (``compute.LazyBackend``), left open.
+    job's compute backend (``compute.LazyBackend.get``), left open.
 
     Returns the ``correction`` section of the report (the settings, pair and graph figures; on the simulated
     cell ``job_report.score_ground_truth`` adds those of the tracker-only stitch, ``before``, once the job's outputs
