@@ -270,8 +270,8 @@ def _peaks_in(windows: list, main: list, workers: dict) -> dict:
 def snapshot(job: Job, part: PartConfig, compute: ComputeConfig, correct: bool):
     """The job as the daemon's map process holds it at its last scan (``snapshot.JobSnapshot``): the scans' records
     (each pose its tracker reading's, W the CAD frame F, ``T_F_W`` the identity), a configuration of the simulated
-    cell with ``part``, ``compute`` and, without ``correct``, the correction off; its map and thinned copies are
-    made by :func:`measure`."""
+    cell with ``part``, ``compute`` and, without ``correct``, the correction off; what its map process keeps of the
+    scans is made by :func:`measure`."""
     from tandemscan.config.models import CellConfig
     from tandemscan.daemon.jobs.records import ScanRecord
     from tandemscan.daemon.jobs.snapshot import JobSnapshot
@@ -333,7 +333,7 @@ def run_stages(job: Job, part: PartConfig, workers: int, tile_mm: float, e57: bo
         finish.drop_outputs(kept)  # its tiles and its client of this cluster, while the scheduler runs
     finally:
         backend.close()
-    cloud = kept.final.worldmap  # tiles (their files removed), or the cloud merged while measuring (no correction)
+    cloud = kept.final.worldmap  # tiles (their files removed), or with tile_mm 0 the cloud merged in one process
     for name in ("cloud.ply", "cloud_deviation.ply", "cloud.e57", "poses.csv", "report.html"):
         (job.folder / name).unlink(missing_ok=True)
     shutil.rmtree(job.folder / "figures", ignore_errors=True)
@@ -432,8 +432,8 @@ def main() -> None:
                     "length from its tail (a band across it: the nose's and, twice as long, the longer part's)")
     ap.add_argument("--sizes", nargs="+", choices=("nose", "long"), default=["nose", "long"],
                     help="which parts to run (the model and the growth need both)")
-    ap.add_argument("--no-correction", action="store_true", help="[correction] enabled = false: the product then "
-                    "keeps the map stitched while measuring (no tiles, the whole cloud in the map's process)")
+    ap.add_argument("--no-correction", action="store_true", help="[correction] enabled = false: the cloud merged at "
+                    "the tracker poses (finish.merged_cloud: on the scan-store path no map is merged while measuring)")
     ap.add_argument("--density-views", type=int, default=0, help="ray cast this many views at full resolution too "
                     "and compare the thinned copies' points (whether --resolution stands for full in memory)")
     ap.add_argument("--no-e57", action="store_true", help="leave the E57 out (at full resolution the longer part's "
