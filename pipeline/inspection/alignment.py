@@ -815,12 +815,17 @@ def sphere_balls(spheres: tuple[SphereResidual, ...], cfg: AlignmentCriteria) ->
     return tuple((np.asarray(s.centre_W_mm, float), 0.5 * cfg.reference_sphere_diameter_mm + 3.0) for s in spheres)
 
 
+def in_balls(points_mm: np.ndarray, balls) -> np.ndarray:
+    """(N,) bool: the points (N, 3) in any of ``balls`` ((centre (3,), radius) each; same frame, mm)."""
+    inside = np.zeros(len(points_mm), bool)
+    for centre, radius in balls:
+        inside[within(points_mm, centre, radius)] = True
+    return inside
+
+
 def sphere_points(points_mm: np.ndarray, spheres: tuple[SphereResidual, ...], cfg: AlignmentCriteria) -> np.ndarray:
     """(N,) bool: the points in :func:`sphere_balls`."""
-    excluded = np.zeros(len(points_mm), bool)
-    for centre, radius in sphere_balls(spheres, cfg):
-        excluded[within(points_mm, centre, radius)] = True
-    return excluded
+    return in_balls(points_mm, sphere_balls(spheres, cfg))
 
 
 def align(surface: CadSurface, points_mm: np.ndarray, cfg: AlignmentCriteria, start_T_F_W: np.ndarray | None = None,

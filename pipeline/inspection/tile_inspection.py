@@ -34,7 +34,7 @@ from scipy.spatial import cKDTree
 from tandemscan.pipeline.compute import ComputeBackend
 from tandemscan.pipeline.geometry.frames import rotate_vectors, transform_points
 from tandemscan.pipeline.geometry.part import read_cad_mesh
-from tandemscan.pipeline.inspection.alignment import within
+from tandemscan.pipeline.inspection.alignment import in_balls
 from tandemscan.pipeline.inspection.inspect import CadSurface, DeviationStats, ToleranceResult, in_chunks
 from tandemscan.pipeline.io.durable import write_durably
 from tandemscan.pipeline.io.export import PlyChunk, write_ply_streamed
@@ -135,9 +135,7 @@ def inspect_tile(unit: InspectTile) -> TileDeviations:
     cloud = read_tile(unit.store, unit.tile)
     sample = unit.sample or FromSample()
     if sample.left_out:
-        keep = np.ones(len(cloud.points_mm), bool)
-        for x, y, z, radius in sample.left_out:
-            keep[within(cloud.points_mm, (x, y, z), radius)] = False
+        keep = ~in_balls(cloud.points_mm, (((x, y, z), radius) for x, y, z, radius in sample.left_out))
         cloud = TilePoints(cloud.points_mm[keep], cloud.normals[keep], None)
     reversed = unit.reversed
     surface = _surface(unit.mesh_file, unit.mesh_units, None if reversed is None else np.packbits(reversed).tobytes(),
