@@ -30,7 +30,8 @@ class ComputeBackend(Protocol):
     where they were left. ``keep`` is ``map`` whose results stay where they were computed: it returns their handles
     (on this process's threads the results themselves, on Dask its futures: a worker's result moves only to the
     workers whose units take it, never to this process), and a result is released with the last handle to it;
-    ``put`` makes handles of values this process holds; ``cpu_seconds`` is the CPU time (user + system, s) this
+    ``put`` makes handles of values this process holds; ``trim`` hands the heap the workers freed back to the
+    operating system (:func:`trim_heap`: between stages); ``cpu_seconds`` is the CPU time (user + system, s) this
     process and the backend's workers have spent so far (a difference of two readings: a stage's CPU)."""
 
     def map(self, fn: Callable[..., Any], units: Sequence[Any], keys: Sequence[str],
