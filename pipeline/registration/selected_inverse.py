@@ -1,7 +1,7 @@
 """Selected blocks of a sandwich covariance ``C = H^-1 I H^-1`` from the sparse ``H`` and ``I``, never ``C`` whole
 (docs/verdict.md, "Per-point uncertainty").
 
-The joint refinement's estimate has that covariance (``joint._posterior_covariance``): ``H`` the normal matrix it
+The joint refinement's estimate has that covariance (``joint._posterior``): ``H`` the normal matrix it
 was solved with, ``I`` the information its errors carry. Both are sparse in 6x6 blocks ("nodes": a scan's
 reading, a transfer, the mount; a block where two nodes share a pair's residuals or a scan's error model), ``C``
 is dense: (6 x 3,700)^2 float64, 3.9 GB, for the 3,700 scans of a 20 m car. What the per-point uncertainty and
