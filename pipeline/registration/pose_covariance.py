@@ -73,7 +73,7 @@ class ScanErrors:
         Xa, Xb = self.cross[a] * keep, self.cross[b] * keep
         return self._own(a, b) + Xa @ Lb.transpose(0, 2, 1) + La @ Xb.transpose(0, 2, 1) + shared
 
-    def variances(self, rows: np.ndarray, g: np.ndarray, parts: tuple[str, ...] = PARTS) -> dict[str, np.ndarray]:
+    def variances(self, rows: np.ndarray, g: np.ndarray) -> dict[str, np.ndarray]:
         """Per part (M,) ``Var(sum_k g_k . e_{rows_k})`` of each point: ``rows`` (M, K) scan rows, ``g`` (M, K, 6)
         gradients."""
         # einsum's own loops: products of a few dozen rows and columns, which BLAS would hand to its threads
@@ -81,7 +81,7 @@ class ScanErrors:
         h = np.einsum("mkj,mkjr->mr", g, self.lever[rows])          # the shared columns' gradient, (M, r)
         w = np.einsum("mkj,mkjr->mr", g, self.cross[rows])
         out = {}
-        for part in parts:
+        for part in PARTS:
             hk = h * self._keep(part)
             out[part] = np.einsum("mr,rs,ms->m", hk, self.shared, hk)
             if part != "installation":        # the scans' own unknowns and their cross terms are not the mount's
@@ -228,7 +228,7 @@ class PoseCovariance:
         rows = np.arange(len(self.scan_ids))
         return self.scan_errors(np.zeros((0, 2), np.int64)).covariance(rows, rows)
 
-    def times(self, X: np.ndarray, parts: tuple[str, ...] = PARTS) -> dict[str, np.ndarray]:
+    def times(self, X: np.ndarray) -> dict[str, np.ndarray]:
         """Per part of :data:`PARTS` (6n, k) the covariance of ``e`` from that part's unknowns times ``X`` (6n, k):
         ``A C A^T X`` over those columns, ``C`` applied as ``H^-1 (I (H^-1 Y))``: ``H`` scaled to a unit diagonal
         (millimetres and radians at one scale), factored once (sparse LU, symmetric pivoting) and each solve
@@ -244,12 +244,12 @@ class PoseCovariance:
         mount = self._columns("installation")
         at_prior = mount if self.installation_at_prior else np.zeros_like(mount)
         AX = np.asarray(self.A.T @ X)
-        Y = np.concatenate([AX * self._columns(part)[:, None] for part in parts], axis=1)   # every part at once
+        Y = np.concatenate([AX * self._columns(part)[:, None] for part in PARTS], axis=1)   # every part at once
         Z = solve(np.asarray(self.information @ solve(np.where(at_prior[:, None], 0.0, Y))))
         Z[at_prior] = Y[at_prior]
         k = AX.shape[1]
         return {part: np.asarray(self.A @ (Z[:, i * k:(i + 1) * k] * self._columns(part)[:, None]))
-                for i, part in enumerate(parts)}
+                for i, part in enumerate(PARTS)}
 
     def _columns(self, part: str) -> np.ndarray:
         """Which columns of ``theta`` are ``part``'s (bool, m): "all", the mount's ("installation") or the rest
