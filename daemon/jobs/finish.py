@@ -302,10 +302,11 @@ def _outputs_on(backend: LazyBackend, job: JobSnapshot, started: float, online: 
         t = time.perf_counter()
         loaded = load_scans(job)
         timings["read_s"] = round(time.perf_counter() - t, 3)
-    view_S = tuple(stitch_view_points(p) for p in loaded.points_S)  # all the exports need of the copies
     reaches = loaded.reaches  # where the map's process merged no scan: the scan-store path (load_scans)
     if job.config.compute.reads_scan_store:  # the workers read the scans from the store (docs/compute.md)
-        loaded = None  # only their stitch-view points were loaded (load_scans)
+        view_S, loaded = loaded.points_S, None  # only their stitch-view points were loaded (load_scans)
+    else:
+        view_S = tuple(stitch_view_points(p) for p in loaded.points_S)  # all the exports need of the copies
     measured, job.worldmap = job.worldmap, None
     voxel_mm, tracker_stitch = measured.voxel_mm, None
     if corrects(job):  # the cloud is merged anew at the corrected poses: the map's sums freed before the correction
