@@ -112,8 +112,8 @@ def judge(result: InspectionResult, u: PointUncertainty, criteria: InspectionCri
     same = (lo, hi) == (criteria.tolerance_lower_mm, criteria.tolerance_upper_mm)  # the areas found already
     found = result.areas if same else find_deviation_areas(  # on the inspection's tree and screening
         result.deviation_cloud, lo, hi, criteria.area_smoothing_mm, criteria.area_min_mm2)
-    tree = cKDTree(p[:: max(1, len(p) // 500_000)]) if found else None
     step = max(1, len(p) // 500_000)
+    tree = cKDTree(p[::step]) if found else None
     areas = []
     for a in found:
         at = int(tree.query(a.centroid_mm)[1]) * step
