@@ -250,10 +250,10 @@ def _drop_outputs(key: str, running: asyncio.Future) -> None:
 
     outputs = _OUTPUTS.pop(key, None)
     if outputs is not None:
-        drop_outputs(outputs)
-    if running.cancelled():
+        drop_outputs(outputs)  # its tiles too: what the run returned names the same files
+    elif running.cancelled():
         return
-    if running.exception() is not None:
+    elif running.exception() is not None:
         log.debug("outputs of an ended job failed: %s", running.exception())
     elif running.result() is not None:
         running.result().remove()
