@@ -1,5 +1,5 @@
 """Capacity of the end of a job: seconds and peak memory of every stage against the scans and points, at two part
-sizes and on 1 and 2 Dask workers, and from them the estimate for a 20 m railway car (docs/compute.md, "Capacity").
+sizes and on 1 and 2 Dask workers, and from them the estimate for a 20 m railway car (docs/capacity.md).
 
 Each size is a job of the parametric train nose (``geometry.part.train_nose_mesh``: the 3 m nose, and the same
 nose on a body ``--length-factor`` times as long), its scans ray cast by the simulated scanner

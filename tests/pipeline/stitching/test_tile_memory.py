@@ -1,4 +1,4 @@
-"""Issue 43's memory line at a small size (docs/compute.md, "Capacity"): a tile stage's memory is its tile's, not the
+"""Issue 43's memory line at a small size (docs/capacity.md): a tile stage's memory is its tile's, not the
 part's, and what comes back to the process that finishes the job is a summary, never a point array.
 
 The sheet job of ``test_tiles.py`` (80 mm scans of 10,000 points 50 mm apart along x, tiles narrower than a
