@@ -243,20 +243,38 @@ def _report(job: JobSnapshot, key: str, measured_at: float, later: OnlineWork | 
 
 def _drop_outputs(key: str, running: asyncio.Future) -> None:
     """Drop the outputs of a job that ended before its report, once their run (``running``, of
-    :func:`_finish_outputs`) ended: the files they left (its result, a tiled cloud's tiles) removed from here, and
-    what is kept under ``key`` where this process holds it (the map in this process, ``LocalWorldMap``; a daemon
-    job's map process ends with the job). Its own error, if any, is only logged: the job has failed of its own."""
+    :func:`_finish_outputs`) ended: the files they left (its result, a tiled cloud's tiles) removed, and what is
+    kept under ``key`` where this process holds it (the map in this process, ``LocalWorldMap``; a daemon job's map
+    process ends with the job), its compute backend closed. A done-callback on the event loop: the removal and the
+    close (file I/O, a Dask client's shutdown) run on the loop's executor (:func:`_let_go`), whose threads the loop's
+    shutdown waits for (``asyncio.run``); where it no longer takes work, here. Its own error, if any, is only logged:
+    the job has failed of its own."""
     from tandemscan.daemon.jobs.finish import drop_outputs
 
     outputs = _OUTPUTS.pop(key, None)
     if outputs is not None:
-        drop_outputs(outputs)  # its tiles too: what the run returned names the same files
+        drop = functools.partial(drop_outputs, outputs)  # its tiles too: what the run returned names the same files
     elif running.cancelled():
         return
     elif running.exception() is not None:
         log.debug("outputs of an ended job failed: %s", running.exception())
+        return
     elif running.result() is not None:
-        running.result().remove()
+        drop = running.result().remove
+    else:
+        return
+    try:
+        running.get_loop().run_in_executor(None, _let_go, drop)
+    except RuntimeError:  # the loop's executor is shut down already: not lost, done here
+        _let_go(drop)
+
+
+def _let_go(drop: Callable[[], None]) -> None:
+    """``drop()`` (:func:`_drop_outputs`), its error logged: nobody awaits it."""
+    try:
+        drop()
+    except Exception as e:  # noqa: BLE001 - the job has failed of its own; its files stay
+        log.warning("outputs of an ended job not dropped: %s", e)
 
 
 class PairWorker:

@@ -148,6 +148,47 @@ async def test_a_job_cancelled_while_its_check_pairs_register_keeps_no_outputs(e
     assert stitcher._OUTPUTS == {} and "report" not in end_of_job.events
 
 
+def test_the_outputs_of_a_cancelled_job_are_dropped_off_the_event_loop_before_it_closes(end_of_job, monkeypatch,
+                                                                                        tmp_path):
+    """A job of the map in this process (``LocalWorldMap``) cancelled after its outputs were made: dropping them (its
+    tiles' files removed, its compute backend closed: blocking I/O) runs in a thread, not on the event loop, and is
+    done once the loop's run has ended."""
+    dropped = []
+
+    def drop_outputs(outputs):
+        time.sleep(0.3)  # as slow as a Dask client's close
+        dropped.append((outputs, threading.current_thread()))
+
+    monkeypatch.setattr(finish, "drop_outputs", drop_outputs)
+
+    async def cancelled_after_its_outputs() -> threading.Thread:
+        worldmap = stitcher.LocalWorldMap(1.0)
+
+        async def joint_work():
+            return None
+
+        async def pair_outcomes():
+            await asyncio.sleep(30.0)
+
+        monkeypatch.setattr(worldmap, "_joint_work", joint_work)
+        monkeypatch.setattr(worldmap, "pair_outcomes", pair_outcomes)
+        finishing = asyncio.ensure_future(worldmap.finish(_job(tmp_path, joint=True), 0.0, time.monotonic()))
+        async with asyncio.timeout(10):  # only against a hang
+            while stitcher._OUTPUTS == {}:
+                await asyncio.sleep(0.005)
+        finishing.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await finishing
+        async with asyncio.timeout(10):  # handed to the drop (only against a hang)
+            while stitcher._OUTPUTS != {}:
+                await asyncio.sleep(0.005)
+        return threading.current_thread()
+
+    loop_thread = asyncio.run(cancelled_after_its_outputs())
+    assert [outputs for outputs, _ in dropped] == [end_of_job.outputs]  # done when the loop's run returned
+    assert dropped[0][1] is not loop_thread
+
+
 @pytest.mark.parametrize("ending", ["pair worker died", "cancelled"])
 async def test_a_job_ended_before_its_end_leaves_no_scans_behind(end_of_job, monkeypatch, tmp_path, ending):
     worldmap = stitcher.LocalWorldMap(1.0)
