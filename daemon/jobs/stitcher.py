@@ -32,7 +32,7 @@ import logging
 import multiprocessing
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from concurrent.futures import Future, ProcessPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -277,6 +277,11 @@ def _let_go(drop: Callable[[], None]) -> None:
         log.warning("outputs of an ended job not dropped: %s", e)
 
 
+async def _first(pair: Awaitable[tuple[Any, Any]]) -> Any:
+    """The first of what ``pair`` gives."""
+    return (await pair)[0]
+
+
 class PairWorker:
     """A process registering each scan's pairs as it arrives (``online_pairs.OnlinePairs``) and, with the joint
     refinement, a second one beside it preparing each scan for that (``online_pairs.OnlineJoint``: the end of the
@@ -320,10 +325,14 @@ class PairWorker:
         pairs once they are done."""
         self._measured.set()
         pairs = asyncio.wrap_future(self._pool.submit(_pairs_so_far))  # behind the scans queued there
+        return await self._with_joint_work(pairs)
+
+    async def _with_joint_work(self, pairs: Awaitable[OnlineWork | None]) -> OnlineWork | None:
+        """The pair worker's work (``pairs``) with, where the joint worker runs, its prepared scans and associations
+        (:meth:`_joint_handed_over`, beside ``pairs``)."""
         if self._joint is None:
             return await pairs
-        scans, associations = await self._joint_handed_over()
-        work = await pairs
+        (scans, associations), work = await asyncio.gather(self._joint_handed_over(), pairs)
         return None if work is None else dataclasses.replace(work, joint_scans=scans, associations=associations)
 
     async def _joint_handed_over(self) -> tuple[dict, dict]:
@@ -344,12 +353,9 @@ class PairWorker:
         its work to the end of the job) and their CPU seconds."""
         await _settled(self._pending, "pairs of a scan not registered while measuring: %s")
         self._pending = []
-        work, cpu_s = await asyncio.wrap_future(self._pool.submit(_pairs_outcomes))
-        if self._joint is not None:
-            scans, associations = await self._joint_handed_over()
-            if work is not None:
-                work = dataclasses.replace(work, joint_scans=scans, associations=associations)
-        return work, cpu_s + self._joint_cpu_s
+        outcomes = asyncio.wrap_future(self._pool.submit(_pairs_outcomes))
+        work = await self._with_joint_work(_first(outcomes))
+        return work, outcomes.result()[1] + self._joint_cpu_s
 
     def close(self) -> None:
         stop_pool(self._pool)
