@@ -24,6 +24,7 @@ from tandemscan.daemon.store.job_store import JobRecord, JobStore
 from tandemscan.daemon.store.part_results import prepare_part, record_part
 from tandemscan.pipeline.job_report import JobHistory
 from tandemscan.pipeline.planning.plan import Plan
+from tandemscan.pipeline.registration.correction import remove_joint_folder
 
 log = logging.getLogger(__name__)
 
@@ -83,6 +84,15 @@ class StoreJournal:
         await asyncio.gather(*self._progress_tasks, return_exceptions=True)
 
 
+def close_map(worldmap: ProcessWorldMap, scan_store: Path) -> None:
+    """Stop the job's map process (``ProcessWorldMap.close``: work under way there abandoned) and remove what a
+    correction it cut short (a job cancelled or failed at its end) left in the job's ``scan_store``: its scans
+    prepared for the joint refinement (``correction.remove_joint_folder``; a correction that ran to its end removed
+    them itself)."""
+    worldmap.close()
+    remove_joint_folder(scan_store)
+
+
 async def run_journaled(ctx: JobContext) -> dict:
     """Run (or resume) the job of ``ctx`` and return its figures; the cloud and report land in its folder."""
     plan = Plan.model_validate(ctx.job.plan["plan"])
@@ -100,7 +110,7 @@ async def run_journaled(ctx: JobContext) -> dict:
         result = await runner.run()
     finally:
         await journal.drain()
-        await asyncio.to_thread(worldmap.close)
+        await asyncio.to_thread(close_map, worldmap, ctx.config.compute.scan_store or job_dir)
     report = result.report  # report.json, written once by the end of the job
     await asyncio.to_thread(record_part, ctx.store.state_dir, ctx.job.id, report)
     figures = {k: report[k] for k in _FIGURE_KEYS if k in report} | {"scans_left_out": len(report["scans_left_out"])}

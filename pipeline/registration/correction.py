@@ -14,6 +14,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import logging
+import shutil
 import time
 from collections import Counter
 from collections.abc import Callable, Mapping, MutableMapping, Sequence
@@ -360,6 +361,12 @@ def summarise_scan(points_S: np.ndarray, T_W_S: np.ndarray, voxel_mm: float, cfg
 JOINT_FOLDER = "joint"
 
 
+def remove_joint_folder(scan_store: str | Path) -> None:
+    """Remove the scan store's :data:`JOINT_FOLDER` with every scan in it: where a correction failed or was cut
+    short (which scans the units that ran wrote there, only they know); the store is one job's (docs/compute.md)."""
+    shutil.rmtree(Path(scan_store) / JOINT_FOLDER, ignore_errors=True)
+
+
 def summarise_stored_scan(ref: ScanRef, store: StoredScans, cfg: CorrectionSettings, digest: bool, joint: bool
                           ) -> ReadScan:
     """:func:`summarise_scan` of a scan read from the scan store (a backend unit: where the scan is read); with
@@ -561,7 +568,20 @@ def correct_scans(
     joint refinement gives the poses and the mount and the pose graph is not solved (it started from the tracker
     poses, not from the graph's, and the graph's figures alone were about 4 s of CPU after the last scan); without
     it the pose graph does, and the report has its costs (``graph_cost_before`` / ``_after``, ``graph_s``).
+    A correction that fails or is cancelled leaves none of its scans prepared for the joint refinement in the scan
+    store (:func:`remove_joint_folder`).
     """
+    try:
+        return _corrected(job, cfg, network, online, backend, scan_store)
+    except BaseException:
+        if scan_store is not None:
+            remove_joint_folder(scan_store)
+        raise
+
+
+def _corrected(job: StitchedJob, cfg: CorrectionSettings, network: Registrar | None, online: OnlineWork | None,
+               backend: ComputeBackend | None, scan_store: str | None) -> CorrectionResult:
+    """:func:`correct_scans`."""
     if cfg.method in NETWORK_METHODS and network is None:
         raise ValueError(f"method {cfg.method!r} needs a DeepMerge registrar (pairs.LazyNetwork)")
     clock = _Clock()

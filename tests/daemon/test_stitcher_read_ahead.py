@@ -286,3 +286,44 @@ async def test_a_job_cancelled_between_its_outputs_and_its_report_leaves_no_tile
         assert not list((job.job_dir / "tiles").iterdir())
     finally:
         worldmap.close()
+
+
+def correcting_at_length(job, key, started, measured_at, online, stages):
+    """In the map's process (a module function: it pickles by name): the end of a job in its correction, one scan
+    prepared for the joint refinement written to the scan store (the job folder) and more to come."""
+    from tandemscan.pipeline.registration.correction import JOINT_FOLDER
+
+    (job.job_dir / JOINT_FOLDER).mkdir(parents=True, exist_ok=True)
+    (job.job_dir / JOINT_FOLDER / "prepared.npz").write_bytes(b"a 2 mm copy")
+    time.sleep(60.0)
+
+
+async def test_a_job_cancelled_in_its_correction_leaves_no_joint_scans_once_its_map_is_closed(monkeypatch, tmp_path):
+    """The daemon's map in its own process, cancelled while the correction runs there: the journal closes the map
+    (its process ends, its correction with it) and removes what the correction left in the scan store."""
+    from tandemscan.daemon.jobs.journal import close_map
+
+    worldmap = stitcher.ProcessWorldMap(1.0)
+    job = _job(tmp_path, joint=True)
+    joint = job.job_dir / "joint"
+    try:
+        monkeypatch.setattr(stitcher, "_finish_outputs", correcting_at_length)
+
+        async def joint_work():
+            return None
+
+        async def pair_outcomes():
+            await asyncio.sleep(30.0)
+
+        monkeypatch.setattr(worldmap, "_joint_work", joint_work)
+        monkeypatch.setattr(worldmap, "pair_outcomes", pair_outcomes)
+        finishing = asyncio.ensure_future(worldmap.finish(job, 0.0, time.monotonic()))
+        async with asyncio.timeout(60):  # only against a hang (the map's process starts and imports first)
+            while not joint.exists():
+                await asyncio.sleep(0.02)
+        finishing.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await finishing
+    finally:
+        await asyncio.to_thread(close_map, worldmap, job.job_dir)
+    assert job.job_dir.exists() and not joint.exists()

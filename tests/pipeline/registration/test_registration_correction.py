@@ -222,3 +222,45 @@ def test_with_the_joint_refinement_only_the_check_pairs_are_registered_and_give_
     for key in ("joint", "overlap_rms_mm_median_before", "pose_change_mm_median"):
         assert checked.report[key] == unchecked.report[key]
     assert checked.report["overlap_rms_mm_median_before"] == graph.report["overlap_rms_mm_median_before"]
+
+
+@pytest.mark.parametrize("failing", ["a scan's summary", "a pair"])
+def test_a_correction_whose_unit_raises_leaves_no_joint_scans_in_the_store(failing, monkeypatch, tmp_path):
+    """The scans read from the scan store (this process holds none of their points): the summary units write each
+    scan prepared for the joint refinement to ``joint/``; a later unit raising (the last scan's summary, a check
+    pair's registration) fails the correction, which leaves no ``joint/`` folder behind."""
+    from tandemscan.pipeline.compute import LocalBackend
+    from tandemscan.pipeline.io.raw_scan import write_raw_scan
+    from tandemscan.pipeline.registration import pair_stage
+
+    _, scans, transfers = scans_with_drift(n=4, per_station=2)
+    (tmp_path / "scans").mkdir()
+    stored = []
+    for k, s in enumerate(scans):
+        write_raw_scan(tmp_path / f"scans/scan-{k}.npz", points_S_mm=s.points_S)
+        stored.append(StitchedScan(None, s.T_W_S, s.covariance, s.station, f"scans/scan-{k}.npz"))
+    written = []
+    read, write = pair_stage.StoredScans.loaded, correction.StoredJointScan.write
+
+    def loaded(store, ref):
+        if failing == "a scan's summary" and ref.index == len(stored) - 1:
+            raise OSError("the store went away")
+        return read(store, ref)
+
+    def registered(*args, **kwargs):
+        raise RuntimeError("a worker's bad day")
+
+    def noted(*args):
+        written.append(write(*args))
+        return written[-1]
+
+    monkeypatch.setattr(pair_stage.StoredScans, "loaded", loaded)
+    monkeypatch.setattr(pair_stage, "register_unit", registered)
+    monkeypatch.setattr(correction.StoredJointScan, "write", noted)
+    settings = CorrectionSettings.from_section(CorrectionConfig(method="icp", min_overlap_points=100))
+    with pytest.raises(OSError if failing == "a scan's summary" else RuntimeError):
+        correct_scans(StitchedJob(stored, transfers, voxel_mm=1.0), settings, backend=LocalBackend(1),
+                      scan_store=str(tmp_path))
+    assert written  # the units before it wrote theirs
+    assert not (tmp_path / correction.JOINT_FOLDER).exists()
+    assert sorted(p.name for p in (tmp_path / "scans").iterdir()) == [f"scan-{k}.npz" for k in range(4)]
