@@ -50,6 +50,19 @@ def _job(tmp_path, joint: bool) -> SimpleNamespace:
                            config=SimpleNamespace(correction=SimpleNamespace(joint=joint)))
 
 
+def _check_pairs_registering(worldmap, monkeypatch) -> None:
+    """``worldmap``'s pair worker replaced: nothing for the joint refinement, its check pairs registering for 30 s."""
+
+    async def joint_work():
+        return None
+
+    async def pair_outcomes():
+        await asyncio.sleep(30.0)
+
+    monkeypatch.setattr(worldmap, "_joint_work", joint_work)
+    monkeypatch.setattr(worldmap, "pair_outcomes", pair_outcomes)
+
+
 async def _settled(worldmap: stitcher.LocalWorldMap) -> None:
     """Wait until the map is back with its owner (a read ahead still running holds it)."""
     for _ in range(200):
@@ -164,14 +177,7 @@ def test_the_outputs_of_a_cancelled_job_are_dropped_off_the_event_loop_before_it
     async def cancelled_after_its_outputs() -> threading.Thread:
         worldmap = stitcher.LocalWorldMap(1.0)
 
-        async def joint_work():
-            return None
-
-        async def pair_outcomes():
-            await asyncio.sleep(30.0)
-
-        monkeypatch.setattr(worldmap, "_joint_work", joint_work)
-        monkeypatch.setattr(worldmap, "pair_outcomes", pair_outcomes)
+        _check_pairs_registering(worldmap, monkeypatch)
         finishing = asyncio.ensure_future(worldmap.finish(_job(tmp_path, joint=True), 0.0, time.monotonic()))
         async with asyncio.timeout(10):  # only against a hang
             while stitcher._OUTPUTS == {}:
@@ -309,14 +315,7 @@ async def test_a_job_cancelled_in_its_correction_leaves_no_joint_scans_once_its_
     try:
         monkeypatch.setattr(stitcher, "_finish_outputs", correcting_at_length)
 
-        async def joint_work():
-            return None
-
-        async def pair_outcomes():
-            await asyncio.sleep(30.0)
-
-        monkeypatch.setattr(worldmap, "_joint_work", joint_work)
-        monkeypatch.setattr(worldmap, "pair_outcomes", pair_outcomes)
+        _check_pairs_registering(worldmap, monkeypatch)
         finishing = asyncio.ensure_future(worldmap.finish(job, 0.0, time.monotonic()))
         async with asyncio.timeout(60):  # only against a hang (the map's process starts and imports first)
             while not joint.exists():
