@@ -28,7 +28,6 @@ point's own.
 
 from __future__ import annotations
 
-import functools
 import math
 import threading
 from collections.abc import Sequence
@@ -149,6 +148,10 @@ class GivenUncertainty:
         return PointUncertainty(k, total, own**2, budget, notes)
 
 
+#: held while a :class:`ScanCover` builds its KD tree, so that the threads asking for it build it once
+_TREE_BUILD = threading.Lock()
+
+
 @dataclass(frozen=True)
 class ScanCover:
     """Which scans' points a cloud's points were merged from: the scans' thinned copies placed in W (mm), each
@@ -159,14 +162,19 @@ class ScanCover:
     origins_mm: np.ndarray
     scan_ids: np.ndarray
 
-    @functools.cached_property
+    @property
     def _tree(self) -> tuple[np.ndarray, np.ndarray, cKDTree]:
         """Each scan's thinned point count, each thinned point's scan (position in the cover) and a KD tree of all
-        of them, built once (:meth:`shares` is asked at the even centres and at the best fit's points)."""
-        sizes = np.array([len(p) for p in self.points_W])
-        tree = cKDTree(np.concatenate([np.asarray(p, float) for p in self.points_W]), leafsize=32,
-                       balanced_tree=False)
-        return sizes, np.repeat(np.arange(len(sizes)), sizes), tree
+        of them, built once (:meth:`shares` is asked at the even centres and at the best fit's points): by the first
+        thread that asks (:meth:`prepared`'s, or the caller's), any other waiting for it (:data:`_TREE_BUILD`; not
+        ``cached_property``, whose lock Python 3.12 dropped)."""
+        with _TREE_BUILD:
+            if "_built_tree" not in self.__dict__:
+                sizes = np.array([len(p) for p in self.points_W])
+                tree = cKDTree(np.concatenate([np.asarray(p, float) for p in self.points_W]), leafsize=32,
+                               balanced_tree=False)
+                object.__setattr__(self, "_built_tree", (sizes, np.repeat(np.arange(len(sizes)), sizes), tree))
+        return self.__dict__["_built_tree"]
 
     def prepared(self) -> ScanCover:
         """This cover with its KD tree being built on a thread of its own (SciPy builds it without the GIL): made as

@@ -384,9 +384,39 @@ def test_a_scan_cover_prepared_builds_its_tree_unasked_and_answers_as_one_built_
 
     prepared, asked = cover().prepared(), cover()
     deadline = time.monotonic() + 30.0
-    while "_tree" not in prepared.__dict__ and time.monotonic() < deadline:  # built on its own thread
+    while "_built_tree" not in prepared.__dict__ and time.monotonic() < deadline:  # built on its own thread
         time.sleep(0.01)
-    assert "_tree" in prepared.__dict__ and "_tree" not in asked.__dict__
+    assert "_built_tree" in prepared.__dict__ and "_built_tree" not in asked.__dict__
     queries = rng.uniform([0.0, 0.0, 0.0], [650.0, 100.0, 1.0], (500, 3))
     for a, b in zip(prepared.shares(queries), asked.shares(queries), strict=True):
         assert np.array_equal(a, b)
+
+
+def test_a_scan_cover_asked_from_several_threads_while_it_prepares_builds_its_tree_once(monkeypatch):
+    """The tree :meth:`ScanCover.prepared` starts on its own thread, asked at once from four more threads: one build,
+    the others wait for it and get the same tree."""
+    import threading
+
+    from tandemscan.pipeline.inspection import point_uncertainty
+
+    builds = []
+
+    def slow_tree(*args, **kwargs):
+        builds.append(threading.current_thread())
+        threading.Event().wait(0.2)  # long enough for every thread to ask meanwhile
+        return cKDTree(*args, **kwargs)
+
+    monkeypatch.setattr(point_uncertainty, "cKDTree", slow_tree)
+    rng = np.random.default_rng(7)
+    scans = [rng.uniform([100.0 * k, 0.0, 0.0], [100.0 * k + 150.0, 100.0, 1.0], (2000, 3)) for k in range(4)]
+    cover = point_uncertainty.ScanCover(scans, np.full(4, 8000.0), np.zeros((4, 3)), np.arange(4)).prepared()
+    queries = rng.uniform([0.0, 0.0, 0.0], [450.0, 100.0, 1.0], (200, 3))
+    answers = []
+    askers = [threading.Thread(target=lambda: answers.append(cover.shares(queries))) for _ in range(4)]
+    for t in askers:
+        t.start()
+    for t in askers:
+        t.join(30.0)
+    assert len(builds) == 1 and len(answers) == 4
+    for top, w in answers[1:]:
+        assert np.array_equal(top, answers[0][0]) and np.array_equal(w, answers[0][1])
