@@ -426,7 +426,8 @@ def main() -> None:
     ap.add_argument("--length-factor", type=float, default=2.0, help="the larger part's length over the nose's")
     ap.add_argument("--tile-mm", type=float, default=500.0)
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
-    ap.add_argument("--folder", type=Path, default=None, help="where the jobs are written (default: a temp dir)")
+    ap.add_argument("--folder", type=Path, default=None, help="where the jobs are written, made with its parents "
+                    "where missing (default: a temp dir)")
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--band-share", type=float, default=1.0, help="only the views in this share of each part's "
                     "length from its tail (a band across it: the nose's and, twice as long, the longer part's)")
@@ -439,6 +440,8 @@ def main() -> None:
     ap.add_argument("--no-e57", action="store_true", help="leave the E57 out (at full resolution the longer part's "
                     "E57 is about 28 GB beside its 57 GB of raw scans)")
     args = ap.parse_args()
+    if args.folder is not None:
+        args.folder.mkdir(parents=True, exist_ok=True)  # tempfile.mkdtemp(dir=...) needs it to exist
     pixels = _pixels(args.resolution)
     nose = PartConfig()
     long = PartConfig(length_mm=nose.length_mm * args.length_factor,
