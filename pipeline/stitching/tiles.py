@@ -1,24 +1,29 @@
 """The merge of a job's cloud by spatial tile (docs/compute.md, "Tiles"): memory bounded by the tile, not the part.
 
 The world frame W is cut into slabs across its x axis, each a whole number of voxels of the merge (edge
-``voxel_mm``): tile ``k`` holds the voxels whose x index ``floor(x / voxel_mm)`` is in ``[lo_k, hi_k)``. A
-:class:`MergeTile` unit names the tile and the scans that may reach it by reference (:class:`TileScan`: the raw
-scan file in the scan store, its final pose ``T_W_S``, a bound of its points' x in W), never their points; where it
-runs it reads those scans one at a time, merges each whole into a voxel map that keeps only the tile's voxels
-(``VoxelMap(x_voxels=...)``) and writes the tile's cloud beside the scans (:func:`read_tile`). Only a
-:class:`TileCloud` (the file, its voxel count) comes back.
+``voxel_mm``): tile ``k`` holds the voxels whose x index ``floor(x / voxel_mm)`` is in ``[lo_k, hi_k)``. The scans
+come by reference (:class:`TileScan`: the raw scan file in the scan store, its final pose ``T_W_S``, a bound of its
+points' x in W, which sets the slabs' extent), never their points. The merge has two steps of units: a
+:class:`PlaceScan` reads its scan once, voxelises it whole at its pose (``VoxelMap.scan_voxels``, as the untiled map
+does) and writes its voxels of each slab they reach as a shard beside the scans (:class:`TileShard`); a
+:class:`MergeTile` then merges its tile's shards, one at a time in the job's order of the scans, into a voxel map of
+the tile's voxels (``VoxelMap(x_voxels=...)``), writes the tile's cloud (:func:`read_tile`) and removes the shards.
+Only a :class:`TileCloud` (the file, its voxel count) comes back. So each raw scan is read once, however many tiles
+it reaches; a unit holds one scan, or one tile's voxels and one shard.
 
 Equal to the untiled merge: a voxel lies in exactly one tile (the slabs are cut on voxel faces) and gets there the
 same per-scan sums (each scan is voxelised whole, as the untiled map does, and only then cut), from every scan that
-has a point in it: a scan's points lie within :func:`scan_x_extent` of its thinned copy widened by the margin (the
-thinning voxel's diagonal, where a thinned centroid lies from the points of its voxel, and one merge voxel for the
-float32 rounding of the placement), and a tile reads every scan whose widened extent meets its slab. The voxel
-keys sort x first, so the tiles' clouds one after the other are the untiled cloud in its order; only the order in
-which a voxel's per-scan sums are added differs (the untiled merge adds them by groups of scans): its mean is the
-same to the rounding of those sums, 1e-9 mm (``tests/pipeline/stitching/test_tiles.py``).
+has a point in it; the shards of a tile come in the job's order, so the tile's sums are the ones a tile reading its
+scans whole would make, bit for bit. The voxel keys sort x first, so the tiles' clouds one after the other are the
+untiled cloud in its order; only the order in which a voxel's per-scan sums are added differs (the untiled merge
+adds them by groups of scans): its mean is the same to the rounding of those sums, 1e-9 mm
+(``tests/pipeline/stitching/test_tiles.py``). The slabs span every scan's bound of x, :func:`scan_x_extent` of its
+thinned copy widened by the margin (the thinning voxel's diagonal, where a thinned centroid lies from the points of
+its voxel, and one merge voxel for the float32 rounding of the placement).
 
-A unit is idempotent (its file is named by the digest of everything it depends on and written durably), so a unit
-lost with its worker is run again with the same result.
+A unit is idempotent (its files are named by the digest of everything they depend on; a tile written durably is
+taken as it is where its unit runs again, its shards gone), so a unit lost with its worker is run again with the
+same result.
 """
 
 from __future__ import annotations
@@ -26,6 +31,8 @@ from __future__ import annotations
 import functools
 import hashlib
 import math
+import os
+import shutil
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,7 +43,7 @@ from tandemscan.pipeline.geometry.frames import transform_points
 from tandemscan.pipeline.io.durable import write_durably
 from tandemscan.pipeline.io.export import PlyChunk, write_ply_streamed
 from tandemscan.pipeline.io.raw_scan import read_raw_scan
-from tandemscan.pipeline.stitching.worldmap import VoxelMap
+from tandemscan.pipeline.stitching.worldmap import ScanVoxels, VoxelMap
 
 #: the tiles' clouds are written in this folder of the scan store
 TILES_FOLDER = "tiles"
@@ -125,22 +132,50 @@ class TileGrid:
 
 
 @dataclass(frozen=True)
+class PlaceScan:
+    """One unit of the tiled merge's first step: scan ``order`` of the job, ``scan``, read once from the scan store
+    ``store``, its voxels cut by the tiles of ``grid`` and each tile's written as a shard in the merge's folder
+    ``folder`` (relative to ``store``)."""
+
+    order: int
+    scan: TileScan
+    grid: TileGrid
+    store: str
+    folder: str
+
+    def key(self) -> str:
+        """The unit's name: the merge's folder (everything its shards depend on) and the scan's place in the job."""
+        return f"place-scan-{self.order:05d}-{Path(self.folder).name}"
+
+
+@dataclass(frozen=True)
+class TileShard:
+    """A scan's voxels within tile ``index`` (``worldmap.ScanVoxels``: keys, sums, counts), written by
+    :func:`place_scan` to ``file`` (relative to the scan store)."""
+
+    index: int
+    file: str
+    voxels: int
+
+
+@dataclass(frozen=True)
 class MergeTile:
-    """One unit of the tiled merge: tile ``index`` of ``grid`` and the scans whose x bound meets its slab, read from
-    the scan store ``store`` (a folder every worker reaches)."""
+    """One unit of the tiled merge's second step: tile ``index`` of ``grid`` and the shards of the scans that reach
+    it (:class:`TileShard` files, in the job's order of the scans), in the scan store ``store`` (a folder every
+    worker reaches)."""
 
     index: int
     grid: TileGrid
-    scans: tuple[TileScan, ...]
+    shards: tuple[str, ...]
     store: str
 
     def key(self) -> str:
-        """The unit's name: everything its cloud depends on (slab, voxel, the scans' files and poses)."""
+        """The unit's name: everything its cloud depends on (slab, voxel, its shards: named by the scans' files and
+        poses)."""
         h = hashlib.blake2b(digest_size=16)
         h.update(np.array([self.grid.voxel_mm, *self.grid.bounds_mm(self.index)], np.float64).tobytes())
-        for s in self.scans:
-            h.update(s.file.encode())
-            h.update(np.ascontiguousarray(s.T_W_S, np.float64).tobytes())
+        for shard in self.shards:
+            h.update(shard.encode())
         return f"merge-tile-{self.index:05d}-{h.hexdigest()}"
 
 
@@ -154,28 +189,76 @@ class TileCloud:
     voxels: int
 
 
-def tile_units(scans: Sequence[TileScan], grid: TileGrid, store: str) -> list[MergeTile]:
-    """One :class:`MergeTile` a tile of ``grid``: the scans whose x bound meets its slab, in the job's order."""
-    units = []
-    for k in range(len(grid)):
-        x0, x1 = grid.bounds_mm(k)
-        units.append(MergeTile(k, grid, tuple(s for s in scans if s.x_max_mm >= x0 and s.x_min_mm <= x1), store))
-    return units
+def place_units(scans: Sequence[TileScan], grid: TileGrid, store: str) -> list[PlaceScan]:
+    """One :class:`PlaceScan` a scan of ``scans`` (in the job's order), their shards in one folder of
+    ``<store>/tiles`` named by the digest of the grid and every scan's file and pose."""
+    h = hashlib.blake2b(digest_size=16)
+    h.update(np.array([grid.voxel_mm, *grid.x_edges], np.float64).tobytes())
+    for s in scans:
+        h.update(s.file.encode())
+        h.update(np.ascontiguousarray(s.T_W_S, np.float64).tobytes())
+    folder = f"{TILES_FOLDER}/shards-{h.hexdigest()}"
+    return [PlaceScan(k, s, grid, store, folder) for k, s in enumerate(scans)]
+
+
+def place_scan(unit: PlaceScan) -> tuple[TileShard, ...]:
+    """Read the unit's scan once (float32 as stored), place it at ``T_W_S`` (Eq. 1: voxelised whole, as the
+    untiled map does, ``VoxelMap.scan_voxels``), cut its voxels by the grid's slabs and write each slab's that
+    holds any to ``<folder>/<scan>-<tile>.npz``; their :class:`TileShard`, in tile order."""
+    grid = unit.grid
+    voxels = VoxelMap(grid.voxel_mm).scan_voxels(unit.scan.T_W_S,
+                                                  *read_raw_scan(Path(unit.store) / unit.scan.file, np.float32))
+    shards = []
+    for k, cut in enumerate(voxels.x_cut(grid.x_edges)):
+        if len(cut):
+            file = f"{unit.folder}/{unit.order:05d}-{k:05d}.npz"
+            _write_scratch(Path(unit.store) / file, keys=cut.keys, sums=cut.sums, counts=cut.counts)
+            shards.append(TileShard(k, file, len(cut)))
+    return tuple(shards)
+
+
+def _write_scratch(path: Path, **arrays: np.ndarray) -> None:
+    """``arrays`` to ``path`` (``.npz``) through a temporary name: a reader sees the whole file or none. Not
+    fsynced: a shard lives only until its tile is written, and a job resumed after a crash places its scans again."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".part")
+    with open(tmp, "wb") as f:
+        np.savez(f, **arrays)
+    os.replace(tmp, path)
+
+
+def tile_units(placed: Sequence[Sequence[TileShard]], grid: TileGrid, store: str) -> list[MergeTile]:
+    """One :class:`MergeTile` a tile of ``grid``: the shards of it among ``placed`` (each scan's, :func:`place_scan`,
+    in the job's order)."""
+    shards: list[list[str]] = [[] for _ in range(len(grid))]
+    for scan in placed:
+        for shard in scan:
+            shards[shard.index].append(shard.file)
+    return [MergeTile(k, grid, tuple(files), store) for k, files in enumerate(shards)]
 
 
 def merge_tile(unit: MergeTile) -> TileCloud:
-    """Merge the unit's scans (read one at a time, float32 as stored, placed at ``T_W_S``: Eq. 1) into its tile's
-    voxels and write them to ``<store>/tiles/<unit key>.npz``."""
-    x_voxels = (unit.grid.x_edges[unit.index], unit.grid.x_edges[unit.index + 1])
-    worldmap = VoxelMap(unit.grid.voxel_mm, x_voxels)
-    for s in unit.scans:
-        worldmap.add_scan(s.T_W_S, *read_raw_scan(Path(unit.store) / s.file, np.float32))
-    cloud = worldmap.frozen()
-    del worldmap
+    """Merge the unit's shards (read one at a time, in the job's order of their scans) into its tile's voxels, write
+    them to ``<store>/tiles/<unit key>.npz`` and remove the shards. Where that file is there already (written
+    durably: whole) the unit ran before and removed its shards: it is taken as it is."""
+    store = Path(unit.store)
     file = f"{TILES_FOLDER}/{unit.key()}.npz"
-    write_durably(Path(unit.store) / file, functools.partial(
-        _save_cloud, points=cloud.points(), normals=cloud.normals(), counts=np.asarray(cloud.counts(), np.int64)))
-    return TileCloud(unit.index, file, len(cloud))
+    if (store / file).is_file():
+        with np.load(store / file) as data:
+            voxels = len(data["counts"])
+    else:
+        worldmap = VoxelMap(unit.grid.voxel_mm, (unit.grid.x_edges[unit.index], unit.grid.x_edges[unit.index + 1]))
+        for shard in unit.shards:
+            with np.load(store / shard) as data:
+                worldmap.add_voxels(ScanVoxels(data["keys"], data["sums"], data["counts"]))
+        cloud = worldmap.frozen()
+        del worldmap
+        write_durably(store / file, functools.partial(
+            _save_cloud, points=cloud.points(), normals=cloud.normals(), counts=np.asarray(cloud.counts(), np.int64)))
+        voxels = len(cloud)
+    for shard in unit.shards:
+        (store / shard).unlink(missing_ok=True)
+    return TileCloud(unit.index, file, voxels)
 
 
 def _save_cloud(f, **arrays: np.ndarray) -> None:
@@ -184,12 +267,26 @@ def _save_cloud(f, **arrays: np.ndarray) -> None:
 
 def merge_tiles(scans: Sequence[TileScan], voxel_mm: float, tile_mm: float, store: str | Path,
                 backend: ComputeBackend) -> tuple[TileCloud, ...]:
-    """The job's cloud merged tile by tile on ``backend`` (:func:`merge_tile` a unit of slabs about ``tile_mm``
-    wide; W, mm), in x order: the tiles' clouds one after the other are the untiled cloud (module doc). The heap the
-    tiles' voxels took is handed back once they are written (``ComputeBackend.trim``), so that the next stage starts
-    from what the workers hold, not from the largest tile's peak."""
-    units = tile_units(scans, TileGrid.over(scans, voxel_mm, tile_mm), str(store))
-    merged = tuple(backend.map(merge_tile, units, [u.key() for u in units]))
+    """The job's cloud merged tile by tile on ``backend`` (W, mm), in x order: the tiles' clouds one after the other
+    are the untiled cloud (module doc). Two steps of units: each scan read once, placed and cut into shards by the
+    slabs about ``tile_mm`` wide (:func:`place_scan`), then each tile merged from its shards (:func:`merge_tile`).
+    Where either fails (or is cancelled), the shards and the tiles written so far are removed. The heap the tiles'
+    voxels took is handed back once they are written (``ComputeBackend.trim``), so that the next stage starts from
+    what the workers hold, not from the largest tile's peak."""
+    grid = TileGrid.over(scans, voxel_mm, tile_mm)
+    placing = place_units(scans, grid, str(store))
+    units: list[MergeTile] = []
+    try:
+        placed = backend.map(place_scan, placing, [u.key() for u in placing])
+        units = tile_units(placed, grid, str(store))
+        merged = tuple(backend.map(merge_tile, units, [u.key() for u in units]))
+    except BaseException:
+        for u in units:
+            (Path(store) / TILES_FOLDER / f"{u.key()}.npz").unlink(missing_ok=True)
+        raise
+    finally:
+        if placing:
+            shutil.rmtree(Path(store) / placing[0].folder, ignore_errors=True)
     backend.trim()
     return merged
 

@@ -11,6 +11,7 @@ map is read), so each voxel is moved O(log scans) times, not once per scan.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -27,6 +28,30 @@ _DENSE_BOX_PER_POINT = 6
 _MIN_BATCH_VOXELS = 2_000_000
 
 
+def _x_key(x_index: int) -> int:
+    """The least packed key of the voxels of x index ``x_index`` (x is the keys' top bits: they sort x first)."""
+    return (int(x_index) + _OFFSET) << (2 * _BITS)
+
+
+@dataclass(frozen=True, eq=False)
+class ScanVoxels:
+    """One scan's occupied voxels in W (``VoxelMap.scan_voxels``): packed keys, sorted; per voxel the sums of its
+    points (mm) and normals, float64 (M, 6); its point counts (M,)."""
+
+    keys: np.ndarray
+    sums: np.ndarray
+    counts: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def x_cut(self, x_edges: Sequence[int]) -> list[ScanVoxels]:
+        """The voxels of x index in ``[x_edges[k], x_edges[k + 1])``, for each k (slices of these arrays: the keys
+        are sorted x first)."""
+        at = np.searchsorted(self.keys, [_x_key(x) for x in x_edges])
+        return [ScanVoxels(self.keys[a:b], self.sums[a:b], self.counts[a:b]) for a, b in itertools.pairwise(at)]
+
+
 class VoxelMap:
     """Voxel-merged cloud in the world frame (mm). ``x_voxels`` = ``(lo, hi)`` keeps only the voxels whose x index
     (``floor(x / voxel_mm)``, W) is in ``[lo, hi)``: one tile of the world (``tiles.merge_tile``). Each scan is
@@ -36,8 +61,7 @@ class VoxelMap:
         if voxel_mm <= 0:
             raise ValueError("voxel_mm must be positive")
         self.voxel_mm = float(voxel_mm)
-        self._key_window = None if x_voxels is None else tuple(
-            (int(x) + _OFFSET) << (2 * _BITS) for x in x_voxels)  # packed keys [lo, hi): x is their top bits
+        self._x_window = None if x_voxels is None else (int(x_voxels[0]), int(x_voxels[1]))
         self._keys = np.empty(0, np.int64)
         self._sums = np.empty((0, 6), np.float64)  # point sum xyz, normal sum xyz
         self._counts = np.empty(0, np.int64)
@@ -53,21 +77,31 @@ class VoxelMap:
         points_mm = np.asarray(points_mm, np.float64)
         if len(points_mm) == 0:
             return
-        self._merge(points_mm.T.copy(), None if normals is None else np.asarray(normals, np.float64).T.copy())
+        normal_rows = None if normals is None else np.asarray(normals, np.float64).T.copy()
+        self.add_voxels(ScanVoxels(*self._voxelise(points_mm.T.copy(), normal_rows)))
 
     def add_scan(self, T_W_S: np.ndarray, points_S_mm: np.ndarray, normals_S: np.ndarray | None = None) -> None:
-        """Eq. 1: merge a scan given in the scanner frame S, placed in the world by ``T_W_S`` (mm).
+        """Eq. 1: merge a scan given in the scanner frame S, placed in the world by ``T_W_S`` (mm)
+        (:meth:`scan_voxels`)."""
+        if len(points_S_mm) == 0:
+            return
+        self.add_voxels(self.scan_voxels(T_W_S, points_S_mm, normals_S))
+
+    def scan_voxels(self, T_W_S: np.ndarray, points_S_mm: np.ndarray, normals_S: np.ndarray | None = None
+                    ) -> ScanVoxels:
+        """Eq. 1: the voxels (this map's edge, W) of a scan given in the scanner frame S, placed in the world by
+        ``T_W_S`` (mm), without merging them: what :meth:`add_scan` merges (``tiles.place_scan`` cuts them by tile).
 
         Points and normals are rotated in float32 (as a raw scan stores them) relative to the scan's origin, so
         the rounding stays below 0.1 um within a metre of it; the voxel sums are kept in float64 and the
         translation added to them, not to every point."""
         if len(points_S_mm) == 0:
-            return
+            return ScanVoxels(np.empty(0, np.int64), np.empty((0, 6)), np.empty(0, np.int64))
         T = np.asarray(T_W_S, np.float64)
         R = T[:3, :3].astype(np.float32)
         rows = R @ np.asarray(points_S_mm, np.float32).T                      # (3, N): x, y, z about the origin
         normal_rows = None if normals_S is None else R @ np.asarray(normals_S, np.float32).T
-        self._merge(rows, normal_rows, T[:3, 3])
+        return ScanVoxels(*self._voxelise(rows, normal_rows, T[:3, 3]))
 
     @classmethod
     def combined(cls, maps: Sequence[VoxelMap]) -> VoxelMap:
@@ -87,15 +121,14 @@ class VoxelMap:
         out._flush()
         return out
 
-    def _merge(self, rows: np.ndarray, normal_rows: np.ndarray | None, origin: np.ndarray | None = None) -> None:
-        """Merge points given as (3, N) coordinate rows (W, mm; relative to ``origin`` if given) with (3, N)
-        normal rows or None: their voxels join the batch, merged once it is as large as the map."""
-        voxels = self._voxelise(rows, normal_rows, origin)
-        if self._key_window is not None:  # the voxels' keys are sorted: the tile's are one slice of them
-            within = slice(*np.searchsorted(voxels[0], self._key_window))
-            voxels = tuple(a[within] for a in voxels)
-        self._batch.append(voxels)
-        self._batch_voxels += len(voxels[0])
+    def add_voxels(self, voxels: ScanVoxels) -> None:
+        """Merge one scan's voxels (:meth:`scan_voxels`, this map's edge): those within the map's ``x_voxels``
+        join the batch, merged once it is as large as the map. Voxels given scan by scan in one order make the
+        same sums, bit for bit, however they were cut (``ScanVoxels.x_cut``)."""
+        if self._x_window is not None:
+            (voxels,) = voxels.x_cut(self._x_window)
+        self._batch.append((voxels.keys, voxels.sums, voxels.counts))
+        self._batch_voxels += len(voxels)
         if self._batch_voxels >= max(len(self._keys), _MIN_BATCH_VOXELS):
             self._flush()
 

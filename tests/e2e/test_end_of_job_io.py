@@ -12,6 +12,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import pytest
 from job_reports import report_with_ground_truth
 from tandemscan.daemon.cell.session import CellSession
 from tandemscan.daemon.jobs.runner import JobRunner
@@ -53,8 +54,9 @@ def count_reads_in_child_processes(folder: Path, monkeypatch) -> Callable[[], Co
     return lambda: Counter(log.read_text(encoding="utf-8").split())
 
 
+@pytest.mark.parametrize("tile_mm", [0.0, 20.0], ids=["one-map", "tiles"])
 async def test_a_job_writes_report_json_once_and_reads_each_scan_file_at_most_twice(sim_config, tmp_path,
-                                                                                      monkeypatch):
+                                                                                      monkeypatch, tile_mm):
     """A two-scan band job on the simulated cell with a journal's history: report.json does not exist before the
     one writer's call, is written by it once, and nothing writes it after; it holds the journal's resumes and reads
     back into the model written; the simulator's observer scores the job after it, into ground_truth.json beside
@@ -62,8 +64,11 @@ async def test_a_job_writes_report_json_once_and_reads_each_scan_file_at_most_tw
     was written (the merge at the corrected poses, the E57 in a process of its own: counted there and in every
     process the job starts), its scores included: the map and the thinned copies
     are made from the scan's arrays, the pair worker is handed the copy, the tracker stitch's score takes the map
-    stitched while measuring."""
+    stitched while measuring. Merged by tiles of 20 mm (``[compute] tile_mm``: each scan reaches about twenty), the
+    same: each scan is read once and cut into its tiles' shards (``tiles.place_scan``), and only the tiles are left
+    until the exports have read them."""
     from tandemscan.daemon.jobs import finish
+    from tandemscan.pipeline.stitching import tiles
 
     reads: Counter[str] = Counter()
     load = np.load
@@ -93,10 +98,20 @@ async def test_a_job_writes_report_json_once_and_reads_each_scan_file_at_most_tw
         return score(job, inspection, tracker_stitch)
 
     monkeypatch.setattr(finish, "score_ground_truth", observer)
+    tiles_reached: list[int] = []  # per scan placed, the tiles its shards went to
+    place = tiles.place_scan
+
+    def place_scan(unit):
+        shards = place(unit)
+        tiles_reached.append(len(shards))
+        return shards
+
+    monkeypatch.setattr(tiles, "place_scan", place_scan)
     plan = Plan.load(default_plan_path())
     scans = [i for i, s in enumerate(plan.steps) if isinstance(s, Scan)]
     plan = plan.model_copy(update={"steps": plan.steps[: scans[1] + 1]})  # the first two scans only
-    config = sim_config.model_copy(update={"inspection": sim_config.inspection.model_copy(update={"in_job": False})})
+    config = sim_config.model_copy(update={"inspection": sim_config.inspection.model_copy(update={"in_job": False}),
+                                           "compute": sim_config.compute.model_copy(update={"tile_mm": tile_mm})})
     history = JobHistory(({"step": scans[1], "kind": "scan", "fresh_reading": True},), 2)
 
     async def journal_history() -> JobHistory:
@@ -120,6 +135,8 @@ async def test_a_job_writes_report_json_once_and_reads_each_scan_file_at_most_tw
     assert full["scans"] == 2 and full["correction"]["enabled"] and "before" in full["correction"]
     assert full["ground_truth"]["pose_err_mm_median"] > 0 and full["ground_truth"]["scoring_s"] >= 0
     assert reads + child_reads() == {entry["file"]: 2 for entry in doc["scan_log"]}
+    assert len(tiles_reached) == (2 if tile_mm else 0) and all(n >= 5 for n in tiles_reached)  # scans span tiles
+    assert not (result.job_dir / "tiles").exists() or not list((result.job_dir / "tiles").iterdir())
     # the pair worker's copies are the end of the job's: its pairs are taken from the cache by their keys
     c = doc["correction"]
     assert c["pairs"] >= 1 and c["pairs_registered_while_measuring"] >= c["pairs"] + len(c["pairs_dropped"])

@@ -10,6 +10,7 @@ come from ``benchmarks/capacity.py``.
 from __future__ import annotations
 
 import pickle
+import shutil
 import tracemalloc
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -25,7 +26,15 @@ from tandemscan.pipeline.inspection.tile_inspection import (
     inspect_tiles,
     write_deviation_ply,
 )
-from tandemscan.pipeline.stitching.tiles import TileGrid, merge_tile, merge_tiles, tile_units, write_cloud_ply
+from tandemscan.pipeline.stitching.tiles import (
+    TileGrid,
+    merge_tile,
+    merge_tiles,
+    place_scan,
+    place_units,
+    tile_units,
+    write_cloud_ply,
+)
 
 from tests.pipeline.stitching.test_tiles import T_F_W, TILE_MM, VOXEL_MM, _height, stored_job
 
@@ -86,17 +95,25 @@ def parts(tmp_path_factory):
         backend = PickledResults()
         tiles = merge_tiles(refs, VOXEL_MM, TILE_MM, store, backend)
         inspected = inspect_tiles(tiles, store, cad, T_F_W, -0.1, 0.1, backend)
-        units = tile_units(refs, TileGrid.over(refs, VOXEL_MM, TILE_MM), str(store))
-        out[scans] = store, cad, units, tiles, inspected, backend
+        out[scans] = store, cad, refs, tiles, inspected, backend
     return out
 
 
-def _unit_peaks(part, stage: str) -> tuple[np.ndarray, np.ndarray]:
-    """Per unit of ``stage`` ("merge" or "inspect") over the part's tiles: what its tile's memory grows with (the
-    scans it reads, for the merge; its tile's voxels, for the inspection) and its traced peak (bytes)."""
-    store, cad, units, tiles, _, _ = part
-    if stage == "merge":
-        return (np.array([len(u.scans) for u in units], float),
+def _unit_peaks(part, stage: str, scratch: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Per unit of ``stage`` ("place", "merge" or "inspect"): what its memory grows with (the scan's voxels, for
+    placing a scan; the voxels of its tile's shards, for the merge; its tile's voxels, for the inspection) and its
+    traced peak (bytes). The merge's units run again in ``scratch`` (the part's scans copied there)."""
+    store, cad, refs, tiles, _, _ = part
+    if stage in ("place", "merge"):
+        shutil.copytree(store / "scans", scratch / "scans")
+        grid = TileGrid.over(refs, VOXEL_MM, TILE_MM)
+        placing, placed = place_units(refs, grid, str(scratch)), []
+        place_peaks = [traced_peak_bytes(lambda u=u: placed.append(place_scan(u))) for u in placing]
+        if stage == "place":
+            return np.array([sum(s.voxels for s in scan) for scan in placed], float), np.array(place_peaks, float)
+        units = tile_units(placed, grid, str(scratch))
+        voxels = [sum(s.voxels for scan in placed for s in scan if s.index == u.index) for u in units]
+        return (np.array(voxels, float),
                 np.array([traced_peak_bytes(lambda u=u: merge_tile(u)) for u in units], float))
 
     def unit(t):
@@ -107,14 +124,23 @@ def _unit_peaks(part, stage: str) -> tuple[np.ndarray, np.ndarray]:
             np.array([traced_peak_bytes(lambda t=t: inspect_tile(unit(t))) for t in tiles], float))
 
 
+def test_a_scan_is_placed_in_its_scans_memory_not_the_parts(parts, tmp_path):
+    """Placing a scan (the merge's first step, ``tiles.place_scan``) holds that scan: its peak on the part twice as
+    long within 15 % of the largest on the smaller part, whose scans have as many points."""
+    voxels, peak = _unit_peaks(parts[6], "place", tmp_path / "6")
+    _, peak_long = _unit_peaks(parts[12], "place", tmp_path / "12")
+    assert np.all(peak > 10_000 * 12) and np.all(peak > voxels * 64)  # it held the scan's points and its voxels
+    assert peak_long.max() <= GROWTH * peak.max(), (peak, peak_long)
+
+
 @pytest.mark.parametrize("stage", ["merge", "inspect"])
-def test_a_tile_units_memory_is_its_tiles_not_the_parts(parts, stage):
+def test_a_tile_units_memory_is_its_tiles_not_the_parts(parts, stage, tmp_path):
     """A unit's peak is a constant and a share of what its tile holds, as fitted on the smaller part: the same on
     the part twice as long (within 15 %), whose units a whole-part memory would make larger."""
     assert len(parts[12][3]) > 1.6 * len(parts[6][3])  # the longer part has about twice the tiles
-    x, peak = _unit_peaks(parts[6], stage)
+    x, peak = _unit_peaks(parts[6], stage, tmp_path / "6")
     slope, constant = np.polyfit(x, peak, 1)
-    x_long, peak_long = _unit_peaks(parts[12], stage)
+    x_long, peak_long = _unit_peaks(parts[12], stage, tmp_path / "12")
     assert constant > 0 and np.all(peak_long <= GROWTH * (constant + slope * x_long)), (stage, constant, slope,
                                                                                       x_long, peak_long)
 
@@ -134,7 +160,7 @@ def test_the_streamed_outputs_hold_a_tile_not_the_cloud(parts, tmp_path):
 
 def test_the_units_send_back_summaries_not_points(parts):
     for scans, (store, _, _, tiles, inspected, backend) in parts.items():
-        assert len(backend.result_bytes) == 2 * len(tiles)
+        assert len(backend.result_bytes) == scans + 2 * len(tiles)  # a unit a scan placed, a tile merged and inspected
         assert max(backend.result_bytes) <= RESULT_BYTES, (scans, max(backend.result_bytes))
         assert max(t.voxels for t in tiles) * 3 * 8 > RESULT_BYTES  # the largest tile's points would not pass
         assert deviation_figures(store, inspected, -0.1, 0.1).stats.count == sum(t.voxels for t in tiles)

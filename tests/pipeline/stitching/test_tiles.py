@@ -3,6 +3,8 @@ from the CAD, the report's figures and the PLYs are those of the untiled end of 
 
 from __future__ import annotations
 
+import shutil
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -17,12 +19,16 @@ from tandemscan.pipeline.inspection.inspect import CadSurface, DeviationStats, T
 from tandemscan.pipeline.inspection.tile_inspection import deviation_figures, inspect_tiles, write_deviation_ply
 from tandemscan.pipeline.io.export import ExportError, PlyChunk, write_ply, write_ply_streamed
 from tandemscan.pipeline.io.raw_scan import read_thinned_scan, write_raw_scan
+from tandemscan.pipeline.stitching import tiles as tiles_module
 from tandemscan.pipeline.stitching.tiles import (
     ScanReach,
     TileGrid,
     TileScan,
     every_kth,
+    merge_tile,
     merge_tiles,
+    place_scan,
+    place_units,
     read_tile,
     scan_x_extent,
     tile_units,
@@ -88,9 +94,9 @@ def concatenated(store: Path, tiles) -> tuple[np.ndarray, np.ndarray, np.ndarray
 
 def test_the_tiles_cut_the_scans_and_their_clouds_are_the_untiled_cloud(job):
     store, refs, _, untiled, tiles = job
-    units = tile_units(refs, TileGrid.over(refs, VOXEL_MM, TILE_MM), str(store))
-    assert len(tiles) == len(units) >= 10
-    assert sum(len(u.scans) for u in units) >= 2 * len(refs)  # scans cross tile borders
+    grid = TileGrid.over(refs, VOXEL_MM, TILE_MM)
+    assert len(tiles) == len(grid) >= 10
+    assert all(len(_tiles_reached(s, grid)) >= 2 for s in refs)  # scans cross tile borders
     assert all(t.voxels for t in tiles)
     points, normals, counts = concatenated(store, tiles)
     assert len(points) == len(untiled) > 30_000
@@ -103,12 +109,64 @@ def test_the_tiles_cut_the_scans_and_their_clouds_are_the_untiled_cloud(job):
     np.testing.assert_array_equal(sub.counts, untiled.counts()[::step])
 
 
-def test_a_tile_merge_run_again_writes_the_same_cloud(job):
+def _tiles_reached(scan: TileScan, grid: TileGrid) -> list[int]:
+    """The tiles of ``grid`` whose slab the scan's bound of x meets."""
+    slabs = [grid.bounds_mm(k) for k in range(len(grid))]
+    return [k for k, (x0, x1) in enumerate(slabs) if scan.x_max_mm >= x0 and scan.x_min_mm < x1]
+
+
+def test_a_tile_merge_run_again_writes_the_same_cloud(job, tmp_path):
+    """Run again on one thread once the tiles are gone: the same files, the same bits. A unit run again once its tile
+    was written (its shards removed, as where its worker was lost before it returned) hands back that tile."""
     store, refs, _, _, tiles = job
+    before = concatenated(store, tiles)
+    for t in tiles:
+        (store / t.file).unlink()
     again = merge_tiles(refs, VOXEL_MM, TILE_MM, store, LocalBackend(threads=1))
     assert again == tiles
-    for a, b in zip(concatenated(store, again), concatenated(store, tiles), strict=True):
+    for a, b in zip(concatenated(store, again), before, strict=True):
         np.testing.assert_array_equal(a, b)
+    shutil.copytree(store / "scans", tmp_path / "scans")
+    grid = TileGrid.over(refs, VOXEL_MM, TILE_MM)
+    units = tile_units([place_scan(u) for u in place_units(refs, grid, str(tmp_path))], grid, str(tmp_path))
+    first = [merge_tile(u) for u in units]
+    assert first == [merge_tile(u) for u in units] == list(tiles)  # the second run: from the tiles, no shard left
+    assert sorted(p.name for p in (tmp_path / "tiles").iterdir()) == sorted(Path(t.file).name for t in tiles) + [
+        Path(units[0].shards[0]).parent.name]  # the merge's folder of shards, empty (merge_tiles removes it)
+    assert not list((tmp_path / "tiles" / Path(units[0].shards[0]).parent.name).iterdir())
+
+
+def test_the_tiled_merge_reads_each_scan_once_and_leaves_only_its_tiles(tmp_path, monkeypatch):
+    """However many tiles a scan reaches, the merge reads its raw file once (placing it, ``tiles.place_scan``); once
+    done only the tiles' files are left beside the scans. Where a tile's unit fails, the merge leaves neither shards
+    nor tiles."""
+    refs, _ = stored_job(tmp_path, scans=3, points=5000)
+    reads: Counter[str] = Counter()
+    load = np.load
+
+    def counting_load(file, *args, **kwargs):
+        if Path(file).parent.name == "scans":
+            reads[Path(file).name] += 1
+        return load(file, *args, **kwargs)
+
+    monkeypatch.setattr(np, "load", counting_load)
+    tiles = merge_tiles(refs, VOXEL_MM, TILE_MM, tmp_path, LocalBackend())
+    grid = TileGrid.over(refs, VOXEL_MM, TILE_MM)
+    assert all(len(_tiles_reached(s, grid)) >= 3 for s in refs) and sum(t.voxels > 0 for t in tiles) >= 5
+    assert reads == {Path(s.file).name: 1 for s in refs}
+    assert sorted(p.name for p in (tmp_path / "tiles").iterdir()) == sorted(Path(t.file).name for t in tiles)
+    for t in tiles:
+        (tmp_path / t.file).unlink()
+
+    def merge_or_fail(unit):
+        if unit.index == len(tiles) // 2:
+            raise OSError(28, "No space left on device")
+        return merge_tile(unit)
+
+    monkeypatch.setattr(tiles_module, "merge_tile", merge_or_fail)
+    with pytest.raises(OSError, match="No space left"):
+        merge_tiles(refs, VOXEL_MM, TILE_MM, tmp_path, LocalBackend())
+    assert not list((tmp_path / "tiles").iterdir())
 
 
 def _vertices(path: Path) -> tuple[bytes, np.ndarray]:
