@@ -1,11 +1,13 @@
-"""Shared fixtures (the default config, the QIF schema), a guard that no test leaves asyncio tasks running, and the
-markers each folder's tests carry (docs/testing.md)."""
+"""Shared fixtures (the default config, the QIF schema, a count of raw scan reads), a guard that no test leaves
+asyncio tasks running, and the markers each folder's tests carry (docs/testing.md)."""
 
 from __future__ import annotations
 
 import asyncio
+from collections import Counter
 from pathlib import Path
 
+import numpy as np
 import pytest
 from tandemscan.config import CellConfig, load_config
 
@@ -27,6 +29,22 @@ def sim_config() -> CellConfig:
     `tandemscan calibrate` left in out/ does not reach the tests."""
     config = load_config()
     return config.model_copy(update={"job": config.job.model_copy(update={"installation_source": "nominal"})})
+
+
+@pytest.fixture
+def scan_reads(monkeypatch) -> Counter[str]:
+    """The reads of raw scan files in this process from now on: each ``np.load`` of a file in a ``scans/`` folder,
+    counted by file name (docs/end-of-job.md: a raw scan is read at most twice after it is written)."""
+    reads: Counter[str] = Counter()
+    load = np.load
+
+    def counting_load(file, *args, **kwargs):
+        if Path(file).parent.name == "scans":
+            reads[Path(file).name] += 1
+        return load(file, *args, **kwargs)
+
+    monkeypatch.setattr(np, "load", counting_load)
+    return reads
 
 
 @pytest.fixture(autouse=True)

@@ -11,7 +11,6 @@ from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
 import pytest
 from job_reports import report_with_ground_truth
 from tandemscan.daemon.cell.session import CellSession
@@ -56,7 +55,8 @@ def count_reads_in_child_processes(folder: Path, monkeypatch) -> Callable[[], Co
 
 @pytest.mark.parametrize("tile_mm", [0.0, 20.0], ids=["one-map", "tiles"])
 async def test_a_job_writes_report_json_once_and_reads_each_scan_file_at_most_twice(sim_config, tmp_path,
-                                                                                      monkeypatch, tile_mm):
+                                                                                      monkeypatch, tile_mm,
+                                                                                      scan_reads):
     """A two-scan band job on the simulated cell with a journal's history: report.json does not exist before the
     one writer's call, is written by it once, and nothing writes it after; it holds the journal's resumes and reads
     back into the model written; the simulator's observer scores the job after it, into ground_truth.json beside
@@ -70,15 +70,6 @@ async def test_a_job_writes_report_json_once_and_reads_each_scan_file_at_most_tw
     from tandemscan.daemon.jobs import finish
     from tandemscan.pipeline.stitching import tiles
 
-    reads: Counter[str] = Counter()
-    load = np.load
-
-    def counting_load(file, *args, **kwargs):
-        if Path(file).parent.name == "scans":
-            reads[Path(file).name] += 1
-        return load(file, *args, **kwargs)
-
-    monkeypatch.setattr(np, "load", counting_load)
     child_reads = count_reads_in_child_processes(tmp_path / "child-reads", monkeypatch)
     writes: list[tuple[JobReport, tuple[int, int, int]]] = []
 
@@ -134,7 +125,7 @@ async def test_a_job_writes_report_json_once_and_reads_each_scan_file_at_most_tw
     assert full == report_with_ground_truth(result.job_dir)
     assert full["scans"] == 2 and full["correction"]["enabled"] and "before" in full["correction"]
     assert full["ground_truth"]["pose_err_mm_median"] > 0 and full["ground_truth"]["scoring_s"] >= 0
-    assert reads + child_reads() == {entry["file"]: 2 for entry in doc["scan_log"]}
+    assert scan_reads + child_reads() == {entry["file"]: 2 for entry in doc["scan_log"]}
     assert len(tiles_reached) == (2 if tile_mm else 0) and all(n >= 5 for n in tiles_reached)  # scans span tiles
     assert not (result.job_dir / "tiles").exists() or not list((result.job_dir / "tiles").iterdir())
     # the pair worker's copies are the end of the job's: its pairs are taken from the cache by their keys

@@ -4,7 +4,6 @@ from the CAD, the report's figures and the PLYs are those of the untiled end of 
 from __future__ import annotations
 
 import shutil
-from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -136,24 +135,16 @@ def test_a_tile_merge_run_again_writes_the_same_cloud(job, tmp_path):
     assert not list((tmp_path / "tiles" / Path(units[0].shards[0]).parent.name).iterdir())
 
 
-def test_the_tiled_merge_reads_each_scan_once_and_leaves_only_its_tiles(tmp_path, monkeypatch):
+def test_the_tiled_merge_reads_each_scan_once_and_leaves_only_its_tiles(tmp_path, monkeypatch, scan_reads):
     """However many tiles a scan reaches, the merge reads its raw file once (placing it, ``tiles.place_scan``); once
     done only the tiles' files are left beside the scans. Where a tile's unit fails, the merge leaves neither shards
     nor tiles."""
     refs, _ = stored_job(tmp_path, scans=3, points=5000)
-    reads: Counter[str] = Counter()
-    load = np.load
-
-    def counting_load(file, *args, **kwargs):
-        if Path(file).parent.name == "scans":
-            reads[Path(file).name] += 1
-        return load(file, *args, **kwargs)
-
-    monkeypatch.setattr(np, "load", counting_load)
+    scan_reads.clear()  # those of stored_job's bounds
     tiles = merge_tiles(refs, VOXEL_MM, TILE_MM, tmp_path, LocalBackend())
     grid = TileGrid.over(refs, VOXEL_MM, TILE_MM)
     assert all(len(_tiles_reached(s, grid)) >= 3 for s in refs) and sum(t.voxels > 0 for t in tiles) >= 5
-    assert reads == {Path(s.file).name: 1 for s in refs}
+    assert scan_reads == {Path(s.file).name: 1 for s in refs}
     assert sorted(p.name for p in (tmp_path / "tiles").iterdir()) == sorted(Path(t.file).name for t in tiles)
     for t in tiles:
         (tmp_path / t.file).unlink()
