@@ -288,13 +288,17 @@ class PairWorker:
     job waits for it, not for the check pairs, and the two no longer share one process's interpreter); tasks queue in
     scan order and nobody waits for them until :meth:`joint_work` or :meth:`outcomes`."""
 
-    def __init__(self, cfg: CorrectionSettings, voxel_mm: float, niceness: int):
+    def __init__(self, cfg: CorrectionSettings, voxel_mm: float, niceness: int, prepares_joint: bool = True):
+        """``prepares_joint``: with the joint refinement (``cfg.joint``), whether its worker prepares the scans; not
+        where the end of the job reads them from the scan store (``ComputeConfig.reads_scan_store``): its units
+        prepare them there, so that no process holds the part's prepared scans (:meth:`_Pairs._pair_worker`)."""
         self.cfg, self.voxel_mm = cfg, float(voxel_mm)
         context = multiprocessing.get_context("spawn")
         self._measured = context.Event()  # set by :meth:`joint_work`: the scans still queued are not prepared
         self._pool = ProcessPoolExecutor(1, mp_context=context, initializer=init_worker, initargs=(niceness,))
         self._joint = (ProcessPoolExecutor(1, mp_context=context, initializer=_init_joint,
-                                           initargs=(niceness, self._measured)) if cfg.joint else None)
+                                           initargs=(niceness, self._measured)) if cfg.joint and prepares_joint
+                       else None)
         self._pending: list[Any] = []  # the pairs' tasks
         self._joint_pending: list[Any] = []  # the joint preparation's tasks
         self._joint_cpu_s = 0.0  # the joint worker's CPU seconds, once it handed its work over
@@ -369,12 +373,17 @@ class _Pairs:
     that asks for it."""
 
     voxel_mm: float
+    lean: bool = False  # the end of the job reads the scans from the scan store (merge_scan)
     _pair_niceness: int = 0
     _pairs: PairWorker | None = None
 
     def _pair_worker(self, pairs: dict | None) -> PairWorker | None:
         """The pair worker for a scan with these ``pairs`` settings (started at the first that asks for one); None
-        where its pairs are not registered while measuring."""
+        where its pairs are not registered while measuring. Where the map is :attr:`lean` it prepares no scan for
+        the joint refinement: the end of the job reads the scans from the store and its units prepare them there
+        and find their pairs' nearest neighbours (``correction.summarise_stored_scan``): a scan prepared while
+        measuring would go unused there, and the neighbours, the whole part's, would gather with the prepared scans
+        in one process and travel through the scheduler; one core is left to the measurement."""
         if not pairs:
             return None
         cfg: CorrectionConfig = pairs["correction"]
@@ -384,7 +393,8 @@ class _Pairs:
 
             if not cfg.enabled or cfg.method in NETWORK_METHODS:
                 return None
-            self._pairs = PairWorker(CorrectionSettings.from_section(cfg), self.voxel_mm, self._pair_niceness)
+            self._pairs = PairWorker(CorrectionSettings.from_section(cfg), self.voxel_mm, self._pair_niceness,
+                                     prepares_joint=not self.lean)
         return self._pairs
 
     @staticmethod
@@ -476,7 +486,7 @@ class ProcessWorldMap(_Pairs):
     no scan merged, each scan's stitch-view points and reach kept, not its thinned copy (:func:`merge_scan`)."""
 
     def __init__(self, voxel_mm: float, niceness: int = 0, lean: bool = False):
-        self.voxel_mm = float(voxel_mm)
+        self.voxel_mm, self.lean = float(voxel_mm), lean
         self._pair_niceness = niceness
         self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
                                          initializer=_init, initargs=(self.voxel_mm, niceness, lean))

@@ -100,3 +100,34 @@ async def test_the_joint_preparation_is_handed_over_from_its_own_worker_while_ch
     finally:
         worker.close()
     assert _gone(blocks)
+
+
+@pytest.mark.slow
+async def test_on_the_scan_store_path_no_scan_is_prepared_for_the_joint_refinement_while_measuring(sim_config,
+                                                                                                  tmp_path):
+    """A lean map (``ComputeConfig.reads_scan_store``: the end of the job reads the scans from the store, its units
+    prepare them for the joint refinement there) with the joint refinement on: the pair worker registers the check
+    pairs, but no scan is prepared and no nearest neighbour found while measuring (they would go unused, the
+    whole part's in one process), so the hand-over holds none."""
+    from tandemscan.daemon.jobs.stitcher import LocalWorldMap
+
+    assert sim_config.correction.joint
+    rng = np.random.default_rng(8)
+    worldmap = LocalWorldMap(1.0, lean=True)
+    try:
+        for k in range(2):
+            xy = rng.uniform(0.0, 250.0, (130_000, 2))
+            arrays = {"points_S_mm": np.c_[xy, 500.0 + 0.01 * np.sin(xy[:, 0] / 20.0)], **PLACEMENT}
+            T_W_S = np.eye(4)
+            T_W_S[0, 3] = 40.0 * k
+            await worldmap.add_scan(tmp_path / f"scan-{k:04d}.npz", T_W_S, arrays,
+                                    pairs={"correction": sim_config.correction, "station": 0, "transfers": [],
+                                           "T_T_S": np.eye(4)})
+        # whatever was queued for a preparation has run (none, where none is made)
+        await asyncio.gather(*map(asyncio.wrap_future, worldmap._pairs._joint_pending))
+        handed = await worldmap._joint_work()
+        later, _ = await worldmap.pair_outcomes()
+    finally:
+        worldmap.close()
+    assert handed.joint_scans == {} and handed.associations == {}
+    assert len(handed.pairs) + len(handed.pending) == 1 and later.pairs.keys() >= handed.pending  # the check pair
