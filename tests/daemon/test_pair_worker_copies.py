@@ -48,23 +48,28 @@ async def test_the_pair_workers_copies_leave_no_shared_memory(sim_config):
     assert _gone(never_ran)
 
 
+async def _two_fine_scans(worldmap, correction, folder) -> None:
+    """Two overlapping fine scans (S, mm; 2 points a 1 mm voxel) written to ``folder`` and merged in ``worldmap``, their
+    pairs queued with the job's ``correction``."""
+    rng = np.random.default_rng(8)
+    for k in range(2):
+        xy = rng.uniform(0.0, 250.0, (130_000, 2))
+        arrays = {"points_S_mm": np.c_[xy, 500.0 + 0.01 * np.sin(xy[:, 0] / 20.0)], **PLACEMENT}
+        T_W_S = np.eye(4)
+        T_W_S[0, 3] = 40.0 * k
+        await worldmap.add_scan(folder / f"scan-{k:04d}.npz", T_W_S, arrays,
+                                pairs={"correction": correction, "station": 0, "transfers": [], "T_T_S": np.eye(4)})
+
+
 @pytest.mark.slow
 async def test_the_maps_process_hands_a_fine_scans_copy_to_the_pair_worker(sim_config, tmp_path):
     """Two overlapping fine scans (2 points a 1 mm voxel: their copies, over 1 MB, go through shared memory) written
     and merged in a :class:`ProcessWorldMap`: the pair worker prepares both for the joint refinement from the copies
     it was handed, and no block is left."""
-    rng = np.random.default_rng(8)
     before = set(SHM_DIR.glob(f"{PREFIX}{os.getpid()}-*"))
     worldmap = ProcessWorldMap(1.0)
     try:
-        for k in range(2):
-            xy = rng.uniform(0.0, 250.0, (130_000, 2))
-            arrays = {"points_S_mm": np.c_[xy, 500.0 + 0.01 * np.sin(xy[:, 0] / 20.0)], **PLACEMENT}
-            T_W_S = np.eye(4)
-            T_W_S[0, 3] = 40.0 * k
-            await worldmap.add_scan(tmp_path / f"scan-{k:04d}.npz", T_W_S, arrays,
-                                    pairs={"correction": sim_config.correction, "station": 0, "transfers": [],
-                                           "T_T_S": np.eye(4)})
+        await _two_fine_scans(worldmap, sim_config.correction, tmp_path)
         online, _ = await worldmap.pair_outcomes()
     finally:
         worldmap.close()
@@ -112,17 +117,9 @@ async def test_on_the_scan_store_path_no_scan_is_prepared_for_the_joint_refineme
     from tandemscan.daemon.jobs.stitcher import LocalWorldMap
 
     assert sim_config.correction.joint
-    rng = np.random.default_rng(8)
     worldmap = LocalWorldMap(1.0, lean=True)
     try:
-        for k in range(2):
-            xy = rng.uniform(0.0, 250.0, (130_000, 2))
-            arrays = {"points_S_mm": np.c_[xy, 500.0 + 0.01 * np.sin(xy[:, 0] / 20.0)], **PLACEMENT}
-            T_W_S = np.eye(4)
-            T_W_S[0, 3] = 40.0 * k
-            await worldmap.add_scan(tmp_path / f"scan-{k:04d}.npz", T_W_S, arrays,
-                                    pairs={"correction": sim_config.correction, "station": 0, "transfers": [],
-                                           "T_T_S": np.eye(4)})
+        await _two_fine_scans(worldmap, sim_config.correction, tmp_path)
         # whatever was queued for a preparation has run (none, where none is made)
         await asyncio.gather(*map(asyncio.wrap_future, worldmap._pairs._joint_pending))
         handed = await worldmap._joint_work()
