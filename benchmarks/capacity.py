@@ -193,7 +193,7 @@ STAGES = (("finish", "load_scans", "read"), ("finish", "correct_stage", "correct
           ("finish", "merged_cloud", "merge"), ("finish", "export_job", "exports"),
           ("outputs", "_write_cloud_ply", "cloud_ply"),
           ("outputs", "_inspection_section", "inspection"), ("tile_inspection", "inspect_tiles", "inspect"),
-          ("tile_inspection", "deviation_figures", "figures"),
+          ("tile_inspection", "deviation_figures", "figures"), ("tile_inspection", "tile_areas", "areas"),
           ("tile_inspection", "write_deviation_ply", "deviation_ply"))
 
 

@@ -312,8 +312,8 @@ def _points_inspected(sample: int, cloud: int, tiled: bool) -> str:
         return str(cloud)
     if not tiled:
         return f"{sample} of the cloud's {cloud} ([inspection] max_points)"
-    return (f"{sample} of the cloud's {cloud} for the areas, verdict, U and pictures ([compute] report_points); "
-            "every point for the deviation figures and cloud_deviation.ply")
+    return (f"{sample} of the cloud's {cloud} for U and the pictures ([compute] report_points); every point for "
+            "the deviation areas, the verdict on them, the deviation figures and cloud_deviation.ply")
 
 
 def plan_coverage(job: JobSnapshot, mesh: o3d.geometry.TriangleMesh | None = None) -> CoverageFigures:

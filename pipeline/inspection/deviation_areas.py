@@ -13,6 +13,7 @@ averaged deviation (a noise peak of one point is no defect) and the mean of the 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -46,12 +47,18 @@ class DeviationArea:
 @dataclass(frozen=True)
 class LocalDeviation:
     """Per point (frame F): the deviation averaged over ``smoothing_mm`` and the point's surface share; of the
-    cloud's points ``at`` (indices) where only those were asked for."""
+    cloud's points ``at`` (indices) where only those were asked for; ``nearest_mm``, the nearest-neighbour distances
+    the point spacing is the median of (of the points asked for, or of a screening's points: :func:`_screened`)."""
 
     smoothed_mm: np.ndarray
     area_mm2: np.ndarray
-    spacing_mm: float  # median nearest-neighbour distance (of the points asked for)
+    nearest_mm: np.ndarray
     at: np.ndarray | None = None  # indices into the cloud; None: every point
+
+    @property
+    def spacing_mm(self) -> float:
+        """The median nearest-neighbour distance (mm; 0 without points)."""
+        return float(np.median(self.nearest_mm)) if len(self.nearest_mm) else 0.0
 
 
 def even_centres(points_mm: np.ndarray, cell_mm: float) -> np.ndarray:
@@ -143,7 +150,7 @@ def local_deviation(points_mm: np.ndarray, deviations_mm: np.ndarray, smoothing_
         r_mid = 0.5 * (dist[:, kk] + dist[:, kk + 1]) if kk >= 1 else dist[:, -1]
         share[lo:lo + _CHUNK] = np.pi * r_mid**2 / (max(kk, 0) + 1)
         nearest[lo:lo + _CHUNK] = dist[:, min(1, k - 1)]
-    return LocalDeviation(smoothed, share, float(np.median(nearest)) if len(q) else 0.0, at)
+    return LocalDeviation(smoothed, share, nearest, at)
 
 
 THIN_ABOVE_POINTS = 1_000_000  # larger clouds are screened on an even thinning first (:func:`_screened`)
@@ -166,21 +173,27 @@ def _within(tree: cKDTree, centres_mm: np.ndarray, radius_mm: float) -> np.ndarr
     return np.flatnonzero(found)
 
 
-def _screened(cloud: DeviationCloud, lower_mm: float, upper_mm: float, smoothing_mm: float) -> LocalDeviation:
+def _screened(cloud: DeviationCloud, lower_mm: float, upper_mm: float, smoothing_mm: float,
+              own: slice | None = None) -> LocalDeviation:
     """:func:`local_deviation` of the points that can be beyond the band: one point per cube of side
     :data:`SCREEN_CELL` ``* smoothing_mm`` is averaged first, over its :data:`SCREEN_NEIGHBOURS` nearest
     points within ``smoothing_mm`` (noise 1/4 of a point's, half the smoothing radius); every point within
     that cube's diagonal of one whose average is beyond the band narrowed by half its half-width is then
     averaged itself, as without the screening. The others (the surface within the band by that margin, five
-    times the screening's noise at 0.05 mm per point) are left out; the spacing is the screening points'."""
+    times the screening's noise at 0.05 mm per point) are left out; the spacing is the screening points'. ``own``:
+    only the cloud's points in that range are averaged and spaced (a tile's, the others its halo)."""
     p, d, tree = cloud.points_mm, cloud.deviations_mm, cloud.tree
     cell = SCREEN_CELL * smoothing_mm
     centres, coarse = cloud.screening(smoothing_mm)
     margin = 0.25 * (upper_mm - lower_mm)
     near = centres[(coarse.smoothed_mm > upper_mm - margin) | (coarse.smoothed_mm < lower_mm + margin)]
     at = _within(tree, p[near], cell * np.sqrt(3.0))
+    nearest = coarse.nearest_mm
+    if own is not None:
+        at = at[(at >= own.start) & (at < own.stop)]
+        nearest = nearest[(centres >= own.start) & (centres < own.stop)]
     fine = local_deviation(p, d, smoothing_mm, at, tree)
-    return LocalDeviation(fine.smoothed_mm, fine.area_mm2, coarse.spacing_mm, at)
+    return LocalDeviation(fine.smoothed_mm, fine.area_mm2, nearest, at)
 
 
 def _screening(p: np.ndarray, d: np.ndarray, smoothing_mm: float, tree: cKDTree
@@ -190,6 +203,95 @@ def _screening(p: np.ndarray, d: np.ndarray, smoothing_mm: float, tree: cKDTree
     every band (the areas at the band and at the verdict's guard band share it)."""
     centres = even_centres(p, SCREEN_CELL * smoothing_mm)
     return centres, local_deviation(p, d, smoothing_mm, centres, tree, SCREEN_NEIGHBOURS)
+
+
+def local_deviations(cloud: DeviationCloud, lower_mm: float, upper_mm: float, smoothing_mm: float, screen: bool,
+                     own: slice | None = None) -> LocalDeviation:
+    """The averaged deviations and surface shares the areas beyond ``[lower_mm, upper_mm]`` are found from: of every
+    point (of those in ``own``, the others only their neighbours: a tile's halo), or with ``screen`` of those near
+    where an even thinning comes near the band (:func:`_screened`)."""
+    if screen:
+        return _screened(cloud, lower_mm, upper_mm, smoothing_mm, own)
+    at = None if own is None else np.arange(own.start, own.stop)
+    return local_deviation(cloud.points_mm, cloud.deviations_mm, smoothing_mm, at, cloud.tree)
+
+
+def link_distance(spacing_mm: float, smoothing_mm: float) -> float:
+    """How near two points beyond the band are linked into one area: three point spacings, at least
+    ``smoothing_mm`` (mm)."""
+    return max(3.0 * spacing_mm, smoothing_mm)
+
+
+@dataclass(frozen=True)
+class AreaPiece:
+    """A linked set of points beyond the band on one ``side``: a whole area, or the part of one a tile holds (frame
+    F). The sums its area's figures are made of (:meth:`area`): the surface (mm^2), the shares' first moment (the
+    points weighted by their shares, mm^3), the extreme averaged deviation, the sum of the points' own deviations
+    (mm) and their number. Pieces of one area add up to it (:meth:`joined`)."""
+
+    side: str
+    area_mm2: float
+    moment_mm3: tuple[float, float, float]
+    extreme_mm: float
+    deviation_sum_mm: float
+    points: int
+
+    def joined(self, other: AreaPiece) -> AreaPiece:
+        """This piece and ``other`` (the same side) as one."""
+        pick = max if self.side == "upper" else min
+        return AreaPiece(self.side, self.area_mm2 + other.area_mm2,
+                         tuple(a + b for a, b in zip(self.moment_mm3, other.moment_mm3, strict=True)),
+                         pick(self.extreme_mm, other.extreme_mm), self.deviation_sum_mm + other.deviation_sum_mm,
+                         self.points + other.points)
+
+    def area(self, id: int) -> DeviationArea:
+        """The area these sums make, numbered ``id``: the shares' centroid, the extreme, the points' mean."""
+        return DeviationArea(id, self.side, tuple(float(v) / self.area_mm2 for v in self.moment_mm3), self.area_mm2,
+                             self.extreme_mm, self.deviation_sum_mm / self.points, self.points)
+
+
+@dataclass(frozen=True)
+class LinkedPoints:
+    """The points beyond the band linked into pieces (:func:`linked_pieces`): the ``pieces`` and, per linked point,
+    its index into the cloud (``at``) and its piece (``piece``)."""
+
+    pieces: tuple[AreaPiece, ...]
+    at: np.ndarray
+    piece: np.ndarray
+
+
+def linked_pieces(cloud: DeviationCloud, local: LocalDeviation, lower_mm: float, upper_mm: float, link_mm: float
+                  ) -> LinkedPoints:
+    """The points of ``local`` whose averaged deviation lies above ``upper_mm`` (or below ``lower_mm``) linked to
+    those of the same side within ``link_mm``: each connected set one :class:`AreaPiece`, however small."""
+    p, d = cloud.points_mm, cloud.deviations_mm
+    at = np.arange(len(p)) if local.at is None else local.at
+    pieces: list[AreaPiece] = []
+    linked_at, linked_piece = [], []
+    for side, beyond in (("upper", local.smoothed_mm > upper_mm), ("lower", local.smoothed_mm < lower_mm)):
+        ids = np.nonzero(beyond)[0]
+        if len(ids) == 0:
+            continue
+        pairs = cKDTree(p[at[ids]]).query_pairs(link_mm, output_type="ndarray")
+        graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(ids), len(ids)))
+        n, labels = connected_components(graph, directed=False)
+        for c in range(n):
+            members = ids[labels == c]
+            w = local.area_mm2[members]
+            s = local.smoothed_mm[members]
+            pieces.append(AreaPiece(side, float(w.sum()), tuple(float(v) for v in (p[at[members]] * w[:, None]).sum(
+                axis=0)), float(s.max() if side == "upper" else s.min()), float(d[at[members]].sum()), len(members)))
+        linked_at.append(at[ids])
+        linked_piece.append(labels + len(pieces) - n)
+    if not pieces:
+        return LinkedPoints((), np.zeros(0, np.int64), np.zeros(0, np.int64))
+    return LinkedPoints(tuple(pieces), np.concatenate(linked_at), np.concatenate(linked_piece))
+
+
+def areas_of(pieces: Sequence[AreaPiece], min_area_mm2: float) -> tuple[DeviationArea, ...]:
+    """The areas of whole ``pieces`` at least ``min_area_mm2`` large, largest |extreme| first, ids 1, 2, ...."""
+    kept = sorted((a for a in pieces if a.area_mm2 >= min_area_mm2), key=lambda a: -abs(a.extreme_mm))
+    return tuple(a.area(i + 1) for i, a in enumerate(kept))
 
 
 def find_deviation_areas(
@@ -205,31 +307,8 @@ def find_deviation_areas(
     area_smoothing_mm``), none smaller than ``min_area_mm2``. ``screen`` (default: above :data:`THIN_ABOVE_POINTS`
     points) averages only the points near where an even thinning of the cloud comes near the band
     (:func:`_screened`; docs/inspection-method.md, "Deviation areas")."""
-    p, d = cloud.points_mm, cloud.deviations_mm
     if screen is None:
-        screen = len(p) > THIN_ABOVE_POINTS
-    local = (_screened(cloud, lower_mm, upper_mm, smoothing_mm) if screen
-             else local_deviation(p, d, smoothing_mm, tree=cloud.tree))
-    link_mm = max(3.0 * local.spacing_mm, smoothing_mm)
-    at = np.arange(len(p)) if local.at is None else local.at
-    found = []
-    for side, beyond in (("upper", local.smoothed_mm > upper_mm), ("lower", local.smoothed_mm < lower_mm)):
-        ids = np.nonzero(beyond)[0]
-        if len(ids) == 0:
-            continue
-        pairs = cKDTree(p[at[ids]]).query_pairs(link_mm, output_type="ndarray")
-        graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(ids), len(ids)))
-        n, labels = connected_components(graph, directed=False)
-        for c in range(n):
-            members = ids[labels == c]
-            w = local.area_mm2[members]
-            area = float(w.sum())
-            if area < min_area_mm2:
-                continue
-            s = local.smoothed_mm[members]
-            extreme = float(s.max() if side == "upper" else s.min())
-            centroid = (p[at[members]] * w[:, None]).sum(axis=0) / area
-            found.append((side, tuple(float(v) for v in centroid), area, extreme, float(d[at[members]].mean()),
-                          len(members)))
-    found.sort(key=lambda a: -abs(a[3]))
-    return tuple(DeviationArea(i + 1, *a) for i, a in enumerate(found))
+        screen = len(cloud.points_mm) > THIN_ABOVE_POINTS
+    local = local_deviations(cloud, lower_mm, upper_mm, smoothing_mm, screen)
+    linked = linked_pieces(cloud, local, lower_mm, upper_mm, link_distance(local.spacing_mm, smoothing_mm))
+    return areas_of(linked.pieces, min_area_mm2)

@@ -54,8 +54,8 @@ from tandemscan.pipeline.inspection.report import (
     failed_report,
     write_report,
 )
-from tandemscan.pipeline.inspection.tile_inspection import TiledInspection, UncertaintyField
-from tandemscan.pipeline.inspection.verdict import VerdictContext, judge
+from tandemscan.pipeline.inspection.tile_inspection import AreaBounds, TiledInspection, UncertaintyField
+from tandemscan.pipeline.inspection.verdict import CloudAreas, VerdictContext, area_search, judge
 from tandemscan.pipeline.io.cloud_io import CloudIOError, read_ply, read_ply_vertices
 from tandemscan.pipeline.io.export import write_ply
 
@@ -143,9 +143,10 @@ def run_inspection(measured: Measurement, part: InspectedPart, settings: Inspect
     verification the verdict is made in (``verdict.judge``). The part's template characteristics (those without
     limits of their own under the criteria's tolerance, the general one) are evaluated, reported first and written
     as ``results.qif``. ``whole``: the tiled cloud ``measured`` is an even sample of (its frame W placed in F as
-    ``alignment`` places the sample): the report's deviation figures (``as_measured``) are the whole cloud's and the
-    deviation PLY holds every point of it, tile by tile (``tile_inspection.TiledInspection``, each point with the U
-    of the sample's nearest); the areas, verdict, U and pictures are the sample's."""
+    ``alignment`` places the sample): the report's deviation figures (``as_measured``) and deviation areas are the
+    whole cloud's and the deviation PLY holds every point of it, tile by tile (``tile_inspection.TiledInspection``,
+    each point with the U of the sample's nearest); U, the areas' guard band and their U (``verdict.area_search``,
+    at the whole cloud's density) and the pictures are the sample's."""
     criteria = settings.criteria
     template = part.template
     if template is not None:
@@ -163,13 +164,20 @@ def run_inspection(measured: Measurement, part: InspectedPart, settings: Inspect
         u = u_of_points.result()
     if measured.uncertainty is None:
         u = dataclasses.replace(u, notes=u.notes | {"cloud": "the cloud states no uncertainty: U = 0"})
-    result = judge(result, u, criteria, pose_context(placed, context or VerdictContext()))
+    context = pose_context(placed, context or VerdictContext())
     out_dir = Path(output.out_dir)
-    if whole is not None:  # the whole cloud's deviation figures and PLY, tile by tile
+    if whole is None:
+        result = judge(result, u, criteria, context)
+    else:  # the whole cloud's deviation figures, areas and PLY, tile by tile
         left_out = () if placed.excluded is None else sphere_balls(placed.spheres, settings.alignment)  # as the sample
-        figures = whole.inspect(surface, placed.T_F_W, (criteria.tolerance_lower_mm, criteria.tolerance_upper_mm),
-                                UncertaintyField.of(result.points_mm, u.expanded_mm), left_out, out_dir / DEVIATION_PLY)
-        result = dataclasses.replace(result, stats=figures.stats, tolerance=figures.tolerance)
+        given = len(p) if placed.excluded is None else len(placed.excluded)  # the sample before the spheres left it
+        search = area_search(p, u, criteria, round(len(p) * whole.points / max(given, 1)))
+        cloud = whole.inspect(surface, placed.T_F_W, (criteria.tolerance_lower_mm, criteria.tolerance_upper_mm),
+                              UncertaintyField.of(result.points_mm, u.expanded_mm), left_out, out_dir / DEVIATION_PLY,
+                              AreaBounds(search.lower_mm, search.upper_mm, criteria.area_smoothing_mm,
+                                         criteria.area_min_mm2))
+        result = judge(result, u, criteria, context, CloudAreas(search, cloud.areas))
+        result = dataclasses.replace(result, stats=cloud.figures.stats, tolerance=cloud.figures.tolerance)
     with ThreadPoolExecutor(2, thread_name_prefix="inspection-outputs") as pool:  # beside the figures: the
         evaluated = None if template is None else pool.submit(  # characteristics and the file
             evaluate, template, measured_cloud(result, surface, u.expanded_mm), criteria.rule)

@@ -30,11 +30,23 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from tandemscan.pipeline.compute import ComputeBackend
-from tandemscan.pipeline.geometry.frames import rotate_vectors, transform_points
+from tandemscan.pipeline.geometry.frames import invert, rotate_vectors, transform_points
 from tandemscan.pipeline.geometry.part import read_cad_mesh
 from tandemscan.pipeline.inspection.alignment import in_balls
+from tandemscan.pipeline.inspection.deviation_areas import (
+    THIN_ABOVE_POINTS,
+    AreaPiece,
+    DeviationArea,
+    DeviationCloud,
+    areas_of,
+    link_distance,
+    linked_pieces,
+    local_deviations,
+)
 from tandemscan.pipeline.inspection.inspect import CadSurface, DeviationStats, ToleranceResult, in_chunks
 from tandemscan.pipeline.io.durable import write_durably
 from tandemscan.pipeline.io.export import PlyChunk, write_ply_streamed
@@ -106,6 +118,8 @@ class TileDeviations:
     below: int
     above: int
     histogram: np.ndarray  # counts in the bins of HISTOGRAM_EDGES_MM, one bin below and one above them
+    x_min_mm: float  # the extent of its points' x in W (mm; inf, -inf without points): where its halo reaches
+    x_max_mm: float
 
 
 @functools.lru_cache(maxsize=2)
@@ -155,7 +169,8 @@ def inspect_tile(unit: InspectTile) -> TileDeviations:
         unit.tile.index, file, n, mean, float(((d - mean) ** 2).sum()), float((d * d).sum()),
         float(d.min()) if n else math.inf, float(d.max()) if n else -math.inf,
         int(np.count_nonzero(d < unit.lower_mm)), int(np.count_nonzero(d > unit.upper_mm)),
-        np.bincount(_bins(d), minlength=len(HISTOGRAM_EDGES_MM) + 1))
+        np.bincount(_bins(d), minlength=len(HISTOGRAM_EDGES_MM) + 1),
+        float(cloud.points_mm[:, 0].min()) if n else math.inf, float(cloud.points_mm[:, 0].max()) if n else -math.inf)
 
 
 def _save(f, **arrays: np.ndarray) -> None:
@@ -177,8 +192,8 @@ def inspect_tiles(tiles: Sequence[TileCloud], store: str | Path, mesh_file: str 
     return tuple(backend.map(inspect_tile, units, [u.key() for u in units]))
 
 
-def _read_deviations(store: str | Path, tile: TileDeviations, *names: str) -> list[np.ndarray]:
-    with np.load(Path(store) / tile.file) as data:
+def _read_deviations(store: str | Path, file: str, *names: str) -> list[np.ndarray]:
+    with np.load(Path(store) / file) as data:
         return [data[name] for name in names]
 
 
@@ -243,7 +258,7 @@ def _percentiles(store: str | Path, tiles: Sequence[TileDeviations], n: int, qs:
     for t in tiles:
         if not t.histogram[wanted].any():
             continue
-        (d,) = _read_deviations(store, t, "deviation_mm")
+        (d,) = _read_deviations(store, t.file, "deviation_mm")
         of = _bins(d)
         for b in wanted:
             values[int(b)].append(d[of == b])
@@ -255,6 +270,161 @@ def _percentiles(store: str | Path, tiles: Sequence[TileDeviations], n: int, qs:
         lo, hi = order[math.floor(rank)], order[math.ceil(rank)]
         out.append(lo + (hi - lo) * (rank - math.floor(rank)))
     return out
+
+
+#: a tile's halo reaches this many smoothing radii beyond its points' x (W): each of its points has its neighbours
+#: within the smoothing radius, and its nearest (the point spacing, the surface share) within twice it, as the
+#: untiled cloud has them
+HALO_SMOOTHINGS = 2.0
+#: the edges (mm) of the nearest-neighbour distances' histogram each tile's areas return (0.01 mm bins): the point
+#: spacing the areas are linked by (``deviation_areas.link_distance``) is bounded from it
+SPACING_EDGES_MM = np.linspace(0.0, 20.0, 2001)
+
+
+@dataclass(frozen=True)
+class AreaBounds:
+    """What the whole cloud's deviation areas are sought by: beyond ``[lower_mm, upper_mm]`` (mm), each point's
+    deviation averaged over ``smoothing_mm``, none smaller than ``min_area_mm2`` (``deviation_areas``)."""
+
+    lower_mm: float
+    upper_mm: float
+    smoothing_mm: float
+    min_area_mm2: float
+
+
+@dataclass(frozen=True)
+class AreaTile:
+    """One unit of the tiled deviation areas: the tile ``index`` whose deviations lie in ``file`` (relative to the
+    scan store ``store``, :func:`inspect_tile`; its points' x in W spanning ``x_mm``), with the deviations' files of
+    the tiles its halo reaches before and after it (``before``, ``after``, in the cloud's order); ``T_F_W`` (4x4, mm)
+    placed them in F. Its points beyond ``bounds`` are linked within ``link_mm``; ``screen``: the whole cloud's
+    areas are screened (``deviation_areas.local_deviations``)."""
+
+    index: int
+    file: str
+    x_mm: tuple[float, float]
+    before: tuple[str, ...]
+    after: tuple[str, ...]
+    store: str
+    T_F_W: np.ndarray
+    bounds: AreaBounds
+    link_mm: float
+    screen: bool
+
+    def key(self) -> str:
+        """The unit's name: everything its areas depend on."""
+        h = hashlib.blake2b(digest_size=16)
+        for text in (self.file, *self.before, "|", *self.after):
+            h.update(text.encode())
+        b = self.bounds
+        h.update(np.array([*self.x_mm, b.lower_mm, b.upper_mm, b.smoothing_mm, self.link_mm, self.screen],
+                          np.float64).tobytes())
+        h.update(np.ascontiguousarray(self.T_F_W, np.float64).tobytes())
+        return f"area-tile-{self.index:05d}-{h.hexdigest()}"
+
+
+@dataclass(frozen=True)
+class TileAreas:
+    """A tile's share of the deviation areas (:func:`find_tile_areas`): its points beyond the band linked into
+    ``pieces`` (``deviation_areas.AreaPiece``: sums, not points); those of its linked points that lie within the
+    link distance of its x ends (F, mm), each with its piece (index into ``pieces``), for the pieces to be joined
+    across tiles; and its nearest-neighbour distances' counts in the bins of :data:`SPACING_EDGES_MM` (the last:
+    beyond them, the largest ``spacing_max_mm``)."""
+
+    index: int
+    pieces: tuple[AreaPiece, ...]
+    edge_points_mm: np.ndarray
+    edge_pieces: np.ndarray
+    spacing_histogram: np.ndarray
+    spacing_max_mm: float
+
+
+def find_tile_areas(unit: AreaTile) -> TileAreas:
+    """The unit's tile's pieces of the areas beyond its band, from every one of its points, each averaged over its
+    neighbours in the tile and its halo (the points of the tiles before and after it within
+    :data:`HALO_SMOOTHINGS` smoothing radii of its x extent in W)."""
+    b = unit.bounds
+    x_W = invert(np.asarray(unit.T_F_W, float))[0]  # a point of F's x in W: x_W[:3] . p + x_W[3]
+    lo, hi = unit.x_mm
+    reach = HALO_SMOOTHINGS * b.smoothing_mm
+
+    def halo(file: str) -> tuple[np.ndarray, np.ndarray]:
+        p, d = _read_deviations(unit.store, file, "points_F", "deviation_mm")
+        x = p @ x_W[:3] + x_W[3]
+        keep = (x >= lo - reach) & (x <= hi + reach)
+        return p[keep], d[keep]
+
+    own = _read_deviations(unit.store, unit.file, "points_F", "deviation_mm")
+    parts = [halo(f) for f in unit.before] + [own] + [halo(f) for f in unit.after]
+    first = sum(len(p) for p, _ in parts[: len(unit.before)])
+    mine = slice(first, first + len(own[1]))
+    cloud = DeviationCloud(np.concatenate([p for p, _ in parts]), np.concatenate([d for _, d in parts]))
+    del parts, own
+    local = local_deviations(cloud, b.lower_mm, b.upper_mm, b.smoothing_mm, unit.screen, mine)
+    linked = linked_pieces(cloud, local, b.lower_mm, b.upper_mm, unit.link_mm)
+    x = cloud.points_mm[linked.at] @ x_W[:3] + x_W[3]
+    near = unit.link_mm * (1.0 + 1e-9) + 1e-6  # the rounding of x through F and back
+    edge = (x <= lo + near) | (x >= hi - near)
+    nearest = local.nearest_mm
+    return TileAreas(unit.index, linked.pieces, cloud.points_mm[linked.at[edge]], linked.piece[edge],
+                     np.bincount(np.searchsorted(SPACING_EDGES_MM, nearest), minlength=len(SPACING_EDGES_MM) + 1),
+                     float(nearest.max()) if len(nearest) else 0.0)
+
+
+def tile_areas(tiles: Sequence[TileDeviations], store: str | Path, T_F_W: np.ndarray, bounds: AreaBounds,
+               backend: ComputeBackend) -> tuple[DeviationArea, ...]:
+    """The deviation areas of all the tiles' points (F, mm) beyond ``bounds``, as ``find_deviation_areas`` finds
+    them on the untiled cloud: :func:`find_tile_areas` of every tile on ``backend``, the pieces joined across the
+    tiles here (:func:`joined_areas`). The points are linked within one smoothing radius first; where the spacing
+    the tiles report may make the untiled link distance longer (three spacings), the units run again at a bound
+    of it (their spacing's median to the 0.01 mm above)."""
+    inspected = [t for t in tiles if t.count]
+    points = sum(t.count for t in inspected)
+    reach = HALO_SMOOTHINGS * bounds.smoothing_mm
+    link = bounds.smoothing_mm
+    while True:
+        units = [AreaTile(
+            t.index, t.file, (t.x_min_mm, t.x_max_mm),
+            tuple(o.file for o in inspected[:k] if o.x_max_mm >= t.x_min_mm - reach),
+            tuple(o.file for o in inspected[k + 1:] if o.x_min_mm <= t.x_max_mm + reach),
+            str(store), np.asarray(T_F_W, float), bounds, link, points > THIN_ABOVE_POINTS)
+            for k, t in enumerate(inspected)]
+        found = tuple(backend.map(find_tile_areas, units, [u.key() for u in units]))
+        needed = link_distance(_spacing_bound(found), bounds.smoothing_mm)
+        if needed <= link:
+            return joined_areas(found, link, bounds.min_area_mm2)
+        link = needed
+
+
+def _spacing_bound(tiles: Sequence[TileAreas]) -> float:
+    """A bound from above of the median of the tiles' nearest-neighbour distances (mm): the upper edge of the bin
+    of :data:`SPACING_EDGES_MM` that holds the upper of its middle values."""
+    counts = np.cumsum(sum(t.spacing_histogram for t in tiles))
+    if not len(tiles) or counts[-1] == 0:
+        return 0.0
+    b = int(np.searchsorted(counts, counts[-1] // 2, side="right"))
+    return float(SPACING_EDGES_MM[b]) if b < len(SPACING_EDGES_MM) else max(t.spacing_max_mm for t in tiles)
+
+
+def joined_areas(tiles: Sequence[TileAreas], link_mm: float, min_area_mm2: float) -> tuple[DeviationArea, ...]:
+    """The areas of the tiles' pieces joined where a linked point of one lies within ``link_mm`` of one of the same
+    side in another tile (``deviation_areas.areas_of``: at least ``min_area_mm2``, largest |extreme| first)."""
+    pieces = [p for t in tiles for p in t.pieces]
+    if not pieces:
+        return ()
+    first = np.cumsum([0] + [len(t.pieces) for t in tiles])
+    points = np.concatenate([t.edge_points_mm.reshape(-1, 3) for t in tiles])
+    owner = np.concatenate([np.asarray(t.edge_pieces, np.int64) + first[k] for k, t in enumerate(tiles)])
+    pairs = cKDTree(points).query_pairs(link_mm, output_type="ndarray") if len(points) else np.zeros((0, 2), int)
+    upper = np.array([p.side == "upper" for p in pieces])
+    a, b = owner[pairs[:, 0]], owner[pairs[:, 1]]
+    same = upper[a] == upper[b]
+    n, label = connected_components(coo_matrix((np.ones(int(same.sum())), (a[same], b[same])),
+                                               shape=(len(pieces), len(pieces))), directed=False)
+    whole: dict[int, AreaPiece] = {}
+    for piece, c in zip(pieces, label.tolist(), strict=True):
+        whole[c] = piece if c not in whole else whole[c].joined(piece)
+    return areas_of(list(whole.values()), min_area_mm2)
 
 
 #: the report sample's points an :class:`UncertaintyField` keeps (an even thinning beyond it): U is smooth over the
@@ -321,6 +491,15 @@ def write_cad(store: str | Path, surface: CadSurface) -> str:
 
 
 @dataclass(frozen=True)
+class WholeCloud:
+    """What :meth:`TiledInspection.inspect` found of every point of the cloud: the report's deviation figures and
+    the deviation areas beyond the bounds it was given (none where it was given none)."""
+
+    figures: DeviationFigures
+    areas: tuple[DeviationArea, ...]
+
+
+@dataclass(frozen=True)
 class TiledInspection:
     """A job's cloud merged by tiles (``tiles.TiledCloud``'s ``tiles`` in the scan store ``store``) as the inspection
     takes it beside the report's sample (module doc): :meth:`inspect` runs on ``backend``."""
@@ -329,14 +508,20 @@ class TiledInspection:
     store: str
     backend: ComputeBackend
 
+    @property
+    def points(self) -> int:
+        """The cloud's points (voxels), those of the reference spheres included."""
+        return sum(t.voxels for t in self.tiles)
+
     def inspect(self, surface: CadSurface, T_F_W: np.ndarray, band_mm: tuple[float, float],
-                uncertainty: UncertaintyField | None, left_out: Sequence[tuple[np.ndarray, float]], ply: Path
-                ) -> DeviationFigures:
+                uncertainty: UncertaintyField | None, left_out: Sequence[tuple[np.ndarray, float]], ply: Path,
+                areas: AreaBounds | None = None) -> WholeCloud:
         """Every tile placed in F by ``T_F_W`` (4x4, mm) and compared with ``surface`` (the CAD as the inspection
         oriented it: its ``reversed`` triangles) on the backend, each point with the U of ``uncertainty``'s nearest
         (None: no U), the points in the balls ``left_out`` ((centre W mm, radius mm): the reference spheres) left
-        out: the deviation figures of the whole cloud in the band ``band_mm`` (lower, upper, mm) and ``ply``, the
-        deviation PLY, streamed; the units' files removed after."""
+        out: the deviation figures of the whole cloud in the band ``band_mm`` (lower, upper, mm), its deviation
+        areas beyond ``areas`` (:func:`tile_areas`; None: none sought) and ``ply``, the deviation PLY, streamed; the
+        units' files removed after."""
         lower, upper = band_mm
         cad = write_cad(self.store, surface)
         field = "" if uncertainty is None else uncertainty.write(self.store)
@@ -346,9 +531,10 @@ class TiledInspection:
             inspected = inspect_tiles(self.tiles, self.store, Path(self.store) / cad, T_F_W, lower, upper,
                                       self.backend, surface.reversed, "mm", sample)
             figures = deviation_figures(self.store, inspected, lower, upper)
+            found = () if areas is None else tile_areas(inspected, self.store, T_F_W, areas, self.backend)
             write_deviation_ply(ply, self.store, inspected)
         finally:
             for file in (cad, field, *(t.file for t in inspected)):
                 if file:
                     (Path(self.store) / file).unlink(missing_ok=True)
-        return figures
+        return WholeCloud(figures, found)

@@ -83,24 +83,37 @@ def averaged_uncertainty(u: PointUncertainty, points_averaged: float) -> np.ndar
     return u.k * np.sqrt(systematic + u.noise_variance_mm2 / max(points_averaged, 1.0))
 
 
-def _points_averaged(points_mm: np.ndarray, radius_mm: float) -> float:
-    """Median number of points within ``radius_mm`` of a point (at most ``NEIGHBOURS``), on a sample of 2000."""
+def _points_averaged(points_mm: np.ndarray, radius_mm: float, cloud_points: int | None = None) -> float:
+    """Median number of points within ``radius_mm`` of a point (at most ``NEIGHBOURS``), on a sample of 2000, of a
+    cloud of ``cloud_points`` points that ``points_mm`` is an even thinning of (None: the points themselves)."""
     sample = points_mm[:: max(1, len(points_mm) // 2000)]
     tree = cKDTree(points_mm[:: max(1, len(points_mm) // 200_000)])
-    thin = len(points_mm) / tree.n
+    thin = (len(points_mm) if cloud_points is None else cloud_points) / tree.n
     counts = np.array([len(h) for h in tree.query_ball_point(sample, radius_mm, workers=-1)]) * thin
     return float(min(NEIGHBOURS, np.median(counts)))
 
 
-def judge(result: InspectionResult, u: PointUncertainty, criteria: InspectionCriteria,
-          context: VerdictContext | None = None) -> InspectionResult:
-    """``result`` with its deviation areas decided (``decision``, ``uncertainty_mm``, ``reason``) and its
-    :class:`Judgement` (module doc)."""
-    context = context or VerdictContext()
+@dataclass(frozen=True)
+class AreaSearch:
+    """Where the verdict seeks the deviation areas (module doc): beyond ``[lower_mm, upper_mm]`` (mm: the band
+    shrunk by ``guard_mm``, the 95th percentile of the averaged U; widened by it where 2U leaves no room, ``no_room``;
+    the band itself under simple acceptance), and each inspected point's averaged U (``averaged_mm``, mm)."""
+
+    lower_mm: float
+    upper_mm: float
+    guard_mm: float
+    no_room: bool
+    averaged_mm: np.ndarray = field(repr=False)
+
+
+def area_search(points_mm: np.ndarray, u: PointUncertainty, criteria: InspectionCriteria,
+                cloud_points: int | None = None) -> AreaSearch:
+    """:class:`AreaSearch` of the inspected points ``points_mm`` (F, mm) with their uncertainty ``u``; the points
+    averaged over ``area_smoothing_mm`` counted at the density of a cloud of ``cloud_points`` that they are an even
+    sample of (None: they are the cloud)."""
     rule = criteria.rule
     band = Tolerance(criteria.tolerance_lower_mm, criteria.tolerance_upper_mm)
-    p = result.points_mm
-    area_u = averaged_uncertainty(u, _points_averaged(p, criteria.area_smoothing_mm))
+    area_u = averaged_uncertainty(u, _points_averaged(points_mm, criteria.area_smoothing_mm, cloud_points))
     guard = float(np.percentile(area_u, 95)) if len(area_u) else 0.0
     no_room = rule.name == "iso14253-1" and 2.0 * guard >= band.width
     if rule.name == "simple":
@@ -109,9 +122,32 @@ def judge(result: InspectionResult, u: PointUncertainty, criteria: InspectionCri
         lo, hi = band.lower - guard, band.upper + guard
     else:
         lo, hi = band.lower + guard, band.upper - guard
+    return AreaSearch(lo, hi, guard, no_room, area_u)
+
+
+@dataclass(frozen=True)
+class CloudAreas:
+    """The deviation areas of a whole cloud that the inspected points are an even sample of, found at ``search``
+    (the tiled inspection, every point: docs/compute.md "Tiles")."""
+
+    search: AreaSearch
+    areas: tuple[DeviationArea, ...]
+
+
+def judge(result: InspectionResult, u: PointUncertainty, criteria: InspectionCriteria,
+          context: VerdictContext | None = None, whole: CloudAreas | None = None) -> InspectionResult:
+    """``result`` with its deviation areas decided (``decision``, ``uncertainty_mm``, ``reason``) and its
+    :class:`Judgement` (module doc). ``whole``: the areas of the whole cloud ``result`` is a sample of, found at
+    :func:`area_search` of the sample at the whole cloud's density (else the areas are the result's own)."""
+    context = context or VerdictContext()
+    rule = criteria.rule
+    band = Tolerance(criteria.tolerance_lower_mm, criteria.tolerance_upper_mm)
+    p = result.points_mm
+    search = area_search(p, u, criteria) if whole is None else whole.search
+    lo, hi, area_u, no_room = search.lower_mm, search.upper_mm, search.averaged_mm, search.no_room
     same = (lo, hi) == (criteria.tolerance_lower_mm, criteria.tolerance_upper_mm)  # the areas found already
-    found = result.areas if same else find_deviation_areas(  # on the inspection's tree and screening
-        result.deviation_cloud, lo, hi, criteria.area_smoothing_mm, criteria.area_min_mm2)
+    found = whole.areas if whole is not None else result.areas if same else find_deviation_areas(
+        result.deviation_cloud, lo, hi, criteria.area_smoothing_mm, criteria.area_min_mm2)  # on its tree, screening
     step = max(1, len(p) // 500_000)
     tree = cKDTree(p[::step]) if found else None
     areas = []

@@ -130,7 +130,7 @@ def test_the_tiles_leave_out_the_points_the_samples_alignment_left_out(job, tmp_
     centre = points[len(points) // 2]  # a ball across the sheet, reaching into two or three tiles
     surface = CadSurface(cad_mesh())
     figures = TiledInspection(tiles.tiles, tiles.store, LocalBackend()).inspect(
-        surface, T_F_W, (-0.1, 0.1), None, [(centre, 30.0)], tmp_path / "deviation.ply")
+        surface, T_F_W, (-0.1, 0.1), None, [(centre, 30.0)], tmp_path / "deviation.ply").figures
     outside = np.linalg.norm(points - centre, axis=1) > 30.0
     assert 0.05 < 1 - outside.mean() < 0.5
     d = surface.closest(transform_points(T_F_W, points[outside])).signed_mm
