@@ -371,24 +371,31 @@ def find_tile_areas(unit: AreaTile) -> TileAreas:
                      float(nearest.max()) if len(nearest) else 0.0)
 
 
+def area_units(tiles: Sequence[TileDeviations], store: str | Path, T_F_W: np.ndarray, bounds: AreaBounds,
+               link_mm: float) -> list[AreaTile]:
+    """One :class:`AreaTile` a tile with points, its halo the tiles whose points' x comes within
+    :data:`HALO_SMOOTHINGS` smoothing radii of its own; screened where all the tiles hold more than
+    ``deviation_areas.THIN_ABOVE_POINTS`` points (as the untiled cloud would be)."""
+    inspected = [t for t in tiles if t.count]
+    screen = sum(t.count for t in inspected) > THIN_ABOVE_POINTS
+    reach = HALO_SMOOTHINGS * bounds.smoothing_mm
+    return [AreaTile(t.index, t.file, (t.x_min_mm, t.x_max_mm),
+                     tuple(o.file for o in inspected[:k] if o.x_max_mm >= t.x_min_mm - reach),
+                     tuple(o.file for o in inspected[k + 1:] if o.x_min_mm <= t.x_max_mm + reach),
+                     str(store), np.asarray(T_F_W, float), bounds, link_mm, screen)
+            for k, t in enumerate(inspected)]
+
+
 def tile_areas(tiles: Sequence[TileDeviations], store: str | Path, T_F_W: np.ndarray, bounds: AreaBounds,
                backend: ComputeBackend) -> tuple[DeviationArea, ...]:
     """The deviation areas of all the tiles' points (F, mm) beyond ``bounds``, as ``find_deviation_areas`` finds
-    them on the untiled cloud: :func:`find_tile_areas` of every tile on ``backend``, the pieces joined across the
-    tiles here (:func:`joined_areas`). The points are linked within one smoothing radius first; where the spacing
-    the tiles report may make the untiled link distance longer (three spacings), the units run again at a bound
-    of it (their spacing's median to the 0.01 mm above)."""
-    inspected = [t for t in tiles if t.count]
-    points = sum(t.count for t in inspected)
-    reach = HALO_SMOOTHINGS * bounds.smoothing_mm
+    them on the untiled cloud: :func:`find_tile_areas` of every tile on ``backend`` (:func:`area_units`), the pieces
+    joined across the tiles here (:func:`joined_areas`). The points are linked within one smoothing radius first;
+    where the spacing the tiles report may make the untiled link distance longer (three spacings), the units run
+    again at a bound of it (their spacing's median to the 0.01 mm above)."""
     link = bounds.smoothing_mm
     while True:
-        units = [AreaTile(
-            t.index, t.file, (t.x_min_mm, t.x_max_mm),
-            tuple(o.file for o in inspected[:k] if o.x_max_mm >= t.x_min_mm - reach),
-            tuple(o.file for o in inspected[k + 1:] if o.x_min_mm <= t.x_max_mm + reach),
-            str(store), np.asarray(T_F_W, float), bounds, link, points > THIN_ABOVE_POINTS)
-            for k, t in enumerate(inspected)]
+        units = area_units(tiles, store, T_F_W, bounds, link)
         found = tuple(backend.map(find_tile_areas, units, [u.key() for u in units]))
         needed = link_distance(_spacing_bound(found), bounds.smoothing_mm)
         if needed <= link:

@@ -20,7 +20,7 @@ import pytest
 from dask.distributed import get_task_stream
 from tandemscan.config.models import ComputeConfig, CorrectionConfig, DeepMergeConfig
 from tandemscan.pipeline.compute import DaskBackend, LazyBackend, LocalBackend, backend_for, process_cpu_seconds
-from tandemscan.pipeline.inspection.tile_inspection import inspect_tiles
+from tandemscan.pipeline.inspection.tile_inspection import AreaBounds, inspect_tiles, tile_areas
 from tandemscan.pipeline.io.raw_scan import read_thinned_scan, write_raw_scan
 from tandemscan.pipeline.registration.correction import (
     CorrectionSettings,
@@ -42,6 +42,8 @@ VOXEL_MM = 1.0
 CFG = CorrectionSettings.from_section(CorrectionConfig(method="icp", min_overlap_points=100, joint=False))
 # the joint refinement (the default): poses from the tracker start, the check pairs registered on the backend
 JOINT = CorrectionSettings.from_section(CorrectionConfig(method="icp", min_overlap_points=100))
+# the tiles' deviation areas: where the noise (0.05 mm a point, about 0.007 averaged) leaves the band
+AREAS = AreaBounds(-0.01, 0.01, 4.0, 50.0)
 
 
 def _free_port() -> int:
@@ -214,6 +216,7 @@ def test_the_tile_stages_on_two_dask_workers_give_the_local_result(cluster, tmp_
     local_cloud = concatenated(tmp_path, local)
     local_inspected = inspect_tiles(local, tmp_path, mesh_file, T_F_W, -0.08, 0.08, LocalBackend())
     local_deviations = _deviations(tmp_path, local_inspected)
+    local_areas = tile_areas(local_inspected, tmp_path, T_F_W, AREAS, LocalBackend())
     shutil.rmtree(tmp_path / "tiles")  # the workers write their own
     backend = DaskBackend(address)
     try:
@@ -221,6 +224,7 @@ def test_the_tile_stages_on_two_dask_workers_give_the_local_result(cluster, tmp_
         with get_task_stream(backend.client) as stream:
             remote = merge_tiles(refs, VOXEL_MM, TILE_MM, tmp_path, backend)
             remote_inspected = inspect_tiles(remote, tmp_path, mesh_file, T_F_W, -0.08, 0.08, backend)
+            remote_areas = tile_areas(remote_inspected, tmp_path, T_F_W, AREAS, backend)
     finally:
         backend.close()
     assert remote == local  # the same tiles, files and voxel counts
@@ -230,6 +234,7 @@ def test_the_tile_stages_on_two_dask_workers_give_the_local_result(cluster, tmp_
         (t.count, t.mean_mm, t.below, t.above) for t in local_inspected]
     for a, b in zip(_deviations(tmp_path, remote_inspected), local_deviations, strict=True):
         np.testing.assert_array_equal(a, b)
+    assert local_areas and remote_areas == local_areas  # the deviation areas, joined across the tiles
     assert len({task["worker"] for task in stream.data}) == 2  # both workers merged or inspected tiles
 
 

@@ -20,10 +20,14 @@ import open3d as o3d
 import pytest
 from tandemscan.pipeline.compute import LocalBackend
 from tandemscan.pipeline.inspection.tile_inspection import (
+    AreaBounds,
     InspectTile,
+    area_units,
     deviation_figures,
+    find_tile_areas,
     inspect_tile,
     inspect_tiles,
+    tile_areas,
     write_deviation_ply,
 )
 from tandemscan.pipeline.stitching.tiles import (
@@ -43,6 +47,8 @@ GROWTH = 1.15
 #: what a unit may send back to the process that finishes the job, pickled as Dask sends it (a tile's
 #: deviation histogram is 32 KB; the largest tile's points alone, even on this small sheet, are more)
 RESULT_BYTES = 40 * 1024
+#: the deviation areas the tiles' units seek: the noise's own (0.05 mm a point, 0.007 averaged), linked and joined
+AREAS = AreaBounds(-0.01, 0.01, 4.0, 50.0)
 
 
 def long_cad(path: Path) -> Path:
@@ -95,15 +101,21 @@ def parts(tmp_path_factory):
         backend = PickledResults()
         tiles = merge_tiles(refs, VOXEL_MM, TILE_MM, store, backend)
         inspected = inspect_tiles(tiles, store, cad, T_F_W, -0.1, 0.1, backend)
+        tile_areas(inspected, store, T_F_W, AREAS, backend)
         out[scans] = store, cad, refs, tiles, inspected, backend
     return out
 
 
 def _unit_peaks(part, stage: str, scratch: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Per unit of ``stage`` ("place", "merge" or "inspect"): what its memory grows with (the scan's voxels, for
-    placing a scan; the voxels of its tile's shards, for the merge; its tile's voxels, for the inspection) and its
-    traced peak (bytes). The merge's units run again in ``scratch`` (the part's scans copied there)."""
-    store, cad, refs, tiles, _, _ = part
+    """Per unit of ``stage`` ("place", "merge", "inspect" or "areas"): what its memory grows with (the scan's voxels,
+    for placing a scan; the voxels of its tile's shards, for the merge; its tile's voxels, for the inspection and its
+    areas) and its traced peak (bytes). The merge's units run again in ``scratch`` (the part's scans copied
+    there)."""
+    store, cad, refs, tiles, inspected, _ = part
+    if stage == "areas":
+        units = area_units(inspected, store, T_F_W, AREAS, AREAS.smoothing_mm)
+        return (np.array([t.count for t in inspected], float),
+                np.array([traced_peak_bytes(lambda u=u: find_tile_areas(u)) for u in units], float))
     if stage in ("place", "merge"):
         shutil.copytree(store / "scans", scratch / "scans")
         grid = TileGrid.over(refs, VOXEL_MM, TILE_MM)
@@ -133,7 +145,7 @@ def test_a_scan_is_placed_in_its_scans_memory_not_the_parts(parts, tmp_path):
     assert peak_long.max() <= GROWTH * peak.max(), (peak, peak_long)
 
 
-@pytest.mark.parametrize("stage", ["merge", "inspect"])
+@pytest.mark.parametrize("stage", ["merge", "inspect", "areas"])
 def test_a_tile_units_memory_is_its_tiles_not_the_parts(parts, stage, tmp_path):
     """A unit's peak is a constant and a share of what its tile holds, as fitted on the smaller part: the same on
     the part twice as long (within 15 %), whose units a whole-part memory would make larger."""
@@ -160,7 +172,7 @@ def test_the_streamed_outputs_hold_a_tile_not_the_cloud(parts, tmp_path):
 
 def test_the_units_send_back_summaries_not_points(parts):
     for scans, (store, _, _, tiles, inspected, backend) in parts.items():
-        assert len(backend.result_bytes) == scans + 2 * len(tiles)  # a unit a scan placed, a tile merged and inspected
+        assert len(backend.result_bytes) == scans + 3 * len(tiles)  # a scan placed, a tile merged, inspected, its areas
         assert max(backend.result_bytes) <= RESULT_BYTES, (scans, max(backend.result_bytes))
         assert max(t.voxels for t in tiles) * 3 * 8 > RESULT_BYTES  # the largest tile's points would not pass
         assert deviation_figures(store, inspected, -0.1, 0.1).stats.count == sum(t.voxels for t in tiles)
