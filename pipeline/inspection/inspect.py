@@ -594,9 +594,11 @@ def inspect_cloud(
     mesh: o3d.geometry.TriangleMesh | CadSurface,
     criteria: InspectionCriteria,
     closest: ClosestPoints | None = None,
+    find_areas: bool = True,
 ) -> InspectionResult:
     """Deviation of a measured cloud (frame F, mm) from the CAD mesh, by ``criteria`` (tolerance, regions, fit);
-    ``closest``: the CAD surface's closest points to the cloud where the caller has them (``CadSurface.closest``)."""
+    ``closest``: the CAD surface's closest points to the cloud where the caller has them (``CadSurface.closest``);
+    ``find_areas`` False: no deviation areas sought (a sample of a tiled cloud, whose areas the tiles find)."""
     p = as_points(points_mm)
     surface = mesh if isinstance(mesh, CadSurface) else CadSurface(mesh)
     closest = surface.closest(p) if closest is None else closest
@@ -612,7 +614,8 @@ def inspect_cloud(
         stats = DeviationStats.of(d)
         tol = ToleranceResult.of(d, lo, hi)
         assert stats is not None and tol is not None  # p has at least one point
-        areas = find_deviation_areas(cloud, lo, hi, criteria.area_smoothing_mm, criteria.area_min_mm2)
+        areas = (find_deviation_areas(cloud, lo, hi, criteria.area_smoothing_mm, criteria.area_min_mm2)
+                 if find_areas else ())
         fit, note = fit.result() if fit is not None else (None, "")
     log.info(
         "inspected %d points: mean %.4f mm, sigma %.4f mm, %.1f %% in tolerance, %d areas beyond it",

@@ -160,7 +160,7 @@ def run_inspection(measured: Measurement, part: InspectedPart, settings: Inspect
         u_of_points = pool.submit((measured.uncertainty or GivenUncertainty(0.0)).evaluate, p, closest.normals,
                                   criteria.decision_k, placed.T_F_W, placed.method,
                                   None if placed.excluded is None else ~placed.excluded, alignment_covariance(placed))
-        result = inspect_cloud(p, surface, criteria, closest)
+        result = inspect_cloud(p, surface, criteria, closest, find_areas=whole is None)  # else the tiles find them
         u = u_of_points.result()
     if measured.uncertainty is None:
         u = dataclasses.replace(u, notes=u.notes | {"cloud": "the cloud states no uncertainty: U = 0"})
