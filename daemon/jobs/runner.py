@@ -90,6 +90,7 @@ from tandemscan.drivers.interfaces import ChassisPose, TrackerReading
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.kinematics import ArmKinematics
 from tandemscan.pipeline.geometry.part import load_part_mesh
+from tandemscan.pipeline.io.raw_scan import remove_thinned_copies
 from tandemscan.pipeline.job_report import REPORT_FILE, JobHistory, JobReport
 from tandemscan.pipeline.planning.plan import MoveArm, MoveLift, MoveMeasure, MoveTracker, Plan, Scan
 from tandemscan.pipeline.stitching.relocalise import Relocaliser
@@ -199,7 +200,15 @@ class JobRunner:
         return await read_at_rest(self.cell.tracker, self.config.tracker.samples_per_reading, self.config.tracker)
 
     async def run(self) -> JobResult:
-        """Execute every step, then stitch and export. Raises :class:`JobError` on failure."""
+        """Execute every step, then stitch and export. Raises :class:`JobError` on failure. The scans' thinned
+        copies kept beside them for the end of the job (``raw_scan.keep_thinned_copy``) are removed when it ends,
+        done, failed or cancelled."""
+        try:
+            return await self._run()
+        finally:
+            remove_thinned_copies(self.job_dir)
+
+    async def _run(self) -> JobResult:
         started = time.monotonic()
         (self.job_dir / "scans").mkdir(parents=True, exist_ok=True)
         total = len(self.plan.steps) + 1

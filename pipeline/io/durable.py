@@ -1,7 +1,8 @@
 """Durable file writes: what is on disk after a crash is the old file or the whole new one, never half of one.
 
 The writer goes to ``<name>.part``, is flushed and fsynced, renamed over ``<name>``, and the folder is fsynced so
-the rename survives a power cut (the job journal's rule for scans and artifacts, ``docs/daemon.md``).
+the rename survives a power cut (the job journal's rule for scans and artifacts, ``docs/daemon.md``). Scratch files
+that a resumed job makes again (:func:`write_replacing`) are renamed into place without the fsyncs.
 """
 
 from __future__ import annotations
@@ -36,3 +37,14 @@ def write_durably(path: Path, write: Callable[[BinaryIO], object]) -> int:
     os.replace(tmp, path)
     fsync_dir(path.parent)
     return size
+
+
+def write_replacing(path: Path, write: Callable[[BinaryIO], object]) -> None:
+    """Write ``path`` through ``write(binary file)`` to a temporary name and rename it: readers see the whole file
+    or none. Not fsynced: for scratch files that a job resumed after a crash writes again."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".part")
+    with open(tmp, "wb") as f:
+        write(f)
+    os.replace(tmp, path)

@@ -9,10 +9,11 @@ the journal commits the scan (``docs/daemon.md``, how a job survives a crash).
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
-from tandemscan.pipeline.io.durable import write_durably
+from tandemscan.pipeline.io.durable import write_durably, write_replacing
 from tandemscan.pipeline.registration.sampling import voxel_downsample
 
 _FLOAT32_ARRAYS = ("points_S_mm", "normals_S")  # stored as float32 (mm, unit vectors)
@@ -51,10 +52,49 @@ def read_thinned_scan(path: Path | str, voxel_mm: float) -> np.ndarray:
     ``voxel_mm`` (float64; ``registration.sampling.voxel_downsample``, which leaves them as they are): the
     small copy the end of a job keeps of a scan (docs/end-of-job.md). Where that would
     not halve the scan (a coarse scan, points over a voxel apart) the scan itself is returned (float32, as
-    stored): it is hardly larger, and a thinning at a coarser voxel of it is that of the scan."""
+    stored): it is hardly larger, and a thinning at a coarser voxel of it is that of the scan. Read from the copy
+    kept beside the job's scans (:func:`keep_thinned_copy`) where there is one of this file at ``voxel_mm``."""
+    kept = _kept_copy(Path(path), voxel_mm)
+    if kept is not None:
+        return kept
     with np.load(path) as data:
         points = data["points_S_mm"]  # the normals stay on disk
     return thin_scan(points, voxel_mm)
+
+
+#: the folder beside a job's ``scans/`` that holds their thinned copies while the job runs (:func:`keep_thinned_copy`)
+THINNED_FOLDER = "thinned"
+
+
+def keep_thinned_copy(path: Path | str, copy: np.ndarray, voxel_mm: float) -> None:
+    """Keep ``copy``, :func:`thin_scan` at ``voxel_mm`` of the raw scan file ``path`` (written), in the job's
+    :data:`THINNED_FOLDER` (``<job>/thinned/<file name>``), with the file's size and modification time:
+    :func:`read_thinned_scan` of that file reads it there instead of the raw scan. For the end of a job whose
+    workers read the scans from the scan store (docs/compute.md); the job removes the folder when it ends
+    (:func:`remove_thinned_copies`), and a resumed job keeps the copies again as it rebuilds its map."""
+    path = Path(path)
+    stat = np.array([path.stat().st_size, path.stat().st_mtime_ns], np.int64)
+    write_replacing(path.parent.parent / THINNED_FOLDER / path.name, lambda f: np.savez(
+        f, points_S_mm=copy, voxel_mm=np.float64(voxel_mm), raw_size_mtime_ns=stat))
+
+
+def _kept_copy(path: Path, voxel_mm: float) -> np.ndarray | None:
+    """The copy :func:`keep_thinned_copy` kept of the raw scan file ``path`` at ``voxel_mm``, or None (none kept,
+    another voxel, or the file changed since)."""
+    try:
+        with np.load(path.parent.parent / THINNED_FOLDER / path.name) as data:
+            stat = path.stat()
+            if (float(data["voxel_mm"]) == voxel_mm
+                    and data["raw_size_mtime_ns"].tolist() == [stat.st_size, stat.st_mtime_ns]):
+                return data["points_S_mm"]
+    except FileNotFoundError:
+        pass
+    return None
+
+
+def remove_thinned_copies(job_dir: Path | str) -> None:
+    """Remove the job's :data:`THINNED_FOLDER` (``job_dir``: the job folder that holds its ``scans/``)."""
+    shutil.rmtree(Path(job_dir) / THINNED_FOLDER, ignore_errors=True)
 
 
 def thin_scan(points_S: np.ndarray, voxel_mm: float) -> np.ndarray:

@@ -31,7 +31,6 @@ from __future__ import annotations
 import functools
 import hashlib
 import math
-import os
 import shutil
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -40,7 +39,7 @@ from pathlib import Path
 import numpy as np
 from tandemscan.pipeline.compute import ComputeBackend
 from tandemscan.pipeline.geometry.frames import transform_points
-from tandemscan.pipeline.io.durable import write_durably
+from tandemscan.pipeline.io.durable import write_durably, write_replacing
 from tandemscan.pipeline.io.export import PlyChunk, write_ply_streamed
 from tandemscan.pipeline.io.raw_scan import read_raw_scan
 from tandemscan.pipeline.stitching.worldmap import ScanVoxels, VoxelMap
@@ -212,19 +211,10 @@ def place_scan(unit: PlaceScan) -> tuple[TileShard, ...]:
     for k, cut in enumerate(voxels.x_cut(grid.x_edges)):
         if len(cut):
             file = f"{unit.folder}/{unit.order:05d}-{k:05d}.npz"
-            _write_scratch(Path(unit.store) / file, keys=cut.keys, sums=cut.sums, counts=cut.counts)
+            write_replacing(Path(unit.store) / file, functools.partial(  # the job's end places its scans again
+                _save_arrays, keys=cut.keys, sums=cut.sums, counts=cut.counts))
             shards.append(TileShard(k, file, len(cut)))
     return tuple(shards)
-
-
-def _write_scratch(path: Path, **arrays: np.ndarray) -> None:
-    """``arrays`` to ``path`` (``.npz``) through a temporary name: a reader sees the whole file or none. Not
-    fsynced: a shard lives only until its tile is written, and a job resumed after a crash places its scans again."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".part")
-    with open(tmp, "wb") as f:
-        np.savez(f, **arrays)
-    os.replace(tmp, path)
 
 
 def tile_units(placed: Sequence[Sequence[TileShard]], grid: TileGrid, store: str) -> list[MergeTile]:
@@ -254,14 +244,14 @@ def merge_tile(unit: MergeTile) -> TileCloud:
         cloud = worldmap.frozen()
         del worldmap
         write_durably(store / file, functools.partial(
-            _save_cloud, points=cloud.points(), normals=cloud.normals(), counts=np.asarray(cloud.counts(), np.int64)))
+            _save_arrays, points=cloud.points(), normals=cloud.normals(), counts=np.asarray(cloud.counts(), np.int64)))
         voxels = len(cloud)
     for shard in unit.shards:
         (store / shard).unlink(missing_ok=True)
     return TileCloud(unit.index, file, voxels)
 
 
-def _save_cloud(f, **arrays: np.ndarray) -> None:
+def _save_arrays(f, **arrays: np.ndarray) -> None:
     np.savez(f, **arrays)
 
 

@@ -16,6 +16,7 @@ from job_reports import report_with_ground_truth
 from tandemscan.daemon.cell.session import CellSession
 from tandemscan.daemon.jobs.runner import JobRunner
 from tandemscan.daemon.plans import default_plan_path
+from tandemscan.pipeline.io.raw_scan import THINNED_FOLDER
 from tandemscan.pipeline.job_report import REPORT_FILE, JobHistory, JobReport, write_job_report
 from tandemscan.pipeline.planning.plan import Plan, Scan
 from tandemscan.sim_drivers.cell import with_surveyed_mounts
@@ -53,9 +54,11 @@ def count_reads_in_child_processes(folder: Path, monkeypatch) -> Callable[[], Co
     return lambda: Counter(log.read_text(encoding="utf-8").split())
 
 
-@pytest.mark.parametrize("tile_mm", [0.0, 20.0], ids=["one-map", "tiles"])
+@pytest.mark.parametrize(("backend", "tile_mm"), [("local", 0.0), ("local", 20.0),
+                                                  pytest.param("dask", 20.0, marks=pytest.mark.slow)],
+                         ids=["one-map", "tiles", "dask-tiles"])
 async def test_a_job_writes_report_json_once_and_reads_each_scan_file_at_most_twice(sim_config, tmp_path,
-                                                                                      monkeypatch, tile_mm,
+                                                                                      monkeypatch, backend, tile_mm,
                                                                                       scan_reads):
     """A two-scan band job on the simulated cell with a journal's history: report.json does not exist before the
     one writer's call, is written by it once, and nothing writes it after; it holds the journal's resumes and reads
@@ -66,7 +69,11 @@ async def test_a_job_writes_report_json_once_and_reads_each_scan_file_at_most_tw
     are made from the scan's arrays, the pair worker is handed the copy, the tracker stitch's score takes the map
     stitched while measuring. Merged by tiles of 20 mm (``[compute] tile_mm``: each scan reaches about twenty), the
     same: each scan is read once and cut into its tiles' shards (``tiles.place_scan``), and only the tiles are left
-    until the exports have read them."""
+    until the exports have read them. On the dask backend (a ``LocalCluster`` of one worker) too: the workers'
+    correction and check pairs read the thinned copies the map's process kept beside the scans
+    (``raw_scan.keep_thinned_copy``, removed when the job ends), the workers place each scan once; this process
+    reads each scan once, for the simulator's score of the tracker stitch alone (no map was stitched while
+    measuring there)."""
     from tandemscan.daemon.jobs import finish
     from tandemscan.pipeline.stitching import tiles
 
@@ -101,8 +108,9 @@ async def test_a_job_writes_report_json_once_and_reads_each_scan_file_at_most_tw
     plan = Plan.load(default_plan_path())
     scans = [i for i, s in enumerate(plan.steps) if isinstance(s, Scan)]
     plan = plan.model_copy(update={"steps": plan.steps[: scans[1] + 1]})  # the first two scans only
+    compute = sim_config.compute.model_copy(update={"tile_mm": tile_mm, "backend": backend, "dask_workers": 1})
     config = sim_config.model_copy(update={"inspection": sim_config.inspection.model_copy(update={"in_job": False}),
-                                           "compute": sim_config.compute.model_copy(update={"tile_mm": tile_mm})})
+                                           "compute": compute})
     history = JobHistory(({"step": scans[1], "kind": "scan", "fresh_reading": True},), 2)
 
     async def journal_history() -> JobHistory:
@@ -125,9 +133,14 @@ async def test_a_job_writes_report_json_once_and_reads_each_scan_file_at_most_tw
     assert full == report_with_ground_truth(result.job_dir)
     assert full["scans"] == 2 and full["correction"]["enabled"] and "before" in full["correction"]
     assert full["ground_truth"]["pose_err_mm_median"] > 0 and full["ground_truth"]["scoring_s"] >= 0
-    assert scan_reads + child_reads() == {entry["file"]: 2 for entry in doc["scan_log"]}
-    assert len(tiles_reached) == (2 if tile_mm else 0) and all(n >= 5 for n in tiles_reached)  # scans span tiles
+    files = [entry["file"] for entry in doc["scan_log"]]
+    if backend == "dask":  # the product's reads in the workers and the E57's process; here the observer's alone
+        assert child_reads() == dict.fromkeys(files, 2) and scan_reads == dict.fromkeys(files, 1)
+    else:
+        assert scan_reads + child_reads() == dict.fromkeys(files, 2)
+        assert len(tiles_reached) == (2 if tile_mm else 0) and all(n >= 5 for n in tiles_reached)  # scans span tiles
     assert not (result.job_dir / "tiles").exists() or not list((result.job_dir / "tiles").iterdir())
+    assert not (result.job_dir / THINNED_FOLDER).exists()
     # the pair worker's copies are the end of the job's: its pairs are taken from the cache by their keys
     c = doc["correction"]
     assert c["pairs"] >= 1 and c["pairs_registered_while_measuring"] >= c["pairs"] + len(c["pairs_dropped"])
