@@ -273,9 +273,10 @@ def _percentiles(store: str | Path, tiles: Sequence[TileDeviations], n: int, qs:
 
 
 #: a tile's halo reaches this many smoothing radii beyond its points' x (W): each of its points has its neighbours
-#: within the smoothing radius, and its nearest (the point spacing, the surface share) within twice it, as the
+#: within the smoothing radius and its nearest (the point spacing, the surface share) within three, and so has every
+#: screening point within a screening cube's diagonal of it (1.3 radii: ``deviation_areas._screened``), as the
 #: untiled cloud has them
-HALO_SMOOTHINGS = 2.0
+HALO_SMOOTHINGS = 3.0
 #: the edges (mm) of the nearest-neighbour distances' histogram each tile's areas return (0.01 mm bins): the point
 #: spacing the areas are linked by (``deviation_areas.link_distance``) is bounded from it
 SPACING_EDGES_MM = np.linspace(0.0, 20.0, 2001)

@@ -164,3 +164,47 @@ def test_a_small_dent_the_reports_sample_misses_is_an_area_of_the_tiled_cloud(tm
     assert area.side == "lower" and area.decision == "nonconforming"
     assert np.linalg.norm(np.subtract(area.centroid_mm[:2], dent)) < 1.0
     assert area.extreme_mm < -0.3 and area.area_mm2 > 50.0
+
+
+def test_screened_tiled_areas_are_the_screened_untiled_clouds(straddling, tmp_path, monkeypatch):
+    """Where the whole cloud is large enough to be screened (here: the threshold lowered), each tile screens its
+    points with its halo: the areas of the untiled cloud screened."""
+    cloud, _ = straddling
+    points_F = transform_points(T_F_W, cloud.points())
+    d = CadSurface(cad_mesh()).closest(points_F).signed_mm
+    untiled = find_deviation_areas(DeviationCloud(points_F, d), -0.1, 0.1, 4.0, 50.0, screen=True)
+    monkeypatch.setattr(tile_inspection, "THIN_ABOVE_POINTS", len(points_F) - 1)
+    units = []
+    area_units = tile_inspection.area_units
+    monkeypatch.setattr(tile_inspection, "area_units", lambda *a: units.append(area_units(*a)) or units[-1])
+    found = TiledInspection(cloud.tiles, cloud.store, LocalBackend()).inspect(
+        CadSurface(cad_mesh()), T_F_W, (-0.1, 0.1), None, (), tmp_path / "deviation.ply",
+        AreaBounds(-0.1, 0.1, 4.0, 50.0)).areas
+    assert all(u.screen for u in units[0]) and len(untiled) == 2
+    _same_areas(found, untiled)
+
+
+def test_on_a_sparse_cloud_the_tiles_link_at_three_spacings(tmp_path, monkeypatch):
+    """A cloud 1.8 mm apart links its areas at three spacings, longer than the smoothing radius (4 mm): the units,
+    run first at the smoothing radius, run again at the bound of the spacing the tiles report (0.01 mm above its
+    median), and find the untiled cloud's areas."""
+    rng = np.random.default_rng(3)
+    x, y = np.meshgrid(np.arange(*X_F_MM, 1.8), np.arange(*Y_F_MM, 1.8), indexing="ij")
+    xy = np.c_[x.ravel(), y.ravel()] + rng.uniform(-0.3, 0.3, (x.size, 2))
+    x_W = _x_W(xy)
+    edges = [float(np.quantile(x_W, 1 / 3)), float(np.quantile(x_W, 2 / 3))]
+    cloud = tiled_part(tmp_path, xy, [(100.0, 0.0, 0.4, 8.0), (180.0, 10.0, -0.4, 8.0)], edges)
+    points_F = transform_points(T_F_W, cloud.points())
+    d = CadSurface(cad_mesh()).closest(points_F).signed_mm
+    whole = DeviationCloud(points_F, d)
+    untiled = find_deviation_areas(whole, -0.1, 0.1, 4.0, 50.0)
+    links = []
+    area_units = tile_inspection.area_units
+    monkeypatch.setattr(tile_inspection, "area_units", lambda *a: links.append(a[-1]) or area_units(*a))
+    found = TiledInspection(cloud.tiles, cloud.store, LocalBackend()).inspect(
+        CadSurface(cad_mesh()), T_F_W, (-0.1, 0.1), None, (), tmp_path / "deviation.ply",
+        AreaBounds(-0.1, 0.1, 4.0, 50.0)).areas
+    spacing = float(np.median(whole.tree.query(points_F, k=2)[0][:, 1]))
+    assert links[0] == 4.0 and 3 * spacing <= links[1] <= 3 * spacing + 0.03 and len(links) == 2
+    assert len(untiled) == 2
+    _same_areas(found, untiled)
