@@ -67,7 +67,7 @@ from tandemscan.pipeline.compute import DaskBackend
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.part import train_nose_mesh
 from tandemscan.pipeline.geometry.raycast import ScannerModel, make_scene
-from tandemscan.pipeline.io.raw_scan import thin_scan, write_raw_scan
+from tandemscan.pipeline.io.raw_scan import remove_thinned_copies, thin_scan, write_raw_scan
 from tandemscan.pipeline.registration.sampling import voxel_centroids
 
 VOXEL_MM = 1.0
@@ -337,6 +337,7 @@ def run_stages(job: Job, part: PartConfig, workers: int, tile_mm: float, e57: bo
     for name in ("cloud.ply", "cloud_deviation.ply", "cloud.e57", "poses.csv", "report.html"):
         (job.folder / name).unlink(missing_ok=True)
     shutil.rmtree(job.folder / "figures", ignore_errors=True)
+    remove_thinned_copies(job.folder)  # what measure() kept for the workers, as the job's runner removes it
     tiles = getattr(cloud, "tiles", ())
     drivers = {"scans": len(job.files), "raw_points": job.raw_points, "voxels": len(cloud), "tiles": len(tiles),
                "tile_voxels_max": max((t.voxels for t in tiles), default=0),
