@@ -12,10 +12,16 @@ rounding of their sums, the 5th and 95th percentiles exactly (a second pass read
 histogram bins that hold those ranks). Equal to the untiled ``inspect.DeviationStats`` and ``ToleranceResult`` to
 1e-9 mm (``tests/pipeline/stitching/test_tiles.py``).
 
-A job's inspection of a tiled cloud (:class:`TiledInspection`, docs/compute.md "Tiles"): the alignment, the deviation
-areas, the verdict, the points' uncertainty U and the report's figures are those of an even sample of the cloud in
-the process that writes the report (``[compute] report_points``); the deviation figures of the whole cloud (count,
-mean, sigma, RMS, extremes, percentiles, tolerance shares) come from every point, tile by tile, and so does
+The deviation areas from every point (:func:`tile_areas`): an :class:`AreaTile` unit a tile reads its deviations and
+its neighbours' within a halo (:data:`HALO_SMOOTHINGS`), links its own points beyond the band and returns their
+sums (``deviation_areas.AreaPiece``) with its linked points near its x ends (:class:`TileAreas`); the pieces are
+joined across the tiles in the process that writes the report (:func:`joined_areas`). Equal to the untiled
+``deviation_areas.find_deviation_areas`` to 1e-9 (``tests/pipeline/inspection/test_tile_areas.py``).
+
+A job's inspection of a tiled cloud (:class:`TiledInspection`, docs/compute.md "Tiles"): the alignment, the points'
+uncertainty U and the pictures are those of an even sample of the cloud in the process that writes the report
+(``[compute] report_points``); the deviation figures of the whole cloud (count, mean, sigma, RMS, extremes,
+percentiles, tolerance shares) and its deviation areas come from every point, tile by tile, and so does
 ``cloud_deviation.ply``, each point with the U of the sample's nearest point (:class:`UncertaintyField`).
 """
 
