@@ -77,6 +77,21 @@ def capture_models() -> list:
     return models
 
 
+def pose_error_factor(poses) -> np.ndarray:
+    """(6n, r) ``G`` with ``G G^T`` the covariance of the job's scans' pose errors jointly (``poses``: its
+    ``PoseCovariance``): the blocks of every pair of scans (``PoseCovariance.scan_errors``) formed whole and
+    factored by their eigendecomposition, so that ``G z`` (``z`` standard normal) draws the errors. Dense: a job of a
+    few hundred scans."""
+    n = len(poses.scan_ids)
+    errors = poses.scan_errors(np.c_[np.triu_indices(n)])
+    full = np.concatenate([errors.covariance(np.full(n, i), np.arange(n)).transpose(1, 0, 2).reshape(6, 6 * n)
+                           for i in range(n)])
+    w, V = np.linalg.eigh(0.5 * (full + full.T))
+    w = np.clip(w, 0.0, None)
+    big = w > 1e-12 * max(float(w.max()), 1e-300)
+    return V[:, big] * np.sqrt(w[big])
+
+
 def monte_carlo(model, surface: CadSurface, p_F: np.ndarray, T_F_W: np.ndarray, draws: int, max_mm: float,
                 rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """(evaluation point indices, their fitted deviations in each of ``draws``: (draws, points) mm)."""
@@ -92,7 +107,7 @@ def monte_carlo(model, surface: CadSurface, p_F: np.ndarray, T_F_W: np.ndarray, 
     n_W = true_W.shape[0]
     noise_sd = np.sqrt(model.noise_sigma_mm**2 * model._ray_cosines_sq(true_W, n_F @ T_F_W[:3, :3], (scans, w))
                        / np.maximum(1.0 if model.counts is None else model.counts[idx], 1.0))
-    G = model.poses.factor("all")
+    G = pose_error_factor(model.poses)
     origins = model.poses.origins_mm
     out = np.empty((draws, len(ev)))
     for d in range(draws):
@@ -145,13 +160,13 @@ def truth_split(model, job, surface: CadSurface, p_F: np.ndarray, d: np.ndarray,
     systematic = np.einsum("ij,ij->i", p - transform_points(invert(T_W_F_true), p_W - moved), n_F)
     predicted = np.clip((UU / 2.0) ** 2 - noise, 0.0, None)
     station = station_of_scan[scans[:, 0]]
-    G = model.poses.factor("all")
+    covariances = model.poses.scan_covariances()
     chi2 = {}
     for r, s in enumerate(model.poses.scan_ids):
         o = model.poses.origins_mm[r]
         t, rv = to_rotvec(from_rotvec(-o, [0, 0, 0]) @ error[s] @ from_rotvec(o, [0, 0, 0]))
-        e, g = np.r_[t, rv], G[6 * r:6 * r + 6]
-        chi2.setdefault(int(station_of_scan[s]), []).append(float(e @ np.linalg.solve(g @ g.T, e)))
+        e = np.r_[t, rv]
+        chi2.setdefault(int(station_of_scan[s]), []).append(float(e @ np.linalg.solve(covariances[r], e)))
     out = {}
     for k in np.unique(station):
         m = station == k

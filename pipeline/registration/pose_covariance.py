@@ -62,16 +62,13 @@ class ScanErrors:
         return {"all": np.ones_like(self.installation), "scan_poses": ~self.installation,
                 "installation": self.installation}[part]
 
-    def covariance(self, a: np.ndarray, b: np.ndarray, part: str = "all") -> np.ndarray:
-        """(K, 6, 6) ``Cov(e_a, e_b)`` from ``part``'s unknowns for scan rows ``a``, ``b`` ((K,) each)."""
+    def covariance(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """(K, 6, 6) ``Cov(e_a, e_b)`` for scan rows ``a``, ``b`` ((K,) each); a part's share of a point's variance:
+        :meth:`variances`."""
         a, b = np.asarray(a, np.int64), np.asarray(b, np.int64)
-        keep = self._keep(part)
-        La, Lb = self.lever[a] * keep, self.lever[b] * keep
-        shared = La @ self.shared @ Lb.transpose(0, 2, 1)
-        if part == "installation":            # the scans' own unknowns and their cross terms are not the mount's
-            return shared
-        Xa, Xb = self.cross[a] * keep, self.cross[b] * keep
-        return self._own(a, b) + Xa @ Lb.transpose(0, 2, 1) + La @ Xb.transpose(0, 2, 1) + shared
+        La, Lb, Xa, Xb = self.lever[a], self.lever[b], self.cross[a], self.cross[b]
+        return (self._own(a, b) + Xa @ Lb.transpose(0, 2, 1) + La @ Xb.transpose(0, 2, 1)
+                + La @ self.shared @ Lb.transpose(0, 2, 1))
 
     def variances(self, rows: np.ndarray, g: np.ndarray) -> dict[str, np.ndarray]:
         """Per part (M,) ``Var(sum_k g_k . e_{rows_k})`` of each point: ``rows`` (M, K) scan rows, ``g`` (M, K, 6)
@@ -256,21 +253,6 @@ class PoseCovariance:
         ("scan_poses")."""
         mount = np.isin(np.arange(self.A.shape[1]), self.installation_columns)
         return {"all": np.ones_like(mount), "installation": mount, "scan_poses": ~mount}[part]
-
-    def factor(self, part: str = "all") -> np.ndarray:
-        """(6n, r) ``G`` with ``G G^T`` the covariance of ``e`` (``part`` "all"), of the mount's share alone
-        ("installation") or of the readings' and transfers' alone ("scan_poses"); cross terms of the parts are in
-        "all" only. Dense: ``C`` whole and its eigendecomposition (a Monte Carlo's draws, ``benchmarks/``: a job
-        of a few hundred scans; the product's paths never form it)."""
-        keep = self._columns(part)
-        if not keep.any():
-            return np.zeros((self.A.shape[0], 0))
-        H_inv = np.linalg.inv(self.normal.toarray())
-        C = self._at_prior(H_inv @ self.information.toarray() @ H_inv, np.arange(len(keep)))[np.ix_(keep, keep)]
-        w, V = np.linalg.eigh(0.5 * (C + C.T))
-        w = np.clip(w, 0.0, None)
-        big = w > 1e-12 * max(float(w.max()), 1e-300)
-        return np.asarray(self.A[:, np.flatnonzero(keep)] @ (V[:, big] * np.sqrt(w[big])))
 
     def with_installation_at_prior(self) -> PoseCovariance:
         """The same with the mount's unknowns at their prior, uncorrelated with the rest: the joint refinement

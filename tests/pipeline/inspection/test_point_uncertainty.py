@@ -74,9 +74,9 @@ def test_first_order_u_agrees_with_monte_carlo_of_the_best_fit():
                                         np.arange(2)), NOISE, None)
     first = m.evaluate(p, n, 2.0, np.eye(4), "best-fit", None, None).expanded_mm
     draws = []
-    L = poses.factor("all")   # L L^T: the two scans' errors' covariance
+    L = np.linalg.cholesky(poses.scan_covariances())   # (2, 6, 6): the two scans' errors are independent
     for _ in range(400):
-        e = (L @ rng.standard_normal(L.shape[1])).reshape(2, 6)
+        e = np.einsum("kij,kj->ki", L, rng.standard_normal((2, 6)))
         q = np.empty_like(p)
         for i in range(2):
             o = poses.origins_mm[i]
@@ -127,14 +127,19 @@ def test_the_chain_covariance_carries_transfers_and_the_mount_to_every_scan_and_
     np.testing.assert_allclose(np.diag(errors.covariance([0], [0])[0])[:3], 0.01 + 4.0, rtol=1e-9)
     np.testing.assert_allclose(np.diag(errors.covariance([1], [1])[0])[:3], 0.01 + 0.25 + 4.0, rtol=1e-3)  # + tilt
     np.testing.assert_allclose(errors.covariance([0], [1])[0][0, 0], 4.0, rtol=1e-9)
-    G = cov.factor("installation")
-    np.testing.assert_allclose((G @ G.T)[0, 0], 4.0, rtol=1e-9)
+    along_x = np.array([[[1.0, 0, 0, 0, 0, 0]]])  # a point's gradient: scan 0's error along x
+
+    def x_variances(c: PoseCovariance) -> dict[str, float]:
+        """Per part, the variance (mm^2) of scan 0's error along x."""
+        return {k: v[0] for k, v in c.scan_errors(np.zeros((0, 2))).variances(np.array([[0]]), along_x).items()}
+
+    assert x_variances(cov)["installation"] == pytest.approx(4.0, rel=1e-9)
+    assert x_variances(cov)["all"] == pytest.approx(0.01 + 4.0, rel=1e-9)
     shrunk = PoseCovariance(cov.scan_ids, cov.origins_mm, cov.A, cov.normal, cov.information * 1e-4, cov.source,
                             cov.installation_columns)
     back = shrunk.with_installation_at_prior()
-    np.testing.assert_allclose((back.factor("installation") @ back.factor("installation").T)[0, 0], 4.0, rtol=1e-9)
-    np.testing.assert_allclose(back.scan_errors(np.zeros((0, 2))).covariance([0], [0], "installation")[0][0, 0],
-                               4.0, rtol=1e-9)
+    assert x_variances(back)["installation"] == pytest.approx(4.0, rel=1e-9)  # the mount at its prior, not shrunk
+    assert x_variances(back)["scan_poses"] == pytest.approx(0.01e-4, rel=1e-6)
     np.testing.assert_allclose(back.scan_covariances()[0][0, 0], 0.01e-4 + 4.0, rtol=1e-9)
     with pytest.raises(ValueError, match="do not fit"):
         PoseCovariance(np.arange(3), cov.origins_mm, cov.A, cov.normal, cov.information, "bad")
@@ -159,7 +164,7 @@ def coupled(cov: PoseCovariance, links: list[tuple[int, int]], seed: int) -> Pos
 
 
 @pytest.mark.parametrize("links", [[], [(0, 1), (1, 2)], [(0, 1)]])
-def test_the_pose_variance_from_covariance_blocks_is_that_of_the_factor(links):
+def test_the_pose_variance_from_covariance_blocks_is_that_of_the_dense_route(links):
     """Three scans on two tracker stations with a transfer and the mount (correlated errors), their covers
     overlapping: each point's pose variance from the blocks of ``PoseCovariance.scan_errors`` (the tracker chain's
     prior, or a posterior whose pairs couple the scans: pairs of scans that share points but no pair are blocks

@@ -58,10 +58,10 @@ def strip(n: int, seed: int) -> tuple[list[JointScan], list[ScanPrior], list[tup
 
 
 def test_the_sparse_posterior_blocks_equal_the_dense_products():
-    """Each scan's posterior, ``PoseCovariance``'s blocks of every part (the scans' own, the pairs asked for beyond
-    the normal matrix's pattern, the shared unknowns'), its products and its ``theta`` sub-blocks equal ``A C A^T``
-    with ``C = H^-1 I H^-1`` formed densely (1e-9 of the entries' scale, the two routes' rounding), the mount's
-    marginal information the dense Schur complement."""
+    """Each scan's posterior, ``PoseCovariance``'s blocks (the scans' own, the pairs asked for beyond the normal
+    matrix's pattern, the shared unknowns'), a point's variance from every part's, its products and its ``theta``
+    sub-blocks equal ``A C A^T`` with ``C = H^-1 I H^-1`` formed densely (1e-9 of the entries' scale, the two routes'
+    rounding), the mount's marginal information the dense Schur complement."""
     scans, priors, pairs, transfers = strip(8, 1)
     mount = MountPrior(np.diag([0.01] * 3 + [1e-6] * 3))
     res = refine_jointly(scans, priors, pairs, [p.T_W_S for p in priors], transfers, mount,
@@ -95,23 +95,31 @@ def test_the_sparse_posterior_blocks_equal_the_dense_products():
             Cp[mount_cols, :] = Cp[:, mount_cols] = 0.0
             Cp[mount_cols, mount_cols] = 1.0
         errors = cov.scan_errors(far)
+        whole = A @ Cp @ A.T
+        sd = np.sqrt(np.diag(whole)).reshape(n, 6)
+        asked = np.r_[far, far[:, ::-1], np.c_[np.arange(n), np.arange(n)]]
+        for i, k in asked:
+            close(errors.covariance([i], [k])[0], whole[6 * i:6 * i + 6, 6 * k:6 * k + 6], sd[i], sd[k])
+        # per part, a point's variance (ScanErrors.variances) over each pair asked for: 100 gradients (more than
+        # the 78 coefficients of a quadratic form of the pair's 12 errors), scaled by the errors' sd
+        rows = np.repeat(asked, 100, axis=0)
+        g = np.random.default_rng(4).standard_normal((len(rows), 2, 6)) / sd[rows]
+        got = errors.variances(rows, g)
         for part, keep in (("all", slice(None)), ("scan_poses", np.setdiff1d(np.arange(len(C)), mount_cols)),
                            ("installation", mount_cols)):
             Ck = np.zeros_like(Cp)
             Ck[np.ix_(np.arange(len(C))[keep], np.arange(len(C))[keep])] = Cp[np.ix_(np.arange(len(C))[keep],
                                                                                    np.arange(len(C))[keep])]
             want = A @ Ck @ A.T
-            sd = np.sqrt(np.diag(want)).reshape(n, 6)
-            for i, k in np.r_[far, far[:, ::-1], np.c_[np.arange(n), np.arange(n)]]:
-                close(errors.covariance([i], [k], part)[0], want[6 * i:6 * i + 6, 6 * k:6 * k + 6], sd[i], sd[k])
+            blocks = want.reshape(n, 6, n, 6).transpose(0, 2, 1, 3)[rows[:, :, None], rows[:, None, :]]
+            dense = np.einsum("mkj,mkljq,mlq->m", g, blocks, g)
+            scale = np.einsum("mkj,mkljq,mlq->m", np.abs(g), np.abs(blocks), np.abs(g))
+            assert np.all(np.abs(got[part] - dense) <= 1e-9 * scale + 1e-300), part
             X = np.random.default_rng(2).standard_normal((6 * n, 6))
-            got, dense = cov.times(X)[part], want @ X
-            assert np.abs(got - dense).max() <= 1e-9 * np.abs(dense).max() + 1e-300
-            if part != "installation":                   # the mount's share needs no pair's blocks
-                with pytest.raises(KeyError):
-                    errors.covariance([0], [n // 2], part)   # not asked for
-        G = cov.factor("all")
-        assert np.abs(G @ G.T - A @ Cp @ A.T).max() < 1e-9 * np.abs(A @ Cp @ A.T).max()
+            got_X, dense_X = cov.times(X)[part], want @ X
+            assert np.abs(got_X - dense_X).max() <= 1e-9 * np.abs(dense_X).max() + 1e-300
+        with pytest.raises(KeyError):
+            errors.covariance([0], [n // 2])   # not asked for
 
     M = sparse.random(60, 60, density=0.1, random_state=3)
     H = (M @ M.T + sparse.identity(60) * 5.0).tocsc()
