@@ -41,7 +41,6 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from tandemscan.pipeline.compute import ComputeBackend
 from tandemscan.pipeline.geometry.frames import invert, rotate_vectors, transform_points
-from tandemscan.pipeline.geometry.part import read_cad_mesh
 from tandemscan.pipeline.inspection.alignment import in_balls
 from tandemscan.pipeline.inspection.deviation_areas import (
     THIN_ABOVE_POINTS,
@@ -66,10 +65,9 @@ HISTOGRAM_EDGES_MM = np.linspace(-20.0, 20.0, 4001)
 @dataclass(frozen=True)
 class InspectTile:
     """One unit of the tiled inspection: the tile ``tile`` of the merged cloud in the scan store ``store``, placed
-    in the CAD frame F by ``T_F_W`` (4x4, mm) and compared with the CAD mesh file ``mesh_file`` (F; its coordinates
-    in ``mesh_units``, read as the job reads its CAD, ``part.read_cad_mesh``: in mm, wound outward; or a ``.npz``
-    of the job's CAD as it took it, :func:`write_cad`; its triangles ``reversed`` wound the other way:
-    ``CadSurface``), the tolerance band ``[lower_mm, upper_mm]``; ``sample``: what the tile takes from the
+    in the CAD frame F by ``T_F_W`` (4x4, mm) and compared with the CAD in ``mesh_file`` (F, mm: a ``.npz`` of the
+    job's CAD as it took it, :func:`write_cad`; its triangles ``reversed`` wound the other way: ``CadSurface``), the
+    tolerance band ``[lower_mm, upper_mm]``; ``sample``: what the tile takes from the
     inspection of the report's sample (:class:`FromSample`; None: nothing)."""
 
     tile: TileCloud
@@ -79,13 +77,12 @@ class InspectTile:
     lower_mm: float
     upper_mm: float
     reversed: np.ndarray | None = None
-    mesh_units: str = "mm"
     sample: FromSample | None = None
 
     def key(self) -> str:
         """The unit's name: everything its deviations depend on."""
         h = hashlib.blake2b(digest_size=16)
-        for text in (self.tile.file, self.mesh_file, self.mesh_units):
+        for text in (self.tile.file, self.mesh_file):
             h.update(text.encode())
         if self.sample is not None:
             h.update(self.sample.uncertainty.encode())
@@ -129,18 +126,14 @@ class TileDeviations:
 
 
 @functools.lru_cache(maxsize=2)
-def _surface(mesh_file: str, units: str, reversed_bits: bytes | None, triangles: int) -> CadSurface:
-    """The CAD surface of ``mesh_file`` (coordinates in ``units``) as the job takes it (``part.read_cad_mesh``: mm,
-    wound outward; a ``.npz``: the job's CAD as it took it, :func:`write_cad`), built once a worker process (the
-    units of a job share it)."""
+def _surface(mesh_file: str, reversed_bits: bytes | None, triangles: int) -> CadSurface:
+    """The CAD surface of ``mesh_file`` (the job's CAD as it took it, :func:`write_cad`), built once a worker process
+    (the units of a job share it)."""
     reversed = None if reversed_bits is None else np.unpackbits(
         np.frombuffer(reversed_bits, np.uint8), count=triangles).astype(bool)
-    if mesh_file.endswith(".npz"):
-        with np.load(mesh_file) as data:
-            mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(data["vertices_mm"]),
-                                             o3d.utility.Vector3iVector(data["triangles"]))
-    else:
-        mesh = read_cad_mesh(mesh_file, units, "CAD mesh")
+    with np.load(mesh_file) as data:
+        mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(data["vertices_mm"]),
+                                         o3d.utility.Vector3iVector(data["triangles"]))
     return CadSurface(mesh, reversed)
 
 
@@ -158,7 +151,7 @@ def inspect_tile(unit: InspectTile) -> TileDeviations:
         keep = ~in_balls(cloud.points_mm, (((x, y, z), radius) for x, y, z, radius in sample.left_out))
         cloud = TilePoints(cloud.points_mm[keep], cloud.normals[keep], None)
     reversed = unit.reversed
-    surface = _surface(unit.mesh_file, unit.mesh_units, None if reversed is None else np.packbits(reversed).tobytes(),
+    surface = _surface(unit.mesh_file, None if reversed is None else np.packbits(reversed).tobytes(),
                        0 if reversed is None else len(reversed))
     T = np.asarray(unit.T_F_W, float)
     points_F = in_chunks(transform_points, T, cloud.points_mm)
@@ -185,16 +178,15 @@ def _save(f, **arrays: np.ndarray) -> None:
 
 def inspect_tiles(tiles: Sequence[TileCloud], store: str | Path, mesh_file: str | Path, T_F_W: np.ndarray,
                   lower_mm: float, upper_mm: float, backend: ComputeBackend,
-                  reversed: np.ndarray | None = None, mesh_units: str = "mm", sample: FromSample | None = None
+                  reversed: np.ndarray | None = None, sample: FromSample | None = None
                   ) -> tuple[TileDeviations, ...]:
     """:func:`inspect_tile` of every tile on ``backend``, in the tiles' order (:class:`InspectTile` for the
-    arguments).
+    arguments; ``mesh_file``: :func:`write_cad`'s).
 
-    Ten parameters: the tiles, where they and the mesh lie, the placement in F, the band, the CAD's orientation
-    and units and what it takes from the report's sample (the fields of an :class:`InspectTile` unit) and the
-    backend."""
+    Nine parameters: the tiles, where they and the CAD lie, the placement in F, the band, the CAD's orientation
+    and what it takes from the report's sample (the fields of an :class:`InspectTile` unit) and the backend."""
     units = [InspectTile(t, str(store), str(mesh_file), np.asarray(T_F_W, float), lower_mm, upper_mm, reversed,
-                         mesh_units, sample) for t in tiles]
+                         sample) for t in tiles]
     return tuple(backend.map(inspect_tile, units, [u.key() for u in units]))
 
 
@@ -543,7 +535,7 @@ class TiledInspection:
         inspected: tuple[TileDeviations, ...] = ()
         try:
             inspected = inspect_tiles(self.tiles, self.store, Path(self.store) / cad, T_F_W, lower, upper,
-                                      self.backend, surface.reversed, "mm", sample)
+                                      self.backend, surface.reversed, sample)
             figures = deviation_figures(self.store, inspected, lower, upper)
             found = () if areas is None else tile_areas(inspected, self.store, T_F_W, areas, self.backend)
             write_deviation_ply(ply, self.store, inspected)

@@ -19,6 +19,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 from tandemscan.pipeline.compute import LocalBackend
+from tandemscan.pipeline.inspection.inspect import CadSurface
 from tandemscan.pipeline.inspection.tile_inspection import (
     AreaBounds,
     InspectTile,
@@ -28,6 +29,7 @@ from tandemscan.pipeline.inspection.tile_inspection import (
     inspect_tile,
     inspect_tiles,
     tile_areas,
+    write_cad,
     write_deviation_ply,
 )
 from tandemscan.pipeline.stitching.tiles import (
@@ -51,16 +53,16 @@ RESULT_BYTES = 40 * 1024
 AREAS = AreaBounds(-0.01, 0.01, 4.0, 50.0)
 
 
-def long_cad(path: Path) -> Path:
-    """The sheet of ``test_tiles.cad_mesh`` long enough for both jobs (x in [-60, 700] mm, F)."""
+def long_cad(folder: Path) -> Path:
+    """The sheet of ``test_tiles.cad_mesh`` long enough for both jobs (x in [-60, 700] mm, F), written under ``folder``
+    as the inspection hands the job's CAD to the units (``write_cad``)."""
     x, y = np.meshgrid(np.linspace(-60, 700, 381), np.linspace(-70, 70, 71), indexing="ij")
     i, j = np.meshgrid(np.arange(380), np.arange(70), indexing="ij")
     a = (i * 71 + j).ravel()
     mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.c_[x.ravel(), y.ravel(), _height(x.ravel())]),
                                      o3d.utility.Vector3iVector(np.r_[np.c_[a, a + 71, a + 1],
                                                                       np.c_[a + 1, a + 71, a + 72]]))
-    o3d.io.write_triangle_mesh(str(path), mesh)
-    return path
+    return folder / write_cad(folder, CadSurface(mesh))
 
 
 def traced_peak_bytes(fn: Callable[[], object]) -> int:
@@ -93,7 +95,7 @@ class PickledResults(LocalBackend):
 def parts(tmp_path_factory):
     """Per size (6 and 12 scans): its store, the scans' references, the tiled merge's units and tiles, and the
     inspection's tiles, run on a :class:`PickledResults` backend (kept too)."""
-    cad = long_cad(tmp_path_factory.mktemp("cad") / "cad.ply")
+    cad = long_cad(tmp_path_factory.mktemp("cad"))
     out = {}
     for scans in (6, 12):
         store = tmp_path_factory.mktemp(f"part{scans}")

@@ -15,7 +15,12 @@ from tandemscan.pipeline.compute import LocalBackend
 from tandemscan.pipeline.geometry.frames import from_rpy, invert, rotate_vectors, transform_points
 from tandemscan.pipeline.geometry.part import load_part_mesh
 from tandemscan.pipeline.inspection.inspect import CadSurface, DeviationStats, ToleranceResult
-from tandemscan.pipeline.inspection.tile_inspection import deviation_figures, inspect_tiles, write_deviation_ply
+from tandemscan.pipeline.inspection.tile_inspection import (
+    deviation_figures,
+    inspect_tiles,
+    write_cad,
+    write_deviation_ply,
+)
 from tandemscan.pipeline.io.export import ExportError, PlyChunk, write_ply, write_ply_streamed
 from tandemscan.pipeline.io.raw_scan import read_thinned_scan, write_raw_scan
 from tandemscan.pipeline.stitching import tiles as tiles_module
@@ -71,9 +76,8 @@ def stored_job(store: Path, scans: int = 6, points: int = 30_000, seed: int = 3)
         write_raw_scan(store / file, points_S_mm=transform_points(T_S_F, p_F), normals_S=rotate_vectors(T_S_F, n_F))
         x_min, x_max = scan_x_extent(T_W_S, read_thinned_scan(store / file, VOXEL_MM), VOXEL_MM, VOXEL_MM)
         refs.append(TileScan(file, T_W_S, x_min, x_max))
-    mesh_file = store / "cad.ply"
-    o3d.io.write_triangle_mesh(str(mesh_file), cad_mesh())
-    return refs, mesh_file
+    cad = store / "cad"  # the job's CAD as the inspection hands it to the units (write_cad), beside the tiles' folder
+    return refs, cad / write_cad(cad, CadSurface(cad_mesh()))
 
 
 @pytest.fixture(scope="module")
@@ -242,9 +246,9 @@ def test_a_scans_reach_bounds_its_x_at_a_moved_pose(tmp_path):
 
 
 def test_the_tiles_are_inspected_against_the_cad_as_the_job_reads_it(job, tmp_path):
-    """A CAD file in metres with a fifth of its triangles wound the other way: each tile's deviations are those from
-    the job's CAD (``[part] mesh`` and ``mesh_units``: in mm, wound outward), not from the file's raw coordinates
-    and winding."""
+    """A CAD file in metres with a fifth of its triangles wound the other way, as the job reads it (``[part] mesh``
+    and ``mesh_units``: in mm, wound outward) and hands it to the units (``write_cad``, its triangles' orientation
+    beside): each tile's deviations are those from the job's CAD, not from the file's raw coordinates and winding."""
     store, _, _, untiled, tiles = job
     mesh = cad_mesh()
     triangles = np.asarray(mesh.triangles)
@@ -253,10 +257,11 @@ def test_the_tiles_are_inspected_against_the_cad_as_the_job_reads_it(job, tmp_pa
                                           o3d.utility.Vector3iVector(triangles))
     mesh_file = tmp_path / "cad_m.ply"
     o3d.io.write_triangle_mesh(str(mesh_file), in_metres)
-    inspected = inspect_tiles(tiles, store, mesh_file, T_F_W, -0.02, 0.02, LocalBackend(), mesh_units="m")
+    surface = CadSurface(load_part_mesh(PartConfig(mesh=mesh_file, mesh_units="m")))
+    inspected = inspect_tiles(tiles, store, tmp_path / write_cad(tmp_path, surface), T_F_W, -0.02, 0.02,
+                              LocalBackend(), surface.reversed)
     (d,) = zip(*(_read(store, t.file, "deviation_mm") for t in inspected), strict=True)
-    job_cad = load_part_mesh(PartConfig(mesh=mesh_file, mesh_units="m"))
-    expected = CadSurface(job_cad).closest(transform_points(T_F_W, untiled.points())).signed_mm
+    expected = surface.closest(transform_points(T_F_W, untiled.points())).signed_mm
     np.testing.assert_allclose(np.concatenate(d), expected, rtol=0, atol=1e-9)
     assert np.abs(expected).max() < 0.5  # the sheet's noise, every point on the measured side
 
