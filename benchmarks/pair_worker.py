@@ -1,5 +1,5 @@
 """CPU of the pair worker and of the correction after the last scan, replayed on a finished job's folder; prints one
-JSON object last (docs/end-of-job.md, "Pairs while the job measures").
+JSON object last (docs/pairs-while-measuring.md).
 
 The job folder is only read: ``report.json`` (each scan's file, tracker station and tracker pose ``T_W_S_tracker``
 or, where the correction left it, ``T_W_S``; the transfers' priors; the voxel) and ``scans/scan-NNNN.npz`` (S, mm;

@@ -1,4 +1,4 @@
-"""Pair registration while the job measures (docs/end-of-job.md, "Pairs while the job measures").
+"""Pair registration while the job measures (docs/pairs-while-measuring.md).
 
 As each scan is stitched (its points in the scanner frame S, its tracker pose ``T_W_S`` in the world W, mm),
 :class:`OnlinePairs` finds its possible partners among the scans already measured

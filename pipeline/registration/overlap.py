@@ -163,8 +163,8 @@ def select_pairs(shared: np.ndarray, stations: ArrayLike, max_partners: int) -> 
 
 
 class PairSelector:
-    """:func:`overlapping_pairs` as the clouds of a job arrive, one at a time (docs/end-of-job.md, "Pairs
-    while the job measures").
+    """:func:`overlapping_pairs` as the clouds of a job arrive, one at a time
+    (docs/pairs-while-measuring.md).
 
     :meth:`add` returns the earlier clouds that the new one may be paired with in the end: those among its
     kept candidates so far, and those that keep it among theirs so far. A cloud kept among all clouds is kept
