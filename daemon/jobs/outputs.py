@@ -274,7 +274,7 @@ def _inspect(job: JobSnapshot, report: Mapping, scans: list[PosedScan], sample: 
     the mean of its ``counts`` scan points), aligned to the CAD from the anchor's ``T_F_W``, written into the job
     folder with each point's uncertainty (:func:`job_uncertainty`); the stitch view shows the tracker-only stitch
     (Eq. 1) and, where corrected, the final one. ``whole``: the tiled cloud ``sample`` is an even sample of, whose
-    deviation figures and PLY come from every point (``inspection_job.run_inspection``).
+    deviation figures, areas and PLY come from every point (``inspection_job.run_inspection``).
 
     Eight parameters: the job and its report so far, the scans at their final poses and, where the correction
     changed them, their tracker-stitched poses; the cloud as inspected beside its full size and, where tiled, the
