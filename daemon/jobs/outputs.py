@@ -36,7 +36,6 @@ from tandemscan.daemon.store.part_results import HISTORY_FILE
 from tandemscan.drivers.shared_array import share
 from tandemscan.drivers.worker import init_worker
 from tandemscan.pipeline.compute import LazyBackend
-from tandemscan.pipeline.geometry.frames import transform_points
 from tandemscan.pipeline.geometry.part import load_part_mesh
 from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionError
 from tandemscan.pipeline.inspection.inspection_job import (
@@ -350,7 +349,7 @@ def job_uncertainty(job: JobSnapshot, scans: Sequence[PosedScan], counts: np.nda
     the voxels' point counts and the scanner's noise; None where the end of the job left no pose covariance."""
     if job.pose_covariance is None:
         return None
-    cover = ScanCover([transform_points(s.T_W_S, s.points_S_mm) for s in scans],
+    cover = ScanCover([s.points_S_mm for s in scans], [s.T_W_S for s in scans],
                       np.array([len(s.points_S_mm) if s.point_count is None else s.point_count for s in scans], float),
                       np.array([np.asarray(s.T_W_S)[:3, 3] for s in scans]), np.arange(len(scans)))
     return JobUncertainty(job.pose_covariance.with_installation_at_prior(), cover.prepared(),

@@ -154,26 +154,33 @@ _TREE_BUILD = threading.Lock()
 
 @dataclass(frozen=True)
 class ScanCover:
-    """Which scans' points a cloud's points were merged from: the scans' thinned copies placed in W (mm), each
-    scan's full point count, its origin (the scanner's optical centre, W, mm) and index in the job's scans."""
+    """Which scans' points a cloud's points were merged from: the scans' thinned copies (``points_S``, each in its
+    scanner frame S, mm) placed in W by their poses ``T_W_S`` (4x4, mm), each scan's full point count, its origin
+    (the scanner's optical centre, W, mm) and index in the job's scans."""
 
-    points_W: Sequence[np.ndarray]
+    points_S: Sequence[np.ndarray]
+    T_W_S: Sequence[np.ndarray]
     point_counts: np.ndarray
     origins_mm: np.ndarray
     scan_ids: np.ndarray
 
     @property
     def _tree(self) -> tuple[np.ndarray, np.ndarray, cKDTree]:
-        """Each scan's thinned point count, each thinned point's scan (position in the cover) and a KD tree of all
-        of them, built once (:meth:`shares` is asked at the even centres and at the best fit's points): by the first
-        thread that asks (:meth:`prepared`'s, or the caller's), any other waiting for it (:data:`_TREE_BUILD`; not
-        ``cached_property``, whose lock Python 3.12 dropped)."""
+        """Each scan's thinned point count, where each scan's points end in the tree's (their cumulative counts: a
+        thinned point's scan is found from its index, no label a point) and a KD tree of all of them placed in W,
+        built once (:meth:`shares` is asked at the even centres and at the best fit's points): by the first thread
+        that asks (:meth:`prepared`'s, or the caller's), any other waiting for it (:data:`_TREE_BUILD`; not
+        ``cached_property``, whose lock Python 3.12 dropped). Each scan is placed into its rows of the tree's one
+        array: no placed copy of the scans is held beside it."""
         with _TREE_BUILD:
             if "_built_tree" not in self.__dict__:
-                sizes = np.array([len(p) for p in self.points_W])
-                tree = cKDTree(np.concatenate([np.asarray(p, float) for p in self.points_W]), leafsize=32,
-                               balanced_tree=False)
-                object.__setattr__(self, "_built_tree", (sizes, np.repeat(np.arange(len(sizes)), sizes), tree))
+                sizes = np.array([len(p) for p in self.points_S], np.int64)
+                ends = np.cumsum(sizes)
+                placed_W = np.empty((int(ends[-1]) if len(ends) else 0, 3))
+                for end, size, points_S, T_W_S in zip(ends, sizes, self.points_S, self.T_W_S, strict=True):
+                    placed_W[end - size:end] = transform_points(T_W_S, points_S)
+                object.__setattr__(self, "_built_tree", (sizes, ends, cKDTree(placed_W, leafsize=32,
+                                                                               balanced_tree=False)))
         return self.__dict__["_built_tree"]
 
     def prepared(self) -> ScanCover:
@@ -186,15 +193,16 @@ class ScanCover:
         """(M, k) scan positions (into this cover's scans) and their shares of each point's voxel (rows sum to
         1): the scans among the :data:`NEIGHBOURS` nearest thinned points, each weighing its points found there
         times its thinning ratio (full points over thinned ones), the ``k`` largest kept."""
-        sizes, labels, tree = self._tree
-        kn, kk = min(NEIGHBOURS, len(labels)), min(k, len(sizes))
+        sizes, ends, tree = self._tree
+        kn, kk = min(NEIGHBOURS, tree.n), min(k, len(sizes))
         ratio = np.asarray(self.point_counts, float) / np.maximum(sizes, 1)
         top, w = np.empty((len(points_W), kk), np.int64), np.empty((len(points_W), kk))
         step = max(1, 20_000_000 // (8 * max(len(sizes), 1)))  # dense votes of a chunk: about 20 MB
         for lo in range(0, len(points_W), step):
             idx = np.asarray(tree.query(points_W[lo:lo + step], k=kn, workers=-1)[1]).reshape(-1, kn)
+            scan = np.searchsorted(ends, idx.ravel(), side="right")  # each neighbour's scan
             votes = np.zeros((len(idx), len(sizes)))
-            np.add.at(votes, (np.repeat(np.arange(len(idx)), kn), labels[idx].ravel()), ratio[labels[idx].ravel()])
+            np.add.at(votes, (np.repeat(np.arange(len(idx)), kn), scan), ratio[scan])
             top[lo:lo + step] = np.argsort(-votes, axis=1)[:, :kk]
             w[lo:lo + step] = np.take_along_axis(votes, top[lo:lo + step], axis=1)
         return top, w / w.sum(axis=1, keepdims=True)

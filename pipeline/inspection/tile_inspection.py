@@ -39,7 +39,7 @@ import open3d as o3d
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
-from tandemscan.pipeline.compute import ComputeBackend
+from tandemscan.pipeline.compute import ComputeBackend, trim_heap
 from tandemscan.pipeline.geometry.frames import invert, rotate_vectors, transform_points
 from tandemscan.pipeline.inspection.alignment import in_balls
 from tandemscan.pipeline.inspection.deviation_areas import (
@@ -53,8 +53,10 @@ from tandemscan.pipeline.inspection.deviation_areas import (
     local_deviations,
 )
 from tandemscan.pipeline.inspection.inspect import CadSurface, DeviationStats, ToleranceResult, in_chunks
+from tandemscan.pipeline.io import npz_blocks
 from tandemscan.pipeline.io.durable import write_durably
 from tandemscan.pipeline.io.export import PlyChunk, write_ply_streamed
+from tandemscan.pipeline.io.npz_blocks import row_blocks
 from tandemscan.pipeline.stitching.tiles import TILES_FOLDER, TileCloud, TilePoints, read_tile
 
 #: the edges (mm) of the deviation histogram each tile returns (0.01 mm bins over +-20 mm, and one bin beyond each
@@ -196,12 +198,14 @@ def _read_deviations(store: str | Path, file: str, *names: str) -> list[np.ndarr
 
 
 def _deviation_chunks(store: str | Path, tiles: Sequence[TileDeviations]) -> Iterator[PlyChunk]:
-    """The deviation PLY's vertices a tile at a time (F, mm: points, unit normals, ``deviation_mm`` and, where the
-    tiles have it, ``uncertainty_mm``)."""
+    """The deviation PLY's vertices (F, mm: points, unit normals, ``deviation_mm`` and, where the tiles have it,
+    ``uncertainty_mm``), ``npz_blocks.BLOCK_ROWS`` rows of a tile's file at a time (``npz_blocks.row_blocks``)."""
     for tile in tiles:
-        with np.load(Path(store) / tile.file) as data:
-            scalars = {name: data[name] for name in ("deviation_mm", "uncertainty_mm") if name in data.files}
-            yield PlyChunk(data["points_F"], data["normals_F"], scalars)
+        path = Path(store) / tile.file
+        with np.load(path) as data:
+            scalars = [name for name in ("deviation_mm", "uncertainty_mm") if name in data.files]
+        for block in row_blocks(path, ("points_F", "normals_F", *scalars), npz_blocks.BLOCK_ROWS):
+            yield PlyChunk(block["points_F"], block["normals_F"], {name: block[name] for name in scalars})
 
 
 def write_deviation_ply(path: Path, store: str | Path, tiles: Sequence[TileDeviations]) -> Path:
@@ -527,7 +531,10 @@ class TiledInspection:
         (None: no U), the points in the balls ``left_out`` ((centre W mm, radius mm): the reference spheres) left
         out: the deviation figures of the whole cloud in the band ``band_mm`` (lower, upper, mm), its deviation
         areas beyond ``areas`` (:func:`tile_areas`; None: none sought) and ``ply``, the deviation PLY, streamed; the
-        units' files removed after."""
+        units' files removed after. The heap this process freed since the report's sample was inspected (its
+        temporaries, cloud.ply's blocks) is handed back first (``compute.trim_heap``), so that the tiles' stage and
+        the PLY start from what is held."""
+        trim_heap()
         lower, upper = band_mm
         cad = write_cad(self.store, surface)
         field = "" if uncertainty is None else uncertainty.write(self.store)

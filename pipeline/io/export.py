@@ -116,6 +116,7 @@ def write_ply_streamed(path: Path | str, count: int, chunks: Iterable[PlyChunk])
                 elif [(name, kind) for name, kind, _ in fields] != names:
                     raise ExportError(f"PLY chunk fields {[n for n, _, _ in fields]} differ from {names}")
                 written += _write_records(f, fields)
+                del chunk, fields  # not held while the next chunk is read
             if names is None:
                 names = [(a, "f8") for a in "xyz"]
                 f.write(_ply_header_bytes(count, names))

@@ -39,8 +39,10 @@ from pathlib import Path
 import numpy as np
 from tandemscan.pipeline.compute import ComputeBackend
 from tandemscan.pipeline.geometry.frames import transform_points
+from tandemscan.pipeline.io import npz_blocks
 from tandemscan.pipeline.io.durable import write_durably, write_replacing
 from tandemscan.pipeline.io.export import PlyChunk, write_ply_streamed
+from tandemscan.pipeline.io.npz_blocks import row_blocks
 from tandemscan.pipeline.io.raw_scan import read_raw_scan
 from tandemscan.pipeline.stitching.worldmap import ScanVoxels, VoxelMap
 
@@ -298,10 +300,11 @@ def read_tile(store: str | Path, tile: TileCloud) -> TilePoints:
 
 
 def _ply_chunks(store: str | Path, tiles: Sequence[TileCloud]) -> Iterator[PlyChunk]:
-    """Each tile's points and normals in turn, read when the writer asks for them: one tile in memory at a time."""
+    """The tiles' points and normals in turn, ``npz_blocks.BLOCK_ROWS`` rows at a time read from their files when
+    the writer asks for them (``npz_blocks.row_blocks``): one block in memory at a time, never a whole tile."""
     for tile in tiles:
-        cloud = read_tile(store, tile)
-        yield PlyChunk(cloud.points_mm, cloud.normals)
+        for block in row_blocks(Path(store) / tile.file, ("points", "normals"), npz_blocks.BLOCK_ROWS):
+            yield PlyChunk(block["points"], block["normals"])
 
 
 def write_cloud_ply(path: Path, store: str | Path, tiles: Sequence[TileCloud]) -> Path:
@@ -313,19 +316,25 @@ def write_cloud_ply(path: Path, store: str | Path, tiles: Sequence[TileCloud]) -
 def every_kth(store: str | Path, tiles: Sequence[TileCloud], step: int) -> TilePoints:
     """The cloud's every ``step``-th voxel, counted over the tiles one after the other (the untiled cloud's
     ``[::step]``: what the alignment to the CAD and the report's figures take, ``[inspection] max_points``), read
-    a tile at a time."""
-    parts, offset = [], 0
+    a block of rows of a tile at a time (``npz_blocks.row_blocks``) into arrays of the sample's size: the sample and
+    one block held, never a tile or the cloud."""
+    total = sum(t.voxels for t in tiles)
+    out: TilePoints | None = None
+    offset = 0  # voxels before the block
     for tile in tiles:
-        first = (-offset) % step
-        if first < tile.voxels:
-            cloud = read_tile(store, tile)
-            parts.append(TilePoints(cloud.points_mm[first::step], cloud.normals[first::step],
-                                    cloud.counts[first::step]))
-        offset += tile.voxels
-    if not parts:
-        return TilePoints(np.empty((0, 3)), np.empty((0, 3)), np.empty(0, np.int64))
-    return TilePoints(*(np.concatenate([getattr(p, name) for p in parts])
-                        for name in ("points_mm", "normals", "counts")))
+        if (-offset) % step >= tile.voxels:  # no sampled voxel in this tile
+            offset += tile.voxels
+            continue
+        for block in row_blocks(Path(store) / tile.file, ("points", "normals", "counts"), npz_blocks.BLOCK_ROWS):
+            if out is None:
+                out = TilePoints(*(np.empty((len(range(0, total, step)), *block[name].shape[1:]), block[name].dtype)
+                                   for name in ("points", "normals", "counts")))
+            first, rows = (-offset) % step, len(block["points"])
+            at = slice(-(-offset // step), -(-(offset + rows) // step))  # the sample's rows of this block
+            out.points_mm[at], out.normals[at], out.counts[at] = (
+                block[name][first::step] for name in ("points", "normals", "counts"))
+            offset += rows
+    return out or TilePoints(np.empty((0, 3)), np.empty((0, 3)), np.empty(0, np.int64))
 
 
 @dataclass(frozen=True)
@@ -368,7 +377,7 @@ class TiledCloud:
         return write_cloud_ply(path, self.store, self.tiles)
 
     def every_kth(self, step: int) -> TilePoints:
-        """The cloud's every ``step``-th voxel (:func:`every_kth`), a tile read at a time."""
+        """The cloud's every ``step``-th voxel (:func:`every_kth`), a block of a tile read at a time."""
         return every_kth(self.store, self.tiles, step)
 
     def points(self) -> np.ndarray:

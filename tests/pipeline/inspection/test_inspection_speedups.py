@@ -380,7 +380,8 @@ def test_a_scan_cover_prepared_builds_its_tree_unasked_and_answers_as_one_built_
     scans = [rng.uniform([100.0 * k, 0.0, 0.0], [100.0 * k + 150.0, 100.0, 1.0], (4000, 3)) for k in range(6)]
 
     def cover() -> ScanCover:
-        return ScanCover(scans, np.full(len(scans), 40_000.0), np.zeros((len(scans), 3)), np.arange(len(scans)))
+        return ScanCover(scans, [np.eye(4)] * len(scans), np.full(len(scans), 40_000.0), np.zeros((len(scans), 3)),
+                         np.arange(len(scans)))
 
     prepared, asked = cover().prepared(), cover()
     deadline = time.monotonic() + 30.0

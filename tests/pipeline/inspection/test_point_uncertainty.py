@@ -36,7 +36,7 @@ def two_scans(sigma_t, sigma_r):
 def model(rng, poses, counts=None):
     pa, _ = plate(rng, 0.0, 300.0)
     pb, _ = plate(rng, 250.0, 550.0)
-    cover = ScanCover([pa, pb], np.array([len(pa), len(pb)], float), poses.origins_mm, np.arange(2))
+    cover = ScanCover([pa, pb], [np.eye(4)] * 2, np.array([len(pa), len(pb)], float), poses.origins_mm, np.arange(2))
     return JobUncertainty(poses, cover, NOISE, counts)
 
 
@@ -70,8 +70,8 @@ def test_first_order_u_agrees_with_monte_carlo_of_the_best_fit():
     n = np.r_[na, nb]
     scan = np.r_[np.zeros(len(pa), int), np.ones(len(pb), int)]
     poses = two_scans(0.08, 2e-4)
-    m = JobUncertainty(poses, ScanCover([pa, pb], np.array([len(pa), len(pb)], float), poses.origins_mm,
-                                        np.arange(2)), NOISE, None)
+    m = JobUncertainty(poses, ScanCover([pa, pb], [np.eye(4)] * 2, np.array([len(pa), len(pb)], float),
+                                        poses.origins_mm, np.arange(2)), NOISE, None)
     first = m.evaluate(p, n, 2.0, np.eye(4), "best-fit", None, None).expanded_mm
     draws = []
     L = np.linalg.cholesky(poses.scan_covariances())   # (2, 6, 6): the two scans' errors are independent
@@ -180,7 +180,8 @@ def test_the_pose_variance_from_covariance_blocks_is_that_of_the_dense_route(lin
                                    MountPrior(np.diag([4.0] * 3 + [1e-6] * 3))), links, 6)
     p, n = plate(rng, 0.0, 550.0, step=10.0)
     covers = [plate(rng, x0, x0 + 250.0)[0] for x0 in (0.0, 150.0, 300.0)]
-    cover = ScanCover(covers, np.array([len(c) for c in covers], float), cov.origins_mm, np.arange(3))
+    cover = ScanCover(covers, [np.eye(4)] * len(covers), np.array([len(c) for c in covers], float), cov.origins_mm,
+                      np.arange(3))
     at = cover.shares(p)
     H_inv = np.linalg.inv(cov.normal.toarray())
     dense = H_inv @ cov.information.toarray() @ H_inv

@@ -23,6 +23,7 @@ from tandemscan.pipeline.inspection.inspect import CadSurface
 from tandemscan.pipeline.inspection.tile_inspection import (
     AreaBounds,
     InspectTile,
+    TileDeviations,
     area_units,
     deviation_figures,
     find_tile_areas,
@@ -32,8 +33,13 @@ from tandemscan.pipeline.inspection.tile_inspection import (
     write_cad,
     write_deviation_ply,
 )
+from tandemscan.pipeline.io import npz_blocks
+from tandemscan.pipeline.io.export import write_ply
 from tandemscan.pipeline.stitching.tiles import (
+    TileCloud,
     TileGrid,
+    TilePoints,
+    every_kth,
     merge_tile,
     merge_tiles,
     place_scan,
@@ -170,6 +176,35 @@ def test_the_streamed_outputs_hold_a_tile_not_the_cloud(parts, tmp_path):
     ply_large, deviation_large, voxels_large = peaks(parts[12])
     assert voxels_large > 1.6 * voxels_small
     assert ply_large <= GROWTH * ply_small and deviation_large <= GROWTH * deviation_small
+
+
+def test_the_streamed_outputs_and_the_sample_hold_a_block_not_a_tile(tmp_path, monkeypatch):
+    """``cloud.ply``, the deviation PLY and the report's even sample read a tile's file ``npz_blocks.BLOCK_ROWS``
+    rows at a time: from a tile of 60,000 points in blocks of 1,000, each holds a fifth of the tile's points and
+    normals at most (a reader of the whole tile would hold them all), and gives what the whole arrays give
+    (``export.write_ply``'s bytes, the arrays' ``[::step]``)."""
+    n, step = 60_000, 20
+    rng = np.random.default_rng(3)
+    points, normals = rng.normal(size=(n, 3)) * 100.0, rng.normal(size=(n, 3))
+    deviation, uncertainty, counts = rng.normal(size=n), rng.random(n), rng.integers(1, 9, n)
+    np.savez(tmp_path / "tile.npz", points=points, normals=normals, counts=counts)
+    np.savez(tmp_path / "deviations.npz", points_F=points, normals_F=normals, deviation_mm=deviation,
+             uncertainty_mm=uncertainty)
+    tile = TileCloud(0, "tile.npz", n)
+    inspected = TileDeviations(0, "deviations.npz", n, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0, np.zeros(1, np.int64))
+    monkeypatch.setattr(npz_blocks, "BLOCK_ROWS", 1_000)
+    sample: list[TilePoints] = []
+    peaks = (traced_peak_bytes(lambda: write_cloud_ply(tmp_path / "cloud.ply", tmp_path, [tile])),
+             traced_peak_bytes(lambda: write_deviation_ply(tmp_path / "dev.ply", tmp_path, [inspected])),
+             traced_peak_bytes(lambda: sample.append(every_kth(tmp_path, [tile], step))))
+    assert max(peaks) < (points.nbytes + normals.nbytes) / 5, peaks
+    write_ply(tmp_path / "whole.ply", points, normals)
+    write_ply(tmp_path / "whole-dev.ply", points, normals, {"deviation_mm": deviation, "uncertainty_mm": uncertainty})
+    assert (tmp_path / "cloud.ply").read_bytes() == (tmp_path / "whole.ply").read_bytes()
+    assert (tmp_path / "dev.ply").read_bytes() == (tmp_path / "whole-dev.ply").read_bytes()
+    for got, whole in zip((sample[0].points_mm, sample[0].normals, sample[0].counts), (points, normals, counts),
+                          strict=True):
+        assert np.array_equal(got, whole[::step])
 
 
 def test_the_units_send_back_summaries_not_points(parts):
