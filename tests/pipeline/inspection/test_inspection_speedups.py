@@ -410,7 +410,8 @@ def test_a_scan_cover_asked_from_several_threads_while_it_prepares_builds_its_tr
     monkeypatch.setattr(point_uncertainty, "cKDTree", slow_tree)
     rng = np.random.default_rng(7)
     scans = [rng.uniform([100.0 * k, 0.0, 0.0], [100.0 * k + 150.0, 100.0, 1.0], (2000, 3)) for k in range(4)]
-    cover = point_uncertainty.ScanCover(scans, np.full(4, 8000.0), np.zeros((4, 3)), np.arange(4)).prepared()
+    cover = point_uncertainty.ScanCover(scans, [np.eye(4)] * 4, np.full(4, 8000.0), np.zeros((4, 3)),
+                                        np.arange(4)).prepared()
     queries = rng.uniform([0.0, 0.0, 0.0], [450.0, 100.0, 1.0], (200, 3))
     answers = []
     askers = [threading.Thread(target=lambda: answers.append(cover.shares(queries))) for _ in range(4)]

@@ -191,7 +191,7 @@ def test_the_streamed_outputs_and_the_sample_hold_a_block_not_a_tile(tmp_path, m
     np.savez(tmp_path / "deviations.npz", points_F=points, normals_F=normals, deviation_mm=deviation,
              uncertainty_mm=uncertainty)
     tile = TileCloud(0, "tile.npz", n)
-    inspected = TileDeviations(0, "deviations.npz", n, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0, np.zeros(1, np.int64))
+    inspected = TileDeviations(0, "deviations.npz", n, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0, np.zeros(1, np.int64), 0.0, 1.0)
     monkeypatch.setattr(npz_blocks, "BLOCK_ROWS", 1_000)
     sample: list[TilePoints] = []
     peaks = (traced_peak_bytes(lambda: write_cloud_ply(tmp_path / "cloud.ply", tmp_path, [tile])),
