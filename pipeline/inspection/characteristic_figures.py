@@ -17,10 +17,10 @@ from tandemscan.pipeline.inspection.alignment import within
 from tandemscan.pipeline.inspection.characteristics import CharacteristicResult
 from tandemscan.pipeline.inspection.deviation_areas import DeviationArea
 from tandemscan.pipeline.inspection.deviation_maps import DEVIATION_CMAP, png_bytes
+from tandemscan.pipeline.inspection.region_points import closeup_radius_mm
 from tandemscan.pipeline.inspection.spc import ControlChart
 
 CLOSEUP_PX = 360  # a close-up's raster, pixels a side
-CLOSEUP_MIN_RADIUS_MM = 40.0  # a close-up shows at least this far around an area's centroid
 
 
 def section_png(c: CharacteristicResult) -> bytes:
@@ -59,13 +59,22 @@ class CloseUp:
                 "centre_mm": list(self.centre_mm), "half_side_mm": self.half_side_mm}
 
 
-def closeup(area: DeviationArea, points_mm: np.ndarray, deviations_mm: np.ndarray, normals: np.ndarray,
-            lower_mm: float, upper_mm: float, norm: Normalize) -> CloseUp:
-    """The area and its surroundings (``points_mm``: the whole inspected cloud, frame F, with its deviations
-    and closest CAD normals) seen along its mean CAD normal: the points within three equivalent
-    radii of its centroid (at least :data:`CLOSEUP_MIN_RADIUS_MM`), each pixel the mean deviation of its
-    points, the band's limits marked on the colour bar, the centroid labelled with the area's id."""
-    radius = max(3.0 * np.sqrt(area.area_mm2 / np.pi), CLOSEUP_MIN_RADIUS_MM)
+@dataclass(frozen=True)
+class Surroundings:
+    """The points a close-up is drawn from (frame F, mm; the whole inspected cloud, or those of the tiled cloud around
+    the area, ``region_points.closeup_region``), their signed deviations (mm) and closest CAD unit normals."""
+
+    points_mm: np.ndarray
+    deviations_mm: np.ndarray
+    normals: np.ndarray
+
+
+def closeup(area: DeviationArea, around: Surroundings, lower_mm: float, upper_mm: float, norm: Normalize) -> CloseUp:
+    """The area and its surroundings (``around``) seen along its mean CAD normal: the points within
+    ``region_points.closeup_radius_mm`` of its centroid (three equivalent radii, at least 40 mm), each pixel the mean
+    deviation of its points, the band's limits marked on the colour bar, the centroid labelled with the area's id."""
+    points_mm, deviations_mm, normals = around.points_mm, around.deviations_mm, around.normals
+    radius = closeup_radius_mm(area)
     centre = np.asarray(area.centroid_mm, float)
     near = within(points_mm, centre, radius * np.sqrt(2.0))
     n = normals[near].mean(axis=0) if len(near) else np.array([0.0, 0.0, 1.0])

@@ -11,6 +11,7 @@ per-point U among the points its actual comes from (conservative: the averaging 
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -91,6 +92,11 @@ class MeasuredCloud:
     triangle_ids: np.ndarray
     uncertainty_mm: np.ndarray
     surface: CadSurface
+
+    def rows(self, rows: slice) -> MeasuredCloud:
+        """The points ``rows`` of the cloud (views), against the same surface."""
+        return MeasuredCloud(self.points_mm[rows], self.deviations_mm[rows], self.triangle_ids[rows],
+                             self.uncertainty_mm[rows], self.surface)
 
 
 def patch_mask(cloud: MeasuredCloud, patch: PatchSpec) -> np.ndarray:
@@ -374,14 +380,21 @@ def edge(spec: EdgeSpec, template: InspectionTemplate, cloud: MeasuredCloud,
 EVALUATORS = {"surface_profile": surface_profile, "flatness": flatness, "section": section, "edge": edge}
 
 
-def evaluate(template: InspectionTemplate, cloud: MeasuredCloud, rule: DecisionRule
-             ) -> tuple[CharacteristicResult, ...]:
+def evaluate(template: InspectionTemplate, cloud: MeasuredCloud, rule: DecisionRule,
+             rows: Sequence[slice] | None = None) -> tuple[CharacteristicResult, ...]:
     """Every characteristic of ``template`` on ``cloud`` (frame F), in the template's order; a characteristic that
-    takes the part's general tolerance must have been given it (``InspectionTemplate.with_general_tolerance``)."""
+    takes the part's general tolerance must have been given it (``InspectionTemplate.with_general_tolerance``).
+    ``rows``: the rows of ``cloud`` each characteristic is evaluated on, in the template's order (the points of its
+    region, ``region_points``; its ``point_ids`` index ``cloud`` all the same); None: all of them for each."""
     if template.needs_general_tolerance:
         raise InspectionError(f"characteristics {', '.join(template.needs_general_tolerance)} of "
                               f"{template.part_number} take the general tolerance, which was not given")
-    out = tuple(EVALUATORS[spec.kind](spec, template, cloud, rule) for spec in template.characteristics)
+    if rows is None:
+        out = tuple(EVALUATORS[spec.kind](spec, template, cloud, rule) for spec in template.characteristics)
+    else:
+        out = tuple(replace(r, point_ids=r.point_ids + at.start) for r, at in zip(
+            (EVALUATORS[spec.kind](spec, template, cloud.rows(at), rule)
+             for spec, at in zip(template.characteristics, rows, strict=True)), rows, strict=True))
     log.info("characteristics of %s: %s", template.part_number,
              ", ".join(f"{r.id} {r.status}" for r in out))
     return out

@@ -32,8 +32,11 @@ from tandemscan.pipeline.inspection.alignment import (
     sphere_balls,
 )
 from tandemscan.pipeline.inspection.cad_orientation import orient
+from tandemscan.pipeline.inspection.characteristic_figures import Surroundings
 from tandemscan.pipeline.inspection.characteristics import CharacteristicResult, MeasuredCloud, evaluate
 from tandemscan.pipeline.inspection.datum_frame import DatumPatch, align_datums
+from tandemscan.pipeline.inspection.decision import DecisionRule
+from tandemscan.pipeline.inspection.deviation_areas import DeviationArea
 from tandemscan.pipeline.inspection.inspect import (
     CadSurface,
     InspectionCriteria,
@@ -45,7 +48,15 @@ from tandemscan.pipeline.inspection.inspect import (
 )
 from tandemscan.pipeline.inspection.point_uncertainty import GivenUncertainty, UncertaintyModel, alignment_covariance
 from tandemscan.pipeline.inspection.qif import RESULTS_FILE, MeasuredPart, write_results
+from tandemscan.pipeline.inspection.region_points import (
+    REGION_POINTS,
+    RegionPoints,
+    budgeted,
+    characteristic_region,
+    closeup_region,
+)
 from tandemscan.pipeline.inspection.report import (
+    MAX_CLOSEUPS,
     InspectedPart,
     ReportFacts,
     ReportStyle,
@@ -54,7 +65,12 @@ from tandemscan.pipeline.inspection.report import (
     failed_report,
     write_report,
 )
-from tandemscan.pipeline.inspection.tile_inspection import AreaBounds, TiledInspection, UncertaintyField
+from tandemscan.pipeline.inspection.tile_inspection import (
+    AreaBounds,
+    InspectedTiles,
+    TiledInspection,
+    UncertaintyField,
+)
 from tandemscan.pipeline.inspection.verdict import CloudAreas, VerdictContext, area_search, judge
 from tandemscan.pipeline.io.cloud_io import CloudIOError, read_ply, read_ply_vertices
 from tandemscan.pipeline.io.export import write_ply
@@ -171,16 +187,22 @@ def run_inspection(measured: Measurement, part: InspectedPart, settings: Inspect
     else:  # the whole cloud's deviation figures, areas and PLY, tile by tile
         left_out = () if placed.excluded is None else sphere_balls(placed.spheres, settings.alignment)  # as the sample
         given = len(p) if placed.excluded is None else len(placed.excluded)  # the sample before the spheres left it
-        search = area_search(p, u, criteria, round(len(p) * whole.points / max(given, 1)))
-        cloud = whole.inspect(surface, placed.T_F_W, (criteria.tolerance_lower_mm, criteria.tolerance_upper_mm),
-                              UncertaintyField.of(result.points_mm, u.expanded_mm), left_out, out_dir / DEVIATION_PLY,
-                              AreaBounds(search.lower_mm, search.upper_mm, criteria.area_smoothing_mm,
-                                         criteria.area_min_mm2))
-        result = judge(result, u, criteria, context, CloudAreas(search, cloud.areas))
+        per_sample_point = whole.points / max(given, 1)
+        search = area_search(p, u, criteria, round(len(p) * per_sample_point))
+        with whole.inspected(surface, placed.T_F_W, (criteria.tolerance_lower_mm, criteria.tolerance_upper_mm),
+                             UncertaintyField.of(result.points_mm, u.expanded_mm), left_out, out_dir / DEVIATION_PLY,
+                             AreaBounds(search.lower_mm, search.upper_mm, criteria.area_smoothing_mm,
+                                        criteria.area_min_mm2)) as tiles:
+            cloud = tiles.whole
+            result = judge(result, u, criteria, context, CloudAreas(search, cloud.areas))
+            nearby = full_density(tiles, template, measured_cloud(result, surface, u.expanded_mm), result.areas,
+                                  per_sample_point)
         result = dataclasses.replace(result, stats=cloud.figures.stats, tolerance=cloud.figures.tolerance)
+    if whole is None:
+        nearby = Nearby(measured_cloud(result, surface, u.expanded_mm))
     with ThreadPoolExecutor(2, thread_name_prefix="inspection-outputs") as pool:  # beside the figures: the
         evaluated = None if template is None else pool.submit(  # characteristics and the file
-            evaluate, template, measured_cloud(result, surface, u.expanded_mm), criteria.rule)
+            nearby.evaluate, template, criteria.rule)
         ply = None if whole is not None else pool.submit(
             write_ply,
             out_dir / DEVIATION_PLY,
@@ -189,13 +211,60 @@ def run_inspection(measured: Measurement, part: InspectedPart, settings: Inspect
             {"deviation_mm": result.deviations_mm, "uncertainty_mm": u.expanded_mm},
         )
         report = build_report(result, part, settings.style, output.facts, alignment=alignment, stitching=stitching,
-                              characteristics=() if evaluated is None else evaluated)
+                              characteristics=() if evaluated is None else evaluated,
+                              surroundings=nearby.surroundings)
         html, js = write_report(report, out_dir, output.json_name)
     characteristics = () if evaluated is None else evaluated.result()
     qif = None if template is None else write_results(
-        out_dir / RESULTS_FILE, measured_part(template, part.labels), characteristics, result.points_mm)
+        out_dir / RESULTS_FILE, measured_part(template, part.labels), characteristics, nearby.cloud.points_mm)
     return InspectionOutputs(result, report.data, html, js, out_dir / DEVIATION_PLY if ply is None else ply.result(),
                              characteristics, qif)
+
+
+@dataclass(frozen=True)
+class Nearby:
+    """What the template's characteristics are evaluated on and the deviation areas' close-ups drawn from: the
+    inspected ``cloud`` (F, mm) with, where it is a tiled cloud's points gathered by region
+    (:func:`full_density`), each characteristic's ``rows`` of it, the ``steps`` each region was thinned by (1: every
+    point) and the points around the largest areas by area id (``surroundings``; none: the close-ups draw the
+    inspected points)."""
+
+    cloud: MeasuredCloud
+    rows: tuple[slice, ...] | None = None
+    steps: tuple[int, ...] = ()
+    surroundings: Mapping[int, Surroundings] = dataclasses.field(default_factory=dict)
+
+    def evaluate(self, template: InspectionTemplate, rule: DecisionRule) -> tuple[CharacteristicResult, ...]:
+        """``characteristics.evaluate`` of ``template`` on the cloud, each characteristic on its rows; one whose
+        region was thinned says so in its method."""
+        out = evaluate(template, self.cloud, rule, self.rows)
+        return tuple(c if step == 1 else dataclasses.replace(
+            c, method=f"{c.method}; on every {step}-th point of its region (the report's regions gather at most "
+            f"{REGION_POINTS} points)") for c, step in zip(out, self.steps or (1,) * len(out), strict=True))
+
+
+def full_density(tiles: InspectedTiles, template: InspectionTemplate | None, sample: MeasuredCloud,
+                 areas: Sequence[DeviationArea], per_sample_point: float) -> Nearby:
+    """The tiled cloud's points (``tiles``, every point, F mm) in each of ``template``'s characteristics' regions and
+    around the first :data:`report.MAX_CLOSEUPS` of ``areas`` (``region_points``), within the regions' budget counted
+    on the report's even ``sample`` of it (``per_sample_point`` points of the cloud each)."""
+    surface = sample.surface
+    specs = () if template is None else template.characteristics
+    wanted = tuple(characteristic_region(spec, template, surface) for spec in specs)
+    shown = tuple(areas[:MAX_CLOSEUPS])
+    regions = budgeted((*wanted, *(closeup_region(a) for a in shown)), sample, per_sample_point)
+    names = [*(spec.id for spec in specs), *(f"close-up #{a.id}" for a in shown)]
+    for r, name in zip(regions, names, strict=True):
+        if r.step > 1:
+            log.warning("%s: its region holds more points than the report gathers; every %d-th of them taken", name,
+                        r.step)
+    found = tiles.points_in(regions)
+    own, around = found[: len(wanted)], found[len(wanted):]
+    ends = np.cumsum([0, *(len(f) for f in own)]).tolist()
+    return Nearby(RegionPoints.joined(own, 1).measured(surface), tuple(map(slice, ends[:-1], ends[1:])),
+                  tuple(r.step for r in regions[: len(wanted)]),
+                  {a.id: Surroundings(f.points_mm, f.deviations_mm, surface.closest(f.points_mm).normals if len(f)
+                                      else np.zeros((0, 3))) for a, f in zip(shown, around, strict=True)})
 
 
 def pose_context(alignment: Alignment, context: VerdictContext) -> VerdictContext:

@@ -22,7 +22,13 @@ import numpy as np
 from matplotlib import colormaps
 from matplotlib.colors import Normalize
 from tandemscan.pipeline.inspection.alignment import Alignment
-from tandemscan.pipeline.inspection.characteristic_figures import CloseUp, closeup, section_png, trend_png
+from tandemscan.pipeline.inspection.characteristic_figures import (
+    CloseUp,
+    Surroundings,
+    closeup,
+    section_png,
+    trend_png,
+)
 from tandemscan.pipeline.inspection.characteristics import CharacteristicResult
 from tandemscan.pipeline.inspection.deviation_maps import (
     STANDARD_VIEWS,
@@ -180,6 +186,7 @@ def build_report(
     alignment: Alignment | None = None,
     stitching: StitchViews | None = None,
     characteristics: Sequence[CharacteristicResult] | Future = (),
+    surroundings: Mapping[int, Surroundings] | None = None,
 ) -> Report:
     """Render the figures and collect the numbers of one inspection of ``part``, drawn as ``style`` says, with
     ``facts`` beside them. ``alignment`` is how the cloud was placed in the CAD frame (none: it came in that
@@ -187,7 +194,8 @@ def build_report(
     ``characteristics``: the template's, evaluated (:mod:`tandemscan.pipeline.inspection.characteristics`), which
     the report leads with (or their future, waited for once the maps are drawn), with the trend over the part's
     serials (``part.history``) of those that fail or drift. The deviation areas are labelled on every map
-    (``#id`` at the centroid)."""
+    (``#id`` at the centroid); each of the largest has a close-up drawn from ``result``'s points, or from its
+    ``surroundings`` by area id where given (a tiled cloud's points around it at full density)."""
     surface = part.surface
     if stitching is not None:
         stitching = stitching.started()
@@ -218,7 +226,7 @@ def build_report(
     if isinstance(characteristics, Future):  # evaluated while the maps were drawn
         characteristics = characteristics.result()
     trends = trend_figures(characteristics, part.history, part.labels)
-    quality = quality_figures(result, characteristics, tol, norm) + [f for f, _ in trends]
+    quality = quality_figures(result, characteristics, tol, norm, surroundings or {}) + [f for f, _ in trends]
     figures = quality + maps + uncertainty + [coverage_map] + split
     hist = histogram_png(result.deviations_mm, result.stats, tol, norm)
     caption = "Deviation histogram with the tolerance band (the outer bins collect the 0.1 % tails)"
@@ -262,16 +270,17 @@ class CloseUpFigure(ReportFigure):
     closeup: CloseUp | None = field(default=None, repr=False)
 
 
-def quality_figures(result: InspectionResult, characteristics: Sequence[CharacteristicResult], tol, norm
-                    ) -> list[ReportFigure]:
+def quality_figures(result: InspectionResult, characteristics: Sequence[CharacteristicResult], tol, norm,
+                    surroundings: Mapping[int, Surroundings]) -> list[ReportFigure]:
     """The figures the report leads with: each section's curve with its band, then a close-up of each of
-    the :data:`MAX_CLOSEUPS` largest deviation areas with its surroundings."""
+    the :data:`MAX_CLOSEUPS` largest deviation areas with its surroundings (by area id, else the result's points)."""
     out: list[ReportFigure] = [
         ReportFigure(f"section-{c.id}", f"{c.id} {c.name}: deviation along the CAD section with the band",
                      section_png(c))
         for c in characteristics if c.curve is not None and len(c.curve.arc_mm)]
+    everywhere = Surroundings(result.points_mm, result.deviations_mm, result.cad_normals)
     for a in result.areas[:MAX_CLOSEUPS]:
-        c = closeup(a, result.points_mm, result.deviations_mm, result.cad_normals, tol.lower_mm, tol.upper_mm, norm)
+        c = closeup(a, surroundings.get(a.id, everywhere), tol.lower_mm, tol.upper_mm, norm)
         out.append(CloseUpFigure(f"closeup-{a.id}", f"Close-up of deviation area #{a.id} and its surroundings "
                                  f"({c.points} points, {c.beyond_band} beyond the band)", c.png, c))
     return out

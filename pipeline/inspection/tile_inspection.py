@@ -27,6 +27,7 @@ percentiles, tolerance shares) and its deviation areas come from every point, ti
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import math
@@ -53,6 +54,7 @@ from tandemscan.pipeline.inspection.deviation_areas import (
     local_deviations,
 )
 from tandemscan.pipeline.inspection.inspect import CadSurface, DeviationStats, ToleranceResult, in_chunks
+from tandemscan.pipeline.inspection.region_points import Region, RegionPoints, gather
 from tandemscan.pipeline.io import npz_blocks
 from tandemscan.pipeline.io.durable import write_durably
 from tandemscan.pipeline.io.export import PlyChunk, write_ply_streamed
@@ -110,7 +112,8 @@ class FromSample:
 @dataclass(frozen=True)
 class TileDeviations:
     """A tile's inspection: its deviations' file (relative to the scan store: points and unit normals in F, mm,
-    float64, signed deviations ``deviation_mm``, + along the CAD's outward normal) and their summary (mm, mm^2)."""
+    float64, signed deviations ``deviation_mm``, + along the CAD's outward normal, closest CAD triangles
+    ``triangle_ids``) and their summary (mm, mm^2)."""
 
     index: int
     file: str
@@ -158,12 +161,14 @@ def inspect_tile(unit: InspectTile) -> TileDeviations:
     T = np.asarray(unit.T_F_W, float)
     points_F = in_chunks(transform_points, T, cloud.points_mm)
     normals_F = in_chunks(rotate_vectors, T, cloud.normals)
-    d = surface.closest(points_F).signed_mm if len(points_F) else np.empty(0)
+    closest = surface.closest(points_F) if len(points_F) else None
+    d, triangles = (np.empty(0), np.empty(0, np.int64)) if closest is None else (closest.signed_mm,
+                                                                                 closest.triangle_ids)
     file = f"{Path(unit.tile.file).parent.as_posix()}/{unit.key()}.npz"
     u = {} if not sample.uncertainty else {
         "uncertainty_mm": _field(str(Path(unit.store) / sample.uncertainty)).at(points_F)}
     write_durably(Path(unit.store) / file, functools.partial(
-        _save, points_F=points_F, normals_F=normals_F, deviation_mm=d, **u))
+        _save, points_F=points_F, normals_F=normals_F, deviation_mm=d, triangle_ids=triangles, **u))
     n = len(d)
     mean = float(d.mean()) if n else 0.0
     return TileDeviations(
@@ -523,17 +528,19 @@ class TiledInspection:
         """The cloud's points (voxels), those of the reference spheres included."""
         return sum(t.voxels for t in self.tiles)
 
-    def inspect(self, surface: CadSurface, T_F_W: np.ndarray, band_mm: tuple[float, float],
-                uncertainty: UncertaintyField | None, left_out: Sequence[tuple[np.ndarray, float]], ply: Path,
-                areas: AreaBounds | None = None) -> WholeCloud:
+    @contextlib.contextmanager
+    def inspected(self, surface: CadSurface, T_F_W: np.ndarray, band_mm: tuple[float, float],
+                  uncertainty: UncertaintyField | None, left_out: Sequence[tuple[np.ndarray, float]], ply: Path,
+                  areas: AreaBounds | None = None) -> Iterator[InspectedTiles]:
         """Every tile placed in F by ``T_F_W`` (4x4, mm) and compared with ``surface`` (the CAD as the inspection
         oriented it: its ``reversed`` triangles) on the backend, each point with the U of ``uncertainty``'s nearest
         (None: no U), the points in the balls ``left_out`` ((centre W mm, radius mm): the reference spheres) left
         out: the deviation figures of the whole cloud in the band ``band_mm`` (lower, upper, mm), its deviation
-        areas beyond ``areas`` (:func:`tile_areas`; None: none sought) and ``ply``, the deviation PLY, streamed; the
-        units' files removed after. The heap this process freed since the report's sample was inspected (its
-        temporaries, cloud.ply's blocks) is handed back first (``compute.trim_heap``), so that the tiles' stage and
-        the PLY start from what is held."""
+        areas beyond ``areas`` (:func:`tile_areas`; None: none sought) and ``ply``, the deviation PLY, streamed. The
+        units' files are kept while the block runs, for the points of small regions (:meth:`InspectedTiles.points_in`),
+        and removed after. The heap this process freed since the report's sample was inspected (its temporaries,
+        cloud.ply's blocks) is handed back first (``compute.trim_heap``), so that the tiles' stage and the PLY start
+        from what is held."""
         trim_heap()
         lower, upper = band_mm
         cad = write_cad(self.store, surface)
@@ -546,8 +553,32 @@ class TiledInspection:
             figures = deviation_figures(self.store, inspected, lower, upper)
             found = () if areas is None else tile_areas(inspected, self.store, T_F_W, areas, self.backend)
             write_deviation_ply(ply, self.store, inspected)
+            yield InspectedTiles(WholeCloud(figures, found), tuple(t.file for t in inspected if t.count), self.store,
+                                 self.backend)
         finally:
             for file in (cad, field, *(t.file for t in inspected)):
                 if file:
                     (Path(self.store) / file).unlink(missing_ok=True)
-        return WholeCloud(figures, found)
+
+    def inspect(self, surface: CadSurface, T_F_W: np.ndarray, band_mm: tuple[float, float],
+                uncertainty: UncertaintyField | None, left_out: Sequence[tuple[np.ndarray, float]], ply: Path,
+                areas: AreaBounds | None = None) -> WholeCloud:
+        """What :meth:`inspected` finds of every point of the cloud, its units' files removed before it returns."""
+        with self.inspected(surface, T_F_W, band_mm, uncertainty, left_out, ply, areas) as tiles:
+            return tiles.whole
+
+
+@dataclass(frozen=True)
+class InspectedTiles:
+    """A tiled cloud while its inspection's files are kept (:meth:`TiledInspection.inspected`): what it found of every
+    point (``whole``) and its tiles' deviations ``files`` (in the cloud's order, relative to the scan store ``store``)
+    that :meth:`points_in` reads on ``backend``."""
+
+    whole: WholeCloud
+    files: tuple[str, ...]
+    store: str
+    backend: ComputeBackend
+
+    def points_in(self, regions: Sequence[Region]) -> tuple[RegionPoints, ...]:
+        """Each region's points of the whole cloud (F, mm, in its order: ``region_points.gather``)."""
+        return gather(self.files, self.store, regions, self.backend)
