@@ -25,14 +25,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
-from tandemscan.config.inspection_template import (
-    EdgeSpec,
-    FlatnessSpec,
-    InspectionTemplate,
-    PatchSpec,
-    SectionSpec,
-    SurfaceProfileSpec,
-)
+from tandemscan.config.inspection_template import InspectionTemplate, PatchSpec
 from tandemscan.pipeline.compute import ComputeBackend
 from tandemscan.pipeline.inspection.characteristics import MeasuredCloud, edge_frame
 from tandemscan.pipeline.inspection.deviation_areas import DeviationArea
@@ -109,14 +102,14 @@ def characteristic_region(spec, template: InspectionTemplate, surface: CadSurfac
     """Where the characteristic ``spec`` of ``template`` takes its points (F, mm; a superset of what
     ``characteristics`` selects): a profile's or a flatness's patch; a section's slab of its plane, as wide as its
     half width or the smoothing radius, in its patch where it names one; an edge's corridor in the edge's frame."""
-    if isinstance(spec, SurfaceProfileSpec | FlatnessSpec):
+    if spec.kind in ("surface_profile", "flatness"):
         return patch_region(template.region(spec.region), surface)
-    if isinstance(spec, SectionSpec):
+    if spec.kind == "section":
         n = np.asarray(spec.normal, float) / np.linalg.norm(spec.normal)
         slab = Region(n[None], np.array([n @ np.asarray(spec.point_mm, float)]),
                       np.array([max(spec.half_width_mm, template.smoothing_mm)]))
         return slab if spec.region is None else slab.also(patch_region(template.region(spec.region), surface))
-    if isinstance(spec, EdgeSpec):
+    if spec.kind == "edge":
         frame = edge_frame(spec, surface)
         axes = np.array([frame.along, frame.into, frame.normal])
         keep_along = max(frame.half_length_mm - spec.corridor_mm, 0.5 * frame.half_length_mm)
