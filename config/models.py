@@ -656,9 +656,10 @@ class ComputeConfig(_Strict):
         0.0, ge=0, description="the end of a job merges its cloud by slabs of W this wide (mm) on the backend, "
         "each unit reading only its scans (docs/compute.md, Tiles); 0 = in one process, as one map")
     report_points: int = Field(
-        1_000_000, ge=1000, description="with tile_mm: the report's alignment, U and pictures from every k-th "
+        1_000_000, ge=1000, description="with tile_mm: the report's alignment, U and maps from every k-th "
         "voxel up to this many in the process that writes it; its deviation areas (and the verdict on them), "
-        "figures and cloud_deviation.ply from every point, tile by tile on the backend (docs/compute.md, Tiles)")
+        "figures, cloud_deviation.ply and (in their regions) characteristics and close-ups from every point, tile "
+        "by tile on the backend (docs/compute.md, Tiles)")
 
     @property
     def reads_scan_store(self) -> bool:

@@ -161,8 +161,9 @@ def run_inspection(measured: Measurement, part: InspectedPart, settings: Inspect
     as ``results.qif``. ``whole``: the tiled cloud ``measured`` is an even sample of (its frame W placed in F as
     ``alignment`` places the sample): the report's deviation figures (``as_measured``) and deviation areas are the
     whole cloud's and the deviation PLY holds every point of it, tile by tile (``tile_inspection.TiledInspection``,
-    each point with the U of the sample's nearest); U, the areas' guard band and their U (``verdict.area_search``,
-    at the whole cloud's density) and the pictures are the sample's."""
+    each point with the U of the sample's nearest), and so are the characteristics and the areas' close-ups, from its
+    points in their regions (:func:`full_density`); U, the areas' guard band and their U (``verdict.area_search``,
+    at the whole cloud's density) and the maps are the sample's."""
     criteria = settings.criteria
     template = part.template
     if template is not None:

@@ -19,10 +19,12 @@ joined across the tiles in the process that writes the report (:func:`joined_are
 ``deviation_areas.find_deviation_areas`` to 1e-9 (``tests/pipeline/inspection/test_tile_areas.py``).
 
 A job's inspection of a tiled cloud (:class:`TiledInspection`, docs/compute.md "Tiles"): the alignment, the points'
-uncertainty U and the pictures are those of an even sample of the cloud in the process that writes the report
+uncertainty U and the maps are those of an even sample of the cloud in the process that writes the report
 (``[compute] report_points``); the deviation figures of the whole cloud (count, mean, sigma, RMS, extremes,
 percentiles, tolerance shares) and its deviation areas come from every point, tile by tile, and so does
-``cloud_deviation.ply``, each point with the U of the sample's nearest point (:class:`UncertaintyField`).
+``cloud_deviation.ply``, each point with the U of the sample's nearest point (:class:`UncertaintyField`); the
+template's characteristics and the areas' close-ups from every point in their regions
+(:meth:`InspectedTiles.points_in`, ``region_points``).
 """
 
 from __future__ import annotations
