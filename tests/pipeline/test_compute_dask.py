@@ -20,6 +20,7 @@ import pytest
 from dask.distributed import get_task_stream
 from tandemscan.config.models import ComputeConfig, CorrectionConfig, DeepMergeConfig
 from tandemscan.pipeline.compute import DaskBackend, LazyBackend, LocalBackend, backend_for, process_cpu_seconds
+from tandemscan.pipeline.inspection.region_points import Region, gather
 from tandemscan.pipeline.inspection.tile_inspection import AreaBounds, inspect_tiles, tile_areas
 from tandemscan.pipeline.io.raw_scan import read_thinned_scan, write_raw_scan
 from tandemscan.pipeline.registration.correction import (
@@ -217,6 +218,9 @@ def test_the_tile_stages_on_two_dask_workers_give_the_local_result(cluster, tmp_
     local_inspected = inspect_tiles(local, tmp_path, mesh_file, T_F_W, -0.08, 0.08, LocalBackend())
     local_deviations = _deviations(tmp_path, local_inspected)
     local_areas = tile_areas(local_inspected, tmp_path, T_F_W, AREAS, LocalBackend())
+    centre = np.asarray(local_areas[0].centroid_mm)  # a box about the first area and a slab across x through it
+    regions = (Region.box(centre - 20.0, centre + 20.0), Region(np.eye(3)[:1], centre[:1], np.array([2.0])))
+    local_near = gather([t.file for t in local_inspected], tmp_path, regions, LocalBackend())
     shutil.rmtree(tmp_path / "tiles")  # the workers write their own
     backend = DaskBackend(address)
     try:
@@ -225,6 +229,7 @@ def test_the_tile_stages_on_two_dask_workers_give_the_local_result(cluster, tmp_
             remote = merge_tiles(refs, VOXEL_MM, TILE_MM, tmp_path, backend)
             remote_inspected = inspect_tiles(remote, tmp_path, mesh_file, T_F_W, -0.08, 0.08, backend)
             remote_areas = tile_areas(remote_inspected, tmp_path, T_F_W, AREAS, backend)
+            remote_near = gather([t.file for t in remote_inspected], tmp_path, regions, backend)
     finally:
         backend.close()
     assert remote == local  # the same tiles, files and voxel counts
@@ -235,6 +240,10 @@ def test_the_tile_stages_on_two_dask_workers_give_the_local_result(cluster, tmp_
     for a, b in zip(_deviations(tmp_path, remote_inspected), local_deviations, strict=True):
         np.testing.assert_array_equal(a, b)
     assert local_areas and remote_areas == local_areas  # the deviation areas, joined across the tiles
+    for a, b in zip(remote_near, local_near, strict=True):  # the points of small regions (the characteristics')
+        assert len(b) > 100
+        for name in ("points_mm", "deviations_mm", "triangle_ids", "uncertainty_mm"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
     assert len({task["worker"] for task in stream.data}) == 2  # both workers merged or inspected tiles
 
 
