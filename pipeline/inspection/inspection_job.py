@@ -50,6 +50,7 @@ from tandemscan.pipeline.inspection.point_uncertainty import GivenUncertainty, U
 from tandemscan.pipeline.inspection.qif import RESULTS_FILE, MeasuredPart, write_results
 from tandemscan.pipeline.inspection.region_points import (
     REGION_POINTS,
+    Region,
     RegionPoints,
     budgeted,
     characteristic_region,
@@ -253,7 +254,8 @@ def full_density(tiles: InspectedTiles, template: InspectionTemplate | None, sam
     specs = () if template is None else template.characteristics
     wanted = tuple(characteristic_region(spec, template, surface) for spec in specs)
     shown = tuple(areas[:MAX_CLOSEUPS])
-    regions = budgeted((*wanted, *(closeup_region(a) for a in shown)), sample, per_sample_point)
+    regions = budgeted((*wanted, *(closeup_region(a) for a in shown)), sample.points_mm, sample.triangle_ids,
+                       per_sample_point)
     names = [*(spec.id for spec in specs), *(f"close-up #{a.id}" for a in shown)]
     for r, name in zip(regions, names, strict=True):
         if r.step > 1:
@@ -301,7 +303,8 @@ def align_and_inspect(measured_W: Measurement, part: InspectedPart, settings: In
     ``start``, orient the CAD by the measured side (:func:`measured_side`: the start's scanner positions, else the
     cloud's normals), then inspect and write as :func:`run_inspection`. The points on reference spheres are left
     out of the inspection; the stitching views are mapped into F as well. A template aligned on datums
-    (``part.template``) refines the fit on its datum patches (:func:`align_datums`). A failed alignment writes the
+    (``part.template``) refines the fit on its datum patches (:func:`align_datums`; a tiled cloud's on every point
+    in the patches' boxes, :func:`datum_points`). A failed alignment writes the
     report of a failed inspection (verdict "indeterminate", the reason) and returns it without a result.
     ``whole``: the tiled cloud ``measured_W`` is an even sample of (:func:`run_inspection`)."""
     surface = part.surface
@@ -318,9 +321,10 @@ def align_and_inspect(measured_W: Measurement, part: InspectedPart, settings: In
         return InspectionOutputs(None, failed.data, html, js, None)
     template = part.template
     if template is not None and template.alignment.method == "datums":
-        alignment = align_datums(surface, p, alignment, [
-            DatumPatch(d.feature, d.patch, template.patches[d.patch].min_mm, template.patches[d.patch].max_mm)
-            for d in template.alignment.datums])
+        patches = [DatumPatch(d.feature, d.patch, template.patches[d.patch].min_mm, template.patches[d.patch].max_mm)
+                   for d in template.alignment.datums]
+        alignment = align_datums(surface, p if whole is None else datum_points(whole, patches, p, alignment.T_F_W),
+                                 alignment, patches)
     keep = np.ones(len(p), bool) if alignment.excluded is None else ~alignment.excluded
     T = alignment.T_F_W
     log.info("aligned to CAD by %s: residual %.4f mm, %d points on reference spheres left out",
@@ -341,6 +345,19 @@ def align_and_inspect(measured_W: Measurement, part: InspectedPart, settings: In
             views_W.overlap))
     return run_inspection(measured_F, dataclasses.replace(part, surface=surface), settings, output, alignment, context,
                           whole)
+
+
+def datum_points(whole: TiledInspection, patches: Sequence[DatumPatch], sample_W_mm: np.ndarray, T_F_W: np.ndarray
+                 ) -> np.ndarray:
+    """The tiled cloud's points (W, mm, every point, in its order) that ``T_F_W`` (the best fit) places in the datum
+    ``patches``' boxes, within the regions' budget counted on its even sample ``sample_W_mm`` (``region_points``)."""
+    regions = budgeted([Region.box(d.min_mm, d.max_mm) for d in patches], transform_points(T_F_W, sample_W_mm), None,
+                       whole.points / len(sample_W_mm))
+    for d, r in zip(patches, regions, strict=True):
+        if r.step > 1:
+            log.warning("datum %s %r: its box holds more points than the report gathers; every %d-th of them taken",
+                        d.feature, d.name, r.step)
+    return whole.placed_in(T_F_W, regions)
 
 
 ORIENTATION_POINTS = 50_000  # measured points that vote for the side each patch of the CAD faces

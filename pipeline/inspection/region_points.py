@@ -27,9 +27,11 @@ from pathlib import Path
 import numpy as np
 from tandemscan.config.inspection_template import InspectionTemplate, PatchSpec
 from tandemscan.pipeline.compute import ComputeBackend
+from tandemscan.pipeline.geometry.frames import transform_points
 from tandemscan.pipeline.inspection.characteristics import MeasuredCloud, edge_frame
 from tandemscan.pipeline.inspection.deviation_areas import DeviationArea
-from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionError
+from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionError, in_chunks
+from tandemscan.pipeline.stitching.tiles import TileCloud, read_tile
 
 #: the most points all of a report's regions gather together (48 B each: about 50 MB in the process that writes the
 #: report, as its sample of ``[compute] report_points``)
@@ -65,13 +67,16 @@ class Region:
         return Region(np.vstack([self.axes, other.axes]), np.r_[self.centres_mm, other.centres_mm],
                       np.r_[self.half_mm, other.half_mm], tri, self.step)
 
-    def mask(self, points_F_mm: np.ndarray, triangle_ids: np.ndarray) -> np.ndarray:
-        """(N,) bool: the points (F, mm) in the region, with their closest CAD triangles."""
+    def mask(self, points_F_mm: np.ndarray, triangle_ids: np.ndarray | None) -> np.ndarray:
+        """(N,) bool: the points (F, mm) in the region, with their closest CAD triangles (None: not known, for a
+        region that names none)."""
         inside = np.ones(len(points_F_mm), bool)
         for axis, centre, half in zip(self.axes, self.centres_mm, self.half_mm, strict=True):
             if math.isfinite(half):
                 inside &= np.abs(points_F_mm @ axis - centre) <= half + MARGIN_MM
         if self.triangles is not None:
+            if triangle_ids is None:
+                raise ValueError("a region on CAD triangles needs the points' closest triangles")
             inside &= np.isin(triangle_ids, self.triangles)
         return inside
 
@@ -130,12 +135,13 @@ def closeup_region(area: DeviationArea) -> Region:
     return Region.box(centre - reach, centre + reach)
 
 
-def budgeted(regions: Sequence[Region], sample: MeasuredCloud, points_per_sample_point: float,
-             budget: int = REGION_POINTS) -> tuple[Region, ...]:
+def budgeted(regions: Sequence[Region], sample_F_mm: np.ndarray, triangle_ids: np.ndarray | None,
+             points_per_sample_point: float, budget: int = REGION_POINTS) -> tuple[Region, ...]:
     """``regions`` each with the step that keeps all of them together within ``budget`` points: a region's points
-    counted on the report's even ``sample`` (F, mm) times ``points_per_sample_point``; those under an equal share of
-    what the smaller ones leave are taken whole, the others thinned to that share."""
-    counts = [float(np.count_nonzero(r.mask(sample.points_mm, sample.triangle_ids))) * points_per_sample_point
+    counted on the report's even sample (``sample_F_mm``, F, mm, with its closest CAD triangles; None where no region
+    names triangles) times ``points_per_sample_point``; those under an equal share of what the smaller ones leave
+    are taken whole, the others thinned to that share."""
+    counts = [float(np.count_nonzero(r.mask(sample_F_mm, triangle_ids))) * points_per_sample_point
               for r in regions]
     share, left = math.inf, float(budget)
     for k, n in enumerate(sorted(counts)):
@@ -214,3 +220,44 @@ def gather(files: Sequence[str], store: str | Path, regions: Sequence[Region], b
     units = [RegionTile(f, str(store), tuple(regions)) for f in files]
     found = backend.map(tile_region_points, units, [u.key() for u in units])
     return tuple(RegionPoints.joined([f[i] for f in found], r.step) for i, r in enumerate(regions))
+
+
+@dataclass(frozen=True)
+class PlacedTile:
+    """One unit of the gathering from a tile's cloud before its inspection: the tile ``tile`` of the merged cloud in
+    the scan store ``store`` (W, mm) placed in F by ``T_F_W`` (4x4, mm), and the ``regions`` (F, none on CAD
+    triangles) whose points it returns."""
+
+    tile: TileCloud
+    store: str
+    T_F_W: np.ndarray
+    regions: tuple[Region, ...]
+
+    def key(self) -> str:
+        """The unit's name: everything its points depend on."""
+        h = hashlib.blake2b(digest_size=16)
+        h.update(self.tile.file.encode())
+        h.update(np.ascontiguousarray(self.T_F_W, np.float64).tobytes())
+        for r in self.regions:
+            r.digest(h)
+        return f"placed-tile-{self.tile.index:05d}-{h.hexdigest()}"
+
+
+def placed_tile_points(unit: PlacedTile) -> np.ndarray:
+    """The unit's tile's points (W, mm) that lie, placed in F, in any of its regions (every ``step``-th of a region's),
+    in the tile's order."""
+    points_W = read_tile(unit.store, unit.tile).points_mm
+    placed = in_chunks(transform_points, np.asarray(unit.T_F_W, float), points_W)
+    keep = np.zeros(len(points_W), bool)
+    for r in unit.regions:
+        keep[np.flatnonzero(r.mask(placed, None))[:: r.step]] = True
+    return points_W[keep]
+
+
+def gather_placed(tiles: Sequence[TileCloud], store: str | Path, T_F_W: np.ndarray, regions: Sequence[Region],
+                  backend: ComputeBackend) -> np.ndarray:
+    """The cloud's points (W, mm; its ``tiles`` in the scan store ``store``, in its order) that lie, placed in F by
+    ``T_F_W``, in any of ``regions``: :func:`placed_tile_points` of every tile on ``backend``."""
+    units = [PlacedTile(t, str(store), np.asarray(T_F_W, float), tuple(regions)) for t in tiles]
+    found = backend.map(placed_tile_points, units, [u.key() for u in units])
+    return np.concatenate([np.zeros((0, 3)), *found])

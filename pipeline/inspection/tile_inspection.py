@@ -56,7 +56,7 @@ from tandemscan.pipeline.inspection.deviation_areas import (
     local_deviations,
 )
 from tandemscan.pipeline.inspection.inspect import CadSurface, DeviationStats, ToleranceResult, in_chunks
-from tandemscan.pipeline.inspection.region_points import Region, RegionPoints, gather
+from tandemscan.pipeline.inspection.region_points import Region, RegionPoints, gather, gather_placed
 from tandemscan.pipeline.io import npz_blocks
 from tandemscan.pipeline.io.durable import write_durably
 from tandemscan.pipeline.io.export import PlyChunk, write_ply_streamed
@@ -561,6 +561,11 @@ class TiledInspection:
             for file in (cad, field, *(t.file for t in inspected)):
                 if file:
                     (Path(self.store) / file).unlink(missing_ok=True)
+
+    def placed_in(self, T_F_W: np.ndarray, regions: Sequence[Region]) -> np.ndarray:
+        """The cloud's points (W, mm, in its order) that lie, placed in F by ``T_F_W`` (4x4, mm), in any of ``regions``
+        (``region_points.gather_placed``: the datum patches' points, before the tiles are inspected)."""
+        return gather_placed(self.tiles, self.store, T_F_W, regions, self.backend)
 
     def inspect(self, surface: CadSurface, T_F_W: np.ndarray, band_mm: tuple[float, float],
                 uncertainty: UncertaintyField | None, left_out: Sequence[tuple[np.ndarray, float]], ply: Path,

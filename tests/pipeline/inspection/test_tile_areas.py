@@ -63,6 +63,12 @@ def tiled_part(store: Path, xy_F: np.ndarray, defects: list[tuple[float, float, 
     T_W_F = invert(T_F_W)
     p_W = transform_points(T_W_F, np.c_[x, y, z])
     n_W = rotate_vectors(T_W_F, n_F / np.linalg.norm(n_F, axis=1, keepdims=True))
+    return written_tiles(store, p_W, n_W, edges_x_W)
+
+
+def written_tiles(store: Path, p_W: np.ndarray, n_W: np.ndarray, edges_x_W: list[float]) -> TiledCloud:
+    """The points ``p_W`` with their normals ``n_W`` (W, mm) as the tiles of slabs cut at ``edges_x_W`` (W, mm), each
+    in W's voxel key order (1 mm voxels), written into ``store`` as ``tiles.merge_tiles`` writes them."""
     keys = np.floor(p_W).astype(np.int64)
     order = np.lexsort((keys[:, 2], keys[:, 1], keys[:, 0]))
     p_W, n_W, keys = p_W[order], n_W[order], keys[order]

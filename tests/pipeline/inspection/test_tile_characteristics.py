@@ -17,8 +17,9 @@ import pytest
 from tandemscan.config.inspection_template import InspectionTemplate
 from tandemscan.config.models import InspectionConfig
 from tandemscan.pipeline.compute import LocalBackend
+from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.frames import transform_points
-from tandemscan.pipeline.inspection.characteristics import MeasuredCloud
+from tandemscan.pipeline.inspection.characteristics import sample_surface
 from tandemscan.pipeline.inspection.inspect import CadSurface
 from tandemscan.pipeline.inspection.inspection_job import (
     AlignmentStart,
@@ -33,7 +34,7 @@ from tandemscan.pipeline.inspection.region_points import Region, budgeted
 from tandemscan.pipeline.inspection.report import InspectedPart
 from tandemscan.pipeline.inspection.tile_inspection import TiledInspection
 
-from tests.pipeline.inspection.test_tile_areas import _grid_F, _x_W, tiled_part
+from tests.pipeline.inspection.test_tile_areas import _grid_F, _x_W, tiled_part, written_tiles
 from tests.pipeline.stitching.test_tiles import T_F_W, cad_mesh
 
 DIP_XY_MM = (210.0, 15.0)
@@ -142,12 +143,57 @@ def test_a_characteristic_over_a_dent_the_sample_hardly_sees_is_measured_from_ev
     assert shown == untiled.data["closeups"][0]
 
 
+BOX_TEMPLATE = {
+    "part": "box", "part_number": "BOX-1",
+    "alignment": {"method": "datums", "datums": [{"feature": "plane", "patch": "bottom"},
+                                                 {"feature": "line", "patch": "front"},
+                                                 {"feature": "point", "patch": "left"}]},
+    "patches": {"bottom": {"min_mm": [5, 5, -2], "max_mm": [395, 195, 2]},
+                "front": {"min_mm": [5, -2, 5], "max_mm": [395, 2, 95]},
+                "left": {"min_mm": [-2, 85, 35], "max_mm": [2, 115, 65]},  # 90 points, 4 of the sample's
+                "top": {"min_mm": [5, 5, 98], "max_mm": [395, 195, 102]}},
+    "characteristics": [{"id": "SP-TOP", "name": "top", "kind": "surface_profile", "region": {"patch": "top"},
+                         "lower_mm": -0.2, "upper_mm": 0.2}]}
+
+
+def test_a_datum_frame_of_a_tiled_cloud_is_fitted_to_every_point_in_its_patches(tmp_path):
+    """The box of ``test_characteristics``' datum test (its top raised 0.5 mm over its last 150 mm, the point datum's
+    patch 30 x 30 mm), in three tiles: the sample (every 20th point) has too few points in that patch to fit it; the
+    3-2-1 frame fitted to every point there puts the box back (to 0.05 mm: 90 points) as the whole cloud's does, within
+    a micrometre of it (the best fit before it, from the sample, moves the patches' edges), and the top's profile reads
+    the same."""
+    box = o3d.geometry.TriangleMesh.create_box(400.0, 200.0, 100.0)
+    cad = CadSurface(box)
+    p = sample_surface(np.asarray(box.vertices), np.asarray(box.triangles), 0.1, seed=5)
+    p = p + np.random.default_rng(5).normal(0.0, 0.02, p.shape)
+    p[(p[:, 2] > 99.9) & (p[:, 0] > 250.0), 2] += 0.5
+    T_W_F = F.from_rotvec([1.0, -2.0, 0.5], np.radians(0.3) * np.array([0.6, 0.8, 0.0]))
+    p_W = F.transform_points(T_W_F, p)
+    cloud = written_tiles(tmp_path, p_W, F.rotate_vectors(T_W_F, cad.closest(p).normals),
+                          np.quantile(p_W[:, 0], [1 / 3, 2 / 3]).tolist())
+    part = InspectedPart(cad, InspectionTemplate.model_validate(BOX_TEMPLATE))
+    settings = InspectionSettings.from_section(InspectionConfig(
+        views=("top",), map_width_px=150, best_fit=False, regions=(), reference_spheres=()), part.template)
+    sample = cloud.every_kth(20)
+    untiled, tiled = (align_and_inspect(Measurement(m.points_mm, m.normals), part, settings,
+                                        ReportOutput(tmp_path / name, json_name=None), whole=whole)
+                      for m, name, whole in ((cloud.every_kth(1), "whole", None), (sample, "tiled", TiledInspection(
+                          cloud.tiles, cloud.store, LocalBackend()))))
+    assert untiled.data["alignment"]["method"] == tiled.data["alignment"]["method"] == "datums"
+    corners = np.asarray(box.vertices)
+    placed = [F.transform_points(np.asarray(out.data["alignment"]["T_F_W"]) @ T_W_F, corners)
+              for out in (tiled, untiled)]
+    assert np.abs(placed[0] - corners).max() < 0.05 and np.abs(placed[0] - placed[1]).max() < 1e-3
+    (a,), (b,) = tiled.characteristics, untiled.characteristics
+    assert a.status == b.status == "fail" and abs(a.points - b.points) <= 2
+    assert a.actual_mm == pytest.approx(b.actual_mm, abs=1e-3)
+
+
 def test_a_region_over_its_share_of_the_budget_is_thinned_and_the_small_ones_are_not():
     """Counted on an even sample: the small region whole, the large one thinned to what the budget leaves."""
     rng = np.random.default_rng(0)
     p = np.c_[rng.uniform(0, 1000, 50_000), rng.uniform(0, 100, 50_000), np.zeros(50_000)]
-    sample = MeasuredCloud(p, np.zeros(len(p)), np.zeros(len(p), np.int64), np.zeros(len(p)), grouped_cad())
     small, large = Region.box((0, 0, -1), (10, 100, 1)), Region.box((0, 0, -1), (1000, 100, 1))
-    a, b = budgeted([small, large], sample, 10.0, budget=100_000)  # about 5,000 and 500,000 points
+    a, b = budgeted([small, large], p, None, 10.0, budget=100_000)  # about 5,000 and 500,000 points
     assert a.step == 1 and b.step == pytest.approx(500_000 / 95_000, abs=1)
-    assert budgeted([small], sample, 10.0, budget=100_000)[0].step == 1
+    assert budgeted([small], p, None, 10.0, budget=100_000)[0].step == 1
