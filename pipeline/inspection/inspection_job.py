@@ -241,8 +241,8 @@ class Nearby:
         region was thinned says so in its method."""
         out = evaluate(template, self.cloud, rule, self.rows)
         return tuple(c if step == 1 else dataclasses.replace(
-            c, method=f"{c.method}; on every {step}-th point of its region (the report's regions gather at most "
-            f"{REGION_POINTS} points)") for c, step in zip(out, self.steps or (1,) * len(out), strict=True))
+            c, method=f"{c.method}; on one in every {step} points of its region (the report's regions gather at "
+            f"most {REGION_POINTS} points)") for c, step in zip(out, self.steps or (1,) * len(out), strict=True))
 
 
 def full_density(tiles: InspectedTiles, template: InspectionTemplate | None, sample: MeasuredCloud,
@@ -255,11 +255,11 @@ def full_density(tiles: InspectedTiles, template: InspectionTemplate | None, sam
     wanted = tuple(characteristic_region(spec, template, surface) for spec in specs)
     shown = tuple(areas[:MAX_CLOSEUPS])
     regions = budgeted((*wanted, *(closeup_region(a) for a in shown)), sample.points_mm, sample.triangle_ids,
-                       per_sample_point)
+                       per_sample_point, REGION_POINTS)
     names = [*(spec.id for spec in specs), *(f"close-up #{a.id}" for a in shown)]
     for r, name in zip(regions, names, strict=True):
         if r.step > 1:
-            log.warning("%s: its region holds more points than the report gathers; every %d-th of them taken", name,
+            log.warning("%s: its region holds more points than the report gathers; one in every %d taken", name,
                         r.step)
     found = tiles.points_in(regions)
     own, around = found[: len(wanted)], found[len(wanted):]
@@ -352,10 +352,10 @@ def datum_points(whole: TiledInspection, patches: Sequence[DatumPatch], sample_W
     """The tiled cloud's points (W, mm, every point, in its order) that ``T_F_W`` (the best fit) places in the datum
     ``patches``' boxes, within the regions' budget counted on its even sample ``sample_W_mm`` (``region_points``)."""
     regions = budgeted([Region.box(d.min_mm, d.max_mm) for d in patches], transform_points(T_F_W, sample_W_mm), None,
-                       whole.points / len(sample_W_mm))
+                       whole.points / len(sample_W_mm), REGION_POINTS)
     for d, r in zip(patches, regions, strict=True):
         if r.step > 1:
-            log.warning("datum %s %r: its box holds more points than the report gathers; every %d-th of them taken",
+            log.warning("datum %s %r: its box holds more points than the report gathers; one in every %d taken",
                         d.feature, d.name, r.step)
     return whole.placed_in(T_F_W, regions)
 

@@ -136,11 +136,11 @@ def closeup_region(area: DeviationArea) -> Region:
 
 
 def budgeted(regions: Sequence[Region], sample_F_mm: np.ndarray, triangle_ids: np.ndarray | None,
-             points_per_sample_point: float, budget: int = REGION_POINTS) -> tuple[Region, ...]:
-    """``regions`` each with the step that keeps all of them together within ``budget`` points: a region's points
-    counted on the report's even sample (``sample_F_mm``, F, mm, with its closest CAD triangles; None where no region
-    names triangles) times ``points_per_sample_point``; those under an equal share of what the smaller ones leave
-    are taken whole, the others thinned to that share."""
+             points_per_sample_point: float, budget: int) -> tuple[Region, ...]:
+    """``regions`` each with the step that keeps all of them together within ``budget`` points
+    (:data:`REGION_POINTS` in the product): a region's points counted on the report's even sample (``sample_F_mm``,
+    F, mm, with its closest CAD triangles; None where no region names triangles) times ``points_per_sample_point``;
+    those under an equal share of what the smaller ones leave are taken whole, the others thinned to that share."""
     counts = [float(np.count_nonzero(r.mask(sample_F_mm, triangle_ids))) * points_per_sample_point
               for r in regions]
     share, left = math.inf, float(budget)

@@ -8,6 +8,7 @@ tiles), with a CAD whose triangles are in two face groups (x below and above 120
 
 from __future__ import annotations
 
+import re
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -19,6 +20,7 @@ from tandemscan.config.models import InspectionConfig
 from tandemscan.pipeline.compute import LocalBackend
 from tandemscan.pipeline.geometry import frames as F
 from tandemscan.pipeline.geometry.frames import transform_points
+from tandemscan.pipeline.inspection import inspection_job
 from tandemscan.pipeline.inspection.characteristics import sample_surface
 from tandemscan.pipeline.inspection.inspect import CadSurface
 from tandemscan.pipeline.inspection.inspection_job import (
@@ -187,6 +189,25 @@ def test_a_datum_frame_of_a_tiled_cloud_is_fitted_to_every_point_in_its_patches(
     (a,), (b,) = tiled.characteristics, untiled.characteristics
     assert a.status == b.status == "fail" and abs(a.points - b.points) <= 2
     assert a.actual_mm == pytest.approx(b.actual_mm, abs=1e-3)
+
+
+def test_a_region_over_the_budget_is_thinned_and_its_characteristic_says_so(tmp_path, monkeypatch):
+    """The budget of the regions' points at 3,000: a profile over the whole sheet (30,000 points) is evaluated on one in
+    every k of them and says so; the dip's close-up takes its share of the rest."""
+    monkeypatch.setattr(inspection_job, "REGION_POINTS", 3_000)
+    xy = _grid_F(np.random.default_rng(1))
+    x_W = _x_W(xy)
+    cloud = tiled_part(tmp_path, xy, [(*DIP_XY_MM, -0.3, 5.0)], np.quantile(x_W, [1 / 3, 2 / 3]).tolist())
+    part = InspectedPart(grouped_cad(), template([{"id": "SP-ALL", "name": "all", "kind": "surface_profile",
+                                                   "region": {"min_mm": [-100, -100, -20], "max_mm": [400, 100, 20]}}]))
+    sample = cloud.every_kth(3)
+    out = inspected(tmp_path / "out", sample.points_mm, sample.normals, part,
+                    TiledInspection(cloud.tiles, cloud.store, LocalBackend()))
+    (c,) = out.characteristics
+    (shown,) = out.data["closeups"]
+    step = int(re.search(r"on one in every (\d+) points of its region", c.method)[1])
+    assert 0 <= c.points * step - len(cloud) < 3 * step  # every step-th of each of the three tiles' points
+    assert 2_000 < c.points + shown["points"] < 3_300 and c.status == "fail"
 
 
 def test_a_region_over_its_share_of_the_budget_is_thinned_and_the_small_ones_are_not():
