@@ -148,8 +148,14 @@ class GivenUncertainty:
         return PointUncertainty(k, total, own**2, budget, notes)
 
 
-#: held while a :class:`ScanCover` builds its KD tree, so that the threads asking for it build it once
-_TREE_BUILD = threading.Lock()
+#: held while a :class:`ScanCover` finds its scans' extents, so that the threads asking for them find them once
+_EXTENTS = threading.Lock()
+#: :meth:`ScanCover.shares` answers its queries a slab of W across x this wide (mm) at a time, from a KD tree of the
+#: scans' thinned points within reach of the slab: the tree is bounded by the slab, not by the part's scans
+COVER_SLAB_MM = 500.0
+#: how far beyond its slab (mm) a slab's tree first reaches; the queries whose nearest points it cannot prove nearest
+#: of all are asked again of a tree reaching four times as far
+COVER_REACH_MM = 20.0
 
 
 @dataclass(frozen=True)
@@ -165,47 +171,90 @@ class ScanCover:
     scan_ids: np.ndarray
 
     @property
-    def _tree(self) -> tuple[np.ndarray, np.ndarray, cKDTree]:
-        """Each scan's thinned point count, where each scan's points end in the tree's (their cumulative counts: a
-        thinned point's scan is found from its index, no label a point) and a KD tree of all of them placed in W,
-        built once (:meth:`shares` is asked at the even centres and at the best fit's points): by the first thread
-        that asks (:meth:`prepared`'s, or the caller's), any other waiting for it (:data:`_TREE_BUILD`; not
-        ``cached_property``, whose lock Python 3.12 dropped). Each scan is placed into its rows of the tree's one
-        array: no placed copy of the scans is held beside it."""
-        with _TREE_BUILD:
-            if "_built_tree" not in self.__dict__:
+    def _extents(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each scan's thinned point count and the x extent (W, mm; (K, 2), inf and -inf without points) of its
+        points placed, found once: by the first thread that asks (:meth:`prepared`'s, or the caller's), any other
+        waiting for them (:data:`_EXTENTS`)."""
+        with _EXTENTS:
+            if "_found_extents" not in self.__dict__:
                 sizes = np.array([len(p) for p in self.points_S], np.int64)
-                ends = np.cumsum(sizes)
-                placed_W = np.empty((int(ends[-1]) if len(ends) else 0, 3))
-                for end, size, points_S, T_W_S in zip(ends, sizes, self.points_S, self.T_W_S, strict=True):
-                    placed_W[end - size:end] = transform_points(T_W_S, points_S)
-                object.__setattr__(self, "_built_tree", (sizes, ends, cKDTree(placed_W, leafsize=32,
-                                                                               balanced_tree=False)))
-        return self.__dict__["_built_tree"]
+                object.__setattr__(self, "_found_extents", (sizes, x_extents(self.points_S, self.T_W_S)))
+        return self.__dict__["_found_extents"]
 
     def prepared(self) -> ScanCover:
-        """This cover with its KD tree being built on a thread of its own (SciPy builds it without the GIL): made as
-        the job's inspection starts, it needs none of it, and the points' U finds it built (or waits for it)."""
-        threading.Thread(target=lambda: self._tree, name="scan-cover-tree", daemon=True).start()
+        """This cover with its scans' extents being found on a thread of its own: made as the job's inspection
+        starts, it needs none of it, and the points' U finds them (or waits for them)."""
+        threading.Thread(target=lambda: self._extents, name="scan-cover-extents", daemon=True).start()
         return self
+
+    def _slab(self, x0_mm: float, x1_mm: float) -> tuple[np.ndarray, np.ndarray, cKDTree]:
+        """(scans, ends, tree): the scans (positions in this cover) with thinned points of x in ``[x0_mm, x1_mm]``
+        (W), where each one's such points end in the tree's (their cumulative counts: a point's scan is found from
+        its index) and a KD tree of those points."""
+        _, extents = self._extents
+        scans = np.flatnonzero((extents[:, 1] >= x0_mm) & (extents[:, 0] <= x1_mm))
+        parts = []
+        for i in scans:
+            placed = transform_points(self.T_W_S[i], self.points_S[i])
+            parts.append(placed[(placed[:, 0] >= x0_mm) & (placed[:, 0] <= x1_mm)])
+        ends = np.cumsum([len(p) for p in parts], dtype=np.int64)
+        points = np.concatenate(parts) if parts else np.empty((0, 3))
+        del parts
+        return scans, ends, cKDTree(points, leafsize=32, balanced_tree=False)
 
     def shares(self, points_W: np.ndarray, k: int = SCANS_PER_POINT) -> tuple[np.ndarray, np.ndarray]:
         """(M, k) scan positions (into this cover's scans) and their shares of each point's voxel (rows sum to
         1): the scans among the :data:`NEIGHBOURS` nearest thinned points, each weighing its points found there
-        times its thinning ratio (full points over thinned ones), the ``k`` largest kept."""
-        sizes, ends, tree = self._tree
-        kn, kk = min(NEIGHBOURS, tree.n), min(k, len(sizes))
+        times its thinning ratio (full points over thinned ones), the ``k`` largest kept. Asked a slab of
+        :data:`COVER_SLAB_MM` at a time (:meth:`_slab`): a query's nearest points in a slab's tree are its nearest of
+        all where the farthest of them is nearer than the tree's reach beyond the query's x; the others are asked
+        again of a tree reaching farther (the same answers as one tree of every scan's points)."""
+        points_W = np.asarray(points_W, float)
+        sizes, _ = self._extents
+        kn, kk = min(NEIGHBOURS, int(sizes.sum())), min(k, len(sizes))
         ratio = np.asarray(self.point_counts, float) / np.maximum(sizes, 1)
         top, w = np.empty((len(points_W), kk), np.int64), np.empty((len(points_W), kk))
-        step = max(1, 20_000_000 // (8 * max(len(sizes), 1)))  # dense votes of a chunk: about 20 MB
-        for lo in range(0, len(points_W), step):
-            idx = np.asarray(tree.query(points_W[lo:lo + step], k=kn, workers=-1)[1]).reshape(-1, kn)
-            scan = np.searchsorted(ends, idx.ravel(), side="right")  # each neighbour's scan
-            votes = np.zeros((len(idx), len(sizes)))
-            np.add.at(votes, (np.repeat(np.arange(len(idx)), kn), scan), ratio[scan])
-            top[lo:lo + step] = np.argsort(-votes, axis=1)[:, :kk]
-            w[lo:lo + step] = np.take_along_axis(votes, top[lo:lo + step], axis=1)
+        x = points_W[:, 0]
+        slab = np.floor(x / COVER_SLAB_MM)
+        for s in np.unique(slab):
+            rows, reach = np.flatnonzero(slab == s), COVER_REACH_MM
+            while len(rows):
+                x0, x1 = s * COVER_SLAB_MM - reach, (s + 1) * COVER_SLAB_MM + reach
+                scans, ends, tree = self._slab(x0, x1)
+                if tree.n < kn:
+                    reach *= 4.0
+                    continue
+                dist, idx = (a.reshape(-1, kn) for a in tree.query(points_W[rows], k=kn, workers=-1))
+                proven = (dist[:, -1] < np.minimum(x[rows] - x0, x1 - x[rows])) | (tree.n == sizes.sum())
+                near = scans[np.searchsorted(ends, idx[proven], side="right")]  # each neighbour's scan
+                top[rows[proven]], w[rows[proven]] = _largest_votes(near, ratio, kk)
+                rows, reach = rows[~proven], reach * 4.0
         return top, w / w.sum(axis=1, keepdims=True)
+
+
+def x_extents(points_S: Sequence[np.ndarray], T_W_S: Sequence[np.ndarray]) -> np.ndarray:
+    """(K, 2) the x extent (W, mm) of each scan's points ``points_S`` (S, mm) placed at its ``T_W_S``; (inf, -inf)
+    for a scan without points."""
+    extents = np.tile([np.inf, -np.inf], (len(points_S), 1))
+    for i, (points, T) in enumerate(zip(points_S, T_W_S, strict=True)):
+        if len(points):
+            x = transform_points(T, points)[:, 0]
+            extents[i] = x.min(), x.max()
+    return extents
+
+
+def _largest_votes(near: np.ndarray, ratio: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per row of ``near`` ((M, n) each query's nearest points' scans) the ``k`` scans of the most votes (each of its
+    points votes its scan's thinning ratio ``ratio``) and their votes, (M, k) each."""
+    top, w = np.empty((len(near), k), np.int64), np.empty((len(near), k))
+    step = max(1, 20_000_000 // (8 * max(len(ratio), 1)))  # dense votes of a chunk: about 20 MB
+    for lo in range(0, len(near), step):
+        chunk = near[lo:lo + step]
+        votes = np.zeros((len(chunk), len(ratio)))
+        np.add.at(votes, (np.repeat(np.arange(len(chunk)), chunk.shape[1]), chunk.ravel()), ratio[chunk.ravel()])
+        top[lo:lo + step] = np.argsort(-votes, axis=1)[:, :k]
+        w[lo:lo + step] = np.take_along_axis(votes, top[lo:lo + step], axis=1)
+    return top, w
 
 
 @dataclass(frozen=True)

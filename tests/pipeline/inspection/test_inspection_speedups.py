@@ -371,7 +371,7 @@ def test_overlap_quality_places_each_scan_once():
     assert pairs == overlap_quality(*placed)  # the same figures as from the scans placed beforehand
 
 
-def test_a_scan_cover_prepared_builds_its_tree_unasked_and_answers_as_one_built_when_asked():
+def test_a_scan_cover_prepared_finds_its_extents_unasked_and_answers_as_one_found_when_asked():
     import time
 
     from tandemscan.pipeline.inspection.point_uncertainty import ScanCover
@@ -385,29 +385,31 @@ def test_a_scan_cover_prepared_builds_its_tree_unasked_and_answers_as_one_built_
 
     prepared, asked = cover().prepared(), cover()
     deadline = time.monotonic() + 30.0
-    while "_built_tree" not in prepared.__dict__ and time.monotonic() < deadline:  # built on its own thread
+    while "_found_extents" not in prepared.__dict__ and time.monotonic() < deadline:  # found on its own thread
         time.sleep(0.01)
-    assert "_built_tree" in prepared.__dict__ and "_built_tree" not in asked.__dict__
+    assert "_found_extents" in prepared.__dict__ and "_found_extents" not in asked.__dict__
     queries = rng.uniform([0.0, 0.0, 0.0], [650.0, 100.0, 1.0], (500, 3))
     for a, b in zip(prepared.shares(queries), asked.shares(queries), strict=True):
         assert np.array_equal(a, b)
 
 
-def test_a_scan_cover_asked_from_several_threads_while_it_prepares_builds_its_tree_once(monkeypatch):
-    """The tree :meth:`ScanCover.prepared` starts on its own thread, asked at once from four more threads: one build,
-    the others wait for it and get the same tree."""
+def test_a_scan_cover_asked_from_several_threads_while_it_prepares_finds_its_extents_once(monkeypatch):
+    """The scans' extents :meth:`ScanCover.prepared` starts finding on its own thread, asked at once from four more
+    threads: found once, the others wait for them and get the same answers."""
     import threading
 
     from tandemscan.pipeline.inspection import point_uncertainty
 
     builds = []
 
-    def slow_tree(*args, **kwargs):
+    real = point_uncertainty.x_extents
+
+    def slow_extents(*args, **kwargs):
         builds.append(threading.current_thread())
         threading.Event().wait(0.2)  # long enough for every thread to ask meanwhile
-        return cKDTree(*args, **kwargs)
+        return real(*args, **kwargs)
 
-    monkeypatch.setattr(point_uncertainty, "cKDTree", slow_tree)
+    monkeypatch.setattr(point_uncertainty, "x_extents", slow_extents)
     rng = np.random.default_rng(7)
     scans = [rng.uniform([100.0 * k, 0.0, 0.0], [100.0 * k + 150.0, 100.0, 1.0], (2000, 3)) for k in range(4)]
     cover = point_uncertainty.ScanCover(scans, [np.eye(4)] * 4, np.full(4, 8000.0), np.zeros((4, 3)),

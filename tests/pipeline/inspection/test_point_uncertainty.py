@@ -3,7 +3,9 @@ covariance of the scans' pose errors it is propagated from (pipeline/registratio
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 from tandemscan.pipeline.geometry.frames import from_rotvec, transform_points
+from tandemscan.pipeline.inspection import point_uncertainty
 from tandemscan.pipeline.inspection.point_uncertainty import (
     GivenUncertainty,
     JobUncertainty,
@@ -211,3 +213,34 @@ def test_the_pose_variance_from_covariance_blocks_is_that_of_the_dense_route(lin
                 # itself, from the blocks and from the solves) is what is left: 1e-10 of the largest
                 np.testing.assert_allclose(got, want, rtol=1e-9, atol=(1e-12 if fit is None else 1e-10) * want.max())
                 assert want.max() > 0
+
+
+def test_a_scan_cover_answers_by_slabs_as_one_tree_of_every_scan_and_holds_a_slab(monkeypatch):
+    """:meth:`ScanCover.shares` a slab of x at a time gives the answer of one KD tree of every scan's points (each
+    query's 16 nearest thinned points vote their scans, ``point_uncertainty`` module doc), with slabs far narrower
+    than a scan, queries on slab edges and a sparse stretch whose nearest points lie beyond the first reach; the
+    largest tree it builds holds the slab's points, a small share of the part's."""
+    rng = np.random.default_rng(11)
+    scans = [rng.uniform([60.0 * i, 0.0, 0.0], [60.0 * i + 150.0, 80.0, 2.0], (800, 3)) for i in range(24)]
+    scans[5] = scans[5][::40]  # a sparse scan: its neighbours are far
+    poses = [from_rotvec((5.0 + i, -2.0, 1.0), (0.001, -0.002, 0.0005 * (i % 3))) for i in range(24)]
+    counts = rng.integers(2_000, 9_000, 24).astype(float)
+    cover = ScanCover(scans, poses, counts, np.zeros((24, 3)), np.arange(24))
+    queries = rng.uniform([0.0, 0.0, 0.0], [1500.0, 80.0, 2.0], (3000, 3))
+    queries[:40, 0] = np.arange(40) * 20.0  # on the edges of 20 mm slabs
+    built = []
+    monkeypatch.setattr(point_uncertainty, "COVER_SLAB_MM", 20.0)
+    monkeypatch.setattr(point_uncertainty, "COVER_REACH_MM", 2.0)
+    monkeypatch.setattr(point_uncertainty, "cKDTree", lambda data, **kw: built.append(len(data)) or cKDTree(data, **kw))
+    top, w = cover.shares(queries)
+
+    placed = np.concatenate([transform_points(T, p) for T, p in zip(poses, scans, strict=True)])
+    scan_of = np.repeat(np.arange(24), [len(p) for p in scans])
+    near = scan_of[cKDTree(placed).query(queries, k=point_uncertainty.NEIGHBOURS)[1]]
+    votes = np.zeros((len(queries), 24))
+    np.add.at(votes, (np.repeat(np.arange(len(queries)), near.shape[1]), near.ravel()),
+              (counts / [len(p) for p in scans])[near.ravel()])
+    expected = np.argsort(-votes, axis=1)[:, :point_uncertainty.SCANS_PER_POINT]
+    assert np.array_equal(top, expected)
+    assert np.array_equal(w, (lambda v: v / v.sum(axis=1, keepdims=True))(np.take_along_axis(votes, expected, 1)))
+    assert max(built) < len(placed) / 6 and len(built) > 40, max(built)
