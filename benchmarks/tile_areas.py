@@ -27,7 +27,8 @@ from results import publish
 from tandemscan.pipeline.compute import LocalBackend
 from tandemscan.pipeline.inspection import tile_inspection
 from tandemscan.pipeline.inspection.deviation_areas import DeviationCloud, find_deviation_areas
-from tandemscan.pipeline.inspection.tile_inspection import AreaBounds, inspect_tiles, tile_areas
+from tandemscan.pipeline.inspection.inspect import CadSurface
+from tandemscan.pipeline.inspection.tile_inspection import AreaBounds, inspect_tiles, tile_areas, write_cad
 from tandemscan.pipeline.stitching.tiles import TILES_FOLDER, TileCloud, TiledCloud
 
 DENT = (0.5, 3.0)  # depth and sigma, mm
@@ -90,6 +91,7 @@ def main() -> None:
     tile_inspection.inspect_tile = measured(tile_inspection.inspect_tile, inspect_log)
     tile_inspection.find_tile_areas = measured(tile_inspection.find_tile_areas, area_log)
     backend = LocalBackend(1)
+    cad = store / write_cad(store, CadSurface(o3d.io.read_triangle_mesh(str(cad))))  # the job's CAD as units read it
     inspected = inspect_tiles(cloud.tiles, store, cad, np.eye(4), BOUNDS.lower_mm, BOUNDS.upper_mm, backend)
     areas = tile_areas(inspected, store, np.eye(4), BOUNDS, backend)
     sample = cloud.every_kth(-(-len(cloud) // args.report_points))
