@@ -19,6 +19,7 @@ import argparse
 import tempfile
 import time
 import tracemalloc
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -76,23 +77,48 @@ def measured(fn, log: list[tuple[float, int]]):
     return run
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def arguments(description: str) -> argparse.Namespace:
+    """The generated part's size and the report's sample from the command line (the usage in the module doc)."""
+    ap = argparse.ArgumentParser(description=description)
     ap.add_argument("--tiles", type=int, default=3)
     ap.add_argument("--tile-mm", type=float, default=500.0)
     ap.add_argument("--width-mm", type=float, default=1500.0)
     ap.add_argument("--report-points", type=int, default=20_000)
-    args = ap.parse_args()
-    store = Path(tempfile.mkdtemp(prefix="tile-areas-"))
+    return ap.parse_args()
+
+
+@dataclass(frozen=True)
+class FlatPart:
+    """The generated part in its scan store: its tiles, the dent's place (x, y, mm), the CAD surface and its file as
+    the tiles' units read it (``tile_inspection.write_cad``, relative to ``store``)."""
+
+    store: Path
+    dent_mm: tuple[float, float]
+    cloud: TiledCloud
+    surface: CadSurface
+    cad: str
+
+
+def flat_part(args: argparse.Namespace, prefix: str) -> FlatPart:
+    """The part of :func:`arguments`' size in a new temporary scan store."""
+    store = Path(tempfile.mkdtemp(prefix=prefix))
     dent = (1.37 * args.tile_mm, 0.47 * args.width_mm)
     cloud = generated_part(store, args.tiles, args.tile_mm, args.width_mm, dent)
-    cad = flat_cad(store / "cad.ply", args.tiles * args.tile_mm, args.width_mm)
+    surface = CadSurface(o3d.io.read_triangle_mesh(str(flat_cad(store / "cad.ply", args.tiles * args.tile_mm,
+                                                                args.width_mm))))
+    return FlatPart(store, dent, cloud, surface, write_cad(store, surface))
+
+
+def main() -> None:
+    args = arguments(__doc__.split("\n\n")[0])
+    part = flat_part(args, "tile-areas-")
+    store, dent, cloud = part.store, part.dent_mm, part.cloud
     inspect_log, area_log = [], []
     tile_inspection.inspect_tile = measured(tile_inspection.inspect_tile, inspect_log)
     tile_inspection.find_tile_areas = measured(tile_inspection.find_tile_areas, area_log)
     backend = LocalBackend(1)
-    cad = store / write_cad(store, CadSurface(o3d.io.read_triangle_mesh(str(cad))))  # the job's CAD as units read it
-    inspected = inspect_tiles(cloud.tiles, store, cad, np.eye(4), BOUNDS.lower_mm, BOUNDS.upper_mm, backend)
+    inspected = inspect_tiles(cloud.tiles, store, store / part.cad, np.eye(4), BOUNDS.lower_mm, BOUNDS.upper_mm,
+                              backend)
     areas = tile_areas(inspected, store, np.eye(4), BOUNDS, backend)
     sample = cloud.every_kth(-(-len(cloud) // args.report_points))
     in_sample = find_deviation_areas(DeviationCloud(sample.points_mm, sample.points_mm[:, 2]), BOUNDS.lower_mm,

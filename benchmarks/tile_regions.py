@@ -15,20 +15,15 @@ Timings on a shared machine are unreliable: run it idle.
 
 from __future__ import annotations
 
-import argparse
-import tempfile
 import time
-from pathlib import Path
 
 import numpy as np
-import open3d as o3d
 from results import publish
 from tandemscan.config.inspection_template import InspectionTemplate
 from tandemscan.pipeline.compute import LocalBackend
 from tandemscan.pipeline.inspection import region_points
 from tandemscan.pipeline.inspection.characteristics import MeasuredCloud, evaluate
 from tandemscan.pipeline.inspection.decision import DecisionRule
-from tandemscan.pipeline.inspection.inspect import CadSurface
 from tandemscan.pipeline.inspection.region_points import (
     REGION_POINTS,
     RegionPoints,
@@ -36,8 +31,8 @@ from tandemscan.pipeline.inspection.region_points import (
     characteristic_region,
     closeup_region,
 )
-from tandemscan.pipeline.inspection.tile_inspection import inspect_tiles, tile_areas, write_cad
-from tile_areas import BOUNDS, flat_cad, generated_part, measured
+from tandemscan.pipeline.inspection.tile_inspection import inspect_tiles, tile_areas
+from tile_areas import BOUNDS, arguments, flat_part, measured
 
 
 def sheet_template(tile_mm: float, width_mm: float, dent: tuple[float, float]) -> InspectionTemplate:
@@ -58,21 +53,13 @@ def sheet_template(tile_mm: float, width_mm: float, dent: tuple[float, float]) -
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--tiles", type=int, default=3)
-    ap.add_argument("--tile-mm", type=float, default=500.0)
-    ap.add_argument("--width-mm", type=float, default=1500.0)
-    ap.add_argument("--report-points", type=int, default=20_000)
-    args = ap.parse_args()
-    store = Path(tempfile.mkdtemp(prefix="tile-regions-"))
-    dent = (1.37 * args.tile_mm, 0.47 * args.width_mm)
-    cloud = generated_part(store, args.tiles, args.tile_mm, args.width_mm, dent)
-    cad_file = flat_cad(store / "cad.ply", args.tiles * args.tile_mm, args.width_mm)
-    surface = CadSurface(o3d.io.read_triangle_mesh(str(cad_file)))
+    args = arguments(__doc__.split("\n\n")[0])
+    part = flat_part(args, "tile-regions-")
+    store, dent, cloud, surface = part.store, part.dent_mm, part.cloud, part.surface
     template = sheet_template(args.tile_mm, args.width_mm, dent)
     backend = LocalBackend(1)
-    inspected = inspect_tiles(cloud.tiles, store, store / write_cad(store, surface), np.eye(4), BOUNDS.lower_mm,
-                              BOUNDS.upper_mm, backend)
+    inspected = inspect_tiles(cloud.tiles, store, store / part.cad, np.eye(4), BOUNDS.lower_mm, BOUNDS.upper_mm,
+                              backend)
     areas = tile_areas(inspected, store, np.eye(4), BOUNDS, backend)
     sample = cloud.every_kth(-(-len(cloud) // args.report_points))
     closest = surface.closest(sample.points_mm)
