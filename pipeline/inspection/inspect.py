@@ -223,8 +223,13 @@ class CadSurface:
         return [(f"mesh group {g}", of_point == g) for g in np.unique(groups)]
 
     def signed_distance(self, points_mm: np.ndarray) -> np.ndarray:
-        """(N,) signed distance of every point to the surface, mm (+ outside along the outward normal)."""
-        return self.closest(points_mm).signed_mm
+        """(N,) signed distance of every point to the surface, mm (+ outside along the outward normal): those of
+        :meth:`closest`, asked a chunk at a time, so that only the distances of the whole cloud are held."""
+        p = as_points(points_mm)
+        out = np.empty(len(p))
+        for lo in range(0, len(p), CLOSEST_CHUNK):
+            out[lo:lo + CLOSEST_CHUNK] = self.closest(p[lo:lo + CLOSEST_CHUNK]).signed_mm
+        return out
 
 
 @dataclass(frozen=True)

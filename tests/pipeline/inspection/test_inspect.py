@@ -9,6 +9,7 @@ import pytest
 from scipy.spatial import cKDTree
 from tandemscan.config.models import InspectionConfig, RegionConfig
 from tandemscan.pipeline.geometry.frames import from_rotvec, invert, transform_points
+from tandemscan.pipeline.inspection import inspect
 from tandemscan.pipeline.inspection.inspect import (
     CadSurface,
     DeviationStats,
@@ -259,3 +260,13 @@ def test_config_refuses_an_empty_band_and_bad_regions():
         InspectionConfig(tolerance_lower_mm=0.0, tolerance_upper_mm=0.0)
     with pytest.raises(ValidationError, match="must be >= min_mm"):
         RegionConfig(name="r", min_mm=(0, 0, 0), max_mm=(1, -1, 1))
+
+
+def test_signed_distances_asked_by_chunks_are_the_closest_points_ones(monkeypatch):
+    """``CadSurface.signed_distance`` of a cloud of several chunks (``inspect.CLOSEST_CHUNK``) keeps only the
+    distances: the same numbers as :meth:`CadSurface.closest`'s of the whole cloud."""
+    monkeypatch.setattr(inspect, "CLOSEST_CHUNK", 1000)
+    surface = CadSurface(sphere_mesh())
+    rng = np.random.default_rng(4)
+    p = rng.normal(size=(3500, 3)) * 30.0
+    assert np.array_equal(surface.signed_distance(p), surface.closest(p).signed_mm)
