@@ -99,6 +99,11 @@ class InspectTile:
             h.update(np.packbits(np.asarray(self.reversed, bool)).tobytes())
         return f"inspect-tile-{self.tile.index:05d}-{h.hexdigest()}"
 
+    def deviations_file(self) -> str:
+        """Where the unit writes its tile's deviations (relative to the scan store): beside the tile, named by its
+        key."""
+        return f"{Path(self.tile.file).parent.as_posix()}/{self.key()}.npz"
+
 
 @dataclass(frozen=True)
 class FromSample:
@@ -166,7 +171,7 @@ def inspect_tile(unit: InspectTile) -> TileDeviations:
     closest = surface.closest(points_F) if len(points_F) else None
     d, triangles = (np.empty(0), np.empty(0, np.int64)) if closest is None else (closest.signed_mm,
                                                                                  closest.triangle_ids)
-    file = f"{Path(unit.tile.file).parent.as_posix()}/{unit.key()}.npz"
+    file = unit.deviations_file()
     u = {} if not sample.uncertainty else {
         "uncertainty_mm": _field(str(Path(unit.store) / sample.uncertainty)).at(points_F)}
     write_durably(Path(unit.store) / file, functools.partial(
@@ -190,13 +195,19 @@ def inspect_tiles(tiles: Sequence[TileCloud], store: str | Path, mesh_file: str 
                   reversed: np.ndarray | None = None, sample: FromSample | None = None
                   ) -> tuple[TileDeviations, ...]:
     """:func:`inspect_tile` of every tile on ``backend``, in the tiles' order (:class:`InspectTile` for the
-    arguments; ``mesh_file``: :func:`write_cad`'s).
+    arguments; ``mesh_file``: :func:`write_cad`'s). Where a unit fails (or the stage is cut short), the deviations
+    the other units wrote are removed: only a stage that returns leaves files for its caller to remove.
 
     Nine parameters: the tiles, where they and the CAD lie, the placement in F, the band, the CAD's orientation
     and what it takes from the report's sample (the fields of an :class:`InspectTile` unit) and the backend."""
     units = [InspectTile(t, str(store), str(mesh_file), np.asarray(T_F_W, float), lower_mm, upper_mm, reversed,
                          sample) for t in tiles]
-    return tuple(backend.map(inspect_tile, units, [u.key() for u in units]))
+    try:
+        return tuple(backend.map(inspect_tile, units, [u.key() for u in units]))
+    except BaseException:
+        for u in units:
+            (Path(store) / u.deviations_file()).unlink(missing_ok=True)
+        raise
 
 
 def _read_deviations(store: str | Path, file: str, *names: str) -> list[np.ndarray]:

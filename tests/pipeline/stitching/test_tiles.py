@@ -14,6 +14,7 @@ from tandemscan.daemon.jobs.finish import merge_stage
 from tandemscan.pipeline.compute import LocalBackend
 from tandemscan.pipeline.geometry.frames import from_rpy, invert, rotate_vectors, transform_points
 from tandemscan.pipeline.geometry.part import load_part_mesh
+from tandemscan.pipeline.inspection import tile_inspection
 from tandemscan.pipeline.inspection.inspect import CadSurface, DeviationStats, ToleranceResult
 from tandemscan.pipeline.inspection.tile_inspection import (
     deviation_figures,
@@ -221,6 +222,26 @@ def test_the_tiles_deviations_and_report_figures_are_the_untiled_ones(job, tmp_p
     for name in ("x", "y", "z"):
         np.testing.assert_allclose(v1[name], v2[name], rtol=0, atol=1e-9)
     np.testing.assert_allclose(v1["deviation_mm"], v2["deviation_mm"], rtol=0, atol=1e-6)  # float32 in the file
+
+
+def test_a_tile_inspection_that_fails_leaves_no_deviations_behind(job, monkeypatch):
+    """Where one tile's unit fails, the deviations the others wrote beside the tiles are removed with it (the caller
+    holds none of their names to remove)."""
+    store, _, mesh_file, _, tiles = job
+    before = sorted(p.name for p in (store / "tiles").iterdir())
+    inspect, ran = tile_inspection.inspect_tile, []
+
+    def inspect_or_fail(unit):
+        if unit.tile.index == len(tiles) // 2:
+            raise OSError(28, "No space left on device")
+        ran.append(inspect(unit))
+        return ran[-1]
+
+    monkeypatch.setattr(tile_inspection, "inspect_tile", inspect_or_fail)
+    with pytest.raises(OSError, match="No space left"):
+        inspect_tiles(tiles, store, mesh_file, T_F_W, -0.03, 0.03, LocalBackend())
+    assert len(ran) >= len(tiles) // 2  # the other units wrote theirs
+    assert sorted(p.name for p in (store / "tiles").iterdir()) == before
 
 
 def test_a_scans_reach_bounds_its_x_at_a_moved_pose(tmp_path):
