@@ -520,7 +520,7 @@ def write_cad(store: str | Path, surface: CadSurface) -> str:
 
 @dataclass(frozen=True)
 class WholeCloud:
-    """What :meth:`TiledInspection.inspect` found of every point of the cloud: the report's deviation figures and
+    """What :meth:`TiledInspection.inspected` found of every point of the cloud: the report's deviation figures and
     the deviation areas beyond the bounds it was given (none where it was given none)."""
 
     figures: DeviationFigures
@@ -530,7 +530,7 @@ class WholeCloud:
 @dataclass(frozen=True)
 class TiledInspection:
     """A job's cloud merged by tiles (``tiles.TiledCloud``'s ``tiles`` in the scan store ``store``) as the inspection
-    takes it beside the report's sample (module doc): :meth:`inspect` runs on ``backend``."""
+    takes it beside the report's sample (module doc): :meth:`inspected` runs on ``backend``."""
 
     tiles: tuple[TileCloud, ...]
     store: str
@@ -577,13 +577,6 @@ class TiledInspection:
         """The cloud's points (W, mm, in its order) that lie, placed in F by ``T_F_W`` (4x4, mm), in any of ``regions``
         (``region_points.gather_placed``: the datum patches' points, before the tiles are inspected)."""
         return gather_placed(self.tiles, self.store, T_F_W, regions, self.backend)
-
-    def inspect(self, surface: CadSurface, T_F_W: np.ndarray, band_mm: tuple[float, float],
-                uncertainty: UncertaintyField | None, left_out: Sequence[tuple[np.ndarray, float]], ply: Path,
-                areas: AreaBounds | None = None) -> WholeCloud:
-        """What :meth:`inspected` finds of every point of the cloud, its units' files removed before it returns."""
-        with self.inspected(surface, T_F_W, band_mm, uncertainty, left_out, ply, areas) as tiles:
-            return tiles.whole
 
 
 @dataclass(frozen=True)

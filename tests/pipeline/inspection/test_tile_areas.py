@@ -29,7 +29,7 @@ from tandemscan.pipeline.inspection.inspection_job import (
 )
 from tandemscan.pipeline.inspection.point_uncertainty import GivenUncertainty
 from tandemscan.pipeline.inspection.report import InspectedPart
-from tandemscan.pipeline.inspection.tile_inspection import AreaBounds, TiledInspection
+from tandemscan.pipeline.inspection.tile_inspection import AreaBounds, TiledInspection, WholeCloud
 from tandemscan.pipeline.stitching.tiles import TILES_FOLDER, TileCloud, TiledCloud
 
 from tests.pipeline.stitching.test_tiles import T_F_W, _height, cad_mesh
@@ -82,6 +82,13 @@ def written_tiles(store: Path, p_W: np.ndarray, n_W: np.ndarray, edges_x_W: list
     return TiledCloud(1.0, str(store), tuple(tiles))
 
 
+def whole_cloud(cloud: TiledCloud, *inspected) -> WholeCloud:
+    """What the tiled inspection of ``cloud`` finds of every point (``TiledInspection.inspected`` of the arguments
+    ``inspected``, on this process's threads), its units' files removed."""
+    with TiledInspection(cloud.tiles, cloud.store, LocalBackend()).inspected(*inspected) as tiles:
+        return tiles.whole
+
+
 def _inspected(out: Path, points_W: np.ndarray, normals_W: np.ndarray, whole: TiledInspection | None = None):
     settings = InspectionSettings.from_section(InspectionConfig(
         views=("isometric",), map_width_px=200, regions=(), reference_spheres=(), alignment="none"))
@@ -121,9 +128,8 @@ def test_the_tiled_areas_are_the_untiled_clouds_with_one_joined_across_a_tile_bo
     joined = []
     join = tile_inspection.joined_areas
     monkeypatch.setattr(tile_inspection, "joined_areas", lambda tiles, *a: joined.append(tiles) or join(tiles, *a))
-    found = TiledInspection(cloud.tiles, cloud.store, LocalBackend()).inspect(
-        CadSurface(cad_mesh()), T_F_W, (-0.1, 0.1), None, (), tmp_path / "deviation.ply",
-        AreaBounds(-0.1, 0.1, 4.0, 50.0)).areas
+    found = whole_cloud(cloud, CadSurface(cad_mesh()), T_F_W, (-0.1, 0.1), None, (), tmp_path / "deviation.ply",
+                        AreaBounds(-0.1, 0.1, 4.0, 50.0)).areas
     assert [a.side for a in untiled] == ["upper", "lower"]
     _same_areas(found, untiled)
     # the bump lies across the first boundary: each of the first two tiles holds a piece of it, joined here
@@ -183,9 +189,8 @@ def test_screened_tiled_areas_are_the_screened_untiled_clouds(straddling, tmp_pa
     units = []
     area_units = tile_inspection.area_units
     monkeypatch.setattr(tile_inspection, "area_units", lambda *a: units.append(area_units(*a)) or units[-1])
-    found = TiledInspection(cloud.tiles, cloud.store, LocalBackend()).inspect(
-        CadSurface(cad_mesh()), T_F_W, (-0.1, 0.1), None, (), tmp_path / "deviation.ply",
-        AreaBounds(-0.1, 0.1, 4.0, 50.0)).areas
+    found = whole_cloud(cloud, CadSurface(cad_mesh()), T_F_W, (-0.1, 0.1), None, (), tmp_path / "deviation.ply",
+                        AreaBounds(-0.1, 0.1, 4.0, 50.0)).areas
     assert all(u.screen for u in units[0]) and len(untiled) == 2
     _same_areas(found, untiled)
 
@@ -207,9 +212,8 @@ def test_on_a_sparse_cloud_the_tiles_link_at_three_spacings(tmp_path, monkeypatc
     links = []
     area_units = tile_inspection.area_units
     monkeypatch.setattr(tile_inspection, "area_units", lambda *a: links.append(a[-1]) or area_units(*a))
-    found = TiledInspection(cloud.tiles, cloud.store, LocalBackend()).inspect(
-        CadSurface(cad_mesh()), T_F_W, (-0.1, 0.1), None, (), tmp_path / "deviation.ply",
-        AreaBounds(-0.1, 0.1, 4.0, 50.0)).areas
+    found = whole_cloud(cloud, CadSurface(cad_mesh()), T_F_W, (-0.1, 0.1), None, (), tmp_path / "deviation.ply",
+                        AreaBounds(-0.1, 0.1, 4.0, 50.0)).areas
     spacing = float(np.median(whole.tree.query(points_F, k=2)[0][:, 1]))
     assert links[0] == 4.0 and 3 * spacing <= links[1] <= 3 * spacing + 0.03 and len(links) == 2
     assert len(untiled) == 2

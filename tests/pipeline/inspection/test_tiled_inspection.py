@@ -34,6 +34,7 @@ from tandemscan.pipeline.io.cloud_io import read_ply_vertices
 from tandemscan.pipeline.io.raw_scan import read_thinned_scan, write_raw_scan
 from tandemscan.pipeline.stitching.tiles import TiledCloud, TileScan, merge_tiles, scan_x_extent
 
+from tests.pipeline.inspection.test_tile_areas import whole_cloud
 from tests.pipeline.stitching.test_tiles import T_F_W, TILE_MM, VOXEL_MM, _height, cad_mesh
 
 STEP = 3  # the report's sample: every third voxel
@@ -130,8 +131,8 @@ def test_the_tiles_leave_out_the_points_the_samples_alignment_left_out(job, tmp_
     points = untiled.points()
     centre = points[len(points) // 2]  # a ball across the sheet, reaching into two or three tiles
     surface = CadSurface(cad_mesh())
-    figures = TiledInspection(tiles.tiles, tiles.store, LocalBackend()).inspect(
-        surface, T_F_W, (-0.1, 0.1), None, [(centre, 30.0)], tmp_path / "deviation.ply").figures
+    figures = whole_cloud(tiles, surface, T_F_W, (-0.1, 0.1), None, [(centre, 30.0)],
+                          tmp_path / "deviation.ply").figures
     outside = np.linalg.norm(points - centre, axis=1) > 30.0
     assert 0.05 < 1 - outside.mean() < 0.5
     d = surface.closest(transform_points(T_F_W, points[outside])).signed_mm
