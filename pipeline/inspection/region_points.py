@@ -31,7 +31,7 @@ from tandemscan.pipeline.geometry.frames import transform_points
 from tandemscan.pipeline.inspection.characteristics import MeasuredCloud, edge_frame
 from tandemscan.pipeline.inspection.deviation_areas import DeviationArea
 from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionError, in_chunks
-from tandemscan.pipeline.stitching.tiles import TileCloud, read_tile
+from tandemscan.pipeline.stitching.tiles import TileCloud
 
 #: the most points all of a report's regions gather together (48 B each: about 50 MB in the process that writes the
 #: report, as its sample of ``[compute] report_points``)
@@ -246,7 +246,8 @@ class PlacedTile:
 def placed_tile_points(unit: PlacedTile) -> np.ndarray:
     """The unit's tile's points (W, mm) that lie, placed in F, in any of its regions (every ``step``-th of a region's),
     in the tile's order."""
-    points_W = read_tile(unit.store, unit.tile).points_mm
+    with np.load(Path(unit.store) / unit.tile.file) as data:
+        points_W = data["points"]  # its normals and counts stay on disk
     placed = in_chunks(transform_points, np.asarray(unit.T_F_W, float), points_W)
     keep = np.zeros(len(points_W), bool)
     for r in unit.regions:
