@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import shutil
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import TypeVar
@@ -22,9 +23,11 @@ from tandemscan.daemon.jobs.runner import JobProgress, JobRunner
 from tandemscan.daemon.jobs.stitcher import ProcessWorldMap
 from tandemscan.daemon.store.job_store import JobRecord, JobStore
 from tandemscan.daemon.store.part_results import prepare_part, record_part
+from tandemscan.pipeline.io.raw_scan import remove_thinned_copies
 from tandemscan.pipeline.job_report import JobHistory
 from tandemscan.pipeline.planning.plan import Plan
 from tandemscan.pipeline.registration.correction import remove_joint_folder
+from tandemscan.pipeline.stitching.tiles import TILES_FOLDER
 
 log = logging.getLogger(__name__)
 
@@ -84,13 +87,18 @@ class StoreJournal:
         await asyncio.gather(*self._progress_tasks, return_exceptions=True)
 
 
-def close_map(worldmap: ProcessWorldMap, scan_store: Path) -> None:
-    """Stop the job's map process (``ProcessWorldMap.close``: work under way there abandoned) and remove what a
-    correction it cut short (a job cancelled or failed at its end) left in the job's ``scan_store``: its scans
-    prepared for the joint refinement (``correction.remove_joint_folder``; a correction that ran to its end removed
-    them itself)."""
+def close_map(worldmap: ProcessWorldMap, job_dir: Path, scan_store: Path) -> None:
+    """Stop the job's map process (``ProcessWorldMap.close``: work under way there abandoned, its own clean-up with
+    it) and remove the scratch files that work leaves where the job ends before its end ran to completion
+    (cancelled, failed, or interrupted by the daemon's stop; a resumed job makes them again): in ``scan_store`` its
+    scans prepared for the joint refinement (``correction.remove_joint_folder``) and its tiles' files and shards
+    (``tiles.TILES_FOLDER``), and in ``job_dir`` the scans' thinned copies (``raw_scan.remove_thinned_copies``: one
+    the map's process wrote after the runner removed them, of a scan merged as the job was cancelled). A job that
+    ran to its end removed them itself."""
     worldmap.close()
     remove_joint_folder(scan_store)
+    shutil.rmtree(Path(scan_store) / TILES_FOLDER, ignore_errors=True)
+    remove_thinned_copies(job_dir)
 
 
 async def run_journaled(ctx: JobContext) -> dict:
@@ -110,7 +118,7 @@ async def run_journaled(ctx: JobContext) -> dict:
         result = await runner.run()
     finally:
         await journal.drain()
-        await asyncio.to_thread(close_map, worldmap, ctx.config.compute.scan_store or job_dir)
+        await asyncio.to_thread(close_map, worldmap, job_dir, ctx.config.compute.scan_store or job_dir)
     report = result.report  # report.json, written once by the end of the job
     await asyncio.to_thread(record_part, ctx.store.state_dir, ctx.job.id, report)
     figures = {k: report[k] for k in _FIGURE_KEYS if k in report} | {"scans_left_out": len(report["scans_left_out"])}

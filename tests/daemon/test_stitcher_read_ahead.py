@@ -294,35 +294,41 @@ async def test_a_job_cancelled_between_its_outputs_and_its_report_leaves_no_tile
         worldmap.close()
 
 
-def correcting_at_length(job, key, started, measured_at, online, stages):
-    """In the map's process (a module function: it pickles by name): the end of a job in its correction, one scan
-    prepared for the joint refinement written to the scan store (the job folder) and more to come."""
+def ending_at_length(job, key, started, measured_at, online, stages):
+    """In the map's process (a module function: it pickles by name): the end of a job under way, its scratch files
+    written as its stages write them (a scan prepared for the joint refinement, a scan's shard of the tiled merge in
+    the scan store, the job folder; a thinned copy kept beside the scans, as a lean map's merge keeps it) and more
+    to come."""
+    from tandemscan.pipeline.io.raw_scan import THINNED_FOLDER
     from tandemscan.pipeline.registration.correction import JOINT_FOLDER
+    from tandemscan.pipeline.stitching.tiles import TILES_FOLDER
 
-    (job.job_dir / JOINT_FOLDER).mkdir(parents=True, exist_ok=True)
-    (job.job_dir / JOINT_FOLDER / "prepared.npz").write_bytes(b"a 2 mm copy")
+    for file in (f"{JOINT_FOLDER}/prepared.npz", f"{TILES_FOLDER}/shards-0/0.npz", f"{THINNED_FOLDER}/scan-0000.npz"):
+        (job.job_dir / file).parent.mkdir(parents=True, exist_ok=True)
+        (job.job_dir / file).write_bytes(b"scratch")
     time.sleep(60.0)
 
 
-async def test_a_job_cancelled_in_its_correction_leaves_no_joint_scans_once_its_map_is_closed(monkeypatch, tmp_path):
-    """The daemon's map in its own process, cancelled while the correction runs there: the journal closes the map
-    (its process ends, its correction with it) and removes what the correction left in the scan store."""
+async def test_a_job_cancelled_in_its_end_leaves_no_scratch_files_once_its_map_is_closed(monkeypatch, tmp_path):
+    """The daemon's map in its own process, cancelled while the end of the job runs there: the journal closes the
+    map (its process ends, the end's work and its clean-up with it) and removes what that work left in the scan
+    store (the scans prepared for the joint refinement, the tiles) and the thinned copies beside the scans."""
     from tandemscan.daemon.jobs.journal import close_map
 
     worldmap = stitcher.ProcessWorldMap(1.0)
     job = _job(tmp_path, joint=True)
-    joint = job.job_dir / "joint"
+    scratch = [job.job_dir / name for name in ("joint", "tiles", "thinned")]
     try:
-        monkeypatch.setattr(stitcher, "_finish_outputs", correcting_at_length)
+        monkeypatch.setattr(stitcher, "_finish_outputs", ending_at_length)
 
         _check_pairs_registering(worldmap, monkeypatch)
         finishing = asyncio.ensure_future(worldmap.finish(job, 0.0, time.monotonic()))
         async with asyncio.timeout(60):  # only against a hang (the map's process starts and imports first)
-            while not joint.exists():
+            while not all(folder.exists() for folder in scratch):
                 await asyncio.sleep(0.02)
         finishing.cancel()
         with pytest.raises(asyncio.CancelledError):
             await finishing
     finally:
-        await asyncio.to_thread(close_map, worldmap, job.job_dir)
-    assert job.job_dir.exists() and not joint.exists()
+        await asyncio.to_thread(close_map, worldmap, job.job_dir, job.job_dir)
+    assert job.job_dir.exists() and not any(folder.exists() for folder in scratch)
