@@ -202,11 +202,11 @@ class JobRunner:
     async def run(self) -> JobResult:
         """Execute every step, then stitch and export. Raises :class:`JobError` on failure. The scans' thinned
         copies kept beside them for the end of the job (``raw_scan.keep_thinned_copy``) are removed when it ends,
-        done, failed or cancelled."""
+        done, failed or cancelled, in a thread (a file a scan, on the scan store's shared filesystem)."""
         try:
             return await self._run()
         finally:
-            remove_thinned_copies(self.job_dir)
+            await asyncio.to_thread(remove_thinned_copies, self.job_dir)
 
     async def _run(self) -> JobResult:
         started = time.monotonic()
