@@ -311,9 +311,9 @@ def _points_inspected(sample: int, cloud: int, tiled: bool) -> str:
         return str(cloud)
     if not tiled:
         return f"{sample} of the cloud's {cloud} ([inspection] max_points)"
-    return (f"{sample} of the cloud's {cloud} for U and the maps ([compute] report_points); every point for "
-            "the deviation areas, the verdict on them, the deviation figures, cloud_deviation.ply and, in their "
-            "regions, the characteristics and close-ups")
+    return (f"{sample} of the cloud's {cloud} for the best fit, U and the maps ([compute] report_points); every "
+            "point for the deviation areas, the verdict on them, the deviation figures, cloud_deviation.ply and, in "
+            "their regions, a template's datum frame, characteristics and close-ups")
 
 
 def plan_coverage(job: JobSnapshot, mesh: o3d.geometry.TriangleMesh | None = None) -> CoverageFigures:
