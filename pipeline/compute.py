@@ -102,8 +102,17 @@ class DaskBackend:
     def map(self, fn: Callable[..., Any], units: Sequence[Any], keys: Sequence[str],
             inputs: Sequence[Sequence[Any]] | None = None) -> list:
         """``[fn(u) for u in units]`` (with ``inputs``: ``fn(u, *inputs[k])``, futures) in order, each unit a task of
-        key ``keys[k]``."""
-        return self.client.gather(self.keep(fn, units, keys, inputs)) if units else []
+        key ``keys[k]``. Where a unit fails, its error is raised once every unit has ended, as on
+        :class:`LocalBackend`'s threads: a stage that removes what its units wrote where one fails
+        (``tiles.merge_tiles``) finds every file, none written by a unit still running after it cleaned up."""
+        from dask.distributed import wait
+
+        futures = self.keep(fn, units, keys, inputs)
+        try:
+            return self.client.gather(futures) if units else []
+        except Exception:
+            wait(futures)
+            raise
 
     def keep(self, fn: Callable[..., Any], units: Sequence[Any], keys: Sequence[str],
              inputs: Sequence[Sequence[Any]] | None = None) -> list:

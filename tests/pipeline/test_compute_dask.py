@@ -283,3 +283,26 @@ def test_one_lazy_backend_is_one_client_of_the_scheduler_for_every_stage(cluster
         assert backend.map(busy, [0.2, 0.2], ["busy-0", "busy-1"]) == [0.2, 0.2]
         assert backend.cpu_seconds() - before > 0.4 + (process_cpu_seconds() - here)
     assert backend.client.status == "closed"
+
+
+def test_a_failed_map_raises_once_every_unit_has_ended(cluster, tmp_path):
+    """As on the local backend's threads, a unit's error is raised once the other units have ended: a stage that
+    removes what its units wrote where one fails (``tiles.merge_tiles``, ``tile_inspection.inspect_tiles``) finds
+    every file, none written by a unit still running after it cleaned up."""
+    address, _ = cluster
+    folder = str(tmp_path)
+
+    def unit(k: int) -> int:
+        if k == 0:
+            raise OSError(28, "No space left on device")
+        time.sleep(1.0)
+        (Path(folder) / f"unit-{k}.npz").write_bytes(b"written")
+        return k
+
+    backend = DaskBackend(address, retries=0)  # the failure at once, not after retries queued behind the slow unit
+    try:
+        with pytest.raises(OSError, match="No space left"):
+            backend.map(unit, [0, 1], ["failing-unit-0", "slow-unit-1"])
+        assert (tmp_path / "unit-1.npz").is_file()
+    finally:
+        backend.close()
