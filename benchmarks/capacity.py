@@ -253,7 +253,7 @@ def _timed_stages(windows: list) -> contextlib.ExitStack:
 
 def _peaks_in(windows: list, main: list, workers: dict) -> dict:
     """Per stage (its first window): wall seconds, the largest sample of this process and of each worker in it, and
-    this process's sample as it started."""
+    the samples of this process and of the largest worker as it started (what the stage inherits)."""
     out = {}
     for stage, t0, t1, _ in windows:
         if stage in out:
@@ -261,9 +261,10 @@ def _peaks_in(windows: list, main: list, workers: dict) -> dict:
         inside = [g for t, g in main if t0 <= t <= t1] or [min(main, key=lambda s: abs(s[0] - t0))[1]]
         before = [g for t, g in main if t <= t0] or inside
         each = sorted(max([g for t, g in w if t0 <= t <= t1] or [w[-1][1]]) for w in workers.values())
+        start = max(([g for t, g in w if t <= t0] or [w[0][1]])[-1] for w in workers.values())
         out[stage] = {"wall_s": round(t1 - t0, 3), "main_gib": round(max(inside), 3),
                       "main_start_gib": round(before[-1], 3), "worker_gib": round(each[-1], 3),
-                      "workers_gib": [round(g, 3) for g in each]}
+                      "workers_gib": [round(g, 3) for g in each], "worker_start_gib": round(start, 3)}
     return out
 
 

@@ -48,6 +48,10 @@ from tandemscan.pipeline.stitching.worldmap import ScanVoxels, VoxelMap
 
 #: the tiles' clouds are written in this folder of the scan store
 TILES_FOLDER = "tiles"
+#: a tile's map merges its batch of scans' voxels at this share of its voxels (``VoxelMap(batch_share=...)``): a
+#: unit's peak set by its tile's voxels, not by how its scans' repeated voxels fall into batches (at 1, the batch
+#: up to the map's size: a worker's merge 0.84 / 1.03 GiB on the bands of docs/capacity.md, x 1.22)
+TILE_BATCH_SHARE = 0.25
 
 
 @dataclass(frozen=True)
@@ -230,16 +234,18 @@ def tile_units(placed: Sequence[Sequence[TileShard]], grid: TileGrid, store: str
 
 
 def merge_tile(unit: MergeTile) -> TileCloud:
-    """Merge the unit's shards (read one at a time, in the job's order of their scans) into its tile's voxels, write
-    them to ``<store>/tiles/<unit key>.npz`` and remove the shards. Where that file is there already (written
-    durably: whole) the unit ran before and removed its shards: it is taken as it is."""
+    """Merge the unit's shards (read one at a time, in the job's order of their scans) into its tile's voxels (a
+    map of :data:`TILE_BATCH_SHARE`), write them to ``<store>/tiles/<unit key>.npz`` and remove the shards. Where
+    that file is there already (written durably: whole) the unit ran before and removed its shards: it is taken as
+    it is."""
     store = Path(unit.store)
     file = f"{TILES_FOLDER}/{unit.key()}.npz"
     if (store / file).is_file():
         with np.load(store / file) as data:
             voxels = len(data["counts"])
     else:
-        worldmap = VoxelMap(unit.grid.voxel_mm, (unit.grid.x_edges[unit.index], unit.grid.x_edges[unit.index + 1]))
+        worldmap = VoxelMap(unit.grid.voxel_mm, (unit.grid.x_edges[unit.index], unit.grid.x_edges[unit.index + 1]),
+                            TILE_BATCH_SHARE)
         for shard in unit.shards:
             with np.load(store / shard) as data:
                 worldmap.add_voxels(ScanVoxels(data["keys"], data["sums"], data["counts"]))

@@ -24,7 +24,8 @@ _OFFSET = 1 << (_BITS - 1)
 #: from about seven voxels a point on (a coarse scan of 40 k points in a 14 M voxel box: 4 against 40 ms)
 _DENSE_BOX_VOXELS = 16_000_000
 _DENSE_BOX_PER_POINT = 6
-#: the batch of scans' voxels is merged into the map at this size at least (about 100 MB)
+#: the batch of scans' voxels is merged into the map at this size at least (about 100 MB), times the map's
+#: ``batch_share``
 _MIN_BATCH_VOXELS = 2_000_000
 
 
@@ -55,12 +56,21 @@ class ScanVoxels:
 class VoxelMap:
     """Voxel-merged cloud in the world frame (mm). ``x_voxels`` = ``(lo, hi)`` keeps only the voxels whose x index
     (``floor(x / voxel_mm)``, W) is in ``[lo, hi)``: one tile of the world (``tiles.merge_tile``). Each scan is
-    voxelised whole and its voxels outside the tile dropped, so a voxel's sums are those the whole map has."""
+    voxelised whole and its voxels outside the tile dropped, so a voxel's sums are those the whole map has.
 
-    def __init__(self, voxel_mm: float = 1.0, x_voxels: tuple[int, int] | None = None):
+    ``batch_share`` (0 to 1]: the scans' voxels wait in the batch until it holds this share of the map's voxels (at
+    least this share of ``_MIN_BATCH_VOXELS``), then map and batch are sorted together, so a merge holds at most
+    ``1 + batch_share`` times the map's voxels and one scan's at once. 1 moves each voxel O(log scans) times (the
+    fewest sorts, where the map's time matters); less bounds its peak by the map's voxels alone, not by how the
+    scans' repeated voxels fall into batches (a tile's unit, ``tiles.merge_tile``)."""
+
+    def __init__(self, voxel_mm: float = 1.0, x_voxels: tuple[int, int] | None = None, batch_share: float = 1.0):
         if voxel_mm <= 0:
             raise ValueError("voxel_mm must be positive")
+        if not 0.0 < batch_share <= 1.0:
+            raise ValueError("batch_share must be in (0, 1]")
         self.voxel_mm = float(voxel_mm)
+        self.batch_share = float(batch_share)
         self._x_window = None if x_voxels is None else (int(x_voxels[0]), int(x_voxels[1]))
         self._keys = np.empty(0, np.int64)
         self._sums = np.empty((0, 6), np.float64)  # point sum xyz, normal sum xyz
@@ -123,13 +133,14 @@ class VoxelMap:
 
     def add_voxels(self, voxels: ScanVoxels) -> None:
         """Merge one scan's voxels (:meth:`scan_voxels`, this map's edge): those within the map's ``x_voxels``
-        join the batch, merged once it is as large as the map. Voxels given scan by scan in one order make the
-        same sums, bit for bit, however they were cut (``ScanVoxels.x_cut``)."""
+        join the batch, merged once it holds ``batch_share`` of the map's. Voxels given scan by scan in one order
+        make the same sums, bit for bit, however they were cut (``ScanVoxels.x_cut``), in maps of one
+        ``batch_share``."""
         if self._x_window is not None:
             (voxels,) = voxels.x_cut(self._x_window)
         self._batch.append((voxels.keys, voxels.sums, voxels.counts))
         self._batch_voxels += len(voxels)
-        if self._batch_voxels >= max(len(self._keys), _MIN_BATCH_VOXELS):
+        if self._batch_voxels >= self.batch_share * max(len(self._keys), _MIN_BATCH_VOXELS):
             self._flush()
 
     def _flush(self) -> None:
