@@ -35,9 +35,14 @@ from tandemscan.pipeline.inspection.tile_inspection import (
 )
 from tandemscan.pipeline.io import npz_blocks
 from tandemscan.pipeline.io.export import write_ply
+from tandemscan.pipeline.io.raw_scan import write_raw_scan
+from tandemscan.pipeline.stitching import worldmap
 from tandemscan.pipeline.stitching.tiles import (
+    TILE_BATCH_SHARE,
+    MergeTile,
     TileCloud,
     TileGrid,
+    TileScan,
     TilePoints,
     every_kth,
     merge_tile,
@@ -214,3 +219,51 @@ def test_the_units_send_back_summaries_not_points(parts):
         assert max(t.voxels for t in tiles) * 3 * 8 > RESULT_BYTES  # the largest tile's points would not pass
         assert deviation_figures(store, inspected, -0.1, 0.1).stats.count == sum(t.voxels for t in tiles)
     assert max(parts[12][5].result_bytes) <= GROWTH * max(parts[6][5].result_bytes)
+
+
+#: what sorting a map's and its batch's voxels together takes, a voxel of either (bytes: both arrays, their sorted
+#: copies and the sort's order), over the 64 B a voxel the map keeps
+SORT_PER_MAP_VOXEL = 2.25
+#: a merge unit's traced peak a voxel of its tile with four times the scans over it, at most this times the
+#: fewer scans' (a batch as large as the map: 1.13 times; traced figures are exact and repeatable)
+SCANS_GROWTH = 1.05
+#: the points of each scan of :func:`_patch_tile` (at most as many voxels)
+PATCH_POINTS = 1600
+
+
+def _patch_tile(store: Path, scans: int, seed: int = 0) -> MergeTile:
+    """One tile's merge unit over a 120 x 80 mm patch (W, mm) that ``scans`` flat 20 x 20 mm scans of
+    :data:`PATCH_POINTS` cover at random, placed (``tiles.place_scan``): more scans, the same tile, each voxel seen
+    by more of them."""
+    rng = np.random.default_rng(seed)
+    refs = []
+    for k in range(scans):
+        centre = rng.uniform([0.0, 0.0], [100.0, 60.0])
+        points = np.c_[rng.uniform(-10.0, 10.0, (PATCH_POINTS, 2)) + centre,
+                       0.5 + rng.normal(0.0, 0.05, PATCH_POINTS)]
+        file = f"scans/scan-{k:04d}.npz"
+        write_raw_scan(store / file, points_S_mm=points, normals_S=np.tile([0.0, 0.0, 1.0], (PATCH_POINTS, 1)))
+        refs.append(TileScan(file, np.eye(4), points[:, 0].min() - 2.0, points[:, 0].max() + 2.0))
+    grid = TileGrid(VOXEL_MM, (-20, 130))
+    (unit,) = tile_units([place_scan(u) for u in place_units(refs, grid, str(store))], grid, str(store))
+    return unit
+
+
+def test_a_merge_units_peak_is_set_by_its_tiles_voxels_not_by_the_scans_over_it(tmp_path, monkeypatch):
+    """A tile's map merges its batch of scans' voxels once it holds ``TILE_BATCH_SHARE`` of the map's: the unit's
+    peak is at most the sort of ``1 + TILE_BATCH_SHARE`` times its voxels and one scan's (within 10 %), and the
+    same a voxel with 60 scans over the tile as with 240. A batch left to grow as large as the map (an untiled
+    map's) peaks the higher the more scans repeat the tile's voxels: on a worker 0.84 against 1.03 GiB on the bands
+    of the nose and of the part twice as long (issue 43, docs/capacity.md)."""
+    monkeypatch.setattr(worldmap, "_MIN_BATCH_VOXELS", 400)  # the share, not the floor, bounds the batch here
+    per_voxel = {}
+    for scans in (60, 240):
+        unit = _patch_tile(tmp_path / f"part{scans}", scans)
+        tile = []
+        peak = traced_peak_bytes(lambda unit=unit, tile=tile: tile.append(merge_tile(unit)))
+        voxels = tile[0].voxels
+        assert voxels > 5_000
+        bound = 1.1 * SORT_PER_MAP_VOXEL * 64 * ((1.0 + TILE_BATCH_SHARE) * voxels + PATCH_POINTS)
+        assert peak <= bound, (scans, peak / (64 * voxels), bound / (64 * voxels))
+        per_voxel[scans] = peak / voxels
+    assert per_voxel[240] <= SCANS_GROWTH * per_voxel[60], per_voxel
