@@ -253,7 +253,7 @@ def test_a_merge_units_peak_is_set_by_its_tiles_voxels_not_by_the_scans_over_it(
     """A tile's map merges its batch of scans' voxels once it holds ``TILE_BATCH_SHARE`` of the map's: the unit's
     peak is at most the sort of ``1 + TILE_BATCH_SHARE`` times its voxels and one scan's (within 10 %), and the
     same a voxel with 60 scans over the tile as with 240. A batch left to grow as large as the map (an untiled
-    map's) peaks the higher the more scans repeat the tile's voxels: on a worker 0.84 against 1.03 GiB on the bands
+    map's) peaks the higher the more scans repeat the tile's voxels: on a worker 0.77 against 0.89 GiB on the bands
     of the nose and of the part twice as long (issue 43, docs/capacity.md)."""
     monkeypatch.setattr(worldmap, "_MIN_BATCH_VOXELS", 400)  # the share, not the floor, bounds the batch here
     per_voxel = {}
