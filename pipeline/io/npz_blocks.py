@@ -1,4 +1,4 @@
-"""An ``.npz`` file's arrays read a block of rows at a time (docs/compute.md, "Memory"): a streamed writer
+"""An ``.npz`` file's arrays read a block of rows at a time (docs/compute.md, "Tiles"): a streamed writer
 (``export.write_ply_streamed``: ``cloud.ply`` and ``cloud_deviation.ply`` from the tiles' files) holds one block of
 each array, never a whole tile.
 
