@@ -16,9 +16,12 @@ Timings on a shared machine are unreliable: run it idle.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import shutil
 import tempfile
 import time
 import tracemalloc
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -99,41 +102,45 @@ class FlatPart:
     cad: str
 
 
-def flat_part(args: argparse.Namespace, prefix: str) -> FlatPart:
-    """The part of :func:`arguments`' size in a new temporary scan store."""
+@contextlib.contextmanager
+def flat_part(args: argparse.Namespace, prefix: str) -> Iterator[FlatPart]:
+    """The part of :func:`arguments`' size in a new temporary scan store, removed once the block is done."""
     store = Path(tempfile.mkdtemp(prefix=prefix))
-    dent = (1.37 * args.tile_mm, 0.47 * args.width_mm)
-    cloud = generated_part(store, args.tiles, args.tile_mm, args.width_mm, dent)
-    surface = CadSurface(o3d.io.read_triangle_mesh(str(flat_cad(store / "cad.ply", args.tiles * args.tile_mm,
-                                                                args.width_mm))))
-    return FlatPart(store, dent, cloud, surface, write_cad(store, surface))
+    try:
+        dent = (1.37 * args.tile_mm, 0.47 * args.width_mm)
+        cloud = generated_part(store, args.tiles, args.tile_mm, args.width_mm, dent)
+        surface = CadSurface(o3d.io.read_triangle_mesh(str(flat_cad(store / "cad.ply", args.tiles * args.tile_mm,
+                                                                    args.width_mm))))
+        yield FlatPart(store, dent, cloud, surface, write_cad(store, surface))
+    finally:
+        shutil.rmtree(store, ignore_errors=True)
 
 
 def main() -> None:
     args = arguments(__doc__.split("\n\n")[0])
-    part = flat_part(args, "tile-areas-")
-    store, dent, cloud = part.store, part.dent_mm, part.cloud
-    inspect_log, area_log = [], []
-    tile_inspection.inspect_tile = measured(tile_inspection.inspect_tile, inspect_log)
-    tile_inspection.find_tile_areas = measured(tile_inspection.find_tile_areas, area_log)
-    backend = LocalBackend(1)
-    inspected = inspect_tiles(cloud.tiles, store, store / part.cad, np.eye(4), BOUNDS.lower_mm, BOUNDS.upper_mm,
-                              backend)
-    areas = tile_areas(inspected, store, np.eye(4), BOUNDS, backend)
-    sample = cloud.every_kth(-(-len(cloud) // args.report_points))
-    in_sample = find_deviation_areas(DeviationCloud(sample.points_mm, sample.points_mm[:, 2]), BOUNDS.lower_mm,
-                                     BOUNDS.upper_mm, BOUNDS.smoothing_mm, BOUNDS.min_area_mm2)
+    with flat_part(args, "tile-areas-") as part:
+        store, dent, cloud = part.store, part.dent_mm, part.cloud
+        inspect_log, area_log = [], []
+        tile_inspection.inspect_tile = measured(tile_inspection.inspect_tile, inspect_log)
+        tile_inspection.find_tile_areas = measured(tile_inspection.find_tile_areas, area_log)
+        backend = LocalBackend(1)
+        inspected = inspect_tiles(cloud.tiles, store, store / part.cad, np.eye(4), BOUNDS.lower_mm, BOUNDS.upper_mm,
+                                  backend)
+        areas = tile_areas(inspected, store, np.eye(4), BOUNDS, backend)
+        sample = cloud.every_kth(-(-len(cloud) // args.report_points))
+        in_sample = find_deviation_areas(DeviationCloud(sample.points_mm, sample.points_mm[:, 2]), BOUNDS.lower_mm,
+                                         BOUNDS.upper_mm, BOUNDS.smoothing_mm, BOUNDS.min_area_mm2)
 
-    def holds_dent(found) -> bool:
-        return any(np.hypot(a.centroid_mm[0] - dent[0], a.centroid_mm[1] - dent[1]) < 3.0 for a in found)
+        def holds_dent(found) -> bool:
+            return any(np.hypot(a.centroid_mm[0] - dent[0], a.centroid_mm[1] - dent[1]) < 3.0 for a in found)
 
-    points = np.array([t.voxels for t in cloud.tiles], float)[[t.index for t in inspected]]
-    per_unit = {name: {"cpu_s": [round(c, 2) for c, _ in log],
-                       "traced_peak_bytes_per_point": [round(b / n) for (_, b), n in zip(log, points, strict=True)]}
-                for name, log in (("inspect", inspect_log), ("areas", area_log))}
-    publish("tile_areas", {"tiles": len(cloud.tiles), "points": len(cloud), "points_per_tile": int(points.max()),
-                           **per_unit, "tiles_find_dent": holds_dent(areas), "report_points": len(sample.points_mm),
-                           "sample_finds_dent": holds_dent(in_sample)})
+        points = np.array([t.voxels for t in cloud.tiles], float)[[t.index for t in inspected]]
+        per_unit = {name: {"cpu_s": [round(c, 2) for c, _ in log],
+                           "traced_peak_bytes_per_point": [round(b / n) for (_, b), n in zip(log, points, strict=True)]}
+                    for name, log in (("inspect", inspect_log), ("areas", area_log))}
+        publish("tile_areas", {"tiles": len(cloud.tiles), "points": len(cloud), "points_per_tile": int(points.max()),
+                               **per_unit, "tiles_find_dent": holds_dent(areas), "report_points": len(sample.points_mm),
+                               "sample_finds_dent": holds_dent(in_sample)})
 
 
 if __name__ == "__main__":

@@ -54,44 +54,44 @@ def sheet_template(tile_mm: float, width_mm: float, dent: tuple[float, float]) -
 
 def main() -> None:
     args = arguments(__doc__.split("\n\n")[0])
-    part = flat_part(args, "tile-regions-")
-    store, dent, cloud, surface = part.store, part.dent_mm, part.cloud, part.surface
-    template = sheet_template(args.tile_mm, args.width_mm, dent)
-    backend = LocalBackend(1)
-    inspected = inspect_tiles(cloud.tiles, store, store / part.cad, np.eye(4), BOUNDS.lower_mm, BOUNDS.upper_mm,
-                              backend)
-    areas = tile_areas(inspected, store, np.eye(4), BOUNDS, backend)
-    sample = cloud.every_kth(-(-len(cloud) // args.report_points))
-    closest = surface.closest(sample.points_mm)
-    in_sample = MeasuredCloud(sample.points_mm, closest.signed_mm, closest.triangle_ids,
-                              np.zeros(len(sample.points_mm)), surface)
-    wanted = [characteristic_region(spec, template, surface) for spec in template.characteristics]
-    regions = budgeted([*wanted, *(closeup_region(a) for a in areas[:12])], in_sample.points_mm,
-                       in_sample.triangle_ids, len(cloud) / len(sample.points_mm), REGION_POINTS)
-    log: list[tuple[float, int]] = []
-    region_points.tile_region_points = measured(region_points.tile_region_points, log)
-    t = time.perf_counter()
-    found = region_points.gather([i.file for i in inspected], store, regions, backend)
-    gather_s = time.perf_counter() - t
-    own = found[: len(wanted)]
-    ends = np.cumsum([0, *(len(f) for f in own)]).tolist()
-    t = time.process_time()
-    results = evaluate(template, RegionPoints.joined(own, 1).measured(surface), DecisionRule(),
-                       tuple(map(slice, ends[:-1], ends[1:])))
-    evaluate_s = time.process_time() - t
-    from_sample = evaluate(template, in_sample, DecisionRule())
-    points = np.array([t.voxels for t in cloud.tiles], float)
-    publish("tile_regions", {
-        "tiles": len(cloud.tiles), "points": len(cloud), "points_per_tile": int(points.max()),
-        "regions": len(regions), "closeups": len(regions) - len(wanted),
-        "unit_cpu_s": [round(c, 2) for c, _ in log],
-        "unit_traced_peak_bytes_per_point": [round(b / n) for (_, b), n in zip(log, points, strict=True)],
-        "gather_wall_s": round(gather_s, 2), "gathered": int(sum(len(f) for f in found)),
-        "gathered_bytes": int(sum(f.points_mm.nbytes + f.deviations_mm.nbytes + f.triangle_ids.nbytes
-                                  + f.uncertainty_mm.nbytes for f in found)),
-        "evaluate_s": round(evaluate_s, 2), "report_points": len(sample.points_mm),
-        "dent_profile": {"tiles": results[6].status, "tiles_points": results[6].points,
-                         "sample": from_sample[6].status, "sample_points": from_sample[6].points}})
+    with flat_part(args, "tile-regions-") as part:
+        store, dent, cloud, surface = part.store, part.dent_mm, part.cloud, part.surface
+        template = sheet_template(args.tile_mm, args.width_mm, dent)
+        backend = LocalBackend(1)
+        inspected = inspect_tiles(cloud.tiles, store, store / part.cad, np.eye(4), BOUNDS.lower_mm, BOUNDS.upper_mm,
+                                  backend)
+        areas = tile_areas(inspected, store, np.eye(4), BOUNDS, backend)
+        sample = cloud.every_kth(-(-len(cloud) // args.report_points))
+        closest = surface.closest(sample.points_mm)
+        in_sample = MeasuredCloud(sample.points_mm, closest.signed_mm, closest.triangle_ids,
+                                  np.zeros(len(sample.points_mm)), surface)
+        wanted = [characteristic_region(spec, template, surface) for spec in template.characteristics]
+        regions = budgeted([*wanted, *(closeup_region(a) for a in areas[:12])], in_sample.points_mm,
+                           in_sample.triangle_ids, len(cloud) / len(sample.points_mm), REGION_POINTS)
+        log: list[tuple[float, int]] = []
+        region_points.tile_region_points = measured(region_points.tile_region_points, log)
+        t = time.perf_counter()
+        found = region_points.gather([i.file for i in inspected], store, regions, backend)
+        gather_s = time.perf_counter() - t
+        own = found[: len(wanted)]
+        ends = np.cumsum([0, *(len(f) for f in own)]).tolist()
+        t = time.process_time()
+        results = evaluate(template, RegionPoints.joined(own, 1).measured(surface), DecisionRule(),
+                           tuple(map(slice, ends[:-1], ends[1:])))
+        evaluate_s = time.process_time() - t
+        from_sample = evaluate(template, in_sample, DecisionRule())
+        points = np.array([t.voxels for t in cloud.tiles], float)
+        publish("tile_regions", {
+            "tiles": len(cloud.tiles), "points": len(cloud), "points_per_tile": int(points.max()),
+            "regions": len(regions), "closeups": len(regions) - len(wanted),
+            "unit_cpu_s": [round(c, 2) for c, _ in log],
+            "unit_traced_peak_bytes_per_point": [round(b / n) for (_, b), n in zip(log, points, strict=True)],
+            "gather_wall_s": round(gather_s, 2), "gathered": int(sum(len(f) for f in found)),
+            "gathered_bytes": int(sum(f.points_mm.nbytes + f.deviations_mm.nbytes + f.triangle_ids.nbytes
+                                      + f.uncertainty_mm.nbytes for f in found)),
+            "evaluate_s": round(evaluate_s, 2), "report_points": len(sample.points_mm),
+            "dent_profile": {"tiles": results[6].status, "tiles_points": results[6].points,
+                             "sample": from_sample[6].status, "sample_points": from_sample[6].points}})
 
 
 if __name__ == "__main__":
