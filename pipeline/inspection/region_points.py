@@ -8,8 +8,7 @@ an edge's corridor in the edge's frame; ``characteristics``: the evaluator selec
 :func:`closeup_region` the square of an area's close-up (``characteristic_figures.closeup``). A :class:`RegionTile`
 unit reads its tile's deviations (``tile_inspection.inspect_tile``: points, deviations, closest CAD triangles and U)
 and returns each region's points in the tile's order; joined in the tiles' order they are the untiled cloud's points
-there in its order, so a characteristic evaluated on them is the one evaluated on the untiled cloud
-(``tests/pipeline/inspection/test_tile_characteristics.py``).
+there in its order, so a characteristic evaluated on them is the one evaluated on the untiled cloud.
 
 Bounded: all the regions together gather at most :data:`REGION_POINTS` points, counted on the report's even sample
 (:func:`budgeted`); a region that would take more than its share is thinned evenly (every k-th of its points in each

@@ -10,13 +10,15 @@ extremes, the points below and above the tolerance band, and a histogram of fixe
 from those summaries (:func:`deviation_figures`): count, mean, sigma, RMS, extremes and the tolerance shares to the
 rounding of their sums, the 5th and 95th percentiles exactly (a second pass reads back only the deviations in the
 histogram bins that hold those ranks). Equal to the untiled ``inspect.DeviationStats`` and ``ToleranceResult`` to
-1e-9 mm (``tests/pipeline/stitching/test_tiles.py``).
+1e-9 mm.
 
 The deviation areas from every point (:func:`tile_areas`): an :class:`AreaTile` unit a tile reads its deviations and
 its neighbours' within a halo (:data:`HALO_SMOOTHINGS`), links its own points beyond the band and returns their
 sums (``deviation_areas.AreaPiece``) with its linked points near its x ends (:class:`TileAreas`); the pieces are
 joined across the tiles in the process that writes the report (:func:`joined_areas`). Equal to the untiled
-``deviation_areas.find_deviation_areas`` to 1e-9 (``tests/pipeline/inspection/test_tile_areas.py``).
+``deviation_areas.find_deviation_areas`` to 1e-9, but for the link distance where three point spacings come within
+0.03 mm of the smoothing radius or beyond it: the tiles then link at three times a bound of the spacing (its median
+to the 0.01 mm above), up to 0.03 mm farther than the untiled cloud (:func:`tile_areas`).
 
 A job's inspection of a tiled cloud (:class:`TiledInspection`, docs/compute.md "Tiles"): the alignment, the points'
 uncertainty U and the maps are those of an even sample of the cloud in the process that writes the report

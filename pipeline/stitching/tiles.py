@@ -16,10 +16,10 @@ same per-scan sums (each scan is voxelised whole, as the untiled map does, and o
 has a point in it; the shards of a tile come in the job's order, so the tile's sums are the ones a tile reading its
 scans whole would make, bit for bit. The voxel keys sort x first, so the tiles' clouds one after the other are the
 untiled cloud in its order; only the order in which a voxel's per-scan sums are added differs (the untiled merge
-adds them by groups of scans): its mean is the same to the rounding of those sums, 1e-9 mm
-(``tests/pipeline/stitching/test_tiles.py``). The slabs span every scan's bound of x, :func:`scan_x_extent` of its
-thinned copy widened by the margin (the thinning voxel's diagonal, where a thinned centroid lies from the points of
-its voxel, and one merge voxel for the float32 rounding of the placement).
+adds them by groups of scans): its mean is the same to the rounding of those sums, 1e-9 mm. The slabs span every
+scan's bound of x, :func:`scan_x_extent` of its thinned copy widened by the margin (the thinning voxel's diagonal,
+where a thinned centroid lies from the points of its voxel, and one merge voxel for the float32 rounding of the
+placement).
 
 A unit is idempotent (its files are named by the digest of everything they depend on; a tile written durably is
 taken as it is where its unit runs again, its shards gone), so a unit lost with its worker is run again with the
