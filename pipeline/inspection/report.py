@@ -195,7 +195,11 @@ def build_report(
     the report leads with (or their future, waited for once the maps are drawn), with the trend over the part's
     serials (``part.history``) of those that fail or drift. The deviation areas are labelled on every map
     (``#id`` at the centroid); each of the largest has a close-up drawn from ``result``'s points, or from its
-    ``surroundings`` by area id where given (a tiled cloud's points around it at full density)."""
+    ``surroundings`` by area id where given (a tiled cloud's points around it at full density).
+
+    Eight parameters: the inspection and its part, how it is drawn and its facts (what every report has), and four
+    optional views of it, keyword-only: its alignment, its stitching, its characteristics and its close-ups'
+    surroundings."""
     surface = part.surface
     if stitching is not None:
         stitching = stitching.started()
