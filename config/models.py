@@ -781,7 +781,8 @@ class InspectionConfig(_Strict):
         10_000_000, ge=1000, description="a job's inspection (deviations, areas, report, deviation PLY) takes at "
         "most this many points of its cloud, every k-th voxel beyond it: a whole part's 1 mm map holds about 8 M "
         "points at the coarse resolution and 18 M at the full one, whose inspection would otherwise need several "
-        "GB more; cloud.ply and the E57 keep every point"
+        "GB more; cloud.ply and the E57 keep every point. With [compute] tile_mm it bounds only the report's sample, "
+        "as report_points does (docs/compute.md, Tiles)"
     )
     views: tuple[Literal["isometric", "front", "left", "right", "top", "back"], ...] = (
         "isometric", "front", "left", "right", "top",

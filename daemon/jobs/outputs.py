@@ -243,11 +243,10 @@ def _inspection_section(job: JobSnapshot, report: Mapping, scans: list[PosedScan
     T_F_W = np.asarray(job.T_F_W, float)
     points = len(job.worldmap)
     tiled = isinstance(job.worldmap, TiledCloud)  # its figures from every point, tile by tile (TiledInspection)
-    limit = min(job.config.inspection.max_points, job.config.compute.report_points if tiled else points)
+    limit, setting = sample_bound(job.config, tiled)
     step = -(-points // limit)  # ceil: every step-th voxel (map key order)
     if step > 1:
-        log.info("inspecting every %d-th of the cloud's %d points (%s)", step, points,
-                 "[compute] report_points" if tiled else "[inspection] max_points")
+        log.info("inspecting every %d-th of the cloud's %d points (%s)", step, points, setting)
     sample = _every_kth(job.worldmap, step)
     try:
         out = _inspect(job, report, scans, sample, T_F_W, tracker_poses, points, _whole_cloud(job, backend))
@@ -295,7 +294,7 @@ def _inspect(job: JobSnapshot, report: Mapping, scans: list[PosedScan], sample: 
         title=f"Inspection report, {job_dir.name}",
         meta={"job": job_dir.name, "plan": job.plan.name, "cell": job.config.name,
               "alignment to CAD": job.config.inspection.alignment,
-              "points": _points_inspected(len(cloud_W), cloud_points, whole is not None)},
+              "points": points_inspected(len(cloud_W), cloud_points, whole is not None, job.config)},
         accuracy=_accuracy(report),
         coverage=plan_coverage(job, mesh),
     )
@@ -305,15 +304,26 @@ def _inspect(job: JobSnapshot, report: Mapping, scans: list[PosedScan], sample: 
                              verdict_context(job.config), whole)
 
 
-def _points_inspected(sample: int, cloud: int, tiled: bool) -> str:
-    """report.html's "points": those inspected of the cloud's and the setting that bounds them."""
+def sample_bound(config: CellConfig, tiled: bool) -> tuple[int, str]:
+    """The most points of the job's cloud its inspection takes here (every k-th voxel beyond) and the setting that
+    bounds them: ``[inspection] max_points`` or, for a tiled cloud, the smaller of it and
+    ``[compute] report_points``."""
+    if tiled and config.compute.report_points < config.inspection.max_points:
+        return config.compute.report_points, "[compute] report_points"
+    return config.inspection.max_points, "[inspection] max_points"
+
+
+def points_inspected(sample: int, cloud: int, tiled: bool, config: CellConfig) -> str:
+    """report.html's "points": those inspected of the cloud's and the setting that bounds them
+    (:func:`sample_bound`)."""
     if sample == cloud:
         return str(cloud)
+    setting = sample_bound(config, tiled)[1]
     if not tiled:
-        return f"{sample} of the cloud's {cloud} ([inspection] max_points)"
-    return (f"{sample} of the cloud's {cloud} for the best fit, U and the maps ([compute] report_points); every "
-            "point for the deviation areas, the verdict on them, the deviation figures, cloud_deviation.ply and, in "
-            "their regions, a template's datum frame, characteristics and close-ups")
+        return f"{sample} of the cloud's {cloud} ({setting})"
+    return (f"{sample} of the cloud's {cloud} for the best fit, U and the maps ({setting}); every point for the "
+            "deviation areas, the verdict on them, the deviation figures, cloud_deviation.ply and, in their "
+            "regions, a template's datum frame, characteristics and close-ups")
 
 
 def plan_coverage(job: JobSnapshot, mesh: o3d.geometry.TriangleMesh | None = None) -> CoverageFigures:
