@@ -189,7 +189,7 @@ def run_inspection(measured: Measurement, part: InspectedPart, settings: Inspect
     else:  # the whole cloud's deviation figures, areas and PLY, tile by tile
         left_out = () if placed.excluded is None else sphere_balls(placed.spheres, settings.alignment)  # as the sample
         given = len(p) if placed.excluded is None else len(placed.excluded)  # the sample before the spheres left it
-        per_sample_point = whole.points / max(given, 1)
+        per_sample_point = whole.count / max(given, 1)
         search = area_search(p, u, criteria, round(len(p) * per_sample_point))
         with whole.inspected(surface, placed.T_F_W, (criteria.tolerance_lower_mm, criteria.tolerance_upper_mm),
                              UncertaintyField.of(result.points_mm, u.expanded_mm), left_out, out_dir / DEVIATION_PLY,
@@ -352,7 +352,7 @@ def datum_points(whole: TiledInspection, patches: Sequence[DatumPatch], sample_W
     """The tiled cloud's points (W, mm, every point, in its order) that ``T_F_W`` (the best fit) places in the datum
     ``patches``' boxes, within the regions' budget counted on its even sample ``sample_W_mm`` (``region_points``)."""
     regions = budgeted([Region.box(d.min_mm, d.max_mm) for d in patches], transform_points(T_F_W, sample_W_mm), None,
-                       whole.points / len(sample_W_mm), REGION_POINTS)
+                       whole.count / len(sample_W_mm), REGION_POINTS)
     for d, r in zip(patches, regions, strict=True):
         if r.step > 1:
             log.warning("datum %s %r: its box holds more points than the report gathers; one in every %d taken",

@@ -539,8 +539,8 @@ class TiledInspection:
     backend: ComputeBackend
 
     @property
-    def points(self) -> int:
-        """The cloud's points (voxels), those of the reference spheres included."""
+    def count(self) -> int:
+        """The cloud's points (voxels), those of the reference spheres included (``tiles.TiledCloud.count``)."""
         return sum(t.voxels for t in self.tiles)
 
     @contextlib.contextmanager
