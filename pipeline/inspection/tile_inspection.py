@@ -558,11 +558,12 @@ class TiledInspection:
         from what is held."""
         trim_heap()
         lower, upper = band_mm
-        cad = write_cad(self.store, surface)
-        field = "" if uncertainty is None else uncertainty.write(self.store)
-        sample = FromSample(field, tuple((*map(float, c), float(r)) for c, r in left_out))
+        cad = field = ""
         inspected: tuple[TileDeviations, ...] = ()
         try:
+            cad = write_cad(self.store, surface)
+            field = "" if uncertainty is None else uncertainty.write(self.store)
+            sample = FromSample(field, tuple((*map(float, c), float(r)) for c, r in left_out))
             inspected = inspect_tiles(self.tiles, self.store, Path(self.store) / cad, T_F_W, lower, upper,
                                       self.backend, surface.reversed, sample)
             figures = deviation_figures(self.store, inspected, lower, upper)

@@ -29,7 +29,7 @@ from tandemscan.pipeline.inspection.inspection_job import (
 )
 from tandemscan.pipeline.inspection.point_uncertainty import GivenUncertainty
 from tandemscan.pipeline.inspection.report import InspectedPart
-from tandemscan.pipeline.inspection.tile_inspection import TiledInspection
+from tandemscan.pipeline.inspection.tile_inspection import TiledInspection, UncertaintyField
 from tandemscan.pipeline.io.cloud_io import read_ply_vertices
 from tandemscan.pipeline.io.raw_scan import read_thinned_scan, write_raw_scan
 from tandemscan.pipeline.stitching.tiles import TiledCloud, TileScan, merge_tiles, scan_x_extent
@@ -140,3 +140,20 @@ def test_the_tiles_leave_out_the_points_the_samples_alignment_left_out(job, tmp_
     assert figures.stats.count == expected.count == len(read_ply_vertices(tmp_path / "deviation.ply")["x"])
     for name in ("mean_mm", "sigma_mm", "min_mm", "max_mm", "p5_mm", "p95_mm"):
         assert getattr(figures.stats, name) == pytest.approx(getattr(expected, name), rel=0, abs=1e-9), name
+
+
+def test_an_inspection_whose_uncertainty_cannot_be_written_leaves_no_cad_behind(job, tmp_path, monkeypatch):
+    """The job's CAD is written for the units first; where the U field's file then fails (a full disk), the CAD's file
+    is removed with the rest: the tiles' folder holds the tiles alone."""
+    store, untiled, tiles = job
+    before = sorted(p.name for p in (Path(store) / "tiles").iterdir())
+
+    def full_disk(self, store):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(UncertaintyField, "write", full_disk)
+    sample_F = transform_points(T_F_W, untiled.points()[::50])
+    field = UncertaintyField(sample_F, np.full(len(sample_F), 0.02))
+    with pytest.raises(OSError, match="No space left"):
+        whole_cloud(tiles, CadSurface(cad_mesh()), T_F_W, (-0.1, 0.1), field, (), tmp_path / "deviation.ply")
+    assert sorted(p.name for p in (Path(store) / "tiles").iterdir()) == before
