@@ -42,7 +42,13 @@ from tandemscan.config.models import CorrectionConfig
 from tandemscan.daemon.jobs.snapshot import JobSnapshot
 from tandemscan.drivers.shared_array import SharedBlock, hand_over, share
 from tandemscan.drivers.worker import init_worker, stop_pool, yield_cores
-from tandemscan.pipeline.io.raw_scan import keep_thinned_copy, read_raw_scan, thin_scan, write_raw_scan
+from tandemscan.pipeline.io.raw_scan import (
+    keep_thinned_copy,
+    read_raw_scan,
+    read_thinned_scan,
+    thin_scan,
+    write_raw_scan,
+)
 from tandemscan.pipeline.stitching.tiles import ScanReach
 from tandemscan.pipeline.stitching.worldmap import VoxelMap
 
@@ -79,21 +85,24 @@ def merge_scan(worldmap: VoxelMap, copies: dict[str, Any], file: str, T_W_S: np.
     backend's workers and merges its cloud there): the scan is not merged here and only what the end takes of it
     is kept, small and bounded a scan: its stitch-view points (``outputs.stitch_view_points``, at most 40 k, under
     1 MB) and its ``tiles.ScanReach`` at ``T_W_S`` (``finish.load_scans``), and the thinned copy is written beside
-    the job's scans (``raw_scan.keep_thinned_copy``: the workers read it there, not the raw scan). Returns the
-    thinned copy (for the pair worker)."""
+    the job's scans (``raw_scan.keep_thinned_copy``: the workers read it there, not the raw scan); one replayed
+    from its file is read as ``raw_scan.read_thinned_scan`` reads it (the copy kept there where an earlier attempt
+    left one, else the points alone: its normals are not needed). Returns the thinned copy (for the pair worker)."""
+    if lean:
+        from tandemscan.daemon.jobs.outputs import stitch_view_points  # the exports' stack, where the map lives
+
+        copy = (read_thinned_scan(file, worldmap.voxel_mm) if arrays is None
+                else thin_scan(arrays["points_S_mm"], worldmap.voxel_mm))
+        copies[file] = (stitch_view_points(copy), ScanReach.of(T_W_S, copy))
+        keep_thinned_copy(file, copy, worldmap.voxel_mm)
+        return copy
     if arrays is None:
         points, normals = read_raw_scan(file, np.float32)
     else:
         points, normals = arrays["points_S_mm"], arrays.get("normals_S")
     copy = thin_scan(points, worldmap.voxel_mm)
-    if lean:
-        from tandemscan.daemon.jobs.outputs import stitch_view_points  # the exports' stack, where the map lives
-
-        copies[file] = (stitch_view_points(copy), ScanReach.of(T_W_S, copy))
-        keep_thinned_copy(file, copy, worldmap.voxel_mm)
-    else:
-        worldmap.add_scan(T_W_S, points, normals)
-        copies[file] = copy
+    worldmap.add_scan(T_W_S, points, normals)
+    copies[file] = copy
     return copy
 
 

@@ -81,3 +81,37 @@ async def test_on_the_scan_store_path_the_maps_process_keeps_only_each_scans_sti
 
 def _poses() -> list[np.ndarray]:
     return [np.array([[1, 0, 0, 80.0 * k], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], float) for k in range(4)]
+
+
+async def test_a_lean_map_replays_a_scan_from_the_copy_an_earlier_attempt_kept_else_from_its_points_alone(
+        tmp_path, scan_reads):
+    """A job rebuilt after a restart on the scan-store path replays its scans from their files: where the earlier
+    attempt's thinned copy is still beside them (a crash) that copy is taken and the raw scan not read; where it is
+    not, the raw scan's points alone are read (its normals, half the file, are not needed there). Either way the
+    same copy as the scan made when it was measured."""
+    from tandemscan.daemon.jobs.stitcher import LocalWorldMap
+    from tandemscan.pipeline.io.raw_scan import THINNED_FOLDER, remove_thinned_copies
+
+    job = tmp_path / "job"
+    (job / "scans").mkdir(parents=True)
+    file = job / "scans" / "scan-0000.npz"
+    arrays = _scans(1)[0]
+    measured = LocalWorldMap(1.0, lean=True)
+    await measured.add_scan(file, np.eye(4), arrays | {"normals_S": np.tile([0.0, 0.0, 1.0], (250_000, 1))})
+    assert (job / THINNED_FOLDER / file.name).is_file() and scan_reads[file.name] == 0
+    after_a_crash = LocalWorldMap(1.0, lean=True)
+    await after_a_crash.add_scan(file, np.eye(4))
+    assert scan_reads[file.name] == 0  # the kept copy, not the raw scan
+    remove_thinned_copies(job)
+    with np.load(file) as data:  # the raw scan again, its normals unreadable here
+        np.savez(file, **{k: data[k] for k in data.files if k != "normals_S"}, normals_S=np.array([None], object))
+    scan_reads.clear()
+    after_a_stop = LocalWorldMap(1.0, lean=True)
+    await after_a_stop.add_scan(file, np.eye(4))
+    assert scan_reads[file.name] == 1
+    view, reach = measured.copies[str(file)]
+    for replayed in (after_a_crash, after_a_stop):
+        view_again, reach_again = replayed.copies[str(file)]
+        np.testing.assert_array_equal(view_again, view)
+        assert (reach_again.x_min_mm, reach_again.x_max_mm, reach_again.reach_mm) == (
+            reach.x_min_mm, reach.x_max_mm, reach.reach_mm)
