@@ -25,26 +25,33 @@ def fsync_dir(path: Path) -> None:
 def write_durably(path: Path, write: Callable[[BinaryIO], object]) -> int:
     """Write ``path`` through ``write(binary file)`` to a temporary name, fsync, rename, fsync the folder.
 
-    Returns the size in bytes. Readers never see a half-written file at ``path``."""
+    Returns the size in bytes. Readers never see a half-written file at ``path``; where ``write`` fails, the
+    temporary file is removed and ``path`` is as it was."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".part")
-    with open(tmp, "wb") as f:
-        write(f)
-        f.flush()
-        os.fsync(f.fileno())
-        size = f.tell()
-    os.replace(tmp, path)
+    _write_and_rename(path, write, durable=True)
     fsync_dir(path.parent)
-    return size
+    return path.stat().st_size
 
 
 def write_replacing(path: Path, write: Callable[[BinaryIO], object]) -> None:
     """Write ``path`` through ``write(binary file)`` to a temporary name and rename it: readers see the whole file
-    or none. Not fsynced: for scratch files that a job resumed after a crash writes again."""
-    path = Path(path)
+    or none (where ``write`` fails, the temporary file is removed). Not fsynced: for scratch files that a job resumed
+    after a crash writes again."""
+    _write_and_rename(Path(path), write, durable=False)
+
+
+def _write_and_rename(path: Path, write: Callable[[BinaryIO], object], durable: bool) -> None:
+    """``write`` into ``<path>.part`` (fsynced where ``durable``), renamed over ``path``; the ``.part`` removed where
+    anything before the rename fails."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".part")
-    with open(tmp, "wb") as f:
-        write(f)
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as f:
+            write(f)
+            if durable:
+                f.flush()
+                os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
