@@ -265,6 +265,13 @@ class EdgeFrame:
         q = np.asarray(points_mm, float) - self.origin
         return np.column_stack([q @ self.along, q @ self.into, q @ self.normal])
 
+    def taken_half_mm(self, corridor_mm: float) -> np.ndarray:
+        """(3,) half extents (mm; along, into, normal: :meth:`coordinates`) of the box the edge takes its points
+        from: short of its ends by ``corridor_mm`` (where the walls of a corner meet; at least half its length), a
+        corridor either side of it, two above and below the surface."""
+        return np.array([max(self.half_length_mm - corridor_mm, 0.5 * self.half_length_mm), corridor_mm,
+                         2.0 * corridor_mm])
+
 
 def edge_frame(spec: EdgeSpec, surface: CadSurface) -> EdgeFrame:
     """The edge's frame: its ends projected onto the CAD surface, the surface normal half a corridor
@@ -355,12 +362,11 @@ def edge(spec: EdgeSpec, template: InspectionTemplate, cloud: MeasuredCloud,
     points within a corridor of the edge's ends (where the walls of a corner meet) are left out."""
     method = "edge of the surface fitted outside it and along its wall, against the CAD's found alike"
     frame = edge_frame(spec, cloud.surface)
-    keep_along = max(frame.half_length_mm - spec.corridor_mm, 0.5 * frame.half_length_mm)
+    half = frame.taken_half_mm(spec.corridor_mm)
     c = frame.coordinates(cloud.points_mm)
-    near = np.flatnonzero((np.abs(c[:, 0]) <= keep_along) & (np.abs(c[:, 1]) <= spec.corridor_mm)
-                          & (np.abs(c[:, 2]) <= 2 * spec.corridor_mm))
+    near = np.flatnonzero(np.all(np.abs(c) <= half, axis=1))
     cad = frame.coordinates(_cad_samples_near(cloud.surface, frame, spec.corridor_mm))
-    cad = cad[(np.abs(cad[:, 0]) <= keep_along) & (np.abs(cad[:, 1]) <= spec.corridor_mm)]
+    cad = cad[np.all(np.abs(cad[:, :2]) <= half[:2], axis=1)]
     nominal = edge_position(cad, spec.corridor_mm)
     if nominal is None:
         raise InspectionError(f"{spec.id}: the CAD shows no edge with a wall at {spec.start_mm}-{spec.end_mm}")

@@ -116,8 +116,7 @@ def characteristic_region(spec, template: InspectionTemplate, surface: CadSurfac
     if spec.kind == "edge":
         frame = edge_frame(spec, surface)
         axes = np.array([frame.along, frame.into, frame.normal])
-        keep_along = max(frame.half_length_mm - spec.corridor_mm, 0.5 * frame.half_length_mm)
-        return Region(axes, axes @ frame.origin, np.array([keep_along, spec.corridor_mm, 2 * spec.corridor_mm]))
+        return Region(axes, axes @ frame.origin, frame.taken_half_mm(spec.corridor_mm))
     raise InspectionError(f"{spec.id}: no region for a characteristic of kind {spec.kind!r}")
 
 
