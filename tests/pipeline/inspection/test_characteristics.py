@@ -15,6 +15,7 @@ from tandemscan.pipeline.geometry.part import load_part_mesh
 from tandemscan.pipeline.inspection.characteristics import MeasuredCloud, evaluate, sample_surface
 from tandemscan.pipeline.inspection.decision import DecisionRule
 from tandemscan.pipeline.inspection.inspect import CadSurface, InspectionError
+from tandemscan.pipeline.inspection.region_points import characteristic_region
 from tandemscan.sim_drivers.as_built import scanned_part_mesh
 
 U_MM = 0.02  # per-point expanded uncertainty given to the characteristics here
@@ -166,6 +167,16 @@ def test_the_hatch_edge_offset_is_measured_within_a_tenth(tmp_path):
     for other in ("EDGE-2", "EDGE-3", "EDGE-4"):
         assert abs(r[other].actual_mm) < 0.1 and r[other].status == "pass"
     assert r["EDGE-1"].points > 100
+    # a tiled cloud gathers each edge's points by its region (region_points.characteristic_region): the edge measured
+    # on those alone is the edge measured on the whole cloud (the other kinds: test_tile_characteristics.py)
+    for spec in (c for c in template.characteristics if c.kind == "edge"):
+        inside = characteristic_region(spec, template, cloud.surface).mask(cloud.points_mm, cloud.triangle_ids)
+        assert 0 < inside.mean() < 0.2
+        (alone,) = evaluate(template.model_copy(update={"characteristics": (spec,)}), MeasuredCloud(
+            cloud.points_mm[inside], cloud.deviations_mm[inside], cloud.triangle_ids[inside],
+            cloud.uncertainty_mm[inside], cloud.surface), DecisionRule())
+        assert (alone.actual_mm, alone.points, alone.status) == (r[spec.id].actual_mm, r[spec.id].points,
+                                                                 r[spec.id].status), spec.id
 
 
 @pytest.mark.slow
