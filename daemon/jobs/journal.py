@@ -90,12 +90,17 @@ class StoreJournal:
 def close_map(worldmap: ProcessWorldMap, job_dir: Path, scan_store: Path) -> None:
     """Stop the job's map process (``ProcessWorldMap.close``: work under way there abandoned, its own clean-up with
     it) and remove the scratch files that work leaves where the job ends before its end ran to completion
-    (cancelled, failed, or interrupted by the daemon's stop; a resumed job makes them again): in ``scan_store`` its
-    scans prepared for the joint refinement (``correction.remove_joint_folder``) and its tiles' files and shards
-    (``tiles.TILES_FOLDER``), and in ``job_dir`` the scans' thinned copies (``raw_scan.remove_thinned_copies``: one
-    the map's process wrote after the runner removed them, of a scan merged as the job was cancelled). A job that
-    ran to its end removed them itself."""
+    (cancelled, failed, or interrupted by the daemon's stop; a resumed job makes them again):
+    :func:`remove_scratch`, among them a thinned copy the map's process wrote after the runner removed them (a scan
+    merged as the job was cancelled). A job that ran to its end removed them itself."""
     worldmap.close()
+    remove_scratch(job_dir, scan_store)
+
+
+def remove_scratch(job_dir: Path, scan_store: Path) -> None:
+    """Remove a job's scratch files: in ``scan_store`` its scans prepared for the joint refinement
+    (``correction.remove_joint_folder``) and its tiles' files and shards (``tiles.TILES_FOLDER``), and in
+    ``job_dir`` the scans' thinned copies (``raw_scan.remove_thinned_copies``)."""
     remove_joint_folder(scan_store)
     shutil.rmtree(Path(scan_store) / TILES_FOLDER, ignore_errors=True)
     remove_thinned_copies(job_dir)
@@ -129,12 +134,18 @@ async def run_journaled(ctx: JobContext) -> dict:
 
 def journaled_abandon(session: CellSession, config: CellConfig):
     """The manager's ``abandon`` for the daemon: a failed or cancelled job's half transfer undone
-    (:func:`~tandemscan.daemon.jobs.coordinate_transfer.return_from_transfer`) from its journal."""
+    (:func:`~tandemscan.daemon.jobs.coordinate_transfer.return_from_transfer`) from its journal, then its scratch
+    files removed (:func:`remove_scratch`: a job cancelled after a crash without its runner up again leaves those of
+    the attempt the crash ended; where the runner ran, its :func:`close_map` removed them already)."""
 
     async def abandon(job: JobRecord, store: JobStore) -> None:
         plan = Plan.model_validate(job.plan["plan"])
-        committed = set(await asyncio.to_thread(store.committed_steps, job.id))
-        await return_from_transfer(session, plan, committed, lambda i: store.notes(job.id, i), config)
+        try:
+            committed = set(await asyncio.to_thread(store.committed_steps, job.id))
+            await return_from_transfer(session, plan, committed, lambda i: store.notes(job.id, i), config)
+        finally:
+            job_dir = store.job_dir(job.id)
+            await asyncio.to_thread(remove_scratch, job_dir, config.compute.scan_store or job_dir)
 
     return abandon
 
