@@ -59,7 +59,7 @@ class Region:
         lo, hi = np.asarray(min_mm, float), np.asarray(max_mm, float)
         return cls(np.eye(3), 0.5 * (lo + hi), 0.5 * (hi - lo))
 
-    def also(self, other: Region) -> Region:
+    def intersection(self, other: Region) -> Region:
         """The points in this region and in ``other`` (its slabs added; the triangles of both)."""
         tri = self.triangles if other.triangles is None else other.triangles if self.triangles is None else (
             np.intersect1d(self.triangles, other.triangles))
@@ -112,7 +112,7 @@ def characteristic_region(spec, template: InspectionTemplate, surface: CadSurfac
         n = np.asarray(spec.normal, float) / np.linalg.norm(spec.normal)
         slab = Region(n[None], np.array([n @ np.asarray(spec.point_mm, float)]),
                       np.array([max(spec.half_width_mm, template.smoothing_mm)]))
-        return slab if spec.region is None else slab.also(patch_region(template.region(spec.region), surface))
+        return slab if spec.region is None else slab.intersection(patch_region(template.region(spec.region), surface))
     if spec.kind == "edge":
         frame = edge_frame(spec, surface)
         axes = np.array([frame.along, frame.into, frame.normal])
