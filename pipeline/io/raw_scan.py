@@ -9,12 +9,16 @@ the journal commits the scan (``docs/daemon.md``, how a job survives a crash).
 
 from __future__ import annotations
 
+import logging
 import shutil
+import zipfile
 from pathlib import Path
 
 import numpy as np
 from tandemscan.pipeline.io.durable import write_durably, write_replacing
 from tandemscan.pipeline.registration.sampling import voxel_downsample
+
+log = logging.getLogger(__name__)
 
 _FLOAT32_ARRAYS = ("points_S_mm", "normals_S")  # stored as float32 (mm, unit vectors)
 
@@ -80,15 +84,23 @@ def keep_thinned_copy(path: Path | str, copy: np.ndarray, voxel_mm: float) -> No
 
 def _kept_copy(path: Path, voxel_mm: float) -> np.ndarray | None:
     """The copy :func:`keep_thinned_copy` kept of the raw scan file ``path`` at ``voxel_mm``, or None (none kept,
-    another voxel, or the file changed since)."""
+    another voxel, the file changed since, or a copy that cannot be read: written, not fsynced, before a power
+    loss)."""
+    kept = path.parent.parent / THINNED_FOLDER / path.name
+    if not kept.is_file():
+        return None
     try:
-        with np.load(path.parent.parent / THINNED_FOLDER / path.name) as data:
+        if not zipfile.is_zipfile(kept):  # before np.load, which leaves the file open where it is no zip
+            raise ValueError("not a whole .npz")
+        with np.load(kept) as data:
             stat = path.stat()
             if (float(data["voxel_mm"]) == voxel_mm
                     and data["raw_size_mtime_ns"].tolist() == [stat.st_size, stat.st_mtime_ns]):
                 return data["points_S_mm"]
-    except FileNotFoundError:
+    except FileNotFoundError:  # removed meanwhile (the job ended)
         pass
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as e:
+        log.warning("thinned copy %s not read (%s): the raw scan is read", kept, e)
     return None
 
 

@@ -37,3 +37,19 @@ def test_a_kept_copy_is_read_instead_of_the_raw_scan(tmp_path, scan_reads):
     assert scan_reads["dense.npz"] == 3 and np.array_equal(again, thin_scan(_points(19_000, 0.2, seed=2), 1.0))
     remove_thinned_copies(job)
     assert not (job / THINNED_FOLDER).exists() and (job / "scans" / "dense.npz").is_file()
+
+
+def test_a_kept_copy_that_cannot_be_read_is_as_none(tmp_path, scan_reads):
+    """Kept copies are written without fsync (scratch): after a power loss one may be empty or cut short. A job
+    resumed then reads the raw scan instead (the same copy), not fail on it."""
+    raw = tmp_path / "job" / "scans" / "dense.npz"
+    points = _points(20_000, 0.2)
+    write_raw_scan(raw, points_S_mm=points)
+    keep_thinned_copy(raw, thin_scan(points, 1.0), 1.0)
+    kept = tmp_path / "job" / THINNED_FOLDER / "dense.npz"
+    whole = kept.read_bytes()
+    for damaged in (b"", whole[: len(whole) // 2]):
+        kept.write_bytes(damaged)
+        reads = scan_reads["dense.npz"]
+        assert np.array_equal(read_thinned_scan(raw, 1.0), thin_scan(points, 1.0))
+        assert scan_reads["dense.npz"] == reads + 1
