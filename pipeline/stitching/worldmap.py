@@ -5,8 +5,9 @@ map's cloud is the per-voxel mean. Memory grows with the measured surface area, 
 Keys are the voxel indices packed in one int64 (21 bits per axis: +-1,048,575 voxels, over a kilometre at
 1 mm). A scan is first reduced to its voxels by dense counting over its bounding box where that box holds
 only a few voxels a point (no sort of its points), else by sorting its keys; its voxels wait in a batch that
-is merged into the map's sorted arrays in one sort-and-reduce when it holds as many voxels as the map (or the
-map is read), so each voxel is moved O(log scans) times, not once per scan.
+is sorted and reduced alone when it holds as many voxels as the map (or the map is read), then added to the
+map's sorted arrays in place and its new voxels inserted, so each voxel is moved O(log scans) times, not once per
+scan.
 """
 
 from __future__ import annotations
@@ -59,10 +60,10 @@ class VoxelMap:
     voxelised whole and its voxels outside the tile dropped, so a voxel's sums are those the whole map has.
 
     ``batch_share`` (0 to 1]: the scans' voxels wait in the batch until it holds this share of the map's voxels (at
-    least this share of ``_MIN_BATCH_VOXELS``), then map and batch are sorted together, so a merge holds at most
-    ``1 + batch_share`` times the map's voxels and one scan's at once. 1 moves each voxel O(log scans) times (the
-    fewest sorts, where the map's time matters); less bounds its peak by the map's voxels alone, not by how the
-    scans' repeated voxels fall into batches (a tile's unit, ``tiles.merge_tile``)."""
+    least this share of ``_MIN_BATCH_VOXELS``), then merged into the map, so a merge holds the map twice and at most
+    ``batch_share`` of its voxels and one scan's besides. 1 moves each voxel O(log scans) times (the fewest merges,
+    where the map's time matters); less bounds its peak by the map's voxels alone, not by how the scans' repeated
+    voxels fall into batches (a tile's unit, ``tiles.merge_tile``)."""
 
     def __init__(self, voxel_mm: float = 1.0, x_voxels: tuple[int, int] | None = None, batch_share: float = 1.0):
         if voxel_mm <= 0:
@@ -144,27 +145,38 @@ class VoxelMap:
             self._flush()
 
     def _flush(self) -> None:
-        """Merge the batch into the sorted map: one stable sort of map and batch keys, sums reduced per key.
+        """Merge the batch into the sorted map: the batch's keys sorted alone (stable) and its sums reduced per key,
+        then added where the map has the key already and the new keys inserted in order.
 
-        Each array of the map and the batch is dropped as soon as it has been gathered in sorted order (at most
-        two copies of the sums, 96 bytes a voxel, at once, not four), so that merging a large map does not
-        double the memory it takes."""
+        The map is never sorted again nor copied beside a batch as large as it: a merge holds the map, the batch
+        and, where it brings new voxels, the map's arrays once more (64 B a voxel) while they are inserted."""
         if not self._batch:
             return
-        parts = [(self._keys, self._sums, self._counts), *self._batch]
-        self._keys = self._sums = self._counts = None
-        self._batch, self._batch_voxels = [], 0
-        keys = np.concatenate([k for k, _, _ in parts])
+        batch, self._batch, self._batch_voxels = self._batch, [], 0
+        keys = np.concatenate([k for k, _, _ in batch])
         order = np.argsort(keys, kind="stable")
         keys = keys[order]
         first = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
         keys = keys[first]
-        counts = np.add.reduceat(np.concatenate([c for _, _, c in parts])[order], first)
-        sums = np.concatenate([s for _, s, _ in parts])
-        del parts  # the map's and the batch's sums: only their concatenation is left
-        sums = sums[order]
-        del order
-        self._keys, self._sums, self._counts = keys, np.add.reduceat(sums, first, axis=0), counts
+        counts = np.add.reduceat(np.concatenate([c for _, _, c in batch])[order], first)
+        sums = np.concatenate([s for _, s, _ in batch])
+        del batch  # the batch's sums: only their concatenation is left
+        sums = np.add.reduceat(sums[order], first, axis=0)
+        del order, first
+        if not len(self._keys):
+            self._keys, self._sums, self._counts = keys, sums, counts
+            return
+        at = np.searchsorted(self._keys, keys)
+        known = at < len(self._keys)
+        known[known] = self._keys[at[known]] == keys[known]
+        self._sums[at[known]] += sums[known]
+        self._counts[at[known]] += counts[known]
+        new = ~known
+        if new.any():
+            at, keys, sums, counts = at[new], keys[new], sums[new], counts[new]
+            self._keys = np.insert(self._keys, at, keys)
+            self._counts = np.insert(self._counts, at, counts)
+            self._sums = np.insert(self._sums, at, sums, axis=0)
 
     def _voxelise(self, rows: np.ndarray, normal_rows: np.ndarray | None, origin: np.ndarray | None = None
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
