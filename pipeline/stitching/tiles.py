@@ -50,7 +50,7 @@ from tandemscan.pipeline.stitching.worldmap import ScanVoxels, VoxelMap
 TILES_FOLDER = "tiles"
 #: a tile's map merges its batch of scans' voxels at this share of its voxels (``VoxelMap(batch_share=...)``): a
 #: unit's peak set by its tile's voxels, not by how its scans' repeated voxels fall into batches (at 1, the batch
-#: up to the map's size: a worker's merge 0.77 / 0.89 GiB on the bands of docs/capacity.md, now 0.65 / 0.73)
+#: up to the map's size: a worker's merge 0.77 / 0.89 GiB on the bands of docs/capacity.md, now 0.60 / 0.65)
 TILE_BATCH_SHARE = 0.25
 
 

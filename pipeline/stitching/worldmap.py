@@ -154,6 +154,8 @@ class VoxelMap:
             return
         batch, self._batch, self._batch_voxels = self._batch, [], 0
         keys = np.concatenate([k for k, _, _ in batch])
+        if not len(keys):  # scans with no voxel in the map's x window
+            return
         order = np.argsort(keys, kind="stable")
         keys = keys[order]
         first = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])

@@ -127,3 +127,17 @@ def test_maps_combined_equal_one_map_of_every_scan_and_are_left_empty():
         VoxelMap.combined([VoxelMap(1.0), VoxelMap(2.0)])
     with pytest.raises(ValueError, match="no maps"):
         VoxelMap.combined([])
+
+
+def test_a_tile_map_read_after_scans_outside_its_tile_is_unchanged():
+    """Scans whose voxels all lie outside a tile's x window leave an empty batch: reading the map merges nothing."""
+    rng = np.random.default_rng(6)
+    inside, outside = rng.uniform(0, 9, (500, 3)), rng.uniform(20, 29, (500, 3))
+    vm = VoxelMap(1.0, x_voxels=(0, 10), batch_share=0.25)
+    vm.add(inside)
+    before = vm.points().copy()
+    vm.add(outside)
+    np.testing.assert_array_equal(vm.points(), before)
+    empty = VoxelMap(1.0, x_voxels=(0, 10))
+    empty.add(outside)
+    assert len(empty) == 0 and len(empty.points()) == 0
