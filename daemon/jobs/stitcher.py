@@ -83,9 +83,9 @@ def merge_scan(worldmap: VoxelMap, copies: dict[str, Any], file: str, T_W_S: np.
     (``raw_scan.thin_scan``, the copy ``raw_scan.read_thinned_scan`` would read: ``finish.load_scans`` takes it
     from there). ``lean`` (``ComputeConfig.reads_scan_store``: the end of the job reads the scans from the store on the
     backend's workers and merges its cloud there): the scan is not merged here and only what the end takes of it
-    is kept, small and bounded a scan: its stitch-view points (``outputs.stitch_view_points``, at most 40 k, under
-    1 MB) and its ``tiles.ScanReach`` at ``T_W_S`` (``finish.load_scans``), and the thinned copy is written beside
-    the job's scans (``raw_scan.keep_thinned_copy``: the workers read it there, not the raw scan); one replayed
+    is kept, small and bounded a scan: its stitch-view points (``outputs.stitch_view_points``, at most 40 k, float32,
+    under 0.5 MB) and its ``tiles.ScanReach`` at ``T_W_S`` (``finish.load_scans``), and the thinned copy is written
+    beside the job's scans (``raw_scan.keep_thinned_copy``: the workers read it there, not the raw scan); one replayed
     from its file is read as ``raw_scan.read_thinned_scan`` reads it (the copy kept there where an earlier attempt
     left one, else the points alone: its normals are not needed). Returns the thinned copy (for the pair worker)."""
     if lean:

@@ -66,7 +66,7 @@ async def test_on_the_scan_store_path_the_maps_process_keeps_only_each_scans_sti
     for file, copy in thinned.items():
         assert len(copy) > 2 * STITCH_VIEW_POINTS  # a thinned copy, held on the local backend
         view, reach = kept[file.replace("/local/", "/store/")]
-        assert len(view) <= 2 * STITCH_VIEW_POINTS and view.nbytes <= 2 * STITCH_VIEW_POINTS * 24
+        assert len(view) <= 2 * STITCH_VIEW_POINTS and view.nbytes <= 2 * STITCH_VIEW_POINTS * 12  # float32
         np.testing.assert_array_equal(view, stitch_view_points(copy))
         again = ScanReach.of(reach.T_W_S, copy)  # the copy's reach at its tracker pose
         assert (reach.x_min_mm, reach.x_max_mm, reach.reach_mm) == (again.x_min_mm, again.x_max_mm, again.reach_mm)

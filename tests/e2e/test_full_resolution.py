@@ -225,3 +225,7 @@ def test_the_stitch_view_takes_the_same_points_from_its_copy():
         view = stitch_view_points(points)
         np.testing.assert_array_equal(_thin(view), _thin(points))
         assert view.base is None  # a copy: the scan itself can be freed
+    centroids = np.random.default_rng(5).uniform(-900, 900, (143_118, 3))  # a thinned copy (float64, mm)
+    view = stitch_view_points(centroids)  # held until the inspection: float32, 12 B a point
+    assert view.dtype == np.float32 and view.nbytes == 12 * len(_thin(centroids))
+    np.testing.assert_allclose(view, _thin(centroids), rtol=0, atol=3.1e-5)  # float32's half step at 900 mm
