@@ -85,18 +85,27 @@ class LocalBackend:
         """Nothing to release: the threads end with each :meth:`map`."""
 
 
+#: batches of messages each Dask stream this process opens keeps for its logs
+#: (``distributed.admin.low-level-log-length``, 1000 by default): a batch carries its tasks' specs and arguments, so
+#: the client's and, on a ``LocalCluster``, the scheduler's streams held the joint refinement's last 1000 batches
+#: after it ended (growing with the scans); also the scheduler's transition log's length
+MESSAGE_LOG = 10
+
+
 class DaskBackend:
     """The units as Dask tasks: on the scheduler at ``scheduler`` (``tcp://host:8786``), or on a ``LocalCluster``
     of ``workers`` single-threaded processes where it is empty. Each unit is one task keyed by its unit key
     (``pure``: a unit submitted twice runs once), retried ``retries`` times when its worker is lost."""
 
     def __init__(self, scheduler: str = "", workers: int = 2, retries: int = 3):
+        import dask
         from dask.distributed import Client, LocalCluster
 
         self.retries = retries
-        self._cluster = None if scheduler else LocalCluster(n_workers=workers, threads_per_worker=1,
-                                                            processes=True, dashboard_address="127.0.0.1:0")
-        self.client = Client(scheduler or self._cluster)
+        with dask.config.set({"distributed.admin.low-level-log-length": MESSAGE_LOG}):  # the streams made here
+            self._cluster = None if scheduler else LocalCluster(n_workers=workers, threads_per_worker=1,
+                                                                processes=True, dashboard_address="127.0.0.1:0")
+            self.client = Client(scheduler or self._cluster)
         log.info("compute: dask scheduler %s", self.client.scheduler.address)
 
     def map(self, fn: Callable[..., Any], units: Sequence[Any], keys: Sequence[str],

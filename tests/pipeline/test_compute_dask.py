@@ -19,7 +19,14 @@ import numpy as np
 import pytest
 from dask.distributed import get_task_stream
 from tandemscan.config.models import ComputeConfig, CorrectionConfig, DeepMergeConfig
-from tandemscan.pipeline.compute import DaskBackend, LazyBackend, LocalBackend, backend_for, process_cpu_seconds
+from tandemscan.pipeline.compute import (
+    MESSAGE_LOG,
+    DaskBackend,
+    LazyBackend,
+    LocalBackend,
+    backend_for,
+    process_cpu_seconds,
+)
 from tandemscan.pipeline.inspection.region_points import Region, gather
 from tandemscan.pipeline.inspection.tile_inspection import AreaBounds, inspect_tiles, tile_areas
 from tandemscan.pipeline.io.raw_scan import read_thinned_scan, write_raw_scan
@@ -255,6 +262,21 @@ def test_the_compute_config_picks_the_backend_and_a_local_cluster_maps_units_in_
         units = list(range(-6, 6))
         assert backend.map(abs, units, [f"abs-{u}" for u in units]) == [abs(u) for u in units]
         assert len(backend.client.scheduler_info()["workers"]) == 2
+    finally:
+        backend.close()
+
+
+def test_a_local_clusters_streams_keep_a_short_log_of_the_batches_they_sent():
+    """Each Dask stream keeps its last batches of messages (their tasks' specs and arguments) for its logs: in the
+    process of the end of a job, its client's and its LocalCluster's scheduler's, at most :data:`MESSAGE_LOG`."""
+    backend = DaskBackend("", 1)
+    try:
+        for round_ in range(3 * MESSAGE_LOG):  # a batch a round at least
+            backend.map(abs, [-round_], [f"abs-log-{round_}"])
+        scheduler = backend._cluster.scheduler
+        streams = [backend.client.scheduler_comm, *scheduler.stream_comms.values(), *scheduler.client_comms.values()]
+        assert len(streams) >= 3 and len(backend.client.scheduler_comm.recent_message_log) == MESSAGE_LOG
+        assert all(s.recent_message_log.maxlen == MESSAGE_LOG for s in streams)
     finally:
         backend.close()
 
