@@ -177,7 +177,7 @@ def inspect_tile(unit: InspectTile) -> TileDeviations:
     u = {} if not sample.uncertainty else {
         "uncertainty_mm": _field(str(Path(unit.store) / sample.uncertainty)).at(points_F)}
     write_durably(Path(unit.store) / file, functools.partial(
-        _save, points_F=points_F, normals_F=normals_F, deviation_mm=d, triangle_ids=triangles, **u))
+        np.savez, points_F=points_F, normals_F=normals_F, deviation_mm=d, triangle_ids=triangles, **u))
     n = len(d)
     mean = float(d.mean()) if n else 0.0
     return TileDeviations(
@@ -187,9 +187,6 @@ def inspect_tile(unit: InspectTile) -> TileDeviations:
         np.bincount(_bins(d), minlength=len(HISTOGRAM_EDGES_MM) + 1),
         float(cloud.points_mm[:, 0].min()) if n else math.inf, float(cloud.points_mm[:, 0].max()) if n else -math.inf)
 
-
-def _save(f, **arrays: np.ndarray) -> None:
-    np.savez(f, **arrays)
 
 
 def inspect_tiles(tiles: Sequence[TileCloud], store: str | Path, mesh_file: str | Path, T_F_W: np.ndarray,
@@ -495,7 +492,7 @@ class UncertaintyField:
             h.update(np.ascontiguousarray(a, np.float64).tobytes())
         file = f"{TILES_FOLDER}/uncertainty-{h.hexdigest()}.npz"
         write_durably(Path(store) / file, functools.partial(
-            _save, points_F_mm=self.points_F_mm, expanded_mm=self.expanded_mm))
+            np.savez, points_F_mm=self.points_F_mm, expanded_mm=self.expanded_mm))
         return file
 
 
@@ -516,7 +513,7 @@ def write_cad(store: str | Path, surface: CadSurface) -> str:
     for a in (vertices, triangles):
         h.update(np.ascontiguousarray(a).tobytes())
     file = f"{TILES_FOLDER}/cad-{h.hexdigest()}.npz"
-    write_durably(Path(store) / file, functools.partial(_save, vertices_mm=vertices, triangles=triangles))
+    write_durably(Path(store) / file, functools.partial(np.savez, vertices_mm=vertices, triangles=triangles))
     return file
 
 

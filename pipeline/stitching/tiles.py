@@ -218,7 +218,7 @@ def place_scan(unit: PlaceScan) -> tuple[TileShard, ...]:
         if len(cut):
             file = f"{unit.folder}/{unit.order:05d}-{k:05d}.npz"
             write_replacing(Path(unit.store) / file, functools.partial(  # the job's end places its scans again
-                _save_arrays, keys=cut.keys, sums=cut.sums, counts=cut.counts))
+                np.savez, keys=cut.keys, sums=cut.sums, counts=cut.counts))
             shards.append(TileShard(k, file, len(cut)))
     return tuple(shards)
 
@@ -252,15 +252,12 @@ def merge_tile(unit: MergeTile) -> TileCloud:
         cloud = worldmap.frozen()
         del worldmap
         write_durably(store / file, functools.partial(
-            _save_arrays, points=cloud.points(), normals=cloud.normals(), counts=np.asarray(cloud.counts(), np.int64)))
+            np.savez, points=cloud.points(), normals=cloud.normals(), counts=np.asarray(cloud.counts(), np.int64)))
         voxels = len(cloud)
     for shard in unit.shards:
         (store / shard).unlink(missing_ok=True)
     return TileCloud(unit.index, file, voxels)
 
-
-def _save_arrays(f, **arrays: np.ndarray) -> None:
-    np.savez(f, **arrays)
 
 
 def merge_tiles(scans: Sequence[TileScan], voxel_mm: float, tile_mm: float, store: str | Path,
