@@ -661,6 +661,11 @@ class ComputeConfig(_Strict):
         "figures, cloud_deviation.ply and (in their regions) characteristics and close-ups from every point, tile "
         "by tile on the backend (docs/compute.md, Tiles)")
 
+    def store_of(self, job_dir: Path) -> Path:
+        """The folder the end of the job in ``job_dir`` reads its scans from and keeps its scratch files in
+        (``joint/``, ``tiles/``): ``scan_store``, or the job folder where it is empty."""
+        return Path(self.scan_store or job_dir)
+
     @property
     def reads_scan_store(self) -> bool:
         """Whether the end of a job reads every scan from ``scan_store`` on the backend's workers (not ``local``):

@@ -228,7 +228,7 @@ def merged_cloud(job: JobSnapshot, voxel_mm: float, poses: Sequence[np.ndarray],
     compute = job.config.compute
     if not compute.tile_mm:
         return merge_stage(voxel_mm, [s.file for s in job.scans], poses).frozen()
-    store = compute.scan_store or job.job_dir
+    store = compute.store_of(job.job_dir)
     refs = [TileScan(in_job(Path(s.file), job.job_dir), T, *bound)
             for s, T, bound in zip(job.scans, poses, x_bounds_mm, strict=True)]
     return TiledCloud(voxel_mm, str(store), merge_tiles(refs, voxel_mm, compute.tile_mm, store, backend.get()))

@@ -123,7 +123,7 @@ async def run_journaled(ctx: JobContext) -> dict:
         result = await runner.run()
     finally:
         await journal.drain()
-        await asyncio.to_thread(close_map, worldmap, job_dir, ctx.config.compute.scan_store or job_dir)
+        await asyncio.to_thread(close_map, worldmap, job_dir, ctx.config.compute.store_of(job_dir))
     report = result.report  # report.json, written once by the end of the job
     await asyncio.to_thread(record_part, ctx.store.state_dir, ctx.job.id, report)
     figures = {k: report[k] for k in _FIGURE_KEYS if k in report} | {"scans_left_out": len(report["scans_left_out"])}
@@ -145,7 +145,7 @@ def journaled_abandon(session: CellSession, config: CellConfig):
             await return_from_transfer(session, plan, committed, lambda i: store.notes(job.id, i), config)
         finally:
             job_dir = store.job_dir(job.id)
-            await asyncio.to_thread(remove_scratch, job_dir, config.compute.scan_store or job_dir)
+            await asyncio.to_thread(remove_scratch, job_dir, config.compute.store_of(job_dir))
 
     return abandon
 

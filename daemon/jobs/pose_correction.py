@@ -122,7 +122,7 @@ def correct_job(job: JobSnapshot, points_S: Sequence[np.ndarray | None], online:
     started, cpu = time.monotonic(), backend.cpu_seconds()  # this process's and the workers'
     prior, prior_source = mount_prior(job.config, job.installation)
     # on a cluster the pair stage's workers read the scans from the store by reference (docs/compute.md)
-    store = str(compute.scan_store or job.job_dir) if compute.backend != "local" else None
+    store = str(compute.store_of(job.job_dir)) if compute.backend != "local" else None
     stitched = StitchedJob(stitched_scans(job, points_S), transfer_priors(job.transfers), prior,
                            job.config.job.voxel_mm)
     result = correct_scans(stitched, CorrectionSettings.from_section(cfg), LazyNetwork(job.config.deepmerge),
@@ -145,5 +145,5 @@ def complete_checks(job: JobSnapshot, checks: PairChecks, later: OnlineWork | No
     ``[compute] scan_store`` or the job folder, on ``backend``, the end of the job's, left open)."""
     compute = job.config.compute
     return complete_pair_checks(checks, CorrectionSettings.from_section(job.config.correction), later,
-                                str(compute.scan_store or job.job_dir), job.config.job.voxel_mm, backend,
+                                str(compute.store_of(job.job_dir)), job.config.job.voxel_mm, backend,
                                 LazyNetwork(job.config.deepmerge))
