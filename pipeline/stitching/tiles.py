@@ -8,6 +8,8 @@ points' x in W, which sets the slabs' extent), never their points. The merge has
 does) and writes its voxels of each slab they reach as a shard beside the scans (:class:`TileShard`); a
 :class:`MergeTile` then merges its tile's shards, one at a time in the job's order of the scans, into a voxel map of
 the tile's voxels (``VoxelMap(x_voxels=...)``), writes the tile's cloud (:func:`read_tile`) and removes the shards.
+The scans are placed in waves along x and a tile is merged as soon as every scan that reaches it is placed
+(:func:`place_waves`, :func:`merge_tiles`): the shards on disk at once are those about the front, not the part's.
 Only a :class:`TileCloud` (the file, its voxel count) comes back. So each raw scan is read once, however many tiles
 it reaches; a unit holds one scan, or one tile's voxels and one shard.
 
@@ -28,6 +30,7 @@ same result.
 
 from __future__ import annotations
 
+import bisect
 import functools
 import hashlib
 import math
@@ -130,6 +133,10 @@ class TileGrid:
 
     def __len__(self) -> int:
         return len(self.x_edges) - 1
+
+    def tile_of(self, x_mm: float) -> int:
+        """The tile whose slab holds ``x_mm`` (W, mm; the first or last where it lies before or after them)."""
+        return min(max(bisect.bisect_right(self.x_edges, math.floor(x_mm / self.voxel_mm)) - 1, 0), len(self) - 1)
 
     def bounds_mm(self, k: int) -> tuple[float, float]:
         """Tile ``k``'s slab ``[x0, x1)`` in W, mm."""
@@ -260,30 +267,58 @@ def merge_tile(unit: MergeTile) -> TileCloud:
 
 
 
+def place_waves(placing: Sequence[PlaceScan], grid: TileGrid) -> list[tuple[int, tuple[PlaceScan, ...]]]:
+    """The placing of the scans in waves along x: each wave the units of the scans whose bound of x starts in tile
+    ``first`` of ``grid`` (those without points in tile 0's), as ``(first, units)`` in x order. Every tile before
+    ``first`` is complete once the waves before it are placed: the scans that reach it are theirs."""
+    by_tile: dict[int, list[PlaceScan]] = {}
+    for u in placing:
+        first = grid.tile_of(u.scan.x_min_mm) if u.scan.x_min_mm <= u.scan.x_max_mm else 0
+        by_tile.setdefault(first, []).append(u)
+    return [(first, tuple(by_tile[first])) for first in sorted(by_tile)]
+
+
+def run_merge_unit(unit: PlaceScan | MergeTile) -> tuple[TileShard, ...] | TileCloud:
+    """A unit of either step of the tiled merge (one map of :func:`merge_tiles` runs both): :func:`place_scan` or
+    :func:`merge_tile`."""
+    return place_scan(unit) if isinstance(unit, PlaceScan) else merge_tile(unit)
+
+
 def merge_tiles(scans: Sequence[TileScan], voxel_mm: float, tile_mm: float, store: str | Path,
                 backend: ComputeBackend) -> tuple[TileCloud, ...]:
     """The job's cloud merged tile by tile on ``backend`` (W, mm), in x order: the tiles' clouds one after the other
     are the untiled cloud (module doc). Two steps of units: each scan read once, placed and cut into shards by the
     slabs about ``tile_mm`` wide (:func:`place_scan`), then each tile merged from its shards (:func:`merge_tile`).
-    Where either fails (or is cancelled), the shards and the tiles written so far are removed. The heap the tiles'
-    voxels took is handed back once they are written (``ComputeBackend.trim``), so that the next stage starts from
-    what the workers hold, not from the largest tile's peak."""
+    The scans are placed in waves along x (:func:`place_waves`), one map each, which also merges the tiles the waves
+    before it completed: so the shards on disk at once are those of the tiles about the front (of the scans of two
+    waves), not the part's (docs/compute.md, "Tiles"). Where a unit fails (or is cancelled), the
+    shards and the tiles written so far are removed. The heap the tiles' voxels took is handed back once they are
+    written (``ComputeBackend.trim``), so that the next stage starts from what the workers hold, not from the
+    largest tile's peak."""
     grid = TileGrid.over(scans, voxel_mm, tile_mm)
     placing = place_units(scans, grid, str(store))
-    units: list[MergeTile] = []
+    placed: list[tuple[TileShard, ...]] = [()] * len(placing)
+    merging: list[MergeTile] = []  # every tile's unit handed to a map so far, in tile order
+    merged: list[TileCloud] = []
     try:
-        placed = backend.map(place_scan, placing, [u.key() for u in placing])
-        units = tile_units(placed, grid, str(store))
-        merged = tuple(backend.map(merge_tile, units, [u.key() for u in units]))
+        for first, wave in [*place_waves(placing, grid), (len(grid), ())]:  # then the tiles after the last wave
+            ready = tile_units(placed, grid, str(store))[len(merging):first]  # their scans all placed
+            merging += ready
+            units = [*ready, *wave]  # the merges first: their shards leave the disk before the wave's come
+            for u, out in zip(units, backend.map(run_merge_unit, units, [u.key() for u in units]), strict=True):
+                if isinstance(u, PlaceScan):
+                    placed[u.order] = out
+                else:
+                    merged.append(out)
     except BaseException:
-        for u in units:
+        for u in merging:
             (Path(store) / TILES_FOLDER / f"{u.key()}.npz").unlink(missing_ok=True)
         raise
     finally:
         if placing:
             shutil.rmtree(Path(store) / placing[0].folder, ignore_errors=True)
     backend.trim()
-    return merged
+    return tuple(merged)
 
 
 @dataclass(frozen=True)

@@ -38,6 +38,7 @@ from tandemscan.pipeline.io.export import write_ply
 from tandemscan.pipeline.io.raw_scan import write_raw_scan
 from tandemscan.pipeline.stitching import worldmap
 from tandemscan.pipeline.stitching.tiles import (
+    TILES_FOLDER,
     MergeTile,
     TileCloud,
     TileGrid,
@@ -101,6 +102,28 @@ class PickledResults(LocalBackend):
         return out
 
 
+class ShardsOnDisk(LocalBackend):
+    """The local backend on one thread, summing after each unit the bytes of the tiled merge's shards on disk in the
+    scan store ``store`` (the files under ``tiles/shards-*/``: :attr:`on_disk`) and the bytes each placed scan's
+    shards take (:attr:`written`)."""
+
+    def __init__(self, store: Path) -> None:
+        super().__init__(1)
+        self.store = store
+        self.on_disk: list[int] = []
+        self.written = 0
+
+    def map(self, fn: Callable, units: Sequence, keys: Sequence[str]) -> list:
+        def measured(unit):
+            out = fn(unit)
+            if isinstance(out, tuple):  # a scan's shards
+                self.written += sum((self.store / shard.file).stat().st_size for shard in out)
+            self.on_disk.append(sum(f.stat().st_size for f in self.store.glob(f"{TILES_FOLDER}/shards-*/*")))
+            return out
+
+        return super().map(measured, units, keys)
+
+
 @pytest.fixture(scope="module")
 def parts(tmp_path_factory):
     """Per size (6 and 12 scans): its store, the scans' references, the tiled merge's units and tiles, and the
@@ -155,6 +178,22 @@ def test_a_scan_is_placed_in_its_scans_memory_not_the_parts(parts, tmp_path):
     _, peak_long = _unit_peaks(parts[12], "place", tmp_path / "12")
     assert np.all(peak > 10_000 * 12) and np.all(peak > voxels * 64)  # it held the scan's points and its voxels
     assert peak_long.max() <= GROWTH * peak.max(), (peak, peak_long)
+
+
+def test_the_merges_shards_on_disk_at_once_are_the_fronts_not_the_parts(parts, tmp_path):
+    """The tiled merge places the scans in waves along x and merges a tile once every scan that reaches it is placed
+    (``tiles.place_waves``): the shards on disk at once on the part twice as long within 15 % of the shorter's, and
+    under half of all it writes (a merge that kept every shard until the last scan was placed would hold them all);
+    the tiles are the same."""
+    peak, written = {}, {}
+    for scans, (store, _, refs, tiles, *_) in parts.items():
+        shutil.copytree(store / "scans", tmp_path / str(scans) / "scans")
+        backend = ShardsOnDisk(tmp_path / str(scans))
+        assert merge_tiles(refs, VOXEL_MM, TILE_MM, backend.store, backend) == tiles
+        peak[scans], written[scans] = max(backend.on_disk), backend.written
+        assert backend.on_disk[-1] == 0 and not list((backend.store / TILES_FOLDER).glob("shards-*"))
+    assert written[12] > 1.8 * written[6]
+    assert peak[12] <= GROWTH * peak[6] and peak[12] < written[12] / 2, (peak, written)
 
 
 @pytest.mark.parametrize("stage", ["merge", "inspect", "areas"])
