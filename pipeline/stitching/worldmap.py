@@ -17,14 +17,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from tandemscan.pipeline.registration.sampling import DENSE_BOX_PER_POINT, DENSE_BOX_VOXELS, occupied_voxels
 
 _BITS = 21
 _OFFSET = 1 << (_BITS - 1)
-#: a scan's bounding box of at most this many voxels (int64 counts: 128 MB) and at most
-#: ``_DENSE_BOX_PER_POINT`` voxels a point is voxelised densely; a sparser box is sorted instead, which is faster
-#: from about seven voxels a point on (a coarse scan of 40 k points in a 14 M voxel box: 4 against 40 ms)
-_DENSE_BOX_VOXELS = 16_000_000
-_DENSE_BOX_PER_POINT = 6
 #: the batch of scans' voxels is merged into the map at this size at least (about 100 MB), times the map's
 #: ``batch_share``
 _MIN_BATCH_VOXELS = 2_000_000
@@ -202,17 +198,12 @@ class VoxelMap:
         for fk, low in zip(f, lo, strict=True):
             fk -= fk.dtype.type(low)
             idx.append(fk.astype(kind))
-        if volume <= min(_DENSE_BOX_VOXELS, _DENSE_BOX_PER_POINT * len(idx[0])):
+        if volume <= min(DENSE_BOX_VOXELS, DENSE_BOX_PER_POINT * len(idx[0])):  # sparser: sorting is faster
             local = idx[0] * kind(shape[1])
             local += idx[1]
             local *= kind(shape[2])
             local += idx[2]
-            counts = np.bincount(local, minlength=volume)
-            occupied = np.flatnonzero(counts)
-            lut = np.empty(volume, kind)
-            lut[occupied] = np.arange(len(occupied), dtype=kind)
-            inverse = lut[local]
-            counts = counts[occupied]
+            occupied, inverse, counts = occupied_voxels(local, volume)
             cells = [occupied // (shape[1] * shape[2]) + lo[0], (occupied // shape[2]) % shape[1] + lo[1],
                      occupied % shape[2] + lo[2]]
         else:
