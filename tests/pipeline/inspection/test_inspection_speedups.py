@@ -340,7 +340,9 @@ def test_alignment_variance_a_chunk_at_a_time_is_one_pass():
     a = rng.normal(size=(6, 6))
     cov = AlignmentCovariance(a @ a.T * 1e-4, np.array([10.0, -20.0, 300.0]))
     j = np.hstack([normals, np.cross(p - cov.centre_mm, normals)])
-    assert np.array_equal(_alignment_variance(p, normals, cov), np.einsum("ij,jk,ik->i", j, cov.covariance, j))
+    out = _alignment_variance(p, normals, cov)
+    assert np.array_equal(out, np.einsum("ij,ij->i", j @ cov.covariance, j))
+    assert np.allclose(out, np.einsum("ij,jk,ik->i", j, cov.covariance, j), rtol=1e-12, atol=0.0)
 
 
 def test_overlap_quality_places_each_scan_once():
@@ -424,3 +426,35 @@ def test_a_scan_cover_asked_from_several_threads_while_it_prepares_finds_its_ext
     assert len(builds) == 1 and len(answers) == 4
     for top, w in answers[1:]:
         assert np.array_equal(top, answers[0][0]) and np.array_equal(w, answers[0][1])
+
+
+def test_a_best_fits_uncertainty_asks_its_scan_cover_once_and_each_row_is_answered_as_alone(monkeypatch):
+    """:meth:`JobUncertainty.evaluate` of a best fit finds the scans of its even centres and of the fit's points in
+    one pass of the cover's slabs (:meth:`ScanCover.shares` asked once): a row's answer does not depend on the rows
+    asked with it."""
+    from tandemscan.pipeline.inspection.point_uncertainty import JobUncertainty, ScanCover
+    from tandemscan.pipeline.registration.pose_covariance import PoseCovariance
+
+    rng = np.random.default_rng(8)
+    scans = [rng.uniform([700.0 * k, 0.0, 0.0], [700.0 * k + 900.0, 300.0, 0.0], (6000, 3)) for k in range(3)]
+    origins = np.array([[700.0 * k + 450.0, 150.0, 450.0] for k in range(3)])
+    cover = ScanCover(scans, [np.eye(4)] * 3, np.full(3, 60_000.0), origins, np.arange(3))
+    asked = []
+    real = ScanCover.shares
+
+    def counted(self, points_W, *args):
+        asked.append(len(points_W))
+        return real(self, points_W, *args)
+
+    monkeypatch.setattr(ScanCover, "shares", counted)
+    C = np.diag([0.01**2] * 18)
+    poses = PoseCovariance(np.arange(3), origins, np.eye(18), np.eye(18), C, "test")
+    p = rng.uniform([0.0, 0.0, 0.0], [2300.0, 300.0, 0.0], (30_000, 3))
+    n = np.tile([0.0, 0.0, 1.0], (len(p), 1))
+    u = JobUncertainty(poses, cover, 0.05).evaluate(p, n, 2.0, np.eye(4), "best-fit", None, None)
+    assert len(asked) == 1 and np.all(np.isfinite(u.expanded_mm)) and np.all(u.expanded_mm > 0.0)
+    rows = rng.choice(len(p), 3000, replace=False)  # across the slabs of x
+    together = real(cover, p[rows])
+    for part in np.array_split(np.arange(len(rows)), 3):
+        for whole, alone in zip(together, real(cover, p[rows[part]]), strict=True):
+            assert np.array_equal(whole[part], alone)
