@@ -12,9 +12,16 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import functools
 import logging
 import os
+import pickle
+import shutil
+import threading
+import weakref
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Protocol
 
 from tandemscan.config.models import ComputeConfig
@@ -153,6 +160,101 @@ class DaskBackend:
         self.client.close()
         if self._cluster is not None:
             self._cluster.close()
+
+
+@dataclass(frozen=True)
+class StoredResult:
+    """The handle of a unit's result kept in a file (:class:`StoredResults`): its ``path``."""
+
+    path: str
+
+    def read(self) -> Any:
+        """The result, as the unit returned it (the same bits)."""
+        with open(self.path, "rb") as f:
+            return pickle.load(f)
+
+
+def _read_stored(values: Sequence[Any]) -> list:
+    """``values`` with each :class:`StoredResult` read."""
+    return [v.read() if isinstance(v, StoredResult) else v for v in values]
+
+
+def _reading_stored(unit: Any, *inputs: Any, fn: Callable[..., Any]) -> Any:
+    """A unit of :meth:`StoredResults.map`: ``fn(unit, *inputs)``, the stored results among ``inputs`` read first."""
+    return fn(unit, *_read_stored(inputs))
+
+
+def _storing(unit_and_path: tuple[Any, str], *inputs: Any, fn: Callable[..., Any]) -> StoredResult:
+    """A unit of :meth:`StoredResults.keep`: ``fn(unit, *inputs)`` (the stored results among ``inputs`` read first)
+    written to ``path`` (through a temporary file: a unit run again, or twice at once, leaves the same whole file)."""
+    unit, path = unit_and_path
+    result = fn(unit, *_read_stored(inputs))
+    tmp = f"{path}.{os.getpid()}-{threading.get_ident()}.tmp"
+    with open(tmp, "wb") as f:
+        pickle.dump(result, f, protocol=pickle.HIGHEST_PROTOCOL)
+    os.replace(tmp, path)
+    return StoredResult(path)
+
+
+def _remove_file(path: str) -> None:
+    Path(path).unlink(missing_ok=True)
+
+
+class StoredResults:
+    """A compute backend whose kept results are files in ``folder`` (a folder of the job's scan store, which every
+    worker reaches), not data held where they were computed: :meth:`keep` runs its units on ``backend`` (its
+    :meth:`map`), each writing its result to a file named by its key and handing back its :class:`StoredResult`, and
+    each unit given such handles (:meth:`map`, :meth:`keep`) reads them first. So a worker holds no result between
+    units: its memory is a unit's, not its share of the results kept (on Dask: no future's data waits on a worker,
+    and a unit lost with its worker runs again from its files). A result's file is removed with the last handle to it
+    in this process, as a Dask future's result is released (the handles sent to units are copies); :meth:`close`
+    (also the end of a ``with`` block) removes the folder, never closing ``backend`` (the caller's). ``put``,
+    ``trim`` and ``cpu_seconds`` are ``backend``'s. docs/compute.md."""
+
+    def __init__(self, backend: ComputeBackend, folder: str | Path):
+        self.backend, self.folder = backend, Path(folder)
+
+    def map(self, fn: Callable[..., Any], units: Sequence[Any], keys: Sequence[str],
+            inputs: Sequence[Sequence[Any]] | None = None) -> list:
+        """``backend``'s map, the stored results among ``inputs`` read in each unit."""
+        if inputs is None:
+            return self.backend.map(fn, units, keys)
+        return self.backend.map(functools.partial(_reading_stored, fn=fn), units, keys, inputs)
+
+    def keep(self, fn: Callable[..., Any], units: Sequence[Any], keys: Sequence[str],
+             inputs: Sequence[Sequence[Any]] | None = None) -> list:
+        """:meth:`map` whose results are written to files of the folder (``<key>.pickle``): their handles."""
+        if not units:
+            return []
+        self.folder.mkdir(parents=True, exist_ok=True)
+        paths = [str(self.folder / f"{key}.pickle") for key in keys]
+        handles = self.backend.map(functools.partial(_storing, fn=fn), list(zip(units, paths, strict=True)), keys,
+                                   [()] * len(units) if inputs is None else inputs)
+        for handle in handles:
+            weakref.finalize(handle, _remove_file, handle.path)
+        return handles
+
+    def put(self, values: Sequence[Any]) -> list:
+        """``backend``'s put."""
+        return self.backend.put(values)
+
+    def trim(self) -> None:
+        """``backend``'s trim."""
+        self.backend.trim()
+
+    def cpu_seconds(self) -> float:
+        """``backend``'s CPU seconds."""
+        return self.backend.cpu_seconds()
+
+    def close(self) -> None:
+        """Remove the folder and every result in it (``backend`` stays open)."""
+        shutil.rmtree(self.folder, ignore_errors=True)
+
+    def __enter__(self) -> StoredResults:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 def trim_heap() -> int:

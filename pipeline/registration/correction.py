@@ -11,6 +11,7 @@ not solved.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import logging
@@ -22,7 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from tandemscan.pipeline.compute import ComputeBackend, LocalBackend
+from tandemscan.pipeline.compute import ComputeBackend, LocalBackend, StoredResults
 from tandemscan.pipeline.geometry.frames import invert, pose_error, transform_points
 from tandemscan.pipeline.geometry.uncertainty import covariance_about
 from tandemscan.pipeline.parameters import FromSection
@@ -359,6 +360,9 @@ def summarise_scan(points_S: np.ndarray, T_W_S: np.ndarray, voxel_mm: float, cfg
 #: the folder of the scan store that holds the scans prepared for the joint refinement while it runs
 #: (:func:`summarise_stored_scan`), each file named by its contents (:func:`joint_scan_key`)
 JOINT_FOLDER = "joint"
+#: its folder that holds the refinement's per-pair results between its stages (its pairs' matches,
+#: ``compute.StoredResults``: no worker holds them), removed when the refinement ends
+KEPT_FOLDER = "kept"
 
 
 def remove_joint_folder(scan_store: str | Path) -> None:
@@ -606,9 +610,14 @@ def _corrected(job: StitchedJob, cfg: CorrectionSettings, network: Registrar | N
     joint, graph_figures = None, {}
     if cfg.joint:
         stored = [j for j in prepared if j is not None]
+        # on a scan store the pairs' matches wait between the refinement's stages in files there, not on the workers
+        state = (contextlib.nullcontext(backend) if scan_store is None
+                 else StoredResults(backend, Path(scan_store) / JOINT_FOLDER / KEPT_FOLDER))
         try:
-            joint, associated_while_measuring = _refine_jointly(job, priors, cfg, summaries, prepared,
-                                                                online.joint_scans, online.associations, backend)
+            with state as pair_backend:
+                joint, associated_while_measuring = _refine_jointly(job, priors, cfg, summaries, prepared,
+                                                                    online.joint_scans, online.associations,
+                                                                    pair_backend)
         finally:
             _remove_stored(stored)
         clock.lap("joint_s")

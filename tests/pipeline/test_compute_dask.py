@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 import shutil
 import signal
 import socket
@@ -24,6 +25,7 @@ from tandemscan.pipeline.compute import (
     DaskBackend,
     LazyBackend,
     LocalBackend,
+    StoredResult,
     backend_for,
     process_cpu_seconds,
 )
@@ -117,6 +119,7 @@ class _Watched(DaskBackend):
         return super().keep(fn, units, keys, inputs)
 
     def map(self, fn, units, keys, inputs=None):
+        self.keys += list(keys)
         out = super().map(fn, units, keys, inputs)
         self.returned |= {type(x) for r in out for x in (r if isinstance(r, tuple) else (r,))}
         self.returned |= {type(r.joint) for r in out if isinstance(r, ReadScan)}
@@ -168,19 +171,24 @@ def test_the_pair_stage_on_two_dask_workers_gives_the_local_result(cluster, tmp_
     assert [(a.x_min_mm, a.x_max_mm, a.reach_mm) for a in local_joint.reaches] == [
         (b.x_min_mm, b.x_max_mm, b.reach_mm) for b in remote_joint.reaches]
     assert len({task["worker"] for task in stream.data}) == 2  # both workers registered pairs
-    # the joint refinement's scans stayed in the store (each unit read those it took) and its pairs'
-    # correspondences on the workers: its per-pair units ran there and handed this process only sizes, residuals
-    # and normal equations
+    # the joint refinement's scans stayed in the store (each unit read those it took) and so did its pairs'
+    # correspondences between its stages (compute.StoredResults): its per-pair units ran on the workers and handed
+    # this process only the files' handles, sizes, residuals and normal equations
     assert any(k.startswith("joint-near-") for k in backend.keys)
-    assert StoredJointScan in backend.returned
+    assert {StoredJointScan, StoredResult} <= backend.returned
     assert not backend.returned & {JointScan, _Match}
     assert np.ndarray in backend.returned
 
 
-def test_a_worker_killed_mid_stage_leaves_the_result_unchanged(cluster, tmp_path):
+@pytest.mark.parametrize(("cfg", "stage"), [(CFG, ""), (JOINT, r"joint-[a-z-]+-[0-9a-f]{32}-\d+-\d+$")],
+                         ids=["pair stage", "joint refinement's per-pair stages"])
+def test_a_worker_killed_mid_stage_leaves_the_result_unchanged(cluster, tmp_path, cfg, stage):
+    """A worker killed while it runs a unit (the first unit of the pair stage, or one of the joint refinement's
+    per-pair stages, keys ``joint-<stage>-<run>-<n>-<k>``, whose results wait in the store between them): the units
+    run again, the same poses."""
     address, workers = cluster
     scans, transfers = _stored_job(tmp_path)
-    local = correct_scans(StitchedJob(scans, transfers, voxel_mm=VOXEL_MM), CFG, backend=LocalBackend())
+    local = correct_scans(StitchedJob(scans, transfers, voxel_mm=VOXEL_MM), cfg, backend=LocalBackend())
     backend = DaskBackend(address)
     killed = []
     try:
@@ -191,7 +199,8 @@ def test_a_worker_killed_mid_stage_leaves_the_result_unchanged(cluster, tmp_path
         def kill_a_busy_worker() -> None:
             deadline = time.monotonic() + 60
             while time.monotonic() < deadline and not killed:
-                busy = [w for w, tasks in backend.client.processing().items() if tasks]
+                busy = [w for w, tasks in backend.client.processing().items()
+                        if any(re.match(stage, str(k)) for k in tasks)]
                 if busy:
                     os.kill(by_pid[pids[busy[0]]].pid, signal.SIGKILL)
                     killed.append(busy[0])
@@ -199,7 +208,10 @@ def test_a_worker_killed_mid_stage_leaves_the_result_unchanged(cluster, tmp_path
 
         killer = threading.Thread(target=kill_a_busy_worker)
         killer.start()
-        remote = correct_scans(StitchedJob(scans, transfers, voxel_mm=VOXEL_MM), CFG, backend=backend,
+        # this process without the scans' points, as on the product's dask path (a scan it holds is scattered to the
+        # workers, ``put``: lost with its worker)
+        unheld = [dataclasses.replace(s, points_S=None) for s in scans]
+        remote = correct_scans(StitchedJob(unheld, transfers, voxel_mm=VOXEL_MM), cfg, backend=backend,
                                scan_store=str(tmp_path))
         killer.join()
     finally:
