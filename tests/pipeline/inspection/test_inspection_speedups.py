@@ -458,3 +458,17 @@ def test_a_best_fits_uncertainty_asks_its_scan_cover_once_and_each_row_is_answer
     for part in np.array_split(np.arange(len(rows)), 3):
         for whole, alone in zip(together, real(cover, p[rows[part]]), strict=True):
             assert np.array_equal(whole[part], alone)
+
+
+def test_a_clouds_box_and_box_test_a_block_of_rows_at_a_time_are_those_of_whole_columns():
+    from tandemscan.pipeline.geometry.units import BOX_ROWS, box_mm, in_box_mm
+
+    rng = np.random.default_rng(9)
+    p = rng.normal(0.0, 100.0, (2 * BOX_ROWS + 17, 3))
+    p[BOX_ROWS + 5] = [1e4, -1e4, 3e3]  # the extremes in a later block
+    lo, hi = box_mm(p)
+    assert np.array_equal(lo, p.min(axis=0)) and np.array_equal(hi, p.max(axis=0))
+    box = (np.array([-50.0, -80.0, -20.0]), np.array([60.0, 10.0, 90.0]))
+    assert np.array_equal(in_box_mm(p, *box), np.all((p >= box[0]) & (p <= box[1]), axis=1))
+    with pytest.raises(ValueError):
+        box_mm(np.zeros((0, 3)))
