@@ -2,7 +2,7 @@
 scan's posterior block, the mount's marginal information and ``PoseCovariance``'s blocks and products from the sparse
 error model ``A`` and the sparse normal and information matrices; a job of 1,500 scans keeps that model and the
 prior's blocks sparse-sized; the association's shortcuts (the target's box from its KD-tree, a pair's move told on
-a subsample) find what the full search finds."""
+a subsample, a search again from the last one's two nearest neighbours) find what the full search finds."""
 
 from __future__ import annotations
 
@@ -24,6 +24,8 @@ from tandemscan.pipeline.registration.joint import (
     _Match,
     _Model,
     _moved_beyond,
+    _nearest,
+    _nearest_again,
     _Pair,
     _PairWork,
     _scales,
@@ -184,6 +186,33 @@ def test_the_association_shortcuts_find_what_the_full_search_finds():
         farthest = float(np.sqrt(np.max(np.einsum("ij,ij->i", shift, shift))))
         for limit in (0.5 * farthest, farthest * (1 - 1e-9), farthest * 1.001, 0.002):
             assert _moved_beyond(scans, moved, _Pair(0, 1), m, limit) == (farthest > limit)
+
+
+def test_a_search_again_from_the_last_one_finds_what_the_full_search_finds():
+    """A pair searched again at poses moved a little (:func:`joint._nearest_again`, from the last search's two
+    nearest neighbours and its near points) finds the same neighbours, in the same order, and places the same points
+    (to the bit) as a full search there, for moves from well under the points' spacing to the search's reach (beyond
+    it none: the pair is searched whole); a search made again names no reach, so the next one is a full one."""
+    rng = np.random.default_rng(8)
+    x, y = np.meshgrid(np.arange(0.0, 120.0, 2.0), np.arange(0.0, 80.0, 2.0))
+    surface = np.c_[x.ravel(), y.ravel(), 5 * np.sin(x.ravel() / 11.0) * np.cos(y.ravel() / 7.0)]
+    target = JointScan(surface + rng.normal(0, 0.3, surface.shape), np.tile([0.0, 0.0, 1.0], (len(surface), 1)))
+    source = JointScan(surface[::-1] + rng.normal(0, 0.6, surface.shape), np.tile([0.0, 0.0, 1.0], (len(surface), 1)))
+    tree = joint_tree(target)
+    start = from_rotvec([0.4, -0.3, 0.2], [0.002, -0.001, 0.003])
+    before, _ = _nearest(target, tree, source, start, 1.0)
+    assert before.reach_mm == 1.25 and len(before.source) > 1000 and len(before.near) > 100
+    assert np.all(before.gap_mm >= 0) and np.all((before.near_mm >= 1.0) & (before.near_mm < 1.25))
+    for move_mm in (0.0, 0.01, 0.05, 0.1, 0.2, 0.4):
+        moved = from_rotvec(move_mm * np.array([0.6, -0.48, 0.64]), [0.0, 0.0, move_mm / 2000]) @ start
+        full, x_full = _nearest(target, tree, source, moved, 1.0)
+        found = _nearest_again(target, tree, source, moved, 1.0, before, start)
+        if move_mm > 0.2:     # beyond the reach's margin: to be searched whole
+            assert found is None
+            continue
+        again, x_again = found
+        assert np.array_equal(full.source, again.source) and np.array_equal(full.target, again.target)
+        assert np.array_equal(x_full, x_again) and again.reach_mm == 0.0
 
 
 def test_the_points_a_pair_covers_are_each_named_once_in_order():

@@ -88,9 +88,18 @@ def test_scans_prepared_for_the_joint_refinement_while_measuring_give_the_same_p
     fresh = correct_scans(StitchedJob(scans, transfers), cfg)
     assert fresh.report["joint"]["pairs_associated_while_measuring"] == 0
     prepared_at_end, searched_at_end = [], []
-    real, real_search = correction.joint_scan, joint._nearest   # the refinement's search (``associate``'s)
+    # the refinement's searches: whole (``associate``'s), or again from the pair's last one where it moved a little
+    real, real_search, real_again = correction.joint_scan, joint._nearest, joint._nearest_again
+
+    def search_again(*args):
+        found = real_again(*args)
+        if found is not None:  # else searched whole
+            searched_at_end.append(1)
+        return found
+
     monkeypatch.setattr(correction, "joint_scan", lambda P, c: prepared_at_end.append(len(P)) or real(P, c))
     monkeypatch.setattr(joint, "_nearest", lambda *a: searched_at_end.append(1) or real_search(*a))
+    monkeypatch.setattr(joint, "_nearest_again", search_again)
     kept = dict(work.joint_scans)
     reused = correct_scans(StitchedJob(scans, transfers), cfg, online=work)
     anew = reused.report["joint"]["pairs_associated_anew"]
