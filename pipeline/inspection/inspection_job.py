@@ -170,7 +170,7 @@ def run_inspection(measured: Measurement, part: InspectedPart, settings: Inspect
     if template is not None:
         template = template.with_general_tolerance(criteria.tolerance_lower_mm, criteria.tolerance_upper_mm)
     surface = part.surface
-    stitching = None if measured.stitching is None else measured.stitching.started()  # while the cloud is inspected
+    stitching = None if measured.stitching is None else measured.stitching.drawn()  # while the cloud is inspected
     p = as_points(measured.points_mm)
     closest = surface.closest(p)
     placed = alignment or Alignment("none", np.eye(4), 0.0, "the cloud as given")

@@ -184,3 +184,23 @@ def test_isometric_view_looks_at_the_measured_side():
     v = facing_isometric(np.tile([0.0, 1.0, 0.2], (50, 1)))  # surface facing +y (and a little up)
     assert v.forward[1] < 0 and v.forward[2] < 0 and abs(v.forward[0]) < 1e-12  # eye at +y, above
     assert facing_isometric(np.array([[1.0, 0, 0], [-1.0, 0, 0]])) == STANDARD_VIEWS["isometric"]
+
+
+def test_the_stitching_figure_drawn_beside_the_inspection_is_the_one_the_report_would_draw_and_takes(box):
+    """:meth:`StitchViews.drawn` draws the stitching figure on a thread of its own once the overlap is known: the
+    bytes the report would draw from the same views; the report takes the figure so drawn instead of drawing it."""
+    import dataclasses
+    from concurrent.futures import Future
+
+    from tandemscan.pipeline.inspection.stitch_quality import stitching_png
+
+    views = StitchViews(layered_scans(0.2), layered_scans(0.0)).drawn()
+    assert views.overlap is not None and views.figure is not None and views.drawn() is views
+    png = views.figure.result(timeout=60.0)
+    assert png == stitching_png(views.before, views.after, overlap_quality(views.before, views.after))
+    drawn = Future()
+    drawn.set_result(png + b"drawn beside")  # what the report shows is what was drawn beside, not drawn again
+    result = inspect_cloud(grid_on_face(100.0, step=4.0), box, InspectionCriteria.from_section(InspectionConfig()))
+    style = ReportStyle.from_section(InspectionConfig(map_width_px=200), views=(View("top", (0, 0, -1), up=(0, 1, 0)),))
+    report = build_report(result, InspectedPart(box), style, stitching=dataclasses.replace(views, figure=drawn))
+    assert next(f for f in report.figures if f.name == "stitching").png == png + b"drawn beside"
