@@ -105,18 +105,21 @@ def overlap_quality(
             continue
         count = round(len(over) * len(b_idx) / len(look))
         over = over[:: max(1, len(over) // sample)]  # the planes of a sample of the overlap only
-        dist = _plane_distances(b[over], a, tree_a, k)
         rms_after = None
         if scans_after is not None:
-            rms_after = float(np.sqrt(np.mean(dist**2)))
             a0 = a0 if a0 is not None else np.asarray(scans_before[i], float)
             b0 = np.asarray(scans_before[i + 1], float)
             T = rigid_motion(a, a0)  # scan i moved by the correction: its tree serves before and after
-            dist0 = (_plane_distances(b0[over], a0, _tree(a0), k) if T is None
-                     else _plane_distances(transform_points(T, b0[over]), a, tree_a, k))
+            if T is None:
+                dist = _plane_distances(b[over], a, tree_a, k)
+                dist0 = _plane_distances(b0[over], a0, _tree(a0), k)
+            else:  # after and before asked of the one tree at once (each point's answer is its own)
+                both = _plane_distances(np.concatenate([b[over], transform_points(T, b0[over])]), a, tree_a, k)
+                dist, dist0 = both[: len(over)], both[len(over):]
+            rms_after = float(np.sqrt(np.mean(dist**2)))
             rms_before = float(np.sqrt(np.mean(dist0**2)))
         else:
-            rms_before = float(np.sqrt(np.mean(dist**2)))
+            rms_before = float(np.sqrt(np.mean(_plane_distances(b[over], a, tree_a, k) ** 2)))
         pairs.append(PairOverlap(i, i + 1, count, rms_before, rms_after))
     return pairs
 
