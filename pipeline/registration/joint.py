@@ -376,7 +376,8 @@ class _Match:
     symmetric normals are kept (48 bytes more, half a GB on the whole part's 10.9 M), both found again where the
     normal equations need them (:meth:`_Pair.normal_equations`, the same bits); ``found``, the search they came
     from where it tells a later one which points to search again (:attr:`Association.reach_mm`; else None), held
-    until the pair's correspondences are found anew."""
+    until the pair's correspondences are found anew; at the refined poses ``unit_system``, the pair's normal
+    equations there with each residual weighted by its relative variance alone (:func:`_refined`; else None)."""
 
     source: np.ndarray
     target: np.ndarray
@@ -385,6 +386,7 @@ class _Match:
     covering: np.ndarray
     found_at: np.ndarray
     found: Association | None = None
+    unit_system: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def share(self) -> np.ndarray:
@@ -622,12 +624,21 @@ def _huber(r: np.ndarray, threshold_mm: float) -> np.ndarray:
     return np.where(a <= threshold_mm, 1.0, threshold_mm / np.maximum(a, 1e-300))
 
 
-def _unit_system(u: _PairPoses, m: _Match, target: JointScan, source: JointScan) -> tuple[np.ndarray, np.ndarray]:
-    """A unit of :func:`_residuals_at`: the pair's normal equations ``(K, g)`` at its poses (where ``m``'s residuals
-    were found), each residual weighted by its relative variance alone."""
-    K, g, _ = u.pair.normal_equations(u.scans(target, source), u.poses, u.origins, m, 1.0 / m.variance,
-                                      np.ones(len(m.variance)))
-    return K, g
+def _refined(u: _PairPoses, m: _Match, target: JointScan, source: JointScan) -> _Match:
+    """A unit of :func:`_residuals_at`: ``m`` at the pair's poses (:meth:`_Pair.at`) with its normal equations ``(K,
+    g)`` there, each residual weighted by its relative variance alone (``_Match.unit_system``), from the same
+    symmetric normals as its residuals (found once, the same bits as found again)."""
+    scans = u.scans(target, source)
+    residual, normals = u.pair.residuals(scans, u.poses, m)
+    m = dataclasses.replace(m, residual=residual)
+    K, g, _ = u.pair.normal_equations(scans, u.poses, u.origins, m, 1.0 / m.variance, np.ones(len(residual)),
+                                      normals)
+    return dataclasses.replace(m, unit_system=(K, g))
+
+
+def _unit_system(_: _Pair, m: _Match) -> tuple[np.ndarray, np.ndarray]:
+    """A unit of :func:`_residuals_at`: the pair's normal equations at its refined poses (:func:`_refined`)."""
+    return m.unit_system
 
 
 def _residuals_at(work: _PairWork, poses: np.ndarray, origins: np.ndarray, associated: Sequence[_Held]
@@ -637,10 +648,10 @@ def _residuals_at(work: _PairWork, poses: np.ndarray, origins: np.ndarray, assoc
     variance alone (a sigma of 1 mm, no Huber cut), which :func:`_dispersions` scales by the noise's sigma
     (``origins``: the scans' origins in W, mm)."""
     units = [_PairPoses.of(p, poses, origins) for p, _, _ in associated]
-    refined = work.keep("refined", _at, units, [(m, work.scans[p.i], work.scans[p.j]) for p, m, _ in associated])
+    refined = work.keep("refined", _refined, units,
+                        [(m, work.scans[p.i], work.scans[p.j]) for p, m, _ in associated])
     held = [(p, m, size) for (p, _, size), m in zip(associated, refined, strict=True)]
-    systems = work.map("unit-system", _unit_system, units,
-                       [(m, work.scans[p.i], work.scans[p.j]) for p, m, _ in held])
+    systems = work.map("unit-system", _unit_system, [p for p, _, _ in held], [(m,) for _, m, _ in held])
     return _scales(work, held), systems
 
 
