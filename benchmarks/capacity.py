@@ -20,7 +20,10 @@ pairs and the joint's per-pair work there), ``merge`` (``finish.merged_cloud``, 
 wall seconds and peak RSS (GiB): of the process that runs the end of the job (``main_gib``, and ``main_start_gib``
 what it held as the stage started; a fresh process for each size and worker count) and of each worker
 (``worker_gib``, their largest), the largest of samples taken every :data:`SAMPLE_S` on a thread of each process
-(stages that run side by side share their samples).
+(stages that run side by side share their samples). The merge's scratch on disk: the largest sum of its shards'
+bytes (``merge``'s ``shards_peak_gb``, the files under ``tiles/shards-*/`` summed every :data:`DISK_SAMPLE_S`) and of
+the whole ``tiles/`` folder (``tiles_folder_peak_gb``: the tiles' clouds too), beside the raw scans'
+(``raw_scans_gb``).
 ``--density-views`` checks that a reduced ``--resolution`` stands for full resolution in the main process's memory
 (:func:`density_check`).
 
@@ -50,6 +53,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import os
 import shutil
 import sys
 import tempfile
@@ -188,6 +192,9 @@ def _upper_share(mesh, normals: np.ndarray) -> float:
 #: how often each process's resident memory is sampled (s): the stages run side by side in the product (cloud.ply,
 #: the E57 and the inspection), so a stage's peak is the largest sample in its window, not a reset high-water mark
 SAMPLE_S = 0.02
+#: how often the merge's scratch files on disk are summed (s): shards live from their scan's placing to their
+#: tile's merge, several seconds
+DISK_SAMPLE_S = 0.2
 #: the daemon's end-of-job functions each stage is (module, function): its window is their call
 STAGES = (("finish", "load_scans", "read"), ("finish", "correct_stage", "correction"),
           ("finish", "merged_cloud", "merge"), ("finish", "export_job", "exports"),
@@ -220,6 +227,50 @@ def start_sampling(dask_worker=None) -> list:
     if dask_worker is not None:
         dask_worker.capacity_rss_samples = samples
     return samples
+
+
+def start_disk_sampling(store: Path) -> list:
+    """Sum the bytes of the merge's scratch files every :data:`DISK_SAMPLE_S` on a thread of its own:
+    (time.time(), the shards' bytes, the whole ``tiles/`` folder's bytes) appended to the returned list, the shards
+    the files under ``<store>/tiles/shards-*/`` (``tiles.place_scan``), the folder also the tiles' clouds and their
+    deviations."""
+    import threading
+
+    from tandemscan.pipeline.stitching.tiles import TILES_FOLDER
+
+    samples: list = []
+
+    def folder_bytes(folder: Path) -> tuple[int, int]:  # (its shards', all), files vanishing as they are read
+        shards = total = 0
+        try:
+            entries = list(os.scandir(folder))
+        except FileNotFoundError:
+            return 0, 0
+        for entry in entries:
+            with contextlib.suppress(FileNotFoundError):
+                if entry.is_dir(follow_symlinks=False):
+                    inner = folder_bytes(Path(entry.path))[1]
+                    shards += inner if entry.name.startswith("shards-") else 0
+                    total += inner
+                else:
+                    total += entry.stat(follow_symlinks=False).st_size
+        return shards, total
+
+    def sample() -> None:
+        while True:
+            samples.append((time.time(), *folder_bytes(store / TILES_FOLDER)))
+            time.sleep(DISK_SAMPLE_S)
+
+    threading.Thread(target=sample, daemon=True, name="disk-samples").start()
+    return samples
+
+
+def _scratch_in(window: tuple, disk: list) -> dict:
+    """The merge's scratch on disk in a stage's ``window`` (name, start, end, ...), GB: the largest sample of the
+    shards' bytes and of the ``tiles/`` folder's (:func:`start_disk_sampling`)."""
+    inside = [s for s in disk if window[1] <= s[0] <= window[2]] or [(0.0, 0, 0)]
+    return {"shards_peak_gb": round(max(s[1] for s in inside) / 1e9, 3),
+            "tiles_folder_peak_gb": round(max(s[2] for s in inside) / 1e9, 3)}
 
 
 def worker_samples(dask_worker=None) -> list:
@@ -318,6 +369,7 @@ def run_stages(job: Job, part: PartConfig, workers: int, tile_mm: float, e57: bo
     try:
         backend.client.wait_for_workers(workers, timeout=120)
         main = start_sampling()
+        disk = start_disk_sampling(job.folder)
         backend.client.run(start_sampling)
         compute = ComputeConfig(backend="dask", scheduler=backend.client.scheduler.address, tile_mm=tile_mm,
                                 scan_store=job.folder, dask_workers=workers)
@@ -331,6 +383,7 @@ def run_stages(job: Job, part: PartConfig, workers: int, tile_mm: float, e57: bo
             kept = finish.finish_outputs(snap, time.monotonic(), time.monotonic())
         time.sleep(2 * SAMPLE_S)
         stages = _peaks_in(windows, list(main), backend.client.run(worker_samples))
+        stages["merge"] |= _scratch_in(next(w for w in windows if w[0] == "merge"), list(disk))
         finish.drop_outputs(kept)  # its tiles and its client of this cluster, while the scheduler runs
     finally:
         backend.close()
@@ -340,7 +393,9 @@ def run_stages(job: Job, part: PartConfig, workers: int, tile_mm: float, e57: bo
     shutil.rmtree(job.folder / "figures", ignore_errors=True)
     remove_thinned_copies(job.folder)  # what measure() kept for the workers, as the job's runner removes it
     tiles = getattr(cloud, "tiles", ())
-    drivers = {"scans": len(job.files), "raw_points": job.raw_points, "voxels": len(cloud), "tiles": len(tiles),
+    drivers = {"scans": len(job.files), "raw_points": job.raw_points,
+               "raw_scans_gb": round(sum((job.folder / f).stat().st_size for f in job.files) / 1e9, 3),
+               "voxels": len(cloud), "tiles": len(tiles),
                "tile_voxels_max": max((t.voxels for t in tiles), default=0),
                "pairs": kept.correction.section.get("pairs") if correct else None,
                "verdict": kept.exports.inspection.get("verdict")}
@@ -403,7 +458,8 @@ def peaks(sizes: list[dict]) -> dict:
     """Per worker count the peak RSS (GiB) over the stages of the process running them (``main_gib``) and of the
     largest worker (``worker_gib``) at each size, their stages, the larger size's worker peak over the smaller's
     (``worker_growth``) and issue 43's memory line on them: a worker at most 3 GiB and within 15 % of it on the
-    larger part, the main process under 1.5 GiB."""
+    larger part, the main process under 1.5 GiB; per size the merge's shards' peak on disk (GB) beside the raw
+    scans', and its growth on the larger part (``shards_growth``)."""
     out = {}
     for w in sizes[0]["runs"]:
         by_size = {}
@@ -412,12 +468,16 @@ def peaks(sizes: list[dict]) -> dict:
             main, worker = (max(stages, key=lambda name, k=k: stages[name][k]) for k in ("main_gib", "worker_gib"))
             by_size[size["part"]] = {"scans": size["drivers"]["scans"], "raw_points": size["drivers"]["raw_points"],
                                      "main_gib": stages[main]["main_gib"], "main_stage": main,
-                                     "worker_gib": stages[worker]["worker_gib"], "worker_stage": worker}
+                                     "worker_gib": stages[worker]["worker_gib"], "worker_stage": worker,
+                                     "raw_scans_gb": size["drivers"]["raw_scans_gb"],
+                                     "shards_peak_gb": stages["merge"]["shards_peak_gb"]}
         out[w] = {**by_size, "worker_at_most_3_gib": max(s["worker_gib"] for s in by_size.values()) <= 3.0,
                   "main_under_1_5_gib": max(s["main_gib"] for s in by_size.values()) < 1.5}
         if len(sizes) > 1:
             growth = by_size[sizes[-1]["part"]]["worker_gib"] / by_size[sizes[0]["part"]]["worker_gib"]
-            out[w] |= {"worker_growth": round(growth, 3), "worker_within_15_percent": growth <= 1.15}
+            shards = [by_size[s["part"]]["shards_peak_gb"] for s in (sizes[0], sizes[-1])]
+            out[w] |= {"worker_growth": round(growth, 3), "worker_within_15_percent": growth <= 1.15,
+                       "shards_growth": round(shards[1] / shards[0], 3) if shards[0] else None}
     return out
 
 
