@@ -22,8 +22,8 @@ what it held as the stage started; a fresh process for each size and worker coun
 (``worker_gib``, their largest), the largest of samples taken every :data:`SAMPLE_S` on a thread of each process
 (stages that run side by side share their samples). The merge's scratch on disk: the largest sum of its shards'
 bytes (``merge``'s ``shards_peak_gb``, the files under ``tiles/shards-*/`` summed every :data:`DISK_SAMPLE_S`) and of
-the whole ``tiles/`` folder (``tiles_folder_peak_gb``: the tiles' clouds too), beside the raw scans'
-(``raw_scans_gb``).
+the whole ``tiles/`` folder (``tiles_folder_peak_gb``: the tiles' clouds too), every shard's (``shards_written_gb``:
+the peak of a merge that kept them all until the last scan was placed), beside the raw scans' (``raw_scans_gb``).
 ``--density-views`` checks that a reduced ``--resolution`` stands for full resolution in the main process's memory
 (:func:`density_check`).
 
@@ -231,17 +231,20 @@ def start_sampling(dask_worker=None) -> list:
 
 def start_disk_sampling(store: Path) -> list:
     """Sum the bytes of the merge's scratch files every :data:`DISK_SAMPLE_S` on a thread of its own:
-    (time.time(), the shards' bytes, the whole ``tiles/`` folder's bytes) appended to the returned list, the shards
-    the files under ``<store>/tiles/shards-*/`` (``tiles.place_scan``), the folder also the tiles' clouds and their
-    deviations."""
+    (time.time(), the shards' bytes, the whole ``tiles/`` folder's bytes, the bytes of every shard seen so far)
+    appended to the returned list, the shards the files under ``<store>/tiles/shards-*/`` (``tiles.place_scan``;
+    each lives from its scan's placing to its tile's merge, a map at least: all are seen), the folder also the tiles'
+    clouds and their deviations. What every shard takes is what a merge that placed every scan before merging a tile
+    held at its peak."""
     import threading
 
     from tandemscan.pipeline.stitching.tiles import TILES_FOLDER
 
     samples: list = []
+    seen: dict[str, int] = {}  # every shard file's size
 
-    def folder_bytes(folder: Path) -> tuple[int, int]:  # (its shards', all), files vanishing as they are read
-        shards = total = 0
+    def folder_bytes(folder: Path, shards: bool = False) -> tuple[int, int]:  # (its shards', all): files vanish
+        in_shards = total = 0
         try:
             entries = list(os.scandir(folder))
         except FileNotFoundError:
@@ -249,16 +252,19 @@ def start_disk_sampling(store: Path) -> list:
         for entry in entries:
             with contextlib.suppress(FileNotFoundError):
                 if entry.is_dir(follow_symlinks=False):
-                    inner = folder_bytes(Path(entry.path))[1]
-                    shards += inner if entry.name.startswith("shards-") else 0
-                    total += inner
+                    inner = folder_bytes(Path(entry.path), entry.name.startswith("shards-"))
+                    in_shards, total = in_shards + inner[0], total + inner[1]
                 else:
-                    total += entry.stat(follow_symlinks=False).st_size
-        return shards, total
+                    size = entry.stat(follow_symlinks=False).st_size
+                    total += size
+                    if shards:
+                        in_shards += size
+                        seen[entry.path] = max(size, seen.get(entry.path, 0))
+        return in_shards, total
 
     def sample() -> None:
         while True:
-            samples.append((time.time(), *folder_bytes(store / TILES_FOLDER)))
+            samples.append((time.time(), *folder_bytes(store / TILES_FOLDER), sum(seen.values())))
             time.sleep(DISK_SAMPLE_S)
 
     threading.Thread(target=sample, daemon=True, name="disk-samples").start()
@@ -267,10 +273,11 @@ def start_disk_sampling(store: Path) -> list:
 
 def _scratch_in(window: tuple, disk: list) -> dict:
     """The merge's scratch on disk in a stage's ``window`` (name, start, end, ...), GB: the largest sample of the
-    shards' bytes and of the ``tiles/`` folder's (:func:`start_disk_sampling`)."""
-    inside = [s for s in disk if window[1] <= s[0] <= window[2]] or [(0.0, 0, 0)]
+    shards' bytes and of the ``tiles/`` folder's, and every shard's (:func:`start_disk_sampling`)."""
+    inside = [s for s in disk if window[1] <= s[0] <= window[2]] or [(0.0, 0, 0, 0)]
     return {"shards_peak_gb": round(max(s[1] for s in inside) / 1e9, 3),
-            "tiles_folder_peak_gb": round(max(s[2] for s in inside) / 1e9, 3)}
+            "tiles_folder_peak_gb": round(max(s[2] for s in inside) / 1e9, 3),
+            "shards_written_gb": round(max(s[3] for s in inside) / 1e9, 3)}
 
 
 def worker_samples(dask_worker=None) -> list:
@@ -470,7 +477,8 @@ def peaks(sizes: list[dict]) -> dict:
                                      "main_gib": stages[main]["main_gib"], "main_stage": main,
                                      "worker_gib": stages[worker]["worker_gib"], "worker_stage": worker,
                                      "raw_scans_gb": size["drivers"]["raw_scans_gb"],
-                                     "shards_peak_gb": stages["merge"]["shards_peak_gb"]}
+                                     "shards_peak_gb": stages["merge"]["shards_peak_gb"],
+                                     "shards_written_gb": stages["merge"]["shards_written_gb"]}
         out[w] = {**by_size, "worker_at_most_3_gib": max(s["worker_gib"] for s in by_size.values()) <= 3.0,
                   "main_under_1_5_gib": max(s["main_gib"] for s in by_size.values()) < 1.5}
         if len(sizes) > 1:
