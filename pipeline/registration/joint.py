@@ -868,18 +868,21 @@ def _nearest_again(target: JointScan, tree: cKDTree, source: JointScan, T_S_i_S_
                    before: Association, before_at: np.ndarray) -> tuple[Association, np.ndarray] | None:
     """:func:`_nearest` at the relative pose ``T_S_i_S_j`` of a pair whose search ``before`` (with its reach, found
     at the relative pose ``before_at``) knows every point that may have a target point within ``max_mm`` now: the
-    same neighbours (without a reach: a later search looks at every point again). Where the pair's points moved
-    less than ``delta`` (the largest move, ``(T - T_before) p``), a found point whose second-nearest target point
-    was more than ``2 delta`` farther than its nearest keeps that one (the triangle inequality), a point not found
-    nor near (:class:`Association`) stays beyond ``max_mm`` as long as ``delta`` is under the reach's margin, and a
-    near one farther than ``max_mm + delta`` too; the rest are searched (on the whole part's second linearisation
-    about 15 % of the points). None where the pair moved more: it is searched whole (:func:`_nearest`)."""
+    same neighbours (without a reach: a later search looks at every point again). Where the found and near points
+    moved less than ``delta`` (their largest move, ``(T - T_before) p``), a found point whose second-nearest target
+    point was more than ``2 delta`` farther than its nearest keeps that one (the triangle inequality), a near one
+    farther than ``max_mm + delta`` stays beyond ``max_mm``, and a point neither found nor near
+    (:class:`Association`) stays beyond it as long as every source point moved less than the reach's margin; the
+    rest are searched (on the whole part's second linearisation about 15 % of the points). None where a point moved
+    more: the pair is searched whole (:func:`_nearest`)."""
+    D = T_S_i_S_j - before_at
+    # a point neither found nor near may lie away from those that were and move more than any of them: the margin
+    # bounds every source point's move, not the candidates' alone
+    if _farthest_move_mm(D, source.points_S) + _SLACK_MM >= before.reach_mm - max_mm:
+        return None
     candidates = np.concatenate([before.source, before.near])
     points = source.points_S[candidates]
-    moved = transform_points(T_S_i_S_j - before_at, points)
-    delta = float(np.sqrt(np.max(_row_dots(moved, moved), initial=0.0))) + _SLACK_MM
-    if delta >= before.reach_mm - max_mm:
-        return None
+    delta = _farthest_move_mm(D, points) + _SLACK_MM
     x = transform_points(T_S_i_S_j, points)          # each row as :func:`_nearest` places it, the same bits
     held = len(before.source)
     keeps = np.zeros(len(candidates), bool)
@@ -963,12 +966,14 @@ def _moved_beyond(scans: Sequence[JointScan], poses: np.ndarray, p: _Pair, m: _M
     then on all."""
     D = invert(poses[p.i]) @ poses[p.j] - m.found_at
     points = scans[p.j].points_S[m.source]
+    return _farthest_move_mm(D, points[::64]) > limit_mm or _farthest_move_mm(D, points) > limit_mm
 
-    def farthest_mm(P: np.ndarray) -> float:
-        moved = transform_points(D, P)
-        return float(np.sqrt(np.max(_row_dots(moved, moved), initial=0.0)))
 
-    return farthest_mm(points[::64]) > limit_mm or farthest_mm(points) > limit_mm
+def _farthest_move_mm(D: np.ndarray, points: np.ndarray) -> float:
+    """The largest displacement (mm) of ``points`` (mm) by the difference ``D`` of two relative poses
+    (``(T_now - T_then) p``, one product a point); 0 without points."""
+    moved = transform_points(D, points)
+    return float(np.sqrt(np.max(_row_dots(moved, moved), initial=0.0)))
 
 
 def _moved(u: _PairPoses, m: _Match, source: JointScan, limit_mm: float) -> bool:

@@ -215,6 +215,26 @@ def test_a_search_again_from_the_last_one_finds_what_the_full_search_finds():
         assert np.array_equal(x_full, x_again) and again.reach_mm == 0.0
 
 
+def test_a_search_again_is_whole_where_points_neither_found_nor_near_moved_beyond_the_margin():
+    """A pair turned about its found points (they move 0.03 mm) while points of the source beyond the search's reach,
+    90 mm away, move 0.29 mm (more than the reach's margin of 0.25 mm) and come within the distance: the search again
+    (:func:`joint._nearest_again`) does not answer from the found and near points alone (it would miss those), the
+    full search finds them."""
+    x, y = np.meshgrid(np.arange(0.0, 101.0), np.arange(0.0, 21.0))
+    up = np.tile([0.0, 0.0, 1.0], (x.size, 1))
+    target = JointScan(np.c_[x.ravel(), y.ravel(), np.zeros(x.size)], up)
+    sx, sy = np.meshgrid(np.r_[0.0:10.0, 90.0:100.0], np.arange(0.0, 20.0))
+    sx, sy = sx.ravel(), sy.ravel()
+    source = JointScan(np.c_[sx, sy, np.where(sx < 50.0, 0.5, 1.26)], up[: sx.size])  # the far ones beyond 1.25 mm
+    tree = joint_tree(target)
+    before, _ = _nearest(target, tree, source, np.eye(4), 1.0)
+    assert len(before.source) == 200 and len(before.near) == 0
+    turned = from_rotvec([0.0, 0.0, 0.0], [0.0, 0.0032, 0.0])  # the far points 0.29 mm down, to 0.97 mm
+    full, _ = _nearest(target, tree, source, turned, 1.0)
+    assert len(full.source) == 400
+    assert _nearest_again(target, tree, source, turned, 1.0, before, np.eye(4)) is None
+
+
 def test_the_points_a_pair_covers_are_each_named_once_in_order():
     """A pair's covered target points (:func:`joint._covered`, counted by index) are ``np.unique`` of its matches'
     targets, the same dtype; none where it has none."""
