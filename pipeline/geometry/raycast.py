@@ -57,7 +57,7 @@ class ScannerModel:
         """Noise-free hits of the scanner at pose ``T_F_S`` (scene in frame F), returned in frame S.
 
         The rays are rotated into F as one (3, 3) x (3, P) product and handed to Open3D without a copy; only the hit
-        rays' values are taken on in float64 (a full-resolution capture: 3.2 M rays, about half of them hits)."""
+        rays' values are taken on in float64 (a full-resolution capture: 3.2 M rays)."""
         T = np.asarray(T_F_S, float)
         R = T[:3, :3]
         rays = np.empty((len(self.directions_S), 6), np.float32)
