@@ -872,13 +872,15 @@ def _nearest_again(target: JointScan, tree: cKDTree, source: JointScan, T_S_i_S_
     moved less than ``delta`` (their largest move, ``(T - T_before) p``), a found point whose second-nearest target
     point was more than ``2 delta`` farther than its nearest keeps that one (the triangle inequality), a near one
     farther than ``max_mm + delta`` stays beyond ``max_mm``, and a point neither found nor near
-    (:class:`Association`) stays beyond it as long as every source point moved less than the reach's margin; the
-    rest are searched (on the whole part's second linearisation about 15 % of the points). None where a point moved
-    more: the pair is searched whole (:func:`_nearest`)."""
+    (:class:`Association`) stays beyond it as long as every source point moved less than the reach's margin (told
+    from the corners of their box, :func:`_box_corners`); the rest are searched (on the whole part's second
+    linearisation about 15 % of the points). None where a point may have moved more: the pair is searched whole
+    (:func:`_nearest`)."""
     D = T_S_i_S_j - before_at
     # a point neither found nor near may lie away from those that were and move more than any of them: the margin
-    # bounds every source point's move, not the candidates' alone
-    if _farthest_move_mm(D, source.points_S) + _SLACK_MM >= before.reach_mm - max_mm:
+    # bounds every source point's move, not the candidates' alone; a move |D p| is convex in p, so its largest over
+    # the points is at most its largest over the corners of their box (eight products, not one a point)
+    if _farthest_move_mm(D, _box_corners(source.points_S)) + _SLACK_MM >= before.reach_mm - max_mm:
         return None
     candidates = np.concatenate([before.source, before.near])
     points = source.points_S[candidates]
@@ -967,6 +969,12 @@ def _moved_beyond(scans: Sequence[JointScan], poses: np.ndarray, p: _Pair, m: _M
     D = invert(poses[p.i]) @ poses[p.j] - m.found_at
     points = scans[p.j].points_S[m.source]
     return _farthest_move_mm(D, points[::64]) > limit_mm or _farthest_move_mm(D, points) > limit_mm
+
+
+def _box_corners(points: np.ndarray) -> np.ndarray:
+    """The eight corners (8, 3) of the axis-aligned box of ``points`` (n, 3; at least one)."""
+    low, high = points.min(axis=0), points.max(axis=0)
+    return np.array([[(low, high)[k][0], (low, high)[m][1], (low, high)[q][2]] for k, m, q in np.ndindex(2, 2, 2)])
 
 
 def _farthest_move_mm(D: np.ndarray, points: np.ndarray) -> float:
