@@ -36,6 +36,7 @@ from tandemscan.pipeline.registration.correction import (
 
 from tests.pipeline.registration.test_registration_correction import surface
 
+pytestmark = pytest.mark.slow  # two corrections traced: about 5 CPU seconds
 #: a worker's peak on the part twice as long, at most this times the shorter one's (issue 43: 15 %)
 GROWTH = 1.15
 VOXEL_MM = 1.0
