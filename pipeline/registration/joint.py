@@ -869,10 +869,10 @@ def _nearest_again(target: JointScan, tree: cKDTree, source: JointScan, T_S_i_S_
                    before: Association, before_at: np.ndarray) -> tuple[Association, np.ndarray] | None:
     """:func:`_nearest` at the relative pose ``T_S_i_S_j`` of a pair whose search ``before`` (with its reach, found
     at the relative pose ``before_at``) knows every point that may have a target point within ``max_mm`` now: the
-    same neighbours (without a reach: a later search looks at every point again). Where the found and near points
-    moved less than ``delta`` (their largest move, ``(T - T_before) p``), a found point whose second-nearest target
-    point was more than ``2 delta`` farther than its nearest keeps that one (the triangle inequality), a near one
-    farther than ``max_mm + delta`` stays beyond ``max_mm``, and a point neither found nor near
+    same neighbours (without a reach: a later search looks at every point again). A found point that moved by
+    ``delta`` (``(T - T_before) p``) and whose second-nearest target point was more than ``2 delta`` farther than its
+    nearest keeps that one (the triangle inequality), a near one farther than ``max_mm + delta`` stays beyond
+    ``max_mm``, and a point neither found nor near
     (:class:`Association`) stays beyond it as long as every source point moved less than the reach's margin (told
     from the corners of their box, :func:`_box_corners`); the rest are searched (on the whole part's second
     linearisation about 15 % of the points). None where a point may have moved more: the pair is searched whole
@@ -885,13 +885,14 @@ def _nearest_again(target: JointScan, tree: cKDTree, source: JointScan, T_S_i_S_
         return None
     candidates = np.concatenate([before.source, before.near])
     points = source.points_S[candidates]
-    delta = _farthest_move_mm(D, points) + _SLACK_MM
+    moved = transform_points(D, points)
+    delta = np.sqrt(_row_dots(moved, moved)) + _SLACK_MM      # each point's own move: the bound of its distances'
     x = transform_points(T_S_i_S_j, points)          # each row as :func:`_nearest` places it, the same bits
     held = len(before.source)
     keeps = np.zeros(len(candidates), bool)
-    keeps[:held] = before.gap_mm > 2.0 * delta
+    keeps[:held] = before.gap_mm > 2.0 * delta[:held]
     ask = ~keeps
-    ask[held:] = before.near_mm < max_mm + delta
+    ask[held:] = before.near_mm < max_mm + delta[held:]
     nearest = np.full(len(candidates), -1, np.int64)
     kept = np.flatnonzero(keeps)
     d = x[kept] - target.points_S[before.target[kept]]
