@@ -233,15 +233,15 @@ def start_disk_sampling(store: Path) -> list:
     """Sum the bytes of the merge's scratch files every :data:`DISK_SAMPLE_S` on a thread of its own:
     (time.time(), the shards' bytes, the whole ``tiles/`` folder's bytes, the bytes of every shard seen so far)
     appended to the returned list, the shards the files under ``<store>/tiles/shards-*/`` (``tiles.place_scan``;
-    each lives from its scan's placing to its tile's merge, a map at least: all are seen), the folder also the tiles'
-    clouds and their deviations. What every shard takes is what a merge that placed every scan before merging a tile
-    held at its peak."""
+    each lives from its scan's placing to its tile's merge, a map at least, so nearly all are seen: one that lives
+    less than :data:`DISK_SAMPLE_S` may be missed), the folder also the tiles' clouds and their deviations. What every
+    shard takes (a lower bound) is what a merge that placed every scan before merging a tile held at its peak."""
     import threading
 
     from tandemscan.pipeline.stitching.tiles import TILES_FOLDER
 
     samples: list = []
-    seen: dict[str, int] = {}  # every shard file's size
+    seen: dict[str, int] = {}  # every shard file's size, by its name once written (``<name>.part`` while it is)
 
     def folder_bytes(folder: Path, shards: bool = False) -> tuple[int, int]:  # (its shards', all): files vanish
         in_shards = total = 0
@@ -259,7 +259,8 @@ def start_disk_sampling(store: Path) -> list:
                     total += size
                     if shards:
                         in_shards += size
-                        seen[entry.path] = max(size, seen.get(entry.path, 0))
+                        name = entry.path.removesuffix(".part")  # write_replacing's temporary name: one shard
+                        seen[name] = max(size, seen.get(name, 0))
         return in_shards, total
 
     def sample() -> None:
