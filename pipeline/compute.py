@@ -197,6 +197,7 @@ def _storing(unit_and_path: tuple[Any, str], *inputs: Any, fn: Callable[..., Any
 
 
 def _remove_file(path: str) -> None:
+    """Remove a kept result's file (:class:`StoredResults`: its last handle here is gone); none there: nothing."""
     Path(path).unlink(missing_ok=True)
 
 
