@@ -128,9 +128,9 @@ def strips(tmp_path_factory) -> dict[int, tuple[OneWorker, dict]]:
 
 
 def test_a_workers_correction_peak_does_not_grow_with_the_part(strips):
-    """With the pairs' matches kept on the worker between the refinement's stages (``ComputeBackend.keep`` on Dask,
-    before ``StoredResults``) it held 6.5 and 14.5 MB of them here at most and peaked at 8.1 and 13.9 MB (x 1.73);
-    now 5.7 and 5.5 MB."""
+    """The worker holds none of the pairs' matches between the refinement's stages (they wait in the store's files),
+    and its peak on the strip twice as long is within 15 % of the shorter one's; with the matches kept on it
+    (``ComputeBackend.keep`` on Dask) it grew with the pairs (the figures: docs/capacity.md)."""
     (short, short_report), (long_, long_report) = (strips[n] for n in (14, 28))
     assert long_report["joint"]["pairs"] > 2 * short_report["joint"]["pairs"]
     assert long_report["joint"]["correspondences"] > 2 * short_report["joint"]["correspondences"]
