@@ -284,6 +284,17 @@ def run_merge_unit(unit: PlaceScan | MergeTile) -> tuple[TileShard, ...] | TileC
     return place_scan(unit) if isinstance(unit, PlaceScan) else merge_tile(unit)
 
 
+def _not_in_merged(unit: PlaceScan, shards: tuple[TileShard, ...], merged: int) -> tuple[TileShard, ...]:
+    """The shards of a placed scan, checked against the waves' invariant: none in the first ``merged`` tiles, whose
+    merges were handed out with or before its wave. A shard there would be left out of its tile: the scan's bound of
+    x (``TileScan.x_min_mm``) did not bound its points, and the merge stops (ValueError) rather than drop them."""
+    late = sorted({s.index for s in shards if s.index < merged})
+    if late:
+        raise ValueError(f"scan {unit.order} ({unit.scan.file}) has voxels in tiles {late}, merged before its wave: "
+                         f"its bound of x from {unit.scan.x_min_mm:.3f} mm does not bound its points")
+    return shards
+
+
 def merge_tiles(scans: Sequence[TileScan], voxel_mm: float, tile_mm: float, store: str | Path,
                 backend: ComputeBackend) -> tuple[TileCloud, ...]:
     """The job's cloud merged tile by tile on ``backend`` (W, mm), in x order: the tiles' clouds one after the other
@@ -307,7 +318,7 @@ def merge_tiles(scans: Sequence[TileScan], voxel_mm: float, tile_mm: float, stor
             units = [*ready, *wave]  # the merges first: their shards leave the disk before the wave's come
             for u, out in zip(units, backend.map(run_merge_unit, units, [u.key() for u in units]), strict=True):
                 if isinstance(u, PlaceScan):
-                    placed[u.order] = out
+                    placed[u.order] = _not_in_merged(u, out, len(merging))
                 else:
                     merged.append(out)
     except BaseException:

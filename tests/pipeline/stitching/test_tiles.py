@@ -3,6 +3,7 @@ from the CAD, the report's figures and the PLYs are those of the untiled end of 
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 from pathlib import Path
 
@@ -162,6 +163,22 @@ def test_the_tiled_merge_reads_each_scan_once_and_leaves_only_its_tiles(tmp_path
     monkeypatch.setattr(tiles_module, "merge_tile", merge_or_fail)
     with pytest.raises(OSError, match="No space left"):
         merge_tiles(refs, VOXEL_MM, TILE_MM, tmp_path, LocalBackend())
+    assert not list((tmp_path / "tiles").iterdir())
+
+
+def test_a_scan_whose_bound_of_x_misses_its_points_stops_the_merge_not_its_voxels(tmp_path):
+    """The waves merge a tile once the scans whose bound of x reaches it are placed: a scan whose bound starts past
+    its points (a wrong ``x_min_mm``) would put voxels in tiles already merged. The merge raises, naming the scan,
+    and leaves neither shards nor tiles."""
+    refs, _ = stored_job(tmp_path, scans=3, points=5000)
+    grid = TileGrid.over(refs, VOXEL_MM, TILE_MM)
+    first = min(range(len(refs)), key=lambda i: refs[i].x_min_mm)
+    assert grid.tile_of(refs[first].x_min_mm) < len(grid) - 1  # it has points before the last tile
+    wrong = list(refs)
+    end = max(s.x_max_mm for s in refs)
+    wrong[first] = dataclasses.replace(refs[first], x_min_mm=end - 1.0, x_max_mm=end)  # placed in the last wave
+    with pytest.raises(ValueError, match=f"scan {first} .* merged before its wave"):
+        merge_tiles(wrong, VOXEL_MM, TILE_MM, tmp_path, LocalBackend())
     assert not list((tmp_path / "tiles").iterdir())
 
 
