@@ -1,5 +1,5 @@
-"""The simulated scanner's ray casting (``geometry.raycast``, docs/planning.md, step 6): a capture's hits are those of its
-rays cast in the plain way, whatever the arrays' layout the cast uses for speed (docs/capacity.md)."""
+"""The simulated scanner's ray casting (``geometry.raycast``, docs/planning.md, step 6): a capture's hits are those
+of its rays cast in the plain way, whatever the arrays' layout the cast uses for speed (docs/capacity.md)."""
 
 from __future__ import annotations
 
