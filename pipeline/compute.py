@@ -196,11 +196,6 @@ def _storing(unit_and_path: tuple[Any, str], *inputs: Any, fn: Callable[..., Any
     return StoredResult(path)
 
 
-def _remove_file(path: str) -> None:
-    """Remove a kept result's file (:class:`StoredResults`: its last handle here is gone); none there: nothing."""
-    Path(path).unlink(missing_ok=True)
-
-
 class StoredResults:
     """A compute backend whose kept results are files in ``folder`` (a folder of the job's scan store, which every
     worker reaches), not data held where they were computed: :meth:`keep` runs its units on ``backend`` (its
@@ -232,7 +227,7 @@ class StoredResults:
         handles = self.backend.map(functools.partial(_storing, fn=fn), list(zip(units, paths, strict=True)), keys,
                                    [()] * len(units) if inputs is None else inputs)
         for handle in handles:
-            weakref.finalize(handle, _remove_file, handle.path)
+            weakref.finalize(handle, Path(handle.path).unlink, missing_ok=True)  # its last handle here gone
         return handles
 
     def put(self, values: Sequence[Any]) -> list:
